@@ -1,0 +1,163 @@
+"""Batch closed loop: plant, MPC and excitation for N samples without ROS.
+
+The ROS nodes wrap the same objects (:class:`~mpm_monitor.plant.PlantSimulator`,
+:class:`~mpm_monitor.mpc.InternalModelMpc`, :class:`~mpm_monitor.excitation.PrbsGenerator`), so a
+batch run and a run through the nodes with the same seeds produce the same samples.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import numpy as np
+
+from .excitation import PrbsGenerator, PrbsOptions, ZeroGenerator
+from .model import FopdtModel
+from .mpc import InternalModelMpc, MpcOptions
+from .plant import DisturbanceOptions, PlantSimulator
+
+
+@dataclasses.dataclass
+class ClosedLoopLog:
+    """Signals of a closed-loop run, one row per sample.
+
+    Attributes
+    ----------
+    t : ndarray, shape (n_samples,)
+        Time in seconds.
+    r : ndarray, shape (n_samples, n_outputs)
+        Setpoints.
+    u : ndarray, shape (n_samples, n_inputs)
+        Plant inputs (including any dither).
+    y : ndarray, shape (n_samples, n_outputs)
+        Measured outputs.
+    yhat : ndarray, shape (n_samples, n_outputs)
+        The controller's model output ``Phat u``.
+    d : ndarray, shape (n_samples, n_outputs)
+        Prediction error ``y - yhat``.
+    eps : ndarray, shape (n_samples, n_outputs)
+        Controller input ``r - d``.
+    disturbance : ndarray, shape (n_samples, n_outputs)
+        The injected output disturbance ``v`` (simulation only).
+    noise : ndarray, shape (n_samples, n_outputs)
+        The injected measurement noise (simulation only).
+    dither : ndarray, shape (n_samples, n_inputs)
+        The additive input dither.
+    inputs, outputs : tuple of str
+        Channel names.
+    sample_time : float
+        Seconds per sample.
+    """
+
+    t: np.ndarray
+    r: np.ndarray
+    u: np.ndarray
+    y: np.ndarray
+    yhat: np.ndarray
+    d: np.ndarray
+    eps: np.ndarray
+    disturbance: np.ndarray
+    noise: np.ndarray
+    dither: np.ndarray
+    inputs: tuple
+    outputs: tuple
+    sample_time: float
+
+    @property
+    def n_samples(self) -> int:
+        return self.t.shape[0]
+
+
+@dataclasses.dataclass(frozen=True)
+class ExcitationOptions:
+    """Setpoint PRBS and optional input dither of a closed-loop experiment.
+
+    Attributes
+    ----------
+    setpoint : PrbsOptions
+        PRBS on every setpoint (paper: band 0 to Nyquist).
+    dither : PrbsOptions or None
+        PRBS added to every plant input (the paper's second experiment); None = no dither.
+    """
+
+    setpoint: PrbsOptions = PrbsOptions()
+    dither: Optional[PrbsOptions] = None
+
+
+def seeded_generators(seed: int) -> dict:
+    """Independent random generators for the plant, setpoints and dither from one seed."""
+    plant_ss, sp_ss, dither_ss = np.random.SeedSequence(seed).spawn(3)
+    return {"plant": np.random.default_rng(plant_ss), "setpoint": np.random.default_rng(sp_ss),
+            "dither": np.random.default_rng(dither_ss)}
+
+
+def run_closed_loop(plant: FopdtModel, controller_model: FopdtModel, n_samples: int, *,
+                    seed: int = 0, mpc: MpcOptions = MpcOptions(),
+                    excitation: ExcitationOptions = ExcitationOptions(),
+                    disturbance: DisturbanceOptions = DisturbanceOptions(),
+                    setpoints: Optional[np.ndarray] = None,
+                    output_disturbance: Optional[np.ndarray] = None) -> ClosedLoopLog:
+    """Simulate the internal-model MPC loop for ``n_samples`` samples.
+
+    Parameters
+    ----------
+    plant : FopdtModel
+        The true plant ``P``.
+    controller_model : FopdtModel
+        The controller's model ``Phat`` (same inputs and outputs as ``plant``).
+    n_samples : int
+        Number of samples.
+    seed : int
+        Seed of every random source (noise, PRBS, dither).
+    mpc : MpcOptions
+        Controller tuning.
+    excitation : ExcitationOptions
+        Setpoint PRBS and input dither.
+    disturbance : DisturbanceOptions
+        Disturbance and measurement noise.
+    setpoints : ndarray, shape (n_samples, n_outputs), optional
+        Given setpoints instead of the PRBS.
+    output_disturbance : ndarray, shape (n_samples, n_outputs), optional
+        An extra disturbance added to the outputs (e.g. an unmeasured step).
+
+    Returns
+    -------
+    ClosedLoopLog
+    """
+    if plant.inputs != controller_model.inputs or plant.outputs != controller_model.outputs:
+        raise ValueError("plant and controller model must have the same inputs and outputs")
+    if plant.sample_time != controller_model.sample_time:
+        raise ValueError("plant and controller model must have the same sample_time")
+    n = int(n_samples)
+    ny, nu = plant.n_outputs, plant.n_inputs
+    rngs = seeded_generators(seed)
+    sim = PlantSimulator(plant, disturbance, rngs["plant"])
+    ctrl = InternalModelMpc(controller_model, mpc)
+    if setpoints is None:
+        r_all = PrbsGenerator(ny, excitation.setpoint, rngs["setpoint"]).generate(n)
+    else:
+        r_all = np.asarray(setpoints, dtype=float).reshape(n, ny)
+    if excitation.dither is None:
+        dither_all = ZeroGenerator(nu).generate(n)
+    else:
+        dither_all = PrbsGenerator(nu, excitation.dither, rngs["dither"]).generate(n)
+    extra = None if output_disturbance is None else np.asarray(output_disturbance, dtype=float).reshape(n, ny)
+    out = {k: np.zeros((n, ny)) for k in ("y", "yhat", "d", "eps", "v", "noise")}
+    u_all = np.zeros((n, nu))
+    use_dither = excitation.dither is not None
+    for k in range(n):
+        y = sim.measure(None if extra is None else extra[k])
+        u = ctrl.step(r_all[k], y, dither_all[k] if use_dither else None)
+        sim.apply(u)
+        out["y"][k] = y
+        out["yhat"][k] = ctrl.yhat
+        out["d"][k] = ctrl.prediction_error
+        out["eps"][k] = ctrl.controller_input
+        out["v"][k] = sim.last_disturbance
+        out["noise"][k] = sim.last_noise
+        u_all[k] = u
+    t = np.arange(n) * plant.sample_time
+    return ClosedLoopLog(t=t, r=r_all, u=u_all, y=out["y"], yhat=out["yhat"], d=out["d"], eps=out["eps"],
+                         disturbance=out["v"], noise=out["noise"], dither=dither_all,
+                         inputs=plant.inputs, outputs=plant.outputs, sample_time=plant.sample_time)

@@ -1,0 +1,242 @@
+"""Exact zero-order-hold discretization of a first-order-plus-dead-time transfer matrix.
+
+For an element ``K e^{-theta s} / (tau s + 1)`` with ``theta = n_d T`` (an integer number of
+samples), the zero-order-hold (step-invariant) equivalent is (Franklin, Powell & Workman, *Digital
+Control of Dynamic Systems*, 3rd ed., section 4.3)::
+
+    G(z) = K (1 - a) z^{-(n_d + 1)} / (1 - a z^{-1}),   a = exp(-T / tau)     (tau > 0)
+    G(z) = K z^{-n_d}                                                          (tau = 0)
+
+In state-space form every element with a non-zero gain has one lag state ``s`` with
+``s(k+1) = a s(k) + b u_j(k - m)`` and contributes ``s(k)`` to its output, where for ``tau > 0``
+``b = K (1 - a)`` and ``m = n_d``; for ``tau = 0`` ``a = 0``, ``b = K`` and ``m = n_d - 1``; a static
+element without delay (``tau = 0, n_d = 0``) is a direct feed-through ``D``.  The delayed inputs
+``u_j(k - m)`` come from one shift register per input, shared by the elements of its column.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .model import FopdtModel
+
+
+@dataclasses.dataclass(frozen=True)
+class DiscreteFopdt:
+    """Element-wise discrete form of a :class:`FopdtModel`.
+
+    Attributes
+    ----------
+    pole : ndarray, shape (n_outputs, n_inputs)
+        ``a`` of each element (0 for static elements).
+    numerator : ndarray, shape (n_outputs, n_inputs)
+        ``b`` of each element (0 where the gain is 0 or the element is a feed-through).
+    input_lag : ndarray of int, shape (n_outputs, n_inputs)
+        ``m``: the state update uses ``u_j(k - m)``.
+    feedthrough : ndarray, shape (n_outputs, n_inputs)
+        ``D``: direct feed-through of static elements without delay.
+    active : ndarray of bool, shape (n_outputs, n_inputs)
+        Elements with a lag state (non-zero gain and not a pure feed-through).
+    """
+
+    pole: np.ndarray
+    numerator: np.ndarray
+    input_lag: np.ndarray
+    feedthrough: np.ndarray
+    active: np.ndarray
+
+    @property
+    def strictly_proper(self) -> bool:
+        """True when no element is a direct feed-through."""
+        return not np.any(self.feedthrough != 0)
+
+
+def discretize(model: FopdtModel) -> DiscreteFopdt:
+    """Zero-order-hold discretization of every element of ``model``.
+
+    Parameters
+    ----------
+    model : FopdtModel
+        The continuous-time model; its delays are multiples of ``model.sample_time``.
+
+    Returns
+    -------
+    DiscreteFopdt
+        Element-wise poles, numerators, input lags (samples) and feed-through.
+    """
+    ts = model.sample_time
+    gain, tau, nd = model.gain, model.time_constant, model.delay_samples
+    lagged = tau > 0
+    with np.errstate(divide="ignore", over="ignore"):
+        a = np.where(lagged, np.exp(-ts / np.where(lagged, tau, 1.0)), 0.0)
+    nonzero = gain != 0
+    static_direct = nonzero & ~lagged & (nd == 0)
+    active = nonzero & ~static_direct
+    b = np.where(active, np.where(lagged, gain * (1.0 - a), gain), 0.0)
+    m = np.where(lagged, nd, np.maximum(nd - 1, 0))
+    m = np.where(active, m, 0).astype(int)
+    d = np.where(static_direct, gain, 0.0)
+    a = np.where(active, a, 0.0)
+    return DiscreteFopdt(pole=a, numerator=b, input_lag=m, feedthrough=d, active=active)
+
+
+@dataclasses.dataclass(frozen=True)
+class StateSpace:
+    """A discrete-time state-space model ``x(k+1) = A x(k) + B u(k)``, ``y(k) = C x(k) + D u(k)``.
+
+    Attributes
+    ----------
+    A : ndarray, shape (n_states, n_states)
+    B : ndarray, shape (n_states, n_inputs)
+    C : ndarray, shape (n_outputs, n_states)
+    D : ndarray, shape (n_outputs, n_inputs)
+    sample_time : float
+        Seconds per sample.
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    D: np.ndarray
+    sample_time: float
+
+    @property
+    def n_states(self) -> int:
+        return self.A.shape[0]
+
+
+def state_space(model: FopdtModel) -> StateSpace:
+    """Dense state-space realization of the discretized model (see the module docstring).
+
+    The state holds the lag states of the active elements (row-major order) followed by, for each
+    input ``j``, the shift register ``u_j(k-1), ..., u_j(k-L_j)`` with ``L_j`` the largest input lag
+    of column ``j``.
+
+    Parameters
+    ----------
+    model : FopdtModel
+
+    Returns
+    -------
+    StateSpace
+        Exact ZOH equivalent including the integer delays.
+    """
+    disc = discretize(model)
+    ny, nu = model.n_outputs, model.n_inputs
+    elems = [(i, j) for i in range(ny) for j in range(nu) if disc.active[i, j]]
+    n_lag = len(elems)
+    reg_len = [int(np.max(disc.input_lag[:, j], initial=0, where=disc.active[:, j])) for j in range(nu)]
+    # Start index of each input's shift register.
+    reg_start = []
+    pos = n_lag
+    for j in range(nu):
+        reg_start.append(pos)
+        pos += reg_len[j]
+    nx = pos
+    A = np.zeros((nx, nx))
+    B = np.zeros((nx, nu))
+    C = np.zeros((ny, nx))
+    for s, (i, j) in enumerate(elems):
+        A[s, s] = disc.pole[i, j]
+        m = disc.input_lag[i, j]
+        if m == 0:
+            B[s, j] = disc.numerator[i, j]
+        else:
+            A[s, reg_start[j] + m - 1] = disc.numerator[i, j]
+        C[i, s] = 1.0
+    for j in range(nu):
+        if reg_len[j] == 0:
+            continue
+        r0 = reg_start[j]
+        B[r0, j] = 1.0
+        for l in range(1, reg_len[j]):
+            A[r0 + l, r0 + l - 1] = 1.0
+    return StateSpace(A=A, B=B, C=C, D=disc.feedthrough.copy(), sample_time=model.sample_time)
+
+
+def simulate(model: FopdtModel, u: np.ndarray, x0: np.ndarray | None = None) -> np.ndarray:
+    """Response of the discretized model to an input sequence, from rest (or from ``x0``).
+
+    Parameters
+    ----------
+    model : FopdtModel
+    u : ndarray, shape (n_samples, n_inputs)
+        Input in deviation variables, held constant over each sample.
+    x0 : ndarray, shape (n_states,), optional
+        Initial state of :func:`state_space` (zeros by default).
+
+    Returns
+    -------
+    ndarray, shape (n_samples, n_outputs)
+        ``y(k)`` for ``k = 0 .. n_samples - 1``.
+    """
+    ss = state_space(model)
+    return simulate_state_space(ss, u, x0)
+
+
+def simulate_state_space(ss: StateSpace, u: np.ndarray, x0: np.ndarray | None = None) -> np.ndarray:
+    """Response of a :class:`StateSpace` to ``u`` of shape (n_samples, n_inputs)."""
+    from scipy import signal
+
+    u = np.asarray(u, dtype=float)
+    n = u.shape[0]
+    ny = ss.C.shape[0]
+    if n == 0:
+        return np.zeros((0, ny))
+    if ss.n_states == 0:
+        return u @ ss.D.T
+    x0 = np.zeros(ss.n_states) if x0 is None else np.asarray(x0, dtype=float)
+    if n == 1:
+        return (ss.C @ x0 + ss.D @ u[0])[None, :]
+    _, y, _ = signal.dlsim((ss.A, ss.B, ss.C, ss.D, ss.sample_time), u, x0=x0)
+    return np.asarray(y).reshape(n, ny)
+
+
+def frequency_response(model: FopdtModel, omega: np.ndarray, discrete: bool = True) -> np.ndarray:
+    """Frequency response of every element.
+
+    Parameters
+    ----------
+    model : FopdtModel
+    omega : ndarray, shape (n_freq,)
+        Frequencies in rad/s (continuous) or rad/sample (discrete).
+    discrete : bool
+        True: the ZOH equivalent ``G(e^{j omega})`` with omega in rad/sample; False: the continuous
+        ``K e^{-j omega theta} / (j omega tau + 1)`` with omega in rad/s.
+
+    Returns
+    -------
+    ndarray of complex, shape (n_freq, n_outputs, n_inputs)
+    """
+    omega = np.asarray(omega, dtype=float)
+    w = omega[:, None, None]
+    if not discrete:
+        return model.gain * np.exp(-1j * w * model.delay) / (1j * w * model.time_constant + 1.0)
+    disc = discretize(model)
+    z1 = np.exp(-1j * w)  # z^-1
+    # s(k+1) = a s(k) + b u(k - m)  =>  S = b z^{-(m+1)} / (1 - a z^{-1})
+    resp = disc.numerator * z1 ** (disc.input_lag + 1) / (1.0 - disc.pole * z1)
+    resp = np.where(disc.active, resp, 0.0) + disc.feedthrough
+    return resp
+
+
+def settling_samples(model: FopdtModel, fraction: float = 1e-3) -> int:
+    """Samples after which every element's free response has decayed below ``fraction``.
+
+    Parameters
+    ----------
+    model : FopdtModel
+    fraction : float
+        Remaining fraction of the initial free response, in (0, 1).
+
+    Returns
+    -------
+    int
+        ``max_ij (delay_ij + tau_ij ln(1/fraction) / T)`` rounded up, in samples.
+    """
+    tau = model.time_constant / model.sample_time
+    n = model.delay_samples + np.ceil(tau * np.log(1.0 / fraction))
+    n = np.where(model.gain != 0, n, 0)
+    return int(np.max(n)) + 1

@@ -1,0 +1,136 @@
+"""Excitation core: PRBS setpoints, step/hold setpoints and an additive input dither.
+
+A pseudo-random binary sequence with switching probability 1/2 at every sample has a flat
+spectrum from 0 to the Nyquist frequency (Ljung, *System Identification*, 2nd ed., section 13.3);
+a smaller switching probability or a minimum hold time moves its power to lower frequencies.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .errors import ConfigurationError
+
+
+@dataclasses.dataclass(frozen=True)
+class PrbsOptions:
+    """Options of a PRBS signal.
+
+    Attributes
+    ----------
+    amplitude : float
+        Half the peak-to-peak level; the signal takes values ``offset +- amplitude``.
+    switch_probability : float
+        Probability of a switch at each sample once ``min_hold`` has elapsed, in (0, 1].
+        0.5 gives a flat spectrum up to the Nyquist frequency.
+    min_hold : int
+        Minimum number of samples between switches (>= 1).
+    offset : float
+        Centre value.
+    """
+
+    amplitude: float = 1.0
+    switch_probability: float = 0.5
+    min_hold: int = 1
+    offset: float = 0.0
+
+    def __post_init__(self):
+        check_prbs_options(self)
+
+
+def check_prbs_options(opts: PrbsOptions) -> None:
+    """Raise :class:`ConfigurationError` when an option is outside its range."""
+    if not (np.isfinite(opts.amplitude) and opts.amplitude >= 0):
+        raise ConfigurationError(f"amplitude: expected a finite number >= 0, got {opts.amplitude!r}")
+    if not (0.0 < opts.switch_probability <= 1.0):
+        raise ConfigurationError(f"switch_probability: expected a number in (0, 1], got {opts.switch_probability!r}")
+    if int(opts.min_hold) != opts.min_hold or opts.min_hold < 1:
+        raise ConfigurationError(f"min_hold: expected an integer >= 1 (samples), got {opts.min_hold!r}")
+    if not np.isfinite(opts.offset):
+        raise ConfigurationError(f"offset: expected a finite number, got {opts.offset!r}")
+
+
+class PrbsGenerator:
+    """Independent PRBS channels, one value per channel per call.
+
+    Parameters
+    ----------
+    n_channels : int
+        Number of channels.
+    options : PrbsOptions
+    rng : numpy.random.Generator
+        Source of the switching decisions and of the initial signs.
+    """
+
+    def __init__(self, n_channels: int, options: PrbsOptions, rng: np.random.Generator):
+        self.n_channels = int(n_channels)
+        self.options = options
+        self._rng = rng
+        self._sign = np.where(rng.random(self.n_channels) < 0.5, -1.0, 1.0)
+        self._held = np.zeros(self.n_channels, dtype=int)
+        self._first = True
+
+    def next(self) -> np.ndarray:
+        """The next sample, shape (n_channels,)."""
+        opts = self.options
+        draw = self._rng.random(self.n_channels)
+        if self._first:
+            self._first = False
+        else:
+            switch = (self._held >= opts.min_hold) & (draw < opts.switch_probability)
+            self._sign = np.where(switch, -self._sign, self._sign)
+            self._held = np.where(switch, 0, self._held)
+        self._held += 1
+        return opts.offset + opts.amplitude * self._sign
+
+    def generate(self, n_samples: int) -> np.ndarray:
+        """``n_samples`` consecutive samples, shape (n_samples, n_channels)."""
+        return np.array([self.next() for _ in range(int(n_samples))]).reshape(int(n_samples), self.n_channels)
+
+
+class StepHoldGenerator:
+    """Setpoints that step through a list of levels, holding each for ``hold_samples``.
+
+    Parameters
+    ----------
+    levels : ndarray, shape (n_levels, n_channels)
+        Successive setpoint vectors; the sequence repeats.
+    hold_samples : int
+        Samples each level is held (>= 1).
+    """
+
+    def __init__(self, levels, hold_samples: int):
+        levels = np.atleast_2d(np.asarray(levels, dtype=float))
+        if levels.size == 0 or not np.all(np.isfinite(levels)):
+            raise ConfigurationError("levels: expected a non-empty list of finite setpoint vectors")
+        if int(hold_samples) != hold_samples or hold_samples < 1:
+            raise ConfigurationError(f"hold_samples: expected an integer >= 1, got {hold_samples!r}")
+        self.levels = levels
+        self.n_channels = levels.shape[1]
+        self.hold_samples = int(hold_samples)
+        self._k = 0
+
+    def next(self) -> np.ndarray:
+        """The next sample, shape (n_channels,)."""
+        idx = (self._k // self.hold_samples) % self.levels.shape[0]
+        self._k += 1
+        return self.levels[idx].copy()
+
+    def generate(self, n_samples: int) -> np.ndarray:
+        """``n_samples`` consecutive samples, shape (n_samples, n_channels)."""
+        return np.array([self.next() for _ in range(int(n_samples))]).reshape(int(n_samples), self.n_channels)
+
+
+class ZeroGenerator:
+    """A generator of zeros (no dither)."""
+
+    def __init__(self, n_channels: int):
+        self.n_channels = int(n_channels)
+
+    def next(self) -> np.ndarray:
+        return np.zeros(self.n_channels)
+
+    def generate(self, n_samples: int) -> np.ndarray:
+        return np.zeros((int(n_samples), self.n_channels))

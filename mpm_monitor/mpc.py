@@ -1,0 +1,276 @@
+"""Model predictive controller in internal-model (IMC) structure.
+
+The controller keeps its own model output ``yhat = Phat u``, forms the prediction error
+``d = y - yhat`` and the controller input ``eps = r - d`` (paper, Fig. 1), and at every sample
+minimises over the moves ``du(k), ..., du(k + Hc - 1)``::
+
+    J = sum_{i=1}^{Hp} ||eps(k) - yhat(k+i)||_Q^2 + sum_{i=0}^{Hp-1} ||u(k+i) - u_nom||_R^2
+        + sum_{i=0}^{Hc-1} ||du(k+i)||_S^2
+
+with ``d`` assumed constant over the horizon (the DMC disturbance model; Maciejowski, *Predictive
+Control with Constraints*, 2002, section 2.3) and ``u`` held after ``Hc`` moves.  Without bounds the
+optimum is the closed form ``dU = H^{-1} (G' Q e0 - M' R g0)``; with bounds on ``u`` and ``du`` the
+QP is solved by OSQP (Stellato et al., 2020), warm-started from the previous solution.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional, Sequence, Union
+
+import numpy as np
+
+from .discretize import state_space
+from .errors import ConfigurationError
+from .model import FopdtModel
+from .plant import require_strictly_proper
+
+Weight = Union[float, Sequence[float]]
+
+
+@dataclasses.dataclass(frozen=True)
+class MpcOptions:
+    """Tuning of the MPC (paper-cases.md, common set-up).
+
+    Attributes
+    ----------
+    prediction_horizon : int
+        ``Hp``, samples (>= 1).
+    control_horizon : int
+        ``Hc``, samples, 1 <= Hc <= Hp.
+    output_weight, input_weight, input_rate_weight : float or sequence of float
+        Diagonal weights ``Q`` (per output), ``R`` (per input, on ``u - u_nom``) and ``S`` (per
+        input, on ``du``); >= 0.  A scalar applies to every channel.
+    input_nominal : sequence of float or None
+        ``u_nom`` in deviation variables (default zeros).
+    u_min, u_max : float, sequence of float or None
+        Bounds on the plant input (deviation variables); None = unbounded.
+    du_max : float, sequence of float or None
+        Bound on ``|du|`` per sample; None = unbounded.
+    qp_tolerance : float
+        Absolute and relative tolerance given to OSQP.
+    """
+
+    prediction_horizon: int = 100
+    control_horizon: int = 30
+    output_weight: Weight = 1.0
+    input_weight: Weight = 1.0
+    input_rate_weight: Weight = 0.1
+    input_nominal: Optional[Sequence[float]] = None
+    u_min: Optional[Weight] = None
+    u_max: Optional[Weight] = None
+    du_max: Optional[Weight] = None
+    qp_tolerance: float = 1e-9
+
+    def __post_init__(self):
+        hp, hc = self.prediction_horizon, self.control_horizon
+        if int(hp) != hp or hp < 1:
+            raise ConfigurationError(f"prediction_horizon: expected an integer >= 1 (samples), got {hp!r}")
+        if int(hc) != hc or not 1 <= hc <= hp:
+            raise ConfigurationError(
+                f"control_horizon: expected an integer in [1, prediction_horizon={hp}] (samples), got {hc!r}")
+        if not (self.qp_tolerance > 0):
+            raise ConfigurationError(f"qp_tolerance: expected a positive number, got {self.qp_tolerance!r}")
+
+    @property
+    def constrained(self) -> bool:
+        """True when any bound is given."""
+        return any(b is not None for b in (self.u_min, self.u_max, self.du_max))
+
+
+def _diag(value, n: int, name: str, allow_none=False, fill=None) -> np.ndarray:
+    if value is None:
+        if allow_none:
+            return np.full(n, fill, dtype=float)
+        raise ConfigurationError(f"{name}: expected a number or a list of {n} numbers")
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim == 0:
+        arr = np.full(n, float(arr))
+    if arr.shape != (n,):
+        raise ConfigurationError(f"{name}: expected a number or a list of {n} numbers, got shape {arr.shape}")
+    if np.any(np.isnan(arr)):
+        raise ConfigurationError(f"{name}: expected numbers, got NaN")
+    return arr
+
+
+class InternalModelMpc:
+    """Unconstrained or bounded MPC in internal-model structure.
+
+    Parameters
+    ----------
+    model : FopdtModel
+        The controller's plant model ``Phat`` (strictly proper in discrete time).
+    options : MpcOptions
+        Horizons, weights and bounds.
+
+    Notes
+    -----
+    Call :meth:`step` once per sample with the setpoint ``r(k)`` and the measurement ``y(k)``; it
+    returns the plant input ``u(k)`` and advances the internal model with it.  The signals of the
+    last step are in :attr:`yhat`, :attr:`prediction_error` and :attr:`controller_input`.
+    """
+
+    def __init__(self, model: FopdtModel, options: MpcOptions = MpcOptions()):
+        require_strictly_proper(model, what="controller model")
+        self.model = model
+        self.options = options
+        ny, nu = model.n_outputs, model.n_inputs
+        self._ss = state_space(model)
+        self.q = _diag(options.output_weight, ny, "output_weight")
+        self.r = _diag(options.input_weight, nu, "input_weight")
+        self.s = _diag(options.input_rate_weight, nu, "input_rate_weight")
+        for name, w in (("output_weight", self.q), ("input_weight", self.r), ("input_rate_weight", self.s)):
+            if np.any(w < 0) or not np.all(np.isfinite(w)):
+                raise ConfigurationError(f"{name}: expected finite numbers >= 0")
+        self.u_nom = _diag(options.input_nominal, nu, "input_nominal", allow_none=True, fill=0.0)
+        self.u_min = _diag(options.u_min, nu, "u_min", allow_none=True, fill=-np.inf)
+        self.u_max = _diag(options.u_max, nu, "u_max", allow_none=True, fill=np.inf)
+        self.du_max = _diag(options.du_max, nu, "du_max", allow_none=True, fill=np.inf)
+        if np.any(self.u_min > self.u_max):
+            raise ConfigurationError("u_min, u_max: expected u_min <= u_max for every input")
+        if np.any(self.du_max <= 0):
+            raise ConfigurationError("du_max: expected positive numbers")
+        self._build()
+        self._qp = None
+        self.reset()
+
+    # ------------------------------------------------------------------ set-up
+    def _build(self) -> None:
+        ss, opts = self._ss, self.options
+        ny, nu, nx = self.model.n_outputs, self.model.n_inputs, ss.n_states
+        hp, hc = opts.prediction_horizon, opts.control_horizon
+        # Step-response coefficients S_n = sum_{m<=n} C A^m B, n = 0..Hp-1, and Phi_i = C A^i.
+        step = np.zeros((hp, ny, nu))
+        phi = np.zeros((hp * ny, nx))
+        ca = ss.C.copy()  # C A^m
+        acc = np.zeros((ny, nu))
+        for m in range(hp):
+            acc = acc + ca @ ss.B
+            step[m] = acc
+            ca = ca @ ss.A
+            phi[m * ny:(m + 1) * ny] = ca  # row block i = m + 1: C A^{m+1}
+        # G = Gamma M: block (i, t) = S_{i-1-t} for i-1 >= t (i = 1..Hp, t = 0..Hc-1).
+        G = np.zeros((hp * ny, hc * nu))
+        for i in range(1, hp + 1):
+            for t in range(min(i, hc)):
+                G[(i - 1) * ny:i * ny, t * nu:(t + 1) * nu] = step[i - 1 - t]
+        gamma_e = step.reshape(hp * ny, nu)  # Gamma E: block i = S_{i-1}
+        Qb = np.tile(self.q, hp)
+        # M' Rbar M: block (t, t') = (Hp - max(t, t')) R; M' Rbar E: block t = (Hp - t) R.
+        tt = np.arange(hc)
+        cnt = hp - np.maximum.outer(tt, tt)
+        MRM = np.kron(cnt, np.diag(self.r))
+        MRE = np.kron((hp - tt)[:, None], np.diag(self.r))
+        H = G.T @ (Qb[:, None] * G) + MRM + np.diag(np.tile(self.s, hc))
+        H = 0.5 * (H + H.T)
+        GQ = G.T * Qb  # (Hc nu, Hp ny)
+        try:
+            chol = np.linalg.cholesky(H)
+        except np.linalg.LinAlgError:
+            raise ConfigurationError(
+                "MPC weights give a singular problem: use a positive input_rate_weight or input_weight") from None
+
+        def solve(rhs):
+            return np.linalg.solve(chol.T, np.linalg.solve(chol, rhs))
+
+        ones = np.tile(np.eye(ny), (hp, 1))
+        self._K_eps = solve(GQ @ ones)                  # (Hc nu, ny)
+        self._K_x = -solve(GQ @ phi)                    # (Hc nu, nx)
+        self._K_u = -solve(GQ @ gamma_e + MRE)          # (Hc nu, nu)
+        self._K_nom = solve(MRE)                        # (Hc nu, nu)
+        self._H = H
+        # Cumulative-sum matrix for u(k+t) = u_prev + sum_{t'<=t} du(k+t'), t < Hc.
+        self._Mc = np.kron(np.tril(np.ones((hc, hc))), np.eye(nu))
+        self._nu, self._hc = nu, hc
+
+    def reset(self, u0: Optional[np.ndarray] = None) -> None:
+        """Reset the internal model to rest and the previous move to ``u0`` (default ``u_nom``)."""
+        self._x = np.zeros(self._ss.n_states)
+        self._u_prev = self.u_nom.copy() if u0 is None else np.asarray(u0, dtype=float).copy()
+        self._last_du = None
+        ny = self.model.n_outputs
+        self.yhat = np.zeros(ny)
+        self.prediction_error = np.zeros(ny)
+        self.controller_input = np.zeros(ny)
+        self.qp_solves = 0
+
+    # ------------------------------------------------------------------ control law
+    def unconstrained_moves(self, eps: np.ndarray, x: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
+        """Closed-form optimal moves ``dU`` of shape (Hc * n_inputs,) without bounds."""
+        return self._K_eps @ eps + self._K_x @ x + self._K_u @ u_prev + self._K_nom @ self.u_nom
+
+    def solve_qp(self, eps: np.ndarray, x: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
+        """Optimal moves ``dU`` of shape (Hc * n_inputs,) with the bounds, solved by OSQP."""
+        import osqp
+        import scipy.sparse as sp
+
+        du_unc = self.unconstrained_moves(eps, x, u_prev)
+        q = -self._H @ du_unc  # J = 1/2 dU' H dU + q' dU up to a constant
+        nu, hc = self._nu, self._hc
+        lo = np.concatenate([np.tile(self.u_min, hc) - np.tile(u_prev, hc),
+                             -np.tile(self.du_max, hc)])
+        hi = np.concatenate([np.tile(self.u_max, hc) - np.tile(u_prev, hc), np.tile(self.du_max, hc)])
+        lo = np.where(np.isfinite(lo), lo, -np.inf)
+        hi = np.where(np.isfinite(hi), hi, np.inf)
+        if self._qp is None:
+            A = sp.csc_matrix(np.vstack([self._Mc, np.eye(nu * hc)]))
+            P = sp.csc_matrix(np.triu(self._H))
+            self._qp = osqp.OSQP()
+            tol = self.options.qp_tolerance
+            self._qp.setup(P, q, A, lo, hi, verbose=False, eps_abs=tol, eps_rel=tol, polishing=True,
+                           warm_starting=True, max_iter=20000)
+        else:
+            self._qp.update(q=q, l=lo, u=hi)
+        if self._last_du is not None:
+            shifted = np.concatenate([self._last_du[nu:], np.zeros(nu)])
+            self._qp.warm_start(x=shifted)
+        res = self._qp.solve()
+        self.qp_solves += 1
+        if res.x is None or res.info.status not in ("solved", "solved inaccurate") or not np.all(np.isfinite(res.x)):
+            # Infeasible or failed: fall back to the clipped unconstrained move (never exceed bounds).
+            return du_unc
+        return np.asarray(res.x, dtype=float)
+
+    def step(self, r: np.ndarray, y: np.ndarray, dither: Optional[np.ndarray] = None) -> np.ndarray:
+        """One control step.
+
+        Parameters
+        ----------
+        r : ndarray, shape (n_outputs,)
+            Setpoint ``r(k)``.
+        y : ndarray, shape (n_outputs,)
+            Measured output ``y(k)``.
+        dither : ndarray, shape (n_inputs,), optional
+            Additive excitation on the plant input (the paper's second experiment); the internal
+            model is driven by the total input so that ``yhat = Phat u`` holds for the applied ``u``.
+
+        Returns
+        -------
+        ndarray, shape (n_inputs,)
+            The plant input ``u(k)`` (within the bounds).
+        """
+        ss = self._ss
+        self.yhat = ss.C @ self._x
+        self.prediction_error = np.asarray(y, dtype=float) - self.yhat
+        self.controller_input = np.asarray(r, dtype=float) - self.prediction_error
+        eps = self.controller_input
+        nu = self._nu
+        if not self.options.constrained:
+            du0 = (self._K_eps[:nu] @ eps + self._K_x[:nu] @ self._x + self._K_u[:nu] @ self._u_prev
+                   + self._K_nom[:nu] @ self.u_nom)
+            u_ctrl = self._u_prev + du0
+        else:
+            du = self.unconstrained_moves(eps, self._x, self._u_prev)
+            u_path = self._Mc @ du + np.tile(self._u_prev, self._hc)
+            ok = (np.all(u_path >= np.tile(self.u_min, self._hc) - 1e-12)
+                  and np.all(u_path <= np.tile(self.u_max, self._hc) + 1e-12)
+                  and np.all(np.abs(du) <= np.tile(self.du_max, self._hc) + 1e-12))
+            if not ok:
+                du = self.solve_qp(eps, self._x, self._u_prev)
+            self._last_du = du
+            du0 = np.clip(du[:nu], -self.du_max, self.du_max)
+            u_ctrl = np.clip(self._u_prev + du0, self.u_min, self.u_max)
+        self._u_prev = u_ctrl
+        u = u_ctrl if dither is None else np.clip(u_ctrl + dither, self.u_min, self.u_max)
+        self._x = ss.A @ self._x + ss.B @ u
+        return u

@@ -1,0 +1,125 @@
+"""Plant simulator core: a MIMO FOPDT plant with the paper's disturbance and measurement noise.
+
+The measured output is (paper, Fig. 1 and section 3.1)::
+
+    y(k) = P(q) u(k) + v(k) + n(k),   v(k) = p v(k-1) + w(k)   (v = z/(z - p) w)
+
+with ``w`` and ``n`` zero-mean white Gaussian noise.  ``y(k)`` is measured before ``u(k)`` is
+applied, so the plant must be strictly proper in discrete time (no element with zero time constant
+and zero delay).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .discretize import state_space
+from .errors import ConfigurationError
+from .model import FopdtModel
+
+
+@dataclasses.dataclass(frozen=True)
+class DisturbanceOptions:
+    """The unmeasured output disturbance and the measurement noise (paper section 3.1).
+
+    Attributes
+    ----------
+    disturbance_std : float
+        Standard deviation of the white noise ``w`` driving the disturbance filter (output units).
+    disturbance_pole : float
+        Pole ``p`` of the first-order filter ``z / (z - p)``, in [0, 1).
+    noise_std : float
+        Standard deviation of the white measurement noise ``n`` (output units).
+    """
+
+    disturbance_std: float = 7.5e-3
+    disturbance_pole: float = 0.95
+    noise_std: float = 5.0e-3
+
+    def __post_init__(self):
+        check_disturbance_options(self)
+
+
+def check_disturbance_options(opts: DisturbanceOptions) -> None:
+    """Raise :class:`ConfigurationError` when an option is outside its range."""
+    if not (np.isfinite(opts.disturbance_std) and opts.disturbance_std >= 0):
+        raise ConfigurationError(f"disturbance_std: expected a finite number >= 0, got {opts.disturbance_std!r}")
+    if not (np.isfinite(opts.noise_std) and opts.noise_std >= 0):
+        raise ConfigurationError(f"noise_std: expected a finite number >= 0, got {opts.noise_std!r}")
+    if not (0.0 <= opts.disturbance_pole < 1.0):
+        raise ConfigurationError(f"disturbance_pole: expected a number in [0, 1), got {opts.disturbance_pole!r}")
+
+
+def require_strictly_proper(model: FopdtModel, what: str = "plant") -> None:
+    """Refuse a model with a direct feed-through (time constant 0 and delay 0) for closed-loop use."""
+    direct = (model.gain != 0) & (model.time_constant == 0) & (model.delay_samples == 0)
+    if np.any(direct):
+        i, j = np.argwhere(direct)[0]
+        raise ConfigurationError(
+            f"{what}: element ({model.outputs[i]}, {model.inputs[j]}) has time_constant 0 and delay 0, a direct "
+            f"feed-through that a sampled loop cannot close; give it a delay of at least one sample")
+
+
+class PlantSimulator:
+    """A MIMO plant from a model file, with disturbance and measurement noise.
+
+    Parameters
+    ----------
+    model : FopdtModel
+        The true plant (strictly proper in discrete time).
+    options : DisturbanceOptions
+        Disturbance and noise levels.
+    rng : numpy.random.Generator
+        Source of the noise; the simulation is deterministic for a given generator state.
+
+    Notes
+    -----
+    Call :meth:`measure` to get ``y(k)`` and then :meth:`apply` with ``u(k)`` to advance to
+    ``k + 1``.  The components of the last measurement are in :attr:`last_disturbance` (``v``) and
+    :attr:`last_noise` (``n``).
+    """
+
+    def __init__(self, model: FopdtModel, options: DisturbanceOptions, rng: np.random.Generator):
+        require_strictly_proper(model)
+        self.model = model
+        self.options = options
+        self._rng = rng
+        self._ss = state_space(model)
+        self.reset()
+
+    def reset(self) -> None:
+        """Return to rest: zero state and zero disturbance."""
+        self._x = np.zeros(self._ss.n_states)
+        self._v = np.zeros(self.model.n_outputs)
+        self.last_disturbance = np.zeros(self.model.n_outputs)
+        self.last_noise = np.zeros(self.model.n_outputs)
+        self._pending = True
+
+    @property
+    def state(self) -> np.ndarray:
+        """Plant state of :func:`mpm_monitor.discretize.state_space`, shape (n_states,)."""
+        return self._x.copy()
+
+    def measure(self, extra: np.ndarray | None = None) -> np.ndarray:
+        """Measured output ``y(k)`` of shape (n_outputs,), drawing this sample's noise.
+
+        Parameters
+        ----------
+        extra : ndarray, shape (n_outputs,), optional
+            An additional output disturbance for this sample (e.g. a step), added to ``v``.
+        """
+        ny = self.model.n_outputs
+        opts = self.options
+        w = self._rng.standard_normal(ny) * opts.disturbance_std
+        n = self._rng.standard_normal(ny) * opts.noise_std
+        self._v = opts.disturbance_pole * self._v + w
+        v = self._v if extra is None else self._v + extra
+        self.last_disturbance = v.copy()
+        self.last_noise = n
+        return self._ss.C @ self._x + v + n
+
+    def apply(self, u: np.ndarray) -> None:
+        """Apply ``u(k)`` (shape (n_inputs,), deviation variables) and advance to ``k + 1``."""
+        self._x = self._ss.A @ self._x + self._ss.B @ np.asarray(u, dtype=float)

@@ -1,0 +1,37 @@
+"""Installs mpm_monitor under colcon (ament_python) and under ``pip install -e .``."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "mpm_monitor"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", sorted(glob("config/*.yaml"))),
+        (f"share/{PACKAGE}/launch", sorted(glob("launch_scripts/*.py"))),
+    ],
+    install_requires=["setuptools", "numpy", "scipy", "PyYAML", "osqp"],
+    zip_safe=True,
+    maintainer="mpm_monitor developers",
+    maintainer_email="mpm-monitor@example.com",
+    description="Model-plant mismatch monitor for MPC loops (ROS 2 Jazzy, Python).",
+    license="Apache-2.0",
+    python_requires=">=3.10",
+    entry_points={
+        "console_scripts": [
+            "mpm_analyze = mpm_monitor.cli:main_analyze",
+            "plant_node = mpm_monitor.nodes.plant_node:main",
+            "mpc_node = mpm_monitor.nodes.mpc_node:main",
+            "setpoint_node = mpm_monitor.nodes.setpoint_node:main",
+            "monitor_node = mpm_monitor.nodes.monitor_node:main",
+            "recorder_node = mpm_monitor.nodes.recorder_node:main",
+            "replay_node = mpm_monitor.nodes.replay_node:main",
+        ],
+    },
+)
