@@ -1,0 +1,213 @@
+"""Command-line interface: ``python -m mpm_monitor <command>``.
+
+Commands
+--------
+analyze    offline analysis of a CSV log or a bag (CONTRACTS section 3)
+reproduce  simulate a paper case and print the paper-style result
+simulate   run a closed-loop simulation and write the contract CSV
+demo       run the four ROS 2 nodes in-process on a paper case (CONTRACTS section 6)
+export     write a bag's contract topics as CSV
+
+Bad input exits with code 2 and one line on stderr; never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from .errors import InputError
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line and exit code 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def _add_analysis_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--method", choices=("arx", "xcorr", "pcorr"), default="arx",
+                   help="arx: the S_Delta row test and ARX Delta element test (default); xcorr: cross-correlation "
+                        "baseline (Webber and Gupta 2008); pcorr: partial-correlation baseline (Badwe et al. 2009)")
+    p.add_argument("--alpha", type=float, default=0.01,
+                   help="family-wise false-alarm rate of the row and of the element tests (default 0.01)")
+    p.add_argument("--na", type=int, default=4, help="ARX order of A (default 4)")
+    p.add_argument("--nb", type=int, default=4, help="ARX order of each B (default 4)")
+    p.add_argument("--band", type=float, nargs=2, metavar=("LOW", "HIGH"), default=None,
+                   help="band Omega for the RSI, in rad/sample (default 0 to pi)")
+    p.add_argument("--initial-state", choices=("estimate", "zero"), default="estimate",
+                   help="model state at the first sample: estimated by least squares (default) or zero")
+    p.add_argument("--no-repair", action="store_true", help="locate only; do not re-estimate the elements")
+
+
+def _analysis_options(args):
+    from .analysis import AnalysisOptions
+
+    kw = dict(method=args.method, alpha=args.alpha, na=args.na, nb=args.nb, initial_state=args.initial_state,
+              repair=not args.no_repair)
+    if args.band is not None:
+        kw["band"] = tuple(args.band)
+    return AnalysisOptions(**kw)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="python -m mpm_monitor", description="Model-plant mismatch monitor for MPC loops.")
+    sub = parser.add_subparsers(dest="command", parser_class=_Parser)
+
+    p = sub.add_parser("analyze", help="analyse a CSV log or a bag against a model (CONTRACTS section 3)")
+    p.add_argument("--model", required=True, help="model file (YAML, CONTRACTS section 1)")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--data", help="logged data (CSV, CONTRACTS section 2)")
+    src.add_argument("--bag", help="rosbag2 directory with the setpoint, input and output topics")
+    p.add_argument("--json", dest="json_out", help="write the JSON report to this file ('-' = stdout)")
+    p.add_argument("--repair-out", help="write the repaired model file (YAML) here")
+    p.add_argument("--report", help="write an HTML report with figures into this directory")
+    p.add_argument("--topics", nargs=3, metavar=("SETPOINT", "INPUT", "OUTPUT"), default=None,
+                   help="topic names in the bag (default setpoint input output)")
+    _add_analysis_options(p)
+
+    p = sub.add_parser("reproduce", help="simulate a paper case and print the paper-style result")
+    p.add_argument("--case", choices=("3.1", "3.2", "3.3"), required=True)
+    p.add_argument("--samples", type=int, default=3000)
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--plots", default="reproduce_plots", help="directory for the singular-value PNGs")
+    _add_analysis_options(p)
+
+    p = sub.add_parser("simulate", help="run a closed-loop simulation and write the contract CSV")
+    p.add_argument("--case", choices=("3.1", "3.2", "3.3"), default=None, help="a paper case (plant and model)")
+    p.add_argument("--plant", help="plant model file (YAML); with --model instead of --case")
+    p.add_argument("--model", help="controller model file (YAML)")
+    p.add_argument("--samples", type=int, default=3000)
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--dither", type=float, default=0.0, help="amplitude of a PRBS dither on every input")
+    p.add_argument("--csv", required=True, help="output CSV file")
+    p.add_argument("--write-model", help="also write the controller model file here")
+
+    p = sub.add_parser("demo", help="run the ROS 2 nodes in-process on a paper case (CONTRACTS section 6)")
+    p.add_argument("--case", choices=("3.1", "3.2", "3.3"), default="3.2")
+    p.add_argument("--samples", type=int, default=None, help="samples to simulate (default: the case's)")
+    p.add_argument("--bag", default=None, help="record every topic to this rosbag2 (MCAP) directory")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--quiet", action="store_true", help="print only the final result")
+
+    p = sub.add_parser("export", help="write a bag's contract topics as the contract CSV")
+    p.add_argument("--bag", required=True)
+    p.add_argument("--csv", required=True)
+    p.add_argument("--model", default=None, help="model file giving channel order and sample time (optional)")
+    p.add_argument("--topics", nargs=3, metavar=("SETPOINT", "INPUT", "OUTPUT"), default=None)
+    return parser
+
+
+def _cmd_analyze(args) -> int:
+    from .analysis import analyze
+    from .data_io import read_csv
+    from .model import load_model, save_model
+
+    model = load_model(args.model)
+    options = _analysis_options(args)
+    if args.data:
+        data = read_csv(args.data, model)
+    else:
+        from .bag_io import read_bag
+
+        topics = tuple(args.topics) if args.topics else ("setpoint", "input", "output")
+        data = read_bag(args.bag, model, topics=topics, progress=sys.stderr.isatty())
+    report = analyze(model, data, options)
+    doc = report.to_dict()
+    if args.json_out == "-":
+        json.dump(doc, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        if args.json_out:
+            Path(args.json_out).write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+        print(report.summary_text())
+    if args.repair_out:
+        save_model(report.repaired_model, args.repair_out)
+    if args.report:
+        from .report import write_report
+
+        write_report(args.report, model, data, report)
+    return 0
+
+
+def _cmd_reproduce(args) -> int:
+    from .reproduce import reproduce
+
+    print(reproduce(args.case, samples=args.samples, seed=args.seed, options=_analysis_options(args),
+                    plot_dir=args.plots))
+    return 0
+
+
+def _cmd_simulate(args) -> int:
+    import numpy as np
+
+    from .cases import paper_case
+    from .closed_loop import ExcitationOptions, run_closed_loop
+    from .data_io import write_log_csv
+    from .excitation import PrbsOptions
+    from .model import load_model, save_model
+    from .mpc import MpcOptions
+
+    if args.case:
+        case = paper_case(args.case)
+        plant, model, mpc, exc, dist = case.plant, case.model, case.mpc, case.excitation, case.disturbance
+        if args.dither > 0:
+            exc = ExcitationOptions(setpoint=exc.setpoint, dither=PrbsOptions(amplitude=args.dither))
+        log = run_closed_loop(plant, model, args.samples, seed=args.seed, mpc=mpc, excitation=exc, disturbance=dist)
+    else:
+        if not (args.plant and args.model):
+            raise InputError("simulate: give --case, or both --plant and --model")
+        plant, model = load_model(args.plant), load_model(args.model)
+        exc = ExcitationOptions(dither=PrbsOptions(amplitude=args.dither) if args.dither > 0 else None)
+        log = run_closed_loop(plant, model, args.samples, seed=args.seed, mpc=MpcOptions(), excitation=exc)
+    write_log_csv(args.csv, log)
+    if args.write_model:
+        save_model(model, args.write_model)
+    rms = np.sqrt(np.mean(log.d ** 2, axis=0))
+    print(f"wrote {log.n_samples} samples to {args.csv}; prediction error RMS: "
+          + ", ".join(f"{o}={v:.4f}" for o, v in zip(log.outputs, rms)))
+    return 0
+
+
+def _cmd_demo(args) -> int:
+    from .demo import run_demo
+
+    return run_demo(case=args.case, samples=args.samples, bag=args.bag, seed=args.seed, quiet=args.quiet)
+
+
+def _cmd_export(args) -> int:
+    from .bag_io import export_csv
+
+    topics = tuple(args.topics) if args.topics else ("setpoint", "input", "output")
+    n = export_csv(args.bag, args.csv, model_path=args.model, topics=topics)
+    print(f"wrote {n} samples to {args.csv}")
+    return 0
+
+
+COMMANDS = {"analyze": _cmd_analyze, "reproduce": _cmd_reproduce, "simulate": _cmd_simulate, "demo": _cmd_demo,
+            "export": _cmd_export}
+
+
+def main(argv=None) -> int:
+    """Entry point; returns the exit code (0 ran, 2 bad input)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not args.command:
+        parser.print_help()
+        return 2
+    try:
+        return COMMANDS[args.command](args)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+def main_analyze() -> int:
+    """Console script ``mpm_analyze``: same as ``python -m mpm_monitor analyze``."""
+    return main(["analyze"] + sys.argv[1:])
