@@ -1,0 +1,270 @@
+"""Bag reading (issue 6): a synthetic rosbag2 written with the rosbags Writer reads back exactly.
+
+The bags here are written with ``rosbags.rosbag2.Writer`` (MCAP, metadata version 9) from known
+samples, independently of :class:`mpm_monitor.bag_io.BagWriter`.  Every malformed bag must raise
+:class:`BagError` with one line that names the bag and, where it is about one topic, the topic.
+"""
+
+import io
+
+import numpy as np
+import pytest
+from rosbags.rosbag2 import StoragePlugin, Writer
+
+from mpm_monitor import bag_io
+from mpm_monitor.bag_io import (BagWriter, export_csv, read_bag, read_bag_channels, read_diagnostics,
+                                read_raw_messages)
+from mpm_monitor.cli import main as cli_main
+from mpm_monitor.data_io import read_csv
+from mpm_monitor.errors import BagError
+from mpm_monitor.model import FopdtModel, save_model
+
+TS = bag_io.default_typestore()
+JS = TS.types["sensor_msgs/msg/JointState"]
+HEADER = TS.types["std_msgs/msg/Header"]
+TIME = TS.types["builtin_interfaces/msg/Time"]
+
+MODEL = FopdtModel(sample_time=0.5, inputs=("u1", "u2"), outputs=("y1", "y2", "y3"),
+                   gain=np.ones((3, 2)), time_constant=np.full((3, 2), 5.0), delay=np.zeros((3, 2)))
+T0 = 100.0  # stamp of sample 0, seconds
+
+
+def _joint_state(stamp_ns, names, values):
+    return JS(header=HEADER(stamp=TIME(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9), frame_id=""),
+              name=list(names), position=np.asarray(values, dtype=np.float64),
+              velocity=np.zeros(0, dtype=np.float64), effort=np.zeros(0, dtype=np.float64))
+
+
+def _samples(n, seed=3):
+    rng = np.random.default_rng(seed)
+    return rng.normal(size=(n, 3)), rng.normal(size=(n, 2)), rng.normal(size=(n, 3))
+
+
+def write_bag(path, r, u, y, *, stamps=None, names=None, skip=(), drop_topics=(), msgtype=None,
+              diagnostics=None):
+    """Write r/u/y as /setpoint, /input, /output JointState messages, one sample after the other.
+
+    stamps : (n,) int ns per sample (default T0 + k * TS); names : role -> channel names as sent;
+    skip : (role, k) messages left out; drop_topics : roles with no connection at all.
+    """
+    n = len(r)
+    stamps = (np.arange(n) * int(MODEL.sample_time * 1e9) + int(T0 * 1e9)) if stamps is None else stamps
+    names = {"setpoint": MODEL.outputs, "input": MODEL.inputs, "output": MODEL.outputs, **(names or {})}
+    data = {"setpoint": r, "input": u, "output": y}
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conns = {}
+        for role in ("output", "input", "setpoint"):
+            if role not in drop_topics:
+                conns[role] = w.add_connection(f"/{role}", msgtype or JS.__msgtype__, typestore=TS)
+        if diagnostics is not None:
+            conns["diag"] = w.add_connection("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", typestore=TS)
+        for k in range(n):
+            for role in ("output", "input", "setpoint"):  # the loop's order: y(k), then u(k)
+                if role in conns and (role, k) not in skip:
+                    want = list(names[role])
+                    base = list(MODEL.outputs if role != "input" else MODEL.inputs)
+                    vals = [data[role][k][base.index(c)] if c in base else 7.0 for c in want]
+                    msg = _joint_state(int(stamps[k]), want, vals)
+                    w.write(conns[role], int(stamps[k]) + 1000, TS.serialize_cdr(msg, JS.__msgtype__))
+        for t_ns, arr in diagnostics or ():
+            w.write(conns["diag"], t_ns, TS.serialize_cdr(arr, "diagnostic_msgs/msg/DiagnosticArray"))
+    return path
+
+
+def test_round_trip_exact(tmp_path):
+    r, u, y = _samples(40)
+    bag = write_bag(tmp_path / "bag", r, u, y)
+    data = read_bag(bag, MODEL)
+    np.testing.assert_array_equal(data.r, r)
+    np.testing.assert_array_equal(data.u, u)
+    np.testing.assert_array_equal(data.y, y)
+    np.testing.assert_allclose(data.t, T0 + 0.5 * np.arange(40), rtol=0, atol=1e-9)
+    assert data.inputs == MODEL.inputs and data.outputs == MODEL.outputs and data.sample_time == 0.5
+
+
+def test_channels_matched_by_name_extra_ignored(tmp_path):
+    r, u, y = _samples(10)
+    bag = write_bag(tmp_path / "bag", r, u, y, names={"input": ("u2", "extra", "u1"), "output": ("y3", "y1", "y2")})
+    data = read_bag(bag, MODEL)
+    np.testing.assert_array_equal(data.u, u)
+    np.testing.assert_array_equal(data.y, y)
+
+
+def test_partial_first_and_last_samples_are_trimmed(tmp_path):
+    r, u, y = _samples(12)
+    # recording started after y(0) went out and stopped after y(11) but before u(11), r(11)
+    bag = write_bag(tmp_path / "bag", r, u, y, skip={("output", 0), ("input", 11), ("setpoint", 11)})
+    data = read_bag(bag, MODEL)
+    assert data.n_samples == 10
+    np.testing.assert_array_equal(data.y, y[1:11])
+    np.testing.assert_array_equal(data.u, u[1:11])
+    assert data.t[0] == pytest.approx(T0 + 0.5)
+
+
+def test_export_csv_equals_read_bag(tmp_path):
+    r, u, y = _samples(25)
+    bag = write_bag(tmp_path / "bag", r, u, y)
+    model_file = tmp_path / "model.yaml"
+    save_model(MODEL, model_file)
+    for name, model_path in (("with.csv", model_file), ("without.csv", None)):
+        n = export_csv(bag, tmp_path / name, model_path=model_path)
+        assert n == 25
+        data = read_csv(tmp_path / name, MODEL)
+        np.testing.assert_array_equal(data.r, r)
+        np.testing.assert_array_equal(data.u, u)
+        np.testing.assert_array_equal(data.y, y)
+    guessed = read_bag_channels(bag)
+    assert guessed.sample_time == pytest.approx(0.5) and guessed.inputs == ("u1", "u2")
+
+
+def test_cli_export(tmp_path, capsys):
+    r, u, y = _samples(8)
+    bag = write_bag(tmp_path / "bag", r, u, y)
+    assert cli_main(["export", "--bag", str(bag), "--csv", str(tmp_path / "x.csv")]) == 0
+    assert "wrote 8 samples" in capsys.readouterr().out
+    assert cli_main(["export", "--bag", str(tmp_path / "nothing"), "--csv", str(tmp_path / "y.csv")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no such bag directory" in err
+
+
+def test_progress_bar_on_long_bags(tmp_path, monkeypatch):
+    r, u, y = _samples(300)
+    bag = write_bag(tmp_path / "bag", r, u, y)
+    stream = io.StringIO()
+    read_bag(bag, MODEL, progress=stream)
+    assert stream.getvalue() == ""  # short bag: no bar
+    monkeypatch.setattr(bag_io, "LONG_BAG_MESSAGES", 500)
+    read_bag(bag, MODEL, progress=stream)
+    assert "100%" in stream.getvalue() and "900/900 messages" in stream.getvalue()
+
+
+def test_read_diagnostics_in_order(tmp_path):
+    status_t = TS.types["diagnostic_msgs/msg/DiagnosticStatus"]
+    kv_t = TS.types["diagnostic_msgs/msg/KeyValue"]
+    arr_t = TS.types["diagnostic_msgs/msg/DiagnosticArray"]
+    arrays = []
+    for k in range(3):
+        st = [status_t(level=k % 2, name=f"mpm_monitor: row y{i}", message="m", hardware_id="h",
+                       values=[kv_t(key="rsi", value=f"{k + i}")]) for i in (1, 2)]
+        arrays.append((int(T0 * 1e9) + k, arr_t(header=HEADER(stamp=TIME(sec=k, nanosec=0), frame_id=""), status=st)))
+    r, u, y = _samples(3)
+    bag = write_bag(tmp_path / "bag", r, u, y, diagnostics=arrays)
+    got = read_diagnostics(bag)
+    assert [(s.stamp, s.name, s.level, s.values["rsi"]) for s in got] == [
+        (float(k), f"mpm_monitor: row y{i}", k % 2, f"{k + i}") for k in range(3) for i in (1, 2)]
+
+
+def test_bag_writer_flush_and_close(tmp_path):
+    r, u, y = _samples(3)
+    src = write_bag(tmp_path / "src", r, u, y)
+    raw = read_raw_messages(src, ["setpoint", "input", "output"])
+    w = BagWriter(tmp_path / "copy")
+    mcap = tmp_path / "copy" / "copy.mcap"
+    for m in raw:
+        if not w.has_topic(m.topic):
+            w.add_topic(m.topic, m.msgtype)
+        w.write(m.topic, m.log_time, m.data)
+    size_before = mcap.stat().st_size
+    assert w.flush() == len(raw)
+    assert mcap.stat().st_size > size_before  # the chunk is on disk before close
+    w.close()
+    w.close()  # idempotent
+    data = read_bag(tmp_path / "copy", MODEL)
+    np.testing.assert_array_equal(data.y, y)
+    with pytest.raises(BagError, match="exists already"):
+        BagWriter(tmp_path / "copy")
+
+
+# --- malformed bags: one line, naming the bag and the topic ------------------------------------------
+
+
+def _check(exc_info, *words):
+    text = str(exc_info.value)
+    assert "\n" not in text
+    for w in words:
+        assert w in text, text
+
+
+def test_missing_and_empty_dir(tmp_path):
+    with pytest.raises(BagError) as e:
+        read_bag(tmp_path / "nope", MODEL)
+    _check(e, "nope", "no such bag directory")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(BagError) as e:
+        read_bag(tmp_path / "empty", MODEL)
+    _check(e, "empty", "empty directory")
+
+
+def test_no_metadata(tmp_path):
+    r, u, y = _samples(5)
+    bag = write_bag(tmp_path / "bag", r, u, y)
+    (bag / "metadata.yaml").unlink()
+    with pytest.raises(BagError) as e:
+        read_bag(bag, MODEL)
+    _check(e, str(bag), "no metadata.yaml")
+
+
+def test_truncated_mcap(tmp_path):
+    r, u, y = _samples(50)
+    bag = write_bag(tmp_path / "bag", r, u, y)
+    mcap = bag / "bag.mcap"
+    data = mcap.read_bytes()
+    mcap.write_bytes(data[: len(data) // 2])
+    with pytest.raises(BagError) as e:
+        read_bag(bag, MODEL)
+    _check(e, str(bag), "cannot read bag")
+
+
+def test_missing_topic(tmp_path):
+    r, u, y = _samples(5)
+    bag = write_bag(tmp_path / "bag", r, u, y, drop_topics=("input",))
+    with pytest.raises(BagError) as e:
+        read_bag(bag, MODEL)
+    _check(e, str(bag), "no topic '/input'", "/output")
+
+
+def test_wrong_type(tmp_path):
+    r, u, y = _samples(2)
+    bag = tmp_path / "bag"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        for role in ("setpoint", "input", "output"):
+            w.add_connection(f"/{role}", "std_msgs/msg/Float64MultiArray", typestore=TS)
+    with pytest.raises(BagError) as e:
+        read_bag(bag, MODEL)
+    _check(e, "'/setpoint'", "std_msgs/msg/Float64MultiArray", "expected sensor_msgs/msg/JointState")
+
+
+def test_wrong_channel_names(tmp_path):
+    r, u, y = _samples(5)
+    bag = write_bag(tmp_path / "bag", r, u, y, names={"input": ("u1", "uX")})
+    with pytest.raises(BagError) as e:
+        read_bag(bag, MODEL)
+    _check(e, str(bag), "'/input'", "[u1, uX]", "expected the inputs [u1, u2]")
+
+
+def test_gap(tmp_path):
+    r, u, y = _samples(20)
+    bag = write_bag(tmp_path / "bag", r, u, y, skip={("output", 7), ("output", 8)})
+    with pytest.raises(BagError) as e:
+        read_bag(bag, MODEL)
+    _check(e, str(bag), "'/output'", "gap", f"{T0 + 3.5:g} s", "2 samples missing")
+
+
+def test_duplicate_stamp(tmp_path):
+    r, u, y = _samples(6)
+    stamps = np.arange(6) * 500_000_000 + 10**11
+    stamps[3] = stamps[2]
+    bag = write_bag(tmp_path / "bag", r, u, y, stamps=stamps)
+    with pytest.raises(BagError) as e:
+        read_bag(bag, MODEL)
+    _check(e, str(bag), "'/setpoint'", "duplicate stamp", "101 s and 101 s")
+
+
+def test_off_grid_stamp(tmp_path):
+    r, u, y = _samples(6)
+    stamps = np.arange(6) * 500_000_000 + 10**11
+    stamps[4] += 200_000_000  # 0.4 of a sample late
+    bag = write_bag(tmp_path / "bag", r, u, y, stamps=stamps)
+    with pytest.raises(BagError) as e:
+        read_bag(bag, MODEL)
+    _check(e, str(bag), "'/setpoint'", "stamp 102.2 s is off the sample grid")
