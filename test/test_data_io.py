@@ -1,0 +1,203 @@
+"""Logged data CSV (CONTRACTS section 2): lossless round trip and refusal of every bad file.
+
+Every bad file must raise :class:`DataFileError` with a one-line message naming the file and,
+where there is one, the line and the column.
+"""
+
+import numpy as np
+import pytest
+
+from mpm_monitor.data_io import csv_header, parse_csv_text, read_csv, write_csv, write_log_csv
+from mpm_monitor.errors import DataFileError, InputError
+from mpm_monitor.model import FopdtModel
+
+HEADER = "t,r_y1,r_y2,u1,u2,u3,y1,y2"
+
+
+def _model(ts=1.0):
+    return FopdtModel(sample_time=ts, inputs=("u1", "u2", "u3"), outputs=("y1", "y2"),
+                      gain=[[1.0, 2.0, 0.0], [0.5, 0.0, 3.0]], time_constant=[[10.0, 5.0, 0.0], [3.0, 0.0, 8.0]],
+                      delay=[[1.0, 2.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _rows(n=5, ts=1.0):
+    """Good data lines: row k has t = k ts and cells 10k + column index."""
+    return [",".join([repr(k * ts)] + [str(10 * k + c) for c in range(1, 8)]) for k in range(n)]
+
+
+def _text(lines):
+    return "\n".join(lines) + "\n"
+
+
+def _write(tmp_path, content, name="data.csv"):
+    path = tmp_path / name
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        path.write_text(content, encoding="utf-8")
+    return path
+
+
+# --------------------------------------------------------------------------- good files
+
+
+@pytest.mark.parametrize("ts", [1.0, 0.1, 0.02])
+def test_write_read_round_trip_is_lossless(tmp_path, ts):
+    # Full-precision floats of all magnitudes (and exact integers) come back bit-identical.
+    rng = np.random.default_rng(int(ts * 100))
+    n = 257
+    model = _model(ts)
+    t = np.arange(n) * ts
+    scale = 10.0 ** rng.integers(-300, 300, size=(n, 1))
+    r = rng.standard_normal((n, 2)) * scale
+    u = rng.standard_normal((n, 3))
+    y = rng.standard_normal((n, 2)) * 1e-7
+    u[::7] = np.round(u[::7] * 1000)  # integer-valued cells take the integer format
+    r[3, 0], u[4, 1], y[5, 1] = 0.0, 5e-324, -1.7976931348623157e308  # extremes
+    path = tmp_path / "log.csv"
+    write_csv(path, t, r, u, y, model.inputs, model.outputs)
+    data = read_csv(path, model)
+    for key, ref in (("t", t), ("r", r), ("u", u), ("y", y)):
+        np.testing.assert_array_equal(getattr(data, key), ref)  # exact, no tolerance
+    assert data.inputs == model.inputs and data.outputs == model.outputs
+    assert data.sample_time == ts and data.n_samples == n and data.source == str(path)
+    assert path.read_text(encoding="utf-8").splitlines()[0] == HEADER
+
+
+def test_write_log_csv_round_trip(tmp_path):
+    from mpm_monitor.cases import paper_case
+    from mpm_monitor.closed_loop import run_closed_loop
+    from mpm_monitor.mpc import MpcOptions
+
+    case = paper_case("3.2")
+    log = run_closed_loop(case.plant, case.model, 60, mpc=MpcOptions(prediction_horizon=30, control_horizon=5))
+    path = tmp_path / "log.csv"
+    write_log_csv(path, log)
+    data = read_csv(path, case.model)
+    for key in ("t", "r", "u", "y"):
+        np.testing.assert_array_equal(getattr(data, key), getattr(log, key))
+
+
+def test_header_is_the_contract_order():
+    assert ",".join(csv_header(("u1", "u2", "u3"), ("y1", "y2"))) == HEADER
+
+
+def test_column_order_free_and_extra_columns_ignored(tmp_path):
+    model = _model()
+    canonical = read_csv(_write(tmp_path, _text([HEADER] + _rows()), "a.csv"), model)
+    # Shuffle the columns, add extra columns (one of them non-numeric), pad with spaces.
+    names = HEADER.split(",")
+    rng = np.random.default_rng(0)
+    order = rng.permutation(len(names))
+    lines = [" , ".join(["note"] + [names[i] for i in order] + ["y3_extra"])]
+    for k, row in enumerate(_rows()):
+        cells = row.split(",")
+        lines.append(",".join([f"free text {k}"] + [cells[i] for i in order] + ["not a number"]))
+    shuffled = read_csv(_write(tmp_path, _text(lines), "b.csv"), model)
+    assert list(order) != list(range(len(names)))
+    for key in ("t", "r", "u", "y"):
+        np.testing.assert_array_equal(getattr(shuffled, key), getattr(canonical, key))
+    # The values went to the right columns: cell (k, c) = 10 k + c in canonical order.
+    k = np.arange(5)[:, None]
+    np.testing.assert_array_equal(canonical.r, 10 * k + np.array([1, 2]))
+    np.testing.assert_array_equal(canonical.u, 10 * k + np.array([3, 4, 5]))
+    np.testing.assert_array_equal(canonical.y, 10 * k + np.array([6, 7]))
+
+
+def test_crlf_bom_and_blank_lines_accepted(tmp_path):
+    model = _model()
+    text = "\r\n".join([HEADER] + _rows()[:2] + [""] + _rows()[2:]) + "\r\n"
+    data = read_csv(_write(tmp_path, b"\xef\xbb\xbf" + text.encode("utf-8")), model)
+    assert data.n_samples == 5
+    np.testing.assert_array_equal(data.t, np.arange(5.0))
+
+
+def test_spacing_within_tolerance_accepted(tmp_path):
+    # t written with 0.1 steps accumulates rounding (0.30000000000000004): still equally spaced.
+    model = _model(0.1)
+    t = np.cumsum(np.full(50, 0.1)) - 0.1
+    lines = [HEADER] + [",".join([repr(float(tk))] + ["0"] * 7) for tk in t]
+    assert read_csv(_write(tmp_path, _text(lines)), model).n_samples == 50
+
+
+# --------------------------------------------------------------------------- bad files
+
+
+def _with_line(k, new_line):
+    """Good file with data line k (0-based; file line k + 2) replaced."""
+    rows = _rows()
+    rows[k] = new_line
+    return _text([HEADER] + rows)
+
+
+def _with_cell(k, col, value):
+    cells = _rows()[k].split(",")
+    cells[HEADER.split(",").index(col)] = value
+    return _with_line(k, ",".join(cells))
+
+
+BAD_FILES = {
+    "missing column": (_text([HEADER.replace(",u2", "")] + [",".join(r.split(",")[:4] + r.split(",")[5:]) for r in _rows()]),
+                       r"line 1 \(header\): missing column 'u2'"),
+    "missing columns": (_text(["t,r_y1,u1,u2,u3,y1"] + ["0,1,2,3,4,5"]),
+                        r"line 1 \(header\): missing columns 'r_y2', 'y2'"),
+    "missing t": (_text([HEADER.replace("t,", "time,")] + _rows()), r"line 1 \(header\): missing column 't'"),
+    "duplicate column": (_text([HEADER + ",u1"] + [r + ",0" for r in _rows()]),
+                         r"line 1 \(header\): column 'u1' appears more than once"),
+    "non-numeric cell": (_with_cell(2, "u2", "abc"), r"line 4, column 'u2': expected a number, got 'abc'"),
+    "empty cell": (_with_cell(1, "y1", ""), r"line 3, column 'y1': expected a number, got ''"),
+    "NaN cell": (_with_cell(3, "r_y2", "NaN"), r"line 5, column 'r_y2': expected a finite number, got 'NaN'"),
+    "nan cell lower case": (_with_cell(0, "y2", "nan"), r"line 2, column 'y2': expected a finite number"),
+    "inf cell": (_with_cell(4, "u3", "inf"), r"line 6, column 'u3': expected a finite number, got 'inf'"),
+    "-Infinity cell": (_with_cell(2, "t", "-Infinity"), r"line 4, column 't': expected a finite number"),
+    "gap in t": (_with_cell(3, "t", "4.0"),
+                 r"line 5: t = 4 s follows t = 2 s: a step of 2 s \(expected sample_time 1 s; a gap"),
+    "repeated t": (_with_cell(2, "t", "1.0"), r"line 4: t = 1 s repeats t = 1 s on line 3"),
+    "decreasing t": (_with_cell(3, "t", "0.5"), r"line 5: t = 0.5 s goes back from t = 2 s on line 4"),
+    "irregular t": (_with_cell(2, "t", "2.5"), r"line 4: t = 2.5 s follows t = 1 s"),
+    "too few fields": (_with_line(2, "2,21,22,23"), r"line 4: expected 8 fields as in the header, got 4"),
+    "too many fields": (_with_line(1, _rows()[1] + ",99"), r"line 3: expected 8 fields as in the header, got 9"),
+    "empty file": ("", r"empty file: expected a header line t,r_y1,r_y2,u1,u2,u3,y1,y2"),
+    "header only": (_text([HEADER]), r"no data lines after the header"),
+    "header and blank lines only": (_text([HEADER, "", " , ", ""]), r"no data lines after the header"),
+    "not UTF-8": (_text([HEADER] + _rows()).encode("utf-8").replace(b"\n2.0,", b"\n2\xff.0,"),
+                  r"not UTF-8 text \(byte \d+\)"),
+    "binary": (b"\x00\x01\x02t,r_y1\n", r"contains NUL bytes"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_FILES))
+def test_bad_csv_refused_with_one_line_naming_line_and_column(tmp_path, case):
+    content, pattern = BAD_FILES[case]
+    path = _write(tmp_path, content)
+    with pytest.raises(DataFileError, match=pattern) as info:
+        read_csv(path, _model())
+    msg = str(info.value)
+    assert "\n" not in msg, msg
+    assert msg.startswith(str(path) + ": "), msg
+    assert isinstance(info.value, InputError) and isinstance(info.value, ValueError)
+
+
+def test_line_numbers_count_blank_lines(tmp_path):
+    # A blank line is skipped but still counted: the error names the line as an editor shows it.
+    rows = _rows()
+    rows[3] = rows[3].replace(",31,", ",x,")
+    text = _text([HEADER, rows[0], "", rows[1], rows[2], rows[3], rows[4]])
+    with pytest.raises(DataFileError, match=r"line 6, column 'r_y1': expected a number, got 'x'"):
+        read_csv(_write(tmp_path, text), _model())
+
+
+def test_spacing_checked_against_the_model_sample_time(tmp_path):
+    # Samples 1 s apart are a gap for a 0.5 s model: refused, not silently re-timed.
+    with pytest.raises(DataFileError, match=r"line 3: t = 1 s follows t = 0 s: a step of 1 s \(expected sample_time 0.5 s"):
+        read_csv(_write(tmp_path, _text([HEADER] + _rows())), _model(0.5))
+
+
+def test_unreadable_path_refused(tmp_path):
+    with pytest.raises(DataFileError, match=r"cannot read data file"):
+        read_csv(tmp_path / "missing.csv", _model())
+
+
+def test_parse_text_uses_source_name():
+    with pytest.raises(DataFileError, match=r"^mylog: line 1 \(header\): missing column 'y2'"):
+        parse_csv_text("t,r_y1,r_y2,u1,u2,u3,y1\n0,0,0,0,0,0,0\n", _model(), source="mylog")
