@@ -1,0 +1,397 @@
+"""ARX estimation, significance tests and delay estimation (multi-input, single-output).
+
+The ARX structure (Ljung, *System Identification: Theory for the User*, 2nd ed., 1999, eq. 4.7;
+the paper's eq. 10 to 12) is::
+
+    A(q) y(t) = sum_j B_j(q) u_j(t) + e(t)
+    A(q) = 1 + a_1 q^-1 + ... + a_na q^-na
+    B_j(q) = q^-nk_j (b_j,0 + b_j,1 q^-1 + ... + b_j,nb-1 q^-(nb-1))      (MATLAB ``arx`` convention)
+
+It is linear in the parameters, so it is fitted by least squares through a QR factorisation of the
+regressor matrix (never the normal equations).  The parameter covariance is
+``sigma^2 (R'R)^-1``; a linear restriction (some ``B_j`` zero) is tested with the F statistic of
+nested least squares (Ljung 1999, section 16.4), whose false-alarm rate is exact for Gaussian white
+equation errors and asymptotically valid otherwise.
+
+When several single-output regressions share the same exogenous block of regressors (every row of
+S_Delta regresses on the same lagged setpoints, every row of Delta on the same lagged inputs), the
+block is factored once (:class:`SharedBlockRegression`) and each row only adds its own few
+autoregressive columns.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Sequence
+
+import numpy as np
+import scipy.linalg as sla
+from scipy import stats
+
+#: Relative threshold on the diagonal of R below which a column is treated as linearly dependent.
+RANK_TOLERANCE = 1e-9
+
+
+def lag_matrix(x: np.ndarray, lags: Sequence[int], start: int) -> np.ndarray:
+    """Lagged copies of the columns of ``x``.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n_samples, n_channels)
+    lags : sequence of int
+        Lags (samples, >= 0), the same for every channel.
+    start : int
+        First sample index used (>= max(lags)).
+
+    Returns
+    -------
+    ndarray, shape (n_samples - start, n_channels * len(lags))
+        Column ``c * len(lags) + l`` holds ``x[t - lags[l], c]`` for ``t = start .. n_samples - 1``.
+    """
+    x = np.asarray(x, dtype=float)
+    if x.ndim == 1:
+        x = x[:, None]
+    n, m = x.shape
+    lags = list(lags)
+    out = np.empty((n - start, m * len(lags)))
+    for c in range(m):
+        for li, lag in enumerate(lags):
+            out[:, c * len(lags) + li] = x[start - lag:n - lag, c]
+    return out
+
+
+@dataclasses.dataclass
+class ArxFit:
+    """An ARX model fitted by least squares.
+
+    Attributes
+    ----------
+    a : ndarray, shape (na,)
+        ``a_1 .. a_na``.
+    b : list of ndarray, each shape (nb,)
+        ``b_j,0 .. b_j,nb-1`` per input.
+    nk : ndarray of int, shape (n_inputs,)
+        Delay (samples) of each input.
+    theta : ndarray, shape (na + n_inputs * nb,)
+        All parameters: ``a`` then each ``b_j``.
+    covariance : ndarray, shape (n_params, n_params)
+        ``sigma^2 (R'R)^-1``.
+    residuals : ndarray, shape (n_used,)
+        Equation errors ``e(t)``.
+    sigma2 : float
+        Residual variance (RSS / degrees of freedom).
+    fit_percent : float
+        ``100 (1 - ||e|| / ||y - mean(y)||)``, MATLAB's one-step fit.
+    condition_number : float
+        Of the column-scaled regressor matrix.
+    dof : int
+        Residual degrees of freedom.
+    rank : int
+        Numerical rank of the regressor matrix.
+    """
+
+    a: np.ndarray
+    b: list
+    nk: np.ndarray
+    theta: np.ndarray
+    covariance: np.ndarray
+    residuals: np.ndarray
+    sigma2: float
+    fit_percent: float
+    condition_number: float
+    dof: int
+    rank: int
+
+    def b_block(self, j: int) -> slice:
+        """Slice of ``theta`` holding ``b_j``."""
+        na = self.a.shape[0]
+        nb = self.b[0].shape[0] if self.b else 0
+        return slice(na + j * nb, na + (j + 1) * nb)
+
+    def frequency_response(self, omega: np.ndarray) -> np.ndarray:
+        """``B_j(e^{jw}) / A(e^{jw})`` for every input, shape (n_freq, n_inputs); omega in rad/sample."""
+        omega = np.asarray(omega, dtype=float)
+        z1 = np.exp(-1j * omega)
+        a_poly = 1.0 + sum(self.a[k] * z1 ** (k + 1) for k in range(self.a.shape[0]))
+        out = np.empty((omega.shape[0], len(self.b)), dtype=complex)
+        for j, bj in enumerate(self.b):
+            bpoly = sum(bj[l] * z1 ** (self.nk[j] + l) for l in range(bj.shape[0]))
+            out[:, j] = bpoly / a_poly
+        return out
+
+
+def _scaled_qr(X: np.ndarray):
+    """Economic QR of the column-scaled ``X``; returns (Q, R, scale, rank, condition number)."""
+    scale = np.sqrt(np.sum(X * X, axis=0))
+    scale = np.where(scale > 0, scale, 1.0)
+    Q, R = np.linalg.qr(X / scale, mode="reduced")
+    d = np.abs(np.diag(R))
+    dmax = d.max(initial=0.0)
+    rank = int(np.sum(d > RANK_TOLERANCE * max(dmax, 1e-300)))
+    sv = np.linalg.svd(R, compute_uv=False) if R.size else np.array([1.0])
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else np.inf
+    return Q, R, scale, rank, cond
+
+
+def fit_arx(y: np.ndarray, u: np.ndarray, na: int, nb: int, nk: Sequence[int] | int = 1) -> ArxFit:
+    """Least-squares ARX fit of one output on several inputs.
+
+    Parameters
+    ----------
+    y : ndarray, shape (n_samples,)
+        Output.
+    u : ndarray, shape (n_samples, n_inputs)
+        Inputs.
+    na, nb : int
+        Orders of ``A`` and of every ``B_j`` (na >= 0, nb >= 1).
+    nk : int or sequence of int
+        Delay of each input in samples (>= 0).
+
+    Returns
+    -------
+    ArxFit
+    """
+    y = np.asarray(y, dtype=float).reshape(-1)
+    u = np.asarray(u, dtype=float)
+    if u.ndim == 1:
+        u = u[:, None]
+    nu = u.shape[1]
+    nk = np.full(nu, int(nk)) if np.isscalar(nk) else np.asarray(nk, dtype=int)
+    start = max(na, int(np.max(nk + nb - 1)) if nu else 0)
+    cols = [-lag_matrix(y, range(1, na + 1), start)] if na else []
+    for j in range(nu):
+        cols.append(lag_matrix(u[:, j], range(nk[j], nk[j] + nb), start))
+    X = np.hstack(cols) if cols else np.zeros((y.shape[0] - start, 0))
+    target = y[start:]
+    Q, R, scale, rank, cond = _scaled_qr(X)
+    p = X.shape[1]
+    if rank < p:
+        theta_s, *_ = np.linalg.lstsq(R, Q.T @ target, rcond=None)
+        rinv = np.linalg.pinv(R)
+    else:
+        theta_s = sla.solve_triangular(R, Q.T @ target)
+        rinv = sla.solve_triangular(R, np.eye(p))
+    theta = theta_s / scale
+    resid = target - X @ theta
+    dof = max(target.shape[0] - rank, 1)
+    sigma2 = float(resid @ resid) / dof
+    cov = sigma2 * (rinv @ rinv.T) / np.outer(scale, scale)
+    ynorm = np.linalg.norm(target - target.mean())
+    fit = 100.0 * (1.0 - np.linalg.norm(resid) / ynorm) if ynorm > 0 else 0.0
+    a = theta[:na]
+    b = [theta[na + j * nb: na + (j + 1) * nb] for j in range(nu)]
+    return ArxFit(a=a, b=b, nk=nk, theta=theta, covariance=cov, residuals=resid, sigma2=sigma2,
+                  fit_percent=float(fit), condition_number=cond, dof=int(dof), rank=rank)
+
+
+def f_test(rss_restricted: float, rss_full: float, df_num: int, df_den: int):
+    """F statistic and p-value of a nested least-squares restriction.
+
+    ``F = ((RSS_r - RSS_f) / df_num) / (RSS_f / df_den)``, ``p = P(F(df_num, df_den) > F)``.
+    Returns (nan, 1.0) when ``df_num < 1``.
+    """
+    if df_num < 1 or df_den < 1 or rss_full <= 0:
+        return float("nan"), 1.0
+    f = max(rss_restricted - rss_full, 0.0) / df_num / (rss_full / df_den)
+    return float(f), float(stats.f.sf(f, df_num, df_den))
+
+
+@dataclasses.dataclass
+class BlockTest:
+    """Result of a Wald/F test that one block of coefficients is zero."""
+
+    statistic: float
+    p_value: float
+    df_num: int
+    df_den: int
+
+
+class SharedBlockRegression:
+    """Least squares of several targets on ``[X_common | X_own(target)]``, factoring ``X_common`` once.
+
+    Parameters
+    ----------
+    common : ndarray, shape (n_rows, p_common)
+        The regressors shared by every target (e.g. lagged setpoints or lagged inputs).
+    block_sizes : sequence of int
+        Sizes of consecutive column blocks of ``common`` (one per input), for block tests.
+
+    Notes
+    -----
+    With ``common = Q1 R1`` the fit of a target ``y`` on ``[common | X_own]`` is obtained from the
+    projections ``X_own - Q1 Q1' X_own`` and ``y - Q1 Q1' y`` (Frisch-Waugh-Lovell), and the
+    triangular factor of the full regressor matrix is
+    ``[[R1, Q1' X_own], [0, R2]]`` with ``R2`` from the QR of the projected own columns.
+    """
+
+    def __init__(self, common: np.ndarray, block_sizes: Sequence[int]):
+        self.common = np.asarray(common, dtype=float)
+        self.block_sizes = list(block_sizes)
+        if sum(self.block_sizes) != self.common.shape[1]:
+            raise ValueError("block sizes must add up to the number of common columns")
+        self.Q, self.R, self.scale, self.rank, self.condition_number = _scaled_qr(self.common)
+        self.full_rank = self.rank == self.common.shape[1]
+
+    def fit(self, target: np.ndarray, own: np.ndarray | None):
+        """Fit one target; returns a :class:`SharedFit`."""
+        return SharedFit(self, np.asarray(target, dtype=float), None if own is None else np.asarray(own, dtype=float))
+
+
+class SharedFit:
+    """The fit of one target in a :class:`SharedBlockRegression` (see there)."""
+
+    def __init__(self, reg: SharedBlockRegression, y: np.ndarray, own: np.ndarray | None):
+        self.reg = reg
+        n = y.shape[0]
+        Q = reg.Q
+        pc = reg.common.shape[1]
+        if own is None or own.shape[1] == 0:
+            own = np.zeros((n, 0))
+        po = own.shape[1]
+        own_scale = np.sqrt(np.sum(own * own, axis=0))
+        own_scale = np.where(own_scale > 0, own_scale, 1.0)
+        own_s = own / own_scale
+        qo = Q.T @ own_s                      # (pc, po)
+        own_perp = own_s - Q @ qo
+        if po:
+            Q2, R2 = np.linalg.qr(own_perp, mode="reduced")
+        else:
+            Q2, R2 = np.zeros((n, 0)), np.zeros((0, 0))
+        R = np.zeros((pc + po, pc + po))
+        R[:pc, :pc] = reg.R
+        R[:pc, pc:] = qo
+        R[pc:, pc:] = R2
+        qy = np.concatenate([Q.T @ y, Q2.T @ y])
+        d = np.abs(np.diag(R))
+        self.rank = int(np.sum(d > RANK_TOLERANCE * max(d.max(initial=0.0), 1e-300)))
+        p = pc + po
+        if self.rank < p:
+            self.rinv = np.linalg.pinv(R)
+        else:
+            self.rinv = sla.solve_triangular(R, np.eye(p))
+        theta_s = self.rinv @ qy
+        scale = np.concatenate([reg.scale, own_scale])
+        self.theta = theta_s / scale
+        self.scale = scale
+        resid = y - reg.common @ self.theta[:pc] - own @ self.theta[pc:]
+        self.residuals = resid
+        self.rss = float(resid @ resid)
+        self.dof = max(n - self.rank, 1)
+        self.sigma2 = self.rss / self.dof
+        self.n_common = pc
+        # RSS of the target on its own columns only (every common coefficient zero).
+        if po:
+            th_own, *_ = np.linalg.lstsq(own_s, y, rcond=None)
+            r0 = y - own_s @ th_own
+            self.rss_own_only = float(r0 @ r0)
+            self.rank_own = int(np.linalg.matrix_rank(own_s))
+        else:
+            self.rss_own_only = float(y @ y)
+            self.rank_own = 0
+        ynorm = np.linalg.norm(y - y.mean())
+        self.fit_percent = 100.0 * (1.0 - np.sqrt(self.rss) / ynorm) if ynorm > 0 else 0.0
+
+    def covariance_scaled(self) -> np.ndarray:
+        """``(R'R)^-1`` in the scaled parameters (multiply by sigma2 and 1/scale for theta)."""
+        return self.rinv @ self.rinv.T
+
+    def test_all_common_zero(self) -> BlockTest:
+        """F test that every common coefficient is zero (e.g. the S_Delta row equals the identity)."""
+        df_num = self.rank - self.rank_own
+        f, p = f_test(self.rss_own_only, self.rss, df_num, self.dof)
+        return BlockTest(f, p, int(df_num), int(self.dof))
+
+    def test_blocks_zero(self, blocks: Sequence[int]) -> BlockTest:
+        """Wald F test that the common coefficients of the given blocks are all zero.
+
+        For least squares the Wald statistic ``theta_S' [cov_SS]^-1 theta_S / |S|`` equals the F
+        statistic of the nested fit without those columns.
+        """
+        starts = np.cumsum([0] + self.reg.block_sizes)
+        idx = np.concatenate([np.arange(starts[b], starts[b + 1]) for b in blocks]) if blocks else np.array([], int)
+        if idx.size == 0:
+            return BlockTest(float("nan"), 1.0, 0, int(self.dof))
+        th = (self.theta * self.scale)[idx]           # scaled parameters
+        cov = self.covariance_scaled()[np.ix_(idx, idx)]
+        # Rank-aware quadratic form (a block inside a collinear group has a near-singular cov).
+        w, v = np.linalg.eigh(0.5 * (cov + cov.T))
+        keep = w > 1e-10 * max(w.max(initial=0.0), 1e-300)
+        df_num = int(np.sum(keep))
+        if df_num == 0:
+            return BlockTest(float("nan"), 1.0, 0, int(self.dof))
+        proj = v[:, keep].T @ th
+        quad = float(np.sum(proj ** 2 / w[keep]))
+        f = quad / df_num / self.sigma2
+        return BlockTest(float(f), float(stats.f.sf(f, df_num, self.dof)), df_num, int(self.dof))
+
+    def block_theta(self, block: int) -> np.ndarray:
+        """Common coefficients of one block."""
+        starts = np.cumsum([0] + self.reg.block_sizes)
+        return self.theta[starts[block]:starts[block + 1]]
+
+    def block_std(self, block: int) -> np.ndarray:
+        """Standard errors of the coefficients of one block."""
+        starts = np.cumsum([0] + self.reg.block_sizes)
+        sl = slice(starts[block], starts[block + 1])
+        cov = self.covariance_scaled()[sl, sl] * self.sigma2
+        return np.sqrt(np.maximum(np.diag(cov), 0.0)) / self.scale[sl]
+
+    def own_theta(self) -> np.ndarray:
+        """Coefficients of the target's own columns."""
+        return self.theta[self.n_common:]
+
+
+def estimate_delay_from_lags(coef: np.ndarray, std: np.ndarray, nb: int, first_lag: int) -> int:
+    """Delay (samples) of one input from a long-lag fit, as MATLAB's ``delayest`` intends.
+
+    Picks the start of the window of ``nb`` consecutive lags with the largest sum of squared
+    t-statistics, i.e. the delay whose short B polynomial explains most of the output.
+
+    Parameters
+    ----------
+    coef, std : ndarray, shape (n_lags,)
+        Coefficients of lags ``first_lag .. first_lag + n_lags - 1`` and their standard errors.
+    nb : int
+        Window length.
+    first_lag : int
+        Lag of ``coef[0]``.
+    """
+    t2 = np.where(std > 0, (coef / np.where(std > 0, std, 1.0)) ** 2, 0.0)
+    n = t2.shape[0]
+    if n <= nb:
+        return int(first_lag)
+    window = np.convolve(t2, np.ones(nb), mode="valid")
+    return int(first_lag + int(np.argmax(window)))
+
+
+def estimate_delays(y: np.ndarray, u: np.ndarray, na: int, nb: int, max_delay: int, min_delay: int = 0) -> np.ndarray:
+    """Delay of every input (``delayest`` for a multi-input ARX).
+
+    Fits one ARX with B polynomials covering lags ``min_delay .. max_delay + nb - 1`` and, for each
+    input, picks the window of ``nb`` lags that explains most (:func:`estimate_delay_from_lags`).
+
+    Parameters
+    ----------
+    y : ndarray, shape (n_samples,)
+    u : ndarray, shape (n_samples, n_inputs)
+    na, nb : int
+    max_delay : int
+        Largest delay searched (samples).
+    min_delay : int
+        Smallest delay searched (samples).
+
+    Returns
+    -------
+    ndarray of int, shape (n_inputs,)
+    """
+    u = np.asarray(u, dtype=float)
+    if u.ndim == 1:
+        u = u[:, None]
+    n_lags = max_delay - min_delay + nb
+    fit = fit_arx(y, u, na, n_lags, nk=min_delay)
+    out = []
+    for j in range(u.shape[1]):
+        sl = fit.b_block(j)
+        std = np.sqrt(np.maximum(np.diag(fit.covariance)[sl], 0.0))
+        out.append(estimate_delay_from_lags(fit.theta[sl], std, nb, min_delay))
+    return np.array(out, dtype=int)
