@@ -1,0 +1,439 @@
+"""Recorder node: the contract topics, ``/diagnostics``, ``mpm_monitor/rsi`` and ``/clock`` to a rosbag2.
+
+The bag is a rosbag2 directory with MCAP storage and metadata version 9, written with ``rosbags``
+(:class:`~mpm_monitor.bag_io.BagWriter`) from the serialized bytes of ``raw=True`` subscriptions, so
+every message is stored exactly as its publisher sent it.  Each topic is stored with the QoS
+profiles its publishers really offer (``get_publishers_info_by_topic``), as ``ros2 bag record``
+does; the subscription itself is RELIABLE and VOLATILE (it matches every publisher but a
+best-effort one, for which it switches to BEST_EFFORT).
+
+Loss bound
+----------
+Every ``flush_period`` seconds (steady time) the pending MCAP chunk is closed, written and
+``fsync``-ed.  On SIGINT or SIGTERM (and on :meth:`RecorderNode.close`) the node stops spinning,
+takes what the middleware has already delivered (for at most ``drain_timeout`` seconds), writes it
+and closes the bag properly (MCAP summary and ``metadata.yaml``): every message received before the
+signal is kept, and a message can only be lost if it was still in transit when the recorder
+stopped.  After a hard kill (SIGKILL, power loss) the chunks up to the last flush -- all but at most
+``flush_period`` seconds of messages -- are on disk, but the bag lacks ``metadata.yaml`` and the
+MCAP summary and must be re-indexed before readers accept it.
+
+Parameters
+----------
+bag_dir : str
+    Bag directory to create (must not exist); default ``mpm_bag_<date>-<time>``.
+topics : str[]
+    Topics to record; a known name (``setpoint``, ``input``, ``output``, ``/diagnostics``,
+    ``mpm_monitor/rsi``, ``/clock``) or ``name=pkg/msg/Type``.
+flush_period : float
+    Seconds between flushes to disk, 0.01 to 60.
+drain_timeout : float
+    Seconds to keep taking already-delivered messages after a stop request, 0 to 10.
+qos_wait : float
+    Seconds to wait for the graph to show a topic's publishers before storing its first messages
+    with the subscription's QoS instead, 0 to 10.
+fsync : bool
+    ``fsync`` on every flush.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import signal
+import sys
+import threading
+import time
+from typing import Optional, Sequence
+
+import rclpy
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
+from rclpy.clock import Clock, ClockType
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy)
+from rclpy.signals import SignalHandlerOptions
+
+from ..bag_io import BagWriter
+from ..errors import ConfigurationError, InputError
+
+#: Message types of the topics the project publishes (CONTRACTS section 4, DESIGN.md).
+KNOWN_TOPIC_TYPES = {
+    "setpoint": "sensor_msgs/msg/JointState",
+    "input": "sensor_msgs/msg/JointState",
+    "output": "sensor_msgs/msg/JointState",
+    "dither": "sensor_msgs/msg/JointState",
+    "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
+    "diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
+    "mpm_monitor/rsi": "std_msgs/msg/Float64MultiArray",
+    "/clock": "rosgraph_msgs/msg/Clock",
+    "clock": "rosgraph_msgs/msg/Clock",
+}
+#: What the recorder records by default.
+DEFAULT_RECORD_TOPICS = ("setpoint", "input", "output", "/diagnostics", "mpm_monitor/rsi", "/clock")
+#: Depth of the recorder's subscriptions (absorbs bursts between executor turns).
+SUBSCRIPTION_DEPTH = 1000
+
+
+@dataclasses.dataclass(frozen=True)
+class RecorderOptions:
+    """Validated recorder settings (see the module docstring for the meaning of each).
+
+    Attributes
+    ----------
+    bag_dir : str
+    topics : tuple of (str, str)
+        (topic name as given, ``pkg/msg/Type``).
+    flush_period, drain_timeout, qos_wait : float
+        Seconds.
+    fsync : bool
+    """
+
+    bag_dir: str
+    topics: tuple
+    flush_period: float = 1.0
+    drain_timeout: float = 0.5
+    qos_wait: float = 1.0
+    fsync: bool = True
+
+    RANGES = {"flush_period": (0.01, 60.0), "drain_timeout": (0.0, 10.0), "qos_wait": (0.0, 10.0)}
+
+    def __post_init__(self):
+        if not isinstance(self.bag_dir, str) or not self.bag_dir.strip():
+            raise ConfigurationError(f"bag_dir: expected a directory path, got {self.bag_dir!r}")
+        for key, (lo, hi) in self.RANGES.items():
+            val = getattr(self, key)
+            if not isinstance(val, (int, float)) or not lo <= val <= hi:
+                raise ConfigurationError(f"{key}: expected a number of seconds in [{lo:g}, {hi:g}], got {val!r}")
+        if not self.topics:
+            raise ConfigurationError("topics: expected at least one topic to record")
+        names = [n for n, _ in self.topics]
+        if len(set(names)) != len(names):
+            raise ConfigurationError(f"topics: a topic is listed twice: {', '.join(names)}")
+
+
+def parse_topic_specs(specs: Sequence[str]) -> tuple:
+    """Topic list entries (``name`` or ``name=pkg/msg/Type``) as ``(name, type)`` pairs.
+
+    Raises
+    ------
+    ConfigurationError
+        An unknown name without a type, or a type not of the form ``pkg/msg/Type``.
+    """
+    out = []
+    for spec in specs:
+        spec = str(spec).strip()
+        name, _, msgtype = spec.partition("=")
+        name, msgtype = name.strip(), msgtype.strip()
+        if not msgtype:
+            msgtype = KNOWN_TOPIC_TYPES.get(name, "")
+            if not msgtype:
+                raise ConfigurationError(
+                    f"topics: entry {spec!r}: unknown topic; give its type as name=pkg/msg/Type "
+                    f"(known: {', '.join(sorted(KNOWN_TOPIC_TYPES))})")
+        parts = msgtype.split("/")
+        if not name or len(parts) != 3 or parts[1] != "msg" or not all(parts):
+            raise ConfigurationError(f"topics: entry {spec!r}: expected name or name=pkg/msg/Type")
+        out.append((name, msgtype))
+    return tuple(out)
+
+
+def message_class(msgtype: str):
+    """The Python class of ``pkg/msg/Type``; :class:`ConfigurationError` if it is not installed."""
+    pkg, _, name = msgtype.split("/")
+    try:
+        return getattr(importlib.import_module(f"{pkg}.msg"), name)
+    except (ImportError, AttributeError):
+        raise ConfigurationError(f"topics: message type {msgtype} is not installed") from None
+
+
+def bag_qos(profile: QoSProfile):
+    """A rclpy QoS profile as the ``rosbags`` Qos stored in ``offered_qos_profiles``."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+    def enum(cls, policy):
+        return cls.__members__.get(getattr(policy, "name", ""), cls.UNKNOWN)
+
+    def dur(d):
+        sec, nsec = divmod(int(d.nanoseconds), 1_000_000_000)
+        return QosTime(sec, nsec)
+
+    return Qos(history=enum(QosHistory, profile.history), depth=int(profile.depth),
+               reliability=enum(QosReliability, profile.reliability),
+               durability=enum(QosDurability, profile.durability),
+               deadline=dur(profile.deadline), lifespan=dur(profile.lifespan),
+               liveliness=enum(QosLiveliness, profile.liveliness),
+               liveliness_lease_duration=dur(profile.liveliness_lease_duration),
+               avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions))
+
+
+def subscription_qos(msgtype: str, best_effort: bool) -> QoSProfile:
+    """The recorder's subscription profile: KEEP_LAST 1000, VOLATILE, RELIABLE unless told otherwise."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=SUBSCRIPTION_DEPTH,
+                      reliability=ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE, liveliness=LivelinessPolicy.AUTOMATIC)
+
+
+def default_bag_dir(now: Optional[float] = None) -> str:
+    """``mpm_bag_<YYYYmmdd-HHMMSS>`` for the given (default current) time."""
+    return time.strftime("mpm_bag_%Y%m%d-%H%M%S", time.localtime(now))
+
+
+class _Topic:
+    """Book-keeping of one recorded topic."""
+
+    def __init__(self, name: str, msgtype: str):
+        self.name, self.msgtype = name, msgtype
+        self.msg_class = message_class(msgtype)
+        self.subscription = None
+        self.best_effort = False
+        self.resolved = ""
+        self.pending: list = []       # (t_ns, bytes) before the topic's connection is in the bag
+        self.pending_since = 0.0      # monotonic seconds
+        self.received = 0
+
+
+class RecorderNode(Node):
+    """Records topics to a rosbag2 (MCAP) directory until :meth:`close`.
+
+    Parameters
+    ----------
+    bag_dir : str or Path, optional
+        Overrides the ``bag_dir`` parameter.
+    topics : sequence of str, optional
+        Overrides the ``topics`` parameter (entries ``name`` or ``name=pkg/msg/Type``).
+    node_name : str
+    context : rclpy.context.Context, optional
+    flush_period, drain_timeout, qos_wait : float, optional
+        Override the parameters of the same names (seconds).
+    **kwargs
+        Passed to :class:`rclpy.node.Node` (``parameter_overrides``, ``namespace``, ...).
+
+    Raises
+    ------
+    InputError
+        A bad parameter value or an existing bag directory.
+    """
+
+    def __init__(self, bag_dir=None, *, topics: Optional[Sequence[str]] = None, node_name: str = "mpm_recorder",
+                 context=None, flush_period: Optional[float] = None, drain_timeout: Optional[float] = None,
+                 qos_wait: Optional[float] = None, **kwargs):
+        overrides = list(kwargs.pop("parameter_overrides", None) or [])
+        given = {"bag_dir": None if bag_dir is None else str(bag_dir),
+                 "topics": None if topics is None else [str(t) for t in topics],
+                 "flush_period": None if flush_period is None else float(flush_period),
+                 "drain_timeout": None if drain_timeout is None else float(drain_timeout),
+                 "qos_wait": None if qos_wait is None else float(qos_wait)}
+        overrides += [Parameter(k, value=v) for k, v in given.items() if v is not None]
+        super().__init__(node_name, context=context, parameter_overrides=overrides, **kwargs)
+        self._lock = threading.RLock()
+        self._closed = False
+        self._writer = None
+        self._timer = None
+        self.options = self._read_parameters()
+        self._writer = BagWriter(self.options.bag_dir, fsync=self.options.fsync)
+        self._topics = [_Topic(n, t) for n, t in self.options.topics]
+        for tp in self._topics:
+            self._subscribe(tp, best_effort=self._publishers_best_effort(tp.name))
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._timer = self.create_timer(self.options.flush_period, self._on_flush_timer, clock=steady)
+        self.get_logger().info(
+            f"recording {', '.join(tp.resolved for tp in self._topics)} to {self.options.bag_dir} "
+            f"(MCAP, flush every {self.options.flush_period:g} s)")
+
+    # -- set-up -----------------------------------------------------------------------------------
+
+    def _read_parameters(self) -> RecorderOptions:
+        def desc(text, lo=None, hi=None):
+            d = ParameterDescriptor(description=text)
+            if lo is not None:
+                d.floating_point_range = [FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]
+            return d
+
+        rng = RecorderOptions.RANGES
+        declare = self._declare
+        declare("bag_dir", "", desc("bag directory to create (must not exist); empty = mpm_bag_<date>-<time>"))
+        declare("topics", list(DEFAULT_RECORD_TOPICS), desc("topics to record: a known name or name=pkg/msg/Type"))
+        declare("flush_period", 1.0, desc("seconds between flushes to disk", *rng["flush_period"]))
+        declare("drain_timeout", 0.5, desc("seconds to take already-delivered messages after a stop request",
+                                           *rng["drain_timeout"]))
+        declare("qos_wait", 1.0, desc("seconds to wait for a topic's publishers to show in the graph before "
+                                      "storing it with the subscription QoS", *rng["qos_wait"]))
+        declare("fsync", True, desc("fsync the bag file on every flush"))
+        p = {name: self.get_parameter(name).value for name in
+             ("bag_dir", "topics", "flush_period", "drain_timeout", "qos_wait", "fsync")}
+        return RecorderOptions(bag_dir=p["bag_dir"] or default_bag_dir(), topics=parse_topic_specs(p["topics"]),
+                               flush_period=p["flush_period"], drain_timeout=p["drain_timeout"],
+                               qos_wait=p["qos_wait"], fsync=p["fsync"])
+
+    def _declare(self, name, default, descriptor) -> None:
+        """Declare a parameter; a rejected override becomes a one-line :class:`ConfigurationError`."""
+        try:
+            self.declare_parameter(name, default, descriptor)
+        except (InvalidParameterValueException, InvalidParameterTypeException) as exc:
+            raise ConfigurationError(f"{name}: {' '.join(str(exc).split())}") from None
+
+    def _subscribe(self, tp: _Topic, best_effort: bool) -> None:
+        if tp.subscription is not None:
+            self.destroy_subscription(tp.subscription)
+        tp.best_effort = best_effort
+        tp.subscription = self.create_subscription(
+            tp.msg_class, tp.name, lambda data, tp=tp: self._on_message(tp, data),
+            subscription_qos(tp.msgtype, best_effort), raw=True)
+        tp.resolved = tp.subscription.topic_name
+
+    def _publishers_best_effort(self, name: str) -> bool:
+        return any(info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+                   for info in self.get_publishers_info_by_topic(name))
+
+    # -- recording --------------------------------------------------------------------------------
+
+    @property
+    def message_count(self) -> int:
+        """Messages received so far (written or waiting for their topic's QoS)."""
+        with self._lock:
+            return sum(tp.received for tp in self._topics)
+
+    @property
+    def flushed_count(self) -> int:
+        """Messages on disk so far."""
+        with self._lock:
+            return self._writer.flushed_count if self._writer is not None else 0
+
+    @property
+    def bag_dir(self) -> str:
+        return self.options.bag_dir
+
+    def _on_message(self, tp: _Topic, data: bytes) -> None:
+        t = self.get_clock().now().nanoseconds
+        with self._lock:
+            if self._closed:
+                return
+            tp.received += 1
+            if self._writer.has_topic(tp.resolved):
+                self._writer.write(tp.resolved, t, data)
+                return
+            if not tp.pending:
+                tp.pending_since = time.monotonic()
+            tp.pending.append((t, data))
+            self._add_to_bag(tp, force=False)
+
+    def _add_to_bag(self, tp: _Topic, force: bool) -> None:
+        """Register the topic with its publishers' QoS (once the graph shows them) and write its backlog."""
+        infos = self.get_publishers_info_by_topic(tp.resolved)
+        waited = time.monotonic() - tp.pending_since
+        if not infos and not force and waited < self.options.qos_wait:
+            return
+        if infos:
+            profiles = [bag_qos(info.qos_profile) for info in infos]
+        else:
+            self.get_logger().warning(f"{tp.resolved}: publishers not visible in the graph after {waited:.1f} s; "
+                                      f"storing the recorder's subscription QoS")
+            profiles = [bag_qos(subscription_qos(tp.msgtype, tp.best_effort))]
+        self._writer.add_topic(tp.resolved, tp.msgtype, profiles)
+        for t, data in tp.pending:
+            self._writer.write(tp.resolved, t, data)
+        tp.pending = []
+
+    def _on_flush_timer(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            for tp in self._topics:
+                if tp.pending:
+                    self._add_to_bag(tp, force=False)
+            n = self._writer.flush()
+        self.get_logger().debug(f"flushed {n} messages to disk")
+        for tp in self._topics:
+            if not tp.best_effort and self._publishers_best_effort(tp.resolved):
+                self.get_logger().warning(f"{tp.resolved}: a publisher offers BEST_EFFORT; re-subscribing best effort")
+                self._subscribe(tp, best_effort=True)
+
+    def drain(self, executor, timeout: Optional[float] = None) -> int:
+        """Take messages the middleware has already delivered, until none arrive for 0.1 s or ``timeout``.
+
+        Returns
+        -------
+        int
+            Messages taken.
+        """
+        timeout = self.options.drain_timeout if timeout is None else timeout
+        start = self.message_count
+        deadline = time.monotonic() + timeout
+        last, last_change = start, time.monotonic()
+        while time.monotonic() < deadline and not self._closed:
+            executor.spin_once(timeout_sec=0.02)
+            now_count = self.message_count
+            if now_count != last:
+                last, last_change = now_count, time.monotonic()
+            elif time.monotonic() - last_change > 0.1:
+                break
+        return self.message_count - start
+
+    def close(self) -> int:
+        """Stop recording, write everything received and close the bag properly.  Idempotent.
+
+        Returns
+        -------
+        int
+            Messages in the bag.
+        """
+        with self._lock:
+            if self._closed or self._writer is None:
+                return self._writer.message_count if self._writer is not None else 0
+            self._closed = True
+            for tp in self._topics:
+                if tp.pending:
+                    self._add_to_bag(tp, force=True)
+            self._writer.close()
+            n = self._writer.message_count
+        if self._timer is not None:
+            self._timer.cancel()
+        self.get_logger().info(f"closed bag {self.options.bag_dir}: {n} messages")
+        return n
+
+    def destroy_node(self):
+        self.close()
+        return super().destroy_node()
+
+
+def main(args=None) -> int:
+    """Console script ``recorder_node``: record until SIGINT or SIGTERM, then close the bag.
+
+    Returns
+    -------
+    int
+        0 after a clean stop, 2 on a bad parameter or bag directory.
+    """
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = threading.Event()
+
+    def on_signal(signum, frame):
+        stop.set()
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    node = None
+    try:
+        node = RecorderNode()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.1)
+        node.drain(executor)
+        node.close()
+        return 0
+    except InputError as exc:
+        print(f"recorder_node: error: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
