@@ -1,0 +1,200 @@
+"""The detection: S_Delta row test and Delta element test on simulated closed loops.
+
+The located rows and elements are compared with the ground truth of the simulation (the plant and
+model differ exactly in the listed elements).  The full seed count is in bench/monte_carlo.py.
+"""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mpm_monitor.analysis import AnalysisOptions, analyze
+from mpm_monitor.cases import paper_case
+from mpm_monitor.closed_loop import ExcitationOptions, run_closed_loop
+from mpm_monitor.data_io import LoggedData, write_log_csv
+from mpm_monitor.errors import ConfigurationError, DataFileError
+from mpm_monitor.excitation import PrbsOptions
+from mpm_monitor.model import FopdtModel, save_model
+
+FAST = AnalysisOptions(repair=False)
+
+
+def _data(log):
+    return LoggedData(t=log.t, r=log.r, u=log.u, y=log.y, inputs=log.inputs, outputs=log.outputs,
+                      sample_time=log.sample_time)
+
+
+def _run_case(name, seed, samples=3000, excitation=None):
+    case = paper_case(name)
+    log = run_closed_loop(case.plant, case.model, samples, seed=seed, mpc=case.mpc,
+                          excitation=excitation or case.excitation, disturbance=case.disturbance)
+    return case, _data(log)
+
+
+@pytest.mark.parametrize("name", ["3.1", "3.2", "3.3"])
+@pytest.mark.parametrize("seed", [11, 12])
+def test_paper_cases_locate_exactly_the_mismatch(name, seed):
+    case, data = _run_case(name, seed)
+    report = analyze(case.model, data, FAST)
+    assert set(report.flagged_rows) == set(case.mismatched_rows)
+    assert set(report.located_elements) == set(case.mismatched_elements)
+    assert not report.ambiguous_elements
+
+
+def test_rsi_near_one_without_mismatch_and_above_one_with():
+    case, data = _run_case("3.1", 3)
+    rep = analyze(case.model, data, FAST)
+    assert all(abs(r.rsi - 1.0) < 0.05 for r in rep.rows)
+    case, data = _run_case("3.2", 3)
+    rep = analyze(case.model, data, FAST)
+    rsi = {r.output: r.rsi for r in rep.rows}
+    assert rsi["y1"] > 1.2 and rsi["y2"] > 1.08 and abs(rsi["y3"] - 1.0) < 0.05
+
+
+def test_row_test_false_alarm_rate_is_calibrated():
+    """Raw row p-values on mismatch-free data are uniform: P(p < 0.1) ~ 0.1 (binomial bound)."""
+    case = paper_case("3.1")
+    p = []
+    for seed in range(12):
+        log = run_closed_loop(case.plant, case.model, 1500, seed=200 + seed, mpc=case.mpc,
+                              excitation=case.excitation, disturbance=case.disturbance)
+        p += [r.p_value_raw for r in analyze(case.model, _data(log), FAST).rows]
+    hits = int(np.sum(np.array(p) < 0.1))
+    # binomial(36, 0.1): mean 3.6, sd 1.8
+    assert hits <= 3.6 + 4 * 1.8
+
+
+def test_collinear_inputs_give_ambiguity_not_a_wrong_element():
+    """Case 3.3 without dither: the MPC drives u2 and u5 identically; never guess between them."""
+    case, data = _run_case("3.3", 5, excitation=ExcitationOptions())
+    rep = analyze(case.model, data, FAST)
+    truth = set(case.mismatched_elements)
+    assert set(rep.located_elements) <= truth          # nothing wrong is located
+    assert rep.ambiguous_elements
+    amb = {e.input for e in rep.elements if e.ambiguous}
+    assert {"u2", "u5"} <= amb
+    assert any("move together" in w for w in rep.warnings)
+    assert rep.collinear_groups
+
+
+def _random_model(ny, nu, rng):
+    return FopdtModel(1.0, [f"u{j + 1}" for j in range(nu)], [f"y{i + 1}" for i in range(ny)],
+                      gain=rng.uniform(0.5, 3, (ny, nu)) * rng.choice([-1, 1], (ny, nu)),
+                      time_constant=rng.uniform(10, 60, (ny, nu)),
+                      delay=rng.integers(1, 6, (ny, nu)).astype(float))
+
+
+@pytest.mark.parametrize("ny,nu,dither", [(7, 3, None), (3, 7, 0.3)])
+def test_non_square_plants(ny, nu, dither):
+    rng = np.random.default_rng(ny * 10 + nu)
+    plant = _random_model(ny, nu, rng)
+    i2 = min(4, ny - 1)
+    model = plant.with_element(1, 0, gain=plant.gain[1, 0] * 1.5).with_element(
+        i2, 2, time_constant=plant.time_constant[i2, 2] * 2)
+    exc = ExcitationOptions(dither=None if dither is None else PrbsOptions(amplitude=dither))
+    log = run_closed_loop(plant, model, 4000, seed=1, excitation=exc)
+    rep = analyze(model, _data(log), FAST)
+    assert set(rep.located_elements) == {(f"y2", "u1"), (f"y{i2 + 1}", "u3")}
+    assert set(rep.flagged_rows) == {"y2", f"y{i2 + 1}"}
+
+
+def test_deterministic():
+    case, data = _run_case("3.2", 4, samples=1500)
+    a = analyze(case.model, data, FAST).to_dict()
+    b = analyze(case.model, data, FAST).to_dict()
+    assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
+
+
+def test_report_has_the_contract_keys():
+    case, data = _run_case("3.2", 4, samples=1500)
+    doc = json.loads(json.dumps(analyze(case.model, data, AnalysisOptions()).to_dict()))
+    assert doc["sample_time"] == 1.0 and doc["samples"] == 1500
+    assert [r["output"] for r in doc["rows"]] == ["y1", "y2", "y3"]
+    for r in doc["rows"]:
+        assert set(r) >= {"output", "rsi", "mismatch", "p_value"}
+        assert isinstance(r["mismatch"], bool) and isinstance(r["rsi"], float)
+    tested = {(e["output"], e["input"]) for e in doc["elements"]}
+    assert {("y1", "u1"), ("y1", "u2"), ("y1", "u3"), ("y2", "u1")} <= tested
+    kinds = {"gain", "time_constant", "delay", "missing", "mixed", "unknown"}
+    for e in doc["elements"]:
+        assert set(e) >= {"output", "input", "mismatch", "p_value", "kind"}
+        if e["mismatch"]:
+            assert e["kind"] in kinds
+    assert set(doc["repair"]) >= {"model", "changes", "error_before", "error_after"}
+    assert isinstance(doc["warnings"], list)
+
+
+def test_too_few_samples_is_a_clear_error():
+    case, data = _run_case("3.2", 4, samples=60)
+    with pytest.raises(DataFileError, match=r"60 samples; .* need at least \d+ samples"):
+        analyze(case.model, data, FAST)
+
+
+def test_channels_must_match_the_model():
+    case, data = _run_case("3.2", 4, samples=400)
+    other = case.model.replace(inputs=("a", "b", "c"))
+    with pytest.raises(DataFileError, match="do not match the model"):
+        analyze(other, data, FAST)
+
+
+@pytest.mark.parametrize("kw,match", [({"alpha": 0.0}, "alpha"), ({"na": -1}, "na"), ({"nb": 0}, "nb"),
+                                      ({"band": (1.0, 0.5)}, "band"), ({"method": "magic"}, "method"),
+                                      ({"initial_state": "guess"}, "initial_state")])
+def test_bad_options_are_refused(kw, match):
+    with pytest.raises(ConfigurationError, match=match):
+        AnalysisOptions(**kw)
+
+
+def test_initial_state_estimate_handles_a_log_that_starts_mid_operation():
+    case = paper_case("3.2")
+    log = run_closed_loop(case.plant, case.model, 3600, seed=9, mpc=case.mpc, excitation=case.excitation,
+                          disturbance=case.disturbance)
+    data = _data(log).slice(600, 3600)     # the model's state at the first sample is not zero
+    rep = analyze(case.model, data, FAST)
+    assert set(rep.located_elements) == set(case.mismatched_elements)
+
+
+# ------------------------------------------------------------------------------------ CLI
+
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "mpm_monitor", *args], capture_output=True, text=True, timeout=120)
+
+
+def test_analyze_cli_writes_the_json_report(tmp_path):
+    case = paper_case("3.2")
+    log = run_closed_loop(case.plant, case.model, 2000, seed=2, mpc=case.mpc, excitation=case.excitation,
+                          disturbance=case.disturbance)
+    save_model(case.model, tmp_path / "model.yaml")
+    write_log_csv(tmp_path / "data.csv", log)
+    res = _cli("analyze", "--model", str(tmp_path / "model.yaml"), "--data", str(tmp_path / "data.csv"),
+               "--json", "-", "--no-repair")
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(res.stdout)
+    located = {(e["output"], e["input"]) for e in doc["elements"] if e["mismatch"]}
+    assert located == set(case.mismatched_elements)
+
+
+@pytest.mark.parametrize("content,match", [
+    ("sample_time: 1\ninputs: [u1]\n", "missing key 'outputs'"),
+    ("not: [valid", "not valid YAML"),
+])
+def test_analyze_cli_bad_model_exits_2_with_one_line(tmp_path, content, match):
+    (tmp_path / "m.yaml").write_text(content)
+    (tmp_path / "d.csv").write_text("t,r_y1,u1,y1\n0,0,0,0\n")
+    res = _cli("analyze", "--model", str(tmp_path / "m.yaml"), "--data", str(tmp_path / "d.csv"))
+    assert res.returncode == 2
+    assert match in res.stderr and "Traceback" not in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
+
+
+def test_analyze_cli_bad_csv_exits_2_naming_line_and_column(tmp_path):
+    case = paper_case("3.2")
+    save_model(case.model, tmp_path / "model.yaml")
+    (tmp_path / "d.csv").write_text("t,r_y1,r_y2,r_y3,u1,u2,u3,y1,y2,y3\n0,1,1,1,0,0,0,0,0,0\n1,1,1,1,x,0,0,0,0,0\n")
+    res = _cli("analyze", "--model", str(tmp_path / "model.yaml"), "--data", str(tmp_path / "d.csv"))
+    assert res.returncode == 2
+    assert "line 3, column 'u1'" in res.stderr and "Traceback" not in res.stderr
