@@ -224,7 +224,7 @@ class InternalModelMpc:
         if self._last_du is not None:
             shifted = np.concatenate([self._last_du[nu:], np.zeros(nu)])
             self._qp.warm_start(x=shifted)
-        res = self._qp.solve()
+        res = self._qp.solve(raise_error=False)
         self.qp_solves += 1
         if res.x is None or res.info.status not in ("solved", "solved inaccurate") or not np.all(np.isfinite(res.x)):
             # Infeasible or failed: fall back to the clipped unconstrained move (never exceed bounds).
