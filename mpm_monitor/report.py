@@ -1,0 +1,215 @@
+"""The analysis report a control engineer reads: one self-contained HTML file plus its figures.
+
+:func:`write_report` writes into a directory
+
+- ``report.html`` -- self-contained (figures embedded as base64 PNG): what was analysed, the row
+  test (RSI per output), the located elements, the repair (parameters before and after, prediction
+  error before and after) and the warnings, with the figures of :mod:`mpm_monitor.plots`;
+- the same figures as PNG files (``sdelta.png``, ``elements.png``, ``steps.png``,
+  ``residuals.png``) for slides and tickets.
+
+It reads the :class:`~mpm_monitor.analysis.AnalysisReport` attributes listed in docs/DESIGN.md:
+``rows``, ``elements``, ``frequencies``, ``row_gains``, ``sigma_max``, ``repair``,
+``repaired_model``, ``warnings`` (and ``overall_rsi``, ``arx_tables`` when present).
+"""
+
+from __future__ import annotations
+
+import base64
+import datetime
+import html
+import math
+from pathlib import Path
+
+from . import plots
+from .errors import InputError
+from .model import FopdtModel
+
+REPORT_FILE = "report.html"
+
+_CSS = """
+body { font-family: sans-serif; margin: 2em auto; max-width: 70em; color: #222; }
+h1 { font-size: 1.5em; } h2 { font-size: 1.2em; margin-top: 1.6em; border-bottom: 1px solid #ccc; }
+table { border-collapse: collapse; margin: 0.6em 0; font-size: 0.9em; }
+th, td { border: 1px solid #ccc; padding: 0.25em 0.6em; text-align: right; }
+th { background: #f2f2f2; } td.name { text-align: left; }
+tr.flag td { background: #fde0dc; } tr.amb td { background: #fff0d9; }
+.warn { background: #fff6d6; border-left: 4px solid #e0a800; padding: 0.4em 0.8em; margin: 0.3em 0; }
+.ok { color: #2a7d2a; } .bad { color: #b22222; font-weight: bold; }
+figure { margin: 1em 0; } figure img { max-width: 100%; border: 1px solid #eee; }
+figcaption { font-size: 0.85em; color: #555; }
+"""
+
+
+def _e(x) -> str:
+    return html.escape(str(x), quote=True)
+
+
+def _num(x, fmt: str = ".4g") -> str:
+    if x is None:
+        return "&ndash;"
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return _e(x)
+    return "&ndash;" if not math.isfinite(v) else format(v, fmt)
+
+
+def _figure(path: Path, caption: str) -> str:
+    data = base64.b64encode(path.read_bytes()).decode("ascii")
+    return (f'<figure><img alt="{_e(caption)}" src="data:image/png;base64,{data}">'
+            f"<figcaption>{_e(caption)} (also <code>{_e(path.name)}</code>)</figcaption></figure>")
+
+
+def _table(headers, rows, classes=None) -> str:
+    out = ["<table><tr>" + "".join(f"<th>{h}</th>" for h in headers) + "</tr>"]
+    for k, row in enumerate(rows):
+        cls = f' class="{classes[k]}"' if classes and classes[k] else ""
+        cells = "".join(f'<td class="name">{c}</td>' if n == 0 else f"<td>{c}</td>" for n, c in enumerate(row))
+        out.append(f"<tr{cls}>{cells}</tr>")
+    out.append("</table>")
+    return "\n".join(out)
+
+
+def _params(p) -> str:
+    if not isinstance(p, dict):
+        return "&ndash;"
+    return (f"K {_num(p.get('gain'))}, &tau; {_num(p.get('time_constant'))} s, "
+            f"&theta; {_num(p.get('delay'))} s")
+
+
+def _rows_section(report) -> str:
+    rows, classes = [], []
+    for r in report.rows:
+        rows.append([_e(r.output), _num(r.rsi, ".3f"), _num(r.p_value, ".2e"),
+                     '<span class="bad">mismatch</span>' if r.mismatch else '<span class="ok">no mismatch</span>'])
+        classes.append("flag" if r.mismatch else "")
+    overall = getattr(report, "overall_rsi", None)
+    lead = (f"<p>Overall RSI (largest singular value of S<sub>&Delta;</sub> over the band): "
+            f"<b>{_num(overall, '.3f')}</b>. A row whose S<sub>&Delta;</sub> stays at the identity (RSI near 1) "
+            f"has no model-plant mismatch; the decision is the row test's p-value.</p>") if overall is not None else ""
+    return lead + _table(["output", "RSI", "p-value", "row test"], rows, classes)
+
+
+def _elements_section(report) -> str:
+    located = [e for e in report.elements if e.mismatch]
+    ambiguous = [e for e in report.elements if getattr(e, "ambiguous", False)]
+    if not report.elements:
+        return "<p>No element was tested (no row flagged).</p>"
+    if not located and not ambiguous:
+        return "<p>No element located: every tested element is consistent with the model.</p>"
+    rows, classes = [], []
+    for e in located + [e for e in ambiguous if not e.mismatch]:
+        with_ = ", ".join(getattr(e, "ambiguous_with", ()) or ())
+        rows.append([_e(f"({e.output}, {e.input})"),
+                     _e(e.kind or "") if e.mismatch else "ambiguous" + (f" with {_e(with_)}" if with_ else ""),
+                     _num(e.p_value, ".2e"), _num(getattr(e, "delay", None), "d") if getattr(e, "delay", None)
+                     is not None else "&ndash;"])
+        classes.append("flag" if e.mismatch else "amb")
+    return _table(["element (output, input)", "kind", "p-value", "delay of &Delta; (samples)"], rows, classes)
+
+
+def _repair_section(report) -> str:
+    rep = report.repair or {}
+    parts = []
+    changes = rep.get("changes") or []
+    if changes:
+        rows = []
+        for c in changes:
+            applied = c.get("applied", True)
+            rows.append([_e(f"({c.get('output')}, {c.get('input')})"), _e(c.get("kind", "")), _params(c.get("before")),
+                         _params(c.get("after")), _num(c.get("confidence"), ".2f"), "yes" if applied else "no"])
+        parts.append(_table(["element", "kind", "model as given", "repaired", "confidence", "applied"], rows))
+    else:
+        parts.append("<p>No element was changed.</p>")
+    eb, ea = rep.get("error_before") or {}, rep.get("error_after") or {}
+    if eb:
+        rows = []
+        for out, before in eb.items():
+            after = ea.get(out)
+            ratio = (after / before) if (after is not None and before) else None
+            rows.append([_e(out), _num(before), _num(after), _num(ratio, ".3f")])
+        parts.append("<p>Root-mean-square one-step prediction error d = y &minus; &#375; per output:</p>")
+        parts.append(_table(["output", "model as given", "repaired", "ratio"], rows))
+    return "\n".join(parts)
+
+
+def _warnings_section(report) -> str:
+    if not report.warnings:
+        return "<p>None.</p>"
+    return "\n".join(f'<div class="warn">{_e(w)}</div>' for w in report.warnings)
+
+
+def write_report(directory, model: FopdtModel, data, report) -> Path:
+    """Write the HTML report and its figures into ``directory`` (created if needed).
+
+    Parameters
+    ----------
+    directory : str or Path
+    model : FopdtModel
+        The controller's model as given.
+    data : LoggedData
+        The analysed samples (for the residual plot).
+    report : AnalysisReport
+
+    Returns
+    -------
+    Path
+        The HTML file.
+
+    Raises
+    ------
+    InputError
+        The directory cannot be created or written.
+    """
+    directory = Path(directory)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"{directory}: cannot create report directory: {exc.strerror or exc}") from None
+    repaired = getattr(report, "repaired_model", None)
+    try:
+        figs = [(plots.plot_sdelta(report, directory / "sdelta.png", title="S_Delta singular values"),
+                 "Overall and per-row singular values of the identified S_Delta with the identity line "
+                 "(paper Figs. 3-5): a row without mismatch stays at 1.")]
+        figs.append((plots.plot_element_map(report, model, directory / "elements.png"),
+                     "Model elements coloured by the element test's verdict."))
+        steps = plots.plot_step_responses(report, model, directory / "steps.png")
+        if steps is not None:
+            figs.append((steps, "Unit-step responses of each located element: model as given, repaired model, "
+                                "and the element identified from the data (model + ARX estimate of Delta)."))
+        figs.append((plots.plot_residuals(model, repaired, data, directory / "residuals.png"),
+                     "Prediction error d = y - model output per output, with the model as given and as repaired."))
+    except OSError as exc:
+        raise InputError(f"{directory}: cannot write figures: {exc.strerror or exc}") from None
+    fig_html = {p.stem: _figure(p, cap) for p, cap in figs}
+    source = getattr(data, "source", "") or "data"
+    n = getattr(data, "n_samples", None)
+    n = n if n is not None else len(data.t)
+    title = f"Model-plant mismatch report: {model.name}" if model.name else "Model-plant mismatch report"
+    flagged = [r.output for r in report.rows if r.mismatch]
+    located = [f"({e.output}, {e.input})" for e in report.elements if e.mismatch]
+    verdict = ("No model-plant mismatch found." if not flagged else
+               f"Mismatch in row{'s' if len(flagged) > 1 else ''} {', '.join(flagged)}; "
+               f"located element{'s' if len(located) != 1 else ''}: {', '.join(located) or 'none'}.")
+    body = [
+        f"<h1>{_e(title)}</h1>",
+        f"<p><b>{_e(verdict)}</b></p>",
+        f"<p>Data: <code>{_e(source)}</code>, {n} samples at {_num(model.sample_time)} s "
+        f"({_num(n * model.sample_time)} s); model: {model.n_outputs} outputs "
+        f"({_e(', '.join(model.outputs))}) &times; {model.n_inputs} inputs ({_e(', '.join(model.inputs))}). "
+        f"Written {_e(datetime.datetime.now().isoformat(timespec='seconds'))}.</p>",
+        "<h2>Warnings</h2>", _warnings_section(report),
+        "<h2>Row test: S<sub>&Delta;</sub></h2>", _rows_section(report), fig_html.get("sdelta", ""),
+        "<h2>Element test: located mismatch</h2>", _elements_section(report), fig_html.get("elements", ""),
+        fig_html.get("steps", ""),
+        "<h2>Repair</h2>", _repair_section(report), fig_html.get("residuals", ""),
+    ]
+    doc = (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{_e(title)}</title>'
+           f"<style>{_CSS}</style></head><body>\n" + "\n".join(body) + "\n</body></html>\n")
+    out = directory / REPORT_FILE
+    try:
+        out.write_text(doc, encoding="utf-8")
+    except OSError as exc:
+        raise InputError(f"{out}: cannot write report: {exc.strerror or exc}") from None
+    return out

@@ -1,0 +1,147 @@
+"""Report and figures (issue 6), on a short simulated run of paper case 3.2, and ``analyze --bag`` = ``--data``.
+
+Case 3.2 (``shared/reference/paper-cases.md``): rows y1 and y2 mismatched, elements (y1, u2),
+(y1, u3) and (y2, u1) located.  The report must render, hold those results, and embed non-empty
+PNG figures that are also written as files.
+"""
+
+import base64
+import json
+import re
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from mpm_monitor import plots
+from mpm_monitor.analysis import AnalysisOptions, analyze
+from mpm_monitor.bag_io import read_bag, write_logged_data
+from mpm_monitor.cases import paper_case
+from mpm_monitor.cli import main as cli_main
+from mpm_monitor.closed_loop import run_closed_loop
+from mpm_monitor.data_io import LoggedData, write_csv
+from mpm_monitor.model import FopdtModel, save_model
+from mpm_monitor.report import write_report
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+SAMPLES = 1500
+
+
+@pytest.fixture(scope="module")
+def case32():
+    case = paper_case("3.2")
+    log = run_closed_loop(case.plant, case.model, SAMPLES, seed=1, mpc=case.mpc, excitation=case.excitation,
+                          disturbance=case.disturbance)
+    data = LoggedData(t=log.t, r=log.r, u=log.u, y=log.y, inputs=log.inputs, outputs=log.outputs,
+                      sample_time=log.sample_time, source="case 3.2 simulation")
+    report = analyze(case.model, data, AnalysisOptions())
+    return case, data, report
+
+
+def _assert_png_not_empty(path):
+    import matplotlib.image as mpimg
+
+    raw = path.read_bytes()
+    assert raw[:8] == PNG_MAGIC and len(raw) > 5000, path
+    img = mpimg.imread(path)
+    assert img.shape[0] > 150 and img.shape[1] > 150
+    assert float(img[..., :3].std()) > 0.02, f"{path} is blank"
+
+
+def test_report_renders_with_figures(case32, tmp_path):
+    case, data, report = case32
+    assert set(report.located_elements) == set(case.mismatched_elements)  # the run is a meaningful example
+    out = write_report(tmp_path / "rep", case.model, data, report)
+    assert out == tmp_path / "rep" / "report.html"
+    text = out.read_text(encoding="utf-8")
+    for name in ("sdelta", "elements", "steps", "residuals"):
+        png = tmp_path / "rep" / f"{name}.png"
+        _assert_png_not_empty(png)
+        # embedded, byte for byte, in the self-contained HTML
+        assert base64.b64encode(png.read_bytes()).decode() in text
+    assert len(re.findall(r'src="data:image/png;base64,', text)) == 4
+    for o, i in case.mismatched_elements:
+        assert f"({o}, {i})" in text
+    assert "Mismatch in rows y1, y2" in text
+    rows = re.findall(r'<tr class="flag"><td class="name">(y\d)</td>', text)
+    assert rows == ["y1", "y2"]
+
+
+def test_identified_step_points_to_the_plant(case32):
+    """The identified element (model + ARX Delta) is closer to the true plant gain than the model."""
+    case, _, report = case32
+    i, j = 0, 2  # (y1, u3): plant gain 5.88, model 3.5
+    n = 300
+    ident = plots.identified_step(report, case.model, i, j, n)
+    plant_final = plots.element_step(case.plant, i, j, n)[-1]
+    model_final = plots.element_step(case.model, i, j, n)[-1]
+    assert abs(ident[-1] - plant_final) < 0.5 * abs(model_final - plant_final)
+
+
+def test_analyze_bag_equals_analyze_data(case32, tmp_path, capsys):
+    case, data, _ = case32
+    model_file, csv, bag = tmp_path / "model.yaml", tmp_path / "data.csv", tmp_path / "bag"
+    save_model(case.model, model_file)
+    write_csv(csv, data.t, data.r, data.u, data.y, data.inputs, data.outputs)
+    write_logged_data(bag, data)
+    back = read_bag(bag, case.model)
+    for a in ("t", "r", "u", "y"):
+        np.testing.assert_array_equal(getattr(back, a), getattr(data, a))
+    args = ["analyze", "--model", str(model_file), "--no-repair"]
+    assert cli_main(args + ["--data", str(csv), "--json", str(tmp_path / "a.json")]) == 0
+    assert cli_main(args + ["--bag", str(bag), "--json", str(tmp_path / "b.json"),
+                            "--report", str(tmp_path / "rep")]) == 0
+    a, b = (json.loads((tmp_path / f).read_text()) for f in ("a.json", "b.json"))
+    assert a == b
+    assert (tmp_path / "rep" / "report.html").is_file()
+
+
+# --- plain figures and edge cases on a report-like object --------------------------------------------
+
+
+def _model():
+    return FopdtModel(sample_time=1.0, inputs=("u1", "u2"), outputs=("y1", "y2"), gain=[[2.0, 0.0], [1.0, 3.0]],
+                      time_constant=[[10.0, 0.0], [5.0, 0.0]], delay=[[3.0, 0.0], [0.0, 2.0]])
+
+
+def _fake_report(model, warnings=()):
+    w = np.concatenate([[0.0], np.logspace(-3, np.log10(np.pi), 63)])
+    rows = [SimpleNamespace(output="y1", rsi=1.02, mismatch=False, p_value=0.4),
+            SimpleNamespace(output="y2", rsi=1.01, mismatch=False, p_value=0.7)]
+    return SimpleNamespace(rows=rows, elements=[], frequencies=w, row_gains=np.ones((2, w.size)),
+                           sigma_max=np.ones(w.size), overall_rsi=1.02, warnings=list(warnings),
+                           repair={"changes": [], "error_before": {"y1": 0.01, "y2": 0.02},
+                                   "error_after": {"y1": 0.01, "y2": 0.02}},
+                           repaired_model=model, arx_tables=[])
+
+
+def test_report_without_mismatch_escapes_text(tmp_path):
+    model = _model()
+    rng = np.random.default_rng(0)
+    n = 200
+    data = LoggedData(t=np.arange(n, dtype=float), r=rng.normal(size=(n, 2)), u=rng.normal(size=(n, 2)),
+                      y=rng.normal(size=(n, 2)), inputs=model.inputs, outputs=model.outputs, sample_time=1.0)
+    out = write_report(tmp_path / "rep", model, data, _fake_report(model, ["too little <excitation> & noise"]))
+    text = out.read_text()
+    assert "No model-plant mismatch found." in text
+    assert "too little &lt;excitation&gt; &amp; noise" in text and "<excitation>" not in text
+    assert not (tmp_path / "rep" / "steps.png").exists()  # nothing located: no step figure
+    assert len(re.findall(r'src="data:image/png;base64,', text)) == 3
+    for name in ("sdelta", "elements", "residuals"):
+        _assert_png_not_empty(tmp_path / "rep" / f"{name}.png")
+
+
+def test_element_step_matches_fopdt_formula():
+    model = _model()
+    n = 40
+    k = np.arange(n)
+    expected = np.where(k >= 3, 2.0 * (1.0 - np.exp(-(k - 3.0) / 10.0)), 0.0)  # step invariance of ZOH
+    np.testing.assert_allclose(plots.element_step(model, 0, 0, n), expected, atol=1e-12)
+    np.testing.assert_allclose(plots.element_step(model, 1, 1, n), np.where(k >= 2, 3.0, 0.0), atol=1e-12)
+
+
+def test_arx_step():
+    # q^-2 * 0.5 / (1 - 0.5 q^-1): steady-state gain 1, zero for the first two samples
+    s = plots.arx_step([-0.5], [0.5], 2, 60)
+    assert s[0] == s[1] == 0.0 and s[2] == 0.5
+    assert s[-1] == pytest.approx(1.0, abs=1e-12)
