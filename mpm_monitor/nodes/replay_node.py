@@ -1,0 +1,297 @@
+"""Replay node: publish a bag's contract topics so the live monitor can run against a recording.
+
+Modes
+-----
+``time``
+    Messages go out at their recorded (receive) times scaled by ``rate``: 1 = recorded speed,
+    10 = ten times faster.  With ``publish_clock`` the node also publishes ``/clock`` with the
+    replayed samples' stamps, so nodes with ``use_sim_time`` follow the recording.
+``clock``
+    Lock step with ``/clock``: each ``/clock`` message releases every recorded sample stamped at or
+    before it, so whoever drives the clock (a simulator, a test, a stepping tool) sets the pace.
+
+The messages are published as the recorded CDR bytes (no re-serialization), on topics named as
+the ``topics`` parameter (relative names resolve in the node's namespace and can be remapped),
+with the contract's vector QoS (RELIABLE, KEEP_LAST 1000, VOLATILE).
+
+Parameters
+----------
+bag : str
+    rosbag2 directory to replay.
+topics : str[]
+    Topics of the bag to replay, default ``setpoint``, ``input``, ``output``.
+mode : str
+    ``time`` or ``clock``.
+rate : float
+    Speed factor of ``time`` mode, 0.01 to 1000.
+wait_for_subscribers : int
+    ``time`` mode starts once every publisher has this many subscribers (0 = at once), 0 to 100.
+publish_clock : bool
+    ``time`` mode: also publish ``/clock``.
+"""
+
+from __future__ import annotations
+
+import bisect
+import dataclasses
+import sys
+from typing import Optional, Sequence
+
+import rclpy
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.clock import Clock, ClockType
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock as ClockMsg
+
+from ..bag_io import DEFAULT_TOPICS, read_raw_messages, topic_name
+from ..errors import ConfigurationError, InputError
+from .recorder_node import message_class
+
+MODES = ("time", "clock")
+#: Period of the publishing timer in ``time`` mode, seconds of steady time.
+TICK = 0.005
+
+VECTOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
+CLOCK_SUB_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.BEST_EFFORT,
+                           durability=DurabilityPolicy.VOLATILE)
+CLOCK_PUB_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                           durability=DurabilityPolicy.VOLATILE)
+
+
+@dataclasses.dataclass(frozen=True)
+class ReplayOptions:
+    """Validated replay settings (see the module docstring)."""
+
+    bag: str
+    topics: tuple = DEFAULT_TOPICS
+    mode: str = "time"
+    rate: float = 1.0
+    wait_for_subscribers: int = 0
+    publish_clock: bool = False
+
+    RATE_RANGE = (0.01, 1000.0)
+    SUBSCRIBER_RANGE = (0, 100)
+
+    def __post_init__(self):
+        if not isinstance(self.bag, str) or not self.bag.strip():
+            raise ConfigurationError(f"bag: expected a rosbag2 directory, got {self.bag!r}")
+        if not self.topics or any(not str(t).strip() for t in self.topics):
+            raise ConfigurationError(f"topics: expected a list of topic names, got {list(self.topics)!r}")
+        if self.mode not in MODES:
+            raise ConfigurationError(f"mode: expected one of {', '.join(MODES)}, got {self.mode!r}")
+        lo, hi = self.RATE_RANGE
+        if not isinstance(self.rate, (int, float)) or not lo <= self.rate <= hi:
+            raise ConfigurationError(f"rate: expected a speed factor in [{lo:g}, {hi:g}], got {self.rate!r}")
+        lo, hi = self.SUBSCRIBER_RANGE
+        if int(self.wait_for_subscribers) != self.wait_for_subscribers or not lo <= self.wait_for_subscribers <= hi:
+            raise ConfigurationError(f"wait_for_subscribers: expected an integer in [{lo}, {hi}], "
+                                     f"got {self.wait_for_subscribers!r}")
+
+
+class ReplaySchedule:
+    """Which recorded messages are due, by elapsed replay time or by ``/clock``.
+
+    Parameters
+    ----------
+    messages : sequence of RawMessage
+        In recording order (:func:`~mpm_monitor.bag_io.read_raw_messages`).
+    mode : {"time", "clock"}
+    rate : float
+        Speed factor (``time`` mode).
+    topic_order : sequence of str
+        Topic order among messages with the same stamp (``clock`` mode); default: as recorded.
+    """
+
+    def __init__(self, messages: Sequence, mode: str = "time", rate: float = 1.0,
+                 topic_order: Optional[Sequence[str]] = None):
+        self.mode = mode
+        if mode == "clock":
+            missing = [m.topic for m in messages if m.stamp is None]
+            if missing:
+                raise ConfigurationError(f"mode clock: topic '{missing[0]}' has no header stamp to step by")
+            rank = {t: k for k, t in enumerate(topic_order or ())}
+            order = sorted(range(len(messages)),
+                           key=lambda k: (messages[k].stamp, rank.get(messages[k].topic, len(rank)), k))
+            self.messages = [messages[k] for k in order]
+            self._keys = [m.stamp for m in self.messages]
+        else:
+            self.messages = list(messages)
+            t0 = self.messages[0].log_time if self.messages else 0
+            self._keys = [(m.log_time - t0) / rate for m in self.messages]
+        self._next = 0
+
+    @property
+    def finished(self) -> bool:
+        """Every message has been released."""
+        return self._next >= len(self.messages)
+
+    @property
+    def released(self) -> int:
+        """Messages released so far."""
+        return self._next
+
+    def _release(self, key) -> list:
+        end = bisect.bisect_right(self._keys, key, lo=self._next)
+        out = self.messages[self._next:end]
+        self._next = end
+        return out
+
+    def due_by_elapsed(self, elapsed_ns: float) -> list:
+        """``time`` mode: the messages whose scaled recorded offset is at most ``elapsed_ns``."""
+        return self._release(elapsed_ns)
+
+    def due_by_clock(self, clock_ns: int) -> list:
+        """``clock`` mode: the messages stamped at or before ``clock_ns``."""
+        return self._release(clock_ns)
+
+
+class ReplayNode(Node):
+    """Publishes a bag's topics in ``time`` or ``clock`` mode until every message is out.
+
+    Parameters
+    ----------
+    bag : str or Path, optional
+        Overrides the ``bag`` parameter.
+    topics, mode, rate, wait_for_subscribers, publish_clock : optional
+        Override the parameters of the same names.
+    node_name : str
+    context : rclpy.context.Context, optional
+    **kwargs
+        Passed to :class:`rclpy.node.Node`.
+
+    Raises
+    ------
+    InputError
+        A bad parameter or an unreadable bag (:class:`~mpm_monitor.errors.BagError`).
+    """
+
+    def __init__(self, bag=None, *, topics: Optional[Sequence[str]] = None, mode: Optional[str] = None,
+                 rate: Optional[float] = None, wait_for_subscribers: Optional[int] = None,
+                 publish_clock: Optional[bool] = None, node_name: str = "mpm_replay", context=None, **kwargs):
+        overrides = list(kwargs.pop("parameter_overrides", None) or [])
+        given = {"bag": None if bag is None else str(bag), "topics": None if topics is None else [str(t) for t in topics],
+                 "mode": mode, "rate": None if rate is None else float(rate),
+                 "wait_for_subscribers": None if wait_for_subscribers is None else int(wait_for_subscribers),
+                 "publish_clock": None if publish_clock is None else bool(publish_clock)}
+        overrides += [Parameter(k, value=v) for k, v in given.items() if v is not None]
+        super().__init__(node_name, context=context, parameter_overrides=overrides, **kwargs)
+        self.options = self._read_parameters()
+        o = self.options
+        messages = read_raw_messages(o.bag, o.topics)
+        bag_topics = [topic_name(t) for t in o.topics]
+        self.schedule = ReplaySchedule(messages, o.mode, o.rate, topic_order=bag_topics)
+        types = {m.topic: m.msgtype for m in messages}
+        self._replay_pubs = {}
+        for given_name, bag_topic in zip(o.topics, bag_topics):
+            if bag_topic in types:
+                self._replay_pubs[bag_topic] = self.create_publisher(message_class(types[bag_topic]), given_name,
+                                                                    VECTOR_QOS)
+        self._clock_pub = self.create_publisher(ClockMsg, "/clock", CLOCK_PUB_QOS) \
+            if (o.publish_clock and o.mode == "time") else None
+        self._last_clock = None
+        self.published = 0
+        self._start_ns = None
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._timer = None
+        if o.mode == "clock":
+            self.create_subscription(ClockMsg, "/clock", self._on_clock, CLOCK_SUB_QOS)
+        else:
+            self._timer = self.create_timer(TICK, self._on_tick, clock=self._steady)
+        self.get_logger().info(f"replaying {len(messages)} messages of {', '.join(self._replay_pubs)} from {o.bag} "
+                               + (f"at {o.rate:g}x recorded speed" if o.mode == "time" else "in lock step with /clock"))
+
+    def _read_parameters(self) -> ReplayOptions:
+        lo, hi = ReplayOptions.RATE_RANGE
+        slo, shi = ReplayOptions.SUBSCRIBER_RANGE
+        specs = [
+            ("bag", "", ParameterDescriptor(description="rosbag2 directory to replay")),
+            ("topics", list(DEFAULT_TOPICS), ParameterDescriptor(description="topics of the bag to replay")),
+            ("mode", "time", ParameterDescriptor(description="time: at recorded speed x rate; clock: lock step "
+                                                             "with /clock (samples stamped <= clock)")),
+            ("rate", 1.0, ParameterDescriptor(description="speed factor of time mode", floating_point_range=[
+                FloatingPointRange(from_value=lo, to_value=hi, step=0.0)])),
+            ("wait_for_subscribers", 0, ParameterDescriptor(
+                description="time mode starts once every publisher has this many subscribers",
+                integer_range=[IntegerRange(from_value=slo, to_value=shi, step=1)])),
+            ("publish_clock", False, ParameterDescriptor(description="time mode: also publish /clock with the "
+                                                                     "replayed stamps")),
+        ]
+        for name, default, desc in specs:
+            try:
+                self.declare_parameter(name, default, desc)
+            except (InvalidParameterValueException, InvalidParameterTypeException) as exc:
+                raise ConfigurationError(f"{name}: {' '.join(str(exc).split())}") from None
+        p = {name: self.get_parameter(name).value for name, _, _ in specs}
+        return ReplayOptions(bag=p["bag"], topics=tuple(p["topics"]), mode=p["mode"], rate=p["rate"],
+                             wait_for_subscribers=p["wait_for_subscribers"], publish_clock=p["publish_clock"])
+
+    @property
+    def finished(self) -> bool:
+        """Every message of the bag has been published."""
+        return self.schedule.finished
+
+    def _publish(self, messages) -> None:
+        for m in messages:
+            if self._clock_pub is not None and m.stamp is not None and m.stamp != self._last_clock:
+                clock = ClockMsg()
+                clock.clock.sec, clock.clock.nanosec = divmod(int(m.stamp), 1_000_000_000)
+                self._clock_pub.publish(clock)
+                self._last_clock = m.stamp
+            self._replay_pubs[m.topic].publish(m.data)
+            self.published += 1
+        if messages and self.schedule.finished:
+            self.get_logger().info(f"replay finished: {self.published} messages")
+
+    def _on_tick(self) -> None:
+        now = self._steady.now().nanoseconds
+        if self._start_ns is None:
+            need = self.options.wait_for_subscribers
+            if any(p.get_subscription_count() < need for p in self._replay_pubs.values()):
+                return
+            self._start_ns = now
+        self._publish(self.schedule.due_by_elapsed(now - self._start_ns))
+        if self.schedule.finished and self._timer is not None:
+            self._timer.cancel()
+
+    def _on_clock(self, msg: ClockMsg) -> None:
+        self._publish(self.schedule.due_by_clock(msg.clock.sec * 1_000_000_000 + msg.clock.nanosec))
+
+
+def main(args=None) -> int:
+    """Console script ``replay_node``: replay until every message is out (or SIGINT/SIGTERM).
+
+    Returns
+    -------
+    int
+        0 when it ran, 2 on a bad parameter or bag.
+    """
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = ReplayNode()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while not node.finished:
+            executor.spin_once(timeout_sec=0.1)
+        # let reliable publishers hand over what is queued before the process ends
+        for _ in range(10):
+            executor.spin_once(timeout_sec=0.02)
+        return 0
+    except InputError as exc:
+        print(f"replay_node: error: {exc}", file=sys.stderr)
+        return 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        return 0
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
