@@ -327,7 +327,103 @@ def _minimum_samples(n_params: int) -> int:
     return 3 * n_params + 50
 
 
-def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions()) -> AnalysisReport:
+@dataclasses.dataclass(frozen=True)
+class RegressionLayout:
+    """Lags and first usable sample of the tests, fixed by the model and the options.
+
+    Attributes
+    ----------
+    max_delay : int
+        Largest dead time searched (samples).
+    n_lag_r : int
+        Setpoint lags ``0 .. n_lag_r - 1`` of the row test.
+    n_lag_u : int
+        Input lags ``1 .. n_lag_u`` of the element test.
+    start : int
+        First sample of the window used as a regression row (every lag is inside the window).
+    min_samples : int
+        Fewest samples the tests accept.
+    """
+
+    max_delay: int
+    n_lag_r: int
+    n_lag_u: int
+    start: int
+    min_samples: int
+
+
+def regression_layout(model: FopdtModel, options: AnalysisOptions) -> RegressionLayout:
+    """The :class:`RegressionLayout` of :func:`analyze` for this model and these options."""
+    ny, nu, na, nb = model.n_outputs, model.n_inputs, options.na, options.nb
+    dmax_model = int(model.delay_samples.max(initial=0))
+    max_delay = options.max_delay if options.max_delay is not None else max(10, dmax_model + 5)
+    n_lag_r = max_delay + nb + 1            # setpoint lags 0 .. max_delay + nb
+    n_lag_u = max_delay + nb                # input lags 1 .. max_delay + nb
+    n_params = max(ny * n_lag_r, nu * n_lag_u) + na
+    return RegressionLayout(max_delay=max_delay, n_lag_r=n_lag_r, n_lag_u=n_lag_u,
+                            start=max(n_lag_r - 1, n_lag_u, na), min_samples=_minimum_samples(n_params))
+
+
+class QrRegressions:
+    """The least-squares problems of the tests, built from the window's signals and factored by QR.
+
+    This is the reference path of :func:`analyze`.  An object with the same methods that draws on
+    sufficient statistics instead (:class:`mpm_monitor.incremental.GramRegressions`) can be passed
+    to :func:`analyze` in its place.
+
+    Parameters
+    ----------
+    r, z, d : ndarray, shape (n_samples, n_outputs)
+        Setpoints, ``z = eps - r`` and prediction errors of the window.
+    u : ndarray, shape (n_samples, n_inputs)
+        Plant inputs.
+    layout : RegressionLayout
+    na, nb : int
+        ARX orders.
+    """
+
+    def __init__(self, r, u, z, d, layout: RegressionLayout, na: int, nb: int):
+        self.r, self.u, self.z, self.d = r, u, z, d
+        self.layout, self.na, self.nb = layout, na, nb
+        self._u_c = u - u.mean(axis=0)
+
+    def row_regression(self, r_moving: list) -> SharedBlockRegression:
+        """Setpoint lags ``0 .. n_lag_r - 1`` of the moving setpoints (S_Delta row test)."""
+        r, lay = self.r, self.layout
+        r_c = r - r.mean(axis=0)
+        Xr = lag_matrix(r_c[:, r_moving], range(0, lay.n_lag_r), lay.start) if r_moving else \
+            np.zeros((r.shape[0] - lay.start, 0))
+        return SharedBlockRegression(Xr, [lay.n_lag_r] * len(r_moving))
+
+    def row_fit(self, reg: SharedBlockRegression, i: int):
+        """ARX of ``z_i`` on the setpoints (``reg``) and its own lags 1..na."""
+        start = self.layout.start
+        zi = self.z[:, i] - self.z[:, i].mean()
+        own = -lag_matrix(zi, range(1, self.na + 1), start) if self.na else None
+        return reg.fit(zi[start:], own)
+
+    def input_regression(self, testable: list) -> SharedBlockRegression:
+        """Input lags ``1 .. n_lag_u`` of the inputs ``testable`` (Delta element test)."""
+        lay = self.layout
+        X = lag_matrix(self._u_c[:, testable], range(1, lay.n_lag_u + 1), lay.start) if testable else \
+            np.zeros((self.u.shape[0] - lay.start, 0))
+        return SharedBlockRegression(X, [lay.n_lag_u] * len(testable))
+
+    def element_fit(self, reg: SharedBlockRegression, i: int):
+        """ARX of ``d_i`` on the input lags (``reg``) and its own lags 1..na."""
+        start = self.layout.start
+        di = self.d[:, i] - self.d[:, i].mean()
+        own = -lag_matrix(di, range(1, self.na + 1), start) if self.na else None
+        return reg.fit(di[start:], own)
+
+    def short_arx(self, i: int, nk: np.ndarray):
+        """The short ARX of ``d_i`` at the delays ``nk`` (the paper's tables); an :class:`ArxFit`."""
+        di = self.d[:, i] - self.d[:, i].mean()
+        return fit_arx(di, self._u_c, self.na, self.nb, nk)
+
+
+def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
+            signals: Optional[LoopSignals] = None, regressions=None) -> AnalysisReport:
     """Run the S_Delta row test and the Delta element test on logged closed-loop data.
 
     Parameters
@@ -337,6 +433,13 @@ def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = Anal
     data : LoggedData
         Setpoints, inputs and outputs, equally spaced at ``model.sample_time``.
     options : AnalysisOptions
+    signals : LoopSignals, optional
+        ``yhat``, ``d`` and ``eps`` of these samples, e.g. from a model run continuously since
+        before the window (:mod:`mpm_monitor.incremental`); default: recomputed from the data with
+        ``options.initial_state``.
+    regressions : object, optional
+        Provider of the tests' least-squares fits with the methods of :class:`QrRegressions`
+        (default: that class, QR on the window's signals).
 
     Returns
     -------
@@ -360,19 +463,21 @@ def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = Anal
         if not np.all(np.isfinite(arr)):
             raise DataFileError(f"{src}: {name} values contain NaN or infinity")
     na, nb, alpha = options.na, options.nb, options.alpha
-    dmax_model = int(model.delay_samples.max(initial=0))
-    max_delay = options.max_delay if options.max_delay is not None else max(10, dmax_model + 5)
-    n_lag_r = max_delay + nb + 1            # setpoint lags 0 .. max_delay + nb
-    n_lag_u = max_delay + nb                # input lags 1 .. max_delay + nb
-    n_params = max(ny * n_lag_r, nu * n_lag_u) + na
-    need = _minimum_samples(n_params)
+    layout = regression_layout(model, options)
+    n_lag_r, n_lag_u, start = layout.n_lag_r, layout.n_lag_u, layout.start
+    need = layout.min_samples
     if n < need:
-        raise DataFileError(f"{src}: {n} samples; the tests with na={na}, nb={nb}, max_delay={max_delay} need at "
-                            f"least {need} samples")
+        raise DataFileError(f"{src}: {n} samples; the tests with na={na}, nb={nb}, max_delay={layout.max_delay} "
+                            f"need at least {need} samples")
     warnings = []
-    sig = compute_signals(model, r, u, y, options.initial_state)
+    if signals is None:
+        sig = compute_signals(model, r, u, y, options.initial_state)
+    else:
+        sig = signals
+        if sig.d.shape != (n, ny) or sig.eps.shape != (n, ny):
+            raise DataFileError(f"{src}: signals of shape {sig.d.shape} / {sig.eps.shape}, expected ({n}, {ny})")
     z = sig.eps - r   # = -d: zero-mean noise under "no mismatch"
-    start = max(n_lag_r - 1, n_lag_u, na)
+    regs = regressions if regressions is not None else QrRegressions(r, u, z, sig.d, layout, na, nb)
 
     # ---------------------------------------------------------------- S_Delta row test
     r_std = r.std(axis=0)
@@ -381,18 +486,14 @@ def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = Anal
         still = [model.outputs[j] for j in range(ny) if j not in r_moving]
         warnings.append(f"setpoints of {', '.join(still)} never move: their columns of S_Delta cannot be identified "
                         f"and a mismatch that shows only through them goes unseen")
-    r_c = r - r.mean(axis=0)
-    Xr = lag_matrix(r_c[:, r_moving], range(0, n_lag_r), start) if r_moving else np.zeros((n - start, 0))
-    reg_r = SharedBlockRegression(Xr, [n_lag_r] * len(r_moving))
+    reg_r = regs.row_regression(r_moving)
     omega = frequency_grid(options.band, options.n_freq)
     z1 = np.exp(-1j * omega)
     S = np.zeros((omega.size, ny, ny), dtype=complex)
     row_raw_p = np.full(ny, np.nan)
     row_stat, row_df, row_fit = np.full(ny, np.nan), [(0, 0)] * ny, np.zeros(ny)
     for i in range(ny):
-        zi = z[:, i] - z[:, i].mean()
-        own = -lag_matrix(zi, range(1, na + 1), start) if na else None
-        fit = reg_r.fit(zi[start:], own)
+        fit = regs.row_fit(reg_r, i)
         test = fit.test_all_common_zero()
         row_raw_p[i], row_stat[i], row_df[i] = test.p_value, test.statistic, (test.df_num, test.df_den)
         a = fit.own_theta()
@@ -418,7 +519,7 @@ def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = Anal
     # ---------------------------------------------------------------- Delta element test
     test_rows = list(range(ny)) if (options.test_all_rows or options.method != "arx") else \
         [i for i in range(ny) if rows[i].mismatch]
-    design = InputDesign(model, u, n_lag_u, start, options.collinearity_threshold)
+    design = InputDesign(model, u, n_lag_u, start, options.collinearity_threshold, regs.input_regression)
     if design.constant:
         warnings.append(f"inputs {', '.join(design.constant)} never move: their elements cannot be tested")
     if design.groups:
@@ -429,7 +530,7 @@ def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = Anal
               "inputs to separate them")
     elements, arx_tables = [], []
     if options.method == "arx":
-        elements, arx_tables, group_hits = _arx_element_test(model, u, sig.d, test_rows, options, design)
+        elements, arx_tables, group_hits = _arx_element_test(model, test_rows, options, design, regs)
         for out_name, g, p in group_hits:
             warnings.append(f"row {out_name}: inputs {', '.join(g)} jointly explain part of its prediction error "
                             f"(p={p:.2g}) but cannot be told apart from these data")
@@ -478,6 +579,9 @@ class InputDesign:
         An input is not separable when the largest generalised variance-inflation factor of its
         lag block, ``1 / (1 - rho_max^2)`` with ``rho_max`` its largest canonical correlation with
         the lag blocks of the other inputs, exceeds ``1 / threshold``.
+    regression : callable, optional
+        ``regression(testable)`` returns the :class:`SharedBlockRegression` of the lags of the
+        inputs ``testable`` (default: :meth:`QrRegressions.input_regression`).
 
     Attributes
     ----------
@@ -491,16 +595,19 @@ class InputDesign:
         Inputs that cannot be told apart, grouped.
     """
 
-    def __init__(self, model, u, n_lag, start, threshold):
+    def __init__(self, model, u, n_lag, start, threshold, regression=None):
         self.n_lag = n_lag
         std = u.std(axis=0)
         scale = np.maximum(np.abs(u).max(axis=0, initial=0.0), 1.0)
         self.testable = [j for j in range(model.n_inputs) if std[j] > 1e-12 * scale[j]]
         self.constant = [model.inputs[j] for j in range(model.n_inputs) if j not in self.testable]
-        u_c = u - u.mean(axis=0)
-        X = lag_matrix(u_c[:, self.testable], range(1, n_lag + 1), start) if self.testable else \
-            np.zeros((u.shape[0] - start, 0))
-        self.regression = SharedBlockRegression(X, [n_lag] * len(self.testable))
+        if regression is None:
+            u_c = u - u.mean(axis=0)
+            X = lag_matrix(u_c[:, self.testable], range(1, n_lag + 1), start) if self.testable else \
+                np.zeros((u.shape[0] - start, 0))
+            self.regression = SharedBlockRegression(X, [n_lag] * len(self.testable))
+        else:
+            self.regression = regression(self.testable)
         self.vif = {}
         R = self.regression.R
         p = R.shape[1]
@@ -554,18 +661,14 @@ def _group_inputs(u, bad, names, threshold):
     return [tuple(g) for g in groups.values()]
 
 
-def _arx_element_test(model, u, d, test_rows, options, design):
+def _arx_element_test(model, test_rows, options, design, regs):
     """The Delta element test on the rows ``test_rows`` (see the module docstring)."""
-    na, nb, alpha = options.na, options.nb, options.alpha
+    nb, alpha = options.nb, options.alpha
     nu = model.n_inputs
-    start = d.shape[0] - design.regression.common.shape[0]
     testable, group_of = design.testable, design.group_of
-    u_c = u - u.mean(axis=0)
     raw, info, tables, group_hits = {}, {}, [], []
     for i in test_rows:
-        di = d[:, i] - d[:, i].mean()
-        own = -lag_matrix(di, range(1, na + 1), start) if na else None
-        fit = design.regression.fit(di[start:], own)
+        fit = regs.element_fit(design.regression, i)
         for bj, j in enumerate(testable):
             coef, std = fit.block_theta(bj), fit.block_std(bj)
             lag0 = estimate_delay_from_lags(coef, std, nb, first_lag=1)
@@ -578,7 +681,7 @@ def _arx_element_test(model, u, d, test_rows, options, design):
                 group_hits.append((model.outputs[i], g, jt.p_value))
         # The paper's table (Tables 1 to 5): a short ARX at the estimated delays, for reporting.
         nk = np.array([info[(i, j)][0] if (i, j) in info else 1 for j in range(nu)])
-        short = fit_arx(di, u_c, na, nb, nk)
+        short = regs.short_arx(i, nk)
         tables.append(RowArxTable(output=model.outputs[i], a=short.a.tolist(),
                                   b={model.inputs[j]: short.b[j].tolist() for j in range(nu)},
                                   delay={model.inputs[j]: int(nk[j]) for j in range(nu)},
