@@ -106,6 +106,11 @@ def plot_sdelta(report, path, title: str = "") -> Path:
 # Located elements as a matrix picture
 
 
+def format_p_value(p) -> str:
+    """``p=3.2e-04``; values below double precision's resolution as ``p<1e-16``."""
+    return "p<1e-16" if p < 1e-16 else f"p={p:.1e}"
+
+
 def element_states(report, model: FopdtModel) -> np.ndarray:
     """State of every element as a string array of shape (n_outputs, n_inputs).
 
@@ -153,7 +158,7 @@ def plot_element_map(report, model: FopdtModel, path) -> Path:
             elif states[i, j] == "ambiguous":
                 lines.append("ambiguous")
             if e is not None and e.p_value is not None and states[i, j] != "untested":
-                lines.append(f"p={e.p_value:.1e}")
+                lines.append(format_p_value(e.p_value))
             ax.text(j, i, "\n".join(lines), ha="center", va="center", fontsize=7)
     rsi = {r.output: r for r in report.rows}
     ax.set_xticks(range(nu), model.inputs)

@@ -55,6 +55,12 @@ def _num(x, fmt: str = ".4g") -> str:
     return "&ndash;" if not math.isfinite(v) else format(v, fmt)
 
 
+def _p(x) -> str:
+    if x is None or not math.isfinite(float(x)):
+        return "&ndash;"
+    return "&lt;1e-16" if float(x) < 1e-16 else format(float(x), ".2e")
+
+
 def _figure(path: Path, caption: str) -> str:
     data = base64.b64encode(path.read_bytes()).decode("ascii")
     return (f'<figure><img alt="{_e(caption)}" src="data:image/png;base64,{data}">'
@@ -81,7 +87,7 @@ def _params(p) -> str:
 def _rows_section(report) -> str:
     rows, classes = [], []
     for r in report.rows:
-        rows.append([_e(r.output), _num(r.rsi, ".3f"), _num(r.p_value, ".2e"),
+        rows.append([_e(r.output), _num(r.rsi, ".3f"), _p(r.p_value),
                      '<span class="bad">mismatch</span>' if r.mismatch else '<span class="ok">no mismatch</span>'])
         classes.append("flag" if r.mismatch else "")
     overall = getattr(report, "overall_rsi", None)
@@ -103,8 +109,7 @@ def _elements_section(report) -> str:
         with_ = ", ".join(getattr(e, "ambiguous_with", ()) or ())
         rows.append([_e(f"({e.output}, {e.input})"),
                      _e(e.kind or "") if e.mismatch else "ambiguous" + (f" with {_e(with_)}" if with_ else ""),
-                     _num(e.p_value, ".2e"), _num(getattr(e, "delay", None), "d") if getattr(e, "delay", None)
-                     is not None else "&ndash;"])
+                     _p(e.p_value), _num(getattr(e, "delay", None), ".0f")])
         classes.append("flag" if e.mismatch else "amb")
     return _table(["element (output, input)", "kind", "p-value", "delay of &Delta; (samples)"], rows, classes)
 
