@@ -175,6 +175,36 @@ def test_bag_writer_flush_and_close(tmp_path):
         BagWriter(tmp_path / "copy")
 
 
+def test_recover_unclosed_bag(tmp_path):
+    """A writer that dies after a flush: the flushed messages come back, a torn tail is dropped."""
+    import shutil
+
+    r, u, y = _samples(30)
+    raw = read_raw_messages(write_bag(tmp_path / "src", r, u, y), ["setpoint", "input", "output"])
+    w = BagWriter(tmp_path / "live")
+    for m in raw[:60]:
+        if not w.has_topic(m.topic):
+            w.add_topic(m.topic, m.msgtype, [bag_io.contract_vector_qos()])
+        w.write(m.topic, m.log_time, m.data)
+    w.flush()
+    for m in raw[60:]:
+        w.write(m.topic, m.log_time, m.data)  # not flushed: still in memory when the process dies
+    (tmp_path / "dead").mkdir()
+    shutil.copy(tmp_path / "live" / "live.mcap", tmp_path / "dead" / "dead.mcap")
+    with open(tmp_path / "dead" / "dead.mcap", "ab") as fh:
+        fh.write(b"\x06" + (10**6).to_bytes(8, "little") + b"torn")  # a chunk cut short by the kill
+    w.close()
+    with pytest.raises(BagError, match="no metadata.yaml"):
+        read_bag(tmp_path / "dead", MODEL)
+    assert bag_io.recover_bag(tmp_path / "dead", tmp_path / "back") == 60
+    back = read_raw_messages(tmp_path / "back", ["setpoint", "input", "output"])
+    assert [(m.topic, m.log_time, m.data) for m in back] == [(m.topic, m.log_time, m.data) for m in raw[:60]]
+    import yaml
+
+    meta = yaml.safe_load((tmp_path / "back" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["topics_with_message_count"][0]["topic_metadata"]["offered_qos_profiles"][0]["depth"] == 1000
+
+
 # --- malformed bags: one line, naming the bag and the topic ------------------------------------------
 
 

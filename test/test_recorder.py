@@ -3,7 +3,9 @@
 Loss bound under test: on SIGINT or SIGTERM the recorder closes the bag properly and keeps every
 message it received; in particular every message up to the last flush it reported before the
 signal.  Only messages still in transit when it stopped may be missing, and then only at the end:
-the bag holds a gap-free prefix of what was published.
+the bag holds a gap-free prefix of what was published.  After SIGKILL the bag is not closed, but
+``recover_bag`` gets back every message up to the last flush (at most ``flush_period`` of data
+lost).
 """
 
 import os
@@ -31,7 +33,7 @@ from rosgraph_msgs.msg import Clock  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 
-from mpm_monitor.bag_io import read_bag, read_diagnostics  # noqa: E402
+from mpm_monitor.bag_io import read_bag, read_diagnostics, recover_bag  # noqa: E402
 from mpm_monitor.errors import InputError  # noqa: E402
 from mpm_monitor.model import FopdtModel  # noqa: E402
 from mpm_monitor.nodes.recorder_node import RecorderNode, parse_topic_specs  # noqa: E402
@@ -190,8 +192,12 @@ class _Lines(threading.Thread):
                 self.flushed = max(self.flushed, int(m.group(1)))
 
 
-@pytest.mark.parametrize("signum,domain", [(signal.SIGINT, 71), (signal.SIGTERM, 72)])
-def test_signal_mid_run_keeps_everything_up_to_the_last_flush(tmp_path, monkeypatch, signum, domain):
+def _run_and_signal(tmp_path, monkeypatch, signum, domain):
+    """Record /output from a publisher in this process; signal the recorder once it reported a
+    flush of at least 200 messages, keep publishing 100 more, and wait for it to end.
+
+    Returns (bag dir, exit code, flushed count reported before the signal, messages published).
+    """
     bag = tmp_path / "bag"
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                RCUTILS_LOGGING_BUFFERED_STREAM="0", PYTHONUNBUFFERED="1")
@@ -222,17 +228,37 @@ def test_signal_mid_run_keeps_everything_up_to_the_last_flush(tmp_path, monkeypa
                 proc.send_signal(signum)
                 signalled_at = k
             time.sleep(0.002)
-        published = k
         rc = proc.wait(timeout=15)
     finally:
         if proc.poll() is None:
             proc.kill()
         rclpy.try_shutdown(context=context)
     log.join(timeout=5)
-    assert rc == 0, "".join(log.lines)
+    return bag, rc, flushed_at_signal, k, "".join(log.lines)
+
+
+def _stamps(bag):
     with closing(AnyReader([bag])) as reader:
         reader.open()
-        stamps = [reader.deserialize(raw, c.msgtype).header.stamp.sec for c, _, raw in reader.messages()]
+        return [reader.deserialize(raw, c.msgtype).header.stamp.sec for c, _, raw in reader.messages()]
+
+
+@pytest.mark.parametrize("signum,domain", [(signal.SIGINT, 71), (signal.SIGTERM, 72)])
+def test_signal_mid_run_keeps_everything_up_to_the_last_flush(tmp_path, monkeypatch, signum, domain):
+    bag, rc, flushed, published, log = _run_and_signal(tmp_path, monkeypatch, signum, domain)
+    assert rc == 0, log
+    stamps = _stamps(bag)
     # a gap-free prefix of what was published, holding at least everything flushed before the signal
     assert stamps == list(range(len(stamps)))
-    assert flushed_at_signal <= len(stamps) <= published
+    assert flushed <= len(stamps) <= published
+
+
+def test_sigkill_loses_at_most_what_was_not_flushed(tmp_path, monkeypatch):
+    bag, rc, flushed, published, log = _run_and_signal(tmp_path, monkeypatch, signal.SIGKILL, 73)
+    assert rc == -signal.SIGKILL
+    with pytest.raises(InputError, match="no metadata.yaml"):
+        read_bag(bag, MODEL)
+    n = recover_bag(bag, tmp_path / "recovered")
+    stamps = _stamps(tmp_path / "recovered")
+    assert len(stamps) == n and stamps == list(range(n))
+    assert flushed <= n <= published
