@@ -231,10 +231,67 @@ class SharedBlockRegression:
             raise ValueError("block sizes must add up to the number of common columns")
         self.Q, self.R, self.scale, self.rank, self.condition_number = _scaled_qr(self.common)
         self.full_rank = self.rank == self.common.shape[1]
+        self._rinv = None
+
+    @property
+    def n_common(self) -> int:
+        """Number of common columns."""
+        return self.R.shape[1]
+
+    def rinv(self) -> np.ndarray:
+        """``R^-1`` of the common block (computed once, shared by every target's fit)."""
+        if self._rinv is None:
+            p = self.R.shape[1]
+            self._rinv = sla.solve_triangular(self.R, np.eye(p)) if self.full_rank else np.linalg.pinv(self.R)
+        return self._rinv
 
     def fit(self, target: np.ndarray, own: np.ndarray | None):
         """Fit one target; returns a :class:`SharedFit`."""
         return SharedFit(self, np.asarray(target, dtype=float), None if own is None else np.asarray(own, dtype=float))
+
+
+def block_triangular_solution(reg: SharedBlockRegression, qo: np.ndarray, R2: np.ndarray, qy: np.ndarray):
+    """Triangular factor, rank and inverse of ``[[R1, qo], [0, R2]]`` and the scaled solution.
+
+    Parameters
+    ----------
+    reg : SharedBlockRegression
+        Holds ``R1`` (the common block's factor) and its inverse.
+    qo : ndarray, shape (p_common, p_own)
+        ``Q1' X_own`` (scaled own columns).
+    R2 : ndarray, shape (p_own, p_own)
+        Triangular factor of the own columns after projection off the common block.
+    qy : ndarray, shape (p_common + p_own,)
+        ``[Q1' y; Q2' y]``.
+
+    Returns
+    -------
+    rank : int
+    rinv : ndarray, shape (p, p)
+        ``R^-1`` (pseudo-inverse when rank-deficient); with a full-rank ``R`` it is assembled from
+        the shared ``R1^-1`` as ``[[R1^-1, -R1^-1 qo R2^-1], [0, R2^-1]]``.
+    theta_s : ndarray, shape (p,)
+        Coefficients of the scaled columns, ``R^-1 qy``.
+    """
+    pc, po = qo.shape
+    p = pc + po
+    R = np.zeros((p, p))
+    R[:pc, :pc] = reg.R
+    R[:pc, pc:] = qo
+    R[pc:, pc:] = R2
+    d = np.abs(np.diag(R))
+    rank = int(np.sum(d > RANK_TOLERANCE * max(d.max(initial=0.0), 1e-300)))
+    if rank < p:
+        rinv = np.linalg.pinv(R)
+    else:
+        r1i = reg.rinv()
+        r2i = sla.solve_triangular(R2, np.eye(po)) if po else np.zeros((0, 0))
+        rinv = np.zeros((p, p))
+        rinv[:pc, :pc] = r1i
+        rinv[pc:, pc:] = r2i
+        if po:
+            rinv[:pc, pc:] = -(r1i @ qo) @ r2i
+    return rank, rinv, rinv @ qy
 
 
 class SharedFit:
@@ -257,19 +314,8 @@ class SharedFit:
             Q2, R2 = np.linalg.qr(own_perp, mode="reduced")
         else:
             Q2, R2 = np.zeros((n, 0)), np.zeros((0, 0))
-        R = np.zeros((pc + po, pc + po))
-        R[:pc, :pc] = reg.R
-        R[:pc, pc:] = qo
-        R[pc:, pc:] = R2
         qy = np.concatenate([Q.T @ y, Q2.T @ y])
-        d = np.abs(np.diag(R))
-        self.rank = int(np.sum(d > RANK_TOLERANCE * max(d.max(initial=0.0), 1e-300)))
-        p = pc + po
-        if self.rank < p:
-            self.rinv = np.linalg.pinv(R)
-        else:
-            self.rinv = sla.solve_triangular(R, np.eye(p))
-        theta_s = self.rinv @ qy
+        self.rank, self.rinv, theta_s = block_triangular_solution(reg, qo, R2, qy)
         scale = np.concatenate([reg.scale, own_scale])
         self.theta = theta_s / scale
         self.scale = scale
@@ -295,6 +341,11 @@ class SharedFit:
         """``(R'R)^-1`` in the scaled parameters (multiply by sigma2 and 1/scale for theta)."""
         return self.rinv @ self.rinv.T
 
+    def covariance_block(self, idx: np.ndarray) -> np.ndarray:
+        """Rows and columns ``idx`` of :meth:`covariance_scaled`, without forming the whole matrix."""
+        ri = self.rinv[idx]
+        return ri @ ri.T
+
     def test_all_common_zero(self) -> BlockTest:
         """F test that every common coefficient is zero (e.g. the S_Delta row equals the identity)."""
         df_num = self.rank - self.rank_own
@@ -312,7 +363,7 @@ class SharedFit:
         if idx.size == 0:
             return BlockTest(float("nan"), 1.0, 0, int(self.dof))
         th = (self.theta * self.scale)[idx]           # scaled parameters
-        cov = self.covariance_scaled()[np.ix_(idx, idx)]
+        cov = self.covariance_block(idx)
         # Rank-aware quadratic form (a block inside a collinear group has a near-singular cov).
         w, v = np.linalg.eigh(0.5 * (cov + cov.T))
         keep = w > 1e-10 * max(w.max(initial=0.0), 1e-300)
@@ -333,7 +384,7 @@ class SharedFit:
         """Standard errors of the coefficients of one block."""
         starts = np.cumsum([0] + self.reg.block_sizes)
         sl = slice(starts[block], starts[block + 1])
-        cov = self.covariance_scaled()[sl, sl] * self.sigma2
+        cov = self.covariance_block(np.arange(sl.start, sl.stop)) * self.sigma2
         return np.sqrt(np.maximum(np.diag(cov), 0.0)) / self.scale[sl]
 
     def own_theta(self) -> np.ndarray:
