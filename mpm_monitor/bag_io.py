@@ -449,6 +449,34 @@ def read_diagnostics(bag, topic: str = "/diagnostics") -> list:
     return out
 
 
+ROW_STATUS_PREFIX = "mpm_monitor: row "
+
+
+def live_located_elements(statuses: Sequence[RecordedStatus]) -> dict:
+    """The monitor's latest verdict per row, from recorded diagnostics (CONTRACTS section 4).
+
+    Parameters
+    ----------
+    statuses : sequence of RecordedStatus
+        As returned by :func:`read_diagnostics`, in recording order.
+
+    Returns
+    -------
+    dict
+        ``{"rows": {output: mismatch (bool)}, "located": set of (output, input)}`` from the last
+        ``mpm_monitor: row <output>`` status of every output (``mismatch`` and ``flagged_inputs``
+        values).
+    """
+    last = {}
+    for st in statuses:
+        if st.name.startswith(ROW_STATUS_PREFIX):
+            last[st.name[len(ROW_STATUS_PREFIX):]] = st
+    rows = {out: st.values.get("mismatch", "").strip().lower() == "true" for out, st in last.items()}
+    located = {(out, inp.strip()) for out, st in last.items()
+               for inp in st.values.get("flagged_inputs", "").split(",") if inp.strip()}
+    return {"rows": rows, "located": located}
+
+
 @dataclasses.dataclass(frozen=True)
 class RawMessage:
     """A serialized message of a bag, for replay.

@@ -154,6 +154,18 @@ def test_read_diagnostics_in_order(tmp_path):
         (float(k), f"mpm_monitor: row y{i}", k % 2, f"{k + i}") for k in range(3) for i in (1, 2)]
 
 
+def test_live_located_elements_takes_the_last_row_status():
+    def st(name, **values):
+        return bag_io.RecordedStatus(0.0, 0, name, 1, "", "", values)
+
+    got = bag_io.live_located_elements([
+        st("mpm_monitor: row y1", mismatch="true", flagged_inputs="u1"),
+        st("mpm_monitor: row y1", mismatch="true", flagged_inputs="u2, u3"),
+        st("mpm_monitor: row y2", mismatch="false", flagged_inputs=""),
+        st("mpm_monitor: summary", mismatch="true")])
+    assert got == {"rows": {"y1": True, "y2": False}, "located": {("y1", "u2"), ("y1", "u3")}}
+
+
 def test_bag_writer_flush_and_close(tmp_path):
     r, u, y = _samples(3)
     src = write_bag(tmp_path / "src", r, u, y)
