@@ -12,6 +12,7 @@ from typing import Optional
 
 import numpy as np
 
+from .errors import ConfigurationError
 from .excitation import PrbsGenerator, PrbsOptions, ZeroGenerator
 from .model import FopdtModel
 from .mpc import InternalModelMpc, MpcOptions
@@ -126,9 +127,14 @@ def run_closed_loop(plant: FopdtModel, controller_model: FopdtModel, n_samples: 
     ClosedLoopLog
     """
     if plant.inputs != controller_model.inputs or plant.outputs != controller_model.outputs:
-        raise ValueError("plant and controller model must have the same inputs and outputs")
+        raise ConfigurationError(
+            f"plant and controller model must have the same inputs and outputs: plant {list(plant.inputs)} / "
+            f"{list(plant.outputs)}, model {list(controller_model.inputs)} / {list(controller_model.outputs)}")
     if plant.sample_time != controller_model.sample_time:
-        raise ValueError("plant and controller model must have the same sample_time")
+        raise ConfigurationError(f"plant and controller model must have the same sample_time: "
+                                 f"{plant.sample_time:g} s vs {controller_model.sample_time:g} s")
+    if int(n_samples) != n_samples or n_samples < 1:
+        raise ConfigurationError(f"n_samples: expected an integer >= 1, got {n_samples!r}")
     n = int(n_samples)
     ny, nu = plant.n_outputs, plant.n_inputs
     rngs = seeded_generators(seed)
