@@ -174,7 +174,8 @@ class ReplayNode(Node):
                  rate: Optional[float] = None, wait_for_subscribers: Optional[int] = None,
                  publish_clock: Optional[bool] = None, node_name: str = "mpm_replay", context=None, **kwargs):
         overrides = list(kwargs.pop("parameter_overrides", None) or [])
-        given = {"bag": None if bag is None else str(bag), "topics": None if topics is None else [str(t) for t in topics],
+        given = {"bag": None if bag is None else str(bag),
+                 "topics": None if topics is None else [str(t) for t in topics],
                  "mode": mode, "rate": None if rate is None else float(rate),
                  "wait_for_subscribers": None if wait_for_subscribers is None else int(wait_for_subscribers),
                  "publish_clock": None if publish_clock is None else bool(publish_clock)}
