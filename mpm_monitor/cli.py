@@ -7,6 +7,7 @@ reproduce  simulate a paper case and print the paper-style result
 simulate   run a closed-loop simulation and write the contract CSV
 demo       run the four ROS 2 nodes in-process on a paper case (CONTRACTS section 6)
 export     write a bag's contract topics as CSV
+recover    rewrite a hard-killed recording as a closed bag
 
 Bad input exits with code 2 and one line on stderr; never a traceback.
 """
@@ -98,7 +99,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--csv", required=True)
     p.add_argument("--model", default=None, help="model file giving channel order and sample time (optional)")
     p.add_argument("--topics", nargs=3, metavar=("SETPOINT", "INPUT", "OUTPUT"), default=None)
+
+    p = sub.add_parser("recover", help="rewrite a hard-killed recording (no metadata.yaml) as a closed bag")
+    p.add_argument("--bag", required=True, help="the unclosed bag directory")
+    p.add_argument("--out", required=True, help="new bag directory (must not exist)")
     return parser
+
+
+def _cmd_recover(args) -> int:
+    from .bag_io import recover_bag
+
+    n = recover_bag(args.bag, args.out)
+    print(f"recovered {n} messages into {args.out}")
+    return 0
 
 
 def _cmd_analyze(args) -> int:
@@ -188,7 +201,7 @@ def _cmd_export(args) -> int:
 
 
 COMMANDS = {"analyze": _cmd_analyze, "reproduce": _cmd_reproduce, "simulate": _cmd_simulate, "demo": _cmd_demo,
-            "export": _cmd_export}
+            "export": _cmd_export, "recover": _cmd_recover}
 
 
 def main(argv=None) -> int:

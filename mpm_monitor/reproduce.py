@@ -10,8 +10,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from .analysis import AnalysisOptions, analyze
 from .cases import paper_case
 from .closed_loop import run_closed_loop
@@ -45,33 +43,12 @@ def format_arx_table(table) -> str:
 
 def save_sdelta_plots(report, directory, case_name: str) -> list:
     """Overall and per-row singular values of S_Delta with the identity line (paper Figs. 3-5)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from .plots import plot_sdelta
 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    w = report.frequencies[1:] if report.frequencies[0] == 0 else report.frequencies
-    off = report.frequencies.size - w.size
-    paths = []
-    curves = [("overall", report.sigma_max[off:], report.overall_rsi)] + [
-        (f"row {row.output}", report.row_gains[k, off:], row.rsi) for k, row in enumerate(report.rows)]
-    fig, axes = plt.subplots(1, len(curves), figsize=(3.2 * len(curves), 3.0), sharey=True)
-    for ax, (title, gain, rsi) in zip(np.atleast_1d(axes), curves):
-        ax.semilogx(w, 20 * np.log10(gain), lw=1.5)
-        ax.axhline(0.0, color="k", ls="--", lw=0.8, label="identity")
-        ax.set_title(f"{title}: RSI {rsi:.3f}", fontsize=9)
-        ax.set_xlabel("frequency (rad/sample)")
-        ax.grid(True, which="both", alpha=0.3)
-    np.atleast_1d(axes)[0].set_ylabel("singular value of S_Delta (dB)")
-    fig.suptitle(f"Paper case {case_name}: S_Delta singular values", fontsize=10)
-    fig.tight_layout()
     path = directory / f"sdelta_case_{case_name.replace('.', '_')}.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    paths.append(path)
-    return paths
+    return [plot_sdelta(report, path, title=f"Paper case {case_name}: S_Delta singular values")]
 
 
 def reproduce(case_name: str, samples: int = 3000, seed: int = 1, options: AnalysisOptions = AnalysisOptions(),
