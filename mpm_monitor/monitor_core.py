@@ -1,0 +1,501 @@
+"""The live monitor's logic, without ROS: sliding window -> analysis -> diagnostic statuses.
+
+:class:`MonitorCore` receives decoded vectors (stamp in nanoseconds, values in model order) and the
+wall-clock time of their arrival, keeps a :class:`~mpm_monitor.window.SampleWindow`, says when an
+analysis is due and on which data, turns an :class:`~mpm_monitor.analysis.AnalysisReport` (or an
+error) into diagnostic statuses as plain data, and ages them to STALE when the data stop.
+:class:`AnalysisWorker` runs the analysis in a background thread so that the subscription callbacks
+never wait for it.  The ROS node (:mod:`mpm_monitor.nodes.monitor_node`) only converts messages
+and publishes what this module returns.
+
+Statuses (CONTRACTS section 4): one per output, named ``mpm_monitor: row <output>``, with values
+``rsi``, ``mismatch`` (``true``/``false``), ``flagged_inputs`` (comma-separated), ``p_value`` and
+more, and one ``mpm_monitor: summary``.  Levels: OK (no mismatch), WARN (mismatch located), ERROR
+(bad input data or analysis failure), STALE (no fresh data).
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import math
+import threading
+import time
+import traceback
+from typing import Any, Callable, Optional
+
+import numpy as np
+
+from .errors import ConfigurationError
+from .model import FopdtModel
+from .window import ERROR_KINDS, SampleWindow, WindowOptions
+
+OK, WARN, ERROR, STALE = 0, 1, 2, 3
+LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR", STALE: "STALE"}
+
+STATUS_PREFIX = "mpm_monitor"
+SUMMARY_NAME = f"{STATUS_PREFIX}: summary"
+
+
+def row_status_name(output: str) -> str:
+    """Name of the status of one output row: ``mpm_monitor: row <output>``."""
+    return f"{STATUS_PREFIX}: row {output}"
+
+
+@dataclasses.dataclass(frozen=True)
+class StatusData:
+    """A diagnostic status as plain data (the node turns it into ``diagnostic_msgs/DiagnosticStatus``).
+
+    Attributes
+    ----------
+    level : int
+        ``OK`` (0), ``WARN`` (1), ``ERROR`` (2) or ``STALE`` (3).
+    name : str
+    message : str
+    hardware_id : str
+    values : tuple of (str, str)
+        Key/value pairs, in order.
+    """
+
+    level: int
+    name: str
+    message: str
+    hardware_id: str
+    values: tuple
+
+    def value(self, key: str, default: Optional[str] = None) -> Optional[str]:
+        """The value of ``key`` (or ``default``)."""
+        for k, v in self.values:
+            if k == key:
+                return v
+        return default
+
+    def with_level(self, level: int, message: str) -> "StatusData":
+        return dataclasses.replace(self, level=level, message=message)
+
+
+@dataclasses.dataclass(frozen=True)
+class MonitorOptions:
+    """Options of the live monitor.
+
+    Attributes
+    ----------
+    window : WindowOptions
+        Length of the sliding window and alignment rules.
+    analysis_period : int
+        Samples between two analyses (>= 1).
+    min_samples : int
+        Samples needed in the window before the first analysis (>= 10, <= window length).
+    stale_timeout : float
+        Wall-clock seconds without a completed sample after which every status is STALE (> 0).
+    hardware_id : str
+        ``hardware_id`` of the statuses (e.g. the controller's name).
+    """
+
+    window: WindowOptions = WindowOptions()
+    analysis_period: int = 500
+    min_samples: int = 1000
+    stale_timeout: float = 5.0
+    hardware_id: str = "mpm_monitor"
+
+    def __post_init__(self):
+        check_monitor_options(self)
+
+
+def check_monitor_options(o: MonitorOptions) -> None:
+    """Raise :class:`ConfigurationError` naming the option outside its range."""
+    if int(o.analysis_period) != o.analysis_period or not 1 <= o.analysis_period <= 10_000_000:
+        raise ConfigurationError(f"analysis_period: expected an integer in [1, 10000000] samples, "
+                                 f"got {o.analysis_period!r}")
+    if int(o.min_samples) != o.min_samples or not 10 <= o.min_samples <= o.window.window_samples:
+        raise ConfigurationError(f"min_samples: expected an integer in [10, window_samples="
+                                 f"{o.window.window_samples}], got {o.min_samples!r}")
+    if not (math.isfinite(o.stale_timeout) and o.stale_timeout > 0):
+        raise ConfigurationError(f"stale_timeout: expected a number of seconds > 0, got {o.stale_timeout!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class AnalysisJob:
+    """One analysis to run: the window's data and where it lies in the stream."""
+
+    seq: int
+    data: Any               # LoggedData
+    first_stamp: float      # seconds
+    last_stamp: float       # seconds
+    completed: int          # samples completed in the stream when the job was taken
+
+
+@dataclasses.dataclass(frozen=True)
+class AnalysisOutcome:
+    """The result of an :class:`AnalysisJob`: a report or an error message."""
+
+    job: AnalysisJob
+    report: Any = None
+    error: Optional[str] = None
+    seconds: float = 0.0
+
+
+def _num(x) -> str:
+    """A number as a diagnostic value: shortest exact repr, ``nan`` for missing."""
+    if x is None:
+        return "nan"
+    x = float(x)
+    return repr(x) if math.isfinite(x) else ("nan" if math.isnan(x) else ("inf" if x > 0 else "-inf"))
+
+
+def _bool(b) -> str:
+    return "true" if b else "false"
+
+
+def run_analysis(analyze: Callable, model: FopdtModel, options, job: AnalysisJob,
+                 clock: Callable[[], float] = time.perf_counter) -> AnalysisOutcome:
+    """Run ``analyze(model, job.data, options)`` and wrap its report or its error."""
+    t0 = clock()
+    try:
+        report = analyze(model, job.data, options)
+    except Exception as exc:  # the monitor reports any failure as ERROR and keeps running
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        return AnalysisOutcome(job, error=f"analysis failed: {type(exc).__name__}: {msg}", seconds=clock() - t0)
+    return AnalysisOutcome(job, report=report, seconds=clock() - t0)
+
+
+class MonitorCore:
+    """Window, analysis schedule and diagnostic statuses of one monitored controller.
+
+    Parameters
+    ----------
+    model : FopdtModel
+        The controller's model (channel names and sample time).
+    options : MonitorOptions
+    """
+
+    def __init__(self, model: FopdtModel, options: MonitorOptions = MonitorOptions()):
+        self.model = model
+        self.options = options
+        self.window = SampleWindow(model.outputs, model.inputs, model.sample_time, options.window)
+        self._seq = 0
+        self._last_job_completed = None
+        self._results = 0
+        self._latest: Optional[AnalysisOutcome] = None
+        self._analysis_error: Optional[str] = None
+        self._data_error: Optional[str] = None
+        self._data_error_until = 0
+        self._recent_warnings: collections.deque = collections.deque(maxlen=5)
+        self._last_arrival: dict = {"setpoint": None, "input": None, "output": None}
+        self._last_complete_wall: Optional[float] = None
+        self._started_wall: Optional[float] = None
+        #: Number of data errors (bad values, conflicts, off-grid stamps) seen so far.
+        self.data_errors = 0
+
+    # --------------------------------------------------------------------------------- input
+    def add(self, channel: str, stamp_ns: int, values, now: float) -> int:
+        """Add a decoded vector received at wall-clock time ``now`` (seconds); returns samples completed."""
+        if self._started_wall is None:
+            self._started_wall = now
+        self._last_arrival[channel] = now
+        n = self.window.add(channel, stamp_ns, values)
+        if n:
+            self._last_complete_wall = now
+        self._collect_problems()
+        return n
+
+    def bad_message(self, channel: str, message: str, now: float) -> None:
+        """Record a message refused by the converter (wrong names, lengths, non-finite values)."""
+        if self._started_wall is None:
+            self._started_wall = now
+        self._last_arrival[channel] = now
+        self.window.report_bad(channel, None, message)
+        self._collect_problems()
+
+    def start(self, now: float) -> None:
+        """Start the staleness clock (otherwise it starts with the first message)."""
+        if self._started_wall is None:
+            self._started_wall = now
+
+    def _collect_problems(self) -> None:
+        for p in self.window.take_problems():
+            if p.kind in ERROR_KINDS:
+                self.data_errors += 1
+                self._data_error = p.message
+                self._data_error_until = self.window.n_completed + self.options.analysis_period
+            else:
+                self._recent_warnings.append(p.message)
+
+    # ------------------------------------------------------------------------------ analysis
+    def analysis_due(self, force: bool = False) -> bool:
+        """True when the window holds ``min_samples`` and ``analysis_period`` samples came since the last job.
+
+        With ``force``, any new sample since the last job makes an analysis due (e.g. at the end of
+        a run, so that the last samples are analysed).
+        """
+        w = self.window
+        if w.n_window < self.options.min_samples:
+            return False
+        if self._last_job_completed is None:
+            return True
+        new = w.n_completed - self._last_job_completed
+        return new >= (1 if force else self.options.analysis_period)
+
+    def take_job(self) -> AnalysisJob:
+        """The window's data as the next :class:`AnalysisJob` (a copy; cheap)."""
+        data = self.window.data(source="ros")
+        self._seq += 1
+        self._last_job_completed = self.window.n_completed
+        return AnalysisJob(seq=self._seq, data=data, first_stamp=float(data.t[0]), last_stamp=float(data.t[-1]),
+                           completed=self.window.n_completed)
+
+    def accept(self, outcome: AnalysisOutcome) -> None:
+        """Take the outcome of a job (in the thread that publishes)."""
+        if self._latest is not None and outcome.job.seq < self._latest.job.seq:
+            return  # an older job finishing late
+        self._results += 1
+        if outcome.error is not None:
+            self._analysis_error = outcome.error
+            self._latest = dataclasses.replace(outcome, report=self._latest.report if self._latest else None)
+            return
+        self._analysis_error = None
+        self._latest = outcome
+
+    @property
+    def latest_report(self):
+        """The latest report (None before the first)."""
+        return None if self._latest is None else self._latest.report
+
+    @property
+    def latest_outcome(self) -> Optional[AnalysisOutcome]:
+        return self._latest
+
+    def rsi_vector(self) -> Optional[np.ndarray]:
+        """Row RSI values in model output order, shape (n_outputs,), or None before the first report."""
+        rep = self.latest_report
+        if rep is None:
+            return None
+        by = {r.output: float(r.rsi) for r in rep.rows}
+        return np.array([by.get(o, float("nan")) for o in self.model.outputs])
+
+    # ------------------------------------------------------------------------------ statuses
+    def statuses(self, now: float) -> list:
+        """The current statuses: one per row then the summary (list of :class:`StatusData`).
+
+        Parameters
+        ----------
+        now : float
+            Wall-clock time, seconds (same clock as the ``now`` given to :meth:`add`).
+        """
+        rows = self._row_statuses()
+        summary = self._summary_status()
+        stale = self._stale_reason(now)
+        if stale is not None:
+            rows = [s.with_level(STALE, f"{stale}; last result: {s.message}") for s in rows]
+            summary = summary.with_level(STALE, f"{stale}; last result: {summary.message}")
+        return rows + [summary]
+
+    def _stale_reason(self, now: float) -> Optional[str]:
+        timeout = self.options.stale_timeout
+        ref = self._last_complete_wall if self._last_complete_wall is not None else self._started_wall
+        if ref is None or now - ref <= timeout:
+            return None
+        ages = []
+        for ch, t in self._last_arrival.items():
+            ages.append(f"{ch} {'never' if t is None else f'{now - t:.1f} s ago'}")
+        what = "no complete sample" if self._last_complete_wall is not None else "no complete sample yet"
+        return f"{what} for {now - ref:.1f} s (last {', '.join(ages)})"
+
+    def _waiting_message(self) -> str:
+        n, need = self.window.n_window, self.options.min_samples
+        if n < need:
+            return f"no analysis yet: {n} of {need} samples collected"
+        return f"no analysis yet: the first analysis is running ({n} samples collected)"
+
+    def _window_values(self) -> list:
+        h = self.window.health()
+        return [("completed_samples", str(h.completed)), ("window_samples", str(self.window.n_window)),
+                ("missing_samples", str(h.missing_samples)), ("gaps", str(h.gaps)),
+                ("bad_messages", str(h.bad_value)), ("off_grid", str(h.off_grid)), ("conflicts", str(h.conflict)),
+                ("duplicates", str(h.duplicate)), ("late", str(h.late)), ("out_of_order", str(h.out_of_order))]
+
+    def _row_statuses(self) -> list:
+        hw = self.options.hardware_id
+        rep = self.latest_report
+        out = []
+        if rep is None:
+            msg = self._analysis_error or self._waiting_message()
+            level = ERROR if self._analysis_error else OK
+            for o in self.model.outputs:
+                out.append(StatusData(level, row_status_name(o), msg, hw,
+                                      (("rsi", "nan"), ("mismatch", "false"), ("flagged_inputs", ""),
+                                       ("p_value", "nan"), ("analyzed", "false"))))
+            return out
+        job = self._latest.job
+        rows = {r.output: r for r in rep.rows}
+        elements = collections.defaultdict(list)
+        for e in rep.elements:
+            elements[e.output].append(e)
+        for o in self.model.outputs:
+            r = rows.get(o)
+            if r is None:
+                out.append(StatusData(ERROR, row_status_name(o), f"the analysis has no row {o}", hw,
+                                      (("rsi", "nan"), ("mismatch", "false"), ("flagged_inputs", ""),
+                                       ("p_value", "nan"), ("analyzed", "false"))))
+                continue
+            els = elements.get(o, [])
+            flagged = [e.input for e in els if e.mismatch]
+            ambiguous = [e.input for e in els if getattr(e, "ambiguous", False)]
+            values = [("rsi", _num(r.rsi)), ("mismatch", _bool(r.mismatch)), ("flagged_inputs", ",".join(flagged)),
+                      ("p_value", _num(r.p_value)), ("ambiguous_inputs", ",".join(ambiguous))]
+            for e in els:
+                if e.mismatch or getattr(e, "ambiguous", False):
+                    values.append((f"p_value {e.input}", _num(e.p_value)))
+                    values.append((f"kind {e.input}", str(getattr(e, "kind", None) or "unknown")))
+            values += [("samples", str(job.data.n_samples)), ("window_start", _num(job.first_stamp)),
+                       ("window_end", _num(job.last_stamp)), ("analyzed", "true")]
+            if r.mismatch:
+                level = WARN
+                if flagged:
+                    msg = f"mismatch in row {o}: elements " + ", ".join(f"({o}, {i})" for i in flagged)
+                elif ambiguous:
+                    msg = f"mismatch in row {o}: inputs {', '.join(ambiguous)} cannot be told apart"
+                else:
+                    msg = f"mismatch in row {o}: no single element located"
+                msg += f" (RSI {r.rsi:.3f})"
+            else:
+                level = OK
+                msg = f"no mismatch in row {o} (RSI {r.rsi:.3f})"
+            if self._analysis_error:
+                level, msg = ERROR, f"{self._analysis_error}; previous result: {msg}"
+            out.append(StatusData(level, row_status_name(o), msg, hw, tuple(values)))
+        return out
+
+    def _summary_status(self) -> StatusData:
+        hw = self.options.hardware_id
+        rep = self.latest_report
+        values = []
+        if rep is None:
+            level = ERROR if self._analysis_error else OK
+            msg = self._analysis_error or self._waiting_message()
+            values += [("flagged_rows", ""), ("located_elements", ""), ("overall_rsi", "nan"), ("analyses", "0")]
+        else:
+            job = self._latest.job
+            flagged = [r.output for r in rep.rows if r.mismatch]
+            located = [(e.output, e.input) for e in rep.elements if e.mismatch]
+            warnings = list(getattr(rep, "warnings", []) or [])
+            values += [("flagged_rows", ",".join(flagged)),
+                       ("located_elements", ",".join(f"{o}:{i}" for o, i in located)),
+                       ("overall_rsi", _num(getattr(rep, "overall_rsi", None))),
+                       ("analyses", str(self._results)), ("samples", str(job.data.n_samples)),
+                       ("window_start", _num(job.first_stamp)), ("window_end", _num(job.last_stamp)),
+                       ("analysis_seconds", f"{self._latest.seconds:.3f}"),
+                       ("warnings", " | ".join(warnings))]
+            if flagged:
+                level = WARN
+                msg = (f"mismatch in row(s) {', '.join(flagged)}; elements "
+                       + (", ".join(f"({o}, {i})" for o, i in located) if located else "not located"))
+            else:
+                level = OK
+                msg = "no model-plant mismatch detected"
+            msg += f" ({job.data.n_samples} samples up to t = {job.last_stamp:g} s)"
+            if self._analysis_error:
+                level, msg = ERROR, f"{self._analysis_error}; previous result: {msg}"
+        values += self._window_values()
+        if self._data_error is not None:
+            if self.window.n_completed < self._data_error_until:
+                level = ERROR
+                msg = f"bad input data: {self._data_error}; {msg}"
+            else:
+                self._data_error = None
+        if self._recent_warnings:
+            values.append(("last_data_problem", self._recent_warnings[-1]))
+        return StatusData(level, SUMMARY_NAME, msg, hw, tuple(values))
+
+
+class AnalysisWorker:
+    """Runs analysis jobs one at a time in a background thread.
+
+    Parameters
+    ----------
+    run : callable
+        ``run(job) -> AnalysisOutcome``.
+    on_done : callable, optional
+        Called (in the worker thread) after each outcome is queued, e.g. to wake an executor.
+    threaded : bool
+        False runs each job inside :meth:`submit` (for deterministic unit tests).
+
+    Notes
+    -----
+    At most one job waits: a job submitted while another waits replaces it (the newer window
+    contains the newer samples), so a slow analysis never builds a backlog.  Outcomes are taken
+    with :meth:`take_outcomes` in the thread that publishes.
+    """
+
+    def __init__(self, run: Callable[[AnalysisJob], AnalysisOutcome], on_done: Optional[Callable[[], None]] = None,
+                 threaded: bool = True):
+        self._run = run
+        self._on_done = on_done
+        self._threaded = threaded
+        self._lock = threading.Condition()
+        self._waiting: Optional[AnalysisJob] = None
+        self._busy = False
+        self._closed = False
+        self._outcomes: collections.deque = collections.deque()
+        self.replaced = 0
+        self._thread = None
+        if threaded:
+            self._thread = threading.Thread(target=self._loop, name="mpm_monitor analysis", daemon=True)
+            self._thread.start()
+
+    def submit(self, job: AnalysisJob) -> None:
+        """Queue ``job`` (replacing a job that is still waiting)."""
+        if not self._threaded:
+            self._outcomes.append(self._run(job))
+            if self._on_done:
+                self._on_done()
+            return
+        with self._lock:
+            if self._waiting is not None:
+                self.replaced += 1
+            self._waiting = job
+            self._lock.notify()
+
+    @property
+    def idle(self) -> bool:
+        """True when no job runs or waits."""
+        with self._lock:
+            return self._waiting is None and not self._busy
+
+    def take_outcomes(self) -> list:
+        """Outcomes finished since the last call, oldest first."""
+        out = []
+        while self._outcomes:
+            out.append(self._outcomes.popleft())
+        return out
+
+    def _loop(self) -> None:
+        while True:
+            with self._lock:
+                while self._waiting is None and not self._closed:
+                    self._lock.wait()
+                if self._closed:
+                    return
+                job, self._waiting = self._waiting, None
+                self._busy = True
+            try:
+                outcome = self._run(job)
+            except Exception:  # run() already wraps analysis errors; this is a last resort
+                outcome = AnalysisOutcome(job, error="analysis failed: " + traceback.format_exc().splitlines()[-1])
+            self._outcomes.append(outcome)
+            with self._lock:
+                self._busy = False
+            if self._on_done:
+                try:
+                    self._on_done()
+                except Exception:
+                    pass
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Stop the thread (a running analysis finishes first, up to ``timeout`` seconds)."""
+        if self._thread is None:
+            return
+        with self._lock:
+            self._closed = True
+            self._lock.notify()
+        self._thread.join(timeout)

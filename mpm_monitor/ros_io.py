@@ -1,0 +1,448 @@
+"""ROS 2 message conversion and node plumbing (CONTRACTS section 4).
+
+A "stamped vector" is a ``sensor_msgs/msg/JointState`` whose ``header.stamp`` is the sample's time,
+whose ``name`` lists the channels (the model's outputs for ``setpoint`` and ``output``, its inputs
+for ``input`` and ``dither``) and whose ``position`` holds the values; ``velocity`` and ``effort``
+are ignored.  This module turns such messages into numpy vectors in the model's channel order and
+back, checking the names, the lengths and that every value is finite, and it holds the QoS
+profiles, the stamp arithmetic and the parameter-declaration helper the nodes share.
+
+The conversion functions only touch message attributes, so they run (and are tested) on any object
+with the same fields; ``rclpy`` and the message packages are imported lazily, where a profile, a
+message or a node is really built.
+
+Stamps are handled as integer nanoseconds so that the sample grid ``k * sample_time`` is exact:
+``sample_stamp_ns(k, period_ns) = k * period_ns`` with ``period_ns = round(sample_time * 1e9)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from typing import Any, Callable, Optional, Sequence
+
+import numpy as np
+
+from .errors import ConfigurationError, InputError
+
+NS_PER_S = 1_000_000_000
+
+#: Depth of the vector topics: lock-step needs reliability, the depth absorbs analysis bursts.
+VECTOR_QOS_DEPTH = 1000
+#: Depth of /diagnostics.
+DIAGNOSTICS_QOS_DEPTH = 10
+
+
+class MessageError(InputError):
+    """A message that cannot be used: wrong channel names, lengths or non-finite values."""
+
+
+# --------------------------------------------------------------------------------------- stamps
+def period_ns(sample_time: float) -> int:
+    """The sample time in integer nanoseconds.
+
+    Parameters
+    ----------
+    sample_time : float
+        Seconds per sample, > 0.
+    """
+    if not (isinstance(sample_time, (int, float)) and math.isfinite(sample_time) and sample_time > 0):
+        raise ConfigurationError(f"sample_time: expected a finite number > 0 (seconds), got {sample_time!r}")
+    ns = int(round(float(sample_time) * NS_PER_S))
+    if ns < 1:
+        raise ConfigurationError(f"sample_time: {sample_time!r} s is below one nanosecond")
+    return ns
+
+
+def sample_stamp_ns(k: int, sample_period_ns: int) -> int:
+    """Stamp of sample ``k`` on the grid, in nanoseconds: ``k * sample_period_ns``."""
+    return int(k) * int(sample_period_ns)
+
+
+def stamp_to_ns(stamp) -> int:
+    """A ``builtin_interfaces/msg/Time`` (``sec``, ``nanosec``) as integer nanoseconds."""
+    return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
+
+
+def stamp_to_seconds(stamp) -> float:
+    """A ``builtin_interfaces/msg/Time`` as float seconds."""
+    return int(stamp.sec) + int(stamp.nanosec) * 1e-9
+
+
+def ns_to_stamp(ns: int):
+    """Integer nanoseconds as a ``builtin_interfaces/msg/Time``."""
+    from builtin_interfaces.msg import Time
+
+    sec, nanosec = divmod(int(ns), NS_PER_S)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def seconds_to_stamp(t: float):
+    """Float seconds as a ``builtin_interfaces/msg/Time`` (rounded to the nanosecond)."""
+    return ns_to_stamp(int(round(float(t) * NS_PER_S)))
+
+
+# ----------------------------------------------------------------------------- stamped vectors
+class VectorCodec:
+    """Conversion between stamped-vector messages and numpy vectors for one topic.
+
+    Parameters
+    ----------
+    names : sequence of str
+        The channels in the order the core uses (the model's outputs or inputs).
+    topic : str
+        Topic name, for messages.
+
+    Notes
+    -----
+    The channels of a message may come in any order; they are put in ``names`` order.  The
+    permutation is cached per distinct ``name`` list, so a steady publisher costs one dict look-up.
+    """
+
+    def __init__(self, names: Sequence[str], topic: str):
+        self.names = tuple(str(n) for n in names)
+        if not self.names:
+            raise ConfigurationError(f"{topic}: expected at least one channel name")
+        if len(set(self.names)) != len(self.names):
+            raise ConfigurationError(f"{topic}: channel names repeat: {', '.join(self.names)}")
+        self.topic = topic
+        self._index = {n: i for i, n in enumerate(self.names)}
+        self._perm_cache: dict = {}
+
+    @property
+    def size(self) -> int:
+        return len(self.names)
+
+    def _permutation(self, names: tuple) -> Optional[np.ndarray]:
+        perm = self._perm_cache.get(names, False)
+        if perm is not False:
+            return perm
+        expected = ", ".join(self.names)
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise MessageError(f"{self.topic}: channel name(s) {', '.join(repr(d) for d in dup)} repeat "
+                               f"(expected each of {expected} once)")
+        missing = [n for n in self.names if n not in names]
+        extra = [n for n in names if n not in self._index]
+        if missing or extra:
+            what = []
+            if missing:
+                what.append("missing " + ", ".join(repr(m) for m in missing))
+            if extra:
+                what.append("unexpected " + ", ".join(repr(e) for e in extra[:5]) + (" ..." if len(extra) > 5 else ""))
+            raise MessageError(f"{self.topic}: channel names do not match the model: {'; '.join(what)} "
+                               f"(expected {expected})")
+        perm = None if names == self.names else np.array([names.index(n) for n in self.names])
+        if len(self._perm_cache) < 64:
+            self._perm_cache[names] = perm
+        return perm
+
+    def decode(self, msg) -> tuple:
+        """Stamp and values of a message.
+
+        Parameters
+        ----------
+        msg : sensor_msgs.msg.JointState (or an object with ``header.stamp``, ``name``, ``position``)
+
+        Returns
+        -------
+        stamp_ns : int
+            ``header.stamp`` in nanoseconds.
+        values : ndarray, shape (n_channels,)
+            ``position`` in :attr:`names` order.
+
+        Raises
+        ------
+        MessageError
+            When the names do not match, ``position`` and ``name`` differ in length, or a value is
+            not finite; the message names the topic, the channel and what was expected.
+        """
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        names = tuple(msg.name)
+        values = np.asarray(msg.position, dtype=float)
+        if values.ndim != 1 or values.shape[0] != len(names):
+            raise MessageError(f"{self.topic}: {values.size} position value(s) for {len(names)} name(s) at "
+                               f"t = {stamp_ns / NS_PER_S:.9g} s (expected one value per name, "
+                               f"{self.size} channels: {', '.join(self.names)})")
+        perm = self._permutation(names)
+        if perm is not None:
+            values = values[perm]
+        else:
+            values = values.copy()
+        if not np.all(np.isfinite(values)):
+            bad = [f"{self.names[i]}={float(values[i])!r}" for i in np.flatnonzero(~np.isfinite(values))]
+            raise MessageError(f"{self.topic}: non-finite value(s) {', '.join(bad)} at t = {stamp_ns / NS_PER_S:.9g} s "
+                               f"(expected finite numbers)")
+        return stamp_ns, values
+
+    def encode(self, values, stamp_ns: int, frame_id: str = ""):
+        """A ``sensor_msgs/msg/JointState`` holding ``values`` (shape (n_channels,)) at ``stamp_ns``."""
+        from sensor_msgs.msg import JointState
+
+        v = np.asarray(values, dtype=float).reshape(-1)
+        if v.shape[0] != self.size:
+            raise ValueError(f"{self.topic}: expected {self.size} values ({', '.join(self.names)}), got shape {v.shape}")
+        msg = JointState()
+        msg.header.stamp = ns_to_stamp(stamp_ns)
+        msg.header.frame_id = frame_id
+        msg.name = list(self.names)
+        msg.position = v.tolist()
+        return msg
+
+
+# ----------------------------------------------------------------------------------------- QoS
+def vector_qos(depth: int = VECTOR_QOS_DEPTH):
+    """QoS of the vector topics and of the lock-step ``/clock``: RELIABLE, KEEP_LAST ``depth``, VOLATILE."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=int(depth),
+                      durability=DurabilityPolicy.VOLATILE)
+
+
+def diagnostics_qos():
+    """QoS of ``/diagnostics`` and of the RSI topic: RELIABLE, KEEP_LAST 10, VOLATILE."""
+    return vector_qos(DIAGNOSTICS_QOS_DEPTH)
+
+
+# ---------------------------------------------------------------------------------- parameters
+@dataclasses.dataclass(frozen=True)
+class ParamSpec:
+    """A node parameter: its type, default, description and allowed range.
+
+    Attributes
+    ----------
+    name : str
+    kind : str
+        ``bool``, ``int``, ``double``, ``string``, ``double_array`` or ``string_array``.
+    default : object
+        Default value; None for an optional array (declared without a value).
+    description : str
+        One sentence with the unit.
+    low, high : float or None
+        Inclusive range of an ``int`` or ``double``.
+    choices : tuple of str or None
+        Allowed values of a ``string``.
+    """
+
+    name: str
+    kind: str
+    default: Any
+    description: str
+    low: Optional[float] = None
+    high: Optional[float] = None
+    choices: Optional[tuple] = None
+
+    def check(self, value):
+        """Return ``value`` converted to the parameter's Python type or raise :class:`ConfigurationError`."""
+        n = self.name
+        if value is None:
+            if self.default is None:
+                return None
+            raise ConfigurationError(f"parameter {n}: not set (expected {self.kind})")
+        if self.kind == "bool":
+            if not isinstance(value, bool):
+                raise ConfigurationError(f"parameter {n}: expected true or false, got {value!r}")
+            return value
+        if self.kind in ("int", "double"):
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ConfigurationError(f"parameter {n}: expected a number, got {value!r}")
+            if self.kind == "int" and int(value) != value:
+                raise ConfigurationError(f"parameter {n}: expected an integer, got {value!r}")
+            value = int(value) if self.kind == "int" else float(value)
+            if not math.isfinite(value):
+                raise ConfigurationError(f"parameter {n}: expected a finite number, got {value!r}")
+            if (self.low is not None and value < self.low) or (self.high is not None and value > self.high):
+                raise ConfigurationError(f"parameter {n}: expected a value in [{self.low:g}, {self.high:g}], "
+                                         f"got {value!r}")
+            return value
+        if self.kind == "string":
+            if not isinstance(value, str):
+                raise ConfigurationError(f"parameter {n}: expected a string, got {value!r}")
+            if self.choices is not None and value not in self.choices:
+                raise ConfigurationError(f"parameter {n}: expected one of {', '.join(repr(c) for c in self.choices)}, "
+                                         f"got {value!r}")
+            return value
+        if self.kind == "double_array":
+            arr = np.asarray(list(value), dtype=float)
+            if not np.all(np.isfinite(arr)):
+                raise ConfigurationError(f"parameter {n}: expected finite numbers, got {list(value)!r}")
+            return arr.tolist()
+        if self.kind == "string_array":
+            return [str(s) for s in value]
+        raise ValueError(f"unknown parameter kind {self.kind!r}")
+
+
+_PARAM_TYPES = {"bool": "PARAMETER_BOOL", "int": "PARAMETER_INTEGER", "double": "PARAMETER_DOUBLE",
+                "string": "PARAMETER_STRING", "double_array": "PARAMETER_DOUBLE_ARRAY",
+                "string_array": "PARAMETER_STRING_ARRAY"}
+
+
+def descriptor(spec: ParamSpec):
+    """The ``rcl_interfaces/msg/ParameterDescriptor`` of a :class:`ParamSpec` (type, description, range)."""
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+
+    d = ParameterDescriptor(name=spec.name, type=getattr(ParameterType, _PARAM_TYPES[spec.kind]),
+                            description=spec.description)
+    if spec.choices:
+        d.additional_constraints = "one of: " + ", ".join(spec.choices)
+    if spec.kind == "int" and spec.low is not None:
+        d.integer_range = [IntegerRange(from_value=int(spec.low), to_value=int(spec.high), step=0)]
+    if spec.kind == "double" and spec.low is not None:
+        d.floating_point_range = [FloatingPointRange(from_value=float(spec.low), to_value=float(spec.high), step=0.0)]
+    return d
+
+
+def declare_parameters(node, specs: Sequence[ParamSpec]) -> dict:
+    """Declare ``specs`` on ``node`` and return their checked values by name.
+
+    Raises
+    ------
+    ConfigurationError
+        A value of the wrong type or out of range (one line naming the parameter).
+    """
+    from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+    from rclpy.parameter import Parameter
+
+    out = {}
+    for spec in specs:
+        if spec.default is None:
+            initial = Parameter.Type.DOUBLE_ARRAY if spec.kind == "double_array" else Parameter.Type.STRING_ARRAY
+        else:
+            initial = spec.default
+        try:
+            param = node.declare_parameter(spec.name, initial, descriptor(spec))
+        except InvalidParameterValueException as exc:
+            raise ConfigurationError(f"parameter {spec.name}: {exc}".splitlines()[0]) from None
+        except InvalidParameterTypeException as exc:
+            raise ConfigurationError(f"parameter {spec.name}: wrong type: {exc}".splitlines()[0]) from None
+        out[spec.name] = spec.check(param.value)
+    return out
+
+
+# ----------------------------------------------------------------------------------- spinning
+def make_executor(context, kind: str = "events"):
+    """An executor on ``context``: ``events`` (rclpy.experimental.EventsExecutor, fastest) or ``single``.
+
+    The events executor must be driven by :func:`spin_until` (its ``spin()`` does not run timers on
+    this rclpy version); the MultiThreadedExecutor is deliberately not offered (it collapses with a
+    fast timer and many subscriptions).
+    """
+    if kind == "events":
+        from rclpy.experimental import EventsExecutor
+
+        return EventsExecutor(context=context)
+    if kind == "single":
+        from rclpy.executors import SingleThreadedExecutor
+
+        return SingleThreadedExecutor(context=context)
+    raise ConfigurationError(f"executor: expected 'events' or 'single', got {kind!r}")
+
+
+def spin_until(executor, done: Callable[[], bool], timeout: Optional[float] = None, context=None,
+               step: float = 0.05) -> bool:
+    """Spin ``executor`` with ``spin_once`` until ``done()`` is true, the context shuts down or ``timeout``.
+
+    Parameters
+    ----------
+    executor : rclpy executor
+    done : callable returning bool
+    timeout : float or None
+        Wall-clock seconds; None = no limit.
+    context : rclpy.context.Context, optional
+        Stop when it is no longer ``ok()``.
+    step : float
+        Longest wait of one ``spin_once``, seconds.
+
+    Returns
+    -------
+    bool
+        ``done()`` at the end.
+    """
+    import time
+
+    deadline = None if timeout is None else time.monotonic() + timeout
+    while not done():
+        if context is not None and not context.ok():
+            break
+        if deadline is not None and time.monotonic() >= deadline:
+            break
+        try:
+            executor.spin_once(timeout_sec=step)
+        except Exception as exc:  # ExternalShutdownException and friends end the loop
+            if type(exc).__name__ in ("ExternalShutdownException", "ShutdownException"):
+                break
+            raise
+    return bool(done())
+
+
+def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "events") -> int:
+    """``main()`` of a node: init, build the node, spin until shutdown; bad parameters exit 2 with one line.
+
+    Parameters
+    ----------
+    node_factory : callable
+        Called with ``context=`` to build the node.
+    args : list of str, optional
+        Command-line arguments (``--ros-args ...``); default ``sys.argv``.
+    """
+    import rclpy
+    from rclpy.context import Context
+
+    context = Context()
+    rclpy.init(args=args, context=context)
+    node = None
+    try:
+        try:
+            node = node_factory(context=context)
+        except InputError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        executor = make_executor(context, executor_kind)
+        executor.add_node(node)
+        try:
+            spin_until(executor, lambda: getattr(node, "exit_requested", False), context=context, step=0.1)
+        except KeyboardInterrupt:
+            pass
+        return 0
+    finally:
+        if node is not None:
+            close = getattr(node, "close", None)
+            if close is not None:
+                close()
+            node.destroy_node()
+        if context.ok():
+            context.try_shutdown()
+
+
+def resolve_model(model_file: str, case: str, which: str = "model"):
+    """The model a node works with: from ``model_file``, or else from the paper ``case``.
+
+    Parameters
+    ----------
+    model_file : str
+        Path of a model file (CONTRACTS section 1); "" = use ``case``.
+    case : str
+        A paper case ("3.1", "3.2", "3.3"); used when ``model_file`` is "".
+    which : {"model", "plant"}
+        The controller's model or the true plant of the case.
+    """
+    from .cases import CASE_NAMES, paper_case
+    from .model import load_model
+
+    if model_file:
+        return load_model(model_file)
+    if not case:
+        raise ConfigurationError("parameters model_file and case: give a model file (model_file) or a paper case "
+                                 f"(case: one of {', '.join(CASE_NAMES)})")
+    if case not in CASE_NAMES:
+        raise ConfigurationError(f"parameter case: expected one of {', '.join(CASE_NAMES)} or '', got {case!r}")
+    c = paper_case(case)
+    return c.plant if which == "plant" else c.model
+
+
+MODEL_PARAMS = (
+    ParamSpec("model_file", "string", "", "Model file (YAML, CONTRACTS section 1); '' = use the paper case."),
+    ParamSpec("case", "string", "", "Paper case used when model_file is '' (3.1, 3.2 or 3.3).",
+              choices=("", "3.1", "3.2", "3.3")),
+)

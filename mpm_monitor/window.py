@@ -1,0 +1,485 @@
+"""Sliding window of aligned closed-loop samples, built from stamped setpoint/input/output vectors.
+
+The three topics arrive independently and in any interleaving.  :class:`SampleWindow` puts every
+vector on the sample grid by its stamp, completes sample ``k`` once its setpoint ``r(k)``, input
+``u(k)`` and output ``y(k)`` are all present (DESIGN.md, time convention of a sample), appends
+completed samples in order to a window of the last ``window_samples`` samples, and hands the window
+to the analysis as :class:`~mpm_monitor.data_io.LoggedData`.
+
+Nothing is silently mis-aligned:
+
+* a vector whose stamp is off the grid by more than ``stamp_tolerance * sample_time`` is refused
+  (``off_grid``);
+* a second vector for a sample already held is a ``duplicate`` (same values) or a ``conflict``
+  (different values) and the first is kept;
+* a vector for a sample that is already in the window, or already given up, is ``late``;
+* when a later sample is complete ``reorder_samples`` samples ahead of an incomplete one, the
+  incomplete samples are given up as a ``gap`` and the window restarts after it, because the
+  analysis needs equally spaced samples;
+* a vector of the wrong length or with a non-finite value is a ``bad_value``.
+
+With ``hold_setpoint`` the setpoint is treated as piecewise constant (a stack that publishes its
+setpoints only when they change): sample ``k`` takes the latest setpoint stamped at or before its
+time, and only the input and the output must be on the grid.
+
+This module is pure Python and numpy (no rclpy); time is whatever stamps the caller passes in.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+from typing import Optional, Sequence
+
+import numpy as np
+
+from .data_io import LoggedData
+from .errors import ConfigurationError
+
+#: The three channels of a sample, in the order of the slots.
+CHANNELS = ("setpoint", "input", "output")
+_SLOT = {c: i for i, c in enumerate(CHANNELS)}
+
+#: Problem kinds that mean the data itself is wrong (the monitor reports them as ERROR).
+ERROR_KINDS = frozenset({"bad_value", "conflict", "off_grid"})
+#: Problem kinds that cost samples but not correctness (reported in the summary's values).
+WARNING_KINDS = frozenset({"gap", "duplicate", "late", "out_of_order"})
+
+NS_PER_S = 1_000_000_000
+
+
+@dataclasses.dataclass(frozen=True)
+class WindowOptions:
+    """Options of :class:`SampleWindow`.
+
+    Attributes
+    ----------
+    window_samples : int
+        Length of the sliding window, samples (>= 10).
+    reorder_samples : int
+        How many samples a later complete sample may run ahead of an incomplete one before the
+        incomplete one is given up as a gap (>= 0).
+    stamp_tolerance : float
+        Largest distance of a stamp from the grid, as a fraction of the sample time, in (0, 0.5).
+    hold_setpoint : bool
+        Hold the latest setpoint instead of requiring one on every sample.
+    max_pending : int
+        Most incomplete samples kept; beyond it the oldest are given up (>= 1).
+    """
+
+    window_samples: int = 3000
+    reorder_samples: int = 10
+    stamp_tolerance: float = 0.25
+    hold_setpoint: bool = False
+    max_pending: int = 1000
+
+    def __post_init__(self):
+        check_window_options(self)
+
+
+def check_window_options(o: WindowOptions) -> None:
+    """Raise :class:`ConfigurationError` when an option is outside its range."""
+    if int(o.window_samples) != o.window_samples or not 10 <= o.window_samples <= 10_000_000:
+        raise ConfigurationError(f"window_samples: expected an integer in [10, 10000000], got {o.window_samples!r}")
+    if int(o.reorder_samples) != o.reorder_samples or not 0 <= o.reorder_samples <= 100_000:
+        raise ConfigurationError(f"reorder_samples: expected an integer in [0, 100000], got {o.reorder_samples!r}")
+    if not 0.0 < o.stamp_tolerance < 0.5:
+        raise ConfigurationError(f"stamp_tolerance: expected a fraction of the sample time in (0, 0.5), "
+                                 f"got {o.stamp_tolerance!r}")
+    if int(o.max_pending) != o.max_pending or not 1 <= o.max_pending <= 10_000_000:
+        raise ConfigurationError(f"max_pending: expected an integer in [1, 10000000], got {o.max_pending!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class Problem:
+    """One thing wrong with the incoming data.
+
+    Attributes
+    ----------
+    kind : str
+        ``bad_value``, ``conflict``, ``off_grid`` (errors) or ``gap``, ``duplicate``, ``late``,
+        ``out_of_order`` (warnings).
+    channel : str
+        ``setpoint``, ``input``, ``output`` or ``""``.
+    stamp_ns : int or None
+        Stamp of the offending vector or first missing sample, nanoseconds.
+    message : str
+        One line for a control engineer.
+    """
+
+    kind: str
+    channel: str
+    stamp_ns: Optional[int]
+    message: str
+
+    @property
+    def is_error(self) -> bool:
+        return self.kind in ERROR_KINDS
+
+
+@dataclasses.dataclass
+class WindowHealth:
+    """Counters of what the window received and gave up (since it was created)."""
+
+    completed: int = 0
+    received: dict = dataclasses.field(default_factory=lambda: {c: 0 for c in CHANNELS})
+    bad_value: int = 0
+    conflict: int = 0
+    off_grid: int = 0
+    duplicate: int = 0
+    late: int = 0
+    out_of_order: int = 0
+    gaps: int = 0
+    missing_samples: int = 0
+    resets: int = 0
+
+    def copy(self) -> "WindowHealth":
+        return dataclasses.replace(self, received=dict(self.received))
+
+
+class SampleWindow:
+    """Aligns stamped setpoint, input and output vectors into a sliding window of samples.
+
+    Parameters
+    ----------
+    outputs : sequence of str
+        Output names (setpoint and output channels), in model order.
+    inputs : sequence of str
+        Input names, in model order.
+    sample_time : float
+        Seconds per sample.
+    options : WindowOptions
+
+    Notes
+    -----
+    The grid's phase is taken from the first output vector (``k = round((t - phase) / Ts)``);
+    vectors of other channels that arrive before it wait for it.  Stamps are integer nanoseconds.
+    """
+
+    def __init__(self, outputs: Sequence[str], inputs: Sequence[str], sample_time: float,
+                 options: WindowOptions = WindowOptions()):
+        self.outputs = tuple(outputs)
+        self.inputs = tuple(inputs)
+        if not (np.isfinite(sample_time) and sample_time > 0):
+            raise ConfigurationError(f"sample_time: expected a finite number > 0 (seconds), got {sample_time!r}")
+        self.sample_time = float(sample_time)
+        self.options = options
+        self._period = int(round(self.sample_time * NS_PER_S))
+        self._tol = int(options.stamp_tolerance * self._period)
+        self._sizes = (len(self.outputs), len(self.inputs), len(self.outputs))
+        cap = int(options.window_samples)
+        self._k_buf = np.zeros(cap, dtype=np.int64)
+        self._r_buf = np.zeros((cap, self._sizes[0]))
+        self._u_buf = np.zeros((cap, self._sizes[1]))
+        self._y_buf = np.zeros((cap, self._sizes[2]))
+        self._head = 0          # next write position
+        self._count = 0         # samples in the window
+        self._phase: Optional[int] = None
+        self._early: list = []  # (channel, stamp_ns, values) before the phase is known
+        self._pending: dict = {}
+        self._complete: set = set()
+        self._next_k: Optional[int] = None
+        self._setpoints: collections.deque = collections.deque()  # hold mode: (stamp_ns, values)
+        self._last_stamp = {c: None for c in CHANNELS}
+        self._health = WindowHealth()
+        self._problems: list = []
+        self._since_reset = 0
+
+    # ------------------------------------------------------------------------------ properties
+    @property
+    def sample_period_ns(self) -> int:
+        """Sample time in nanoseconds."""
+        return self._period
+
+    @property
+    def n_window(self) -> int:
+        """Samples now in the window (at most ``window_samples``)."""
+        return self._count
+
+    @property
+    def n_completed(self) -> int:
+        """Samples completed since the window was created."""
+        return self._health.completed
+
+    @property
+    def n_since_reset(self) -> int:
+        """Contiguous samples completed since the last gap."""
+        return self._since_reset
+
+    @property
+    def n_pending(self) -> int:
+        """Incomplete samples held."""
+        return len(self._pending)
+
+    @property
+    def last_sample_stamp_ns(self) -> Optional[int]:
+        """Stamp of the newest completed sample, nanoseconds (None before the first)."""
+        if self._count == 0:
+            return None
+        return self._stamp_of(int(self._k_buf[(self._head - 1) % self._k_buf.shape[0]]))
+
+    def health(self) -> WindowHealth:
+        """A copy of the counters."""
+        return self._health.copy()
+
+    def take_problems(self) -> list:
+        """The :class:`Problem` s recorded since the last call (oldest first), and forget them."""
+        out, self._problems = self._problems, []
+        return out
+
+    # ---------------------------------------------------------------------------------- input
+    def report_bad(self, channel: str, stamp_ns: Optional[int], message: str) -> None:
+        """Record a vector refused before it reached the window (e.g. wrong channel names)."""
+        self._health.bad_value += 1
+        self._problem("bad_value", channel, stamp_ns, message)
+
+    def add(self, channel: str, stamp_ns: int, values) -> int:
+        """Add one vector.
+
+        Parameters
+        ----------
+        channel : str
+            ``setpoint``, ``input`` or ``output``.
+        stamp_ns : int
+            Its stamp, nanoseconds.
+        values : array_like, shape (n_channels,)
+            Values in model order (outputs for setpoint and output, inputs for input).
+
+        Returns
+        -------
+        int
+            Number of samples appended to the window by this vector (0, 1 or more).
+        """
+        if channel not in _SLOT:
+            raise ValueError(f"channel: expected one of {', '.join(CHANNELS)}, got {channel!r}")
+        slot = _SLOT[channel]
+        stamp_ns = int(stamp_ns)
+        v = np.asarray(values, dtype=float).reshape(-1)
+        if v.shape[0] != self._sizes[slot]:
+            names = self.inputs if channel == "input" else self.outputs
+            self.report_bad(channel, stamp_ns, f"{channel}: {v.shape[0]} value(s) at t = {stamp_ns / NS_PER_S:.9g} s, "
+                                               f"expected {len(names)} ({', '.join(names)})")
+            return 0
+        if not np.all(np.isfinite(v)):
+            self.report_bad(channel, stamp_ns, f"{channel}: non-finite value at t = {stamp_ns / NS_PER_S:.9g} s")
+            return 0
+        self._health.received[channel] += 1
+        last = self._last_stamp[channel]
+        if last is not None and stamp_ns < last:
+            self._health.out_of_order += 1
+            self._problem("out_of_order", channel, stamp_ns,
+                          f"{channel}: t = {stamp_ns / NS_PER_S:.9g} s arrived after t = {last / NS_PER_S:.9g} s")
+        self._last_stamp[channel] = stamp_ns if last is None else max(last, stamp_ns)
+        if self._phase is None:
+            if channel != "output":
+                self._early.append((channel, stamp_ns, v))
+                if len(self._early) > self.options.max_pending:
+                    self._early.pop(0)
+                return 0
+            self._phase = stamp_ns % self._period
+            n = self._place(channel, stamp_ns, v)
+            early, self._early = self._early, []
+            for ch, st, val in early:
+                n += self._place(ch, st, val)
+            return n
+        return self._place(channel, stamp_ns, v)
+
+    # ------------------------------------------------------------------------------- output
+    def data(self, source: str = "ros") -> LoggedData:
+        """The window as :class:`~mpm_monitor.data_io.LoggedData` (a copy), oldest sample first.
+
+        ``t`` is in seconds (the stamps on the grid).
+        """
+        cap = self._k_buf.shape[0]
+        n = self._count
+        idx = (np.arange(self._head - n, self._head)) % cap
+        k = self._k_buf[idx]
+        t = (k * self._period + (self._phase or 0)) / NS_PER_S
+        return LoggedData(t=t, r=self._r_buf[idx].copy(), u=self._u_buf[idx].copy(), y=self._y_buf[idx].copy(),
+                          inputs=self.inputs, outputs=self.outputs, sample_time=self.sample_time, source=source)
+
+    # ----------------------------------------------------------------------------- internals
+    def _stamp_of(self, k: int) -> int:
+        return k * self._period + (self._phase or 0)
+
+    def _problem(self, kind, channel, stamp_ns, message) -> None:
+        self._problems.append(Problem(kind, channel, stamp_ns, message))
+        if len(self._problems) > 1000:
+            del self._problems[:500]
+
+    def _grid_index(self, channel: str, stamp_ns: int) -> Optional[int]:
+        rel = stamp_ns - self._phase
+        k = (rel + self._period // 2) // self._period
+        off = rel - k * self._period
+        if abs(off) > self._tol:
+            self._health.off_grid += 1
+            self._problem("off_grid", channel, stamp_ns,
+                          f"{channel}: t = {stamp_ns / NS_PER_S:.9g} s is {off / NS_PER_S:+.3g} s off the sample grid "
+                          f"(sample_time {self.sample_time:g} s; a wrong sample time or unsynchronised stamps)")
+            return None
+        return int(k)
+
+    def _place(self, channel: str, stamp_ns: int, v: np.ndarray) -> int:
+        slot = _SLOT[channel]
+        if channel == "setpoint" and self.options.hold_setpoint:
+            self._setpoints.append((stamp_ns, v))
+            if len(self._setpoints) > self.options.max_pending:
+                self._setpoints.popleft()
+            return self._advance()
+        k = self._grid_index(channel, stamp_ns)
+        if k is None:
+            return 0
+        if self._next_k is not None and k < self._next_k:
+            self._late_or_duplicate(channel, k, slot, v)
+            return 0
+        entry = self._pending.get(k)
+        if entry is None:
+            entry = [None, None, None]
+            self._pending[k] = entry
+        if entry[slot] is not None:
+            if np.array_equal(entry[slot], v):
+                self._health.duplicate += 1
+                self._problem("duplicate", channel, stamp_ns,
+                              f"{channel}: sample t = {stamp_ns / NS_PER_S:.9g} s received twice (same values; kept once)")
+            else:
+                self._health.conflict += 1
+                self._problem("conflict", channel, stamp_ns,
+                              f"{channel}: two different vectors for sample t = {stamp_ns / NS_PER_S:.9g} s "
+                              f"(the first is kept; two publishers on one topic?)")
+            return 0
+        entry[slot] = v
+        if self._is_complete(k, entry):
+            self._complete.add(k)
+        if len(self._pending) > self.options.max_pending:
+            self._drop_oldest_pending()
+        return self._advance()
+
+    def _late_or_duplicate(self, channel, k, slot, v) -> None:
+        stamp_ns = self._stamp_of(k)
+        cap = self._k_buf.shape[0]
+        if self._count and k >= self._next_k - self._count:
+            pos = (self._head - (self._next_k - k)) % cap
+            if self._k_buf[pos] == k:
+                stored = (self._r_buf, self._u_buf, self._y_buf)[slot][pos]
+                if np.array_equal(stored, v):
+                    self._health.duplicate += 1
+                    self._problem("duplicate", channel, stamp_ns,
+                                  f"{channel}: sample t = {stamp_ns / NS_PER_S:.9g} s received again (same values; ignored)")
+                else:
+                    self._health.conflict += 1
+                    self._problem("conflict", channel, stamp_ns,
+                                  f"{channel}: a different vector for sample t = {stamp_ns / NS_PER_S:.9g} s, "
+                                  f"already in the window (ignored; two publishers on one topic?)")
+                return
+        self._health.late += 1
+        self._problem("late", channel, stamp_ns,
+                      f"{channel}: sample t = {stamp_ns / NS_PER_S:.9g} s arrived after it was given up (ignored)")
+
+    def _held_setpoint(self, k: int) -> Optional[np.ndarray]:
+        limit = self._stamp_of(k) + self._tol
+        best = None
+        for st, v in self._setpoints:
+            if st <= limit:
+                best = v
+            else:
+                break
+        return best
+
+    def _is_complete(self, k: int, entry) -> bool:
+        if self.options.hold_setpoint:
+            return entry[1] is not None and entry[2] is not None and self._held_setpoint(k) is not None
+        return entry[0] is not None and entry[1] is not None and entry[2] is not None
+
+    def _advance(self) -> int:
+        appended = 0
+        hold = self.options.hold_setpoint
+        if hold:  # a new setpoint can complete samples that waited for one
+            for k, entry in self._pending.items():
+                if k not in self._complete and self._is_complete(k, entry):
+                    self._complete.add(k)
+        while self._complete:
+            if self._next_k is None:
+                self._next_k = min(self._complete)
+                self._discard_pending_below(self._next_k, count=False)
+            k = self._next_k
+            if k in self._complete:
+                entry = self._pending.pop(k)
+                self._complete.discard(k)
+                r = self._held_setpoint(k) if hold else entry[0]
+                self._append(k, r, entry[1], entry[2])
+                self._next_k = k + 1
+                appended += 1
+                if hold:
+                    self._prune_setpoints()
+                continue
+            newest = max(self._complete)
+            if newest - k > self.options.reorder_samples:
+                first = min(self._complete)
+                self._gap(k, first)
+                continue
+            break
+        return appended
+
+    def _prune_setpoints(self) -> None:
+        limit = self._stamp_of(self._next_k) + self._tol
+        sp = self._setpoints
+        while len(sp) >= 2 and sp[1][0] <= limit:
+            sp.popleft()
+
+    def _gap(self, first_missing: int, first_present: int) -> None:
+        n_missing = first_present - first_missing
+        entry = self._pending.get(first_missing)
+        if entry is None:
+            absent = "nothing received"
+        else:
+            names = [c for c, e in zip(CHANNELS, entry) if e is None]
+            if self.options.hold_setpoint and "setpoint" in names and entry[0] is None:
+                names.remove("setpoint")
+                if self._held_setpoint(first_missing) is None:
+                    names.insert(0, "setpoint")
+            absent = "no " + " and no ".join(names) if names else "incomplete"
+        t0 = self._stamp_of(first_missing) / NS_PER_S
+        self._health.gaps += 1
+        self._health.missing_samples += n_missing
+        self._problem("gap", "", self._stamp_of(first_missing),
+                      f"{n_missing} sample(s) missing from t = {t0:.9g} s ({absent}); the window restarts after the gap")
+        self._discard_pending_below(first_present, count=False)
+        self._reset_window()
+        self._next_k = first_present
+
+    def _discard_pending_below(self, k: int, count: bool) -> None:
+        for kk in [kk for kk in self._pending if kk < k]:
+            del self._pending[kk]
+            self._complete.discard(kk)
+
+    def _drop_oldest_pending(self) -> None:
+        oldest = min(self._pending)
+        if self._next_k is not None and oldest == self._next_k:
+            nxt = oldest + 1
+            self._gap(oldest, nxt)
+        else:
+            entry = self._pending.pop(oldest)
+            self._complete.discard(oldest)
+            self._health.missing_samples += 1
+            absent = [c for c, e in zip(CHANNELS, entry) if e is None]
+            self._problem("gap", "", self._stamp_of(oldest),
+                          f"sample t = {self._stamp_of(oldest) / NS_PER_S:.9g} s given up: no {' and no '.join(absent)} "
+                          f"after {self.options.max_pending} newer incomplete samples")
+
+    def _reset_window(self) -> None:
+        if self._count:
+            self._health.resets += 1
+        self._count = 0
+        self._since_reset = 0
+
+    def _append(self, k, r, u, y) -> None:
+        cap = self._k_buf.shape[0]
+        h = self._head
+        self._k_buf[h] = k
+        self._r_buf[h] = r
+        self._u_buf[h] = u
+        self._y_buf[h] = y
+        self._head = (h + 1) % cap
+        self._count = min(self._count + 1, cap)
+        self._since_reset += 1
+        self._health.completed += 1

@@ -1,0 +1,152 @@
+"""ros_io: JointState <-> numpy with validation, stamps, QoS profiles and parameter declaration."""
+
+import math
+
+import numpy as np
+import pytest
+
+from mpm_monitor.errors import ConfigurationError, InputError
+from mpm_monitor.ros_io import (MessageError, ParamSpec, VectorCodec, ns_to_stamp, period_ns, resolve_model,
+                                sample_stamp_ns, seconds_to_stamp, stamp_to_ns, stamp_to_seconds)
+
+sensor_msgs = pytest.importorskip("sensor_msgs.msg")
+
+
+def js(names, values, sec=3, nanosec=500):
+    m = sensor_msgs.JointState()
+    m.header.stamp.sec = sec
+    m.header.stamp.nanosec = nanosec
+    m.name = list(names)
+    m.position = [float(v) for v in values]
+    return m
+
+
+CODEC = VectorCodec(("y1", "y2", "y3"), "output")
+
+
+def test_round_trip_keeps_values_and_stamp_exactly():
+    v = np.array([0.1, -2.5e-7, 3.0e5])
+    msg = CODEC.encode(v, 1_234_567_890_123)
+    assert list(msg.name) == ["y1", "y2", "y3"] and len(msg.velocity) == 0 and len(msg.effort) == 0
+    stamp, back = CODEC.decode(msg)
+    assert stamp == 1_234_567_890_123
+    np.testing.assert_array_equal(back, v)
+
+
+def test_channels_in_another_order_are_put_in_model_order():
+    stamp, v = CODEC.decode(js(["y3", "y1", "y2"], [3.0, 1.0, 2.0]))
+    np.testing.assert_array_equal(v, [1.0, 2.0, 3.0])
+    assert stamp == 3_000_000_500
+
+
+@pytest.mark.parametrize("names, values, match", [
+    (["y1", "y2"], [1.0, 2.0], r"missing 'y3'"),
+    (["y1", "y2", "y3", "y4"], [1.0, 2.0, 3.0, 4.0], r"unexpected 'y4'"),
+    (["y1", "y1", "y3"], [1.0, 2.0, 3.0], r"'y1' repeat"),
+    (["y1", "y2", "y3"], [1.0, 2.0], r"2 position value\(s\) for 3 name\(s\)"),
+    (["y1", "y2", "y3"], [1.0, math.nan, 3.0], r"non-finite value\(s\) y2=nan"),
+    (["y1", "y2", "y3"], [1.0, 2.0, math.inf], r"y3=inf"),
+])
+def test_bad_messages_are_refused_naming_topic_channel_and_expectation(names, values, match):
+    with pytest.raises(MessageError, match=match) as info:
+        CODEC.decode(js(names, values))
+    assert str(info.value).startswith("output: ")
+    assert isinstance(info.value, InputError)
+
+
+def test_encode_refuses_a_wrong_length():
+    with pytest.raises(ValueError, match="expected 3 values"):
+        CODEC.encode([1.0, 2.0], 0)
+
+
+def test_codec_refuses_repeated_names():
+    with pytest.raises(ConfigurationError, match="repeat"):
+        VectorCodec(("u1", "u1"), "input")
+
+
+def test_stamps_are_exact_integer_nanoseconds_on_the_grid():
+    p = period_ns(0.1)
+    assert p == 100_000_000
+    assert sample_stamp_ns(30, p) == 3_000_000_000  # no float drift at k = 30
+    st = ns_to_stamp(sample_stamp_ns(12345, period_ns(1.0)))
+    assert (st.sec, st.nanosec) == (12345, 0)
+    assert stamp_to_ns(ns_to_stamp(7_000_000_001)) == 7_000_000_001
+    assert stamp_to_seconds(seconds_to_stamp(2.25)) == 2.25
+    with pytest.raises(ConfigurationError, match="sample_time"):
+        period_ns(0.0)
+
+
+def test_qos_profiles_follow_the_contract():
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy
+
+    from mpm_monitor.ros_io import diagnostics_qos, vector_qos
+
+    q = vector_qos()
+    assert (q.reliability, q.history, q.depth, q.durability) == (
+        ReliabilityPolicy.RELIABLE, HistoryPolicy.KEEP_LAST, 1000, DurabilityPolicy.VOLATILE)
+    d = diagnostics_qos()
+    assert (d.reliability, d.depth) == (ReliabilityPolicy.RELIABLE, 10)
+
+
+@pytest.mark.parametrize("spec, value, match", [
+    (ParamSpec("n", "int", 1, "x", 1, 10), 11, r"parameter n: expected a value in \[1, 10\]"),
+    (ParamSpec("n", "int", 1, "x", 1, 10), 2.5, "expected an integer"),
+    (ParamSpec("a", "double", 1.0, "x", 0.0, 1.0), math.nan, "finite"),
+    (ParamSpec("m", "string", "prbs", "x", choices=("prbs", "step")), "sine", "expected one of 'prbs', 'step'"),
+    (ParamSpec("b", "bool", True, "x"), 1, "true or false"),
+    (ParamSpec("w", "double_array", [1.0], "x"), [1.0, math.inf], "finite"),
+])
+def test_param_spec_check_refuses_with_the_parameter_name(spec, value, match):
+    with pytest.raises(ConfigurationError, match=match):
+        spec.check(value)
+
+
+def test_declared_parameters_carry_type_description_and_range():
+    import rclpy
+    from rcl_interfaces.msg import ParameterType
+    from rclpy.node import Node
+
+    from mpm_monitor.demo import private_context
+    from mpm_monitor.ros_io import declare_parameters
+
+    ctx = private_context()
+    try:
+        specs = [ParamSpec("window_samples", "int", 3000, "Window, samples.", 10, 100000),
+                 ParamSpec("alpha", "double", 0.01, "Rate.", 1e-9, 0.49),
+                 ParamSpec("bounds", "double_array", None, "Optional bounds.")]
+        node = Node("param_test", context=ctx, parameter_overrides=[rclpy.parameter.Parameter("alpha", value=0.05)])
+        values = declare_parameters(node, specs)
+        assert values == {"window_samples": 3000, "alpha": 0.05, "bounds": None}
+        d = node.describe_parameter("window_samples")
+        assert d.type == ParameterType.PARAMETER_INTEGER and d.description == "Window, samples."
+        assert (d.integer_range[0].from_value, d.integer_range[0].to_value) == (10, 100000)
+        assert node.describe_parameter("alpha").floating_point_range[0].to_value == 0.49
+        node.destroy_node()
+        bad = Node("param_test_bad", context=ctx,
+                   parameter_overrides=[rclpy.parameter.Parameter("window_samples", value=5)])
+        with pytest.raises(ConfigurationError, match="window_samples"):
+            declare_parameters(bad, specs)
+        bad.destroy_node()
+        wrong = Node("param_test_type", context=ctx,
+                     parameter_overrides=[rclpy.parameter.Parameter("alpha", value="high")])
+        with pytest.raises(ConfigurationError, match="alpha"):
+            declare_parameters(wrong, specs)
+        wrong.destroy_node()
+    finally:
+        ctx.try_shutdown()
+
+
+def test_resolve_model_from_case_or_file(tmp_path):
+    from mpm_monitor.model import save_model
+
+    plant = resolve_model("", "3.2", which="plant")
+    model = resolve_model("", "3.2")
+    assert plant.gain[0, 2] == 5.88 and model.gain[0, 2] == 3.5
+    save_model(model, tmp_path / "m.yaml")
+    assert resolve_model(str(tmp_path / "m.yaml"), "") == model
+    with pytest.raises(ConfigurationError, match="model_file and case"):
+        resolve_model("", "")
+    with pytest.raises(ConfigurationError, match="case"):
+        resolve_model("", "9.9")
+    with pytest.raises(InputError):
+        resolve_model(str(tmp_path / "missing.yaml"), "")

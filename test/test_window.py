@@ -1,0 +1,206 @@
+"""SampleWindow: alignment by stamp, completion, gaps, duplicates, conflicts, late and bad vectors.
+
+Pure Python: no rclpy; stamps are passed in as integer nanoseconds.
+"""
+
+import numpy as np
+import pytest
+
+from mpm_monitor.errors import ConfigurationError
+from mpm_monitor.window import SampleWindow, WindowOptions
+
+NS = 1_000_000_000
+OUT = ("y1", "y2")
+INP = ("u1", "u2", "u3")
+
+
+def make(window=20, **kw):
+    return SampleWindow(OUT, INP, 1.0, WindowOptions(window_samples=window, **kw))
+
+
+def sample_values(k):
+    """Distinct values per sample so that mis-alignment is visible."""
+    return (np.array([k, -k], float) + 0.1, np.array([k, 2 * k, 3 * k], float) + 0.2, np.array([k, k * k], float) + 0.3)
+
+
+def feed(w, k, order=("setpoint", "input", "output"), stamp=None):
+    r, u, y = sample_values(k)
+    vals = {"setpoint": r, "input": u, "output": y}
+    st = k * NS if stamp is None else stamp
+    return sum(w.add(ch, st, vals[ch]) for ch in order)
+
+
+def test_in_order_samples_fill_the_window_and_slide():
+    w = make(window=10)
+    for k in range(25):
+        assert feed(w, k) == 1
+    assert w.n_completed == 25 and w.n_window == 10
+    d = w.data()
+    np.testing.assert_array_equal(d.t, np.arange(15, 25, dtype=float))
+    for i, k in enumerate(range(15, 25)):
+        r, u, y = sample_values(k)
+        np.testing.assert_array_equal(d.r[i], r)
+        np.testing.assert_array_equal(d.u[i], u)
+        np.testing.assert_array_equal(d.y[i], y)
+    assert d.inputs == INP and d.outputs == OUT and d.sample_time == 1.0
+    assert w.take_problems() == []
+
+
+@pytest.mark.parametrize("order", [("output", "input", "setpoint"), ("input", "setpoint", "output"),
+                                   ("setpoint", "output", "input")])
+def test_any_interleaving_of_the_topics_gives_the_same_samples(order):
+    w = make()
+    for k in range(12):
+        feed(w, k, order=order)
+    d = w.data()
+    assert d.n_samples == 12
+    np.testing.assert_array_equal(d.u[5], sample_values(5)[1])
+    assert w.take_problems() == []
+
+
+def test_a_topic_running_ahead_is_buffered_until_its_partners_arrive():
+    w = make()
+    for k in range(8):
+        r, u, y = sample_values(k)
+        w.add("output", k * NS, y)
+        w.add("setpoint", k * NS, r)
+    assert w.n_completed == 0 and w.n_pending == 8
+    for k in range(8):
+        assert w.add("input", k * NS, sample_values(k)[1]) == 1
+    assert w.n_completed == 8 and w.n_pending == 0
+
+
+def test_reordered_samples_within_the_limit_complete_in_order():
+    w = make(reorder_samples=3)
+    feed(w, 0)
+    feed(w, 2)
+    feed(w, 3)
+    assert w.n_completed == 1  # 2 and 3 wait for 1
+    assert feed(w, 1) == 3
+    np.testing.assert_array_equal(w.data().t, [0, 1, 2, 3])
+    assert w.health().gaps == 0
+
+
+def test_a_missing_sample_is_a_gap_and_the_window_restarts_after_it():
+    w = make(reorder_samples=2)
+    for k in range(5):
+        feed(w, k)
+    r, u, y = sample_values(5)
+    w.add("setpoint", 5 * NS, r)
+    w.add("output", 5 * NS, y)  # input of sample 5 never comes
+    for k in range(6, 10):
+        feed(w, k)
+    h = w.health()
+    assert h.gaps == 1 and h.missing_samples == 1
+    d = w.data()
+    np.testing.assert_array_equal(d.t, [6, 7, 8, 9])  # contiguous data only
+    problems = w.take_problems()
+    assert [p.kind for p in problems] == ["gap"]
+    assert "t = 5 s" in problems[0].message and "no input" in problems[0].message
+    assert w.n_since_reset == 4
+
+
+def test_duplicate_and_conflicting_vectors_keep_the_first():
+    w = make()
+    feed(w, 0)
+    r, u, y = sample_values(1)
+    w.add("output", NS, y)
+    w.add("output", NS, y)                 # same values: duplicate
+    w.add("output", NS, y + 1.0)           # different values: conflict
+    w.add("setpoint", NS, r)
+    w.add("input", NS, u)
+    w.add("input", 0, sample_values(0)[1])  # sample 0 again, already in the window
+    kinds = [p.kind for p in w.take_problems()]
+    assert kinds == ["duplicate", "conflict", "out_of_order", "duplicate"]
+    np.testing.assert_array_equal(w.data().y[1], y)
+    h = w.health()
+    assert h.duplicate == 2 and h.conflict == 1
+
+
+def test_a_vector_for_a_sample_given_up_is_late():
+    w = make(reorder_samples=0)
+    feed(w, 0)
+    feed(w, 2)  # sample 1 given up at once
+    r, u, y = sample_values(1)
+    w.add("output", NS, y)
+    kinds = [p.kind for p in w.take_problems()]
+    assert kinds == ["gap", "out_of_order", "late"]
+
+
+def test_off_grid_stamps_are_refused_with_the_offset():
+    w = make(stamp_tolerance=0.1)
+    feed(w, 0)
+    assert w.add("output", int(1.3 * NS), sample_values(1)[2]) == 0
+    p = w.take_problems()
+    assert [x.kind for x in p] == ["off_grid"] and "+0.3 s off the sample grid" in p[0].message
+    assert p[0].is_error
+
+
+def test_small_stamp_jitter_is_put_on_the_grid():
+    w = make(stamp_tolerance=0.25)
+    for k in range(5):
+        feed(w, k, stamp=k * NS + (-1) ** k * 10_000_000)
+    assert w.n_completed == 5
+    np.testing.assert_array_equal(w.data().t, np.arange(5.0) + 0.01)  # phase of the first output
+
+
+def test_grid_phase_comes_from_the_first_output():
+    w = make()
+    phase = 250_000_000
+    r, u, y = sample_values(0)
+    w.add("setpoint", phase, r)  # before any output: waits for the phase
+    w.add("input", phase, u)
+    assert w.add("output", phase, y) == 1
+    np.testing.assert_allclose(w.data().t, [0.25])
+
+
+@pytest.mark.parametrize("values, what", [(np.array([1.0]), "1 value"), (np.array([1.0, np.nan]), "non-finite")])
+def test_bad_values_are_refused_and_reported(values, what):
+    w = make()
+    assert w.add("output", 0, values) == 0
+    p = w.take_problems()
+    assert len(p) == 1 and p[0].kind == "bad_value" and what in p[0].message
+    assert w.health().bad_value == 1
+
+
+def test_hold_setpoint_uses_the_latest_setpoint_at_or_before_each_sample():
+    w = make(hold_setpoint=True)
+    w.add("setpoint", 0, np.array([1.0, 1.0]))
+    w.add("setpoint", int(2.5 * NS), np.array([2.0, 2.0]))  # off grid is fine for a held setpoint
+    for k in range(5):
+        _, u, y = sample_values(k)
+        w.add("input", k * NS, u)
+        w.add("output", k * NS, y)
+    d = w.data()
+    np.testing.assert_array_equal(d.r[:, 0], [1, 1, 1, 2, 2])
+    assert w.take_problems() == []
+
+
+def test_hold_setpoint_waits_for_the_first_setpoint():
+    w = make(hold_setpoint=True)
+    _, u, y = sample_values(0)
+    w.add("input", 0, u)
+    w.add("output", 0, y)
+    assert w.n_completed == 0
+    assert w.add("setpoint", 0, np.array([1.0, 2.0])) == 1
+
+
+def test_a_channel_that_never_comes_is_reported_and_memory_stays_bounded():
+    w = make(max_pending=5)
+    for k in range(50):
+        r, u, y = sample_values(k)
+        w.add("setpoint", k * NS, r)
+        w.add("output", k * NS, y)
+    assert w.n_pending <= 6 and w.n_completed == 0
+    assert w.health().missing_samples >= 44
+    problems = w.take_problems()
+    assert problems and all(p.kind == "gap" and "no input" in p.message for p in problems)
+
+
+def test_options_are_checked():
+    with pytest.raises(ConfigurationError, match="window_samples"):
+        WindowOptions(window_samples=5)
+    with pytest.raises(ConfigurationError, match="stamp_tolerance"):
+        WindowOptions(stamp_tolerance=0.5)
+    with pytest.raises(ValueError, match="channel"):
+        make().add("dither", 0, [1.0])
