@@ -1,0 +1,218 @@
+"""Live monitor node: setpoint, input and output in; ``/diagnostics`` and row RSI out.
+
+Wraps :class:`~mpm_monitor.monitor_core.MonitorCore` (window, schedule, statuses) and
+:class:`~mpm_monitor.monitor_core.AnalysisWorker` (the analysis of
+:func:`mpm_monitor.analysis.analyze` in a background thread).  The subscription callbacks only
+decode and append to the window, so no sample waits for an analysis; every ``analysis_period``
+completed samples the window is copied and handed to the worker, and its result comes back
+through a short steady-clock timer and is published on ``/diagnostics`` (CONTRACTS section 4) and as a
+``std_msgs/Float64MultiArray`` of row RSI values on ``mpm_monitor/rsi``.  The latest statuses are
+re-published every ``republish_period`` wall-clock seconds, turning STALE when no complete sample
+came for ``stale_timeout`` seconds; bad messages (wrong channel names, lengths, non-finite values,
+off-grid or conflicting stamps) make the summary ERROR with the reason.
+
+It works with any publisher of the contract topics, not only this package's plant and MPC nodes.
+
+Parameters (all declared with type, description and range): see :data:`PARAMS`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Callable, Optional
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+
+from ..monitor_core import AnalysisWorker, MonitorCore, MonitorOptions, run_analysis
+from ..ros_io import (MODEL_PARAMS, MessageError, ParamSpec, VectorCodec, declare_parameters, diagnostics_qos,
+                      resolve_model, run_node, vector_qos)
+from ..window import WindowOptions
+
+#: Wall-clock seconds between two looks for finished analyses.
+RESULT_POLL_PERIOD = 0.02
+
+PARAMS = MODEL_PARAMS + (
+    ParamSpec("window_samples", "int", 3000, "Length of the sliding window analysed, samples.", 10, 10_000_000),
+    ParamSpec("analysis_period", "int", 500, "Completed samples between two analyses.", 1, 10_000_000),
+    ParamSpec("min_samples", "int", 1000, "Samples needed before the first analysis (<= window_samples).",
+              10, 10_000_000),
+    ParamSpec("stale_timeout", "double", 5.0, "Wall-clock seconds without a complete sample before the statuses "
+              "turn STALE.", 0.01, 86400.0),
+    ParamSpec("republish_period", "double", 1.0, "Wall-clock seconds between re-publications of the latest "
+              "statuses.", 0.01, 3600.0),
+    ParamSpec("hold_setpoint", "bool", False, "Hold the latest setpoint for samples without one (setpoints "
+              "published only on change)."),
+    ParamSpec("reorder_samples", "int", 10, "Samples a later complete sample may run ahead of an incomplete one "
+              "before the latter is given up as a gap.", 0, 100000),
+    ParamSpec("stamp_tolerance", "double", 0.25, "Largest distance of a stamp from the sample grid, fraction of "
+              "the sample time.", 0.001, 0.49),
+    ParamSpec("alpha", "double", 0.01, "Family-wise false-alarm rate of the row and element tests.", 1e-12, 0.49),
+    ParamSpec("na", "int", 4, "ARX order of A.", 0, 50),
+    ParamSpec("nb", "int", 4, "ARX order of each B.", 1, 50),
+    ParamSpec("band_low", "double", 0.0, "Lower edge of the RSI band, rad/sample.", 0.0, math.pi),
+    ParamSpec("band_high", "double", math.pi, "Upper edge of the RSI band, rad/sample.", 0.0, math.pi),
+    ParamSpec("n_freq", "int", 256, "Frequencies evaluated in the band.", 8, 100000),
+    ParamSpec("max_delay", "int", -1, "Largest dead time searched, samples (-1 = from the model).", -1, 1000),
+    ParamSpec("method", "string", "arx", "Element test: arx (paper), xcorr or pcorr (baselines).",
+              choices=("arx", "xcorr", "pcorr")),
+    ParamSpec("initial_state", "string", "estimate", "Model state at the window's first sample.",
+              choices=("estimate", "zero")),
+    ParamSpec("repair", "bool", False, "Also re-estimate the located elements (slow; the diagnostics do not "
+              "need it)."),
+    ParamSpec("analysis_thread", "bool", True, "Run the analysis in a background thread (false: inside the "
+              "callback, for debugging only)."),
+    ParamSpec("hardware_id", "string", "", "hardware_id of the statuses ('' = the node's full name)."),
+    ParamSpec("setpoint_topic", "string", "setpoint", "Topic of the setpoints r (JointState)."),
+    ParamSpec("input_topic", "string", "input", "Topic of the plant inputs u (JointState)."),
+    ParamSpec("output_topic", "string", "output", "Topic of the measured outputs y (JointState)."),
+    ParamSpec("diagnostics_topic", "string", "/diagnostics", "Topic of the diagnostics (DiagnosticArray)."),
+    ParamSpec("rsi_topic", "string", "mpm_monitor/rsi", "Topic of the row RSI values (Float64MultiArray, model "
+              "output order)."),
+)
+
+
+def analysis_options_from_params(p: dict):
+    """:class:`~mpm_monitor.analysis.AnalysisOptions` from the node's parameter values."""
+    from ..analysis import AnalysisOptions
+
+    return AnalysisOptions(na=p["na"], nb=p["nb"], alpha=p["alpha"], band=(p["band_low"], p["band_high"]),
+                           n_freq=p["n_freq"], max_delay=None if p["max_delay"] < 0 else p["max_delay"],
+                           initial_state=p["initial_state"], method=p["method"], repair=p["repair"])
+
+
+def monitor_options_from_params(p: dict, hardware_id: str) -> MonitorOptions:
+    """:class:`~mpm_monitor.monitor_core.MonitorOptions` from the node's parameter values."""
+    window = WindowOptions(window_samples=p["window_samples"], reorder_samples=p["reorder_samples"],
+                           stamp_tolerance=p["stamp_tolerance"], hold_setpoint=p["hold_setpoint"])
+    return MonitorOptions(window=window, analysis_period=p["analysis_period"], min_samples=p["min_samples"],
+                          stale_timeout=p["stale_timeout"], hardware_id=hardware_id)
+
+
+def status_to_msg(s) -> DiagnosticStatus:
+    """A :class:`~mpm_monitor.monitor_core.StatusData` as ``diagnostic_msgs/DiagnosticStatus``."""
+    return DiagnosticStatus(level=bytes([s.level]), name=s.name, message=s.message, hardware_id=s.hardware_id,
+                            values=[KeyValue(key=k, value=v) for k, v in s.values])
+
+
+class MonitorNode(Node):
+    """The live monitor node (see the module docstring).
+
+    Parameters
+    ----------
+    name : str
+        Node name.
+    analyze : callable, optional
+        ``analyze(model, data, options) -> report``; default :func:`mpm_monitor.analysis.analyze`
+        (injectable for tests of the plumbing).
+    **kwargs
+        Passed to ``rclpy.node.Node`` (``context``, ``parameter_overrides``, ``cli_args``, ...).
+    """
+
+    def __init__(self, name: str = "monitor", analyze: Optional[Callable] = None, **kwargs):
+        super().__init__(name, **kwargs)
+        p = declare_parameters(self, PARAMS)
+        self.params = p
+        self.model = resolve_model(p["model_file"], p["case"])
+        if analyze is None:
+            from ..analysis import analyze
+        self._analyze = analyze
+        self._analysis_options = analysis_options_from_params(p)
+        hw = p["hardware_id"] or self.get_fully_qualified_name()
+        self.core = MonitorCore(self.model, monitor_options_from_params(p, hw))
+        self.core.start(time.monotonic())
+        self._codecs = {"setpoint": VectorCodec(self.model.outputs, p["setpoint_topic"]),
+                        "input": VectorCodec(self.model.inputs, p["input_topic"]),
+                        "output": VectorCodec(self.model.outputs, p["output_topic"])}
+        self._diag_pub = self.create_publisher(DiagnosticArray, p["diagnostics_topic"], diagnostics_qos())
+        self._rsi_pub = self.create_publisher(Float64MultiArray, p["rsi_topic"], diagnostics_qos())
+        self.worker = AnalysisWorker(self._run_job, threaded=p["analysis_thread"])
+        q = vector_qos()
+        self._subs = [self.create_subscription(JointState, p[f"{ch}_topic"],
+                                               (lambda msg, ch=ch: self._on_vector(ch, msg)), q)
+                      for ch in ("setpoint", "input", "output")]
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._timer = self.create_timer(p["republish_period"], self.publish_statuses, clock=self._steady)
+        # The events executor has no guard conditions: results are collected by a short steady timer.
+        self._result_timer = self.create_timer(RESULT_POLL_PERIOD, self._on_results, clock=self._steady)
+        self._errors_published = 0
+        self._last_publish = 0.0
+        self.results = 0
+        self.get_logger().info(
+            f"monitoring {self.model.n_outputs}x{self.model.n_inputs} ({self.model.name or 'model'}): window "
+            f"{p['window_samples']} samples, analysis every {p['analysis_period']} after {p['min_samples']}")
+
+    # ------------------------------------------------------------------------------ inputs
+    def _on_vector(self, channel: str, msg: JointState) -> None:
+        now = time.monotonic()
+        core = self.core
+        try:
+            stamp, values = self._codecs[channel].decode(msg)
+        except MessageError as exc:
+            core.bad_message(channel, str(exc), now)
+            self.get_logger().warning(str(exc), throttle_duration_sec=5.0)
+        else:
+            if core.add(channel, stamp, values, now) and core.analysis_due():
+                self.worker.submit(core.take_job())
+        if core.data_errors != self._errors_published and now - self._last_publish > 0.2:
+            self._errors_published = core.data_errors
+            self.publish_statuses()
+
+    # ---------------------------------------------------------------------------- analysis
+    def request_analysis(self) -> bool:
+        """Analyse the window now if it holds samples not analysed yet (e.g. at the end of a run)."""
+        if self.core.analysis_due(force=True):
+            self.worker.submit(self.core.take_job())
+            return True
+        return False
+
+    def _run_job(self, job):
+        return run_analysis(self._analyze, self.model, self._analysis_options, job)
+
+    def _on_results(self) -> None:
+        outcomes = self.worker.take_outcomes()
+        if not outcomes:
+            return
+        for outcome in outcomes:
+            self.core.accept(outcome)
+            self.results += 1
+            if outcome.error:
+                self.get_logger().error(outcome.error)
+        rsi = self.core.rsi_vector()
+        if rsi is not None:
+            msg = Float64MultiArray()
+            msg.layout.dim = [MultiArrayDimension(label="outputs", size=len(rsi), stride=len(rsi))]
+            msg.data = [float(v) for v in rsi]
+            self._rsi_pub.publish(msg)
+        self.publish_statuses()
+
+    # ---------------------------------------------------------------------------- outputs
+    def current_statuses(self) -> list:
+        """The statuses as plain data (what the next publication will carry)."""
+        return self.core.statuses(time.monotonic())
+
+    def publish_statuses(self) -> None:
+        """Publish the current statuses on the diagnostics topic."""
+        now = time.monotonic()
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [status_to_msg(s) for s in self.core.statuses(now)]
+        self._diag_pub.publish(arr)
+        self._last_publish = now
+
+    def close(self) -> None:
+        """Stop the analysis thread."""
+        self.worker.close()
+
+
+def main(args=None) -> int:
+    """Console script ``monitor_node``."""
+    return run_node(lambda context: MonitorNode(context=context), args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

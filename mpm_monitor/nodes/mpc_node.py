@@ -1,0 +1,188 @@
+"""MPC controller node: internal-model MPC from ``setpoint`` and ``output`` to ``input``.
+
+Wraps :class:`~mpm_monitor.mpc.InternalModelMpc`.  The controller computes ``u(k)`` once it holds
+the setpoint ``r(k)`` and the measurement ``y(k)`` with the same stamp (and the dither of that
+stamp when ``use_dither``), and publishes it with that stamp; vectors are buffered by stamp, so
+the arrival order of the topics does not matter and nothing is dropped.  With ``hold_setpoint``
+it computes ``u(k)`` as soon as ``y(k)`` arrives, with the latest setpoint (and dither) received:
+for a stack whose setpoints are published only when they change.
+
+Parameters (all declared with type, description and range): see :data:`PARAMS`.
+"""
+
+from __future__ import annotations
+
+import collections
+from typing import Optional
+
+import numpy as np
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+
+from ..errors import ConfigurationError
+from ..mpc import InternalModelMpc, MpcOptions
+from ..ros_io import (MODEL_PARAMS, MessageError, ParamSpec, VectorCodec, declare_parameters, resolve_model, run_node,
+                      vector_qos)
+
+PARAMS = MODEL_PARAMS + (
+    ParamSpec("prediction_horizon", "int", 100, "Prediction horizon Hp, samples.", 1, 100000),
+    ParamSpec("control_horizon", "int", 30, "Control horizon Hc, samples (<= prediction_horizon).", 1, 100000),
+    ParamSpec("output_weight", "double_array", [1.0], "Weight Q on each output error (one value for all, or one "
+              "per output), >= 0."),
+    ParamSpec("input_weight", "double_array", [1.0], "Weight R on each input's distance from input_nominal (one "
+              "value or one per input), >= 0."),
+    ParamSpec("input_rate_weight", "double_array", [0.1], "Weight S on each input move (one value or one per "
+              "input), >= 0."),
+    ParamSpec("input_nominal", "double_array", None, "Nominal input u_nom, deviation variables (unset = 0)."),
+    ParamSpec("u_min", "double_array", None, "Lower input bounds (one value or one per input; unset = none)."),
+    ParamSpec("u_max", "double_array", None, "Upper input bounds (one value or one per input; unset = none)."),
+    ParamSpec("du_max", "double_array", None, "Largest input move per sample (unset = none)."),
+    ParamSpec("qp_tolerance", "double", 1e-9, "OSQP tolerance when bounds are active.", 1e-15, 1.0),
+    ParamSpec("use_dither", "bool", False, "Add the dither received on dither_topic to u (wait for it every sample)."),
+    ParamSpec("hold_setpoint", "bool", False, "Compute u(k) on each y(k) with the latest setpoint instead of "
+              "waiting for the setpoint of the same stamp."),
+    ParamSpec("max_buffered", "int", 1000, "Vectors buffered per topic while waiting for their partners.", 1, 10**7),
+    ParamSpec("setpoint_topic", "string", "setpoint", "Topic of the setpoints r (JointState)."),
+    ParamSpec("output_topic", "string", "output", "Topic of the measured outputs y (JointState)."),
+    ParamSpec("input_topic", "string", "input", "Topic the plant inputs u are published on (JointState)."),
+    ParamSpec("dither_topic", "string", "dither", "Topic of the input dither (JointState)."),
+)
+
+
+def _weight(values, n: int, name: str):
+    if values is None:
+        return None
+    if len(values) == 1:
+        return float(values[0])
+    if len(values) != n:
+        raise ConfigurationError(f"parameter {name}: expected 1 or {n} values, got {len(values)}")
+    return list(values)
+
+
+def mpc_options_from_params(p: dict, n_outputs: int, n_inputs: int) -> MpcOptions:
+    """:class:`~mpm_monitor.mpc.MpcOptions` from the node's parameter values."""
+    return MpcOptions(prediction_horizon=p["prediction_horizon"], control_horizon=p["control_horizon"],
+                      output_weight=_weight(p["output_weight"], n_outputs, "output_weight"),
+                      input_weight=_weight(p["input_weight"], n_inputs, "input_weight"),
+                      input_rate_weight=_weight(p["input_rate_weight"], n_inputs, "input_rate_weight"),
+                      input_nominal=_weight(p["input_nominal"], n_inputs, "input_nominal"),
+                      u_min=_weight(p["u_min"], n_inputs, "u_min"), u_max=_weight(p["u_max"], n_inputs, "u_max"),
+                      du_max=_weight(p["du_max"], n_inputs, "du_max"), qp_tolerance=p["qp_tolerance"])
+
+
+class MpcNode(Node):
+    """The MPC controller node (see the module docstring)."""
+
+    def __init__(self, name: str = "mpc", **kwargs):
+        super().__init__(name, **kwargs)
+        p = declare_parameters(self, PARAMS)
+        self.params = p
+        model = resolve_model(p["model_file"], p["case"])
+        self.model = model
+        self.ctrl = InternalModelMpc(model, mpc_options_from_params(p, model.n_outputs, model.n_inputs))
+        self._r_codec = VectorCodec(model.outputs, p["setpoint_topic"])
+        self._y_codec = VectorCodec(model.outputs, p["output_topic"])
+        self._u_codec = VectorCodec(model.inputs, p["input_topic"])
+        self._d_codec = VectorCodec(model.inputs, p["dither_topic"])
+        self._buf = {"r": collections.OrderedDict(), "y": collections.OrderedDict(), "d": collections.OrderedDict()}
+        self._latest = {"r": None, "d": None}
+        self._last_done: Optional[int] = None
+        self.steps = 0
+        self.rejected = 0
+        self._pub = self.create_publisher(JointState, p["input_topic"], vector_qos())
+        q = vector_qos()
+        self._subs = [self.create_subscription(JointState, p["setpoint_topic"], self._on_setpoint, q),
+                      self.create_subscription(JointState, p["output_topic"], self._on_output, q)]
+        if p["use_dither"]:
+            self._subs.append(self.create_subscription(JointState, p["dither_topic"], self._on_dither, q))
+        self.get_logger().info(f"MPC {model.n_outputs}x{model.n_inputs}, Hp = {p['prediction_horizon']}, "
+                               f"Hc = {p['control_horizon']}, {'hold' if p['hold_setpoint'] else 'stamp-matched'} "
+                               f"setpoints{', dither' if p['use_dither'] else ''}")
+
+    def _decode(self, codec: VectorCodec, msg):
+        try:
+            return codec.decode(msg)
+        except MessageError as exc:
+            self.rejected += 1
+            self.get_logger().warning(f"ignored: {exc}", throttle_duration_sec=1.0)
+            return None
+
+    def _store(self, key: str, stamp: int, values: np.ndarray) -> None:
+        if self._last_done is not None and stamp <= self._last_done:
+            self.rejected += 1
+            self.get_logger().warning(f"{key} stamped t = {stamp * 1e-9:.9g} s ignored: that sample is done",
+                                      throttle_duration_sec=1.0)
+            return
+        buf = self._buf[key]
+        buf[stamp] = values
+        if len(buf) > self.params["max_buffered"]:
+            old, _ = buf.popitem(last=False)
+            self.get_logger().warning(f"{key} stamped t = {old * 1e-9:.9g} s dropped: no partner arrived",
+                                      throttle_duration_sec=1.0)
+
+    def _on_setpoint(self, msg) -> None:
+        got = self._decode(self._r_codec, msg)
+        if got is None:
+            return
+        if self.params["hold_setpoint"]:
+            first = self._latest["r"] is None
+            self._latest["r"] = got[1]
+            if first:  # outputs that waited for the first setpoint
+                for stamp in list(self._buf["y"]):
+                    self._try(stamp)
+            return
+        self._store("r", *got)
+        self._try(got[0])
+
+    def _on_dither(self, msg) -> None:
+        got = self._decode(self._d_codec, msg)
+        if got is None:
+            return
+        if self.params["hold_setpoint"]:
+            self._latest["d"] = got[1]
+            return
+        self._store("d", *got)
+        self._try(got[0])
+
+    def _on_output(self, msg) -> None:
+        got = self._decode(self._y_codec, msg)
+        if got is None:
+            return
+        self._store("y", *got)
+        self._try(got[0])
+
+    def _try(self, stamp: int) -> None:
+        buf = self._buf
+        y = buf["y"].get(stamp)
+        if y is None:
+            return
+        dither = None
+        if self.params["hold_setpoint"]:
+            r = self._latest["r"]
+            if r is None:
+                return  # no setpoint yet: y waits for the first one
+            if self.params["use_dither"]:
+                dither = self._latest["d"] if self._latest["d"] is not None else np.zeros(self.model.n_inputs)
+        else:
+            r = buf["r"].get(stamp)
+            if r is None:
+                return
+            if self.params["use_dither"]:
+                dither = buf["d"].get(stamp)
+                if dither is None:
+                    return
+        for key in buf:
+            buf[key].pop(stamp, None)
+        u = self.ctrl.step(r, y, dither)
+        self._last_done = stamp
+        self.steps += 1
+        self._pub.publish(self._u_codec.encode(u, stamp))
+
+
+def main(args=None) -> int:
+    """Console script ``mpc_node``."""
+    return run_node(lambda context: MpcNode(context=context), args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,209 @@
+"""Plant simulator node: a MIMO FOPDT plant with disturbance and noise, measured on ``output``.
+
+Wraps :class:`~mpm_monitor.plant.PlantSimulator`.  Two ways to run:
+
+* **lock-step** (``lock_step: true``, simulated time): the node owns the clock.  For sample ``k`` it
+  publishes ``/clock = k * Ts`` and then ``y(k)`` stamped ``k * Ts``; when ``u(k)`` (stamped
+  ``k * Ts``) arrives on ``input`` it applies it, advances to ``k + 1`` and repeats, as fast as
+  the other nodes answer.  Nothing is dropped: the next sample waits for the controller.
+* **timer** (``lock_step: false``): every ``Ts`` of the node's clock (wall-clock, or simulated
+  time with ``use_sim_time``) it applies the latest ``u`` (held if none came), advances and
+  publishes ``y``; with ``publish_clock`` it also paces ``/clock`` at ``k * Ts`` in real time.
+
+Parameters (all declared with type, description and range): see :data:`PARAMS`.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Optional
+
+import numpy as np
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock as ClockMsg
+from sensor_msgs.msg import JointState
+
+from ..closed_loop import seeded_generators
+from ..plant import DisturbanceOptions, PlantSimulator
+from ..ros_io import (MODEL_PARAMS, MessageError, ParamSpec, VectorCodec, declare_parameters, ns_to_stamp, period_ns,
+                      resolve_model, run_node, vector_qos)
+
+PARAMS = MODEL_PARAMS + (
+    ParamSpec("seed", "int", 1, "Seed of the disturbance and noise (same seed as a batch run gives the same data).",
+              0, 2**31 - 1),
+    ParamSpec("disturbance_std", "double", 7.5e-3, "Std of the white noise driving the output disturbance, "
+              "output units.", 0.0, 1e6),
+    ParamSpec("disturbance_pole", "double", 0.95, "Pole p of the disturbance filter z/(z - p).", 0.0, 0.999999),
+    ParamSpec("noise_std", "double", 5.0e-3, "Std of the white measurement noise, output units.", 0.0, 1e6),
+    ParamSpec("lock_step", "bool", True, "Advance one sample per received input (simulated time, as fast as "
+              "possible); false = advance on a timer every sample_time."),
+    ParamSpec("publish_clock", "bool", True, "Publish the simulated time k * sample_time on clock_topic."),
+    ParamSpec("max_samples", "int", 0, "Stop after this many samples (0 = run forever).", 0, 10**9),
+    ParamSpec("autostart", "bool", True, "Start by itself once min_subscribers listen on output_topic "
+              "(false: the owner calls start())."),
+    ParamSpec("min_subscribers", "int", 1, "Subscribers on output_topic to wait for before the first sample.",
+              0, 1000),
+    ParamSpec("start_delay", "double", 0.5, "Wall-clock seconds to wait after min_subscribers are matched (lets the "
+              "other nodes finish discovery).", 0.0, 600.0),
+    ParamSpec("stall_timeout", "double", 2.0, "Wall-clock seconds without the expected input before a warning "
+              "and a re-sent clock (lock-step).", 0.05, 3600.0),
+    ParamSpec("exit_when_done", "bool", False, "Leave the process after max_samples."),
+    ParamSpec("output_topic", "string", "output", "Topic of the measured outputs y (JointState)."),
+    ParamSpec("input_topic", "string", "input", "Topic of the plant inputs u (JointState)."),
+    ParamSpec("clock_topic", "string", "/clock", "Topic of the simulated time (rosgraph_msgs/Clock)."),
+)
+
+
+class PlantNode(Node):
+    """The plant simulator node (see the module docstring)."""
+
+    def __init__(self, name: str = "plant", **kwargs):
+        super().__init__(name, **kwargs)
+        p = declare_parameters(self, PARAMS)
+        self.params = p
+        model = resolve_model(p["model_file"], p["case"], which="plant")
+        dist = DisturbanceOptions(disturbance_std=p["disturbance_std"], disturbance_pole=p["disturbance_pole"],
+                                  noise_std=p["noise_std"])
+        self.model = model
+        self.sim = PlantSimulator(model, dist, seeded_generators(p["seed"])["plant"])
+        self._period = period_ns(model.sample_time)
+        self._y_codec = VectorCodec(model.outputs, p["output_topic"])
+        self._u_codec = VectorCodec(model.inputs, p["input_topic"])
+        self._pub = self.create_publisher(JointState, p["output_topic"], vector_qos())
+        self._clock_pub = self.create_publisher(ClockMsg, p["clock_topic"], vector_qos()) if p["publish_clock"] else None
+        self._sub = self.create_subscription(JointState, p["input_topic"], self._on_input, vector_qos())
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.k = 0
+        self.running = False
+        self.finished = False
+        self.exit_requested = False
+        self.rejected_inputs = 0
+        self.held_inputs = 0
+        self._u_latest: Optional[np.ndarray] = None
+        self._u_fresh = False
+        self._last_progress = time.monotonic()
+        self._matched_at: Optional[float] = None
+        self._start_timer = None
+        self._tick_timer = None
+        self._stall_timer = None
+        if p["autostart"]:
+            self._start_timer = self.create_timer(0.05, self._try_start, clock=self._steady)
+        self.get_logger().info(
+            f"plant {model.n_outputs}x{model.n_inputs} ({model.name or 'model'}), Ts = {model.sample_time:g} s, "
+            f"{'lock-step' if p['lock_step'] else 'timer'} mode, max_samples = {p['max_samples'] or 'unlimited'}")
+
+    # ------------------------------------------------------------------------------- start
+    def _try_start(self) -> None:
+        if self.running:
+            return
+        if self._pub.get_subscription_count() < self.params["min_subscribers"]:
+            self._matched_at = None
+            return
+        now = time.monotonic()
+        if self._matched_at is None:
+            self._matched_at = now
+        if now - self._matched_at >= self.params["start_delay"]:
+            self.start()
+
+    def start(self) -> None:
+        """Publish the first sample (lock-step) or start the sample timer."""
+        if self.running:
+            return
+        self.running = True
+        if self._start_timer is not None:
+            self._start_timer.cancel()
+        self._last_progress = time.monotonic()
+        if self.params["lock_step"]:
+            self._stall_timer = self.create_timer(min(0.5, self.params["stall_timeout"]), self._check_stall,
+                                                  clock=self._steady)
+            self._emit()
+        else:
+            self._tick_timer = self.create_timer(self.model.sample_time, self._on_tick)
+            self._emit()
+
+    # ---------------------------------------------------------------------------- samples
+    def _stamp_ns(self) -> int:
+        if self.params["lock_step"] or self.params["publish_clock"]:
+            return self.k * self._period
+        return self.get_clock().now().nanoseconds
+
+    def _emit(self) -> None:
+        """Publish the clock and y(k)."""
+        stamp = self._stamp_ns()
+        if self._clock_pub is not None:
+            self._clock_pub.publish(ClockMsg(clock=ns_to_stamp(stamp)))
+        y = self.sim.measure()
+        self._expected_stamp = stamp
+        self._pub.publish(self._y_codec.encode(y, stamp))
+
+    def _advance(self, u: np.ndarray) -> None:
+        self.sim.apply(u)
+        self.k += 1
+        self._last_progress = time.monotonic()
+        limit = self.params["max_samples"]
+        if limit and self.k >= limit:
+            self.finished = True
+            self.running = False
+            for t in (self._tick_timer, self._stall_timer):
+                if t is not None:
+                    t.cancel()
+            self.get_logger().info(f"done: {self.k} samples")
+            if self.params["exit_when_done"]:
+                self.exit_requested = True
+            return
+        self._emit()
+
+    def _on_input(self, msg: JointState) -> None:
+        try:
+            stamp, u = self._u_codec.decode(msg)
+        except MessageError as exc:
+            self.rejected_inputs += 1
+            self.get_logger().warning(f"input ignored: {exc}", throttle_duration_sec=1.0)
+            return
+        if not self.params["lock_step"]:
+            self._u_latest, self._u_fresh = u, True
+            return
+        if not self.running:
+            self.get_logger().warning("input ignored: the plant is not running", throttle_duration_sec=1.0)
+            return
+        if stamp != self._expected_stamp:
+            self.rejected_inputs += 1
+            self.get_logger().warning(
+                f"input stamped t = {stamp * 1e-9:.9g} s ignored: waiting for the input of t = "
+                f"{self._expected_stamp * 1e-9:.9g} s", throttle_duration_sec=1.0)
+            return
+        self._advance(u)
+
+    def _on_tick(self) -> None:
+        if not self.running:
+            return
+        if self._u_latest is None:
+            u = np.zeros(self.model.n_inputs)
+        else:
+            u = self._u_latest
+        if not self._u_fresh:
+            self.held_inputs += 1
+        self._u_fresh = False
+        self._advance(u)
+
+    def _check_stall(self) -> None:
+        if not self.running:
+            return
+        waited = time.monotonic() - self._last_progress
+        if waited >= self.params["stall_timeout"]:
+            self.get_logger().warning(
+                f"no input for t = {self._expected_stamp * 1e-9:.9g} s after {waited:.1f} s; re-sending the clock",
+                throttle_duration_sec=5.0)
+            if self._clock_pub is not None:
+                self._clock_pub.publish(ClockMsg(clock=ns_to_stamp(self._expected_stamp)))
+            self._last_progress = time.monotonic()
+
+
+def main(args=None) -> int:
+    """Console script ``plant_node``."""
+    return run_node(lambda context: PlantNode(context=context), args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,126 @@
+"""Setpoint generator node: PRBS or step/hold setpoints on ``setpoint``, optional input dither on ``dither``.
+
+Wraps :class:`~mpm_monitor.excitation.PrbsGenerator` and
+:class:`~mpm_monitor.excitation.StepHoldGenerator`.  One setpoint vector (and one dither vector) per
+sample, triggered either
+
+* by the simulated clock (``trigger: clock``): a vector stamped ``k * Ts`` each time the clock
+  reaches a new grid point ``k * Ts`` (lock-step with the plant node), or
+* by a timer (``trigger: timer``) every ``Ts`` of the node's clock, stamped with that clock.
+
+With the same ``seed`` the PRBS equals the batch run's (:func:`~mpm_monitor.closed_loop.seeded_generators`).
+
+Parameters (all declared with type, description and range): see :data:`PARAMS`.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock as ClockMsg
+from sensor_msgs.msg import JointState
+
+from ..closed_loop import seeded_generators
+from ..errors import ConfigurationError
+from ..excitation import PrbsGenerator, PrbsOptions, StepHoldGenerator
+from ..ros_io import (MODEL_PARAMS, ParamSpec, VectorCodec, declare_parameters, period_ns, resolve_model, run_node,
+                      stamp_to_ns, vector_qos)
+
+PARAMS = MODEL_PARAMS + (
+    ParamSpec("mode", "string", "prbs", "Setpoint signal: prbs (random binary, flat spectrum with "
+              "switch_probability 0.5) or step (levels held for hold_samples each).", choices=("prbs", "step")),
+    ParamSpec("seed", "int", 1, "Seed of the PRBS and the dither (same seed as a batch run gives the same data).",
+              0, 2**31 - 1),
+    ParamSpec("amplitude", "double", 1.0, "PRBS half peak-to-peak level, output units.", 0.0, 1e6),
+    ParamSpec("switch_probability", "double", 0.5, "PRBS probability of a switch per sample.", 1e-6, 1.0),
+    ParamSpec("min_hold", "int", 1, "PRBS minimum samples between switches.", 1, 10**6),
+    ParamSpec("offset", "double", 0.0, "PRBS centre value, output units.", -1e6, 1e6),
+    ParamSpec("levels", "double_array", None, "Step mode: setpoint vectors, flattened row by row "
+              "(n_levels x n_outputs); unset = +amplitude then -amplitude on every output."),
+    ParamSpec("hold_samples", "int", 100, "Step mode: samples each level is held.", 1, 10**9),
+    ParamSpec("dither_amplitude", "double", 0.0, "PRBS dither added by the MPC to every input, input units "
+              "(0 = no dither topic).", 0.0, 1e6),
+    ParamSpec("dither_switch_probability", "double", 0.5, "Dither PRBS probability of a switch per sample.",
+              1e-6, 1.0),
+    ParamSpec("dither_min_hold", "int", 1, "Dither PRBS minimum samples between switches.", 1, 10**6),
+    ParamSpec("trigger", "string", "clock", "clock: one sample per grid point of the clock topic (lock-step); "
+              "timer: one sample every sample_time of the node's clock.", choices=("clock", "timer")),
+    ParamSpec("setpoint_topic", "string", "setpoint", "Topic of the setpoints r (JointState, one per output)."),
+    ParamSpec("dither_topic", "string", "dither", "Topic of the input dither (JointState, one per input)."),
+    ParamSpec("clock_topic", "string", "/clock", "Topic of the simulated time followed with trigger: clock."),
+)
+
+
+def build_setpoint_generator(p: dict, n_outputs: int, rng: np.random.Generator):
+    """The setpoint generator from the node's parameter values."""
+    if p["mode"] == "prbs":
+        return PrbsGenerator(n_outputs, PrbsOptions(amplitude=p["amplitude"], switch_probability=p["switch_probability"],
+                                                    min_hold=p["min_hold"], offset=p["offset"]), rng)
+    levels = p["levels"]
+    if levels is None:
+        levels = [p["amplitude"]] * n_outputs + [-p["amplitude"]] * n_outputs
+    if len(levels) == 0 or len(levels) % n_outputs:
+        raise ConfigurationError(f"parameter levels: expected a multiple of {n_outputs} values (n_levels x n_outputs, "
+                                 f"row by row), got {len(levels)}")
+    return StepHoldGenerator(np.reshape(levels, (-1, n_outputs)), p["hold_samples"])
+
+
+class SetpointNode(Node):
+    """The setpoint generator node (see the module docstring)."""
+
+    def __init__(self, name: str = "setpoint", **kwargs):
+        super().__init__(name, **kwargs)
+        p = declare_parameters(self, PARAMS)
+        self.params = p
+        model = resolve_model(p["model_file"], p["case"])
+        self.model = model
+        rngs = seeded_generators(p["seed"])
+        self._gen = build_setpoint_generator(p, model.n_outputs, rngs["setpoint"])
+        self._dither: Optional[PrbsGenerator] = None
+        if p["dither_amplitude"] > 0:
+            self._dither = PrbsGenerator(model.n_inputs, PrbsOptions(amplitude=p["dither_amplitude"],
+                                                                     switch_probability=p["dither_switch_probability"],
+                                                                     min_hold=p["dither_min_hold"]), rngs["dither"])
+        self._period = period_ns(model.sample_time)
+        self._r_codec = VectorCodec(model.outputs, p["setpoint_topic"])
+        self._d_codec = VectorCodec(model.inputs, p["dither_topic"])
+        self._pub = self.create_publisher(JointState, p["setpoint_topic"], vector_qos())
+        self._dither_pub = (self.create_publisher(JointState, p["dither_topic"], vector_qos())
+                            if self._dither is not None else None)
+        self._last_k: Optional[int] = None
+        self.published = 0
+        if p["trigger"] == "clock":
+            self._sub = self.create_subscription(ClockMsg, p["clock_topic"], self._on_clock, vector_qos())
+        else:
+            self._timer = self.create_timer(model.sample_time, self._on_timer)
+        self.get_logger().info(f"{p['mode']} setpoints on {model.n_outputs} outputs"
+                               + (f", dither {p['dither_amplitude']:g} on {model.n_inputs} inputs" if self._dither else "")
+                               + f", trigger {p['trigger']}")
+
+    def _publish(self, stamp_ns: int) -> None:
+        self._pub.publish(self._r_codec.encode(self._gen.next(), stamp_ns))
+        if self._dither is not None:
+            self._dither_pub.publish(self._d_codec.encode(self._dither.next(), stamp_ns))
+        self.published += 1
+
+    def _on_clock(self, msg: ClockMsg) -> None:
+        t = stamp_to_ns(msg.clock)
+        k = (t + self._period // 1000) // self._period  # the grid point reached (tolerates rounding)
+        if self._last_k is not None and k <= self._last_k:
+            return  # same grid point again (re-sent clock) or a finer clock between grid points
+        self._last_k = k
+        self._publish(k * self._period)
+
+    def _on_timer(self) -> None:
+        self._publish(self.get_clock().now().nanoseconds)
+
+
+def main(args=None) -> int:
+    """Console script ``setpoint_node``."""
+    return run_node(lambda context: SetpointNode(context=context), args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

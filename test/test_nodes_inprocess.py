@@ -1,0 +1,251 @@
+"""The four nodes in one process and one executor, in simulated time (lock-step), isolated.
+
+Isolation: every test builds its own ``rclpy`` context with ``ROS_AUTOMATIC_DISCOVERY_RANGE=OFF``
+(:func:`mpm_monitor.demo.private_context`), so its nodes see each other and nothing else, and puts
+its nodes in a namespace of its own.
+
+Acceptance (issue 4): within 3000 samples of simulated time the monitor's ``/diagnostics`` locate
+exactly rows y1, y2 and elements (y1, u2), (y1, u3), (y2, u1) in paper case 3.2 and flag nothing in
+case 3.1; a plain publisher of the contract topics gets the same answer as ``analyze`` on the same
+samples.
+"""
+
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+
+from mpm_monitor.analysis import AnalysisOptions, analyze  # noqa: E402
+from mpm_monitor.cases import paper_case  # noqa: E402
+from mpm_monitor.closed_loop import run_closed_loop  # noqa: E402
+from mpm_monitor.data_io import LoggedData  # noqa: E402
+from mpm_monitor.demo import Suite, case_parameters, private_context  # noqa: E402
+from mpm_monitor.errors import ConfigurationError  # noqa: E402
+from mpm_monitor.monitor_core import SUMMARY_NAME, row_status_name  # noqa: E402
+from mpm_monitor.ros_io import VectorCodec, diagnostics_qos, make_executor, spin_until, vector_qos  # noqa: E402
+
+#: Samples of simulated time within which the monitor must have located the mismatch.
+SAMPLES = 3000
+
+
+class DiagnosticsListener:
+    """Keeps the last DiagnosticArray received on a topic."""
+
+    def __init__(self, context, namespace, topic="diagnostics"):
+        self.node = Node("diag_listener", context=context, namespace=namespace)
+        self.latest = None
+        self.count = 0
+        self.node.create_subscription(DiagnosticArray, topic, self._on, diagnostics_qos())
+
+    def _on(self, msg):
+        self.latest = msg
+        self.count += 1
+
+    def statuses(self):
+        return {s.name: (s, {kv.key: kv.value for kv in s.values}) for s in self.latest.status}
+
+    def summary_value(self, key):
+        if self.latest is None:
+            return None
+        return self.statuses().get(SUMMARY_NAME, (None, {}))[1].get(key)
+
+
+def located(listener, outputs):
+    """(flagged rows, located elements, levels) read back from the published statuses."""
+    st = listener.statuses()
+    rows, elements, levels = [], [], {}
+    for o in outputs:
+        s, v = st[row_status_name(o)]
+        levels[o] = s.level
+        if v["mismatch"] == "true":
+            rows.append(o)
+        elements += [(o, i) for i in v["flagged_inputs"].split(",") if i]
+    return rows, elements, levels
+
+
+def run_suite(case, namespace, samples=SAMPLES):
+    """Run the lock-step suite for ``samples`` samples; return (suite, listener, seconds)."""
+    ctx = private_context()
+    params = case_parameters(case, seed=1)
+    params["plant"]["max_samples"] = samples
+    # one analysis of the whole window, on the last sample; topics relative to the namespace; the data
+    # stop with the run, so the statuses must not age to STALE while the last analysis runs
+    params["monitor"].update(window_samples=samples, min_samples=samples, analysis_period=samples,
+                             diagnostics_topic="diagnostics", stale_timeout=120.0)
+    params["plant"]["clock_topic"] = "clock"
+    params["setpoint"]["clock_topic"] = "clock"
+    suite = Suite(ctx, params, namespace=namespace)
+    listener = DiagnosticsListener(ctx, namespace)
+    suite.add_node(listener.node)
+    t0 = time.monotonic()
+    suite.start(diagnostics_listeners=1)
+    assert suite.run(timeout=120.0), f"the suite stopped at sample {suite.plant.k}"
+    final = suite.monitor.core.latest_outcome.job.seq
+    assert suite.spin_until(lambda: listener.summary_value("analyses") == str(final)
+                            and listener.summary_value("window_end") == repr(float(samples - 1)), 10.0)
+    return suite, listener, time.monotonic() - t0
+
+
+@pytest.fixture
+def suites():
+    made = []
+    yield made
+    for suite in made:
+        suite.close()
+        suite.context.try_shutdown()
+
+
+def test_case_3_2_located_exactly_through_the_nodes_and_equal_to_the_batch_run(suites):
+    case = paper_case("3.2")
+    suite, listener, seconds = run_suite("3.2", "/t32")
+    suites.append(suite)
+    rows, elements, levels = located(listener, case.model.outputs)
+    assert rows == ["y1", "y2"]
+    assert sorted(elements) == [("y1", "u2"), ("y1", "u3"), ("y2", "u1")]
+    assert levels == {"y1": DiagnosticStatus.WARN, "y2": DiagnosticStatus.WARN, "y3": DiagnosticStatus.OK}
+    summary, values = listener.statuses()[SUMMARY_NAME]
+    assert summary.level == DiagnosticStatus.WARN
+    assert values["located_elements"] == "y1:u2,y1:u3,y2:u1"
+    assert values["completed_samples"] == str(SAMPLES) and values["missing_samples"] == "0"
+    assert seconds < 60.0
+    # lock-step through DDS reproduces the batch closed loop with the same seed, sample for sample
+    log = run_closed_loop(case.plant, case.model, SAMPLES, seed=1, mpc=case.mpc, excitation=case.excitation,
+                          disturbance=case.disturbance)
+    data = suite.monitor.core.latest_outcome.job.data
+    np.testing.assert_array_equal(data.t, log.t)
+    np.testing.assert_allclose(data.r, log.r, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(data.u, log.u, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(data.y, log.y, rtol=0, atol=1e-12)
+    rsi = np.array([float(listener.statuses()[row_status_name(o)][1]["rsi"]) for o in case.model.outputs])
+    assert rsi[0] > 1.2 and rsi[1] > 1.1 and abs(rsi[2] - 1.0) < 0.05
+
+
+def test_case_3_1_flags_nothing(suites):
+    suite, listener, seconds = run_suite("3.1", "/t31")
+    suites.append(suite)
+    rows, elements, levels = located(listener, paper_case("3.1").model.outputs)
+    assert rows == [] and elements == []
+    assert set(levels.values()) == {DiagnosticStatus.OK}
+    assert listener.statuses()[SUMMARY_NAME][0].level == DiagnosticStatus.OK
+    assert seconds < 60.0
+
+
+def _logged(log):
+    return LoggedData(t=log.t, r=log.r, u=log.u, y=log.y, inputs=log.inputs, outputs=log.outputs,
+                      sample_time=log.sample_time)
+
+
+def _monitor(ctx, namespace, **params):
+    from mpm_monitor.demo import _overrides
+    from mpm_monitor.nodes.monitor_node import MonitorNode
+
+    p = {"case": "3.2", "diagnostics_topic": "diagnostics"}
+    p.update(params)
+    return MonitorNode(context=ctx, namespace=namespace, parameter_overrides=_overrides(p))
+
+
+def test_a_plain_publisher_gets_the_same_answer_as_analyze():
+    """No plant or MPC node: a bare rclpy publisher replays a batch log on the contract topics."""
+    case = paper_case("3.2")
+    n = 2000
+    log = run_closed_loop(case.plant, case.model, n, seed=7, mpc=case.mpc, excitation=case.excitation,
+                          disturbance=case.disturbance)
+    expected = analyze(case.model, _logged(log), AnalysisOptions(repair=False))
+    ctx = private_context()
+    ns = "/plain"
+    monitor = _monitor(ctx, ns, window_samples=n, min_samples=n, analysis_period=n)
+    pub_node = Node("plain_publisher", context=ctx, namespace=ns)
+    pubs = {t: pub_node.create_publisher(JointState, t, vector_qos()) for t in ("setpoint", "input", "output")}
+    listener = DiagnosticsListener(ctx, ns)
+    ex = make_executor(ctx)
+    for nd in (monitor, pub_node, listener.node):
+        ex.add_node(nd)
+    try:
+        assert spin_until(ex, lambda: all(p.get_subscription_count() >= 1 for p in pubs.values())
+                          and monitor._diag_pub.get_subscription_count() >= 1, 20.0)
+        y_codec = VectorCodec(case.model.outputs, "output")
+        u_codec = VectorCodec(tuple(reversed(case.model.inputs)), "input")  # channels in another order
+        chunk = 100
+        for start in range(0, n, chunk):
+            for k in range(start, min(n, start + chunk)):
+                stamp = k * 1_000_000_000
+                # an arbitrary interleaving of the three topics, as a real stack would give
+                order = [("output", y_codec, log.y[k]), ("input", u_codec, log.u[k][::-1]),
+                         ("setpoint", y_codec, log.r[k])]
+                for topic, codec, v in (order if k % 2 else order[::-1]):
+                    pubs[topic].publish(codec.encode(v, stamp))
+            done = min(n, start + chunk)
+            assert spin_until(ex, lambda: monitor.core.window.n_completed >= done, 20.0)
+        assert spin_until(ex, lambda: listener.summary_value("analyses") == "1", 60.0)
+        rows, elements, _ = located(listener, case.model.outputs)
+        assert rows == expected.flagged_rows
+        assert sorted(elements) == sorted(expected.located_elements)
+        st = listener.statuses()
+        for r in expected.rows:
+            v = st[row_status_name(r.output)][1]
+            assert float(v["rsi"]) == pytest.approx(r.rsi, rel=1e-9)
+            assert float(v["p_value"]) == pytest.approx(r.p_value, rel=1e-6, abs=1e-300)
+        assert st[SUMMARY_NAME][1]["missing_samples"] == "0"
+    finally:
+        monitor.close()
+        for nd in (monitor, pub_node, listener.node):
+            ex.remove_node(nd)
+            nd.destroy_node()
+        ex.shutdown()
+        ctx.try_shutdown()
+
+
+def test_bad_messages_give_error_then_stale_when_data_stop():
+    ctx = private_context()
+    ns = "/bad"
+    monitor = _monitor(ctx, ns, window_samples=100, min_samples=50, analysis_period=50, stale_timeout=0.5,
+                       republish_period=0.1)
+    pub_node = Node("bad_publisher", context=ctx, namespace=ns)
+    out_pub = pub_node.create_publisher(JointState, "output", vector_qos())
+    listener = DiagnosticsListener(ctx, ns)
+    ex = make_executor(ctx)
+    for nd in (monitor, pub_node, listener.node):
+        ex.add_node(nd)
+    try:
+        assert spin_until(ex, lambda: out_pub.get_subscription_count() >= 1
+                          and monitor._diag_pub.get_subscription_count() >= 1, 20.0)
+        msg = JointState(name=["y1", "y2", "flow"], position=[1.0, 2.0, 3.0])
+        out_pub.publish(msg)
+
+        def error_seen():
+            return (listener.latest is not None
+                    and listener.statuses()[SUMMARY_NAME][0].level == DiagnosticStatus.ERROR)
+
+        assert spin_until(ex, error_seen, 5.0)
+        summary = listener.statuses()[SUMMARY_NAME][0]
+        assert "missing 'y3'" in summary.message and "unexpected 'flow'" in summary.message
+
+        def all_stale():
+            return listener.latest is not None and all(s.level == DiagnosticStatus.STALE for s in listener.latest.status)
+
+        assert spin_until(ex, all_stale, 5.0)
+        assert len(listener.latest.status) == 4
+    finally:
+        monitor.close()
+        for nd in (monitor, pub_node, listener.node):
+            ex.remove_node(nd)
+            nd.destroy_node()
+        ex.shutdown()
+        ctx.try_shutdown()
+
+
+def test_a_bad_parameter_is_refused_with_its_name():
+    ctx = private_context()
+    try:
+        with pytest.raises(ConfigurationError, match="min_samples"):
+            _monitor(ctx, "/param", window_samples=100, min_samples=500)
+        with pytest.raises(ConfigurationError, match="window_samples"):
+            _monitor(ctx, "/param2", window_samples=3)
+    finally:
+        ctx.try_shutdown()
