@@ -1,0 +1,298 @@
+"""Tests of mpm_monitor.repair: trace the residual, re-estimate located elements, validate.
+
+Acceptance scenarios (issue 5): closed-loop data from the simulator with the paper's noise
+(``DisturbanceOptions()``) and PRBS setpoints, a plant that differs from the model in a way
+``repair_model`` is not told about except through the located elements (passed directly: the
+detection is tested elsewhere).  For each scenario and seed:
+
+- the right kind for every located element (or, for a disturbance, no change and a warning);
+- on an affected output, RMS of d after <= half of before, and <= 1.05 x the noise floor, where the
+  noise floor is the RMS of d of the *true plant* on the same data (= disturbance + noise);
+- unaffected outputs within 5 % of their error before;
+- repaired gain and time constant within 10 % of the plant's, delay within one sample;
+- no element outside ``located`` touched.
+"""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from mpm_monitor.cases import paper_case, shell_plant
+from mpm_monitor.closed_loop import run_closed_loop
+from mpm_monitor.data_io import LoggedData
+from mpm_monitor.errors import ConfigurationError, InputError
+from mpm_monitor.plant import DisturbanceOptions
+from mpm_monitor.repair import (RepairOptions, RepairResult, repair_model, sup_wald_p_value,
+                                unexplained_disturbance)
+from mpm_monitor.signals import compute_signals
+
+N_SAMPLES = 4000
+SEEDS = (11, 12)
+
+
+def as_data(log) -> LoggedData:
+    return LoggedData(t=log.t, r=log.r, u=log.u, y=log.y, inputs=log.inputs, outputs=log.outputs,
+                      sample_time=log.sample_time)
+
+
+def rms(x):
+    return np.sqrt(np.mean(np.asarray(x) ** 2, axis=0))
+
+
+def _shell():
+    return shell_plant()
+
+
+def _scenario(name):
+    """(plant, model, located, expected kinds, run_closed_loop keyword arguments)."""
+    sh = _shell()
+    if name == "missing coupling":
+        # The model has no effect of u2 on y1 (gain 0, as a model file writes "no such effect").
+        return sh, sh.with_element(0, 1, gain=0, time_constant=0, delay=0), [(0, 1)], {(0, 1): "missing"}, {}
+    if name == "longer delay":
+        return sh.with_element(1, 2, delay=8), sh, [(1, 2)], {(1, 2): "delay"}, {}
+    if name == "changed time constant":
+        return sh.with_element(2, 0, time_constant=80), sh, [(2, 0)], {(2, 0): "time_constant"}, {}
+    if name == "changed gain":
+        return sh, sh.with_element(1, 1, gain=4.0), [(1, 1)], {(1, 1): "gain"}, {}
+    if name == "step disturbance":
+        step = np.zeros((N_SAMPLES, 3))
+        step[N_SAMPLES // 2:, 1] = 0.1
+        return sh, sh, [], {}, {"output_disturbance": step}
+    case = paper_case(name)
+    located = [(case.model.outputs.index(o), case.model.inputs.index(i)) for o, i in case.mismatched_elements]
+    kinds = {"3.2": {(0, 1): "mixed", (0, 2): "gain", (1, 0): "time_constant"},
+             "3.3": {(0, 0): "delay", (1, 0): "mixed", (1, 2): "time_constant", (3, 1): "gain",
+                     (3, 4): "gain"}}[name]
+    return case.plant, case.model, located, kinds, {"mpc": case.mpc, "excitation": case.excitation,
+                                                     "disturbance": case.disturbance}
+
+
+SCENARIOS = ("missing coupling", "longer delay", "changed time constant", "changed gain", "step disturbance",
+             "3.2", "3.3")
+
+
+@pytest.fixture(scope="module", params=[(s, seed) for s in SCENARIOS for seed in SEEDS],
+                ids=lambda p: f"{p[0]}-seed{p[1]}")
+def scenario_run(request):
+    name, seed = request.param
+    plant, model, located, kinds, kw = _scenario(name)
+    kw.setdefault("disturbance", DisturbanceOptions())
+    log = run_closed_loop(plant, model, N_SAMPLES, seed=seed, **kw)
+    data = as_data(log)
+    floor = rms(compute_signals(plant, log.r, log.u, log.y).d)
+    result = repair_model(model, data, located)
+    return {"name": name, "plant": plant, "model": model, "located": located, "kinds": kinds, "log": log,
+            "floor": floor, "result": result}
+
+
+def test_scenario_kinds(scenario_run):
+    res = scenario_run["result"]
+    assert res.kinds == scenario_run["kinds"]
+    for change in res.changes:
+        assert 0.0 <= change["confidence"] <= 1.0
+        assert change["applied"]
+
+
+def test_scenario_errors(scenario_run):
+    res, model, floor = scenario_run["result"], scenario_run["model"], scenario_run["floor"]
+    affected = {i for i, _ in scenario_run["located"]}
+    for i, out in enumerate(model.outputs):
+        before, after = res.error_before[out], res.error_after[out]
+        if i in affected:
+            assert after <= 0.5 * before, (out, before, after)
+            assert after <= 1.05 * floor[i], (out, after, floor[i])
+        else:
+            assert after == pytest.approx(before, rel=0.05), (out, before, after)
+    for out, h_after in res.holdout_error_after.items():
+        if model.outputs.index(out) in affected:
+            assert h_after < res.holdout_error_before[out]
+            assert res.fit_after[out] > res.fit_before[out]
+
+
+def test_scenario_parameters(scenario_run):
+    res, plant, model = scenario_run["result"], scenario_run["plant"], scenario_run["model"]
+    for (i, j) in scenario_run["kinds"]:
+        got, true = res.model.element(i, j), plant.element(i, j)
+        assert got["gain"] == pytest.approx(true["gain"], rel=0.10), (i, j, got, true)
+        assert got["time_constant"] == pytest.approx(true["time_constant"], rel=0.10), (i, j, got, true)
+        assert abs(got["delay"] - true["delay"]) <= plant.sample_time, (i, j, got, true)
+    located = set(scenario_run["located"])
+    for i in range(model.n_outputs):
+        for j in range(model.n_inputs):
+            if (i, j) not in located:
+                assert res.model.element(i, j) == model.element(i, j), (i, j)
+
+
+def test_scenario_disturbances(scenario_run):
+    res = scenario_run["result"]
+    if scenario_run["name"] == "step disturbance":
+        assert [d["output"] for d in res.disturbances] == ["y2"]
+        dist = res.disturbances[0]
+        assert dist["kind"] == "step"
+        assert dist["size"] == pytest.approx(0.1, abs=0.03)
+        assert abs(dist["time"] - N_SAMPLES // 2) <= 100
+        assert any("y2" in w and "no input explains" in w for w in res.warnings)
+        assert res.model == scenario_run["model"]
+        assert res.changes == []
+    else:
+        assert res.disturbances == []
+
+
+def test_scenario_report_is_json(scenario_run):
+    res = scenario_run["result"]
+    out = json.loads(json.dumps(res.to_dict()))
+    for key in ("model", "changes", "error_before", "error_after"):
+        assert key in out
+    assert set(out["error_before"]) == set(scenario_run["model"].outputs)
+    for change in out["changes"]:
+        assert set(change["before"]) == {"gain", "time_constant", "delay"}
+        assert set(change["after"]) == {"gain", "time_constant", "delay"}
+        assert change["kind"] in ("gain", "time_constant", "delay", "missing", "mixed", "unknown")
+        for key, (lo, hi) in change["interval"].items():
+            assert lo <= change["after"][key] <= hi, (key, lo, hi, change["after"])
+
+
+# --------------------------------------------------------------------------------------------
+# Invariants and error paths
+# --------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def clean_shell_log():
+    """The Shell loop with the model equal to the plant, paper noise."""
+    sh = _shell()
+    return as_data(run_closed_loop(sh, sh, 2500, seed=3))
+
+
+def test_noise_free_gain_recovered_exactly():
+    """Without noise the prediction-error fit returns the plant's element to numerical precision."""
+    sh = _shell()
+    model = sh.with_element(0, 2, gain=3.5, time_constant=35.0)
+    quiet = DisturbanceOptions(disturbance_std=0.0, noise_std=0.0)
+    data = as_data(run_closed_loop(sh, model, 1500, seed=5, disturbance=quiet))
+    res = repair_model(model, data, [(0, 2)])
+    assert res.kinds[(0, 2)] == "mixed"
+    got = res.model.element(0, 2)
+    assert got["gain"] == pytest.approx(5.88, rel=1e-6)
+    assert got["time_constant"] == pytest.approx(50.0, rel=1e-6)
+    assert got["delay"] == 6.0
+    assert res.error_after["y1"] < 1e-6 * res.error_before["y1"]
+
+
+def test_correct_element_is_kept_and_warned(clean_shell_log):
+    """A located element that is right shows no significant change: kept, kind unknown, warning."""
+    sh = _shell()
+    res = repair_model(sh, clean_shell_log, [(0, 0)])
+    assert res.kinds == {(0, 0): "unknown"}
+    assert res.model == sh
+    assert res.changes[0]["applied"] is False
+    assert any("y1/u1" in w and "kept" in w for w in res.warnings)
+    assert res.error_after == res.error_before
+
+
+def test_validation_rejects_a_repair_that_does_not_predict_better():
+    """An impossible held-out improvement demand rejects the repair: model kept, warning given."""
+    sh = _shell()
+    model = sh.with_element(1, 1, gain=4.0)
+    data = as_data(run_closed_loop(sh, model, 2500, seed=4))
+    res = repair_model(model, data, [(1, 1)], RepairOptions(min_holdout_improvement=0.95))
+    assert res.model == model
+    assert res.kinds[(1, 1)] == "unknown"
+    assert res.changes[0]["fitted_kind"] == "gain"
+    assert res.changes[0]["confidence"] == 0.0
+    assert any("held-out" in w for w in res.warnings)
+
+
+def test_signals_argument_is_used(clean_shell_log):
+    sh = _shell()
+    sig = compute_signals(sh, clean_shell_log.r, clean_shell_log.u, clean_shell_log.y)
+    res = repair_model(sh, clean_shell_log, [], signals=sig)
+    assert res.error_before == pytest.approx({o: float(v) for o, v in zip(sh.outputs, rms(sig.d))})
+    assert isinstance(res, RepairResult) and res.changes == [] and res.disturbances == []
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"holdout_fraction": 0.7}, "holdout_fraction"),
+    ({"max_delay_shift": -1}, "max_delay_shift"),
+    ({"max_delay_shift": 2.5}, "max_delay_shift"),
+    ({"noise_order": -1}, "noise_order"),
+    ({"confidence_level": 1.0}, "confidence_level"),
+    ({"min_relative_change": 1.5}, "min_relative_change"),
+    ({"disturbance_alpha": 0.0}, "disturbance_alpha"),
+    ({"disturbance_trim": 0.01}, "disturbance_trim"),
+    ({"initial_state": "guess"}, "initial_state"),
+    ({"refit_on_all": "yes"}, "refit_on_all"),
+    ({"max_sweeps": 0}, "max_sweeps"),
+])
+def test_options_are_validated(kwargs, match):
+    with pytest.raises(ConfigurationError, match=match):
+        RepairOptions(**kwargs)
+
+
+def test_bad_located_element_is_refused(clean_shell_log):
+    with pytest.raises(InputError, match=r"located element \(3, 0\)"):
+        repair_model(_shell(), clean_shell_log, [(3, 0)])
+    with pytest.raises(InputError, match="located element"):
+        repair_model(_shell(), clean_shell_log, ["y1"])
+
+
+def test_mismatched_channels_are_refused(clean_shell_log):
+    other = _shell().replace(outputs=("a", "b", "c"))
+    with pytest.raises(InputError, match="channels"):
+        repair_model(other, clean_shell_log, [])
+
+
+def test_too_few_samples_changes_nothing():
+    sh = _shell()
+    model = sh.with_element(1, 1, gain=4.0)
+    data = as_data(run_closed_loop(sh, model, 250, seed=1))
+    res = repair_model(model, data, [(1, 1)])
+    assert res.model == model
+    assert res.kinds == {(1, 1): "unknown"}
+    assert any("samples" in w for w in res.warnings)
+
+
+# --------------------------------------------------------------------------------------------
+# The unexplained-disturbance test
+# --------------------------------------------------------------------------------------------
+
+def _paper_noise(rng, n, opts=DisturbanceOptions()):
+    w = rng.standard_normal(n) * opts.disturbance_std
+    v = np.zeros(n)
+    for k in range(n):
+        v[k] = (opts.disturbance_pole * v[k - 1] if k else 0.0) + w[k]
+    return v + rng.standard_normal(n) * opts.noise_std
+
+
+def test_sup_wald_p_value_matches_andrews_critical_values():
+    """Andrews (1993, Table 1, one restriction, 15 % trimming): 8.68 at 5 %, 12.16 at 1 %."""
+    assert sup_wald_p_value(8.68, 0.15) == pytest.approx(0.05, abs=0.006)
+    assert sup_wald_p_value(12.16, 0.15) == pytest.approx(0.01, abs=0.0015)
+    assert sup_wald_p_value(0.5, 0.15) == 1.0
+
+
+def test_disturbance_false_alarm_rate_on_paper_noise():
+    """On the paper's coloured noise alone, alarms stay at or below the stated rate (1 %)."""
+    rng = np.random.default_rng(2024)
+    trials = 300
+    alarms = sum(unexplained_disturbance(_paper_noise(rng, 2000), alpha=0.01)["detected"] for _ in range(trials))
+    # Binomial(300, 0.01): P(X >= 9) < 0.5 %.
+    assert alarms <= 8
+
+
+def test_disturbance_step_and_drift_are_told_apart():
+    rng = np.random.default_rng(7)
+    n = 3000
+    base = _paper_noise(rng, n)
+    step = base + 0.08 * (np.arange(n) >= 1000)
+    got = unexplained_disturbance(step, sample_time=2.0)
+    assert got["detected"] and got["kind"] == "step"
+    assert got["time"] == pytest.approx(2000.0, abs=200.0)
+    assert got["size"] == pytest.approx(0.08, abs=0.03)
+    ramp = base + 0.15 * np.arange(n) / n
+    got = unexplained_disturbance(ramp, sample_time=1.0)
+    assert got["detected"] and got["kind"] == "drift"
+    assert got["size"] == pytest.approx(0.15, abs=0.06)
+    assert not unexplained_disturbance(base)["detected"]
