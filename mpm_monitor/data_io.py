@@ -83,7 +83,8 @@ def write_csv(path, t, r, u, y, inputs, outputs) -> None:
     t = np.asarray(t, dtype=float).reshape(-1, 1)
     table = np.hstack([t, np.asarray(r, float), np.asarray(u, float), np.asarray(y, float)])
     with open(path, "w", encoding="utf-8", newline="") as fh:
-        fh.write(",".join(csv_header(inputs, outputs)) + "\n")
+        # csv.writer quotes a name that starts with a quote (or holds one), so the header reads back
+        csv.writer(fh, lineterminator="\n").writerow(csv_header(inputs, outputs))
         for row in table:
             fh.write(",".join(_fmt(v) for v in row) + "\n")
 
@@ -182,8 +183,9 @@ def parse_csv_text(text: str, model: FopdtModel, source: str = "data") -> Logged
     lines = [ln for ln, _ in rows]
     t = table[:, 0]
     ts = model.sample_time
-    steps = np.diff(t)
-    bad = np.flatnonzero(np.abs(steps - ts) > SPACING_TOLERANCE * ts)
+    with np.errstate(over="ignore", invalid="ignore"):  # t near +-1e308: an infinite step, refused below
+        steps = np.diff(t)
+        bad = np.flatnonzero(~(np.abs(steps - ts) <= SPACING_TOLERANCE * ts))
     if bad.size:
         k = int(bad[0])
         step = steps[k]

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import unicodedata
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -19,6 +20,15 @@ from .errors import ModelFileError
 
 #: Relative tolerance with which a delay must be a multiple of the sample time.
 DELAY_GRID_TOLERANCE = 1e-6
+#: Largest dead time in samples (beyond it the sample count no longer fits the integer arithmetic
+#: of the analysis, and no window could hold it anyway).
+MAX_DELAY_SAMPLES = 2**31 - 1
+
+
+def _unprintable(name: str) -> bool:
+    """Whether a name holds a control character or a line/paragraph separator (it would split a
+    one-line message or a CSV header)."""
+    return any(unicodedata.category(c) in ("Cc", "Cs", "Zl", "Zp") for c in name)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -159,10 +169,10 @@ def validate_model(model: FopdtModel, source: str = "model") -> None:
         if len(names) == 0:
             raise ModelFileError(f"{source}: key '{key}': expected a non-empty list of names")
         for n in names:
-            if not isinstance(n, str) or not n or "," in n or n != n.strip():
+            if not isinstance(n, str) or not n or "," in n or n != n.strip() or _unprintable(n):
                 raise ModelFileError(
-                    f"{source}: key '{key}': expected names as non-empty strings without commas "
-                    f"or surrounding spaces, got {n!r}")
+                    f"{source}: key '{key}': expected names as non-empty strings without commas, "
+                    f"control characters or surrounding spaces, got {n!r}")
         if len(set(names)) != len(names):
             dup = sorted({n for n in names if list(names).count(n) > 1})
             raise ModelFileError(f"{source}: key '{key}': names must be unique, repeated: {', '.join(dup)}")
@@ -170,6 +180,13 @@ def validate_model(model: FopdtModel, source: str = "model") -> None:
     if overlap:
         raise ModelFileError(
             f"{source}: keys 'inputs' and 'outputs': a name cannot be both, found {', '.join(sorted(overlap))}")
+    # Every channel must be its own column of the CSV log (CONTRACTS section 2).
+    columns = ["t"] + [f"r_{o}" for o in model.outputs] + list(model.inputs) + list(model.outputs)
+    clash = sorted({c for c in columns if columns.count(c) > 1})
+    if clash:
+        raise ModelFileError(
+            f"{source}: keys 'inputs' and 'outputs': name {clash[0]!r} would be two columns of the CSV log "
+            f"(t, r_<output>, <input>, <output>): rename the channel")
     for key in ("gain", "time_constant", "delay"):
         arr = getattr(model, key)
         if arr.shape != (ny, nu):
@@ -186,7 +203,13 @@ def validate_model(model: FopdtModel, source: str = "model") -> None:
             raise ModelFileError(
                 f"{source}: key '{key}': row {i + 1} ({model.outputs[i]}), column {j + 1} ({model.inputs[j]}): "
                 f"expected >= 0 seconds, got {arr[i, j]:g}")
-    ratio = model.delay / ts
+    with np.errstate(over="ignore"):
+        ratio = model.delay / ts
+    if np.any(ratio > MAX_DELAY_SAMPLES):
+        i, j = np.argwhere(ratio > MAX_DELAY_SAMPLES)[0]
+        raise ModelFileError(
+            f"{source}: key 'delay': row {i + 1} ({model.outputs[i]}), column {j + 1} ({model.inputs[j]}): "
+            f"expected at most {MAX_DELAY_SAMPLES} samples of sample_time {ts:g} s, got {model.delay[i, j]:g} s")
     off = np.abs(ratio - np.rint(ratio)) > DELAY_GRID_TOLERANCE * np.maximum(1.0, np.abs(ratio))
     if np.any(off):
         i, j = np.argwhere(off)[0]
@@ -217,7 +240,7 @@ def _matrix(data: Mapping, key: str, source: str) -> np.ndarray:
         for j, x in enumerate(row):
             if isinstance(x, bool) or not isinstance(x, (int, float)):
                 raise ModelFileError(f"{source}: key '{key}': row {i + 1}, column {j + 1}: expected a number, got {x!r}")
-            out_row.append(float(x))
+            out_row.append(_float(x, f"{source}: key '{key}': row {i + 1}, column {j + 1}"))
         rows.append(out_row)
     if not rows:
         raise ModelFileError(f"{source}: key '{key}': expected at least one row")
@@ -233,7 +256,16 @@ def _vector(data: Mapping, key: str, source: str):
     for j, x in enumerate(val):
         if isinstance(x, bool) or not isinstance(x, (int, float)):
             raise ModelFileError(f"{source}: key '{key}': entry {j + 1}: expected a number, got {x!r}")
-    return np.array(val, dtype=float)
+    return np.array([_float(x, f"{source}: key '{key}': entry {j + 1}") for x in val], dtype=float)
+
+
+def _float(x, where: str) -> float:
+    """``float(x)``; an integer beyond the float range (YAML reads ``1`` followed by 400 zeros as
+    an int) is refused like infinity instead of raising ``OverflowError``."""
+    try:
+        return float(x)
+    except OverflowError:
+        raise ModelFileError(f"{where}: expected a finite number, got an integer of {len(str(abs(x)))} digits") from None
 
 
 def _names(data: Mapping, key: str, source: str) -> tuple:
@@ -281,7 +313,7 @@ def model_from_dict(data: Any, source: str = "model") -> FopdtModel:
         raise ModelFileError(f"{source}: key 'name': expected a string, got {name!r}")
     try:
         return FopdtModel(
-            sample_time=float(ts), inputs=inputs, outputs=outputs, gain=gain, time_constant=tau,
+            sample_time=_float(ts, f"{source}: key 'sample_time'"), inputs=inputs, outputs=outputs, gain=gain, time_constant=tau,
             delay=delay, input_nominal=_vector(data, "input_nominal", source),
             output_nominal=_vector(data, "output_nominal", source), name=name)
     except ModelFileError as exc:
@@ -320,8 +352,12 @@ def load_model(path) -> FopdtModel:
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        problem = getattr(exc, "problem", None) or "invalid YAML"
+        if isinstance(exc, yaml.reader.ReaderError):  # a control character: no mark, a position
+            where = f" at character {exc.position + 1}"
+        problem = getattr(exc, "problem", None) or getattr(exc, "reason", None) or "invalid YAML"
         raise ModelFileError(f"{path}: not valid YAML{where}: {problem}") from None
+    except RecursionError:
+        raise ModelFileError(f"{path}: not a model file: lists or mappings nested too deeply") from None
     if data is None:
         raise ModelFileError(f"{path}: empty file: expected a YAML model with sample_time, inputs, outputs, gain, "
                              f"time_constant, delay")
