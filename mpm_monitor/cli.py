@@ -115,6 +115,8 @@ def _cmd_recover(args) -> int:
 
 
 def _cmd_analyze(args) -> int:
+    import numpy as np
+
     from .analysis import analyze
     from .data_io import read_csv
     from .model import load_model, save_model
@@ -128,7 +130,12 @@ def _cmd_analyze(args) -> int:
 
         topics = tuple(args.topics) if args.topics else ("setpoint", "input", "output")
         data = read_bag(args.bag, model, topics=topics, progress=sys.stderr.isatty())
-    report = analyze(model, data, options)
+    _check_scale(args, model, data)
+    try:
+        report = analyze(model, data, options)
+    except (np.linalg.LinAlgError, FloatingPointError, OverflowError) as exc:  # backstop of _check_scale
+        raise InputError(f"{data.source}: the analysis broke down numerically with model {args.model} "
+                         f"({_one_line(exc)}): values or model parameters too large or degenerate?") from None
     doc = report.to_dict()
     if args.json_out == "-":
         json.dump(doc, sys.stdout, indent=2)
@@ -144,6 +151,37 @@ def _cmd_analyze(args) -> int:
 
         write_report(args.report, model, data, report)
     return 0
+
+
+#: Largest |value| x max(1, |gain|) the analysis takes: the least-squares fits square the signals,
+#: and float64 overflows near 1e308 (the results are scale-invariant up to about 1e150).
+MAX_SCALE = 1e150
+
+
+def _check_scale(args, model, data) -> None:
+    """Refuse data (or model gains) so large that the squares in the analysis overflow float64."""
+    import numpy as np
+
+    gain = float(np.max(np.abs(model.gain))) if model.gain.size else 0.0
+    for name, arr in (("setpoint", data.r), ("input", data.u), ("output", data.y)):
+        arr = np.abs(np.asarray(arr, dtype=float))
+        if arr.size == 0:
+            continue
+        k, j = np.unravel_index(int(np.argmax(arr)), arr.shape)
+        peak = float(arr[k, j])
+        if peak * max(1.0, gain) > MAX_SCALE:
+            channel = (model.inputs if name == "input" else model.outputs)[j]
+            if peak > MAX_SCALE:
+                why = ""
+            else:
+                why = f" with gains up to {gain:.3g} in {args.model}"
+            raise InputError(f"{data.source}: {name} '{channel}' at t = {float(data.t[k]):g} s is {peak:.3g}{why}: "
+                             f"too large for the analysis (|value| x max(1, |gain|) at most {MAX_SCALE:g}); "
+                             f"rescale the units")
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())[:200] or type(exc).__name__
 
 
 def _cmd_reproduce(args) -> int:

@@ -1,0 +1,542 @@
+"""Robustness of the file inputs (issue 7, item 2): model files, CSV logs, bags and the CLI.
+
+Property-based (hypothesis) over model files and CSV contents: whatever the bytes, the reader
+returns a valid object or raises its own :class:`~mpm_monitor.errors.InputError` subclass
+(``ModelFileError``/``DataFileError``, both ``ValueError``) with exactly one line that starts with
+the file name and says where (key, line, byte); never any other exception.  The command line
+(``python -m mpm_monitor analyze``) turns every bad model, CSV or bag into exit code 2 and one line
+on stderr, without a traceback; the YAML loader refuses Python tags without running them.
+
+The examples are derandomized (same examples on every run) so that CI is reproducible; the counts
+are chosen to keep this file to a few seconds.
+"""
+
+import math
+import os
+import re
+import shutil
+import string
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+
+from mpm_monitor.bag_io import BagWriter, read_bag, write_logged_data
+from mpm_monitor.cli import main as cli_main
+from mpm_monitor.data_io import LoggedData, csv_header, read_csv, write_csv
+from mpm_monitor.errors import BagError, DataFileError, InputError, ModelFileError
+from mpm_monitor.model import FopdtModel, dump_model, load_model, save_model
+
+REPO = Path(__file__).resolve().parents[1]
+
+SETTINGS = settings(max_examples=150, deadline=None, derandomize=True,
+                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+
+#: What a message must say about *where* the problem is (a key, a line, a byte, or the whole file).
+WHERE = re.compile(r"key '|keys '|line \d+|byte \d+|character \d+|empty file|expected a YAML mapping|"
+                   r"no data lines|NUL bytes|nested")
+
+GOOD_MODEL = FopdtModel(sample_time=1.0, inputs=("u1", "u2"), outputs=("y1", "y2"),
+                        gain=[[1.0, 0.5], [0.2, 1.0]], time_constant=[[5.0, 5.0], [5.0, 5.0]],
+                        delay=[[1.0, 0.0], [0.0, 2.0]])
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    return tmp_path_factory.mktemp("robust_files")
+
+
+def assert_one_line_error(exc: BaseException, path) -> str:
+    """The message is one line, starts with the file name and says where the problem is."""
+    msg = str(exc)
+    assert isinstance(exc, ValueError) and isinstance(exc, InputError)
+    assert len(msg.splitlines()) == 1, f"not one line: {msg!r}"
+    assert msg.startswith(f"{path}:"), msg
+    assert WHERE.search(msg), f"message does not say where: {msg!r}"
+    return msg
+
+
+def model_outcome(path):
+    """Load a model file; a valid model must round-trip through dump/load."""
+    try:
+        model = load_model(path)
+    except ModelFileError as exc:
+        assert_one_line_error(exc, path)
+        return None
+    assert isinstance(model, FopdtModel)
+    assert np.all(np.isfinite(model.gain)) and np.all(model.time_constant >= 0)
+    again = path.with_suffix(".again.yaml")
+    save_model(model, again)
+    assert load_model(again) == model
+    return model
+
+
+# ------------------------------------------------------------------------------------------------
+# Model files: random YAML structures
+
+_weird_numbers = st.sampled_from([1e308, -1e308, 1.7976931348623157e308, 5e-324, -0.0, 1e-308,
+                                  10**400, -10**400, 2**63, 2**64, float("nan"), float("inf"), -float("inf")])
+_scalars = st.one_of(st.none(), st.booleans(), st.integers(-10**6, 10**6), _weird_numbers,
+                     st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=6),
+                     st.binary(max_size=4))
+_values = st.recursive(_scalars, lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=4), c, max_size=3),
+                       max_leaves=10)
+_names = st.lists(st.one_of(st.text(min_size=1, max_size=5), st.sampled_from(["u1", "y1", "a,b", " x", "x\ny", "u1"])),
+                  min_size=0, max_size=3)
+
+
+def _matrix_of(draw, elements, ny, nu):
+    shape_ok = draw(st.booleans())
+    rows = ny if shape_ok else draw(st.integers(0, 3))
+    cols = nu if shape_ok else draw(st.integers(0, 3))
+    return [[draw(elements) for _ in range(cols)] for _ in range(rows)]
+
+
+@st.composite
+def model_documents(draw):
+    """A dict close to a model file: each key valid, missing, of a wrong type or with odd values."""
+    ny, nu = draw(st.integers(1, 3)), draw(st.integers(1, 3))
+    ts = draw(st.sampled_from([1.0, 0.5, 2, 1e-308, 1e308]))
+    good = {
+        "sample_time": ts,
+        "inputs": [f"u{j + 1}" for j in range(nu)],
+        "outputs": [f"y{i + 1}" for i in range(ny)],
+        "gain": [[1.0] * nu for _ in range(ny)],
+        "time_constant": [[10.0] * nu for _ in range(ny)],
+        "delay": [[0.0] * nu for _ in range(ny)],
+    }
+    numbers = st.one_of(st.floats(allow_nan=True, allow_infinity=True), _weird_numbers, st.integers(-5, 5),
+                        st.builds(lambda k: k * ts, st.integers(0, 5)))
+    doc = {}
+    for key, val in good.items():
+        how = draw(st.sampled_from(["good", "good", "missing", "random", "numbers", "names"]))
+        if how == "good":
+            doc[key] = val
+        elif how == "random":
+            doc[key] = draw(_values)
+        elif how == "numbers":
+            doc[key] = _matrix_of(draw, numbers, ny, nu) if isinstance(val, list) else draw(numbers)
+        elif how == "names":
+            doc[key] = draw(_names)
+    for key in ("input_nominal", "output_nominal", "name"):
+        if draw(st.booleans()):
+            doc[key] = draw(st.one_of(_values, st.lists(numbers, max_size=3)))
+    return doc
+
+
+def _yaml_text(doc) -> str:
+    try:
+        return yaml.safe_dump(doc, allow_unicode=True, default_flow_style=draw_flow(doc))
+    except yaml.YAMLError:  # pragma: no cover - safe_dump represents every value we generate
+        raise
+
+
+def draw_flow(doc) -> bool:
+    return len(doc) % 2 == 0
+
+
+@SETTINGS
+@given(doc=model_documents())
+def test_random_model_structures_give_a_model_or_a_one_line_error(work, doc):
+    path = work / "random_structure.yaml"
+    path.write_text(_yaml_text(doc), encoding="utf-8")
+    model_outcome(path)
+
+
+# ------------------------------------------------------------------------------------------------
+# Model files: damaged text and bytes
+
+GOOD_TEXT = dump_model(GOOD_MODEL).encode()
+
+
+@st.composite
+def damaged_bytes(draw, good: bytes):
+    """Truncated, with bytes inserted or replaced (not UTF-8, control characters), or spliced."""
+    data = bytearray(good)
+    for _ in range(draw(st.integers(1, 3))):
+        how = draw(st.sampled_from(["truncate", "insert", "replace", "unicode", "duplicate"]))
+        pos = draw(st.integers(0, len(data)))
+        if how == "truncate":
+            del data[pos:]
+        elif how == "insert":
+            data[pos:pos] = draw(st.binary(min_size=1, max_size=4))
+        elif how == "replace" and pos < len(data):
+            data[pos] = draw(st.integers(0, 255))
+        elif how == "unicode":
+            data[pos:pos] = draw(st.text(min_size=1, max_size=3)).encode("utf-8", "surrogatepass")
+        elif how == "duplicate":
+            end = draw(st.integers(pos, len(data)))
+            data[pos:pos] = data[pos:end]
+    return bytes(data)
+
+
+@SETTINGS
+@given(raw=damaged_bytes(GOOD_TEXT))
+def test_damaged_model_file_gives_a_model_or_a_one_line_error(work, raw):
+    path = work / "damaged.yaml"
+    path.write_bytes(raw)
+    model_outcome(path)
+
+
+_name_chars = st.characters(codec="utf-8", exclude_categories=("Cc", "Cs", "Zl", "Zp"), exclude_characters=",")
+_valid_names = st.text(_name_chars, min_size=1, max_size=6).filter(
+    lambda s: s == s.strip() and s != "t" and not s.startswith("r_"))  # those would clash in the CSV header
+
+
+@st.composite
+def valid_models(draw):
+    ny, nu = draw(st.integers(1, 3)), draw(st.integers(1, 3))
+    names = draw(st.lists(_valid_names, min_size=ny + nu, max_size=ny + nu, unique=True))
+    ts = draw(st.one_of(st.sampled_from([1.0, 0.1, 1e-300, 1e300]), st.floats(1e-3, 1e3)))
+    finite = st.floats(allow_nan=False, allow_infinity=False)
+    gain = draw(st.lists(st.lists(finite, min_size=nu, max_size=nu), min_size=ny, max_size=ny))
+    tau = draw(st.lists(st.lists(st.floats(0, 1e308), min_size=nu, max_size=nu), min_size=ny, max_size=ny))
+    delay = draw(st.lists(st.lists(st.integers(0, 20), min_size=nu, max_size=nu), min_size=ny, max_size=ny))
+    return FopdtModel(sample_time=ts, inputs=names[ny:], outputs=names[:ny], gain=gain, time_constant=tau,
+                      delay=np.array(delay) * ts, name=draw(st.text(max_size=8)))
+
+
+@SETTINGS
+@given(model=valid_models())
+def test_valid_models_with_unicode_names_and_extreme_values_round_trip(work, model):
+    """Save/load is exact, and a CSV written with the model's (unicode) names reads back exactly."""
+    path = work / "valid.yaml"
+    save_model(model, path)
+    assert load_model(path) == model
+    n = 4
+    rng = np.random.default_rng(0)
+    t = np.arange(n) * model.sample_time
+    r, u, y = rng.normal(size=(n, model.n_outputs)), rng.normal(size=(n, model.n_inputs)), rng.normal(size=(n, model.n_outputs))
+    csv_path = work / "valid.csv"
+    write_csv(csv_path, t, r, u, y, model.inputs, model.outputs)
+    data = read_csv(csv_path, model)
+    np.testing.assert_array_equal(data.r, r)
+    np.testing.assert_array_equal(data.u, u)
+    np.testing.assert_array_equal(data.y, y)
+
+
+MODEL_HEAD = "sample_time: 1\ninputs: [u1]\noutputs: [y1]\n"
+
+
+@pytest.mark.parametrize("text, match", [
+    (MODEL_HEAD + f"gain: [[{10**400}]]\ntime_constant: [[1]]\ndelay: [[0]]\n", r"key 'gain': row 1, column 1: expected a finite"),
+    (f"sample_time: {10**400}\ninputs: [u1]\noutputs: [y1]\ngain: [[1]]\ntime_constant: [[1]]\ndelay: [[0]]\n",
+     r"key 'sample_time'"),
+    (MODEL_HEAD + f"gain: [[1]]\ntime_constant: [[1]]\ndelay: [[0]]\ninput_nominal: [{10**400}]\n", r"key 'input_nominal'"),
+    (MODEL_HEAD + "gain: " + "[" * 20000 + "]" * 20000 + "\n", r"nested too deeply"),
+    (MODEL_HEAD + "gain: [[1]]\ntime_constant: [[1]]\ndelay: [[1.0e+300]]\n", r"key 'delay'.*at most"),
+    ("sample_time: 1.0e-300\ninputs: [u1]\noutputs: [y1]\ngain: [[1]]\ntime_constant: [[1]]\ndelay: [[1.0]]\n",
+     r"key 'delay'.*at most"),
+    ('sample_time: 1\ninputs: ["u\\nx"]\noutputs: [y1]\ngain: [[1]]\ntime_constant: [[1]]\ndelay: [[0]]\n',
+     r"key 'inputs'.*control"),
+    ('sample_time: 1\ninputs: [u1]\noutputs: ["y\\u2028", "y\\u2028"]\ngain: [[1], [1]]\ntime_constant: [[1], [1]]\n'
+     'delay: [[0], [0]]\n', r"key 'outputs'"),
+    (MODEL_HEAD + "gain: [[1]]\ntime_constant: [[1]]\ndelay: [[0]]\n\x07\n", r"character \d+"),
+    ('sample_time: 1\ninputs: [t]\noutputs: [y1]\ngain: [[1]]\ntime_constant: [[1]]\ndelay: [[0]]\n',
+     r"name 't' would be two columns of the CSV log"),
+    ('sample_time: 1\ninputs: [r_y1]\noutputs: [y1]\ngain: [[1]]\ntime_constant: [[1]]\ndelay: [[0]]\n',
+     r"name 'r_y1' would be two columns of the CSV log"),
+])
+def test_edge_case_model_files_refused_with_one_line(work, text, match):
+    path = work / "edge.yaml"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(ModelFileError, match=match) as info:
+        load_model(path)
+    assert_one_line_error(info.value, path)
+
+
+def test_python_tags_are_refused_and_never_run(work):
+    """``yaml.safe_load``: a ``!!python/object`` tag is refused, the command in it never runs."""
+    marker = work / "pwned"
+    for tag in ("!!python/object/apply:os.system", "!!python/object/apply:subprocess.call"):
+        path = work / "evil.yaml"
+        path.write_text(f"sample_time: {tag} [['touch {marker}']]\n" if "subprocess" in tag else
+                        f"sample_time: {tag} ['touch {marker}']\n", encoding="utf-8")
+        with pytest.raises(ModelFileError, match=r"line 1.*python/object") as info:
+            load_model(path)
+        assert_one_line_error(info.value, path)
+    path.write_text("!!python/object:mpm_monitor.model.FopdtModel {sample_time: 1}\n", encoding="utf-8")
+    with pytest.raises(ModelFileError, match=r"python/object"):
+        load_model(path)
+    assert not marker.exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# CSV contents
+
+CSV_MODEL = FopdtModel(sample_time=0.5, inputs=("u1", "ü2"), outputs=("y1",), gain=[[1.0, 2.0]],
+                       time_constant=[[1.0, 1.0]], delay=[[0.0, 0.5]])
+NEEDED = csv_header(CSV_MODEL.inputs, CSV_MODEL.outputs)
+
+
+def data_outcome(path, model=CSV_MODEL):
+    try:
+        data = read_csv(path, model)
+    except DataFileError as exc:
+        assert_one_line_error(exc, path)
+        return None
+    assert isinstance(data, LoggedData)
+    n = data.n_samples
+    assert n >= 1
+    assert data.r.shape == (n, model.n_outputs) and data.u.shape == (n, model.n_inputs)
+    assert data.y.shape == (n, model.n_outputs)
+    for arr in (data.t, data.r, data.u, data.y):
+        assert np.all(np.isfinite(arr))
+    with np.errstate(over="ignore", invalid="ignore"):
+        steps = np.diff(data.t)
+    assert np.all(np.abs(steps - model.sample_time) <= 1e-3 * model.sample_time)
+    return data
+
+
+_cell_numbers = st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(repr), _weird_numbers.map(str),
+                          st.integers(-10**30, 10**30).map(str))
+_cells = st.one_of(_cell_numbers, _cell_numbers, st.text(max_size=6), st.sampled_from(["", " ", "1_0", "1e999", "0x10",
+                                                                                       '"1"', '"', "\u0663", "nan"]))
+
+
+@st.composite
+def csv_texts(draw):
+    """A header (the needed columns shuffled, extra columns, sometimes one missing or repeated) and
+    ragged rows of random cells; ``t`` regular, jittered or random."""
+    cols = list(NEEDED) + draw(st.lists(st.sampled_from(["extra", "note", "r_y2"]), max_size=2))
+    if draw(st.integers(0, 9)) == 0:
+        cols.remove(draw(st.sampled_from(NEEDED)))
+    if draw(st.integers(0, 9)) == 0:
+        cols.append(draw(st.sampled_from(NEEDED)))
+    cols = draw(st.permutations(cols))
+    n = draw(st.integers(0, 8))
+    t_mode = draw(st.sampled_from(["regular", "regular", "jitter", "random"]))
+    lines = [",".join(cols)]
+    for k in range(n):
+        row = []
+        for c in cols:
+            if c == "t" and t_mode != "random":
+                jitter = draw(st.sampled_from([0.0, 0.0, 1e-5, 0.3, -0.5])) if t_mode == "jitter" else 0.0
+                row.append(repr(k * 0.5 + jitter))
+            else:
+                row.append(draw(_cells) if draw(st.integers(0, 3)) == 0 else repr(draw(st.floats(-1e6, 1e6))))
+        if draw(st.integers(0, 9)) == 0:
+            row = row[:draw(st.integers(0, len(row)))] + draw(st.lists(_cells, max_size=2))
+        lines.append(",".join(row))
+    return "\n".join(lines) + draw(st.sampled_from(["\n", "", "\r\n", "\n\n"]))
+
+
+@SETTINGS
+@given(text=csv_texts())
+def test_random_csv_gives_data_or_a_one_line_error(work, text):
+    path = work / "random.csv"
+    path.write_bytes(text.encode("utf-8", "surrogatepass"))
+    data_outcome(path)
+
+
+def _good_csv_bytes(n=6) -> bytes:
+    t = np.arange(n) * CSV_MODEL.sample_time
+    rng = np.random.default_rng(1)
+    import io
+    buf = io.StringIO()
+    buf.write(",".join(NEEDED) + "\n")
+    for k in range(n):
+        buf.write(",".join(repr(float(v)) for v in np.r_[t[k], rng.normal(size=4) * 1e300]) + "\n")
+    return buf.getvalue().encode()
+
+
+@SETTINGS
+@given(raw=damaged_bytes(_good_csv_bytes()))
+def test_damaged_csv_bytes_give_data_or_a_one_line_error(work, raw):
+    path = work / "damaged.csv"
+    path.write_bytes(raw)
+    data_outcome(path)
+
+
+@pytest.mark.parametrize("body, match", [
+    (b"\xff\xfe" + "t,r_y1,u1,ü2,y1\n0,1,1,1,1\n".encode("utf-16-le"), r"not UTF-8 text \(byte \d+\)"),
+    (b"t,r_y1,u1,\xfc2,y1\n0,1,1,1,1\n", r"not UTF-8 text \(byte 10\)"),
+    ("t,r_y1,u1,ü2,y1\n0,1,1,1,1\n0.5,1,1e999,1,1\n".encode(), r"line 3, column 'u1': expected a finite number"),
+    ("t,r_y1,u1,ü2,y1\n0,1,1,1,1\n0.5,1,1,1\n".encode(), r"line 3: expected 5 fields"),
+    ("t,r_y1,u1,ü2,y1\n0,1,1,1,1\n0.5,1,1,1,".encode(), r"line 3, column 'y1': expected a number, got ''"),
+    ("t,r_y1,u1,ü2,y1\n1e308,1,1,1,1\n-1e308,1,1,1,1\n".encode(), r"line 3: t = -1e\+308 s goes back"),
+    ("t,r_y1,u1,ü2,y1\n0,1,1,1,1\n" "0.5,\"1\n2\",1,1,1\n".encode(), r"line 3, column 'r_y1': expected a number"),
+    ("t,r_y1,u1,ü2,y1\n0,1,1,1,1\n0.5,1,1,1," + "9" * 200_000 + "\n", r"line 3: not valid CSV"),
+])
+def test_edge_case_csv_refused_with_one_line(work, body, match):
+    path = work / "edge.csv"
+    path.write_bytes(body if isinstance(body, bytes) else body.encode())
+    with pytest.raises(DataFileError, match=match) as info:
+        read_csv(path, CSV_MODEL)
+    assert_one_line_error(info.value, path)
+
+
+# ------------------------------------------------------------------------------------------------
+# The CLI: exit 2 and one line on stderr for every bad model, CSV or bag
+
+def _logged(n=200, scale=1.0, seed=2) -> LoggedData:
+    rng = np.random.default_rng(seed)
+    m = GOOD_MODEL
+    return LoggedData(t=100.0 + np.arange(n) * m.sample_time, r=rng.normal(size=(n, 2)) * scale,
+                      u=rng.normal(size=(n, 2)) * scale, y=rng.normal(size=(n, 2)) * scale,
+                      inputs=m.inputs, outputs=m.outputs, sample_time=m.sample_time)
+
+
+@pytest.fixture(scope="module")
+def files(work):
+    """A good model, a good CSV and a good bag, plus malformed variants of each."""
+    d = work / "cli"
+    d.mkdir()
+    out = {"model": d / "model.yaml", "csv": d / "data.csv", "bag": d / "bag"}
+    save_model(GOOD_MODEL, out["model"])
+    data = _logged()
+    write_csv(out["csv"], data.t, data.r, data.u, data.y, data.inputs, data.outputs)
+    write_logged_data(out["bag"], data)
+
+    def bag_copy(name):
+        p = d / name
+        shutil.copytree(out["bag"], p)
+        return p, next(p.glob("*.mcap"))
+
+    p, mcap = bag_copy("truncated_bag")
+    mcap.write_bytes(mcap.read_bytes()[: mcap.stat().st_size // 2])
+    out["truncated_bag"] = p
+    p, mcap = bag_copy("garbage_mcap")
+    mcap.write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)) * 8)
+    out["garbage_mcap"] = p
+    p, mcap = bag_copy("no_mcap")
+    mcap.unlink()
+    out["no_mcap"] = p
+    p, _ = bag_copy("latin1_metadata")
+    (p / "metadata.yaml").write_bytes((p / "metadata.yaml").read_bytes() + b"# \xe9t\xe9\xff\n")
+    out["latin1_metadata"] = p
+    p, _ = bag_copy("garbage_metadata")
+    (p / "metadata.yaml").write_text("rosbag2_bagfile_information: [1, 2\n", encoding="utf-8")
+    out["garbage_metadata"] = p
+    p, _ = bag_copy("python_tag_metadata")
+    marker = d / "pwned"
+    (p / "metadata.yaml").write_text(f"rosbag2_bagfile_information: !!python/object/apply:os.system ['touch {marker}']\n",
+                                     encoding="utf-8")
+    out["python_tag_metadata"] = p
+    out["marker"] = marker
+    out["empty_dir"] = d / "empty_dir"
+    out["empty_dir"].mkdir()
+    out["missing_dir"] = d / "missing_dir"
+    # wrong schema: /output is a String topic
+    wrong = BagWriter(d / "wrong_schema", fsync=False)
+    from mpm_monitor.bag_io import default_typestore, joint_state_cdr
+    ts = default_typestore()
+    for t in ("/setpoint", "/input"):
+        wrong.add_topic(t, "sensor_msgs/msg/JointState")
+    wrong.add_topic("/output", "std_msgs/msg/String")
+    string_msg = ts.types["std_msgs/msg/String"](data="y1")
+    for k in range(20):
+        stamp = int(1e9 * (100 + k))
+        wrong.write("/setpoint", stamp, joint_state_cdr(ts, stamp, ("y1", "y2"), [0, 0]))
+        wrong.write("/input", stamp, joint_state_cdr(ts, stamp, ("u1", "u2"), [0, 0]))
+        wrong.write("/output", stamp, bytes(ts.serialize_cdr(string_msg, "std_msgs/msg/String")))
+    wrong.close()
+    out["wrong_schema"] = d / "wrong_schema"
+    # JointState whose bytes are cut: right schema, undecodable message
+    cut = BagWriter(d / "cut_messages", fsync=False)
+    for t in ("/setpoint", "/input", "/output"):
+        cut.add_topic(t, "sensor_msgs/msg/JointState")
+    for k in range(20):
+        stamp = int(1e9 * (100 + k))
+        for t, names in (("/setpoint", ("y1", "y2")), ("/input", ("u1", "u2")), ("/output", ("y1", "y2"))):
+            raw = joint_state_cdr(ts, stamp, names, [0, 0])
+            cut.write(t, stamp, raw[: len(raw) // 2] if t == "/output" and k == 5 else raw)
+    cut.close()
+    out["cut_messages"] = d / "cut_messages"
+    # bad model and CSV files
+    out["bad_model"] = d / "bad_model.yaml"
+    out["bad_model"].write_bytes(dump_model(GOOD_MODEL).encode()[:40])
+    out["latin1_model"] = d / "latin1_model.yaml"
+    out["latin1_model"].write_bytes(dump_model(GOOD_MODEL).replace("u1", "\xfc1").encode("latin-1"))
+    out["evil_model"] = d / "evil_model.yaml"
+    out["evil_model"].write_text(f"!!python/object/apply:os.system ['touch {marker}']\n", encoding="utf-8")
+    out["ragged_csv"] = d / "ragged.csv"
+    lines = out["csv"].read_text().splitlines(keepends=True)
+    lines[7] = lines[7].rstrip("\n") + ",9\n"
+    out["ragged_csv"].write_text("".join(lines), encoding="utf-8")
+    out["truncated_csv"] = d / "truncated.csv"
+    text = out["csv"].read_bytes()
+    cut = text.index(b",", 2 * len(text) // 3) + 1   # a recording cut mid-line: the last line is short
+    out["truncated_csv"].write_bytes(text[:cut])
+    out["latin1_csv"] = d / "latin1.csv"
+    out["latin1_csv"].write_bytes(text.replace(b"u1", b"\xfc1", 1))
+    out["huge_csv"] = d / "huge.csv"
+    big = _logged(scale=1e306)
+    write_csv(out["huge_csv"], big.t, big.r, big.u, big.y, big.inputs, big.outputs)
+    out["huge_t_csv"] = d / "huge_t.csv"
+    write_csv(out["huge_t_csv"], [1.7e308, -1.7e308], big.r[:2], big.u[:2], big.y[:2], big.inputs, big.outputs)
+    out["huge_gain_model"] = d / "huge_gain.yaml"
+    save_model(GOOD_MODEL.replace(gain=np.full((2, 2), 1e250)), out["huge_gain_model"])
+    return out
+
+
+def _run_cli(capsys, argv):
+    code = cli_main(argv)
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+BAD_CLI_CASES = {
+    "truncated model": (["--model", "bad_model", "--data", "csv"], r"bad_model\.yaml"),
+    "latin-1 model": (["--model", "latin1_model", "--data", "csv"], r"not UTF-8 text \(byte \d+\)"),
+    "python tag model": (["--model", "evil_model", "--data", "csv"], r"python/object"),
+    "missing model": (["--model", "missing_dir", "--data", "csv"], r"cannot read model file"),
+    "ragged csv": (["--model", "model", "--data", "ragged_csv"], r"ragged\.csv: line 8: expected 7 fields as in the header, got 8"),
+    "truncated csv": (["--model", "model", "--data", "truncated_csv"], r"truncated\.csv: line \d+: expected 7 fields as in the header, got [1-6]"),
+    "latin-1 csv": (["--model", "model", "--data", "latin1_csv"], r"not UTF-8 text"),
+    "huge values csv": (["--model", "model", "--data", "huge_csv"], r"huge\.csv.*too large"),
+    "huge gain model": (["--model", "huge_gain_model", "--data", "csv"], r"huge_gain\.yaml.*too large"),
+    "huge t csv": (["--model", "model", "--data", "huge_t_csv"], r"huge_t\.csv: line 3: t = -1\.7e\+308 s goes back"),
+    "truncated mcap": (["--model", "model", "--bag", "truncated_bag"], r"truncated_bag: "),
+    "garbage mcap": (["--model", "model", "--bag", "garbage_mcap"], r"garbage_mcap: "),
+    "no mcap file": (["--model", "model", "--bag", "no_mcap"], r"no_mcap: "),
+    "latin-1 metadata": (["--model", "model", "--bag", "latin1_metadata"], r"latin1_metadata: "),
+    "garbage metadata": (["--model", "model", "--bag", "garbage_metadata"], r"garbage_metadata: "),
+    "python tag metadata": (["--model", "model", "--bag", "python_tag_metadata"], r"python_tag_metadata: "),
+    "empty dir": (["--model", "model", "--bag", "empty_dir"], r"empty directory"),
+    "missing dir": (["--model", "model", "--bag", "missing_dir"], r"no such bag directory"),
+    "wrong schema": (["--model", "model", "--bag", "wrong_schema"], r"topic '/output' has type std_msgs/msg/String"),
+    "cut message": (["--model", "model", "--bag", "cut_messages"], r"topic '/output': message 6 cannot be decoded"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_CLI_CASES))
+def test_analyze_bad_input_exits_2_with_one_line(files, capsys, case):
+    args, match = BAD_CLI_CASES[case]
+    argv = ["analyze"] + [str(files[a]) if a in files else a for a in args] + ["--no-repair"]
+    code, out, err = _run_cli(capsys, argv)
+    assert code == 2, (code, err)
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith("error: ") and "Traceback" not in err
+    assert re.search(match, err), err
+    assert not files["marker"].exists()
+
+
+def test_analyze_good_input_runs(files, capsys):
+    """Control for the cases above: the same files unspoilt give exit 0 and a JSON report."""
+    for src in (["--data", str(files["csv"])], ["--bag", str(files["bag"])]):
+        code, out, err = _run_cli(capsys, ["analyze", "--model", str(files["model"]), *src, "--json", "-",
+                                           "--no-repair"])
+        assert code == 0, err
+        assert '"rows"' in out
+
+
+@pytest.mark.parametrize("case", ["python tag model", "truncated mcap", "latin-1 metadata", "huge values csv",
+                                  "huge t csv"])
+def test_analyze_subprocess_exits_2_without_traceback(files, case):
+    """The real entry point (``python -m mpm_monitor``): exit 2, exactly one stderr line."""
+    args, match = BAD_CLI_CASES[case]
+    argv = [str(files[a]) if a in files else a for a in args]
+    env = dict(os.environ, PYTHONWARNINGS="default")
+    proc = subprocess.run([sys.executable, "-m", "mpm_monitor", "analyze", *argv, "--no-repair"],
+                          capture_output=True, text=True, timeout=60, cwd=REPO, env=env)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert "Traceback" not in proc.stderr and re.search(match, lines[0])
+    assert not files["marker"].exists()
