@@ -380,11 +380,11 @@ def format_table(result: dict) -> str:
     methods = cfg["methods"]
     lines = [f"Monte-Carlo: {cfg['runs']} runs, seed {cfg['seed']}, {cfg['samples']} samples, alpha {cfg['alpha']}, "
              f"wall {cfg['wall_time_s']:.0f} s"]
-    head = f"{'':34}" + "".join(f"{m:>12}" for m in methods)
+    head = f"{'':34}" + "".join(f"{m:>15}" for m in methods)
     lines.append(head)
 
     def line(label, get):
-        lines.append(f"{label:34}" + "".join(f"{get(result['summary'][m]):>12}" for m in methods))
+        lines.append(f"{label:34}" + "".join(f"{get(result['summary'][m]):>15}" for m in methods))
 
     line("element precision", lambda s: _fmt(s["element"]["precision"]))
     line("element recall (excl. ambiguous)", lambda s: _fmt(s["element"]["recall"]))

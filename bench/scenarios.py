@@ -38,8 +38,8 @@ Ground truth of collinearity: with more inputs than outputs and no dither the in
 ``n_outputs`` setpoints (plus a small noise-driven part), so ``n_inputs - n_outputs`` directions of
 ``u`` are excited only by the noise -- the inputs move (nearly) collinearly and some elements cannot
 be told apart.  :attr:`Scenario.collinear_expected` flags these runs, and
-:func:`input_separability` measures, from the data, how much of each input is not explained by the
-others.
+:func:`input_separability` measures, from the data, how far each input is from a combination of the
+others (``1 - rho_max^2``).
 """
 
 from __future__ import annotations
@@ -48,6 +48,7 @@ import dataclasses
 from typing import Optional
 
 import numpy as np
+import scipy.linalg as sla
 
 from mpm_monitor.closed_loop import ExcitationOptions
 from mpm_monitor.excitation import PrbsOptions
@@ -72,8 +73,8 @@ class ScenarioOptions:
         Range of the time constants, seconds.
     max_delay : int
         Largest plant delay, samples.
-    max_mismatches : int
-        Largest number of mismatched elements (uniform in 0..max_mismatches).
+    min_mismatches, max_mismatches : int
+        Range of the number of mismatched elements (uniform in min..max; default 0..3).
     size_range : tuple of float
         Range of the relative mismatch size ``s``.
     kinds : tuple of str
@@ -95,6 +96,7 @@ class ScenarioOptions:
     gain_range: tuple = (0.5, 5.0)
     tau_range: tuple = (10.0, 80.0)
     max_delay: int = 8
+    min_mismatches: int = 0
     max_mismatches: int = 3
     size_range: tuple = (0.2, 1.0)
     kinds: tuple = KINDS
@@ -108,6 +110,9 @@ class ScenarioOptions:
     def __post_init__(self):
         if not 1 <= self.min_size <= self.max_size:
             raise ValueError(f"min_size, max_size: expected 1 <= min_size <= max_size, got {self.min_size}, {self.max_size}")
+        if not 0 <= self.min_mismatches <= self.max_mismatches:
+            raise ValueError(f"min_mismatches, max_mismatches: expected 0 <= min <= max, got "
+                             f"{self.min_mismatches}, {self.max_mismatches}")
         bad = [k for k in self.kinds if k not in KINDS]
         if bad or not self.kinds:
             raise ValueError(f"kinds: expected a non-empty subset of {', '.join(KINDS)}, got {self.kinds!r}")
@@ -298,7 +303,7 @@ def make_scenario(seed: int, index: int, options: ScenarioOptions = ScenarioOpti
     ts = opts.sample_time
     plant = FopdtModel(sample_time=ts, inputs=_names(nu, "u"), outputs=_names(ny, "y"), gain=gain,
                        time_constant=tau, delay=delay * ts, name=f"random plant (seed {seed}, run {index})")
-    k = int(rng.integers(0, opts.max_mismatches + 1)) if n_mismatches is None else int(n_mismatches)
+    k = int(rng.integers(opts.min_mismatches, opts.max_mismatches + 1)) if n_mismatches is None else int(n_mismatches)
     k = min(k, ny * nu)
     positions = rng.choice(ny * nu, size=k, replace=False)
     m_gain, m_tau, m_delay = gain.copy(), tau.copy(), delay.copy()
@@ -329,11 +334,13 @@ def make_scenario(seed: int, index: int, options: ScenarioOptions = ScenarioOpti
 
 
 def input_separability(u: np.ndarray, max_lag: int = 10) -> np.ndarray:
-    """Fraction of each input's variance not explained by the other inputs (lags ``-L .. L``).
+    """Ground truth of collinear inputs: ``1 - rho_max^2`` of each input against the others.
 
-    ``1 - R^2`` of the least-squares regression of ``u_j(k)`` on ``u_l(k + m)`` for every other
-    input ``l`` and ``|m| <= L``.  Near 0: the input moves (dynamically) collinearly with the
-    others, so its elements cannot be separated from theirs.
+    ``rho_max`` is the largest canonical correlation between the block ``u_j(k), .., u_j(k - L)``
+    and the blocks of every other input over the same lags.  Near 0: some combination of the
+    input's recent values is a combination of the other inputs' -- the closed loop drives it
+    (dynamically) collinearly with them, so its elements cannot be separated from theirs.  (The
+    same idea as the methods' own checks, on a different lag window, computed from the data only.)
 
     Parameters
     ----------
@@ -348,21 +355,23 @@ def input_separability(u: np.ndarray, max_lag: int = 10) -> np.ndarray:
     """
     u = np.asarray(u, dtype=float)
     n, nu = u.shape
-    uc = u - u.mean(axis=0)
-    L = int(max_lag)
-    rows = slice(L, n - L)
     out = np.ones(nu)
+    if nu == 1:
+        return out
+    L = int(max_lag)
+    uc = u - u.mean(axis=0)
+    X = np.column_stack([uc[L - m:n - m, j] for j in range(nu) for m in range(L + 1)])
+    X = X / np.maximum(np.sqrt(np.sum(X * X, axis=0)), 1e-300)
+    G = X.T @ X
+    w = L + 1
     for j in range(nu):
-        others = [l for l in range(nu) if l != j]
-        if not others:
-            continue
-        X = np.column_stack([uc[L + m:n - L + m, l] for l in others for m in range(-L, L + 1)])
-        y = uc[rows, j]
-        denom = float(y @ y)
-        if denom <= 0:
+        blk = np.arange(j * w, (j + 1) * w)
+        oth = np.setdiff1d(np.arange(nu * w), blk)
+        g_jj, g_jo = G[np.ix_(blk, blk)], G[np.ix_(blk, oth)]
+        schur = g_jj - g_jo @ np.linalg.pinv(G[np.ix_(oth, oth)], rcond=1e-13, hermitian=True) @ g_jo.T
+        try:
+            ev = sla.eigh(0.5 * (schur + schur.T), g_jj, eigvals_only=True)
+            out[j] = float(np.clip(ev.min(), 0.0, 1.0))
+        except (sla.LinAlgError, ValueError):
             out[j] = 0.0
-            continue
-        beta, *_ = np.linalg.lstsq(X, y, rcond=None)
-        resid = y - X @ beta
-        out[j] = float(resid @ resid) / denom
     return out

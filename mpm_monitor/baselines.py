@@ -71,8 +71,9 @@ DEFAULT_MAX_AR_ORDER = 12
 #: test (absorbs what the AR prewhitening leaves of the noise colour in mismatched rows).
 DEFAULT_OWN_LAGS = 4
 
-#: Fraction of an input's lagged variance, not explained by the other inputs' lags, below which
-#: the partial correlation test declares the input's elements ambiguous instead of testing them.
+#: Separability (:func:`input_separability`, ``1 - rho_max^2``) below which the partial correlation
+#: test declares an input's elements ambiguous instead of testing them (a variance-inflation
+#: factor above 100).
 DEFAULT_SEPARABILITY_THRESHOLD = 1e-2
 
 #: Relative variance below which a signal is treated as constant (no information).
@@ -110,8 +111,8 @@ class ElementTestResult:
         others (``"pcorr"`` only; p-value 1, never ``mismatch``, left out of the Holm family).
         None means no element was ambiguous.
     separability : ndarray, shape (n_inputs,), optional
-        ``"pcorr"``: fraction of the variance of each input's lags not explained by the other
-        inputs' lags (1 = independent, 0 = collinear).
+        ``"pcorr"``: :func:`input_separability` of each input, ``1 - rho_max^2`` of its lag block
+        against the other inputs' (1 = independent, 0 = collinear).
     """
 
     p_values: np.ndarray
@@ -393,13 +394,16 @@ def cross_correlation_test(d, u, alpha: float = 0.01, max_lag: Optional[int] = N
 
 
 def input_separability(u: np.ndarray, max_lag: int) -> np.ndarray:
-    """Fraction of each input's lagged variance not explained by the other inputs' lags.
+    """How much of each input's lag block is *not* explained by the other inputs' lag blocks.
 
-    With ``X_j`` the unit-norm columns ``u_j(k - 1) .. u_j(k - L)`` and ``X_o`` those of every other
-    input, the value for input ``j`` is ``trace(X_j' M_o X_j) / trace(X_j' X_j)``, ``M_o`` the
-    projector onto the complement of ``X_o`` (the Schur complement of the Gram matrix).  It is 1
-    for inputs moving independently of the others and near 0 when the closed loop drives the
-    input collinearly with them (e.g. more inputs than excited setpoints and no dither).
+    With ``X_j`` the columns ``u_j(k - 1) .. u_j(k - L)`` and ``X_o`` those of every other input,
+    the value for input ``j`` is ``1 - rho_max^2``, ``rho_max`` the largest canonical correlation
+    between ``X_j`` and ``X_o`` (Hotelling, 1936): the smallest generalised eigenvalue of
+    ``(S_j, X_j' X_j)`` with ``S_j = X_j' X_j - X_j' X_o (X_o' X_o)^+ X_o' X_j`` the Schur complement.
+    It is 1 for an input moving independently of the others and 0 when some combination of its
+    lags is a combination of the other inputs' lags -- as when the closed loop drives more inputs
+    than it has independent excitations (more inputs than setpoints, no dither).  ``1 / value`` is
+    the largest generalised variance-inflation factor of the block.
 
     Parameters
     ----------
@@ -416,21 +420,25 @@ def input_separability(u: np.ndarray, max_lag: int) -> np.ndarray:
     u = np.asarray(u, dtype=float)
     n, nu = u.shape
     lag = int(max_lag)
+    out = np.ones(nu)
+    if nu == 1:
+        return out
     uc = u - u.mean(axis=0)
     X = np.column_stack([lag_matrix(uc[:, j], range(1, lag + 1), lag) for j in range(nu)])
     norms = np.sqrt(np.sum(X * X, axis=0))
     X = X / np.where(norms > 0, norms, 1.0)
     G = X.T @ X
-    out = np.ones(nu)
-    if nu == 1:
-        return out
     for j in range(nu):
         blk = np.arange(j * lag, (j + 1) * lag)
         oth = np.setdiff1d(np.arange(nu * lag), blk)
+        g_jj = G[np.ix_(blk, blk)]
         g_jo = G[np.ix_(blk, oth)]
-        proj = g_jo @ np.linalg.pinv(G[np.ix_(oth, oth)], rcond=1e-13, hermitian=True) @ g_jo.T
-        tr = float(np.trace(G[np.ix_(blk, blk)]))
-        out[j] = min(1.0, max(0.0, (tr - float(np.trace(proj))) / tr)) if tr > 0 else 0.0
+        schur = g_jj - g_jo @ np.linalg.pinv(G[np.ix_(oth, oth)], rcond=1e-13, hermitian=True) @ g_jo.T
+        try:
+            ev = linalg.eigh(0.5 * (schur + schur.T), g_jj, eigvals_only=True)
+            out[j] = float(np.clip(ev.min(), 0.0, 1.0))
+        except (linalg.LinAlgError, ValueError):
+            out[j] = 0.0  # the block's own Gram matrix is singular: no usable variation
     return out
 
 
@@ -456,10 +464,12 @@ def partial_correlation_test(d, u, alpha: float = 0.01, max_lag: Optional[int] =
     ``L F / (L F + dof)``.  Elements are declared mismatched by Holm's procedure over the tested
     elements at family-wise level ``alpha``.
 
-    An input whose lags are almost entirely explained by the other inputs' lags
-    (:func:`input_separability` below ``separability_threshold``) leaves nothing to correlate after
-    the other inputs are removed: its elements are reported ``ambiguous`` (p-value 1, not tested)
-    with a warning, rather than decided on the tiny, bias-dominated remainder.
+    An input with a direction of its lags almost entirely explained by the other inputs' lags
+    (:func:`input_separability` below ``separability_threshold``) leaves (almost) nothing to
+    correlate after the other inputs are removed: its elements are reported ``ambiguous``
+    (p-value 1, not tested) with a warning, rather than decided on the tiny, bias-dominated
+    remainder (any lag-truncation error of a mismatch on one input of the group is then
+    attributed to the others).
 
     Parameters
     ----------
