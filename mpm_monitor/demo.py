@@ -228,6 +228,11 @@ class DiagnosticsPrinter:
         self.latest = None
         self._printed = set()
 
+    def wait_for(self, suite: "Suite", timeout: float) -> bool:
+        """Spin ``suite`` until the monitor's latest result has been received here."""
+        return suite.spin_until(lambda: self.latest is not None
+                                and _analyses(self.latest) >= suite.monitor.core.results, timeout)
+
     def _on_msg(self, msg) -> None:
         from .monitor_core import LEVEL_NAMES, SUMMARY_NAME
 
@@ -327,8 +332,7 @@ def run_demo(case: str = "3.2", samples: Optional[int] = None, bag: Optional[str
             suite.start(diagnostics_listeners=1 + (recorder is not None))
             ok = suite.run(timeout=timeout)
             # let the final diagnostics reach the printer (and the recorder)
-            final_seen = lambda: printer.latest is not None and _analyses(printer.latest) >= suite.monitor.core._results
-            suite.spin_until(final_seen, 5.0)
+            printer.wait_for(suite, 5.0)
             if recorder is not None:
                 count = recorder.close()
                 out.write(f"recorded {count} messages to {bag}\n")

@@ -257,6 +257,11 @@ class MonitorCore:
         self._latest = outcome
 
     @property
+    def results(self) -> int:
+        """Number of analysis outcomes accepted so far."""
+        return self._results
+
+    @property
     def latest_report(self):
         """The latest report (None before the first)."""
         return None if self._latest is None else self._latest.report
@@ -312,7 +317,8 @@ class MonitorCore:
         return [("completed_samples", str(h.completed)), ("window_samples", str(self.window.n_window)),
                 ("missing_samples", str(h.missing_samples)), ("gaps", str(h.gaps)),
                 ("bad_messages", str(h.bad_value)), ("off_grid", str(h.off_grid)), ("conflicts", str(h.conflict)),
-                ("duplicates", str(h.duplicate)), ("late", str(h.late)), ("out_of_order", str(h.out_of_order))]
+                ("duplicates", str(h.duplicate)), ("late", str(h.late)), ("out_of_order", str(h.out_of_order)),
+                ("restarts", str(h.restarts))]
 
     def _row_statuses(self) -> list:
         hw = self.options.hardware_id

@@ -377,7 +377,7 @@ def spin_until(executor, done: Callable[[], bool], timeout: Optional[float] = No
 
 
 def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "events") -> int:
-    """``main()`` of a node: init, build the node, spin until shutdown; bad parameters exit 2 with one line.
+    """``main()`` of a node: init, build the node, spin until SIGINT/SIGTERM; bad parameters exit 2.
 
     Parameters
     ----------
@@ -385,12 +385,27 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
         Called with ``context=`` to build the node.
     args : list of str, optional
         Command-line arguments (``--ros-args ...``); default ``sys.argv``.
+    executor_kind : {"events", "single"}
+
+    Notes
+    -----
+    SIGINT and SIGTERM only set a flag that the spin loop checks, so a callback is never interrupted
+    half-way and the node closes cleanly (the monitor stops its analysis thread).
     """
+    import signal
+
     import rclpy
     from rclpy.context import Context
+    from rclpy.signals import SignalHandlerOptions
 
     context = Context()
-    rclpy.init(args=args, context=context)
+    rclpy.init(args=args, context=context, signal_handler_options=SignalHandlerOptions.NO)
+    stop = {"requested": False}
+
+    def on_signal(signum, frame):
+        stop["requested"] = True
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     node = None
     try:
         try:
@@ -400,12 +415,12 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
             return 2
         executor = make_executor(context, executor_kind)
         executor.add_node(node)
-        try:
-            spin_until(executor, lambda: getattr(node, "exit_requested", False), context=context, step=0.1)
-        except KeyboardInterrupt:
-            pass
+        spin_until(executor, lambda: stop["requested"] or getattr(node, "exit_requested", False), context=context,
+                   step=0.1)
         return 0
     finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         if node is not None:
             close = getattr(node, "close", None)
             if close is not None:

@@ -1,0 +1,125 @@
+"""The four nodes as four processes (launch_scripts/suite_processes.py), on a domain of their own.
+
+Isolation: the test takes a ROS_DOMAIN_ID in 1..101 that no other test process holds (an exclusive
+``flock`` on ``<tmp>/mpm_monitor_domain_<id>.lock``), runs the processes with that domain and
+``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, and puts them in a namespace of their own (their clock
+and diagnostics topics too), so even a domain shared by accident cannot mix two suites.  The test
+listens to the diagnostics from its own context on the same domain and range.
+"""
+
+import contextlib
+import fcntl
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("rclpy")
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
+
+from mpm_monitor.monitor_core import SUMMARY_NAME, row_status_name  # noqa: E402
+from mpm_monitor.ros_io import diagnostics_qos, make_executor, spin_until  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+SAMPLES = 3000
+
+
+@contextlib.contextmanager
+def unique_domain():
+    """Yield a ROS_DOMAIN_ID (1..101) locked against other test processes on this machine."""
+    ids = list(range(1, 102))
+    random.Random(os.getpid()).shuffle(ids)
+    for d in ids:
+        fh = open(Path(tempfile.gettempdir()) / f"mpm_monitor_domain_{d}.lock", "w")
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            fh.close()
+            continue
+        try:
+            yield d
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+            fh.close()
+        return
+    pytest.skip("no free ROS_DOMAIN_ID")
+
+
+def domain_context(domain_id):
+    """A context on ``domain_id`` with discovery limited to this host (as the node processes)."""
+    import rclpy
+    from rclpy.context import Context
+
+    from mpm_monitor.demo import _env
+
+    ctx = Context()
+    with _env({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(domain_id)}):
+        rclpy.init(args=[], context=ctx, domain_id=domain_id)
+    return ctx
+
+
+def test_separate_processes_locate_case_3_2():
+    from rclpy.node import Node
+
+    ns = f"/mp{os.getpid()}"
+    with unique_domain() as domain:
+        cmd = [sys.executable, str(ROOT / "launch_scripts" / "suite_processes.py"), "--case", "3.2",
+               "--samples", str(SAMPLES), "--domain-id", str(domain), "--localhost", "--namespace", ns,
+               "-p", f"monitor.window_samples:={SAMPLES}", "-p", f"monitor.min_samples:={SAMPLES}",
+               "-p", f"monitor.analysis_period:={SAMPLES}", "-p", "monitor.stale_timeout:=120.0",
+               "-p", "monitor.republish_period:=0.5"]
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        ctx = domain_context(domain)
+        node = Node("mp_listener", context=ctx, namespace=ns)
+        latest = {}
+        node.create_subscription(DiagnosticArray, "diagnostics", lambda m: latest.__setitem__("msg", m),
+                                 diagnostics_qos())
+        ex = make_executor(ctx)
+        ex.add_node(node)
+        log = tempfile.TemporaryFile()
+        launcher = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT, cwd=str(ROOT))
+        t0 = time.monotonic()
+        try:
+            def final():
+                msg = latest.get("msg")
+                if msg is None:
+                    return False
+                summary = {s.name: s for s in msg.status}.get(SUMMARY_NAME)
+                values = {kv.key: kv.value for kv in summary.values}
+                return values.get("window_end") == repr(float(SAMPLES - 1))
+
+            ok = spin_until(ex, lambda: final() or launcher.poll() is not None, timeout=100.0)
+            elapsed = time.monotonic() - t0
+            if not (ok and final()):
+                log.seek(0)
+                pytest.fail(f"no final diagnostics after {elapsed:.0f} s; launcher output:\n"
+                            + log.read().decode(errors="replace")[-4000:])
+            st = {s.name: (s, {kv.key: kv.value for kv in s.values}) for s in latest["msg"].status}
+            flagged = {o: st[row_status_name(o)][1]["flagged_inputs"] for o in ("y1", "y2", "y3")}
+            assert flagged == {"y1": "u2,u3", "y2": "u1", "y3": ""}
+            assert [st[row_status_name(o)][0].level for o in ("y1", "y2", "y3")] == [
+                DiagnosticStatus.WARN, DiagnosticStatus.WARN, DiagnosticStatus.OK]
+            summary = st[SUMMARY_NAME][1]
+            assert summary["located_elements"] == "y1:u2,y1:u3,y2:u1"
+            assert summary["completed_samples"] == str(SAMPLES) and summary["missing_samples"] == "0"
+        finally:
+            if launcher.poll() is None:
+                launcher.send_signal(signal.SIGINT)
+            try:
+                launcher.wait(20.0)
+            except subprocess.TimeoutExpired:
+                launcher.kill()
+                launcher.wait()
+            log.close()
+            ex.remove_node(node)
+            node.destroy_node()
+            ex.shutdown()
+            ctx.try_shutdown()
+        assert launcher.returncode == 0
