@@ -1,0 +1,951 @@
+"""Sliding-window mismatch analysis from sufficient statistics (issue 8).
+
+A live monitor analyses the last ``W`` samples every few seconds.  Refitting the tests of
+:func:`mpm_monitor.analysis.analyze` from scratch costs ``O(W p^2)`` per analysis, with ``p`` the
+number of regressors (about 300 for a 20x20 plant).  :class:`SlidingWindowAnalyzer` instead keeps
+cross-product (Gram) matrices of the lagged regressors up to date as samples enter and leave the
+window, ``O(p^2)`` per sample, and an analysis solves the tests' least-squares problems from them in
+``O(p^3)``, independent of ``W``.
+
+What is kept
+------------
+Two Gram matrices (with their column sums) over the regression rows of the window, i.e. the
+samples ``start .. W - 1`` of the window (:class:`~mpm_monitor.analysis.RegressionLayout`):
+
+* S_Delta row test: the setpoints ``r_c(t - l)``, ``l = 0 .. n_lag_r - 1``, and for every output
+  ``z_i(t - l)``, ``l = 0 .. na``, with ``z = eps - r`` (lag 0 is the target, lags >= 1 its own AR
+  columns);
+* Delta element test: the inputs ``u_j(t - l)``, ``l = 1 .. n_lag_u``, and for every output
+  ``d_i(t - l)``, ``l = 0 .. na``.
+
+Every row's regression is a sub-block of one of them, so the common block (lagged setpoints or
+lagged inputs) is factored once per window and each row adds its own columns by the
+Frisch-Waugh-Lovell partition of :class:`~mpm_monitor.arx.SharedBlockRegression`.
+
+Centring
+--------
+The batch tests centre each signal by its mean over the window, which moves as the window slides.
+With ``X`` the raw lagged columns, ``s = X' 1`` their sums over the ``N`` regression rows and ``m``
+the window means, the centred cross products are ``X'X - s m' - m s' + N m m'``.  To keep that
+subtraction harmless the raw columns are stored relative to a reference (the window means at the
+last refresh), so ``m`` stays of the order of the signals' spread; the Gram matrices are rebuilt
+from the window buffer every ``refresh_interval`` samples (default: once per window length), when a
+mean has drifted more than 8 standard deviations from its reference, and whenever rebuilding is
+cheaper than updating.  Rebuilding also bounds the rounding drift of the add/remove updates.
+
+Solving and accuracy
+--------------------
+Columns are scaled to unit norm as in the batch path; the Cholesky factor of the scaled Gram matrix
+is the triangular factor of the QR factorisation of the scaled regressors (up to the signs of its
+rows, which no result depends on).  Normal equations square the condition number: relative errors
+are of the order ``kappa^2 * 1e-16``.  Each regression's 2-norm condition number ``kappa`` is checked
+-- first against the cheap bound ``||R||_F ||R^-1||_F >= kappa``, then, if that bound is too large,
+by a power-iteration estimate -- and above ``max_condition`` (default 1e3, errors below about
+1e-10) the regression is refitted by QR from the window buffer, exactly as the batch path does.
+Closed-loop data with PRBS setpoints give ``kappa`` of 2 to 60 (measured on the paper cases and on
+random 2x2 to 20x20 plants); collinear inputs (no dither, more inputs than outputs) fall back.
+
+"Same window"
+-------------
+The analyzer runs the controller's model ``Phat`` continuously from rest at the first pushed sample
+(:class:`ModelPredictor`), so ``yhat``, ``d = y - yhat`` and ``eps = r - d`` of a window sample do not
+depend on where the window starts -- as in the live loop, and unlike a batch analysis of a window
+cut out of a log, which restarts the model at the window's first sample.  The batch analysis of the
+same window is therefore ``analyze(model, data, options, signals=signals)`` with the signals of
+:func:`mpm_monitor.signals.compute_signals` (``initial_state="zero"``) run over every sample pushed
+so far and cut to the window; :meth:`SlidingWindowAnalyzer.window_data` returns both.
+``options.initial_state`` is not used.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import numpy as np
+import scipy.linalg as sla
+from scipy import signal as sps
+from scipy.linalg import blas
+
+from .analysis import AnalysisOptions, AnalysisReport, QrRegressions, RegressionLayout, analyze, regression_layout
+from .arx import RANK_TOLERANCE, ArxFit, SharedBlockRegression, SharedFit, block_triangular_solution
+from .data_io import LoggedData
+from .discretize import discretize
+from .errors import ConfigurationError, DataFileError
+from .model import FopdtModel
+from .signals import LoopSignals
+
+#: Largest condition number of the scaled regressors for which a regression is solved from its Gram
+#: matrix: the normal equations then lose at most about 1e6 * 1e-16 = 1e-10 (relative).
+DEFAULT_MAX_CONDITION = 1e3
+
+#: A window mean further than this many standard deviations from the Gram reference forces a rebuild.
+MEAN_DRIFT_LIMIT = 8.0
+
+
+class IllConditioned(ArithmeticError):
+    """A regression too ill-conditioned to be solved from its Gram matrix (the caller refits by QR)."""
+
+
+# ----------------------------------------------------------------------------------------- model
+class ModelPredictor:
+    """The controller's model run sample by sample from rest: ``yhat = Phat u``.
+
+    Uses the element-wise form of :func:`mpm_monitor.discretize.discretize`::
+
+        s_ij(k+1) = a_ij s_ij(k) + b_ij u_j(k - m_ij),    yhat_i(k) = sum_j s_ij(k) + D_ij u_j(k)
+
+    which is the dense realisation of :func:`~mpm_monitor.discretize.state_space` with its shift
+    registers replaced by a short input history: ``O(n_outputs n_inputs)`` per sample.
+
+    Parameters
+    ----------
+    model : FopdtModel
+    """
+
+    def __init__(self, model: FopdtModel):
+        disc = discretize(model)
+        self.ny, self.nu = model.n_outputs, model.n_inputs
+        self._pole = np.where(disc.active, disc.pole, 0.0)
+        self._numerator = np.where(disc.active, disc.numerator, 0.0)
+        self._lag = np.where(disc.active, disc.input_lag, 0).astype(int)
+        self._feedthrough = np.asarray(disc.feedthrough, dtype=float)
+        self._has_feedthrough = bool(np.any(self._feedthrough != 0))
+        self._active = [(i, j) for i in range(self.ny) for j in range(self.nu) if disc.active[i, j]]
+        self.n_history = int(self._lag.max(initial=0))
+        # u_j(k - m_ij) is entry (n_history - m_ij, j) of the history [u(k - n_history) .. u(k)].
+        self._delayed_index = ((self.n_history - self._lag) * self.nu + np.arange(self.nu)).ravel()
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to rest: zero element states and zero past inputs."""
+        self.state = np.zeros((self.ny, self.nu))
+        self._history = np.zeros((self.n_history + 1, self.nu))   # u(k - n_history) .. u(k - 1), scratch row
+
+    def step(self, u: np.ndarray) -> np.ndarray:
+        """``yhat(k)`` of shape (n_outputs,) for the input ``u(k)``, then advance to ``k + 1``."""
+        hist = self._history
+        hist[-1] = u
+        delayed = hist.ravel()[self._delayed_index].reshape(self.ny, self.nu)
+        yhat = self.state.sum(axis=1)
+        if self._has_feedthrough:
+            yhat = yhat + self._feedthrough @ u
+        self.state = self._pole * self.state + self._numerator * delayed
+        hist[:-1] = hist[1:]
+        return yhat
+
+    def run(self, u: np.ndarray) -> np.ndarray:
+        """``yhat`` of shape (n_samples, n_outputs) for the inputs ``u`` of shape (n_samples, n_inputs)."""
+        n = u.shape[0]
+        ext = np.vstack([self._history[:-1], u])
+        yhat = np.zeros((n, self.ny))
+        h = self.n_history
+        for i, j in self._active:
+            m = self._lag[i, j]
+            v = ext[h - m:h - m + n, j]
+            s, zf = sps.lfilter([0.0, self._numerator[i, j]], [1.0, -self._pole[i, j]], v, zi=[self.state[i, j]])
+            yhat[:, i] += s
+            self.state[i, j] = zf[0]
+        if self._has_feedthrough:
+            yhat += u @ self._feedthrough.T
+        if h:
+            self._history[:-1] = ext[ext.shape[0] - h:]
+        return yhat
+
+
+# ----------------------------------------------------------------------------------------- buffer
+class _WindowBuffer:
+    """The last samples of ``[r | u | y | yhat]`` with their absolute sample indices."""
+
+    def __init__(self, n_channels: int, window: int, slack: int):
+        self.window = window
+        self.data = np.zeros((window + slack, n_channels))
+        self.first = 0          # absolute index of data[0]
+        self.count = 0          # rows in use
+
+    @property
+    def end(self) -> int:
+        """Absolute index one past the newest sample."""
+        return self.first + self.count
+
+    def free(self) -> int:
+        return self.data.shape[0] - self.count
+
+    def append(self, rows: np.ndarray) -> None:
+        k = rows.shape[0]
+        self.data[self.count:self.count + k] = rows
+        self.count += k
+
+    def compact(self) -> None:
+        """Keep only the last ``window`` samples, moved to the front."""
+        drop = max(self.count - self.window, 0)
+        if drop:
+            self.data[:self.count - drop] = self.data[drop:self.count]
+            self.first += drop
+            self.count -= drop
+
+    def rows(self, a: int, b: int) -> np.ndarray:
+        """Samples with absolute indices ``a .. b - 1`` (a view)."""
+        if a < self.first or b > self.end:
+            raise IndexError(f"samples {a}..{b - 1} are not in the buffer ({self.first}..{self.end - 1})")
+        return self.data[a - self.first:b - self.first]
+
+
+# ----------------------------------------------------------------------------------------- Gram
+class LaggedGram:
+    """Cross products ``Phi' Phi`` and sums ``Phi' 1`` of lagged signal columns over a range of rows.
+
+    Parameters
+    ----------
+    groups : list of (str, int, sequence of int)
+        ``(signal name, n_channels, lags)``; the columns are ordered group by group, channel by
+        channel, lag by lag (the order of :func:`mpm_monitor.arx.lag_matrix`).
+    signals : callable
+        ``signals(block)`` maps buffer rows ``[r | u | y | yhat]`` to a dict of the named signals.
+
+    Notes
+    -----
+    Row ``t`` holds ``x_c(t - l) - ref_c`` for every column; ``ref`` is set at each rebuild.  The
+    updates are symmetric rank-k updates (BLAS ``dsyrk``) of the lower triangle, in place;
+    :meth:`symmetric` returns the full matrix.
+    """
+
+    CHUNK = 4096
+
+    def __init__(self, groups, signals):
+        self.groups = [(name, int(nch), np.asarray(list(lags), dtype=int)) for name, nch, lags in groups]
+        self.signals = signals
+        self.max_lag = int(max(lags.max(initial=0) for _, _, lags in self.groups))
+        offsets, col_channel, ch = [], [], 0
+        col = 0
+        for name, nch, lags in self.groups:
+            offsets.append(col)
+            for c in range(nch):
+                col_channel.extend([ch + c] * len(lags))
+            col += nch * len(lags)
+            ch += nch
+        self.offsets = offsets
+        self._column = {(g, c, int(lag)): offsets[g] + c * len(lags) + k
+                        for g, (_, nch, lags) in enumerate(self.groups) for c in range(nch)
+                        for k, lag in enumerate(lags)}
+        self.n_columns = col
+        self.n_channels = ch
+        self.col_channel = np.asarray(col_channel, dtype=int)
+        self.col_lag = np.concatenate([np.tile(lags, nch) for _, nch, lags in self.groups]).astype(int)
+        self._full = None
+        self.ref = np.zeros(ch)
+        self.gram = np.zeros((col, col))
+        self.sums = np.zeros(col)
+        self.lo = self.hi = 0        # rows lo .. hi - 1 are accumulated
+
+    @property
+    def n_rows(self) -> int:
+        return self.hi - self.lo
+
+    def column(self, group: int, channel: int, lag: int) -> int:
+        """Index of the column of ``channel`` of ``group`` at ``lag``."""
+        return self._column[(group, channel, int(lag))]
+
+    def channel_values(self, block: np.ndarray) -> np.ndarray:
+        """The signals of the groups side by side, shape (n_rows, n_channels)."""
+        sig = self.signals(block)
+        return np.hstack([sig[name] for name, _, _ in self.groups])
+
+    def rows(self, buf: _WindowBuffer, a: int, b: int) -> np.ndarray:
+        """``Phi`` for the rows ``a .. b - 1`` (absolute sample indices), shape (b - a, n_columns)."""
+        values = self.channel_values(buf.rows(a - self.max_lag, b)) - self.ref
+        t = np.arange(self.max_lag, self.max_lag + b - a)[:, None]
+        return values[t - self.col_lag, self.col_channel]
+
+    def _accumulate(self, phi: np.ndarray, sign: float) -> None:
+        # gram's lower triangle += sign * phi' phi, in place (gram.T is Fortran-ordered).
+        blas.dsyrk(sign, phi.T, beta=1.0, c=self.gram.T, trans=0, lower=0, overwrite_c=1)
+        self.sums += sign * phi.sum(axis=0)
+        self._full = None
+
+    def rebuild(self, buf: _WindowBuffer, a: int, b: int, ref: np.ndarray) -> None:
+        """Recompute from scratch over rows ``a .. b - 1`` with a new reference ``ref`` (n_channels,)."""
+        self.ref = np.asarray(ref, dtype=float).copy()
+        self.gram = np.zeros((self.n_columns, self.n_columns))
+        self.sums = np.zeros(self.n_columns)
+        for c0 in range(a, b, self.CHUNK):
+            self._accumulate(self.rows(buf, c0, min(c0 + self.CHUNK, b)), 1.0)
+        self.lo, self.hi = a, b
+        self._full = None
+
+    def update(self, buf: _WindowBuffer, add: tuple, remove: tuple) -> None:
+        """Add the rows ``add = (a, b)`` and remove the rows ``remove = (a, b)``."""
+        n_add, n_remove = max(add[1] - add[0], 0), max(remove[1] - remove[0], 0)
+        if not (n_add or n_remove):
+            return
+        lag = self.max_lag
+        slabs, index, base = [], [], 0
+        for (a, b), k in ((remove, n_remove), (add, n_add)):
+            if k:
+                slabs.append(buf.rows(a - lag, b))
+                index.append(np.arange(base + lag, base + lag + k))
+                base += k + lag
+        values = self.channel_values(slabs[0] if len(slabs) == 1 else np.vstack(slabs)) - self.ref
+        t = np.concatenate(index)[:, None] if len(index) > 1 else index[0][:, None]
+        phi = values[t - self.col_lag, self.col_channel]
+        if n_remove:
+            self._accumulate(phi[:n_remove], -1.0)
+            self.lo = remove[1]
+        if n_add:
+            self._accumulate(phi[n_remove:], 1.0)
+            self.hi = add[1]
+
+    def symmetric(self) -> np.ndarray:
+        """The full cross-product matrix (the kept lower triangle mirrored)."""
+        if self._full is None:
+            low = np.tril(self.gram)
+            self._full = low + np.tril(low, -1).T
+        return self._full
+
+    def clear(self) -> None:
+        """No rows."""
+        self.gram[:] = 0.0
+        self.sums[:] = 0.0
+        self.lo = self.hi = 0
+        self._full = None
+
+    def centred(self, cols_a, signs_a, cols_b, signs_b, means: np.ndarray):
+        """Block of the centred cross products and the centred sums of the columns ``cols_b``.
+
+        Column ``c`` centred is ``sign_c (x_c - mean_c)`` with ``mean`` the window mean of its
+        channel (``means`` has shape (n_channels,)).
+
+        Returns
+        -------
+        gram : ndarray, shape (len(cols_a), len(cols_b))
+        sums_b : ndarray, shape (len(cols_b),)
+        """
+        cols_a, cols_b = np.asarray(cols_a, dtype=int), np.asarray(cols_b, dtype=int)
+        shift = np.asarray(means, dtype=float) - self.ref
+        ma, mb = shift[self.col_channel[cols_a]], shift[self.col_channel[cols_b]]
+        sa, sb = self.sums[cols_a], self.sums[cols_b]
+        n = self.n_rows
+        g = self.symmetric()[np.ix_(cols_a, cols_b)] - np.outer(sa, mb) - np.outer(ma, sb) + n * np.outer(ma, mb)
+        sign_a, sign_b = np.asarray(signs_a, dtype=float), np.asarray(signs_b, dtype=float)
+        return g * np.outer(sign_a, sign_b), (sb - n * mb) * sign_b
+
+
+# ----------------------------------------------------------------------------------------- solving
+def _frobenius(a: np.ndarray) -> float:
+    return float(np.sqrt(np.sum(a * a)))
+
+
+def _norm2_estimate(a: np.ndarray, iterations: int = 12) -> float:
+    """Largest singular value of ``a`` by power iteration (a lower estimate, usually within a few %)."""
+    x = np.linspace(1.0, 2.0, a.shape[1])
+    x /= np.linalg.norm(x)
+    for _ in range(iterations):
+        x = a.T @ (a @ x)
+        nx = np.linalg.norm(x)
+        if not nx > 0:
+            return 0.0
+        x /= nx
+    return float(np.linalg.norm(a @ x))
+
+
+def checked_condition(R: np.ndarray, rinv: np.ndarray, max_condition: float) -> float:
+    """Condition number of the triangular factor ``R``, or :class:`IllConditioned` above ``max_condition``.
+
+    Returns the Frobenius bound ``||R||_F ||R^-1||_F`` when it is within the limit (it is never below
+    the 2-norm condition number), else a power-iteration estimate of the 2-norm condition number.
+    """
+    if R.size == 0:
+        return 1.0
+    bound = _frobenius(R) * _frobenius(rinv)
+    if bound <= max_condition:
+        return bound
+    estimate = _norm2_estimate(R) * _norm2_estimate(rinv)
+    if estimate <= max_condition:
+        return estimate
+    raise IllConditioned(f"condition number {estimate:.3g} > {max_condition:.3g}")
+
+
+def _cholesky_upper(g: np.ndarray) -> np.ndarray:
+    try:
+        return np.linalg.cholesky(g).T
+    except np.linalg.LinAlgError:
+        raise IllConditioned("Gram matrix not positive definite") from None
+
+
+class GramBlockRegression(SharedBlockRegression):
+    """A :class:`~mpm_monitor.arx.SharedBlockRegression` built from the Gram matrix of its columns.
+
+    Parameters
+    ----------
+    gram : ndarray, shape (p, p)
+        ``X' X`` of the common columns (centred as the batch path centres them).
+    block_sizes : sequence of int
+    max_condition : float
+        Largest accepted condition number of the scaled columns (:func:`checked_condition`).
+
+    Raises
+    ------
+    IllConditioned
+        When the bound is exceeded or the matrix is not positive definite.
+
+    Notes
+    -----
+    ``Q`` and ``common`` are not available (None); targets are fitted by :class:`GramFit`.
+    """
+
+    def __init__(self, gram: np.ndarray, block_sizes, max_condition: float = DEFAULT_MAX_CONDITION):
+        self.common = None
+        self.Q = None
+        self.block_sizes = list(block_sizes)
+        p = gram.shape[0]
+        if sum(self.block_sizes) != p:
+            raise ValueError("block sizes must add up to the number of common columns")
+        scale = np.sqrt(np.maximum(np.diag(gram), 0.0))
+        self.scale = np.where(scale > 0, scale, 1.0)
+        self.R = _cholesky_upper(gram / np.outer(self.scale, self.scale)) if p else np.zeros((0, 0))
+        d = np.abs(np.diag(self.R))
+        self.rank = int(np.sum(d > RANK_TOLERANCE * max(d.max(initial=0.0), 1e-300)))
+        self.full_rank = self.rank == p
+        if not self.full_rank:
+            raise IllConditioned("rank-deficient common block")
+        self._rinv = sla.solve_triangular(self.R, np.eye(p)) if p else np.zeros((0, 0))
+        self.condition_bound = checked_condition(self.R, self._rinv, max_condition)
+        self._cond = None
+
+    @property
+    def condition_number(self) -> float:
+        """2-norm condition number of the scaled common columns (as the batch path reports it)."""
+        if self._cond is None:
+            sv = np.linalg.svd(self.R, compute_uv=False) if self.R.size else np.array([1.0])
+            self._cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
+        return self._cond
+
+    def fit(self, target, own):
+        raise TypeError("a GramBlockRegression has no regressor matrix: fit targets with GramFit")
+
+
+class GramFit(SharedFit):
+    """The fit of one target in a :class:`GramBlockRegression`, from cross products only.
+
+    Parameters
+    ----------
+    reg : GramBlockRegression
+    g_co : ndarray, shape (p_common, p_own)
+        Cross products of the common and the own columns.
+    g_oo : ndarray, shape (p_own, p_own)
+    g_cy : ndarray, shape (p_common,)
+    g_oy : ndarray, shape (p_own,)
+    g_yy : float
+        Cross products with the target ``y``.
+    sum_y : float
+        Sum of the target over the regression rows.
+    n : int
+        Number of regression rows.
+    max_condition : float
+
+    Notes
+    -----
+    The quantities of :class:`~mpm_monitor.arx.SharedFit` follow from the partitioned factor
+    ``[[R1, Q1' X_own], [0, R2]]``: ``Q1' X_own = R1^-T X_c' X_own``, ``R2' R2 = X_own' X_own -
+    (Q1' X_own)' (Q1' X_own)``, ``Q1' y = R1^-T X_c' y``, ``Q2' y = R2^-T (X_own' y - (Q1' X_own)' Q1' y)``
+    and ``RSS = y'y - ||[Q1' y; Q2' y]||^2``.  ``residuals`` is None.
+    """
+
+    def __init__(self, reg: GramBlockRegression, g_co, g_oo, g_cy, g_oy, g_yy: float, sum_y: float, n: int,
+                 max_condition: float = DEFAULT_MAX_CONDITION):
+        self.reg = reg
+        pc, po = g_co.shape
+        own_scale = np.sqrt(np.maximum(np.diag(g_oo), 0.0))
+        own_scale = np.where(own_scale > 0, own_scale, 1.0)
+        g_co_s = g_co / np.outer(reg.scale, own_scale)
+        g_oo_s = g_oo / np.outer(own_scale, own_scale)
+        g_cy_s = g_cy / reg.scale
+        g_oy_s = g_oy / own_scale
+        if pc:
+            qo = sla.solve_triangular(reg.R, g_co_s, trans="T")
+            q1y = sla.solve_triangular(reg.R, g_cy_s, trans="T")
+        else:
+            qo, q1y = np.zeros((0, po)), np.zeros(0)
+        if po:
+            R2 = _cholesky_upper(g_oo_s - qo.T @ qo)
+            q2y = sla.solve_triangular(R2, g_oy_s - qo.T @ q1y, trans="T")
+        else:
+            R2, q2y = np.zeros((0, 0)), np.zeros(0)
+        qy = np.concatenate([q1y, q2y])
+        self.rank, self.rinv, theta_s = block_triangular_solution(reg, qo, R2, qy)
+        p = pc + po
+        if self.rank < p:
+            raise IllConditioned("rank-deficient regression")
+        R = np.zeros((p, p))
+        R[:pc, :pc], R[:pc, pc:], R[pc:, pc:] = reg.R, qo, R2
+        self.condition_bound = checked_condition(R, self.rinv, max_condition)
+        scale = np.concatenate([reg.scale, own_scale])
+        self.theta = theta_s / scale
+        self.scale = scale
+        self.residuals = None
+        self.rss = max(float(g_yy - qy @ qy), 0.0)
+        self.dof = max(n - self.rank, 1)
+        self.sigma2 = self.rss / self.dof
+        self.n_common = pc
+        if po:
+            Ro = _cholesky_upper(g_oo_s)
+            qoy = sla.solve_triangular(Ro, g_oy_s, trans="T")
+            self.rss_own_only = max(float(g_yy - qoy @ qoy), 0.0)
+            self.rank_own = po
+        else:
+            self.rss_own_only = float(g_yy)
+            self.rank_own = 0
+        ynorm2 = float(g_yy - sum_y * sum_y / n) if n else 0.0
+        self.fit_percent = 100.0 * (1.0 - math.sqrt(self.rss / ynorm2)) if ynorm2 > 0 else 0.0
+
+
+def gram_arx(gram: np.ndarray, sum_y: float, n: int, na: int, nb: int, nk: np.ndarray,
+             max_condition: float = DEFAULT_MAX_CONDITION) -> ArxFit:
+    """:func:`mpm_monitor.arx.fit_arx` from the cross products of its columns.
+
+    Parameters
+    ----------
+    gram : ndarray, shape (p + 1, p + 1)
+        Cross products of ``[-y(t-1) .. -y(t-na), u_1(t-nk_1) .. u_1(t-nk_1-nb+1), ..., y(t)]`` over
+        the fit's rows (the regressors of :func:`~mpm_monitor.arx.fit_arx`, then the target).
+    sum_y : float
+        Sum of the target over the rows.
+    n : int
+        Number of rows.
+    na, nb : int
+    nk : ndarray of int, shape (n_inputs,)
+    max_condition : float
+
+    Returns
+    -------
+    ArxFit
+        With ``residuals`` None.
+
+    Raises
+    ------
+    IllConditioned
+    """
+    p = gram.shape[0] - 1
+    g, gy, g_yy = gram[:p, :p], gram[:p, p], float(gram[p, p])
+    scale = np.sqrt(np.maximum(np.diag(g), 0.0))
+    scale = np.where(scale > 0, scale, 1.0)
+    R = _cholesky_upper(g / np.outer(scale, scale))
+    d = np.abs(np.diag(R))
+    rank = int(np.sum(d > RANK_TOLERANCE * max(d.max(initial=0.0), 1e-300)))
+    if rank < p:
+        raise IllConditioned("rank-deficient ARX regression")
+    rinv = sla.solve_triangular(R, np.eye(p))
+    checked_condition(R, rinv, max_condition)
+    qy = sla.solve_triangular(R, gy / scale, trans="T")
+    theta = (rinv @ qy) / scale
+    rss = max(g_yy - float(qy @ qy), 0.0)
+    dof = max(n - rank, 1)
+    sigma2 = rss / dof
+    cov = sigma2 * (rinv @ rinv.T) / np.outer(scale, scale)
+    ynorm2 = g_yy - sum_y * sum_y / n
+    fit = 100.0 * (1.0 - math.sqrt(rss / ynorm2)) if ynorm2 > 0 else 0.0
+    sv = np.linalg.svd(R, compute_uv=False)
+    nu = nk.shape[0]
+    return ArxFit(a=theta[:na], b=[theta[na + j * nb: na + (j + 1) * nb] for j in range(nu)], nk=nk, theta=theta,
+                  covariance=cov, residuals=None, sigma2=float(sigma2), fit_percent=float(fit),
+                  condition_number=float(sv[0] / sv[-1]), dof=int(dof), rank=rank)
+
+
+class GramRegressions:
+    """The tests' least-squares problems solved from the Gram matrices of a window.
+
+    Has the methods of :class:`mpm_monitor.analysis.QrRegressions`, for
+    ``analyze(..., regressions=...)``.  A regression whose condition bound exceeds ``max_condition``
+    is refitted by that class from the window's signals.
+
+    Parameters
+    ----------
+    row_gram, input_gram : LaggedGram
+        Up to date over the window's regression rows.
+    r, u, z, d : ndarray
+        The window's signals (for the window means, the few rows of the short ARX outside the Gram
+        rows, and the QR fallback).
+    layout : RegressionLayout
+    na, nb : int
+    max_condition : float
+    """
+
+    def __init__(self, row_gram: LaggedGram, input_gram: LaggedGram, r, u, z, d, layout: RegressionLayout,
+                 na: int, nb: int, max_condition: float = DEFAULT_MAX_CONDITION):
+        self.row_gram, self.input_gram = row_gram, input_gram
+        self.r, self.u, self.z, self.d = r, u, z, d
+        self.layout, self.na, self.nb = layout, na, nb
+        self.max_condition = max_condition
+        self.row_means = np.concatenate([r.mean(axis=0), z.mean(axis=0)])
+        self.input_means = np.concatenate([u.mean(axis=0), d.mean(axis=0)])
+        scale = np.maximum(np.abs(u).max(axis=0, initial=0.0), 1.0)
+        self._inputs_move = bool(np.all(u.std(axis=0) > 1e-12 * scale))     # as InputDesign.testable
+        self._qr = None
+        self._qr_regs = {}
+        self.fallbacks = []          # names of the regressions refitted by QR
+
+    # -------------------------------------------------------------- helpers
+    @property
+    def qr(self) -> QrRegressions:
+        if self._qr is None:
+            self._qr = QrRegressions(self.r, self.u, self.z, self.d, self.layout, self.na, self.nb)
+        return self._qr
+
+    def _qr_regression(self, kind: str, channels: tuple) -> SharedBlockRegression:
+        key = (kind, channels)
+        if key not in self._qr_regs:
+            build = self.qr.row_regression if kind == "row" else self.qr.input_regression
+            self._qr_regs[key] = build(list(channels))
+        return self._qr_regs[key]
+
+    def _own_columns(self, gram: LaggedGram, i: int):
+        """Own columns ``-x_i(t-1) .. -x_i(t-na)`` and the target ``x_i(t)`` of output ``i``."""
+        own = [gram.column(1, i, lag) for lag in range(1, self.na + 1)]
+        return own, [-1.0] * len(own), gram.column(1, i, 0)
+
+    def _common(self, kind, channels):
+        gram = self.row_gram if kind == "row" else self.input_gram
+        lags = range(0, self.layout.n_lag_r) if kind == "row" else range(1, self.layout.n_lag_u + 1)
+        return gram, [gram.column(0, c, lag) for c in channels for lag in lags]
+
+    def _regression(self, kind: str, channels: list):
+        gram, cols = self._common(kind, channels)
+        means = self.row_means if kind == "row" else self.input_means
+        g, _ = gram.centred(cols, np.ones(len(cols)), cols, np.ones(len(cols)), means)
+        n_lag = self.layout.n_lag_r if kind == "row" else self.layout.n_lag_u
+        try:
+            reg = GramBlockRegression(g, [n_lag] * len(channels), self.max_condition)
+        except IllConditioned:
+            self.fallbacks.append(f"{kind} regression")
+            return self._qr_regression(kind, tuple(channels))
+        reg.kind, reg.channels, reg.columns = kind, tuple(channels), cols
+        return reg
+
+    def _fit(self, kind: str, reg, i: int):
+        if not isinstance(reg, GramBlockRegression):
+            return (self.qr.row_fit if kind == "row" else self.qr.element_fit)(reg, i)
+        gram = self.row_gram if kind == "row" else self.input_gram
+        means = self.row_means if kind == "row" else self.input_means
+        own, own_signs, target = self._own_columns(gram, i)
+        cols_b = own + [target]
+        signs_b = np.array(own_signs + [1.0])
+        g_cb, _ = gram.centred(reg.columns, np.ones(len(reg.columns)), cols_b, signs_b, means)
+        g_bb, sums_b = gram.centred(cols_b, signs_b, cols_b, signs_b, means)
+        po = len(own)
+        try:
+            return GramFit(reg, g_cb[:, :po], g_bb[:po, :po], g_cb[:, po], g_bb[:po, po], float(g_bb[po, po]),
+                           float(sums_b[po]), gram.n_rows, self.max_condition)
+        except IllConditioned:
+            self.fallbacks.append(f"{kind} fit of output {i}")
+            qr_reg = self._qr_regression(kind, reg.channels)
+            return (self.qr.row_fit if kind == "row" else self.qr.element_fit)(qr_reg, i)
+
+    # -------------------------------------------------------------- the QrRegressions interface
+    def row_regression(self, r_moving: list) -> SharedBlockRegression:
+        """Setpoint lags of the moving setpoints (S_Delta row test)."""
+        return self._regression("row", list(r_moving))
+
+    def row_fit(self, reg, i: int):
+        """ARX of ``z_i`` on the setpoints and its own lags."""
+        return self._fit("row", reg, i)
+
+    def input_regression(self, testable: list) -> SharedBlockRegression:
+        """Input lags of the inputs ``testable`` (Delta element test)."""
+        return self._regression("input", list(testable))
+
+    def element_fit(self, reg, i: int):
+        """ARX of ``d_i`` on the input lags and its own lags."""
+        return self._fit("input", reg, i)
+
+    def short_arx(self, i: int, nk: np.ndarray) -> ArxFit:
+        """The short ARX of ``d_i`` at the delays ``nk`` (the paper's tables)."""
+        na, nb = self.na, self.nb
+        nk = np.asarray(nk, dtype=int)
+        nu = self.u.shape[1]
+        if (not self._inputs_move or np.any(nk < 1) or np.any(nk + nb - 1 > self.layout.n_lag_u)):
+            self.fallbacks.append(f"short ARX of output {i}")
+            return self.qr.short_arx(i, nk)
+        gram = self.input_gram
+        own, own_signs, target = self._own_columns(gram, i)
+        cols = own + [gram.column(0, j, lag) for j in range(nu) for lag in range(nk[j], nk[j] + nb)] + [target]
+        signs = np.array(own_signs + [1.0] * (nu * nb) + [1.0])
+        g, sums = gram.centred(cols, signs, cols, signs, self.input_means)
+        n = gram.n_rows
+        # fit_arx starts at max(na, max(nk) + nb - 1) <= layout.start: add the rows before the Gram's.
+        first = max(na, int(np.max(nk + nb - 1)) if nu else 0)
+        start = self.layout.start
+        if first < start:
+            di = self.d[:, i] - self.d[:, i].mean()
+            u_c = self.u - self.u.mean(axis=0)
+            t = np.arange(first, start)
+            extra = [-di[t - lag] for lag in range(1, na + 1)]
+            extra += [u_c[t - lag, j] for j in range(nu) for lag in range(nk[j], nk[j] + nb)]
+            extra.append(di[t])
+            x = np.column_stack(extra)
+            g = g + x.T @ x
+            sums = sums + x.sum(axis=0)
+            n += start - first
+        try:
+            return gram_arx(g, float(sums[-1]), n, na, nb, nk, self.max_condition)
+        except IllConditioned:
+            self.fallbacks.append(f"short ARX of output {i}")
+            return self.qr.short_arx(i, nk)
+
+
+# ----------------------------------------------------------------------------------------- analyzer
+def _split_signals(ny: int, nu: int):
+    """``signals(block)`` for buffer rows ``[r | u | y | yhat]``: r, u, d = y - yhat, z = eps - r."""
+    def signals(block):
+        r = block[:, :ny]
+        u = block[:, ny:ny + nu]
+        d = block[:, ny + nu:2 * ny + nu] - block[:, 2 * ny + nu:]
+        eps = r - d
+        return {"r": r, "u": u, "d": d, "z": eps - r}
+    return signals
+
+
+class SlidingWindowAnalyzer:
+    """The S_Delta row test and the Delta element test on a sliding window, from sufficient statistics.
+
+    Parameters
+    ----------
+    model : FopdtModel
+        The controller's model ``Phat``; it is run from rest at the first pushed sample.
+    options : AnalysisOptions
+        As for :func:`mpm_monitor.analysis.analyze` (``initial_state`` is not used).
+    window : int
+        ``W``, the number of most recent samples analysed (at least the tests' minimum for this
+        model and these options).
+    update_block : int
+        Samples are folded into the Gram matrices in blocks of this many (one matrix product per
+        block); 1 updates at every sample.  :meth:`analyze` always folds in every pending sample.
+    refresh_interval : int or None
+        Rebuild the Gram matrices from the window buffer after this many samples (bounds rounding
+        drift and re-centres the reference); None: ``window``; 0: only when needed (mean drift,
+        or rebuilding cheaper than updating).
+    max_condition : float
+        Regressions with a larger condition bound are refitted by QR (see the module docstring).
+
+    Notes
+    -----
+    Memory: the window buffer holds ``window + slack`` rows of ``3 n_outputs + n_inputs`` float64
+    channels (``slack = max(update_block, window // 4, 64)``), plus two Gram matrices whose size
+    depends on the plant and the lags but not on ``window``; :meth:`memory_bytes` reports both.
+    """
+
+    def __init__(self, model: FopdtModel, options: AnalysisOptions = AnalysisOptions(), window: int = 3000, *,
+                 update_block: int = 16, refresh_interval: Optional[int] = None,
+                 max_condition: float = DEFAULT_MAX_CONDITION):
+        self.model = model
+        self.options = options
+        self.layout = regression_layout(model, options)
+        if isinstance(window, bool) or int(window) != window or window < self.layout.min_samples:
+            raise ConfigurationError(f"window: expected an integer >= {self.layout.min_samples} samples (the tests' "
+                                     f"minimum with na={options.na}, nb={options.nb}, "
+                                     f"max_delay={self.layout.max_delay}), got {window!r}")
+        if isinstance(update_block, bool) or int(update_block) != update_block or not 1 <= update_block <= window:
+            raise ConfigurationError(f"update_block: expected an integer in [1, window={window}], got {update_block!r}")
+        if refresh_interval is not None and (int(refresh_interval) != refresh_interval or refresh_interval < 0):
+            raise ConfigurationError(f"refresh_interval: expected an integer >= 0 samples or None, "
+                                     f"got {refresh_interval!r}")
+        if not (max_condition > 1.0):
+            raise ConfigurationError(f"max_condition: expected a number > 1, got {max_condition!r}")
+        self.window = int(window)
+        self.update_block = int(update_block)
+        self.refresh_interval = self.window if refresh_interval is None else int(refresh_interval)
+        self.max_condition = float(max_condition)
+        ny, nu, na = model.n_outputs, model.n_inputs, options.na
+        self.ny, self.nu = ny, nu
+        lay = self.layout
+        signals = _split_signals(ny, nu)
+        self.row_gram = LaggedGram([("r", ny, range(0, lay.n_lag_r)), ("z", ny, range(0, na + 1))], signals)
+        self.input_gram = LaggedGram([("u", nu, range(1, lay.n_lag_u + 1)), ("d", ny, range(0, na + 1))], signals)
+        self._slack = max(self.update_block, self.window // 4, 64)
+        self.predictor = ModelPredictor(model)
+        self.buffer = _WindowBuffer(3 * ny + nu, self.window, self._slack)
+        self.last_fallbacks: list = []
+        self.rebuilds = 0
+        self.reset()
+
+    # -------------------------------------------------------------- state
+    def reset(self) -> None:
+        """Forget every sample and put the model back to rest."""
+        self.predictor.reset()
+        self.buffer.first = self.buffer.count = 0
+        self._pushed = 0
+        self._since_rebuild = 0
+        self._stale = True
+        for g in (self.row_gram, self.input_gram):
+            g.clear()
+        self._pending = 0
+
+    @property
+    def total_samples(self) -> int:
+        """Samples pushed since the start (or the last :meth:`reset`)."""
+        return self._pushed
+
+    @property
+    def n_samples(self) -> int:
+        """Samples in the window (``min(total_samples, window)``)."""
+        return min(self._pushed, self.window)
+
+    @property
+    def ready(self) -> bool:
+        """Enough samples for :meth:`analyze`."""
+        return self.n_samples >= self.layout.min_samples
+
+    def memory_bytes(self) -> dict:
+        """Bytes held: ``buffer`` (grows with the window and the channels) and ``gram`` (does not)."""
+        gram = sum(g.gram.nbytes + g.sums.nbytes for g in (self.row_gram, self.input_gram))
+        return {"buffer": int(self.buffer.data.nbytes), "gram": int(gram)}
+
+    # -------------------------------------------------------------- input
+    def _checked(self, r, u, y, n=None):
+        """``r, u, y`` as float arrays of the expected shapes, all finite; else :class:`DataFileError`."""
+        out = []
+        for name, value, width in (("setpoint", r, self.ny), ("input", u, self.nu), ("output", y, self.ny)):
+            arr = np.asarray(value, dtype=float)
+            shape = (width,) if n is None else (n, width)
+            if arr.shape != shape:
+                raise DataFileError(f"{name}: expected shape {shape}, got {arr.shape}")
+            out.append(arr)
+        if n is None:
+            joined = np.concatenate(out)
+            if not np.isfinite(joined).all():
+                bad = [name for name, arr in zip(("setpoint", "input", "output"), out) if not np.isfinite(arr).all()]
+                raise DataFileError(f"{bad[0]}: values contain NaN or infinity")
+            return joined
+        for name, arr in zip(("setpoint", "input", "output"), out):
+            if not np.isfinite(arr).all():
+                raise DataFileError(f"{name}: values contain NaN or infinity")
+        return out
+
+    def push(self, r, u, y) -> None:
+        """Add one sample ``r(k)``, ``u(k)``, ``y(k)`` (shapes (n_outputs,), (n_inputs,), (n_outputs,))."""
+        ruy = self._checked(r, u, y)
+        if self.buffer.free() < 1:
+            self._flush()
+            self.buffer.compact()
+        m = ruy.shape[0]
+        row = self.buffer.data[self.buffer.count]
+        row[:m] = ruy
+        row[m:] = self.predictor.step(ruy[self.ny:self.ny + self.nu])
+        self.buffer.count += 1
+        self._after_append(1)
+
+    def push_many(self, r, u, y) -> None:
+        """Add samples in time order: ``r``, ``y`` of shape (n, n_outputs), ``u`` of shape (n, n_inputs)."""
+        shape = np.shape(r)
+        n = shape[0] if len(shape) == 2 else -1
+        r, u, y = self._checked(r, u, y, n)
+        for a in range(0, n, self._slack):
+            b = min(a + self._slack, n)
+            if self.buffer.free() < b - a:
+                self._flush()
+                self.buffer.compact()
+            yhat = self.predictor.run(u[a:b])
+            self.buffer.append(np.hstack([r[a:b], u[a:b], y[a:b], yhat]))
+            self._after_append(b - a)
+
+    def _after_append(self, k: int) -> None:
+        self._pushed += k
+        self._pending += k
+        self._since_rebuild += k
+        if self._pending >= self.update_block:
+            self._flush()
+
+    # -------------------------------------------------------------- statistics
+    def _row_range(self):
+        end = self._pushed
+        first = max(0, end - self.window)
+        lo = first + self.layout.start
+        return (lo, end) if end > lo else (lo, lo)
+
+    def _window_means(self):
+        first = max(0, self._pushed - self.window)
+        block = self.buffer.rows(first, self._pushed)
+        return [g.channel_values(block).mean(axis=0) for g in (self.row_gram, self.input_gram)]
+
+    def _rebuild(self) -> None:
+        lo, hi = self._row_range()
+        means = self._window_means() if self._pushed else [np.zeros(g.n_channels)
+                                                          for g in (self.row_gram, self.input_gram)]
+        for g, m in zip((self.row_gram, self.input_gram), means):
+            g.rebuild(self.buffer, lo, hi, m)
+        self._since_rebuild = 0
+        self._stale = False
+        self.rebuilds += 1
+
+    def _flush(self) -> None:
+        """Fold every pending sample into the Gram matrices (or rebuild them)."""
+        self._pending = 0
+        lo, hi = self._row_range()
+        g = self.row_gram
+        n_add, n_remove = hi - g.hi, lo - g.lo
+        due = self.refresh_interval and self._since_rebuild >= self.refresh_interval
+        if self._stale or due or g.hi < lo or n_add + n_remove >= hi - lo:
+            self._rebuild()
+            return
+        for gram in (self.row_gram, self.input_gram):
+            gram.update(self.buffer, (gram.hi, hi), (gram.lo, lo))
+
+    def gram_drift(self) -> float:
+        """Largest difference between the kept Gram matrices and a rebuild, relative to its largest entry."""
+        self._flush()
+        out = 0.0
+        for g in (self.row_gram, self.input_gram):
+            fresh = LaggedGram([(n, c, lags) for n, c, lags in g.groups], g.signals)
+            fresh.rebuild(self.buffer, g.lo, g.hi, g.ref)
+            kept, ref = g.symmetric(), fresh.symmetric()
+            scale = max(np.abs(ref).max(initial=0.0), 1e-300)
+            out = max(out, float(np.abs(kept - ref).max(initial=0.0)) / scale)
+        return out
+
+    # -------------------------------------------------------------- analysis
+    def window_data(self):
+        """The current window: (LoggedData, LoopSignals), copies.
+
+        ``LoopSignals.x0`` is empty: the model state is not kept per sample.
+        """
+        first = max(0, self._pushed - self.window)
+        block = self.buffer.rows(first, self._pushed)
+        ny, nu = self.ny, self.nu
+        r, u, y, yhat = (np.ascontiguousarray(block[:, a:b]) for a, b in
+                         ((0, ny), (ny, ny + nu), (ny + nu, 2 * ny + nu), (2 * ny + nu, 3 * ny + nu)))
+        d = y - yhat
+        eps = r - d
+        ts = self.model.sample_time
+        data = LoggedData(t=np.arange(first, self._pushed) * ts, r=r, u=u, y=y, inputs=self.model.inputs,
+                          outputs=self.model.outputs, sample_time=ts, source="sliding window")
+        return data, LoopSignals(yhat=yhat, d=d, eps=eps, x0=np.zeros(0))
+
+    def analyze(self) -> AnalysisReport:
+        """The analysis of the current window (see :func:`mpm_monitor.analysis.analyze`).
+
+        Raises
+        ------
+        DataFileError
+            When the window holds fewer samples than the tests need (see :attr:`ready`).
+        """
+        self._flush()
+        data, sig = self.window_data()
+        if data.n_samples < self.layout.min_samples:
+            raise DataFileError(f"sliding window: {data.n_samples} samples; the tests need at least "
+                                f"{self.layout.min_samples} samples")
+        z = sig.eps - data.r
+        if self._means_drifted(data, sig, z):
+            self._rebuild()
+        regs = GramRegressions(self.row_gram, self.input_gram, data.r, data.u, z, sig.d, self.layout,
+                               self.options.na, self.options.nb, self.max_condition)
+        report = analyze(self.model, data, self.options, signals=sig, regressions=regs)
+        self.last_fallbacks = list(regs.fallbacks)
+        return report
+
+    def _means_drifted(self, data, sig, z) -> bool:
+        for g, arrays in ((self.row_gram, (data.r, z)), (self.input_gram, (data.u, sig.d))):
+            x = np.hstack(arrays)
+            mean = x.mean(axis=0)
+            shift = np.abs(mean - g.ref)
+            if np.any(shift > MEAN_DRIFT_LIMIT * x.std(axis=0) + 1e-9 * (np.abs(mean) + np.abs(g.ref)) + 1e-300):
+                return True
+        return False
