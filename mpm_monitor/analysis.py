@@ -489,6 +489,7 @@ def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = Anal
     reg_r = regs.row_regression(r_moving)
     omega = frequency_grid(options.band, options.n_freq)
     z1 = np.exp(-1j * omega)
+    z_pow = z1[:, None] ** np.arange(max(n_lag_r, na + 1))     # z^-l, shape (n_freq, lags)
     S = np.zeros((omega.size, ny, ny), dtype=complex)
     row_raw_p = np.full(ny, np.nan)
     row_stat, row_df, row_fit = np.full(ny, np.nan), [(0, 0)] * ny, np.zeros(ny)
@@ -497,11 +498,11 @@ def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = Anal
         test = fit.test_all_common_zero()
         row_raw_p[i], row_stat[i], row_df[i] = test.p_value, test.statistic, (test.df_num, test.df_den)
         a = fit.own_theta()
-        a_poly = 1.0 + sum(a[k] * z1 ** (k + 1) for k in range(na))
+        a_poly = 1.0 + z_pow[:, 1:na + 1] @ a
         S[:, i, i] = 1.0
         for bj, j in enumerate(r_moving):
             c = fit.block_theta(bj)
-            S[:, i, j] += sum(c[l] * z1 ** l for l in range(n_lag_r)) / a_poly
+            S[:, i, j] += (z_pow[:, :n_lag_r] @ c) / a_poly
         # Fit of the paper's ARX of eps_i on r (same model, target eps_i).
         e_i = sig.eps[start:, i] - sig.eps[start:, i].mean()
         row_fit[i] = 100.0 * (1.0 - math.sqrt(fit.rss) / max(np.linalg.norm(e_i), 1e-300))
