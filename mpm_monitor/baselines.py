@@ -64,6 +64,9 @@ from .errors import ConfigurationError, InputError
 #: mismatch) plus a few samples of dynamics.
 DEFAULT_MAX_LAG = 20
 
+#: Smallest number of lags the default ``max_lag`` is reduced to on short data.
+MIN_AUTO_LAG = 5
+
 #: Largest AR order tried when prewhitening a signal; the order is chosen by BIC.
 DEFAULT_MAX_AR_ORDER = 12
 
@@ -157,12 +160,25 @@ def _check_inputs(d, u, alpha, max_lag):
                          f"u shape {u_arr.shape}")
     n = d_arr.shape[0]
     if max_lag is None:
-        lag = DEFAULT_MAX_LAG
+        lag = None
     else:
         if isinstance(max_lag, bool) or int(max_lag) != max_lag or max_lag < 1:
             raise ConfigurationError(f"max_lag: expected an integer >= 1 (samples), got {max_lag!r}")
         lag = int(max_lag)
     return d_arr, u_arr, alpha_f, lag, n
+
+
+def _auto_lag(lag, n, largest_fitting, warnings):
+    """``lag`` if given; else :data:`DEFAULT_MAX_LAG`, reduced (>= ``MIN_AUTO_LAG``) to fit ``n`` samples."""
+    if lag is not None:
+        return lag
+    fit = int(largest_fitting)
+    if fit >= DEFAULT_MAX_LAG:
+        return DEFAULT_MAX_LAG
+    lag = max(MIN_AUTO_LAG, fit)
+    warnings.append(f"only {n} samples: lags 1..{lag} tested instead of 1..{DEFAULT_MAX_LAG}; a mismatch with a "
+                    f"longer dead time may go unseen")
+    return lag
 
 
 def _require_samples(n, needed, what):
@@ -337,8 +353,9 @@ def cross_correlation_test(d, u, alpha: float = 0.01, max_lag: Optional[int] = N
     alpha : float
         Family-wise false-alarm level over all ``n_outputs * n_inputs`` elements, in (0, 1).
     max_lag : int, optional
-        ``L``, the largest lag tested (samples, >= 1); default :data:`DEFAULT_MAX_LAG`.  It must
-        cover the dead time of the mismatch plus some of its dynamics.
+        ``L``, the largest lag tested (samples, >= 1); default :data:`DEFAULT_MAX_LAG`, reduced
+        (with a warning, not below :data:`MIN_AUTO_LAG`) when there are fewer than ``10 L``
+        samples.  It must cover the dead time of the mismatch plus some of its dynamics.
     max_ar_order : int
         Largest AR order of the prewhitening filters (BIC selection).
 
@@ -351,7 +368,7 @@ def cross_correlation_test(d, u, alpha: float = 0.01, max_lag: Optional[int] = N
     ------
     InputError
         ``d`` or ``u`` not 2-D numeric finite arrays with the same number of samples, or fewer
-        than ``10 * max_lag`` samples.
+        than ``10 * max_lag`` samples (``10 * MIN_AUTO_LAG`` with the default).
     ConfigurationError
         ``alpha`` outside (0, 1) or ``max_lag`` not a positive integer.
 
@@ -365,6 +382,8 @@ def cross_correlation_test(d, u, alpha: float = 0.01, max_lag: Optional[int] = N
     are not protected against this leakage.
     """
     d, u, alpha, lag, n = _check_inputs(d, u, alpha, max_lag)
+    notes = []
+    lag = _auto_lag(lag, n, n // 10, notes)
     _require_samples(n, 10 * lag, f"the cross-correlation test with max_lag={lag}")
     ny, nu = d.shape[1], u.shape[1]
     dw, uw, start, d_const, u_const = _whiten_all(d, u, max_ar_order)
@@ -390,7 +409,7 @@ def cross_correlation_test(d, u, alpha: float = 0.01, max_lag: Optional[int] = N
     adj = holm_adjust(p)
     return ElementTestResult(p_values=p, mismatch=adj <= alpha, statistic=stat, method="xcorr", max_lag=lag,
                              alpha=alpha, adjusted_p_values=adj, n_used=m,
-                             warnings=tuple(_constant_warnings(d_const, u_const)))
+                             warnings=tuple(notes + _constant_warnings(d_const, u_const)))
 
 
 def input_separability(u: np.ndarray, max_lag: int) -> np.ndarray:
@@ -480,7 +499,9 @@ def partial_correlation_test(d, u, alpha: float = 0.01, max_lag: Optional[int] =
     alpha : float
         Family-wise false-alarm level over all elements, in (0, 1).
     max_lag : int, optional
-        ``L``, the largest lag (samples, >= 1); default :data:`DEFAULT_MAX_LAG`.
+        ``L``, the largest lag (samples, >= 1); default :data:`DEFAULT_MAX_LAG`, reduced (with a
+        warning, not below :data:`MIN_AUTO_LAG`) when the samples do not allow five per
+        regressor.
     max_ar_order : int
         Largest AR order of the prewhitening filters (BIC selection).
     own_lags : int
@@ -514,12 +535,14 @@ def partial_correlation_test(d, u, alpha: float = 0.01, max_lag: Optional[int] =
             f"separability_threshold: expected a number in [0, 1), got {separability_threshold!r}")
     own_lags = int(own_lags)
     ny, nu = d.shape[1], u.shape[1]
+    notes = []
+    lag = _auto_lag(lag, n, (n - 5 * own_lags - max_ar_order) // (5 * nu + 2), notes)
     n_reg = nu * lag + own_lags
     _require_samples(n, 5 * n_reg + 2 * lag + max_ar_order,
                      f"the partial correlation test with {nu} inputs and max_lag={lag}")
     d_const = np.array([_is_constant(d[:, i]) for i in range(ny)])
     u_const = np.array([_is_constant(u[:, j]) for j in range(nu)])
-    warnings = _constant_warnings(d_const, u_const)
+    warnings = notes + _constant_warnings(d_const, u_const)
     active = np.flatnonzero(~u_const)
     uc = u[:, active] - u[:, active].mean(axis=0)
     separability = np.zeros(nu)

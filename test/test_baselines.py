@@ -238,3 +238,14 @@ def test_partial_correlation_option_errors():
         partial_correlation_test(d, u, own_lags=-1)
     with pytest.raises(ConfigurationError, match=r"separability_threshold: expected a number in \[0, 1\)"):
         partial_correlation_test(d, u, separability_threshold=1.0)
+
+
+@pytest.mark.parametrize("test", TESTS, ids=lambda f: f.__name__)
+def test_default_max_lag_shrinks_on_short_data(test):
+    """The default L = 20 does not fit 150 samples of 2 inputs: fewer lags are tested, with a warning."""
+    rng = np.random.default_rng(12)
+    res = test(rng.standard_normal((150, 2)), rng.standard_normal((150, 2)))
+    assert 5 <= res.max_lag < 20
+    assert any("only 150 samples" in w for w in res.warnings)
+    with pytest.raises(InputError, match="needs at least"):
+        test(rng.standard_normal((30, 2)), rng.standard_normal((30, 2)))
