@@ -16,7 +16,11 @@ Nothing is silently mis-aligned:
 * when a later sample is complete ``reorder_samples`` samples ahead of an incomplete one, the
   incomplete samples are given up as a ``gap`` and the window restarts after it, because the
   analysis needs equally spaced samples;
-* a vector of the wrong length or with a non-finite value is a ``bad_value``.
+* a vector of the wrong length or with a non-finite value is a ``bad_value``;
+* when more than ``reorder_samples + 1`` (at least 3) output vectors in a row are refused (late,
+  off the grid, duplicate or conflicting) while no sample completes, the stream has restarted
+  (stamps jumped back, or a new grid phase after a publisher restart): the alignment starts again
+  from the refused vectors, reported as a ``restart``, and the window restarts empty.
 
 With ``hold_setpoint`` the setpoint is treated as piecewise constant (a stack that publishes its
 setpoints only when they change): sample ``k`` takes the latest setpoint stamped at or before its
@@ -43,7 +47,9 @@ _SLOT = {c: i for i, c in enumerate(CHANNELS)}
 #: Problem kinds that mean the data itself is wrong (the monitor reports them as ERROR).
 ERROR_KINDS = frozenset({"bad_value", "conflict", "off_grid"})
 #: Problem kinds that cost samples but not correctness (reported in the summary's values).
-WARNING_KINDS = frozenset({"gap", "duplicate", "late", "out_of_order"})
+WARNING_KINDS = frozenset({"gap", "duplicate", "late", "out_of_order", "restart"})
+#: Fewest refused output vectors in a row (with no sample completed) taken as a stream restart.
+MIN_RESTART_OUTPUTS = 3
 
 NS_PER_S = 1_000_000_000
 
@@ -132,6 +138,7 @@ class WindowHealth:
     gaps: int = 0
     missing_samples: int = 0
     resets: int = 0
+    restarts: int = 0
 
     def copy(self) -> "WindowHealth":
         return dataclasses.replace(self, received=dict(self.received))
@@ -184,6 +191,11 @@ class SampleWindow:
         self._health = WindowHealth()
         self._problems: list = []
         self._since_reset = 0
+        # restart detection: vectors refused since the last completed sample (replayed on a restart)
+        self._restart_after = max(MIN_RESTART_OUTPUTS, int(options.reorder_samples) + 2)
+        self._refused: collections.deque = collections.deque(maxlen=3 * self._restart_after + 3)
+        self._refused_outputs = 0
+        self._accepted = False
 
     # ------------------------------------------------------------------------------ properties
     @property
@@ -269,7 +281,24 @@ class SampleWindow:
             self._health.out_of_order += 1
             self._problem("out_of_order", channel, stamp_ns,
                           f"{channel}: t = {stamp_ns / NS_PER_S:.9g} s arrived after t = {last / NS_PER_S:.9g} s")
-        self._last_stamp[channel] = stamp_ns if last is None else max(last, stamp_ns)
+        # the previous stamp, not the largest: one stamp far in the future must not make every
+        # later vector out of order
+        self._last_stamp[channel] = stamp_ns
+        self._accepted = False
+        n = self._route(channel, stamp_ns, v)
+        if n:
+            self._refused.clear()
+            self._refused_outputs = 0
+        elif not self._accepted and self._phase is not None:
+            self._refused.append((channel, stamp_ns, v))
+            if channel == "output":
+                self._refused_outputs += 1
+                if self._refused_outputs >= self._restart_after:
+                    n += self._restart(stamp_ns)
+        return n
+
+    def _route(self, channel: str, stamp_ns: int, v: np.ndarray) -> int:
+        """Place a checked vector (or keep it until the first output gives the grid phase)."""
         if self._phase is None:
             if channel != "output":
                 self._early.append((channel, stamp_ns, v))
@@ -277,6 +306,7 @@ class SampleWindow:
                     self._early.pop(0)
                 return 0
             self._phase = stamp_ns % self._period
+            self._accepted = True
             n = self._place(channel, stamp_ns, v)
             early, self._early = self._early, []
             for ch, st, val in early:
@@ -322,6 +352,7 @@ class SampleWindow:
     def _place(self, channel: str, stamp_ns: int, v: np.ndarray) -> int:
         slot = _SLOT[channel]
         if channel == "setpoint" and self.options.hold_setpoint:
+            self._accepted = True
             self._setpoints.append((stamp_ns, v))
             if len(self._setpoints) > self.options.max_pending:
                 self._setpoints.popleft()
@@ -348,6 +379,7 @@ class SampleWindow:
                               f"(the first is kept; two publishers on one topic?)")
             return 0
         entry[slot] = v
+        self._accepted = True
         if self._is_complete(k, entry):
             self._complete.add(k)
         if len(self._pending) > self.options.max_pending:
@@ -465,6 +497,36 @@ class SampleWindow:
             self._problem("gap", "", self._stamp_of(oldest),
                           f"sample t = {self._stamp_of(oldest) / NS_PER_S:.9g} s given up: no {' and no '.join(absent)} "
                           f"after {self.options.max_pending} newer incomplete samples")
+
+    def _restart(self, stamp_ns: int) -> int:
+        """Forget the alignment (grid phase, pending samples, window; not the counters) and place
+        the refused vectors again, as the start of a new stream."""
+        if self._next_k is not None:
+            expected = self._stamp_of(self._next_k) / NS_PER_S
+            where = f"the latest at t = {stamp_ns / NS_PER_S:.9g} s while t = {expected:.9g} s was expected"
+        else:
+            where = f"the latest at t = {stamp_ns / NS_PER_S:.9g} s"
+        self._health.restarts += 1
+        self._problem("restart", "output", stamp_ns,
+                      f"stream restarted: {self._refused_outputs} output vectors in a row did not fit the sample "
+                      f"grid, {where} (publisher restart or clock jump); the window restarts from the new stamps")
+        replay = list(self._refused)
+        self._refused.clear()
+        self._refused_outputs = 0
+        self._phase = None
+        self._early = []
+        self._pending = {}
+        self._complete = set()
+        self._next_k = None
+        if self._setpoints:  # hold mode: keep the setpoints after the last jump back
+            sp = list(self._setpoints)
+            cut = max((i + 1 for i in range(len(sp) - 1) if sp[i + 1][0] < sp[i][0]), default=0)
+            self._setpoints = collections.deque(sp[cut:])
+        self._reset_window()
+        n = 0
+        for ch, st, val in replay:
+            n += self._route(ch, st, val)
+        return n
 
     def _reset_window(self) -> None:
         if self._count:

@@ -1,0 +1,359 @@
+"""Robustness of the live monitor (issue 7, item 1): bad data in, clear diagnostics out, recovery.
+
+Three levels, fastest first:
+
+* the sample aligner (:class:`~mpm_monitor.window.SampleWindow`), fed stamps in integer
+  nanoseconds: NaN/Inf, wrong lengths, stamps out of order, duplicated, far in the future or past,
+  gaps, a publisher restart (stamps jump back or move to a new grid phase).  Invariant checked on
+  every window handed to the analysis: equally spaced stamps on one grid, finite values, each
+  sample's values those sent for that stamp (nothing interpolated, nothing mis-aligned);
+* the monitor core (:class:`~mpm_monitor.monitor_core.MonitorCore`) with an injected wall clock:
+  which status says what, STALE naming the silent topic, ERROR with the reason, recovery;
+* the node (:class:`~mpm_monitor.nodes.monitor_node.MonitorNode`) in a private context, its
+  subscription callbacks called directly with constructed ``JointState`` messages (wrong names,
+  lengths, non-finite values), and a model file that does not load.
+"""
+
+import numpy as np
+import pytest
+
+from mpm_monitor.monitor_core import (ERROR, OK, STALE, SUMMARY_NAME, WARN, AnalysisOutcome, MonitorCore,
+                                      MonitorOptions, row_status_name)
+from mpm_monitor.window import SampleWindow, WindowOptions
+
+NS = 1_000_000_000
+OUT = ("y1", "y2")
+INP = ("u1", "u2", "u3")
+
+
+def values(k):
+    """Distinct values per sample (r, u, y) so that any mis-alignment shows."""
+    k = float(k)
+    return np.array([k, -k]) + 0.1, np.array([k, 2 * k, 3 * k]) + 0.2, np.array([k, k * k]) + 0.3
+
+
+def send(w, k, stamp=None, order=("setpoint", "input", "output"), vals=None):
+    r, u, y = values(k) if vals is None else vals
+    v = {"setpoint": r, "input": u, "output": y}
+    st = k * NS if stamp is None else stamp
+    return sum(w.add(ch, st, v[ch]) for ch in order)
+
+
+def assert_window_consistent(w, value_of=values):
+    """Equally spaced, on the grid, finite, and sample i holds exactly what was sent for its stamp."""
+    d = w.data()
+    if d.n_samples == 0:
+        return d
+    ts = w.sample_time
+    np.testing.assert_allclose(np.diff(d.t), ts, rtol=0, atol=1e-9)
+    for arr in (d.r, d.u, d.y):
+        assert np.all(np.isfinite(arr))
+    for i, t in enumerate(d.t):
+        r, u, y = value_of(t / ts)
+        np.testing.assert_array_equal(d.r[i], r)
+        np.testing.assert_array_equal(d.u[i], u)
+        np.testing.assert_array_equal(d.y[i], y)
+    return d
+
+
+def kinds(w):
+    return [p.kind for p in w.take_problems()]
+
+
+# ------------------------------------------------------------------------------ the sample aligner
+
+def test_publisher_restart_with_stamps_jumping_back_restarts_the_window():
+    """A simulation restarted from t = 0 while the monitor runs: reported once as a restart, and
+    the new stream fills a fresh window from its first sample (none of it is lost)."""
+    w = SampleWindow(OUT, INP, 1.0, WindowOptions(window_samples=50))
+    for k in range(100, 130):
+        send(w, k)
+    kinds(w)
+    for k in range(0, 40):
+        send(w, k)
+    problems = w.take_problems()
+    restarts = [p for p in problems if p.kind == "restart"]
+    assert len(restarts) == 1
+    assert "t = 130 s was expected" in restarts[0].message and "restart" in restarts[0].message
+    d = assert_window_consistent(w)
+    np.testing.assert_array_equal(d.t, np.arange(0, 40.0))   # the whole new stream, nothing of the old
+    h = w.health()
+    assert h.restarts == 1 and h.completed == 30 + 40
+    # good data keep coming: the window slides on normally
+    for k in range(40, 100):
+        assert send(w, k) == 1
+    assert w.take_problems() == [] and w.n_window == 50
+
+
+def test_publisher_restart_with_held_setpoints_restarts_the_window():
+    """hold_setpoint mode (setpoints only on change): the setpoints sent before the jump back are
+    not used for the new stream."""
+    w = SampleWindow(OUT, INP, 1.0, WindowOptions(window_samples=50, hold_setpoint=True))
+    r_old, r_new = np.array([5.0, 5.0]), np.array([-1.0, -1.0])
+    w.add("setpoint", 100 * NS, r_old)
+    for k in range(100, 130):
+        send(w, k, order=("input", "output"))
+    w.add("setpoint", 0, r_new)
+    for k in range(0, 40):
+        send(w, k, order=("input", "output"))
+    assert [p.kind for p in w.take_problems()].count("restart") == 1
+    d = w.data()
+    np.testing.assert_array_equal(d.t, np.arange(0, 40.0))
+    assert np.all(d.r == r_new)
+
+
+def test_publisher_restart_on_a_new_grid_phase_restarts_the_window():
+    """A wall-clock publisher restarted half a sample later: its stamps are all off the old grid."""
+    w = SampleWindow(OUT, INP, 1.0, WindowOptions(window_samples=50))
+    for k in range(30):
+        send(w, k)
+    for k in range(30, 60):
+        send(w, k, stamp=k * NS + NS // 2)
+    problems = w.take_problems()
+    assert [p.kind for p in problems].count("restart") == 1
+    assert any(p.kind == "off_grid" for p in problems)          # reported (ERROR) before the restart
+    d = assert_window_consistent(w, value_of=lambda kk: values(kk - 0.5))
+    np.testing.assert_array_equal(d.t, np.arange(30, 60) + 0.5)
+
+
+def test_one_stamp_far_in_the_future_costs_nothing_and_is_reported_once():
+    w = SampleWindow(OUT, INP, 1.0, WindowOptions(window_samples=50))
+    for k in range(30):
+        send(w, k)
+    w.add("output", 10**9 * NS, values(0)[2])     # a corrupted stamp, 30 years ahead
+    w.add("input", -(10**9) * NS, values(0)[1])   # and one as far in the past (late)
+    for k in range(30, 60):
+        assert send(w, k) == 1
+    ks = kinds(w)
+    assert ks.count("out_of_order") == 2 and ks.count("late") == 1 and "restart" not in ks
+    assert_window_consistent(w)
+    assert w.n_window == 50 and w.health().missing_samples == 0
+
+
+def test_a_whole_sample_far_in_the_future_is_a_gap_then_the_stream_recovers():
+    """All three topics glitch to one stamp 11 days ahead: the window follows it (a gap), then good
+    data return and the window restarts on them."""
+    w = SampleWindow(OUT, INP, 1.0, WindowOptions(window_samples=50))
+    for k in range(30):
+        send(w, k)
+    send(w, 10**6)
+    for k in range(30, 80):
+        send(w, k)
+    ks = kinds(w)
+    assert "gap" in ks and ks.count("restart") == 1
+    d = assert_window_consistent(w)
+    assert d.t[-1] == 79.0 and d.n_samples >= 30
+
+
+@pytest.mark.parametrize("bad", [np.array([np.nan, 1.0]), np.array([1.0, np.inf]), np.array([-np.inf, 0.0]),
+                                 np.array([1.0]), np.array([1.0, 2.0, 3.0]), np.zeros(0)])
+def test_bad_values_are_excluded_and_the_sample_becomes_a_gap(bad):
+    """A NaN/Inf or wrong-length output at sample 10 is refused (ERROR kind); sample 10 is then a
+    gap and the window restarts after it (never bridged by interpolation)."""
+    w = SampleWindow(OUT, INP, 1.0, WindowOptions(window_samples=100, reorder_samples=3))
+    for k in range(10):
+        send(w, k)
+    r, u, _ = values(10)
+    w.add("setpoint", 10 * NS, r)
+    w.add("input", 10 * NS, u)
+    w.add("output", 10 * NS, bad)
+    for k in range(11, 30):
+        send(w, k)
+    problems = w.take_problems()
+    assert problems[0].kind == "bad_value" and problems[0].is_error and "t = 10 s" in problems[0].message
+    assert [p.kind for p in problems[1:]] == ["gap"] and "no output" in problems[1].message
+    d = assert_window_consistent(w)
+    np.testing.assert_array_equal(d.t, np.arange(11, 30.0))   # only after the gap
+    assert w.health().bad_value == 1 and w.health().missing_samples == 1
+
+
+def test_a_gap_is_never_bridged():
+    """Samples 20..24 never arrive: the window holds only samples after the gap."""
+    w = SampleWindow(OUT, INP, 1.0, WindowOptions(window_samples=100, reorder_samples=2))
+    for k in list(range(20)) + list(range(25, 40)):
+        send(w, k)
+    problems = w.take_problems()
+    assert [p.kind for p in problems] == ["gap"] and "5 sample(s) missing from t = 20 s" in problems[0].message
+    d = assert_window_consistent(w)
+    np.testing.assert_array_equal(d.t, np.arange(25, 40.0))
+
+
+def test_out_of_order_within_the_reorder_limit_loses_nothing():
+    w = SampleWindow(OUT, INP, 1.0, WindowOptions(window_samples=100, reorder_samples=5))
+    order = [0, 1, 3, 2, 4, 8, 5, 7, 6, 9, 10]
+    for k in order:
+        send(w, k, order=("output", "setpoint", "input") if k % 2 else ("input", "output", "setpoint"))
+    d = assert_window_consistent(w)
+    np.testing.assert_array_equal(d.t, np.arange(11.0))
+    assert set(kinds(w)) == {"out_of_order"}
+
+
+def test_duplicates_keep_the_first_and_conflicts_are_errors():
+    w = SampleWindow(OUT, INP, 1.0, WindowOptions(window_samples=100))
+    for k in range(10):
+        send(w, k)
+        send(w, k, order=("output",))                                # same values again
+    r, u, y = values(10)
+    send(w, 10, vals=(r, u, y + 1.0), order=("output",))
+    send(w, 10, order=("setpoint", "input", "output"))             # a second, different output
+    problems = w.take_problems()
+    assert sum(p.kind == "duplicate" for p in problems) == 10
+    conflicts = [p for p in problems if p.kind == "conflict"]
+    assert len(conflicts) == 1 and conflicts[0].is_error
+    # the first output (y + 1) was kept: it is what the sample holds
+    np.testing.assert_array_equal(w.data().y[-1], y + 1.0)
+
+
+def test_stamps_far_in_the_past_at_start_work():
+    """Negative and tiny stamps (a clock starting at 0 or before the epoch) are just stamps."""
+    w = SampleWindow(OUT, INP, 0.001, WindowOptions(window_samples=100))
+    for k in range(-50, 50):
+        r, u, y = values(k)
+        st = k * 1_000_000
+        w.add("setpoint", st, r), w.add("input", st, u), w.add("output", st, y)
+    d = w.data()
+    assert d.n_samples == 100 and d.t[0] == pytest.approx(-0.05) and w.take_problems() == []
+
+
+# ------------------------------------------------------------------------------------- the core
+
+class FakeReport:
+    """The parts of an AnalysisReport the statuses read."""
+
+    def __init__(self, outputs, flags=()):
+        class Row:
+            def __init__(self, o, m):
+                self.output, self.rsi, self.mismatch, self.p_value = o, 2.0 if m else 1.0, m, 1e-9 if m else 0.5
+
+        self.rows = [Row(o, o in flags) for o in outputs]
+        self.elements, self.warnings, self.overall_rsi = [], [], 1.0
+
+
+def make_core(**kw):
+    from mpm_monitor.model import FopdtModel
+
+    model = FopdtModel(sample_time=1.0, inputs=INP, outputs=OUT, gain=np.ones((2, 3)),
+                       time_constant=np.ones((2, 3)), delay=np.zeros((2, 3)))
+    win = WindowOptions(window_samples=kw.pop("window_samples", 50), reorder_samples=kw.pop("reorder_samples", 3))
+    opts = dict(analysis_period=10, min_samples=20, stale_timeout=2.0)
+    opts.update(kw)
+    return MonitorCore(model, MonitorOptions(window=win, **opts))
+
+
+def core_send(c, k, now, stamp=None, vals=None, order=("setpoint", "input", "output")):
+    r, u, y = values(k) if vals is None else vals
+    v = {"setpoint": r, "input": u, "output": y}
+    return sum(c.add(ch, k * NS if stamp is None else stamp, v[ch], now) for ch in order)
+
+
+def analyse_if_due(c, flags=()):
+    """Run a fake analysis when one is due; check the job's window; return the job or None."""
+    if not c.analysis_due():
+        return None
+    job = c.take_job()
+    d = job.data
+    np.testing.assert_allclose(np.diff(d.t), 1.0, atol=1e-9)
+    for i, t in enumerate(d.t):
+        np.testing.assert_array_equal(d.y[i], values(t)[2])
+    c.accept(AnalysisOutcome(job, report=FakeReport(OUT, flags)))
+    return job
+
+
+def by_name(statuses):
+    return {s.name: s for s in statuses}
+
+
+def test_a_silent_topic_turns_every_status_stale_naming_it_then_recovers():
+    c = make_core()
+    now = 0.0
+    for k in range(30):
+        now += 0.1
+        core_send(c, k, now)
+        analyse_if_due(c)
+    assert all(s.level == OK for s in c.statuses(now))
+    # the input topic stops; setpoint and output go on
+    for k in range(30, 60):
+        now += 0.1
+        core_send(c, k, now, order=("setpoint", "output"))
+    st = by_name(c.statuses(now))
+    assert all(s.level == STALE for s in st.values())
+    msg = st[SUMMARY_NAME].message
+    assert "no complete sample for" in msg and "input 3.0 s ago" in msg and "output 0.0 s ago" in msg
+    # the input comes back: statuses fresh again, the missing samples reported as a gap, the new
+    # window holds only samples after it
+    for k in range(60, 100):
+        now += 0.1
+        core_send(c, k, now)
+        analyse_if_due(c)
+    st = by_name(c.statuses(now))
+    assert all(s.level == OK for s in st.values())
+    values_ = dict(st[SUMMARY_NAME].values)
+    assert int(values_["missing_samples"]) >= 30 and int(values_["gaps"]) >= 1
+    assert c.latest_outcome.job.first_stamp >= 60.0
+
+
+def test_bad_data_give_error_with_the_reason_and_clear_after_a_clean_period():
+    c = make_core()
+    now = 0.0
+    for k in range(25):
+        now += 0.1
+        core_send(c, k, now)
+        analyse_if_due(c)
+    c.add("output", 25 * NS, np.array([np.nan, 1.0]), now)
+    c.bad_message("input", "input: channel names do not match the model: missing 'u3'", now)
+    st = by_name(c.statuses(now))
+    assert st[SUMMARY_NAME].level == ERROR
+    assert "bad input data" in st[SUMMARY_NAME].message and "missing 'u3'" in st[SUMMARY_NAME].message
+    for k in range(26, 60):
+        now += 0.1
+        core_send(c, k, now)
+        analyse_if_due(c)
+    st = by_name(c.statuses(now))
+    assert st[SUMMARY_NAME].level == OK, st[SUMMARY_NAME].message
+    assert dict(st[SUMMARY_NAME].values)["bad_messages"] == "2"
+
+
+def test_a_restart_is_reported_and_the_next_analysis_sees_only_the_new_stream():
+    c = make_core()
+    now = 0.0
+    for k in range(100, 140):
+        now += 0.1
+        core_send(c, k, now)
+        analyse_if_due(c, flags=("y1",))
+    assert by_name(c.statuses(now))[row_status_name("y1")].level == WARN
+    jobs = []
+    for k in range(0, 40):
+        now += 0.1
+        core_send(c, k, now)
+        job = analyse_if_due(c)
+        if job is not None:
+            jobs.append(job)
+    assert jobs and all(j.first_stamp < 100 for j in jobs)   # never mixes the two streams
+    st = by_name(c.statuses(now))
+    v = dict(st[SUMMARY_NAME].values)
+    assert v["restarts"] == "1" and "stream restarted" in v["last_data_problem"]
+    assert st[row_status_name("y1")].level == OK                # the new stream's result
+
+
+def test_an_analysis_that_raises_is_error_with_the_reason_and_the_core_goes_on():
+    from mpm_monitor.monitor_core import run_analysis
+
+    c = make_core()
+    now = 0.0
+
+    def broken(model, data, options):
+        raise np.linalg.LinAlgError("SVD did not converge")
+
+    for k in range(25):
+        now += 0.1
+        core_send(c, k, now)
+    job = c.take_job()
+    c.accept(run_analysis(broken, c.model, None, job))
+    st = by_name(c.statuses(now))
+    assert st[SUMMARY_NAME].level == ERROR
+    assert "analysis failed: LinAlgError: SVD did not converge" in st[SUMMARY_NAME].message
+    for k in range(25, 45):
+        now += 0.1
+        core_send(c, k, now)
+        analyse_if_due(c)
+    assert all(s.level == OK for s in c.statuses(now))
