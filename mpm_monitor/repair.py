@@ -18,21 +18,33 @@ control engineer's next questions (paper section 4, "type and severity" of each 
    in closed loop where ``u`` is correlated with ``v`` (Ljung section 13.4, the "direct approach").
    ``phi`` holds the free responses of the row's states (the data may start mid-operation) and an
    offset.  The gains and ``c`` enter linearly and are eliminated by variable projection (Golub and
-   Pereyra, 1973); the poles ``a_j`` and ``alpha`` are found by ``scipy.optimize.least_squares``;
-   the input lag ``L_j`` (delay plus one sample for a lagged element) by a search on the integer
-   grid around the model's value.
-3. **Confidence.**  Gain and time-constant intervals from the Jacobian of the full residual
-   (``cov = s^2 (J'J)^-1``); the delay interval from the profile likelihood-ratio statistic
-   ``n ln(SSR_L / SSR_best)`` against chi-square(1).  A parameter changed "significantly" when the
-   model's value lies outside its interval *and* the change is larger than
-   ``min_relative_change``.  The kind follows: gain, time_constant, delay, several -> mixed, a
-   model gain of 0 -> missing, nothing significant -> unknown (and the element is kept).
-4. **Validation.**  Fitted on the first part of the record; accepted only when the row's RMS
-   prediction error on the held-out last part is lower than with the model as given.
+   Pereyra, 1973); the poles ``a_j`` are found by ``scipy.optimize.least_squares`` with ``A(q)``
+   held, alternating with a least-squares fit of ``A(q)`` to the output error (generalized least
+   squares, Ljung section 10.2); the input lag ``L_j`` (delay plus one sample for a lagged
+   element) by a coordinate search on the integer grid around the model's value.
+3. **Kind.**  On the whole record, every parameter of a located element is tested against the
+   model's value by a likelihood-ratio test: the row is refitted with that parameter held and
+   ``n ln(SSR_held / SSR_free)`` compared with chi-square(1) (Ljung section 16.5); the delay by
+   its profile over the lag grid.  A parameter changed when the test rejects at
+   ``1 - confidence_level`` *and* the change exceeds ``min_relative_change``.  The kind follows:
+   one changed parameter -> gain, time_constant or delay; several -> mixed; a model gain of 0 with
+   a significant fitted gain -> missing; nothing -> unknown (the element is kept).  The likelihood
+   ratio, unlike a Wald test on the Jacobian, does not depend on the parametrization, which
+   matters along the ridge where gain and time constant trade off (inputs that move together).
+   The verdict's ``confidence`` is ``min over the tests of 1 - min(p/alpha, alpha/p)``: 0 when a
+   p-value sits on the threshold, near 1 when every test is clear.
+4. **Repair and validation.**  Only the changed parameters are refitted (all three for a missing
+   element), on the first ``1 - holdout_fraction`` of the record; intervals at
+   ``confidence_level`` come from the Jacobian of the full residual (``cov = s^2 (J'J)^-1``) for
+   gain and time constant, from the profile statistic for the delay.  The repair is accepted only
+   when the row's RMS prediction error on the held-out last part is lower than with the model as
+   given; then it is refitted on the whole record.
 5. **Unexplained disturbances.**  On every output, the (repaired) residual is tested for a level
    shift (sup-Wald test over the break date, Andrews 1993, p-values from the approximation of
    Estrella 2003) and for a linear drift (Wald test), each in a regression with AR(p) terms that
-   absorb the coloured noise.  These are reported and never turned into element changes.
+   absorb the coloured noise.  These are reported and never turned into element changes; when one
+   shows on a repaired row, that row is re-estimated with the step (ramp) as a nuisance regressor
+   so that it does not bias the elements.
 """
 
 from __future__ import annotations
@@ -304,6 +316,9 @@ class _RowProblem:
         Estimate the free responses (the initial state) of the row.
     noise_order : int
         ``p`` of ``A(q)``.
+    extra : ndarray, shape (n_samples, n_extra), optional
+        Nuisance regressors for an unmeasured disturbance (a step, a ramp), filtered by ``A(q)``
+        like the output, so that the disturbance is never absorbed by an element.
 
     Notes
     -----
@@ -312,8 +327,9 @@ class _RowProblem:
     with another (free) coefficient, and the cost window starts at ``skip + p``.
     """
 
-    def __init__(self, z, u, specs, n_fit, skip, fixed_poles, free_response, noise_order):
+    def __init__(self, z, u, specs, n_fit, skip, fixed_poles, free_response, noise_order, extra=None):
         self.z = np.asarray(z, float)[:n_fit]
+        self.extra = None if extra is None else np.asarray(extra, float).reshape(len(z), -1)[:n_fit]
         self.u = np.asarray(u, float)[:n_fit]
         self.specs = list(specs)
         self.n_fit = int(n_fit)
@@ -346,6 +362,12 @@ class _RowProblem:
             self.uf = signal.lfilter(num, [1.0], self.u, axis=0)
         else:
             self.zf, self.uf = self.z, self.u
+        self.xf = None if self.extra is None else self._filtered_extra(self.ar)
+
+    def _filtered_extra(self, ar):
+        if self.p == 0:
+            return self.extra[self.start:]
+        return signal.lfilter(np.concatenate([[1.0], ar]), [1.0], self.extra, axis=0)[self.start:]
 
     def poles_from(self, x):
         poles = np.array([s.pole for s in self.specs], float)
@@ -357,7 +379,7 @@ class _RowProblem:
         base = signal.lfilter([1.0 - pole], [1.0, -pole], src[:self.n_fit - lag, m])
         return base[self.start - lag:]
 
-    def _design(self, poles, lags, src):
+    def _design(self, poles, lags, src, filtered=True):
         known = np.zeros(self.kw.shape[0])
         gcols = []
         for m, spec in enumerate(self.specs):
@@ -369,6 +391,8 @@ class _RowProblem:
         cols = gcols + [self.fixed_cols]
         if self.free:
             cols.append(np.column_stack([poles[m] ** self.kw for m in range(self.n_located)]))
+        if self.extra is not None:
+            cols.append(self.xf if filtered else self.extra[self.start:])
         return known, np.column_stack(cols)
 
     @staticmethod
@@ -417,7 +441,7 @@ class _RowProblem:
         """Re-estimate ``A(q)`` by least squares on the unfiltered output error of ``fit``."""
         if self.p == 0:
             return
-        known, phi = self._design(fit.poles, fit.lags, self.u)
+        known, phi = self._design(fit.poles, fit.lags, self.u, filtered=False)
         ng = len(self.gain_free_idx)
         r = self.z[self.start:] - known - phi[:, :ng] @ fit.gains[self.gain_free_idx]
         nuis = phi[:, ng:]
@@ -443,6 +467,8 @@ class _RowProblem:
         cols = [self.fixed_cols]
         if self.free:
             cols.append(np.column_stack([poles[m] ** self.kw for m in range(self.n_located)]))
+        if self.extra is not None:
+            cols.append(self._filtered_extra(ar))
         return out - np.column_stack(cols) @ nuis
 
     def covariance(self, fit: _Fit):
@@ -846,7 +872,6 @@ def repair_model(model: FopdtModel, data: LoggedData, located: Sequence[tuple],
     holdout_after = {}
 
     rows = sorted({i for i, _ in located})
-    new_model = model
     changes, kinds = [], {}
     min_fit = max(200, 20 * (2 * nu + options.noise_order + 5))
     if located and n_fit < min_fit:
@@ -860,60 +885,98 @@ def repair_model(model: FopdtModel, data: LoggedData, located: Sequence[tuple],
         warnings.append("No held-out data (holdout_fraction = 0): the repair was not validated on data "
                         "outside the fit.")
 
-    for i in rows:
+    def process_row(i, extra):
+        """Classify, fit, validate and (optionally) refit the located elements of row ``i``."""
         js = [j for (ii, j) in located if ii == i]
-        row_result = _repair_row(model, u, y, i, js, n_fit, options, zcrit, chi_crit, alpha)
-        warnings.extend(row_result["warnings"])
+        row = _repair_row(model, u, y, i, js, n_fit, options, zcrit, chi_crit, alpha, extra)
+        row_warnings = list(row["warnings"])
+        elements = row["elements"]
+        h_after = None
         candidate = model
-        for j, el in row_result["elements"].items():
+        for j, el in elements.items():
             if el["apply"]:
                 candidate = candidate.with_element(i, j, **el["after"])
-        accepted_row = any(el["apply"] for el in row_result["elements"].values())
-        if accepted_row and n_hold > 0:
+        accepted = any(el["apply"] for el in elements.values())
+        if accepted and n_hold > 0:
             sig_c = compute_signals(candidate, data.r, u, y, initial_state=options.initial_state)
             h_after = _rms(sig_c.d[hold, i])
             h_before = holdout_before[names_y[i]]
-            holdout_after[names_y[i]] = h_after
             if not h_after < h_before * (1.0 - options.min_holdout_improvement):
-                accepted_row = False
-                warnings.append(
-                    f"{names_y[i]}: the re-estimated element(s) "
-                    f"{', '.join(names_u[j] for j in js)} did not predict the held-out last "
-                    f"{100 * options.holdout_fraction:.0f}% of the record better (RMS error {h_after:.4g} vs "
-                    f"{h_before:.4g} with the model as given); the elements are kept as they were.")
-                for el in row_result["elements"].values():
+                accepted = False
+                row_warnings.append(
+                    f"{names_y[i]}: the re-estimated element(s) {', '.join(names_u[j] for j in js)} did not "
+                    f"predict the held-out last {100 * options.holdout_fraction:.0f}% of the record better (RMS "
+                    f"error {h_after:.4g} vs {h_before:.4g} with the model as given); the elements are kept as "
+                    f"they were.")
+                for el in elements.values():
                     if el["apply"]:
-                        el["apply"] = False
-                        el["fitted_kind"] = el["kind"]
-                        el["kind"] = "unknown"
-                        el["confidence"] = 0.0
-                        el["reason"] = "rejected by held-out validation"
-        if accepted_row and options.refit_on_all and n_hold > 0:
-            keep = {j: el for j, el in row_result["elements"].items() if el["apply"]}
-            for j, upd in _refit_row(model, u, y, i, keep, n, options, zcrit, chi_crit).items():
+                        el.update(apply=False, fitted_kind=el["kind"], kind="unknown", confidence=0.0,
+                                  reason="rejected by held-out validation")
+        if accepted and options.refit_on_all and n_hold > 0:
+            keep = {j: el for j, el in elements.items() if el["apply"]}
+            for j, upd in _refit_row(model, u, y, i, keep, n, options, zcrit, chi_crit, extra).items():
                 keep[j]["after"] = upd["after"]
                 keep[j]["interval"] = upd["interval"]
-        for j, el in row_result["elements"].items():
-            if el["apply"] and accepted_row:
-                new_model = new_model.with_element(i, j, **el["after"])
-            else:
+        if not accepted:
+            for el in elements.values():
                 el["apply"] = False
+        return {"elements": elements, "warnings": row_warnings, "holdout_after": h_after}
+
+    def build(results):
+        repaired = model
+        for i, res in results.items():
+            for j, el in res["elements"].items():
+                if el["apply"]:
+                    repaired = repaired.with_element(i, j, **el["after"])
+        return repaired
+
+    def residual(repaired):
+        if repaired == model:
+            return signals
+        return compute_signals(repaired, data.r, u, y, initial_state=options.initial_state)
+
+    def disturbance_tests(d):
+        return {i: unexplained_disturbance(d[:, i], ts, options.disturbance_alpha, options.disturbance_trim,
+                                           options.noise_order) for i in range(ny)}
+
+    results = {i: process_row(i, None) for i in rows}
+    new_model = build(results)
+    sig_after = residual(new_model)
+    tests = disturbance_tests(np.asarray(sig_after.d, float))
+    # A step or drift on a repaired row would bias its elements: redo the row with the disturbance as a
+    # nuisance regressor (it stays in the residual: the model has no place for it).
+    redo = [i for i in rows if tests[i]["detected"]]
+    for i in redo:
+        t = tests[i]
+        k = np.arange(n, dtype=float)
+        col = (k >= round(t["time"] / ts)).astype(float) if t["kind"] == "step" else k / n
+        results[i] = process_row(i, col[:, None])
+        results[i]["warnings"].append(
+            f"{names_y[i]}: the re-estimation of its elements allowed for the unexplained "
+            f"{'step' if t['kind'] == 'step' else 'drift'} in the prediction error.")
+    if redo:
+        new_model = build(results)
+        sig_after = residual(new_model)
+        tests = disturbance_tests(np.asarray(sig_after.d, float))
+
+    for i in rows:
+        res = results[i]
+        warnings.extend(res["warnings"])
+        if res["holdout_after"] is not None:
+            holdout_after[names_y[i]] = res["holdout_after"]
+        for j, el in res["elements"].items():
             kinds[(i, j)] = el["kind"]
             entry = {"output": names_y[i], "input": names_u[j], "kind": el["kind"],
                      "before": model.element(i, j),
                      "after": el["after"] if el["apply"] else model.element(i, j),
-                     "estimate": el["after"],
-                     "confidence": el["confidence"],
-                     "interval": el["interval"], "applied": bool(el["apply"]),
-                     "evidence": el["evidence"]}
+                     "estimate": el["after"], "confidence": el["confidence"],
+                     "interval": el["interval"], "applied": bool(el["apply"]), "evidence": el["evidence"]}
             if "fitted_kind" in el:
                 entry["fitted_kind"] = el["fitted_kind"]
             if el.get("reason"):
                 entry["reason"] = el["reason"]
             changes.append(entry)
 
-    sig_after = compute_signals(new_model, data.r, u, y, initial_state=options.initial_state) \
-        if new_model is not model else signals
     d1 = np.asarray(sig_after.d, float)
     error_after = {names_y[i]: _rms(d1[:, i]) for i in range(ny)}
     fit_after = {names_y[i]: _fit_percent(y[:, i], sig_after.yhat[:, i]) for i in range(ny)}
@@ -923,13 +986,12 @@ def repair_model(model: FopdtModel, data: LoggedData, located: Sequence[tuple],
 
     disturbances = []
     for i in range(ny):
-        test = unexplained_disturbance(d1[:, i], ts, options.disturbance_alpha, options.disturbance_trim,
-                                       options.noise_order)
+        test = tests[i]
         if not test["detected"]:
             continue
-        entry = {"output": names_y[i], "kind": test["kind"], "size": test["size"], "time": test["time"],
-                 "rate": test["rate"], "p_value": test["p_value"], "statistic": test["statistic"]}
-        disturbances.append(entry)
+        disturbances.append({"output": names_y[i], "kind": test["kind"], "size": test["size"],
+                             "time": test["time"], "rate": test["rate"], "p_value": test["p_value"],
+                             "statistic": test["statistic"]})
         if test["kind"] == "step":
             warnings.append(
                 f"{names_y[i]}: the prediction error shifts by {test['size']:+.3g} at about t = {test['time']:.0f} s "
@@ -959,7 +1021,7 @@ def _unchanged_entry(model, i, j, reason):
             "confidence": 0.0, "interval": None, "applied": False, "evidence": {}, "reason": reason}
 
 
-def _estimate_row(model, u, y, i, specs: dict, n_fit, options, lags0: dict, max_sweeps, skip=None):
+def _estimate_row(model, u, y, i, specs: dict, n_fit, options, lags0: dict, max_sweeps, skip=None, extra=None):
     """Fit the located elements ``specs`` (``{input index: _ElementSpec}``) of row ``i``.
 
     The row's other elements are held at the model's values.  ``skip`` (samples left out at the
@@ -978,7 +1040,7 @@ def _estimate_row(model, u, y, i, specs: dict, n_fit, options, lags0: dict, max_
     if skip is None:
         skip = max([specs[j].window[1] for j in js] + row_lags + [1])
     problem = _RowProblem(z, u[:, js], [specs[j] for j in js], n_fit, skip, fixed_poles,
-                          options.initial_state == "estimate", options.noise_order)
+                          options.initial_state == "estimate", options.noise_order, extra)
     est = _search_row(problem, [lags0[j] for j in js], max_sweeps)
     return problem, est
 
@@ -1000,7 +1062,7 @@ def _element_summary(problem, est, m, ts, zcrit, chi_crit):
     return after, interval, (k_hat, se_k, a_hat, se_a)
 
 
-def _lr_hold(model, u, y, i, specs, est, m_hold, what, n_use, options, skip):
+def _lr_hold(model, u, y, i, specs, est, m_hold, what, n_use, options, skip, extra=None):
     """Likelihood-ratio statistic of holding one parameter of a located element.
 
     The row is refitted with element ``m_hold``'s ``what`` ("gain", "pole" or "absent") held at the
@@ -1025,11 +1087,11 @@ def _lr_hold(model, u, y, i, specs, est, m_hold, what, n_use, options, skip):
                 sp_new.gain_free, sp_new.gain, sp_new.pole_free = False, 0.0, False
         held[j] = sp_new
         lags[j] = lag
-    _, est_h = _estimate_row(model, u, y, i, held, n_use, options, lags, 1, skip=skip)
+    _, est_h = _estimate_row(model, u, y, i, held, n_use, options, lags, 1, skip=skip, extra=extra)
     return max(est_h.fit.n_resid * math.log(max(est_h.fit.ssr, 1e-300) / max(est.fit.ssr, 1e-300)), 0.0)
 
 
-def _repair_row(model, u, y, i, js, n_fit, options, zcrit, chi_crit, alpha):
+def _repair_row(model, u, y, i, js, n_fit, options, zcrit, chi_crit, alpha, extra=None):
     """Classify the located elements ``js`` of row ``i`` and fit their repair on samples ``0 .. n_fit-1``.
 
     Stage 1 (whole record, the most evidence) frees gain, time constant and delay of every located
@@ -1066,7 +1128,7 @@ def _repair_row(model, u, y, i, js, n_fit, options, zcrit, chi_crit, alpha):
             specs[j] = _ElementSpec(True, True, 0.0, _pole_of(base_tau, ts), (1, max_row_lag + s))
         lags0[j] = lag
         lag_orig[j] = _element_lag(tau[i, j], nd[i, j])
-    problem, est = _estimate_row(model, u, y, i, specs, n_all, options, lags0, options.max_sweeps)
+    problem, est = _estimate_row(model, u, y, i, specs, n_all, options, lags0, options.max_sweeps, extra=extra)
     skip1 = problem.start - problem.p
     verdicts = {}
     for m, j in enumerate(js):
@@ -1076,16 +1138,16 @@ def _repair_row(model, u, y, i, js, n_fit, options, zcrit, chi_crit, alpha):
                     "samples": est.fit.n_resid, "noise_model": [float(v) for v in est.ar]}
         tests = {}
         if before["gain"] == 0:
-            p_k = float(stats.chi2.sf(_lr_hold(model, u, y, i, specs, est, m, "absent", n_all, options, skip1), 1))
+            p_k = float(stats.chi2.sf(_lr_hold(model, u, y, i, specs, est, m, "absent", n_all, options, skip1, extra), 1))
             evidence["p_gain"] = p_k
             tests["missing"] = (p_k < alpha, p_k)
         else:
-            p_k = float(stats.chi2.sf(_lr_hold(model, u, y, i, specs, est, m, "gain", n_all, options, skip1), 1))
+            p_k = float(stats.chi2.sf(_lr_hold(model, u, y, i, specs, est, m, "gain", n_all, options, skip1, extra), 1))
             big = abs(after["gain"] - before["gain"]) > options.min_relative_change * abs(before["gain"])
             evidence["p_gain"] = p_k
             tests["gain"] = (p_k < alpha and big, p_k)
             tau0 = before["time_constant"]
-            p_a = float(stats.chi2.sf(_lr_hold(model, u, y, i, specs, est, m, "pole", n_all, options, skip1), 1))
+            p_a = float(stats.chi2.sf(_lr_hold(model, u, y, i, specs, est, m, "pole", n_all, options, skip1, extra), 1))
             big_t = abs(after["time_constant"] - tau0) > options.min_relative_change * max(tau0, ts)
             evidence["p_time_constant"] = p_a
             tests["time_constant"] = (p_a < alpha and big_t, p_a)
@@ -1132,7 +1194,7 @@ def _repair_row(model, u, y, i, js, n_fit, options, zcrit, chi_crit, alpha):
                                  specs[j].window if free_d else (lag_orig[j], lag_orig[j]))
         lags2[j] = est.fit.lags[m] if free_d else lag_orig[j]
     if specs2:
-        problem2, est2 = _estimate_row(model, u, y, i, specs2, n_fit, options, lags2, 1)
+        problem2, est2 = _estimate_row(model, u, y, i, specs2, n_fit, options, lags2, 1, extra=extra)
         for m, j in enumerate(sorted(specs2)):
             after2, interval2, _ = _element_summary(problem2, est2, m, ts, zcrit, chi_crit)
             sp = specs2[j]
@@ -1150,7 +1212,7 @@ def _repair_row(model, u, y, i, js, n_fit, options, zcrit, chi_crit, alpha):
     return {"elements": verdicts, "warnings": warnings}
 
 
-def _refit_row(model, u, y, i, verdicts: dict, n, options, zcrit, chi_crit):
+def _refit_row(model, u, y, i, verdicts: dict, n, options, zcrit, chi_crit, extra=None):
     """Refit accepted elements on the whole record with the validated structure (lags +-3 samples)."""
     ts = model.sample_time
     specs, lags0 = {}, {}
@@ -1162,7 +1224,7 @@ def _refit_row(model, u, y, i, verdicts: dict, n, options, zcrit, chi_crit):
         specs[j] = _ElementSpec("gain" in changed, "time_constant" in changed, a["gain"],
                                 _pole_of(a["time_constant"], ts), window)
         lags0[j] = lag
-    problem, est = _estimate_row(model, u, y, i, specs, n, options, lags0, 1)
+    problem, est = _estimate_row(model, u, y, i, specs, n, options, lags0, 1, extra=extra)
     out = {}
     for m, j in enumerate(sorted(specs)):
         after, interval, _ = _element_summary(problem, est, m, ts, zcrit, chi_crit)

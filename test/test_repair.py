@@ -296,3 +296,20 @@ def test_disturbance_step_and_drift_are_told_apart():
     assert got["detected"] and got["kind"] == "drift"
     assert got["size"] == pytest.approx(0.15, abs=0.06)
     assert not unexplained_disturbance(base)["detected"]
+
+
+def test_step_on_a_repaired_row_does_not_bias_the_element():
+    """A gain error and an unmeasured step on the same output: the step is reported and kept out
+    of the element (the row is re-estimated with the step as a nuisance regressor)."""
+    sh = _shell()
+    model = sh.with_element(1, 1, gain=4.0)
+    step = np.zeros((N_SAMPLES, 3))
+    step[N_SAMPLES // 2:, 1] = 0.1
+    log = run_closed_loop(sh, model, N_SAMPLES, seed=SEEDS[0], output_disturbance=step)
+    floor = rms(compute_signals(sh, log.r, log.u, log.y).d)
+    res = repair_model(model, as_data(log), [(1, 1)])
+    assert res.kinds == {(1, 1): "gain"}
+    assert res.model.element(1, 1)["gain"] == pytest.approx(5.72, rel=0.10)
+    assert res.error_after["y2"] <= 1.05 * floor[1]
+    assert [(d["output"], d["kind"]) for d in res.disturbances] == [("y2", "step")]
+    assert any("allowed for the unexplained step" in w for w in res.warnings)
