@@ -118,7 +118,7 @@ def _cmd_analyze(args) -> int:
     import numpy as np
 
     from .analysis import analyze
-    from .data_io import read_csv
+    from .data_io import check_scale, read_csv
     from .model import load_model, save_model
 
     model = load_model(args.model)
@@ -130,10 +130,10 @@ def _cmd_analyze(args) -> int:
 
         topics = tuple(args.topics) if args.topics else ("setpoint", "input", "output")
         data = read_bag(args.bag, model, topics=topics, progress=sys.stderr.isatty())
-    _check_scale(args, model, data)
+    check_scale(model, data, model_source=args.model)
     try:
         report = analyze(model, data, options)
-    except (np.linalg.LinAlgError, FloatingPointError, OverflowError) as exc:  # backstop of _check_scale
+    except (np.linalg.LinAlgError, FloatingPointError, OverflowError) as exc:  # backstop of check_scale
         raise InputError(f"{data.source}: the analysis broke down numerically with model {args.model} "
                          f"({_one_line(exc)}): values or model parameters too large or degenerate?") from None
     doc = report.to_dict()
@@ -151,33 +151,6 @@ def _cmd_analyze(args) -> int:
 
         write_report(args.report, model, data, report)
     return 0
-
-
-#: Largest |value| x max(1, |gain|) the analysis takes: the least-squares fits square the signals,
-#: and float64 overflows near 1e308 (the results are scale-invariant up to about 1e150).
-MAX_SCALE = 1e150
-
-
-def _check_scale(args, model, data) -> None:
-    """Refuse data (or model gains) so large that the squares in the analysis overflow float64."""
-    import numpy as np
-
-    gain = float(np.max(np.abs(model.gain))) if model.gain.size else 0.0
-    for name, arr in (("setpoint", data.r), ("input", data.u), ("output", data.y)):
-        arr = np.abs(np.asarray(arr, dtype=float))
-        if arr.size == 0:
-            continue
-        k, j = np.unravel_index(int(np.argmax(arr)), arr.shape)
-        peak = float(arr[k, j])
-        if peak * max(1.0, gain) > MAX_SCALE:
-            channel = (model.inputs if name == "input" else model.outputs)[j]
-            if peak > MAX_SCALE:
-                why = ""
-            else:
-                why = f" with gains up to {gain:.3g} in {args.model}"
-            raise InputError(f"{data.source}: {name} '{channel}' at t = {float(data.t[k]):g} s is {peak:.3g}{why}: "
-                             f"too large for the analysis (|value| x max(1, |gain|) at most {MAX_SCALE:g}); "
-                             f"rescale the units")
 
 
 def _one_line(exc: BaseException) -> str:

@@ -150,8 +150,11 @@ def _bool(b) -> str:
 def run_analysis(analyze: Callable, model: FopdtModel, options, job: AnalysisJob,
                  clock: Callable[[], float] = time.perf_counter) -> AnalysisOutcome:
     """Run ``analyze(model, job.data, options)`` and wrap its report or its error."""
+    from .data_io import check_scale
+
     t0 = clock()
     try:
+        check_scale(model, job.data)  # a sentinel like 1e308 would give a silent all-clear
         report = analyze(model, job.data, options)
     except Exception as exc:  # the monitor reports any failure as ERROR and keeps running
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__

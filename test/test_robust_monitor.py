@@ -357,3 +357,24 @@ def test_an_analysis_that_raises_is_error_with_the_reason_and_the_core_goes_on()
         core_send(c, k, now)
         analyse_if_due(c)
     assert all(s.level == OK for s in c.statuses(now))
+
+
+def test_a_sentinel_value_like_1e308_is_error_not_a_silent_all_clear():
+    """Finite but absurd values (a sensor's 'bad value' sentinel) pass the aligner; the analysis
+    refuses them with the channel and time instead of returning a meaningless no-mismatch."""
+    from mpm_monitor.analysis import AnalysisOptions, analyze
+    from mpm_monitor.monitor_core import run_analysis
+
+    c = make_core(window_samples=300, min_samples=200, analysis_period=100)
+    rng = np.random.default_rng(0)
+    for k in range(200):
+        r, u, y = rng.normal(size=2), rng.normal(size=3), rng.normal(size=2)
+        if k == 150:
+            y[1] = 1e308
+        for ch, v in (("setpoint", r), ("input", u), ("output", y)):
+            c.add(ch, k * NS, v, 0.0)
+    outcome = run_analysis(analyze, c.model, AnalysisOptions(repair=False), c.take_job())
+    c.accept(outcome)
+    summary = by_name(c.statuses(0.0))[SUMMARY_NAME]
+    assert summary.level == ERROR
+    assert "output 'y2' at t = 150 s is 1e+308" in summary.message and "too large" in summary.message
