@@ -536,7 +536,8 @@ def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = Anal
             warnings.append(f"row {out_name}: inputs {', '.join(g)} jointly explain part of its prediction error "
                             f"(p={p:.2g}) but cannot be told apart from these data")
     else:
-        elements = _baseline_element_test(model, u, sig.d, options)
+        elements, base_warnings = _baseline_element_test(model, u, sig.d, options)
+        warnings.extend(base_warnings)
         for i in range(ny):
             if any(e.mismatch for e in elements if e.output == model.outputs[i]):
                 if not rows[i].mismatch:
@@ -719,14 +720,18 @@ def _baseline_element_test(model, u, d, options):
 
     fn = cross_correlation_test if options.method == "xcorr" else partial_correlation_test
     res = fn(d, u, alpha=options.alpha)
+    adjusted = res.adjusted_p_values if res.adjusted_p_values is not None else res.p_values
     elements = []
     for i in range(model.n_outputs):
         for j in range(model.n_inputs):
-            p = float(res.p_values[i, j])
+            amb = bool(res.ambiguous[i, j]) if res.ambiguous is not None else False
+            p_raw, p_adj = float(res.p_values[i, j]), float(adjusted[i, j])
             elements.append(ElementResult(output=model.outputs[i], input=model.inputs[j],
-                                          mismatch=bool(res.mismatch[i, j]), p_value=p, p_value_raw=p,
-                                          statistic=float(res.statistic[i, j])))
-    return elements
+                                          mismatch=bool(res.mismatch[i, j]) and not amb,
+                                          p_value=None if amb or not np.isfinite(p_adj) else p_adj,
+                                          p_value_raw=p_raw if np.isfinite(p_raw) else None,
+                                          statistic=float(res.statistic[i, j]), ambiguous=amb))
+    return elements, list(res.warnings or [])
 
 
 def _rms(d: np.ndarray, names) -> dict:
