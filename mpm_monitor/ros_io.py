@@ -223,6 +223,9 @@ class ParamSpec:
         Inclusive range of an ``int`` or ``double``.
     choices : tuple of str or None
         Allowed values of a ``string``.
+    numbers_as_text : bool
+        A ``string`` that may also be given as a number (``-p case:=3.2``): declared with dynamic
+        typing and the number turned into its text (``"3.2"``).
     """
 
     name: str
@@ -232,6 +235,7 @@ class ParamSpec:
     low: Optional[float] = None
     high: Optional[float] = None
     choices: Optional[tuple] = None
+    numbers_as_text: bool = False
 
     def check(self, value):
         """Return ``value`` converted to the parameter's Python type or raise :class:`ConfigurationError`."""
@@ -257,6 +261,8 @@ class ParamSpec:
                                          f"got {value!r}")
             return value
         if self.kind == "string":
+            if self.numbers_as_text and isinstance(value, (int, float)) and not isinstance(value, bool):
+                value = format(value, "g")
             if not isinstance(value, str):
                 raise ConfigurationError(f"parameter {n}: expected a string, got {value!r}")
             if self.choices is not None and value not in self.choices:
@@ -284,6 +290,8 @@ def descriptor(spec: ParamSpec):
 
     d = ParameterDescriptor(name=spec.name, type=getattr(ParameterType, _PARAM_TYPES[spec.kind]),
                             description=spec.description)
+    if spec.numbers_as_text:
+        d.dynamic_typing = True
     if spec.choices:
         d.additional_constraints = "one of: " + ", ".join(spec.choices)
     if spec.kind == "int" and spec.low is not None:
@@ -459,5 +467,5 @@ def resolve_model(model_file: str, case: str, which: str = "model"):
 MODEL_PARAMS = (
     ParamSpec("model_file", "string", "", "Model file (YAML, CONTRACTS section 1); '' = use the paper case."),
     ParamSpec("case", "string", "", "Paper case used when model_file is '' (3.1, 3.2 or 3.3).",
-              choices=("", "3.1", "3.2", "3.3")),
+              choices=("", "3.1", "3.2", "3.3"), numbers_as_text=True),
 )

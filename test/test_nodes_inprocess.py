@@ -249,3 +249,68 @@ def test_a_bad_parameter_is_refused_with_its_name():
             _monitor(ctx, "/param2", window_samples=3)
     finally:
         ctx.try_shutdown()
+
+
+def test_wall_clock_mode_runs_and_the_monitor_holds_the_setpoints(tmp_path):
+    """Timer-driven plant and setpoints on the wall clock (50 Hz model), MPC and monitor holding setpoints."""
+    from mpm_monitor.demo import _overrides
+    from mpm_monitor.model import FopdtModel, save_model
+    from mpm_monitor.nodes.monitor_node import MonitorNode
+    from mpm_monitor.nodes.mpc_node import MpcNode
+    from mpm_monitor.nodes.plant_node import PlantNode
+    from mpm_monitor.nodes.setpoint_node import SetpointNode
+
+    ts = 0.02
+    model = FopdtModel(sample_time=ts, inputs=("u1", "u2"), outputs=("y1", "y2"), gain=[[1.0, 0.3], [0.2, 1.0]],
+                       time_constant=[[0.5, 0.6], [0.4, 0.5]], delay=[[0.04, 0.06], [0.04, 0.02]])
+    path = str(tmp_path / "fast.yaml")
+    save_model(model, path)
+    seen = []
+
+    def count_analysis(m, data, options):
+        seen.append(data)
+        from types import SimpleNamespace
+        return SimpleNamespace(rows=[SimpleNamespace(output=o, rsi=1.0, mismatch=False, p_value=0.5)
+                                     for o in m.outputs], elements=[], overall_rsi=1.0, warnings=[])
+
+    ctx = private_context()
+    ns = "/wall"
+    kw = dict(context=ctx, namespace=ns)
+    nodes = [PlantNode(parameter_overrides=_overrides({"model_file": path, "lock_step": False,
+                                                        "publish_clock": False, "autostart": False}), **kw),
+             SetpointNode(parameter_overrides=_overrides({"model_file": path, "trigger": "timer", "mode": "step",
+                                                          "hold_samples": 20}), **kw),
+             MpcNode(parameter_overrides=_overrides({"model_file": path, "hold_setpoint": True,
+                                                     "prediction_horizon": 50, "control_horizon": 10}), **kw),
+             MonitorNode(parameter_overrides=_overrides({"model_file": path, "hold_setpoint": True,
+                                                         "window_samples": 100, "min_samples": 100,
+                                                         "analysis_period": 50}),
+                         analyze=count_analysis, **kw)]
+    plant, setpoint, mpc, monitor = nodes
+    ex = make_executor(ctx)
+    for nd in nodes:
+        ex.add_node(nd)
+    try:
+        assert spin_until(ex, lambda: plant._pub.get_subscription_count() >= 2
+                          and mpc._pub.get_subscription_count() >= 2
+                          and setpoint._pub.get_subscription_count() >= 2, 20.0)
+        t0 = time.monotonic()
+        plant.start()
+        assert spin_until(ex, lambda: len(seen) >= 2, 20.0), monitor.core.window.health()
+        elapsed = time.monotonic() - t0
+        # real time: 150 samples of 20 ms take about 3 s (not as fast as possible)
+        assert elapsed > 150 * ts * 0.8
+        data = seen[-1]
+        assert data.n_samples == 100
+        np.testing.assert_allclose(np.diff(data.t), ts, atol=1e-6)  # on the plant nominal grid (float s of epoch time)
+        assert set(np.unique(data.r)) <= {-1.0, 1.0}                   # held step setpoints
+        h = monitor.core.window.health()
+        assert h.off_grid == 0 and h.conflict == 0 and h.bad_value == 0
+        assert h.gaps <= 1  # only the samples before the first setpoint, if any
+    finally:
+        monitor.close()
+        for nd in nodes:
+            ex.remove_node(nd)
+            nd.destroy_node()
+        ex.shutdown()
+        ctx.try_shutdown()

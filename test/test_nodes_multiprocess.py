@@ -123,3 +123,33 @@ def test_separate_processes_locate_case_3_2():
             ex.shutdown()
             ctx.try_shutdown()
         assert launcher.returncode == 0
+
+
+@pytest.mark.parametrize("case", ["3.1", "3.2", "3.3"])
+def test_case_params_files_match_the_paper_cases(case):
+    """config/case_<case>.yaml gives every node the numbers of mpm_monitor.cases (no drift)."""
+    sys.path.insert(0, str(ROOT / "launch_scripts"))
+    from _common import case_params_file, load_params_file
+
+    from mpm_monitor.demo import case_parameters
+
+    loaded = load_params_file(case_params_file(case))
+    expected = case_parameters(case, seed=1)
+    for node, params in expected.items():
+        for key, value in params.items():
+            assert loaded[node][key] == pytest.approx(value), (node, key)
+
+
+def test_node_params_files_declare_only_known_parameters():
+    sys.path.insert(0, str(ROOT / "launch_scripts"))
+    from _common import load_params_file
+
+    from mpm_monitor.nodes import monitor_node, mpc_node, plant_node, setpoint_node
+
+    for name, module in (("plant", plant_node), ("mpc", mpc_node), ("setpoint", setpoint_node),
+                         ("monitor", monitor_node)):
+        declared = {s.name: s for s in module.PARAMS}
+        loaded = load_params_file(ROOT / "config" / f"{name}.yaml")[name]
+        assert set(loaded) <= set(declared)
+        for key, value in loaded.items():
+            declared[key].check(value)  # in range

@@ -87,6 +87,8 @@ class PlantNode(Node):
         self._start_timer = None
         self._tick_timer = None
         self._stall_timer = None
+        self._t0_ns = 0
+        self._expected_stamp = 0
         if p["autostart"]:
             self._start_timer = self.create_timer(0.05, self._try_start, clock=self._steady)
         self.get_logger().info(
@@ -119,14 +121,20 @@ class PlantNode(Node):
                                                   clock=self._steady)
             self._emit()
         else:
+            self._t0_ns = self.get_clock().now().nanoseconds
             self._tick_timer = self.create_timer(self.model.sample_time, self._on_tick)
             self._emit()
 
     # ---------------------------------------------------------------------------- samples
     def _stamp_ns(self) -> int:
+        """Stamp of sample k: ``k Ts`` in simulated time, ``t0 + k Ts`` on the node's clock otherwise.
+
+        In timer mode the stamp is the nominal sampling instant (first tick + k Ts), not the jittered
+        time the callback ran, as a sampled-data system stamps its samples.
+        """
         if self.params["lock_step"] or self.params["publish_clock"]:
             return self.k * self._period
-        return self.get_clock().now().nanoseconds
+        return self._t0_ns + self.k * self._period
 
     def _emit(self) -> None:
         """Publish the clock and y(k)."""
