@@ -378,3 +378,155 @@ def test_a_sentinel_value_like_1e308_is_error_not_a_silent_all_clear():
     summary = by_name(c.statuses(0.0))[SUMMARY_NAME]
     assert summary.level == ERROR
     assert "output 'y2' at t = 150 s is 1e+308" in summary.message and "too large" in summary.message
+
+
+# ------------------------------------------------------------------------------------- the node
+
+rclpy = pytest.importorskip("rclpy")
+
+
+def _joint_state(names, position, stamp_ns=0):
+    from builtin_interfaces.msg import Time
+    from sensor_msgs.msg import JointState
+
+    msg = JointState(name=list(names), position=[float(v) for v in position])
+    msg.header.stamp = Time(sec=stamp_ns // NS, nanosec=stamp_ns % NS)
+    return msg
+
+
+def _fake_analyze(model, data, options):
+    return FakeReport(model.outputs)
+
+
+@pytest.fixture
+def ros_context():
+    from mpm_monitor.demo import private_context
+
+    ctx = private_context()
+    yield ctx
+    ctx.try_shutdown()
+
+
+def _monitor_node(ctx, model_file, **params):
+    from mpm_monitor.demo import _overrides
+    from mpm_monitor.nodes.monitor_node import MonitorNode
+
+    p = {"model_file": str(model_file), "diagnostics_topic": "diagnostics", "window_samples": 50,
+         "min_samples": 20, "analysis_period": 10, "analysis_thread": False, "republish_period": 0.05}
+    p.update(params)
+    return MonitorNode(context=ctx, namespace="/robust", parameter_overrides=_overrides(p), analyze=_fake_analyze)
+
+
+@pytest.fixture
+def model_file(tmp_path):
+    from mpm_monitor.model import FopdtModel, save_model
+
+    path = tmp_path / "model.yaml"
+    save_model(FopdtModel(sample_time=1.0, inputs=INP, outputs=OUT, gain=np.ones((2, 3)),
+                          time_constant=np.ones((2, 3)), delay=np.zeros((2, 3))), path)
+    return path
+
+
+def node_send(node, k, stamp=None, names=None):
+    r, u, y = values(k)
+    st = k * NS if stamp is None else stamp
+    node._on_vector("setpoint", _joint_state(OUT, r, st))
+    node._on_vector("input", _joint_state(names or INP, u, st))
+    node._on_vector("output", _joint_state(OUT, y, st))
+
+
+def test_node_refuses_malformed_messages_with_the_reason_and_recovers(ros_context, model_file):
+    """Wrong names, wrong lengths, NaN, repeated names, empty messages: each is refused with a
+    one-line reason in the summary (ERROR); the sample they belonged to is a gap; the node keeps
+    running and goes back to OK on good data."""
+    node = _monitor_node(ros_context, model_file)
+    try:
+        for k in range(25):
+            node_send(node, k)
+        node._on_results()
+        assert all(s.level == OK for s in node.current_statuses())
+        cases = [
+            ("input", _joint_state(("u1", "u2", "flow"), [1, 2, 3], 25 * NS), "missing 'u3'; unexpected 'flow'"),
+            ("input", _joint_state(INP, [1, 2], 26 * NS), "2 position value(s) for 3 name(s)"),
+            ("output", _joint_state(OUT, [np.nan, 1], 27 * NS), "non-finite value(s) y1=nan"),
+            ("output", _joint_state(OUT, [np.inf, 1], 28 * NS), "non-finite value(s) y1=inf"),
+            ("output", _joint_state(("y1", "y1"), [1, 1], 29 * NS), "'y1' repeat"),
+            ("setpoint", _joint_state((), (), 30 * NS), "missing 'y1', 'y2'"),
+        ]
+        for k, (channel, msg, reason) in zip(range(25, 31), cases):
+            r, u, y = values(k)
+            good = {"setpoint": _joint_state(OUT, r, k * NS), "input": _joint_state(INP, u, k * NS),
+                    "output": _joint_state(OUT, y, k * NS)}
+            good[channel] = msg
+            for ch in ("setpoint", "input", "output"):
+                node._on_vector(ch, good[ch])
+            summary = by_name(node.current_statuses())[SUMMARY_NAME]
+            assert summary.level == ERROR and reason in summary.message, summary.message
+            assert len(summary.message.splitlines()) == 1
+        for k in range(31, 80):
+            node_send(node, k)
+            node._on_results()
+        st = by_name(node.current_statuses())
+        assert all(s.level == OK for s in st.values()), st[SUMMARY_NAME].message
+        v = dict(st[SUMMARY_NAME].values)
+        assert v["bad_messages"] == "6" and int(v["missing_samples"]) == 6
+        d = node.core.window.data()
+        assert d.t[0] >= 31 and np.all(np.diff(d.t) == 1.0)   # nothing from before the bad samples
+    finally:
+        node.close()
+        node.destroy_node()
+
+
+def test_model_file_that_fails_to_load_is_error_with_the_reason_then_loads_when_fixed(ros_context, model_file,
+                                                                                         tmp_path):
+    from mpm_monitor.monitor_core import SUMMARY_NAME as SUMMARY
+    from mpm_monitor.ros_io import diagnostics_qos, make_executor, spin_until
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.node import Node
+
+    bad = tmp_path / "edited.yaml"
+    good_text = model_file.read_text()
+    bad.write_text(good_text.replace("time_constant: [[1", "time_constant: [[-1"), encoding="utf-8")
+    node = _monitor_node(ros_context, bad)
+    listener = Node("listener", context=ros_context, namespace="/robust")
+    seen = []
+    listener.create_subscription(DiagnosticArray, "diagnostics", seen.append, diagnostics_qos())
+    ex = make_executor(ros_context, "single")
+    ex.add_node(node)
+    ex.add_node(listener)
+    try:
+        assert node.core is None
+        # published on /diagnostics: one summary, ERROR, naming the file and the key
+        assert spin_until(ex, lambda: len(seen) >= 1, 10.0)
+        (status,) = seen[-1].status
+        assert status.name == SUMMARY and status.level == bytes([ERROR])
+        assert "model not loaded" in status.message and "edited.yaml" in status.message
+        assert "key 'time_constant'" in status.message
+        node._on_vector  # noqa: B018 - exists, but no subscription is made without a model
+        assert node.request_analysis() is False
+        # the file is fixed: the next retry loads it and monitoring starts
+        bad.write_text(good_text, encoding="utf-8")
+        assert spin_until(ex, lambda: node.core is not None, 10.0)
+        assert node.model_error is None and len(node._subs) == 3
+        for k in range(25):
+            node_send(node, k)
+        node._on_results()
+        assert all(s.level == OK for s in node.current_statuses())
+    finally:
+        node.close()
+        for nd in (node, listener):
+            ex.remove_node(nd)
+            nd.destroy_node()
+        ex.shutdown()
+
+
+def test_a_missing_model_file_is_error_not_a_crash(ros_context, tmp_path):
+    node = _monitor_node(ros_context, tmp_path / "nowhere.yaml")
+    try:
+        (status,) = node.current_statuses()
+        assert status.level == ERROR and "cannot read model file" in status.message
+        node._retry_model()  # still missing: still ERROR, no exception
+        assert node.core is None
+    finally:
+        node.close()
+        node.destroy_node()

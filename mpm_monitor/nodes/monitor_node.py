@@ -28,7 +28,8 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
-from ..monitor_core import AnalysisWorker, MonitorCore, MonitorOptions, run_analysis
+from ..errors import ModelFileError
+from ..monitor_core import ERROR, SUMMARY_NAME, AnalysisWorker, MonitorCore, MonitorOptions, StatusData, run_analysis
 from ..ros_io import (MODEL_PARAMS, MessageError, ParamSpec, VectorCodec, declare_parameters, diagnostics_qos,
                       resolve_model, run_node, vector_qos)
 from ..window import WindowOptions
@@ -117,34 +118,69 @@ class MonitorNode(Node):
         super().__init__(name, **kwargs)
         p = declare_parameters(self, PARAMS)
         self.params = p
-        self.model = resolve_model(p["model_file"], p["case"])
         if analyze is None:
             from ..analysis import analyze
         self._analyze = analyze
         self._analysis_options = analysis_options_from_params(p)
-        hw = p["hardware_id"] or self.get_fully_qualified_name()
-        self.core = MonitorCore(self.model, monitor_options_from_params(p, hw))
+        self._hw = p["hardware_id"] or self.get_fully_qualified_name()
+        self._monitor_options = monitor_options_from_params(p, self._hw)
+        self._diag_pub = self.create_publisher(DiagnosticArray, p["diagnostics_topic"], diagnostics_qos())
+        self._rsi_pub = self.create_publisher(Float64MultiArray, p["rsi_topic"], diagnostics_qos())
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._errors_published = 0
+        self._last_publish = 0.0
+        self.results = 0
+        self.model = self.core = self.worker = None
+        self._subs = []
+        #: Why the model file did not load (None once it has): the node then publishes only an ERROR
+        #: summary with this reason and tries the file again every ``republish_period``.
+        self.model_error: Optional[str] = None
+        self._model_retry_timer = None
+        try:
+            model = resolve_model(p["model_file"], p["case"])
+        except ModelFileError as exc:
+            self.model_error = str(exc)
+            self.get_logger().error(f"{exc}; retrying every {p['republish_period']:g} s")
+            self._model_retry_timer = self.create_timer(p["republish_period"], self._retry_model, clock=self._steady)
+        else:
+            self._start(model)
+        self._timer = self.create_timer(p["republish_period"], self.publish_statuses, clock=self._steady)
+
+    def _start(self, model) -> None:
+        """Build the window, the worker and the subscriptions for ``model``."""
+        p = self.params
+        self.model = model
+        self.core = MonitorCore(self.model, self._monitor_options)
         self.core.start(time.monotonic())
         self._codecs = {"setpoint": VectorCodec(self.model.outputs, p["setpoint_topic"]),
                         "input": VectorCodec(self.model.inputs, p["input_topic"]),
                         "output": VectorCodec(self.model.outputs, p["output_topic"])}
-        self._diag_pub = self.create_publisher(DiagnosticArray, p["diagnostics_topic"], diagnostics_qos())
-        self._rsi_pub = self.create_publisher(Float64MultiArray, p["rsi_topic"], diagnostics_qos())
         self.worker = AnalysisWorker(self._run_job, threaded=p["analysis_thread"])
         q = vector_qos()
         self._subs = [self.create_subscription(JointState, p[f"{ch}_topic"],
                                                (lambda msg, ch=ch: self._on_vector(ch, msg)), q)
                       for ch in ("setpoint", "input", "output")]
-        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self._timer = self.create_timer(p["republish_period"], self.publish_statuses, clock=self._steady)
         # The events executor has no guard conditions: results are collected by a short steady timer.
         self._result_timer = self.create_timer(RESULT_POLL_PERIOD, self._on_results, clock=self._steady)
-        self._errors_published = 0
-        self._last_publish = 0.0
-        self.results = 0
         self.get_logger().info(
             f"monitoring {self.model.n_outputs}x{self.model.n_inputs} ({self.model.name or 'model'}): window "
             f"{p['window_samples']} samples, analysis every {p['analysis_period']} after {p['min_samples']}")
+
+    def _retry_model(self) -> None:
+        """Try the model file again (it may have been fixed); start monitoring once it loads."""
+        try:
+            model = resolve_model(self.params["model_file"], self.params["case"])
+        except ModelFileError as exc:
+            if str(exc) != self.model_error:
+                self.model_error = str(exc)
+                self.get_logger().error(str(exc))
+            return
+        self.destroy_timer(self._model_retry_timer)
+        self._model_retry_timer = None
+        self.model_error = None
+        self.get_logger().info(f"model file {self.params['model_file']} loaded")
+        self._start(model)
+        self.publish_statuses()
 
     # ------------------------------------------------------------------------------ inputs
     def _on_vector(self, channel: str, msg: JointState) -> None:
@@ -165,7 +201,7 @@ class MonitorNode(Node):
     # ---------------------------------------------------------------------------- analysis
     def request_analysis(self) -> bool:
         """Analyse the window now if it holds samples not analysed yet (e.g. at the end of a run)."""
-        if self.core.analysis_due(force=True):
+        if self.core is not None and self.core.analysis_due(force=True):
             self.worker.submit(self.core.take_job())
             return True
         return False
@@ -191,22 +227,28 @@ class MonitorNode(Node):
         self.publish_statuses()
 
     # ---------------------------------------------------------------------------- outputs
-    def current_statuses(self) -> list:
+    def current_statuses(self, now: Optional[float] = None) -> list:
         """The statuses as plain data (what the next publication will carry)."""
-        return self.core.statuses(time.monotonic())
+        now = time.monotonic() if now is None else now
+        if self.core is None:  # the model file did not load: only the summary, with the reason
+            return [StatusData(ERROR, SUMMARY_NAME, f"model not loaded: {self.model_error} (retrying every "
+                               f"{self.params['republish_period']:g} s)", self._hw,
+                               (("model_file", self.params["model_file"]),))]
+        return self.core.statuses(now)
 
     def publish_statuses(self) -> None:
         """Publish the current statuses on the diagnostics topic."""
         now = time.monotonic()
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
-        arr.status = [status_to_msg(s) for s in self.core.statuses(now)]
+        arr.status = [status_to_msg(s) for s in self.current_statuses(now)]
         self._diag_pub.publish(arr)
         self._last_publish = now
 
     def close(self) -> None:
         """Stop the analysis thread."""
-        self.worker.close()
+        if self.worker is not None:
+            self.worker.close()
 
 
 def main(args=None) -> int:
