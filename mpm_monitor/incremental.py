@@ -408,7 +408,7 @@ class GramBlockRegression(SharedBlockRegression):
         self.full_rank = self.rank == p
         if not self.full_rank:
             raise IllConditioned("rank-deficient common block")
-        self._rinv = sla.solve_triangular(self.R, np.eye(p)) if p else np.zeros((0, 0))
+        self._rinv = sla.solve_triangular(self.R, np.eye(p), check_finite=False) if p else np.zeros((0, 0))
         self.condition_bound = checked_condition(self.R, self._rinv, max_condition)
         self._cond = None
 
@@ -462,13 +462,13 @@ class GramFit(SharedFit):
         g_cy_s = g_cy / reg.scale
         g_oy_s = g_oy / own_scale
         if pc:
-            qo = sla.solve_triangular(reg.R, g_co_s, trans="T")
-            q1y = sla.solve_triangular(reg.R, g_cy_s, trans="T")
+            qo = sla.solve_triangular(reg.R, g_co_s, trans="T", check_finite=False)
+            q1y = sla.solve_triangular(reg.R, g_cy_s, trans="T", check_finite=False)
         else:
             qo, q1y = np.zeros((0, po)), np.zeros(0)
         if po:
             R2 = _cholesky_upper(g_oo_s - qo.T @ qo)
-            q2y = sla.solve_triangular(R2, g_oy_s - qo.T @ q1y, trans="T")
+            q2y = sla.solve_triangular(R2, g_oy_s - qo.T @ q1y, trans="T", check_finite=False)
         else:
             R2, q2y = np.zeros((0, 0)), np.zeros(0)
         qy = np.concatenate([q1y, q2y])
@@ -489,7 +489,7 @@ class GramFit(SharedFit):
         self.n_common = pc
         if po:
             Ro = _cholesky_upper(g_oo_s)
-            qoy = sla.solve_triangular(Ro, g_oy_s, trans="T")
+            qoy = sla.solve_triangular(Ro, g_oy_s, trans="T", check_finite=False)
             self.rss_own_only = max(float(g_yy - qoy @ qoy), 0.0)
             self.rank_own = po
         else:
@@ -534,9 +534,9 @@ def gram_arx(gram: np.ndarray, sum_y: float, n: int, na: int, nb: int, nk: np.nd
     rank = int(np.sum(d > RANK_TOLERANCE * max(d.max(initial=0.0), 1e-300)))
     if rank < p:
         raise IllConditioned("rank-deficient ARX regression")
-    rinv = sla.solve_triangular(R, np.eye(p))
+    rinv = sla.solve_triangular(R, np.eye(p), check_finite=False)
     checked_condition(R, rinv, max_condition)
-    qy = sla.solve_triangular(R, gy / scale, trans="T")
+    qy = sla.solve_triangular(R, gy / scale, trans="T", check_finite=False)
     theta = (rinv @ qy) / scale
     rss = max(g_yy - float(qy @ qy), 0.0)
     dof = max(n - rank, 1)
@@ -824,7 +824,7 @@ class SlidingWindowAnalyzer:
         """Add one sample ``r(k)``, ``u(k)``, ``y(k)`` (shapes (n_outputs,), (n_inputs,), (n_outputs,))."""
         ruy = self._checked(r, u, y)
         if self.buffer.free() < 1:
-            self._flush()
+            self.flush()
             self.buffer.compact()
         m = ruy.shape[0]
         row = self.buffer.data[self.buffer.count]
@@ -841,7 +841,7 @@ class SlidingWindowAnalyzer:
         for a in range(0, n, self._slack):
             b = min(a + self._slack, n)
             if self.buffer.free() < b - a:
-                self._flush()
+                self.flush()
                 self.buffer.compact()
             yhat = self.predictor.run(u[a:b])
             self.buffer.append(np.hstack([r[a:b], u[a:b], y[a:b], yhat]))
@@ -852,7 +852,7 @@ class SlidingWindowAnalyzer:
         self._pending += k
         self._since_rebuild += k
         if self._pending >= self.update_block:
-            self._flush()
+            self.flush()
 
     # -------------------------------------------------------------- statistics
     def _row_range(self):
@@ -876,8 +876,8 @@ class SlidingWindowAnalyzer:
         self._stale = False
         self.rebuilds += 1
 
-    def _flush(self) -> None:
-        """Fold every pending sample into the Gram matrices (or rebuild them)."""
+    def flush(self) -> None:
+        """Fold every pending sample into the Gram matrices now (or rebuild them)."""
         self._pending = 0
         lo, hi = self._row_range()
         g = self.row_gram
@@ -891,7 +891,7 @@ class SlidingWindowAnalyzer:
 
     def gram_drift(self) -> float:
         """Largest difference between the kept Gram matrices and a rebuild, relative to its largest entry."""
-        self._flush()
+        self.flush()
         out = 0.0
         for g in (self.row_gram, self.input_gram):
             fresh = LaggedGram([(n, c, lags) for n, c, lags in g.groups], g.signals)
@@ -927,7 +927,7 @@ class SlidingWindowAnalyzer:
         DataFileError
             When the window holds fewer samples than the tests need (see :attr:`ready`).
         """
-        self._flush()
+        self.flush()
         data, sig = self.window_data()
         if data.n_samples < self.layout.min_samples:
             raise DataFileError(f"sliding window: {data.n_samples} samples; the tests need at least "

@@ -1,0 +1,399 @@
+"""Compute benchmark of the detection (issue 8): time per analysis, per sample, and the simulator.
+
+Run from the repository root::
+
+    .venv/bin/python -m bench.perf [--quick] [--threads 1] [--out bench/results/perf.json]
+
+Prints one table and writes every number to the JSON file.  All times are wall-clock medians over
+repeats (``time.perf_counter``); each cell is repeated up to ``--repeats`` times within a time
+budget, and the count is recorded.  Ratios are taken between numbers measured in the same run.
+
+What is measured, for random n x n plants (gains log-uniform in [0.5, 5] with random sign, time
+constants 10..80 s, delays 0..8 samples, sample time 1 s) under the paper's MPC and PRBS setpoints,
+with the controller model's (y1, u2) gain 30 % off, over windows of W samples:
+
+``refit``
+    The batch reference: :func:`mpm_monitor.analysis.analyze` (QR of the regressors) on the window,
+    every row's element test (``test_all_rows=True``), no repair, the signals ``d, eps`` given (as
+    the live monitor has them), i.e. a full refit from scratch.
+``offline``
+    The same including :func:`mpm_monitor.signals.compute_signals` with ``initial_state="estimate"``
+    (what ``python -m mpm_monitor analyze`` does on a CSV).
+``scratch``
+    :class:`mpm_monitor.incremental.SlidingWindowAnalyzer` built from nothing on the W samples:
+    model run, Gram matrices from scratch, solve -- the sufficient-statistics path's full analysis.
+``periodic``
+    The periodic analysis of a live monitor: 100 new samples pushed into a full window, then
+    ``analyze()`` (folding in the pending samples and solving; ``--quick``: 50).
+``per_sample``
+    ``push()`` of one sample into a full window: model step, buffer, and the Gram updates, with the
+    default ``update_block`` (16) and strictly per sample (``update_block=1``); averaged over W pushes
+    (one turnover of the window, so including its one scheduled rebuild of the Gram matrices).
+``xcorr``
+    The cross-correlation baseline :func:`mpm_monitor.baselines.cross_correlation_test` on ``d, u``
+    of the window (skipped with a note when the module is absent).
+``floor``
+    One dense least-squares solve (``numpy.linalg.lstsq``) of the largest regression of the analysis
+    (the setpoint or input lag block plus ``na`` own columns, over the window's regression rows).
+
+and the batch closed-loop simulation speed (:func:`mpm_monitor.closed_loop.run_closed_loop`, model =
+plant, no mismatch) for 3x3, 5x5, 10x10 and 20x20, steady samples per second (set-up of the MPC
+timed apart), plus the memory of the sliding window (:mod:`bench.memory`).
+
+BLAS threads: ``--threads`` (default 1) sets ``OPENBLAS_NUM_THREADS`` / ``OMP_NUM_THREADS`` /
+``MKL_NUM_THREADS`` before numpy is imported, unless they are already set; a multi-threaded BLAS on
+2 shared cores slowed small factorisations 100-fold under load in our measurements.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+
+def _threads_from_argv(argv) -> str:
+    for k, a in enumerate(argv):
+        if a == "--threads" and k + 1 < len(argv):
+            return argv[k + 1]
+        if a.startswith("--threads="):
+            return a.split("=", 1)[1]
+    return "1"
+
+
+if __name__ == "__main__":     # before numpy is imported anywhere
+    for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(_var, _threads_from_argv(sys.argv[1:]))
+
+import argparse  # noqa: E402
+import dataclasses  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import statistics  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from mpm_monitor.analysis import AnalysisOptions, analyze, regression_layout  # noqa: E402
+from mpm_monitor.arx import lag_matrix  # noqa: E402
+from mpm_monitor.closed_loop import run_closed_loop  # noqa: E402
+from mpm_monitor.data_io import LoggedData  # noqa: E402
+from mpm_monitor.incremental import SlidingWindowAnalyzer  # noqa: E402
+from mpm_monitor.model import FopdtModel  # noqa: E402
+from mpm_monitor.signals import LoopSignals, compute_signals  # noqa: E402
+
+#: Targets of issue 8 (this machine, 2 cores).
+TARGET_FULL_20X20_10K_S = 0.5
+TARGET_UPDATE_10X10_S = 1e-3
+TARGET_SIM_5X5_PER_S = 20_000
+
+OPTIONS = AnalysisOptions(repair=False, test_all_rows=True)
+
+
+@dataclasses.dataclass(frozen=True)
+class Grid:
+    """Plant sizes and windows of a run, and its time budget per cell."""
+
+    sizes: tuple = (2, 5, 10, 20)
+    windows: tuple = (1000, 2000, 5000, 10000, 20000)
+    repeats: int = 5
+    budget_s: float = 3.0
+    periodic_step: int = 100
+    offline_max_window: int = 10000          # compute_signals("estimate") of a 20x20 is seconds
+    sim_sizes: tuple = (3, 5, 10, 20)
+    sim_samples: int = 3000
+
+
+QUICK = Grid(sizes=(2, 5, 10), windows=(1000, 2000), repeats=3, budget_s=1.0, periodic_step=50,
+             sim_sizes=(3, 5, 10), sim_samples=1000)
+
+
+# ----------------------------------------------------------------------------------------- set-up
+def random_plant(n_outputs: int, n_inputs: int, rng: np.random.Generator) -> FopdtModel:
+    """A random stable FOPDT plant (see the module docstring)."""
+    shape = (n_outputs, n_inputs)
+    gain = np.exp(rng.uniform(np.log(0.5), np.log(5.0), shape)) * rng.choice([-1.0, 1.0], shape)
+    return FopdtModel(sample_time=1.0, inputs=[f"u{j + 1}" for j in range(n_inputs)],
+                      outputs=[f"y{i + 1}" for i in range(n_outputs)], gain=gain,
+                      time_constant=rng.uniform(10.0, 80.0, shape),
+                      delay=rng.integers(0, 9, shape).astype(float), name=f"random {n_outputs}x{n_inputs}")
+
+
+def machine_info() -> dict:
+    """CPU model, cores, load, library versions, BLAS threads."""
+    cpu = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    import scipy
+    try:
+        blas = np.show_config(mode="dicts")["Build Dependencies"]["blas"]
+        blas = f"{blas.get('name')} {blas.get('version')}"
+    except Exception:                                  # noqa: BLE001 - informative only
+        blas = "unknown"
+    return {"cpu": cpu, "logical_cores": os.cpu_count(),
+            "usable_cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+            "load_average_start": list(os.getloadavg()), "python": platform.python_version(),
+            "numpy": np.__version__, "scipy": scipy.__version__, "blas": blas,
+            "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS"), "platform": platform.platform()}
+
+
+def timed(fn, repeats: int, budget_s: float) -> tuple:
+    """Median wall time of ``fn()`` over 1..repeats calls (stops when the budget is spent); (median, n)."""
+    times = []
+    start = time.perf_counter()
+    while len(times) < repeats:
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+        if time.perf_counter() - start > budget_s:
+            break
+    return statistics.median(times), len(times)
+
+
+def _window_data(log, model, a: int, b: int):
+    return LoggedData(t=log.t[a:b], r=log.r[a:b], u=log.u[a:b], y=log.y[a:b], inputs=model.inputs,
+                      outputs=model.outputs, sample_time=model.sample_time)
+
+
+def _largest_regression(model, data, sig, options) -> np.ndarray:
+    """The larger of ``[setpoint lags | own]`` and ``[input lags | own]`` of the first row, centred."""
+    lay = regression_layout(model, options)
+    na, start = options.na, lay.start
+    d = sig.d[:, 0] - sig.d[:, 0].mean()
+    own = lag_matrix(d, range(1, na + 1), start)
+    r_c = data.r - data.r.mean(axis=0)
+    u_c = data.u - data.u.mean(axis=0)
+    xr = lag_matrix(r_c, range(0, lay.n_lag_r), start)
+    xu = lag_matrix(u_c, range(1, lay.n_lag_u + 1), start)
+    x = xr if xr.shape[1] >= xu.shape[1] else xu
+    return np.hstack([x, own]), d[start:]
+
+
+def _xcorr():
+    try:
+        from mpm_monitor.baselines import cross_correlation_test
+    except ImportError as exc:
+        return None, f"mpm_monitor.baselines.cross_correlation_test not available ({exc})"
+    return cross_correlation_test, ""
+
+
+# ----------------------------------------------------------------------------------------- analysis
+def bench_analysis(grid: Grid, seed: int = 0, log=print) -> list:
+    """Every (size, window) cell of the grid; a list of dicts."""
+    xcorr, xcorr_note = _xcorr()
+    cells = []
+    for n in grid.sizes:
+        rng = np.random.default_rng(seed + n)
+        plant = random_plant(n, n, rng)
+        model = plant.with_element(0, 1, gain=plant.gain[0, 1] * 1.3)
+        lay = regression_layout(model, OPTIONS)
+        total = max(grid.windows) + grid.periodic_step * (grid.repeats + 1) + 10
+        t0 = time.perf_counter()
+        cl = run_closed_loop(plant, model, total, seed=seed + 100 + n)
+        log(f"  {n}x{n}: closed loop of {total} samples in {time.perf_counter() - t0:.1f} s")
+        sig_all = compute_signals(model, cl.r, cl.u, cl.y, "zero")
+        for w in grid.windows:
+            cell = {"size": f"{n}x{n}", "n": n, "window": w, "min_samples": lay.min_samples}
+            if w < lay.min_samples:
+                cell["skipped"] = f"the tests need at least {lay.min_samples} samples"
+                cells.append(cell)
+                log(f"  {n}x{n} W={w}: skipped ({cell['skipped']})")
+                continue
+            a, b = 0, w
+            data = _window_data(cl, model, a, b)
+            sig = LoopSignals(sig_all.yhat[a:b], sig_all.d[a:b], sig_all.eps[a:b], sig_all.x0)
+            X, y = _largest_regression(model, data, sig, OPTIONS)
+            cell["largest_regression"] = list(X.shape)
+            reps, budget = grid.repeats, grid.budget_s
+            cell["refit_s"], cell["refit_n"] = timed(lambda: analyze(model, data, OPTIONS, signals=sig), reps, budget)
+            if w <= grid.offline_max_window:
+                cell["offline_s"], cell["offline_n"] = timed(lambda: analyze(model, data, OPTIONS), reps, budget)
+
+            def scratch():
+                an = SlidingWindowAnalyzer(model, OPTIONS, w)
+                an.push_many(cl.r[a:b], cl.u[a:b], cl.y[a:b])
+                return an.analyze()
+            cell["scratch_s"], cell["scratch_n"] = timed(scratch, reps, budget)
+            cell["floor_s"], cell["floor_n"] = timed(lambda: np.linalg.lstsq(X, y, rcond=None), reps, budget)
+            if xcorr is not None:
+                cell["xcorr_s"], cell["xcorr_n"] = timed(lambda: xcorr(sig.d, data.u, alpha=OPTIONS.alpha),
+                                                         reps, budget)
+            # Live monitor: a full window, then periodic analyses and per-sample pushes.
+            an = SlidingWindowAnalyzer(model, OPTIONS, w)
+            an.push_many(cl.r[:b], cl.u[:b], cl.y[:b])
+            an.analyze()
+            k = b
+            periodic = []
+            for _ in range(grid.repeats):
+                an.push_many(cl.r[k:k + grid.periodic_step], cl.u[k:k + grid.periodic_step],
+                             cl.y[k:k + grid.periodic_step])
+                k += grid.periodic_step
+                t0 = time.perf_counter()
+                an.analyze()
+                periodic.append(time.perf_counter() - t0)
+            cell["periodic_s"], cell["periodic_n"] = statistics.median(periodic), len(periodic)
+            cell["fallbacks"] = list(an.last_fallbacks)
+            for block, key in ((16, "per_sample_s"), (1, "per_sample_block1_s")):
+                live = SlidingWindowAnalyzer(model, OPTIONS, w, update_block=block)
+                live.push_many(cl.r[:k], cl.u[:k], cl.y[:k])
+                live.flush()
+                rows = [(cl.r[j % total], cl.u[j % total], cl.y[j % total]) for j in range(k, k + w)]
+                t0 = time.perf_counter()
+                for r_k, u_k, y_k in rows:      # the log is reused cyclically: the cost does not depend on it
+                    live.push(r_k, u_k, y_k)
+                live.flush()                    # the last partial block is part of the cost
+                cell[key] = (time.perf_counter() - t0) / w
+                cell[key.replace("_s", "_rebuilds")] = live.rebuilds
+            cell["ratio_refit_to_periodic"] = cell["refit_s"] / cell["periodic_s"]
+            cell["ratio_refit_to_scratch"] = cell["refit_s"] / cell["scratch_s"]
+            cell["ratio_refit_to_floor"] = cell["refit_s"] / cell["floor_s"]
+            cell["ratio_scratch_to_floor"] = cell["scratch_s"] / cell["floor_s"]
+            cell["ratio_periodic_to_floor"] = cell["periodic_s"] / cell["floor_s"]
+            if "xcorr_s" in cell:
+                cell["ratio_refit_to_xcorr"] = cell["refit_s"] / cell["xcorr_s"]
+                cell["ratio_periodic_to_xcorr"] = cell["periodic_s"] / cell["xcorr_s"]
+            cells.append(cell)
+            log(f"  {n}x{n} W={w}: refit {cell['refit_s']:.3f} s, scratch {cell['scratch_s']:.3f} s, "
+                f"periodic {cell['periodic_s']:.4f} s, push {cell['per_sample_s'] * 1e6:.0f} us")
+    if xcorr is None:
+        cells.append({"note": xcorr_note})
+    return cells
+
+
+# ----------------------------------------------------------------------------------------- simulation
+def bench_simulation(grid: Grid, seed: int = 0, log=print) -> list:
+    """Closed-loop simulation speed, model = plant."""
+    out = []
+    for n in grid.sim_sizes:
+        plant = random_plant(n, n, np.random.default_rng(seed + 1000 + n))
+        setup, _ = timed(lambda: run_closed_loop(plant, plant, 1, seed=1), 3, 2.0)
+        total, reps = timed(lambda: run_closed_loop(plant, plant, grid.sim_samples, seed=1), 3, 10.0)
+        steady = max(total - setup, 1e-9)
+        row = {"size": f"{n}x{n}", "n": n, "samples": grid.sim_samples, "total_s": total, "setup_s": setup,
+               "repeats": reps, "samples_per_s": grid.sim_samples / steady,
+               "samples_per_s_with_setup": grid.sim_samples / total}
+        out.append(row)
+        log(f"  closed loop {n}x{n}: {row['samples_per_s']:.0f} samples/s (set-up {setup:.3f} s)")
+    return out
+
+
+# ----------------------------------------------------------------------------------------- report
+def targets(cells, sims) -> list:
+    """The issue's targets, each with the measured value and met / not met / not measured."""
+    def cell(n, w):
+        return next((c for c in cells if c.get("n") == n and c.get("window") == w and "refit_s" in c), None)
+    out = []
+    c = cell(20, 10000)
+    out.append({"target": "full analysis 20x20, W=10,000 < 0.5 s",
+                "measured": None if c is None else {"scratch_s": c["scratch_s"], "refit_s": c["refit_s"],
+                                                    "periodic_s": c["periodic_s"]},
+                "met": None if c is None else c["scratch_s"] < TARGET_FULL_20X20_10K_S,
+                "note": "met by the sufficient-statistics path built from scratch (scratch_s); refit_s is the "
+                        "QR reference path"})
+    c10 = [c for c in cells if c.get("n") == 10 and "per_sample_block1_s" in c]
+    worst = max((c["per_sample_block1_s"] for c in c10), default=None)
+    out.append({"target": "incremental update per sample, 10x10 < 1 ms",
+                "measured": None if worst is None else {"worst_per_sample_block1_s": worst,
+                                                        "per_sample_default_s": max(c["per_sample_s"] for c in c10)},
+                "met": None if worst is None else worst < TARGET_UPDATE_10X10_S,
+                "note": "update_block=1 (one Gram update per sample), worst over the windows measured"})
+    s5 = next((s for s in sims if s["n"] == 5), None)
+    out.append({"target": "batch closed-loop simulation 5x5 >= 20,000 samples/s",
+                "measured": None if s5 is None else {"samples_per_s": s5["samples_per_s"]},
+                "met": None if s5 is None else s5["samples_per_s"] >= TARGET_SIM_5X5_PER_S,
+                "note": "steady rate, MPC set-up excluded"})
+    return out
+
+
+def format_table(result: dict) -> str:
+    """The run as plain-text tables."""
+    m = result["machine"]
+    lines = [f"machine: {m['cpu']}, {m['usable_cores']} usable cores ({m['logical_cores']} logical), "
+             f"load {m['load_average_start'][0]:.2f} at start / {m.get('load_average_end', [float('nan')])[0]:.2f} at "
+             f"end, Python {m['python']}, numpy {m['numpy']}, {m['blas']}, BLAS threads {m['blas_threads']}",
+             "", "analysis per window (medians; times in seconds unless noted)", ""]
+    head = (f"{'plant':>6} {'W':>6} {'X (rows x cols)':>16} {'refit':>8} {'offline':>8} {'scratch':>8} "
+            f"{'periodic':>9} {'push us':>8} {'push1 us':>8} {'xcorr':>8} {'floor':>8} "
+            f"{'refit/per':>9} {'refit/scr':>9} {'scr/floor':>9} {'per/floor':>9} {'per/xcorr':>9}")
+    lines += [head, "-" * len(head)]
+
+    def f(x, fmt="{:8.3f}"):
+        return fmt.format(x) if x is not None else f"{'-':>8}"
+    for c in result["analysis"]:
+        if "note" in c:
+            lines.append(f"note: {c['note']}")
+            continue
+        if "skipped" in c:
+            lines.append(f"{c['size']:>6} {c['window']:>6} skipped: {c['skipped']}")
+            continue
+        shape = "x".join(str(v) for v in c["largest_regression"])
+        lines.append(
+            f"{c['size']:>6} {c['window']:>6} {shape:>16} {f(c['refit_s'])} {f(c.get('offline_s'))} "
+            f"{f(c['scratch_s'])} {f(c['periodic_s'], '{:9.4f}')} {f(c['per_sample_s'] * 1e6, '{:8.0f}')} "
+            f"{f(c['per_sample_block1_s'] * 1e6, '{:8.0f}')} {f(c.get('xcorr_s'))} {f(c['floor_s'], '{:8.4f}')} "
+            f"{f(c['ratio_refit_to_periodic'], '{:9.1f}')} {f(c['ratio_refit_to_scratch'], '{:9.1f}')} "
+            f"{f(c['ratio_scratch_to_floor'], '{:9.1f}')} {f(c['ratio_periodic_to_floor'], '{:9.1f}')} "
+            f"{f(c.get('ratio_periodic_to_xcorr'), '{:9.2f}')}")
+    lines += ["", "columns: refit = batch QR analyze() with d, eps given; offline = analyze() incl. compute_signals"
+              "(\"estimate\"); scratch = SlidingWindowAnalyzer from nothing (model run + Gram + solve); periodic = "
+              "analyze() of a live window after new samples; push = push() per sample (update_block 16), push1 = "
+              "update_block 1; floor = one numpy lstsq of the largest regression X", ""]
+    lines.append("closed-loop batch simulation (model = plant, unconstrained MPC Hp 100 Hc 30)")
+    for s in result["simulation"]:
+        lines.append(f"  {s['size']:>6}: {s['samples_per_s']:10.0f} samples/s steady "
+                     f"({s['samples_per_s_with_setup']:.0f} incl. {s['setup_s']:.3f} s MPC set-up)")
+    if result.get("memory"):
+        mem = result["memory"]
+        lines += ["", f"memory of the sliding window: {mem['summary']}"]
+    lines += ["", "targets:"]
+    for t in result["targets"]:
+        state = {True: "MET", False: "NOT MET", None: "not measured"}[t["met"]]
+        lines.append(f"  {t['target']}: {state}  {json.dumps(t['measured'])}  ({t['note']})")
+    lines.append(f"\nwall time of the run: {result['wall_s']:.0f} s")
+    return "\n".join(lines)
+
+
+def run(grid: Grid, seed: int = 0, log=print) -> dict:
+    """The whole benchmark; returns the JSON-ready result."""
+    t0 = time.perf_counter()
+    machine = machine_info()
+    log("analysis:")
+    cells = bench_analysis(grid, seed, log)
+    log("closed-loop simulation:")
+    sims = bench_simulation(grid, seed, log)
+    log("memory:")
+    from bench.memory import measure_memory
+    memory = measure_memory(quick=grid.sizes == QUICK.sizes, log=log)
+    machine["load_average_end"] = list(os.getloadavg())
+    return {"machine": machine, "grid": dataclasses.asdict(grid), "options": dataclasses.asdict(OPTIONS),
+            "analysis": cells, "simulation": sims, "memory": memory, "targets": targets(cells, sims),
+            "wall_s": time.perf_counter() - t0}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench.perf", description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="small grid (about a minute)")
+    parser.add_argument("--threads", default="1", help="BLAS threads (set before numpy is imported)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default="bench/results/perf.json", help="JSON output path")
+    args = parser.parse_args(argv)
+    grid = QUICK if args.quick else Grid()
+    result = run(grid, args.seed)
+    text = format_table(result)
+    print()
+    print(text)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    result["table"] = text
+    out.write_text(json.dumps(result, indent=1, default=float) + "\n")
+    print(f"\nwrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
