@@ -275,13 +275,13 @@ def block_triangular_solution(reg: SharedBlockRegression, qo: np.ndarray, R2: np
     """
     pc, po = qo.shape
     p = pc + po
-    R = np.zeros((p, p))
-    R[:pc, :pc] = reg.R
-    R[:pc, pc:] = qo
-    R[pc:, pc:] = R2
-    d = np.abs(np.diag(R))
+    d = np.abs(np.concatenate([np.diag(reg.R), np.diag(R2)]))
     rank = int(np.sum(d > RANK_TOLERANCE * max(d.max(initial=0.0), 1e-300)))
     if rank < p:
+        R = np.zeros((p, p))
+        R[:pc, :pc] = reg.R
+        R[:pc, pc:] = qo
+        R[pc:, pc:] = R2
         rinv = np.linalg.pinv(R)
     else:
         r1i = reg.rinv()

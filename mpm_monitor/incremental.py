@@ -348,17 +348,19 @@ def _norm2_estimate(a: np.ndarray, iterations: int = 12) -> float:
     return float(np.linalg.norm(a @ x))
 
 
-def checked_condition(R: np.ndarray, rinv: np.ndarray, max_condition: float) -> float:
+def checked_condition(R, rinv: np.ndarray, max_condition: float, frobenius_R: Optional[float] = None) -> float:
     """Condition number of the triangular factor ``R``, or :class:`IllConditioned` above ``max_condition``.
 
     Returns the Frobenius bound ``||R||_F ||R^-1||_F`` when it is within the limit (it is never below
     the 2-norm condition number), else a power-iteration estimate of the 2-norm condition number.
+    ``R`` may be a callable that builds it (only needed for the estimate) when ``frobenius_R`` is given.
     """
-    if R.size == 0:
+    if rinv.size == 0:
         return 1.0
-    bound = _frobenius(R) * _frobenius(rinv)
+    bound = (_frobenius(R) if frobenius_R is None else frobenius_R) * _frobenius(rinv)
     if bound <= max_condition:
         return bound
+    R = R() if callable(R) else R
     estimate = _norm2_estimate(R) * _norm2_estimate(rinv)
     if estimate <= max_condition:
         return estimate
@@ -409,7 +411,8 @@ class GramBlockRegression(SharedBlockRegression):
         if not self.full_rank:
             raise IllConditioned("rank-deficient common block")
         self._rinv = sla.solve_triangular(self.R, np.eye(p), check_finite=False) if p else np.zeros((0, 0))
-        self.condition_bound = checked_condition(self.R, self._rinv, max_condition)
+        self.frobenius_R = _frobenius(self.R)
+        self.condition_bound = checked_condition(self.R, self._rinv, max_condition, self.frobenius_R)
         self._cond = None
 
     @property
@@ -476,9 +479,12 @@ class GramFit(SharedFit):
         p = pc + po
         if self.rank < p:
             raise IllConditioned("rank-deficient regression")
-        R = np.zeros((p, p))
-        R[:pc, :pc], R[:pc, pc:], R[pc:, pc:] = reg.R, qo, R2
-        self.condition_bound = checked_condition(R, self.rinv, max_condition)
+        def full_factor():
+            R = np.zeros((p, p))
+            R[:pc, :pc], R[:pc, pc:], R[pc:, pc:] = reg.R, qo, R2
+            return R
+        frobenius_R = math.sqrt(reg.frobenius_R ** 2 + float(np.sum(qo * qo)) + float(np.sum(R2 * R2)))
+        self.condition_bound = checked_condition(full_factor, self.rinv, max_condition, frobenius_R)
         scale = np.concatenate([reg.scale, own_scale])
         self.theta = theta_s / scale
         self.scale = scale
@@ -845,13 +851,15 @@ class SlidingWindowAnalyzer:
                 self.buffer.compact()
             yhat = self.predictor.run(u[a:b])
             self.buffer.append(np.hstack([r[a:b], u[a:b], y[a:b], yhat]))
-            self._after_append(b - a)
+            self._after_append(b - a, flush=False)      # one fold (or rebuild) for the whole call
+        if self._pending >= self.update_block:
+            self.flush()
 
-    def _after_append(self, k: int) -> None:
+    def _after_append(self, k: int, flush: bool = True) -> None:
         self._pushed += k
         self._pending += k
         self._since_rebuild += k
-        if self._pending >= self.update_block:
+        if flush and self._pending >= self.update_block:
             self.flush()
 
     # -------------------------------------------------------------- statistics
