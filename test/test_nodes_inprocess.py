@@ -16,10 +16,12 @@ import numpy as np
 import pytest
 
 pytest.importorskip("rclpy")
+pytestmark = pytest.mark.timeout(120)
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
+from std_msgs.msg import Float64MultiArray  # noqa: E402
 
 from mpm_monitor.analysis import AnalysisOptions, analyze  # noqa: E402
 from mpm_monitor.cases import paper_case  # noqa: E402
@@ -82,6 +84,9 @@ def run_suite(case, namespace, samples=SAMPLES):
     params["setpoint"]["clock_topic"] = "clock"
     suite = Suite(ctx, params, namespace=namespace)
     listener = DiagnosticsListener(ctx, namespace)
+    listener.rsi = []
+    listener.node.create_subscription(Float64MultiArray, "mpm_monitor/rsi", lambda m: listener.rsi.append(list(m.data)),
+                                      diagnostics_qos())
     suite.add_node(listener.node)
     t0 = time.monotonic()
     suite.start(diagnostics_listeners=1)
@@ -124,6 +129,9 @@ def test_case_3_2_located_exactly_through_the_nodes_and_equal_to_the_batch_run(s
     np.testing.assert_allclose(data.y, log.y, rtol=0, atol=1e-12)
     rsi = np.array([float(listener.statuses()[row_status_name(o)][1]["rsi"]) for o in case.model.outputs])
     assert rsi[0] > 1.2 and rsi[1] > 1.1 and abs(rsi[2] - 1.0) < 0.05
+    # the numeric RSI topic carries the same values, in model output order
+    assert suite.spin_until(lambda: len(listener.rsi) >= 1, 5.0)
+    np.testing.assert_array_equal(listener.rsi[-1], rsi)
 
 
 def test_case_3_1_flags_nothing(suites):
@@ -313,4 +321,34 @@ def test_wall_clock_mode_runs_and_the_monitor_holds_the_setpoints(tmp_path):
             ex.remove_node(nd)
             nd.destroy_node()
         ex.shutdown()
+        ctx.try_shutdown()
+
+
+def test_plant_and_mpc_nodes_survive_bad_messages():
+    """A bad vector is logged and ignored; the loop then runs on the good ones."""
+    ctx = private_context()
+    ns = "/robust"
+    params = case_parameters("3.2", seed=1)
+    params["plant"].update(max_samples=50, clock_topic="clock")
+    params["setpoint"]["clock_topic"] = "clock"
+    params["monitor"].update(window_samples=50, min_samples=50, analysis_period=50, diagnostics_topic="diagnostics")
+    from types import SimpleNamespace
+
+    suite = Suite(ctx, params, namespace=ns, analyze=lambda m, d, o: SimpleNamespace(
+        rows=[], elements=[], overall_rsi=1.0, warnings=[]))
+    bad = Node("bad", context=ctx, namespace=ns)
+    pubs = {t: bad.create_publisher(JointState, t, vector_qos()) for t in ("input", "output", "setpoint")}
+    suite.add_node(bad)
+    try:
+        assert suite.spin_until(lambda: all(p.get_subscription_count() >= 2 for p in pubs.values()), 20.0)
+        pubs["output"].publish(JointState(name=["y1", "y2", "y3"], position=[1.0, float("nan"), 0.0]))
+        pubs["setpoint"].publish(JointState(name=["y1"], position=[1.0, 2.0]))
+        pubs["input"].publish(JointState(name=["u1", "u2", "u3"], position=[0.0, 0.0, 0.0]))  # plant not running
+        assert suite.spin_until(lambda: suite.mpc.rejected >= 2, 5.0)
+        suite.start()
+        assert suite.run(timeout=30.0, final_analysis=False)
+        assert suite.plant.k == 50 and suite.mpc.steps == 50
+        assert suite.monitor.core.window.health().bad_value == 2
+    finally:
+        suite.close()
         ctx.try_shutdown()

@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 
 pytest.importorskip("rclpy")
+pytestmark = pytest.mark.timeout(150)
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 
