@@ -40,8 +40,8 @@ PARAMS = MODEL_PARAMS + (
               "possible); false = advance on a timer every sample_time."),
     ParamSpec("publish_clock", "bool", True, "Publish the simulated time k * sample_time on clock_topic."),
     ParamSpec("max_samples", "int", 0, "Stop after this many samples (0 = run forever).", 0, 10**9),
-    ParamSpec("autostart", "bool", True, "Start by itself once min_subscribers listen on output_topic "
-              "(false: the owner calls start())."),
+    ParamSpec("autostart", "bool", True, "Start by itself once min_subscribers listen on output_topic (and, in "
+              "lock-step, an input publisher and a clock listener are matched); false: the owner calls start()."),
     ParamSpec("min_subscribers", "int", 1, "Subscribers on output_topic to wait for before the first sample.",
               0, 1000),
     ParamSpec("start_delay", "double", 0.5, "Wall-clock seconds to wait after min_subscribers are matched (lets the "
@@ -99,7 +99,7 @@ class PlantNode(Node):
     def _try_start(self) -> None:
         if self.running:
             return
-        if self._pub.get_subscription_count() < self.params["min_subscribers"]:
+        if not self._ready():
             self._matched_at = None
             return
         now = time.monotonic()
@@ -107,6 +107,17 @@ class PlantNode(Node):
             self._matched_at = now
         if now - self._matched_at >= self.params["start_delay"]:
             self.start()
+
+    def _ready(self) -> bool:
+        """True when the loop can close: listeners on output and, in lock-step, on the clock and an input publisher."""
+        if self._pub.get_subscription_count() < self.params["min_subscribers"]:
+            return False
+        if self.params["lock_step"]:
+            if self._sub.get_publisher_count() < 1:
+                return False
+            if self._clock_pub is not None and self._clock_pub.get_subscription_count() < 1:
+                return False
+        return True
 
     def start(self) -> None:
         """Publish the first sample (lock-step) or start the sample timer."""
