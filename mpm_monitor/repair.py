@@ -57,7 +57,7 @@ import numpy as np
 from scipy import optimize, signal, stats
 
 from .data_io import LoggedData
-from .discretize import discretize, simulate
+from .discretize import discretize
 from .errors import ConfigurationError, InputError
 from .model import FopdtModel
 from .signals import INITIAL_STATE_CHOICES, LoopSignals, compute_signals
@@ -529,7 +529,8 @@ class _RowEstimate:
 _TAU_GRID = (0.5, 0.7, 1.0, 1.4, 2.0)
 
 
-def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int = 3) -> _RowEstimate:
+def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int = 3,
+                need_cov: bool = True) -> _RowEstimate:
     """Lags on the integer grid by coordinate search; poles by least squares; then the noise model.
 
     Phase 1 (output error, ``A = 1``): for each element with a free lag, a quick scan of (lag, pole)
@@ -601,7 +602,10 @@ def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int
                     f = full(lg, best.poles)
                     if f.ssr < best.ssr * (1 - 1e-12):
                         best, lags, improved = f, lg, True
-    var_gain, var_pole, cond = problem.covariance(best)
+    if need_cov:
+        var_gain, var_pole, cond = problem.covariance(best)
+    else:
+        var_gain, var_pole, cond = np.zeros(n), np.zeros(n), float("nan")
     profiles = []
     for m in range(n):
         prof = {}
@@ -773,6 +777,12 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
 # Main entry
 # --------------------------------------------------------------------------------------------
 
+def _project_out(x: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """``x`` minus its least-squares fit on the columns ``cols``."""
+    coef, *_ = np.linalg.lstsq(cols, x, rcond=None)
+    return x - cols @ coef
+
+
 def _rms(x) -> float:
     x = np.asarray(x, float)
     return float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
@@ -901,6 +911,12 @@ def repair_model(model: FopdtModel, data: LoggedData, located: Sequence[tuple],
             sig_c = compute_signals(candidate, data.r, u, y, initial_state=options.initial_state)
             h_after = _rms(sig_c.d[hold, i])
             h_before = holdout_before[names_y[i]]
+            if extra is not None:
+                # The unexplained disturbance is no model's job: compare without it (an offset and the
+                # step or ramp fitted over the held-out part), since a wrong element can partly cancel it.
+                cols = np.column_stack([np.ones(n_hold), extra[hold]])
+                h_after = _rms(_project_out(sig_c.d[hold, i], cols))
+                h_before = _rms(_project_out(d0[hold, i], cols))
             if not h_after < h_before * (1.0 - options.min_holdout_improvement):
                 accepted = False
                 row_warnings.append(
@@ -1021,7 +1037,28 @@ def _unchanged_entry(model, i, j, reason):
             "confidence": 0.0, "interval": None, "applied": False, "evidence": {}, "reason": reason}
 
 
-def _estimate_row(model, u, y, i, specs: dict, n_fit, options, lags0: dict, max_sweeps, skip=None, extra=None):
+def _row_response(model: FopdtModel, u: np.ndarray, i: int) -> np.ndarray:
+    """Response of row ``i`` of ``model`` to ``u`` from rest, element by element (as
+    :func:`mpm_monitor.discretize.simulate`).
+
+    ``s(k+1) = a s(k) + b u_j(k - m)`` contributes ``s(k)``, i.e. ``b q^-(m+1) / (1 - a q^-1)``;
+    a static element without delay is a feed-through (see :mod:`mpm_monitor.discretize`).
+    """
+    disc = discretize(model)
+    out = np.zeros(u.shape[0])
+    for j in range(model.n_inputs):
+        if disc.active[i, j]:
+            m = int(disc.input_lag[i, j]) + 1
+            if m < u.shape[0]:
+                a = disc.pole[i, j]
+                out[m:] += signal.lfilter([disc.numerator[i, j]], [1.0, -a], u[:-m, j])
+        if disc.feedthrough[i, j] != 0:
+            out += disc.feedthrough[i, j] * u[:, j]
+    return out
+
+
+def _estimate_row(model, u, y, i, specs: dict, n_fit, options, lags0: dict, max_sweeps, skip=None, extra=None,
+                  ar0=None, need_cov=True):
     """Fit the located elements ``specs`` (``{input index: _ElementSpec}``) of row ``i``.
 
     The row's other elements are held at the model's values.  ``skip`` (samples left out at the
@@ -1032,7 +1069,7 @@ def _estimate_row(model, u, y, i, specs: dict, n_fit, options, lags0: dict, max_
     held = model
     for j in js:
         held = held.with_element(i, j, gain=0.0)
-    z = y[:, i] - simulate(held, u)[:, i]
+    z = y[:, i] - _row_response(held, u, i)
     disc = discretize(held)
     fixed_poles = [disc.pole[i, j] for j in range(model.n_inputs) if disc.active[i, j]]
     row_lags = [_element_lag(model.time_constant[i, j], model.delay_samples[i, j])
@@ -1041,7 +1078,10 @@ def _estimate_row(model, u, y, i, specs: dict, n_fit, options, lags0: dict, max_
         skip = max([specs[j].window[1] for j in js] + row_lags + [1])
     problem = _RowProblem(z, u[:, js], [specs[j] for j in js], n_fit, skip, fixed_poles,
                           options.initial_state == "estimate", options.noise_order, extra)
-    est = _search_row(problem, [lags0[j] for j in js], max_sweeps)
+    if ar0 is not None:
+        problem.set_ar(ar0)
+    est = _search_row(problem, [lags0[j] for j in js], max_sweeps, ar_iterations=3 if ar0 is None else 1,
+                      need_cov=need_cov)
     return problem, est
 
 
@@ -1062,44 +1102,55 @@ def _element_summary(problem, est, m, ts, zcrit, chi_crit):
     return after, interval, (k_hat, se_k, a_hat, se_a)
 
 
-def _lr_hold(model, u, y, i, specs, est, m_hold, what, n_use, options, skip, extra=None):
-    """Likelihood-ratio statistic of holding one parameter of a located element.
+def _lr_hold(model, u, y, i, specs, est, holds: dict, lag_orig: dict, n_use, options, skip, extra=None):
+    """Likelihood-ratio statistic of holding parameters of located elements at the model's values.
 
-    The row is refitted with element ``m_hold``'s ``what`` ("gain", "pole" or "absent") held at the
-    model's value, every lag at its optimum, everything else free; the statistic is
-    ``n ln(SSR_held / SSR_free)`` (chi-square(1) under the hypothesis that the parameter did not
-    change; Ljung 1999, section 16.5).  Unlike a Wald test on the Jacobian it does not depend on the
-    parametrization, which matters along the ridge where gain and time constant trade off.
+    The row is refitted with, for each element index ``m`` in ``holds``, the parameters named in
+    ``holds[m]`` ("gain", "pole", "lag", or "absent": no effect at all) held at the model's values,
+    the other lags at their optimum and everything else free; the statistic is
+    ``n ln(SSR_held / SSR_free)``, chi-square with as many degrees of freedom as parameters held
+    when they did not change (Ljung 1999, section 16.5).  Unlike a Wald test on the Jacobian it
+    does not depend on the parametrization, which matters along the ridge where gain and time
+    constant trade off.
     """
     js = sorted(specs)
     held, lags = {}, {}
     for m, j in enumerate(js):
         sp = specs[j]
         lag = est.fit.lags[m]
+        what = holds.get(m, set())
+        if "lag" in what:
+            lag = lag_orig[j]
         sp_new = _ElementSpec(sp.gain_free, sp.pole_free, float(est.fit.gains[m]), float(est.fit.poles[m]),
                               (lag, lag))
-        if m == m_hold:
-            if what == "gain":
-                sp_new.gain_free, sp_new.gain = False, float(model.gain[i, j])
-            elif what == "pole":
-                sp_new.pole_free, sp_new.pole = False, _pole_of(model.time_constant[i, j], model.sample_time)
-            else:  # absent: the element has no effect
-                sp_new.gain_free, sp_new.gain, sp_new.pole_free = False, 0.0, False
+        if "gain" in what:
+            sp_new.gain_free, sp_new.gain = False, float(model.gain[i, j])
+        if "pole" in what:
+            sp_new.pole_free, sp_new.pole = False, _pole_of(model.time_constant[i, j], model.sample_time)
+        if "absent" in what:
+            sp_new.gain_free, sp_new.gain, sp_new.pole_free = False, 0.0, False
         held[j] = sp_new
         lags[j] = lag
-    _, est_h = _estimate_row(model, u, y, i, held, n_use, options, lags, 1, skip=skip, extra=extra)
+    _, est_h = _estimate_row(model, u, y, i, held, n_use, options, lags, 1, skip=skip, extra=extra, ar0=est.ar,
+                             need_cov=False)
     return max(est_h.fit.n_resid * math.log(max(est_h.fit.ssr, 1e-300) / max(est.fit.ssr, 1e-300)), 0.0)
+
+
+_PARAM_OF_TEST = {"gain": "gain", "time_constant": "pole", "delay": "lag", "missing": "absent"}
 
 
 def _repair_row(model, u, y, i, js, n_fit, options, zcrit, chi_crit, alpha, extra=None):
     """Classify the located elements ``js`` of row ``i`` and fit their repair on samples ``0 .. n_fit-1``.
 
     Stage 1 (whole record, the most evidence) frees gain, time constant and delay of every located
-    element and tests each against the model's value by a likelihood-ratio test.  Stage 2 (first
-    ``n_fit`` samples, so that the rest validates it) refits only what changed significantly
-    (everything for a missing element) with the rest held at the model's values; elements without a
-    significant change are held entirely.  Fewer free parameters give tighter, less biased
-    estimates when inputs move together.
+    element and tests each against the model's value by a likelihood-ratio test.  Parameters
+    judged unchanged are then held *together* and that joint hypothesis tested as well: gain and
+    time constant (or two elements on inputs that move together) can each stand in for the other,
+    so that each alone looks unchanged while holding both does not fit; while the joint test
+    rejects, the held parameter with the strongest evidence of change is freed.  Stage 2 (first
+    ``n_fit`` samples, so that the rest validates it) refits only what changed (everything for a
+    missing element) with the rest held at the model's values; elements without a change are held
+    entirely.  Fewer free parameters give tighter, less biased estimates when inputs move together.
 
     Returns
     -------
@@ -1130,40 +1181,67 @@ def _repair_row(model, u, y, i, js, n_fit, options, zcrit, chi_crit, alpha, extr
         lag_orig[j] = _element_lag(tau[i, j], nd[i, j])
     problem, est = _estimate_row(model, u, y, i, specs, n_all, options, lags0, options.max_sweeps, extra=extra)
     skip1 = problem.start - problem.p
-    verdicts = {}
+
+    def lr(holds):
+        return _lr_hold(model, u, y, i, specs, est, holds, lag_orig, n_all, options, skip1, extra)
+
+    # Individual tests.
+    summaries, tests = {}, {}
     for m, j in enumerate(js):
         after, interval, _ = _element_summary(problem, est, m, ts, zcrit, chi_crit)
+        summaries[j] = (after, interval)
         before = model.element(i, j)
-        evidence = {"p_gain": None, "p_time_constant": None, "p_delay": None, "condition_number": est.cond,
-                    "samples": est.fit.n_resid, "noise_model": [float(v) for v in est.ar]}
-        tests = {}
+        t = {}
         if before["gain"] == 0:
-            p_k = float(stats.chi2.sf(_lr_hold(model, u, y, i, specs, est, m, "absent", n_all, options, skip1, extra), 1))
-            evidence["p_gain"] = p_k
-            tests["missing"] = (p_k < alpha, p_k)
+            t["missing"] = [float(stats.chi2.sf(lr({m: {"absent"}}), 1)), True]
         else:
-            p_k = float(stats.chi2.sf(_lr_hold(model, u, y, i, specs, est, m, "gain", n_all, options, skip1, extra), 1))
-            big = abs(after["gain"] - before["gain"]) > options.min_relative_change * abs(before["gain"])
-            evidence["p_gain"] = p_k
-            tests["gain"] = (p_k < alpha and big, p_k)
+            t["gain"] = [float(stats.chi2.sf(lr({m: {"gain"}}), 1)),
+                         abs(after["gain"] - before["gain"]) > options.min_relative_change * abs(before["gain"])]
             tau0 = before["time_constant"]
-            p_a = float(stats.chi2.sf(_lr_hold(model, u, y, i, specs, est, m, "pole", n_all, options, skip1, extra), 1))
-            big_t = abs(after["time_constant"] - tau0) > options.min_relative_change * max(tau0, ts)
-            evidence["p_time_constant"] = p_a
-            tests["time_constant"] = (p_a < alpha and big_t, p_a)
+            t["time_constant"] = [float(stats.chi2.sf(lr({m: {"pole"}}), 1)),
+                                  abs(after["time_constant"] - tau0) > options.min_relative_change * max(tau0, ts)]
             w = specs[j].window
             p_d = float(stats.chi2.sf(_lag_lr(est, m, lag_orig[j], problem.specs), 1)) \
                 if w[0] <= lag_orig[j] <= w[1] else 0.0
-            evidence["p_delay"] = p_d
-            tests["delay"] = (p_d < alpha and after["delay"] != before["delay"], p_d)
-        hits = [k for k, (hit, _) in tests.items() if hit]
+            t["delay"] = [p_d, after["delay"] != before["delay"]]
+        tests[j] = t
+    changed = {j: {k for k, (p, big) in tests[j].items() if p < alpha and big} for j in js}
+    margins = {j: {k: _margin(p, alpha) for k, (p, _) in tests[j].items()} for j in js}
+    # Joint test of everything held.
+    joint_p = None
+    while True:
+        holds = {m: {_PARAM_OF_TEST[k] for k in tests[j] if k not in changed[j]} for m, j in enumerate(js)}
+        n_held = sum(len(h) for h in holds.values())
+        if n_held == 0:
+            break
+        joint_p = float(stats.chi2.sf(lr(holds), n_held))
+        if joint_p >= alpha:
+            break
+        j_free, k_free = min(((j, k) for j in js for k in tests[j] if k not in changed[j]),
+                             key=lambda jk: tests[jk[0]][jk[1]][0])
+        changed[j_free].add(k_free)
+        margins[j_free][k_free] = _margin(joint_p, alpha)
+        warnings.append(f"{names_y[i]}/{names_u[j_free]}: its {k_free.replace('_', ' ')} alone does not show a "
+                        f"significant change, but holding it together with the other unchanged parameters of the "
+                        f"row does not fit the data (p = {joint_p:.2g}); it is re-estimated too.")
+    verdicts = {}
+    for m, j in enumerate(js):
+        after, interval = summaries[j]
+        hits = sorted(changed[j], key=["missing", "gain", "time_constant", "delay"].index)
         if "missing" in hits:
             kind = "missing"
         elif not hits:
             kind = "unknown"
         else:
             kind = hits[0] if len(hits) == 1 else "mixed"
-        confidence = min(_margin(pv, alpha) for _, pv in tests.values())
+        confidence = min(margins[j].values())
+        if joint_p is not None and any(k not in changed[j] for k in tests[j]):
+            confidence = min(confidence, _margin(joint_p, alpha))
+        evidence = {"p_gain": tests[j].get("gain", tests[j].get("missing"))[0],
+                    "p_time_constant": tests[j]["time_constant"][0] if "time_constant" in tests[j] else None,
+                    "p_delay": tests[j]["delay"][0] if "delay" in tests[j] else None,
+                    "p_unchanged_jointly": joint_p, "condition_number": est.cond, "samples": est.fit.n_resid,
+                    "noise_model": [float(v) for v in est.ar]}
         verdicts[j] = {"kind": kind, "changed": hits, "after": after, "interval": interval,
                        "evidence": evidence, "confidence": confidence, "apply": kind != "unknown"}
         if est.edge[m]:

@@ -313,3 +313,17 @@ def test_step_on_a_repaired_row_does_not_bias_the_element():
     assert res.error_after["y2"] <= 1.05 * floor[1]
     assert [(d["output"], d["kind"]) for d in res.disturbances] == [("y2", "step")]
     assert any("allowed for the unexplained step" in w for w in res.warnings)
+
+
+def test_row_response_equals_the_state_space_simulation():
+    """The element-wise row response used by the fit equals discretize.simulate (lags, static
+    elements, a feed-through, a zero gain)."""
+    from mpm_monitor.discretize import simulate
+    from mpm_monitor.repair import _row_response
+
+    sh = _shell().with_element(0, 1, gain=0.0).with_element(1, 2, time_constant=0.0, delay=2.0)
+    sh = sh.with_element(2, 2, time_constant=0.0, delay=0.0)
+    u = np.random.default_rng(0).standard_normal((300, 3))
+    y = simulate(sh, u)
+    for i in range(3):
+        np.testing.assert_allclose(_row_response(sh, u, i), y[:, i], rtol=1e-10, atol=1e-12)
