@@ -315,6 +315,11 @@ def run_demo(case: str = "3.2", samples: Optional[int] = None, bag: Optional[str
             params["monitor"].update(window_samples=n, min_samples=min_samples,
                                      analysis_period=max(min_samples, n // 3), stale_timeout=60.0)
             suite = Suite(ctx, params)
+            if quiet:
+                from rclpy.logging import LoggingSeverity
+
+                for node in suite.nodes:
+                    node.get_logger().set_level(LoggingSeverity.WARN)
             printer = DiagnosticsPrinter(ctx, out=out, quiet=quiet)
             suite.add_node(printer.node)
             if recorder_cls is not None:
