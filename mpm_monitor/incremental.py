@@ -206,7 +206,8 @@ class LaggedGram:
     Notes
     -----
     Row ``t`` holds ``x_c(t - l) - ref_c`` for every column; ``ref`` is set at each rebuild.  The
-    updates are symmetric rank-k updates (BLAS ``dsyrk``) of the lower triangle, in place;
+    updates are symmetric rank-k updates (BLAS ``dsyrk``, or ``dsyr2k`` when as many rows leave as
+    enter) of the lower triangle, in place;
     :meth:`symmetric` returns the full matrix.
     """
 
@@ -288,11 +289,20 @@ class LaggedGram:
         values = self.channel_values(slabs[0] if len(slabs) == 1 else np.vstack(slabs)) - self.ref
         t = np.concatenate(index)[:, None] if len(index) > 1 else index[0][:, None]
         phi = values[t - self.col_lag, self.col_channel]
+        if n_add == n_remove:
+            # A'A - B'B = ((A + B)'(A - B) + (A - B)'(A + B)) / 2: one pass over the matrix (dsyr2k).
+            a, b = phi[n_remove:], phi[:n_remove]
+            blas.dsyr2k(0.5, (a + b).T, (a - b).T, beta=1.0, c=self.gram.T, trans=0, lower=0, overwrite_c=1)
+            self.sums += a.sum(axis=0) - b.sum(axis=0)
+            self._full = None
+        else:
+            if n_remove:
+                self._accumulate(phi[:n_remove], -1.0)
+            if n_add:
+                self._accumulate(phi[n_remove:], 1.0)
         if n_remove:
-            self._accumulate(phi[:n_remove], -1.0)
             self.lo = remove[1]
         if n_add:
-            self._accumulate(phi[n_remove:], 1.0)
             self.hi = add[1]
 
     def symmetric(self) -> np.ndarray:
