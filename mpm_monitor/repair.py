@@ -171,9 +171,14 @@ class RepairResult:
     model : FopdtModel
         The repaired model: the input model with only accepted located elements changed.
     changes : list of dict
-        One entry per located element (output and input names, ``kind``, ``before``/``after``
-        parameters in seconds, ``confidence`` in [0, 1], ``interval`` of each parameter at
-        ``confidence_level``, ``applied`` and the evidence behind the verdict).
+        One entry per located element: ``output``, ``input`` (names), ``kind``, ``before`` and
+        ``after`` (``gain``, ``time_constant`` s, ``delay`` s; ``after`` equals ``before`` when not
+        applied), ``estimate`` (the fitted parameters, also when not applied), ``confidence`` in
+        [0, 1], ``interval`` (``[lo, hi]`` per parameter at ``confidence_level``), ``applied``,
+        ``evidence`` (``p_gain``, ``p_time_constant``, ``p_delay``: likelihood-ratio p-values of
+        "unchanged"; ``p_unchanged_jointly``; ``condition_number`` of the row fit; ``samples``;
+        ``noise_model`` ``[alpha_1 .. alpha_p]``), and when not applied ``reason`` (and
+        ``fitted_kind`` when the held-out validation rejected it).
     kinds : dict
         ``{(i, j): kind}`` for every located element (indices).
     error_before, error_after : dict
@@ -182,7 +187,9 @@ class RepairResult:
         ``{output name: fit %}``, ``100 (1 - ||y - yhat|| / ||y - mean y||)``.
     holdout_error_before, holdout_error_after : dict
         ``{output name: RMS of d}`` over the held-out last part, with the model as given / with the
-        candidate fitted on the first part only (empty when ``holdout_fraction`` is 0).
+        candidate fitted on the first part only (empty when ``holdout_fraction`` is 0).  On a row
+        re-estimated with an unexplained step or drift, both are taken with that disturbance
+        projected out.
     disturbances : list of dict
         Outputs whose residual holds a step or drift no input explains (``output``, ``kind``
         "step"/"drift", ``size`` in output units, ``time`` in seconds, ``p_value``, ``statistic``).
@@ -263,6 +270,10 @@ def _element_params(gain: float, pole: float, lag: int, ts: float):
     return float(gain), float(-ts / math.log(pole)), float(max(lag - 1, 0)) * ts
 
 
+class _TooShort(Exception):
+    """The fit window is too short for the lags searched (turned into a warning)."""
+
+
 @dataclasses.dataclass
 class _ElementSpec:
     """Which parameters of a located element the fit may move.
@@ -336,8 +347,10 @@ class _RowProblem:
         self.p = int(noise_order)
         self.free = bool(free_response)
         self.start = int(skip) + self.p
-        if self.start >= self.n_fit - 10:
-            raise InputError(f"repair: too few samples ({self.n_fit}) for input lags up to {skip}")
+        needed = max(150, 20 * (3 * len(self.specs) + self.p + 3))
+        if self.n_fit - self.start < needed:
+            raise _TooShort(f"{self.n_fit} samples are too few for input lags up to {skip} samples "
+                            f"(at least {needed} beyond them needed)")
         self.kw = np.arange(self.start, self.n_fit, dtype=float)
         cols = [np.ones_like(self.kw)]
         if self.free:
@@ -898,10 +911,17 @@ def repair_model(model: FopdtModel, data: LoggedData, located: Sequence[tuple],
     def process_row(i, extra):
         """Classify, fit, validate and (optionally) refit the located elements of row ``i``."""
         js = [j for (ii, j) in located if ii == i]
-        row = _repair_row(model, u, y, i, js, n_fit, options, zcrit, chi_crit, alpha, extra)
+        try:
+            row = _repair_row(model, u, y, i, js, n_fit, options, zcrit, chi_crit, alpha, extra)
+        except _TooShort as exc:
+            return {"elements": {j: {"kind": "unknown", "changed": [], "after": model.element(i, j), "interval": None,
+                                     "evidence": {}, "confidence": 0.0, "apply": False, "reason": str(exc)}
+                                 for j in js},
+                    "warnings": [f"{names_y[i]}: {exc}; its elements were not re-estimated."], "holdout_after": None,
+                    "holdout_before": None}
         row_warnings = list(row["warnings"])
         elements = row["elements"]
-        h_after = None
+        h_after = h_before = None
         candidate = model
         for j, el in elements.items():
             if el["apply"]:
@@ -936,7 +956,7 @@ def repair_model(model: FopdtModel, data: LoggedData, located: Sequence[tuple],
         if not accepted:
             for el in elements.values():
                 el["apply"] = False
-        return {"elements": elements, "warnings": row_warnings, "holdout_after": h_after}
+        return {"elements": elements, "warnings": row_warnings, "holdout_after": h_after, "holdout_before": h_before}
 
     def build(results):
         repaired = model
@@ -980,6 +1000,7 @@ def repair_model(model: FopdtModel, data: LoggedData, located: Sequence[tuple],
         warnings.extend(res["warnings"])
         if res["holdout_after"] is not None:
             holdout_after[names_y[i]] = res["holdout_after"]
+            holdout_before[names_y[i]] = res["holdout_before"]
         for j, el in res["elements"].items():
             kinds[(i, j)] = el["kind"]
             entry = {"output": names_y[i], "input": names_u[j], "kind": el["kind"],

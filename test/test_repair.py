@@ -327,3 +327,13 @@ def test_row_response_equals_the_state_space_simulation():
     y = simulate(sh, u)
     for i in range(3):
         np.testing.assert_allclose(_row_response(sh, u, i), y[:, i], rtol=1e-10, atol=1e-12)
+
+
+def test_delays_longer_than_the_record_give_a_warning_not_an_error():
+    sh = _shell()
+    model = sh.with_element(1, 1, gain=4.0, delay=250.0)
+    data = as_data(run_closed_loop(sh, sh.with_element(1, 1, gain=4.0), 400, seed=2))
+    res = repair_model(model, data, [(1, 1)], RepairOptions(max_delay_shift=20))
+    assert res.model == model
+    assert res.kinds == {(1, 1): "unknown"}
+    assert any("too few" in w for w in res.warnings)
