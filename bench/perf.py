@@ -206,7 +206,7 @@ def bench_analysis(grid: Grid, seed: int = 0, log=print) -> list:
                 continue
             a, b = 0, w
             data = _window_data(cl, model, a, b)
-            sig = LoopSignals(sig_all.yhat[a:b], sig_all.d[a:b], sig_all.eps[a:b], sig_all.x0)
+            sig = LoopSignals(sig_all.yhat[a:b], sig_all.d[a:b], sig_all.eps[a:b], sig_all.transient[a:b])
             X, y = _largest_regression(model, data, sig, OPTIONS)
             cell["largest_regression"] = list(X.shape)
             reps, budget = grid.repeats, grid.budget_s

@@ -923,7 +923,7 @@ class SlidingWindowAnalyzer:
     def window_data(self):
         """The current window: (LoggedData, LoopSignals), copies.
 
-        ``LoopSignals.x0`` is empty: the model state is not kept per sample.
+        ``LoopSignals.transient`` is zero: the model runs continuously, so there is no initial transient.
         """
         first = max(0, self._pushed - self.window)
         block = self.buffer.rows(first, self._pushed)
@@ -935,7 +935,7 @@ class SlidingWindowAnalyzer:
         ts = self.model.sample_time
         data = LoggedData(t=np.arange(first, self._pushed) * ts, r=r, u=u, y=y, inputs=self.model.inputs,
                           outputs=self.model.outputs, sample_time=ts, source="sliding window")
-        return data, LoopSignals(yhat=yhat, d=d, eps=eps, x0=np.zeros(0))
+        return data, LoopSignals(yhat=yhat, d=d, eps=eps, transient=np.zeros_like(d))
 
     def analyze(self) -> AnalysisReport:
         """The analysis of the current window (see :func:`mpm_monitor.analysis.analyze`).

@@ -4,9 +4,13 @@
 and ``eps = r - d`` (controller input), paper Fig. 1 and eq. (1), (9).
 
 The model's state at the first logged sample is unknown when the log starts mid-operation.  With
-``initial_state="estimate"`` it is estimated by least squares from the first ``settling_samples``
-samples of ``y - yhat_0`` (``yhat_0`` simulated from rest): the free response ``C A^k x0`` is linear
-in ``x0``.  With ``"zero"`` the model starts at rest (exact for data that start at rest).
+``initial_state="estimate"`` the model is first simulated from rest; once the longest input lag
+``L`` has passed, every effect of the unknown state and of the unknown inputs before the log is
+held in the elements' lag states, so the rest of the error is a sum of decaying exponentials
+``c_ij a_ij^(k - L)`` per output row.  Their amplitudes are estimated by least squares, row by row
+(so a mismatch in one row can never leak into another), over the model's settling time, and are
+subtracted only when they are jointly significant (F test at level 0.001); data that start at
+rest therefore keep the exact zero initial state.  With ``"zero"`` the model starts at rest.
 """
 
 from __future__ import annotations
@@ -15,11 +19,15 @@ import dataclasses
 
 import numpy as np
 
-from .discretize import settling_samples, simulate_state_space, state_space
+from .arx import f_test
+from .discretize import discretize, settling_samples, simulate_state_space, state_space
 from .errors import ConfigurationError
 from .model import FopdtModel
 
 INITIAL_STATE_CHOICES = ("estimate", "zero")
+
+#: Level of the F test that decides whether a row's initial transient is subtracted.
+TRANSIENT_TEST_LEVEL = 1e-3
 
 
 @dataclasses.dataclass
@@ -29,29 +37,61 @@ class LoopSignals:
     Attributes
     ----------
     yhat : ndarray, shape (n_samples, n_outputs)
-        Model output ``Phat u``.
+        Model output ``Phat u`` (with the estimated initial transient, if any).
     d : ndarray, shape (n_samples, n_outputs)
         Prediction error ``y - yhat``.
     eps : ndarray, shape (n_samples, n_outputs)
         Controller input ``r - d``.
-    x0 : ndarray, shape (n_states,)
-        Initial model state used.
+    transient : ndarray, shape (n_samples, n_outputs)
+        The initial-state transient added to ``Phat u`` (zeros when none was significant).
     """
 
     yhat: np.ndarray
     d: np.ndarray
     eps: np.ndarray
-    x0: np.ndarray
+    transient: np.ndarray
 
 
-def free_response_matrix(ss, n: int) -> np.ndarray:
-    """Observability-type matrix ``[C; C A; ...; C A^{n-1}]`` of shape (n * n_outputs, n_states)."""
-    ny, nx = ss.C.shape
-    out = np.zeros((n * ny, nx))
-    ca = ss.C.copy()
-    for k in range(n):
-        out[k * ny:(k + 1) * ny] = ca
-        ca = ca @ ss.A
+def initial_transient(model: FopdtModel, d0: np.ndarray, level: float = TRANSIENT_TEST_LEVEL) -> np.ndarray:
+    """Per-row least-squares estimate of the free response hidden in ``d0`` (see module docstring).
+
+    Parameters
+    ----------
+    model : FopdtModel
+    d0 : ndarray, shape (n_samples, n_outputs)
+        Prediction error of the model simulated from rest.
+    level : float
+        Significance level below which a row's transient is kept.
+
+    Returns
+    -------
+    ndarray, shape (n_samples, n_outputs)
+        The transient to add to the model output (zero for rows where it is not significant).
+    """
+    n, ny = d0.shape
+    disc = discretize(model)
+    lag = int(np.max(disc.input_lag, initial=0))
+    span = min(n - lag, max(settling_samples(model), 50))
+    out = np.zeros_like(d0)
+    if span < 20:
+        return out
+    k = np.arange(n - lag)
+    for i in range(ny):
+        poles = np.unique(np.round(disc.pole[i][disc.active[i]], 12))
+        poles = poles[poles > 0]
+        if poles.size == 0:
+            continue
+        basis = poles[None, :] ** k[:, None]                  # (n - lag, n_poles)
+        X = basis[:span]
+        target = d0[lag:lag + span, i] - d0[lag:lag + span, i].mean()
+        Xc = X - X.mean(axis=0)
+        coef, *_ = np.linalg.lstsq(Xc, target, rcond=1e-10)
+        rss_full = float(np.sum((target - Xc @ coef) ** 2))
+        rss_null = float(target @ target)
+        rank = int(np.linalg.matrix_rank(Xc))
+        _, p = f_test(rss_null, rss_full, rank, span - rank - 1)
+        if p < level:
+            out[lag:, i] = basis @ coef
     return out
 
 
@@ -78,13 +118,10 @@ def compute_signals(model: FopdtModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
         raise ConfigurationError(f"initial_state: expected one of {', '.join(INITIAL_STATE_CHOICES)}, got {initial_state!r}")
     r, u, y = (np.asarray(a, dtype=float) for a in (r, u, y))
     ss = state_space(model)
-    x0 = np.zeros(ss.n_states)
-    yhat = simulate_state_space(ss, u, x0)
-    if initial_state == "estimate" and ss.n_states > 0 and u.shape[0] > 1:
-        n_fit = min(u.shape[0], max(settling_samples(model), 10))
-        obs = free_response_matrix(ss, n_fit)
-        resid = (y[:n_fit] - yhat[:n_fit]).reshape(-1)
-        x0, *_ = np.linalg.lstsq(obs, resid, rcond=1e-8)
-        yhat = simulate_state_space(ss, u, x0)
+    yhat = simulate_state_space(ss, u)
+    transient = np.zeros_like(yhat)
+    if initial_state == "estimate" and u.shape[0] > 1:
+        transient = initial_transient(model, y - yhat)
+        yhat = yhat + transient
     d = y - yhat
-    return LoopSignals(yhat=yhat, d=d, eps=r - d, x0=x0)
+    return LoopSignals(yhat=yhat, d=d, eps=r - d, transient=transient)

@@ -52,7 +52,7 @@ def _batch_of_window(model, r, u, y, window, options):
     w = slice(max(0, r.shape[0] - window), r.shape[0])
     data = LoggedData(t=np.arange(r.shape[0])[w] * model.sample_time, r=r[w], u=u[w], y=y[w],
                       inputs=model.inputs, outputs=model.outputs, sample_time=model.sample_time)
-    return analyze(model, data, options, signals=LoopSignals(sig.yhat[w], sig.d[w], sig.eps[w], sig.x0))
+    return analyze(model, data, options, signals=LoopSignals(sig.yhat[w], sig.d[w], sig.eps[w], sig.transient[w]))
 
 
 def _close(a, b, what, tol=TOL):
