@@ -746,10 +746,14 @@ def _repair(model, data, located, sig, options, warnings):
             "error_after": _rms(sig.d, model.outputs)}
     if not options.repair:
         return base, model, None
-    try:
-        from .repair import repair_model
-    except ImportError:
-        return base, model, None
-    result = repair_model(model, data, located, signals=sig)
+    from .repair import RepairOptions, repair_model
+
+    result = repair_model(model, data, located, RepairOptions(initial_state=options.initial_state), signals=sig)
     warnings.extend(w for w in result.warnings if w not in warnings)
-    return result.to_dict(), result.model, result
+    doc = result.to_dict()
+    if result.model != model:
+        # The relative sensitivity of the repaired model on the same data (issue 5, item 4).
+        after = analyze(result.model, data, dataclasses.replace(options, repair=False, test_all_rows=False))
+        doc["rsi_after"] = {r.output: r.rsi for r in after.rows}
+        doc["rows_flagged_after"] = after.flagged_rows
+    return doc, result.model, result

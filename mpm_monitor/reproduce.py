@@ -64,7 +64,8 @@ def reproduce(case_name: str, samples: int = 3000, seed: int = 1, options: Analy
     lines.append(f"flagged rows: {', '.join(report.flagged_rows) or 'none'}"
                  f"   (expected: {', '.join(case.mismatched_rows) or 'none'})")
     for table in report.arx_tables:
-        lines += ["", format_arx_table(table)]
+        if table.output in report.flagged_rows:
+            lines += ["", format_arx_table(table)]
     lines.append("")
     located = report.located_elements
     lines.append("located elements: " + (", ".join(f"({o}, {i})" for o, i in located) or "none"))
@@ -72,6 +73,20 @@ def reproduce(case_name: str, samples: int = 3000, seed: int = 1, options: Analy
     for e in report.elements:
         if e.mismatch:
             lines.append(f"  ({e.output}, {e.input}): p = {e.p_value:.2e}, kind {e.kind}, delay {e.delay} samples")
+    changes = report.repair.get("changes", [])
+    if changes:
+        lines.append("")
+        lines.append("repair (re-estimated from the same data; gain, time constant s, delay s):")
+        for c in changes:
+            b, a = c["before"], c["after"]
+            lines.append(f"  ({c['output']}, {c['input']}) {c['kind']:<13} {b['gain']:g} / {b['time_constant']:g} / "
+                         f"{b['delay']:g}  ->  {a['gain']:.3g} / {a['time_constant']:.3g} / {a['delay']:g}")
+        eb, ea = report.repair["error_before"], report.repair["error_after"]
+        lines.append("  prediction error RMS before -> after: "
+                     + ", ".join(f"{k} {eb[k]:.4f} -> {ea[k]:.4f}" for k in eb))
+        if "rsi_after" in report.repair:
+            lines.append("  row RSI of the repaired model: "
+                         + ", ".join(f"{k} {v:.3f}" for k, v in report.repair["rsi_after"].items()))
     ok = set(located) == set(case.mismatched_elements) and set(report.flagged_rows) == set(case.mismatched_rows)
     lines.append(f"result matches the paper: {'yes' if ok else 'NO'}")
     for w in report.warnings:
