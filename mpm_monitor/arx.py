@@ -22,7 +22,7 @@ autoregressive columns.
 from __future__ import annotations
 
 import dataclasses
-from typing import Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 import scipy.linalg as sla
@@ -374,14 +374,16 @@ class SharedFit:
         f, p = f_test(self.rss_own_only, self.rss, df_num, self.dof)
         return BlockTest(f, p, int(df_num), int(self.dof))
 
-    def test_blocks_zero(self, blocks: Sequence[int]) -> BlockTest:
+    def test_blocks_zero(self, blocks: Sequence[int], n_first: Optional[int] = None) -> BlockTest:
         """Wald F test that the common coefficients of the given blocks are all zero.
 
         For least squares the Wald statistic ``theta_S' [cov_SS]^-1 theta_S / |S|`` equals the F
-        statistic of the nested fit without those columns.
+        statistic of the nested fit without those columns.  With ``n_first`` only the first
+        ``n_first`` coefficients of each block are tested (the others stay free in the fit).
         """
         starts = np.cumsum([0] + self.reg.block_sizes)
-        idx = np.concatenate([np.arange(starts[b], starts[b + 1]) for b in blocks]) if blocks else np.array([], int)
+        ends = [starts[b + 1] if n_first is None else min(starts[b] + n_first, starts[b + 1]) for b in blocks]
+        idx = np.concatenate([np.arange(starts[b], e) for b, e in zip(blocks, ends)]) if blocks else np.array([], int)
         if idx.size == 0:
             return BlockTest(float("nan"), 1.0, 0, int(self.dof))
         th = (self.theta * self.scale)[idx]           # scaled parameters
