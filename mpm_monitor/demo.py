@@ -327,6 +327,10 @@ def run_demo(case: str = "3.2", samples: Optional[int] = None, bag: Optional[str
                 if c.excitation.dither is not None:
                     topics.append("dither=sensor_msgs/msg/JointState")
                 recorder = recorder_cls(bag_dir=bag, topics=topics, context=ctx)
+                if quiet:
+                    from rclpy.logging import LoggingSeverity
+
+                    recorder.get_logger().set_level(LoggingSeverity.WARN)
                 suite.add_node(recorder)
                 suite.extra_subscribers = 1
             if not quiet:
@@ -339,6 +343,7 @@ def run_demo(case: str = "3.2", samples: Optional[int] = None, bag: Optional[str
             # let the final diagnostics reach the printer (and the recorder)
             printer.wait_for(suite, 5.0)
             if recorder is not None:
+                _settle(suite, recorder)
                 count = recorder.close()
                 out.write(f"recorded {count} messages to {bag}\n")
             if not ok:
@@ -357,12 +362,77 @@ def run_demo(case: str = "3.2", samples: Optional[int] = None, bag: Optional[str
                 out.write("located elements: " + (", ".join(f"({o}, {i})" for o, i in els) if els else "none") + "\n")
                 exp_el = ", ".join(f"({o}, {i})" for o, i in c.mismatched_elements) or "none"
                 out.write(f"paper: rows {', '.join(c.mismatched_rows) or 'none'}; elements {exp_el}\n")
+                out.write(repair_text(report, c.model, c.plant))
             out.flush()
     finally:
         if suite is not None:
             suite.close()
         ctx.try_shutdown()
     return 0
+
+
+def _settle(suite: Suite, recorder, quiet: float = 0.5, timeout: float = 5.0) -> None:
+    """Spin until the recorder has taken no new message for ``quiet`` seconds (at most ``timeout``).
+
+    The printer having the final diagnostics does not mean the recorder's copy has been taken yet
+    (each subscription has its own queue); without this, the bag could miss the last result.
+    """
+    state = {"count": recorder.message_count, "since": time.monotonic()}
+
+    def quiet_enough():
+        n = recorder.message_count
+        if n != state["count"]:
+            state.update(count=n, since=time.monotonic())
+        return time.monotonic() - state["since"] >= quiet
+
+    suite.spin_until(quiet_enough, timeout)
+
+
+def repair_text(report, model: FopdtModel, plant: Optional[FopdtModel] = None) -> str:
+    """The suggested repair of an analysis report in words: changes, held-out verdict, errors before/after.
+
+    Parameters
+    ----------
+    report : AnalysisReport
+    model : FopdtModel
+        The model analysed (for the element order).
+    plant : FopdtModel, optional
+        The true plant (a simulation), whose element values are shown next to each change.
+
+    Returns
+    -------
+    str
+        Lines ending with a newline.
+    """
+    from .monitor_core import describe_change, repair_verdict
+
+    verdict = repair_verdict(report)
+    if verdict.verdict == "off":
+        return "suggested repair: none (the monitor ran without the repair)\n"
+    doc = report.repair
+    lines = [f"suggested repair: {verdict.changes} change{'s' if verdict.changes != 1 else ''}",
+             f"held-out validation: {verdict.detail or verdict.verdict.replace('_', ' ')}"]
+    for ch in doc.get("changes") or []:
+        what = describe_change(ch) if ch.get("applied") else ""
+        conf = ch.get("confidence")
+        line = f"  ({ch['output']}, {ch['input']}) {ch.get('kind', 'unknown')}: "
+        line += what if what else f"kept ({ch.get('reason') or 'no parameter differs significantly'})"
+        if what and conf is not None:
+            line += f"  (confidence {conf:.2f})"
+        if plant is not None and ch["output"] in plant.outputs and ch["input"] in plant.inputs:
+            true = plant.element(plant.outputs.index(ch["output"]), plant.inputs.index(ch["input"]))
+            line += (f"  [plant: gain {true['gain']:.3g}, time_constant {true['time_constant']:.3g} s, "
+                     f"delay {true['delay']:.3g} s]")
+        lines.append(line)
+    eb, ea = doc.get("error_before") or {}, doc.get("error_after") or {}
+    if eb:
+        lines.append("prediction error RMS before -> after: "
+                     + ", ".join(f"{o} {eb[o]:.4f} -> {ea.get(o, float('nan')):.4f}" for o in model.outputs if o in eb))
+    rsi_after = doc.get("rsi_after") or {}
+    if rsi_after:
+        lines.append("RSI of the repaired model on the same window: "
+                     + ", ".join(f"{o} {rsi_after[o]:.3f}" for o in model.outputs if o in rsi_after))
+    return "\n".join(lines) + "\n"
 
 
 def _analyses(msg) -> int:

@@ -12,6 +12,16 @@ Statuses (CONTRACTS section 4): one per output, named ``mpm_monitor: row <output
 ``rsi``, ``mismatch`` (``true``/``false``), ``flagged_inputs`` (comma-separated), ``p_value`` and
 more, and one ``mpm_monitor: summary``.  Levels: OK (no mismatch), WARN (mismatch located), ERROR
 (bad input data or analysis failure), STALE (no fresh data).
+
+When the analysis includes the repair (:mod:`mpm_monitor.repair`, issue 5), the statuses carry the
+suggested repair: per row ``repair`` (e.g. ``u2: time_constant 45->60 s, delay 4->7 s; u3: gain
+3.5->5.88``), ``error_before`` / ``error_after`` (RMS of the one-step prediction error ``d = y -
+yhat`` over the window with the model as given / as repaired), the held-out errors, ``rsi_after``
+and per located element ``kind <input>`` and ``confidence <input>``; in the summary
+``repair_changes`` (number of suggested element changes), ``repair_validation`` (the held-out
+verdict: ``passed``, ``rejected``, ``mixed``, ``not_validated``, ``not_run``, ``none`` or ``off``)
+and ``repair_validation_detail`` (the same in words).  :meth:`MonitorCore.write_repaired_model`
+writes the latest repaired model file atomically.
 """
 
 from __future__ import annotations
@@ -19,15 +29,18 @@ from __future__ import annotations
 import collections
 import dataclasses
 import math
+import os
+import tempfile
 import threading
 import time
 import traceback
-from typing import Any, Callable, Optional
+from pathlib import Path
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 
 from .errors import ConfigurationError
-from .model import FopdtModel
+from .model import FopdtModel, save_model
 from .window import ERROR_KINDS, SampleWindow, WindowOptions
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
@@ -145,6 +158,175 @@ def _num(x) -> str:
 
 def _bool(b) -> str:
     return "true" if b else "false"
+
+
+# ----------------------------------------------------------------------------- repair in words
+#: Element parameters of a repair change, with their unit.
+_CHANGE_PARAMS = (("gain", ""), ("time_constant", " s"), ("delay", " s"))
+
+#: ``reason`` of a change the held-out validation refused (:func:`mpm_monitor.repair.repair_model`).
+_REJECTED = "rejected by held-out validation"
+
+
+def _short(x) -> str:
+    """A parameter value with three significant digits (``60.0057`` -> ``60``, ``5.8773`` -> ``5.88``)."""
+    return "nan" if x is None else f"{float(x):.3g}"
+
+
+def describe_change(change: dict) -> str:
+    """The parameters a repair change entry alters, in words: ``time_constant 45->60 s, delay 4->7 s``.
+
+    Parameters
+    ----------
+    change : dict
+        An entry of the report's ``repair["changes"]`` (``before`` and ``after`` with ``gain``,
+        ``time_constant`` in seconds and ``delay`` in seconds).
+
+    Returns
+    -------
+    str
+        "" when ``after`` equals ``before``.
+    """
+    before, after = change.get("before") or {}, change.get("after") or {}
+    parts = []
+    for key, unit in _CHANGE_PARAMS:
+        b, a = before.get(key), after.get(key)
+        if a is None or b is None or float(a) == float(b):
+            continue
+        parts.append(f"{key} {_short(b)}->{_short(a)}{unit}")
+    return ", ".join(parts)
+
+
+def _applied(changes) -> list:
+    return [c for c in changes if c.get("applied") and describe_change(c)]
+
+
+def _repair_ran(report) -> bool:
+    """True when ``report`` holds the result of the repair (the analysis ran with ``repair=True``)."""
+    if getattr(report, "repair_result", None) is not None:
+        return True
+    doc = getattr(report, "repair", None)
+    return isinstance(doc, dict) and "holdout_fraction" in doc
+
+
+def row_repair_text(changes: Sequence[dict], output: str) -> str:
+    """The suggested repair of one row: ``u2: time_constant 45->60 s, delay 4->7 s; u3: gain 3.5->5.88``.
+
+    A located element left as it was says why: ``u1: kept (rejected by held-out validation)``.
+    """
+    parts = []
+    for c in changes:
+        if c.get("output") != output:
+            continue
+        what = describe_change(c) if c.get("applied") else ""
+        if what:
+            parts.append(f"{c.get('input')}: {what}")
+        else:
+            parts.append(f"{c.get('input')}: kept ({c.get('reason') or 'no parameter differs significantly'})")
+    return "; ".join(parts)
+
+
+@dataclasses.dataclass(frozen=True)
+class RepairVerdict:
+    """The held-out validation of a repair, summed up over the rows.
+
+    Attributes
+    ----------
+    verdict : str
+        ``passed`` (every row with a candidate repair predicted the held-out data better),
+        ``rejected`` (none did: no change suggested), ``mixed``, ``not_validated`` (changes suggested
+        without held-out data), ``not_run`` (located elements but no parameter to change), ``none``
+        (nothing located) or ``off`` (the analysis ran without the repair).
+    detail : str
+        The same in words, with the held-out RMS errors before -> after per row.
+    changes : int
+        Number of suggested element changes.
+    """
+
+    verdict: str
+    detail: str
+    changes: int
+
+
+def repair_verdict(report) -> RepairVerdict:
+    """The :class:`RepairVerdict` of an analysis report (see the ``repair`` dict of CONTRACTS section 3)."""
+    if not _repair_ran(report):
+        return RepairVerdict("off", "the analysis ran without the repair", 0)
+    doc = report.repair
+    changes = list(doc.get("changes") or [])
+    n_applied = len(_applied(changes))
+    rows = list(dict.fromkeys(c.get("output") for c in changes))
+    if not rows:
+        return RepairVerdict("none", "no element located, nothing to repair", 0)
+    hb, ha = doc.get("holdout_error_before") or {}, doc.get("holdout_error_after") or {}
+    frac = doc.get("holdout_fraction") or 0.0
+    n_hold = int(doc.get("samples") or 0) - int(doc.get("fit_samples") or 0)
+    passed, rejected, not_run = [], [], []
+    for o in rows:
+        cs = [c for c in changes if c.get("output") == o]
+        errors = f"{o} ({_short(hb.get(o))}->{_short(ha.get(o))})" if o in hb else o
+        if any(c.get("reason") == _REJECTED for c in cs):
+            rejected.append(errors)
+        elif any(c.get("applied") for c in cs):
+            passed.append(errors)
+        else:
+            not_run.append(o)
+    parts = []
+    if passed and not frac:
+        verdict = "not_validated"
+        parts.append(f"changes suggested for {', '.join(passed)} without held-out data")
+    else:
+        verdict = ("mixed" if passed and rejected else "passed" if passed else "rejected" if rejected else "not_run")
+        if passed:
+            parts.append(f"passed for {', '.join(passed)}")
+        if rejected:
+            parts.append(f"rejected for {', '.join(rejected)}")
+    if not_run:
+        parts.append(f"nothing to re-estimate for {', '.join(not_run)}")
+    detail = "; ".join(parts)
+    if passed or rejected:
+        if frac:
+            detail += (f" (held-out RMS prediction error before->after, last {100 * frac:.0f}% of the window, "
+                       f"{n_hold} samples)")
+    return RepairVerdict(verdict, detail, n_applied)
+
+
+def write_model_atomically(model: FopdtModel, path) -> Path:
+    """Write ``model`` (YAML, :func:`mpm_monitor.model.save_model`) to ``path`` through a temporary file.
+
+    The file is written next to ``path``, flushed to disk and renamed over it, so a reader sees
+    either the old file or the whole new one, never a partial one.  The mode of an existing file is
+    kept (0644 for a new one).
+
+    Returns
+    -------
+    Path
+        The absolute path written.
+
+    Raises
+    ------
+    OSError
+        The directory does not exist, is not writable, ``path`` is a directory, ...
+    """
+    target = Path(path).expanduser().absolute()
+    if target.is_dir():
+        raise IsADirectoryError(21, "is a directory", str(target))
+    mode = (target.stat().st_mode & 0o7777) if target.exists() else 0o644
+    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
+    try:
+        os.close(fd)
+        save_model(model, tmp)
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.chmod(tmp, mode)
+        os.replace(tmp, target)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+    return target
 
 
 def run_analysis(analyze: Callable, model: FopdtModel, options, job: AnalysisJob,
@@ -273,6 +455,53 @@ class MonitorCore:
     def latest_outcome(self) -> Optional[AnalysisOutcome]:
         return self._latest
 
+    def write_repaired_model(self, path: str, protected: Sequence[str] = ()) -> tuple:
+        """Write the repaired model of the latest analysis to ``path`` (YAML, atomically).
+
+        Parameters
+        ----------
+        path : str
+            The file to write (a node parameter, never taken from a message); "" refuses.
+        protected : sequence of str
+            Files never overwritten (the controller's model file).
+
+        Returns
+        -------
+        (bool, str)
+            Success and a one-line message: what was written where, or why nothing was (no
+            analysis yet, the analysis ran without the repair, no change suggested, the write
+            failed).  Never raises for these cases.
+        """
+        if not path:
+            return False, "no file to write to: set the parameter repaired_model_file"
+        rep = self.latest_report
+        if rep is None:
+            if self._analysis_error:
+                return False, f"no analysis result yet: {self._analysis_error}"
+            return False, self._waiting_message()
+        if not _repair_ran(rep) or getattr(rep, "repaired_model", None) is None:
+            return False, "the latest analysis ran without the repair (parameter repair is false): nothing to write"
+        job = self._latest.job
+        window = f"the analysis of {job.data.n_samples} samples up to t = {job.last_stamp:g} s"
+        applied = _applied(rep.repair.get("changes") or [])
+        if not applied or rep.repaired_model == self.model:
+            verdict = repair_verdict(rep)
+            return False, (f"no change to write: {window} suggests no change to the model "
+                           f"(held-out validation {verdict.verdict.replace('_', ' ')}"
+                           + (f": {verdict.detail})" if verdict.detail else ")"))
+        target = Path(path).expanduser().absolute()
+        for other in protected:
+            if other and Path(other).expanduser().absolute() == target:
+                return False, f"refusing to overwrite the monitored model file {target}: set repaired_model_file " \
+                              f"to another path"
+        try:
+            written = write_model_atomically(rep.repaired_model, target)
+        except OSError as exc:
+            return False, f"cannot write {target}: {exc.strerror or exc}"
+        what = "; ".join(f"{c.get('output')}/{c.get('input')}: {describe_change(c)}" for c in applied)
+        n = len(applied)
+        return True, f"wrote the repaired model of {window} to {written} ({n} change{'s' if n != 1 else ''}: {what})"
+
     def rsi_vector(self) -> Optional[np.ndarray]:
         """Row RSI values in model output order, shape (n_outputs,), or None before the first report."""
         rep = self.latest_report
@@ -340,6 +569,10 @@ class MonitorCore:
         elements = collections.defaultdict(list)
         for e in rep.elements:
             elements[e.output].append(e)
+        repaired = _repair_ran(rep)
+        doc = rep.repair if repaired else {}
+        changes = list(doc.get("changes") or [])
+        confidence = {(c.get("output"), c.get("input")): c.get("confidence") for c in changes}
         for o in self.model.outputs:
             r = rows.get(o)
             if r is None:
@@ -356,6 +589,15 @@ class MonitorCore:
                 if e.mismatch or getattr(e, "ambiguous", False):
                     values.append((f"p_value {e.input}", _num(e.p_value)))
                     values.append((f"kind {e.input}", str(getattr(e, "kind", None) or "unknown")))
+                    if (o, e.input) in confidence:
+                        values.append((f"confidence {e.input}", _num(confidence[(o, e.input)])))
+            row_repair = ""
+            if repaired:
+                row_repair = row_repair_text(changes, o)
+                values.append(("repair", row_repair))
+                values += [(key, _num(doc[key][o])) for key in ("error_before", "error_after", "holdout_error_before",
+                                                                "holdout_error_after", "rsi_after")
+                           if o in (doc.get(key) or {})]
             values += [("samples", str(job.data.n_samples)), ("window_start", _num(job.first_stamp)),
                        ("window_end", _num(job.last_stamp)), ("analyzed", "true")]
             if r.mismatch:
@@ -367,6 +609,10 @@ class MonitorCore:
                 else:
                     msg = f"mismatch in row {o}: no single element located"
                 msg += f" (RSI {r.rsi:.3f})"
+                row_applied = [c for c in _applied(changes) if c.get("output") == o]
+                if row_applied and o in (doc.get("error_before") or {}) and o in (doc.get("error_after") or {}):
+                    msg += (f"; suggested repair of {', '.join(c.get('input') for c in row_applied)} lowers the "
+                            f"RMS prediction error {doc['error_before'][o]:.3g} -> {doc['error_after'][o]:.3g}")
             else:
                 level = OK
                 msg = f"no mismatch in row {o} (RSI {r.rsi:.3f})"
@@ -395,10 +641,16 @@ class MonitorCore:
                        ("window_start", _num(job.first_stamp)), ("window_end", _num(job.last_stamp)),
                        ("analysis_seconds", f"{self._latest.seconds:.3f}"),
                        ("warnings", " | ".join(warnings))]
+            verdict = repair_verdict(rep)
+            values += [("repair_changes", str(verdict.changes)), ("repair_validation", verdict.verdict),
+                       ("repair_validation_detail", verdict.detail)]
             if flagged:
                 level = WARN
                 msg = (f"mismatch in row(s) {', '.join(flagged)}; elements "
                        + (", ".join(f"({o}, {i})" for o, i in located) if located else "not located"))
+                if verdict.verdict not in ("off", "none"):
+                    msg += (f"; suggested repair: {verdict.changes} change{'s' if verdict.changes != 1 else ''}, "
+                            f"held-out validation {verdict.verdict.replace('_', ' ')}")
             else:
                 level = OK
                 msg = "no model-plant mismatch detected"

@@ -1,8 +1,9 @@
 """MonitorCore and AnalysisWorker: schedule, statuses (names, values, levels), STALE, ERROR, threading.
 
-The analysis is a fake injected here (plain objects with the AnalysisReport fields the monitor
-reads), so these tests check the plumbing only; the real analysis is exercised through the nodes in
-test_nodes_inprocess.py.
+Most tests inject a fake analysis (plain objects with the AnalysisReport fields the monitor reads)
+to check the plumbing; the suggested repair in the statuses and the writing of the repaired model
+are checked on a real AnalysisReport (with the repair) of a short run of paper case 3.2.  The
+analysis through the nodes is exercised in test_nodes_inprocess.py.
 """
 
 import subprocess
@@ -219,3 +220,185 @@ def test_the_core_imports_without_rclpy():
             "import mpm_monitor.monitor_core, mpm_monitor.window, mpm_monitor.ros_io\n"
             "assert 'rclpy' not in [m for m in sys.modules if sys.modules[m] is not None]\n")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+# ------------------------------------------------------------------------- the suggested repair
+# A real AnalysisReport (with the repair) of a short run of paper case 3.2, through the core's window.
+
+REPAIR_SAMPLES = 1000
+
+
+@pytest.fixture(scope="module")
+def repaired_core():
+    """(core, report) after one real analysis with the repair of 1000 samples of case 3.2 (seed 1)."""
+    from mpm_monitor.analysis import AnalysisOptions, analyze
+    from mpm_monitor.closed_loop import run_closed_loop
+
+    case = paper_case("3.2")
+    log = run_closed_loop(case.plant, case.model, REPAIR_SAMPLES, seed=1, mpc=case.mpc, excitation=case.excitation,
+                          disturbance=case.disturbance)
+    c = core(window=WindowOptions(window_samples=REPAIR_SAMPLES), min_samples=REPAIR_SAMPLES,
+             analysis_period=REPAIR_SAMPLES)
+    for k in range(REPAIR_SAMPLES):
+        c.add("setpoint", k * NS, log.r[k], 0.0)
+        c.add("input", k * NS, log.u[k], 0.0)
+        c.add("output", k * NS, log.y[k], 0.0)
+    assert c.analysis_due()
+    outcome = run_analysis(analyze, MODEL, AnalysisOptions(repair=True), c.take_job())
+    assert outcome.error is None, outcome.error
+    c.accept(outcome)
+    return c, outcome.report
+
+
+def test_describe_change_names_only_the_changed_parameters_with_units():
+    from mpm_monitor.monitor_core import describe_change, row_repair_text
+
+    before = {"gain": 1.77, "time_constant": 45.0, "delay": 4.0}
+    ch = {"output": "y1", "input": "u2", "applied": True, "before": before,
+          "after": {"gain": 1.77, "time_constant": 60.0057, "delay": 7.0}}
+    assert describe_change(ch) == "time_constant 45->60 s, delay 4->7 s"
+    g = {"output": "y1", "input": "u3", "applied": True, "before": {"gain": 3.5, "time_constant": 50.0, "delay": 6.0},
+         "after": {"gain": 5.8773, "time_constant": 50.0, "delay": 6.0}}
+    assert describe_change(g) == "gain 3.5->5.88"
+    kept = {"output": "y2", "input": "u1", "applied": False, "before": before, "after": before,
+            "reason": "rejected by held-out validation"}
+    assert describe_change(kept) == ""
+    assert row_repair_text([ch, g, kept], "y1") == "u2: time_constant 45->60 s, delay 4->7 s; u3: gain 3.5->5.88"
+    assert row_repair_text([ch, g, kept], "y2") == "u1: kept (rejected by held-out validation)"
+    assert row_repair_text([ch, g, kept], "y3") == ""
+
+
+def test_the_suggested_repair_is_in_the_row_statuses(repaired_core):
+    from mpm_monitor.monitor_core import describe_change
+
+    c, rep = repaired_core
+    assert sorted(rep.located_elements) == [("y1", "u2"), ("y1", "u3"), ("y2", "u1")]
+    st = by_name(c.statuses(now=0.0))
+    changes = rep.repair["changes"]
+    for o in MODEL.outputs:
+        s = st[f"mpm_monitor: row {o}"]
+        row = next(r for r in rep.rows if r.output == o)
+        # the contract keys are unchanged by the repair
+        assert float(s.value("rsi")) == row.rsi and s.value("mismatch") == ("true" if row.mismatch else "false")
+        assert s.value("flagged_inputs") == ",".join(i for oo, i in rep.located_elements if oo == o)
+        assert float(s.value("error_before")) == rep.repair["error_before"][o]
+        assert float(s.value("error_after")) == rep.repair["error_after"][o]
+        assert float(s.value("rsi_after")) == rep.repair["rsi_after"][o]
+        row_changes = [ch for ch in changes if ch["output"] == o]
+        for ch in row_changes:
+            assert ch["applied"]
+            assert f"{ch['input']}: {describe_change(ch)}" in s.value("repair")
+            e = next(e for e in rep.elements if (e.output, e.input) == (o, ch["input"]))
+            assert s.value(f"kind {ch['input']}") == e.kind == ch["kind"] != "unknown"
+            assert float(s.value(f"confidence {ch['input']}")) == ch["confidence"]
+        if row_changes:
+            # what the repair guarantees on a located row: at least halves the prediction error
+            assert float(s.value("error_after")) < 0.5 * float(s.value("error_before"))
+            assert float(s.value("holdout_error_after")) < float(s.value("holdout_error_before"))
+            assert "suggested repair of" in s.message
+        else:
+            assert s.value("repair") == ""
+            assert float(s.value("error_after")) == pytest.approx(float(s.value("error_before")), rel=0.05)
+    y1 = st["mpm_monitor: row y1"].value("repair")
+    assert y1.startswith("u2: ") and "; u3: gain 3.5->" in y1 and "delay 4->7 s" in y1
+    assert st["mpm_monitor: row y2"].value("repair").startswith("u1: time_constant 70->")
+
+
+def test_the_summary_counts_the_changes_and_gives_the_held_out_verdict(repaired_core):
+    c, rep = repaired_core
+    s = c.statuses(now=0.0)[-1]
+    assert s.name == SUMMARY_NAME and s.level == WARN
+    assert s.value("located_elements") == "y1:u2,y1:u3,y2:u1"  # contract values unchanged
+    assert s.value("repair_changes") == "3" == str(sum(ch["applied"] for ch in rep.repair["changes"]))
+    assert s.value("repair_validation") == "passed"
+    detail = s.value("repair_validation_detail")
+    assert detail.startswith("passed for y1 (") and "y2 (" in detail and "250 samples" in detail
+    assert "suggested repair: 3 changes, held-out validation passed" in s.message
+
+
+def _with_repair(rep, changes, **doc):
+    """A copy of ``rep`` whose repair dict has these ``changes`` (and other keys replaced)."""
+    import dataclasses
+
+    new_doc = dict(rep.repair, changes=changes, **doc)
+    return dataclasses.replace(rep, repair=new_doc)
+
+
+def test_the_held_out_verdicts(repaired_core):
+    from mpm_monitor.monitor_core import repair_verdict
+
+    _, rep = repaired_core
+    changes = rep.repair["changes"]
+    y2_rejected = [dict(ch, applied=False, after=ch["before"], kind="unknown", reason="rejected by held-out validation")
+                   if ch["output"] == "y2" else ch for ch in changes]
+    v = repair_verdict(_with_repair(rep, y2_rejected))
+    assert v.verdict == "mixed" and v.changes == 2
+    assert "passed for y1" in v.detail and "rejected for y2" in v.detail
+    all_rejected = [dict(ch, applied=False, after=ch["before"], reason="rejected by held-out validation")
+                    for ch in changes]
+    v = repair_verdict(_with_repair(rep, all_rejected))
+    assert v.verdict == "rejected" and v.changes == 0
+    unknown = [dict(ch, applied=False, after=ch["before"], kind="unknown") for ch in changes]
+    v = repair_verdict(_with_repair(rep, unknown))
+    assert v.verdict == "not_run" and "nothing to re-estimate for y1, y2" in v.detail
+    v = repair_verdict(_with_repair(rep, changes, holdout_fraction=0.0))
+    assert v.verdict == "not_validated" and v.changes == 3
+    assert repair_verdict(_with_repair(rep, [])).verdict == "none"
+    assert repair_verdict(fake_report({"y1": ["u2"]})).verdict == "off"  # no repair in the report
+
+
+def test_without_the_repair_the_statuses_say_so_and_carry_no_repair_values():
+    c = core()
+    feed(c, 0, 20)
+    c.accept(run_analysis(lambda m, d, o: fake_report({"y1": ["u2"]}), MODEL, None, c.take_job()))
+    st = c.statuses(now=0.0)
+    assert st[0].value("repair") is None and st[0].value("error_after") is None
+    assert st[-1].value("repair_validation") == "off" and st[-1].value("repair_changes") == "0"
+    assert "suggested repair" not in st[-1].message
+
+
+# ------------------------------------------------------------------------ writing the repaired model
+def test_write_repaired_model_writes_a_file_that_loads_as_the_repaired_model(repaired_core, tmp_path):
+    from mpm_monitor.model import load_model
+
+    c, rep = repaired_core
+    path = tmp_path / "repaired.yaml"
+    path.write_text("old contents\n")
+    ok, msg = c.write_repaired_model(str(path))
+    assert ok, msg
+    assert str(path) in msg and "3 changes" in msg and "y1/u3: gain 3.5->" in msg
+    assert load_model(path) == rep.repaired_model != MODEL
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["repaired.yaml"]  # no temporary file left
+
+
+def test_write_repaired_model_refuses_clearly_and_never_raises(repaired_core, tmp_path):
+    c, rep = repaired_core
+    fresh = core()
+    ok, msg = fresh.write_repaired_model(str(tmp_path / "a.yaml"))
+    assert not ok and msg.startswith("no analysis yet")
+    ok, msg = c.write_repaired_model("")
+    assert not ok and "repaired_model_file" in msg
+    ok, msg = c.write_repaired_model(str(tmp_path / "missing_dir" / "a.yaml"))
+    assert not ok and msg.startswith("cannot write") and "No such file or directory" in msg
+    ok, msg = c.write_repaired_model(str(tmp_path))
+    assert not ok and msg.startswith("cannot write")
+    protected = tmp_path / "controller.yaml"
+    ok, msg = c.write_repaired_model(str(protected), protected=(str(protected),))
+    assert not ok and "refusing to overwrite the monitored model file" in msg and not protected.exists()
+    # no change to write: the repair kept every element
+    kept = [dict(ch, applied=False, after=ch["before"], reason="rejected by held-out validation")
+            for ch in rep.repair["changes"]]
+    import dataclasses
+    c2 = core(window=WindowOptions(window_samples=50))
+    feed(c2, 0, 20)
+    c2.accept(run_analysis(lambda m, d, o: dataclasses.replace(_with_repair(rep, kept), repaired_model=MODEL),
+                           MODEL, None, c2.take_job()))
+    ok, msg = c2.write_repaired_model(str(tmp_path / "b.yaml"))
+    assert not ok and msg.startswith("no change to write") and "rejected" in msg
+    # the analysis ran without the repair
+    c3 = core()
+    feed(c3, 0, 20)
+    c3.accept(run_analysis(lambda m, d, o: fake_report({"y1": ["u2"]}), MODEL, None, c3.take_job()))
+    ok, msg = c3.write_repaired_model(str(tmp_path / "c.yaml"))
+    assert not ok and "without the repair" in msg
+    assert sorted(p.name for p in tmp_path.iterdir()) == []

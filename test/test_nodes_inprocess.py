@@ -7,7 +7,9 @@ its nodes in a namespace of its own.
 Acceptance (issue 4): within 3000 samples of simulated time the monitor's ``/diagnostics`` locate
 exactly rows y1, y2 and elements (y1, u2), (y1, u3), (y2, u1) in paper case 3.2 and flag nothing in
 case 3.1; a plain publisher of the contract topics gets the same answer as ``analyze`` on the same
-samples.
+samples.  Issue 5 (monitor): the diagnostics carry the suggested repair, and the
+``~/write_repaired_model`` service (std_srvs/Trigger) writes the repaired model to the file of the
+``repaired_model_file`` parameter, or answers ``success`` false with the reason.
 """
 
 import time
@@ -129,6 +131,11 @@ def test_case_3_2_located_exactly_through_the_nodes_and_equal_to_the_batch_run(s
     np.testing.assert_allclose(data.y, log.y, rtol=0, atol=1e-12)
     rsi = np.array([float(listener.statuses()[row_status_name(o)][1]["rsi"]) for o in case.model.outputs])
     assert rsi[0] > 1.2 and rsi[1] > 1.1 and abs(rsi[2] - 1.0) < 0.05
+    # the suggested repair reaches /diagnostics (the monitor repairs by default)
+    assert values["repair_changes"] == "3" and values["repair_validation"] == "passed"
+    y1 = listener.statuses()[row_status_name("y1")][1]
+    assert y1["repair"].startswith("u2: ") and "u3: gain 3.5->" in y1["repair"]
+    assert y1["kind u3"] == "gain" and float(y1["error_after"]) < 0.5 * float(y1["error_before"])
     # the numeric RSI topic carries the same values, in model output order
     assert suite.spin_until(lambda: len(listener.rsi) >= 1, 5.0)
     np.testing.assert_array_equal(listener.rsi[-1], rsi)
@@ -351,4 +358,68 @@ def test_plant_and_mpc_nodes_survive_bad_messages():
         assert suite.monitor.core.window.health().bad_value == 2
     finally:
         suite.close()
+        ctx.try_shutdown()
+
+
+def test_write_repaired_model_service(tmp_path):
+    """The Trigger service: refused before an analysis, then the repaired model file, then a clear failure."""
+    from rclpy.parameter import Parameter
+    from std_srvs.srv import Trigger
+
+    from mpm_monitor.model import load_model
+
+    case = paper_case("3.2")
+    n = 1000
+    log = run_closed_loop(case.plant, case.model, n, seed=1, mpc=case.mpc, excitation=case.excitation,
+                          disturbance=case.disturbance)
+    ctx = private_context()
+    ns = "/srv"
+    target = tmp_path / "repaired.yaml"
+    monitor = _monitor(ctx, ns, window_samples=n, min_samples=n, analysis_period=n, repaired_model_file=str(target))
+    other = Node("srv_client", context=ctx, namespace=ns)
+    client = other.create_client(Trigger, "monitor/write_repaired_model")
+    pubs = {t: other.create_publisher(JointState, t, vector_qos()) for t in ("setpoint", "input", "output")}
+    ex = make_executor(ctx)
+    for nd in (monitor, other):
+        ex.add_node(nd)
+
+    def call():
+        future = client.call_async(Trigger.Request())
+        assert spin_until(ex, future.done, 10.0)
+        return future.result()
+
+    try:
+        assert spin_until(ex, lambda: client.service_is_ready()
+                          and all(p.get_subscription_count() >= 1 for p in pubs.values()), 20.0)
+        r = call()
+        assert not r.success and r.message.startswith("no analysis yet") and not target.exists()
+        y_codec, u_codec = VectorCodec(case.model.outputs, "output"), VectorCodec(case.model.inputs, "input")
+        for start in range(0, n, 100):
+            for k in range(start, start + 100):
+                stamp = k * 1_000_000_000
+                pubs["setpoint"].publish(y_codec.encode(log.r[k], stamp))
+                pubs["input"].publish(u_codec.encode(log.u[k], stamp))
+                pubs["output"].publish(y_codec.encode(log.y[k], stamp))
+            assert spin_until(ex, lambda: monitor.core.window.n_completed >= start + 100, 20.0)
+        assert spin_until(ex, lambda: monitor.results >= 1, 60.0)
+        report = monitor.core.latest_report
+        assert report is not None and sorted(report.located_elements) == [("y1", "u2"), ("y1", "u3"), ("y2", "u1")]
+        r = call()
+        assert r.success, r.message
+        assert str(target) in r.message and "3 changes" in r.message
+        assert load_model(target) == report.repaired_model != case.model
+        # a file that cannot be written: success false with the reason, and the node keeps serving
+        monitor.set_parameters([Parameter("repaired_model_file", value=str(tmp_path / "no_such_dir" / "m.yaml"))])
+        r = call()
+        assert not r.success and r.message.startswith("cannot write") and "no_such_dir" in r.message
+        monitor.set_parameters([Parameter("repaired_model_file", value="")])
+        r = call()
+        assert not r.success and "repaired_model_file" in r.message
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["repaired.yaml"]
+    finally:
+        monitor.close()
+        for nd in (monitor, other):
+            ex.remove_node(nd)
+            nd.destroy_node()
+        ex.shutdown()
         ctx.try_shutdown()

@@ -11,6 +11,12 @@ re-published every ``republish_period`` wall-clock seconds, turning STALE when n
 came for ``stale_timeout`` seconds; bad messages (wrong channel names, lengths, non-finite values,
 off-grid or conflicting stamps) make the summary ERROR with the reason.
 
+With ``repair`` (the default) each analysis also traces the located elements to their kind and
+re-estimates them (:mod:`mpm_monitor.repair`); the statuses carry the suggested repair, and the
+``std_srvs/Trigger`` service ``~/write_repaired_model`` writes the latest repaired model to the file
+named by the parameter ``repaired_model_file`` (atomically; ``success`` false with the reason when
+there is no analysis yet, no change to write, or the write fails).
+
 It works with any publisher of the contract topics, not only this package's plant and MPC nodes.
 
 Parameters (all declared with type, description and range): see :data:`PARAMS`.
@@ -27,6 +33,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+from std_srvs.srv import Trigger
 
 from ..errors import ModelFileError
 from ..monitor_core import ERROR, SUMMARY_NAME, AnalysisWorker, MonitorCore, MonitorOptions, StatusData, run_analysis
@@ -63,8 +70,10 @@ PARAMS = MODEL_PARAMS + (
               choices=("arx", "xcorr", "pcorr")),
     ParamSpec("initial_state", "string", "estimate", "Model state at the window's first sample.",
               choices=("estimate", "zero")),
-    ParamSpec("repair", "bool", False, "Also re-estimate the located elements (slow; the diagnostics do not "
-              "need it)."),
+    ParamSpec("repair", "bool", True, "Also trace each located element to its kind and re-estimate it; the "
+              "suggested repair goes into the diagnostics (about 0.5-2 s more per analysis of a 3x3 window)."),
+    ParamSpec("repaired_model_file", "string", "", "File (YAML) the ~/write_repaired_model service writes the "
+              "latest repaired model to ('' = the service refuses); read at each call."),
     ParamSpec("analysis_thread", "bool", True, "Run the analysis in a background thread (false: inside the "
               "callback, for debugging only)."),
     ParamSpec("hardware_id", "string", "", "hardware_id of the statuses ('' = the node's full name)."),
@@ -145,6 +154,7 @@ class MonitorNode(Node):
         else:
             self._start(model)
         self._timer = self.create_timer(p["republish_period"], self.publish_statuses, clock=self._steady)
+        self._write_srv = self.create_service(Trigger, "~/write_repaired_model", self._on_write_repaired_model)
 
     def _start(self, model) -> None:
         """Build the window, the worker and the subscriptions for ``model``."""
@@ -225,6 +235,24 @@ class MonitorNode(Node):
             msg.data = [float(v) for v in rsi]
             self._rsi_pub.publish(msg)
         self.publish_statuses()
+
+    def _on_write_repaired_model(self, request, response):
+        """``~/write_repaired_model`` (std_srvs/Trigger): write the latest repaired model to ``repaired_model_file``."""
+        try:
+            spec = next(s for s in PARAMS if s.name == "repaired_model_file")
+            path = spec.check(self.get_parameter("repaired_model_file").value)
+            if self.core is None:
+                ok, msg = False, f"no analysis yet: model not loaded: {self.model_error}"
+            else:
+                ok, msg = self.core.write_repaired_model(path, protected=(self.params["model_file"],))
+        except Exception as exc:  # a service call never takes the node down
+            ok, msg = False, f"cannot write the repaired model: {type(exc).__name__}: {exc}".splitlines()[0]
+        response.success, response.message = bool(ok), msg
+        if ok:  # one call site per severity (rclpy refuses a severity change at the same call site)
+            self.get_logger().info(f"write_repaired_model: {msg}")
+        else:
+            self.get_logger().warning(f"write_repaired_model: {msg}")
+        return response
 
     # ---------------------------------------------------------------------------- outputs
     def current_statuses(self, now: Optional[float] = None) -> list:

@@ -1,0 +1,139 @@
+"""Issue 6 acceptance, round trip: the demo with a bag, then ``analyze --bag`` on that bag.
+
+The demo (plant, MPC, setpoint, monitor and recorder nodes in one process, lock-step simulated
+time, paper case 3.2) records every topic, ``/diagnostics`` included.  Then:
+
+- ``python -m mpm_monitor analyze --bag`` locates the same rows and elements as the live monitor's
+  last diagnostics in the same bag, with the same RSI, and suggests the same repair.  The demo's
+  monitor window holds every sample (``window_samples`` = samples, one forced analysis at the end),
+  and the test checks that the last recorded result is that analysis of samples 0 .. n-1;
+- the bag reads back with ``rosbags.highlevel.AnyReader``: one message per sample on each vector
+  topic and on ``/clock``, stamps strictly increasing, every value equal to the batch closed loop
+  with the same seed (lock-step reproduces it exactly, see test_nodes_inprocess.py).
+"""
+
+import io
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+pytest.importorskip("rosbags")
+pytestmark = pytest.mark.timeout(180)
+
+from rosbags.highlevel import AnyReader  # noqa: E402
+
+from mpm_monitor import cli  # noqa: E402
+from mpm_monitor.bag_io import live_located_elements, read_diagnostics  # noqa: E402
+from mpm_monitor.cases import paper_case  # noqa: E402
+from mpm_monitor.closed_loop import run_closed_loop  # noqa: E402
+from mpm_monitor.demo import run_demo  # noqa: E402
+from mpm_monitor.model import save_model  # noqa: E402
+from mpm_monitor.monitor_core import SUMMARY_NAME, row_repair_text, row_status_name  # noqa: E402
+
+CASE = "3.2"
+SAMPLES = 1500
+SEED = 1
+VECTOR_TOPICS = ("/setpoint", "/input", "/output")
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """(bag directory, printed output) of one quiet demo run with ``--bag``."""
+    bag = tmp_path_factory.mktemp("demo") / "bag"
+    out = io.StringIO()
+    assert run_demo(case=CASE, samples=SAMPLES, bag=str(bag), seed=SEED, quiet=True, out=out, timeout=120.0) == 0
+    return bag, out.getvalue()
+
+
+@pytest.fixture(scope="module")
+def offline(demo, tmp_path_factory):
+    """The JSON report of ``python -m mpm_monitor analyze --model M --bag BAG`` on the demo's bag."""
+    bag, _ = demo
+    tmp = tmp_path_factory.mktemp("offline")
+    model_file, report_file = tmp / "model.yaml", tmp / "report.json"
+    save_model(paper_case(CASE).model, model_file)
+    assert cli.main(["analyze", "--model", str(model_file), "--bag", str(bag), "--json", str(report_file)]) == 0
+    return json.loads(report_file.read_text())
+
+
+def last_diagnostics(bag):
+    """The statuses of the last recorded DiagnosticArray, by name."""
+    statuses = read_diagnostics(bag)
+    assert statuses, "no /diagnostics in the bag"
+    last_stamp = statuses[-1].log_time
+    return statuses, {s.name: s for s in statuses if s.log_time == last_stamp}
+
+
+def test_the_last_recorded_result_is_the_analysis_of_every_sample(demo):
+    bag, printed = demo
+    _, last = last_diagnostics(bag)
+    summary = last[SUMMARY_NAME].values
+    assert summary["completed_samples"] == str(SAMPLES) and summary["missing_samples"] == "0"
+    model = paper_case(CASE).model
+    for name in [SUMMARY_NAME] + [row_status_name(o) for o in model.outputs]:
+        v = last[name].values
+        assert (v["samples"], v["window_start"], v["window_end"]) == (str(SAMPLES), "0.0", repr(float(SAMPLES - 1)))
+    # the demo's final printout, after the located rows and elements: the suggested repair
+    assert printed.index("located elements:") < printed.index("suggested repair:") \
+        < printed.index("prediction error RMS before -> after:")
+
+
+def test_analyze_bag_locates_what_the_live_monitor_recorded(demo, offline):
+    bag, _ = demo
+    statuses, last = last_diagnostics(bag)
+    live = live_located_elements(statuses)
+    assert offline["samples"] == SAMPLES
+    offline_rows = {r["output"]: r["mismatch"] for r in offline["rows"]}
+    offline_located = {(e["output"], e["input"]) for e in offline["elements"] if e["mismatch"]}
+    assert offline_located == live["located"]
+    assert offline_rows == live["rows"]
+    assert offline_located, "case 3.2 has a mismatch: an empty answer on both sides would prove nothing"
+    # same samples, same options: the same numbers, and the same suggested repair
+    for r in offline["rows"]:
+        v = last[row_status_name(r["output"])].values
+        assert float(v["rsi"]) == pytest.approx(r["rsi"], rel=1e-9)
+        assert v["repair"] == row_repair_text(offline["repair"]["changes"], r["output"])
+        assert float(v["error_after"]) == pytest.approx(offline["repair"]["error_after"][r["output"]], rel=1e-9)
+    applied = sum(bool(c["applied"]) for c in offline["repair"]["changes"])
+    assert last[SUMMARY_NAME].values["repair_changes"] == str(applied)
+
+
+def test_the_bag_reads_back_with_every_message_intact_and_in_order(demo):
+    bag, _ = demo
+    case = paper_case(CASE)
+    log = run_closed_loop(case.plant, case.model, SAMPLES, seed=SEED, mpc=case.mpc, excitation=case.excitation,
+                          disturbance=case.disturbance)
+    expected = {"/setpoint": (case.model.outputs, log.r), "/input": (case.model.inputs, log.u),
+                "/output": (case.model.outputs, log.y)}
+    stamps = {t: [] for t in VECTOR_TOPICS + ("/clock", "/diagnostics")}
+    log_times = {}
+    values = {t: [] for t in VECTOR_TOPICS}
+    with AnyReader([bag]) as reader:
+        topics = {c.topic for c in reader.connections}
+        assert set(stamps) | {"/mpm_monitor/rsi"} <= topics
+        for conn, t, raw in reader.messages():
+            msg = reader.deserialize(raw, conn.msgtype)
+            log_times.setdefault(conn.topic, []).append(t)
+            if conn.topic in VECTOR_TOPICS:
+                names, _ = expected[conn.topic]
+                assert tuple(msg.name) == names
+                assert len(msg.velocity) == 0 and len(msg.effort) == 0
+                stamps[conn.topic].append(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
+                values[conn.topic].append(np.asarray(msg.position, float))
+            elif conn.topic == "/clock":
+                stamps["/clock"].append(msg.clock.sec * 10**9 + msg.clock.nanosec)
+            elif conn.topic == "/diagnostics":
+                stamps["/diagnostics"].append(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
+                assert all(s.name.startswith("mpm_monitor: ") for s in msg.status)
+    ts_ns = int(case.model.sample_time * 1e9)
+    for topic in VECTOR_TOPICS + ("/clock",):
+        # every sample once, in order, on the sample grid
+        assert stamps[topic] == [k * ts_ns for k in range(SAMPLES)], topic
+    for topic in VECTOR_TOPICS:
+        _, arr = expected[topic]
+        np.testing.assert_allclose(np.array(values[topic]), arr, rtol=0, atol=1e-12, err_msg=topic)
+    assert len(stamps["/diagnostics"]) >= 2 and np.all(np.diff(stamps["/diagnostics"]) >= 0)
+    for topic, times in log_times.items():
+        assert np.all(np.diff(times) >= 0), f"{topic}: recorded out of order"
