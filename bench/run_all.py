@@ -1,0 +1,49 @@
+"""``make bench``: every benchmark in one command; each prints its table and writes JSON to
+``bench/results/``.  Figures in the README come from a run of this.
+
+Run: ``python -m bench.run_all [--quick]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+
+#: (module, arguments, arguments with --quick)
+BENCHMARKS = [
+    ("bench.paper_cases", [], ["--seeds", "5"]),
+    ("bench.monte_carlo", ["--runs", "200"], ["--runs", "30"]),
+    ("bench.detection_power", [], ["--runs", "10", "--lengths", "300,800,2000"]),
+    ("bench.repair_validation", ["--json", "bench/results/repair_validation.json"], ["--seeds", "1"]),
+    ("bench.perf", [], ["--quick"]),
+    ("bench.memory", [], ["--quick"]),
+    ("bench.ros_throughput", ["--json", "bench/results/ros_throughput.json"], ["--samples", "2000", "--repeats", "1"]),
+    ("bench.monitor_load", ["--json", "bench/results/monitor_load.json"], ["--quick"]),
+]
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m bench.run_all", description=__doc__.split("\n\n")[0])
+    p.add_argument("--quick", action="store_true", help="smaller runs (a few minutes in all)")
+    p.add_argument("--only", default=None, help="comma-separated module names (e.g. bench.perf)")
+    args = p.parse_args(argv)
+    failed = []
+    for module, full, quick in BENCHMARKS:
+        if args.only and module not in args.only.split(","):
+            continue
+        cmd = [sys.executable, "-m", module] + (quick if args.quick else full)
+        print(f"\n=== {' '.join(cmd[1:])}", flush=True)
+        t0 = time.perf_counter()
+        rc = subprocess.call(cmd)
+        print(f"=== {module}: exit {rc}, {time.perf_counter() - t0:.0f} s", flush=True)
+        if rc != 0:
+            failed.append(module)
+    if failed:
+        print(f"failed: {', '.join(failed)}")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
