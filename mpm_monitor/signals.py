@@ -82,15 +82,24 @@ def initial_transient(model: FopdtModel, d0: np.ndarray, level: float = TRANSIEN
         if poles.size == 0:
             continue
         basis = poles[None, :] ** k[:, None]                  # (n - lag, n_poles)
-        X = basis[:span]
-        target = d0[lag:lag + span, i] - d0[lag:lag + span, i].mean()
-        Xc = X - X.mean(axis=0)
-        coef, *_ = np.linalg.lstsq(Xc, target, rcond=1e-10)
-        rss_full = float(np.sum((target - Xc @ coef) ** 2))
-        rss_null = float(target @ target)
-        rank = int(np.linalg.matrix_rank(Xc))
-        _, p = f_test(rss_null, rss_full, rank, span - rank - 1)
+        seg = d0[lag:lag + span, i]
+        # Decision: F test of the exponentials after whitening by an AR(2) noise model fitted on
+        # the rest of the record (where no transient is left), so the coloured disturbance (the
+        # paper's v is AR(1) with pole 0.95) does not pass for a transient.
+        rest = d0[lag + span:, i] if n - lag - span >= 200 else d0[lag:, i]
+        phi = _ar2(rest - rest.mean())
+        white = lambda x: x[2:] - phi[0] * x[1:-1] - phi[1] * x[:-2]  # noqa: E731
+        target = white(seg - seg.mean())
+        X = np.column_stack([np.ones(span - 2), np.apply_along_axis(white, 0, basis[:span])])
+        coef, *_ = np.linalg.lstsq(X, target, rcond=1e-10)
+        rss_full = float(np.sum((target - X @ coef) ** 2))
+        rss_null = float(np.sum((target - target.mean()) ** 2))
+        rank = int(np.linalg.matrix_rank(X))
+        _, p = f_test(rss_null, rss_full, rank - 1, span - 2 - rank)
         if p < level:
+            # Amplitudes from the plain least-squares fit (unbiased under coloured noise).
+            X = basis[:span] - basis[:span].mean(axis=0)
+            coef, *_ = np.linalg.lstsq(X, seg - seg.mean(), rcond=1e-10)
             out[lag:, i] = basis @ coef
     return out
 
@@ -125,3 +134,12 @@ def compute_signals(model: FopdtModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
         yhat = yhat + transient
     d = y - yhat
     return LoopSignals(yhat=yhat, d=d, eps=r - d, transient=transient)
+
+
+def _ar2(x: np.ndarray) -> np.ndarray:
+    """Least-squares AR(2) coefficients ``(phi1, phi2)`` of ``x(k) = phi1 x(k-1) + phi2 x(k-2) + e``."""
+    if x.shape[0] < 10:
+        return np.zeros(2)
+    X = np.column_stack([x[1:-1], x[:-2]])
+    phi, *_ = np.linalg.lstsq(X, x[2:], rcond=None)
+    return phi
