@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .analysis import AnalysisOptions, analyze
+from .analysis import AnalysisOptions, analyze, repair_summary_lines
 from .cases import paper_case
 from .closed_loop import run_closed_loop
 from .data_io import LoggedData
@@ -73,20 +73,8 @@ def reproduce(case_name: str, samples: int = 3000, seed: int = 1, options: Analy
     for e in report.elements:
         if e.mismatch:
             lines.append(f"  ({e.output}, {e.input}): p = {e.p_value:.2e}, kind {e.kind}, delay {e.delay} samples")
-    changes = report.repair.get("changes", [])
-    if changes:
-        lines.append("")
-        lines.append("repair (re-estimated from the same data; gain, time constant s, delay s):")
-        for c in changes:
-            b, a = c["before"], c["after"]
-            lines.append(f"  ({c['output']}, {c['input']}) {c['kind']:<13} {b['gain']:g} / {b['time_constant']:g} / "
-                         f"{b['delay']:g}  ->  {a['gain']:.3g} / {a['time_constant']:.3g} / {a['delay']:g}")
-        eb, ea = report.repair["error_before"], report.repair["error_after"]
-        lines.append("  prediction error RMS before -> after: "
-                     + ", ".join(f"{k} {eb[k]:.4f} -> {ea[k]:.4f}" for k in eb))
-        if "rsi_after" in report.repair:
-            lines.append("  row RSI of the repaired model: "
-                         + ", ".join(f"{k} {v:.3f}" for k, v in report.repair["rsi_after"].items()))
+    if report.repair.get("changes"):
+        lines += [""] + repair_summary_lines(report.repair)
     ok = set(located) == set(case.mismatched_elements) and set(report.flagged_rows) == set(case.mismatched_rows)
     lines.append(f"result matches the paper: {'yes' if ok else 'NO'}")
     for w in report.warnings:
