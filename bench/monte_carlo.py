@@ -429,6 +429,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated subset of arx,xcorr,pcorr")
     parser.add_argument("--alpha", type=float, default=ALPHA, help="family-wise false-alarm level (default 0.01)")
+    parser.add_argument("--dither-fat", action="store_true",
+                        help="always dither plants with more inputs than outputs (identifiable design)")
     parser.add_argument("--no-timing", action="store_true", help="skip the analyze timing on 5x5")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON output (default bench/results/monte_carlo.json)")
     parser.add_argument("--quiet", action="store_true", help="no per-run progress lines")
@@ -454,7 +456,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     try:
         result = run_monte_carlo(args.runs, args.seed, args.samples, methods, jobs=args.jobs, alpha=args.alpha,
-                                 timing=not args.no_timing, progress=progress)
+                                 timing=not args.no_timing, progress=progress,
+                                 scenario_options=ScenarioOptions(dither_fat=args.dither_fat))
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

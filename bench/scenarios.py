@@ -83,6 +83,10 @@ class ScenarioOptions:
         Probability that a run has input dither.
     dither_amplitude : float
         Amplitude of the input dither PRBS.
+    dither_fat : bool
+        Always dither a plant with more inputs than outputs (without it the MPC drives its inputs
+        in an ``n_outputs``-dimensional subspace and some elements cannot be told apart by any
+        method).
     setpoint_amplitude : float
         Amplitude of the setpoint PRBS.
     prediction_horizon, control_horizon : int
@@ -102,6 +106,7 @@ class ScenarioOptions:
     kinds: tuple = KINDS
     dither_fraction: float = 0.3
     dither_amplitude: float = 0.1
+    dither_fat: bool = False
     setpoint_amplitude: float = 1.0
     prediction_horizon: int = 100
     control_horizon: int = 30
@@ -321,6 +326,8 @@ def make_scenario(seed: int, index: int, options: ScenarioOptions = ScenarioOpti
     model = plant.replace(gain=m_gain, time_constant=m_tau, delay=m_delay * ts,
                           name=f"random model (seed {seed}, run {index}, {k} mismatched)")
     dither = bool(rng.random() < opts.dither_fraction)
+    if opts.dither_fat and nu > ny:
+        dither = True   # the experiment design that makes a fat plant's elements identifiable
     excitation = ExcitationOptions(
         setpoint=PrbsOptions(amplitude=opts.setpoint_amplitude, switch_probability=0.5),
         dither=PrbsOptions(amplitude=opts.dither_amplitude, switch_probability=0.5) if dither else None)

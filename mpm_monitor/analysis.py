@@ -15,12 +15,14 @@ has ``C = 0`` under "no mismatch in row i", and since the setpoints are exogenou
 the disturbance) the F test of ``C = 0`` has a known false-alarm rate whatever the disturbance
 colour.  The same fit gives the paper's identified row ``S_i = e_i + C/A`` (an ARX of ``eps_i`` on
 ``r``), whose H-infinity norm over the band is the row's relative sensitivity index (RSI, paper
-eq. 8).  Rows are decided with Holm's step-down procedure at family-wise level ``alpha``.
+eq. 8).  Rows are decided with Holm's step-down procedure at family-wise level ``alpha / 2``.
 
-**Element test.**  For every flagged row, the ARX ``A(q) d_i = sum_j B_ij(q) u_j + e`` (paper
-eq. 10) with B polynomials covering every lag from 1 to ``max_delay + nb`` (so no delay needs to
-be known in advance); element ``(i, j)`` is located when ``B_ij = 0`` is rejected by its F (Wald)
-test, with Holm's procedure across every element tested.  Inputs that move together (the
+**Element test.**  For every row (the paper: every flagged row), the ARX
+``A(q) d_i = sum_j B_ij(q) u_j + e`` (paper eq. 10) with B polynomials covering every lag from 1 to
+``max_delay + nb`` (so no delay needs to be known in advance); element ``(i, j)`` is located when
+its first ``delay + nb`` B coefficients (where a mismatch of an element the model has must start;
+all of them for an element the model lacks) are rejected as zero by their F (Wald) test, with
+Holm's procedure across every element tested at level ``alpha / 2``.  Inputs that move together (the
 closed loop drives them collinearly) cannot be told apart: they are reported as ambiguous with the
 group, never guessed.
 """
@@ -42,6 +44,9 @@ from .signals import INITIAL_STATE_CHOICES, LoopSignals, compute_signals
 
 METHODS = ("arx", "xcorr", "pcorr")
 
+#: The row tests and the element tests are two families sharing the false-alarm rate alpha.
+N_FAMILIES = 2
+
 
 @dataclasses.dataclass(frozen=True)
 class AnalysisOptions:
@@ -55,7 +60,11 @@ class AnalysisOptions:
         Length of the ARX ``B`` polynomials once the delay is known (paper: 4); the tests use
         ``max_delay + nb`` lags so that the delay need not be known.
     alpha : float
-        Family-wise false-alarm rate of the row tests, and of the element tests, in (0, 0.5).
+        False-alarm rate of the whole analysis, in (0, 0.5): when the model matches the plant, the
+        probability that any row or any element is reported mismatched is at most ``alpha``.  It
+        is split equally (Bonferroni) between the row tests and the element tests, each family
+        controlled by Holm's procedure; the reported ``p_value`` of a row or element is adjusted
+        for both, so a finding is reported exactly when ``p_value < alpha``.
     band : tuple of float
         Band ``Omega`` of the RSI in rad/sample, ``0 <= low < high <= pi``.
     n_freq : int
@@ -535,7 +544,7 @@ def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = Anal
         row_fit[i] = 100.0 * (1.0 - math.sqrt(fit.rss) / max(np.linalg.norm(e_i), 1e-300))
     row_gains = np.linalg.norm(S, axis=2).T                       # (ny, n_freq)
     sigma_max = np.linalg.svd(S, compute_uv=False)[:, 0]
-    row_p = holm_adjust(row_raw_p)
+    row_p = np.minimum(1.0, N_FAMILIES * holm_adjust(row_raw_p))
     rows = []
     for i in range(ny):
         p = row_p[i]
@@ -719,7 +728,8 @@ def _arx_element_test(model, test_rows, options, design, regs):
         for g in design.groups:
             blocks = [testable.index(model.inputs.index(x)) for x in g]
             jt = fit.test_blocks_zero(blocks)
-            if np.isfinite(jt.p_value) and jt.p_value * max(len(test_rows) * len(design.groups), 1) < alpha:
+            if np.isfinite(jt.p_value) and \
+                    N_FAMILIES * jt.p_value * max(len(test_rows) * len(design.groups), 1) < alpha:
                 group_hits.append((model.outputs[i], g, jt.p_value))
         # The paper's table (Tables 1 to 5): a short ARX at the estimated delays, for reporting.
         nk = np.array([info[(i, j)][0] if (i, j) in info else 1 for j in range(nu)])
@@ -746,7 +756,7 @@ def _arx_element_test(model, test_rows, options, design, regs):
                     statistic=t.statistic, ambiguous=True,
                     ambiguous_with=tuple(x for x in group_of[name] if x != name), delay=int(delay), b=b))
                 continue
-            p = adj[(i, j)]
+            p = min(1.0, N_FAMILIES * adj[(i, j)])
             elements.append(ElementResult(
                 output=out, input=name, mismatch=bool(np.isfinite(p) and p < alpha),
                 p_value=float(p) if np.isfinite(p) else 1.0, p_value_raw=t.p_value, statistic=t.statistic,
@@ -759,8 +769,8 @@ def _baseline_element_test(model, u, d, options):
     from .baselines import cross_correlation_test, partial_correlation_test
 
     fn = cross_correlation_test if options.method == "xcorr" else partial_correlation_test
-    res = fn(d, u, alpha=options.alpha)
-    adjusted = res.adjusted_p_values if res.adjusted_p_values is not None else res.p_values
+    res = fn(d, u, alpha=options.alpha / N_FAMILIES)
+    adjusted = N_FAMILIES * (res.adjusted_p_values if res.adjusted_p_values is not None else res.p_values)
     elements = []
     for i in range(model.n_outputs):
         for j in range(model.n_inputs):
