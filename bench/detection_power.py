@@ -14,9 +14,8 @@ Run: ``python -m bench.detection_power [--runs 40] [--lengths 300,500,800,1200,2
 from __future__ import annotations
 
 import argparse
-import json
-from pathlib import Path
 
+from . import write_json
 import mpm_monitor  # noqa: F401  (limits BLAS threads before numpy loads)
 import numpy as np
 
@@ -113,9 +112,7 @@ def main(argv=None) -> int:
     lengths = [int(x) for x in args.lengths.split(",")]
     res = run(args.runs, lengths, args.seed, args.methods.split(","))
     print(format_table(res))
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
-    print(f"wrote {args.out}")
+    write_json(args.out, res)
     return 0
 
 

@@ -7,10 +7,9 @@ Run: ``python -m bench.paper_cases [--seeds 20] [--samples 3000] [--out bench/re
 from __future__ import annotations
 
 import argparse
-import json
 import time
-from pathlib import Path
 
+from . import write_json
 import mpm_monitor  # noqa: F401  (limits BLAS threads before numpy loads)
 from mpm_monitor.analysis import AnalysisOptions, analyze
 from mpm_monitor.cases import CASE_NAMES
@@ -57,9 +56,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     res = run(args.seeds, args.samples)
     print(format_table(res))
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
-    print(f"wrote {args.out}")
+    write_json(args.out, res)
     return 0
 
 

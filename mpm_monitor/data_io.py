@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import DataFileError
+from .errors import DataFileError, read_text
 from .model import FopdtModel
 
 #: Relative tolerance on the sample spacing, as a fraction of the sample time.
@@ -121,15 +121,7 @@ def read_csv(path, model: FopdtModel) -> LoggedData:
     DataFileError
         One line naming the file, the line and the column.
     """
-    path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise DataFileError(f"{path}: cannot read data file: {exc.strerror or exc}") from None
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise DataFileError(f"{path}: not UTF-8 text (byte {exc.start}): expected a CSV file") from None
+    text = read_text(path, DataFileError, "data file", "a CSV file", encoding="utf-8-sig")
     return parse_csv_text(text, model, source=str(path))
 
 

@@ -16,7 +16,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import yaml
 
-from .errors import ModelFileError
+from .errors import ModelFileError, read_text
 
 #: Relative tolerance with which a delay must be a multiple of the sample time.
 DELAY_GRID_TOLERANCE = 1e-6
@@ -339,14 +339,7 @@ def load_model(path) -> FopdtModel:
         the file and the key.
     """
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise ModelFileError(f"{path}: cannot read model file: {exc.strerror or exc}") from None
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise ModelFileError(f"{path}: not UTF-8 text (byte {exc.start}): expected a YAML model file") from None
+    text = read_text(path, ModelFileError, "model file", "a YAML model file")
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
