@@ -194,6 +194,48 @@ def simulate_state_space(ss: StateSpace, u: np.ndarray, x0: np.ndarray | None = 
     return np.asarray(y).reshape(n, ny)
 
 
+def simulate_elements(model: FopdtModel, u: np.ndarray) -> np.ndarray:
+    """Response of the discretized model from rest, element by element.
+
+    The same response as :func:`simulate` without ``x0`` (the dense realisation of
+    :func:`state_space`), computed from the element-wise form of :func:`discretize`::
+
+        s_ij(k+1) = a_ij s_ij(k) + b_ij u_j(k - m_ij),    y_i(k) = sum_j s_ij(k) + D_ij u_j(k)
+
+    one first-order filter per element (``scipy.signal.lfilter``): ``O(n_samples n_outputs n_inputs)``
+    instead of ``O(n_samples n_states^2)``, with ``n_states`` up to a few hundred for a 20x20 plant with
+    delays.  The results agree to rounding (the sums are taken in another order).
+
+    Parameters
+    ----------
+    model : FopdtModel
+    u : ndarray, shape (n_samples, n_inputs)
+        Input in deviation variables, held constant over each sample.
+
+    Returns
+    -------
+    ndarray, shape (n_samples, n_outputs)
+        ``y(k)`` for ``k = 0 .. n_samples - 1``.
+    """
+    from scipy import signal
+
+    u = np.asarray(u, dtype=float)
+    n = u.shape[0]
+    disc = discretize(model)
+    u_t = np.ascontiguousarray(u.T)                     # one contiguous row per input
+    y_t = np.zeros((model.n_outputs, n))
+    for i, j in zip(*np.nonzero(disc.active)):
+        m = int(disc.input_lag[i, j])
+        if m + 1 >= n:            # s_ij(k) is zero up to k = m
+            continue
+        # s_ij(k) for k = m .. n - 1 filters u_j(0 .. n - m - 1): s[k] = b u_j(k - m - 1) + a s[k - 1].
+        y_t[i, m:] += signal.lfilter([0.0, disc.numerator[i, j]], [1.0, -disc.pole[i, j]], u_t[j, :n - m])
+    y = y_t.T.copy()
+    if not disc.strictly_proper:
+        y += u @ disc.feedthrough.T
+    return y
+
+
 def frequency_response(model: FopdtModel, omega: np.ndarray, discrete: bool = True) -> np.ndarray:
     """Frequency response of every element.
 

@@ -1,7 +1,9 @@
 """The signals the paper's tests work on, recomputed from logged r, u, y and the model.
 
 ``yhat = Phat u`` (the model simulated from the data's start), ``d = y - yhat`` (prediction error)
-and ``eps = r - d`` (controller input), paper Fig. 1 and eq. (1), (9).
+and ``eps = r - d`` (controller input), paper Fig. 1 and eq. (1), (9).  The model is simulated
+element by element (:func:`mpm_monitor.discretize.simulate_elements`, the exact ZOH equivalent of
+:func:`~mpm_monitor.discretize.state_space` at a fraction of the dense simulation's cost).
 
 The model's state at the first logged sample is unknown when the log starts mid-operation.  With
 ``initial_state="estimate"`` the model is first simulated from rest; once the longest input lag
@@ -20,7 +22,7 @@ import dataclasses
 import numpy as np
 
 from .arx import f_test
-from .discretize import discretize, settling_samples, simulate_state_space, state_space
+from .discretize import discretize, settling_samples, simulate_elements
 from .errors import ConfigurationError
 from .model import FopdtModel
 
@@ -81,7 +83,7 @@ def initial_transient(model: FopdtModel, d0: np.ndarray, level: float = TRANSIEN
         poles = poles[poles > 0]
         if poles.size == 0:
             continue
-        basis = poles[None, :] ** k[:, None]                  # (n - lag, n_poles)
+        basis = poles[None, :] ** k[:span, None]              # (span, n_poles); all n - lag rows if kept
         seg = d0[lag:lag + span, i]
         # Decision: F test of the exponentials after whitening by an AR(2) noise model fitted on
         # the rest of the record (where no transient is left), so the coloured disturbance (the
@@ -90,7 +92,7 @@ def initial_transient(model: FopdtModel, d0: np.ndarray, level: float = TRANSIEN
         phi = _ar2(rest - rest.mean())
         white = lambda x: x[2:] - phi[0] * x[1:-1] - phi[1] * x[:-2]  # noqa: E731
         target = white(seg - seg.mean())
-        X = np.column_stack([np.ones(span - 2), np.apply_along_axis(white, 0, basis[:span])])
+        X = np.column_stack([np.ones(span - 2), white(basis)])
         coef, *_ = np.linalg.lstsq(X, target, rcond=1e-10)
         rss_full = float(np.sum((target - X @ coef) ** 2))
         rss_null = float(np.sum((target - target.mean()) ** 2))
@@ -98,9 +100,9 @@ def initial_transient(model: FopdtModel, d0: np.ndarray, level: float = TRANSIEN
         _, p = f_test(rss_null, rss_full, rank - 1, span - 2 - rank)
         if p < level:
             # Amplitudes from the plain least-squares fit (unbiased under coloured noise).
-            X = basis[:span] - basis[:span].mean(axis=0)
+            X = basis - basis.mean(axis=0)
             coef, *_ = np.linalg.lstsq(X, seg - seg.mean(), rcond=1e-10)
-            out[lag:, i] = basis @ coef
+            out[lag:, i] = (poles[None, :] ** k[:, None]) @ coef
     return out
 
 
@@ -126,8 +128,7 @@ def compute_signals(model: FopdtModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
     if initial_state not in INITIAL_STATE_CHOICES:
         raise ConfigurationError(f"initial_state: expected one of {', '.join(INITIAL_STATE_CHOICES)}, got {initial_state!r}")
     r, u, y = (np.asarray(a, dtype=float) for a in (r, u, y))
-    ss = state_space(model)
-    yhat = simulate_state_space(ss, u)
+    yhat = simulate_elements(model, u)
     transient = np.zeros_like(yhat)
     if initial_state == "estimate" and u.shape[0] > 1:
         transient = initial_transient(model, y - yhat)
