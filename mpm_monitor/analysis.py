@@ -34,7 +34,6 @@ import math
 from typing import Optional
 
 import numpy as np
-import scipy.linalg as sla
 
 from .arx import SharedBlockRegression, estimate_delay_from_lags, fit_arx, lag_matrix
 from .data_io import LoggedData
@@ -403,9 +402,10 @@ def regression_layout(model: FopdtModel, options: AnalysisOptions) -> Regression
 class QrRegressions:
     """The least-squares problems of the tests, built from the window's signals and factored by QR.
 
-    This is the reference path of :func:`analyze`.  An object with the same methods that draws on
-    sufficient statistics instead (:class:`mpm_monitor.incremental.GramRegressions`) can be passed
-    to :func:`analyze` in its place.
+    This is the reference path, and the fallback of the default one: :func:`analyze` solves the
+    tests from the Gram matrices of the window (:func:`mpm_monitor.incremental.window_regressions`)
+    and refits by this class every regression too ill-conditioned for the normal equations.  Pass
+    an instance as ``analyze(..., regressions=...)`` to factor every regression by QR.
 
     Parameters
     ----------
@@ -474,8 +474,11 @@ def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = Anal
         before the window (:mod:`mpm_monitor.incremental`); default: recomputed from the data with
         ``options.initial_state``.
     regressions : object, optional
-        Provider of the tests' least-squares fits with the methods of :class:`QrRegressions`
-        (default: that class, QR on the window's signals).
+        Provider of the tests' least-squares fits with the methods of :class:`QrRegressions`.
+        Default: :func:`mpm_monitor.incremental.window_regressions`, the fits solved from the Gram
+        matrices of the window's lagged signals, each regression whose condition bound exceeds
+        1e3 (or whose residual is too small a part of its target) refitted by QR; the results equal
+        those of :class:`QrRegressions` to about 1e-10.
 
     Returns
     -------
@@ -513,7 +516,11 @@ def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = Anal
         if sig.d.shape != (n, ny) or sig.eps.shape != (n, ny):
             raise DataFileError(f"{src}: signals of shape {sig.d.shape} / {sig.eps.shape}, expected ({n}, {ny})")
     z = sig.eps - r   # = -d: zero-mean noise under "no mismatch"
-    regs = regressions if regressions is not None else QrRegressions(r, u, z, sig.d, layout, na, nb)
+    if regressions is not None:
+        regs = regressions
+    else:
+        from .incremental import window_regressions      # imports this module
+        regs = window_regressions(r, u, z, sig.d, layout, na, nb)
 
     # ---------------------------------------------------------------- S_Delta row test
     r_std = r.std(axis=0)
@@ -649,12 +656,16 @@ class InputDesign:
         R = self.regression.R
         p = R.shape[1]
         if p:
-            rinv = np.linalg.pinv(R) if not self.regression.full_rank else sla.solve_triangular(R, np.eye(p))
-            inv = rinv @ rinv.T                     # (X'X)^-1 of the scaled columns
+            rinv = self.regression.rinv()             # pseudo-inverse when rank-deficient
+            blocks = np.arange(p).reshape(len(self.testable), n_lag)
+            r_blocks = np.swapaxes(R.T[blocks], 1, 2)                     # R[:, sl] of every block
+            gram = np.swapaxes(r_blocks, 1, 2) @ r_blocks                 # X_j' X_j, scaled columns
+            ri = rinv[blocks]
+            inv = ri @ np.swapaxes(ri, 1, 2)                              # blocks of (X'X)^-1
+            eigenvalues = np.linalg.eigvals(gram @ inv).real
             for b, j in enumerate(self.testable):
                 sl = slice(b * n_lag, (b + 1) * n_lag)
-                gram = R[:, sl].T @ R[:, sl]          # X_j' X_j
-                ev = np.linalg.eigvals(gram @ inv[sl, sl]).real
+                ev = eigenvalues[b]
                 vif = float(ev.max()) if np.all(np.isfinite(ev)) else float("inf")
                 if not self.regression.full_rank:
                     # A dependent lag block makes (X'X) singular: the pseudo-inverse hides it.
@@ -720,10 +731,12 @@ def _arx_element_test(model, test_rows, options, design, regs):
     raw, info, tables, group_hits = {}, {}, [], []
     for i in test_rows:
         fit = regs.element_fit(design.regression, i)
+        tests = fit.test_each_block_zero([_element_window(model, i, j, options, design) for j in testable])
+        stds = fit.block_stds()
         for bj, j in enumerate(testable):
-            coef, std = fit.block_theta(bj), fit.block_std(bj)
-            lag0 = estimate_delay_from_lags(coef, std, nb, first_lag=1)
-            raw[(i, j)] = fit.test_blocks_zero([bj], n_first=_element_window(model, i, j, options, design))
+            coef = fit.block_theta(bj)
+            lag0 = estimate_delay_from_lags(coef, stds[bj], nb, first_lag=1)
+            raw[(i, j)] = tests[bj]
             info[(i, j)] = (lag0, coef[lag0 - 1:lag0 - 1 + nb].tolist())
         for g in design.groups:
             blocks = [testable.index(model.inputs.index(x)) for x in g]

@@ -22,6 +22,7 @@ autoregressive columns.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Optional, Sequence
 
 import numpy as np
@@ -260,6 +261,11 @@ class SharedBlockRegression:
         """Number of common columns."""
         return self.R.shape[1]
 
+    @functools.cached_property
+    def block_starts(self) -> np.ndarray:
+        """First column of every block, then the number of common columns; shape (n_blocks + 1,)."""
+        return np.cumsum([0] + self.block_sizes)
+
     def rinv(self) -> np.ndarray:
         """``R^-1`` of the common block (computed once, shared by every target's fit)."""
         if self._rinv is None:
@@ -365,8 +371,22 @@ class SharedFit:
 
     def covariance_block(self, idx: np.ndarray) -> np.ndarray:
         """Rows and columns ``idx`` of :meth:`covariance_scaled`, without forming the whole matrix."""
+        return self.covariance_blocks(np.asarray(idx, dtype=int)[None, :])[0]
+
+    def covariance_blocks(self, idx: np.ndarray) -> np.ndarray:
+        """:meth:`covariance_block` of every row of ``idx`` (shape (g, k)); shape (g, k, k)."""
         ri = self.rinv[idx]
-        return ri @ ri.T
+        return ri @ np.swapaxes(ri, 1, 2)
+
+    def common_variances(self) -> np.ndarray:
+        """Diagonal of :meth:`covariance_scaled` over the common columns, shape (p_common,)."""
+        ri = self.rinv[:self.n_common]
+        return np.einsum("ij,ij->i", ri, ri)
+
+    def _block_index(self, block: int, n_first: Optional[int] = None) -> np.ndarray:
+        starts = self.reg.block_starts
+        end = starts[block + 1] if n_first is None else min(starts[block] + n_first, starts[block + 1])
+        return np.arange(starts[block], end)
 
     def test_all_common_zero(self) -> BlockTest:
         """F test that every common coefficient is zero (e.g. the S_Delta row equals the identity)."""
@@ -381,35 +401,59 @@ class SharedFit:
         statistic of the nested fit without those columns.  With ``n_first`` only the first
         ``n_first`` coefficients of each block are tested (the others stay free in the fit).
         """
-        starts = np.cumsum([0] + self.reg.block_sizes)
-        ends = [starts[b + 1] if n_first is None else min(starts[b] + n_first, starts[b + 1]) for b in blocks]
-        idx = np.concatenate([np.arange(starts[b], e) for b, e in zip(blocks, ends)]) if blocks else np.array([], int)
+        idx = np.concatenate([self._block_index(b, n_first) for b in blocks]) if blocks else np.array([], int)
         if idx.size == 0:
             return BlockTest(float("nan"), 1.0, 0, int(self.dof))
-        th = (self.theta * self.scale)[idx]           # scaled parameters
-        cov = self.covariance_block(idx)
-        # Rank-aware quadratic form (a block inside a collinear group has a near-singular cov).
-        w, v = np.linalg.eigh(0.5 * (cov + cov.T))
-        keep = w > 1e-10 * max(w.max(initial=0.0), 1e-300)
-        df_num = int(np.sum(keep))
-        if df_num == 0:
-            return BlockTest(float("nan"), 1.0, 0, int(self.dof))
-        proj = v[:, keep].T @ th
-        quad = float(np.sum(proj ** 2 / w[keep]))
-        f = quad / df_num / self.sigma2
-        return BlockTest(float(f), float(special.fdtrc(df_num, self.dof, f)), df_num, int(self.dof))
+        return self._wald_tests(idx[None, :])[0]
+
+    def test_each_block_zero(self, n_first: Sequence[Optional[int]]) -> list:
+        """``[test_blocks_zero([b], n_first=n_first[b]) for every block b]``, computed together.
+
+        Blocks whose tested coefficients are equally many share one stacked eigen-decomposition.
+        """
+        idx = [self._block_index(b, k) for b, k in enumerate(n_first)]
+        out = [BlockTest(float("nan"), 1.0, 0, int(self.dof))] * len(idx)
+        for k in sorted({i.size for i in idx} - {0}):
+            blocks = [b for b, i in enumerate(idx) if i.size == k]
+            for b, t in zip(blocks, self._wald_tests(np.stack([idx[b] for b in blocks]))):
+                out[b] = t
+        return out
+
+    def _wald_tests(self, idx: np.ndarray) -> list:
+        """Rank-aware Wald F tests that the coefficients of every row of ``idx`` (shape (g, k)) are zero.
+
+        A block inside a collinear group has a near-singular covariance: its quadratic form keeps
+        only the eigen-directions above ``1e-10`` of the largest.
+        """
+        th = (self.theta * self.scale)[idx]           # scaled parameters, (g, k)
+        cov = self.covariance_blocks(idx)
+        w, v = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, 1, 2)))
+        keep = w > 1e-10 * np.maximum(w.max(axis=1, initial=0.0), 1e-300)[:, None]
+        df_num = keep.sum(axis=1)
+        proj = np.einsum("gkm,gk->gm", v, th)
+        quad = np.sum(np.where(keep, proj ** 2 / np.where(keep, w, 1.0), 0.0), axis=1)
+        f = quad / np.maximum(df_num, 1) / self.sigma2
+        p = special.fdtrc(np.maximum(df_num, 1), self.dof, f)
+        dof = int(self.dof)
+        return [BlockTest(float(f[g]), float(p[g]), int(df_num[g]), dof) if df_num[g] else
+                BlockTest(float("nan"), 1.0, 0, dof) for g in range(idx.shape[0])]
 
     def block_theta(self, block: int) -> np.ndarray:
         """Common coefficients of one block."""
-        starts = np.cumsum([0] + self.reg.block_sizes)
+        starts = self.reg.block_starts
         return self.theta[starts[block]:starts[block + 1]]
 
     def block_std(self, block: int) -> np.ndarray:
         """Standard errors of the coefficients of one block."""
-        starts = np.cumsum([0] + self.reg.block_sizes)
-        sl = slice(starts[block], starts[block + 1])
-        cov = self.covariance_block(np.arange(sl.start, sl.stop)) * self.sigma2
-        return np.sqrt(np.maximum(np.diag(cov), 0.0)) / self.scale[sl]
+        idx = self._block_index(block)
+        cov = self.covariance_block(idx) * self.sigma2
+        return np.sqrt(np.maximum(np.diag(cov), 0.0)) / self.scale[idx]
+
+    def block_stds(self) -> list:
+        """``[block_std(b) for every block b]``, from the diagonal of the covariance alone."""
+        std = np.sqrt(np.maximum(self.common_variances() * self.sigma2, 0.0)) / self.scale[:self.n_common]
+        starts = self.reg.block_starts
+        return [std[starts[b]:starts[b + 1]] for b in range(len(starts) - 1)]
 
     def own_theta(self) -> np.ndarray:
         """Coefficients of the target's own columns."""

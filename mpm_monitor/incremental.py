@@ -22,6 +22,11 @@ Every row's regression is a sub-block of one of them, so the common block (lagge
 lagged inputs) is factored once per window and each row adds its own columns by the
 Frisch-Waugh-Lovell partition of :class:`~mpm_monitor.arx.SharedBlockRegression`.
 
+A Gram matrix built from scratch uses the shift structure of lagged columns
+(:func:`lagged_cross_products`): ``O(W n_channels^2 n_lags)`` instead of ``O(W p^2)``.  The batch
+:func:`~mpm_monitor.analysis.analyze` builds both matrices this way for its window
+(:func:`window_regressions`) and solves its tests from them, with the same checks and QR fallback.
+
 Centring
 --------
 The batch tests centre each signal by its mean over the window, which moves as the window slides.
@@ -42,6 +47,8 @@ are of the order ``kappa^2 * 1e-16``.  Each regression's 2-norm condition number
 -- first against the cheap bound ``||R||_F ||R^-1||_F >= kappa``, then, if that bound is too large,
 by a power-iteration estimate -- and above ``max_condition`` (default 1e3, errors below about
 1e-10) the regression is refitted by QR from the window buffer, exactly as the batch path does.
+A fit that explains nearly all of its target (noise-free data) is refitted too: its residual sum of
+squares ``y'y - |Q'y|^2`` would lose digits (:data:`MIN_RESIDUAL_PER_CONDITION`).
 Closed-loop data with PRBS setpoints give ``kappa`` of 2 to 60 (measured on the paper cases and on
 random 2x2 to 20x20 plants); collinear inputs (no dither, more inputs than outputs) fall back.
 
@@ -192,6 +199,82 @@ class _WindowBuffer:
 
 
 # ----------------------------------------------------------------------------------------- Gram
+def lagged_cross_products(values: np.ndarray, col_channel: np.ndarray, col_lag: np.ndarray, max_lag: int):
+    """Cross products and sums of lagged columns, from ``max_lag + 1`` products of the unlagged signals.
+
+    Column ``c`` holds ``x_{ch(c)}(t - lag(c))`` over the rows ``t = max_lag .. n - 1`` of ``values``.
+    Two columns whose lags differ by ``delta >= 0`` have, with ``m`` the smaller lag and the rows
+    ``[s, e)``::
+
+        sum_{t=s}^{e-1} x_a(t - m) x_b(t - m - delta)
+            = sum_{t=s}^{e-1} x_a(t) x_b(t - delta)                          (one matrix product per delta)
+            + sum_{k=1}^{m} x_a(s - k) x_b(s - k - delta)                     (rows entering at the head)
+            - sum_{k=1}^{m} x_a(e - k) x_b(e - k - delta)                     (rows leaving at the tail)
+
+    so the ``p x p`` Gram matrix costs ``O(n n_channels^2 max_lag)`` instead of ``O(n p^2)`` with
+    ``p = n_channels n_lags``; every entry is still a plain sum over the rows plus at most ``2 max_lag``
+    corrections, so its rounding error is that of the direct product.
+
+    Parameters
+    ----------
+    values : ndarray, shape (max_lag + n_rows, n_channels)
+        The signals; row ``max_lag + t`` is regression row ``t``.
+    col_channel, col_lag : ndarray of int, shape (p,)
+        Channel and lag (``0 .. max_lag``) of every column.
+    max_lag : int
+
+    Returns
+    -------
+    gram : ndarray, shape (p, p)
+        ``Phi' Phi`` (symmetric).
+    sums : ndarray, shape (p,)
+        ``Phi' 1``.
+    """
+    x = np.asfortranarray(values, dtype=float)      # column slices are contiguous for the products
+    L = int(max_lag)
+    n = x.shape[0] - L
+    n_ch = x.shape[1]
+    col_channel, col_lag = np.asarray(col_channel, dtype=int), np.asarray(col_lag, dtype=int)
+    if n <= 0:
+        return np.zeros((col_lag.size, col_lag.size)), np.zeros(col_lag.size)
+    lag_lo = np.full(n_ch, L + 1)
+    lag_hi = np.full(n_ch, -1)
+    np.minimum.at(lag_lo, col_channel, col_lag)
+    np.maximum.at(lag_hi, col_channel, col_lag)
+    used = lag_hi >= 0
+    n_delta = int(lag_hi.max() - lag_lo[used].min()) + 1 if used.any() else 1
+    n_m = int(lag_hi.max()) + 1 if used.any() else 1
+    cur = x[L:L + n]
+    # table[delta, m, a, b] = sum_{t=s}^{e-1} x_a(t - m) x_b(t - m - delta)
+    table = np.zeros((n_delta, n_m, n_ch, n_ch))
+    head = x[L - 1::-1] if L else x[:0]                    # x(s - 1), x(s - 2), ..., x(s - L)
+    tail = x[L + n - 1:n - 1:-1] if L else x[:0]            # x(e - 1), ..., x(e - L)
+    for delta in range(n_delta):
+        # Channels b that appear lagged by delta more than some a (others are never needed).
+        b_need = np.flatnonzero(used & (lag_hi - lag_lo[used].min() >= delta))
+        contiguous = b_need.size and b_need[-1] - b_need[0] + 1 == b_need.size
+        b_cols = slice(b_need[0], b_need[-1] + 1) if contiguous else b_need      # a view, not a copy
+        base = cur.T @ x[L - delta:L - delta + n, b_cols]
+        m_max = min(n_m - 1, L - delta)
+        corr = np.zeros((n_m, n_ch, b_need.size))
+        if m_max > 0:
+            k = np.arange(m_max)
+            corr[1:m_max + 1] = np.cumsum(
+                head[k][:, :, None] * head[k + delta][:, None, b_need]
+                - tail[k][:, :, None] * tail[k + delta][:, None, b_need], axis=0)
+            corr[m_max + 1:] = corr[m_max]
+        table[delta][:, :, b_need] = base[None] + corr
+    li, lj = col_lag[:, None], col_lag[None, :]
+    ci, cj = col_channel[:, None], col_channel[None, :]
+    upper = lj >= li
+    gram = table[np.abs(lj - li), np.minimum(li, lj), np.where(upper, ci, cj), np.where(upper, cj, ci)]
+    # Sums: sum_{t=s}^{e-1} x_c(t - l) = sum over [s, e) + the l rows before s - the last l rows.
+    cum_head = np.vstack([np.zeros((1, n_ch)), np.cumsum(head, axis=0)])
+    cum_tail = np.vstack([np.zeros((1, n_ch)), np.cumsum(tail, axis=0)])
+    sums = cur.sum(axis=0)[col_channel] + cum_head[col_lag, col_channel] - cum_tail[col_lag, col_channel]
+    return gram, sums
+
+
 class LaggedGram:
     """Cross products ``Phi' Phi`` and sums ``Phi' 1`` of lagged signal columns over a range of rows.
 
@@ -210,8 +293,6 @@ class LaggedGram:
     enter) of the lower triangle, in place;
     :meth:`symmetric` returns the full matrix.
     """
-
-    CHUNK = 4096
 
     def __init__(self, groups, signals):
         self.groups = [(name, int(nch), np.asarray(list(lags), dtype=int)) for name, nch, lags in groups]
@@ -265,12 +346,17 @@ class LaggedGram:
         self._full = None
 
     def rebuild(self, buf: _WindowBuffer, a: int, b: int, ref: np.ndarray) -> None:
-        """Recompute from scratch over rows ``a .. b - 1`` with a new reference ``ref`` (n_channels,)."""
+        """Recompute from scratch over rows ``a .. b - 1`` with a new reference ``ref`` (n_channels,).
+
+        Uses the shift structure of the lagged columns (:func:`lagged_cross_products`).
+        """
         self.ref = np.asarray(ref, dtype=float).copy()
-        self.gram = np.zeros((self.n_columns, self.n_columns))
-        self.sums = np.zeros(self.n_columns)
-        for c0 in range(a, b, self.CHUNK):
-            self._accumulate(self.rows(buf, c0, min(c0 + self.CHUNK, b)), 1.0)
+        if b > a:
+            values = self.channel_values(buf.rows(a - self.max_lag, b)) - self.ref
+            self.gram, self.sums = lagged_cross_products(values, self.col_channel, self.col_lag, self.max_lag)
+        else:
+            self.gram = np.zeros((self.n_columns, self.n_columns))
+            self.sums = np.zeros(self.n_columns)
         self.lo, self.hi = a, b
         self._full = None
 
@@ -358,19 +444,25 @@ def _norm2_estimate(a: np.ndarray, iterations: int = 12) -> float:
     return float(np.linalg.norm(a @ x))
 
 
-def checked_condition(R, rinv: np.ndarray, max_condition: float, frobenius_R: Optional[float] = None) -> float:
+def checked_condition(R, rinv, max_condition: float, frobenius_R: Optional[float] = None,
+                      frobenius_rinv: Optional[float] = None) -> float:
     """Condition number of the triangular factor ``R``, or :class:`IllConditioned` above ``max_condition``.
 
     Returns the Frobenius bound ``||R||_F ||R^-1||_F`` when it is within the limit (it is never below
     the 2-norm condition number), else a power-iteration estimate of the 2-norm condition number.
-    ``R`` may be a callable that builds it (only needed for the estimate) when ``frobenius_R`` is given.
+    ``R`` and ``rinv`` may be callables that build them (only needed for the estimate) when their
+    Frobenius norms are given.
     """
-    if rinv.size == 0:
-        return 1.0
-    bound = (_frobenius(R) if frobenius_R is None else frobenius_R) * _frobenius(rinv)
+    if frobenius_rinv is None:
+        rinv = rinv() if callable(rinv) else rinv
+        if rinv.size == 0:
+            return 1.0
+        frobenius_rinv = _frobenius(rinv)
+    bound = (_frobenius(R) if frobenius_R is None else frobenius_R) * frobenius_rinv
     if bound <= max_condition:
         return bound
     R = R() if callable(R) else R
+    rinv = rinv() if callable(rinv) else rinv
     estimate = _norm2_estimate(R) * _norm2_estimate(rinv)
     if estimate <= max_condition:
         return estimate
@@ -382,6 +474,11 @@ def _cholesky_upper(g: np.ndarray) -> np.ndarray:
         return np.linalg.cholesky(g).T
     except np.linalg.LinAlgError:
         raise IllConditioned("Gram matrix not positive definite") from None
+
+
+def _stacked_gram(a: np.ndarray) -> np.ndarray:
+    """``a a'`` of every matrix of the stack ``a`` (shape (g, k, m)); shape (g, k, k)."""
+    return a @ np.swapaxes(a, 1, 2)
 
 
 class GramBlockRegression(SharedBlockRegression):
@@ -402,7 +499,9 @@ class GramBlockRegression(SharedBlockRegression):
 
     Notes
     -----
-    ``Q`` and ``common`` are not available (None); targets are fitted by :class:`GramFit`.
+    ``Q`` and ``common`` are not available (None); targets are fitted by :class:`GramFit`.  The
+    common block's share of every fit's covariance (``R1^-1 R1^-T``, its diagonal and its diagonal
+    blocks) is computed once here and shared by the fits.
     """
 
     def __init__(self, gram: np.ndarray, block_sizes, max_condition: float = DEFAULT_MAX_CONDITION):
@@ -422,8 +521,12 @@ class GramBlockRegression(SharedBlockRegression):
             raise IllConditioned("rank-deficient common block")
         self._rinv = sla.solve_triangular(self.R, np.eye(p), check_finite=False) if p else np.zeros((0, 0))
         self.frobenius_R = _frobenius(self.R)
-        self.condition_bound = checked_condition(self.R, self._rinv, max_condition, self.frobenius_R)
+        self.variances = np.einsum("ij,ij->i", self._rinv, self._rinv)       # diagonal of R1^-1 R1^-T
+        self.frobenius_rinv = math.sqrt(float(self.variances.sum()))
+        self.condition_bound = checked_condition(self.R, self._rinv, max_condition, self.frobenius_R,
+                                                 self.frobenius_rinv) if p else 1.0
         self._cond = None
+        self._blocks = {}
 
     @property
     def condition_number(self) -> float:
@@ -433,8 +536,22 @@ class GramBlockRegression(SharedBlockRegression):
             self._cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
         return self._cond
 
+    def covariance_blocks(self, idx: np.ndarray) -> np.ndarray:
+        """Rows and columns ``idx[g]`` of ``R1^-1 R1^-T`` for every ``g``; shape (g, k, k) (cached)."""
+        key = (idx.shape, idx.tobytes())
+        if key not in self._blocks:
+            self._blocks[key] = _stacked_gram(self._rinv[idx])
+        return self._blocks[key]
+
     def fit(self, target, own):
         raise TypeError("a GramBlockRegression has no regressor matrix: fit targets with GramFit")
+
+
+#: A fit solved from cross products computes its residual sum of squares as ``y'y - |Q'y|^2``, which
+#: loses up to about ``1e-16 * kappa * y'y / RSS`` (relative) when the regressors explain nearly all of
+#: ``y`` (noise-free data); the fit is refitted by QR when that bound exceeds 1e-8, i.e. when
+#: ``RSS < MIN_RESIDUAL_PER_CONDITION * kappa * y'y`` (``kappa``: the condition bound).
+MIN_RESIDUAL_PER_CONDITION = 1e-8
 
 
 class GramFit(SharedFit):
@@ -456,50 +573,67 @@ class GramFit(SharedFit):
         Number of regression rows.
     max_condition : float
 
+    Raises
+    ------
+    IllConditioned
+        When the condition bound exceeds ``max_condition``, or the target is explained so closely
+        that its residual sum of squares cannot be taken from the cross products
+        (:data:`MIN_RESIDUAL_PER_CONDITION`).
+
     Notes
     -----
     The quantities of :class:`~mpm_monitor.arx.SharedFit` follow from the partitioned factor
     ``[[R1, Q1' X_own], [0, R2]]``: ``Q1' X_own = R1^-T X_c' X_own``, ``R2' R2 = X_own' X_own -
     (Q1' X_own)' (Q1' X_own)``, ``Q1' y = R1^-T X_c' y``, ``Q2' y = R2^-T (X_own' y - (Q1' X_own)' Q1' y)``
-    and ``RSS = y'y - ||[Q1' y; Q2' y]||^2``.  ``residuals`` is None.
+    and ``RSS = y'y - ||[Q1' y; Q2' y]||^2``.  ``residuals`` is None.  The inverse factor
+    ``[[R1^-1, W], [0, R2^-1]]`` with ``W = -R1^-1 (Q1' X_own) R2^-1`` is kept in these pieces; the
+    covariance of common coefficients is the regression's shared ``R1^-1 R1^-T`` plus ``W W'``.
     """
 
     def __init__(self, reg: GramBlockRegression, g_co, g_oo, g_cy, g_oy, g_yy: float, sum_y: float, n: int,
                  max_condition: float = DEFAULT_MAX_CONDITION):
         self.reg = reg
         pc, po = g_co.shape
+        p = pc + po
         own_scale = np.sqrt(np.maximum(np.diag(g_oo), 0.0))
         own_scale = np.where(own_scale > 0, own_scale, 1.0)
-        g_co_s = g_co / np.outer(reg.scale, own_scale)
         g_oo_s = g_oo / np.outer(own_scale, own_scale)
-        g_cy_s = g_cy / reg.scale
         g_oy_s = g_oy / own_scale
         if pc:
-            qo = sla.solve_triangular(reg.R, g_co_s, trans="T", check_finite=False)
-            q1y = sla.solve_triangular(reg.R, g_cy_s, trans="T", check_finite=False)
+            rhs = np.column_stack([g_co / np.outer(reg.scale, own_scale), g_cy / reg.scale])
+            sol = sla.solve_triangular(reg.R, rhs, trans="T", check_finite=False)
+            qo, q1y = sol[:, :po], sol[:, po]
         else:
             qo, q1y = np.zeros((0, po)), np.zeros(0)
         if po:
             R2 = _cholesky_upper(g_oo_s - qo.T @ qo)
             q2y = sla.solve_triangular(R2, g_oy_s - qo.T @ q1y, trans="T", check_finite=False)
+            r2i = sla.solve_triangular(R2, np.eye(po), check_finite=False)
         else:
-            R2, q2y = np.zeros((0, 0)), np.zeros(0)
-        qy = np.concatenate([q1y, q2y])
-        self.rank, self.rinv, theta_s = block_triangular_solution(reg, qo, R2, qy)
-        p = pc + po
+            R2, q2y, r2i = np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0))
+        d = np.abs(np.concatenate([np.diag(reg.R), np.diag(R2)]))
+        self.rank = int(np.sum(d > RANK_TOLERANCE * max(d.max(initial=0.0), 1e-300)))
         if self.rank < p:
             raise IllConditioned("rank-deficient regression")
-        def full_factor():
-            R = np.zeros((p, p))
-            R[:pc, :pc], R[:pc, pc:], R[pc:, pc:] = reg.R, qo, R2
-            return R
+        r1i = reg.rinv()
+        self._qo, self._R2, self._r2i = qo, R2, r2i
+        self._w = -(r1i @ qo) @ r2i                                   # block (common, own) of R^-1
+        self._rinv = None
+        theta_own = r2i @ q2y
+        theta_s = np.concatenate([r1i @ q1y + self._w @ q2y, theta_own])
         frobenius_R = math.sqrt(reg.frobenius_R ** 2 + float(np.sum(qo * qo)) + float(np.sum(R2 * R2)))
-        self.condition_bound = checked_condition(full_factor, self.rinv, max_condition, frobenius_R)
+        frobenius_rinv = math.sqrt(reg.frobenius_rinv ** 2 + float(np.sum(self._w * self._w))
+                                   + float(np.sum(r2i * r2i)))
+        self.condition_bound = checked_condition(self._full_factor, lambda: self.rinv, max_condition, frobenius_R,
+                                                 frobenius_rinv) if p else 1.0
         scale = np.concatenate([reg.scale, own_scale])
         self.theta = theta_s / scale
         self.scale = scale
         self.residuals = None
+        qy = np.concatenate([q1y, q2y])
         self.rss = max(float(g_yy - qy @ qy), 0.0)
+        if self.rss < MIN_RESIDUAL_PER_CONDITION * self.condition_bound * g_yy:
+            raise IllConditioned(f"residual sum of squares {self.rss:.3g} too small against y'y = {g_yy:.3g}")
         self.dof = max(n - self.rank, 1)
         self.sigma2 = self.rss / self.dof
         self.n_common = pc
@@ -513,6 +647,30 @@ class GramFit(SharedFit):
             self.rank_own = 0
         ynorm2 = float(g_yy - sum_y * sum_y / n) if n else 0.0
         self.fit_percent = 100.0 * (1.0 - math.sqrt(self.rss / ynorm2)) if ynorm2 > 0 else 0.0
+
+    def _full_factor(self) -> np.ndarray:
+        pc, po = self._qo.shape
+        R = np.zeros((pc + po, pc + po))
+        R[:pc, :pc], R[:pc, pc:], R[pc:, pc:] = self.reg.R, self._qo, self._R2
+        return R
+
+    @property
+    def rinv(self) -> np.ndarray:
+        """``R^-1`` of the whole regression, shape (p, p) (assembled on first use)."""
+        if self._rinv is None:
+            pc, po = self._w.shape
+            rinv = np.zeros((pc + po, pc + po))
+            rinv[:pc, :pc], rinv[:pc, pc:], rinv[pc:, pc:] = self.reg.rinv(), self._w, self._r2i
+            self._rinv = rinv
+        return self._rinv
+
+    def covariance_blocks(self, idx: np.ndarray) -> np.ndarray:
+        if idx.size and idx.max() < self.n_common:
+            return self.reg.covariance_blocks(idx) + _stacked_gram(self._w[idx])
+        return super().covariance_blocks(idx)
+
+    def common_variances(self) -> np.ndarray:
+        return self.reg.variances + np.einsum("ij,ij->i", self._w, self._w)
 
 
 def gram_arx(gram: np.ndarray, sum_y: float, n: int, na: int, nb: int, nk: np.ndarray,
@@ -691,13 +849,13 @@ class GramRegressions:
         first = max(na, int(np.max(nk + nb - 1)) if nu else 0)
         start = self.layout.start
         if first < start:
-            di = self.d[:, i] - self.d[:, i].mean()
-            u_c = self.u - self.u.mean(axis=0)
-            t = np.arange(first, start)
-            extra = [-di[t - lag] for lag in range(1, na + 1)]
-            extra += [u_c[t - lag, j] for j in range(nu) for lag in range(nk[j], nk[j] + nb)]
-            extra.append(di[t])
-            x = np.column_stack(extra)
+            t = np.arange(first, start)[:, None]
+            d_mean = self.input_means[nu + i]
+            lags = (nk[:, None] + np.arange(nb)).ravel()
+            channels = np.repeat(np.arange(nu), nb)
+            x = np.hstack([-(self.d[t - np.arange(1, na + 1), i] - d_mean),
+                           self.u[t - lags, channels] - self.input_means[channels],
+                           self.d[t, i] - d_mean])
             g = g + x.T @ x
             sums = sums + x.sum(axis=0)
             n += start - first
@@ -706,6 +864,45 @@ class GramRegressions:
         except IllConditioned:
             self.fallbacks.append(f"short ARX of output {i}")
             return self.qr.short_arx(i, nk)
+
+
+def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
+                       max_condition: float = DEFAULT_MAX_CONDITION) -> GramRegressions:
+    """The tests' regressions on one window, from Gram matrices built at once (batch :func:`analyze`).
+
+    Both Gram matrices are computed from the window's signals by :func:`lagged_cross_products`,
+    centred by the window means as :class:`~mpm_monitor.analysis.QrRegressions` centres its columns;
+    every regression whose condition bound exceeds ``max_condition`` is refitted by QR (see the
+    module docstring), so the results equal the QR path's to about ``max_condition^2 * 1e-16``.
+
+    Parameters
+    ----------
+    r, z, d : ndarray, shape (n_samples, n_outputs)
+        Setpoints, ``z = eps - r`` and prediction errors of the window.
+    u : ndarray, shape (n_samples, n_inputs)
+    layout : RegressionLayout
+    na, nb : int
+    max_condition : float
+
+    Returns
+    -------
+    GramRegressions
+    """
+    n, ny = r.shape
+    nu = u.shape[1]
+    buf = _WindowBuffer(3 * ny + nu, n, 0)
+    buf.append(np.hstack([r, u, z, d]))
+
+    def signals(block):
+        return {"r": block[:, :ny], "u": block[:, ny:ny + nu], "z": block[:, ny + nu:2 * ny + nu],
+                "d": block[:, 2 * ny + nu:]}
+    row_gram = LaggedGram([("r", ny, range(0, layout.n_lag_r)), ("z", ny, range(0, na + 1))], signals)
+    input_gram = LaggedGram([("u", nu, range(1, layout.n_lag_u + 1)), ("d", ny, range(0, na + 1))], signals)
+    regs = GramRegressions(row_gram, input_gram, r, u, z, d, layout, na, nb, max_condition)
+    start = min(layout.start, n)
+    row_gram.rebuild(buf, start, n, regs.row_means)
+    input_gram.rebuild(buf, start, n, regs.input_means)
+    return regs
 
 
 # ----------------------------------------------------------------------------------------- analyzer

@@ -2,12 +2,13 @@
 
 "Same window" (mpm_monitor/incremental.py): the last W samples of r, u, y, with yhat, d and eps from
 the controller's model run from rest at the first pushed sample -- i.e. compute_signals(...,
-initial_state="zero") over every pushed sample, cut to the window, passed to analyze(signals=...).
+initial_state="zero") over every pushed sample, cut to the window, passed to analyze(signals=...)
+with the QR regressions (analysis.QrRegressions: the reference, not the default Gram path).
 Tolerance 1e-8 on log p-values, F statistics, RSI and coefficients (coefficients relative to the
 largest of their vector); the decisions (flagged rows, located and ambiguous elements) must be equal.
 
-The analyzer's own model run (element-wise recursion) and compute_signals (dense state space) agree
-to ~1e-16 relative; on ill-conditioned data (collinear inputs, a step of the operating point inside
+The analyzer's own model run (sample-wise recursion) and compute_signals (one filter per element)
+agree to ~1e-16 relative; on ill-conditioned data (collinear inputs, a step of the operating point inside
 the window) even that difference is amplified beyond 1e-8 by the batch QR itself, so those tests give
 the batch path the analyzer's signals (SlidingWindowAnalyzer.window_data), as the live monitor does.
 """
@@ -18,7 +19,7 @@ import numpy as np
 import pytest
 from scipy import signal as sps
 
-from mpm_monitor.analysis import AnalysisOptions, analyze, regression_layout
+from mpm_monitor.analysis import AnalysisOptions, QrRegressions, analyze, regression_layout
 from mpm_monitor.arx import SharedBlockRegression, lag_matrix
 from mpm_monitor.cases import paper_case
 from mpm_monitor.closed_loop import ExcitationOptions, run_closed_loop
@@ -40,10 +41,17 @@ def _case_log(name, n, seed, excitation=None):
     return case, log
 
 
+def _qr_analyze(model, data, options, sig):
+    """The batch QR path (every regression factored by QR from the window's signals)."""
+    regs = QrRegressions(data.r, data.u, sig.eps - data.r, sig.d, regression_layout(model, options),
+                         options.na, options.nb)
+    return analyze(model, data, options, signals=sig, regressions=regs)
+
+
 def _batch_same_signals(an, options):
     """The batch reference on the analyzer's window and signals."""
     data, sig = an.window_data()
-    return analyze(an.model, data, options, signals=sig)
+    return _qr_analyze(an.model, data, options, sig)
 
 
 def _batch_of_window(model, r, u, y, window, options):
@@ -52,7 +60,7 @@ def _batch_of_window(model, r, u, y, window, options):
     w = slice(max(0, r.shape[0] - window), r.shape[0])
     data = LoggedData(t=np.arange(r.shape[0])[w] * model.sample_time, r=r[w], u=u[w], y=y[w],
                       inputs=model.inputs, outputs=model.outputs, sample_time=model.sample_time)
-    return analyze(model, data, options, signals=LoopSignals(sig.yhat[w], sig.d[w], sig.eps[w], sig.transient[w]))
+    return _qr_analyze(model, data, options, LoopSignals(sig.yhat[w], sig.d[w], sig.eps[w], sig.transient[w]))
 
 
 def _close(a, b, what, tol=TOL):

@@ -1,0 +1,397 @@
+"""The fast paths of the batch analysis equal the reference paths they replace (issue 8).
+
+``analyze(model, data, options)`` now simulates the model element by element
+(:func:`mpm_monitor.discretize.simulate_elements`) and solves the tests from Gram matrices built at
+once from the window (:func:`mpm_monitor.incremental.window_regressions`, with their shift structure:
+:func:`~mpm_monitor.incremental.lagged_cross_products`), refitting by QR any regression whose
+conditioning is poor.  The references are the previous paths: the dense simulation of
+:func:`~mpm_monitor.discretize.state_space` (``scipy.signal.dlsim``) and
+:class:`~mpm_monitor.analysis.QrRegressions`.
+
+Tolerances: simulations 1e-12 of the largest output; cross products 1e-13 of the largest entry;
+the analysis as in test_incremental.py -- decisions (flagged rows, located / ambiguous elements,
+delays, collinear groups, warnings) identical, p-values to 1e-8 on their logarithm, F statistics,
+RSI, fits and coefficients to 1e-8 relative (coefficients relative to the largest of their vector).
+No timings here: bench/perf.py measures them.
+"""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import scipy.linalg as sla
+from scipy import signal as sps
+
+from mpm_monitor.analysis import AnalysisOptions, InputDesign, QrRegressions, analyze, regression_layout
+from mpm_monitor.arx import SharedBlockRegression, lag_matrix
+from mpm_monitor.cases import paper_case
+from mpm_monitor.closed_loop import ExcitationOptions, run_closed_loop
+from mpm_monitor.data_io import LoggedData
+from mpm_monitor.discretize import simulate_elements, simulate_state_space, state_space
+from mpm_monitor.excitation import PrbsOptions
+from mpm_monitor.incremental import (GramBlockRegression, GramFit, lagged_cross_products, window_regressions)
+from mpm_monitor.model import FopdtModel
+from mpm_monitor.signals import LoopSignals, compute_signals, initial_transient
+
+TOL = 1e-8
+FAST = AnalysisOptions(repair=False)
+
+
+# ------------------------------------------------------------------------------------ references
+def dense_signals(model, r, u, y, initial_state="estimate"):
+    """compute_signals as it was: the dense state-space simulation, then the same transient estimate."""
+    yhat = simulate_state_space(state_space(model), u)
+    transient = np.zeros_like(yhat)
+    if initial_state == "estimate" and u.shape[0] > 1:
+        transient = initial_transient(model, y - yhat)
+        yhat = yhat + transient
+    d = y - yhat
+    return LoopSignals(yhat=yhat, d=d, eps=r - d, transient=transient)
+
+
+def qr_analyze(model, data, options, signals=None):
+    """The reference analysis: dense signals (unless given) and every regression by QR."""
+    sig = signals if signals is not None else dense_signals(model, data.r, data.u, data.y, options.initial_state)
+    regs = QrRegressions(data.r, data.u, sig.eps - data.r, sig.d, regression_layout(model, options),
+                         options.na, options.nb)
+    return analyze(model, data, options, signals=sig, regressions=regs)
+
+
+def _close(a, b, what, tol=TOL):
+    a, b = float(a), float(b)
+    if a == b or (math.isnan(a) and math.isnan(b)):
+        return
+    assert abs(a - b) <= tol * max(abs(a), abs(b), 1.0), f"{what}: {a!r} vs {b!r}"
+
+
+def _close_log_p(a, b, what):
+    if a is None or b is None:
+        assert a is None and b is None, what
+        return
+    if a == 0.0 or b == 0.0:      # underflow: the statistic is compared instead
+        return
+    _close(math.log(a), math.log(b), f"log {what}")
+
+
+def _close_vec(a, b, what, tol=TOL):
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    assert a.shape == b.shape, what
+    scale = max(np.abs(b).max(initial=0.0), 1e-300)
+    assert np.all(np.abs(a - b) <= tol * scale), f"{what}: max difference {np.abs(a - b).max()} of {scale}"
+
+
+def assert_reports_match(new, ref):
+    """Decisions identical, numbers to TOL (module docstring)."""
+    assert new.flagged_rows == ref.flagged_rows
+    assert new.located_elements == ref.located_elements
+    assert new.ambiguous_elements == ref.ambiguous_elements
+    assert new.collinear_groups == ref.collinear_groups
+    assert new.warnings == ref.warnings
+    assert new.samples == ref.samples
+    _close(new.max_variance_inflation, ref.max_variance_inflation, "max VIF")
+    for a, b in zip(new.rows, ref.rows):
+        assert (a.output, a.mismatch, a.df) == (b.output, b.mismatch, b.df)
+        _close(a.rsi, b.rsi, f"rsi {b.output}")
+        _close(a.statistic, b.statistic, f"row F {b.output}")
+        _close_log_p(a.p_value_raw, b.p_value_raw, f"row p {b.output}")
+        _close_log_p(a.p_value, b.p_value, f"row adjusted p {b.output}")
+        _close(a.fit_percent, b.fit_percent, f"row fit {b.output}")
+    _close(new.overall_rsi, ref.overall_rsi, "overall rsi")
+    _close_vec(new.sigma_max, ref.sigma_max, "sigma_max")
+    _close_vec(new.row_gains, ref.row_gains, "row gains")
+    assert len(new.elements) == len(ref.elements)
+    for a, b in zip(new.elements, ref.elements):
+        key = f"element ({b.output}, {b.input})"
+        assert (a.output, a.input, a.mismatch, a.ambiguous, a.ambiguous_with, a.delay, a.kind) == \
+            (b.output, b.input, b.mismatch, b.ambiguous, b.ambiguous_with, b.delay, b.kind), key
+        if b.statistic is not None:
+            _close(a.statistic, b.statistic, f"F {key}")
+        _close_log_p(a.p_value_raw, b.p_value_raw, key)
+        _close_log_p(a.p_value, b.p_value, f"adjusted {key}")
+        _close_vec(a.b, b.b, f"B {key}")
+    assert len(new.arx_tables) == len(ref.arx_tables)
+    for a, b in zip(new.arx_tables, ref.arx_tables):
+        assert a.delay == b.delay
+        _close_vec(a.a + sum(a.b.values(), []), b.a + sum(b.b.values(), []), f"ARX table {b.output}")
+        _close(a.fit_percent, b.fit_percent, f"ARX table fit {b.output}")
+
+
+# ------------------------------------------------------------------------------------ simulation
+def _random_model(ny, nu, rng, ts=1.0):
+    """Every kind of element: lags with delays, tau = 0 with and without delay, gain 0."""
+    gain = rng.uniform(0.3, 4.0, (ny, nu)) * rng.choice([-1.0, 1.0], (ny, nu))
+    gain[rng.random((ny, nu)) < 0.2] = 0.0
+    tau = rng.uniform(0.2, 60.0, (ny, nu))
+    tau[rng.random((ny, nu)) < 0.25] = 0.0
+    delay = rng.integers(0, 9, (ny, nu)) * ts
+    return FopdtModel(ts, [f"u{j + 1}" for j in range(nu)], [f"y{i + 1}" for i in range(ny)],
+                      gain=gain, time_constant=tau, delay=delay)
+
+
+@pytest.mark.parametrize("seed,ny,nu,ts", [(0, 1, 1, 1.0), (1, 3, 2, 1.0), (2, 5, 7, 0.5), (3, 8, 8, 2.0),
+                                           (4, 20, 20, 1.0)])
+def test_element_simulation_equals_the_dense_state_space(seed, ny, nu, ts):
+    rng = np.random.default_rng(seed)
+    model = _random_model(ny, nu, rng, ts)
+    model = model.with_element(0, 0, gain=1.5, time_constant=0.0, delay=0.0)     # a feed-through
+    model = model.with_element(ny - 1, nu - 1, gain=-2.0, time_constant=0.0, delay=3 * ts)
+    u = rng.standard_normal((700, nu)).cumsum(axis=0)
+    ref = simulate_state_space(state_space(model), u)
+    new = simulate_elements(model, u)
+    np.testing.assert_allclose(new, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+    for n in (0, 1, 2, 5):               # shorter than the delays
+        np.testing.assert_allclose(simulate_elements(model, u[:n]), simulate_state_space(state_space(model), u[:n]),
+                                   rtol=0, atol=1e-12 * max(np.abs(ref).max(), 1.0))
+
+
+def test_element_simulation_of_a_model_without_lag_states():
+    model = FopdtModel(1.0, ["u1", "u2"], ["y1"], gain=[[2.0, 0.0]], time_constant=[[0.0, 5.0]], delay=[[0.0, 1.0]])
+    u = np.random.default_rng(5).standard_normal((50, 2))
+    np.testing.assert_array_equal(simulate_elements(model, u), 2.0 * u[:, :1])
+
+
+def test_compute_signals_equals_the_dense_reference_with_and_without_a_transient():
+    """A log that starts after a long hold of the inputs at 5: the model's state is far from rest."""
+    case = paper_case("3.2")
+    rng = np.random.default_rng(9)
+    u = np.vstack([np.full((600, 3), 5.0), sps.lfilter([1.0], [1.0, -0.8], rng.standard_normal((2000, 3)), axis=0)])
+    y = simulate_elements(case.plant, u) + 0.05 * rng.standard_normal((2600, 3))
+    r = np.zeros_like(y)
+    for a, state in ((600, "estimate"), (0, "estimate"), (600, "zero")):
+        new, ref = (f(case.model, r[a:], u[a:], y[a:], state) for f in (compute_signals, dense_signals))
+        for name in ("yhat", "d", "eps", "transient"):
+            scale = np.abs(ref.yhat).max()
+            np.testing.assert_allclose(getattr(new, name), getattr(ref, name), rtol=0, atol=1e-12 * scale,
+                                       err_msg=f"{name} from {a}, {state}")
+        if a:      # the transient is found and subtracted, or not looked for
+            assert (np.abs(new.transient).max() > 1.0) == (state == "estimate")
+
+
+# ------------------------------------------------------------------------------------ cross products
+@pytest.mark.parametrize("groups,n", [
+    ([(3, range(0, 5)), (2, range(0, 3))], 200),
+    ([(2, range(1, 6)), (3, range(0, 3))], 7),                    # fewer rows than the largest lag
+    ([(2, [0]), (1, [2, 5])], 1),                                 # lags that are not consecutive
+    ([(2, range(1, 9))], 3),                                      # no lag 0
+    ([(4, range(0, 12)), (4, range(0, 5))], 3000),
+])
+def test_lagged_cross_products_equal_the_direct_product(groups, n):
+    rng = np.random.default_rng(n)
+    channel, lag = [], []
+    for g, (n_ch, lags) in enumerate(groups):
+        for c in range(n_ch):
+            channel += [len(set(channel))] * len(lags)
+            lag += list(lags)
+    channel, lag = np.array(channel), np.array(lag)
+    max_lag = int(lag.max())
+    x = rng.standard_normal((n + max_lag, channel.max() + 1)) + 3.0
+    phi = x[max_lag + np.arange(n)[:, None] - lag[None, :], channel[None, :]]
+    gram, sums = lagged_cross_products(x, channel, lag, max_lag)
+    ref = phi.T @ phi
+    np.testing.assert_allclose(gram, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
+    np.testing.assert_array_equal(gram, gram.T)
+    np.testing.assert_allclose(sums, phi.sum(axis=0), rtol=0, atol=1e-13 * np.abs(phi).sum(axis=0).max())
+    empty, empty_sums = lagged_cross_products(x[:max_lag], channel, lag, max_lag)
+    assert not empty.any() and not empty_sums.any()
+
+
+# ------------------------------------------------------------------------------------ batched fits
+def _fits():
+    rng = np.random.default_rng(1)
+    x = sps.lfilter([1.0], [1.0, -0.5], rng.standard_normal((3000, 4)), axis=0)
+    x[:, 3] = 0.7 * x[:, 2] + 1e-7 * rng.standard_normal(3000)        # one near-collinear block
+    y = x[:, 0] * 0.5 + np.roll(x[:, 2], 2) * 0.3 + 0.1 * rng.standard_normal(3000)
+    start = 6
+    common = lag_matrix(x, range(1, 6), start)
+    own = -lag_matrix(y, [1, 2], start)
+    target = y[start:]
+    qr = SharedBlockRegression(common, [5] * 4).fit(target, own)
+    good = common[:, :15]
+    reg = GramBlockRegression(good.T @ good, [5] * 3)
+    gram = GramFit(reg, good.T @ own, own.T @ own, good.T @ target, own.T @ target, float(target @ target),
+                   float(target.sum()), target.shape[0])
+    return qr, gram
+
+
+@pytest.mark.parametrize("which", ["qr", "gram"])
+def test_the_batched_block_tests_equal_one_test_per_block(which):
+    fit = dict(zip(("qr", "gram"), _fits()))[which]
+    n_blocks = len(fit.reg.block_sizes)
+    windows = [None, 3, 9, 0][:n_blocks]
+    for b, (t, std) in enumerate(zip(fit.test_each_block_zero(windows), fit.block_stds())):
+        one = fit.test_blocks_zero([b], n_first=windows[b])
+        assert (t.df_num, t.df_den) == (one.df_num, one.df_den)
+        _close(t.statistic, one.statistic, f"F {b}", tol=1e-12)
+        _close(t.p_value, one.p_value, f"p {b}", tol=1e-12)
+        _close_vec(std, fit.block_std(b), f"std {b}", tol=1e-12)
+
+
+def test_gram_fit_covariance_blocks_equal_the_assembled_inverse():
+    _, fit = _fits()
+    full = fit.rinv @ fit.rinv.T
+    idx = np.array([[0, 1, 2], [5, 9, 14], [3, 4, 16]])         # the last row reaches an own column
+    for row, block in zip(idx, fit.covariance_blocks(idx)):
+        _close_vec(block, full[np.ix_(row, row)], f"block {row}", tol=1e-12)
+    _close_vec(fit.common_variances(), np.diag(full)[:fit.n_common], "variances", tol=1e-12)
+
+
+def _vif_block_by_block(reg, n_lag):
+    """The variance-inflation factors as InputDesign computed them, one lag block at a time."""
+    R = reg.R
+    p = R.shape[1]
+    rinv = np.linalg.pinv(R) if not reg.full_rank else sla.solve_triangular(R, np.eye(p))
+    inv = rinv @ rinv.T
+    out = []
+    for b in range(p // n_lag):
+        sl = slice(b * n_lag, (b + 1) * n_lag)
+        ev = np.linalg.eigvals((R[:, sl].T @ R[:, sl]) @ inv[sl, sl]).real
+        vif = float(ev.max()) if np.all(np.isfinite(ev)) else float("inf")
+        if not reg.full_rank:
+            sub = R[:, [c for c in range(p) if c < sl.start or c >= sl.stop]]
+            if np.linalg.matrix_rank(np.hstack([sub, R[:, sl]])) < np.linalg.matrix_rank(sub) + n_lag:
+                vif = float("inf")
+        out.append(vif)
+    return out
+
+
+@pytest.mark.parametrize("dither", [True, False])
+def test_input_design_equals_the_block_by_block_variance_inflation(dither):
+    """With dither (case 3.3) and without (two inputs move together: a rank-deficient lag matrix)."""
+    case, data = _run("3.3", 5, excitation=None if dither else ExcitationOptions())
+    lay = regression_layout(case.model, FAST)
+    design = InputDesign(case.model, data.u, lay.n_lag_u, lay.start, FAST.collinearity_threshold)
+    ref = _vif_block_by_block(design.regression, lay.n_lag_u)
+    assert design.regression.full_rank == dither
+    for j, v in zip(design.testable, ref):
+        _close(design.vif[case.model.inputs[j]], v, f"VIF {case.model.inputs[j]}", tol=1e-10)
+    assert (max(ref) < 100) == dither
+
+
+# ------------------------------------------------------------------------------------ analysis
+def _data(log, a=0, b=None):
+    b = log.r.shape[0] if b is None else b
+    return LoggedData(t=log.t[a:b], r=log.r[a:b], u=log.u[a:b], y=log.y[a:b], inputs=log.inputs,
+                      outputs=log.outputs, sample_time=log.sample_time)
+
+
+def _run(name, seed, samples=3000, excitation=None):
+    case = paper_case(name)
+    log = run_closed_loop(case.plant, case.model, samples, seed=seed, mpc=case.mpc,
+                          excitation=excitation or case.excitation, disturbance=case.disturbance)
+    return case, _data(log)
+
+
+def _non_square(ny, nu, dither):
+    """test_analysis.test_non_square_plants."""
+    rng = np.random.default_rng(ny * 10 + nu)
+    plant = FopdtModel(1.0, [f"u{j + 1}" for j in range(nu)], [f"y{i + 1}" for i in range(ny)],
+                       gain=rng.uniform(0.5, 3, (ny, nu)) * rng.choice([-1, 1], (ny, nu)),
+                       time_constant=rng.uniform(10, 60, (ny, nu)), delay=rng.integers(1, 6, (ny, nu)).astype(float))
+    i2 = min(4, ny - 1)
+    model = plant.with_element(1, 0, gain=plant.gain[1, 0] * 1.5).with_element(
+        i2, 2, time_constant=plant.time_constant[i2, 2] * 2)
+    exc = ExcitationOptions(dither=None if dither is None else PrbsOptions(amplitude=dither))
+    return model, _data(run_closed_loop(plant, model, 4000, seed=1, excitation=exc))
+
+
+def _large(n, samples, seed=0):
+    """A random n x n plant as in bench/perf.py, the model's (y1, u2) gain 30 % off."""
+    rng = np.random.default_rng(seed + n)
+    shape = (n, n)
+    plant = FopdtModel(1.0, [f"u{j + 1}" for j in range(n)], [f"y{i + 1}" for i in range(n)],
+                       gain=np.exp(rng.uniform(np.log(0.5), np.log(5.0), shape)) * rng.choice([-1.0, 1.0], shape),
+                       time_constant=rng.uniform(10.0, 80.0, shape), delay=rng.integers(0, 9, shape).astype(float))
+    model = plant.with_element(0, 1, gain=plant.gain[0, 1] * 1.3)
+    return model, _data(run_closed_loop(plant, model, samples, seed=seed + 100 + n))
+
+
+def _case(key):
+    if key.startswith("paper"):
+        _, name, seed = key.split("-")
+        case, data = _run(name, int(seed))
+        return case.model, data
+    if key == "mid-operation":
+        case = paper_case("3.2")
+        log = run_closed_loop(case.plant, case.model, 3600, seed=9, mpc=case.mpc, excitation=case.excitation,
+                              disturbance=case.disturbance)
+        return case.model, _data(log, 600, 3600)
+    if key == "constant-setpoint":
+        case, data = _run("3.2", 6, 2000)
+        r = data.r.copy()
+        r[:, 2] = 0.5
+        return case.model, dataclasses.replace(data, r=r)
+    if key == "7x3":
+        return _non_square(7, 3, None)
+    if key == "3x7":
+        return _non_square(3, 7, 0.3)
+    if key == "20x20":
+        return _large(20, 3000)
+    raise KeyError(key)
+
+
+CASES = ["paper-3.1-11", "paper-3.2-11", "paper-3.3-11", "paper-3.1-12", "paper-3.2-3", "mid-operation",
+         "constant-setpoint", "7x3", "3x7", "20x20"]
+
+
+@pytest.mark.parametrize("key", CASES)
+def test_analyze_equals_the_dense_and_qr_reference(key):
+    model, data = _case(key)
+    new = analyze(model, data, FAST)
+    assert_reports_match(new, qr_analyze(model, data, FAST))
+    regs = window_regressions(data.r, data.u, new.signals.eps - data.r, new.signals.d,
+                              regression_layout(model, FAST), FAST.na, FAST.nb)
+    analyze(model, data, FAST, signals=new.signals, regressions=regs)
+    assert regs.fallbacks == []              # well-conditioned closed-loop data: all from the Gram matrices
+
+
+@pytest.mark.parametrize("options", [
+    AnalysisOptions(repair=False, test_all_rows=False, element_window="full"),
+    AnalysisOptions(repair=False, initial_state="zero", na=2, nb=3, max_delay=6, band=(0.01, 1.0), n_freq=64),
+    AnalysisOptions(repair=False, method="xcorr"),
+    AnalysisOptions(),                                                   # with the repair
+], ids=["paper-order", "other-orders", "xcorr", "repair"])
+def test_analyze_equals_the_reference_with_other_options(options):
+    case, data = _run("3.2", 12)
+    new, ref = analyze(case.model, data, options), qr_analyze(case.model, data, options)
+    assert_reports_match(new, ref)
+    if options.repair:
+        assert [c["output"] + c["input"] for c in new.repair["changes"]] == \
+            [c["output"] + c["input"] for c in ref.repair["changes"]]
+
+
+def test_collinear_inputs_fall_back_to_qr():
+    """Case 3.3 without dither: the input lags are too ill-conditioned for the normal equations.
+
+    On such data the QR path itself amplifies rounding differences of the signals beyond 1e-8, so
+    both paths get the same signals (the comparison is of the regressions, not of the simulation).
+    """
+    case, data = _run("3.3", 5, excitation=ExcitationOptions())
+    sig = compute_signals(case.model, data.r, data.u, data.y)
+    regs = window_regressions(data.r, data.u, sig.eps - data.r, sig.d, regression_layout(case.model, FAST),
+                              FAST.na, FAST.nb)
+    new = analyze(case.model, data, FAST, signals=sig, regressions=regs)
+    assert "input regression" in regs.fallbacks
+    assert new.ambiguous_elements
+    assert_reports_match(new, qr_analyze(case.model, data, FAST, signals=sig))
+    assert_reports_match(analyze(case.model, data, FAST, signals=sig), new)
+
+
+def test_noise_free_rows_fall_back_to_qr():
+    """Without noise (1e-9) a mismatched row's prediction error is explained almost exactly by the input
+    lags: ``y'y - |Q'y|^2`` would lose every digit of the residual, so that fit is refitted by QR."""
+    case = paper_case("3.2")
+    rng = np.random.default_rng(3)
+    n = 2500
+    u = sps.lfilter([1.0], [1.0, -0.6], rng.standard_normal((n, 3)), axis=0)
+    y = simulate_elements(case.plant, u) + 1e-9 * rng.standard_normal((n, 3))   # open loop, no disturbance
+    r = np.where(rng.random((n, 3)) < 0.5, 1.0, -1.0)
+    data = LoggedData(t=np.arange(n) * 1.0, r=r, u=u, y=y, inputs=case.model.inputs, outputs=case.model.outputs,
+                      sample_time=1.0)
+    opts = AnalysisOptions(repair=False, initial_state="zero")
+    sig = compute_signals(case.model, r, u, y, "zero")
+    regs = window_regressions(r, u, sig.eps - r, sig.d, regression_layout(case.model, opts), opts.na, opts.nb)
+    new = analyze(case.model, data, opts, signals=sig, regressions=regs)
+    assert any(f.startswith("input fit of output") for f in regs.fallbacks)
+    assert_reports_match(new, qr_analyze(case.model, data, opts, signals=sig))
+    assert set(new.located_elements) == set(case.mismatched_elements)
