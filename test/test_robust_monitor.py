@@ -530,3 +530,45 @@ def test_a_missing_model_file_is_error_not_a_crash(ros_context, tmp_path):
     finally:
         node.close()
         node.destroy_node()
+
+
+def test_no_sample_dropped_at_a_modest_rate_while_the_real_analysis_runs():
+    """3x3 at 200 Hz from a plain publisher, the real analysis in the monitor's child process every
+    100 samples: every sample sent is aligned into the window (the figures for 20x20 at 10 Hz and
+    3x3 at 1 kHz come from ``python -m bench.monitor_load``, not from a unit test)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from bench.monitor_load import run_load
+
+    res = run_load(3, 200.0, samples=500, window_samples=300, min_samples=200, analysis_period=100)
+    assert res.dropped == 0 and res.missing == 0 and res.gaps == 0 and res.late == 0
+    assert res.completed == res.sent == 500
+    assert res.analyses >= 2 and res.analysis_in == "process"
+
+
+def _analysis_in_child(model, data, options):
+    """Stands in for analyze() in the child process: dies on request, else says where it ran."""
+    import os
+
+    if options == "die":
+        os._exit(7)
+    return os.getpid()
+
+
+def test_the_analysis_process_dying_is_an_error_and_the_next_analysis_gets_a_new_one():
+    import os
+
+    from mpm_monitor.monitor_core import ProcessAnalyzer
+
+    pa = ProcessAnalyzer(_analysis_in_child)
+    try:
+        pid = pa(None, None, "ok")
+        assert pid != os.getpid()
+        with pytest.raises(RuntimeError, match="analysis process died"):
+            pa(None, None, "die")
+        pid2 = pa(None, None, "ok")
+        assert pid2 not in (pid, os.getpid())
+    finally:
+        pa.close()

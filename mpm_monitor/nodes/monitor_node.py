@@ -36,7 +36,8 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from std_srvs.srv import Trigger
 
 from ..errors import ModelFileError
-from ..monitor_core import ERROR, SUMMARY_NAME, AnalysisWorker, MonitorCore, MonitorOptions, StatusData, run_analysis
+from ..monitor_core import (ERROR, SUMMARY_NAME, AnalysisWorker, MonitorCore, MonitorOptions, ProcessAnalyzer, StatusData,
+                           run_analysis)
 from ..ros_io import (MODEL_PARAMS, MessageError, ParamSpec, VectorCodec, declare_parameters, diagnostics_qos,
                       resolve_model, run_node, vector_qos)
 from ..window import WindowOptions
@@ -74,6 +75,8 @@ PARAMS = MODEL_PARAMS + (
               "suggested repair goes into the diagnostics (about 0.5-2 s more per analysis of a 3x3 window)."),
     ParamSpec("repaired_model_file", "string", "", "File (YAML) the ~/write_repaired_model service writes the "
               "latest repaired model to ('' = the service refuses); read at each call."),
+    ParamSpec("analysis_process", "bool", True, "Run the analysis in a child process, so that it never competes "
+              "with the subscription callbacks for the Python interpreter (false: in the background thread itself)."),
     ParamSpec("analysis_thread", "bool", True, "Run the analysis in a background thread (false: inside the "
               "callback, for debugging only)."),
     ParamSpec("hardware_id", "string", "", "hardware_id of the statuses ('' = the node's full name)."),
@@ -127,8 +130,11 @@ class MonitorNode(Node):
         super().__init__(name, **kwargs)
         p = declare_parameters(self, PARAMS)
         self.params = p
+        self._process_analyzer = None
         if analyze is None:
             from ..analysis import analyze
+            if p["analysis_process"] and p["analysis_thread"]:
+                self._process_analyzer = analyze = ProcessAnalyzer(analyze)
         self._analyze = analyze
         self._analysis_options = analysis_options_from_params(p)
         self._hw = p["hardware_id"] or self.get_fully_qualified_name()
@@ -277,6 +283,8 @@ class MonitorNode(Node):
         """Stop the analysis thread."""
         if self.worker is not None:
             self.worker.close()
+        if self._process_analyzer is not None:
+            self._process_analyzer.close()
 
 
 def main(args=None) -> int:
