@@ -762,6 +762,18 @@ class AnalysisWorker:
         self._thread.join(timeout)
 
 
+def _exit_with_parent(parent_pid: int, period: float = 0.5) -> None:
+    """In the analysis process: leave as soon as the monitor's process is gone (a pool worker
+    otherwise outlives a parent killed by SIGKILL, waiting forever for work)."""
+
+    def watch():
+        while os.getppid() == parent_pid:
+            time.sleep(period)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="exit with parent", daemon=True).start()
+
+
 class ProcessAnalyzer:
     """``analyze(model, data, options)`` run in one child process instead of the calling thread.
 
@@ -770,7 +782,8 @@ class ProcessAnalyzer:
     than the topics' queue depth behind and samples are lost.  In a child process the analysis
     only costs the callbacks the pickling of the window.  The child is started (``spawn``, never
     ``fork`` in a process with DDS threads) at the first call and reused; if it dies, the call
-    raises (the monitor reports ERROR) and the next call starts a new one.
+    raises (the monitor reports ERROR) and the next call starts a new one.  The child leaves by
+    itself within a second when the monitor's process dies, even by SIGKILL.
 
     Parameters
     ----------
@@ -790,7 +803,8 @@ class ProcessAnalyzer:
 
         with self._lock:
             if self._pool is None:
-                self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+                self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                                                 initializer=_exit_with_parent, initargs=(os.getpid(),))
             pool = self._pool
         try:
             return pool.submit(self._analyze, model, data, options).result()

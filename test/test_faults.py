@@ -315,3 +315,56 @@ def test_recorder_restarted_loses_nothing_it_received(suite, tmp_path):
     # and the second recorder picked up where the loop was, not from the start
     stamps2 = [m.stamp for m in msgs2 if m.topic == f"{WallSuite.NS}/output"]
     assert stamps2 and stamps2[0] > stamps[-1]
+
+
+def _children(pid):
+    """PIDs whose parent is ``pid`` and whose command line is a multiprocessing spawn worker."""
+    import os
+
+    out = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as fh:
+                ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
+            with open(f"/proc/{entry}/cmdline", "rb") as fh:
+                cmd = fh.read()
+        except OSError:
+            continue
+        if ppid == pid and b"spawn_main" in cmd:
+            out.append(int(entry))
+    return out
+
+
+@pytest.mark.skipif(not __import__("os").path.isdir("/proc"), reason="needs /proc")
+def test_a_monitor_killed_hard_leaves_no_analysis_process_behind(tmp_path):
+    """SIGKILL of the monitor's process: its analysis process leaves by itself within a second."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    script = tmp_path / "analyzer_parent.py"
+    script.write_text(
+        "import time\n"
+        "from mpm_monitor.monitor_core import ProcessAnalyzer\n"
+        "if __name__ == '__main__':\n"
+        "    pa = ProcessAnalyzer(max)\n"
+        "    print(pa(1, 2, 3), flush=True)\n"
+        "    time.sleep(60)\n", encoding="utf-8")
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "3"
+        children = _children(proc.pid)
+        assert children, "no analysis process found"
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+    deadline = time.monotonic() + 5.0
+    alive = children
+    while alive and time.monotonic() < deadline:
+        time.sleep(0.1)
+        alive = [c for c in alive if os.path.exists(f"/proc/{c}") and
+                 open(f"/proc/{c}/stat").read().rsplit(")", 1)[1].split()[0] != "Z"]
+    assert not alive, f"analysis process(es) {alive} outlived the monitor"
