@@ -21,6 +21,11 @@ What must happen (checked from the monitor's published ``/diagnostics`` and its 
 
 Every analysis window the monitor hands over is checked: equally spaced on one grid, never spanning
 a gap.
+
+Two process-level faults complete the set: the monitor as its own process on a unique
+``ROS_DOMAIN_ID`` (``LOCALHOST`` discovery) is SIGKILLed while the stack publishes and started
+again (fresh window, analyses again; then the stack pauses: STALE, and a gap on resuming), and a
+SIGKILLed monitor leaves no analysis process behind.
 """
 
 import time
@@ -368,3 +373,150 @@ def test_a_monitor_killed_hard_leaves_no_analysis_process_behind(tmp_path):
         alive = [c for c in alive if os.path.exists(f"/proc/{c}") and
                  open(f"/proc/{c}/stat").read().rsplit(")", 1)[1].split()[0] != "Z"]
     assert not alive, f"analysis process(es) {alive} outlived the monitor"
+
+
+# ------------------------------------------------------------------------------ separate processes
+
+def _unique_domain():
+    """A ROS_DOMAIN_ID (1..101) locked against other test processes (same lock files as
+    test_nodes_multiprocess)."""
+    import contextlib
+    import fcntl
+    import os
+    import random
+    import tempfile
+    from pathlib import Path
+
+    @contextlib.contextmanager
+    def take():
+        ids = list(range(1, 102))
+        random.Random(os.getpid() + 7).shuffle(ids)
+        for d in ids:
+            fh = open(Path(tempfile.gettempdir()) / f"mpm_monitor_domain_{d}.lock", "w")
+            try:
+                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                fh.close()
+                continue
+            try:
+                yield d
+            finally:
+                fcntl.flock(fh, fcntl.LOCK_UN)
+                fh.close()
+            return
+        pytest.skip("no free ROS_DOMAIN_ID")
+
+    return take()
+
+
+def test_monitor_process_sigkilled_and_restarted_while_the_stack_publishes(tmp_path):
+    """The monitor as its own process on a unique domain (LOCALHOST): SIGKILL it while the stack
+    (this test's publisher) keeps publishing, start it again: the new monitor analyses a fresh
+    window.  Then the stack stops for a while: STALE, and a gap when it resumes."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import threading
+    from pathlib import Path
+
+    import rclpy
+    from rclpy.context import Context
+    from sensor_msgs.msg import JointState
+
+    from mpm_monitor.demo import _env
+    from mpm_monitor.ros_io import VectorCodec, vector_qos
+
+    ts = 0.005
+    model = FopdtModel(sample_time=ts, inputs=("u1", "u2"), outputs=("y1", "y2"), gain=[[1.0, 0.3], [0.2, 1.0]],
+                       time_constant=[[0.05, 0.05], [0.05, 0.05]], delay=[[0.005, 0.0], [0.0, 0.005]])
+    model_file = tmp_path / "model.yaml"
+    save_model(model, model_file)
+    ns = f"/mpf{os.getpid()}"
+    root = Path(__file__).resolve().parents[1]
+    with _unique_domain() as domain:
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+                   PYTHONUNBUFFERED="1")
+        cmd = [sys.executable, "-m", "mpm_monitor.nodes.monitor_node", "--ros-args", "-r", f"__ns:={ns}",
+               "-p", f"model_file:={model_file}", "-p", "window_samples:=300", "-p", "min_samples:=200",
+               "-p", "analysis_period:=100", "-p", "repair:=false", "-p", "stale_timeout:=0.4",
+               "-p", "republish_period:=0.1", "-p", "diagnostics_topic:=diagnostics"]
+        ctx = Context()
+        with _env({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(domain)}):
+            rclpy.init(args=[], context=ctx, domain_id=domain)
+        node = Node("stack", context=ctx, namespace=ns)
+        pubs = {c: node.create_publisher(JointState, c, vector_qos()) for c in ("setpoint", "input", "output")}
+        summaries = []
+        node.create_subscription(DiagnosticArray, "diagnostics",
+                                 lambda m: summaries.extend((time.monotonic(), s) for s in m.status
+                                                            if s.name == SUMMARY_NAME), diagnostics_qos())
+        ex = make_executor(ctx, "single")
+        ex.add_node(node)
+        yc, uc = VectorCodec(model.outputs, "output"), VectorCodec(model.inputs, "input")
+        rng = np.random.default_rng(3)
+        state = {"k": 0, "run": True, "pause": False}
+
+        def stack():
+            t0 = time.monotonic()
+            while state["run"]:
+                k = state["k"]
+                target = t0 + k * ts
+                delay = target - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                if not state["pause"]:
+                    stamp = k * int(ts * NS)
+                    pubs["output"].publish(yc.encode(rng.normal(size=2), stamp))
+                    pubs["input"].publish(uc.encode(rng.normal(size=2), stamp))
+                    pubs["setpoint"].publish(yc.encode(np.sign(rng.normal(size=2)), stamp))
+                state["k"] = k + 1
+
+        def values(s):
+            return {kv.key: kv.value for kv in s.values}
+
+        def analysed_after(t):
+            return any(tt > t and s.level in (DiagnosticStatus.OK, DiagnosticStatus.WARN)
+                       and int(values(s).get("analyses", "0")) >= 1 for tt, s in summaries)
+
+        procs = []
+        thread = threading.Thread(target=stack, daemon=True)
+        try:
+            procs.append(subprocess.Popen(cmd, env=env, cwd=str(root), stdout=subprocess.DEVNULL,
+                                          stderr=subprocess.DEVNULL))
+            thread.start()
+            assert spin_until(ex, lambda: analysed_after(0.0), 40.0), [s.message for _, s in summaries[-3:]]
+            procs[0].send_signal(signal.SIGKILL)          # the monitor dies hard; the stack goes on
+            procs[0].wait(10)
+            t_kill = time.monotonic()
+            spin_until(ex, lambda: time.monotonic() > t_kill + 0.5, 5.0)
+            procs.append(subprocess.Popen(cmd, env=env, cwd=str(root), stdout=subprocess.DEVNULL,
+                                          stderr=subprocess.DEVNULL))
+            t_restart = time.monotonic()
+            assert spin_until(ex, lambda: analysed_after(t_restart), 40.0), [s.message for _, s in summaries[-3:]]
+            fresh = [values(s) for tt, s in summaries if tt > t_restart]
+            assert int(fresh[0]["completed_samples"]) < 200      # counted from the restart, not from t = 0
+            # the stack stops for a while, then resumes: STALE, then a gap
+            state["pause"] = True
+            t_pause = time.monotonic()
+            assert spin_until(ex, lambda: any(tt > t_pause and s.level == DiagnosticStatus.STALE
+                                              for tt, s in summaries), 10.0)
+            state["pause"] = False
+            t_resume = time.monotonic()
+            assert spin_until(ex, lambda: any(tt > t_resume and int(values(s)["gaps"]) >= 1 and
+                                              s.level != DiagnosticStatus.STALE for tt, s in summaries), 10.0)
+            assert spin_until(ex, lambda: analysed_after(time.monotonic() - 0.05), 40.0)
+        finally:
+            state["run"] = False
+            thread.join(5)
+            for p in procs:
+                if p.poll() is None:
+                    p.send_signal(signal.SIGINT)
+                    try:
+                        p.wait(10)
+                    except subprocess.TimeoutExpired:
+                        p.kill()
+                        p.wait()
+            ex.remove_node(node)
+            node.destroy_node()
+            ex.shutdown()
+            ctx.try_shutdown()
