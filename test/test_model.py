@@ -236,8 +236,7 @@ def test_good_files_variants_accepted(tmp_path):
     np.testing.assert_array_equal(model.delay_samples, [[3, 7]])
 
 
-@pytest.mark.skip(reason="the analyze command is being written separately (exit 2 on a bad model file)")
-def test_analyze_exits_2_on_bad_model(tmp_path):  # pragma: no cover
+def test_analyze_exits_2_on_bad_model(tmp_path):
     import subprocess
     import sys
 
