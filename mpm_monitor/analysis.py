@@ -291,7 +291,7 @@ class AnalysisReport:
     def summary_text(self) -> str:
         """A short human-readable summary (rows, located elements, errors, warnings)."""
         lines = [f"{self.samples} samples at {self.sample_time:g} s, method {self.method}, "
-                 f"family-wise alpha {self.alpha:g}; overall RSI {self.overall_rsi:.3f}"]
+                 f"false-alarm rate alpha {self.alpha:g}; overall RSI {self.overall_rsi:.3f}"]
         lines.append(f"{'row':<10} {'RSI':>8} {'p-value':>10}  mismatch")
         for r in self.rows:
             lines.append(f"{r.output:<10} {r.rsi:8.3f} {r.p_value:10.2e}  {'YES' if r.mismatch else 'no'}")
