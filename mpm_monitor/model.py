@@ -363,7 +363,7 @@ def save_model(model: FopdtModel, path) -> None:
     Path(path).write_text(text, encoding="utf-8")
 
 
-def _yaml_number(v) -> str:
+def yaml_number(v) -> str:
     """``repr`` of a number in a form YAML 1.1 (PyYAML) reads back as a number.
 
     PyYAML resolves a float only with a decimal point, so ``1e-05`` would load as a string; write
@@ -382,13 +382,13 @@ def dump_model(model: FopdtModel) -> str:
     lines = []
     if "name" in d:
         lines.append(f"name: {yaml.safe_dump(d['name'], default_flow_style=True).strip().removesuffix('...').strip()}")
-    lines.append(f"sample_time: {_yaml_number(d['sample_time'])}")
+    lines.append(f"sample_time: {yaml_number(d['sample_time'])}")
     lines.append(f"inputs: {yaml.safe_dump(d['inputs'], default_flow_style=True).strip()}")
     lines.append(f"outputs: {yaml.safe_dump(d['outputs'], default_flow_style=True).strip()}")
     for key in ("gain", "time_constant", "delay"):
-        rows = ", ".join("[" + ", ".join(_yaml_number(v) for v in row) + "]" for row in d[key])
+        rows = ", ".join("[" + ", ".join(yaml_number(v) for v in row) + "]" for row in d[key])
         lines.append(f"{key}: [{rows}]")
     for key in ("input_nominal", "output_nominal"):
         if key in d:
-            lines.append(f"{key}: [{', '.join(_yaml_number(v) for v in d[key])}]")
+            lines.append(f"{key}: [{', '.join(yaml_number(v) for v in d[key])}]")
     return "\n".join(lines) + "\n"

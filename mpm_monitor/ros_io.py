@@ -226,6 +226,8 @@ class ParamSpec:
     numbers_as_text : bool
         A ``string`` that may also be given as a number (``-p case:=3.2``): declared with dynamic
         typing and the number turned into its text (``"3.2"``).
+    read_only : bool
+        Settable only at start-up (params file or ``-p``); the parameter services refuse changes.
     """
 
     name: str
@@ -236,6 +238,7 @@ class ParamSpec:
     high: Optional[float] = None
     choices: Optional[tuple] = None
     numbers_as_text: bool = False
+    read_only: bool = False
 
     def check(self, value):
         """Return ``value`` converted to the parameter's Python type or raise :class:`ConfigurationError`."""
@@ -292,6 +295,7 @@ def descriptor(spec: ParamSpec):
                             description=spec.description)
     if spec.numbers_as_text:
         d.dynamic_typing = True
+    d.read_only = bool(spec.read_only)
     if spec.choices:
         d.additional_constraints = "one of: " + ", ".join(spec.choices)
     if spec.kind == "int" and spec.low is not None:

@@ -408,11 +408,15 @@ def test_write_repaired_model_service(tmp_path):
         assert r.success, r.message
         assert str(target) in r.message and "3 changes" in r.message
         assert load_model(target) == report.repaired_model != case.model
+        # the target is fixed at start-up: nobody on the domain can point the node at another file
+        res = monitor.set_parameters([Parameter("repaired_model_file", value=str(tmp_path / "elsewhere.yaml"))])
+        assert not res[0].successful
+        assert monitor.get_parameter("repaired_model_file").value == str(target)
         # a file that cannot be written: success false with the reason, and the node keeps serving
-        monitor.set_parameters([Parameter("repaired_model_file", value=str(tmp_path / "no_such_dir" / "m.yaml"))])
+        monitor.params["repaired_model_file"] = str(tmp_path / "no_such_dir" / "m.yaml")
         r = call()
         assert not r.success and r.message.startswith("cannot write") and "no_such_dir" in r.message
-        monitor.set_parameters([Parameter("repaired_model_file", value="")])
+        monitor.params["repaired_model_file"] = ""
         r = call()
         assert not r.success and "repaired_model_file" in r.message
         assert sorted(p.name for p in tmp_path.iterdir()) == ["repaired.yaml"]

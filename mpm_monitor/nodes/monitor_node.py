@@ -60,7 +60,8 @@ PARAMS = MODEL_PARAMS + (
               "before the latter is given up as a gap.", 0, 100000),
     ParamSpec("stamp_tolerance", "double", 0.25, "Largest distance of a stamp from the sample grid, fraction of "
               "the sample time.", 0.001, 0.49),
-    ParamSpec("alpha", "double", 0.01, "Family-wise false-alarm rate of the row and element tests.", 1e-12, 0.49),
+    ParamSpec("alpha", "double", 0.01, "False-alarm rate of a whole analysis (split between the row tests and the "
+              "element tests, each with Holm's procedure).", 1e-12, 0.49),
     ParamSpec("na", "int", 4, "ARX order of A.", 0, 50),
     ParamSpec("nb", "int", 4, "ARX order of each B.", 1, 50),
     ParamSpec("band_low", "double", 0.0, "Lower edge of the RSI band, rad/sample.", 0.0, math.pi),
@@ -74,7 +75,8 @@ PARAMS = MODEL_PARAMS + (
     ParamSpec("repair", "bool", True, "Also trace each located element to its kind and re-estimate it; the "
               "suggested repair goes into the diagnostics (about 0.5-2 s more per analysis of a 3x3 window)."),
     ParamSpec("repaired_model_file", "string", "", "File (YAML) the ~/write_repaired_model service writes the "
-              "latest repaired model to ('' = the service refuses); read at each call."),
+              "latest repaired model to ('' = the service refuses); fixed at start-up, so that no one on the "
+              "domain can point the node at another file.", read_only=True),
     ParamSpec("analysis_process", "bool", True, "Run the analysis in a child process, so that it never competes "
               "with the subscription callbacks for the Python interpreter (false: in the background thread itself)."),
     ParamSpec("analysis_thread", "bool", True, "Run the analysis in a background thread (false: inside the "
@@ -245,8 +247,7 @@ class MonitorNode(Node):
     def _on_write_repaired_model(self, request, response):
         """``~/write_repaired_model`` (std_srvs/Trigger): write the latest repaired model to ``repaired_model_file``."""
         try:
-            spec = next(s for s in PARAMS if s.name == "repaired_model_file")
-            path = spec.check(self.get_parameter("repaired_model_file").value)
+            path = self.params["repaired_model_file"]
             if self.core is None:
                 ok, msg = False, f"no analysis yet: model not loaded: {self.model_error}"
             else:
