@@ -198,3 +198,43 @@ def test_analyze_cli_bad_csv_exits_2_naming_line_and_column(tmp_path):
     res = _cli("analyze", "--model", str(tmp_path / "model.yaml"), "--data", str(tmp_path / "d.csv"))
     assert res.returncode == 2
     assert "line 3, column 'u1'" in res.stderr and "Traceback" not in res.stderr
+
+
+# ------------------------------------------------------------------- beyond the paper's assumptions
+
+
+def test_constrained_mpc_with_active_bounds_locates_exactly():
+    """Bounds on u and du active a fifth of the time (the paper's correlation pitfall) change nothing."""
+    import dataclasses
+
+    case = paper_case("3.2")
+    mpc = dataclasses.replace(case.mpc, u_min=-0.6, u_max=0.6, du_max=0.3)
+    log = run_closed_loop(case.plant, case.model, 3000, seed=21, mpc=mpc, excitation=case.excitation,
+                          disturbance=case.disturbance)
+    assert np.mean(np.isclose(np.abs(log.u), 0.6)) > 0.1          # the bounds really are active
+    rep = analyze(case.model, _data(log), FAST)
+    assert set(rep.located_elements) == set(case.mismatched_elements)
+
+
+def test_strongly_coloured_disturbance_keeps_the_level_and_the_location():
+    """A disturbance pole of 0.99 (the paper assumes 0.95): case 3.1 flags nothing, 3.2 is exact."""
+    from mpm_monitor.plant import DisturbanceOptions
+
+    slow = DisturbanceOptions(disturbance_std=7.5e-3, disturbance_pole=0.99, noise_std=5e-3)
+    for name in ("3.1", "3.2"):
+        case = paper_case(name)
+        log = run_closed_loop(case.plant, case.model, 3000, seed=22, mpc=case.mpc, excitation=case.excitation,
+                              disturbance=slow)
+        rep = analyze(case.model, _data(log), FAST)
+        assert set(rep.flagged_rows) == set(case.mismatched_rows)
+        assert set(rep.located_elements) == set(case.mismatched_elements)
+
+
+def test_slow_small_setpoint_moves_still_locate_case_3_2():
+    """Weak excitation: PRBS switching with probability 0.02 and amplitude 0.3 instead of 0.5 and 1."""
+    case = paper_case("3.2")
+    exc = ExcitationOptions(setpoint=PrbsOptions(amplitude=0.3, switch_probability=0.02))
+    log = run_closed_loop(case.plant, case.model, 3000, seed=23, mpc=case.mpc, excitation=exc,
+                          disturbance=case.disturbance)
+    rep = analyze(case.model, _data(log), FAST)
+    assert set(rep.located_elements) == set(case.mismatched_elements)
