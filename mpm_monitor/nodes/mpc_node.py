@@ -7,6 +7,13 @@ the arrival order of the topics does not matter and nothing is dropped.  With ``
 it computes ``u(k)`` as soon as ``y(k)`` arrives, with the latest setpoint (and dither) received:
 for a stack whose setpoints are published only when they change.
 
+Recovery in lock-step (the plant re-sends ``y(k)`` and the setpoint node ``r(k)`` when the loop
+stalls): a vector re-sent for the stamp already answered is not a second sample; a re-sent ``y``
+of that stamp gets the same ``u`` again (idempotent, in case the first one was lost), a re-sent
+``r`` or dither is ignored.  A measurement whose stamp goes back (a restarted plant, at
+``k = 0``), or a different ``y`` for the stamp just answered, restarts the controller: internal
+model and previous move reset, with a warning.
+
 Parameters (all declared with type, description and range): see :data:`PARAMS`.
 """
 
@@ -87,8 +94,12 @@ class MpcNode(Node):
         self._buf = {"r": collections.OrderedDict(), "y": collections.OrderedDict(), "d": collections.OrderedDict()}
         self._latest = {"r": None, "d": None}
         self._last_done: Optional[int] = None
+        self._last_y: Optional[np.ndarray] = None   # y of the stamp last answered
+        self._u_msg: Optional[JointState] = None    # u of the stamp last answered, as published
         self.steps = 0
         self.rejected = 0
+        self.repeated = 0      # vectors re-sent for the stamp already answered (u re-sent for a y)
+        self.restarts = 0      # stamps that went back: controller reset
         self._pub = self.create_publisher(JointState, p["input_topic"], vector_qos())
         q = vector_qos()
         self._subs = [self.create_subscription(JointState, p["setpoint_topic"], self._on_setpoint, q),
@@ -107,18 +118,49 @@ class MpcNode(Node):
             self.get_logger().warning(f"ignored: {exc}", throttle_duration_sec=1.0)
             return None
 
-    def _store(self, key: str, stamp: int, values: np.ndarray) -> None:
-        if self._last_done is not None and stamp <= self._last_done:
-            self.rejected += 1
-            self.get_logger().warning(f"{key} stamped t = {stamp * 1e-9:.9g} s ignored: that sample is done",
-                                      throttle_duration_sec=1.0)
-            return
+    def _store(self, key: str, stamp: int, values: np.ndarray) -> bool:
+        """Buffer a vector; False when it is not to be used (a repeat of the sample already answered)."""
+        if self._last_done is not None and stamp <= self._last_done and not self._old_stamp(key, stamp, values):
+            return False
         buf = self._buf[key]
         buf[stamp] = values
         if len(buf) > self.params["max_buffered"]:
             old, _ = buf.popitem(last=False)
             self.get_logger().warning(f"{key} stamped t = {old * 1e-9:.9g} s dropped: no partner arrived",
                                       throttle_duration_sec=1.0)
+        return True
+
+    def _old_stamp(self, key: str, stamp: int, values: np.ndarray) -> bool:
+        """A vector stamped at or before the sample last answered (off the normal path): True = buffer it."""
+        last = self._last_done
+        if stamp == last:
+            if key != "y":
+                self.repeated += 1  # r or dither re-sent on a stall: the sample is done
+                return False
+            if np.array_equal(values, self._last_y):
+                self.repeated += 1  # y(k) re-sent on a stall: the same u(k) again, in case it was lost
+                self._pub.publish(self._u_msg)
+                self.get_logger().info(f"output of t = {stamp * 1e-9:.9g} s re-sent: the same input sent again",
+                                       throttle_duration_sec=5.0)
+                return False
+        elif key != "y":
+            return True  # may be the partner of a restarted plant's output: kept until that output comes
+        self._restart(stamp)
+        return True
+
+    def _restart(self, stamp: int) -> None:
+        """The plant's samples went back (a restarted plant): reset the controller and start again there."""
+        self.get_logger().warning(f"output stamped t = {stamp * 1e-9:.9g} s after the sample of t = "
+                                  f"{self._last_done * 1e-9:.9g} s: the plant restarted; controller reset "
+                                  f"(internal model, previous move)")
+        self.ctrl.reset()
+        self._last_done = None
+        self._last_y = self._u_msg = None
+        for buf in self._buf.values():  # keep only what may belong to the new run's first sample
+            for s in [s for s in buf if s != stamp]:
+                del buf[s]
+        self._latest["d"] = None
+        self.restarts += 1
 
     def _on_setpoint(self, msg) -> None:
         got = self._decode(self._r_codec, msg)
@@ -131,8 +173,8 @@ class MpcNode(Node):
                 for stamp in list(self._buf["y"]):
                     self._try(stamp)
             return
-        self._store("r", *got)
-        self._try(got[0])
+        if self._store("r", *got):
+            self._try(got[0])
 
     def _on_dither(self, msg) -> None:
         got = self._decode(self._d_codec, msg)
@@ -141,15 +183,15 @@ class MpcNode(Node):
         if self.params["hold_setpoint"]:
             self._latest["d"] = got[1]
             return
-        self._store("d", *got)
-        self._try(got[0])
+        if self._store("d", *got):
+            self._try(got[0])
 
     def _on_output(self, msg) -> None:
         got = self._decode(self._y_codec, msg)
         if got is None:
             return
-        self._store("y", *got)
-        self._try(got[0])
+        if self._store("y", *got):
+            self._try(got[0])
 
     def _try(self, stamp: int) -> None:
         buf = self._buf
@@ -175,8 +217,10 @@ class MpcNode(Node):
             buf[key].pop(stamp, None)
         u = self.ctrl.step(r, y, dither)
         self._last_done = stamp
+        self._last_y = y
         self.steps += 1
-        self._pub.publish(self._u_codec.encode(u, stamp))
+        self._u_msg = msg = self._u_codec.encode(u, stamp)
+        self._pub.publish(msg)
 
 
 def main(args=None) -> int:

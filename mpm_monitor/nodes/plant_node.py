@@ -5,7 +5,9 @@ Wraps :class:`~mpm_monitor.plant.PlantSimulator`.  Two ways to run:
 * **lock-step** (``lock_step: true``, simulated time): the node owns the clock.  For sample ``k`` it
   publishes ``/clock = k * Ts`` and then ``y(k)`` stamped ``k * Ts``; when ``u(k)`` (stamped
   ``k * Ts``) arrives on ``input`` it applies it, advances to ``k + 1`` and repeats, as fast as
-  the other nodes answer.  Nothing is dropped: the next sample waits for the controller.
+  the other nodes answer.  Nothing is dropped: the next sample waits for the controller.  With no
+  ``u(k)`` for ``stall_timeout`` it re-sends the clock and ``y(k)`` (same stamp, same values), so
+  a restarted controller picks the loop up again.
 * **timer** (``lock_step: false``): every ``Ts`` of the node's clock (wall-clock, or simulated
   time with ``use_sim_time``) it applies the latest ``u`` (held if none came), advances and
   publishes ``y``; with ``publish_clock`` it also paces ``/clock`` at ``k * Ts`` in real time.
@@ -89,6 +91,8 @@ class PlantNode(Node):
         self._stall_timer = None
         self._t0_ns = 0
         self._expected_stamp = 0
+        self._y_msg: Optional[JointState] = None  # y(k) as published, re-sent unchanged on a stall
+        self.resent = 0
         if p["autostart"]:
             self._start_timer = self.create_timer(0.05, self._try_start, clock=self._steady)
         self.get_logger().info(
@@ -154,7 +158,8 @@ class PlantNode(Node):
             self._clock_pub.publish(ClockMsg(clock=ns_to_stamp(stamp)))
         y = self.sim.measure()
         self._expected_stamp = stamp
-        self._pub.publish(self._y_codec.encode(y, stamp))
+        self._y_msg = msg = self._y_codec.encode(y, stamp)
+        self._pub.publish(msg)
 
     def _advance(self, u: np.ndarray) -> None:
         self.sim.apply(u)
@@ -207,15 +212,24 @@ class PlantNode(Node):
         self._advance(u)
 
     def _check_stall(self) -> None:
+        """Lock-step: no u(k) for stall_timeout: re-send the clock and y(k), same stamp and values.
+
+        A restarted controller (or setpoint node) gets what it missed and the loop resumes; the
+        setpoint node answers the repeated clock by re-sending r(k), and the MPC and the monitor
+        keep one copy of a vector re-sent for the same stamp.
+        """
         if not self.running:
             return
         waited = time.monotonic() - self._last_progress
         if waited >= self.params["stall_timeout"]:
             self.get_logger().warning(
-                f"no input for t = {self._expected_stamp * 1e-9:.9g} s after {waited:.1f} s; re-sending the clock",
-                throttle_duration_sec=5.0)
+                f"no input for t = {self._expected_stamp * 1e-9:.9g} s after {waited:.1f} s; re-sending the clock "
+                f"and the output of that sample", throttle_duration_sec=5.0)
             if self._clock_pub is not None:
                 self._clock_pub.publish(ClockMsg(clock=ns_to_stamp(self._expected_stamp)))
+            if self._y_msg is not None:
+                self._pub.publish(self._y_msg)
+            self.resent += 1
             self._last_progress = time.monotonic()
 
 

@@ -5,7 +5,9 @@ Wraps :class:`~mpm_monitor.excitation.PrbsGenerator` and
 sample, triggered either
 
 * by the simulated clock (``trigger: clock``): a vector stamped ``k * Ts`` each time the clock
-  reaches a new grid point ``k * Ts`` (lock-step with the plant node), or
+  reaches a new grid point ``k * Ts`` (lock-step with the plant node); the same clock time again
+  (the plant re-sends it when the loop stalls) re-sends the vectors of that stamp unchanged, and a
+  clock that jumps back (a restarted plant) starts again from there, or
 * by a timer (``trigger: timer``) every ``Ts`` of the node's clock, stamped with that clock.
 
 With the same ``seed`` the PRBS equals the batch run's (:func:`~mpm_monitor.closed_loop.seeded_generators`).
@@ -15,6 +17,7 @@ Parameters (all declared with type, description and range): see :data:`PARAMS`.
 
 from __future__ import annotations
 
+import time
 from typing import Optional
 
 import numpy as np
@@ -90,7 +93,11 @@ class SetpointNode(Node):
         self._dither_pub = (self.create_publisher(JointState, p["dither_topic"], vector_qos())
                             if self._dither is not None else None)
         self._last_k: Optional[int] = None
+        self._last_t: Optional[int] = None
+        self._sent: tuple = ()          # the messages of the last clock-triggered sample, re-sent on a repeated clock
+        self._resent_at = -1.0
         self.published = 0
+        self.resent = 0
         if p["trigger"] == "clock":
             self._sub = self.create_subscription(ClockMsg, p["clock_topic"], self._on_clock, vector_qos())
         else:
@@ -99,19 +106,45 @@ class SetpointNode(Node):
                                + (f", dither {p['dither_amplitude']:g} on {model.n_inputs} inputs" if self._dither else "")
                                + f", trigger {p['trigger']}")
 
-    def _publish(self, stamp_ns: int) -> None:
-        self._pub.publish(self._r_codec.encode(self._gen.next(), stamp_ns))
+    def _publish(self, stamp_ns: int) -> tuple:
+        r = self._r_codec.encode(self._gen.next(), stamp_ns)
+        self._pub.publish(r)
+        d = None
         if self._dither is not None:
-            self._dither_pub.publish(self._d_codec.encode(self._dither.next(), stamp_ns))
+            d = self._d_codec.encode(self._dither.next(), stamp_ns)
+            self._dither_pub.publish(d)
         self.published += 1
+        return r, d
 
     def _on_clock(self, msg: ClockMsg) -> None:
         t = stamp_to_ns(msg.clock)
         k = (t + self._period // 1000) // self._period  # the grid point reached (tolerates rounding)
-        if self._last_k is not None and k <= self._last_k:
-            return  # same grid point again (re-sent clock) or a finer clock between grid points
-        self._last_k = k
-        self._publish(k * self._period)
+        last = self._last_k
+        if last is not None and k <= last:
+            if t == self._last_t:
+                self._resend()
+            elif k < last:
+                self.get_logger().warning(f"clock went back to t = {t * 1e-9:.9g} s (from sample {last}): "
+                                          f"restarting the samples there")
+                self._last_k, self._last_t = k, t
+                self._sent = self._publish(k * self._period)
+            return  # else a finer clock between grid points
+        self._last_k, self._last_t = k, t
+        self._sent = self._publish(k * self._period)
+
+    def _resend(self) -> None:
+        """The same clock time again (the plant re-sends it on a stall): the same r(k) (and dither) again."""
+        now = time.monotonic()
+        if now - self._resent_at < 0.05:
+            return  # a paused simulator repeating its clock fast: at most 20 re-sends a second
+        self._resent_at = now
+        r, d = self._sent
+        self._pub.publish(r)
+        if d is not None:
+            self._dither_pub.publish(d)
+        self.resent += 1
+        self.get_logger().info(f"clock t = {self._last_t * 1e-9:.9g} s again: setpoint of that sample re-sent",
+                               throttle_duration_sec=5.0)
 
     def _on_timer(self) -> None:
         self._publish(self.get_clock().now().nanoseconds)
