@@ -378,35 +378,10 @@ def test_a_monitor_killed_hard_leaves_no_analysis_process_behind(tmp_path):
 # ------------------------------------------------------------------------------ separate processes
 
 def _unique_domain():
-    """A ROS_DOMAIN_ID (1..101) locked against other test processes (same lock files as
-    test_nodes_multiprocess)."""
-    import contextlib
-    import fcntl
-    import os
-    import random
-    import tempfile
-    from pathlib import Path
+    """A ROS_DOMAIN_ID locked against other test processes (shared with test_nodes_multiprocess)."""
+    from ros_domains import unique_domain
 
-    @contextlib.contextmanager
-    def take():
-        ids = list(range(1, 102))
-        random.Random(os.getpid() + 7).shuffle(ids)
-        for d in ids:
-            fh = open(Path(tempfile.gettempdir()) / f"mpm_monitor_domain_{d}.lock", "w")
-            try:
-                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:
-                fh.close()
-                continue
-            try:
-                yield d
-            finally:
-                fcntl.flock(fh, fcntl.LOCK_UN)
-                fh.close()
-            return
-        pytest.skip("no free ROS_DOMAIN_ID")
-
-    return take()
+    return unique_domain(salt=7)
 
 
 def test_monitor_process_sigkilled_and_restarted_while_the_stack_publishes(tmp_path):

@@ -7,10 +7,7 @@ and diagnostics topics too), so even a domain shared by accident cannot mix two 
 listens to the diagnostics from its own context on the same domain and range.
 """
 
-import contextlib
-import fcntl
 import os
-import random
 import signal
 import subprocess
 import sys
@@ -27,30 +24,10 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 
 from mpm_monitor.monitor_core import SUMMARY_NAME, row_status_name  # noqa: E402
 from mpm_monitor.ros_io import diagnostics_qos, make_executor, spin_until  # noqa: E402
+from ros_domains import unique_domain  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 SAMPLES = 3000
-
-
-@contextlib.contextmanager
-def unique_domain():
-    """Yield a ROS_DOMAIN_ID (1..101) locked against other test processes on this machine."""
-    ids = list(range(1, 102))
-    random.Random(os.getpid()).shuffle(ids)
-    for d in ids:
-        fh = open(Path(tempfile.gettempdir()) / f"mpm_monitor_domain_{d}.lock", "w")
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            fh.close()
-            continue
-        try:
-            yield d
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
-            fh.close()
-        return
-    pytest.skip("no free ROS_DOMAIN_ID")
 
 
 def domain_context(domain_id):
