@@ -29,3 +29,11 @@ def test_params_file_values_are_the_defaults(node):
         else:
             got = values[spec.name]
             assert spec.check(got) == spec.check(spec.default), spec.name
+
+
+def test_readme_parameter_tables_are_current():
+    from mpm_monitor.nodes.params_files import markdown
+
+    readme = (CONFIG.parent / "README.md").read_text(encoding="utf-8")
+    for node in NODES:
+        assert markdown(node) in readme, f"README parameter table of {node} is out of date"

@@ -4,7 +4,8 @@ Every node declares its parameters in a ``PARAMS`` tuple of :class:`~mpm_monitor
 (type, default, description, range); the files in ``config/`` are written from those tuples so
 that the documentation of a parameter can never drift from the code (a test compares them).
 
-Run ``python -m mpm_monitor.nodes.params_files [--check] [--dir config]``.
+Run ``python -m mpm_monitor.nodes.params_files [--check] [--dir config]``; ``--markdown`` prints
+the README's parameter tables.
 """
 
 from __future__ import annotations
@@ -73,11 +74,34 @@ def render(node: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def markdown(node: str) -> str:
+    """The parameters of one node as a Markdown table (for the README)."""
+    module, _ = NODES[node]
+    params = importlib.import_module(f"mpm_monitor.nodes.{module}").PARAMS
+    lines = [f"**{node} node** (`config/{node}.yaml`)", "",
+             "| parameter | default | type, range | meaning |", "| --- | --- | --- | --- |"]
+    for spec in params:
+        kind = spec.kind
+        if spec.low is not None and spec.kind in ("int", "double"):
+            kind += f", Range [{spec.low:g}, {spec.high:g}]"
+        if spec.choices:
+            kind += ", One of: " + ", ".join(f"'{c}'" for c in spec.choices)
+        if getattr(spec, "read_only", False):
+            kind += ", read-only"
+        default = "unset" if spec.default is None else f"`{_value(spec)}`"
+        lines.append(f"| `{spec.name}` | {default} | {kind} | {spec.description.replace('|', chr(92) + '|')} |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m mpm_monitor.nodes.params_files", description=__doc__.split("\n\n")[0])
     p.add_argument("--dir", default="config", help="folder of the params files (default config)")
     p.add_argument("--check", action="store_true", help="only report files that differ (exit 1)")
+    p.add_argument("--markdown", action="store_true", help="print the README's parameter tables instead")
     args = p.parse_args(argv)
+    if args.markdown:
+        print("\n\n".join(markdown(node) for node in NODES))
+        return 0
     stale = []
     for node in NODES:
         path = Path(args.dir) / f"{node}.yaml"

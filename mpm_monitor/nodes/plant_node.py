@@ -49,7 +49,7 @@ PARAMS = MODEL_PARAMS + (
     ParamSpec("start_delay", "double", 0.5, "Wall-clock seconds to wait after min_subscribers are matched (lets the "
               "other nodes finish discovery).", 0.0, 600.0),
     ParamSpec("stall_timeout", "double", 2.0, "Wall-clock seconds without the expected input before a warning "
-              "and a re-sent clock (lock-step).", 0.05, 3600.0),
+              "and a re-sent clock and output y(k) (lock-step; lets a restarted MPC pick the loop up).", 0.05, 3600.0),
     ParamSpec("exit_when_done", "bool", False, "Leave the process after max_samples."),
     ParamSpec("output_topic", "string", "output", "Topic of the measured outputs y (JointState)."),
     ParamSpec("input_topic", "string", "input", "Topic of the plant inputs u (JointState)."),
