@@ -599,10 +599,9 @@ def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = Anal
         if e.mismatch:
             key = (model.outputs.index(e.output), model.inputs.index(e.input))
             e.kind = kinds.get(key, "unknown")
-    band_mask = np.ones(omega.size, bool)
     return AnalysisReport(
         sample_time=model.sample_time, samples=n, method=options.method, alpha=alpha, rows=rows,
-        elements=elements, overall_rsi=float(sigma_max[band_mask].max()), warnings=warnings, frequencies=omega,
+        elements=elements, overall_rsi=float(sigma_max.max()), warnings=warnings, frequencies=omega,
         row_gains=row_gains, sigma_max=sigma_max, sdelta_response=S, arx_tables=arx_tables, repair=repair_doc,
         repaired_model=repaired, collinear_groups=design.groups, max_variance_inflation=design.max_vif, signals=sig,
         repair_result=repair_result)

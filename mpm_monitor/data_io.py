@@ -12,7 +12,6 @@ import csv
 import dataclasses
 import io
 import math
-from pathlib import Path
 
 import numpy as np
 

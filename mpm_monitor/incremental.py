@@ -75,7 +75,7 @@ from scipy import signal as sps
 from scipy.linalg import blas
 
 from .analysis import AnalysisOptions, AnalysisReport, QrRegressions, RegressionLayout, analyze, regression_layout
-from .arx import RANK_TOLERANCE, ArxFit, SharedBlockRegression, SharedFit, block_triangular_solution
+from .arx import RANK_TOLERANCE, ArxFit, SharedBlockRegression, SharedFit
 from .data_io import LoggedData
 from .discretize import discretize
 from .errors import ConfigurationError, DataFileError

@@ -1052,12 +1052,6 @@ def _unchanged_entry(model, i, j, reason):
             "confidence": 0.0, "interval": None, "applied": False, "evidence": {}, "reason": reason}
 
 
-def _unchanged_entry(model, i, j, reason):
-    return {"output": model.outputs[i], "input": model.inputs[j], "kind": "unknown",
-            "before": model.element(i, j), "after": model.element(i, j), "estimate": None,
-            "confidence": 0.0, "interval": None, "applied": False, "evidence": {}, "reason": reason}
-
-
 def _row_response(model: FopdtModel, u: np.ndarray, i: int) -> np.ndarray:
     """Response of row ``i`` of ``model`` to ``u`` from rest, element by element (as
     :func:`mpm_monitor.discretize.simulate`).

@@ -97,7 +97,7 @@ def test_non_square_plants(ny, nu, dither):
     exc = ExcitationOptions(dither=None if dither is None else PrbsOptions(amplitude=dither))
     log = run_closed_loop(plant, model, 4000, seed=1, excitation=exc)
     rep = analyze(model, _data(log), FAST)
-    assert set(rep.located_elements) == {(f"y2", "u1"), (f"y{i2 + 1}", "u3")}
+    assert set(rep.located_elements) == {("y2", "u1"), (f"y{i2 + 1}", "u3")}
     assert set(rep.flagged_rows) == {"y2", f"y{i2 + 1}"}
 
 

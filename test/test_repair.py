@@ -14,7 +14,6 @@ detection is tested elsewhere).  For each scenario and seed:
 """
 
 import json
-import math
 
 import numpy as np
 import pytest

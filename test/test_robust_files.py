@@ -11,11 +11,9 @@ The examples are derandomized (same examples on every run) so that CI is reprodu
 are chosen to keep this file to a few seconds.
 """
 
-import math
 import os
 import re
 import shutil
-import string
 import subprocess
 import sys
 from pathlib import Path
@@ -23,13 +21,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mpm_monitor.bag_io import BagWriter, read_bag, write_logged_data
+from mpm_monitor.bag_io import BagWriter, write_logged_data
 from mpm_monitor.cli import main as cli_main
 from mpm_monitor.data_io import LoggedData, csv_header, read_csv, write_csv
-from mpm_monitor.errors import BagError, DataFileError, InputError, ModelFileError
+from mpm_monitor.errors import DataFileError, InputError, ModelFileError
 from mpm_monitor.model import FopdtModel, dump_model, load_model, save_model
 
 REPO = Path(__file__).resolve().parents[1]
