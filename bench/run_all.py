@@ -17,6 +17,7 @@ BENCHMARKS = [
     ("bench.monte_carlo", ["--runs", "200"], ["--runs", "30"]),
     ("bench.detection_power", [], ["--runs", "10", "--lengths", "300,800,2000"]),
     ("bench.repair_validation", ["--json", "bench/results/repair_validation.json"], ["--seeds", "1"]),
+    ("bench.repair_mc", ["--dither-fat"], ["--runs", "20", "--dither-fat"]),
     ("bench.perf", [], ["--quick"]),
     ("bench.memory", [], ["--quick"]),
     ("bench.ros_throughput", ["--json", "bench/results/ros_throughput.json"], ["--samples", "2000", "--repeats", "1"]),
