@@ -569,7 +569,8 @@ def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = Anal
     if design.groups:
         warnings.append(
             "inputs " + "; ".join("{" + ", ".join(g) + "}" for g in design.groups)
-            + f" move together (largest variance inflation {design.max_vif:.3g}): the closed loop drives them "
+            + f" move together (largest variance inflation {design.max_vif:.3g}, condition number of the "
+              f"input regressors {design.regression.condition_number:.3g}): the closed loop drives them "
               "collinearly, so their elements cannot be told apart from these data; add a small dither on the "
               "inputs to separate them")
     elements, arx_tables = [], []
