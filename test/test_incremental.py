@@ -13,7 +13,6 @@ the window) even that difference is amplified beyond 1e-8 by the batch QR itself
 the batch path the analyzer's signals (SlidingWindowAnalyzer.window_data), as the live monitor does.
 """
 
-import math
 
 import numpy as np
 import pytest
@@ -29,7 +28,6 @@ from mpm_monitor.incremental import (GramBlockRegression, GramFit, ModelPredicto
 from mpm_monitor.model import FopdtModel
 from mpm_monitor.signals import LoopSignals, compute_signals
 
-TOL = 1e-8
 FAST = AnalysisOptions(repair=False, test_all_rows=True)
 
 
@@ -63,61 +61,7 @@ def _batch_of_window(model, r, u, y, window, options):
     return _qr_analyze(model, data, options, LoopSignals(sig.yhat[w], sig.d[w], sig.eps[w], sig.transient[w]))
 
 
-def _close(a, b, what, tol=TOL):
-    a, b = float(a), float(b)
-    if a == b:
-        return
-    assert abs(a - b) <= tol * max(abs(a), abs(b), 1.0), f"{what}: {a!r} vs {b!r}"
-
-
-def _close_log_p(a, b, what):
-    if a is None or b is None:
-        assert a is None and b is None, what
-        return
-    if a == 0.0 or b == 0.0:      # underflow: compare the statistic instead
-        return
-    _close(math.log(a), math.log(b), f"log {what}")
-
-
-def _close_vec(a, b, what):
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    assert a.shape == b.shape, what
-    scale = max(np.abs(b).max(initial=0.0), 1e-300)
-    assert np.all(np.abs(a - b) <= TOL * scale), f"{what}: {a} vs {b}"
-
-
-def assert_reports_match(inc, ref):
-    """Decisions equal; numbers to TOL (see the module docstring)."""
-    assert inc.flagged_rows == ref.flagged_rows
-    assert inc.located_elements == ref.located_elements
-    assert inc.ambiguous_elements == ref.ambiguous_elements
-    assert inc.collinear_groups == ref.collinear_groups
-    assert inc.samples == ref.samples
-    for a, b in zip(inc.rows, ref.rows):
-        _close(a.rsi, b.rsi, f"rsi {b.output}")
-        _close(a.statistic, b.statistic, f"row F {b.output}")
-        assert a.df == b.df
-        _close_log_p(a.p_value_raw, b.p_value_raw, f"row p {b.output}")
-        _close_log_p(a.p_value, b.p_value, f"row adjusted p {b.output}")
-        _close(a.fit_percent, b.fit_percent, f"row fit {b.output}")
-    _close(inc.overall_rsi, ref.overall_rsi, "overall rsi")
-    _close_vec(inc.sigma_max, ref.sigma_max, "sigma_max")
-    _close_vec(np.abs(inc.sdelta_response), np.abs(ref.sdelta_response), "|S_Delta|")
-    assert len(inc.elements) == len(ref.elements)
-    for a, b in zip(inc.elements, ref.elements):
-        key = f"element ({b.output}, {b.input})"
-        assert (a.output, a.input, a.mismatch, a.ambiguous, a.delay) == (b.output, b.input, b.mismatch, b.ambiguous,
-                                                                          b.delay), key
-        if b.statistic is not None:
-            _close(a.statistic, b.statistic, f"F {key}")
-        _close_log_p(a.p_value_raw, b.p_value_raw, key)
-        _close_log_p(a.p_value, b.p_value, f"adjusted {key}")
-        _close_vec(a.b, b.b, f"B {key}")
-    for a, b in zip(inc.arx_tables, ref.arx_tables):
-        assert a.delay == b.delay
-        _close_vec(a.a + sum(a.b.values(), []), b.a + sum(b.b.values(), []), f"ARX table {b.output}")
-        _close(a.fit_percent, b.fit_percent, f"ARX table fit {b.output}")
-    assert inc.warnings == ref.warnings
+from report_checks import _close, _close_vec, assert_reports_match  # noqa: E402
 
 
 def _offset_open_loop(n, seed, model, plant):
