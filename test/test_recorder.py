@@ -34,7 +34,10 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 
 from mpm_monitor.bag_io import read_bag, read_diagnostics, recover_bag  # noqa: E402
+from mpm_monitor.demo import private_context  # noqa: E402
 from mpm_monitor.errors import InputError  # noqa: E402
+from mpm_monitor.ros_io import spin_until  # noqa: E402
+from ros_domains import unique_domain  # noqa: E402
 from mpm_monitor.model import FopdtModel  # noqa: E402
 from mpm_monitor.nodes.recorder_node import RecorderNode, parse_topic_specs  # noqa: E402
 
@@ -77,21 +80,10 @@ def _messages(n):
 
 
 @pytest.fixture
-def ctx(monkeypatch):
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "OFF")
-    context = Context()
-    rclpy.init(context=context)
+def ctx():
+    context = private_context()
     yield context
-    rclpy.try_shutdown(context=context)
-
-
-def _spin_until(executor, cond, timeout):
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            return False
-        executor.spin_once(timeout_sec=0.02)
-    return True
+    context.try_shutdown()
 
 
 def test_records_every_message_intact_and_in_order(ctx, tmp_path):
@@ -104,7 +96,7 @@ def test_records_every_message_intact_and_in_order(ctx, tmp_path):
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(rec)
     ex.add_node(pub_node)
-    assert _spin_until(ex, lambda: all(p.get_subscription_count() >= 1 for p in pubs.values()), 10)
+    assert spin_until(ex, lambda: all(p.get_subscription_count() >= 1 for p in pubs.values()), 10)
     n = 150
     sent = {t: [] for t in TYPES}
     for k, batch in _messages(n):
@@ -112,7 +104,7 @@ def test_records_every_message_intact_and_in_order(ctx, tmp_path):
             pubs[topic].publish(msg)
             sent[topic].append(msg)
         ex.spin_once(timeout_sec=0)
-    assert _spin_until(ex, lambda: rec.message_count >= 6 * n, 10), rec.message_count
+    assert spin_until(ex, lambda: rec.message_count >= 6 * n, 10), rec.message_count
     assert rec.flushed_count > 0  # flushed while recording, before close
     assert rec.close() == 6 * n
     rec.destroy_node()
@@ -150,11 +142,11 @@ def test_best_effort_publisher_qos_is_recorded(ctx, tmp_path):
     ex.add_node(rec)
     ex.add_node(pub_node)
     # the recorder subscribed reliably before the publisher existed; it re-subscribes best effort
-    assert _spin_until(ex, lambda: pub.get_subscription_count() >= 1, 10)
+    assert spin_until(ex, lambda: pub.get_subscription_count() >= 1, 10)
     for k in range(20):
         pub.publish(Clock())
         ex.spin_once(timeout_sec=0.01)
-    assert _spin_until(ex, lambda: rec.message_count > 0, 5)
+    assert spin_until(ex, lambda: rec.message_count > 0, 5)
     rec.close()
     rec.destroy_node()
     pub_node.destroy_node()
@@ -192,12 +184,18 @@ class _Lines(threading.Thread):
                 self.flushed = max(self.flushed, int(m.group(1)))
 
 
-def _run_and_signal(tmp_path, monkeypatch, signum, domain):
+def _run_and_signal(tmp_path, monkeypatch, signum):
     """Record /output from a publisher in this process; signal the recorder once it reported a
     flush of at least 200 messages, keep publishing 100 more, and wait for it to end.
 
-    Returns (bag dir, exit code, flushed count reported before the signal, messages published).
+    Runs on a ROS_DOMAIN_ID no other test process holds.  Returns (bag dir, exit code, flushed
+    count reported before the signal, messages published, recorder log).
     """
+    with unique_domain(salt=int(signum)) as domain:
+        return _record_and_signal(tmp_path, monkeypatch, signum, domain)
+
+
+def _record_and_signal(tmp_path, monkeypatch, signum, domain):
     bag = tmp_path / "bag"
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                RCUTILS_LOGGING_BUFFERED_STREAM="0", PYTHONUNBUFFERED="1")
@@ -209,8 +207,8 @@ def _run_and_signal(tmp_path, monkeypatch, signum, domain):
     log.start()
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     context = Context()
-    rclpy.init(context=context, domain_id=domain)
     try:
+        rclpy.init(context=context, domain_id=domain)
         node = rclpy.create_node("plant", context=context)
         pub = node.create_publisher(JointState, "output", VECTOR_QOS)
         deadline = time.monotonic() + 20
@@ -243,9 +241,9 @@ def _stamps(bag):
         return [reader.deserialize(raw, c.msgtype).header.stamp.sec for c, _, raw in reader.messages()]
 
 
-@pytest.mark.parametrize("signum,domain", [(signal.SIGINT, 71), (signal.SIGTERM, 72)])
-def test_signal_mid_run_keeps_everything_up_to_the_last_flush(tmp_path, monkeypatch, signum, domain):
-    bag, rc, flushed, published, log = _run_and_signal(tmp_path, monkeypatch, signum, domain)
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_signal_mid_run_keeps_everything_up_to_the_last_flush(tmp_path, monkeypatch, signum):
+    bag, rc, flushed, published, log = _run_and_signal(tmp_path, monkeypatch, signum)
     assert rc == 0, log
     stamps = _stamps(bag)
     # a gap-free prefix of what was published, holding at least everything flushed before the signal
@@ -254,7 +252,7 @@ def test_signal_mid_run_keeps_everything_up_to_the_last_flush(tmp_path, monkeypa
 
 
 def test_sigkill_loses_at_most_what_was_not_flushed(tmp_path, monkeypatch):
-    bag, rc, flushed, published, log = _run_and_signal(tmp_path, monkeypatch, signal.SIGKILL, 73)
+    bag, rc, flushed, published, log = _run_and_signal(tmp_path, monkeypatch, signal.SIGKILL)
     assert rc == -signal.SIGKILL
     with pytest.raises(InputError, match="no metadata.yaml"):
         read_bag(bag, MODEL)

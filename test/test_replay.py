@@ -7,7 +7,6 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
@@ -15,7 +14,9 @@ from sensor_msgs.msg import JointState  # noqa: E402
 
 from mpm_monitor.bag_io import RawMessage, write_logged_data  # noqa: E402
 from mpm_monitor.data_io import LoggedData  # noqa: E402
+from mpm_monitor.demo import private_context  # noqa: E402
 from mpm_monitor.errors import InputError  # noqa: E402
+from mpm_monitor.ros_io import spin_until  # noqa: E402
 from mpm_monitor.nodes.replay_node import ReplayNode, ReplaySchedule  # noqa: E402
 
 QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE,
@@ -53,12 +54,10 @@ def test_schedule_clock_mode_releases_by_stamp_in_topic_order():
 
 
 @pytest.fixture
-def ctx(monkeypatch):
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "OFF")
-    context = Context()
-    rclpy.init(context=context)
+def ctx():
+    context = private_context()
     yield context
-    rclpy.try_shutdown(context=context)
+    context.try_shutdown()
 
 
 def _listener(ctx):
@@ -67,13 +66,6 @@ def _listener(ctx):
     for topic in ("setpoint", "input", "output"):
         node.create_subscription(JointState, topic, lambda m, t=topic: got.append((t, m)), QOS)
     return node, got
-
-
-def _spin_until(ex, cond, timeout):
-    deadline = time.monotonic() + timeout
-    while not cond() and time.monotonic() < deadline:
-        ex.spin_once(timeout_sec=0.01)
-    return cond()
 
 
 def test_replay_faster_than_recorded(ctx, tmp_path):
@@ -85,7 +77,7 @@ def test_replay_faster_than_recorded(ctx, tmp_path):
     ex.add_node(listener)
     ex.add_node(rep)
     start = time.monotonic()
-    assert _spin_until(ex, lambda: len(got) == 3 * N, 10), len(got)
+    assert spin_until(ex, lambda: len(got) == 3 * N, 10), len(got)
     elapsed = time.monotonic() - start
     assert rep.finished and rep.published == 3 * N
     assert elapsed >= (N - 1) * TS / 5.0 * 0.9  # not faster than asked
@@ -107,15 +99,15 @@ def test_replay_in_lock_step_with_clock(ctx, tmp_path):
     ex = SingleThreadedExecutor(context=ctx)
     for n in (listener, rep, driver):
         ex.add_node(n)
-    assert _spin_until(ex, lambda: clock_pub.get_subscription_count() >= 1, 5)
+    assert spin_until(ex, lambda: clock_pub.get_subscription_count() >= 1, 5)
     for k_last in (-1, 3, 7, N - 1):
         t = 10.0 + TS * k_last + 0.01  # just after sample k_last
         msg = Clock()
         msg.clock.sec, msg.clock.nanosec = int(t), int(round((t - int(t)) * 1e9))
         clock_pub.publish(msg)
         want = 3 * (k_last + 1)
-        assert _spin_until(ex, lambda: len(got) >= want, 5)
-        _spin_until(ex, lambda: False, 0.05)  # nothing beyond the clock may come
+        assert spin_until(ex, lambda: len(got) >= want, 5)
+        spin_until(ex, lambda: False, 0.05)  # nothing beyond the clock may come
         assert len(got) == want
     # within a sample, setpoint, input and output go out in that order
     assert [t for t, _ in got[:3]] == ["setpoint", "input", "output"]
