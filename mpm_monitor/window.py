@@ -368,15 +368,11 @@ class SampleWindow:
             entry = [None, None, None]
             self._pending[k] = entry
         if entry[slot] is not None:
-            if np.array_equal(entry[slot], v):
-                self._health.duplicate += 1
-                self._problem("duplicate", channel, stamp_ns,
-                              f"{channel}: sample t = {stamp_ns / NS_PER_S:.9g} s received twice (same values; kept once)")
-            else:
-                self._health.conflict += 1
-                self._problem("conflict", channel, stamp_ns,
-                              f"{channel}: two different vectors for sample t = {stamp_ns / NS_PER_S:.9g} s "
-                              f"(the first is kept; two publishers on one topic?)")
+            t = f"t = {stamp_ns / NS_PER_S:.9g} s"
+            self._repeated(channel, stamp_ns, entry[slot], v,
+                           f"{channel}: sample {t} received twice (same values; kept once)",
+                           f"{channel}: two different vectors for sample {t} (the first is kept; two publishers "
+                           f"on one topic?)")
             return 0
         entry[slot] = v
         self._accepted = True
@@ -386,6 +382,15 @@ class SampleWindow:
             self._drop_oldest_pending()
         return self._advance()
 
+    def _repeated(self, channel, stamp_ns, kept, v, duplicate_text, conflict_text) -> None:
+        """Count and report a second vector for a sample that already has one (``kept`` stays)."""
+        if np.array_equal(kept, v):
+            self._health.duplicate += 1
+            self._problem("duplicate", channel, stamp_ns, duplicate_text)
+        else:
+            self._health.conflict += 1
+            self._problem("conflict", channel, stamp_ns, conflict_text)
+
     def _late_or_duplicate(self, channel, k, slot, v) -> None:
         stamp_ns = self._stamp_of(k)
         cap = self._k_buf.shape[0]
@@ -393,15 +398,11 @@ class SampleWindow:
             pos = (self._head - (self._next_k - k)) % cap
             if self._k_buf[pos] == k:
                 stored = (self._r_buf, self._u_buf, self._y_buf)[slot][pos]
-                if np.array_equal(stored, v):
-                    self._health.duplicate += 1
-                    self._problem("duplicate", channel, stamp_ns,
-                                  f"{channel}: sample t = {stamp_ns / NS_PER_S:.9g} s received again (same values; ignored)")
-                else:
-                    self._health.conflict += 1
-                    self._problem("conflict", channel, stamp_ns,
-                                  f"{channel}: a different vector for sample t = {stamp_ns / NS_PER_S:.9g} s, "
-                                  f"already in the window (ignored; two publishers on one topic?)")
+                t = f"t = {stamp_ns / NS_PER_S:.9g} s"
+                self._repeated(channel, stamp_ns, stored, v,
+                               f"{channel}: sample {t} received again (same values; ignored)",
+                               f"{channel}: a different vector for sample {t}, already in the window (ignored; "
+                               f"two publishers on one topic?)")
                 return
         self._health.late += 1
         self._problem("late", channel, stamp_ns,
