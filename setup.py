@@ -25,7 +25,7 @@ setup(
     python_requires=">=3.10",
     entry_points={
         "console_scripts": [
-            "mpm_analyze = mpm_monitor.cli:main_analyze",
+            "mpm_analyze = mpm_monitor.apps.cli:main_analyze",
             "plant_node = mpm_monitor.nodes.plant_node:main",
             "mpc_node = mpm_monitor.nodes.mpc_node:main",
             "setpoint_node = mpm_monitor.nodes.setpoint_node:main",

@@ -3,6 +3,12 @@
 import json
 from pathlib import Path
 
+import mpm_monitor
+
+# Benchmarks are programs: like the product's entry points they run with one BLAS thread (unless
+# the caller set the variables), before any benchmark module loads numpy.
+mpm_monitor.limit_blas_threads()
+
 
 def write_json(path, result, default=float) -> None:
     """Write a benchmark result as indented JSON (creating the folder) and say where."""

@@ -16,13 +16,12 @@ from __future__ import annotations
 import argparse
 
 from . import write_json
-import mpm_monitor  # noqa: F401  (limits BLAS threads before numpy loads)
 import numpy as np
 
-from mpm_monitor.closed_loop import run_closed_loop
-from mpm_monitor.data_io import LoggedData
-from mpm_monitor.model import FopdtModel
-from mpm_monitor.mpc import MpcOptions
+from mpm_monitor.sim.closed_loop import run_closed_loop
+from mpm_monitor.core.logged_data import LoggedData
+from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.sim.mpc import MpcOptions
 
 from .monte_carlo import METHODS, run_method
 

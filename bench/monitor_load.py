@@ -9,7 +9,7 @@ A plain rclpy publisher (no plant or MPC node of ours) sends the three contract 
 process, stamped in simulated time ``k * Ts``, paced at the plant's real rate (or as fast as it
 can, for the ceiling).  The monitor node (:class:`mpm_monitor.nodes.monitor_node.MonitorNode`)
 spins in a SingleThreadedExecutor on the main thread and runs the real analysis
-(:func:`mpm_monitor.analysis.analyze`, no repair) in its worker thread while the samples keep
+(:func:`mpm_monitor.core.analysis.analyze`, no repair) in its worker thread while the samples keep
 coming.  Both share one private context (``ROS_AUTOMATIC_DISCOVERY_RANGE=OFF``).
 
 Figures per run:
@@ -32,7 +32,7 @@ Scenarios (the issue's figures): a 20x20 plant at 10 Hz (window 1,500 samples, a
 the same two sizes paced at increasing rates until the monitor loses samples (the publisher, the
 executor and the analysis share the interpreter, so this is the rate one process sustains).
 
-The models are :func:`mpm_monitor.demo.square_model` (diagonally dominant FOPDT, delays 1..7
+The models are :func:`mpm_monitor.apps.demo.square_model` (diagonally dominant FOPDT, delays 1..7
 samples) rescaled to the sample time; the data are random (PRBS setpoints, white inputs and
 outputs): the analysis cost depends on the sizes, not on the values.  This is a measurement, not a
 unit test; ``test_robust_monitor`` asserts zero drops at a modest rate with :func:`run_load`.
@@ -97,8 +97,8 @@ HEADER = (f"{'size':>6} {'rate':>8} {'ana. in':>7} {'sent':>7} {'completed':>9} 
 
 
 def load_model(n: int, sample_time: float):
-    """An n x n FOPDT model with the dynamics of :func:`mpm_monitor.demo.square_model` in samples."""
-    from mpm_monitor.demo import square_model
+    """An n x n FOPDT model with the dynamics of :func:`mpm_monitor.apps.demo.square_model` in samples."""
+    from mpm_monitor.apps.demo import square_model
 
     m = square_model(n)
     return m.replace(sample_time=sample_time, time_constant=m.time_constant * sample_time,
@@ -133,10 +133,10 @@ def run_load(n: int, rate_hz: Optional[float], samples: int, window_samples: int
     from rclpy.node import Node
     from sensor_msgs.msg import JointState
 
-    from mpm_monitor.demo import _overrides, private_context
-    from mpm_monitor.model import save_model
+    from mpm_monitor.apps.demo import _overrides, private_context
+    from mpm_monitor.io.model_file import save_model
     from mpm_monitor.nodes.monitor_node import MonitorNode
-    from mpm_monitor.ros_io import VectorCodec, make_executor, spin_until, vector_qos
+    from mpm_monitor.nodes.ros_io import VectorCodec, make_executor, spin_until, vector_qos
 
     ts = 1.0 / rate_hz if rate_hz else 0.001
     model = load_model(n, ts)

@@ -10,12 +10,12 @@ elements of random kind and size, the paper's noise and MPC tuning, PRBS setpoin
 in 30 % of the runs), simulates the closed loop once, and gives the *same* logged ``r, u, y`` to
 every method:
 
-* ``arx``: :func:`mpm_monitor.analysis.analyze` with ``method="arx"`` (S_Delta row test, then the
+* ``arx``: :func:`mpm_monitor.core.analysis.analyze` with ``method="arx"`` (S_Delta row test, then the
   Delta element test on the flagged rows), ``repair=False`` (the repair does not change which
   elements are located and is timed separately);
-* ``xcorr`` / ``pcorr``: the baselines of :mod:`mpm_monitor.baselines`, called exactly as
+* ``xcorr`` / ``pcorr``: the baselines of :mod:`mpm_monitor.core.baselines`, called exactly as
   ``analyze`` calls them (on ``d`` recomputed from the log by
-  :func:`mpm_monitor.signals.compute_signals` with the same initial-state estimate, and ``u``), at
+  :func:`mpm_monitor.core.signals.compute_signals` with the same initial-state estimate, and ``u``), at
   the same ``alpha``.  They are called directly so that the bench also sees the ``ambiguous``
   elements of the partial correlation test.
 
@@ -42,14 +42,12 @@ Scenario ``k`` of seed ``s`` is a pure function of ``(s, k)``: ``--jobs`` only c
 
 from __future__ import annotations
 
-import os
-
-# One BLAS thread per process: the machine is shared and --jobs gives the parallelism.
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+# One BLAS thread per process (set by the bench package): the machine is shared and --jobs gives the
+# parallelism.
 
 import argparse  # noqa: E402
 import json  # noqa: E402
+import os  # noqa: E402
 import platform  # noqa: E402
 import statistics  # noqa: E402
 import sys  # noqa: E402
@@ -59,10 +57,10 @@ from typing import Callable, Optional, Sequence  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from mpm_monitor.baselines import ELEMENT_TESTS  # noqa: E402
-from mpm_monitor.closed_loop import run_closed_loop  # noqa: E402
-from mpm_monitor.data_io import LoggedData  # noqa: E402
-from mpm_monitor.signals import compute_signals  # noqa: E402
+from mpm_monitor.core.baselines import ELEMENT_TESTS  # noqa: E402
+from mpm_monitor.sim.closed_loop import run_closed_loop  # noqa: E402
+from mpm_monitor.core.logged_data import LoggedData  # noqa: E402
+from mpm_monitor.core.signals import compute_signals  # noqa: E402
 
 from .scenarios import KINDS, Scenario, ScenarioOptions, input_separability, make_scenario  # noqa: E402
 
@@ -86,7 +84,7 @@ def simulate(scenario: Scenario, samples: int) -> LoggedData:
 def _analysis():
     """The analysis module, or None while it does not exist."""
     try:
-        from mpm_monitor import analysis
+        from mpm_monitor.core import analysis
     except ImportError:
         return None
     return analysis
@@ -95,7 +93,7 @@ def _analysis():
 def _run_arx(model, data: LoggedData, alpha: float) -> dict:
     analysis = _analysis()
     if analysis is None:
-        raise RuntimeError("mpm_monitor.analysis is not available: method 'arx' cannot run")
+        raise RuntimeError("mpm_monitor.core.analysis is not available: method 'arx' cannot run")
     t0 = time.perf_counter()
     report = analysis.analyze(model, data, analysis.AnalysisOptions(method="arx", alpha=alpha, repair=False))
     dt = time.perf_counter() - t0
@@ -271,7 +269,7 @@ def time_analyze(methods: Sequence[str] = METHODS, samples: int = 3000, repeats:
     """
     analysis = _analysis()
     if analysis is None:
-        return {"error": "mpm_monitor.analysis is not available"}
+        return {"error": "mpm_monitor.core.analysis is not available"}
     opts = ScenarioOptions(min_size=5, max_size=5, dither_fraction=1.0)
     sc = make_scenario(seed, 0, opts, n_mismatches=2)
     data = simulate(sc, samples)

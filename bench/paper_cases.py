@@ -10,10 +10,9 @@ import argparse
 import time
 
 from . import write_json
-import mpm_monitor  # noqa: F401  (limits BLAS threads before numpy loads)
-from mpm_monitor.analysis import AnalysisOptions, analyze
-from mpm_monitor.cases import CASE_NAMES
-from mpm_monitor.reproduce import simulate_case
+from mpm_monitor.core.analysis import AnalysisOptions, analyze
+from mpm_monitor.sim.cases import CASE_NAMES
+from mpm_monitor.apps.reproduce import simulate_case
 
 
 def run(seeds: int, samples: int, first_seed: int = 1000) -> dict:

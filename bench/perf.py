@@ -14,21 +14,21 @@ with the controller model's (y1, u2) gain 30 % off, over windows of W samples:
 
 ``batch``
     The batch analysis as the CLI and the live monitor run it on a window:
-    :func:`mpm_monitor.analysis.analyze` from the :class:`~mpm_monitor.data_io.LoggedData` alone,
-    i.e. including :func:`mpm_monitor.signals.compute_signals` (element-wise model run,
+    :func:`mpm_monitor.core.analysis.analyze` from the :class:`~mpm_monitor.core.logged_data.LoggedData` alone,
+    i.e. including :func:`mpm_monitor.core.signals.compute_signals` (element-wise model run,
     ``initial_state="estimate"``) and the tests solved from the window's Gram matrices with the QR
-    fallback (:func:`mpm_monitor.incremental.window_regressions`); every row's element test
+    fallback (:func:`mpm_monitor.core.incremental.window_regressions`); every row's element test
     (``test_all_rows=True``), no repair.  The regressions it refitted by QR are listed per cell.
 ``qr``
     The reference it replaced: the same tests with every regression factored by QR
-    (:class:`mpm_monitor.analysis.QrRegressions`), the signals ``d, eps`` given.
+    (:class:`mpm_monitor.core.analysis.QrRegressions`), the signals ``d, eps`` given.
 ``dense``
     The signals as they were computed before: the dense state-space simulation
-    (:func:`mpm_monitor.discretize.simulate_state_space`, ``scipy.signal.dlsim``) and the same
+    (:func:`mpm_monitor.core.discretize.simulate_state_space`, ``scipy.signal.dlsim``) and the same
     initial-transient estimate.  ``before = qr + dense`` is the previous batch analysis, measured in
     its two parts in the same run.
 ``scratch``
-    :class:`mpm_monitor.incremental.SlidingWindowAnalyzer` built from nothing on the W samples:
+    :class:`mpm_monitor.core.incremental.SlidingWindowAnalyzer` built from nothing on the W samples:
     model run, Gram matrices from scratch, solve -- the sufficient-statistics path's full analysis.
 ``periodic``
     The periodic analysis of a live monitor: 100 new samples pushed into a full window, then
@@ -38,13 +38,13 @@ with the controller model's (y1, u2) gain 30 % off, over windows of W samples:
     default ``update_block`` (16) and strictly per sample (``update_block=1``); averaged over W pushes
     (one turnover of the window, so including its one scheduled rebuild of the Gram matrices).
 ``xcorr``
-    The cross-correlation baseline :func:`mpm_monitor.baselines.cross_correlation_test` on ``d, u``
+    The cross-correlation baseline :func:`mpm_monitor.core.baselines.cross_correlation_test` on ``d, u``
     of the window (skipped with a note when the module is absent).
 ``floor``
     One dense least-squares solve (``numpy.linalg.lstsq``) of the largest regression of the analysis
     (the setpoint or input lag block plus ``na`` own columns, over the window's regression rows).
 
-and the batch closed-loop simulation speed (:func:`mpm_monitor.closed_loop.run_closed_loop`, model =
+and the batch closed-loop simulation speed (:func:`mpm_monitor.sim.closed_loop.run_closed_loop`, model =
 plant, no mismatch) for 3x3, 5x5, 10x10 and 20x20, steady samples per second (set-up of the MPC
 timed apart), plus the memory of the sliding window (:mod:`bench.memory`).
 
@@ -59,18 +59,20 @@ import os
 import sys
 
 
-def _threads_from_argv(argv) -> str:
+def _threads_from_argv(argv):
     for k, a in enumerate(argv):
         if a == "--threads" and k + 1 < len(argv):
             return argv[k + 1]
         if a.startswith("--threads="):
             return a.split("=", 1)[1]
-    return "1"
+    return None
 
 
-if __name__ == "__main__":     # before numpy is imported anywhere
-    for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(_var, _threads_from_argv(sys.argv[1:]))
+if __name__ == "__main__":     # before numpy is imported anywhere (the bench package asked for 1 thread)
+    _threads = _threads_from_argv(sys.argv[1:])
+    if _threads is not None:
+        for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ[_var] = _threads
 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
@@ -82,14 +84,14 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from mpm_monitor.analysis import AnalysisOptions, QrRegressions, analyze, regression_layout  # noqa: E402
-from mpm_monitor.arx import lag_matrix  # noqa: E402
-from mpm_monitor.closed_loop import run_closed_loop  # noqa: E402
-from mpm_monitor.data_io import LoggedData  # noqa: E402
-from mpm_monitor.discretize import simulate_state_space, state_space  # noqa: E402
-from mpm_monitor.incremental import SlidingWindowAnalyzer, window_regressions  # noqa: E402
-from mpm_monitor.model import FopdtModel  # noqa: E402
-from mpm_monitor.signals import LoopSignals, compute_signals, initial_transient  # noqa: E402
+from mpm_monitor.core.analysis import AnalysisOptions, QrRegressions, analyze, regression_layout  # noqa: E402
+from mpm_monitor.core.arx import lag_matrix  # noqa: E402
+from mpm_monitor.sim.closed_loop import run_closed_loop  # noqa: E402
+from mpm_monitor.core.logged_data import LoggedData  # noqa: E402
+from mpm_monitor.core.discretize import simulate_state_space, state_space  # noqa: E402
+from mpm_monitor.core.incremental import SlidingWindowAnalyzer, window_regressions  # noqa: E402
+from mpm_monitor.core.model import FopdtModel  # noqa: E402
+from mpm_monitor.core.signals import LoopSignals, compute_signals, initial_transient  # noqa: E402
 
 #: Targets of issue 8 (this machine, 2 cores).
 TARGET_FULL_20X20_10K_S = 0.5
@@ -198,9 +200,9 @@ def _qr_regressions(model, data, sig, options) -> QrRegressions:
 
 def _xcorr():
     try:
-        from mpm_monitor.baselines import cross_correlation_test
+        from mpm_monitor.core.baselines import cross_correlation_test
     except ImportError as exc:
-        return None, f"mpm_monitor.baselines.cross_correlation_test not available ({exc})"
+        return None, f"mpm_monitor.core.baselines.cross_correlation_test not available ({exc})"
     return cross_correlation_test, ""
 
 

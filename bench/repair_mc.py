@@ -20,12 +20,11 @@ import collections
 import statistics
 import time
 
-import mpm_monitor  # noqa: F401  (limits BLAS threads before numpy loads)
 import numpy as np
 
-from mpm_monitor.analysis import AnalysisOptions, analyze
-from mpm_monitor.closed_loop import run_closed_loop
-from mpm_monitor.data_io import LoggedData
+from mpm_monitor.core.analysis import AnalysisOptions, analyze
+from mpm_monitor.sim.closed_loop import run_closed_loop
+from mpm_monitor.core.logged_data import LoggedData
 
 from . import write_json
 from .scenarios import KINDS, ScenarioOptions, make_scenario

@@ -1,7 +1,7 @@
 """Validation of the repair (issue 5) over scenarios and seeds: the figures behind test_repair.py.
 
 For every scenario and seed: closed-loop data with the paper's noise and PRBS setpoints, the true
-located elements passed to :func:`mpm_monitor.repair.repair_model`, and the acceptance criteria of
+located elements passed to :func:`mpm_monitor.core.repair.repair_model`, and the acceptance criteria of
 issue 5 checked (kind; error after <= half before and <= 1.05 x noise floor on affected outputs;
 unaffected outputs within 5 %; gain and time constant within 10 %, delay within one sample; no
 other element touched; the step disturbance reported and nothing changed for it).
@@ -20,11 +20,11 @@ import time
 
 import numpy as np
 
-from mpm_monitor.cases import paper_case, shell_plant
-from mpm_monitor.closed_loop import run_closed_loop
-from mpm_monitor.data_io import LoggedData
-from mpm_monitor.repair import repair_model
-from mpm_monitor.signals import compute_signals
+from mpm_monitor.sim.cases import paper_case, shell_plant
+from mpm_monitor.sim.closed_loop import run_closed_loop
+from mpm_monitor.core.logged_data import LoggedData
+from mpm_monitor.core.repair import repair_model
+from mpm_monitor.core.signals import compute_signals
 
 SCENARIOS = ("missing", "delay", "time_constant", "gain", "step", "gain+step", "3.2", "3.3")
 

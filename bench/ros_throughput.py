@@ -7,7 +7,7 @@ Run::
 
 Each measurement builds the four nodes (plant, setpoint, MPC, monitor) on a private context
 (``ROS_AUTOMATIC_DISCOVERY_RANGE=OFF``) in one process and one executor
-(:class:`mpm_monitor.demo.Suite`), waits for discovery, then times the lock-step loop from the
+(:class:`mpm_monitor.apps.demo.Suite`), waits for discovery, then times the lock-step loop from the
 plant's first sample until the plant has applied its last input and the monitor holds every sample
 in its window.  Per sample the loop carries ``/clock``, ``setpoint``, ``output`` and ``input``
 through real rclpy publishers and subscriptions (Fast DDS, intra-process), and the MPC solves its
@@ -15,7 +15,7 @@ control law.  ``dropped`` is the number of samples the monitor did not complete 
 samples completed, which includes any gap); it must be 0.
 
 * size 3: paper case 3.2 (Shell 3x3, Hp = 100, Hc = 30);
-* size 10: a 10x10 FOPDT model (:func:`mpm_monitor.demo.square_model`), same tuning.
+* size 10: a 10x10 FOPDT model (:func:`mpm_monitor.apps.demo.square_model`), same tuning.
 
 By default the monitor only windows the data during the timed loop (its analysis is switched
 off), which isolates the transport; ``--with-analysis`` lets it analyse every 1000 samples in its
@@ -34,7 +34,7 @@ import statistics
 import sys
 from typing import Optional, Sequence
 
-from mpm_monitor.demo import measure_throughput
+from mpm_monitor.apps.demo import measure_throughput
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

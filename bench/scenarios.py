@@ -31,7 +31,7 @@ Distribution (:class:`ScenarioOptions` holds every number):
 * excitation: PRBS setpoints of amplitude 1 switching with probability 1/2 (0 to Nyquist, as in the
   paper) on every output; in a fraction ``dither_fraction`` (default 0.3) of the runs an additive
   PRBS input dither of amplitude 0.1 on every input (the paper's second experiment, case 3.3);
-* noise: :class:`~mpm_monitor.plant.DisturbanceOptions` defaults (the paper's: disturbance white
+* noise: :class:`~mpm_monitor.sim.plant.DisturbanceOptions` defaults (the paper's: disturbance white
   noise std 7.5e-3 through z/(z - 0.95), measurement noise std 5e-3).
 
 Ground truth of collinearity: with more inputs than outputs and no dither the inputs are driven by
@@ -50,11 +50,11 @@ from typing import Optional
 import numpy as np
 import scipy.linalg as sla
 
-from mpm_monitor.closed_loop import ExcitationOptions
-from mpm_monitor.excitation import PrbsOptions
-from mpm_monitor.model import FopdtModel
-from mpm_monitor.mpc import MpcOptions
-from mpm_monitor.plant import DisturbanceOptions
+from mpm_monitor.sim.closed_loop import ExcitationOptions
+from mpm_monitor.sim.excitation import PrbsOptions
+from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.sim.mpc import MpcOptions
+from mpm_monitor.sim.plant import DisturbanceOptions
 
 KINDS = ("gain", "time_constant", "delay", "missing", "mixed")
 
@@ -175,7 +175,7 @@ class Scenario:
     excitation : ExcitationOptions
     disturbance : DisturbanceOptions
     loop_seed : int
-        Seed of :func:`mpm_monitor.closed_loop.run_closed_loop`.
+        Seed of :func:`mpm_monitor.sim.closed_loop.run_closed_loop`.
     """
 
     seed: int

@@ -39,8 +39,8 @@ def main(argv=None) -> int:
     import rclpy
     from rclpy.context import Context
 
-    from mpm_monitor.demo import DiagnosticsPrinter, Suite, private_context
-    from mpm_monitor.errors import InputError
+    from mpm_monitor.apps.demo import DiagnosticsPrinter, Suite, private_context
+    from mpm_monitor.core.errors import InputError
 
     params = load_params_file(args.params or case_params_file(args.case))
     if args.samples is not None:

@@ -1,8 +1,11 @@
-"""``python -m mpm_monitor <command>``: see :mod:`mpm_monitor.cli`."""
+"""``python -m mpm_monitor <command>``: see :mod:`mpm_monitor.apps.cli`."""
 
 import sys
 
-from .cli import main
+from . import limit_blas_threads
 
 if __name__ == "__main__":
+    limit_blas_threads()
+    from .apps.cli import main
+
     sys.exit(main())

@@ -11,13 +11,15 @@ import sys
 import numpy as np
 import pytest
 
-from mpm_monitor.analysis import AnalysisOptions, analyze
-from mpm_monitor.cases import paper_case
-from mpm_monitor.closed_loop import ExcitationOptions, run_closed_loop
-from mpm_monitor.data_io import LoggedData, write_log_csv
-from mpm_monitor.errors import ConfigurationError, DataFileError
-from mpm_monitor.excitation import PrbsOptions
-from mpm_monitor.model import FopdtModel, save_model
+from mpm_monitor.core.analysis import AnalysisOptions, analyze
+from mpm_monitor.sim.cases import paper_case
+from mpm_monitor.sim.closed_loop import ExcitationOptions, run_closed_loop
+from mpm_monitor.core.logged_data import LoggedData
+from mpm_monitor.io.csv_log import write_log_csv
+from mpm_monitor.core.errors import ConfigurationError, DataFileError
+from mpm_monitor.sim.excitation import PrbsOptions
+from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.io.model_file import save_model
 
 FAST = AnalysisOptions(repair=False)
 
@@ -218,7 +220,7 @@ def test_constrained_mpc_with_active_bounds_locates_exactly():
 
 def test_strongly_coloured_disturbance_keeps_the_level_and_the_location():
     """A disturbance pole of 0.99 (the paper assumes 0.95): case 3.1 flags nothing, 3.2 is exact."""
-    from mpm_monitor.plant import DisturbanceOptions
+    from mpm_monitor.sim.plant import DisturbanceOptions
 
     slow = DisturbanceOptions(disturbance_std=7.5e-3, disturbance_pole=0.99, noise_std=5e-3)
     for name in ("3.1", "3.2"):

@@ -1,7 +1,7 @@
 """Bag reading (issue 6): a synthetic rosbag2 written with the rosbags Writer reads back exactly.
 
 The bags here are written with ``rosbags.rosbag2.Writer`` (MCAP, metadata version 9) from known
-samples, independently of :class:`mpm_monitor.bag_io.BagWriter`.  Every malformed bag must raise
+samples, independently of :class:`mpm_monitor.io.bags.BagWriter`.  Every malformed bag must raise
 :class:`BagError` with one line that names the bag and, where it is about one topic, the topic.
 """
 
@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 
-from mpm_monitor import bag_io
-from mpm_monitor.bag_io import (BagWriter, export_csv, read_bag, read_bag_channels, read_diagnostics,
-                                read_raw_messages)
-from mpm_monitor.cli import main as cli_main
-from mpm_monitor.data_io import read_csv
-from mpm_monitor.errors import BagError
-from mpm_monitor.model import FopdtModel, save_model
+from mpm_monitor.io import bags as bag_io
+from mpm_monitor.io.bags import (BagWriter, export_csv, read_bag, read_bag_channels, read_diagnostics, read_raw_messages)
+from mpm_monitor.apps.cli import main as cli_main
+from mpm_monitor.io.csv_log import read_csv
+from mpm_monitor.core.errors import BagError
+from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.io.model_file import save_model
 
 TS = bag_io.default_typestore()
 JS = TS.types["sensor_msgs/msg/JointState"]

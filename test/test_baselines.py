@@ -1,4 +1,4 @@
-"""Tests of the baseline element tests (mpm_monitor.baselines): size, power, shapes, error paths.
+"""Tests of the baseline element tests (mpm_monitor.core.baselines): size, power, shapes, error paths.
 
 Synthetic signals only (no MPC), so the whole file runs in a few seconds.  Size tests use
 binomial bounds: with ``R`` independent draws and true rate ``a`` the observed rate lies within
@@ -14,9 +14,8 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from mpm_monitor.baselines import (ElementTestResult, cross_correlation_test, fit_ar, holm_adjust, holm_reject,
-                                   input_separability, partial_correlation_test)
-from mpm_monitor.errors import ConfigurationError, InputError
+from mpm_monitor.core.baselines import (ElementTestResult, cross_correlation_test, fit_ar, holm_adjust, holm_reject, input_separability, partial_correlation_test)
+from mpm_monitor.core.errors import ConfigurationError, InputError
 
 TESTS = (cross_correlation_test, partial_correlation_test)
 

@@ -7,9 +7,9 @@ where there is one, the line and the column.
 import numpy as np
 import pytest
 
-from mpm_monitor.data_io import csv_header, parse_csv_text, read_csv, write_csv, write_log_csv
-from mpm_monitor.errors import DataFileError, InputError
-from mpm_monitor.model import FopdtModel
+from mpm_monitor.io.csv_log import csv_header, parse_csv_text, read_csv, write_csv, write_log_csv
+from mpm_monitor.core.errors import DataFileError, InputError
+from mpm_monitor.core.model import FopdtModel
 
 HEADER = "t,r_y1,r_y2,u1,u2,u3,y1,y2"
 
@@ -65,9 +65,9 @@ def test_write_read_round_trip_is_lossless(tmp_path, ts):
 
 
 def test_write_log_csv_round_trip(tmp_path):
-    from mpm_monitor.cases import paper_case
-    from mpm_monitor.closed_loop import run_closed_loop
-    from mpm_monitor.mpc import MpcOptions
+    from mpm_monitor.sim.cases import paper_case
+    from mpm_monitor.sim.closed_loop import run_closed_loop
+    from mpm_monitor.sim.mpc import MpcOptions
 
     case = paper_case("3.2")
     log = run_closed_loop(case.plant, case.model, 60, mpc=MpcOptions(prediction_horizon=30, control_horizon=5))

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from mpm_monitor.errors import ConfigurationError
-from mpm_monitor.excitation import PrbsGenerator, PrbsOptions, StepHoldGenerator, ZeroGenerator
+from mpm_monitor.core.errors import ConfigurationError
+from mpm_monitor.sim.excitation import PrbsGenerator, PrbsOptions, StepHoldGenerator, ZeroGenerator
 
 
 def _prbs(n, seed, channels=1, **kw):

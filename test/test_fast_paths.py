@@ -1,12 +1,12 @@
 """The fast paths of the batch analysis equal the reference paths they replace (issue 8).
 
 ``analyze(model, data, options)`` now simulates the model element by element
-(:func:`mpm_monitor.discretize.simulate_elements`) and solves the tests from Gram matrices built at
-once from the window (:func:`mpm_monitor.incremental.window_regressions`, with their shift structure:
-:func:`~mpm_monitor.incremental.lagged_cross_products`), refitting by QR any regression whose
+(:func:`mpm_monitor.core.discretize.simulate_elements`) and solves the tests from Gram matrices built at
+once from the window (:func:`mpm_monitor.core.incremental.window_regressions`, with their shift structure:
+:func:`~mpm_monitor.core.incremental.lagged_cross_products`), refitting by QR any regression whose
 conditioning is poor.  The references are the previous paths: the dense simulation of
-:func:`~mpm_monitor.discretize.state_space` (``scipy.signal.dlsim``) and
-:class:`~mpm_monitor.analysis.QrRegressions`.
+:func:`~mpm_monitor.core.discretize.state_space` (``scipy.signal.dlsim``) and
+:class:`~mpm_monitor.core.analysis.QrRegressions`.
 
 Tolerances: simulations 1e-12 of the largest output; cross products 1e-13 of the largest entry;
 the analysis as in test_incremental.py -- decisions (flagged rows, located / ambiguous elements,
@@ -22,16 +22,16 @@ import pytest
 import scipy.linalg as sla
 from scipy import signal as sps
 
-from mpm_monitor.analysis import AnalysisOptions, InputDesign, QrRegressions, analyze, regression_layout
-from mpm_monitor.arx import SharedBlockRegression, lag_matrix
-from mpm_monitor.cases import paper_case
-from mpm_monitor.closed_loop import ExcitationOptions, run_closed_loop
-from mpm_monitor.data_io import LoggedData
-from mpm_monitor.discretize import simulate_elements, simulate_state_space, state_space
-from mpm_monitor.excitation import PrbsOptions
-from mpm_monitor.incremental import (GramBlockRegression, GramFit, lagged_cross_products, window_regressions)
-from mpm_monitor.model import FopdtModel
-from mpm_monitor.signals import LoopSignals, compute_signals, initial_transient
+from mpm_monitor.core.analysis import AnalysisOptions, InputDesign, QrRegressions, analyze, regression_layout
+from mpm_monitor.core.arx import SharedBlockRegression, lag_matrix
+from mpm_monitor.sim.cases import paper_case
+from mpm_monitor.sim.closed_loop import ExcitationOptions, run_closed_loop
+from mpm_monitor.core.logged_data import LoggedData
+from mpm_monitor.core.discretize import simulate_elements, simulate_state_space, state_space
+from mpm_monitor.sim.excitation import PrbsOptions
+from mpm_monitor.core.incremental import (GramBlockRegression, GramFit, lagged_cross_products, window_regressions)
+from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.signals import LoopSignals, compute_signals, initial_transient
 
 FAST = AnalysisOptions(repair=False)
 

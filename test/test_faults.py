@@ -38,10 +38,11 @@ pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
-from mpm_monitor.demo import _overrides, private_context  # noqa: E402
-from mpm_monitor.model import FopdtModel, save_model  # noqa: E402
-from mpm_monitor.monitor_core import SUMMARY_NAME  # noqa: E402
-from mpm_monitor.ros_io import diagnostics_qos, make_executor, spin_until  # noqa: E402
+from mpm_monitor.apps.demo import _overrides, private_context  # noqa: E402
+from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.io.model_file import save_model  # noqa: E402
+from mpm_monitor.monitor.monitor_core import SUMMARY_NAME  # noqa: E402
+from mpm_monitor.nodes.ros_io import diagnostics_qos, make_executor, spin_until  # noqa: E402
 
 TS = 0.02
 NS = 1_000_000_000
@@ -287,7 +288,7 @@ def test_monitor_killed_and_restarted_starts_a_fresh_window(suite):
 
 
 def test_recorder_restarted_loses_nothing_it_received(suite, tmp_path):
-    from mpm_monitor.bag_io import read_raw_messages
+    from mpm_monitor.io.bags import read_raw_messages
     from mpm_monitor.nodes.recorder_node import RecorderNode
 
     topics = ["setpoint", "input", "output", "diagnostics"]
@@ -353,7 +354,7 @@ def test_a_monitor_killed_hard_leaves_no_analysis_process_behind(tmp_path):
     script = tmp_path / "analyzer_parent.py"
     script.write_text(
         "import time\n"
-        "from mpm_monitor.monitor_core import ProcessAnalyzer\n"
+        "from mpm_monitor.monitor.monitor_core import ProcessAnalyzer\n"
         "if __name__ == '__main__':\n"
         "    pa = ProcessAnalyzer(max)\n"
         "    print(pa(1, 2, 3), flush=True)\n"
@@ -399,8 +400,8 @@ def test_monitor_process_sigkilled_and_restarted_while_the_stack_publishes(tmp_p
     from rclpy.context import Context
     from sensor_msgs.msg import JointState
 
-    from mpm_monitor.demo import _env
-    from mpm_monitor.ros_io import VectorCodec, vector_qos
+    from mpm_monitor.apps.demo import _env
+    from mpm_monitor.nodes.ros_io import VectorCodec, vector_qos
 
     ts = 0.005
     model = FopdtModel(sample_time=ts, inputs=("u1", "u2"), outputs=("y1", "y2"), gain=[[1.0, 0.3], [0.2, 1.0]],

@@ -21,8 +21,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mpm_monitor.monitor_core import ERROR, OK, STALE, SUMMARY_NAME, WARN, row_status_name
-from mpm_monitor.window import SampleWindow, WindowOptions
+from mpm_monitor.monitor.monitor_core import ERROR, OK, STALE, SUMMARY_NAME, WARN, row_status_name
+from mpm_monitor.monitor.window import SampleWindow, WindowOptions
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -208,8 +208,9 @@ class Sent:
 
 @pytest.fixture
 def monitor(tmp_path):
-    from mpm_monitor.demo import _overrides, private_context
-    from mpm_monitor.model import FopdtModel, save_model
+    from mpm_monitor.apps.demo import _overrides, private_context
+    from mpm_monitor.core.model import FopdtModel
+    from mpm_monitor.io.model_file import save_model
     from mpm_monitor.nodes.monitor_node import MonitorNode
 
     path = tmp_path / "model.yaml"
@@ -336,7 +337,7 @@ def test_spinning_smoke_malformed_then_good(monitor):
     ``spin_once`` and the monitor ends OK with every good sample in its window."""
     from rclpy.node import Node
 
-    from mpm_monitor.ros_io import make_executor, spin_until, vector_qos
+    from mpm_monitor.nodes.ros_io import make_executor, spin_until, vector_qos
 
     node, analyses = monitor
     analyses.__class__ = GoodAnalyses

@@ -18,15 +18,15 @@ import numpy as np
 import pytest
 from scipy import signal as sps
 
-from mpm_monitor.analysis import AnalysisOptions, QrRegressions, analyze, regression_layout
-from mpm_monitor.arx import SharedBlockRegression, lag_matrix
-from mpm_monitor.cases import paper_case
-from mpm_monitor.closed_loop import ExcitationOptions, run_closed_loop
-from mpm_monitor.data_io import LoggedData
-from mpm_monitor.errors import ConfigurationError, DataFileError
-from mpm_monitor.incremental import (GramBlockRegression, GramFit, ModelPredictor, SlidingWindowAnalyzer)
-from mpm_monitor.model import FopdtModel
-from mpm_monitor.signals import LoopSignals, compute_signals
+from mpm_monitor.core.analysis import AnalysisOptions, QrRegressions, analyze, regression_layout
+from mpm_monitor.core.arx import SharedBlockRegression, lag_matrix
+from mpm_monitor.sim.cases import paper_case
+from mpm_monitor.sim.closed_loop import ExcitationOptions, run_closed_loop
+from mpm_monitor.core.logged_data import LoggedData
+from mpm_monitor.core.errors import ConfigurationError, DataFileError
+from mpm_monitor.core.incremental import GramBlockRegression, GramFit, ModelPredictor, SlidingWindowAnalyzer
+from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.signals import LoopSignals, compute_signals
 
 FAST = AnalysisOptions(repair=False, test_all_rows=True)
 

@@ -14,11 +14,10 @@ import types
 import numpy as np
 import pytest
 
-from mpm_monitor.cases import paper_case
-from mpm_monitor.errors import ConfigurationError
-from mpm_monitor.monitor_core import (ERROR, OK, STALE, SUMMARY_NAME, WARN, AnalysisWorker, MonitorCore,
-                                      MonitorOptions, run_analysis)
-from mpm_monitor.window import WindowOptions
+from mpm_monitor.sim.cases import paper_case
+from mpm_monitor.core.errors import ConfigurationError
+from mpm_monitor.monitor.monitor_core import (ERROR, OK, STALE, SUMMARY_NAME, WARN, AnalysisWorker, MonitorCore, MonitorOptions, run_analysis)
+from mpm_monitor.monitor.window import WindowOptions
 
 NS = 1_000_000_000
 MODEL = paper_case("3.2").model  # outputs y1..y3, inputs u1..u3, Ts = 1 s
@@ -217,7 +216,7 @@ def test_options_are_checked():
 
 def test_the_core_imports_without_rclpy():
     code = ("import sys; sys.modules['rclpy'] = None\n"
-            "import mpm_monitor.monitor_core, mpm_monitor.window, mpm_monitor.ros_io\n"
+            "import mpm_monitor.monitor.monitor_core, mpm_monitor.monitor.window, mpm_monitor.nodes.ros_io\n"
             "assert 'rclpy' not in [m for m in sys.modules if sys.modules[m] is not None]\n")
     subprocess.run([sys.executable, "-c", code], check=True)
 
@@ -231,8 +230,8 @@ REPAIR_SAMPLES = 1000
 @pytest.fixture(scope="module")
 def repaired_core():
     """(core, report) after one real analysis with the repair of 1000 samples of case 3.2 (seed 1)."""
-    from mpm_monitor.analysis import AnalysisOptions, analyze
-    from mpm_monitor.closed_loop import run_closed_loop
+    from mpm_monitor.core.analysis import AnalysisOptions, analyze
+    from mpm_monitor.sim.closed_loop import run_closed_loop
 
     case = paper_case("3.2")
     log = run_closed_loop(case.plant, case.model, REPAIR_SAMPLES, seed=1, mpc=case.mpc, excitation=case.excitation,
@@ -251,7 +250,7 @@ def repaired_core():
 
 
 def test_describe_change_names_only_the_changed_parameters_with_units():
-    from mpm_monitor.monitor_core import describe_change, row_repair_text
+    from mpm_monitor.monitor.monitor_core import describe_change, row_repair_text
 
     before = {"gain": 1.77, "time_constant": 45.0, "delay": 4.0}
     ch = {"output": "y1", "input": "u2", "applied": True, "before": before,
@@ -269,7 +268,7 @@ def test_describe_change_names_only_the_changed_parameters_with_units():
 
 
 def test_the_suggested_repair_is_in_the_row_statuses(repaired_core):
-    from mpm_monitor.monitor_core import describe_change
+    from mpm_monitor.monitor.monitor_core import describe_change
 
     c, rep = repaired_core
     assert sorted(rep.located_elements) == [("y1", "u2"), ("y1", "u3"), ("y2", "u1")]
@@ -325,7 +324,7 @@ def _with_repair(rep, changes, **doc):
 
 
 def test_the_held_out_verdicts(repaired_core):
-    from mpm_monitor.monitor_core import repair_verdict
+    from mpm_monitor.monitor.monitor_core import repair_verdict
 
     _, rep = repaired_core
     changes = rep.repair["changes"]
@@ -359,7 +358,7 @@ def test_without_the_repair_the_statuses_say_so_and_carry_no_repair_values():
 
 # ------------------------------------------------------------------------ writing the repaired model
 def test_write_repaired_model_writes_a_file_that_loads_as_the_repaired_model(repaired_core, tmp_path):
-    from mpm_monitor.model import load_model
+    from mpm_monitor.io.model_file import load_model
 
     c, rep = repaired_core
     path = tmp_path / "repaired.yaml"

@@ -1,7 +1,7 @@
 """The four nodes in one process and one executor, in simulated time (lock-step), isolated.
 
 Isolation: every test builds its own ``rclpy`` context with ``ROS_AUTOMATIC_DISCOVERY_RANGE=OFF``
-(:func:`mpm_monitor.demo.private_context`), so its nodes see each other and nothing else, and puts
+(:func:`mpm_monitor.apps.demo.private_context`), so its nodes see each other and nothing else, and puts
 its nodes in a namespace of its own.
 
 Acceptance (issue 4): within 3000 samples of simulated time the monitor's ``/diagnostics`` locate
@@ -25,14 +25,14 @@ from rclpy.node import Node  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 
-from mpm_monitor.analysis import AnalysisOptions, analyze  # noqa: E402
-from mpm_monitor.cases import paper_case  # noqa: E402
-from mpm_monitor.closed_loop import run_closed_loop  # noqa: E402
-from mpm_monitor.data_io import LoggedData  # noqa: E402
-from mpm_monitor.demo import Suite, case_parameters, private_context  # noqa: E402
-from mpm_monitor.errors import ConfigurationError  # noqa: E402
-from mpm_monitor.monitor_core import SUMMARY_NAME, row_status_name  # noqa: E402
-from mpm_monitor.ros_io import VectorCodec, diagnostics_qos, make_executor, spin_until, vector_qos  # noqa: E402
+from mpm_monitor.core.analysis import AnalysisOptions, analyze  # noqa: E402
+from mpm_monitor.sim.cases import paper_case  # noqa: E402
+from mpm_monitor.sim.closed_loop import run_closed_loop  # noqa: E402
+from mpm_monitor.core.logged_data import LoggedData  # noqa: E402
+from mpm_monitor.apps.demo import Suite, case_parameters, private_context  # noqa: E402
+from mpm_monitor.core.errors import ConfigurationError  # noqa: E402
+from mpm_monitor.monitor.monitor_core import SUMMARY_NAME, row_status_name  # noqa: E402
+from mpm_monitor.nodes.ros_io import VectorCodec, diagnostics_qos, make_executor, spin_until, vector_qos  # noqa: E402
 
 #: Samples of simulated time within which the monitor must have located the mismatch.
 SAMPLES = 3000
@@ -157,7 +157,7 @@ def _logged(log):
 
 
 def _monitor(ctx, namespace, **params):
-    from mpm_monitor.demo import _overrides
+    from mpm_monitor.apps.demo import _overrides
     from mpm_monitor.nodes.monitor_node import MonitorNode
 
     p = {"case": "3.2", "diagnostics_topic": "diagnostics"}
@@ -268,8 +268,9 @@ def test_a_bad_parameter_is_refused_with_its_name():
 
 def test_wall_clock_mode_runs_and_the_monitor_holds_the_setpoints(tmp_path):
     """Timer-driven plant and setpoints on the wall clock (50 Hz model), MPC and monitor holding setpoints."""
-    from mpm_monitor.demo import _overrides
-    from mpm_monitor.model import FopdtModel, save_model
+    from mpm_monitor.apps.demo import _overrides
+    from mpm_monitor.core.model import FopdtModel
+    from mpm_monitor.io.model_file import save_model
     from mpm_monitor.nodes.monitor_node import MonitorNode
     from mpm_monitor.nodes.mpc_node import MpcNode
     from mpm_monitor.nodes.plant_node import PlantNode
@@ -366,7 +367,7 @@ def test_write_repaired_model_service(tmp_path):
     from rclpy.parameter import Parameter
     from std_srvs.srv import Trigger
 
-    from mpm_monitor.model import load_model
+    from mpm_monitor.io.model_file import load_model
 
     case = paper_case("3.2")
     n = 1000

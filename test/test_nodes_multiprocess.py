@@ -22,8 +22,8 @@ pytestmark = pytest.mark.timeout(150)
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 
-from mpm_monitor.monitor_core import SUMMARY_NAME, row_status_name  # noqa: E402
-from mpm_monitor.ros_io import diagnostics_qos, make_executor, spin_until  # noqa: E402
+from mpm_monitor.monitor.monitor_core import SUMMARY_NAME, row_status_name  # noqa: E402
+from mpm_monitor.nodes.ros_io import diagnostics_qos, make_executor, spin_until  # noqa: E402
 from ros_domains import unique_domain  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -35,7 +35,7 @@ def domain_context(domain_id):
     import rclpy
     from rclpy.context import Context
 
-    from mpm_monitor.demo import _env
+    from mpm_monitor.apps.demo import _env
 
     ctx = Context()
     with _env({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(domain_id)}):
@@ -105,11 +105,11 @@ def test_separate_processes_locate_case_3_2():
 
 @pytest.mark.parametrize("case", ["3.1", "3.2", "3.3"])
 def test_case_params_files_match_the_paper_cases(case):
-    """config/case_<case>.yaml gives every node the numbers of mpm_monitor.cases (no drift)."""
+    """config/case_<case>.yaml gives every node the numbers of mpm_monitor.sim.cases (no drift)."""
     sys.path.insert(0, str(ROOT / "launch_scripts"))
     from _common import case_params_file, load_params_file
 
-    from mpm_monitor.demo import case_parameters
+    from mpm_monitor.apps.demo import case_parameters
 
     loaded = load_params_file(case_params_file(case))
     expected = case_parameters(case, seed=1)

@@ -14,14 +14,14 @@ import numpy as np
 import pytest
 from scipy.optimize import lsq_linear
 
-from mpm_monitor.cases import paper_case, shell_plant
-from mpm_monitor.closed_loop import ExcitationOptions, run_closed_loop, seeded_generators
-from mpm_monitor.discretize import simulate, state_space
-from mpm_monitor.errors import ConfigurationError
-from mpm_monitor.excitation import PrbsGenerator, PrbsOptions
-from mpm_monitor.model import FopdtModel
-from mpm_monitor.mpc import InternalModelMpc, MpcOptions
-from mpm_monitor.plant import DisturbanceOptions, PlantSimulator
+from mpm_monitor.sim.cases import paper_case, shell_plant
+from mpm_monitor.sim.closed_loop import ExcitationOptions, run_closed_loop, seeded_generators
+from mpm_monitor.core.discretize import simulate, state_space
+from mpm_monitor.core.errors import ConfigurationError
+from mpm_monitor.sim.excitation import PrbsGenerator, PrbsOptions
+from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.sim.mpc import InternalModelMpc, MpcOptions
+from mpm_monitor.sim.plant import DisturbanceOptions, PlantSimulator
 
 # osqp 1.x warns on every solve() that the default of raise_error will change; not what is tested here.
 pytestmark = pytest.mark.filterwarnings("ignore:The default value of raise_error:PendingDeprecationWarning")

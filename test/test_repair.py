@@ -1,4 +1,4 @@
-"""Tests of mpm_monitor.repair: trace the residual, re-estimate located elements, validate.
+"""Tests of mpm_monitor.core.repair: trace the residual, re-estimate located elements, validate.
 
 Acceptance scenarios (issue 5): closed-loop data from the simulator with the paper's noise
 (``DisturbanceOptions()``) and PRBS setpoints, a plant that differs from the model in a way
@@ -18,14 +18,13 @@ import json
 import numpy as np
 import pytest
 
-from mpm_monitor.cases import paper_case, shell_plant
-from mpm_monitor.closed_loop import run_closed_loop
-from mpm_monitor.data_io import LoggedData
-from mpm_monitor.errors import ConfigurationError, InputError
-from mpm_monitor.plant import DisturbanceOptions
-from mpm_monitor.repair import (RepairOptions, RepairResult, repair_model, sup_wald_p_value,
-                                unexplained_disturbance)
-from mpm_monitor.signals import compute_signals
+from mpm_monitor.sim.cases import paper_case, shell_plant
+from mpm_monitor.sim.closed_loop import run_closed_loop
+from mpm_monitor.core.logged_data import LoggedData
+from mpm_monitor.core.errors import ConfigurationError, InputError
+from mpm_monitor.sim.plant import DisturbanceOptions
+from mpm_monitor.core.repair import (RepairOptions, RepairResult, repair_model, sup_wald_p_value, unexplained_disturbance)
+from mpm_monitor.core.signals import compute_signals
 
 N_SAMPLES = 4000
 SEEDS = (11, 12)
@@ -317,8 +316,8 @@ def test_step_on_a_repaired_row_does_not_bias_the_element():
 def test_row_response_equals_the_state_space_simulation():
     """The element-wise row response used by the fit equals discretize.simulate (lags, static
     elements, a feed-through, a zero gain)."""
-    from mpm_monitor.discretize import simulate
-    from mpm_monitor.repair import _row_response
+    from mpm_monitor.core.discretize import simulate
+    from mpm_monitor.core.repair import _row_response
 
     sh = _shell().with_element(0, 1, gain=0.0).with_element(1, 2, time_constant=0.0, delay=2.0)
     sh = sh.with_element(2, 2, time_constant=0.0, delay=0.0)

@@ -1,7 +1,7 @@
 """Robustness of the file inputs (issue 7, item 2): model files, CSV logs, bags and the CLI.
 
 Property-based (hypothesis) over model files and CSV contents: whatever the bytes, the reader
-returns a valid object or raises its own :class:`~mpm_monitor.errors.InputError` subclass
+returns a valid object or raises its own :class:`~mpm_monitor.core.errors.InputError` subclass
 (``ModelFileError``/``DataFileError``, both ``ValueError``) with exactly one line that starts with
 the file name and says where (key, line, byte); never any other exception.  The command line
 (``python -m mpm_monitor analyze``) turns every bad model, CSV or bag into exit code 2 and one line
@@ -24,11 +24,13 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mpm_monitor.bag_io import BagWriter, write_logged_data
-from mpm_monitor.cli import main as cli_main
-from mpm_monitor.data_io import LoggedData, csv_header, read_csv, write_csv
-from mpm_monitor.errors import DataFileError, InputError, ModelFileError
-from mpm_monitor.model import FopdtModel, dump_model, load_model, save_model
+from mpm_monitor.io.bags import BagWriter, write_logged_data
+from mpm_monitor.apps.cli import main as cli_main
+from mpm_monitor.core.logged_data import LoggedData
+from mpm_monitor.io.csv_log import csv_header, read_csv, write_csv
+from mpm_monitor.core.errors import DataFileError, InputError, ModelFileError
+from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.io.model_file import dump_model, load_model, save_model
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -258,7 +260,7 @@ def test_python_tags_are_refused_and_never_run(work):
         with pytest.raises(ModelFileError, match=r"line 1.*python/object") as info:
             load_model(path)
         assert_one_line_error(info.value, path)
-    path.write_text("!!python/object:mpm_monitor.model.FopdtModel {sample_time: 1}\n", encoding="utf-8")
+    path.write_text("!!python/object:mpm_monitor.core.model.FopdtModel {sample_time: 1}\n", encoding="utf-8")
     with pytest.raises(ModelFileError, match=r"python/object"):
         load_model(path)
     assert not marker.exists()
@@ -422,7 +424,7 @@ def files(work):
     out["missing_dir"] = d / "missing_dir"
     # wrong schema: /output is a String topic
     wrong = BagWriter(d / "wrong_schema", fsync=False)
-    from mpm_monitor.bag_io import default_typestore, joint_state_cdr
+    from mpm_monitor.io.bags import default_typestore, joint_state_cdr
     ts = default_typestore()
     for t in ("/setpoint", "/input"):
         wrong.add_topic(t, "sensor_msgs/msg/JointState")

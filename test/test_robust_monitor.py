@@ -2,12 +2,12 @@
 
 Three levels, fastest first:
 
-* the sample aligner (:class:`~mpm_monitor.window.SampleWindow`), fed stamps in integer
+* the sample aligner (:class:`~mpm_monitor.monitor.window.SampleWindow`), fed stamps in integer
   nanoseconds: NaN/Inf, wrong lengths, stamps out of order, duplicated, far in the future or past,
   gaps, a publisher restart (stamps jump back or move to a new grid phase).  Invariant checked on
   every window handed to the analysis: equally spaced stamps on one grid, finite values, each
   sample's values those sent for that stamp (nothing interpolated, nothing mis-aligned);
-* the monitor core (:class:`~mpm_monitor.monitor_core.MonitorCore`) with an injected wall clock:
+* the monitor core (:class:`~mpm_monitor.monitor.monitor_core.MonitorCore`) with an injected wall clock:
   which status says what, STALE naming the silent topic, ERROR with the reason, recovery;
 * the node (:class:`~mpm_monitor.nodes.monitor_node.MonitorNode`) in a private context, its
   subscription callbacks called directly with constructed ``JointState`` messages (wrong names,
@@ -17,9 +17,8 @@ Three levels, fastest first:
 import numpy as np
 import pytest
 
-from mpm_monitor.monitor_core import (ERROR, OK, STALE, SUMMARY_NAME, WARN, AnalysisOutcome, MonitorCore,
-                                      MonitorOptions, row_status_name)
-from mpm_monitor.window import SampleWindow, WindowOptions
+from mpm_monitor.monitor.monitor_core import (ERROR, OK, STALE, SUMMARY_NAME, WARN, AnalysisOutcome, MonitorCore, MonitorOptions, row_status_name)
+from mpm_monitor.monitor.window import SampleWindow, WindowOptions
 
 NS = 1_000_000_000
 OUT = ("y1", "y2")
@@ -230,7 +229,7 @@ class FakeReport:
 
 
 def make_core(**kw):
-    from mpm_monitor.model import FopdtModel
+    from mpm_monitor.core.model import FopdtModel
 
     model = FopdtModel(sample_time=1.0, inputs=INP, outputs=OUT, gain=np.ones((2, 3)),
                        time_constant=np.ones((2, 3)), delay=np.zeros((2, 3)))
@@ -336,7 +335,7 @@ def test_a_restart_is_reported_and_the_next_analysis_sees_only_the_new_stream():
 
 
 def test_an_analysis_that_raises_is_error_with_the_reason_and_the_core_goes_on():
-    from mpm_monitor.monitor_core import run_analysis
+    from mpm_monitor.monitor.monitor_core import run_analysis
 
     c = make_core()
     now = 0.0
@@ -362,8 +361,8 @@ def test_an_analysis_that_raises_is_error_with_the_reason_and_the_core_goes_on()
 def test_a_sentinel_value_like_1e308_is_error_not_a_silent_all_clear():
     """Finite but absurd values (a sensor's 'bad value' sentinel) pass the aligner; the analysis
     refuses them with the channel and time instead of returning a meaningless no-mismatch."""
-    from mpm_monitor.analysis import AnalysisOptions, analyze
-    from mpm_monitor.monitor_core import run_analysis
+    from mpm_monitor.core.analysis import AnalysisOptions, analyze
+    from mpm_monitor.monitor.monitor_core import run_analysis
 
     c = make_core(window_samples=300, min_samples=200, analysis_period=100)
     rng = np.random.default_rng(0)
@@ -400,7 +399,7 @@ def _fake_analyze(model, data, options):
 
 @pytest.fixture
 def ros_context():
-    from mpm_monitor.demo import private_context
+    from mpm_monitor.apps.demo import private_context
 
     ctx = private_context()
     yield ctx
@@ -408,7 +407,7 @@ def ros_context():
 
 
 def _monitor_node(ctx, model_file, **params):
-    from mpm_monitor.demo import _overrides
+    from mpm_monitor.apps.demo import _overrides
     from mpm_monitor.nodes.monitor_node import MonitorNode
 
     p = {"model_file": str(model_file), "diagnostics_topic": "diagnostics", "window_samples": 50,
@@ -419,7 +418,8 @@ def _monitor_node(ctx, model_file, **params):
 
 @pytest.fixture
 def model_file(tmp_path):
-    from mpm_monitor.model import FopdtModel, save_model
+    from mpm_monitor.core.model import FopdtModel
+    from mpm_monitor.io.model_file import save_model
 
     path = tmp_path / "model.yaml"
     save_model(FopdtModel(sample_time=1.0, inputs=INP, outputs=OUT, gain=np.ones((2, 3)),
@@ -479,8 +479,8 @@ def test_node_refuses_malformed_messages_with_the_reason_and_recovers(ros_contex
 
 def test_model_file_that_fails_to_load_is_error_with_the_reason_then_loads_when_fixed(ros_context, model_file,
                                                                                          tmp_path):
-    from mpm_monitor.monitor_core import SUMMARY_NAME as SUMMARY
-    from mpm_monitor.ros_io import diagnostics_qos, make_executor, spin_until
+    from mpm_monitor.monitor.monitor_core import SUMMARY_NAME as SUMMARY
+    from mpm_monitor.nodes.ros_io import diagnostics_qos, make_executor, spin_until
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.node import Node
 
@@ -560,7 +560,7 @@ def _analysis_in_child(model, data, options):
 def test_the_analysis_process_dying_is_an_error_and_the_next_analysis_gets_a_new_one():
     import os
 
-    from mpm_monitor.monitor_core import ProcessAnalyzer
+    from mpm_monitor.monitor.monitor_core import ProcessAnalyzer
 
     pa = ProcessAnalyzer(_analysis_in_child)
     try:

@@ -5,9 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from mpm_monitor.errors import ConfigurationError, InputError
-from mpm_monitor.ros_io import (MessageError, ParamSpec, VectorCodec, ns_to_stamp, period_ns, resolve_model,
-                                sample_stamp_ns, seconds_to_stamp, stamp_to_ns, stamp_to_seconds)
+from mpm_monitor.core.errors import ConfigurationError, InputError
+from mpm_monitor.nodes.ros_io import (MessageError, ParamSpec, VectorCodec, ns_to_stamp, period_ns, resolve_model, sample_stamp_ns, seconds_to_stamp, stamp_to_ns, stamp_to_seconds)
 
 sensor_msgs = pytest.importorskip("sensor_msgs.msg")
 
@@ -79,7 +78,7 @@ def test_stamps_are_exact_integer_nanoseconds_on_the_grid():
 def test_qos_profiles_follow_the_contract():
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy
 
-    from mpm_monitor.ros_io import diagnostics_qos, vector_qos
+    from mpm_monitor.nodes.ros_io import diagnostics_qos, vector_qos
 
     q = vector_qos()
     assert (q.reliability, q.history, q.depth, q.durability) == (
@@ -106,8 +105,8 @@ def test_declared_parameters_carry_type_description_and_range():
     from rcl_interfaces.msg import ParameterType
     from rclpy.node import Node
 
-    from mpm_monitor.demo import private_context
-    from mpm_monitor.ros_io import declare_parameters
+    from mpm_monitor.apps.demo import private_context
+    from mpm_monitor.nodes.ros_io import declare_parameters
 
     ctx = private_context()
     try:
@@ -137,7 +136,7 @@ def test_declared_parameters_carry_type_description_and_range():
 
 
 def test_resolve_model_from_case_or_file(tmp_path):
-    from mpm_monitor.model import save_model
+    from mpm_monitor.io.model_file import save_model
 
     plant = resolve_model("", "3.2", which="plant")
     model = resolve_model("", "3.2")

@@ -6,8 +6,8 @@ Pure Python: no rclpy; stamps are passed in as integer nanoseconds.
 import numpy as np
 import pytest
 
-from mpm_monitor.errors import ConfigurationError
-from mpm_monitor.window import SampleWindow, WindowOptions
+from mpm_monitor.core.errors import ConfigurationError
+from mpm_monitor.monitor.window import SampleWindow, WindowOptions
 
 NS = 1_000_000_000
 OUT = ("y1", "y2")

@@ -1,8 +1,8 @@
 """Live monitor node: setpoint, input and output in; ``/diagnostics`` and row RSI out.
 
-Wraps :class:`~mpm_monitor.monitor_core.MonitorCore` (window, schedule, statuses) and
-:class:`~mpm_monitor.monitor_core.AnalysisWorker` (the analysis of
-:func:`mpm_monitor.analysis.analyze` in a background thread).  The subscription callbacks only
+Wraps :class:`~mpm_monitor.monitor.monitor_core.MonitorCore` (window, schedule, statuses) and
+:class:`~mpm_monitor.monitor.monitor_core.AnalysisWorker` (the analysis of
+:func:`mpm_monitor.core.analysis.analyze` in a background thread).  The subscription callbacks only
 decode and append to the window, so no sample waits for an analysis; every ``analysis_period``
 completed samples the window is copied and handed to the worker, and its result comes back
 through a short steady-clock timer and is published on ``/diagnostics`` (CONTRACTS section 4) and as a
@@ -12,7 +12,7 @@ came for ``stale_timeout`` seconds; bad messages (wrong channel names, lengths, 
 off-grid or conflicting stamps) make the summary ERROR with the reason.
 
 With ``repair`` (the default) each analysis also traces the located elements to their kind and
-re-estimates them (:mod:`mpm_monitor.repair`); the statuses carry the suggested repair, and the
+re-estimates them (:mod:`mpm_monitor.core.repair`); the statuses carry the suggested repair, and the
 ``std_srvs/Trigger`` service ``~/write_repaired_model`` writes the latest repaired model to the file
 named by the parameter ``repaired_model_file`` (atomically; ``success`` false with the reason when
 there is no analysis yet, no change to write, or the write fails).
@@ -35,12 +35,10 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from std_srvs.srv import Trigger
 
-from ..errors import ModelFileError
-from ..monitor_core import (ERROR, SUMMARY_NAME, AnalysisWorker, MonitorCore, MonitorOptions, ProcessAnalyzer, StatusData,
-                           run_analysis)
-from ..ros_io import (MODEL_PARAMS, MessageError, ParamSpec, VectorCodec, declare_parameters, diagnostics_qos,
-                      resolve_model, run_node, vector_qos)
-from ..window import WindowOptions
+from ..core.errors import ModelFileError
+from ..monitor.monitor_core import (ERROR, SUMMARY_NAME, AnalysisWorker, MonitorCore, MonitorOptions, ProcessAnalyzer, StatusData, run_analysis)
+from .ros_io import (MODEL_PARAMS, MessageError, ParamSpec, VectorCodec, declare_parameters, diagnostics_qos, resolve_model, run_node, vector_qos)
+from ..monitor.window import WindowOptions
 
 #: Wall-clock seconds between two looks for finished analyses.
 RESULT_POLL_PERIOD = 0.02
@@ -92,8 +90,8 @@ PARAMS = MODEL_PARAMS + (
 
 
 def analysis_options_from_params(p: dict):
-    """:class:`~mpm_monitor.analysis.AnalysisOptions` from the node's parameter values."""
-    from ..analysis import AnalysisOptions
+    """:class:`~mpm_monitor.core.analysis.AnalysisOptions` from the node's parameter values."""
+    from ..core.analysis import AnalysisOptions
 
     return AnalysisOptions(na=p["na"], nb=p["nb"], alpha=p["alpha"], band=(p["band_low"], p["band_high"]),
                            n_freq=p["n_freq"], max_delay=None if p["max_delay"] < 0 else p["max_delay"],
@@ -101,7 +99,7 @@ def analysis_options_from_params(p: dict):
 
 
 def monitor_options_from_params(p: dict, hardware_id: str) -> MonitorOptions:
-    """:class:`~mpm_monitor.monitor_core.MonitorOptions` from the node's parameter values."""
+    """:class:`~mpm_monitor.monitor.monitor_core.MonitorOptions` from the node's parameter values."""
     window = WindowOptions(window_samples=p["window_samples"], reorder_samples=p["reorder_samples"],
                            stamp_tolerance=p["stamp_tolerance"], hold_setpoint=p["hold_setpoint"])
     return MonitorOptions(window=window, analysis_period=p["analysis_period"], min_samples=p["min_samples"],
@@ -109,7 +107,7 @@ def monitor_options_from_params(p: dict, hardware_id: str) -> MonitorOptions:
 
 
 def status_to_msg(s) -> DiagnosticStatus:
-    """A :class:`~mpm_monitor.monitor_core.StatusData` as ``diagnostic_msgs/DiagnosticStatus``."""
+    """A :class:`~mpm_monitor.monitor.monitor_core.StatusData` as ``diagnostic_msgs/DiagnosticStatus``."""
     return DiagnosticStatus(level=bytes([s.level]), name=s.name, message=s.message, hardware_id=s.hardware_id,
                             values=[KeyValue(key=k, value=v) for k, v in s.values])
 
@@ -122,7 +120,7 @@ class MonitorNode(Node):
     name : str
         Node name.
     analyze : callable, optional
-        ``analyze(model, data, options) -> report``; default :func:`mpm_monitor.analysis.analyze`
+        ``analyze(model, data, options) -> report``; default :func:`mpm_monitor.core.analysis.analyze`
         (injectable for tests of the plumbing).
     **kwargs
         Passed to ``rclpy.node.Node`` (``context``, ``parameter_overrides``, ``cli_args``, ...).
@@ -134,7 +132,7 @@ class MonitorNode(Node):
         self.params = p
         self._process_analyzer = None
         if analyze is None:
-            from ..analysis import analyze
+            from ..core.analysis import analyze
             if p["analysis_process"] and p["analysis_thread"]:
                 self._process_analyzer = analyze = ProcessAnalyzer(analyze)
         self._analyze = analyze

@@ -1,6 +1,6 @@
 """MPC controller node: internal-model MPC from ``setpoint`` and ``output`` to ``input``.
 
-Wraps :class:`~mpm_monitor.mpc.InternalModelMpc`.  The controller computes ``u(k)`` once it holds
+Wraps :class:`~mpm_monitor.sim.mpc.InternalModelMpc`.  The controller computes ``u(k)`` once it holds
 the setpoint ``r(k)`` and the measurement ``y(k)`` with the same stamp (and the dither of that
 stamp when ``use_dither``), and publishes it with that stamp; vectors are buffered by stamp, so
 the arrival order of the topics does not matter and nothing is dropped.  With ``hold_setpoint``
@@ -26,10 +26,9 @@ import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from ..errors import ConfigurationError
-from ..mpc import InternalModelMpc, MpcOptions
-from ..ros_io import (MODEL_PARAMS, MessageError, ParamSpec, VectorCodec, declare_parameters, resolve_model, run_node,
-                      vector_qos)
+from ..core.errors import ConfigurationError
+from ..sim.mpc import InternalModelMpc, MpcOptions
+from .ros_io import (MODEL_PARAMS, MessageError, ParamSpec, VectorCodec, declare_parameters, resolve_model, run_node, vector_qos)
 
 PARAMS = MODEL_PARAMS + (
     ParamSpec("prediction_horizon", "int", 100, "Prediction horizon Hp, samples.", 1, 100000),
@@ -67,7 +66,7 @@ def _weight(values, n: int, name: str):
 
 
 def mpc_options_from_params(p: dict, n_outputs: int, n_inputs: int) -> MpcOptions:
-    """:class:`~mpm_monitor.mpc.MpcOptions` from the node's parameter values."""
+    """:class:`~mpm_monitor.sim.mpc.MpcOptions` from the node's parameter values."""
     return MpcOptions(prediction_horizon=p["prediction_horizon"], control_horizon=p["control_horizon"],
                       output_weight=_weight(p["output_weight"], n_outputs, "output_weight"),
                       input_weight=_weight(p["input_weight"], n_inputs, "input_weight"),

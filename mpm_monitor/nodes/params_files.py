@@ -1,6 +1,6 @@
 """The params files ``config/<node>.yaml``, generated from the nodes' declared parameters.
 
-Every node declares its parameters in a ``PARAMS`` tuple of :class:`~mpm_monitor.ros_io.ParamSpec`
+Every node declares its parameters in a ``PARAMS`` tuple of :class:`~mpm_monitor.nodes.ros_io.ParamSpec`
 (type, default, description, range); the files in ``config/`` are written from those tuples so
 that the documentation of a parameter can never drift from the code (a test compares them).
 
@@ -16,7 +16,7 @@ import sys
 import textwrap
 from pathlib import Path
 
-from ..model import yaml_number
+from ..io.model_file import yaml_number
 
 #: node name -> (module, title)
 NODES = {

@@ -1,6 +1,6 @@
 """Plant simulator node: a MIMO FOPDT plant with disturbance and noise, measured on ``output``.
 
-Wraps :class:`~mpm_monitor.plant.PlantSimulator`.  Two ways to run:
+Wraps :class:`~mpm_monitor.sim.plant.PlantSimulator`.  Two ways to run:
 
 * **lock-step** (``lock_step: true``, simulated time): the node owns the clock.  For sample ``k`` it
   publishes ``/clock = k * Ts`` and then ``y(k)`` stamped ``k * Ts``; when ``u(k)`` (stamped
@@ -26,10 +26,9 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 
-from ..closed_loop import seeded_generators
-from ..plant import DisturbanceOptions, PlantSimulator
-from ..ros_io import (MODEL_PARAMS, MessageError, ParamSpec, VectorCodec, declare_parameters, ns_to_stamp, period_ns,
-                      resolve_model, run_node, vector_qos)
+from ..sim.closed_loop import seeded_generators
+from ..sim.plant import DisturbanceOptions, PlantSimulator
+from .ros_io import (MODEL_PARAMS, MessageError, ParamSpec, VectorCodec, declare_parameters, ns_to_stamp, period_ns, resolve_model, run_node, vector_qos)
 
 PARAMS = MODEL_PARAMS + (
     ParamSpec("seed", "int", 1, "Seed of the disturbance and noise (same seed as a batch run gives the same data).",

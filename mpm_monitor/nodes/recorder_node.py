@@ -1,7 +1,7 @@
 """Recorder node: the contract topics, ``/diagnostics``, ``mpm_monitor/rsi`` and ``/clock`` to a rosbag2.
 
 The bag is a rosbag2 directory with MCAP storage and metadata version 9, written with ``rosbags``
-(:class:`~mpm_monitor.bag_io.BagWriter`) from the serialized bytes of ``raw=True`` subscriptions, so
+(:class:`~mpm_monitor.io.bags.BagWriter`) from the serialized bytes of ``raw=True`` subscriptions, so
 every message is stored exactly as its publisher sent it.  Each topic is stored with the QoS
 profiles its publishers really offer (``get_publishers_info_by_topic``), as ``ros2 bag record``
 does; the subscription itself is RELIABLE and VOLATILE (it matches every publisher but a
@@ -56,8 +56,8 @@ from rclpy.parameter import Parameter
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy)
 from rclpy.signals import SignalHandlerOptions
 
-from ..bag_io import BagWriter
-from ..errors import ConfigurationError, InputError
+from ..io.bags import BagWriter
+from ..core.errors import ConfigurationError, InputError
 
 #: Message types of the topics the project publishes (CONTRACTS section 4, DESIGN.md).
 KNOWN_TOPIC_TYPES = {

@@ -47,8 +47,8 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 
-from ..bag_io import DEFAULT_TOPICS, read_raw_messages, topic_name
-from ..errors import ConfigurationError, InputError
+from ..io.bags import DEFAULT_TOPICS, read_raw_messages, topic_name
+from ..core.errors import ConfigurationError, InputError
 from .recorder_node import message_class
 
 MODES = ("time", "clock")
@@ -99,7 +99,7 @@ class ReplaySchedule:
     Parameters
     ----------
     messages : sequence of RawMessage
-        In recording order (:func:`~mpm_monitor.bag_io.read_raw_messages`).
+        In recording order (:func:`~mpm_monitor.io.bags.read_raw_messages`).
     mode : {"time", "clock"}
     rate : float
         Speed factor (``time`` mode).
@@ -167,7 +167,7 @@ class ReplayNode(Node):
     Raises
     ------
     InputError
-        A bad parameter or an unreadable bag (:class:`~mpm_monitor.errors.BagError`).
+        A bad parameter or an unreadable bag (:class:`~mpm_monitor.core.errors.BagError`).
     """
 
     def __init__(self, bag=None, *, topics: Optional[Sequence[str]] = None, mode: Optional[str] = None,

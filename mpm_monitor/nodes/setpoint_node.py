@@ -1,7 +1,7 @@
 """Setpoint generator node: PRBS or step/hold setpoints on ``setpoint``, optional input dither on ``dither``.
 
-Wraps :class:`~mpm_monitor.excitation.PrbsGenerator` and
-:class:`~mpm_monitor.excitation.StepHoldGenerator`.  One setpoint vector (and one dither vector) per
+Wraps :class:`~mpm_monitor.sim.excitation.PrbsGenerator` and
+:class:`~mpm_monitor.sim.excitation.StepHoldGenerator`.  One setpoint vector (and one dither vector) per
 sample, triggered either
 
 * by the simulated clock (``trigger: clock``): a vector stamped ``k * Ts`` each time the clock
@@ -10,7 +10,7 @@ sample, triggered either
   clock that jumps back (a restarted plant) starts again from there, or
 * by a timer (``trigger: timer``) every ``Ts`` of the node's clock, stamped with that clock.
 
-With the same ``seed`` the PRBS equals the batch run's (:func:`~mpm_monitor.closed_loop.seeded_generators`).
+With the same ``seed`` the PRBS equals the batch run's (:func:`~mpm_monitor.sim.closed_loop.seeded_generators`).
 
 Parameters (all declared with type, description and range): see :data:`PARAMS`.
 """
@@ -25,11 +25,10 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 
-from ..closed_loop import seeded_generators
-from ..errors import ConfigurationError
-from ..excitation import PrbsGenerator, PrbsOptions, StepHoldGenerator
-from ..ros_io import (MODEL_PARAMS, ParamSpec, VectorCodec, declare_parameters, period_ns, resolve_model, run_node,
-                      stamp_to_ns, vector_qos)
+from ..sim.closed_loop import seeded_generators
+from ..core.errors import ConfigurationError
+from ..sim.excitation import PrbsGenerator, PrbsOptions, StepHoldGenerator
+from .ros_io import (MODEL_PARAMS, ParamSpec, VectorCodec, declare_parameters, period_ns, resolve_model, run_node, stamp_to_ns, vector_qos)
 
 PARAMS = MODEL_PARAMS + (
     ParamSpec("mode", "string", "prbs", "Setpoint signal: prbs (random binary, flat spectrum with "

@@ -36,7 +36,7 @@ from typing import Optional
 import numpy as np
 
 from .arx import SharedBlockRegression, estimate_delay_from_lags, fit_arx, lag_matrix
-from .data_io import LoggedData
+from .logged_data import LoggedData
 from .errors import ConfigurationError, DataFileError
 from .model import FopdtModel
 from .signals import INITIAL_STATE_CHOICES, LoopSignals, compute_signals
@@ -71,12 +71,12 @@ class AnalysisOptions:
     max_delay : int or None
         Largest dead time (samples) searched; default: the model's largest delay + 5, at least 10.
     initial_state : {"estimate", "zero"}
-        How the model output is started (:func:`mpm_monitor.signals.compute_signals`).
+        How the model output is started (:func:`mpm_monitor.core.signals.compute_signals`).
     method : {"arx", "xcorr", "pcorr"}
         Element test: the ARX Delta test (default), or a baseline: cross-correlation (Webber and
         Gupta 2008) or partial correlation (Badwe et al. 2009).
     repair : bool
-        Trace each located element to its kind and re-estimate it (:mod:`mpm_monitor.repair`).
+        Trace each located element to its kind and re-estimate it (:mod:`mpm_monitor.core.repair`).
     collinearity_threshold : float
         An input is not separable from the others (its elements are reported as ambiguous) when
         the variance-inflation factor of its lag block exceeds ``1 / collinearity_threshold``.
@@ -403,7 +403,7 @@ class QrRegressions:
     """The least-squares problems of the tests, built from the window's signals and factored by QR.
 
     This is the reference path, and the fallback of the default one: :func:`analyze` solves the
-    tests from the Gram matrices of the window (:func:`mpm_monitor.incremental.window_regressions`)
+    tests from the Gram matrices of the window (:func:`mpm_monitor.core.incremental.window_regressions`)
     and refits by this class every regression too ill-conditioned for the normal equations.  Pass
     an instance as ``analyze(..., regressions=...)`` to factor every regression by QR.
 
@@ -471,11 +471,11 @@ def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = Anal
     options : AnalysisOptions
     signals : LoopSignals, optional
         ``yhat``, ``d`` and ``eps`` of these samples, e.g. from a model run continuously since
-        before the window (:mod:`mpm_monitor.incremental`); default: recomputed from the data with
+        before the window (:mod:`mpm_monitor.core.incremental`); default: recomputed from the data with
         ``options.initial_state``.
     regressions : object, optional
         Provider of the tests' least-squares fits with the methods of :class:`QrRegressions`.
-        Default: :func:`mpm_monitor.incremental.window_regressions`, the fits solved from the Gram
+        Default: :func:`mpm_monitor.core.incremental.window_regressions`, the fits solved from the Gram
         matrices of the window's lagged signals, each regression whose condition bound exceeds
         1e3 (or whose residual is too small a part of its target) refitted by QR; the results equal
         those of :class:`QrRegressions` to about 1e-10.
@@ -519,7 +519,7 @@ def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = Anal
     if regressions is not None:
         regs = regressions
     else:
-        from .incremental import window_regressions      # imports this module
+        from .incremental import window_regressions  # imports this module
         regs = window_regressions(r, u, z, sig.d, layout, na, nb)
 
     # ---------------------------------------------------------------- S_Delta row test

@@ -4,11 +4,11 @@
 
 - ``report.html`` -- self-contained (figures embedded as base64 PNG): what was analysed, the row
   test (RSI per output), the located elements, the repair (parameters before and after, prediction
-  error before and after) and the warnings, with the figures of :mod:`mpm_monitor.plots`;
+  error before and after) and the warnings, with the figures of :mod:`mpm_monitor.io.plots`;
 - the same figures as PNG files (``sdelta.png``, ``elements.png``, ``steps.png``,
   ``residuals.png``) for slides and tickets.
 
-It reads the :class:`~mpm_monitor.analysis.AnalysisReport` attributes listed in docs/DESIGN.md:
+It reads the :class:`~mpm_monitor.core.analysis.AnalysisReport` attributes listed in docs/DESIGN.md:
 ``rows``, ``elements``, ``frequencies``, ``row_gains``, ``sigma_max``, ``repair``,
 ``repaired_model``, ``warnings`` (and ``overall_rsi``, ``arx_tables`` when present).
 """
@@ -22,8 +22,8 @@ import math
 from pathlib import Path
 
 from . import plots
-from .errors import InputError
-from .model import FopdtModel
+from ..core.errors import InputError
+from ..core.model import FopdtModel
 
 REPORT_FILE = "report.html"
 

@@ -1,8 +1,8 @@
 """The live monitor's logic, without ROS: sliding window -> analysis -> diagnostic statuses.
 
 :class:`MonitorCore` receives decoded vectors (stamp in nanoseconds, values in model order) and the
-wall-clock time of their arrival, keeps a :class:`~mpm_monitor.window.SampleWindow`, says when an
-analysis is due and on which data, turns an :class:`~mpm_monitor.analysis.AnalysisReport` (or an
+wall-clock time of their arrival, keeps a :class:`~mpm_monitor.monitor.window.SampleWindow`, says when an
+analysis is due and on which data, turns an :class:`~mpm_monitor.core.analysis.AnalysisReport` (or an
 error) into diagnostic statuses as plain data, and ages them to STALE when the data stop.
 :class:`AnalysisWorker` runs the analysis in a background thread so that the subscription callbacks
 never wait for it.  The ROS node (:mod:`mpm_monitor.nodes.monitor_node`) only converts messages
@@ -13,7 +13,7 @@ Statuses (CONTRACTS section 4): one per output, named ``mpm_monitor: row <output
 more, and one ``mpm_monitor: summary``.  Levels: OK (no mismatch), WARN (mismatch located), ERROR
 (bad input data or analysis failure), STALE (no fresh data).
 
-When the analysis includes the repair (:mod:`mpm_monitor.repair`, issue 5), the statuses carry the
+When the analysis includes the repair (:mod:`mpm_monitor.core.repair`, issue 5), the statuses carry the
 suggested repair: per row ``repair`` (e.g. ``u2: time_constant 45->60 s, delay 4->7 s; u3: gain
 3.5->5.88``), ``error_before`` / ``error_after`` (RMS of the one-step prediction error ``d = y -
 yhat`` over the window with the model as given / as repaired), the held-out errors, ``rsi_after``
@@ -39,8 +39,9 @@ from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 
-from .errors import ConfigurationError
-from .model import FopdtModel, save_model
+from ..core.errors import ConfigurationError
+from ..core.model import FopdtModel
+from ..io.model_file import save_model
 from .window import ERROR_KINDS, SampleWindow, WindowOptions
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
@@ -164,7 +165,7 @@ def _bool(b) -> str:
 #: Element parameters of a repair change, with their unit.
 _CHANGE_PARAMS = (("gain", ""), ("time_constant", " s"), ("delay", " s"))
 
-#: ``reason`` of a change the held-out validation refused (:func:`mpm_monitor.repair.repair_model`).
+#: ``reason`` of a change the held-out validation refused (:func:`mpm_monitor.core.repair.repair_model`).
 _REJECTED = "rejected by held-out validation"
 
 
@@ -292,7 +293,7 @@ def repair_verdict(report) -> RepairVerdict:
 
 
 def write_model_atomically(model: FopdtModel, path) -> Path:
-    """Write ``model`` (YAML, :func:`mpm_monitor.model.save_model`) to ``path`` through a temporary file.
+    """Write ``model`` (YAML, :func:`mpm_monitor.io.model_file.save_model`) to ``path`` through a temporary file.
 
     The file is written next to ``path``, flushed to disk and renamed over it, so a reader sees
     either the old file or the whole new one, never a partial one.  The mode of an existing file is
@@ -332,7 +333,7 @@ def write_model_atomically(model: FopdtModel, path) -> Path:
 def run_analysis(analyze: Callable, model: FopdtModel, options, job: AnalysisJob,
                  clock: Callable[[], float] = time.perf_counter) -> AnalysisOutcome:
     """Run ``analyze(model, job.data, options)`` and wrap its report or its error."""
-    from .data_io import check_scale
+    from ..core.logged_data import check_scale
 
     t0 = clock()
     try:
@@ -788,7 +789,7 @@ class ProcessAnalyzer:
     Parameters
     ----------
     analyze : callable
-        A picklable (module-level) function, e.g. :func:`mpm_monitor.analysis.analyze`.
+        A picklable (module-level) function, e.g. :func:`mpm_monitor.core.analysis.analyze`.
     """
 
     def __init__(self, analyze: Callable):

@@ -2,10 +2,10 @@
 
 A bag holds the stamped vectors ``setpoint``, ``input`` and ``output`` (``sensor_msgs/msg/JointState``:
 ``header.stamp`` = sample time, ``name`` = channel names, ``position`` = values).  :func:`read_bag`
-aligns them by stamp on the model's sample grid into a :class:`~mpm_monitor.data_io.LoggedData`, so
+aligns them by stamp on the model's sample grid into a :class:`~mpm_monitor.core.logged_data.LoggedData`, so
 ``analyze --bag`` and ``analyze --data`` see the same samples.  Anything that would silently
 mis-align the samples (a missing topic, wrong channel names, a gap, two messages for one sample) is
-refused with a :class:`~mpm_monitor.errors.BagError` of one line naming the bag and the topic.
+refused with a :class:`~mpm_monitor.core.errors.BagError` of one line naming the bag and the topic.
 
 :class:`BagWriter` writes a rosbag2 directory (MCAP storage, metadata version 9) message by message
 from serialized CDR bytes and can flush complete MCAP chunks to disk while recording; the
@@ -26,9 +26,10 @@ from typing import Iterator, Optional, Sequence
 
 import numpy as np
 
-from .data_io import LoggedData, write_csv
-from .errors import BagError, InputError
-from .model import FopdtModel
+from ..core.logged_data import LoggedData
+from .csv_log import write_csv
+from ..core.errors import BagError, InputError
+from ..core.model import FopdtModel
 
 #: Default names of the setpoint, input and output topics.
 DEFAULT_TOPICS = ("setpoint", "input", "output")
@@ -114,7 +115,7 @@ def open_reader(path):
         raise BagError(f"{path}: empty directory: expected a rosbag2 directory (metadata.yaml + storage file)")
     if not (path / "metadata.yaml").is_file():
         raise BagError(f"{path}: no metadata.yaml: not a rosbag2 directory, or its recorder was killed before "
-                       f"closing it (mpm_monitor.bag_io.recover_bag rewrites what it flushed)")
+                       f"closing it (mpm_monitor.io.bags.recover_bag rewrites what it flushed)")
     reader = AnyReader([path], default_typestore=default_typestore())
     try:
         reader.open()
@@ -380,7 +381,7 @@ def export_csv(bag, csv, model_path=None, topics: Sequence[str] = DEFAULT_TOPICS
         Number of samples written.
     """
     if model_path is not None:
-        from .model import load_model
+        from .model_file import load_model
 
         data = read_bag(bag, load_model(model_path), topics=topics, progress=progress)
     else:

@@ -600,5 +600,5 @@ def partial_correlation_test(d, u, alpha: float = 0.01, max_lag: Optional[int] =
                              ambiguous=ambiguous, separability=separability)
 
 
-#: Element tests by method name, as :func:`mpm_monitor.analysis.analyze` selects them.
+#: Element tests by method name, as :func:`mpm_monitor.core.analysis.analyze` selects them.
 ELEMENT_TESTS = {"xcorr": cross_correlation_test, "pcorr": partial_correlation_test}

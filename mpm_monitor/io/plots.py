@@ -10,7 +10,7 @@
   given and as repaired.
 
 Each function writes one PNG and returns its path (or None when there is nothing to draw).  They
-read an :class:`~mpm_monitor.analysis.AnalysisReport` through the attributes listed in
+read an :class:`~mpm_monitor.core.analysis.AnalysisReport` through the attributes listed in
 ``docs/DESIGN.md`` only, so any object with those attributes will do.
 """
 
@@ -21,7 +21,7 @@ from typing import Optional
 
 import numpy as np
 
-from .model import FopdtModel
+from ..core.model import FopdtModel
 
 #: Largest number of points drawn per time-series curve (longer records are decimated for drawing).
 MAX_POINTS = 20_000
@@ -188,7 +188,7 @@ def element_step(model: FopdtModel, i: int, j: int, n: int) -> np.ndarray:
     ``y(k)`` answers a unit step of input ``j`` applied from sample 0 (so ``y(0) = 0``: the
     output depends on inputs up to ``k - 1``, see docs/DESIGN.md).
     """
-    from .discretize import simulate
+    from ..core.discretize import simulate
 
     el = FopdtModel(sample_time=model.sample_time, inputs=(model.inputs[j],), outputs=(model.outputs[i],),
                     gain=[[model.gain[i, j]]], time_constant=[[model.time_constant[i, j]]],
@@ -295,8 +295,8 @@ def plot_step_responses(report, model: FopdtModel, path) -> Optional[Path]:
 
 
 def prediction_errors(model: FopdtModel, data, initial_state: str = "estimate") -> np.ndarray:
-    """``d = y - Phat u`` of shape (n_samples, n_outputs) (:func:`~mpm_monitor.signals.compute_signals`)."""
-    from .signals import compute_signals
+    """``d = y - Phat u`` of shape (n_samples, n_outputs) (:func:`~mpm_monitor.core.signals.compute_signals`)."""
+    from ..core.signals import compute_signals
 
     return compute_signals(model, data.r, data.u, data.y, initial_state=initial_state).d
 

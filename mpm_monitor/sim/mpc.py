@@ -20,9 +20,9 @@ from typing import Optional, Sequence, Union
 
 import numpy as np
 
-from .discretize import state_space
-from .errors import ConfigurationError
-from .model import FopdtModel
+from ..core.discretize import state_space
+from ..core.errors import ConfigurationError
+from ..core.model import FopdtModel
 from .plant import require_strictly_proper
 
 Weight = Union[float, Sequence[float]]

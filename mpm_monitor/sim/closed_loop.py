@@ -1,7 +1,7 @@
 """Batch closed loop: plant, MPC and excitation for N samples without ROS.
 
-The ROS nodes wrap the same objects (:class:`~mpm_monitor.plant.PlantSimulator`,
-:class:`~mpm_monitor.mpc.InternalModelMpc`, :class:`~mpm_monitor.excitation.PrbsGenerator`), so a
+The ROS nodes wrap the same objects (:class:`~mpm_monitor.sim.plant.PlantSimulator`,
+:class:`~mpm_monitor.sim.mpc.InternalModelMpc`, :class:`~mpm_monitor.sim.excitation.PrbsGenerator`), so a
 batch run and a run through the nodes with the same seeds produce the same samples.
 """
 
@@ -12,9 +12,9 @@ from typing import Optional
 
 import numpy as np
 
-from .errors import ConfigurationError
+from ..core.errors import ConfigurationError
 from .excitation import PrbsGenerator, PrbsOptions, ZeroGenerator
-from .model import FopdtModel
+from ..core.model import FopdtModel
 from .mpc import InternalModelMpc, MpcOptions
 from .plant import DisturbanceOptions, PlantSimulator
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from .closed_loop import ExcitationOptions
 from .excitation import PrbsOptions
-from .model import FopdtModel
+from ..core.model import FopdtModel
 from .mpc import MpcOptions
 from .plant import DisturbanceOptions
 

@@ -15,9 +15,9 @@ import dataclasses
 
 import numpy as np
 
-from .discretize import state_space
-from .errors import ConfigurationError
-from .model import FopdtModel
+from ..core.discretize import state_space
+from ..core.errors import ConfigurationError
+from ..core.model import FopdtModel
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,7 +99,7 @@ class PlantSimulator:
 
     @property
     def state(self) -> np.ndarray:
-        """Plant state of :func:`mpm_monitor.discretize.state_space`, shape (n_states,)."""
+        """Plant state of :func:`mpm_monitor.core.discretize.state_space`, shape (n_states,)."""
         return self._x.copy()
 
     def measure(self, extra: np.ndarray | None = None) -> np.ndarray:

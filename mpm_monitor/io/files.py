@@ -1,29 +1,8 @@
-"""Exception classes of mpm_monitor.
+"""Reading a user's text file with one-line errors."""
 
-Every error raised for bad input (a model file, a CSV log, a bag, a parameter) is a subclass of
-:class:`InputError`, itself a :class:`ValueError`, so the command-line tools can turn it into one
-line on stderr and exit code 2 instead of a traceback.
-"""
+from __future__ import annotations
 
-
-class InputError(ValueError):
-    """Bad input given by a user: the message names the file, line, key or topic."""
-
-
-class ModelFileError(InputError):
-    """A model file (CONTRACTS section 1) that cannot be used."""
-
-
-class DataFileError(InputError):
-    """A logged-data CSV file (CONTRACTS section 2) that cannot be used."""
-
-
-class BagError(InputError):
-    """A rosbag2 directory that cannot be read or does not hold the expected topics."""
-
-
-class ConfigurationError(InputError):
-    """An option or parameter value outside its allowed range."""
+from pathlib import Path
 
 
 def read_text(path, error_cls, kind: str, expected: str, encoding: str = "utf-8") -> str:
@@ -41,8 +20,6 @@ def read_text(path, error_cls, kind: str, expected: str, encoding: str = "utf-8"
     encoding : str
         "utf-8", or "utf-8-sig" to accept a byte-order mark.
     """
-    from pathlib import Path
-
     path = Path(path)
     try:
         raw = path.read_bytes()

@@ -24,7 +24,8 @@ from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 
-from .errors import ConfigurationError, InputError
+from .. import limit_blas_threads
+from ..core.errors import ConfigurationError, InputError
 
 NS_PER_S = 1_000_000_000
 
@@ -406,6 +407,7 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
     """
     import signal
 
+    limit_blas_threads()       # for the monitor's analysis process, started after this
     import rclpy
     from rclpy.context import Context
     from rclpy.signals import SignalHandlerOptions
@@ -454,8 +456,8 @@ def resolve_model(model_file: str, case: str, which: str = "model"):
     which : {"model", "plant"}
         The controller's model or the true plant of the case.
     """
-    from .cases import CASE_NAMES, paper_case
-    from .model import load_model
+    from ..sim.cases import CASE_NAMES, paper_case
+    from ..io.model_file import load_model
 
     if model_file:
         return load_model(model_file)

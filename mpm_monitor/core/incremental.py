@@ -1,7 +1,7 @@
 """Sliding-window mismatch analysis from sufficient statistics (issue 8).
 
 A live monitor analyses the last ``W`` samples every few seconds.  Refitting the tests of
-:func:`mpm_monitor.analysis.analyze` from scratch costs ``O(W p^2)`` per analysis, with ``p`` the
+:func:`mpm_monitor.core.analysis.analyze` from scratch costs ``O(W p^2)`` per analysis, with ``p`` the
 number of regressors (about 300 for a 20x20 plant).  :class:`SlidingWindowAnalyzer` instead keeps
 cross-product (Gram) matrices of the lagged regressors up to date as samples enter and leave the
 window, ``O(p^2)`` per sample, and an analysis solves the tests' least-squares problems from them in
@@ -10,7 +10,7 @@ window, ``O(p^2)`` per sample, and an analysis solves the tests' least-squares p
 What is kept
 ------------
 Two Gram matrices (with their column sums) over the regression rows of the window, i.e. the
-samples ``start .. W - 1`` of the window (:class:`~mpm_monitor.analysis.RegressionLayout`):
+samples ``start .. W - 1`` of the window (:class:`~mpm_monitor.core.analysis.RegressionLayout`):
 
 * S_Delta row test: the setpoints ``r_c(t - l)``, ``l = 0 .. n_lag_r - 1``, and for every output
   ``z_i(t - l)``, ``l = 0 .. na``, with ``z = eps - r`` (lag 0 is the target, lags >= 1 its own AR
@@ -20,11 +20,11 @@ samples ``start .. W - 1`` of the window (:class:`~mpm_monitor.analysis.Regressi
 
 Every row's regression is a sub-block of one of them, so the common block (lagged setpoints or
 lagged inputs) is factored once per window and each row adds its own columns by the
-Frisch-Waugh-Lovell partition of :class:`~mpm_monitor.arx.SharedBlockRegression`.
+Frisch-Waugh-Lovell partition of :class:`~mpm_monitor.core.arx.SharedBlockRegression`.
 
 A Gram matrix built from scratch uses the shift structure of lagged columns
 (:func:`lagged_cross_products`): ``O(W n_channels^2 n_lags)`` instead of ``O(W p^2)``.  The batch
-:func:`~mpm_monitor.analysis.analyze` builds both matrices this way for its window
+:func:`~mpm_monitor.core.analysis.analyze` builds both matrices this way for its window
 (:func:`window_regressions`) and solves its tests from them, with the same checks and QR fallback.
 
 Centring
@@ -59,7 +59,7 @@ The analyzer runs the controller's model ``Phat`` continuously from rest at the 
 depend on where the window starts -- as in the live loop, and unlike a batch analysis of a window
 cut out of a log, which restarts the model at the window's first sample.  The batch analysis of the
 same window is therefore ``analyze(model, data, options, signals=signals)`` with the signals of
-:func:`mpm_monitor.signals.compute_signals` (``initial_state="zero"``) run over every sample pushed
+:func:`mpm_monitor.core.signals.compute_signals` (``initial_state="zero"``) run over every sample pushed
 so far and cut to the window; :meth:`SlidingWindowAnalyzer.window_data` returns both.
 ``options.initial_state`` is not used.
 """
@@ -74,9 +74,9 @@ import scipy.linalg as sla
 from scipy import signal as sps
 from scipy.linalg import blas
 
-from .analysis import AnalysisOptions, AnalysisReport, QrRegressions, RegressionLayout, analyze, regression_layout
+from .analysis import (AnalysisOptions, AnalysisReport, QrRegressions, RegressionLayout, analyze, regression_layout)
 from .arx import RANK_TOLERANCE, ArxFit, SharedBlockRegression, SharedFit
-from .data_io import LoggedData
+from .logged_data import LoggedData
 from .discretize import discretize
 from .errors import ConfigurationError, DataFileError
 from .model import FopdtModel
@@ -98,11 +98,11 @@ class IllConditioned(ArithmeticError):
 class ModelPredictor:
     """The controller's model run sample by sample from rest: ``yhat = Phat u``.
 
-    Uses the element-wise form of :func:`mpm_monitor.discretize.discretize`::
+    Uses the element-wise form of :func:`mpm_monitor.core.discretize.discretize`::
 
         s_ij(k+1) = a_ij s_ij(k) + b_ij u_j(k - m_ij),    yhat_i(k) = sum_j s_ij(k) + D_ij u_j(k)
 
-    which is the dense realisation of :func:`~mpm_monitor.discretize.state_space` with its shift
+    which is the dense realisation of :func:`~mpm_monitor.core.discretize.state_space` with its shift
     registers replaced by a short input history: ``O(n_outputs n_inputs)`` per sample.
 
     Parameters
@@ -282,7 +282,7 @@ class LaggedGram:
     ----------
     groups : list of (str, int, sequence of int)
         ``(signal name, n_channels, lags)``; the columns are ordered group by group, channel by
-        channel, lag by lag (the order of :func:`mpm_monitor.arx.lag_matrix`).
+        channel, lag by lag (the order of :func:`mpm_monitor.core.arx.lag_matrix`).
     signals : callable
         ``signals(block)`` maps buffer rows ``[r | u | y | yhat]`` to a dict of the named signals.
 
@@ -482,7 +482,7 @@ def _stacked_gram(a: np.ndarray) -> np.ndarray:
 
 
 class GramBlockRegression(SharedBlockRegression):
-    """A :class:`~mpm_monitor.arx.SharedBlockRegression` built from the Gram matrix of its columns.
+    """A :class:`~mpm_monitor.core.arx.SharedBlockRegression` built from the Gram matrix of its columns.
 
     Parameters
     ----------
@@ -582,7 +582,7 @@ class GramFit(SharedFit):
 
     Notes
     -----
-    The quantities of :class:`~mpm_monitor.arx.SharedFit` follow from the partitioned factor
+    The quantities of :class:`~mpm_monitor.core.arx.SharedFit` follow from the partitioned factor
     ``[[R1, Q1' X_own], [0, R2]]``: ``Q1' X_own = R1^-T X_c' X_own``, ``R2' R2 = X_own' X_own -
     (Q1' X_own)' (Q1' X_own)``, ``Q1' y = R1^-T X_c' y``, ``Q2' y = R2^-T (X_own' y - (Q1' X_own)' Q1' y)``
     and ``RSS = y'y - ||[Q1' y; Q2' y]||^2``.  ``residuals`` is None.  The inverse factor
@@ -675,13 +675,13 @@ class GramFit(SharedFit):
 
 def gram_arx(gram: np.ndarray, sum_y: float, n: int, na: int, nb: int, nk: np.ndarray,
              max_condition: float = DEFAULT_MAX_CONDITION) -> ArxFit:
-    """:func:`mpm_monitor.arx.fit_arx` from the cross products of its columns.
+    """:func:`mpm_monitor.core.arx.fit_arx` from the cross products of its columns.
 
     Parameters
     ----------
     gram : ndarray, shape (p + 1, p + 1)
         Cross products of ``[-y(t-1) .. -y(t-na), u_1(t-nk_1) .. u_1(t-nk_1-nb+1), ..., y(t)]`` over
-        the fit's rows (the regressors of :func:`~mpm_monitor.arx.fit_arx`, then the target).
+        the fit's rows (the regressors of :func:`~mpm_monitor.core.arx.fit_arx`, then the target).
     sum_y : float
         Sum of the target over the rows.
     n : int
@@ -728,7 +728,7 @@ def gram_arx(gram: np.ndarray, sum_y: float, n: int, na: int, nb: int, nk: np.nd
 class GramRegressions:
     """The tests' least-squares problems solved from the Gram matrices of a window.
 
-    Has the methods of :class:`mpm_monitor.analysis.QrRegressions`, for
+    Has the methods of :class:`mpm_monitor.core.analysis.QrRegressions`, for
     ``analyze(..., regressions=...)``.  A regression whose condition bound exceeds ``max_condition``
     is refitted by that class from the window's signals.
 
@@ -871,7 +871,7 @@ def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
     """The tests' regressions on one window, from Gram matrices built at once (batch :func:`analyze`).
 
     Both Gram matrices are computed from the window's signals by :func:`lagged_cross_products`,
-    centred by the window means as :class:`~mpm_monitor.analysis.QrRegressions` centres its columns;
+    centred by the window means as :class:`~mpm_monitor.core.analysis.QrRegressions` centres its columns;
     every regression whose condition bound exceeds ``max_condition`` is refitted by QR (see the
     module docstring), so the results equal the QR path's to about ``max_condition^2 * 1e-16``.
 
@@ -925,7 +925,7 @@ class SlidingWindowAnalyzer:
     model : FopdtModel
         The controller's model ``Phat``; it is run from rest at the first pushed sample.
     options : AnalysisOptions
-        As for :func:`mpm_monitor.analysis.analyze` (``initial_state`` is not used).
+        As for :func:`mpm_monitor.core.analysis.analyze` (``initial_state`` is not used).
     window : int
         ``W``, the number of most recent samples analysed (at least the tests' minimum for this
         model and these options).
@@ -1135,7 +1135,7 @@ class SlidingWindowAnalyzer:
         return data, LoopSignals(yhat=yhat, d=d, eps=eps, transient=np.zeros_like(d))
 
     def analyze(self) -> AnalysisReport:
-        """The analysis of the current window (see :func:`mpm_monitor.analysis.analyze`).
+        """The analysis of the current window (see :func:`mpm_monitor.core.analysis.analyze`).
 
         Raises
         ------

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .analysis import AnalysisOptions, analyze, repair_summary_lines
-from .cases import paper_case
-from .closed_loop import run_closed_loop
-from .data_io import LoggedData
+from ..core.analysis import AnalysisOptions, analyze, repair_summary_lines
+from ..sim.cases import paper_case
+from ..sim.closed_loop import run_closed_loop
+from ..core.logged_data import LoggedData
 
 
 def simulate_case(case_name: str, samples: int, seed: int) -> tuple:
@@ -43,7 +43,7 @@ def format_arx_table(table) -> str:
 
 def save_sdelta_plots(report, directory, case_name: str) -> list:
     """Overall and per-row singular values of S_Delta with the identity line (paper Figs. 3-5)."""
-    from .plots import plot_sdelta
+    from ..io.plots import plot_sdelta
 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)

@@ -2,8 +2,8 @@
 
 ``yhat = Phat u`` (the model simulated from the data's start), ``d = y - yhat`` (prediction error)
 and ``eps = r - d`` (controller input), paper Fig. 1 and eq. (1), (9).  The model is simulated
-element by element (:func:`mpm_monitor.discretize.simulate_elements`, the exact ZOH equivalent of
-:func:`~mpm_monitor.discretize.state_space` at a fraction of the dense simulation's cost).
+element by element (:func:`mpm_monitor.core.discretize.simulate_elements`, the exact ZOH equivalent of
+:func:`~mpm_monitor.core.discretize.state_space` at a fraction of the dense simulation's cost).
 
 The model's state at the first logged sample is unknown when the log starts mid-operation.  With
 ``initial_state="estimate"`` the model is first simulated from rest; once the longest input lag

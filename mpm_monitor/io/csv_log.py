@@ -9,61 +9,18 @@ column, never silently mis-aligned.
 from __future__ import annotations
 
 import csv
-import dataclasses
 import io
 import math
 
 import numpy as np
 
-from .errors import DataFileError, read_text
-from .model import FopdtModel
+from ..core.errors import DataFileError
+from .files import read_text
+from ..core.logged_data import LoggedData
+from ..core.model import FopdtModel
 
 #: Relative tolerance on the sample spacing, as a fraction of the sample time.
 SPACING_TOLERANCE = 1e-3
-#: Largest |value| x max(1, |gain|) the analysis takes: its least-squares fits square the signals and
-#: float64 overflows near 1e308 (the results are scale-invariant up to about 1e150).
-MAX_ANALYSIS_SCALE = 1e150
-
-
-@dataclasses.dataclass
-class LoggedData:
-    """Setpoints, inputs and outputs of a closed-loop run.
-
-    Attributes
-    ----------
-    t : ndarray, shape (n_samples,)
-        Time in seconds, equally spaced by ``sample_time``.
-    r : ndarray, shape (n_samples, n_outputs)
-        Setpoints, columns in the model's output order.
-    u : ndarray, shape (n_samples, n_inputs)
-        Plant inputs, columns in the model's input order.
-    y : ndarray, shape (n_samples, n_outputs)
-        Measured outputs, columns in the model's output order.
-    inputs, outputs : tuple of str
-        Channel names.
-    sample_time : float
-        Seconds per sample.
-    source : str
-        Where the data came from (file name), for messages.
-    """
-
-    t: np.ndarray
-    r: np.ndarray
-    u: np.ndarray
-    y: np.ndarray
-    inputs: tuple
-    outputs: tuple
-    sample_time: float
-    source: str = ""
-
-    @property
-    def n_samples(self) -> int:
-        return int(self.t.shape[0])
-
-    def slice(self, start: int, stop: int) -> "LoggedData":
-        """Samples ``start:stop`` as a new object."""
-        return dataclasses.replace(self, t=self.t[start:stop], r=self.r[start:stop], u=self.u[start:stop],
-                                   y=self.y[start:stop])
 
 
 def csv_header(inputs, outputs) -> list:
@@ -98,7 +55,7 @@ def _fmt(v: float) -> str:
 
 
 def write_log_csv(path, log) -> None:
-    """Write a :class:`~mpm_monitor.closed_loop.ClosedLoopLog` (or :class:`LoggedData`) as CSV."""
+    """Write a :class:`~mpm_monitor.sim.closed_loop.ClosedLoopLog` (or :class:`LoggedData`) as CSV."""
     write_csv(path, log.t, log.r, log.u, log.y, log.inputs, log.outputs)
 
 
@@ -195,29 +152,3 @@ def parse_csv_text(text: str, model: FopdtModel, source: str = "data") -> Logged
     y = table[:, 1 + ny + nu:]
     return LoggedData(t=t, r=r, u=u, y=y, inputs=model.inputs, outputs=model.outputs, sample_time=ts,
                       source=source)
-
-
-def check_scale(model: FopdtModel, data: LoggedData, model_source: str = "the model") -> None:
-    """Refuse data (or model gains) so large that the squares in the analysis overflow float64.
-
-    Beyond :data:`MAX_ANALYSIS_SCALE` the fits break down (a ``LinAlgError``) or, worse, return a
-    confident all-clear; a sensor's "bad value" sentinel such as 1e308 gets there.
-
-    Raises
-    ------
-    DataFileError
-        Naming the source, the channel and the time of the largest value.
-    """
-    gain = float(np.max(np.abs(model.gain))) if model.gain.size else 0.0
-    for name, arr, names in (("setpoint", data.r, model.outputs), ("input", data.u, model.inputs),
-                             ("output", data.y, model.outputs)):
-        arr = np.abs(np.asarray(arr, dtype=float))
-        if arr.size == 0:
-            continue
-        k, j = np.unravel_index(int(np.argmax(arr)), arr.shape)
-        peak = float(arr[k, j])
-        if not peak * max(1.0, gain) <= MAX_ANALYSIS_SCALE:
-            why = "" if peak > MAX_ANALYSIS_SCALE else f" with gains up to {gain:.3g} in {model_source}"
-            raise DataFileError(f"{data.source or 'data'}: {name} '{names[j]}' at t = {float(data.t[k]):g} s is "
-                                f"{peak:.3g}{why}: too large for the analysis (|value| x max(1, |gain|) at most "
-                                f"{MAX_ANALYSIS_SCALE:g}); rescale the units")

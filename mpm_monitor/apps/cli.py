@@ -19,7 +19,7 @@ import json
 import sys
 from pathlib import Path
 
-from .errors import InputError
+from ..core.errors import InputError
 
 
 class _Parser(argparse.ArgumentParser):
@@ -45,7 +45,7 @@ def _add_analysis_options(p: argparse.ArgumentParser) -> None:
 
 
 def _analysis_options(args):
-    from .analysis import AnalysisOptions
+    from ..core.analysis import AnalysisOptions
 
     kw = dict(method=args.method, alpha=args.alpha, na=args.na, nb=args.nb, initial_state=args.initial_state,
               repair=not args.no_repair)
@@ -107,7 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _cmd_recover(args) -> int:
-    from .bag_io import recover_bag
+    from ..io.bags import recover_bag
 
     n = recover_bag(args.bag, args.out)
     print(f"recovered {n} messages into {args.out}")
@@ -117,16 +117,17 @@ def _cmd_recover(args) -> int:
 def _cmd_analyze(args) -> int:
     import numpy as np
 
-    from .analysis import analyze
-    from .data_io import check_scale, read_csv
-    from .model import load_model, save_model
+    from ..core.analysis import analyze
+    from ..core.logged_data import check_scale
+    from ..io.csv_log import read_csv
+    from ..io.model_file import load_model, save_model
 
     model = load_model(args.model)
     options = _analysis_options(args)
     if args.data:
         data = read_csv(args.data, model)
     else:
-        from .bag_io import read_bag
+        from ..io.bags import read_bag
 
         topics = tuple(args.topics) if args.topics else ("setpoint", "input", "output")
         data = read_bag(args.bag, model, topics=topics, progress=sys.stderr.isatty())
@@ -147,7 +148,7 @@ def _cmd_analyze(args) -> int:
     if args.repair_out:
         save_model(report.repaired_model, args.repair_out)
     if args.report:
-        from .report import write_report
+        from ..io.report import write_report
 
         write_report(args.report, model, data, report)
     return 0
@@ -168,12 +169,12 @@ def _cmd_reproduce(args) -> int:
 def _cmd_simulate(args) -> int:
     import numpy as np
 
-    from .cases import paper_case
-    from .closed_loop import ExcitationOptions, run_closed_loop
-    from .data_io import write_log_csv
-    from .excitation import PrbsOptions
-    from .model import load_model, save_model
-    from .mpc import MpcOptions
+    from ..sim.cases import paper_case
+    from ..sim.closed_loop import ExcitationOptions, run_closed_loop
+    from ..io.csv_log import write_log_csv
+    from ..sim.excitation import PrbsOptions
+    from ..io.model_file import load_model, save_model
+    from ..sim.mpc import MpcOptions
 
     if args.case:
         case = paper_case(args.case)
@@ -203,7 +204,7 @@ def _cmd_demo(args) -> int:
 
 
 def _cmd_export(args) -> int:
-    from .bag_io import export_csv
+    from ..io.bags import export_csv
 
     topics = tuple(args.topics) if args.topics else ("setpoint", "input", "output")
     n = export_csv(args.bag, args.csv, model_path=args.model, topics=topics)

@@ -11,7 +11,7 @@ import dataclasses
 
 import numpy as np
 
-from .errors import ConfigurationError
+from ..core.errors import ConfigurationError
 
 
 @dataclasses.dataclass(frozen=True)

@@ -4,7 +4,7 @@ The three topics arrive independently and in any interleaving.  :class:`SampleWi
 vector on the sample grid by its stamp, completes sample ``k`` once its setpoint ``r(k)``, input
 ``u(k)`` and output ``y(k)`` are all present (DESIGN.md, time convention of a sample), appends
 completed samples in order to a window of the last ``window_samples`` samples, and hands the window
-to the analysis as :class:`~mpm_monitor.data_io.LoggedData`.
+to the analysis as :class:`~mpm_monitor.core.logged_data.LoggedData`.
 
 Nothing is silently mis-aligned:
 
@@ -37,8 +37,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .data_io import LoggedData
-from .errors import ConfigurationError
+from ..core.logged_data import LoggedData
+from ..core.errors import ConfigurationError
 
 #: The three channels of a sample, in the order of the slots.
 CHANNELS = ("setpoint", "input", "output")
@@ -316,7 +316,7 @@ class SampleWindow:
 
     # ------------------------------------------------------------------------------- output
     def data(self, source: str = "ros") -> LoggedData:
-        """The window as :class:`~mpm_monitor.data_io.LoggedData` (a copy), oldest sample first.
+        """The window as :class:`~mpm_monitor.core.logged_data.LoggedData` (a copy), oldest sample first.
 
         ``t`` is in seconds (the stamps on the grid).
         """

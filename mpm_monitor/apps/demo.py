@@ -1,8 +1,8 @@
 """The node suite in one process: plant, MPC, setpoint and monitor on a private context, in lock-step.
 
 :func:`case_parameters` gives every node's parameters for a paper case (the same numbers as
-:func:`mpm_monitor.cases.paper_case`, so a run through the nodes with a seed reproduces the batch
-run :func:`mpm_monitor.closed_loop.run_closed_loop` with that seed sample for sample).
+:func:`mpm_monitor.sim.cases.paper_case`, so a run through the nodes with a seed reproduces the batch
+run :func:`mpm_monitor.sim.closed_loop.run_closed_loop` with that seed sample for sample).
 :class:`Suite` builds the four nodes on one context and one executor, waits until every publisher
 sees its subscribers, starts the plant and spins until the monitor has analysed the last sample.
 :func:`run_demo` is ``python -m mpm_monitor demo``; :func:`measure_throughput` is the benchmark
@@ -27,9 +27,10 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .cases import CASE_NAMES, paper_case
-from .errors import ConfigurationError, InputError
-from .model import FopdtModel, save_model
+from ..sim.cases import CASE_NAMES, paper_case
+from ..core.errors import ConfigurationError, InputError
+from ..core.model import FopdtModel
+from ..io.model_file import save_model
 
 #: Environment of a context that talks to nobody outside its process.
 PRIVATE_ENV = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
@@ -129,11 +130,11 @@ class Suite:
 
     def __init__(self, context, params: dict, namespace: str = "", analyze: Optional[Callable] = None,
                  executor: str = "events", extra_subscribers: int = 0):
-        from .nodes.monitor_node import MonitorNode
-        from .nodes.mpc_node import MpcNode
-        from .nodes.plant_node import PlantNode
-        from .nodes.setpoint_node import SetpointNode
-        from .ros_io import make_executor
+        from ..nodes.monitor_node import MonitorNode
+        from ..nodes.mpc_node import MpcNode
+        from ..nodes.plant_node import PlantNode
+        from ..nodes.setpoint_node import SetpointNode
+        from ..nodes.ros_io import make_executor
 
         self.context = context
         plant_p = dict(params["plant"], autostart=False)
@@ -168,7 +169,7 @@ class Suite:
         return all(pub.get_subscription_count() >= n for pub, n in checks)
 
     def spin_until(self, done: Callable[[], bool], timeout: float) -> bool:
-        from .ros_io import spin_until
+        from ..nodes.ros_io import spin_until
 
         return spin_until(self.executor, done, timeout=timeout, context=self.context, step=0.02)
 
@@ -219,7 +220,7 @@ class DiagnosticsPrinter:
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.node import Node
 
-        from .ros_io import diagnostics_qos
+        from ..nodes.ros_io import diagnostics_qos
 
         self.node = Node("mpm_demo_printer", context=context, namespace=namespace)
         self.node.create_subscription(DiagnosticArray, topic, self._on_msg, diagnostics_qos())
@@ -234,7 +235,7 @@ class DiagnosticsPrinter:
                                 and _analyses(self.latest) >= suite.monitor.core.results, timeout)
 
     def _on_msg(self, msg) -> None:
-        from .monitor_core import LEVEL_NAMES, SUMMARY_NAME
+        from ..monitor.monitor_core import LEVEL_NAMES, SUMMARY_NAME
 
         statuses = {s.name: s for s in msg.status}
         summary = statuses.get(SUMMARY_NAME)
@@ -298,7 +299,7 @@ def run_demo(case: str = "3.2", samples: Optional[int] = None, bag: Optional[str
         if Path(bag).exists():
             raise InputError(f"--bag {bag}: already exists; give a new directory")
         try:
-            from .nodes.recorder_node import RecorderNode as recorder_cls
+            from ..nodes.recorder_node import RecorderNode as recorder_cls
         except ImportError as exc:
             raise InputError(f"--bag needs the recorder node (mpm_monitor.nodes.recorder_node), which cannot be "
                              f"imported: {exc}") from None
@@ -404,7 +405,7 @@ def repair_text(report, model: FopdtModel, plant: Optional[FopdtModel] = None) -
     str
         Lines ending with a newline.
     """
-    from .monitor_core import describe_change, repair_verdict
+    from ..monitor.monitor_core import describe_change, repair_verdict
 
     verdict = repair_verdict(report)
     if verdict.verdict == "off":
@@ -436,7 +437,7 @@ def repair_text(report, model: FopdtModel, plant: Optional[FopdtModel] = None) -
 
 
 def _analyses(msg) -> int:
-    from .monitor_core import SUMMARY_NAME
+    from ..monitor.monitor_core import SUMMARY_NAME
 
     for s in msg.status:
         if s.name == SUMMARY_NAME:

@@ -56,7 +56,7 @@ from typing import Optional, Sequence
 import numpy as np
 from scipy import optimize, signal, stats
 
-from .data_io import LoggedData
+from .logged_data import LoggedData
 from .discretize import discretize
 from .errors import ConfigurationError, InputError
 from .model import FopdtModel
@@ -104,7 +104,7 @@ class RepairOptions:
         Relative reduction of the held-out RMS error that a row repair must achieve, in [0, 1).
     initial_state : {"estimate", "zero"}
         How the model's state at the first sample is treated (as in
-        :func:`mpm_monitor.signals.compute_signals`); with "estimate" the fit also estimates the
+        :func:`mpm_monitor.core.signals.compute_signals`); with "estimate" the fit also estimates the
         free response of the row.
     max_sweeps : int
         Coordinate sweeps of the delay search over the elements of a row (>= 1).
@@ -863,7 +863,7 @@ def repair_model(model: FopdtModel, data: LoggedData, located: Sequence[tuple],
         ever changed.
     options : RepairOptions
     signals : LoopSignals, optional
-        :func:`~mpm_monitor.signals.compute_signals` of ``model`` on ``data`` (computed when absent).
+        :func:`~mpm_monitor.core.signals.compute_signals` of ``model`` on ``data`` (computed when absent).
 
     Returns
     -------
@@ -1054,10 +1054,10 @@ def _unchanged_entry(model, i, j, reason):
 
 def _row_response(model: FopdtModel, u: np.ndarray, i: int) -> np.ndarray:
     """Response of row ``i`` of ``model`` to ``u`` from rest, element by element (as
-    :func:`mpm_monitor.discretize.simulate`).
+    :func:`mpm_monitor.core.discretize.simulate`).
 
     ``s(k+1) = a s(k) + b u_j(k - m)`` contributes ``s(k)``, i.e. ``b q^-(m+1) / (1 - a q^-1)``;
-    a static element without delay is a feed-through (see :mod:`mpm_monitor.discretize`).
+    a static element without delay is a feed-through (see :mod:`mpm_monitor.core.discretize`).
     """
     disc = discretize(model)
     out = np.zeros(u.shape[0])
