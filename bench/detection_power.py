@@ -15,14 +15,14 @@ from __future__ import annotations
 
 import argparse
 
-from . import write_json
 import numpy as np
 
-from mpm_monitor.sim.closed_loop import run_closed_loop
 from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.sim.closed_loop import run_closed_loop
 from mpm_monitor.sim.mpc import MpcOptions
 
+from . import write_json
 from .monte_carlo import METHODS, run_method
 
 

@@ -44,7 +44,6 @@ from __future__ import annotations
 
 # One BLAS thread per process (set by the bench package): the machine is shared and --jobs gives the
 # parallelism.
-
 import argparse  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
@@ -58,9 +57,9 @@ from typing import Callable, Optional, Sequence  # noqa: E402
 import numpy as np  # noqa: E402
 
 from mpm_monitor.core.baselines import ELEMENT_TESTS  # noqa: E402
-from mpm_monitor.sim.closed_loop import run_closed_loop  # noqa: E402
 from mpm_monitor.core.logged_data import LoggedData  # noqa: E402
 from mpm_monitor.core.signals import compute_signals  # noqa: E402
+from mpm_monitor.sim.closed_loop import run_closed_loop  # noqa: E402
 
 from .scenarios import KINDS, Scenario, ScenarioOptions, input_separability, make_scenario  # noqa: E402
 

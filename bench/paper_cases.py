@@ -9,10 +9,11 @@ from __future__ import annotations
 import argparse
 import time
 
-from . import write_json
+from mpm_monitor.apps.reproduce import simulate_case
 from mpm_monitor.core.analysis import AnalysisOptions, analyze
 from mpm_monitor.sim.cases import CASE_NAMES
-from mpm_monitor.apps.reproduce import simulate_case
+
+from . import write_json
 
 
 def run(seeds: int, samples: int, first_seed: int = 1000) -> dict:

@@ -23,11 +23,11 @@ import time
 import numpy as np
 
 from mpm_monitor.core.analysis import AnalysisOptions, analyze
-from mpm_monitor.sim.closed_loop import run_closed_loop
 from mpm_monitor.core.logged_data import LoggedData
+from mpm_monitor.sim.closed_loop import run_closed_loop
 
 from . import write_json
-from .scenarios import KINDS, ScenarioOptions, make_scenario
+from .scenarios import ScenarioOptions, make_scenario
 
 
 def one(seed: int, index: int, samples: int, options: ScenarioOptions) -> dict:

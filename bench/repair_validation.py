@@ -20,11 +20,11 @@ import time
 
 import numpy as np
 
-from mpm_monitor.sim.cases import paper_case, shell_plant
-from mpm_monitor.sim.closed_loop import run_closed_loop
 from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.repair import repair_model
 from mpm_monitor.core.signals import compute_signals
+from mpm_monitor.sim.cases import paper_case, shell_plant
+from mpm_monitor.sim.closed_loop import run_closed_loop
 
 SCENARIOS = ("missing", "delay", "time_constant", "gain", "step", "gain+step", "3.2", "3.3")
 

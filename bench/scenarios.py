@@ -50,9 +50,9 @@ from typing import Optional
 import numpy as np
 import scipy.linalg as sla
 
+from mpm_monitor.core.model import FopdtModel
 from mpm_monitor.sim.closed_loop import ExcitationOptions
 from mpm_monitor.sim.excitation import PrbsOptions
-from mpm_monitor.core.model import FopdtModel
 from mpm_monitor.sim.mpc import MpcOptions
 from mpm_monitor.sim.plant import DisturbanceOptions
 

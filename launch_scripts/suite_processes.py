@@ -31,8 +31,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import (NODES, case_params_file, load_params_file, merge, node_command, parse_overrides,  # noqa: E402
-                     ros_env)
+from _common import NODES, case_params_file, load_params_file, merge, node_command, parse_overrides, ros_env  # noqa: E402
 
 
 def build_parser():

@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 
 from mpm_monitor.core.analysis import AnalysisOptions, analyze
+from mpm_monitor.core.errors import ConfigurationError, DataFileError
+from mpm_monitor.core.logged_data import LoggedData
+from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.io.csv_log import write_log_csv
+from mpm_monitor.io.model_file import save_model
 from mpm_monitor.sim.cases import paper_case
 from mpm_monitor.sim.closed_loop import ExcitationOptions, run_closed_loop
-from mpm_monitor.core.logged_data import LoggedData
-from mpm_monitor.io.csv_log import write_log_csv
-from mpm_monitor.core.errors import ConfigurationError, DataFileError
 from mpm_monitor.sim.excitation import PrbsOptions
-from mpm_monitor.core.model import FopdtModel
-from mpm_monitor.io.model_file import save_model
 
 FAST = AnalysisOptions(repair=False)
 

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 
-from mpm_monitor.io import bags as bag_io
-from mpm_monitor.io.bags import (BagWriter, export_csv, read_bag, read_bag_channels, read_diagnostics, read_raw_messages)
 from mpm_monitor.apps.cli import main as cli_main
-from mpm_monitor.io.csv_log import read_csv
 from mpm_monitor.core.errors import BagError
 from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.io import bags as bag_io
+from mpm_monitor.io.bags import BagWriter, export_csv, read_bag, read_bag_channels, read_diagnostics, read_raw_messages
+from mpm_monitor.io.csv_log import read_csv
 from mpm_monitor.io.model_file import save_model
 
 TS = bag_io.default_typestore()

@@ -14,7 +14,15 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from mpm_monitor.core.baselines import (ElementTestResult, cross_correlation_test, fit_ar, holm_adjust, holm_reject, input_separability, partial_correlation_test)
+from mpm_monitor.core.baselines import (
+    ElementTestResult,
+    cross_correlation_test,
+    fit_ar,
+    holm_adjust,
+    holm_reject,
+    input_separability,
+    partial_correlation_test,
+)
 from mpm_monitor.core.errors import ConfigurationError, InputError
 
 TESTS = (cross_correlation_test, partial_correlation_test)

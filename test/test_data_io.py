@@ -7,9 +7,9 @@ where there is one, the line and the column.
 import numpy as np
 import pytest
 
-from mpm_monitor.io.csv_log import csv_header, parse_csv_text, read_csv, write_csv, write_log_csv
 from mpm_monitor.core.errors import DataFileError, InputError
 from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.io.csv_log import csv_header, parse_csv_text, read_csv, write_csv, write_log_csv
 
 HEADER = "t,r_y1,r_y2,u1,u2,u3,y1,y2"
 

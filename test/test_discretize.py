@@ -15,9 +15,16 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from mpm_monitor.sim.cases import shell_plant
-from mpm_monitor.core.discretize import (discretize, frequency_response, settling_samples, simulate, simulate_state_space, state_space)
+from mpm_monitor.core.discretize import (
+    discretize,
+    frequency_response,
+    settling_samples,
+    simulate,
+    simulate_state_space,
+    state_space,
+)
 from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.sim.cases import shell_plant
 
 N_STEP = 400  # samples of every step response (8 time constants of the slowest Shell element)
 

@@ -24,14 +24,14 @@ from scipy import signal as sps
 
 from mpm_monitor.core.analysis import AnalysisOptions, InputDesign, QrRegressions, analyze, regression_layout
 from mpm_monitor.core.arx import SharedBlockRegression, lag_matrix
-from mpm_monitor.sim.cases import paper_case
-from mpm_monitor.sim.closed_loop import ExcitationOptions, run_closed_loop
-from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.discretize import simulate_elements, simulate_state_space, state_space
-from mpm_monitor.sim.excitation import PrbsOptions
-from mpm_monitor.core.incremental import (GramBlockRegression, GramFit, lagged_cross_products, window_regressions)
+from mpm_monitor.core.incremental import GramBlockRegression, GramFit, lagged_cross_products, window_regressions
+from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import FopdtModel
 from mpm_monitor.core.signals import LoopSignals, compute_signals, initial_transient
+from mpm_monitor.sim.cases import paper_case
+from mpm_monitor.sim.closed_loop import ExcitationOptions, run_closed_loop
+from mpm_monitor.sim.excitation import PrbsOptions
 
 FAST = AnalysisOptions(repair=False)
 

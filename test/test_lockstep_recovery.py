@@ -22,8 +22,8 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from mpm_monitor.apps.demo import _overrides, case_parameters, private_context  # noqa: E402
 from mpm_monitor.nodes.mpc_node import MpcNode  # noqa: E402
 from mpm_monitor.nodes.plant_node import PlantNode  # noqa: E402
-from mpm_monitor.nodes.setpoint_node import SetpointNode  # noqa: E402
 from mpm_monitor.nodes.ros_io import make_executor, spin_until, stamp_to_ns, vector_qos  # noqa: E402
+from mpm_monitor.nodes.setpoint_node import SetpointNode  # noqa: E402
 
 
 def test_mpc_then_plant_restarted_in_lock_step_the_loop_resumes_without_duplicate_inputs():
@@ -107,8 +107,8 @@ def test_mpc_then_plant_restarted_in_lock_step_the_loop_resumes_without_duplicat
 
 def test_mpc_answers_a_resent_output_with_the_same_input_and_resets_on_a_new_run():
     """The MPC node alone, driven by a plain publisher: repeats, a different y for the same stamp, a stamp going back."""
-    from mpm_monitor.sim.cases import paper_case
     from mpm_monitor.nodes.ros_io import VectorCodec
+    from mpm_monitor.sim.cases import paper_case
 
     ctx = private_context()
     ns = "/mpc_repeat"

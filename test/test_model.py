@@ -7,10 +7,10 @@ names the offending key (or says why the file as a whole is unusable).
 import numpy as np
 import pytest
 
-from mpm_monitor.sim.cases import shell_plant
 from mpm_monitor.core.errors import InputError, ModelFileError
 from mpm_monitor.core.model import FopdtModel
 from mpm_monitor.io.model_file import dump_model, load_model, model_from_dict, save_model
+from mpm_monitor.sim.cases import shell_plant
 
 GOOD = """\
 sample_time: 1.0

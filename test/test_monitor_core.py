@@ -14,10 +14,20 @@ import types
 import numpy as np
 import pytest
 
-from mpm_monitor.sim.cases import paper_case
 from mpm_monitor.core.errors import ConfigurationError
-from mpm_monitor.monitor.monitor_core import (ERROR, OK, STALE, SUMMARY_NAME, WARN, AnalysisWorker, MonitorCore, MonitorOptions, run_analysis)
+from mpm_monitor.monitor.monitor_core import (
+    ERROR,
+    OK,
+    STALE,
+    SUMMARY_NAME,
+    WARN,
+    AnalysisWorker,
+    MonitorCore,
+    MonitorOptions,
+    run_analysis,
+)
 from mpm_monitor.monitor.window import WindowOptions
+from mpm_monitor.sim.cases import paper_case
 
 NS = 1_000_000_000
 MODEL = paper_case("3.2").model  # outputs y1..y3, inputs u1..u3, Ts = 1 s
@@ -250,7 +260,7 @@ def repaired_core():
 
 
 def test_describe_change_names_only_the_changed_parameters_with_units():
-    from mpm_monitor.monitor.monitor_core import describe_change, row_repair_text
+    from mpm_monitor.core.wording import describe_change, row_repair_text
 
     before = {"gain": 1.77, "time_constant": 45.0, "delay": 4.0}
     ch = {"output": "y1", "input": "u2", "applied": True, "before": before,
@@ -268,7 +278,7 @@ def test_describe_change_names_only_the_changed_parameters_with_units():
 
 
 def test_the_suggested_repair_is_in_the_row_statuses(repaired_core):
-    from mpm_monitor.monitor.monitor_core import describe_change
+    from mpm_monitor.core.wording import describe_change
 
     c, rep = repaired_core
     assert sorted(rep.located_elements) == [("y1", "u2"), ("y1", "u3"), ("y2", "u1")]
@@ -324,7 +334,7 @@ def _with_repair(rep, changes, **doc):
 
 
 def test_the_held_out_verdicts(repaired_core):
-    from mpm_monitor.monitor.monitor_core import repair_verdict
+    from mpm_monitor.core.wording import repair_verdict
 
     _, rep = repaired_core
     changes = rep.repair["changes"]

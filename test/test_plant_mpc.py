@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 from scipy.optimize import lsq_linear
 
-from mpm_monitor.sim.cases import paper_case, shell_plant
-from mpm_monitor.sim.closed_loop import ExcitationOptions, run_closed_loop, seeded_generators
 from mpm_monitor.core.discretize import simulate, state_space
 from mpm_monitor.core.errors import ConfigurationError
-from mpm_monitor.sim.excitation import PrbsGenerator, PrbsOptions
 from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.sim.cases import paper_case, shell_plant
+from mpm_monitor.sim.closed_loop import ExcitationOptions, run_closed_loop, seeded_generators
+from mpm_monitor.sim.excitation import PrbsGenerator, PrbsOptions
 from mpm_monitor.sim.mpc import InternalModelMpc, MpcOptions
 from mpm_monitor.sim.plant import DisturbanceOptions, PlantSimulator
 

@@ -28,18 +28,18 @@ from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from rclpy.serialization import deserialize_message  # noqa: E402
+from ros_domains import unique_domain  # noqa: E402
 from rosbags.highlevel import AnyReader  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 
-from mpm_monitor.io.bags import read_bag, read_diagnostics, recover_bag  # noqa: E402
 from mpm_monitor.apps.demo import private_context  # noqa: E402
 from mpm_monitor.core.errors import InputError  # noqa: E402
-from mpm_monitor.nodes.ros_io import spin_until  # noqa: E402
-from ros_domains import unique_domain  # noqa: E402
 from mpm_monitor.core.model import FopdtModel  # noqa: E402
+from mpm_monitor.io.bags import read_bag, read_diagnostics, recover_bag  # noqa: E402
 from mpm_monitor.nodes.recorder_node import RecorderNode, parse_topic_specs  # noqa: E402
+from mpm_monitor.nodes.ros_io import spin_until  # noqa: E402
 
 VECTOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)

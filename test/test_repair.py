@@ -18,13 +18,13 @@ import json
 import numpy as np
 import pytest
 
+from mpm_monitor.core.errors import ConfigurationError, InputError
+from mpm_monitor.core.logged_data import LoggedData
+from mpm_monitor.core.repair import RepairOptions, RepairResult, repair_model, sup_wald_p_value, unexplained_disturbance
+from mpm_monitor.core.signals import compute_signals
 from mpm_monitor.sim.cases import paper_case, shell_plant
 from mpm_monitor.sim.closed_loop import run_closed_loop
-from mpm_monitor.core.logged_data import LoggedData
-from mpm_monitor.core.errors import ConfigurationError, InputError
 from mpm_monitor.sim.plant import DisturbanceOptions
-from mpm_monitor.core.repair import (RepairOptions, RepairResult, repair_model, sup_wald_p_value, unexplained_disturbance)
-from mpm_monitor.core.signals import compute_signals
 
 N_SAMPLES = 4000
 SEEDS = (11, 12)

@@ -12,12 +12,12 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rosgraph_msgs.msg import Clock  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 
-from mpm_monitor.io.bags import RawMessage, write_logged_data  # noqa: E402
-from mpm_monitor.core.logged_data import LoggedData  # noqa: E402
 from mpm_monitor.apps.demo import private_context  # noqa: E402
 from mpm_monitor.core.errors import InputError  # noqa: E402
-from mpm_monitor.nodes.ros_io import spin_until  # noqa: E402
+from mpm_monitor.core.logged_data import LoggedData  # noqa: E402
+from mpm_monitor.io.bags import RawMessage, write_logged_data  # noqa: E402
 from mpm_monitor.nodes.replay_node import ReplayNode, ReplaySchedule  # noqa: E402
+from mpm_monitor.nodes.ros_io import spin_until  # noqa: E402
 
 QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                  durability=DurabilityPolicy.VOLATILE)

@@ -13,16 +13,16 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from mpm_monitor.io import plots
-from mpm_monitor.core.analysis import AnalysisOptions, analyze
-from mpm_monitor.io.bags import read_bag, write_logged_data
-from mpm_monitor.sim.cases import paper_case
 from mpm_monitor.apps.cli import main as cli_main
-from mpm_monitor.sim.closed_loop import run_closed_loop
+from mpm_monitor.core.analysis import AnalysisOptions, analyze
 from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.io import plots
+from mpm_monitor.io.bags import read_bag, write_logged_data
 from mpm_monitor.io.model_file import save_model
 from mpm_monitor.io.report import write_report
+from mpm_monitor.sim.cases import paper_case
+from mpm_monitor.sim.closed_loop import run_closed_loop
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 SAMPLES = 1500

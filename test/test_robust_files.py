@@ -24,12 +24,12 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mpm_monitor.io.bags import BagWriter, write_logged_data
 from mpm_monitor.apps.cli import main as cli_main
-from mpm_monitor.core.logged_data import LoggedData
-from mpm_monitor.io.csv_log import csv_header, read_csv, write_csv
 from mpm_monitor.core.errors import DataFileError, InputError, ModelFileError
+from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.io.bags import BagWriter, write_logged_data
+from mpm_monitor.io.csv_log import csv_header, read_csv, write_csv
 from mpm_monitor.io.model_file import dump_model, load_model, save_model
 
 REPO = Path(__file__).resolve().parents[1]

@@ -17,7 +17,17 @@ Three levels, fastest first:
 import numpy as np
 import pytest
 
-from mpm_monitor.monitor.monitor_core import (ERROR, OK, STALE, SUMMARY_NAME, WARN, AnalysisOutcome, MonitorCore, MonitorOptions, row_status_name)
+from mpm_monitor.monitor.monitor_core import (
+    ERROR,
+    OK,
+    STALE,
+    SUMMARY_NAME,
+    WARN,
+    AnalysisOutcome,
+    MonitorCore,
+    MonitorOptions,
+    row_status_name,
+)
 from mpm_monitor.monitor.window import SampleWindow, WindowOptions
 
 NS = 1_000_000_000
@@ -479,10 +489,11 @@ def test_node_refuses_malformed_messages_with_the_reason_and_recovers(ros_contex
 
 def test_model_file_that_fails_to_load_is_error_with_the_reason_then_loads_when_fixed(ros_context, model_file,
                                                                                          tmp_path):
-    from mpm_monitor.monitor.monitor_core import SUMMARY_NAME as SUMMARY
-    from mpm_monitor.nodes.ros_io import diagnostics_qos, make_executor, spin_until
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.node import Node
+
+    from mpm_monitor.monitor.monitor_core import SUMMARY_NAME as SUMMARY
+    from mpm_monitor.nodes.ros_io import diagnostics_qos, make_executor, spin_until
 
     bad = tmp_path / "edited.yaml"
     good_text = model_file.read_text()

@@ -6,7 +6,18 @@ import numpy as np
 import pytest
 
 from mpm_monitor.core.errors import ConfigurationError, InputError
-from mpm_monitor.nodes.ros_io import (MessageError, ParamSpec, VectorCodec, ns_to_stamp, period_ns, resolve_model, sample_stamp_ns, seconds_to_stamp, stamp_to_ns, stamp_to_seconds)
+from mpm_monitor.core.options import ParamSpec
+from mpm_monitor.nodes.ros_io import (
+    MessageError,
+    VectorCodec,
+    ns_to_stamp,
+    period_ns,
+    resolve_model,
+    sample_stamp_ns,
+    seconds_to_stamp,
+    stamp_to_ns,
+    stamp_to_seconds,
+)
 
 sensor_msgs = pytest.importorskip("sensor_msgs.msg")
 

@@ -169,11 +169,11 @@ def _cmd_reproduce(args) -> int:
 def _cmd_simulate(args) -> int:
     import numpy as np
 
+    from ..io.csv_log import write_log_csv
+    from ..io.model_file import load_model, save_model
     from ..sim.cases import paper_case
     from ..sim.closed_loop import ExcitationOptions, run_closed_loop
-    from ..io.csv_log import write_log_csv
     from ..sim.excitation import PrbsOptions
-    from ..io.model_file import load_model, save_model
     from ..sim.mpc import MpcOptions
 
     if args.case:

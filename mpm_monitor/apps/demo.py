@@ -27,10 +27,11 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from ..sim.cases import CASE_NAMES, paper_case
 from ..core.errors import ConfigurationError, InputError
 from ..core.model import FopdtModel
+from ..core.wording import repair_text
 from ..io.model_file import save_model
+from ..sim.cases import CASE_NAMES, paper_case
 
 #: Environment of a context that talks to nobody outside its process.
 PRIVATE_ENV = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
@@ -133,8 +134,8 @@ class Suite:
         from ..nodes.monitor_node import MonitorNode
         from ..nodes.mpc_node import MpcNode
         from ..nodes.plant_node import PlantNode
-        from ..nodes.setpoint_node import SetpointNode
         from ..nodes.ros_io import make_executor
+        from ..nodes.setpoint_node import SetpointNode
 
         self.context = context
         plant_p = dict(params["plant"], autostart=False)
@@ -387,53 +388,6 @@ def _settle(suite: Suite, recorder, quiet: float = 0.5, timeout: float = 5.0) ->
         return time.monotonic() - state["since"] >= quiet
 
     suite.spin_until(quiet_enough, timeout)
-
-
-def repair_text(report, model: FopdtModel, plant: Optional[FopdtModel] = None) -> str:
-    """The suggested repair of an analysis report in words: changes, held-out verdict, errors before/after.
-
-    Parameters
-    ----------
-    report : AnalysisReport
-    model : FopdtModel
-        The model analysed (for the element order).
-    plant : FopdtModel, optional
-        The true plant (a simulation), whose element values are shown next to each change.
-
-    Returns
-    -------
-    str
-        Lines ending with a newline.
-    """
-    from ..monitor.monitor_core import describe_change, repair_verdict
-
-    verdict = repair_verdict(report)
-    if verdict.verdict == "off":
-        return "suggested repair: none (the monitor ran without the repair)\n"
-    doc = report.repair
-    lines = [f"suggested repair: {verdict.changes} change{'s' if verdict.changes != 1 else ''}",
-             f"held-out validation: {verdict.detail or verdict.verdict.replace('_', ' ')}"]
-    for ch in doc.get("changes") or []:
-        what = describe_change(ch) if ch.get("applied") else ""
-        conf = ch.get("confidence")
-        line = f"  ({ch['output']}, {ch['input']}) {ch.get('kind', 'unknown')}: "
-        line += what if what else f"kept ({ch.get('reason') or 'no parameter differs significantly'})"
-        if what and conf is not None:
-            line += f"  (confidence {conf:.2f})"
-        if plant is not None and ch["output"] in plant.outputs and ch["input"] in plant.inputs:
-            true = plant.element(plant.outputs.index(ch["output"]), plant.inputs.index(ch["input"]))
-            line += (f"  [plant: gain {true['gain']:.3g}, time_constant {true['time_constant']:.3g} s, "
-                     f"delay {true['delay']:.3g} s]")
-        lines.append(line)
-    eb, ea = doc.get("error_before") or {}, doc.get("error_after") or {}
-    if eb:
-        lines.append("prediction error RMS before -> after: "
-                     + ", ".join(f"{o} {eb[o]:.4f} -> {ea.get(o, float('nan')):.4f}" for o in model.outputs if o in eb))
-    rsi_after = doc.get("rsi_after") or {}
-    if rsi_after:
-        lines.append("RSI of the repaired model on the same window: "
-                     + ", ".join(f"{o} {rsi_after[o]:.3f}" for o in model.outputs if o in rsi_after))
-    return "\n".join(lines) + "\n"
 
 
 def _analyses(msg) -> int:

@@ -10,10 +10,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..core.analysis import AnalysisOptions, analyze, repair_summary_lines
+from ..core.analysis import AnalysisOptions, analyze
+from ..core.logged_data import LoggedData
+from ..core.wording import repair_summary_lines
 from ..sim.cases import paper_case
 from ..sim.closed_loop import run_closed_loop
-from ..core.logged_data import LoggedData
 
 
 def simulate_case(case_name: str, samples: int, seed: int) -> tuple:

@@ -36,10 +36,11 @@ from typing import Optional
 import numpy as np
 
 from .arx import SharedBlockRegression, estimate_delay_from_lags, fit_arx, lag_matrix
-from .logged_data import LoggedData
 from .errors import ConfigurationError, DataFileError
+from .logged_data import LoggedData
 from .model import FopdtModel
 from .signals import INITIAL_STATE_CHOICES, LoopSignals, compute_signals
+from .wording import repair_summary_lines
 
 METHODS = ("arx", "xcorr", "pcorr")
 
@@ -310,26 +311,6 @@ class AnalysisReport:
         for w in self.warnings:
             lines.append(f"warning: {w}")
         return "\n".join(lines)
-
-
-def repair_summary_lines(repair: dict) -> list:
-    """Text lines of a repair dict (CONTRACTS section 3): the changes and the errors before/after."""
-    lines = []
-    changes = repair.get("changes", [])
-    if changes:
-        lines.append("repair (gain / time constant s / delay s, re-estimated from the same data):")
-        for c in changes:
-            b, a = c["before"], c["after"]
-            lines.append(f"  ({c['output']}, {c['input']}) {c['kind']:<13} {b['gain']:g} / {b['time_constant']:g} / "
-                         f"{b['delay']:g}  ->  {a['gain']:.4g} / {a['time_constant']:.4g} / {a['delay']:g}")
-    eb, ea = repair.get("error_before", {}), repair.get("error_after", {})
-    if eb:
-        lines.append("prediction error RMS before -> after repair: "
-                     + ", ".join(f"{k} {eb[k]:.4f} -> {ea.get(k, float('nan')):.4f}" for k in eb))
-    if "rsi_after" in repair:
-        lines.append("row RSI of the repaired model on the same data: "
-                     + ", ".join(f"{k} {v:.3f}" for k, v in repair["rsi_after"].items()))
-    return lines
 
 
 def holm_adjust(p: np.ndarray) -> np.ndarray:

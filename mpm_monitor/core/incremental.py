@@ -74,11 +74,11 @@ import scipy.linalg as sla
 from scipy import signal as sps
 from scipy.linalg import blas
 
-from .analysis import (AnalysisOptions, AnalysisReport, QrRegressions, RegressionLayout, analyze, regression_layout)
+from .analysis import AnalysisOptions, AnalysisReport, QrRegressions, RegressionLayout, analyze, regression_layout
 from .arx import RANK_TOLERANCE, ArxFit, SharedBlockRegression, SharedFit
-from .logged_data import LoggedData
 from .discretize import discretize
 from .errors import ConfigurationError, DataFileError
+from .logged_data import LoggedData
 from .model import FopdtModel
 from .signals import LoopSignals
 

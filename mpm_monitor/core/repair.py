@@ -56,9 +56,9 @@ from typing import Optional, Sequence
 import numpy as np
 from scipy import optimize, signal, stats
 
-from .logged_data import LoggedData
 from .discretize import discretize
 from .errors import ConfigurationError, InputError
+from .logged_data import LoggedData
 from .model import FopdtModel
 from .signals import INITIAL_STATE_CHOICES, LoopSignals, compute_signals
 

@@ -17,19 +17,19 @@ This module uses the ``rosbags`` library only; it never imports rclpy.
 from __future__ import annotations
 
 import dataclasses
-from contextlib import closing
 import os
 import struct
 import sys
+from contextlib import closing
 from pathlib import Path
 from typing import Iterator, Optional, Sequence
 
 import numpy as np
 
-from ..core.logged_data import LoggedData
-from .csv_log import write_csv
 from ..core.errors import BagError, InputError
+from ..core.logged_data import LoggedData
 from ..core.model import FopdtModel
+from .csv_log import write_csv
 
 #: Default names of the setpoint, input and output topics.
 DEFAULT_TOPICS = ("setpoint", "input", "output")

@@ -15,9 +15,9 @@ import math
 import numpy as np
 
 from ..core.errors import DataFileError
-from .files import read_text
 from ..core.logged_data import LoggedData
 from ..core.model import FopdtModel
+from .files import read_text
 
 #: Relative tolerance on the sample spacing, as a fraction of the sample time.
 SPACING_TOLERANCE = 1e-3

@@ -21,9 +21,9 @@ import html
 import math
 from pathlib import Path
 
-from . import plots
 from ..core.errors import InputError
 from ..core.model import FopdtModel
+from . import plots
 
 REPORT_FILE = "report.html"
 

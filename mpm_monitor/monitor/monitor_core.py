@@ -41,6 +41,7 @@ import numpy as np
 
 from ..core.errors import ConfigurationError
 from ..core.model import FopdtModel
+from ..core.wording import applied_changes, describe_change, repair_ran, repair_verdict, row_repair_text
 from ..io.model_file import save_model
 from .window import ERROR_KINDS, SampleWindow, WindowOptions
 
@@ -159,137 +160,6 @@ def _num(x) -> str:
 
 def _bool(b) -> str:
     return "true" if b else "false"
-
-
-# ----------------------------------------------------------------------------- repair in words
-#: Element parameters of a repair change, with their unit.
-_CHANGE_PARAMS = (("gain", ""), ("time_constant", " s"), ("delay", " s"))
-
-#: ``reason`` of a change the held-out validation refused (:func:`mpm_monitor.core.repair.repair_model`).
-_REJECTED = "rejected by held-out validation"
-
-
-def _short(x) -> str:
-    """A parameter value with three significant digits (``60.0057`` -> ``60``, ``5.8773`` -> ``5.88``)."""
-    return "nan" if x is None else f"{float(x):.3g}"
-
-
-def describe_change(change: dict) -> str:
-    """The parameters a repair change entry alters, in words: ``time_constant 45->60 s, delay 4->7 s``.
-
-    Parameters
-    ----------
-    change : dict
-        An entry of the report's ``repair["changes"]`` (``before`` and ``after`` with ``gain``,
-        ``time_constant`` in seconds and ``delay`` in seconds).
-
-    Returns
-    -------
-    str
-        "" when ``after`` equals ``before``.
-    """
-    before, after = change.get("before") or {}, change.get("after") or {}
-    parts = []
-    for key, unit in _CHANGE_PARAMS:
-        b, a = before.get(key), after.get(key)
-        if a is None or b is None or float(a) == float(b):
-            continue
-        parts.append(f"{key} {_short(b)}->{_short(a)}{unit}")
-    return ", ".join(parts)
-
-
-def _applied(changes) -> list:
-    return [c for c in changes if c.get("applied") and describe_change(c)]
-
-
-def _repair_ran(report) -> bool:
-    """True when ``report`` holds the result of the repair (the analysis ran with ``repair=True``)."""
-    if getattr(report, "repair_result", None) is not None:
-        return True
-    doc = getattr(report, "repair", None)
-    return isinstance(doc, dict) and "holdout_fraction" in doc
-
-
-def row_repair_text(changes: Sequence[dict], output: str) -> str:
-    """The suggested repair of one row: ``u2: time_constant 45->60 s, delay 4->7 s; u3: gain 3.5->5.88``.
-
-    A located element left as it was says why: ``u1: kept (rejected by held-out validation)``.
-    """
-    parts = []
-    for c in changes:
-        if c.get("output") != output:
-            continue
-        what = describe_change(c) if c.get("applied") else ""
-        if what:
-            parts.append(f"{c.get('input')}: {what}")
-        else:
-            parts.append(f"{c.get('input')}: kept ({c.get('reason') or 'no parameter differs significantly'})")
-    return "; ".join(parts)
-
-
-@dataclasses.dataclass(frozen=True)
-class RepairVerdict:
-    """The held-out validation of a repair, summed up over the rows.
-
-    Attributes
-    ----------
-    verdict : str
-        ``passed`` (every row with a candidate repair predicted the held-out data better),
-        ``rejected`` (none did: no change suggested), ``mixed``, ``not_validated`` (changes suggested
-        without held-out data), ``not_run`` (located elements but no parameter to change), ``none``
-        (nothing located) or ``off`` (the analysis ran without the repair).
-    detail : str
-        The same in words, with the held-out RMS errors before -> after per row.
-    changes : int
-        Number of suggested element changes.
-    """
-
-    verdict: str
-    detail: str
-    changes: int
-
-
-def repair_verdict(report) -> RepairVerdict:
-    """The :class:`RepairVerdict` of an analysis report (see the ``repair`` dict of CONTRACTS section 3)."""
-    if not _repair_ran(report):
-        return RepairVerdict("off", "the analysis ran without the repair", 0)
-    doc = report.repair
-    changes = list(doc.get("changes") or [])
-    n_applied = len(_applied(changes))
-    rows = list(dict.fromkeys(c.get("output") for c in changes))
-    if not rows:
-        return RepairVerdict("none", "no element located, nothing to repair", 0)
-    hb, ha = doc.get("holdout_error_before") or {}, doc.get("holdout_error_after") or {}
-    frac = doc.get("holdout_fraction") or 0.0
-    n_hold = int(doc.get("samples") or 0) - int(doc.get("fit_samples") or 0)
-    passed, rejected, not_run = [], [], []
-    for o in rows:
-        cs = [c for c in changes if c.get("output") == o]
-        errors = f"{o} ({_short(hb.get(o))}->{_short(ha.get(o))})" if o in hb else o
-        if any(c.get("reason") == _REJECTED for c in cs):
-            rejected.append(errors)
-        elif any(c.get("applied") for c in cs):
-            passed.append(errors)
-        else:
-            not_run.append(o)
-    parts = []
-    if passed and not frac:
-        verdict = "not_validated"
-        parts.append(f"changes suggested for {', '.join(passed)} without held-out data")
-    else:
-        verdict = ("mixed" if passed and rejected else "passed" if passed else "rejected" if rejected else "not_run")
-        if passed:
-            parts.append(f"passed for {', '.join(passed)}")
-        if rejected:
-            parts.append(f"rejected for {', '.join(rejected)}")
-    if not_run:
-        parts.append(f"nothing to re-estimate for {', '.join(not_run)}")
-    detail = "; ".join(parts)
-    if passed or rejected:
-        if frac:
-            detail += (f" (held-out RMS prediction error before->after, last {100 * frac:.0f}% of the window, "
-                       f"{n_hold} samples)")
-    return RepairVerdict(verdict, detail, n_applied)
 
 
 def write_model_atomically(model: FopdtModel, path) -> Path:
@@ -480,11 +350,11 @@ class MonitorCore:
             if self._analysis_error:
                 return False, f"no analysis result yet: {self._analysis_error}"
             return False, self._waiting_message()
-        if not _repair_ran(rep) or getattr(rep, "repaired_model", None) is None:
+        if not repair_ran(rep) or getattr(rep, "repaired_model", None) is None:
             return False, "the latest analysis ran without the repair (parameter repair is false): nothing to write"
         job = self._latest.job
         window = f"the analysis of {job.data.n_samples} samples up to t = {job.last_stamp:g} s"
-        applied = _applied(rep.repair.get("changes") or [])
+        applied = applied_changes(rep.repair.get("changes") or [])
         if not applied or rep.repaired_model == self.model:
             verdict = repair_verdict(rep)
             return False, (f"no change to write: {window} suggests no change to the model "
@@ -570,7 +440,7 @@ class MonitorCore:
         elements = collections.defaultdict(list)
         for e in rep.elements:
             elements[e.output].append(e)
-        repaired = _repair_ran(rep)
+        repaired = repair_ran(rep)
         doc = rep.repair if repaired else {}
         changes = list(doc.get("changes") or [])
         confidence = {(c.get("output"), c.get("input")): c.get("confidence") for c in changes}
@@ -610,7 +480,7 @@ class MonitorCore:
                 else:
                     msg = f"mismatch in row {o}: no single element located"
                 msg += f" (RSI {r.rsi:.3f})"
-                row_applied = [c for c in _applied(changes) if c.get("output") == o]
+                row_applied = [c for c in applied_changes(changes) if c.get("output") == o]
                 if row_applied and o in (doc.get("error_before") or {}) and o in (doc.get("error_after") or {}):
                     msg += (f"; suggested repair of {', '.join(c.get('input') for c in row_applied)} lowers the "
                             f"RMS prediction error {doc['error_before'][o]:.3g} -> {doc['error_after'][o]:.3g}")
@@ -798,9 +668,9 @@ class ProcessAnalyzer:
         self._lock = threading.Lock()
 
     def __call__(self, model, data, options):
+        import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
         from concurrent.futures.process import BrokenProcessPool
-        import multiprocessing
 
         with self._lock:
             if self._pool is None:

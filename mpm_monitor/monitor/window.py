@@ -37,8 +37,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..core.logged_data import LoggedData
 from ..core.errors import ConfigurationError
+from ..core.logged_data import LoggedData
 
 #: The three channels of a sample, in the order of the slots.
 CHANNELS = ("setpoint", "input", "output")

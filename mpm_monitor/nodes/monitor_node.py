@@ -36,9 +36,28 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from std_srvs.srv import Trigger
 
 from ..core.errors import ModelFileError
-from ..monitor.monitor_core import (ERROR, SUMMARY_NAME, AnalysisWorker, MonitorCore, MonitorOptions, ProcessAnalyzer, StatusData, run_analysis)
-from .ros_io import (MODEL_PARAMS, MessageError, ParamSpec, VectorCodec, declare_parameters, diagnostics_qos, resolve_model, run_node, vector_qos)
+from ..core.options import ParamSpec
+from ..monitor.monitor_core import (
+    ERROR,
+    SUMMARY_NAME,
+    AnalysisWorker,
+    MonitorCore,
+    MonitorOptions,
+    ProcessAnalyzer,
+    StatusData,
+    run_analysis,
+)
 from ..monitor.window import WindowOptions
+from .ros_io import (
+    MODEL_PARAMS,
+    MessageError,
+    VectorCodec,
+    declare_parameters,
+    diagnostics_qos,
+    resolve_model,
+    run_node,
+    vector_qos,
+)
 
 #: Wall-clock seconds between two looks for finished analyses.
 RESULT_POLL_PERIOD = 0.02

@@ -27,8 +27,17 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from ..core.errors import ConfigurationError
+from ..core.options import ParamSpec
 from ..sim.mpc import InternalModelMpc, MpcOptions
-from .ros_io import (MODEL_PARAMS, MessageError, ParamSpec, VectorCodec, declare_parameters, resolve_model, run_node, vector_qos)
+from .ros_io import (
+    MODEL_PARAMS,
+    MessageError,
+    VectorCodec,
+    declare_parameters,
+    resolve_model,
+    run_node,
+    vector_qos,
+)
 
 PARAMS = MODEL_PARAMS + (
     ParamSpec("prediction_horizon", "int", 100, "Prediction horizon Hp, samples.", 1, 100000),

@@ -26,9 +26,20 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 
+from ..core.options import ParamSpec
 from ..sim.closed_loop import seeded_generators
 from ..sim.plant import DisturbanceOptions, PlantSimulator
-from .ros_io import (MODEL_PARAMS, MessageError, ParamSpec, VectorCodec, declare_parameters, ns_to_stamp, period_ns, resolve_model, run_node, vector_qos)
+from .ros_io import (
+    MODEL_PARAMS,
+    MessageError,
+    VectorCodec,
+    declare_parameters,
+    ns_to_stamp,
+    period_ns,
+    resolve_model,
+    run_node,
+    vector_qos,
+)
 
 PARAMS = MODEL_PARAMS + (
     ParamSpec("seed", "int", 1, "Seed of the disturbance and noise (same seed as a batch run gives the same data).",

@@ -53,11 +53,11 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy)
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
-from ..io.bags import BagWriter
 from ..core.errors import ConfigurationError, InputError
+from ..io.bags import BagWriter
 
 #: Message types of the topics the project publishes (CONTRACTS section 4, DESIGN.md).
 KNOWN_TOPIC_TYPES = {

@@ -47,8 +47,8 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 
-from ..io.bags import DEFAULT_TOPICS, read_raw_messages, topic_name
 from ..core.errors import ConfigurationError, InputError
+from ..io.bags import DEFAULT_TOPICS, read_raw_messages, topic_name
 from .recorder_node import message_class
 
 MODES = ("time", "clock")

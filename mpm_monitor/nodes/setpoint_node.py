@@ -25,10 +25,20 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 
-from ..sim.closed_loop import seeded_generators
 from ..core.errors import ConfigurationError
+from ..core.options import ParamSpec
+from ..sim.closed_loop import seeded_generators
 from ..sim.excitation import PrbsGenerator, PrbsOptions, StepHoldGenerator
-from .ros_io import (MODEL_PARAMS, ParamSpec, VectorCodec, declare_parameters, period_ns, resolve_model, run_node, stamp_to_ns, vector_qos)
+from .ros_io import (
+    MODEL_PARAMS,
+    VectorCodec,
+    declare_parameters,
+    period_ns,
+    resolve_model,
+    run_node,
+    stamp_to_ns,
+    vector_qos,
+)
 
 PARAMS = MODEL_PARAMS + (
     ParamSpec("mode", "string", "prbs", "Setpoint signal: prbs (random binary, flat spectrum with "

@@ -12,9 +12,9 @@ import dataclasses
 
 import numpy as np
 
+from ..core.model import FopdtModel
 from .closed_loop import ExcitationOptions
 from .excitation import PrbsOptions
-from ..core.model import FopdtModel
 from .mpc import MpcOptions
 from .plant import DisturbanceOptions
 

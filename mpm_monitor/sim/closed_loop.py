@@ -13,8 +13,8 @@ from typing import Optional
 import numpy as np
 
 from ..core.errors import ConfigurationError
-from .excitation import PrbsGenerator, PrbsOptions, ZeroGenerator
 from ..core.model import FopdtModel
+from .excitation import PrbsGenerator, PrbsOptions, ZeroGenerator
 from .mpc import InternalModelMpc, MpcOptions
 from .plant import DisturbanceOptions, PlantSimulator
 
