@@ -121,7 +121,7 @@ def _repair_row(model, u, y, i, js, n_fit, options, zcrit, chi_crit, alpha, extr
             t["time_constant"] = [float(stats.chi2.sf(lr({m: {"pole"}}), 1)),
                                   abs(after["time_constant"] - tau0) > options.min_relative_change * max(tau0, ts)]
             w = specs[j].window
-            p_d = float(stats.chi2.sf(_lag_lr(est, m, lag_orig[j], problem.specs), 1)) \
+            p_d = float(stats.chi2.sf(_lag_lr(est, m, lag_orig[j]), 1)) \
                 if w[0] <= lag_orig[j] <= w[1] else 0.0
             t["delay"] = [p_d, after["delay"] != before["delay"]]
         tests[j] = t

@@ -285,6 +285,25 @@ class _RowProblem:
         return np.maximum(var_gain, 0.0), np.maximum(var_pole, 0.0), cond
 
 
+class _FitCache:
+    """Converged fits of a row problem by input lags: each lag vector is fitted once.
+
+    Calling it with ``(lags, poles_start)`` returns the cached fit of ``lags`` (the start poles
+    only matter the first time); ``fits`` maps ``tuple(lags)`` to the :class:`_Fit`, in the order
+    they were computed.
+    """
+
+    def __init__(self, problem: _RowProblem):
+        self.problem = problem
+        self.fits: dict = {}
+
+    def __call__(self, lags, poles_start) -> _Fit:
+        key = tuple(int(v) for v in lags)
+        if key not in self.fits:
+            self.fits[key] = self.problem.fit(key, poles_start)
+        return self.fits[key]
+
+
 @dataclasses.dataclass
 class _RowEstimate:
     """Result of the search of one row: the fit, the lag profiles and the parameter variances."""
@@ -296,6 +315,7 @@ class _RowEstimate:
     cond: float
     edge: list          # per element: True when the best lag is at the edge of its window
     ar: np.ndarray
+    fits: _FitCache = dataclasses.field(repr=False, default=None)  # more profile points on demand
 
 
 _TAU_GRID = (0.5, 0.7, 1.0, 1.4, 2.0)
@@ -312,58 +332,83 @@ def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int
     """
     n = problem.n_located
     specs = problem.specs
-    cache = {}
-
-    def full(lg, poles_start):
-        key = tuple(int(v) for v in lg)
-        if key not in cache:
-            cache[key] = problem.fit(key, poles_start)
-        return cache[key]
-
+    fits = _FitCache(problem)
     lags = [int(v) for v in lags0]
-    best = full(lags, [s.pole for s in specs])
-    for _ in range(max_sweeps):
-        moved = False
-        for m in range(n):
-            spec = specs[m]
-            if not spec.lag_free:
-                continue
-            base_tau = -1.0 / math.log(min(max(best.poles[m], _POLE_MIN), _POLE_MAX))
-            grid = _TAU_GRID if spec.pole_free else (1.0,)
-            cand = []
-            for lag in range(spec.window[0], spec.window[1] + 1):
-                lg = list(lags)
-                lg[m] = lag
-                for f in grid:
-                    poles = best.poles.copy()
-                    poles[m] = min(max(math.exp(-1.0 / (base_tau * f)), _POLE_MIN), _POLE_MAX)
-                    cand.append((problem.evaluate(poles, lg).ssr, lag, poles))
-            cand.sort(key=lambda c: c[0])
-            tried = set()
-            for _, lag, poles in cand:
-                if lag in tried:
-                    continue
-                if len(tried) >= 3:
-                    break
-                tried.add(lag)
-                lg = list(lags)
-                lg[m] = lag
-                f = full(lg, poles)
-                if f.ssr < best.ssr * (1 - 1e-12):
-                    moved = moved or lag != lags[m]
-                    best, lags = f, lg
-        if not moved:
-            break
+    best = fits(lags, [s.pole for s in specs])
+    best, lags = _sweep_lags(problem, fits, best, lags, max_sweeps)
     # Phase 2: the noise model.
     for _ in range(ar_iterations if problem.p else 0):
         problem.update_ar(best)
-        cache.clear()
-        best = full(lags, best.poles)
-    # Phase 3: local moves and profiles.
+        fits.fits.clear()
+        best = fits(lags, best.poles)
+    best, lags = _local_lag_moves(problem, fits, best, lags)
+    if need_cov:
+        var_gain, var_pole, cond = problem.covariance(best)
+    else:
+        var_gain, var_pole, cond = np.zeros(n), np.zeros(n), float("nan")
+    edge = [specs[m].lag_free and lags[m] in specs[m].window for m in range(n)]
+    return _RowEstimate(fit=best, profiles=_lag_profiles(fits, lags), var_gain=var_gain, var_pole=var_pole,
+                        cond=cond, edge=edge, ar=problem.ar.copy(), fits=fits)
+
+
+def _sweep_lags(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, max_sweeps: int):
+    """Phase 1 of :func:`_search_row`: coordinate sweeps over the free lags until none moves.
+
+    Returns the best fit and its lags.
+    """
+    for _ in range(max_sweeps):
+        moved = False
+        for m in range(problem.n_located):
+            if not problem.specs[m].lag_free:
+                continue
+            best, lags, moved_m = _move_lag(problem, fits, best, lags, m)
+            moved = moved or moved_m
+        if not moved:
+            break
+    return best, lags
+
+
+def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: int):
+    """Best lag of element ``m`` with the others held: the (lag, pole) scan, then fits of the 3 best lags.
+
+    Returns the best fit, its lags and whether the lag of ``m`` moved.
+    """
+    spec = problem.specs[m]
+    moved = False
+    base_tau = -1.0 / math.log(min(max(best.poles[m], _POLE_MIN), _POLE_MAX))
+    grid = _TAU_GRID if spec.pole_free else (1.0,)
+    cand = []
+    for lag in range(spec.window[0], spec.window[1] + 1):
+        lg = list(lags)
+        lg[m] = lag
+        for f in grid:
+            poles = best.poles.copy()
+            poles[m] = min(max(math.exp(-1.0 / (base_tau * f)), _POLE_MIN), _POLE_MAX)
+            cand.append((problem.evaluate(poles, lg).ssr, lag, poles))
+    cand.sort(key=lambda c: c[0])
+    tried = set()
+    for _, lag, poles in cand:
+        if lag in tried:
+            continue
+        if len(tried) >= 3:
+            break
+        tried.add(lag)
+        lg = list(lags)
+        lg[m] = lag
+        f = fits(lg, poles)
+        if f.ssr < best.ssr * (1 - 1e-12):
+            moved = moved or lag != lags[m]
+            best, lags = f, lg
+    return best, lags, moved
+
+
+def _local_lag_moves(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list):
+    """Phase 3 of :func:`_search_row`: move each free lag by one sample while that lowers the cost."""
+    specs = problem.specs
     improved = True
     while improved:
         improved = False
-        for m in range(n):
+        for m in range(problem.n_located):
             if not specs[m].lag_free:
                 continue
             for step in (-1, 1):
@@ -371,47 +416,43 @@ def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int
                 if specs[m].window[0] <= lag <= specs[m].window[1]:
                     lg = list(lags)
                     lg[m] = lag
-                    f = full(lg, best.poles)
+                    f = fits(lg, best.poles)
                     if f.ssr < best.ssr * (1 - 1e-12):
                         best, lags, improved = f, lg, True
-    if need_cov:
-        var_gain, var_pole, cond = problem.covariance(best)
-    else:
-        var_gain, var_pole, cond = np.zeros(n), np.zeros(n), float("nan")
+    return best, lags
+
+
+def _lag_profiles(fits: _FitCache, lags) -> list:
+    """Per element ``m``: ``{lag: ssr}`` of the fits so far whose other lags equal ``lags``."""
+    n = len(lags)
     profiles = []
     for m in range(n):
         prof = {}
-        for key, f in cache.items():
+        for key, f in fits.fits.items():
             if all(key[q] == lags[q] for q in range(n) if q != m):
                 prof[key[m]] = f.ssr
         profiles.append(prof)
-    edge = [specs[m].lag_free and lags[m] in specs[m].window for m in range(n)]
-    est = _RowEstimate(fit=best, profiles=profiles, var_gain=var_gain, var_pole=var_pole, cond=cond, edge=edge,
-                       ar=problem.ar.copy())
-    est._full = full  # noqa: SLF001  (used by the profile intervals)
-    return est
+    return profiles
 
 
-def _lag_lr(est: _RowEstimate, m: int, lag: int, specs) -> float:
+def _lag_lr(est: _RowEstimate, m: int, lag: int) -> float:
     """Profile likelihood-ratio statistic ``n ln(SSR_lag / SSR_best)`` of element ``m`` at ``lag``."""
     fit = est.fit
     if lag not in est.profiles[m]:
         lg = list(fit.lags)
         lg[m] = lag
-        est.profiles[m][lag] = est._full(lg, fit.poles).ssr
+        est.profiles[m][lag] = est.fits(lg, fit.poles).ssr
     return fit.n_resid * math.log(max(est.profiles[m][lag], 1e-300) / max(fit.ssr, 1e-300))
 
 
-def _lag_interval(est: _RowEstimate, m: int, specs, threshold: float):
-    """Contiguous lags of element ``m`` whose profile statistic stays below ``threshold``."""
+def _lag_interval(est: _RowEstimate, m: int, window: tuple, threshold: float):
+    """Contiguous lags of element ``m`` within ``window`` whose profile statistic stays below ``threshold``."""
     lo = hi = est.fit.lags[m]
-    w = specs[m].window
-    while lo - 1 >= w[0] and _lag_lr(est, m, lo - 1, specs) <= threshold:
+    while lo - 1 >= window[0] and _lag_lr(est, m, lo - 1) <= threshold:
         lo -= 1
-    while hi + 1 <= w[1] and _lag_lr(est, m, hi + 1, specs) <= threshold:
+    while hi + 1 <= window[1] and _lag_lr(est, m, hi + 1) <= threshold:
         hi += 1
     return lo, hi
-
 
 
 def _ar_design(x: np.ndarray, p: int):

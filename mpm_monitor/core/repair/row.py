@@ -66,7 +66,7 @@ def _element_summary(problem, est, m, ts, zcrit, chi_crit):
     k_hat, a_hat, lag_hat = float(fit.gains[m]), float(fit.poles[m]), int(fit.lags[m])
     se_k, se_a = math.sqrt(est.var_gain[m]), math.sqrt(est.var_pole[m])
     after = dict(zip(("gain", "time_constant", "delay"), _element_params(k_hat, a_hat, lag_hat, ts)))
-    lo_lag, hi_lag = _lag_interval(est, m, problem.specs, chi_crit)
+    lo_lag, hi_lag = _lag_interval(est, m, problem.specs[m].window, chi_crit)
     a_lo = min(max(a_hat - zcrit * se_a, 1e-12), a_hat)
     a_hi = max(min(a_hat + zcrit * se_a, 1.0 - 1e-12), a_hat)
     lagged = after["time_constant"] > 0
