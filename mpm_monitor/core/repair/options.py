@@ -1,4 +1,4 @@
-"""Options of the repair and their check."""
+"""Options of the repair, their check, and the test levels they fix."""
 
 from __future__ import annotations
 
@@ -6,10 +6,12 @@ import dataclasses
 import math
 
 import numpy as np
+from scipy import stats
 
 from ..errors import ConfigurationError
 from ..signals import INITIAL_STATE_CHOICES
 
+#: The kinds of mismatch a located element can be given (``unknown``: no significant change).
 KINDS = ("gain", "time_constant", "delay", "missing", "mixed", "unknown")
 
 
@@ -105,3 +107,30 @@ def check_repair_options(opts: RepairOptions) -> None:
                                  f"got {opts.initial_state!r}")
     if not (is_int(opts.max_sweeps) and 1 <= opts.max_sweeps <= 20):
         raise ConfigurationError(f"max_sweeps: expected an integer in [1, 20], got {opts.max_sweeps!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class _TestSettings:
+    """The levels every test and interval of one repair uses, fixed by the options.
+
+    Attributes
+    ----------
+    options : RepairOptions
+    alpha : float
+        ``1 - confidence_level``: the level of the likelihood-ratio tests.
+    zcrit : float
+        Two-sided standard normal quantile at ``alpha`` (intervals of gains and poles).
+    chi_crit : float
+        Chi-square(1) quantile at ``alpha`` (profile interval of a delay).
+    """
+
+    options: RepairOptions
+    alpha: float
+    zcrit: float
+    chi_crit: float
+
+    @classmethod
+    def of(cls, options: RepairOptions) -> "_TestSettings":
+        alpha = 1.0 - options.confidence_level
+        return cls(options=options, alpha=alpha, zcrit=float(stats.norm.isf(alpha / 2)),
+                   chi_crit=float(stats.chi2.isf(alpha, 1)))

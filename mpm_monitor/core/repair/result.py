@@ -1,14 +1,79 @@
-"""What the repair reports: the result and its change entries."""
+"""What the repair reports: the verdict on each located element, its change entry, and the result."""
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Optional
 
 import numpy as np
 
 from ..model import FopdtModel
 from .options import RepairOptions
+
+
+@dataclasses.dataclass
+class ElementVerdict:
+    """What the repair concluded about one located element (output ``i``, input ``j``).
+
+    Attributes
+    ----------
+    kind : str
+        One of :data:`KINDS`.
+    changed : list of str
+        The tests that found a change, among "missing", "gain", "time_constant", "delay", in that
+        order.
+    after : dict
+        The fitted element (``gain``, ``time_constant`` s, ``delay`` s); the model's element when
+        the row could not be fitted.
+    interval : dict or None
+        ``[lo, hi]`` per parameter at ``confidence_level``.
+    evidence : dict
+        The p-values, the condition number, the samples and the noise model of the row fit (see
+        :class:`RepairResult`).
+    confidence : float
+        In [0, 1]: how clearly the tests lie on their side of the threshold.
+    apply : bool
+        Whether the repair takes ``after`` into the model.
+    reason : str, optional
+        Why the element is not changed.
+    fitted_kind : str, optional
+        The kind found before the held-out validation rejected the repair.
+    """
+
+    kind: str
+    changed: list
+    after: dict
+    interval: Optional[dict]
+    evidence: dict
+    confidence: float
+    apply: bool
+    reason: Optional[str] = None
+    fitted_kind: Optional[str] = None
+
+    def reject(self, reason: str) -> None:
+        """Keep the element as it was: the kind found becomes ``fitted_kind``, the kind "unknown"."""
+        self.apply, self.fitted_kind, self.kind, self.confidence, self.reason = False, self.kind, "unknown", 0.0, reason
+
+    def change_entry(self, model: FopdtModel, i: int, j: int) -> dict:
+        """The ``changes`` entry of the element (see :class:`RepairResult`)."""
+        entry = {"output": model.outputs[i], "input": model.inputs[j], "kind": self.kind,
+                 "before": model.element(i, j),
+                 "after": self.after if self.apply else model.element(i, j),
+                 "estimate": self.after, "confidence": self.confidence,
+                 "interval": self.interval, "applied": bool(self.apply), "evidence": self.evidence}
+        if self.fitted_kind is not None:
+            entry["fitted_kind"] = self.fitted_kind
+        if self.reason:
+            entry["reason"] = self.reason
+        return entry
+
+
+def _unchanged_entry(model: FopdtModel, i: int, j: int, reason: str) -> dict:
+    """The ``changes`` entry of an element that was not fitted at all (no estimate)."""
+    return {"output": model.outputs[i], "input": model.inputs[j], "kind": "unknown",
+            "before": model.element(i, j), "after": model.element(i, j), "estimate": None,
+            "confidence": 0.0, "interval": None, "applied": False, "evidence": {}, "reason": reason}
 
 
 @dataclasses.dataclass
@@ -96,10 +161,3 @@ def _jsonable(x):
         x = float(x)
         return x if math.isfinite(x) else None
     return x
-
-
-
-def _unchanged_entry(model, i, j, reason):
-    return {"output": model.outputs[i], "input": model.inputs[j], "kind": "unknown",
-            "before": model.element(i, j), "after": model.element(i, j), "estimate": None,
-            "confidence": 0.0, "interval": None, "applied": False, "evidence": {}, "reason": reason}
