@@ -1,6 +1,6 @@
 """Trace the prediction error to the effect the model lacks, re-estimate it, and show the gain.
 
-After the analysis has located mismatched elements (paper section 2.2), this module answers the
+After the analysis has located mismatched elements (paper section 2.2), this package answers the
 control engineer's next questions (paper section 4, "type and severity" of each mismatch):
 
 1. **Residual.**  ``d = y - Phat u`` of the model as given (paper eq. 9: ``d = Delta u + v``).
@@ -45,6 +45,18 @@ control engineer's next questions (paper section 4, "type and severity" of each 
    absorb the coloured noise.  These are reported and never turned into element changes; when one
    shows on a repaired row, that row is re-estimated with the step (ramp) as a nuisance regressor
    so that it does not bias the elements.
+
+Where each step lives:
+
+- :mod:`.options`: :class:`RepairOptions` and their check, the test levels they fix.
+- :mod:`.fit`: the prediction-error fit of one row (step 2), model-free: the row problem, the
+  search over lags, poles and noise model, the lag profiles.
+- :mod:`.row`: from a row of the model to its fit and back (parameters in seconds, intervals).
+- :mod:`.classify`: the likelihood-ratio tests and the kinds (step 3).
+- :mod:`.refit`: the fit of what changed, and the refit on the whole record (step 4).
+- :mod:`.disturbance`: the step and drift tests of a residual (step 5).
+- :mod:`.model_repair`: :func:`repair_model`, which runs the steps row by row, validates on the
+  held-out part and assembles the :class:`RepairResult` (:mod:`.result`).
 """
 
 from .disturbance import sup_wald_p_value, unexplained_disturbance

@@ -1,4 +1,8 @@
-"""Unexplained disturbance (step or drift) test of a residual."""
+"""Unexplained disturbance test of a residual: a level shift (sup-Wald) or a linear drift (Wald).
+
+Both run in a regression with AR(p) terms that absorb the coloured noise; see
+:func:`unexplained_disturbance`.
+"""
 
 from __future__ import annotations
 

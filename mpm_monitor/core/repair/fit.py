@@ -1,4 +1,12 @@
-"""The prediction-error fit of the located elements of one output row."""
+"""The prediction-error fit of the located elements of one output row (model-free).
+
+:class:`_RowProblem` is the fit of the located elements of a row to ``z`` (the output minus the
+row's fixed elements) with an AR noise model, the gains and nuisance terms eliminated by variable
+projection; :func:`_search_row` searches its input lags on the integer grid, its poles by least
+squares and its noise model, and records the lag profiles that :func:`_lag_lr` and
+:func:`_lag_interval` read.  The element parameters convert between seconds and the fit's
+``(gain, pole, lag)`` with :func:`_element_lag`, :func:`_pole_of` and :func:`_element_params`.
+"""
 
 from __future__ import annotations
 

@@ -129,7 +129,10 @@ class RepairResult:
     options: RepairOptions = RepairOptions()
 
     def to_dict(self) -> dict:
-        """The ``repair`` object of the analysis report (CONTRACTS section 3), plain JSON values."""
+        """The ``repair`` object of the analysis report, plain JSON values.
+
+        See ``docs/interfaces.md``, section "analyze and its JSON report".
+        """
         return _jsonable({
             "model": self.model.to_dict(),
             "changes": self.changes,
