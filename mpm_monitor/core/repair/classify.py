@@ -38,6 +38,35 @@ def _margin(p, alpha):
 
 
 @dataclasses.dataclass
+class _ElementTests:
+    """The tests of one located element.
+
+    Attributes
+    ----------
+    results : dict
+        ``{test: [p-value of "unchanged", change large enough]}``; the tests are "missing" for an
+        element the model does not have, else "gain", "time_constant" and "delay".
+    changed : set of str
+        The tests that found a change (significant and large enough, or freed by the joint test).
+    margins : dict
+        ``{test: margin}`` (see :func:`_margin`).
+    """
+
+    results: dict
+    changed: set
+    margins: dict
+
+    @classmethod
+    def of(cls, results: dict, alpha: float) -> "_ElementTests":
+        return cls(results=results, changed={k for k, (p, big) in results.items() if p < alpha and big},
+                   margins={k: _margin(p, alpha) for k, (p, _) in results.items()})
+
+    def unchanged(self) -> list:
+        """The tests that found no change, in test order."""
+        return [k for k in self.results if k not in self.changed]
+
+
+@dataclasses.dataclass
 class _FreeFit:
     """The whole-record fit of a row's located elements with gain, time constant and delay free.
 
@@ -149,8 +178,7 @@ def _single_tests(free: _FreeFit, settings: _TestSettings):
     summaries : dict
         ``{j: (after, interval)}`` (see :func:`_element_summary`).
     tests : dict
-        ``{j: {test: [p-value of "unchanged", change large enough]}}``; the tests are "missing"
-        for an element the model does not have, else "gain", "time_constant" and "delay".
+        ``{j: _ElementTests}``.
     """
     model, i = free.row.model, free.row.i
     ts = model.sample_time
@@ -173,18 +201,17 @@ def _single_tests(free: _FreeFit, settings: _TestSettings):
             lag0 = free.lag_orig[j]
             p_d = float(stats.chi2.sf(_lag_lr(free.est, m, lag0), 1)) if w[0] <= lag0 <= w[1] else 0.0
             t["delay"] = [p_d, after["delay"] != before["delay"]]
-        tests[j] = t
+        tests[j] = _ElementTests.of(t, settings.alpha)
     return summaries, tests
 
 
-def _joint_hold(free: _FreeFit, tests: dict, changed: dict, margins: dict, settings: _TestSettings,
-                warnings: list):
+def _joint_hold(free: _FreeFit, tests: dict, settings: _TestSettings, warnings: list):
     """Test the parameters judged unchanged held together; free the likeliest changed while it rejects.
 
     While the joint likelihood-ratio test of every held parameter rejects at ``alpha``, the held
-    parameter with the smallest single p-value is added to ``changed`` (its margin becomes that of
-    the joint test) and a warning says so; ``changed``, ``margins`` and ``warnings`` are updated
-    in place.
+    parameter with the smallest single p-value is added to its element's ``changed`` (its margin
+    becomes that of the joint test) and a warning says so; ``tests`` (``{j: _ElementTests}``) and
+    ``warnings`` are updated in place.
 
     Returns
     -------
@@ -194,47 +221,46 @@ def _joint_hold(free: _FreeFit, tests: dict, changed: dict, margins: dict, setti
     alpha, js = settings.alpha, free.js
     joint_p = None
     while True:
-        holds = {m: {_PARAM_OF_TEST[k] for k in tests[j] if k not in changed[j]} for m, j in enumerate(js)}
+        holds = {m: {_PARAM_OF_TEST[k] for k in tests[j].unchanged()} for m, j in enumerate(js)}
         n_held = sum(len(h) for h in holds.values())
         if n_held == 0:
             break
         joint_p = float(stats.chi2.sf(free.hold_statistic(holds, settings.options), n_held))
         if joint_p >= alpha:
             break
-        j_free, k_free = min(((j, k) for j in js for k in tests[j] if k not in changed[j]),
-                             key=lambda jk: tests[jk[0]][jk[1]][0])
-        changed[j_free].add(k_free)
-        margins[j_free][k_free] = _margin(joint_p, alpha)
+        j_free, k_free = min(((j, k) for j in js for k in tests[j].unchanged()),
+                             key=lambda jk: tests[jk[0]].results[jk[1]][0])
+        tests[j_free].changed.add(k_free)
+        tests[j_free].margins[k_free] = _margin(joint_p, alpha)
         warnings.append(f"{free.row.name(j_free)}: its {k_free.replace('_', ' ')} alone does not show a "
                         f"significant change, but holding it together with the other unchanged parameters of the "
                         f"row does not fit the data (p = {joint_p:.2g}); it is re-estimated too.")
     return joint_p
 
 
-def _verdict(free: _FreeFit, m: int, summary: tuple, tests: dict, changed: set, margins: dict, joint_p,
-             alpha: float) -> ElementVerdict:
-    """The kind, the confidence and the evidence of element ``m`` from its tests.
+def _verdict(est: _RowEstimate, summary: tuple, tests: _ElementTests, joint_p, alpha: float) -> ElementVerdict:
+    """The kind, the confidence and the evidence of an element from its tests.
 
     One changed parameter names the kind (gain, time_constant or delay), several give "mixed", a
     significant element the model does not have "missing", nothing "unknown".  The confidence is
     the smallest margin of the tests, including the joint test when the element has a parameter
     held in it.
     """
-    est = free.est
     after, interval = summary
-    hits = sorted(changed, key=_TEST_ORDER.index)
+    results = tests.results
+    hits = sorted(tests.changed, key=_TEST_ORDER.index)
     if "missing" in hits:
         kind = "missing"
     elif not hits:
         kind = "unknown"
     else:
         kind = hits[0] if len(hits) == 1 else "mixed"
-    confidence = min(margins.values())
-    if joint_p is not None and any(k not in changed for k in tests):
+    confidence = min(tests.margins.values())
+    if joint_p is not None and tests.unchanged():
         confidence = min(confidence, _margin(joint_p, alpha))
-    evidence = {"p_gain": tests.get("gain", tests.get("missing"))[0],
-                "p_time_constant": tests["time_constant"][0] if "time_constant" in tests else None,
-                "p_delay": tests["delay"][0] if "delay" in tests else None,
+    evidence = {"p_gain": results.get("gain", results.get("missing"))[0],
+                "p_time_constant": results["time_constant"][0] if "time_constant" in results else None,
+                "p_delay": results["delay"][0] if "delay" in results else None,
                 "p_unchanged_jointly": joint_p, "condition_number": est.cond, "samples": est.fit.n_resid,
                 "noise_model": [float(v) for v in est.ar]}
     return ElementVerdict(kind=kind, changed=hits, after=after, interval=interval, evidence=evidence,
@@ -271,12 +297,10 @@ def _classify_row(row: _RowData, js, settings: _TestSettings):
     free = _fit_free(row, js, settings.options)
     warnings = []
     summaries, tests = _single_tests(free, settings)
-    changed = {j: {k for k, (p, big) in tests[j].items() if p < alpha and big} for j in free.js}
-    margins = {j: {k: _margin(p, alpha) for k, (p, _) in tests[j].items()} for j in free.js}
-    joint_p = _joint_hold(free, tests, changed, margins, settings, warnings)
+    joint_p = _joint_hold(free, tests, settings, warnings)
     verdicts = {}
     for m, j in enumerate(free.js):
-        verdicts[j] = _verdict(free, m, summaries[j], tests[j], changed[j], margins[j], joint_p, alpha)
+        verdicts[j] = _verdict(free.est, summaries[j], tests[j], joint_p, alpha)
         warnings.extend(_verdict_warnings(free, m, verdicts[j], alpha))
     if free.est.cond > 1e3 and len(free.js) > 1:
         names_u = row.model.inputs

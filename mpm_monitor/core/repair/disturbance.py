@@ -44,6 +44,60 @@ def sup_wald_p_value(statistic: float, trim: float) -> float:
 
 
 
+def _step_wald(X: np.ndarray, yv: np.ndarray, trim: float):
+    """The largest Wald statistic of a level shift in ``yv = X b + c 1(row >= k) + e`` over ``k``.
+
+    Breaks are searched from ``trim`` to ``1 - trim`` of the rows; the statistic of every break is
+    computed at once by Frisch-Waugh with cumulative sums.
+
+    Parameters
+    ----------
+    X : ndarray, shape (n_rows, n_regressors)
+        The offset and AR columns.
+    yv : ndarray, shape (n_rows,)
+    trim : float
+
+    Returns
+    -------
+    (statistic, break row, SSR with the step) or None when no break can be estimated.
+    """
+    n = yv.shape[0]
+    xtx_inv = np.linalg.pinv(X.T @ X)
+    beta = xtx_inv @ (X.T @ yv)
+    e = yv - X @ beta
+    ssr0 = float(e @ e)
+    # For every break k, regressor s_k = 1(row >= k).
+    q = np.cumsum(X[::-1], axis=0)[::-1]            # q[k] = sum_{t>=k} X[t]
+    se = np.cumsum(e[::-1])[::-1]                    # sum_{t>=k} e[t]
+    cnt = n - np.arange(n, dtype=float)
+    denom = cnt - np.einsum("ij,jk,ik->i", q, xtx_inv, q)
+    k_lo, k_hi = int(math.ceil(trim * n)), int(math.floor((1 - trim) * n))
+    ks = np.arange(max(k_lo, 1), max(k_hi, k_lo + 1))
+    ok = denom[ks] > 1e-9 * cnt[ks]
+    ks = ks[ok]
+    if ks.size == 0:
+        return None
+    num = se[ks] ** 2 / denom[ks]
+    dof = n - X.shape[1] - 1
+    s2 = (ssr0 - num) / dof
+    wald = num / np.maximum(s2, 1e-300)
+    best = int(np.argmax(wald))
+    return float(wald[best]), int(ks[best]), ssr0 - float(num[best])
+
+
+def _drift_wald(X: np.ndarray, yv: np.ndarray):
+    """Wald statistic of a linear trend added to the regressors ``X`` of ``yv``, and the SSR with it."""
+    n = yv.shape[0]
+    tcol = np.arange(n, dtype=float) / n
+    X2 = np.column_stack([X, tcol])
+    beta2, *_ = np.linalg.lstsq(X2, yv, rcond=None)
+    e2 = yv - X2 @ beta2
+    ssr_drift = float(e2 @ e2)
+    cov2 = np.linalg.pinv(X2.T @ X2) * ssr_drift / (n - X2.shape[1])
+    w_drift = float(beta2[-1] ** 2 / cov2[-1, -1]) if cov2[-1, -1] > 0 else 0.0
+    return w_drift, ssr_drift
+
+
 def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: float = 0.01, trim: float = 0.15,
                             noise_order: int = 4) -> dict:
     """Test one residual for a step or a linear drift on top of AR(p)-coloured noise.
@@ -85,39 +139,13 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
     if n_all < max(50, 10 * (p + 3)) or not np.all(np.isfinite(d)):
         return out
     yv, lags = _ar_design(d, p)
-    n = yv.shape[0]
-    X = np.column_stack([np.ones(n), lags])
-    xtx_inv = np.linalg.pinv(X.T @ X)
-    beta = xtx_inv @ (X.T @ yv)
-    e = yv - X @ beta
-    ssr0 = float(e @ e)
-    # Step: for every break k, regressor s_k = 1(row >= k).
-    q = np.cumsum(X[::-1], axis=0)[::-1]            # q[k] = sum_{t>=k} X[t]
-    se = np.cumsum(e[::-1])[::-1]                    # sum_{t>=k} e[t]
-    cnt = n - np.arange(n, dtype=float)
-    denom = cnt - np.einsum("ij,jk,ik->i", q, xtx_inv, q)
-    k_lo, k_hi = int(math.ceil(trim * n)), int(math.floor((1 - trim) * n))
-    ks = np.arange(max(k_lo, 1), max(k_hi, k_lo + 1))
-    ok = denom[ks] > 1e-9 * cnt[ks]
-    ks = ks[ok]
-    if ks.size == 0:
+    X = np.column_stack([np.ones(yv.shape[0]), lags])
+    step = _step_wald(X, yv, trim)
+    if step is None:
         return out
-    num = se[ks] ** 2 / denom[ks]
-    dof = n - X.shape[1] - 1
-    s2 = (ssr0 - num) / dof
-    wald = num / np.maximum(s2, 1e-300)
-    best = int(np.argmax(wald))
-    w_step, k_step = float(wald[best]), int(ks[best])
+    w_step, k_step, ssr_step = step
     p_step = min(1.0, 2.0 * sup_wald_p_value(w_step, trim))
-    ssr_step = ssr0 - float(num[best])
-    # Drift: linear trend regressor.
-    tcol = np.arange(n, dtype=float) / n
-    X2 = np.column_stack([X, tcol])
-    beta2, *_ = np.linalg.lstsq(X2, yv, rcond=None)
-    e2 = yv - X2 @ beta2
-    ssr_drift = float(e2 @ e2)
-    cov2 = np.linalg.pinv(X2.T @ X2) * ssr_drift / (n - X2.shape[1])
-    w_drift = float(beta2[-1] ** 2 / cov2[-1, -1]) if cov2[-1, -1] > 0 else 0.0
+    w_drift, ssr_drift = _drift_wald(X, yv)
     p_drift = min(1.0, 2.0 * float(stats.chi2.sf(w_drift, 1)))
     out.update(p_step=p_step, p_drift=p_drift, p_value=min(p_step, p_drift))
     step_hit, drift_hit = p_step < alpha, p_drift < alpha

@@ -149,6 +149,24 @@ class _RowOutcome:
 
 
 @dataclasses.dataclass
+class _Findings:
+    """What the result lists, filled in as the repair goes.
+
+    Attributes
+    ----------
+    changes : list of dict
+        The ``changes`` entries (see :class:`RepairResult`).
+    kinds : dict
+        ``{(i, j): kind}``.
+    warnings : list of str
+    """
+
+    changes: list = dataclasses.field(default_factory=list)
+    kinds: dict = dataclasses.field(default_factory=dict)
+    warnings: list = dataclasses.field(default_factory=list)
+
+
+@dataclasses.dataclass
 class _Evaluation:
     """The model with the accepted repairs, its signals, and the disturbance test of every output."""
 
@@ -173,18 +191,19 @@ def _set_up(model: FopdtModel, data: LoggedData, options: RepairOptions,
                    n_fit=n_fit, holdout_before=holdout_before)
 
 
-def _rows_to_repair(rec: _Record, located: list, changes: list, kinds: dict, warnings: list) -> list:
+def _rows_to_repair(rec: _Record, located: list, found: _Findings) -> list:
     """The rows with located elements, or none when the fit part is too short (then every located
-    element gets an unchanged entry in ``changes`` and ``kinds``); warnings about the set-up."""
+    element gets an unchanged entry in ``found``); warnings about the set-up."""
     options, model, n_fit = rec.options, rec.model, rec.n_fit
+    warnings = found.warnings
     rows = sorted({i for i, _ in located})
     min_fit = max(200, 20 * (2 * model.n_inputs + options.noise_order + 5))
     if located and n_fit < min_fit:
         warnings.append(f"Only {n_fit} samples are available for re-estimating the located elements "
                         f"(at least {min_fit} needed); no element was changed.")
         for (i, j) in located:
-            kinds[(i, j)] = "unknown"
-            changes.append(_unchanged_entry(model, i, j, "too few samples"))
+            found.kinds[(i, j)] = "unknown"
+            found.changes.append(_unchanged_entry(model, i, j, "too few samples"))
         rows = []
     if located and options.holdout_fraction == 0:
         warnings.append("No held-out data (holdout_fraction = 0): the repair was not validated on data "
@@ -335,15 +354,15 @@ def _disturbance_findings(rec: _Record, tests: dict):
     return disturbances, warnings
 
 
-def _assemble(rec: _Record, rows: list, results: dict, changes: list, kinds: dict, warnings: list,
-              ev: _Evaluation) -> RepairResult:
-    """The :class:`RepairResult`: the row outcomes in row order, the errors, the disturbances."""
+def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) -> RepairResult:
+    """The :class:`RepairResult`: the row outcomes (``results``, ``{i: _RowOutcome}`` in row
+    order) after ``found``, the errors, the disturbances."""
     model, y, hold = rec.model, rec.y, rec.hold
     names_y = model.outputs
     ny = model.n_outputs
+    changes, kinds, warnings = found.changes, found.kinds, found.warnings
     holdout_before, holdout_after = dict(rec.holdout_before), {}
-    for i in rows:
-        res = results[i]
+    for i, res in results.items():
         warnings.extend(res.warnings)
         if res.holdout_after is not None:
             holdout_after[names_y[i]] = res.holdout_after
@@ -394,10 +413,10 @@ def repair_model(model: FopdtModel, data: LoggedData, located: Sequence[tuple],
         raise ConfigurationError(f"options: expected RepairOptions, got {type(options).__name__}")
     located = _check_inputs(model, data, located, signals)
     rec = _set_up(model, data, options, signals)
-    changes, kinds, warnings = [], {}, []
-    rows = _rows_to_repair(rec, located, changes, kinds, warnings)
+    found = _Findings()
+    rows = _rows_to_repair(rec, located, found)
     results = {i: _process_row(rec, i, _located_in_row(located, i), None) for i in rows}
     ev = _evaluate(rec, results)
     if _redo_disturbed_rows(rec, located, rows, results, ev.tests):
         ev = _evaluate(rec, results)
-    return _assemble(rec, rows, results, changes, kinds, warnings, ev)
+    return _assemble(rec, results, found, ev)
