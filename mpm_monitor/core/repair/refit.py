@@ -27,14 +27,9 @@ def _update_free_intervals(interval: dict, new: dict, spec: _ElementSpec) -> Non
 def _repair_specs(free: _FreeFit, verdicts: dict):
     """Specs of the repair fit: the changed parameters free from the free fit's values, the rest held.
 
-    Elements of kind "unknown" are left out (held at the model's values).
-
-    Returns
-    -------
-    specs : dict
-        ``{j: _ElementSpec}``.
-    lags0 : dict
-        ``{j: start lag}``.
+    Elements of kind "unknown" are left out (held at the model's values).  Returns the specs
+    ``{j: _ElementSpec}`` and the start lags ``{j: lag}``: the free fit's lag where the delay
+    changed, the model's elsewhere.
     """
     model, i, est = free.row.model, free.row.i, free.est
     ts = model.sample_time
