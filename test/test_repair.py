@@ -317,7 +317,7 @@ def test_row_response_equals_the_state_space_simulation():
     """The element-wise row response used by the fit equals discretize.simulate (lags, static
     elements, a feed-through, a zero gain)."""
     from mpm_monitor.core.discretize import simulate
-    from mpm_monitor.core.repair import _row_response
+    from mpm_monitor.core.repair.row import _row_response
 
     sh = _shell().with_element(0, 1, gain=0.0).with_element(1, 2, time_constant=0.0, delay=2.0)
     sh = sh.with_element(2, 2, time_constant=0.0, delay=0.0)

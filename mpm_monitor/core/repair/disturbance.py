@@ -1,0 +1,164 @@
+"""Unexplained disturbance test of a residual: a level shift (sup-Wald) or a linear drift (Wald).
+
+Both run in a regression with AR(p) terms that absorb the coloured noise; see
+:func:`unexplained_disturbance`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import stats
+
+from .fit import _ar_design
+
+
+def sup_wald_p_value(statistic: float, trim: float) -> float:
+    """Approximate p-value of the sup-Wald statistic of one break in the mean.
+
+    Parameters
+    ----------
+    statistic : float
+        ``sup_pi W(pi)`` over break fractions ``pi`` in ``[trim, 1 - trim]``.
+    trim : float
+        Trimming fraction.
+
+    Notes
+    -----
+    Asymptotically ``W(pi) -> B(pi)^2 / (pi (1 - pi))`` with ``B`` a Brownian bridge (Andrews,
+    *Econometrica* 61, 1993).  The tail ``P(sup > c)`` is approximated by
+    ``sqrt(c) e^{-c/2} / sqrt(2 pi) [(1 - 1/c) ln(lambda) + 4/c]`` with
+    ``lambda = (1 - trim)^2 / trim^2`` (Estrella, *Econometric Theory* 19, 2003).  The
+    approximation is slightly conservative: 0.054 at Andrews' 5 % value 8.68, 0.011 at the 1 %
+    value 12.16 for ``trim = 0.15``.
+    """
+    c = float(statistic)
+    if not math.isfinite(c):
+        return 0.0
+    if c <= 1.0:
+        return 1.0
+    lam = (1.0 - trim) ** 2 / trim ** 2
+    p = math.sqrt(c) * math.exp(-c / 2.0) / math.sqrt(2.0 * math.pi) * ((1.0 - 1.0 / c) * math.log(lam) + 4.0 / c)
+    return float(min(1.0, max(0.0, p)))
+
+
+
+def _step_wald(X: np.ndarray, yv: np.ndarray, trim: float):
+    """The largest Wald statistic of a level shift in ``yv = X b + c 1(row >= k) + e`` over ``k``.
+
+    Breaks are searched from ``trim`` to ``1 - trim`` of the rows; the statistic of every break is
+    computed at once by Frisch-Waugh with cumulative sums.
+
+    Parameters
+    ----------
+    X : ndarray, shape (n_rows, n_regressors)
+        The offset and AR columns.
+    yv : ndarray, shape (n_rows,)
+    trim : float
+
+    Returns
+    -------
+    (statistic, break row, SSR with the step) or None when no break can be estimated.
+    """
+    n = yv.shape[0]
+    xtx_inv = np.linalg.pinv(X.T @ X)
+    beta = xtx_inv @ (X.T @ yv)
+    e = yv - X @ beta
+    ssr0 = float(e @ e)
+    # For every break k, regressor s_k = 1(row >= k).
+    q = np.cumsum(X[::-1], axis=0)[::-1]            # q[k] = sum_{t>=k} X[t]
+    se = np.cumsum(e[::-1])[::-1]                    # sum_{t>=k} e[t]
+    cnt = n - np.arange(n, dtype=float)
+    denom = cnt - np.einsum("ij,jk,ik->i", q, xtx_inv, q)
+    k_lo, k_hi = int(math.ceil(trim * n)), int(math.floor((1 - trim) * n))
+    ks = np.arange(max(k_lo, 1), max(k_hi, k_lo + 1))
+    ok = denom[ks] > 1e-9 * cnt[ks]
+    ks = ks[ok]
+    if ks.size == 0:
+        return None
+    num = se[ks] ** 2 / denom[ks]
+    dof = n - X.shape[1] - 1
+    s2 = (ssr0 - num) / dof
+    wald = num / np.maximum(s2, 1e-300)
+    best = int(np.argmax(wald))
+    return float(wald[best]), int(ks[best]), ssr0 - float(num[best])
+
+
+def _drift_wald(X: np.ndarray, yv: np.ndarray):
+    """Wald statistic of a linear trend added to the regressors ``X`` of ``yv``, and the SSR with it."""
+    n = yv.shape[0]
+    tcol = np.arange(n, dtype=float) / n
+    X2 = np.column_stack([X, tcol])
+    beta2, *_ = np.linalg.lstsq(X2, yv, rcond=None)
+    e2 = yv - X2 @ beta2
+    ssr_drift = float(e2 @ e2)
+    cov2 = np.linalg.pinv(X2.T @ X2) * ssr_drift / (n - X2.shape[1])
+    w_drift = float(beta2[-1] ** 2 / cov2[-1, -1]) if cov2[-1, -1] > 0 else 0.0
+    return w_drift, ssr_drift
+
+
+def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: float = 0.01, trim: float = 0.15,
+                            noise_order: int = 4) -> dict:
+    """Test one residual for a step or a linear drift on top of AR(p)-coloured noise.
+
+    Parameters
+    ----------
+    d : ndarray, shape (n_samples,)
+        The prediction error of one output (output units).
+    sample_time : float
+        Seconds per sample, for the reported time and rate.
+    alpha : float
+        False-alarm probability of the combined test; each of the two tests runs at ``alpha / 2``.
+    trim : float
+        Fraction of the record at each end where no step is searched.
+    noise_order : int
+        Order ``p`` of the AR terms.
+
+    Returns
+    -------
+    dict
+        ``detected`` (bool), ``kind`` ("step", "drift" or None), ``size`` (output units: the step
+        height, or the drift over the whole record), ``time`` (s, the step instant or None),
+        ``rate`` (output units per second, drift only), ``p_value`` (the smaller of the two tests,
+        Bonferroni-adjusted), ``p_step``, ``p_drift``, ``statistic`` (of the reported kind).
+
+    Notes
+    -----
+    Step: in ``d(k) = c0 + c1 1(k >= k_b) + sum_l a_l d(k-l) + e(k)`` the Wald statistic of
+    ``c1 = 0`` is computed for every break ``k_b`` at once (Frisch-Waugh with cumulative sums)
+    and its supremum tested with :func:`sup_wald_p_value`.  Drift: the Wald statistic of ``c1`` in
+    ``d(k) = c0 + c1 k + sum_l a_l d(k-l) + e(k)`` against chi-square(1).  The AR terms absorb the
+    coloured disturbance, so a slowly wandering but stationary disturbance is not reported.
+    """
+    d = np.asarray(d, float).ravel()
+    p = int(noise_order)
+    n_all = d.shape[0]
+    out = {"detected": False, "kind": None, "size": 0.0, "time": None, "rate": None, "p_value": 1.0,
+           "p_step": 1.0, "p_drift": 1.0, "statistic": 0.0}
+    if n_all < max(50, 10 * (p + 3)) or not np.all(np.isfinite(d)):
+        return out
+    yv, lags = _ar_design(d, p)
+    X = np.column_stack([np.ones(yv.shape[0]), lags])
+    step = _step_wald(X, yv, trim)
+    if step is None:
+        return out
+    w_step, k_step, ssr_step = step
+    p_step = min(1.0, 2.0 * sup_wald_p_value(w_step, trim))
+    w_drift, ssr_drift = _drift_wald(X, yv)
+    p_drift = min(1.0, 2.0 * float(stats.chi2.sf(w_drift, 1)))
+    out.update(p_step=p_step, p_drift=p_drift, p_value=min(p_step, p_drift))
+    step_hit, drift_hit = p_step < alpha, p_drift < alpha
+    if not (step_hit or drift_hit):
+        return out
+    kb = k_step + p  # index into d
+    if step_hit and (not drift_hit or ssr_step <= ssr_drift):
+        size = float(np.mean(d[kb:]) - np.mean(d[:kb]))
+        out.update(detected=True, kind="step", size=size, time=kb * sample_time, p_value=p_step,
+                   statistic=w_step)
+    else:
+        # Size from an ordinary straight line through d: what an engineer would draw.
+        slope = float(np.polyfit(np.arange(n_all, dtype=float), d, 1)[0])
+        out.update(detected=True, kind="drift", size=slope * n_all, rate=slope / sample_time,
+                   p_value=p_drift, statistic=w_drift)
+    return out

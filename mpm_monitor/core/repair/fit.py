@@ -1,0 +1,470 @@
+"""The prediction-error fit of the located elements of one output row (model-free).
+
+:class:`_RowProblem` is the fit of the located elements of a row to ``z`` (the output minus the
+row's fixed elements) with an AR noise model, the gains and nuisance terms eliminated by variable
+projection; :func:`_search_row` searches its input lags on the integer grid, its poles by least
+squares and its noise model, and records the lag profiles that :func:`_lag_lr` and
+:func:`_lag_interval` read.  The element parameters convert between seconds and the fit's
+``(gain, pole, lag)`` with :func:`_element_lag`, :func:`_pole_of` and :func:`_element_params`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from scipy import optimize, signal
+
+#: Bounds of a lag element's discrete pole ``a = exp(-T / tau)`` during the fit.
+_POLE_MIN, _POLE_MAX = 1e-4, 0.9995
+
+
+def _element_lag(tau: float, delay_samples: int) -> int:
+    """Input lag ``L`` of an element: ``n_d + 1`` with a lag, ``n_d`` without (see discretize)."""
+    return int(delay_samples) + 1 if tau > 0 else int(delay_samples)
+
+
+def _pole_of(tau: float, ts: float) -> float:
+    """Discrete pole ``exp(-T / tau)`` (the lower pole bound for ``tau = 0``)."""
+    return min(max(math.exp(-ts / tau), _POLE_MIN), _POLE_MAX) if tau > 0 else _POLE_MIN
+
+
+def _element_params(gain: float, pole: float, lag: int, ts: float):
+    """(gain, time constant in s, delay in s) of a fitted element; a vanishing pole means no lag."""
+    if pole <= 2 * _POLE_MIN:
+        return float(gain), 0.0, float(lag) * ts
+    return float(gain), float(-ts / math.log(pole)), float(max(lag - 1, 0)) * ts
+
+
+class _TooShort(Exception):
+    """The fit window is too short for the lags searched (turned into a warning)."""
+
+
+@dataclasses.dataclass
+class _ElementSpec:
+    """Which parameters of a located element the fit may move.
+
+    ``gain``/``pole`` are the held values (or the start values when free); ``window`` is the
+    inclusive range of input lags searched (``lo == hi`` holds the lag).
+    """
+
+    gain_free: bool
+    pole_free: bool
+    gain: float
+    pole: float
+    window: tuple
+
+    @property
+    def lag_free(self) -> bool:
+        return self.window[0] != self.window[1]
+
+
+@dataclasses.dataclass
+class _Fit:
+    """One converged fit of a row for given lags and noise model."""
+
+    lags: tuple
+    poles: np.ndarray   # (n_located,)
+    gains: np.ndarray   # (n_located,)
+    nuisance: np.ndarray
+    ssr: float
+    n_resid: int
+
+
+class _RowProblem:
+    """The prediction-error fit of the located elements of one row (see the module docstring).
+
+    Parameters
+    ----------
+    z : ndarray, shape (n_samples,)
+        Output minus the response of the row's fixed elements (from rest).
+    u : ndarray, shape (n_samples, n_located)
+        The inputs of the located elements.
+    specs : list of _ElementSpec
+        One per located element.
+    n_fit : int
+        Samples ``0 .. n_fit - 1`` are used.
+    skip : int
+        Samples at the start left out of the cost: the largest input lag of the row, since the
+        inputs before the record are unknown.
+    fixed_poles : sequence of float
+        Poles of the row's fixed lag elements, whose free responses are estimated.
+    free_response : bool
+        Estimate the free responses (the initial state) of the row.
+    noise_order : int
+        ``p`` of ``A(q)``.
+    extra : ndarray, shape (n_samples, n_extra), optional
+        Nuisance regressors for an unmeasured disturbance (a step, a ramp), filtered by ``A(q)``
+        like the output, so that the disturbance is never absorbed by an element.
+
+    Notes
+    -----
+    Filtering commutes, so ``A(q) G(q) u = G(q) (A(q) u)``: the inputs are prefiltered once per
+    noise model.  For ``k >= p``, ``A(q) a^k = A(1/a) a^k``: a free response stays a free response
+    with another (free) coefficient, and the cost window starts at ``skip + p``.
+    """
+
+    def __init__(self, z, u, specs, n_fit, skip, fixed_poles, free_response, noise_order, extra=None):
+        self.z = np.asarray(z, float)[:n_fit]
+        self.extra = None if extra is None else np.asarray(extra, float).reshape(len(z), -1)[:n_fit]
+        self.u = np.asarray(u, float)[:n_fit]
+        self.specs = list(specs)
+        self.n_fit = int(n_fit)
+        self.p = int(noise_order)
+        self.free = bool(free_response)
+        self.start = int(skip) + self.p
+        needed = max(150, 20 * (3 * len(self.specs) + self.p + 3))
+        if self.n_fit - self.start < needed:
+            raise _TooShort(f"{self.n_fit} samples are too few for input lags up to {skip} samples "
+                            f"(at least {needed} beyond them needed)")
+        self.kw = np.arange(self.start, self.n_fit, dtype=float)
+        cols = [np.ones_like(self.kw)]
+        if self.free:
+            for a in sorted(set(np.round(np.asarray(fixed_poles, float), 12))):
+                if 0 < a < 1 and a ** self.start > 1e-12:
+                    cols.append(a ** self.kw)
+        self.fixed_cols = np.column_stack(cols)
+        self.pole_free_idx = [m for m, s in enumerate(self.specs) if s.pole_free]
+        self.gain_free_idx = [m for m, s in enumerate(self.specs) if s.gain_free]
+        self.set_ar(np.zeros(self.p))
+
+    @property
+    def n_located(self) -> int:
+        return len(self.specs)
+
+    def set_ar(self, ar) -> None:
+        """Use the noise model ``A(q) = 1 + ar_1 q^-1 + ... + ar_p q^-p``."""
+        self.ar = np.asarray(ar, float).copy()
+        if self.p:
+            num = np.concatenate([[1.0], self.ar])
+            self.zf = signal.lfilter(num, [1.0], self.z)
+            self.uf = signal.lfilter(num, [1.0], self.u, axis=0)
+        else:
+            self.zf, self.uf = self.z, self.u
+        self.xf = None if self.extra is None else self._filtered_extra(self.ar)
+
+    def _filtered_extra(self, ar):
+        if self.p == 0:
+            return self.extra[self.start:]
+        return signal.lfilter(np.concatenate([[1.0], ar]), [1.0], self.extra, axis=0)[self.start:]
+
+    def poles_from(self, x):
+        poles = np.array([s.pole for s in self.specs], float)
+        poles[self.pole_free_idx] = x
+        return poles
+
+    def _unit(self, src, m, pole, lag):
+        """Window of the unit-gain response of element ``m`` to ``src[:, m]``."""
+        base = signal.lfilter([1.0 - pole], [1.0, -pole], src[:self.n_fit - lag, m])
+        return base[self.start - lag:]
+
+    def _design(self, poles, lags, src, filtered=True):
+        known = np.zeros(self.kw.shape[0])
+        gcols = []
+        for m, spec in enumerate(self.specs):
+            col = self._unit(src, m, poles[m], lags[m])
+            if spec.gain_free:
+                gcols.append(col)
+            else:
+                known += spec.gain * col
+        cols = gcols + [self.fixed_cols]
+        if self.free:
+            cols.append(np.column_stack([poles[m] ** self.kw for m in range(self.n_located)]))
+        if self.extra is not None:
+            cols.append(self.xf if filtered else self.extra[self.start:])
+        return known, np.column_stack(cols)
+
+    @staticmethod
+    def _solve(phi, target):
+        scale = np.sqrt(np.einsum("ij,ij->j", phi, phi))
+        scale[scale == 0] = 1.0
+        ps = phi / scale
+        gram = ps.T @ ps
+        beta = np.linalg.pinv(gram, rcond=1e-12, hermitian=True) @ (ps.T @ target)
+        return beta / scale
+
+    def projected(self, poles, lags):
+        """Prefiltered residual with the linear parameters eliminated, and those parameters."""
+        known, phi = self._design(poles, lags, self.uf)
+        target = self.zf[self.start:] - known
+        beta = self._solve(phi, target)
+        return target - phi @ beta, beta
+
+    def _make_fit(self, poles, lags, resid, beta):
+        gains = np.array([s.gain for s in self.specs], float)
+        ng = len(self.gain_free_idx)
+        gains[self.gain_free_idx] = beta[:ng]
+        return _Fit(lags=tuple(int(v) for v in lags), poles=np.asarray(poles, float).copy(), gains=gains,
+                    nuisance=beta[ng:], ssr=float(resid @ resid), n_resid=resid.shape[0])
+
+    def evaluate(self, poles, lags) -> _Fit:
+        """Fit with the poles held (linear parameters re-estimated)."""
+        resid, beta = self.projected(poles, lags)
+        return self._make_fit(poles, lags, resid, beta)
+
+    def fit(self, lags, poles0) -> _Fit:
+        """Least-squares fit of the free poles for the given lags and the current noise model."""
+        poles0 = np.clip(np.asarray(poles0, float), _POLE_MIN, _POLE_MAX)
+        if not self.pole_free_idx:
+            return self.evaluate(poles0, lags)
+        x0 = poles0[self.pole_free_idx]
+
+        def fun(x):
+            return self.projected(self.poles_from(x), lags)[0]
+
+        sol = optimize.least_squares(fun, x0, bounds=(_POLE_MIN, _POLE_MAX), method="trf",
+                                     xtol=1e-9, ftol=1e-9, gtol=1e-9, max_nfev=60, diff_step=1e-6)
+        return self.evaluate(self.poles_from(sol.x), lags)
+
+    def update_ar(self, fit: _Fit) -> None:
+        """Re-estimate ``A(q)`` by least squares on the unfiltered output error of ``fit``."""
+        if self.p == 0:
+            return
+        known, phi = self._design(fit.poles, fit.lags, self.u, filtered=False)
+        ng = len(self.gain_free_idx)
+        r = self.z[self.start:] - known - phi[:, :ng] @ fit.gains[self.gain_free_idx]
+        nuis = phi[:, ng:]
+        r = r - nuis @ self._solve(nuis, r)
+        target, lags = _ar_design(r, self.p)
+        coef, *_ = np.linalg.lstsq(lags, target, rcond=None)
+        self.set_ar(-coef)
+
+    def full_residual(self, theta, lags):
+        """Prefiltered residual as a function of ``[free gains, free poles, ar, nuisance]``."""
+        ng, npf = len(self.gain_free_idx), len(self.pole_free_idx)
+        gains = np.array([s.gain for s in self.specs], float)
+        gains[self.gain_free_idx] = theta[:ng]
+        poles = self.poles_from(theta[ng:ng + npf])
+        ar = theta[ng + npf:ng + npf + self.p]
+        nuis = theta[ng + npf + self.p:]
+        num = np.concatenate([[1.0], ar])
+        zf = signal.lfilter(num, [1.0], self.z)[self.start:]
+        uf = signal.lfilter(num, [1.0], self.u, axis=0)
+        out = zf.copy()
+        for m in range(self.n_located):
+            out -= gains[m] * self._unit(uf, m, poles[m], lags[m])
+        cols = [self.fixed_cols]
+        if self.free:
+            cols.append(np.column_stack([poles[m] ** self.kw for m in range(self.n_located)]))
+        if self.extra is not None:
+            cols.append(self._filtered_extra(ar))
+        return out - np.column_stack(cols) @ nuis
+
+    def covariance(self, fit: _Fit):
+        """Covariance of the free gains and poles from the Jacobian of the full residual.
+
+        Returns
+        -------
+        cov_gain, cov_pole : ndarray, shape (n_located,)
+            Variances (0 for held parameters).
+        cond : float
+            Condition number of the column-scaled Jacobian block of the free gains and poles.
+        """
+        ng, npf = len(self.gain_free_idx), len(self.pole_free_idx)
+        theta = np.concatenate([fit.gains[self.gain_free_idx], fit.poles[self.pole_free_idx], self.ar,
+                                fit.nuisance])
+        r0 = self.full_residual(theta, fit.lags)
+        jac = np.empty((r0.shape[0], theta.shape[0]))
+        for m in range(theta.shape[0]):
+            h = 1e-6 * max(1e-2, abs(theta[m]))
+            if ng <= m < ng + npf:
+                h = min(1e-6, 0.5 * (1.0 - theta[m]))
+            tp, tm = theta.copy(), theta.copy()
+            tp[m] += h
+            tm[m] -= h
+            jac[:, m] = (self.full_residual(tp, fit.lags) - self.full_residual(tm, fit.lags)) / (2 * h)
+        dof = max(r0.shape[0] - theta.shape[0], 1)
+        s2 = float(r0 @ r0) / dof
+        scale = np.sqrt(np.sum(jac ** 2, axis=0))
+        scale[scale == 0] = 1.0
+        js = jac / scale
+        cov = s2 * np.linalg.pinv(js.T @ js, rcond=1e-13, hermitian=True) / np.outer(scale, scale)
+        var = np.diag(cov)
+        var_gain = np.zeros(self.n_located)
+        var_pole = np.zeros(self.n_located)
+        var_gain[self.gain_free_idx] = var[:ng]
+        var_pole[self.pole_free_idx] = var[ng:ng + npf]
+        if ng + npf:
+            sv = np.linalg.svd(js[:, :ng + npf], compute_uv=False)
+            cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+        else:
+            cond = 1.0
+        return np.maximum(var_gain, 0.0), np.maximum(var_pole, 0.0), cond
+
+
+class _FitCache:
+    """Converged fits of a row problem by input lags: each lag vector is fitted once.
+
+    Calling it with ``(lags, poles_start)`` returns the cached fit of ``lags`` (the start poles
+    only matter the first time); ``fits`` maps ``tuple(lags)`` to the :class:`_Fit`, in the order
+    they were computed.
+    """
+
+    def __init__(self, problem: _RowProblem):
+        self.problem = problem
+        self.fits: dict = {}
+
+    def __call__(self, lags, poles_start) -> _Fit:
+        key = tuple(int(v) for v in lags)
+        if key not in self.fits:
+            self.fits[key] = self.problem.fit(key, poles_start)
+        return self.fits[key]
+
+
+@dataclasses.dataclass
+class _RowEstimate:
+    """Result of the search of one row: the fit, the lag profiles and the parameter variances."""
+
+    fit: _Fit
+    profiles: list      # per located element: {lag: ssr} with the other lags at their optimum
+    var_gain: np.ndarray
+    var_pole: np.ndarray
+    cond: float
+    edge: list          # per element: True when the best lag is at the edge of its window
+    ar: np.ndarray
+    fits: _FitCache = dataclasses.field(repr=False, default=None)  # more profile points on demand
+
+
+_TAU_GRID = (0.5, 0.7, 1.0, 1.4, 2.0)
+
+
+def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int = 3,
+                need_cov: bool = True) -> _RowEstimate:
+    """Lags on the integer grid by coordinate search; poles by least squares; then the noise model.
+
+    Phase 1 (output error, ``A = 1``): for each element with a free lag, a quick scan of (lag, pole)
+    with the other parameters held picks candidates, which are fitted; sweeps repeat until no lag
+    moves.  Phase 2: the noise model and the fit are alternately re-estimated.  Phase 3: each lag
+    is moved by one sample while that lowers the cost, and its profile is recorded.
+    """
+    n = problem.n_located
+    specs = problem.specs
+    fits = _FitCache(problem)
+    lags = [int(v) for v in lags0]
+    best = fits(lags, [s.pole for s in specs])
+    best, lags = _sweep_lags(problem, fits, best, lags, max_sweeps)
+    # Phase 2: the noise model.
+    for _ in range(ar_iterations if problem.p else 0):
+        problem.update_ar(best)
+        fits.fits.clear()
+        best = fits(lags, best.poles)
+    best, lags = _local_lag_moves(problem, fits, best, lags)
+    if need_cov:
+        var_gain, var_pole, cond = problem.covariance(best)
+    else:
+        var_gain, var_pole, cond = np.zeros(n), np.zeros(n), float("nan")
+    edge = [specs[m].lag_free and lags[m] in specs[m].window for m in range(n)]
+    return _RowEstimate(fit=best, profiles=_lag_profiles(fits, lags), var_gain=var_gain, var_pole=var_pole,
+                        cond=cond, edge=edge, ar=problem.ar.copy(), fits=fits)
+
+
+def _sweep_lags(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, max_sweeps: int):
+    """Phase 1 of :func:`_search_row`: coordinate sweeps over the free lags until none moves.
+
+    Returns the best fit and its lags.
+    """
+    for _ in range(max_sweeps):
+        moved = False
+        for m in range(problem.n_located):
+            if not problem.specs[m].lag_free:
+                continue
+            best, lags, moved_m = _move_lag(problem, fits, best, lags, m)
+            moved = moved or moved_m
+        if not moved:
+            break
+    return best, lags
+
+
+def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: int):
+    """Best lag of element ``m`` with the others held: the (lag, pole) scan, then fits of the 3 best lags.
+
+    Returns the best fit, its lags and whether the lag of ``m`` moved.
+    """
+    spec = problem.specs[m]
+    moved = False
+    base_tau = -1.0 / math.log(min(max(best.poles[m], _POLE_MIN), _POLE_MAX))
+    grid = _TAU_GRID if spec.pole_free else (1.0,)
+    cand = []
+    for lag in range(spec.window[0], spec.window[1] + 1):
+        lg = list(lags)
+        lg[m] = lag
+        for f in grid:
+            poles = best.poles.copy()
+            poles[m] = min(max(math.exp(-1.0 / (base_tau * f)), _POLE_MIN), _POLE_MAX)
+            cand.append((problem.evaluate(poles, lg).ssr, lag, poles))
+    cand.sort(key=lambda c: c[0])
+    tried = set()
+    for _, lag, poles in cand:
+        if lag in tried:
+            continue
+        if len(tried) >= 3:
+            break
+        tried.add(lag)
+        lg = list(lags)
+        lg[m] = lag
+        f = fits(lg, poles)
+        if f.ssr < best.ssr * (1 - 1e-12):
+            moved = moved or lag != lags[m]
+            best, lags = f, lg
+    return best, lags, moved
+
+
+def _local_lag_moves(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list):
+    """Phase 3 of :func:`_search_row`: move each free lag by one sample while that lowers the cost."""
+    specs = problem.specs
+    improved = True
+    while improved:
+        improved = False
+        for m in range(problem.n_located):
+            if not specs[m].lag_free:
+                continue
+            for step in (-1, 1):
+                lag = lags[m] + step
+                if specs[m].window[0] <= lag <= specs[m].window[1]:
+                    lg = list(lags)
+                    lg[m] = lag
+                    f = fits(lg, best.poles)
+                    if f.ssr < best.ssr * (1 - 1e-12):
+                        best, lags, improved = f, lg, True
+    return best, lags
+
+
+def _lag_profiles(fits: _FitCache, lags) -> list:
+    """Per element ``m``: ``{lag: ssr}`` of the fits so far whose other lags equal ``lags``."""
+    n = len(lags)
+    profiles = []
+    for m in range(n):
+        prof = {}
+        for key, f in fits.fits.items():
+            if all(key[q] == lags[q] for q in range(n) if q != m):
+                prof[key[m]] = f.ssr
+        profiles.append(prof)
+    return profiles
+
+
+def _lag_lr(est: _RowEstimate, m: int, lag: int) -> float:
+    """Profile likelihood-ratio statistic ``n ln(SSR_lag / SSR_best)`` of element ``m`` at ``lag``."""
+    fit = est.fit
+    if lag not in est.profiles[m]:
+        lg = list(fit.lags)
+        lg[m] = lag
+        est.profiles[m][lag] = est.fits(lg, fit.poles).ssr
+    return fit.n_resid * math.log(max(est.profiles[m][lag], 1e-300) / max(fit.ssr, 1e-300))
+
+
+def _lag_interval(est: _RowEstimate, m: int, window: tuple, threshold: float):
+    """Contiguous lags of element ``m`` within ``window`` whose profile statistic stays below ``threshold``."""
+    lo = hi = est.fit.lags[m]
+    while lo - 1 >= window[0] and _lag_lr(est, m, lo - 1) <= threshold:
+        lo -= 1
+    while hi + 1 <= window[1] and _lag_lr(est, m, hi + 1) <= threshold:
+        hi += 1
+    return lo, hi
+
+
+def _ar_design(x: np.ndarray, p: int):
+    """Rows ``k = p .. n-1``: target ``x(k)`` and lag columns ``x(k-1) .. x(k-p)``."""
+    n = x.shape[0]
+    lagcols = [x[p - l:n - l] for l in range(1, p + 1)]
+    return x[p:], (np.column_stack(lagcols) if lagcols else np.zeros((n - p, 0)))

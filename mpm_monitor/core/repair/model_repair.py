@@ -1,0 +1,422 @@
+"""repair_model: set up the record, repair each row, redo rows with an unexplained step or drift,
+and assemble the result.
+
+Each output row with located elements is classified (:mod:`.classify`), its repair fitted on the
+first part of the record (:mod:`.refit`), validated on the held-out last part, and refitted on
+the whole record.  The residual of the repaired model is then tested for an unexplained step or
+drift on every output (:mod:`.disturbance`); a repaired row where one shows is processed again
+with the step (ramp) as a nuisance regressor, so that it does not bias the elements.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional, Sequence
+
+import numpy as np
+
+from ..errors import ConfigurationError, InputError
+from ..logged_data import LoggedData
+from ..model import FopdtModel
+from ..signals import LoopSignals, compute_signals
+from .classify import _classify_row
+from .disturbance import unexplained_disturbance
+from .fit import _TooShort
+from .options import RepairOptions, _TestSettings
+from .refit import _fit_repair, _refit_on_all
+from .result import ElementVerdict, RepairResult, _unchanged_entry
+from .row import _RowData
+
+
+def _project_out(x: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """``x`` minus its least-squares fit on the columns ``cols``."""
+    coef, *_ = np.linalg.lstsq(cols, x, rcond=None)
+    return x - cols @ coef
+
+
+def _rms(x) -> float:
+    x = np.asarray(x, float)
+    return float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
+
+
+def _fit_percent(y, yhat) -> float:
+    den = np.linalg.norm(y - np.mean(y))
+    if den == 0:
+        return float("nan")
+    return float(100.0 * (1.0 - np.linalg.norm(y - yhat) / den))
+
+
+def _check_inputs(model: FopdtModel, data: LoggedData, located, signals):
+    if tuple(data.inputs) != tuple(model.inputs) or tuple(data.outputs) != tuple(model.outputs):
+        raise InputError("repair: the data's channels do not match the model's inputs/outputs "
+                         f"(data {list(data.inputs)} -> {list(data.outputs)}, model {list(model.inputs)} -> "
+                         f"{list(model.outputs)})")
+    n = data.n_samples
+    for key, arr, width in (("r", data.r, model.n_outputs), ("u", data.u, model.n_inputs),
+                            ("y", data.y, model.n_outputs)):
+        if np.shape(arr) != (n, width):
+            raise InputError(f"repair: data.{key}: expected shape ({n}, {width}), got {np.shape(arr)}")
+    out = []
+    for item in located:
+        try:
+            i, j = (int(v) for v in item)
+        except (TypeError, ValueError):
+            raise InputError(f"repair: located element {item!r}: expected a pair (output index, input index)") from None
+        if not (0 <= i < model.n_outputs and 0 <= j < model.n_inputs):
+            raise InputError(f"repair: located element ({i}, {j}): expected 0 <= output < {model.n_outputs} "
+                             f"and 0 <= input < {model.n_inputs}")
+        if (i, j) not in out:
+            out.append((i, j))
+    if signals is not None:
+        for key in ("yhat", "d"):
+            if np.shape(getattr(signals, key)) != (n, model.n_outputs):
+                raise InputError(f"repair: signals.{key}: expected shape ({n}, {model.n_outputs}), "
+                                 f"got {np.shape(getattr(signals, key))}")
+    return sorted(out)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Record:
+    """The record and the model as every step of :func:`repair_model` reads them.
+
+    Attributes
+    ----------
+    model : FopdtModel
+        The model as given.
+    data : LoggedData
+    u, y : ndarray, shape (n_samples, n_inputs) and (n_samples, n_outputs)
+        ``data.u`` and ``data.y`` as float arrays.
+    signals : LoopSignals
+        Of the model as given on the data.
+    d0 : ndarray, shape (n_samples, n_outputs)
+        ``signals.d`` as a float array.
+    settings : _TestSettings
+    n_fit : int
+        Samples ``0 .. n_fit - 1`` are the fit part, the rest is held out.
+    holdout_before : dict
+        ``{output name: RMS of d0 over the held-out part}`` (empty without a held-out part).
+    """
+
+    model: FopdtModel
+    data: LoggedData
+    u: np.ndarray
+    y: np.ndarray
+    signals: LoopSignals
+    d0: np.ndarray
+    settings: _TestSettings
+    n_fit: int
+    holdout_before: dict
+
+    @property
+    def options(self) -> RepairOptions:
+        return self.settings.options
+
+    @property
+    def n(self) -> int:
+        return self.data.n_samples
+
+    @property
+    def n_hold(self) -> int:
+        return self.n - self.n_fit
+
+    @property
+    def hold(self) -> slice:
+        return slice(self.n_fit, self.n)
+
+    def signals_of(self, model: FopdtModel) -> LoopSignals:
+        """:func:`compute_signals` of ``model`` on the record."""
+        return compute_signals(model, self.data.r, self.u, self.y, initial_state=self.options.initial_state)
+
+
+@dataclasses.dataclass
+class _RowOutcome:
+    """What the processing of one row gave.
+
+    Attributes
+    ----------
+    elements : dict
+        ``{j: ElementVerdict}`` of the row's located elements.
+    warnings : list of str
+    holdout_after, holdout_before : float or None
+        RMS of the row's held-out prediction error with the candidate and with the model as given
+        (None when no repair was validated).
+    """
+
+    elements: dict
+    warnings: list
+    holdout_after: Optional[float] = None
+    holdout_before: Optional[float] = None
+
+
+@dataclasses.dataclass
+class _Findings:
+    """What the result lists, filled in as the repair goes.
+
+    Attributes
+    ----------
+    changes : list of dict
+        The ``changes`` entries (see :class:`RepairResult`).
+    kinds : dict
+        ``{(i, j): kind}``.
+    warnings : list of str
+    """
+
+    changes: list = dataclasses.field(default_factory=list)
+    kinds: dict = dataclasses.field(default_factory=dict)
+    warnings: list = dataclasses.field(default_factory=list)
+
+
+@dataclasses.dataclass
+class _Evaluation:
+    """The model with the accepted repairs, its signals, and the disturbance test of every output."""
+
+    model: FopdtModel
+    signals: LoopSignals
+    tests: dict
+
+
+def _set_up(model: FopdtModel, data: LoggedData, options: RepairOptions,
+            signals: Optional[LoopSignals]) -> _Record:
+    """The record of checked inputs: float arrays, the signals of the model, the split, the levels."""
+    u, y = np.asarray(data.u, float), np.asarray(data.y, float)
+    n = data.n_samples
+    if signals is None:
+        signals = compute_signals(model, data.r, u, y, initial_state=options.initial_state)
+    d0 = np.asarray(signals.d, float)
+    n_hold = int(round(options.holdout_fraction * n))
+    n_fit = n - n_hold
+    hold = slice(n_fit, n)
+    holdout_before = {model.outputs[i]: _rms(d0[hold, i]) for i in range(model.n_outputs)} if n_hold > 0 else {}
+    return _Record(model=model, data=data, u=u, y=y, signals=signals, d0=d0, settings=_TestSettings.of(options),
+                   n_fit=n_fit, holdout_before=holdout_before)
+
+
+def _rows_to_repair(rec: _Record, located: list, found: _Findings) -> list:
+    """The rows with located elements, or none when the fit part is too short (then every located
+    element gets an unchanged entry in ``found``); warnings about the set-up."""
+    options, model, n_fit = rec.options, rec.model, rec.n_fit
+    warnings = found.warnings
+    rows = sorted({i for i, _ in located})
+    min_fit = max(200, 20 * (2 * model.n_inputs + options.noise_order + 5))
+    if located and n_fit < min_fit:
+        warnings.append(f"Only {n_fit} samples are available for re-estimating the located elements "
+                        f"(at least {min_fit} needed); no element was changed.")
+        for (i, j) in located:
+            found.kinds[(i, j)] = "unknown"
+            found.changes.append(_unchanged_entry(model, i, j, "too few samples"))
+        rows = []
+    if located and options.holdout_fraction == 0:
+        warnings.append("No held-out data (holdout_fraction = 0): the repair was not validated on data "
+                        "outside the fit.")
+    return rows
+
+
+def _repair_row(row: _RowData, js, n_fit: int, settings: _TestSettings):
+    """Classify the located elements ``js`` of the row on the whole record, then fit their repair
+    on samples ``0 .. n_fit - 1``.
+
+    Returns
+    -------
+    verdicts : dict
+        ``{j: ElementVerdict}``.
+    warnings : list of str
+    """
+    free, verdicts, warnings = _classify_row(row, js, settings)
+    _fit_repair(free, verdicts, n_fit, settings)
+    return verdicts, warnings
+
+
+def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnings: list):
+    """Compare the candidate's RMS prediction error on the held-out part with the model's.
+
+    On a row with nuisance regressors (``row.extra``) both errors are taken with an offset and
+    those regressors projected out over the held-out part.  When the candidate is not better by
+    ``min_holdout_improvement``, the applied verdicts are rejected and a warning is added.
+
+    Returns
+    -------
+    accepted : bool
+    h_after, h_before : float
+    """
+    model, i, options = rec.model, row.i, rec.options
+    hold, n_hold = rec.hold, rec.n_hold
+    name = model.outputs[i]
+    candidate = model
+    for j, el in elements.items():
+        if el.apply:
+            candidate = candidate.with_element(i, j, **el.after)
+    sig_c = rec.signals_of(candidate)
+    h_after = _rms(sig_c.d[hold, i])
+    h_before = rec.holdout_before[name]
+    if row.extra is not None:
+        # The unexplained disturbance is no model's job: compare without it (an offset and the
+        # step or ramp fitted over the held-out part), since a wrong element can partly cancel it.
+        cols = np.column_stack([np.ones(n_hold), row.extra[hold]])
+        h_after = _rms(_project_out(sig_c.d[hold, i], cols))
+        h_before = _rms(_project_out(rec.d0[hold, i], cols))
+    if h_after < h_before * (1.0 - options.min_holdout_improvement):
+        return True, h_after, h_before
+    warnings.append(
+        f"{name}: the re-estimated element(s) {', '.join(model.inputs[j] for j in js)} did not "
+        f"predict the held-out last {100 * options.holdout_fraction:.0f}% of the record better (RMS "
+        f"error {h_after:.4g} vs {h_before:.4g} with the model as given); the elements are kept as "
+        f"they were.")
+    for el in elements.values():
+        if el.apply:
+            el.reject("rejected by held-out validation")
+    return False, h_after, h_before
+
+
+def _process_row(rec: _Record, i: int, js, extra: Optional[np.ndarray]) -> _RowOutcome:
+    """Classify, fit, validate and (optionally) refit the located elements ``js`` of row ``i``.
+
+    ``extra`` (shape (n_samples, n_extra)) holds nuisance regressors for an unexplained step or
+    drift on the row, or None.
+    """
+    model = rec.model
+    row = _RowData(model=model, u=rec.u, y=rec.y, i=i, extra=extra)
+    try:
+        elements, row_warnings = _repair_row(row, js, rec.n_fit, rec.settings)
+    except _TooShort as exc:
+        elements = {j: ElementVerdict(kind="unknown", changed=[], after=model.element(i, j), interval=None,
+                                      evidence={}, confidence=0.0, apply=False, reason=str(exc)) for j in js}
+        return _RowOutcome(elements, [f"{model.outputs[i]}: {exc}; its elements were not re-estimated."])
+    row_warnings = list(row_warnings)
+    h_after = h_before = None
+    accepted = any(el.apply for el in elements.values())
+    if accepted and rec.n_hold > 0:
+        accepted, h_after, h_before = _validate_on_holdout(rec, row, js, elements, row_warnings)
+    if accepted and rec.options.refit_on_all and rec.n_hold > 0:
+        _refit_on_all(row, {j: el for j, el in elements.items() if el.apply}, rec.settings)
+    if not accepted:
+        for el in elements.values():
+            el.apply = False
+    return _RowOutcome(elements, row_warnings, h_after, h_before)
+
+
+def _evaluate(rec: _Record, results: dict) -> _Evaluation:
+    """The model with every accepted repair of ``results``, its signals, and the disturbance tests."""
+    repaired = rec.model
+    for i, res in results.items():
+        for j, el in res.elements.items():
+            if el.apply:
+                repaired = repaired.with_element(i, j, **el.after)
+    sig = rec.signals if repaired == rec.model else rec.signals_of(repaired)
+    d = np.asarray(sig.d, float)
+    options = rec.options
+    tests = {i: unexplained_disturbance(d[:, i], rec.model.sample_time, options.disturbance_alpha,
+                                        options.disturbance_trim, options.noise_order)
+             for i in range(rec.model.n_outputs)}
+    return _Evaluation(model=repaired, signals=sig, tests=tests)
+
+
+def _redo_disturbed_rows(rec: _Record, located: list, rows: list, results: dict, tests: dict) -> bool:
+    """Process again, with the step or ramp as a nuisance regressor, every repaired row whose
+    residual shows an unexplained disturbance (it stays in the residual: the model has no place
+    for it, but it would bias the elements).  Returns whether a row was redone."""
+    n, ts = rec.n, rec.model.sample_time
+    redo = [i for i in rows if tests[i]["detected"]]
+    for i in redo:
+        t = tests[i]
+        k = np.arange(n, dtype=float)
+        col = (k >= round(t["time"] / ts)).astype(float) if t["kind"] == "step" else k / n
+        results[i] = _process_row(rec, i, _located_in_row(located, i), col[:, None])
+        results[i].warnings.append(
+            f"{rec.model.outputs[i]}: the re-estimation of its elements allowed for the unexplained "
+            f"{'step' if t['kind'] == 'step' else 'drift'} in the prediction error.")
+    return bool(redo)
+
+
+def _located_in_row(located: list, i: int) -> list:
+    return [j for (ii, j) in located if ii == i]
+
+
+def _disturbance_findings(rec: _Record, tests: dict):
+    """The ``disturbances`` entries and their warnings, in output order."""
+    disturbances, warnings = [], []
+    for i, name in enumerate(rec.model.outputs):
+        test = tests[i]
+        if not test["detected"]:
+            continue
+        disturbances.append({"output": name, "kind": test["kind"], "size": test["size"],
+                             "time": test["time"], "rate": test["rate"], "p_value": test["p_value"],
+                             "statistic": test["statistic"]})
+        if test["kind"] == "step":
+            warnings.append(
+                f"{name}: the prediction error shifts by {test['size']:+.3g} at about t = {test['time']:.0f} s "
+                f"(p = {test['p_value']:.2g}) and no input explains it: an unmeasured disturbance or a change "
+                f"in the process, not an error of one model element; no element was changed for it.")
+        else:
+            warnings.append(
+                f"{name}: the prediction error drifts by {test['size']:+.3g} over the record "
+                f"({test['rate']:+.3g} per second, p = {test['p_value']:.2g}) and no input explains it: an "
+                f"unmeasured disturbance or a slow process change; no element was changed for it.")
+    return disturbances, warnings
+
+
+def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) -> RepairResult:
+    """The :class:`RepairResult`: the row outcomes (``results``, ``{i: _RowOutcome}`` in row
+    order) after ``found``, the errors, the disturbances."""
+    model, y, hold = rec.model, rec.y, rec.hold
+    names_y = model.outputs
+    ny = model.n_outputs
+    changes, kinds, warnings = found.changes, found.kinds, found.warnings
+    holdout_before, holdout_after = dict(rec.holdout_before), {}
+    for i, res in results.items():
+        warnings.extend(res.warnings)
+        if res.holdout_after is not None:
+            holdout_after[names_y[i]] = res.holdout_after
+            holdout_before[names_y[i]] = res.holdout_before
+        for j, el in res.elements.items():
+            kinds[(i, j)] = el.kind
+            changes.append(el.change_entry(model, i, j))
+    yhat0 = np.asarray(rec.signals.yhat, float)
+    d1 = np.asarray(ev.signals.d, float)
+    error_before = {names_y[i]: _rms(rec.d0[:, i]) for i in range(ny)}
+    fit_before = {names_y[i]: _fit_percent(y[:, i], yhat0[:, i]) for i in range(ny)}
+    error_after = {names_y[i]: _rms(d1[:, i]) for i in range(ny)}
+    fit_after = {names_y[i]: _fit_percent(y[:, i], ev.signals.yhat[:, i]) for i in range(ny)}
+    for i in range(ny):
+        if rec.n_hold > 0 and names_y[i] not in holdout_after:
+            holdout_after[names_y[i]] = _rms(d1[hold, i])
+    disturbances, disturbance_warnings = _disturbance_findings(rec, ev.tests)
+    warnings.extend(disturbance_warnings)
+    return RepairResult(model=ev.model, changes=changes, kinds=kinds, error_before=error_before,
+                        error_after=error_after, fit_before=fit_before, fit_after=fit_after,
+                        holdout_error_before=holdout_before, holdout_error_after=holdout_after,
+                        disturbances=disturbances, warnings=warnings, n_samples=rec.n, n_fit=rec.n_fit,
+                        options=rec.options)
+
+
+def repair_model(model: FopdtModel, data: LoggedData, located: Sequence[tuple],
+                 options: RepairOptions = RepairOptions(), signals: Optional[LoopSignals] = None) -> RepairResult:
+    """Re-estimate the located elements, classify their mismatch, and validate the repair.
+
+    Parameters
+    ----------
+    model : FopdtModel
+        The controller's model ``Phat`` as given.
+    data : LoggedData
+        Closed-loop record (``r``, ``u``, ``y``), shapes (n_samples, n_outputs/n_inputs).
+    located : sequence of (int, int)
+        (output index, input index) of the elements located as mismatched.  No other element is
+        ever changed.
+    options : RepairOptions
+    signals : LoopSignals, optional
+        :func:`~mpm_monitor.core.signals.compute_signals` of ``model`` on ``data`` (computed when absent).
+
+    Returns
+    -------
+    RepairResult
+    """
+    if not isinstance(options, RepairOptions):
+        raise ConfigurationError(f"options: expected RepairOptions, got {type(options).__name__}")
+    located = _check_inputs(model, data, located, signals)
+    rec = _set_up(model, data, options, signals)
+    found = _Findings()
+    rows = _rows_to_repair(rec, located, found)
+    results = {i: _process_row(rec, i, _located_in_row(located, i), None) for i in rows}
+    ev = _evaluate(rec, results)
+    if _redo_disturbed_rows(rec, located, rows, results, ev.tests):
+        ev = _evaluate(rec, results)
+    return _assemble(rec, results, found, ev)

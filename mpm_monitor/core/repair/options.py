@@ -1,0 +1,136 @@
+"""Options of the repair, their check, and the test levels they fix."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from scipy import stats
+
+from ..errors import ConfigurationError
+from ..signals import INITIAL_STATE_CHOICES
+
+#: The kinds of mismatch a located element can be given (``unknown``: no significant change).
+KINDS = ("gain", "time_constant", "delay", "missing", "mixed", "unknown")
+
+
+@dataclasses.dataclass(frozen=True)
+class RepairOptions:
+    """Options of :func:`repair_model`.
+
+    Attributes
+    ----------
+    holdout_fraction : float
+        Fraction of the record at its end kept out of the fit and used to validate the repair,
+        in [0, 0.5].  0 disables the validation (with a warning).
+    max_delay_shift : int
+        Samples searched on either side of a located element's model delay (>= 0).  For an
+        element the model does not have (gain 0) the search runs from 0 to the row's largest
+        delay plus this many samples.
+    noise_order : int
+        Order ``p`` of the AR noise model ``A(q)`` of the prediction-error fit (0 = output error).
+    confidence_level : float
+        Level of the reported intervals and of the "significant change" decisions, in (0.5, 1): a
+        parameter changed when the model's value lies outside its interval.  The default 0.999 is
+        strict because the gain and the time constant of an element trade off against each other
+        when inputs move together, which in a few thousand samples biases them by a fraction of a
+        standard error; real mismatches worth a repair lie far outside.
+    min_relative_change : float
+        Smallest relative change of a gain or time constant that counts as a change, in [0, 1).
+    refit_on_all : bool
+        After a successful validation, refit the accepted elements on the whole record (delays
+        searched again within a few samples of the validated ones).
+    disturbance_alpha : float
+        False-alarm probability per output of the unexplained-disturbance check (split equally
+        between the step and the drift test), in (0, 0.5).
+    disturbance_trim : float
+        Fraction of the record at each end where a step is not searched (sup-Wald trimming), in
+        [0.05, 0.3].
+    min_holdout_improvement : float
+        Relative reduction of the held-out RMS error that a row repair must achieve, in [0, 1).
+    initial_state : {"estimate", "zero"}
+        How the model's state at the first sample is treated (as in
+        :func:`mpm_monitor.core.signals.compute_signals`); with "estimate" the fit also estimates the
+        free response of the row.
+    max_sweeps : int
+        Coordinate sweeps of the delay search over the elements of a row (>= 1).
+    """
+
+    holdout_fraction: float = 0.25
+    max_delay_shift: int = 10
+    noise_order: int = 4
+    confidence_level: float = 0.999
+    min_relative_change: float = 0.05
+    refit_on_all: bool = True
+    disturbance_alpha: float = 0.01
+    disturbance_trim: float = 0.15
+    min_holdout_improvement: float = 0.0
+    initial_state: str = "estimate"
+    max_sweeps: int = 3
+
+    def __post_init__(self):
+        check_repair_options(self)
+
+
+def check_repair_options(opts: RepairOptions) -> None:
+    """Raise :class:`ConfigurationError` naming the first option outside its range."""
+
+    def is_int(x):
+        return isinstance(x, (int, np.integer)) and not isinstance(x, bool)
+
+    def is_num(x):
+        return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) and math.isfinite(x)
+
+    if not (is_num(opts.holdout_fraction) and 0.0 <= opts.holdout_fraction <= 0.5):
+        raise ConfigurationError(f"holdout_fraction: expected a number in [0, 0.5], got {opts.holdout_fraction!r}")
+    if not (is_int(opts.max_delay_shift) and 0 <= opts.max_delay_shift <= 1000):
+        raise ConfigurationError(f"max_delay_shift: expected an integer number of samples in [0, 1000], "
+                                 f"got {opts.max_delay_shift!r}")
+    if not (is_int(opts.noise_order) and 0 <= opts.noise_order <= 50):
+        raise ConfigurationError(f"noise_order: expected an integer in [0, 50], got {opts.noise_order!r}")
+    if not (is_num(opts.confidence_level) and 0.5 < opts.confidence_level < 1.0):
+        raise ConfigurationError(f"confidence_level: expected a number in (0.5, 1), got {opts.confidence_level!r}")
+    if not (is_num(opts.min_relative_change) and 0.0 <= opts.min_relative_change < 1.0):
+        raise ConfigurationError(f"min_relative_change: expected a number in [0, 1), got {opts.min_relative_change!r}")
+    if not isinstance(opts.refit_on_all, bool):
+        raise ConfigurationError(f"refit_on_all: expected true or false, got {opts.refit_on_all!r}")
+    if not (is_num(opts.disturbance_alpha) and 0.0 < opts.disturbance_alpha < 0.5):
+        raise ConfigurationError(f"disturbance_alpha: expected a number in (0, 0.5), got {opts.disturbance_alpha!r}")
+    if not (is_num(opts.disturbance_trim) and 0.05 <= opts.disturbance_trim <= 0.3):
+        raise ConfigurationError(f"disturbance_trim: expected a number in [0.05, 0.3], got {opts.disturbance_trim!r}")
+    if not (is_num(opts.min_holdout_improvement) and 0.0 <= opts.min_holdout_improvement < 1.0):
+        raise ConfigurationError(f"min_holdout_improvement: expected a number in [0, 1), "
+                                 f"got {opts.min_holdout_improvement!r}")
+    if opts.initial_state not in INITIAL_STATE_CHOICES:
+        raise ConfigurationError(f"initial_state: expected one of {', '.join(INITIAL_STATE_CHOICES)}, "
+                                 f"got {opts.initial_state!r}")
+    if not (is_int(opts.max_sweeps) and 1 <= opts.max_sweeps <= 20):
+        raise ConfigurationError(f"max_sweeps: expected an integer in [1, 20], got {opts.max_sweeps!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class _TestSettings:
+    """The levels every test and interval of one repair uses, fixed by the options.
+
+    Attributes
+    ----------
+    options : RepairOptions
+    alpha : float
+        ``1 - confidence_level``: the level of the likelihood-ratio tests.
+    zcrit : float
+        Two-sided standard normal quantile at ``alpha`` (intervals of gains and poles).
+    chi_crit : float
+        Chi-square(1) quantile at ``alpha`` (profile interval of a delay).
+    """
+
+    options: RepairOptions
+    alpha: float
+    zcrit: float
+    chi_crit: float
+
+    @classmethod
+    def of(cls, options: RepairOptions) -> "_TestSettings":
+        alpha = 1.0 - options.confidence_level
+        return cls(options=options, alpha=alpha, zcrit=float(stats.norm.isf(alpha / 2)),
+                   chi_crit=float(stats.chi2.isf(alpha, 1)))

@@ -1,0 +1,166 @@
+"""What the repair reports: the verdict on each located element, its change entry, and the result."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Optional
+
+import numpy as np
+
+from ..model import FopdtModel
+from .options import RepairOptions
+
+
+@dataclasses.dataclass
+class ElementVerdict:
+    """What the repair concluded about one located element (output ``i``, input ``j``).
+
+    Attributes
+    ----------
+    kind : str
+        One of :data:`KINDS`.
+    changed : list of str
+        The tests that found a change, among "missing", "gain", "time_constant", "delay", in that
+        order.
+    after : dict
+        The fitted element (``gain``, ``time_constant`` s, ``delay`` s); the model's element when
+        the row could not be fitted.
+    interval : dict or None
+        ``[lo, hi]`` per parameter at ``confidence_level``.
+    evidence : dict
+        The p-values, the condition number, the samples and the noise model of the row fit (see
+        :class:`RepairResult`).
+    confidence : float
+        In [0, 1]: how clearly the tests lie on their side of the threshold.
+    apply : bool
+        Whether the repair takes ``after`` into the model.
+    reason : str, optional
+        Why the element is not changed.
+    fitted_kind : str, optional
+        The kind found before the held-out validation rejected the repair.
+    """
+
+    kind: str
+    changed: list
+    after: dict
+    interval: Optional[dict]
+    evidence: dict
+    confidence: float
+    apply: bool
+    reason: Optional[str] = None
+    fitted_kind: Optional[str] = None
+
+    def reject(self, reason: str) -> None:
+        """Keep the element as it was: the kind found becomes ``fitted_kind``, the kind "unknown"."""
+        self.apply, self.fitted_kind, self.kind, self.confidence, self.reason = False, self.kind, "unknown", 0.0, reason
+
+    def change_entry(self, model: FopdtModel, i: int, j: int) -> dict:
+        """The ``changes`` entry of the element (see :class:`RepairResult`)."""
+        entry = {"output": model.outputs[i], "input": model.inputs[j], "kind": self.kind,
+                 "before": model.element(i, j),
+                 "after": self.after if self.apply else model.element(i, j),
+                 "estimate": self.after, "confidence": self.confidence,
+                 "interval": self.interval, "applied": bool(self.apply), "evidence": self.evidence}
+        if self.fitted_kind is not None:
+            entry["fitted_kind"] = self.fitted_kind
+        if self.reason:
+            entry["reason"] = self.reason
+        return entry
+
+
+def _unchanged_entry(model: FopdtModel, i: int, j: int, reason: str) -> dict:
+    """The ``changes`` entry of an element that was not fitted at all (no estimate)."""
+    return {"output": model.outputs[i], "input": model.inputs[j], "kind": "unknown",
+            "before": model.element(i, j), "after": model.element(i, j), "estimate": None,
+            "confidence": 0.0, "interval": None, "applied": False, "evidence": {}, "reason": reason}
+
+
+@dataclasses.dataclass
+class RepairResult:
+    """What :func:`repair_model` found and changed.
+
+    Attributes
+    ----------
+    model : FopdtModel
+        The repaired model: the input model with only accepted located elements changed.
+    changes : list of dict
+        One entry per located element: ``output``, ``input`` (names), ``kind``, ``before`` and
+        ``after`` (``gain``, ``time_constant`` s, ``delay`` s; ``after`` equals ``before`` when not
+        applied), ``estimate`` (the fitted parameters, also when not applied), ``confidence`` in
+        [0, 1], ``interval`` (``[lo, hi]`` per parameter at ``confidence_level``), ``applied``,
+        ``evidence`` (``p_gain``, ``p_time_constant``, ``p_delay``: likelihood-ratio p-values of
+        "unchanged"; ``p_unchanged_jointly``; ``condition_number`` of the row fit; ``samples``;
+        ``noise_model`` ``[alpha_1 .. alpha_p]``), and when not applied ``reason`` (and
+        ``fitted_kind`` when the held-out validation rejected it).
+    kinds : dict
+        ``{(i, j): kind}`` for every located element (indices).
+    error_before, error_after : dict
+        ``{output name: RMS of d}`` over the whole record with the model as given / as repaired.
+    fit_before, fit_after : dict
+        ``{output name: fit %}``, ``100 (1 - ||y - yhat|| / ||y - mean y||)``.
+    holdout_error_before, holdout_error_after : dict
+        ``{output name: RMS of d}`` over the held-out last part, with the model as given / with the
+        candidate fitted on the first part only (empty when ``holdout_fraction`` is 0).  On a row
+        re-estimated with an unexplained step or drift, both are taken with that disturbance
+        projected out.
+    disturbances : list of dict
+        Outputs whose residual holds a step or drift no input explains (``output``, ``kind``
+        "step"/"drift", ``size`` in output units, ``time`` in seconds, ``p_value``, ``statistic``).
+    warnings : list of str
+        What limits the conclusions, in words.
+    n_samples, n_fit : int
+        Samples in the record and in the fit part.
+    """
+
+    model: FopdtModel
+    changes: list
+    kinds: dict
+    error_before: dict
+    error_after: dict
+    fit_before: dict
+    fit_after: dict
+    holdout_error_before: dict
+    holdout_error_after: dict
+    disturbances: list
+    warnings: list
+    n_samples: int = 0
+    n_fit: int = 0
+    options: RepairOptions = RepairOptions()
+
+    def to_dict(self) -> dict:
+        """The ``repair`` object of the analysis report, plain JSON values.
+
+        See ``docs/interfaces.md``, section "analyze and its JSON report".
+        """
+        return _jsonable({
+            "model": self.model.to_dict(),
+            "changes": self.changes,
+            "error_before": self.error_before,
+            "error_after": self.error_after,
+            "fit_before": self.fit_before,
+            "fit_after": self.fit_after,
+            "holdout_error_before": self.holdout_error_before,
+            "holdout_error_after": self.holdout_error_after,
+            "disturbances": self.disturbances,
+            "warnings": list(self.warnings),
+            "samples": self.n_samples,
+            "fit_samples": self.n_fit,
+            "holdout_fraction": self.options.holdout_fraction,
+            "confidence_level": self.options.confidence_level,
+        })
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, (np.bool_, bool)):
+        return bool(x)
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        x = float(x)
+        return x if math.isfinite(x) else None
+    return x
