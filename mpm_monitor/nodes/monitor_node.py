@@ -1,12 +1,13 @@
 """Live monitor node: setpoint, input and output in; ``/diagnostics`` and row RSI out.
 
 Wraps :class:`~mpm_monitor.monitor.monitor_core.MonitorCore` (window, schedule, statuses) and
-:class:`~mpm_monitor.monitor.monitor_core.AnalysisWorker` (the analysis of
+:class:`~mpm_monitor.monitor.worker.AnalysisWorker` (the analysis of
 :func:`mpm_monitor.core.analysis.analyze` in a background thread).  The subscription callbacks only
 decode and append to the window, so no sample waits for an analysis; every ``analysis_period``
 completed samples the window is copied and handed to the worker, and its result comes back
-through a short steady-clock timer and is published on ``/diagnostics`` (CONTRACTS section 4) and as a
-``std_msgs/Float64MultiArray`` of row RSI values on ``mpm_monitor/rsi``.  The latest statuses are
+through a short steady-clock timer and is published on ``/diagnostics`` (docs/interfaces.md, "ROS 2
+topics and statuses") and as a ``std_msgs/Float64MultiArray`` of row RSI values on
+``mpm_monitor/rsi``.  The latest statuses are
 re-published every ``republish_period`` wall-clock seconds, turning STALE when no complete sample
 came for ``stale_timeout`` seconds; bad messages (wrong channel names, lengths, non-finite values,
 off-grid or conflicting stamps) make the summary ERROR with the reason.
@@ -37,17 +38,10 @@ from std_srvs.srv import Trigger
 
 from ..core.errors import ModelFileError
 from ..core.options import ParamSpec
-from ..monitor.monitor_core import (
-    ERROR,
-    SUMMARY_NAME,
-    AnalysisWorker,
-    MonitorCore,
-    MonitorOptions,
-    ProcessAnalyzer,
-    StatusData,
-    run_analysis,
-)
+from ..monitor.monitor_core import MonitorCore, MonitorOptions
+from ..monitor.statuses import ERROR, SUMMARY_NAME, StatusData
 from ..monitor.window import WindowOptions
+from ..monitor.worker import AnalysisWorker, ProcessAnalyzer, run_analysis
 from .ros_io import (
     MODEL_PARAMS,
     MessageError,
@@ -126,7 +120,7 @@ def monitor_options_from_params(p: dict, hardware_id: str) -> MonitorOptions:
 
 
 def status_to_msg(s) -> DiagnosticStatus:
-    """A :class:`~mpm_monitor.monitor.monitor_core.StatusData` as ``diagnostic_msgs/DiagnosticStatus``."""
+    """A :class:`~mpm_monitor.monitor.statuses.StatusData` as ``diagnostic_msgs/DiagnosticStatus``."""
     return DiagnosticStatus(level=bytes([s.level]), name=s.name, message=s.message, hardware_id=s.hardware_id,
                             values=[KeyValue(key=k, value=v) for k, v in s.values])
 
