@@ -213,3 +213,17 @@ def test_keyword_overrides_take_the_type_of_their_parameter(tmp_path):
     assert isinstance(given[1].value, float)
     first = parameter_overrides(specs, given[:1], rate=3.0)
     assert [p.name for p in first] == ["bag", "rate"]
+
+
+def test_channel_codecs_and_topic_parameters_come_from_the_contract():
+    from mpm_monitor.nodes.ros_io import CHANNELS, topic_params
+
+    model = resolve_model("", "3.2")
+    assert VectorCodec.for_channel(model, "setpoint", "r").names == model.outputs
+    assert VectorCodec.for_channel(model, "dither", "d").names == model.inputs
+    with pytest.raises(ValueError, match="channel"):
+        VectorCodec.for_channel(model, "clock", "c")
+    specs = topic_params(*CHANNELS, "clock")
+    assert [(s.name, s.default) for s in specs] == [("setpoint_topic", "setpoint"), ("input_topic", "input"),
+                                                    ("output_topic", "output"), ("dither_topic", "dither"),
+                                                    ("clock_topic", "/clock")]

@@ -279,7 +279,7 @@ class MonitorCore:
 
     # ------------------------------------------------------------------------------ statuses
     def statuses(self, now: float) -> list:
-        """The current statuses: one per row then the summary (list of :class:`~mpm_monitor.monitor.statuses.StatusData`).
+        """The current statuses: one per row then the summary (list of :class:`.statuses.StatusData`).
 
         Parameters
         ----------

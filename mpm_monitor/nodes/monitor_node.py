@@ -50,6 +50,7 @@ from .ros_io import (
     diagnostics_qos,
     resolve_model,
     run_node,
+    topic_params,
     vector_qos,
 )
 
@@ -93,9 +94,7 @@ PARAMS = MODEL_PARAMS + (
     ParamSpec("analysis_thread", "bool", True, "Run the analysis in a background thread (false: inside the "
               "callback, for debugging only)."),
     ParamSpec("hardware_id", "string", "", "hardware_id of the statuses ('' = the node's full name)."),
-    ParamSpec("setpoint_topic", "string", "setpoint", "Topic of the setpoints r (JointState)."),
-    ParamSpec("input_topic", "string", "input", "Topic of the plant inputs u (JointState)."),
-    ParamSpec("output_topic", "string", "output", "Topic of the measured outputs y (JointState)."),
+) + topic_params("setpoint", "input", "output") + (
     ParamSpec("diagnostics_topic", "string", "/diagnostics", "Topic of the diagnostics (DiagnosticArray)."),
     ParamSpec("rsi_topic", "string", "mpm_monitor/rsi", "Topic of the row RSI values (Float64MultiArray, model "
               "output order)."),
@@ -181,9 +180,8 @@ class MonitorNode(Node):
         self.model = model
         self.core = MonitorCore(self.model, self._monitor_options)
         self.core.start(time.monotonic())
-        self._codecs = {"setpoint": VectorCodec(self.model.outputs, p["setpoint_topic"]),
-                        "input": VectorCodec(self.model.inputs, p["input_topic"]),
-                        "output": VectorCodec(self.model.outputs, p["output_topic"])}
+        self._codecs = {ch: VectorCodec.for_channel(self.model, ch, p[f"{ch}_topic"])
+                        for ch in ("setpoint", "input", "output")}
         self.worker = AnalysisWorker(self._run_job, threaded=p["analysis_thread"])
         q = vector_qos()
         self._subs = [self.create_subscription(JointState, p[f"{ch}_topic"],

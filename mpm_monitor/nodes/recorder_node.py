@@ -375,13 +375,7 @@ class RecorderNode(Node):
 
 
 def main(args=None) -> int:
-    """Console script ``recorder_node``: record until SIGINT or SIGTERM, then close the bag.
-
-    Returns
-    -------
-    int
-        0 after a clean stop, 2 on a bad parameter or bag directory.
-    """
+    """Console script ``recorder_node``: record until SIGINT or SIGTERM, then close the bag (exit 2: bad parameter)."""
     return run_node(lambda context: RecorderNode(context=context), args, executor_kind="single")
 
 

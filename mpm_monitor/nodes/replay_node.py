@@ -253,13 +253,7 @@ class ReplayNode(Node):
 
 
 def main(args=None) -> int:
-    """Console script ``replay_node``: replay until every message is out (or SIGINT/SIGTERM).
-
-    Returns
-    -------
-    int
-        0 when it ran, 2 on a bad parameter or bag.
-    """
+    """Console script ``replay_node``: replay until every message is out or SIGINT/SIGTERM (2: bad parameter)."""
     return run_node(lambda context: ReplayNode(context=context), args, executor_kind="single")
 
 

@@ -31,6 +31,9 @@ from ..io.qos import DIAGNOSTICS_QOS, VECTOR_QOS, QosSpec
 
 NS_PER_S = 1_000_000_000
 
+#: The stamped-vector channels and whose names they carry: the model's ``outputs`` or ``inputs``.
+CHANNELS = {"setpoint": "outputs", "input": "inputs", "output": "outputs", "dither": "inputs"}
+
 
 class MessageError(InputError):
     """A message that cannot be used: wrong channel names, lengths or non-finite values."""
@@ -107,6 +110,14 @@ class VectorCodec:
         self.topic = topic
         self._index = {n: i for i, n in enumerate(self.names)}
         self._perm_cache: dict = {}
+
+    @classmethod
+    def for_channel(cls, model, channel: str, topic: str) -> "VectorCodec":
+        """The codec of a contract channel: the model's outputs for ``setpoint`` and ``output``, its
+        inputs for ``input`` and ``dither``."""
+        if channel not in CHANNELS:
+            raise ValueError(f"channel: expected one of {', '.join(CHANNELS)}, got {channel!r}")
+        return cls(model.outputs if CHANNELS[channel] == "outputs" else model.inputs, topic)
 
     @property
     def size(self) -> int:
@@ -443,3 +454,21 @@ MODEL_PARAMS = (
     ParamSpec("case", "string", "", "Paper case used when model_file is '' (3.1, 3.2 or 3.3).",
               choices=("", "3.1", "3.2", "3.3"), numbers_as_text=True),
 )
+
+#: The topic parameters of the contract's channels, ``<channel>_topic``, defaulting to the contract's names.
+TOPIC_PARAMS = {
+    "setpoint": ParamSpec("setpoint_topic", "string", "setpoint", "Topic of the setpoints r (JointState, one value "
+                          "per output)."),
+    "input": ParamSpec("input_topic", "string", "input", "Topic of the plant inputs u (JointState, one value per "
+                       "input)."),
+    "output": ParamSpec("output_topic", "string", "output", "Topic of the measured outputs y (JointState, one value "
+                        "per output)."),
+    "dither": ParamSpec("dither_topic", "string", "dither", "Topic of the input dither (JointState, one value per "
+                        "input)."),
+    "clock": ParamSpec("clock_topic", "string", "/clock", "Topic of the simulated time (rosgraph_msgs/Clock)."),
+}
+
+
+def topic_params(*channels: str) -> tuple:
+    """The :data:`TOPIC_PARAMS` of ``channels``, in that order (a node's ``PARAMS`` ends with them)."""
+    return tuple(TOPIC_PARAMS[c] for c in channels)
