@@ -39,7 +39,6 @@ fsync : bool
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import sys
 import threading
 import time
@@ -53,7 +52,7 @@ from ..core.errors import ConfigurationError
 from ..core.options import ParamSpec
 from ..io.bags import BagWriter
 from ..io.qos import RECORDER_QOS
-from .ros_io import declare_parameters, parameter_overrides, qos_profile, run_node
+from .ros_io import declare_parameters, message_class, parameter_overrides, qos_profile, run_node
 
 #: Message types of the topics the project publishes (docs/interfaces.md, "ROS 2 topics and statuses").
 KNOWN_TOPIC_TYPES = {
@@ -146,15 +145,6 @@ def parse_topic_specs(specs: Sequence[str]) -> tuple:
             raise ConfigurationError(f"topics: entry {spec!r}: expected name or name=pkg/msg/Type")
         out.append((name, msgtype))
     return tuple(out)
-
-
-def message_class(msgtype: str):
-    """The Python class of ``pkg/msg/Type``; :class:`ConfigurationError` if it is not installed."""
-    pkg, _, name = msgtype.split("/")
-    try:
-        return getattr(importlib.import_module(f"{pkg}.msg"), name)
-    except (ImportError, AttributeError):
-        raise ConfigurationError(f"topics: message type {msgtype} is not installed") from None
 
 
 def bag_qos(profile: QoSProfile):

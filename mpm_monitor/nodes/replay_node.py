@@ -45,9 +45,9 @@ from ..core.errors import ConfigurationError
 from ..core.options import ParamSpec
 from ..io.bags import DEFAULT_TOPICS, read_raw_messages, topic_name
 from ..io.qos import CLOCK_LISTENER_QOS, REPLAY_CLOCK_QOS
-from .recorder_node import message_class
 from .ros_io import (
     declare_parameters,
+    message_class,
     ns_to_stamp,
     parameter_overrides,
     qos_profile,

@@ -18,6 +18,7 @@ Stamps are handled as integer nanoseconds so that the sample grid ``k * sample_t
 
 from __future__ import annotations
 
+import importlib
 import math
 import sys
 from typing import Any, Callable, Optional, Sequence
@@ -198,6 +199,15 @@ class VectorCodec:
         msg.name = list(self.names)
         msg.position = v.tolist()
         return msg
+
+
+def message_class(msgtype: str):
+    """The Python class of ``pkg/msg/Type``; :class:`ConfigurationError` if it is not installed."""
+    pkg, _, name = msgtype.split("/")
+    try:
+        return getattr(importlib.import_module(f"{pkg}.msg"), name)
+    except (ImportError, AttributeError):
+        raise ConfigurationError(f"topics: message type {msgtype} is not installed") from None
 
 
 # ----------------------------------------------------------------------------------------- QoS
