@@ -1,9 +1,10 @@
 """The live monitor's diagnostic statuses, as plain data computed from what the monitor knows.
 
 Every function here is pure: it turns the latest analysis outcome, the window's health and the
-arrival times into :class:`StatusData`, and changes nothing.  :class:`~mpm_monitor.monitor.
-monitor_core.MonitorCore` keeps that state and calls them; the ROS node
-(:mod:`mpm_monitor.nodes.monitor_node`) turns the result into ``diagnostic_msgs/DiagnosticStatus``.
+arrival times into :class:`StatusData`, and changes nothing.
+:class:`~mpm_monitor.monitor.monitor_core.MonitorCore` keeps that state and calls them; the ROS
+node (:mod:`mpm_monitor.nodes.monitor_node`) turns the result into
+``diagnostic_msgs/DiagnosticStatus``.
 
 Statuses (docs/interfaces.md, "ROS 2 topics and statuses"): one per output, named ``mpm_monitor:
 row <output>``, with values ``rsi``, ``mismatch`` (``true``/``false``), ``flagged_inputs``

@@ -4,8 +4,8 @@ An :class:`AnalysisJob` is a copy of the window's data; :func:`run_analysis` tur
 :class:`AnalysisOutcome` (a report or a one-line error, never an exception).  :class:`AnalysisWorker`
 runs the jobs one at a time in a background thread, so that no callback waits for an analysis, and
 :class:`ProcessAnalyzer` moves the analysis itself into a child process, so that it does not even
-compete with the callbacks for the Python interpreter.  :class:`~mpm_monitor.monitor.monitor_core.
-MonitorCore` makes the jobs and takes the outcomes.
+compete with the callbacks for the Python interpreter.
+:class:`~mpm_monitor.monitor.monitor_core.MonitorCore` makes the jobs and takes the outcomes.
 """
 
 from __future__ import annotations
