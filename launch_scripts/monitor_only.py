@@ -46,7 +46,7 @@ def ros_args(args) -> list:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--model", required=True, help="the controller's model file (CONTRACTS section 1)")
+    p.add_argument("--model", required=True, help="the controller's model file (docs/interfaces.md, 'Model file')")
     p.add_argument("--params", default=None, help="params file (default config/monitor.yaml)")
     p.add_argument("--namespace", default="", help="namespace of the monitor (relative topics follow it)")
     p.add_argument("--setpoint-topic", dest="setpoint_topic", default=None)

@@ -35,7 +35,9 @@ def main(argv=None) -> int:
     p.add_argument("--executor", choices=("events", "single"), default="events")
     p.add_argument("-p", dest="overrides", action="append", default=[], metavar="NODE.PARAM:=VALUE")
     args = p.parse_args(argv)
+    import mpm_monitor
 
+    mpm_monitor.limit_blas_threads()  # before numpy loads, and for the monitor's analysis process
     import rclpy
     from rclpy.context import Context
 

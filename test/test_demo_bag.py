@@ -29,7 +29,7 @@ from mpm_monitor.apps.demo import run_demo  # noqa: E402
 from mpm_monitor.core.wording import row_repair_text  # noqa: E402
 from mpm_monitor.io.bags import live_located_elements, read_diagnostics  # noqa: E402
 from mpm_monitor.io.model_file import save_model  # noqa: E402
-from mpm_monitor.monitor.monitor_core import SUMMARY_NAME, row_status_name  # noqa: E402
+from mpm_monitor.monitor.statuses import SUMMARY_NAME, row_status_name  # noqa: E402
 from mpm_monitor.sim.cases import paper_case  # noqa: E402
 from mpm_monitor.sim.closed_loop import run_closed_loop  # noqa: E402
 

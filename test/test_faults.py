@@ -41,7 +41,7 @@ from rclpy.node import Node  # noqa: E402
 from mpm_monitor.apps.demo import _overrides, private_context  # noqa: E402
 from mpm_monitor.core.model import FopdtModel
 from mpm_monitor.io.model_file import save_model  # noqa: E402
-from mpm_monitor.monitor.monitor_core import SUMMARY_NAME  # noqa: E402
+from mpm_monitor.monitor.statuses import SUMMARY_NAME  # noqa: E402
 from mpm_monitor.nodes.ros_io import diagnostics_qos, make_executor, spin_until  # noqa: E402
 
 TS = 0.02
@@ -354,7 +354,7 @@ def test_a_monitor_killed_hard_leaves_no_analysis_process_behind(tmp_path):
     script = tmp_path / "analyzer_parent.py"
     script.write_text(
         "import time\n"
-        "from mpm_monitor.monitor.monitor_core import ProcessAnalyzer\n"
+        "from mpm_monitor.monitor.worker import ProcessAnalyzer\n"
         "if __name__ == '__main__':\n"
         "    pa = ProcessAnalyzer(max)\n"
         "    print(pa(1, 2, 3), flush=True)\n"

@@ -21,7 +21,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mpm_monitor.monitor.monitor_core import ERROR, OK, STALE, SUMMARY_NAME, WARN, row_status_name
+from mpm_monitor.monitor.statuses import ERROR, OK, STALE, SUMMARY_NAME, WARN, row_status_name
 from mpm_monitor.monitor.window import SampleWindow, WindowOptions
 
 rclpy = pytest.importorskip("rclpy")

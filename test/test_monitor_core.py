@@ -15,18 +15,10 @@ import numpy as np
 import pytest
 
 from mpm_monitor.core.errors import ConfigurationError
-from mpm_monitor.monitor.monitor_core import (
-    ERROR,
-    OK,
-    STALE,
-    SUMMARY_NAME,
-    WARN,
-    AnalysisWorker,
-    MonitorCore,
-    MonitorOptions,
-    run_analysis,
-)
+from mpm_monitor.monitor.monitor_core import MonitorCore, MonitorOptions
+from mpm_monitor.monitor.statuses import ERROR, OK, STALE, SUMMARY_NAME, WARN
 from mpm_monitor.monitor.window import WindowOptions
+from mpm_monitor.monitor.worker import AnalysisWorker, run_analysis
 from mpm_monitor.sim.cases import paper_case
 
 NS = 1_000_000_000
@@ -116,6 +108,30 @@ def test_no_mismatch_is_ok_everywhere():
     feed(c, 0, 20)
     c.accept(run_analysis(lambda m, d, o: fake_report(), MODEL, None, c.take_job()))
     assert all(s.level == OK for s in c.statuses(now=0.0))
+
+
+def test_the_statuses_are_functions_of_the_outcome_and_the_window_alone():
+    from mpm_monitor.monitor.statuses import mark_stale, row_statuses, stale_reason, summary_status, window_values
+
+    c = core()
+    feed(c, 0, 20)
+    outcome = run_analysis(lambda m, d, o: fake_report({"y2": ["u1"]}), MODEL, None, c.take_job())
+    c.accept(outcome)
+    window = window_values(c.window.health(), c.window.n_window)
+    rows = row_statuses(MODEL.outputs, outcome, None, "waiting", "test")
+    summary = summary_status(outcome, 1, None, "waiting", window, None, None, "test")
+    assert rows + [summary] == c.statuses(now=0.0)
+    assert row_statuses(MODEL.outputs, outcome, None, "waiting", "test") == rows  # nothing kept between calls
+    assert summary_status(outcome, 1, None, "waiting", window, "off grid", None, "test").level == ERROR
+    assert summary_status(outcome, 1, None, "waiting", window, None, None, "test") == summary
+    assert [s.level for s in row_statuses(MODEL.outputs, None, None, "waiting", "test")] == [OK] * 3
+    arrival = {"setpoint": 0.0, "input": 0.0, "output": None}
+    assert stale_reason(1.0, 2.0, 0.0, 0.0, arrival) is None
+    reason = stale_reason(3.0, 2.0, None, 0.0, arrival)
+    assert reason == "no complete sample yet for 3.0 s (last setpoint 3.0 s ago, input 3.0 s ago, output never)"
+    stale = mark_stale(rows, reason)
+    assert all(s.level == STALE and s.message.startswith(reason + "; last result: ") for s in stale)
+    assert mark_stale(rows, None) == rows
 
 
 def test_an_analysis_failure_is_error_with_the_reason_until_the_next_success():

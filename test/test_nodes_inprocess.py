@@ -29,7 +29,7 @@ from mpm_monitor.apps.demo import Suite, case_parameters, private_context  # noq
 from mpm_monitor.core.analysis import AnalysisOptions, analyze  # noqa: E402
 from mpm_monitor.core.errors import ConfigurationError  # noqa: E402
 from mpm_monitor.core.logged_data import LoggedData  # noqa: E402
-from mpm_monitor.monitor.monitor_core import SUMMARY_NAME, row_status_name  # noqa: E402
+from mpm_monitor.monitor.statuses import SUMMARY_NAME, row_status_name  # noqa: E402
 from mpm_monitor.nodes.ros_io import VectorCodec, diagnostics_qos, make_executor, spin_until, vector_qos  # noqa: E402
 from mpm_monitor.sim.cases import paper_case  # noqa: E402
 from mpm_monitor.sim.closed_loop import run_closed_loop  # noqa: E402

@@ -23,7 +23,7 @@ pytestmark = pytest.mark.timeout(150)
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from ros_domains import unique_domain  # noqa: E402
 
-from mpm_monitor.monitor.monitor_core import SUMMARY_NAME, row_status_name  # noqa: E402
+from mpm_monitor.monitor.statuses import SUMMARY_NAME, row_status_name  # noqa: E402
 from mpm_monitor.nodes.ros_io import diagnostics_qos, make_executor, spin_until  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -166,6 +166,17 @@ def test_bad_parameters_are_refused(ctx, tmp_path):
         RecorderNode(bag_dir=tmp_path / "new", context=ctx, node_name="r2", flush_period=0.0)
 
 
+def test_recorder_process_refuses_a_bad_parameter_in_one_line(tmp_path):
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="OFF")
+    res = subprocess.run([sys.executable, "-m", "mpm_monitor.nodes.recorder_node", "--ros-args", "-p",
+                          f"bag_dir:={tmp_path / 'bag'}", "-p", "flush_period:=0.0"], env=env, capture_output=True,
+                         text=True, timeout=60)
+    assert res.returncode == 2
+    assert res.stderr.startswith("error: parameter flush_period: ") and "out of range" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert not (tmp_path / "bag").exists()
+
+
 # --- kill test: the recorder as a process ----------------------------------------------------------------
 
 

@@ -124,3 +124,28 @@ def test_bad_replay_parameters(ctx, tmp_path):
         ReplayNode(bag=tmp_path / "bag", context=ctx, mode="fast", node_name="r2")
     with pytest.raises(InputError, match="rate: .*out of range"):
         ReplayNode(bag=tmp_path / "bag", context=ctx, rate=0.0, node_name="r3")
+
+
+def _replay_process(args, tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="OFF")
+    return subprocess.run([sys.executable, "-m", "mpm_monitor.nodes.replay_node", "--ros-args", *args], env=env,
+                          capture_output=True, text=True, timeout=60, cwd=tmp_path)
+
+
+def test_replay_process_ends_by_itself_once_every_message_is_out(tmp_path):
+    write_logged_data(tmp_path / "bag", _data())
+    res = _replay_process(["-p", f"bag:={tmp_path / 'bag'}", "-p", "rate:=100.0"], tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert f"replay finished: {3 * N} messages" in res.stderr
+
+
+def test_replay_process_refuses_a_bad_parameter_in_one_line(tmp_path):
+    write_logged_data(tmp_path / "bag", _data())
+    res = _replay_process(["-p", f"bag:={tmp_path / 'bag'}", "-p", "rate:=0.0"], tmp_path)
+    assert res.returncode == 2
+    assert res.stderr.startswith("error: parameter rate: ") and "out of range" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1, res.stderr

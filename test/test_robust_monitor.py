@@ -17,18 +17,10 @@ Three levels, fastest first:
 import numpy as np
 import pytest
 
-from mpm_monitor.monitor.monitor_core import (
-    ERROR,
-    OK,
-    STALE,
-    SUMMARY_NAME,
-    WARN,
-    AnalysisOutcome,
-    MonitorCore,
-    MonitorOptions,
-    row_status_name,
-)
+from mpm_monitor.monitor.monitor_core import MonitorCore, MonitorOptions
+from mpm_monitor.monitor.statuses import ERROR, OK, STALE, SUMMARY_NAME, WARN, row_status_name
 from mpm_monitor.monitor.window import SampleWindow, WindowOptions
+from mpm_monitor.monitor.worker import AnalysisOutcome
 
 NS = 1_000_000_000
 OUT = ("y1", "y2")
@@ -345,7 +337,7 @@ def test_a_restart_is_reported_and_the_next_analysis_sees_only_the_new_stream():
 
 
 def test_an_analysis_that_raises_is_error_with_the_reason_and_the_core_goes_on():
-    from mpm_monitor.monitor.monitor_core import run_analysis
+    from mpm_monitor.monitor.worker import run_analysis
 
     c = make_core()
     now = 0.0
@@ -372,7 +364,7 @@ def test_a_sentinel_value_like_1e308_is_error_not_a_silent_all_clear():
     """Finite but absurd values (a sensor's 'bad value' sentinel) pass the aligner; the analysis
     refuses them with the channel and time instead of returning a meaningless no-mismatch."""
     from mpm_monitor.core.analysis import AnalysisOptions, analyze
-    from mpm_monitor.monitor.monitor_core import run_analysis
+    from mpm_monitor.monitor.worker import run_analysis
 
     c = make_core(window_samples=300, min_samples=200, analysis_period=100)
     rng = np.random.default_rng(0)
@@ -492,7 +484,7 @@ def test_model_file_that_fails_to_load_is_error_with_the_reason_then_loads_when_
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.node import Node
 
-    from mpm_monitor.monitor.monitor_core import SUMMARY_NAME as SUMMARY
+    from mpm_monitor.monitor.statuses import SUMMARY_NAME as SUMMARY
     from mpm_monitor.nodes.ros_io import diagnostics_qos, make_executor, spin_until
 
     bad = tmp_path / "edited.yaml"
@@ -571,7 +563,7 @@ def _analysis_in_child(model, data, options):
 def test_the_analysis_process_dying_is_an_error_and_the_next_analysis_gets_a_new_one():
     import os
 
-    from mpm_monitor.monitor.monitor_core import ProcessAnalyzer
+    from mpm_monitor.monitor.worker import ProcessAnalyzer
 
     pa = ProcessAnalyzer(_analysis_in_child)
     try:

@@ -160,3 +160,70 @@ def test_resolve_model_from_case_or_file(tmp_path):
         resolve_model("", "9.9")
     with pytest.raises(InputError):
         resolve_model(str(tmp_path / "missing.yaml"), "")
+
+
+def test_every_qos_profile_is_built_from_its_one_description():
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy
+
+    from mpm_monitor.io import qos
+    from mpm_monitor.nodes.recorder_node import subscription_qos
+    from mpm_monitor.nodes.ros_io import diagnostics_qos, qos_profile, vector_qos
+
+    keep, rel, vol = HistoryPolicy.KEEP_LAST, ReliabilityPolicy.RELIABLE, DurabilityPolicy.VOLATILE
+    # the profiles as the nodes spelled them out before they had one home
+    assert vector_qos() == QoSProfile(history=keep, depth=1000, reliability=rel, durability=vol)
+    assert diagnostics_qos() == QoSProfile(history=keep, depth=10, reliability=rel, durability=vol)
+    for best_effort in (False, True):
+        assert subscription_qos(best_effort) == QoSProfile(
+            history=keep, depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT if best_effort else rel,
+            durability=vol, liveliness=LivelinessPolicy.AUTOMATIC)
+    assert qos_profile(qos.REPLAY_CLOCK_QOS) == QoSProfile(history=keep, depth=10, reliability=rel, durability=vol)
+    assert qos_profile(qos.CLOCK_LISTENER_QOS) == QoSProfile(history=keep, depth=100,
+                                                             reliability=ReliabilityPolicy.BEST_EFFORT, durability=vol)
+    keep_all = qos_profile(qos.QosSpec(history="keep_all", durability="transient_local"))
+    assert (keep_all.history, keep_all.durability) == (HistoryPolicy.KEEP_ALL, DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def test_the_qos_description_needs_no_rclpy_and_is_what_a_bag_stores():
+    import subprocess
+    import sys
+
+    from mpm_monitor.io.bags import contract_vector_qos
+    from mpm_monitor.io.qos import VECTOR_QOS, QosSpec, rosbags_qos
+
+    code = ("import sys, mpm_monitor.io.qos\n"
+            "assert 'rclpy' not in [m for m in sys.modules if sys.modules[m] is not None]\n")
+    subprocess.run([sys.executable, "-c", code], check=True)
+    assert rosbags_qos(VECTOR_QOS) == contract_vector_qos()
+    with pytest.raises(ConfigurationError, match="QoS reliability: expected one of reliable, best_effort"):
+        QosSpec(reliability="sometimes")
+    with pytest.raises(ConfigurationError, match="QoS depth"):
+        QosSpec(depth=0)
+
+
+def test_keyword_overrides_take_the_type_of_their_parameter(tmp_path):
+    from mpm_monitor.nodes.ros_io import parameter_overrides
+
+    specs = (ParamSpec("bag", "string", "", "x"), ParamSpec("rate", "double", 1.0, "x", 0.01, 100.0),
+             ParamSpec("n", "int", 0, "x", 0, 10), ParamSpec("topics", "string_array", ["a"], "x"),
+             ParamSpec("on", "bool", False, "x"))
+    given = parameter_overrides(specs, None, bag=tmp_path, rate=2, n=3, topics=("a", "b"), on=None)
+    assert [(p.name, p.value) for p in given] == [("bag", str(tmp_path)), ("rate", 2.0), ("n", 3),
+                                                  ("topics", ["a", "b"])]
+    assert isinstance(given[1].value, float)
+    first = parameter_overrides(specs, given[:1], rate=3.0)
+    assert [p.name for p in first] == ["bag", "rate"]
+
+
+def test_channel_codecs_and_topic_parameters_come_from_the_contract():
+    from mpm_monitor.nodes.ros_io import CHANNELS, topic_params
+
+    model = resolve_model("", "3.2")
+    assert VectorCodec.for_channel(model, "setpoint", "r").names == model.outputs
+    assert VectorCodec.for_channel(model, "dither", "d").names == model.inputs
+    with pytest.raises(ValueError, match="channel"):
+        VectorCodec.for_channel(model, "clock", "c")
+    specs = topic_params(*CHANNELS, "clock")
+    assert [(s.name, s.default) for s in specs] == [("setpoint_topic", "setpoint"), ("input_topic", "input"),
+                                                    ("output_topic", "output"), ("dither_topic", "dither"),
+                                                    ("clock_topic", "/clock")]

@@ -236,7 +236,7 @@ class DiagnosticsPrinter:
                                 and _analyses(self.latest) >= suite.monitor.core.results, timeout)
 
     def _on_msg(self, msg) -> None:
-        from ..monitor.monitor_core import LEVEL_NAMES, SUMMARY_NAME
+        from ..monitor.statuses import LEVEL_NAMES, SUMMARY_NAME
 
         statuses = {s.name: s for s in msg.status}
         summary = statuses.get(SUMMARY_NAME)
@@ -391,7 +391,7 @@ def _settle(suite: Suite, recorder, quiet: float = 0.5, timeout: float = 5.0) ->
 
 
 def _analyses(msg) -> int:
-    from ..monitor.monitor_core import SUMMARY_NAME
+    from ..monitor.statuses import SUMMARY_NAME
 
     for s in msg.status:
         if s.name == SUMMARY_NAME:

@@ -1,12 +1,13 @@
 """Live monitor node: setpoint, input and output in; ``/diagnostics`` and row RSI out.
 
 Wraps :class:`~mpm_monitor.monitor.monitor_core.MonitorCore` (window, schedule, statuses) and
-:class:`~mpm_monitor.monitor.monitor_core.AnalysisWorker` (the analysis of
+:class:`~mpm_monitor.monitor.worker.AnalysisWorker` (the analysis of
 :func:`mpm_monitor.core.analysis.analyze` in a background thread).  The subscription callbacks only
 decode and append to the window, so no sample waits for an analysis; every ``analysis_period``
 completed samples the window is copied and handed to the worker, and its result comes back
-through a short steady-clock timer and is published on ``/diagnostics`` (CONTRACTS section 4) and as a
-``std_msgs/Float64MultiArray`` of row RSI values on ``mpm_monitor/rsi``.  The latest statuses are
+through a short steady-clock timer and is published on ``/diagnostics`` (docs/interfaces.md, "ROS 2
+topics and statuses") and as a ``std_msgs/Float64MultiArray`` of row RSI values on
+``mpm_monitor/rsi``.  The latest statuses are
 re-published every ``republish_period`` wall-clock seconds, turning STALE when no complete sample
 came for ``stale_timeout`` seconds; bad messages (wrong channel names, lengths, non-finite values,
 off-grid or conflicting stamps) make the summary ERROR with the reason.
@@ -37,17 +38,10 @@ from std_srvs.srv import Trigger
 
 from ..core.errors import ModelFileError
 from ..core.options import ParamSpec
-from ..monitor.monitor_core import (
-    ERROR,
-    SUMMARY_NAME,
-    AnalysisWorker,
-    MonitorCore,
-    MonitorOptions,
-    ProcessAnalyzer,
-    StatusData,
-    run_analysis,
-)
+from ..monitor.monitor_core import MonitorCore, MonitorOptions
+from ..monitor.statuses import ERROR, SUMMARY_NAME, StatusData
 from ..monitor.window import WindowOptions
+from ..monitor.worker import AnalysisWorker, ProcessAnalyzer, run_analysis
 from .ros_io import (
     MODEL_PARAMS,
     MessageError,
@@ -56,6 +50,7 @@ from .ros_io import (
     diagnostics_qos,
     resolve_model,
     run_node,
+    topic_params,
     vector_qos,
 )
 
@@ -99,9 +94,7 @@ PARAMS = MODEL_PARAMS + (
     ParamSpec("analysis_thread", "bool", True, "Run the analysis in a background thread (false: inside the "
               "callback, for debugging only)."),
     ParamSpec("hardware_id", "string", "", "hardware_id of the statuses ('' = the node's full name)."),
-    ParamSpec("setpoint_topic", "string", "setpoint", "Topic of the setpoints r (JointState)."),
-    ParamSpec("input_topic", "string", "input", "Topic of the plant inputs u (JointState)."),
-    ParamSpec("output_topic", "string", "output", "Topic of the measured outputs y (JointState)."),
+) + topic_params("setpoint", "input", "output") + (
     ParamSpec("diagnostics_topic", "string", "/diagnostics", "Topic of the diagnostics (DiagnosticArray)."),
     ParamSpec("rsi_topic", "string", "mpm_monitor/rsi", "Topic of the row RSI values (Float64MultiArray, model "
               "output order)."),
@@ -126,7 +119,7 @@ def monitor_options_from_params(p: dict, hardware_id: str) -> MonitorOptions:
 
 
 def status_to_msg(s) -> DiagnosticStatus:
-    """A :class:`~mpm_monitor.monitor.monitor_core.StatusData` as ``diagnostic_msgs/DiagnosticStatus``."""
+    """A :class:`~mpm_monitor.monitor.statuses.StatusData` as ``diagnostic_msgs/DiagnosticStatus``."""
     return DiagnosticStatus(level=bytes([s.level]), name=s.name, message=s.message, hardware_id=s.hardware_id,
                             values=[KeyValue(key=k, value=v) for k, v in s.values])
 
@@ -187,9 +180,8 @@ class MonitorNode(Node):
         self.model = model
         self.core = MonitorCore(self.model, self._monitor_options)
         self.core.start(time.monotonic())
-        self._codecs = {"setpoint": VectorCodec(self.model.outputs, p["setpoint_topic"]),
-                        "input": VectorCodec(self.model.inputs, p["input_topic"]),
-                        "output": VectorCodec(self.model.outputs, p["output_topic"])}
+        self._codecs = {ch: VectorCodec.for_channel(self.model, ch, p[f"{ch}_topic"])
+                        for ch in ("setpoint", "input", "output")}
         self.worker = AnalysisWorker(self._run_job, threaded=p["analysis_thread"])
         q = vector_qos()
         self._subs = [self.create_subscription(JointState, p[f"{ch}_topic"],

@@ -36,6 +36,7 @@ from .ros_io import (
     declare_parameters,
     resolve_model,
     run_node,
+    topic_params,
     vector_qos,
 )
 
@@ -57,11 +58,7 @@ PARAMS = MODEL_PARAMS + (
     ParamSpec("hold_setpoint", "bool", False, "Compute u(k) on each y(k) with the latest setpoint instead of "
               "waiting for the setpoint of the same stamp."),
     ParamSpec("max_buffered", "int", 1000, "Vectors buffered per topic while waiting for their partners.", 1, 10**7),
-    ParamSpec("setpoint_topic", "string", "setpoint", "Topic of the setpoints r (JointState)."),
-    ParamSpec("output_topic", "string", "output", "Topic of the measured outputs y (JointState)."),
-    ParamSpec("input_topic", "string", "input", "Topic the plant inputs u are published on (JointState)."),
-    ParamSpec("dither_topic", "string", "dither", "Topic of the input dither (JointState)."),
-)
+) + topic_params("setpoint", "output", "input", "dither")
 
 
 def _weight(values, n: int, name: str):
@@ -90,15 +87,12 @@ class MpcNode(Node):
 
     def __init__(self, name: str = "mpc", **kwargs):
         super().__init__(name, **kwargs)
-        p = declare_parameters(self, PARAMS)
-        self.params = p
-        model = resolve_model(p["model_file"], p["case"])
-        self.model = model
+        self.params = p = declare_parameters(self, PARAMS)
+        self.model = model = resolve_model(p["model_file"], p["case"])
         self.ctrl = InternalModelMpc(model, mpc_options_from_params(p, model.n_outputs, model.n_inputs))
-        self._r_codec = VectorCodec(model.outputs, p["setpoint_topic"])
-        self._y_codec = VectorCodec(model.outputs, p["output_topic"])
-        self._u_codec = VectorCodec(model.inputs, p["input_topic"])
-        self._d_codec = VectorCodec(model.inputs, p["dither_topic"])
+        self._codecs = {key: VectorCodec.for_channel(model, ch, p[f"{ch}_topic"])
+                        for key, ch in (("r", "setpoint"), ("y", "output"), ("d", "dither"))}
+        self._u_codec = VectorCodec.for_channel(model, "input", p["input_topic"])
         self._buf = {"r": collections.OrderedDict(), "y": collections.OrderedDict(), "d": collections.OrderedDict()}
         self._latest = {"r": None, "d": None}
         self._last_done: Optional[int] = None
@@ -110,21 +104,13 @@ class MpcNode(Node):
         self.restarts = 0      # stamps that went back: controller reset
         self._pub = self.create_publisher(JointState, p["input_topic"], vector_qos())
         q = vector_qos()
-        self._subs = [self.create_subscription(JointState, p["setpoint_topic"], self._on_setpoint, q),
-                      self.create_subscription(JointState, p["output_topic"], self._on_output, q)]
-        if p["use_dither"]:
-            self._subs.append(self.create_subscription(JointState, p["dither_topic"], self._on_dither, q))
+        self._subs = [self.create_subscription(JointState, self._codecs[key].topic,
+                                               (lambda msg, key=key: self._on_vector(key, msg)), q)
+                      for key in ("r", "y") + (("d",) if p["use_dither"] else ())]
         self.get_logger().info(f"MPC {model.n_outputs}x{model.n_inputs}, Hp = {p['prediction_horizon']}, "
                                f"Hc = {p['control_horizon']}, {'hold' if p['hold_setpoint'] else 'stamp-matched'} "
                                f"setpoints{', dither' if p['use_dither'] else ''}")
 
-    def _decode(self, codec: VectorCodec, msg):
-        try:
-            return codec.decode(msg)
-        except MessageError as exc:
-            self.rejected += 1
-            self.get_logger().warning(f"ignored: {exc}", throttle_duration_sec=1.0)
-            return None
 
     def _store(self, key: str, stamp: int, values: np.ndarray) -> bool:
         """Buffer a vector; False when it is not to be used (a repeat of the sample already answered)."""
@@ -170,36 +156,23 @@ class MpcNode(Node):
         self._latest["d"] = None
         self.restarts += 1
 
-    def _on_setpoint(self, msg) -> None:
-        got = self._decode(self._r_codec, msg)
-        if got is None:
+    def _on_vector(self, key: str, msg) -> None:
+        """A setpoint (``r``), measurement (``y``) or dither (``d``) vector arrived."""
+        try:
+            stamp, values = self._codecs[key].decode(msg)
+        except MessageError as exc:
+            self.rejected += 1
+            self.get_logger().warning(f"ignored: {exc}", throttle_duration_sec=1.0)
             return
-        if self.params["hold_setpoint"]:
-            first = self._latest["r"] is None
-            self._latest["r"] = got[1]
-            if first:  # outputs that waited for the first setpoint
-                for stamp in list(self._buf["y"]):
-                    self._try(stamp)
+        if key != "y" and self.params["hold_setpoint"]:
+            first = self._latest[key] is None
+            self._latest[key] = values
+            if key == "r" and first:  # outputs that waited for the first setpoint
+                for s in list(self._buf["y"]):
+                    self._try(s)
             return
-        if self._store("r", *got):
-            self._try(got[0])
-
-    def _on_dither(self, msg) -> None:
-        got = self._decode(self._d_codec, msg)
-        if got is None:
-            return
-        if self.params["hold_setpoint"]:
-            self._latest["d"] = got[1]
-            return
-        if self._store("d", *got):
-            self._try(got[0])
-
-    def _on_output(self, msg) -> None:
-        got = self._decode(self._y_codec, msg)
-        if got is None:
-            return
-        if self._store("y", *got):
-            self._try(got[0])
+        if self._store(key, stamp, values):
+            self._try(stamp)
 
     def _try(self, stamp: int) -> None:
         buf = self._buf

@@ -1,8 +1,10 @@
 """The params files ``config/<node>.yaml``, generated from the nodes' declared parameters.
 
-Every node declares its parameters in a ``PARAMS`` tuple of :class:`~mpm_monitor.nodes.ros_io.ParamSpec`
-(type, default, description, range); the files in ``config/`` are written from those tuples so
-that the documentation of a parameter can never drift from the code (a test compares them).
+Every node declares its parameters in a ``PARAMS`` tuple of :class:`~mpm_monitor.core.options.ParamSpec`
+(type, default, description, range; declared by :func:`mpm_monitor.nodes.ros_io.declare_parameters`);
+the files in ``config/`` are written from those tuples so that the documentation of a parameter can
+never drift from the code (a test compares them).  A file is named after the node's default name,
+which is also its key in the file.
 
 Run ``python -m mpm_monitor.nodes.params_files [--check] [--dir config]``; ``--markdown`` prints
 the README's parameter tables.
@@ -18,12 +20,14 @@ from pathlib import Path
 
 from ..io.model_file import yaml_number
 
-#: node name -> (module, title)
+#: default node name -> (module, title)
 NODES = {
     "plant": ("plant_node", "Plant simulator node"),
     "mpc": ("mpc_node", "MPC controller node"),
     "setpoint": ("setpoint_node", "Setpoint generator node"),
     "monitor": ("monitor_node", "Live mismatch monitor node"),
+    "mpm_recorder": ("recorder_node", "Recorder node"),
+    "mpm_replay": ("replay_node", "Replay node"),
 }
 
 WIDTH = 100

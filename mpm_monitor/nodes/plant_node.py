@@ -38,6 +38,7 @@ from .ros_io import (
     period_ns,
     resolve_model,
     run_node,
+    topic_params,
     vector_qos,
 )
 
@@ -61,10 +62,7 @@ PARAMS = MODEL_PARAMS + (
     ParamSpec("stall_timeout", "double", 2.0, "Wall-clock seconds without the expected input before a warning "
               "and a re-sent clock and output y(k) (lock-step; lets a restarted MPC pick the loop up).", 0.05, 3600.0),
     ParamSpec("exit_when_done", "bool", False, "Leave the process after max_samples."),
-    ParamSpec("output_topic", "string", "output", "Topic of the measured outputs y (JointState)."),
-    ParamSpec("input_topic", "string", "input", "Topic of the plant inputs u (JointState)."),
-    ParamSpec("clock_topic", "string", "/clock", "Topic of the simulated time (rosgraph_msgs/Clock)."),
-)
+) + topic_params("output", "input", "clock")
 
 
 class PlantNode(Node):
@@ -72,16 +70,14 @@ class PlantNode(Node):
 
     def __init__(self, name: str = "plant", **kwargs):
         super().__init__(name, **kwargs)
-        p = declare_parameters(self, PARAMS)
-        self.params = p
-        model = resolve_model(p["model_file"], p["case"], which="plant")
+        self.params = p = declare_parameters(self, PARAMS)
+        self.model = model = resolve_model(p["model_file"], p["case"], which="plant")
         dist = DisturbanceOptions(disturbance_std=p["disturbance_std"], disturbance_pole=p["disturbance_pole"],
                                   noise_std=p["noise_std"])
-        self.model = model
         self.sim = PlantSimulator(model, dist, seeded_generators(p["seed"])["plant"])
         self._period = period_ns(model.sample_time)
-        self._y_codec = VectorCodec(model.outputs, p["output_topic"])
-        self._u_codec = VectorCodec(model.inputs, p["input_topic"])
+        self._y_codec = VectorCodec.for_channel(model, "output", p["output_topic"])
+        self._u_codec = VectorCodec.for_channel(model, "input", p["input_topic"])
         self._pub = self.create_publisher(JointState, p["output_topic"], vector_qos())
         self._clock_pub = self.create_publisher(ClockMsg, p["clock_topic"], vector_qos()) if p["publish_clock"] else None
         self._sub = self.create_subscription(JointState, p["input_topic"], self._on_input, vector_qos())

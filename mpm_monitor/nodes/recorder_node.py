@@ -39,27 +39,22 @@ fsync : bool
 from __future__ import annotations
 
 import dataclasses
-import importlib
-import signal
 import sys
 import threading
 import time
 from typing import Optional, Sequence
 
-import rclpy
-from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rclpy.clock import Clock, ClockType
-from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.signals import SignalHandlerOptions
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-from ..core.errors import ConfigurationError, InputError
+from ..core.errors import ConfigurationError
+from ..core.options import ParamSpec
 from ..io.bags import BagWriter
+from ..io.qos import RECORDER_QOS
+from .ros_io import declare_parameters, message_class, parameter_overrides, qos_profile, run_node
 
-#: Message types of the topics the project publishes (CONTRACTS section 4, DESIGN.md).
+#: Message types of the topics the project publishes (docs/interfaces.md, "ROS 2 topics and statuses").
 KNOWN_TOPIC_TYPES = {
     "setpoint": "sensor_msgs/msg/JointState",
     "input": "sensor_msgs/msg/JointState",
@@ -73,8 +68,6 @@ KNOWN_TOPIC_TYPES = {
 }
 #: What the recorder records by default.
 DEFAULT_RECORD_TOPICS = ("setpoint", "input", "output", "/diagnostics", "mpm_monitor/rsi", "/clock")
-#: Depth of the recorder's subscriptions (absorbs bursts between executor turns).
-SUBSCRIPTION_DEPTH = 1000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,6 +107,20 @@ class RecorderOptions:
             raise ConfigurationError(f"topics: a topic is listed twice: {', '.join(names)}")
 
 
+_RANGES = RecorderOptions.RANGES
+PARAMS = (
+    ParamSpec("bag_dir", "string", "", "Bag directory to create (must not exist); '' = mpm_bag_<date>-<time>."),
+    ParamSpec("topics", "string_array", list(DEFAULT_RECORD_TOPICS), "Topics to record: a known name (setpoint, "
+              "input, output, dither, /diagnostics, mpm_monitor/rsi, /clock) or name=pkg/msg/Type."),
+    ParamSpec("flush_period", "double", 1.0, "Seconds between flushes to disk.", *_RANGES["flush_period"]),
+    ParamSpec("drain_timeout", "double", 0.5, "Seconds to take already-delivered messages after a stop request.",
+              *_RANGES["drain_timeout"]),
+    ParamSpec("qos_wait", "double", 1.0, "Seconds to wait for a topic's publishers to show in the graph before "
+              "storing it with the subscription QoS.", *_RANGES["qos_wait"]),
+    ParamSpec("fsync", "bool", True, "fsync the bag file on every flush."),
+)
+
+
 def parse_topic_specs(specs: Sequence[str]) -> tuple:
     """Topic list entries (``name`` or ``name=pkg/msg/Type``) as ``(name, type)`` pairs.
 
@@ -140,15 +147,6 @@ def parse_topic_specs(specs: Sequence[str]) -> tuple:
     return tuple(out)
 
 
-def message_class(msgtype: str):
-    """The Python class of ``pkg/msg/Type``; :class:`ConfigurationError` if it is not installed."""
-    pkg, _, name = msgtype.split("/")
-    try:
-        return getattr(importlib.import_module(f"{pkg}.msg"), name)
-    except (ImportError, AttributeError):
-        raise ConfigurationError(f"topics: message type {msgtype} is not installed") from None
-
-
 def bag_qos(profile: QoSProfile):
     """A rclpy QoS profile as the ``rosbags`` Qos stored in ``offered_qos_profiles``."""
     from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
@@ -169,11 +167,9 @@ def bag_qos(profile: QoSProfile):
                avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions))
 
 
-def subscription_qos(msgtype: str, best_effort: bool) -> QoSProfile:
-    """The recorder's subscription profile: KEEP_LAST 1000, VOLATILE, RELIABLE unless told otherwise."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=SUBSCRIPTION_DEPTH,
-                      reliability=ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.VOLATILE, liveliness=LivelinessPolicy.AUTOMATIC)
+def subscription_qos(best_effort: bool) -> QoSProfile:
+    """The recorder's subscription profile (:data:`mpm_monitor.io.qos.RECORDER_QOS`), best effort if told so."""
+    return qos_profile(RECORDER_QOS.best_effort() if best_effort else RECORDER_QOS)
 
 
 def default_bag_dir(now: Optional[float] = None) -> str:
@@ -220,19 +216,18 @@ class RecorderNode(Node):
     def __init__(self, bag_dir=None, *, topics: Optional[Sequence[str]] = None, node_name: str = "mpm_recorder",
                  context=None, flush_period: Optional[float] = None, drain_timeout: Optional[float] = None,
                  qos_wait: Optional[float] = None, **kwargs):
-        overrides = list(kwargs.pop("parameter_overrides", None) or [])
-        given = {"bag_dir": None if bag_dir is None else str(bag_dir),
-                 "topics": None if topics is None else [str(t) for t in topics],
-                 "flush_period": None if flush_period is None else float(flush_period),
-                 "drain_timeout": None if drain_timeout is None else float(drain_timeout),
-                 "qos_wait": None if qos_wait is None else float(qos_wait)}
-        overrides += [Parameter(k, value=v) for k, v in given.items() if v is not None]
+        overrides = parameter_overrides(PARAMS, kwargs.pop("parameter_overrides", None), bag_dir=bag_dir,
+                                        topics=topics, flush_period=flush_period, drain_timeout=drain_timeout,
+                                        qos_wait=qos_wait)
         super().__init__(node_name, context=context, parameter_overrides=overrides, **kwargs)
         self._lock = threading.RLock()
         self._closed = False
         self._writer = None
         self._timer = None
-        self.options = self._read_parameters()
+        p = declare_parameters(self, PARAMS)
+        self.options = RecorderOptions(bag_dir=p["bag_dir"] or default_bag_dir(), topics=parse_topic_specs(p["topics"]),
+                                       flush_period=p["flush_period"], drain_timeout=p["drain_timeout"],
+                                       qos_wait=p["qos_wait"], fsync=p["fsync"])
         self._writer = BagWriter(self.options.bag_dir, fsync=self.options.fsync)
         self._topics = [_Topic(n, t) for n, t in self.options.topics]
         for tp in self._topics:
@@ -245,43 +240,13 @@ class RecorderNode(Node):
 
     # -- set-up -----------------------------------------------------------------------------------
 
-    def _read_parameters(self) -> RecorderOptions:
-        def desc(text, lo=None, hi=None):
-            d = ParameterDescriptor(description=text)
-            if lo is not None:
-                d.floating_point_range = [FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]
-            return d
-
-        rng = RecorderOptions.RANGES
-        declare = self._declare
-        declare("bag_dir", "", desc("bag directory to create (must not exist); empty = mpm_bag_<date>-<time>"))
-        declare("topics", list(DEFAULT_RECORD_TOPICS), desc("topics to record: a known name or name=pkg/msg/Type"))
-        declare("flush_period", 1.0, desc("seconds between flushes to disk", *rng["flush_period"]))
-        declare("drain_timeout", 0.5, desc("seconds to take already-delivered messages after a stop request",
-                                           *rng["drain_timeout"]))
-        declare("qos_wait", 1.0, desc("seconds to wait for a topic's publishers to show in the graph before "
-                                      "storing it with the subscription QoS", *rng["qos_wait"]))
-        declare("fsync", True, desc("fsync the bag file on every flush"))
-        p = {name: self.get_parameter(name).value for name in
-             ("bag_dir", "topics", "flush_period", "drain_timeout", "qos_wait", "fsync")}
-        return RecorderOptions(bag_dir=p["bag_dir"] or default_bag_dir(), topics=parse_topic_specs(p["topics"]),
-                               flush_period=p["flush_period"], drain_timeout=p["drain_timeout"],
-                               qos_wait=p["qos_wait"], fsync=p["fsync"])
-
-    def _declare(self, name, default, descriptor) -> None:
-        """Declare a parameter; a rejected override becomes a one-line :class:`ConfigurationError`."""
-        try:
-            self.declare_parameter(name, default, descriptor)
-        except (InvalidParameterValueException, InvalidParameterTypeException) as exc:
-            raise ConfigurationError(f"{name}: {' '.join(str(exc).split())}") from None
-
     def _subscribe(self, tp: _Topic, best_effort: bool) -> None:
         if tp.subscription is not None:
             self.destroy_subscription(tp.subscription)
         tp.best_effort = best_effort
         tp.subscription = self.create_subscription(
             tp.msg_class, tp.name, lambda data, tp=tp: self._on_message(tp, data),
-            subscription_qos(tp.msgtype, best_effort), raw=True)
+            subscription_qos(best_effort), raw=True)
         tp.resolved = tp.subscription.topic_name
 
     def _publishers_best_effort(self, name: str) -> bool:
@@ -331,7 +296,7 @@ class RecorderNode(Node):
         else:
             self.get_logger().warning(f"{tp.resolved}: publishers not visible in the graph after {waited:.1f} s; "
                                       f"storing the recorder's subscription QoS")
-            profiles = [bag_qos(subscription_qos(tp.msgtype, tp.best_effort))]
+            profiles = [bag_qos(subscription_qos(tp.best_effort))]
         self._writer.add_topic(tp.resolved, tp.msgtype, profiles)
         for t, data in tp.pending:
             self._writer.write(tp.resolved, t, data)
@@ -400,39 +365,8 @@ class RecorderNode(Node):
 
 
 def main(args=None) -> int:
-    """Console script ``recorder_node``: record until SIGINT or SIGTERM, then close the bag.
-
-    Returns
-    -------
-    int
-        0 after a clean stop, 2 on a bad parameter or bag directory.
-    """
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    stop = threading.Event()
-
-    def on_signal(signum, frame):
-        stop.set()
-
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    node = None
-    try:
-        node = RecorderNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        while not stop.is_set():
-            executor.spin_once(timeout_sec=0.1)
-        node.drain(executor)
-        node.close()
-        return 0
-    except InputError as exc:
-        print(f"recorder_node: error: {exc}", file=sys.stderr)
-        return 2
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-        for s, h in previous.items():
-            signal.signal(s, h)
+    """Console script ``recorder_node``: record until SIGINT or SIGTERM, then close the bag (exit 2: bad parameter)."""
+    return run_node(lambda context: RecorderNode(context=context), args, executor_kind="single")
 
 
 if __name__ == "__main__":

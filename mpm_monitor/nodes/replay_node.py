@@ -37,30 +37,28 @@ import dataclasses
 import sys
 from typing import Optional, Sequence
 
-import rclpy
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.clock import Clock, ClockType
-from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 
-from ..core.errors import ConfigurationError, InputError
+from ..core.errors import ConfigurationError
+from ..core.options import ParamSpec
 from ..io.bags import DEFAULT_TOPICS, read_raw_messages, topic_name
-from .recorder_node import message_class
+from ..io.qos import CLOCK_LISTENER_QOS, REPLAY_CLOCK_QOS
+from .ros_io import (
+    declare_parameters,
+    message_class,
+    ns_to_stamp,
+    parameter_overrides,
+    qos_profile,
+    run_node,
+    stamp_to_ns,
+    vector_qos,
+)
 
 MODES = ("time", "clock")
 #: Period of the publishing timer in ``time`` mode, seconds of steady time.
 TICK = 0.005
-
-VECTOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.VOLATILE)
-CLOCK_SUB_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.BEST_EFFORT,
-                           durability=DurabilityPolicy.VOLATILE)
-CLOCK_PUB_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
-                           durability=DurabilityPolicy.VOLATILE)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,6 +89,18 @@ class ReplayOptions:
         if int(self.wait_for_subscribers) != self.wait_for_subscribers or not lo <= self.wait_for_subscribers <= hi:
             raise ConfigurationError(f"wait_for_subscribers: expected an integer in [{lo}, {hi}], "
                                      f"got {self.wait_for_subscribers!r}")
+
+
+PARAMS = (
+    ParamSpec("bag", "string", "", "rosbag2 directory to replay."),
+    ParamSpec("topics", "string_array", list(DEFAULT_TOPICS), "Topics of the bag to replay."),
+    ParamSpec("mode", "string", "time", "time: at recorded speed x rate; clock: lock step with /clock (samples "
+              "stamped <= clock)."),
+    ParamSpec("rate", "double", 1.0, "Speed factor of time mode.", *ReplayOptions.RATE_RANGE),
+    ParamSpec("wait_for_subscribers", "int", 0, "time mode starts once every publisher has this many subscribers.",
+              *ReplayOptions.SUBSCRIBER_RANGE),
+    ParamSpec("publish_clock", "bool", False, "time mode: also publish /clock with the replayed stamps."),
+)
 
 
 class ReplaySchedule:
@@ -173,16 +183,14 @@ class ReplayNode(Node):
     def __init__(self, bag=None, *, topics: Optional[Sequence[str]] = None, mode: Optional[str] = None,
                  rate: Optional[float] = None, wait_for_subscribers: Optional[int] = None,
                  publish_clock: Optional[bool] = None, node_name: str = "mpm_replay", context=None, **kwargs):
-        overrides = list(kwargs.pop("parameter_overrides", None) or [])
-        given = {"bag": None if bag is None else str(bag),
-                 "topics": None if topics is None else [str(t) for t in topics],
-                 "mode": mode, "rate": None if rate is None else float(rate),
-                 "wait_for_subscribers": None if wait_for_subscribers is None else int(wait_for_subscribers),
-                 "publish_clock": None if publish_clock is None else bool(publish_clock)}
-        overrides += [Parameter(k, value=v) for k, v in given.items() if v is not None]
+        overrides = parameter_overrides(PARAMS, kwargs.pop("parameter_overrides", None), bag=bag, topics=topics,
+                                        mode=mode, rate=rate, wait_for_subscribers=wait_for_subscribers,
+                                        publish_clock=publish_clock)
         super().__init__(node_name, context=context, parameter_overrides=overrides, **kwargs)
-        self.options = self._read_parameters()
-        o = self.options
+        p = declare_parameters(self, PARAMS)
+        self.options = o = ReplayOptions(bag=p["bag"], topics=tuple(p["topics"]), mode=p["mode"], rate=p["rate"],
+                                         wait_for_subscribers=p["wait_for_subscribers"],
+                                         publish_clock=p["publish_clock"])
         messages = read_raw_messages(o.bag, o.topics)
         bag_topics = [topic_name(t) for t in o.topics]
         self.schedule = ReplaySchedule(messages, o.mode, o.rate, topic_order=bag_topics)
@@ -191,8 +199,8 @@ class ReplayNode(Node):
         for given_name, bag_topic in zip(o.topics, bag_topics):
             if bag_topic in types:
                 self._replay_pubs[bag_topic] = self.create_publisher(message_class(types[bag_topic]), given_name,
-                                                                    VECTOR_QOS)
-        self._clock_pub = self.create_publisher(ClockMsg, "/clock", CLOCK_PUB_QOS) \
+                                                                    vector_qos())
+        self._clock_pub = self.create_publisher(ClockMsg, "/clock", qos_profile(REPLAY_CLOCK_QOS)) \
             if (o.publish_clock and o.mode == "time") else None
         self._last_clock = None
         self.published = 0
@@ -200,48 +208,29 @@ class ReplayNode(Node):
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._timer = None
         if o.mode == "clock":
-            self.create_subscription(ClockMsg, "/clock", self._on_clock, CLOCK_SUB_QOS)
+            self.create_subscription(ClockMsg, "/clock", self._on_clock, qos_profile(CLOCK_LISTENER_QOS))
         else:
             self._timer = self.create_timer(TICK, self._on_tick, clock=self._steady)
         self.get_logger().info(f"replaying {len(messages)} messages of {', '.join(self._replay_pubs)} from {o.bag} "
                                + (f"at {o.rate:g}x recorded speed" if o.mode == "time" else "in lock step with /clock"))
-
-    def _read_parameters(self) -> ReplayOptions:
-        lo, hi = ReplayOptions.RATE_RANGE
-        slo, shi = ReplayOptions.SUBSCRIBER_RANGE
-        specs = [
-            ("bag", "", ParameterDescriptor(description="rosbag2 directory to replay")),
-            ("topics", list(DEFAULT_TOPICS), ParameterDescriptor(description="topics of the bag to replay")),
-            ("mode", "time", ParameterDescriptor(description="time: at recorded speed x rate; clock: lock step "
-                                                             "with /clock (samples stamped <= clock)")),
-            ("rate", 1.0, ParameterDescriptor(description="speed factor of time mode", floating_point_range=[
-                FloatingPointRange(from_value=lo, to_value=hi, step=0.0)])),
-            ("wait_for_subscribers", 0, ParameterDescriptor(
-                description="time mode starts once every publisher has this many subscribers",
-                integer_range=[IntegerRange(from_value=slo, to_value=shi, step=1)])),
-            ("publish_clock", False, ParameterDescriptor(description="time mode: also publish /clock with the "
-                                                                     "replayed stamps")),
-        ]
-        for name, default, desc in specs:
-            try:
-                self.declare_parameter(name, default, desc)
-            except (InvalidParameterValueException, InvalidParameterTypeException) as exc:
-                raise ConfigurationError(f"{name}: {' '.join(str(exc).split())}") from None
-        p = {name: self.get_parameter(name).value for name, _, _ in specs}
-        return ReplayOptions(bag=p["bag"], topics=tuple(p["topics"]), mode=p["mode"], rate=p["rate"],
-                             wait_for_subscribers=p["wait_for_subscribers"], publish_clock=p["publish_clock"])
 
     @property
     def finished(self) -> bool:
         """Every message of the bag has been published."""
         return self.schedule.finished
 
+    #: The node's main loop (:func:`~mpm_monitor.nodes.ros_io.run_node`) ends once every message is out.
+    exit_requested = finished
+
+    def drain(self, executor) -> None:
+        """Spin a little so that the reliable publishers hand over what is queued before the process ends."""
+        for _ in range(10):
+            executor.spin_once(timeout_sec=0.02)
+
     def _publish(self, messages) -> None:
         for m in messages:
             if self._clock_pub is not None and m.stamp is not None and m.stamp != self._last_clock:
-                clock = ClockMsg()
-                clock.clock.sec, clock.clock.nanosec = divmod(int(m.stamp), 1_000_000_000)
-                self._clock_pub.publish(clock)
+                self._clock_pub.publish(ClockMsg(clock=ns_to_stamp(m.stamp)))
                 self._last_clock = m.stamp
             self._replay_pubs[m.topic].publish(m.data)
             self.published += 1
@@ -260,38 +249,12 @@ class ReplayNode(Node):
             self._timer.cancel()
 
     def _on_clock(self, msg: ClockMsg) -> None:
-        self._publish(self.schedule.due_by_clock(msg.clock.sec * 1_000_000_000 + msg.clock.nanosec))
+        self._publish(self.schedule.due_by_clock(stamp_to_ns(msg.clock)))
 
 
 def main(args=None) -> int:
-    """Console script ``replay_node``: replay until every message is out (or SIGINT/SIGTERM).
-
-    Returns
-    -------
-    int
-        0 when it ran, 2 on a bad parameter or bag.
-    """
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = ReplayNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        while not node.finished:
-            executor.spin_once(timeout_sec=0.1)
-        # let reliable publishers hand over what is queued before the process ends
-        for _ in range(10):
-            executor.spin_once(timeout_sec=0.02)
-        return 0
-    except InputError as exc:
-        print(f"replay_node: error: {exc}", file=sys.stderr)
-        return 2
-    except (KeyboardInterrupt, ExternalShutdownException):
-        return 0
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    """Console script ``replay_node``: replay until every message is out or SIGINT/SIGTERM (2: bad parameter)."""
+    return run_node(lambda context: ReplayNode(context=context), args, executor_kind="single")
 
 
 if __name__ == "__main__":

@@ -1,11 +1,12 @@
-"""ROS 2 message conversion and node plumbing (CONTRACTS section 4).
+"""ROS 2 message conversion and node plumbing (docs/interfaces.md, "ROS 2 topics and statuses").
 
 A "stamped vector" is a ``sensor_msgs/msg/JointState`` whose ``header.stamp`` is the sample's time,
 whose ``name`` lists the channels (the model's outputs for ``setpoint`` and ``output``, its inputs
 for ``input`` and ``dither``) and whose ``position`` holds the values; ``velocity`` and ``effort``
 are ignored.  This module turns such messages into numpy vectors in the model's channel order and
-back, checking the names, the lengths and that every value is finite, and it holds the QoS
-profiles, the stamp arithmetic and the parameter-declaration helper the nodes share.
+back, checking the names, the lengths and that every value is finite, and it holds what the nodes
+share: the stamp arithmetic, the ``rclpy`` QoS profiles built from :mod:`mpm_monitor.io.qos`, the
+declaration of the parameters and the main loop.
 
 The conversion functions only touch message attributes, so they run (and are tested) on any object
 with the same fields; ``rclpy`` and the message packages are imported lazily, where a profile, a
@@ -17,6 +18,7 @@ Stamps are handled as integer nanoseconds so that the sample grid ``k * sample_t
 
 from __future__ import annotations
 
+import importlib
 import math
 import sys
 from typing import Any, Callable, Optional, Sequence
@@ -26,13 +28,12 @@ import numpy as np
 from .. import limit_blas_threads
 from ..core.errors import ConfigurationError, InputError
 from ..core.options import ParamSpec
+from ..io.qos import DIAGNOSTICS_QOS, VECTOR_QOS, QosSpec
 
 NS_PER_S = 1_000_000_000
 
-#: Depth of the vector topics: lock-step needs reliability, the depth absorbs analysis bursts.
-VECTOR_QOS_DEPTH = 1000
-#: Depth of /diagnostics.
-DIAGNOSTICS_QOS_DEPTH = 10
+#: The stamped-vector channels and whose names they carry: the model's ``outputs`` or ``inputs``.
+CHANNELS = {"setpoint": "outputs", "input": "inputs", "output": "outputs", "dither": "inputs"}
 
 
 class MessageError(InputError):
@@ -110,6 +111,14 @@ class VectorCodec:
         self.topic = topic
         self._index = {n: i for i, n in enumerate(self.names)}
         self._perm_cache: dict = {}
+
+    @classmethod
+    def for_channel(cls, model, channel: str, topic: str) -> "VectorCodec":
+        """The codec of a contract channel: the model's outputs for ``setpoint`` and ``output``, its
+        inputs for ``input`` and ``dither``."""
+        if channel not in CHANNELS:
+            raise ValueError(f"channel: expected one of {', '.join(CHANNELS)}, got {channel!r}")
+        return cls(model.outputs if CHANNELS[channel] == "outputs" else model.inputs, topic)
 
     @property
     def size(self) -> int:
@@ -192,18 +201,34 @@ class VectorCodec:
         return msg
 
 
-# ----------------------------------------------------------------------------------------- QoS
-def vector_qos(depth: int = VECTOR_QOS_DEPTH):
-    """QoS of the vector topics and of the lock-step ``/clock``: RELIABLE, KEEP_LAST ``depth``, VOLATILE."""
-    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+def message_class(msgtype: str):
+    """The Python class of ``pkg/msg/Type``; :class:`ConfigurationError` if it is not installed."""
+    pkg, _, name = msgtype.split("/")
+    try:
+        return getattr(importlib.import_module(f"{pkg}.msg"), name)
+    except (ImportError, AttributeError):
+        raise ConfigurationError(f"topics: message type {msgtype} is not installed") from None
 
-    return QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=int(depth),
-                      durability=DurabilityPolicy.VOLATILE)
+
+# ----------------------------------------------------------------------------------------- QoS
+def qos_profile(spec: QosSpec):
+    """The ``rclpy.qos.QoSProfile`` of a :class:`~mpm_monitor.io.qos.QosSpec`."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(reliability=ReliabilityPolicy[spec.reliability.upper()],
+                      history=HistoryPolicy[spec.history.upper()], depth=int(spec.depth),
+                      durability=DurabilityPolicy[spec.durability.upper()],
+                      liveliness=LivelinessPolicy[spec.liveliness.upper()])
+
+
+def vector_qos():
+    """QoS of the vector topics and of the lock-step ``/clock``: RELIABLE, KEEP_LAST 1000, VOLATILE."""
+    return qos_profile(VECTOR_QOS)
 
 
 def diagnostics_qos():
     """QoS of ``/diagnostics`` and of the RSI topic: RELIABLE, KEEP_LAST 10, VOLATILE."""
-    return vector_qos(DIAGNOSTICS_QOS_DEPTH)
+    return qos_profile(DIAGNOSTICS_QOS)
 
 
 # ---------------------------------------------------------------------------------- parameters
@@ -255,6 +280,30 @@ def declare_parameters(node, specs: Sequence[ParamSpec]) -> dict:
         except InvalidParameterTypeException as exc:
             raise ConfigurationError(f"parameter {spec.name}: wrong type: {exc}".splitlines()[0]) from None
         out[spec.name] = spec.check(param.value)
+    return out
+
+
+def parameter_overrides(specs: Sequence[ParamSpec], overrides=None, **values) -> list:
+    """``overrides`` plus one ``rclpy.parameter.Parameter`` per keyword value that is not None.
+
+    For nodes whose constructor takes some parameters as keyword arguments (the recorder's
+    ``bag_dir``, the replay's ``rate``, ...): each value is converted to its spec's type (a ``Path``
+    to text, an int to a double, ...), so that it is declared and checked like a ``-p`` override.
+
+    Parameters
+    ----------
+    specs : sequence of ParamSpec
+        The node's parameters; every keyword must name one.
+    overrides : list of rclpy.parameter.Parameter, optional
+        Overrides given as such (kept first).
+    """
+    from rclpy.parameter import Parameter
+
+    convert = {"bool": bool, "int": int, "double": float, "string": str,
+               "double_array": lambda v: [float(x) for x in v], "string_array": lambda v: [str(x) for x in v]}
+    kinds = {spec.name: spec.kind for spec in specs}
+    out = list(overrides or [])
+    out += [Parameter(name, value=convert[kinds[name]](v)) for name, v in values.items() if v is not None]
     return out
 
 
@@ -315,7 +364,7 @@ def spin_until(executor, done: Callable[[], bool], timeout: Optional[float] = No
 
 
 def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "events") -> int:
-    """``main()`` of a node: init, build the node, spin until SIGINT/SIGTERM; bad parameters exit 2.
+    """``main()`` of every node: init, build the node, spin until told to stop; bad parameters exit 2.
 
     Parameters
     ----------
@@ -325,14 +374,25 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
         Command-line arguments (``--ros-args ...``); default ``sys.argv``.
     executor_kind : {"events", "single"}
 
+    Returns
+    -------
+    int
+        0 after a stop, 2 (with one line ``error: ...`` on stderr) when the node refuses its
+        parameters or inputs (:class:`~mpm_monitor.core.errors.InputError`).
+
     Notes
     -----
-    SIGINT and SIGTERM only set a flag that the spin loop checks, so a callback is never interrupted
-    half-way and the node closes cleanly (the monitor stops its analysis thread).
+    BLAS is limited to one thread first (:func:`mpm_monitor.limit_blas_threads`; the monitor's
+    analysis process starts after this).  SIGINT and SIGTERM only set a flag that the spin loop
+    checks, so a callback is never interrupted half-way.  The loop also ends when the node's
+    ``exit_requested`` turns true.  Then the node's ``drain(executor)``, if it has one, handles what
+    is already under way (the recorder takes the messages already delivered, the replay lets its
+    publishers hand over what is queued), its ``close()``, if any, runs (the monitor stops its
+    analysis, the recorder closes its bag) and the node is destroyed.
     """
     import signal
 
-    limit_blas_threads()       # for the monitor's analysis process, started after this
+    limit_blas_threads()
     import rclpy
     from rclpy.context import Context
     from rclpy.signals import SignalHandlerOptions
@@ -356,6 +416,9 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
         executor.add_node(node)
         spin_until(executor, lambda: stop["requested"] or getattr(node, "exit_requested", False), context=context,
                    step=0.1)
+        drain = getattr(node, "drain", None)
+        if drain is not None and context.ok():
+            drain(executor)
         return 0
     finally:
         for sig, handler in previous.items():
@@ -375,7 +438,7 @@ def resolve_model(model_file: str, case: str, which: str = "model"):
     Parameters
     ----------
     model_file : str
-        Path of a model file (CONTRACTS section 1); "" = use ``case``.
+        Path of a model file (docs/interfaces.md, "Model file"); "" = use ``case``.
     case : str
         A paper case ("3.1", "3.2", "3.3"); used when ``model_file`` is "".
     which : {"model", "plant"}
@@ -396,7 +459,26 @@ def resolve_model(model_file: str, case: str, which: str = "model"):
 
 
 MODEL_PARAMS = (
-    ParamSpec("model_file", "string", "", "Model file (YAML, CONTRACTS section 1); '' = use the paper case."),
+    ParamSpec("model_file", "string", "", "Model file (YAML, as in docs/interfaces.md, 'Model file'); '' = use the "
+              "paper case."),
     ParamSpec("case", "string", "", "Paper case used when model_file is '' (3.1, 3.2 or 3.3).",
               choices=("", "3.1", "3.2", "3.3"), numbers_as_text=True),
 )
+
+#: The topic parameters of the contract's channels, ``<channel>_topic``, defaulting to the contract's names.
+TOPIC_PARAMS = {
+    "setpoint": ParamSpec("setpoint_topic", "string", "setpoint", "Topic of the setpoints r (JointState, one value "
+                          "per output)."),
+    "input": ParamSpec("input_topic", "string", "input", "Topic of the plant inputs u (JointState, one value per "
+                       "input)."),
+    "output": ParamSpec("output_topic", "string", "output", "Topic of the measured outputs y (JointState, one value "
+                        "per output)."),
+    "dither": ParamSpec("dither_topic", "string", "dither", "Topic of the input dither (JointState, one value per "
+                        "input)."),
+    "clock": ParamSpec("clock_topic", "string", "/clock", "Topic of the simulated time (rosgraph_msgs/Clock)."),
+}
+
+
+def topic_params(*channels: str) -> tuple:
+    """The :data:`TOPIC_PARAMS` of ``channels``, in that order (a node's ``PARAMS`` ends with them)."""
+    return tuple(TOPIC_PARAMS[c] for c in channels)

@@ -37,6 +37,7 @@ from .ros_io import (
     resolve_model,
     run_node,
     stamp_to_ns,
+    topic_params,
     vector_qos,
 )
 
@@ -59,10 +60,7 @@ PARAMS = MODEL_PARAMS + (
     ParamSpec("dither_min_hold", "int", 1, "Dither PRBS minimum samples between switches.", 1, 10**6),
     ParamSpec("trigger", "string", "clock", "clock: one sample per grid point of the clock topic (lock-step); "
               "timer: one sample every sample_time of the node's clock.", choices=("clock", "timer")),
-    ParamSpec("setpoint_topic", "string", "setpoint", "Topic of the setpoints r (JointState, one per output)."),
-    ParamSpec("dither_topic", "string", "dither", "Topic of the input dither (JointState, one per input)."),
-    ParamSpec("clock_topic", "string", "/clock", "Topic of the simulated time followed with trigger: clock."),
-)
+) + topic_params("setpoint", "dither", "clock")
 
 
 def build_setpoint_generator(p: dict, n_outputs: int, rng: np.random.Generator):
@@ -84,10 +82,8 @@ class SetpointNode(Node):
 
     def __init__(self, name: str = "setpoint", **kwargs):
         super().__init__(name, **kwargs)
-        p = declare_parameters(self, PARAMS)
-        self.params = p
-        model = resolve_model(p["model_file"], p["case"])
-        self.model = model
+        self.params = p = declare_parameters(self, PARAMS)
+        self.model = model = resolve_model(p["model_file"], p["case"])
         rngs = seeded_generators(p["seed"])
         self._gen = build_setpoint_generator(p, model.n_outputs, rngs["setpoint"])
         self._dither: Optional[PrbsGenerator] = None
@@ -96,8 +92,8 @@ class SetpointNode(Node):
                                                                      switch_probability=p["dither_switch_probability"],
                                                                      min_hold=p["dither_min_hold"]), rngs["dither"])
         self._period = period_ns(model.sample_time)
-        self._r_codec = VectorCodec(model.outputs, p["setpoint_topic"])
-        self._d_codec = VectorCodec(model.inputs, p["dither_topic"])
+        self._r_codec = VectorCodec.for_channel(model, "setpoint", p["setpoint_topic"])
+        self._d_codec = VectorCodec.for_channel(model, "dither", p["dither_topic"])
         self._pub = self.create_publisher(JointState, p["setpoint_topic"], vector_qos())
         self._dither_pub = (self.create_publisher(JointState, p["dither_topic"], vector_qos())
                             if self._dither is not None else None)
