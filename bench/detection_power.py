@@ -17,7 +17,6 @@ import argparse
 
 import numpy as np
 
-from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import FopdtModel
 from mpm_monitor.sim.closed_loop import run_closed_loop
 from mpm_monitor.sim.mpc import MpcOptions
@@ -44,7 +43,7 @@ def one(seed: int, index: int, samples: int, methods) -> dict:
     out = {}
     for label, m in (("mismatch", model), ("clean", plant)):
         log = run_closed_loop(plant, m, samples, seed=int(seed * 100003 + index), mpc=MpcOptions())
-        data = LoggedData(log.t, log.r, log.u, log.y, log.inputs, log.outputs, log.sample_time)
+        data = log.as_logged_data()
         for method in methods:
             res = run_method(method, m, data)
             located = {tuple(x) for x in res.get("located", [])}

@@ -88,7 +88,6 @@ from mpm_monitor.core.analysis import AnalysisOptions, QrRegressions, analyze, r
 from mpm_monitor.core.arx import lag_matrix  # noqa: E402
 from mpm_monitor.core.discretize import simulate_state_space, state_space  # noqa: E402
 from mpm_monitor.core.incremental import SlidingWindowAnalyzer, window_regressions  # noqa: E402
-from mpm_monitor.core.logged_data import LoggedData  # noqa: E402
 from mpm_monitor.core.model import FopdtModel  # noqa: E402
 from mpm_monitor.core.signals import LoopSignals, compute_signals, initial_transient  # noqa: E402
 from mpm_monitor.sim.closed_loop import run_closed_loop  # noqa: E402
@@ -165,11 +164,6 @@ def timed(fn, repeats: int, budget_s: float) -> tuple:
     return statistics.median(times), len(times)
 
 
-def _window_data(log, model, a: int, b: int):
-    return LoggedData(t=log.t[a:b], r=log.r[a:b], u=log.u[a:b], y=log.y[a:b], inputs=model.inputs,
-                      outputs=model.outputs, sample_time=model.sample_time)
-
-
 def _largest_regression(model, data, sig, options) -> np.ndarray:
     """The larger of ``[setpoint lags | own]`` and ``[input lags | own]`` of the first row, centred."""
     lay = regression_layout(model, options)
@@ -229,7 +223,7 @@ def bench_analysis(grid: Grid, seed: int = 0, log=print) -> list:
                 log(f"  {n}x{n} W={w}: skipped ({cell['skipped']})")
                 continue
             a, b = 0, w
-            data = _window_data(cl, model, a, b)
+            data = cl.as_logged_data().slice(a, b)
             sig = LoopSignals(sig_all.yhat[a:b], sig_all.d[a:b], sig_all.eps[a:b], sig_all.transient[a:b])
             X, y = _largest_regression(model, data, sig, OPTIONS)
             cell["largest_regression"] = list(X.shape)

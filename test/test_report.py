@@ -33,8 +33,7 @@ def case32():
     case = paper_case("3.2")
     log = run_closed_loop(case.plant, case.model, SAMPLES, seed=1, mpc=case.mpc, excitation=case.excitation,
                           disturbance=case.disturbance)
-    data = LoggedData(t=log.t, r=log.r, u=log.u, y=log.y, inputs=log.inputs, outputs=log.outputs,
-                      sample_time=log.sample_time, source="case 3.2 simulation")
+    data = log.as_logged_data("case 3.2 simulation")
     report = analyze(case.model, data, AnalysisOptions())
     return case, data, report
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..core.analysis import AnalysisOptions, analyze
-from ..core.logged_data import LoggedData
 from ..core.wording import repair_summary_lines
 from ..sim.cases import paper_case
 from ..sim.closed_loop import run_closed_loop
@@ -22,9 +21,7 @@ def simulate_case(case_name: str, samples: int, seed: int) -> tuple:
     case = paper_case(case_name)
     log = run_closed_loop(case.plant, case.model, samples, seed=seed, mpc=case.mpc, excitation=case.excitation,
                           disturbance=case.disturbance)
-    data = LoggedData(t=log.t, r=log.r, u=log.u, y=log.y, inputs=log.inputs, outputs=log.outputs,
-                      sample_time=log.sample_time, source=f"paper case {case_name} (seed {seed})")
-    return case, data, log
+    return case, log.as_logged_data(f"paper case {case_name} (seed {seed})"), log
 
 
 def format_arx_table(table) -> str:
