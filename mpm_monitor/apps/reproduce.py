@@ -1,7 +1,7 @@
 """``python -m mpm_monitor reproduce --case 3.1|3.2|3.3``: the paper's experiments, paper-style.
 
-Simulates the case (``shared/reference/paper-cases.md``; 3.3 with the input dither of the paper's
-second experiment), runs the analysis and prints the row RSI table, the flagged rows, the ARX
+Simulates the case (:mod:`mpm_monitor.sim.cases`; 3.3 with the input dither of the paper's second
+experiment), runs the analysis and prints the row RSI table, the flagged rows, the ARX
 tables of the flagged rows (the paper's Tables 1 to 5) and the located elements; saves the
 singular-value plots of S_Delta per row (the paper's Figures 3 to 5) as PNG.
 """
