@@ -3,7 +3,7 @@ with 95% probability, at a false-alarm rate of at most 1%, for our method and th
 
 Each run draws a random 3x3 first-order-plus-dead-time plant (gains of random sign 0.5 to 5,
 time constants 10 to 80 s, delays 0 to 8 s, sample time 1 s), simulates the paper's closed loop
-(MPC of paper-cases.md, PRBS setpoints 0 to Nyquist, the paper's noise) with a model whose gain of
+(the paper's MPC tuning, PRBS setpoints 0 to Nyquist, the paper's noise) with a model whose gain of
 one random element is 30% too small, and asks each method to locate it.  The same draws with the
 model equal to the plant give clean runs.  A false alarm is a run that locates an element that is
 not mismatched (in a clean or a mismatched run).  Methods see the same data.
@@ -17,7 +17,6 @@ import argparse
 
 import numpy as np
 
-from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import FopdtModel
 from mpm_monitor.sim.closed_loop import run_closed_loop
 from mpm_monitor.sim.mpc import MpcOptions
@@ -44,7 +43,7 @@ def one(seed: int, index: int, samples: int, methods) -> dict:
     out = {}
     for label, m in (("mismatch", model), ("clean", plant)):
         log = run_closed_loop(plant, m, samples, seed=int(seed * 100003 + index), mpc=MpcOptions())
-        data = LoggedData(log.t, log.r, log.u, log.y, log.inputs, log.outputs, log.sample_time)
+        data = log.as_logged_data()
         for method in methods:
             res = run_method(method, m, data)
             located = {tuple(x) for x in res.get("located", [])}

@@ -29,11 +29,12 @@ import numpy as np
 from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.incremental import SlidingWindowAnalyzer
 
+from .plants import random_plant
+
 OPTIONS = AnalysisOptions(repair=False, test_all_rows=True)
 
 
 def _plant(n: int):
-    from bench.perf import random_plant
     return random_plant(n, n, np.random.default_rng(2000 + n))
 
 

@@ -32,7 +32,7 @@ Scenarios (the issue's figures): a 20x20 plant at 10 Hz (window 1,500 samples, a
 the same two sizes paced at increasing rates until the monitor loses samples (the publisher, the
 executor and the analysis share the interpreter, so this is the rate one process sustains).
 
-The models are :func:`mpm_monitor.apps.demo.square_model` (diagonally dominant FOPDT, delays 1..7
+The models are :func:`bench.plants.square_model` (diagonally dominant FOPDT, delays 1..7
 samples) rescaled to the sample time; the data are random (PRBS setpoints, white inputs and
 outputs): the analysis cost depends on the sizes, not on the values.  This is a measurement, not a
 unit test; ``test_robust_monitor`` asserts zero drops at a modest rate with :func:`run_load`.
@@ -53,6 +53,8 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
+
+from .plants import square_model
 
 NS = 1_000_000_000
 
@@ -97,9 +99,7 @@ HEADER = (f"{'size':>6} {'rate':>8} {'ana. in':>7} {'sent':>7} {'completed':>9} 
 
 
 def load_model(n: int, sample_time: float):
-    """An n x n FOPDT model with the dynamics of :func:`mpm_monitor.apps.demo.square_model` in samples."""
-    from mpm_monitor.apps.demo import square_model
-
+    """An n x n FOPDT model with the dynamics of :func:`bench.plants.square_model` in samples."""
     m = square_model(n)
     return m.replace(sample_time=sample_time, time_constant=m.time_constant * sample_time,
                      delay=np.rint(m.delay) * sample_time, name=f"{n}x{n} load model")

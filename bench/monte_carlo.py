@@ -76,8 +76,7 @@ def simulate(scenario: Scenario, samples: int) -> LoggedData:
     """Closed-loop log of a scenario as :class:`LoggedData` (what a user would hand to ``analyze``)."""
     log = run_closed_loop(scenario.plant, scenario.model, samples, seed=scenario.loop_seed, mpc=scenario.mpc,
                           excitation=scenario.excitation, disturbance=scenario.disturbance)
-    return LoggedData(t=log.t, r=log.r, u=log.u, y=log.y, inputs=log.inputs, outputs=log.outputs,
-                      sample_time=log.sample_time, source=f"scenario {scenario.seed}/{scenario.index}")
+    return log.as_logged_data(f"scenario {scenario.seed}/{scenario.index}")
 
 
 def _analysis():

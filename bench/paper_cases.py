@@ -1,5 +1,5 @@
 """The paper's three cases over many seeds: how often the located rows and elements are exactly
-those of ``shared/reference/paper-cases.md`` (issue 3 acceptance: at least 20 seeds each).
+those the paper gives (:mod:`mpm_monitor.sim.cases`; issue 3 acceptance: at least 20 seeds each).
 
 Run: ``python -m bench.paper_cases [--seeds 20] [--samples 3000] [--out bench/results/paper_cases.json]``
 """

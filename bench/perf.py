@@ -9,7 +9,7 @@ repeats (``time.perf_counter``); each cell is repeated up to ``--repeats`` times
 budget, and the count is recorded.  Ratios are taken between numbers measured in the same run.
 
 What is measured, for random n x n plants (gains log-uniform in [0.5, 5] with random sign, time
-constants 10..80 s, delays 0..8 samples, sample time 1 s) under the paper's MPC and PRBS setpoints,
+constants 10..80 s, delays 0..8 samples, sample time 1 s: :func:`bench.plants.random_plant`) under the paper's MPC and PRBS setpoints,
 with the controller model's (y1, u2) gain 30 % off, over windows of W samples:
 
 ``batch``
@@ -88,10 +88,10 @@ from mpm_monitor.core.analysis import AnalysisOptions, QrRegressions, analyze, r
 from mpm_monitor.core.arx import lag_matrix  # noqa: E402
 from mpm_monitor.core.discretize import simulate_state_space, state_space  # noqa: E402
 from mpm_monitor.core.incremental import SlidingWindowAnalyzer, window_regressions  # noqa: E402
-from mpm_monitor.core.logged_data import LoggedData  # noqa: E402
-from mpm_monitor.core.model import FopdtModel  # noqa: E402
 from mpm_monitor.core.signals import LoopSignals, compute_signals, initial_transient  # noqa: E402
 from mpm_monitor.sim.closed_loop import run_closed_loop  # noqa: E402
+
+from .plants import random_plant  # noqa: E402
 
 #: Targets of issue 8 (this machine, 2 cores).
 TARGET_FULL_20X20_10K_S = 0.5
@@ -119,16 +119,6 @@ QUICK = Grid(sizes=(2, 5, 10), windows=(1000, 2000), repeats=3, budget_s=1.0, pe
 
 
 # ----------------------------------------------------------------------------------------- set-up
-def random_plant(n_outputs: int, n_inputs: int, rng: np.random.Generator) -> FopdtModel:
-    """A random stable FOPDT plant (see the module docstring)."""
-    shape = (n_outputs, n_inputs)
-    gain = np.exp(rng.uniform(np.log(0.5), np.log(5.0), shape)) * rng.choice([-1.0, 1.0], shape)
-    return FopdtModel(sample_time=1.0, inputs=[f"u{j + 1}" for j in range(n_inputs)],
-                      outputs=[f"y{i + 1}" for i in range(n_outputs)], gain=gain,
-                      time_constant=rng.uniform(10.0, 80.0, shape),
-                      delay=rng.integers(0, 9, shape).astype(float), name=f"random {n_outputs}x{n_inputs}")
-
-
 def machine_info() -> dict:
     """CPU model, cores, load, library versions, BLAS threads."""
     cpu = "unknown"
@@ -163,11 +153,6 @@ def timed(fn, repeats: int, budget_s: float) -> tuple:
         if time.perf_counter() - start > budget_s:
             break
     return statistics.median(times), len(times)
-
-
-def _window_data(log, model, a: int, b: int):
-    return LoggedData(t=log.t[a:b], r=log.r[a:b], u=log.u[a:b], y=log.y[a:b], inputs=model.inputs,
-                      outputs=model.outputs, sample_time=model.sample_time)
 
 
 def _largest_regression(model, data, sig, options) -> np.ndarray:
@@ -229,7 +214,7 @@ def bench_analysis(grid: Grid, seed: int = 0, log=print) -> list:
                 log(f"  {n}x{n} W={w}: skipped ({cell['skipped']})")
                 continue
             a, b = 0, w
-            data = _window_data(cl, model, a, b)
+            data = cl.as_logged_data().slice(a, b)
             sig = LoopSignals(sig_all.yhat[a:b], sig_all.d[a:b], sig_all.eps[a:b], sig_all.transient[a:b])
             X, y = _largest_regression(model, data, sig, OPTIONS)
             cell["largest_regression"] = list(X.shape)

@@ -23,7 +23,6 @@ import time
 import numpy as np
 
 from mpm_monitor.core.analysis import AnalysisOptions, analyze
-from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.sim.closed_loop import run_closed_loop
 
 from . import write_json
@@ -34,7 +33,7 @@ def one(seed: int, index: int, samples: int, options: ScenarioOptions) -> dict:
     sc = make_scenario(seed, index, options)
     log = run_closed_loop(sc.plant, sc.model, samples, seed=sc.loop_seed, mpc=sc.mpc, excitation=sc.excitation,
                           disturbance=sc.disturbance)
-    data = LoggedData(log.t, log.r, log.u, log.y, log.inputs, log.outputs, log.sample_time)
+    data = log.as_logged_data()
     t0 = time.perf_counter()
     rep = analyze(sc.model, data, AnalysisOptions())
     dt = time.perf_counter() - t0

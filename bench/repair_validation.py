@@ -20,7 +20,6 @@ import time
 
 import numpy as np
 
-from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.repair import repair_model
 from mpm_monitor.core.signals import compute_signals
 from mpm_monitor.sim.cases import paper_case, shell_plant
@@ -58,8 +57,7 @@ def scenario(name: str, n: int):
 def run_one(name: str, seed: int, n: int) -> dict:
     plant, model, located, kinds, disturbed, kw = scenario(name, n)
     log = run_closed_loop(plant, model, n, seed=seed, **kw)
-    data = LoggedData(t=log.t, r=log.r, u=log.u, y=log.y, inputs=log.inputs, outputs=log.outputs,
-                      sample_time=log.sample_time)
+    data = log.as_logged_data()
     floor = np.sqrt(np.mean(compute_signals(plant, log.r, log.u, log.y).d ** 2, axis=0))
     t0 = time.process_time()
     res = repair_model(model, data, located)

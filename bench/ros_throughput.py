@@ -7,7 +7,7 @@ Run::
 
 Each measurement builds the four nodes (plant, setpoint, MPC, monitor) on a private context
 (``ROS_AUTOMATIC_DISCOVERY_RANGE=OFF``) in one process and one executor
-(:class:`mpm_monitor.apps.demo.Suite`), waits for discovery, then times the lock-step loop from the
+(:class:`mpm_monitor.apps.demo.Suite`, the demo's suite), waits for discovery, then times the lock-step loop from the
 plant's first sample until the plant has applied its last input and the monitor holds every sample
 in its window.  Per sample the loop carries ``/clock``, ``setpoint``, ``output`` and ``input``
 through real rclpy publishers and subscriptions (Fast DDS, intra-process), and the MPC solves its
@@ -15,7 +15,7 @@ control law.  ``dropped`` is the number of samples the monitor did not complete 
 samples completed, which includes any gap); it must be 0.
 
 * size 3: paper case 3.2 (Shell 3x3, Hp = 100, Hc = 30);
-* size 10: a 10x10 FOPDT model (:func:`mpm_monitor.apps.demo.square_model`), same tuning.
+* size 10: a 10x10 FOPDT model (:func:`bench.plants.square_model`), same tuning.
 
 By default the monitor only windows the data during the timed loop (its analysis is switched
 off), which isolates the transport; ``--with-analysis`` lets it analyse every 1000 samples in its
@@ -27,14 +27,93 @@ This is a measurement, not a unit test: it prints figures and optionally writes 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
 import statistics
 import sys
-from typing import Optional, Sequence
+import tempfile
+from pathlib import Path
+from typing import Callable, Optional, Sequence
 
-from mpm_monitor.apps.demo import measure_throughput
+from mpm_monitor.apps.demo import Suite, case_parameters, private_context
+from mpm_monitor.io.model_file import save_model
+
+from .plants import square_model
+
+
+@dataclasses.dataclass(frozen=True)
+class Throughput:
+    """Result of :func:`measure_throughput`."""
+
+    n_outputs: int
+    n_inputs: int
+    samples: int
+    seconds: float
+    dropped: int
+    executor: str
+
+    @property
+    def samples_per_second(self) -> float:
+        return self.samples / self.seconds
+
+
+def measure_throughput(size: int = 3, samples: int = 3000, executor: str = "events",
+                       analyze: Optional[Callable] = None, analysis_period: int = 0) -> Throughput:
+    """Samples per second the lock-step suite sustains, with the monitor receiving every sample.
+
+    Parameters
+    ----------
+    size : int
+        3 = paper case 3.2 (Shell 3x3); otherwise an ``size x size`` model from :func:`square_model`.
+    samples : int
+        Samples to run.
+    executor : {"events", "single"}
+    analyze : callable, optional
+        The monitor's analysis (default: a no-op, to time the loop alone).
+    analysis_period : int
+        Samples between analyses during the run (0 = none during the run).
+
+    Returns
+    -------
+    Throughput
+        ``dropped`` = samples the monitor did not complete (must be 0).
+    """
+    ctx = private_context()
+    suite = None
+    try:
+        with tempfile.TemporaryDirectory(prefix="mpm_bench_") as tmp:
+            if size == 3:
+                params = case_parameters("3.2", seed=1)
+            else:
+                path = str(Path(tmp) / "model.yaml")
+                save_model(square_model(size), path)
+                params = {"plant": {"model_file": path, "seed": 1},
+                          "mpc": {"model_file": path}, "setpoint": {"model_file": path},
+                          "monitor": {"model_file": path}}
+            params["plant"]["max_samples"] = samples
+            if analysis_period:
+                params["monitor"].update(window_samples=samples, min_samples=min(samples, analysis_period),
+                                         analysis_period=analysis_period)
+            else:
+                params["monitor"].update(window_samples=samples, min_samples=samples, analysis_period=samples)
+            if analyze is None and not analysis_period:
+                analyze = _no_analysis
+            suite = Suite(ctx, params, analyze=analyze, executor=executor)
+            suite.start()
+            if not suite.run(timeout=max(60.0, samples / 50.0), final_analysis=False):
+                raise RuntimeError(f"the loop stalled at sample {suite.plant.k} of {samples}")
+            done = suite.monitor.core.window.n_completed
+            return Throughput(size, size, samples, suite.loop_seconds, samples - done, executor)
+    finally:
+        if suite is not None:
+            suite.close()
+        ctx.try_shutdown()
+
+
+def _no_analysis(model, data, options):
+    raise RuntimeError("analysis disabled for the throughput measurement")
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

@@ -26,7 +26,7 @@ Distribution (:class:`ScenarioOptions` holds every number):
   - ``mixed``: two or three of gain / time constant / delay, each with its own size (the
     reported size is the largest);
 
-* MPC: the paper's tuning (paper-cases.md): Hp = 100, Hc = 30, output weight 1, input weight 1,
+* MPC: the paper's tuning: Hp = 100, Hc = 30, output weight 1, input weight 1,
   input-rate weight 0.1, unconstrained;
 * excitation: PRBS setpoints of amplitude 1 switching with probability 1/2 (0 to Nyquist, as in the
   paper) on every output; in a fraction ``dither_fraction`` (default 0.3) of the runs an additive

@@ -9,6 +9,8 @@ import math
 import numpy as np
 
 TOL = 1e-8
+#: A p-value of 0 (the survival function underflowed) matches only 0 or a p-value below this.
+P_UNDERFLOW = 1e-300
 
 
 def _close(a, b, what, tol=TOL):
@@ -22,7 +24,8 @@ def _close_log_p(a, b, what):
     if a is None or b is None:
         assert a is None and b is None, what
         return
-    if a == 0.0 or b == 0.0:      # underflow: the statistic is compared instead
+    if a == 0.0 or b == 0.0:      # underflow: the other side must have underflowed too (or nearly)
+        assert max(a, b) < P_UNDERFLOW, f"{what}: {a!r} vs {b!r} (one p-value is 0, the other is not tiny)"
         return
     _close(math.log(a), math.log(b), f"log {what}")
 
@@ -43,6 +46,7 @@ def assert_reports_match(new, ref):
     assert new.warnings == ref.warnings
     assert new.samples == ref.samples
     _close(new.max_variance_inflation, ref.max_variance_inflation, "max VIF")
+    assert len(new.rows) == len(ref.rows), f"rows: {len(new.rows)} vs {len(ref.rows)}"
     for a, b in zip(new.rows, ref.rows):
         assert (a.output, a.mismatch, a.df) == (b.output, b.mismatch, b.df)
         _close(a.rsi, b.rsi, f"rsi {b.output}")
@@ -54,7 +58,7 @@ def assert_reports_match(new, ref):
     _close_vec(new.sigma_max, ref.sigma_max, "sigma_max")
     _close_vec(new.row_gains, ref.row_gains, "row gains")
     _close_vec(np.abs(new.sdelta_response), np.abs(ref.sdelta_response), "|S_Delta|")
-    assert len(new.elements) == len(ref.elements)
+    assert len(new.elements) == len(ref.elements), f"elements: {len(new.elements)} vs {len(ref.elements)}"
     for a, b in zip(new.elements, ref.elements):
         key = f"element ({b.output}, {b.input})"
         assert (a.output, a.input, a.mismatch, a.ambiguous, a.ambiguous_with, a.delay, a.kind) == \
@@ -64,8 +68,8 @@ def assert_reports_match(new, ref):
         _close_log_p(a.p_value_raw, b.p_value_raw, key)
         _close_log_p(a.p_value, b.p_value, f"adjusted {key}")
         _close_vec(a.b, b.b, f"B {key}")
-    assert len(new.arx_tables) == len(ref.arx_tables)
+    assert len(new.arx_tables) == len(ref.arx_tables), f"ARX tables: {len(new.arx_tables)} vs {len(ref.arx_tables)}"
     for a, b in zip(new.arx_tables, ref.arx_tables):
-        assert a.delay == b.delay
+        assert a.output == b.output and a.delay == b.delay, f"ARX table {b.output}"
         _close_vec(a.a + sum(a.b.values(), []), b.a + sum(b.b.values(), []), f"ARX table {b.output}")
         _close(a.fit_percent, b.fit_percent, f"ARX table fit {b.output}")

@@ -13,7 +13,6 @@ import pytest
 
 from mpm_monitor.core.analysis import AnalysisOptions, analyze
 from mpm_monitor.core.errors import ConfigurationError, DataFileError
-from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import FopdtModel
 from mpm_monitor.io.csv_log import write_log_csv
 from mpm_monitor.io.model_file import save_model
@@ -24,16 +23,11 @@ from mpm_monitor.sim.excitation import PrbsOptions
 FAST = AnalysisOptions(repair=False)
 
 
-def _data(log):
-    return LoggedData(t=log.t, r=log.r, u=log.u, y=log.y, inputs=log.inputs, outputs=log.outputs,
-                      sample_time=log.sample_time)
-
-
 def _run_case(name, seed, samples=3000, excitation=None):
     case = paper_case(name)
     log = run_closed_loop(case.plant, case.model, samples, seed=seed, mpc=case.mpc,
                           excitation=excitation or case.excitation, disturbance=case.disturbance)
-    return case, _data(log)
+    return case, log.as_logged_data()
 
 
 @pytest.mark.parametrize("name", ["3.1", "3.2", "3.3"])
@@ -63,7 +57,7 @@ def test_row_test_false_alarm_rate_is_calibrated():
     for seed in range(12):
         log = run_closed_loop(case.plant, case.model, 1500, seed=200 + seed, mpc=case.mpc,
                               excitation=case.excitation, disturbance=case.disturbance)
-        p += [r.p_value_raw for r in analyze(case.model, _data(log), FAST).rows]
+        p += [r.p_value_raw for r in analyze(case.model, log.as_logged_data(), FAST).rows]
     hits = int(np.sum(np.array(p) < 0.1))
     # binomial(36, 0.1): mean 3.6, sd 1.8
     assert hits <= 3.6 + 4 * 1.8
@@ -98,7 +92,7 @@ def test_non_square_plants(ny, nu, dither):
         i2, 2, time_constant=plant.time_constant[i2, 2] * 2)
     exc = ExcitationOptions(dither=None if dither is None else PrbsOptions(amplitude=dither))
     log = run_closed_loop(plant, model, 4000, seed=1, excitation=exc)
-    rep = analyze(model, _data(log), FAST)
+    rep = analyze(model, log.as_logged_data(), FAST)
     assert set(rep.located_elements) == {("y2", "u1"), (f"y{i2 + 1}", "u3")}
     assert set(rep.flagged_rows) == {"y2", f"y{i2 + 1}"}
 
@@ -154,7 +148,7 @@ def test_initial_state_estimate_handles_a_log_that_starts_mid_operation():
     case = paper_case("3.2")
     log = run_closed_loop(case.plant, case.model, 3600, seed=9, mpc=case.mpc, excitation=case.excitation,
                           disturbance=case.disturbance)
-    data = _data(log).slice(600, 3600)     # the model's state at the first sample is not zero
+    data = log.as_logged_data().slice(600, 3600)     # the model's state at the first sample is not zero
     rep = analyze(case.model, data, FAST)
     assert set(rep.located_elements) == set(case.mismatched_elements)
 
@@ -214,7 +208,7 @@ def test_constrained_mpc_with_active_bounds_locates_exactly():
     log = run_closed_loop(case.plant, case.model, 3000, seed=21, mpc=mpc, excitation=case.excitation,
                           disturbance=case.disturbance)
     assert np.mean(np.isclose(np.abs(log.u), 0.6)) > 0.1          # the bounds really are active
-    rep = analyze(case.model, _data(log), FAST)
+    rep = analyze(case.model, log.as_logged_data(), FAST)
     assert set(rep.located_elements) == set(case.mismatched_elements)
 
 
@@ -227,7 +221,7 @@ def test_strongly_coloured_disturbance_keeps_the_level_and_the_location():
         case = paper_case(name)
         log = run_closed_loop(case.plant, case.model, 3000, seed=22, mpc=case.mpc, excitation=case.excitation,
                               disturbance=slow)
-        rep = analyze(case.model, _data(log), FAST)
+        rep = analyze(case.model, log.as_logged_data(), FAST)
         assert set(rep.flagged_rows) == set(case.mismatched_rows)
         assert set(rep.located_elements) == set(case.mismatched_elements)
 
@@ -238,5 +232,5 @@ def test_slow_small_setpoint_moves_still_locate_case_3_2():
     exc = ExcitationOptions(setpoint=PrbsOptions(amplitude=0.3, switch_probability=0.02))
     log = run_closed_loop(case.plant, case.model, 3000, seed=23, mpc=case.mpc, excitation=exc,
                           disturbance=case.disturbance)
-    rep = analyze(case.model, _data(log), FAST)
+    rep = analyze(case.model, log.as_logged_data(), FAST)
     assert set(rep.located_elements) == set(case.mismatched_elements)

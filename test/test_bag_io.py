@@ -16,6 +16,7 @@ from mpm_monitor.core.errors import BagError
 from mpm_monitor.core.model import FopdtModel
 from mpm_monitor.io import bags as bag_io
 from mpm_monitor.io.bags import BagWriter, export_csv, read_bag, read_bag_channels, read_diagnostics, read_raw_messages
+from mpm_monitor.io.bags import read as bag_read
 from mpm_monitor.io.csv_log import read_csv
 from mpm_monitor.io.model_file import save_model
 
@@ -133,7 +134,7 @@ def test_progress_bar_on_long_bags(tmp_path, monkeypatch):
     stream = io.StringIO()
     read_bag(bag, MODEL, progress=stream)
     assert stream.getvalue() == ""  # short bag: no bar
-    monkeypatch.setattr(bag_io, "LONG_BAG_MESSAGES", 500)
+    monkeypatch.setattr(bag_read, "LONG_BAG_MESSAGES", 500)
     read_bag(bag, MODEL, progress=stream)
     assert "100%" in stream.getvalue() and "900/900 messages" in stream.getvalue()
 

@@ -1,4 +1,4 @@
-"""Logged data CSV (CONTRACTS section 2): lossless round trip and refusal of every bad file.
+"""Logged data CSV (docs/interfaces.md, "Logged data (CSV)"): lossless round trip and refusal of every bad file.
 
 Every bad file must raise :class:`DataFileError` with a one-line message naming the file and,
 where there is one, the line and the column.

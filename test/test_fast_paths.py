@@ -211,17 +211,11 @@ def test_input_design_equals_the_block_by_block_variance_inflation(dither):
 
 
 # ------------------------------------------------------------------------------------ analysis
-def _data(log, a=0, b=None):
-    b = log.r.shape[0] if b is None else b
-    return LoggedData(t=log.t[a:b], r=log.r[a:b], u=log.u[a:b], y=log.y[a:b], inputs=log.inputs,
-                      outputs=log.outputs, sample_time=log.sample_time)
-
-
 def _run(name, seed, samples=3000, excitation=None):
     case = paper_case(name)
     log = run_closed_loop(case.plant, case.model, samples, seed=seed, mpc=case.mpc,
                           excitation=excitation or case.excitation, disturbance=case.disturbance)
-    return case, _data(log)
+    return case, log.as_logged_data()
 
 
 def _non_square(ny, nu, dither):
@@ -234,7 +228,7 @@ def _non_square(ny, nu, dither):
     model = plant.with_element(1, 0, gain=plant.gain[1, 0] * 1.5).with_element(
         i2, 2, time_constant=plant.time_constant[i2, 2] * 2)
     exc = ExcitationOptions(dither=None if dither is None else PrbsOptions(amplitude=dither))
-    return model, _data(run_closed_loop(plant, model, 4000, seed=1, excitation=exc))
+    return model, run_closed_loop(plant, model, 4000, seed=1, excitation=exc).as_logged_data()
 
 
 def _large(n, samples, seed=0):
@@ -245,7 +239,7 @@ def _large(n, samples, seed=0):
                        gain=np.exp(rng.uniform(np.log(0.5), np.log(5.0), shape)) * rng.choice([-1.0, 1.0], shape),
                        time_constant=rng.uniform(10.0, 80.0, shape), delay=rng.integers(0, 9, shape).astype(float))
     model = plant.with_element(0, 1, gain=plant.gain[0, 1] * 1.3)
-    return model, _data(run_closed_loop(plant, model, samples, seed=seed + 100 + n))
+    return model, run_closed_loop(plant, model, samples, seed=seed + 100 + n).as_logged_data()
 
 
 def _case(key):
@@ -257,7 +251,7 @@ def _case(key):
         case = paper_case("3.2")
         log = run_closed_loop(case.plant, case.model, 3600, seed=9, mpc=case.mpc, excitation=case.excitation,
                               disturbance=case.disturbance)
-        return case.model, _data(log, 600, 3600)
+        return case.model, log.as_logged_data().slice(600, 3600)
     if key == "constant-setpoint":
         case, data = _run("3.2", 6, 2000)
         r = data.r.copy()

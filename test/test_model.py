@@ -1,4 +1,4 @@
-"""Model file (CONTRACTS section 1): load/save round trip and refusal of every bad file.
+"""Model file (docs/interfaces.md, "Model file"): load/save round trip and refusal of every bad file.
 
 Every bad file must raise :class:`ModelFileError` (a ``ValueError``) with a one-line message that
 names the offending key (or says why the file as a whole is unusable).

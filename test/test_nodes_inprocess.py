@@ -28,7 +28,6 @@ from std_msgs.msg import Float64MultiArray  # noqa: E402
 from mpm_monitor.apps.demo import Suite, case_parameters, private_context  # noqa: E402
 from mpm_monitor.core.analysis import AnalysisOptions, analyze  # noqa: E402
 from mpm_monitor.core.errors import ConfigurationError  # noqa: E402
-from mpm_monitor.core.logged_data import LoggedData  # noqa: E402
 from mpm_monitor.monitor.statuses import SUMMARY_NAME, row_status_name  # noqa: E402
 from mpm_monitor.nodes.ros_io import VectorCodec, diagnostics_qos, make_executor, spin_until, vector_qos  # noqa: E402
 from mpm_monitor.sim.cases import paper_case  # noqa: E402
@@ -151,11 +150,6 @@ def test_case_3_1_flags_nothing(suites):
     assert seconds < 60.0
 
 
-def _logged(log):
-    return LoggedData(t=log.t, r=log.r, u=log.u, y=log.y, inputs=log.inputs, outputs=log.outputs,
-                      sample_time=log.sample_time)
-
-
 def _monitor(ctx, namespace, **params):
     from mpm_monitor.apps.demo import _overrides
     from mpm_monitor.nodes.monitor_node import MonitorNode
@@ -171,7 +165,7 @@ def test_a_plain_publisher_gets_the_same_answer_as_analyze():
     n = 2000
     log = run_closed_loop(case.plant, case.model, n, seed=7, mpc=case.mpc, excitation=case.excitation,
                           disturbance=case.disturbance)
-    expected = analyze(case.model, _logged(log), AnalysisOptions(repair=False))
+    expected = analyze(case.model, log.as_logged_data(), AnalysisOptions(repair=False))
     ctx = private_context()
     ns = "/plain"
     monitor = _monitor(ctx, ns, window_samples=n, min_samples=n, analysis_period=n)

@@ -19,7 +19,6 @@ import numpy as np
 import pytest
 
 from mpm_monitor.core.errors import ConfigurationError, InputError
-from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.repair import RepairOptions, RepairResult, repair_model, sup_wald_p_value, unexplained_disturbance
 from mpm_monitor.core.signals import compute_signals
 from mpm_monitor.sim.cases import paper_case, shell_plant
@@ -28,11 +27,6 @@ from mpm_monitor.sim.plant import DisturbanceOptions
 
 N_SAMPLES = 4000
 SEEDS = (11, 12)
-
-
-def as_data(log) -> LoggedData:
-    return LoggedData(t=log.t, r=log.r, u=log.u, y=log.y, inputs=log.inputs, outputs=log.outputs,
-                      sample_time=log.sample_time)
 
 
 def rms(x):
@@ -79,7 +73,7 @@ def scenario_run(request):
     plant, model, located, kinds, kw = _scenario(name)
     kw.setdefault("disturbance", DisturbanceOptions())
     log = run_closed_loop(plant, model, N_SAMPLES, seed=seed, **kw)
-    data = as_data(log)
+    data = log.as_logged_data()
     floor = rms(compute_signals(plant, log.r, log.u, log.y).d)
     result = repair_model(model, data, located)
     return {"name": name, "plant": plant, "model": model, "located": located, "kinds": kinds, "log": log,
@@ -161,7 +155,7 @@ def test_scenario_report_is_json(scenario_run):
 def clean_shell_log():
     """The Shell loop with the model equal to the plant, paper noise."""
     sh = _shell()
-    return as_data(run_closed_loop(sh, sh, 2500, seed=3))
+    return run_closed_loop(sh, sh, 2500, seed=3).as_logged_data()
 
 
 def test_noise_free_gain_recovered_exactly():
@@ -169,7 +163,7 @@ def test_noise_free_gain_recovered_exactly():
     sh = _shell()
     model = sh.with_element(0, 2, gain=3.5, time_constant=35.0)
     quiet = DisturbanceOptions(disturbance_std=0.0, noise_std=0.0)
-    data = as_data(run_closed_loop(sh, model, 1500, seed=5, disturbance=quiet))
+    data = run_closed_loop(sh, model, 1500, seed=5, disturbance=quiet).as_logged_data()
     res = repair_model(model, data, [(0, 2)])
     assert res.kinds[(0, 2)] == "mixed"
     got = res.model.element(0, 2)
@@ -194,7 +188,7 @@ def test_validation_rejects_a_repair_that_does_not_predict_better():
     """An impossible held-out improvement demand rejects the repair: model kept, warning given."""
     sh = _shell()
     model = sh.with_element(1, 1, gain=4.0)
-    data = as_data(run_closed_loop(sh, model, 2500, seed=4))
+    data = run_closed_loop(sh, model, 2500, seed=4).as_logged_data()
     res = repair_model(model, data, [(1, 1)], RepairOptions(min_holdout_improvement=0.95))
     assert res.model == model
     assert res.kinds[(1, 1)] == "unknown"
@@ -245,7 +239,7 @@ def test_mismatched_channels_are_refused(clean_shell_log):
 def test_too_few_samples_changes_nothing():
     sh = _shell()
     model = sh.with_element(1, 1, gain=4.0)
-    data = as_data(run_closed_loop(sh, model, 250, seed=1))
+    data = run_closed_loop(sh, model, 250, seed=1).as_logged_data()
     res = repair_model(model, data, [(1, 1)])
     assert res.model == model
     assert res.kinds == {(1, 1): "unknown"}
@@ -305,7 +299,7 @@ def test_step_on_a_repaired_row_does_not_bias_the_element():
     step[N_SAMPLES // 2:, 1] = 0.1
     log = run_closed_loop(sh, model, N_SAMPLES, seed=SEEDS[0], output_disturbance=step)
     floor = rms(compute_signals(sh, log.r, log.u, log.y).d)
-    res = repair_model(model, as_data(log), [(1, 1)])
+    res = repair_model(model, log.as_logged_data(), [(1, 1)])
     assert res.kinds == {(1, 1): "gain"}
     assert res.model.element(1, 1)["gain"] == pytest.approx(5.72, rel=0.10)
     assert res.error_after["y2"] <= 1.05 * floor[1]
@@ -330,7 +324,7 @@ def test_row_response_equals_the_state_space_simulation():
 def test_delays_longer_than_the_record_give_a_warning_not_an_error():
     sh = _shell()
     model = sh.with_element(1, 1, gain=4.0, delay=250.0)
-    data = as_data(run_closed_loop(sh, sh.with_element(1, 1, gain=4.0), 400, seed=2))
+    data = run_closed_loop(sh, sh.with_element(1, 1, gain=4.0), 400, seed=2).as_logged_data()
     res = repair_model(model, data, [(1, 1)], RepairOptions(max_delay_shift=20))
     assert res.model == model
     assert res.kinds == {(1, 1): "unknown"}

@@ -1,6 +1,6 @@
 """Report and figures (issue 6), on a short simulated run of paper case 3.2, and ``analyze --bag`` = ``--data``.
 
-Case 3.2 (``shared/reference/paper-cases.md``): rows y1 and y2 mismatched, elements (y1, u2),
+Case 3.2 (:mod:`mpm_monitor.sim.cases`): rows y1 and y2 mismatched, elements (y1, u2),
 (y1, u3) and (y2, u1) located.  The report must render, hold those results, and embed non-empty
 PNG figures that are also written as files.
 """
@@ -33,8 +33,7 @@ def case32():
     case = paper_case("3.2")
     log = run_closed_loop(case.plant, case.model, SAMPLES, seed=1, mpc=case.mpc, excitation=case.excitation,
                           disturbance=case.disturbance)
-    data = LoggedData(t=log.t, r=log.r, u=log.u, y=log.y, inputs=log.inputs, outputs=log.outputs,
-                      sample_time=log.sample_time, source="case 3.2 simulation")
+    data = log.as_logged_data("case 3.2 simulation")
     report = analyze(case.model, data, AnalysisOptions())
     return case, data, report
 

@@ -2,14 +2,15 @@
 
 Commands
 --------
-analyze    offline analysis of a CSV log or a bag (CONTRACTS section 3)
+analyze    offline analysis of a CSV log or a bag
 reproduce  simulate a paper case and print the paper-style result
-simulate   run a closed-loop simulation and write the contract CSV
-demo       run the four ROS 2 nodes in-process on a paper case (CONTRACTS section 6)
-export     write a bag's contract topics as CSV
+simulate   run a closed-loop simulation and write the CSV log
+demo       run the four ROS 2 nodes in-process on a paper case
+export     write a bag's setpoint, input and output topics as CSV
 recover    rewrite a hard-killed recording as a closed bag
 
-Bad input exits with code 2 and one line on stderr; never a traceback.
+Bad input exits with code 2 and one line on stderr; never a traceback.  The commands, their flags
+and the JSON report are described in docs/interfaces.md.
 """
 
 from __future__ import annotations
@@ -58,10 +59,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="python -m mpm_monitor", description="Model-plant mismatch monitor for MPC loops.")
     sub = parser.add_subparsers(dest="command", parser_class=_Parser)
 
-    p = sub.add_parser("analyze", help="analyse a CSV log or a bag against a model (CONTRACTS section 3)")
-    p.add_argument("--model", required=True, help="model file (YAML, CONTRACTS section 1)")
+    p = sub.add_parser("analyze", help="analyse a CSV log or a bag against a model")
+    p.add_argument("--model", required=True, help="model file (YAML)")
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--data", help="logged data (CSV, CONTRACTS section 2)")
+    src.add_argument("--data", help="logged data (CSV)")
     src.add_argument("--bag", help="rosbag2 directory with the setpoint, input and output topics")
     p.add_argument("--json", dest="json_out", help="write the JSON report to this file ('-' = stdout)")
     p.add_argument("--repair-out", help="write the repaired model file (YAML) here")
@@ -77,7 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plots", default="reproduce_plots", help="directory for the singular-value PNGs")
     _add_analysis_options(p)
 
-    p = sub.add_parser("simulate", help="run a closed-loop simulation and write the contract CSV")
+    p = sub.add_parser("simulate", help="run a closed-loop simulation and write the CSV log")
     p.add_argument("--case", choices=("3.1", "3.2", "3.3"), default=None, help="a paper case (plant and model)")
     p.add_argument("--plant", help="plant model file (YAML); with --model instead of --case")
     p.add_argument("--model", help="controller model file (YAML)")
@@ -87,14 +88,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--csv", required=True, help="output CSV file")
     p.add_argument("--write-model", help="also write the controller model file here")
 
-    p = sub.add_parser("demo", help="run the ROS 2 nodes in-process on a paper case (CONTRACTS section 6)")
+    p = sub.add_parser("demo", help="run the ROS 2 nodes in-process on a paper case")
     p.add_argument("--case", choices=("3.1", "3.2", "3.3"), default="3.2")
     p.add_argument("--samples", type=int, default=None, help="samples to simulate (default: the case's)")
     p.add_argument("--bag", default=None, help="record every topic to this rosbag2 (MCAP) directory")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--quiet", action="store_true", help="print only the final result")
 
-    p = sub.add_parser("export", help="write a bag's contract topics as the contract CSV")
+    p = sub.add_parser("export", help="write a bag's setpoint, input and output topics as a CSV log")
     p.add_argument("--bag", required=True)
     p.add_argument("--csv", required=True)
     p.add_argument("--model", default=None, help="model file giving channel order and sample time (optional)")

@@ -5,8 +5,8 @@
 run :func:`mpm_monitor.sim.closed_loop.run_closed_loop` with that seed sample for sample).
 :class:`Suite` builds the four nodes on one context and one executor, waits until every publisher
 sees its subscribers, starts the plant and spins until the monitor has analysed the last sample.
-:func:`run_demo` is ``python -m mpm_monitor demo``; :func:`measure_throughput` is the benchmark
-of ``bench/ros_throughput.py``.
+:func:`run_demo` is ``python -m mpm_monitor demo``; the launcher ``launch_scripts/suite_inprocess.py``
+and the throughput benchmark (``bench/ros_throughput.py``) build the same :class:`Suite`.
 
 Simulated time (lock-step): the plant publishes ``/clock = k Ts`` and ``y(k)``; the setpoint node
 answers the clock with ``r(k)`` (and the dither); the MPC answers ``r(k), y(k)`` with ``u(k)``; the
@@ -17,7 +17,6 @@ RELIABLE with depth 1000 and each step waits for the previous one, so no sample 
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import os
 import sys
 import tempfile
@@ -399,88 +398,3 @@ def _analyses(msg) -> int:
                 if kv.key == "analyses":
                     return int(kv.value)
     return 0
-
-
-# ------------------------------------------------------------------------------- throughput
-def square_model(n: int, seed: int = 0) -> FopdtModel:
-    """An ``n x n`` FOPDT model with diagonal dominance (for the throughput benchmark)."""
-    rng = np.random.default_rng(seed)
-    gain = rng.uniform(0.2, 1.0, (n, n)) + np.eye(n) * n
-    tau = rng.uniform(20.0, 60.0, (n, n))
-    delay = rng.integers(1, 8, (n, n)).astype(float)
-    return FopdtModel(sample_time=1.0, inputs=tuple(f"u{k + 1}" for k in range(n)),
-                      outputs=tuple(f"y{k + 1}" for k in range(n)), gain=gain, time_constant=tau, delay=delay,
-                      name=f"{n}x{n} benchmark model")
-
-
-@dataclasses.dataclass(frozen=True)
-class Throughput:
-    """Result of :func:`measure_throughput`."""
-
-    n_outputs: int
-    n_inputs: int
-    samples: int
-    seconds: float
-    dropped: int
-    executor: str
-
-    @property
-    def samples_per_second(self) -> float:
-        return self.samples / self.seconds
-
-
-def measure_throughput(size: int = 3, samples: int = 3000, executor: str = "events",
-                       analyze: Optional[Callable] = None, analysis_period: int = 0) -> Throughput:
-    """Samples per second the lock-step suite sustains, with the monitor receiving every sample.
-
-    Parameters
-    ----------
-    size : int
-        3 = paper case 3.2 (Shell 3x3); otherwise an ``size x size`` model from :func:`square_model`.
-    samples : int
-        Samples to run.
-    executor : {"events", "single"}
-    analyze : callable, optional
-        The monitor's analysis (default: a no-op, to time the loop alone).
-    analysis_period : int
-        Samples between analyses during the run (0 = none during the run).
-
-    Returns
-    -------
-    Throughput
-        ``dropped`` = samples the monitor did not complete (must be 0).
-    """
-    ctx = private_context()
-    suite = None
-    try:
-        with tempfile.TemporaryDirectory(prefix="mpm_bench_") as tmp:
-            if size == 3:
-                params = case_parameters("3.2", seed=1)
-            else:
-                model = square_model(size)
-                path = _write_model(model, tmp, "model.yaml")
-                params = {"plant": {"model_file": path, "seed": 1},
-                          "mpc": {"model_file": path}, "setpoint": {"model_file": path},
-                          "monitor": {"model_file": path}}
-            params["plant"]["max_samples"] = samples
-            if analysis_period:
-                params["monitor"].update(window_samples=samples, min_samples=min(samples, analysis_period),
-                                         analysis_period=analysis_period)
-            else:
-                params["monitor"].update(window_samples=samples, min_samples=samples, analysis_period=samples)
-            if analyze is None and not analysis_period:
-                analyze = _no_analysis
-            suite = Suite(ctx, params, analyze=analyze, executor=executor)
-            suite.start()
-            if not suite.run(timeout=max(60.0, samples / 50.0), final_analysis=False):
-                raise RuntimeError(f"the loop stalled at sample {suite.plant.k} of {samples}")
-            done = suite.monitor.core.window.n_completed
-            return Throughput(size, size, samples, suite.loop_seconds, samples - done, executor)
-    finally:
-        if suite is not None:
-            suite.close()
-        ctx.try_shutdown()
-
-
-def _no_analysis(model, data, options):
-    raise RuntimeError("analysis disabled for the throughput measurement")

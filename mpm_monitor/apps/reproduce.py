@@ -1,7 +1,7 @@
 """``python -m mpm_monitor reproduce --case 3.1|3.2|3.3``: the paper's experiments, paper-style.
 
-Simulates the case (``shared/reference/paper-cases.md``; 3.3 with the input dither of the paper's
-second experiment), runs the analysis and prints the row RSI table, the flagged rows, the ARX
+Simulates the case (:mod:`mpm_monitor.sim.cases`; 3.3 with the input dither of the paper's second
+experiment), runs the analysis and prints the row RSI table, the flagged rows, the ARX
 tables of the flagged rows (the paper's Tables 1 to 5) and the located elements; saves the
 singular-value plots of S_Delta per row (the paper's Figures 3 to 5) as PNG.
 """
@@ -11,7 +11,6 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..core.analysis import AnalysisOptions, analyze
-from ..core.logged_data import LoggedData
 from ..core.wording import repair_summary_lines
 from ..sim.cases import paper_case
 from ..sim.closed_loop import run_closed_loop
@@ -22,9 +21,7 @@ def simulate_case(case_name: str, samples: int, seed: int) -> tuple:
     case = paper_case(case_name)
     log = run_closed_loop(case.plant, case.model, samples, seed=seed, mpc=case.mpc, excitation=case.excitation,
                           disturbance=case.disturbance)
-    data = LoggedData(t=log.t, r=log.r, u=log.u, y=log.y, inputs=log.inputs, outputs=log.outputs,
-                      sample_time=log.sample_time, source=f"paper case {case_name} (seed {seed})")
-    return case, data, log
+    return case, log.as_logged_data(f"paper case {case_name} (seed {seed})"), log
 
 
 def format_arx_table(table) -> str:

@@ -1,4 +1,4 @@
-"""Logged closed-loop data (CONTRACTS section 2): the CSV file and its in-memory form.
+"""Logged closed-loop data as a CSV file (docs/interfaces.md, "Logged data (CSV)").
 
 One row per sample, header ``t, r_<output>..., <input>..., <output>...``; column order is free and
 extra columns are ignored.  Samples must be equally spaced at the model's sample time: a gap, a
@@ -24,12 +24,12 @@ SPACING_TOLERANCE = 1e-3
 
 
 def csv_header(inputs, outputs) -> list:
-    """Column names of CONTRACTS section 2 in the canonical order."""
+    """Column names of the CSV log in the canonical order: ``t, r_<output>..., <input>..., <output>...``."""
     return ["t"] + [f"r_{o}" for o in outputs] + list(inputs) + list(outputs)
 
 
 def write_csv(path, t, r, u, y, inputs, outputs) -> None:
-    """Write signals as the contract CSV, with full float precision (lossless round trip).
+    """Write signals as the CSV log, with full float precision (lossless round trip).
 
     Parameters
     ----------
@@ -60,7 +60,7 @@ def write_log_csv(path, log) -> None:
 
 
 def read_csv(path, model: FopdtModel) -> LoggedData:
-    """Read and validate a contract CSV against a model.
+    """Read and validate a CSV log against a model.
 
     Parameters
     ----------
@@ -82,7 +82,7 @@ def read_csv(path, model: FopdtModel) -> LoggedData:
 
 
 def parse_csv_text(text: str, model: FopdtModel, source: str = "data") -> LoggedData:
-    """Parse the text of a contract CSV (see :func:`read_csv`)."""
+    """Parse the text of a CSV log (see :func:`read_csv`)."""
     if "\x00" in text:
         raise DataFileError(f"{source}: contains NUL bytes: expected a CSV text file")
     reader = csv.reader(io.StringIO(text))

@@ -80,7 +80,7 @@ def model_from_dict(data: Any, source: str = "model") -> FopdtModel:
     Parameters
     ----------
     data : mapping
-        Keys as in CONTRACTS section 1.
+        Keys of the model file (docs/interfaces.md, "Model file").
     source : str
         Name used as the prefix of error messages (usually the file path).
 
@@ -119,7 +119,7 @@ def model_from_dict(data: Any, source: str = "model") -> FopdtModel:
 
 
 def load_model(path) -> FopdtModel:
-    """Load and validate a YAML model file (CONTRACTS section 1).
+    """Load and validate a YAML model file (docs/interfaces.md, "Model file").
 
     Parameters
     ----------

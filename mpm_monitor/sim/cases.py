@@ -1,4 +1,5 @@
-"""The paper's three simulation cases (``shared/reference/paper-cases.md``).
+"""The three simulation cases of the paper "A Novel Algorithm for Model-Plant Mismatch Detection for Model
+Predictive Controllers" (Tsai, Gopaluni, Marshman and Chmelyk, IFAC ADCHEM 2015).
 
 Each case gives the true plant, the controller's model, the expected located rows and elements,
 the MPC tuning and the excitation.  Case 3.3 uses the input dither of the paper's second

@@ -13,6 +13,7 @@ from typing import Optional
 import numpy as np
 
 from ..core.errors import ConfigurationError
+from ..core.logged_data import LoggedData
 from ..core.model import FopdtModel
 from .excitation import PrbsGenerator, PrbsOptions, ZeroGenerator
 from .mpc import InternalModelMpc, MpcOptions
@@ -68,6 +69,20 @@ class ClosedLoopLog:
     @property
     def n_samples(self) -> int:
         return self.t.shape[0]
+
+    def as_logged_data(self, source: str = "") -> LoggedData:
+        """The setpoints, inputs and outputs as :class:`~mpm_monitor.core.logged_data.LoggedData`.
+
+        What a user would hand to the analysis: ``t``, ``r``, ``u``, ``y``, the channel names and
+        the sample time of this run (the arrays are shared, not copied).
+
+        Parameters
+        ----------
+        source : str
+            Where the data came from, for messages (e.g. ``"paper case 3.2 (seed 1)"``).
+        """
+        return LoggedData(t=self.t, r=self.r, u=self.u, y=self.y, inputs=self.inputs, outputs=self.outputs,
+                          sample_time=self.sample_time, source=source)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -30,7 +30,7 @@ Weight = Union[float, Sequence[float]]
 
 @dataclasses.dataclass(frozen=True)
 class MpcOptions:
-    """Tuning of the MPC (paper-cases.md, common set-up).
+    """Tuning of the MPC (defaults: the common set-up of the paper's cases).
 
     Attributes
     ----------

@@ -1,0 +1,100 @@
+"""What reading, writing and recovering a bag share: topic names, message types, the type store, opening a bag.
+
+This module uses the ``rosbags`` library only (imported when first needed); it never imports rclpy.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ...core.errors import BagError
+
+#: Default names of the setpoint, input and output topics.
+DEFAULT_TOPICS = ("setpoint", "input", "output")
+#: Message type of the stamped vectors.
+JOINT_STATE = "sensor_msgs/msg/JointState"
+#: Message type of ``/diagnostics``.
+DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
+
+
+def topic_name(name: str) -> str:
+    """The fully qualified form of a topic name as stored in a bag (``setpoint`` -> ``/setpoint``)."""
+    name = str(name).strip()
+    return name if name.startswith("/") else "/" + name
+
+
+def default_typestore():
+    """The ``rosbags`` type store of ROS 2 Jazzy (holds every message type the project records)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception's text on one line, at most 300 characters (for a one-line :class:`BagError`)."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text[:300]
+
+
+def stamp_ns(stamp) -> int:
+    """A ``builtin_interfaces/msg/Time`` as integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def open_reader(path):
+    """Open a rosbag2 directory with :class:`rosbags.highlevel.AnyReader`.
+
+    Parameters
+    ----------
+    path : str or Path
+        The bag directory (holding ``metadata.yaml`` and the storage file).
+
+    Returns
+    -------
+    rosbags.highlevel.AnyReader
+        Open; close it (``with contextlib.closing(open_reader(path)) as reader``).
+
+    Raises
+    ------
+    BagError
+        The directory is missing, empty, has no ``metadata.yaml`` or cannot be read (a truncated or
+        unclosed storage file).
+    """
+    from rosbags.highlevel import AnyReader
+
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f"{path}: no such bag directory")
+    if not path.is_dir():
+        raise BagError(f"{path}: not a directory: expected a rosbag2 directory (metadata.yaml + storage file)")
+    if not any(path.iterdir()):
+        raise BagError(f"{path}: empty directory: expected a rosbag2 directory (metadata.yaml + storage file)")
+    if not (path / "metadata.yaml").is_file():
+        raise BagError(f"{path}: no metadata.yaml: not a rosbag2 directory, or its recorder was killed before "
+                       f"closing it (mpm_monitor.io.bags.recover_bag rewrites what it flushed)")
+    reader = AnyReader([path], default_typestore=default_typestore())
+    try:
+        reader.open()
+    except Exception as exc:  # rosbags raises several unrelated classes for damaged bags
+        raise BagError(f"{path}: cannot read bag: {one_line(exc)} (truncated or not closed properly?)") from None
+    return reader
+
+
+def topic_connections(reader, path, topic: str, msgtype: str) -> list:
+    """The connections of ``topic`` in an open bag, checked to exist, have ``msgtype`` and hold messages.
+
+    Raises
+    ------
+    BagError
+        Naming the bag and the topic (and the topics the bag has, when it is missing).
+    """
+    conns = [c for c in reader.connections if c.topic == topic]
+    if not conns:
+        have = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
+        raise BagError(f"{path}: no topic '{topic}' ({msgtype}) in the bag; topics in the bag: {have}")
+    for c in conns:
+        if c.msgtype != msgtype:
+            raise BagError(f"{path}: topic '{topic}' has type {c.msgtype}, expected {msgtype}")
+    if sum(c.msgcount for c in conns) == 0:
+        raise BagError(f"{path}: topic '{topic}' holds no messages")
+    return conns

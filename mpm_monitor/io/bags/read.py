@@ -1,0 +1,364 @@
+"""Reading a bag: the setpoint, input and output topics aligned into logged data, CSV export, raw messages.
+
+A bag holds the stamped vectors ``setpoint``, ``input`` and ``output`` (``sensor_msgs/msg/JointState``:
+``header.stamp`` = sample time, ``name`` = channel names, ``position`` = values).  :func:`read_bag`
+aligns them by stamp on the model's sample grid into a :class:`~mpm_monitor.core.logged_data.LoggedData`, so
+``analyze --bag`` and ``analyze --data`` see the same samples.  Anything that would silently
+mis-align the samples (a missing topic, wrong channel names, a gap, two messages for one sample) is
+refused with a :class:`~mpm_monitor.core.errors.BagError` of one line naming the bag and the topic.
+:func:`read_raw_messages` gives the serialized messages for replay.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from contextlib import closing
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+from ...core.errors import BagError, InputError
+from ...core.logged_data import LoggedData
+from ...core.model import FopdtModel
+from ..csv_log import write_csv
+from .common import DEFAULT_TOPICS, JOINT_STATE, one_line, open_reader, stamp_ns, topic_connections, topic_name
+
+#: A stamp may lie this fraction of the sample time off the sample grid and still be aligned.
+GRID_TOLERANCE = 0.1
+#: Bags with at least this many messages on the read topics get a progress bar (``progress=True``).
+LONG_BAG_MESSAGES = 20_000
+
+_ROLES = ("setpoint", "input", "output")
+
+
+class _Progress:
+    """A one-line text progress bar on a stream (stderr), redrawn at most every 1 %."""
+
+    def __init__(self, total: int, stream, label: str, width: int = 30):
+        self.total, self.stream, self.label, self.width = max(int(total), 1), stream, label, width
+        self.shown = -1
+
+    def update(self, done: int) -> None:
+        pct = min(100, int(100 * done / self.total))
+        if pct == self.shown:
+            return
+        self.shown = pct
+        filled = self.width * pct // 100
+        self.stream.write(f"\r{self.label}: [{'#' * filled}{' ' * (self.width - filled)}] {pct:3d}% "
+                          f"{done}/{self.total} messages")
+        self.stream.flush()
+
+    def finish(self) -> None:
+        self.update(self.total)
+        self.stream.write("\n")
+        self.stream.flush()
+
+
+@dataclasses.dataclass
+class _Series:
+    """The messages of one stamped-vector topic, sorted by stamp."""
+
+    topic: str
+    names: tuple                # channel names of the first message
+    stamps: np.ndarray          # (n,) int64 nanoseconds
+    values: np.ndarray          # (n, len(channels)) values reordered to ``channels``
+
+
+def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progress) -> dict:
+    """Read the three stamped-vector topics; ``channels[role]`` = expected names or None (= first message's)."""
+    topics = [topic_name(t) for t in topics]
+    if len(topics) != 3:
+        raise BagError(f"{path}: expected three topics (setpoint, input, output), got {len(topics)}")
+    if len(set(topics)) != 3:
+        raise BagError(f"{path}: the setpoint, input and output topics must differ, got {', '.join(topics)}")
+    role_of = dict(zip(topics, _ROLES))
+    with closing(open_reader(path)) as reader:
+        conns = []
+        for t in topics:
+            conns += topic_connections(reader, path, t, JOINT_STATE)
+        total = sum(c.msgcount for c in conns)
+        stream = (sys.stderr if progress is True else progress) if progress else None
+        bar = _Progress(total, stream, f"reading {Path(path).name}") if stream and total >= LONG_BAG_MESSAGES else None
+        expected = dict(channels) if channels is not None else _first_names(reader, path, topics)
+        index_cache: dict = {}
+        stamps = {t: [] for t in topics}
+        rows = {t: [] for t in topics}
+        done = 0
+        try:
+            for conn, _, raw in reader.messages(connections=conns):
+                topic = conn.topic
+                role = role_of[topic]
+                count = len(stamps[topic]) + 1
+                try:
+                    msg = reader.deserialize(raw, conn.msgtype)
+                except Exception as exc:
+                    raise BagError(f"{path}: topic '{topic}': message {count} cannot be decoded as {JOINT_STATE}: "
+                                   f"{one_line(exc)}") from None
+                names = tuple(msg.name)
+                stamp = stamp_ns(msg.header.stamp)
+                values = np.asarray(msg.position, dtype=float)
+                if values.shape != (len(names),):
+                    raise BagError(f"{path}: topic '{topic}': message {count} (stamp {stamp / 1e9:g} s) has "
+                                   f"{values.size} positions for {len(names)} names")
+                key = (role, names)
+                idx = index_cache.get(key)
+                if idx is None:
+                    want = tuple(expected[role])
+                    missing = [n for n in want if n not in names]
+                    if missing or len(set(names)) != len(names):
+                        what = {"setpoint": "outputs", "input": "inputs", "output": "outputs"}[role]
+                        raise BagError(
+                            f"{path}: topic '{topic}': message {count} (stamp {stamp / 1e9:g} s) has channel names "
+                            f"[{', '.join(names)}], expected the {what} [{', '.join(want)}]")
+                    idx = np.array([names.index(n) for n in want], dtype=int)
+                    index_cache[key] = idx
+                if not np.all(np.isfinite(values[idx])):
+                    raise BagError(f"{path}: topic '{topic}': message {count} (stamp {stamp / 1e9:g} s) holds a "
+                                   f"non-finite value")
+                stamps[topic].append(stamp)
+                rows[topic].append(values[idx])
+                done += 1
+                if bar is not None and done % 256 == 0:
+                    bar.update(done)
+        except BagError:
+            raise
+        except Exception as exc:  # damaged chunk inside an otherwise valid file
+            raise BagError(f"{path}: cannot read bag: {one_line(exc)}") from None
+        if bar is not None:
+            bar.finish()
+    series = {}
+    for t, role in zip(topics, _ROLES):
+        st = np.array(stamps[t], dtype=np.int64)
+        vals = np.array(rows[t], dtype=float).reshape(len(st), len(expected[role]))
+        order = np.argsort(st, kind="stable")
+        series[role] = _Series(t, tuple(expected[role]), st[order], vals[order])
+    return series
+
+
+def _first_names(reader, path, topics) -> dict:
+    """Channel names of the first input and output messages (a bag read without a model)."""
+    names = {}
+    for role, topic in (("input", topics[1]), ("output", topics[2])):
+        conns = [c for c in reader.connections if c.topic == topic]
+        for conn, _, raw in reader.messages(connections=conns):
+            try:
+                names[role] = tuple(reader.deserialize(raw, conn.msgtype).name)
+            except Exception as exc:
+                raise BagError(f"{path}: topic '{topic}': message 1 cannot be decoded as {JOINT_STATE}: "
+                               f"{one_line(exc)}") from None
+            break
+    names["setpoint"] = names["output"]
+    return names
+
+
+def _align(path, series: dict, sample_time: float, inputs, outputs) -> LoggedData:
+    """Put the three topics on one sample grid and check that every sample is there exactly once."""
+    ts_ns = sample_time * 1e9
+    origin = min(int(s.stamps[0]) for s in series.values())
+    ks = {}
+    for role, s in series.items():
+        rel = (s.stamps - origin).astype(float)
+        k = np.rint(rel / ts_ns).astype(np.int64)
+        off = np.abs(rel - k * ts_ns) > GRID_TOLERANCE * ts_ns
+        if np.any(off):
+            i = int(np.flatnonzero(off)[0])
+            raise BagError(f"{path}: topic '{s.topic}': stamp {s.stamps[i] / 1e9:.9g} s is off the sample grid "
+                           f"(sample_time {sample_time:g} s from {origin / 1e9:.9g} s, tolerance "
+                           f"{GRID_TOLERANCE:g} sample)")
+        dup = np.flatnonzero(np.diff(k) == 0)
+        if dup.size:
+            i = int(dup[0])
+            raise BagError(f"{path}: topic '{s.topic}': duplicate stamp: two messages for the sample at "
+                           f"{s.stamps[i] / 1e9:.9g} s and {s.stamps[i + 1] / 1e9:.9g} s")
+        ks[role] = k
+    k_first = max(int(k[0]) for k in ks.values())
+    k_last = min(int(k[-1]) for k in ks.values())
+    if k_last < k_first:
+        spans = "; ".join(f"'{s.topic}' {s.stamps[0] / 1e9:g}..{s.stamps[-1] / 1e9:g} s" for s in series.values())
+        raise BagError(f"{path}: the topics do not overlap in time ({spans})")
+    n = k_last - k_first + 1
+    out = {}
+    for role, s in series.items():
+        k = ks[role]
+        sel = (k >= k_first) & (k <= k_last)
+        kk = k[sel]
+        if kk.size != n:
+            expect = np.arange(k_first, k_last + 1)
+            missing = np.setdiff1d(expect, kk)
+            m = int(missing[0])
+            nmiss = int(missing.size)
+            raise BagError(f"{path}: topic '{s.topic}': gap: no message for the sample at "
+                           f"{(origin + m * ts_ns) / 1e9:.9g} s ({nmiss} sample{'s' if nmiss > 1 else ''} missing "
+                           f"between {(origin + k_first * ts_ns) / 1e9:.9g} s and "
+                           f"{(origin + k_last * ts_ns) / 1e9:.9g} s)")
+        out[role] = s.values[sel]
+    t = (origin + np.arange(k_first, k_last + 1) * ts_ns) / 1e9
+    return LoggedData(t=t, r=out["setpoint"], u=out["input"], y=out["output"], inputs=tuple(inputs),
+                      outputs=tuple(outputs), sample_time=float(sample_time), source=str(path))
+
+
+def read_bag(path, model: FopdtModel, topics: Sequence[str] = DEFAULT_TOPICS, progress=False) -> LoggedData:
+    """Read a bag's setpoint, input and output topics as logged data on the model's sample grid.
+
+    Samples are aligned by ``header.stamp``: a message belongs to sample ``k`` when its stamp is
+    ``t0 + k * sample_time`` within :data:`GRID_TOLERANCE` of a sample, ``t0`` the earliest stamp of
+    the three topics.  Samples before the last topic starts or after the first one ends (a
+    recording started or stopped mid-sample) are dropped; inside that span every topic must hold
+    every sample exactly once.  Channels are matched by name, so their order in the messages is
+    free; extra channels are ignored.
+
+    Parameters
+    ----------
+    path : str or Path
+        rosbag2 directory.
+    model : FopdtModel
+        Gives the channel names (outputs for the setpoint and output topics, inputs for the input
+        topic) and the sample time in seconds.
+    topics : sequence of 3 str
+        Setpoint, input and output topic names (relative names are taken as ``/name``).
+    progress : bool or file-like
+        Draw a progress bar on stderr (or on the given stream) for bags of at least
+        :data:`LONG_BAG_MESSAGES` messages.
+
+    Returns
+    -------
+    LoggedData
+        ``t`` in seconds, ``r`` and ``y`` of shape (n_samples, n_outputs), ``u`` of shape
+        (n_samples, n_inputs).
+
+    Raises
+    ------
+    BagError
+        One line naming the bag and the topic.
+    """
+    channels = {"setpoint": model.outputs, "input": model.inputs, "output": model.outputs}
+    series = _read_vectors(path, topics, channels, progress)
+    return _align(path, series, model.sample_time, model.inputs, model.outputs)
+
+
+def infer_sample_time(path, stamps: np.ndarray, topic: str) -> float:
+    """Sample time in seconds as the median spacing of a topic's distinct stamps (nanoseconds)."""
+    diffs = np.diff(np.unique(stamps))
+    if diffs.size == 0:
+        raise BagError(f"{path}: topic '{topic}': needs at least two samples to infer the sample time "
+                       f"(or give --model)")
+    return float(np.median(diffs)) / 1e9
+
+
+def read_bag_channels(path, topics: Sequence[str] = DEFAULT_TOPICS, sample_time: Optional[float] = None,
+                      progress=False) -> LoggedData:
+    """Read a bag without a model: channel names from the first messages, sample time from the stamps.
+
+    Parameters
+    ----------
+    path : str or Path
+    topics : sequence of 3 str
+        Setpoint, input and output topic names.
+    sample_time : float, optional
+        Seconds per sample; default the median stamp spacing of the output topic.
+    progress : bool or file-like
+
+    Returns
+    -------
+    LoggedData
+    """
+    series = _read_vectors(path, topics, None, progress)
+    if sample_time is None:
+        sample_time = infer_sample_time(path, series["output"].stamps, series["output"].topic)
+    return _align(path, series, sample_time, series["input"].names, series["output"].names)
+
+
+def export_csv(bag, csv, model_path=None, topics: Sequence[str] = DEFAULT_TOPICS, progress=False) -> int:
+    """Write a bag's setpoint, input and output topics as the CSV of logged data (docs/interfaces.md, "Logged data (CSV)").
+
+    Parameters
+    ----------
+    bag : str or Path
+        rosbag2 directory.
+    csv : str or Path
+        Output CSV file.
+    model_path : str or Path, optional
+        Model file giving the channel names, their order and the sample time.  Without it the
+        names come from the first messages and the sample time from the stamps.
+    topics : sequence of 3 str
+    progress : bool or file-like
+
+    Returns
+    -------
+    int
+        Number of samples written.
+    """
+    if model_path is not None:
+        from ..model_file import load_model
+
+        data = read_bag(bag, load_model(model_path), topics=topics, progress=progress)
+    else:
+        data = read_bag_channels(bag, topics=topics, progress=progress)
+    try:
+        write_csv(csv, data.t, data.r, data.u, data.y, data.inputs, data.outputs)
+    except OSError as exc:
+        raise InputError(f"{csv}: cannot write CSV file: {exc.strerror or exc}") from None
+    return data.n_samples
+
+
+@dataclasses.dataclass(frozen=True)
+class RawMessage:
+    """A serialized message of a bag, for replay.
+
+    Attributes
+    ----------
+    topic : str
+        Topic name in the bag (fully qualified).
+    msgtype : str
+        ``pkg/msg/Type``.
+    log_time : int
+        Time the recorder received it, nanoseconds.
+    stamp : int or None
+        ``header.stamp`` in nanoseconds for messages with a header, else None.
+    data : bytes
+        CDR bytes as recorded.
+    """
+
+    topic: str
+    msgtype: str
+    log_time: int
+    stamp: Optional[int]
+    data: bytes
+
+
+def read_raw_messages(bag, topics: Sequence[str] = DEFAULT_TOPICS) -> list:
+    """The serialized messages of some topics in recording order, with their header stamps.
+
+    Parameters
+    ----------
+    bag : str or Path
+    topics : sequence of str
+        Topic names; each must be in the bag.
+
+    Returns
+    -------
+    list of RawMessage
+    """
+    out = []
+    with closing(open_reader(bag)) as reader:
+        conns = []
+        for t in topics:
+            t = topic_name(t)
+            found = [c for c in reader.connections if c.topic == t]
+            if not found:
+                have = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
+                raise BagError(f"{bag}: no topic '{t}' in the bag; topics in the bag: {have}")
+            conns += found
+        try:
+            for conn, log_time, raw in reader.messages(connections=conns):
+                raw = bytes(raw)
+                msg = reader.deserialize(raw, conn.msgtype)
+                header = getattr(msg, "header", None)
+                stamp = stamp_ns(header.stamp) if header is not None and hasattr(header, "stamp") else None
+                out.append(RawMessage(conn.topic, conn.msgtype, int(log_time), stamp, raw))
+        except Exception as exc:
+            raise BagError(f"{bag}: cannot read bag: {one_line(exc)}") from None
+    return out
+

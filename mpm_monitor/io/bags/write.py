@@ -1,0 +1,200 @@
+"""Writing a bag: :class:`BagWriter` (rosbag2, MCAP storage) and logged data as a bag.
+
+:class:`BagWriter` writes a rosbag2 directory (MCAP storage, metadata version 9) message by message
+from serialized CDR bytes and can flush complete MCAP chunks to disk while recording; the
+recorder node wraps it.  :func:`write_logged_data` is the inverse of
+:func:`~mpm_monitor.io.bags.read.read_bag`.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from ...core.errors import BagError
+from ...core.logged_data import LoggedData
+from .common import DEFAULT_TOPICS, JOINT_STATE, default_typestore, one_line, topic_name
+
+
+class BagWriter:
+    """Write a rosbag2 directory (MCAP storage, metadata version 9) from serialized messages.
+
+    Topics are added with the QoS profiles their publishers offered; messages are written as the
+    CDR bytes received.  :meth:`flush` closes the pending MCAP chunk and writes it to disk, so a
+    process that dies later leaves every message up to the last flush in complete chunk records
+    on disk; :meth:`close` writes the MCAP summary and ``metadata.yaml`` (without it, readers
+    refuse the bag).
+
+    Parameters
+    ----------
+    path : str or Path
+        Bag directory to create; it must not exist.
+    typestore : rosbags type store, optional
+        Gives message definitions and type hashes; default :func:`default_typestore`.
+    fsync : bool
+        Also ask the OS to write flushed data to the device (survives a power loss).
+
+    Raises
+    ------
+    BagError
+        The directory exists already or cannot be created.
+    """
+
+    def __init__(self, path, typestore=None, fsync: bool = True):
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        self.path = Path(path)
+        self._typestore = typestore or default_typestore()
+        self._fsync = fsync
+        if self.path.exists():
+            raise BagError(f"{self.path}: exists already: give a new bag directory (a bag is never overwritten)")
+        self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+        try:
+            self._writer.open()
+        except Exception as exc:
+            raise BagError(f"{self.path}: cannot create bag: {one_line(exc)}") from None
+        self._connections: dict = {}
+        self.message_count = 0
+        self.flushed_count = 0
+        self.closed = False
+
+    def has_topic(self, topic: str) -> bool:
+        """Whether :meth:`add_topic` was called for ``topic``."""
+        return topic in self._connections
+
+    @property
+    def topics(self) -> dict:
+        """Topic name -> message type of the topics added so far."""
+        return {t: c.msgtype for t, c in self._connections.items()}
+
+    def add_topic(self, topic: str, msgtype: str, qos_profiles: Sequence = ()) -> None:
+        """Register a topic.
+
+        Parameters
+        ----------
+        topic : str
+            Fully qualified topic name.
+        msgtype : str
+            ``pkg/msg/Type``; must be known to the type store.
+        qos_profiles : sequence of rosbags.interfaces.Qos
+            The QoS profiles offered by the topic's publishers (``offered_qos_profiles``).
+        """
+        if self.closed:
+            raise BagError(f"{self.path}: bag is closed")
+        if topic in self._connections:
+            raise BagError(f"{self.path}: topic '{topic}' added twice")
+        if msgtype not in self._typestore.types:
+            raise BagError(f"{self.path}: topic '{topic}': unknown message type {msgtype}")
+        self._connections[topic] = self._writer.add_connection(
+            topic, msgtype, typestore=self._typestore, serialization_format="cdr",
+            offered_qos_profiles=list(qos_profiles))
+
+    def write(self, topic: str, timestamp: int, data: bytes) -> None:
+        """Append one serialized message.
+
+        Parameters
+        ----------
+        topic : str
+            A topic added with :meth:`add_topic`.
+        timestamp : int
+            Receive time, nanoseconds.
+        data : bytes
+            CDR bytes (with the 4-byte encapsulation header).
+        """
+        if self.closed:
+            raise BagError(f"{self.path}: bag is closed")
+        self._writer.write(self._connections[topic], int(timestamp), bytes(data))
+        self.message_count += 1
+
+    def flush(self) -> int:
+        """Close the pending MCAP chunk and write it to disk.
+
+        Returns
+        -------
+        int
+            Messages on disk so far (all messages written before this call).
+        """
+        if self.closed or self.message_count == self.flushed_count:
+            return self.flushed_count
+        storage = self._writer.storage
+        # rosbags 0.11 keeps the current chunk in memory until it reaches 1 MiB; closing it early
+        # writes a complete chunk record (messages + message index) after the previous ones.
+        storage.close_chunk()
+        storage.bio.flush()
+        if self._fsync:
+            os.fsync(storage.bio.fileno())
+        self.flushed_count = self.message_count
+        return self.flushed_count
+
+    def close(self) -> None:
+        """Write the pending messages, the MCAP summary and ``metadata.yaml``.  Idempotent."""
+        if self.closed:
+            return
+        self.closed = True
+        self._writer.close()
+        self.flushed_count = self.message_count
+
+
+def joint_state_cdr(typestore, stamp_ns: int, names: Sequence[str], values) -> bytes:
+    """A ``sensor_msgs/msg/JointState`` stamped vector as CDR bytes (``velocity``/``effort`` empty)."""
+    js = typestore.types[JOINT_STATE]
+    header = typestore.types["std_msgs/msg/Header"]
+    time_t = typestore.types["builtin_interfaces/msg/Time"]
+    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+    msg = js(header=header(stamp=time_t(sec=sec, nanosec=nsec), frame_id=""), name=list(names),
+             position=np.asarray(values, dtype=np.float64), velocity=np.zeros(0), effort=np.zeros(0))
+    return bytes(typestore.serialize_cdr(msg, JOINT_STATE))
+
+
+def write_logged_data(path, data: LoggedData, topics: Sequence[str] = DEFAULT_TOPICS, qos_profiles=None) -> int:
+    """Write logged data as a bag of the three stamped-vector topics (the inverse of :func:`read_bag`).
+
+    Sample ``k`` becomes one message per topic stamped ``t[k]``, published in the loop's order
+    (output, input, setpoint) and logged at the stamp.
+
+    Parameters
+    ----------
+    path : str or Path
+        Bag directory to create.
+    data : LoggedData
+    topics : sequence of 3 str
+        Setpoint, input and output topic names.
+    qos_profiles : sequence of rosbags Qos, optional
+        Offered QoS stored for each topic; default the vector topics' QoS (RELIABLE, KEEP_LAST
+        1000, VOLATILE).
+
+    Returns
+    -------
+    int
+        Messages written.
+    """
+    ts = default_typestore()
+    if qos_profiles is None:
+        qos_profiles = [contract_vector_qos()]
+    setpoint, inp, out = (topic_name(t) for t in topics)
+    writer = BagWriter(path, typestore=ts, fsync=False)
+    try:
+        for t in (out, inp, setpoint):
+            writer.add_topic(t, JOINT_STATE, qos_profiles)
+        stamps = np.rint(np.asarray(data.t, dtype=float) * 1e9).astype(np.int64)
+        for k, stamp in enumerate(stamps):
+            writer.write(out, stamp, joint_state_cdr(ts, stamp, data.outputs, data.y[k]))
+            writer.write(inp, stamp + 1, joint_state_cdr(ts, stamp, data.inputs, data.u[k]))
+            writer.write(setpoint, stamp + 2, joint_state_cdr(ts, stamp, data.outputs, data.r[k]))
+    finally:
+        writer.close()
+    return writer.message_count
+
+
+def contract_vector_qos():
+    """The vector topics' QoS (RELIABLE, KEEP_LAST 1000, VOLATILE) as a rosbags ``Qos``."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+    infinite = QosTime(9223372036, 854775807)
+    return Qos(history=QosHistory.KEEP_LAST, depth=1000, reliability=QosReliability.RELIABLE,
+               durability=QosDurability.VOLATILE, deadline=infinite, lifespan=infinite,
+               liveliness=QosLiveliness.AUTOMATIC, liveliness_lease_duration=infinite,
+               avoid_ros_namespace_conventions=False)
