@@ -106,10 +106,8 @@ def test_separate_processes_locate_case_3_2():
 @pytest.mark.parametrize("case", ["3.1", "3.2", "3.3"])
 def test_case_params_files_match_the_paper_cases(case):
     """config/case_<case>.yaml gives every node the numbers of mpm_monitor.sim.cases (no drift)."""
-    sys.path.insert(0, str(ROOT / "launch_scripts"))
-    from _common import case_params_file, load_params_file
-
     from mpm_monitor.apps.demo import case_parameters
+    from mpm_monitor.apps.launchers.common import case_params_file, load_params_file
 
     loaded = load_params_file(case_params_file(case))
     expected = case_parameters(case, seed=1)
@@ -119,9 +117,7 @@ def test_case_params_files_match_the_paper_cases(case):
 
 
 def test_node_params_files_declare_only_known_parameters():
-    sys.path.insert(0, str(ROOT / "launch_scripts"))
-    from _common import load_params_file
-
+    from mpm_monitor.apps.launchers.common import load_params_file
     from mpm_monitor.nodes import monitor_node, mpc_node, plant_node, setpoint_node
 
     for name, module in (("plant", plant_node), ("mpc", mpc_node), ("setpoint", setpoint_node),
