@@ -1,4 +1,5 @@
-"""A ROS_DOMAIN_ID no other test process on this machine holds (for multi-process tests)."""
+"""A ROS_DOMAIN_ID no other test process on this machine holds (for multi-process tests), and a
+context of the test process on it."""
 
 import contextlib
 import fcntl
@@ -30,3 +31,16 @@ def unique_domain(salt: int = 0):
             fh.close()
         return
     pytest.skip("no free ROS_DOMAIN_ID")
+
+
+def domain_context(domain_id):
+    """A context on ``domain_id`` with discovery limited to this host (as the node processes)."""
+    import rclpy
+    from rclpy.context import Context
+
+    from mpm_monitor.apps.demo import _env
+
+    ctx = Context()
+    with _env({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(domain_id)}):
+        rclpy.init(args=[], context=ctx, domain_id=domain_id)
+    return ctx

@@ -21,26 +21,13 @@ pytest.importorskip("rclpy")
 pytestmark = pytest.mark.timeout(150)
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
-from ros_domains import unique_domain  # noqa: E402
+from ros_domains import domain_context, unique_domain  # noqa: E402
 
 from mpm_monitor.monitor.monitor_core import SUMMARY_NAME, row_status_name  # noqa: E402
 from mpm_monitor.nodes.ros_io import diagnostics_qos, make_executor, spin_until  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 SAMPLES = 3000
-
-
-def domain_context(domain_id):
-    """A context on ``domain_id`` with discovery limited to this host (as the node processes)."""
-    import rclpy
-    from rclpy.context import Context
-
-    from mpm_monitor.apps.demo import _env
-
-    ctx = Context()
-    with _env({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(domain_id)}):
-        rclpy.init(args=[], context=ctx, domain_id=domain_id)
-    return ctx
 
 
 def test_separate_processes_locate_case_3_2():
