@@ -15,7 +15,6 @@ every process started from the install is the one ``source install/setup.bash`` 
 
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import threading
@@ -30,7 +29,7 @@ pytest.importorskip("colcon_core")
 pytestmark = pytest.mark.timeout(300)
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
-from ros_domains import domain_context, unique_domain  # noqa: E402
+from ros_domains import close_listener, domain_context, stop_process, unique_domain  # noqa: E402
 
 from mpm_monitor.core.model import FopdtModel  # noqa: E402
 from mpm_monitor.io.model_file import save_model  # noqa: E402
@@ -255,14 +254,5 @@ def test_the_monitor_from_the_install_answers_a_plain_publisher_with_diagnostics
         finally:
             running.clear()
             thread.join(5)
-            if monitor.poll() is None:
-                monitor.send_signal(signal.SIGINT)
-                try:
-                    monitor.wait(15)
-                except subprocess.TimeoutExpired:
-                    monitor.kill()
-                    monitor.wait()
-            ex.remove_node(node)
-            node.destroy_node()
-            ex.shutdown()
-            ctx.try_shutdown()
+            stop_process(monitor, 15.0)
+            close_listener(ex, node, ctx)

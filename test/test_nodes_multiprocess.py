@@ -8,7 +8,6 @@ listens to the diagnostics from its own context on the same domain and range.
 """
 
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -21,7 +20,7 @@ pytest.importorskip("rclpy")
 pytestmark = pytest.mark.timeout(150)
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
-from ros_domains import domain_context, unique_domain  # noqa: E402
+from ros_domains import close_listener, domain_context, stop_process, unique_domain  # noqa: E402
 
 from mpm_monitor.monitor.monitor_core import SUMMARY_NAME, row_status_name  # noqa: E402
 from mpm_monitor.nodes.ros_io import diagnostics_qos, make_executor, spin_until  # noqa: E402
@@ -75,18 +74,9 @@ def test_separate_processes_locate_case_3_2():
             assert summary["located_elements"] == "y1:u2,y1:u3,y2:u1"
             assert summary["completed_samples"] == str(SAMPLES) and summary["missing_samples"] == "0"
         finally:
-            if launcher.poll() is None:
-                launcher.send_signal(signal.SIGINT)
-            try:
-                launcher.wait(20.0)
-            except subprocess.TimeoutExpired:
-                launcher.kill()
-                launcher.wait()
+            stop_process(launcher, 20.0)
             log.close()
-            ex.remove_node(node)
-            node.destroy_node()
-            ex.shutdown()
-            ctx.try_shutdown()
+            close_listener(ex, node, ctx)
         assert launcher.returncode == 0
 
 
