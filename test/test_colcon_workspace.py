@@ -100,7 +100,9 @@ class Workspace:
     def build(self) -> None:
         clean_copy(self.src)
         cmd = [sys.executable, "-m", "colcon", "build", "--event-handlers", "console_direct-"]
-        res = subprocess.run(cmd, cwd=self.root, capture_output=True, text=True, timeout=240)
+        env = dict(os.environ, COLCON_HOME=str(self.root / "colcon_home"))  # no defaults.yaml of the user's
+        env.pop("COLCON_DEFAULTS_FILE", None)
+        res = subprocess.run(cmd, cwd=self.root, env=env, capture_output=True, text=True, timeout=240)
         if res.returncode != 0:
             pytest.fail(f"colcon build failed ({res.returncode}):\n{res.stdout[-3000:]}\n{res.stderr[-3000:]}")
         self.env = sourced_env(self.install / "setup.bash")
