@@ -1,4 +1,9 @@
-"""Installs mpm_monitor under colcon (ament_python) and under ``pip install -e .``."""
+"""Installs mpm_monitor under colcon (ament_python) and under ``pip install -e .``.
+
+Under colcon, ``setup.cfg`` puts the console scripts (the nodes, the launchers, ``mpm_analyze``) in
+``lib/mpm_monitor/``, where ``ros2 run`` finds them; ``share/mpm_monitor/`` gets ``package.xml`` and the
+params files ``config/*.yaml`` (the launchers' defaults).
+"""
 
 from glob import glob
 
@@ -14,7 +19,6 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", sorted(glob("config/*.yaml"))),
-        (f"share/{PACKAGE}/launch", sorted(glob("launch_scripts/*.py"))),
     ],
     install_requires=["setuptools", "numpy", "scipy", "PyYAML", "osqp"],
     zip_safe=True,
@@ -32,6 +36,9 @@ setup(
             "monitor_node = mpm_monitor.nodes.monitor_node:main",
             "recorder_node = mpm_monitor.nodes.recorder_node:main",
             "replay_node = mpm_monitor.nodes.replay_node:main",
+            "suite_inprocess = mpm_monitor.apps.launchers.suite_inprocess:main",
+            "suite_processes = mpm_monitor.apps.launchers.suite_processes:main",
+            "monitor_only = mpm_monitor.apps.launchers.monitor_only:main",
         ],
     },
 )

@@ -1,9 +1,12 @@
-"""A ROS_DOMAIN_ID no other test process on this machine holds (for multi-process tests)."""
+"""For multi-process tests: a ROS_DOMAIN_ID no other test process on this machine holds, a context
+of the test process on it, and the tear-down of node processes and of the test's own listener."""
 
 import contextlib
 import fcntl
 import os
 import random
+import signal
+import subprocess
 import tempfile
 from pathlib import Path
 
@@ -30,3 +33,35 @@ def unique_domain(salt: int = 0):
             fh.close()
         return
     pytest.skip("no free ROS_DOMAIN_ID")
+
+
+def domain_context(domain_id):
+    """A context on ``domain_id`` with discovery limited to this host (as the node processes)."""
+    import rclpy
+    from rclpy.context import Context
+
+    from mpm_monitor.apps.demo import _env
+
+    ctx = Context()
+    with _env({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(domain_id)}):
+        rclpy.init(args=[], context=ctx, domain_id=domain_id)
+    return ctx
+
+
+def stop_process(proc, timeout: float = 10.0) -> None:
+    """Stop a node or launcher process as Ctrl-C would (SIGINT); SIGKILL it after ``timeout`` seconds."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def close_listener(executor, node, context) -> None:
+    """Tear down the test's own node, its executor and its context."""
+    executor.remove_node(node)
+    node.destroy_node()
+    executor.shutdown()
+    context.try_shutdown()

@@ -398,6 +398,7 @@ def test_monitor_process_sigkilled_and_restarted_while_the_stack_publishes(tmp_p
 
     import rclpy
     from rclpy.context import Context
+    from ros_domains import close_listener, stop_process
     from sensor_msgs.msg import JointState
 
     from mpm_monitor.apps.demo import _env
@@ -485,14 +486,5 @@ def test_monitor_process_sigkilled_and_restarted_while_the_stack_publishes(tmp_p
             state["run"] = False
             thread.join(5)
             for p in procs:
-                if p.poll() is None:
-                    p.send_signal(signal.SIGINT)
-                    try:
-                        p.wait(10)
-                    except subprocess.TimeoutExpired:
-                        p.kill()
-                        p.wait()
-            ex.remove_node(node)
-            node.destroy_node()
-            ex.shutdown()
-            ctx.try_shutdown()
+                stop_process(p, 10.0)
+            close_listener(ex, node, ctx)

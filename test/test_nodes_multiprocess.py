@@ -8,7 +8,6 @@ listens to the diagnostics from its own context on the same domain and range.
 """
 
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -21,26 +20,13 @@ pytest.importorskip("rclpy")
 pytestmark = pytest.mark.timeout(150)
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
-from ros_domains import unique_domain  # noqa: E402
+from ros_domains import close_listener, domain_context, stop_process, unique_domain  # noqa: E402
 
 from mpm_monitor.monitor.statuses import SUMMARY_NAME, row_status_name  # noqa: E402
 from mpm_monitor.nodes.ros_io import diagnostics_qos, make_executor, spin_until  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 SAMPLES = 3000
-
-
-def domain_context(domain_id):
-    """A context on ``domain_id`` with discovery limited to this host (as the node processes)."""
-    import rclpy
-    from rclpy.context import Context
-
-    from mpm_monitor.apps.demo import _env
-
-    ctx = Context()
-    with _env({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(domain_id)}):
-        rclpy.init(args=[], context=ctx, domain_id=domain_id)
-    return ctx
 
 
 def test_separate_processes_locate_case_3_2():
@@ -88,28 +74,17 @@ def test_separate_processes_locate_case_3_2():
             assert summary["located_elements"] == "y1:u2,y1:u3,y2:u1"
             assert summary["completed_samples"] == str(SAMPLES) and summary["missing_samples"] == "0"
         finally:
-            if launcher.poll() is None:
-                launcher.send_signal(signal.SIGINT)
-            try:
-                launcher.wait(20.0)
-            except subprocess.TimeoutExpired:
-                launcher.kill()
-                launcher.wait()
+            stop_process(launcher, 20.0)
             log.close()
-            ex.remove_node(node)
-            node.destroy_node()
-            ex.shutdown()
-            ctx.try_shutdown()
+            close_listener(ex, node, ctx)
         assert launcher.returncode == 0
 
 
 @pytest.mark.parametrize("case", ["3.1", "3.2", "3.3"])
 def test_case_params_files_match_the_paper_cases(case):
     """config/case_<case>.yaml gives every node the numbers of mpm_monitor.sim.cases (no drift)."""
-    sys.path.insert(0, str(ROOT / "launch_scripts"))
-    from _common import case_params_file, load_params_file
-
     from mpm_monitor.apps.demo import case_parameters
+    from mpm_monitor.apps.launchers.common import case_params_file, load_params_file
 
     loaded = load_params_file(case_params_file(case))
     expected = case_parameters(case, seed=1)
@@ -119,9 +94,7 @@ def test_case_params_files_match_the_paper_cases(case):
 
 
 def test_node_params_files_declare_only_known_parameters():
-    sys.path.insert(0, str(ROOT / "launch_scripts"))
-    from _common import load_params_file
-
+    from mpm_monitor.apps.launchers.common import load_params_file
     from mpm_monitor.nodes import monitor_node, mpc_node, plant_node, setpoint_node
 
     for name, module in (("plant", plant_node), ("mpc", mpc_node), ("setpoint", setpoint_node),

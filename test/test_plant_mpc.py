@@ -385,3 +385,15 @@ def test_mpc_options_refused(kw, pattern):
 def test_mpc_configuration_refused(kw, pattern):
     with pytest.raises(ConfigurationError, match=pattern):
         InternalModelMpc(shell_plant(), MpcOptions(**SMALL_MPC, **kw))
+
+
+def test_bounds_without_osqp_are_refused_at_construction(monkeypatch):
+    """osqp is installed by a pip step in a ROS workspace (no rosdep key): without it, an MPC with
+    bounds stops at start-up with one line naming the bounds and the missing solver, not at the
+    first active bound; without bounds it is not needed."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "osqp", None)  # import osqp fails, find_spec gives None
+    with pytest.raises(ConfigurationError, match=r"^u_min, u_max, du_max: bounds need the QP solver osqp"):
+        InternalModelMpc(shell_plant(), MpcOptions(**SMALL_MPC, du_max=0.05))
+    InternalModelMpc(shell_plant(), MpcOptions(**SMALL_MPC))

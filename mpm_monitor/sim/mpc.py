@@ -16,6 +16,7 @@ QP is solved by OSQP (Stellato et al., 2020), warm-started from the previous sol
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 from typing import Optional, Sequence, Union
 
 import numpy as np
@@ -130,6 +131,9 @@ class InternalModelMpc:
             raise ConfigurationError("u_min, u_max: expected u_min <= u_max for every input")
         if np.any(self.du_max <= 0):
             raise ConfigurationError("du_max: expected positive numbers")
+        if options.constrained and importlib.util.find_spec("osqp") is None:
+            raise ConfigurationError("u_min, u_max, du_max: bounds need the QP solver osqp, which is not installed "
+                                     "(pip install osqp; it has no rosdep key)")
         self._build()
         self._qp = None
         self.reset()

@@ -1,7 +1,9 @@
 """Helpers shared by the plain-Python launchers (no ``launch``/``launch_ros`` needed).
 
-The launchers live in ``launch_scripts/`` in the repository and in ``share/mpm_monitor/launch`` once
-installed; the params files are in ``config/`` beside them (``share/mpm_monitor/config``).
+The launchers are console scripts: under colcon they are installed beside the nodes in
+``lib/mpm_monitor/`` (``ros2 run mpm_monitor suite_inprocess --case 3.2``), under ``pip install``
+in the environment's ``bin/``; in the repository ``launch_scripts/<launcher>.py`` runs the same code.
+Their default params files are found by :func:`config_dir`.
 """
 
 from __future__ import annotations
@@ -12,13 +14,39 @@ from pathlib import Path
 
 import yaml
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+PACKAGE = "mpm_monitor"
 NODES = ("plant", "setpoint", "mpc", "monitor")
 
 
+def config_dir() -> Path:
+    """The directory of the params files.
+
+    Run from a source tree (the repository, or ``pip install -e``), it is the repository's
+    ``config/``.  Installed (a colcon workspace, or a wheel), it is ``share/mpm_monitor/config``
+    under the prefix that the ament index gives for ``mpm_monitor`` (``AMENT_PREFIX_PATH``, set by
+    sourcing the install's ``setup.bash``).
+
+    Returns
+    -------
+    Path
+        The directory; ``SystemExit`` with one line when neither exists.
+    """
+    root = Path(__file__).resolve().parents[3]  # <root>/mpm_monitor/apps/launchers/common.py
+    if (root / "package.xml").is_file() and (root / "config").is_dir():
+        return root / "config"
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        return Path(get_package_share_directory(PACKAGE)) / "config"
+    except (ImportError, LookupError):  # no ament_index_python, or PackageNotFoundError
+        raise SystemExit(f"error: cannot find the params files: {PACKAGE} runs from no source tree and is not in "
+                         f"the ament index (AMENT_PREFIX_PATH={os.environ.get('AMENT_PREFIX_PATH', '')!r}); "
+                         "source the install's setup.bash, or give --params") from None
+
+
 def case_params_file(case: str) -> Path:
-    """``config/case_<case>.yaml`` (e.g. case ``3.2`` -> ``case_3_2.yaml``)."""
-    return CONFIG_DIR / f"case_{case.replace('.', '_')}.yaml"
+    """``config/case_<case>.yaml`` (e.g. case ``3.2`` -> ``case_3_2.yaml``), see :func:`config_dir`."""
+    return config_dir() / f"case_{case.replace('.', '_')}.yaml"
 
 
 def load_params_file(path) -> dict:
