@@ -16,6 +16,7 @@ import numpy as np
 
 from ...core.errors import BagError
 from ...core.logged_data import LoggedData
+from ..qos import VECTOR_QOS, rosbags_qos
 from .common import DEFAULT_TOPICS, JOINT_STATE, default_typestore, one_line, topic_name
 
 
@@ -190,11 +191,5 @@ def write_logged_data(path, data: LoggedData, topics: Sequence[str] = DEFAULT_TO
 
 
 def contract_vector_qos():
-    """The vector topics' QoS (RELIABLE, KEEP_LAST 1000, VOLATILE) as a rosbags ``Qos``."""
-    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
-
-    infinite = QosTime(9223372036, 854775807)
-    return Qos(history=QosHistory.KEEP_LAST, depth=1000, reliability=QosReliability.RELIABLE,
-               durability=QosDurability.VOLATILE, deadline=infinite, lifespan=infinite,
-               liveliness=QosLiveliness.AUTOMATIC, liveliness_lease_duration=infinite,
-               avoid_ros_namespace_conventions=False)
+    """The vector topics' QoS (:data:`mpm_monitor.io.qos.VECTOR_QOS`) as a rosbags ``Qos``."""
+    return rosbags_qos(VECTOR_QOS)
