@@ -33,7 +33,7 @@ from ros_domains import close_listener, domain_context, stop_process, unique_dom
 
 from mpm_monitor.core.model import FopdtModel  # noqa: E402
 from mpm_monitor.io.model_file import save_model  # noqa: E402
-from mpm_monitor.monitor.monitor_core import SUMMARY_NAME  # noqa: E402
+from mpm_monitor.monitor.statuses import SUMMARY_NAME  # noqa: E402
 from mpm_monitor.nodes.ros_io import VectorCodec, diagnostics_qos, make_executor, spin_until, vector_qos  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
