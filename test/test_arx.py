@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy import signal, stats
 
-from mpm_monitor.core.analysis import holm_adjust
-from mpm_monitor.core.arx import SharedBlockRegression, estimate_delays, f_test, fit_arx, lag_matrix
+from mpm_monitor.core.arx import SharedBlockRegression, estimate_delays, fit_arx, lag_matrix
+from mpm_monitor.core.statistics import f_test, holm_adjust
 
 
 def _arx_data(rng, n=2000, noise=0.0):

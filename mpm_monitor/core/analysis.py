@@ -40,12 +40,10 @@ from .errors import ConfigurationError, DataFileError
 from .logged_data import LoggedData
 from .model import FopdtModel
 from .signals import INITIAL_STATE_CHOICES, LoopSignals, compute_signals
+from .statistics import N_FAMILIES, holm_adjust
 from .wording import repair_summary_lines
 
 METHODS = ("arx", "xcorr", "pcorr")
-
-#: The row tests and the element tests are two families sharing the false-alarm rate alpha.
-N_FAMILIES = 2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -311,22 +309,6 @@ class AnalysisReport:
         for w in self.warnings:
             lines.append(f"warning: {w}")
         return "\n".join(lines)
-
-
-def holm_adjust(p: np.ndarray) -> np.ndarray:
-    """Holm's step-down adjusted p-values (Holm 1979); NaN entries stay NaN and are not counted."""
-    p = np.asarray(p, dtype=float)
-    out = np.full(p.shape, np.nan)
-    ok = np.flatnonzero(np.isfinite(p))
-    m = ok.size
-    if m == 0:
-        return out
-    order = ok[np.argsort(p[ok])]
-    running = 0.0
-    for rank, idx in enumerate(order):
-        running = max(running, min(1.0, (m - rank) * p[idx]))
-        out[idx] = running
-    return out
 
 
 def frequency_grid(band: tuple, n: int) -> np.ndarray:
