@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from mpm_monitor.core.analysis import AnalysisOptions
-from mpm_monitor.core.incremental import SlidingWindowAnalyzer
+from mpm_monitor.core.sliding import SlidingWindowAnalyzer
 
 OPTIONS = AnalysisOptions(repair=False, test_all_rows=True)
 

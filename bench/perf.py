@@ -84,13 +84,14 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from mpm_monitor.core.analysis import AnalysisOptions, QrRegressions, analyze, regression_layout  # noqa: E402
+from mpm_monitor.core.analysis import AnalysisOptions, analyze  # noqa: E402
 from mpm_monitor.core.arx import lag_matrix  # noqa: E402
 from mpm_monitor.core.discretize import simulate_state_space, state_space  # noqa: E402
-from mpm_monitor.core.incremental import SlidingWindowAnalyzer, window_regressions  # noqa: E402
 from mpm_monitor.core.logged_data import LoggedData  # noqa: E402
 from mpm_monitor.core.model import FopdtModel  # noqa: E402
+from mpm_monitor.core.regressions import QrRegressions, regression_layout, window_regressions  # noqa: E402
 from mpm_monitor.core.signals import LoopSignals, compute_signals, initial_transient  # noqa: E402
+from mpm_monitor.core.sliding import SlidingWindowAnalyzer  # noqa: E402
 from mpm_monitor.sim.closed_loop import run_closed_loop  # noqa: E402
 
 #: Targets of issue 8 (this machine, 2 cores).

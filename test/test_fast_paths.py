@@ -22,12 +22,19 @@ import pytest
 import scipy.linalg as sla
 from scipy import signal as sps
 
-from mpm_monitor.core.analysis import AnalysisOptions, InputDesign, QrRegressions, analyze, regression_layout
+from mpm_monitor.core.analysis import AnalysisOptions, InputDesign, analyze
 from mpm_monitor.core.arx import SharedBlockRegression, lag_matrix
 from mpm_monitor.core.discretize import simulate_elements, simulate_state_space, state_space
-from mpm_monitor.core.incremental import GramBlockRegression, GramFit, lagged_cross_products, window_regressions
 from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.regressions import (
+    GramBlockRegression,
+    GramFit,
+    QrRegressions,
+    lagged_cross_products,
+    regression_layout,
+    window_regressions,
+)
 from mpm_monitor.core.signals import LoopSignals, compute_signals, initial_transient
 from mpm_monitor.sim.cases import paper_case
 from mpm_monitor.sim.closed_loop import ExcitationOptions, run_closed_loop

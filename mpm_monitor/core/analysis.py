@@ -35,10 +35,11 @@ from typing import Optional
 
 import numpy as np
 
-from .arx import SharedBlockRegression, estimate_delay_from_lags, fit_arx, lag_matrix
+from .arx import SharedBlockRegression, estimate_delay_from_lags, lag_matrix
 from .errors import ConfigurationError, DataFileError
 from .logged_data import LoggedData
 from .model import FopdtModel
+from .regressions import regression_layout, window_regressions
 from .signals import INITIAL_STATE_CHOICES, LoopSignals, compute_signals
 from .statistics import N_FAMILIES, holm_adjust
 from .wording import repair_summary_lines
@@ -321,106 +322,6 @@ def frequency_grid(band: tuple, n: int) -> np.ndarray:
     return grid
 
 
-def _minimum_samples(n_params: int) -> int:
-    return 3 * n_params + 50
-
-
-@dataclasses.dataclass(frozen=True)
-class RegressionLayout:
-    """Lags and first usable sample of the tests, fixed by the model and the options.
-
-    Attributes
-    ----------
-    max_delay : int
-        Largest dead time searched (samples).
-    n_lag_r : int
-        Setpoint lags ``0 .. n_lag_r - 1`` of the row test.
-    n_lag_u : int
-        Input lags ``1 .. n_lag_u`` of the element test.
-    start : int
-        First sample of the window used as a regression row (every lag is inside the window).
-    min_samples : int
-        Fewest samples the tests accept.
-    """
-
-    max_delay: int
-    n_lag_r: int
-    n_lag_u: int
-    start: int
-    min_samples: int
-
-
-def regression_layout(model: FopdtModel, options: AnalysisOptions) -> RegressionLayout:
-    """The :class:`RegressionLayout` of :func:`analyze` for this model and these options."""
-    ny, nu, na, nb = model.n_outputs, model.n_inputs, options.na, options.nb
-    dmax_model = int(model.delay_samples.max(initial=0))
-    max_delay = options.max_delay if options.max_delay is not None else max(10, dmax_model + 5)
-    n_lag_r = max_delay + nb + 1            # setpoint lags 0 .. max_delay + nb
-    n_lag_u = max_delay + nb                # input lags 1 .. max_delay + nb
-    n_params = max(ny * n_lag_r, nu * n_lag_u) + na
-    return RegressionLayout(max_delay=max_delay, n_lag_r=n_lag_r, n_lag_u=n_lag_u,
-                            start=max(n_lag_r - 1, n_lag_u, na), min_samples=_minimum_samples(n_params))
-
-
-class QrRegressions:
-    """The least-squares problems of the tests, built from the window's signals and factored by QR.
-
-    This is the reference path, and the fallback of the default one: :func:`analyze` solves the
-    tests from the Gram matrices of the window (:func:`mpm_monitor.core.incremental.window_regressions`)
-    and refits by this class every regression too ill-conditioned for the normal equations.  Pass
-    an instance as ``analyze(..., regressions=...)`` to factor every regression by QR.
-
-    Parameters
-    ----------
-    r, z, d : ndarray, shape (n_samples, n_outputs)
-        Setpoints, ``z = eps - r`` and prediction errors of the window.
-    u : ndarray, shape (n_samples, n_inputs)
-        Plant inputs.
-    layout : RegressionLayout
-    na, nb : int
-        ARX orders.
-    """
-
-    def __init__(self, r, u, z, d, layout: RegressionLayout, na: int, nb: int):
-        self.r, self.u, self.z, self.d = r, u, z, d
-        self.layout, self.na, self.nb = layout, na, nb
-        self._u_c = u - u.mean(axis=0)
-
-    def row_regression(self, r_moving: list) -> SharedBlockRegression:
-        """Setpoint lags ``0 .. n_lag_r - 1`` of the moving setpoints (S_Delta row test)."""
-        r, lay = self.r, self.layout
-        r_c = r - r.mean(axis=0)
-        Xr = lag_matrix(r_c[:, r_moving], range(0, lay.n_lag_r), lay.start) if r_moving else \
-            np.zeros((r.shape[0] - lay.start, 0))
-        return SharedBlockRegression(Xr, [lay.n_lag_r] * len(r_moving))
-
-    def row_fit(self, reg: SharedBlockRegression, i: int):
-        """ARX of ``z_i`` on the setpoints (``reg``) and its own lags 1..na."""
-        start = self.layout.start
-        zi = self.z[:, i] - self.z[:, i].mean()
-        own = -lag_matrix(zi, range(1, self.na + 1), start) if self.na else None
-        return reg.fit(zi[start:], own)
-
-    def input_regression(self, testable: list) -> SharedBlockRegression:
-        """Input lags ``1 .. n_lag_u`` of the inputs ``testable`` (Delta element test)."""
-        lay = self.layout
-        X = lag_matrix(self._u_c[:, testable], range(1, lay.n_lag_u + 1), lay.start) if testable else \
-            np.zeros((self.u.shape[0] - lay.start, 0))
-        return SharedBlockRegression(X, [lay.n_lag_u] * len(testable))
-
-    def element_fit(self, reg: SharedBlockRegression, i: int):
-        """ARX of ``d_i`` on the input lags (``reg``) and its own lags 1..na."""
-        start = self.layout.start
-        di = self.d[:, i] - self.d[:, i].mean()
-        own = -lag_matrix(di, range(1, self.na + 1), start) if self.na else None
-        return reg.fit(di[start:], own)
-
-    def short_arx(self, i: int, nk: np.ndarray):
-        """The short ARX of ``d_i`` at the delays ``nk`` (the paper's tables); an :class:`ArxFit`."""
-        di = self.d[:, i] - self.d[:, i].mean()
-        return fit_arx(di, self._u_c, self.na, self.nb, nk)
-
-
 def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
             signals: Optional[LoopSignals] = None, regressions=None) -> AnalysisReport:
     """Run the S_Delta row test and the Delta element test on logged closed-loop data.
@@ -434,11 +335,12 @@ def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = Anal
     options : AnalysisOptions
     signals : LoopSignals, optional
         ``yhat``, ``d`` and ``eps`` of these samples, e.g. from a model run continuously since
-        before the window (:mod:`mpm_monitor.core.incremental`); default: recomputed from the data with
+        before the window (:mod:`mpm_monitor.core.sliding`); default: recomputed from the data with
         ``options.initial_state``.
     regressions : object, optional
-        Provider of the tests' least-squares fits with the methods of :class:`QrRegressions`.
-        Default: :func:`mpm_monitor.core.incremental.window_regressions`, the fits solved from the Gram
+        Provider of the tests' least-squares fits with the methods of
+        :class:`~mpm_monitor.core.regressions.QrRegressions`.  Default:
+        :func:`mpm_monitor.core.regressions.window_regressions`, the fits solved from the Gram
         matrices of the window's lagged signals, each regression whose condition bound exceeds
         1e3 (or whose residual is too small a part of its target) refitted by QR; the results equal
         those of :class:`QrRegressions` to about 1e-10.
@@ -482,7 +384,6 @@ def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = Anal
     if regressions is not None:
         regs = regressions
     else:
-        from .incremental import window_regressions  # imports this module
         regs = window_regressions(r, u, z, sig.d, layout, na, nb)
 
     # ---------------------------------------------------------------- S_Delta row test
@@ -588,7 +489,7 @@ class InputDesign:
         the lag blocks of the other inputs, exceeds ``1 / threshold``.
     regression : callable, optional
         ``regression(testable)`` returns the :class:`SharedBlockRegression` of the lags of the
-        inputs ``testable`` (default: :meth:`QrRegressions.input_regression`).
+        inputs ``testable`` (default: :meth:`~mpm_monitor.core.regressions.QrRegressions.input_regression`).
 
     Attributes
     ----------
