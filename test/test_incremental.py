@@ -20,12 +20,13 @@ from scipy import signal as sps
 
 from mpm_monitor.core.analysis import AnalysisOptions, analyze
 from mpm_monitor.core.arx import SharedBlockRegression, lag_matrix
+from mpm_monitor.core.discretize import ModelPredictor
 from mpm_monitor.core.errors import ConfigurationError, DataFileError
 from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import FopdtModel
 from mpm_monitor.core.regressions import GramBlockRegression, GramFit, QrRegressions, regression_layout
 from mpm_monitor.core.signals import LoopSignals, compute_signals
-from mpm_monitor.core.sliding import ModelPredictor, SlidingWindowAnalyzer
+from mpm_monitor.core.sliding import SlidingWindowAnalyzer
 from mpm_monitor.sim.cases import paper_case
 from mpm_monitor.sim.closed_loop import ExcitationOptions, run_closed_loop
 

@@ -49,10 +49,9 @@ from __future__ import annotations
 from typing import Optional
 
 import numpy as np
-from scipy import signal as sps
 
 from .analysis import AnalysisOptions, AnalysisReport, analyze
-from .discretize import discretize
+from .discretize import ModelPredictor
 from .errors import ConfigurationError, DataFileError
 from .logged_data import LoggedData
 from .model import FopdtModel
@@ -63,73 +62,6 @@ from .signals import LoopSignals
 MEAN_DRIFT_LIMIT = 8.0
 
 
-# ----------------------------------------------------------------------------------------- model
-class ModelPredictor:
-    """The controller's model run sample by sample from rest: ``yhat = Phat u``.
-
-    Uses the element-wise form of :func:`mpm_monitor.core.discretize.discretize`::
-
-        s_ij(k+1) = a_ij s_ij(k) + b_ij u_j(k - m_ij),    yhat_i(k) = sum_j s_ij(k) + D_ij u_j(k)
-
-    which is the dense realisation of :func:`~mpm_monitor.core.discretize.state_space` with its shift
-    registers replaced by a short input history: ``O(n_outputs n_inputs)`` per sample.
-
-    Parameters
-    ----------
-    model : FopdtModel
-    """
-
-    def __init__(self, model: FopdtModel):
-        disc = discretize(model)
-        self.ny, self.nu = model.n_outputs, model.n_inputs
-        self._pole = np.where(disc.active, disc.pole, 0.0)
-        self._numerator = np.where(disc.active, disc.numerator, 0.0)
-        self._lag = np.where(disc.active, disc.input_lag, 0).astype(int)
-        self._feedthrough = np.asarray(disc.feedthrough, dtype=float)
-        self._has_feedthrough = bool(np.any(self._feedthrough != 0))
-        self._active = [(i, j) for i in range(self.ny) for j in range(self.nu) if disc.active[i, j]]
-        self.n_history = int(self._lag.max(initial=0))
-        # u_j(k - m_ij) is entry (n_history - m_ij, j) of the history [u(k - n_history) .. u(k)].
-        self._delayed_index = ((self.n_history - self._lag) * self.nu + np.arange(self.nu)).ravel()
-        self.reset()
-
-    def reset(self) -> None:
-        """Back to rest: zero element states and zero past inputs."""
-        self.state = np.zeros((self.ny, self.nu))
-        self._history = np.zeros((self.n_history + 1, self.nu))   # u(k - n_history) .. u(k - 1), scratch row
-
-    def step(self, u: np.ndarray) -> np.ndarray:
-        """``yhat(k)`` of shape (n_outputs,) for the input ``u(k)``, then advance to ``k + 1``."""
-        hist = self._history
-        hist[-1] = u
-        delayed = hist.ravel()[self._delayed_index].reshape(self.ny, self.nu)
-        yhat = self.state.sum(axis=1)
-        if self._has_feedthrough:
-            yhat = yhat + self._feedthrough @ u
-        self.state = self._pole * self.state + self._numerator * delayed
-        hist[:-1] = hist[1:]
-        return yhat
-
-    def run(self, u: np.ndarray) -> np.ndarray:
-        """``yhat`` of shape (n_samples, n_outputs) for the inputs ``u`` of shape (n_samples, n_inputs)."""
-        n = u.shape[0]
-        ext = np.vstack([self._history[:-1], u])
-        yhat = np.zeros((n, self.ny))
-        h = self.n_history
-        for i, j in self._active:
-            m = self._lag[i, j]
-            v = ext[h - m:h - m + n, j]
-            s, zf = sps.lfilter([0.0, self._numerator[i, j]], [1.0, -self._pole[i, j]], v, zi=[self.state[i, j]])
-            yhat[:, i] += s
-            self.state[i, j] = zf[0]
-        if self._has_feedthrough:
-            yhat += u @ self._feedthrough.T
-        if h:
-            self._history[:-1] = ext[ext.shape[0] - h:]
-        return yhat
-
-
-# ----------------------------------------------------------------------------------------- buffer
 # ----------------------------------------------------------------------------------------- analyzer
 def _split_signals(ny: int, nu: int):
     """``signals(block)`` for buffer rows ``[r | u | y | yhat]``: r, u, d = y - yhat, z = eps - r."""
