@@ -127,6 +127,14 @@ def test_holm_adjust_against_hand_computation():
     np.testing.assert_allclose(holm_adjust(p), [0.03, 0.06, 0.06, np.nan, 0.02])
 
 
+def test_holm_adjust_leaves_every_non_finite_entry_out_of_the_family():
+    # An infinity is no p-value: like NaN it is not counted in m and stays NaN (hand computation:
+    # m = 2, sorted 0.02 * 2 = 0.04, 0.3 * 1 = 0.3).
+    p = np.array([[0.3, np.inf], [-np.inf, 0.02]])
+    np.testing.assert_allclose(holm_adjust(p), [[0.3, np.nan], [np.nan, 0.04]])
+    assert np.all(np.isnan(holm_adjust([np.nan, np.inf])))
+
+
 def test_f_test_p_value_matches_scipy():
     f, p = f_test(12.0, 10.0, 4, 100)
     assert f == pytest.approx((2.0 / 4) / (10.0 / 100))
