@@ -37,7 +37,7 @@ import numpy as np
 
 from .arx import SharedBlockRegression, estimate_delay_from_lags, lag_matrix
 from .errors import ConfigurationError, DataFileError
-from .logged_data import LoggedData
+from .logged_data import LoggedData, check_loop_data
 from .model import FopdtModel
 from .regressions import regression_layout, window_regressions
 from .signals import INITIAL_STATE_CHOICES, LoopSignals, compute_signals
@@ -354,18 +354,10 @@ def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = Anal
     DataFileError
         When the data do not fit the model or are too short for the tests.
     """
-    ny, nu = model.n_outputs, model.n_inputs
+    ny = model.n_outputs
     src = data.source or "data"
-    if tuple(data.outputs) != tuple(model.outputs) or tuple(data.inputs) != tuple(model.inputs):
-        raise DataFileError(f"{src}: channels {list(data.inputs)} / {list(data.outputs)} do not match the model's "
-                            f"inputs {list(model.inputs)} / outputs {list(model.outputs)}")
-    r, u, y = (np.asarray(a, dtype=float) for a in (data.r, data.u, data.y))
+    r, u, y = check_loop_data(model, data)
     n = r.shape[0]
-    if r.shape != (n, ny) or u.shape != (n, nu) or y.shape != (n, ny):
-        raise DataFileError(f"{src}: expected arrays of shape ({n}, {ny}), ({n}, {nu}), ({n}, {ny}) for r, u, y")
-    for name, arr in (("setpoint", r), ("input", u), ("output", y)):
-        if not np.all(np.isfinite(arr)):
-            raise DataFileError(f"{src}: {name} values contain NaN or infinity")
     na, nb, alpha = options.na, options.nb, options.alpha
     layout = regression_layout(model, options)
     n_lag_r, n_lag_u, start = layout.n_lag_r, layout.n_lag_u, layout.start

@@ -53,7 +53,7 @@ import numpy as np
 from .analysis import AnalysisOptions, AnalysisReport, analyze
 from .discretize import ModelPredictor
 from .errors import ConfigurationError, DataFileError
-from .logged_data import LoggedData
+from .logged_data import LoggedData, check_signals
 from .model import FopdtModel
 from .regressions import DEFAULT_MAX_CONDITION, GramRegressions, LaggedGram, SampleBuffer, regression_layout
 from .signals import LoopSignals
@@ -170,29 +170,9 @@ class SlidingWindowAnalyzer:
         return {"buffer": int(self.buffer.data.nbytes), "gram": int(gram)}
 
     # -------------------------------------------------------------- input
-    def _checked(self, r, u, y, n=None):
-        """``r, u, y`` as float arrays of the expected shapes, all finite; else :class:`DataFileError`."""
-        out = []
-        for name, value, width in (("setpoint", r, self.ny), ("input", u, self.nu), ("output", y, self.ny)):
-            arr = np.asarray(value, dtype=float)
-            shape = (width,) if n is None else (n, width)
-            if arr.shape != shape:
-                raise DataFileError(f"{name}: expected shape {shape}, got {arr.shape}")
-            out.append(arr)
-        if n is None:
-            joined = np.concatenate(out)
-            if not np.isfinite(joined).all():
-                bad = [name for name, arr in zip(("setpoint", "input", "output"), out) if not np.isfinite(arr).all()]
-                raise DataFileError(f"{bad[0]}: values contain NaN or infinity")
-            return joined
-        for name, arr in zip(("setpoint", "input", "output"), out):
-            if not np.isfinite(arr).all():
-                raise DataFileError(f"{name}: values contain NaN or infinity")
-        return out
-
     def push(self, r, u, y) -> None:
         """Add one sample ``r(k)``, ``u(k)``, ``y(k)`` (shapes (n_outputs,), (n_inputs,), (n_outputs,))."""
-        ruy = self._checked(r, u, y)
+        ruy = np.concatenate(check_signals(r, u, y, self.ny, self.nu))
         if self.buffer.free() < 1:
             self.flush()
             self.buffer.compact()
@@ -207,7 +187,7 @@ class SlidingWindowAnalyzer:
         """Add samples in time order: ``r``, ``y`` of shape (n, n_outputs), ``u`` of shape (n, n_inputs)."""
         shape = np.shape(r)
         n = shape[0] if len(shape) == 2 else -1
-        r, u, y = self._checked(r, u, y, n)
+        r, u, y = check_signals(r, u, y, self.ny, self.nu, n)
         for a in range(0, n, self._slack):
             b = min(a + self._slack, n)
             if self.buffer.free() < b - a:
