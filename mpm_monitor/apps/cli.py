@@ -117,8 +117,8 @@ def _cmd_recover(args) -> int:
 def _cmd_analyze(args) -> int:
     import numpy as np
 
-    from ..core.analysis import analyze
     from ..core.logged_data import check_scale
+    from ..core.pipeline import analyze
     from ..io.csv_log import read_csv
     from ..io.model_file import load_model, save_model
 

@@ -550,5 +550,5 @@ def partial_correlation_test(d, u, alpha: float = 0.01, max_lag: Optional[int] =
                              ambiguous=ambiguous, separability=separability)
 
 
-#: Element tests by method name, as :func:`mpm_monitor.core.analysis.analyze` selects them.
+#: Element tests by method name, as :func:`mpm_monitor.core.element_test.baseline_element_test` selects them.
 ELEMENT_TESTS = {"xcorr": cross_correlation_test, "pcorr": partial_correlation_test}

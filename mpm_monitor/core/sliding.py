@@ -1,7 +1,7 @@
 """Sliding-window mismatch analysis from sufficient statistics.
 
 A live monitor analyses the last ``W`` samples every few seconds.  Refitting the tests of
-:func:`mpm_monitor.core.analysis.analyze` from scratch costs ``O(W p^2)`` per analysis, with ``p`` the
+:func:`mpm_monitor.core.pipeline.analyze` from scratch costs ``O(W p^2)`` per analysis, with ``p`` the
 number of regressors (about 300 for a 20x20 plant).  :class:`SlidingWindowAnalyzer` instead keeps
 cross-product (Gram) matrices of the lagged regressors up to date as samples enter and leave the
 window, ``O(p^2)`` per sample, and an analysis solves the tests' least-squares problems from them in
@@ -50,11 +50,12 @@ from typing import Optional
 
 import numpy as np
 
-from .analysis import AnalysisOptions, AnalysisReport, analyze
+from .analysis import AnalysisOptions, AnalysisReport
 from .discretize import ModelPredictor
 from .errors import ConfigurationError, DataFileError
 from .logged_data import LoggedData, check_signals
 from .model import FopdtModel
+from .pipeline import analyze
 from .regressions import DEFAULT_MAX_CONDITION, GramRegressions, LaggedGram, SampleBuffer, regression_layout
 from .signals import LoopSignals
 
@@ -82,7 +83,7 @@ class SlidingWindowAnalyzer:
     model : FopdtModel
         The controller's model ``Phat``; it is run from rest at the first pushed sample.
     options : AnalysisOptions
-        As for :func:`mpm_monitor.core.analysis.analyze` (``initial_state`` is not used).
+        As for :func:`mpm_monitor.core.pipeline.analyze` (``initial_state`` is not used).
     window : int
         ``W``, the number of most recent samples analysed (at least the tests' minimum for this
         model and these options).
@@ -272,7 +273,7 @@ class SlidingWindowAnalyzer:
         return data, LoopSignals(yhat=yhat, d=d, eps=eps, transient=np.zeros_like(d))
 
     def analyze(self) -> AnalysisReport:
-        """The analysis of the current window (see :func:`mpm_monitor.core.analysis.analyze`).
+        """The analysis of the current window (see :func:`mpm_monitor.core.pipeline.analyze`).
 
         Raises
         ------

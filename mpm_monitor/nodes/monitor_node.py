@@ -2,7 +2,7 @@
 
 Wraps :class:`~mpm_monitor.monitor.monitor_core.MonitorCore` (window, schedule, statuses) and
 :class:`~mpm_monitor.monitor.monitor_core.AnalysisWorker` (the analysis of
-:func:`mpm_monitor.core.analysis.analyze` in a background thread).  The subscription callbacks only
+:func:`mpm_monitor.core.pipeline.analyze` in a background thread).  The subscription callbacks only
 decode and append to the window, so no sample waits for an analysis; every ``analysis_period``
 completed samples the window is copied and handed to the worker, and its result comes back
 through a short steady-clock timer and is published on ``/diagnostics`` (CONTRACTS section 4) and as a
@@ -139,7 +139,7 @@ class MonitorNode(Node):
     name : str
         Node name.
     analyze : callable, optional
-        ``analyze(model, data, options) -> report``; default :func:`mpm_monitor.core.analysis.analyze`
+        ``analyze(model, data, options) -> report``; default :func:`mpm_monitor.core.pipeline.analyze`
         (injectable for tests of the plumbing).
     **kwargs
         Passed to ``rclpy.node.Node`` (``context``, ``parameter_overrides``, ``cli_args``, ...).
@@ -151,7 +151,7 @@ class MonitorNode(Node):
         self.params = p
         self._process_analyzer = None
         if analyze is None:
-            from ..core.analysis import analyze
+            from ..core.pipeline import analyze
             if p["analysis_process"] and p["analysis_thread"]:
                 self._process_analyzer = analyze = ProcessAnalyzer(analyze)
         self._analyze = analyze
