@@ -2,10 +2,10 @@
 
 Commands
 --------
-analyze    offline analysis of a CSV log or a bag (CONTRACTS section 3)
+analyze    offline analysis of a CSV log or a bag (docs/interfaces.md, "analyze and its JSON report")
 reproduce  simulate a paper case and print the paper-style result
 simulate   run a closed-loop simulation and write the contract CSV
-demo       run the four ROS 2 nodes in-process on a paper case (CONTRACTS section 6)
+demo       run the four ROS 2 nodes in-process on a paper case (docs/interfaces.md, "Demo")
 export     write a bag's contract topics as CSV
 recover    rewrite a hard-killed recording as a closed bag
 
@@ -29,39 +29,64 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
+#: The analysis options given on the command line of ``analyze`` and ``reproduce``, in their flags' order.
+CLI_ANALYSIS_OPTIONS = ("method", "alpha", "na", "nb", "band", "initial_state", "repair")
+
+#: Names of the values of an option that takes several (default: the option's name in capitals).
+_METAVARS = {"band": ("LOW", "HIGH")}
+
+
+def _text(value) -> str:
+    if isinstance(value, (tuple, list)):
+        return " ".join(_text(v) for v in value)
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
 def _add_analysis_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--method", choices=("arx", "xcorr", "pcorr"), default="arx",
-                   help="arx: the S_Delta row test and ARX Delta element test (default); xcorr: cross-correlation "
-                        "baseline (Webber and Gupta 2008); pcorr: partial-correlation baseline (Badwe et al. 2009)")
-    p.add_argument("--alpha", type=float, default=0.01,
-                   help="family-wise false-alarm rate of the row and of the element tests (default 0.01)")
-    p.add_argument("--na", type=int, default=4, help="ARX order of A (default 4)")
-    p.add_argument("--nb", type=int, default=4, help="ARX order of each B (default 4)")
-    p.add_argument("--band", type=float, nargs=2, metavar=("LOW", "HIGH"), default=None,
-                   help="band Omega for the RSI, in rad/sample (default 0 to pi)")
-    p.add_argument("--initial-state", choices=("estimate", "zero"), default="estimate",
-                   help="model state at the first sample: estimated by least squares (default) or zero")
-    p.add_argument("--no-repair", action="store_true", help="locate only; do not re-estimate the elements")
+    """One flag per option of :data:`CLI_ANALYSIS_OPTIONS`, from its ParamSpec (:data:`ANALYSIS_PARAMS`).
+
+    ``--name-with-dashes VALUE``; a choice lists its choices; a ``double_array`` takes its values
+    after the flag; a bool that is on by default is turned off by ``--no-name``.  The values are
+    checked by :class:`~mpm_monitor.core.analysis.AnalysisOptions` itself.
+    """
+    from ..core.analysis import ANALYSIS_PARAMS
+
+    for name in CLI_ANALYSIS_OPTIONS:
+        spec = ANALYSIS_PARAMS[name]
+        flag = "--" + name.replace("_", "-")
+        what = spec.description.rstrip(".")
+        if spec.kind == "bool":
+            if spec.default:
+                p.add_argument("--no-" + name.replace("_", "-"), dest=name, action="store_false",
+                               help=f"turn off (on by default): {what}")
+            else:
+                p.add_argument(flag, dest=name, action="store_true", help=f"{what} (off by default)")
+            continue
+        help_text = f"{what} (default {_text(spec.default)})"
+        if spec.choices:
+            p.add_argument(flag, dest=name, choices=spec.choices, default=spec.default, help=help_text)
+        elif spec.kind == "double_array":
+            p.add_argument(flag, dest=name, type=float, nargs=spec.length, default=spec.default,
+                           metavar=_METAVARS.get(name, name.upper()), help=help_text)
+        else:
+            p.add_argument(flag, dest=name, type=int if spec.kind == "int" else float, default=spec.default,
+                           help=help_text)
 
 
 def _analysis_options(args):
     from ..core.analysis import AnalysisOptions
 
-    kw = dict(method=args.method, alpha=args.alpha, na=args.na, nb=args.nb, initial_state=args.initial_state,
-              repair=not args.no_repair)
-    if args.band is not None:
-        kw["band"] = tuple(args.band)
-    return AnalysisOptions(**kw)
+    return AnalysisOptions(**{name: getattr(args, name) for name in CLI_ANALYSIS_OPTIONS})
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="python -m mpm_monitor", description="Model-plant mismatch monitor for MPC loops.")
     sub = parser.add_subparsers(dest="command", parser_class=_Parser)
 
-    p = sub.add_parser("analyze", help="analyse a CSV log or a bag against a model (CONTRACTS section 3)")
-    p.add_argument("--model", required=True, help="model file (YAML, CONTRACTS section 1)")
+    p = sub.add_parser("analyze", help="analyse a CSV log or a bag against a model (docs/interfaces.md)")
+    p.add_argument("--model", required=True, help="model file (YAML; docs/interfaces.md, \"Model file\")")
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--data", help="logged data (CSV, CONTRACTS section 2)")
+    src.add_argument("--data", help="logged data (CSV; docs/interfaces.md, \"Logged data (CSV)\")")
     src.add_argument("--bag", help="rosbag2 directory with the setpoint, input and output topics")
     p.add_argument("--json", dest="json_out", help="write the JSON report to this file ('-' = stdout)")
     p.add_argument("--repair-out", help="write the repaired model file (YAML) here")
@@ -87,7 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--csv", required=True, help="output CSV file")
     p.add_argument("--write-model", help="also write the controller model file here")
 
-    p = sub.add_parser("demo", help="run the ROS 2 nodes in-process on a paper case (CONTRACTS section 6)")
+    p = sub.add_parser("demo", help="run the ROS 2 nodes in-process on a paper case (docs/interfaces.md, \"Demo\")")
     p.add_argument("--case", choices=("3.1", "3.2", "3.3"), default="3.2")
     p.add_argument("--samples", type=int, default=None, help="samples to simulate (default: the case's)")
     p.add_argument("--bag", default=None, help="record every topic to this rosbag2 (MCAP) directory")

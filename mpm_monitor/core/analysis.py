@@ -29,17 +29,24 @@ from .element_test import InputDesign, arx_element_test, baseline_element_test
 from .errors import ConfigurationError, DataFileError
 from .logged_data import LoggedData, check_loop_data
 from .model import FopdtModel
+from .options import check_options, option, option_specs
 from .regressions import regression_layout, window_regressions
 from .row_test import sdelta_row_test
 from .signals import INITIAL_STATE_CHOICES, LoopSignals, compute_signals
 from .wording import repair_summary_lines
 
 METHODS = ("arx", "xcorr", "pcorr")
+ELEMENT_WINDOWS = ("model", "full")
 
 
 @dataclasses.dataclass(frozen=True)
 class AnalysisOptions:
     """Options of the analysis (:func:`detect`, :func:`mpm_monitor.core.pipeline.analyze`).
+
+    Each field is declared with its default, description and range once
+    (:func:`mpm_monitor.core.options.option`); :data:`ANALYSIS_PARAMS` holds them as
+    :class:`~mpm_monitor.core.options.ParamSpec` and every value is checked by them on creation
+    (:func:`check_analysis_options`), a number converted to the field's type.
 
     Attributes
     ----------
@@ -59,7 +66,8 @@ class AnalysisOptions:
     n_freq : int
         Frequencies evaluated in the band.
     max_delay : int or None
-        Largest dead time (samples) searched; default: the model's largest delay + 5, at least 10.
+        Largest dead time (samples) searched, in [0, 1000]; None (default): the model's largest
+        delay + 5, at least 10.
     initial_state : {"estimate", "zero"}
         How the model output is started (:func:`mpm_monitor.core.signals.compute_signals`).
     method : {"arx", "xcorr", "pcorr"}
@@ -81,46 +89,54 @@ class AnalysisOptions:
         when its S_Delta test, which has less power for a small mismatch, did not reject.
     """
 
-    na: int = 4
-    nb: int = 4
-    alpha: float = 0.01
-    band: tuple = (0.0, math.pi)
-    n_freq: int = 256
-    max_delay: Optional[int] = None
-    initial_state: str = "estimate"
-    method: str = "arx"
-    repair: bool = True
-    collinearity_threshold: float = 1e-2
-    test_all_rows: bool = True
-    element_window: str = "model"
+    na: int = option(4, "ARX order of A.", low=0, high=50)
+    nb: int = option(4, "ARX order of each B.", low=1, high=50)
+    alpha: float = option(0.01, "False-alarm rate of a whole analysis (split between the row tests and the element "
+                                "tests, each with Holm's procedure).", low=0.0, high=0.5, open_low=True, open_high=True)
+    band: tuple = option((0.0, math.pi), "RSI band, rad/sample.", low=0.0, high=math.pi, length=2)
+    n_freq: int = option(256, "Frequencies evaluated in the band.", low=8, high=100000)
+    max_delay: Optional[int] = option(None, "Largest dead time searched, samples.", low=0, high=1000)
+    initial_state: str = option("estimate", "Model state at the first sample analysed: estimated by least squares or zero.",
+                                choices=INITIAL_STATE_CHOICES)
+    method: str = option("arx", "Element test: arx (paper), xcorr or pcorr (baselines).", choices=METHODS)
+    repair: bool = option(True, "Also trace each located element to its kind and re-estimate it, for a suggested "
+                                "repaired model (about 0.5-2 s more per analysis of a 3x3 window).")
+    collinearity_threshold: float = option(1e-2, "Inputs are not separable when the variance inflation of a lag "
+                                                 "block exceeds 1 / this.", low=0.0, high=1.0, open_low=True,
+                                           open_high=True)
+    test_all_rows: bool = option(True, "Run the element test on every row, not only on the rows the S_Delta test "
+                                       "flags.")
+    element_window: str = option("model", "Lags the element test examines: model (the first delay + nb of an "
+                                          "element the model has) or full (all).", choices=ELEMENT_WINDOWS)
 
     def __post_init__(self):
-        check_analysis_options(self)
+        for name, value in check_analysis_options(self).items():
+            object.__setattr__(self, name, value)
 
 
-def check_analysis_options(o: AnalysisOptions) -> None:
-    """Raise :class:`ConfigurationError` naming the option outside its range."""
-    if int(o.na) != o.na or not 0 <= o.na <= 50:
-        raise ConfigurationError(f"na: expected an integer in [0, 50], got {o.na!r}")
-    if int(o.nb) != o.nb or not 1 <= o.nb <= 50:
-        raise ConfigurationError(f"nb: expected an integer in [1, 50], got {o.nb!r}")
-    if not (0.0 < o.alpha < 0.5):
-        raise ConfigurationError(f"alpha: expected a number in (0, 0.5), got {o.alpha!r}")
-    lo, hi = o.band
-    if not (0.0 <= lo < hi <= math.pi + 1e-12):
-        raise ConfigurationError(f"band: expected 0 <= low < high <= pi rad/sample, got {o.band!r}")
-    if int(o.n_freq) != o.n_freq or not 8 <= o.n_freq <= 100000:
-        raise ConfigurationError(f"n_freq: expected an integer in [8, 100000], got {o.n_freq!r}")
-    if o.max_delay is not None and (int(o.max_delay) != o.max_delay or not 0 <= o.max_delay <= 1000):
-        raise ConfigurationError(f"max_delay: expected an integer in [0, 1000] samples, got {o.max_delay!r}")
-    if o.initial_state not in INITIAL_STATE_CHOICES:
-        raise ConfigurationError(f"initial_state: expected one of {', '.join(INITIAL_STATE_CHOICES)}, got {o.initial_state!r}")
-    if o.element_window not in ("model", "full"):
-        raise ConfigurationError(f"element_window: expected 'model' or 'full', got {o.element_window!r}")
-    if o.method not in METHODS:
-        raise ConfigurationError(f"method: expected one of {', '.join(METHODS)}, got {o.method!r}")
-    if not (0.0 < o.collinearity_threshold < 1.0):
-        raise ConfigurationError(f"collinearity_threshold: expected a number in (0, 1), got {o.collinearity_threshold!r}")
+def check_analysis_options(o: AnalysisOptions) -> dict:
+    """Check every option against its :class:`~mpm_monitor.core.options.ParamSpec` (:data:`ANALYSIS_PARAMS`).
+
+    Returns
+    -------
+    dict
+        Option name -> value converted to the option's type.
+
+    Raises
+    ------
+    ConfigurationError
+        Naming the option outside its range (or a band whose low edge is not below its high edge).
+    """
+    values = check_options(o)
+    lo, hi = values["band"]
+    if not lo < hi:
+        raise ConfigurationError(f"parameter band: expected 0 <= low < high <= pi rad/sample, got {o.band!r}")
+    return values
+
+
+#: The :class:`~mpm_monitor.core.options.ParamSpec` of every analysis option, by name: the one source
+#: of the command line's analysis flags and the monitor node's analysis parameters.
+ANALYSIS_PARAMS = {spec.name: spec for spec in option_specs(AnalysisOptions)}
 
 
 @dataclasses.dataclass
