@@ -5,8 +5,8 @@ Wraps :class:`~mpm_monitor.monitor.monitor_core.MonitorCore` (window, schedule, 
 :func:`mpm_monitor.core.pipeline.analyze` in a background thread).  The subscription callbacks only
 decode and append to the window, so no sample waits for an analysis; every ``analysis_period``
 completed samples the window is copied and handed to the worker, and its result comes back
-through a short steady-clock timer and is published on ``/diagnostics`` (CONTRACTS section 4) and as a
-``std_msgs/Float64MultiArray`` of row RSI values on ``mpm_monitor/rsi``.  The latest statuses are
+through a short steady-clock timer and is published on ``/diagnostics`` (docs/interfaces.md, "ROS 2
+topics and statuses") and as a ``std_msgs/Float64MultiArray`` of row RSI values on ``mpm_monitor/rsi``.  The latest statuses are
 re-published every ``republish_period`` wall-clock seconds, turning STALE when no complete sample
 came for ``stale_timeout`` seconds; bad messages (wrong channel names, lengths, non-finite values,
 off-grid or conflicting stamps) make the summary ERROR with the reason.
