@@ -2,11 +2,11 @@
 
 ``analyze(model, data, options)`` now simulates the model element by element
 (:func:`mpm_monitor.core.discretize.simulate_elements`) and solves the tests from Gram matrices built at
-once from the window (:func:`mpm_monitor.core.incremental.window_regressions`, with their shift structure:
-:func:`~mpm_monitor.core.incremental.lagged_cross_products`), refitting by QR any regression whose
+once from the window (:func:`mpm_monitor.core.regressions.window_regressions`, with their shift structure:
+:func:`~mpm_monitor.core.regressions.lagged_cross_products`), refitting by QR any regression whose
 conditioning is poor.  The references are the previous paths: the dense simulation of
 :func:`~mpm_monitor.core.discretize.state_space` (``scipy.signal.dlsim``) and
-:class:`~mpm_monitor.core.analysis.QrRegressions`.
+:class:`~mpm_monitor.core.regressions.QrRegressions`.
 
 Tolerances: simulations 1e-12 of the largest output; cross products 1e-13 of the largest entry;
 the analysis as in test_incremental.py -- decisions (flagged rows, located / ambiguous elements,

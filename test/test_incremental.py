@@ -1,9 +1,9 @@
 """Sliding-window analysis from sufficient statistics equals the batch QR analysis of the same window.
 
-"Same window" (mpm_monitor/incremental.py): the last W samples of r, u, y, with yhat, d and eps from
+"Same window" (mpm_monitor/core/sliding.py): the last W samples of r, u, y, with yhat, d and eps from
 the controller's model run from rest at the first pushed sample -- i.e. compute_signals(...,
 initial_state="zero") over every pushed sample, cut to the window, passed to analyze(signals=...)
-with the QR regressions (analysis.QrRegressions: the reference, not the default Gram path).
+with the QR regressions (regressions.QrRegressions: the reference, not the default Gram path).
 Tolerance 1e-8 on log p-values, F statistics, RSI and coefficients (coefficients relative to the
 largest of their vector); the decisions (flagged rows, located and ambiguous elements) must be equal.
 
