@@ -235,18 +235,23 @@ def element_response(disc: DiscreteFopdt, u: np.ndarray, state: Optional[np.ndar
     if n == 0:
         return np.zeros((0, len(rows)))
     lag = disc.input_lag
-    if past is None:
-        past = np.zeros((int(lag.max(initial=0)), nu))
-    h = past.shape[0]
-    ext_t = np.ascontiguousarray(np.vstack([past, u]).T)          # one contiguous row per input
+    rest = state is None and past is None
+    if rest:
+        h, ext_t = 0, np.ascontiguousarray(u.T)                    # one contiguous row per input
+    else:
+        past = np.zeros((int(lag.max(initial=0)), nu)) if past is None else past
+        h, ext_t = past.shape[0], np.ascontiguousarray(np.vstack([past, u]).T)
     y_t = np.zeros((len(rows), n))
     for r, i in enumerate(rows):
         for j in np.flatnonzero(disc.active[i]):
             m = int(lag[i, j])
-            zi = [0.0 if state is None else state[i, j]]
             # s_ij(k) filters u_j(k - m - 1): s[k] = b u_j(k - m - 1) + a s[k - 1].
-            s, zf = signal.lfilter([0.0, disc.numerator[i, j]], [1.0, -disc.pole[i, j]], ext_t[j, h - m:h - m + n],
-                                   zi=zi)
+            num, den = [0.0, disc.numerator[i, j]], [1.0, -disc.pole[i, j]]
+            if rest:               # s_ij(k) is zero up to k = m
+                if m + 1 < n:
+                    y_t[r, m:] += signal.lfilter(num, den, ext_t[j, :n - m])
+                continue
+            s, zf = signal.lfilter(num, den, ext_t[j, h - m:h - m + n], zi=[0.0 if state is None else state[i, j]])
             y_t[r] += s
             if state is not None:
                 state[i, j] = zf[0]
