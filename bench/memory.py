@@ -4,7 +4,7 @@ Run from the repository root::
 
     .venv/bin/python -m bench.memory [--quick] [--out bench/results/memory.json]
 
-For n x n plants and windows of W samples, :class:`mpm_monitor.core.incremental.SlidingWindowAnalyzer`
+For n x n plants and windows of W samples, :class:`mpm_monitor.core.sliding.SlidingWindowAnalyzer`
 is built and filled, and tracemalloc (which numpy reports its buffers to) gives
 
 * ``held``: bytes the analyzer keeps between analyses (window buffer, Gram matrices, model state);
@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from mpm_monitor.core.analysis import AnalysisOptions
-from mpm_monitor.core.incremental import SlidingWindowAnalyzer
+from mpm_monitor.core.sliding import SlidingWindowAnalyzer
 
 from .plants import random_plant
 

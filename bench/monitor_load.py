@@ -9,7 +9,7 @@ A plain rclpy publisher (no plant or MPC node of ours) sends the three contract 
 process, stamped in simulated time ``k * Ts``, paced at the plant's real rate (or as fast as it
 can, for the ceiling).  The monitor node (:class:`mpm_monitor.nodes.monitor_node.MonitorNode`)
 spins in a SingleThreadedExecutor on the main thread and runs the real analysis
-(:func:`mpm_monitor.core.analysis.analyze`, no repair) in its worker thread while the samples keep
+(:func:`mpm_monitor.core.pipeline.analyze`, no repair) in its worker thread while the samples keep
 coming.  Both share one private context (``ROS_AUTOMATIC_DISCOVERY_RANGE=OFF``).
 
 Figures per run:

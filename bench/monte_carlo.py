@@ -10,7 +10,7 @@ elements of random kind and size, the paper's noise and MPC tuning, PRBS setpoin
 in 30 % of the runs), simulates the closed loop once, and gives the *same* logged ``r, u, y`` to
 every method:
 
-* ``arx``: :func:`mpm_monitor.core.analysis.analyze` with ``method="arx"`` (S_Delta row test, then the
+* ``arx``: :func:`mpm_monitor.core.pipeline.analyze` with ``method="arx"`` (S_Delta row test, then the
   Delta element test on the flagged rows), ``repair=False`` (the repair does not change which
   elements are located and is timed separately);
 * ``xcorr`` / ``pcorr``: the baselines of :mod:`mpm_monitor.core.baselines`, called exactly as
@@ -56,6 +56,7 @@ from typing import Callable, Optional, Sequence  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from mpm_monitor.core.analysis import AnalysisOptions  # noqa: E402
 from mpm_monitor.core.baselines import ELEMENT_TESTS  # noqa: E402
 from mpm_monitor.core.logged_data import LoggedData  # noqa: E402
 from mpm_monitor.core.signals import compute_signals  # noqa: E402
@@ -80,12 +81,12 @@ def simulate(scenario: Scenario, samples: int) -> LoggedData:
 
 
 def _analysis():
-    """The analysis module, or None while it does not exist."""
+    """The analysis (:mod:`mpm_monitor.core.pipeline`), or None while it does not exist."""
     try:
-        from mpm_monitor.core import analysis
+        from mpm_monitor.core import pipeline
     except ImportError:
         return None
-    return analysis
+    return pipeline
 
 
 def _run_arx(model, data: LoggedData, alpha: float) -> dict:
@@ -93,7 +94,7 @@ def _run_arx(model, data: LoggedData, alpha: float) -> dict:
     if analysis is None:
         raise RuntimeError("mpm_monitor.core.analysis is not available: method 'arx' cannot run")
     t0 = time.perf_counter()
-    report = analysis.analyze(model, data, analysis.AnalysisOptions(method="arx", alpha=alpha, repair=False))
+    report = analysis.analyze(model, data, AnalysisOptions(method="arx", alpha=alpha, repair=False))
     dt = time.perf_counter() - t0
     oi = {name: k for k, name in enumerate(model.outputs)}
     ii = {name: k for k, name in enumerate(model.inputs)}
@@ -273,16 +274,16 @@ def time_analyze(methods: Sequence[str] = METHODS, samples: int = 3000, repeats:
     data = simulate(sc, samples)
     out = {"samples": samples, "shape": [5, 5], "repeats": repeats}
     for m in methods:
-        analysis.analyze(sc.model, data, analysis.AnalysisOptions(method=m, repair=False))  # warm-up
+        analysis.analyze(sc.model, data, AnalysisOptions(method=m, repair=False))  # warm-up
         ts = []
         for _ in range(repeats):
             t0 = time.perf_counter()
-            analysis.analyze(sc.model, data, analysis.AnalysisOptions(method=m, repair=False))
+            analysis.analyze(sc.model, data, AnalysisOptions(method=m, repair=False))
             ts.append(time.perf_counter() - t0)
         out[m] = statistics.median(ts)
     if include_repair and "arx" in methods:
         t0 = time.perf_counter()
-        analysis.analyze(sc.model, data, analysis.AnalysisOptions(method="arx", repair=True))
+        analysis.analyze(sc.model, data, AnalysisOptions(method="arx", repair=True))
         out["arx_with_repair"] = time.perf_counter() - t0
     return out
 

@@ -10,7 +10,8 @@ import argparse
 import time
 
 from mpm_monitor.apps.reproduce import simulate_case
-from mpm_monitor.core.analysis import AnalysisOptions, analyze
+from mpm_monitor.core.analysis import AnalysisOptions
+from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.sim.cases import CASE_NAMES
 
 from . import write_json

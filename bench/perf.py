@@ -14,21 +14,21 @@ with the controller model's (y1, u2) gain 30 % off, over windows of W samples:
 
 ``batch``
     The batch analysis as the CLI and the live monitor run it on a window:
-    :func:`mpm_monitor.core.analysis.analyze` from the :class:`~mpm_monitor.core.logged_data.LoggedData` alone,
+    :func:`mpm_monitor.core.pipeline.analyze` from the :class:`~mpm_monitor.core.logged_data.LoggedData` alone,
     i.e. including :func:`mpm_monitor.core.signals.compute_signals` (element-wise model run,
     ``initial_state="estimate"``) and the tests solved from the window's Gram matrices with the QR
-    fallback (:func:`mpm_monitor.core.incremental.window_regressions`); every row's element test
+    fallback (:func:`mpm_monitor.core.regressions.window_regressions`); every row's element test
     (``test_all_rows=True``), no repair.  The regressions it refitted by QR are listed per cell.
 ``qr``
     The reference it replaced: the same tests with every regression factored by QR
-    (:class:`mpm_monitor.core.analysis.QrRegressions`), the signals ``d, eps`` given.
+    (:class:`mpm_monitor.core.regressions.QrRegressions`), the signals ``d, eps`` given.
 ``dense``
     The signals as they were computed before: the dense state-space simulation
     (:func:`mpm_monitor.core.discretize.simulate_state_space`, ``scipy.signal.dlsim``) and the same
     initial-transient estimate.  ``before = qr + dense`` is the previous batch analysis, measured in
     its two parts in the same run.
 ``scratch``
-    :class:`mpm_monitor.core.incremental.SlidingWindowAnalyzer` built from nothing on the W samples:
+    :class:`mpm_monitor.core.sliding.SlidingWindowAnalyzer` built from nothing on the W samples:
     model run, Gram matrices from scratch, solve -- the sufficient-statistics path's full analysis.
 ``periodic``
     The periodic analysis of a live monitor: 100 new samples pushed into a full window, then
@@ -84,11 +84,13 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from mpm_monitor.core.analysis import AnalysisOptions, QrRegressions, analyze, regression_layout  # noqa: E402
+from mpm_monitor.core.analysis import AnalysisOptions  # noqa: E402
 from mpm_monitor.core.arx import lag_matrix  # noqa: E402
 from mpm_monitor.core.discretize import simulate_state_space, state_space  # noqa: E402
-from mpm_monitor.core.incremental import SlidingWindowAnalyzer, window_regressions  # noqa: E402
+from mpm_monitor.core.pipeline import analyze  # noqa: E402
+from mpm_monitor.core.regressions import QrRegressions, regression_layout, window_regressions  # noqa: E402
 from mpm_monitor.core.signals import LoopSignals, compute_signals, initial_transient  # noqa: E402
+from mpm_monitor.core.sliding import SlidingWindowAnalyzer  # noqa: E402
 from mpm_monitor.sim.closed_loop import run_closed_loop  # noqa: E402
 
 from .plants import random_plant  # noqa: E402

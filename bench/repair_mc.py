@@ -22,7 +22,8 @@ import time
 
 import numpy as np
 
-from mpm_monitor.core.analysis import AnalysisOptions, analyze
+from mpm_monitor.core.analysis import AnalysisOptions
+from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.sim.closed_loop import run_closed_loop
 
 from . import write_json

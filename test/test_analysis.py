@@ -11,9 +11,10 @@ import sys
 import numpy as np
 import pytest
 
-from mpm_monitor.core.analysis import AnalysisOptions, analyze
+from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.errors import ConfigurationError, DataFileError
 from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.io.csv_log import write_log_csv
 from mpm_monitor.io.model_file import save_model
 from mpm_monitor.sim.cases import paper_case

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy import signal, stats
 
-from mpm_monitor.core.analysis import holm_adjust
-from mpm_monitor.core.arx import SharedBlockRegression, estimate_delays, f_test, fit_arx, lag_matrix
+from mpm_monitor.core.arx import SharedBlockRegression, estimate_delays, fit_arx, lag_matrix
+from mpm_monitor.core.statistics import f_test, holm_adjust
 
 
 def _arx_data(rng, n=2000, noise=0.0):
@@ -125,6 +125,14 @@ def test_holm_adjust_against_hand_computation():
     p = np.array([0.01, 0.04, 0.03, np.nan, 0.005])
     # sorted: 0.005*4=0.02, 0.01*3=0.03, 0.03*2=0.06, 0.04*1=0.04 -> running max 0.06
     np.testing.assert_allclose(holm_adjust(p), [0.03, 0.06, 0.06, np.nan, 0.02])
+
+
+def test_holm_adjust_leaves_every_non_finite_entry_out_of_the_family():
+    # An infinity is no p-value: like NaN it is not counted in m and stays NaN (hand computation:
+    # m = 2, sorted 0.02 * 2 = 0.04, 0.3 * 1 = 0.3).
+    p = np.array([[0.3, np.inf], [-np.inf, 0.02]])
+    np.testing.assert_allclose(holm_adjust(p), [[0.3, np.nan], [np.nan, 0.04]])
+    assert np.all(np.isnan(holm_adjust([np.nan, np.inf])))
 
 
 def test_f_test_p_value_matches_scipy():

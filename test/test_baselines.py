@@ -18,12 +18,11 @@ from mpm_monitor.core.baselines import (
     ElementTestResult,
     cross_correlation_test,
     fit_ar,
-    holm_adjust,
-    holm_reject,
     input_separability,
     partial_correlation_test,
 )
 from mpm_monitor.core.errors import ConfigurationError, InputError
+from mpm_monitor.core.statistics import holm_adjust, holm_reject
 
 TESTS = (cross_correlation_test, partial_correlation_test)
 

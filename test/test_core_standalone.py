@@ -37,7 +37,8 @@ CHILD = textwrap.dedent('''
 
     import mpm_monitor
     mpm_monitor.limit_blas_threads()
-    from mpm_monitor.core.analysis import AnalysisOptions, analyze
+    from mpm_monitor.core.analysis import AnalysisOptions
+    from mpm_monitor.core.pipeline import analyze
     from mpm_monitor.sim.cases import paper_case
     from mpm_monitor.sim.closed_loop import run_closed_loop
 

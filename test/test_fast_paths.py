@@ -2,11 +2,11 @@
 
 ``analyze(model, data, options)`` now simulates the model element by element
 (:func:`mpm_monitor.core.discretize.simulate_elements`) and solves the tests from Gram matrices built at
-once from the window (:func:`mpm_monitor.core.incremental.window_regressions`, with their shift structure:
-:func:`~mpm_monitor.core.incremental.lagged_cross_products`), refitting by QR any regression whose
+once from the window (:func:`mpm_monitor.core.regressions.window_regressions`, with their shift structure:
+:func:`~mpm_monitor.core.regressions.lagged_cross_products`), refitting by QR any regression whose
 conditioning is poor.  The references are the previous paths: the dense simulation of
 :func:`~mpm_monitor.core.discretize.state_space` (``scipy.signal.dlsim``) and
-:class:`~mpm_monitor.core.analysis.QrRegressions`.
+:class:`~mpm_monitor.core.regressions.QrRegressions`.
 
 Tolerances: simulations 1e-12 of the largest output; cross products 1e-13 of the largest entry;
 the analysis as in test_incremental.py -- decisions (flagged rows, located / ambiguous elements,
@@ -22,12 +22,21 @@ import pytest
 import scipy.linalg as sla
 from scipy import signal as sps
 
-from mpm_monitor.core.analysis import AnalysisOptions, InputDesign, QrRegressions, analyze, regression_layout
+from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.arx import SharedBlockRegression, lag_matrix
 from mpm_monitor.core.discretize import simulate_elements, simulate_state_space, state_space
-from mpm_monitor.core.incremental import GramBlockRegression, GramFit, lagged_cross_products, window_regressions
+from mpm_monitor.core.element_test import InputDesign
 from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.pipeline import analyze
+from mpm_monitor.core.regressions import (
+    GramBlockRegression,
+    GramFit,
+    QrRegressions,
+    lagged_cross_products,
+    regression_layout,
+    window_regressions,
+)
 from mpm_monitor.core.signals import LoopSignals, compute_signals, initial_transient
 from mpm_monitor.sim.cases import paper_case
 from mpm_monitor.sim.closed_loop import ExcitationOptions, run_closed_loop

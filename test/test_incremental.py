@@ -1,9 +1,9 @@
 """Sliding-window analysis from sufficient statistics equals the batch QR analysis of the same window.
 
-"Same window" (mpm_monitor/incremental.py): the last W samples of r, u, y, with yhat, d and eps from
+"Same window" (mpm_monitor/core/sliding.py): the last W samples of r, u, y, with yhat, d and eps from
 the controller's model run from rest at the first pushed sample -- i.e. compute_signals(...,
 initial_state="zero") over every pushed sample, cut to the window, passed to analyze(signals=...)
-with the QR regressions (analysis.QrRegressions: the reference, not the default Gram path).
+with the QR regressions (regressions.QrRegressions: the reference, not the default Gram path).
 Tolerance 1e-8 on log p-values, F statistics, RSI and coefficients (coefficients relative to the
 largest of their vector); the decisions (flagged rows, located and ambiguous elements) must be equal.
 
@@ -18,13 +18,16 @@ import numpy as np
 import pytest
 from scipy import signal as sps
 
-from mpm_monitor.core.analysis import AnalysisOptions, QrRegressions, analyze, regression_layout
+from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.arx import SharedBlockRegression, lag_matrix
+from mpm_monitor.core.discretize import ModelPredictor
 from mpm_monitor.core.errors import ConfigurationError, DataFileError
-from mpm_monitor.core.incremental import GramBlockRegression, GramFit, ModelPredictor, SlidingWindowAnalyzer
 from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.pipeline import analyze
+from mpm_monitor.core.regressions import GramBlockRegression, GramFit, QrRegressions, regression_layout
 from mpm_monitor.core.signals import LoopSignals, compute_signals
+from mpm_monitor.core.sliding import SlidingWindowAnalyzer
 from mpm_monitor.sim.cases import paper_case
 from mpm_monitor.sim.closed_loop import ExcitationOptions, run_closed_loop
 

@@ -26,8 +26,9 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 
 from mpm_monitor.apps.demo import Suite, case_parameters, private_context  # noqa: E402
-from mpm_monitor.core.analysis import AnalysisOptions, analyze  # noqa: E402
+from mpm_monitor.core.analysis import AnalysisOptions  # noqa: E402
 from mpm_monitor.core.errors import ConfigurationError  # noqa: E402
+from mpm_monitor.core.pipeline import analyze  # noqa: E402
 from mpm_monitor.monitor.statuses import SUMMARY_NAME, row_status_name  # noqa: E402
 from mpm_monitor.nodes.ros_io import VectorCodec, diagnostics_qos, make_executor, spin_until, vector_qos  # noqa: E402
 from mpm_monitor.sim.cases import paper_case  # noqa: E402

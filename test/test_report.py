@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 
 from mpm_monitor.apps.cli import main as cli_main
-from mpm_monitor.core.analysis import AnalysisOptions, analyze
+from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.io import plots
 from mpm_monitor.io.bags import read_bag, write_logged_data
 from mpm_monitor.io.model_file import save_model

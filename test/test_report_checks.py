@@ -9,7 +9,8 @@ import copy
 import pytest
 from report_checks import P_UNDERFLOW, _close_log_p, assert_reports_match
 
-from mpm_monitor.core.analysis import AnalysisOptions, analyze
+from mpm_monitor.core.analysis import AnalysisOptions
+from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.sim.cases import paper_case
 from mpm_monitor.sim.closed_loop import run_closed_loop
 

@@ -363,7 +363,8 @@ def test_an_analysis_that_raises_is_error_with_the_reason_and_the_core_goes_on()
 def test_a_sentinel_value_like_1e308_is_error_not_a_silent_all_clear():
     """Finite but absurd values (a sensor's 'bad value' sentinel) pass the aligner; the analysis
     refuses them with the channel and time instead of returning a meaningless no-mismatch."""
-    from mpm_monitor.core.analysis import AnalysisOptions, analyze
+    from mpm_monitor.core.analysis import AnalysisOptions
+    from mpm_monitor.core.pipeline import analyze
     from mpm_monitor.monitor.worker import run_analysis
 
     c = make_core(window_samples=300, min_samples=200, analysis_period=100)

@@ -30,29 +30,54 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
+#: The analysis options given on the command line of ``analyze`` and ``reproduce``, in their flags' order.
+CLI_ANALYSIS_OPTIONS = ("method", "alpha", "na", "nb", "band", "initial_state", "repair")
+
+#: Names of the values of an option that takes several (default: the option's name in capitals).
+_METAVARS = {"band": ("LOW", "HIGH")}
+
+
+def _text(value) -> str:
+    if isinstance(value, (tuple, list)):
+        return " ".join(_text(v) for v in value)
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
 def _add_analysis_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--method", choices=("arx", "xcorr", "pcorr"), default="arx",
-                   help="arx: the S_Delta row test and ARX Delta element test (default); xcorr: cross-correlation "
-                        "baseline (Webber and Gupta 2008); pcorr: partial-correlation baseline (Badwe et al. 2009)")
-    p.add_argument("--alpha", type=float, default=0.01,
-                   help="family-wise false-alarm rate of the row and of the element tests (default 0.01)")
-    p.add_argument("--na", type=int, default=4, help="ARX order of A (default 4)")
-    p.add_argument("--nb", type=int, default=4, help="ARX order of each B (default 4)")
-    p.add_argument("--band", type=float, nargs=2, metavar=("LOW", "HIGH"), default=None,
-                   help="band Omega for the RSI, in rad/sample (default 0 to pi)")
-    p.add_argument("--initial-state", choices=("estimate", "zero"), default="estimate",
-                   help="model state at the first sample: estimated by least squares (default) or zero")
-    p.add_argument("--no-repair", action="store_true", help="locate only; do not re-estimate the elements")
+    """One flag per option of :data:`CLI_ANALYSIS_OPTIONS`, from its ParamSpec (:data:`ANALYSIS_PARAMS`).
+
+    ``--name-with-dashes VALUE``; a choice lists its choices; a ``double_array`` takes its values
+    after the flag; a bool that is on by default is turned off by ``--no-name``.  The values are
+    checked by :class:`~mpm_monitor.core.analysis.AnalysisOptions` itself.
+    """
+    from ..core.analysis import ANALYSIS_PARAMS
+
+    for name in CLI_ANALYSIS_OPTIONS:
+        spec = ANALYSIS_PARAMS[name]
+        flag = "--" + name.replace("_", "-")
+        what = spec.description.rstrip(".")
+        if spec.kind == "bool":
+            if spec.default:
+                p.add_argument("--no-" + name.replace("_", "-"), dest=name, action="store_false",
+                               help=f"turn off (on by default): {what}")
+            else:
+                p.add_argument(flag, dest=name, action="store_true", help=f"{what} (off by default)")
+            continue
+        help_text = f"{what} (default {_text(spec.default)})"
+        if spec.choices:
+            p.add_argument(flag, dest=name, choices=spec.choices, default=spec.default, help=help_text)
+        elif spec.kind == "double_array":
+            p.add_argument(flag, dest=name, type=float, nargs=spec.length, default=spec.default,
+                           metavar=_METAVARS.get(name, name.upper()), help=help_text)
+        else:
+            p.add_argument(flag, dest=name, type=int if spec.kind == "int" else float, default=spec.default,
+                           help=help_text)
 
 
 def _analysis_options(args):
     from ..core.analysis import AnalysisOptions
 
-    kw = dict(method=args.method, alpha=args.alpha, na=args.na, nb=args.nb, initial_state=args.initial_state,
-              repair=not args.no_repair)
-    if args.band is not None:
-        kw["band"] = tuple(args.band)
-    return AnalysisOptions(**kw)
+    return AnalysisOptions(**{name: getattr(args, name) for name in CLI_ANALYSIS_OPTIONS})
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -118,8 +143,8 @@ def _cmd_recover(args) -> int:
 def _cmd_analyze(args) -> int:
     import numpy as np
 
-    from ..core.analysis import analyze
     from ..core.logged_data import check_scale
+    from ..core.pipeline import analyze
     from ..io.csv_log import read_csv
     from ..io.model_file import load_model, save_model
 

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..core.analysis import AnalysisOptions, analyze
+from ..core.analysis import AnalysisOptions
+from ..core.pipeline import analyze
 from ..core.wording import repair_summary_lines
 from ..sim.cases import paper_case
 from ..sim.closed_loop import run_closed_loop

@@ -27,7 +27,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 import scipy.linalg as sla
-from scipy import special
+
+from .statistics import f_tail, f_test
 
 #: Relative threshold on the diagonal of R below which a column is treated as linearly dependent.
 RANK_TOLERANCE = 1e-9
@@ -59,6 +60,30 @@ def lag_matrix(x: np.ndarray, lags: Sequence[int], start: int) -> np.ndarray:
         for li, lag in enumerate(lags):
             out[:, c * len(lags) + li] = x[start - lag:n - lag, c]
     return out
+
+
+def least_squares_ar(x: np.ndarray, order: int, start: Optional[int] = None) -> np.ndarray:
+    """Least-squares AR coefficients of one signal: ``x(k) = a_1 x(k-1) + ... + a_p x(k-p) + e(k)``.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n_samples,)
+        The signal (centred by the caller if it should be).
+    order : int
+        ``p`` (>= 0).
+    start : int, optional
+        First sample ``k`` of the fit (>= ``order``); default ``order`` (every sample with all its
+        lags in ``x``).
+
+    Returns
+    -------
+    ndarray, shape (order,)
+        ``a_1 .. a_p`` (``numpy.linalg.lstsq``, so a rank-deficient fit gives the minimum-norm
+        solution).
+    """
+    start = order if start is None else start
+    coef, *_ = np.linalg.lstsq(lag_matrix(x, range(1, order + 1), start), x[start:], rcond=None)
+    return coef
 
 
 @dataclasses.dataclass
@@ -205,18 +230,6 @@ def fit_arx(y: np.ndarray, u: np.ndarray, na: int, nb: int, nk: Sequence[int] | 
     b = [theta[na + j * nb: na + (j + 1) * nb] for j in range(nu)]
     return ArxFit(a=a, b=b, nk=nk, theta=theta, covariance=cov, residuals=resid, sigma2=sigma2,
                   fit_percent=float(fit), condition_number=cond, dof=int(dof), rank=rank)
-
-
-def f_test(rss_restricted: float, rss_full: float, df_num: int, df_den: int):
-    """F statistic and p-value of a nested least-squares restriction.
-
-    ``F = ((RSS_r - RSS_f) / df_num) / (RSS_f / df_den)``, ``p = P(F(df_num, df_den) > F)``.
-    Returns (nan, 1.0) when ``df_num < 1``.
-    """
-    if df_num < 1 or df_den < 1 or rss_full <= 0:
-        return float("nan"), 1.0
-    f = max(rss_restricted - rss_full, 0.0) / df_num / (rss_full / df_den)
-    return float(f), float(special.fdtrc(df_num, df_den, f))
 
 
 @dataclasses.dataclass
@@ -433,7 +446,7 @@ class SharedFit:
         proj = np.einsum("gkm,gk->gm", v, th)
         quad = np.sum(np.where(keep, proj ** 2 / np.where(keep, w, 1.0), 0.0), axis=1)
         f = quad / np.maximum(df_num, 1) / self.sigma2
-        p = special.fdtrc(np.maximum(df_num, 1), self.dof, f)
+        p = f_tail(f, np.maximum(df_num, 1), self.dof)
         dof = int(self.dof)
         return [BlockTest(float(f[g]), float(p[g]), int(df_num[g]), dof) if df_num[g] else
                 BlockTest(float("nan"), 1.0, 0, dof) for g in range(idx.shape[0])]

@@ -55,9 +55,11 @@ import dataclasses
 from typing import Optional
 
 import numpy as np
-from scipy import linalg, signal, stats
+from scipy import linalg, signal
 
+from .arx import lag_matrix, least_squares_ar
 from .errors import ConfigurationError, InputError
+from .statistics import chi2_tail, f_tail, holm_adjust
 
 #: Default number of lags tested when ``max_lag`` is None (samples).  Covers the delays of the
 #: FOPDT elements the project targets (up to about 16 samples of dead time after a delay
@@ -187,57 +189,6 @@ def _require_samples(n, needed, what):
 
 
 # --------------------------------------------------------------------------- building blocks
-def holm_adjust(p_values) -> np.ndarray:
-    """Holm step-down adjusted p-values (Holm, 1979).
-
-    Parameters
-    ----------
-    p_values : array_like
-        Unadjusted p-values, any shape; NaN entries are ignored (adjusted to NaN).
-
-    Returns
-    -------
-    ndarray, same shape
-        ``p_adj``; rejecting ``p_adj <= alpha`` controls the family-wise error rate at ``alpha``
-        under any dependence between the tests.
-    """
-    p = np.asarray(p_values, dtype=float)
-    flat = p.ravel()
-    ok = np.flatnonzero(~np.isnan(flat))
-    out = np.full(flat.shape, np.nan)
-    m = ok.size
-    if m:
-        order = ok[np.argsort(flat[ok], kind="stable")]
-        scaled = (m - np.arange(m)) * flat[order]
-        out[order] = np.minimum(np.maximum.accumulate(scaled), 1.0)
-    return out.reshape(p.shape)
-
-
-def holm_reject(p_values, alpha: float) -> np.ndarray:
-    """Boolean array of the hypotheses Holm's procedure rejects at family-wise level ``alpha``."""
-    adj = holm_adjust(p_values)
-    return np.where(np.isnan(adj), False, adj <= alpha)
-
-
-def lag_matrix(x: np.ndarray, lags, start: int) -> np.ndarray:
-    """Columns ``x(k - l)`` for ``l`` in ``lags`` and ``k = start .. n - 1``.
-
-    Parameters
-    ----------
-    x : ndarray, shape (n_samples,)
-    lags : sequence of int
-        Lags in samples (each <= ``start``).
-    start : int
-        First sample index of the rows.
-
-    Returns
-    -------
-    ndarray, shape (n_samples - start, len(lags))
-    """
-    n = x.shape[0]
-    return np.column_stack([x[start - l:n - l] for l in lags]) if len(lags) else np.zeros((n - start, 0))
-
-
 def fit_ar(x: np.ndarray, max_order: int = DEFAULT_MAX_AR_ORDER) -> np.ndarray:
     """Least-squares AR model of a signal, order chosen by BIC.
 
@@ -273,8 +224,7 @@ def fit_ar(x: np.ndarray, max_order: int = DEFAULT_MAX_AR_ORDER) -> np.ndarray:
     p = int(np.argmin(bic))
     if p == 0:
         return np.zeros(0)
-    coef, *_ = np.linalg.lstsq(X[:, :p], y, rcond=None)
-    return coef
+    return least_squares_ar(x, p, start=pmax)
 
 
 def prewhiten(x: np.ndarray, max_order: int = DEFAULT_MAX_AR_ORDER):
@@ -403,7 +353,7 @@ def cross_correlation_test(d, u, alpha: float = 0.01, max_lag: Optional[int] = N
         r = np.where(np.isfinite(r), r, 0.0)
         stat[:, j] = m * np.sum(r * r, axis=1)
     stat[d_const, :] = 0.0
-    p = stats.chi2.sf(stat, lag)
+    p = chi2_tail(stat, lag)
     p[:, u_const] = 1.0
     p[d_const, :] = 1.0
     adj = holm_adjust(p)
@@ -588,7 +538,7 @@ def partial_correlation_test(d, u, alpha: float = 0.01, max_lag: Optional[int] =
             bj = beta[blk]
             wald = float(bj @ np.linalg.pinv(rj @ rj.T, rcond=1e-12, hermitian=True) @ bj)
             stat[i, j] = wald / (lag * s2)
-        p[i, tested] = stats.f.sf(stat[i, tested], lag, dof)
+        p[i, tested] = f_tail(stat[i, tested], lag, dof)
     ambiguous = np.zeros((ny, nu), dtype=bool)
     ambiguous[:, weak] = True
     ambiguous[d_const, :] = False
@@ -600,5 +550,5 @@ def partial_correlation_test(d, u, alpha: float = 0.01, max_lag: Optional[int] =
                              ambiguous=ambiguous, separability=separability)
 
 
-#: Element tests by method name, as :func:`mpm_monitor.core.analysis.analyze` selects them.
+#: Element tests by method name, as :func:`mpm_monitor.core.element_test.baseline_element_test` selects them.
 ELEMENT_TESTS = {"xcorr": cross_correlation_test, "pcorr": partial_correlation_test}

@@ -11,11 +11,11 @@ class InputError(ValueError):
 
 
 class ModelFileError(InputError):
-    """A model file (CONTRACTS section 1) that cannot be used."""
+    """A model file (docs/interfaces.md, "Model file") that cannot be used."""
 
 
 class DataFileError(InputError):
-    """A logged-data CSV file (CONTRACTS section 2) that cannot be used."""
+    """A logged-data CSV file (docs/interfaces.md, "Logged data (CSV)") that cannot be used."""
 
 
 class BagError(InputError):

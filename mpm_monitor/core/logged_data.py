@@ -2,11 +2,14 @@
 
 The CSV file is read and written by :mod:`mpm_monitor.io.csv_log`, bags by :mod:`mpm_monitor.io.bags`,
 and the live monitor builds the same object from its window (:mod:`mpm_monitor.monitor.window`).
+:func:`check_loop_data` and :func:`check_signals` are the one check of ``r``, ``u`` and ``y`` against
+a model (channels, shapes, finite values) before an analysis.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from typing import Optional
 
 import numpy as np
 
@@ -57,6 +60,64 @@ class LoggedData:
         """Samples ``start:stop`` as a new object."""
         return dataclasses.replace(self, t=self.t[start:stop], r=self.r[start:stop], u=self.u[start:stop],
                                    y=self.y[start:stop])
+
+
+SIGNAL_NAMES = ("setpoint", "input", "output")
+
+
+def check_signals(r, u, y, n_outputs: int, n_inputs: int, n_samples: Optional[int] = None, where: str = ""):
+    """``r``, ``u``, ``y`` as float arrays of the expected shapes with finite values.
+
+    Parameters
+    ----------
+    r, u, y : array_like
+        Setpoints, inputs and outputs: shapes (n_samples, n_outputs), (n_samples, n_inputs) and
+        (n_samples, n_outputs), or one sample, (n_outputs,), (n_inputs,), (n_outputs,), when
+        ``n_samples`` is None.
+    n_outputs, n_inputs : int
+    n_samples : int, optional
+    where : str
+        Prefix of the messages (e.g. ``"log.csv: "``).
+
+    Returns
+    -------
+    list of ndarray
+        ``[r, u, y]``.
+
+    Raises
+    ------
+    DataFileError
+        Naming the signal (``setpoint``, ``input`` or ``output``) and its shape against the
+        expected one, or the signal that holds NaN or infinity.
+    """
+    out = []
+    for name, value, width in zip(SIGNAL_NAMES, (r, u, y), (n_outputs, n_inputs, n_outputs)):
+        arr = np.asarray(value, dtype=float)
+        shape = (width,) if n_samples is None else (n_samples, width)
+        if arr.shape != shape:
+            raise DataFileError(f"{where}{name}: expected shape {shape}, got {arr.shape}")
+        out.append(arr)
+    for name, arr in zip(SIGNAL_NAMES, out):
+        if not np.isfinite(arr).all():
+            raise DataFileError(f"{where}{name}: values contain NaN or infinity")
+    return out
+
+
+def check_loop_data(model: FopdtModel, data: LoggedData):
+    """The data's ``[r, u, y]`` (:func:`check_signals`) once its channels are the model's.
+
+    Raises
+    ------
+    DataFileError
+        Naming the data's source: channels that differ from the model's inputs and outputs, or
+        what :func:`check_signals` refuses.
+    """
+    src = data.source or "data"
+    if tuple(data.outputs) != tuple(model.outputs) or tuple(data.inputs) != tuple(model.inputs):
+        raise DataFileError(f"{src}: channels {list(data.inputs)} / {list(data.outputs)} do not match the model's "
+                            f"inputs {list(model.inputs)} / outputs {list(model.outputs)}")
+    n = np.shape(data.r)[0] if np.ndim(data.r) else 0
+    return check_signals(data.r, data.u, data.y, model.n_outputs, model.n_inputs, n, where=f"{src}: ")
 
 
 def check_scale(model: FopdtModel, data: LoggedData, model_source: str = "the model") -> None:

@@ -1,8 +1,9 @@
 """The controller's plant model: a transfer matrix of first-order-plus-dead-time elements.
 
 Each element (output i, input j) is ``K e^{-theta s} / (tau s + 1)`` in deviation variables, as in
-CONTRACTS section 1.  This module loads, validates and saves the YAML model file; the discrete-time
-form lives in :mod:`mpm_monitor.core.discretize`.
+the model file (docs/interfaces.md, "Model file").  This module holds and validates the model; the
+YAML file is read and written by :mod:`mpm_monitor.io.model_file`, and the discrete-time form lives
+in :mod:`mpm_monitor.core.discretize`.
 """
 
 from __future__ import annotations
@@ -118,7 +119,7 @@ class FopdtModel:
         return self.replace(gain=g, time_constant=t, delay=d)
 
     def to_dict(self) -> dict:
-        """The model as plain Python values in the schema of CONTRACTS section 1."""
+        """The model as plain Python values in the schema of the model file (docs/interfaces.md, "Model file")."""
 
         def num(x):
             x = float(x)
@@ -177,7 +178,7 @@ def validate_model(model: FopdtModel, source: str = "model") -> None:
     if overlap:
         raise ModelFileError(
             f"{source}: keys 'inputs' and 'outputs': a name cannot be both, found {', '.join(sorted(overlap))}")
-    # Every channel must be its own column of the CSV log (CONTRACTS section 2).
+    # Every channel must be its own column of the CSV log (docs/interfaces.md, "Logged data (CSV)").
     columns = ["t"] + [f"r_{o}" for o in model.outputs] + list(model.inputs) + list(model.outputs)
     clash = sorted({c for c in columns if columns.count(c) > 1})
     if clash:

@@ -21,10 +21,11 @@ import dataclasses
 
 import numpy as np
 
-from .arx import f_test
+from .arx import least_squares_ar
 from .discretize import discretize, settling_samples, simulate_elements
 from .errors import ConfigurationError
 from .model import FopdtModel
+from .statistics import f_test
 
 INITIAL_STATE_CHOICES = ("estimate", "zero")
 
@@ -89,7 +90,7 @@ def initial_transient(model: FopdtModel, d0: np.ndarray, level: float = TRANSIEN
         # the rest of the record (where no transient is left), so the coloured disturbance (the
         # paper's v is AR(1) with pole 0.95) does not pass for a transient.
         rest = d0[lag + span:, i] if n - lag - span >= 200 else d0[lag:, i]
-        phi = _ar2(rest - rest.mean())
+        phi = least_squares_ar(rest - rest.mean(), 2) if rest.shape[0] >= 10 else np.zeros(2)
         white = lambda x: x[2:] - phi[0] * x[1:-1] - phi[1] * x[:-2]  # noqa: E731
         target = white(seg - seg.mean())
         X = np.column_stack([np.ones(span - 2), white(basis)])
@@ -136,11 +137,3 @@ def compute_signals(model: FopdtModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
     d = y - yhat
     return LoopSignals(yhat=yhat, d=d, eps=r - d, transient=transient)
 
-
-def _ar2(x: np.ndarray) -> np.ndarray:
-    """Least-squares AR(2) coefficients ``(phi1, phi2)`` of ``x(k) = phi1 x(k-1) + phi2 x(k-2) + e``."""
-    if x.shape[0] < 10:
-        return np.zeros(2)
-    X = np.column_stack([x[1:-1], x[:-2]])
-    phi, *_ = np.linalg.lstsq(X, x[2:], rcond=None)
-    return phi

@@ -99,7 +99,7 @@ class RepairVerdict:
 
 
 def repair_verdict(report) -> RepairVerdict:
-    """The :class:`RepairVerdict` of an analysis report (see the ``repair`` dict of CONTRACTS section 3)."""
+    """The :class:`RepairVerdict` of an analysis report (its ``repair`` dict, docs/interfaces.md)."""
     if not repair_ran(report):
         return RepairVerdict("off", "the analysis ran without the repair", 0)
     doc = report.repair
@@ -142,7 +142,7 @@ def repair_verdict(report) -> RepairVerdict:
 
 
 def repair_summary_lines(repair: dict) -> list:
-    """Text lines of a repair dict (CONTRACTS section 3): the changes and the errors before/after."""
+    """Text lines of a repair dict (docs/interfaces.md): the changes and the errors before/after."""
     lines = []
     changes = repair.get("changes", [])
     if changes:

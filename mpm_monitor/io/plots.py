@@ -188,12 +188,12 @@ def element_step(model: FopdtModel, i: int, j: int, n: int) -> np.ndarray:
     ``y(k)`` answers a unit step of input ``j`` applied from sample 0 (so ``y(0) = 0``: the
     output depends on inputs up to ``k - 1``, see docs/DESIGN.md).
     """
-    from ..core.discretize import simulate
+    from ..core.discretize import simulate_elements
 
     el = FopdtModel(sample_time=model.sample_time, inputs=(model.inputs[j],), outputs=(model.outputs[i],),
                     gain=[[model.gain[i, j]]], time_constant=[[model.time_constant[i, j]]],
                     delay=[[model.delay[i, j]]])
-    return simulate(el, np.ones((n, 1)))[:, 0]
+    return simulate_elements(el, np.ones((n, 1)))[:, 0]
 
 
 def arx_step(a, b, delay: int, n: int) -> np.ndarray:

@@ -2,7 +2,7 @@
 
 Wraps :class:`~mpm_monitor.monitor.monitor_core.MonitorCore` (window, schedule, statuses) and
 :class:`~mpm_monitor.monitor.worker.AnalysisWorker` (the analysis of
-:func:`mpm_monitor.core.analysis.analyze` in a background thread).  The subscription callbacks only
+:func:`mpm_monitor.core.pipeline.analyze` in a background thread).  The subscription callbacks only
 decode and append to the window, so no sample waits for an analysis; every ``analysis_period``
 completed samples the window is copied and handed to the worker, and its result comes back
 through a short steady-clock timer and is published on ``/diagnostics`` (docs/interfaces.md, "ROS 2
@@ -25,7 +25,7 @@ Parameters (all declared with type, description and range): see :data:`PARAMS`.
 
 from __future__ import annotations
 
-import math
+import dataclasses
 import time
 from typing import Callable, Optional
 
@@ -57,6 +57,34 @@ from .ros_io import (
 #: Wall-clock seconds between two looks for finished analyses.
 RESULT_POLL_PERIOD = 0.02
 
+#: The analysis options the node declares as parameters, in their order (:data:`ANALYSIS_PARAMS`).
+NODE_ANALYSIS_OPTIONS = ("alpha", "na", "nb", "band", "n_freq", "max_delay", "method", "initial_state", "repair")
+
+
+def analysis_params() -> tuple:
+    """The node's analysis parameters, generated from the analysis options' ParamSpecs.
+
+    Every option keeps its name, default, description and range, except two that a ROS 2
+    parameter cannot hold as they are: ``band`` becomes the doubles ``band_low`` and ``band_high``,
+    and ``max_delay`` (None = from the model) the integer ``max_delay`` with -1 for None.
+    """
+    from ..core.analysis import ANALYSIS_PARAMS
+
+    out = []
+    for name in NODE_ANALYSIS_OPTIONS:
+        spec = ANALYSIS_PARAMS[name]
+        if name == "band":
+            for edge, which, default in (("low", "Lower", spec.default[0]), ("high", "Upper", spec.default[1])):
+                out.append(dataclasses.replace(spec, name=f"band_{edge}", kind="double", default=default, length=None,
+                                               description=f"{which} edge of the {spec.description}"))
+        elif name == "max_delay":
+            out.append(dataclasses.replace(spec, default=-1, low=-1,
+                                           description=spec.description.rstrip(".") + " (-1 = from the model)."))
+        else:
+            out.append(spec)
+    return tuple(out)
+
+
 PARAMS = MODEL_PARAMS + (
     ParamSpec("window_samples", "int", 3000, "Length of the sliding window analysed, samples.", 10, 10_000_000),
     ParamSpec("analysis_period", "int", 500, "Completed samples between two analyses.", 1, 10_000_000),
@@ -72,20 +100,7 @@ PARAMS = MODEL_PARAMS + (
               "before the latter is given up as a gap.", 0, 100000),
     ParamSpec("stamp_tolerance", "double", 0.25, "Largest distance of a stamp from the sample grid, fraction of "
               "the sample time.", 0.001, 0.49),
-    ParamSpec("alpha", "double", 0.01, "False-alarm rate of a whole analysis (split between the row tests and the "
-              "element tests, each with Holm's procedure).", 1e-12, 0.49),
-    ParamSpec("na", "int", 4, "ARX order of A.", 0, 50),
-    ParamSpec("nb", "int", 4, "ARX order of each B.", 1, 50),
-    ParamSpec("band_low", "double", 0.0, "Lower edge of the RSI band, rad/sample.", 0.0, math.pi),
-    ParamSpec("band_high", "double", math.pi, "Upper edge of the RSI band, rad/sample.", 0.0, math.pi),
-    ParamSpec("n_freq", "int", 256, "Frequencies evaluated in the band.", 8, 100000),
-    ParamSpec("max_delay", "int", -1, "Largest dead time searched, samples (-1 = from the model).", -1, 1000),
-    ParamSpec("method", "string", "arx", "Element test: arx (paper), xcorr or pcorr (baselines).",
-              choices=("arx", "xcorr", "pcorr")),
-    ParamSpec("initial_state", "string", "estimate", "Model state at the window's first sample.",
-              choices=("estimate", "zero")),
-    ParamSpec("repair", "bool", True, "Also trace each located element to its kind and re-estimate it; the "
-              "suggested repair goes into the diagnostics (about 0.5-2 s more per analysis of a 3x3 window)."),
+) + analysis_params() + (
     ParamSpec("repaired_model_file", "string", "", "File (YAML) the ~/write_repaired_model service writes the "
               "latest repaired model to ('' = the service refuses); fixed at start-up, so that no one on the "
               "domain can point the node at another file.", read_only=True),
@@ -102,12 +117,16 @@ PARAMS = MODEL_PARAMS + (
 
 
 def analysis_options_from_params(p: dict):
-    """:class:`~mpm_monitor.core.analysis.AnalysisOptions` from the node's parameter values."""
+    """:class:`~mpm_monitor.core.analysis.AnalysisOptions` from the node's parameter values.
+
+    The inverse of :func:`analysis_params`: ``band_low``, ``band_high`` -> ``band``; ``max_delay`` -1 -> None.
+    """
     from ..core.analysis import AnalysisOptions
 
-    return AnalysisOptions(na=p["na"], nb=p["nb"], alpha=p["alpha"], band=(p["band_low"], p["band_high"]),
-                           n_freq=p["n_freq"], max_delay=None if p["max_delay"] < 0 else p["max_delay"],
-                           initial_state=p["initial_state"], method=p["method"], repair=p["repair"])
+    values = {name: p[name] for name in NODE_ANALYSIS_OPTIONS if name != "band"}
+    values["band"] = (p["band_low"], p["band_high"])
+    values["max_delay"] = None if p["max_delay"] < 0 else p["max_delay"]
+    return AnalysisOptions(**values)
 
 
 def monitor_options_from_params(p: dict, hardware_id: str) -> MonitorOptions:
@@ -132,7 +151,7 @@ class MonitorNode(Node):
     name : str
         Node name.
     analyze : callable, optional
-        ``analyze(model, data, options) -> report``; default :func:`mpm_monitor.core.analysis.analyze`
+        ``analyze(model, data, options) -> report``; default :func:`mpm_monitor.core.pipeline.analyze`
         (injectable for tests of the plumbing).
     **kwargs
         Passed to ``rclpy.node.Node`` (``context``, ``parameter_overrides``, ``cli_args``, ...).
@@ -144,7 +163,7 @@ class MonitorNode(Node):
         self.params = p
         self._process_analyzer = None
         if analyze is None:
-            from ..core.analysis import analyze
+            from ..core.pipeline import analyze
             if p["analysis_process"] and p["analysis_thread"]:
                 self._process_analyzer = analyze = ProcessAnalyzer(analyze)
         self._analyze = analyze

@@ -51,7 +51,7 @@ def _value(spec) -> str:
 def _comment(spec) -> str:
     text = spec.description
     if spec.low is not None and spec.kind in ("int", "double"):
-        text += f" Range [{spec.low:g}, {spec.high:g}]."
+        text += f" Range {spec.range_text()}."
     if spec.choices:
         text += " One of: " + ", ".join(f"'{c}'" for c in spec.choices) + "."
     if getattr(spec, "read_only", False):
@@ -87,7 +87,7 @@ def markdown(node: str) -> str:
     for spec in params:
         kind = spec.kind
         if spec.low is not None and spec.kind in ("int", "double"):
-            kind += f", Range [{spec.low:g}, {spec.high:g}]"
+            kind += f", Range {spec.range_text()}"
         if spec.choices:
             kind += ", One of: " + ", ".join(f"'{c}'" for c in spec.choices)
         if getattr(spec, "read_only", False):

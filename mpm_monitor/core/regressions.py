@@ -1,168 +1,205 @@
-"""Sliding-window mismatch analysis from sufficient statistics (issue 8).
+"""The least-squares problems of the two tests, by QR or from the Gram matrices of lagged signals.
 
-A live monitor analyses the last ``W`` samples every few seconds.  Refitting the tests of
-:func:`mpm_monitor.core.analysis.analyze` from scratch costs ``O(W p^2)`` per analysis, with ``p`` the
-number of regressors (about 300 for a 20x20 plant).  :class:`SlidingWindowAnalyzer` instead keeps
-cross-product (Gram) matrices of the lagged regressors up to date as samples enter and leave the
-window, ``O(p^2)`` per sample, and an analysis solves the tests' least-squares problems from them in
-``O(p^3)``, independent of ``W``.
+Both tests are single-output ARX regressions over the same window (:class:`RegressionLayout`):
 
-What is kept
-------------
-Two Gram matrices (with their column sums) over the regression rows of the window, i.e. the
-samples ``start .. W - 1`` of the window (:class:`~mpm_monitor.core.analysis.RegressionLayout`):
+* S_Delta row test (:mod:`mpm_monitor.core.row_test`): for every output ``i``, ``z_i = eps_i - r_i``
+  on the setpoints ``r_c(t - l)``, ``l = 0 .. n_lag_r - 1``, and its own lags ``z_i(t - l)``,
+  ``l = 1 .. na``;
+* Delta element test (:mod:`mpm_monitor.core.element_test`): for every output ``i``, the prediction
+  error ``d_i`` on the inputs ``u_j(t - l)``, ``l = 1 .. n_lag_u``, and its own lags.
 
-* S_Delta row test: the setpoints ``r_c(t - l)``, ``l = 0 .. n_lag_r - 1``, and for every output
-  ``z_i(t - l)``, ``l = 0 .. na``, with ``z = eps - r`` (lag 0 is the target, lags >= 1 its own AR
-  columns);
-* Delta element test: the inputs ``u_j(t - l)``, ``l = 1 .. n_lag_u``, and for every output
-  ``d_i(t - l)``, ``l = 0 .. na``.
+Every row's regression shares its large block (lagged setpoints or lagged inputs) with the other
+rows, so that block is factored once per window and each row adds its own columns by the
+Frisch-Waugh-Lovell partition of :class:`~mpm_monitor.core.arx.SharedBlockRegression`.  Two
+providers of these fits have the same methods (``row_regression``, ``row_fit``,
+``input_regression``, ``element_fit``, ``short_arx``):
 
-Every row's regression is a sub-block of one of them, so the common block (lagged setpoints or
-lagged inputs) is factored once per window and each row adds its own columns by the
-Frisch-Waugh-Lovell partition of :class:`~mpm_monitor.core.arx.SharedBlockRegression`.
+* :class:`QrRegressions` builds the lagged regressor matrices and factors them by QR: the
+  reference path;
+* :class:`GramRegressions` solves them from cross-product (Gram) matrices of the lagged signals
+  (:class:`LaggedGram`), ``O(p^3)`` per analysis whatever the number of samples, and refits by QR
+  every regression too ill-conditioned for the normal equations.  The batch analysis builds them
+  for its window at once (:func:`window_regressions`); the sliding-window analyzer
+  (:mod:`mpm_monitor.core.sliding`) keeps them up to date sample by sample.
 
+Gram matrices
+-------------
 A Gram matrix built from scratch uses the shift structure of lagged columns
-(:func:`lagged_cross_products`): ``O(W n_channels^2 n_lags)`` instead of ``O(W p^2)``.  The batch
-:func:`~mpm_monitor.core.analysis.analyze` builds both matrices this way for its window
-(:func:`window_regressions`) and solves its tests from them, with the same checks and QR fallback.
-
-Centring
---------
-The batch tests centre each signal by its mean over the window, which moves as the window slides.
-With ``X`` the raw lagged columns, ``s = X' 1`` their sums over the ``N`` regression rows and ``m``
-the window means, the centred cross products are ``X'X - s m' - m s' + N m m'``.  To keep that
-subtraction harmless the raw columns are stored relative to a reference (the window means at the
-last refresh), so ``m`` stays of the order of the signals' spread; the Gram matrices are rebuilt
-from the window buffer every ``refresh_interval`` samples (default: once per window length), when a
-mean has drifted more than 8 standard deviations from its reference, and whenever rebuilding is
-cheaper than updating.  Rebuilding also bounds the rounding drift of the add/remove updates.
+(:func:`lagged_cross_products`): ``O(W n_channels^2 n_lags)`` instead of ``O(W p^2)`` for ``W`` rows
+and ``p`` columns.  The tests centre each signal by its mean over the window.  With ``X`` the raw
+lagged columns, ``s = X' 1`` their sums over the ``N`` regression rows and ``m`` the window means,
+the centred cross products are ``X'X - s m' - m s' + N m m'`` (:meth:`LaggedGram.centred`).  To keep
+that subtraction harmless the raw columns are stored relative to a reference ``ref`` (the window
+means when the matrix was last built), so ``m - ref`` stays of the order of the signals' spread.
 
 Solving and accuracy
 --------------------
-Columns are scaled to unit norm as in the batch path; the Cholesky factor of the scaled Gram matrix
+Columns are scaled to unit norm as in the QR path; the Cholesky factor of the scaled Gram matrix
 is the triangular factor of the QR factorisation of the scaled regressors (up to the signs of its
 rows, which no result depends on).  Normal equations square the condition number: relative errors
 are of the order ``kappa^2 * 1e-16``.  Each regression's 2-norm condition number ``kappa`` is checked
 -- first against the cheap bound ``||R||_F ||R^-1||_F >= kappa``, then, if that bound is too large,
-by a power-iteration estimate -- and above ``max_condition`` (default 1e3, errors below about
-1e-10) the regression is refitted by QR from the window buffer, exactly as the batch path does.
-A fit that explains nearly all of its target (noise-free data) is refitted too: its residual sum of
-squares ``y'y - |Q'y|^2`` would lose digits (:data:`MIN_RESIDUAL_PER_CONDITION`).
-Closed-loop data with PRBS setpoints give ``kappa`` of 2 to 60 (measured on the paper cases and on
-random 2x2 to 20x20 plants); collinear inputs (no dither, more inputs than outputs) fall back.
-
-"Same window"
--------------
-The analyzer runs the controller's model ``Phat`` continuously from rest at the first pushed sample
-(:class:`ModelPredictor`), so ``yhat``, ``d = y - yhat`` and ``eps = r - d`` of a window sample do not
-depend on where the window starts -- as in the live loop, and unlike a batch analysis of a window
-cut out of a log, which restarts the model at the window's first sample.  The batch analysis of the
-same window is therefore ``analyze(model, data, options, signals=signals)`` with the signals of
-:func:`mpm_monitor.core.signals.compute_signals` (``initial_state="zero"``) run over every sample pushed
-so far and cut to the window; :meth:`SlidingWindowAnalyzer.window_data` returns both.
-``options.initial_state`` is not used.
+by a power-iteration estimate (:func:`checked_condition`) -- and above ``max_condition`` (default
+1e3, errors below about 1e-10) the regression is refitted by QR from the window's signals.  A fit
+that explains nearly all of its target (noise-free data) is refitted too: its residual sum of
+squares ``y'y - |Q'y|^2`` would lose digits (:data:`MIN_RESIDUAL_PER_CONDITION`).  Closed-loop data
+with PRBS setpoints give ``kappa`` of 2 to 60 (measured on the paper cases and on random 2x2 to
+20x20 plants); collinear inputs (no dither, more inputs than outputs) fall back.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Optional
 
 import numpy as np
 import scipy.linalg as sla
-from scipy import signal as sps
 from scipy.linalg import blas
 
-from .analysis import AnalysisOptions, AnalysisReport, QrRegressions, RegressionLayout, analyze, regression_layout
-from .arx import RANK_TOLERANCE, ArxFit, SharedBlockRegression, SharedFit
-from .discretize import discretize
-from .errors import ConfigurationError, DataFileError
-from .logged_data import LoggedData
+from .arx import RANK_TOLERANCE, ArxFit, SharedBlockRegression, SharedFit, fit_arx, lag_matrix
 from .model import FopdtModel
-from .signals import LoopSignals
 
 #: Largest condition number of the scaled regressors for which a regression is solved from its Gram
 #: matrix: the normal equations then lose at most about 1e6 * 1e-16 = 1e-10 (relative).
 DEFAULT_MAX_CONDITION = 1e3
-
-#: A window mean further than this many standard deviations from the Gram reference forces a rebuild.
-MEAN_DRIFT_LIMIT = 8.0
 
 
 class IllConditioned(ArithmeticError):
     """A regression too ill-conditioned to be solved from its Gram matrix (the caller refits by QR)."""
 
 
-# ----------------------------------------------------------------------------------------- model
-class ModelPredictor:
-    """The controller's model run sample by sample from rest: ``yhat = Phat u``.
+# ----------------------------------------------------------------------------------------- layout
+def _minimum_samples(n_params: int) -> int:
+    return 3 * n_params + 50
 
-    Uses the element-wise form of :func:`mpm_monitor.core.discretize.discretize`::
 
-        s_ij(k+1) = a_ij s_ij(k) + b_ij u_j(k - m_ij),    yhat_i(k) = sum_j s_ij(k) + D_ij u_j(k)
+@dataclasses.dataclass(frozen=True)
+class RegressionLayout:
+    """Lags and first usable sample of the tests, fixed by the model and the options.
 
-    which is the dense realisation of :func:`~mpm_monitor.core.discretize.state_space` with its shift
-    registers replaced by a short input history: ``O(n_outputs n_inputs)`` per sample.
+    Attributes
+    ----------
+    max_delay : int
+        Largest dead time searched (samples).
+    n_lag_r : int
+        Setpoint lags ``0 .. n_lag_r - 1`` of the row test.
+    n_lag_u : int
+        Input lags ``1 .. n_lag_u`` of the element test.
+    start : int
+        First sample of the window used as a regression row (every lag is inside the window).
+    min_samples : int
+        Fewest samples the tests accept.
+    """
+
+    max_delay: int
+    n_lag_r: int
+    n_lag_u: int
+    start: int
+    min_samples: int
+
+
+def regression_layout(model: FopdtModel, options) -> RegressionLayout:
+    """The :class:`RegressionLayout` of the tests for this model and these options.
 
     Parameters
     ----------
     model : FopdtModel
+    options : AnalysisOptions
+        Its ``na``, ``nb`` and ``max_delay`` (:class:`mpm_monitor.core.analysis.AnalysisOptions`).
+
+    Returns
+    -------
+    RegressionLayout
+        ``max_delay`` defaults to the model's largest delay + 5 samples, at least 10.
+    """
+    ny, nu, na, nb = model.n_outputs, model.n_inputs, options.na, options.nb
+    dmax_model = int(model.delay_samples.max(initial=0))
+    max_delay = options.max_delay if options.max_delay is not None else max(10, dmax_model + 5)
+    n_lag_r = max_delay + nb + 1            # setpoint lags 0 .. max_delay + nb
+    n_lag_u = max_delay + nb                # input lags 1 .. max_delay + nb
+    n_params = max(ny * n_lag_r, nu * n_lag_u) + na
+    return RegressionLayout(max_delay=max_delay, n_lag_r=n_lag_r, n_lag_u=n_lag_u,
+                            start=max(n_lag_r - 1, n_lag_u, na), min_samples=_minimum_samples(n_params))
+
+
+# ----------------------------------------------------------------------------------------- QR
+class QrRegressions:
+    """The least-squares problems of the tests, built from the window's signals and factored by QR.
+
+    This is the reference path, and the fallback of the default one: the analysis solves the tests
+    from the Gram matrices of the window (:func:`window_regressions`) and refits by this class every
+    regression too ill-conditioned for the normal equations.  Pass an instance as
+    ``analyze(..., regressions=...)`` (:func:`mpm_monitor.core.pipeline.analyze`) to factor every
+    regression by QR.
+
+    Parameters
+    ----------
+    r, z, d : ndarray, shape (n_samples, n_outputs)
+        Setpoints, ``z = eps - r`` and prediction errors of the window.
+    u : ndarray, shape (n_samples, n_inputs)
+        Plant inputs.
+    layout : RegressionLayout
+    na, nb : int
+        ARX orders.
     """
 
-    def __init__(self, model: FopdtModel):
-        disc = discretize(model)
-        self.ny, self.nu = model.n_outputs, model.n_inputs
-        self._pole = np.where(disc.active, disc.pole, 0.0)
-        self._numerator = np.where(disc.active, disc.numerator, 0.0)
-        self._lag = np.where(disc.active, disc.input_lag, 0).astype(int)
-        self._feedthrough = np.asarray(disc.feedthrough, dtype=float)
-        self._has_feedthrough = bool(np.any(self._feedthrough != 0))
-        self._active = [(i, j) for i in range(self.ny) for j in range(self.nu) if disc.active[i, j]]
-        self.n_history = int(self._lag.max(initial=0))
-        # u_j(k - m_ij) is entry (n_history - m_ij, j) of the history [u(k - n_history) .. u(k)].
-        self._delayed_index = ((self.n_history - self._lag) * self.nu + np.arange(self.nu)).ravel()
-        self.reset()
+    def __init__(self, r, u, z, d, layout: RegressionLayout, na: int, nb: int):
+        self.r, self.u, self.z, self.d = r, u, z, d
+        self.layout, self.na, self.nb = layout, na, nb
+        self._u_c = u - u.mean(axis=0)
 
-    def reset(self) -> None:
-        """Back to rest: zero element states and zero past inputs."""
-        self.state = np.zeros((self.ny, self.nu))
-        self._history = np.zeros((self.n_history + 1, self.nu))   # u(k - n_history) .. u(k - 1), scratch row
+    def row_regression(self, r_moving: list) -> SharedBlockRegression:
+        """Setpoint lags ``0 .. n_lag_r - 1`` of the moving setpoints (S_Delta row test)."""
+        r, lay = self.r, self.layout
+        r_c = r - r.mean(axis=0)
+        Xr = lag_matrix(r_c[:, r_moving], range(0, lay.n_lag_r), lay.start) if r_moving else \
+            np.zeros((r.shape[0] - lay.start, 0))
+        return SharedBlockRegression(Xr, [lay.n_lag_r] * len(r_moving))
 
-    def step(self, u: np.ndarray) -> np.ndarray:
-        """``yhat(k)`` of shape (n_outputs,) for the input ``u(k)``, then advance to ``k + 1``."""
-        hist = self._history
-        hist[-1] = u
-        delayed = hist.ravel()[self._delayed_index].reshape(self.ny, self.nu)
-        yhat = self.state.sum(axis=1)
-        if self._has_feedthrough:
-            yhat = yhat + self._feedthrough @ u
-        self.state = self._pole * self.state + self._numerator * delayed
-        hist[:-1] = hist[1:]
-        return yhat
+    def row_fit(self, reg: SharedBlockRegression, i: int):
+        """ARX of ``z_i`` on the setpoints (``reg``) and its own lags 1..na."""
+        start = self.layout.start
+        zi = self.z[:, i] - self.z[:, i].mean()
+        own = -lag_matrix(zi, range(1, self.na + 1), start) if self.na else None
+        return reg.fit(zi[start:], own)
 
-    def run(self, u: np.ndarray) -> np.ndarray:
-        """``yhat`` of shape (n_samples, n_outputs) for the inputs ``u`` of shape (n_samples, n_inputs)."""
-        n = u.shape[0]
-        ext = np.vstack([self._history[:-1], u])
-        yhat = np.zeros((n, self.ny))
-        h = self.n_history
-        for i, j in self._active:
-            m = self._lag[i, j]
-            v = ext[h - m:h - m + n, j]
-            s, zf = sps.lfilter([0.0, self._numerator[i, j]], [1.0, -self._pole[i, j]], v, zi=[self.state[i, j]])
-            yhat[:, i] += s
-            self.state[i, j] = zf[0]
-        if self._has_feedthrough:
-            yhat += u @ self._feedthrough.T
-        if h:
-            self._history[:-1] = ext[ext.shape[0] - h:]
-        return yhat
+    def input_regression(self, testable: list) -> SharedBlockRegression:
+        """Input lags ``1 .. n_lag_u`` of the inputs ``testable`` (Delta element test)."""
+        lay = self.layout
+        X = lag_matrix(self._u_c[:, testable], range(1, lay.n_lag_u + 1), lay.start) if testable else \
+            np.zeros((self.u.shape[0] - lay.start, 0))
+        return SharedBlockRegression(X, [lay.n_lag_u] * len(testable))
+
+    def element_fit(self, reg: SharedBlockRegression, i: int):
+        """ARX of ``d_i`` on the input lags (``reg``) and its own lags 1..na."""
+        start = self.layout.start
+        di = self.d[:, i] - self.d[:, i].mean()
+        own = -lag_matrix(di, range(1, self.na + 1), start) if self.na else None
+        return reg.fit(di[start:], own)
+
+    def short_arx(self, i: int, nk: np.ndarray):
+        """The short ARX of ``d_i`` at the delays ``nk`` (the paper's tables); an :class:`ArxFit`."""
+        di = self.d[:, i] - self.d[:, i].mean()
+        return fit_arx(di, self._u_c, self.na, self.nb, nk)
 
 
 # ----------------------------------------------------------------------------------------- buffer
-class _WindowBuffer:
-    """The last samples of ``[r | u | y | yhat]`` with their absolute sample indices."""
+class SampleBuffer:
+    """The last ``window`` samples of some signals side by side, with their absolute sample indices.
+
+    The sliding-window analyzer keeps ``[r | u | y | yhat]`` in one; :func:`window_regressions`
+    wraps a window's ``[r | u | z | d]``.  :class:`LaggedGram` reads its rows by absolute index.
+
+    Parameters
+    ----------
+    n_channels : int
+        Columns of a sample.
+    window : int
+        Samples kept by :meth:`compact`.
+    slack : int
+        Extra rows, so that samples are appended without moving the others every time.
+    """
 
     def __init__(self, n_channels: int, window: int, slack: int):
         self.window = window
@@ -333,7 +370,7 @@ class LaggedGram:
         sig = self.signals(block)
         return np.hstack([sig[name] for name, _, _ in self.groups])
 
-    def rows(self, buf: _WindowBuffer, a: int, b: int) -> np.ndarray:
+    def rows(self, buf: SampleBuffer, a: int, b: int) -> np.ndarray:
         """``Phi`` for the rows ``a .. b - 1`` (absolute sample indices), shape (b - a, n_columns)."""
         values = self.channel_values(buf.rows(a - self.max_lag, b)) - self.ref
         t = np.arange(self.max_lag, self.max_lag + b - a)[:, None]
@@ -345,7 +382,7 @@ class LaggedGram:
         self.sums += sign * phi.sum(axis=0)
         self._full = None
 
-    def rebuild(self, buf: _WindowBuffer, a: int, b: int, ref: np.ndarray) -> None:
+    def rebuild(self, buf: SampleBuffer, a: int, b: int, ref: np.ndarray) -> None:
         """Recompute from scratch over rows ``a .. b - 1`` with a new reference ``ref`` (n_channels,).
 
         Uses the shift structure of the lagged columns (:func:`lagged_cross_products`).
@@ -360,7 +397,7 @@ class LaggedGram:
         self.lo, self.hi = a, b
         self._full = None
 
-    def update(self, buf: _WindowBuffer, add: tuple, remove: tuple) -> None:
+    def update(self, buf: SampleBuffer, add: tuple, remove: tuple) -> None:
         """Add the rows ``add = (a, b)`` and remove the rows ``remove = (a, b)``."""
         n_add, n_remove = max(add[1] - add[0], 0), max(remove[1] - remove[0], 0)
         if not (n_add or n_remove):
@@ -426,7 +463,6 @@ class LaggedGram:
         return g * np.outer(sign_a, sign_b), (sb - n * mb) * sign_b
 
 
-# ----------------------------------------------------------------------------------------- solving
 def _frobenius(a: np.ndarray) -> float:
     return float(np.sqrt(np.sum(a * a)))
 
@@ -728,9 +764,9 @@ def gram_arx(gram: np.ndarray, sum_y: float, n: int, na: int, nb: int, nk: np.nd
 class GramRegressions:
     """The tests' least-squares problems solved from the Gram matrices of a window.
 
-    Has the methods of :class:`mpm_monitor.core.analysis.QrRegressions`, for
-    ``analyze(..., regressions=...)``.  A regression whose condition bound exceeds ``max_condition``
-    is refitted by that class from the window's signals.
+    Has the methods of :class:`QrRegressions`, for ``analyze(..., regressions=...)``.  A regression
+    whose condition bound exceeds ``max_condition`` is refitted by that class from the window's
+    signals.
 
     Parameters
     ----------
@@ -868,12 +904,12 @@ class GramRegressions:
 
 def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
                        max_condition: float = DEFAULT_MAX_CONDITION) -> GramRegressions:
-    """The tests' regressions on one window, from Gram matrices built at once (batch :func:`analyze`).
+    """The tests' regressions on one window, from Gram matrices built at once (the batch analysis).
 
     Both Gram matrices are computed from the window's signals by :func:`lagged_cross_products`,
-    centred by the window means as :class:`~mpm_monitor.core.analysis.QrRegressions` centres its columns;
-    every regression whose condition bound exceeds ``max_condition`` is refitted by QR (see the
-    module docstring), so the results equal the QR path's to about ``max_condition^2 * 1e-16``.
+    centred by the window means as :class:`QrRegressions` centres its columns; every regression
+    whose condition bound exceeds ``max_condition`` is refitted by QR (see the module docstring),
+    so the results equal the QR path's to about ``max_condition^2 * 1e-16``.
 
     Parameters
     ----------
@@ -890,7 +926,7 @@ def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
     """
     n, ny = r.shape
     nu = u.shape[1]
-    buf = _WindowBuffer(3 * ny + nu, n, 0)
+    buf = SampleBuffer(3 * ny + nu, n, 0)
     buf.append(np.hstack([r, u, z, d]))
 
     def signals(block):
@@ -903,264 +939,3 @@ def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
     row_gram.rebuild(buf, start, n, regs.row_means)
     input_gram.rebuild(buf, start, n, regs.input_means)
     return regs
-
-
-# ----------------------------------------------------------------------------------------- analyzer
-def _split_signals(ny: int, nu: int):
-    """``signals(block)`` for buffer rows ``[r | u | y | yhat]``: r, u, d = y - yhat, z = eps - r."""
-    def signals(block):
-        r = block[:, :ny]
-        u = block[:, ny:ny + nu]
-        d = block[:, ny + nu:2 * ny + nu] - block[:, 2 * ny + nu:]
-        eps = r - d
-        return {"r": r, "u": u, "d": d, "z": eps - r}
-    return signals
-
-
-class SlidingWindowAnalyzer:
-    """The S_Delta row test and the Delta element test on a sliding window, from sufficient statistics.
-
-    Parameters
-    ----------
-    model : FopdtModel
-        The controller's model ``Phat``; it is run from rest at the first pushed sample.
-    options : AnalysisOptions
-        As for :func:`mpm_monitor.core.analysis.analyze` (``initial_state`` is not used).
-    window : int
-        ``W``, the number of most recent samples analysed (at least the tests' minimum for this
-        model and these options).
-    update_block : int
-        Samples are folded into the Gram matrices in blocks of this many (one matrix product per
-        block); 1 updates at every sample.  :meth:`analyze` always folds in every pending sample.
-    refresh_interval : int or None
-        Rebuild the Gram matrices from the window buffer after this many samples (bounds rounding
-        drift and re-centres the reference); None: ``window``; 0: only when needed (mean drift,
-        or rebuilding cheaper than updating).
-    max_condition : float
-        Regressions with a larger condition bound are refitted by QR (see the module docstring).
-
-    Notes
-    -----
-    Memory: the window buffer holds ``window + slack`` rows of ``3 n_outputs + n_inputs`` float64
-    channels (``slack = max(update_block, window // 4, 64)``), plus two Gram matrices whose size
-    depends on the plant and the lags but not on ``window``; :meth:`memory_bytes` reports both.
-    """
-
-    def __init__(self, model: FopdtModel, options: AnalysisOptions = AnalysisOptions(), window: int = 3000, *,
-                 update_block: int = 16, refresh_interval: Optional[int] = None,
-                 max_condition: float = DEFAULT_MAX_CONDITION):
-        self.model = model
-        self.options = options
-        self.layout = regression_layout(model, options)
-        if isinstance(window, bool) or int(window) != window or window < self.layout.min_samples:
-            raise ConfigurationError(f"window: expected an integer >= {self.layout.min_samples} samples (the tests' "
-                                     f"minimum with na={options.na}, nb={options.nb}, "
-                                     f"max_delay={self.layout.max_delay}), got {window!r}")
-        if isinstance(update_block, bool) or int(update_block) != update_block or not 1 <= update_block <= window:
-            raise ConfigurationError(f"update_block: expected an integer in [1, window={window}], got {update_block!r}")
-        if refresh_interval is not None and (int(refresh_interval) != refresh_interval or refresh_interval < 0):
-            raise ConfigurationError(f"refresh_interval: expected an integer >= 0 samples or None, "
-                                     f"got {refresh_interval!r}")
-        if not (max_condition > 1.0):
-            raise ConfigurationError(f"max_condition: expected a number > 1, got {max_condition!r}")
-        self.window = int(window)
-        self.update_block = int(update_block)
-        self.refresh_interval = self.window if refresh_interval is None else int(refresh_interval)
-        self.max_condition = float(max_condition)
-        ny, nu, na = model.n_outputs, model.n_inputs, options.na
-        self.ny, self.nu = ny, nu
-        lay = self.layout
-        signals = _split_signals(ny, nu)
-        self.row_gram = LaggedGram([("r", ny, range(0, lay.n_lag_r)), ("z", ny, range(0, na + 1))], signals)
-        self.input_gram = LaggedGram([("u", nu, range(1, lay.n_lag_u + 1)), ("d", ny, range(0, na + 1))], signals)
-        self._slack = max(self.update_block, self.window // 4, 64)
-        self.predictor = ModelPredictor(model)
-        self.buffer = _WindowBuffer(3 * ny + nu, self.window, self._slack)
-        self.last_fallbacks: list = []
-        self.rebuilds = 0
-        self.reset()
-
-    # -------------------------------------------------------------- state
-    def reset(self) -> None:
-        """Forget every sample and put the model back to rest."""
-        self.predictor.reset()
-        self.buffer.first = self.buffer.count = 0
-        self._pushed = 0
-        self._since_rebuild = 0
-        self._stale = True
-        for g in (self.row_gram, self.input_gram):
-            g.clear()
-        self._pending = 0
-
-    @property
-    def total_samples(self) -> int:
-        """Samples pushed since the start (or the last :meth:`reset`)."""
-        return self._pushed
-
-    @property
-    def n_samples(self) -> int:
-        """Samples in the window (``min(total_samples, window)``)."""
-        return min(self._pushed, self.window)
-
-    @property
-    def ready(self) -> bool:
-        """Enough samples for :meth:`analyze`."""
-        return self.n_samples >= self.layout.min_samples
-
-    def memory_bytes(self) -> dict:
-        """Bytes held: ``buffer`` (grows with the window and the channels) and ``gram`` (does not)."""
-        gram = sum(g.gram.nbytes + g.sums.nbytes for g in (self.row_gram, self.input_gram))
-        return {"buffer": int(self.buffer.data.nbytes), "gram": int(gram)}
-
-    # -------------------------------------------------------------- input
-    def _checked(self, r, u, y, n=None):
-        """``r, u, y`` as float arrays of the expected shapes, all finite; else :class:`DataFileError`."""
-        out = []
-        for name, value, width in (("setpoint", r, self.ny), ("input", u, self.nu), ("output", y, self.ny)):
-            arr = np.asarray(value, dtype=float)
-            shape = (width,) if n is None else (n, width)
-            if arr.shape != shape:
-                raise DataFileError(f"{name}: expected shape {shape}, got {arr.shape}")
-            out.append(arr)
-        if n is None:
-            joined = np.concatenate(out)
-            if not np.isfinite(joined).all():
-                bad = [name for name, arr in zip(("setpoint", "input", "output"), out) if not np.isfinite(arr).all()]
-                raise DataFileError(f"{bad[0]}: values contain NaN or infinity")
-            return joined
-        for name, arr in zip(("setpoint", "input", "output"), out):
-            if not np.isfinite(arr).all():
-                raise DataFileError(f"{name}: values contain NaN or infinity")
-        return out
-
-    def push(self, r, u, y) -> None:
-        """Add one sample ``r(k)``, ``u(k)``, ``y(k)`` (shapes (n_outputs,), (n_inputs,), (n_outputs,))."""
-        ruy = self._checked(r, u, y)
-        if self.buffer.free() < 1:
-            self.flush()
-            self.buffer.compact()
-        m = ruy.shape[0]
-        row = self.buffer.data[self.buffer.count]
-        row[:m] = ruy
-        row[m:] = self.predictor.step(ruy[self.ny:self.ny + self.nu])
-        self.buffer.count += 1
-        self._after_append(1)
-
-    def push_many(self, r, u, y) -> None:
-        """Add samples in time order: ``r``, ``y`` of shape (n, n_outputs), ``u`` of shape (n, n_inputs)."""
-        shape = np.shape(r)
-        n = shape[0] if len(shape) == 2 else -1
-        r, u, y = self._checked(r, u, y, n)
-        for a in range(0, n, self._slack):
-            b = min(a + self._slack, n)
-            if self.buffer.free() < b - a:
-                self.flush()
-                self.buffer.compact()
-            yhat = self.predictor.run(u[a:b])
-            self.buffer.append(np.hstack([r[a:b], u[a:b], y[a:b], yhat]))
-            self._after_append(b - a, flush=False)      # one fold (or rebuild) for the whole call
-        if self._pending >= self.update_block:
-            self.flush()
-
-    def _after_append(self, k: int, flush: bool = True) -> None:
-        self._pushed += k
-        self._pending += k
-        self._since_rebuild += k
-        if flush and self._pending >= self.update_block:
-            self.flush()
-
-    # -------------------------------------------------------------- statistics
-    def _row_range(self):
-        end = self._pushed
-        first = max(0, end - self.window)
-        lo = first + self.layout.start
-        return (lo, end) if end > lo else (lo, lo)
-
-    def _window_means(self):
-        first = max(0, self._pushed - self.window)
-        block = self.buffer.rows(first, self._pushed)
-        return [g.channel_values(block).mean(axis=0) for g in (self.row_gram, self.input_gram)]
-
-    def _rebuild(self) -> None:
-        lo, hi = self._row_range()
-        means = self._window_means() if self._pushed else [np.zeros(g.n_channels)
-                                                          for g in (self.row_gram, self.input_gram)]
-        for g, m in zip((self.row_gram, self.input_gram), means):
-            g.rebuild(self.buffer, lo, hi, m)
-        self._since_rebuild = 0
-        self._stale = False
-        self.rebuilds += 1
-
-    def flush(self) -> None:
-        """Fold every pending sample into the Gram matrices now (or rebuild them)."""
-        self._pending = 0
-        lo, hi = self._row_range()
-        g = self.row_gram
-        n_add, n_remove = hi - g.hi, lo - g.lo
-        due = self.refresh_interval and self._since_rebuild >= self.refresh_interval
-        if self._stale or due or g.hi < lo or n_add + n_remove >= hi - lo:
-            self._rebuild()
-            return
-        for gram in (self.row_gram, self.input_gram):
-            gram.update(self.buffer, (gram.hi, hi), (gram.lo, lo))
-
-    def gram_drift(self) -> float:
-        """Largest difference between the kept Gram matrices and a rebuild, relative to its largest entry."""
-        self.flush()
-        out = 0.0
-        for g in (self.row_gram, self.input_gram):
-            fresh = LaggedGram([(n, c, lags) for n, c, lags in g.groups], g.signals)
-            fresh.rebuild(self.buffer, g.lo, g.hi, g.ref)
-            kept, ref = g.symmetric(), fresh.symmetric()
-            scale = max(np.abs(ref).max(initial=0.0), 1e-300)
-            out = max(out, float(np.abs(kept - ref).max(initial=0.0)) / scale)
-        return out
-
-    # -------------------------------------------------------------- analysis
-    def window_data(self):
-        """The current window: (LoggedData, LoopSignals), copies.
-
-        ``LoopSignals.transient`` is zero: the model runs continuously, so there is no initial transient.
-        """
-        first = max(0, self._pushed - self.window)
-        block = self.buffer.rows(first, self._pushed)
-        ny, nu = self.ny, self.nu
-        r, u, y, yhat = (np.ascontiguousarray(block[:, a:b]) for a, b in
-                         ((0, ny), (ny, ny + nu), (ny + nu, 2 * ny + nu), (2 * ny + nu, 3 * ny + nu)))
-        d = y - yhat
-        eps = r - d
-        ts = self.model.sample_time
-        data = LoggedData(t=np.arange(first, self._pushed) * ts, r=r, u=u, y=y, inputs=self.model.inputs,
-                          outputs=self.model.outputs, sample_time=ts, source="sliding window")
-        return data, LoopSignals(yhat=yhat, d=d, eps=eps, transient=np.zeros_like(d))
-
-    def analyze(self) -> AnalysisReport:
-        """The analysis of the current window (see :func:`mpm_monitor.core.analysis.analyze`).
-
-        Raises
-        ------
-        DataFileError
-            When the window holds fewer samples than the tests need (see :attr:`ready`).
-        """
-        self.flush()
-        data, sig = self.window_data()
-        if data.n_samples < self.layout.min_samples:
-            raise DataFileError(f"sliding window: {data.n_samples} samples; the tests need at least "
-                                f"{self.layout.min_samples} samples")
-        z = sig.eps - data.r
-        if self._means_drifted(data, sig, z):
-            self._rebuild()
-        regs = GramRegressions(self.row_gram, self.input_gram, data.r, data.u, z, sig.d, self.layout,
-                               self.options.na, self.options.nb, self.max_condition)
-        report = analyze(self.model, data, self.options, signals=sig, regressions=regs)
-        self.last_fallbacks = list(regs.fallbacks)
-        return report
-
-    def _means_drifted(self, data, sig, z) -> bool:
-        for g, arrays in ((self.row_gram, (data.r, z)), (self.input_gram, (data.u, sig.d))):
-            x = np.hstack(arrays)
-            mean = x.mean(axis=0)
-            shift = np.abs(mean - g.ref)
-            if np.any(shift > MEAN_DRIFT_LIMIT * x.std(axis=0) + 1e-9 * (np.abs(mean) + np.abs(g.ref)) + 1e-300):
-                return True
-        return False

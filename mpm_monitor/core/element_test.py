@@ -1,0 +1,394 @@
+"""The Delta element test: which elements of the model ``Phat`` no longer match the plant.
+
+With ``d = y - Phat u`` the prediction error and ``Delta = P - Phat`` ("A Novel Algorithm for
+Model-Plant Mismatch Detection for Model Predictive Controllers")::
+
+    d = Delta u + v                                                (paper eq. 9)
+
+For every row (the paper: every row the S_Delta test flags, :mod:`mpm_monitor.core.row_test`), the
+ARX ``A(q) d_i = sum_j B_ij(q) u_j + e`` (paper eq. 10) with B polynomials covering every lag from
+1 to ``max_delay + nb`` (so no delay needs to be known in advance); element ``(i, j)`` is located
+when its first ``delay + nb`` B coefficients (where a mismatch of an element the model has must
+start, :func:`element_window`; all of them for an element the model lacks) are rejected as zero by
+their F (Wald) test, with Holm's procedure across every element tested at level
+``alpha / N_FAMILIES`` (:mod:`mpm_monitor.core.statistics`).
+
+Inputs that move together (the closed loop drives them collinearly) cannot be told apart: the lag
+blocks of the inputs are checked for collinearity once per window (:class:`InputDesign`), and the
+elements of inputs that cannot be separated are reported as ambiguous with their group
+(:func:`group_inputs`), never guessed.
+
+The baselines of :mod:`mpm_monitor.core.baselines` (cross-correlation, partial correlation) give
+their element decisions in the same form (:func:`baseline_element_test`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import numpy as np
+
+from .arx import BlockTest, SharedBlockRegression, estimate_delay_from_lags, lag_matrix
+from .baselines import ELEMENT_TESTS
+from .model import FopdtModel
+from .statistics import N_FAMILIES, holm_adjust
+
+
+@dataclasses.dataclass
+class ElementResult:
+    """Delta element test of one (output, input) pair.
+
+    Attributes
+    ----------
+    output, input : str
+    mismatch : bool
+        Located as mismatched.
+    p_value : float or None
+        Holm-adjusted p-value of ``B_ij = 0`` (None when not testable).
+    p_value_raw : float or None
+    statistic : float or None
+    kind : str or None
+        ``gain``, ``time_constant``, ``delay``, ``missing``, ``mixed``, ``unknown`` (located
+        elements) or None.
+    ambiguous : bool
+        The input cannot be told apart from others in ``ambiguous_with``.
+    ambiguous_with : tuple of str
+    delay : int or None
+        Estimated dead time of ``Delta_ij`` in samples.
+    b : list of float
+        ARX ``B_ij`` coefficients at that delay (``nb`` values).
+    """
+
+    output: str
+    input: str
+    mismatch: bool
+    p_value: Optional[float]
+    p_value_raw: Optional[float]
+    statistic: Optional[float]
+    kind: Optional[str] = None
+    ambiguous: bool = False
+    ambiguous_with: tuple = ()
+    delay: Optional[int] = None
+    b: list = dataclasses.field(default_factory=list)
+
+
+@dataclasses.dataclass
+class RowArxTable:
+    """The paper's ARX table of a flagged row (Tables 1 to 5): A, each B with its delay, fit."""
+
+    output: str
+    a: list
+    b: dict
+    delay: dict
+    fit_percent: float
+
+
+@dataclasses.dataclass(frozen=True)
+class GroupHit:
+    """Inputs that cannot be told apart but jointly explain part of a row's prediction error.
+
+    Attributes
+    ----------
+    output : str
+    inputs : tuple of str
+        The group (:attr:`InputDesign.groups`).
+    p_value : float
+        Unadjusted p-value of the joint test that every lag of the group is zero.
+    """
+
+    output: str
+    inputs: tuple
+    p_value: float
+
+
+@dataclasses.dataclass
+class ElementTest:
+    """The element decisions of one analysis.
+
+    Attributes
+    ----------
+    elements : list of ElementResult
+        Row by row (the rows tested), input by input.
+    arx_tables : list of RowArxTable
+        The ARX test only: one per row tested.
+    group_hits : list of GroupHit
+        The ARX test only.
+    warnings : list of str
+        What limits the conclusions (the groups that explain a row; the baselines' warnings).
+    """
+
+    elements: list
+    arx_tables: list = dataclasses.field(default_factory=list)
+    group_hits: list = dataclasses.field(default_factory=list)
+    warnings: list = dataclasses.field(default_factory=list)
+
+
+class InputDesign:
+    """The lagged-input regressors of the Delta test, factored once and checked for collinearity.
+
+    Parameters
+    ----------
+    model : FopdtModel
+    u : ndarray, shape (n_samples, n_inputs)
+    n_lag : int
+        Lags ``1 .. n_lag`` of every input.
+    start : int
+        First sample used.
+    threshold : float
+        An input is not separable when the largest generalised variance-inflation factor of its
+        lag block, ``1 / (1 - rho_max^2)`` with ``rho_max`` its largest canonical correlation with
+        the lag blocks of the other inputs, exceeds ``1 / threshold``.
+    regression : callable, optional
+        ``regression(testable)`` returns the :class:`~mpm_monitor.core.arx.SharedBlockRegression` of
+        the lags of the inputs ``testable`` (default: built here as
+        :meth:`~mpm_monitor.core.regressions.QrRegressions.input_regression` builds it).
+
+    Attributes
+    ----------
+    testable : list of int
+        Inputs that move.
+    constant : list of str
+        Inputs that never move.
+    vif : dict
+        Input name -> largest variance-inflation factor of its lag block.
+    max_vif : float
+        The largest of them (1 when no input moves).
+    groups : list of tuple of str
+        Inputs that cannot be told apart, grouped (:func:`group_inputs`).
+    group_of : dict
+        Input name -> its group, for the inputs in a group.
+    regression : SharedBlockRegression
+        The factored lag blocks of the inputs ``testable``.
+    """
+
+    def __init__(self, model, u, n_lag, start, threshold, regression=None):
+        self.n_lag = n_lag
+        std = u.std(axis=0)
+        scale = np.maximum(np.abs(u).max(axis=0, initial=0.0), 1.0)
+        self.testable = [j for j in range(model.n_inputs) if std[j] > 1e-12 * scale[j]]
+        self.constant = [model.inputs[j] for j in range(model.n_inputs) if j not in self.testable]
+        if regression is None:
+            u_c = u - u.mean(axis=0)
+            X = lag_matrix(u_c[:, self.testable], range(1, n_lag + 1), start) if self.testable else \
+                np.zeros((u.shape[0] - start, 0))
+            self.regression = SharedBlockRegression(X, [n_lag] * len(self.testable))
+        else:
+            self.regression = regression(self.testable)
+        self.vif = {}
+        R = self.regression.R
+        p = R.shape[1]
+        if p:
+            rinv = self.regression.rinv()             # pseudo-inverse when rank-deficient
+            blocks = np.arange(p).reshape(len(self.testable), n_lag)
+            r_blocks = np.swapaxes(R.T[blocks], 1, 2)                     # R[:, sl] of every block
+            gram = np.swapaxes(r_blocks, 1, 2) @ r_blocks                 # X_j' X_j, scaled columns
+            ri = rinv[blocks]
+            inv = ri @ np.swapaxes(ri, 1, 2)                              # blocks of (X'X)^-1
+            eigenvalues = np.linalg.eigvals(gram @ inv).real
+            for b, j in enumerate(self.testable):
+                sl = slice(b * n_lag, (b + 1) * n_lag)
+                ev = eigenvalues[b]
+                vif = float(ev.max()) if np.all(np.isfinite(ev)) else float("inf")
+                if not self.regression.full_rank:
+                    # A dependent lag block makes (X'X) singular: the pseudo-inverse hides it.
+                    sub = R[:, [c for c in range(p) if c < sl.start or c >= sl.stop]]
+                    if np.linalg.matrix_rank(np.hstack([sub, R[:, sl]])) < np.linalg.matrix_rank(sub) + n_lag:
+                        vif = float("inf")
+                self.vif[model.inputs[j]] = vif
+        bad = [name for name, v in self.vif.items() if not v < 1.0 / threshold]
+        self.max_vif = max(self.vif.values(), default=1.0)
+        self.groups = group_inputs(u, bad, model.inputs, threshold)
+        self.group_of = {name: g for g in self.groups for name in g}
+
+    def warnings(self) -> list:
+        """What the design limits: inputs that never move, inputs that move together."""
+        out = []
+        if self.constant:
+            out.append(f"inputs {', '.join(self.constant)} never move: their elements cannot be tested")
+        if self.groups:
+            out.append(
+                "inputs " + "; ".join("{" + ", ".join(g) + "}" for g in self.groups)
+                + f" move together (largest variance inflation {self.max_vif:.3g}, condition number of the "
+                  f"input regressors {self.regression.condition_number:.3g}): the closed loop drives them "
+                  "collinearly, so their elements cannot be told apart from these data; add a small dither on the "
+                  "inputs to separate them")
+        return out
+
+
+def group_inputs(u: np.ndarray, bad: list, names, threshold: float) -> list:
+    """Group the non-separable inputs by the near-null directions of their correlation matrix.
+
+    Parameters
+    ----------
+    u : ndarray, shape (n_samples, n_inputs)
+    bad : list of str
+        The inputs whose lag block is not separable from the others'.
+    names : sequence of str
+        Every input's name, in the columns' order.
+    threshold : float
+        The collinearity threshold of :class:`InputDesign`.
+
+    Returns
+    -------
+    list of tuple of str
+        Inputs joined when they share a direction of small variance of their correlation matrix;
+        all of ``bad`` in one group when none is small (the collinearity is only dynamic).
+    """
+    if not bad:
+        return []
+    idx = [list(names).index(b) for b in bad]
+    z = u[:, idx] - u[:, idx].mean(axis=0)
+    z = z / np.maximum(z.std(axis=0), 1e-300)
+    w, v = np.linalg.eigh(z.T @ z / z.shape[0])
+    parent = list(range(len(idx)))
+
+    def find(a):
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    small = [k for k in range(len(w)) if w[k] < 10 * threshold * max(w.mean(), 1e-300)]
+    for k in small:
+        members = [m for m in range(len(idx)) if abs(v[m, k]) > 0.1]
+        for m in members[1:]:
+            parent[find(m)] = find(members[0])
+    if not small:  # dynamic collinearity only: the inputs cannot be separated from each other
+        for m in range(1, len(idx)):
+            parent[find(m)] = find(0)
+    groups = {}
+    for m in range(len(idx)):
+        groups.setdefault(find(m), []).append(bad[m])
+    return [tuple(g) for g in groups.values()]
+
+
+def element_window(model: FopdtModel, i: int, j: int, nb: int, window: str = "model") -> Optional[int]:
+    """Leading input lags the element test of (i, j) tests (None: all of them).
+
+    ``Delta_ij = P_ij - Phat_ij`` is non-zero from lag ``min(theta_plant, theta_model) + 1`` on,
+    so for an element the model has (gain != 0) its first ``theta_model + nb`` lags hold the onset
+    of any mismatch; the later lags stay in the fit as nuisance (under "no mismatch" every lag is
+    zero, so the test keeps its level).  Fewer tested lags means more power.  Elements the model
+    does not have (gain 0) have no known delay: all lags are tested, as with ``window="full"``.
+    """
+    if window == "full" or model.gain[i, j] == 0:
+        return None
+    return int(model.delay_samples[i, j]) + nb
+
+
+@dataclasses.dataclass(frozen=True)
+class _Estimate:
+    """One element's test and its ``B_ij`` at the estimated delay."""
+
+    test: BlockTest
+    delay: int
+    b: list
+
+
+def arx_element_test(model: FopdtModel, rows: list, design: InputDesign, regressions, options) -> ElementTest:
+    """The Delta element test on the rows ``rows`` (see the module docstring).
+
+    Parameters
+    ----------
+    model : FopdtModel
+    rows : list of int
+        Outputs tested.
+    design : InputDesign
+        The window's input lag blocks.
+    regressions : QrRegressions or GramRegressions
+        The window's least-squares problems (``element_fit``, ``short_arx``).
+    options : AnalysisOptions
+        Its ``nb``, ``alpha`` and ``element_window``.
+
+    Returns
+    -------
+    ElementTest
+        With the paper's ARX table of every row tested and the groups that explain a row.
+    """
+    nb, alpha = options.nb, options.alpha
+    nu = model.n_inputs
+    testable, group_of = design.testable, design.group_of
+    estimates, tables, group_hits = {}, [], []
+    for i in rows:
+        fit = regressions.element_fit(design.regression, i)
+        tests = fit.test_each_block_zero([element_window(model, i, j, nb, options.element_window) for j in testable])
+        stds = fit.block_stds()
+        for bj, j in enumerate(testable):
+            coef = fit.block_theta(bj)
+            lag0 = estimate_delay_from_lags(coef, stds[bj], nb, first_lag=1)
+            estimates[(i, j)] = _Estimate(tests[bj], lag0, coef[lag0 - 1:lag0 - 1 + nb].tolist())
+        for g in design.groups:
+            blocks = [testable.index(model.inputs.index(x)) for x in g]
+            jt = fit.test_blocks_zero(blocks)
+            if np.isfinite(jt.p_value) and \
+                    N_FAMILIES * jt.p_value * max(len(rows) * len(design.groups), 1) < alpha:
+                group_hits.append(GroupHit(model.outputs[i], g, jt.p_value))
+        # The paper's table (Tables 1 to 5): a short ARX at the estimated delays, for reporting.
+        nk = np.array([estimates[(i, j)].delay if (i, j) in estimates else 1 for j in range(nu)])
+        short = regressions.short_arx(i, nk)
+        tables.append(RowArxTable(output=model.outputs[i], a=short.a.tolist(),
+                                  b={model.inputs[j]: short.b[j].tolist() for j in range(nu)},
+                                  delay={model.inputs[j]: int(nk[j]) for j in range(nu)},
+                                  fit_percent=short.fit_percent))
+    keys = [k for k in estimates if model.inputs[k[1]] not in group_of]
+    adj = dict(zip(keys, holm_adjust(np.array([estimates[k].test.p_value for k in keys])))) if keys else {}
+    elements = []
+    for i in rows:
+        for j in range(nu):
+            name, out = model.inputs[j], model.outputs[i]
+            if (i, j) not in estimates:   # the input never moves
+                elements.append(ElementResult(output=out, input=name, mismatch=False, p_value=None,
+                                              p_value_raw=None, statistic=None, ambiguous=True))
+                continue
+            est = estimates[(i, j)]
+            t = est.test
+            if name in group_of:
+                elements.append(ElementResult(
+                    output=out, input=name, mismatch=False, p_value=None, p_value_raw=t.p_value,
+                    statistic=t.statistic, ambiguous=True,
+                    ambiguous_with=tuple(x for x in group_of[name] if x != name), delay=int(est.delay), b=est.b))
+                continue
+            p = min(1.0, N_FAMILIES * adj[(i, j)])
+            elements.append(ElementResult(
+                output=out, input=name, mismatch=bool(np.isfinite(p) and p < alpha),
+                p_value=float(p) if np.isfinite(p) else 1.0, p_value_raw=t.p_value, statistic=t.statistic,
+                delay=int(est.delay), b=est.b))
+    warnings = [f"row {h.output}: inputs {', '.join(h.inputs)} jointly explain part of its prediction error "
+                f"(p={h.p_value:.2g}) but cannot be told apart from these data" for h in group_hits]
+    return ElementTest(elements=elements, arx_tables=tables, group_hits=group_hits, warnings=warnings)
+
+
+def baseline_element_test(model: FopdtModel, u: np.ndarray, d: np.ndarray, options) -> ElementTest:
+    """Element decisions of a baseline method (``options.method``: ``xcorr`` or ``pcorr``) on every row.
+
+    The baseline runs at level ``alpha / N_FAMILIES``, as the ARX element test; its adjusted
+    p-values are reported times ``N_FAMILIES``.
+
+    Parameters
+    ----------
+    model : FopdtModel
+    u : ndarray, shape (n_samples, n_inputs)
+    d : ndarray, shape (n_samples, n_outputs)
+        Prediction error ``y - Phat u``.
+    options : AnalysisOptions
+        Its ``method`` and ``alpha``.
+
+    Returns
+    -------
+    ElementTest
+        ``elements`` for every (output, input) pair and the baseline's ``warnings``.
+    """
+    res = ELEMENT_TESTS[options.method](d, u, alpha=options.alpha / N_FAMILIES)
+    adjusted = N_FAMILIES * (res.adjusted_p_values if res.adjusted_p_values is not None else res.p_values)
+    elements = []
+    for i in range(model.n_outputs):
+        for j in range(model.n_inputs):
+            amb = bool(res.ambiguous[i, j]) if res.ambiguous is not None else False
+            p_raw, p_adj = float(res.p_values[i, j]), float(adjusted[i, j])
+            elements.append(ElementResult(output=model.outputs[i], input=model.inputs[j],
+                                          mismatch=bool(res.mismatch[i, j]) and not amb,
+                                          p_value=None if amb or not np.isfinite(p_adj) else p_adj,
+                                          p_value_raw=p_raw if np.isfinite(p_raw) else None,
+                                          statistic=float(res.statistic[i, j]), ambiguous=amb))
+    return ElementTest(elements=elements, warnings=list(res.warnings or []))

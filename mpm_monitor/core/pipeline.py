@@ -1,0 +1,75 @@
+"""The whole analysis of one window: detect, repair the located elements, detect again.
+
+::
+
+    detect(model, data)                 the S_Delta row test and the Delta element test
+        -> repair_model(model, located) trace every located element to its kind, re-estimate it
+        -> detect(repaired, data)       the row RSI and the flagged rows of the repaired model
+
+:func:`analyze` is what the command line, the live monitor and the benchmarks run; its
+:class:`~mpm_monitor.core.analysis.AnalysisReport` and JSON (``to_dict()``) are described in
+docs/interfaces.md ("analyze and its JSON report").  With ``options.repair`` false it is
+:func:`~mpm_monitor.core.analysis.detect` alone.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+from .analysis import AnalysisOptions, AnalysisReport, detect
+from .logged_data import LoggedData
+from .model import FopdtModel
+from .repair import RepairOptions, repair_model
+from .signals import LoopSignals
+
+
+def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
+            signals: Optional[LoopSignals] = None, regressions=None) -> AnalysisReport:
+    """Locate the mismatched elements of ``model`` on logged closed-loop data and repair them.
+
+    Parameters
+    ----------
+    model : FopdtModel
+        The controller's model ``Phat``.
+    data : LoggedData
+        Setpoints, inputs and outputs, equally spaced at ``model.sample_time``.
+    options : AnalysisOptions
+    signals : LoopSignals, optional
+        Given to the first detection and to the repair (see
+        :func:`~mpm_monitor.core.analysis.detect`).
+    regressions : object, optional
+        Given to the first detection (see :func:`~mpm_monitor.core.analysis.detect`).
+
+    Returns
+    -------
+    AnalysisReport
+        With ``options.repair``: the ``repair`` of :func:`mpm_monitor.core.repair.repair_model` with,
+        when the model changed, ``rsi_after`` (output -> RSI of the repaired model on the same data)
+        and ``rows_flagged_after`` (the detection of the repaired model, every option kept but
+        ``test_all_rows`` false, with its signals recomputed from the data); the kind of every
+        located element; the repaired model.
+
+    Raises
+    ------
+    DataFileError
+        When the data do not fit the model or are too short for the tests.
+    """
+    report = detect(model, data, options, signals=signals, regressions=regressions)
+    if not options.repair:
+        return report
+    located = [(model.outputs.index(e.output), model.inputs.index(e.input)) for e in report.elements if e.mismatch]
+    result = repair_model(model, data, located, RepairOptions(initial_state=options.initial_state),
+                          signals=report.signals)
+    warnings = report.warnings
+    warnings.extend(w for w in result.warnings if w not in warnings)
+    doc = result.to_dict()
+    if result.model != model:
+        after = detect(result.model, data, dataclasses.replace(options, repair=False, test_all_rows=False))
+        doc["rsi_after"] = {r.output: r.rsi for r in after.rows}
+        doc["rows_flagged_after"] = after.flagged_rows
+    kinds = getattr(result, "kinds", {})
+    for e in report.elements:
+        if e.mismatch:
+            e.kind = kinds.get((model.outputs.index(e.output), model.inputs.index(e.input)), "unknown")
+    return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result)

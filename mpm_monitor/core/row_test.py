@@ -1,0 +1,165 @@
+"""The S_Delta row test: which rows of the sensitivity ``S_Delta`` differ from the identity.
+
+For a plant under MPC in internal-model structure ("A Novel Algorithm for Model-Plant Mismatch
+Detection for Model Predictive Controllers", Fig. 1), with ``d = y - Phat u`` and ``eps = r - d``::
+
+    eps = S_Delta (r - v),   S_Delta = (I + Delta C)^-1            (paper eq. 1)
+
+Row ``i`` of ``S_Delta - I`` equals ``-Delta_i C S_Delta``, so it is zero exactly when row ``i`` of
+``Delta`` is zero.  With ``z_i = eps_i - r_i`` the ARX
+
+    A(q) z_i(t) = sum_j C_j(q) r_j(t) + e(t)
+
+has ``C = 0`` under "no mismatch in row i", and since the setpoints are exogenous (independent of
+the disturbance) the F test of ``C = 0`` has a known false-alarm rate whatever the disturbance
+colour.  The same fit gives the paper's identified row ``S_i = e_i + C/A`` (an ARX of ``eps_i`` on
+``r``), whose H-infinity norm over the band is the row's relative sensitivity index (RSI, paper
+eq. 8).  Rows are decided with Holm's step-down procedure at family-wise level
+``alpha / N_FAMILIES`` (:mod:`mpm_monitor.core.statistics`).
+
+The regressions come from a provider with the methods of
+:class:`~mpm_monitor.core.regressions.QrRegressions` (``row_regression``, ``row_fit``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from .model import FopdtModel
+from .statistics import N_FAMILIES, holm_adjust
+
+
+@dataclasses.dataclass
+class RowResult:
+    """S_Delta row test of one output.
+
+    Attributes
+    ----------
+    output : str
+    rsi : float
+        Row H-infinity norm of the identified S_Delta over the band.
+    mismatch : bool
+        The row differs from the identity row (Holm-adjusted p < alpha).
+    p_value : float
+        Holm-adjusted p-value of "row equals the identity row".
+    p_value_raw : float
+        Unadjusted p-value.
+    statistic : float
+        F statistic.
+    df : tuple of int
+        Degrees of freedom (numerator, denominator).
+    fit_percent : float
+        One-step fit of the row's ARX.
+    """
+
+    output: str
+    rsi: float
+    mismatch: bool
+    p_value: float
+    p_value_raw: float
+    statistic: float
+    df: tuple
+    fit_percent: float
+
+
+@dataclasses.dataclass
+class RowTest:
+    """The S_Delta row test of every output and the identified ``S_Delta``.
+
+    Attributes
+    ----------
+    rows : list of RowResult
+        One per output, in the model's order.
+    frequencies : ndarray, shape (n_freq,)
+        The band's frequency grid, rad/sample (:func:`frequency_grid`).
+    response : ndarray of complex, shape (n_freq, n_outputs, n_outputs)
+        The identified ``S_Delta(e^{j omega})``.
+    row_gains : ndarray, shape (n_outputs, n_freq)
+        2-norm of every row of ``response``.
+    sigma_max : ndarray, shape (n_freq,)
+        Largest singular value of ``response``.
+    warnings : list of str
+        Setpoints that never move (their columns of ``S_Delta`` cannot be identified).
+    """
+
+    rows: list
+    frequencies: np.ndarray
+    response: np.ndarray
+    row_gains: np.ndarray
+    sigma_max: np.ndarray
+    warnings: list
+
+
+def frequency_grid(band: tuple, n: int) -> np.ndarray:
+    """Frequencies (rad/sample) in the band: 0 if included, then log-spaced to the top."""
+    lo, hi = band
+    lo_log = max(lo, hi * 1e-3)
+    grid = np.logspace(np.log10(lo_log), np.log10(hi), n - (1 if lo == 0 else 0))
+    if lo == 0:
+        grid = np.concatenate([[0.0], grid])
+    return grid
+
+
+def sdelta_row_test(model: FopdtModel, r: np.ndarray, eps: np.ndarray, regressions, layout, options) -> RowTest:
+    """The S_Delta row test of every output (see the module docstring).
+
+    Parameters
+    ----------
+    model : FopdtModel
+        The controller's model (its output names).
+    r, eps : ndarray, shape (n_samples, n_outputs)
+        Setpoints and controller inputs ``eps = r - d`` of the window.
+    regressions : QrRegressions or GramRegressions
+        The window's least-squares problems (:mod:`mpm_monitor.core.regressions`).
+    layout : RegressionLayout
+        Setpoint lags ``0 .. n_lag_r - 1`` and first regression row ``start``.
+    options : AnalysisOptions
+        Its ``na``, ``alpha``, ``band`` and ``n_freq``.
+
+    Returns
+    -------
+    RowTest
+    """
+    ny, na, n_lag_r, start = model.n_outputs, options.na, layout.n_lag_r, layout.start
+    warnings = []
+    r_std = r.std(axis=0)
+    r_moving = [j for j in range(ny) if r_std[j] > 0]
+    if len(r_moving) < ny:
+        still = [model.outputs[j] for j in range(ny) if j not in r_moving]
+        warnings.append(f"setpoints of {', '.join(still)} never move: their columns of S_Delta cannot be identified "
+                        f"and a mismatch that shows only through them goes unseen")
+    reg_r = regressions.row_regression(r_moving)
+    omega = frequency_grid(options.band, options.n_freq)
+    z1 = np.exp(-1j * omega)
+    z_pow = z1[:, None] ** np.arange(max(n_lag_r, na + 1))     # z^-l, shape (n_freq, lags)
+    S = np.zeros((omega.size, ny, ny), dtype=complex)
+    row_raw_p = np.full(ny, np.nan)
+    row_stat, row_df, row_fit = np.full(ny, np.nan), [(0, 0)] * ny, np.zeros(ny)
+    for i in range(ny):
+        fit = regressions.row_fit(reg_r, i)
+        test = fit.test_all_common_zero()
+        row_raw_p[i], row_stat[i], row_df[i] = test.p_value, test.statistic, (test.df_num, test.df_den)
+        a = fit.own_theta()
+        a_poly = 1.0 + z_pow[:, 1:na + 1] @ a
+        S[:, i, i] = 1.0
+        for bj, j in enumerate(r_moving):
+            c = fit.block_theta(bj)
+            S[:, i, j] += (z_pow[:, :n_lag_r] @ c) / a_poly
+        # Fit of the paper's ARX of eps_i on r (same model, target eps_i).
+        e_i = eps[start:, i] - eps[start:, i].mean()
+        row_fit[i] = 100.0 * (1.0 - math.sqrt(fit.rss) / max(np.linalg.norm(e_i), 1e-300))
+    row_gains = np.linalg.norm(S, axis=2).T                       # (ny, n_freq)
+    sigma_max = np.linalg.svd(S, compute_uv=False)[:, 0]
+    row_p = np.minimum(1.0, N_FAMILIES * holm_adjust(row_raw_p))
+    rows = []
+    for i in range(ny):
+        p = row_p[i]
+        rows.append(RowResult(output=model.outputs[i], rsi=float(row_gains[i].max()),
+                              mismatch=bool(np.isfinite(p) and p < options.alpha),
+                              p_value=float(p) if np.isfinite(p) else 1.0, p_value_raw=float(row_raw_p[i]),
+                              statistic=float(row_stat[i]), df=tuple(row_df[i]), fit_percent=float(row_fit[i])))
+    return RowTest(rows=rows, frequencies=omega, response=S, row_gains=row_gains, sigma_max=sigma_max,
+                   warnings=warnings)

@@ -1,0 +1,85 @@
+"""The statistics the tests share: F and chi-square tail probabilities, nested F tests, Holm's procedure.
+
+Every test of the package ends in one of these: the S_Delta row test and the Delta element test
+(:mod:`mpm_monitor.core.row_test`, :mod:`mpm_monitor.core.element_test`) in F tests of nested
+least squares, the cross-correlation baseline in a chi-square portmanteau statistic, and all of
+them in Holm's step-down adjustment of the p-values of a family of tests.
+
+References
+----------
+- Ljung, L. (1999). *System Identification: Theory for the User*, 2nd ed., section 16.4 (F tests
+  of nested least-squares models).
+- Holm, S. (1979). A simple sequentially rejective multiple test procedure. *Scandinavian Journal
+  of Statistics* 6(2), 65-70.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import special
+
+#: The families of tests that share the false-alarm rate ``alpha`` of one analysis: the S_Delta row
+#: tests and the Delta element tests.  Each family is controlled at ``alpha / N_FAMILIES``
+#: (Bonferroni) with Holm's procedure inside it; a reported p-value is the Holm-adjusted one times
+#: ``N_FAMILIES``, so a finding is reported exactly when its p-value is below ``alpha``.
+N_FAMILIES = 2
+
+
+def f_tail(statistic, df_num, df_den):
+    """``P(F(df_num, df_den) > statistic)``, elementwise (``scipy.special.fdtrc``)."""
+    return special.fdtrc(df_num, df_den, statistic)
+
+
+def chi2_tail(statistic, df):
+    """``P(chi2(df) > statistic)``, elementwise (``scipy.special.chdtrc``)."""
+    return special.chdtrc(df, statistic)
+
+
+def f_test(rss_restricted: float, rss_full: float, df_num: int, df_den: int):
+    """F statistic and p-value of a nested least-squares restriction.
+
+    ``F = ((RSS_r - RSS_f) / df_num) / (RSS_f / df_den)``, ``p = P(F(df_num, df_den) > F)``
+    (Ljung 1999, section 16.4).  Returns (nan, 1.0) when ``df_num < 1``, ``df_den < 1`` or the
+    full model fits exactly.
+    """
+    if df_num < 1 or df_den < 1 or rss_full <= 0:
+        return float("nan"), 1.0
+    f = max(rss_restricted - rss_full, 0.0) / df_num / (rss_full / df_den)
+    return float(f), float(f_tail(f, df_num, df_den))
+
+
+def holm_adjust(p_values) -> np.ndarray:
+    """Holm's step-down adjusted p-values (Holm 1979).
+
+    With the ``m`` p-values of the family sorted, ``p_(1) <= ... <= p_(m)``, the adjusted value of
+    ``p_(k)`` is ``min(1, max_{l <= k} (m - l + 1) p_(l))``; rejecting ``p_adj <= alpha`` controls the
+    family-wise error rate at ``alpha`` under any dependence between the tests.
+
+    Parameters
+    ----------
+    p_values : array_like
+        Unadjusted p-values in [0, 1], any shape.  A non-finite entry (NaN; an infinity is no
+        p-value and is treated alike) marks a hypothesis that was not tested: it is left out of
+        the family (not counted in ``m``) and its adjusted value is NaN.
+
+    Returns
+    -------
+    ndarray, same shape
+        The adjusted p-values.
+    """
+    p = np.asarray(p_values, dtype=float)
+    flat = p.ravel()
+    ok = np.flatnonzero(np.isfinite(flat))
+    out = np.full(flat.shape, np.nan)
+    m = ok.size
+    if m:
+        order = ok[np.argsort(flat[ok], kind="stable")]
+        scaled = (m - np.arange(m)) * flat[order]
+        out[order] = np.minimum(np.maximum.accumulate(scaled), 1.0)
+    return out.reshape(p.shape)
+
+
+def holm_reject(p_values, alpha: float) -> np.ndarray:
+    """Boolean array of the hypotheses Holm's procedure rejects at family-wise level ``alpha``."""
+    adj = holm_adjust(p_values)
+    return np.where(np.isnan(adj), False, adj <= alpha)
