@@ -1,4 +1,4 @@
-# The two commands of CONTRACTS section 5: `make demo` and `make test`.
+# The two commands (docs/interfaces.md, "Set-up"): `make demo` and `make test`.
 # Each creates .venv/ on first use and installs everything into it; later runs reuse it.
 SHELL := /bin/bash
 PYTHON ?= python3

@@ -175,7 +175,7 @@ class ProcessAnalyzer:
     Parameters
     ----------
     analyze : callable
-        A picklable (module-level) function, e.g. :func:`mpm_monitor.core.analysis.analyze`.
+        A picklable (module-level) function, e.g. :func:`mpm_monitor.core.pipeline.analyze`.
     """
 
     def __init__(self, analyze: Callable):
