@@ -179,7 +179,7 @@ def test_the_walk_sees_the_tree():
         assert module in graph, module
     assert "mpm_monitor.io.csv_log" in graph["mpm_monitor.io.bags.read"]           # from ..csv_log import
     assert "mpm_monitor.io.bags" in graph["mpm_monitor.apps.cli"]                   # inside a function
-    assert "launch_scripts._common" in graph["launch_scripts.suite_inprocess"]      # by bare name
+    assert "mpm_monitor.apps.launchers.suite_inprocess" in graph["launch_scripts.suite_inprocess"]  # a script
     assert "mpm_monitor.io.plots" in graph["mpm_monitor.io.report"]                 # from . import plots
 
 
