@@ -16,8 +16,8 @@ import dataclasses
 import math
 
 import numpy as np
-from scipy import stats
 
+from ..statistics import chi2_tail
 from .fit import _element_lag, _ElementSpec, _lag_lr, _pole_of, _RowEstimate, _RowProblem
 from .options import RepairOptions, _TestSettings
 from .result import ElementVerdict
@@ -190,16 +190,16 @@ def _single_tests(free: _FreeFit, settings: _TestSettings):
         before = model.element(i, j)
         t = {}
         if before["gain"] == 0:
-            t["missing"] = [float(stats.chi2.sf(free.hold_statistic({m: {"absent"}}, options), 1)), True]
+            t["missing"] = [float(chi2_tail(free.hold_statistic({m: {"absent"}}, options), 1)), True]
         else:
-            t["gain"] = [float(stats.chi2.sf(free.hold_statistic({m: {"gain"}}, options), 1)),
+            t["gain"] = [float(chi2_tail(free.hold_statistic({m: {"gain"}}, options), 1)),
                          abs(after["gain"] - before["gain"]) > options.min_relative_change * abs(before["gain"])]
             tau0 = before["time_constant"]
-            t["time_constant"] = [float(stats.chi2.sf(free.hold_statistic({m: {"pole"}}, options), 1)),
+            t["time_constant"] = [float(chi2_tail(free.hold_statistic({m: {"pole"}}, options), 1)),
                                   abs(after["time_constant"] - tau0) > options.min_relative_change * max(tau0, ts)]
             w = free.specs[j].window
             lag0 = free.lag_orig[j]
-            p_d = float(stats.chi2.sf(_lag_lr(free.est, m, lag0), 1)) if w[0] <= lag0 <= w[1] else 0.0
+            p_d = float(chi2_tail(_lag_lr(free.est, m, lag0), 1)) if w[0] <= lag0 <= w[1] else 0.0
             t["delay"] = [p_d, after["delay"] != before["delay"]]
         tests[j] = _ElementTests.of(t, settings.alpha)
     return summaries, tests
@@ -225,7 +225,7 @@ def _joint_hold(free: _FreeFit, tests: dict, settings: _TestSettings, warnings: 
         n_held = sum(len(h) for h in holds.values())
         if n_held == 0:
             break
-        joint_p = float(stats.chi2.sf(free.hold_statistic(holds, settings.options), n_held))
+        joint_p = float(chi2_tail(free.hold_statistic(holds, settings.options), n_held))
         if joint_p >= alpha:
             break
         j_free, k_free = min(((j, k) for j in js for k in tests[j].unchanged()),

@@ -9,9 +9,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import stats
 
-from .fit import _ar_design
+from ..arx import lag_matrix
+from ..statistics import chi2_tail
 
 
 def sup_wald_p_value(statistic: float, trim: float) -> float:
@@ -138,7 +138,7 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
            "p_step": 1.0, "p_drift": 1.0, "statistic": 0.0}
     if n_all < max(50, 10 * (p + 3)) or not np.all(np.isfinite(d)):
         return out
-    yv, lags = _ar_design(d, p)
+    yv, lags = d[p:], lag_matrix(d, range(1, p + 1), p)
     X = np.column_stack([np.ones(yv.shape[0]), lags])
     step = _step_wald(X, yv, trim)
     if step is None:
@@ -146,7 +146,7 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
     w_step, k_step, ssr_step = step
     p_step = min(1.0, 2.0 * sup_wald_p_value(w_step, trim))
     w_drift, ssr_drift = _drift_wald(X, yv)
-    p_drift = min(1.0, 2.0 * float(stats.chi2.sf(w_drift, 1)))
+    p_drift = min(1.0, 2.0 * float(chi2_tail(w_drift, 1)))
     out.update(p_step=p_step, p_drift=p_drift, p_value=min(p_step, p_drift))
     step_hit, drift_hit = p_step < alpha, p_drift < alpha
     if not (step_hit or drift_hit):

@@ -16,6 +16,8 @@ import math
 import numpy as np
 from scipy import optimize, signal
 
+from ..arx import least_squares_ar
+
 #: Bounds of a lag element's discrete pole ``a = exp(-T / tau)`` during the fit.
 _POLE_MIN, _POLE_MAX = 1e-4, 0.9995
 
@@ -226,9 +228,7 @@ class _RowProblem:
         r = self.z[self.start:] - known - phi[:, :ng] @ fit.gains[self.gain_free_idx]
         nuis = phi[:, ng:]
         r = r - nuis @ self._solve(nuis, r)
-        target, lags = _ar_design(r, self.p)
-        coef, *_ = np.linalg.lstsq(lags, target, rcond=None)
-        self.set_ar(-coef)
+        self.set_ar(-least_squares_ar(r, self.p))
 
     def full_residual(self, theta, lags):
         """Prefiltered residual as a function of ``[free gains, free poles, ar, nuisance]``."""
@@ -461,10 +461,3 @@ def _lag_interval(est: _RowEstimate, m: int, window: tuple, threshold: float):
     while hi + 1 <= window[1] and _lag_lr(est, m, hi + 1) <= threshold:
         hi += 1
     return lo, hi
-
-
-def _ar_design(x: np.ndarray, p: int):
-    """Rows ``k = p .. n-1``: target ``x(k)`` and lag columns ``x(k-1) .. x(k-p)``."""
-    n = x.shape[0]
-    lagcols = [x[p - l:n - l] for l in range(1, p + 1)]
-    return x[p:], (np.column_stack(lagcols) if lagcols else np.zeros((n - p, 0)))

@@ -16,7 +16,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..errors import ConfigurationError, InputError
-from ..logged_data import LoggedData
+from ..logged_data import LoggedData, check_loop_data
 from ..model import FopdtModel
 from ..signals import LoopSignals, compute_signals
 from .classify import _classify_row
@@ -47,15 +47,10 @@ def _fit_percent(y, yhat) -> float:
 
 
 def _check_inputs(model: FopdtModel, data: LoggedData, located, signals):
-    if tuple(data.inputs) != tuple(model.inputs) or tuple(data.outputs) != tuple(model.outputs):
-        raise InputError("repair: the data's channels do not match the model's inputs/outputs "
-                         f"(data {list(data.inputs)} -> {list(data.outputs)}, model {list(model.inputs)} -> "
-                         f"{list(model.outputs)})")
+    """The located pairs, sorted and unique, once the data (:func:`~mpm_monitor.core.logged_data.check_loop_data`),
+    the pairs and the signals fit the model; else :class:`InputError` naming what does not."""
+    check_loop_data(model, data)
     n = data.n_samples
-    for key, arr, width in (("r", data.r, model.n_outputs), ("u", data.u, model.n_inputs),
-                            ("y", data.y, model.n_outputs)):
-        if np.shape(arr) != (n, width):
-            raise InputError(f"repair: data.{key}: expected shape ({n}, {width}), got {np.shape(arr)}")
     out = []
     for item in located:
         try:

@@ -13,9 +13,8 @@ import math
 from typing import Optional
 
 import numpy as np
-from scipy import signal
 
-from ..discretize import discretize
+from ..discretize import discretize, simulate_elements
 from ..model import FopdtModel
 from .fit import _element_lag, _element_params, _lag_interval, _RowEstimate, _RowProblem, _search_row
 from .options import RepairOptions, _TestSettings
@@ -56,23 +55,8 @@ class _RowData:
 
 
 def _row_response(model: FopdtModel, u: np.ndarray, i: int) -> np.ndarray:
-    """Response of row ``i`` of ``model`` to ``u`` from rest, element by element (as
-    :func:`mpm_monitor.core.discretize.simulate`).
-
-    ``s(k+1) = a s(k) + b u_j(k - m)`` contributes ``s(k)``, i.e. ``b q^-(m+1) / (1 - a q^-1)``;
-    a static element without delay is a feed-through (see :mod:`mpm_monitor.core.discretize`).
-    """
-    disc = discretize(model)
-    out = np.zeros(u.shape[0])
-    for j in range(model.n_inputs):
-        if disc.active[i, j]:
-            m = int(disc.input_lag[i, j]) + 1
-            if m < u.shape[0]:
-                a = disc.pole[i, j]
-                out[m:] += signal.lfilter([disc.numerator[i, j]], [1.0, -a], u[:-m, j])
-        if disc.feedthrough[i, j] != 0:
-            out += disc.feedthrough[i, j] * u[:, j]
-    return out
+    """Response of row ``i`` of ``model`` to ``u`` from rest (:func:`mpm_monitor.core.discretize.simulate_elements`)."""
+    return simulate_elements(model, u, rows=[i])[:, 0]
 
 
 def _estimate_row(row: _RowData, specs: dict, lags0: dict, n_use: int, options: RepairOptions, max_sweeps: int = 1,
