@@ -1,4 +1,4 @@
-"""The model file (YAML): read, validate and write a :class:`~mpm_monitor.core.model.FopdtModel`.
+"""The model file (YAML): read, validate and write a :class:`~mpm_monitor.core.model.PlantModel`.
 
 The schema is described in ``docs/interfaces.md``.  Files are loaded with ``yaml.safe_load``: a
 Python tag is refused, never run.
@@ -13,13 +13,13 @@ import numpy as np
 import yaml
 
 from ..core.errors import ModelFileError
-from ..core.model import FopdtModel
+from ..core.model import PlantModel
 from .files import read_text
 
 
 def _matrix(data: Mapping, key: str, source: str) -> np.ndarray:
     if key not in data:
-        raise ModelFileError(f"{source}: missing key '{key}': expected a list of rows (outputs x inputs)")
+        raise ModelFileError(f"{source}: missing key '{key}': expected a list of rows (outputs x columns)")
     val = data[key]
     if not isinstance(val, Sequence) or isinstance(val, (str, bytes)):
         raise ModelFileError(f"{source}: key '{key}': expected a list of rows (outputs x inputs), got {type(val).__name__}")
@@ -74,24 +74,127 @@ def _names(data: Mapping, key: str, source: str) -> tuple:
     return tuple(val)
 
 
-def model_from_dict(data: Any, source: str = "model") -> FopdtModel:
+#: Every key a model file may hold.  Any other key is refused: a misspelt key (``time_constant_2``)
+#: read as absent would silently turn the model into another one.
+KNOWN_KEYS = ("sample_time", "inputs", "outputs", "disturbances", "gain", "time_constant", "delay", "lead",
+              "time_constant2", "integrating", "step_response", "ramp", "input_nominal", "output_nominal", "name")
+#: Keys of the parametric form, which a step-response model (key ``step_response``) replaces.
+PARAMETRIC_ONLY = ("gain", "time_constant", "delay", "lead", "time_constant2", "integrating")
+
+
+def _check_keys(data: Mapping, source: str) -> None:
+    """Refuse a key the model file does not know, naming it, the nearest known key and the known keys."""
+    import difflib
+
+    for key in data:
+        if key in KNOWN_KEYS:
+            continue
+        text = str(key)
+        near = difflib.get_close_matches(text, KNOWN_KEYS, n=1, cutoff=0.6)
+        hint = f" (did you mean '{near[0]}'?)" if near else ""
+        raise ModelFileError(f"{source}: unknown key {text!r}{hint}: a model file holds only the keys "
+                             f"{', '.join(KNOWN_KEYS)}")
+
+
+def _bool_matrix(data: Mapping, key: str, source: str):
+    if key not in data or data[key] is None:
+        return None
+    val = data[key]
+    if not isinstance(val, Sequence) or isinstance(val, (str, bytes)):
+        raise ModelFileError(f"{source}: key '{key}': expected a list of rows of true/false (outputs x columns), "
+                             f"got {type(val).__name__}")
+    rows = []
+    for i, row in enumerate(val):
+        if not isinstance(row, Sequence) or isinstance(row, (str, bytes)):
+            raise ModelFileError(f"{source}: key '{key}': row {i + 1}: expected a list of true/false, got {row!r}")
+        if rows and len(row) != len(rows[0]):
+            raise ModelFileError(f"{source}: key '{key}': row {i + 1} has {len(row)} entries, row 1 has {len(rows[0])}")
+        for j, x in enumerate(row):
+            if not isinstance(x, bool):
+                raise ModelFileError(f"{source}: key '{key}': row {i + 1}, column {j + 1}: expected true or false, "
+                                     f"got {x!r}")
+        rows.append(list(row))
+    if not rows:
+        raise ModelFileError(f"{source}: key '{key}': expected at least one row")
+    return np.array(rows, dtype=bool)
+
+
+def _bool_vector(data: Mapping, key: str, source: str):
+    if key not in data or data[key] is None:
+        return None
+    val = data[key]
+    if not isinstance(val, Sequence) or isinstance(val, (str, bytes)):
+        raise ModelFileError(f"{source}: key '{key}': expected a list of true/false (one per output), "
+                             f"got {type(val).__name__}")
+    for j, x in enumerate(val):
+        if not isinstance(x, bool):
+            raise ModelFileError(f"{source}: key '{key}': entry {j + 1}: expected true or false, got {x!r}")
+    return tuple(val)
+
+
+def _step_response(data: Mapping, source: str) -> np.ndarray:
+    """``step_response: {length: N, coefficients: [[[N values] per column] per output]}`` as an array."""
+    val = data["step_response"]
+    key = "step_response"
+    if not isinstance(val, Mapping):
+        raise ModelFileError(f"{source}: key '{key}': expected a mapping with 'length' and 'coefficients', "
+                             f"got {type(val).__name__}")
+    for k in val:
+        if k not in ("length", "coefficients"):
+            raise ModelFileError(f"{source}: key '{key}': unknown key {str(k)!r}: expected 'length' and 'coefficients'")
+    for k in ("length", "coefficients"):
+        if k not in val:
+            raise ModelFileError(f"{source}: key '{key}': missing '{k}'")
+    n = val["length"]
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ModelFileError(f"{source}: key '{key}': 'length': expected a whole number of samples >= 1, got {n!r}")
+    coef = val["coefficients"]
+    if not isinstance(coef, Sequence) or isinstance(coef, (str, bytes)) or not coef:
+        raise ModelFileError(f"{source}: key '{key}': 'coefficients': expected a list of rows (one per output), "
+                             f"each a list of {n} values per column")
+    rows = []
+    for i, row in enumerate(coef):
+        if not isinstance(row, Sequence) or isinstance(row, (str, bytes)):
+            raise ModelFileError(f"{source}: key '{key}': row {i + 1}: expected a list of columns, got {row!r}")
+        if rows and len(row) != len(rows[0]):
+            raise ModelFileError(f"{source}: key '{key}': row {i + 1} has {len(row)} columns, row 1 has {len(rows[0])}")
+        out_row = []
+        for j, el in enumerate(row):
+            where = f"{source}: key '{key}': row {i + 1}, column {j + 1}"
+            if not isinstance(el, Sequence) or isinstance(el, (str, bytes)):
+                raise ModelFileError(f"{where}: expected a list of {n} coefficients, got {el!r}")
+            if len(el) != n:
+                raise ModelFileError(f"{where}: expected {n} coefficients (length), got {len(el)}")
+            vals = []
+            for k, x in enumerate(el):
+                if isinstance(x, bool) or not isinstance(x, (int, float)):
+                    raise ModelFileError(f"{where}, coefficient {k + 1}: expected a number, got {x!r}")
+                vals.append(_float(x, f"{where}, coefficient {k + 1}"))
+            out_row.append(vals)
+        rows.append(out_row)
+    return np.array(rows, dtype=float)
+
+
+def model_from_dict(data: Any, source: str = "model") -> PlantModel:
     """Build and validate a model from parsed YAML/JSON data.
 
     Parameters
     ----------
     data : mapping
-        Keys of the model file (docs/interfaces.md, "Model file").
+        Keys as in ``docs/interfaces.md`` ("Model file", "Richer elements", "Measured disturbances").
     source : str
         Name used as the prefix of error messages (usually the file path).
 
     Raises
     ------
     ModelFileError
-        With one line naming the key and what was expected.
+        With one line naming the key (and the element) and what was expected; an unknown key is
+        refused, never ignored.
     """
     if not isinstance(data, Mapping):
         raise ModelFileError(f"{source}: expected a YAML mapping with keys sample_time, inputs, outputs, gain, "
                              f"time_constant, delay; got {type(data).__name__}")
+    _check_keys(data, source)
     if "sample_time" not in data:
         raise ModelFileError(f"{source}: missing key 'sample_time': expected a positive number of seconds")
     ts = data["sample_time"]
@@ -99,17 +202,31 @@ def model_from_dict(data: Any, source: str = "model") -> FopdtModel:
         raise ModelFileError(f"{source}: key 'sample_time': expected a positive number of seconds, got {ts!r}")
     inputs = _names(data, "inputs", source)
     outputs = _names(data, "outputs", source)
-    gain = _matrix(data, "gain", source)
-    tau = _matrix(data, "time_constant", source)
-    delay = _matrix(data, "delay", source)
+    disturbances = _names(data, "disturbances", source) if data.get("disturbances") is not None else ()
     name = data.get("name", "")
     if not isinstance(name, str):
         raise ModelFileError(f"{source}: key 'name': expected a string, got {name!r}")
+    common = dict(sample_time=_float(ts, f"{source}: key 'sample_time'"), inputs=inputs, outputs=outputs,
+                  disturbances=disturbances, input_nominal=_vector(data, "input_nominal", source),
+                  output_nominal=_vector(data, "output_nominal", source), name=name)
     try:
-        return FopdtModel(
-            sample_time=_float(ts, f"{source}: key 'sample_time'"), inputs=inputs, outputs=outputs, gain=gain, time_constant=tau,
-            delay=delay, input_nominal=_vector(data, "input_nominal", source),
-            output_nominal=_vector(data, "output_nominal", source), name=name)
+        if "step_response" in data:
+            for key in PARAMETRIC_ONLY:
+                if key in data:
+                    raise ModelFileError(
+                        f"{source}: key '{key}': a step-response model (key 'step_response') has no {key}: give "
+                        f"either the step responses or the parametric elements")
+            return PlantModel.from_step_response(coefficients=_step_response(data, source),
+                                                 ramp=_bool_vector(data, "ramp", source), **common)
+        if "ramp" in data:
+            raise ModelFileError(f"{source}: key 'ramp': only a step-response model (key 'step_response') takes a "
+                                 f"ramp; an integrating parametric element is marked in 'integrating'")
+        return PlantModel(
+            gain=_matrix(data, "gain", source), time_constant=_matrix(data, "time_constant", source),
+            delay=_matrix(data, "delay", source),
+            lead=_matrix(data, "lead", source) if data.get("lead") is not None else None,
+            time_constant2=_matrix(data, "time_constant2", source) if data.get("time_constant2") is not None else None,
+            integrating=_bool_matrix(data, "integrating", source), **common)
     except ModelFileError as exc:
         # __post_init__ validates with the generic prefix; re-raise with the file name.
         msg = str(exc)
@@ -118,7 +235,7 @@ def model_from_dict(data: Any, source: str = "model") -> FopdtModel:
         raise ModelFileError(msg) from None
 
 
-def load_model(path) -> FopdtModel:
+def load_model(path) -> PlantModel:
     """Load and validate a YAML model file (docs/interfaces.md, "Model file").
 
     Parameters
@@ -151,7 +268,7 @@ def load_model(path) -> FopdtModel:
     return model_from_dict(data, source=str(path))
 
 
-def save_model(model: FopdtModel, path) -> None:
+def save_model(model: PlantModel, path) -> None:
     """Write a model to a YAML file that :func:`load_model` reads back identically."""
     text = dump_model(model)
     Path(path).write_text(text, encoding="utf-8")
@@ -170,19 +287,36 @@ def yaml_number(v) -> str:
     return text
 
 
-def dump_model(model: FopdtModel) -> str:
-    """The model as YAML text, one matrix row per line."""
+def dump_model(model: PlantModel) -> str:
+    """The model as YAML text, one matrix row per line (one line per output for step responses)."""
     d = model.to_dict()
+
+    def flow(v):
+        return yaml.safe_dump(v, default_flow_style=True).strip()
+
+    def row(values):
+        return "[" + ", ".join("true" if v is True else "false" if v is False else yaml_number(v) for v in values) + "]"
+
     lines = []
     if "name" in d:
-        lines.append(f"name: {yaml.safe_dump(d['name'], default_flow_style=True).strip().removesuffix('...').strip()}")
+        lines.append(f"name: {flow(d['name']).removesuffix('...').strip()}")
     lines.append(f"sample_time: {yaml_number(d['sample_time'])}")
-    lines.append(f"inputs: {yaml.safe_dump(d['inputs'], default_flow_style=True).strip()}")
-    lines.append(f"outputs: {yaml.safe_dump(d['outputs'], default_flow_style=True).strip()}")
-    for key in ("gain", "time_constant", "delay"):
-        rows = ", ".join("[" + ", ".join(yaml_number(v) for v in row) + "]" for row in d[key])
-        lines.append(f"{key}: [{rows}]")
+    for key in ("inputs", "outputs", "disturbances"):
+        if key in d:
+            lines.append(f"{key}: {flow(d[key])}")
+    for key in ("gain", "time_constant", "delay", "lead", "time_constant2", "integrating"):
+        if key in d:
+            lines.append(f"{key}: [{', '.join(row(r) for r in d[key])}]")
+    if "step_response" in d:
+        sr = d["step_response"]
+        lines.append("step_response:")
+        lines.append(f"  length: {sr['length']}")
+        lines.append("  coefficients:")
+        for name, r in zip(d["outputs"], sr["coefficients"]):
+            lines.append(f"  - [{', '.join(row(el) for el in r)}]   # {name}")
+        if "ramp" in d:
+            lines.append(f"ramp: {row(d['ramp'])}")
     for key in ("input_nominal", "output_nominal"):
         if key in d:
-            lines.append(f"{key}: [{', '.join(yaml_number(v) for v in d[key])}]")
+            lines.append(f"{key}: {row(d[key])}")
     return "\n".join(lines) + "\n"
