@@ -17,7 +17,7 @@ import argparse
 
 import numpy as np
 
-from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.model import PlantModel
 from mpm_monitor.sim.closed_loop import run_closed_loop
 from mpm_monitor.sim.mpc import MpcOptions
 
@@ -33,7 +33,7 @@ def draw(seed: int, index: int):
     tau = np.round(rng.uniform(10.0, 80.0, (n, n)), 1)
     delay = rng.integers(0, 9, (n, n)).astype(float)
     delay = np.where((tau == 0) & (delay == 0), 1.0, delay)
-    plant = FopdtModel(1.0, ("u1", "u2", "u3"), ("y1", "y2", "y3"), gain, tau, delay)
+    plant = PlantModel(1.0, ("u1", "u2", "u3"), ("y1", "y2", "y3"), gain, tau, delay)
     i, j = (int(x) for x in rng.integers(0, n, 2))
     return plant, plant.with_element(i, j, gain=0.7 * gain[i, j]), (i, j)
 

@@ -11,25 +11,25 @@ from __future__ import annotations
 
 import numpy as np
 
-from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.model import PlantModel
 
 
-def random_plant(n_outputs: int, n_inputs: int, rng: np.random.Generator) -> FopdtModel:
+def random_plant(n_outputs: int, n_inputs: int, rng: np.random.Generator) -> PlantModel:
     """A random stable FOPDT plant (see the module docstring)."""
     shape = (n_outputs, n_inputs)
     gain = np.exp(rng.uniform(np.log(0.5), np.log(5.0), shape)) * rng.choice([-1.0, 1.0], shape)
-    return FopdtModel(sample_time=1.0, inputs=[f"u{j + 1}" for j in range(n_inputs)],
+    return PlantModel(sample_time=1.0, inputs=[f"u{j + 1}" for j in range(n_inputs)],
                       outputs=[f"y{i + 1}" for i in range(n_outputs)], gain=gain,
                       time_constant=rng.uniform(10.0, 80.0, shape),
                       delay=rng.integers(0, 9, shape).astype(float), name=f"random {n_outputs}x{n_inputs}")
 
 
-def square_model(n: int, seed: int = 0) -> FopdtModel:
+def square_model(n: int, seed: int = 0) -> PlantModel:
     """An ``n x n`` FOPDT model with diagonal dominance (sample time 1 s, delays 1..7 samples)."""
     rng = np.random.default_rng(seed)
     gain = rng.uniform(0.2, 1.0, (n, n)) + np.eye(n) * n
     tau = rng.uniform(20.0, 60.0, (n, n))
     delay = rng.integers(1, 8, (n, n)).astype(float)
-    return FopdtModel(sample_time=1.0, inputs=tuple(f"u{k + 1}" for k in range(n)),
+    return PlantModel(sample_time=1.0, inputs=tuple(f"u{k + 1}" for k in range(n)),
                       outputs=tuple(f"y{k + 1}" for k in range(n)), gain=gain, time_constant=tau, delay=delay,
                       name=f"{n}x{n} benchmark model")

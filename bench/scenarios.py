@@ -50,7 +50,7 @@ from typing import Optional
 import numpy as np
 import scipy.linalg as sla
 
-from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.model import PlantModel
 from mpm_monitor.sim.closed_loop import ExcitationOptions
 from mpm_monitor.sim.excitation import PrbsOptions
 from mpm_monitor.sim.mpc import MpcOptions
@@ -162,9 +162,9 @@ class Scenario:
     ----------
     seed, index : int
         The pair the scenario was drawn from.
-    plant : FopdtModel
+    plant : PlantModel
         True plant ``P``.
-    model : FopdtModel
+    model : PlantModel
         Controller model ``Phat``.
     mismatches : tuple of Mismatch
     truth : ndarray of bool, shape (n_outputs, n_inputs)
@@ -180,8 +180,8 @@ class Scenario:
 
     seed: int
     index: int
-    plant: FopdtModel
-    model: FopdtModel
+    plant: PlantModel
+    model: PlantModel
     mismatches: tuple
     truth: np.ndarray
     dither: bool
@@ -306,7 +306,7 @@ def make_scenario(seed: int, index: int, options: ScenarioOptions = ScenarioOpti
     tau = np.round(rng.uniform(opts.tau_range[0], opts.tau_range[1], (ny, nu)), 1)
     delay = rng.integers(0, opts.max_delay + 1, (ny, nu))
     ts = opts.sample_time
-    plant = FopdtModel(sample_time=ts, inputs=_names(nu, "u"), outputs=_names(ny, "y"), gain=gain,
+    plant = PlantModel(sample_time=ts, inputs=_names(nu, "u"), outputs=_names(ny, "y"), gain=gain,
                        time_constant=tau, delay=delay * ts, name=f"random plant (seed {seed}, run {index})")
     k = int(rng.integers(opts.min_mismatches, opts.max_mismatches + 1)) if n_mismatches is None else int(n_mismatches)
     k = min(k, ny * nu)

@@ -13,7 +13,7 @@ import pytest
 
 from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.errors import ConfigurationError, DataFileError
-from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.model import PlantModel
 from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.io.csv_log import write_log_csv
 from mpm_monitor.io.model_file import save_model
@@ -78,7 +78,7 @@ def test_collinear_inputs_give_ambiguity_not_a_wrong_element():
 
 
 def _random_model(ny, nu, rng):
-    return FopdtModel(1.0, [f"u{j + 1}" for j in range(nu)], [f"y{i + 1}" for i in range(ny)],
+    return PlantModel(1.0, [f"u{j + 1}" for j in range(nu)], [f"y{i + 1}" for i in range(ny)],
                       gain=rng.uniform(0.5, 3, (ny, nu)) * rng.choice([-1, 1], (ny, nu)),
                       time_constant=rng.uniform(10, 60, (ny, nu)),
                       delay=rng.integers(1, 6, (ny, nu)).astype(float))

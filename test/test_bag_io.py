@@ -13,7 +13,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 
 from mpm_monitor.apps.cli import main as cli_main
 from mpm_monitor.core.errors import BagError
-from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.model import PlantModel
 from mpm_monitor.io import bags as bag_io
 from mpm_monitor.io.bags import BagWriter, export_csv, read_bag, read_bag_channels, read_diagnostics, read_raw_messages
 from mpm_monitor.io.bags import read as bag_read
@@ -25,7 +25,7 @@ JS = TS.types["sensor_msgs/msg/JointState"]
 HEADER = TS.types["std_msgs/msg/Header"]
 TIME = TS.types["builtin_interfaces/msg/Time"]
 
-MODEL = FopdtModel(sample_time=0.5, inputs=("u1", "u2"), outputs=("y1", "y2", "y3"),
+MODEL = PlantModel(sample_time=0.5, inputs=("u1", "u2"), outputs=("y1", "y2", "y3"),
                    gain=np.ones((3, 2)), time_constant=np.full((3, 2), 5.0), delay=np.zeros((3, 2)))
 T0 = 100.0  # stamp of sample 0, seconds
 

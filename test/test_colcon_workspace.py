@@ -31,7 +31,7 @@ pytestmark = pytest.mark.timeout(300)
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from ros_domains import close_listener, domain_context, stop_process, unique_domain  # noqa: E402
 
-from mpm_monitor.core.model import FopdtModel  # noqa: E402
+from mpm_monitor.core.model import PlantModel  # noqa: E402
 from mpm_monitor.io.model_file import save_model  # noqa: E402
 from mpm_monitor.monitor.statuses import SUMMARY_NAME  # noqa: E402
 from mpm_monitor.nodes.ros_io import VectorCodec, diagnostics_qos, make_executor, spin_until, vector_qos  # noqa: E402
@@ -202,7 +202,7 @@ def test_the_monitor_from_the_install_answers_a_plain_publisher_with_diagnostics
     from sensor_msgs.msg import JointState
 
     ts = 0.005
-    model = FopdtModel(sample_time=ts, inputs=("u1", "u2"), outputs=("y1", "y2"), gain=[[1.0, 0.3], [0.2, 1.0]],
+    model = PlantModel(sample_time=ts, inputs=("u1", "u2"), outputs=("y1", "y2"), gain=[[1.0, 0.3], [0.2, 1.0]],
                        time_constant=[[0.05, 0.05], [0.05, 0.05]], delay=[[0.005, 0.0], [0.0, 0.005]])
     model_file = tmp_path / "unit_model.yaml"
     save_model(model, model_file)

@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 
 from mpm_monitor.core.errors import DataFileError, InputError
-from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.model import PlantModel
 from mpm_monitor.io.csv_log import csv_header, parse_csv_text, read_csv, write_csv, write_log_csv
 
 HEADER = "t,r_y1,r_y2,u1,u2,u3,y1,y2"
 
 
 def _model(ts=1.0):
-    return FopdtModel(sample_time=ts, inputs=("u1", "u2", "u3"), outputs=("y1", "y2"),
+    return PlantModel(sample_time=ts, inputs=("u1", "u2", "u3"), outputs=("y1", "y2"),
                       gain=[[1.0, 2.0, 0.0], [0.5, 0.0, 3.0]], time_constant=[[10.0, 5.0, 0.0], [3.0, 0.0, 8.0]],
                       delay=[[1.0, 2.0, 0.0], [0.0, 0.0, 1.0]])
 

@@ -26,14 +26,14 @@ from mpm_monitor.core.discretize import (
     simulate_state_space,
     state_space,
 )
-from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.model import PlantModel
 from mpm_monitor.sim.cases import shell_plant
 
 N_STEP = 400  # samples of every step response (8 time constants of the slowest Shell element)
 
 
 def _siso(gain, tau, delay, ts=1.0):
-    return FopdtModel(sample_time=ts, inputs=("u",), outputs=("y",), gain=[[gain]], time_constant=[[tau]],
+    return PlantModel(sample_time=ts, inputs=("u",), outputs=("y",), gain=[[gain]], time_constant=[[tau]],
                       delay=[[delay]])
 
 
@@ -152,7 +152,7 @@ def test_frequency_response_dc_gain_and_continuous_form():
 
 def _mixed_model():
     """2x3 model with every kind of element: lag with/without delay, static with delay, feed-through, zero."""
-    return FopdtModel(sample_time=0.5, inputs=("a", "b", "c"), outputs=("p", "q"),
+    return PlantModel(sample_time=0.5, inputs=("a", "b", "c"), outputs=("p", "q"),
                       gain=[[1.5, 0.0, -2.0], [0.7, 3.0, 1.1]],
                       time_constant=[[4.0, 9.0, 0.0], [0.0, 2.5, 0.0]],
                       delay=[[1.0, 0.5, 2.0], [0.0, 0.0, 1.5]])
@@ -256,7 +256,7 @@ def test_simulate_from_initial_state_is_free_plus_forced_response():
 
 def test_static_model_without_states():
     # Every element a feed-through: no states, y = D u exactly.
-    model = FopdtModel(sample_time=1.0, inputs=("u1", "u2"), outputs=("y",), gain=[[2.0, -1.0]],
+    model = PlantModel(sample_time=1.0, inputs=("u1", "u2"), outputs=("y",), gain=[[2.0, -1.0]],
                        time_constant=[[0.0, 0.0]], delay=[[0.0, 0.0]])
     ss = state_space(model)
     assert ss.n_states == 0

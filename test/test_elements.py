@@ -9,8 +9,13 @@ import control
 import numpy as np
 import pytest
 
-from mpm_monitor.core.elements import (DiscreteElement, continuous_frequency_response, dead_time_samples,
-                                       from_step_response, sample_parametric)
+from mpm_monitor.core.elements import (
+    DiscreteElement,
+    continuous_frequency_response,
+    dead_time_samples,
+    from_step_response,
+    sample_parametric,
+)
 
 STRUCTURES = [
     pytest.param(dict(gain=2.0, time_constant=10.0), id="first-order"),

@@ -27,7 +27,7 @@ from mpm_monitor.core.arx import SharedBlockRegression, lag_matrix
 from mpm_monitor.core.discretize import simulate_elements, simulate_state_space, state_space
 from mpm_monitor.core.element_test import InputDesign
 from mpm_monitor.core.logged_data import LoggedData
-from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.model import PlantModel
 from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.core.regressions import (
     GramBlockRegression,
@@ -76,7 +76,7 @@ def _random_model(ny, nu, rng, ts=1.0):
     tau = rng.uniform(0.2, 60.0, (ny, nu))
     tau[rng.random((ny, nu)) < 0.25] = 0.0
     delay = rng.integers(0, 9, (ny, nu)) * ts
-    return FopdtModel(ts, [f"u{j + 1}" for j in range(nu)], [f"y{i + 1}" for i in range(ny)],
+    return PlantModel(ts, [f"u{j + 1}" for j in range(nu)], [f"y{i + 1}" for i in range(ny)],
                       gain=gain, time_constant=tau, delay=delay)
 
 
@@ -97,7 +97,7 @@ def test_element_simulation_equals_the_dense_state_space(seed, ny, nu, ts):
 
 
 def test_element_simulation_of_a_model_without_lag_states():
-    model = FopdtModel(1.0, ["u1", "u2"], ["y1"], gain=[[2.0, 0.0]], time_constant=[[0.0, 5.0]], delay=[[0.0, 1.0]])
+    model = PlantModel(1.0, ["u1", "u2"], ["y1"], gain=[[2.0, 0.0]], time_constant=[[0.0, 5.0]], delay=[[0.0, 1.0]])
     u = np.random.default_rng(5).standard_normal((50, 2))
     np.testing.assert_array_equal(simulate_elements(model, u), 2.0 * u[:, :1])
 
@@ -230,7 +230,7 @@ def _run(name, seed, samples=3000, excitation=None):
 def _non_square(ny, nu, dither):
     """test_analysis.test_non_square_plants."""
     rng = np.random.default_rng(ny * 10 + nu)
-    plant = FopdtModel(1.0, [f"u{j + 1}" for j in range(nu)], [f"y{i + 1}" for i in range(ny)],
+    plant = PlantModel(1.0, [f"u{j + 1}" for j in range(nu)], [f"y{i + 1}" for i in range(ny)],
                        gain=rng.uniform(0.5, 3, (ny, nu)) * rng.choice([-1, 1], (ny, nu)),
                        time_constant=rng.uniform(10, 60, (ny, nu)), delay=rng.integers(1, 6, (ny, nu)).astype(float))
     i2 = min(4, ny - 1)
@@ -244,7 +244,7 @@ def _large(n, samples, seed=0):
     """A random n x n plant as in bench/perf.py, the model's (y1, u2) gain 30 % off."""
     rng = np.random.default_rng(seed + n)
     shape = (n, n)
-    plant = FopdtModel(1.0, [f"u{j + 1}" for j in range(n)], [f"y{i + 1}" for i in range(n)],
+    plant = PlantModel(1.0, [f"u{j + 1}" for j in range(n)], [f"y{i + 1}" for i in range(n)],
                        gain=np.exp(rng.uniform(np.log(0.5), np.log(5.0), shape)) * rng.choice([-1.0, 1.0], shape),
                        time_constant=rng.uniform(10.0, 80.0, shape), delay=rng.integers(0, 9, shape).astype(float))
     model = plant.with_element(0, 1, gain=plant.gain[0, 1] * 1.3)

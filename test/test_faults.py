@@ -39,14 +39,14 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
 from mpm_monitor.apps.demo import _overrides, private_context  # noqa: E402
-from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.model import PlantModel
 from mpm_monitor.io.model_file import save_model  # noqa: E402
 from mpm_monitor.monitor.statuses import SUMMARY_NAME  # noqa: E402
 from mpm_monitor.nodes.ros_io import diagnostics_qos, make_executor, spin_until  # noqa: E402
 
 TS = 0.02
 NS = 1_000_000_000
-MODEL = FopdtModel(sample_time=TS, inputs=("u1", "u2"), outputs=("y1", "y2"), gain=[[1.0, 0.3], [0.2, 1.0]],
+MODEL = PlantModel(sample_time=TS, inputs=("u1", "u2"), outputs=("y1", "y2"), gain=[[1.0, 0.3], [0.2, 1.0]],
                    time_constant=[[0.5, 0.6], [0.4, 0.5]], delay=[[0.04, 0.06], [0.04, 0.02]])
 #: Seconds a killed node stays down (30 samples).
 OUTAGE = 0.6
@@ -405,7 +405,7 @@ def test_monitor_process_sigkilled_and_restarted_while_the_stack_publishes(tmp_p
     from mpm_monitor.nodes.ros_io import VectorCodec, vector_qos
 
     ts = 0.005
-    model = FopdtModel(sample_time=ts, inputs=("u1", "u2"), outputs=("y1", "y2"), gain=[[1.0, 0.3], [0.2, 1.0]],
+    model = PlantModel(sample_time=ts, inputs=("u1", "u2"), outputs=("y1", "y2"), gain=[[1.0, 0.3], [0.2, 1.0]],
                        time_constant=[[0.05, 0.05], [0.05, 0.05]], delay=[[0.005, 0.0], [0.0, 0.005]])
     model_file = tmp_path / "model.yaml"
     save_model(model, model_file)

@@ -209,12 +209,12 @@ class Sent:
 @pytest.fixture
 def monitor(tmp_path):
     from mpm_monitor.apps.demo import _overrides, private_context
-    from mpm_monitor.core.model import FopdtModel
+    from mpm_monitor.core.model import PlantModel
     from mpm_monitor.io.model_file import save_model
     from mpm_monitor.nodes.monitor_node import MonitorNode
 
     path = tmp_path / "model.yaml"
-    save_model(FopdtModel(sample_time=1.0, inputs=INP, outputs=OUT, gain=np.ones((2, 3)),
+    save_model(PlantModel(sample_time=1.0, inputs=INP, outputs=OUT, gain=np.ones((2, 3)),
                           time_constant=np.ones((2, 3)), delay=np.zeros((2, 3))), path)
     ctx = private_context()
     analyses = Analyses(seed=11)

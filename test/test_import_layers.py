@@ -3,7 +3,7 @@
 The imports of every module of the package, of ``bench/`` and of ``launch_scripts/`` are read with
 :mod:`ast` -- at the top of a file and inside functions alike -- and resolved to the modules of this
 repository (``from mpm_monitor.io import bags`` is an import of the module ``mpm_monitor.io.bags``;
-``from mpm_monitor.core.model import FopdtModel`` one of ``mpm_monitor.core.model``).
+``from mpm_monitor.core.model import PlantModel`` one of ``mpm_monitor.core.model``).
 
 The layers of the package, from the bottom up (docs/architecture.md):
 

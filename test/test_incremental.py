@@ -23,7 +23,7 @@ from mpm_monitor.core.arx import SharedBlockRegression, lag_matrix
 from mpm_monitor.core.discretize import ModelPredictor
 from mpm_monitor.core.errors import ConfigurationError, DataFileError
 from mpm_monitor.core.logged_data import LoggedData
-from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.model import PlantModel
 from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.core.regressions import GramBlockRegression, GramFit, QrRegressions, regression_layout
 from mpm_monitor.core.signals import LoopSignals, compute_signals
@@ -80,7 +80,7 @@ def _offset_open_loop(n, seed, model, plant):
 
 # ------------------------------------------------------------------------------------ the model
 def _model_with_every_element_kind():
-    return FopdtModel(1.0, ["u1", "u2", "u3"], ["y1", "y2"],
+    return PlantModel(1.0, ["u1", "u2", "u3"], ["y1", "y2"],
                       gain=[[2.0, 0.0, -1.5], [0.5, 3.0, 1.0]],
                       time_constant=[[20.0, 10.0, 0.0], [5.0, 0.0, 40.0]],
                       delay=[[3.0, 0.0, 2.0], [0.0, 0.0, 7.0]])       # (y2, u2): static feed-through

@@ -5,9 +5,9 @@ import pytest
 
 from mpm_monitor.core.errors import DataFileError
 from mpm_monitor.core.logged_data import LoggedData, check_loop_data, check_signals
-from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.model import PlantModel
 
-MODEL = FopdtModel(1.0, ["u1", "u2"], ["y1"], gain=[[1.0, 2.0]], time_constant=[[3.0, 4.0]], delay=[[0.0, 1.0]])
+MODEL = PlantModel(1.0, ["u1", "u2"], ["y1"], gain=[[1.0, 2.0]], time_constant=[[3.0, 4.0]], delay=[[0.0, 1.0]])
 
 
 def _data(n=5, **kw):

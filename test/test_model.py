@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from mpm_monitor.core.errors import InputError, ModelFileError
-from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.model import PlantModel
 from mpm_monitor.io.model_file import dump_model, load_model, model_from_dict, save_model
 from mpm_monitor.sim.cases import shell_plant
 
@@ -82,7 +82,7 @@ def test_save_load_round_trip_awkward_values(tmp_path):
     tau = rng.random((2, 3)) * 10.0 ** rng.integers(-8, 20, size=(2, 3))
     tau[1, 2] = 0.0
     delay = rng.integers(0, 9, size=(2, 3)) * ts
-    model = FopdtModel(sample_time=ts, inputs=("yes", "no", "u 3"), outputs=("null", "on"), gain=gain,
+    model = PlantModel(sample_time=ts, inputs=("yes", "no", "u 3"), outputs=("null", "on"), gain=gain,
                        time_constant=tau, delay=delay, input_nominal=[1e16, -2e-30, 0.1],
                        output_nominal=[3.0, -1.0 / 3.0], name="a: b # c")
     path = tmp_path / "awkward.yaml"

@@ -264,7 +264,7 @@ def test_a_bad_parameter_is_refused_with_its_name():
 def test_wall_clock_mode_runs_and_the_monitor_holds_the_setpoints(tmp_path):
     """Timer-driven plant and setpoints on the wall clock (50 Hz model), MPC and monitor holding setpoints."""
     from mpm_monitor.apps.demo import _overrides
-    from mpm_monitor.core.model import FopdtModel
+    from mpm_monitor.core.model import PlantModel
     from mpm_monitor.io.model_file import save_model
     from mpm_monitor.nodes.monitor_node import MonitorNode
     from mpm_monitor.nodes.mpc_node import MpcNode
@@ -272,7 +272,7 @@ def test_wall_clock_mode_runs_and_the_monitor_holds_the_setpoints(tmp_path):
     from mpm_monitor.nodes.setpoint_node import SetpointNode
 
     ts = 0.02
-    model = FopdtModel(sample_time=ts, inputs=("u1", "u2"), outputs=("y1", "y2"), gain=[[1.0, 0.3], [0.2, 1.0]],
+    model = PlantModel(sample_time=ts, inputs=("u1", "u2"), outputs=("y1", "y2"), gain=[[1.0, 0.3], [0.2, 1.0]],
                        time_constant=[[0.5, 0.6], [0.4, 0.5]], delay=[[0.04, 0.06], [0.04, 0.02]])
     path = str(tmp_path / "fast.yaml")
     save_model(model, path)

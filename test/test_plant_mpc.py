@@ -16,7 +16,7 @@ from scipy.optimize import lsq_linear
 
 from mpm_monitor.core.discretize import simulate, state_space
 from mpm_monitor.core.errors import ConfigurationError
-from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.model import PlantModel
 from mpm_monitor.sim.cases import paper_case, shell_plant
 from mpm_monitor.sim.closed_loop import ExcitationOptions, run_closed_loop, seeded_generators
 from mpm_monitor.sim.excitation import PrbsGenerator, PrbsOptions
@@ -38,7 +38,7 @@ def _random_plant(seed=5):
     delay = rng.integers(0, 6, (2, 3)).astype(float)
     tau[0, 1], delay[0, 1] = 0.0, 2.0   # static element with delay: allowed
     gain[1, 2] = 0.0                    # "no such effect"
-    return FopdtModel(sample_time=1.0, inputs=("a", "b", "c"), outputs=("p", "q"), gain=gain,
+    return PlantModel(sample_time=1.0, inputs=("a", "b", "c"), outputs=("p", "q"), gain=gain,
                       time_constant=tau, delay=delay, name="random 2x3")
 
 

@@ -36,14 +36,14 @@ from std_msgs.msg import Float64MultiArray  # noqa: E402
 
 from mpm_monitor.apps.demo import private_context  # noqa: E402
 from mpm_monitor.core.errors import InputError  # noqa: E402
-from mpm_monitor.core.model import FopdtModel  # noqa: E402
+from mpm_monitor.core.model import PlantModel  # noqa: E402
 from mpm_monitor.io.bags import read_bag, read_diagnostics, recover_bag  # noqa: E402
 from mpm_monitor.nodes.recorder_node import RecorderNode, parse_topic_specs  # noqa: E402
 from mpm_monitor.nodes.ros_io import spin_until  # noqa: E402
 
 VECTOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
-MODEL = FopdtModel(sample_time=1.0, inputs=("u1", "u2"), outputs=("y1", "y2"), gain=np.ones((2, 2)),
+MODEL = PlantModel(sample_time=1.0, inputs=("u1", "u2"), outputs=("y1", "y2"), gain=np.ones((2, 2)),
                    time_constant=np.ones((2, 2)), delay=np.zeros((2, 2)))
 TYPES = {"/setpoint": JointState, "/input": JointState, "/output": JointState, "/diagnostics": DiagnosticArray,
          "/mpm_monitor/rsi": Float64MultiArray, "/clock": Clock}

@@ -16,7 +16,7 @@ import pytest
 from mpm_monitor.apps.cli import main as cli_main
 from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.logged_data import LoggedData
-from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.model import PlantModel
 from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.io import plots
 from mpm_monitor.io.bags import read_bag, write_logged_data
@@ -96,7 +96,7 @@ def test_analyze_bag_equals_analyze_data(case32, tmp_path):
 
 
 def _model():
-    return FopdtModel(sample_time=1.0, inputs=("u1", "u2"), outputs=("y1", "y2"), gain=[[2.0, 0.0], [1.0, 3.0]],
+    return PlantModel(sample_time=1.0, inputs=("u1", "u2"), outputs=("y1", "y2"), gain=[[2.0, 0.0], [1.0, 3.0]],
                       time_constant=[[10.0, 0.0], [5.0, 0.0]], delay=[[3.0, 0.0], [0.0, 2.0]])
 
 

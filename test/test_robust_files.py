@@ -27,7 +27,7 @@ from hypothesis import strategies as st
 from mpm_monitor.apps.cli import main as cli_main
 from mpm_monitor.core.errors import DataFileError, InputError, ModelFileError
 from mpm_monitor.core.logged_data import LoggedData
-from mpm_monitor.core.model import FopdtModel
+from mpm_monitor.core.model import PlantModel
 from mpm_monitor.io.bags import BagWriter, write_logged_data
 from mpm_monitor.io.csv_log import csv_header, read_csv, write_csv
 from mpm_monitor.io.model_file import dump_model, load_model, save_model
@@ -41,7 +41,7 @@ SETTINGS = settings(max_examples=150, deadline=None, derandomize=True,
 WHERE = re.compile(r"key '|keys '|line \d+|byte \d+|character \d+|empty file|expected a YAML mapping|"
                    r"no data lines|NUL bytes|nested")
 
-GOOD_MODEL = FopdtModel(sample_time=1.0, inputs=("u1", "u2"), outputs=("y1", "y2"),
+GOOD_MODEL = PlantModel(sample_time=1.0, inputs=("u1", "u2"), outputs=("y1", "y2"),
                         gain=[[1.0, 0.5], [0.2, 1.0]], time_constant=[[5.0, 5.0], [5.0, 5.0]],
                         delay=[[1.0, 0.0], [0.0, 2.0]])
 
@@ -68,7 +68,7 @@ def model_outcome(path):
     except ModelFileError as exc:
         assert_one_line_error(exc, path)
         return None
-    assert isinstance(model, FopdtModel)
+    assert isinstance(model, PlantModel)
     assert np.all(np.isfinite(model.gain)) and np.all(model.time_constant >= 0)
     again = path.with_suffix(".again.yaml")
     save_model(model, again)
@@ -197,7 +197,7 @@ def valid_models(draw):
     gain = draw(st.lists(st.lists(finite, min_size=nu, max_size=nu), min_size=ny, max_size=ny))
     tau = draw(st.lists(st.lists(st.floats(0, 1e308), min_size=nu, max_size=nu), min_size=ny, max_size=ny))
     delay = draw(st.lists(st.lists(st.integers(0, 20), min_size=nu, max_size=nu), min_size=ny, max_size=ny))
-    return FopdtModel(sample_time=ts, inputs=names[ny:], outputs=names[:ny], gain=gain, time_constant=tau,
+    return PlantModel(sample_time=ts, inputs=names[ny:], outputs=names[:ny], gain=gain, time_constant=tau,
                       delay=np.array(delay) * ts, name=draw(st.text(max_size=8)))
 
 
@@ -260,7 +260,7 @@ def test_python_tags_are_refused_and_never_run(work):
         with pytest.raises(ModelFileError, match=r"line 1.*python/object") as info:
             load_model(path)
         assert_one_line_error(info.value, path)
-    path.write_text("!!python/object:mpm_monitor.core.model.FopdtModel {sample_time: 1}\n", encoding="utf-8")
+    path.write_text("!!python/object:mpm_monitor.core.model.PlantModel {sample_time: 1}\n", encoding="utf-8")
     with pytest.raises(ModelFileError, match=r"python/object"):
         load_model(path)
     assert not marker.exists()
@@ -269,7 +269,7 @@ def test_python_tags_are_refused_and_never_run(work):
 # ------------------------------------------------------------------------------------------------
 # CSV contents
 
-CSV_MODEL = FopdtModel(sample_time=0.5, inputs=("u1", "ü2"), outputs=("y1",), gain=[[1.0, 2.0]],
+CSV_MODEL = PlantModel(sample_time=0.5, inputs=("u1", "ü2"), outputs=("y1",), gain=[[1.0, 2.0]],
                        time_constant=[[1.0, 1.0]], delay=[[0.0, 0.5]])
 NEEDED = csv_header(CSV_MODEL.inputs, CSV_MODEL.outputs)
 

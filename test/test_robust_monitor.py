@@ -231,9 +231,9 @@ class FakeReport:
 
 
 def make_core(**kw):
-    from mpm_monitor.core.model import FopdtModel
+    from mpm_monitor.core.model import PlantModel
 
-    model = FopdtModel(sample_time=1.0, inputs=INP, outputs=OUT, gain=np.ones((2, 3)),
+    model = PlantModel(sample_time=1.0, inputs=INP, outputs=OUT, gain=np.ones((2, 3)),
                        time_constant=np.ones((2, 3)), delay=np.zeros((2, 3)))
     win = WindowOptions(window_samples=kw.pop("window_samples", 50), reorder_samples=kw.pop("reorder_samples", 3))
     opts = dict(analysis_period=10, min_samples=20, stale_timeout=2.0)
@@ -421,11 +421,11 @@ def _monitor_node(ctx, model_file, **params):
 
 @pytest.fixture
 def model_file(tmp_path):
-    from mpm_monitor.core.model import FopdtModel
+    from mpm_monitor.core.model import PlantModel
     from mpm_monitor.io.model_file import save_model
 
     path = tmp_path / "model.yaml"
-    save_model(FopdtModel(sample_time=1.0, inputs=INP, outputs=OUT, gain=np.ones((2, 3)),
+    save_model(PlantModel(sample_time=1.0, inputs=INP, outputs=OUT, gain=np.ones((2, 3)),
                           time_constant=np.ones((2, 3)), delay=np.zeros((2, 3))), path)
     return path
 

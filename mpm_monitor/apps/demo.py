@@ -27,7 +27,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..core.errors import ConfigurationError, InputError
-from ..core.model import FopdtModel
+from ..core.model import PlantModel
 from ..core.wording import repair_text
 from ..io.model_file import save_model
 from ..sim.cases import CASE_NAMES, paper_case
@@ -264,7 +264,7 @@ class DiagnosticsPrinter:
         self.out.flush()
 
 
-def _write_model(model: FopdtModel, directory: str, name: str) -> str:
+def _write_model(model: PlantModel, directory: str, name: str) -> str:
     path = str(Path(directory) / name)
     save_model(model, path)
     return path

@@ -28,7 +28,7 @@ import numpy as np
 from .element_test import InputDesign, arx_element_test, baseline_element_test
 from .errors import ConfigurationError, DataFileError
 from .logged_data import LoggedData, check_loop_data
-from .model import FopdtModel
+from .model import PlantModel
 from .options import check_options, option, option_specs
 from .regressions import regression_layout, window_regressions
 from .row_test import sdelta_row_test
@@ -172,7 +172,7 @@ class AnalysisReport:
         The paper's ARX table of every row tested (ARX method only).
     repair : dict
         The repair (JSON values): the model, its changes, the prediction error before and after.
-    repaired_model : FopdtModel
+    repaired_model : PlantModel
         The model with the repairs applied (the model itself when nothing was repaired).
     collinear_groups : list of tuple of str
         Inputs that cannot be told apart.
@@ -198,7 +198,7 @@ class AnalysisReport:
     sdelta_response: np.ndarray
     arx_tables: list
     repair: dict
-    repaired_model: FopdtModel
+    repaired_model: PlantModel
     collinear_groups: list
     max_variance_inflation: float
     signals: Optional[LoopSignals] = None
@@ -277,13 +277,13 @@ class AnalysisReport:
         return "\n".join(lines)
 
 
-def detect(model: FopdtModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
+def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
            signals: Optional[LoopSignals] = None, regressions=None) -> AnalysisReport:
     """Run the S_Delta row test and the Delta element test on logged closed-loop data (no repair).
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
         The controller's model ``Phat``.
     data : LoggedData
         Setpoints, inputs and outputs, equally spaced at ``model.sample_time``.

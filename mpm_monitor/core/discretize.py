@@ -21,12 +21,12 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .model import FopdtModel
+from .model import PlantModel
 
 
 @dataclasses.dataclass(frozen=True)
 class DiscreteFopdt:
-    """Element-wise discrete form of a :class:`FopdtModel`.
+    """Element-wise discrete form of a :class:`PlantModel`.
 
     Attributes
     ----------
@@ -54,12 +54,12 @@ class DiscreteFopdt:
         return not np.any(self.feedthrough != 0)
 
 
-def discretize(model: FopdtModel) -> DiscreteFopdt:
+def discretize(model: PlantModel) -> DiscreteFopdt:
     """Zero-order-hold discretization of every element of ``model``.
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
         The continuous-time model; its delays are multiples of ``model.sample_time``.
 
     Returns
@@ -108,7 +108,7 @@ class StateSpace:
         return self.A.shape[0]
 
 
-def state_space(model: FopdtModel) -> StateSpace:
+def state_space(model: PlantModel) -> StateSpace:
     """Dense state-space realization of the discretized model (see the module docstring).
 
     The state holds the lag states of the active elements (row-major order) followed by, for each
@@ -117,7 +117,7 @@ def state_space(model: FopdtModel) -> StateSpace:
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
 
     Returns
     -------
@@ -157,12 +157,12 @@ def state_space(model: FopdtModel) -> StateSpace:
     return StateSpace(A=A, B=B, C=C, D=disc.feedthrough.copy(), sample_time=model.sample_time)
 
 
-def simulate(model: FopdtModel, u: np.ndarray, x0: np.ndarray | None = None) -> np.ndarray:
+def simulate(model: PlantModel, u: np.ndarray, x0: np.ndarray | None = None) -> np.ndarray:
     """Response of the discretized model to an input sequence, from rest (or from ``x0``).
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
     u : ndarray, shape (n_samples, n_inputs)
         Input in deviation variables, held constant over each sample.
     x0 : ndarray, shape (n_states,), optional
@@ -262,7 +262,7 @@ def element_response(disc: DiscreteFopdt, u: np.ndarray, state: Optional[np.ndar
     return y
 
 
-def simulate_elements(model: FopdtModel, u: np.ndarray, rows: Optional[Sequence[int]] = None) -> np.ndarray:
+def simulate_elements(model: PlantModel, u: np.ndarray, rows: Optional[Sequence[int]] = None) -> np.ndarray:
     """Response of the discretized model from rest, element by element (:func:`element_response`).
 
     The same response as :func:`simulate` without ``x0`` (the dense realisation of
@@ -270,7 +270,7 @@ def simulate_elements(model: FopdtModel, u: np.ndarray, rows: Optional[Sequence[
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
     u : ndarray, shape (n_samples, n_inputs)
         Input in deviation variables, held constant over each sample.
     rows : sequence of int, optional
@@ -293,10 +293,10 @@ class ModelPredictor:
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
     """
 
-    def __init__(self, model: FopdtModel):
+    def __init__(self, model: PlantModel):
         disc = discretize(model)
         self.disc = disc
         self.ny, self.nu = model.n_outputs, model.n_inputs
@@ -338,12 +338,12 @@ class ModelPredictor:
         return yhat
 
 
-def frequency_response(model: FopdtModel, omega: np.ndarray, discrete: bool = True) -> np.ndarray:
+def frequency_response(model: PlantModel, omega: np.ndarray, discrete: bool = True) -> np.ndarray:
     """Frequency response of every element.
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
     omega : ndarray, shape (n_freq,)
         Frequencies in rad/s (continuous) or rad/sample (discrete).
     discrete : bool
@@ -366,12 +366,12 @@ def frequency_response(model: FopdtModel, omega: np.ndarray, discrete: bool = Tr
     return resp
 
 
-def settling_samples(model: FopdtModel, fraction: float = 1e-3) -> int:
+def settling_samples(model: PlantModel, fraction: float = 1e-3) -> int:
     """Samples after which every element's free response has decayed below ``fraction``.
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
     fraction : float
         Remaining fraction of the initial free response, in (0, 1).
 

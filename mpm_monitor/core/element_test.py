@@ -31,7 +31,7 @@ import numpy as np
 
 from .arx import BlockTest, SharedBlockRegression, estimate_delay_from_lags, lag_matrix
 from .baselines import ELEMENT_TESTS
-from .model import FopdtModel
+from .model import PlantModel
 from .statistics import N_FAMILIES, holm_adjust
 
 
@@ -129,7 +129,7 @@ class InputDesign:
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
     u : ndarray, shape (n_samples, n_inputs)
     n_lag : int
         Lags ``1 .. n_lag`` of every input.
@@ -263,7 +263,7 @@ def group_inputs(u: np.ndarray, bad: list, names, threshold: float) -> list:
     return [tuple(g) for g in groups.values()]
 
 
-def element_window(model: FopdtModel, i: int, j: int, nb: int, window: str = "model") -> Optional[int]:
+def element_window(model: PlantModel, i: int, j: int, nb: int, window: str = "model") -> Optional[int]:
     """Leading input lags the element test of (i, j) tests (None: all of them).
 
     ``Delta_ij = P_ij - Phat_ij`` is non-zero from lag ``min(theta_plant, theta_model) + 1`` on,
@@ -286,12 +286,12 @@ class _Estimate:
     b: list
 
 
-def arx_element_test(model: FopdtModel, rows: list, design: InputDesign, regressions, options) -> ElementTest:
+def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regressions, options) -> ElementTest:
     """The Delta element test on the rows ``rows`` (see the module docstring).
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
     rows : list of int
         Outputs tested.
     design : InputDesign
@@ -359,7 +359,7 @@ def arx_element_test(model: FopdtModel, rows: list, design: InputDesign, regress
     return ElementTest(elements=elements, arx_tables=tables, group_hits=group_hits, warnings=warnings)
 
 
-def baseline_element_test(model: FopdtModel, u: np.ndarray, d: np.ndarray, options) -> ElementTest:
+def baseline_element_test(model: PlantModel, u: np.ndarray, d: np.ndarray, options) -> ElementTest:
     """Element decisions of a baseline method (``options.method``: ``xcorr`` or ``pcorr``) on every row.
 
     The baseline runs at level ``alpha / N_FAMILIES``, as the ARX element test; its adjusted
@@ -367,7 +367,7 @@ def baseline_element_test(model: FopdtModel, u: np.ndarray, d: np.ndarray, optio
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
     u : ndarray, shape (n_samples, n_inputs)
     d : ndarray, shape (n_samples, n_outputs)
         Prediction error ``y - Phat u``.

@@ -7,7 +7,6 @@ and the prewhitening all filter through here.
 
 from __future__ import annotations
 
-import numpy as np
 
 
 def lfilter(b, a, x, axis: int = -1, zi=None):

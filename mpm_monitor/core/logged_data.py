@@ -14,7 +14,7 @@ from typing import Optional
 import numpy as np
 
 from .errors import DataFileError
-from .model import FopdtModel
+from .model import PlantModel
 
 #: Largest |value| x max(1, |gain|) the analysis takes: its least-squares fits square the signals and
 #: float64 overflows near 1e308 (the results are scale-invariant up to about 1e150).
@@ -23,12 +23,13 @@ MAX_ANALYSIS_SCALE = 1e150
 
 @dataclasses.dataclass
 class LoggedData:
-    """Setpoints, inputs and outputs of a closed-loop run.
+    """Setpoints, inputs, measured disturbances and outputs of a closed-loop run.
 
     Attributes
     ----------
     t : ndarray, shape (n_samples,)
-        Time in seconds, equally spaced by ``sample_time``.
+        Time in seconds, on the grid ``t[0] + k sample_time`` (increasing; samples may be missing,
+        see :attr:`grid_index` and :attr:`segments`).
     r : ndarray, shape (n_samples, n_outputs)
         Setpoints, columns in the model's output order.
     u : ndarray, shape (n_samples, n_inputs)
@@ -41,6 +42,17 @@ class LoggedData:
         Seconds per sample.
     source : str
         Where the data came from (file name), for messages.
+    dv : ndarray, shape (n_samples, n_disturbances)
+        Measured disturbances (the model's feedforward columns), in the model's disturbance order;
+        default none (shape (n_samples, 0)).
+    disturbances : tuple of str
+        Their names.
+    extra : dict
+        Other numeric logged channels, ``name -> ndarray (n_samples,)`` (candidate causes of the
+        residual); default none.
+    unusable : dict
+        Logged channels that cannot be used, ``name -> reason`` (not numeric, constant, partly
+        missing); default none.
     """
 
     t: np.ndarray
@@ -51,15 +63,49 @@ class LoggedData:
     outputs: tuple
     sample_time: float
     source: str = ""
+    dv: Optional[np.ndarray] = None
+    disturbances: tuple = ()
+    extra: dict = dataclasses.field(default_factory=dict)
+    unusable: dict = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        self.disturbances = tuple(self.disturbances)
+        if self.dv is None:
+            self.dv = np.zeros((np.shape(self.t)[0], len(self.disturbances)))
 
     @property
     def n_samples(self) -> int:
         return int(self.t.shape[0])
 
+    @property
+    def columns(self) -> np.ndarray:
+        """``[u | dv]``: the model's columns (inputs, then measured disturbances), shape (n_samples, n_columns)."""
+        if self.dv.shape[1] == 0:
+            return self.u
+        return np.hstack([self.u, self.dv])
+
+    @property
+    def grid_index(self) -> np.ndarray:
+        """Sample number of every row on the grid ``t[0] + k sample_time``, int array of shape (n_samples,)."""
+        if self.n_samples == 0:
+            return np.zeros(0, dtype=int)
+        return np.rint((self.t - self.t[0]) / self.sample_time).astype(int)
+
+    @property
+    def segments(self) -> list:
+        """Contiguous runs of rows (no missing sample inside), as ``(first row, end row)`` pairs."""
+        k = self.grid_index
+        if k.size == 0:
+            return []
+        breaks = np.flatnonzero(np.diff(k) != 1) + 1
+        edges = np.concatenate([[0], breaks, [k.size]])
+        return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+
     def slice(self, start: int, stop: int) -> "LoggedData":
         """Samples ``start:stop`` as a new object."""
         return dataclasses.replace(self, t=self.t[start:stop], r=self.r[start:stop], u=self.u[start:stop],
-                                   y=self.y[start:stop])
+                                   y=self.y[start:stop], dv=self.dv[start:stop],
+                                   extra={k: v[start:stop] for k, v in self.extra.items()})
 
 
 SIGNAL_NAMES = ("setpoint", "input", "output")
@@ -103,7 +149,7 @@ def check_signals(r, u, y, n_outputs: int, n_inputs: int, n_samples: Optional[in
     return out
 
 
-def check_loop_data(model: FopdtModel, data: LoggedData):
+def check_loop_data(model: PlantModel, data: LoggedData):
     """The data's ``[r, u, y]`` (:func:`check_signals`) once its channels are the model's.
 
     Raises
@@ -120,7 +166,7 @@ def check_loop_data(model: FopdtModel, data: LoggedData):
     return check_signals(data.r, data.u, data.y, model.n_outputs, model.n_inputs, n, where=f"{src}: ")
 
 
-def check_scale(model: FopdtModel, data: LoggedData, model_source: str = "the model") -> None:
+def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the model") -> None:
     """Refuse data (or model gains) so large that the squares in the analysis overflow float64.
 
     Beyond :data:`MAX_ANALYSIS_SCALE` the fits break down (a ``LinAlgError``) or, worse, return a

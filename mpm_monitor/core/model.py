@@ -319,10 +319,6 @@ class PlantModel:
     __hash__ = None
 
 
-#: The model class under its first name, from when every element was first order plus dead time.
-FopdtModel = PlantModel
-
-
 def _step_response_summary(sr: np.ndarray, ramp: tuple, ts: float):
     """(gain, delay in s) of every element of a step-response model: the final value (the last slope
     per second of a ramp row) and the samples before the response first moves."""

@@ -19,18 +19,18 @@ from typing import Optional
 
 from .analysis import AnalysisOptions, AnalysisReport, detect
 from .logged_data import LoggedData
-from .model import FopdtModel
+from .model import PlantModel
 from .repair import RepairOptions, repair_model
 from .signals import LoopSignals
 
 
-def analyze(model: FopdtModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
+def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
             signals: Optional[LoopSignals] = None, regressions=None) -> AnalysisReport:
     """Locate the mismatched elements of ``model`` on logged closed-loop data and repair them.
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
         The controller's model ``Phat``.
     data : LoggedData
         Setpoints, inputs and outputs, equally spaced at ``model.sample_time``.

@@ -58,7 +58,7 @@ import scipy.linalg as sla
 from scipy.linalg import blas
 
 from .arx import RANK_TOLERANCE, ArxFit, SharedBlockRegression, SharedFit, fit_arx, lag_matrix
-from .model import FopdtModel
+from .model import PlantModel
 
 #: Largest condition number of the scaled regressors for which a regression is solved from its Gram
 #: matrix: the normal equations then lose at most about 1e6 * 1e-16 = 1e-10 (relative).
@@ -99,12 +99,12 @@ class RegressionLayout:
     min_samples: int
 
 
-def regression_layout(model: FopdtModel, options) -> RegressionLayout:
+def regression_layout(model: PlantModel, options) -> RegressionLayout:
     """The :class:`RegressionLayout` of the tests for this model and these options.
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
     options : AnalysisOptions
         Its ``na``, ``nb`` and ``max_delay`` (:class:`mpm_monitor.core.analysis.AnalysisOptions`).
 

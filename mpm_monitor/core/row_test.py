@@ -28,7 +28,7 @@ import math
 
 import numpy as np
 
-from .model import FopdtModel
+from .model import PlantModel
 from .statistics import N_FAMILIES, holm_adjust
 
 
@@ -103,12 +103,12 @@ def frequency_grid(band: tuple, n: int) -> np.ndarray:
     return grid
 
 
-def sdelta_row_test(model: FopdtModel, r: np.ndarray, eps: np.ndarray, regressions, layout, options) -> RowTest:
+def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressions, layout, options) -> RowTest:
     """The S_Delta row test of every output (see the module docstring).
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
         The controller's model (its output names).
     r, eps : ndarray, shape (n_samples, n_outputs)
         Setpoints and controller inputs ``eps = r - d`` of the window.

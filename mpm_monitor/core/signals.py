@@ -24,7 +24,7 @@ import numpy as np
 from .arx import least_squares_ar
 from .discretize import discretize, settling_samples, simulate_elements
 from .errors import ConfigurationError
-from .model import FopdtModel
+from .model import PlantModel
 from .statistics import f_test
 
 INITIAL_STATE_CHOICES = ("estimate", "zero")
@@ -55,12 +55,12 @@ class LoopSignals:
     transient: np.ndarray
 
 
-def initial_transient(model: FopdtModel, d0: np.ndarray, level: float = TRANSIENT_TEST_LEVEL) -> np.ndarray:
+def initial_transient(model: PlantModel, d0: np.ndarray, level: float = TRANSIENT_TEST_LEVEL) -> np.ndarray:
     """Per-row least-squares estimate of the free response hidden in ``d0`` (see module docstring).
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
     d0 : ndarray, shape (n_samples, n_outputs)
         Prediction error of the model simulated from rest.
     level : float
@@ -107,13 +107,13 @@ def initial_transient(model: FopdtModel, d0: np.ndarray, level: float = TRANSIEN
     return out
 
 
-def compute_signals(model: FopdtModel, r: np.ndarray, u: np.ndarray, y: np.ndarray,
+def compute_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarray,
                     initial_state: str = "estimate") -> LoopSignals:
     """Recompute ``yhat``, ``d`` and ``eps`` from logged data.
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
         The controller's model ``Phat``.
     r, y : ndarray, shape (n_samples, n_outputs)
         Setpoints and measured outputs.

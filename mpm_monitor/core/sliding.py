@@ -54,7 +54,7 @@ from .analysis import AnalysisOptions, AnalysisReport
 from .discretize import ModelPredictor
 from .errors import ConfigurationError, DataFileError
 from .logged_data import LoggedData, check_signals
-from .model import FopdtModel
+from .model import PlantModel
 from .pipeline import analyze
 from .regressions import DEFAULT_MAX_CONDITION, GramRegressions, LaggedGram, SampleBuffer, regression_layout
 from .signals import LoopSignals
@@ -80,7 +80,7 @@ class SlidingWindowAnalyzer:
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
         The controller's model ``Phat``; it is run from rest at the first pushed sample.
     options : AnalysisOptions
         As for :func:`mpm_monitor.core.pipeline.analyze` (``initial_state`` is not used).
@@ -104,7 +104,7 @@ class SlidingWindowAnalyzer:
     depends on the plant and the lags but not on ``window``; :meth:`memory_bytes` reports both.
     """
 
-    def __init__(self, model: FopdtModel, options: AnalysisOptions = AnalysisOptions(), window: int = 3000, *,
+    def __init__(self, model: PlantModel, options: AnalysisOptions = AnalysisOptions(), window: int = 3000, *,
                  update_block: int = 16, refresh_interval: Optional[int] = None,
                  max_condition: float = DEFAULT_MAX_CONDITION):
         self.model = model

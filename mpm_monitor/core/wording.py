@@ -167,9 +167,9 @@ def repair_text(report, model, plant=None) -> str:
     Parameters
     ----------
     report : AnalysisReport
-    model : FopdtModel
+    model : PlantModel
         The model analysed (for the element order).
-    plant : FopdtModel, optional
+    plant : PlantModel, optional
         The true plant (a simulation), whose element values are shown next to each change.
 
     Returns

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..core.errors import DataFileError
 from ..core.logged_data import LoggedData
-from ..core.model import FopdtModel
+from ..core.model import PlantModel
 from .files import read_text
 
 #: Relative tolerance on the sample spacing, as a fraction of the sample time.
@@ -59,13 +59,13 @@ def write_log_csv(path, log) -> None:
     write_csv(path, log.t, log.r, log.u, log.y, log.inputs, log.outputs)
 
 
-def read_csv(path, model: FopdtModel) -> LoggedData:
+def read_csv(path, model: PlantModel) -> LoggedData:
     """Read and validate a CSV log against a model.
 
     Parameters
     ----------
     path : str or Path
-    model : FopdtModel
+    model : PlantModel
         Gives the channel names and the sample time.
 
     Returns
@@ -81,7 +81,7 @@ def read_csv(path, model: FopdtModel) -> LoggedData:
     return parse_csv_text(text, model, source=str(path))
 
 
-def parse_csv_text(text: str, model: FopdtModel, source: str = "data") -> LoggedData:
+def parse_csv_text(text: str, model: PlantModel, source: str = "data") -> LoggedData:
     """Parse the text of a CSV log (see :func:`read_csv`)."""
     if "\x00" in text:
         raise DataFileError(f"{source}: contains NUL bytes: expected a CSV text file")

@@ -21,7 +21,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..core.model import FopdtModel
+from ..core.model import PlantModel
 
 #: Largest number of points drawn per time-series curve (longer records are decimated for drawing).
 MAX_POINTS = 20_000
@@ -111,7 +111,7 @@ def format_p_value(p) -> str:
     return "p<1e-16" if p < 1e-16 else f"p={p:.1e}"
 
 
-def element_states(report, model: FopdtModel) -> np.ndarray:
+def element_states(report, model: PlantModel) -> np.ndarray:
     """State of every element as a string array of shape (n_outputs, n_inputs).
 
     ``located`` (mismatch located), ``ambiguous`` (cannot be told apart from another input),
@@ -124,7 +124,7 @@ def element_states(report, model: FopdtModel) -> np.ndarray:
     return states
 
 
-def plot_element_map(report, model: FopdtModel, path) -> Path:
+def plot_element_map(report, model: PlantModel, path) -> Path:
     """The transfer matrix with each element coloured by its verdict and labelled with its kind.
 
     Parameters
@@ -132,7 +132,7 @@ def plot_element_map(report, model: FopdtModel, path) -> Path:
     report : AnalysisReport
         Uses ``rows`` and ``elements`` (``output``, ``input``, ``mismatch``, ``p_value``, ``kind``,
         ``ambiguous``).
-    model : FopdtModel
+    model : PlantModel
     path : str or Path
 
     Returns
@@ -182,7 +182,7 @@ def plot_element_map(report, model: FopdtModel, path) -> Path:
 # Step responses
 
 
-def element_step(model: FopdtModel, i: int, j: int, n: int) -> np.ndarray:
+def element_step(model: PlantModel, i: int, j: int, n: int) -> np.ndarray:
     """Unit-step response of element (i, j) of the discretized model, samples ``0 .. n-1``.
 
     ``y(k)`` answers a unit step of input ``j`` applied from sample 0 (so ``y(0) = 0``: the
@@ -190,7 +190,7 @@ def element_step(model: FopdtModel, i: int, j: int, n: int) -> np.ndarray:
     """
     from ..core.discretize import simulate_elements
 
-    el = FopdtModel(sample_time=model.sample_time, inputs=(model.inputs[j],), outputs=(model.outputs[i],),
+    el = PlantModel(sample_time=model.sample_time, inputs=(model.inputs[j],), outputs=(model.outputs[i],),
                     gain=[[model.gain[i, j]]], time_constant=[[model.time_constant[i, j]]],
                     delay=[[model.delay[i, j]]])
     return simulate_elements(el, np.ones((n, 1)))[:, 0]
@@ -229,7 +229,7 @@ def _step_horizon(models, pairs) -> int:
     return int(min(max(20, np.ceil(longest / ts) + 5), 5000))
 
 
-def identified_step(report, model: FopdtModel, i: int, j: int, n: int) -> Optional[np.ndarray]:
+def identified_step(report, model: PlantModel, i: int, j: int, n: int) -> Optional[np.ndarray]:
     """Step response of the element as identified from the data, ``Phat_ij + Delta_ij``, or None.
 
     ``Delta_ij`` is the row's ARX (``report.arx_tables``: ``a``, ``b[input]``, ``delay[input]``) of
@@ -242,14 +242,14 @@ def identified_step(report, model: FopdtModel, i: int, j: int, n: int) -> Option
     return None
 
 
-def plot_step_responses(report, model: FopdtModel, path) -> Optional[Path]:
+def plot_step_responses(report, model: PlantModel, path) -> Optional[Path]:
     """Step responses of every located element: model, repaired model and identified element.
 
     Parameters
     ----------
     report : AnalysisReport
         Uses ``elements``, ``repaired_model`` and ``arx_tables`` (optional).
-    model : FopdtModel
+    model : PlantModel
     path : str or Path
 
     Returns
@@ -294,21 +294,21 @@ def plot_step_responses(report, model: FopdtModel, path) -> Optional[Path]:
 # Residuals
 
 
-def prediction_errors(model: FopdtModel, data, initial_state: str = "estimate") -> np.ndarray:
+def prediction_errors(model: PlantModel, data, initial_state: str = "estimate") -> np.ndarray:
     """``d = y - Phat u`` of shape (n_samples, n_outputs) (:func:`~mpm_monitor.core.signals.compute_signals`)."""
     from ..core.signals import compute_signals
 
     return compute_signals(model, data.r, data.u, data.y, initial_state=initial_state).d
 
 
-def plot_residuals(model: FopdtModel, repaired: Optional[FopdtModel], data, path,
+def plot_residuals(model: PlantModel, repaired: Optional[PlantModel], data, path,
                    initial_state: str = "estimate") -> Path:
     """Prediction error per output with the model as given and (if any) as repaired.
 
     Parameters
     ----------
-    model : FopdtModel
-    repaired : FopdtModel or None
+    model : PlantModel
+    repaired : PlantModel or None
         None or equal to ``model``: only the "before" curve is drawn.
     data : LoggedData
     path : str or Path

@@ -22,7 +22,7 @@ import math
 from pathlib import Path
 
 from ..core.errors import InputError
-from ..core.model import FopdtModel
+from ..core.model import PlantModel
 from . import plots
 
 REPORT_FILE = "report.html"
@@ -145,13 +145,13 @@ def _warnings_section(report) -> str:
     return "\n".join(f'<div class="warn">{_e(w)}</div>' for w in report.warnings)
 
 
-def write_report(directory, model: FopdtModel, data, report) -> Path:
+def write_report(directory, model: PlantModel, data, report) -> Path:
     """Write the HTML report and its figures into ``directory`` (created if needed).
 
     Parameters
     ----------
     directory : str or Path
-    model : FopdtModel
+    model : PlantModel
         The controller's model as given.
     data : LoggedData
         The analysed samples (for the residual plot).

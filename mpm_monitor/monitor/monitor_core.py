@@ -25,7 +25,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..core.errors import ConfigurationError
-from ..core.model import FopdtModel
+from ..core.model import PlantModel
 from ..core.wording import applied_changes, describe_change, repair_ran, repair_verdict
 from ..io.model_file import save_model
 from .statuses import mark_stale, row_statuses, stale_reason, summary_status, waiting_message, window_values
@@ -73,7 +73,7 @@ def check_monitor_options(o: MonitorOptions) -> None:
         raise ConfigurationError(f"stale_timeout: expected a number of seconds > 0, got {o.stale_timeout!r}")
 
 
-def write_model_atomically(model: FopdtModel, path) -> Path:
+def write_model_atomically(model: PlantModel, path) -> Path:
     """Write ``model`` (YAML, :func:`mpm_monitor.io.model_file.save_model`) to ``path`` through a temporary file.
 
     The file is written next to ``path``, flushed to disk and renamed over it, so a reader sees
@@ -116,12 +116,12 @@ class MonitorCore:
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
         The controller's model (channel names and sample time).
     options : MonitorOptions
     """
 
-    def __init__(self, model: FopdtModel, options: MonitorOptions = MonitorOptions()):
+    def __init__(self, model: PlantModel, options: MonitorOptions = MonitorOptions()):
         self.model = model
         self.options = options
         self.window = SampleWindow(model.outputs, model.inputs, model.sample_time, options.window)

@@ -19,7 +19,7 @@ import traceback
 from typing import Any, Callable, Optional
 
 from ..core.logged_data import check_scale
-from ..core.model import FopdtModel
+from ..core.model import PlantModel
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,7 +43,7 @@ class AnalysisOutcome:
     seconds: float = 0.0
 
 
-def run_analysis(analyze: Callable, model: FopdtModel, options, job: AnalysisJob,
+def run_analysis(analyze: Callable, model: PlantModel, options, job: AnalysisJob,
                  clock: Callable[[], float] = time.perf_counter) -> AnalysisOutcome:
     """Run ``analyze(model, job.data, options)`` and wrap its report or its error."""
     t0 = clock()

@@ -13,7 +13,7 @@ import dataclasses
 
 import numpy as np
 
-from ..core.model import FopdtModel
+from ..core.model import PlantModel
 from .closed_loop import ExcitationOptions
 from .excitation import PrbsOptions
 from .mpc import MpcOptions
@@ -34,9 +34,9 @@ class PaperCase:
     ----------
     name : str
         "3.1", "3.2" or "3.3".
-    plant : FopdtModel
+    plant : PlantModel
         The true plant.
-    model : FopdtModel
+    model : PlantModel
         The controller's model.
     mismatched_rows : tuple of str
         Outputs whose rows are expected to be flagged.
@@ -49,8 +49,8 @@ class PaperCase:
     """
 
     name: str
-    plant: FopdtModel
-    model: FopdtModel
+    plant: PlantModel
+    model: PlantModel
     mismatched_rows: tuple
     mismatched_elements: tuple
     mpc: MpcOptions
@@ -63,9 +63,9 @@ def _names(n, prefix):
     return tuple(f"{prefix}{k + 1}" for k in range(n))
 
 
-def shell_plant() -> FopdtModel:
+def shell_plant() -> PlantModel:
     """The 3x3 Shell heavy-oil-fractionator plant with reduced delays (paper eq. 13)."""
-    return FopdtModel(sample_time=1.0, inputs=_names(3, "u"), outputs=_names(3, "y"), gain=_SHELL_GAIN,
+    return PlantModel(sample_time=1.0, inputs=_names(3, "u"), outputs=_names(3, "y"), gain=_SHELL_GAIN,
                       time_constant=_SHELL_TAU, delay=_SHELL_DELAY, name="shell 3x3 (paper eq. 13)")
 
 
@@ -89,7 +89,7 @@ def paper_case(name: str) -> PaperCase:
                          ExcitationOptions(setpoint=setpoint), dist, "3x3, sparse mismatch")
     if name == "3.3":
         ones = np.ones((5, 5))
-        plant = FopdtModel(sample_time=1.0, inputs=_names(5, "u"), outputs=_names(5, "y"), gain=5 * ones,
+        plant = PlantModel(sample_time=1.0, inputs=_names(5, "u"), outputs=_names(5, "y"), gain=5 * ones,
                            time_constant=50 * ones, delay=5 * ones, name="5x5 rank-one plant (paper 3.3)")
         model = (plant.with_element(0, 0, delay=8)
                  .with_element(1, 0, gain=4, time_constant=60)

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..core.errors import ConfigurationError
 from ..core.logged_data import LoggedData
-from ..core.model import FopdtModel
+from ..core.model import PlantModel
 from .excitation import PrbsGenerator, PrbsOptions, ZeroGenerator
 from .mpc import InternalModelMpc, MpcOptions
 from .plant import DisturbanceOptions, PlantSimulator
@@ -108,7 +108,7 @@ def seeded_generators(seed: int) -> dict:
             "dither": np.random.default_rng(dither_ss)}
 
 
-def run_closed_loop(plant: FopdtModel, controller_model: FopdtModel, n_samples: int, *,
+def run_closed_loop(plant: PlantModel, controller_model: PlantModel, n_samples: int, *,
                     seed: int = 0, mpc: MpcOptions = MpcOptions(),
                     excitation: ExcitationOptions = ExcitationOptions(),
                     disturbance: DisturbanceOptions = DisturbanceOptions(),
@@ -118,9 +118,9 @@ def run_closed_loop(plant: FopdtModel, controller_model: FopdtModel, n_samples: 
 
     Parameters
     ----------
-    plant : FopdtModel
+    plant : PlantModel
         The true plant ``P``.
-    controller_model : FopdtModel
+    controller_model : PlantModel
         The controller's model ``Phat`` (same inputs and outputs as ``plant``).
     n_samples : int
         Number of samples.

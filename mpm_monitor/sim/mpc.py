@@ -23,7 +23,7 @@ import numpy as np
 
 from ..core.discretize import state_space
 from ..core.errors import ConfigurationError
-from ..core.model import FopdtModel
+from ..core.model import PlantModel
 from .plant import require_strictly_proper
 
 Weight = Union[float, Sequence[float]]
@@ -99,7 +99,7 @@ class InternalModelMpc:
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
         The controller's plant model ``Phat`` (strictly proper in discrete time).
     options : MpcOptions
         Horizons, weights and bounds.
@@ -111,7 +111,7 @@ class InternalModelMpc:
     last step are in :attr:`yhat`, :attr:`prediction_error` and :attr:`controller_input`.
     """
 
-    def __init__(self, model: FopdtModel, options: MpcOptions = MpcOptions()):
+    def __init__(self, model: PlantModel, options: MpcOptions = MpcOptions()):
         require_strictly_proper(model, what="controller model")
         self.model = model
         self.options = options

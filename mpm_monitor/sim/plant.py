@@ -17,7 +17,7 @@ import numpy as np
 
 from ..core.discretize import state_space
 from ..core.errors import ConfigurationError
-from ..core.model import FopdtModel
+from ..core.model import PlantModel
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,7 +52,7 @@ def check_disturbance_options(opts: DisturbanceOptions) -> None:
         raise ConfigurationError(f"disturbance_pole: expected a number in [0, 1), got {opts.disturbance_pole!r}")
 
 
-def require_strictly_proper(model: FopdtModel, what: str = "plant") -> None:
+def require_strictly_proper(model: PlantModel, what: str = "plant") -> None:
     """Refuse a model with a direct feed-through (time constant 0 and delay 0) for closed-loop use."""
     direct = (model.gain != 0) & (model.time_constant == 0) & (model.delay_samples == 0)
     if np.any(direct):
@@ -67,7 +67,7 @@ class PlantSimulator:
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
         The true plant (strictly proper in discrete time).
     options : DisturbanceOptions
         Disturbance and noise levels.
@@ -81,7 +81,7 @@ class PlantSimulator:
     :attr:`last_noise` (``n``).
     """
 
-    def __init__(self, model: FopdtModel, options: DisturbanceOptions, rng: np.random.Generator):
+    def __init__(self, model: PlantModel, options: DisturbanceOptions, rng: np.random.Generator):
         require_strictly_proper(model)
         self.model = model
         self.options = options

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import ConfigurationError, InputError
 from ..logged_data import LoggedData, check_loop_data
-from ..model import FopdtModel
+from ..model import PlantModel
 from ..signals import LoopSignals, compute_signals
 from .classify import _classify_row
 from .disturbance import unexplained_disturbance
@@ -46,7 +46,7 @@ def _fit_percent(y, yhat) -> float:
     return float(100.0 * (1.0 - np.linalg.norm(y - yhat) / den))
 
 
-def _check_inputs(model: FopdtModel, data: LoggedData, located, signals):
+def _check_inputs(model: PlantModel, data: LoggedData, located, signals):
     """The located pairs, sorted and unique, once the data (:func:`~mpm_monitor.core.logged_data.check_loop_data`),
     the pairs and the signals fit the model; else :class:`InputError` naming what does not."""
     check_loop_data(model, data)
@@ -76,7 +76,7 @@ class _Record:
 
     Attributes
     ----------
-    model : FopdtModel
+    model : PlantModel
         The model as given.
     data : LoggedData
     u, y : ndarray, shape (n_samples, n_inputs) and (n_samples, n_outputs)
@@ -92,7 +92,7 @@ class _Record:
         ``{output name: RMS of d0 over the held-out part}`` (empty without a held-out part).
     """
 
-    model: FopdtModel
+    model: PlantModel
     data: LoggedData
     u: np.ndarray
     y: np.ndarray
@@ -118,7 +118,7 @@ class _Record:
     def hold(self) -> slice:
         return slice(self.n_fit, self.n)
 
-    def signals_of(self, model: FopdtModel) -> LoopSignals:
+    def signals_of(self, model: PlantModel) -> LoopSignals:
         """:func:`compute_signals` of ``model`` on the record."""
         return compute_signals(model, self.data.r, self.u, self.y, initial_state=self.options.initial_state)
 
@@ -165,12 +165,12 @@ class _Findings:
 class _Evaluation:
     """The model with the accepted repairs, its signals, and the disturbance test of every output."""
 
-    model: FopdtModel
+    model: PlantModel
     signals: LoopSignals
     tests: dict
 
 
-def _set_up(model: FopdtModel, data: LoggedData, options: RepairOptions,
+def _set_up(model: PlantModel, data: LoggedData, options: RepairOptions,
             signals: Optional[LoopSignals]) -> _Record:
     """The record of checked inputs: float arrays, the signals of the model, the split, the levels."""
     u, y = np.asarray(data.u, float), np.asarray(data.y, float)
@@ -383,13 +383,13 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
                         options=rec.options)
 
 
-def repair_model(model: FopdtModel, data: LoggedData, located: Sequence[tuple],
+def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
                  options: RepairOptions = RepairOptions(), signals: Optional[LoopSignals] = None) -> RepairResult:
     """Re-estimate the located elements, classify their mismatch, and validate the repair.
 
     Parameters
     ----------
-    model : FopdtModel
+    model : PlantModel
         The controller's model ``Phat`` as given.
     data : LoggedData
         Closed-loop record (``r``, ``u``, ``y``), shapes (n_samples, n_outputs/n_inputs).

@@ -8,7 +8,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..model import FopdtModel
+from ..model import PlantModel
 from .options import RepairOptions
 
 
@@ -55,7 +55,7 @@ class ElementVerdict:
         """Keep the element as it was: the kind found becomes ``fitted_kind``, the kind "unknown"."""
         self.apply, self.fitted_kind, self.kind, self.confidence, self.reason = False, self.kind, "unknown", 0.0, reason
 
-    def change_entry(self, model: FopdtModel, i: int, j: int) -> dict:
+    def change_entry(self, model: PlantModel, i: int, j: int) -> dict:
         """The ``changes`` entry of the element (see :class:`RepairResult`)."""
         entry = {"output": model.outputs[i], "input": model.inputs[j], "kind": self.kind,
                  "before": model.element(i, j),
@@ -69,7 +69,7 @@ class ElementVerdict:
         return entry
 
 
-def _unchanged_entry(model: FopdtModel, i: int, j: int, reason: str) -> dict:
+def _unchanged_entry(model: PlantModel, i: int, j: int, reason: str) -> dict:
     """The ``changes`` entry of an element that was not fitted at all (no estimate)."""
     return {"output": model.outputs[i], "input": model.inputs[j], "kind": "unknown",
             "before": model.element(i, j), "after": model.element(i, j), "estimate": None,
@@ -82,7 +82,7 @@ class RepairResult:
 
     Attributes
     ----------
-    model : FopdtModel
+    model : PlantModel
         The repaired model: the input model with only accepted located elements changed.
     changes : list of dict
         One entry per located element: ``output``, ``input`` (names), ``kind``, ``before`` and
@@ -113,7 +113,7 @@ class RepairResult:
         Samples in the record and in the fit part.
     """
 
-    model: FopdtModel
+    model: PlantModel
     changes: list
     kinds: dict
     error_before: dict

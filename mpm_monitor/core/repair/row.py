@@ -15,7 +15,7 @@ from typing import Optional
 import numpy as np
 
 from ..discretize import discretize, simulate_elements
-from ..model import FopdtModel
+from ..model import PlantModel
 from .fit import _element_lag, _element_params, _lag_interval, _RowEstimate, _RowProblem, _search_row
 from .options import RepairOptions, _TestSettings
 
@@ -26,7 +26,7 @@ class _RowData:
 
     Attributes
     ----------
-    model : FopdtModel
+    model : PlantModel
         The model as given: the row's elements that are not fitted are held at its values.
     u : ndarray, shape (n_samples, n_inputs)
         Inputs of the record.
@@ -38,7 +38,7 @@ class _RowData:
         Nuisance regressors for an unexplained step or drift on the row (see :class:`_RowProblem`).
     """
 
-    model: FopdtModel
+    model: PlantModel
     u: np.ndarray
     y: np.ndarray
     i: int
@@ -54,7 +54,7 @@ class _RowData:
         return out if j is None else f"{out}/{self.model.inputs[j]}"
 
 
-def _row_response(model: FopdtModel, u: np.ndarray, i: int) -> np.ndarray:
+def _row_response(model: PlantModel, u: np.ndarray, i: int) -> np.ndarray:
     """Response of row ``i`` of ``model`` to ``u`` from rest (:func:`mpm_monitor.core.discretize.simulate_elements`)."""
     return simulate_elements(model, u, rows=[i])[:, 0]
 

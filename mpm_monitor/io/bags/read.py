@@ -21,7 +21,7 @@ import numpy as np
 
 from ...core.errors import BagError, InputError
 from ...core.logged_data import LoggedData
-from ...core.model import FopdtModel
+from ...core.model import PlantModel
 from ..csv_log import write_csv
 from .common import DEFAULT_TOPICS, JOINT_STATE, one_line, open_reader, stamp_ns, topic_connections, topic_name
 
@@ -199,7 +199,7 @@ def _align(path, series: dict, sample_time: float, inputs, outputs) -> LoggedDat
                       outputs=tuple(outputs), sample_time=float(sample_time), source=str(path))
 
 
-def read_bag(path, model: FopdtModel, topics: Sequence[str] = DEFAULT_TOPICS, progress=False) -> LoggedData:
+def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, progress=False) -> LoggedData:
     """Read a bag's setpoint, input and output topics as logged data on the model's sample grid.
 
     Samples are aligned by ``header.stamp``: a message belongs to sample ``k`` when its stamp is
@@ -213,7 +213,7 @@ def read_bag(path, model: FopdtModel, topics: Sequence[str] = DEFAULT_TOPICS, pr
     ----------
     path : str or Path
         rosbag2 directory.
-    model : FopdtModel
+    model : PlantModel
         Gives the channel names (outputs for the setpoint and output topics, inputs for the input
         topic) and the sample time in seconds.
     topics : sequence of 3 str
