@@ -106,10 +106,11 @@ def mpc_options_from_params(p: dict, n_outputs: int, n_inputs: int) -> MpcOption
                       du_max=_weight(p["du_max"], n_inputs, "du_max"), qp_tolerance=p["qp_tolerance"])
 
 
-def dither_text(names: Sequence[str], amplitudes: Sequence[float]) -> str:
-    """``u4, u5 (amplitudes 0.08, 0.08`` -- the start of the one-line description of a dither."""
-    word = "amplitude" if len(names) == 1 else "amplitudes"
-    return f"{', '.join(names)} ({word} {', '.join(f'{a:g}' for a in amplitudes)}"
+def dither_text(inputs: Sequence[str], amplitudes) -> str:
+    """``u4, u5 (amplitudes 0.08, 0.08)``: the dithered inputs of ``amplitudes`` (model order) in words."""
+    on = [j for j, a in enumerate(amplitudes) if a > 0]
+    word = "amplitude" if len(on) == 1 else "amplitudes"
+    return f"{', '.join(inputs[j] for j in on)} ({word} {', '.join(f'{amplitudes[j]:g}' for j in on)})"
 
 
 def parse_dither_request(parameters, inputs: Sequence[str], max_dither: float, max_samples: int) -> tuple:
@@ -330,9 +331,8 @@ class MpcNode(Node):
                     f"on top of it")
         if self.experiment is not None:
             e = self.experiment
-            names = [self.model.inputs[j] for j in np.flatnonzero(e.amplitudes > 0)]
-            return (f"a dither is already running: {dither_text(names, e.amplitudes[e.amplitudes > 0])}; "
-                    f"{e.samples_left} samples left)")
+            return (f"a dither is already running on {dither_text(self.model.inputs, e.amplitudes)}, "
+                    f"{e.samples_left} samples left")
         return None
 
     def _on_start_dither(self, request, response):
@@ -352,9 +352,8 @@ class MpcNode(Node):
         else:
             self.experiment = experiment
             self.experiments += 1
-            names = [self.model.inputs[j] for j in np.flatnonzero(amplitudes > 0)]
             ok = True
-            reason = (f"dither on {dither_text(names, amplitudes[amplitudes > 0])}) for {samples} samples, "
+            reason = (f"dither on {dither_text(self.model.inputs, amplitudes)} for {samples} samples, "
                       f"from the next sample")
         response.results = [SetParametersResult(successful=ok, reason=reason)]
         if ok:  # one call site per severity (rclpy refuses a severity change at the same call site)
