@@ -134,3 +134,49 @@ class ZeroGenerator:
 
     def generate(self, n_samples: int) -> np.ndarray:
         return np.zeros((int(n_samples), self.n_channels))
+
+
+class TimedDither:
+    """A PRBS dither on some inputs for a fixed number of samples: an experiment that stops by itself.
+
+    Each dithered input gets its own PRBS channel (switching probability 1/2, so a flat spectrum up
+    to the Nyquist frequency) of values ``+- amplitude``; the other inputs get 0.
+
+    Parameters
+    ----------
+    amplitudes : array_like, shape (n_inputs,)
+        PRBS amplitude of every input, input units (0 = not dithered; none negative).
+    samples : int
+        Samples the dither lasts (>= 1).
+    rng : numpy.random.Generator
+        Source of the PRBS (injected, so that a seeded node gives the same dither again).
+    """
+
+    def __init__(self, amplitudes, samples: int, rng: np.random.Generator):
+        a = np.asarray(amplitudes, dtype=float).reshape(-1)
+        if not np.all(np.isfinite(a)) or np.any(a < 0) or not np.any(a > 0):
+            raise ConfigurationError(f"amplitudes: expected finite numbers >= 0, at least one > 0, got {a.tolist()!r}")
+        if int(samples) != samples or samples < 1:
+            raise ConfigurationError(f"samples: expected an integer >= 1, got {samples!r}")
+        self.amplitudes = a
+        self.samples = int(samples)
+        self.samples_left = int(samples)
+        self._active = np.flatnonzero(a > 0)
+        self._prbs = PrbsGenerator(len(self._active), PrbsOptions(amplitude=1.0), rng)
+
+    @property
+    def running(self) -> bool:
+        """True while samples are left."""
+        return self.samples_left > 0
+
+    def next(self) -> np.ndarray:
+        """The dither of the next sample, shape (n_inputs,); zeros once the samples are used up."""
+        out = np.zeros(self.amplitudes.shape[0])
+        if self.samples_left > 0:
+            out[self._active] = self.amplitudes[self._active] * self._prbs.next()
+            self.samples_left -= 1
+        return out
+
+    def stop(self) -> None:
+        """End the dither now."""
+        self.samples_left = 0
