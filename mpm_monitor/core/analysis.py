@@ -31,10 +31,10 @@ from typing import Optional
 
 import numpy as np
 
+from .discretize import model_columns
 from .element_test import InputDesign, arx_element_test, baseline_element_test
 from .errors import ConfigurationError, DataFileError
 from .logged_data import LoggedData, check_loop_data
-from .discretize import model_columns
 from .model import PlantModel
 from .options import check_options, option, option_specs
 from .regressions import regression_layout, window_regressions
