@@ -212,10 +212,6 @@ class DiscreteElements:
                     out[v] = max(out.get(v, 0), len(c))
         return dict(sorted(out.items()))
 
-    def column_elements(self, j: int) -> list:
-        """Rows of the active elements of column ``j``."""
-        return [int(i) for i in np.flatnonzero(self.active[:, j])]
-
 
 def discretize(model: PlantModel) -> DiscreteElements:
     """The split form (module docstring) of every element of ``model`` (cached on the model).
