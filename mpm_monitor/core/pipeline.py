@@ -33,7 +33,7 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
     model : PlantModel
         The controller's model ``Phat``.
     data : LoggedData
-        Setpoints, inputs and outputs, equally spaced at ``model.sample_time``.
+        Setpoints, inputs, measured disturbances and outputs, equally spaced at ``model.sample_time``.
     options : AnalysisOptions
     signals : LoopSignals, optional
         Given to the first detection and to the repair (see
@@ -58,7 +58,8 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
     report = detect(model, data, options, signals=signals, regressions=regressions)
     if not options.repair:
         return report
-    located = [(model.outputs.index(e.output), model.inputs.index(e.input)) for e in report.elements if e.mismatch]
+    columns = model.columns
+    located = [(model.outputs.index(e.output), columns.index(e.input)) for e in report.elements if e.mismatch]
     result = repair_model(model, data, located, RepairOptions(initial_state=options.initial_state),
                           signals=report.signals)
     warnings = report.warnings
@@ -71,5 +72,5 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
     kinds = getattr(result, "kinds", {})
     for e in report.elements:
         if e.mismatch:
-            e.kind = kinds.get((model.outputs.index(e.output), model.inputs.index(e.input)), "unknown")
+            e.kind = kinds.get((model.outputs.index(e.output), columns.index(e.input)), "unknown")
     return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result)

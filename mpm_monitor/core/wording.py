@@ -190,8 +190,8 @@ def repair_text(report, model, plant=None) -> str:
         line += what if what else f"kept ({ch.get('reason') or 'no parameter differs significantly'})"
         if what and conf is not None:
             line += f"  (confidence {conf:.2f})"
-        if plant is not None and ch["output"] in plant.outputs and ch["input"] in plant.inputs:
-            true = plant.element(plant.outputs.index(ch["output"]), plant.inputs.index(ch["input"]))
+        if plant is not None and ch["output"] in plant.outputs and ch["input"] in plant.columns:
+            true = plant.element(plant.outputs.index(ch["output"]), plant.columns.index(ch["input"]))
             line += (f"  [plant: gain {true['gain']:.3g}, time_constant {true['time_constant']:.3g} s, "
                      f"delay {true['delay']:.3g} s]")
         lines.append(line)

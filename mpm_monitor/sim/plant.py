@@ -53,13 +53,18 @@ def check_disturbance_options(opts: DisturbanceOptions) -> None:
 
 
 def require_strictly_proper(model: PlantModel, what: str = "plant") -> None:
-    """Refuse a model with a direct feed-through (time constant 0 and delay 0) for closed-loop use."""
-    direct = (model.gain != 0) & (model.time_constant == 0) & (model.delay_samples == 0)
-    if np.any(direct):
-        i, j = np.argwhere(direct)[0]
-        raise ConfigurationError(
-            f"{what}: element ({model.outputs[i]}, {model.inputs[j]}) has time_constant 0 and delay 0, a direct "
-            f"feed-through that a sampled loop cannot close; give it a delay of at least one sample")
+    """Refuse a model with a direct feed-through (an element whose sampled form acts on ``y(k)`` through
+    ``u(k)``: no lag and no delay, or a lead with no delay) for closed-loop use."""
+    for i in range(model.n_outputs):
+        for j in range(model.n_columns):
+            if model.discrete_element(i, j).strictly_proper:
+                continue
+            el = model.element(i, j)
+            why = ("time_constant 0 and delay 0" if el["time_constant"] == 0 and "integrating" not in el
+                   else "a lead and delay 0")
+            raise ConfigurationError(
+                f"{what}: element ({model.outputs[i]}, {model.columns[j]}) has {why}, a direct "
+                f"feed-through that a sampled loop cannot close; give it a delay of at least one sample")
 
 
 class PlantSimulator:

@@ -146,7 +146,7 @@ def _free_specs(row: _RowData, js, options: RepairOptions):
     row_nonzero = gain[i] != 0
     row_taus = tau[i][row_nonzero & (tau[i] > 0)]
     base_tau = float(np.median(row_taus)) if row_taus.size else 10.0 * ts
-    max_row_lag = max([_element_lag(tau[i, j], nd[i, j]) for j in range(model.n_inputs) if row_nonzero[j]],
+    max_row_lag = max([_element_lag(tau[i, j], nd[i, j]) for j in range(model.n_columns) if row_nonzero[j]],
                       default=1)
     s = options.max_delay_shift
     specs, lags0, lag_orig = {}, {}, {}
@@ -303,7 +303,7 @@ def _classify_row(row: _RowData, js, settings: _TestSettings):
         verdicts[j] = _verdict(free.est, summaries[j], tests[j], joint_p, alpha)
         warnings.extend(_verdict_warnings(free, m, verdicts[j], alpha))
     if free.est.cond > 1e3 and len(free.js) > 1:
-        names_u = row.model.inputs
+        names_u = row.model.columns
         warnings.append(
             f"{row.name()}: the inputs {', '.join(names_u[j] for j in free.js)} move together in these data "
             f"(condition number {free.est.cond:.3g}); their elements are hard to tell apart. More independent "

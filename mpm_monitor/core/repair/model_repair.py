@@ -15,6 +15,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from ..discretize import model_columns
 from ..errors import ConfigurationError, InputError
 from ..logged_data import LoggedData, check_loop_data
 from ..model import PlantModel
@@ -56,10 +57,10 @@ def _check_inputs(model: PlantModel, data: LoggedData, located, signals):
         try:
             i, j = (int(v) for v in item)
         except (TypeError, ValueError):
-            raise InputError(f"repair: located element {item!r}: expected a pair (output index, input index)") from None
-        if not (0 <= i < model.n_outputs and 0 <= j < model.n_inputs):
+            raise InputError(f"repair: located element {item!r}: expected a pair (output index, column index)") from None
+        if not (0 <= i < model.n_outputs and 0 <= j < model.n_columns):
             raise InputError(f"repair: located element ({i}, {j}): expected 0 <= output < {model.n_outputs} "
-                             f"and 0 <= input < {model.n_inputs}")
+                             f"and 0 <= column < {model.n_columns} (inputs, then measured disturbances)")
         if (i, j) not in out:
             out.append((i, j))
     if signals is not None:
@@ -79,8 +80,8 @@ class _Record:
     model : PlantModel
         The model as given.
     data : LoggedData
-    u, y : ndarray, shape (n_samples, n_inputs) and (n_samples, n_outputs)
-        ``data.u`` and ``data.y`` as float arrays.
+    u, y : ndarray, shape (n_samples, n_columns) and (n_samples, n_outputs)
+        The model's columns (``data.u``, then ``data.dv``) and ``data.y`` as float arrays.
     signals : LoopSignals
         Of the model as given on the data.
     d0 : ndarray, shape (n_samples, n_outputs)
@@ -120,7 +121,8 @@ class _Record:
 
     def signals_of(self, model: PlantModel) -> LoopSignals:
         """:func:`compute_signals` of ``model`` on the record."""
-        return compute_signals(model, self.data.r, self.u, self.y, initial_state=self.options.initial_state)
+        return compute_signals(model, self.data.r, self.data.u, self.y, initial_state=self.options.initial_state,
+                               dv=self.data.dv)
 
 
 @dataclasses.dataclass
@@ -173,10 +175,10 @@ class _Evaluation:
 def _set_up(model: PlantModel, data: LoggedData, options: RepairOptions,
             signals: Optional[LoopSignals]) -> _Record:
     """The record of checked inputs: float arrays, the signals of the model, the split, the levels."""
-    u, y = np.asarray(data.u, float), np.asarray(data.y, float)
+    u, y = model_columns(np.asarray(data.u, float), np.asarray(data.dv, float)), np.asarray(data.y, float)
     n = data.n_samples
     if signals is None:
-        signals = compute_signals(model, data.r, u, y, initial_state=options.initial_state)
+        signals = compute_signals(model, data.r, data.u, y, initial_state=options.initial_state, dv=data.dv)
     d0 = np.asarray(signals.d, float)
     n_hold = int(round(options.holdout_fraction * n))
     n_fit = n - n_hold
@@ -192,7 +194,7 @@ def _rows_to_repair(rec: _Record, located: list, found: _Findings) -> list:
     options, model, n_fit = rec.options, rec.model, rec.n_fit
     warnings = found.warnings
     rows = sorted({i for i, _ in located})
-    min_fit = max(200, 20 * (2 * model.n_inputs + options.noise_order + 5))
+    min_fit = max(200, 20 * (2 * model.n_columns + options.noise_order + 5))
     if located and n_fit < min_fit:
         warnings.append(f"Only {n_fit} samples are available for re-estimating the located elements "
                         f"(at least {min_fit} needed); no element was changed.")
@@ -252,7 +254,7 @@ def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnin
     if h_after < h_before * (1.0 - options.min_holdout_improvement):
         return True, h_after, h_before
     warnings.append(
-        f"{name}: the re-estimated element(s) {', '.join(model.inputs[j] for j in js)} did not "
+        f"{name}: the re-estimated element(s) {', '.join(model.columns[j] for j in js)} did not "
         f"predict the held-out last {100 * options.holdout_fraction:.0f}% of the record better (RMS "
         f"error {h_after:.4g} vs {h_before:.4g} with the model as given); the elements are kept as "
         f"they were.")
@@ -320,6 +322,40 @@ def _redo_disturbed_rows(rec: _Record, located: list, rows: list, results: dict,
             f"{rec.model.outputs[i]}: the re-estimation of its elements allowed for the unexplained "
             f"{'step' if t['kind'] == 'step' else 'drift'} in the prediction error.")
     return bool(redo)
+
+
+def not_repairable(model: PlantModel, i: int, j: int) -> Optional[str]:
+    """Why element (i, j) cannot be re-estimated yet, or None: the fit knows first-order elements only.
+
+    Until the repair fits every structure, a located element of a step-response model, or one with
+    an integrator, a second lag or a lead, is kept as it is (kind "unknown") with this reason.
+    """
+    if model.is_step_response:
+        structure = "step-response"
+    elif model.integrating[i, j]:
+        structure = "integrating"
+    elif model.time_constant2[i, j] > 0:
+        structure = "second-order"
+    elif model.lead[i, j] != 0:
+        structure = "lead-lag"
+    else:
+        return None
+    return f"re-estimation of {structure} elements is not available yet"
+
+
+def _set_aside_unrepairable(model: PlantModel, located: list, found: _Findings) -> list:
+    """The located elements the fit can handle; the others get an unchanged entry, the kind
+    "unknown" and a warning saying why (:func:`not_repairable`)."""
+    out = []
+    for (i, j) in located:
+        why = not_repairable(model, i, j)
+        if why is None:
+            out.append((i, j))
+            continue
+        found.kinds[(i, j)] = "unknown"
+        found.changes.append(_unchanged_entry(model, i, j, why))
+        found.warnings.append(f"{model.outputs[i]}/{model.columns[j]}: {why}; the element is kept as it is.")
+    return out
 
 
 def _located_in_row(located: list, i: int) -> list:
@@ -392,10 +428,11 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
     model : PlantModel
         The controller's model ``Phat`` as given.
     data : LoggedData
-        Closed-loop record (``r``, ``u``, ``y``), shapes (n_samples, n_outputs/n_inputs).
+        Closed-loop record (``r``, ``u``, ``dv``, ``y``), shapes (n_samples, n_outputs/n_inputs/n_disturbances).
     located : sequence of (int, int)
-        (output index, input index) of the elements located as mismatched.  No other element is
-        ever changed.
+        (output index, column index) of the elements located as mismatched (the columns are the
+        inputs, then the measured disturbances).  No other element is ever changed; elements of a
+        structure the fit does not handle yet are kept (:func:`not_repairable`).
     options : RepairOptions
     signals : LoopSignals, optional
         :func:`~mpm_monitor.core.signals.compute_signals` of ``model`` on ``data`` (computed when absent).
@@ -409,6 +446,7 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
     located = _check_inputs(model, data, located, signals)
     rec = _set_up(model, data, options, signals)
     found = _Findings()
+    located = _set_aside_unrepairable(model, located, found)
     rows = _rows_to_repair(rec, located, found)
     results = {i: _process_row(rec, i, _located_in_row(located, i), None) for i in rows}
     ev = _evaluate(rec, results)

@@ -57,7 +57,7 @@ class ElementVerdict:
 
     def change_entry(self, model: PlantModel, i: int, j: int) -> dict:
         """The ``changes`` entry of the element (see :class:`RepairResult`)."""
-        entry = {"output": model.outputs[i], "input": model.inputs[j], "kind": self.kind,
+        entry = {"output": model.outputs[i], "input": model.columns[j], "kind": self.kind,
                  "before": model.element(i, j),
                  "after": self.after if self.apply else model.element(i, j),
                  "estimate": self.after, "confidence": self.confidence,
@@ -71,7 +71,7 @@ class ElementVerdict:
 
 def _unchanged_entry(model: PlantModel, i: int, j: int, reason: str) -> dict:
     """The ``changes`` entry of an element that was not fitted at all (no estimate)."""
-    return {"output": model.outputs[i], "input": model.inputs[j], "kind": "unknown",
+    return {"output": model.outputs[i], "input": model.columns[j], "kind": "unknown",
             "before": model.element(i, j), "after": model.element(i, j), "estimate": None,
             "confidence": 0.0, "interval": None, "applied": False, "evidence": {}, "reason": reason}
 

@@ -28,8 +28,8 @@ class _RowData:
     ----------
     model : PlantModel
         The model as given: the row's elements that are not fitted are held at its values.
-    u : ndarray, shape (n_samples, n_inputs)
-        Inputs of the record.
+    u : ndarray, shape (n_samples, n_columns)
+        The model's columns in the record: inputs, then measured disturbances.
     y : ndarray, shape (n_samples, n_outputs)
         Outputs of the record.
     i : int
@@ -49,9 +49,9 @@ class _RowData:
         return self.u.shape[0]
 
     def name(self, j: Optional[int] = None) -> str:
-        """``output`` of the row, or ``output/input`` of its element ``j`` (for the warnings)."""
+        """``output`` of the row, or ``output/column`` of its element ``j`` (for the warnings)."""
         out = self.model.outputs[self.i]
-        return out if j is None else f"{out}/{self.model.inputs[j]}"
+        return out if j is None else f"{out}/{self.model.columns[j]}"
 
 
 def _row_response(model: PlantModel, u: np.ndarray, i: int) -> np.ndarray:
@@ -80,9 +80,11 @@ def _estimate_row(row: _RowData, specs: dict, lags0: dict, n_use: int, options: 
         held = held.with_element(i, j, gain=0.0)
     z = row.y[:, i] - _row_response(held, u, i)
     disc = discretize(held)
-    fixed_poles = [disc.pole[i, j] for j in range(model.n_inputs) if disc.active[i, j]]
+    # The held elements' free responses: every real pole of each (one per first-order element).
+    fixed_poles = [float(np.real(p)) for j in range(model.n_columns) if disc.active[i, j]
+                   for p in (disc.poles(i, j) if disc.denominators[i][j].size > 1 else [0.0])]
     row_lags = [_element_lag(model.time_constant[i, j], model.delay_samples[i, j])
-                for j in range(model.n_inputs) if held.gain[i, j] != 0]
+                for j in range(model.n_columns) if held.gain[i, j] != 0]
     if skip is None:
         skip = max([specs[j].window[1] for j in js] + row_lags + [1])
     problem = _RowProblem(z, u[:, js], [specs[j] for j in js], n_use, skip, fixed_poles,
