@@ -1,6 +1,7 @@
-"""Model predictive controller in internal-model (IMC) structure.
+"""Model predictive controller in internal-model (IMC) structure, with measured-disturbance feedforward.
 
-The controller keeps its own model output ``yhat = Phat u``, forms the prediction error
+The controller keeps its own model output ``yhat = Phat u + Phat_d dv`` (``Phat_d`` the elements of
+the measured disturbances ``dv``, when its model has some), forms the prediction error
 ``d = y - yhat`` and the controller input ``eps = r - d`` (paper, Fig. 1), and at every sample
 minimises over the moves ``du(k), ..., du(k + Hc - 1)``::
 
@@ -8,9 +9,19 @@ minimises over the moves ``du(k), ..., du(k + Hc - 1)``::
         + sum_{i=0}^{Hc-1} ||du(k+i)||_S^2
 
 with ``d`` assumed constant over the horizon (the DMC disturbance model; Maciejowski, *Predictive
-Control with Constraints*, 2002, section 2.3) and ``u`` held after ``Hc`` moves.  Without bounds the
-optimum is the closed form ``dU = H^{-1} (G' Q e0 - M' R g0)``; with bounds on ``u`` and ``du`` the
-QP is solved by OSQP (Stellato et al., 2020), warm-started from the previous solution.
+Control with Constraints*, 2002, section 2.3) and ``u`` held after ``Hc`` moves.  The measured
+disturbances are held at their current value ``dv(k)`` over the horizon: their predicted response
+``Gamma_d dv(k)`` (block ``i``: the disturbances' step response ``S^d_{i-1}``) enters the predicted
+outputs like the free response, so the moves counteract a measured disturbance before it shows in
+``y`` (feedforward); only the inputs are moved.  Without bounds the optimum is the closed form
+``dU = H^{-1} (G' Q e0 - M' R g0)``; with bounds on ``u`` and ``du`` the QP is solved by OSQP
+(Stellato et al., 2020), warm-started from the previous solution.
+
+Every element structure of the model is controlled through its exact state space
+(:func:`mpm_monitor.core.discretize.state_space`), integrating outputs included: their predicted
+free response keeps the slope of the internal model, and setpoints are tracked without offset.
+A constant load on an integrating output that the model does not predict (unmeasured, or measured
+with a wrong gain) is a ramp in ``d``, which the constant-``d`` assumption leaves as an offset.
 """
 
 from __future__ import annotations
@@ -106,9 +117,10 @@ class InternalModelMpc:
 
     Notes
     -----
-    Call :meth:`step` once per sample with the setpoint ``r(k)`` and the measurement ``y(k)``; it
-    returns the plant input ``u(k)`` and advances the internal model with it.  The signals of the
-    last step are in :attr:`yhat`, :attr:`prediction_error` and :attr:`controller_input`.
+    Call :meth:`step` once per sample with the setpoint ``r(k)``, the measurement ``y(k)`` and, when
+    the model has measured disturbances, their values ``dv(k)``; it returns the plant input ``u(k)``
+    and advances the internal model with it (and ``dv(k)``).  The signals of the last step are in
+    :attr:`yhat`, :attr:`prediction_error` and :attr:`controller_input`.
     """
 
     def __init__(self, model: PlantModel, options: MpcOptions = MpcOptions()):
@@ -117,6 +129,7 @@ class InternalModelMpc:
         self.options = options
         ny, nu = model.n_outputs, model.n_inputs
         self._ss = state_space(model)
+        self._nd = model.n_disturbances
         self.q = _diag(options.output_weight, ny, "output_weight")
         self.r = _diag(options.input_weight, nu, "input_weight")
         self.s = _diag(options.input_rate_weight, nu, "input_rate_weight")
@@ -143,14 +156,22 @@ class InternalModelMpc:
         ss, opts = self._ss, self.options
         ny, nu, nx = self.model.n_outputs, self.model.n_inputs, ss.n_states
         hp, hc = opts.prediction_horizon, opts.control_horizon
-        # Step-response coefficients S_n = sum_{m<=n} C A^m B, n = 0..Hp-1, and Phi_i = C A^i.
+        nd = self._nd
+        # Step-response coefficients S_n = sum_{m<=n} C A^m B, n = 0..Hp-1, and Phi_i = C A^i; those
+        # of the measured disturbances S^d_n (from their feed-through D_d, zero for a closed loop).
         step = np.zeros((hp, ny, nu))
+        step_d = np.zeros((hp, ny, nd))
         phi = np.zeros((hp * ny, nx))
         ca = ss.C.copy()  # C A^m
         acc = np.zeros((ny, nu))
+        acc_d = np.array(ss.D_disturbances, dtype=float)
+        b_u, b_d = ss.B_inputs, ss.B_disturbances
         for m in range(hp):
-            acc = acc + ca @ ss.B
+            acc = acc + ca @ b_u
             step[m] = acc
+            if nd:
+                acc_d = acc_d + ca @ b_d
+                step_d[m] = acc_d
             ca = ca @ ss.A
             phi[m * ny:(m + 1) * ny] = ca  # row block i = m + 1: C A^{m+1}
         # G = Gamma M: block (i, t) = S_{i-1-t} for i-1 >= t (i = 1..Hp, t = 0..Hc-1).
@@ -182,6 +203,8 @@ class InternalModelMpc:
         self._K_x = -solve(GQ @ phi)                    # (Hc nu, nx)
         self._K_u = -solve(GQ @ gamma_e + MRE)          # (Hc nu, nu)
         self._K_nom = solve(MRE)                        # (Hc nu, nu)
+        # Gamma_d: block i = S^d_{i-1}, the predicted response to dv(k) held over the horizon.
+        self._K_dv = -solve(GQ @ step_d.reshape(hp * ny, nd)) if nd else None   # (Hc nu, nd)
         self._H = H
         # Cumulative-sum matrix for u(k+t) = u_prev + sum_{t'<=t} du(k+t'), t < Hc.
         self._Mc = np.kron(np.tril(np.ones((hc, hc))), np.eye(nu))
@@ -199,16 +222,26 @@ class InternalModelMpc:
         self.qp_solves = 0
 
     # ------------------------------------------------------------------ control law
-    def unconstrained_moves(self, eps: np.ndarray, x: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
-        """Closed-form optimal moves ``dU`` of shape (Hc * n_inputs,) without bounds."""
-        return self._K_eps @ eps + self._K_x @ x + self._K_u @ u_prev + self._K_nom @ self.u_nom
+    def unconstrained_moves(self, eps: np.ndarray, x: np.ndarray, u_prev: np.ndarray,
+                            dv: Optional[np.ndarray] = None) -> np.ndarray:
+        """Closed-form optimal moves ``dU`` of shape (Hc * n_inputs,) without bounds.
 
-    def solve_qp(self, eps: np.ndarray, x: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
-        """Optimal moves ``dU`` of shape (Hc * n_inputs,) with the bounds, solved by OSQP."""
+        ``dv`` (n_disturbances,): the measured disturbances, held over the horizon (required when
+        the model has some).
+        """
+        du = self._K_eps @ eps + self._K_x @ x + self._K_u @ u_prev + self._K_nom @ self.u_nom
+        if self._nd:
+            du = du + self._K_dv @ self._check_dv(dv)
+        return du
+
+    def solve_qp(self, eps: np.ndarray, x: np.ndarray, u_prev: np.ndarray,
+                 dv: Optional[np.ndarray] = None) -> np.ndarray:
+        """Optimal moves ``dU`` of shape (Hc * n_inputs,) with the bounds, solved by OSQP (``dv`` as
+        :meth:`unconstrained_moves`)."""
         import osqp
         import scipy.sparse as sp
 
-        du_unc = self.unconstrained_moves(eps, x, u_prev)
+        du_unc = self.unconstrained_moves(eps, x, u_prev, dv)
         q = -self._H @ du_unc  # J = 1/2 dU' H dU + q' dU up to a constant
         nu, hc = self._nu, self._hc
         lo = np.concatenate([np.tile(self.u_min, hc) - np.tile(u_prev, hc),
@@ -235,7 +268,18 @@ class InternalModelMpc:
             return du_unc
         return np.asarray(res.x, dtype=float)
 
-    def step(self, r: np.ndarray, y: np.ndarray, dither: Optional[np.ndarray] = None) -> np.ndarray:
+    def _check_dv(self, dv) -> np.ndarray:
+        if dv is None:
+            raise ConfigurationError(f"controller model: it has measured disturbances "
+                                     f"({', '.join(self.model.disturbances)}): give dv(k)")
+        arr = np.asarray(dv, dtype=float).reshape(-1)
+        if arr.shape != (self._nd,) or not np.all(np.isfinite(arr)):
+            raise ConfigurationError(f"controller model: dv: expected {self._nd} finite value(s) "
+                                     f"({', '.join(self.model.disturbances)}), got {np.asarray(dv)!r}")
+        return arr
+
+    def step(self, r: np.ndarray, y: np.ndarray, dither: Optional[np.ndarray] = None,
+             dv: Optional[np.ndarray] = None) -> np.ndarray:
         """One control step.
 
         Parameters
@@ -247,6 +291,9 @@ class InternalModelMpc:
         dither : ndarray, shape (n_inputs,), optional
             Additive excitation on the plant input (the paper's second experiment); the internal
             model is driven by the total input so that ``yhat = Phat u`` holds for the applied ``u``.
+        dv : ndarray, shape (n_disturbances,)
+            The measured disturbances ``dv(k)``, measured with ``y(k)`` (required when the model has
+            some): they drive the internal model and the feedforward.
 
         Returns
         -------
@@ -254,7 +301,12 @@ class InternalModelMpc:
             The plant input ``u(k)`` (within the bounds).
         """
         ss = self._ss
-        self.yhat = ss.C @ self._x
+        if self._nd:
+            dv = self._check_dv(dv)
+            self.yhat = ss.C @ self._x + ss.D_disturbances @ dv
+        else:
+            dv = None
+            self.yhat = ss.C @ self._x
         self.prediction_error = np.asarray(y, dtype=float) - self.yhat
         self.controller_input = np.asarray(r, dtype=float) - self.prediction_error
         eps = self.controller_input
@@ -262,19 +314,24 @@ class InternalModelMpc:
         if not self.options.constrained:
             du0 = (self._K_eps[:nu] @ eps + self._K_x[:nu] @ self._x + self._K_u[:nu] @ self._u_prev
                    + self._K_nom[:nu] @ self.u_nom)
+            if dv is not None:
+                du0 = du0 + self._K_dv[:nu] @ dv
             u_ctrl = self._u_prev + du0
         else:
-            du = self.unconstrained_moves(eps, self._x, self._u_prev)
+            du = self.unconstrained_moves(eps, self._x, self._u_prev, dv)
             u_path = self._Mc @ du + np.tile(self._u_prev, self._hc)
             ok = (np.all(u_path >= np.tile(self.u_min, self._hc) - 1e-12)
                   and np.all(u_path <= np.tile(self.u_max, self._hc) + 1e-12)
                   and np.all(np.abs(du) <= np.tile(self.du_max, self._hc) + 1e-12))
             if not ok:
-                du = self.solve_qp(eps, self._x, self._u_prev)
+                du = self.solve_qp(eps, self._x, self._u_prev, dv)
             self._last_du = du
             du0 = np.clip(du[:nu], -self.du_max, self.du_max)
             u_ctrl = np.clip(self._u_prev + du0, self.u_min, self.u_max)
         self._u_prev = u_ctrl
         u = u_ctrl if dither is None else np.clip(u_ctrl + dither, self.u_min, self.u_max)
-        self._x = ss.A @ self._x + ss.B @ u
+        if dv is not None:
+            self._x = ss.A @ self._x + ss.B_inputs @ u + ss.B_disturbances @ dv
+        else:
+            self._x = ss.A @ self._x + ss.B @ u
         return u

@@ -1,12 +1,16 @@
-"""Plant simulator core: a MIMO FOPDT plant with the paper's disturbance and measurement noise.
+"""Plant simulator core: a MIMO plant of any element structure with the paper's disturbance and measurement noise.
 
 The measured output is (paper, Fig. 1 and section 3.1)::
 
-    y(k) = P(q) u(k) + v(k) + n(k),   v(k) = p v(k-1) + w(k)   (v = z/(z - p) w)
+    y(k) = P(q) u(k) + P_d(q) dv(k) + v(k) + n(k),   v(k) = p v(k-1) + w(k)   (v = z/(z - p) w)
 
-with ``w`` and ``n`` zero-mean white Gaussian noise.  ``y(k)`` is measured before ``u(k)`` is
-applied, so the plant must be strictly proper in discrete time (no element with zero time constant
-and zero delay).
+with ``w`` and ``n`` zero-mean white Gaussian noise, ``P`` the elements of the inputs and ``P_d``
+those of the measured disturbances ``dv`` (the model's columns after the inputs; none for most
+plants).  Every element structure (first order, lead, second lag, integrator, step response) is
+simulated exactly through the state space of :func:`mpm_monitor.core.discretize.state_space`.
+``y(k)`` is measured before ``u(k)`` is applied, so the plant must be strictly proper in discrete
+time (no element with zero time constant and zero delay, the measured disturbances' included:
+``dv(k)``, measured with ``y(k)``, acts from ``y(k+1)`` on).
 """
 
 from __future__ import annotations
@@ -54,7 +58,7 @@ def check_disturbance_options(opts: DisturbanceOptions) -> None:
 
 def require_strictly_proper(model: PlantModel, what: str = "plant") -> None:
     """Refuse a model with a direct feed-through (an element whose sampled form acts on ``y(k)`` through
-    ``u(k)``: no lag and no delay, or a lead with no delay) for closed-loop use."""
+    ``u(k)`` or ``dv(k)``: no lag and no delay, or a lead with no delay) for closed-loop use."""
     for i in range(model.n_outputs):
         for j in range(model.n_columns):
             if model.discrete_element(i, j).strictly_proper:
@@ -73,7 +77,8 @@ class PlantSimulator:
     Parameters
     ----------
     model : PlantModel
-        The true plant (strictly proper in discrete time).
+        The true plant (strictly proper in discrete time), of any element structure, with or
+        without measured disturbances.
     options : DisturbanceOptions
         Disturbance and noise levels.
     rng : numpy.random.Generator
@@ -81,9 +86,10 @@ class PlantSimulator:
 
     Notes
     -----
-    Call :meth:`measure` to get ``y(k)`` and then :meth:`apply` with ``u(k)`` to advance to
-    ``k + 1``.  The components of the last measurement are in :attr:`last_disturbance` (``v``) and
-    :attr:`last_noise` (``n``).
+    Call :meth:`measure` to get ``y(k)`` (giving the measured disturbances ``dv(k)`` when the plant
+    has some) and then :meth:`apply` with ``u(k)`` to advance to ``k + 1``.  The components of the
+    last measurement are in :attr:`last_disturbance` (``v``), :attr:`last_noise` (``n``) and
+    :attr:`last_dv` (``dv``).
     """
 
     def __init__(self, model: PlantModel, options: DisturbanceOptions, rng: np.random.Generator):
@@ -92,6 +98,7 @@ class PlantSimulator:
         self.options = options
         self._rng = rng
         self._ss = state_space(model)
+        self._nd = model.n_disturbances
         self.reset()
 
     def reset(self) -> None:
@@ -100,6 +107,7 @@ class PlantSimulator:
         self._v = np.zeros(self.model.n_outputs)
         self.last_disturbance = np.zeros(self.model.n_outputs)
         self.last_noise = np.zeros(self.model.n_outputs)
+        self.last_dv = np.zeros(self._nd)
         self._pending = True
 
     @property
@@ -107,14 +115,19 @@ class PlantSimulator:
         """Plant state of :func:`mpm_monitor.core.discretize.state_space`, shape (n_states,)."""
         return self._x.copy()
 
-    def measure(self, extra: np.ndarray | None = None) -> np.ndarray:
+    def measure(self, extra: np.ndarray | None = None, dv: np.ndarray | None = None) -> np.ndarray:
         """Measured output ``y(k)`` of shape (n_outputs,), drawing this sample's noise.
 
         Parameters
         ----------
         extra : ndarray, shape (n_outputs,), optional
             An additional output disturbance for this sample (e.g. a step), added to ``v``.
+        dv : ndarray, shape (n_disturbances,)
+            The measured disturbances ``dv(k)`` of this sample (required when the plant has some);
+            with ``u(k)`` they act on the next samples (:meth:`apply`).
         """
+        if self._nd:
+            self.last_dv = self._check_dv(dv)
         ny = self.model.n_outputs
         opts = self.options
         w = self._rng.standard_normal(ny) * opts.disturbance_std
@@ -126,5 +139,21 @@ class PlantSimulator:
         return self._ss.C @ self._x + v + n
 
     def apply(self, u: np.ndarray) -> None:
-        """Apply ``u(k)`` (shape (n_inputs,), deviation variables) and advance to ``k + 1``."""
+        """Apply ``u(k)`` (shape (n_inputs,), deviation variables) and advance to ``k + 1``.
+
+        The measured disturbances act with the values given to the last :meth:`measure`.
+        """
+        if self._nd:
+            ss = self._ss
+            self._x = ss.A @ self._x + ss.B_inputs @ np.asarray(u, dtype=float) + ss.B_disturbances @ self.last_dv
+            return
         self._x = self._ss.A @ self._x + self._ss.B @ np.asarray(u, dtype=float)
+
+    def _check_dv(self, dv) -> np.ndarray:
+        names = ", ".join(self.model.disturbances)
+        if dv is None:
+            raise ConfigurationError(f"plant: the plant has measured disturbances ({names}): give dv(k) to measure()")
+        arr = np.asarray(dv, dtype=float).reshape(-1)
+        if arr.shape != (self._nd,) or not np.all(np.isfinite(arr)):
+            raise ConfigurationError(f"plant: dv: expected {self._nd} finite value(s) ({names}), got {np.asarray(dv)!r}")
+        return arr
