@@ -137,7 +137,8 @@ class MonitorCore:
     def __init__(self, model: PlantModel, options: MonitorOptions = MonitorOptions()):
         self.model = model
         self.options = options
-        self.window = SampleWindow(model.outputs, model.inputs, model.sample_time, options.window)
+        self.window = SampleWindow(model.outputs, model.inputs, model.sample_time, options.window,
+                                   disturbances=model.disturbances)
         self._seq = 0
         self._last_job_completed = None
         self._results = 0
@@ -146,7 +147,7 @@ class MonitorCore:
         self._data_error: Optional[str] = None
         self._data_error_until = 0
         self._recent_warnings: collections.deque = collections.deque(maxlen=5)
-        self._last_arrival: dict = {"setpoint": None, "input": None, "output": None}
+        self._last_arrival: dict = {channel: None for channel in self.window.channels}
         self._last_complete_wall: Optional[float] = None
         self._started_wall: Optional[float] = None
         #: Number of data errors (bad values, conflicts, off-grid stamps) seen so far.
