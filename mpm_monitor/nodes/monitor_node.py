@@ -1,4 +1,4 @@
-"""Live monitor node: setpoint, input and output in; ``/diagnostics`` and row RSI out.
+"""Live monitor node: setpoint, input and output (and measured disturbances) in; ``/diagnostics`` and row RSI out.
 
 Wraps :class:`~mpm_monitor.monitor.monitor_core.MonitorCore` (window, schedule, statuses) and
 :class:`~mpm_monitor.monitor.worker.AnalysisWorker` (the analysis of
@@ -30,7 +30,10 @@ not before ``experiment_cooldown`` samples; a request longer than the window is 
 window (:mod:`mpm_monitor.monitor.experiment`).  A failed or refused call is a status message,
 never an exception; without the service the summary only reports the recommendation.
 
-It works with any publisher of the contract topics, not only this package's plant and MPC nodes.
+When the model has measured disturbances the node also subscribes to ``disturbance_topic`` (one value
+per measured disturbance) and a sample needs its four vectors (docs/interfaces.md, "Measured
+disturbances").  It works with any publisher of the contract topics, not only this package's plant
+and MPC nodes.
 
 Parameters (all declared with type, description and range): see :data:`PARAMS`.
 """
@@ -134,7 +137,7 @@ PARAMS = MODEL_PARAMS + (
               "as the MPC node's ~/start_dither)."),
     ParamSpec("experiment_cooldown", "int", 10000, "Samples after an experiment's analysis, or a refused or failed "
               "call, before the next call.", 0, 10**9),
-) + topic_params("setpoint", "input", "output", "dither") + (
+) + topic_params("setpoint", "input", "output", "dither", "disturbance") + (
     ParamSpec("diagnostics_topic", "string", "/diagnostics", "Topic of the diagnostics (DiagnosticArray)."),
     ParamSpec("rsi_topic", "string", "mpm_monitor/rsi", "Topic of the row RSI values (Float64MultiArray, model "
               "output order)."),
@@ -233,20 +236,21 @@ class MonitorNode(Node):
         self.model = model
         self.core = MonitorCore(self.model, self._monitor_options)
         self.core.start(time.monotonic())
-        self._codecs = {ch: VectorCodec.for_channel(self.model, ch, p[f"{ch}_topic"])
-                        for ch in ("setpoint", "input", "output")}
+        channels = self.core.window.channels      # setpoint, input, output (, disturbance)
+        self._codecs = {ch: VectorCodec.for_channel(self.model, ch, p[f"{ch}_topic"]) for ch in channels}
         self.worker = AnalysisWorker(self._run_job, threaded=p["analysis_thread"])
         q = vector_qos()
         self._subs = [self.create_subscription(JointState, p[f"{ch}_topic"],
                                                (lambda msg, ch=ch: self._on_vector(ch, msg)), q)
-                      for ch in ("setpoint", "input", "output")]
+                      for ch in channels]
         if self._dither_client is not None:
             self._dither_codec = VectorCodec.for_channel(self.model, "dither", p["dither_topic"])
             self._subs.append(self.create_subscription(JointState, p["dither_topic"], self._on_dither, q))
         # The events executor has no guard conditions: results are collected by a short steady timer.
         self._result_timer = self.create_timer(RESULT_POLL_PERIOD, self._on_results, clock=self._steady)
+        dv = f", {self.model.n_disturbances} measured disturbance(s)" if self.model.n_disturbances else ""
         self.get_logger().info(
-            f"monitoring {self.model.n_outputs}x{self.model.n_inputs} ({self.model.name or 'model'}): window "
+            f"monitoring {self.model.n_outputs}x{self.model.n_inputs}{dv} ({self.model.name or 'model'}): window "
             f"{p['window_samples']} samples, analysis every {p['analysis_period']} after {p['min_samples']}")
 
     def _retry_model(self) -> None:

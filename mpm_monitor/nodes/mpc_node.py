@@ -1,11 +1,13 @@
-"""MPC controller node: internal-model MPC from ``setpoint`` and ``output`` to ``input``.
+"""MPC controller node: internal-model MPC from ``setpoint``, ``output`` (and ``disturbance``) to ``input``.
 
 Wraps :class:`~mpm_monitor.sim.mpc.InternalModelMpc`.  The controller computes ``u(k)`` once it holds
 the setpoint ``r(k)`` and the measurement ``y(k)`` with the same stamp (and the dither of that
-stamp when ``use_dither``), and publishes it with that stamp; vectors are buffered by stamp, so
-the arrival order of the topics does not matter and nothing is dropped.  With ``hold_setpoint``
-it computes ``u(k)`` as soon as ``y(k)`` arrives, with the latest setpoint (and dither) received:
-for a stack whose setpoints are published only when they change.
+stamp when ``use_dither``, and the measured disturbances ``dv(k)`` of that stamp on
+``disturbance_topic`` when its model has some: its feedforward), and publishes it with that stamp;
+vectors are buffered by stamp, so the arrival order of the topics does not matter and nothing is
+dropped.  With ``hold_setpoint`` it computes ``u(k)`` as soon as ``y(k)`` (and ``dv(k)``) arrive,
+with the latest setpoint (and dither) received: for a stack whose setpoints are published only
+when they change.
 
 Experiments: the service ``~/start_dither`` (``rcl_interfaces/srv/SetParameters``) starts a PRBS
 dither on some inputs for a number of samples (docs/interfaces.md, "Detectability and experiment",
@@ -24,7 +26,7 @@ generator seeded by ``seed`` (one stream for all the node's experiments).
 Recovery in lock-step (the plant re-sends ``y(k)`` and the setpoint node ``r(k)`` when the loop
 stalls): a vector re-sent for the stamp already answered is not a second sample; a re-sent ``y``
 of that stamp gets the same ``u`` again (idempotent, in case the first one was lost), a re-sent
-``r`` or dither is ignored.  A measurement whose stamp goes back (a restarted plant, at
+``r``, dither or ``dv`` is ignored.  A measurement whose stamp goes back (a restarted plant, at
 ``k = 0``), or a different ``y`` for the stamp just answered, restarts the controller: internal
 model and previous move reset, with a warning.
 
@@ -82,7 +84,7 @@ PARAMS = MODEL_PARAMS + (
     ParamSpec("max_dither_samples", "int", 10000, "Longest dither the ~/start_dither service accepts, samples.",
               1, 10**7),
     ParamSpec("seed", "int", 1, "Seed of the PRBS of the ~/start_dither experiments.", 0, 2**31 - 1),
-) + topic_params("setpoint", "output", "input", "dither")
+) + topic_params("setpoint", "output", "input", "dither", "disturbance")
 
 
 def _weight(values, n: int, name: str):
@@ -184,10 +186,12 @@ class MpcNode(Node):
         self.params = p = declare_parameters(self, PARAMS)
         self.model = model = resolve_model(p["model_file"], p["case"])
         self.ctrl = InternalModelMpc(model, mpc_options_from_params(p, model.n_outputs, model.n_inputs))
-        self._codecs = {key: VectorCodec.for_channel(model, ch, p[f"{ch}_topic"])
-                        for key, ch in (("r", "setpoint"), ("y", "output"), ("d", "dither"))}
+        channels = (("r", "setpoint"), ("y", "output"), ("d", "dither"))
+        if model.n_disturbances:
+            channels += (("v", "disturbance"),)   # dv(k): the feedforward, stamp-matched like y(k)
+        self._codecs = {key: VectorCodec.for_channel(model, ch, p[f"{ch}_topic"]) for key, ch in channels}
         self._u_codec = VectorCodec.for_channel(model, "input", p["input_topic"])
-        self._buf = {"r": collections.OrderedDict(), "y": collections.OrderedDict(), "d": collections.OrderedDict()}
+        self._buf = {key: collections.OrderedDict() for key, _ in channels}
         self._latest = {"r": None, "d": None}
         self._last_done: Optional[int] = None
         self._last_y: Optional[np.ndarray] = None   # y of the stamp last answered
@@ -200,7 +204,8 @@ class MpcNode(Node):
         q = vector_qos()
         self._subs = [self.create_subscription(JointState, self._codecs[key].topic,
                                                (lambda msg, key=key: self._on_vector(key, msg)), q)
-                      for key in ("r", "y") + (("d",) if p["use_dither"] else ())]
+                      for key in ("r", "y") + (("d",) if p["use_dither"] else ())
+                      + (("v",) if model.n_disturbances else ())]
         #: The experiment's dither while it runs (None otherwise); see the module docstring.
         self.experiment: Optional[TimedDither] = None
         self.experiments = 0   # dithers started by the service
@@ -211,7 +216,8 @@ class MpcNode(Node):
         self._dither_srv = self.create_service(SetParameters, "~/start_dither", self._on_start_dither)
         self.get_logger().info(f"MPC {model.n_outputs}x{model.n_inputs}, Hp = {p['prediction_horizon']}, "
                                f"Hc = {p['control_horizon']}, {'hold' if p['hold_setpoint'] else 'stamp-matched'} "
-                               f"setpoints{', dither' if p['use_dither'] else ''}")
+                               f"setpoints{', dither' if p['use_dither'] else ''}"
+                               f"{', feedforward of ' + ', '.join(model.disturbances) if model.n_disturbances else ''}")
 
 
     def _store(self, key: str, stamp: int, values: np.ndarray) -> bool:
@@ -231,7 +237,7 @@ class MpcNode(Node):
         last = self._last_done
         if stamp == last:
             if key != "y":
-                self.repeated += 1  # r or dither re-sent on a stall: the sample is done
+                self.repeated += 1  # r, dither or dv re-sent on a stall: the sample is done
                 return False
             if np.array_equal(values, self._last_y):
                 self.repeated += 1  # y(k) re-sent on a stall: the same u(k) again, in case it was lost
@@ -262,14 +268,14 @@ class MpcNode(Node):
             self._end_experiment(stamp)
 
     def _on_vector(self, key: str, msg) -> None:
-        """A setpoint (``r``), measurement (``y``) or dither (``d``) vector arrived."""
+        """A setpoint (``r``), measurement (``y``), dither (``d``) or measured-disturbance (``v``) vector arrived."""
         try:
             stamp, values = self._codecs[key].decode(msg)
         except MessageError as exc:
             self.rejected += 1
             self.get_logger().warning(f"ignored: {exc}", throttle_duration_sec=1.0)
             return
-        if key != "y" and self.params["hold_setpoint"]:
+        if key in ("r", "d") and self.params["hold_setpoint"]:
             first = self._latest[key] is None
             self._latest[key] = values
             if key == "r" and first:  # outputs that waited for the first setpoint
@@ -284,6 +290,11 @@ class MpcNode(Node):
         y = buf["y"].get(stamp)
         if y is None:
             return
+        dv = None
+        if "v" in buf:
+            dv = buf["v"].get(stamp)
+            if dv is None:
+                return  # y(k) waits for dv(k)
         dither = None
         if self.params["hold_setpoint"]:
             r = self._latest["r"]
@@ -305,7 +316,7 @@ class MpcNode(Node):
         if self.experiment is not None:
             experiment = self.experiment.next()
             dither = experiment if dither is None else dither + experiment
-        u = self.ctrl.step(r, y, dither)
+        u = self.ctrl.step(r, y, dither, dv=dv)
         self._last_done = stamp
         self._last_y = y
         self.steps += 1
