@@ -448,13 +448,13 @@ def resolve_model(model_file: str, case: str, which: str = "model"):
         The controller's model or the true plant of the case.
     """
     from ..io.model_file import load_model
-    from ..sim.cases import DEMO_CASES, simulation_case
+    from ..sim.cases import CASE_NAMES, DEMO_CASES, simulation_case
 
     if model_file:
         return load_model(model_file)
     if not case:
-        raise ConfigurationError("parameters model_file and case: give a model file (model_file) or a case "
-                                 f"(case: one of {', '.join(DEMO_CASES)})")
+        raise ConfigurationError("parameters model_file and case: give a model file (model_file) or a paper case "
+                                 f"(case: one of {', '.join(CASE_NAMES)}) or the level case (case: level)")
     if case not in DEMO_CASES:
         raise ConfigurationError(f"parameter case: expected one of {', '.join(DEMO_CASES)} or '', got {case!r}")
     c = simulation_case(case)
