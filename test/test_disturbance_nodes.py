@@ -37,16 +37,7 @@ from mpm_monitor.sim.mpc import InternalModelMpc  # noqa: E402
 SAMPLES = 3000
 
 
-@pytest.fixture
-def suites():
-    made = []
-    yield made
-    for suite in made:
-        suite.close()
-        suite.context.try_shutdown()
-
-
-def test_level_case_located_live_with_roles_and_equal_to_the_batch_run(suites):
+def test_level_case_located_live_with_roles_and_equal_to_the_batch_run():
     """The suite of the demo on the level case; the statuses are read from /diagnostics as published."""
     import time
 
@@ -60,42 +51,49 @@ def test_level_case_located_live_with_roles_and_equal_to_the_batch_run(suites):
     params["monitor"].update(window_samples=SAMPLES, min_samples=SAMPLES, analysis_period=SAMPLES,
                              diagnostics_topic="diagnostics", stale_timeout=120.0)
     suite = Suite(ctx, params, namespace=ns)
-    suites.append(suite)
-    listener = Node("diag_listener", context=ctx, namespace=ns)
-    latest = []
-    listener.create_subscription(DiagnosticArray, "diagnostics", latest.append, diagnostics_qos())
-    suite.add_node(listener)
-    t0 = time.monotonic()
-    suite.start(diagnostics_listeners=1)
-    assert suite.run(timeout=150.0), f"the suite stopped at sample {suite.plant.k}"
-    seconds = time.monotonic() - t0
+    try:
+        listener = Node("diag_listener", context=ctx, namespace=ns)
+        latest = []
+        listener.create_subscription(DiagnosticArray, "diagnostics", latest.append, diagnostics_qos())
+        suite.add_node(listener)
+        t0 = time.monotonic()
+        suite.start(diagnostics_listeners=1)
+        assert suite.run(timeout=150.0), f"the suite stopped at sample {suite.plant.k}"
+        seconds = time.monotonic() - t0
 
-    def statuses():
-        return {s.name: (s, {kv.key: kv.value for kv in s.values}) for s in latest[-1].status}
+        def statuses():
+            return {s.name: (s, {kv.key: kv.value for kv in s.values}) for s in latest[-1].status}
 
-    assert suite.spin_until(lambda: latest and statuses()[SUMMARY_NAME][1].get("window_end") == repr(SAMPLES - 1.0)
-                            and statuses()[SUMMARY_NAME][1].get("analyses") == "1", 10.0)
-    st = statuses()
-    rows = [o for o in case.model.outputs if st[row_status_name(o)][1]["mismatch"] == "true"]
-    elements = [(o, c) for o in case.model.outputs for c in st[row_status_name(o)][1]["flagged_inputs"].split(",") if c]
-    assert rows == ["temperature", "level"]
-    assert sorted(elements) == [("level", "outflow"), ("temperature", "inflow")]
-    values = st[SUMMARY_NAME][1]
-    assert values["located_elements"] == "temperature:inflow,level:outflow"
-    assert values["completed_samples"] == str(SAMPLES) and values["missing_samples"] == "0"
-    report = suite.monitor.core.latest_report
-    roles = {(e.output, e.input): e.role for e in report.elements if e.mismatch}
-    assert roles == {("temperature", "inflow"): "disturbance", ("level", "outflow"): "input"}
-    # lock-step through DDS reproduces the batch closed loop with the same seed, dv included
-    log = run_closed_loop(case.plant, case.model, SAMPLES, seed=1, mpc=case.mpc, excitation=case.excitation,
-                          disturbance=case.disturbance, measured_disturbance=case.measured_disturbance)
-    data = suite.monitor.core.latest_outcome.job.data
-    assert data.disturbances == ("inflow",)
-    np.testing.assert_array_equal(data.t, log.t)
-    for key in ("r", "u", "y", "dv"):
-        np.testing.assert_allclose(getattr(data, key), getattr(log, key), rtol=0, atol=1e-12, err_msg=key)
-    assert np.std(data.dv) > 0.2
-    assert seconds < 90.0
+        def final_published():
+            summary = statuses()[SUMMARY_NAME][1] if latest else {}
+            return summary.get("window_end") == repr(SAMPLES - 1.0) and summary.get("analyses") == "1"
+
+        assert suite.spin_until(final_published, 10.0)
+        st = statuses()
+        rows = [o for o in case.model.outputs if st[row_status_name(o)][1]["mismatch"] == "true"]
+        elements = [(o, c) for o in case.model.outputs
+                    for c in st[row_status_name(o)][1]["flagged_inputs"].split(",") if c]
+        assert rows == ["temperature", "level"]
+        assert sorted(elements) == [("level", "outflow"), ("temperature", "inflow")]
+        values = st[SUMMARY_NAME][1]
+        assert values["located_elements"] == "temperature:inflow,level:outflow"
+        assert values["completed_samples"] == str(SAMPLES) and values["missing_samples"] == "0"
+        report = suite.monitor.core.latest_report
+        roles = {(e.output, e.input): e.role for e in report.elements if e.mismatch}
+        assert roles == {("temperature", "inflow"): "disturbance", ("level", "outflow"): "input"}
+        # lock-step through DDS reproduces the batch closed loop with the same seed, dv included
+        log = run_closed_loop(case.plant, case.model, SAMPLES, seed=1, mpc=case.mpc, excitation=case.excitation,
+                              disturbance=case.disturbance, measured_disturbance=case.measured_disturbance)
+        data = suite.monitor.core.latest_outcome.job.data
+        assert data.disturbances == ("inflow",)
+        np.testing.assert_array_equal(data.t, log.t)
+        for key in ("r", "u", "y", "dv"):
+            np.testing.assert_allclose(getattr(data, key), getattr(log, key), rtol=0, atol=1e-12, err_msg=key)
+        assert np.std(data.dv) > 0.2
+        assert seconds < 90.0
+    finally:
+        suite.close()
+        ctx.try_shutdown()
 
 
 def _level_model_file(tmp_path, which="model"):

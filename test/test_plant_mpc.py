@@ -13,11 +13,12 @@ Invariants tested:
 import numpy as np
 import pytest
 from scipy.optimize import lsq_linear
+from structure_models import MODELS
 
 from mpm_monitor.core.discretize import simulate, state_space
 from mpm_monitor.core.errors import ConfigurationError
 from mpm_monitor.core.model import PlantModel
-from mpm_monitor.sim.cases import paper_case, shell_plant
+from mpm_monitor.sim.cases import level_plant, paper_case, shell_plant
 from mpm_monitor.sim.closed_loop import ExcitationOptions, run_closed_loop, seeded_generators
 from mpm_monitor.sim.excitation import PrbsGenerator, PrbsOptions
 from mpm_monitor.sim.mpc import InternalModelMpc, MpcOptions
@@ -246,14 +247,15 @@ def test_bounds_hold_with_dither_in_run_closed_loop():
 # --------------------------------------------------------------------------- QP vs closed form
 
 
-def _cost_as_least_squares(ctrl, eps, x, u_prev):
+def _cost_as_least_squares(ctrl, eps, x, u_prev, dv=None):
     """Cost J(U) = ||F U - g||^2 over the input path U = (u(k), ..., u(k+Hc-1)) (Hc * nu,), built by
     simulating the controller's model forward (module docstring of mpc.py), independent of its
-    matrices."""
+    matrices; a model with measured disturbances holds ``dv`` (n_disturbances,) over the horizon."""
     ss = state_space(ctrl.model)
     hp, hc = ctrl.options.prediction_horizon, ctrl.options.control_horizon
     nu = ctrl.model.n_inputs
     q, r, s = np.sqrt(ctrl.q), np.sqrt(ctrl.r), np.sqrt(ctrl.s)
+    dv = np.zeros(ctrl.model.n_disturbances) if dv is None else np.asarray(dv, float)
 
     def residual(U):
         U = U.reshape(hc, nu)
@@ -261,8 +263,8 @@ def _cost_as_least_squares(ctrl, eps, x, u_prev):
         for i in range(hp):
             uk = U[min(i, hc - 1)]
             res.append(r * (uk - ctrl.u_nom))
-            xk = ss.A @ xk + ss.B @ uk
-            res.append(q * (eps - ss.C @ xk))          # yhat(k+i+1)
+            xk = ss.A @ xk + ss.B @ np.concatenate([uk, dv])
+            res.append(q * (eps - ss.C @ xk - ss.D_disturbances @ dv))          # yhat(k+i+1)
         prev = u_prev
         for t in range(hc):
             res.append(s * (U[t] - prev))
@@ -305,6 +307,32 @@ def test_closed_form_moves_minimise_the_stated_cost(hp, hc):
     U_ref = np.linalg.lstsq(F, g, rcond=None)[0]
     du = ctrl.unconstrained_moves(eps, x, u_prev)
     np.testing.assert_allclose(du, _path_to_moves(U_ref, u_prev, 3), rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["rich", "step", "level"])
+def test_closed_form_moves_with_dv_minimise_the_stated_cost_and_the_qp_agrees(name):
+    # A model of every structure with a measured disturbance held at dv over the horizon: the moves
+    # against the least-squares reference (1e-6), the QP with far bounds against them (1e-5).
+    plant = level_plant() if name == "level" else MODELS[name]()
+    nu, nd = plant.n_inputs, plant.n_disturbances
+    opts = dict(prediction_horizon=30, control_horizon=6, input_weight=0.3, input_rate_weight=0.2)
+    ctrl = InternalModelMpc(plant, MpcOptions(**opts))
+    ss = state_space(plant)
+    rng = np.random.default_rng(2)
+    x = np.zeros(ss.n_states)
+    for _ in range(40):
+        x = ss.A @ x + ss.B @ (0.2 * rng.standard_normal(plant.n_columns))
+    eps, u_prev, dv = rng.standard_normal(plant.n_outputs) * 0.3, rng.standard_normal(nu) * 0.1, np.full(nd, 0.7)
+    F, g = _cost_as_least_squares(ctrl, eps, x, u_prev, dv)
+    U_ref = np.linalg.lstsq(F, g, rcond=None)[0]
+    du = ctrl.unconstrained_moves(eps, x, u_prev, dv)
+    np.testing.assert_allclose(du, _path_to_moves(U_ref, u_prev, nu), rtol=0, atol=1e-6)
+    # the disturbance term is not vacuous
+    assert np.abs(du - ctrl.unconstrained_moves(eps, x, u_prev, np.zeros(nd))).max() > 1e-3
+    wide = InternalModelMpc(plant, MpcOptions(**opts, u_min=-1e3, u_max=1e3))
+    np.testing.assert_allclose(wide.solve_qp(eps, x, u_prev, dv), du, rtol=0, atol=1e-5)
+    with pytest.raises(ConfigurationError, match=r"controller model: it has measured disturbances"):
+        ctrl.step(np.zeros(plant.n_outputs), np.zeros(plant.n_outputs))
 
 
 def test_qp_equals_closed_form_when_no_bound_is_active():

@@ -4,8 +4,8 @@ References, independent of the code under test:
 - the plant's response to ``u`` and ``dv``: the element-wise simulation of the core
   (:func:`mpm_monitor.core.discretize.simulate_elements`) and python-control's ``forced_response``
   of every element built from its parameters (test/structure_models.py), 1e-9;
-- the MPC's moves with a measured disturbance: a least-squares solution of the stated cost built by
-  simulating the controller's model forward with ``dv(k)`` held over the horizon (numpy lstsq), 1e-6;
+- the MPC's moves with a measured disturbance: in test_plant_mpc.py, against a least-squares
+  solution of the stated cost built by simulating the model forward with ``dv(k)`` held;
 - the IMC identity ``d = v + n`` when the controller's model equals the plant, for every structure
   with measured disturbances, 1e-9 (the internal model is driven by ``u`` and ``dv`` exactly as the
   plant);
@@ -16,13 +16,13 @@ import numpy as np
 import pytest
 from structure_models import MODELS, reference_response, step_model
 
-from mpm_monitor.core.discretize import simulate_elements, state_space
+from mpm_monitor.core.discretize import simulate_elements
 from mpm_monitor.core.errors import ConfigurationError
 from mpm_monitor.core.model import PlantModel
 from mpm_monitor.sim.cases import DEMO_CASES, level_case, level_plant, simulation_case
 from mpm_monitor.sim.closed_loop import ExcitationOptions, run_closed_loop, seeded_generators
 from mpm_monitor.sim.excitation import MeasuredDisturbanceGenerator, MeasuredDisturbanceOptions, PrbsOptions
-from mpm_monitor.sim.mpc import InternalModelMpc, MpcOptions
+from mpm_monitor.sim.mpc import MpcOptions
 from mpm_monitor.sim.plant import DisturbanceOptions, PlantSimulator
 
 pytestmark = pytest.mark.filterwarnings("ignore:The default value of raise_error:PendingDeprecationWarning")
@@ -130,60 +130,6 @@ def test_runs_without_disturbances_keep_their_random_streams():
 
 
 # --------------------------------------------------------------------------- MPC with feedforward
-
-
-def _cost_with_dv_as_least_squares(ctrl, eps, x, u_prev, dv):
-    """J(U) = ||F U - g||^2 over the input path U, by simulating the controller's model forward with
-    dv(k) held over the horizon (the module docstring of mpc.py), independent of its gains."""
-    ss = state_space(ctrl.model)
-    hp, hc = ctrl.options.prediction_horizon, ctrl.options.control_horizon
-    nu = ctrl.model.n_inputs
-    q, r, s = np.sqrt(ctrl.q), np.sqrt(ctrl.r), np.sqrt(ctrl.s)
-
-    def residual(U):
-        U = U.reshape(hc, nu)
-        res, xk = [], np.array(x, float)
-        for i in range(hp):
-            uk = U[min(i, hc - 1)]
-            res.append(r * (uk - ctrl.u_nom))
-            xk = ss.A @ xk + ss.B @ np.concatenate([uk, dv])
-            res.append(q * (eps - ss.C @ xk - ss.D_disturbances @ dv))     # yhat(k+i+1)
-        prev = u_prev
-        for t in range(hc):
-            res.append(s * (U[t] - prev))
-            prev = U[t]
-        return np.concatenate(res)
-
-    r0 = residual(np.zeros(hc * nu))
-    F = np.column_stack([residual(e) - r0 for e in np.eye(hc * nu)])
-    return F, -r0
-
-
-@pytest.mark.parametrize("name", ["rich", "step", "level"])
-def test_closed_form_moves_with_dv_minimise_the_stated_cost_and_the_qp_agrees(name):
-    plant = level_plant() if name == "level" else MODELS[name]()
-    nu, nd = plant.n_inputs, plant.n_disturbances
-    ctrl = InternalModelMpc(plant, MpcOptions(prediction_horizon=30, control_horizon=6, input_weight=0.3,
-                                              input_rate_weight=0.2))
-    ss = state_space(plant)
-    rng = np.random.default_rng(2)
-    x = np.zeros(ss.n_states)
-    for _ in range(40):
-        x = ss.A @ x + ss.B @ (0.2 * rng.standard_normal(plant.n_columns))
-    eps, u_prev, dv = rng.standard_normal(plant.n_outputs) * 0.3, rng.standard_normal(nu) * 0.1, np.full(nd, 0.7)
-    F, g = _cost_with_dv_as_least_squares(ctrl, eps, x, u_prev, dv)
-    U = np.linalg.lstsq(F, g, rcond=None)[0].reshape(-1, nu)
-    du_ref = np.diff(np.vstack([u_prev, U]), axis=0).reshape(-1)
-    du = ctrl.unconstrained_moves(eps, x, u_prev, dv)
-    np.testing.assert_allclose(du, du_ref, rtol=0, atol=1e-6)
-    # the disturbance term is not vacuous
-    assert np.abs(du - ctrl.unconstrained_moves(eps, x, u_prev, np.zeros(nd))).max() > 1e-3
-    # the QP path with bounds far away gives the same moves
-    wide = InternalModelMpc(plant, MpcOptions(prediction_horizon=30, control_horizon=6, input_weight=0.3,
-                                              input_rate_weight=0.2, u_min=-1e3, u_max=1e3))
-    np.testing.assert_allclose(wide.solve_qp(eps, x, u_prev, dv), du, rtol=0, atol=1e-5)
-    with pytest.raises(ConfigurationError, match=r"controller model: it has measured disturbances"):
-        ctrl.step(np.zeros(plant.n_outputs), np.zeros(plant.n_outputs))
 
 
 def _step_disturbance_run(controller_model, n=600, bounds=None):

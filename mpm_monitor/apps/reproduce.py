@@ -1,4 +1,4 @@
-"""``python -m mpm_monitor reproduce --case 3.1|3.2|3.3|level``: the paper's experiments (and the level case), paper-style.
+"""``python -m mpm_monitor reproduce --case 3.1|3.2|3.3|level``: the paper's experiments, paper-style.
 
 Simulates the case (:mod:`mpm_monitor.sim.cases`; 3.3 with the input dither of the paper's second
 experiment; the level case with its measured inflow), runs the analysis and prints the row RSI

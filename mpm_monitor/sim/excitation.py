@@ -47,6 +47,11 @@ def check_prbs_options(opts: PrbsOptions) -> None:
     """Raise :class:`ConfigurationError` when an option is outside its range."""
     if not (np.isfinite(opts.amplitude) and opts.amplitude >= 0):
         raise ConfigurationError(f"amplitude: expected a finite number >= 0, got {opts.amplitude!r}")
+    _check_switching(opts)
+
+
+def _check_switching(opts) -> None:
+    """``switch_probability``, ``min_hold`` and ``offset``, shared by the PRBS and the measured disturbances."""
     if not (0.0 < opts.switch_probability <= 1.0):
         raise ConfigurationError(f"switch_probability: expected a number in (0, 1], got {opts.switch_probability!r}")
     if int(opts.min_hold) != opts.min_hold or opts.min_hold < 1:
@@ -229,14 +234,9 @@ def check_measured_disturbance_options(opts: MeasuredDisturbanceOptions) -> None
         v = getattr(opts, key)
         if not (np.isfinite(v) and v >= 0):
             raise ConfigurationError(f"{key}: expected a finite number >= 0 (disturbance units), got {v!r}")
-    if not (0.0 < opts.switch_probability <= 1.0):
-        raise ConfigurationError(f"switch_probability: expected a number in (0, 1], got {opts.switch_probability!r}")
-    if int(opts.min_hold) != opts.min_hold or opts.min_hold < 1:
-        raise ConfigurationError(f"min_hold: expected an integer >= 1 (samples), got {opts.min_hold!r}")
     if not (0.0 <= opts.noise_pole < 1.0):
         raise ConfigurationError(f"noise_pole: expected a number in [0, 1), got {opts.noise_pole!r}")
-    if not np.isfinite(opts.offset):
-        raise ConfigurationError(f"offset: expected a finite number, got {opts.offset!r}")
+    _check_switching(opts)
 
 
 class MeasuredDisturbanceGenerator:

@@ -155,5 +155,6 @@ class PlantSimulator:
             raise ConfigurationError(f"plant: the plant has measured disturbances ({names}): give dv(k) to measure()")
         arr = np.asarray(dv, dtype=float).reshape(-1)
         if arr.shape != (self._nd,) or not np.all(np.isfinite(arr)):
-            raise ConfigurationError(f"plant: dv: expected {self._nd} finite value(s) ({names}), got {np.asarray(dv)!r}")
+            raise ConfigurationError(f"plant: dv: expected {self._nd} finite value(s) ({names}), "
+                                     f"got {np.asarray(dv)!r}")
         return arr

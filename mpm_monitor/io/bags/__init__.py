@@ -29,7 +29,8 @@ from .statuses import ROW_STATUS_PREFIX, RecordedStatus, live_located_elements, 
 from .write import BagWriter, contract_vector_qos, joint_state_cdr, write_logged_data
 
 __all__ = [
-    "BagWriter", "DEFAULT_DISTURBANCE_TOPIC", "DEFAULT_TOPICS", "DIAGNOSTIC_ARRAY", "JOINT_STATE", "ROW_STATUS_PREFIX", "RawMessage",
+    "BagWriter", "DEFAULT_DISTURBANCE_TOPIC", "DEFAULT_TOPICS", "DIAGNOSTIC_ARRAY", "JOINT_STATE",
+    "ROW_STATUS_PREFIX", "RawMessage",
     "RecordedStatus", "contract_vector_qos", "default_typestore", "export_csv", "infer_sample_time",
     "joint_state_cdr", "live_located_elements", "open_reader", "read_bag", "read_bag_channels",
     "read_diagnostics", "read_raw_messages", "recover_bag", "topic_name", "write_logged_data",

@@ -1,4 +1,4 @@
-"""Reading a bag: the setpoint, input, output (and disturbance) topics aligned into logged data, CSV export, raw messages.
+"""Reading a bag: the vector topics aligned into logged data, CSV export, raw messages.
 
 A bag holds the stamped vectors ``setpoint``, ``input`` and ``output`` (``sensor_msgs/msg/JointState``:
 ``header.stamp`` = sample time, ``name`` = channel names, ``position`` = values), and ``disturbance``
@@ -315,7 +315,9 @@ def read_bag_channels(path, topics: Sequence[str] = DEFAULT_TOPICS, sample_time:
 
 
 def export_csv(bag, csv, model_path=None, topics: Sequence[str] = DEFAULT_TOPICS, progress=False) -> int:
-    """Write a bag's setpoint, input, output (and disturbance) topics as the CSV of logged data (docs/interfaces.md, "Logged data (CSV)").
+    """Write a bag's setpoint, input, output (and disturbance) topics as a CSV log.
+
+    The format is that of docs/interfaces.md, "Logged data (CSV)".
 
     Parameters
     ----------
