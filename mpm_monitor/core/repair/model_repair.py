@@ -40,6 +40,24 @@ def _rms(x) -> float:
     return float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
 
 
+def _holdout_rms(d, n_fit: int, extra: Optional[np.ndarray] = None) -> float:
+    """RMS of the prediction error ``d`` (shape (n_samples,)) over the held-out part, about its level.
+
+    The level of a prediction error is a nuisance the fit of the repair estimates (an offset; on an
+    integrating output the arbitrary level of the output): like any parameter of the fit, it is
+    taken from the fit part (samples ``0 .. n_fit - 1``, its mean there) and carried over to the
+    held-out part.  With ``extra`` (shape (n_samples, n_extra): the unexplained step or ramp of the
+    row) an offset and those regressors are projected out over the held-out part instead.
+    """
+    d = np.asarray(d, float)
+    hold = d[n_fit:]
+    if hold.size == 0:
+        return float("nan")
+    if extra is not None:
+        return _rms(_project_out(hold, np.column_stack([np.ones(hold.shape[0]), extra[n_fit:]])))
+    return _rms(hold - np.mean(d[:n_fit]))
+
+
 def _fit_percent(y, yhat) -> float:
     den = np.linalg.norm(y - np.mean(y))
     if den == 0:
@@ -90,7 +108,8 @@ class _Record:
     n_fit : int
         Samples ``0 .. n_fit - 1`` are the fit part, the rest is held out.
     holdout_before : dict
-        ``{output name: RMS of d0 over the held-out part}`` (empty without a held-out part).
+        ``{output name: RMS of d0 over the held-out part about its level}`` (empty without a
+        held-out part; see :func:`_holdout_rms`).
     """
 
     model: PlantModel
@@ -114,10 +133,6 @@ class _Record:
     @property
     def n_hold(self) -> int:
         return self.n - self.n_fit
-
-    @property
-    def hold(self) -> slice:
-        return slice(self.n_fit, self.n)
 
     def signals_of(self, model: PlantModel) -> LoopSignals:
         """:func:`compute_signals` of ``model`` on the record."""
@@ -182,8 +197,8 @@ def _set_up(model: PlantModel, data: LoggedData, options: RepairOptions,
     d0 = np.asarray(signals.d, float)
     n_hold = int(round(options.holdout_fraction * n))
     n_fit = n - n_hold
-    hold = slice(n_fit, n)
-    holdout_before = {model.outputs[i]: _rms(d0[hold, i]) for i in range(model.n_outputs)} if n_hold > 0 else {}
+    holdout_before = ({model.outputs[i]: _holdout_rms(d0[:, i], n_fit) for i in range(model.n_outputs)}
+                      if n_hold > 0 else {})
     return _Record(model=model, data=data, u=u, y=y, signals=signals, d0=d0, settings=_TestSettings.of(options),
                    n_fit=n_fit, holdout_before=holdout_before)
 
@@ -226,9 +241,10 @@ def _repair_row(row: _RowData, js, n_fit: int, settings: _TestSettings):
 def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnings: list):
     """Compare the candidate's RMS prediction error on the held-out part with the model's.
 
-    On a row with nuisance regressors (``row.extra``) both errors are taken with an offset and
-    those regressors projected out over the held-out part.  When the candidate is not better by
-    ``min_holdout_improvement``, the applied verdicts are rejected and a warning is added.
+    Both errors are taken about their level (:func:`_holdout_rms`: the level of the fit part, or on a
+    row with nuisance regressors ``row.extra`` those regressors and an offset projected out over the
+    held-out part).  When the candidate is not better by ``min_holdout_improvement``, the applied
+    verdicts are rejected and a warning is added.
 
     Returns
     -------
@@ -236,21 +252,16 @@ def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnin
     h_after, h_before : float
     """
     model, i, options = rec.model, row.i, rec.options
-    hold, n_hold = rec.hold, rec.n_hold
     name = model.outputs[i]
     candidate = model
     for j, el in elements.items():
         if el.apply:
             candidate = candidate.with_element(i, j, **el.after)
     sig_c = rec.signals_of(candidate)
-    h_after = _rms(sig_c.d[hold, i])
-    h_before = rec.holdout_before[name]
-    if row.extra is not None:
-        # The unexplained disturbance is no model's job: compare without it (an offset and the
-        # step or ramp fitted over the held-out part), since a wrong element can partly cancel it.
-        cols = np.column_stack([np.ones(n_hold), row.extra[hold]])
-        h_after = _rms(_project_out(sig_c.d[hold, i], cols))
-        h_before = _rms(_project_out(rec.d0[hold, i], cols))
+    # The unexplained disturbance is no model's job either: compare without it (the step or ramp
+    # fitted over the held-out part), since a wrong element can partly cancel it.
+    h_after = _holdout_rms(sig_c.d[:, i], rec.n_fit, row.extra)
+    h_before = rec.holdout_before[name] if row.extra is None else _holdout_rms(rec.d0[:, i], rec.n_fit, row.extra)
     if h_after < h_before * (1.0 - options.min_holdout_improvement):
         return True, h_after, h_before
     warnings.append(
@@ -388,7 +399,7 @@ def _disturbance_findings(rec: _Record, tests: dict):
 def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) -> RepairResult:
     """The :class:`RepairResult`: the row outcomes (``results``, ``{i: _RowOutcome}`` in row
     order) after ``found``, the errors, the disturbances."""
-    model, y, hold = rec.model, rec.y, rec.hold
+    model, y = rec.model, rec.y
     names_y = model.outputs
     ny = model.n_outputs
     changes, kinds, warnings = found.changes, found.kinds, found.warnings
@@ -409,7 +420,7 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
     fit_after = {names_y[i]: _fit_percent(y[:, i], ev.signals.yhat[:, i]) for i in range(ny)}
     for i in range(ny):
         if rec.n_hold > 0 and names_y[i] not in holdout_after:
-            holdout_after[names_y[i]] = _rms(d1[hold, i])
+            holdout_after[names_y[i]] = _holdout_rms(d1[:, i], rec.n_fit)
     disturbances, disturbance_warnings = _disturbance_findings(rec, ev.tests)
     warnings.extend(disturbance_warnings)
     return RepairResult(model=ev.model, changes=changes, kinds=kinds, error_before=error_before,

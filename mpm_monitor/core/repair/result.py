@@ -100,10 +100,11 @@ class RepairResult:
     fit_before, fit_after : dict
         ``{output name: fit %}``, ``100 (1 - ||y - yhat|| / ||y - mean y||)``.
     holdout_error_before, holdout_error_after : dict
-        ``{output name: RMS of d}`` over the held-out last part, with the model as given / with the
-        candidate fitted on the first part only (empty when ``holdout_fraction`` is 0).  On a row
-        re-estimated with an unexplained step or drift, both are taken with that disturbance
-        projected out.
+        ``{output name: RMS of d about its level}`` over the held-out last part (its mean there
+        removed: the level is no element's to explain, and on an integrating output it is arbitrary),
+        with the model as given / with the candidate fitted on the first part only (empty when
+        ``holdout_fraction`` is 0).  On a row re-estimated with an unexplained step or drift, both
+        are taken with that disturbance projected out too.
     disturbances : list of dict
         Outputs whose residual holds a step or drift no input explains (``output``, ``kind``
         "step"/"drift", ``size`` in output units, ``time`` in seconds, ``p_value``, ``statistic``).
