@@ -256,7 +256,7 @@ def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnin
     candidate = model
     for j, el in elements.items():
         if el.apply:
-            candidate = candidate.with_element(i, j, **el.after)
+            candidate = el.applied_to(candidate, i, j)
     sig_c = rec.signals_of(candidate)
     # The unexplained disturbance is no model's job either: compare without it (the step or ramp
     # fitted over the held-out part), since a wrong element can partly cancel it.
@@ -308,7 +308,7 @@ def _evaluate(rec: _Record, results: dict) -> _Evaluation:
     for i, res in results.items():
         for j, el in res.elements.items():
             if el.apply:
-                repaired = repaired.with_element(i, j, **el.after)
+                repaired = el.applied_to(repaired, i, j)
     sig = rec.signals if repaired == rec.model else rec.signals_of(repaired)
     d = np.asarray(sig.d, float)
     options = rec.options
@@ -333,40 +333,6 @@ def _redo_disturbed_rows(rec: _Record, located: list, rows: list, results: dict,
             f"{rec.model.outputs[i]}: the re-estimation of its elements allowed for the unexplained "
             f"{'step' if t['kind'] == 'step' else 'drift'} in the prediction error.")
     return bool(redo)
-
-
-def not_repairable(model: PlantModel, i: int, j: int) -> Optional[str]:
-    """Why element (i, j) cannot be re-estimated yet, or None: the fit knows first-order elements only.
-
-    Until the repair fits every structure, a located element of a step-response model, or one with
-    an integrator, a second lag or a lead, is kept as it is (kind "unknown") with this reason.
-    """
-    if model.is_step_response:
-        structure = "step-response"
-    elif model.integrating[i, j]:
-        structure = "integrating"
-    elif model.time_constant2[i, j] > 0:
-        structure = "second-order"
-    elif model.lead[i, j] != 0:
-        structure = "lead-lag"
-    else:
-        return None
-    return f"re-estimation of {structure} elements is not available yet"
-
-
-def _set_aside_unrepairable(model: PlantModel, located: list, found: _Findings) -> list:
-    """The located elements the fit can handle; the others get an unchanged entry, the kind
-    "unknown" and a warning saying why (:func:`not_repairable`)."""
-    out = []
-    for (i, j) in located:
-        why = not_repairable(model, i, j)
-        if why is None:
-            out.append((i, j))
-            continue
-        found.kinds[(i, j)] = "unknown"
-        found.changes.append(_unchanged_entry(model, i, j, why))
-        found.warnings.append(f"{model.outputs[i]}/{model.columns[j]}: {why}; the element is kept as it is.")
-    return out
 
 
 def _located_in_row(located: list, i: int) -> list:
@@ -442,8 +408,9 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
         Closed-loop record (``r``, ``u``, ``dv``, ``y``), shapes (n_samples, n_outputs/n_inputs/n_disturbances).
     located : sequence of (int, int)
         (output index, column index) of the elements located as mismatched (the columns are the
-        inputs, then the measured disturbances).  No other element is ever changed; elements of a
-        structure the fit does not handle yet are kept (:func:`not_repairable`).
+        inputs, then the measured disturbances).  No other element is ever changed; a located element
+        keeps its structure (a parametric element its keys, a step-response element the length of
+        its response).
     options : RepairOptions
     signals : LoopSignals, optional
         :func:`~mpm_monitor.core.signals.compute_signals` of ``model`` on ``data`` (computed when absent).
@@ -457,7 +424,6 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
     located = _check_inputs(model, data, located, signals)
     rec = _set_up(model, data, options, signals)
     found = _Findings()
-    located = _set_aside_unrepairable(model, located, found)
     rows = _rows_to_repair(rec, located, found)
     results = {i: _process_row(rec, i, _located_in_row(located, i), None) for i in rows}
     ev = _evaluate(rec, results)
