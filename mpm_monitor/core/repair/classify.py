@@ -332,9 +332,9 @@ def _single_tests(free: _FreeFit, settings: _TestSettings):
     options = settings.options
     summaries, tests = {}, {}
     for m, j in enumerate(free.js):
-        after, interval = _element_summary(free.problem, free.est, m, ts, settings)
-        summaries[j] = (after, interval)
         loc = free.located[j]
+        after, interval = _element_summary(free.problem, free.est, m, ts, settings, loc.reference)
+        summaries[j] = (after, interval)
         before, form = loc.reference, loc.form
         t = {}
         if loc.missing:

@@ -213,6 +213,27 @@ def _fitted_params(form: _Form, gain: float, poles, lead: float, lag: int, ts: f
     return out
 
 
+def _match_lags(params: dict, interval: dict, reference: Optional[dict]) -> None:
+    """Name the two fitted lags of a second-order element after the reference's (in place).
+
+    The element is symmetric in its lags, so the fit may return them in either order: each is given
+    the name of the reference's lag it is nearer to (in ratio), or, against an element the model
+    lacks, the larger is ``time_constant``.  ``interval`` follows.
+    """
+    t1, t2 = params["time_constant"], params["time_constant2"]
+    if t1 <= 0 or t2 <= 0:
+        return
+    r1, r2 = (reference or {}).get("time_constant", 0.0), (reference or {}).get("time_constant2", 0.0)
+    if r1 > 0 and r2 > 0:
+        swap = abs(math.log(t2 / r1)) + abs(math.log(t1 / r2)) < abs(math.log(t1 / r1)) + abs(math.log(t2 / r2))
+    else:
+        swap = t2 > t1
+    if swap:
+        params["time_constant"], params["time_constant2"] = t2, t1
+        if "time_constant2" in interval:
+            interval["time_constant"], interval["time_constant2"] = interval["time_constant2"], interval["time_constant"]
+
+
 def _public_params(params: dict) -> dict:
     """A parametric element with the keys :meth:`PlantModel.element` gives: ``gain``, ``time_constant``,
     ``delay``, and ``lead``, ``time_constant2``, ``integrating`` where set."""

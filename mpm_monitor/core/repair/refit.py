@@ -85,7 +85,7 @@ def _fit_repair(free: _FreeFit, verdicts: dict, n_fit: int, settings: _TestSetti
         return
     problem, est = _estimate_row(row, specs, lags0, n_fit, settings.options)
     for m, j in enumerate(sorted(specs)):
-        fitted, interval = _element_summary(problem, est, m, ts, settings)
+        fitted, interval = _element_summary(problem, est, m, ts, settings, free.located[j].reference)
         v = verdicts[j]
         _update_free_intervals(v.interval, interval, specs[j])
         v.after = _compose(fitted, free.located[j].reference, specs[j])
@@ -110,7 +110,7 @@ def _refit_on_all(row: _RowData, verdicts: dict, settings: _TestSettings) -> Non
         lags0[j] = lag
     problem, est = _estimate_row(row, specs, lags0, row.n_samples, settings.options)
     for m, j in enumerate(sorted(specs)):
-        fitted, interval = _element_summary(problem, est, m, ts, settings)
+        fitted, interval = _element_summary(problem, est, m, ts, settings, verdicts[j].after)
         sp = specs[j]
         v: ElementVerdict = verdicts[j]
         iv = dict(v.interval)

@@ -17,7 +17,7 @@ import numpy as np
 from ..discretize import discretize, simulate_elements
 from ..model import PlantModel
 from .fit import _lag_interval, _RowEstimate, _RowProblem, _search_row
-from .forms import _fitted_params
+from .forms import _fitted_params, _match_lags
 from .options import RepairOptions, _TestSettings
 
 
@@ -135,8 +135,12 @@ def _pole_interval(a: float, se: float, zcrit: float, ts: float) -> list:
     return [-ts / math.log(a_lo), -ts / math.log(a_hi)]
 
 
-def _element_summary(problem: _RowProblem, est: _RowEstimate, m: int, ts: float, settings: _TestSettings):
+def _element_summary(problem: _RowProblem, est: _RowEstimate, m: int, ts: float, settings: _TestSettings,
+                     reference: Optional[dict] = None):
     """Fitted parameters (seconds) and their intervals of element ``m`` of an estimate.
+
+    The two lags of a second-order element are named after those of ``reference``
+    (:func:`~mpm_monitor.core.repair.forms._match_lags`).
 
     Returns
     -------
@@ -171,4 +175,6 @@ def _element_summary(problem: _RowProblem, est: _RowEstimate, m: int, ts: float,
     if form.lead:
         se_l = math.sqrt(var_lead)
         interval["lead"] = [after["lead"] - zcrit * se_l, after["lead"] + zcrit * se_l]
+    if form.n_lags == 2:
+        _match_lags(after, interval, reference)
     return after, interval
