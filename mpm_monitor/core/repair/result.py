@@ -83,6 +83,8 @@ class ElementVerdict:
                  "after": estimate if self.apply else model.element(i, j),
                  "estimate": estimate, "confidence": self.confidence,
                  "interval": self.interval, "applied": bool(self.apply), "evidence": self.evidence}
+        if model.is_step_response and model.ramp[i]:
+            entry["ramp"] = True
         if model.is_step_response and "step_response" not in self.after:
             entry["evidence"] = dict(self.evidence, parametric_after=_public_params(self.after))
         if self.fitted_kind is not None:
@@ -119,8 +121,9 @@ class RepairResult:
         the time constant's of every lag and the lead at once; ``p_unchanged_jointly``;
         ``condition_number`` of the row fit; ``samples``; ``noise_model`` ``[alpha_1 .. alpha_p]``;
         for a step-response element ``parametric_before`` and ``parametric_after``, the parametric
-        forms of its old and new responses), and when not applied ``reason`` (and ``fitted_kind``
-        when the held-out validation rejected it).
+        forms of its old and new responses), ``ramp`` (true) for a step-response element of a
+        ramp output (its ``gain`` is then the last slope per second), and when not applied
+        ``reason`` (and ``fitted_kind`` when the held-out validation rejected it).
     kinds : dict
         ``{(i, j): kind}`` for every located element (indices).
     error_before, error_after : dict
