@@ -19,7 +19,7 @@ from ..discretize import model_columns
 from ..errors import ConfigurationError, InputError
 from ..logged_data import LoggedData, check_loop_data
 from ..model import PlantModel
-from ..signals import LoopSignals, compute_signals
+from ..signals import LoopSignals, compute_signals, error_rms
 from .classify import _classify_row
 from .disturbance import unexplained_disturbance
 from .fit import _TooShort
@@ -58,11 +58,16 @@ def _holdout_rms(d, n_fit: int, extra: Optional[np.ndarray] = None) -> float:
     return _rms(hold - np.mean(d[:n_fit]))
 
 
-def _fit_percent(y, yhat) -> float:
+def _fit_percent(y, yhat, about_level: bool = False) -> float:
+    """``100 (1 - ||y - yhat|| / ||y - mean y||)``; with ``about_level`` (an integrating output, whose
+    level is arbitrary) the error taken about its mean."""
     den = np.linalg.norm(y - np.mean(y))
     if den == 0:
         return float("nan")
-    return float(100.0 * (1.0 - np.linalg.norm(y - yhat) / den))
+    err = y - yhat
+    if about_level:
+        err = err - np.mean(err)
+    return float(100.0 * (1.0 - np.linalg.norm(err) / den))
 
 
 def _check_inputs(model: PlantModel, data: LoggedData, located, signals):
@@ -380,10 +385,10 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
             changes.append(el.change_entry(model, i, j))
     yhat0 = np.asarray(rec.signals.yhat, float)
     d1 = np.asarray(ev.signals.d, float)
-    error_before = {names_y[i]: _rms(rec.d0[:, i]) for i in range(ny)}
-    fit_before = {names_y[i]: _fit_percent(y[:, i], yhat0[:, i]) for i in range(ny)}
-    error_after = {names_y[i]: _rms(d1[:, i]) for i in range(ny)}
-    fit_after = {names_y[i]: _fit_percent(y[:, i], ev.signals.yhat[:, i]) for i in range(ny)}
+    level = model.integrating_outputs
+    error_before, error_after = error_rms(model, rec.d0), error_rms(model, d1)
+    fit_before = {names_y[i]: _fit_percent(y[:, i], yhat0[:, i], level[i]) for i in range(ny)}
+    fit_after = {names_y[i]: _fit_percent(y[:, i], ev.signals.yhat[:, i], level[i]) for i in range(ny)}
     for i in range(ny):
         if rec.n_hold > 0 and names_y[i] not in holdout_after:
             holdout_after[names_y[i]] = _holdout_rms(d1[:, i], rec.n_fit)

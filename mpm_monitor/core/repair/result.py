@@ -127,9 +127,12 @@ class RepairResult:
     kinds : dict
         ``{(i, j): kind}`` for every located element (indices).
     error_before, error_after : dict
-        ``{output name: RMS of d}`` over the whole record with the model as given / as repaired.
+        ``{output name: RMS of d}`` over the whole record with the model as given / as repaired
+        (about its mean on an integrating output, whose level is arbitrary:
+        :func:`~mpm_monitor.core.signals.error_rms`).
     fit_before, fit_after : dict
-        ``{output name: fit %}``, ``100 (1 - ||y - yhat|| / ||y - mean y||)``.
+        ``{output name: fit %}``, ``100 (1 - ||y - yhat|| / ||y - mean y||)`` (``y - yhat`` about its
+        mean on an integrating output).
     holdout_error_before, holdout_error_after : dict
         ``{output name: RMS of d about its level}`` over the held-out last part (its mean there
         removed: the level is no element's to explain, and on an integrating output it is arbitrary),
