@@ -94,28 +94,47 @@ def test_a_step_response_model_of_the_sampled_model_gives_the_same_decisions():
         if ea.p_value_raw and ea.p_value_raw > 1e-200:
             assert np.log(eb.p_value_raw) == pytest.approx(np.log(ea.p_value_raw), rel=1e-3)
     np.testing.assert_allclose([r.rsi for r in b.rows], [r.rsi for r in a.rows], rtol=1e-3)
-    # The repair keeps a step-response model's located elements, and says why.
-    full = analyze(step, log)
-    assert full.repaired_model == step
-    assert {e.kind for e in full.elements if e.mismatch} == {"unknown"}
-    assert "y1/u2: re-estimation of step-response elements is not available yet; the element is kept as it is." \
-        in full.warnings
+    # The repair re-estimates a step-response model's located elements in their structure: the same
+    # kinds as the parametric model's repair, a step-response model of the same length, the located
+    # responses on the plant's, every other element as it was.
+    full, parametric = analyze(step, log), analyze(model, log)
+    kinds = {(e.output, e.input): e.kind for e in full.elements if e.mismatch}
+    assert kinds == {(e.output, e.input): e.kind for e in parametric.elements if e.mismatch} == {
+        ("y1", "u2"): "mixed", ("y1", "u3"): "gain", ("y2", "u1"): "time_constant"}
+    repaired = full.repaired_model
+    assert repaired.is_step_response and repaired.step_length == n
+    for i, o in enumerate(model.outputs):
+        for j, u in enumerate(model.inputs):
+            if (o, u) in kinds:
+                new = repaired.discrete_element(i, j).step_response(300)
+                true = case.plant.discrete_element(i, j).step_response(300)
+                assert np.max(np.abs(new - true)) < 0.03 * np.max(np.abs(true)), (o, u)
+            else:
+                np.testing.assert_array_equal(repaired.step_response[i, j], step.step_response[i, j])
+    assert not any("not available" in w for w in full.warnings)
 
 
-def test_the_repair_keeps_structures_it_cannot_fit_yet_and_says_why():
+def test_the_repair_fits_each_structure_in_its_own_keys():
+    # A wrong gain on a second lag, on an inverse response (lead-lag) and on an integrator with a lag:
+    # each is located, called a gain error, and repaired in its structure (the second lag, the lead
+    # and the integrator kept); nothing else changes.
     model = rich_model()
     plant = (model.with_element(0, 0, gain=3.0)          # second lag
              .with_element(0, 1, gain=1.6)               # inverse response (lead-lag)
              .with_element(1, 0, gain=0.08))             # integrator with a lag
     report = analyze(model, open_loop(plant, model, 3000, seed=12))
     assert set(report.located_elements) == {("y1", "u1"), ("y1", "u2"), ("y2", "u1")}
-    assert all(e.kind == "unknown" for e in report.elements if e.mismatch)
-    assert report.repaired_model == model
-    for name, structure in (("y1/u1", "second-order"), ("y1/u2", "lead-lag"), ("y2/u1", "integrating")):
-        assert (f"{name}: re-estimation of {structure} elements is not available yet; the element is kept as it "
-                f"is.") in report.warnings
-    reasons = {(c["output"], c["input"]): c["reason"] for c in report.repair["changes"]}
-    assert reasons[("y2", "u1")] == "re-estimation of integrating elements is not available yet"
+    assert all(e.kind == "gain" for e in report.elements if e.mismatch)
+    repaired = report.repaired_model
+    for i, j in ((0, 0), (0, 1), (1, 0)):
+        assert repaired.gain[i, j] == pytest.approx(plant.gain[i, j], rel=0.03)
+        assert repaired.element(i, j) == dict(model.element(i, j), gain=repaired.gain[i, j])
+    assert repaired.with_element(0, 0, gain=2.0).with_element(0, 1, gain=1.0).with_element(1, 0, gain=0.05) == model
+    changes = {(c["output"], c["input"]): c for c in report.repair["changes"]}
+    assert changes[("y1", "u1")]["after"]["time_constant2"] == 4.0
+    assert changes[("y1", "u2")]["after"]["lead"] == -3.0
+    assert changes[("y2", "u1")]["after"]["integrating"] is True
+    assert not any("not available" in w for w in report.warnings)
 
 
 def test_a_disturbance_that_moves_with_an_input_is_ambiguous():

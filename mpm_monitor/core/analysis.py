@@ -39,7 +39,7 @@ from .model import PlantModel
 from .options import check_options, option, option_specs
 from .regressions import regression_layout, window_regressions
 from .row_test import sdelta_row_test
-from .signals import INITIAL_STATE_CHOICES, LoopSignals, compute_signals
+from .signals import INITIAL_STATE_CHOICES, LoopSignals, compute_signals, error_rms
 from .wording import repair_summary_lines
 
 METHODS = ("arx", "xcorr", "pcorr")
@@ -376,7 +376,7 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     for e in elements:
         if e.mismatch:
             e.kind = "unknown"
-    rms = {name: float(np.sqrt(np.mean(sig.d[:, k] ** 2))) for k, name in enumerate(model.outputs)}
+    rms = error_rms(model, sig.d)
     unrepaired = {"model": model.to_dict(), "changes": [], "error_before": rms, "error_after": dict(rms)}
     return AnalysisReport(
         sample_time=model.sample_time, samples=n, method=options.method, alpha=options.alpha, rows=rows,

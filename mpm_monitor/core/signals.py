@@ -189,3 +189,27 @@ def compute_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
         yhat = yhat + transient
     d = y - yhat
     return LoopSignals(yhat=yhat, d=d, eps=r - d, transient=transient)
+
+
+def error_rms(model: PlantModel, d: np.ndarray) -> dict:
+    """``{output name: RMS of its prediction error}``, about its mean on an integrating output.
+
+    An integrating output has no fixed level (see the module docstring): its prediction error holds
+    the output's arbitrary level, which no model explains, so its RMS is taken about the mean.  A
+    self-regulating output keeps its offset (a wrong gain times the inputs' mean shows there).
+
+    Parameters
+    ----------
+    model : PlantModel
+    d : ndarray, shape (n_samples, n_outputs)
+
+    Returns
+    -------
+    dict
+    """
+    d = np.asarray(d, dtype=float)
+    out = {}
+    for i, (name, integrating) in enumerate(zip(model.outputs, model.integrating_outputs)):
+        x = d[:, i] - np.mean(d[:, i]) if integrating and d.shape[0] else d[:, i]
+        out[name] = float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
+    return out

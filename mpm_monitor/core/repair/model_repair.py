@@ -19,7 +19,7 @@ from ..discretize import model_columns
 from ..errors import ConfigurationError, InputError
 from ..logged_data import LoggedData, check_loop_data
 from ..model import PlantModel
-from ..signals import LoopSignals, compute_signals
+from ..signals import LoopSignals, compute_signals, error_rms
 from .classify import _classify_row
 from .disturbance import unexplained_disturbance
 from .fit import _TooShort
@@ -40,11 +40,34 @@ def _rms(x) -> float:
     return float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
 
 
-def _fit_percent(y, yhat) -> float:
+def _holdout_rms(d, n_fit: int, extra: Optional[np.ndarray] = None) -> float:
+    """RMS of the prediction error ``d`` (shape (n_samples,)) over the held-out part, about its level.
+
+    The level of a prediction error is a nuisance the fit of the repair estimates (an offset; on an
+    integrating output the arbitrary level of the output): like any parameter of the fit, it is
+    taken from the fit part (samples ``0 .. n_fit - 1``, its mean there) and carried over to the
+    held-out part.  With ``extra`` (shape (n_samples, n_extra): the unexplained step or ramp of the
+    row) an offset and those regressors are projected out over the held-out part instead.
+    """
+    d = np.asarray(d, float)
+    hold = d[n_fit:]
+    if hold.size == 0:
+        return float("nan")
+    if extra is not None:
+        return _rms(_project_out(hold, np.column_stack([np.ones(hold.shape[0]), extra[n_fit:]])))
+    return _rms(hold - np.mean(d[:n_fit]))
+
+
+def _fit_percent(y, yhat, about_level: bool = False) -> float:
+    """``100 (1 - ||y - yhat|| / ||y - mean y||)``; with ``about_level`` (an integrating output, whose
+    level is arbitrary) the error taken about its mean."""
     den = np.linalg.norm(y - np.mean(y))
     if den == 0:
         return float("nan")
-    return float(100.0 * (1.0 - np.linalg.norm(y - yhat) / den))
+    err = y - yhat
+    if about_level:
+        err = err - np.mean(err)
+    return float(100.0 * (1.0 - np.linalg.norm(err) / den))
 
 
 def _check_inputs(model: PlantModel, data: LoggedData, located, signals):
@@ -90,7 +113,8 @@ class _Record:
     n_fit : int
         Samples ``0 .. n_fit - 1`` are the fit part, the rest is held out.
     holdout_before : dict
-        ``{output name: RMS of d0 over the held-out part}`` (empty without a held-out part).
+        ``{output name: RMS of d0 over the held-out part about its level}`` (empty without a
+        held-out part; see :func:`_holdout_rms`).
     """
 
     model: PlantModel
@@ -114,10 +138,6 @@ class _Record:
     @property
     def n_hold(self) -> int:
         return self.n - self.n_fit
-
-    @property
-    def hold(self) -> slice:
-        return slice(self.n_fit, self.n)
 
     def signals_of(self, model: PlantModel) -> LoopSignals:
         """:func:`compute_signals` of ``model`` on the record."""
@@ -182,8 +202,8 @@ def _set_up(model: PlantModel, data: LoggedData, options: RepairOptions,
     d0 = np.asarray(signals.d, float)
     n_hold = int(round(options.holdout_fraction * n))
     n_fit = n - n_hold
-    hold = slice(n_fit, n)
-    holdout_before = {model.outputs[i]: _rms(d0[hold, i]) for i in range(model.n_outputs)} if n_hold > 0 else {}
+    holdout_before = ({model.outputs[i]: _holdout_rms(d0[:, i], n_fit) for i in range(model.n_outputs)}
+                      if n_hold > 0 else {})
     return _Record(model=model, data=data, u=u, y=y, signals=signals, d0=d0, settings=_TestSettings.of(options),
                    n_fit=n_fit, holdout_before=holdout_before)
 
@@ -226,9 +246,10 @@ def _repair_row(row: _RowData, js, n_fit: int, settings: _TestSettings):
 def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnings: list):
     """Compare the candidate's RMS prediction error on the held-out part with the model's.
 
-    On a row with nuisance regressors (``row.extra``) both errors are taken with an offset and
-    those regressors projected out over the held-out part.  When the candidate is not better by
-    ``min_holdout_improvement``, the applied verdicts are rejected and a warning is added.
+    Both errors are taken about their level (:func:`_holdout_rms`: the level of the fit part, or on a
+    row with nuisance regressors ``row.extra`` those regressors and an offset projected out over the
+    held-out part).  When the candidate is not better by ``min_holdout_improvement``, the applied
+    verdicts are rejected and a warning is added.
 
     Returns
     -------
@@ -236,21 +257,16 @@ def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnin
     h_after, h_before : float
     """
     model, i, options = rec.model, row.i, rec.options
-    hold, n_hold = rec.hold, rec.n_hold
     name = model.outputs[i]
     candidate = model
     for j, el in elements.items():
         if el.apply:
-            candidate = candidate.with_element(i, j, **el.after)
+            candidate = el.applied_to(candidate, i, j)
     sig_c = rec.signals_of(candidate)
-    h_after = _rms(sig_c.d[hold, i])
-    h_before = rec.holdout_before[name]
-    if row.extra is not None:
-        # The unexplained disturbance is no model's job: compare without it (an offset and the
-        # step or ramp fitted over the held-out part), since a wrong element can partly cancel it.
-        cols = np.column_stack([np.ones(n_hold), row.extra[hold]])
-        h_after = _rms(_project_out(sig_c.d[hold, i], cols))
-        h_before = _rms(_project_out(rec.d0[hold, i], cols))
+    # The unexplained disturbance is no model's job either: compare without it (the step or ramp
+    # fitted over the held-out part), since a wrong element can partly cancel it.
+    h_after = _holdout_rms(sig_c.d[:, i], rec.n_fit, row.extra)
+    h_before = rec.holdout_before[name] if row.extra is None else _holdout_rms(rec.d0[:, i], rec.n_fit, row.extra)
     if h_after < h_before * (1.0 - options.min_holdout_improvement):
         return True, h_after, h_before
     warnings.append(
@@ -297,7 +313,7 @@ def _evaluate(rec: _Record, results: dict) -> _Evaluation:
     for i, res in results.items():
         for j, el in res.elements.items():
             if el.apply:
-                repaired = repaired.with_element(i, j, **el.after)
+                repaired = el.applied_to(repaired, i, j)
     sig = rec.signals if repaired == rec.model else rec.signals_of(repaired)
     d = np.asarray(sig.d, float)
     options = rec.options
@@ -322,40 +338,6 @@ def _redo_disturbed_rows(rec: _Record, located: list, rows: list, results: dict,
             f"{rec.model.outputs[i]}: the re-estimation of its elements allowed for the unexplained "
             f"{'step' if t['kind'] == 'step' else 'drift'} in the prediction error.")
     return bool(redo)
-
-
-def not_repairable(model: PlantModel, i: int, j: int) -> Optional[str]:
-    """Why element (i, j) cannot be re-estimated yet, or None: the fit knows first-order elements only.
-
-    Until the repair fits every structure, a located element of a step-response model, or one with
-    an integrator, a second lag or a lead, is kept as it is (kind "unknown") with this reason.
-    """
-    if model.is_step_response:
-        structure = "step-response"
-    elif model.integrating[i, j]:
-        structure = "integrating"
-    elif model.time_constant2[i, j] > 0:
-        structure = "second-order"
-    elif model.lead[i, j] != 0:
-        structure = "lead-lag"
-    else:
-        return None
-    return f"re-estimation of {structure} elements is not available yet"
-
-
-def _set_aside_unrepairable(model: PlantModel, located: list, found: _Findings) -> list:
-    """The located elements the fit can handle; the others get an unchanged entry, the kind
-    "unknown" and a warning saying why (:func:`not_repairable`)."""
-    out = []
-    for (i, j) in located:
-        why = not_repairable(model, i, j)
-        if why is None:
-            out.append((i, j))
-            continue
-        found.kinds[(i, j)] = "unknown"
-        found.changes.append(_unchanged_entry(model, i, j, why))
-        found.warnings.append(f"{model.outputs[i]}/{model.columns[j]}: {why}; the element is kept as it is.")
-    return out
 
 
 def _located_in_row(located: list, i: int) -> list:
@@ -388,7 +370,7 @@ def _disturbance_findings(rec: _Record, tests: dict):
 def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) -> RepairResult:
     """The :class:`RepairResult`: the row outcomes (``results``, ``{i: _RowOutcome}`` in row
     order) after ``found``, the errors, the disturbances."""
-    model, y, hold = rec.model, rec.y, rec.hold
+    model, y = rec.model, rec.y
     names_y = model.outputs
     ny = model.n_outputs
     changes, kinds, warnings = found.changes, found.kinds, found.warnings
@@ -403,13 +385,13 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
             changes.append(el.change_entry(model, i, j))
     yhat0 = np.asarray(rec.signals.yhat, float)
     d1 = np.asarray(ev.signals.d, float)
-    error_before = {names_y[i]: _rms(rec.d0[:, i]) for i in range(ny)}
-    fit_before = {names_y[i]: _fit_percent(y[:, i], yhat0[:, i]) for i in range(ny)}
-    error_after = {names_y[i]: _rms(d1[:, i]) for i in range(ny)}
-    fit_after = {names_y[i]: _fit_percent(y[:, i], ev.signals.yhat[:, i]) for i in range(ny)}
+    level = model.integrating_outputs
+    error_before, error_after = error_rms(model, rec.d0), error_rms(model, d1)
+    fit_before = {names_y[i]: _fit_percent(y[:, i], yhat0[:, i], level[i]) for i in range(ny)}
+    fit_after = {names_y[i]: _fit_percent(y[:, i], ev.signals.yhat[:, i], level[i]) for i in range(ny)}
     for i in range(ny):
         if rec.n_hold > 0 and names_y[i] not in holdout_after:
-            holdout_after[names_y[i]] = _rms(d1[hold, i])
+            holdout_after[names_y[i]] = _holdout_rms(d1[:, i], rec.n_fit)
     disturbances, disturbance_warnings = _disturbance_findings(rec, ev.tests)
     warnings.extend(disturbance_warnings)
     return RepairResult(model=ev.model, changes=changes, kinds=kinds, error_before=error_before,
@@ -431,8 +413,9 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
         Closed-loop record (``r``, ``u``, ``dv``, ``y``), shapes (n_samples, n_outputs/n_inputs/n_disturbances).
     located : sequence of (int, int)
         (output index, column index) of the elements located as mismatched (the columns are the
-        inputs, then the measured disturbances).  No other element is ever changed; elements of a
-        structure the fit does not handle yet are kept (:func:`not_repairable`).
+        inputs, then the measured disturbances).  No other element is ever changed; a located element
+        keeps its structure (a parametric element its keys, a step-response element the length of
+        its response).
     options : RepairOptions
     signals : LoopSignals, optional
         :func:`~mpm_monitor.core.signals.compute_signals` of ``model`` on ``data`` (computed when absent).
@@ -446,7 +429,6 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
     located = _check_inputs(model, data, located, signals)
     rec = _set_up(model, data, options, signals)
     found = _Findings()
-    located = _set_aside_unrepairable(model, located, found)
     rows = _rows_to_repair(rec, located, found)
     results = {i: _process_row(rec, i, _located_in_row(located, i), None) for i in rows}
     ev = _evaluate(rec, results)
