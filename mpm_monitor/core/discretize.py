@@ -227,7 +227,7 @@ def element_response(disc: DiscreteFopdt, u: np.ndarray, state: Optional[np.ndar
     ndarray, shape (n_samples, len(rows))
         ``y_i(k)`` for ``k = 0 .. n_samples - 1``.
     """
-    from scipy import signal
+    from .filters import lfilter
 
     u = np.asarray(u, dtype=float)
     n, nu = u.shape
@@ -249,9 +249,9 @@ def element_response(disc: DiscreteFopdt, u: np.ndarray, state: Optional[np.ndar
             num, den = [0.0, disc.numerator[i, j]], [1.0, -disc.pole[i, j]]
             if rest:               # s_ij(k) is zero up to k = m
                 if m + 1 < n:
-                    y_t[r, m:] += signal.lfilter(num, den, ext_t[j, :n - m])
+                    y_t[r, m:] += lfilter(num, den, ext_t[j, :n - m])
                 continue
-            s, zf = signal.lfilter(num, den, ext_t[j, h - m:h - m + n], zi=[0.0 if state is None else state[i, j]])
+            s, zf = lfilter(num, den, ext_t[j, h - m:h - m + n], zi=[0.0 if state is None else state[i, j]])
             y_t[r] += s
             if state is not None:
                 state[i, j] = zf[0]

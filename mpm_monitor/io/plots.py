@@ -213,7 +213,7 @@ def arx_step(a, b, delay: int, n: int) -> np.ndarray:
     -------
     ndarray, shape (n,)
     """
-    from scipy.signal import lfilter
+    from ..core.filters import lfilter
 
     num = np.concatenate([np.zeros(int(delay)), np.asarray(b, dtype=float)])
     den = np.concatenate([[1.0], np.asarray(a, dtype=float)])

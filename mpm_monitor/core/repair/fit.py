@@ -14,9 +14,9 @@ import dataclasses
 import math
 
 import numpy as np
-from scipy import optimize, signal
 
 from ..arx import least_squares_ar
+from ..filters import lfilter
 
 #: Bounds of a lag element's discrete pole ``a = exp(-T / tau)`` during the fit.
 _POLE_MIN, _POLE_MAX = 1e-4, 0.9995
@@ -140,8 +140,8 @@ class _RowProblem:
         self.ar = np.asarray(ar, float).copy()
         if self.p:
             num = np.concatenate([[1.0], self.ar])
-            self.zf = signal.lfilter(num, [1.0], self.z)
-            self.uf = signal.lfilter(num, [1.0], self.u, axis=0)
+            self.zf = lfilter(num, [1.0], self.z)
+            self.uf = lfilter(num, [1.0], self.u, axis=0)
         else:
             self.zf, self.uf = self.z, self.u
         self.xf = None if self.extra is None else self._filtered_extra(self.ar)
@@ -149,7 +149,7 @@ class _RowProblem:
     def _filtered_extra(self, ar):
         if self.p == 0:
             return self.extra[self.start:]
-        return signal.lfilter(np.concatenate([[1.0], ar]), [1.0], self.extra, axis=0)[self.start:]
+        return lfilter(np.concatenate([[1.0], ar]), [1.0], self.extra, axis=0)[self.start:]
 
     def poles_from(self, x):
         poles = np.array([s.pole for s in self.specs], float)
@@ -158,7 +158,7 @@ class _RowProblem:
 
     def _unit(self, src, m, pole, lag):
         """Window of the unit-gain response of element ``m`` to ``src[:, m]``."""
-        base = signal.lfilter([1.0 - pole], [1.0, -pole], src[:self.n_fit - lag, m])
+        base = lfilter([1.0 - pole], [1.0, -pole], src[:self.n_fit - lag, m])
         return base[self.start - lag:]
 
     def _design(self, poles, lags, src, filtered=True):
@@ -211,6 +211,7 @@ class _RowProblem:
         if not self.pole_free_idx:
             return self.evaluate(poles0, lags)
         x0 = poles0[self.pole_free_idx]
+        from scipy import optimize      # here: its import costs about 0.15 s, and most analyses repair nothing
 
         def fun(x):
             return self.projected(self.poles_from(x), lags)[0]
@@ -239,8 +240,8 @@ class _RowProblem:
         ar = theta[ng + npf:ng + npf + self.p]
         nuis = theta[ng + npf + self.p:]
         num = np.concatenate([[1.0], ar])
-        zf = signal.lfilter(num, [1.0], self.z)[self.start:]
-        uf = signal.lfilter(num, [1.0], self.u, axis=0)
+        zf = lfilter(num, [1.0], self.z)[self.start:]
+        uf = lfilter(num, [1.0], self.u, axis=0)
         out = zf.copy()
         for m in range(self.n_located):
             out -= gains[m] * self._unit(uf, m, poles[m], lags[m])
