@@ -35,6 +35,16 @@ def chi2_tail(statistic, df):
     return special.chdtrc(df, statistic)
 
 
+def normal_isf(q):
+    """Upper quantile ``z`` of the standard normal, ``P(N(0, 1) > z) = q`` (``-scipy.special.ndtri(q)``)."""
+    return -special.ndtri(q)
+
+
+def chi2_isf(q, df):
+    """Upper quantile ``x`` of the chi-square, ``P(chi2(df) > x) = q`` (``scipy.special.chdtri``)."""
+    return special.chdtri(df, q)
+
+
 def f_test(rss_restricted: float, rss_full: float, df_num: int, df_den: int):
     """F statistic and p-value of a nested least-squares restriction.
 
