@@ -99,15 +99,26 @@ class _RowProblem:
     extra : ndarray, shape (n_samples, n_extra), optional
         Nuisance regressors for an unmeasured disturbance (a step, a ramp), filtered by ``A(q)``
         like the output, so that the disturbance is never absorbed by an element.
+    shared : dict, optional
+        Arrays that depend only on the window and the poles (the free responses ``a^k``), kept
+        across the problems of one row (:class:`~mpm_monitor.core.repair.row._RowData`).
 
     Notes
     -----
     Filtering commutes, so ``A(q) G(q) u = G(q) (A(q) u)``: the inputs are prefiltered once per
     noise model.  For ``k >= p``, ``A(q) a^k = A(1/a) a^k``: a free response stays a free response
     with another (free) coefficient, and the cost window starts at ``skip + p``.
+
+    The search evaluates the cost many times with most of its parts unchanged: the free responses
+    ``a^k`` of a pole and the unit responses of an element (for a pole, a lag and a noise model)
+    are computed once and reused (the same numbers: nothing is approximated).
     """
 
-    def __init__(self, z, u, specs, n_fit, skip, fixed_poles, free_response, noise_order, extra=None):
+    #: Unit responses kept (the most recent), each ``n_fit - start`` floats.
+    UNIT_CACHE_SIZE = 64
+
+    def __init__(self, z, u, specs, n_fit, skip, fixed_poles, free_response, noise_order, extra=None,
+                 shared=None):
         self.z = np.asarray(z, float)[:n_fit]
         self.extra = None if extra is None else np.asarray(extra, float).reshape(len(z), -1)[:n_fit]
         self.u = np.asarray(u, float)[:n_fit]
@@ -121,11 +132,13 @@ class _RowProblem:
             raise _TooShort(f"{self.n_fit} samples are too few for input lags up to {skip} samples "
                             f"(at least {needed} beyond them needed)")
         self.kw = np.arange(self.start, self.n_fit, dtype=float)
+        self._powers = {} if shared is None else shared.setdefault(("powers", self.start, self.n_fit), {})
+        self._units = {}
         cols = [np.ones_like(self.kw)]
         if self.free:
             for a in sorted(set(np.round(np.asarray(fixed_poles, float), 12))):
                 if 0 < a < 1 and a ** self.start > 1e-12:
-                    cols.append(a ** self.kw)
+                    cols.append(self._power(a))
         self.fixed_cols = np.column_stack(cols)
         self.pole_free_idx = [m for m, s in enumerate(self.specs) if s.pole_free]
         self.gain_free_idx = [m for m, s in enumerate(self.specs) if s.gain_free]
@@ -135,16 +148,26 @@ class _RowProblem:
     def n_located(self) -> int:
         return len(self.specs)
 
+    def _power(self, a: float) -> np.ndarray:
+        """``a^k`` over the cost window (a free response), computed once per pole."""
+        col = self._powers.get(a)
+        if col is None:
+            col = self._powers[a] = a ** self.kw
+        return col
+
+    def _filtered(self, ar):
+        """``A(q) z``, ``A(q) u`` for the noise model ``ar``."""
+        if not self.p:
+            return self.z, self.u
+        num = np.concatenate([[1.0], ar])
+        return lfilter(num, [1.0], self.z), lfilter(num, [1.0], self.u, axis=0)
+
     def set_ar(self, ar) -> None:
         """Use the noise model ``A(q) = 1 + ar_1 q^-1 + ... + ar_p q^-p``."""
         self.ar = np.asarray(ar, float).copy()
-        if self.p:
-            num = np.concatenate([[1.0], self.ar])
-            self.zf = lfilter(num, [1.0], self.z)
-            self.uf = lfilter(num, [1.0], self.u, axis=0)
-        else:
-            self.zf, self.uf = self.z, self.u
+        self.zf, self.uf = self._filtered(self.ar)
         self.xf = None if self.extra is None else self._filtered_extra(self.ar)
+        self._units.clear()
 
     def _filtered_extra(self, ar):
         if self.p == 0:
@@ -161,18 +184,32 @@ class _RowProblem:
         base = lfilter([1.0 - pole], [1.0, -pole], src[:self.n_fit - lag, m])
         return base[self.start - lag:]
 
-    def _design(self, poles, lags, src, filtered=True):
+    def _cached_unit(self, filtered: bool, m, pole, lag):
+        """:meth:`_unit` of the prefiltered (``uf``) or raw (``u``) inputs, kept for reuse."""
+        key = (filtered, m, float(pole), int(lag))
+        col = self._units.get(key)
+        if col is None:
+            col = self._unit(self.uf if filtered else self.u, m, pole, lag)
+            if len(self._units) >= self.UNIT_CACHE_SIZE:
+                del self._units[next(iter(self._units))]
+            self._units[key] = col
+        return col
+
+    def _free_responses(self, poles):
+        return np.column_stack([self._power(poles[m]) for m in range(self.n_located)])
+
+    def _design(self, poles, lags, filtered=True):
         known = np.zeros(self.kw.shape[0])
         gcols = []
         for m, spec in enumerate(self.specs):
-            col = self._unit(src, m, poles[m], lags[m])
+            col = self._cached_unit(filtered, m, poles[m], lags[m])
             if spec.gain_free:
                 gcols.append(col)
             else:
                 known += spec.gain * col
         cols = gcols + [self.fixed_cols]
         if self.free:
-            cols.append(np.column_stack([poles[m] ** self.kw for m in range(self.n_located)]))
+            cols.append(self._free_responses(poles))
         if self.extra is not None:
             cols.append(self.xf if filtered else self.extra[self.start:])
         return known, np.column_stack(cols)
@@ -188,7 +225,7 @@ class _RowProblem:
 
     def projected(self, poles, lags):
         """Prefiltered residual with the linear parameters eliminated, and those parameters."""
-        known, phi = self._design(poles, lags, self.uf)
+        known, phi = self._design(poles, lags)
         target = self.zf[self.start:] - known
         beta = self._solve(phi, target)
         return target - phi @ beta, beta
@@ -224,33 +261,47 @@ class _RowProblem:
         """Re-estimate ``A(q)`` by least squares on the unfiltered output error of ``fit``."""
         if self.p == 0:
             return
-        known, phi = self._design(fit.poles, fit.lags, self.u, filtered=False)
+        known, phi = self._design(fit.poles, fit.lags, filtered=False)
         ng = len(self.gain_free_idx)
         r = self.z[self.start:] - known - phi[:, :ng] @ fit.gains[self.gain_free_idx]
         nuis = phi[:, ng:]
         r = r - nuis @ self._solve(nuis, r)
         self.set_ar(-least_squares_ar(r, self.p))
 
-    def full_residual(self, theta, lags):
-        """Prefiltered residual as a function of ``[free gains, free poles, ar, nuisance]``."""
+    def full_residual(self, theta, lags, memo=None):
+        """Prefiltered residual as a function of ``[free gains, free poles, ar, nuisance]``.
+
+        ``memo`` (a dict) keeps the parts that depend on the noise model and the poles only, for a
+        sequence of calls that change one parameter at a time (the finite differences of
+        :meth:`covariance`).
+        """
+        memo = {} if memo is None else memo
         ng, npf = len(self.gain_free_idx), len(self.pole_free_idx)
         gains = np.array([s.gain for s in self.specs], float)
         gains[self.gain_free_idx] = theta[:ng]
         poles = self.poles_from(theta[ng:ng + npf])
         ar = theta[ng + npf:ng + npf + self.p]
         nuis = theta[ng + npf + self.p:]
-        num = np.concatenate([[1.0], ar])
-        zf = lfilter(num, [1.0], self.z)[self.start:]
-        uf = lfilter(num, [1.0], self.u, axis=0)
+        ar_key = ar.tobytes()
+        if ("filtered", ar_key) not in memo:
+            zf, uf = self._filtered(ar)
+            memo[("filtered", ar_key)] = zf[self.start:], uf
+        zf, uf = memo[("filtered", ar_key)]
         out = zf.copy()
         for m in range(self.n_located):
-            out -= gains[m] * self._unit(uf, m, poles[m], lags[m])
-        cols = [self.fixed_cols]
-        if self.free:
-            cols.append(np.column_stack([poles[m] ** self.kw for m in range(self.n_located)]))
-        if self.extra is not None:
-            cols.append(self._filtered_extra(ar))
-        return out - np.column_stack(cols) @ nuis
+            key = ("unit", ar_key, m, float(poles[m]), int(lags[m]))
+            if key not in memo:
+                memo[key] = self._unit(uf, m, poles[m], lags[m])
+            out -= gains[m] * memo[key]
+        key = ("nuisance", ar_key, poles.tobytes())
+        if key not in memo:
+            cols = [self.fixed_cols]
+            if self.free:
+                cols.append(self._free_responses(poles))
+            if self.extra is not None:
+                cols.append(self._filtered_extra(ar))
+            memo[key] = np.column_stack(cols)
+        return out - memo[key] @ nuis
 
     def covariance(self, fit: _Fit):
         """Covariance of the free gains and poles from the Jacobian of the full residual.
@@ -265,7 +316,8 @@ class _RowProblem:
         ng, npf = len(self.gain_free_idx), len(self.pole_free_idx)
         theta = np.concatenate([fit.gains[self.gain_free_idx], fit.poles[self.pole_free_idx], self.ar,
                                 fit.nuisance])
-        r0 = self.full_residual(theta, fit.lags)
+        memo = {}
+        r0 = self.full_residual(theta, fit.lags, memo)
         jac = np.empty((r0.shape[0], theta.shape[0]))
         for m in range(theta.shape[0]):
             h = 1e-6 * max(1e-2, abs(theta[m]))
@@ -274,7 +326,7 @@ class _RowProblem:
             tp, tm = theta.copy(), theta.copy()
             tp[m] += h
             tm[m] -= h
-            jac[:, m] = (self.full_residual(tp, fit.lags) - self.full_residual(tm, fit.lags)) / (2 * h)
+            jac[:, m] = (self.full_residual(tp, fit.lags, memo) - self.full_residual(tm, fit.lags, memo)) / (2 * h)
         dof = max(r0.shape[0] - theta.shape[0], 1)
         s2 = float(r0 @ r0) / dof
         scale = np.sqrt(np.sum(jac ** 2, axis=0))

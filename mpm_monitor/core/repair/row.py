@@ -36,6 +36,9 @@ class _RowData:
         Output index of the row.
     extra : ndarray, shape (n_samples, n_extra), optional
         Nuisance regressors for an unexplained step or drift on the row (see :class:`_RowProblem`).
+    shared : dict
+        What every fit of the row computes alike, computed once: the row with its located elements
+        removed (:func:`_held_row`) and the free responses of the poles (see :class:`_RowProblem`).
     """
 
     model: PlantModel
@@ -43,6 +46,7 @@ class _RowData:
     y: np.ndarray
     i: int
     extra: Optional[np.ndarray] = None
+    shared: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
 
     @property
     def n_samples(self) -> int:
@@ -59,6 +63,27 @@ def _row_response(model: PlantModel, u: np.ndarray, i: int) -> np.ndarray:
     return simulate_elements(model, u, rows=[i])[:, 0]
 
 
+def _held_row(row: _RowData, js: tuple):
+    """The row without its located elements ``js``: ``z`` (the output minus the response of the
+    other elements, from rest), the poles of the other lag elements and their input lags.
+
+    The same for every fit of the row with these elements located, so computed once per row.
+    """
+    key = ("held", js)
+    if key not in row.shared:
+        model, u, i = row.model, row.u, row.i
+        held = model
+        for j in js:
+            held = held.with_element(i, j, gain=0.0)
+        z = row.y[:, i] - _row_response(held, u, i)
+        disc = discretize(held)
+        fixed_poles = [disc.pole[i, j] for j in range(model.n_inputs) if disc.active[i, j]]
+        row_lags = [_element_lag(model.time_constant[i, j], model.delay_samples[i, j])
+                    for j in range(model.n_inputs) if held.gain[i, j] != 0]
+        row.shared[key] = (z, fixed_poles, row_lags)
+    return row.shared[key]
+
+
 def _estimate_row(row: _RowData, specs: dict, lags0: dict, n_use: int, options: RepairOptions, max_sweeps: int = 1,
                   skip: Optional[int] = None, ar0=None, need_cov: bool = True):
     """Fit the located elements ``specs`` (``{input index: _ElementSpec}``) of a row.
@@ -73,20 +98,13 @@ def _estimate_row(row: _RowData, specs: dict, lags0: dict, n_use: int, options: 
     problem : _RowProblem
     est : _RowEstimate
     """
-    model, u, i = row.model, row.u, row.i
+    u = row.u
     js = sorted(specs)
-    held = model
-    for j in js:
-        held = held.with_element(i, j, gain=0.0)
-    z = row.y[:, i] - _row_response(held, u, i)
-    disc = discretize(held)
-    fixed_poles = [disc.pole[i, j] for j in range(model.n_inputs) if disc.active[i, j]]
-    row_lags = [_element_lag(model.time_constant[i, j], model.delay_samples[i, j])
-                for j in range(model.n_inputs) if held.gain[i, j] != 0]
+    z, fixed_poles, row_lags = _held_row(row, tuple(js))
     if skip is None:
         skip = max([specs[j].window[1] for j in js] + row_lags + [1])
     problem = _RowProblem(z, u[:, js], [specs[j] for j in js], n_use, skip, fixed_poles,
-                          options.initial_state == "estimate", options.noise_order, row.extra)
+                          options.initial_state == "estimate", options.noise_order, row.extra, shared=row.shared)
     if ar0 is not None:
         problem.set_ar(ar0)
     est = _search_row(problem, [lags0[j] for j in js], max_sweeps, ar_iterations=3 if ar0 is None else 1,
