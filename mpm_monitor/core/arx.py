@@ -212,7 +212,9 @@ def fit_arx(y: np.ndarray, u: np.ndarray, na: int, nb: int, nk: Sequence[int] | 
     target = y[start:]
     R, qty, scale, rank, cond = _scaled_r(X, target)
     p = X.shape[1]
-    import scipy.linalg as sla          # here, as in the functions below: not needed to import the package
+    # scipy.linalg here, as in the functions below: importing the package does not need it.
+    import scipy.linalg as sla
+
     if rank < p:
         theta_s, *_ = np.linalg.lstsq(R, qty, rcond=None)
         rinv = np.linalg.pinv(R)

@@ -248,7 +248,8 @@ class _RowProblem:
         if not self.pole_free_idx:
             return self.evaluate(poles0, lags)
         x0 = poles0[self.pole_free_idx]
-        from scipy import optimize      # here: its import costs about 0.15 s, and most analyses repair nothing
+        # scipy.optimize here: its import costs 0.15-0.3 s, and most analyses repair nothing.
+        from scipy import optimize
 
         def fun(x):
             return self.projected(self.poles_from(x), lags)[0]
