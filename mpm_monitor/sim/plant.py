@@ -9,8 +9,9 @@ applied, so the plant must be strictly proper in discrete time (no element with 
 and zero delay).
 
 A plant with more than :data:`DENSE_STATE_LIMIT` states (an industrial unit: 40 inputs and 100
-outputs have some 4,400) is stepped with its state space held sparse: each state has at most two
-predecessors, so a step costs ``O(n_states)`` instead of ``O(n_states^2)``.
+outputs have some 4,400) is stepped with its state space held sparse: a state depends on a few
+others only (its element's and one of an input's delay line), so a step costs ``O(n_states)``
+instead of ``O(n_states^2)``.
 """
 
 from __future__ import annotations
