@@ -425,3 +425,72 @@ def test_bounds_without_osqp_are_refused_at_construction(monkeypatch):
     with pytest.raises(ConfigurationError, match=r"^u_min, u_max, du_max: bounds need the QP solver osqp"):
         InternalModelMpc(shell_plant(), MpcOptions(**SMALL_MPC, du_max=0.05))
     InternalModelMpc(shell_plant(), MpcOptions(**SMALL_MPC))
+
+
+# --------------------------------------------------------------------------- large models
+
+
+def _wide_plant(ny=6, nu=4, seed=3):
+    rng = np.random.default_rng(seed)
+    return PlantModel(sample_time=1.0, inputs=[f"u{j}" for j in range(nu)], outputs=[f"y{i}" for i in range(ny)],
+                      gain=rng.uniform(-3, 3, (ny, nu)), time_constant=rng.uniform(2, 40, (ny, nu)),
+                      delay=rng.integers(0, 8, (ny, nu)).astype(float))
+
+
+@pytest.mark.parametrize("kw", [{}, dict(prediction_horizon=40, control_horizon=5, input_weight=[0.5, 1, 2, 1],
+                                         output_weight=[1, 2, 1, 3, 1, 1], input_rate_weight=0.3)])
+def test_structured_set_up_gives_the_dense_control_law(kw):
+    # The set-up for large models (sparse state space, H from the step-response blocks, the free
+    # response run forward) computes the same gains and moves as the dense one, to rounding.
+    model = _wide_plant()
+    dense = InternalModelMpc(model, MpcOptions(**kw))
+    structured = InternalModelMpc(model, MpcOptions(**kw), structured=True)
+    assert not dense.structured and structured.structured
+    np.testing.assert_allclose(structured._H, dense._H, rtol=1e-12, atol=1e-12 * np.abs(dense._H).max())
+    nu = model.n_inputs
+    for key in ("_K_eps", "_K_u", "_K_nom"):
+        ref = getattr(dense, key)
+        np.testing.assert_allclose(getattr(structured, key), ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+    np.testing.assert_allclose(structured._K_x1, dense._K_x[:nu], rtol=0, atol=1e-10 * np.abs(dense._K_x).max())
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=dense._ss.n_states)
+    ref = dense._K_x @ x
+    np.testing.assert_allclose(structured._free_moves(x), ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+    u_dense, u_structured = [], []
+    for _ in range(150):
+        r, y = np.sign(rng.normal(size=6)), 0.1 * rng.normal(size=6)
+        u_dense.append(dense.step(r, y))
+        u_structured.append(structured.step(r, y))
+    np.testing.assert_allclose(u_structured, u_dense, rtol=0, atol=1e-9 * np.abs(u_dense).max())
+
+
+def test_structured_set_up_keeps_the_bounds():
+    model = _wide_plant()
+    opts = MpcOptions(prediction_horizon=40, control_horizon=10, u_min=-0.3, u_max=0.3, du_max=0.05)
+    ctrl = InternalModelMpc(model, opts, structured=True)
+    rng = np.random.default_rng(1)
+    prev = np.zeros(model.n_inputs)
+    for _ in range(120):
+        u = ctrl.step(2.0 * np.sign(rng.normal(size=6)), 0.1 * rng.normal(size=6))
+        assert np.all(u <= 0.3 + 1e-9) and np.all(u >= -0.3 - 1e-9)
+        assert np.all(np.abs(u - prev) <= 0.05 + 1e-9)
+        prev = u
+    assert ctrl.qp_solves > 0
+
+
+def test_large_models_take_the_structured_set_up_and_the_sparse_plant():
+    # 30 x 36 first-order elements and their delay lines: more states than DENSE_STATE_LIMIT.
+    from mpm_monitor.sim.plant import DENSE_STATE_LIMIT
+
+    model = _wide_plant(30, 36, seed=4)
+    ss = state_space(model)
+    assert ss.n_states > DENSE_STATE_LIMIT
+    ctrl = InternalModelMpc(model, MpcOptions(prediction_horizon=30, control_horizon=5))
+    assert ctrl.structured and ctrl._K_x is None
+    plant = PlantSimulator(model, NOISE_FREE, np.random.default_rng(0))
+    u = np.random.default_rng(2).normal(size=(50, 36))
+    y = []
+    for k in range(50):
+        y.append(plant.measure())
+        plant.apply(u[k])
+    np.testing.assert_allclose(y, simulate(model, u), rtol=0, atol=1e-12 * np.abs(y).max())

@@ -31,15 +31,11 @@ from typing import Optional
 
 import numpy as np
 
-from .discretize import model_columns
-from .element_test import InputDesign, arx_element_test, baseline_element_test
 from .errors import ConfigurationError, DataFileError
 from .logged_data import LoggedData, check_loop_data
 from .model import PlantModel
 from .options import check_options, option, option_specs
-from .regressions import regression_layout, window_regressions
-from .row_test import sdelta_row_test
-from .signals import INITIAL_STATE_CHOICES, LoopSignals, compute_signals, error_rms
+from .signals import INITIAL_STATE_CHOICES, LoopSignals
 from .wording import repair_summary_lines
 
 METHODS = ("arx", "xcorr", "pcorr")
@@ -326,6 +322,14 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     DataFileError
         When the data do not fit the model or are too short for the tests.
     """
+    # The tests are imported here: the options and the report above are described (the command line's
+    # flags, the monitor's parameters) without the scipy they need.
+    from .element_test import InputDesign, arx_element_test, baseline_element_test
+    from .regressions import regression_layout, window_regressions
+    from .row_test import sdelta_row_test
+    from .discretize import model_columns
+    from .signals import compute_signals, error_rms
+
     ny = model.n_outputs
     src = data.source or "data"
     r, u, y = check_loop_data(model, data)

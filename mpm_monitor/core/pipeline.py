@@ -47,7 +47,7 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
         With ``options.repair``: the ``repair`` of :func:`mpm_monitor.core.repair.repair_model` with,
         when the model changed, ``rsi_after`` (output -> RSI of the repaired model on the same data)
         and ``rows_flagged_after`` (the detection of the repaired model, every option kept but
-        ``test_all_rows`` false, with its signals recomputed from the data); the kind of every
+        ``test_all_rows`` false, on the signals of the repaired model the repair computed); the kind of every
         located element; the repaired model.
 
     Raises
@@ -66,7 +66,8 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
     warnings.extend(w for w in result.warnings if w not in warnings)
     doc = result.to_dict()
     if result.model != model:
-        after = detect(result.model, data, dataclasses.replace(options, repair=False, test_all_rows=False))
+        after = detect(result.model, data, dataclasses.replace(options, repair=False, test_all_rows=False),
+                       signals=result.signals)
         doc["rsi_after"] = {r.output: r.rsi for r in after.rows}
         doc["rows_flagged_after"] = after.flagged_rows
     kinds = getattr(result, "kinds", {})

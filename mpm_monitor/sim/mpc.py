@@ -22,6 +22,14 @@ Every element structure of the model is controlled through its exact state space
 free response keeps the slope of the internal model, and setpoints are tracked without offset.
 A constant load on an integrating output that the model does not predict (unmeasured, or measured
 with a wrong gain) is a ramp in ``d``, which the constant-``d`` assumption leaves as an offset.
+
+Two set-ups compute the same control law.  A model with at most :data:`DENSE_STATE_LIMIT` states
+(every plant of the paper and of the benchmarks up to 20x20) uses the dense matrices of its state
+space.  A larger one (an industrial controller: 40 inputs and 100 outputs have some 4,400 states)
+keeps the state space sparse, builds ``H`` from the step-response coefficients (``G`` is block
+Toeplitz) instead of from ``G``, and never forms the ``Hp n_outputs x n_states`` free-response
+matrix: without bounds only the first move's gains are kept, with bounds the free response is run
+forward at each sample.  The two agree to rounding (test_plant_mpc).
 """
 
 from __future__ import annotations
@@ -35,7 +43,7 @@ import numpy as np
 from ..core.discretize import state_space
 from ..core.errors import ConfigurationError
 from ..core.model import PlantModel
-from .plant import require_strictly_proper
+from .plant import DENSE_STATE_LIMIT, require_strictly_proper
 
 Weight = Union[float, Sequence[float]]
 
@@ -114,6 +122,9 @@ class InternalModelMpc:
         The controller's plant model ``Phat`` (strictly proper in discrete time).
     options : MpcOptions
         Horizons, weights and bounds.
+    structured : bool, optional
+        The set-up for large models (see the module docstring); default: when the model has more
+        than :data:`DENSE_STATE_LIMIT` states.
 
     Notes
     -----
@@ -123,7 +134,7 @@ class InternalModelMpc:
     :attr:`yhat`, :attr:`prediction_error` and :attr:`controller_input`.
     """
 
-    def __init__(self, model: PlantModel, options: MpcOptions = MpcOptions()):
+    def __init__(self, model: PlantModel, options: MpcOptions = MpcOptions(), structured: Optional[bool] = None):
         require_strictly_proper(model, what="controller model")
         self.model = model
         self.options = options
@@ -147,7 +158,13 @@ class InternalModelMpc:
         if options.constrained and importlib.util.find_spec("osqp") is None:
             raise ConfigurationError("u_min, u_max, du_max: bounds need the QP solver osqp, which is not installed "
                                      "(pip install osqp; it has no rosdep key)")
-        self._build()
+        self.structured = self._ss.n_states > DENSE_STATE_LIMIT if structured is None else bool(structured)
+        if self.structured:
+            self._build_structured()
+        else:
+            self._A, self._C = self._ss.A, self._ss.C
+            self._Bu, self._Bd = self._ss.B_inputs, self._ss.B_disturbances
+            self._build()
         self._qp = None
         self.reset()
 
@@ -210,6 +227,109 @@ class InternalModelMpc:
         self._Mc = np.kron(np.tril(np.ones((hc, hc))), np.eye(nu))
         self._nu, self._hc = nu, hc
 
+    def _build_structured(self) -> None:
+        """The set-up of :meth:`_build` for a large model (see the module docstring).
+
+        With ``S_n`` the step-response coefficients, ``G' Q G`` has the blocks
+        ``(t, t') = sum_{n=0}^{Hp-1-max(t,t')} S_{n+|t-t'|}' Q S_n`` (transposed for ``t > t'``), and
+        ``G' Q`` the blocks ``(t, i) = S_{i-1-t}' Q``; the gains are built from these blocks.
+        """
+        import scipy.sparse as sp
+
+        ss, opts = self._ss, self.options
+        ny, nu = self.model.n_outputs, self.model.n_inputs
+        hp, hc = opts.prediction_horizon, opts.control_horizon
+        nd = self._nd
+        self._A, self._Bu, self._Bd, self._C = (sp.csr_matrix(m) for m in (ss.A, ss.B_inputs, ss.B_disturbances, ss.C))
+        step = np.zeros((hp, ny, nu))
+        step_d = np.zeros((hp, ny, nd))
+        ca = self._C
+        acc = np.zeros((ny, nu))
+        acc_d = np.array(ss.D_disturbances, dtype=float)
+        for m in range(hp):
+            acc = acc + ca @ self._Bu
+            step[m] = acc
+            if nd:
+                acc_d = acc_d + ca @ self._Bd
+                step_d[m] = acc_d
+            ca = ca @ self._A
+        q = self.q
+        qs = q[None, :, None] * step                        # Q S_n, (hp, ny, nu)
+        H = np.zeros((hc * nu, hc * nu))
+        for d in range(hc):
+            # cum[N] = sum_{n<=N} S_{n+d}' Q S_n, N = 0 .. hp-1-d
+            cum = np.cumsum(np.matmul(np.swapaxes(step[d:], 1, 2), qs[:hp - d]), axis=0)
+            for t in range(hc - d):
+                block = cum[hp - 1 - (t + d)]               # t' = t + d
+                H[t * nu:(t + 1) * nu, (t + d) * nu:(t + d + 1) * nu] = block
+                if d:
+                    H[(t + d) * nu:(t + d + 1) * nu, t * nu:(t + 1) * nu] = block.T
+        tt = np.arange(hc)
+        cnt = hp - np.maximum.outer(tt, tt)
+        MRM = np.kron(cnt, np.diag(self.r))
+        MRE = np.kron((hp - tt)[:, None], np.diag(self.r))
+        H = H + MRM + np.diag(np.tile(self.s, hc))
+        H = 0.5 * (H + H.T)
+        try:
+            chol = np.linalg.cholesky(H)
+        except np.linalg.LinAlgError:
+            raise ConfigurationError(
+                "MPC weights give a singular problem: use a positive input_rate_weight or input_weight") from None
+        self._chol = chol
+        # G' Q times the stacked identities (block t: sum_{n<=Hp-1-t} S_n' Q) and times Gamma E
+        # (block t: sum_{n<=Hp-1-t} S_n' Q S_{n+t}).
+        sq_cum = np.cumsum(np.swapaxes(qs, 1, 2), axis=0)                                # (hp, nu, ny)
+        gq_ones = np.vstack([sq_cum[hp - 1 - t] for t in range(hc)])
+        gq_gamma = np.vstack([np.tensordot(qs[:hp - t], step[t:], axes=([0, 1], [0, 1])) for t in range(hc)])
+        self._K_eps = self._solve_h(gq_ones)
+        self._K_u = -self._solve_h(gq_gamma + MRE)
+        self._K_nom = self._solve_h(MRE)
+        # G' Q Gamma_d (block t: sum_{n<=Hp-1-t} S_n' Q S^d_{n+t}): the measured disturbances' feedforward.
+        self._K_dv = (-self._solve_h(np.vstack([np.tensordot(qs[:hp - t], step_d[t:], axes=([0, 1], [0, 1]))
+                                                for t in range(hc)])) if nd else None)
+        self._step, self._qs = step, qs
+        # First move's gain on the state: -(H^-1 G' Q)[:nu] Phi, Phi's block i = C A^i (i = 1..Hp).
+        hinv1 = self._solve_h(np.eye(hc * nu, nu)).T.reshape(nu, hc, nu)     # (H^-1)[:nu] (H symmetric)
+        w1 = np.zeros((nu, hp, ny))                         # (H^-1 G' Q)[:nu], block i-1 for i = 1..Hp
+        for t in range(hc):
+            w1[:, t:] += np.matmul(qs[:hp - t], hinv1[:, t].T).transpose(2, 0, 1)
+        kx1 = np.zeros((nu, ss.n_states))
+        ca = self._C
+        for i in range(hp):
+            ca = ca @ self._A
+            kx1 -= (ca.T @ w1[:, i].T).T
+        self._K_x1 = kx1
+        self._K_x = None
+        self._H = H
+        self._Mc = np.kron(np.tril(np.ones((hc, hc))), np.eye(nu))
+        self._nu, self._hc = nu, hc
+
+    def _solve_h(self, rhs):
+        """``H^-1 rhs`` (structured set-up), from the Cholesky factor."""
+        import scipy.linalg as sla
+
+        return sla.cho_solve((self._chol, True), rhs, check_finite=False)
+
+    def _free_moves(self, x: np.ndarray) -> np.ndarray:
+        """``K_x x``: the moves' response to the state, shape (Hc * n_inputs,)."""
+        if self._K_x is not None:
+            return self._K_x @ x
+        hp, hc = self.options.prediction_horizon, self._hc
+        free = np.empty((hp, self.model.n_outputs))         # C A^i x, i = 1..Hp
+        z = x
+        for i in range(hp):
+            z = self._A @ z
+            free[i] = self._C @ z
+        # G' Q free: block t = sum_{n <= Hp-1-t} S_n' Q free_{n+t}
+        gq = np.concatenate([np.einsum("nya,ny->a", self._qs[:hp - t], free[t:]) for t in range(hc)])
+        return -self._solve_h(gq)
+
+    def _first_move_x(self, x: np.ndarray) -> np.ndarray:
+        """The first move's response to the state, shape (n_inputs,)."""
+        if self._K_x is not None:
+            return self._K_x[:self._nu] @ x
+        return self._K_x1 @ x
+
     def reset(self, u0: Optional[np.ndarray] = None) -> None:
         """Reset the internal model to rest and the previous move to ``u0`` (default ``u_nom``)."""
         self._x = np.zeros(self._ss.n_states)
@@ -229,7 +349,7 @@ class InternalModelMpc:
         ``dv`` (n_disturbances,): the measured disturbances, held over the horizon (required when
         the model has some).
         """
-        du = self._K_eps @ eps + self._K_x @ x + self._K_u @ u_prev + self._K_nom @ self.u_nom
+        du = self._K_eps @ eps + self._free_moves(x) + self._K_u @ u_prev + self._K_nom @ self.u_nom
         if self._nd:
             du = du + self._K_dv @ self._check_dv(dv)
         return du
@@ -300,19 +420,18 @@ class InternalModelMpc:
         ndarray, shape (n_inputs,)
             The plant input ``u(k)`` (within the bounds).
         """
-        ss = self._ss
         if self._nd:
             dv = self._check_dv(dv)
-            self.yhat = ss.C @ self._x + ss.D_disturbances @ dv
+            self.yhat = self._C @ self._x + self._ss.D_disturbances @ dv
         else:
             dv = None
-            self.yhat = ss.C @ self._x
+            self.yhat = self._C @ self._x
         self.prediction_error = np.asarray(y, dtype=float) - self.yhat
         self.controller_input = np.asarray(r, dtype=float) - self.prediction_error
         eps = self.controller_input
         nu = self._nu
         if not self.options.constrained:
-            du0 = (self._K_eps[:nu] @ eps + self._K_x[:nu] @ self._x + self._K_u[:nu] @ self._u_prev
+            du0 = (self._K_eps[:nu] @ eps + self._first_move_x(self._x) + self._K_u[:nu] @ self._u_prev
                    + self._K_nom[:nu] @ self.u_nom)
             if dv is not None:
                 du0 = du0 + self._K_dv[:nu] @ dv
@@ -331,7 +450,7 @@ class InternalModelMpc:
         self._u_prev = u_ctrl
         u = u_ctrl if dither is None else np.clip(u_ctrl + dither, self.u_min, self.u_max)
         if dv is not None:
-            self._x = ss.A @ self._x + ss.B_inputs @ u + ss.B_disturbances @ dv
+            self._x = self._A @ self._x + self._Bu @ u + self._Bd @ dv
         else:
-            self._x = ss.A @ self._x + ss.B @ u
+            self._x = self._A @ self._x + self._Bu @ u
         return u

@@ -398,7 +398,7 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
                         error_after=error_after, fit_before=fit_before, fit_after=fit_after,
                         holdout_error_before=holdout_before, holdout_error_after=holdout_after,
                         disturbances=disturbances, warnings=warnings, n_samples=rec.n, n_fit=rec.n_fit,
-                        options=rec.options)
+                        options=rec.options, signals=ev.signals)
 
 
 def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],

@@ -146,6 +146,9 @@ class RepairResult:
         What limits the conclusions, in words.
     n_samples, n_fit : int
         Samples in the record and in the fit part.
+    signals : LoopSignals or None
+        :func:`~mpm_monitor.core.signals.compute_signals` of the repaired ``model`` on the record (with
+        the options' ``initial_state``), for a detection of the repaired model on the same data.
     """
 
     model: PlantModel
@@ -162,6 +165,7 @@ class RepairResult:
     n_samples: int = 0
     n_fit: int = 0
     options: RepairOptions = RepairOptions()
+    signals: object = dataclasses.field(default=None, compare=False, repr=False)
 
     def to_dict(self) -> dict:
         """The ``repair`` object of the analysis report, plain JSON values.
