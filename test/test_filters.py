@@ -56,12 +56,11 @@ def test_two_dimensional_along_either_axis(name, axis):
     _close(ours, signal.lfilter(b, a, x, axis=axis))
 
 
-@pytest.mark.parametrize("name", sorted(FILTERS))
+@pytest.mark.parametrize("name", sorted(n for n, (b, a) in FILTERS.items() if max(len(a), len(b)) > 1))
 def test_initial_and_final_state_match_scipy(name):
+    """Every filter with a state (a one-tap FIR has none)."""
     b, a = FILTERS[name]
     order = max(len(a), len(b)) - 1
-    if order == 0:
-        pytest.skip("no state")
     rng = np.random.default_rng(2)
     x = rng.normal(size=500)
     zi = rng.normal(size=order)
