@@ -153,3 +153,28 @@ def test_live_window_keeps_its_samples_across_short_gaps_and_the_summary_counts_
     assert "2997 samples up to t = 2999 s, 3 lost in 2 gaps" in summary.message
     values = dict(summary.values)
     assert values["window_lost_samples"] == "3" and values["window_gaps"] == "2" and values["gaps"] == "2"
+
+
+def test_gram_and_qr_regressions_agree_on_segments(case_32):
+    from mpm_monitor.core.regressions import QrRegressions, window_regressions
+
+    case, data = case_32
+    gappy = _drop(data, [300, 301, 1800, 2500])
+    layout = regression_layout(case.model, DETECT)
+    plan = plan_gaps(gappy, layout.start)
+    r, u = plan.take(gappy.r), plan.take(gappy.u)
+    sig = detect(case.model, gappy, DETECT).signals
+    d = np.vstack([sig.d[a:b] - sig.d[a:b].mean(axis=0) for a, b in plan.local_segments])
+    segs = plan.local_segments
+    gram = window_regressions(r, u, -d, d, layout, 4, 4, segments=segs)
+    qr = QrRegressions(r, u, -d, d, layout, 4, 4, segments=segs)
+    assert qr.n_rows == plan.rows_kept
+    for regs in (gram, qr):
+        regs.fits = [regs.element_fit(regs.input_regression([0, 1, 2]), i) for i in range(2)]
+        regs.rows = [regs.row_fit(regs.row_regression([0, 1]), i) for i in range(2)]
+        regs.short = regs.short_arx(0, np.array([3, 4, 5]))
+    for a, b in zip(gram.fits + gram.rows, qr.fits + qr.rows):
+        np.testing.assert_allclose(a.theta, b.theta, rtol=1e-7, atol=1e-9)
+        assert a.rss == pytest.approx(b.rss, rel=1e-8) and a.dof == b.dof
+    np.testing.assert_allclose(gram.short.theta, qr.short.theta, rtol=1e-7, atol=1e-9)
+    assert gram.short.dof == qr.short.dof

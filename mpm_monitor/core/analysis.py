@@ -342,7 +342,7 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     # The tests are imported here: the options and the report above are described (the command line's
     # flags, the monitor's parameters) without the scipy they need.
     from .element_test import InputDesign, arx_element_test, baseline_element_test
-    from .regressions import QrRegressions, regression_layout, window_regressions
+    from .regressions import regression_layout, window_regressions
     from .row_test import sdelta_row_test
     from .discretize import model_columns
     from .gaps import plan_gaps
@@ -376,9 +376,10 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         z = sig.eps - r   # = -d: zero-mean noise under "no mismatch"
         regressions = window_regressions(r, columns, z, sig.d, layout, options.na, options.nb)
     elif regressions is None:
-        # Each segment's d centred on its own (its level restarts with its model output), fitted by QR.
+        # Each segment's d centred on its own (its level restarts with its model output).
         d = np.vstack([sig.d[a:b] - sig.d[a:b].mean(axis=0) for a, b in plan.local_segments])
-        regressions = QrRegressions(r, columns, -d, d, layout, options.na, options.nb, segments=plan.local_segments)
+        regressions = window_regressions(r, columns, -d, d, layout, options.na, options.nb,
+                                         segments=plan.local_segments)
 
     row_test = sdelta_row_test(model, r, sig.eps, regressions, layout, options)
     rows = row_test.rows

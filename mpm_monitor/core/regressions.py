@@ -793,10 +793,14 @@ class GramRegressions:
     layout : RegressionLayout
     na, nb : int
     max_condition : float
+    segments : sequence of (int, int), optional
+        Data with gaps: the contiguous runs of rows of the signals, as for :class:`QrRegressions`
+        (the Gram matrices then sum the runs' regression rows).
     """
 
     def __init__(self, row_gram: LaggedGram, input_gram: LaggedGram, r, u, z, d, layout: RegressionLayout,
-                 na: int, nb: int, max_condition: float = DEFAULT_MAX_CONDITION):
+                 na: int, nb: int, max_condition: float = DEFAULT_MAX_CONDITION, segments=None):
+        self.segments = None if segments is None else [(int(a), int(b)) for a, b in segments]
         self.row_gram, self.input_gram = row_gram, input_gram
         self.r, self.u, self.z, self.d = r, u, z, d
         self.layout, self.na, self.nb = layout, na, nb
@@ -813,7 +817,7 @@ class GramRegressions:
     @property
     def qr(self) -> QrRegressions:
         if self._qr is None:
-            self._qr = QrRegressions(self.r, self.u, self.z, self.d, self.layout, self.na, self.nb)
+            self._qr = QrRegressions(self.r, self.u, self.z, self.d, self.layout, self.na, self.nb, self.segments)
         return self._qr
 
     def _qr_regression(self, kind: str, channels: tuple) -> SharedBlockRegression:
@@ -900,7 +904,8 @@ class GramRegressions:
         first = max(na, int(np.max(nk + nb - 1)) if nu else 0)
         start = self.layout.start
         if first < start:
-            t = np.arange(first, start)[:, None]
+            t = np.arange(first, start)[:, None] if self.segments is None else \
+                np.concatenate([np.arange(a + first, a + start) for a, _ in self.segments])[:, None]
             d_mean = self.input_means[nu + i]
             lags = (nk[:, None] + np.arange(nb)).ravel()
             channels = np.repeat(np.arange(nu), nb)
@@ -909,7 +914,7 @@ class GramRegressions:
                            self.d[t, i] - d_mean])
             g = g + x.T @ x
             sums = sums + x.sum(axis=0)
-            n += start - first
+            n += t.shape[0]
         try:
             return gram_arx(g, float(sums[-1]), n, na, nb, nk, self.max_condition)
         except IllConditioned:
@@ -918,7 +923,7 @@ class GramRegressions:
 
 
 def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
-                       max_condition: float = DEFAULT_MAX_CONDITION) -> GramRegressions:
+                       max_condition: float = DEFAULT_MAX_CONDITION, segments=None) -> GramRegressions:
     """The tests' regressions on one window, from Gram matrices built at once (the batch analysis).
 
     Both Gram matrices are computed from the window's signals by :func:`lagged_cross_products`,
@@ -935,6 +940,10 @@ def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
     layout : RegressionLayout
     na, nb : int
     max_condition : float
+    segments : sequence of (int, int), optional
+        Data with gaps: the contiguous runs of rows ``(first, end)`` of the signals; each gives the
+        regression rows ``first + start .. end - 1`` and the Gram matrices are their sums, so that no
+        row's lags reach across a gap.  Default: one run.
 
     Returns
     -------
@@ -950,8 +959,16 @@ def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
                 "d": block[:, 2 * ny + nu:]}
     row_gram = LaggedGram([("r", ny, range(0, layout.n_lag_r)), ("z", ny, range(0, na + 1))], signals)
     input_gram = LaggedGram([("u", nu, range(1, layout.n_lag_u + 1)), ("d", ny, range(0, na + 1))], signals)
-    regs = GramRegressions(row_gram, input_gram, r, u, z, d, layout, na, nb, max_condition)
-    start = min(layout.start, n)
-    row_gram.rebuild(buf, start, n, regs.row_means)
-    input_gram.rebuild(buf, start, n, regs.input_means)
+    regs = GramRegressions(row_gram, input_gram, r, u, z, d, layout, na, nb, max_condition, segments)
+    if segments is None:
+        start = min(layout.start, n)
+        row_gram.rebuild(buf, start, n, regs.row_means)
+        input_gram.rebuild(buf, start, n, regs.input_means)
+        return regs
+    for gram, means in ((row_gram, regs.row_means), (input_gram, regs.input_means)):
+        total, sums, rows = 0.0, 0.0, 0
+        for a, b in regs.segments:
+            gram.rebuild(buf, a + layout.start, b, means)
+            total, sums, rows = total + gram.gram, sums + gram.sums, rows + gram.n_rows
+        gram.gram, gram.sums, gram.lo, gram.hi = total, sums, 0, rows
     return regs
