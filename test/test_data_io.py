@@ -190,7 +190,8 @@ def test_line_numbers_count_blank_lines(tmp_path):
 
 def test_spacing_checked_against_the_model_sample_time(tmp_path):
     # Samples 1.5 s apart are off the grid of a 1 s model: refused, not silently re-timed.
-    with pytest.raises(DataFileError, match=r"line 3: t = 1.5 s follows t = 0 s: a step of 1.5 s \(expected sample_time 1 s"):
+    with pytest.raises(DataFileError,
+                       match=r"line 3: t = 1.5 s follows t = 0 s: a step of 1.5 s \(expected sample_time 1 s"):
         read_csv(_write(tmp_path, _text([HEADER] + _rows(ts=1.5))), _model(1.0))
 
 

@@ -4,9 +4,9 @@ One row per sample, header ``t, r_<output>..., <input>..., <disturbance>..., <ou
 order is free.  Samples lie on the grid of the model's sample time: ``t`` may skip grid points (rows
 missing: a gap, analysed around, never interpolated; docs/interfaces.md, "Gaps"), but a repeated or
 decreasing ``t``, a ``t`` off the grid, a missing column or a non-numeric cell in a column the model
-needs is refused with the line and column, never silently mis-aligned.  Every other named column is kept: a numeric one in
-:attr:`LoggedData.extra`, one that is not numeric or partly missing in :attr:`LoggedData.unusable`
-with the reason.
+needs is refused with the line and column, never silently mis-aligned.  Every other named column is
+kept: a numeric one in :attr:`LoggedData.extra`, one that is not numeric or partly missing in
+:attr:`LoggedData.unusable` with the reason.
 
 Reading has two paths that give the same result.  numpy's C parser (``numpy.loadtxt``) reads a file
 of plain numbers (a 10,000-line file of 61 columns in about a quarter of a second); anything it

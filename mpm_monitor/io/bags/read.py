@@ -223,8 +223,9 @@ def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, pr
     the topics.  Samples before the last topic starts or after the first one ends (a recording
     started or stopped mid-sample) are dropped; inside that span a topic holds a sample at most once,
     and a sample some topic lacks is left out (a gap: ``t`` skips it).  Channels are matched by
-    name, so their order in the messages is free; extra channels are ignored.  A model with measured disturbances reads them from the disturbance topic
-    (the fourth of ``topics``, default ``disturbance``) into ``dv``.
+    name, so their order in the messages is free; extra channels are ignored.  A model with
+    measured disturbances reads them from the disturbance topic (the fourth of ``topics``, default
+    ``disturbance``) into ``dv``.
 
     Parameters
     ----------
