@@ -38,7 +38,7 @@ from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.monitor.window import SampleWindow, WindowOptions
 from mpm_monitor.sim.cases import CASE_NAMES
 
-from . import write_json
+from . import imap_tasks, write_json
 from .monte_carlo import simulate
 from .scenarios import make_scenario
 
@@ -152,19 +152,10 @@ def run(paper_seeds: int, runs: int, seed: int = 0, samples: int = 3000, drop: f
     todo = tasks(paper_seeds, runs, seed, samples, drop)
     t0 = time.perf_counter()
     records = []
-    if jobs > 1:
-        import multiprocessing as mp
-
-        with mp.get_context("spawn").Pool(int(jobs)) as pool:
-            for rec in pool.imap(_run_star, todo):
-                records.append(rec)
-                if progress:
-                    print(f"{len(records)}/{len(todo)}", flush=True)
-    else:
-        for task in todo:
-            records.append(run_one(*task))
-            if progress:
-                print(f"{len(records)}/{len(todo)}", flush=True)
+    for rec in imap_tasks(_run_star, todo, jobs):
+        records.append(rec)
+        if progress:
+            print(f"{len(records)}/{len(todo)}", flush=True)
     return {"config": {"paper_seeds": paper_seeds, "runs": runs, "seed": seed, "samples": samples, "drop": drop,
                        "jobs": jobs, "wall_time_s": time.perf_counter() - t0},
             "summary": summarize(records), "records": records}
