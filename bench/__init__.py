@@ -16,3 +16,15 @@ def write_json(path, result, default=float) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=1, default=default) + "\n", encoding="utf-8")
     print(f"wrote {path}")
+
+
+def imap_tasks(fn, tasks, jobs: int = 1):
+    """``fn(task)`` for every task, in order: in this process, or in ``jobs`` spawned processes when ``jobs > 1``."""
+    if jobs > 1:
+        import multiprocessing as mp
+
+        with mp.get_context("spawn").Pool(int(jobs)) as pool:
+            yield from pool.imap(fn, tasks)
+    else:
+        for task in tasks:
+            yield fn(task)
