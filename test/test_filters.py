@@ -148,3 +148,18 @@ def test_the_module_does_not_import_scipy_signal():
             "print('scipy.signal' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
+
+
+def test_signals_without_columns_never_reach_lapack():
+    """A record with no columns (a model without measured disturbances) filters to an empty result;
+    handing LAPACK the empty right-hand side corrupted the heap (a crash at the next collection), so
+    the check runs in a process of its own."""
+    code = ("import gc, numpy as np\n"
+            "from mpm_monitor.core.filters import lfilter\n"
+            "y = lfilter([1.0], [1.0, -0.9], np.zeros((2200, 0)), axis=0)\n"
+            "y2, zf = lfilter([1.0, 0.5], [1.0, -0.9], np.zeros((0, 3)), axis=0, zi=np.ones((1, 3)))\n"
+            "gc.collect()\n"
+            "print(y.shape, y2.shape, zf.shape)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-500:]
+    assert out.stdout.split("\n")[0] == "(2200, 0) (0, 3) (1, 3)"
