@@ -12,6 +12,8 @@
 No timings here: bench/perf.py and bench/repair_mc.py measure them.
 """
 
+import dataclasses
+
 import numpy as np
 import pytest
 import yaml
@@ -179,3 +181,45 @@ def test_model_file_values_equal_the_pure_python_parser(tmp_path):
     path = tmp_path / "m.yaml"
     path.write_text(text, encoding="utf-8")
     assert load_model(path) == model
+
+
+def _loop(seed=2):
+    from mpm_monitor.sim.closed_loop import run_closed_loop
+
+    plant = _model(4, 4, seed)
+    model = plant.with_element(0, 1, gain=plant.gain[0, 1] * 1.3)
+    return plant, model, run_closed_loop(plant, model, 3000, seed=seed).as_logged_data()
+
+
+def test_detection_after_a_repair_reuses_the_unchanged_rows_and_gives_the_same_report():
+    from mpm_monitor.core.analysis import AnalysisOptions, detect
+
+    plant, model, data = _loop()
+    options = AnalysisOptions(repair=False, test_all_rows=False)
+    first = detect(model, data, options)
+    repaired = model.with_element(0, 1, gain=plant.gain[0, 1])
+    sig = compute_signals(repaired, data.r, data.u, data.y, like=(model, first.signals))
+    fresh = detect(repaired, data, options, signals=sig)
+    reused = detect(repaired, data, options, signals=sig, previous=first)
+    assert reused.to_dict() == fresh.to_dict()
+    for key in ("row_gains", "sigma_max", "sdelta_response"):
+        np.testing.assert_array_equal(getattr(reused, key), getattr(fresh, key))
+    # The setpoint block and the fits of rows y2..y4 are the first detection's own objects; y1's is new.
+    regs, prev = reused.regressions, first.regressions
+    assert list(regs._row_regs.values()) == list(prev._row_regs.values())
+    (reg,) = prev._row_regs.values()
+    assert {i for (_, i) in regs._row_fits} == {0}
+    assert regs.row_fit(reg, 2) is prev.row_fit(reg, 2)
+    assert regs.row_fit(reg, 0) is not prev.row_fit(reg, 0)
+
+
+def test_row_fits_are_not_reused_across_other_setpoints():
+    from mpm_monitor.core.analysis import AnalysisOptions, detect
+
+    _, model, data = _loop()
+    options = AnalysisOptions(repair=False)
+    first = detect(model, data, options)
+    shifted = dataclasses.replace(data, r=data.r + 1e-3 * np.arange(data.n_samples)[:, None] % 2)
+    again = detect(model, shifted, options, previous=first)
+    assert again.to_dict() == detect(model, shifted, options).to_dict()
+    assert not again.regressions._same_rows and again.regressions._previous is None

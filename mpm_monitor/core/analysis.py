@@ -185,6 +185,10 @@ class AnalysisReport:
         ``yhat``, ``d`` and ``eps`` the tests used.
     repair_result : RepairResult or None
         The repair's full result (None without repair).
+    regressions : object or None
+        The tests' least-squares problems (kept by :func:`detect` for a detection of another model on
+        the same data, ``detect(..., previous=report)``; None in what
+        :func:`~mpm_monitor.core.pipeline.analyze` returns).
     """
 
     sample_time: float
@@ -206,6 +210,7 @@ class AnalysisReport:
     max_variance_inflation: float
     signals: Optional[LoopSignals] = None
     repair_result: object = None
+    regressions: object = dataclasses.field(default=None, compare=False, repr=False)
 
     @property
     def flagged_rows(self) -> list:
@@ -287,7 +292,8 @@ def _column_label(e) -> str:
 
 
 def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
-           signals: Optional[LoopSignals] = None, regressions=None) -> AnalysisReport:
+           signals: Optional[LoopSignals] = None, regressions=None,
+           previous: Optional["AnalysisReport"] = None) -> AnalysisReport:
     """Run the S_Delta row test and the Delta element test on logged closed-loop data (no repair).
 
     Parameters
@@ -310,6 +316,11 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         matrices of the window's lagged signals, each regression whose condition bound exceeds
         1e3 (or whose residual is too small a part of its target) refitted by QR; the results equal
         those of :class:`~mpm_monitor.core.regressions.QrRegressions` to about 1e-10.
+    previous : AnalysisReport, optional
+        The detection of another model on the same data (before a repair): with the default
+        regressions, the S_Delta row test takes from it the setpoint block and the fits of the rows
+        whose prediction error is the same (the same numbers,
+        :meth:`~mpm_monitor.core.regressions.GramRegressions.reuse_rows_of`).
 
     Returns
     -------
@@ -349,6 +360,8 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     if regressions is None:
         z = sig.eps - r   # = -d: zero-mean noise under "no mismatch"
         regressions = window_regressions(r, columns, z, sig.d, layout, options.na, options.nb)
+        if previous is not None and previous.regressions is not None:
+            regressions.reuse_rows_of(previous.regressions)
 
     row_test = sdelta_row_test(model, r, sig.eps, regressions, layout, options)
     rows = row_test.rows
@@ -387,4 +400,5 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         elements=elements, overall_rsi=float(row_test.sigma_max.max()), warnings=warnings,
         frequencies=row_test.frequencies, row_gains=row_test.row_gains, sigma_max=row_test.sigma_max,
         sdelta_response=row_test.response, arx_tables=element_test.arx_tables, repair=unrepaired,
-        repaired_model=model, collinear_groups=design.groups, max_variance_inflation=design.max_vif, signals=sig)
+        repaired_model=model, collinear_groups=design.groups, max_variance_inflation=design.max_vif, signals=sig,
+        regressions=regressions)
