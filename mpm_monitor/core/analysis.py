@@ -186,9 +186,10 @@ class AnalysisReport:
     repair_result : RepairResult or None
         The repair's full result (None without repair).
     regressions : object or None
-        The tests' least-squares problems (kept by :func:`detect` for a detection of another model on
-        the same data, ``detect(..., previous=report)``; None in what
-        :func:`~mpm_monitor.core.pipeline.analyze` returns).
+        The row test's part of the tests' least-squares problems, when :func:`detect` built them
+        (:meth:`~mpm_monitor.core.regressions.GramRegressions.row_test_part`), for a detection of
+        another model on the same data (``detect(..., previous=report)``); None in what
+        :func:`~mpm_monitor.core.pipeline.analyze` returns.
     """
 
     sample_time: float
@@ -401,4 +402,4 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         frequencies=row_test.frequencies, row_gains=row_test.row_gains, sigma_max=row_test.sigma_max,
         sdelta_response=row_test.response, arx_tables=element_test.arx_tables, repair=unrepaired,
         repaired_model=model, collinear_groups=design.groups, max_variance_inflation=design.max_vif, signals=sig,
-        regressions=regressions)
+        regressions=regressions.row_test_part() if getattr(regressions, "batch", False) else None)

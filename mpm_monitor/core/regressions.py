@@ -800,6 +800,16 @@ class GramRegressions:
         self._row_fits = {}          # (id of the regression, output) -> its row fit
         self._previous, self._same_rows = None, frozenset()
 
+    def row_test_part(self) -> "GramRegressions":
+        """A copy with only what :meth:`reuse_rows_of` reads from it (the setpoints, ``z``, the row
+        test's regressions and fits): kept for the detection after a repair without the Gram matrices."""
+        out = object.__new__(GramRegressions)
+        out.__dict__.update(batch=self.batch, layout=self.layout, na=self.na, nb=self.nb,
+                            max_condition=self.max_condition, r=self.r, z=self.z, fallbacks=list(self.fallbacks),
+                            _row_regs=dict(self._row_regs), _row_fits=dict(self._row_fits),
+                            _previous=self._previous, _same_rows=self._same_rows)
+        return out
+
     def reuse_rows_of(self, other: "GramRegressions") -> None:
         """Take the S_Delta row test's regression and fits from ``other`` where they are the same numbers.
 
