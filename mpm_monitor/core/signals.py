@@ -222,7 +222,8 @@ def compute_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
     r, u, y = (np.asarray(a, dtype=float) for a in (r, u, y))
     if model.n_disturbances or dv is not None:
         dv = check_disturbance_signal(dv, model.n_disturbances, u.shape[0])
-    if like is not None and like[1].initial_state == initial_state and _rows_reusable(model, like[0], u.shape[0]):
+    if (like is not None and like[1].initial_state == initial_state and np.shape(like[1].d) == y.shape
+            and _rows_reusable(model, like[0], u.shape[0])):
         rows = changed_rows(model, like[0])
         sig = like[1]
         part = _row_signals(model, r[:, rows], u, y[:, rows], initial_state, dv, rows)
