@@ -188,13 +188,12 @@ def _cmd_analyze(args) -> int:
     except (np.linalg.LinAlgError, FloatingPointError, OverflowError) as exc:  # backstop of check_scale
         raise InputError(f"{data.source}: the analysis broke down numerically with model {args.model} "
                          f"({_one_line(exc)}): values or model parameters too large or degenerate?") from None
-    doc = report.to_dict()
     if args.json_out == "-":
-        json.dump(doc, sys.stdout, indent=2)
+        json.dump(report.to_dict(), sys.stdout, indent=2)
         sys.stdout.write("\n")
     else:
         if args.json_out:
-            Path(args.json_out).write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+            Path(args.json_out).write_text(json.dumps(report.to_dict(), indent=2) + "\n", encoding="utf-8")
         print(report.summary_text())
     if args.repair_out:
         save_model(report.repaired_model, args.repair_out)

@@ -197,6 +197,11 @@ class AnalysisReport:
     gaps : dict or None
         Data with gaps: :meth:`mpm_monitor.core.gaps.GapPlan.to_dict` (the JSON ``gaps`` object);
         None without a gap.
+    regressions : object or None
+        The row test's part of the tests' least-squares problems, when :func:`detect` built them
+        (:meth:`~mpm_monitor.core.regressions.GramRegressions.row_test_part`), for a detection of
+        another model on the same data (``detect(..., previous=report)``); None in what
+        :func:`~mpm_monitor.core.pipeline.analyze` returns.
     """
 
     sample_time: float
@@ -219,6 +224,7 @@ class AnalysisReport:
     signals: Optional[LoopSignals] = None
     repair_result: object = None
     gaps: Optional[dict] = None
+    regressions: object = dataclasses.field(default=None, compare=False, repr=False)
 
     @property
     def flagged_rows(self) -> list:
@@ -302,7 +308,8 @@ def _column_label(e) -> str:
 
 
 def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
-           signals: Optional[LoopSignals] = None, regressions=None) -> AnalysisReport:
+           signals: Optional[LoopSignals] = None, regressions=None,
+           previous: Optional["AnalysisReport"] = None) -> AnalysisReport:
     """Run the S_Delta row test and the Delta element test on logged closed-loop data (no repair).
 
     Parameters
@@ -326,6 +333,11 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         matrices of the window's lagged signals, each regression whose condition bound exceeds
         1e3 (or whose residual is too small a part of its target) refitted by QR; the results equal
         those of :class:`~mpm_monitor.core.regressions.QrRegressions` to about 1e-10.
+    previous : AnalysisReport, optional
+        The detection of another model on the same data (before a repair): with the default
+        regressions, the S_Delta row test takes from it the setpoint block and the fits of the rows
+        whose prediction error is the same (the same numbers,
+        :meth:`~mpm_monitor.core.regressions.GramRegressions.reuse_rows_of`).
 
     Returns
     -------
@@ -375,6 +387,8 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     if regressions is None and plan is None:
         z = sig.eps - r   # = -d: zero-mean noise under "no mismatch"
         regressions = window_regressions(r, columns, z, sig.d, layout, options.na, options.nb)
+        if previous is not None and previous.regressions is not None:
+            regressions.reuse_rows_of(previous.regressions)
     elif regressions is None:
         # Each segment's d centred on its own (its level restarts with its model output).
         d = np.vstack([sig.d[a:b] - sig.d[a:b].mean(axis=0) for a, b in plan.local_segments])
@@ -425,7 +439,8 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         frequencies=row_test.frequencies, row_gains=row_test.row_gains, sigma_max=row_test.sigma_max,
         sdelta_response=row_test.response, arx_tables=element_test.arx_tables, repair=unrepaired,
         repaired_model=model, collinear_groups=design.groups, max_variance_inflation=design.max_vif, signals=sig,
-        gaps=None if plan is None else plan.to_dict())
+        gaps=None if plan is None else plan.to_dict(),
+        regressions=regressions.row_test_part() if getattr(regressions, "batch", False) else None)
 
 
 def check_gap_rows(plan, layout, options, src: str) -> None:

@@ -82,6 +82,16 @@ def _split(el) -> tuple:
     return d, m, rest[:int(nz[-1]) + 1], den
 
 
+def _split_of(model: PlantModel, i: int, j: int) -> tuple:
+    """:func:`_split` of element (i, j), kept with the model's sampled elements (a copy of the model
+    with another element changed keeps it, see :meth:`PlantModel.with_element`)."""
+    cache = model._elements
+    key = ("split", i, j)
+    if key not in cache:
+        cache[key] = _split(model.discrete_element(i, j))
+    return cache[key]
+
+
 @dataclasses.dataclass(frozen=True)
 class DiscreteElements:
     """The model's elements in the split form of the module docstring.
@@ -236,7 +246,7 @@ def discretize(model: PlantModel) -> DiscreteElements:
             row_el, row_b, row_a = [], [], []
             for j in range(nc):
                 el = model.discrete_element(i, j)
-                d[i, j], mij, b, a = _split(el)
+                d[i, j], mij, b, a = _split_of(model, i, j)
                 active[i, j] = b is not None
                 m[i, j] = mij if b is not None else 0
                 row_el.append(el)

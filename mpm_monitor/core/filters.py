@@ -78,7 +78,7 @@ def lfilter(b, a, x, axis: int = -1, zi=None):
         state = state.reshape(order, x2.shape[1])
         k = min(order, n)
         y[:k] += state[:k]
-    if a.size > 1 and n:
+    if a.size > 1 and y.size:          # LAPACK is never handed an empty right-hand side (it corrupts the heap)
         y = _recursive(a, y)
     out = np.moveaxis(y.reshape((n,) + shape), 0, axis)
     if x.ndim == 0:

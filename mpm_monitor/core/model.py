@@ -137,7 +137,7 @@ class PlantModel:
             arr.setflags(write=False)
             object.__setattr__(self, key, arr)
         validate_model(self)
-        object.__setattr__(self, "_elements", {})
+        object.__setattr__(self, "_elements", {})        # sampled forms of the elements, by (i, j)
         object.__setattr__(self, "_derived", {})        # forms computed from the elements (discretize)
 
     @classmethod
@@ -257,8 +257,14 @@ class PlantModel:
         """Return a copy in which element (i, j) has new parameters (None keeps the old one).
 
         A step-response model takes ``step_response`` (N coefficients) only; a parametric model the
-        parametric keys.
+        parametric keys.  The copy keeps the sampled forms of the other elements
+        (:meth:`discrete_element`), which depend on their own parameters only.
         """
+        out = self._with_element(i, j, gain, time_constant, delay, lead, time_constant2, integrating, step_response)
+        out._elements.update((key, v) for key, v in self._elements.items() if key[-2:] != (i, j))
+        return out
+
+    def _with_element(self, i, j, gain, time_constant, delay, lead, time_constant2, integrating, step_response):
         if self.step_response is not None:
             if any(v is not None for v in (gain, time_constant, delay, lead, time_constant2, integrating)):
                 raise ValueError("a step-response model's element is changed through its step_response")

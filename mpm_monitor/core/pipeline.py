@@ -59,7 +59,7 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
     """
     report = detect(model, data, options, signals=signals, regressions=regressions)
     if not options.repair:
-        return report
+        return dataclasses.replace(report, regressions=None)
     columns = model.columns
     located = [(model.outputs.index(e.output), columns.index(e.input)) for e in report.elements if e.mismatch]
     span, note = repair_data(data, report.gaps is not None)
@@ -72,14 +72,14 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
     doc = result.to_dict()
     if result.model != model:
         after = detect(result.model, data, dataclasses.replace(options, repair=False, test_all_rows=False),
-                       signals=result.signals if span is data else None)
+                       signals=result.signals if span is data else None, previous=report)
         doc["rsi_after"] = {r.output: r.rsi for r in after.rows}
         doc["rows_flagged_after"] = after.flagged_rows
     kinds = getattr(result, "kinds", {})
     for e in report.elements:
         if e.mismatch:
             e.kind = kinds.get((model.outputs.index(e.output), columns.index(e.input)), "unknown")
-    return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result)
+    return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result, regressions=None)
 
 
 def repair_data(data: LoggedData, gappy: bool) -> tuple:

@@ -812,6 +812,37 @@ class GramRegressions:
         self._qr = None
         self._qr_regs = {}
         self.fallbacks = []          # names of the regressions refitted by QR
+        self.batch = False           # built at once from the window's signals (window_regressions)
+        self._row_regs = {}          # channels -> the row test's regression
+        self._row_fits = {}          # (id of the regression, output) -> its row fit
+        self._previous, self._same_rows = None, frozenset()
+
+    def row_test_part(self) -> "GramRegressions":
+        """A copy with only what :meth:`reuse_rows_of` reads from it (the setpoints, ``z``, the row
+        test's regressions and fits): kept for the detection after a repair without the Gram matrices."""
+        out = object.__new__(GramRegressions)
+        out.__dict__.update(batch=self.batch, layout=self.layout, na=self.na, nb=self.nb,
+                            max_condition=self.max_condition, r=self.r, z=self.z, fallbacks=list(self.fallbacks),
+                            _row_regs=dict(self._row_regs), _row_fits=dict(self._row_fits),
+                            _previous=self._previous, _same_rows=self._same_rows)
+        return out
+
+    def reuse_rows_of(self, other: "GramRegressions") -> None:
+        """Take the S_Delta row test's regression and fits from ``other`` where they are the same numbers.
+
+        ``other``: the regressions of the same window with another model (the detection before a
+        repair).  Both must be built by :func:`window_regressions` with the same layout and orders
+        from the same setpoints; then the setpoint block is the same, and so is the row fit of every
+        output whose ``z`` column is the same.  Otherwise nothing is taken.
+        """
+        if not (isinstance(other, GramRegressions) and self.batch and other.batch
+                and (self.layout, self.na, self.nb, self.max_condition)
+                == (other.layout, other.na, other.nb, other.max_condition)
+                and self.r.shape == other.r.shape and self.z.shape == other.z.shape
+                and np.array_equal(self.r, other.r)):
+            return
+        self._previous = other
+        self._same_rows = frozenset(i for i in range(self.z.shape[1]) if np.array_equal(self.z[:, i], other.z[:, i]))
 
     # -------------------------------------------------------------- helpers
     @property
@@ -872,11 +903,31 @@ class GramRegressions:
     # -------------------------------------------------------------- the QrRegressions interface
     def row_regression(self, r_moving: list) -> SharedBlockRegression:
         """Setpoint lags of the moving setpoints (S_Delta row test)."""
-        return self._regression("row", list(r_moving))
+        key = tuple(int(c) for c in r_moving)
+        if key not in self._row_regs:
+            prev = self._previous
+            if prev is not None and key in prev._row_regs:
+                self._row_regs[key] = prev._row_regs[key]
+                self.fallbacks += [f for f in prev.fallbacks if f == "row regression"]
+            else:
+                self._row_regs[key] = self._regression("row", list(key))
+        return self._row_regs[key]
 
     def row_fit(self, reg, i: int):
         """ARX of ``z_i`` on the setpoints and its own lags."""
-        return self._fit("row", reg, i)
+        key = (id(reg), int(i))
+        if key in self._row_fits:
+            return self._row_fits[key][1]
+        prev = self._previous
+        if prev is not None and i in self._same_rows and key in prev._row_fits:
+            return prev._row_fits[key][1]
+        fit = self._fit("row", reg, i)
+        if isinstance(fit, GramFit):
+            # Kept for a detection of another model on this window (reuse_rows_of), without its
+            # assembled inverse factor (p x p; the row test does not read it, rinv assembles it again).
+            fit._rinv = None
+            self._row_fits[key] = (reg, fit)
+        return fit
 
     def input_regression(self, testable: list) -> SharedBlockRegression:
         """Input lags of the inputs ``testable`` (Delta element test)."""
@@ -961,6 +1012,7 @@ def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
     input_gram = LaggedGram([("u", nu, range(1, layout.n_lag_u + 1)), ("d", ny, range(0, na + 1))], signals)
     regs = GramRegressions(row_gram, input_gram, r, u, z, d, layout, na, nb, max_condition, segments)
     if segments is None:
+        regs.batch = True
         start = min(layout.start, n)
         row_gram.rebuild(buf, start, n, regs.row_means)
         input_gram.rebuild(buf, start, n, regs.input_means)

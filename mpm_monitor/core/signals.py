@@ -35,6 +35,7 @@ is located.
 from __future__ import annotations
 
 import dataclasses
+from typing import Optional
 
 import numpy as np
 
@@ -65,31 +66,39 @@ class LoopSignals:
         Controller input ``r - d``.
     transient : ndarray, shape (n_samples, n_outputs)
         The initial-state transient added to ``Phat u`` (zeros when none was significant).
+    initial_state : str or None
+        The ``initial_state`` of :func:`compute_signals` when it computed them from the data alone
+        (None for signals from elsewhere, e.g. a model run continuously since before the window).
     """
 
     yhat: np.ndarray
     d: np.ndarray
     eps: np.ndarray
     transient: np.ndarray
+    initial_state: Optional[str] = dataclasses.field(default=None, compare=False)
 
 
-def initial_transient(model: PlantModel, d0: np.ndarray, level: float = TRANSIENT_TEST_LEVEL) -> np.ndarray:
+def initial_transient(model: PlantModel, d0: np.ndarray, level: float = TRANSIENT_TEST_LEVEL,
+                      rows=None) -> np.ndarray:
     """Per-row least-squares estimate of the free response hidden in ``d0`` (see module docstring).
 
     Parameters
     ----------
     model : PlantModel
-    d0 : ndarray, shape (n_samples, n_outputs)
+    d0 : ndarray, shape (n_samples, n_outputs) (or (n_samples, len(rows)))
         Prediction error of the model simulated from rest.
     level : float
         Significance level below which a row's transient is kept.
+    rows : sequence of int, optional
+        The outputs of the columns of ``d0`` (default: all of them, in order).
 
     Returns
     -------
-    ndarray, shape (n_samples, n_outputs)
+    ndarray, shape of ``d0``
         The transient to add to the model output (zero for rows where it is not significant).
     """
-    n, ny = d0.shape
+    n = d0.shape[0]
+    rows = range(model.n_outputs) if rows is None else rows
     disc = discretize(model)
     lag = disc.memory
     span = min(n - lag, max(settling_samples(model), 50))
@@ -97,7 +106,7 @@ def initial_transient(model: PlantModel, d0: np.ndarray, level: float = TRANSIEN
     if span < 20:
         return out
     k = np.arange(n - lag)
-    for i in range(ny):
+    for c, i in enumerate(rows):
         lag_poles = disc.lag_poles(i)
         if not lag_poles:
             continue
@@ -105,11 +114,11 @@ def initial_transient(model: PlantModel, d0: np.ndarray, level: float = TRANSIEN
         powers = [q for p, mult in lag_poles.items() for q in range(1, mult)]
         repeated = np.array([p for p, mult in lag_poles.items() for _ in range(1, mult)])
         basis = free_responses(poles, repeated, powers, k[:span])     # (span, n_basis); all n - lag rows if kept
-        seg = d0[lag:lag + span, i]
+        seg = d0[lag:lag + span, c]
         # Decision: F test of the free responses after whitening by an AR(2) noise model fitted on
         # the rest of the record (where no transient is left), so the coloured disturbance (the
         # paper's v is AR(1) with pole 0.95) does not pass for a transient.
-        rest = d0[lag + span:, i] if n - lag - span >= 200 else d0[lag:, i]
+        rest = d0[lag + span:, c] if n - lag - span >= 200 else d0[lag:, c]
         phi = least_squares_ar(rest - rest.mean(), 2) if rest.shape[0] >= 10 else np.zeros(2)
         white = lambda x: x[2:] - phi[0] * x[1:-1] - phi[1] * x[:-2]  # noqa: E731
         target = white(seg - seg.mean())
@@ -123,7 +132,7 @@ def initial_transient(model: PlantModel, d0: np.ndarray, level: float = TRANSIEN
             # Amplitudes from the plain least-squares fit (unbiased under coloured noise).
             X = basis - basis.mean(axis=0)
             coef, *_ = np.linalg.lstsq(X, seg - seg.mean(), rcond=1e-10)
-            out[lag:, i] = free_responses(poles, repeated, powers, k) @ coef
+            out[lag:, c] = free_responses(poles, repeated, powers, k) @ coef
     return out
 
 
@@ -151,8 +160,34 @@ def free_responses(poles: np.ndarray, repeated: np.ndarray, powers: list, k: np.
     return np.hstack([basis, kf ** np.array(powers)[None, :] * repeated[None, :] ** k[:, None]])
 
 
+def changed_rows(model: PlantModel, other: PlantModel) -> list:
+    """Outputs whose elements differ between ``model`` and ``other`` (two models of the same columns)."""
+    if model.is_step_response != other.is_step_response:
+        return list(range(model.n_outputs))
+    if model.is_step_response:
+        same = np.all(model.step_response == other.step_response, axis=(1, 2)) & (np.array(model.ramp) == other.ramp)
+    else:
+        same = np.ones(model.n_outputs, dtype=bool)
+        for key in ("gain", "time_constant", "delay", "lead", "time_constant2", "integrating"):
+            same &= np.all(getattr(model, key) == getattr(other, key), axis=1)
+    return [int(i) for i in np.flatnonzero(~same)]
+
+
+def _rows_reusable(model: PlantModel, other: PlantModel, n: int) -> bool:
+    """Whether the signals of ``other`` hold those of ``model`` on the rows where their elements agree:
+    same outputs and columns, the same whole-model spans of the initial transient (memory and
+    settling), and no direct feed-through (summed over all rows at once)."""
+    if (model.outputs, model.columns, model.sample_time) != (other.outputs, other.columns, other.sample_time):
+        return False
+    disc, disc_o = discretize(model), discretize(other)
+    if not (disc.strictly_proper and disc_o.strictly_proper) or disc.memory != disc_o.memory:
+        return False
+    return min(n - disc.memory, max(settling_samples(model), 50)) == \
+        min(n - disc_o.memory, max(settling_samples(other), 50))
+
+
 def compute_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarray,
-                    initial_state: str = "estimate", dv: np.ndarray = None) -> LoopSignals:
+                    initial_state: str = "estimate", dv: np.ndarray = None, *, like=None) -> LoopSignals:
     """Recompute ``yhat``, ``d`` and ``eps`` from logged data.
 
     Parameters
@@ -167,6 +202,11 @@ def compute_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
         How to start the model (see the module docstring).
     dv : ndarray, shape (n_samples, n_disturbances), optional
         Measured disturbances, required when the model has some.
+    like : tuple (PlantModel, LoopSignals), optional
+        Another model and its signals, computed by this function from the same data: when they were
+        computed with the same ``initial_state`` and the whole-model spans of the initial transient
+        agree, the rows where the other model's elements equal ``model``'s are taken from them (the
+        same numbers) and only the others are computed; otherwise every row is computed.
 
     Returns
     -------
@@ -182,13 +222,28 @@ def compute_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
     r, u, y = (np.asarray(a, dtype=float) for a in (r, u, y))
     if model.n_disturbances or dv is not None:
         dv = check_disturbance_signal(dv, model.n_disturbances, u.shape[0])
-    yhat = simulate_elements(model, model_columns(u, dv))
+    if (like is not None and like[1].initial_state == initial_state and np.shape(like[1].d) == y.shape
+            and _rows_reusable(model, like[0], u.shape[0])):
+        rows = changed_rows(model, like[0])
+        sig = like[1]
+        part = _row_signals(model, r[:, rows], u, y[:, rows], initial_state, dv, rows)
+        out = LoopSignals(*(np.array(getattr(sig, key), dtype=float) for key in ("yhat", "d", "eps", "transient")),
+                          initial_state=initial_state)
+        for key in ("yhat", "d", "eps", "transient"):
+            getattr(out, key)[:, rows] = getattr(part, key)
+        return out
+    return _row_signals(model, r, u, y, initial_state, dv, None)
+
+
+def _row_signals(model, r, u, y, initial_state, dv, rows) -> LoopSignals:
+    """:func:`compute_signals` of the outputs ``rows`` (all when None); ``r``, ``y`` of those rows."""
+    yhat = simulate_elements(model, model_columns(u, dv), rows=rows)
     transient = np.zeros_like(yhat)
     if initial_state == "estimate" and u.shape[0] > 1:
-        transient = initial_transient(model, y - yhat)
+        transient = initial_transient(model, y - yhat, rows=rows)
         yhat = yhat + transient
     d = y - yhat
-    return LoopSignals(yhat=yhat, d=d, eps=r - d, transient=transient)
+    return LoopSignals(yhat=yhat, d=d, eps=r - d, transient=transient, initial_state=initial_state)
 
 
 def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarray, segments,

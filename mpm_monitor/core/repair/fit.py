@@ -99,6 +99,9 @@ class _RowProblem:
         like the output, so that the disturbance is never absorbed by an element.
     sample_time : float
         Seconds per sample (to sample the forms other than first order).
+    shared : dict, optional
+        Arrays that depend only on the cost window and the poles (the free responses ``a^k``), kept
+        across the problems of one row (:class:`~mpm_monitor.core.repair.row._RowData`).
 
     Notes
     -----
@@ -106,10 +109,17 @@ class _RowProblem:
     noise model.  For ``k >= p``, ``A(q) a^k = A(1/a) a^k``: a free response stays a free response
     with another (free) coefficient, and the cost window starts at ``skip + p``.  An integrator's free
     response is a constant, held in the offset.
+
+    The search evaluates the cost many times with most of its parts unchanged: the free responses
+    ``a^k`` (``k a^k``) of a pole and the unit responses of an element (for its poles, its lag and the
+    noise model) are computed once and reused -- the same numbers: nothing is approximated.
     """
 
+    #: Unit responses kept (the most recent), each ``n_fit - start`` floats.
+    UNIT_CACHE_SIZE = 64
+
     def __init__(self, z, u, specs, n_fit, skip, fixed_poles, free_response, noise_order, extra=None,
-                 sample_time=1.0):
+                 sample_time=1.0, shared=None):
         self.z = np.asarray(z, float)[:n_fit]
         self.extra = None if extra is None else np.asarray(extra, float).reshape(len(z), -1)[:n_fit]
         self.u = np.asarray(u, float)[:n_fit]
@@ -124,11 +134,13 @@ class _RowProblem:
             raise _TooShort(f"{self.n_fit} samples are too few for input lags up to {skip} samples "
                             f"(at least {needed} beyond them needed)")
         self.kw = np.arange(self.start, self.n_fit, dtype=float)
+        self._powers = {} if shared is None else shared.setdefault(("powers", self.start, self.n_fit), {})
+        self._unit_cache = {}
         cols = [np.ones_like(self.kw)]
         if self.free:
             for a, mult in sorted(dict(fixed_poles).items()):
                 if 0 < a < 1 and a ** self.start > 1e-12:
-                    cols.extend(self.kw ** q * a ** self.kw if q else a ** self.kw for q in range(mult))
+                    cols.extend(self.kw ** q * self._power(a) if q else self._power(a) for q in range(mult))
         self.fixed_cols = np.column_stack(cols)
         # Where each element's poles and linear coefficients sit in the flat vectors of the fit.
         self.slices, self.linear_index = [], []
@@ -147,16 +159,35 @@ class _RowProblem:
     def n_located(self) -> int:
         return len(self.specs)
 
+    def _power(self, a: float) -> np.ndarray:
+        """``a^k`` over the cost window (a free response), computed once per pole."""
+        key = float(a)
+        col = self._powers.get(key)
+        if col is None:
+            col = self._powers[key] = a ** self.kw
+        return col
+
+    def _power_ramp(self, a: float) -> np.ndarray:
+        """``k a^k`` over the cost window (the free response of a repeated pole), computed once per pole."""
+        key = ("ramp", float(a))
+        col = self._powers.get(key)
+        if col is None:
+            col = self._powers[key] = self.kw * self._power(a)
+        return col
+
+    def _filtered(self, ar):
+        """``A(q) z`` and ``A(q) u`` for the noise model ``ar``."""
+        if not self.p:
+            return self.z, self.u
+        num = np.concatenate([[1.0], ar])
+        return lfilter(num, [1.0], self.z), lfilter(num, [1.0], self.u, axis=0)
+
     def set_ar(self, ar) -> None:
         """Use the noise model ``A(q) = 1 + ar_1 q^-1 + ... + ar_p q^-p``."""
         self.ar = np.asarray(ar, float).copy()
-        if self.p:
-            num = np.concatenate([[1.0], self.ar])
-            self.zf = lfilter(num, [1.0], self.z)
-            self.uf = lfilter(num, [1.0], self.u, axis=0)
-        else:
-            self.zf, self.uf = self.z, self.u
+        self.zf, self.uf = self._filtered(self.ar)
         self.xf = None if self.extra is None else self._filtered_extra(self.ar)
+        self._unit_cache.clear()
 
     def _filtered_extra(self, ar):
         if self.p == 0:
@@ -181,11 +212,22 @@ class _RowProblem:
             cols.append(lfilter(num_b, den, x)[self.start - lag:])
         return cols
 
-    def _element_columns(self, src, m, poles, lag):
-        """``(known, columns)`` of element ``m``: its response with the held coefficients (None
-        when none is held), and the columns of its free linear coefficients (:attr:`_ElementSpec.linear`)."""
+    def _cached_units(self, filtered: bool, m, poles, lag):
+        """:meth:`_units` of the prefiltered (``uf``) or raw (``u``) columns, kept for reuse."""
+        key = (filtered, m, poles[self.slices[m]].tobytes(), int(lag))
+        cols = self._unit_cache.get(key)
+        if cols is None:
+            cols = self._units(self.uf if filtered else self.u, m, poles, lag)
+            if len(self._unit_cache) >= self.UNIT_CACHE_SIZE:
+                del self._unit_cache[next(iter(self._unit_cache))]
+            self._unit_cache[key] = cols
+        return cols
+
+    def _element_columns(self, units, m):
+        """``(known, columns)`` of element ``m`` from its unit responses ``units`` (:meth:`_units`):
+        its response with the held coefficients (None when none is held), and the columns of its free
+        linear coefficients (:attr:`_ElementSpec.linear`)."""
         spec = self.specs[m]
-        units = self._units(src, m, poles, lag)
         linear = spec.linear
         if len(units) == 1:
             return (None, units) if linear else (spec.gain * units[0], [])
@@ -205,14 +247,14 @@ class _RowProblem:
             own = poles[self.slices[m]]
             for q, a in enumerate(own):
                 repeated = q > 0 and abs(a - own[q - 1]) < REPEATED_POLE_TOLERANCE
-                cols.append(self.kw * a ** self.kw if repeated else a ** self.kw)
+                cols.append(self._power_ramp(a) if repeated else self._power(a))
         return np.column_stack(cols) if cols else np.zeros((self.kw.shape[0], 0))
 
-    def _design(self, poles, lags, src, filtered=True):
+    def _design(self, poles, lags, filtered=True):
         known = np.zeros(self.kw.shape[0])
         gcols = []
         for m in range(self.n_located):
-            held, cols = self._element_columns(src, m, poles, lags[m])
+            held, cols = self._element_columns(self._cached_units(filtered, m, poles, lags[m]), m)
             if held is not None:
                 known += held
             gcols.extend(cols)
@@ -234,7 +276,7 @@ class _RowProblem:
 
     def projected(self, poles, lags):
         """Prefiltered residual with the linear parameters eliminated, and those parameters."""
-        known, phi = self._design(poles, lags, self.uf)
+        known, phi = self._design(poles, lags)
         target = self.zf[self.start:] - known
         beta = self._solve(phi, target)
         return target - phi @ beta, beta
@@ -283,36 +325,50 @@ class _RowProblem:
         """Re-estimate ``A(q)`` by least squares on the unfiltered output error of ``fit``."""
         if self.p == 0:
             return
-        known, phi = self._design(fit.poles, fit.lags, self.u, filtered=False)
+        known, phi = self._design(fit.poles, fit.lags, filtered=False)
         nl = self.n_linear
         r = self.z[self.start:] - known - phi[:, :nl] @ fit.coefs
         nuis = phi[:, nl:]
         r = r - nuis @ self._solve(nuis, r)
         self.set_ar(-least_squares_ar(r, self.p))
 
-    def full_residual(self, theta, lags):
-        """Prefiltered residual as a function of ``[free linear coefficients, free poles, ar, nuisance]``."""
+    def full_residual(self, theta, lags, memo=None):
+        """Prefiltered residual as a function of ``[free linear coefficients, free poles, ar, nuisance]``.
+
+        ``memo`` (a dict) keeps the parts that depend only on the noise model and the poles, for a
+        sequence of calls that change one parameter at a time (the finite differences of
+        :meth:`covariance`).
+        """
+        memo = {} if memo is None else memo
         nl, npf = self.n_linear, len(self.pole_free_idx)
         coefs = theta[:nl]
         poles = self.poles_from(theta[nl:nl + npf])
         ar = theta[nl + npf:nl + npf + self.p]
         nuis = theta[nl + npf + self.p:]
-        num = np.concatenate([[1.0], ar])
-        zf = lfilter(num, [1.0], self.z)[self.start:]
-        uf = lfilter(num, [1.0], self.u, axis=0)
+        ar_key = ar.tobytes()
+        if ("filtered", ar_key) not in memo:
+            zf, uf = self._filtered(ar)
+            memo[("filtered", ar_key)] = zf[self.start:], uf
+        zf, uf = memo[("filtered", ar_key)]
         out = zf.copy()
         for m in range(self.n_located):
-            held, cols = self._element_columns(uf, m, poles, lags[m])
+            key = ("units", ar_key, m, poles[self.slices[m]].tobytes(), int(lags[m]))
+            if key not in memo:
+                memo[key] = self._units(uf, m, poles, lags[m])
+            held, cols = self._element_columns(memo[key], m)
             if held is not None:
                 out -= held
             for k, col in zip(self.linear_index[m], cols):
                 out -= coefs[k] * col
-        cols = [self.fixed_cols]
-        if self.free:
-            cols.append(self._free_responses(poles))
-        if self.extra is not None:
-            cols.append(self._filtered_extra(ar))
-        return out - np.column_stack(cols) @ nuis
+        key = ("nuisance", ar_key, poles.tobytes())
+        if key not in memo:
+            cols = [self.fixed_cols]
+            if self.free:
+                cols.append(self._free_responses(poles))
+            if self.extra is not None:
+                cols.append(self._filtered_extra(ar))
+            memo[key] = np.column_stack(cols)
+        return out - memo[key] @ nuis
 
     def covariance(self, fit: _Fit):
         """Covariance of the free linear coefficients and poles from the Jacobian of the full residual.
@@ -327,7 +383,8 @@ class _RowProblem:
         """
         nl, npf = self.n_linear, len(self.pole_free_idx)
         theta = np.concatenate([fit.coefs, fit.poles[self.pole_free_idx], self.ar, fit.nuisance])
-        r0 = self.full_residual(theta, fit.lags)
+        memo = {}
+        r0 = self.full_residual(theta, fit.lags, memo)
         jac = np.empty((r0.shape[0], theta.shape[0]))
         for m in range(theta.shape[0]):
             h = 1e-6 * max(1e-2, abs(theta[m]))
@@ -336,7 +393,7 @@ class _RowProblem:
             tp, tm = theta.copy(), theta.copy()
             tp[m] += h
             tm[m] -= h
-            jac[:, m] = (self.full_residual(tp, fit.lags) - self.full_residual(tm, fit.lags)) / (2 * h)
+            jac[:, m] = (self.full_residual(tp, fit.lags, memo) - self.full_residual(tm, fit.lags, memo)) / (2 * h)
         dof = max(r0.shape[0] - theta.shape[0], 1)
         s2 = float(r0 @ r0) / dof
         scale = np.sqrt(np.sum(jac ** 2, axis=0))

@@ -140,9 +140,10 @@ class _Record:
         return self.n - self.n_fit
 
     def signals_of(self, model: PlantModel) -> LoopSignals:
-        """:func:`compute_signals` of ``model`` on the record."""
+        """:func:`compute_signals` of ``model`` on the record (the rows where it equals the model as
+        given taken from :attr:`signals`)."""
         return compute_signals(model, self.data.r, self.data.u, self.y, initial_state=self.options.initial_state,
-                               dv=self.data.dv)
+                               dv=self.data.dv, like=(self.model, self.signals))
 
 
 @dataclasses.dataclass

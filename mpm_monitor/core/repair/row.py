@@ -37,6 +37,9 @@ class _RowData:
         Output index of the row.
     extra : ndarray, shape (n_samples, n_extra), optional
         Nuisance regressors for an unexplained step or drift on the row (see :class:`_RowProblem`).
+    shared : dict
+        What every fit of the row computes alike, computed once: the row with its located elements
+        removed (:func:`_held_row`) and the free responses of the poles (see :class:`_RowProblem`).
     """
 
     model: PlantModel
@@ -44,6 +47,7 @@ class _RowData:
     y: np.ndarray
     i: int
     extra: Optional[np.ndarray] = None
+    shared: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
 
     @property
     def n_samples(self) -> int:
@@ -87,13 +91,42 @@ def _held_memory(model: PlantModel, i: int, j: int) -> int:
     return el.delay + int(np.flatnonzero(tail > _TAIL_FRACTION * tail[0])[-1]) + 1
 
 
+@dataclasses.dataclass(frozen=True)
+class _HeldRow:
+    """Row ``i`` with its located elements removed, the same for every fit of these elements.
+
+    Attributes
+    ----------
+    z : ndarray, shape (n_samples,)
+        The output minus the response of the row's other elements (held at the model's values), from rest.
+    lag_poles : dict
+        ``{pole: multiplicity}`` of the other elements' lags (:meth:`DiscreteElements.lag_poles`).
+    memories : list of int
+        :func:`_held_memory` of each other element.
+    """
+
+    z: np.ndarray
+    lag_poles: dict
+    memories: list
+
+
+def _held_row(row: _RowData, js: tuple) -> _HeldRow:
+    """:class:`_HeldRow` of ``row`` without the elements ``js``, computed once per row and ``js``."""
+    key = ("held", tuple(int(j) for j in js))
+    if key not in row.shared:
+        model, i = row.model, row.i
+        held = _without(model, i, js)
+        row.shared[key] = _HeldRow(
+            z=row.y[:, i] - _row_response(held, row.u, i), lag_poles=discretize(held).lag_poles(i),
+            memories=[_held_memory(held, i, j) for j in range(model.n_columns) if held.present[i, j]])
+    return row.shared[key]
+
+
 def _default_skip(row: _RowData, specs: dict) -> int:
     """Samples left out at the start of a fit of the located elements ``specs``: the largest input lag
     searched, or the longest memory of the row's held elements (:func:`_held_memory`), at least 1."""
-    model, i = row.model, row.i
-    held = _without(model, i, sorted(specs))
-    row_lags = [_held_memory(held, i, j) for j in range(model.n_columns) if held.present[i, j]]
-    return max([specs[j].window[1] for j in specs] + row_lags + [1])
+    memories = _held_row(row, tuple(sorted(specs))).memories
+    return max([specs[j].window[1] for j in specs] + memories + [1])
 
 
 def _estimate_row(row: _RowData, specs: dict, lags0: dict, n_use: int, options: RepairOptions, max_sweeps: int = 1,
@@ -112,15 +145,13 @@ def _estimate_row(row: _RowData, specs: dict, lags0: dict, n_use: int, options: 
     problem : _RowProblem
     est : _RowEstimate
     """
-    model, u, i = row.model, row.u, row.i
     js = sorted(specs)
-    held = _without(model, i, js)
-    z = row.y[:, i] - _row_response(held, u, i)
+    held = _held_row(row, tuple(js))
     if skip is None:
         skip = _default_skip(row, specs)
-    problem = _RowProblem(z, u[:, js], [specs[j] for j in js], n_use, skip, discretize(held).lag_poles(i),
+    problem = _RowProblem(held.z, row.u[:, js], [specs[j] for j in js], n_use, skip, held.lag_poles,
                           options.initial_state == "estimate", options.noise_order, row.extra,
-                          sample_time=model.sample_time)
+                          sample_time=row.model.sample_time, shared=row.shared)
     if ar0 is not None:
         problem.set_ar(ar0)
     est = _search_row(problem, [lags0[j] for j in js], max_sweeps, ar_iterations=3 if ar0 is None else 1,
