@@ -31,6 +31,7 @@ import numpy as np
 
 from .arx import BlockTest, SharedBlockRegression, estimate_delay_from_lags, lag_matrix
 from .baselines import ELEMENT_TESTS
+from .detectability import row_noise
 from .model import PlantModel
 from .statistics import N_FAMILIES, holm_adjust
 
@@ -58,6 +59,9 @@ class ElementResult:
         Estimated dead time of ``Delta_ij`` in samples.
     b : list of float
         ARX ``B_ij`` coefficients at that delay (``nb`` values).
+    detectable_gain_change : float or None
+        Smallest relative gain error of the element this window detects with probability 0.9
+        (:mod:`mpm_monitor.core.detectability`); None where it cannot be computed.
     """
 
     output: str
@@ -71,6 +75,7 @@ class ElementResult:
     ambiguous_with: tuple = ()
     delay: Optional[int] = None
     b: list = dataclasses.field(default_factory=list)
+    detectable_gain_change: Optional[float] = None
 
 
 @dataclasses.dataclass
@@ -116,12 +121,16 @@ class ElementTest:
         The ARX test only.
     warnings : list of str
         What limits the conclusions (the groups that explain a row; the baselines' warnings).
+    noise : dict
+        The ARX test only: output index -> :class:`~mpm_monitor.core.detectability.RowNoise` of its
+        fit (for the detectability).
     """
 
     elements: list
     arx_tables: list = dataclasses.field(default_factory=list)
     group_hits: list = dataclasses.field(default_factory=list)
     warnings: list = dataclasses.field(default_factory=list)
+    noise: dict = dataclasses.field(default_factory=dict)
 
 
 class InputDesign:
@@ -309,9 +318,10 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
     nb, alpha = options.nb, options.alpha
     nu = model.n_inputs
     testable, group_of = design.testable, design.group_of
-    estimates, tables, group_hits = {}, [], []
+    estimates, tables, group_hits, noise = {}, [], [], {}
     for i in rows:
         fit = regressions.element_fit(design.regression, i)
+        noise[i] = row_noise(fit)
         tests = fit.test_each_block_zero([element_window(model, i, j, nb, options.element_window) for j in testable])
         stds = fit.block_stds()
         for bj, j in enumerate(testable):
@@ -356,7 +366,7 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
                 delay=int(est.delay), b=est.b))
     warnings = [f"row {h.output}: inputs {', '.join(h.inputs)} jointly explain part of its prediction error "
                 f"(p={h.p_value:.2g}) but cannot be told apart from these data" for h in group_hits]
-    return ElementTest(elements=elements, arx_tables=tables, group_hits=group_hits, warnings=warnings)
+    return ElementTest(elements=elements, arx_tables=tables, group_hits=group_hits, warnings=warnings, noise=noise)
 
 
 def baseline_element_test(model: PlantModel, u: np.ndarray, d: np.ndarray, options) -> ElementTest:
