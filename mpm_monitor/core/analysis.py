@@ -25,7 +25,9 @@ from typing import Optional
 
 import numpy as np
 
+from .detectability import element_detectability
 from .element_test import InputDesign, arx_element_test, baseline_element_test
+from .experiment import Experiment, design_experiment
 from .errors import ConfigurationError, DataFileError
 from .logged_data import LoggedData, check_loop_data
 from .model import PlantModel
@@ -182,6 +184,9 @@ class AnalysisReport:
         ``yhat``, ``d`` and ``eps`` the tests used.
     repair_result : RepairResult or None
         The repair's full result (None without repair).
+    experiment : Experiment or None
+        The dither experiment that would resolve what this window cannot decide (ambiguous elements,
+        or no element decidable at 20 %), :mod:`mpm_monitor.core.experiment`; None when not needed.
     """
 
     sample_time: float
@@ -203,6 +208,7 @@ class AnalysisReport:
     max_variance_inflation: float
     signals: Optional[LoopSignals] = None
     repair_result: object = None
+    experiment: Optional[Experiment] = None
 
     @property
     def flagged_rows(self) -> list:
@@ -249,6 +255,7 @@ class AnalysisReport:
                              "groups": [list(g) for g in self.collinear_groups]},
             "arx_tables": [dataclasses.asdict(t) for t in self.arx_tables],
             "repair": self.repair,
+            "experiment": self.experiment.to_dict() if self.experiment is not None else None,
             "warnings": list(self.warnings),
         }
         return clean(doc)
@@ -345,6 +352,13 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         element_test = baseline_element_test(model, u, sig.d, options)
     warnings += element_test.warnings
     elements = element_test.elements
+    info = None
+    if options.method == "arx":
+        info, detectable, why = element_detectability(model, u, sig.d, design, element_test.noise, layout, options)
+        warnings += why
+        for e in elements:
+            e.detectable_gain_change = detectable.get((model.outputs.index(e.output), model.inputs.index(e.input)))
+    experiment = design_experiment(model, info, elements, options, layout)
 
     # A row in which an element is located is mismatched, even when its S_Delta test did not reject.
     for i in range(ny):
@@ -366,4 +380,5 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         elements=elements, overall_rsi=float(row_test.sigma_max.max()), warnings=warnings,
         frequencies=row_test.frequencies, row_gains=row_test.row_gains, sigma_max=row_test.sigma_max,
         sdelta_response=row_test.response, arx_tables=element_test.arx_tables, repair=unrepaired,
-        repaired_model=model, collinear_groups=design.groups, max_variance_inflation=design.max_vif, signals=sig)
+        repaired_model=model, collinear_groups=design.groups, max_variance_inflation=design.max_vif, signals=sig,
+        experiment=experiment)
