@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    .venv/bin/python -m bench.memory [--quick] [--out bench/results/memory.json]
+    .venv/bin/python -m bench.memory [--quick] [--tall] [--out bench/results/memory.json]
 
 For n x n plants and windows of W samples, :class:`mpm_monitor.core.sliding.SlidingWindowAnalyzer`
 is built and filled, and tracemalloc (which numpy reports its buffers to) gives
@@ -14,6 +14,9 @@ The held memory is fitted as ``a(n) + b(n) W`` per plant size; ``b / channels`` 
 ``channels = 3 n_outputs + n_inputs`` (r, u, y and the model output yhat are kept) is the figure in
 bytes per sample per channel, and ``a`` is the part that does not grow with the window (mostly the
 two Gram matrices, which grow with the square of the number of lagged regressors).
+
+``--tall`` adds industrial sizes, 50x50 and 100x40 (outputs x inputs), with a window of 10,000
+samples: one cell each (the analysis of a 100x40 window takes tens of seconds).
 """
 
 from __future__ import annotations
@@ -34,17 +37,25 @@ from .plants import random_plant
 OPTIONS = AnalysisOptions(repair=False, test_all_rows=True)
 
 
-def _plant(n: int):
-    return random_plant(n, n, np.random.default_rng(2000 + n))
+#: Industrial sizes of ``--tall`` (outputs, inputs) and their window.
+TALL_SIZES = ((50, 50), (100, 40))
+TALL_WINDOW = 10_000
 
 
-def measure_one(n: int, window: int, seed: int = 0) -> dict:
-    """Held and analysis-peak bytes of an n x n analyzer with a full window of ``window`` samples."""
-    model = _plant(n)
+def _plant(n: int, n_inputs=None):
+    nu = n if n_inputs is None else n_inputs
+    return random_plant(n, nu, np.random.default_rng(2000 + n if n_inputs is None else 2000 + 100 * n + nu))
+
+
+def measure_one(n: int, window: int, seed: int = 0, n_inputs=None) -> dict:
+    """Held and analysis-peak bytes of an analyzer of an ``n x n`` (or ``n x n_inputs``) plant with a
+    full window of ``window`` samples."""
+    nu = n if n_inputs is None else n_inputs
+    model = _plant(n, n_inputs)
     rng = np.random.default_rng(seed)
     total = window + 100
     r = np.where(rng.random((total, n)) < 0.5, 1.0, -1.0)
-    u = rng.standard_normal((total, n))
+    u = rng.standard_normal((total, nu))
     y = rng.standard_normal((total, n))
     tracemalloc.start()
     try:
@@ -61,8 +72,20 @@ def measure_one(n: int, window: int, seed: int = 0) -> dict:
         parts = an.memory_bytes()
     finally:
         tracemalloc.stop()
-    return {"n": n, "window": window, "channels": 3 * n + n, "held_bytes": int(held),
+    return {"n": n, "n_inputs": nu, "window": window, "channels": 3 * n + nu, "held_bytes": int(held),
             "analysis_peak_bytes": int(peak), "buffer_bytes": parts["buffer"], "gram_bytes": parts["gram"]}
+
+
+def measure_tall(log=print) -> list:
+    """One cell of :func:`measure_one` per industrial size (:data:`TALL_SIZES`, :data:`TALL_WINDOW`)."""
+    cells = []
+    for ny, nu in TALL_SIZES:
+        c = measure_one(ny, TALL_WINDOW, n_inputs=nu)
+        cells.append(c)
+        log(f"  {ny}x{nu}, W={TALL_WINDOW}: held {c['held_bytes'] / 2**20:.0f} MiB (Gram {c['gram_bytes'] / 2**20:.0f} MiB, "
+            f"buffer {c['buffer_bytes'] / 2**20:.0f} MiB); one analyze() peaks {c['analysis_peak_bytes'] / 2**20:.0f} MiB "
+            f"above that")
+    return cells
 
 
 def measure_memory(quick: bool = False, log=print) -> dict:
@@ -97,10 +120,13 @@ def measure_memory(quick: bool = False, log=print) -> dict:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.memory", description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--tall", action="store_true", help="also 50x50 and 100x40 with a window of 10,000")
     parser.add_argument("--out", default="bench/results/memory.json")
     args = parser.parse_args(argv)
     result = measure_memory(args.quick)
     print(result["summary"])
+    if args.tall:
+        result["tall"] = measure_tall()
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1, default=float) + "\n")

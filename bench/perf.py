@@ -48,6 +48,24 @@ and the batch closed-loop simulation speed (:func:`mpm_monitor.sim.closed_loop.r
 plant, no mismatch) for 3x3, 5x5, 10x10 and 20x20, steady samples per second (set-up of the MPC
 timed apart), plus the memory of the sliding window (:mod:`bench.memory`).
 
+Industrial size (``industrial``): a square 20x20 and 50x50 and a tall 100x40 plant
+(:func:`bench.plants.random_plant`), the controller model with three elements off (a gain 30 %,
+a delay 3 samples, a time constant 60 %), 10,000 samples of the closed loop.  Per size: the set-up
+and the step of the MPC and the plant and their memory, the closed loop's speed, the detection
+(:func:`mpm_monitor.core.analysis.detect`, no repair) and the whole analysis with the repair
+(:func:`mpm_monitor.core.pipeline.analyze`) with their time and peak memory (tracemalloc: numpy
+reports its buffers to it), what was located and repaired, and the live monitor's part: one
+sample into its window (:class:`mpm_monitor.monitor.monitor_core.MonitorCore`) and one analysis of
+its default window (3,000 samples, with the repair).
+
+The command as a user runs it (``command_line``): ``python -m mpm_monitor analyze --model M --data
+CSV`` on a 20x20 and a 100x40 log of 10,000 samples with one element off (a gain 30 %), which
+it locates and repairs, against the floor (a fresh interpreter that imports numpy and scipy.linalg
+and reads the same CSV with ``numpy.loadtxt``), run in turn, three times each after a warm-up; and
+``python -m mpm_monitor analyze --help`` against a bare ``python -c "import numpy"``, five times
+each.  Medians of the wall time and of the ratio pair by pair, and the largest resident memory of
+each process (``/usr/bin/time``).
+
 BLAS threads: ``--threads`` (default 1) sets ``OPENBLAS_NUM_THREADS`` / ``OMP_NUM_THREADS`` /
 ``MKL_NUM_THREADS`` before numpy is imported, unless they are already set; a multi-threaded BLAS on
 2 shared cores slowed small factorisations 100-fold under load in our measurements.
@@ -79,6 +97,7 @@ import dataclasses  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
 import statistics  # noqa: E402
+import subprocess  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -99,6 +118,12 @@ from .plants import random_plant  # noqa: E402
 TARGET_FULL_20X20_10K_S = 0.5
 TARGET_UPDATE_10X10_S = 1e-3
 TARGET_SIM_5X5_PER_S = 20_000
+#: Targets of the industrial-size issue: the command against its floor, --help against import numpy,
+#: the 100x40 command's time and memory.
+TARGET_COMMAND_OVER_FLOOR = 2.0
+TARGET_HELP_OVER_NUMPY = 2.0
+TARGET_100X40_S = 3.0
+TARGET_100X40_MIB = 1024.0
 
 OPTIONS = AnalysisOptions(repair=False, test_all_rows=True)
 
@@ -309,8 +334,8 @@ def bench_simulation(grid: Grid, seed: int = 0, log=print) -> list:
 
 
 # ----------------------------------------------------------------------------------------- report
-def targets(cells, sims) -> list:
-    """The issue's targets, each with the measured value and met / not met / not measured."""
+def targets(cells, sims, command_line=None, industrial=None) -> list:
+    """The issues' targets, each with the measured value and met / not met / not measured."""
     def cell(n, w):
         return next((c for c in cells if c.get("n") == n and c.get("window") == w and "batch_s" in c), None)
     out = []
@@ -333,6 +358,24 @@ def targets(cells, sims) -> list:
                 "measured": None if s5 is None else {"samples_per_s": s5["samples_per_s"]},
                 "met": None if s5 is None else s5["samples_per_s"] >= TARGET_SIM_5X5_PER_S,
                 "note": "steady rate, MPC set-up excluded"})
+    if command_line is not None:
+        c = command_line.get("20x20")
+        out.append({"target": "analyze end to end (20x20 x 10,000, with the repair) <= 2 x the floor",
+                    "measured": None if c is None else {"analyze_s": c["a_wall_s"], "floor_s": c["b_wall_s"],
+                                                        "ratio": c["ratio_median"]},
+                    "met": None if c is None else c["ratio_median"] <= TARGET_COMMAND_OVER_FLOOR,
+                    "note": "floor: a fresh interpreter importing numpy and scipy.linalg and reading the CSV with "
+                            "numpy.loadtxt; medians of 3 in turn"})
+        h = command_line["help"]
+        out.append({"target": "analyze --help <= 2 x python -c 'import numpy'",
+                    "measured": {"help_s": h["a_wall_s"], "import_numpy_s": h["b_wall_s"], "ratio": h["ratio_median"]},
+                    "met": h["ratio_median"] <= TARGET_HELP_OVER_NUMPY, "note": "medians of 5 in turn"})
+        c = command_line.get("100x40")
+        out.append({"target": "analyze 100x40 x 10,000 (with the repair) <= 3 s and <= 1 GB",
+                    "measured": None if c is None else {"analyze_s": c["a_wall_s"], "max_rss_mib": c["a_max_rss_mib"]},
+                    "met": None if c is None else (c["a_wall_s"] <= TARGET_100X40_S
+                                                   and c["a_max_rss_mib"] <= TARGET_100X40_MIB),
+                    "note": "whole process, median of 3; memory: largest resident set"})
     return out
 
 
@@ -387,25 +430,242 @@ def format_table(result: dict) -> str:
     for t in result["targets"]:
         state = {True: "MET", False: "NOT MET", None: "not measured"}[t["met"]]
         lines.append(f"  {t['target']}: {state}  {json.dumps(t['measured'])}  ({t['note']})")
+    if result.get("command_line"):
+        cl = result["command_line"]
+        lines += ["", "the command as a user runs it (wall-clock medians, largest resident memory)"]
+        h = cl["help"]
+        lines.append(f"  analyze --help {h['a_wall_s']:.3f} s vs python -c 'import numpy' {h['b_wall_s']:.3f} s: "
+                     f"x{h['ratio_median']:.2f}")
+        for key, c in cl.items():
+            if key == "help":
+                continue
+            lines.append(f"  analyze {key} x 10,000, one element off and repaired ({c['csv_bytes'] / 1e6:.1f} MB CSV): "
+                         f"{c['a_wall_s']:.2f} s, "
+                         f"{c['a_max_rss_mib']:.0f} MiB; floor {c['b_wall_s']:.2f} s ({c['b_max_rss_mib']:.0f} MiB): "
+                         f"x{c['ratio_median']:.2f}")
+    if result.get("industrial"):
+        lines += ["", "industrial size (10,000 samples; times in seconds, memory: tracemalloc peak in MiB)", ""]
+        head = (f"{'plant':>7} {'states':>6} {'MPC set-up':>10} {'MiB':>5} {'step ms':>8} {'loop':>6} {'detect':>7} "
+                f"{'MiB':>5} {'analyze':>8} {'MiB':>5} {'mon. us':>8} {'mon. ana':>8} {'MiB':>5}  located / repaired")
+        lines += [head, "-" * len(head)]
+        for r in result["industrial"]:
+            mib = 2.0 ** 20
+            lines.append(f"{r['size']:>7} {r['n_states']:>6} {r['mpc_setup_s']:>10.2f} {r['mpc_setup_peak_bytes'] / mib:>5.0f} "
+                         f"{r['loop_step_s'] * 1e3:>8.2f} {r['closed_loop_s']:>6.1f} {r['detect_s']:>7.2f} "
+                         f"{r['detect_peak_bytes'] / mib:>5.0f} {r['analyze_s']:>8.2f} {r['analyze_peak_bytes'] / mib:>5.0f} "
+                         f"{r['monitor_sample_s'] * 1e6:>8.0f} {r['monitor_analysis_s']:>8.2f} "
+                         f"{r['monitor_analysis_peak_bytes'] / mib:>5.0f}  {', '.join(r['repairs']) or 'none'}")
+        lines.append("columns: states = the controller model's state-space order; step = one MPC step and one plant "
+                     "step; loop = the closed loop of 10,000 samples (set-up included); detect = the tests without "
+                     "the repair; analyze = detect, repair, detect; mon. us = one sample (three vectors) into the "
+                     f"monitor's window; mon. ana = one analysis of the monitor's window: its default "
+                     f"{MONITOR_WINDOW} samples, or 10% above the tests' minimum when that is longer (window "
+                     + ", ".join(f"{r['size']}: {r['monitor_window']}" for r in result["industrial"]) + ")")
     lines.append(f"\nwall time of the run: {result['wall_s']:.0f} s")
     return "\n".join(lines)
 
 
-def run(grid: Grid, seed: int = 0, log=print) -> dict:
+# ----------------------------------------------------------------------------------------- industrial size
+#: Plant sizes (outputs, inputs) of the industrial section, and its window.
+INDUSTRIAL_SIZES = ((20, 20), (50, 50), (100, 40))
+INDUSTRIAL_SAMPLES = 10_000
+#: The live monitor's default window (the monitor node's ``window_samples``).
+MONITOR_WINDOW = 3000
+
+
+def industrial_case(ny: int, nu: int, samples: int, seed: int = 0, mismatches: int = 3):
+    """``(plant, model, log)``: a random plant, the controller model with ``mismatches`` (1 to 3)
+    elements off (a gain 30 %, a delay 3 samples, a time constant 60 %), and ``samples`` samples of
+    the closed loop."""
+    plant = random_plant(ny, nu, np.random.default_rng(seed + 3000 + 100 * ny + nu))
+    model = plant.with_element(0, 1, gain=plant.gain[0, 1] * 1.3)
+    if mismatches >= 2:
+        model = model.with_element(3 % ny, 2 % nu, delay=model.delay[3 % ny, 2 % nu] + 3.0)
+    if mismatches >= 3:
+        model = model.with_element(5 % ny, 4 % nu, time_constant=model.time_constant[5 % ny, 4 % nu] * 1.6)
+    log = run_closed_loop(plant, model, samples, seed=seed + 7)
+    return plant, model, log
+
+
+def traced(fn):
+    """``(result, seconds, peak bytes)`` of ``fn()`` under tracemalloc (the peak above the start)."""
+    import tracemalloc
+
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        t0 = time.perf_counter()
+        out = fn()
+        seconds = time.perf_counter() - t0
+        peak = tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+    return out, seconds, peak
+
+
+def bench_industrial(sizes=INDUSTRIAL_SIZES, samples: int = INDUSTRIAL_SAMPLES, seed: int = 0, log=print) -> list:
+    """Controller, plant, analysis and monitor at industrial sizes; a list of dicts."""
+    from mpm_monitor.core.analysis import detect
+    from mpm_monitor.monitor.monitor_core import MonitorCore, MonitorOptions
+    from mpm_monitor.monitor.window import WindowOptions
+    from mpm_monitor.sim.mpc import InternalModelMpc
+    from mpm_monitor.sim.plant import DisturbanceOptions, PlantSimulator
+
+    rows = []
+    for ny, nu in sizes:
+        row = {"size": f"{ny}x{nu}", "n_outputs": ny, "n_inputs": nu, "samples": samples}
+        plant, model, cl = None, None, None
+        t0 = time.perf_counter()
+        plant, model, cl = industrial_case(ny, nu, samples, seed)
+        row["closed_loop_s"] = time.perf_counter() - t0
+        ctrl, row["mpc_setup_s"], row["mpc_setup_peak_bytes"] = traced(lambda: InternalModelMpc(model))
+        row["mpc_structured"] = bool(ctrl.structured)
+        row["n_states"] = int(ctrl._ss.n_states)
+        sim, row["plant_setup_s"], row["plant_setup_peak_bytes"] = traced(
+            lambda: PlantSimulator(plant, DisturbanceOptions(), np.random.default_rng(0)))
+        r0 = np.zeros(ny)
+        t0 = time.perf_counter()
+        for _ in range(200):
+            y = sim.measure()
+            sim.apply(ctrl.step(r0, y))
+        row["loop_step_s"] = (time.perf_counter() - t0) / 200
+        del ctrl, sim
+        data = cl.as_logged_data(source=f"{ny}x{nu} closed loop")
+        det, row["detect_s"], row["detect_peak_bytes"] = traced(lambda: detect(model, data, AnalysisOptions(repair=False)))
+        row["detect_located"] = [f"{o}:{i}" for o, i in det.located_elements]
+        del det
+        rep, row["analyze_s"], row["analyze_peak_bytes"] = traced(lambda: analyze(model, data, AnalysisOptions()))
+        row["located"] = [f"{o}:{i}" for o, i in rep.located_elements]
+        row["repairs"] = [f"{c['output']}:{c['input']} {c['kind']}{'' if c.get('applied') else ' (not applied)'}"
+                          for c in rep.repair.get("changes", [])]
+        del rep
+        # The live monitor: samples into its window, and the analysis of its default window (or of the
+        # shortest the tests take, 10 % above their minimum, when that is longer).
+        need = regression_layout(model, AnalysisOptions()).min_samples
+        window_n = max(MONITOR_WINDOW, int(np.ceil(1.1 * need)))
+        row["monitor_window"] = window_n
+        core = MonitorCore(model, MonitorOptions(window=WindowOptions(window_samples=window_n),
+                                                 analysis_period=500, min_samples=min(1000, window_n)))
+        core.start(0.0)
+        ns = int(round(model.sample_time * 1e9))
+        n_push = min(samples, window_n + 1000)
+        t0 = time.perf_counter()
+        for k in range(n_push):
+            core.add("setpoint", k * ns, cl.r[k], 0.0)
+            core.add("input", k * ns, cl.u[k], 0.0)
+            core.add("output", k * ns, cl.y[k], 0.0)
+        row["monitor_sample_s"] = (time.perf_counter() - t0) / n_push
+        window = core.window.data(source="window")
+        del core
+        _, row["monitor_analysis_s"], row["monitor_analysis_peak_bytes"] = traced(
+            lambda: analyze(model, window, AnalysisOptions()))
+        rows.append(row)
+        log(f"  {row['size']}: closed loop {row['closed_loop_s']:.1f} s ({row['n_states']} states, MPC set-up "
+            f"{row['mpc_setup_s']:.2f} s, step {row['loop_step_s'] * 1e3:.2f} ms); detect {row['detect_s']:.2f} s "
+            f"({row['detect_peak_bytes'] / 2**20:.0f} MiB); analyze with repair {row['analyze_s']:.2f} s "
+            f"({row['analyze_peak_bytes'] / 2**20:.0f} MiB), located {', '.join(row['located']) or 'none'}; monitor "
+            f"{row['monitor_sample_s'] * 1e6:.0f} us/sample, analysis of {window_n} samples "
+            f"{row['monitor_analysis_s']:.2f} s")
+    return rows
+
+
+# ----------------------------------------------------------------------------------------- command line
+TIME = "/usr/bin/time"
+
+
+def _run_process(cmd) -> tuple:
+    """``(wall seconds, max resident MiB, exit code)`` of one process.
+
+    The largest resident set comes from ``/usr/bin/time`` (``%M``): a child forked from this
+    process would report this process's memory as its own (Linux counts the image replaced at
+    ``exec``).  Without ``/usr/bin/time`` it is NaN.
+    """
+    import tempfile
+
+    have_time = os.access(TIME, os.X_OK)
+    with tempfile.NamedTemporaryFile("r", suffix=".time") as fh:
+        full = [TIME, "-f", "%M", "-o", fh.name] + list(cmd) if have_time else list(cmd)
+        t0 = time.perf_counter()
+        rc = subprocess.call(full, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        wall = time.perf_counter() - t0
+        rss = float("nan")
+        if have_time:
+            lines = [ln for ln in fh.read().split() if ln.strip().isdigit()]
+            rss = int(lines[-1]) / 1024.0 if lines else float("nan")
+    return wall, rss, rc
+
+
+def _paired(cmd_a, cmd_b, repeats: int) -> dict:
+    """``cmd_a`` and ``cmd_b`` in turn, ``repeats`` times each, after one warm-up of each; medians."""
+    _run_process(cmd_a)
+    _run_process(cmd_b)
+    a, b = [], []
+    for _ in range(repeats):
+        a.append(_run_process(cmd_a))
+        b.append(_run_process(cmd_b))
+    med = statistics.median
+    out = {"a_wall_s": med(x[0] for x in a), "b_wall_s": med(x[0] for x in b),
+           "a_max_rss_mib": max(x[1] for x in a), "b_max_rss_mib": max(x[1] for x in b),
+           "ratio_median": med(x[0] / y[0] for x, y in zip(a, b)), "a_exit": [x[2] for x in a],
+           "a_walls": [x[0] for x in a], "b_walls": [x[0] for x in b]}
+    out["ratio_of_medians"] = out["a_wall_s"] / out["b_wall_s"]
+    return out
+
+
+def bench_command_line(sizes=((20, 20), (100, 40)), samples: int = INDUSTRIAL_SAMPLES, seed: int = 0,
+                       log=print) -> dict:
+    """``python -m mpm_monitor analyze`` end to end against the floor, and ``--help`` against ``import numpy``."""
+    import tempfile
+
+    from mpm_monitor.io.csv_log import write_log_csv
+    from mpm_monitor.io.model_file import save_model
+
+    py = sys.executable
+    out = {"help": _paired([py, "-m", "mpm_monitor", "analyze", "--help"], [py, "-c", "import numpy"], 5)}
+    log(f"  analyze --help {out['help']['a_wall_s']:.3f} s, import numpy {out['help']['b_wall_s']:.3f} s: "
+        f"x{out['help']['ratio_median']:.2f}")
+    tmp = Path(tempfile.mkdtemp(prefix="mpm_perf_"))
+    for ny, nu in sizes:
+        _, model, cl = industrial_case(ny, nu, samples, seed, mismatches=1)
+        csv, yml = tmp / f"log_{ny}x{nu}.csv", tmp / f"model_{ny}x{nu}.yaml"
+        write_log_csv(csv, cl)
+        save_model(model, yml)
+        floor = [py, "-c", "import sys, numpy, scipy.linalg; numpy.loadtxt(sys.argv[1], delimiter=',', skiprows=1)",
+                 str(csv)]
+        res = _paired([py, "-m", "mpm_monitor", "analyze", "--model", str(yml), "--data", str(csv)], floor, 3)
+        res["csv_bytes"] = csv.stat().st_size
+        out[f"{ny}x{nu}"] = res
+        log(f"  analyze {ny}x{nu} x {samples}, repairing one element: {res['a_wall_s']:.2f} s, {res['a_max_rss_mib']:.0f} MiB; "
+            f"floor {res['b_wall_s']:.2f} s: x{res['ratio_median']:.2f} (exit {res['a_exit']})")
+    return out
+
+
+def run(grid: Grid, seed: int = 0, log=print, industrial: bool = True, only_industrial: bool = False,
+        sizes=INDUSTRIAL_SIZES, command_line: bool = True) -> dict:
     """The whole benchmark; returns the JSON-ready result."""
     t0 = time.perf_counter()
     machine = machine_info()
-    log("analysis:")
-    cells = bench_analysis(grid, seed, log)
-    log("closed-loop simulation:")
-    sims = bench_simulation(grid, seed, log)
-    log("memory:")
-    from bench.memory import measure_memory
-    memory = measure_memory(quick=grid.sizes == QUICK.sizes, log=log)
+    cells, sims, memory = [], [], {}
+    if not only_industrial:
+        log("analysis:")
+        cells = bench_analysis(grid, seed, log)
+        log("closed-loop simulation:")
+        sims = bench_simulation(grid, seed, log)
+        log("memory:")
+        from bench.memory import measure_memory
+        memory = measure_memory(quick=grid.sizes == QUICK.sizes, log=log)
+    out = {"machine": machine, "grid": dataclasses.asdict(grid), "options": dataclasses.asdict(OPTIONS),
+           "analysis": cells, "simulation": sims, "memory": memory}
+    if industrial and command_line:
+        log("command line:")
+        out["command_line"] = bench_command_line(seed=seed, log=log)
+    if industrial:
+        log("industrial size:")
+        out["industrial"] = bench_industrial(sizes, seed=seed, log=log)
     machine["load_average_end"] = list(os.getloadavg())
-    return {"machine": machine, "grid": dataclasses.asdict(grid), "options": dataclasses.asdict(OPTIONS),
-            "analysis": cells, "simulation": sims, "memory": memory, "targets": targets(cells, sims),
-            "wall_s": time.perf_counter() - t0}
+    out["targets"] = targets(cells, sims, out.get("command_line"), out.get("industrial"))
+    out["wall_s"] = time.perf_counter() - t0
+    return out
 
 
 def main(argv=None) -> int:
@@ -414,9 +674,16 @@ def main(argv=None) -> int:
     parser.add_argument("--threads", default="1", help="BLAS threads (set before numpy is imported)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="bench/results/perf.json", help="JSON output path")
+    parser.add_argument("--no-industrial", action="store_true", help="skip the industrial sizes and the command line")
+    parser.add_argument("--industrial-only", action="store_true", help="only the industrial sizes and the command line")
+    parser.add_argument("--sizes", default=None, help="industrial sizes, e.g. 50x50,100x40 (default 20x20,50x50,100x40)")
+    parser.add_argument("--no-command-line", action="store_true", help="skip the command-line measurements")
     args = parser.parse_args(argv)
     grid = QUICK if args.quick else Grid()
-    result = run(grid, args.seed)
+    sizes = INDUSTRIAL_SIZES if not args.sizes else tuple(tuple(int(v) for v in s.split("x"))
+                                                         for s in args.sizes.split(","))
+    result = run(grid, args.seed, industrial=not (args.no_industrial or args.quick),
+                 only_industrial=args.industrial_only, sizes=sizes, command_line=not args.no_command_line)
     text = format_table(result)
     print()
     print(text)

@@ -201,3 +201,142 @@ def test_unreadable_path_refused(tmp_path):
 def test_parse_text_uses_source_name():
     with pytest.raises(DataFileError, match=r"^mylog: line 1 \(header\): missing column 'y2'"):
         parse_csv_text("t,r_y1,r_y2,u1,u2,u3,y1\n0,0,0,0,0,0,0\n", _model(), source="mylog")
+
+
+# --------------------------------------------------------------------------- measured disturbances, other columns
+
+
+def _dv_model():
+    return PlantModel(sample_time=1.0, inputs=("u1", "u2"), outputs=("y1",), disturbances=("feed_temp",),
+                      gain=[[1.0, 0.5, 0.2]], time_constant=[[5.0, 5.0, 8.0]], delay=[[0.0, 1.0, 2.0]])
+
+
+def test_disturbance_columns_written_after_the_inputs_and_read_by_name(tmp_path):
+    model = _dv_model()
+    rng = np.random.default_rng(3)
+    n = 40
+    t, r, u, dv, y = np.arange(n) * 1.0, rng.normal(size=(n, 1)), rng.normal(size=(n, 2)), \
+        rng.normal(size=(n, 1)), rng.normal(size=(n, 1))
+    path = tmp_path / "dv.csv"
+    write_csv(path, t, r, u, y, model.inputs, model.outputs, dv=dv, disturbances=model.disturbances)
+    assert path.read_text().splitlines()[0] == "t,r_y1,u1,u2,feed_temp,y1"
+    assert csv_header(model.inputs, model.outputs, model.disturbances) == ["t", "r_y1", "u1", "u2", "feed_temp", "y1"]
+    data = read_csv(path, model)
+    assert data.disturbances == ("feed_temp",)
+    np.testing.assert_array_equal(data.dv, dv)
+    np.testing.assert_array_equal(data.u, u)
+    np.testing.assert_array_equal(data.y, y)
+    assert data.extra == {} and data.unusable == {}
+    # Column order is free: the disturbance is found by its name.
+    lines = path.read_text().splitlines()
+    moved = [",".join([c.split(",")[4]] + c.split(",")[:4] + c.split(",")[5:]) for c in lines]
+    again = read_csv(_write(tmp_path, _text(moved), "moved.csv"), model)
+    np.testing.assert_array_equal(again.dv, dv)
+    np.testing.assert_array_equal(again.t, t)
+
+
+def test_bad_disturbance_column_refused_like_any_column_the_model_needs(tmp_path):
+    model = _dv_model()
+    header = "t,r_y1,u1,u2,feed_temp,y1"
+    rows = [f"{k},1,2,3,4,5" for k in range(5)]
+    with pytest.raises(DataFileError, match=r"line 1 \(header\): missing column 'feed_temp' \(expected t, "
+                                            r"r_<output>, <input>, <disturbance>, <output>"):
+        read_csv(_write(tmp_path, _text(["t,r_y1,u1,u2,y1"] + [r[:-4] + ",5" for r in rows])), model)
+    rows[3] = "3,1,2,3,n/a,5"
+    with pytest.raises(DataFileError, match=r"line 5, column 'feed_temp': expected a number, got 'n/a'"):
+        read_csv(_write(tmp_path, _text([header] + rows)), model)
+
+
+def test_other_numeric_columns_kept_as_extra_and_bad_ones_reported_unusable(tmp_path):
+    lines = [HEADER + ",feed,status,ambient,partly,  ,dup,dup"]
+    for k, row in enumerate(_rows(6)):
+        partly = "" if k == 4 else str(k)
+        ambient = "1e-3" if k % 2 else "-7"
+        lines.append(row + f",{k * 0.5},{'OK' if k else 'start'},{ambient},{partly},,{k},{k}")
+    data = read_csv(_write(tmp_path, _text(lines)), _model())
+    assert sorted(data.extra) == ["ambient", "feed"]
+    np.testing.assert_array_equal(data.extra["feed"], np.arange(6) * 0.5)
+    np.testing.assert_array_equal(data.extra["ambient"], [-7, 1e-3, -7, 1e-3, -7, 1e-3])
+    assert data.unusable == {"status": "not numeric: line 2 holds 'start'",
+                             "partly": "partly missing: line 6 is empty",
+                             "dup": "the header names this column more than once"}
+    # The model's own columns are unaffected.
+    np.testing.assert_array_equal(data.t, np.arange(6.0))
+    assert data.u.shape == (6, 3)
+    sliced = data.slice(1, 4)
+    np.testing.assert_array_equal(sliced.extra["feed"], [0.5, 1.0, 1.5])
+
+
+def test_non_finite_extra_cell_makes_the_column_unusable_not_the_file(tmp_path):
+    lines = [HEADER + ",feed"] + [row + (",nan" if k == 2 else f",{k}") for k, row in enumerate(_rows())]
+    data = read_csv(_write(tmp_path, _text(lines)), _model())
+    assert data.extra == {}
+    assert data.unusable == {"feed": "not a finite number on line 4 ('nan')"}
+    assert data.n_samples == 5
+
+
+def test_extra_columns_round_trip_through_the_writer(tmp_path):
+    model = _model()
+    n = 30
+    rng = np.random.default_rng(5)
+    extra = {"feed": rng.normal(size=n), "valve pos": np.round(rng.normal(size=n) * 100)}
+    path = tmp_path / "extra.csv"
+    write_csv(path, np.arange(n), rng.normal(size=(n, 2)), rng.normal(size=(n, 3)), rng.normal(size=(n, 2)),
+              model.inputs, model.outputs, extra=extra)
+    data = read_csv(path, model)
+    assert list(data.extra) == ["feed", "valve pos"]
+    for name, values in extra.items():
+        np.testing.assert_array_equal(data.extra[name], values)
+
+
+GOOD_VARIANTS = {
+    "plain": _text([HEADER] + _rows()),
+    "crlf": "\r\n".join([HEADER] + _rows()) + "\r\n",
+    "blank lines": _text([HEADER, "", _rows()[0], "", ""] + _rows()[1:]) + "\n\n",
+    "no final newline": "\n".join([HEADER] + _rows()),
+    "spaces around cells": _text([HEADER] + [" " + r.replace(",", " , ") + " " for r in _rows()]),
+    "exponents and signs": _text([HEADER] + [r.replace(",1", ",+1e0").replace(",2", ",2.0E+0") for r in _rows()]),
+    "quoted cells": _text([HEADER] + [",".join(f'"{c}"' if k == 3 else c for k, c in enumerate(r.split(",")))
+                                      for r in _rows()]),
+    "shuffled with extra": _text(["note,y2,u1,t,r_y1,u3,y1,r_y2,u2"] + [
+        ",".join(["x" if k == 2 else str(k)] + [r.split(",")[c] for c in (7, 3, 0, 1, 5, 6, 2, 4)])
+        for k, r in enumerate(_rows())]),
+    "one row": _text([HEADER] + _rows()[:1]),
+    "integers as decimals": _text([HEADER] + [",".join([repr(float(k))] + [f"{10 * k + c}.0" for c in range(1, 8)])
+                                              for k in range(5)]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(GOOD_VARIANTS))
+def test_fast_and_careful_parsers_give_the_same_data(tmp_path, case, monkeypatch):
+    from mpm_monitor.io import csv_log
+
+    path = _write(tmp_path, GOOD_VARIANTS[case])
+    fast = read_csv(path, _model())
+    monkeypatch.setattr(csv_log, "_fast_table", lambda *args: None)
+    careful = read_csv(path, _model())
+    for key in ("t", "r", "u", "y", "dv"):
+        np.testing.assert_array_equal(getattr(fast, key), getattr(careful, key))
+    assert fast.extra.keys() == careful.extra.keys() and fast.unusable == careful.unusable
+    for name in fast.extra:
+        np.testing.assert_array_equal(fast.extra[name], careful.extra[name])
+
+
+def test_a_file_of_plain_numbers_takes_the_fast_path(tmp_path, monkeypatch):
+    from mpm_monitor.io import csv_log
+
+    def no_careful(*args):
+        raise AssertionError("the careful parser ran on a file of plain numbers")
+
+    monkeypatch.setattr(csv_log, "_careful_table", no_careful)
+    rng = np.random.default_rng(9)
+    n = 300
+    model = _model(0.1)
+    t = np.arange(n) * 0.1
+    r, u, y = rng.normal(size=(n, 2)), rng.normal(size=(n, 3)) * 1e-200, rng.normal(size=(n, 2)) * 1e200
+    path = tmp_path / "plain.csv"
+    write_csv(path, t, r, u, y, model.inputs, model.outputs, extra={"feed": rng.normal(size=n)})
+    data = read_csv(path, model)
+    for key, ref in (("t", t), ("r", r), ("u", u), ("y", y)):
+        np.testing.assert_array_equal(getattr(data, key), ref)
+    assert list(data.extra) == ["feed"]

@@ -1,4 +1,4 @@
-"""Excitation signals (excitation.py): PRBS statistics and spectrum, step/hold, zero.
+"""Excitation signals (excitation.py): PRBS statistics and spectrum, step/hold, zero, the timed dither of an experiment.
 
 Reference for the spectrum: a binary signal that switches with probability p at every sample is a
 two-state Markov chain with autocorrelation rho^|k|, rho = 1 - 2 p, hence the normalised power
@@ -11,7 +11,7 @@ import pytest
 from scipy import signal
 
 from mpm_monitor.core.errors import ConfigurationError
-from mpm_monitor.sim.excitation import PrbsGenerator, PrbsOptions, StepHoldGenerator, ZeroGenerator
+from mpm_monitor.sim.excitation import PrbsGenerator, PrbsOptions, StepHoldGenerator, TimedDither, ZeroGenerator
 
 
 def _prbs(n, seed, channels=1, **kw):
@@ -153,3 +153,22 @@ def test_zero_generator():
     gen = ZeroGenerator(3)
     np.testing.assert_array_equal(gen.generate(5), np.zeros((5, 3)))
     np.testing.assert_array_equal(gen.next(), np.zeros(3))
+
+
+# ------------------------------------------------------------------- the timed dither (experiments)
+def test_timed_dither_lasts_its_samples_on_its_inputs_then_zero():
+    d = TimedDither([0.0, 0.5, 0.0, 0.2, 0.0], 7, np.random.default_rng(3))
+    values = np.array([d.next() for _ in range(9)])
+    assert not d.running and d.samples_left == 0
+    np.testing.assert_array_equal(np.abs(values[:7]), np.tile([0.0, 0.5, 0.0, 0.2, 0.0], (7, 1)))
+    np.testing.assert_array_equal(values[7:], 0.0)
+    again = TimedDither([0.0, 0.5, 0.0, 0.2, 0.0], 7, np.random.default_rng(3))
+    np.testing.assert_array_equal([again.next() for _ in range(7)], values[:7])  # seeded: the same PRBS
+    assert len({tuple(np.sign(v)) for v in values[:7]}) > 1                       # and it does switch
+
+
+@pytest.mark.parametrize("amplitudes, samples, what", [([0.0, 0.0], 5, "amplitudes"), ([0.1, -0.1], 5, "amplitudes"),
+                                                      ([0.1, np.nan], 5, "amplitudes"), ([0.1, 0.0], 0, "samples")])
+def test_timed_dither_refuses_bad_settings(amplitudes, samples, what):
+    with pytest.raises(ConfigurationError, match=what):
+        TimedDither(amplitudes, samples, np.random.default_rng(0))

@@ -28,7 +28,7 @@ OTHER_KEYS = {"python3-pytest-timeout"}
 #: Imported, but with no rosdep key: installed with pip (README, "Use in a ROS 2 workspace").
 PIP_ONLY = {"osqp"}
 #: The repository's own modules that the tests import (the benchmarks, the test helpers).
-REPOSITORY_MODULES = {"bench", "conftest", "report_checks", "ros_domains"}
+REPOSITORY_MODULES = {"bench", "conftest", "report_checks", "ros_domains", "structure_models"}
 
 
 def dependencies(*tags) -> set:

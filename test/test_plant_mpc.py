@@ -13,11 +13,12 @@ Invariants tested:
 import numpy as np
 import pytest
 from scipy.optimize import lsq_linear
+from structure_models import MODELS
 
 from mpm_monitor.core.discretize import simulate, state_space
 from mpm_monitor.core.errors import ConfigurationError
 from mpm_monitor.core.model import PlantModel
-from mpm_monitor.sim.cases import paper_case, shell_plant
+from mpm_monitor.sim.cases import level_plant, paper_case, shell_plant
 from mpm_monitor.sim.closed_loop import ExcitationOptions, run_closed_loop, seeded_generators
 from mpm_monitor.sim.excitation import PrbsGenerator, PrbsOptions
 from mpm_monitor.sim.mpc import InternalModelMpc, MpcOptions
@@ -246,14 +247,15 @@ def test_bounds_hold_with_dither_in_run_closed_loop():
 # --------------------------------------------------------------------------- QP vs closed form
 
 
-def _cost_as_least_squares(ctrl, eps, x, u_prev):
+def _cost_as_least_squares(ctrl, eps, x, u_prev, dv=None):
     """Cost J(U) = ||F U - g||^2 over the input path U = (u(k), ..., u(k+Hc-1)) (Hc * nu,), built by
     simulating the controller's model forward (module docstring of mpc.py), independent of its
-    matrices."""
+    matrices; a model with measured disturbances holds ``dv`` (n_disturbances,) over the horizon."""
     ss = state_space(ctrl.model)
     hp, hc = ctrl.options.prediction_horizon, ctrl.options.control_horizon
     nu = ctrl.model.n_inputs
     q, r, s = np.sqrt(ctrl.q), np.sqrt(ctrl.r), np.sqrt(ctrl.s)
+    dv = np.zeros(ctrl.model.n_disturbances) if dv is None else np.asarray(dv, float)
 
     def residual(U):
         U = U.reshape(hc, nu)
@@ -261,8 +263,8 @@ def _cost_as_least_squares(ctrl, eps, x, u_prev):
         for i in range(hp):
             uk = U[min(i, hc - 1)]
             res.append(r * (uk - ctrl.u_nom))
-            xk = ss.A @ xk + ss.B @ uk
-            res.append(q * (eps - ss.C @ xk))          # yhat(k+i+1)
+            xk = ss.A @ xk + ss.B @ np.concatenate([uk, dv])
+            res.append(q * (eps - ss.C @ xk - ss.D_disturbances @ dv))          # yhat(k+i+1)
         prev = u_prev
         for t in range(hc):
             res.append(s * (U[t] - prev))
@@ -305,6 +307,32 @@ def test_closed_form_moves_minimise_the_stated_cost(hp, hc):
     U_ref = np.linalg.lstsq(F, g, rcond=None)[0]
     du = ctrl.unconstrained_moves(eps, x, u_prev)
     np.testing.assert_allclose(du, _path_to_moves(U_ref, u_prev, 3), rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["rich", "step", "level"])
+def test_closed_form_moves_with_dv_minimise_the_stated_cost_and_the_qp_agrees(name):
+    # A model of every structure with a measured disturbance held at dv over the horizon: the moves
+    # against the least-squares reference (1e-6), the QP with far bounds against them (1e-5).
+    plant = level_plant() if name == "level" else MODELS[name]()
+    nu, nd = plant.n_inputs, plant.n_disturbances
+    opts = dict(prediction_horizon=30, control_horizon=6, input_weight=0.3, input_rate_weight=0.2)
+    ctrl = InternalModelMpc(plant, MpcOptions(**opts))
+    ss = state_space(plant)
+    rng = np.random.default_rng(2)
+    x = np.zeros(ss.n_states)
+    for _ in range(40):
+        x = ss.A @ x + ss.B @ (0.2 * rng.standard_normal(plant.n_columns))
+    eps, u_prev, dv = rng.standard_normal(plant.n_outputs) * 0.3, rng.standard_normal(nu) * 0.1, np.full(nd, 0.7)
+    F, g = _cost_as_least_squares(ctrl, eps, x, u_prev, dv)
+    U_ref = np.linalg.lstsq(F, g, rcond=None)[0]
+    du = ctrl.unconstrained_moves(eps, x, u_prev, dv)
+    np.testing.assert_allclose(du, _path_to_moves(U_ref, u_prev, nu), rtol=0, atol=1e-6)
+    # the disturbance term is not vacuous
+    assert np.abs(du - ctrl.unconstrained_moves(eps, x, u_prev, np.zeros(nd))).max() > 1e-3
+    wide = InternalModelMpc(plant, MpcOptions(**opts, u_min=-1e3, u_max=1e3))
+    np.testing.assert_allclose(wide.solve_qp(eps, x, u_prev, dv), du, rtol=0, atol=1e-5)
+    with pytest.raises(ConfigurationError, match=r"controller model: it has measured disturbances"):
+        ctrl.step(np.zeros(plant.n_outputs), np.zeros(plant.n_outputs))
 
 
 def test_qp_equals_closed_form_when_no_bound_is_active():
@@ -397,3 +425,72 @@ def test_bounds_without_osqp_are_refused_at_construction(monkeypatch):
     with pytest.raises(ConfigurationError, match=r"^u_min, u_max, du_max: bounds need the QP solver osqp"):
         InternalModelMpc(shell_plant(), MpcOptions(**SMALL_MPC, du_max=0.05))
     InternalModelMpc(shell_plant(), MpcOptions(**SMALL_MPC))
+
+
+# --------------------------------------------------------------------------- large models
+
+
+def _wide_plant(ny=6, nu=4, seed=3):
+    rng = np.random.default_rng(seed)
+    return PlantModel(sample_time=1.0, inputs=[f"u{j}" for j in range(nu)], outputs=[f"y{i}" for i in range(ny)],
+                      gain=rng.uniform(-3, 3, (ny, nu)), time_constant=rng.uniform(2, 40, (ny, nu)),
+                      delay=rng.integers(0, 8, (ny, nu)).astype(float))
+
+
+@pytest.mark.parametrize("kw", [{}, dict(prediction_horizon=40, control_horizon=5, input_weight=[0.5, 1, 2, 1],
+                                         output_weight=[1, 2, 1, 3, 1, 1], input_rate_weight=0.3)])
+def test_structured_set_up_gives_the_dense_control_law(kw):
+    # The set-up for large models (sparse state space, H from the step-response blocks, the free
+    # response run forward) computes the same gains and moves as the dense one, to rounding.
+    model = _wide_plant()
+    dense = InternalModelMpc(model, MpcOptions(**kw))
+    structured = InternalModelMpc(model, MpcOptions(**kw), structured=True)
+    assert not dense.structured and structured.structured
+    np.testing.assert_allclose(structured._H, dense._H, rtol=1e-12, atol=1e-12 * np.abs(dense._H).max())
+    nu = model.n_inputs
+    for key in ("_K_eps", "_K_u", "_K_nom"):
+        ref = getattr(dense, key)
+        np.testing.assert_allclose(getattr(structured, key), ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+    np.testing.assert_allclose(structured._K_x1, dense._K_x[:nu], rtol=0, atol=1e-10 * np.abs(dense._K_x).max())
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=dense._ss.n_states)
+    ref = dense._K_x @ x
+    np.testing.assert_allclose(structured._free_moves(x), ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+    u_dense, u_structured = [], []
+    for _ in range(150):
+        r, y = np.sign(rng.normal(size=6)), 0.1 * rng.normal(size=6)
+        u_dense.append(dense.step(r, y))
+        u_structured.append(structured.step(r, y))
+    np.testing.assert_allclose(u_structured, u_dense, rtol=0, atol=1e-9 * np.abs(u_dense).max())
+
+
+def test_structured_set_up_keeps_the_bounds():
+    model = _wide_plant()
+    opts = MpcOptions(prediction_horizon=40, control_horizon=10, u_min=-0.3, u_max=0.3, du_max=0.05)
+    ctrl = InternalModelMpc(model, opts, structured=True)
+    rng = np.random.default_rng(1)
+    prev = np.zeros(model.n_inputs)
+    for _ in range(120):
+        u = ctrl.step(2.0 * np.sign(rng.normal(size=6)), 0.1 * rng.normal(size=6))
+        assert np.all(u <= 0.3 + 1e-9) and np.all(u >= -0.3 - 1e-9)
+        assert np.all(np.abs(u - prev) <= 0.05 + 1e-9)
+        prev = u
+    assert ctrl.qp_solves > 0
+
+
+def test_large_models_take_the_structured_set_up_and_the_sparse_plant():
+    # 30 x 36 first-order elements and their delay lines: more states than DENSE_STATE_LIMIT.
+    from mpm_monitor.sim.plant import DENSE_STATE_LIMIT
+
+    model = _wide_plant(30, 36, seed=4)
+    ss = state_space(model)
+    assert ss.n_states > DENSE_STATE_LIMIT
+    ctrl = InternalModelMpc(model, MpcOptions(prediction_horizon=30, control_horizon=5))
+    assert ctrl.structured and ctrl._K_x is None
+    plant = PlantSimulator(model, NOISE_FREE, np.random.default_rng(0))
+    u = np.random.default_rng(2).normal(size=(50, 36))
+    y = []
+    for k in range(50):
+        y.append(plant.measure())
+        plant.apply(u[k])
+    np.testing.assert_allclose(y, simulate(model, u), rtol=0, atol=1e-12 * np.abs(y).max())

@@ -68,15 +68,18 @@ def test_report_renders_with_figures(case32, tmp_path):
     assert rows == ["y1", "y2"]
 
 
-def test_identified_step_points_to_the_plant(case32):
-    """The identified element (model + ARX Delta) is closer to the true plant gain than the model."""
+def test_the_step_curves_stand_behind_the_repair(case32):
+    """The step figure draws the model's and the repaired model's elements only: on (y1, u2) (plant
+    gain 1.77, time constant 60 s, delay 7 s; model 45 s, 4 s) and (y1, u3) (plant gain 5.88, model
+    3.5) the repaired curve ends on the plant's, and no curve contradicts the repair."""
     case, _, report = case32
-    i, j = 0, 2  # (y1, u3): plant gain 5.88, model 3.5
-    n = 300
-    ident = plots.identified_step(report, case.model, i, j, n)
-    plant_final = plots.element_step(case.plant, i, j, n)[-1]
-    model_final = plots.element_step(case.model, i, j, n)[-1]
-    assert abs(ident[-1] - plant_final) < 0.5 * abs(model_final - plant_final)
+    n = 400
+    for j in (1, 2):
+        curves = plots.step_curves(report, case.model, 0, j, n)
+        assert set(curves) == {"model", "repaired model"}
+        plant = plots.element_step(case.plant, 0, j, n)
+        assert abs(curves["repaired model"][-1] - plant[-1]) < 0.03 * abs(plant[-1])
+        assert np.max(np.abs(curves["repaired model"] - plant)) < 0.05 * np.max(np.abs(plant))
 
 
 def test_analyze_bag_equals_analyze_data(case32, tmp_path):
@@ -134,10 +137,3 @@ def test_element_step_matches_fopdt_formula():
     expected = np.where(k >= 3, 2.0 * (1.0 - np.exp(-(k - 3.0) / 10.0)), 0.0)  # step invariance of ZOH
     np.testing.assert_allclose(plots.element_step(model, 0, 0, n), expected, atol=1e-12)
     np.testing.assert_allclose(plots.element_step(model, 1, 1, n), np.where(k >= 2, 3.0, 0.0), atol=1e-12)
-
-
-def test_arx_step():
-    # q^-2 * 0.5 / (1 - 0.5 q^-1): steady-state gain 1, zero for the first two samples
-    s = plots.arx_step([-0.5], [0.5], 2, 60)
-    assert s[0] == s[1] == 0.0 and s[2] == 0.5
-    assert s[-1] == pytest.approx(1.0, abs=1e-12)

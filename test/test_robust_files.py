@@ -28,6 +28,7 @@ from mpm_monitor.apps.cli import main as cli_main
 from mpm_monitor.core.errors import DataFileError, InputError, ModelFileError
 from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import PlantModel
+from mpm_monitor.io import csv_log
 from mpm_monitor.io.bags import BagWriter, write_logged_data
 from mpm_monitor.io.csv_log import csv_header, read_csv, write_csv
 from mpm_monitor.io.model_file import dump_model, load_model, save_model
@@ -49,6 +50,13 @@ GOOD_MODEL = PlantModel(sample_time=1.0, inputs=("u1", "u2"), outputs=("y1", "y2
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
     return tmp_path_factory.mktemp("robust_files")
+
+
+@pytest.fixture(scope="module")
+def monkeypatch_module():
+    """A monkeypatch for hypothesis tests (the function-scoped one is not reset between examples)."""
+    with pytest.MonkeyPatch.context() as mp:
+        yield mp
 
 
 def assert_one_line_error(exc: BaseException, path) -> str:
@@ -332,6 +340,42 @@ def test_random_csv_gives_data_or_a_one_line_error(work, text):
     path = work / "random.csv"
     path.write_bytes(text.encode("utf-8", "surrogatepass"))
     data_outcome(path)
+
+
+def _outcome_of(read):
+    """``("data", LoggedData)`` or ``("error", message)`` of ``read()``."""
+    try:
+        return "data", read()
+    except DataFileError as exc:
+        return "error", str(exc)
+
+
+def _same_data(a: LoggedData, b: LoggedData) -> None:
+    for key in ("t", "r", "u", "y", "dv"):
+        np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=key)
+        assert np.array_equal(np.signbit(getattr(a, key)), np.signbit(getattr(b, key))), key
+    assert a.extra.keys() == b.extra.keys()
+    for name in a.extra:
+        np.testing.assert_array_equal(a.extra[name], b.extra[name], err_msg=name)
+    assert a.unusable == b.unusable
+
+
+@SETTINGS
+@given(text=csv_texts())
+def test_fast_csv_path_reads_what_the_careful_parser_reads(work, text, monkeypatch_module):
+    # numpy's C parser is only a shortcut: on any file the result (data, or the one-line error)
+    # is the careful csv-module parser's, value for value.
+    path = work / "both.csv"
+    path.write_bytes(text.encode("utf-8", "surrogatepass"))
+    both = _outcome_of(lambda: read_csv(path, CSV_MODEL))
+    with monkeypatch_module.context() as mp:
+        mp.setattr(csv_log, "_fast_table", lambda *args: None)
+        careful = _outcome_of(lambda: read_csv(path, CSV_MODEL))
+    assert both[0] == careful[0], (both, careful)
+    if both[0] == "error":
+        assert both[1] == careful[1]
+    else:
+        _same_data(both[1], careful[1])
 
 
 def _good_csv_bytes(n=6) -> bytes:

@@ -226,4 +226,9 @@ def test_channel_codecs_and_topic_parameters_come_from_the_contract():
     specs = topic_params(*CHANNELS, "clock")
     assert [(s.name, s.default) for s in specs] == [("setpoint_topic", "setpoint"), ("input_topic", "input"),
                                                     ("output_topic", "output"), ("dither_topic", "dither"),
-                                                    ("clock_topic", "/clock")]
+                                                    ("disturbance_topic", "disturbance"), ("clock_topic", "/clock")]
+    # the measured disturbances' channel carries the model's disturbance names
+    level = resolve_model("", "level")
+    assert VectorCodec.for_channel(level, "disturbance", "dv").names == ("inflow",)
+    with pytest.raises(ConfigurationError, match="dv: expected at least one channel name"):
+        VectorCodec.for_channel(model, "disturbance", "dv")

@@ -3,10 +3,10 @@
 Commands
 --------
 analyze    offline analysis of a CSV log or a bag
-reproduce  simulate a paper case and print the paper-style result
+reproduce  simulate a case and print the paper-style result
 simulate   run a closed-loop simulation and write the CSV log
-demo       run the four ROS 2 nodes in-process on a paper case
-export     write a bag's setpoint, input and output topics as CSV
+demo       run the four ROS 2 nodes in-process on a case
+export     write a bag's setpoint, input, output (and disturbance) topics as CSV
 recover    rewrite a hard-killed recording as a closed bag
 
 Bad input exits with code 2 and one line on stderr; never a traceback.  The commands, their flags
@@ -80,6 +80,30 @@ def _analysis_options(args):
     return AnalysisOptions(**{name: getattr(args, name) for name in CLI_ANALYSIS_OPTIONS})
 
 
+def _add_topics(p: argparse.ArgumentParser) -> None:
+    """``--topics SETPOINT INPUT OUTPUT [DISTURBANCE]`` (checked by :func:`_topics`)."""
+    p.add_argument("--topics", nargs="+", metavar="TOPIC", default=None,
+                   help="topic names in the bag: SETPOINT INPUT OUTPUT [DISTURBANCE] (default setpoint input output, "
+                        "and disturbance when measured disturbances are read)")
+
+
+def _topics(args) -> tuple:
+    """The topics of ``--topics`` (three or four names), or the defaults."""
+    from ..io.bags import DEFAULT_TOPICS
+
+    if args.topics is None:
+        return DEFAULT_TOPICS
+    if len(args.topics) not in (3, 4):
+        raise InputError(f"--topics: expected three topic names (SETPOINT INPUT OUTPUT) or four (and DISTURBANCE), "
+                         f"got {len(args.topics)}")
+    return tuple(args.topics)
+
+
+#: The simulation cases of ``reproduce``, ``simulate`` and ``demo`` (:data:`mpm_monitor.sim.cases.DEMO_CASES`,
+#: spelled out so that the parser does not import the simulation).
+DEMO_CASES = ("3.1", "3.2", "3.3", "level")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="python -m mpm_monitor", description="Model-plant mismatch monitor for MPC loops.")
     sub = parser.add_subparsers(dest="command", parser_class=_Parser)
@@ -88,23 +112,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", required=True, help="model file (YAML)")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--data", help="logged data (CSV)")
-    src.add_argument("--bag", help="rosbag2 directory with the setpoint, input and output topics")
+    src.add_argument("--bag", help="rosbag2 directory with the setpoint, input and output topics (and the "
+                     "disturbance topic for a model with measured disturbances)")
     p.add_argument("--json", dest="json_out", help="write the JSON report to this file ('-' = stdout)")
     p.add_argument("--repair-out", help="write the repaired model file (YAML) here")
     p.add_argument("--report", help="write an HTML report with figures into this directory")
-    p.add_argument("--topics", nargs=3, metavar=("SETPOINT", "INPUT", "OUTPUT"), default=None,
-                   help="topic names in the bag (default setpoint input output)")
+    _add_topics(p)
     _add_analysis_options(p)
 
-    p = sub.add_parser("reproduce", help="simulate a paper case and print the paper-style result")
-    p.add_argument("--case", choices=("3.1", "3.2", "3.3"), required=True)
+    p = sub.add_parser("reproduce", help="simulate a case and print the paper-style result")
+    p.add_argument("--case", choices=DEMO_CASES, required=True)
     p.add_argument("--samples", type=int, default=3000)
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--plots", default="reproduce_plots", help="directory for the singular-value PNGs")
     _add_analysis_options(p)
 
     p = sub.add_parser("simulate", help="run a closed-loop simulation and write the CSV log")
-    p.add_argument("--case", choices=("3.1", "3.2", "3.3"), default=None, help="a paper case (plant and model)")
+    p.add_argument("--case", choices=DEMO_CASES, default=None,
+                   help="a case (plant and model): the paper's 3.1, 3.2, 3.3, or level")
     p.add_argument("--plant", help="plant model file (YAML); with --model instead of --case")
     p.add_argument("--model", help="controller model file (YAML)")
     p.add_argument("--samples", type=int, default=3000)
@@ -113,18 +138,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--csv", required=True, help="output CSV file")
     p.add_argument("--write-model", help="also write the controller model file here")
 
-    p = sub.add_parser("demo", help="run the ROS 2 nodes in-process on a paper case")
-    p.add_argument("--case", choices=("3.1", "3.2", "3.3"), default="3.2")
+    p = sub.add_parser("demo", help="run the ROS 2 nodes in-process on a case")
+    p.add_argument("--case", choices=DEMO_CASES, default="3.2",
+                   help="the paper's 3.1, 3.2, 3.3, or level (an integrating level and a measured inflow)")
     p.add_argument("--samples", type=int, default=None, help="samples to simulate (default: the case's)")
     p.add_argument("--bag", default=None, help="record every topic to this rosbag2 (MCAP) directory")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--quiet", action="store_true", help="print only the final result")
 
-    p = sub.add_parser("export", help="write a bag's setpoint, input and output topics as a CSV log")
+    p = sub.add_parser("export", help="write a bag's setpoint, input, output (and disturbance) topics as a CSV log")
     p.add_argument("--bag", required=True)
     p.add_argument("--csv", required=True)
     p.add_argument("--model", default=None, help="model file giving channel order and sample time (optional)")
-    p.add_argument("--topics", nargs=3, metavar=("SETPOINT", "INPUT", "OUTPUT"), default=None)
+    _add_topics(p)
 
     p = sub.add_parser("recover", help="rewrite a hard-killed recording (no metadata.yaml) as a closed bag")
     p.add_argument("--bag", required=True, help="the unclosed bag directory")
@@ -155,8 +181,7 @@ def _cmd_analyze(args) -> int:
     else:
         from ..io.bags import read_bag
 
-        topics = tuple(args.topics) if args.topics else ("setpoint", "input", "output")
-        data = read_bag(args.bag, model, topics=topics, progress=sys.stderr.isatty())
+        data = read_bag(args.bag, model, topics=_topics(args), progress=sys.stderr.isatty())
     check_scale(model, data, model_source=args.model)
     try:
         report = analyze(model, data, options)
@@ -197,17 +222,19 @@ def _cmd_simulate(args) -> int:
 
     from ..io.csv_log import write_log_csv
     from ..io.model_file import load_model, save_model
-    from ..sim.cases import paper_case
+    from ..sim.cases import simulation_case
     from ..sim.closed_loop import ExcitationOptions, run_closed_loop
     from ..sim.excitation import PrbsOptions
     from ..sim.mpc import MpcOptions
 
     if args.case:
-        case = paper_case(args.case)
+        case = simulation_case(args.case)
         plant, model, mpc, exc, dist = case.plant, case.model, case.mpc, case.excitation, case.disturbance
         if args.dither > 0:
             exc = ExcitationOptions(setpoint=exc.setpoint, dither=PrbsOptions(amplitude=args.dither))
-        log = run_closed_loop(plant, model, args.samples, seed=args.seed, mpc=mpc, excitation=exc, disturbance=dist)
+        dv = {} if case.measured_disturbance is None else {"measured_disturbance": case.measured_disturbance}
+        log = run_closed_loop(plant, model, args.samples, seed=args.seed, mpc=mpc, excitation=exc, disturbance=dist,
+                              **dv)
     else:
         if not (args.plant and args.model):
             raise InputError("simulate: give --case, or both --plant and --model")
@@ -232,8 +259,7 @@ def _cmd_demo(args) -> int:
 def _cmd_export(args) -> int:
     from ..io.bags import export_csv
 
-    topics = tuple(args.topics) if args.topics else ("setpoint", "input", "output")
-    n = export_csv(args.bag, args.csv, model_path=args.model, topics=topics)
+    n = export_csv(args.bag, args.csv, model_path=args.model, topics=_topics(args))
     print(f"wrote {n} samples to {args.csv}")
     return 0
 

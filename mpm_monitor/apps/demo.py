@@ -1,16 +1,17 @@
 """The node suite in one process: plant, MPC, setpoint and monitor on a private context, in lock-step.
 
-:func:`case_parameters` gives every node's parameters for a paper case (the same numbers as
-:func:`mpm_monitor.sim.cases.paper_case`, so a run through the nodes with a seed reproduces the batch
-run :func:`mpm_monitor.sim.closed_loop.run_closed_loop` with that seed sample for sample).
+:func:`case_parameters` gives every node's parameters for a case (the same numbers as
+:func:`mpm_monitor.sim.cases.simulation_case`, so a run through the nodes with a seed reproduces the
+batch run :func:`mpm_monitor.sim.closed_loop.run_closed_loop` with that seed sample for sample).
 :class:`Suite` builds the four nodes on one context and one executor, waits until every publisher
 sees its subscribers, starts the plant and spins until the monitor has analysed the last sample.
 :func:`run_demo` is ``python -m mpm_monitor demo``; the launcher ``launch_scripts/suite_inprocess.py``
 and the throughput benchmark (``bench/ros_throughput.py``) build the same :class:`Suite`.
 
-Simulated time (lock-step): the plant publishes ``/clock = k Ts`` and ``y(k)``; the setpoint node
-answers the clock with ``r(k)`` (and the dither); the MPC answers ``r(k), y(k)`` with ``u(k)``; the
-plant applies ``u(k)`` and moves to ``k + 1``.  Every vector is stamped ``k Ts``; the topics are
+Simulated time (lock-step): the plant publishes ``/clock = k Ts``, ``dv(k)`` (the level case's
+measured disturbance) and ``y(k)``; the setpoint node answers the clock with ``r(k)`` (and the
+dither); the MPC answers ``r(k), y(k)`` (and ``dv(k)``) with ``u(k)``; the plant applies ``u(k)``
+and moves to ``k + 1``.  Every vector is stamped ``k Ts``; the topics are
 RELIABLE with depth 1000 and each step waits for the previous one, so no sample can be dropped.
 """
 
@@ -30,7 +31,7 @@ from ..core.errors import ConfigurationError, InputError
 from ..core.model import PlantModel
 from ..core.wording import repair_text
 from ..io.model_file import save_model
-from ..sim.cases import CASE_NAMES, paper_case
+from ..sim.cases import CASE_NAMES, DEMO_CASES, simulation_case
 
 #: Environment of a context that talks to nobody outside its process.
 PRIVATE_ENV = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
@@ -67,20 +68,20 @@ def private_context():
 
 # ------------------------------------------------------------------------------- parameters
 def case_parameters(case: str, seed: int = 1, model_file: str = "") -> dict:
-    """Parameters of each node for a paper case, as ``{node_name: {parameter: value}}``.
+    """Parameters of each node for a case, as ``{node_name: {parameter: value}}``.
 
     Parameters
     ----------
     case : str
-        "3.1", "3.2" or "3.3".
+        "3.1", "3.2", "3.3" (the paper's) or "level".
     seed : int
         Seed of the plant noise, the PRBS and the dither.
     model_file : str
         The controller's model file for the MPC, setpoint and monitor nodes; "" = ``case``.
     """
-    if case not in CASE_NAMES:
-        raise ConfigurationError(f"case: expected one of {', '.join(CASE_NAMES)}, got {case!r}")
-    c = paper_case(case)
+    if case not in DEMO_CASES:
+        raise ConfigurationError(f"case: expected one of {', '.join(DEMO_CASES)}, got {case!r}")
+    c = simulation_case(case)
     dist, mpc, exc = c.disturbance, c.mpc, c.excitation
 
     def weight(w):
@@ -89,6 +90,11 @@ def case_parameters(case: str, seed: int = 1, model_file: str = "") -> dict:
     model_src = {"model_file": model_file} if model_file else {"case": case}
     plant = {"case": case, "seed": int(seed), "disturbance_std": dist.disturbance_std,
              "disturbance_pole": dist.disturbance_pole, "noise_std": dist.noise_std}
+    dv = c.measured_disturbance
+    if dv is not None:
+        plant.update(dv_step_amplitude=dv.step_amplitude, dv_switch_probability=dv.switch_probability,
+                     dv_min_hold=dv.min_hold, dv_noise_std=dv.noise_std, dv_noise_pole=dv.noise_pole,
+                     dv_offset=dv.offset)
     mpc_p = dict(model_src, prediction_horizon=mpc.prediction_horizon, control_horizon=mpc.control_horizon,
                  output_weight=weight(mpc.output_weight), input_weight=weight(mpc.input_weight),
                  input_rate_weight=weight(mpc.input_rate_weight), use_dither=exc.dither is not None)
@@ -162,6 +168,8 @@ class Suite:
         x = self.extra_subscribers
         checks = [(self.plant._pub, 2 + x), (self.setpoint._pub, 2 + x), (self.mpc._pub, 2 + x),
                   (self.monitor._diag_pub, diagnostics_listeners)]
+        if self.plant._dv_pub is not None:
+            checks.append((self.plant._dv_pub, 2 + x))
         if self.plant._clock_pub is not None:
             checks.append((self.plant._clock_pub, 1))
         if self.setpoint._dither_pub is not None:
@@ -272,12 +280,12 @@ def _write_model(model: PlantModel, directory: str, name: str) -> str:
 
 def run_demo(case: str = "3.2", samples: Optional[int] = None, bag: Optional[str] = None, seed: int = 1,
              quiet: bool = False, out=sys.stdout, timeout: float = 600.0) -> int:
-    """``python -m mpm_monitor demo``: the four nodes on a paper case, diagnostics printed as they arrive.
+    """``python -m mpm_monitor demo``: the four nodes on a case, diagnostics printed as they arrive.
 
     Parameters
     ----------
     case : str
-        "3.1", "3.2" or "3.3".
+        "3.1", "3.2", "3.3" (the paper's) or "level" (an integrating level and a measured inflow).
     samples : int, optional
         Samples to simulate (default 3000).
     bag : str, optional
@@ -303,7 +311,7 @@ def run_demo(case: str = "3.2", samples: Optional[int] = None, bag: Optional[str
         except ImportError as exc:
             raise InputError(f"--bag needs the recorder node (mpm_monitor.nodes.recorder_node), which cannot be "
                              f"imported: {exc}") from None
-    c = paper_case(case)
+    c = simulation_case(case)
     ctx = private_context()
     suite = recorder = None
     try:
@@ -327,6 +335,8 @@ def run_demo(case: str = "3.2", samples: Optional[int] = None, bag: Optional[str
                 topics = ["setpoint", "input", "output", "/diagnostics", "mpm_monitor/rsi", "/clock"]
                 if c.excitation.dither is not None:
                     topics.append("dither=sensor_msgs/msg/JointState")
+                if c.plant.n_disturbances:
+                    topics.append("disturbance")
                 recorder = recorder_cls(bag_dir=bag, topics=topics, context=ctx)
                 if quiet:
                     from rclpy.logging import LoggingSeverity
@@ -335,7 +345,8 @@ def run_demo(case: str = "3.2", samples: Optional[int] = None, bag: Optional[str
                 suite.add_node(recorder)
                 suite.extra_subscribers = 1
             if not quiet:
-                out.write(f"demo: paper case {case} ({c.description}), {n} samples in simulated time, seed {seed}\n"
+                what = "paper case" if case in CASE_NAMES else "case"
+                out.write(f"demo: {what} {case} ({c.description}), {n} samples in simulated time, seed {seed}\n"
                           f"      the monitor analyses the last {n} samples every {params['monitor']['analysis_period']}"
                           f" samples after the first {min_samples}\n")
                 out.flush()
@@ -358,11 +369,12 @@ def run_demo(case: str = "3.2", samples: Optional[int] = None, bag: Optional[str
                 out.write("no analysis result\n")
             else:
                 rows = [r.output for r in report.rows if r.mismatch]
-                els = [(e.output, e.input) for e in report.elements if e.mismatch]
+                els = [_element_text(e) for e in report.elements if e.mismatch]
                 out.write("located rows: " + (", ".join(rows) if rows else "none") + "\n")
-                out.write("located elements: " + (", ".join(f"({o}, {i})" for o, i in els) if els else "none") + "\n")
+                out.write("located elements: " + (", ".join(els) if els else "none") + "\n")
                 exp_el = ", ".join(f"({o}, {i})" for o, i in c.mismatched_elements) or "none"
-                out.write(f"paper: rows {', '.join(c.mismatched_rows) or 'none'}; elements {exp_el}\n")
+                source = "paper" if case in CASE_NAMES else "expected"
+                out.write(f"{source}: rows {', '.join(c.mismatched_rows) or 'none'}; elements {exp_el}\n")
                 out.write(repair_text(report, c.model, c.plant))
             out.flush()
     finally:
@@ -370,6 +382,12 @@ def run_demo(case: str = "3.2", samples: Optional[int] = None, bag: Optional[str
             suite.close()
         ctx.try_shutdown()
     return 0
+
+
+def _element_text(e) -> str:
+    """``(y1, u2)``, or ``(level, inflow: measured disturbance)`` for a measured disturbance's element."""
+    kind = ": measured disturbance" if getattr(e, "role", "input") == "disturbance" else ""
+    return f"({e.output}, {e.input}{kind})"
 
 
 def _settle(suite: Suite, recorder, quiet: float = 0.5, timeout: float = 5.0) -> None:

@@ -1,9 +1,10 @@
-"""``python -m mpm_monitor reproduce --case 3.1|3.2|3.3``: the paper's experiments, paper-style.
+"""``python -m mpm_monitor reproduce --case 3.1|3.2|3.3|level``: the paper's experiments, paper-style.
 
 Simulates the case (:mod:`mpm_monitor.sim.cases`; 3.3 with the input dither of the paper's second
-experiment), runs the analysis and prints the row RSI table, the flagged rows, the ARX
-tables of the flagged rows (the paper's Tables 1 to 5) and the located elements; saves the
-singular-value plots of S_Delta per row (the paper's Figures 3 to 5) as PNG.
+experiment; the level case with its measured inflow), runs the analysis and prints the row RSI
+table, the flagged rows, the ARX tables of the flagged rows (the paper's Tables 1 to 5) and the
+located elements; saves the singular-value plots of S_Delta per row (the paper's Figures 3 to 5) as
+PNG.
 """
 
 from __future__ import annotations
@@ -13,16 +14,21 @@ from pathlib import Path
 from ..core.analysis import AnalysisOptions
 from ..core.pipeline import analyze
 from ..core.wording import repair_summary_lines
-from ..sim.cases import paper_case
+from ..sim.cases import CASE_NAMES, simulation_case
 from ..sim.closed_loop import run_closed_loop
 
 
 def simulate_case(case_name: str, samples: int, seed: int) -> tuple:
-    """Simulate a paper case; returns (case, LoggedData, ClosedLoopLog)."""
-    case = paper_case(case_name)
+    """Simulate a case (the paper's, or "level"); returns (case, LoggedData, ClosedLoopLog)."""
+    case = simulation_case(case_name)
+    dv = {} if case.measured_disturbance is None else {"measured_disturbance": case.measured_disturbance}
     log = run_closed_loop(case.plant, case.model, samples, seed=seed, mpc=case.mpc, excitation=case.excitation,
-                          disturbance=case.disturbance)
-    return case, log.as_logged_data(f"paper case {case_name} (seed {seed})"), log
+                          disturbance=case.disturbance, **dv)
+    return case, log.as_logged_data(f"{_title(case_name).lower()} (seed {seed})"), log
+
+
+def _title(case_name: str) -> str:
+    return f"{'Paper case' if case_name in CASE_NAMES else 'Case'} {case_name}"
 
 
 def format_arx_table(table) -> str:
@@ -47,15 +53,15 @@ def save_sdelta_plots(report, directory, case_name: str) -> list:
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / f"sdelta_case_{case_name.replace('.', '_')}.png"
-    return [plot_sdelta(report, path, title=f"Paper case {case_name}: S_Delta singular values")]
+    return [plot_sdelta(report, path, title=f"{_title(case_name)}: S_Delta singular values")]
 
 
 def reproduce(case_name: str, samples: int = 3000, seed: int = 1, options: AnalysisOptions = AnalysisOptions(),
               plot_dir=None) -> str:
-    """Run one paper case and return the paper-style text (and save the plots to ``plot_dir``)."""
+    """Run one case and return the paper-style text (and save the plots to ``plot_dir``)."""
     case, data, _ = simulate_case(case_name, samples, seed)
     report = analyze(case.model, data, options)
-    lines = [f"Paper case {case.name}: {case.description}; {samples} samples, seed {seed}", "",
+    lines = [f"{_title(case.name)}: {case.description}; {samples} samples, seed {seed}", "",
              f"{'row':<6}{'RSI':>8}{'p-value':>11}  flagged"]
     for r in report.rows:
         lines.append(f"{r.output:<6}{r.rsi:8.3f}{r.p_value:11.2e}  {'YES' if r.mismatch else 'no'}")
@@ -75,7 +81,7 @@ def reproduce(case_name: str, samples: int = 3000, seed: int = 1, options: Analy
     if report.repair.get("changes"):
         lines += [""] + repair_summary_lines(report.repair)
     ok = set(located) == set(case.mismatched_elements) and set(report.flagged_rows) == set(case.mismatched_rows)
-    lines.append(f"result matches the paper: {'yes' if ok else 'NO'}")
+    lines.append(f"result matches the {'paper' if case.name in CASE_NAMES else 'case'}: {'yes' if ok else 'NO'}")
     for w in report.warnings:
         lines.append(f"warning: {w}")
     if plot_dir:

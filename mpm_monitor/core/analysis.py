@@ -7,8 +7,14 @@ two steps which elements of the controller's model ``Phat`` no longer match the 
    ``S_Delta = (I + Delta C)^-1`` differ from the identity, with each row's relative sensitivity
    index (RSI);
 2. the Delta element test (:mod:`mpm_monitor.core.element_test`): which elements of
-   ``Delta = P - Phat`` are non-zero, from the ARX of the prediction error on the inputs (or a
-   baseline method, :mod:`mpm_monitor.core.baselines`).
+   ``Delta = P - Phat`` are non-zero, from the ARX of the prediction error on the model's columns
+   -- the inputs and the measured disturbances -- (or a baseline method,
+   :mod:`mpm_monitor.core.baselines`).
+
+Every element structure goes through the same code: the model is only ever seen through its
+sampled elements (:mod:`mpm_monitor.core.discretize`), and an element test needs only each
+element's dead time.  An integrating output keeps both tests valid (see
+:mod:`mpm_monitor.core.signals`, "Integrating outputs").
 
 :func:`detect` runs both on one window of logged data (:class:`AnalysisOptions`) and gathers what
 they found in an :class:`AnalysisReport`; the whole analysis -- detection, repair of the located
@@ -25,16 +31,11 @@ from typing import Optional
 
 import numpy as np
 
-from .detectability import element_detectability
-from .element_test import InputDesign, arx_element_test, baseline_element_test
-from .experiment import Experiment, design_experiment
 from .errors import ConfigurationError, DataFileError
 from .logged_data import LoggedData, check_loop_data
 from .model import PlantModel
 from .options import check_options, option, option_specs
-from .regressions import regression_layout, window_regressions
-from .row_test import sdelta_row_test
-from .signals import INITIAL_STATE_CHOICES, LoopSignals, compute_signals
+from .signals import INITIAL_STATE_CHOICES, LoopSignals
 from .wording import repair_summary_lines
 
 METHODS = ("arx", "xcorr", "pcorr")
@@ -177,7 +178,7 @@ class AnalysisReport:
     repaired_model : PlantModel
         The model with the repairs applied (the model itself when nothing was repaired).
     collinear_groups : list of tuple of str
-        Inputs that cannot be told apart.
+        Columns (inputs, measured disturbances) that cannot be told apart.
     max_variance_inflation : float
         Largest variance-inflation factor of an input's lag block.
     signals : LoopSignals or None
@@ -208,7 +209,7 @@ class AnalysisReport:
     max_variance_inflation: float
     signals: Optional[LoopSignals] = None
     repair_result: object = None
-    experiment: Optional[Experiment] = None
+    experiment: object = None
 
     @property
     def flagged_rows(self) -> list:
@@ -217,12 +218,12 @@ class AnalysisReport:
 
     @property
     def located_elements(self) -> list:
-        """(output, input) pairs located as mismatched."""
+        """(output, column) pairs located as mismatched (the column an input or a measured disturbance)."""
         return [(e.output, e.input) for e in self.elements if e.mismatch]
 
     @property
     def ambiguous_elements(self) -> list:
-        """(output, input) pairs that could not be told apart."""
+        """(output, column) pairs that could not be told apart."""
         return [(e.output, e.input) for e in self.elements if e.ambiguous]
 
     def to_dict(self) -> dict:
@@ -271,17 +272,23 @@ class AnalysisReport:
         if loc:
             lines.append("located elements:")
             for e in loc:
-                lines.append(f"  ({e.output}, {e.input})  p={e.p_value:.2e}  kind={e.kind}  delay={e.delay}")
+                lines.append(f"  ({e.output}, {_column_label(e)})  p={e.p_value:.2e}  kind={e.kind}  delay={e.delay}")
         else:
             lines.append("located elements: none")
         amb = [e for e in self.elements if e.ambiguous]
         if amb:
-            lines.append("ambiguous (inputs move together): "
-                         + ", ".join(f"({e.output}, {e.input})" for e in amb))
+            moving = "inputs and measured disturbances" if any(e.role == "disturbance" for e in amb) else "inputs"
+            lines.append(f"ambiguous ({moving} move together): "
+                         + ", ".join(f"({e.output}, {_column_label(e)})" for e in amb))
         lines += repair_summary_lines(self.repair)
         for w in self.warnings:
             lines.append(f"warning: {w}")
         return "\n".join(lines)
+
+
+def _column_label(e) -> str:
+    """``u2``, or ``dv1 (measured disturbance)`` for an element of a measured disturbance."""
+    return f"{e.input} (measured disturbance)" if e.role == "disturbance" else e.input
 
 
 def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
@@ -293,7 +300,8 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     model : PlantModel
         The controller's model ``Phat``.
     data : LoggedData
-        Setpoints, inputs and outputs, equally spaced at ``model.sample_time``.
+        Setpoints, inputs, measured disturbances (those of the model) and outputs, equally spaced at
+        ``model.sample_time``.
     options : AnalysisOptions
         ``options.repair`` is not used here (:func:`mpm_monitor.core.pipeline.analyze`).
     signals : LoopSignals, optional
@@ -319,23 +327,35 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     DataFileError
         When the data do not fit the model or are too short for the tests.
     """
+    # The tests are imported here: the options and the report above are described (the command line's
+    # flags, the monitor's parameters) without the scipy they need.
+    from .detectability import element_detectability
+    from .element_test import InputDesign, arx_element_test, baseline_element_test
+    from .experiment import design_experiment
+    from .regressions import regression_layout, window_regressions
+    from .row_test import sdelta_row_test
+    from .discretize import model_columns
+    from .signals import compute_signals, error_rms
+
     ny = model.n_outputs
     src = data.source or "data"
     r, u, y = check_loop_data(model, data)
+    dv = np.asarray(data.dv, dtype=float)
+    columns = model_columns(u, dv)            # the inputs, then the measured disturbances
     n = r.shape[0]
     layout = regression_layout(model, options)
     if n < layout.min_samples:
         raise DataFileError(f"{src}: {n} samples; the tests with na={options.na}, nb={options.nb}, "
                             f"max_delay={layout.max_delay} need at least {layout.min_samples} samples")
     if signals is None:
-        sig = compute_signals(model, r, u, y, options.initial_state)
+        sig = compute_signals(model, r, u, y, options.initial_state, dv=dv)
     else:
         sig = signals
         if sig.d.shape != (n, ny) or sig.eps.shape != (n, ny):
             raise DataFileError(f"{src}: signals of shape {sig.d.shape} / {sig.eps.shape}, expected ({n}, {ny})")
     if regressions is None:
         z = sig.eps - r   # = -d: zero-mean noise under "no mismatch"
-        regressions = window_regressions(r, u, z, sig.d, layout, options.na, options.nb)
+        regressions = window_regressions(r, columns, z, sig.d, layout, options.na, options.nb)
 
     row_test = sdelta_row_test(model, r, sig.eps, regressions, layout, options)
     rows = row_test.rows
@@ -343,21 +363,22 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
 
     test_rows = list(range(ny)) if (options.test_all_rows or options.method != "arx") else \
         [i for i in range(ny) if rows[i].mismatch]
-    design = InputDesign(model, u, layout.n_lag_u, layout.start, options.collinearity_threshold,
+    design = InputDesign(model, columns, layout.n_lag_u, layout.start, options.collinearity_threshold,
                          regressions.input_regression)
     warnings += design.warnings()
     if options.method == "arx":
         element_test = arx_element_test(model, test_rows, design, regressions, options)
     else:
-        element_test = baseline_element_test(model, u, sig.d, options)
+        element_test = baseline_element_test(model, columns, sig.d, options)
     warnings += element_test.warnings
     elements = element_test.elements
     info = None
     if options.method == "arx":
-        info, detectable, why = element_detectability(model, u, sig.d, design, element_test.noise, layout, options)
+        info, detectable, why = element_detectability(model, columns, sig.d, design, element_test.noise, layout,
+                                                      options)
         warnings += why
         for e in elements:
-            e.detectable_gain_change = detectable.get((model.outputs.index(e.output), model.inputs.index(e.input)))
+            e.detectable_gain_change = detectable.get((model.outputs.index(e.output), model.columns.index(e.input)))
     experiment = design_experiment(model, info, elements, options, layout)
 
     # A row in which an element is located is mismatched, even when its S_Delta test did not reject.
@@ -368,12 +389,13 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         out = model.outputs[i]
         row_el = [e for e in elements if e.output == out]
         if rows[i].mismatch and not any(e.mismatch or e.ambiguous for e in row_el):
-            warnings.append(f"row {out} differs from the identity but no input explains its prediction error: an "
+            what = "no input or measured disturbance" if model.n_disturbances else "no input"
+            warnings.append(f"row {out} differs from the identity but {what} explains its prediction error: an "
                             f"unmeasured disturbance, a nonlinearity or too little input excitation")
     for e in elements:
         if e.mismatch:
             e.kind = "unknown"
-    rms = {name: float(np.sqrt(np.mean(sig.d[:, k] ** 2))) for k, name in enumerate(model.outputs)}
+    rms = error_rms(model, sig.d)
     unrepaired = {"model": model.to_dict(), "changes": [], "error_before": rms, "error_after": dict(rms)}
     return AnalysisReport(
         sample_time=model.sample_time, samples=n, method=options.method, alpha=options.alpha, rows=rows,

@@ -26,7 +26,6 @@ import functools
 from typing import Optional, Sequence
 
 import numpy as np
-import scipy.linalg as sla
 
 from .statistics import f_tail, f_test
 
@@ -213,6 +212,9 @@ def fit_arx(y: np.ndarray, u: np.ndarray, na: int, nb: int, nk: Sequence[int] | 
     target = y[start:]
     R, qty, scale, rank, cond = _scaled_r(X, target)
     p = X.shape[1]
+    # scipy.linalg here, as in the functions below: importing the package does not need it.
+    import scipy.linalg as sla
+
     if rank < p:
         theta_s, *_ = np.linalg.lstsq(R, qty, rcond=None)
         rinv = np.linalg.pinv(R)
@@ -282,6 +284,8 @@ class SharedBlockRegression:
     def rinv(self) -> np.ndarray:
         """``R^-1`` of the common block (computed once, shared by every target's fit)."""
         if self._rinv is None:
+            import scipy.linalg as sla
+
             p = self.R.shape[1]
             self._rinv = sla.solve_triangular(self.R, np.eye(p)) if self.full_rank else np.linalg.pinv(self.R)
         return self._rinv
@@ -325,6 +329,8 @@ def block_triangular_solution(reg: SharedBlockRegression, qo: np.ndarray, R2: np
         R[pc:, pc:] = R2
         rinv = np.linalg.pinv(R)
     else:
+        import scipy.linalg as sla
+
         r1i = reg.rinv()
         r2i = sla.solve_triangular(R2, np.eye(po)) if po else np.zeros((0, 0))
         rinv = np.zeros((p, p))

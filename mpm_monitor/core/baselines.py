@@ -55,10 +55,11 @@ import dataclasses
 from typing import Optional
 
 import numpy as np
-from scipy import linalg, signal
+from scipy import linalg
 
 from .arx import lag_matrix, least_squares_ar
 from .errors import ConfigurationError, InputError
+from .filters import lfilter
 from .statistics import chi2_tail, f_tail, holm_adjust
 
 #: Default number of lags tested when ``max_lag`` is None (samples).  Covers the delays of the
@@ -245,7 +246,7 @@ def prewhiten(x: np.ndarray, max_order: int = DEFAULT_MAX_AR_ORDER):
     """
     xc = x - x.mean()
     a = fit_ar(xc, max_order)
-    e = signal.lfilter(np.concatenate([[1.0], -a]), [1.0], xc)
+    e = lfilter(np.concatenate([[1.0], -a]), [1.0], xc)
     return e, a
 
 
@@ -515,7 +516,7 @@ def partial_correlation_test(d, u, alpha: float = 0.01, max_lag: Optional[int] =
             continue
         e, a = prewhiten(d[:, i], max_ar_order)
         filt = np.concatenate([[1.0], -a])
-        uf = signal.lfilter(filt, [1.0], uc, axis=0)
+        uf = lfilter(filt, [1.0], uc, axis=0)
         cols = [lag_matrix(uf[:, c], range(1, lag + 1), start) for c in range(active.size)]
         cols.append(lag_matrix(e, range(1, own_lags + 1), start))
         X = np.column_stack(cols)

@@ -302,7 +302,7 @@ class WindowInformation:
     def __init__(self, model: PlantModel, u: np.ndarray, d: np.ndarray, testable: list, n_lag: int, start: int,
                  noise: dict, windows: dict):
         self.model, self.testable, self.n_lag, self.noise = model, list(testable), int(n_lag), noise
-        nu = model.n_inputs
+        nu = model.n_columns
         u_c = u - u.mean(axis=0)
         u_c[:, [j for j in range(nu) if j not in self.testable]] = 0.0
         Z = lag_matrix(u_c, range(1, n_lag + 1), start)
@@ -490,10 +490,10 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
     from .element_test import element_window
 
     windows = {(i, j): element_window(model, i, j, options.nb, options.element_window)
-               for i in noise for j in range(model.n_inputs)}
+               for i in noise for j in range(model.n_columns)}
     info = WindowInformation(model, u, d, design.testable, layout.n_lag_u, layout.start, noise, windows)
-    family = sum(1 for i in noise for j in design.testable if model.inputs[j] not in design.group_of)
-    values = {(i, j): None for i in noise for j in range(model.n_inputs)}
+    family = sum(1 for i in noise for j in design.testable if model.columns[j] not in design.group_of)
+    values = {(i, j): None for i in noise for j in range(model.n_columns)}
     values.update(info.detectable([k for k in info.targets if k[1] in design.testable], options.alpha, family))
     warnings = []
     if noise and design.constant:
@@ -501,7 +501,7 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
                         "this window detects cannot be computed (detectable_gain_change null)")
     blind = [k for k, v in values.items() if v is not None and not np.isfinite(v)]
     if blind:
-        warnings.append("elements " + ", ".join(f"({model.outputs[i]}, {model.inputs[j]})" for i, j in blind)
+        warnings.append("elements " + ", ".join(f"({model.outputs[i]}, {model.columns[j]})" for i, j in blind)
                         + ": this window holds no information on their gain (detectable_gain_change null)")
     if noise and not np.any(model.present):
         warnings.append("the model has no element: no gain to refer a detectable change to (detectable_gain_change "

@@ -5,18 +5,25 @@ Model-Plant Mismatch Detection for Model Predictive Controllers")::
 
     d = Delta u + v                                                (paper eq. 9)
 
-For every row (the paper: every row the S_Delta test flags, :mod:`mpm_monitor.core.row_test`), the
-ARX ``A(q) d_i = sum_j B_ij(q) u_j + e`` (paper eq. 10) with B polynomials covering every lag from
-1 to ``max_delay + nb`` (so no delay needs to be known in advance); element ``(i, j)`` is located
-when its first ``delay + nb`` B coefficients (where a mismatch of an element the model has must
-start, :func:`element_window`; all of them for an element the model lacks) are rejected as zero by
-their F (Wald) test, with Holm's procedure across every element tested at level
-``alpha / N_FAMILIES`` (:mod:`mpm_monitor.core.statistics`).
+Here ``u`` holds the model's columns: the manipulated inputs, then the measured disturbances (the
+feedforward variables), whose elements are tested exactly like the inputs' and reported with the
+role ``"disturbance"``.  For every row (the paper: every row the S_Delta test flags,
+:mod:`mpm_monitor.core.row_test`), the ARX ``A(q) d_i = sum_j B_ij(q) u_j + e`` (paper eq. 10) with
+B polynomials covering every lag from 1 to ``max_delay + nb`` (so no delay needs to be known in
+advance); element ``(i, j)`` is located when its first ``delay + nb`` B coefficients (where a
+mismatch of an element the model has must start, :func:`element_window`; all of them for an
+element the model lacks) are rejected as zero by their F (Wald) test, with Holm's procedure across
+every element tested at level ``alpha / N_FAMILIES`` (:mod:`mpm_monitor.core.statistics`).
 
-Inputs that move together (the closed loop drives them collinearly) cannot be told apart: the lag
-blocks of the inputs are checked for collinearity once per window (:class:`InputDesign`), and the
-elements of inputs that cannot be separated are reported as ambiguous with their group
-(:func:`group_inputs`), never guessed.
+An integrating output keeps the test valid: under "no mismatch" ``d`` stays stationary (the model
+integrates like the plant, and the centring of every signal removes the arbitrary level); an error
+of an integrator's gain makes ``d`` drift, and the root ``q = 1`` it needs is carried by ``A(q)``
+(see :mod:`mpm_monitor.core.signals`, "Integrating outputs").
+
+Columns that move together (the closed loop drives them collinearly, a feedforward makes an input
+follow a disturbance) cannot be told apart: the lag blocks of the columns are checked for
+collinearity once per window (:class:`InputDesign`), and the elements of columns that cannot be
+separated are reported as ambiguous with their group (:func:`group_inputs`), never guessed.
 
 The baselines of :mod:`mpm_monitor.core.baselines` (cross-correlation, partial correlation) give
 their element decisions in the same form (:func:`baseline_element_test`).
@@ -38,11 +45,13 @@ from .statistics import N_FAMILIES, holm_adjust
 
 @dataclasses.dataclass
 class ElementResult:
-    """Delta element test of one (output, input) pair.
+    """Delta element test of one (output, column) pair.
 
     Attributes
     ----------
-    output, input : str
+    output : str
+    input : str
+        The column: an input, or a measured disturbance (see ``role``).
     mismatch : bool
         Located as mismatched.
     p_value : float or None
@@ -59,6 +68,8 @@ class ElementResult:
         Estimated dead time of ``Delta_ij`` in samples.
     b : list of float
         ARX ``B_ij`` coefficients at that delay (``nb`` values).
+    role : str
+        ``"input"`` (a manipulated input) or ``"disturbance"`` (a measured disturbance).
     detectable_gain_change : float or None
         Smallest relative gain error of the element this window detects with probability 0.9
         (:mod:`mpm_monitor.core.detectability`); None where it cannot be computed.
@@ -75,6 +86,7 @@ class ElementResult:
     ambiguous_with: tuple = ()
     delay: Optional[int] = None
     b: list = dataclasses.field(default_factory=list)
+    role: str = "input"
     detectable_gain_change: Optional[float] = None
 
 
@@ -134,14 +146,17 @@ class ElementTest:
 
 
 class InputDesign:
-    """The lagged-input regressors of the Delta test, factored once and checked for collinearity.
+    """The lagged-column regressors of the Delta test, factored once and checked for collinearity.
+
+    The columns are the model's inputs, then its measured disturbances; "input" below means any of
+    them (:attr:`~mpm_monitor.core.model.PlantModel.columns`).
 
     Parameters
     ----------
     model : PlantModel
-    u : ndarray, shape (n_samples, n_inputs)
+    u : ndarray, shape (n_samples, n_columns)
     n_lag : int
-        Lags ``1 .. n_lag`` of every input.
+        Lags ``1 .. n_lag`` of every column.
     start : int
         First sample used.
     threshold : float
@@ -175,8 +190,10 @@ class InputDesign:
         self.n_lag = n_lag
         std = u.std(axis=0)
         scale = np.maximum(np.abs(u).max(axis=0, initial=0.0), 1.0)
-        self.testable = [j for j in range(model.n_inputs) if std[j] > 1e-12 * scale[j]]
-        self.constant = [model.inputs[j] for j in range(model.n_inputs) if j not in self.testable]
+        names = model.columns
+        self._disturbances = set(model.disturbances)
+        self.testable = [j for j in range(model.n_columns) if std[j] > 1e-12 * scale[j]]
+        self.constant = [names[j] for j in range(model.n_columns) if j not in self.testable]
         if regression is None:
             u_c = u - u.mean(axis=0)
             X = lag_matrix(u_c[:, self.testable], range(1, n_lag + 1), start) if self.testable else \
@@ -204,20 +221,26 @@ class InputDesign:
                     sub = R[:, [c for c in range(p) if c < sl.start or c >= sl.stop]]
                     if np.linalg.matrix_rank(np.hstack([sub, R[:, sl]])) < np.linalg.matrix_rank(sub) + n_lag:
                         vif = float("inf")
-                self.vif[model.inputs[j]] = vif
+                self.vif[names[j]] = vif
         bad = [name for name, v in self.vif.items() if not v < 1.0 / threshold]
         self.max_vif = max(self.vif.values(), default=1.0)
-        self.groups = group_inputs(u, bad, model.inputs, threshold)
+        self.groups = group_inputs(u, bad, names, threshold)
         self.group_of = {name: g for g in self.groups for name in g}
 
     def warnings(self) -> list:
         """What the design limits: inputs that never move, inputs that move together."""
         out = []
-        if self.constant:
-            out.append(f"inputs {', '.join(self.constant)} never move: their elements cannot be tested")
+        still_u = [c for c in self.constant if c not in self._disturbances]
+        still_dv = [c for c in self.constant if c in self._disturbances]
+        if still_u:
+            out.append(f"inputs {', '.join(still_u)} never move: their elements cannot be tested")
+        if still_dv:
+            out.append(f"measured disturbances {', '.join(still_dv)} never move: their elements cannot be tested")
         if self.groups:
+            grouped = {c for g in self.groups for c in g}
+            what = "inputs and measured disturbances " if grouped & self._disturbances else "inputs "
             out.append(
-                "inputs " + "; ".join("{" + ", ".join(g) + "}" for g in self.groups)
+                what + "; ".join("{" + ", ".join(g) + "}" for g in self.groups)
                 + f" move together (largest variance inflation {self.max_vif:.3g}, condition number of the "
                   f"input regressors {self.regression.condition_number:.3g}): the closed loop drives them "
                   "collinearly, so their elements cannot be told apart from these data; add a small dither on the "
@@ -230,7 +253,7 @@ def group_inputs(u: np.ndarray, bad: list, names, threshold: float) -> list:
 
     Parameters
     ----------
-    u : ndarray, shape (n_samples, n_inputs)
+    u : ndarray, shape (n_samples, n_columns)
     bad : list of str
         The inputs whose lag block is not separable from the others'.
     names : sequence of str
@@ -273,15 +296,18 @@ def group_inputs(u: np.ndarray, bad: list, names, threshold: float) -> list:
 
 
 def element_window(model: PlantModel, i: int, j: int, nb: int, window: str = "model") -> Optional[int]:
-    """Leading input lags the element test of (i, j) tests (None: all of them).
+    """Leading column lags the element test of (i, j) tests (None: all of them).
 
     ``Delta_ij = P_ij - Phat_ij`` is non-zero from lag ``min(theta_plant, theta_model) + 1`` on,
-    so for an element the model has (gain != 0) its first ``theta_model + nb`` lags hold the onset
-    of any mismatch; the later lags stay in the fit as nuisance (under "no mismatch" every lag is
-    zero, so the test keeps its level).  Fewer tested lags means more power.  Elements the model
-    does not have (gain 0) have no known delay: all lags are tested, as with ``window="full"``.
+    so for an element the model has (:attr:`~mpm_monitor.core.model.PlantModel.present`) its first
+    ``theta_model + nb`` lags hold the onset of any mismatch; the later lags stay in the fit as
+    nuisance (under "no mismatch" every lag is zero, so the test keeps its level).  Fewer tested
+    lags means more power.  ``theta_model`` is the element's dead time in samples for every
+    structure (for a step-response element, the samples before its first moving coefficient).
+    Elements the model does not have have no known delay: all lags are tested, as with
+    ``window="full"``.
     """
-    if window == "full" or model.gain[i, j] == 0:
+    if window == "full" or not model.present[i, j]:
         return None
     return int(model.delay_samples[i, j]) + nb
 
@@ -316,7 +342,8 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
         With the paper's ARX table of every row tested and the groups that explain a row.
     """
     nb, alpha = options.nb, options.alpha
-    nu = model.n_inputs
+    nu = model.n_columns
+    names = model.columns
     testable, group_of = design.testable, design.group_of
     estimates, tables, group_hits, noise = {}, [], [], {}
     for i in rows:
@@ -329,7 +356,7 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
             lag0 = estimate_delay_from_lags(coef, stds[bj], nb, first_lag=1)
             estimates[(i, j)] = _Estimate(tests[bj], lag0, coef[lag0 - 1:lag0 - 1 + nb].tolist())
         for g in design.groups:
-            blocks = [testable.index(model.inputs.index(x)) for x in g]
+            blocks = [testable.index(names.index(x)) for x in g]
             jt = fit.test_blocks_zero(blocks)
             if np.isfinite(jt.p_value) and \
                     N_FAMILIES * jt.p_value * max(len(rows) * len(design.groups), 1) < alpha:
@@ -338,18 +365,18 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
         nk = np.array([estimates[(i, j)].delay if (i, j) in estimates else 1 for j in range(nu)])
         short = regressions.short_arx(i, nk)
         tables.append(RowArxTable(output=model.outputs[i], a=short.a.tolist(),
-                                  b={model.inputs[j]: short.b[j].tolist() for j in range(nu)},
-                                  delay={model.inputs[j]: int(nk[j]) for j in range(nu)},
+                                  b={names[j]: short.b[j].tolist() for j in range(nu)},
+                                  delay={names[j]: int(nk[j]) for j in range(nu)},
                                   fit_percent=short.fit_percent))
-    keys = [k for k in estimates if model.inputs[k[1]] not in group_of]
+    keys = [k for k in estimates if names[k[1]] not in group_of]
     adj = dict(zip(keys, holm_adjust(np.array([estimates[k].test.p_value for k in keys])))) if keys else {}
     elements = []
     for i in rows:
         for j in range(nu):
-            name, out = model.inputs[j], model.outputs[i]
-            if (i, j) not in estimates:   # the input never moves
+            name, out, role = names[j], model.outputs[i], model.role(j)
+            if (i, j) not in estimates:   # the column never moves
                 elements.append(ElementResult(output=out, input=name, mismatch=False, p_value=None,
-                                              p_value_raw=None, statistic=None, ambiguous=True))
+                                              p_value_raw=None, statistic=None, ambiguous=True, role=role))
                 continue
             est = estimates[(i, j)]
             t = est.test
@@ -357,13 +384,14 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
                 elements.append(ElementResult(
                     output=out, input=name, mismatch=False, p_value=None, p_value_raw=t.p_value,
                     statistic=t.statistic, ambiguous=True,
-                    ambiguous_with=tuple(x for x in group_of[name] if x != name), delay=int(est.delay), b=est.b))
+                    ambiguous_with=tuple(x for x in group_of[name] if x != name), delay=int(est.delay), b=est.b,
+                    role=role))
                 continue
             p = min(1.0, N_FAMILIES * adj[(i, j)])
             elements.append(ElementResult(
                 output=out, input=name, mismatch=bool(np.isfinite(p) and p < alpha),
                 p_value=float(p) if np.isfinite(p) else 1.0, p_value_raw=t.p_value, statistic=t.statistic,
-                delay=int(est.delay), b=est.b))
+                delay=int(est.delay), b=est.b, role=role))
     warnings = [f"row {h.output}: inputs {', '.join(h.inputs)} jointly explain part of its prediction error "
                 f"(p={h.p_value:.2g}) but cannot be told apart from these data" for h in group_hits]
     return ElementTest(elements=elements, arx_tables=tables, group_hits=group_hits, warnings=warnings, noise=noise)
@@ -373,12 +401,14 @@ def baseline_element_test(model: PlantModel, u: np.ndarray, d: np.ndarray, optio
     """Element decisions of a baseline method (``options.method``: ``xcorr`` or ``pcorr``) on every row.
 
     The baseline runs at level ``alpha / N_FAMILIES``, as the ARX element test; its adjusted
-    p-values are reported times ``N_FAMILIES``.
+    p-values are reported times ``N_FAMILIES``.  The measured disturbances are columns like the
+    inputs.
 
     Parameters
     ----------
     model : PlantModel
-    u : ndarray, shape (n_samples, n_inputs)
+    u : ndarray, shape (n_samples, n_columns)
+        The model's columns: inputs, then measured disturbances.
     d : ndarray, shape (n_samples, n_outputs)
         Prediction error ``y - Phat u``.
     options : AnalysisOptions
@@ -387,16 +417,16 @@ def baseline_element_test(model: PlantModel, u: np.ndarray, d: np.ndarray, optio
     Returns
     -------
     ElementTest
-        ``elements`` for every (output, input) pair and the baseline's ``warnings``.
+        ``elements`` for every (output, column) pair and the baseline's ``warnings``.
     """
     res = ELEMENT_TESTS[options.method](d, u, alpha=options.alpha / N_FAMILIES)
     adjusted = N_FAMILIES * (res.adjusted_p_values if res.adjusted_p_values is not None else res.p_values)
     elements = []
     for i in range(model.n_outputs):
-        for j in range(model.n_inputs):
+        for j in range(model.n_columns):
             amb = bool(res.ambiguous[i, j]) if res.ambiguous is not None else False
             p_raw, p_adj = float(res.p_values[i, j]), float(adjusted[i, j])
-            elements.append(ElementResult(output=model.outputs[i], input=model.inputs[j],
+            elements.append(ElementResult(output=model.outputs[i], input=model.columns[j], role=model.role(j),
                                           mismatch=bool(res.mismatch[i, j]) and not amb,
                                           p_value=None if amb or not np.isfinite(p_adj) else p_adj,
                                           p_value_raw=p_raw if np.isfinite(p_raw) else None,

@@ -99,7 +99,7 @@ class _Trial:
 
 
 def _names(model, cols) -> str:
-    return ", ".join(model.inputs[j] for j in cols)
+    return ", ".join(model.columns[j] for j in cols)
 
 
 def _g(x: float) -> str:
@@ -242,7 +242,7 @@ def design_experiment(model, info: Optional[WindowInformation], elements: list, 
     """
     if info is None or not info.noise:
         return None
-    index = {(model.outputs.index(e.output), model.inputs.index(e.input)): e for e in elements}
+    index = {(model.outputs.index(e.output), model.columns.index(e.input)): e for e in elements}
     located = {k for k, e in index.items() if e.mismatch}
     ambiguous = [k for k, e in index.items() if e.ambiguous and k not in located and k in info.targets]
     values = [e.detectable_gain_change for e in index.values() if not e.ambiguous
@@ -253,10 +253,13 @@ def design_experiment(model, info: Optional[WindowInformation], elements: list, 
     targets = set(ambiguous)
     if not decidable:
         targets |= {k for k in index if k not in located and k in info.targets}
-    targets = sorted(targets)
-    if not targets:
+    # Only manipulated inputs can be dithered: a measured disturbance's element is a target only when
+    # it moves (a dither on the inputs it moves with separates it from them).
+    targets = sorted(k for k in targets if model.role(k[1]) == "input" or k[1] in info.testable)
+    with_inputs = {model.columns.index(name) for k in ambiguous for name in index[k].ambiguous_with}
+    candidates = sorted(j for j in {j for _, j in targets} | with_inputs if model.role(j) == "input")
+    if not targets or not candidates:
         return None
-    candidates = sorted({j for _, j in targets})
     caps, still = _caps(info, model, candidates)
     testable_c = [j for j in candidates if j not in still]
     pred = _Predictor(info, targets, options.alpha, options.collinearity_threshold, layout, info.testable)

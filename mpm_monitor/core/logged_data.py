@@ -1,9 +1,9 @@
-"""Logged closed-loop data in memory: setpoints, inputs and outputs on a regular time grid.
+"""Logged closed-loop data in memory: setpoints, inputs, measured disturbances and outputs on a regular time grid.
 
 The CSV file is read and written by :mod:`mpm_monitor.io.csv_log`, bags by :mod:`mpm_monitor.io.bags`,
 and the live monitor builds the same object from its window (:mod:`mpm_monitor.monitor.window`).
-:func:`check_loop_data` and :func:`check_signals` are the one check of ``r``, ``u`` and ``y`` against
-a model (channels, shapes, finite values) before an analysis.
+:func:`check_loop_data`, :func:`check_signals` and :func:`check_disturbance_signal` are the one check
+of ``r``, ``u``, ``dv`` and ``y`` against a model (channels, shapes, finite values) before an analysis.
 """
 
 from __future__ import annotations
@@ -149,21 +149,59 @@ def check_signals(r, u, y, n_outputs: int, n_inputs: int, n_samples: Optional[in
     return out
 
 
-def check_loop_data(model: PlantModel, data: LoggedData):
-    """The data's ``[r, u, y]`` (:func:`check_signals`) once its channels are the model's.
+def check_disturbance_signal(dv, n_disturbances: int, n_samples: Optional[int] = None, where: str = "") -> np.ndarray:
+    """``dv`` (the measured disturbances) as a float array of the expected shape with finite values.
+
+    Parameters
+    ----------
+    dv : array_like or None
+        Shape (n_samples, n_disturbances), or one sample, (n_disturbances,), when ``n_samples`` is
+        None.  None stands for no measured disturbance (accepted only when ``n_disturbances`` is 0).
+    n_disturbances : int
+    n_samples : int, optional
+    where : str
+        Prefix of the messages.
 
     Raises
     ------
     DataFileError
-        Naming the data's source: channels that differ from the model's inputs and outputs, or
-        what :func:`check_signals` refuses.
+        ``measured disturbance: expected shape (...), got (...)`` (or ``got none``), or its values
+        are not finite.
+    """
+    shape = (n_disturbances,) if n_samples is None else (n_samples, n_disturbances)
+    if dv is None:
+        if n_disturbances:
+            raise DataFileError(f"{where}measured disturbance: expected shape {shape}, got none")
+        return np.zeros(shape)
+    arr = np.asarray(dv, dtype=float)
+    if arr.shape != shape:
+        raise DataFileError(f"{where}measured disturbance: expected shape {shape}, got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise DataFileError(f"{where}measured disturbance: values contain NaN or infinity")
+    return arr
+
+
+def check_loop_data(model: PlantModel, data: LoggedData):
+    """The data's ``[r, u, y]`` (:func:`check_signals`) once its channels are the model's and its
+    measured disturbances fit the model's (:func:`check_disturbance_signal`).
+
+    Raises
+    ------
+    DataFileError
+        Naming the data's source: channels that differ from the model's inputs, outputs and
+        disturbances, or what :func:`check_signals` and :func:`check_disturbance_signal` refuse.
     """
     src = data.source or "data"
     if tuple(data.outputs) != tuple(model.outputs) or tuple(data.inputs) != tuple(model.inputs):
         raise DataFileError(f"{src}: channels {list(data.inputs)} / {list(data.outputs)} do not match the model's "
                             f"inputs {list(model.inputs)} / outputs {list(model.outputs)}")
+    if tuple(data.disturbances) != tuple(model.disturbances):
+        raise DataFileError(f"{src}: measured disturbances {list(data.disturbances)} do not match the model's "
+                            f"disturbances {list(model.disturbances)}")
     n = np.shape(data.r)[0] if np.ndim(data.r) else 0
-    return check_signals(data.r, data.u, data.y, model.n_outputs, model.n_inputs, n, where=f"{src}: ")
+    out = check_signals(data.r, data.u, data.y, model.n_outputs, model.n_inputs, n, where=f"{src}: ")
+    check_disturbance_signal(data.dv, model.n_disturbances, n, where=f"{src}: ")
+    return out
 
 
 def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the model") -> None:
@@ -178,7 +216,10 @@ def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the mo
         Naming the source, the channel and the time of the largest value.
     """
     gain = float(np.max(np.abs(model.gain))) if model.gain.size else 0.0
+    if model.is_step_response and model.step_response.size:
+        gain = max(gain, float(np.max(np.abs(model.step_response))))
     for name, arr, names in (("setpoint", data.r, model.outputs), ("input", data.u, model.inputs),
+                             ("measured disturbance", data.dv, model.disturbances),
                              ("output", data.y, model.outputs)):
         arr = np.abs(np.asarray(arr, dtype=float))
         if arr.size == 0:

@@ -138,6 +138,7 @@ class PlantModel:
             object.__setattr__(self, key, arr)
         validate_model(self)
         object.__setattr__(self, "_elements", {})
+        object.__setattr__(self, "_derived", {})        # forms computed from the elements (discretize)
 
     @classmethod
     def from_step_response(cls, sample_time: float, inputs, outputs, coefficients, ramp=None,

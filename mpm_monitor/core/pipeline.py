@@ -33,7 +33,7 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
     model : PlantModel
         The controller's model ``Phat``.
     data : LoggedData
-        Setpoints, inputs and outputs, equally spaced at ``model.sample_time``.
+        Setpoints, inputs, measured disturbances and outputs, equally spaced at ``model.sample_time``.
     options : AnalysisOptions
     signals : LoopSignals, optional
         Given to the first detection and to the repair (see
@@ -47,7 +47,7 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
         With ``options.repair``: the ``repair`` of :func:`mpm_monitor.core.repair.repair_model` with,
         when the model changed, ``rsi_after`` (output -> RSI of the repaired model on the same data)
         and ``rows_flagged_after`` (the detection of the repaired model, every option kept but
-        ``test_all_rows`` false, with its signals recomputed from the data); the kind of every
+        ``test_all_rows`` false, on the signals of the repaired model the repair computed); the kind of every
         located element; the repaired model.
 
     Raises
@@ -58,18 +58,20 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
     report = detect(model, data, options, signals=signals, regressions=regressions)
     if not options.repair:
         return report
-    located = [(model.outputs.index(e.output), model.inputs.index(e.input)) for e in report.elements if e.mismatch]
+    columns = model.columns
+    located = [(model.outputs.index(e.output), columns.index(e.input)) for e in report.elements if e.mismatch]
     result = repair_model(model, data, located, RepairOptions(initial_state=options.initial_state),
                           signals=report.signals)
     warnings = report.warnings
     warnings.extend(w for w in result.warnings if w not in warnings)
     doc = result.to_dict()
     if result.model != model:
-        after = detect(result.model, data, dataclasses.replace(options, repair=False, test_all_rows=False))
+        after = detect(result.model, data, dataclasses.replace(options, repair=False, test_all_rows=False),
+                       signals=result.signals)
         doc["rsi_after"] = {r.output: r.rsi for r in after.rows}
         doc["rows_flagged_after"] = after.flagged_rows
     kinds = getattr(result, "kinds", {})
     for e in report.elements:
         if e.mismatch:
-            e.kind = kinds.get((model.outputs.index(e.output), model.inputs.index(e.input)), "unknown")
+            e.kind = kinds.get((model.outputs.index(e.output), columns.index(e.input)), "unknown")
     return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result)

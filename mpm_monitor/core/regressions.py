@@ -6,7 +6,9 @@ Both tests are single-output ARX regressions over the same window (:class:`Regre
   on the setpoints ``r_c(t - l)``, ``l = 0 .. n_lag_r - 1``, and its own lags ``z_i(t - l)``,
   ``l = 1 .. na``;
 * Delta element test (:mod:`mpm_monitor.core.element_test`): for every output ``i``, the prediction
-  error ``d_i`` on the inputs ``u_j(t - l)``, ``l = 1 .. n_lag_u``, and its own lags.
+  error ``d_i`` on the model's columns ``u_j(t - l)``, ``l = 1 .. n_lag_u`` (the inputs, then the
+  measured disturbances: every signal called ``u`` below has one column per model column), and its
+  own lags.
 
 Every row's regression shares its large block (lagged setpoints or lagged inputs) with the other
 rows, so that block is factored once per window and each row adds its own columns by the
@@ -85,7 +87,7 @@ class RegressionLayout:
     n_lag_r : int
         Setpoint lags ``0 .. n_lag_r - 1`` of the row test.
     n_lag_u : int
-        Input lags ``1 .. n_lag_u`` of the element test.
+        Column lags ``1 .. n_lag_u`` of the element test (inputs and measured disturbances).
     start : int
         First sample of the window used as a regression row (every lag is inside the window).
     min_samples : int
@@ -113,7 +115,7 @@ def regression_layout(model: PlantModel, options) -> RegressionLayout:
     RegressionLayout
         ``max_delay`` defaults to the model's largest delay + 5 samples, at least 10.
     """
-    ny, nu, na, nb = model.n_outputs, model.n_inputs, options.na, options.nb
+    ny, nu, na, nb = model.n_outputs, model.n_columns, options.na, options.nb
     dmax_model = int(model.delay_samples.max(initial=0))
     max_delay = options.max_delay if options.max_delay is not None else max(10, dmax_model + 5)
     n_lag_r = max_delay + nb + 1            # setpoint lags 0 .. max_delay + nb
@@ -137,8 +139,8 @@ class QrRegressions:
     ----------
     r, z, d : ndarray, shape (n_samples, n_outputs)
         Setpoints, ``z = eps - r`` and prediction errors of the window.
-    u : ndarray, shape (n_samples, n_inputs)
-        Plant inputs.
+    u : ndarray, shape (n_samples, n_columns)
+        The model's columns: plant inputs, then measured disturbances.
     layout : RegressionLayout
     na, nb : int
         ARX orders.
@@ -723,7 +725,7 @@ def gram_arx(gram: np.ndarray, sum_y: float, n: int, na: int, nb: int, nk: np.nd
     n : int
         Number of rows.
     na, nb : int
-    nk : ndarray of int, shape (n_inputs,)
+    nk : ndarray of int, shape (n_columns,)
     max_condition : float
 
     Returns
@@ -915,7 +917,8 @@ def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
     ----------
     r, z, d : ndarray, shape (n_samples, n_outputs)
         Setpoints, ``z = eps - r`` and prediction errors of the window.
-    u : ndarray, shape (n_samples, n_inputs)
+    u : ndarray, shape (n_samples, n_columns)
+        The model's columns (inputs, then measured disturbances).
     layout : RegressionLayout
     na, nb : int
     max_condition : float

@@ -1,18 +1,35 @@
-"""The signals the paper's tests work on, recomputed from logged r, u, y and the model.
+"""The signals the paper's tests work on, recomputed from logged r, u, dv, y and the model.
 
-``yhat = Phat u`` (the model simulated from the data's start), ``d = y - yhat`` (prediction error)
-and ``eps = r - d`` (controller input), paper Fig. 1 and eq. (1), (9).  The model is simulated
-element by element (:func:`mpm_monitor.core.discretize.simulate_elements`, the exact ZOH equivalent of
-:func:`~mpm_monitor.core.discretize.state_space` at a fraction of the dense simulation's cost).
+``yhat = Phat [u | dv]`` (the model simulated from the data's start, on its inputs and measured
+disturbances), ``d = y - yhat`` (prediction error) and ``eps = r - d`` (controller input), paper
+Fig. 1 and eq. (1), (9).  The model is simulated element by element
+(:func:`mpm_monitor.core.discretize.simulate_elements`, the exact ZOH equivalent of
+:func:`~mpm_monitor.core.discretize.state_space` at a fraction of the dense simulation's cost),
+whatever the structure of its elements.
 
 The model's state at the first logged sample is unknown when the log starts mid-operation.  With
-``initial_state="estimate"`` the model is first simulated from rest; once the longest input lag
-``L`` has passed, every effect of the unknown state and of the unknown inputs before the log is
-held in the elements' lag states, so the rest of the error is a sum of decaying exponentials
-``c_ij a_ij^(k - L)`` per output row.  Their amplitudes are estimated by least squares, row by row
-(so a mismatch in one row can never leak into another), over the model's settling time, and are
-subtracted only when they are jointly significant (F test at level 0.001); data that start at
-rest therefore keep the exact zero initial state.  With ``"zero"`` the model starts at rest.
+``initial_state="estimate"`` the model is first simulated from rest; once the longest shift
+register ``L`` of the model (:attr:`~mpm_monitor.core.discretize.DiscreteElements.memory`: the
+longest input lag, or a step-response element's ``N`` coefficients) has passed, every effect of
+the unknown state and of the unknown columns before the log is held in the elements' denominator
+states, so the rest of the error is a sum of free responses ``k^q p^(k - L)`` per output row, over
+the decaying real poles ``p`` of the row's elements (one per first-order element, two for a second
+lag, ``q`` up to the multiplicity of a repeated pole).  A step-response element has no free
+response beyond its ``N`` samples; an integrator's pole 1 gives a constant, which the tests'
+centring removes.  The amplitudes are estimated by least squares, row by row (so a mismatch in one
+row can never leak into another), over the model's settling time, and are subtracted only when
+they are jointly significant (F test at level 0.001); data that start at rest therefore keep the
+exact zero initial state.  With ``"zero"`` the model starts at rest.
+
+Integrating outputs
+-------------------
+An output with an integrating element (a level) has no fixed operating point: the plant's output
+is the model's response plus an arbitrary level.  Under "no mismatch" ``d = y - yhat`` is that
+constant plus the disturbance ``v``, stationary, and the tests centre every signal, so they keep
+their level.  With an error ``dK`` of an integrator's gain, ``d`` holds ``dK T / (1 - q^-1) u``, a
+drift; the ARX of the element test (:mod:`mpm_monitor.core.element_test`) carries the root
+``q = 1`` in its ``A`` polynomial (``na = 4`` is enough), so ``B_ij`` stays finite and the element
+is located.
 """
 
 from __future__ import annotations
@@ -22,8 +39,9 @@ import dataclasses
 import numpy as np
 
 from .arx import least_squares_ar
-from .discretize import discretize, settling_samples, simulate_elements
+from .discretize import discretize, model_columns, settling_samples, simulate_elements
 from .errors import ConfigurationError
+from .logged_data import check_disturbance_signal
 from .model import PlantModel
 from .statistics import f_test
 
@@ -73,20 +91,22 @@ def initial_transient(model: PlantModel, d0: np.ndarray, level: float = TRANSIEN
     """
     n, ny = d0.shape
     disc = discretize(model)
-    lag = int(np.max(disc.input_lag, initial=0))
+    lag = disc.memory
     span = min(n - lag, max(settling_samples(model), 50))
     out = np.zeros_like(d0)
     if span < 20:
         return out
     k = np.arange(n - lag)
     for i in range(ny):
-        poles = np.unique(np.round(disc.pole[i][disc.active[i]], 12))
-        poles = poles[poles > 0]
-        if poles.size == 0:
+        lag_poles = disc.lag_poles(i)
+        if not lag_poles:
             continue
-        basis = poles[None, :] ** k[:span, None]              # (span, n_poles); all n - lag rows if kept
+        poles = np.array(list(lag_poles))
+        powers = [q for p, mult in lag_poles.items() for q in range(1, mult)]
+        repeated = np.array([p for p, mult in lag_poles.items() for _ in range(1, mult)])
+        basis = free_responses(poles, repeated, powers, k[:span])     # (span, n_basis); all n - lag rows if kept
         seg = d0[lag:lag + span, i]
-        # Decision: F test of the exponentials after whitening by an AR(2) noise model fitted on
+        # Decision: F test of the free responses after whitening by an AR(2) noise model fitted on
         # the rest of the record (where no transient is left), so the coloured disturbance (the
         # paper's v is AR(1) with pole 0.95) does not pass for a transient.
         rest = d0[lag + span:, i] if n - lag - span >= 200 else d0[lag:, i]
@@ -103,33 +123,66 @@ def initial_transient(model: PlantModel, d0: np.ndarray, level: float = TRANSIEN
             # Amplitudes from the plain least-squares fit (unbiased under coloured noise).
             X = basis - basis.mean(axis=0)
             coef, *_ = np.linalg.lstsq(X, seg - seg.mean(), rcond=1e-10)
-            out[lag:, i] = (poles[None, :] ** k[:, None]) @ coef
+            out[lag:, i] = free_responses(poles, repeated, powers, k) @ coef
     return out
 
 
+def free_responses(poles: np.ndarray, repeated: np.ndarray, powers: list, k: np.ndarray) -> np.ndarray:
+    """Free responses ``p^k`` of every pole, then ``k^q p^k`` of the repeated ones.
+
+    Parameters
+    ----------
+    poles : ndarray, shape (n_poles,)
+    repeated : ndarray, shape (n_extra,)
+        The pole of each extra column.
+    powers : list of int, length n_extra
+        Its ``q >= 1``.
+    k : ndarray of int, shape (n,)
+        Samples.
+
+    Returns
+    -------
+    ndarray, shape (n, n_poles + n_extra)
+    """
+    basis = poles[None, :] ** k[:, None]
+    if not powers:
+        return basis
+    kf = k.astype(float)[:, None]
+    return np.hstack([basis, kf ** np.array(powers)[None, :] * repeated[None, :] ** k[:, None]])
+
+
 def compute_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarray,
-                    initial_state: str = "estimate") -> LoopSignals:
+                    initial_state: str = "estimate", dv: np.ndarray = None) -> LoopSignals:
     """Recompute ``yhat``, ``d`` and ``eps`` from logged data.
 
     Parameters
     ----------
     model : PlantModel
-        The controller's model ``Phat``.
+        The controller's model ``Phat``, any structure.
     r, y : ndarray, shape (n_samples, n_outputs)
         Setpoints and measured outputs.
     u : ndarray, shape (n_samples, n_inputs)
         Plant inputs.
     initial_state : {"estimate", "zero"}
         How to start the model (see the module docstring).
+    dv : ndarray, shape (n_samples, n_disturbances), optional
+        Measured disturbances, required when the model has some.
 
     Returns
     -------
     LoopSignals
+
+    Raises
+    ------
+    DataFileError
+        ``dv`` missing for a model with measured disturbances, of the wrong shape or not finite.
     """
     if initial_state not in INITIAL_STATE_CHOICES:
         raise ConfigurationError(f"initial_state: expected one of {', '.join(INITIAL_STATE_CHOICES)}, got {initial_state!r}")
     r, u, y = (np.asarray(a, dtype=float) for a in (r, u, y))
-    yhat = simulate_elements(model, u)
+    if model.n_disturbances or dv is not None:
+        dv = check_disturbance_signal(dv, model.n_disturbances, u.shape[0])
+    yhat = simulate_elements(model, model_columns(u, dv))
     transient = np.zeros_like(yhat)
     if initial_state == "estimate" and u.shape[0] > 1:
         transient = initial_transient(model, y - yhat)
@@ -137,3 +190,26 @@ def compute_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
     d = y - yhat
     return LoopSignals(yhat=yhat, d=d, eps=r - d, transient=transient)
 
+
+def error_rms(model: PlantModel, d: np.ndarray) -> dict:
+    """``{output name: RMS of its prediction error}``, about its mean on an integrating output.
+
+    An integrating output has no fixed level (see the module docstring): its prediction error holds
+    the output's arbitrary level, which no model explains, so its RMS is taken about the mean.  A
+    self-regulating output keeps its offset (a wrong gain times the inputs' mean shows there).
+
+    Parameters
+    ----------
+    model : PlantModel
+    d : ndarray, shape (n_samples, n_outputs)
+
+    Returns
+    -------
+    dict
+    """
+    d = np.asarray(d, dtype=float)
+    out = {}
+    for i, (name, integrating) in enumerate(zip(model.outputs, model.integrating_outputs)):
+        x = d[:, i] - np.mean(d[:, i]) if integrating and d.shape[0] else d[:, i]
+        out[name] = float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
+    return out

@@ -17,8 +17,8 @@ the regression rows of the window, i.e. the samples ``start .. W - 1`` of the wi
 * S_Delta row test: the setpoints ``r_c(t - l)``, ``l = 0 .. n_lag_r - 1``, and for every output
   ``z_i(t - l)``, ``l = 0 .. na``, with ``z = eps - r`` (lag 0 is the target, lags >= 1 its own AR
   columns);
-* Delta element test: the inputs ``u_j(t - l)``, ``l = 1 .. n_lag_u``, and for every output
-  ``d_i(t - l)``, ``l = 0 .. na``.
+* Delta element test: the model's columns ``u_j(t - l)``, ``l = 1 .. n_lag_u`` (the inputs, then
+  the measured disturbances), and for every output ``d_i(t - l)``, ``l = 0 .. na``.
 
 Every row's regression is a sub-block of one of them.  Samples are added to and removed from them
 by symmetric rank-k updates (:meth:`~mpm_monitor.core.regressions.LaggedGram.update`).
@@ -51,9 +51,9 @@ from typing import Optional
 import numpy as np
 
 from .analysis import AnalysisOptions, AnalysisReport
-from .discretize import ModelPredictor
+from .discretize import ModelPredictor, model_columns
 from .errors import ConfigurationError, DataFileError
-from .logged_data import LoggedData, check_signals
+from .logged_data import LoggedData, check_disturbance_signal, check_signals
 from .model import PlantModel
 from .pipeline import analyze
 from .regressions import DEFAULT_MAX_CONDITION, GramRegressions, LaggedGram, SampleBuffer, regression_layout
@@ -65,7 +65,8 @@ MEAN_DRIFT_LIMIT = 8.0
 
 # ----------------------------------------------------------------------------------------- analyzer
 def _split_signals(ny: int, nu: int):
-    """``signals(block)`` for buffer rows ``[r | u | y | yhat]``: r, u, d = y - yhat, z = eps - r."""
+    """``signals(block)`` for buffer rows ``[r | u | y | yhat]`` (``u``: the ``nu`` model columns):
+    r, u, d = y - yhat, z = eps - r."""
     def signals(block):
         r = block[:, :ny]
         u = block[:, ny:ny + nu]
@@ -81,7 +82,8 @@ class SlidingWindowAnalyzer:
     Parameters
     ----------
     model : PlantModel
-        The controller's model ``Phat``; it is run from rest at the first pushed sample.
+        The controller's model ``Phat`` (any structure, with or without measured disturbances); it is
+        run from rest at the first pushed sample.
     options : AnalysisOptions
         As for :func:`mpm_monitor.core.pipeline.analyze` (``initial_state`` is not used).
     window : int
@@ -99,7 +101,7 @@ class SlidingWindowAnalyzer:
 
     Notes
     -----
-    Memory: the window buffer holds ``window + slack`` rows of ``3 n_outputs + n_inputs`` float64
+    Memory: the window buffer holds ``window + slack`` rows of ``3 n_outputs + n_columns`` float64
     channels (``slack = max(update_block, window // 4, 64)``), plus two Gram matrices whose size
     depends on the plant and the lags but not on ``window``; :meth:`memory_bytes` reports both.
     """
@@ -125,8 +127,9 @@ class SlidingWindowAnalyzer:
         self.update_block = int(update_block)
         self.refresh_interval = self.window if refresh_interval is None else int(refresh_interval)
         self.max_condition = float(max_condition)
-        ny, nu, na = model.n_outputs, model.n_inputs, options.na
-        self.ny, self.nu = ny, nu
+        ny, nu, na = model.n_outputs, model.n_columns, options.na
+        self.ny, self.nu = ny, nu                         # nu: the model's columns (inputs, then disturbances)
+        self.n_inputs, self.nd = model.n_inputs, model.n_disturbances
         lay = self.layout
         signals = _split_signals(ny, nu)
         self.row_gram = LaggedGram([("r", ny, range(0, lay.n_lag_r)), ("z", ny, range(0, na + 1))], signals)
@@ -171,30 +174,35 @@ class SlidingWindowAnalyzer:
         return {"buffer": int(self.buffer.data.nbytes), "gram": int(gram)}
 
     # -------------------------------------------------------------- input
-    def push(self, r, u, y) -> None:
-        """Add one sample ``r(k)``, ``u(k)``, ``y(k)`` (shapes (n_outputs,), (n_inputs,), (n_outputs,))."""
-        ruy = np.concatenate(check_signals(r, u, y, self.ny, self.nu))
+    def push(self, r, u, y, dv=None) -> None:
+        """Add one sample ``r(k)``, ``u(k)``, ``y(k)`` (shapes (n_outputs,), (n_inputs,), (n_outputs,))
+        and ``dv(k)`` (shape (n_disturbances,); required when the model has measured disturbances)."""
+        r, u, y = check_signals(r, u, y, self.ny, self.n_inputs)
+        dv = check_disturbance_signal(dv, self.nd)
+        ruy = np.concatenate([r, u, dv, y])
         if self.buffer.free() < 1:
             self.flush()
             self.buffer.compact()
         m = ruy.shape[0]
         row = self.buffer.data[self.buffer.count]
         row[:m] = ruy
-        row[m:] = self.predictor.step(ruy[self.ny:self.ny + self.nu])
+        row[m:] = self.predictor.step(u, dv)
         self.buffer.count += 1
         self._after_append(1)
 
-    def push_many(self, r, u, y) -> None:
-        """Add samples in time order: ``r``, ``y`` of shape (n, n_outputs), ``u`` of shape (n, n_inputs)."""
+    def push_many(self, r, u, y, dv=None) -> None:
+        """Add samples in time order: ``r``, ``y`` of shape (n, n_outputs), ``u`` of shape (n, n_inputs),
+        ``dv`` of shape (n, n_disturbances) (required when the model has measured disturbances)."""
         shape = np.shape(r)
         n = shape[0] if len(shape) == 2 else -1
-        r, u, y = check_signals(r, u, y, self.ny, self.nu, n)
+        r, u, y = check_signals(r, u, y, self.ny, self.n_inputs, n)
+        u = model_columns(u, check_disturbance_signal(dv, self.nd, n))
         for a in range(0, n, self._slack):
             b = min(a + self._slack, n)
             if self.buffer.free() < b - a:
                 self.flush()
                 self.buffer.compact()
-            yhat = self.predictor.run(u[a:b])
+            yhat = self.predictor.run(u[a:b, :self.n_inputs], u[a:b, self.n_inputs:])
             self.buffer.append(np.hstack([r[a:b], u[a:b], y[a:b], yhat]))
             self._after_append(b - a, flush=False)      # one fold (or rebuild) for the whole call
         if self._pending >= self.update_block:
@@ -268,8 +276,11 @@ class SlidingWindowAnalyzer:
         d = y - yhat
         eps = r - d
         ts = self.model.sample_time
-        data = LoggedData(t=np.arange(first, self._pushed) * ts, r=r, u=u, y=y, inputs=self.model.inputs,
-                          outputs=self.model.outputs, sample_time=ts, source="sliding window")
+        nu = self.n_inputs
+        data = LoggedData(t=np.arange(first, self._pushed) * ts, r=r, u=np.ascontiguousarray(u[:, :nu]), y=y,
+                          inputs=self.model.inputs, outputs=self.model.outputs, sample_time=ts,
+                          source="sliding window", dv=np.ascontiguousarray(u[:, nu:]),
+                          disturbances=self.model.disturbances)
         return data, LoopSignals(yhat=yhat, d=d, eps=eps, transient=np.zeros_like(d))
 
     def analyze(self) -> AnalysisReport:
@@ -288,14 +299,14 @@ class SlidingWindowAnalyzer:
         z = sig.eps - data.r
         if self._means_drifted(data, sig, z):
             self._rebuild()
-        regs = GramRegressions(self.row_gram, self.input_gram, data.r, data.u, z, sig.d, self.layout,
+        regs = GramRegressions(self.row_gram, self.input_gram, data.r, data.columns, z, sig.d, self.layout,
                                self.options.na, self.options.nb, self.max_condition)
         report = analyze(self.model, data, self.options, signals=sig, regressions=regs)
         self.last_fallbacks = list(regs.fallbacks)
         return report
 
     def _means_drifted(self, data, sig, z) -> bool:
-        for g, arrays in ((self.row_gram, (data.r, z)), (self.input_gram, (data.u, sig.d))):
+        for g, arrays in ((self.row_gram, (data.r, z)), (self.input_gram, (data.columns, sig.d))):
             x = np.hstack(arrays)
             mean = x.mean(axis=0)
             shift = np.abs(mean - g.ref)

@@ -16,7 +16,6 @@ References
 from __future__ import annotations
 
 import numpy as np
-from scipy import special
 
 #: The families of tests that share the false-alarm rate ``alpha`` of one analysis: the S_Delta row
 #: tests and the Delta element tests.  Each family is controlled at ``alpha / N_FAMILIES``
@@ -25,9 +24,16 @@ from scipy import special
 N_FAMILIES = 2
 
 
+def _special():
+    """``scipy.special``, imported on first use: describing the analysis options needs none of it."""
+    from scipy import special
+
+    return special
+
+
 def f_tail(statistic, df_num, df_den):
     """``P(F(df_num, df_den) > statistic)``, elementwise (``scipy.special.fdtrc``)."""
-    return special.fdtrc(df_num, df_den, statistic)
+    return _special().fdtrc(df_num, df_den, statistic)
 
 
 def detection_noncentrality(df_num, df_den, level: float, power: float) -> float:
@@ -36,13 +42,24 @@ def detection_noncentrality(df_num, df_den, level: float, power: float) -> float
     ``P(F'(df_num, df_den, lambda) > F_crit) = power`` with ``F_crit`` the ``1 - level`` quantile of
     ``F(df_num, df_den)`` (``scipy.special.fdtri``, ``scipy.special.ncfdtrinc``).
     """
+    special = _special()
     f_crit = special.fdtri(df_num, df_den, 1.0 - level)
     return float(special.ncfdtrinc(df_num, df_den, 1.0 - power, f_crit))
 
 
 def chi2_tail(statistic, df):
     """``P(chi2(df) > statistic)``, elementwise (``scipy.special.chdtrc``)."""
-    return special.chdtrc(df, statistic)
+    return _special().chdtrc(df, statistic)
+
+
+def normal_isf(q):
+    """Upper quantile ``z`` of the standard normal, ``P(N(0, 1) > z) = q`` (``-scipy.special.ndtri(q)``)."""
+    return -_special().ndtri(q)
+
+
+def chi2_isf(q, df):
+    """Upper quantile ``x`` of the chi-square, ``P(chi2(df) > x) = q`` (``scipy.special.chdtri``)."""
+    return _special().chdtri(df, q)
 
 
 def f_test(rss_restricted: float, rss_full: float, df_num: int, df_den: int):

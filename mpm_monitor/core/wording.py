@@ -2,7 +2,9 @@
 
 Every text about a suggested repair is made here from the ``repair`` dict of an analysis report
 (``changes`` with ``before``/``after`` parameters, the held-out errors), so that the command line, the
-monitor's statuses and the demo say the same thing the same way.
+monitor's statuses and the demo say the same thing the same way: a parameter by its key
+(``time_constant2 25->40 s``, ``lead 12->8 s``), a step-response element by its final value and dead
+time (``step response of (y1, u2) re-estimated: final value 1.2->1.6, dead time 3->5 s``).
 """
 
 from __future__ import annotations
@@ -10,8 +12,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Sequence
 
-#: Element parameters of a repair change, with their unit.
-_CHANGE_PARAMS = (("gain", ""), ("time_constant", " s"), ("delay", " s"))
+#: Element parameters of a repair change, with their unit, in the order they are named.
+_CHANGE_PARAMS = (("gain", ""), ("time_constant", " s"), ("time_constant2", " s"), ("lead", " s"), ("delay", " s"))
 
 #: ``reason`` of a change the held-out validation refused (:func:`mpm_monitor.core.repair.repair_model`).
 _REJECTED = "rejected by held-out validation"
@@ -22,14 +24,49 @@ def _short(x) -> str:
     return "nan" if x is None else f"{float(x):.3g}"
 
 
-def describe_change(change: dict) -> str:
+def _step_change(change: dict, element: bool) -> str:
+    """A step-response element's change: ``step response re-estimated: final value 1.2->1.6, dead time 3->5 s``.
+
+    The final value is the last slope (per second) on a ramp output (``change["ramp"]``); a value
+    is named when its three significant digits changed, and when neither did, the response's shape
+    alone changed.
+    """
+    before, after = change.get("before") or {}, change.get("after") or {}
+    if before.get("step_response") == after.get("step_response"):
+        return ""
+    final = "final slope" if change.get("ramp") else "final value"
+    unit = " per s" if change.get("ramp") else ""
+    parts = []
+    for key, name, u in (("gain", final, unit), ("delay", "dead time", " s")):
+        b, a = _short(before.get(key)), _short(after.get(key))
+        if b != a:
+            parts.append(f"{name} {b}->{a}{u}")
+    if not parts:
+        parts.append(f"shape only ({final} {_short(after.get('gain'))}{unit}, dead time {_short(after.get('delay'))} s)")
+    what = f"of ({change.get('output')}, {change.get('input')}) " if element else ""
+    return f"step response {what}re-estimated: " + ", ".join(parts)
+
+
+def _element_words(element: dict) -> str:
+    """An element in words: ``gain 4.05, time_constant 30 s, time_constant2 15 s, delay 6 s`` (a
+    step-response element: ``final value 1.5, dead time 3 s``)."""
+    if "step_response" in element:
+        return f"final value {_short(element['gain'])}, dead time {_short(element['delay'])} s"
+    return ", ".join(f"{key} {_short(element[key])}{unit}" for key, unit in _CHANGE_PARAMS if key in element)
+
+
+def describe_change(change: dict, element: bool = False) -> str:
     """The parameters a repair change entry alters, in words: ``time_constant 45->60 s, delay 4->7 s``.
 
     Parameters
     ----------
     change : dict
-        An entry of the report's ``repair["changes"]`` (``before`` and ``after`` with ``gain``,
-        ``time_constant`` in seconds and ``delay`` in seconds).
+        An entry of the report's ``repair["changes"]`` (``before`` and ``after`` with the element's
+        keys: ``gain``, ``time_constant`` and ``delay`` in seconds, ``time_constant2`` and ``lead``
+        where the element has them, or ``step_response``).
+    element : bool
+        Name the element in a step-response element's text (``step response of (y1, u2)
+        re-estimated: final value 1.2->1.6, dead time 3->5 s``).
 
     Returns
     -------
@@ -37,9 +74,13 @@ def describe_change(change: dict) -> str:
         "" when ``after`` equals ``before``.
     """
     before, after = change.get("before") or {}, change.get("after") or {}
+    if "step_response" in after or "step_response" in before:
+        return _step_change(change, element)
     parts = []
     for key, unit in _CHANGE_PARAMS:
         b, a = before.get(key), after.get(key)
+        if key in ("time_constant2", "lead") and (a is not None or b is not None):
+            b, a = b or 0.0, a or 0.0                        # an absent lead or second lag is 0
         if a is None or b is None or float(a) == float(b):
             continue
         parts.append(f"{key} {_short(b)}->{_short(a)}{unit}")
@@ -60,7 +101,8 @@ def repair_ran(report) -> bool:
 
 
 def row_repair_text(changes: Sequence[dict], output: str) -> str:
-    """The suggested repair of one row: ``u2: time_constant 45->60 s, delay 4->7 s; u3: gain 3.5->5.88``.
+    """The suggested repair of one row: ``u2: time_constant 45->60 s, delay 4->7 s; u3: gain 3.5->5.88``
+    (``u1: lead 12->8 s``, ``u2: step response re-estimated: final value 1.2->1.6, dead time 3->5 s``).
 
     A located element left as it was says why: ``u1: kept (rejected by held-out validation)``.
     """
@@ -149,8 +191,17 @@ def repair_summary_lines(repair: dict) -> list:
         lines.append("repair (gain / time constant s / delay s, re-estimated from the same data):")
         for c in changes:
             b, a = c["before"], c["after"]
-            lines.append(f"  ({c['output']}, {c['input']}) {c['kind']:<13} {b['gain']:g} / {b['time_constant']:g} / "
-                         f"{b['delay']:g}  ->  {a['gain']:.4g} / {a['time_constant']:.4g} / {a['delay']:g}")
+            if "step_response" in b:
+                what = describe_change(c, element=True) or f"step response of ({c['output']}, {c['input']}) kept"
+                lines.append(f"  {what} ({c['kind']})")
+                continue
+            line = (f"  ({c['output']}, {c['input']}) {c['kind']:<13} {b['gain']:g} / {b['time_constant']:g} / "
+                    f"{b['delay']:g}  ->  {a['gain']:.4g} / {a['time_constant']:.4g} / {a['delay']:g}")
+            extra = [f"{key} {b.get(key, 0.0):g} -> {a.get(key, 0.0):.4g} s" for key in ("time_constant2", "lead")
+                     if key in b or key in a]
+            if b.get("integrating"):
+                extra.append("integrating: gain per second")
+            lines.append(line + (f"  ({'; '.join(extra)})" if extra else ""))
     eb, ea = repair.get("error_before", {}), repair.get("error_after", {})
     if eb:
         lines.append("prediction error RMS before -> after repair: "
@@ -190,10 +241,9 @@ def repair_text(report, model, plant=None) -> str:
         line += what if what else f"kept ({ch.get('reason') or 'no parameter differs significantly'})"
         if what and conf is not None:
             line += f"  (confidence {conf:.2f})"
-        if plant is not None and ch["output"] in plant.outputs and ch["input"] in plant.inputs:
-            true = plant.element(plant.outputs.index(ch["output"]), plant.inputs.index(ch["input"]))
-            line += (f"  [plant: gain {true['gain']:.3g}, time_constant {true['time_constant']:.3g} s, "
-                     f"delay {true['delay']:.3g} s]")
+        if plant is not None and ch["output"] in plant.outputs and ch["input"] in plant.columns:
+            true = plant.element(plant.outputs.index(ch["output"]), plant.columns.index(ch["input"]))
+            line += f"  [plant: {_element_words(true)}]"
         lines.append(line)
     eb, ea = doc.get("error_before") or {}, doc.get("error_after") or {}
     if eb:

@@ -1,9 +1,16 @@
-"""Logged closed-loop data as a CSV file (docs/interfaces.md, "Logged data (CSV)").
+"""Logged closed-loop data as a CSV file (docs/interfaces.md, "Logged data (CSV)", "Measured disturbances").
 
-One row per sample, header ``t, r_<output>..., <input>..., <output>...``; column order is free and
-extra columns are ignored.  Samples must be equally spaced at the model's sample time: a gap, a
-repeated or decreasing ``t``, a missing column or a non-numeric cell is refused with the line and
-column, never silently mis-aligned.
+One row per sample, header ``t, r_<output>..., <input>..., <disturbance>..., <output>...``; column
+order is free.  Samples must be equally spaced at the model's sample time: a gap, a repeated or
+decreasing ``t``, a missing column or a non-numeric cell in a column the model needs is refused with
+the line and column, never silently mis-aligned.  Every other named column is kept: a numeric one in
+:attr:`LoggedData.extra`, one that is not numeric or partly missing in :attr:`LoggedData.unusable`
+with the reason.
+
+Reading has two paths that give the same result.  numpy's C parser (``numpy.loadtxt``) reads a file
+of plain numbers (a 10,000-line file of 61 columns in about a quarter of a second); anything it
+does not take, or that the checks below refuse, is read again by the careful parser (the ``csv``
+module and one ``float`` per cell), which names the line and column of the first problem.
 """
 
 from __future__ import annotations
@@ -11,6 +18,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import warnings
 
 import numpy as np
 
@@ -23,12 +31,15 @@ from .files import read_text
 SPACING_TOLERANCE = 1e-3
 
 
-def csv_header(inputs, outputs) -> list:
-    """Column names of the CSV log in the canonical order: ``t, r_<output>..., <input>..., <output>...``."""
-    return ["t"] + [f"r_{o}" for o in outputs] + list(inputs) + list(outputs)
+def csv_header(inputs, outputs, disturbances=()) -> list:
+    """Column names of the CSV log in the canonical order.
+
+    ``t, r_<output>..., <input>..., <disturbance>..., <output>...``.
+    """
+    return ["t"] + [f"r_{o}" for o in outputs] + list(inputs) + list(disturbances) + list(outputs)
 
 
-def write_csv(path, t, r, u, y, inputs, outputs) -> None:
+def write_csv(path, t, r, u, y, inputs, outputs, dv=None, disturbances=(), extra=None) -> None:
     """Write signals as the CSV log, with full float precision (lossless round trip).
 
     Parameters
@@ -38,12 +49,23 @@ def write_csv(path, t, r, u, y, inputs, outputs) -> None:
     r, y : ndarray, shape (n_samples, n_outputs)
     u : ndarray, shape (n_samples, n_inputs)
     inputs, outputs : sequence of str
+    dv : ndarray, shape (n_samples, n_disturbances), optional
+        Measured disturbances, written after the inputs.
+    disturbances : sequence of str
+        Their names.
+    extra : dict, optional
+        Other channels, ``name -> ndarray (n_samples,)``, written last in the dict's order.
     """
     t = np.asarray(t, dtype=float).reshape(-1, 1)
-    table = np.hstack([t, np.asarray(r, float), np.asarray(u, float), np.asarray(y, float)])
+    n = t.shape[0]
+    dv = np.zeros((n, 0)) if dv is None else np.asarray(dv, float).reshape(n, len(disturbances))
+    extra = dict(extra or {})
+    others = np.column_stack([np.asarray(v, float) for v in extra.values()]) if extra else np.zeros((n, 0))
+    table = np.hstack([t, np.asarray(r, float), np.asarray(u, float), dv, np.asarray(y, float), others])
+    header = csv_header(inputs, outputs, disturbances) + list(extra)
     with open(path, "w", encoding="utf-8", newline="") as fh:
         # csv.writer quotes a name that starts with a quote (or holds one), so the header reads back
-        csv.writer(fh, lineterminator="\n").writerow(csv_header(inputs, outputs))
+        csv.writer(fh, lineterminator="\n").writerow(header)
         for row in table:
             fh.write(",".join(_fmt(v) for v in row) + "\n")
 
@@ -55,8 +77,13 @@ def _fmt(v: float) -> str:
 
 
 def write_log_csv(path, log) -> None:
-    """Write a :class:`~mpm_monitor.sim.closed_loop.ClosedLoopLog` (or :class:`LoggedData`) as CSV."""
-    write_csv(path, log.t, log.r, log.u, log.y, log.inputs, log.outputs)
+    """Write a :class:`~mpm_monitor.sim.closed_loop.ClosedLoopLog` (or :class:`LoggedData`) as CSV.
+
+    Its measured disturbances (``dv``, ``disturbances``) and other channels (``extra``) are written
+    when it has them.
+    """
+    write_csv(path, log.t, log.r, log.u, log.y, log.inputs, log.outputs, dv=getattr(log, "dv", None),
+              disturbances=getattr(log, "disturbances", ()), extra=getattr(log, "extra", None))
 
 
 def read_csv(path, model: PlantModel) -> LoggedData:
@@ -66,11 +93,13 @@ def read_csv(path, model: PlantModel) -> LoggedData:
     ----------
     path : str or Path
     model : PlantModel
-        Gives the channel names and the sample time.
+        Gives the channel names (outputs, inputs, measured disturbances) and the sample time.
 
     Returns
     -------
     LoggedData
+        With ``dv`` in the model's disturbance order, every other numeric column in ``extra`` and
+        the columns that cannot be used in ``unusable`` (name -> reason).
 
     Raises
     ------
@@ -85,16 +114,54 @@ def parse_csv_text(text: str, model: PlantModel, source: str = "data") -> Logged
     """Parse the text of a CSV log (see :func:`read_csv`)."""
     if "\x00" in text:
         raise DataFileError(f"{source}: contains NUL bytes: expected a CSV text file")
-    reader = csv.reader(io.StringIO(text))
+    needed = csv_header(model.inputs, model.outputs, model.disturbances)
+    layout = "t, r_<output>, <input>, " + ("<disturbance>, " if model.disturbances else "") + "<output>"
+    header = _read_header(text, needed, layout, source)
+    idx = [header.index(h) for h in needed]
+    others, unusable = _other_columns(header, needed)
+    table = _fast_table(text, len(header))
+    fast = table is not None and bool(np.isfinite(table).all())
+    if fast:
+        values = table[:, idx]
+        extra = {name: np.ascontiguousarray(table[:, k]) for name, k in others}
+        lines = None
+    else:
+        values, lines, cells = _careful_table(text, header, needed, idx, [k for _, k in others], source)
+        extra = {}
+        for (name, _), column in zip(others, cells):
+            data, reason = _numeric_column(column, lines)
+            if reason:
+                unusable[name] = reason
+            else:
+                extra[name] = data
+    if not _spacing_ok(values[:, 0], model.sample_time):
+        if lines is None:   # the careful parser names the lines
+            values, lines, _ = _careful_table(text, header, needed, idx, [], source)
+        _refuse_spacing(values[:, 0], lines, model.sample_time, source)
+    ny, nu, nd = model.n_outputs, model.n_inputs, model.n_disturbances
+    parts = np.split(values, np.cumsum([1, ny, nu, nd]), axis=1)
+    t, r, u, dv, y = (np.ascontiguousarray(p) for p in parts)
+    return LoggedData(t=t[:, 0], r=r, u=u, y=y, inputs=model.inputs, outputs=model.outputs,
+                      sample_time=model.sample_time, source=source, dv=dv, disturbances=model.disturbances,
+                      extra=extra, unusable=unusable)
+
+
+def _read_header(text: str, needed: list, layout: str, source: str) -> list:
+    """The header's names (stripped), once every needed column appears exactly once in it.
+
+    ``layout`` describes the needed columns in the message of a missing one.
+    """
+    nl = text.find("\n")
+    first = text if nl < 0 or '"' in text[:nl] else text[:nl + 1]   # a quoted name may hold a line break
+    reader = csv.reader(io.StringIO(first))
     try:
         header = next(reader)
     except StopIteration:
-        raise DataFileError(f"{source}: empty file: expected a header line {','.join(csv_header(model.inputs, model.outputs))}") from None
+        raise DataFileError(f"{source}: empty file: expected a header line {','.join(needed)}") from None
     except csv.Error as exc:
         raise DataFileError(f"{source}: line 1: not valid CSV: {exc}") from None
     header = [h.strip() for h in header]
     dup = sorted({h for h in header if header.count(h) > 1 and h})
-    needed = csv_header(model.inputs, model.outputs)
     for h in dup:
         if h in needed:
             raise DataFileError(f"{source}: line 1 (header): column '{h}' appears more than once")
@@ -102,10 +169,77 @@ def parse_csv_text(text: str, model: PlantModel, source: str = "data") -> Logged
     if missing:
         raise DataFileError(
             f"{source}: line 1 (header): missing column{'s' if len(missing) > 1 else ''} "
-            f"{', '.join(repr(m) for m in missing)} (expected t, r_<output>, <input>, <output> with the model's names)")
-    idx = [header.index(h) for h in needed]
+            f"{', '.join(repr(m) for m in missing)} (expected {layout} with the model's names)")
+    return header
+
+
+def _other_columns(header: list, needed: list):
+    """``[(name, index)]`` of the named columns the model does not use, and ``{name: reason}`` of the
+    names that appear more than once (which of them would be meant is unknown)."""
+    needed = set(needed)
+    others, unusable = [], {}
+    for k, h in enumerate(header):
+        if not h or h in needed:
+            continue
+        if header.count(h) > 1:
+            unusable[h] = "the header names this column more than once"
+        else:
+            others.append((h, k))
+    return others, unusable
+
+
+def _fast_table(text: str, n_fields: int):
+    """Every cell below the header as float64 by numpy's C parser, shape (n_rows, n_fields), or None.
+
+    None whenever the careful parser might read the file differently: a header or cells with
+    quotes, a carriage return that does not end a line, a line longer than the csv module's field
+    limit, a cell numpy does not take as a number, a row of another length, no rows.  (Both
+    parsers round a number the same way: Python's correctly rounded decimal conversion.)
+    """
+    nl = text.find("\n")
+    if nl < 0:
+        return None
+    body = text[nl + 1:]
+    if '"' in text[:nl] or "\r" in text[:nl].rstrip("\r") or '"' in body:
+        return None
+    if "\r" in body and body.count("\r") != body.count("\r\n"):
+        return None
+    lines = body.split("\n")
+    if max(map(len, lines)) > csv.field_size_limit():
+        return None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")      # "input contained no data" is a warning
+            table = np.loadtxt(lines, delimiter=",", comments=None, dtype=float, ndmin=2)
+    except Exception:                           # noqa: BLE001 - the careful parser says what is wrong
+        return None
+    if table.shape[0] == 0 or table.shape[1] != n_fields:
+        return None
+    return table
+
+
+def _careful_table(text: str, header: list, needed: list, idx: list, other_idx: list, source: str):
+    """The needed columns as floats, line by line, refusing the first bad line or cell.
+
+    Returns
+    -------
+    values : ndarray, shape (n_rows, len(needed))
+    lines : list of int
+        File line of every row (blank lines are skipped but counted).
+    cells : list of list of str
+        The raw cells of the columns ``other_idx``, one list per column.
+
+    Raises
+    ------
+    DataFileError
+        The line (and column) of the first row of another length, the first needed cell that is not
+        a finite number, or the first line the csv module cannot read; no data lines.
+    """
+    reader = csv.reader(io.StringIO(text))
+    next(reader)
     n_fields = len(header)
-    rows = []
+    rows, lines = [], []
+    cells = [[] for _ in other_idx]
     try:
         for line_no, fields in enumerate(reader, start=2):
             if not fields or all(not f.strip() for f in fields):
@@ -125,30 +259,49 @@ def parse_csv_text(text: str, model: PlantModel, source: str = "data") -> Logged
                     raise DataFileError(f"{source}: line {line_no}, column '{col}': expected a finite number, "
                                         f"got {cell[:40]!r}")
                 vals.append(x)
-            rows.append((line_no, vals))
+            rows.append(vals)
+            lines.append(line_no)
+            for column, k in zip(cells, other_idx):
+                column.append(fields[k])
     except csv.Error as exc:
         raise DataFileError(f"{source}: line {reader.line_num}: not valid CSV: {exc}") from None
     if not rows:
         raise DataFileError(f"{source}: no data lines after the header")
-    table = np.array([v for _, v in rows], dtype=float)
-    lines = [ln for ln, _ in rows]
-    t = table[:, 0]
-    ts = model.sample_time
-    with np.errstate(over="ignore", invalid="ignore"):  # t near +-1e308: an infinite step, refused below
+    return np.array(rows, dtype=float), lines, cells
+
+
+def _numeric_column(cells: list, lines: list):
+    """``(values, "")`` of a column of finite numbers, or ``(None, reason)`` naming its first bad line."""
+    values = np.empty(len(cells))
+    for k, raw in enumerate(cells):
+        cell = raw.strip()
+        if not cell:
+            return None, f"partly missing: line {lines[k]} is empty"
+        try:
+            x = float(cell)
+        except ValueError:
+            return None, f"not numeric: line {lines[k]} holds {cell[:40]!r}"
+        if not math.isfinite(x):
+            return None, f"not a finite number on line {lines[k]} ({cell[:40]!r})"
+        values[k] = x
+    return values, ""
+
+
+def _spacing_ok(t: np.ndarray, ts: float) -> bool:
+    with np.errstate(over="ignore", invalid="ignore"):  # t near +-1e308: an infinite step, refused
+        return bool(np.all(np.abs(np.diff(t) - ts) <= SPACING_TOLERANCE * ts))
+
+
+def _refuse_spacing(t: np.ndarray, lines: list, ts: float, source: str) -> None:
+    """Raise for the first step of ``t`` that is not the sample time (naming its lines)."""
+    with np.errstate(over="ignore", invalid="ignore"):
         steps = np.diff(t)
         bad = np.flatnonzero(~(np.abs(steps - ts) <= SPACING_TOLERANCE * ts))
-    if bad.size:
-        k = int(bad[0])
-        step = steps[k]
-        if step <= 0:
-            what = "repeats" if step == 0 else "goes back from"
-            raise DataFileError(f"{source}: line {lines[k + 1]}: t = {t[k + 1]:g} s {what} t = {t[k]:g} s on line "
-                                f"{lines[k]}: expected t to increase by sample_time {ts:g} s")
-        raise DataFileError(f"{source}: line {lines[k + 1]}: t = {t[k + 1]:g} s follows t = {t[k]:g} s: a step of "
-                            f"{step:g} s (expected sample_time {ts:g} s; a gap or an irregular sample)")
-    ny, nu = model.n_outputs, model.n_inputs
-    r = table[:, 1:1 + ny]
-    u = table[:, 1 + ny:1 + ny + nu]
-    y = table[:, 1 + ny + nu:]
-    return LoggedData(t=t, r=r, u=u, y=y, inputs=model.inputs, outputs=model.outputs, sample_time=ts,
-                      source=source)
+    k = int(bad[0])
+    step = steps[k]
+    if step <= 0:
+        what = "repeats" if step == 0 else "goes back from"
+        raise DataFileError(f"{source}: line {lines[k + 1]}: t = {t[k + 1]:g} s {what} t = {t[k]:g} s on line "
+                            f"{lines[k]}: expected t to increase by sample_time {ts:g} s")
+    raise DataFileError(f"{source}: line {lines[k + 1]}: t = {t[k + 1]:g} s follows t = {t[k]:g} s: a step of "
+                        f"{step:g} s (expected sample_time {ts:g} s; a gap or an irregular sample)")

@@ -4,8 +4,8 @@
   with the identity line (paper, Figs. 3 to 5): a row without mismatch stays at 1 over the band.
 - :func:`plot_element_map` -- the located elements as a picture of the transfer matrix.
 - :func:`plot_step_responses` -- for each located element, the step response of the model's
-  element, of the repaired element and of the element identified from the data
-  (``Phat_ij + Delta_ij``, ``Delta_ij = q^-nk B_ij(q) / A(q)`` from the row's ARX table).
+  element and of the repaired element (and of the repair's estimate where it was not applied),
+  each from the element's own sampled form, whatever its structure.
 - :func:`plot_residuals` -- the prediction error ``d = y - Phat u`` per output with the model as
   given and as repaired.
 
@@ -112,14 +112,14 @@ def format_p_value(p) -> str:
 
 
 def element_states(report, model: PlantModel) -> np.ndarray:
-    """State of every element as a string array of shape (n_outputs, n_inputs).
+    """State of every element as a string array of shape (n_outputs, n_columns) (inputs, then measured disturbances).
 
     ``located`` (mismatch located), ``ambiguous`` (cannot be told apart from another input),
     ``clean`` (tested, no mismatch) or ``untested`` (its row was not flagged, so not tested).
     """
-    states = np.full((model.n_outputs, model.n_inputs), "untested", dtype=object)
+    states = np.full((model.n_outputs, model.n_columns), "untested", dtype=object)
     for e in report.elements:
-        i, j = model.outputs.index(e.output), model.inputs.index(e.input)
+        i, j = model.outputs.index(e.output), model.columns.index(e.input)
         states[i, j] = "located" if e.mismatch else ("ambiguous" if getattr(e, "ambiguous", False) else "clean")
     return states
 
@@ -143,14 +143,14 @@ def plot_element_map(report, model: PlantModel, path) -> Path:
     from matplotlib.patches import Patch
 
     plt = _pyplot()
-    ny, nu = model.n_outputs, model.n_inputs
+    ny, nu = model.n_outputs, model.n_columns
     states = element_states(report, model)
     rgb = np.array([[to_rgb(_COLORS[s]) for s in row] for row in states])
     fig, ax = plt.subplots(figsize=(1.2 * nu + 2.6, 0.9 * ny + 1.6))
     ax.imshow(rgb, aspect="auto")
     by_key = {(e.output, e.input): e for e in report.elements}
     for i, out in enumerate(model.outputs):
-        for j, inp in enumerate(model.inputs):
+        for j, inp in enumerate(model.columns):
             e = by_key.get((out, inp))
             lines = []
             if e is not None and e.mismatch:
@@ -161,7 +161,8 @@ def plot_element_map(report, model: PlantModel, path) -> Path:
                 lines.append(format_p_value(e.p_value))
             ax.text(j, i, "\n".join(lines), ha="center", va="center", fontsize=7)
     rsi = {r.output: r for r in report.rows}
-    ax.set_xticks(range(nu), model.inputs)
+    ax.set_xticks(range(nu), [c if model.role(j) == "input" else f"{c}\n(disturbance)"
+                              for j, c in enumerate(model.columns)])
     ax.set_yticks(range(ny), [f"{o}  (RSI {rsi[o].rsi:.2f}{', flagged' if rsi[o].mismatch else ''})"
                               if o in rsi else o for o in model.outputs])
     ax.set_xticks(np.arange(-0.5, nu), minor=True)
@@ -183,72 +184,74 @@ def plot_element_map(report, model: PlantModel, path) -> Path:
 
 
 def element_step(model: PlantModel, i: int, j: int, n: int) -> np.ndarray:
-    """Unit-step response of element (i, j) of the discretized model, samples ``0 .. n-1``.
+    """Unit-step response of element (i, j) (column ``j``: an input or a measured disturbance), samples ``0 .. n-1``.
 
-    ``y(k)`` answers a unit step of input ``j`` applied from sample 0 (so ``y(0) = 0``: the
-    output depends on inputs up to ``k - 1``, see docs/DESIGN.md).
+    ``y(k)`` answers a unit step of column ``j`` applied from sample 0 (so ``y(0) = 0`` unless the
+    element feeds through: the output depends on inputs up to ``k - 1``, see docs/DESIGN.md), from
+    the element's own sampled form (:meth:`PlantModel.discrete_element`), whatever its structure: an
+    integrating element's step response is a ramp, a step-response element's its coefficients.
     """
-    from ..core.discretize import simulate_elements
-
-    el = PlantModel(sample_time=model.sample_time, inputs=(model.inputs[j],), outputs=(model.outputs[i],),
-                    gain=[[model.gain[i, j]]], time_constant=[[model.time_constant[i, j]]],
-                    delay=[[model.delay[i, j]]])
-    return simulate_elements(el, np.ones((n, 1)))[:, 0]
-
-
-def arx_step(a, b, delay: int, n: int) -> np.ndarray:
-    """Unit-step response of ``q^-delay (b_0 + b_1 q^-1 + ...) / (1 + a_1 q^-1 + ...)``.
-
-    Parameters
-    ----------
-    a : sequence of float
-        ``a_1 .. a_na``.
-    b : sequence of float
-        ``b_0 .. b_{nb-1}``.
-    delay : int
-        Samples.
-    n : int
-
-    Returns
-    -------
-    ndarray, shape (n,)
-    """
-    from scipy.signal import lfilter
-
-    num = np.concatenate([np.zeros(int(delay)), np.asarray(b, dtype=float)])
-    den = np.concatenate([[1.0], np.asarray(a, dtype=float)])
-    return lfilter(num, den, np.ones(n))
+    return model.discrete_element(i, j).step_response(n)
 
 
 def _step_horizon(models, pairs) -> int:
+    """Samples drawn: the longest delay plus five lags (both lags of a second-order element), or the
+    length of a step response, over the elements drawn; at least 20, at most 5000."""
     longest = 0.0
     for m in models:
         for i, j in pairs:
-            longest = max(longest, m.delay[i, j] + 5.0 * m.time_constant[i, j])
+            if m.is_step_response:
+                longest = max(longest, (m.step_length + 5) * m.sample_time)
+            else:
+                longest = max(longest, m.delay[i, j] + 5.0 * (m.time_constant[i, j] + m.time_constant2[i, j]))
     ts = models[0].sample_time
     return int(min(max(20, np.ceil(longest / ts) + 5), 5000))
 
 
-def identified_step(report, model: PlantModel, i: int, j: int, n: int) -> Optional[np.ndarray]:
-    """Step response of the element as identified from the data, ``Phat_ij + Delta_ij``, or None.
+def _with_element(model: PlantModel, i: int, j: int, element: dict) -> PlantModel:
+    """``model`` with element (i, j) as a report's ``changes`` entry gives it (:meth:`PlantModel.element` keys)."""
+    if "step_response" in element:
+        return model.with_element(i, j, step_response=element["step_response"])
+    return model.with_element(i, j, gain=element["gain"], time_constant=element["time_constant"],
+                              delay=element["delay"], lead=element.get("lead", 0.0),
+                              time_constant2=element.get("time_constant2", 0.0),
+                              integrating=bool(element.get("integrating", False)))
 
-    ``Delta_ij`` is the row's ARX (``report.arx_tables``: ``a``, ``b[input]``, ``delay[input]``) of
-    the prediction error on the inputs, paper eq. (10).
+
+def step_curves(report, model: PlantModel, i: int, j: int, n: int) -> dict:
+    """The step responses drawn for element (i, j): ``{label: ndarray of shape (n,)}``.
+
+    ``model`` (as given) and ``repaired model``, and where the repair re-estimated the element but
+    did not apply the estimate (the held-out validation rejected it, or no parameter differed
+    significantly), ``re-estimated (not applied)``.  Every curve is a model's element sampled as the
+    model samples it; nothing is drawn that the repair does not stand behind.
     """
-    for table in getattr(report, "arx_tables", None) or ():
-        if table.output == model.outputs[i] and model.inputs[j] in table.b:
-            delta = arx_step(table.a, table.b[model.inputs[j]], table.delay[model.inputs[j]], n)
-            return element_step(model, i, j, n) + delta
-    return None
+    repaired = getattr(report, "repaired_model", None) or model
+    curves = {"model": element_step(model, i, j, n), "repaired model": element_step(repaired, i, j, n)}
+    repair = getattr(report, "repair", None) or {}
+    for c in repair.get("changes") or ():
+        if (c.get("output"), c.get("input")) != (model.outputs[i], model.columns[j]):
+            continue
+        if not c.get("applied") and c.get("estimate"):
+            try:
+                curves["re-estimated (not applied)"] = element_step(_with_element(model, i, j, c["estimate"]), i, j, n)
+            except (KeyError, ValueError):
+                pass        # an estimate the model cannot hold is not drawn
+    return curves
+
+
+_CURVE_STYLE = {"model": dict(color="k", lw=1.4),
+                "repaired model": dict(color=_COLORS["clean"], lw=1.4, ls="--"),
+                "re-estimated (not applied)": dict(color=_COLORS["ambiguous"], lw=1.0, ls=":")}
 
 
 def plot_step_responses(report, model: PlantModel, path) -> Optional[Path]:
-    """Step responses of every located element: model, repaired model and identified element.
+    """Step responses of every located element: the model's and the repaired model's (:func:`step_curves`).
 
     Parameters
     ----------
     report : AnalysisReport
-        Uses ``elements``, ``repaired_model`` and ``arx_tables`` (optional).
+        Uses ``elements``, ``repaired_model`` and ``repair`` (its ``changes``).
     model : PlantModel
     path : str or Path
 
@@ -257,8 +260,7 @@ def plot_step_responses(report, model: PlantModel, path) -> Optional[Path]:
     Path or None
         None when no element is located.
     """
-    pairs = [(model.outputs.index(o), model.inputs.index(u)) for o, u in
-             [(e.output, e.input) for e in report.elements if e.mismatch]]
+    pairs = [(model.outputs.index(e.output), model.columns.index(e.input)) for e in report.elements if e.mismatch]
     if not pairs:
         return None
     plt = _pyplot()
@@ -269,22 +271,18 @@ def plot_step_responses(report, model: PlantModel, path) -> Optional[Path]:
     nrow = int(np.ceil(len(pairs) / ncol))
     fig, axes = plt.subplots(nrow, ncol, figsize=(3.6 * ncol, 2.9 * nrow), squeeze=False)
     for ax, (i, j) in zip(axes.flat, pairs):
-        ax.step(t, element_step(model, i, j, n), where="post", color="k", lw=1.4, label="model")
-        ax.step(t, element_step(repaired, i, j, n), where="post", color=_COLORS["clean"], lw=1.4, ls="--",
-                label="repaired model")
-        ident = identified_step(report, model, i, j, n)
-        if ident is not None:
-            ax.step(t, ident, where="post", color=_COLORS["located"], lw=1.0, alpha=0.8,
-                    label="identified (model + ARX Delta)")
-        ax.set_title(f"({model.outputs[i]}, {model.inputs[j]})", fontsize=9)
+        for label, y in step_curves(report, model, i, j, n).items():
+            ax.step(t, y, where="post", label=label, **_CURVE_STYLE[label])
+        role = " (measured disturbance)" if model.role(j) == "disturbance" else ""
+        ax.set_title(f"({model.outputs[i]}, {model.columns[j]}){role}", fontsize=9)
         ax.set_xlabel("time (s)", fontsize=8)
         ax.grid(True, alpha=0.3)
         ax.tick_params(labelsize=8)
+        ax.legend(fontsize=7)
     for ax in axes.flat[len(pairs):]:
         ax.set_visible(False)
     for ax in axes[:, 0]:
         ax.set_ylabel("unit-step response", fontsize=8)
-    axes.flat[0].legend(fontsize=7)
     fig.suptitle("located elements: step responses", fontsize=10)
     fig.tight_layout()
     return _save(fig, path)
@@ -295,10 +293,11 @@ def plot_step_responses(report, model: PlantModel, path) -> Optional[Path]:
 
 
 def prediction_errors(model: PlantModel, data, initial_state: str = "estimate") -> np.ndarray:
-    """``d = y - Phat u`` of shape (n_samples, n_outputs) (:func:`~mpm_monitor.core.signals.compute_signals`)."""
+    """``d = y - Phat [u | dv]`` of shape (n_samples, n_outputs) (:func:`~mpm_monitor.core.signals.compute_signals`)."""
     from ..core.signals import compute_signals
 
-    return compute_signals(model, data.r, data.u, data.y, initial_state=initial_state).d
+    dv = getattr(data, "dv", None) if model.n_disturbances else None
+    return compute_signals(model, data.r, data.u, data.y, initial_state=initial_state, dv=dv).d
 
 
 def plot_residuals(model: PlantModel, repaired: Optional[PlantModel], data, path,

@@ -78,10 +78,21 @@ def _table(headers, rows, classes=None) -> str:
 
 
 def _params(p) -> str:
+    """An element of a ``changes`` entry in a table cell: ``K 4.05, tau 30 s, tau2 15 s, lead 12 s,
+    theta 6 s`` (``K`` per second for an integrating element), or a step response's length, final
+    value and dead time."""
     if not isinstance(p, dict):
         return "&ndash;"
-    return (f"K {_num(p.get('gain'))}, &tau; {_num(p.get('time_constant'))} s, "
-            f"&theta; {_num(p.get('delay'))} s")
+    if "step_response" in p:
+        return (f"step response of {len(p['step_response'])} samples: final value {_num(p.get('gain'))}, "
+                f"dead time {_num(p.get('delay'))} s")
+    text = f"K {_num(p.get('gain'))}{' per s (integrating)' if p.get('integrating') else ''}, "
+    text += f"&tau; {_num(p.get('time_constant'))} s"
+    if "time_constant2" in p:
+        text += f", &tau;<sub>2</sub> {_num(p.get('time_constant2'))} s"
+    if "lead" in p:
+        text += f", lead {_num(p.get('lead'))} s"
+    return text + f", &theta; {_num(p.get('delay'))} s"
 
 
 def _rows_section(report) -> str:
@@ -181,8 +192,9 @@ def write_report(directory, model: PlantModel, data, report) -> Path:
                      "Model elements coloured by the element test's verdict."))
         steps = plots.plot_step_responses(report, model, directory / "steps.png")
         if steps is not None:
-            figs.append((steps, "Unit-step responses of each located element: model as given, repaired model, "
-                                "and the element identified from the data (model + ARX estimate of Delta)."))
+            figs.append((steps, "Unit-step responses of each located element, each from the element's own "
+                                "sampled form: model as given, repaired model (and the repair's estimate where it "
+                                "was not applied)."))
         figs.append((plots.plot_residuals(model, repaired, data, directory / "residuals.png"),
                      "Prediction error d = y - model output per output, with the model as given and as repaired."))
     except OSError as exc:
@@ -197,12 +209,16 @@ def write_report(directory, model: PlantModel, data, report) -> Path:
     verdict = ("No model-plant mismatch found." if not flagged else
                f"Mismatch in row{'s' if len(flagged) > 1 else ''} {', '.join(flagged)}; "
                f"located element{'s' if len(located) != 1 else ''}: {', '.join(located) or 'none'}.")
+    columns = f"{model.n_inputs} inputs ({_e(', '.join(model.inputs))})"
+    if model.n_disturbances:
+        columns += (f" and {model.n_disturbances} measured disturbance{'s' if model.n_disturbances > 1 else ''} "
+                    f"({_e(', '.join(model.disturbances))})")
     body = [
         f"<h1>{_e(title)}</h1>",
         f"<p><b>{_e(verdict)}</b></p>",
         f"<p>Data: <code>{_e(source)}</code>, {n} samples at {_num(model.sample_time)} s "
         f"({_num(n * model.sample_time)} s); model: {model.n_outputs} outputs "
-        f"({_e(', '.join(model.outputs))}) &times; {model.n_inputs} inputs ({_e(', '.join(model.inputs))}). "
+        f"({_e(', '.join(model.outputs))}) &times; {columns}. "
         f"Written {_e(datetime.datetime.now().isoformat(timespec='seconds'))}.</p>",
         "<h2>Warnings</h2>", _warnings_section(report),
         "<h2>Row test: S<sub>&Delta;</sub></h2>", _rows_section(report), fig_html.get("sdelta", ""),

@@ -9,7 +9,8 @@ stop).  The analysis itself runs elsewhere (:mod:`mpm_monitor.monitor.worker`), 
 (:mod:`mpm_monitor.nodes.monitor_node`) only converts messages and publishes what this module returns.
 
 :meth:`MonitorCore.write_repaired_model` writes the repaired model of the latest analysis
-atomically.
+atomically.  :attr:`MonitorCore.experiment` (:class:`~mpm_monitor.monitor.experiment.ExperimentTracker`)
+follows the experiments the analyses recommend; the summary status carries its words.
 """
 
 from __future__ import annotations
@@ -28,7 +29,16 @@ from ..core.errors import ConfigurationError
 from ..core.model import PlantModel
 from ..core.wording import applied_changes, describe_change, repair_ran, repair_verdict
 from ..io.model_file import save_model
-from .statuses import mark_stale, row_statuses, stale_reason, summary_status, waiting_message, window_values
+from .experiment import ExperimentOptions, ExperimentTracker
+from .statuses import (
+    mark_stale,
+    row_statuses,
+    stale_reason,
+    summary_status,
+    waiting_message,
+    window_values,
+    with_experiment,
+)
 from .window import ERROR_KINDS, SampleWindow, WindowOptions
 from .worker import AnalysisJob, AnalysisOutcome
 
@@ -49,6 +59,8 @@ class MonitorOptions:
         Wall-clock seconds without a completed sample after which every status is STALE (> 0).
     hardware_id : str
         ``hardware_id`` of the statuses (e.g. the controller's name).
+    experiment : ExperimentOptions
+        What to do with a recommended experiment (:mod:`mpm_monitor.monitor.experiment`).
     """
 
     window: WindowOptions = WindowOptions()
@@ -56,6 +68,7 @@ class MonitorOptions:
     min_samples: int = 1000
     stale_timeout: float = 5.0
     hardware_id: str = "mpm_monitor"
+    experiment: ExperimentOptions = ExperimentOptions()
 
     def __post_init__(self):
         check_monitor_options(self)
@@ -124,7 +137,8 @@ class MonitorCore:
     def __init__(self, model: PlantModel, options: MonitorOptions = MonitorOptions()):
         self.model = model
         self.options = options
-        self.window = SampleWindow(model.outputs, model.inputs, model.sample_time, options.window)
+        self.window = SampleWindow(model.outputs, model.inputs, model.sample_time, options.window,
+                                   disturbances=model.disturbances)
         self._seq = 0
         self._last_job_completed = None
         self._results = 0
@@ -133,11 +147,13 @@ class MonitorCore:
         self._data_error: Optional[str] = None
         self._data_error_until = 0
         self._recent_warnings: collections.deque = collections.deque(maxlen=5)
-        self._last_arrival: dict = {"setpoint": None, "input": None, "output": None}
+        self._last_arrival: dict = {channel: None for channel in self.window.channels}
         self._last_complete_wall: Optional[float] = None
         self._started_wall: Optional[float] = None
         #: Number of data errors (bad values, conflicts, off-grid stamps) seen so far.
         self.data_errors = 0
+        #: The experiments: recommended, requested, running, analysed.
+        self.experiment = ExperimentTracker(model.inputs, options.window.window_samples, options.experiment)
 
     # --------------------------------------------------------------------------------- input
     def add(self, channel: str, stamp_ns: int, values, now: float) -> int:
@@ -148,6 +164,7 @@ class MonitorCore:
         n = self.window.add(channel, stamp_ns, values)
         if n:
             self._last_complete_wall = now
+            self.experiment.on_samples(self.window.n_completed)
         self._collect_problems()
         return n
 
@@ -178,12 +195,13 @@ class MonitorCore:
         """True when the window holds ``min_samples`` and ``analysis_period`` samples came since the last job.
 
         With ``force``, any new sample since the last job makes an analysis due (e.g. at the end of
-        a run, so that the last samples are analysed).
+        a run, so that the last samples are analysed).  An experiment that has ended makes an
+        analysis due as soon as the window holds its last sample.
         """
         w = self.window
         if w.n_window < self.options.min_samples:
             return False
-        if self._last_job_completed is None:
+        if self._last_job_completed is None or self.experiment.analysis_wanted(w.last_sample_stamp_ns):
             return True
         new = w.n_completed - self._last_job_completed
         return new >= (1 if force else self.options.analysis_period)
@@ -193,14 +211,17 @@ class MonitorCore:
         data = self.window.data(source="ros")
         self._seq += 1
         self._last_job_completed = self.window.n_completed
-        return AnalysisJob(seq=self._seq, data=data, first_stamp=float(data.t[0]), last_stamp=float(data.t[-1]),
-                           completed=self.window.n_completed)
+        job = AnalysisJob(seq=self._seq, data=data, first_stamp=float(data.t[0]), last_stamp=float(data.t[-1]),
+                          completed=self.window.n_completed)
+        self.experiment.job_taken(job, self.window.last_sample_stamp_ns)
+        return job
 
     def accept(self, outcome: AnalysisOutcome) -> None:
         """Take the outcome of a job (in the thread that publishes)."""
         if self._latest is not None and outcome.job.seq < self._latest.job.seq:
             return  # an older job finishing late
         self._results += 1
+        self.experiment.on_outcome(outcome)
         if outcome.error is not None:
             self._analysis_error = outcome.error
             self._latest = dataclasses.replace(outcome, report=self._latest.report if self._latest else None)
@@ -292,6 +313,9 @@ class MonitorCore:
         summary = summary_status(self._latest, self._results, self._analysis_error, waiting,
                                  window_values(self.window.health(), self.window.n_window), self._active_data_error(),
                                  self._recent_warnings[-1] if self._recent_warnings else None, hw)
+        completed = self.window.n_completed
+        summary = with_experiment(summary, self.experiment.text(completed, self._latest),
+                                  self.experiment.values(completed))
         reason = stale_reason(now, self.options.stale_timeout, self._last_complete_wall, self._started_wall,
                               self._last_arrival)
         return mark_stale(rows + [summary], reason)

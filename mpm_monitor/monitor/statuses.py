@@ -20,6 +20,10 @@ and per located element ``kind <input>`` and ``confidence <input>``; in the summ
 ``repair_changes`` (number of suggested element changes), ``repair_validation`` (the held-out
 verdict: ``passed``, ``rejected``, ``mixed``, ``not_validated``, ``not_run``, ``none`` or ``off``)
 and ``repair_validation_detail`` (the same in words).
+
+The summary also says what became of the experiment the analysis recommends (``experiment
+recommended: ...``, ``experiment running: ...``; :mod:`mpm_monitor.monitor.experiment` words it,
+:func:`with_experiment` adds it).
 """
 
 from __future__ import annotations
@@ -285,3 +289,19 @@ def summary_status(outcome, analyses: int, analysis_error: Optional[str], waitin
     if last_data_problem is not None:
         values.append(("last_data_problem", last_data_problem))
     return StatusData(level, SUMMARY_NAME, msg, hardware_id, tuple(values))
+
+
+def with_experiment(summary: StatusData, text: str, values: Sequence[tuple]) -> StatusData:
+    """The summary with the experiment's words after its message and its values at the end.
+
+    Parameters
+    ----------
+    summary : StatusData
+        :func:`summary_status`.
+    text : str
+        :meth:`mpm_monitor.monitor.experiment.ExperimentTracker.text` ('' leaves the message as it is).
+    values : sequence of (str, str)
+        :meth:`mpm_monitor.monitor.experiment.ExperimentTracker.values`.
+    """
+    message = f"{summary.message}; {text}" if text else summary.message
+    return dataclasses.replace(summary, message=message, values=tuple(summary.values) + tuple(values))

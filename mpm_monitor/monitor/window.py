@@ -1,8 +1,9 @@
-"""Sliding window of aligned closed-loop samples, built from stamped setpoint/input/output vectors.
+"""Sliding window of aligned closed-loop samples, built from stamped setpoint/input/output (/disturbance) vectors.
 
-The three topics arrive independently and in any interleaving.  :class:`SampleWindow` puts every
-vector on the sample grid by its stamp, completes sample ``k`` once its setpoint ``r(k)``, input
-``u(k)`` and output ``y(k)`` are all present (DESIGN.md, time convention of a sample), appends
+The three topics (four when the model has measured disturbances) arrive independently and in any
+interleaving.  :class:`SampleWindow` puts every vector on the sample grid by its stamp, completes
+sample ``k`` once its setpoint ``r(k)``, input ``u(k)``, output ``y(k)`` and, with measured
+disturbances, ``dv(k)`` are all present (DESIGN.md, time convention of a sample), appends
 completed samples in order to a window of the last ``window_samples`` samples, and hands the window
 to the analysis as :class:`~mpm_monitor.core.logged_data.LoggedData`.
 
@@ -24,7 +25,7 @@ Nothing is silently mis-aligned:
 
 With ``hold_setpoint`` the setpoint is treated as piecewise constant (a stack that publishes its
 setpoints only when they change): sample ``k`` takes the latest setpoint stamped at or before its
-time, and only the input and the output must be on the grid.
+time, and only the input, the output (and the measured disturbances) must be on the grid.
 
 This module is pure Python and numpy (no rclpy); time is whatever stamps the caller passes in.
 """
@@ -42,7 +43,8 @@ from ..core.logged_data import LoggedData
 
 #: The three channels of a sample, in the order of the slots.
 CHANNELS = ("setpoint", "input", "output")
-_SLOT = {c: i for i, c in enumerate(CHANNELS)}
+#: The fourth channel, of a model with measured disturbances.
+DISTURBANCE = "disturbance"
 
 #: Problem kinds that mean the data itself is wrong (the monitor reports them as ERROR).
 ERROR_KINDS = frozenset({"bad_value", "conflict", "off_grid"})
@@ -106,7 +108,7 @@ class Problem:
         ``bad_value``, ``conflict``, ``off_grid`` (errors) or ``gap``, ``duplicate``, ``late``,
         ``out_of_order`` (warnings).
     channel : str
-        ``setpoint``, ``input``, ``output`` or ``""``.
+        ``setpoint``, ``input``, ``output``, ``disturbance`` or ``""``.
     stamp_ns : int or None
         Stamp of the offending vector or first missing sample, nanoseconds.
     message : str
@@ -145,7 +147,7 @@ class WindowHealth:
 
 
 class SampleWindow:
-    """Aligns stamped setpoint, input and output vectors into a sliding window of samples.
+    """Aligns stamped setpoint, input, output (and measured-disturbance) vectors into a sliding window of samples.
 
     Parameters
     ----------
@@ -156,6 +158,9 @@ class SampleWindow:
     sample_time : float
         Seconds per sample.
     options : WindowOptions
+    disturbances : sequence of str
+        Measured-disturbance names, in model order (default none).  With some, a sample needs its
+        ``disturbance`` vector too (:attr:`channels` has four entries).
 
     Notes
     -----
@@ -164,21 +169,29 @@ class SampleWindow:
     """
 
     def __init__(self, outputs: Sequence[str], inputs: Sequence[str], sample_time: float,
-                 options: WindowOptions = WindowOptions()):
+                 options: WindowOptions = WindowOptions(), disturbances: Sequence[str] = ()):
         self.outputs = tuple(outputs)
         self.inputs = tuple(inputs)
+        self.disturbances = tuple(disturbances)
+        #: The channels a sample needs, in the order of the slots.
+        self.channels = CHANNELS + ((DISTURBANCE,) if self.disturbances else ())
+        self._slot = {c: i for i, c in enumerate(self.channels)}
+        self._names = {"setpoint": self.outputs, "input": self.inputs, "output": self.outputs,
+                       DISTURBANCE: self.disturbances}
         if not (np.isfinite(sample_time) and sample_time > 0):
             raise ConfigurationError(f"sample_time: expected a finite number > 0 (seconds), got {sample_time!r}")
         self.sample_time = float(sample_time)
         self.options = options
         self._period = int(round(self.sample_time * NS_PER_S))
         self._tol = int(options.stamp_tolerance * self._period)
-        self._sizes = (len(self.outputs), len(self.inputs), len(self.outputs))
+        self._sizes = tuple(len(self._names[c]) for c in self.channels)
         cap = int(options.window_samples)
         self._k_buf = np.zeros(cap, dtype=np.int64)
-        self._r_buf = np.zeros((cap, self._sizes[0]))
-        self._u_buf = np.zeros((cap, self._sizes[1]))
-        self._y_buf = np.zeros((cap, self._sizes[2]))
+        self._r_buf = np.zeros((cap, len(self.outputs)))
+        self._u_buf = np.zeros((cap, len(self.inputs)))
+        self._y_buf = np.zeros((cap, len(self.outputs)))
+        self._d_buf = np.zeros((cap, len(self.disturbances)))
+        self._bufs = (self._r_buf, self._u_buf, self._y_buf, self._d_buf)[:len(self.channels)]
         self._head = 0          # next write position
         self._count = 0         # samples in the window
         self._phase: Optional[int] = None
@@ -187,8 +200,8 @@ class SampleWindow:
         self._complete: set = set()
         self._next_k: Optional[int] = None
         self._setpoints: collections.deque = collections.deque()  # hold mode: (stamp_ns, values)
-        self._last_stamp = {c: None for c in CHANNELS}
-        self._health = WindowHealth()
+        self._last_stamp = {c: None for c in self.channels}
+        self._health = WindowHealth(received={c: 0 for c in self.channels})
         self._problems: list = []
         self._since_reset = 0
         # restart detection: vectors refused since the last completed sample (replayed on a restart)
@@ -251,24 +264,25 @@ class SampleWindow:
         Parameters
         ----------
         channel : str
-            ``setpoint``, ``input`` or ``output``.
+            ``setpoint``, ``input``, ``output``, or ``disturbance`` (a window with measured disturbances).
         stamp_ns : int
             Its stamp, nanoseconds.
         values : array_like, shape (n_channels,)
-            Values in model order (outputs for setpoint and output, inputs for input).
+            Values in model order (outputs for setpoint and output, inputs for input, measured
+            disturbances for disturbance).
 
         Returns
         -------
         int
             Number of samples appended to the window by this vector (0, 1 or more).
         """
-        if channel not in _SLOT:
-            raise ValueError(f"channel: expected one of {', '.join(CHANNELS)}, got {channel!r}")
-        slot = _SLOT[channel]
+        if channel not in self._slot:
+            raise ValueError(f"channel: expected one of {', '.join(self.channels)}, got {channel!r}")
+        slot = self._slot[channel]
         stamp_ns = int(stamp_ns)
         v = np.asarray(values, dtype=float).reshape(-1)
         if v.shape[0] != self._sizes[slot]:
-            names = self.inputs if channel == "input" else self.outputs
+            names = self._names[channel]
             self.report_bad(channel, stamp_ns, f"{channel}: {v.shape[0]} value(s) at t = {stamp_ns / NS_PER_S:.9g} s, "
                                                f"expected {len(names)} ({', '.join(names)})")
             return 0
@@ -318,7 +332,8 @@ class SampleWindow:
     def data(self, source: str = "ros") -> LoggedData:
         """The window as :class:`~mpm_monitor.core.logged_data.LoggedData` (a copy), oldest sample first.
 
-        ``t`` is in seconds (the stamps on the grid).
+        ``t`` is in seconds (the stamps on the grid); ``dv`` holds the measured disturbances (none
+        without them).
         """
         cap = self._k_buf.shape[0]
         n = self._count
@@ -326,7 +341,8 @@ class SampleWindow:
         k = self._k_buf[idx]
         t = (k * self._period + (self._phase or 0)) / NS_PER_S
         return LoggedData(t=t, r=self._r_buf[idx].copy(), u=self._u_buf[idx].copy(), y=self._y_buf[idx].copy(),
-                          inputs=self.inputs, outputs=self.outputs, sample_time=self.sample_time, source=source)
+                          inputs=self.inputs, outputs=self.outputs, sample_time=self.sample_time, source=source,
+                          dv=self._d_buf[idx].copy(), disturbances=self.disturbances)
 
     # ----------------------------------------------------------------------------- internals
     def _stamp_of(self, k: int) -> int:
@@ -350,7 +366,7 @@ class SampleWindow:
         return int(k)
 
     def _place(self, channel: str, stamp_ns: int, v: np.ndarray) -> int:
-        slot = _SLOT[channel]
+        slot = self._slot[channel]
         if channel == "setpoint" and self.options.hold_setpoint:
             self._accepted = True
             self._setpoints.append((stamp_ns, v))
@@ -365,7 +381,7 @@ class SampleWindow:
             return 0
         entry = self._pending.get(k)
         if entry is None:
-            entry = [None, None, None]
+            entry = [None] * len(self.channels)
             self._pending[k] = entry
         if entry[slot] is not None:
             t = f"t = {stamp_ns / NS_PER_S:.9g} s"
@@ -397,7 +413,7 @@ class SampleWindow:
         if self._count and k >= self._next_k - self._count:
             pos = (self._head - (self._next_k - k)) % cap
             if self._k_buf[pos] == k:
-                stored = (self._r_buf, self._u_buf, self._y_buf)[slot][pos]
+                stored = self._bufs[slot][pos]
                 t = f"t = {stamp_ns / NS_PER_S:.9g} s"
                 self._repeated(channel, stamp_ns, stored, v,
                                f"{channel}: sample {t} received again (same values; ignored)",
@@ -420,8 +436,8 @@ class SampleWindow:
 
     def _is_complete(self, k: int, entry) -> bool:
         if self.options.hold_setpoint:
-            return entry[1] is not None and entry[2] is not None and self._held_setpoint(k) is not None
-        return entry[0] is not None and entry[1] is not None and entry[2] is not None
+            return all(e is not None for e in entry[1:]) and self._held_setpoint(k) is not None
+        return all(e is not None for e in entry)
 
     def _advance(self) -> int:
         appended = 0
@@ -439,7 +455,7 @@ class SampleWindow:
                 entry = self._pending.pop(k)
                 self._complete.discard(k)
                 r = self._held_setpoint(k) if hold else entry[0]
-                self._append(k, r, entry[1], entry[2])
+                self._append(k, r, *entry[1:])
                 self._next_k = k + 1
                 appended += 1
                 if hold:
@@ -465,7 +481,7 @@ class SampleWindow:
         if entry is None:
             absent = "nothing received"
         else:
-            names = [c for c, e in zip(CHANNELS, entry) if e is None]
+            names = [c for c, e in zip(self.channels, entry) if e is None]
             if self.options.hold_setpoint and "setpoint" in names and entry[0] is None:
                 names.remove("setpoint")
                 if self._held_setpoint(first_missing) is None:
@@ -494,7 +510,7 @@ class SampleWindow:
             entry = self._pending.pop(oldest)
             self._complete.discard(oldest)
             self._health.missing_samples += 1
-            absent = [c for c, e in zip(CHANNELS, entry) if e is None]
+            absent = [c for c, e in zip(self.channels, entry) if e is None]
             self._problem("gap", "", self._stamp_of(oldest),
                           f"sample t = {self._stamp_of(oldest) / NS_PER_S:.9g} s given up: no {' and no '.join(absent)} "
                           f"after {self.options.max_pending} newer incomplete samples")
@@ -535,13 +551,15 @@ class SampleWindow:
         self._count = 0
         self._since_reset = 0
 
-    def _append(self, k, r, u, y) -> None:
+    def _append(self, k, r, u, y, dv=None) -> None:
         cap = self._k_buf.shape[0]
         h = self._head
         self._k_buf[h] = k
         self._r_buf[h] = r
         self._u_buf[h] = u
         self._y_buf[h] = y
+        if dv is not None:
+            self._d_buf[h] = dv
         self._head = (h + 1) % cap
         self._count = min(self._count + 1, cap)
         self._since_reset += 1

@@ -1,4 +1,4 @@
-"""Live monitor node: setpoint, input and output in; ``/diagnostics`` and row RSI out.
+"""Live monitor node: setpoint, input and output (and measured disturbances) in; ``/diagnostics`` and row RSI out.
 
 Wraps :class:`~mpm_monitor.monitor.monitor_core.MonitorCore` (window, schedule, statuses) and
 :class:`~mpm_monitor.monitor.worker.AnalysisWorker` (the analysis of
@@ -18,7 +18,22 @@ re-estimates them (:mod:`mpm_monitor.core.repair`); the statuses carry the sugge
 named by the parameter ``repaired_model_file`` (atomically; ``success`` false with the reason when
 there is no analysis yet, no change to write, or the write fails).
 
-It works with any publisher of the contract topics, not only this package's plant and MPC nodes.
+Experiments (docs/interfaces.md, "Detectability and experiment", "Live experiment"): when the
+latest analysis recommends one (the report's ``experiment``), the summary says so; with
+``auto_experiment`` the node asks the dither service ``experiment_service`` (the MPC node's
+``~/start_dither``, ``rcl_interfaces/srv/SetParameters``) for it, asynchronously (the answer is
+collected by the result timer; a call without an answer within :data:`DITHER_CALL_TIMEOUT` seconds
+counts as failed), follows it on ``dither_topic``, says in the summary that it runs and how many
+samples are left, and analyses the window that includes it as soon as it has ended.  It never asks
+while a call or an experiment is under way, and after an experiment (or a refused or failed call)
+not before ``experiment_cooldown`` samples; a request longer than the window is capped at the
+window (:mod:`mpm_monitor.monitor.experiment`).  A failed or refused call is a status message,
+never an exception; without the service the summary only reports the recommendation.
+
+When the model has measured disturbances the node also subscribes to ``disturbance_topic`` (one value
+per measured disturbance) and a sample needs its four vectors (docs/interfaces.md, "Measured
+disturbances").  It works with any publisher of the contract topics, not only this package's plant
+and MPC nodes.
 
 Parameters (all declared with type, description and range): see :data:`PARAMS`.
 """
@@ -30,6 +45,9 @@ import time
 from typing import Callable, Optional
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.msg import ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
@@ -38,6 +56,7 @@ from std_srvs.srv import Trigger
 
 from ..core.errors import ModelFileError
 from ..core.options import ParamSpec
+from ..monitor.experiment import ExperimentOptions
 from ..monitor.monitor_core import MonitorCore, MonitorOptions
 from ..monitor.statuses import ERROR, SUMMARY_NAME, StatusData
 from ..monitor.window import WindowOptions
@@ -56,6 +75,9 @@ from .ros_io import (
 
 #: Wall-clock seconds between two looks for finished analyses.
 RESULT_POLL_PERIOD = 0.02
+
+#: Wall-clock seconds the node waits for the dither service's answer before it counts the call as failed.
+DITHER_CALL_TIMEOUT = 10.0
 
 #: The analysis options the node declares as parameters, in their order (:data:`ANALYSIS_PARAMS`).
 NODE_ANALYSIS_OPTIONS = ("alpha", "na", "nb", "band", "n_freq", "max_delay", "method", "initial_state", "repair")
@@ -109,7 +131,13 @@ PARAMS = MODEL_PARAMS + (
     ParamSpec("analysis_thread", "bool", True, "Run the analysis in a background thread (false: inside the "
               "callback, for debugging only)."),
     ParamSpec("hardware_id", "string", "", "hardware_id of the statuses ('' = the node's full name)."),
-) + topic_params("setpoint", "input", "output") + (
+    ParamSpec("auto_experiment", "bool", False, "Ask experiment_service for the experiment (a dither) the latest "
+              "analysis recommends; one at a time (false: only report the recommendation)."),
+    ParamSpec("experiment_service", "string", "mpc/start_dither", "The dither service (rcl_interfaces/SetParameters, "
+              "as the MPC node's ~/start_dither)."),
+    ParamSpec("experiment_cooldown", "int", 10000, "Samples after an experiment's analysis, or a refused or failed "
+              "call, before the next call.", 0, 10**9),
+) + topic_params("setpoint", "input", "output", "dither", "disturbance") + (
     ParamSpec("diagnostics_topic", "string", "/diagnostics", "Topic of the diagnostics (DiagnosticArray)."),
     ParamSpec("rsi_topic", "string", "mpm_monitor/rsi", "Topic of the row RSI values (Float64MultiArray, model "
               "output order)."),
@@ -129,12 +157,17 @@ def analysis_options_from_params(p: dict):
     return AnalysisOptions(**values)
 
 
-def monitor_options_from_params(p: dict, hardware_id: str) -> MonitorOptions:
-    """:class:`~mpm_monitor.monitor.monitor_core.MonitorOptions` from the node's parameter values."""
+def monitor_options_from_params(p: dict, hardware_id: str, service_name: Optional[str] = None) -> MonitorOptions:
+    """:class:`~mpm_monitor.monitor.monitor_core.MonitorOptions` from the node's parameter values.
+
+    ``service_name`` is the dither service as messages name it (default: the parameter as given).
+    """
     window = WindowOptions(window_samples=p["window_samples"], reorder_samples=p["reorder_samples"],
                            stamp_tolerance=p["stamp_tolerance"], hold_setpoint=p["hold_setpoint"])
+    experiment = ExperimentOptions(auto=p["auto_experiment"], service=service_name or p["experiment_service"],
+                                   cooldown=p["experiment_cooldown"])
     return MonitorOptions(window=window, analysis_period=p["analysis_period"], min_samples=p["min_samples"],
-                          stale_timeout=p["stale_timeout"], hardware_id=hardware_id)
+                          stale_timeout=p["stale_timeout"], hardware_id=hardware_id, experiment=experiment)
 
 
 def status_to_msg(s) -> DiagnosticStatus:
@@ -169,7 +202,11 @@ class MonitorNode(Node):
         self._analyze = analyze
         self._analysis_options = analysis_options_from_params(p)
         self._hw = p["hardware_id"] or self.get_fully_qualified_name()
-        self._monitor_options = monitor_options_from_params(p, self._hw)
+        self._dither_client = (self.create_client(SetParameters, p["experiment_service"])
+                               if p["auto_experiment"] else None)
+        self._dither_call = None   # (future, wall-clock time sent) of the call under way
+        self._monitor_options = monitor_options_from_params(p, self._hw,
+                                                            self.resolve_service_name(p["experiment_service"]))
         self._diag_pub = self.create_publisher(DiagnosticArray, p["diagnostics_topic"], diagnostics_qos())
         self._rsi_pub = self.create_publisher(Float64MultiArray, p["rsi_topic"], diagnostics_qos())
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -199,17 +236,21 @@ class MonitorNode(Node):
         self.model = model
         self.core = MonitorCore(self.model, self._monitor_options)
         self.core.start(time.monotonic())
-        self._codecs = {ch: VectorCodec.for_channel(self.model, ch, p[f"{ch}_topic"])
-                        for ch in ("setpoint", "input", "output")}
+        channels = self.core.window.channels      # setpoint, input, output (, disturbance)
+        self._codecs = {ch: VectorCodec.for_channel(self.model, ch, p[f"{ch}_topic"]) for ch in channels}
         self.worker = AnalysisWorker(self._run_job, threaded=p["analysis_thread"])
         q = vector_qos()
         self._subs = [self.create_subscription(JointState, p[f"{ch}_topic"],
                                                (lambda msg, ch=ch: self._on_vector(ch, msg)), q)
-                      for ch in ("setpoint", "input", "output")]
+                      for ch in channels]
+        if self._dither_client is not None:
+            self._dither_codec = VectorCodec.for_channel(self.model, "dither", p["dither_topic"])
+            self._subs.append(self.create_subscription(JointState, p["dither_topic"], self._on_dither, q))
         # The events executor has no guard conditions: results are collected by a short steady timer.
         self._result_timer = self.create_timer(RESULT_POLL_PERIOD, self._on_results, clock=self._steady)
+        dv = f", {self.model.n_disturbances} measured disturbance(s)" if self.model.n_disturbances else ""
         self.get_logger().info(
-            f"monitoring {self.model.n_outputs}x{self.model.n_inputs} ({self.model.name or 'model'}): window "
+            f"monitoring {self.model.n_outputs}x{self.model.n_inputs}{dv} ({self.model.name or 'model'}): window "
             f"{p['window_samples']} samples, analysis every {p['analysis_period']} after {p['min_samples']}")
 
     def _retry_model(self) -> None:
@@ -256,6 +297,8 @@ class MonitorNode(Node):
         return run_analysis(self._analyze, self.model, self._analysis_options, job)
 
     def _on_results(self) -> None:
+        if self._dither_call is not None:
+            self._poll_dither_call()
         outcomes = self.worker.take_outcomes()
         if not outcomes:
             return
@@ -264,12 +307,76 @@ class MonitorNode(Node):
             self.results += 1
             if outcome.error:
                 self.get_logger().error(outcome.error)
+        self._request_experiment()
         rsi = self.core.rsi_vector()
         if rsi is not None:
             msg = Float64MultiArray()
             msg.layout.dim = [MultiArrayDimension(label="outputs", size=len(rsi), stride=len(rsi))]
             msg.data = [float(v) for v in rsi]
             self._rsi_pub.publish(msg)
+        self.publish_statuses()
+
+    # -------------------------------------------------------------------------- experiments
+    def _on_dither(self, msg: JointState) -> None:
+        """A dither vector: follow the running experiment (its zero vector ends it)."""
+        try:
+            stamp, values = self._dither_codec.decode(msg)
+        except MessageError as exc:
+            self.get_logger().warning(f"ignored: {exc}", throttle_duration_sec=5.0)
+            return
+        core = self.core
+        core.experiment.on_dither(stamp, values)
+        if core.analysis_due():
+            self.worker.submit(core.take_job())
+
+    def _request_experiment(self) -> None:
+        """Call the dither service when the latest analysis recommends an experiment and none is under way."""
+        if self._dither_client is None:
+            return
+        tracker = self.core.experiment
+        rec = tracker.next_request(self.core.window.n_completed, self._dither_client.service_is_ready())
+        if rec is None:
+            return
+        double, integer = ParameterType.PARAMETER_DOUBLE, ParameterType.PARAMETER_INTEGER
+        request = SetParameters.Request(parameters=[
+            ParameterMsg(name=name, value=ParameterValue(type=double, double_value=float(a))) for name, a in rec.dither
+        ] + [ParameterMsg(name="samples", value=ParameterValue(type=integer, integer_value=int(rec.samples)))])
+        try:
+            future = self._dither_client.call_async(request)
+        except Exception as exc:  # a failed call is a status, never an exception
+            tracker.on_call_failed(f"{type(exc).__name__}: {exc}".splitlines()[0], self.core.window.n_completed)
+            return
+        self._dither_call = (future, time.monotonic())
+        tracker.on_requested(rec)
+        self.get_logger().info(f"experiment requested from {tracker.options.service}: dither on "
+                               f"{', '.join(rec.inputs)} ({rec.amplitudes_text()}) for {rec.samples} samples")
+
+    def _poll_dither_call(self) -> None:
+        """Take the dither service's answer when it has come (or give the call up after the timeout)."""
+        future, sent = self._dither_call
+        tracker, completed = self.core.experiment, self.core.window.n_completed
+        if future.done():
+            self._dither_call = None
+            try:
+                results = list(future.result().results)
+            except Exception as exc:
+                results, why = [], f"{type(exc).__name__}: {exc}".splitlines()[0]
+            else:
+                why = "the answer holds no result"
+            if results:
+                tracker.on_response(bool(results[0].successful), str(results[0].reason), completed)
+            else:
+                tracker.on_call_failed(why, completed)
+        elif time.monotonic() - sent > DITHER_CALL_TIMEOUT:
+            self._dither_call = None
+            self._dither_client.remove_pending_request(future)
+            tracker.on_call_failed(f"no answer within {DITHER_CALL_TIMEOUT:g} s", completed)
+        else:
+            return
+        if tracker.phase == "running":  # one call site per severity
+            self.get_logger().info(f"{tracker.options.service}: {tracker.detail}")
+        else:
+            self.get_logger().warning(f"{tracker.options.service}: {tracker.phase}: {tracker.detail}")
         self.publish_statuses()
 
     def _on_write_repaired_model(self, request, response):
@@ -309,7 +416,10 @@ class MonitorNode(Node):
         self._last_publish = now
 
     def close(self) -> None:
-        """Stop the analysis thread."""
+        """Stop the analysis thread (and give up a dither call under way)."""
+        if self._dither_call is not None:
+            self._dither_client.remove_pending_request(self._dither_call[0])
+            self._dither_call = None
         if self.worker is not None:
             self.worker.close()
         if self._process_analyzer is not None:

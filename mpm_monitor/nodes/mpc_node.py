@@ -1,16 +1,32 @@
-"""MPC controller node: internal-model MPC from ``setpoint`` and ``output`` to ``input``.
+"""MPC controller node: internal-model MPC from ``setpoint``, ``output`` (and ``disturbance``) to ``input``.
 
 Wraps :class:`~mpm_monitor.sim.mpc.InternalModelMpc`.  The controller computes ``u(k)`` once it holds
 the setpoint ``r(k)`` and the measurement ``y(k)`` with the same stamp (and the dither of that
-stamp when ``use_dither``), and publishes it with that stamp; vectors are buffered by stamp, so
-the arrival order of the topics does not matter and nothing is dropped.  With ``hold_setpoint``
-it computes ``u(k)`` as soon as ``y(k)`` arrives, with the latest setpoint (and dither) received:
-for a stack whose setpoints are published only when they change.
+stamp when ``use_dither``, and the measured disturbances ``dv(k)`` of that stamp on
+``disturbance_topic`` when its model has some: its feedforward), and publishes it with that stamp;
+vectors are buffered by stamp, so the arrival order of the topics does not matter and nothing is
+dropped.  With ``hold_setpoint`` it computes ``u(k)`` as soon as ``y(k)`` (and ``dv(k)``) arrive,
+with the latest setpoint (and dither) received: for a stack whose setpoints are published only
+when they change.
+
+Experiments: the service ``~/start_dither`` (``rcl_interfaces/srv/SetParameters``) starts a PRBS
+dither on some inputs for a number of samples (docs/interfaces.md, "Detectability and experiment",
+"Live experiment").  The request holds one DOUBLE per dithered input (its name; the PRBS amplitude,
+input units) and one INTEGER ``samples``; the response one ``SetParametersResult`` (``successful``,
+and in ``reason`` one line: what starts, or why not).  Refused: an amplitude above ``max_dither``
+(0, the default, refuses every request), an amplitude that is not > 0, an unknown or repeated input,
+``samples`` missing, < 1 or above ``max_dither_samples``, a dither already running, a node that adds
+the dither of ``dither_topic`` (``use_dither``).  The dither starts with the next sample, is added to
+``u`` by the controller (clipped to the input bounds) and stops by itself after ``samples`` samples;
+while it runs the node publishes every sample's dither vector (``JointState`` of the inputs, zero on
+the inputs not dithered) on ``dither_topic`` stamped with the sample, and after the last one a zero
+vector stamped with the next sample, so that a bag shows when it ran.  The PRBS comes from a
+generator seeded by ``seed`` (one stream for all the node's experiments).
 
 Recovery in lock-step (the plant re-sends ``y(k)`` and the setpoint node ``r(k)`` when the loop
 stalls): a vector re-sent for the stamp already answered is not a second sample; a re-sent ``y``
 of that stamp gets the same ``u`` again (idempotent, in case the first one was lost), a re-sent
-``r`` or dither is ignored.  A measurement whose stamp goes back (a restarted plant, at
+``r``, dither or ``dv`` is ignored.  A measurement whose stamp goes back (a restarted plant, at
 ``k = 0``), or a different ``y`` for the stamp just answered, restarts the controller: internal
 model and previous move reset, with a warning.
 
@@ -20,20 +36,25 @@ Parameters (all declared with type, description and range): see :data:`PARAMS`.
 from __future__ import annotations
 
 import collections
-from typing import Optional
+import math
+from typing import Optional, Sequence
 
 import numpy as np
+from rcl_interfaces.msg import ParameterType, SetParametersResult
+from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from ..core.errors import ConfigurationError
+from ..core.errors import ConfigurationError, InputError
 from ..core.options import ParamSpec
+from ..sim.excitation import TimedDither
 from ..sim.mpc import InternalModelMpc, MpcOptions
 from .ros_io import (
     MODEL_PARAMS,
     MessageError,
     VectorCodec,
     declare_parameters,
+    period_ns,
     resolve_model,
     run_node,
     topic_params,
@@ -58,7 +79,12 @@ PARAMS = MODEL_PARAMS + (
     ParamSpec("hold_setpoint", "bool", False, "Compute u(k) on each y(k) with the latest setpoint instead of "
               "waiting for the setpoint of the same stamp."),
     ParamSpec("max_buffered", "int", 1000, "Vectors buffered per topic while waiting for their partners.", 1, 10**7),
-) + topic_params("setpoint", "output", "input", "dither")
+    ParamSpec("max_dither", "double", 0.0, "Largest PRBS amplitude the ~/start_dither service accepts, input units "
+              "(0 = the service refuses every request).", 0.0, 1e6),
+    ParamSpec("max_dither_samples", "int", 10000, "Longest dither the ~/start_dither service accepts, samples.",
+              1, 10**7),
+    ParamSpec("seed", "int", 1, "Seed of the PRBS of the ~/start_dither experiments.", 0, 2**31 - 1),
+) + topic_params("setpoint", "output", "input", "dither", "disturbance")
 
 
 def _weight(values, n: int, name: str):
@@ -82,6 +108,76 @@ def mpc_options_from_params(p: dict, n_outputs: int, n_inputs: int) -> MpcOption
                       du_max=_weight(p["du_max"], n_inputs, "du_max"), qp_tolerance=p["qp_tolerance"])
 
 
+def dither_text(inputs: Sequence[str], amplitudes) -> str:
+    """``u4, u5 (amplitudes 0.08, 0.08)``: the dithered inputs of ``amplitudes`` (model order) in words."""
+    on = [j for j, a in enumerate(amplitudes) if a > 0]
+    word = "amplitude" if len(on) == 1 else "amplitudes"
+    return f"{', '.join(inputs[j] for j in on)} ({word} {', '.join(f'{amplitudes[j]:g}' for j in on)})"
+
+
+def parse_dither_request(parameters, inputs: Sequence[str], max_dither: float, max_samples: int) -> tuple:
+    """The dither a ``~/start_dither`` request asks for, checked.
+
+    Parameters
+    ----------
+    parameters : sequence of rcl_interfaces.msg.Parameter
+        The request's parameters: one DOUBLE per dithered input (name = the input, value = PRBS
+        amplitude in input units; an INTEGER is taken as a DOUBLE) and one INTEGER ``samples``.
+    inputs : sequence of str
+        The model's inputs.
+    max_dither : float
+        Largest amplitude accepted, input units (0: every request refused).
+    max_samples : int
+        Largest ``samples`` accepted.
+
+    Returns
+    -------
+    amplitudes : ndarray, shape (n_inputs,)
+        Amplitude of every input in model order (0 for the inputs not dithered).
+    samples : int
+
+    Raises
+    ------
+    InputError
+        Why the request is refused, in one line.
+    """
+    if max_dither <= 0:
+        raise InputError("dither experiments are disabled on this node (its max_dither parameter is 0)")
+    index = {name: j for j, name in enumerate(inputs)}
+    amplitudes = np.zeros(len(inputs))
+    given, samples = set(), None
+    for p in parameters:
+        name, kind = str(p.name), p.value.type
+        if name == "samples" and name not in index:
+            if kind != ParameterType.PARAMETER_INTEGER:
+                raise InputError("samples: expected an INTEGER number of samples")
+            samples = int(p.value.integer_value)
+            continue
+        if name not in index:
+            raise InputError(f"unknown input {name!r} (the inputs are {', '.join(inputs)}; and the INTEGER samples)")
+        if name in given:
+            raise InputError(f"input {name} given twice")
+        given.add(name)
+        if kind == ParameterType.PARAMETER_DOUBLE:
+            a = float(p.value.double_value)
+        elif kind == ParameterType.PARAMETER_INTEGER:
+            a = float(p.value.integer_value)
+        else:
+            raise InputError(f"{name}: expected a DOUBLE amplitude (input units)")
+        if not (math.isfinite(a) and a > 0):
+            raise InputError(f"{name}: expected an amplitude > 0 (input units), got {a!r}")
+        if a > max_dither:
+            raise InputError(f"{name}: amplitude {a:g} above max_dither {max_dither:g} (input units)")
+        amplitudes[index[name]] = a
+    if not given:
+        raise InputError("no input to dither: give one DOUBLE amplitude per input to dither")
+    if samples is None:
+        raise InputError("samples missing: give the INTEGER samples the dither lasts")
+    if not 1 <= samples <= max_samples:
+        raise InputError(f"samples {samples} outside [1, max_dither_samples = {max_samples}]")
+    return amplitudes, samples
+
+
 class MpcNode(Node):
     """The MPC controller node (see the module docstring)."""
 
@@ -90,10 +186,12 @@ class MpcNode(Node):
         self.params = p = declare_parameters(self, PARAMS)
         self.model = model = resolve_model(p["model_file"], p["case"])
         self.ctrl = InternalModelMpc(model, mpc_options_from_params(p, model.n_outputs, model.n_inputs))
-        self._codecs = {key: VectorCodec.for_channel(model, ch, p[f"{ch}_topic"])
-                        for key, ch in (("r", "setpoint"), ("y", "output"), ("d", "dither"))}
+        channels = (("r", "setpoint"), ("y", "output"), ("d", "dither"))
+        if model.n_disturbances:
+            channels += (("v", "disturbance"),)   # dv(k): the feedforward, stamp-matched like y(k)
+        self._codecs = {key: VectorCodec.for_channel(model, ch, p[f"{ch}_topic"]) for key, ch in channels}
         self._u_codec = VectorCodec.for_channel(model, "input", p["input_topic"])
-        self._buf = {"r": collections.OrderedDict(), "y": collections.OrderedDict(), "d": collections.OrderedDict()}
+        self._buf = {key: collections.OrderedDict() for key, _ in channels}
         self._latest = {"r": None, "d": None}
         self._last_done: Optional[int] = None
         self._last_y: Optional[np.ndarray] = None   # y of the stamp last answered
@@ -106,10 +204,20 @@ class MpcNode(Node):
         q = vector_qos()
         self._subs = [self.create_subscription(JointState, self._codecs[key].topic,
                                                (lambda msg, key=key: self._on_vector(key, msg)), q)
-                      for key in ("r", "y") + (("d",) if p["use_dither"] else ())]
+                      for key in ("r", "y") + (("d",) if p["use_dither"] else ())
+                      + (("v",) if model.n_disturbances else ())]
+        #: The experiment's dither while it runs (None otherwise); see the module docstring.
+        self.experiment: Optional[TimedDither] = None
+        self.experiments = 0   # dithers started by the service
+        self._period_ns = period_ns(model.sample_time)
+        self._dither_rng = np.random.default_rng(p["seed"])
+        self._dither_pub = (None if p["use_dither"]
+                            else self.create_publisher(JointState, p["dither_topic"], vector_qos()))
+        self._dither_srv = self.create_service(SetParameters, "~/start_dither", self._on_start_dither)
         self.get_logger().info(f"MPC {model.n_outputs}x{model.n_inputs}, Hp = {p['prediction_horizon']}, "
                                f"Hc = {p['control_horizon']}, {'hold' if p['hold_setpoint'] else 'stamp-matched'} "
-                               f"setpoints{', dither' if p['use_dither'] else ''}")
+                               f"setpoints{', dither' if p['use_dither'] else ''}"
+                               f"{', feedforward of ' + ', '.join(model.disturbances) if model.n_disturbances else ''}")
 
 
     def _store(self, key: str, stamp: int, values: np.ndarray) -> bool:
@@ -129,7 +237,7 @@ class MpcNode(Node):
         last = self._last_done
         if stamp == last:
             if key != "y":
-                self.repeated += 1  # r or dither re-sent on a stall: the sample is done
+                self.repeated += 1  # r, dither or dv re-sent on a stall: the sample is done
                 return False
             if np.array_equal(values, self._last_y):
                 self.repeated += 1  # y(k) re-sent on a stall: the same u(k) again, in case it was lost
@@ -155,16 +263,19 @@ class MpcNode(Node):
                 del buf[s]
         self._latest["d"] = None
         self.restarts += 1
+        if self.experiment is not None:
+            self.get_logger().warning("dither experiment stopped: the plant restarted")
+            self._end_experiment(stamp)
 
     def _on_vector(self, key: str, msg) -> None:
-        """A setpoint (``r``), measurement (``y``) or dither (``d``) vector arrived."""
+        """A setpoint (``r``), measurement (``y``), dither (``d``) or measured-disturbance (``v``) vector arrived."""
         try:
             stamp, values = self._codecs[key].decode(msg)
         except MessageError as exc:
             self.rejected += 1
             self.get_logger().warning(f"ignored: {exc}", throttle_duration_sec=1.0)
             return
-        if key != "y" and self.params["hold_setpoint"]:
+        if key in ("r", "d") and self.params["hold_setpoint"]:
             first = self._latest[key] is None
             self._latest[key] = values
             if key == "r" and first:  # outputs that waited for the first setpoint
@@ -179,6 +290,11 @@ class MpcNode(Node):
         y = buf["y"].get(stamp)
         if y is None:
             return
+        dv = None
+        if "v" in buf:
+            dv = buf["v"].get(stamp)
+            if dv is None:
+                return  # y(k) waits for dv(k)
         dither = None
         if self.params["hold_setpoint"]:
             r = self._latest["r"]
@@ -196,12 +312,66 @@ class MpcNode(Node):
                     return
         for key in buf:
             buf[key].pop(stamp, None)
-        u = self.ctrl.step(r, y, dither)
+        experiment = None
+        if self.experiment is not None:
+            experiment = self.experiment.next()
+            dither = experiment if dither is None else dither + experiment
+        u = self.ctrl.step(r, y, dither, dv=dv)
         self._last_done = stamp
         self._last_y = y
         self.steps += 1
+        if experiment is not None:
+            self._dither_pub.publish(self._codecs["d"].encode(experiment, stamp))
         self._u_msg = msg = self._u_codec.encode(u, stamp)
         self._pub.publish(msg)
+        if experiment is not None and not self.experiment.running:
+            self.get_logger().info(f"dither experiment ended after {self.experiment.samples} samples")
+            self._end_experiment(stamp + self._period_ns)
+
+    # --------------------------------------------------------------------------- experiments
+    def _end_experiment(self, stamp: int) -> None:
+        """Stop the experiment and publish the zero dither vector stamped ``stamp`` (the first sample without)."""
+        self.experiment.stop()
+        self.experiment = None
+        self._dither_pub.publish(self._codecs["d"].encode(np.zeros(self.model.n_inputs), stamp))
+
+    def _dither_refusal(self) -> Optional[str]:
+        """Why no experiment can start now (None: it can)."""
+        if self.params["use_dither"]:
+            return (f"this node adds the dither of {self.params['dither_topic']} (use_dither): no experiment "
+                    f"on top of it")
+        if self.experiment is not None:
+            e = self.experiment
+            return (f"a dither is already running on {dither_text(self.model.inputs, e.amplitudes)}, "
+                    f"{e.samples_left} samples left")
+        return None
+
+    def _on_start_dither(self, request, response):
+        """``~/start_dither`` (rcl_interfaces/SetParameters): start a dither experiment, or say why not."""
+        p = self.params
+        try:
+            refusal = self._dither_refusal()
+            if refusal is not None:
+                raise InputError(refusal)
+            amplitudes, samples = parse_dither_request(request.parameters, self.model.inputs, p["max_dither"],
+                                                       p["max_dither_samples"])
+            experiment = TimedDither(amplitudes, samples, self._dither_rng)
+        except InputError as exc:
+            ok, reason = False, f"refused: {exc}".splitlines()[0]
+        except Exception as exc:  # a service call never takes the node down
+            ok, reason = False, f"refused: {type(exc).__name__}: {exc}".splitlines()[0]
+        else:
+            self.experiment = experiment
+            self.experiments += 1
+            ok = True
+            reason = (f"dither on {dither_text(self.model.inputs, amplitudes)} for {samples} samples, "
+                      f"from the next sample")
+        response.results = [SetParametersResult(successful=ok, reason=reason)]
+        if ok:  # one call site per severity (rclpy refuses a severity change at the same call site)
+            self.get_logger().info(f"~/start_dither: {reason}")
+        else:
+            self.get_logger().warning(f"~/start_dither: {reason}")
+        return response
 
 
 def main(args=None) -> int:

@@ -1,13 +1,18 @@
-"""Plant simulator node: a MIMO FOPDT plant with disturbance and noise, measured on ``output``.
+"""Plant simulator node: a MIMO plant with disturbance and noise, measured on ``output``.
 
-Wraps :class:`~mpm_monitor.sim.plant.PlantSimulator`.  Two ways to run:
+Wraps :class:`~mpm_monitor.sim.plant.PlantSimulator` (every element structure).  When the plant has
+measured disturbances the node generates them too
+(:class:`~mpm_monitor.sim.excitation.MeasuredDisturbanceGenerator`, seeded by ``seed``, sized by the
+``dv_*`` parameters) and publishes ``dv(k)`` on ``disturbance_topic`` (a ``JointState`` of the
+disturbances' names) with the stamp of ``y(k)``, before ``y(k)``; they act on the plant with ``u(k)``.
+Two ways to run:
 
 * **lock-step** (``lock_step: true``, simulated time): the node owns the clock.  For sample ``k`` it
   publishes ``/clock = k * Ts`` and then ``y(k)`` stamped ``k * Ts``; when ``u(k)`` (stamped
   ``k * Ts``) arrives on ``input`` it applies it, advances to ``k + 1`` and repeats, as fast as
   the other nodes answer.  Nothing is dropped: the next sample waits for the controller.  With no
-  ``u(k)`` for ``stall_timeout`` it re-sends the clock and ``y(k)`` (same stamp, same values), so
-  a restarted controller picks the loop up again.
+  ``u(k)`` for ``stall_timeout`` it re-sends the clock, ``dv(k)`` and ``y(k)`` (same stamp, same
+  values), so a restarted controller picks the loop up again.
 * **timer** (``lock_step: false``): every ``Ts`` of the node's clock (wall-clock, or simulated
   time with ``use_sim_time``) it applies the latest ``u`` (held if none came), advances and
   publishes ``y``; with ``publish_clock`` it also paces ``/clock`` at ``k * Ts`` in real time.
@@ -28,6 +33,7 @@ from sensor_msgs.msg import JointState
 
 from ..core.options import ParamSpec
 from ..sim.closed_loop import seeded_generators
+from ..sim.excitation import MeasuredDisturbanceGenerator, MeasuredDisturbanceOptions
 from ..sim.plant import DisturbanceOptions, PlantSimulator
 from .ros_io import (
     MODEL_PARAMS,
@@ -42,13 +48,25 @@ from .ros_io import (
     vector_qos,
 )
 
+_DV = MeasuredDisturbanceOptions()
+
 PARAMS = MODEL_PARAMS + (
-    ParamSpec("seed", "int", 1, "Seed of the disturbance and noise (same seed as a batch run gives the same data).",
-              0, 2**31 - 1),
+    ParamSpec("seed", "int", 1, "Seed of the disturbance, the noise and the measured disturbances (same seed as a "
+              "batch run gives the same data).", 0, 2**31 - 1),
     ParamSpec("disturbance_std", "double", 7.5e-3, "Std of the white noise driving the output disturbance, "
               "output units.", 0.0, 1e6),
     ParamSpec("disturbance_pole", "double", 0.95, "Pole p of the disturbance filter z/(z - p).", 0.0, 0.999999),
     ParamSpec("noise_std", "double", 5.0e-3, "Std of the white measurement noise, output units.", 0.0, 1e6),
+    ParamSpec("dv_step_amplitude", "double", _DV.step_amplitude, "Measured disturbances (a plant with some): largest "
+              "step level, their units (levels uniform in [-a, a]; 0 = no steps).", 0.0, 1e6),
+    ParamSpec("dv_switch_probability", "double", _DV.switch_probability, "Measured disturbances: probability of a step "
+              "per sample after dv_min_hold samples.", 1e-6, 1.0),
+    ParamSpec("dv_min_hold", "int", _DV.min_hold, "Measured disturbances: fewest samples between two steps.", 1, 10**6),
+    ParamSpec("dv_noise_std", "double", _DV.noise_std, "Measured disturbances: std of the first-order filtered "
+              "noise added to the steps, their units (0 = none).", 0.0, 1e6),
+    ParamSpec("dv_noise_pole", "double", _DV.noise_pole, "Measured disturbances: pole of the noise filter.",
+              0.0, 0.999999),
+    ParamSpec("dv_offset", "double", _DV.offset, "Measured disturbances: centre value, their units.", -1e6, 1e6),
     ParamSpec("lock_step", "bool", True, "Advance one sample per received input (simulated time, as fast as "
               "possible); false = advance on a timer every sample_time."),
     ParamSpec("publish_clock", "bool", True, "Publish the simulated time k * sample_time on clock_topic."),
@@ -62,7 +80,15 @@ PARAMS = MODEL_PARAMS + (
     ParamSpec("stall_timeout", "double", 2.0, "Wall-clock seconds without the expected input before a warning "
               "and a re-sent clock and output y(k) (lock-step; lets a restarted MPC pick the loop up).", 0.05, 3600.0),
     ParamSpec("exit_when_done", "bool", False, "Leave the process after max_samples."),
-) + topic_params("output", "input", "clock")
+) + topic_params("output", "input", "clock", "disturbance")
+
+
+def measured_disturbance_options_from_params(p: dict) -> MeasuredDisturbanceOptions:
+    """:class:`~mpm_monitor.sim.excitation.MeasuredDisturbanceOptions` from the node's ``dv_*`` parameter values."""
+    return MeasuredDisturbanceOptions(step_amplitude=p["dv_step_amplitude"],
+                                      switch_probability=p["dv_switch_probability"], min_hold=p["dv_min_hold"],
+                                      noise_std=p["dv_noise_std"], noise_pole=p["dv_noise_pole"],
+                                      offset=p["dv_offset"])
 
 
 class PlantNode(Node):
@@ -74,10 +100,19 @@ class PlantNode(Node):
         self.model = model = resolve_model(p["model_file"], p["case"], which="plant")
         dist = DisturbanceOptions(disturbance_std=p["disturbance_std"], disturbance_pole=p["disturbance_pole"],
                                   noise_std=p["noise_std"])
-        self.sim = PlantSimulator(model, dist, seeded_generators(p["seed"])["plant"])
+        rngs = seeded_generators(p["seed"])
+        self.sim = PlantSimulator(model, dist, rngs["plant"])
         self._period = period_ns(model.sample_time)
         self._y_codec = VectorCodec.for_channel(model, "output", p["output_topic"])
         self._u_codec = VectorCodec.for_channel(model, "input", p["input_topic"])
+        #: The measured disturbances' generator, codec and publisher (None: the plant has none).
+        self.dv_generator = self._dv_codec = self._dv_pub = None
+        if model.n_disturbances:
+            self.dv_generator = MeasuredDisturbanceGenerator(model.n_disturbances,
+                                                             measured_disturbance_options_from_params(p),
+                                                             rngs["measured_disturbance"])
+            self._dv_codec = VectorCodec.for_channel(model, "disturbance", p["disturbance_topic"])
+            self._dv_pub = self.create_publisher(JointState, p["disturbance_topic"], vector_qos())
         self._pub = self.create_publisher(JointState, p["output_topic"], vector_qos())
         self._clock_pub = self.create_publisher(ClockMsg, p["clock_topic"], vector_qos()) if p["publish_clock"] else None
         self._sub = self.create_subscription(JointState, p["input_topic"], self._on_input, vector_qos())
@@ -98,11 +133,13 @@ class PlantNode(Node):
         self._t0_ns = 0
         self._expected_stamp = 0
         self._y_msg: Optional[JointState] = None  # y(k) as published, re-sent unchanged on a stall
+        self._dv_msg: Optional[JointState] = None  # dv(k) as published, re-sent unchanged on a stall
         self.resent = 0
         if p["autostart"]:
             self._start_timer = self.create_timer(0.05, self._try_start, clock=self._steady)
+        dv = f" + {model.n_disturbances} measured disturbance(s)" if model.n_disturbances else ""
         self.get_logger().info(
-            f"plant {model.n_outputs}x{model.n_inputs} ({model.name or 'model'}), Ts = {model.sample_time:g} s, "
+            f"plant {model.n_outputs}x{model.n_inputs}{dv} ({model.name or 'model'}), Ts = {model.sample_time:g} s, "
             f"{'lock-step' if p['lock_step'] else 'timer'} mode, max_samples = {p['max_samples'] or 'unlimited'}")
 
     # ------------------------------------------------------------------------------- start
@@ -158,11 +195,16 @@ class PlantNode(Node):
         return self._t0_ns + self.k * self._period
 
     def _emit(self) -> None:
-        """Publish the clock and y(k)."""
+        """Publish the clock, dv(k) (a plant with measured disturbances) and y(k)."""
         stamp = self._stamp_ns()
         if self._clock_pub is not None:
             self._clock_pub.publish(ClockMsg(clock=ns_to_stamp(stamp)))
-        y = self.sim.measure()
+        dv = None
+        if self.dv_generator is not None:
+            dv = self.dv_generator.next()
+            self._dv_msg = self._dv_codec.encode(dv, stamp)
+            self._dv_pub.publish(self._dv_msg)
+        y = self.sim.measure(dv=dv)
         self._expected_stamp = stamp
         self._y_msg = msg = self._y_codec.encode(y, stamp)
         self._pub.publish(msg)
@@ -218,7 +260,7 @@ class PlantNode(Node):
         self._advance(u)
 
     def _check_stall(self) -> None:
-        """Lock-step: no u(k) for stall_timeout: re-send the clock and y(k), same stamp and values.
+        """Lock-step: no u(k) for stall_timeout: re-send the clock, dv(k) and y(k), same stamp and values.
 
         A restarted controller (or setpoint node) gets what it missed and the loop resumes; the
         setpoint node answers the repeated clock by re-sending r(k), and the MPC and the monitor
@@ -233,6 +275,8 @@ class PlantNode(Node):
                 f"and the output of that sample", throttle_duration_sec=5.0)
             if self._clock_pub is not None:
                 self._clock_pub.publish(ClockMsg(clock=ns_to_stamp(self._expected_stamp)))
+            if self._dv_msg is not None:
+                self._dv_pub.publish(self._dv_msg)
             if self._y_msg is not None:
                 self._pub.publish(self._y_msg)
             self.resent += 1

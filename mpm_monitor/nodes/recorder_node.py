@@ -23,8 +23,10 @@ Parameters
 bag_dir : str
     Bag directory to create (must not exist); default ``mpm_bag_<date>-<time>``.
 topics : str[]
-    Topics to record; a known name (``setpoint``, ``input``, ``output``, ``/diagnostics``,
-    ``mpm_monitor/rsi``, ``/clock``) or ``name=pkg/msg/Type``.
+    Topics to record; a known name (``setpoint``, ``input``, ``output``, ``disturbance``, ``dither``,
+    ``/diagnostics``, ``mpm_monitor/rsi``, ``/clock``) or ``name=pkg/msg/Type``.  By default all of
+    them but ``dither``; a topic nobody publishes (``disturbance`` of a loop without measured
+    disturbances) leaves no trace in the bag.
 flush_period : float
     Seconds between flushes to disk, 0.01 to 60.
 drain_timeout : float
@@ -60,6 +62,7 @@ KNOWN_TOPIC_TYPES = {
     "input": "sensor_msgs/msg/JointState",
     "output": "sensor_msgs/msg/JointState",
     "dither": "sensor_msgs/msg/JointState",
+    "disturbance": "sensor_msgs/msg/JointState",
     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
     "diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
     "mpm_monitor/rsi": "std_msgs/msg/Float64MultiArray",
@@ -67,7 +70,7 @@ KNOWN_TOPIC_TYPES = {
     "clock": "rosgraph_msgs/msg/Clock",
 }
 #: What the recorder records by default.
-DEFAULT_RECORD_TOPICS = ("setpoint", "input", "output", "/diagnostics", "mpm_monitor/rsi", "/clock")
+DEFAULT_RECORD_TOPICS = ("setpoint", "input", "output", "disturbance", "/diagnostics", "mpm_monitor/rsi", "/clock")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,7 +114,7 @@ _RANGES = RecorderOptions.RANGES
 PARAMS = (
     ParamSpec("bag_dir", "string", "", "Bag directory to create (must not exist); '' = mpm_bag_<date>-<time>."),
     ParamSpec("topics", "string_array", list(DEFAULT_RECORD_TOPICS), "Topics to record: a known name (setpoint, "
-              "input, output, dither, /diagnostics, mpm_monitor/rsi, /clock) or name=pkg/msg/Type."),
+              "input, output, disturbance, dither, /diagnostics, mpm_monitor/rsi, /clock) or name=pkg/msg/Type."),
     ParamSpec("flush_period", "double", 1.0, "Seconds between flushes to disk.", *_RANGES["flush_period"]),
     ParamSpec("drain_timeout", "double", 0.5, "Seconds to take already-delivered messages after a stop request.",
               *_RANGES["drain_timeout"]),

@@ -20,6 +20,9 @@ bag : str
     rosbag2 directory to replay.
 topics : str[]
     Topics of the bag to replay, default ``setpoint``, ``input``, ``output``.
+disturbance_topic : str
+    The measured-disturbance topic, replayed as well when the bag holds it (default
+    ``disturbance``; '' = not).
 mode : str
     ``time`` or ``clock``.
 rate : float
@@ -43,7 +46,7 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 
 from ..core.errors import ConfigurationError
 from ..core.options import ParamSpec
-from ..io.bags import DEFAULT_TOPICS, read_raw_messages, topic_name
+from ..io.bags import DEFAULT_DISTURBANCE_TOPIC, DEFAULT_TOPICS, read_raw_messages, topic_name
 from ..io.qos import CLOCK_LISTENER_QOS, REPLAY_CLOCK_QOS
 from .ros_io import (
     declare_parameters,
@@ -71,6 +74,7 @@ class ReplayOptions:
     rate: float = 1.0
     wait_for_subscribers: int = 0
     publish_clock: bool = False
+    disturbance_topic: str = DEFAULT_DISTURBANCE_TOPIC
 
     RATE_RANGE = (0.01, 1000.0)
     SUBSCRIBER_RANGE = (0, 100)
@@ -94,6 +98,8 @@ class ReplayOptions:
 PARAMS = (
     ParamSpec("bag", "string", "", "rosbag2 directory to replay."),
     ParamSpec("topics", "string_array", list(DEFAULT_TOPICS), "Topics of the bag to replay."),
+    ParamSpec("disturbance_topic", "string", DEFAULT_DISTURBANCE_TOPIC, "The measured-disturbance topic, replayed as "
+              "well when the bag holds it ('' = not)."),
     ParamSpec("mode", "string", "time", "time: at recorded speed x rate; clock: lock step with /clock (samples "
               "stamped <= clock)."),
     ParamSpec("rate", "double", 1.0, "Speed factor of time mode.", *ReplayOptions.RATE_RANGE),
@@ -167,7 +173,7 @@ class ReplayNode(Node):
     ----------
     bag : str or Path, optional
         Overrides the ``bag`` parameter.
-    topics, mode, rate, wait_for_subscribers, publish_clock : optional
+    topics, mode, rate, wait_for_subscribers, publish_clock, disturbance_topic : optional
         Override the parameters of the same names.
     node_name : str
     context : rclpy.context.Context, optional
@@ -182,21 +188,28 @@ class ReplayNode(Node):
 
     def __init__(self, bag=None, *, topics: Optional[Sequence[str]] = None, mode: Optional[str] = None,
                  rate: Optional[float] = None, wait_for_subscribers: Optional[int] = None,
-                 publish_clock: Optional[bool] = None, node_name: str = "mpm_replay", context=None, **kwargs):
+                 publish_clock: Optional[bool] = None, disturbance_topic: Optional[str] = None,
+                 node_name: str = "mpm_replay", context=None, **kwargs):
         overrides = parameter_overrides(PARAMS, kwargs.pop("parameter_overrides", None), bag=bag, topics=topics,
                                         mode=mode, rate=rate, wait_for_subscribers=wait_for_subscribers,
-                                        publish_clock=publish_clock)
+                                        publish_clock=publish_clock, disturbance_topic=disturbance_topic)
         super().__init__(node_name, context=context, parameter_overrides=overrides, **kwargs)
         p = declare_parameters(self, PARAMS)
         self.options = o = ReplayOptions(bag=p["bag"], topics=tuple(p["topics"]), mode=p["mode"], rate=p["rate"],
                                          wait_for_subscribers=p["wait_for_subscribers"],
-                                         publish_clock=p["publish_clock"])
-        messages = read_raw_messages(o.bag, o.topics)
+                                         publish_clock=p["publish_clock"], disturbance_topic=p["disturbance_topic"])
         bag_topics = [topic_name(t) for t in o.topics]
+        given = list(o.topics)
+        optional = ()
+        if o.disturbance_topic.strip() and topic_name(o.disturbance_topic) not in bag_topics:
+            optional = (o.disturbance_topic,)
+            given.append(o.disturbance_topic)
+            bag_topics.append(topic_name(o.disturbance_topic))
+        messages = read_raw_messages(o.bag, o.topics, optional=optional)
         self.schedule = ReplaySchedule(messages, o.mode, o.rate, topic_order=bag_topics)
         types = {m.topic: m.msgtype for m in messages}
         self._replay_pubs = {}
-        for given_name, bag_topic in zip(o.topics, bag_topics):
+        for given_name, bag_topic in zip(given, bag_topics):
             if bag_topic in types:
                 self._replay_pubs[bag_topic] = self.create_publisher(message_class(types[bag_topic]), given_name,
                                                                     vector_qos())

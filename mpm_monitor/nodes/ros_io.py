@@ -2,7 +2,8 @@
 
 A "stamped vector" is a ``sensor_msgs/msg/JointState`` whose ``header.stamp`` is the sample's time,
 whose ``name`` lists the channels (the model's outputs for ``setpoint`` and ``output``, its inputs
-for ``input`` and ``dither``) and whose ``position`` holds the values; ``velocity`` and ``effort``
+for ``input`` and ``dither``, its measured disturbances for ``disturbance``) and whose ``position``
+holds the values; ``velocity`` and ``effort``
 are ignored.  This module turns such messages into numpy vectors in the model's channel order and
 back, checking the names, the lengths and that every value is finite, and it holds what the nodes
 share: the stamp arithmetic, the ``rclpy`` QoS profiles built from :mod:`mpm_monitor.io.qos`, the
@@ -32,8 +33,9 @@ from ..io.qos import DIAGNOSTICS_QOS, VECTOR_QOS, QosSpec
 
 NS_PER_S = 1_000_000_000
 
-#: The stamped-vector channels and whose names they carry: the model's ``outputs`` or ``inputs``.
-CHANNELS = {"setpoint": "outputs", "input": "inputs", "output": "outputs", "dither": "inputs"}
+#: The stamped-vector channels and whose names they carry: the model's ``outputs``, ``inputs`` or ``disturbances``.
+CHANNELS = {"setpoint": "outputs", "input": "inputs", "output": "outputs", "dither": "inputs",
+            "disturbance": "disturbances"}
 
 
 class MessageError(InputError):
@@ -115,10 +117,11 @@ class VectorCodec:
     @classmethod
     def for_channel(cls, model, channel: str, topic: str) -> "VectorCodec":
         """The codec of a contract channel: the model's outputs for ``setpoint`` and ``output``, its
-        inputs for ``input`` and ``dither``."""
+        inputs for ``input`` and ``dither``, its measured disturbances for ``disturbance`` (a model
+        with some)."""
         if channel not in CHANNELS:
             raise ValueError(f"channel: expected one of {', '.join(CHANNELS)}, got {channel!r}")
-        return cls(model.outputs if CHANNELS[channel] == "outputs" else model.inputs, topic)
+        return cls(getattr(model, CHANNELS[channel]), topic)
 
     @property
     def size(self) -> int:
@@ -440,29 +443,29 @@ def resolve_model(model_file: str, case: str, which: str = "model"):
     model_file : str
         Path of a model file (docs/interfaces.md, "Model file"); "" = use ``case``.
     case : str
-        A paper case ("3.1", "3.2", "3.3"); used when ``model_file`` is "".
+        A simulation case ("3.1", "3.2", "3.3" of the paper, or "level"); used when ``model_file`` is "".
     which : {"model", "plant"}
         The controller's model or the true plant of the case.
     """
     from ..io.model_file import load_model
-    from ..sim.cases import CASE_NAMES, paper_case
+    from ..sim.cases import CASE_NAMES, DEMO_CASES, simulation_case
 
     if model_file:
         return load_model(model_file)
     if not case:
         raise ConfigurationError("parameters model_file and case: give a model file (model_file) or a paper case "
-                                 f"(case: one of {', '.join(CASE_NAMES)})")
-    if case not in CASE_NAMES:
-        raise ConfigurationError(f"parameter case: expected one of {', '.join(CASE_NAMES)} or '', got {case!r}")
-    c = paper_case(case)
+                                 f"(case: one of {', '.join(CASE_NAMES)}) or the level case (case: level)")
+    if case not in DEMO_CASES:
+        raise ConfigurationError(f"parameter case: expected one of {', '.join(DEMO_CASES)} or '', got {case!r}")
+    c = simulation_case(case)
     return c.plant if which == "plant" else c.model
 
 
 MODEL_PARAMS = (
     ParamSpec("model_file", "string", "", "Model file (YAML, as in docs/interfaces.md, 'Model file'); '' = use the "
-              "paper case."),
-    ParamSpec("case", "string", "", "Paper case used when model_file is '' (3.1, 3.2 or 3.3).",
-              choices=("", "3.1", "3.2", "3.3"), numbers_as_text=True),
+              "case."),
+    ParamSpec("case", "string", "", "Simulation case used when model_file is '' (the paper's 3.1, 3.2 or 3.3, or "
+              "level).", choices=("", "3.1", "3.2", "3.3", "level"), numbers_as_text=True),
 )
 
 #: The topic parameters of the contract's channels, ``<channel>_topic``, defaulting to the contract's names.
@@ -475,6 +478,8 @@ TOPIC_PARAMS = {
                         "per output)."),
     "dither": ParamSpec("dither_topic", "string", "dither", "Topic of the input dither (JointState, one value per "
                         "input)."),
+    "disturbance": ParamSpec("disturbance_topic", "string", "disturbance", "Topic of the measured disturbances dv "
+                             "(JointState, one value per measured disturbance; used when the model has some)."),
     "clock": ParamSpec("clock_topic", "string", "/clock", "Topic of the simulated time (rosgraph_msgs/Clock)."),
 }
 

@@ -1,8 +1,9 @@
-"""Batch closed loop: plant, MPC and excitation for N samples without ROS.
+"""Batch closed loop: plant, MPC, excitation and measured disturbances for N samples without ROS.
 
 The ROS nodes wrap the same objects (:class:`~mpm_monitor.sim.plant.PlantSimulator`,
-:class:`~mpm_monitor.sim.mpc.InternalModelMpc`, :class:`~mpm_monitor.sim.excitation.PrbsGenerator`), so a
-batch run and a run through the nodes with the same seeds produce the same samples.
+:class:`~mpm_monitor.sim.mpc.InternalModelMpc`, :class:`~mpm_monitor.sim.excitation.PrbsGenerator`,
+:class:`~mpm_monitor.sim.excitation.MeasuredDisturbanceGenerator`), so a batch run and a run through
+the nodes with the same seeds produce the same samples.
 """
 
 from __future__ import annotations
@@ -15,7 +16,13 @@ import numpy as np
 from ..core.errors import ConfigurationError
 from ..core.logged_data import LoggedData
 from ..core.model import PlantModel
-from .excitation import PrbsGenerator, PrbsOptions, ZeroGenerator
+from .excitation import (
+    MeasuredDisturbanceGenerator,
+    MeasuredDisturbanceOptions,
+    PrbsGenerator,
+    PrbsOptions,
+    ZeroGenerator,
+)
 from .mpc import InternalModelMpc, MpcOptions
 from .plant import DisturbanceOptions, PlantSimulator
 
@@ -50,6 +57,10 @@ class ClosedLoopLog:
         Channel names.
     sample_time : float
         Seconds per sample.
+    dv : ndarray, shape (n_samples, n_disturbances)
+        The plant's measured disturbances (shape (n_samples, 0) when it has none).
+    disturbances : tuple of str
+        Their names (the plant's).
     """
 
     t: np.ndarray
@@ -65,6 +76,13 @@ class ClosedLoopLog:
     inputs: tuple
     outputs: tuple
     sample_time: float
+    dv: Optional[np.ndarray] = None
+    disturbances: tuple = ()
+
+    def __post_init__(self):
+        self.disturbances = tuple(self.disturbances)
+        if self.dv is None:
+            self.dv = np.zeros((self.t.shape[0], len(self.disturbances)))
 
     @property
     def n_samples(self) -> int:
@@ -73,8 +91,8 @@ class ClosedLoopLog:
     def as_logged_data(self, source: str = "") -> LoggedData:
         """The setpoints, inputs and outputs as :class:`~mpm_monitor.core.logged_data.LoggedData`.
 
-        What a user would hand to the analysis: ``t``, ``r``, ``u``, ``y``, the channel names and
-        the sample time of this run (the arrays are shared, not copied).
+        What a user would hand to the analysis: ``t``, ``r``, ``u``, ``y``, the measured disturbances
+        ``dv``, the channel names and the sample time of this run (the arrays are shared, not copied).
 
         Parameters
         ----------
@@ -82,7 +100,7 @@ class ClosedLoopLog:
             Where the data came from, for messages (e.g. ``"paper case 3.2 (seed 1)"``).
         """
         return LoggedData(t=self.t, r=self.r, u=self.u, y=self.y, inputs=self.inputs, outputs=self.outputs,
-                          sample_time=self.sample_time, source=source)
+                          sample_time=self.sample_time, source=source, dv=self.dv, disturbances=self.disturbances)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,10 +125,33 @@ class ExcitationOptions:
 
 
 def seeded_generators(seed: int) -> dict:
-    """Independent random generators for the plant, setpoints and dither from one seed."""
-    plant_ss, sp_ss, dither_ss = np.random.SeedSequence(seed).spawn(3)
+    """Independent random generators for the plant, setpoints, dither and measured disturbances from one seed.
+
+    The first three are those of the runs before measured disturbances existed (a spawned
+    sequence does not depend on how many are spawned after it), so their samples are unchanged.
+    """
+    plant_ss, sp_ss, dither_ss, dv_ss = np.random.SeedSequence(seed).spawn(4)
     return {"plant": np.random.default_rng(plant_ss), "setpoint": np.random.default_rng(sp_ss),
-            "dither": np.random.default_rng(dither_ss)}
+            "dither": np.random.default_rng(dither_ss), "measured_disturbance": np.random.default_rng(dv_ss)}
+
+
+def controller_columns(plant: PlantModel, controller_model: PlantModel) -> np.ndarray:
+    """Where the controller model's measured disturbances are among the plant's, int (n_disturbances of the model,).
+
+    The controller's model may leave out some of the plant's measured disturbances (no feedforward
+    from them) but has no other.
+
+    Raises
+    ------
+    ConfigurationError
+        A disturbance of the controller model that the plant does not have.
+    """
+    index = {name: j for j, name in enumerate(plant.disturbances)}
+    unknown = [d for d in controller_model.disturbances if d not in index]
+    if unknown:
+        raise ConfigurationError(f"controller model: measured disturbance(s) {', '.join(unknown)} not among the "
+                                 f"plant's ({', '.join(plant.disturbances) or 'none'})")
+    return np.array([index[d] for d in controller_model.disturbances], dtype=int)
 
 
 def run_closed_loop(plant: PlantModel, controller_model: PlantModel, n_samples: int, *,
@@ -118,7 +159,9 @@ def run_closed_loop(plant: PlantModel, controller_model: PlantModel, n_samples: 
                     excitation: ExcitationOptions = ExcitationOptions(),
                     disturbance: DisturbanceOptions = DisturbanceOptions(),
                     setpoints: Optional[np.ndarray] = None,
-                    output_disturbance: Optional[np.ndarray] = None) -> ClosedLoopLog:
+                    output_disturbance: Optional[np.ndarray] = None,
+                    measured_disturbance: MeasuredDisturbanceOptions = MeasuredDisturbanceOptions(),
+                    dv: Optional[np.ndarray] = None) -> ClosedLoopLog:
     """Simulate the internal-model MPC loop for ``n_samples`` samples.
 
     Parameters
@@ -126,11 +169,12 @@ def run_closed_loop(plant: PlantModel, controller_model: PlantModel, n_samples: 
     plant : PlantModel
         The true plant ``P``.
     controller_model : PlantModel
-        The controller's model ``Phat`` (same inputs and outputs as ``plant``).
+        The controller's model ``Phat`` (same inputs and outputs as ``plant``; its measured
+        disturbances, fed forward, are the plant's or some of them).
     n_samples : int
         Number of samples.
     seed : int
-        Seed of every random source (noise, PRBS, dither).
+        Seed of every random source (noise, PRBS, dither, measured disturbances).
     mpc : MpcOptions
         Controller tuning.
     excitation : ExcitationOptions
@@ -141,6 +185,10 @@ def run_closed_loop(plant: PlantModel, controller_model: PlantModel, n_samples: 
         Given setpoints instead of the PRBS.
     output_disturbance : ndarray, shape (n_samples, n_outputs), optional
         An extra disturbance added to the outputs (e.g. an unmeasured step).
+    measured_disturbance : MeasuredDisturbanceOptions
+        The signal of the plant's measured disturbances (when it has some and ``dv`` is not given).
+    dv : ndarray, shape (n_samples, n_disturbances), optional
+        Given measured disturbances of the plant instead of the generated ones.
 
     Returns
     -------
@@ -156,7 +204,8 @@ def run_closed_loop(plant: PlantModel, controller_model: PlantModel, n_samples: 
     if int(n_samples) != n_samples or n_samples < 1:
         raise ConfigurationError(f"n_samples: expected an integer >= 1, got {n_samples!r}")
     n = int(n_samples)
-    ny, nu = plant.n_outputs, plant.n_inputs
+    ny, nu, nd = plant.n_outputs, plant.n_inputs, plant.n_disturbances
+    ff = controller_columns(plant, controller_model)
     rngs = seeded_generators(seed)
     sim = PlantSimulator(plant, disturbance, rngs["plant"])
     ctrl = InternalModelMpc(controller_model, mpc)
@@ -176,12 +225,18 @@ def run_closed_loop(plant: PlantModel, controller_model: PlantModel, n_samples: 
         unit = dataclasses.replace(excitation.dither, amplitude=1.0, offset=0.0)
         dither_all = excitation.dither.offset + PrbsGenerator(nu, unit, rngs["dither"]).generate(n) * amplitudes
     extra = None if output_disturbance is None else np.asarray(output_disturbance, dtype=float).reshape(n, ny)
+    if dv is not None:
+        dv_all = np.asarray(dv, dtype=float).reshape(n, nd)
+    elif nd:
+        dv_all = MeasuredDisturbanceGenerator(nd, measured_disturbance, rngs["measured_disturbance"]).generate(n)
+    else:
+        dv_all = np.zeros((n, 0))
     out = {k: np.zeros((n, ny)) for k in ("y", "yhat", "d", "eps", "v", "noise")}
     u_all = np.zeros((n, nu))
     use_dither = excitation.dither is not None
     for k in range(n):
-        y = sim.measure(None if extra is None else extra[k])
-        u = ctrl.step(r_all[k], y, dither_all[k] if use_dither else None)
+        y = sim.measure(None if extra is None else extra[k], dv_all[k] if nd else None)
+        u = ctrl.step(r_all[k], y, dither_all[k] if use_dither else None, dv_all[k, ff] if ff.size else None)
         sim.apply(u)
         out["y"][k] = y
         out["yhat"][k] = ctrl.yhat
@@ -193,4 +248,5 @@ def run_closed_loop(plant: PlantModel, controller_model: PlantModel, n_samples: 
     t = np.arange(n) * plant.sample_time
     return ClosedLoopLog(t=t, r=r_all, u=u_all, y=out["y"], yhat=out["yhat"], d=out["d"], eps=out["eps"],
                          disturbance=out["v"], noise=out["noise"], dither=dither_all,
-                         inputs=plant.inputs, outputs=plant.outputs, sample_time=plant.sample_time)
+                         inputs=plant.inputs, outputs=plant.outputs, sample_time=plant.sample_time, dv=dv_all,
+                         disturbances=plant.disturbances)

@@ -1,6 +1,7 @@
-"""Model predictive controller in internal-model (IMC) structure.
+"""Model predictive controller in internal-model (IMC) structure, with measured-disturbance feedforward.
 
-The controller keeps its own model output ``yhat = Phat u``, forms the prediction error
+The controller keeps its own model output ``yhat = Phat u + Phat_d dv`` (``Phat_d`` the elements of
+the measured disturbances ``dv``, when its model has some), forms the prediction error
 ``d = y - yhat`` and the controller input ``eps = r - d`` (paper, Fig. 1), and at every sample
 minimises over the moves ``du(k), ..., du(k + Hc - 1)``::
 
@@ -8,9 +9,27 @@ minimises over the moves ``du(k), ..., du(k + Hc - 1)``::
         + sum_{i=0}^{Hc-1} ||du(k+i)||_S^2
 
 with ``d`` assumed constant over the horizon (the DMC disturbance model; Maciejowski, *Predictive
-Control with Constraints*, 2002, section 2.3) and ``u`` held after ``Hc`` moves.  Without bounds the
-optimum is the closed form ``dU = H^{-1} (G' Q e0 - M' R g0)``; with bounds on ``u`` and ``du`` the
-QP is solved by OSQP (Stellato et al., 2020), warm-started from the previous solution.
+Control with Constraints*, 2002, section 2.3) and ``u`` held after ``Hc`` moves.  The measured
+disturbances are held at their current value ``dv(k)`` over the horizon: their predicted response
+``Gamma_d dv(k)`` (block ``i``: the disturbances' step response ``S^d_{i-1}``) enters the predicted
+outputs like the free response, so the moves counteract a measured disturbance before it shows in
+``y`` (feedforward); only the inputs are moved.  Without bounds the optimum is the closed form
+``dU = H^{-1} (G' Q e0 - M' R g0)``; with bounds on ``u`` and ``du`` the QP is solved by OSQP
+(Stellato et al., 2020), warm-started from the previous solution.
+
+Every element structure of the model is controlled through its exact state space
+(:func:`mpm_monitor.core.discretize.state_space`), integrating outputs included: their predicted
+free response keeps the slope of the internal model, and setpoints are tracked without offset.
+A constant load on an integrating output that the model does not predict (unmeasured, or measured
+with a wrong gain) is a ramp in ``d``, which the constant-``d`` assumption leaves as an offset.
+
+Two set-ups compute the same control law.  A model with at most :data:`DENSE_STATE_LIMIT` states
+(every plant of the paper and of the benchmarks up to 20x20) uses the dense matrices of its state
+space.  A larger one (an industrial controller: 40 inputs and 100 outputs have some 4,400 states)
+keeps the state space sparse, builds ``H`` from the step-response coefficients (``G`` is block
+Toeplitz) instead of from ``G``, and never forms the ``Hp n_outputs x n_states`` free-response
+matrix: without bounds only the first move's gains are kept, with bounds the free response is run
+forward at each sample.  The two agree to rounding (test_plant_mpc).
 """
 
 from __future__ import annotations
@@ -24,7 +43,7 @@ import numpy as np
 from ..core.discretize import state_space
 from ..core.errors import ConfigurationError
 from ..core.model import PlantModel
-from .plant import require_strictly_proper
+from .plant import DENSE_STATE_LIMIT, require_strictly_proper
 
 Weight = Union[float, Sequence[float]]
 
@@ -103,20 +122,25 @@ class InternalModelMpc:
         The controller's plant model ``Phat`` (strictly proper in discrete time).
     options : MpcOptions
         Horizons, weights and bounds.
+    structured : bool, optional
+        The set-up for large models (see the module docstring); default: when the model has more
+        than :data:`DENSE_STATE_LIMIT` states.
 
     Notes
     -----
-    Call :meth:`step` once per sample with the setpoint ``r(k)`` and the measurement ``y(k)``; it
-    returns the plant input ``u(k)`` and advances the internal model with it.  The signals of the
-    last step are in :attr:`yhat`, :attr:`prediction_error` and :attr:`controller_input`.
+    Call :meth:`step` once per sample with the setpoint ``r(k)``, the measurement ``y(k)`` and, when
+    the model has measured disturbances, their values ``dv(k)``; it returns the plant input ``u(k)``
+    and advances the internal model with it (and ``dv(k)``).  The signals of the last step are in
+    :attr:`yhat`, :attr:`prediction_error` and :attr:`controller_input`.
     """
 
-    def __init__(self, model: PlantModel, options: MpcOptions = MpcOptions()):
+    def __init__(self, model: PlantModel, options: MpcOptions = MpcOptions(), structured: Optional[bool] = None):
         require_strictly_proper(model, what="controller model")
         self.model = model
         self.options = options
         ny, nu = model.n_outputs, model.n_inputs
         self._ss = state_space(model)
+        self._nd = model.n_disturbances
         self.q = _diag(options.output_weight, ny, "output_weight")
         self.r = _diag(options.input_weight, nu, "input_weight")
         self.s = _diag(options.input_rate_weight, nu, "input_rate_weight")
@@ -134,7 +158,13 @@ class InternalModelMpc:
         if options.constrained and importlib.util.find_spec("osqp") is None:
             raise ConfigurationError("u_min, u_max, du_max: bounds need the QP solver osqp, which is not installed "
                                      "(pip install osqp; it has no rosdep key)")
-        self._build()
+        self.structured = self._ss.n_states > DENSE_STATE_LIMIT if structured is None else bool(structured)
+        if self.structured:
+            self._build_structured()
+        else:
+            self._A, self._C = self._ss.A, self._ss.C
+            self._Bu, self._Bd = self._ss.B_inputs, self._ss.B_disturbances
+            self._build()
         self._qp = None
         self.reset()
 
@@ -143,14 +173,22 @@ class InternalModelMpc:
         ss, opts = self._ss, self.options
         ny, nu, nx = self.model.n_outputs, self.model.n_inputs, ss.n_states
         hp, hc = opts.prediction_horizon, opts.control_horizon
-        # Step-response coefficients S_n = sum_{m<=n} C A^m B, n = 0..Hp-1, and Phi_i = C A^i.
+        nd = self._nd
+        # Step-response coefficients S_n = sum_{m<=n} C A^m B, n = 0..Hp-1, and Phi_i = C A^i; those
+        # of the measured disturbances S^d_n (from their feed-through D_d, zero for a closed loop).
         step = np.zeros((hp, ny, nu))
+        step_d = np.zeros((hp, ny, nd))
         phi = np.zeros((hp * ny, nx))
         ca = ss.C.copy()  # C A^m
         acc = np.zeros((ny, nu))
+        acc_d = np.array(ss.D_disturbances, dtype=float)
+        b_u, b_d = ss.B_inputs, ss.B_disturbances
         for m in range(hp):
-            acc = acc + ca @ ss.B
+            acc = acc + ca @ b_u
             step[m] = acc
+            if nd:
+                acc_d = acc_d + ca @ b_d
+                step_d[m] = acc_d
             ca = ca @ ss.A
             phi[m * ny:(m + 1) * ny] = ca  # row block i = m + 1: C A^{m+1}
         # G = Gamma M: block (i, t) = S_{i-1-t} for i-1 >= t (i = 1..Hp, t = 0..Hc-1).
@@ -182,10 +220,115 @@ class InternalModelMpc:
         self._K_x = -solve(GQ @ phi)                    # (Hc nu, nx)
         self._K_u = -solve(GQ @ gamma_e + MRE)          # (Hc nu, nu)
         self._K_nom = solve(MRE)                        # (Hc nu, nu)
+        # Gamma_d: block i = S^d_{i-1}, the predicted response to dv(k) held over the horizon.
+        self._K_dv = -solve(GQ @ step_d.reshape(hp * ny, nd)) if nd else None   # (Hc nu, nd)
         self._H = H
         # Cumulative-sum matrix for u(k+t) = u_prev + sum_{t'<=t} du(k+t'), t < Hc.
         self._Mc = np.kron(np.tril(np.ones((hc, hc))), np.eye(nu))
         self._nu, self._hc = nu, hc
+
+    def _build_structured(self) -> None:
+        """The set-up of :meth:`_build` for a large model (see the module docstring).
+
+        With ``S_n`` the step-response coefficients, ``G' Q G`` has the blocks
+        ``(t, t') = sum_{n=0}^{Hp-1-max(t,t')} S_{n+|t-t'|}' Q S_n`` (transposed for ``t > t'``), and
+        ``G' Q`` the blocks ``(t, i) = S_{i-1-t}' Q``; the gains are built from these blocks.
+        """
+        import scipy.sparse as sp
+
+        ss, opts = self._ss, self.options
+        ny, nu = self.model.n_outputs, self.model.n_inputs
+        hp, hc = opts.prediction_horizon, opts.control_horizon
+        nd = self._nd
+        self._A, self._Bu, self._Bd, self._C = (sp.csr_matrix(m) for m in (ss.A, ss.B_inputs, ss.B_disturbances, ss.C))
+        step = np.zeros((hp, ny, nu))
+        step_d = np.zeros((hp, ny, nd))
+        ca = self._C
+        acc = np.zeros((ny, nu))
+        acc_d = np.array(ss.D_disturbances, dtype=float)
+        for m in range(hp):
+            acc = acc + ca @ self._Bu
+            step[m] = acc
+            if nd:
+                acc_d = acc_d + ca @ self._Bd
+                step_d[m] = acc_d
+            ca = ca @ self._A
+        q = self.q
+        qs = q[None, :, None] * step                        # Q S_n, (hp, ny, nu)
+        H = np.zeros((hc * nu, hc * nu))
+        for d in range(hc):
+            # cum[N] = sum_{n<=N} S_{n+d}' Q S_n, N = 0 .. hp-1-d
+            cum = np.cumsum(np.matmul(np.swapaxes(step[d:], 1, 2), qs[:hp - d]), axis=0)
+            for t in range(hc - d):
+                block = cum[hp - 1 - (t + d)]               # t' = t + d
+                H[t * nu:(t + 1) * nu, (t + d) * nu:(t + d + 1) * nu] = block
+                if d:
+                    H[(t + d) * nu:(t + d + 1) * nu, t * nu:(t + 1) * nu] = block.T
+        tt = np.arange(hc)
+        cnt = hp - np.maximum.outer(tt, tt)
+        MRM = np.kron(cnt, np.diag(self.r))
+        MRE = np.kron((hp - tt)[:, None], np.diag(self.r))
+        H = H + MRM + np.diag(np.tile(self.s, hc))
+        H = 0.5 * (H + H.T)
+        try:
+            chol = np.linalg.cholesky(H)
+        except np.linalg.LinAlgError:
+            raise ConfigurationError(
+                "MPC weights give a singular problem: use a positive input_rate_weight or input_weight") from None
+        self._chol = chol
+        # G' Q times the stacked identities (block t: sum_{n<=Hp-1-t} S_n' Q) and times Gamma E
+        # (block t: sum_{n<=Hp-1-t} S_n' Q S_{n+t}).
+        sq_cum = np.cumsum(np.swapaxes(qs, 1, 2), axis=0)                                # (hp, nu, ny)
+        gq_ones = np.vstack([sq_cum[hp - 1 - t] for t in range(hc)])
+        gq_gamma = np.vstack([np.tensordot(qs[:hp - t], step[t:], axes=([0, 1], [0, 1])) for t in range(hc)])
+        self._K_eps = self._solve_h(gq_ones)
+        self._K_u = -self._solve_h(gq_gamma + MRE)
+        self._K_nom = self._solve_h(MRE)
+        # G' Q Gamma_d (block t: sum_{n<=Hp-1-t} S_n' Q S^d_{n+t}): the measured disturbances' feedforward.
+        self._K_dv = (-self._solve_h(np.vstack([np.tensordot(qs[:hp - t], step_d[t:], axes=([0, 1], [0, 1]))
+                                                for t in range(hc)])) if nd else None)
+        self._step, self._qs = step, qs
+        # First move's gain on the state: -(H^-1 G' Q)[:nu] Phi, Phi's block i = C A^i (i = 1..Hp).
+        hinv1 = self._solve_h(np.eye(hc * nu, nu)).T.reshape(nu, hc, nu)     # (H^-1)[:nu] (H symmetric)
+        w1 = np.zeros((nu, hp, ny))                         # (H^-1 G' Q)[:nu], block i-1 for i = 1..Hp
+        for t in range(hc):
+            w1[:, t:] += np.matmul(qs[:hp - t], hinv1[:, t].T).transpose(2, 0, 1)
+        kx1 = np.zeros((nu, ss.n_states))
+        ca = self._C
+        for i in range(hp):
+            ca = ca @ self._A
+            kx1 -= (ca.T @ w1[:, i].T).T
+        self._K_x1 = kx1
+        self._K_x = None
+        self._H = H
+        self._Mc = np.kron(np.tril(np.ones((hc, hc))), np.eye(nu))
+        self._nu, self._hc = nu, hc
+
+    def _solve_h(self, rhs):
+        """``H^-1 rhs`` (structured set-up), from the Cholesky factor."""
+        import scipy.linalg as sla
+
+        return sla.cho_solve((self._chol, True), rhs, check_finite=False)
+
+    def _free_moves(self, x: np.ndarray) -> np.ndarray:
+        """``K_x x``: the moves' response to the state, shape (Hc * n_inputs,)."""
+        if self._K_x is not None:
+            return self._K_x @ x
+        hp, hc = self.options.prediction_horizon, self._hc
+        free = np.empty((hp, self.model.n_outputs))         # C A^i x, i = 1..Hp
+        z = x
+        for i in range(hp):
+            z = self._A @ z
+            free[i] = self._C @ z
+        # G' Q free: block t = sum_{n <= Hp-1-t} S_n' Q free_{n+t}
+        gq = np.concatenate([np.einsum("nya,ny->a", self._qs[:hp - t], free[t:]) for t in range(hc)])
+        return -self._solve_h(gq)
+
+    def _first_move_x(self, x: np.ndarray) -> np.ndarray:
+        """The first move's response to the state, shape (n_inputs,)."""
+        if self._K_x is not None:
+            return self._K_x[:self._nu] @ x
+        return self._K_x1 @ x
 
     def reset(self, u0: Optional[np.ndarray] = None) -> None:
         """Reset the internal model to rest and the previous move to ``u0`` (default ``u_nom``)."""
@@ -199,16 +342,26 @@ class InternalModelMpc:
         self.qp_solves = 0
 
     # ------------------------------------------------------------------ control law
-    def unconstrained_moves(self, eps: np.ndarray, x: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
-        """Closed-form optimal moves ``dU`` of shape (Hc * n_inputs,) without bounds."""
-        return self._K_eps @ eps + self._K_x @ x + self._K_u @ u_prev + self._K_nom @ self.u_nom
+    def unconstrained_moves(self, eps: np.ndarray, x: np.ndarray, u_prev: np.ndarray,
+                            dv: Optional[np.ndarray] = None) -> np.ndarray:
+        """Closed-form optimal moves ``dU`` of shape (Hc * n_inputs,) without bounds.
 
-    def solve_qp(self, eps: np.ndarray, x: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
-        """Optimal moves ``dU`` of shape (Hc * n_inputs,) with the bounds, solved by OSQP."""
+        ``dv`` (n_disturbances,): the measured disturbances, held over the horizon (required when
+        the model has some).
+        """
+        du = self._K_eps @ eps + self._free_moves(x) + self._K_u @ u_prev + self._K_nom @ self.u_nom
+        if self._nd:
+            du = du + self._K_dv @ self._check_dv(dv)
+        return du
+
+    def solve_qp(self, eps: np.ndarray, x: np.ndarray, u_prev: np.ndarray,
+                 dv: Optional[np.ndarray] = None) -> np.ndarray:
+        """Optimal moves ``dU`` of shape (Hc * n_inputs,) with the bounds, solved by OSQP (``dv`` as
+        :meth:`unconstrained_moves`)."""
         import osqp
         import scipy.sparse as sp
 
-        du_unc = self.unconstrained_moves(eps, x, u_prev)
+        du_unc = self.unconstrained_moves(eps, x, u_prev, dv)
         q = -self._H @ du_unc  # J = 1/2 dU' H dU + q' dU up to a constant
         nu, hc = self._nu, self._hc
         lo = np.concatenate([np.tile(self.u_min, hc) - np.tile(u_prev, hc),
@@ -235,7 +388,18 @@ class InternalModelMpc:
             return du_unc
         return np.asarray(res.x, dtype=float)
 
-    def step(self, r: np.ndarray, y: np.ndarray, dither: Optional[np.ndarray] = None) -> np.ndarray:
+    def _check_dv(self, dv) -> np.ndarray:
+        if dv is None:
+            raise ConfigurationError(f"controller model: it has measured disturbances "
+                                     f"({', '.join(self.model.disturbances)}): give dv(k)")
+        arr = np.asarray(dv, dtype=float).reshape(-1)
+        if arr.shape != (self._nd,) or not np.all(np.isfinite(arr)):
+            raise ConfigurationError(f"controller model: dv: expected {self._nd} finite value(s) "
+                                     f"({', '.join(self.model.disturbances)}), got {np.asarray(dv)!r}")
+        return arr
+
+    def step(self, r: np.ndarray, y: np.ndarray, dither: Optional[np.ndarray] = None,
+             dv: Optional[np.ndarray] = None) -> np.ndarray:
         """One control step.
 
         Parameters
@@ -247,34 +411,46 @@ class InternalModelMpc:
         dither : ndarray, shape (n_inputs,), optional
             Additive excitation on the plant input (the paper's second experiment); the internal
             model is driven by the total input so that ``yhat = Phat u`` holds for the applied ``u``.
+        dv : ndarray, shape (n_disturbances,)
+            The measured disturbances ``dv(k)``, measured with ``y(k)`` (required when the model has
+            some): they drive the internal model and the feedforward.
 
         Returns
         -------
         ndarray, shape (n_inputs,)
             The plant input ``u(k)`` (within the bounds).
         """
-        ss = self._ss
-        self.yhat = ss.C @ self._x
+        if self._nd:
+            dv = self._check_dv(dv)
+            self.yhat = self._C @ self._x + self._ss.D_disturbances @ dv
+        else:
+            dv = None
+            self.yhat = self._C @ self._x
         self.prediction_error = np.asarray(y, dtype=float) - self.yhat
         self.controller_input = np.asarray(r, dtype=float) - self.prediction_error
         eps = self.controller_input
         nu = self._nu
         if not self.options.constrained:
-            du0 = (self._K_eps[:nu] @ eps + self._K_x[:nu] @ self._x + self._K_u[:nu] @ self._u_prev
+            du0 = (self._K_eps[:nu] @ eps + self._first_move_x(self._x) + self._K_u[:nu] @ self._u_prev
                    + self._K_nom[:nu] @ self.u_nom)
+            if dv is not None:
+                du0 = du0 + self._K_dv[:nu] @ dv
             u_ctrl = self._u_prev + du0
         else:
-            du = self.unconstrained_moves(eps, self._x, self._u_prev)
+            du = self.unconstrained_moves(eps, self._x, self._u_prev, dv)
             u_path = self._Mc @ du + np.tile(self._u_prev, self._hc)
             ok = (np.all(u_path >= np.tile(self.u_min, self._hc) - 1e-12)
                   and np.all(u_path <= np.tile(self.u_max, self._hc) + 1e-12)
                   and np.all(np.abs(du) <= np.tile(self.du_max, self._hc) + 1e-12))
             if not ok:
-                du = self.solve_qp(eps, self._x, self._u_prev)
+                du = self.solve_qp(eps, self._x, self._u_prev, dv)
             self._last_du = du
             du0 = np.clip(du[:nu], -self.du_max, self.du_max)
             u_ctrl = np.clip(self._u_prev + du0, self.u_min, self.u_max)
         self._u_prev = u_ctrl
         u = u_ctrl if dither is None else np.clip(u_ctrl + dither, self.u_min, self.u_max)
-        self._x = ss.A @ self._x + ss.B @ u
+        if dv is not None:
+            self._x = self._A @ self._x + self._Bu @ u + self._Bd @ dv
+        else:
+            self._x = self._A @ self._x + self._Bu @ u
         return u

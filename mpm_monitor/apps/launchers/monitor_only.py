@@ -9,7 +9,8 @@ of ``ros2 run mpm_monitor monitor_only``)::
         --hold-setpoint -p window_samples:=5000 -p analysis_period:=250
 
 The stack must publish ``sensor_msgs/JointState`` vectors (``name`` = the model's channel names,
-``header.stamp`` = the sample time) for the setpoints, the plant inputs and the measured outputs.
+``header.stamp`` = the sample time) for the setpoints, the plant inputs and the measured outputs (and,
+for a model with measured disturbances, those on ``--disturbance-topic``).
 Use ``--hold-setpoint`` when the setpoints are published only when they change.  Parameters come
 from ``config/monitor.yaml`` (or ``--params``) and ``-p name:=value``; if the stack runs in simulated
 time, add ``-p use_sim_time:=true`` so that the diagnostics are stamped with it.
@@ -31,7 +32,8 @@ def ros_args(args) -> list:
     if args.namespace:
         out += ["-r", f"__ns:={args.namespace if args.namespace.startswith('/') else '/' + args.namespace}"]
     for opt, param in (("setpoint_topic", "setpoint_topic"), ("input_topic", "input_topic"),
-                       ("output_topic", "output_topic"), ("diagnostics_topic", "diagnostics_topic")):
+                       ("output_topic", "output_topic"), ("disturbance_topic", "disturbance_topic"),
+                       ("diagnostics_topic", "diagnostics_topic")):
         value = getattr(args, opt)
         if value:
             out += ["-p", f"{param}:={value}"]
@@ -53,6 +55,8 @@ def main(argv=None) -> int:
     p.add_argument("--setpoint-topic", dest="setpoint_topic", default=None)
     p.add_argument("--input-topic", dest="input_topic", default=None)
     p.add_argument("--output-topic", dest="output_topic", default=None)
+    p.add_argument("--disturbance-topic", dest="disturbance_topic", default=None,
+                   help="the measured disturbances' topic (a model with measured disturbances; default disturbance)")
     p.add_argument("--diagnostics-topic", dest="diagnostics_topic", default=None)
     p.add_argument("--hold-setpoint", action="store_true", help="setpoints are published only when they change")
     p.add_argument("-p", dest="overrides", action="append", default=[], metavar="NAME:=VALUE")

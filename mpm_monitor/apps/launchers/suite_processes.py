@@ -30,12 +30,13 @@ import time
 from pathlib import Path
 
 from ... import limit_blas_threads
+from ..cli import DEMO_CASES
 from .common import NODES, case_params_file, load_params_file, merge, node_command, parse_overrides, ros_env
 
 
 def build_parser():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--case", choices=("3.1", "3.2", "3.3"), default="3.2")
+    p.add_argument("--case", choices=DEMO_CASES, default="3.2")
     p.add_argument("--params", default=None,
                    help="params file for the four nodes "
                         "(default config/case_<case>.yaml; installed, in share/mpm_monitor/config)")

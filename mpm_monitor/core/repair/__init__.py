@@ -5,40 +5,55 @@ control engineer's next questions (paper section 4, "type and severity" of each 
 
 1. **Residual.**  ``d = y - Phat u`` of the model as given (paper eq. 9: ``d = Delta u + v``).
 2. **Re-estimate.**  For each output row ``i`` with located elements ``J``, the elements
-   ``(K_ij, tau_ij, theta_ij), j in J`` are fitted jointly to
-   ``z_i = y_i - sum_{j not in J} Phat_ij u_j`` (the rest of the row held fixed) by a
-   prediction-error method with an AR noise model (Ljung, *System Identification*, 2nd ed., 1999,
-   sections 7.2 and 13.4)::
+   ``j in J`` are fitted jointly to ``z_i = y_i - sum_{j not in J} Phat_ij u_j`` (the rest of the
+   row held fixed, columns ``u`` being the inputs and measured disturbances) by a prediction-error
+   method with an AR noise model (Ljung, *System Identification*, 2nd ed., 1999, sections 7.2 and
+   13.4)::
 
-       e(k) = A(q) [ z_i(k) - sum_{j in J} G_j(q; K_j, a_j, L_j) u_j(k) - c' phi(k) ]
-       G_j  = K_j (1 - a_j) q^{-L_j} / (1 - a_j q^{-1}),   a_j = exp(-T / tau_j)
+       e(k) = A(q) [ z_i(k) - sum_{j in J} G_j(q) u_j(k) - c' phi(k) ]
+       G_j  = q^{-L_j} (K_j G_a(q; poles_j) + K_j lead_j G_b(q; poles_j))
 
+   each element in its structure (:mod:`.forms`): ``G_a``, ``G_b`` the zero-order-hold samplings of
+   ``1 / den(s)`` and ``s / den(s)``, ``den(s)`` its lag(s) ``(tau s + 1)(tau2 s + 1)`` (times ``s``
+   for an integrator), the poles ``a = exp(-T / tau)``; the first-order element is
+   ``K (1 - a) q^-L / (1 - a q^-1)``.  An element the model has keeps its declared structure; one it
+   lacks is fitted first order, with a second lag where a likelihood-ratio test says the data call
+   for it; an element of a step-response model in the parametric form the data choose (first
+   order, second order, second order with a lead; integrating on a ``ramp`` output) and written back
+   as its sampled step response of the same length.
    ``A(q) = 1 + alpha_1 q^-1 + ... + alpha_p q^-p`` whitens the coloured disturbance (the paper's
    ``v = w / (1 - 0.95 q^-1)`` plus white measurement noise), which makes the estimate consistent
    in closed loop where ``u`` is correlated with ``v`` (Ljung section 13.4, the "direct approach").
-   ``phi`` holds the free responses of the row's states (the data may start mid-operation) and an
-   offset.  The gains and ``c`` enter linearly and are eliminated by variable projection (Golub and
-   Pereyra, 1973); the poles ``a_j`` are found by ``scipy.optimize.least_squares`` with ``A(q)``
+   ``phi`` holds the free responses of the row's states (the data may start mid-operation; every
+   pole of the held elements, ``k a^k`` for a repeated one) and an offset.  The gains, the lead
+   coefficients ``K lead`` and ``c`` enter linearly and are eliminated by variable projection
+   (Golub and Pereyra, 1973); the poles are found by ``scipy.optimize.least_squares`` with ``A(q)``
    held, alternating with a least-squares fit of ``A(q)`` to the output error (generalized least
-   squares, Ljung section 10.2); the input lag ``L_j`` (delay plus one sample for a lagged
-   element) by a coordinate search on the integer grid around the model's value.
-3. **Kind.**  On the whole record, every parameter of a located element is tested against the
-   model's value by a likelihood-ratio test: the row is refitted with that parameter held and
-   ``n ln(SSR_held / SSR_free)`` compared with chi-square(1) (Ljung section 16.5); the delay by
-   its profile over the lag grid.  A parameter changed when the test rejects at
-   ``1 - confidence_level`` *and* the change exceeds ``min_relative_change``.  The kind follows:
-   one changed parameter -> gain, time_constant or delay; several -> mixed; a model gain of 0 with
-   a significant fitted gain -> missing; nothing -> unknown (the element is kept).  The likelihood
-   ratio, unlike a Wald test on the Jacobian, does not depend on the parametrization, which
-   matters along the ridge where gain and time constant trade off (inputs that move together).
-   The verdict's ``confidence`` is ``min over the tests of 1 - min(p/alpha, alpha/p)``: 0 when a
-   p-value sits on the threshold, near 1 when every test is clear.
-4. **Repair and validation.**  Only the changed parameters are refitted (all three for a missing
+   squares, Ljung section 10.2); the input lag ``L_j`` (the delay plus one sample for a strictly
+   proper element) by a coordinate search on the integer grid around the model's value.
+3. **Kind.**  On the whole record, every parameter of a located element is tested against its
+   reference (the model's value; for a step-response element, the parametric form of its old
+   response) by a likelihood-ratio test: the row is refitted with that parameter held and
+   ``n ln(SSR_held / SSR_free)`` compared with chi-square (Ljung section 16.5); the shape (every
+   lag and the lead) is held at once, with as many degrees of freedom; the delay by its profile
+   over the lag grid.  A parameter changed when the test rejects at ``1 - confidence_level`` *and*
+   the change exceeds ``min_relative_change``.  The kind follows: one changed parameter -> gain
+   (an integrator's gain too), time_constant (any lag or the lead) or delay; several -> mixed; an
+   element the model lacks with a significant fitted gain -> missing; nothing -> unknown (the
+   element is kept).  The likelihood ratio, unlike a Wald test on the Jacobian, does not depend on
+   the parametrization, which matters along the ridge where gain and time constant trade off
+   (inputs that move together).  The verdict's ``confidence`` is ``min over the tests of
+   1 - min(p/alpha, alpha/p)``: 0 when a p-value sits on the threshold, near 1 when every test is
+   clear.
+4. **Repair and validation.**  Only the changed parameters are refitted (all of them for a missing
    element), on the first ``1 - holdout_fraction`` of the record; intervals at
    ``confidence_level`` come from the Jacobian of the full residual (``cov = s^2 (J'J)^-1``) for
-   gain and time constant, from the profile statistic for the delay.  The repair is accepted only
-   when the row's RMS prediction error on the held-out last part is lower than with the model as
-   given; then it is refitted on the whole record.
+   gain, time constants and lead, from the profile statistic for the delay.  The repair is
+   accepted only when the row's RMS prediction error on the held-out last part, about its level
+   (the mean of the fit part: a level is no element's to explain, and on an integrating output it
+   is arbitrary), is lower than with the model as given; then it is refitted on the whole record.
+   A step-response element whose gain or delay alone changed keeps its old response, scaled and
+   shifted; one whose shape changed takes the sampled response of its fitted form.
 5. **Unexplained disturbances.**  On every output, the (repaired) residual is tested for a level
    shift (sup-Wald test over the break date, Andrews 1993, p-values from the approximation of
    Estrella 2003) and for a linear drift (Wald test), each in a regression with AR(p) terms that
@@ -49,6 +64,8 @@ control engineer's next questions (paper section 4, "type and severity" of each 
 Where each step lives:
 
 - :mod:`.options`: :class:`RepairOptions` and their check, the test levels they fix.
+- :mod:`.forms`: the structure of a fitted element (lags, lead, integrator), its sampled basis,
+  the parametric form of a step response and the write-back into the model's structure.
 - :mod:`.fit`: the prediction-error fit of one row (step 2), model-free: the row problem, the
   search over lags, poles and noise model, the lag profiles.
 - :mod:`.row`: from a row of the model to its fit and back (parameters in seconds, intervals).

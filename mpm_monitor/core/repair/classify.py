@@ -1,8 +1,10 @@
 """Which parameters of the located elements of a row changed: likelihood-ratio tests and kinds.
 
-On the whole record (the most evidence) the located elements of a row are fitted with gain, time
-constant and delay free (:func:`_fit_free`), and every parameter is tested against the model's
-value by refitting the row with that parameter held (:meth:`_FreeFit.hold_statistic`;
+On the whole record (the most evidence) the located elements of a row are fitted with gain, shape
+(every lag and the lead) and delay free, each in its form (:func:`_fit_free`; the form of an
+element the model lacks or of a step-response element chosen by the data, :func:`_choose_forms`),
+and every parameter is tested against its reference (the model's value, or the parametric form of a
+step response's old response) by refitting the row with that parameter held (:meth:`_FreeFit.hold_statistic`;
 ``n ln(SSR_held / SSR_free)`` against chi-square, Ljung, *System Identification*, 2nd ed., 1999,
 section 16.5; the delay by its profile over the lag grid).  The parameters judged unchanged are
 then held together (:func:`_joint_hold`): gain and time constant, or two elements on inputs that
@@ -14,14 +16,32 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Optional
 
 import numpy as np
 
 from ..statistics import chi2_tail
-from .fit import _element_lag, _ElementSpec, _lag_lr, _pole_of, _RowEstimate, _RowProblem
+from .fit import _ElementSpec, _lag_lr, _RowEstimate, _RowProblem
+from .forms import (
+    _LADDER_MISSING,
+    _LAG_SHIFT,
+    _POLE_MIN,
+    FIRST_ORDER,
+    _fitted_params,
+    _Form,
+    _form_of,
+    _input_lag,
+    _params_of,
+    _pole_of,
+    _poles_of,
+    _public_params,
+    _step_ladder,
+    _step_reference,
+    _tau_of,
+)
 from .options import RepairOptions, _TestSettings
 from .result import ElementVerdict
-from .row import _element_summary, _estimate_row, _RowData
+from .row import _default_skip, _element_summary, _estimate_row, _RowData
 
 #: The parameter a test holds at the model's value ("absent": the whole element at gain 0).
 _PARAM_OF_TEST = {"gain": "gain", "time_constant": "pole", "delay": "lag", "missing": "absent"}
@@ -67,18 +87,46 @@ class _ElementTests:
 
 
 @dataclasses.dataclass
+class _Located:
+    """A located element as the fit sees it.
+
+    Attributes
+    ----------
+    form : _Form
+        The form it is fitted in: the declared one, or for an element the model lacks and an element
+        of a step-response model the one the data call for (:func:`_choose_forms`).
+    reference : dict
+        The element its changes are measured from, every parametric key (seconds): the model's
+        element, the parametric form of a step-response element's old response
+        (:func:`~mpm_monitor.core.repair.forms._step_reference`), or gain 0 for a missing element.
+    lag : int
+        The reference's input lag (samples).
+    missing : bool
+        The model lacks the element.
+    poles : tuple
+        The reference's poles.
+    """
+
+    form: _Form
+    reference: dict
+    lag: int
+    missing: bool
+    poles: tuple
+
+
+@dataclasses.dataclass
 class _FreeFit:
-    """The whole-record fit of a row's located elements with gain, time constant and delay free.
+    """The whole-record fit of a row's located elements with every parameter free.
 
     Attributes
     ----------
     row : _RowData
     js : list of int
-        Input indices of the located elements, sorted (element ``m`` of the fit is ``js[m]``).
+        Column indices of the located elements, sorted (element ``m`` of the fit is ``js[m]``).
     specs : dict
-        ``{j: _ElementSpec}`` of the fit: everything free, lags searched around the model's.
-    lag_orig : dict
-        ``{j: input lag of the model's element}`` (samples).
+        ``{j: _ElementSpec}`` of the fit: everything free, lags searched around the reference's.
+    located : dict
+        ``{j: _Located}``: the form and the reference of each element.
     problem : _RowProblem
     est : _RowEstimate
     """
@@ -86,35 +134,41 @@ class _FreeFit:
     row: _RowData
     js: list
     specs: dict
-    lag_orig: dict
+    located: dict
     problem: _RowProblem
     est: _RowEstimate
 
+    @property
+    def lag_orig(self) -> dict:
+        """``{j: input lag of the reference}`` (samples)."""
+        return {j: loc.lag for j, loc in self.located.items()}
+
     def hold_statistic(self, holds: dict, options: RepairOptions) -> float:
-        """Likelihood-ratio statistic of holding parameters of located elements at the model's values.
+        """Likelihood-ratio statistic of holding parameters of located elements at their references.
 
         The row is refitted with, for each element index ``m`` in ``holds``, the parameters named
-        in ``holds[m]`` ("gain", "pole", "lag", or "absent": no effect at all) held at the model's
-        values, the other lags at their optimum and everything else free; the statistic is
-        ``n ln(SSR_held / SSR_free)``, chi-square with as many degrees of freedom as parameters
-        held when they did not change (Ljung 1999, section 16.5).  Unlike a Wald test on the
-        Jacobian it does not depend on the parametrization, which matters along the ridge where
-        gain and time constant trade off.
+        in ``holds[m]`` ("gain", "pole": the shape, every lag and the lead; "lag", or "absent": no
+        effect at all) held at the reference's values, the other lags at their optimum and
+        everything else free; the statistic is ``n ln(SSR_held / SSR_free)``, chi-square with as
+        many degrees of freedom as parameters held when they did not change (Ljung 1999, section
+        16.5).  Unlike a Wald test on the Jacobian it does not depend on the parametrization, which
+        matters along the ridge where gain and time constant trade off.
         """
-        model, i, est = self.row.model, self.row.i, self.est
+        est = self.est
         held, lags = {}, {}
         for m, j in enumerate(self.js):
-            sp = self.specs[j]
+            sp, loc = self.specs[j], self.located[j]
             lag = est.fit.lags[m]
             what = holds.get(m, set())
             if "lag" in what:
-                lag = self.lag_orig[j]
-            sp_new = _ElementSpec(sp.gain_free, sp.pole_free, float(est.fit.gains[m]), float(est.fit.poles[m]),
-                                  (lag, lag))
+                lag = loc.lag
+            sp_new = _ElementSpec(sp.gain_free, sp.pole_free, float(est.fit.gains[m]),
+                                  tuple(float(a) for a in est.fit.poles[self.problem.slices[m]]), (lag, lag),
+                                  form=sp.form, lead=float(est.fit.leads[m]))
             if "gain" in what:
-                sp_new.gain_free, sp_new.gain = False, float(model.gain[i, j])
+                sp_new.gain_free, sp_new.gain = False, loc.reference["gain"]
             if "pole" in what:
-                sp_new.pole_free, sp_new.pole = False, _pole_of(model.time_constant[i, j], model.sample_time)
+                sp_new.pole_free, sp_new.poles, sp_new.lead = False, loc.poles, loc.reference["lead"]
             if "absent" in what:
                 sp_new.gain_free, sp_new.gain, sp_new.pole_free = False, 0.0, False
             held[j] = sp_new
@@ -125,53 +179,147 @@ class _FreeFit:
         return max(est_h.fit.n_resid * math.log(max(est_h.fit.ssr, 1e-300) / max(est.fit.ssr, 1e-300)), 0.0)
 
 
-def _free_specs(row: _RowData, js, options: RepairOptions):
-    """Specs of the free fit: everything free, lags within ``max_delay_shift`` of the model's.
-
-    An element the model does not have (gain 0) starts at the row's median time constant and the
-    row's largest input lag, searched from 1 to that lag plus ``max_delay_shift``.
-
-    Returns
-    -------
-    specs : dict
-        ``{j: _ElementSpec}``.
-    lags0 : dict
-        ``{j: start lag}``.
-    lag_orig : dict
-        ``{j: input lag of the model's element}``.
-    """
+def _locate(row: _RowData, j: int, form: Optional[_Form] = None) -> _Located:
+    """The :class:`_Located` of element ``j`` of the row (in ``form`` for a missing or step-response element)."""
     model, i = row.model, row.i
     ts = model.sample_time
-    gain, tau, nd = model.gain, model.time_constant, model.delay_samples
-    row_nonzero = gain[i] != 0
-    row_taus = tau[i][row_nonzero & (tau[i] > 0)]
-    base_tau = float(np.median(row_taus)) if row_taus.size else 10.0 * ts
-    max_row_lag = max([_element_lag(tau[i, j], nd[i, j]) for j in range(model.n_inputs) if row_nonzero[j]],
+    present = bool(model.present[i, j])
+    if model.is_step_response and present:
+        form = form or _step_ladder(model, i, j)[0]
+        ref, lag, poles = _step_reference(model.step_response[i, j], form, ts)
+        return _Located(form=form, reference=ref, lag=lag, missing=False, poles=poles)
+    if not present:
+        form = form or FIRST_ORDER
+        ref = _fitted_params(form, 0.0, (_POLE_MIN,) * form.n_lags, 0.0, 0, ts)
+        ref["delay"] = float(model.delay[i, j])
+        return _Located(form=form, reference=ref, lag=int(model.delay_samples[i, j]), missing=True,
+                        poles=_poles_of(form, ref, ts))
+    form = _form_of(model, i, j)
+    ref = _params_of(model, i, j)
+    return _Located(form=form, reference=ref, lag=_input_lag(form, ref, ts), missing=False,
+                    poles=_poles_of(form, ref, ts))
+
+
+def _row_start(row: _RowData):
+    """``(base_tau, max_row_lag)``: the row's median time constant (s; 10 samples without one) and the
+    largest input lag of its elements (samples; 1 without one), where an element the model lacks starts."""
+    model, i = row.model, row.i
+    ts = model.sample_time
+    present = model.present[i]
+    taus = model.time_constant[i][present & (model.time_constant[i] > 0)]
+    base_tau = float(np.median(taus)) if taus.size else 10.0 * ts
+    max_row_lag = max([model.discrete_element(i, j).input_lag for j in range(model.n_columns) if present[j]],
                       default=1)
+    return base_tau, max_row_lag
+
+
+def _free_spec(row: _RowData, loc: _Located, options: RepairOptions, start=None):
+    """The spec of the free fit of a located element and its start lag.
+
+    An element the model has is searched within ``max_delay_shift`` of its reference's lag; an
+    element the model lacks starts at the row's median time constant and largest input lag
+    (:func:`_row_start`), searched from 1 to that lag plus ``max_delay_shift``.  ``start``
+    (``(gain, poles, lead, lag)``) overrides the start values.
+    """
+    ts = row.model.sample_time
     s = options.max_delay_shift
-    specs, lags0, lag_orig = {}, {}, {}
+    base_tau, max_row_lag = _row_start(row)
+    form, ref = loc.form, loc.reference
+    if loc.missing:
+        taus = (base_tau, 0.3 * base_tau)[:form.n_lags]
+        gain, poles, lead, lag = 0.0, tuple(_pole_of(t, ts) for t in taus), 0.0, max_row_lag
+        window = (1, max_row_lag + s)
+    else:
+        poles = loc.poles
+        if form.first_order and ref["time_constant"] <= 0:
+            poles = (_pole_of(base_tau, ts),)
+        gain, lead = ref["gain"], ref["lead"]
+        lag = max(1, loc.lag) if form.first_order else loc.lag
+        window = (max(1, lag - s) if form.first_order else max(form.offset, lag - s), lag + s)
+    if start is not None:
+        gain, poles, lead, lag = start
+    spec = _ElementSpec(True, form.n_shape > 0, gain, tuple(poles), window, form=form, lead=lead)
+    return spec, lag
+
+
+def _fit_free(row: _RowData, js, settings: _TestSettings) -> _FreeFit:
+    """Fit the located elements ``js`` of the row on the whole record with everything free, each in
+    its form (:func:`_choose_forms` for the elements whose form the data decide)."""
+    options = settings.options
+    located = {j: _locate(row, j) for j in js}
+    specs, lags0 = {}, {}
     for j in js:
-        if gain[i, j] != 0:
-            lag = max(1, _element_lag(tau[i, j], nd[i, j]))
-            pole = _pole_of(tau[i, j], ts) if tau[i, j] > 0 else _pole_of(base_tau, ts)
-            specs[j] = _ElementSpec(True, True, gain[i, j], pole, (max(1, lag - s), lag + s))
-        else:
-            lag = max_row_lag
-            specs[j] = _ElementSpec(True, True, 0.0, _pole_of(base_tau, ts), (1, max_row_lag + s))
-        lags0[j] = lag
-        lag_orig[j] = _element_lag(tau[i, j], nd[i, j])
-    return specs, lags0, lag_orig
+        specs[j], lags0[j] = _free_spec(row, located[j], options)
+    skip = None
+    if row.model.is_step_response:
+        # Room for the lags of the larger forms (the references' lags may move a few samples).
+        skip = _default_skip(row, specs) + _LAG_SHIFT
+    problem, est = _estimate_row(row, specs, lags0, row.n_samples, options, options.max_sweeps, skip=skip)
+    free = _FreeFit(row=row, js=list(js), specs=specs, located=located, problem=problem, est=est)
+    return _choose_forms(free, settings)
 
 
-def _fit_free(row: _RowData, js, options: RepairOptions) -> _FreeFit:
-    """Fit the located elements ``js`` of the row on the whole record with everything free."""
-    specs, lags0, lag_orig = _free_specs(row, js, options)
-    problem, est = _estimate_row(row, specs, lags0, row.n_samples, options, options.max_sweeps)
-    return _FreeFit(row=row, js=list(js), specs=specs, lag_orig=lag_orig, problem=problem, est=est)
+def _ladder(row: _RowData, j: int) -> tuple:
+    """The forms the data choose from for element ``j`` (empty: its form is the declared one)."""
+    model, i = row.model, row.i
+    if model.is_step_response and model.present[i, j]:
+        return _step_ladder(model, i, j)
+    if not model.present[i, j]:
+        return _LADDER_MISSING
+    return ()
+
+
+def _choose_forms(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
+    """The forms of the elements the model lacks and of step-response elements, chosen by the data.
+
+    Each such element starts in the first form of its ladder (first order); a larger form replaces
+    the current one when the likelihood-ratio test ``n ln(SSR_current / SSR_larger)`` against
+    chi-square with the difference of shape parameters rejects at ``1 - confidence_level`` (Ljung
+    1999, section 16.5): a second lag (and a lead, for a step-response element) only where the data
+    call for it.  Every fit compared uses the same samples.
+    """
+    row, options = free.row, settings.options
+    ts = row.model.sample_time
+    for m, j in enumerate(free.js):
+        for form in _ladder(row, j)[1:]:
+            cur = free.located[j]
+            if form.n_shape <= cur.form.n_shape:
+                continue
+            loc = _locate(row, j, form)
+            start = None
+            if loc.missing:
+                tau = _tau_of(float(free.est.fit.poles[free.problem.slices[m]][0]), ts)
+                start = (float(free.est.fit.gains[m]), (_pole_of(tau, ts), _pole_of(0.3 * tau, ts))[:form.n_lags],
+                         0.0, int(free.est.fit.lags[m]))
+            spec, lag0 = _free_spec(row, loc, options, start)
+            specs = dict(free.specs)
+            specs[j] = spec
+            lags0 = {jj: int(free.est.fit.lags[k]) for k, jj in enumerate(free.js)}
+            lags0[j] = lag0
+            skip = free.problem.start - free.problem.p
+            spec.window = (min(spec.window[0], skip), min(spec.window[1], skip))   # the samples compared
+            lags0[j] = min(max(lags0[j], spec.window[0]), spec.window[1])
+            problem, est = _estimate_row(row, specs, lags0, row.n_samples, options, options.max_sweeps, skip=skip)
+            stat = est.fit.n_resid * math.log(max(free.est.fit.ssr, 1e-300) / max(est.fit.ssr, 1e-300))
+            if chi2_tail(max(stat, 0.0), form.n_shape - cur.form.n_shape) < settings.alpha:
+                located = dict(free.located)
+                located[j] = loc
+                free = _FreeFit(row=row, js=free.js, specs=specs, located=located, problem=problem, est=est)
+    return free
+
+
+def _shape_changed(after: dict, reference: dict, form: _Form, ts: float, min_change: float) -> bool:
+    """Whether a lag or the lead moved by more than ``min_change`` (relative to the reference's value,
+    at least one sample time)."""
+    keys = ["time_constant", "time_constant2"][:max(form.n_lags, 1)] + (["lead"] if form.lead else [])
+    return any(abs(after[k] - reference[k]) > min_change * max(abs(reference[k]), ts) for k in keys)
 
 
 def _single_tests(free: _FreeFit, settings: _TestSettings):
     """The fitted parameters of each element and the test of each of its parameters alone.
+
+    The ``time_constant`` test holds the whole shape (every lag and the lead, as many degrees of
+    freedom); an element without lag or lead (a pure integrator) has none.
 
     Returns
     -------
@@ -180,26 +328,25 @@ def _single_tests(free: _FreeFit, settings: _TestSettings):
     tests : dict
         ``{j: _ElementTests}``.
     """
-    model, i = free.row.model, free.row.i
-    ts = model.sample_time
+    ts = free.row.model.sample_time
     options = settings.options
     summaries, tests = {}, {}
     for m, j in enumerate(free.js):
-        after, interval = _element_summary(free.problem, free.est, m, ts, settings)
+        loc = free.located[j]
+        after, interval = _element_summary(free.problem, free.est, m, ts, settings, loc.reference)
         summaries[j] = (after, interval)
-        before = model.element(i, j)
+        before, form = loc.reference, loc.form
         t = {}
-        if before["gain"] == 0:
+        if loc.missing:
             t["missing"] = [float(chi2_tail(free.hold_statistic({m: {"absent"}}, options), 1)), True]
         else:
             t["gain"] = [float(chi2_tail(free.hold_statistic({m: {"gain"}}, options), 1)),
                          abs(after["gain"] - before["gain"]) > options.min_relative_change * abs(before["gain"])]
-            tau0 = before["time_constant"]
-            t["time_constant"] = [float(chi2_tail(free.hold_statistic({m: {"pole"}}, options), 1)),
-                                  abs(after["time_constant"] - tau0) > options.min_relative_change * max(tau0, ts)]
+            if form.n_shape:
+                t["time_constant"] = [float(chi2_tail(free.hold_statistic({m: {"pole"}}, options), form.n_shape)),
+                                      _shape_changed(after, before, form, ts, options.min_relative_change)]
             w = free.specs[j].window
-            lag0 = free.lag_orig[j]
-            p_d = float(chi2_tail(_lag_lr(free.est, m, lag0), 1)) if w[0] <= lag0 <= w[1] else 0.0
+            p_d = float(chi2_tail(_lag_lr(free.est, m, loc.lag), 1)) if w[0] <= loc.lag <= w[1] else 0.0
             t["delay"] = [p_d, after["delay"] != before["delay"]]
         tests[j] = _ElementTests.of(t, settings.alpha)
     return summaries, tests
@@ -222,7 +369,7 @@ def _joint_hold(free: _FreeFit, tests: dict, settings: _TestSettings, warnings: 
     joint_p = None
     while True:
         holds = {m: {_PARAM_OF_TEST[k] for k in tests[j].unchanged()} for m, j in enumerate(js)}
-        n_held = sum(len(h) for h in holds.values())
+        n_held = sum(free.located[js[m]].form.n_shape if k == "pole" else 1 for m, h in holds.items() for k in h)
         if n_held == 0:
             break
         joint_p = float(chi2_tail(free.hold_statistic(holds, settings.options), n_held))
@@ -238,13 +385,16 @@ def _joint_hold(free: _FreeFit, tests: dict, settings: _TestSettings, warnings: 
     return joint_p
 
 
-def _verdict(est: _RowEstimate, summary: tuple, tests: _ElementTests, joint_p, alpha: float) -> ElementVerdict:
+def _verdict(est: _RowEstimate, summary: tuple, tests: _ElementTests, joint_p, alpha: float,
+             loc: _Located, step_response: bool = False) -> ElementVerdict:
     """The kind, the confidence and the evidence of an element from its tests.
 
-    One changed parameter names the kind (gain, time_constant or delay), several give "mixed", a
-    significant element the model does not have "missing", nothing "unknown".  The confidence is
-    the smallest margin of the tests, including the joint test when the element has a parameter
-    held in it.
+    One changed parameter names the kind (gain, time_constant -- any lag or the lead -- or delay;
+    an integrator's gain is a gain), several give "mixed", a significant element the model does not
+    have "missing", nothing "unknown".  The confidence is the smallest margin of the tests,
+    including the joint test when the element has a parameter held in it.  For an element of a
+    step-response model (``step_response``) the evidence holds the parametric forms of its old and
+    new responses (``parametric_before``, ``parametric_after``), from which the kind was decided.
     """
     after, interval = summary
     results = tests.results
@@ -263,8 +413,10 @@ def _verdict(est: _RowEstimate, summary: tuple, tests: _ElementTests, joint_p, a
                 "p_delay": results["delay"][0] if "delay" in results else None,
                 "p_unchanged_jointly": joint_p, "condition_number": est.cond, "samples": est.fit.n_resid,
                 "noise_model": [float(v) for v in est.ar]}
+    if step_response:
+        evidence["parametric_before"] = _public_params(loc.reference)
     return ElementVerdict(kind=kind, changed=hits, after=after, interval=interval, evidence=evidence,
-                          confidence=confidence, apply=kind != "unknown")
+                          confidence=confidence, apply=kind != "unknown", form=loc.form, reference=loc.reference)
 
 
 def _verdict_warnings(free: _FreeFit, m: int, verdict: ElementVerdict, alpha: float) -> list:
@@ -275,10 +427,12 @@ def _verdict_warnings(free: _FreeFit, m: int, verdict: ElementVerdict, alpha: fl
         out.append(f"{name}: the best delay lies at the edge of the searched range; "
                    f"the true delay may lie outside it (raise max_delay_shift).")
     if verdict.kind == "unknown":
+        form = free.located[free.js[m]].form
+        shape = "first-order-plus-dead-time form" if form.first_order else f"the element's form ({form.describe()})"
         out.append(
             f"{name}: located as mismatched, but no parameter of the element differs "
             f"significantly from the model (at {100 * (1 - alpha):.4g}% confidence); the element is kept. "
-            f"The mismatch may be too small for these data or not of first-order-plus-dead-time form.")
+            f"The mismatch may be too small for these data or not of {shape}.")
     return out
 
 
@@ -294,16 +448,17 @@ def _classify_row(row: _RowData, js, settings: _TestSettings):
     warnings : list of str
     """
     alpha = settings.alpha
-    free = _fit_free(row, js, settings.options)
+    free = _fit_free(row, js, settings)
     warnings = []
     summaries, tests = _single_tests(free, settings)
     joint_p = _joint_hold(free, tests, settings, warnings)
     verdicts = {}
     for m, j in enumerate(free.js):
-        verdicts[j] = _verdict(free.est, summaries[j], tests[j], joint_p, alpha)
+        verdicts[j] = _verdict(free.est, summaries[j], tests[j], joint_p, alpha, free.located[j],
+                               row.model.is_step_response)
         warnings.extend(_verdict_warnings(free, m, verdicts[j], alpha))
     if free.est.cond > 1e3 and len(free.js) > 1:
-        names_u = row.model.inputs
+        names_u = row.model.columns
         warnings.append(
             f"{row.name()}: the inputs {', '.join(names_u[j] for j in free.js)} move together in these data "
             f"(condition number {free.est.cond:.3g}); their elements are hard to tell apart. More independent "

@@ -1,11 +1,12 @@
 """The prediction-error fit of the located elements of one output row (model-free).
 
 :class:`_RowProblem` is the fit of the located elements of a row to ``z`` (the output minus the
-row's fixed elements) with an AR noise model, the gains and nuisance terms eliminated by variable
-projection; :func:`_search_row` searches its input lags on the integer grid, its poles by least
-squares and its noise model, and records the lag profiles that :func:`_lag_lr` and
-:func:`_lag_interval` read.  The element parameters convert between seconds and the fit's
-``(gain, pole, lag)`` with :func:`_element_lag`, :func:`_pole_of` and :func:`_element_params`.
+row's fixed elements) with an AR noise model, the gains (and the lead coefficients ``K lead``) and
+nuisance terms eliminated by variable projection; :func:`_search_row` searches its input lags on the
+integer grid, its poles by least squares and its noise model, and records the lag profiles that
+:func:`_lag_lr` and :func:`_lag_interval` read.  Each element is fitted in its form
+(:class:`~mpm_monitor.core.repair.forms._Form`: lags, lead, integrator); the parameters convert
+between seconds and the fit's ``(gain, poles, lead, lag)`` in :mod:`.forms`.
 """
 
 from __future__ import annotations
@@ -14,29 +15,11 @@ import dataclasses
 import math
 
 import numpy as np
-from scipy import optimize, signal
 
 from ..arx import least_squares_ar
-
-#: Bounds of a lag element's discrete pole ``a = exp(-T / tau)`` during the fit.
-_POLE_MIN, _POLE_MAX = 1e-4, 0.9995
-
-
-def _element_lag(tau: float, delay_samples: int) -> int:
-    """Input lag ``L`` of an element: ``n_d + 1`` with a lag, ``n_d`` without (see discretize)."""
-    return int(delay_samples) + 1 if tau > 0 else int(delay_samples)
-
-
-def _pole_of(tau: float, ts: float) -> float:
-    """Discrete pole ``exp(-T / tau)`` (the lower pole bound for ``tau = 0``)."""
-    return min(max(math.exp(-ts / tau), _POLE_MIN), _POLE_MAX) if tau > 0 else _POLE_MIN
-
-
-def _element_params(gain: float, pole: float, lag: int, ts: float):
-    """(gain, time constant in s, delay in s) of a fitted element; a vanishing pole means no lag."""
-    if pole <= 2 * _POLE_MIN:
-        return float(gain), 0.0, float(lag) * ts
-    return float(gain), float(-ts / math.log(pole)), float(max(lag - 1, 0)) * ts
+from ..discretize import REPEATED_POLE_TOLERANCE
+from ..filters import lfilter
+from .forms import _POLE_MAX, _POLE_MIN, FIRST_ORDER, _basis, _Form
 
 
 class _TooShort(Exception):
@@ -47,19 +30,31 @@ class _TooShort(Exception):
 class _ElementSpec:
     """Which parameters of a located element the fit may move.
 
-    ``gain``/``pole`` are the held values (or the start values when free); ``window`` is the
-    inclusive range of input lags searched (``lo == hi`` holds the lag).
+    ``gain``, ``poles`` and ``lead`` are the held values (or the start values when free); ``window``
+    is the inclusive range of input lags searched (``lo == hi`` holds the lag).  ``pole_free`` frees
+    the shape: every lag of the form (as its pole) and its lead.
     """
 
     gain_free: bool
     pole_free: bool
     gain: float
-    pole: float
+    poles: tuple
     window: tuple
+    form: _Form = FIRST_ORDER
+    lead: float = 0.0
 
     @property
     def lag_free(self) -> bool:
         return self.window[0] != self.window[1]
+
+    @property
+    def linear(self) -> tuple:
+        """The linear coefficients of the element in the fit: ``"K"`` (the gain) and/or ``"KL"``
+        (``K lead``, when the lead is free); with the lead held, ``"K"`` multiplies ``G_a + lead G_b``."""
+        lead_free = self.pole_free and self.form.lead
+        if self.gain_free:
+            return ("K", "KL") if lead_free else ("K",)
+        return ("KL",) if lead_free else ()
 
 
 @dataclasses.dataclass
@@ -67,8 +62,10 @@ class _Fit:
     """One converged fit of a row for given lags and noise model."""
 
     lags: tuple
-    poles: np.ndarray   # (n_located,)
+    poles: np.ndarray   # (n_poles,): the poles of every located element, element after element
+    coefs: np.ndarray   # (n_linear,): the free linear coefficients ("K", "KL") in element order
     gains: np.ndarray   # (n_located,)
+    leads: np.ndarray   # (n_located,): seconds (0 without a lead)
     nuisance: np.ndarray
     ssr: float
     n_resid: int
@@ -82,16 +79,17 @@ class _RowProblem:
     z : ndarray, shape (n_samples,)
         Output minus the response of the row's fixed elements (from rest).
     u : ndarray, shape (n_samples, n_located)
-        The inputs of the located elements.
+        The columns (inputs or measured disturbances) of the located elements.
     specs : list of _ElementSpec
         One per located element.
     n_fit : int
         Samples ``0 .. n_fit - 1`` are used.
     skip : int
-        Samples at the start left out of the cost: the largest input lag of the row, since the
-        inputs before the record are unknown.
-    fixed_poles : sequence of float
-        Poles of the row's fixed lag elements, whose free responses are estimated.
+        Samples at the start left out of the cost: the largest input lag of the row (or the memory of
+        its step-response elements), since the columns before the record are unknown.
+    fixed_poles : dict
+        ``{pole: multiplicity}`` of the row's fixed lag elements, whose free responses ``k^q a^k``
+        are estimated.
     free_response : bool
         Estimate the free responses (the initial state) of the row.
     noise_order : int
@@ -99,19 +97,24 @@ class _RowProblem:
     extra : ndarray, shape (n_samples, n_extra), optional
         Nuisance regressors for an unmeasured disturbance (a step, a ramp), filtered by ``A(q)``
         like the output, so that the disturbance is never absorbed by an element.
+    sample_time : float
+        Seconds per sample (to sample the forms other than first order).
 
     Notes
     -----
     Filtering commutes, so ``A(q) G(q) u = G(q) (A(q) u)``: the inputs are prefiltered once per
     noise model.  For ``k >= p``, ``A(q) a^k = A(1/a) a^k``: a free response stays a free response
-    with another (free) coefficient, and the cost window starts at ``skip + p``.
+    with another (free) coefficient, and the cost window starts at ``skip + p``.  An integrator's free
+    response is a constant, held in the offset.
     """
 
-    def __init__(self, z, u, specs, n_fit, skip, fixed_poles, free_response, noise_order, extra=None):
+    def __init__(self, z, u, specs, n_fit, skip, fixed_poles, free_response, noise_order, extra=None,
+                 sample_time=1.0):
         self.z = np.asarray(z, float)[:n_fit]
         self.extra = None if extra is None else np.asarray(extra, float).reshape(len(z), -1)[:n_fit]
         self.u = np.asarray(u, float)[:n_fit]
         self.specs = list(specs)
+        self.ts = float(sample_time)
         self.n_fit = int(n_fit)
         self.p = int(noise_order)
         self.free = bool(free_response)
@@ -123,12 +126,21 @@ class _RowProblem:
         self.kw = np.arange(self.start, self.n_fit, dtype=float)
         cols = [np.ones_like(self.kw)]
         if self.free:
-            for a in sorted(set(np.round(np.asarray(fixed_poles, float), 12))):
+            for a, mult in sorted(dict(fixed_poles).items()):
                 if 0 < a < 1 and a ** self.start > 1e-12:
-                    cols.append(a ** self.kw)
+                    cols.extend(self.kw ** q * a ** self.kw if q else a ** self.kw for q in range(mult))
         self.fixed_cols = np.column_stack(cols)
-        self.pole_free_idx = [m for m, s in enumerate(self.specs) if s.pole_free]
-        self.gain_free_idx = [m for m, s in enumerate(self.specs) if s.gain_free]
+        # Where each element's poles and linear coefficients sit in the flat vectors of the fit.
+        self.slices, self.linear_index = [], []
+        n_poles = n_lin = 0
+        for spec in self.specs:
+            self.slices.append(slice(n_poles, n_poles + spec.form.n_lags))
+            n_poles += spec.form.n_lags
+            self.linear_index.append(list(range(n_lin, n_lin + len(spec.linear))))
+            n_lin += len(spec.linear)
+        self.n_linear = n_lin
+        self.pole_free_idx = [k for m, s in enumerate(self.specs) if s.pole_free
+                              for k in range(self.slices[m].start, self.slices[m].stop)]
         self.set_ar(np.zeros(self.p))
 
     @property
@@ -140,8 +152,8 @@ class _RowProblem:
         self.ar = np.asarray(ar, float).copy()
         if self.p:
             num = np.concatenate([[1.0], self.ar])
-            self.zf = signal.lfilter(num, [1.0], self.z)
-            self.uf = signal.lfilter(num, [1.0], self.u, axis=0)
+            self.zf = lfilter(num, [1.0], self.z)
+            self.uf = lfilter(num, [1.0], self.u, axis=0)
         else:
             self.zf, self.uf = self.z, self.u
         self.xf = None if self.extra is None else self._filtered_extra(self.ar)
@@ -149,30 +161,64 @@ class _RowProblem:
     def _filtered_extra(self, ar):
         if self.p == 0:
             return self.extra[self.start:]
-        return signal.lfilter(np.concatenate([[1.0], ar]), [1.0], self.extra, axis=0)[self.start:]
+        return lfilter(np.concatenate([[1.0], ar]), [1.0], self.extra, axis=0)[self.start:]
+
+    def start_poles(self) -> np.ndarray:
+        """The specs' poles, element after element, shape (n_poles,)."""
+        return np.array([a for s in self.specs for a in s.poles], float)
 
     def poles_from(self, x):
-        poles = np.array([s.pole for s in self.specs], float)
+        poles = self.start_poles()
         poles[self.pole_free_idx] = x
         return poles
 
-    def _unit(self, src, m, pole, lag):
-        """Window of the unit-gain response of element ``m`` to ``src[:, m]``."""
-        base = signal.lfilter([1.0 - pole], [1.0, -pole], src[:self.n_fit - lag, m])
-        return base[self.start - lag:]
+    def _units(self, src, m, poles, lag):
+        """Windows of the unit responses ``G_a`` (and ``G_b``) of element ``m`` to ``src[:, m]``."""
+        num_a, num_b, den = _basis(self.specs[m].form, poles[self.slices[m]], self.ts)
+        x = src[:self.n_fit - lag, m]
+        cols = [lfilter(num_a, den, x)[self.start - lag:]]
+        if num_b is not None:
+            cols.append(lfilter(num_b, den, x)[self.start - lag:])
+        return cols
+
+    def _element_columns(self, src, m, poles, lag):
+        """``(known, columns)`` of element ``m``: its response with the held coefficients (None
+        when none is held), and the columns of its free linear coefficients (:attr:`_ElementSpec.linear`)."""
+        spec = self.specs[m]
+        units = self._units(src, m, poles, lag)
+        linear = spec.linear
+        if len(units) == 1:
+            return (None, units) if linear else (spec.gain * units[0], [])
+        ua, ub = units
+        if linear == ("K", "KL"):
+            return None, [ua, ub]
+        if linear == ("K",):
+            return None, [ua + spec.lead * ub]
+        if linear == ("KL",):
+            return spec.gain * ua, [ub]
+        return spec.gain * (ua + spec.lead * ub), []
+
+    def _free_responses(self, poles):
+        """Free responses of the located elements' lags: ``a^k`` per pole, ``k a^k`` for a repeated one."""
+        cols = []
+        for m in range(self.n_located):
+            own = poles[self.slices[m]]
+            for q, a in enumerate(own):
+                repeated = q > 0 and abs(a - own[q - 1]) < REPEATED_POLE_TOLERANCE
+                cols.append(self.kw * a ** self.kw if repeated else a ** self.kw)
+        return np.column_stack(cols) if cols else np.zeros((self.kw.shape[0], 0))
 
     def _design(self, poles, lags, src, filtered=True):
         known = np.zeros(self.kw.shape[0])
         gcols = []
-        for m, spec in enumerate(self.specs):
-            col = self._unit(src, m, poles[m], lags[m])
-            if spec.gain_free:
-                gcols.append(col)
-            else:
-                known += spec.gain * col
+        for m in range(self.n_located):
+            held, cols = self._element_columns(src, m, poles, lags[m])
+            if held is not None:
+                known += held
+            gcols.extend(cols)
         cols = gcols + [self.fixed_cols]
         if self.free:
-            cols.append(np.column_stack([poles[m] ** self.kw for m in range(self.n_located)]))
+            cols.append(self._free_responses(poles))
         if self.extra is not None:
             cols.append(self.xf if filtered else self.extra[self.start:])
         return known, np.column_stack(cols)
@@ -193,12 +239,24 @@ class _RowProblem:
         beta = self._solve(phi, target)
         return target - phi @ beta, beta
 
-    def _make_fit(self, poles, lags, resid, beta):
+    def gains_and_leads(self, coefs):
+        """Gains and leads (s) of the located elements from the free linear coefficients ``coefs``."""
         gains = np.array([s.gain for s in self.specs], float)
-        ng = len(self.gain_free_idx)
-        gains[self.gain_free_idx] = beta[:ng]
-        return _Fit(lags=tuple(int(v) for v in lags), poles=np.asarray(poles, float).copy(), gains=gains,
-                    nuisance=beta[ng:], ssr=float(resid @ resid), n_resid=resid.shape[0])
+        leads = np.array([s.lead if s.form.lead else 0.0 for s in self.specs], float)
+        for m, spec in enumerate(self.specs):
+            idx = dict(zip(spec.linear, self.linear_index[m]))
+            if "K" in idx:
+                gains[m] = coefs[idx["K"]]
+            if "KL" in idx:
+                leads[m] = coefs[idx["KL"]] / gains[m] if gains[m] != 0 else 0.0
+        return gains, leads
+
+    def _make_fit(self, poles, lags, resid, beta):
+        coefs = beta[:self.n_linear]
+        gains, leads = self.gains_and_leads(coefs)
+        return _Fit(lags=tuple(int(v) for v in lags), poles=np.asarray(poles, float).copy(), coefs=coefs.copy(),
+                    gains=gains, leads=leads, nuisance=beta[self.n_linear:], ssr=float(resid @ resid),
+                    n_resid=resid.shape[0])
 
     def evaluate(self, poles, lags) -> _Fit:
         """Fit with the poles held (linear parameters re-estimated)."""
@@ -207,6 +265,8 @@ class _RowProblem:
 
     def fit(self, lags, poles0) -> _Fit:
         """Least-squares fit of the free poles for the given lags and the current noise model."""
+        from scipy import optimize
+
         poles0 = np.clip(np.asarray(poles0, float), _POLE_MIN, _POLE_MAX)
         if not self.pole_free_idx:
             return self.evaluate(poles0, lags)
@@ -224,51 +284,54 @@ class _RowProblem:
         if self.p == 0:
             return
         known, phi = self._design(fit.poles, fit.lags, self.u, filtered=False)
-        ng = len(self.gain_free_idx)
-        r = self.z[self.start:] - known - phi[:, :ng] @ fit.gains[self.gain_free_idx]
-        nuis = phi[:, ng:]
+        nl = self.n_linear
+        r = self.z[self.start:] - known - phi[:, :nl] @ fit.coefs
+        nuis = phi[:, nl:]
         r = r - nuis @ self._solve(nuis, r)
         self.set_ar(-least_squares_ar(r, self.p))
 
     def full_residual(self, theta, lags):
-        """Prefiltered residual as a function of ``[free gains, free poles, ar, nuisance]``."""
-        ng, npf = len(self.gain_free_idx), len(self.pole_free_idx)
-        gains = np.array([s.gain for s in self.specs], float)
-        gains[self.gain_free_idx] = theta[:ng]
-        poles = self.poles_from(theta[ng:ng + npf])
-        ar = theta[ng + npf:ng + npf + self.p]
-        nuis = theta[ng + npf + self.p:]
+        """Prefiltered residual as a function of ``[free linear coefficients, free poles, ar, nuisance]``."""
+        nl, npf = self.n_linear, len(self.pole_free_idx)
+        coefs = theta[:nl]
+        poles = self.poles_from(theta[nl:nl + npf])
+        ar = theta[nl + npf:nl + npf + self.p]
+        nuis = theta[nl + npf + self.p:]
         num = np.concatenate([[1.0], ar])
-        zf = signal.lfilter(num, [1.0], self.z)[self.start:]
-        uf = signal.lfilter(num, [1.0], self.u, axis=0)
+        zf = lfilter(num, [1.0], self.z)[self.start:]
+        uf = lfilter(num, [1.0], self.u, axis=0)
         out = zf.copy()
         for m in range(self.n_located):
-            out -= gains[m] * self._unit(uf, m, poles[m], lags[m])
+            held, cols = self._element_columns(uf, m, poles, lags[m])
+            if held is not None:
+                out -= held
+            for k, col in zip(self.linear_index[m], cols):
+                out -= coefs[k] * col
         cols = [self.fixed_cols]
         if self.free:
-            cols.append(np.column_stack([poles[m] ** self.kw for m in range(self.n_located)]))
+            cols.append(self._free_responses(poles))
         if self.extra is not None:
             cols.append(self._filtered_extra(ar))
         return out - np.column_stack(cols) @ nuis
 
     def covariance(self, fit: _Fit):
-        """Covariance of the free gains and poles from the Jacobian of the full residual.
+        """Covariance of the free linear coefficients and poles from the Jacobian of the full residual.
 
         Returns
         -------
-        cov_gain, cov_pole : ndarray, shape (n_located,)
-            Variances (0 for held parameters).
+        cov : ndarray, shape (n_linear + n_free_poles, n_linear + n_free_poles)
+            Of ``[free linear coefficients, free poles]`` (:attr:`_ElementSpec.linear`,
+            :attr:`pole_free_idx`), variances clipped at 0.
         cond : float
-            Condition number of the column-scaled Jacobian block of the free gains and poles.
+            Condition number of the column-scaled Jacobian block of the free coefficients and poles.
         """
-        ng, npf = len(self.gain_free_idx), len(self.pole_free_idx)
-        theta = np.concatenate([fit.gains[self.gain_free_idx], fit.poles[self.pole_free_idx], self.ar,
-                                fit.nuisance])
+        nl, npf = self.n_linear, len(self.pole_free_idx)
+        theta = np.concatenate([fit.coefs, fit.poles[self.pole_free_idx], self.ar, fit.nuisance])
         r0 = self.full_residual(theta, fit.lags)
         jac = np.empty((r0.shape[0], theta.shape[0]))
         for m in range(theta.shape[0]):
             h = 1e-6 * max(1e-2, abs(theta[m]))
-            if ng <= m < ng + npf:
+            if nl <= m < nl + npf:
                 h = min(1e-6, 0.5 * (1.0 - theta[m]))
             tp, tm = theta.copy(), theta.copy()
             tp[m] += h
@@ -280,17 +343,44 @@ class _RowProblem:
         scale[scale == 0] = 1.0
         js = jac / scale
         cov = s2 * np.linalg.pinv(js.T @ js, rcond=1e-13, hermitian=True) / np.outer(scale, scale)
-        var = np.diag(cov)
-        var_gain = np.zeros(self.n_located)
-        var_pole = np.zeros(self.n_located)
-        var_gain[self.gain_free_idx] = var[:ng]
-        var_pole[self.pole_free_idx] = var[ng:ng + npf]
-        if ng + npf:
-            sv = np.linalg.svd(js[:, :ng + npf], compute_uv=False)
+        block = cov[:nl + npf, :nl + npf].copy()
+        np.fill_diagonal(block, np.maximum(np.diag(block), 0.0))
+        if nl + npf:
+            sv = np.linalg.svd(js[:, :nl + npf], compute_uv=False)
             cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
         else:
             cond = 1.0
-        return np.maximum(var_gain, 0.0), np.maximum(var_pole, 0.0), cond
+        return block, cond
+
+    def variances(self, cov, fit: _Fit, m: int):
+        """Variances of the gain, the lead and each pole of element ``m`` (0 for held parameters).
+
+        The lead's from the delta method: ``lead = KL / K`` with both free, ``KL / K`` with ``K`` held.
+
+        Returns
+        -------
+        var_gain, var_lead : float
+        var_poles : ndarray, shape (n_lags,)
+        """
+        spec = self.specs[m]
+        idx = dict(zip(spec.linear, self.linear_index[m]))
+        var_gain = float(cov[idx["K"], idx["K"]]) if "K" in idx else 0.0
+        var_lead = 0.0
+        k = float(fit.gains[m])
+        if "KL" in idx and k != 0:
+            if "K" in idx:
+                kl = float(fit.coefs[idx["KL"]])
+                grad = np.zeros(cov.shape[0])
+                grad[idx["K"]], grad[idx["KL"]] = -kl / k ** 2, 1.0 / k
+                var_lead = max(float(grad @ cov @ grad), 0.0)
+            else:
+                var_lead = float(cov[idx["KL"], idx["KL"]]) / k ** 2
+        var_poles = np.zeros(spec.form.n_lags)
+        for q, flat in enumerate(range(self.slices[m].start, self.slices[m].stop)):
+            if flat in self.pole_free_idx:
+                pos = self.n_linear + self.pole_free_idx.index(flat)
+                var_poles[q] = float(cov[pos, pos])
+        return var_gain, var_lead, var_poles
 
 
 class _FitCache:
@@ -314,12 +404,11 @@ class _FitCache:
 
 @dataclasses.dataclass
 class _RowEstimate:
-    """Result of the search of one row: the fit, the lag profiles and the parameter variances."""
+    """Result of the search of one row: the fit, the lag profiles and the parameter covariance."""
 
     fit: _Fit
     profiles: list      # per located element: {lag: ssr} with the other lags at their optimum
-    var_gain: np.ndarray
-    var_pole: np.ndarray
+    cov: np.ndarray     # of [free linear coefficients, free poles] (see _RowProblem.covariance)
     cond: float
     edge: list          # per element: True when the best lag is at the edge of its window
     ar: np.ndarray
@@ -342,7 +431,7 @@ def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int
     specs = problem.specs
     fits = _FitCache(problem)
     lags = [int(v) for v in lags0]
-    best = fits(lags, [s.pole for s in specs])
+    best = fits(lags, problem.start_poles())
     best, lags = _sweep_lags(problem, fits, best, lags, max_sweeps)
     # Phase 2: the noise model.
     for _ in range(ar_iterations if problem.p else 0):
@@ -351,12 +440,13 @@ def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int
         best = fits(lags, best.poles)
     best, lags = _local_lag_moves(problem, fits, best, lags)
     if need_cov:
-        var_gain, var_pole, cond = problem.covariance(best)
+        cov, cond = problem.covariance(best)
     else:
-        var_gain, var_pole, cond = np.zeros(n), np.zeros(n), float("nan")
+        size = problem.n_linear + len(problem.pole_free_idx)
+        cov, cond = np.zeros((size, size)), float("nan")
     edge = [specs[m].lag_free and lags[m] in specs[m].window for m in range(n)]
-    return _RowEstimate(fit=best, profiles=_lag_profiles(fits, lags), var_gain=var_gain, var_pole=var_pole,
-                        cond=cond, edge=edge, ar=problem.ar.copy(), fits=fits)
+    return _RowEstimate(fit=best, profiles=_lag_profiles(fits, lags), cov=cov, cond=cond, edge=edge,
+                        ar=problem.ar.copy(), fits=fits)
 
 
 def _sweep_lags(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, max_sweeps: int):
@@ -379,19 +469,21 @@ def _sweep_lags(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m
 def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: int):
     """Best lag of element ``m`` with the others held: the (lag, pole) scan, then fits of the 3 best lags.
 
+    The scan multiplies every time constant of the element by the factors of :data:`_TAU_GRID`.
     Returns the best fit, its lags and whether the lag of ``m`` moved.
     """
     spec = problem.specs[m]
+    own = problem.slices[m]
     moved = False
-    base_tau = -1.0 / math.log(min(max(best.poles[m], _POLE_MIN), _POLE_MAX))
-    grid = _TAU_GRID if spec.pole_free else (1.0,)
+    base_taus = [-1.0 / math.log(min(max(a, _POLE_MIN), _POLE_MAX)) for a in best.poles[own]]
+    grid = _TAU_GRID if spec.pole_free and base_taus else (1.0,)
     cand = []
     for lag in range(spec.window[0], spec.window[1] + 1):
         lg = list(lags)
         lg[m] = lag
         for f in grid:
             poles = best.poles.copy()
-            poles[m] = min(max(math.exp(-1.0 / (base_tau * f)), _POLE_MIN), _POLE_MAX)
+            poles[own] = [min(max(math.exp(-1.0 / (tau * f)), _POLE_MIN), _POLE_MAX) for tau in base_taus]
             cand.append((problem.evaluate(poles, lg).ssr, lag, poles))
     cand.sort(key=lambda c: c[0])
     tried = set()

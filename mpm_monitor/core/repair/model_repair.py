@@ -15,10 +15,11 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from ..discretize import model_columns
 from ..errors import ConfigurationError, InputError
 from ..logged_data import LoggedData, check_loop_data
 from ..model import PlantModel
-from ..signals import LoopSignals, compute_signals
+from ..signals import LoopSignals, compute_signals, error_rms
 from .classify import _classify_row
 from .disturbance import unexplained_disturbance
 from .fit import _TooShort
@@ -39,11 +40,34 @@ def _rms(x) -> float:
     return float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
 
 
-def _fit_percent(y, yhat) -> float:
+def _holdout_rms(d, n_fit: int, extra: Optional[np.ndarray] = None) -> float:
+    """RMS of the prediction error ``d`` (shape (n_samples,)) over the held-out part, about its level.
+
+    The level of a prediction error is a nuisance the fit of the repair estimates (an offset; on an
+    integrating output the arbitrary level of the output): like any parameter of the fit, it is
+    taken from the fit part (samples ``0 .. n_fit - 1``, its mean there) and carried over to the
+    held-out part.  With ``extra`` (shape (n_samples, n_extra): the unexplained step or ramp of the
+    row) an offset and those regressors are projected out over the held-out part instead.
+    """
+    d = np.asarray(d, float)
+    hold = d[n_fit:]
+    if hold.size == 0:
+        return float("nan")
+    if extra is not None:
+        return _rms(_project_out(hold, np.column_stack([np.ones(hold.shape[0]), extra[n_fit:]])))
+    return _rms(hold - np.mean(d[:n_fit]))
+
+
+def _fit_percent(y, yhat, about_level: bool = False) -> float:
+    """``100 (1 - ||y - yhat|| / ||y - mean y||)``; with ``about_level`` (an integrating output, whose
+    level is arbitrary) the error taken about its mean."""
     den = np.linalg.norm(y - np.mean(y))
     if den == 0:
         return float("nan")
-    return float(100.0 * (1.0 - np.linalg.norm(y - yhat) / den))
+    err = y - yhat
+    if about_level:
+        err = err - np.mean(err)
+    return float(100.0 * (1.0 - np.linalg.norm(err) / den))
 
 
 def _check_inputs(model: PlantModel, data: LoggedData, located, signals):
@@ -56,10 +80,10 @@ def _check_inputs(model: PlantModel, data: LoggedData, located, signals):
         try:
             i, j = (int(v) for v in item)
         except (TypeError, ValueError):
-            raise InputError(f"repair: located element {item!r}: expected a pair (output index, input index)") from None
-        if not (0 <= i < model.n_outputs and 0 <= j < model.n_inputs):
+            raise InputError(f"repair: located element {item!r}: expected a pair (output index, column index)") from None
+        if not (0 <= i < model.n_outputs and 0 <= j < model.n_columns):
             raise InputError(f"repair: located element ({i}, {j}): expected 0 <= output < {model.n_outputs} "
-                             f"and 0 <= input < {model.n_inputs}")
+                             f"and 0 <= column < {model.n_columns} (inputs, then measured disturbances)")
         if (i, j) not in out:
             out.append((i, j))
     if signals is not None:
@@ -79,8 +103,8 @@ class _Record:
     model : PlantModel
         The model as given.
     data : LoggedData
-    u, y : ndarray, shape (n_samples, n_inputs) and (n_samples, n_outputs)
-        ``data.u`` and ``data.y`` as float arrays.
+    u, y : ndarray, shape (n_samples, n_columns) and (n_samples, n_outputs)
+        The model's columns (``data.u``, then ``data.dv``) and ``data.y`` as float arrays.
     signals : LoopSignals
         Of the model as given on the data.
     d0 : ndarray, shape (n_samples, n_outputs)
@@ -89,7 +113,8 @@ class _Record:
     n_fit : int
         Samples ``0 .. n_fit - 1`` are the fit part, the rest is held out.
     holdout_before : dict
-        ``{output name: RMS of d0 over the held-out part}`` (empty without a held-out part).
+        ``{output name: RMS of d0 over the held-out part about its level}`` (empty without a
+        held-out part; see :func:`_holdout_rms`).
     """
 
     model: PlantModel
@@ -114,13 +139,10 @@ class _Record:
     def n_hold(self) -> int:
         return self.n - self.n_fit
 
-    @property
-    def hold(self) -> slice:
-        return slice(self.n_fit, self.n)
-
     def signals_of(self, model: PlantModel) -> LoopSignals:
         """:func:`compute_signals` of ``model`` on the record."""
-        return compute_signals(model, self.data.r, self.u, self.y, initial_state=self.options.initial_state)
+        return compute_signals(model, self.data.r, self.data.u, self.y, initial_state=self.options.initial_state,
+                               dv=self.data.dv)
 
 
 @dataclasses.dataclass
@@ -173,15 +195,15 @@ class _Evaluation:
 def _set_up(model: PlantModel, data: LoggedData, options: RepairOptions,
             signals: Optional[LoopSignals]) -> _Record:
     """The record of checked inputs: float arrays, the signals of the model, the split, the levels."""
-    u, y = np.asarray(data.u, float), np.asarray(data.y, float)
+    u, y = model_columns(np.asarray(data.u, float), np.asarray(data.dv, float)), np.asarray(data.y, float)
     n = data.n_samples
     if signals is None:
-        signals = compute_signals(model, data.r, u, y, initial_state=options.initial_state)
+        signals = compute_signals(model, data.r, data.u, y, initial_state=options.initial_state, dv=data.dv)
     d0 = np.asarray(signals.d, float)
     n_hold = int(round(options.holdout_fraction * n))
     n_fit = n - n_hold
-    hold = slice(n_fit, n)
-    holdout_before = {model.outputs[i]: _rms(d0[hold, i]) for i in range(model.n_outputs)} if n_hold > 0 else {}
+    holdout_before = ({model.outputs[i]: _holdout_rms(d0[:, i], n_fit) for i in range(model.n_outputs)}
+                      if n_hold > 0 else {})
     return _Record(model=model, data=data, u=u, y=y, signals=signals, d0=d0, settings=_TestSettings.of(options),
                    n_fit=n_fit, holdout_before=holdout_before)
 
@@ -192,7 +214,7 @@ def _rows_to_repair(rec: _Record, located: list, found: _Findings) -> list:
     options, model, n_fit = rec.options, rec.model, rec.n_fit
     warnings = found.warnings
     rows = sorted({i for i, _ in located})
-    min_fit = max(200, 20 * (2 * model.n_inputs + options.noise_order + 5))
+    min_fit = max(200, 20 * (2 * model.n_columns + options.noise_order + 5))
     if located and n_fit < min_fit:
         warnings.append(f"Only {n_fit} samples are available for re-estimating the located elements "
                         f"(at least {min_fit} needed); no element was changed.")
@@ -224,9 +246,10 @@ def _repair_row(row: _RowData, js, n_fit: int, settings: _TestSettings):
 def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnings: list):
     """Compare the candidate's RMS prediction error on the held-out part with the model's.
 
-    On a row with nuisance regressors (``row.extra``) both errors are taken with an offset and
-    those regressors projected out over the held-out part.  When the candidate is not better by
-    ``min_holdout_improvement``, the applied verdicts are rejected and a warning is added.
+    Both errors are taken about their level (:func:`_holdout_rms`: the level of the fit part, or on a
+    row with nuisance regressors ``row.extra`` those regressors and an offset projected out over the
+    held-out part).  When the candidate is not better by ``min_holdout_improvement``, the applied
+    verdicts are rejected and a warning is added.
 
     Returns
     -------
@@ -234,25 +257,20 @@ def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnin
     h_after, h_before : float
     """
     model, i, options = rec.model, row.i, rec.options
-    hold, n_hold = rec.hold, rec.n_hold
     name = model.outputs[i]
     candidate = model
     for j, el in elements.items():
         if el.apply:
-            candidate = candidate.with_element(i, j, **el.after)
+            candidate = el.applied_to(candidate, i, j)
     sig_c = rec.signals_of(candidate)
-    h_after = _rms(sig_c.d[hold, i])
-    h_before = rec.holdout_before[name]
-    if row.extra is not None:
-        # The unexplained disturbance is no model's job: compare without it (an offset and the
-        # step or ramp fitted over the held-out part), since a wrong element can partly cancel it.
-        cols = np.column_stack([np.ones(n_hold), row.extra[hold]])
-        h_after = _rms(_project_out(sig_c.d[hold, i], cols))
-        h_before = _rms(_project_out(rec.d0[hold, i], cols))
+    # The unexplained disturbance is no model's job either: compare without it (the step or ramp
+    # fitted over the held-out part), since a wrong element can partly cancel it.
+    h_after = _holdout_rms(sig_c.d[:, i], rec.n_fit, row.extra)
+    h_before = rec.holdout_before[name] if row.extra is None else _holdout_rms(rec.d0[:, i], rec.n_fit, row.extra)
     if h_after < h_before * (1.0 - options.min_holdout_improvement):
         return True, h_after, h_before
     warnings.append(
-        f"{name}: the re-estimated element(s) {', '.join(model.inputs[j] for j in js)} did not "
+        f"{name}: the re-estimated element(s) {', '.join(model.columns[j] for j in js)} did not "
         f"predict the held-out last {100 * options.holdout_fraction:.0f}% of the record better (RMS "
         f"error {h_after:.4g} vs {h_before:.4g} with the model as given); the elements are kept as "
         f"they were.")
@@ -295,7 +313,7 @@ def _evaluate(rec: _Record, results: dict) -> _Evaluation:
     for i, res in results.items():
         for j, el in res.elements.items():
             if el.apply:
-                repaired = repaired.with_element(i, j, **el.after)
+                repaired = el.applied_to(repaired, i, j)
     sig = rec.signals if repaired == rec.model else rec.signals_of(repaired)
     d = np.asarray(sig.d, float)
     options = rec.options
@@ -352,7 +370,7 @@ def _disturbance_findings(rec: _Record, tests: dict):
 def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) -> RepairResult:
     """The :class:`RepairResult`: the row outcomes (``results``, ``{i: _RowOutcome}`` in row
     order) after ``found``, the errors, the disturbances."""
-    model, y, hold = rec.model, rec.y, rec.hold
+    model, y = rec.model, rec.y
     names_y = model.outputs
     ny = model.n_outputs
     changes, kinds, warnings = found.changes, found.kinds, found.warnings
@@ -367,20 +385,20 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
             changes.append(el.change_entry(model, i, j))
     yhat0 = np.asarray(rec.signals.yhat, float)
     d1 = np.asarray(ev.signals.d, float)
-    error_before = {names_y[i]: _rms(rec.d0[:, i]) for i in range(ny)}
-    fit_before = {names_y[i]: _fit_percent(y[:, i], yhat0[:, i]) for i in range(ny)}
-    error_after = {names_y[i]: _rms(d1[:, i]) for i in range(ny)}
-    fit_after = {names_y[i]: _fit_percent(y[:, i], ev.signals.yhat[:, i]) for i in range(ny)}
+    level = model.integrating_outputs
+    error_before, error_after = error_rms(model, rec.d0), error_rms(model, d1)
+    fit_before = {names_y[i]: _fit_percent(y[:, i], yhat0[:, i], level[i]) for i in range(ny)}
+    fit_after = {names_y[i]: _fit_percent(y[:, i], ev.signals.yhat[:, i], level[i]) for i in range(ny)}
     for i in range(ny):
         if rec.n_hold > 0 and names_y[i] not in holdout_after:
-            holdout_after[names_y[i]] = _rms(d1[hold, i])
+            holdout_after[names_y[i]] = _holdout_rms(d1[:, i], rec.n_fit)
     disturbances, disturbance_warnings = _disturbance_findings(rec, ev.tests)
     warnings.extend(disturbance_warnings)
     return RepairResult(model=ev.model, changes=changes, kinds=kinds, error_before=error_before,
                         error_after=error_after, fit_before=fit_before, fit_after=fit_after,
                         holdout_error_before=holdout_before, holdout_error_after=holdout_after,
                         disturbances=disturbances, warnings=warnings, n_samples=rec.n, n_fit=rec.n_fit,
-                        options=rec.options)
+                        options=rec.options, signals=ev.signals)
 
 
 def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
@@ -392,10 +410,12 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
     model : PlantModel
         The controller's model ``Phat`` as given.
     data : LoggedData
-        Closed-loop record (``r``, ``u``, ``y``), shapes (n_samples, n_outputs/n_inputs).
+        Closed-loop record (``r``, ``u``, ``dv``, ``y``), shapes (n_samples, n_outputs/n_inputs/n_disturbances).
     located : sequence of (int, int)
-        (output index, input index) of the elements located as mismatched.  No other element is
-        ever changed.
+        (output index, column index) of the elements located as mismatched (the columns are the
+        inputs, then the measured disturbances).  No other element is ever changed; a located element
+        keeps its structure (a parametric element its keys, a step-response element the length of
+        its response).
     options : RepairOptions
     signals : LoopSignals, optional
         :func:`~mpm_monitor.core.signals.compute_signals` of ``model`` on ``data`` (computed when absent).

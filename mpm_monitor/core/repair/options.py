@@ -6,10 +6,10 @@ import dataclasses
 import math
 
 import numpy as np
-from scipy import stats
 
 from ..errors import ConfigurationError
 from ..signals import INITIAL_STATE_CHOICES
+from ..statistics import chi2_isf, normal_isf
 
 #: The kinds of mismatch a located element can be given (``unknown``: no significant change).
 KINDS = ("gain", "time_constant", "delay", "missing", "mixed", "unknown")
@@ -132,5 +132,5 @@ class _TestSettings:
     @classmethod
     def of(cls, options: RepairOptions) -> "_TestSettings":
         alpha = 1.0 - options.confidence_level
-        return cls(options=options, alpha=alpha, zcrit=float(stats.norm.isf(alpha / 2)),
-                   chi_crit=float(stats.chi2.isf(alpha, 1)))
+        return cls(options=options, alpha=alpha, zcrit=float(normal_isf(alpha / 2)),
+                   chi_crit=float(chi2_isf(alpha, 1)))

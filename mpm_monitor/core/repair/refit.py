@@ -11,17 +11,42 @@ structure.
 from __future__ import annotations
 
 from .classify import _FreeFit
-from .fit import _element_lag, _ElementSpec, _pole_of
+from .fit import _ElementSpec
+from .forms import _input_lag, _poles_of
 from .options import _TestSettings
 from .result import ElementVerdict
 from .row import _element_summary, _estimate_row, _RowData
 
+#: The parameters of an element the repair may free, with the keys of ``after`` each one sets.
+_SHAPE_KEYS = ("time_constant", "time_constant2", "lead")
+
 
 def _update_free_intervals(interval: dict, new: dict, spec: _ElementSpec) -> None:
     """Replace in ``interval`` the intervals of the parameters ``spec`` leaves free by those of ``new``."""
-    for key, free in (("gain", spec.gain_free), ("time_constant", spec.pole_free), ("delay", spec.lag_free)):
-        if free:
+    for key, free in (("gain", spec.gain_free), ("time_constant", spec.pole_free), ("delay", spec.lag_free),
+                      ("time_constant2", spec.pole_free), ("lead", spec.pole_free)):
+        if free and key in new:
             interval[key] = new[key]
+
+
+def _compose(fitted: dict, held: dict, spec: _ElementSpec, held_lag_too: bool = False) -> dict:
+    """The element after a fit of ``spec``: the free parameters from ``fitted``, the others from ``held``.
+
+    A first-order element whose lag vanished in the fit (time constant 0) with its delay held takes
+    the fitted delay: the sample of the lag moves into the delay (``held_lag_too``: also when the
+    lag was held at 0, where the fitted delay is the held one).
+    """
+    out = dict(held)
+    out["integrating"] = fitted["integrating"]
+    if spec.gain_free:
+        out["gain"] = float(fitted["gain"])
+    if spec.pole_free:
+        for key in _SHAPE_KEYS:
+            out[key] = float(fitted[key])
+    vanished = spec.form.first_order and (spec.pole_free or held_lag_too) and fitted["time_constant"] == 0.0
+    if spec.lag_free or vanished:
+        out["delay"] = float(fitted["delay"])
+    return out
 
 
 def _repair_specs(free: _FreeFit, verdicts: dict):
@@ -29,24 +54,24 @@ def _repair_specs(free: _FreeFit, verdicts: dict):
 
     Elements of kind "unknown" are left out (held at the model's values).  Returns the specs
     ``{j: _ElementSpec}`` and the start lags ``{j: lag}``: the free fit's lag where the delay
-    changed, the model's elsewhere.
+    changed, the reference's elsewhere.
     """
-    model, i, est = free.row.model, free.row.i, free.est
-    ts = model.sample_time
+    est = free.est
     specs, lags0 = {}, {}
     for m, j in enumerate(free.js):
         v = verdicts[j]
         if v.kind == "unknown":
             continue
+        loc = free.located[j]
         missing = v.kind == "missing"
         free_k = missing or "gain" in v.changed
-        free_t = missing or "time_constant" in v.changed
+        free_t = (missing or "time_constant" in v.changed) and loc.form.n_shape > 0
         free_d = missing or "delay" in v.changed
-        lag_orig = free.lag_orig[j]
-        specs[j] = _ElementSpec(free_k, free_t, est.fit.gains[m] if free_k else model.gain[i, j],
-                                est.fit.poles[m] if free_t else _pole_of(model.time_constant[i, j], ts),
-                                free.specs[j].window if free_d else (lag_orig, lag_orig))
-        lags0[j] = est.fit.lags[m] if free_d else lag_orig
+        poles = tuple(float(a) for a in est.fit.poles[free.problem.slices[m]]) if free_t else loc.poles
+        specs[j] = _ElementSpec(free_k, free_t, est.fit.gains[m] if free_k else loc.reference["gain"], poles,
+                                free.specs[j].window if free_d else (loc.lag, loc.lag), form=loc.form,
+                                lead=float(est.fit.leads[m]) if free_t else loc.reference["lead"])
+        lags0[j] = est.fit.lags[m] if free_d else loc.lag
     return specs, lags0
 
 
@@ -54,23 +79,16 @@ def _fit_repair(free: _FreeFit, verdicts: dict, n_fit: int, settings: _TestSetti
     """Stage 2: fit what changed on samples ``0 .. n_fit - 1``; the verdicts' ``after``, free
     intervals and ``evidence["condition_number_repair"]`` are updated in place."""
     row = free.row
-    model, i = row.model, row.i
-    ts = model.sample_time
+    ts = row.model.sample_time
     specs, lags0 = _repair_specs(free, verdicts)
     if not specs:
         return
     problem, est = _estimate_row(row, specs, lags0, n_fit, settings.options)
     for m, j in enumerate(sorted(specs)):
-        fitted, interval = _element_summary(problem, est, m, ts, settings)
-        sp = specs[j]
+        fitted, interval = _element_summary(problem, est, m, ts, settings, free.located[j].reference)
         v = verdicts[j]
-        after = {"gain": float(fitted["gain"] if sp.gain_free else model.gain[i, j]),
-                 "time_constant": float(fitted["time_constant"] if sp.pole_free else model.time_constant[i, j]),
-                 "delay": float(fitted["delay"] if sp.lag_free else model.delay[i, j])}
-        if not sp.lag_free and sp.pole_free and fitted["time_constant"] == 0.0:
-            after["delay"] = fitted["delay"]  # a vanished lag moves the sample into the delay
-        _update_free_intervals(v.interval, interval, sp)
-        v.after = after
+        _update_free_intervals(v.interval, interval, specs[j])
+        v.after = _compose(fitted, free.located[j].reference, specs[j])
         v.evidence["condition_number_repair"] = est.cond
 
 
@@ -84,21 +102,17 @@ def _refit_on_all(row: _RowData, verdicts: dict, settings: _TestSettings) -> Non
     specs, lags0 = {}, {}
     for j, v in verdicts.items():
         changed = set(v.changed) | ({"gain", "time_constant", "delay"} if v.kind == "missing" else set())
-        a = v.after
-        lag = _element_lag(a["time_constant"], int(round(a["delay"] / ts)))
+        a, form = v.after, v.form
+        lag = _input_lag(form, a, ts)
         window = (max(1, lag - 3), lag + 3) if "delay" in changed else (lag, lag)
-        specs[j] = _ElementSpec("gain" in changed, "time_constant" in changed, a["gain"],
-                                _pole_of(a["time_constant"], ts), window)
+        specs[j] = _ElementSpec("gain" in changed, "time_constant" in changed and form.n_shape > 0, a["gain"],
+                                _poles_of(form, a, ts), window, form=form, lead=a["lead"])
         lags0[j] = lag
     problem, est = _estimate_row(row, specs, lags0, row.n_samples, settings.options)
     for m, j in enumerate(sorted(specs)):
-        fitted, interval = _element_summary(problem, est, m, ts, settings)
+        fitted, interval = _element_summary(problem, est, m, ts, settings, verdicts[j].after)
         sp = specs[j]
         v: ElementVerdict = verdicts[j]
-        old = v.after
-        new = {"gain": fitted["gain"] if sp.gain_free else old["gain"],
-               "time_constant": fitted["time_constant"] if sp.pole_free else old["time_constant"],
-               "delay": fitted["delay"] if (sp.lag_free or fitted["time_constant"] == 0.0) else old["delay"]}
         iv = dict(v.interval)
         _update_free_intervals(iv, interval, sp)
-        v.after, v.interval = new, iv
+        v.after, v.interval = _compose(fitted, v.after, sp, held_lag_too=True), iv

@@ -9,6 +9,7 @@ from typing import Optional
 import numpy as np
 
 from ..model import PlantModel
+from .forms import _element_keys, _Form, _public_params
 from .options import RepairOptions
 
 
@@ -21,11 +22,12 @@ class ElementVerdict:
     kind : str
         One of :data:`KINDS`.
     changed : list of str
-        The tests that found a change, among "missing", "gain", "time_constant", "delay", in that
-        order.
+        The tests that found a change, among "missing", "gain", "time_constant" (any lag or the
+        lead), "delay", in that order.
     after : dict
-        The fitted element (``gain``, ``time_constant`` s, ``delay`` s); the model's element when
-        the row could not be fitted.
+        The fitted element, every parametric key (``gain``, ``time_constant`` s, ``delay`` s,
+        ``time_constant2`` s, ``lead`` s, ``integrating``); the model's element (as
+        :meth:`PlantModel.element` gives it) when the row could not be fitted.
     interval : dict or None
         ``[lo, hi]`` per parameter at ``confidence_level``.
     evidence : dict
@@ -39,6 +41,11 @@ class ElementVerdict:
         Why the element is not changed.
     fitted_kind : str, optional
         The kind found before the held-out validation rejected the repair.
+    form : _Form, optional
+        The form the element was fitted in.
+    reference : dict, optional
+        The element its changes were measured from (every parametric key): the model's, or the
+        parametric form of a step-response element's old response.
     """
 
     kind: str
@@ -50,18 +57,36 @@ class ElementVerdict:
     apply: bool
     reason: Optional[str] = None
     fitted_kind: Optional[str] = None
+    form: Optional[_Form] = None
+    reference: Optional[dict] = None
 
     def reject(self, reason: str) -> None:
         """Keep the element as it was: the kind found becomes ``fitted_kind``, the kind "unknown"."""
         self.apply, self.fitted_kind, self.kind, self.confidence, self.reason = False, self.kind, "unknown", 0.0, reason
 
+    def model_keys(self, model: PlantModel, i: int, j: int) -> dict:
+        """The keyword arguments of :meth:`PlantModel.with_element` that put ``after`` into ``model``
+        in the model's structure (a step-response model: the sampled step response of the same
+        length; see :func:`~mpm_monitor.core.repair.forms._element_keys`)."""
+        return _element_keys(model, i, j, self.after, self.reference, self.changed)
+
+    def applied_to(self, model: PlantModel, i: int, j: int) -> PlantModel:
+        """``model`` with element (i, j) replaced by ``after``."""
+        return model.with_element(i, j, **self.model_keys(model, i, j))
+
     def change_entry(self, model: PlantModel, i: int, j: int) -> dict:
-        """The ``changes`` entry of the element (see :class:`RepairResult`)."""
-        entry = {"output": model.outputs[i], "input": model.inputs[j], "kind": self.kind,
+        """The ``changes`` entry of the element (see :class:`RepairResult`): ``before``, ``after`` and
+        ``estimate`` with the keys :meth:`PlantModel.element` gives."""
+        estimate = self.applied_to(model, i, j).element(i, j)
+        entry = {"output": model.outputs[i], "input": model.columns[j], "kind": self.kind,
                  "before": model.element(i, j),
-                 "after": self.after if self.apply else model.element(i, j),
-                 "estimate": self.after, "confidence": self.confidence,
+                 "after": estimate if self.apply else model.element(i, j),
+                 "estimate": estimate, "confidence": self.confidence,
                  "interval": self.interval, "applied": bool(self.apply), "evidence": self.evidence}
+        if model.is_step_response and model.ramp[i]:
+            entry["ramp"] = True
+        if model.is_step_response and "step_response" not in self.after:
+            entry["evidence"] = dict(self.evidence, parametric_after=_public_params(self.after))
         if self.fitted_kind is not None:
             entry["fitted_kind"] = self.fitted_kind
         if self.reason:
@@ -71,7 +96,7 @@ class ElementVerdict:
 
 def _unchanged_entry(model: PlantModel, i: int, j: int, reason: str) -> dict:
     """The ``changes`` entry of an element that was not fitted at all (no estimate)."""
-    return {"output": model.outputs[i], "input": model.inputs[j], "kind": "unknown",
+    return {"output": model.outputs[i], "input": model.columns[j], "kind": "unknown",
             "before": model.element(i, j), "after": model.element(i, j), "estimate": None,
             "confidence": 0.0, "interval": None, "applied": False, "evidence": {}, "reason": reason}
 
@@ -86,24 +111,34 @@ class RepairResult:
         The repaired model: the input model with only accepted located elements changed.
     changes : list of dict
         One entry per located element: ``output``, ``input`` (names), ``kind``, ``before`` and
-        ``after`` (``gain``, ``time_constant`` s, ``delay`` s; ``after`` equals ``before`` when not
-        applied), ``estimate`` (the fitted parameters, also when not applied), ``confidence`` in
-        [0, 1], ``interval`` (``[lo, hi]`` per parameter at ``confidence_level``), ``applied``,
-        ``evidence`` (``p_gain``, ``p_time_constant``, ``p_delay``: likelihood-ratio p-values of
-        "unchanged"; ``p_unchanged_jointly``; ``condition_number`` of the row fit; ``samples``;
-        ``noise_model`` ``[alpha_1 .. alpha_p]``), and when not applied ``reason`` (and
-        ``fitted_kind`` when the held-out validation rejected it).
+        ``after`` (the element's keys as :meth:`PlantModel.element` gives them: ``gain``,
+        ``time_constant`` s, ``delay`` s, and ``lead``, ``time_constant2``, ``integrating`` where
+        set, or ``step_response`` in a step-response model; ``after`` equals ``before`` when not
+        applied), ``estimate`` (the same keys, also when not applied), ``confidence`` in [0, 1],
+        ``interval`` (``[lo, hi]`` per fitted parameter at ``confidence_level``: gain, time
+        constant, delay, and time_constant2, lead where fitted), ``applied``, ``evidence``
+        (``p_gain``, ``p_time_constant``, ``p_delay``: likelihood-ratio p-values of "unchanged",
+        the time constant's of every lag and the lead at once; ``p_unchanged_jointly``;
+        ``condition_number`` of the row fit; ``samples``; ``noise_model`` ``[alpha_1 .. alpha_p]``;
+        for a step-response element ``parametric_before`` and ``parametric_after``, the parametric
+        forms of its old and new responses), ``ramp`` (true) for a step-response element of a
+        ramp output (its ``gain`` is then the last slope per second), and when not applied
+        ``reason`` (and ``fitted_kind`` when the held-out validation rejected it).
     kinds : dict
         ``{(i, j): kind}`` for every located element (indices).
     error_before, error_after : dict
-        ``{output name: RMS of d}`` over the whole record with the model as given / as repaired.
+        ``{output name: RMS of d}`` over the whole record with the model as given / as repaired
+        (about its mean on an integrating output, whose level is arbitrary:
+        :func:`~mpm_monitor.core.signals.error_rms`).
     fit_before, fit_after : dict
-        ``{output name: fit %}``, ``100 (1 - ||y - yhat|| / ||y - mean y||)``.
+        ``{output name: fit %}``, ``100 (1 - ||y - yhat|| / ||y - mean y||)`` (``y - yhat`` about its
+        mean on an integrating output).
     holdout_error_before, holdout_error_after : dict
-        ``{output name: RMS of d}`` over the held-out last part, with the model as given / with the
-        candidate fitted on the first part only (empty when ``holdout_fraction`` is 0).  On a row
-        re-estimated with an unexplained step or drift, both are taken with that disturbance
-        projected out.
+        ``{output name: RMS of d about its level}`` over the held-out last part (its mean there
+        removed: the level is no element's to explain, and on an integrating output it is arbitrary),
+        with the model as given / with the candidate fitted on the first part only (empty when
+        ``holdout_fraction`` is 0).  On a row re-estimated with an unexplained step or drift, both
+        are taken with that disturbance projected out too.
     disturbances : list of dict
         Outputs whose residual holds a step or drift no input explains (``output``, ``kind``
         "step"/"drift", ``size`` in output units, ``time`` in seconds, ``p_value``, ``statistic``).
@@ -111,6 +146,9 @@ class RepairResult:
         What limits the conclusions, in words.
     n_samples, n_fit : int
         Samples in the record and in the fit part.
+    signals : LoopSignals or None
+        :func:`~mpm_monitor.core.signals.compute_signals` of the repaired ``model`` on the record (with
+        the options' ``initial_state``), for a detection of the repaired model on the same data.
     """
 
     model: PlantModel
@@ -127,6 +165,7 @@ class RepairResult:
     n_samples: int = 0
     n_fit: int = 0
     options: RepairOptions = RepairOptions()
+    signals: object = dataclasses.field(default=None, compare=False, repr=False)
 
     def to_dict(self) -> dict:
         """The ``repair`` object of the analysis report, plain JSON values.

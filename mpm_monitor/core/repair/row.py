@@ -2,8 +2,8 @@
 
 :func:`_estimate_row` turns the located elements of one output row into a :class:`_RowProblem`
 (output minus the response of the row's other elements, held at the model's values) and searches
-it; :func:`_element_summary` turns a fitted element back into gain, time constant and delay in
-seconds with their intervals.
+it; :func:`_element_summary` turns a fitted element back into its parameters in seconds (gain,
+time constants, lead, delay) with their intervals.
 """
 
 from __future__ import annotations
@@ -16,7 +16,8 @@ import numpy as np
 
 from ..discretize import discretize, simulate_elements
 from ..model import PlantModel
-from .fit import _element_lag, _element_params, _lag_interval, _RowEstimate, _RowProblem, _search_row
+from .fit import _lag_interval, _RowEstimate, _RowProblem, _search_row
+from .forms import _fitted_params, _match_lags
 from .options import RepairOptions, _TestSettings
 
 
@@ -28,8 +29,8 @@ class _RowData:
     ----------
     model : PlantModel
         The model as given: the row's elements that are not fitted are held at its values.
-    u : ndarray, shape (n_samples, n_inputs)
-        Inputs of the record.
+    u : ndarray, shape (n_samples, n_columns)
+        The model's columns in the record: inputs, then measured disturbances.
     y : ndarray, shape (n_samples, n_outputs)
         Outputs of the record.
     i : int
@@ -49,9 +50,9 @@ class _RowData:
         return self.u.shape[0]
 
     def name(self, j: Optional[int] = None) -> str:
-        """``output`` of the row, or ``output/input`` of its element ``j`` (for the warnings)."""
+        """``output`` of the row, or ``output/column`` of its element ``j`` (for the warnings)."""
         out = self.model.outputs[self.i]
-        return out if j is None else f"{out}/{self.model.inputs[j]}"
+        return out if j is None else f"{out}/{self.model.columns[j]}"
 
 
 def _row_response(model: PlantModel, u: np.ndarray, i: int) -> np.ndarray:
@@ -59,14 +60,52 @@ def _row_response(model: PlantModel, u: np.ndarray, i: int) -> np.ndarray:
     return simulate_elements(model, u, rows=[i])[:, 0]
 
 
+def _without(model: PlantModel, i: int, js) -> PlantModel:
+    """``model`` with the elements ``(i, j), j in js`` removed (no effect)."""
+    for j in js:
+        if model.is_step_response:
+            model = model.with_element(i, j, step_response=np.zeros(model.step_length))
+        else:
+            model = model.with_element(i, j, gain=0.0)
+    return model
+
+
+#: Fraction of a step-response element's impulse response left when its memory is taken as over.
+_TAIL_FRACTION = 1e-3
+
+
+def _held_memory(model: PlantModel, i: int, j: int) -> int:
+    """Samples over which the columns before the record act on row ``i`` through the held element
+    ``(i, j)`` other than through the free responses of its lags: its input lag; for an element of a
+    step-response model, the samples until its impulse response (its numerator) has run out to
+    :data:`_TAIL_FRACTION` of its sum."""
+    el = model.discrete_element(i, j)
+    if not model.is_step_response:
+        return el.input_lag
+    h = np.abs(el.num)
+    tail = np.cumsum(h[::-1])[::-1]                 # tail[k] = sum of |h_l| for l >= k
+    return el.delay + int(np.flatnonzero(tail > _TAIL_FRACTION * tail[0])[-1]) + 1
+
+
+def _default_skip(row: _RowData, specs: dict) -> int:
+    """Samples left out at the start of a fit of the located elements ``specs``: the largest input lag
+    searched, or the longest memory of the row's held elements (:func:`_held_memory`), at least 1."""
+    model, i = row.model, row.i
+    held = _without(model, i, sorted(specs))
+    row_lags = [_held_memory(held, i, j) for j in range(model.n_columns) if held.present[i, j]]
+    return max([specs[j].window[1] for j in specs] + row_lags + [1])
+
+
 def _estimate_row(row: _RowData, specs: dict, lags0: dict, n_use: int, options: RepairOptions, max_sweeps: int = 1,
                   skip: Optional[int] = None, ar0=None, need_cov: bool = True):
-    """Fit the located elements ``specs`` (``{input index: _ElementSpec}``) of a row.
+    """Fit the located elements ``specs`` (``{column index: _ElementSpec}``) of a row.
 
-    The row's other elements are held at the model's values; samples ``0 .. n_use - 1`` are used,
-    starting from the input lags ``lags0`` (``{input index: lag}``).  ``skip`` (samples left out at
-    the start) defaults to the largest lag searched; fits whose costs are compared must share it.
-    ``ar0``, when given, starts the noise model there (one re-estimation instead of three).
+    The row's other elements are held at the model's values (their free responses from all their
+    lags' poles, repeated poles included); samples ``0 .. n_use - 1`` are used, starting from the
+    input lags ``lags0`` (``{column index: lag}``).  ``skip`` (samples left out at the start) defaults
+    to the largest lag searched or held memory of the row (:func:`_held_memory`); fits whose costs
+    are compared must share it.  ``ar0``, when given, starts the noise model there (one
+    re-estimation instead of three).
 
     Returns
     -------
@@ -75,18 +114,13 @@ def _estimate_row(row: _RowData, specs: dict, lags0: dict, n_use: int, options: 
     """
     model, u, i = row.model, row.u, row.i
     js = sorted(specs)
-    held = model
-    for j in js:
-        held = held.with_element(i, j, gain=0.0)
+    held = _without(model, i, js)
     z = row.y[:, i] - _row_response(held, u, i)
-    disc = discretize(held)
-    fixed_poles = [disc.pole[i, j] for j in range(model.n_inputs) if disc.active[i, j]]
-    row_lags = [_element_lag(model.time_constant[i, j], model.delay_samples[i, j])
-                for j in range(model.n_inputs) if held.gain[i, j] != 0]
     if skip is None:
-        skip = max([specs[j].window[1] for j in js] + row_lags + [1])
-    problem = _RowProblem(z, u[:, js], [specs[j] for j in js], n_use, skip, fixed_poles,
-                          options.initial_state == "estimate", options.noise_order, row.extra)
+        skip = _default_skip(row, specs)
+    problem = _RowProblem(z, u[:, js], [specs[j] for j in js], n_use, skip, discretize(held).lag_poles(i),
+                          options.initial_state == "estimate", options.noise_order, row.extra,
+                          sample_time=model.sample_time)
     if ar0 is not None:
         problem.set_ar(ar0)
     est = _search_row(problem, [lags0[j] for j in js], max_sweeps, ar_iterations=3 if ar0 is None else 1,
@@ -94,28 +128,53 @@ def _estimate_row(row: _RowData, specs: dict, lags0: dict, n_use: int, options: 
     return problem, est
 
 
-def _element_summary(problem: _RowProblem, est: _RowEstimate, m: int, ts: float, settings: _TestSettings):
+def _pole_interval(a: float, se: float, zcrit: float, ts: float) -> list:
+    """Interval (s) of the time constant of pole ``a`` with standard error ``se``."""
+    a_lo = min(max(a - zcrit * se, 1e-12), a)
+    a_hi = max(min(a + zcrit * se, 1.0 - 1e-12), a)
+    return [-ts / math.log(a_lo), -ts / math.log(a_hi)]
+
+
+def _element_summary(problem: _RowProblem, est: _RowEstimate, m: int, ts: float, settings: _TestSettings,
+                     reference: Optional[dict] = None):
     """Fitted parameters (seconds) and their intervals of element ``m`` of an estimate.
+
+    The two lags of a second-order element are named after those of ``reference``
+    (:func:`~mpm_monitor.core.repair.forms._match_lags`).
 
     Returns
     -------
     after : dict
-        ``gain``, ``time_constant`` (s), ``delay`` (s).
+        Every parametric key (:func:`~mpm_monitor.core.repair.forms._fitted_params`).
     interval : dict
-        ``[lo, hi]`` of each at the settings' level: gain and time constant from the variances of
+        ``[lo, hi]`` of the gain, the time constant and the delay, and of ``time_constant2`` and
+        ``lead`` where the element's form has them, at the settings' level: from the covariance of
         the estimate, the delay from the lag profile.
     """
     zcrit, chi_crit = settings.zcrit, settings.chi_crit
-    fit = est.fit
-    k_hat, a_hat, lag_hat = float(fit.gains[m]), float(fit.poles[m]), int(fit.lags[m])
-    se_k, se_a = math.sqrt(est.var_gain[m]), math.sqrt(est.var_pole[m])
-    after = dict(zip(("gain", "time_constant", "delay"), _element_params(k_hat, a_hat, lag_hat, ts)))
-    lo_lag, hi_lag = _lag_interval(est, m, problem.specs[m].window, chi_crit)
-    a_lo = min(max(a_hat - zcrit * se_a, 1e-12), a_hat)
-    a_hi = max(min(a_hat + zcrit * se_a, 1.0 - 1e-12), a_hat)
-    lagged = after["time_constant"] > 0
-    tau_iv = [-ts / math.log(a_lo), -ts / math.log(a_hi)] if lagged else [0.0, 0.0]
-    shift = 1 if lagged else 0
+    fit, spec = est.fit, problem.specs[m]
+    form = spec.form
+    k_hat, lag_hat = float(fit.gains[m]), int(fit.lags[m])
+    poles = [float(a) for a in fit.poles[problem.slices[m]]]
+    var_gain, var_lead, var_poles = problem.variances(est.cov, fit, m)
+    after = _fitted_params(form, k_hat, poles, float(fit.leads[m]), lag_hat, ts)
+    lo_lag, hi_lag = _lag_interval(est, m, spec.window, chi_crit)
+    se_k = math.sqrt(var_gain)
+    if form.first_order:
+        lagged = after["time_constant"] > 0
+        tau_iv = _pole_interval(poles[0], math.sqrt(var_poles[0]), zcrit, ts) if lagged else [0.0, 0.0]
+        shift = 1 if lagged else 0
+    else:
+        taus = [_pole_interval(a, math.sqrt(v), zcrit, ts) for a, v in zip(poles, var_poles)]
+        tau_iv = taus[0] if taus else [0.0, 0.0]
+        shift = form.offset
     interval = {"gain": [k_hat - zcrit * se_k, k_hat + zcrit * se_k], "time_constant": tau_iv,
                 "delay": [max(lo_lag - shift, 0) * ts, max(hi_lag - shift, 0) * ts]}
+    if form.n_lags == 2:
+        interval["time_constant2"] = taus[1]
+    if form.lead:
+        se_l = math.sqrt(var_lead)
+        interval["lead"] = [after["lead"] - zcrit * se_l, after["lead"] + zcrit * se_l]
+    if form.n_lags == 2:
+        _match_lags(after, interval, reference)
     return after, interval

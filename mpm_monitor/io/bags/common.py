@@ -11,6 +11,8 @@ from ...core.errors import BagError
 
 #: Default names of the setpoint, input and output topics.
 DEFAULT_TOPICS = ("setpoint", "input", "output")
+#: Default name of the measured-disturbance topic (read for a model with measured disturbances).
+DEFAULT_DISTURBANCE_TOPIC = "disturbance"
 #: Message type of the stamped vectors.
 JOINT_STATE = "sensor_msgs/msg/JointState"
 #: Message type of ``/diagnostics``.

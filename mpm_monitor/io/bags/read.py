@@ -1,9 +1,11 @@
-"""Reading a bag: the setpoint, input and output topics aligned into logged data, CSV export, raw messages.
+"""Reading a bag: the vector topics aligned into logged data, CSV export, raw messages.
 
 A bag holds the stamped vectors ``setpoint``, ``input`` and ``output`` (``sensor_msgs/msg/JointState``:
-``header.stamp`` = sample time, ``name`` = channel names, ``position`` = values).  :func:`read_bag`
-aligns them by stamp on the model's sample grid into a :class:`~mpm_monitor.core.logged_data.LoggedData`, so
-``analyze --bag`` and ``analyze --data`` see the same samples.  Anything that would silently
+``header.stamp`` = sample time, ``name`` = channel names, ``position`` = values), and ``disturbance``
+(the measured disturbances) when the loop has some.  :func:`read_bag` aligns them by stamp on the
+model's sample grid into a :class:`~mpm_monitor.core.logged_data.LoggedData` (the disturbance topic into
+``dv``, for a model with measured disturbances), so ``analyze --bag`` and ``analyze --data`` see the
+same samples.  Anything that would silently
 mis-align the samples (a missing topic, wrong channel names, a gap, two messages for one sample) is
 refused with a :class:`~mpm_monitor.core.errors.BagError` of one line naming the bag and the topic.
 :func:`read_raw_messages` gives the serialized messages for replay.
@@ -22,15 +24,26 @@ import numpy as np
 from ...core.errors import BagError, InputError
 from ...core.logged_data import LoggedData
 from ...core.model import PlantModel
-from ..csv_log import write_csv
-from .common import DEFAULT_TOPICS, JOINT_STATE, one_line, open_reader, stamp_ns, topic_connections, topic_name
+from ..csv_log import write_log_csv
+from .common import (
+    DEFAULT_DISTURBANCE_TOPIC,
+    DEFAULT_TOPICS,
+    JOINT_STATE,
+    one_line,
+    open_reader,
+    stamp_ns,
+    topic_connections,
+    topic_name,
+)
 
 #: A stamp may lie this fraction of the sample time off the sample grid and still be aligned.
 GRID_TOLERANCE = 0.1
 #: Bags with at least this many messages on the read topics get a progress bar (``progress=True``).
 LONG_BAG_MESSAGES = 20_000
 
-_ROLES = ("setpoint", "input", "output")
+_ROLES = ("setpoint", "input", "output", "disturbance")
+#: What each topic's channel names are, for messages.
+_WHAT = {"setpoint": "outputs", "input": "inputs", "output": "outputs", "disturbance": "measured disturbances"}
 
 
 class _Progress:
@@ -66,15 +79,26 @@ class _Series:
     values: np.ndarray          # (n, len(channels)) values reordered to ``channels``
 
 
-def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progress) -> dict:
-    """Read the three stamped-vector topics; ``channels[role]`` = expected names or None (= first message's)."""
+def _check_topics(path, topics: Sequence[str]) -> list:
+    """The setpoint, input, output (and disturbance) topic names, fully qualified and checked."""
     topics = [topic_name(t) for t in topics]
-    if len(topics) != 3:
-        raise BagError(f"{path}: expected three topics (setpoint, input, output), got {len(topics)}")
-    if len(set(topics)) != 3:
-        raise BagError(f"{path}: the setpoint, input and output topics must differ, got {', '.join(topics)}")
-    role_of = dict(zip(topics, _ROLES))
+    if len(topics) not in (3, 4):
+        raise BagError(f"{path}: expected three topics (setpoint, input, output) or four (and disturbance), "
+                       f"got {len(topics)}")
+    if len(set(topics)) != len(topics):
+        raise BagError(f"{path}: the {', '.join(_ROLES[:len(topics)])} topics must differ, got {', '.join(topics)}")
+    return topics
+
+
+def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progress, optional: bool = False) -> dict:
+    """Read the stamped-vector topics (setpoint, input, output, and disturbance when four are given);
+    ``channels[role]`` = expected names or None (= first message's).  With ``optional``, the fourth
+    (disturbance) topic is read only if the bag holds messages on it."""
+    topics = _check_topics(path, topics)
     with closing(open_reader(path)) as reader:
+        if optional and len(topics) == 4 and not any(c.topic == topics[3] and c.msgcount for c in reader.connections):
+            topics = topics[:3]
+        role_of = dict(zip(topics, _ROLES))
         conns = []
         for t in topics:
             conns += topic_connections(reader, path, t, JOINT_STATE)
@@ -108,7 +132,7 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
                     want = tuple(expected[role])
                     missing = [n for n in want if n not in names]
                     if missing or len(set(names)) != len(names):
-                        what = {"setpoint": "outputs", "input": "inputs", "output": "outputs"}[role]
+                        what = _WHAT[role]
                         raise BagError(
                             f"{path}: topic '{topic}': message {count} (stamp {stamp / 1e9:g} s) has channel names "
                             f"[{', '.join(names)}], expected the {what} [{', '.join(want)}]")
@@ -129,7 +153,7 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
         if bar is not None:
             bar.finish()
     series = {}
-    for t, role in zip(topics, _ROLES):
+    for t, role in role_of.items():
         st = np.array(stamps[t], dtype=np.int64)
         vals = np.array(rows[t], dtype=float).reshape(len(st), len(expected[role]))
         order = np.argsort(st, kind="stable")
@@ -138,9 +162,9 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
 
 
 def _first_names(reader, path, topics) -> dict:
-    """Channel names of the first input and output messages (a bag read without a model)."""
+    """Channel names of the first input, output (and disturbance) messages (a bag read without a model)."""
     names = {}
-    for role, topic in (("input", topics[1]), ("output", topics[2])):
+    for role, topic in list(zip(_ROLES, topics))[1:]:
         conns = [c for c in reader.connections if c.topic == topic]
         for conn, _, raw in reader.messages(connections=conns):
             try:
@@ -153,8 +177,8 @@ def _first_names(reader, path, topics) -> dict:
     return names
 
 
-def _align(path, series: dict, sample_time: float, inputs, outputs) -> LoggedData:
-    """Put the three topics on one sample grid and check that every sample is there exactly once."""
+def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances=()) -> LoggedData:
+    """Put the topics on one sample grid and check that every sample is there exactly once."""
     ts_ns = sample_time * 1e9
     origin = min(int(s.stamps[0]) for s in series.values())
     ks = {}
@@ -195,19 +219,22 @@ def _align(path, series: dict, sample_time: float, inputs, outputs) -> LoggedDat
                            f"{(origin + k_last * ts_ns) / 1e9:.9g} s)")
         out[role] = s.values[sel]
     t = (origin + np.arange(k_first, k_last + 1) * ts_ns) / 1e9
+    dv = out.get("disturbance")
     return LoggedData(t=t, r=out["setpoint"], u=out["input"], y=out["output"], inputs=tuple(inputs),
-                      outputs=tuple(outputs), sample_time=float(sample_time), source=str(path))
+                      outputs=tuple(outputs), sample_time=float(sample_time), source=str(path), dv=dv,
+                      disturbances=tuple(disturbances) if dv is not None else ())
 
 
 def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, progress=False) -> LoggedData:
-    """Read a bag's setpoint, input and output topics as logged data on the model's sample grid.
+    """Read a bag's setpoint, input and output topics (and disturbance topic) as logged data on the model's sample grid.
 
     Samples are aligned by ``header.stamp``: a message belongs to sample ``k`` when its stamp is
     ``t0 + k * sample_time`` within :data:`GRID_TOLERANCE` of a sample, ``t0`` the earliest stamp of
-    the three topics.  Samples before the last topic starts or after the first one ends (a
-    recording started or stopped mid-sample) are dropped; inside that span every topic must hold
-    every sample exactly once.  Channels are matched by name, so their order in the messages is
-    free; extra channels are ignored.
+    the topics.  Samples before the last topic starts or after the first one ends (a recording
+    started or stopped mid-sample) are dropped; inside that span every topic must hold every sample
+    exactly once.  Channels are matched by name, so their order in the messages is free; extra
+    channels are ignored.  A model with measured disturbances reads them from the disturbance topic
+    (the fourth of ``topics``, default ``disturbance``) into ``dv``.
 
     Parameters
     ----------
@@ -215,9 +242,10 @@ def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, pr
         rosbag2 directory.
     model : PlantModel
         Gives the channel names (outputs for the setpoint and output topics, inputs for the input
-        topic) and the sample time in seconds.
-    topics : sequence of 3 str
-        Setpoint, input and output topic names (relative names are taken as ``/name``).
+        topic, measured disturbances for the disturbance topic) and the sample time in seconds.
+    topics : sequence of 3 or 4 str
+        Setpoint, input and output topic names, and optionally the disturbance topic's (relative
+        names are taken as ``/name``); a fourth name needs a model with measured disturbances.
     progress : bool or file-like
         Draw a progress bar on stderr (or on the given stream) for bags of at least
         :data:`LONG_BAG_MESSAGES` messages.
@@ -226,16 +254,24 @@ def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, pr
     -------
     LoggedData
         ``t`` in seconds, ``r`` and ``y`` of shape (n_samples, n_outputs), ``u`` of shape
-        (n_samples, n_inputs).
+        (n_samples, n_inputs), ``dv`` of shape (n_samples, n_disturbances).
 
     Raises
     ------
     BagError
         One line naming the bag and the topic.
     """
+    topics = _check_topics(path, topics)
     channels = {"setpoint": model.outputs, "input": model.inputs, "output": model.outputs}
+    if model.n_disturbances:
+        channels["disturbance"] = model.disturbances
+        if len(topics) == 3:
+            topics.append(topic_name(DEFAULT_DISTURBANCE_TOPIC))
+    elif len(topics) == 4:
+        raise BagError(f"{path}: a fourth topic ({topics[3]}, measured disturbances) is given but the model has no "
+                       f"measured disturbances")
     series = _read_vectors(path, topics, channels, progress)
-    return _align(path, series, model.sample_time, model.inputs, model.outputs)
+    return _align(path, series, model.sample_time, model.inputs, model.outputs, model.disturbances)
 
 
 def infer_sample_time(path, stamps: np.ndarray, topic: str) -> float:
@@ -254,8 +290,10 @@ def read_bag_channels(path, topics: Sequence[str] = DEFAULT_TOPICS, sample_time:
     Parameters
     ----------
     path : str or Path
-    topics : sequence of 3 str
-        Setpoint, input and output topic names.
+    topics : sequence of 3 or 4 str
+        Setpoint, input and output topic names, and the disturbance topic's: with three names the
+        disturbance topic ``disturbance`` is read when the bag holds messages on it, a fourth name
+        must be in the bag.
     sample_time : float, optional
         Seconds per sample; default the median stamp spacing of the output topic.
     progress : bool or file-like
@@ -264,14 +302,22 @@ def read_bag_channels(path, topics: Sequence[str] = DEFAULT_TOPICS, sample_time:
     -------
     LoggedData
     """
-    series = _read_vectors(path, topics, None, progress)
+    topics = _check_topics(path, topics)
+    optional = len(topics) == 3
+    if optional:
+        topics.append(topic_name(DEFAULT_DISTURBANCE_TOPIC))
+    series = _read_vectors(path, topics, None, progress, optional=optional)
     if sample_time is None:
         sample_time = infer_sample_time(path, series["output"].stamps, series["output"].topic)
-    return _align(path, series, sample_time, series["input"].names, series["output"].names)
+    dv = series.get("disturbance")
+    return _align(path, series, sample_time, series["input"].names, series["output"].names,
+                  dv.names if dv is not None else ())
 
 
 def export_csv(bag, csv, model_path=None, topics: Sequence[str] = DEFAULT_TOPICS, progress=False) -> int:
-    """Write a bag's setpoint, input and output topics as the CSV of logged data (docs/interfaces.md, "Logged data (CSV)").
+    """Write a bag's setpoint, input, output (and disturbance) topics as a CSV log.
+
+    The format is that of docs/interfaces.md, "Logged data (CSV)".
 
     Parameters
     ----------
@@ -282,7 +328,8 @@ def export_csv(bag, csv, model_path=None, topics: Sequence[str] = DEFAULT_TOPICS
     model_path : str or Path, optional
         Model file giving the channel names, their order and the sample time.  Without it the
         names come from the first messages and the sample time from the stamps.
-    topics : sequence of 3 str
+    topics : sequence of 3 or 4 str
+        As :func:`read_bag` (with a model) or :func:`read_bag_channels` (without).
     progress : bool or file-like
 
     Returns
@@ -297,7 +344,7 @@ def export_csv(bag, csv, model_path=None, topics: Sequence[str] = DEFAULT_TOPICS
     else:
         data = read_bag_channels(bag, topics=topics, progress=progress)
     try:
-        write_csv(csv, data.t, data.r, data.u, data.y, data.inputs, data.outputs)
+        write_log_csv(csv, data)
     except OSError as exc:
         raise InputError(f"{csv}: cannot write CSV file: {exc.strerror or exc}") from None
     return data.n_samples
@@ -328,7 +375,7 @@ class RawMessage:
     data: bytes
 
 
-def read_raw_messages(bag, topics: Sequence[str] = DEFAULT_TOPICS) -> list:
+def read_raw_messages(bag, topics: Sequence[str] = DEFAULT_TOPICS, optional: Sequence[str] = ()) -> list:
     """The serialized messages of some topics in recording order, with their header stamps.
 
     Parameters
@@ -336,6 +383,8 @@ def read_raw_messages(bag, topics: Sequence[str] = DEFAULT_TOPICS) -> list:
     bag : str or Path
     topics : sequence of str
         Topic names; each must be in the bag.
+    optional : sequence of str
+        Further topic names, read when the bag has them (e.g. ``disturbance``).
 
     Returns
     -------
@@ -344,9 +393,11 @@ def read_raw_messages(bag, topics: Sequence[str] = DEFAULT_TOPICS) -> list:
     out = []
     with closing(open_reader(bag)) as reader:
         conns = []
-        for t in topics:
+        for required, t in [(True, t) for t in topics] + [(False, t) for t in optional]:
             t = topic_name(t)
             found = [c for c in reader.connections if c.topic == t]
+            if not found and not required:
+                continue
             if not found:
                 have = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
                 raise BagError(f"{bag}: no topic '{t}' in the bag; topics in the bag: {have}")

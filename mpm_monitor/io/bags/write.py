@@ -17,7 +17,7 @@ import numpy as np
 from ...core.errors import BagError
 from ...core.logged_data import LoggedData
 from ..qos import VECTOR_QOS, rosbags_qos
-from .common import DEFAULT_TOPICS, JOINT_STATE, default_typestore, one_line, topic_name
+from .common import DEFAULT_DISTURBANCE_TOPIC, DEFAULT_TOPICS, JOINT_STATE, default_typestore, one_line, topic_name
 
 
 class BagWriter:
@@ -151,18 +151,20 @@ def joint_state_cdr(typestore, stamp_ns: int, names: Sequence[str], values) -> b
 
 
 def write_logged_data(path, data: LoggedData, topics: Sequence[str] = DEFAULT_TOPICS, qos_profiles=None) -> int:
-    """Write logged data as a bag of the three stamped-vector topics (the inverse of :func:`read_bag`).
+    """Write logged data as a bag of the stamped-vector topics (the inverse of :func:`read_bag`).
 
     Sample ``k`` becomes one message per topic stamped ``t[k]``, published in the loop's order
-    (output, input, setpoint) and logged at the stamp.
+    (measured disturbances and output, input, setpoint) and logged at the stamp.  The disturbance
+    topic is written when the data hold measured disturbances.
 
     Parameters
     ----------
     path : str or Path
         Bag directory to create.
     data : LoggedData
-    topics : sequence of 3 str
-        Setpoint, input and output topic names.
+    topics : sequence of 3 or 4 str
+        Setpoint, input and output topic names, and the disturbance topic's (default
+        ``disturbance``).
     qos_profiles : sequence of rosbags Qos, optional
         Offered QoS stored for each topic; default the vector topics' QoS (RELIABLE, KEEP_LAST
         1000, VOLATILE).
@@ -175,13 +177,20 @@ def write_logged_data(path, data: LoggedData, topics: Sequence[str] = DEFAULT_TO
     ts = default_typestore()
     if qos_profiles is None:
         qos_profiles = [contract_vector_qos()]
-    setpoint, inp, out = (topic_name(t) for t in topics)
+    names = [topic_name(t) for t in topics]
+    if len(names) not in (3, 4):
+        raise BagError(f"{path}: expected three topics (setpoint, input, output) or four (and disturbance), "
+                       f"got {len(names)}")
+    setpoint, inp, out = names[:3]
+    dist = (names[3] if len(names) == 4 else topic_name(DEFAULT_DISTURBANCE_TOPIC)) if data.disturbances else None
     writer = BagWriter(path, typestore=ts, fsync=False)
     try:
-        for t in (out, inp, setpoint):
+        for t in ((dist,) if dist else ()) + (out, inp, setpoint):
             writer.add_topic(t, JOINT_STATE, qos_profiles)
         stamps = np.rint(np.asarray(data.t, dtype=float) * 1e9).astype(np.int64)
         for k, stamp in enumerate(stamps):
+            if dist:
+                writer.write(dist, stamp, joint_state_cdr(ts, stamp, data.disturbances, data.dv[k]))
             writer.write(out, stamp, joint_state_cdr(ts, stamp, data.outputs, data.y[k]))
             writer.write(inp, stamp + 1, joint_state_cdr(ts, stamp, data.inputs, data.u[k]))
             writer.write(setpoint, stamp + 2, joint_state_cdr(ts, stamp, data.outputs, data.r[k]))

@@ -1,0 +1,212 @@
+"""Detection on the model's columns: measured disturbances tested like inputs, every structure.
+
+Open-loop records (PRBS inputs, an AR(1) measured disturbance, the paper's AR(1) output disturbance
+plus white noise, setpoints independent of everything) let the element test be checked where the
+closed loop cannot yet be simulated (integrating plants, measured disturbances): what it must
+locate is known exactly.  The closed-loop check uses the paper's case 3.2.
+"""
+
+import numpy as np
+import pytest
+from structure_models import first_order_model, rich_model
+
+from mpm_monitor.core.analysis import AnalysisOptions, detect
+from mpm_monitor.core.discretize import simulate_elements
+from mpm_monitor.core.filters import lfilter
+from mpm_monitor.core.logged_data import LoggedData
+from mpm_monitor.core.model import PlantModel
+from mpm_monitor.core.pipeline import analyze
+from mpm_monitor.core.regressions import QrRegressions, regression_layout
+from mpm_monitor.core.signals import LoopSignals, compute_signals
+from mpm_monitor.core.sliding import SlidingWindowAnalyzer
+from mpm_monitor.sim.cases import paper_case
+from mpm_monitor.sim.closed_loop import run_closed_loop
+
+FAST = AnalysisOptions(repair=False)
+
+
+def open_loop(plant: PlantModel, model: PlantModel, n: int, seed: int, burn_in: int = 0, dv=None,
+              level: float = 0.0) -> LoggedData:
+    """An open-loop record of ``plant`` in the channels of ``model`` (the first ``burn_in`` samples cut,
+    ``level`` added to the outputs)."""
+    rng = np.random.default_rng(seed)
+    total = n + burn_in
+    u = np.repeat(rng.choice([-1.0, 1.0], size=(total // 6 + 1, plant.n_inputs)), 6, axis=0)[:total]
+    if dv is None:
+        dv = lfilter([1.0], [1.0, -0.9], 0.5 * rng.standard_normal((total, plant.n_disturbances)), axis=0)
+    v = lfilter([1.0], [1.0, -0.95], 0.0075 * rng.standard_normal((total, plant.n_outputs)), axis=0)
+    y = simulate_elements(plant, np.hstack([u, dv])) + v + 0.005 * rng.standard_normal((total, plant.n_outputs))
+    r = rng.choice([-1.0, 1.0], size=(total, plant.n_outputs))
+    cut = slice(burn_in, total)
+    return LoggedData(t=np.arange(n) * plant.sample_time, r=r[cut], u=u[cut], y=y[cut] + level, inputs=model.inputs,
+                      outputs=model.outputs, sample_time=plant.sample_time, dv=dv[cut],
+                      disturbances=model.disturbances, source="open loop")
+
+
+@pytest.mark.parametrize("model_fn", [first_order_model, rich_model], ids=["first-order", "rich"])
+def test_a_wrong_disturbance_gain_is_located_and_nothing_else(model_fn):
+    model = model_fn()
+    plant = model.with_element(0, 2, gain=1.5 * model.gain[0, 2])
+    report = analyze(model, open_loop(plant, model, 3000, seed=11, burn_in=300))
+    assert report.located_elements == [("y1", "dv1")]
+    doc = report.to_dict()
+    roles = {(e["output"], e["input"]): e["role"] for e in doc["elements"]}
+    assert roles == {(o, c): ("disturbance" if c == "dv1" else "input") for o in ("y1", "y2")
+                     for c in ("u1", "u2", "dv1")}
+    located = [e for e in doc["elements"] if e["mismatch"]]
+    assert located[0]["role"] == "disturbance" and located[0]["kind"] == "gain"
+    assert doc["located"] == [{"output": "y1", "input": "dv1"}]
+    # The repair re-estimated the disturbance's first-order element from the disturbance column.
+    change = doc["repair"]["changes"][0]
+    assert change["input"] == "dv1" and change["applied"] is True
+    assert change["after"]["gain"] == pytest.approx(plant.gain[0, 2], rel=0.05)
+    assert "(y1, dv1 (measured disturbance))" in report.summary_text()
+
+
+def test_models_without_disturbances_add_only_the_role_input():
+    case = paper_case("3.2")
+    log = run_closed_loop(case.plant, case.model, 2000, seed=5, mpc=case.mpc, excitation=case.excitation,
+                          disturbance=case.disturbance).as_logged_data()
+    doc = analyze(case.model, log, FAST).to_dict()
+    keys = {"output", "input", "mismatch", "p_value", "p_value_raw", "statistic", "kind", "ambiguous",
+            "ambiguous_with", "delay", "b", "role"}
+    assert all(set(e) == keys and e["role"] == "input" for e in doc["elements"])
+
+
+def test_a_step_response_model_of_the_sampled_model_gives_the_same_decisions():
+    # The closed loop of case 3.2 analysed with the controller's model and with its step-response
+    # form (N = 800 coefficients, the slowest lag 70 s: truncated by e^-11): same rows, same
+    # located and ambiguous elements, p-values and RSI to 1e-3 relative.
+    case = paper_case("3.2")
+    log = run_closed_loop(case.plant, case.model, 3000, seed=6, mpc=case.mpc, excitation=case.excitation,
+                          disturbance=case.disturbance).as_logged_data()
+    n = 800
+    model = case.model
+    coefs = [[model.discrete_element(i, j).step_response(n + 1)[1:] for j in range(3)] for i in range(3)]
+    step = PlantModel.from_step_response(1.0, model.inputs, model.outputs, coefs)
+    np.testing.assert_array_equal(step.delay_samples, model.delay_samples)     # the same element windows
+    a, b = detect(model, log, FAST), detect(step, log, FAST)
+    assert a.flagged_rows == b.flagged_rows == ["y1", "y2"]
+    assert a.located_elements == b.located_elements == [("y1", "u2"), ("y1", "u3"), ("y2", "u1")]
+    assert a.ambiguous_elements == b.ambiguous_elements
+    for ea, eb in zip(a.elements, b.elements):
+        assert (ea.output, ea.input, ea.delay) == (eb.output, eb.input, eb.delay)
+        if ea.p_value_raw and ea.p_value_raw > 1e-200:
+            assert np.log(eb.p_value_raw) == pytest.approx(np.log(ea.p_value_raw), rel=1e-3)
+    np.testing.assert_allclose([r.rsi for r in b.rows], [r.rsi for r in a.rows], rtol=1e-3)
+    # The repair re-estimates a step-response model's located elements in their structure: the same
+    # kinds as the parametric model's repair, a step-response model of the same length, the located
+    # responses on the plant's, every other element as it was.
+    full, parametric = analyze(step, log), analyze(model, log)
+    kinds = {(e.output, e.input): e.kind for e in full.elements if e.mismatch}
+    assert kinds == {(e.output, e.input): e.kind for e in parametric.elements if e.mismatch} == {
+        ("y1", "u2"): "mixed", ("y1", "u3"): "gain", ("y2", "u1"): "time_constant"}
+    repaired = full.repaired_model
+    assert repaired.is_step_response and repaired.step_length == n
+    for i, o in enumerate(model.outputs):
+        for j, u in enumerate(model.inputs):
+            if (o, u) in kinds:
+                new = repaired.discrete_element(i, j).step_response(300)
+                true = case.plant.discrete_element(i, j).step_response(300)
+                assert np.max(np.abs(new - true)) < 0.03 * np.max(np.abs(true)), (o, u)
+            else:
+                np.testing.assert_array_equal(repaired.step_response[i, j], step.step_response[i, j])
+    assert not any("not available" in w for w in full.warnings)
+
+
+def test_the_repair_fits_each_structure_in_its_own_keys():
+    # A wrong gain on a second lag, on an inverse response (lead-lag) and on an integrator with a lag:
+    # each is located, called a gain error, and repaired in its structure (the second lag, the lead
+    # and the integrator kept); nothing else changes.
+    model = rich_model()
+    plant = (model.with_element(0, 0, gain=3.0)          # second lag
+             .with_element(0, 1, gain=1.6)               # inverse response (lead-lag)
+             .with_element(1, 0, gain=0.08))             # integrator with a lag
+    report = analyze(model, open_loop(plant, model, 3000, seed=12))
+    assert set(report.located_elements) == {("y1", "u1"), ("y1", "u2"), ("y2", "u1")}
+    assert all(e.kind == "gain" for e in report.elements if e.mismatch)
+    repaired = report.repaired_model
+    for i, j in ((0, 0), (0, 1), (1, 0)):
+        assert repaired.gain[i, j] == pytest.approx(plant.gain[i, j], rel=0.03)
+        assert repaired.element(i, j) == dict(model.element(i, j), gain=repaired.gain[i, j])
+    assert repaired.with_element(0, 0, gain=2.0).with_element(0, 1, gain=1.0).with_element(1, 0, gain=0.05) == model
+    changes = {(c["output"], c["input"]): c for c in report.repair["changes"]}
+    assert changes[("y1", "u1")]["after"]["time_constant2"] == 4.0
+    assert changes[("y1", "u2")]["after"]["lead"] == -3.0
+    assert changes[("y2", "u1")]["after"]["integrating"] is True
+    assert not any("not available" in w for w in report.warnings)
+
+
+def test_a_disturbance_that_moves_with_an_input_is_ambiguous():
+    model = first_order_model()
+    rng = np.random.default_rng(13)
+    n = 3000
+    u1 = np.repeat(rng.choice([-1.0, 1.0], size=(n // 6 + 1, 1)), 6, axis=0)[:n]
+    data = open_loop(model, model, n, seed=13, dv=u1 + 1e-4 * rng.standard_normal((n, 1)))
+    data.u[:, 0] = u1[:, 0]                               # a feedforward that copies the disturbance
+    data.y[:] = simulate_elements(model, data.columns) + 0.01 * rng.standard_normal((n, 2))
+    report = detect(model, data, FAST)
+    assert report.collinear_groups == [("u1", "dv1")]
+    assert set(report.ambiguous_elements) == {("y1", "u1"), ("y1", "dv1"), ("y2", "u1"), ("y2", "dv1")}
+    assert any(w.startswith("inputs and measured disturbances {u1, dv1} move together") for w in report.warnings)
+    assert "ambiguous (inputs and measured disturbances move together)" in report.summary_text()
+
+
+@pytest.mark.parametrize("method", ["xcorr", "pcorr"])
+def test_the_baselines_take_the_columns(method):
+    model = first_order_model()
+    plant = model.with_element(1, 2, gain=2.0 * model.gain[1, 2])
+    report = detect(model, open_loop(plant, model, 3000, seed=14), AnalysisOptions(method=method, repair=False))
+    assert len(report.elements) == 6
+    assert [e.role for e in report.elements] == ["input", "input", "disturbance"] * 2
+    assert ("y2", "dv1") in report.located_elements
+
+
+def test_sliding_analyzer_with_disturbances_equals_the_batch_qr_analysis():
+    from report_checks import assert_reports_match
+
+    model = rich_model()
+    plant = model.with_element(1, 2, gain=-0.8)
+    data = open_loop(plant, model, 2600, seed=15)
+    window = 2000
+    an = SlidingWindowAnalyzer(model, FAST, window)
+    an.push_many(data.r[:2500], data.u[:2500], data.y[:2500], dv=data.dv[:2500])
+    for k in range(2500, 2600):
+        an.push(data.r[k], data.u[k], data.y[k], dv=data.dv[k])
+    inc = an.analyze()
+    sig = compute_signals(model, data.r, data.u, data.y, "zero", dv=data.dv)
+    w = slice(600, 2600)
+    win = data.slice(600, 2600)
+    signals = LoopSignals(sig.yhat[w], sig.d[w], sig.eps[w], sig.transient[w])
+    regs = QrRegressions(win.r, win.columns, signals.eps - win.r, signals.d, regression_layout(model, FAST),
+                         FAST.na, FAST.nb)
+    ref = analyze(model, win, FAST, signals=signals, regressions=regs)
+    assert_reports_match(inc, ref)
+    assert inc.located_elements == [("y2", "dv1")]
+    assert [e.role for e in inc.elements] == [e.role for e in ref.elements]
+
+
+# ------------------------------------------------------------------------------- integrating outputs
+def _integrating_model() -> PlantModel:
+    """y1 integrates u1 (with a lag) and dv1; y2 is self-regulating (first order, a second lag)."""
+    return PlantModel(1.0, ("u1", "u2"), ("y1", "y2"), disturbances=("dv1",),
+                      gain=[[0.02, 0.8, 0.01], [1.0, 1.5, 0.5]], time_constant=[[5.0, 10.0, 0.0], [8.0, 12.0, 5.0]],
+                      time_constant2=[[0.0, 0.0, 0.0], [0.0, 4.0, 0.0]], delay=[[2.0, 1.0, 1.0], [0.0, 3.0, 0.0]],
+                      integrating=[[True, False, True], [False, False, False]])
+
+
+def test_integrating_outputs_keep_the_false_alarm_rate_and_locate_an_integrator_gain_error():
+    # Clean open loops (model = plant, the record cut from a longer run so the integrator's level and
+    # the lags' states are unknown): d = v stays stationary, the element and row tests keep their
+    # level -- at alpha = 0.01 at most 2 of 40 runs with any finding (expected 0.4; over 500 other
+    # seeds 5 runs had one, 1.0 %, 2 of them in the element test).  A 30 % error of the
+    # integrator's gain is located, alone (100 of 100 seeds).
+    model = _integrating_model()
+    alarms = 0
+    for seed in range(40):
+        report = detect(model, open_loop(model, model, 2000, seed=100 + seed, burn_in=400, level=50.0), FAST)
+        alarms += bool(report.located_elements or report.flagged_rows)
+    assert alarms <= 2
+    plant = model.with_element(0, 0, gain=0.026)
+    report = detect(model, open_loop(plant, model, 2000, seed=99, burn_in=400, level=50.0), FAST)
+    assert report.located_elements == [("y1", "u1")]
