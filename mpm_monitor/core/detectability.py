@@ -46,6 +46,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from .arx import lag_matrix
+from .element_test import element_window
 from .filters import lfilter
 from .model import PlantModel
 from .statistics import N_FAMILIES, detection_noncentrality
@@ -62,30 +63,6 @@ FIXED_POINT_STEPS = 2
 MAX_OWN_LAG_DELTA = 1.0
 #: Length of the impulse responses kept for a dither's contribution (samples).
 IMPULSE_SAMPLES = 4000
-
-
-@dataclasses.dataclass(frozen=True)
-class RowNoise:
-    """What the element test of one row estimated about its noise.
-
-    Attributes
-    ----------
-    sigma2 : float
-        Residual (equation-error) variance of the row's ARX, output units squared.
-    dof : int
-        Its residual degrees of freedom.
-    a : ndarray, shape (na,)
-        ``a_1 .. a_na`` of its ``A(q) = 1 + a_1 q^-1 + ... + a_na q^-na``.
-    """
-
-    sigma2: float
-    dof: int
-    a: np.ndarray
-
-
-def row_noise(fit) -> RowNoise:
-    """The :class:`RowNoise` of an element-test fit (``sigma2``, ``dof``, ``own_theta()``)."""
-    return RowNoise(sigma2=float(fit.sigma2), dof=int(fit.dof), a=np.array(fit.own_theta(), dtype=float))
 
 
 def typical_element(model: PlantModel, i: int):
@@ -280,7 +257,7 @@ class WindowInformation:
     start : int
         First regression row.
     noise : dict
-        Output index -> :class:`RowNoise` of the rows tested.
+        Output index -> :class:`~mpm_monitor.core.element_test.RowNoise` of the rows tested.
     windows : dict
         ``(i, j)`` -> lags the element test examines (None: all).
 
@@ -473,7 +450,8 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
         The window's input lag blocks (:class:`mpm_monitor.core.element_test.InputDesign`): its
         ``testable`` inputs and collinear ``groups``.
     noise : dict
-        Output index -> :class:`RowNoise` of every row tested (``ElementTest.noise``).
+        Output index -> :class:`~mpm_monitor.core.element_test.RowNoise` of every row tested
+        (``ElementTest.noise``).
     layout : RegressionLayout
     options : AnalysisOptions
         Its ``alpha``, ``nb`` and ``element_window``.
@@ -487,8 +465,6 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
     warnings : list of str
         Why a value is None.
     """
-    from .element_test import element_window
-
     windows = {(i, j): element_window(model, i, j, options.nb, options.element_window)
                for i in noise for j in range(model.n_columns)}
     info = WindowInformation(model, u, d, design.testable, layout.n_lag_u, layout.start, noise, windows)

@@ -38,7 +38,6 @@ import numpy as np
 
 from .arx import BlockTest, SharedBlockRegression, estimate_delay_from_lags, lag_matrix
 from .baselines import ELEMENT_TESTS
-from .detectability import row_noise
 from .model import PlantModel
 from .statistics import N_FAMILIES, holm_adjust
 
@@ -119,6 +118,30 @@ class GroupHit:
     p_value: float
 
 
+@dataclasses.dataclass(frozen=True)
+class RowNoise:
+    """What the element test of one row estimated about its noise.
+
+    Attributes
+    ----------
+    sigma2 : float
+        Residual (equation-error) variance of the row's ARX, output units squared.
+    dof : int
+        Its residual degrees of freedom.
+    a : ndarray, shape (na,)
+        ``a_1 .. a_na`` of its ``A(q) = 1 + a_1 q^-1 + ... + a_na q^-na``.
+    """
+
+    sigma2: float
+    dof: int
+    a: np.ndarray
+
+
+def row_noise(fit) -> RowNoise:
+    """The :class:`RowNoise` of an element-test fit (``sigma2``, ``dof``, ``own_theta()``)."""
+    return RowNoise(sigma2=float(fit.sigma2), dof=int(fit.dof), a=np.array(fit.own_theta(), dtype=float))
+
+
 @dataclasses.dataclass
 class ElementTest:
     """The element decisions of one analysis.
@@ -134,8 +157,8 @@ class ElementTest:
     warnings : list of str
         What limits the conclusions (the groups that explain a row; the baselines' warnings).
     noise : dict
-        The ARX test only: output index -> :class:`~mpm_monitor.core.detectability.RowNoise` of its
-        fit (for the detectability).
+        The ARX test only: output index -> :class:`RowNoise` of its fit (for the detectability,
+        :mod:`mpm_monitor.core.detectability`).
     """
 
     elements: list
