@@ -280,10 +280,42 @@ class AnalysisReport:
             moving = "inputs and measured disturbances" if any(e.role == "disturbance" for e in amb) else "inputs"
             lines.append(f"ambiguous ({moving} move together): "
                          + ", ".join(f"({e.output}, {_column_label(e)})" for e in amb))
+        lines += detectability_summary_lines(self.elements, self.experiment)
         lines += repair_summary_lines(self.repair)
         for w in self.warnings:
             lines.append(f"warning: {w}")
         return "\n".join(lines)
+
+
+def _detectable_text(x) -> str:
+    """A detectable gain change as a percentage (``35%``; ``>1000%``), ``n/a`` where it cannot be computed."""
+    if x is None or not math.isfinite(x):
+        return "n/a"
+    return ">1000%" if x > 10 else f"{100 * x:.0f}%"
+
+
+def detectability_summary_lines(elements: list, experiment) -> list:
+    """The summary's lines on the detectable gain change of every tested element, and the experiment.
+
+    One line per tested row, ``y1: u1 12%, u2 35%, u3 n/a (ambiguous)``: the smallest relative gain
+    error of each element this window detects with probability 0.9 (``n/a`` where it cannot be
+    computed); then the recommended experiment, if any, with its ``why``.
+    """
+    tested = [e for e in elements if getattr(e, "detectable_gain_change", None) is not None or e.ambiguous]
+    lines = []
+    if tested:
+        lines.append("detectable gain change (smallest relative gain error detected with probability 0.9):")
+        for out in dict.fromkeys(e.output for e in tested):
+            lines.append(f"  {out}: " + ", ".join(
+                f"{_column_label(e)} {_detectable_text(e.detectable_gain_change)}"
+                + (" (ambiguous)" if e.ambiguous and not e.mismatch else "") for e in tested if e.output == out))
+    if experiment is not None:
+        dither = ", ".join(f"{k} {v:g}" for k, v in experiment.dither.items())
+        lines.append(f"experiment recommended: PRBS dither on {dither} (input units) for {experiment.samples} samples; "
+                     f"expected detectable gain change "
+                     f"{_detectable_text(experiment.expected_detectable_gain_change)}")
+        lines.append(f"  why: {experiment.why}")
+    return lines
 
 
 def _column_label(e) -> str:
