@@ -35,8 +35,7 @@ from typing import Optional
 
 import numpy as np
 
-from .detectability import WindowInformation, moment_inverse
-from .statistics import detection_noncentrality
+from .detectability import WindowInformation, moment_inverse, required_noncentrality
 
 #: Relative gain error the experiment must detect with probability 0.9.
 GOAL = 0.2
@@ -147,7 +146,7 @@ class _Predictor:
     def _lambda(self, k: int, rows: float, p: int, na: int, level: float) -> float:
         key = (k, max(int(rows) - p - na, 1), level)
         if key not in self._lam:
-            self._lam[key] = detection_noncentrality(key[0], key[1], level, 0.9)
+            self._lam[key] = required_noncentrality(key[0], key[1], level)
         return self._lam[key]
 
     def samples_needed(self, drops: dict, family: int, p: int) -> float:
