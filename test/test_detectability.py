@@ -265,3 +265,18 @@ def test_no_values_for_the_baselines():
     rep = detect(case.model, log.as_logged_data(), dataclasses.replace(FAST, method="xcorr"))
     assert all(e.detectable_gain_change is None for e in rep.elements) and rep.experiment is None
 
+
+
+def test_simulate_takes_the_dither_of_a_reports_experiment(tmp_path):
+    from mpm_monitor.apps.cli import _experiment_dither
+    from mpm_monitor.core.errors import InputError
+
+    path = tmp_path / "report.json"
+    path.write_text(json.dumps({"experiment": {"dither": {"u4": 0.2, "u2": 0.1}, "samples": 100}}))
+    assert _experiment_dither(str(path), FAT_MODEL) == (0.0, 0.1, 0.0, 0.2)
+    path.write_text(json.dumps({"experiment": None}))
+    with pytest.raises(InputError, match="key 'experiment': expected an object with a 'dither'"):
+        _experiment_dither(str(path), FAT_MODEL)
+    path.write_text(json.dumps({"experiment": {"dither": {"u9": 0.2}}}))
+    with pytest.raises(InputError, match="unknown input"):
+        _experiment_dither(str(path), FAT_MODEL)
