@@ -362,11 +362,11 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     # The tests are imported here: the options and the report above are described (the command line's
     # flags, the monitor's parameters) without the scipy they need.
     from .detectability import element_detectability
+    from .discretize import model_columns
     from .element_test import InputDesign, arx_element_test, baseline_element_test
     from .experiment import design_experiment
     from .regressions import regression_layout, window_regressions
     from .row_test import sdelta_row_test
-    from .discretize import model_columns
     from .signals import compute_signals, error_rms
 
     ny = model.n_outputs
