@@ -27,7 +27,6 @@ Run: ``python -m bench.detectability [--runs 300] [--seed 0] [--samples 3000] [-
 
 from __future__ import annotations
 
-import argparse
 import math
 import statistics
 import sys
@@ -40,7 +39,7 @@ import numpy as np
 from mpm_monitor.core.analysis import AnalysisOptions, detect
 from mpm_monitor.core.detectability import POWER, typical_element
 
-from . import write_json
+from . import mc_parser, write_json
 from .monte_carlo import simulate
 from .scenarios import ScenarioOptions, make_scenario
 
@@ -194,13 +193,7 @@ def run(runs: int, seed: int = 0, samples: int = 3000, jobs: int = 1, alpha: flo
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.detectability", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--runs", type=int, default=300)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--samples", type=int, default=3000)
-    parser.add_argument("--jobs", type=int, default=1)
-    parser.add_argument("--alpha", type=float, default=0.01)
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    parser = mc_parser("python -m bench.detectability", __doc__, 300, DEFAULT_OUT)
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
 

@@ -26,7 +26,6 @@ Run: ``python -m bench.experiment_mc [--runs 200] [--seed 0] [--jobs 2] [--out b
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import statistics
 import sys
@@ -41,7 +40,7 @@ from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.sim.closed_loop import run_closed_loop
 from mpm_monitor.sim.excitation import PrbsOptions
 
-from . import write_json
+from . import mc_parser, write_json
 from .monte_carlo import ALPHA, SEPARABILITY_COLLINEAR, score, simulate
 from .scenarios import ScenarioOptions, input_separability, make_scenario
 
@@ -193,13 +192,8 @@ def run(runs: int, seed: int = 0, samples: int = 3000, jobs: int = 1, alpha: flo
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.experiment_mc", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--runs", type=int, default=200)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--samples", type=int, default=3000)
-    parser.add_argument("--jobs", type=int, default=1)
-    parser.add_argument("--alpha", type=float, default=ALPHA)
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    parser = mc_parser("python -m bench.experiment_mc", __doc__, 200, DEFAULT_OUT)
+    parser.set_defaults(alpha=ALPHA)
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
 

@@ -24,7 +24,6 @@ Run: ``python -m bench.fat_rows [--runs 300] [--seed 0] [--jobs 2] [--out bench/
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import sys
 import time
@@ -37,7 +36,7 @@ from scipy import stats
 from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.pipeline import analyze
 
-from . import write_json
+from . import mc_parser, write_json
 from .monte_carlo import simulate
 from .scenarios import ScenarioOptions, make_scenario
 
@@ -123,13 +122,7 @@ def run(runs: int, seed: int = 0, samples: int = 3000, jobs: int = 1, alpha: flo
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.fat_rows", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--runs", type=int, default=300)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--samples", type=int, default=3000)
-    parser.add_argument("--jobs", type=int, default=1)
-    parser.add_argument("--alpha", type=float, default=0.01)
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    parser = mc_parser("python -m bench.fat_rows", __doc__, 300, DEFAULT_OUT)
     args = parser.parse_args(argv)
     result = run(args.runs, args.seed, args.samples, args.jobs, args.alpha)
     s = result["summary"]

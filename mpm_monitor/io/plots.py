@@ -127,6 +127,20 @@ def element_states(report, model: PlantModel) -> np.ndarray:
     return states
 
 
+def _matrix_axes(ax, model: PlantModel, row_labels: list, title: str) -> None:
+    """Ticks, cell grid and title of a transfer-matrix picture (columns on top, one cell per element)."""
+    ny, nu = model.n_outputs, model.n_columns
+    ax.set_xticks(range(nu), [c if model.role(j) == "input" else f"{c}\n(disturbance)"
+                              for j, c in enumerate(model.columns)])
+    ax.set_yticks(range(ny), row_labels)
+    ax.set_xticks(np.arange(-0.5, nu), minor=True)
+    ax.set_yticks(np.arange(-0.5, ny), minor=True)
+    ax.grid(which="minor", color="white", lw=2)
+    ax.tick_params(which="minor", length=0)
+    ax.xaxis.tick_top()
+    ax.set_title(title, fontsize=10, pad=22)
+
+
 def plot_element_map(report, model: PlantModel, path) -> Path:
     """The transfer matrix with each element coloured by its verdict and labelled with its kind.
 
@@ -164,16 +178,8 @@ def plot_element_map(report, model: PlantModel, path) -> Path:
                 lines.append(format_p_value(e.p_value))
             ax.text(j, i, "\n".join(lines), ha="center", va="center", fontsize=7)
     rsi = {r.output: r for r in report.rows}
-    ax.set_xticks(range(nu), [c if model.role(j) == "input" else f"{c}\n(disturbance)"
-                              for j, c in enumerate(model.columns)])
-    ax.set_yticks(range(ny), [f"{o}  (RSI {rsi[o].rsi:.2f}{', flagged' if rsi[o].mismatch else ''})"
-                              if o in rsi else o for o in model.outputs])
-    ax.set_xticks(np.arange(-0.5, nu), minor=True)
-    ax.set_yticks(np.arange(-0.5, ny), minor=True)
-    ax.grid(which="minor", color="white", lw=2)
-    ax.tick_params(which="minor", length=0)
-    ax.xaxis.tick_top()
-    ax.set_title("model elements: located mismatch", fontsize=10, pad=22)
+    _matrix_axes(ax, model, [f"{o}  (RSI {rsi[o].rsi:.2f}{', flagged' if rsi[o].mismatch else ''})"
+                             if o in rsi else o for o in model.outputs], "model elements: located mismatch")
     handles = [Patch(color=_COLORS[k], label=label) for k, label in
                (("located", "mismatch located"), ("ambiguous", "ambiguous (inputs move together)"),
                 ("clean", "tested, no mismatch"), ("untested", "row not flagged"))]
@@ -243,15 +249,7 @@ def plot_detectability_map(report, model: PlantModel, path) -> Optional[Path]:
                 lines.append("ambiguous")
             ax.text(j, i, "\n".join(lines), ha="center", va="center", fontsize=7)
     ax.imshow(rgb, aspect="auto")
-    ax.set_xticks(range(nu), [c if model.role(j) == "input" else f"{c}\n(disturbance)"
-                              for j, c in enumerate(model.columns)])
-    ax.set_yticks(range(ny), list(model.outputs))
-    ax.set_xticks(np.arange(-0.5, nu), minor=True)
-    ax.set_yticks(np.arange(-0.5, ny), minor=True)
-    ax.grid(which="minor", color="white", lw=2)
-    ax.tick_params(which="minor", length=0)
-    ax.xaxis.tick_top()
-    ax.set_title("detectable gain change (90% probability)", fontsize=10, pad=22)
+    _matrix_axes(ax, model, list(model.outputs), "detectable gain change (90% probability)")
     handles = [Patch(color=c, label=label) for _, c, label in DETECTABILITY_CLASSES]
     handles += [Patch(color="#969696", label="not computable"), Patch(color=_COLORS["untested"], label="not tested")]
     ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.02), ncol=3, fontsize=7, frameon=False)
