@@ -170,7 +170,7 @@ class ElementTarget:
     Attributes
     ----------
     output, column : int
-        Row ``i`` and the element's input ``j`` (index into the model's inputs).
+        Row ``i`` and the element's column ``j`` (index into the model's columns).
     tested : ndarray of int
         Columns of ``Z`` the element's test examines (input ``j``'s lags are the columns
         ``j L .. (j + 1) L - 1``).
@@ -262,8 +262,8 @@ class WindowInformation:
     Parameters
     ----------
     model : PlantModel
-    u : ndarray, shape (n_samples, n_inputs)
-        The window's inputs.
+    u : ndarray, shape (n_samples, n_columns)
+        The window's columns: the inputs, then the measured disturbances.
     d : ndarray, shape (n_samples, n_outputs)
         The window's prediction errors.
     testable : list of int
@@ -280,13 +280,13 @@ class WindowInformation:
     Attributes
     ----------
     G : ndarray, shape (p, p)
-        ``Z'Z / n_rows`` of the centred input lags, ``p = n_inputs n_lag`` (input ``j``'s lags at
+        ``Z'Z / n_rows`` of the centred column lags, ``p = n_columns n_lag`` (input ``j``'s lags at
         :meth:`block`).
     own : dict
         Output index -> ``(Z'O_i / n_rows, O_i'O_i / n_rows)``.
     n_rows : int
         Regression rows of the window.
-    std : ndarray, shape (n_inputs,)
+    std : ndarray, shape (n_columns,)
         Standard deviation of every input over the window.
     targets : dict
         ``(i, j)`` -> :class:`ElementTarget` (absent when the model has no element at all).
@@ -459,7 +459,8 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
     Parameters
     ----------
     model : PlantModel
-    u : ndarray, shape (n_samples, n_inputs)
+    u : ndarray, shape (n_samples, n_columns)
+        The window's inputs, then its measured disturbances.
     d : ndarray, shape (n_samples, n_outputs)
         Prediction errors of the window.
     design : InputDesign
