@@ -30,3 +30,15 @@ def mc_parser(prog: str, doc: str, runs: int, out: Path):
     parser.add_argument("--alpha", type=float, default=0.01)
     parser.add_argument("--out", type=Path, default=out)
     return parser
+
+
+def imap_tasks(fn, tasks, jobs: int = 1):
+    """``fn(task)`` for every task, in order: in this process, or in ``jobs`` spawned processes when ``jobs > 1``."""
+    if jobs > 1:
+        import multiprocessing as mp
+
+        with mp.get_context("spawn").Pool(int(jobs)) as pool:
+            yield from pool.imap(fn, tasks)
+    else:
+        for task in tasks:
+            yield fn(task)

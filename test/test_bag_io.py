@@ -286,11 +286,17 @@ def test_wrong_channel_names(tmp_path):
 
 
 def test_gap(tmp_path):
+    # Until the interface "Gaps" a gap was refused; the bag now reads as data with gaps, as a CSV does.
     r, u, y = _samples(20)
-    bag = write_bag(tmp_path / "bag", r, u, y, skip={("output", 7), ("output", 8)})
-    with pytest.raises(BagError) as e:
-        read_bag(bag, MODEL)
-    _check(e, str(bag), "'/output'", "gap", f"{T0 + 3.5:g} s", "2 samples missing")
+    bag = write_bag(tmp_path / "bag", r, u, y, skip={("output", 7), ("output", 8), ("input", 12)})
+    data = read_bag(bag, MODEL)
+    kept = [k for k in range(20) if k not in (7, 8, 12)]
+    np.testing.assert_array_equal(data.grid_index, kept)
+    assert data.segments == [(0, 7), (7, 10), (10, 17)]
+    np.testing.assert_allclose(data.t[7] - data.t[6], 1.5)              # 0.5 s samples: 7 and 8 missing
+    np.testing.assert_array_equal(data.u, u[kept])
+    np.testing.assert_array_equal(data.y, y[kept])
+    np.testing.assert_array_equal(data.r, r[kept])
 
 
 def test_duplicate_stamp(tmp_path):

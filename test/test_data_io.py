@@ -150,8 +150,9 @@ BAD_FILES = {
     "nan cell lower case": (_with_cell(0, "y2", "nan"), r"line 2, column 'y2': expected a finite number"),
     "inf cell": (_with_cell(4, "u3", "inf"), r"line 6, column 'u3': expected a finite number, got 'inf'"),
     "-Infinity cell": (_with_cell(2, "t", "-Infinity"), r"line 4, column 't': expected a finite number"),
-    "gap in t": (_with_cell(3, "t", "4.0"),
-                 r"line 5: t = 4 s follows t = 2 s: a step of 2 s \(expected sample_time 1 s; a gap"),
+    "off the grid after a gap": (_with_cell(3, "t", "4.5"),
+                                 r"line 5: t = 4.5 s follows t = 2 s: a step of 2.5 s \(expected sample_time 1 s; "
+                                 r"a gap"),
     "repeated t": (_with_cell(2, "t", "1.0"), r"line 4: t = 1 s repeats t = 1 s on line 3"),
     "decreasing t": (_with_cell(3, "t", "0.5"), r"line 5: t = 0.5 s goes back from t = 2 s on line 4"),
     "irregular t": (_with_cell(2, "t", "2.5"), r"line 4: t = 2.5 s follows t = 1 s"),
@@ -188,9 +189,56 @@ def test_line_numbers_count_blank_lines(tmp_path):
 
 
 def test_spacing_checked_against_the_model_sample_time(tmp_path):
-    # Samples 1 s apart are a gap for a 0.5 s model: refused, not silently re-timed.
-    with pytest.raises(DataFileError, match=r"line 3: t = 1 s follows t = 0 s: a step of 1 s \(expected sample_time 0.5 s"):
-        read_csv(_write(tmp_path, _text([HEADER] + _rows())), _model(0.5))
+    # Samples 1.5 s apart are off the grid of a 1 s model: refused, not silently re-timed.
+    with pytest.raises(DataFileError,
+                       match=r"line 3: t = 1.5 s follows t = 0 s: a step of 1.5 s \(expected sample_time 1 s"):
+        read_csv(_write(tmp_path, _text([HEADER] + _rows(ts=1.5))), _model(1.0))
+
+
+# --------------------------------------------------------------------------- gaps (docs/interfaces.md, "Gaps")
+# Until the interface "Gaps" a t that skipped grid points was refused ("gap in t"); it now reads as data with gaps.
+
+
+def test_a_t_that_skips_grid_points_is_read_as_data_with_gaps(tmp_path):
+    rows = _rows(8)
+    del rows[5], rows[3]            # rows of t = 3 and t = 5 missing
+    data = read_csv(_write(tmp_path, _text([HEADER] + rows)), _model())
+    np.testing.assert_array_equal(data.t, [0, 1, 2, 4, 6, 7])
+    np.testing.assert_array_equal(data.grid_index, [0, 1, 2, 4, 6, 7])
+    assert data.segments == [(0, 3), (3, 4), (4, 6)]
+    np.testing.assert_array_equal(data.u[:, 0], 10 * np.array([0, 1, 2, 4, 6, 7]) + 3)   # nothing interpolated
+
+
+def test_samples_1_s_apart_for_a_half_second_model_are_every_other_sample(tmp_path):
+    # On the grid (every other point missing), so read as gaps; the analysis then finds no span to use.
+    data = read_csv(_write(tmp_path, _text([HEADER] + _rows())), _model(0.5))
+    np.testing.assert_array_equal(data.grid_index, [0, 2, 4, 6, 8])
+    assert len(data.segments) == 5
+
+
+def test_gaps_read_the_same_by_the_fast_and_the_careful_parser(tmp_path):
+    rows = _rows(8)
+    del rows[4]
+    text = _text([HEADER] + rows)
+    fast = read_csv(_write(tmp_path, text), _model())
+    noted = _text([HEADER + ",note"] + [row + ",x" for row in rows])      # text cells: the careful parser
+    careful = read_csv(_write(tmp_path, noted, "noted.csv"), _model())
+    assert "note" in careful.unusable
+    np.testing.assert_array_equal(fast.t, careful.t)
+    np.testing.assert_array_equal(fast.y, careful.y)
+    assert fast.segments == careful.segments == [(0, 4), (4, 7)]
+
+
+@pytest.mark.parametrize("t3, pattern", [("2.0", r"line 5: t = 2 s repeats t = 2 s on line 4"),
+                                         ("1.0", r"line 5: t = 1 s goes back from t = 2 s on line 4"),
+                                         ("3.5", r"line 5: t = 3.5 s follows t = 2 s: a step of 1.5 s"),
+                                         ("5.2", r"line 5: t = 5.2 s follows t = 2 s: a step of 3.2 s")])
+def test_repeated_decreasing_or_off_grid_t_still_refused_next_to_gaps(tmp_path, t3, pattern):
+    rows = _rows(8)
+    rows[3] = ",".join([t3] + rows[3].split(",")[1:])
+    del rows[6]                     # a real gap later in the file
+    with pytest.raises(DataFileError, match=pattern):
+        read_csv(_write(tmp_path, _text([HEADER] + rows)), _model())
 
 
 def test_unreadable_path_refused(tmp_path):

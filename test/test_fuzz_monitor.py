@@ -221,7 +221,7 @@ def monitor(tmp_path):
     node = MonitorNode(context=ctx, namespace="/fuzz", analyze=analyses, parameter_overrides=_overrides({
         "model_file": str(path), "window_samples": 60, "min_samples": 20, "analysis_period": 15,
         "reorder_samples": 4, "analysis_thread": False, "stale_timeout": 3600.0,
-        "diagnostics_topic": "diagnostics"}))
+        "diagnostics_topic": "diagnostics", "max_gap": 0}))      # every gap restarts the window
     node.get_logger().set_level(rclpy.logging.LoggingSeverity.FATAL)  # thousands of expected warnings
     yield node, analyses
     node.close()
@@ -292,7 +292,7 @@ _op = st.one_of(
 def test_fuzz_window_with_hypothesis(ops, reorder, hold):
     """Whatever arrives, the window only ever holds equally spaced samples sent for their stamps."""
     w = SampleWindow(OUT, INP, 1.0, WindowOptions(window_samples=30, reorder_samples=reorder, hold_setpoint=hold,
-                                                  max_pending=50))
+                                                  max_pending=50, max_gap=0))
     base = 0
     sent = Sent()
     for op in ops:

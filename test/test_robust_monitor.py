@@ -151,7 +151,7 @@ def test_a_whole_sample_far_in_the_future_is_a_gap_then_the_stream_recovers():
 def test_bad_values_are_excluded_and_the_sample_becomes_a_gap(bad):
     """A NaN/Inf or wrong-length output at sample 10 is refused (ERROR kind); sample 10 is then a
     gap and the window restarts after it (never bridged by interpolation)."""
-    w = SampleWindow(OUT, INP, 1.0, WindowOptions(window_samples=100, reorder_samples=3))
+    w = SampleWindow(OUT, INP, 1.0, WindowOptions(window_samples=100, reorder_samples=3, max_gap=0))
     for k in range(10):
         send(w, k)
     r, u, _ = values(10)
@@ -170,7 +170,7 @@ def test_bad_values_are_excluded_and_the_sample_becomes_a_gap(bad):
 
 def test_a_gap_is_never_bridged():
     """Samples 20..24 never arrive: the window holds only samples after the gap."""
-    w = SampleWindow(OUT, INP, 1.0, WindowOptions(window_samples=100, reorder_samples=2))
+    w = SampleWindow(OUT, INP, 1.0, WindowOptions(window_samples=100, reorder_samples=2, max_gap=0))
     for k in list(range(20)) + list(range(25, 40)):
         send(w, k)
     problems = w.take_problems()
@@ -235,7 +235,9 @@ def make_core(**kw):
 
     model = PlantModel(sample_time=1.0, inputs=INP, outputs=OUT, gain=np.ones((2, 3)),
                        time_constant=np.ones((2, 3)), delay=np.zeros((2, 3)))
-    win = WindowOptions(window_samples=kw.pop("window_samples", 50), reorder_samples=kw.pop("reorder_samples", 3))
+    # max_gap 0: every gap restarts the window (a gap up to max_gap keeps it since the interface "Gaps")
+    win = WindowOptions(window_samples=kw.pop("window_samples", 50), reorder_samples=kw.pop("reorder_samples", 3),
+                        max_gap=kw.pop("max_gap", 0))
     opts = dict(analysis_period=10, min_samples=20, stale_timeout=2.0)
     opts.update(kw)
     return MonitorCore(model, MonitorOptions(window=win, **opts))
@@ -442,7 +444,7 @@ def test_node_refuses_malformed_messages_with_the_reason_and_recovers(ros_contex
     """Wrong names, wrong lengths, NaN, repeated names, empty messages: each is refused with a
     one-line reason in the summary (ERROR); the sample they belonged to is a gap; the node keeps
     running and goes back to OK on good data."""
-    node = _monitor_node(ros_context, model_file)
+    node = _monitor_node(ros_context, model_file, max_gap=0)     # every gap restarts the window
     try:
         for k in range(25):
             node_send(node, k)

@@ -82,7 +82,8 @@ def test_reordered_samples_within_the_limit_complete_in_order():
 
 
 def test_a_missing_sample_is_a_gap_and_the_window_restarts_after_it():
-    w = make(reorder_samples=2)
+    # max_gap 0: every gap is long (since the interface "Gaps", a gap up to max_gap keeps the window)
+    w = make(reorder_samples=2, max_gap=0)
     for k in range(5):
         feed(w, k)
     r, u, y = sample_values(5)
@@ -204,3 +205,64 @@ def test_options_are_checked():
         WindowOptions(stamp_tolerance=0.5)
     with pytest.raises(ValueError, match="channel"):
         make().add("dither", 0, [1.0])
+
+
+# ----------------------------------------------------------------------- gaps (docs/interfaces.md, "Gaps")
+
+
+def test_a_short_gap_keeps_the_window_with_t_skipping_the_missing_samples():
+    w = make(reorder_samples=2, max_gap=3)
+    for k in list(range(8)) + list(range(11, 15)):         # samples 8, 9, 10 never come: 3 <= max_gap
+        feed(w, k)
+    d = w.data()
+    np.testing.assert_array_equal(d.t, [0, 1, 2, 3, 4, 5, 6, 7, 11, 12, 13, 14])
+    assert d.segments == [(0, 8), (8, 12)]
+    for i, t in enumerate(d.t):                             # nothing interpolated, nothing mis-aligned
+        np.testing.assert_array_equal(d.u[i], sample_values(int(t))[1])
+    problems = w.take_problems()
+    assert [p.kind for p in problems] == ["gap"]
+    assert "3 sample(s) missing from t = 8 s" in problems[0].message and "keeps its samples" in problems[0].message
+    h = w.health()
+    assert h.gaps == 1 and h.missing_samples == 3 and h.resets == 0
+    assert w.window_gaps() == (3, 1) and w.n_since_reset == 12
+
+
+def test_a_gap_longer_than_max_gap_restarts_the_window():
+    w = make(reorder_samples=2, max_gap=3)
+    for k in list(range(8)) + list(range(12, 15)):         # 4 samples missing: > max_gap
+        feed(w, k)
+    np.testing.assert_array_equal(w.data().t, [12, 13, 14])
+    problems = w.take_problems()
+    assert "4 sample(s) missing" in problems[0].message and "restarts after the gap" in problems[0].message
+    assert w.health().resets == 1 and w.window_gaps() == (0, 0)
+
+
+def test_samples_lost_in_the_window_leave_it_as_it_slides():
+    w = make(window=10, reorder_samples=1, max_gap=2)
+    for k in [0, 1, 2, 4, 5, 6, 7, 9, 10, 11]:
+        feed(w, k)
+    assert w.n_window == 10 and w.window_gaps() == (2, 2)
+    for k in range(12, 16):
+        feed(w, k)                                          # the gap at 3 slides out
+    np.testing.assert_array_equal(w.data().t, [5, 6, 7, 9, 10, 11, 12, 13, 14, 15])
+    assert w.window_gaps() == (1, 1)
+    assert w.health().missing_samples == 2                  # since the window was created
+
+
+def test_random_short_gaps_keep_every_sample_on_its_stamp():
+    rng = np.random.default_rng(3)
+    w = make(window=200, reorder_samples=0, max_gap=4)
+    sent = [k for k in range(400) if rng.random() > 0.05]
+    for k in sent:
+        feed(w, k)
+    d = w.data()
+    steps = np.diff(d.t)
+    assert np.all(steps >= 1) and np.all(steps <= 5) and np.all(steps == np.round(steps))
+    for i, t in enumerate(d.t):
+        np.testing.assert_array_equal(d.y[i], sample_values(int(t))[2])
+    assert int(d.t[-1]) == sent[-1] and d.n_samples == 200
+
+
+def test_max_gap_checked():
+    with pytest.raises(ConfigurationError, match=r"max_gap: expected an integer in \[0, 10000000\]"):
+        WindowOptions(max_gap=-1)

@@ -90,6 +90,11 @@ class AnalysisOptions:
         (the paper's order).  The family-wise false-alarm rate stays ``alpha`` (Holm's procedure
         over every element tested); a row in which an element is located counts as mismatched even
         when its S_Delta test, which has less power for a small mismatch, did not reject.
+    max_gap : int or None
+        Data with gaps (docs/interfaces.md, "Gaps") are analysed segment by segment, stacked, however
+        long the gaps; a gap longer than ``max_gap`` samples (default None: the longest lag of the
+        tests, ``max_delay + nb``) splits the data the same way and is only named louder in the
+        warning (:mod:`mpm_monitor.core.gaps`).
     """
 
     na: int = option(4, "ARX order of A.", low=0, high=50)
@@ -111,6 +116,9 @@ class AnalysisOptions:
                                        "flags.")
     element_window: str = option("model", "Lags the element test examines: model (the first delay + nb of an "
                                           "element the model has) or full (all).", choices=ELEMENT_WINDOWS)
+    max_gap: Optional[int] = option(None, "Longest gap in the data (missing samples) called short, samples; longer "
+                                          "gaps are named louder in the warning (None: the longest lag of the "
+                                          "tests).", low=0, high=10**9)
 
     def __post_init__(self):
         for name, value in check_analysis_options(self).items():
@@ -182,9 +190,13 @@ class AnalysisReport:
     max_variance_inflation : float
         Largest variance-inflation factor of an input's lag block.
     signals : LoopSignals or None
-        ``yhat``, ``d`` and ``eps`` the tests used.
+        ``yhat``, ``d`` and ``eps`` the tests used (of the samples used, segment after segment, on
+        data with gaps).
     repair_result : RepairResult or None
         The repair's full result (None without repair).
+    gaps : dict or None
+        Data with gaps: :meth:`mpm_monitor.core.gaps.GapPlan.to_dict` (the JSON ``gaps`` object);
+        None without a gap.
     experiment : Experiment or None
         The dither experiment that would resolve what this window cannot decide (ambiguous elements,
         or no element decidable at 20 %), :mod:`mpm_monitor.core.experiment`; None when not needed.
@@ -209,6 +221,7 @@ class AnalysisReport:
     max_variance_inflation: float
     signals: Optional[LoopSignals] = None
     repair_result: object = None
+    gaps: Optional[dict] = None
     experiment: object = None
 
     @property
@@ -259,6 +272,8 @@ class AnalysisReport:
             "experiment": self.experiment.to_dict() if self.experiment is not None else None,
             "warnings": list(self.warnings),
         }
+        if self.gaps is not None:
+            doc["gaps"] = self.gaps
         return clean(doc)
 
     def summary_text(self) -> str:
@@ -332,14 +347,15 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     model : PlantModel
         The controller's model ``Phat``.
     data : LoggedData
-        Setpoints, inputs, measured disturbances (those of the model) and outputs, equally spaced at
-        ``model.sample_time``.
+        Setpoints, inputs, measured disturbances (those of the model) and outputs, on the grid of
+        ``model.sample_time``; ``t`` may skip samples (the analysis then runs on the segments between
+        the gaps, :mod:`mpm_monitor.core.gaps`).
     options : AnalysisOptions
         ``options.repair`` is not used here (:func:`mpm_monitor.core.pipeline.analyze`).
     signals : LoopSignals, optional
         ``yhat``, ``d`` and ``eps`` of these samples, e.g. from a model run continuously since
         before the window (:mod:`mpm_monitor.core.sliding`); default: recomputed from the data with
-        ``options.initial_state``.
+        ``options.initial_state`` (segment by segment on data with gaps).
     regressions : object, optional
         Provider of the tests' least-squares fits with the methods of
         :class:`~mpm_monitor.core.regressions.QrRegressions`.  Default:
@@ -351,6 +367,7 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     Returns
     -------
     AnalysisReport
+        ``samples`` counts the samples used and ``gaps`` says what the gaps cost (data with gaps).
         Its ``repair`` holds the model unchanged (no changes; the prediction error's RMS before and
         after) and every located element has the kind ``unknown``.
 
@@ -365,29 +382,43 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     from .discretize import model_columns
     from .element_test import InputDesign, arx_element_test, baseline_element_test
     from .experiment import design_experiment
+    from .gaps import plan_gaps
     from .regressions import regression_layout, window_regressions
     from .row_test import sdelta_row_test
-    from .signals import compute_signals, error_rms
+    from .signals import compute_signals, error_rms, segment_signals
 
     ny = model.n_outputs
     src = data.source or "data"
     r, u, y = check_loop_data(model, data)
     dv = np.asarray(data.dv, dtype=float)
+    layout = regression_layout(model, options)
+    plan = plan_gaps(data, layout.start, options.max_gap)
+    if plan is not None:          # data with gaps: the segments long enough for a regression row, stacked
+        check_gap_rows(plan, layout, options, src)
+        r, u, y, dv = (plan.take(x) for x in (r, u, y, dv))
     columns = model_columns(u, dv)            # the inputs, then the measured disturbances
     n = r.shape[0]
-    layout = regression_layout(model, options)
-    if n < layout.min_samples:
+    if n < layout.min_samples and plan is None:
         raise DataFileError(f"{src}: {n} samples; the tests with na={options.na}, nb={options.nb}, "
                             f"max_delay={layout.max_delay} need at least {layout.min_samples} samples")
     if signals is None:
-        sig = compute_signals(model, r, u, y, options.initial_state, dv=dv)
+        sig = compute_signals(model, r, u, y, options.initial_state, dv=dv) if plan is None else \
+            segment_signals(model, r, u, y, plan.local_segments, options.initial_state, dv=dv)
     else:
         sig = signals
-        if sig.d.shape != (n, ny) or sig.eps.shape != (n, ny):
-            raise DataFileError(f"{src}: signals of shape {sig.d.shape} / {sig.eps.shape}, expected ({n}, {ny})")
-    if regressions is None:
+        n_given = data.n_samples
+        if sig.d.shape != (n_given, ny) or sig.eps.shape != (n_given, ny):
+            raise DataFileError(f"{src}: signals of shape {sig.d.shape} / {sig.eps.shape}, expected ({n_given}, {ny})")
+        if plan is not None:
+            sig = LoopSignals(*(plan.take(x) for x in (sig.yhat, sig.d, sig.eps, sig.transient)))
+    if regressions is None and plan is None:
         z = sig.eps - r   # = -d: zero-mean noise under "no mismatch"
         regressions = window_regressions(r, columns, z, sig.d, layout, options.na, options.nb)
+    elif regressions is None:
+        # Each segment's d centred on its own (its level restarts with its model output).
+        d = np.vstack([sig.d[a:b] - sig.d[a:b].mean(axis=0) for a, b in plan.local_segments])
+        regressions = window_regressions(r, columns, -d, d, layout, options.na, options.nb,
+                                         segments=plan.local_segments)
 
     row_test = sdelta_row_test(model, r, sig.eps, regressions, layout, options)
     rows = row_test.rows
@@ -400,14 +431,22 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     warnings += design.warnings()
     if options.method == "arx":
         element_test = arx_element_test(model, test_rows, design, regressions, options)
-    else:
+    elif plan is None:
         element_test = baseline_element_test(model, columns, sig.d, options)
+    else:                         # the baselines' correlations need one contiguous span: the longest
+        a, b = max(plan.local_segments, key=lambda s: s[1] - s[0])
+        element_test = baseline_element_test(model, columns[a:b], sig.d[a:b], options)
+        warnings.append(f"the {options.method} element test ran on the longest span without a gap ({b - a} samples)")
     warnings += element_test.warnings
     elements = element_test.elements
     info = None
     if options.method == "arx":
-        info, detectable, why = element_detectability(model, columns, sig.d, design, element_test.noise, layout,
-                                                      options)
+        span = slice(None)
+        if plan is not None:      # the moments need one contiguous span: the longest (a conservative value)
+            a, b = max(plan.local_segments, key=lambda s: s[1] - s[0])
+            span = slice(a, b)
+        info, detectable, why = element_detectability(model, columns[span], sig.d[span], design,
+                                                      element_test.noise, layout, options)
         warnings += why
         for e in elements:
             e.detectable_gain_change = detectable.get((model.outputs.index(e.output), model.columns.index(e.input)))
@@ -429,10 +468,34 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
             e.kind = "unknown"
     rms = error_rms(model, sig.d)
     unrepaired = {"model": model.to_dict(), "changes": [], "error_before": rms, "error_after": dict(rms)}
+    if plan is not None:
+        warnings.insert(0, plan.warning())
     return AnalysisReport(
         sample_time=model.sample_time, samples=n, method=options.method, alpha=options.alpha, rows=rows,
         elements=elements, overall_rsi=float(row_test.sigma_max.max()), warnings=warnings,
         frequencies=row_test.frequencies, row_gains=row_test.row_gains, sigma_max=row_test.sigma_max,
         sdelta_response=row_test.response, arx_tables=element_test.arx_tables, repair=unrepaired,
         repaired_model=model, collinear_groups=design.groups, max_variance_inflation=design.max_vif, signals=sig,
-        experiment=experiment)
+        gaps=None if plan is None else plan.to_dict(), experiment=experiment)
+
+
+def check_gap_rows(plan, layout, options, src: str) -> None:
+    """Refuse data with gaps whose segments give fewer regression rows than the tests need.
+
+    The tests need ``layout.min_samples`` samples of one contiguous span, that is
+    ``min_samples - start`` regression rows; data with gaps must give as many rows from its segments.
+
+    Raises
+    ------
+    DataFileError
+        Naming the rows kept, the segments and the gaps.
+    """
+    need = layout.min_samples - layout.start
+    if plan.rows_kept >= need:
+        return
+    n_seg, n_gaps = len(plan.segments), plan.gap_lengths.size
+    raise DataFileError(f"{src}: {plan.rows_kept} regression rows from {len(plan.used)} of {n_seg} spans between "
+                        f"{n_gaps} gap{'s' if n_gaps != 1 else ''} ({plan.samples_missing} samples missing; a span "
+                        f"gives rows after its first {layout.start} samples); the tests with na={options.na}, "
+                        f"nb={options.nb}, max_delay={layout.max_delay} need at least {need} rows (is the sample "
+                        f"time right?)")

@@ -61,6 +61,35 @@ def lag_matrix(x: np.ndarray, lags: Sequence[int], start: int) -> np.ndarray:
     return out
 
 
+def segment_lag_matrix(x: np.ndarray, lags: Sequence[int], start: int, segments=None) -> np.ndarray:
+    """:func:`lag_matrix` of every segment of ``x``, stacked: no row's lags reach across a gap.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n_samples, n_channels) or (n_samples,)
+    lags : sequence of int
+    start : int
+        First sample used in every segment (>= max(lags)).
+    segments : sequence of (int, int) or None
+        Contiguous runs of rows ``(first, end)`` of ``x`` (data with gaps stacked segment after
+        segment); None: ``x`` is one contiguous run (:func:`lag_matrix` itself).
+
+    Returns
+    -------
+    ndarray, shape (sum of (end - first - start), n_channels * len(lags))
+    """
+    if segments is None:
+        return lag_matrix(x, lags, start)
+    return np.vstack([lag_matrix(x[a:b], lags, start) for a, b in segments])
+
+
+def segment_rows(x: np.ndarray, start: int, segments=None) -> np.ndarray:
+    """The regression rows ``x[start:]`` of every segment, stacked (``x[start:]`` when ``segments`` is None)."""
+    if segments is None:
+        return x[start:]
+    return np.concatenate([x[a + start:b] for a, b in segments])
+
+
 def least_squares_ar(x: np.ndarray, order: int, start: Optional[int] = None) -> np.ndarray:
     """Least-squares AR coefficients of one signal: ``x(k) = a_1 x(k-1) + ... + a_p x(k-p) + e(k)``.
 
@@ -180,7 +209,7 @@ def _scaled_r(X: np.ndarray, target: np.ndarray):
     return R, qty, scale, rank, cond
 
 
-def fit_arx(y: np.ndarray, u: np.ndarray, na: int, nb: int, nk: Sequence[int] | int = 1) -> ArxFit:
+def fit_arx(y: np.ndarray, u: np.ndarray, na: int, nb: int, nk: Sequence[int] | int = 1, segments=None) -> ArxFit:
     """Least-squares ARX fit of one output on several inputs.
 
     Parameters
@@ -193,6 +222,9 @@ def fit_arx(y: np.ndarray, u: np.ndarray, na: int, nb: int, nk: Sequence[int] | 
         Orders of ``A`` and of every ``B_j`` (na >= 0, nb >= 1).
     nk : int or sequence of int
         Delay of each input in samples (>= 0).
+    segments : sequence of (int, int), optional
+        Contiguous runs of rows (data with gaps): the rows of every run are stacked, none reaching
+        across a gap (:func:`segment_lag_matrix`); default one run.
 
     Returns
     -------
@@ -205,11 +237,11 @@ def fit_arx(y: np.ndarray, u: np.ndarray, na: int, nb: int, nk: Sequence[int] | 
     nu = u.shape[1]
     nk = np.full(nu, int(nk)) if np.isscalar(nk) else np.asarray(nk, dtype=int)
     start = max(na, int(np.max(nk + nb - 1)) if nu else 0)
-    cols = [-lag_matrix(y, range(1, na + 1), start)] if na else []
+    cols = [-segment_lag_matrix(y, range(1, na + 1), start, segments)] if na else []
     for j in range(nu):
-        cols.append(lag_matrix(u[:, j], range(nk[j], nk[j] + nb), start))
-    X = np.hstack(cols) if cols else np.zeros((y.shape[0] - start, 0))
-    target = y[start:]
+        cols.append(segment_lag_matrix(u[:, j], range(nk[j], nk[j] + nb), start, segments))
+    target = segment_rows(y, start, segments)
+    X = np.hstack(cols) if cols else np.zeros((target.shape[0], 0))
     R, qty, scale, rank, cond = _scaled_r(X, target)
     p = X.shape[1]
     # scipy.linalg here, as in the functions below: importing the package does not need it.

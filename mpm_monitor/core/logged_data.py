@@ -101,6 +101,11 @@ class LoggedData:
         edges = np.concatenate([[0], breaks, [k.size]])
         return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
 
+    def take(self, rows) -> "LoggedData":
+        """The rows ``rows`` (indices or a boolean mask, in order) as a new object: dropping rows makes gaps."""
+        return dataclasses.replace(self, t=self.t[rows], r=self.r[rows], u=self.u[rows], y=self.y[rows],
+                                   dv=self.dv[rows], extra={k: v[rows] for k, v in self.extra.items()})
+
     def slice(self, start: int, stop: int) -> "LoggedData":
         """Samples ``start:stop`` as a new object."""
         return dataclasses.replace(self, t=self.t[start:stop], r=self.r[start:stop], u=self.u[start:stop],

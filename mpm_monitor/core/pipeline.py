@@ -33,7 +33,9 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
     model : PlantModel
         The controller's model ``Phat``.
     data : LoggedData
-        Setpoints, inputs, measured disturbances and outputs, equally spaced at ``model.sample_time``.
+        Setpoints, inputs, measured disturbances and outputs on the grid of ``model.sample_time``; with
+        gaps (``t`` skips samples) the detections run on the segments stacked and the repair on the
+        longest segment (:func:`repair_data`).
     options : AnalysisOptions
     signals : LoopSignals, optional
         Given to the first detection and to the repair (see
@@ -60,14 +62,17 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
         return report
     columns = model.columns
     located = [(model.outputs.index(e.output), columns.index(e.input)) for e in report.elements if e.mismatch]
-    result = repair_model(model, data, located, RepairOptions(initial_state=options.initial_state),
-                          signals=report.signals)
+    span, note = repair_data(data, report.gaps is not None)
+    result = repair_model(model, span, located, RepairOptions(initial_state=options.initial_state),
+                          signals=report.signals if span is data else None)
     warnings = report.warnings
+    if note and located:
+        warnings.append(note)
     warnings.extend(w for w in result.warnings if w not in warnings)
     doc = result.to_dict()
     if result.model != model:
         after = detect(result.model, data, dataclasses.replace(options, repair=False, test_all_rows=False),
-                       signals=result.signals)
+                       signals=result.signals if span is data else None)
         doc["rsi_after"] = {r.output: r.rsi for r in after.rows}
         doc["rows_flagged_after"] = after.flagged_rows
     kinds = getattr(result, "kinds", {})
@@ -75,3 +80,23 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
         if e.mismatch:
             e.kind = kinds.get((model.outputs.index(e.output), columns.index(e.input)), "unknown")
     return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result)
+
+
+def repair_data(data: LoggedData, gappy: bool) -> tuple:
+    """The data the repair fits: all of ``data``, or with gaps its longest segment.
+
+    The repair's fits and its held-out validation need one contiguous record (their free responses
+    and the held-out split are per record), so on data with gaps it runs on the longest span
+    without a gap; its ``error_before`` / ``error_after`` are then that span's.
+
+    Returns
+    -------
+    (LoggedData, str)
+        The data and, for a segment, the warning that says so ('' for all of ``data``).
+    """
+    if not gappy:
+        return data, ""
+    a, b = max(data.segments, key=lambda s: s[1] - s[0])
+    note = (f"the repair was fitted and validated on the longest span without a gap (t = {float(data.t[a]):g} .. "
+            f"{float(data.t[b - 1]):g} s, {b - a} of {data.n_samples} samples); its prediction errors are that span's")
+    return data.slice(a, b), note

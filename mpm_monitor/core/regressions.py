@@ -59,7 +59,7 @@ import numpy as np
 import scipy.linalg as sla
 from scipy.linalg import blas
 
-from .arx import RANK_TOLERANCE, ArxFit, SharedBlockRegression, SharedFit, fit_arx, lag_matrix
+from .arx import RANK_TOLERANCE, ArxFit, SharedBlockRegression, SharedFit, fit_arx, segment_lag_matrix, segment_rows
 from .model import PlantModel
 
 #: Largest condition number of the scaled regressors for which a regression is solved from its Gram
@@ -144,46 +144,59 @@ class QrRegressions:
     layout : RegressionLayout
     na, nb : int
         ARX orders.
+    segments : sequence of (int, int), optional
+        Data with gaps: the contiguous runs of rows ``(first, end)`` of the signals, stacked one after
+        the other; every run gives its own regression rows ``first + start .. end - 1``, so that no
+        row's lags reach across a gap (docs/interfaces.md, "Gaps").  Default: one run.
     """
 
-    def __init__(self, r, u, z, d, layout: RegressionLayout, na: int, nb: int):
+    def __init__(self, r, u, z, d, layout: RegressionLayout, na: int, nb: int, segments=None):
         self.r, self.u, self.z, self.d = r, u, z, d
         self.layout, self.na, self.nb = layout, na, nb
+        self.segments = None if segments is None else [(int(a), int(b)) for a, b in segments]
         self._u_c = u - u.mean(axis=0)
+
+    def _lags(self, x, lags) -> np.ndarray:
+        return segment_lag_matrix(x, lags, self.layout.start, self.segments)
+
+    @property
+    def n_rows(self) -> int:
+        """Regression rows (of every segment)."""
+        start, n = self.layout.start, self.r.shape[0]
+        return n - start if self.segments is None else sum(b - a - start for a, b in self.segments)
 
     def row_regression(self, r_moving: list) -> SharedBlockRegression:
         """Setpoint lags ``0 .. n_lag_r - 1`` of the moving setpoints (S_Delta row test)."""
         r, lay = self.r, self.layout
         r_c = r - r.mean(axis=0)
-        Xr = lag_matrix(r_c[:, r_moving], range(0, lay.n_lag_r), lay.start) if r_moving else \
-            np.zeros((r.shape[0] - lay.start, 0))
+        Xr = self._lags(r_c[:, r_moving], range(0, lay.n_lag_r)) if r_moving else np.zeros((self.n_rows, 0))
         return SharedBlockRegression(Xr, [lay.n_lag_r] * len(r_moving))
 
     def row_fit(self, reg: SharedBlockRegression, i: int):
         """ARX of ``z_i`` on the setpoints (``reg``) and its own lags 1..na."""
         start = self.layout.start
         zi = self.z[:, i] - self.z[:, i].mean()
-        own = -lag_matrix(zi, range(1, self.na + 1), start) if self.na else None
-        return reg.fit(zi[start:], own)
+        own = -self._lags(zi, range(1, self.na + 1)) if self.na else None
+        return reg.fit(segment_rows(zi, start, self.segments), own)
 
     def input_regression(self, testable: list) -> SharedBlockRegression:
         """Input lags ``1 .. n_lag_u`` of the inputs ``testable`` (Delta element test)."""
         lay = self.layout
-        X = lag_matrix(self._u_c[:, testable], range(1, lay.n_lag_u + 1), lay.start) if testable else \
-            np.zeros((self.u.shape[0] - lay.start, 0))
+        X = self._lags(self._u_c[:, testable], range(1, lay.n_lag_u + 1)) if testable else \
+            np.zeros((self.n_rows, 0))
         return SharedBlockRegression(X, [lay.n_lag_u] * len(testable))
 
     def element_fit(self, reg: SharedBlockRegression, i: int):
         """ARX of ``d_i`` on the input lags (``reg``) and its own lags 1..na."""
         start = self.layout.start
         di = self.d[:, i] - self.d[:, i].mean()
-        own = -lag_matrix(di, range(1, self.na + 1), start) if self.na else None
-        return reg.fit(di[start:], own)
+        own = -self._lags(di, range(1, self.na + 1)) if self.na else None
+        return reg.fit(segment_rows(di, start, self.segments), own)
 
     def short_arx(self, i: int, nk: np.ndarray):
         """The short ARX of ``d_i`` at the delays ``nk`` (the paper's tables); an :class:`ArxFit`."""
         di = self.d[:, i] - self.d[:, i].mean()
-        return fit_arx(di, self._u_c, self.na, self.nb, nk)
+        return fit_arx(di, self._u_c, self.na, self.nb, nk, segments=self.segments)
 
 
 # ----------------------------------------------------------------------------------------- buffer
@@ -780,10 +793,14 @@ class GramRegressions:
     layout : RegressionLayout
     na, nb : int
     max_condition : float
+    segments : sequence of (int, int), optional
+        Data with gaps: the contiguous runs of rows of the signals, as for :class:`QrRegressions`
+        (the Gram matrices then sum the runs' regression rows).
     """
 
     def __init__(self, row_gram: LaggedGram, input_gram: LaggedGram, r, u, z, d, layout: RegressionLayout,
-                 na: int, nb: int, max_condition: float = DEFAULT_MAX_CONDITION):
+                 na: int, nb: int, max_condition: float = DEFAULT_MAX_CONDITION, segments=None):
+        self.segments = None if segments is None else [(int(a), int(b)) for a, b in segments]
         self.row_gram, self.input_gram = row_gram, input_gram
         self.r, self.u, self.z, self.d = r, u, z, d
         self.layout, self.na, self.nb = layout, na, nb
@@ -800,7 +817,7 @@ class GramRegressions:
     @property
     def qr(self) -> QrRegressions:
         if self._qr is None:
-            self._qr = QrRegressions(self.r, self.u, self.z, self.d, self.layout, self.na, self.nb)
+            self._qr = QrRegressions(self.r, self.u, self.z, self.d, self.layout, self.na, self.nb, self.segments)
         return self._qr
 
     def _qr_regression(self, kind: str, channels: tuple) -> SharedBlockRegression:
@@ -887,7 +904,8 @@ class GramRegressions:
         first = max(na, int(np.max(nk + nb - 1)) if nu else 0)
         start = self.layout.start
         if first < start:
-            t = np.arange(first, start)[:, None]
+            t = np.arange(first, start)[:, None] if self.segments is None else \
+                np.concatenate([np.arange(a + first, a + start) for a, _ in self.segments])[:, None]
             d_mean = self.input_means[nu + i]
             lags = (nk[:, None] + np.arange(nb)).ravel()
             channels = np.repeat(np.arange(nu), nb)
@@ -896,7 +914,7 @@ class GramRegressions:
                            self.d[t, i] - d_mean])
             g = g + x.T @ x
             sums = sums + x.sum(axis=0)
-            n += start - first
+            n += t.shape[0]
         try:
             return gram_arx(g, float(sums[-1]), n, na, nb, nk, self.max_condition)
         except IllConditioned:
@@ -905,7 +923,7 @@ class GramRegressions:
 
 
 def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
-                       max_condition: float = DEFAULT_MAX_CONDITION) -> GramRegressions:
+                       max_condition: float = DEFAULT_MAX_CONDITION, segments=None) -> GramRegressions:
     """The tests' regressions on one window, from Gram matrices built at once (the batch analysis).
 
     Both Gram matrices are computed from the window's signals by :func:`lagged_cross_products`,
@@ -922,6 +940,10 @@ def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
     layout : RegressionLayout
     na, nb : int
     max_condition : float
+    segments : sequence of (int, int), optional
+        Data with gaps: the contiguous runs of rows ``(first, end)`` of the signals; each gives the
+        regression rows ``first + start .. end - 1`` and the Gram matrices are their sums, so that no
+        row's lags reach across a gap.  Default: one run.
 
     Returns
     -------
@@ -937,8 +959,16 @@ def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
                 "d": block[:, 2 * ny + nu:]}
     row_gram = LaggedGram([("r", ny, range(0, layout.n_lag_r)), ("z", ny, range(0, na + 1))], signals)
     input_gram = LaggedGram([("u", nu, range(1, layout.n_lag_u + 1)), ("d", ny, range(0, na + 1))], signals)
-    regs = GramRegressions(row_gram, input_gram, r, u, z, d, layout, na, nb, max_condition)
-    start = min(layout.start, n)
-    row_gram.rebuild(buf, start, n, regs.row_means)
-    input_gram.rebuild(buf, start, n, regs.input_means)
+    regs = GramRegressions(row_gram, input_gram, r, u, z, d, layout, na, nb, max_condition, segments)
+    if segments is None:
+        start = min(layout.start, n)
+        row_gram.rebuild(buf, start, n, regs.row_means)
+        input_gram.rebuild(buf, start, n, regs.input_means)
+        return regs
+    for gram, means in ((row_gram, regs.row_means), (input_gram, regs.input_means)):
+        total, sums, rows = 0.0, 0.0, 0
+        for a, b in regs.segments:
+            gram.rebuild(buf, a + layout.start, b, means)
+            total, sums, rows = total + gram.gram, sums + gram.sums, rows + gram.n_rows
+        gram.gram, gram.sums, gram.lo, gram.hi = total, sums, 0, rows
     return regs

@@ -18,7 +18,8 @@ eq. 8).  Rows are decided with Holm's step-down procedure at family-wise level
 ``alpha / N_FAMILIES`` (:mod:`mpm_monitor.core.statistics`).
 
 The regressions come from a provider with the methods of
-:class:`~mpm_monitor.core.regressions.QrRegressions` (``row_regression``, ``row_fit``).
+:class:`~mpm_monitor.core.regressions.QrRegressions` (``row_regression``, ``row_fit``); on data with
+gaps its ``segments`` say which rows are regression rows (docs/interfaces.md, "Gaps").
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import math
 
 import numpy as np
 
+from .arx import segment_rows
 from .model import PlantModel
 from .statistics import N_FAMILIES, holm_adjust
 
@@ -149,7 +151,8 @@ def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressio
             c = fit.block_theta(bj)
             S[:, i, j] += (z_pow[:, :n_lag_r] @ c) / a_poly
         # Fit of the paper's ARX of eps_i on r (same model, target eps_i).
-        e_i = eps[start:, i] - eps[start:, i].mean()
+        e_i = segment_rows(eps[:, i], start, getattr(regressions, "segments", None))
+        e_i = e_i - e_i.mean()
         row_fit[i] = 100.0 * (1.0 - math.sqrt(fit.rss) / max(np.linalg.norm(e_i), 1e-300))
     row_gains = np.linalg.norm(S, axis=2).T                       # (ny, n_freq)
     sigma_max = np.linalg.svd(S, compute_uv=False)[:, 0]

@@ -191,6 +191,35 @@ def compute_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
     return LoopSignals(yhat=yhat, d=d, eps=r - d, transient=transient)
 
 
+def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarray, segments,
+                    initial_state: str = "estimate", dv: np.ndarray = None) -> LoopSignals:
+    """:func:`compute_signals` of every contiguous segment of data with gaps, from the segment's own start.
+
+    The columns in a gap are unknown, so the model output of each segment starts unknown: each is
+    simulated from rest at its first sample with its own initial-transient estimate
+    (``initial_state="estimate"``, row by row, see the module docstring).  Nothing is interpolated.
+
+    Parameters
+    ----------
+    model : PlantModel
+    r, y : ndarray, shape (n_samples, n_outputs)
+    u : ndarray, shape (n_samples, n_inputs)
+    segments : sequence of (int, int)
+        Contiguous runs of rows ``(first, end)``, in order, covering the rows.
+    initial_state : {"estimate", "zero"}
+    dv : ndarray, shape (n_samples, n_disturbances), optional
+
+    Returns
+    -------
+    LoopSignals
+        The segments' signals stacked, shape (n_samples, n_outputs) each.
+    """
+    parts = [compute_signals(model, r[a:b], u[a:b], y[a:b], initial_state, dv=None if dv is None else dv[a:b])
+             for a, b in segments]
+    return LoopSignals(**{f.name: np.vstack([getattr(p, f.name) for p in parts])
+                          for f in dataclasses.fields(LoopSignals)})
+
+
 def error_rms(model: PlantModel, d: np.ndarray) -> dict:
     """``{output name: RMS of its prediction error}``, about its mean on an integrating output.
 

@@ -1,11 +1,12 @@
 """Logged closed-loop data as a CSV file (docs/interfaces.md, "Logged data (CSV)", "Measured disturbances").
 
 One row per sample, header ``t, r_<output>..., <input>..., <disturbance>..., <output>...``; column
-order is free.  Samples must be equally spaced at the model's sample time: a gap, a repeated or
-decreasing ``t``, a missing column or a non-numeric cell in a column the model needs is refused with
-the line and column, never silently mis-aligned.  Every other named column is kept: a numeric one in
-:attr:`LoggedData.extra`, one that is not numeric or partly missing in :attr:`LoggedData.unusable`
-with the reason.
+order is free.  Samples lie on the grid of the model's sample time: ``t`` may skip grid points (rows
+missing: a gap, analysed around, never interpolated; docs/interfaces.md, "Gaps"), but a repeated or
+decreasing ``t``, a ``t`` off the grid, a missing column or a non-numeric cell in a column the model
+needs is refused with the line and column, never silently mis-aligned.  Every other named column is
+kept: a numeric one in :attr:`LoggedData.extra`, one that is not numeric or partly missing in
+:attr:`LoggedData.unusable` with the reason.
 
 Reading has two paths that give the same result.  numpy's C parser (``numpy.loadtxt``) reads a file
 of plain numbers (a 10,000-line file of 61 columns in about a quarter of a second); anything it
@@ -99,7 +100,8 @@ def read_csv(path, model: PlantModel) -> LoggedData:
     -------
     LoggedData
         With ``dv`` in the model's disturbance order, every other numeric column in ``extra`` and
-        the columns that cannot be used in ``unusable`` (name -> reason).
+        the columns that cannot be used in ``unusable`` (name -> reason); ``t`` skips the grid
+        points of missing rows (:attr:`~mpm_monitor.core.logged_data.LoggedData.segments`).
 
     Raises
     ------
@@ -287,16 +289,26 @@ def _numeric_column(cells: list, lines: list):
     return values, ""
 
 
-def _spacing_ok(t: np.ndarray, ts: float) -> bool:
+def _steps_off_grid(t: np.ndarray, ts: float) -> np.ndarray:
+    """True for every step of ``t`` that is not a whole number (>= 1) of sample times, shape (n - 1,).
+
+    A step of ``m`` sample times (``m >= 2``) skips ``m - 1`` grid points: a gap, accepted.
+    """
     with np.errstate(over="ignore", invalid="ignore"):  # t near +-1e308: an infinite step, refused
-        return bool(np.all(np.abs(np.diff(t) - ts) <= SPACING_TOLERANCE * ts))
+        steps = np.diff(t)
+        m = np.maximum(np.rint(steps / ts), 1.0)
+        return ~(np.abs(steps - m * ts) <= SPACING_TOLERANCE * ts)
+
+
+def _spacing_ok(t: np.ndarray, ts: float) -> bool:
+    return not bool(np.any(_steps_off_grid(t, ts)))
 
 
 def _refuse_spacing(t: np.ndarray, lines: list, ts: float, source: str) -> None:
-    """Raise for the first step of ``t`` that is not the sample time (naming its lines)."""
+    """Raise for the first step of ``t`` that is not a whole number of sample times (naming its lines)."""
     with np.errstate(over="ignore", invalid="ignore"):
         steps = np.diff(t)
-        bad = np.flatnonzero(~(np.abs(steps - ts) <= SPACING_TOLERANCE * ts))
+    bad = np.flatnonzero(_steps_off_grid(t, ts))
     k = int(bad[0])
     step = steps[k]
     if step <= 0:

@@ -311,7 +311,8 @@ class MonitorCore:
         waiting = self._waiting_message()
         rows = row_statuses(self.model.outputs, self._latest, self._analysis_error, waiting, hw)
         summary = summary_status(self._latest, self._results, self._analysis_error, waiting,
-                                 window_values(self.window.health(), self.window.n_window), self._active_data_error(),
+                                 window_values(self.window.health(), self.window.n_window, self.window.window_gaps()),
+                                 self._active_data_error(),
                                  self._recent_warnings[-1] if self._recent_warnings else None, hw)
         completed = self.window.n_completed
         summary = with_experiment(summary, self.experiment.text(completed, self._latest),

@@ -108,7 +108,7 @@ def waiting_message(n_window: int, min_samples: int) -> str:
     return f"no analysis yet: the first analysis is running ({n_window} samples collected)"
 
 
-def window_values(health, n_window: int) -> list:
+def window_values(health, n_window: int, window_gaps: tuple = (0, 0)) -> list:
     """The window's counters as summary values.
 
     Parameters
@@ -117,13 +117,25 @@ def window_values(health, n_window: int) -> list:
         :meth:`mpm_monitor.monitor.window.SampleWindow.health`.
     n_window : int
         Samples in the window now.
+    window_gaps : (int, int)
+        Samples lost and gaps inside the window now (:meth:`~mpm_monitor.monitor.window.SampleWindow.window_gaps`).
     """
     h = health
     return [("completed_samples", str(h.completed)), ("window_samples", str(n_window)),
+            ("window_lost_samples", str(window_gaps[0])), ("window_gaps", str(window_gaps[1])),
             ("missing_samples", str(h.missing_samples)), ("gaps", str(h.gaps)),
             ("bad_messages", str(h.bad_value)), ("off_grid", str(h.off_grid)), ("conflicts", str(h.conflict)),
             ("duplicates", str(h.duplicate)), ("late", str(h.late)), ("out_of_order", str(h.out_of_order)),
             ("restarts", str(h.restarts))]
+
+
+def lost_text(data) -> str:
+    """``", 12 lost in 7 gaps"`` for a window whose ``t`` skips samples ('' without a gap)."""
+    segments = data.segments
+    if len(segments) <= 1:
+        return ""
+    lost = int(data.grid_index[-1]) + 1 - data.n_samples
+    return f", {lost} lost in {len(segments) - 1} gap{'s' if len(segments) > 2 else ''}"
 
 
 def stale_reason(now: float, timeout: float, last_complete: Optional[float], started: Optional[float],
@@ -286,7 +298,7 @@ def summary_status(outcome, analyses: int, analysis_error: Optional[str], waitin
         else:
             level = OK
             msg = "no model-plant mismatch detected"
-        msg += f" ({job.data.n_samples} samples up to t = {job.last_stamp:g} s)"
+        msg += f" ({job.data.n_samples} samples up to t = {job.last_stamp:g} s{lost_text(job.data)})"
         if analysis_error:
             level, msg = ERROR, f"{analysis_error}; previous result: {msg}"
     values += list(window)

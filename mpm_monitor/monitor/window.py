@@ -15,8 +15,10 @@ Nothing is silently mis-aligned:
   (different values) and the first is kept;
 * a vector for a sample that is already in the window, or already given up, is ``late``;
 * when a later sample is complete ``reorder_samples`` samples ahead of an incomplete one, the
-  incomplete samples are given up as a ``gap`` and the window restarts after it, because the
-  analysis needs equally spaced samples;
+  incomplete samples are given up as a ``gap``.  A gap of at most ``max_gap`` samples keeps the
+  window: its samples stay, nothing is interpolated, and the analysis gets the window with its ``t``
+  skipping the missing samples (it analyses around them; docs/interfaces.md, "Gaps").  A longer gap
+  restarts the window after it;
 * a vector of the wrong length or with a non-finite value is a ``bad_value``;
 * when more than ``reorder_samples + 1`` (at least 3) output vectors in a row are refused (late,
   off the grid, duplicate or conflicting) while no sample completes, the stream has restarted
@@ -73,6 +75,9 @@ class WindowOptions:
         Hold the latest setpoint instead of requiring one on every sample.
     max_pending : int
         Most incomplete samples kept; beyond it the oldest are given up (>= 1).
+    max_gap : int
+        Longest gap (missing samples) the window keeps its samples across; a longer gap restarts it
+        (>= 0; 0 restarts it at every gap).
     """
 
     window_samples: int = 3000
@@ -80,6 +85,7 @@ class WindowOptions:
     stamp_tolerance: float = 0.25
     hold_setpoint: bool = False
     max_pending: int = 1000
+    max_gap: int = 10
 
     def __post_init__(self):
         check_window_options(self)
@@ -96,6 +102,8 @@ def check_window_options(o: WindowOptions) -> None:
                                  f"got {o.stamp_tolerance!r}")
     if int(o.max_pending) != o.max_pending or not 1 <= o.max_pending <= 10_000_000:
         raise ConfigurationError(f"max_pending: expected an integer in [1, 10000000], got {o.max_pending!r}")
+    if int(o.max_gap) != o.max_gap or not 0 <= o.max_gap <= 10_000_000:
+        raise ConfigurationError(f"max_gap: expected an integer in [0, 10000000] (samples), got {o.max_gap!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -228,8 +236,18 @@ class SampleWindow:
 
     @property
     def n_since_reset(self) -> int:
-        """Contiguous samples completed since the last gap."""
+        """Samples completed since the window last restarted (a gap longer than ``max_gap``, a stream restart)."""
         return self._since_reset
+
+    def window_gaps(self) -> tuple:
+        """``(samples lost, gaps)`` inside the window now: the missing samples it keeps its samples across."""
+        n = self._count
+        if n < 2:
+            return 0, 0
+        cap = self._k_buf.shape[0]
+        k = self._k_buf[(np.arange(self._head - n, self._head)) % cap]
+        steps = np.diff(k)
+        return int(k[-1] - k[0] + 1 - n), int(np.count_nonzero(steps > 1))
 
     @property
     def n_pending(self) -> int:
@@ -490,10 +508,14 @@ class SampleWindow:
         t0 = self._stamp_of(first_missing) / NS_PER_S
         self._health.gaps += 1
         self._health.missing_samples += n_missing
+        keep = 0 < n_missing <= self.options.max_gap and self._count > 0
+        then = (f"the window keeps its samples across the gap (at most max_gap = {self.options.max_gap})" if keep
+                else "the window restarts after the gap")
         self._problem("gap", "", self._stamp_of(first_missing),
-                      f"{n_missing} sample(s) missing from t = {t0:.9g} s ({absent}); the window restarts after the gap")
+                      f"{n_missing} sample(s) missing from t = {t0:.9g} s ({absent}); {then}")
         self._discard_pending_below(first_present, count=False)
-        self._reset_window()
+        if not keep:
+            self._reset_window()
         self._next_k = first_present
 
     def _discard_pending_below(self, k: int, count: bool) -> None:

@@ -5,8 +5,9 @@ A bag holds the stamped vectors ``setpoint``, ``input`` and ``output`` (``sensor
 (the measured disturbances) when the loop has some.  :func:`read_bag` aligns them by stamp on the
 model's sample grid into a :class:`~mpm_monitor.core.logged_data.LoggedData` (the disturbance topic into
 ``dv``, for a model with measured disturbances), so ``analyze --bag`` and ``analyze --data`` see the
-same samples.  Anything that would silently
-mis-align the samples (a missing topic, wrong channel names, a gap, two messages for one sample) is
+same samples.  A sample some topic lacks is a gap: the data's ``t`` skips it, as a CSV's may
+(docs/interfaces.md, "Gaps"; nothing is interpolated).  Anything that would silently mis-align the
+samples (a missing topic, wrong channel names, a stamp off the grid, two messages for one sample) is
 refused with a :class:`~mpm_monitor.core.errors.BagError` of one line naming the bag and the topic.
 :func:`read_raw_messages` gives the serialized messages for replay.
 """
@@ -178,7 +179,7 @@ def _first_names(reader, path, topics) -> dict:
 
 
 def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances=()) -> LoggedData:
-    """Put the topics on one sample grid and check that every sample is there exactly once."""
+    """Put the topics on one sample grid (every sample at most once per topic; the samples a topic lacks are gaps)."""
     ts_ns = sample_time * 1e9
     origin = min(int(s.stamps[0]) for s in series.values())
     ks = {}
@@ -202,23 +203,12 @@ def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances
     if k_last < k_first:
         spans = "; ".join(f"'{s.topic}' {s.stamps[0] / 1e9:g}..{s.stamps[-1] / 1e9:g} s" for s in series.values())
         raise BagError(f"{path}: the topics do not overlap in time ({spans})")
-    n = k_last - k_first + 1
-    out = {}
-    for role, s in series.items():
-        k = ks[role]
-        sel = (k >= k_first) & (k <= k_last)
-        kk = k[sel]
-        if kk.size != n:
-            expect = np.arange(k_first, k_last + 1)
-            missing = np.setdiff1d(expect, kk)
-            m = int(missing[0])
-            nmiss = int(missing.size)
-            raise BagError(f"{path}: topic '{s.topic}': gap: no message for the sample at "
-                           f"{(origin + m * ts_ns) / 1e9:.9g} s ({nmiss} sample{'s' if nmiss > 1 else ''} missing "
-                           f"between {(origin + k_first * ts_ns) / 1e9:.9g} s and "
-                           f"{(origin + k_last * ts_ns) / 1e9:.9g} s)")
-        out[role] = s.values[sel]
-    t = (origin + np.arange(k_first, k_last + 1) * ts_ns) / 1e9
+    # A sample is kept when every topic has it; the others are gaps (t skips them; nothing interpolated).
+    common = np.arange(k_first, k_last + 1)
+    for k in ks.values():
+        common = np.intersect1d(common, k, assume_unique=True)
+    out = {role: s.values[np.isin(ks[role], common)] for role, s in series.items()}
+    t = (origin + common * ts_ns) / 1e9
     dv = out.get("disturbance")
     return LoggedData(t=t, r=out["setpoint"], u=out["input"], y=out["output"], inputs=tuple(inputs),
                       outputs=tuple(outputs), sample_time=float(sample_time), source=str(path), dv=dv,
@@ -231,10 +221,11 @@ def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, pr
     Samples are aligned by ``header.stamp``: a message belongs to sample ``k`` when its stamp is
     ``t0 + k * sample_time`` within :data:`GRID_TOLERANCE` of a sample, ``t0`` the earliest stamp of
     the topics.  Samples before the last topic starts or after the first one ends (a recording
-    started or stopped mid-sample) are dropped; inside that span every topic must hold every sample
-    exactly once.  Channels are matched by name, so their order in the messages is free; extra
-    channels are ignored.  A model with measured disturbances reads them from the disturbance topic
-    (the fourth of ``topics``, default ``disturbance``) into ``dv``.
+    started or stopped mid-sample) are dropped; inside that span a topic holds a sample at most once,
+    and a sample some topic lacks is left out (a gap: ``t`` skips it).  Channels are matched by
+    name, so their order in the messages is free; extra channels are ignored.  A model with
+    measured disturbances reads them from the disturbance topic (the fourth of ``topics``, default
+    ``disturbance``) into ``dv``.
 
     Parameters
     ----------

@@ -1,0 +1,185 @@
+"""Monte-Carlo of data with gaps: one sample in 500 dropped at random, offline and live (issue item 4).
+
+Run::
+
+    python -m bench.gaps_mc [--paper-seeds 20] [--runs 150] [--seed 0] [--samples 3000] [--drop 0.002]
+                            [--jobs 1] [--out bench/results/gaps_mc.json]
+
+Every run simulates one closed loop -- the paper's three cases (:mod:`bench.paper_cases`, seeds
+``1000 ..``) and the random scenarios of :mod:`bench.monte_carlo` (family ``--seed``, indices ``0 ..``)
+-- and analyses it three times with :func:`mpm_monitor.core.pipeline.analyze` (``repair=False``):
+
+* ``full``: the log as simulated;
+* ``offline``: the same log with each sample dropped with probability ``--drop`` (rows removed; the
+  data's ``t`` skips them, as in a CSV with missing rows);
+* ``live``: the same drops, the log fed sample by sample into a
+  :class:`~mpm_monitor.monitor.window.SampleWindow` (the live monitor's window, ``max_gap`` 10, a
+  window as long as the log; a dropped sample's three vectors never arrive) and the window's data
+  analysed.
+
+Figures: the fraction of runs whose located elements (and flagged rows) are the same with drops as
+without (acceptance: at least 99 %), and the false-alarm rate (runs with any located element among
+the runs without a mismatch) of the three analyses.  The drops of run ``k`` are a pure function of
+the run, so ``--jobs`` only changes the speed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from typing import Optional, Sequence
+
+import numpy as np
+
+from mpm_monitor.apps.reproduce import simulate_case
+from mpm_monitor.core.analysis import AnalysisOptions
+from mpm_monitor.core.logged_data import LoggedData
+from mpm_monitor.core.pipeline import analyze
+from mpm_monitor.monitor.window import SampleWindow, WindowOptions
+from mpm_monitor.sim.cases import CASE_NAMES
+
+from . import imap_tasks, write_json
+from .monte_carlo import simulate
+from .scenarios import make_scenario
+
+DEFAULT_OUT = "bench/results/gaps_mc.json"
+DROP = 1.0 / 500
+NS = 1_000_000_000
+OPTIONS = AnalysisOptions(repair=False)
+
+
+def drop_rows(n: int, probability: float, rng: np.random.Generator) -> np.ndarray:
+    """Rows kept when each of ``n`` samples is dropped with ``probability`` (the first and last kept)."""
+    keep = rng.random(n) >= probability
+    keep[0] = keep[-1] = True
+    return np.flatnonzero(keep)
+
+
+def live_window_data(data: LoggedData, kept: np.ndarray, max_gap: int = 10) -> LoggedData:
+    """The samples ``kept`` of ``data`` fed one by one into a SampleWindow; the window's data at the end."""
+    ts = data.sample_time
+    window = SampleWindow(data.outputs, data.inputs, ts,
+                          WindowOptions(window_samples=data.n_samples, reorder_samples=2, max_gap=max_gap))
+    period = int(round(ts * NS))
+    for k in kept:
+        stamp = int(round(data.t[k] / ts)) * period
+        window.add("setpoint", stamp, data.r[k])
+        window.add("input", stamp, data.u[k])
+        window.add("output", stamp, data.y[k])
+    return window.data(source=f"{data.source} (live)")
+
+
+def _located(model, data: LoggedData) -> dict:
+    try:
+        rep = analyze(model, data, OPTIONS)
+    except Exception as exc:  # noqa: BLE001 - a benchmark records the failure and goes on
+        return {"error": f"{type(exc).__name__}: {exc}"}
+    return {"located": sorted([list(x) for x in rep.located_elements]), "rows": sorted(rep.flagged_rows),
+            "samples": rep.samples, "rows_lost": (rep.gaps or {}).get("rows_lost", 0)}
+
+
+def run_one(kind: str, name: str, seed: int, samples: int, drop: float) -> dict:
+    """Simulate one run, drop samples and analyse it full, offline and live; a JSON-ready record."""
+    if kind == "paper":
+        case, data, _ = simulate_case(name, samples, seed)
+        model, truth = case.model, sorted(list(x) for x in case.mismatched_elements)
+        rng_seed = (seed, CASE_NAMES.index(name))
+    else:
+        sc = make_scenario(seed, int(name))
+        data = simulate(sc, samples)
+        model = sc.model
+        truth = sorted([model.outputs[m.output], model.inputs[m.input]] for m in sc.mismatches)
+        rng_seed = (seed, int(name), 7)
+    kept = drop_rows(data.n_samples, drop, np.random.default_rng(list(rng_seed)))
+    offline = data.take(kept)
+    live = live_window_data(data, kept)
+    rec = {"kind": kind, "name": name, "seed": seed, "truth": truth, "dropped": int(data.n_samples - kept.size),
+           "live_samples": int(live.n_samples)}
+    for key, d in (("full", data), ("offline", offline), ("live", live)):
+        rec[key] = _located(model, d)
+    for key in ("offline", "live"):
+        a, b = rec["full"], rec[key]
+        rec[f"same_{key}"] = "error" not in a and "error" not in b and a["located"] == b["located"] \
+            and a["rows"] == b["rows"]
+    return rec
+
+
+def _run_star(args):
+    return run_one(*args)
+
+
+def tasks(paper_seeds: int, runs: int, seed: int, samples: int, drop: float) -> list:
+    out = [("paper", name, s, samples, drop) for name in CASE_NAMES for s in range(1000, 1000 + paper_seeds)]
+    return out + [("mc", str(k), seed, samples, drop) for k in range(runs)]
+
+
+def summarize(records: Sequence[dict]) -> dict:
+    """Agreement with the full log and false-alarm rates, per family and overall."""
+    out = {}
+    for fam in ("paper", "mc", "all"):
+        recs = [r for r in records if fam == "all" or r["kind"] == fam]
+        if not recs:
+            continue
+        clean = [r for r in recs if not r["truth"]]
+        fa = {key: (sum(1 for r in clean if r[key].get("located")) / len(clean) if clean else None)
+              for key in ("full", "offline", "live")}
+        out[fam] = {"runs": len(recs), "dropped_per_run": float(np.mean([r["dropped"] for r in recs])),
+                    "same_offline": sum(r["same_offline"] for r in recs) / len(recs),
+                    "same_live": sum(r["same_live"] for r in recs) / len(recs),
+                    "clean_runs": len(clean), "false_alarm": fa,
+                    "errors": sum(1 for r in recs for k in ("full", "offline", "live") if "error" in r[k]),
+                    "differ": [{k: r[k] for k in ("kind", "name", "seed", "truth")}
+                               | {"full": r["full"].get("located"), "offline": r["offline"].get("located"),
+                                  "live": r["live"].get("located")}
+                               for r in recs if not (r["same_offline"] and r["same_live"])]}
+    return out
+
+
+def format_table(summary: dict, drop: float) -> str:
+    lines = [f"gaps Monte-Carlo: each sample dropped with probability {drop:g}, analyze (repair off), alpha 0.01",
+             f"{'runs':<7}{'n':>5}{'dropped/run':>13}{'same offline':>14}{'same live':>11}"
+             f"{'clean':>7}{'false alarms full / offline / live':>37}"]
+    for fam, s in summary.items():
+        fa = s["false_alarm"]
+        fa_text = " / ".join("-" if fa[k] is None else f"{100 * fa[k]:.1f}%" for k in ("full", "offline", "live"))
+        lines.append(f"{fam:<7}{s['runs']:>5}{s['dropped_per_run']:>13.1f}{100 * s['same_offline']:>13.1f}%"
+                     f"{100 * s['same_live']:>10.1f}%{s['clean_runs']:>7}{fa_text:>37}")
+    return "\n".join(lines)
+
+
+def run(paper_seeds: int, runs: int, seed: int = 0, samples: int = 3000, drop: float = DROP, jobs: int = 1,
+        progress: bool = False) -> dict:
+    todo = tasks(paper_seeds, runs, seed, samples, drop)
+    t0 = time.perf_counter()
+    records = []
+    for rec in imap_tasks(_run_star, todo, jobs):
+        records.append(rec)
+        if progress:
+            print(f"{len(records)}/{len(todo)}", flush=True)
+    return {"config": {"paper_seeds": paper_seeds, "runs": runs, "seed": seed, "samples": samples, "drop": drop,
+                       "jobs": jobs, "wall_time_s": time.perf_counter() - t0},
+            "summary": summarize(records), "records": records}
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m bench.gaps_mc", description=__doc__.split("\n\n")[0])
+    p.add_argument("--paper-seeds", type=int, default=20, help="seeds per paper case (default 20)")
+    p.add_argument("--runs", type=int, default=150, help="random scenarios of bench.monte_carlo (default 150)")
+    p.add_argument("--seed", type=int, default=0, help="scenario family (default 0)")
+    p.add_argument("--samples", type=int, default=3000)
+    p.add_argument("--drop", type=float, default=DROP, help="probability that a sample is dropped (default 1/500)")
+    p.add_argument("--jobs", type=int, default=1)
+    p.add_argument("--progress", action="store_true")
+    p.add_argument("--out", default=DEFAULT_OUT)
+    args = p.parse_args(argv)
+    res = run(args.paper_seeds, args.runs, args.seed, args.samples, args.drop, args.jobs, args.progress)
+    print(format_table(res["summary"], args.drop))
+    for fam, s in res["summary"].items():
+        for d in s["differ"] if fam != "all" else []:
+            print(f"  differs: {d}")
+    write_json(args.out, res)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,151 @@
+"""Data with gaps: which contiguous spans the analysis uses, and what the gaps cost.
+
+Logged data may miss samples: ``t`` skips grid points (:attr:`LoggedData.grid_index`), splitting
+the rows into contiguous segments (:attr:`LoggedData.segments`).  Nothing is ever interpolated
+(docs/interfaces.md, "Gaps").  The analysis (:func:`mpm_monitor.core.analysis.detect`) stacks the
+segments: each segment's model output is computed from its own start
+(:func:`mpm_monitor.core.signals.segment_signals`) and gives its own regression rows, from its
+``start``-th sample on (:class:`~mpm_monitor.core.regressions.RegressionLayout`), so that no
+row's lags reach across a gap.  A segment of at most ``start`` samples gives no row and is left out.
+
+The cost of the gaps is counted against the same span without them: ``samples_lost`` (the missing
+samples plus those of the segments left out) and ``rows_lost`` (the regression rows the span would
+give without a gap, less the rows kept).  A gap up to ``max_gap`` samples is short; a longer one
+splits the data in the same way and is only named louder in the warning.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import numpy as np
+
+from .logged_data import LoggedData
+
+#: Gaps named one by one in the warning; the JSON's ``where`` lists them all.
+NAMED_GAPS = 3
+
+
+@dataclasses.dataclass(frozen=True)
+class GapPlan:
+    """The spans of data with gaps that the analysis uses.
+
+    Attributes
+    ----------
+    segments : list of (int, int)
+        Every contiguous segment, ``(first row, end row)`` of the data.
+    used : list of (int, int)
+        The segments long enough to give a regression row (more than ``start`` samples).
+    start : int
+        First sample of a segment used as a regression row.
+    gap_lengths : ndarray of int, shape (n_gaps,)
+        Missing samples of every gap, in order.
+    gap_where : list of (float, float)
+        Time of the first and of the last missing sample of every gap, seconds.
+    grid_samples : int
+        Samples of the span from the first to the last row, had nothing been missing.
+    max_gap : int
+        Longest gap (samples) called short.
+    """
+
+    segments: list
+    used: list
+    start: int
+    gap_lengths: np.ndarray
+    gap_where: list
+    grid_samples: int
+    max_gap: int
+
+    @property
+    def samples_used(self) -> int:
+        return sum(b - a for a, b in self.used)
+
+    @property
+    def rows_kept(self) -> int:
+        """Regression rows of the segments used."""
+        return sum(b - a - self.start for a, b in self.used)
+
+    @property
+    def rows_lost(self) -> int:
+        """Regression rows the span would give without a gap, less the rows kept."""
+        return max(self.grid_samples - self.start, 0) - self.rows_kept
+
+    @property
+    def samples_missing(self) -> int:
+        return int(self.gap_lengths.sum())
+
+    @property
+    def samples_lost(self) -> int:
+        """The missing samples and the samples of the segments left out."""
+        return self.grid_samples - self.samples_used
+
+    @property
+    def local_segments(self) -> list:
+        """The used segments as runs of rows of the used rows stacked (:meth:`take`)."""
+        edges = np.cumsum([0] + [b - a for a, b in self.used])
+        return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+
+    @property
+    def longest(self) -> tuple:
+        """The longest used segment, ``(first row, end row)`` of the data."""
+        return max(self.used, key=lambda s: s[1] - s[0])
+
+    def take(self, x: np.ndarray) -> np.ndarray:
+        """The rows of the used segments of ``x`` (shape (n_samples, ...)), stacked."""
+        return np.concatenate([x[a:b] for a, b in self.used]) if self.used else x[:0]
+
+    def to_dict(self) -> dict:
+        """The report's JSON ``gaps`` object (docs/interfaces.md, "Gaps")."""
+        return {"count": int(self.gap_lengths.size), "longest": int(self.gap_lengths.max(initial=0)),
+                "samples_lost": int(self.samples_lost), "samples_missing": self.samples_missing,
+                "rows_lost": int(self.rows_lost), "rows_kept": int(self.rows_kept),
+                "segments_used": len(self.used), "segments_left_out": len(self.segments) - len(self.used),
+                "max_gap": int(self.max_gap), "where": [[float(a), float(b)] for a, b in self.gap_where]}
+
+    def warning(self) -> str:
+        """The gaps in words, e.g. ``3 gaps (longest 2 samples, at t = 120 s, 431 s and 1022 s): ...``."""
+        n = self.gap_lengths.size
+        at = [f"{a:g}" for a, _ in self.gap_where[:NAMED_GAPS]]
+        where = (", ".join(at[:-1]) + " and " + at[-1]) if len(at) > 1 else at[0]
+        if n > NAMED_GAPS:
+            where += f" and {n - NAMED_GAPS} more"
+        longest = int(self.gap_lengths.max())
+        text = (f"{n} gap{'s' if n != 1 else ''} in the data (longest {longest} sample{'s' if longest != 1 else ''}, "
+                f"at t = {where} s): {self.samples_missing} sample{'s' if self.samples_missing != 1 else ''} "
+                f"missing, {self.rows_lost} regression rows lost; nothing is interpolated, no regression row "
+                f"reaches across a gap")
+        long_gaps = int(np.sum(self.gap_lengths > self.max_gap))
+        if long_gaps:
+            text += (f"; {long_gaps} gap{'s' if long_gaps != 1 else ''} longer than max_gap = {self.max_gap} samples "
+                     f"split{'' if long_gaps != 1 else 's'} the data into spans analysed as separate segments")
+        left_out = len(self.segments) - len(self.used)
+        if left_out:
+            lost = sum(b - a for a, b in self.segments) - self.samples_used
+            text += (f"; {left_out} span{'s' if left_out != 1 else ''} between gaps too short for a regression row "
+                     f"(at most {self.start} samples) left out ({lost} samples)")
+        return text
+
+
+def plan_gaps(data: LoggedData, start: int, max_gap: Optional[int] = None) -> Optional[GapPlan]:
+    """The :class:`GapPlan` of ``data``, or None when no sample is missing.
+
+    Parameters
+    ----------
+    data : LoggedData
+    start : int
+        First sample of a segment used as a regression row (the longest lag of the tests).
+    max_gap : int, optional
+        Longest gap (samples) called short; default ``start``.
+    """
+    segments = data.segments
+    if len(segments) <= 1:
+        return None
+    k = data.grid_index
+    first = np.array([a for a, _ in segments[1:]])
+    lengths = k[first] - k[first - 1] - 1
+    ts = float(data.sample_time)
+    where = [(float(data.t[f - 1]) + ts, float(data.t[f]) - ts) for f in first]
+    used = [(a, b) for a, b in segments if b - a > start]
+    return GapPlan(segments=segments, used=used, start=int(start), gap_lengths=lengths.astype(int), gap_where=where,
+                   grid_samples=int(k[-1] + 1), max_gap=int(start if max_gap is None else max_gap))

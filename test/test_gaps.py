@@ -1,0 +1,180 @@
+"""Data with gaps (docs/interfaces.md, "Gaps"): the analysis around missing samples.
+
+No regression row reaches across a gap, nothing is interpolated, the statistics use the rows kept,
+and the report says what the gaps cost (``samples``, the JSON ``gaps`` object, a warning).
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from mpm_monitor.apps.cli import main
+from mpm_monitor.apps.reproduce import simulate_case
+from mpm_monitor.core.analysis import AnalysisOptions, detect
+from mpm_monitor.core.errors import DataFileError
+from mpm_monitor.core.gaps import plan_gaps
+from mpm_monitor.core.pipeline import analyze
+from mpm_monitor.core.regressions import regression_layout
+from mpm_monitor.io.csv_log import read_csv, write_csv
+
+DETECT = AnalysisOptions(repair=False)
+
+
+@pytest.fixture(scope="module")
+def case_32():
+    case, data, _ = simulate_case("3.2", 3000, 1000)
+    return case, data
+
+
+def _drop(data, rows):
+    return data.take(np.setdiff1d(np.arange(data.n_samples), rows))
+
+
+def test_regression_rows_dropped_exactly_around_the_gaps(case_32):
+    case, data = case_32
+    start = regression_layout(case.model, DETECT).start
+    gappy = _drop(data, [700, 1500, 1501, 1502])      # two gaps, far apart: 1 and 3 samples missing
+    full = detect(case.model, data, DETECT)
+    rep = detect(case.model, gappy, DETECT)
+    # By hand: segments 0..699, 701..1499, 1503..2999 give (700 - s) + (799 - s) + (1497 - s) rows;
+    # without the gaps 3000 - s.  Lost: the 4 missing samples and the first s rows after each gap.
+    kept = (700 - start) + (799 - start) + (1497 - start)
+    assert rep.gaps["rows_kept"] == kept
+    assert rep.gaps["rows_lost"] == (3000 - start) - kept == 4 + 2 * start
+    for a, b in zip(full.rows, rep.rows):
+        assert a.df[0] == b.df[0]
+        assert a.df[1] - b.df[1] == 4 + 2 * start      # the denominator's degrees of freedom: rows kept
+    assert rep.samples == 2996
+    assert rep.gaps["count"] == 2 and rep.gaps["longest"] == 3 and rep.gaps["samples_lost"] == 4
+    assert rep.gaps["segments_used"] == 3 and rep.gaps["where"] == [[700.0, 700.0], [1500.0, 1502.0]]
+
+
+def test_a_gappy_record_locates_the_same_elements(case_32):
+    case, data = case_32
+    full = analyze(case.model, data, DETECT)
+    rng = np.random.default_rng(5)
+    gappy = _drop(data, np.sort(rng.choice(np.arange(50, 2950), size=6, replace=False)))
+    rep = analyze(case.model, gappy, DETECT)
+    assert set(rep.located_elements) == set(full.located_elements) == set(case.mismatched_elements)
+    assert set(rep.flagged_rows) == set(full.flagged_rows)
+
+
+def test_the_json_gaps_object_and_the_warning(case_32):
+    case, data = case_32
+    rep = detect(case.model, _drop(data, [1000, 1001, 2400]), DETECT)
+    doc = json.loads(json.dumps(rep.to_dict()))
+    g = doc["gaps"]
+    assert {"count", "longest", "samples_lost", "rows_lost", "segments_used", "where"} <= set(g)
+    assert (g["count"], g["longest"], g["samples_lost"], g["segments_used"]) == (2, 2, 3, 3)
+    assert doc["samples"] == 2997
+    assert doc["warnings"][0].startswith("2 gaps in the data (longest 2 samples, at t = 1000 and 2400 s): "
+                                         f"3 samples missing, {g['rows_lost']} regression rows lost")
+    assert "gaps" not in detect(case.model, data, DETECT).to_dict()       # no gap: no object
+
+
+def test_a_gap_longer_than_max_gap_is_named_louder_and_short_spans_are_left_out(case_32):
+    case, data = case_32
+    start = regression_layout(case.model, DETECT).start
+    # 200 samples missing from t = 1000 s, then a span of 10 samples (too short for a row), then a gap of 1
+    gappy = _drop(data, list(range(1000, 1200)) + [1210])
+    rep = detect(case.model, gappy, DETECT)
+    assert rep.gaps["segments_used"] == 2 and rep.gaps["segments_left_out"] == 1
+    assert rep.gaps["samples_lost"] == 201 + 10 and rep.samples == 3000 - 211
+    assert rep.gaps["rows_kept"] == (1000 - start) + (3000 - 1211 - start)
+    w = rep.warnings[0]
+    assert f"1 gap longer than max_gap = {start} samples" in w and "1 span between gaps too short" in w
+    quiet = detect(case.model, gappy, AnalysisOptions(repair=False, max_gap=500))
+    assert "longer than max_gap" not in quiet.warnings[0]
+    assert [r.df for r in quiet.rows] == [r.df for r in rep.rows]        # the same analysis
+
+
+def test_too_few_rows_between_gaps_refused_in_one_line(case_32):
+    case, data = case_32
+    with pytest.raises(DataFileError, match=r"regression rows from 0 of 300 spans between 299 gaps .* need at least"):
+        detect(case.model, data.take(np.arange(0, 3000, 10)), DETECT)
+
+
+def test_the_repair_runs_on_the_longest_span(case_32):
+    case, data = case_32
+    rep = analyze(case.model, _drop(data, [900]), AnalysisOptions())
+    assert set(rep.located_elements) == set(case.mismatched_elements)
+    assert any("the repair was fitted and validated on the longest span without a gap (t = 901 .. 2999 s, "
+               "2099 of 2999 samples)" in w for w in rep.warnings)
+    assert rep.repair["changes"]
+
+
+def test_plan_of_data_without_gaps_is_none(case_32):
+    case, data = case_32
+    assert plan_gaps(data, 20) is None
+
+
+def test_analyze_command_on_a_gappy_csv(tmp_path, capsys, case_32):
+    case, data = case_32
+    from mpm_monitor.io.model_file import save_model
+
+    gappy = _drop(data, [500, 501, 2000])
+    csv = tmp_path / "gappy.csv"
+    write_csv(csv, gappy.t, gappy.r, gappy.u, gappy.y, gappy.inputs, gappy.outputs)
+    assert read_csv(csv, case.model).segments == gappy.segments
+    save_model(case.model, tmp_path / "model.yaml")
+    assert main(["analyze", "--model", str(tmp_path / "model.yaml"), "--data", str(csv), "--no-repair",
+                 "--json", "-"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["samples"] == 2997 and doc["gaps"]["count"] == 2
+    assert {(e["output"], e["input"]) for e in doc["elements"] if e["mismatch"]} == set(case.mismatched_elements)
+
+
+def test_live_window_keeps_its_samples_across_short_gaps_and_the_summary_counts_them(case_32):
+    from mpm_monitor.monitor.monitor_core import MonitorCore, MonitorOptions
+    from mpm_monitor.monitor.statuses import SUMMARY_NAME
+    from mpm_monitor.monitor.window import WindowOptions
+    from mpm_monitor.monitor.worker import run_analysis
+
+    case, data = case_32
+    ns = 1_000_000_000
+    window = WindowOptions(window_samples=3000, reorder_samples=2, max_gap=10)
+    c = MonitorCore(case.model, MonitorOptions(window=window, analysis_period=3000, min_samples=2900))
+    dropped = {400, 1700, 1701}
+    for k in range(data.n_samples):
+        if k in dropped:
+            continue
+        for channel, values in (("setpoint", data.r[k]), ("input", data.u[k]), ("output", data.y[k])):
+            c.add(channel, k * ns, values, now=0.0)
+    assert c.window.n_window == 2997 and c.window.window_gaps() == (3, 2)
+    assert c.analysis_due(force=True)
+    job = c.take_job()
+    np.testing.assert_array_equal(job.data.t, np.delete(data.t, sorted(dropped)))
+    outcome = run_analysis(analyze, case.model, DETECT, job)
+    assert outcome.error is None, outcome.error
+    assert set(outcome.report.located_elements) == set(case.mismatched_elements)
+    c.accept(outcome)
+    summary = {s.name: s for s in c.statuses(now=0.0)}[SUMMARY_NAME]
+    assert "2997 samples up to t = 2999 s, 3 lost in 2 gaps" in summary.message
+    values = dict(summary.values)
+    assert values["window_lost_samples"] == "3" and values["window_gaps"] == "2" and values["gaps"] == "2"
+
+
+def test_gram_and_qr_regressions_agree_on_segments(case_32):
+    from mpm_monitor.core.regressions import QrRegressions, window_regressions
+
+    case, data = case_32
+    gappy = _drop(data, [300, 301, 1800, 2500])
+    layout = regression_layout(case.model, DETECT)
+    plan = plan_gaps(gappy, layout.start)
+    r, u = plan.take(gappy.r), plan.take(gappy.u)
+    sig = detect(case.model, gappy, DETECT).signals
+    d = np.vstack([sig.d[a:b] - sig.d[a:b].mean(axis=0) for a, b in plan.local_segments])
+    segs = plan.local_segments
+    gram = window_regressions(r, u, -d, d, layout, 4, 4, segments=segs)
+    qr = QrRegressions(r, u, -d, d, layout, 4, 4, segments=segs)
+    assert qr.n_rows == plan.rows_kept
+    for regs in (gram, qr):
+        regs.fits = [regs.element_fit(regs.input_regression([0, 1, 2]), i) for i in range(2)]
+        regs.rows = [regs.row_fit(regs.row_regression([0, 1]), i) for i in range(2)]
+        regs.short = regs.short_arx(0, np.array([3, 4, 5]))
+    for a, b in zip(gram.fits + gram.rows, qr.fits + qr.rows):
+        np.testing.assert_allclose(a.theta, b.theta, rtol=1e-7, atol=1e-9)
+        assert a.rss == pytest.approx(b.rss, rel=1e-8) and a.dof == b.dof
+    np.testing.assert_allclose(gram.short.theta, qr.short.theta, rtol=1e-7, atol=1e-9)
+    assert gram.short.dof == qr.short.dof
