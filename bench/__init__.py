@@ -18,6 +18,20 @@ def write_json(path, result, default=float) -> None:
     print(f"wrote {path}")
 
 
+def mc_parser(prog: str, doc: str, runs: int, out: Path):
+    """The command line of a Monte-Carlo bench: ``--runs --seed --samples --jobs --alpha --out``."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog=prog, description=doc.split("\n\n")[0])
+    parser.add_argument("--runs", type=int, default=runs)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--samples", type=int, default=3000)
+    parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument("--alpha", type=float, default=0.01)
+    parser.add_argument("--out", type=Path, default=out)
+    return parser
+
+
 def imap_tasks(fn, tasks, jobs: int = 1):
     """``fn(task)`` for every task, in order: in this process, or in ``jobs`` spawned processes when ``jobs > 1``."""
     if jobs > 1:

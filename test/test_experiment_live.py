@@ -6,9 +6,9 @@ simulated time.
 
 Acceptance ("Detectability, and the experiment that resolves what the data cannot", part 3): a fat
 plant (2 outputs, 4 inputs, one mismatched element) monitored with ``auto_experiment: true`` goes
-from ambiguous (the inputs move together, no element located) to an experiment (the monitor asks
-the MPC node for a dither, which runs and stops by itself) to the exact located element, in the
-analysis of the window that includes the experiment.
+from ambiguous (the inputs move together, no element located) to the experiment the analysis itself
+recommends (the monitor asks the MPC node for that dither, which runs and stops by itself) to the
+exact located element, in the analysis of the window that includes the experiment.
 """
 
 
@@ -28,6 +28,7 @@ from sensor_msgs.msg import JointState  # noqa: E402
 
 from mpm_monitor.apps.demo import Suite, _overrides, private_context  # noqa: E402
 from mpm_monitor.core.model import PlantModel  # noqa: E402
+from mpm_monitor.core.pipeline import analyze as real_analyze  # noqa: E402
 from mpm_monitor.io.model_file import save_model  # noqa: E402
 from mpm_monitor.monitor.statuses import SUMMARY_NAME  # noqa: E402
 from mpm_monitor.nodes.ros_io import VectorCodec, diagnostics_qos, make_executor, spin_until, vector_qos  # noqa: E402
@@ -402,40 +403,21 @@ FAT_PLANT = PlantModel(sample_time=1.0, inputs=("u1", "u2", "u3", "u4"), outputs
 FAT_MODEL = FAT_PLANT.replace(gain=[[1.0, 0.6, 0.8, 0.8], [0.4, 1.2, 0.5, 0.9]], name="fat model, (y1, u4) off")
 
 
-def analyze_recommending(model, data, options):
-    """The real analysis, with a stand-in for the core's recommendation while the core has none.
-
-    When the report has no ``experiment`` attribute (a core without the recommendation), a group of
-    inputs that cannot be told apart gets the experiment a fat plant needs: a PRBS on the inputs of
-    the group beyond the first ``n_outputs`` (the controller moves the inputs in ``n_outputs``
-    directions), amplitude 0.15 (half their std in this loop) for 1500 samples.  A report that has
-    the attribute is left as the core made it.
-    """
-    from mpm_monitor.core.pipeline import analyze
-
-    report = analyze(model, data, options)
-    if not hasattr(report, "experiment"):
-        group = next((g for g in report.collinear_groups if len(g) > model.n_outputs), None)
-        report.experiment = None if group is None else types.SimpleNamespace(
-            dither={i: 0.15 for i in group[model.n_outputs:]}, samples=1500,
-            expected_detectable_gain_change=float("nan"), why=f"inputs {', '.join(group)} move together")
-    return report
-
-
 def test_acceptance_a_fat_plant_goes_from_ambiguous_to_an_experiment_to_the_exact_element(tmp_path):
     ctx = private_context()
     ns = "/fat"
     plant_file, model_file = str(tmp_path / "plant.yaml"), str(tmp_path / "model.yaml")
     save_model(FAT_PLANT, plant_file)
     save_model(FAT_MODEL, model_file)
-    analyses = []
+    analyses, input_std = [], []
 
     def analyze(model, data, options):
-        report = analyze_recommending(model, data, options)
+        report = real_analyze(model, data, options)      # the real pipeline, with its own experiment
         analyses.append((float(data.t[0]), float(data.t[-1]), report))
+        input_std.append(data.u.std(axis=0))
         return report
 
-    samples = 4000
+    samples = 4600    # the experiment (capped at the window: 3000 samples) starts after the first analysis
     params = {
         "plant": {"model_file": plant_file, "seed": 3, "max_samples": samples, "clock_topic": "clock"},
         "setpoint": {"model_file": model_file, "mode": "prbs", "seed": 3, "amplitude": 1.0,
@@ -464,9 +446,16 @@ def test_acceptance_a_fat_plant_goes_from_ambiguous_to_an_experiment_to_the_exac
         assert analyses[0][:2] == (0.0, 1499.0)
         assert first.flagged_rows == ["y1"] and first.located_elements == []
         assert {e.input for e in first.elements if e.output == "y1" and e.ambiguous} == {"u1", "u2", "u3", "u4"}
-        assert first.experiment is not None
+        # the core's own recommendation: the controller moves the 4 inputs in 2 directions, so 2 inputs are
+        # dithered, each within half its std in the window, for more samples than the window holds
+        exp = first.experiment
+        assert exp is not None and len(exp.dither) == 2 and exp.expected_detectable_gain_change <= 0.2
+        assert all(0 < a <= 0.5 * input_std[0][FAT_MODEL.inputs.index(k)] + 1e-3 for k, a in exp.dither.items())
+        assert exp.samples > 3000
+        assert exp.why.startswith("the closed loop moves u1, u2, u3, u4 together")
         # 2. the experiment: one call, the dither on the recommended inputs for its samples, then the zero vector
         rec = suite.monitor.core.experiment.current
+        assert rec.samples == 3000 and set(rec.inputs) == set(exp.dither)     # as requested: capped at the window
         assert suite.mpc.experiments == 1 and suite.monitor.core.experiment.started == 1
         assert len(dither) == rec.samples + 1 and not np.any(dither[-1][1])
         on = [FAT_MODEL.inputs[j] for j in np.flatnonzero(dither[0][1])]
@@ -485,8 +474,10 @@ def test_acceptance_a_fat_plant_goes_from_ambiguous_to_an_experiment_to_the_exac
         assert all(r.located_elements == [("y1", "u4")] for a, b, r in analyses if a <= start and b >= end)
         assert suite.spin_until(lambda: summaries and summaries[-1][1].get("located_elements") == "y1:u4"
                                 and summaries[-1][1].get("window_end") == repr(float(samples - 1)), 10.0)
-        assert f"this analysis includes the experiment: dither on {', '.join(rec.inputs)} for {rec.samples} samples " \
-               f"(t = {start:g}-{end:g} s)" in summaries[-1][0]
+        # (a window of 3000 samples holds the 3000 samples of the experiment only when it ends with it)
+        assert any(f"this analysis includes the experiment: dither on {', '.join(rec.inputs)} for {rec.samples} "
+                   f"samples (t = {start:g}-{end:g} s)" in m and v.get("located_elements") == "y1:u4"
+                   for m, v in summaries)
     finally:
         suite.close()
         ctx.try_shutdown()

@@ -55,12 +55,12 @@ def test_report_renders_with_figures(case32, tmp_path):
     out = write_report(tmp_path / "rep", case.model, data, report)
     assert out == tmp_path / "rep" / "report.html"
     text = out.read_text(encoding="utf-8")
-    for name in ("sdelta", "elements", "steps", "residuals"):
+    for name in ("sdelta", "elements", "detectability", "steps", "residuals"):
         png = tmp_path / "rep" / f"{name}.png"
         _assert_png_not_empty(png)
         # embedded, byte for byte, in the self-contained HTML
         assert base64.b64encode(png.read_bytes()).decode() in text
-    assert len(re.findall(r'src="data:image/png;base64,', text)) == 4
+    assert len(re.findall(r'src="data:image/png;base64,', text)) == 5
     for o, i in case.mismatched_elements:
         assert f"({o}, {i})" in text
     assert "Mismatch in rows y1, y2" in text

@@ -45,7 +45,7 @@ def test_a_report_with_measured_disturbances_renders(disturbance_report, tmp_pat
     assert report.located_elements == [("y2", "dv1")]
     out = write_report(tmp_path / "rep", model, data, report)
     text = out.read_text(encoding="utf-8")
-    assert len(re.findall(r'src="data:image/png;base64,', text)) == 4
+    assert len(re.findall(r'src="data:image/png;base64,', text)) == 5     # with the detectability map
     assert "1 measured disturbance (dv1)" in text
     assert "(y2, dv1)" in text
     # The repair table names the element's lead and second lag.

@@ -135,6 +135,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--samples", type=int, default=3000)
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--dither", type=float, default=0.0, help="amplitude of a PRBS dither on every input")
+    p.add_argument("--experiment", default=None, metavar="REPORT_JSON",
+                   help="add the dither of the experiment an analyze --json report recommends (its amplitude per "
+                        "input, switching with probability 1/2); instead of --dither")
     p.add_argument("--csv", required=True, help="output CSV file")
     p.add_argument("--write-model", help="also write the controller model file here")
 
@@ -239,6 +242,9 @@ def _cmd_simulate(args) -> int:
             raise InputError("simulate: give --case, or both --plant and --model")
         plant, model = load_model(args.plant), load_model(args.model)
         exc = ExcitationOptions(dither=PrbsOptions(amplitude=args.dither) if args.dither > 0 else None)
+        if args.experiment:
+            exc = ExcitationOptions(dither=PrbsOptions(amplitude=1.0, switch_probability=0.5),
+                                    dither_amplitudes=_experiment_dither(args.experiment, model))
         log = run_closed_loop(plant, model, args.samples, seed=args.seed, mpc=MpcOptions(), excitation=exc)
     write_log_csv(args.csv, log)
     if args.write_model:
@@ -247,6 +253,30 @@ def _cmd_simulate(args) -> int:
     print(f"wrote {log.n_samples} samples to {args.csv}; prediction error RMS: "
           + ", ".join(f"{o}={v:.4f}" for o, v in zip(log.outputs, rms)))
     return 0
+
+
+def _experiment_dither(path: str, model) -> tuple:
+    """The dither amplitude of every input (0 where none) of the ``experiment`` in an analyze --json report."""
+    import json
+
+    try:
+        with open(path, encoding="utf-8") as fh:
+            doc = json.load(fh)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: cannot read the report: {exc}") from None
+    exp = doc.get("experiment") if isinstance(doc, dict) else None
+    if not isinstance(exp, dict) or not isinstance(exp.get("dither"), dict):
+        raise InputError(f"{path}: key 'experiment': expected an object with a 'dither' (this report recommends "
+                         f"no experiment)")
+    dither = exp["dither"]
+    unknown = [k for k in dither if k not in model.inputs]
+    if unknown:
+        raise InputError(f"{path}: key 'experiment.dither': unknown input(s) {', '.join(unknown)}; the model's "
+                         f"inputs are {', '.join(model.inputs)}")
+    bad = [k for k, v in dither.items() if not isinstance(v, (int, float)) or not v >= 0]
+    if bad:
+        raise InputError(f"{path}: key 'experiment.dither': expected amplitudes >= 0, got {bad[0]}={dither[bad[0]]!r}")
+    return tuple(float(dither.get(name, 0.0)) for name in model.inputs)
 
 
 def _cmd_demo(args) -> int:

@@ -202,6 +202,9 @@ class AnalysisReport:
         (:meth:`~mpm_monitor.core.regressions.GramRegressions.row_test_part`), for a detection of
         another model on the same data (``detect(..., previous=report)``); None in what
         :func:`~mpm_monitor.core.pipeline.analyze` returns.
+    experiment : Experiment or None
+        The dither experiment that would resolve what this window cannot decide (ambiguous elements,
+        or no element decidable at 20 %), :mod:`mpm_monitor.core.experiment`; None when not needed.
     """
 
     sample_time: float
@@ -224,6 +227,7 @@ class AnalysisReport:
     signals: Optional[LoopSignals] = None
     repair_result: object = None
     gaps: Optional[dict] = None
+    experiment: object = None
     regressions: object = dataclasses.field(default=None, compare=False, repr=False)
 
     @property
@@ -271,6 +275,7 @@ class AnalysisReport:
                              "groups": [list(g) for g in self.collinear_groups]},
             "arx_tables": [dataclasses.asdict(t) for t in self.arx_tables],
             "repair": self.repair,
+            "experiment": self.experiment.to_dict() if self.experiment is not None else None,
             "warnings": list(self.warnings),
         }
         if self.gaps is not None:
@@ -296,10 +301,42 @@ class AnalysisReport:
             moving = "inputs and measured disturbances" if any(e.role == "disturbance" for e in amb) else "inputs"
             lines.append(f"ambiguous ({moving} move together): "
                          + ", ".join(f"({e.output}, {_column_label(e)})" for e in amb))
+        lines += detectability_summary_lines(self.elements, self.experiment)
         lines += repair_summary_lines(self.repair)
         for w in self.warnings:
             lines.append(f"warning: {w}")
         return "\n".join(lines)
+
+
+def _detectable_text(x) -> str:
+    """A detectable gain change as a percentage (``35%``; ``>1000%``), ``n/a`` where it cannot be computed."""
+    if x is None or not math.isfinite(x):
+        return "n/a"
+    return ">1000%" if x > 10 else f"{100 * x:.0f}%"
+
+
+def detectability_summary_lines(elements: list, experiment) -> list:
+    """The summary's lines on the detectable gain change of every tested element, and the experiment.
+
+    One line per tested row, ``y1: u1 12%, u2 35%, u3 n/a (ambiguous)``: the smallest relative gain
+    error of each element this window detects with probability 0.9 (``n/a`` where it cannot be
+    computed); then the recommended experiment, if any, with its ``why``.
+    """
+    tested = [e for e in elements if getattr(e, "detectable_gain_change", None) is not None or e.ambiguous]
+    lines = []
+    if tested:
+        lines.append("detectable gain change (smallest relative gain error detected with probability 0.9):")
+        for out in dict.fromkeys(e.output for e in tested):
+            lines.append(f"  {out}: " + ", ".join(
+                f"{_column_label(e)} {_detectable_text(e.detectable_gain_change)}"
+                + (" (ambiguous)" if e.ambiguous and not e.mismatch else "") for e in tested if e.output == out))
+    if experiment is not None:
+        dither = ", ".join(f"{k} {v:g}" for k, v in experiment.dither.items())
+        lines.append(f"experiment recommended: PRBS dither on {dither} (input units) for {experiment.samples} samples; "
+                     f"expected detectable gain change "
+                     f"{_detectable_text(experiment.expected_detectable_gain_change)}")
+        lines.append(f"  why: {experiment.why}")
+    return lines
 
 
 def _column_label(e) -> str:
@@ -353,11 +390,13 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     """
     # The tests are imported here: the options and the report above are described (the command line's
     # flags, the monitor's parameters) without the scipy they need.
+    from .detectability import element_detectability
+    from .discretize import model_columns
     from .element_test import InputDesign, arx_element_test, baseline_element_test
+    from .experiment import design_experiment
+    from .gaps import plan_gaps
     from .regressions import regression_layout, window_regressions
     from .row_test import sdelta_row_test
-    from .discretize import model_columns
-    from .gaps import plan_gaps
     from .signals import compute_signals, error_rms, segment_signals
 
     ny = model.n_outputs
@@ -414,6 +453,18 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         warnings.append(f"the {options.method} element test ran on the longest span without a gap ({b - a} samples)")
     warnings += element_test.warnings
     elements = element_test.elements
+    info = None
+    if options.method == "arx":
+        span = slice(None)
+        if plan is not None:      # the moments need one contiguous span: the longest (a conservative value)
+            a, b = max(plan.local_segments, key=lambda s: s[1] - s[0])
+            span = slice(a, b)
+        info, detectable, why = element_detectability(model, columns[span], sig.d[span], design,
+                                                      element_test.noise, layout, options)
+        warnings += why
+        for e in elements:
+            e.detectable_gain_change = detectable.get((model.outputs.index(e.output), model.columns.index(e.input)))
+    experiment = design_experiment(model, info, elements, options, layout)
 
     # A row in which an element is located is mismatched, even when its S_Delta test did not reject.
     for i in range(ny):
@@ -439,7 +490,7 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         frequencies=row_test.frequencies, row_gains=row_test.row_gains, sigma_max=row_test.sigma_max,
         sdelta_response=row_test.response, arx_tables=element_test.arx_tables, repair=unrepaired,
         repaired_model=model, collinear_groups=design.groups, max_variance_inflation=design.max_vif, signals=sig,
-        gaps=None if plan is None else plan.to_dict(),
+        gaps=None if plan is None else plan.to_dict(), experiment=experiment,
         regressions=regressions.row_test_part() if getattr(regressions, "batch", False) else None)
 
 

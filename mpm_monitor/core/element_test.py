@@ -69,6 +69,9 @@ class ElementResult:
         ARX ``B_ij`` coefficients at that delay (``nb`` values).
     role : str
         ``"input"`` (a manipulated input) or ``"disturbance"`` (a measured disturbance).
+    detectable_gain_change : float or None
+        Smallest relative gain error of the element this window detects with probability 0.9
+        (:mod:`mpm_monitor.core.detectability`); None where it cannot be computed.
     """
 
     output: str
@@ -83,6 +86,7 @@ class ElementResult:
     delay: Optional[int] = None
     b: list = dataclasses.field(default_factory=list)
     role: str = "input"
+    detectable_gain_change: Optional[float] = None
 
 
 @dataclasses.dataclass
@@ -114,6 +118,30 @@ class GroupHit:
     p_value: float
 
 
+@dataclasses.dataclass(frozen=True)
+class RowNoise:
+    """What the element test of one row estimated about its noise.
+
+    Attributes
+    ----------
+    sigma2 : float
+        Residual (equation-error) variance of the row's ARX, output units squared.
+    dof : int
+        Its residual degrees of freedom.
+    a : ndarray, shape (na,)
+        ``a_1 .. a_na`` of its ``A(q) = 1 + a_1 q^-1 + ... + a_na q^-na``.
+    """
+
+    sigma2: float
+    dof: int
+    a: np.ndarray
+
+
+def row_noise(fit) -> RowNoise:
+    """The :class:`RowNoise` of an element-test fit (``sigma2``, ``dof``, ``own_theta()``)."""
+    return RowNoise(sigma2=float(fit.sigma2), dof=int(fit.dof), a=np.array(fit.own_theta(), dtype=float))
+
+
 @dataclasses.dataclass
 class ElementTest:
     """The element decisions of one analysis.
@@ -128,12 +156,16 @@ class ElementTest:
         The ARX test only.
     warnings : list of str
         What limits the conclusions (the groups that explain a row; the baselines' warnings).
+    noise : dict
+        The ARX test only: output index -> :class:`RowNoise` of its fit (for the detectability,
+        :mod:`mpm_monitor.core.detectability`).
     """
 
     elements: list
     arx_tables: list = dataclasses.field(default_factory=list)
     group_hits: list = dataclasses.field(default_factory=list)
     warnings: list = dataclasses.field(default_factory=list)
+    noise: dict = dataclasses.field(default_factory=dict)
 
 
 class InputDesign:
@@ -336,9 +368,10 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
     nu = model.n_columns
     names = model.columns
     testable, group_of = design.testable, design.group_of
-    estimates, tables, group_hits = {}, [], []
+    estimates, tables, group_hits, noise = {}, [], [], {}
     for i in rows:
         fit = regressions.element_fit(design.regression, i)
+        noise[i] = row_noise(fit)
         tests = fit.test_each_block_zero([element_window(model, i, j, nb, options.element_window) for j in testable])
         stds = fit.block_stds()
         for bj, j in enumerate(testable):
@@ -384,7 +417,7 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
                 delay=int(est.delay), b=est.b, role=role))
     warnings = [f"row {h.output}: inputs {', '.join(h.inputs)} jointly explain part of its prediction error "
                 f"(p={h.p_value:.2g}) but cannot be told apart from these data" for h in group_hits]
-    return ElementTest(elements=elements, arx_tables=tables, group_hits=group_hits, warnings=warnings)
+    return ElementTest(elements=elements, arx_tables=tables, group_hits=group_hits, warnings=warnings, noise=noise)
 
 
 def baseline_element_test(model: PlantModel, u: np.ndarray, d: np.ndarray, options) -> ElementTest:

@@ -36,6 +36,17 @@ def f_tail(statistic, df_num, df_den):
     return _special().fdtrc(df_num, df_den, statistic)
 
 
+def detection_noncentrality(df_num, df_den, level: float, power: float) -> float:
+    """Noncentrality ``lambda`` at which the F test at ``level`` rejects with probability ``power``.
+
+    ``P(F'(df_num, df_den, lambda) > F_crit) = power`` with ``F_crit`` the ``1 - level`` quantile of
+    ``F(df_num, df_den)`` (``scipy.special.fdtri``, ``scipy.special.ncfdtrinc``).
+    """
+    special = _special()
+    f_crit = special.fdtri(df_num, df_den, 1.0 - level)
+    return float(special.ncfdtrinc(df_num, df_den, 1.0 - power, f_crit))
+
+
 def chi2_tail(statistic, df):
     """``P(chi2(df) > statistic)``, elementwise (``scipy.special.chdtrc``)."""
     return _special().chdtrc(df, statistic)

@@ -3,6 +3,8 @@
 - :func:`plot_sdelta` -- the overall and per-row singular values of the identified ``S_Delta(omega)``
   with the identity line (paper, Figs. 3 to 5): a row without mismatch stays at 1 over the band.
 - :func:`plot_element_map` -- the located elements as a picture of the transfer matrix.
+- :func:`plot_detectability_map` -- the detectable gain change of every tested element, the same
+  picture.
 - :func:`plot_step_responses` -- for each located element, the step response of the model's
   element and of the repaired element (and of the repair's estimate where it was not applied),
   each from the element's own sampled form, whatever its structure.
@@ -16,6 +18,7 @@ read an :class:`~mpm_monitor.core.analysis.AnalysisReport` through the attribute
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Optional
 
@@ -124,6 +127,20 @@ def element_states(report, model: PlantModel) -> np.ndarray:
     return states
 
 
+def _matrix_axes(ax, model: PlantModel, row_labels: list, title: str) -> None:
+    """Ticks, cell grid and title of a transfer-matrix picture (columns on top, one cell per element)."""
+    ny, nu = model.n_outputs, model.n_columns
+    ax.set_xticks(range(nu), [c if model.role(j) == "input" else f"{c}\n(disturbance)"
+                              for j, c in enumerate(model.columns)])
+    ax.set_yticks(range(ny), row_labels)
+    ax.set_xticks(np.arange(-0.5, nu), minor=True)
+    ax.set_yticks(np.arange(-0.5, ny), minor=True)
+    ax.grid(which="minor", color="white", lw=2)
+    ax.tick_params(which="minor", length=0)
+    ax.xaxis.tick_top()
+    ax.set_title(title, fontsize=10, pad=22)
+
+
 def plot_element_map(report, model: PlantModel, path) -> Path:
     """The transfer matrix with each element coloured by its verdict and labelled with its kind.
 
@@ -161,20 +178,81 @@ def plot_element_map(report, model: PlantModel, path) -> Path:
                 lines.append(format_p_value(e.p_value))
             ax.text(j, i, "\n".join(lines), ha="center", va="center", fontsize=7)
     rsi = {r.output: r for r in report.rows}
-    ax.set_xticks(range(nu), [c if model.role(j) == "input" else f"{c}\n(disturbance)"
-                              for j, c in enumerate(model.columns)])
-    ax.set_yticks(range(ny), [f"{o}  (RSI {rsi[o].rsi:.2f}{', flagged' if rsi[o].mismatch else ''})"
-                              if o in rsi else o for o in model.outputs])
-    ax.set_xticks(np.arange(-0.5, nu), minor=True)
-    ax.set_yticks(np.arange(-0.5, ny), minor=True)
-    ax.grid(which="minor", color="white", lw=2)
-    ax.tick_params(which="minor", length=0)
-    ax.xaxis.tick_top()
-    ax.set_title("model elements: located mismatch", fontsize=10, pad=22)
+    _matrix_axes(ax, model, [f"{o}  (RSI {rsi[o].rsi:.2f}{', flagged' if rsi[o].mismatch else ''})"
+                             if o in rsi else o for o in model.outputs], "model elements: located mismatch")
     handles = [Patch(color=_COLORS[k], label=label) for k, label in
                (("located", "mismatch located"), ("ambiguous", "ambiguous (inputs move together)"),
                 ("clean", "tested, no mismatch"), ("untested", "row not flagged"))]
     ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.02), ncol=2, fontsize=7, frameon=False)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Detectability as a matrix picture
+
+#: Classes of the detectable gain change: (upper bound, colour, legend label).
+DETECTABILITY_CLASSES = ((0.2, "#1a9850", "detects 20% or less"), (0.5, "#fee08b", "20-50%"),
+                         (1.0, "#fc8d59", "50-100%"), (math.inf, "#d73027", "above 100%"))
+
+
+def detectability_class(x) -> Optional[int]:
+    """Index into :data:`DETECTABILITY_CLASSES` of a detectable gain change (None: not computed)."""
+    if x is None or not math.isfinite(x):
+        return None
+    return next(k for k, (bound, _, _) in enumerate(DETECTABILITY_CLASSES) if x <= bound)
+
+
+def plot_detectability_map(report, model: PlantModel, path) -> Optional[Path]:
+    """The transfer matrix with each tested element coloured by its ``detectable_gain_change``.
+
+    The smallest relative gain error of the element the window detects with probability 0.9, in
+    classes (:data:`DETECTABILITY_CLASSES`); ambiguous elements say so; an element whose value could
+    not be computed is grey (``n/a``), an element not tested light grey.
+
+    Parameters
+    ----------
+    report : AnalysisReport
+        Uses ``elements`` (``output``, ``input``, ``detectable_gain_change``, ``mismatch``,
+        ``ambiguous``) and ``rows``.
+    model : PlantModel
+    path : str or Path
+
+    Returns
+    -------
+    Path or None
+        None when no element was tested.
+    """
+    from matplotlib.colors import to_rgb
+    from matplotlib.patches import Patch
+
+    if not report.elements:
+        return None
+    plt = _pyplot()
+    ny, nu = model.n_outputs, model.n_columns
+    by_key = {(e.output, e.input): e for e in report.elements}
+    rgb = np.empty((ny, nu, 3))
+    fig, ax = plt.subplots(figsize=(1.2 * nu + 2.6, 0.9 * ny + 1.8))
+    for i, out in enumerate(model.outputs):
+        for j, col in enumerate(model.columns):
+            e = by_key.get((out, col))
+            x = None if e is None else getattr(e, "detectable_gain_change", None)
+            k = detectability_class(x)
+            rgb[i, j] = to_rgb(_COLORS["untested"] if e is None else ("#969696" if k is None
+                                                                        else DETECTABILITY_CLASSES[k][1]))
+            if e is None:
+                continue
+            lines = ["n/a" if k is None else (">1000%" if x > 10 else f"{100 * x:.0f}%")]
+            if e.mismatch:
+                lines.append("located")
+            elif getattr(e, "ambiguous", False):
+                lines.append("ambiguous")
+            ax.text(j, i, "\n".join(lines), ha="center", va="center", fontsize=7)
+    ax.imshow(rgb, aspect="auto")
+    _matrix_axes(ax, model, list(model.outputs), "detectable gain change (90% probability)")
+    handles = [Patch(color=c, label=label) for _, c, label in DETECTABILITY_CLASSES]
+    handles += [Patch(color="#969696", label="not computable"), Patch(color=_COLORS["untested"], label="not tested")]
+    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.02), ncol=3, fontsize=7, frameon=False)
     fig.tight_layout()
     return _save(fig, path)
 

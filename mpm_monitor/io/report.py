@@ -125,6 +125,36 @@ def _elements_section(report) -> str:
     return _table(["element (output, input)", "kind", "p-value", "delay of &Delta; (samples)"], rows, classes)
 
 
+def _detectability_section(report) -> str:
+    values = [e for e in report.elements if getattr(e, "detectable_gain_change", None) is not None
+              and math.isfinite(e.detectable_gain_change)]
+    parts = []
+    if values:
+        best = min(values, key=lambda e: e.detectable_gain_change)
+        worst = max(values, key=lambda e: e.detectable_gain_change)
+        parts.append(f"<p>Each tested element's <i>detectable gain change</i> is the smallest relative error of its "
+                     f"gain (|&Delta;K| / |K|) this window would detect with probability 0.9 at the analysis's "
+                     f"false-alarm rate, from the data's own noise and excitation. Here it ranges from "
+                     f"{_num(100 * best.detectable_gain_change, '.0f')}% ({_e(best.output)}, {_e(best.input)}) to "
+                     f"{_num(100 * worst.detectable_gain_change, '.0f')}% ({_e(worst.output)}, {_e(worst.input)}). "
+                     f"An element without a located mismatch may still be off by less than its value.</p>")
+    elif report.elements:
+        parts.append("<p>The detectable gain change could not be computed for these elements (see the warnings).</p>")
+    else:
+        parts.append("<p>No element was tested, so no detectable gain change.</p>")
+    exp = getattr(report, "experiment", None)
+    if exp is None:
+        parts.append("<p>No experiment recommended.</p>")
+    else:
+        rows = [[_e(k), _num(v)] for k, v in exp.dither.items()]
+        parts.append(f"<p><b>Recommended experiment:</b> a PRBS dither (&plusmn;amplitude, switching with probability "
+                     f"1/2 every sample) added to these inputs for <b>{int(exp.samples)}</b> samples; expected "
+                     f"detectable gain change afterwards {_num(exp.expected_detectable_gain_change, '.2f')}.</p>")
+        parts.append(_table(["input", "amplitude (input units)"], rows))
+        parts.append(f"<p>{_e(exp.why)}</p>")
+    return "\n".join(parts)
+
+
 def _repair_section(report) -> str:
     rep = report.repair or {}
     parts = []
@@ -190,6 +220,10 @@ def write_report(directory, model: PlantModel, data, report) -> Path:
                  "(paper Figs. 3-5): a row without mismatch stays at 1.")]
         figs.append((plots.plot_element_map(report, model, directory / "elements.png"),
                      "Model elements coloured by the element test's verdict."))
+        detect_map = plots.plot_detectability_map(report, model, directory / "detectability.png")
+        if detect_map is not None:
+            figs.append((detect_map, "Detectable gain change of every tested element: the smallest relative gain "
+                                      "error this window detects with probability 0.9 at the analysis's alpha."))
         steps = plots.plot_step_responses(report, model, directory / "steps.png")
         if steps is not None:
             figs.append((steps, "Unit-step responses of each located element, each from the element's own "
@@ -224,6 +258,7 @@ def write_report(directory, model: PlantModel, data, report) -> Path:
         "<h2>Row test: S<sub>&Delta;</sub></h2>", _rows_section(report), fig_html.get("sdelta", ""),
         "<h2>Element test: located mismatch</h2>", _elements_section(report), fig_html.get("elements", ""),
         fig_html.get("steps", ""),
+        "<h2>Detectability and experiment</h2>", _detectability_section(report), fig_html.get("detectability", ""),
         "<h2>Repair</h2>", _repair_section(report), fig_html.get("residuals", ""),
     ]
     doc = (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{_e(title)}</title>'

@@ -21,6 +21,10 @@ and per located element ``kind <input>`` and ``confidence <input>``; in the summ
 verdict: ``passed``, ``rejected``, ``mixed``, ``not_validated``, ``not_run``, ``none`` or ``off``)
 and ``repair_validation_detail`` (the same in words).
 
+Per row, ``detectable_gain_change`` lists for every tested element the smallest relative gain
+error this window detects with probability 0.9 (``u1=0.12,u2=0.35,u3=nan``; ``nan`` where it cannot
+be computed, :mod:`mpm_monitor.core.detectability`).
+
 The summary also says what became of the experiment the analysis recommends (``experiment
 recommended: ...``, ``experiment running: ...``; :mod:`mpm_monitor.monitor.experiment` words it,
 :func:`with_experiment` adds it).
@@ -208,6 +212,9 @@ def row_statuses(outputs: Sequence[str], outcome, analysis_error: Optional[str],
         ambiguous = [e.input for e in els if getattr(e, "ambiguous", False)]
         values = [("rsi", _num(r.rsi)), ("mismatch", _bool(r.mismatch)), ("flagged_inputs", ",".join(flagged)),
                   ("p_value", _num(r.p_value)), ("ambiguous_inputs", ",".join(ambiguous))]
+        detectable = [(e.input, getattr(e, "detectable_gain_change", None)) for e in els]
+        if any(x is not None for _, x in detectable):
+            values.append(("detectable_gain_change", ",".join(f"{i}={_num(x)}" for i, x in detectable)))
         for e in els:
             if e.mismatch or getattr(e, "ambiguous", False):
                 values.append((f"p_value {e.input}", _num(e.p_value)))

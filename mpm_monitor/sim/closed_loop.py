@@ -113,10 +113,15 @@ class ExcitationOptions:
         PRBS on every setpoint (paper: band 0 to Nyquist).
     dither : PrbsOptions or None
         PRBS added to every plant input (the paper's second experiment); None = no dither.
+    dither_amplitudes : tuple of float or None
+        Amplitude of the dither on every input, in input units (0: no dither on that input),
+        instead of ``dither.amplitude`` on all of them (e.g. a recommended experiment,
+        :class:`mpm_monitor.core.experiment.Experiment`); the PRBS switches as ``dither`` says.
     """
 
     setpoint: PrbsOptions = PrbsOptions()
     dither: Optional[PrbsOptions] = None
+    dither_amplitudes: Optional[tuple] = None
 
 
 def seeded_generators(seed: int) -> dict:
@@ -210,8 +215,15 @@ def run_closed_loop(plant: PlantModel, controller_model: PlantModel, n_samples: 
         r_all = np.asarray(setpoints, dtype=float).reshape(n, ny)
     if excitation.dither is None:
         dither_all = ZeroGenerator(nu).generate(n)
-    else:
+    elif excitation.dither_amplitudes is None:
         dither_all = PrbsGenerator(nu, excitation.dither, rngs["dither"]).generate(n)
+    else:
+        amplitudes = np.asarray(excitation.dither_amplitudes, dtype=float)
+        if amplitudes.shape != (nu,) or not np.all(np.isfinite(amplitudes)) or np.any(amplitudes < 0):
+            raise ConfigurationError(f"dither_amplitudes: expected {nu} finite numbers >= 0 (one per input), "
+                                     f"got {excitation.dither_amplitudes!r}")
+        unit = dataclasses.replace(excitation.dither, amplitude=1.0, offset=0.0)
+        dither_all = excitation.dither.offset + PrbsGenerator(nu, unit, rngs["dither"]).generate(n) * amplitudes
     extra = None if output_disturbance is None else np.asarray(output_disturbance, dtype=float).reshape(n, ny)
     if dv is not None:
         dv_all = np.asarray(dv, dtype=float).reshape(n, nd)

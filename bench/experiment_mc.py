@@ -1,0 +1,225 @@
+"""The recommended experiment on the Monte-Carlo: does it resolve what the data could not?
+
+For every run of :mod:`bench.monte_carlo` (same scenarios, seeds and default design: dither in 30 %
+of the runs, never forced on fat plants):
+
+1. simulate the closed loop (3,000 samples) and analyse it as the Monte-Carlo does (``arx``,
+   ``repair=False``); record the report's ``experiment``;
+2. for every run with an experiment, simulate the *same* loop again (same plant, model, setpoints
+   and noise seeds) with the recommended PRBS dither -- the recommended amplitude on each
+   recommended input, switching with probability 1/2 every sample, nothing on the other inputs --
+   for the recommended number of samples, and analyse that log.
+
+Scored with :func:`bench.monte_carlo.score` (a located element on a true mismatch is a hit,
+elsewhere a false positive; ``recall_all`` counts an ambiguous true mismatch as a miss):
+
+* ``before``: every run's first analysis (the Monte-Carlo's figures);
+* ``after``: the runs with an experiment replaced by their re-run;
+* the runs with ambiguity and how many got an experiment (all should);
+* the experiments: dithered inputs per run, the amplitude relative to the input's standard deviation
+  in the first window, the samples (medians and quartiles); the predicted detectable gain change
+  against the largest one the re-run's analysis reports for the same elements, and whether the
+  re-run still has ambiguous elements.
+
+Run: ``python -m bench.experiment_mc [--runs 200] [--seed 0] [--jobs 2] [--out bench/results/experiment_mc.json]``
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+from mpm_monitor.core.analysis import AnalysisOptions
+from mpm_monitor.core.pipeline import analyze
+from mpm_monitor.sim.closed_loop import run_closed_loop
+from mpm_monitor.sim.excitation import PrbsOptions
+
+from . import mc_parser, write_json
+from .monte_carlo import ALPHA, SEPARABILITY_COLLINEAR, score, simulate
+from .scenarios import ScenarioOptions, input_separability, make_scenario
+
+DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "experiment_mc.json"
+
+
+def _decisions(model, data, alpha: float):
+    t0 = time.perf_counter()
+    rep = analyze(model, data, AnalysisOptions(method="arx", alpha=alpha, repair=False))
+    dt = time.perf_counter() - t0
+    oi = {name: k for k, name in enumerate(model.outputs)}
+    ii = {name: k for k, name in enumerate(model.inputs)}
+    res = {"located": sorted((oi[e.output], ii[e.input]) for e in rep.elements if e.mismatch),
+           "ambiguous": sorted((oi[e.output], ii[e.input]) for e in rep.elements if e.ambiguous and not e.mismatch),
+           "rows": sorted(oi[r.output] for r in rep.rows if r.mismatch), "time_s": dt,
+           "warnings": list(rep.warnings)}
+    return rep, res
+
+
+def dithered_log(scenario, dither: dict, samples: int):
+    """The scenario's loop again (same seeds) with a PRBS dither of these amplitudes (input name -> amplitude)."""
+    amplitudes = tuple(float(dither.get(name, 0.0)) for name in scenario.plant.inputs)
+    excitation = dataclasses.replace(scenario.excitation, dither=PrbsOptions(amplitude=1.0, switch_probability=0.5),
+                                     dither_amplitudes=amplitudes)
+    log = run_closed_loop(scenario.plant, scenario.model, samples, seed=scenario.loop_seed, mpc=scenario.mpc,
+                          excitation=excitation, disturbance=scenario.disturbance)
+    return log.as_logged_data(f"scenario {scenario.seed}/{scenario.index} with the recommended dither")
+
+
+def one(seed: int, index: int, samples: int, alpha: float = ALPHA,
+        options: ScenarioOptions = ScenarioOptions()) -> dict:
+    """Run ``index`` of family ``seed``: the first analysis and, with an experiment, the re-run."""
+    sc = make_scenario(seed, index, options)
+    data = simulate(sc, samples)
+    sep = input_separability(data.u)
+    rec = sc.describe()
+    rec["separability"] = [float(x) for x in sep]
+    rec["collinear_inputs"] = [int(j) for j in np.flatnonzero(sep < SEPARABILITY_COLLINEAR)]
+    rep, res = _decisions(sc.model, data, alpha)
+    rec["results"] = {"arx": res}
+    exp = rep.experiment
+    rec["experiment"] = exp.to_dict() if exp is not None else None
+    if exp is None:
+        return rec
+    std = data.u.std(axis=0)
+    rec["experiment_relative_amplitude"] = {k: float(v / std[sc.model.inputs.index(k)]) if std[
+        sc.model.inputs.index(k)] > 0 else None for k, v in exp.dither.items()}
+    t0 = time.perf_counter()
+    data2 = dithered_log(sc, exp.dither, exp.samples)
+    sim_time = time.perf_counter() - t0
+    rep2, res2 = _decisions(sc.model, data2, alpha)
+    sep2 = input_separability(data2.u)
+    rerun = dict(rec)
+    rerun["separability"] = [float(x) for x in sep2]
+    rerun["collinear_inputs"] = [int(j) for j in np.flatnonzero(sep2 < SEPARABILITY_COLLINEAR)]
+    rerun["results"] = {"arx": res2}
+    # The elements the experiment is for: the ambiguous ones (all of them when nothing was decidable).
+    targets = {(e.output, e.input) for e in rep.elements if e.ambiguous} or \
+        {(e.output, e.input) for e in rep.elements if not e.mismatch}
+    achieved = [e.detectable_gain_change for e in rep2.elements if (e.output, e.input) in targets]
+    rec["rerun"] = {"results": res2, "separability": rerun["separability"],
+                    "collinear_inputs": rerun["collinear_inputs"], "simulation_time_s": sim_time,
+                    "ambiguous_after": len(res2["ambiguous"]),
+                    "largest_detectable_after": max((a for a in achieved if a is not None), default=None),
+                    "experiment_after": rep2.experiment.to_dict() if rep2.experiment is not None else None}
+    return rec
+
+
+def _one_star(args):
+    return one(*args)
+
+
+def _quartiles(xs) -> Optional[list]:
+    xs = [x for x in xs if x is not None]
+    return [float(q) for q in np.quantile(xs, [0.25, 0.5, 0.75])] if xs else None
+
+
+def summarise(records: Sequence[dict]) -> dict:
+    """Scores before and after the experiments, and the experiments themselves."""
+    after = []
+    for r in records:
+        if r.get("rerun"):
+            a = dict(r)
+            a["results"] = r["rerun"]["results"]
+            a["collinear_inputs"] = r["rerun"]["collinear_inputs"]
+            after.append(a)
+        else:
+            after.append(r)
+    before_s, after_s = score(records, "arx"), score(after, "arx")
+    amb = [r for r in records if r["results"]["arx"]["ambiguous"]]
+    exps = [r for r in records if r["experiment"]]
+    rel = [v for r in exps for v in r["experiment_relative_amplitude"].values()]
+    samples = [r["experiment"]["samples"] for r in exps]
+    predicted = [r["experiment"]["expected_detectable_gain_change"] for r in exps]
+    achieved = [r["rerun"]["largest_detectable_after"] for r in exps]
+
+    def brief(s):
+        e = s["element"]
+        return {"precision": e["precision"], "recall": e["recall"], "recall_all": e["recall_all"],
+                "tp": e["tp"], "fp": e["fp"], "fn": e["fn"], "ambiguous_true": e["amb_true"],
+                "false_alarm_runs": s["false_alarms"]["runs_with_located_element"],
+                "clean_runs": s["false_alarms"]["clean_runs"], "row_precision": s["row"]["precision"],
+                "row_recall": s["row"]["recall"]}
+
+    return {
+        "before": brief(before_s), "after": brief(after_s),
+        "runs": len(records), "runs_with_ambiguity": len(amb),
+        "runs_with_ambiguity_and_experiment": sum(1 for r in amb if r["experiment"]),
+        "runs_with_experiment": len(exps),
+        "runs_with_experiment_without_ambiguity": sum(1 for r in exps if not r["results"]["arx"]["ambiguous"]),
+        "dithered_inputs_per_experiment": _quartiles([len(r["experiment"]["dither"]) for r in exps]),
+        "inputs_per_experiment_run": _quartiles([r["shape"][1] for r in exps]),
+        "relative_amplitude_quartiles": _quartiles(rel),
+        "median_relative_amplitude": statistics.median(rel) if rel else None,
+        "samples_quartiles": _quartiles(samples),
+        "median_samples": statistics.median(samples) if samples else None,
+        "experiments_reaching_goal": sum(1 for p in predicted if p is not None and p <= 0.2 + 1e-9),
+        "predicted_detectable_quartiles": _quartiles(predicted),
+        "achieved_detectable_quartiles": _quartiles(achieved),
+        "reruns_still_ambiguous": sum(1 for r in exps if r["rerun"]["ambiguous_after"]),
+        "reruns_with_another_experiment": sum(1 for r in exps if r["rerun"]["experiment_after"]),
+        "misses_after": after_s["misses"], "false_positives_after": after_s["false_positives"],
+    }
+
+
+def run(runs: int, seed: int = 0, samples: int = 3000, jobs: int = 1, alpha: float = ALPHA,
+        progress=None) -> dict:
+    tasks = [(seed, k, samples, alpha) for k in range(runs)]
+    t0 = time.perf_counter()
+    records = []
+    if jobs > 1:
+        import multiprocessing as mp
+
+        with mp.get_context("spawn").Pool(jobs) as pool:
+            for rec in pool.imap_unordered(_one_star, tasks):
+                records.append(rec)
+                if progress:
+                    progress(len(records), runs, rec)
+    else:
+        for t in tasks:
+            records.append(one(*t))
+            if progress:
+                progress(len(records), runs, records[-1])
+    records.sort(key=lambda r: r["index"])
+    return {"config": {"runs": runs, "seed": seed, "samples": samples, "alpha": alpha,
+                       "scenario_options": "bench.scenarios.ScenarioOptions() (default design)",
+                       "wall_time_s": time.perf_counter() - t0},
+            "summary": summarise(records), "runs": records}
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    parser = mc_parser("python -m bench.experiment_mc", __doc__, 200, DEFAULT_OUT)
+    parser.set_defaults(alpha=ALPHA)
+    parser.add_argument("--quiet", action="store_true")
+    args = parser.parse_args(argv)
+
+    def progress(done, total, rec):
+        if args.quiet:
+            return
+        e = rec["experiment"]
+        tail = "no experiment" if e is None else (
+            f"dither {', '.join(f'{k} {v:g}' for k, v in e['dither'].items())}, {e['samples']} samples; after: "
+            f"located {len(rec['rerun']['results']['located'])}, ambiguous {rec['rerun']['ambiguous_after']}")
+        print(f"[{done}/{total}] run {rec['index']} {rec['shape'][0]}x{rec['shape'][1]} "
+              f"{len(rec['mismatches'])} mism: {tail}", flush=True)
+
+    result = run(args.runs, args.seed, args.samples, args.jobs, args.alpha, progress)
+    s = result["summary"]
+    b, a = s["before"], s["after"]
+    print(f"element recall (ambiguous = miss): {b['recall_all']:.3f} -> {a['recall_all']:.3f}; precision "
+          f"{b['precision']:.3f} -> {a['precision']:.3f}")
+    print(f"runs with ambiguity {s['runs_with_ambiguity']}, with an experiment "
+          f"{s['runs_with_ambiguity_and_experiment']}; experiments {s['runs_with_experiment']} "
+          f"(reaching the goal {s['experiments_reaching_goal']})")
+    print(f"median amplitude / input std {s['median_relative_amplitude']}, median samples {s['median_samples']}; "
+          f"re-runs still ambiguous {s['reruns_still_ambiguous']}")
+    write_json(args.out, result)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

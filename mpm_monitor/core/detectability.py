@@ -1,0 +1,502 @@
+"""Detectability: the smallest gain error of each element that a window's element test detects.
+
+The Delta element test (:mod:`mpm_monitor.core.element_test`) fits, for every output ``i``, the ARX
+``A(q) d_i = sum_j B_ij(q) u_j + e`` on the lags ``1 .. L`` of every input (``L = max_delay + nb``)
+and rejects ``B_ij = 0`` on the ``k_ij`` lags it examines with an F test.  When the model's element
+``(i, j)`` has a relative gain error ``delta`` (the plant's element is ``(1 + delta) Phat_ij``), the
+prediction error carries ``delta x_ij`` with ``x_ij = Phat_ij u_j`` the element's response to the
+logged input, and the ARX, whose ``A`` whitens the disturbance, sees ``delta A(q) x_ij``.  Its F
+statistic then follows the noncentral F distribution ``F'(k_ij, dof, lambda)`` with::
+
+    lambda(delta) = delta^2 q_ij / sigma_i^2
+
+* ``sigma_i^2``: the residual variance of row ``i``'s ARX (its equation-error variance),
+* ``q_ij``: the drop in the residual sum of squares of the element's test when the target is
+  ``x_f = A_i(q) x_ij`` (``A_i`` the row's fitted ``A``): with ``Z`` the window's centred input
+  lags, ``theta = (Z'Z)^-1 Z' x_f`` and ``S`` the tested lags,
+  ``q_ij = theta_S' [((Z'Z)^-1)_SS]^-1 theta_S``, the RSS of ``x_f`` on every lag but ``S`` minus
+  its RSS on every lag (rank-aware as the test itself: directions of ``((Z'Z)^-1)_SS`` below
+  ``1e-10`` of its largest are left out).
+
+The element is located when its p-value, adjusted by Holm's procedure over the ``m`` elements of
+the family and by the ``N_FAMILIES = 2`` families, is below ``alpha``; a single mismatched element
+among ``m`` is located when its raw p-value is below ``alpha / (2 m)`` (Holm's first step).  The
+smallest ``lambda`` detected with probability ``power`` (0.9) at that level is
+``lambda_90 = ncfdtrinc(k, dof, 1 - power, F_crit)``, ``F_crit`` the ``1 - alpha / (2 m)`` quantile
+of ``F(k, dof)`` (:func:`mpm_monitor.core.statistics.detection_noncentrality`), so::
+
+    detectable_gain_change_ij = sqrt(c lambda_90 sigma_i^2 / q_ij)
+
+with ``c`` = :data:`CALIBRATION` (1.12), the factor found by simulation that makes an error of the
+reported size detected 90 % of the time in closed loop; relative to ``|K_ij|``.  For an element the model lacks (no ``Phat_ij``), ``x_ij`` is the response of
+the row's typical element (the present element of row ``i`` whose ``|gain|`` is the median of the
+row's) to ``u_j``, so the value is ``|dK| / |typical gain|``.  Everything comes from the window
+itself: its noise (``sigma_i^2``, ``A_i``) and its excitation (``Z``, ``x_ij``).
+
+:class:`WindowInformation` keeps the per-sample moments (``Z'Z / n``, ``Z' x_f / n``), so the
+experiment design (:mod:`mpm_monitor.core.experiment`) can add a dither's contribution to them and
+predict the detectability of a window that has not been recorded yet.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import numpy as np
+import scipy.linalg as sla
+
+from .arx import lag_matrix
+from .element_test import element_window
+from .filters import lfilter
+from .model import PlantModel
+from .statistics import N_FAMILIES, detection_noncentrality
+
+#: Probability of detection the detectable gain change is defined by.
+POWER = 0.9
+#: Factor on the noncentrality the test needs, found by simulation (``python -m bench.detectability``):
+#: the first-order noncentrality ``delta^2 q / sigma^2`` of a window is optimistic in closed loop (the
+#: gain error also changes the loop's inputs and the ARX's noise model), and an error of the uncorrected
+#: size was detected in 0.83 of 143 simulated runs instead of 0.9.  The factor (1.12 on ``lambda``,
+#: 1.06 on ``delta``) is the one that moves that rate to 0.9 for the noncentral F's power curve.
+CALIBRATION = 1.12
+#: Relative size of the eigen-directions of a tested block's covariance kept (as the element test).
+KEEP_EIGEN = 1e-10
+#: Ridge added to the unit diagonal of the scaled input moments before inverting them.
+RIDGE = 1e-9
+#: Steps of the fixed point in ``delta`` (the gain error also enters the own lags).
+FIXED_POINT_STEPS = 2
+#: Largest gain error put into the own lags (beyond it the first-order picture is meaningless).
+MAX_OWN_LAG_DELTA = 1.0
+#: Length of the impulse responses kept for a dither's contribution (samples).
+IMPULSE_SAMPLES = 4000
+
+
+def typical_element(model: PlantModel, i: int):
+    """``(a, b)``: the present element of row ``i`` whose ``|gain|`` is the median of the row's.
+
+    Taken over the whole model when row ``i`` has no element; None when the model has none.
+    """
+    present = model.present
+    cols = np.flatnonzero(present[i])
+    cands = [(i, int(c)) for c in cols] if cols.size else [(int(a), int(b)) for a, b in np.argwhere(present)]
+    if not cands:
+        return None
+    gains = np.array([abs(float(model.gain[a, b])) for a, b in cands])
+    return cands[int(np.argsort(gains, kind="stable")[(len(gains) - 1) // 2])]
+
+
+def target_element(model: PlantModel, i: int, j: int):
+    """The element whose response stands for a gain error of ``(i, j)``, and its reference gain.
+
+    Returns
+    -------
+    element : DiscreteElement or None
+        The model's element when it has one; otherwise the row's typical element
+        (:func:`typical_element`); None when the model has no element at all.
+    reference_gain : float
+        ``|K|`` the relative change refers to (the typical element's for an absent element).
+    """
+    if model.present[i, j]:
+        return model.discrete_element(i, j), abs(float(model.gain[i, j]))
+    typical = typical_element(model, i)
+    if typical is None:
+        return None, float("nan")
+    return model.discrete_element(*typical), abs(float(model.gain[typical]))
+
+
+def filtered_impulse(element, a: np.ndarray, n: int) -> np.ndarray:
+    """Impulse response ``h(0) .. h(n-1)`` of ``A(q) G(q)`` (the element as the whitened ARX sees it)."""
+    return lfilter(np.concatenate([[1.0], a]), [1.0], element.impulse_response(n))
+
+
+def quadratic_forms(Hss: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """``theta' Hss^-1 theta`` of a stack of tested blocks, rank-aware as the element test's Wald test.
+
+    Parameters
+    ----------
+    Hss : ndarray, shape (g, k, k)
+        The tested block of the inverse regressor moments, per target.
+    theta : ndarray, shape (g, k)
+        The tested coefficients, per target.
+
+    Returns
+    -------
+    ndarray, shape (g,)
+        Directions of ``Hss`` below :data:`KEEP_EIGEN` of its largest are left out.
+    """
+    w, v = np.linalg.eigh(Hss)
+    keep = w > KEEP_EIGEN * np.maximum(w.max(axis=1, initial=0.0), 1e-300)[:, None]
+    proj = np.einsum("gkm,gk->gm", v, theta)
+    return np.sum(np.where(keep, proj ** 2 / np.where(keep, w, 1.0), 0.0), axis=1)
+
+
+def moment_inverse(G: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric moment matrix, by Cholesky on its unit-diagonal scaling plus a ridge.
+
+    The ridge (:data:`RIDGE` times the unit diagonal) keeps a matrix of collinear lags invertible:
+    its near-null directions get huge variances, so the gains of collinear inputs come out
+    (correctly) as barely detectable, while the other inputs' are unaffected to about the ridge.
+    """
+    s = np.sqrt(np.maximum(np.diag(G), 0.0))
+    s = np.where(s > 0, s, 1.0)
+    Gs = G / np.outer(s, s)
+    Gs[np.diag_indices_from(Gs)] += RIDGE
+    try:
+        L = np.linalg.cholesky(Gs)
+    except np.linalg.LinAlgError:
+        return np.linalg.pinv(Gs, rcond=1e-13, hermitian=True) / np.outer(s, s)
+    Li = sla.solve_triangular(L, np.eye(L.shape[0]), lower=True, check_finite=False)
+    return (Li.T @ Li) / np.outer(s, s)
+
+
+def required_noncentrality(k: int, dof: int, level: float, power: float = POWER) -> float:
+    """``lambda`` the element test of ``k`` lags and ``dof`` residual degrees of freedom needs at ``level``.
+
+    :func:`~mpm_monitor.core.statistics.detection_noncentrality` (the noncentral F detected with
+    probability ``power``) times :data:`CALIBRATION`.
+    """
+    return CALIBRATION * detection_noncentrality(k, dof, level, power)
+
+
+@dataclasses.dataclass
+class ElementTarget:
+    """The moments the detectability of one element depends on (per sample, over the regression rows).
+
+    ``Z``: the centred input lags; ``O``: the row's own lags ``d_i(t - 1) .. d_i(t - na)``; ``x``: the
+    element's response to its input (centred); ``X``: its lags ``x(t - 1) .. x(t - na)``; ``x_f``:
+    ``A_i(q) x``.
+
+    Attributes
+    ----------
+    output, column : int
+        Row ``i`` and the element's column ``j`` (index into the model's columns).
+    tested : ndarray of int
+        Columns of ``Z`` the element's test examines (input ``j``'s lags are the columns
+        ``j L .. (j + 1) L - 1``).
+    reference_gain : float
+        ``|K|`` the relative change refers to.
+    c : ndarray, shape (p,)
+        ``Z' x_f / n``.
+    c_own : ndarray, shape (na,)
+        ``O' x_f / n``.
+    zx : ndarray, shape (p, na)
+        ``Z' X / n``.
+    ox : ndarray, shape (na, na)
+        ``O' X / n``.
+    xx : ndarray, shape (na, na)
+        ``X' X / n``.
+    xxf : ndarray, shape (na,)
+        ``X' x_f / n``.
+    impulse, filtered : ndarray, shape (m,)
+        Impulse responses of the element and of ``A_i(q)`` times it (for a dither's contribution).
+    """
+
+    output: int
+    column: int
+    tested: np.ndarray
+    reference_gain: float
+    c: np.ndarray
+    c_own: np.ndarray
+    zx: np.ndarray
+    ox: np.ndarray
+    xx: np.ndarray
+    xxf: np.ndarray
+    impulse: np.ndarray
+    filtered: np.ndarray
+
+    def dither_moments(self, n_lag: int) -> tuple:
+        """What a white dither of unit amplitude on the element's input adds to its moments.
+
+        A dither of amplitude ``a`` adds ``a^2`` times these (computed once, then cached).
+
+        Returns
+        -------
+        dc : ndarray, shape (n_lag,)
+            To ``c`` on the input's lags 1..L: ``a^2 h(l)`` (``g``, ``h``: :attr:`impulse`,
+            :attr:`filtered`).
+        dzx : ndarray, shape (n_lag, na)
+            To ``zx`` on the input's lags: ``a^2 g(l - k)`` (0 for ``l < k``).
+        dxx : ndarray, shape (na, na)
+            To ``xx``: ``a^2 sum_m g(m) g(m + |k - k'|)``.
+        dxxf : ndarray, shape (na,)
+            To ``xxf``: ``a^2 sum_m g(m) h(m + k)``.
+        """
+        cached = self.__dict__.get("_dither")
+        if cached is not None and cached[0] == n_lag:
+            return cached[1]
+        a2 = 1.0
+        g, h = self.impulse, self.filtered
+        na = self.xx.shape[0]
+        m = g.size
+        lags = np.arange(1, n_lag + 1)
+        ks = np.arange(1, na + 1)
+        diff = lags[:, None] - ks[None, :]
+        dzx = np.where(diff >= 0, g[np.clip(diff, 0, m - 1)], 0.0) * a2
+        auto = np.array([g[:m - t] @ g[t:] for t in range(na)])
+        dxx = a2 * auto[np.abs(ks[:, None] - ks[None, :])]
+        dxxf = a2 * np.array([g[:m - k] @ h[k:] for k in ks])
+        out = (a2 * h[1:n_lag + 1], dzx, dxx, dxxf)
+        self.__dict__["_dither"] = (n_lag, out)
+        return out
+
+
+class WindowInformation:
+    """The per-sample information of one window about the gains of its elements.
+
+    The element test of row ``i`` regresses ``d_i`` on the input lags ``Z`` and on its own lags
+    ``O_i`` (see :class:`ElementTarget` for the notation).  With a gain error ``delta`` of element
+    ``(i, j)`` the prediction error is ``delta x + v``, so its own lags are ``O_alt = O_i + delta X``
+    and ``d_i + sum a_k d_i(t - k) = delta x_f + e``: the test's noncentrality is ``delta^2 q / sigma^2``
+    with ``q`` the drop in the residual sum of squares of ``x_f`` on ``[Z, O_alt]`` when the tested
+    lags ``S`` are left out::
+
+        q / n = theta_S' [H_SS]^-1 theta_S,   H = (G - U D^-1 U')^-1,   theta = H (c - U D^-1 c_o)
+
+    with ``G = Z'Z / n``, ``U = Z'O_alt / n``, ``D = O_alt'O_alt / n``, ``c = Z' x_f / n`` and
+    ``c_o = O_alt' x_f / n`` (the partitioned inverse of the moments of ``[Z, O_alt]``).  In closed
+    loop past inputs, past disturbances and past ``x`` are correlated, so the own lags take part of
+    the information; ``delta`` enters through ``O_alt``, so :meth:`detectable` solves for it by a
+    fixed point, with the worse of the two signs.
+
+    Parameters
+    ----------
+    model : PlantModel
+    u : ndarray, shape (n_samples, n_columns)
+        The window's columns: the inputs, then the measured disturbances.
+    d : ndarray, shape (n_samples, n_outputs)
+        The window's prediction errors.
+    testable : list of int
+        Inputs that move; the lags of the others are zero columns (no information).
+    n_lag : int
+        Lags ``1 .. n_lag`` of every input.
+    start : int
+        First regression row.
+    noise : dict
+        Output index -> :class:`~mpm_monitor.core.element_test.RowNoise` of the rows tested.
+    windows : dict
+        ``(i, j)`` -> lags the element test examines (None: all).
+
+    Attributes
+    ----------
+    G : ndarray, shape (p, p)
+        ``Z'Z / n_rows`` of the centred column lags, ``p = n_columns n_lag`` (input ``j``'s lags at
+        :meth:`block`).
+    own : dict
+        Output index -> ``(Z'O_i / n_rows, O_i'O_i / n_rows)``.
+    n_rows : int
+        Regression rows of the window.
+    std : ndarray, shape (n_columns,)
+        Standard deviation of every input over the window.
+    targets : dict
+        ``(i, j)`` -> :class:`ElementTarget` (absent when the model has no element at all).
+    """
+
+    def __init__(self, model: PlantModel, u: np.ndarray, d: np.ndarray, testable: list, n_lag: int, start: int,
+                 noise: dict, windows: dict):
+        self.model, self.testable, self.n_lag, self.noise = model, list(testable), int(n_lag), noise
+        nu = model.n_columns
+        u_c = u - u.mean(axis=0)
+        u_c[:, [j for j in range(nu) if j not in self.testable]] = 0.0
+        Z = lag_matrix(u_c, range(1, n_lag + 1), start)
+        self.n_rows = n = max(Z.shape[0], 1)
+        self.G = Z.T @ Z / n
+        self.std = u.std(axis=0)
+        self.own = {}
+        self.targets = {}
+        n_imp = max(n_lag + 2, min(u.shape[0], IMPULSE_SAMPLES))
+        for i, nz in noise.items():
+            na = nz.a.size
+            d_c = d[:, i] - d[:, i].mean()
+            O = lag_matrix(d_c, range(1, na + 1), start)
+            self.own[i] = (Z.T @ O / n, O.T @ O / n)
+            a_poly = np.concatenate([[1.0], nz.a])
+            for j in range(nu):
+                element, ref = target_element(model, i, j)
+                if element is None:
+                    continue
+                x = element.respond(u_c[:, j])
+                x -= x.mean()
+                xf = lfilter(a_poly, [1.0], x)[start:]
+                X = lag_matrix(x, range(1, na + 1), start)
+                k = windows.get((i, j))
+                k = n_lag if k is None else min(int(k), n_lag)
+                g = element.impulse_response(n_imp)
+                self.targets[(i, j)] = ElementTarget(
+                    output=i, column=j, tested=np.arange(j * n_lag, j * n_lag + k), reference_gain=ref,
+                    c=Z.T @ xf / n, c_own=O.T @ xf / n, zx=Z.T @ X / n, ox=O.T @ X / n, xx=X.T @ X / n,
+                    xxf=X.T @ xf / n, impulse=g, filtered=lfilter(a_poly, [1.0], g))
+
+    def block(self, j: int) -> slice:
+        """Columns of input ``j``'s lags."""
+        return slice(j * self.n_lag, (j + 1) * self.n_lag)
+
+    def level(self, family_size: int, alpha: float) -> float:
+        """Raw level of Holm's first step: ``alpha / (N_FAMILIES m)``."""
+        return alpha / (N_FAMILIES * max(int(family_size), 1))
+
+    def drops(self, keys, H: np.ndarray, deltas=None, dither: Optional[dict] = None) -> dict:
+        """Per-sample drop ``q / n`` of every element's test (see the class docstring).
+
+        Parameters
+        ----------
+        keys : sequence of (int, int)
+            Elements (in :attr:`targets`).
+        H : ndarray, shape (p, p)
+            Inverse of the input lags' moments ``G`` (:func:`moment_inverse`).
+        deltas : dict or sequence of float, optional
+            ``(i, j)`` -> signed gain error in the own lags, or one per key (default 0 for every
+            element).
+        dither : dict, optional
+            Input index -> amplitude of a white dither whose contribution is added to the moments
+            (the caller adds it to ``G`` before inverting it).
+
+        Returns
+        -------
+        dict or ndarray
+            ``(i, j)`` -> float; an array aligned with ``keys`` when ``deltas`` is a sequence (a key
+            may then appear more than once, with different gain errors).
+        """
+        keys = list(keys)
+        as_array = deltas is not None and not isinstance(deltas, dict)
+        if not keys:
+            return np.zeros(0) if as_array else {}
+        L = self.n_lag
+        ts = [self.targets[k] for k in keys]
+        delta = np.asarray(deltas, dtype=float) if as_array else np.array([(deltas or {}).get(k, 0.0) for k in keys])
+        c = np.stack([t.c for t in ts])                                     # (m, p)
+        zx = np.stack([t.zx for t in ts])                                   # (m, p, na)
+        xx = np.stack([t.xx for t in ts])                                   # (m, na, na)
+        xxf = np.stack([t.xxf for t in ts])                                 # (m, na)
+        if dither:
+            for g, t in enumerate(ts):
+                if t.column in dither:
+                    a2 = dither[t.column] ** 2
+                    dc, dzx, dxx, dxxf = t.dither_moments(L)
+                    sl = self.block(t.column)
+                    c[g, sl] += a2 * dc
+                    zx[g, sl] += a2 * dzx
+                    xx[g] += a2 * dxx
+                    xxf[g] += a2 * dxxf
+        g_zo = np.stack([self.own[t.output][0] for t in ts])
+        g_oo = np.stack([self.own[t.output][1] for t in ts])
+        ox = np.stack([t.ox for t in ts])
+        c_own = np.stack([t.c_own for t in ts])
+        dl = delta[:, None, None]
+        U = g_zo + dl * zx                                                  # Z' O_alt / n
+        D = g_oo + dl * (ox + np.swapaxes(ox, 1, 2)) + dl * dl * xx         # O_alt' O_alt / n
+        na = D.shape[1]
+        if na:
+            c_tilde = c - np.einsum("mpk,mk->mp", U, np.linalg.solve(D, (c_own + delta[:, None] * xxf)[..., None])[..., 0])
+            hz = np.matmul(H, U)                                            # (m, p, na)
+            M = D - np.matmul(np.swapaxes(U, 1, 2), hz)
+        else:
+            c_tilde = c
+        hc = c_tilde @ H                                                    # (m, p): (H c~)' (H symmetric)
+        if na:
+            w = np.linalg.solve(M, np.einsum("mpk,mp->mk", hz, c_tilde)[..., None])[..., 0]      # M^-1 hz' c~
+        out = np.zeros(len(keys))
+        sizes = np.array([t.tested.size for t in ts])
+        first = np.array([t.tested[0] for t in ts])
+        for k in np.unique(sizes):
+            sel = np.flatnonzero(sizes == k)
+            idx = first[sel, None] + np.arange(k)[None, :]                  # (g, k)
+            theta = hc[sel[:, None], idx]
+            Hss = H[idx[:, :, None], idx[:, None, :]]
+            if na:
+                hs = hz[sel[:, None], idx]                                  # (g, k, na)
+                theta = theta + np.einsum("gkn,gn->gk", hs, w[sel])
+                Hss = Hss + np.matmul(hs, np.linalg.solve(M[sel], np.swapaxes(hs, 1, 2)))
+            out[sel] = quadratic_forms(Hss, theta)
+        return out if as_array else dict(zip(keys, out.tolist()))
+
+    def detectable(self, keys, alpha: float, family_size: int, power: float = POWER) -> dict:
+        """Smallest relative gain change of each element detected with probability ``power``.
+
+        Parameters
+        ----------
+        keys : iterable of (int, int)
+            Elements (in :attr:`targets`).
+        alpha : float
+            The analysis's false-alarm rate.
+        family_size : int
+            Elements in Holm's family.
+        power : float
+
+        Returns
+        -------
+        dict
+            ``(i, j)`` -> float (``inf`` when the window holds no information on the element).
+        """
+        keys = list(keys)
+        H = moment_inverse(self.G)
+        level = self.level(family_size, alpha)
+        lam = {}
+
+        def solve(drops):
+            out = {}
+            for key, q in drops.items():
+                t = self.targets[key]
+                nz = self.noise[t.output]
+                k, dof = t.tested.size, max(self.n_rows - self.G.shape[0] - nz.a.size, 1)
+                if (k, dof) not in lam:
+                    lam[(k, dof)] = required_noncentrality(k, dof, level, power)
+                out[key] = float(np.sqrt(lam[(k, dof)] * nz.sigma2 / (q * self.n_rows))) if q > 0 else float("inf")
+            return out
+
+        value = solve(self.drops(keys, H))
+        for _ in range(FIXED_POINT_STEPS):
+            live = [k for k in keys if np.isfinite(value[k])]
+            step = {k: min(value[k], MAX_OWN_LAG_DELTA) for k in live}
+            worse = [solve(self.drops(live, H, {k: sign * step[k] for k in live})) for sign in (1.0, -1.0)]
+            value.update({k: max(w[k] for w in worse) for k in live})
+        return value
+
+
+def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, design, noise: dict, layout, options):
+    """The detectable gain change of every element of the rows the ARX element test examined.
+
+    Parameters
+    ----------
+    model : PlantModel
+    u : ndarray, shape (n_samples, n_columns)
+        The window's inputs, then its measured disturbances.
+    d : ndarray, shape (n_samples, n_outputs)
+        Prediction errors of the window.
+    design : InputDesign
+        The window's input lag blocks (:class:`mpm_monitor.core.element_test.InputDesign`): its
+        ``testable`` inputs and collinear ``groups``.
+    noise : dict
+        Output index -> :class:`~mpm_monitor.core.element_test.RowNoise` of every row tested
+        (``ElementTest.noise``).
+    layout : RegressionLayout
+    options : AnalysisOptions
+        Its ``alpha``, ``nb`` and ``element_window``.
+
+    Returns
+    -------
+    info : WindowInformation
+    values : dict
+        ``(i, j)`` -> float, or None where it cannot be computed (an input that never moves, a
+        model without elements).
+    warnings : list of str
+        Why a value is None.
+    """
+    windows = {(i, j): element_window(model, i, j, options.nb, options.element_window)
+               for i in noise for j in range(model.n_columns)}
+    info = WindowInformation(model, u, d, design.testable, layout.n_lag_u, layout.start, noise, windows)
+    family = sum(1 for i in noise for j in design.testable if model.columns[j] not in design.group_of)
+    values = {(i, j): None for i in noise for j in range(model.n_columns)}
+    values.update(info.detectable([k for k in info.targets if k[1] in design.testable], options.alpha, family))
+    warnings = []
+    if noise and design.constant:
+        warnings.append(f"inputs {', '.join(design.constant)} never move: the smallest gain change of their elements "
+                        "this window detects cannot be computed (detectable_gain_change null)")
+    blind = [k for k, v in values.items() if v is not None and not np.isfinite(v)]
+    if blind:
+        warnings.append("elements " + ", ".join(f"({model.outputs[i]}, {model.columns[j]})" for i, j in blind)
+                        + ": this window holds no information on their gain (detectable_gain_change null)")
+    if noise and not np.any(model.present):
+        warnings.append("the model has no element: no gain to refer a detectable change to (detectable_gain_change "
+                        "null)")
+    return info, values, warnings

@@ -1,0 +1,342 @@
+"""The experiment that resolves what a window cannot: a PRBS dither per input and how long to run it.
+
+When the closed loop moves some inputs together (an MPC with more inputs than outputs always does)
+their elements are ambiguous, and when the excitation is weak no element may be decidable at all.
+:func:`design_experiment` then recommends the smallest experiment that resolves it:
+
+* a PRBS dither (``+- amplitude``, switching with probability 1/2 every sample, so white) added to
+  some inputs, with an amplitude per input in input units, at most half of the input's standard
+  deviation in the window (:data:`MAX_AMPLITUDE`);
+* a number of samples to record with it.
+
+The prediction uses the window's own information (:class:`~mpm_monitor.core.detectability.WindowInformation`):
+per sample, a white dither of amplitude ``a_j`` on input ``j`` adds ``a_j^2 I`` to the moments of
+``j``'s lags (``Z'Z / n``) and ``a_j^2 h_ij(l)`` to the cross moments of lag ``l`` with the target of
+element ``(i, j)`` (``h_ij`` the impulse response of ``A_i(q) Phat_ij(q)``); the closed loop's own
+excitation stays as it was.  With these moments the detectable gain change of a window of ``N``
+samples is the one of :mod:`mpm_monitor.core.detectability` (``q`` grows as ``N``), and the
+separation of the inputs is the variance inflation of every lag block (as
+:class:`~mpm_monitor.core.element_test.InputDesign` decides it, with a margin of
+:data:`SEPARATION_MARGIN`).
+
+The goal: every input whose elements are ambiguous is separated, and a gain error of
+:data:`GOAL` (20 %) of every element of those inputs (of every element, when nothing was
+decidable at that level) is detected with probability 0.9.  The experiment is the smallest that
+reaches it: the fewest dithered inputs, then the smallest ``amplitude x samples`` (the amplitude
+relative to its largest allowed value; every dithered input gets the same fraction of it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+from typing import Optional
+
+import numpy as np
+
+from .detectability import WindowInformation, moment_inverse, required_noncentrality
+
+#: Relative gain error the experiment must detect with probability 0.9.
+GOAL = 0.2
+#: Largest dither amplitude, as a fraction of the input's standard deviation in the window.
+MAX_AMPLITUDE = 0.5
+#: Most samples an experiment may last.
+MAX_SAMPLES = 20000
+#: The predicted variance inflation of a lag block must stay below ``1 / (threshold * margin)``.
+SEPARATION_MARGIN = 2.0
+#: Fractions of the largest amplitude tried.
+AMPLITUDE_FRACTIONS = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0)
+#: Subsets of inputs evaluated per size at most (the best at full amplitude are refined).
+REFINED_SUBSETS = 3
+#: Samples are rounded up to a multiple of this.
+SAMPLES_STEP = 50
+
+
+@dataclasses.dataclass
+class Experiment:
+    """A recommended dither experiment (docs/interfaces.md, "Detectability and experiment").
+
+    Attributes
+    ----------
+    dither : dict
+        Input name -> PRBS amplitude in input units (the dither is ``+- amplitude``, switching with
+        probability 1/2 every sample).
+    samples : int
+        Samples to record with the dither on.
+    expected_detectable_gain_change : float
+        Predicted largest detectable gain change of the elements the experiment is for, on a window
+        of ``samples`` dithered samples (at most :data:`GOAL` when the goal is reachable).
+    why : str
+        What the experiment resolves and why this one, in words.
+    """
+
+    dither: dict
+    samples: int
+    expected_detectable_gain_change: float
+    why: str
+
+    def to_dict(self) -> dict:
+        """The JSON object ``{"dither": {...}, "samples": N, "expected_detectable_gain_change": x, "why": "..."}``."""
+        x = self.expected_detectable_gain_change
+        return {"dither": {k: float(v) for k, v in self.dither.items()}, "samples": int(self.samples),
+                "expected_detectable_gain_change": float(x) if x is not None and math.isfinite(x) else None,
+                "why": self.why}
+
+
+@dataclasses.dataclass(frozen=True)
+class _Trial:
+    inputs: tuple
+    fraction: float
+    samples: float
+    worst: float
+    separated: bool
+
+    @property
+    def cost(self) -> float:
+        return self.fraction * self.samples
+
+
+def _names(model, cols) -> str:
+    return ", ".join(model.columns[j] for j in cols)
+
+
+def _g(x: float) -> str:
+    return f"{x:.3g}"
+
+
+class _Predictor:
+    """The detectability and separation of a window with a dither, predicted from one window's information."""
+
+    def __init__(self, info: WindowInformation, targets: list, alpha: float, threshold: float, layout,
+                 testable: list):
+        self.info, self.targets, self.alpha = info, targets, alpha
+        self.max_vif = 1.0 / (threshold * SEPARATION_MARGIN)
+        self.start, self.min_samples = layout.start, layout.min_samples
+        self.testable = set(testable)
+        self.inputs = sorted({j for _, j in targets})
+        self.n_rows_tested = len(info.noise)
+        self._lam = {}
+
+    def evaluate(self, amplitudes: dict) -> tuple:
+        """(separated, per-sample drop of every target, family size) with these dither amplitudes.
+
+        The drops are None when the inputs are not separated.
+        """
+        info = self.info
+        L = info.n_lag
+        G = info.G.copy()
+        for j, a in amplitudes.items():
+            sl = info.block(j)
+            G[sl, sl] += a * a * np.eye(L)
+        H = moment_inverse(G)
+        family = self.n_rows_tested * len(self.testable | set(amplitudes))
+        for j in self.inputs:
+            sl = info.block(j)
+            try:
+                Lj = np.linalg.cholesky(G[sl, sl])
+            except np.linalg.LinAlgError:
+                return False, None, family
+            if not np.linalg.eigvalsh(Lj.T @ H[sl, sl] @ Lj)[-1] < self.max_vif:
+                return False, None, family
+        m = len(self.targets)
+        both = info.drops(self.targets + self.targets, H, [GOAL] * m + [-GOAL] * m, amplitudes)
+        return True, dict(zip(self.targets, np.minimum(both[:m], both[m:]).tolist())), family
+
+    def _lambda(self, k: int, rows: float, p: int, na: int, level: float) -> float:
+        key = (k, max(int(rows) - p - na, 1), level)
+        if key not in self._lam:
+            self._lam[key] = required_noncentrality(key[0], key[1], level)
+        return self._lam[key]
+
+    def samples_needed(self, drops: dict, family: int, p: int) -> float:
+        """Samples for :data:`GOAL` on every target (infinite when some target gets no information)."""
+        info = self.info
+        level = info.level(family, self.alpha)
+        worst = {}                     # per (tested lags, na): the largest sigma^2 / q
+        for key, q in drops.items():
+            t = info.targets[key]
+            nz = info.noise[t.output]
+            if not q > 0:
+                return math.inf
+            g = (t.tested.size, nz.a.size)
+            worst[g] = max(worst.get(g, 0.0), nz.sigma2 / q)
+        rows = 3000.0
+        for _ in range(3):
+            rows = max(max(self._lambda(k, rows, p, na, level) * w / GOAL ** 2 for (k, na), w in worst.items()),
+                       p + 60.0)
+        return rows + self.start
+
+    def worst_at(self, drops: dict, family: int, samples: int, p: int) -> float:
+        """Largest detectable change of the targets on ``samples`` samples."""
+        info = self.info
+        level = info.level(family, self.alpha)
+        rows = max(samples - self.start, 1)
+        worst = 0.0
+        for key, q in drops.items():
+            t = info.targets[key]
+            nz = info.noise[t.output]
+            lam = self._lambda(t.tested.size, rows, p, nz.a.size, level)
+            worst = max(worst, math.sqrt(lam * nz.sigma2 / (q * rows)) if q > 0 else math.inf)
+        return worst
+
+
+def _caps(info: WindowInformation, model, candidates: list) -> tuple:
+    """Largest amplitude of every candidate input, and the inputs that did not move."""
+    std = info.std
+    still = [j for j in candidates if j not in info.testable]
+    caps = {j: MAX_AMPLITUDE * float(std[j]) for j in candidates if j in info.testable}
+    if still:
+        gains = np.abs(model.gain)
+        moving = [j for j in info.testable]
+        if moving:
+            effects = [gains[i, k] * MAX_AMPLITUDE * std[k] for i in range(model.n_outputs) for k in moving
+                       if gains[i, k] > 0]
+            effect = float(np.median(effects)) if effects else 0.0
+        else:
+            effect = 0.0
+        if effect <= 0:
+            sig = [math.sqrt(nz.sigma2) for nz in info.noise.values()]
+            effect = 5.0 * float(np.median(sig)) if sig else 1.0
+        for j in still:
+            col = gains[:, j][gains[:, j] > 0]
+            ref = float(np.median(col)) if col.size else float(np.median(gains[gains > 0])) if np.any(gains > 0) else 1.0
+            caps[j] = effect / ref
+    return caps, still
+
+
+def _small_directions(info: WindowInformation, cols: list, threshold: float) -> int:
+    """Near-null directions of the inputs' correlation (each needs a dithered input of its own)."""
+    if len(cols) < 2:
+        return 0
+    L = info.n_lag
+    idx = [j * L for j in cols]
+    C = info.G[np.ix_(idx, idx)]
+    s = np.sqrt(np.maximum(np.diag(C), 1e-300))
+    w = np.linalg.eigvalsh(C / np.outer(s, s))
+    return int(np.sum(w < 10 * threshold * max(w.mean(), 1e-300)))
+
+
+def design_experiment(model, info: Optional[WindowInformation], elements: list, options,
+                      layout) -> Optional[Experiment]:
+    """The smallest dither experiment that resolves what the window could not decide (module docstring).
+
+    Parameters
+    ----------
+    model : PlantModel
+    info : WindowInformation or None
+        The window's information (None: no ARX element test ran; no experiment).
+    elements : list of ElementResult
+        The element decisions, with their ``detectable_gain_change``.
+    options : AnalysisOptions
+        Its ``alpha`` and ``collinearity_threshold``.
+    layout : RegressionLayout
+        First regression row of a window (``start``) and the fewest samples the tests accept
+        (``min_samples``): the experiment lasts at least that long.
+
+    Returns
+    -------
+    Experiment or None
+        None when no element is ambiguous and some element is decidable at :data:`GOAL`.
+    """
+    if info is None or not info.noise:
+        return None
+    index = {(model.outputs.index(e.output), model.columns.index(e.input)): e for e in elements}
+    located = {k for k, e in index.items() if e.mismatch}
+    ambiguous = [k for k, e in index.items() if e.ambiguous and k not in located and k in info.targets]
+    values = [e.detectable_gain_change for e in index.values() if not e.ambiguous
+              and e.detectable_gain_change is not None and math.isfinite(e.detectable_gain_change)]
+    decidable = any(v <= GOAL for v in values)
+    if not ambiguous and (decidable or not index):
+        return None
+    targets = set(ambiguous)
+    if not decidable:
+        targets |= {k for k in index if k not in located and k in info.targets}
+    # Only manipulated inputs can be dithered: a measured disturbance's element is a target only when
+    # it moves (a dither on the inputs it moves with separates it from them).
+    targets = sorted(k for k in targets if model.role(k[1]) == "input" or k[1] in info.testable)
+    with_inputs = {model.columns.index(name) for k in ambiguous for name in index[k].ambiguous_with}
+    candidates = sorted(j for j in {j for _, j in targets} | with_inputs if model.role(j) == "input")
+    if not targets or not candidates:
+        return None
+    caps, still = _caps(info, model, candidates)
+    testable_c = [j for j in candidates if j not in still]
+    pred = _Predictor(info, targets, options.alpha, options.collinearity_threshold, layout, info.testable)
+    p = info.G.shape[0]
+    lowest = max(_small_directions(info, testable_c, options.collinearity_threshold), 0 if still else 1)
+    best = None
+    for size in range(lowest, len(testable_c) + 1):
+        trials = []
+        for extra in itertools.combinations(testable_c, size):
+            chosen = tuple(sorted(set(still) | set(extra)))
+            if not chosen:
+                continue
+            trial = _trial(pred, chosen, caps, 1.0, p)
+            if trial.separated and trial.samples <= MAX_SAMPLES:
+                trials.append(trial)
+        if trials:
+            trials.sort(key=lambda t: t.cost)
+            for t in trials[:REFINED_SUBSETS]:
+                prev = t
+                for f in reversed(AMPLITUDE_FRACTIONS[:-1]):   # smaller amplitudes while the cost falls
+                    tf = _trial(pred, t.inputs, caps, f, p)
+                    if not (tf.separated and tf.samples <= MAX_SAMPLES) or tf.cost >= prev.cost:
+                        break
+                    trials.append(tf)
+                    prev = tf
+            best = min(trials, key=lambda t: (t.cost, t.samples))
+            break
+    reached = best is not None
+    if best is None:   # the goal is out of reach: every candidate at its largest amplitude, as long as allowed
+        best = _Trial(tuple(candidates), 1.0, MAX_SAMPLES, math.inf, False)
+    samples = min(int(math.ceil(best.samples / SAMPLES_STEP) * SAMPLES_STEP), MAX_SAMPLES)
+    separated, drops, family = pred.evaluate({j: best.fraction * caps[j] for j in best.inputs})
+    worst = pred.worst_at(drops, family, samples, p) if separated else math.inf
+    dither = {model.inputs[j]: float(f"{best.fraction * caps[j]:.3g}") for j in best.inputs}
+    return Experiment(dither=dither, samples=samples, expected_detectable_gain_change=worst,
+                      why=_why(model, info, best, caps, still, ambiguous, decidable, values, targets, samples, worst,
+                               reached))
+
+
+def _trial(pred: _Predictor, inputs: tuple, caps: dict, fraction: float, p: int) -> _Trial:
+    separated, drops, family = pred.evaluate({j: fraction * caps[j] for j in inputs})
+    if not separated:
+        return _Trial(inputs, fraction, math.inf, math.inf, False)
+    return _Trial(inputs, fraction, max(pred.samples_needed(drops, family, p), pred.min_samples), GOAL, True)
+
+
+def _why(model, info, best: _Trial, caps, still, ambiguous, decidable, values, targets, samples, worst,
+         reached) -> str:
+    parts = []
+    amb_inputs = sorted({j for _, j in ambiguous})
+    moving_amb = [j for j in amb_inputs if j not in still]
+    if moving_amb:
+        parts.append(f"the closed loop moves {_names(model, moving_amb)} together, so the elements of "
+                     f"{'that input' if len(moving_amb) == 1 else 'these inputs'} cannot be told apart from these data")
+    if still:
+        parts.append(f"{_names(model, still)} did not move at all in this window, so "
+                     f"{'its' if len(still) == 1 else 'their'} elements cannot be tested")
+    if not decidable:
+        low = min(values) if values else math.inf
+        parts.append("no element is decidable at the 20% level in this window"
+                     + (f" (the smallest detectable gain change is {_g(low)})" if math.isfinite(low) else ""))
+    dith = ", ".join(f"{model.inputs[j]} ({_g(best.fraction * caps[j])}"
+                     + (f", {_g(best.fraction * MAX_AMPLITUDE)} of its standard deviation {_g(info.std[j])})"
+                        if j not in still else ")") for j in best.inputs)
+    text = "; ".join(parts) + ". " if parts else ""
+    target_inputs = sorted({j for _, j in targets})
+    text += (f"A PRBS dither (+- amplitude, switching with probability 1/2 every sample) on {dith} for {samples} "
+             f"samples ")
+    goal = (f"detect a {GOAL:.0%} gain error of every element of {_names(model, target_inputs)} with probability "
+            f"0.9 (predicted detectable gain change {_g(worst)})")
+    if reached:
+        text += ("is predicted to separate the inputs and " if moving_amb else "is predicted to ") + goal + \
+            "; it is the smallest experiment that does (fewest inputs, then smallest amplitude times samples)."
+    else:
+        text += (f"is the largest allowed (half of each input's standard deviation, {MAX_SAMPLES} samples) and still "
+                 f"does not reach the goal: predicted detectable gain change {_g(worst)}.")
+    if still:
+        text += (f" {_names(model, still)} did not move, so {'its' if len(still) == 1 else 'their'} amplitude is not "
+                 "bounded by an observed spread: it is chosen so that its effect on the outputs matches the other "
+                 "inputs' dithers; check that the process allows it.")
+    return text

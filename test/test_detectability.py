@@ -1,0 +1,282 @@
+"""Detectability and the experiment: the noncentral-F formula, its moments, the experiment's choice, the outputs.
+
+The calibration by simulation (an error of the reported size is detected about 90 % of the time) is
+bench/detectability.py; the recall the experiments bring is bench/experiment_mc.py.
+"""
+
+import dataclasses
+import itertools
+import json
+import types
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from mpm_monitor.core import detectability as det
+from mpm_monitor.core import experiment as exm
+from mpm_monitor.core.analysis import AnalysisOptions, detect
+from mpm_monitor.core.arx import lag_matrix
+from mpm_monitor.core.element_test import RowNoise
+from mpm_monitor.core.filters import lfilter
+from mpm_monitor.core.model import PlantModel
+from mpm_monitor.core.regressions import regression_layout
+from mpm_monitor.core.statistics import detection_noncentrality
+from mpm_monitor.sim.cases import paper_case
+from mpm_monitor.sim.closed_loop import run_closed_loop
+from mpm_monitor.sim.mpc import MpcOptions
+
+FAST = AnalysisOptions(repair=False)
+#: A fat plant (2 outputs, 4 inputs): its controller moves the inputs in 2 directions only.
+FAT_PLANT = PlantModel(sample_time=1.0, inputs=("u1", "u2", "u3", "u4"), outputs=("y1", "y2"),
+                       gain=[[1.0, 0.6, 0.8, 0.5], [0.4, 1.2, 0.5, 0.9]],
+                       time_constant=[[10, 15, 12, 20], [14, 10, 18, 12]], delay=[[1, 2, 1, 3], [2, 1, 2, 1]])
+FAT_MODEL = FAT_PLANT.replace(gain=[[1.0, 0.6, 0.8, 0.8], [0.4, 1.2, 0.5, 0.9]])
+
+
+# ------------------------------------------------------------------------------ the noncentral F
+@pytest.mark.parametrize("k, dof, level", [(1, 50, 0.05), (4, 200, 0.01), (12, 2900, 0.01 / 24), (20, 800, 1e-4)])
+def test_detection_noncentrality_gives_the_power_of_the_noncentral_f(k, dof, level):
+    """The noncentrality from scipy.special's ncfdtrinc is detected with probability 0.9 (scipy.stats.ncf)."""
+    lam = detection_noncentrality(k, dof, level, 0.9)
+    f_crit = stats.f.isf(level, k, dof)
+    assert stats.ncf.sf(f_crit, k, dof, lam) == pytest.approx(0.9, abs=2e-5)   # ncfdtrinc solves to ~5e-6
+    assert stats.ncf.sf(f_crit, k, dof, 0.8 * lam) < 0.9 < stats.ncf.sf(f_crit, k, dof, 1.2 * lam)
+
+
+def test_detection_noncentrality_by_numerical_integration():
+    """Independent reference: P(F' > c) as the Poisson mixture of central F tails, integrated numerically."""
+    k, dof, level = 3, 120, 0.005
+    lam = detection_noncentrality(k, dof, level, 0.9)
+    c = stats.f.isf(level, k, dof)
+    x = np.linspace(c, c + 400.0, 400_001)
+    j = np.arange(0, 200)
+    weights = stats.poisson.pmf(j, lam / 2)
+    # the density of the noncentral F: sum_j w_j * density of (k + 2j) chi2 / k over chi2(dof) / dof
+    dens = sum(w * stats.f.pdf(x * k / (k + 2 * jj), k + 2 * jj, dof) * k / (k + 2 * jj)
+               for jj, w in zip(j, weights) if w > 1e-14)
+    assert np.trapezoid(dens, x) == pytest.approx(0.9, abs=2e-4)
+
+
+def _window(seed=0, n=2000, na=2):
+    """A 2x3 model, white inputs, an AR noise on the prediction error of row 0."""
+    model = PlantModel(sample_time=1.0, inputs=("u1", "u2", "u3"), outputs=("y1", "y2"),
+                       gain=[[1.5, 0.0, -0.7], [0.3, 1.0, 0.5]], time_constant=[[8, 0, 5], [3, 6, 9]],
+                       delay=[[2, 0, 1], [1, 3, 0]])
+    rng = np.random.default_rng(seed)
+    u = rng.standard_normal((n, 3)) @ np.array([[1.0, 0.3, 0.0], [0.0, 1.0, 0.4], [0.0, 0.0, 1.0]])
+    e = 0.1 * rng.standard_normal((n, 2))
+    d = lfilter([1.0], [1.0, -0.6, 0.1], e, axis=0)
+    noise = {0: RowNoise(sigma2=0.01, dof=n - 40, a=np.array([-0.6, 0.1][:na]))}
+    return model, u, d, noise
+
+
+def test_the_drop_equals_the_least_squares_reference():
+    """q_ij / n from the moments equals the RSS drop of A(q) x_ij on the input and own lags, by lstsq."""
+    model, u, d, noise = _window()
+    L, start = 8, 8
+    windows = {(0, 0): 5, (0, 1): None, (0, 2): 3}
+    info = det.WindowInformation(model, u, d, [0, 1, 2], L, start, noise, windows)
+    drops = info.drops([(0, 0), (0, 1), (0, 2)], det.moment_inverse(info.G))
+    u_c = u - u.mean(axis=0)
+    d_c = d[:, 0] - d[:, 0].mean()
+    Z = lag_matrix(u_c, range(1, L + 1), start)
+    O = lag_matrix(d_c, range(1, 3), start)
+    for (i, j), k in windows.items():
+        element, _ = det.target_element(model, i, j)        # (0, 1): the row's typical element
+        x = element.respond(u_c[:, j])
+        x -= x.mean()
+        xf = lfilter(np.r_[1.0, noise[0].a], [1.0], x)[start:]
+        k = L if k is None else k
+        keep = [c for c in range(Z.shape[1]) if not (j * L <= c < j * L + k)]
+        full = np.column_stack([Z, O])
+        reduced = np.column_stack([Z[:, keep], O])
+        rss = [np.sum((xf - m @ np.linalg.lstsq(m, xf, rcond=None)[0]) ** 2) for m in (reduced, full)]
+        assert drops[(i, j)] == pytest.approx((rss[0] - rss[1]) / Z.shape[0], rel=1e-6)
+
+
+def test_the_detectable_change_is_the_formula(monkeypatch):
+    """Without the own-lag fixed point: sqrt(c lambda_90 sigma^2 / q), lambda_90 at Holm's first step alpha / (2 m)."""
+    monkeypatch.setattr(det, "FIXED_POINT_STEPS", 0)
+    model, u, d, noise = _window()
+    info = det.WindowInformation(model, u, d, [0, 1, 2], 8, 8, noise, {})
+    values = info.detectable([(0, 0), (0, 2)], alpha=0.01, family_size=3)
+    q = info.drops([(0, 0), (0, 2)], det.moment_inverse(info.G))
+    n = info.n_rows
+    dof = n - 24 - 2
+    f_crit = stats.f.isf(0.01 / 6, 8, dof)
+    lo, hi = 0.0, 500.0        # the power equation solved by bisection on scipy.stats.ncf
+    for _ in range(100):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if stats.ncf.sf(f_crit, 8, dof, mid) < 0.9 else (lo, mid)
+    for key in values:
+        assert values[key] == pytest.approx(np.sqrt(det.CALIBRATION * lo * 0.01 / (q[key] * n)), rel=1e-5)
+
+
+# ------------------------------------------------------------------------------ closed loops
+@pytest.fixture(scope="module")
+def fat():
+    """The fat loop without dither (1500 samples) and its analysis: ambiguous, no element located."""
+    log = run_closed_loop(FAT_PLANT, FAT_MODEL, 1500, seed=3, mpc=MpcOptions(prediction_horizon=60,
+                                                                              control_horizon=15))
+    data = log.as_logged_data("fat loop")
+    return data, detect(FAT_MODEL, data, FAST)
+
+
+def test_a_fat_plant_gets_the_fewest_inputs_then_the_smallest_experiment(fat):
+    data, rep = fat
+    assert rep.located_elements == [] and rep.ambiguous_elements
+    exp = rep.experiment
+    assert exp is not None
+    # fewest inputs: the controller moves 4 inputs in 2 directions, so 2 must be dithered (1 cannot separate them)
+    assert len(exp.dither) == 2
+    std = data.u.std(axis=0)
+    for name, a in exp.dither.items():
+        assert 0 < a <= 0.5 * std[FAT_MODEL.inputs.index(name)] * (1 + 1e-3)
+    assert exp.expected_detectable_gain_change <= exm.GOAL + 1e-9
+    assert exp.samples % exm.SAMPLES_STEP == 0 and exp.samples <= exm.MAX_SAMPLES
+    assert exp.why.startswith("the closed loop moves u1, u2, u3, u4 together")
+    assert "smallest experiment" in exp.why
+    # the smallest amplitude x samples: no other pair of inputs does it cheaper at full amplitude
+    info, pred, caps, chosen = _predictor(data, rep)
+    cost = min(exm._trial(pred, chosen, caps, f, info.G.shape[0]).cost for f in exm.AMPLITUDE_FRACTIONS)
+    for pair in itertools.combinations(range(4), 2):
+        t = exm._trial(pred, pair, caps, 1.0, info.G.shape[0])
+        assert not t.separated or t.cost >= cost - 1e-9
+    for one in range(4):
+        assert not exm._trial(pred, (one,), caps, 1.0, info.G.shape[0]).separated
+
+
+def _predictor(data, rep):
+    """The window's information and the experiment's predictor, rebuilt as detect() builds them."""
+    from mpm_monitor.core.element_test import InputDesign, row_noise
+    from mpm_monitor.core.regressions import window_regressions
+    from mpm_monitor.core.signals import compute_signals
+
+    model, options = FAT_MODEL, FAST
+    layout = regression_layout(model, options)
+    sig = compute_signals(model, data.r, data.u, data.y, options.initial_state, dv=data.dv)
+    regs = window_regressions(data.r, data.u, sig.eps - data.r, sig.d, layout, options.na, options.nb)
+    design = InputDesign(model, data.u, layout.n_lag_u, layout.start, options.collinearity_threshold,
+                         regs.input_regression)
+    noise = {i: row_noise(regs.element_fit(design.regression, i)) for i in range(model.n_outputs)}
+    info, _, _ = det.element_detectability(model, data.u, sig.d, design, noise, layout, options)
+    targets = sorted((model.outputs.index(o), model.inputs.index(i)) for o, i in rep.ambiguous_elements)
+    pred = exm._Predictor(info, targets, options.alpha, options.collinearity_threshold, layout, info.testable)
+    caps, _ = exm._caps(info, model, [0, 1, 2, 3])
+    chosen = tuple(sorted(model.inputs.index(k) for k in rep.experiment.dither))
+    return info, pred, caps, chosen
+
+
+def test_an_input_that_did_not_move_is_named_and_its_amplitude_is_not_bounded_by_a_spread(fat):
+    data, _ = fat
+    u = data.u.copy()
+    u[:, 3] = 0.25                       # u4 never moved in this window
+    frozen = dataclasses.replace(data, u=u)
+    rep = detect(FAT_MODEL, frozen, FAST)
+    assert all(e.detectable_gain_change is None for e in rep.elements if e.input == "u4")
+    assert any("u4 never move" in w and "detectable_gain_change null" in w for w in rep.warnings)
+    exp = rep.experiment
+    assert exp is not None and "u4" in exp.dither and exp.dither["u4"] > 0
+    assert "u4 did not move at all in this window" in exp.why and "u4 did not move, so its amplitude" in exp.why
+
+
+def test_no_experiment_when_nothing_is_ambiguous_and_elements_are_decidable():
+    case = paper_case("3.2")
+    log = run_closed_loop(case.plant, case.model, 3000, seed=11, mpc=case.mpc, excitation=case.excitation,
+                          disturbance=case.disturbance)
+    rep = detect(case.model, log.as_logged_data(), FAST)
+    assert rep.located_elements and not rep.ambiguous_elements
+    values = [e.detectable_gain_change for e in rep.elements]
+    assert all(v is not None and 0 < v < 1 for v in values) and min(values) <= 0.2
+    assert rep.experiment is None
+    assert rep.to_dict()["experiment"] is None
+
+
+def test_experiment_choice_rules_on_a_stub_window():
+    """Not decidable at 20 % and nothing ambiguous: the experiment is for every unlocated element."""
+    model, u, d, noise = _window(n=800)
+    info = det.WindowInformation(model, u, d, [0, 1, 2], 8, 8, noise, {})
+    layout = types.SimpleNamespace(start=8, min_samples=200)
+
+    def el(j, x, ambiguous=False, mismatch=False):
+        return types.SimpleNamespace(output="y1", input=model.inputs[j], mismatch=mismatch, ambiguous=ambiguous,
+                                     ambiguous_with=(), detectable_gain_change=x)
+
+    # decidable (one element at 20 % or better) and nothing ambiguous: no experiment
+    assert exm.design_experiment(model, info, [el(0, 0.1), el(1, 0.5), el(2, 0.9)], FAST, layout) is None
+    # nothing decidable: an experiment, the dither on as few inputs as reach the goal
+    exp = exm.design_experiment(model, info, [el(0, 0.5), el(1, 0.6), el(2, 0.9)], FAST, layout)
+    assert exp is not None and 1 <= len(exp.dither) <= 3
+    assert "no element is decidable at the 20% level in this window" in exp.why
+    assert all(a <= 0.5 * u[:, model.inputs.index(k)].std() * 1.001 for k, a in exp.dither.items())
+    # a located element is not a target: with the others decidable, nothing to do
+    assert exm.design_experiment(model, info, [el(0, 0.5, mismatch=True), el(1, 0.1), el(2, 0.15)], FAST,
+                                 layout) is None
+
+
+# ------------------------------------------------------------------------------ the outputs
+def test_json_summary_statuses_and_report_carry_it(fat, tmp_path):
+    from mpm_monitor.io.report import write_report
+    from mpm_monitor.monitor.statuses import row_statuses
+    from mpm_monitor.monitor.worker import AnalysisJob, AnalysisOutcome
+
+    data, rep = fat
+    doc = json.loads(json.dumps(rep.to_dict()))
+    assert all("detectable_gain_change" in e for e in doc["elements"])
+    assert all(e["detectable_gain_change"] is None or e["detectable_gain_change"] > 0 for e in doc["elements"])
+    e = doc["experiment"]
+    assert set(e) == {"dither", "samples", "expected_detectable_gain_change", "why"}
+    assert e["samples"] == rep.experiment.samples and e["dither"] == rep.experiment.dither
+
+    text = rep.summary_text()
+    assert "detectable gain change (smallest relative gain error detected with probability 0.9):" in text
+    assert "  y1: u1 " in text and "(ambiguous)" in text
+    assert f"experiment recommended: PRBS dither on {', '.join(f'{k} {v:g}' for k, v in e['dither'].items())}" \
+           f" (input units) for {e['samples']} samples" in text
+
+    job = AnalysisJob(seq=1, data=data, first_stamp=0.0, last_stamp=1499.0, completed=1500)
+    rows = row_statuses(FAT_MODEL.outputs, AnalysisOutcome(job, report=rep), None, "waiting", "test")
+    value = rows[0].value("detectable_gain_change")
+    parts = dict(p.split("=") for p in value.split(","))
+    assert list(parts) == ["u1", "u2", "u3", "u4"]
+    by_input = {x.input: x.detectable_gain_change for x in rep.elements if x.output == "y1"}
+    assert all(float(v) == pytest.approx(by_input[k]) for k, v in parts.items())
+
+    out = write_report(tmp_path / "rep", FAT_MODEL, data, rep)
+    html = out.read_text()
+    assert "<h2>Detectability and experiment</h2>" in html and "Recommended experiment:" in html
+    assert (tmp_path / "rep" / "detectability.png").is_file()
+
+
+def test_every_element_of_a_well_excited_square_loop_gets_a_value():
+    case = paper_case("3.1")
+    log = run_closed_loop(case.plant, case.model, 2000, seed=5, mpc=case.mpc, excitation=case.excitation,
+                          disturbance=case.disturbance)
+    rep = detect(case.model, log.as_logged_data(), dataclasses.replace(FAST, test_all_rows=True))
+    assert len(rep.elements) == 9
+    assert all(np.isfinite(e.detectable_gain_change) for e in rep.elements)
+
+
+def test_no_values_for_the_baselines():
+    case = paper_case("3.2")
+    log = run_closed_loop(case.plant, case.model, 1500, seed=11, mpc=case.mpc, excitation=case.excitation,
+                          disturbance=case.disturbance)
+    rep = detect(case.model, log.as_logged_data(), dataclasses.replace(FAST, method="xcorr"))
+    assert all(e.detectable_gain_change is None for e in rep.elements) and rep.experiment is None
+
+
+
+def test_simulate_takes_the_dither_of_a_reports_experiment(tmp_path):
+    from mpm_monitor.apps.cli import _experiment_dither
+    from mpm_monitor.core.errors import InputError
+
+    path = tmp_path / "report.json"
+    path.write_text(json.dumps({"experiment": {"dither": {"u4": 0.2, "u2": 0.1}, "samples": 100}}))
+    assert _experiment_dither(str(path), FAT_MODEL) == (0.0, 0.1, 0.0, 0.2)
+    path.write_text(json.dumps({"experiment": None}))
+    with pytest.raises(InputError, match="key 'experiment': expected an object with a 'dither'"):
+        _experiment_dither(str(path), FAT_MODEL)
+    path.write_text(json.dumps({"experiment": {"dither": {"u9": 0.2}}}))
+    with pytest.raises(InputError, match="unknown input"):
+        _experiment_dither(str(path), FAT_MODEL)
