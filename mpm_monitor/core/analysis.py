@@ -185,6 +185,8 @@ class AnalysisReport:
         ``yhat``, ``d`` and ``eps`` the tests used.
     repair_result : RepairResult or None
         The repair's full result (None without repair).
+    candidates : CandidateReport or None
+        The candidate channels tried (:mod:`mpm_monitor.core.candidates`); None when none were asked for.
     """
 
     sample_time: float
@@ -206,6 +208,7 @@ class AnalysisReport:
     max_variance_inflation: float
     signals: Optional[LoopSignals] = None
     repair_result: object = None
+    candidates: object = None
 
     @property
     def flagged_rows(self) -> list:
@@ -254,6 +257,8 @@ class AnalysisReport:
             "repair": self.repair,
             "warnings": list(self.warnings),
         }
+        if self.candidates is not None:
+            doc["candidates"] = self.candidates.to_dict()
         return clean(doc)
 
     def summary_text(self) -> str:
@@ -275,6 +280,8 @@ class AnalysisReport:
             moving = "inputs and measured disturbances" if any(e.role == "disturbance" for e in amb) else "inputs"
             lines.append(f"ambiguous ({moving} move together): "
                          + ", ".join(f"({e.output}, {_column_label(e)})" for e in amb))
+        if self.candidates is not None:
+            lines += self.candidates.summary_lines()
         lines += repair_summary_lines(self.repair)
         for w in self.warnings:
             lines.append(f"warning: {w}")
@@ -282,12 +289,15 @@ class AnalysisReport:
 
 
 def _column_label(e) -> str:
-    """``u2``, or ``dv1 (measured disturbance)`` for an element of a measured disturbance."""
-    return f"{e.input} (measured disturbance)" if e.role == "disturbance" else e.input
+    """``u2``, ``dv1 (measured disturbance)`` for an element of a measured disturbance, ``tf (candidate)``
+    for the effect of a candidate channel."""
+    if e.role in ("disturbance", "candidate"):
+        return f"{e.input} ({'measured disturbance' if e.role == 'disturbance' else e.role})"
+    return e.input
 
 
 def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
-           signals: Optional[LoopSignals] = None, regressions=None) -> AnalysisReport:
+           signals: Optional[LoopSignals] = None, regressions=None, candidates=None) -> AnalysisReport:
     """Run the S_Delta row test and the Delta element test on logged closed-loop data (no repair).
 
     Parameters
@@ -310,6 +320,11 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         matrices of the window's lagged signals, each regression whose condition bound exceeds
         1e3 (or whose residual is too small a part of its target) refitted by QR; the results equal
         those of :class:`~mpm_monitor.core.regressions.QrRegressions` to about 1e-10.
+    candidates : str, sequence of str or CandidateChannels, optional
+        Logged channels the model does not use (``data.extra``), tested as causes of each output's
+        prediction error jointly with the model's columns (:mod:`mpm_monitor.core.candidates`):
+        ``"all"``, names, or channels already selected.  Their tests join the element tests' family.
+        Default: none (the analysis is then exactly that without candidates).
 
     Returns
     -------
@@ -365,6 +380,17 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         element_test = baseline_element_test(model, columns, sig.d, options)
     warnings += element_test.warnings
     elements = element_test.elements
+    candidate_report = None
+    if candidates is not None:
+        from .candidates import CandidateChannels, run_candidate_tests, select_candidates
+
+        if options.method != "arx":
+            raise ConfigurationError(f"candidates: tested by the arx element test only, not by method {options.method}")
+        chosen = candidates if isinstance(candidates, CandidateChannels) else select_candidates(data, candidates, model)
+        tested = run_candidate_tests(model, data, chosen, columns, sig.d, elements, layout, options)
+        elements = tested.elements + tested.candidate_elements
+        candidate_report = tested.report
+        warnings += candidate_report.warnings()
 
     # A row in which an element is located is mismatched, even when its S_Delta test did not reject.
     for i in range(ny):
@@ -379,7 +405,7 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
                             f"unmeasured disturbance, a nonlinearity or too little input excitation")
     for e in elements:
         if e.mismatch:
-            e.kind = "unknown"
+            e.kind = "missing" if e.role == "candidate" else "unknown"
     rms = error_rms(model, sig.d)
     unrepaired = {"model": model.to_dict(), "changes": [], "error_before": rms, "error_after": dict(rms)}
     return AnalysisReport(
@@ -387,4 +413,5 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         elements=elements, overall_rsi=float(row_test.sigma_max.max()), warnings=warnings,
         frequencies=row_test.frequencies, row_gains=row_test.row_gains, sigma_max=row_test.sigma_max,
         sdelta_response=row_test.response, arx_tables=element_test.arx_tables, repair=unrepaired,
-        repaired_model=model, collinear_groups=design.groups, max_variance_inflation=design.max_vif, signals=sig)
+        repaired_model=model, collinear_groups=design.groups, max_variance_inflation=design.max_vif, signals=sig,
+        candidates=candidate_report)

@@ -25,7 +25,7 @@ from .signals import LoopSignals
 
 
 def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
-            signals: Optional[LoopSignals] = None, regressions=None) -> AnalysisReport:
+            signals: Optional[LoopSignals] = None, regressions=None, candidates=None) -> AnalysisReport:
     """Locate the mismatched elements of ``model`` on logged closed-loop data and repair them.
 
     Parameters
@@ -40,6 +40,12 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
         :func:`~mpm_monitor.core.analysis.detect`).
     regressions : object, optional
         Given to the first detection (see :func:`~mpm_monitor.core.analysis.detect`).
+    candidates : str, sequence of str or CandidateChannels, optional
+        Logged channels tested as causes of the prediction error (see
+        :func:`~mpm_monitor.core.analysis.detect`).  A located candidate is added to the model as a
+        new measured disturbance column, its element fitted and validated on the held-out part like
+        any missing element; one whose repair the validation rejects is left out of the repaired
+        model.  The report's ``candidates.added`` names those added.
 
     Returns
     -------
@@ -55,11 +61,18 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
     DataFileError
         When the data do not fit the model or are too short for the tests.
     """
-    report = detect(model, data, options, signals=signals, regressions=regressions)
+    if candidates is None:
+        report = detect(model, data, options, signals=signals, regressions=regressions)
+    else:
+        report = detect(model, data, options, signals=signals, regressions=regressions, candidates=candidates)
     if not options.repair:
         return report
     columns = model.columns
-    located = [(model.outputs.index(e.output), columns.index(e.input)) for e in report.elements if e.mismatch]
+    located = [(model.outputs.index(e.output), columns.index(e.input)) for e in report.elements
+               if e.mismatch and e.role != "candidate"]
+    tried = report.candidates
+    if tried is not None and tried.located:
+        return _repair_with_candidates(model, data, options, report, located)
     result = repair_model(model, data, located, RepairOptions(initial_state=options.initial_state),
                           signals=report.signals)
     warnings = report.warnings
@@ -74,4 +87,36 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
     for e in report.elements:
         if e.mismatch:
             e.kind = kinds.get((model.outputs.index(e.output), columns.index(e.input)), "unknown")
+    return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result)
+
+
+def _repair_with_candidates(model: PlantModel, data: LoggedData, options: AnalysisOptions, report: AnalysisReport,
+                            located: list) -> AnalysisReport:
+    """The repair of ``located`` and of the located candidate effects, each candidate a new measured
+    disturbance column of the model (:func:`~mpm_monitor.core.candidates.with_candidate_columns`);
+    a candidate none of whose elements the repair applied is left out of the repaired model."""
+    from .candidates import with_candidate_columns, without_columns
+
+    tried = report.candidates
+    names = list(dict.fromkeys(name for _, name in tried.located))
+    wide, wide_data = with_candidate_columns(model, data, names)
+    located = located + [(wide.outputs.index(o), wide.columns.index(c)) for o, c in tried.located]
+    result = repair_model(wide, wide_data, located, RepairOptions(initial_state=options.initial_state),
+                          signals=report.signals)
+    added = [n for n in names if any(c["input"] == n and c["applied"] for c in result.changes)]
+    result = dataclasses.replace(result, model=without_columns(result.model, [n for n in names if n not in added]))
+    tried.added = added
+    warnings = report.warnings
+    warnings.extend(w for w in result.warnings if w not in warnings)
+    doc = result.to_dict()
+    if result.model != model:
+        _, after_data = with_candidate_columns(model, data, added)
+        after = detect(result.model, after_data, dataclasses.replace(options, repair=False, test_all_rows=False),
+                       signals=result.signals)
+        doc["rsi_after"] = {r.output: r.rsi for r in after.rows}
+        doc["rows_flagged_after"] = after.flagged_rows
+    kinds = getattr(result, "kinds", {})
+    for e in report.elements:
+        if e.mismatch:
+            e.kind = kinds.get((wide.outputs.index(e.output), wide.columns.index(e.input)), "unknown")
     return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result)
