@@ -208,17 +208,21 @@ def _lags(x: np.ndarray, n_lag: int, start: int) -> np.ndarray:
 
 def _rss(X: np.ndarray, y: np.ndarray):
     """Residual sum of squares of the least-squares fit of ``y`` on ``X``, the rank of ``X``, the
-    coefficients and their unscaled covariance diagonal ``diag((X'X)^+)``."""
+    coefficients and their unscaled variances ``diag((X'X)^-1)`` (one QR; ``lstsq`` and the
+    pseudo-inverse when ``X`` is rank-deficient)."""
     if X.shape[1] == 0:
         return float(y @ y), 0, np.zeros(0), np.zeros(0)
     q, r = np.linalg.qr(X)
     diag = np.abs(np.diag(r))
-    keep = diag > 1e-10 * max(float(diag.max(initial=0.0)), 1e-300)
-    rank = int(keep.sum())
-    coef, *_ = np.linalg.lstsq(X, y, rcond=None)
+    if diag.min() > 1e-10 * max(float(diag.max()), 1e-300):
+        rinv = np.linalg.inv(r)
+        qty = q.T @ y
+        coef = rinv @ qty
+        res = y - q @ qty
+        return float(res @ res), X.shape[1], coef, np.sum(rinv ** 2, axis=1)
+    coef, _, rank, _ = np.linalg.lstsq(X, y, rcond=None)
     res = y - X @ coef
-    rinv = np.linalg.pinv(r)
-    return float(res @ res), rank, coef, np.sum(rinv ** 2, axis=1)
+    return float(res @ res), int(rank), coef, np.sum(np.linalg.pinv(r) ** 2, axis=1)
 
 
 def _f_test(rss_r: float, rss_f: float, df_num: int, df_den: int):
