@@ -64,7 +64,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from .errors import ConfigurationError
-from .logged_data import LoggedData
+from .logged_data import MAX_ANALYSIS_SCALE, LoggedData
 from .model import PARAMETRIC_KEYS, PlantModel
 
 #: Own lags of a candidate in its exogeneity test and the order of its whitening filter.
@@ -128,7 +128,7 @@ def channel_problem(values, n_samples: int) -> Optional[str]:
     Returns
     -------
     str or None
-        "not numeric", "N samples, the log has M", "holds NaN or infinity" or "constant".
+        "not numeric", "N samples, the log has M", "holds NaN or infinity", too large, or "constant".
     """
     try:
         x = np.asarray(values, dtype=float)
@@ -138,8 +138,10 @@ def channel_problem(values, n_samples: int) -> Optional[str]:
         return f"{x.shape[0] if x.ndim == 1 else x.size} samples, the log has {n_samples}"
     if not np.isfinite(x).all():
         return "holds NaN or infinity"
-    scale = max(float(np.abs(x).max(initial=0.0)), 1.0)
-    if not float(x.std()) > 1e-12 * scale:
+    peak = float(np.abs(x).max(initial=0.0))
+    if peak > MAX_ANALYSIS_SCALE:
+        return f"values up to {peak:.3g}: too large for the analysis (at most {MAX_ANALYSIS_SCALE:g}); rescale the units"
+    if not float(x.std()) > 1e-12 * max(peak, 1.0):
         return "constant: it never moves"
     return None
 
