@@ -329,8 +329,9 @@ class CauseTest:
         Unadjusted p-value of "no lag of the whitened candidate helps".
     statistic : float
     delay : int
-        Estimated dead time (samples) of its effect: the start of the window of ``nb`` lags with
-        the largest squared t-statistics.
+        First lag (samples) of its effect, as the element test reports it for an input: the start of
+        the window of ``nb`` lags with the largest squared t-statistics (a dead time of ``theta``
+        samples shows from lag ``theta + 1``).
     b : list of float
         The ``nb`` coefficients there (of the whitened candidate).
     """
@@ -387,7 +388,7 @@ def cause_tests(d: np.ndarray, columns: np.ndarray, w: np.ndarray, na: int, nb: 
         s2 = rss_f / max(df_den, 1)
         std = np.sqrt(np.maximum(var[-n_lag:] * s2, 0.0))
         lag0 = estimate_delay_from_lags(g, std, nb, first_lag=1)
-        out.append(CauseTest(float(p), float(stat), int(lag0 - 1), g[lag0 - 1:lag0 - 1 + nb].tolist()))
+        out.append(CauseTest(float(p), float(stat), int(lag0), g[lag0 - 1:lag0 - 1 + nb].tolist()))
     return out
 
 
