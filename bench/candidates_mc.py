@@ -66,7 +66,9 @@ def null_run(seed: int, index: int, samples: int, alpha: float = ALPHA) -> dict:
             "located": sorted({c for _, c in cands.located}),
             "not_exogenous": sorted(cands.not_exogenous),
             "elements_located": [list(k) for k in rep.located_elements if k[1] not in extra],
-            "min_p": min((p for ps in cands.p_values.values() for p in ps.values()), default=1.0)}
+            "min_p": min((p for ps in cands.p_values.values() for p in ps.values()), default=1.0),
+            "raw_p": {name: {e.output: e.p_value_raw for e in rep.elements if e.role == "candidate" and e.input == name}
+                      for name in cands.p_values}}
 
 
 def detection_run(seed: int, index: int, samples: int, alpha: float = ALPHA) -> dict:
@@ -115,7 +117,12 @@ def run(runs: int, detection_runs: int, seed: int, samples: int, jobs: int = 1, 
         by_kind[kind] = {"channels": len(names) * runs,
                          "located": sum(len(set(r["located"]) & set(names)) for r in nulls),
                          "runs_with_one_located": sum(bool(set(r["located"]) & set(names)) for r in nulls),
-                         "not_exogenous": sum(len(set(r["not_exogenous"]) & set(names)) for r in nulls)}
+                         "not_exogenous": sum(len(set(r["not_exogenous"]) & set(names)) for r in nulls),
+                         "raw_tests": sum(len(r["raw_p"].get(n, {})) for r in nulls for n in names),
+                         "raw_below_5pct": sum(p < 0.05 for r in nulls for n in names
+                                               for p in r["raw_p"].get(n, {}).values())}
+        k = by_kind[kind]
+        k["raw_rejection_at_5pct"] = k["raw_below_5pct"] / max(k["raw_tests"], 1)
     level = {"runs": runs, "alpha": alpha,
              "false_alarm_rate": sum(bool(r["located"]) for r in nulls) / runs,
              "runs_with_not_exogenous": sum(bool(r["not_exogenous"]) for r in nulls) / runs,
@@ -153,7 +160,8 @@ def format_table(res: dict) -> str:
              f"  runs with any candidate located: {lv['false_alarm_rate']:.3f} (alpha {lv['alpha']:g})"]
     for kind, k in lv["by_kind"].items():
         lines.append(f"  {kind:<26} located {k['located']} of {k['channels']} channels "
-                     f"(in {k['runs_with_one_located']} runs); called not exogenous {k['not_exogenous']}")
+                     f"(in {k['runs_with_one_located']} runs); called not exogenous {k['not_exogenous']}; "
+                     f"unadjusted p < 0.05 in {k['raw_rejection_at_5pct']:.3f} of {k['raw_tests']} tests")
     lines.append(f"  runs with a candidate called not exogenous: {lv['runs_with_not_exogenous']:.3f}; "
                  f"runs with a model element located: {lv['runs_with_element_located']:.3f}")
     lines.append(f"detection: {dt['runs']} runs, {EFFECT_CHANNEL} on y1 (gain 0.8, 30 s, 4 s)")
