@@ -146,7 +146,8 @@ def run(runs: int, detection_runs: int, seed: int, samples: int, jobs: int = 1, 
                  "time_constant_error_median": statistics.median(rel("time_constant")) if fitted else None,
                  "after_over_floor_median": statistics.median(d["error_after"] / d["floor"] for d in dets),
                  "after_over_floor_max": max(d["error_after"] / d["floor"] for d in dets),
-                 "after_within_10pct_of_floor": sum(d["error_after"] <= 1.1 * d["floor"] for d in dets) / detection_runs,
+                 "after_within_10pct_of_floor": sum(d["error_after"] <= 1.1 * d["floor"] for d in dets)
+                 / detection_runs,
                  "before_over_floor_median": statistics.median(d["error_before"] / d["floor"] for d in dets),
                  "median_analyze_s": statistics.median(d["time_s"] for d in dets)}
     return {"seed": seed, "samples": samples, "level": level, "detection": detection,
@@ -166,11 +167,13 @@ def format_table(res: dict) -> str:
                  f"runs with a model element located: {lv['runs_with_element_located']:.3f}")
     lines.append(f"detection: {dt['runs']} runs, {EFFECT_CHANNEL} on y1 (gain 0.8, 30 s, 4 s)")
     lines.append(f"  located {dt['located_rate']:.3f}, added {dt['added_rate']:.3f}; decoys added: "
-                 f"{dt['decoys_added']}; {LOOP_CHANNEL} reported not exogenous {dt['loop_channel_not_exogenous_rate']:.3f}")
+                 f"{dt['decoys_added']}; {LOOP_CHANNEL} reported not exogenous "
+                 f"{dt['loop_channel_not_exogenous_rate']:.3f}")
     if dt["gain_error_median"] is not None:
         lines.append(f"  gain within 10%: {dt['gain_within_10pct']:.3f} (median error {dt['gain_error_median']:.3f}); "
                      f"time constant within 10%: {dt['time_constant_within_10pct']:.3f} (median error "
-                     f"{dt['time_constant_error_median']:.3f}); delay within 1 sample: {dt['delay_within_1_sample']:.3f}")
+                     f"{dt['time_constant_error_median']:.3f}); delay within 1 sample: "
+                     f"{dt['delay_within_1_sample']:.3f}")
     lines.append(f"  y1 error / noise floor: before {dt['before_over_floor_median']:.2f} (median), after "
                  f"{dt['after_over_floor_median']:.3f} (median), {dt['after_over_floor_max']:.3f} (max); within 10% "
                  f"of the floor {dt['after_within_10pct_of_floor']:.3f}")

@@ -140,7 +140,7 @@ def channel_problem(values, n_samples: int) -> Optional[str]:
         return "holds NaN or infinity"
     peak = float(np.abs(x).max(initial=0.0))
     if peak > MAX_ANALYSIS_SCALE:
-        return f"values up to {peak:.3g}: too large for the analysis (at most {MAX_ANALYSIS_SCALE:g}); rescale the units"
+        return f"values up to {peak:.3g}: too large for the analysis (at most {MAX_ANALYSIS_SCALE:g}); rescale"
     if not float(x.std()) > 1e-12 * max(peak, 1.0):
         return "constant: it never moves"
     return None

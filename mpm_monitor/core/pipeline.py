@@ -67,50 +67,20 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
         report = detect(model, data, options, signals=signals, regressions=regressions, candidates=candidates)
     if not options.repair:
         return report
-    columns = model.columns
-    located = [(model.outputs.index(e.output), columns.index(e.input)) for e in report.elements
-               if e.mismatch and e.role != "candidate"]
     tried = report.candidates
-    if tried is not None and tried.located:
-        return _repair_with_candidates(model, data, options, report, located)
-    result = repair_model(model, data, located, RepairOptions(initial_state=options.initial_state),
-                          signals=report.signals)
-    warnings = report.warnings
-    warnings.extend(w for w in result.warnings if w not in warnings)
-    doc = result.to_dict()
-    if result.model != model:
-        after = detect(result.model, data, dataclasses.replace(options, repair=False, test_all_rows=False),
-                       signals=result.signals)
-        doc["rsi_after"] = {r.output: r.rsi for r in after.rows}
-        doc["rows_flagged_after"] = after.flagged_rows
-    kinds = getattr(result, "kinds", {})
-    for e in report.elements:
-        if e.mismatch:
-            e.kind = kinds.get((model.outputs.index(e.output), columns.index(e.input)), "unknown")
-    return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result)
-
-
-def _repair_with_candidates(model: PlantModel, data: LoggedData, options: AnalysisOptions, report: AnalysisReport,
-                            located: list) -> AnalysisReport:
-    """The repair of ``located`` and of the located candidate effects, each candidate a new measured
-    disturbance column of the model (:func:`~mpm_monitor.core.candidates.with_candidate_columns`);
-    a candidate none of whose elements the repair applied is left out of the repaired model."""
-    from .candidates import with_candidate_columns, without_columns
-
-    tried = report.candidates
-    names = list(dict.fromkeys(name for _, name in tried.located))
-    wide, wide_data = with_candidate_columns(model, data, names)
-    located = located + [(wide.outputs.index(o), wide.columns.index(c)) for o, c in tried.located]
+    names = list(dict.fromkeys(name for _, name in tried.located)) if tried is not None else []
+    wide, wide_data = (model, data) if not names else _with_candidates(model, data, names)
+    columns = wide.columns
+    located = [(wide.outputs.index(e.output), columns.index(e.input)) for e in report.elements if e.mismatch]
     result = repair_model(wide, wide_data, located, RepairOptions(initial_state=options.initial_state),
                           signals=report.signals)
-    added = [n for n in names if any(c["input"] == n and c["applied"] for c in result.changes)]
-    result = dataclasses.replace(result, model=without_columns(result.model, [n for n in names if n not in added]))
-    tried.added = added
+    after_data = data
+    if names:
+        result, after_data = _keep_applied_candidates(model, data, result, tried, names)
     warnings = report.warnings
     warnings.extend(w for w in result.warnings if w not in warnings)
     doc = result.to_dict()
     if result.model != model:
-        _, after_data = with_candidate_columns(model, data, added)
         after = detect(result.model, after_data, dataclasses.replace(options, repair=False, test_all_rows=False),
                        signals=result.signals)
         doc["rsi_after"] = {r.output: r.rsi for r in after.rows}
@@ -118,5 +88,25 @@ def _repair_with_candidates(model: PlantModel, data: LoggedData, options: Analys
     kinds = getattr(result, "kinds", {})
     for e in report.elements:
         if e.mismatch:
-            e.kind = kinds.get((wide.outputs.index(e.output), wide.columns.index(e.input)), "unknown")
+            e.kind = kinds.get((wide.outputs.index(e.output), columns.index(e.input)), "unknown")
     return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result)
+
+
+def _with_candidates(model: PlantModel, data: LoggedData, names: list):
+    """The model and data with the located candidates ``names`` as new measured disturbance columns
+    (:func:`~mpm_monitor.core.candidates.with_candidate_columns`), which the repair fits like any
+    element the model lacks."""
+    from .candidates import with_candidate_columns
+
+    return with_candidate_columns(model, data, names)
+
+
+def _keep_applied_candidates(model: PlantModel, data: LoggedData, result, tried, names: list):
+    """The repair's result without the candidate columns none of whose elements it applied (their
+    ``changes`` entries stay), the data with the candidates kept, and ``tried.added`` set."""
+    from .candidates import with_candidate_columns, without_columns
+
+    added = [n for n in names if any(c["input"] == n and c["applied"] for c in result.changes)]
+    result = dataclasses.replace(result, model=without_columns(result.model, [n for n in names if n not in added]))
+    tried.added = added
+    return result, with_candidate_columns(model, data, added)[1]
