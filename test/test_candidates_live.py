@@ -96,3 +96,76 @@ def test_without_candidates_the_monitor_ignores_them():
         c.add("output", k * NS, run.data.y[k], 0.0)
     job = c.take_job()
     assert c.candidates is None and job.candidates is None and job.data.extra == {}
+
+
+def test_the_monitor_node_takes_candidate_topic(tmp_path):
+    """A plain publisher of the contract topics and of ``candidate_topic``: the node's statuses name
+    the candidate effect, and its service writes the repaired model with the candidate."""
+    pytest.importorskip("rclpy")
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.node import Node
+    from sensor_msgs.msg import JointState
+    from std_srvs.srv import Trigger
+
+    from mpm_monitor.apps.demo import _overrides, private_context
+    from mpm_monitor.io.model_file import save_model
+    from mpm_monitor.nodes.monitor_node import MonitorNode
+    from mpm_monitor.nodes.ros_io import VectorCodec, diagnostics_qos, make_executor, ns_to_stamp, spin_until, \
+        vector_qos
+
+    n = 2000
+    run = undeclared_effect_run(n, seed=5)
+    save_model(run.model, tmp_path / "model.yaml")
+    ctx = private_context()
+    ns = "/cand"
+    monitor = MonitorNode(context=ctx, namespace=ns, parameter_overrides=_overrides({
+        "model_file": str(tmp_path / "model.yaml"), "case": "", "diagnostics_topic": "diagnostics",
+        "window_samples": n, "min_samples": n, "analysis_period": n, "candidate_topic": "candidates",
+        "repaired_model_file": str(tmp_path / "repaired.yaml")}))
+    pub_node = Node("plain_publisher", context=ctx, namespace=ns)
+    pubs = {t: pub_node.create_publisher(JointState, t, vector_qos())
+            for t in ("setpoint", "input", "output", "candidates")}
+    latest = {}
+    pub_node.create_subscription(DiagnosticArray, "diagnostics", lambda m: latest.update(msg=m), diagnostics_qos())
+    client = pub_node.create_client(Trigger, "monitor/write_repaired_model")
+    ex = make_executor(ctx)
+    for nd in (monitor, pub_node):
+        ex.add_node(nd)
+
+    def summary():
+        if "msg" not in latest:
+            return {}
+        return {kv.key: kv.value for s in latest["msg"].status if s.name == SUMMARY_NAME for kv in s.values}
+
+    try:
+        assert spin_until(ex, lambda: all(p.get_subscription_count() >= 1 for p in pubs.values()), 20.0)
+        y_codec, u_codec = VectorCodec(run.model.outputs, "output"), VectorCodec(run.model.inputs, "input")
+        d = run.data
+        names = [EFFECT_CHANNEL, RANDOM_WALK_CHANNEL, LOOP_CHANNEL]
+        for start in range(0, n, 100):
+            for k in range(start, start + 100):
+                stamp = k * NS
+                msg = JointState(name=names, position=[float(d.extra[c][k]) for c in names])
+                msg.header.stamp = ns_to_stamp(stamp)
+                pubs["candidates"].publish(msg)
+                pubs["setpoint"].publish(y_codec.encode(d.r[k], stamp))
+                pubs["input"].publish(u_codec.encode(d.u[k], stamp))
+                pubs["output"].publish(y_codec.encode(d.y[k], stamp))
+            assert spin_until(ex, lambda: monitor.core.window.n_completed >= start + 100, 20.0)
+        assert spin_until(ex, lambda: summary().get("analyses") == "1", 90.0)
+        values = summary()
+        assert values["candidates_added"] == EFFECT_CHANNEL, values
+        assert values["candidates_not_exogenous"] == LOOP_CHANNEL
+        row = {kv.key: kv.value for s in latest["msg"].status if s.name == "mpm_monitor: row y1" for kv in s.values}
+        assert row["candidate_effects"] == EFFECT_CHANNEL
+        future = client.call_async(Trigger.Request())
+        assert spin_until(ex, future.done, 20.0)
+        assert future.result().success, future.result().message
+        assert load_model(tmp_path / "repaired.yaml").disturbances == (EFFECT_CHANNEL,)
+    finally:
+        monitor.close()
+        for nd in (monitor, pub_node):
+            ex.remove_node(nd)
+            nd.destroy_node()
+        ex.shutdown()
+        ctx.try_shutdown()
