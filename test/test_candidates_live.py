@@ -110,8 +110,14 @@ def test_the_monitor_node_takes_candidate_topic(tmp_path):
     from mpm_monitor.apps.demo import _overrides, private_context
     from mpm_monitor.io.model_file import save_model
     from mpm_monitor.nodes.monitor_node import MonitorNode
-    from mpm_monitor.nodes.ros_io import VectorCodec, diagnostics_qos, make_executor, ns_to_stamp, spin_until, \
-        vector_qos
+    from mpm_monitor.nodes.ros_io import (
+        VectorCodec,
+        diagnostics_qos,
+        make_executor,
+        ns_to_stamp,
+        spin_until,
+        vector_qos,
+    )
 
     n = 2000
     run = undeclared_effect_run(n, seed=5)
