@@ -414,6 +414,8 @@ class CandidateReport:
         ``(output, name)`` of the located candidate effects.
     added : list of str
         The candidates the repair added to the model (filled in by the repair).
+    gaps : int
+        Gaps in the record (missing samples); the candidate regressions run across them.
     """
 
     tried: list
@@ -423,6 +425,7 @@ class CandidateReport:
     exogeneity_p_values: dict
     located: list
     added: list = dataclasses.field(default_factory=list)
+    gaps: int = 0
 
     def to_dict(self) -> dict:
         return {"tried": list(self.tried), "p_values": {k: dict(v) for k, v in self.p_values.items()},
@@ -434,6 +437,9 @@ class CandidateReport:
         """The unusable and the not-exogenous channels, in words."""
         out = [f"candidate {name} is unusable ({why}); it was not tested" for name, why in self.unusable.items()]
         out += [f"candidate {name} {why}; it was not tested as a cause" for name, why in self.not_exogenous.items()]
+        if self.gaps and self.tried:
+            out.append(f"the candidate tests read the record as contiguous across its {self.gaps} gap(s): a lag that "
+                       f"reaches across a gap pairs samples that are further apart than it says")
         return out
 
     def summary_lines(self) -> list:
@@ -535,7 +541,7 @@ def run_candidate_tests(model: PlantModel, data: LoggedData, chosen: CandidateCh
     located.sort(key=lambda k: (model.outputs.index(k[0]), causes.index(k[1])))
     report = CandidateReport(tried=list(chosen.tried), p_values=p_values, unusable=dict(chosen.unusable),
                              not_exogenous=not_exogenous, exogeneity_p_values={n: float(exo_adj[n]) for n in names},
-                             located=located)
+                             located=located, gaps=max(len(data.segments) - 1, 0))
     return CandidateTest(elements=new_elements, candidate_elements=cand_elements, report=report)
 
 
