@@ -66,6 +66,7 @@ import numpy as np
 from .errors import ConfigurationError
 from .logged_data import MAX_ANALYSIS_SCALE, LoggedData
 from .model import PARAMETRIC_KEYS, PlantModel
+from .statistics import f_test
 
 #: Own lags of a candidate in its exogeneity test and the order of its whitening filter.
 CANDIDATE_AR_ORDER = 8
@@ -227,12 +228,6 @@ def _rss(X: np.ndarray, y: np.ndarray):
     return float(res @ res), int(rank), coef, np.sum(np.linalg.pinv(r) ** 2, axis=1)
 
 
-def _f_test(rss_r: float, rss_f: float, df_num: int, df_den: int):
-    from .statistics import f_test
-
-    return f_test(rss_r, rss_f, df_num, df_den)
-
-
 def whiten(c: np.ndarray, order: int = CANDIDATE_AR_ORDER) -> np.ndarray:
     """The innovations of a candidate under its own least-squares AR(``order``) filter (with a mean).
 
@@ -309,12 +304,12 @@ def exogeneity_test(c: np.ndarray, u: np.ndarray, input_names: Sequence[str], n_
     full = np.hstack([base, U])
     rss_f, rank_f, *_ = _rss(full, y)
     df_den = y.shape[0] - rank_f
-    stat, p = _f_test(rss_r, rss_f, n_lag * len(moving), df_den)
+    stat, p = f_test(rss_r, rss_f, n_lag * len(moving), df_den)
     per_input = []
     for b, j in enumerate(moving):
         others = np.hstack([base, np.delete(U, np.s_[b * n_lag:(b + 1) * n_lag], axis=1)])
         rss_o, *_ = _rss(others, y)
-        per_input.append((_f_test(rss_o, rss_f, n_lag, df_den)[1], input_names[j]))
+        per_input.append((f_test(rss_o, rss_f, n_lag, df_den)[1], input_names[j]))
     named = tuple(name for pj, name in per_input if pj < alpha) or (min(per_input)[1],)
     return ExogeneityTest(float(p), float(stat), named)
 
@@ -383,7 +378,7 @@ def cause_tests(d: np.ndarray, columns: np.ndarray, w: np.ndarray, na: int, nb: 
         full = np.hstack([base, W])
         rss_f, rank_f, coef, var = _rss(full, y)
         df_den = y.shape[0] - rank_f
-        stat, p = _f_test(rss_r, rss_f, n_lag, df_den)
+        stat, p = f_test(rss_r, rss_f, n_lag, df_den)
         g = coef[-n_lag:]
         s2 = rss_f / max(df_den, 1)
         std = np.sqrt(np.maximum(var[-n_lag:] * s2, 0.0))
