@@ -117,6 +117,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", dest="json_out", help="write the JSON report to this file ('-' = stdout)")
     p.add_argument("--repair-out", help="write the repaired model file (YAML) here")
     p.add_argument("--report", help="write an HTML report with figures into this directory")
+    p.add_argument("--candidates", metavar="all|NAME[,NAME...]", default=None,
+                   help="logged channels the model does not use (CSV columns), tested as causes of each output's "
+                        "prediction error; a located one is added to the repaired model as a measured disturbance "
+                        "('all': every numeric column the model does not use)")
     _add_topics(p)
     _add_analysis_options(p)
 
@@ -186,8 +190,14 @@ def _cmd_analyze(args) -> int:
 
         data = read_bag(args.bag, model, topics=_topics(args), progress=sys.stderr.isatty())
     check_scale(model, data, model_source=args.model)
+    candidates = None
+    if args.candidates is not None:
+        from ..core.candidates import select_candidates
+
+        candidates = select_candidates(data, args.candidates, model)
     try:
-        report = analyze(model, data, options)
+        report = analyze(model, data, options) if candidates is None else \
+            analyze(model, data, options, candidates=candidates)
     except (np.linalg.LinAlgError, FloatingPointError, OverflowError) as exc:  # backstop of check_scale
         raise InputError(f"{data.source}: the analysis broke down numerically with model {args.model} "
                          f"({_one_line(exc)}): values or model parameters too large or degenerate?") from None

@@ -205,6 +205,8 @@ class AnalysisReport:
     experiment : Experiment or None
         The dither experiment that would resolve what this window cannot decide (ambiguous elements,
         or no element decidable at 20 %), :mod:`mpm_monitor.core.experiment`; None when not needed.
+    candidates : CandidateReport or None
+        The candidate channels tried (:mod:`mpm_monitor.core.candidates`); None when none were asked for.
     """
 
     sample_time: float
@@ -229,6 +231,7 @@ class AnalysisReport:
     gaps: Optional[dict] = None
     experiment: object = None
     regressions: object = dataclasses.field(default=None, compare=False, repr=False)
+    candidates: object = None
 
     @property
     def flagged_rows(self) -> list:
@@ -280,6 +283,8 @@ class AnalysisReport:
         }
         if self.gaps is not None:
             doc["gaps"] = self.gaps
+        if self.candidates is not None:
+            doc["candidates"] = self.candidates.to_dict()
         return clean(doc)
 
     def summary_text(self) -> str:
@@ -302,6 +307,8 @@ class AnalysisReport:
             lines.append(f"ambiguous ({moving} move together): "
                          + ", ".join(f"({e.output}, {_column_label(e)})" for e in amb))
         lines += detectability_summary_lines(self.elements, self.experiment)
+        if self.candidates is not None:
+            lines += self.candidates.summary_lines()
         lines += repair_summary_lines(self.repair)
         for w in self.warnings:
             lines.append(f"warning: {w}")
@@ -340,13 +347,16 @@ def detectability_summary_lines(elements: list, experiment) -> list:
 
 
 def _column_label(e) -> str:
-    """``u2``, or ``dv1 (measured disturbance)`` for an element of a measured disturbance."""
-    return f"{e.input} (measured disturbance)" if e.role == "disturbance" else e.input
+    """``u2``, ``dv1 (measured disturbance)`` for an element of a measured disturbance, ``tf (candidate)``
+    for the effect of a candidate channel."""
+    if e.role in ("disturbance", "candidate"):
+        return f"{e.input} ({'measured disturbance' if e.role == 'disturbance' else e.role})"
+    return e.input
 
 
 def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
            signals: Optional[LoopSignals] = None, regressions=None,
-           previous: Optional["AnalysisReport"] = None) -> AnalysisReport:
+           previous: Optional["AnalysisReport"] = None, candidates=None) -> AnalysisReport:
     """Run the S_Delta row test and the Delta element test on logged closed-loop data (no repair).
 
     Parameters
@@ -375,6 +385,11 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         regressions, the S_Delta row test takes from it the setpoint block and the fits of the rows
         whose prediction error is the same (the same numbers,
         :meth:`~mpm_monitor.core.regressions.GramRegressions.reuse_rows_of`).
+    candidates : str, sequence of str or CandidateChannels, optional
+        Logged channels the model does not use (``data.extra``), tested as causes of each output's
+        prediction error jointly with the model's columns (:mod:`mpm_monitor.core.candidates`):
+        ``"all"``, names, or channels already selected.  Their tests join the element tests' family.
+        Default: none (the analysis is then exactly that without candidates).
 
     Returns
     -------
@@ -465,6 +480,23 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         for e in elements:
             e.detectable_gain_change = detectable.get((model.outputs.index(e.output), model.columns.index(e.input)))
     experiment = design_experiment(model, info, elements, options, layout)
+    candidate_report = None
+    if candidates is not None:
+        from .candidates import CandidateChannels, run_candidate_tests, select_candidates
+
+        if options.method != "arx":
+            raise ConfigurationError(f"candidates: tested by the arx element test only, not by method {options.method}")
+        cdata = data
+        if plan is not None:      # the rows of the segments used, as the other tests
+            cdata = data.take(np.concatenate([np.arange(a, b) for a, b in plan.used]))
+        if isinstance(candidates, CandidateChannels):
+            chosen = candidates if plan is None else dataclasses.replace(candidates, values=plan.take(candidates.values))
+        else:
+            chosen = select_candidates(cdata, candidates, model)
+        tested = run_candidate_tests(model, cdata, chosen, columns, sig.d, elements, layout, options)
+        elements = tested.elements + tested.candidate_elements
+        candidate_report = tested.report
+        warnings += candidate_report.warnings()
 
     # A row in which an element is located is mismatched, even when its S_Delta test did not reject.
     for i in range(ny):
@@ -479,7 +511,7 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
                             f"unmeasured disturbance, a nonlinearity or too little input excitation")
     for e in elements:
         if e.mismatch:
-            e.kind = "unknown"
+            e.kind = "missing" if e.role == "candidate" else "unknown"
     rms = error_rms(model, sig.d)
     unrepaired = {"model": model.to_dict(), "changes": [], "error_before": rms, "error_after": dict(rms)}
     if plan is not None:
@@ -490,7 +522,7 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         frequencies=row_test.frequencies, row_gains=row_test.row_gains, sigma_max=row_test.sigma_max,
         sdelta_response=row_test.response, arx_tables=element_test.arx_tables, repair=unrepaired,
         repaired_model=model, collinear_groups=design.groups, max_variance_inflation=design.max_vif, signals=sig,
-        gaps=None if plan is None else plan.to_dict(), experiment=experiment,
+        gaps=None if plan is None else plan.to_dict(), experiment=experiment, candidates=candidate_report,
         regressions=regressions.row_test_part() if getattr(regressions, "batch", False) else None)
 
 

@@ -25,7 +25,7 @@ from .signals import LoopSignals
 
 
 def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
-            signals: Optional[LoopSignals] = None, regressions=None) -> AnalysisReport:
+            signals: Optional[LoopSignals] = None, regressions=None, candidates=None) -> AnalysisReport:
     """Locate the mismatched elements of ``model`` on logged closed-loop data and repair them.
 
     Parameters
@@ -42,6 +42,12 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
         :func:`~mpm_monitor.core.analysis.detect`).
     regressions : object, optional
         Given to the first detection (see :func:`~mpm_monitor.core.analysis.detect`).
+    candidates : str, sequence of str or CandidateChannels, optional
+        Logged channels tested as causes of the prediction error (see
+        :func:`~mpm_monitor.core.analysis.detect`).  A located candidate is added to the model as a
+        new measured disturbance column, its element fitted and validated on the held-out part like
+        any missing element; one whose repair the validation rejects is left out of the repaired
+        model.  The report's ``candidates.added`` names those added.
 
     Returns
     -------
@@ -57,28 +63,37 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
     DataFileError
         When the data do not fit the model or are too short for the tests.
     """
-    report = detect(model, data, options, signals=signals, regressions=regressions)
+    if candidates is None:
+        report = detect(model, data, options, signals=signals, regressions=regressions)
+    else:
+        report = detect(model, data, options, signals=signals, regressions=regressions, candidates=candidates)
     if not options.repair:
         return dataclasses.replace(report, regressions=None)
-    columns = model.columns
-    located = [(model.outputs.index(e.output), columns.index(e.input)) for e in report.elements if e.mismatch]
-    span, note = repair_data(data, report.gaps is not None)
-    result = repair_model(model, span, located, RepairOptions(initial_state=options.initial_state),
-                          signals=report.signals if span is data else None)
+    tried = report.candidates
+    names = list(dict.fromkeys(name for _, name in tried.located)) if tried is not None else []
+    wide, wide_data = (model, data) if not names else _with_candidates(model, data, names)
+    columns = wide.columns
+    located = [(wide.outputs.index(e.output), columns.index(e.input)) for e in report.elements if e.mismatch]
+    span, note = repair_data(wide_data, report.gaps is not None)
+    result = repair_model(wide, span, located, RepairOptions(initial_state=options.initial_state),
+                          signals=report.signals if span is wide_data else None)
+    after_data = data
+    if names:
+        result, after_data = _keep_applied_candidates(model, data, result, tried, names)
     warnings = report.warnings
     if note and located:
         warnings.append(note)
     warnings.extend(w for w in result.warnings if w not in warnings)
     doc = result.to_dict()
     if result.model != model:
-        after = detect(result.model, data, dataclasses.replace(options, repair=False, test_all_rows=False),
-                       signals=result.signals if span is data else None, previous=report)
+        after = detect(result.model, after_data, dataclasses.replace(options, repair=False, test_all_rows=False),
+                       signals=result.signals if span is wide_data else None, previous=report)
         doc["rsi_after"] = {r.output: r.rsi for r in after.rows}
         doc["rows_flagged_after"] = after.flagged_rows
     kinds = getattr(result, "kinds", {})
     for e in report.elements:
         if e.mismatch:
-            e.kind = kinds.get((model.outputs.index(e.output), columns.index(e.input)), "unknown")
+            e.kind = kinds.get((wide.outputs.index(e.output), columns.index(e.input)), "unknown")
     return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result, regressions=None)
 
 
@@ -100,3 +115,23 @@ def repair_data(data: LoggedData, gappy: bool) -> tuple:
     note = (f"the repair was fitted and validated on the longest span without a gap (t = {float(data.t[a]):g} .. "
             f"{float(data.t[b - 1]):g} s, {b - a} of {data.n_samples} samples); its prediction errors are that span's")
     return data.slice(a, b), note
+
+
+def _with_candidates(model: PlantModel, data: LoggedData, names: list):
+    """The model and data with the located candidates ``names`` as new measured disturbance columns
+    (:func:`~mpm_monitor.core.candidates.with_candidate_columns`), which the repair fits like any
+    element the model lacks."""
+    from .candidates import with_candidate_columns
+
+    return with_candidate_columns(model, data, names)
+
+
+def _keep_applied_candidates(model: PlantModel, data: LoggedData, result, tried, names: list):
+    """The repair's result without the candidate columns none of whose elements it applied (their
+    ``changes`` entries stay), the data with the candidates kept, and ``tried.added`` set."""
+    from .candidates import with_candidate_columns, without_columns
+
+    added = [n for n in names if any(c["input"] == n and c["applied"] for c in result.changes)]
+    result = dataclasses.replace(result, model=without_columns(result.model, [n for n in names if n not in added]))
+    tried.added = added
+    return result, with_candidate_columns(model, data, added)[1]

@@ -10,7 +10,7 @@
 
 It reads the :class:`~mpm_monitor.core.analysis.AnalysisReport` attributes listed in docs/DESIGN.md:
 ``rows``, ``elements``, ``frequencies``, ``row_gains``, ``sigma_max``, ``repair``,
-``repaired_model``, ``warnings`` (and ``overall_rsi``, ``arx_tables`` when present).
+``repaired_model``, ``warnings`` (and ``overall_rsi``, ``arx_tables``, ``candidates`` when present).
 """
 
 from __future__ import annotations
@@ -118,7 +118,8 @@ def _elements_section(report) -> str:
     rows, classes = [], []
     for e in located + [e for e in ambiguous if not e.mismatch]:
         with_ = ", ".join(getattr(e, "ambiguous_with", ()) or ())
-        rows.append([_e(f"({e.output}, {e.input})"),
+        label = f"{e.input} (candidate)" if getattr(e, "role", "input") == "candidate" else e.input
+        rows.append([_e(f"({e.output}, {label})"),
                      _e(e.kind or "") if e.mismatch else "ambiguous" + (f" with {_e(with_)}" if with_ else ""),
                      _p(e.p_value), _num(getattr(e, "delay", None), ".0f")])
         classes.append("flag" if e.mismatch else "amb")
@@ -180,6 +181,56 @@ def _repair_section(report) -> str:
     return "\n".join(parts)
 
 
+def _candidates_section(report) -> str:
+    """Which channels were tried, the p-value of each in each row, which were unusable or not
+    exogenous, and which were added to the repaired model."""
+    cands = report.candidates
+    if not cands.tried:
+        return "<p>No candidate channel was given.</p>"
+    outputs = [r.output for r in report.rows]
+    located = set(cands.located)
+    rows, classes = [], []
+    for name in cands.tried:
+        if name in cands.p_values:
+            ps = cands.p_values[name]
+            verdict = "added to the model" if name in cands.added else (
+                "located, not added (see the warnings)" if any(c == name for _, c in located) else "no effect found")
+            rows.append([_e(name)] + [_p(ps.get(o)) for o in outputs] + [_e(verdict)])
+            classes.append("flag" if any(c == name for _, c in located) else "")
+        else:
+            why = cands.not_exogenous.get(name) or f"unusable: {cands.unusable.get(name, '')}"
+            rows.append([_e(name)] + ["&ndash;"] * len(outputs) + [_e(why)])
+            classes.append("amb")
+    lead = ("<p>Logged channels the model does not use, tested as causes of each output's prediction error "
+            "jointly with the model's columns (p-values adjusted in the element tests' family). A channel that "
+            "moves with the inputs is an effect of the loop and is not tested; a located one is added to the "
+            "repaired model as a measured disturbance when it predicts the held-out data better.</p>")
+    added = f"<p>Added: <b>{_e(', '.join(cands.added))}</b>.</p>" if cands.added else "<p>Added: none.</p>"
+    return lead + _table(["channel"] + [f"p-value {_e(o)}" for o in outputs] + ["verdict"], rows, classes) + added
+
+
+def _plotted(model: PlantModel, data, report):
+    """The model, data and report the figures read: with the located candidates as measured disturbance
+    columns (the added ones first, as in the repaired model), so that every located element has a column."""
+    import dataclasses
+
+    cands = getattr(report, "candidates", None)
+    if cands is None:
+        return model, data, report
+    if not cands.located:
+        elements = [e for e in report.elements if getattr(e, "role", "input") != "candidate"]
+        return model, data, dataclasses.replace(report, elements=elements)
+
+    from ..core.candidates import with_candidate_columns
+
+    names = list(cands.added) + [n for n in dict.fromkeys(c for _, c in cands.located) if n not in cands.added]
+    wide, wide_data = with_candidate_columns(model, data, names)
+    repaired = getattr(report, "repaired_model", None) or model
+    repaired, _ = with_candidate_columns(repaired, data, [n for n in names if n not in cands.added])
+    elements = [e for e in report.elements if getattr(e, "role", "input") != "candidate" or e.input in names]
+    return wide, wide_data, dataclasses.replace(report, repaired_model=repaired, elements=elements)
+
+
 def _warnings_section(report) -> str:
     if not report.warnings:
         return "<p>None.</p>"
@@ -213,6 +264,8 @@ def write_report(directory, model: PlantModel, data, report) -> Path:
         directory.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(f"{directory}: cannot create report directory: {exc.strerror or exc}") from None
+    model_as_given = model
+    model, data, report = _plotted(model, data, report)
     repaired = getattr(report, "repaired_model", None)
     try:
         figs = [(plots.plot_sdelta(report, directory / "sdelta.png", title="S_Delta singular values"),
@@ -237,6 +290,7 @@ def write_report(directory, model: PlantModel, data, report) -> Path:
     source = getattr(data, "source", "") or "data"
     n = getattr(data, "n_samples", None)
     n = n if n is not None else len(data.t)
+    model = model_as_given
     title = f"Model-plant mismatch report: {model.name}" if model.name else "Model-plant mismatch report"
     flagged = [r.output for r in report.rows if r.mismatch]
     located = [f"({e.output}, {e.input})" for e in report.elements if e.mismatch]
@@ -259,6 +313,10 @@ def write_report(directory, model: PlantModel, data, report) -> Path:
         "<h2>Element test: located mismatch</h2>", _elements_section(report), fig_html.get("elements", ""),
         fig_html.get("steps", ""),
         "<h2>Detectability and experiment</h2>", _detectability_section(report), fig_html.get("detectability", ""),
+    ]
+    if getattr(report, "candidates", None) is not None:
+        body += ["<h2>Candidate channels</h2>", _candidates_section(report)]
+    body += [
         "<h2>Repair</h2>", _repair_section(report), fig_html.get("residuals", ""),
     ]
     doc = (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{_e(title)}</title>'

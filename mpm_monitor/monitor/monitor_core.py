@@ -29,6 +29,7 @@ from ..core.errors import ConfigurationError
 from ..core.model import PlantModel
 from ..core.wording import applied_changes, describe_change, repair_ran, repair_verdict
 from ..io.model_file import save_model
+from .candidate_window import CandidateWindow
 from .experiment import ExperimentOptions, ExperimentTracker
 from .statuses import (
     mark_stale,
@@ -61,6 +62,9 @@ class MonitorOptions:
         ``hardware_id`` of the statuses (e.g. the controller's name).
     experiment : ExperimentOptions
         What to do with a recommended experiment (:mod:`mpm_monitor.monitor.experiment`).
+    candidates : bool
+        Take candidate channels (:meth:`MonitorCore.add_candidates`) and test every one of them in each
+        analysis (docs/interfaces.md, "Candidate channels"); default false.
     """
 
     window: WindowOptions = WindowOptions()
@@ -69,6 +73,7 @@ class MonitorOptions:
     stale_timeout: float = 5.0
     hardware_id: str = "mpm_monitor"
     experiment: ExperimentOptions = ExperimentOptions()
+    candidates: bool = False
 
     def __post_init__(self):
         check_monitor_options(self)
@@ -154,6 +159,9 @@ class MonitorCore:
         self.data_errors = 0
         #: The experiments: recommended, requested, running, analysed.
         self.experiment = ExperimentTracker(model.inputs, options.window.window_samples, options.experiment)
+        #: The candidate channels (None unless ``options.candidates``).
+        self.candidates = (CandidateWindow(model.sample_time, options.window.window_samples + 64,
+                                           options.window.stamp_tolerance) if options.candidates else None)
 
     # --------------------------------------------------------------------------------- input
     def add(self, channel: str, stamp_ns: int, values, now: float) -> int:
@@ -168,11 +176,21 @@ class MonitorCore:
         self._collect_problems()
         return n
 
+    def add_candidates(self, stamp_ns: int, names: Sequence[str], values, now: float) -> None:
+        """Keep a vector of candidate channels received at wall-clock time ``now`` (seconds); a refused one
+        is a bad message of the channel ``candidate``.  Ignored unless ``options.candidates``."""
+        if self.candidates is None:
+            return
+        problem = self.candidates.add(stamp_ns, names, values)
+        if problem is not None:
+            self.bad_message("candidate", problem, now)
+
     def bad_message(self, channel: str, message: str, now: float) -> None:
         """Record a message refused by the converter (wrong names, lengths, non-finite values)."""
         if self._started_wall is None:
             self._started_wall = now
-        self._last_arrival[channel] = now
+        if channel in self._last_arrival:
+            self._last_arrival[channel] = now
         self.window.report_bad(channel, None, message)
         self._collect_problems()
 
@@ -209,10 +227,12 @@ class MonitorCore:
     def take_job(self) -> AnalysisJob:
         """The window's data as the next :class:`AnalysisJob` (a copy; cheap)."""
         data = self.window.data(source="ros")
+        if self.candidates is not None:
+            data = self.candidates.attach(data)
         self._seq += 1
         self._last_job_completed = self.window.n_completed
         job = AnalysisJob(seq=self._seq, data=data, first_stamp=float(data.t[0]), last_stamp=float(data.t[-1]),
-                          completed=self.window.n_completed)
+                          completed=self.window.n_completed, candidates="all" if self.candidates is not None else None)
         self.experiment.job_taken(job, self.window.last_sample_stamp_ns)
         return job
 

@@ -208,13 +208,16 @@ def row_statuses(outputs: Sequence[str], outcome, analysis_error: Optional[str],
             out.append(StatusData(ERROR, row_status_name(o), f"the analysis has no row {o}", hw, _NO_ROW_RESULT))
             continue
         els = elements.get(o, [])
-        flagged = [e.input for e in els if e.mismatch]
+        candidates = [e.input for e in els if e.mismatch and getattr(e, "role", "input") == "candidate"]
+        flagged = [e.input for e in els if e.mismatch and getattr(e, "role", "input") != "candidate"]
         ambiguous = [e.input for e in els if getattr(e, "ambiguous", False)]
         values = [("rsi", _num(r.rsi)), ("mismatch", _bool(r.mismatch)), ("flagged_inputs", ",".join(flagged)),
                   ("p_value", _num(r.p_value)), ("ambiguous_inputs", ",".join(ambiguous))]
         detectable = [(e.input, getattr(e, "detectable_gain_change", None)) for e in els]
         if any(x is not None for _, x in detectable):
             values.append(("detectable_gain_change", ",".join(f"{i}={_num(x)}" for i, x in detectable)))
+        if getattr(rep, "candidates", None) is not None:
+            values.append(("candidate_effects", ",".join(candidates)))
         for e in els:
             if e.mismatch or getattr(e, "ambiguous", False):
                 values.append((f"p_value {e.input}", _num(e.p_value)))
@@ -232,10 +235,14 @@ def row_statuses(outputs: Sequence[str], outcome, analysis_error: Optional[str],
             level = WARN
             if flagged:
                 msg = f"mismatch in row {o}: elements " + ", ".join(f"({o}, {i})" for i in flagged)
+            elif candidates:
+                msg = f"mismatch in row {o}: an effect of candidate channel(s) {', '.join(candidates)} the model lacks"
             elif ambiguous:
                 msg = f"mismatch in row {o}: inputs {', '.join(ambiguous)} cannot be told apart"
             else:
                 msg = f"mismatch in row {o}: no single element located"
+            if flagged and candidates:
+                msg += f", and an effect of candidate channel(s) {', '.join(candidates)} the model lacks"
             msg += f" (RSI {r.rsi:.3f})"
             row_applied = [c for c in applied_changes(changes) if c.get("output") == o]
             if row_applied and o in (doc.get("error_before") or {}) and o in (doc.get("error_after") or {}):
@@ -288,6 +295,11 @@ def summary_status(outcome, analyses: int, analysis_error: Optional[str], waitin
         verdict = repair_verdict(rep)
         values += [("repair_changes", str(verdict.changes)), ("repair_validation", verdict.verdict),
                    ("repair_validation_detail", verdict.detail)]
+        cands = getattr(rep, "candidates", None)
+        if cands is not None:
+            values += [("candidates_tried", ",".join(cands.tried)), ("candidates_added", ",".join(cands.added)),
+                       ("candidates_not_exogenous", ",".join(cands.not_exogenous)),
+                       ("candidates_unusable", ",".join(cands.unusable))]
         if flagged:
             level = WARN
             msg = (f"mismatch in row(s) {', '.join(flagged)}; elements "
@@ -295,6 +307,9 @@ def summary_status(outcome, analyses: int, analysis_error: Optional[str], waitin
             if verdict.verdict not in ("off", "none"):
                 msg += (f"; suggested repair: {verdict.changes} change{'s' if verdict.changes != 1 else ''}, "
                         f"held-out validation {verdict.verdict.replace('_', ' ')}")
+            if cands is not None and cands.added:
+                msg += f"; candidate channel(s) {', '.join(cands.added)} added to the repaired model as measured " \
+                       f"disturbance(s)"
         else:
             level = OK
             msg = "no model-plant mismatch detected"

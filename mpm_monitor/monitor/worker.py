@@ -31,6 +31,7 @@ class AnalysisJob:
     first_stamp: float      # seconds
     last_stamp: float       # seconds
     completed: int          # samples completed in the stream when the job was taken
+    candidates: Any = None  # "all": test the data's extra channels as candidates (None: none)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,11 +46,15 @@ class AnalysisOutcome:
 
 def run_analysis(analyze: Callable, model: PlantModel, options, job: AnalysisJob,
                  clock: Callable[[], float] = time.perf_counter) -> AnalysisOutcome:
-    """Run ``analyze(model, job.data, options)`` and wrap its report or its error."""
+    """Run ``analyze(model, job.data, options)`` (with ``candidates=job.candidates`` when the job has
+    candidates) and wrap its report or its error."""
     t0 = clock()
     try:
         check_scale(model, job.data)  # a sentinel like 1e308 would give a silent all-clear
-        report = analyze(model, job.data, options)
+        if job.candidates is None:
+            report = analyze(model, job.data, options)
+        else:
+            report = analyze(model, job.data, options, candidates=job.candidates)
     except Exception as exc:  # the monitor reports any failure as ERROR and keeps running
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         return AnalysisOutcome(job, error=f"analysis failed: {type(exc).__name__}: {msg}", seconds=clock() - t0)
@@ -183,7 +188,7 @@ class ProcessAnalyzer:
         self._pool = None
         self._lock = threading.Lock()
 
-    def __call__(self, model, data, options):
+    def __call__(self, model, data, options, **kwargs):
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
         from concurrent.futures.process import BrokenProcessPool
@@ -194,7 +199,7 @@ class ProcessAnalyzer:
                                                  initializer=_exit_with_parent, initargs=(os.getpid(),))
             pool = self._pool
         try:
-            return pool.submit(self._analyze, model, data, options).result()
+            return pool.submit(self._analyze, model, data, options, **kwargs).result()
         except BrokenProcessPool:
             with self._lock:
                 if self._pool is pool:

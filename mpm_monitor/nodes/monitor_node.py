@@ -32,7 +32,11 @@ never an exception; without the service the summary only reports the recommendat
 
 When the model has measured disturbances the node also subscribes to ``disturbance_topic`` (one value
 per measured disturbance) and a sample needs its four vectors (docs/interfaces.md, "Measured
-disturbances").  It works with any publisher of the contract topics, not only this package's plant
+disturbances").  With ``candidate_topic`` it also takes candidate channels (a JointState whose names
+are the channels; docs/interfaces.md, "Candidate channels"): they never hold up a sample, every
+analysis tests those with a value at every sample of its window as causes of the prediction error,
+the statuses name a candidate effect, and the repaired model adds a located one as a measured
+disturbance.  It works with any publisher of the contract topics, not only this package's plant
 and MPC nodes.
 
 Parameters (all declared with type, description and range): see :data:`PARAMS`.
@@ -69,6 +73,7 @@ from .ros_io import (
     diagnostics_qos,
     resolve_model,
     run_node,
+    stamp_to_ns,
     topic_params,
     vector_qos,
 )
@@ -140,6 +145,9 @@ PARAMS = MODEL_PARAMS + (
     ParamSpec("experiment_cooldown", "int", 10000, "Samples after an experiment's analysis, or a refused or failed "
               "call, before the next call.", 0, 10**9),
 ) + topic_params("setpoint", "input", "output", "dither", "disturbance") + (
+    ParamSpec("candidate_topic", "string", "", "Topic of candidate channels (JointState, the names are the channels: "
+              "logged variables the model does not use, tested as causes of the prediction error and added to the "
+              "repaired model when located; '' = none).", read_only=True),
     ParamSpec("diagnostics_topic", "string", "/diagnostics", "Topic of the diagnostics (DiagnosticArray)."),
     ParamSpec("rsi_topic", "string", "mpm_monitor/rsi", "Topic of the row RSI values (Float64MultiArray, model "
               "output order)."),
@@ -170,7 +178,8 @@ def monitor_options_from_params(p: dict, hardware_id: str, service_name: Optiona
     experiment = ExperimentOptions(auto=p["auto_experiment"], service=service_name or p["experiment_service"],
                                    cooldown=p["experiment_cooldown"])
     return MonitorOptions(window=window, analysis_period=p["analysis_period"], min_samples=p["min_samples"],
-                          stale_timeout=p["stale_timeout"], hardware_id=hardware_id, experiment=experiment)
+                          stale_timeout=p["stale_timeout"], hardware_id=hardware_id, experiment=experiment,
+                          candidates=bool(p["candidate_topic"]))
 
 
 def status_to_msg(s) -> DiagnosticStatus:
@@ -246,6 +255,8 @@ class MonitorNode(Node):
         self._subs = [self.create_subscription(JointState, p[f"{ch}_topic"],
                                                (lambda msg, ch=ch: self._on_vector(ch, msg)), q)
                       for ch in channels]
+        if p["candidate_topic"]:
+            self._subs.append(self.create_subscription(JointState, p["candidate_topic"], self._on_candidates, q))
         if self._dither_client is not None:
             self._dither_codec = VectorCodec.for_channel(self.model, "dither", p["dither_topic"])
             self._subs.append(self.create_subscription(JointState, p["dither_topic"], self._on_dither, q))
@@ -287,6 +298,9 @@ class MonitorNode(Node):
         if core.data_errors != self._errors_published and now - self._last_publish > 0.2:
             self._errors_published = core.data_errors
             self.publish_statuses()
+
+    def _on_candidates(self, msg: JointState) -> None:
+        self.core.add_candidates(stamp_to_ns(msg.header.stamp), msg.name, msg.position, time.monotonic())
 
     # ---------------------------------------------------------------------------- analysis
     def request_analysis(self) -> bool:

@@ -1,0 +1,584 @@
+"""Candidate channels: logged variables the model does not use, tested as causes of the prediction error.
+
+A log often holds more than the model's columns: a feed temperature, an ambient condition, another
+unit's flow.  When one of them drives an output and the model leaves it out, its effect sits in the
+prediction error ``d = y - Phat u`` (see :mod:`mpm_monitor.core.element_test`).  The user names such
+channels (``--candidates``, docs/interfaces.md "Candidate channels"); each is examined in three
+steps:
+
+1. **Usability.**  A channel that is not numeric, partly missing (the reader's
+   :attr:`~mpm_monitor.core.logged_data.LoggedData.unusable`), constant, non-finite or not as long
+   as the log is reported as unusable with the reason, never used.
+2. **Exogeneity.**  A logged variable inside the loop (an intermediate flow or temperature) moves
+   because the controller moves the inputs: it is an effect of the loop, and a regression of the
+   output on it would credit it with what the inputs did.  The candidate ``c`` is regressed on its
+   own lags ``1 .. CANDIDATE_AR_ORDER`` and the lags ``1 .. n_lag`` of every moving manipulated
+   input (a Granger-causality test; Granger, 1969)::
+
+       c(k) = sum_l phi_l c(k-l) + sum_j sum_l beta_jl u_j(k-l) + e(k)
+
+   An exogenous channel, even one the loop reacts to through the outputs, has ``beta = 0``: its own
+   past holds everything its past has to say about it.  The F test of ``beta = 0`` (Holm's
+   procedure over the candidates, at the analysis's ``alpha``) that rejects marks the channel as
+   "moves with u2: may be an effect of the loop, not a cause", named after the inputs whose blocks
+   reject alone.  It is never tested as a cause, never added.  The test is on lags of the levels
+   with the candidate's own lags in the regression, so a wandering candidate (a random walk) keeps
+   it valid: the tested coefficients belong to stationary regressors (Sims, Stock and Watson, 1990).
+3. **Cause.**  For each output ``i`` and exogenous candidate ``c``, the candidate's lags join the
+   regression of the Delta element test::
+
+       d_i(k) = sum_l a_l d_i(k-l) + sum_j sum_l b_jl u_j(k-l) + sum_l g_l w(k-l) + e(k)
+
+   ``w`` is the candidate whitened by its own least-squares AR(``CANDIDATE_AR_ORDER``) filter:
+   most process variables wander, and the lags of a random walk in levels would give the spurious
+   regression of Granger and Newbold (1974) -- the F test of ``g = 0`` then rejects far more often
+   than it should.  The whitened channel is (close to) white noise, so the test keeps its level
+   even where the ARX noise model of ``d_i`` is imperfect, and an effect ``G(q) c`` of the
+   candidate still shows as ``G(q) H(q) w`` (``H`` the candidate's own filter, the ARX's ``A(q)``
+   absorbing its poles).  The p-values of ``g = 0`` join the element tests' family: Holm's
+   procedure over every element and every (output, candidate) pair at ``alpha / N_FAMILIES``
+   (:mod:`mpm_monitor.core.statistics`), so the analysis's false-alarm rate stays ``alpha`` whatever
+   the number of candidates tried.
+
+A located candidate is an element the model lacks (kind ``missing``, role ``candidate``).  The
+repair (:func:`mpm_monitor.core.pipeline.analyze`) adds it to the model as a new measured
+disturbance column (:func:`with_candidate_columns`), fits its element like any missing element
+and validates it on the held-out part; a candidate whose fit the validation rejects is dropped
+again (:func:`without_columns`).
+
+References
+----------
+- Granger, C. W. J. (1969). Investigating causal relations by econometric models and
+  cross-spectral methods. *Econometrica* 37(3), 424-438.
+- Granger, C. W. J. and Newbold, P. (1974). Spurious regressions in econometrics. *Journal of
+  Econometrics* 2(2), 111-120.
+- Sims, C. A., Stock, J. H. and Watson, M. W. (1990). Inference in linear time series models with
+  some unit roots. *Econometrica* 58(1), 113-144.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional, Sequence
+
+import numpy as np
+
+from .errors import ConfigurationError
+from .logged_data import MAX_ANALYSIS_SCALE, LoggedData
+from .model import PARAMETRIC_KEYS, PlantModel
+from .statistics import f_test
+
+#: Own lags of a candidate in its exogeneity test and the order of its whitening filter.
+CANDIDATE_AR_ORDER = 8
+#: The word of ``--candidates`` that selects every numeric channel the model does not use.
+ALL_CANDIDATES = "all"
+
+
+@dataclasses.dataclass(frozen=True)
+class CandidateChannels:
+    """The channels selected as candidates, split into those that can be used and those that cannot.
+
+    Attributes
+    ----------
+    names : tuple of str
+        The usable channels, in the order asked for.
+    values : ndarray, shape (n_samples, n_candidates)
+        Their samples.
+    unusable : dict
+        ``name -> reason`` of the selected channels that cannot be used.
+    """
+
+    names: tuple
+    values: np.ndarray
+    unusable: dict
+
+    @property
+    def tried(self) -> tuple:
+        """Every channel selected: the usable ones, then the unusable ones."""
+        return self.names + tuple(n for n in self.unusable if n not in self.names)
+
+
+def parse_candidate_spec(spec) -> object:
+    """``"all"``, or the tuple of names of a ``NAME[,NAME...]`` string or a sequence of names.
+
+    Raises
+    ------
+    ConfigurationError
+        An empty list or an empty name.
+    """
+    if isinstance(spec, str):
+        if spec.strip() == ALL_CANDIDATES:
+            return ALL_CANDIDATES
+        names = [s.strip() for s in spec.split(",")]
+    else:
+        names = [str(s).strip() for s in spec]
+    if not names or any(not s for s in names):
+        raise ConfigurationError(f"candidates: expected 'all' or NAME[,NAME...] of logged channels, got {spec!r}")
+    return tuple(dict.fromkeys(names))
+
+
+def channel_problem(values, n_samples: int) -> Optional[str]:
+    """Why a channel cannot be a candidate (None when it can).
+
+    Parameters
+    ----------
+    values : array_like, shape (n_samples,)
+    n_samples : int
+        Samples of the log.
+
+    Returns
+    -------
+    str or None
+        "not numeric", "N samples, the log has M", "holds NaN or infinity", too large, or "constant".
+    """
+    try:
+        x = np.asarray(values, dtype=float)
+    except (TypeError, ValueError):
+        return "not numeric"
+    if x.ndim != 1 or x.shape[0] != n_samples:
+        return f"{x.shape[0] if x.ndim == 1 else x.size} samples, the log has {n_samples}"
+    if not np.isfinite(x).all():
+        return "holds NaN or infinity"
+    peak = float(np.abs(x).max(initial=0.0))
+    if peak > MAX_ANALYSIS_SCALE:
+        return f"values up to {peak:.3g}: too large for the analysis (at most {MAX_ANALYSIS_SCALE:g}); rescale"
+    if not float(x.std()) > 1e-12 * max(peak, 1.0):
+        return "constant: it never moves"
+    return None
+
+
+def select_candidates(data: LoggedData, spec, model: Optional[PlantModel] = None) -> CandidateChannels:
+    """The candidate channels ``spec`` names among the data's other channels.
+
+    Parameters
+    ----------
+    data : LoggedData
+        Its :attr:`~mpm_monitor.core.logged_data.LoggedData.extra` (numeric channels the model does not
+        use) and :attr:`~mpm_monitor.core.logged_data.LoggedData.unusable` (name -> reason).
+    spec : str or sequence of str
+        ``"all"`` (every channel of ``extra`` and ``unusable``) or names (a ``NAME[,NAME...]``
+        string or a sequence).
+    model : PlantModel, optional
+        A name that is one of the model's channels is refused.
+
+    Returns
+    -------
+    CandidateChannels
+
+    Raises
+    ------
+    ConfigurationError
+        A name that is no channel of the data (listing the available ones), or one of the model's.
+    """
+    wanted = parse_candidate_spec(spec)
+    available = list(data.extra) + [n for n in data.unusable if n not in data.extra]
+    if wanted == ALL_CANDIDATES:
+        wanted = tuple(available)
+    used = set(model.columns + model.outputs) if model is not None else set()
+    for name in wanted:
+        if name in used:
+            raise ConfigurationError(f"candidates: '{name}' is a channel of the model, not a candidate")
+        if name not in available:
+            raise ConfigurationError(f"candidates: no column '{name}' in {data.source or 'the data'}; the channels "
+                                     f"the model does not use are: {', '.join(available) or 'none'}")
+    n = data.n_samples
+    names, cols, unusable = [], [], {}
+    for name in wanted:
+        if name in data.unusable:
+            unusable[name] = data.unusable[name]
+            continue
+        why = channel_problem(data.extra[name], n)
+        if why:
+            unusable[name] = why
+            continue
+        names.append(name)
+        cols.append(np.asarray(data.extra[name], dtype=float))
+    values = np.column_stack(cols) if cols else np.zeros((n, 0))
+    return CandidateChannels(names=tuple(names), values=values, unusable=unusable)
+
+
+# ------------------------------------------------------------------------------------ least squares
+def _lags(x: np.ndarray, n_lag: int, start: int) -> np.ndarray:
+    """Lags ``1 .. n_lag`` of every column of ``x`` (shape (n, m)) for the rows ``start ..``,
+    shape (n - start, m * n_lag), channel by channel."""
+    n, m = x.shape
+    out = np.empty((n - start, m * n_lag))
+    for c in range(m):
+        for lag in range(1, n_lag + 1):
+            out[:, c * n_lag + lag - 1] = x[start - lag:n - lag, c]
+    return out
+
+
+def _rss(X: np.ndarray, y: np.ndarray):
+    """Residual sum of squares of the least-squares fit of ``y`` on ``X``, the rank of ``X``, the
+    coefficients and their unscaled variances ``diag((X'X)^-1)`` (one QR; ``lstsq`` and the
+    pseudo-inverse when ``X`` is rank-deficient)."""
+    if X.shape[1] == 0:
+        return float(y @ y), 0, np.zeros(0), np.zeros(0)
+    q, r = np.linalg.qr(X)
+    diag = np.abs(np.diag(r))
+    if diag.min() > 1e-10 * max(float(diag.max()), 1e-300):
+        rinv = np.linalg.inv(r)
+        qty = q.T @ y
+        coef = rinv @ qty
+        res = y - q @ qty
+        return float(res @ res), X.shape[1], coef, np.sum(rinv ** 2, axis=1)
+    coef, _, rank, _ = np.linalg.lstsq(X, y, rcond=None)
+    res = y - X @ coef
+    return float(res @ res), int(rank), coef, np.sum(np.linalg.pinv(r) ** 2, axis=1)
+
+
+def whiten(c: np.ndarray, order: int = CANDIDATE_AR_ORDER) -> np.ndarray:
+    """The innovations of a candidate under its own least-squares AR(``order``) filter (with a mean).
+
+    Parameters
+    ----------
+    c : ndarray, shape (n_samples,)
+    order : int
+
+    Returns
+    -------
+    ndarray, shape (n_samples,)
+        ``w(k) = c(k) - m - sum_l phi_l c(k-l)`` for ``k >= order``, zero before.  A random walk gives
+        (about) its increments, a first-order filtered noise its white input.
+    """
+    x = np.asarray(c, dtype=float)
+    x = x - x.mean()
+    w = np.zeros_like(x)
+    if order == 0:
+        return x
+    X = np.column_stack([np.ones(x.shape[0] - order), _lags(x[:, None], order, order)])
+    coef, *_ = np.linalg.lstsq(X, x[order:], rcond=None)
+    w[order:] = x[order:] - X @ coef
+    return w
+
+
+@dataclasses.dataclass(frozen=True)
+class ExogeneityTest:
+    """The Granger test of whether a candidate moves with the manipulated inputs.
+
+    Attributes
+    ----------
+    p_value : float
+        Unadjusted p-value of "no input lag helps predict the candidate" (1 when untestable).
+    statistic : float
+    inputs : tuple of str
+        The inputs whose lag block alone rejects at ``alpha`` (the strongest one when none does).
+    """
+
+    p_value: float
+    statistic: float
+    inputs: tuple
+
+
+def exogeneity_test(c: np.ndarray, u: np.ndarray, input_names: Sequence[str], n_lag: int, alpha: float,
+                    order: int = CANDIDATE_AR_ORDER) -> ExogeneityTest:
+    """Regress the candidate on its own lags and the inputs' lags; F test of the input lags (module docstring).
+
+    Parameters
+    ----------
+    c : ndarray, shape (n_samples,)
+        The candidate.
+    u : ndarray, shape (n_samples, n_inputs)
+        The manipulated inputs.
+    input_names : sequence of str
+    n_lag : int
+        Input lags ``1 .. n_lag`` (the element test's).
+    alpha : float
+        Level at which an input's own block is named.
+    order : int
+        Own lags of the candidate.
+    """
+    c = np.asarray(c, float)
+    c = c - c.mean()
+    std = u.std(axis=0)
+    moving = [j for j in range(u.shape[1]) if std[j] > 1e-12 * max(float(np.abs(u[:, j]).max(initial=0.0)), 1.0)]
+    start = max(order, n_lag)
+    if not moving or c.shape[0] - start < 3 * (order + n_lag * len(moving)) + 10:
+        return ExogeneityTest(1.0, float("nan"), ())
+    y = c[start:]
+    own = _lags(c[:, None], order, start)
+    U = _lags(u[:, moving] - u[:, moving].mean(axis=0), n_lag, start)
+    base = np.column_stack([np.ones(y.shape[0]), own])
+    rss_r, *_ = _rss(base, y)
+    full = np.hstack([base, U])
+    rss_f, rank_f, *_ = _rss(full, y)
+    df_den = y.shape[0] - rank_f
+    stat, p = f_test(rss_r, rss_f, n_lag * len(moving), df_den)
+    per_input = []
+    for b, j in enumerate(moving):
+        others = np.hstack([base, np.delete(U, np.s_[b * n_lag:(b + 1) * n_lag], axis=1)])
+        rss_o, *_ = _rss(others, y)
+        per_input.append((f_test(rss_o, rss_f, n_lag, df_den)[1], input_names[j]))
+    named = tuple(name for pj, name in per_input if pj < alpha) or (min(per_input)[1],)
+    return ExogeneityTest(float(p), float(stat), named)
+
+
+@dataclasses.dataclass(frozen=True)
+class CauseTest:
+    """The test of one candidate's lags in one output row's element regression.
+
+    Attributes
+    ----------
+    p_value : float
+        Unadjusted p-value of "no lag of the whitened candidate helps".
+    statistic : float
+    delay : int
+        First lag (samples) of its effect, as the element test reports it for an input: the start of
+        the window of ``nb`` lags with the largest squared t-statistics (a dead time of ``theta``
+        samples shows from lag ``theta + 1``).
+    b : list of float
+        The ``nb`` coefficients there (of the whitened candidate).
+    """
+
+    p_value: float
+    statistic: float
+    delay: int
+    b: list
+
+
+def cause_tests(d: np.ndarray, columns: np.ndarray, w: np.ndarray, na: int, nb: int, n_lag: int,
+                start: int) -> list:
+    """The test of every candidate (whitened) as a cause of one output's prediction error.
+
+    Parameters
+    ----------
+    d : ndarray, shape (n_samples,)
+        The row's prediction error.
+    columns : ndarray, shape (n_samples, n_moving)
+        The model's moving columns (inputs and measured disturbances).
+    w : ndarray, shape (n_samples, n_candidates)
+        The whitened candidates (:func:`whiten`).
+    na, nb : int
+        ARX orders of the element test.
+    n_lag : int
+        Lags ``1 .. n_lag`` of the columns and of each candidate.
+    start : int
+        First regression row (every lag inside the record and past the whitening's start).
+
+    Returns
+    -------
+    list of CauseTest
+        One per candidate.
+    """
+    from .arx import estimate_delay_from_lags
+
+    dc = d - d.mean()
+    y = dc[start:]
+    parts = [np.ones((y.shape[0], 1))]
+    if na:
+        parts.append(_lags(dc[:, None], na, start))
+    if columns.shape[1]:
+        parts.append(_lags(columns - columns.mean(axis=0), n_lag, start))
+    base = np.hstack(parts)
+    rss_r, *_ = _rss(base, y)
+    out = []
+    for k in range(w.shape[1]):
+        W = _lags(w[:, k:k + 1], n_lag, start)
+        full = np.hstack([base, W])
+        rss_f, rank_f, coef, var = _rss(full, y)
+        df_den = y.shape[0] - rank_f
+        stat, p = f_test(rss_r, rss_f, n_lag, df_den)
+        g = coef[-n_lag:]
+        s2 = rss_f / max(df_den, 1)
+        std = np.sqrt(np.maximum(var[-n_lag:] * s2, 0.0))
+        lag0 = estimate_delay_from_lags(g, std, nb, first_lag=1)
+        out.append(CauseTest(float(p), float(stat), int(lag0), g[lag0 - 1:lag0 - 1 + nb].tolist()))
+    return out
+
+
+# ------------------------------------------------------------------------------------ the analysis
+@dataclasses.dataclass
+class CandidateReport:
+    """What the candidate channels gave; :meth:`to_dict` is the report's ``candidates`` object.
+
+    Attributes
+    ----------
+    tried : list of str
+        Every channel selected.
+    p_values : dict
+        ``{name: {output: p}}``: the adjusted p-value (as an element's) of each exogenous usable
+        candidate in each output row.
+    unusable : dict
+        ``{name: reason}``.
+    not_exogenous : dict
+        ``{name: "moves with u2: may be an effect of the loop, not a cause"}``.
+    exogeneity_p_values : dict
+        ``{name: p}``: Holm-adjusted p-value of the exogeneity test of each usable candidate.
+    located : list of tuple of str
+        ``(output, name)`` of the located candidate effects.
+    added : list of str
+        The candidates the repair added to the model (filled in by the repair).
+    gaps : int
+        Gaps in the record (missing samples); the candidate regressions run across them.
+    """
+
+    tried: list
+    p_values: dict
+    unusable: dict
+    not_exogenous: dict
+    exogeneity_p_values: dict
+    located: list
+    added: list = dataclasses.field(default_factory=list)
+    gaps: int = 0
+
+    def to_dict(self) -> dict:
+        return {"tried": list(self.tried), "p_values": {k: dict(v) for k, v in self.p_values.items()},
+                "unusable": dict(self.unusable), "not_exogenous": dict(self.not_exogenous),
+                "exogeneity_p_values": dict(self.exogeneity_p_values),
+                "located": [{"output": o, "candidate": c} for o, c in self.located], "added": list(self.added)}
+
+    def warnings(self) -> list:
+        """The unusable and the not-exogenous channels, in words."""
+        out = [f"candidate {name} is unusable ({why}); it was not tested" for name, why in self.unusable.items()]
+        out += [f"candidate {name} {why}; it was not tested as a cause" for name, why in self.not_exogenous.items()]
+        if self.gaps and self.tried:
+            out.append(f"the candidate tests read the record as contiguous across its {self.gaps} gap(s): a lag that "
+                       f"reaches across a gap pairs samples that are further apart than it says")
+        return out
+
+    def summary_lines(self) -> list:
+        """Lines of the text summary."""
+        lines = [f"candidate channels tried: {', '.join(self.tried) or 'none'}"]
+        for name, ps in self.p_values.items():
+            lines.append(f"  {name}: p = " + ", ".join(f"{o} {p:.2g}" for o, p in ps.items()))
+        for name, why in self.not_exogenous.items():
+            lines.append(f"  {name}: {why}")
+        for name, why in self.unusable.items():
+            lines.append(f"  {name}: unusable ({why})")
+        added = ", ".join(self.added) if self.added else "none"
+        lines.append(f"candidates added to the model as measured disturbances: {added}")
+        return lines
+
+
+@dataclasses.dataclass
+class CandidateTest:
+    """The element results with the candidates joined: the elements (their p-values adjusted in the
+    larger family), the candidate entries, and the :class:`CandidateReport`."""
+
+    elements: list
+    candidate_elements: list
+    report: CandidateReport
+
+
+def run_candidate_tests(model: PlantModel, data: LoggedData, chosen: CandidateChannels, columns: np.ndarray,
+                    d: np.ndarray, elements: list, layout, options) -> CandidateTest:
+    """Run the exogeneity and cause tests of the chosen candidates and adjust the element family.
+
+    Parameters
+    ----------
+    model : PlantModel
+    data : LoggedData
+    chosen : CandidateChannels
+    columns : ndarray, shape (n_samples, n_columns)
+        The model's columns (inputs, then measured disturbances).
+    d : ndarray, shape (n_samples, n_outputs)
+        Prediction error of the model.
+    elements : list of ElementResult
+        The Delta element test's results; those with a p-value (not ambiguous) are the family the
+        candidates join.
+    layout : RegressionLayout
+        Its ``n_lag_u`` and ``start``.
+    options : AnalysisOptions
+        Its ``alpha``, ``na`` and ``nb``.
+
+    Returns
+    -------
+    CandidateTest
+    """
+    from .element_test import ElementResult
+    from .statistics import N_FAMILIES, holm_adjust
+
+    alpha, n_lag = options.alpha, layout.n_lag_u
+    u = np.asarray(data.u, dtype=float)
+    exo = {name: exogeneity_test(chosen.values[:, k], u, model.inputs, n_lag, alpha)
+           for k, name in enumerate(chosen.names)}
+    names = list(chosen.names)
+    exo_adj = dict(zip(names, holm_adjust([exo[n].p_value for n in names]))) if names else {}
+    not_exogenous = {n: f"moves with {', '.join(exo[n].inputs)}: may be an effect of the loop, not a cause"
+                     for n in names if np.isfinite(exo_adj[n]) and exo_adj[n] < alpha}
+    causes = [n for n in names if n not in not_exogenous]
+    idx = [names.index(n) for n in causes]
+    w = np.column_stack([whiten(chosen.values[:, k]) for k in idx]) if idx else np.zeros((d.shape[0], 0))
+    std = columns.std(axis=0)
+    moving = [j for j in range(columns.shape[1])
+              if std[j] > 1e-12 * max(float(np.abs(columns[:, j]).max(initial=0.0)), 1.0)]
+    start = max(layout.start, CANDIDATE_AR_ORDER + n_lag)
+    tests = {}
+    for i in range(model.n_outputs):
+        for name, t in zip(causes, cause_tests(d[:, i], columns[:, moving], w, options.na, options.nb, n_lag, start)):
+            tests[(i, name)] = t
+    # One family: every element with a p-value and every (output, candidate) pair.
+    family = [e for e in elements if e.p_value is not None and not e.ambiguous]
+    raw = [e.p_value_raw if e.p_value_raw is not None else np.nan for e in family]
+    raw += [tests[k].p_value for k in tests]
+    adj = holm_adjust(np.array(raw, dtype=float)) if raw else np.zeros(0)
+    p_of = [min(1.0, N_FAMILIES * a) if np.isfinite(a) else 1.0 for a in adj]
+    new_elements, by_id = [], {id(e): p for e, p in zip(family, p_of)}
+    for e in elements:
+        if id(e) in by_id:
+            p = by_id[id(e)]
+            e = dataclasses.replace(e, p_value=float(p), mismatch=bool(p < alpha))
+        new_elements.append(e)
+    cand_p = dict(zip(tests, p_of[len(family):]))
+    cand_elements, p_values, located = [], {n: {} for n in causes}, []
+    for (i, name), t in tests.items():
+        p = cand_p[(i, name)]
+        out = model.outputs[i]
+        hit = bool(p < alpha)
+        p_values[name][out] = float(p)
+        if hit:
+            located.append((out, name))
+        cand_elements.append(ElementResult(output=out, input=name, mismatch=hit, p_value=float(p),
+                                           p_value_raw=t.p_value, statistic=t.statistic,
+                                           kind="missing" if hit else None, delay=t.delay, b=t.b, role="candidate"))
+    cand_elements.sort(key=lambda e: (model.outputs.index(e.output), causes.index(e.input)))
+    located.sort(key=lambda k: (model.outputs.index(k[0]), causes.index(k[1])))
+    report = CandidateReport(tried=list(chosen.tried), p_values=p_values, unusable=dict(chosen.unusable),
+                             not_exogenous=not_exogenous, exogeneity_p_values={n: float(exo_adj[n]) for n in names},
+                             located=located, gaps=max(len(data.segments) - 1, 0))
+    return CandidateTest(elements=new_elements, candidate_elements=cand_elements, report=report)
+
+
+# ------------------------------------------------------------------------------------ the repair's model
+def with_candidate_columns(model: PlantModel, data: LoggedData, names: Sequence[str]):
+    """The model and the data with the candidates ``names`` as new measured disturbance columns.
+
+    The new columns' elements are absent (gain 0; a zero step response), so the model's output and
+    prediction error are those of ``model``; the data's ``dv`` gains the channels' samples (taken
+    out of ``extra``).
+
+    Returns
+    -------
+    (PlantModel, LoggedData)
+    """
+    names = [n for n in names if n not in model.disturbances]
+    if not names:
+        return model, data
+    ny, k = model.n_outputs, len(names)
+    if model.is_step_response:
+        sr = np.concatenate([model.step_response, np.zeros((ny, k, model.step_length))], axis=1)
+        new = model.replace(disturbances=model.disturbances + tuple(names), step_response=sr, lead=None,
+                            time_constant2=None, integrating=None)
+    else:
+        arrays = {key: np.hstack([np.asarray(getattr(model, key)),
+                                  np.zeros((ny, k), dtype=np.asarray(getattr(model, key)).dtype)])
+                  for key in PARAMETRIC_KEYS}
+        new = model.replace(disturbances=model.disturbances + tuple(names), **arrays)
+    dv = np.column_stack([np.asarray(data.dv, float)] + [np.asarray(data.extra[n], float) for n in names])
+    extra = {key: v for key, v in data.extra.items() if key not in names}
+    return new, dataclasses.replace(data, dv=dv, disturbances=tuple(data.disturbances) + tuple(names), extra=extra)
+
+
+def without_columns(model: PlantModel, names: Sequence[str]) -> PlantModel:
+    """``model`` without the measured disturbance columns ``names``."""
+    drop = [model.n_inputs + model.disturbances.index(n) for n in names if n in model.disturbances]
+    if not drop:
+        return model
+    keep = [j for j in range(model.n_columns) if j not in drop]
+    dist = tuple(n for n in model.disturbances if n not in names)
+    if model.is_step_response:
+        return model.replace(disturbances=dist, step_response=np.asarray(model.step_response)[:, keep], lead=None,
+                             time_constant2=None, integrating=None)
+    arrays = {key: np.asarray(getattr(model, key))[:, keep] for key in PARAMETRIC_KEYS}
+    return model.replace(disturbances=dist, **arrays)

@@ -1,0 +1,107 @@
+"""The candidate channels of the live monitor: stamped vectors of extra logged variables, kept beside the window.
+
+Candidate channels (docs/interfaces.md, "Candidate channels") arrive on their own stamped-vector topic
+(``candidate_topic``), each message naming its channels.  They never hold up a sample of the
+:class:`~mpm_monitor.monitor.window.SampleWindow`: :class:`CandidateWindow` keeps the latest vectors by
+stamp, and :meth:`CandidateWindow.attach` puts them on the window's samples when an analysis is
+taken -- a channel with a value at every sample of the window into ``LoggedData.extra``, one missing
+at some samples (or not finite there) into ``LoggedData.unusable`` with the reason.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+from typing import Optional, Sequence
+
+import numpy as np
+
+from ..core.errors import ConfigurationError
+from ..core.logged_data import LoggedData
+
+NS_PER_S = 1_000_000_000
+
+
+class CandidateWindow:
+    """The latest candidate vectors by stamp (see the module docstring).
+
+    Parameters
+    ----------
+    sample_time : float
+        Seconds per sample.
+    capacity : int
+        Vectors kept (the window's length plus some slack: older ones are forgotten).
+    stamp_tolerance : float
+        Largest distance between a candidate stamp and a sample's, fraction of the sample time.
+    """
+
+    def __init__(self, sample_time: float, capacity: int, stamp_tolerance: float = 0.25):
+        if not (np.isfinite(sample_time) and sample_time > 0):
+            raise ConfigurationError(f"sample_time: expected a finite number > 0 (seconds), got {sample_time!r}")
+        if int(capacity) != capacity or capacity < 1:
+            raise ConfigurationError(f"capacity: expected an integer >= 1, got {capacity!r}")
+        self._period = int(round(sample_time * NS_PER_S))
+        self._tol = int(stamp_tolerance * self._period)
+        self._vectors: collections.deque = collections.deque(maxlen=int(capacity))
+        self._names: dict = {}          # every channel seen, in order of first appearance
+        self.received = 0
+
+    @property
+    def names(self) -> tuple:
+        """Every candidate channel seen so far."""
+        return tuple(self._names)
+
+    def add(self, stamp_ns: int, names: Sequence[str], values) -> Optional[str]:
+        """Keep one vector; returns None, or why it was refused (names and values differ in length, a
+        name is empty or repeated).
+
+        Parameters
+        ----------
+        stamp_ns : int
+            Its stamp, nanoseconds.
+        names : sequence of str
+            The channels.
+        values : array_like, shape (len(names),)
+            Their values (a non-finite value makes its channel unusable over the windows it falls in).
+        """
+        names = tuple(str(n) for n in names)
+        v = np.asarray(values, dtype=float).reshape(-1)
+        t = f"t = {int(stamp_ns) / NS_PER_S:.9g} s"
+        if v.shape[0] != len(names):
+            return f"candidate: {v.shape[0]} value(s) for {len(names)} name(s) at {t} (one value per name expected)"
+        if any(not n for n in names) or len(set(names)) != len(names):
+            return f"candidate: empty or repeated channel names at {t}: {', '.join(names)}"
+        for n in names:
+            self._names.setdefault(n, None)
+        self._vectors.append((int(stamp_ns), dict(zip(names, v))))
+        self.received += 1
+        return None
+
+    def attach(self, data: LoggedData) -> LoggedData:
+        """``data`` with the candidate channels on its samples (``extra``; ``unusable`` where a channel
+        has no finite value at some samples).  The channels the data already has are left alone."""
+        if not self._names:
+            return data
+        stamps = np.rint(np.asarray(data.t, dtype=float) * NS_PER_S).astype(np.int64)
+        got = np.array([s for s, _ in self._vectors], dtype=np.int64)
+        order = np.argsort(got, kind="stable")
+        got = got[order]
+        vectors = [self._vectors[k][1] for k in order]
+        n = stamps.shape[0]
+        match = np.full(n, -1)
+        if got.size:
+            pos = np.clip(np.searchsorted(got, stamps), 0, got.size - 1)
+            for cand in (pos, np.maximum(pos - 1, 0)):
+                close = (np.abs(got[cand] - stamps) <= self._tol) & (match < 0)
+                match[close] = cand[close]
+        extra, unusable = dict(data.extra), dict(data.unusable)
+        for name in self._names:
+            if name in extra or name in unusable:
+                continue
+            x = np.array([vectors[m].get(name, np.nan) if m >= 0 else np.nan for m in match], dtype=float)
+            bad = int(np.count_nonzero(~np.isfinite(x)))
+            if bad:
+                unusable[name] = f"partly missing: no finite value at {bad} of the window's {n} samples"
+            else:
+                extra[name] = x
+        return dataclasses.replace(data, extra=extra, unusable=unusable)

@@ -1,0 +1,268 @@
+"""Candidate channels: logged variables the model does not use, tested as causes of the prediction error.
+
+Acceptance (the undeclared-effect loop of mpm_monitor.sim.undeclared): the undeclared channel is
+located and added with its element within 10% (delay within one sample) and the error afterwards
+within 10% of the noise floor; decoys (a random walk, a filtered noise) are never added; a channel
+driven by an input of the loop is reported as not exogenous and never added.  The level of the test
+on random-walk candidates (the spurious regression the whitening avoids) is checked by simulation on
+the regression alone; the full Monte-Carlo is bench.candidates_mc.
+"""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from mpm_monitor.apps.cli import main as cli_main
+from mpm_monitor.core.analysis import AnalysisOptions, detect
+from mpm_monitor.core.candidates import (
+    cause_tests,
+    exogeneity_test,
+    select_candidates,
+    whiten,
+    with_candidate_columns,
+    without_columns,
+)
+from mpm_monitor.core.errors import ConfigurationError
+from mpm_monitor.core.model import PlantModel
+from mpm_monitor.core.pipeline import analyze
+from mpm_monitor.io.csv_log import read_csv, write_csv
+from mpm_monitor.io.model_file import load_model, save_model
+from mpm_monitor.io.report import write_report
+from mpm_monitor.sim.undeclared import (
+    EFFECT_CHANNEL,
+    FILTERED_NOISE_CHANNEL,
+    LOOP_CHANNEL,
+    RANDOM_WALK_CHANNEL,
+    UndeclaredEffect,
+    undeclared_effect_run,
+)
+
+
+@pytest.fixture(scope="module")
+def effect_run():
+    return undeclared_effect_run(3000, seed=3)
+
+
+@pytest.fixture(scope="module")
+def effect_report(effect_run):
+    return analyze(effect_run.model, effect_run.data, AnalysisOptions(), candidates="all")
+
+
+# ------------------------------------------------------------------------------------ acceptance
+def test_the_undeclared_channel_is_found_added_and_fitted(effect_run, effect_report):
+    rep, truth = effect_report, effect_run.effect
+    cands = rep.candidates
+    assert cands.located == [(truth.output, EFFECT_CHANNEL)]
+    assert cands.added == [EFFECT_CHANNEL]
+    entry = [e for e in rep.elements if e.role == "candidate" and e.mismatch]
+    assert [(e.output, e.input, e.kind) for e in entry] == [(truth.output, EFFECT_CHANNEL, "missing")]
+    m = rep.repaired_model
+    assert m.disturbances == (EFFECT_CHANNEL,)
+    el = m.element(m.outputs.index(truth.output), m.columns.index(EFFECT_CHANNEL))
+    assert abs(el["gain"] - truth.gain) <= 0.1 * truth.gain
+    assert abs(el["time_constant"] - truth.time_constant) <= 0.1 * truth.time_constant
+    assert abs(el["delay"] - truth.delay) <= 1.0 * m.sample_time
+    # zeros on the other outputs; the model's own elements untouched
+    others = [i for i, o in enumerate(m.outputs) if o != truth.output]
+    assert all(m.gain[i, m.columns.index(EFFECT_CHANNEL)] == 0 for i in others)
+    np.testing.assert_array_equal(m.gain[:, :m.n_inputs], effect_run.model.gain)
+    floor = effect_run.noise_floor[truth.output]
+    assert rep.repair["error_before"][truth.output] > 5 * floor
+    assert rep.repair["error_after"][truth.output] <= 1.1 * floor
+    change = [c for c in rep.repair["changes"] if c["input"] == EFFECT_CHANNEL]
+    assert len(change) == 1 and change[0]["applied"] and change[0]["kind"] == "missing"
+
+
+def test_decoys_are_not_added_and_the_loop_channel_is_not_exogenous(effect_report):
+    cands = effect_report.candidates
+    assert set(cands.tried) == {EFFECT_CHANNEL, RANDOM_WALK_CHANNEL, FILTERED_NOISE_CHANNEL, LOOP_CHANNEL}
+    assert set(cands.not_exogenous) == {LOOP_CHANNEL}
+    assert cands.not_exogenous[LOOP_CHANNEL] == "moves with u2: may be an effect of the loop, not a cause"
+    assert LOOP_CHANNEL not in cands.p_values
+    for decoy in (RANDOM_WALK_CHANNEL, FILTERED_NOISE_CHANNEL):
+        assert all(p >= effect_report.alpha for p in cands.p_values[decoy].values())
+    assert not any(e.mismatch for e in effect_report.elements if e.input != EFFECT_CHANNEL)
+    assert any("u2_flow moves with u2" in w for w in effect_report.warnings)
+
+
+def test_the_json_report_lists_the_candidates(effect_report):
+    doc = json.loads(json.dumps(effect_report.to_dict()))
+    c = doc["candidates"]
+    assert c["tried"] == list(effect_report.candidates.tried)
+    assert c["added"] == [EFFECT_CHANNEL]
+    assert c["p_values"][EFFECT_CHANNEL]["y1"] < 1e-10
+    assert c["not_exogenous"] == {LOOP_CHANNEL: "moves with u2: may be an effect of the loop, not a cause"}
+    assert c["unusable"] == {}
+    cand = [e for e in doc["elements"] if e["role"] == "candidate"]
+    assert {(e["output"], e["input"]) for e in cand} == {(o, n) for n in (EFFECT_CHANNEL, RANDOM_WALK_CHANNEL,
+                                                                         FILTERED_NOISE_CHANNEL) for o in
+                                                         ("y1", "y2", "y3")}
+    assert doc["repair"]["model"]["disturbances"] == [EFFECT_CHANNEL]
+    text = effect_report.summary_text()
+    assert "(y1, feed_temperature (candidate))" in text
+    assert "candidates added to the model as measured disturbances: feed_temperature" in text
+
+
+def test_a_loop_channel_alone_is_never_added(effect_run):
+    data = dataclasses.replace(effect_run.data, extra={LOOP_CHANNEL: effect_run.data.extra[LOOP_CHANNEL]})
+    rep = analyze(effect_run.model, data, AnalysisOptions(), candidates=[LOOP_CHANNEL])
+    assert list(rep.candidates.not_exogenous) == [LOOP_CHANNEL]
+    assert rep.candidates.added == [] and rep.repaired_model == effect_run.model
+
+
+def test_without_candidates_the_report_has_no_candidates_key(effect_run):
+    rep = detect(effect_run.model, effect_run.data)
+    assert "candidates" not in rep.to_dict() and rep.candidates is None
+    assert not any(e.role == "candidate" for e in rep.elements)
+
+
+def test_candidate_tests_share_the_family_with_the_elements(effect_run):
+    plain = detect(effect_run.model, effect_run.data)
+    rep = detect(effect_run.model, effect_run.data, candidates=[RANDOM_WALK_CHANNEL, FILTERED_NOISE_CHANNEL])
+    by_key = {(e.output, e.input): e for e in rep.elements}
+    for e in plain.elements:
+        if e.p_value is None:
+            continue
+        wider = by_key[(e.output, e.input)]
+        assert wider.p_value_raw == e.p_value_raw
+        assert wider.p_value >= e.p_value - 1e-15       # a larger Holm family never lowers a p-value
+    assert sum(e.role == "candidate" for e in rep.elements) == 2 * effect_run.model.n_outputs
+
+
+# ------------------------------------------------------------------------------------ usability
+def test_unusable_channels_are_reported_with_a_warning(effect_run):
+    n = effect_run.data.n_samples
+    extra = dict(effect_run.data.extra)
+    extra["stuck"] = np.full(n, 3.0)
+    extra["broken"] = np.where(np.arange(n) == 10, np.nan, 1.0 + np.arange(n) * 0.01)
+    data = dataclasses.replace(effect_run.data, extra=extra, unusable={"status": "not numeric (line 5: 'OK')"})
+    chosen = select_candidates(data, "stuck,broken,status,ambient", effect_run.model)
+    assert chosen.names == ("ambient",)
+    assert chosen.unusable == {"stuck": "constant: it never moves", "broken": "holds NaN or infinity",
+                               "status": "not numeric (line 5: 'OK')"}
+    rep = detect(effect_run.model, data, candidates=chosen)
+    assert set(rep.candidates.unusable) == {"stuck", "broken", "status"}
+    assert any(w.startswith("candidate stuck is unusable (constant") for w in rep.warnings)
+    assert not any(e.input in ("stuck", "broken", "status") for e in rep.elements)
+
+
+def test_unknown_or_model_channels_are_refused_in_one_line(effect_run):
+    with pytest.raises(ConfigurationError, match="no column 'nope' .* are: feed_temperature, ambient"):
+        select_candidates(effect_run.data, "nope", effect_run.model)
+    with pytest.raises(ConfigurationError, match="'u2' is a channel of the model"):
+        select_candidates(effect_run.data, ["u2"], effect_run.model)
+    with pytest.raises(ConfigurationError, match="expected 'all' or NAME"):
+        select_candidates(effect_run.data, "ambient,,x")
+    with pytest.raises(ConfigurationError, match="arx element test only"):
+        detect(effect_run.model, effect_run.data, AnalysisOptions(method="xcorr"), candidates="all")
+
+
+# ------------------------------------------------------------------------------------ the statistics
+def _ar_noise(n, rng, pole=0.95):
+    e = rng.normal(size=n)
+    x = np.empty(n)
+    prev = 0.0
+    for k in range(n):
+        prev = pole * prev + e[k]
+        x[k] = prev
+    return x
+
+
+def test_random_walk_candidates_hold_the_level_with_an_imperfect_noise_model():
+    """Whitened random-walk candidates keep the F test's level on a coloured residual that the ARX
+    models imperfectly (na = 1 for an error of two AR(1) components)."""
+    rng = np.random.default_rng(0)
+    n, runs, alpha = 600, 200, 0.05
+    rejected = 0
+    for _ in range(runs):
+        d = _ar_noise(n, rng, 0.97) + _ar_noise(n, rng, 0.5)
+        walk = np.cumsum(rng.normal(size=n))
+        t, = cause_tests(d, np.zeros((n, 0)), whiten(walk)[:, None], na=1, nb=4, n_lag=10, start=20)
+        rejected += t.p_value < alpha
+    assert rejected / runs <= alpha + 2 * np.sqrt(alpha * (1 - alpha) / runs)
+
+
+def test_an_effect_of_a_random_walk_is_found_through_its_whitened_form():
+    rng = np.random.default_rng(5)
+    n = 1500
+    walk = np.cumsum(rng.normal(size=n))
+    d = _ar_noise(n, rng, 0.9) * 0.5
+    d[3:] += 0.2 * walk[:-3]
+    t, = cause_tests(d, np.zeros((n, 0)), whiten(walk)[:, None], na=4, nb=4, n_lag=10, start=20)
+    assert t.p_value < 1e-10 and t.delay == 3
+
+
+def test_whitening_a_random_walk_gives_its_increments():
+    rng = np.random.default_rng(1)
+    steps = rng.normal(size=2000)
+    w = whiten(np.cumsum(steps))
+    assert np.corrcoef(w[20:], steps[20:])[0, 1] > 0.99
+
+
+def test_exogeneity_separates_a_loop_response_from_an_exogenous_channel():
+    rng = np.random.default_rng(2)
+    n = 2000
+    u = np.column_stack([_ar_noise(n, rng, 0.8), rng.normal(size=n)])
+    driven = np.zeros(n)
+    driven[3:] = 0.5 * u[:-3, 1] + 0.3 * u[:-3, 0] * 0
+    driven += 0.3 * rng.normal(size=n)
+    exo = np.cumsum(rng.normal(size=n))
+    t = exogeneity_test(driven, u, ("u1", "u2"), n_lag=8, alpha=0.01)
+    assert t.p_value < 1e-6 and t.inputs == ("u2",)
+    assert exogeneity_test(exo, u, ("u1", "u2"), n_lag=8, alpha=0.01).p_value > 1e-3
+
+
+# ------------------------------------------------------------------------------------ model columns
+def test_candidate_columns_are_added_and_dropped_in_every_structure(effect_run):
+    model = effect_run.model
+    wide, data = with_candidate_columns(model, effect_run.data, [EFFECT_CHANNEL, RANDOM_WALK_CHANNEL])
+    assert wide.disturbances == (EFFECT_CHANNEL, RANDOM_WALK_CHANNEL) and data.dv.shape == (3000, 2)
+    assert EFFECT_CHANNEL not in data.extra and not wide.present[:, 3:].any()
+    assert without_columns(wide, [EFFECT_CHANNEL, RANDOM_WALK_CHANNEL]) == model
+    step = PlantModel.from_step_response(1.0, ("u1",), ("y1",), np.ones((1, 1, 5)))
+    data1 = dataclasses.replace(effect_run.data, u=effect_run.data.u[:, :1], inputs=("u1",), r=effect_run.data.r[:, :1],
+                                y=effect_run.data.y[:, :1], outputs=("y1",))
+    wide_step, _ = with_candidate_columns(step, data1, [EFFECT_CHANNEL])
+    assert wide_step.step_response.shape == (1, 2, 5) and not wide_step.present[0, 1]
+    assert without_columns(wide_step, [EFFECT_CHANNEL]) == step
+
+
+# ------------------------------------------------------------------------------------ command line, HTML
+def test_analyze_candidates_on_the_command_line(tmp_path, effect_run, capsys):
+    d = effect_run.data
+    write_csv(tmp_path / "log.csv", d.t, d.r, d.u, d.y, d.inputs, d.outputs, extra=d.extra)
+    save_model(effect_run.model, tmp_path / "m.yaml")
+    code = cli_main(["analyze", "--model", str(tmp_path / "m.yaml"), "--data", str(tmp_path / "log.csv"),
+                     "--candidates", "all", "--json", str(tmp_path / "r.json"), "--repair-out",
+                     str(tmp_path / "new.yaml"), "--report", str(tmp_path / "html")])
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "candidates added to the model as measured disturbances: feed_temperature" in out
+    doc = json.loads((tmp_path / "r.json").read_text())
+    assert doc["candidates"]["added"] == [EFFECT_CHANNEL]
+    new = load_model(tmp_path / "new.yaml")
+    assert new.disturbances == (EFFECT_CHANNEL,)
+    # the repaired model reads the same CSV with the candidate as its measured disturbance
+    assert read_csv(tmp_path / "log.csv", new).disturbances == (EFFECT_CHANNEL,)
+    page = (tmp_path / "html" / "report.html").read_text()
+    assert "<h2>Candidate channels</h2>" in page and "moves with u2" in page and "added to the model" in page
+    code = cli_main(["analyze", "--model", str(tmp_path / "m.yaml"), "--data", str(tmp_path / "log.csv"),
+                     "--candidates", "feed_temp"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no column 'feed_temp'" in err and "feed_temperature" in err
+
+
+def test_html_report_without_a_located_candidate(tmp_path, effect_run):
+    data = dataclasses.replace(effect_run.data, extra={RANDOM_WALK_CHANNEL: effect_run.data.extra[RANDOM_WALK_CHANNEL]})
+    rep = analyze(effect_run.model, data, AnalysisOptions(), candidates="all")
+    page = write_report(tmp_path, effect_run.model, data, rep).read_text()
+    assert "<h2>Candidate channels</h2>" in page and "Added: none." in page
+
+
+def test_no_effect_run_gives_no_candidate():
+    run = undeclared_effect_run(2000, seed=4, effect=UndeclaredEffect(gain=0.0), loop_channel=False)
+    rep = detect(run.model, run.data, candidates="all")
+    assert rep.candidates.located == [] and not any(e.mismatch for e in rep.elements)
