@@ -18,6 +18,7 @@ BENCHMARKS = [
     ("bench.detection_power", [], ["--runs", "10", "--lengths", "300,800,2000"]),
     ("bench.repair_validation", ["--json", "bench/results/repair_validation.json"], ["--seeds", "1"]),
     ("bench.repair_mc", ["--dither-fat"], ["--runs", "20", "--dither-fat"]),
+    ("bench.structures_mc", ["--jobs", "2"], ["--runs", "30", "--clean-integrating", "30"]),
     ("bench.perf", [], ["--quick"]),
     ("bench.memory", [], ["--quick"]),
     ("bench.ros_throughput", ["--json", "bench/results/ros_throughput.json"], ["--samples", "2000", "--repeats", "1"]),
