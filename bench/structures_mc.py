@@ -270,8 +270,8 @@ def _mismatch(rng, plant: PlantModel, model: PlantModel, i: int, j: int, opts: S
         d = int(round(el["delay"] / plant.sample_time))
         shift = max(1, int(round(s * d)))
         down = rng.random() < 0.5 and d - shift >= 0
-        new = model.with_element(i, j, delay=(d - shift) * plant.sample_time)
-        if not down or not _strictly_proper(new, i, j):
+        new = model.with_element(i, j, delay=(d - shift) * plant.sample_time) if down else None
+        if new is None or not _strictly_proper(new, i, j):
             new = model.with_element(i, j, delay=(d + shift) * plant.sample_time)
     else:
         key = {"gain": "gain", "integrator_gain": "gain", "disturbance_gain": "gain", "time_constant": "time_constant",
