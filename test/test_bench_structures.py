@@ -52,6 +52,13 @@ def test_scenarios_draw_every_structure_and_mismatch_only_the_elements_they_name
         assert sc.dither == (p.n_inputs > p.n_outputs)
 
 
+def test_the_benchmarks_draws_are_all_valid_models():
+    # The 300 draws of the README's run (seed 0): among them delay decreases that would go below
+    # zero, which are drawn as increases.
+    delays = [m for k in range(300) for m in make_structures_scenario(0, k).mismatches if m["kind"] == "delay"]
+    assert delays and all(m["model"]["delay"] >= 0 for m in delays)
+
+
 def test_clean_integrating_scenarios_are_clean_and_integrate():
     for k in range(10):
         sc = make_structures_scenario(1, CLEAN_INDEX_OFFSET + k, n_mismatches=0, integrating_output=True)
