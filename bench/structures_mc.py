@@ -83,8 +83,8 @@ from mpm_monitor.sim.excitation import MeasuredDisturbanceOptions, PrbsOptions
 from mpm_monitor.sim.mpc import MpcOptions
 from mpm_monitor.sim.plant import DisturbanceOptions
 
-from . import write_json
-from .scenarios import input_separability
+from . import map_runs, write_json
+from .scenarios import check_count_ranges, input_separability
 
 STRUCTURES = ("first", "second", "lead", "inverse")
 KINDS = ("gain", "integrator_gain", "time_constant", "delay", "second_lag", "lead", "disturbance_gain")
@@ -157,12 +157,7 @@ class StructuresOptions:
         step_amplitude=1.0, switch_probability=0.02, min_hold=20, noise_std=0.1, noise_pole=0.9)
 
     def __post_init__(self):
-        if not 1 <= self.min_size <= self.max_size:
-            raise ValueError(f"min_size, max_size: expected 1 <= min_size <= max_size, got "
-                             f"{self.min_size}, {self.max_size}")
-        if not 0 <= self.min_mismatches <= self.max_mismatches:
-            raise ValueError(f"min_mismatches, max_mismatches: expected 0 <= min <= max, got "
-                             f"{self.min_mismatches}, {self.max_mismatches}")
+        check_count_ranges(self)
         if len(self.structure_probabilities) != len(STRUCTURES) or abs(sum(self.structure_probabilities) - 1) > 1e-9:
             raise ValueError(f"structure_probabilities: expected {len(STRUCTURES)} probabilities summing to 1, "
                              f"got {self.structure_probabilities!r}")
@@ -461,24 +456,6 @@ def score(records: Sequence[dict]) -> dict:
 
 
 # --------------------------------------------------------------------------- driver
-def _map(tasks, jobs: int, progress):
-    records = []
-    if jobs > 1:
-        import multiprocessing as mp
-
-        with mp.get_context("spawn").Pool(int(jobs)) as pool:
-            for rec in pool.imap(_run_one_star, tasks):
-                records.append(rec)
-                if progress:
-                    progress(len(records), len(tasks), rec)
-    else:
-        for task in tasks:
-            records.append(run_one(*task))
-            if progress:
-                progress(len(records), len(tasks), records[-1])
-    return sorted(records, key=lambda r: r["index"])
-
-
 def run_structures_mc(n_runs: int, seed: int = 0, samples: int = 3000, *, clean_integrating: int = 0, jobs: int = 1,
                       options: StructuresOptions = StructuresOptions(), element_window: str = "model",
                       progress: Optional[Callable[[int, int, dict], None]] = None) -> dict:
@@ -515,7 +492,7 @@ def run_structures_mc(n_runs: int, seed: int = 0, samples: int = 3000, *, clean_
     tasks += [(seed, CLEAN_INDEX_OFFSET + k, samples, options, True, element_window)
               for k in range(int(clean_integrating))]
     t0 = time.perf_counter()
-    records = _map(tasks, jobs, progress)
+    records = sorted(map_runs(_run_one_star, tasks, jobs, progress), key=lambda r: r["index"])
     main_runs = [r for r in records if r["index"] < CLEAN_INDEX_OFFSET]
     extra = [r for r in records if r["index"] >= CLEAN_INDEX_OFFSET]
     return {"config": {"runs": int(n_runs), "clean_integrating": int(clean_integrating), "seed": int(seed),
@@ -553,7 +530,8 @@ def format_table(result: dict) -> str:
     if s:
         e, fa, fi, rp = s["element"], s["false_alarms"], s["false_alarms_integrating"], s["repair"]
         lines += [
-            f"false alarms, clean runs: {fa['located']}/{fa['runs']} with a located element ({_pct(fa['rate_element'])}), "
+            f"false alarms, clean runs: {fa['located']}/{fa['runs']} with a located element "
+            f"({_pct(fa['rate_element'])}), "
             f"{fa['rows']}/{fa['runs']} with a flagged row ({_pct(fa['rate_row'])})",
             f"  of them with an integrating output: {fi['located']}/{fi['runs']} ({_pct(fi['rate_element'])})",
             f"element precision {_f3(e['precision'])} (hits {e['tp']}, false positives {e['fp']})",

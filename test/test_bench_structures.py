@@ -44,7 +44,8 @@ def test_scenarios_draw_every_structure_and_mismatch_only_the_elements_they_name
         changed = {(i, j) for i in range(p.n_outputs) for j in range(p.n_columns) if p.element(i, j) != m.element(i, j)}
         assert changed == {(x["output"], x["column"]) for x in sc.mismatches}
         for x in sc.mismatches:
-            assert (x["role"] == "disturbance") == (x["kind"] == "disturbance_gain") == (p.role(x["column"]) == "disturbance")
+            role = p.role(x["column"])
+            assert x["role"] == role and (x["kind"] == "disturbance_gain") == (role == "disturbance")
         # both sides of the loop are strictly proper (the closed loop refuses a feed-through)
         for model in (p, m):
             assert all(model.discrete_element(i, j).strictly_proper
