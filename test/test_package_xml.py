@@ -27,8 +27,9 @@ PYTHON_KEYS = {"numpy": "python3-numpy", "scipy": "python3-scipy", "yaml": "pyth
 OTHER_KEYS = {"python3-pytest-timeout"}
 #: Imported, but with no rosdep key: installed with pip (README, "Use in a ROS 2 workspace").
 PIP_ONLY = {"osqp"}
-#: The repository's own modules that the tests import (the benchmarks, the test helpers).
-REPOSITORY_MODULES = {"bench", "conftest", "report_checks", "ros_domains", "structure_models"}
+#: The repository's own modules that the tests import: the benchmarks, and the test folder's modules
+#: (helpers such as report_checks, and test modules whose simulations other tests reuse).
+REPOSITORY_MODULES = {"bench"} | {p.stem for p in (ROOT / "test").glob("*.py")}
 
 
 def dependencies(*tags) -> set:

@@ -109,7 +109,13 @@ def _moving_average(b, x2):
 
 
 def _recursive(a, v):
-    """Solve ``a(q) y = v`` column by column: forward substitution in the banded Toeplitz matrix."""
+    """Solve ``a(q) y = v`` column by column: forward substitution in the banded Toeplitz matrix.
+
+    ``v`` without columns or rows is returned as it is: SciPy's ``?tbtrs`` wrapper corrupts the heap
+    when handed a right-hand side with no columns (a later garbage collection aborts the process).
+    """
+    if v.size == 0:
+        return v
     band = np.tile(a, (v.shape[0], 1)).T         # (len(a), n), column-major: LAPACK's band storage
     tbtrs = lapack.ztbtrs if np.iscomplexobj(v) or np.iscomplexobj(a) else lapack.dtbtrs
     y, info = tbtrs(band, np.asfortranarray(v), uplo="L", trans="N", diag="U", overwrite_b=1)
