@@ -9,8 +9,13 @@ import numpy as np
 
 from mpm_monitor.core.discretize import discretize, settling_samples
 from mpm_monitor.core.model import PlantModel
-from mpm_monitor.core.signals import (TRANSIENT_MAX_CANCELLATION, cancellation, free_responses, initial_transient,
-                                      transient_amplitudes)
+from mpm_monitor.core.signals import (
+    TRANSIENT_MAX_CANCELLATION,
+    cancellation,
+    free_responses,
+    initial_transient,
+    transient_amplitudes,
+)
 
 N = 3000
 
