@@ -10,10 +10,12 @@ feedforward variables), whose elements are tested exactly like the inputs' and r
 role ``"disturbance"``.  For every row (the paper: every row the S_Delta test flags,
 :mod:`mpm_monitor.core.row_test`), the ARX ``A(q) d_i = sum_j B_ij(q) u_j + e`` (paper eq. 10) with
 B polynomials covering every lag from 1 to ``max_delay + nb`` (so no delay needs to be known in
-advance); element ``(i, j)`` is located when its first ``delay + nb`` B coefficients (where a
-mismatch of an element the model has must start, :func:`element_window`; all of them for an
-element the model lacks) are rejected as zero by their F (Wald) test, with Holm's procedure across
-every element tested at level ``alpha / N_FAMILIES`` (:mod:`mpm_monitor.core.statistics`).
+advance); element ``(i, j)`` is located when its first B coefficients (where a mismatch of an element
+the model has must start and its response sets in, :func:`element_window`; all of them for an
+element the model lacks and for a measured disturbance's) are rejected as zero by their F (Wald) test, with Holm's procedure across
+every element tested at level ``alpha / N_FAMILIES`` (:mod:`mpm_monitor.core.statistics`); in a
+row with two or more located elements each is confirmed with the others' whole tails
+(:func:`_confirm_with_tails`).
 
 An integrating output keeps the test valid: under "no mismatch" ``d`` stays stationary (the model
 integrates like the plant, and the centring of every signal removes the arbitrary level); an error
