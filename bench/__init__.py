@@ -42,3 +42,14 @@ def imap_tasks(fn, tasks, jobs: int = 1):
     else:
         for task in tasks:
             yield fn(task)
+
+
+def map_runs(star, tasks, jobs: int = 1, progress=None) -> list:
+    """``[star(task) for task in tasks]`` (:func:`imap_tasks`); ``progress(done, total, result)`` is
+    called after each result, in the order of ``tasks``."""
+    results = []
+    for result in imap_tasks(star, tasks, jobs):
+        results.append(result)
+        if progress:
+            progress(len(results), len(tasks), result)
+    return results

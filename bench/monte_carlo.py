@@ -62,7 +62,7 @@ from mpm_monitor.core.logged_data import LoggedData  # noqa: E402
 from mpm_monitor.core.signals import compute_signals  # noqa: E402
 from mpm_monitor.sim.closed_loop import run_closed_loop  # noqa: E402
 
-from . import imap_tasks  # noqa: E402
+from . import map_runs  # noqa: E402
 from .scenarios import KINDS, Scenario, ScenarioOptions, input_separability, make_scenario  # noqa: E402
 
 METHODS = ("arx", "xcorr", "pcorr")
@@ -329,11 +329,7 @@ def run_monte_carlo(n_runs: int, seed: int = 0, samples: int = 3000, methods: Se
         raise ValueError(f"n_runs: expected an integer >= 1, got {n_runs!r}")
     tasks = [(seed, k, samples, methods, scenario_options, alpha) for k in range(int(n_runs))]
     t0 = time.perf_counter()
-    records = []
-    for rec in imap_tasks(_run_one_star, tasks, jobs):
-        records.append(rec)
-        if progress:
-            progress(len(records), len(tasks), rec)
+    records = map_runs(_run_one_star, tasks, jobs, progress)
     records.sort(key=lambda r: r["index"])
     wall = time.perf_counter() - t0
     result = {

@@ -19,6 +19,7 @@ BENCHMARKS = [
     ("bench.repair_validation", ["--json", "bench/results/repair_validation.json"], ["--seeds", "1"]),
     ("bench.repair_mc", ["--dither-fat"], ["--runs", "20", "--dither-fat"]),
     ("bench.candidates_mc", [], ["--runs", "20", "--detection-runs", "5"]),
+    ("bench.structures_mc", ["--jobs", "2"], ["--runs", "30", "--clean-integrating", "30"]),
     ("bench.perf", [], ["--quick"]),
     ("bench.memory", [], ["--quick"]),
     ("bench.ros_throughput", ["--json", "bench/results/ros_throughput.json"], ["--samples", "2000", "--repeats", "1"]),

@@ -59,6 +59,17 @@ from mpm_monitor.sim.plant import DisturbanceOptions
 KINDS = ("gain", "time_constant", "delay", "missing", "mixed")
 
 
+def check_count_ranges(opts) -> None:
+    """Refuse options whose ``min_size .. max_size`` or ``min_mismatches .. max_mismatches`` is empty
+    (shared by the scenario distributions of the benchmarks)."""
+    if not 1 <= opts.min_size <= opts.max_size:
+        raise ValueError(f"min_size, max_size: expected 1 <= min_size <= max_size, got {opts.min_size}, "
+                         f"{opts.max_size}")
+    if not 0 <= opts.min_mismatches <= opts.max_mismatches:
+        raise ValueError(f"min_mismatches, max_mismatches: expected 0 <= min <= max, got "
+                         f"{opts.min_mismatches}, {opts.max_mismatches}")
+
+
 @dataclasses.dataclass(frozen=True)
 class ScenarioOptions:
     """The distribution scenarios are drawn from (see the module docstring).
@@ -113,11 +124,7 @@ class ScenarioOptions:
     sample_time: float = 1.0
 
     def __post_init__(self):
-        if not 1 <= self.min_size <= self.max_size:
-            raise ValueError(f"min_size, max_size: expected 1 <= min_size <= max_size, got {self.min_size}, {self.max_size}")
-        if not 0 <= self.min_mismatches <= self.max_mismatches:
-            raise ValueError(f"min_mismatches, max_mismatches: expected 0 <= min <= max, got "
-                             f"{self.min_mismatches}, {self.max_mismatches}")
+        check_count_ranges(self)
         bad = [k for k in self.kinds if k not in KINDS]
         if bad or not self.kinds:
             raise ValueError(f"kinds: expected a non-empty subset of {', '.join(KINDS)}, got {self.kinds!r}")

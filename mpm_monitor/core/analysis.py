@@ -83,8 +83,10 @@ class AnalysisOptions:
         the variance-inflation factor of its lag block exceeds ``1 / collinearity_threshold``.
     element_window : {"model", "full"}
         Lags the element test examines: "model" (default) the first ``delay + nb`` lags of an
-        element the model has (where any mismatch of that element starts), all lags for an element
-        the model lacks; "full" all lags ``1 .. max_delay + nb`` for every element.
+        element the model has (where any mismatch of that element starts), later up to the
+        element's onset for slow structures (:func:`mpm_monitor.core.element_test.element_window`),
+        all lags for an element the model lacks and for a measured disturbance's; "full" all lags
+        ``1 .. max_delay + nb`` for every element.
     test_all_rows : bool
         Run the element test on every row (default), not only on the rows the S_Delta test flags
         (the paper's order).  The family-wise false-alarm rate stays ``alpha`` (Holm's procedure

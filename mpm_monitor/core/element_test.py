@@ -10,10 +10,12 @@ feedforward variables), whose elements are tested exactly like the inputs' and r
 role ``"disturbance"``.  For every row (the paper: every row the S_Delta test flags,
 :mod:`mpm_monitor.core.row_test`), the ARX ``A(q) d_i = sum_j B_ij(q) u_j + e`` (paper eq. 10) with
 B polynomials covering every lag from 1 to ``max_delay + nb`` (so no delay needs to be known in
-advance); element ``(i, j)`` is located when its first ``delay + nb`` B coefficients (where a
-mismatch of an element the model has must start, :func:`element_window`; all of them for an
-element the model lacks) are rejected as zero by their F (Wald) test, with Holm's procedure across
-every element tested at level ``alpha / N_FAMILIES`` (:mod:`mpm_monitor.core.statistics`).
+advance); element ``(i, j)`` is located when its first B coefficients (where a mismatch of an element
+the model has must start and its response sets in, :func:`element_window`; all of them for an
+element the model lacks and for a measured disturbance's) are rejected as zero by their F (Wald) test, with Holm's procedure across
+every element tested at level ``alpha / N_FAMILIES`` (:mod:`mpm_monitor.core.statistics`); in a
+row with two or more located elements each is confirmed with the others' whole tails
+(:func:`_confirm_with_tails`).
 
 An integrating output keeps the test valid: under "no mismatch" ``d`` stays stationary (the model
 integrates like the plant, and the centring of every signal removes the arbitrary level); an error
@@ -318,21 +320,36 @@ def group_inputs(u: np.ndarray, bad: list, names, threshold: float) -> list:
     return [tuple(g) for g in groups.values()]
 
 
+#: An element's response has set in at the first lag where its impulse response reaches this fraction of
+#: its largest absolute value (:func:`element_window`).
+ONSET_FRACTION = 0.5
+#: Samples of an element's impulse response searched for its onset.
+ONSET_HORIZON = 1000
+
+
 def element_window(model: PlantModel, i: int, j: int, nb: int, window: str = "model") -> Optional[int]:
     """Leading column lags the element test of (i, j) tests (None: all of them).
 
     ``Delta_ij = P_ij - Phat_ij`` is non-zero from lag ``min(theta_plant, theta_model) + 1`` on,
-    so for an element the model has (:attr:`~mpm_monitor.core.model.PlantModel.present`) its first
-    ``theta_model + nb`` lags hold the onset of any mismatch; the later lags stay in the fit as
-    nuisance (under "no mismatch" every lag is zero, so the test keeps its level).  Fewer tested
-    lags means more power.  ``theta_model`` is the element's dead time in samples for every
-    structure (for a step-response element, the samples before its first moving coefficient).
-    Elements the model does not have have no known delay: all lags are tested, as with
-    ``window="full"``.
+    and a mismatch shows where the element's own response has set in: for an element the model has
+    (:attr:`~mpm_monitor.core.model.PlantModel.present`) the test covers its lags up to the onset
+    ``k_on`` (the first lag at which the model element's impulse response reaches
+    :data:`ONSET_FRACTION` of its largest absolute value) plus ``nb - 1`` more, and at least the first
+    ``theta_model + nb``.  For a first-order element with dead time ``theta`` the impulse response
+    is largest at lag ``theta + 1``, so the window is the first ``theta + nb`` lags; a second lag, an
+    integrator or a lead that builds up slowly moves the onset later (a short window would see
+    almost nothing of such an element, and its later lags, left free, would absorb the mismatch).
+    The later lags stay in the fit as nuisance (under "no mismatch" every lag is zero, so the test
+    keeps its level); fewer tested lags means more power.  Elements the model does not have have no
+    known delay, and a measured disturbance's column is typically slow and step-like (its later
+    lags would absorb a wrong gain): all lags are tested for them, as with ``window="full"``.
     """
-    if window == "full" or not model.present[i, j]:
+    if window == "full" or not model.present[i, j] or model.role(j) == "disturbance":
         return None
-    return int(model.delay_samples[i, j]) + nb
+    el = model.discrete_element(i, j)
+    h = np.abs(el.impulse_response(ONSET_HORIZON))
+    onset = int(np.flatnonzero(h >= ONSET_FRACTION * h.max())[0]) if h.max() > 0 else 0
+    return max(int(model.delay_samples[i, j]) + nb, onset + nb - 1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -415,9 +432,85 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
                 output=out, input=name, mismatch=bool(np.isfinite(p) and p < alpha),
                 p_value=float(p) if np.isfinite(p) else 1.0, p_value_raw=t.p_value, statistic=t.statistic,
                 delay=int(est.delay), b=est.b, role=role))
+    _confirm_with_tails(model, rows, design, regressions, options, estimates, keys, elements)
     warnings = [f"row {h.output}: inputs {', '.join(h.inputs)} jointly explain part of its prediction error "
                 f"(p={h.p_value:.2g}) but cannot be told apart from these data" for h in group_hits]
     return ElementTest(elements=elements, arx_tables=tables, group_hits=group_hits, warnings=warnings, noise=noise)
+
+
+#: The tail regressors of a located column cover this many time constants of the row's slowest pole.
+TAIL_TIME_CONSTANTS = 6.0
+#: ... and at most this fraction of the regression rows.
+TAIL_MAX_FRACTION = 0.1
+
+
+def tail_lags(model: PlantModel, i: int, n_lag: int, n_rows: int) -> int:
+    """Lags of a located column's block in the confirmation of row ``i`` (:func:`_confirm_with_tails`).
+
+    The row's largest dead time plus :data:`TAIL_TIME_CONSTANTS` time constants of its slowest decaying
+    pole (the model's elements), at least ``n_lag`` and at most :data:`TAIL_MAX_FRACTION` of the
+    ``n_rows`` regression rows.
+    """
+    from .discretize import discretize
+
+    poles = discretize(model).lag_poles(i)
+    if not poles:
+        return n_lag
+    tau = -1.0 / np.log(max(poles))
+    want = int(model.delay_samples[i].max(initial=0)) + int(np.ceil(TAIL_TIME_CONSTANTS * tau))
+    return int(max(n_lag, min(want, int(TAIL_MAX_FRACTION * n_rows))))
+
+
+def _confirm_with_tails(model, rows, design, regressions, options, estimates, keys, elements) -> None:
+    """Re-test the located elements of every row with two or more, each given the others' whole tails.
+
+    The ARX of a row holds ``n_lag`` lags of every column.  A located element's ``Delta_ij`` of a slow
+    element lasts far longer; in closed loop the part beyond ``n_lag`` correlates with the other
+    columns' lags and can make one of them look mismatched too (a time-constant error of a slow
+    element made a well-modelled element of the same row "located" at ``p`` ~ 1e-7).  So each located
+    element of such a row is tested again with the blocks of the row's other located columns extended
+    to :func:`tail_lags` lags (nuisance: under "no mismatch" of the element tested they are free, so
+    the test keeps its level), at its Holm step's level; an element that no longer rejects is not
+    located (its ``p_value`` is the larger of the two).  Only removes locations: the family-wise
+    false-alarm rate stays ``alpha``.  ``elements`` is updated in place.
+    """
+    from .arx import SharedBlockRegression
+
+    if getattr(regressions, "segments", None) is not None:
+        # Data with gaps: the tail regression below needs one contiguous record; its lags would reach
+        # across the gaps.  Not confirming only keeps the locations (never adds one).
+        return
+    nb, alpha, na = options.nb, options.alpha, options.na
+    names = model.columns
+    by_key = {(model.outputs.index(e.output), names.index(e.input)): e for e in elements}
+    raw = np.array([estimates[k].test.p_value for k in keys])
+    order = np.argsort(raw, kind="stable")
+    factor = {keys[o]: len(keys) - rank for rank, o in enumerate(order)}      # Holm's m - l + 1
+    u = np.asarray(regressions.u, dtype=float)
+    d = np.asarray(regressions.d, dtype=float)
+    n_lag, testable = design.n_lag, design.testable
+    start0 = regressions.layout.start
+    u_c = u - u.mean(axis=0)
+    for i in rows:
+        located = [j for j in testable if by_key[(i, j)].mismatch]
+        if len(located) < 2:
+            continue
+        tail = tail_lags(model, i, n_lag, u.shape[0] - start0)
+        if tail <= n_lag:
+            continue
+        start = max(start0, tail)
+        di = d[:, i] - d[:, i].mean()
+        own = -lag_matrix(di, range(1, na + 1), start) if na else None
+        for j in located:
+            sizes = [tail if (k in located and k != j) else n_lag for k in testable]
+            X = np.hstack([lag_matrix(u_c[:, k], range(1, size + 1), start) for k, size in zip(testable, sizes)])
+            fit = SharedBlockRegression(X, sizes).fit(di[start:], own)
+            test = fit.test_blocks_zero([testable.index(j)], element_window(model, i, j, nb, options.element_window))
+            p = min(1.0, N_FAMILIES * factor[(i, j)] * test.p_value) if np.isfinite(test.p_value) else 1.0
+            e = by_key[(i, j)]
+            e.p_value = max(e.p_value, p)
+            if not p < alpha:
+                e.mismatch = False
 
 
 def baseline_element_test(model: PlantModel, u: np.ndarray, d: np.ndarray, options) -> ElementTest:

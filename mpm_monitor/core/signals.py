@@ -19,7 +19,12 @@ response beyond its ``N`` samples; an integrator's pole 1 gives a constant, whic
 centring removes.  The amplitudes are estimated by least squares, row by row (so a mismatch in one
 row can never leak into another), over the model's settling time, and are subtracted only when
 they are jointly significant (F test at level 0.001); data that start at rest therefore keep the
-exact zero initial state.  With ``"zero"`` the model starts at rest.
+exact zero initial state.  Many nearly equal poles (ten lags between 2 and 20 s in one row) make
+the free responses almost linearly dependent: least squares then fits the noise or a drift with
+huge cancelling amplitudes (~1e5 for a transient of ~1), which distorts the start of the record.
+Such an ill-posed estimate (:func:`transient_amplitudes`) is refitted on the basis' leading
+singular directions only, with the smallest cut-off that makes it well-posed; a well-posed
+estimate is kept exactly as least squares gives it.  With ``"zero"`` the model starts at rest.
 
 Integrating outputs
 -------------------
@@ -50,6 +55,11 @@ INITIAL_STATE_CHOICES = ("estimate", "zero")
 
 #: Level of the F test that decides whether a row's initial transient is subtracted.
 TRANSIENT_TEST_LEVEL = 1e-3
+#: A transient estimate whose free responses, each at its largest, add up to more than this many
+#: times the largest value of the fitted transient is ill-posed (nearly equal poles cancelling).
+TRANSIENT_MAX_CANCELLATION = 1e3
+#: Relative singular-value cut-offs tried, in turn, on an ill-posed estimate.
+TRANSIENT_CUTOFFS = (1e-8, 1e-6, 1e-4, 1e-2)
 
 
 @dataclasses.dataclass
@@ -130,10 +140,42 @@ def initial_transient(model: PlantModel, d0: np.ndarray, level: float = TRANSIEN
         _, p = f_test(rss_null, rss_full, rank - 1, span - 2 - rank)
         if p < level:
             # Amplitudes from the plain least-squares fit (unbiased under coloured noise).
-            X = basis - basis.mean(axis=0)
-            coef, *_ = np.linalg.lstsq(X, seg - seg.mean(), rcond=1e-10)
+            coef = transient_amplitudes(basis - basis.mean(axis=0), seg - seg.mean())
             out[lag:, c] = free_responses(poles, repeated, powers, k) @ coef
     return out
+
+
+def cancellation(X: np.ndarray, coef: np.ndarray) -> float:
+    """``sum_k |coef_k| max|X_k|`` over ``max|X coef|``: 1 without cancellation, huge when the terms cancel."""
+    fitted = float(np.max(np.abs(X @ coef), initial=0.0))
+    terms = float(np.sum(np.abs(coef) * np.max(np.abs(X), axis=0, initial=0.0)))
+    return terms / fitted if fitted > 0 else (0.0 if terms == 0 else float("inf"))
+
+
+def transient_amplitudes(X: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Amplitudes of the free responses ``X`` fitted to ``target`` (least squares, conditioned).
+
+    The plain least-squares solution is returned unless it is ill-posed (its :func:`cancellation`
+    exceeds :data:`TRANSIENT_MAX_CANCELLATION`); then the truncated-SVD solution with the first
+    cut-off of :data:`TRANSIENT_CUTOFFS` that is well-posed (the last one when none is).
+
+    Parameters
+    ----------
+    X : ndarray, shape (span, n_basis)
+        Centred free responses.
+    target : ndarray, shape (span,)
+        Centred prediction error over the span.
+
+    Returns
+    -------
+    ndarray, shape (n_basis,)
+    """
+    coef, *_ = np.linalg.lstsq(X, target, rcond=1e-10)
+    for cutoff in TRANSIENT_CUTOFFS:
+        if cancellation(X, coef) <= TRANSIENT_MAX_CANCELLATION:
+            break
+        coef, *_ = np.linalg.lstsq(X, target, rcond=cutoff)
+    return coef
 
 
 def free_responses(poles: np.ndarray, repeated: np.ndarray, powers: list, k: np.ndarray) -> np.ndarray:
