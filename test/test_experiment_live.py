@@ -417,7 +417,10 @@ def test_acceptance_a_fat_plant_goes_from_ambiguous_to_an_experiment_to_the_exac
         input_std.append(data.u.std(axis=0))
         return report
 
-    samples = 4600    # the experiment (capped at the window: 3000 samples) starts after the first analysis
+    # The experiment (capped at the window: 3000 samples) starts once an analysis has recommended it: after
+    # the first (1500 samples), or a later one when the analysis process lags the simulation (it runs
+    # beside it); 6000 samples leave it room to end either way.
+    samples = 6000
     params = {
         "plant": {"model_file": plant_file, "seed": 3, "max_samples": samples, "clock_topic": "clock"},
         "setpoint": {"model_file": model_file, "mode": "prbs", "seed": 3, "amplitude": 1.0,
