@@ -116,8 +116,9 @@ class AnalysisOptions:
                                            open_high=True)
     test_all_rows: bool = option(True, "Run the element test on every row, not only on the rows the S_Delta test "
                                        "flags.")
-    element_window: str = option("model", "Lags the element test examines: model (the first delay + nb of an "
-                                          "element the model has) or full (all).", choices=ELEMENT_WINDOWS)
+    element_window: str = option("model", "Lags the element test examines: model (an element the model has: "
+                                          "delay + nb, wider for a slow onset; a measured disturbance's and an "
+                                          "absent element's: all) or full (all).", choices=ELEMENT_WINDOWS)
     max_gap: Optional[int] = option(None, "Longest gap in the data (missing samples) called short, samples; longer "
                                           "gaps are named louder in the warning (None: the longest lag of the "
                                           "tests).", low=0, high=10**9)
