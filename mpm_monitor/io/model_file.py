@@ -23,22 +23,37 @@ def _matrix(data: Mapping, key: str, source: str) -> np.ndarray:
     val = data[key]
     if not isinstance(val, Sequence) or isinstance(val, (str, bytes)):
         raise ModelFileError(f"{source}: key '{key}': expected a list of rows (outputs x inputs), got {type(val).__name__}")
+    rows = _rows(val, key, source, "numbers", _number)
+    return np.array(rows, dtype=float)
+
+
+def _rows(val: Sequence, key: str, source: str, what: str, entry) -> list:
+    """The rows of a list-of-rows value, each entry through ``entry(x, where)``: rows of equal length,
+    at least one, else a :class:`ModelFileError` naming the key, the row and the column."""
     rows = []
     for i, row in enumerate(val):
         if not isinstance(row, Sequence) or isinstance(row, (str, bytes)):
-            raise ModelFileError(f"{source}: key '{key}': row {i + 1}: expected a list of numbers, got {row!r}")
+            raise ModelFileError(f"{source}: key '{key}': row {i + 1}: expected a list of {what}, got {row!r}")
         if rows and len(row) != len(rows[0]):
-            raise ModelFileError(
-                f"{source}: key '{key}': row {i + 1} has {len(row)} entries, row 1 has {len(rows[0])}")
-        out_row = []
-        for j, x in enumerate(row):
-            if isinstance(x, bool) or not isinstance(x, (int, float)):
-                raise ModelFileError(f"{source}: key '{key}': row {i + 1}, column {j + 1}: expected a number, got {x!r}")
-            out_row.append(_float(x, f"{source}: key '{key}': row {i + 1}, column {j + 1}"))
-        rows.append(out_row)
+            raise ModelFileError(f"{source}: key '{key}': row {i + 1} has {len(row)} entries, row 1 has {len(rows[0])}")
+        rows.append([entry(x, f"{source}: key '{key}': row {i + 1}, column {j + 1}") for j, x in enumerate(row)])
     if not rows:
         raise ModelFileError(f"{source}: key '{key}': expected at least one row")
-    return np.array(rows, dtype=float)
+    return rows
+
+
+def _number(x, where: str) -> float:
+    """A model file's number (not a boolean) as a float."""
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        raise ModelFileError(f"{where}: expected a number, got {x!r}")
+    return _float(x, where)
+
+
+def _flag(x, where: str) -> bool:
+    """A model file's true/false entry."""
+    if not isinstance(x, bool):
+        raise ModelFileError(f"{where}: expected true or false, got {x!r}")
+    return x
 
 
 def _vector(data: Mapping, key: str, source: str):
@@ -103,19 +118,7 @@ def _bool_matrix(data: Mapping, key: str, source: str):
     if not isinstance(val, Sequence) or isinstance(val, (str, bytes)):
         raise ModelFileError(f"{source}: key '{key}': expected a list of rows of true/false (outputs x columns), "
                              f"got {type(val).__name__}")
-    rows = []
-    for i, row in enumerate(val):
-        if not isinstance(row, Sequence) or isinstance(row, (str, bytes)):
-            raise ModelFileError(f"{source}: key '{key}': row {i + 1}: expected a list of true/false, got {row!r}")
-        if rows and len(row) != len(rows[0]):
-            raise ModelFileError(f"{source}: key '{key}': row {i + 1} has {len(row)} entries, row 1 has {len(rows[0])}")
-        for j, x in enumerate(row):
-            if not isinstance(x, bool):
-                raise ModelFileError(f"{source}: key '{key}': row {i + 1}, column {j + 1}: expected true or false, "
-                                     f"got {x!r}")
-        rows.append(list(row))
-    if not rows:
-        raise ModelFileError(f"{source}: key '{key}': expected at least one row")
+    rows = _rows(val, key, source, "true/false", _flag)
     return np.array(rows, dtype=bool)
 
 
