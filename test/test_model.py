@@ -31,16 +31,21 @@ def _write(tmp_path, text, name="model.yaml"):
     return path
 
 
-def _replace_line(key, new_line):
-    """GOOD with the line of ``key`` replaced (or removed when ``new_line`` is None)."""
+def _with_line(text, key, new_line):
+    """``text`` with the line of ``key`` replaced (or removed when ``new_line`` is None)."""
     out = []
-    for line in GOOD.splitlines():
+    for line in text.splitlines():
         if line.split(":")[0].strip() == key:
             if new_line is not None:
                 out.append(new_line)
         else:
             out.append(line)
     return "\n".join(out) + "\n"
+
+
+def _replace_line(key, new_line):
+    """GOOD with the line of ``key`` replaced (or removed when ``new_line`` is None)."""
+    return _with_line(GOOD, key, new_line)
 
 
 # --------------------------------------------------------------------------- good files

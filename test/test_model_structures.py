@@ -8,6 +8,7 @@ naming the key and the element.  An unknown key is refused, never ignored: a mis
 import numpy as np
 import pytest
 import yaml
+from test_model import _with_line, _write
 
 from mpm_monitor.core.errors import InputError, ModelFileError
 from mpm_monitor.core.model import PlantModel
@@ -37,23 +38,6 @@ step_response:
   - [[0, 0, 0, 0.5, 0.9, 1.0], [0.3, 0.6, 0.8, 0.9, 1.0, 1.0]]
 ramp: [true, false]
 """
-
-
-def _write(tmp_path, text, name="model.yaml"):
-    path = tmp_path / name
-    path.write_text(text, encoding="utf-8")
-    return path
-
-
-def _with_line(text, key, new_line):
-    out = []
-    for line in text.splitlines():
-        if line.split(":")[0].strip() == key:
-            if new_line is not None:
-                out.append(new_line)
-        else:
-            out.append(line)
-    return "\n".join(out) + "\n"
 
 
 def test_rich_model_loads_every_key(tmp_path):
