@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from mpm_monitor.core.errors import ConfigurationError
-from mpm_monitor.monitor.experiment import ExperimentOptions, recommendation_of
+from mpm_monitor.monitor.experiment import END_MARGIN, ExperimentOptions, recommendation_of
 from mpm_monitor.monitor.monitor_core import MonitorCore, MonitorOptions
 from mpm_monitor.monitor.statuses import SUMMARY_NAME
 from mpm_monitor.monitor.window import WindowOptions
@@ -76,8 +76,12 @@ def test_recommendation_read_from_an_object_or_the_json_and_capped_at_the_window
     assert rec.why == "u4 and u5 move with u1" and rec.expected_detectable_gain_change == 0.2
     doc = {"dither": {"u4": 0.08}, "samples": 5000, "expected_detectable_gain_change": 0.2, "why": "w"}
     rec = recommendation_of(types.SimpleNamespace(experiment=doc), INPUTS, 3000)
-    assert rec.samples == 3000 and rec.recommended_samples == 5000 and rec.capped
-    assert rec.cap_text(3000) == "capped at the window of 3000 samples; 5000 recommended"
+    assert rec.samples == 2990 and rec.recommended_samples == 5000 and rec.capped
+    assert rec.cap_text(3000) == "capped at 2990 samples to fit the window of 3000; 5000 recommended"
+    # the window analysed when an experiment ends is taken up to END_MARGIN samples after its last
+    # dithered sample (the zero vector may come late): a request of window - END_MARGIN still fits
+    assert recommendation_of(types.SimpleNamespace(experiment=doc), INPUTS, 2000).samples == 2000 - END_MARGIN
+    assert recommendation_of(types.SimpleNamespace(experiment=doc), INPUTS, 10).samples == 1
     assert rec.amplitudes_text() == "amplitude 0.08"
     for none in (types.SimpleNamespace(experiment=None), types.SimpleNamespace(), None,
                  types.SimpleNamespace(experiment=experiment({"u9": 0.1})),
@@ -93,9 +97,9 @@ def test_one_call_per_recommendation_and_none_while_it_runs():
     feed(c, 0, 100)
     analyse(c, experiment())
     rec = t.next_request(c.window.n_completed, service_ready=True)
-    assert rec is not None and rec.dither == (("u4", 0.08), ("u5", 0.08)) and rec.samples == 1200 - 800  # capped
+    assert rec is not None and rec.dither == (("u4", 0.08), ("u5", 0.08)) and rec.samples == 400 - END_MARGIN == 390  # capped to fit the window
     t.on_requested(rec)
-    assert summary(c).message.endswith("experiment requested: dither on u4, u5 for 400 samples (amplitudes 0.08, "
+    assert summary(c).message.endswith("experiment requested: dither on u4, u5 for 390 samples (amplitudes 0.08, "
                                        "0.08) from /t/mpc/start_dither")
     assert t.next_request(c.window.n_completed, True) is None          # a call under way
     feed(c, 100, 102)
@@ -103,13 +107,13 @@ def test_one_call_per_recommendation_and_none_while_it_runs():
         t.on_dither(k * NS, np.array([0, 0, 0, 0.08, 0.08]))
     t.on_dither(102 * NS, np.zeros(5))  # a zero vector before the answer ends nothing
     assert t.phase == "requested"
-    t.on_response(True, "dither on u4, u5 (amplitudes 0.08, 0.08) for 400 samples, from the next sample", 102)
+    t.on_response(True, "dither on u4, u5 (amplitudes 0.08, 0.08) for 390 samples, from the next sample", 102)
     for k in range(102, 110):   # the MPC's dither of samples 102..109, with the samples themselves
         t.on_dither(k * NS, np.array([0, 0, 0, 0.08, -0.08]))
         feed(c, k, k + 1)
     s = summary(c)
-    assert s.message.endswith("experiment running: dither on u4, u5 (amplitudes 0.08, 0.08; 390 samples left)")
-    assert s.value("experiment") == "running" and s.value("experiment_samples_left") == "390"
+    assert s.message.endswith("experiment running: dither on u4, u5 (amplitudes 0.08, 0.08; 380 samples left)")
+    assert s.value("experiment") == "running" and s.value("experiment_samples_left") == "380"
     assert s.value("experiment_dither") == "u4=0.08,u5=0.08" and s.value("experiments") == "1"
     # analyses during the experiment keep recommending: no second call
     feed(c, 110, 150)
@@ -141,6 +145,7 @@ def test_the_window_that_includes_the_experiment_is_analysed_once_it_has_ended()
     assert c.analysis_due()                 # at once, not at the next analysis_period
     job = c.take_job()
     assert job.first_stamp == 0.0 and job.last_stamp == 399.0 and t.phase == "analysing"
+    assert job.keep   # no later window replaces it while it waits for the analysis process
     c.accept(run_analysis(lambda m, d, o: report(None), MODEL, None, job))
     s = summary(c)
     assert t.phase == "done" and s.value("experiment") == "done"
@@ -153,7 +158,9 @@ def test_the_window_that_includes_the_experiment_is_analysed_once_it_has_ended()
     assert "experiment recommended: dither on u4, u5 for 300 samples (amplitudes 0.08, 0.08; not before sample " \
            "500 (experiment_cooldown))" in summary(c).message
     feed(c, 450, 500)
-    analyse(c, experiment(samples=300))
+    job = c.take_job()
+    assert not job.keep   # a regular window
+    c.accept(run_analysis(lambda m, d, o: report(experiment(samples=300)), MODEL, None, job))
     assert t.next_request(500, True) is not None
 
 
@@ -176,15 +183,15 @@ def test_refused_failed_missing_service_and_auto_off_only_report_the_recommendat
     feed(c, 0, 100)
     analyse(c, experiment())
     assert t.next_request(100, service_ready=False) is None
-    assert summary(c).message.endswith("experiment recommended: dither on u4, u5 for 400 samples (amplitudes 0.08, "
-                                       "0.08; capped at the window of 400 samples; 1200 recommended; no dither "
+    assert summary(c).message.endswith("experiment recommended: dither on u4, u5 for 390 samples (amplitudes 0.08, "
+                                       "0.08; capped at 390 samples to fit the window of 400; 1200 recommended; no dither "
                                        "service at /t/mpc/start_dither)")
     assert summary(c).value("experiment") == "recommended"
     t.on_requested(t.next_request(100, service_ready=True))
     t.on_response(False, "refused: u4: amplitude 0.08 above max_dither 0.05 (input units)", 100)
     s = summary(c)
     assert s.value("experiment") == "recommended" and "above max_dither" in s.value("experiment_detail")
-    assert s.message.endswith("(amplitudes 0.08, 0.08; capped at the window of 400 samples; 1200 recommended; "
+    assert s.message.endswith("(amplitudes 0.08, 0.08; capped at 390 samples to fit the window of 400; 1200 recommended; "
                               "refused by /t/mpc/start_dither: u4: amplitude 0.08 above max_dither 0.05 "
                               "(input units); not before sample 1100 (experiment_cooldown))")
     assert t.next_request(100, True) is None
@@ -197,8 +204,8 @@ def test_refused_failed_missing_service_and_auto_off_only_report_the_recommendat
     feed(off, 0, 100)
     analyse(off, experiment())
     assert off.experiment.next_request(100, True) is None
-    assert summary(off).message.endswith("(amplitudes 0.08, 0.08; capped at the window of 400 samples; 1200 "
-                                         "recommended; auto_experiment is false)")
+    assert summary(off).message.endswith("(amplitudes 0.08, 0.08; capped at 390 samples to fit the window of 400; "
+                                         "1200 recommended; auto_experiment is false)")
 
 
 def test_no_recommendation_no_experiment_words():

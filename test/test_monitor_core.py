@@ -6,6 +6,7 @@ are checked on a real AnalysisReport (with the repair) of a short run of paper c
 analysis through the nodes is exercised in test_nodes_inprocess.py.
 """
 
+import dataclasses
 import subprocess
 import sys
 import threading
@@ -226,6 +227,41 @@ def test_worker_runs_jobs_in_a_thread_and_replaces_a_waiting_job():
             threading.Event().wait(0.01)
         outcomes = worker.take_outcomes()
         assert [o.job.data.n_samples for o in outcomes] == [20, 40] == seen
+    finally:
+        release.set()
+        worker.close()
+
+
+def test_worker_never_replaces_a_kept_job_and_runs_the_newest_other_one_after_it():
+    c = core()
+    release = threading.Event()
+    started = threading.Event()
+    seen = []
+
+    def slow(model, data, options):
+        started.set()
+        release.wait(5.0)
+        seen.append(data.n_samples)
+        return fake_report()
+
+    worker = AnalysisWorker(lambda job: run_analysis(slow, MODEL, None, job))
+    try:
+        feed(c, 0, 20)
+        worker.submit(c.take_job())                                    # runs
+        assert started.wait(5.0)
+        feed(c, 20, 30)
+        worker.submit(dataclasses.replace(c.take_job(), keep=True))    # waits: e.g. the window of an experiment
+        for end in (40, 50):
+            feed(c, end - 10, end)
+            worker.submit(c.take_job())        # waits behind it; the one of 50 samples replaces the one of 40
+        assert worker.replaced == 1 and not worker.idle
+        release.set()
+        for _ in range(500):
+            if worker.idle and len(seen) == 3:
+                break
+            threading.Event().wait(0.01)
+        outcomes = worker.take_outcomes()
+        assert [o.job.data.n_samples for o in outcomes] == [20, 30, 50] == seen
     finally:
         release.set()
         worker.close()

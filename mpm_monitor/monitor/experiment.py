@@ -75,7 +75,9 @@ class Recommendation:
     dither : tuple of (str, float)
         (input, PRBS amplitude in input units), in the model's input order.
     samples : int
-        Samples to request: the recommendation's, capped at the window.
+        Samples to request: the recommendation's, capped at the window less :data:`END_MARGIN`
+        (the window analysed when the experiment ends is taken up to that many samples after its
+        last dithered sample, and must still hold its first).
     recommended_samples : int
         The samples the analysis recommended.
     expected_detectable_gain_change : float
@@ -91,7 +93,7 @@ class Recommendation:
 
     @property
     def capped(self) -> bool:
-        """True when the request is shorter than the recommendation (capped at the window)."""
+        """True when the request is shorter than the recommendation (capped to fit the window)."""
         return self.samples < self.recommended_samples
 
     @property
@@ -111,7 +113,8 @@ class Recommendation:
         """Why the request is shorter than the recommendation ('' when it is not)."""
         if not self.capped:
             return ""
-        return f"capped at the window of {window_samples} samples; {self.recommended_samples} recommended"
+        return (f"capped at {self.samples} samples to fit the window of {window_samples}; "
+                f"{self.recommended_samples} recommended")
 
 
 def _field(obj, name: str):
@@ -130,8 +133,8 @@ def recommendation_of(report, inputs: Sequence[str], window_samples: int) -> Opt
     inputs : sequence of str
         The model's inputs (the order of the dither).
     window_samples : int
-        The monitor's window: a longer experiment is requested for this many samples only, so
-        that the window analysed after it holds it.
+        The monitor's window: a longer experiment is requested for ``window_samples - END_MARGIN``
+        samples only (at least 1), so that the window analysed after it holds it.
     """
     exp = None if report is None else getattr(report, "experiment", None)
     if exp is None:
@@ -147,7 +150,7 @@ def recommendation_of(report, inputs: Sequence[str], window_samples: int) -> Opt
         return None
     gain = _field(exp, "expected_detectable_gain_change")
     return Recommendation(dither=tuple((name, amps[name]) for name in inputs if name in amps),
-                          samples=min(samples, int(window_samples)), recommended_samples=samples,
+                          samples=min(samples, max(1, int(window_samples) - END_MARGIN)), recommended_samples=samples,
                           expected_detectable_gain_change=float("nan") if gain is None else float(gain),
                           why=str(_field(exp, "why") or ""))
 

@@ -32,6 +32,7 @@ class AnalysisJob:
     last_stamp: float       # seconds
     completed: int          # samples completed in the stream when the job was taken
     candidates: Any = None  # "all": test the data's extra channels as candidates (None: none)
+    keep: bool = False      # never replaced by a later job while it waits (the analysis of an experiment)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,7 +77,9 @@ class AnalysisWorker:
     Notes
     -----
     At most one job waits: a job submitted while another waits replaces it (the newer window
-    contains the newer samples), so a slow analysis never builds a backlog.  Outcomes are taken
+    contains the newer samples), so a slow analysis never builds a backlog.  The one exception is a
+    job with ``keep`` (the window that holds a whole experiment, which a later window no longer
+    holds): it waits until it runs, and the newest other job waits behind it.  Outcomes are taken
     with :meth:`take_outcomes` in the thread that publishes.
     """
 
@@ -86,7 +89,7 @@ class AnalysisWorker:
         self._on_done = on_done
         self._threaded = threaded
         self._lock = threading.Condition()
-        self._waiting: Optional[AnalysisJob] = None
+        self._waiting: collections.deque = collections.deque()   # oldest first; at most one without keep
         self._busy = False
         self._closed = False
         self._outcomes: collections.deque = collections.deque()
@@ -97,23 +100,23 @@ class AnalysisWorker:
             self._thread.start()
 
     def submit(self, job: AnalysisJob) -> None:
-        """Queue ``job`` (replacing a job that is still waiting)."""
+        """Queue ``job`` (replacing a job that is still waiting, unless that one has ``keep``)."""
         if not self._threaded:
             self._outcomes.append(self._run(job))
             if self._on_done:
                 self._on_done()
             return
         with self._lock:
-            if self._waiting is not None:
-                self.replaced += 1
-            self._waiting = job
+            kept = [j for j in self._waiting if j.keep]
+            self.replaced += len(self._waiting) - len(kept)
+            self._waiting = collections.deque(kept + [job])
             self._lock.notify()
 
     @property
     def idle(self) -> bool:
         """True when no job runs or waits."""
         with self._lock:
-            return self._waiting is None and not self._busy
+            return not self._waiting and not self._busy
 
     def take_outcomes(self) -> list:
         """Outcomes finished since the last call, oldest first."""
@@ -125,11 +128,11 @@ class AnalysisWorker:
     def _loop(self) -> None:
         while True:
             with self._lock:
-                while self._waiting is None and not self._closed:
+                while not self._waiting and not self._closed:
                     self._lock.wait()
                 if self._closed:
                     return
-                job, self._waiting = self._waiting, None
+                job = self._waiting.popleft()
                 self._busy = True
             try:
                 outcome = self._run(job)

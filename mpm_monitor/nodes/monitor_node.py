@@ -26,8 +26,8 @@ collected by the result timer; a call without an answer within :data:`DITHER_CAL
 counts as failed), follows it on ``dither_topic``, says in the summary that it runs and how many
 samples are left, and analyses the window that includes it as soon as it has ended.  It never asks
 while a call or an experiment is under way, and after an experiment (or a refused or failed call)
-not before ``experiment_cooldown`` samples; a request longer than the window is capped at the
-window (:mod:`mpm_monitor.monitor.experiment`).  A failed or refused call is a status message,
+not before ``experiment_cooldown`` samples; a request longer than the window is capped to fit
+it (:mod:`mpm_monitor.monitor.experiment`).  A failed or refused call is a status message,
 never an exception; without the service the summary only reports the recommendation.
 
 When the model has measured disturbances the node also subscribes to ``disturbance_topic`` (one value
