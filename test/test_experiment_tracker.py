@@ -97,7 +97,8 @@ def test_one_call_per_recommendation_and_none_while_it_runs():
     feed(c, 0, 100)
     analyse(c, experiment())
     rec = t.next_request(c.window.n_completed, service_ready=True)
-    assert rec is not None and rec.dither == (("u4", 0.08), ("u5", 0.08)) and rec.samples == 400 - END_MARGIN == 390  # capped to fit the window
+    assert rec is not None and rec.dither == (("u4", 0.08), ("u5", 0.08))
+    assert rec.samples == 400 - END_MARGIN == 390   # capped to fit the window
     t.on_requested(rec)
     assert summary(c).message.endswith("experiment requested: dither on u4, u5 for 390 samples (amplitudes 0.08, "
                                        "0.08) from /t/mpc/start_dither")
@@ -184,14 +185,15 @@ def test_refused_failed_missing_service_and_auto_off_only_report_the_recommendat
     analyse(c, experiment())
     assert t.next_request(100, service_ready=False) is None
     assert summary(c).message.endswith("experiment recommended: dither on u4, u5 for 390 samples (amplitudes 0.08, "
-                                       "0.08; capped at 390 samples to fit the window of 400; 1200 recommended; no dither "
-                                       "service at /t/mpc/start_dither)")
+                                       "0.08; capped at 390 samples to fit the window of 400; 1200 recommended; "
+                                       "no dither service at /t/mpc/start_dither)")
     assert summary(c).value("experiment") == "recommended"
     t.on_requested(t.next_request(100, service_ready=True))
     t.on_response(False, "refused: u4: amplitude 0.08 above max_dither 0.05 (input units)", 100)
     s = summary(c)
     assert s.value("experiment") == "recommended" and "above max_dither" in s.value("experiment_detail")
-    assert s.message.endswith("(amplitudes 0.08, 0.08; capped at 390 samples to fit the window of 400; 1200 recommended; "
+    assert s.message.endswith("(amplitudes 0.08, 0.08; capped at 390 samples to fit the window of 400; "
+                              "1200 recommended; "
                               "refused by /t/mpc/start_dither: u4: amplitude 0.08 above max_dither 0.05 "
                               "(input units); not before sample 1100 (experiment_cooldown))")
     assert t.next_request(100, True) is None
