@@ -95,6 +95,41 @@ def test_the_drop_equals_the_least_squares_reference():
         assert drops[(i, j)] == pytest.approx((rss[0] - rss[1]) / Z.shape[0], rel=1e-6)
 
 
+@pytest.mark.parametrize("L, start, testable", [(8, 8, [0, 1, 2]), (6, 11, [0, 2])])
+def test_the_moments_equal_the_direct_products(L, start, testable):
+    """Z' x_f, Z' X (summed along lag diagonals), O' x_f, O' X, X' X and X' x_f equal the products of the
+    lag matrices themselves, for every element."""
+    model, u, d, noise = _window(seed=3)
+    info = det.WindowInformation(model, u, d, testable, L, start, noise, {})
+    u_c = u - u.mean(axis=0)
+    u_c[:, [j for j in range(3) if j not in testable]] = 0.0
+    Z = lag_matrix(u_c, range(1, L + 1), start)
+    O = lag_matrix(d[:, 0] - d[:, 0].mean(), range(1, 3), start)
+    n = Z.shape[0]
+    assert sorted(info.targets) == [(0, 0), (0, 1), (0, 2)]
+    for (i, j), t in info.targets.items():
+        element, _ = det.target_element(model, i, j)
+        x = element.respond(u_c[:, j])
+        x -= x.mean()
+        xf = lfilter(np.r_[1.0, noise[0].a], [1.0], x)[start:]
+        X = lag_matrix(x, range(1, 3), start)
+        for got, want in ((t.c, Z.T @ xf), (t.zx, Z.T @ X), (t.c_own, O.T @ xf), (t.ox, O.T @ X),
+                          (t.xx, X.T @ X), (t.xxf, X.T @ xf)):
+            np.testing.assert_allclose(got, want / n, rtol=1e-10, atol=1e-12 * np.abs(want / n).max())
+
+
+def test_without_detectability_the_tests_are_the_same_and_nothing_is_estimated():
+    model, _, _, _ = _window()
+    plant = model.with_element(0, 0, gain=2.0)
+    data = run_closed_loop(plant, model, 1500, seed=4).as_logged_data()
+    full, bare = detect(model, data), detect(model, data, detectability=False)
+    assert [(e.output, e.input, e.p_value, e.mismatch) for e in full.elements] == \
+        [(e.output, e.input, e.p_value, e.mismatch) for e in bare.elements]
+    assert [r.p_value for r in full.rows] == [r.p_value for r in bare.rows]
+    assert any(e.detectable_gain_change is not None for e in full.elements)
+    assert all(e.detectable_gain_change is None for e in bare.elements) and bare.experiment is None
+
+
 def test_the_detectable_change_is_the_formula(monkeypatch):
     """Without the own-lag fixed point: sqrt(c lambda_90 sigma^2 / q), lambda_90 at Holm's first step alpha / (2 m)."""
     monkeypatch.setattr(det, "FIXED_POINT_STEPS", 0)

@@ -359,7 +359,7 @@ def _column_label(e) -> str:
 
 def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
            signals: Optional[LoopSignals] = None, regressions=None,
-           previous: Optional["AnalysisReport"] = None, candidates=None) -> AnalysisReport:
+           previous: Optional["AnalysisReport"] = None, candidates=None, detectability: bool = True) -> AnalysisReport:
     """Run the S_Delta row test and the Delta element test on logged closed-loop data (no repair).
 
     Parameters
@@ -393,6 +393,9 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         prediction error jointly with the model's columns (:mod:`mpm_monitor.core.candidates`):
         ``"all"``, names, or channels already selected.  Their tests join the element tests' family.
         Default: none (the analysis is then exactly that without candidates).
+    detectability : bool
+        False: no ``detectable_gain_change`` (None) and no ``experiment`` (e.g. for the detection of a
+        repaired model, of which only the rows are reported); the tests are the same.
 
     Returns
     -------
@@ -472,7 +475,7 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     warnings += element_test.warnings
     elements = element_test.elements
     info = None
-    if options.method == "arx":
+    if options.method == "arx" and detectability:
         span = slice(None)
         if plan is not None:      # the moments need one contiguous span: the longest (a conservative value)
             a, b = max(plan.local_segments, key=lambda s: s[1] - s[0])
@@ -482,7 +485,7 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         warnings += why
         for e in elements:
             e.detectable_gain_change = detectable.get((model.outputs.index(e.output), model.columns.index(e.input)))
-    experiment = design_experiment(model, info, elements, options, layout)
+    experiment = design_experiment(model, info, elements, options, layout) if detectability else None
     candidate_report = None
     if candidates is not None:
         from .candidates import CandidateChannels, run_candidate_tests, select_candidates

@@ -70,6 +70,8 @@ FIXED_POINT_STEPS = 2
 MAX_OWN_LAG_DELTA = 1.0
 #: Length of the impulse responses kept for a dither's contribution (samples).
 IMPULSE_SAMPLES = 4000
+#: Elements whose moments are stacked at once (bounds the memory of :meth:`WindowInformation.drops`).
+CHUNK = 256
 
 
 def typical_element(model: PlantModel, i: int):
@@ -311,21 +313,46 @@ class WindowInformation:
             O = lag_matrix(d_c, range(1, na + 1), start)
             self.own[i] = (Z.T @ O / n, O.T @ O / n)
             a_poly = np.concatenate([[1.0], nz.a])
-            for j in range(nu):
-                element, ref = target_element(model, i, j)
-                if element is None:
-                    continue
+            found = [(j,) + target_element(model, i, j) for j in range(nu)]
+            found = [f for f in found if f[1] is not None]
+            if not found:
+                continue
+            m, L, N = len(found), n_lag, u_c.shape[0]
+            # [x, X] (lags 0 .. na) of every element of the row side by side; the ends of each x.
+            W = np.empty((Z.shape[0], m * (na + 1)))
+            x_head, x_tail = np.empty((m, na)), np.empty((m, na))
+            for b, (j, element, _) in enumerate(found):
                 x = element.respond(u_c[:, j])
                 x -= x.mean()
-                xf = lfilter(a_poly, [1.0], x)[start:]
-                X = lag_matrix(x, range(1, na + 1), start)
+                for lag in range(na + 1):
+                    W[:, b * (na + 1) + lag] = x[start - lag:N - lag]
+                x_head[b], x_tail[b] = x[start - 1::-1][:na], x[::-1][:na]     # x[start - k], x[N - k], k = 1..na
+            # M[c, l, k, e] = sum over the rows of u_c(t - l) x_e(t - k) (l = 0 .. L, k = 0 .. na).  Z' X is
+            # a sum along diagonals of lag pairs: M(l, k) = M(l - 1, k - 1) + u(start - l) x(start - k)
+            # - u(N - l) x(N - k), so only the lags k = 0 (with every input lag) and l = 0 (with every
+            # element lag) take a product over the rows.
+            M = np.empty((nu, L + 1, na + 1, m))
+            M[:, 0] = np.moveaxis((u_c[start:].T @ W).reshape(nu, m, na + 1), 1, 2)
+            M[:, 1:, 0] = (Z.T @ np.ascontiguousarray(W[:, ::na + 1])).reshape(nu, L, m)
+            u_head = u_c[start - np.arange(1, L + 1)].T                       # (nu, L): u(start - l)
+            u_tail = u_c[N - np.arange(1, L + 1)].T                           # (nu, L): u(N - l)
+            for k in range(1, na + 1):
+                M[:, 1:, k] = (M[:, :-1, k - 1] + u_head[:, :, None] * x_head[None, None, :, k - 1]
+                               - u_tail[:, :, None] * x_tail[None, None, :, k - 1])
+            M = M[:, 1:] / n                                                  # Z' [x, X] / n: (nu, L, na + 1, m)
+            OW = O.T @ W / n
+            for b, (j, element, ref) in enumerate(found):
+                cols = slice(b * (na + 1), (b + 1) * (na + 1))
+                XW = W[:, cols]
+                zw, ow, ww = M[..., b].reshape(nu * L, na + 1), OW[:, cols], XW[:, 1:].T @ XW / n
+                # x_f = A_i(q) x = x + X a on the rows
                 k = windows.get((i, j))
                 k = n_lag if k is None else min(int(k), n_lag)
                 g = element.impulse_response(n_imp)
                 self.targets[(i, j)] = ElementTarget(
                     output=i, column=j, tested=np.arange(j * n_lag, j * n_lag + k), reference_gain=ref,
-                    c=Z.T @ xf / n, c_own=O.T @ xf / n, zx=Z.T @ X / n, ox=O.T @ X / n, xx=X.T @ X / n,
-                    xxf=X.T @ xf / n, impulse=g, filtered=lfilter(a_poly, [1.0], g))
+                    c=zw @ a_poly, c_own=ow @ a_poly, zx=zw[:, 1:], ox=ow[:, 1:], xx=ww[:, 1:], xxf=ww @ a_poly,
+                    impulse=g, filtered=lfilter(a_poly, [1.0], g))
 
     def block(self, j: int) -> slice:
         """Columns of input ``j``'s lags."""
@@ -335,35 +362,25 @@ class WindowInformation:
         """Raw level of Holm's first step: ``alpha / (N_FAMILIES m)``."""
         return alpha / (N_FAMILIES * max(int(family_size), 1))
 
-    def drops(self, keys, H: np.ndarray, deltas=None, dither: Optional[dict] = None) -> dict:
-        """Per-sample drop ``q / n`` of every element's test (see the class docstring).
+    def stacked(self, keys, H: np.ndarray, dither: Optional[dict] = None) -> dict:
+        """The moments of ``keys`` stacked, with their products with ``H`` (shared by every gain error).
 
         Parameters
         ----------
         keys : sequence of (int, int)
             Elements (in :attr:`targets`).
-        H : ndarray, shape (p, p)
-            Inverse of the input lags' moments ``G`` (:func:`moment_inverse`).
-        deltas : dict or sequence of float, optional
-            ``(i, j)`` -> signed gain error in the own lags, or one per key (default 0 for every
-            element).
-        dither : dict, optional
-            Input index -> amplitude of a white dither whose contribution is added to the moments
-            (the caller adds it to ``G`` before inverting it).
+        H, dither
+            As in :meth:`drops`.
 
         Returns
         -------
-        dict or ndarray
-            ``(i, j)`` -> float; an array aligned with ``keys`` when ``deltas`` is a sequence (a key
-            may then appear more than once, with different gain errors).
+        dict
+            ``c`` (m, p), ``zx`` (m, p, na), ``xx`` (m, na, na), ``xxf`` (m, na), ``g_zo`` (m, p, na),
+            ``g_oo``, ``ox`` (m, na, na), ``c_own`` (m, na), and ``hzx = H zx``, ``hzo = H g_zo``,
+            ``hc = H c``; ``ts``: the targets.
         """
-        keys = list(keys)
-        as_array = deltas is not None and not isinstance(deltas, dict)
-        if not keys:
-            return np.zeros(0) if as_array else {}
         L = self.n_lag
         ts = [self.targets[k] for k in keys]
-        delta = np.asarray(deltas, dtype=float) if as_array else np.array([(deltas or {}).get(k, 0.0) for k in keys])
         c = np.stack([t.c for t in ts])                                     # (m, p)
         zx = np.stack([t.zx for t in ts])                                   # (m, p, na)
         xx = np.stack([t.xx for t in ts])                                   # (m, na, na)
@@ -378,24 +395,70 @@ class WindowInformation:
                     zx[g, sl] += a2 * dzx
                     xx[g] += a2 * dxx
                     xxf[g] += a2 * dxxf
-        g_zo = np.stack([self.own[t.output][0] for t in ts])
-        g_oo = np.stack([self.own[t.output][1] for t in ts])
-        ox = np.stack([t.ox for t in ts])
-        c_own = np.stack([t.c_own for t in ts])
+        rows = sorted({t.output for t in ts})
+        h_own = {i: H @ self.own[i][0] for i in rows}                       # H Z'O_i / n, once per row
+        return dict(ts=ts, c=c, zx=zx, xx=xx, xxf=xxf, hzx=np.matmul(H, zx), hc=c @ H,
+                    g_zo=np.stack([self.own[t.output][0] for t in ts]), hzo=np.stack([h_own[t.output] for t in ts]),
+                    g_oo=np.stack([self.own[t.output][1] for t in ts]), ox=np.stack([t.ox for t in ts]),
+                    c_own=np.stack([t.c_own for t in ts]))
+
+    def drops(self, keys, H: np.ndarray, deltas=None, dither: Optional[dict] = None,
+              stacked: Optional[dict] = None) -> dict:
+        """Per-sample drop ``q / n`` of every element's test (see the class docstring).
+
+        Parameters
+        ----------
+        keys : sequence of (int, int)
+            Elements (in :attr:`targets`).
+        H : ndarray, shape (p, p)
+            Inverse of the input lags' moments ``G`` (:func:`moment_inverse`).
+        deltas : dict or sequence of float, optional
+            ``(i, j)`` -> signed gain error in the own lags, or one per key (default 0 for every
+            element).
+        dither : dict, optional
+            Input index -> amplitude of a white dither whose contribution is added to the moments
+            (the caller adds it to ``G`` before inverting it).
+        stacked : dict, optional
+            :meth:`stacked` of these keys, ``H`` and ``dither`` (computed here when not given, in
+            chunks of :data:`CHUNK` elements so that memory stays bounded at any size).
+
+        Returns
+        -------
+        dict or ndarray
+            ``(i, j)`` -> float; an array aligned with ``keys`` when ``deltas`` is a sequence (a key
+            may then appear more than once, with different gain errors).
+        """
+        keys = list(keys)
+        as_array = deltas is not None and not isinstance(deltas, dict)
+        if not keys:
+            return np.zeros(0) if as_array else {}
+        delta = np.asarray(deltas, dtype=float) if as_array else np.array([(deltas or {}).get(k, 0.0) for k in keys])
+        if stacked is None:
+            out = np.concatenate([self._drops(self.stacked(keys[a:a + CHUNK], H, dither), H, delta[a:a + CHUNK])
+                                  for a in range(0, len(keys), CHUNK)])
+        else:
+            out = self._drops(stacked, H, delta)
+        return out if as_array else dict(zip(keys, out.tolist()))
+
+    @staticmethod
+    def _drops(st: dict, H: np.ndarray, delta: np.ndarray) -> np.ndarray:
+        """:meth:`drops` of the stacked moments ``st`` with the gain errors ``delta`` (one per element)."""
+        ts = st["ts"]
         dl = delta[:, None, None]
-        U = g_zo + dl * zx                                                  # Z' O_alt / n
-        D = g_oo + dl * (ox + np.swapaxes(ox, 1, 2)) + dl * dl * xx         # O_alt' O_alt / n
+        U = st["g_zo"] + dl * st["zx"]                                      # Z' O_alt / n
+        ox = st["ox"]
+        D = st["g_oo"] + dl * (ox + np.swapaxes(ox, 1, 2)) + dl * dl * st["xx"]   # O_alt' O_alt / n
         na = D.shape[1]
         if na:
-            c_tilde = c - np.einsum("mpk,mk->mp", U, np.linalg.solve(D, (c_own + delta[:, None] * xxf)[..., None])[..., 0])
-            hz = np.matmul(H, U)                                            # (m, p, na)
+            hz = st["hzo"] + dl * st["hzx"]                                 # H U: (m, p, na)
+            s = np.linalg.solve(D, (st["c_own"] + delta[:, None] * st["xxf"])[..., None])[..., 0]
+            c_tilde = st["c"] - np.einsum("mpk,mk->mp", U, s)
+            hc = st["hc"] - np.einsum("mpk,mk->mp", hz, s)                  # (H c~)' (H symmetric)
             M = D - np.matmul(np.swapaxes(U, 1, 2), hz)
-        else:
-            c_tilde = c
-        hc = c_tilde @ H                                                    # (m, p): (H c~)' (H symmetric)
-        if na:
             w = np.linalg.solve(M, np.einsum("mpk,mp->mk", hz, c_tilde)[..., None])[..., 0]      # M^-1 hz' c~
-        out = np.zeros(len(keys))
+        else:
+            hc = st["hc"]
+        out = np.zeros(len(ts))
         sizes = np.array([t.tested.size for t in ts])
         first = np.array([t.tested[0] for t in ts])
         for k in np.unique(sizes):
@@ -408,7 +471,7 @@ class WindowInformation:
                 theta = theta + np.einsum("gkn,gn->gk", hs, w[sel])
                 Hss = Hss + np.matmul(hs, np.linalg.solve(M[sel], np.swapaxes(hs, 1, 2)))
             out[sel] = quadratic_forms(Hss, theta)
-        return out if as_array else dict(zip(keys, out.tolist()))
+        return out
 
     def detectable(self, keys, alpha: float, family_size: int, power: float = POWER) -> dict:
         """Smallest relative gain change of each element detected with probability ``power``.
@@ -444,12 +507,22 @@ class WindowInformation:
                 out[key] = float(np.sqrt(lam[(k, dof)] * nz.sigma2 / (q * self.n_rows))) if q > 0 else float("inf")
             return out
 
-        value = solve(self.drops(keys, H))
-        for _ in range(FIXED_POINT_STEPS):
-            live = [k for k in keys if np.isfinite(value[k])]
-            step = {k: min(value[k], MAX_OWN_LAG_DELTA) for k in live}
-            worse = [solve(self.drops(live, H, {k: sign * step[k] for k in live})) for sign in (1.0, -1.0)]
-            value.update({k: max(w[k] for w in worse) for k in live})
+        value = {}
+        for a in range(0, len(keys), CHUNK):      # every element on its own: chunks bound the memory
+            part = keys[a:a + CHUNK]
+            st = self.stacked(part, H)
+            value.update(solve(self.drops(part, H, stacked=st)))
+            for _ in range(FIXED_POINT_STEPS):
+                live = [g for g, k in enumerate(part) if np.isfinite(value[k])]
+                if not live:
+                    break
+                live_keys = [part[g] for g in live]
+                st_live = st if len(live) == len(part) else \
+                    {name: [v[g] for g in live] if name == "ts" else v[live] for name, v in st.items()}
+                step = np.array([min(value[k], MAX_OWN_LAG_DELTA) for k in live_keys])
+                worse = [solve(dict(zip(live_keys, self.drops(live_keys, H, sign * step, stacked=st_live).tolist())))
+                         for sign in (1.0, -1.0)]
+                value.update({k: max(w[k] for w in worse) for k in live_keys})
         return value
 
 
