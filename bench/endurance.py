@@ -5,6 +5,7 @@ Run from the repository root::
     .venv/bin/python -m bench.endurance --size 3 --rate 1000 --samples 1000000 --json bench/results/endurance_3x3.json
     .venv/bin/python -m bench.endurance --size 20 --rate 100 --samples 1000000 --json bench/results/endurance_20x20.json
     .venv/bin/python -m bench.endurance --size 3 --ceiling 1000,1500,2000,3000 --samples 30000
+    .venv/bin/python -m bench.endurance --size 3 --rate 1000 --samples 200000 --loss 0.002 --json bench/results/endurance_lossy.json
 
 The monitor runs as it runs in a plant: its own process (``python -m mpm_monitor.nodes.monitor_node``,
 the analysis in its child process, with the repair), on a ROS domain of its own
@@ -23,6 +24,10 @@ Figures:
 * ``analyses`` (the summary's counter) and, for every new analysis, the publish-to-status latency:
   wall time from publishing the last sample of the analysed window to receiving the status that
   reports it (p50 / p90 / p99 / max), and the analysis' own duration;
+* with ``--loss P`` the publisher leaves out each sample's messages with probability ``P`` (a
+  lossy link); ``injected_losses`` counts them, and ``full_windows`` says how many analyses after
+  the window first filled held a full window of samples (the monitor bridges gaps of up to
+  ``max_gap`` samples instead of restarting its window);
 * resident memory (``VmRSS`` from ``/proc``) of the monitor process and of its analysis process (its
   largest child) every ``--rss-every`` seconds, and the verdict on a slow leak: the monitor's memory
   at the end against its memory after the first 10 % of the run (the issue's criterion: within
@@ -80,6 +85,9 @@ class EnduranceConfig:
     rss_every : float
         Seconds between two memory readings.
     seed : int
+    loss : float
+        Probability that a sample's three messages are not published (a lossy link: 0.002 is one
+        sample in 500), drawn independently per sample from ``seed``.
     """
 
     size: int = 3
@@ -92,6 +100,7 @@ class EnduranceConfig:
     segment: int = 20_000
     rss_every: float = 5.0
     seed: int = 0
+    loss: float = 0.0
 
 
 # ------------------------------------------------------------------------------------- set-up
@@ -170,7 +179,8 @@ def run(cfg: EnduranceConfig, log=print) -> dict:
     events = []                 # one per new analysis: (t_recv, window_end_s, analyses, analysis_s, completed)
     latest = {}
     memory = []                 # (t, samples published, monitor_mb, analysis_mb)
-    state = {"published": 0, "behind": 0, "done": False}
+    state = {"published": 0, "behind": 0, "done": False, "lost": 0}
+    lose = np.random.default_rng(cfg.seed + 99).random(total) < cfg.loss
 
     with held_domain() as domain:
         env = dict(os.environ, **domain_env(domain), PYTHONUNBUFFERED="1")
@@ -199,7 +209,7 @@ def run(cfg: EnduranceConfig, log=print) -> dict:
                 n_an = int(values.get("analyses", "0") or 0)
                 if n_an > int(latest.get("analyses", "0") or 0) and values.get("window_end", "nan") != "nan":
                     events.append((now, float(values["window_end"]), n_an, float(values.get("analysis_seconds", "nan")),
-                                   int(values.get("completed_samples", "0"))))
+                                   int(values.get("completed_samples", "0")), int(values.get("samples", "0") or 0)))
                 latest.clear()
                 latest.update(values)
 
@@ -217,13 +227,16 @@ def run(cfg: EnduranceConfig, log=print) -> dict:
                     time.sleep(delay)
                 elif delay < -0.1:
                     state["behind"] += 1
+                if lose[k]:
+                    state["lost"] += 1
+                    continue
                 j = k % r.shape[0]
                 stamp = k * period
                 pubs["output"].publish(codec_y.encode(y[j], stamp))
                 pubs["input"].publish(codec_u.encode(u[j], stamp))
                 pubs["setpoint"].publish(codec_y.encode(r[j], stamp))
                 published_at[k] = time.monotonic()
-                state["published"] = k + 1
+                state["published"] = k + 1 - state["lost"]
                 if proc.poll() is not None:
                     break
             state["end"] = time.monotonic()
@@ -305,7 +318,8 @@ def _percentiles(x) -> dict:
     x = x[np.isfinite(x)]
     if not x.size:
         return {"n": 0}
-    return {"n": int(x.size), "p50": float(np.percentile(x, 50)), "p90": float(np.percentile(x, 90)),
+    return {"n": int(x.size), "min": float(x.min()), "p50": float(np.percentile(x, 50)),
+            "p90": float(np.percentile(x, 90)),
             "p99": float(np.percentile(x, 99)), "max": float(x.max()), "mean": float(x.mean())}
 
 
@@ -337,7 +351,7 @@ def summarize(cfg: EnduranceConfig, sent: int, state: dict, latest: dict, events
     """The figures of a run (see the module docstring)."""
     completed = int(latest.get("completed_samples", "0") or 0)
     lat = []
-    for t_recv, window_end, _, _, _ in events:
+    for t_recv, window_end, *_ in events:
         k_end = int(round(window_end / ts))
         if 0 <= k_end < published_at.size and np.isfinite(published_at[k_end]):
             lat.append(t_recv - published_at[k_end])
@@ -352,6 +366,10 @@ def summarize(cfg: EnduranceConfig, sent: int, state: dict, latest: dict, events
         "publish_seconds": seconds, "achieved_rate_hz": sent / seconds if seconds > 0 else float("nan"),
         "publisher_behind_100ms": int(state.get("behind", 0)),
         "analyses": int(latest.get("analyses", "0") or 0), "analyses_seen": len(events),
+        "injected_losses": int(state.get("lost", 0)),
+        "analysed_window_samples": _percentiles([e[5] for e in events]),
+        "full_windows": {"analyses_after_first_fill": sum(1 for e in events if e[4] >= cfg.window_samples),
+                         "full": sum(1 for e in events if e[4] >= cfg.window_samples and e[5] >= cfg.window_samples)},
         "latency_s": _percentiles(lat), "analysis_seconds": _percentiles([e[3] for e in events]),
         "final_summary": {"level": latest.get("_level"), "message": latest.get("_message"),
                           "located_elements": latest.get("located_elements")},
@@ -383,6 +401,9 @@ def format_result(res: dict) -> str:
         + (f"p50 {lat['p50']:.2f} s, p90 {lat['p90']:.2f} s, p99 {lat['p99']:.2f} s, max {lat['max']:.2f} s"
            if lat.get("n") else "none")
         + (f"; analysis {ana['mean']:.2f} s mean, {ana['max']:.2f} s max" if ana.get("n") else ""),
+        f"  injected losses {res['injected_losses']}; analysed windows: {res['full_windows']['full']} of "
+        f"{res['full_windows']['analyses_after_first_fill']} after the first fill hold {c['window_samples']} samples"
+        + (f" (min {res['analysed_window_samples']['min']:.0f})" if res['analysed_window_samples'].get('n') else ""),
         f"  memory of the monitor: {mem(mon)}",
         f"  memory of its analysis process: {mem(an)}",
         f"  final summary: {res['final_summary']['message']}",
@@ -404,13 +425,15 @@ def main(argv=None) -> int:
     p.add_argument("--ceiling", default=None, help="comma-separated rates: run each (shortest first) until "
                    "samples are lost, and report the highest without a loss")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--loss", type=float, default=0.0, help="probability that a sample is not published (a lossy "
+                   "link; 0.002: one in 500)")
     p.add_argument("--json", default=None, help="write the figures here")
     args = p.parse_args(argv)
     window, min_samples, period = MONITOR_SETTINGS.get(args.size, (3000, 1500, 500))
     cfg = EnduranceConfig(size=args.size, rate_hz=args.rate, samples=args.samples,
                           window_samples=args.window or window, min_samples=args.min_samples or min_samples,
                           analysis_period=args.period or period, repair=not args.no_repair, segment=args.segment,
-                          rss_every=args.rss_every, seed=args.seed)
+                          rss_every=args.rss_every, seed=args.seed, loss=args.loss)
     results = []
     if args.ceiling:
         best = None
