@@ -53,6 +53,10 @@ Scoring (pooled over runs):
   every mismatch, an ambiguous one as a miss.  The column's measured separability
   (:func:`bench.scenarios.input_separability`, on the inputs and disturbances together) is recorded
   as a ground truth of collinearity;
+* indicative, not an acceptance figure: each true mismatch's effect on the window (the RMS of the
+  plant's minus the model's element response to the logged column, over the RMS of the model's; a
+  gain error's relative size exactly) against the report's ``detectable_gain_change`` of that
+  element (calibrated for gain errors; another kind's power differs), and the recall on each side;
 * repair: for every located mismatched element, the repaired model's unit-step response of that
   element against the plant's over ``REPAIR_HORIZON`` samples; "within 10 %" when the largest
   difference is at most 10 % of the largest value of the plant's response (an integrating element's
@@ -366,6 +370,21 @@ def run_one(seed: int, index: int, samples: int, options: StructuresOptions = St
     rec["ambiguous"] = sorted([oi[e.output], ci[e.input]] for e in report.elements if e.ambiguous and not e.mismatch)
     rec["rows"] = sorted(oi[r.output] for r in report.rows if r.mismatch)
     rec["kinds"] = {f"{oi[e.output]},{ci[e.input]}": e.kind for e in report.elements if e.mismatch}
+    # The size of each true mismatch's effect on the window, against what the window could detect: the
+    # RMS of (plant - model) element response to the logged column over the RMS of the model element's
+    # (for a gain error exactly its relative size), and the report's detectable_gain_change.
+    columns = np.column_stack([data.u, data.dv]) if data.dv.size else np.asarray(data.u)
+    detectable = {(oi[e.output], ci[e.input]): e.detectable_gain_change for e in report.elements}
+    rec["effects"] = {}
+    for m in sc.mismatches:
+        i, j = m["output"], m["column"]
+        col = columns[:, j] - columns[:, j].mean()
+        x_plant = sc.plant.discrete_element(i, j).respond(col)
+        x_model = sc.model.discrete_element(i, j).respond(col) if sc.model.present[i, j] else np.zeros_like(col)
+        x_model_c, dx = x_model - x_model.mean(), (x_plant - x_model) - (x_plant - x_model).mean()
+        ref = float(np.sqrt(np.mean(x_model_c ** 2)))
+        rec["effects"][f"{i},{j}"] = {"effect": float(np.sqrt(np.mean(dx ** 2))) / ref if ref > 0 else None,
+                                      "detectable": detectable.get((i, j))}
     repaired = report.repaired_model if report.repaired_model is not None else sc.model
     rec["repair"] = [{"element": [i, j], "step_error": step_response_error(sc.plant, repaired, i, j),
                       "before": step_response_error(sc.plant, sc.model, i, j),
@@ -386,6 +405,7 @@ def _ratio(num, den) -> Optional[float]:
 def score(records: Sequence[dict]) -> dict:
     """Pooled figures of the run records (module docstring)."""
     el = dict(tp=0, fp=0, fn=0, amb_true=0, amb_clean=0, amb_true_collinear=0)
+    seen = dict(hit=0, miss=0, unknown=0, below_hit=0, below_miss=0)   # effect vs detectable (not ambiguous)
     clean = dict(runs=0, located=0, rows=0)
     clean_int = dict(runs=0, located=0, rows=0)
     repair = dict(scored=0, within=0, fp_scored=0, fp_within=0)
@@ -412,6 +432,14 @@ def score(records: Sequence[dict]) -> dict:
         for key, m in truth.items():
             outcome = "hit" if key in located else ("ambiguous" if key in ambiguous else "miss")
             el[{"hit": "tp", "miss": "fn", "ambiguous": "amb_true"}[outcome]] += 1
+            eff = rec.get("effects", {}).get(f"{key[0]},{key[1]}", {})
+            if outcome != "ambiguous":
+                if eff.get("effect") is None or eff.get("detectable") is None or not np.isfinite(eff["detectable"]):
+                    seen["unknown"] += 1
+                elif eff["effect"] >= eff["detectable"]:
+                    seen[outcome] += 1
+                else:
+                    seen["below_" + outcome] += 1
             if outcome == "ambiguous" and key[1] in collinear:
                 el["amb_true_collinear"] += 1
             for table, val in ((by_kind, m["kind"]), (by_role, m["role"])):
@@ -419,7 +447,8 @@ def score(records: Sequence[dict]) -> dict:
             if outcome != "hit":
                 misses.append({"index": rec["index"], "element": list(key), "kind": m["kind"], "size": m["size"],
                                "outcome": outcome, "plant": m["plant"], "model": m["model"],
-                               "row_flagged": key[0] in rec["rows"], "column_collinear": key[1] in collinear})
+                               "row_flagged": key[0] in rec["rows"], "column_collinear": key[1] in collinear,
+                               "effect": eff.get("effect"), "detectable": eff.get("detectable")})
         for r in rec["repair"]:
             key = tuple(r["element"])
             ok = r["step_error"] <= REPAIR_TOLERANCE
@@ -449,6 +478,8 @@ def score(records: Sequence[dict]) -> dict:
             "element": {**el, "precision": _ratio(el["tp"], el["tp"] + el["fp"]),
                         "recall": _ratio(el["tp"], el["tp"] + el["fn"]),
                         "recall_all": _ratio(el["tp"], el["tp"] + el["fn"] + el["amb_true"])},
+            "effect_vs_detectable": {**seen, "recall_at_or_above": _ratio(seen["hit"], seen["hit"] + seen["miss"]),
+                                     "recall_below": _ratio(seen["below_hit"], seen["below_hit"] + seen["below_miss"])},
             "false_alarms": clean, "false_alarms_integrating": clean_int, "repair": repair,
             "recall_by_kind": by_kind, "recall_by_role": by_role,
             "median_analyze_time_s": statistics.median(times) if times else None,
@@ -543,6 +574,13 @@ def format_table(result: dict) -> str:
             f"on {rp['within']}/{rp['scored']} located mismatched elements ({_pct(rp['fraction_within'])}); "
             f"false positives kept within: {rp['fp_within']}/{rp['fp_scored']}",
             "recall by kind (hits/(hits+misses); ambiguous apart):"]
+        ev = s.get("effect_vs_detectable")
+        if ev:
+            lines.insert(-1, f"not ambiguous, by the mismatch's effect on the window (RMS of the plant-minus-model "
+                             f"response over the model's) against the report's detectable gain change: at or above "
+                             f"it {_f3(ev['recall_at_or_above'])} ({ev['hit']}/{ev['hit'] + ev['miss']}), below it "
+                             f"{_f3(ev['recall_below'])} ({ev['below_hit']}/{ev['below_hit'] + ev['below_miss']}), "
+                             f"no value {ev['unknown']}")
         for table in (s["recall_by_kind"], s["recall_by_role"]):
             for key in sorted(table, key=lambda k: (KINDS.index(k) if k in KINDS else len(KINDS), k)):
                 c = table[key]

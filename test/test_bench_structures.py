@@ -105,6 +105,17 @@ def test_score_counts_false_alarms_precision_recall_and_repair():
     assert [f["element"] for f in s["repair_failures"]] == [[0, 1]]
 
 
+def test_score_splits_the_recall_by_the_effect_against_the_detectable_change():
+    records = [_record(0, [(0, 0, "gain"), (1, 1, "lead"), (0, 1, "delay")], [(0, 0)], ambiguous=[(0, 1)]),
+               _record(1, [(1, 0, "time_constant"), (0, 0, "gain")], [(1, 0)])]
+    records[0]["effects"] = {"0,0": {"effect": 0.3, "detectable": 0.1}, "1,1": {"effect": 0.05, "detectable": 0.2},
+                             "0,1": {"effect": 0.9, "detectable": 0.1}}           # (0, 1) ambiguous: apart
+    records[1]["effects"] = {"1,0": {"effect": 0.1, "detectable": 0.4}, "0,0": {"effect": 0.5, "detectable": None}}
+    ev = score(records)["effect_vs_detectable"]
+    assert (ev["hit"], ev["miss"], ev["below_hit"], ev["below_miss"], ev["unknown"]) == (1, 0, 1, 1, 1)
+    assert ev["recall_at_or_above"] == 1.0 and ev["recall_below"] == 0.5
+
+
 def test_a_few_closed_loops_run_and_score():
     opts = StructuresOptions(max_size=2, max_disturbances=1)
     res = run_structures_mc(2, seed=0, samples=800, clean_integrating=1, options=opts)
