@@ -198,73 +198,69 @@ def test_an_older_result_does_not_replace_a_newer_one():
     assert c.statuses(now=0.0)[0].level == WARN
 
 
+class _HeldWorker:
+    """An :class:`AnalysisWorker` whose analyses wait for :attr:`release` and record their window lengths."""
+
+    def __init__(self):
+        self.release, self.started, self.seen = threading.Event(), threading.Event(), []
+
+        def slow(model, data, options):
+            self.started.set()
+            self.release.wait(5.0)
+            self.seen.append(data.n_samples)
+            return fake_report()
+
+        self.worker = AnalysisWorker(lambda job: run_analysis(slow, MODEL, None, job))
+
+    def finish(self, n: int) -> list:
+        """Release the analyses, wait until ``n`` ran and the worker is idle; the outcomes' window lengths."""
+        self.release.set()
+        for _ in range(500):
+            if self.worker.idle and len(self.seen) == n:
+                break
+            threading.Event().wait(0.01)
+        return [o.job.data.n_samples for o in self.worker.take_outcomes()]
+
+    def close(self):
+        self.release.set()
+        self.worker.close()
+
+
 def test_worker_runs_jobs_in_a_thread_and_replaces_a_waiting_job():
     c = core()
-    release = threading.Event()
-    started = threading.Event()
-    seen = []
-
-    def slow(model, data, options):
-        started.set()
-        release.wait(5.0)
-        seen.append(data.n_samples)
-        return fake_report()
-
-    worker = AnalysisWorker(lambda job: run_analysis(slow, MODEL, None, job))
+    held = _HeldWorker()
+    worker = held.worker
     try:
         feed(c, 0, 20)
         worker.submit(c.take_job())      # runs
-        assert started.wait(5.0)
+        assert held.started.wait(5.0)
         feed(c, 20, 30)
         worker.submit(c.take_job())      # waits
         feed(c, 30, 40)
         worker.submit(c.take_job())      # replaces the waiting one
         assert worker.replaced == 1 and not worker.idle
-        release.set()
-        for _ in range(500):
-            if worker.idle and len(seen) == 2:
-                break
-            threading.Event().wait(0.01)
-        outcomes = worker.take_outcomes()
-        assert [o.job.data.n_samples for o in outcomes] == [20, 40] == seen
+        assert held.finish(2) == [20, 40] == held.seen
     finally:
-        release.set()
-        worker.close()
+        held.close()
 
 
 def test_worker_never_replaces_a_kept_job_and_runs_the_newest_other_one_after_it():
     c = core()
-    release = threading.Event()
-    started = threading.Event()
-    seen = []
-
-    def slow(model, data, options):
-        started.set()
-        release.wait(5.0)
-        seen.append(data.n_samples)
-        return fake_report()
-
-    worker = AnalysisWorker(lambda job: run_analysis(slow, MODEL, None, job))
+    held = _HeldWorker()
+    worker = held.worker
     try:
         feed(c, 0, 20)
         worker.submit(c.take_job())                                    # runs
-        assert started.wait(5.0)
+        assert held.started.wait(5.0)
         feed(c, 20, 30)
         worker.submit(dataclasses.replace(c.take_job(), keep=True))    # waits: e.g. the window of an experiment
         for end in (40, 50):
             feed(c, end - 10, end)
             worker.submit(c.take_job())        # waits behind it; the one of 50 samples replaces the one of 40
         assert worker.replaced == 1 and not worker.idle
-        release.set()
-        for _ in range(500):
-            if worker.idle and len(seen) == 3:
-                break
-            threading.Event().wait(0.01)
-        outcomes = worker.take_outcomes()
-        assert [o.job.data.n_samples for o in outcomes] == [20, 30, 50] == seen
+        assert held.finish(3) == [20, 30, 50] == held.seen
     finally:
-        release.set()
-        worker.close()
+        held.close()
 
 
 def test_options_are_checked():
