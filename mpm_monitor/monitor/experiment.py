@@ -278,9 +278,10 @@ class ExperimentTracker:
         return self._last_stamp is None or (last_sample_stamp_ns is not None
                                             and last_sample_stamp_ns >= self._last_stamp)
 
-    def job_taken(self, job, last_sample_stamp_ns: Optional[int]) -> None:
-        """A job of the window was taken: the experiment's analysis when the window holds the experiment."""
-        if self.analysis_wanted(last_sample_stamp_ns):
+    def job_taken(self, job) -> None:
+        """A job of the window was taken: the experiment's analysis when it is the job that holds the
+        experiment (``job.keep``, set from :meth:`analysis_wanted` when the job was made)."""
+        if job.keep:
             self.phase = ANALYSING
             self._analysis_seq = job.seq
 

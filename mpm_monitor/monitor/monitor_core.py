@@ -234,7 +234,7 @@ class MonitorCore:
         job = AnalysisJob(seq=self._seq, data=data, first_stamp=float(data.t[0]), last_stamp=float(data.t[-1]),
                           completed=self.window.n_completed, candidates="all" if self.candidates is not None else None,
                           keep=self.experiment.analysis_wanted(self.window.last_sample_stamp_ns))
-        self.experiment.job_taken(job, self.window.last_sample_stamp_ns)
+        self.experiment.job_taken(job)
         return job
 
     def accept(self, outcome: AnalysisOutcome) -> None:
