@@ -55,6 +55,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from .plants import square_model
+from .ros_domain import close_nodes
 
 NS = 1_000_000_000
 
@@ -274,11 +275,7 @@ def run_load(n: int, rate_hz: Optional[float], samples: int, window_samples: int
         return res
     finally:
         monitor.close()
-        for nd in (monitor, pub_node):
-            ex.remove_node(nd)
-            nd.destroy_node()
-        ex.shutdown()
-        ctx.try_shutdown()
+        close_nodes(ex, ctx, monitor, pub_node)
 
 
 SCENARIOS = {

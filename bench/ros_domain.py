@@ -74,9 +74,16 @@ def stop_process(proc, timeout: float = 10.0) -> None:
         proc.wait()
 
 
-def close_listener(executor, node, context) -> None:
-    """Tear down a node of this process, its executor and its context."""
-    executor.remove_node(node)
-    node.destroy_node()
+def close_nodes(executor, context, *nodes) -> None:
+    """Tear down nodes of this process (each removed from ``executor``, then destroyed), then the
+    executor and the context."""
+    for node in nodes:
+        executor.remove_node(node)
+        node.destroy_node()
     executor.shutdown()
     context.try_shutdown()
+
+
+def close_listener(executor, node, context) -> None:
+    """Tear down a node of this process, its executor and its context."""
+    close_nodes(executor, context, node)

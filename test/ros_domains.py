@@ -6,9 +6,9 @@ import contextlib
 
 import pytest
 
-from bench.ros_domain import NoFreeDomain, close_listener, domain_context, held_domain, stop_process
+from bench.ros_domain import NoFreeDomain, close_listener, close_nodes, domain_context, held_domain, stop_process
 
-__all__ = ["close_listener", "domain_context", "stop_process", "unique_domain"]
+__all__ = ["close_listener", "close_nodes", "domain_context", "stop_process", "unique_domain"]
 
 
 @contextlib.contextmanager

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from ros_domains import close_nodes
 
 from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.pipeline import analyze
@@ -170,8 +171,4 @@ def test_the_monitor_node_takes_candidate_topic(tmp_path):
         assert load_model(tmp_path / "repaired.yaml").disturbances == (EFFECT_CHANNEL,)
     finally:
         monitor.close()
-        for nd in (monitor, pub_node):
-            ex.remove_node(nd)
-            nd.destroy_node()
-        ex.shutdown()
-        ctx.try_shutdown()
+        close_nodes(ex, ctx, monitor, pub_node)

@@ -19,6 +19,7 @@ pytestmark = pytest.mark.timeout(180)
 
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rclpy.node import Node  # noqa: E402
+from ros_domains import close_nodes  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 
 from mpm_monitor.apps.demo import Suite, _overrides, case_parameters, private_context, run_demo  # noqa: E402
@@ -151,11 +152,7 @@ def test_mpc_node_waits_for_dv_and_feeds_it_forward(tmp_path):
         assert spin_until(ex, lambda: mpc.repeated >= 1, 5.0)
         assert mpc.steps == 5 and len(got) == 5
     finally:
-        for nd in (mpc, other):
-            ex.remove_node(nd)
-            nd.destroy_node()
-        ex.shutdown()
-        ctx.try_shutdown()
+        close_nodes(ex, ctx, mpc, other)
 
 
 def test_plant_node_publishes_dv_and_the_monitor_reads_its_named_topic(tmp_path):
@@ -210,11 +207,7 @@ def test_plant_node_publishes_dv_and_the_monitor_reads_its_named_topic(tmp_path)
         assert len(np.unique(data.dv)) > 3
     finally:
         monitor.close()
-        for nd in (plant, monitor, feeder):
-            ex.remove_node(nd)
-            nd.destroy_node()
-        ex.shutdown()
-        ctx.try_shutdown()
+        close_nodes(ex, ctx, plant, monitor, feeder)
 
 
 def test_demo_level_records_the_disturbance_topic_and_the_replay_replays_it(tmp_path):

@@ -24,6 +24,7 @@ from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue, SetParametersResult  # noqa: E402
 from rcl_interfaces.srv import SetParameters  # noqa: E402
 from rclpy.node import Node  # noqa: E402
+from ros_domains import close_nodes  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 
 from mpm_monitor.apps.demo import Suite, _overrides, private_context  # noqa: E402
@@ -76,11 +77,7 @@ class Harness:
             close = getattr(nd, "close", None)
             if close is not None:
                 close()
-        for nd in self.nodes:
-            self.ex.remove_node(nd)
-            nd.destroy_node()
-        self.ex.shutdown()
-        self.ctx.try_shutdown()
+        close_nodes(self.ex, self.ctx, *self.nodes)
 
 
 @pytest.fixture

@@ -17,6 +17,7 @@ pytest.importorskip("rclpy")
 pytestmark = pytest.mark.timeout(60)
 
 from rclpy.node import Node  # noqa: E402
+from ros_domains import close_nodes  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 
 from mpm_monitor.apps.demo import _overrides, case_parameters, private_context  # noqa: E402
@@ -98,11 +99,7 @@ def test_mpc_then_plant_restarted_in_lock_step_the_loop_resumes_without_duplicat
         assert no_duplicate_stamps(inputs[n_before + first:]) == []
         assert nodes["plant"].rejected_inputs == 0
     finally:
-        for nd in (*nodes.values(), watcher):
-            ex.remove_node(nd)
-            nd.destroy_node()
-        ex.shutdown()
-        ctx.try_shutdown()
+        close_nodes(ex, ctx, *nodes.values(), watcher)
 
 
 def test_mpc_answers_a_resent_output_with_the_same_input_and_resets_on_a_new_run():
@@ -153,8 +150,4 @@ def test_mpc_answers_a_resent_output_with_the_same_input_and_resets_on_a_new_run
         assert spin_until(ex, lambda: len(got) == 6, 5.0)
         assert mpc.restarts == 2 and got[-1][0] == 0 and got[-1] != got[0]
     finally:
-        for nd in (mpc, other):
-            ex.remove_node(nd)
-            nd.destroy_node()
-        ex.shutdown()
-        ctx.try_shutdown()
+        close_nodes(ex, ctx, mpc, other)

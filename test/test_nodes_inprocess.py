@@ -22,6 +22,7 @@ pytestmark = pytest.mark.timeout(120)
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from rclpy.node import Node  # noqa: E402
+from ros_domains import close_nodes  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 
@@ -204,11 +205,7 @@ def test_a_plain_publisher_gets_the_same_answer_as_analyze():
         assert st[SUMMARY_NAME][1]["missing_samples"] == "0"
     finally:
         monitor.close()
-        for nd in (monitor, pub_node, listener.node):
-            ex.remove_node(nd)
-            nd.destroy_node()
-        ex.shutdown()
-        ctx.try_shutdown()
+        close_nodes(ex, ctx, monitor, pub_node, listener.node)
 
 
 def test_bad_messages_give_error_then_stale_when_data_stop():
@@ -243,11 +240,7 @@ def test_bad_messages_give_error_then_stale_when_data_stop():
         assert len(listener.latest.status) == 4
     finally:
         monitor.close()
-        for nd in (monitor, pub_node, listener.node):
-            ex.remove_node(nd)
-            nd.destroy_node()
-        ex.shutdown()
-        ctx.try_shutdown()
+        close_nodes(ex, ctx, monitor, pub_node, listener.node)
 
 
 def test_a_bad_parameter_is_refused_with_its_name():
@@ -320,11 +313,7 @@ def test_wall_clock_mode_runs_and_the_monitor_holds_the_setpoints(tmp_path):
         assert h.gaps <= 1  # only the samples before the first setpoint, if any
     finally:
         monitor.close()
-        for nd in nodes:
-            ex.remove_node(nd)
-            nd.destroy_node()
-        ex.shutdown()
-        ctx.try_shutdown()
+        close_nodes(ex, ctx, *nodes)
 
 
 def test_plant_and_mpc_nodes_survive_bad_messages():
@@ -418,8 +407,4 @@ def test_write_repaired_model_service(tmp_path):
         assert sorted(p.name for p in tmp_path.iterdir()) == ["repaired.yaml"]
     finally:
         monitor.close()
-        for nd in (monitor, other):
-            ex.remove_node(nd)
-            nd.destroy_node()
-        ex.shutdown()
-        ctx.try_shutdown()
+        close_nodes(ex, ctx, monitor, other)
