@@ -72,6 +72,8 @@ MAX_OWN_LAG_DELTA = 1.0
 IMPULSE_SAMPLES = 4000
 #: Elements whose moments are stacked at once (bounds the memory of :meth:`WindowInformation.drops`).
 CHUNK = 256
+#: Columns of the rows' responses ``[x, X]`` and own lags whose products with the input lags are taken at once.
+GROUP_COLUMNS = 1024
 
 
 def typical_element(model: PlantModel, i: int):
@@ -307,50 +309,92 @@ class WindowInformation:
         self.own = {}
         self.targets = {}
         n_imp = max(n_lag + 2, min(u.shape[0], IMPULSE_SAMPLES))
+        # The rows are taken in groups of about GROUP_COLUMNS columns of [x, X], so that the products with
+        # the input lags (Z' O, Z' x, u' [x, X]) are a few wide products instead of one narrow one per row.
+        group, width = [], 0
         for i, nz in noise.items():
-            na = nz.a.size
-            d_c = d[:, i] - d[:, i].mean()
-            O = lag_matrix(d_c, range(1, na + 1), start)
-            self.own[i] = (Z.T @ O / n, O.T @ O / n)
-            a_poly = np.concatenate([[1.0], nz.a])
-            found = [(j,) + target_element(model, i, j) for j in range(nu)]
-            found = [f for f in found if f[1] is not None]
+            row = self._row_responses(model, i, nz, u_c, d, start)
+            group.append(row)
+            width += row["W"].shape[1] + row["O"].shape[1]
+            if width >= GROUP_COLUMNS:
+                self._row_moments(group, Z, u_c, start, n_imp, windows)
+                group, width = [], 0
+        if group:
+            self._row_moments(group, Z, u_c, start, n_imp, windows)
+
+    @staticmethod
+    def _row_responses(model: PlantModel, i: int, nz, u_c: np.ndarray, d: np.ndarray, start: int) -> dict:
+        """Row ``i``'s own lags ``O`` and the responses ``[x, X]`` (lags 0 .. na) of its elements side by side.
+
+        Returns
+        -------
+        dict
+            ``i``, ``a_poly`` (``A_i``), ``O`` (n_rows, na), ``found`` (``(j, element, reference_gain)``
+            of every column with a target element), ``W`` (n_rows, m (na + 1)), ``x_head`` and
+            ``x_tail`` (m, na): ``x[start - k]`` and ``x[N - k]``, ``k = 1 .. na``.
+        """
+        na = nz.a.size
+        d_c = d[:, i] - d[:, i].mean()
+        O = lag_matrix(d_c, range(1, na + 1), start)
+        found = [(j,) + target_element(model, i, j) for j in range(model.n_columns)]
+        found = [f for f in found if f[1] is not None]
+        m, N = len(found), u_c.shape[0]
+        W = np.empty((O.shape[0], m * (na + 1)))
+        x_head, x_tail = np.empty((m, na)), np.empty((m, na))
+        for b, (j, element, _) in enumerate(found):
+            x = element.respond(u_c[:, j])
+            x -= x.mean()
+            for lag in range(na + 1):
+                W[:, b * (na + 1) + lag] = x[start - lag:N - lag]
+            x_head[b], x_tail[b] = x[start - 1::-1][:na], x[::-1][:na]     # x[start - k], x[N - k], k = 1..na
+        return dict(i=i, a_poly=np.concatenate([[1.0], nz.a]), O=O, found=found, W=W, x_head=x_head, x_tail=x_tail)
+
+    def _row_moments(self, group: list, Z: np.ndarray, u_c: np.ndarray, start: int, n_imp: int,
+                     windows: dict) -> None:
+        """:attr:`own` and :attr:`targets` of the rows of ``group`` (:meth:`_row_responses`)."""
+        n, L, N, nu = self.n_rows, self.n_lag, u_c.shape[0], u_c.shape[1]
+        # Z' O and Z' x (lag 0 of every element) of the whole group in one product; u(t)' [x, X] in another.
+        lag0 = [np.ascontiguousarray(row["W"][:, ::row["O"].shape[1] + 1]) for row in group]
+        ZB = Z.T @ np.column_stack([row["O"] for row in group] + lag0)
+        UW = u_c[start:].T @ np.column_stack([row["W"] for row in group])
+        u_head = u_c[start - np.arange(1, L + 1)].T                           # (nu, L): u(start - l)
+        u_tail = u_c[N - np.arange(1, L + 1)].T                               # (nu, L): u(N - l)
+        at_o = 0
+        at_x = sum(row["O"].shape[1] for row in group)
+        at_w = 0
+        for row in group:
+            i, O, W, found, a_poly = row["i"], row["O"], row["W"], row["found"], row["a_poly"]
+            na, m = O.shape[1], len(found)
+            self.own[i] = (ZB[:, at_o:at_o + na] / n, O.T @ O / n)
+            at_o += na
             if not found:
                 continue
-            m, L, N = len(found), n_lag, u_c.shape[0]
-            # [x, X] (lags 0 .. na) of every element of the row side by side; the ends of each x.
-            W = np.empty((Z.shape[0], m * (na + 1)))
-            x_head, x_tail = np.empty((m, na)), np.empty((m, na))
-            for b, (j, element, _) in enumerate(found):
-                x = element.respond(u_c[:, j])
-                x -= x.mean()
-                for lag in range(na + 1):
-                    W[:, b * (na + 1) + lag] = x[start - lag:N - lag]
-                x_head[b], x_tail[b] = x[start - 1::-1][:na], x[::-1][:na]     # x[start - k], x[N - k], k = 1..na
+            x_head, x_tail = row["x_head"], row["x_tail"]
             # M[c, l, k, e] = sum over the rows of u_c(t - l) x_e(t - k) (l = 0 .. L, k = 0 .. na).  Z' X is
             # a sum along diagonals of lag pairs: M(l, k) = M(l - 1, k - 1) + u(start - l) x(start - k)
             # - u(N - l) x(N - k), so only the lags k = 0 (with every input lag) and l = 0 (with every
             # element lag) take a product over the rows.
             M = np.empty((nu, L + 1, na + 1, m))
-            M[:, 0] = np.moveaxis((u_c[start:].T @ W).reshape(nu, m, na + 1), 1, 2)
-            M[:, 1:, 0] = (Z.T @ np.ascontiguousarray(W[:, ::na + 1])).reshape(nu, L, m)
-            u_head = u_c[start - np.arange(1, L + 1)].T                       # (nu, L): u(start - l)
-            u_tail = u_c[N - np.arange(1, L + 1)].T                           # (nu, L): u(N - l)
+            M[:, 0] = np.moveaxis(UW[:, at_w:at_w + W.shape[1]].reshape(nu, m, na + 1), 1, 2)
+            M[:, 1:, 0] = ZB[:, at_x:at_x + m].reshape(nu, L, m)
+            at_w += W.shape[1]
+            at_x += m
             for k in range(1, na + 1):
                 M[:, 1:, k] = (M[:, :-1, k - 1] + u_head[:, :, None] * x_head[None, None, :, k - 1]
                                - u_tail[:, :, None] * x_tail[None, None, :, k - 1])
             M = M[:, 1:] / n                                                  # Z' [x, X] / n: (nu, L, na + 1, m)
             OW = O.T @ W / n
+            W3 = W.reshape(W.shape[0], m, na + 1)
+            WW = np.matmul(W3.transpose(1, 2, 0), W3.transpose(1, 0, 2)) / n    # [x, X]' [x, X] / n per element
             for b, (j, element, ref) in enumerate(found):
                 cols = slice(b * (na + 1), (b + 1) * (na + 1))
-                XW = W[:, cols]
-                zw, ow, ww = M[..., b].reshape(nu * L, na + 1), OW[:, cols], XW[:, 1:].T @ XW / n
+                zw, ow, ww = M[..., b].reshape(nu * L, na + 1), OW[:, cols], WW[b, 1:]
                 # x_f = A_i(q) x = x + X a on the rows
                 k = windows.get((i, j))
-                k = n_lag if k is None else min(int(k), n_lag)
+                k = L if k is None else min(int(k), L)
                 g = element.impulse_response(n_imp)
                 self.targets[(i, j)] = ElementTarget(
-                    output=i, column=j, tested=np.arange(j * n_lag, j * n_lag + k), reference_gain=ref,
+                    output=i, column=j, tested=np.arange(j * L, j * L + k), reference_gain=ref,
                     c=zw @ a_poly, c_own=ow @ a_poly, zx=zw[:, 1:], ox=ow[:, 1:], xx=ww[:, 1:], xxf=ww @ a_poly,
                     impulse=g, filtered=lfilter(a_poly, [1.0], g))
 
