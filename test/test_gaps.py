@@ -4,6 +4,7 @@ No regression row reaches across a gap, nothing is interpolated, the statistics 
 and the report says what the gaps cost (``samples``, the JSON ``gaps`` object, a warning).
 """
 
+import dataclasses
 import json
 
 import numpy as np
@@ -16,7 +17,11 @@ from mpm_monitor.core.errors import DataFileError
 from mpm_monitor.core.gaps import plan_gaps
 from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.core.regressions import regression_layout
+from mpm_monitor.core.repair import repair_model, unexplained_disturbance
 from mpm_monitor.io.csv_log import read_csv, write_csv
+from mpm_monitor.sim.cases import simulation_case
+from mpm_monitor.sim.closed_loop import run_closed_loop
+from mpm_monitor.sim.plant import DisturbanceOptions
 
 DETECT = AnalysisOptions(repair=False)
 
@@ -95,13 +100,67 @@ def test_too_few_rows_between_gaps_refused_in_one_line(case_32):
         detect(case.model, data.take(np.arange(0, 3000, 10)), DETECT)
 
 
-def test_the_repair_runs_on_the_longest_span(case_32):
+def test_the_repair_runs_on_every_span_between_the_gaps(case_32):
     case, data = case_32
     rep = analyze(case.model, _drop(data, [900]), AnalysisOptions())
     assert set(rep.located_elements) == set(case.mismatched_elements)
-    assert any("the repair was fitted and validated on the longest span without a gap (t = 901 .. 2999 s, "
-               "2099 of 2999 samples)" in w for w in rep.warnings)
-    assert rep.repair["changes"]
+    assert any("the repair was fitted and validated on the 2 spans between the gaps, each from its own start "
+               "(2999 of 2999 samples)" in w for w in rep.warnings)
+    assert rep.repair["changes"] and all(c["applied"] for c in rep.repair["changes"])
+
+
+def _noise_free_run(case, samples, seed):
+    quiet = DisturbanceOptions(disturbance_std=0.0, noise_std=0.0)
+    return run_closed_loop(case.plant, case.model, samples, seed=seed, mpc=case.mpc, excitation=case.excitation,
+                           disturbance=quiet).as_logged_data()
+
+
+def test_without_noise_the_repair_across_gaps_returns_the_plant_exactly():
+    """Every span between the gaps is a record of its own (from rest, its own offset and free
+    responses, no lag reaching across a gap): without noise the fit over the spans returns the
+    plant's elements to numerical precision, as it does on the whole record."""
+    case = simulation_case("3.2")
+    data = _noise_free_run(case, 3000, 11)
+    gappy = _drop(data, [400, 401, 1100, 1900, 1901, 1902, 2600])
+    assert len(gappy.segments) == 5
+    located = [(case.model.outputs.index(o), case.model.columns.index(c)) for o, c in case.mismatched_elements]
+    res = repair_model(case.model, gappy, located)
+    for i, j in located:
+        got, want = res.model.element(i, j), case.plant.element(i, j)
+        assert got["gain"] == pytest.approx(want["gain"], rel=1e-6)
+        assert got["time_constant"] == pytest.approx(want["time_constant"], rel=1e-6)
+        assert got["delay"] == want["delay"]
+    assert all(res.holdout_error_after[o] < 1e-3 * res.holdout_error_before[o] for o in ("y1", "y2"))
+
+
+def test_a_fit_that_ignored_the_gaps_would_not_return_the_plant():
+    """The control of the test above: the same stacked samples taken as one record (the gaps
+    ignored, as if the samples were contiguous) do not give the plant's elements back."""
+    case = simulation_case("3.2")
+    data = _noise_free_run(case, 3000, 11)
+    gappy = _drop(data, [400, 401, 1100, 1900, 1901, 1902, 2600])
+    as_one = dataclasses.replace(gappy, t=data.t[:gappy.n_samples])
+    assert len(as_one.segments) == 1
+    located = [(case.model.outputs.index(o), case.model.columns.index(c)) for o, c in case.mismatched_elements]
+    res = repair_model(case.model, as_one, located)
+    errors = [abs(res.model.element(i, j)["gain"] / case.plant.element(i, j)["gain"] - 1) for i, j in located]
+    assert max(errors) > 1e-3
+
+
+def test_disturbance_test_with_gaps_keeps_each_spans_level_and_finds_a_step_inside_one():
+    rng = np.random.default_rng(5)
+    n = 3000
+    segments = [(0, 1000), (1000, 1800), (1800, 3000)]
+    noise = 0.005 * rng.standard_normal(n)
+    levels = noise + np.repeat([0.0, 0.2, -0.1], [1000, 800, 1200])     # a level of each span's own
+    assert unexplained_disturbance(levels)["detected"]                   # taken as one record: steps
+    quiet = unexplained_disturbance(levels, segments=segments)
+    assert not quiet["detected"], quiet
+    stepped = levels + 0.05 * (np.arange(n) >= 2300)
+    got = unexplained_disturbance(stepped, sample_time=2.0, segments=segments)
+    assert got["detected"] and got["kind"] == "step"
+    assert got["index"] == pytest.approx(2300, abs=5)
+    assert got["size"] == pytest.approx(0.05, abs=0.02)
 
 
 def test_plan_of_data_without_gaps_is_none(case_32):

@@ -17,6 +17,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Optional
 
+import numpy as np
+
 from .analysis import AnalysisOptions, AnalysisReport, detect
 from .logged_data import LoggedData
 from .model import PlantModel
@@ -34,8 +36,8 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
         The controller's model ``Phat``.
     data : LoggedData
         Setpoints, inputs, measured disturbances and outputs on the grid of ``model.sample_time``; with
-        gaps (``t`` skips samples) the detections run on the segments stacked and the repair on the
-        longest segment (:func:`repair_data`).
+        gaps (``t`` skips samples) the detections and the repair run on the segments stacked, each
+        segment a record of its own (:func:`repair_data`).
     options : AnalysisOptions
     signals : LoopSignals, optional
         Given to the first detection and to the repair (see
@@ -74,9 +76,9 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
     wide, wide_data = (model, data) if not names else _with_candidates(model, data, names)
     columns = wide.columns
     located = [(wide.outputs.index(e.output), columns.index(e.input)) for e in report.elements if e.mismatch]
-    span, note = repair_data(wide_data, report.gaps is not None)
+    span, note = repair_data(wide_data, report.gaps is not None, options, wide)
     result = repair_model(wide, span, located, RepairOptions(initial_state=options.initial_state),
-                          signals=report.signals if span is wide_data else None)
+                          signals=report.signals if (span is wide_data or not names) else None)
     after_data = data
     if names:
         result, after_data = _keep_applied_candidates(model, data, result, tried, names)
@@ -97,24 +99,32 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
     return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result, regressions=None)
 
 
-def repair_data(data: LoggedData, gappy: bool) -> tuple:
-    """The data the repair fits: all of ``data``, or with gaps its longest segment.
+def repair_data(data: LoggedData, gappy: bool, options: AnalysisOptions = AnalysisOptions(),
+                model: Optional[PlantModel] = None) -> tuple:
+    """The data the repair fits: all of ``data``, or with gaps the segments the detection used.
 
-    The repair's fits and its held-out validation need one contiguous record (their free responses
-    and the held-out split are per record), so on data with gaps it runs on the longest span
-    without a gap; its ``error_before`` / ``error_after`` are then that span's.
+    On data with gaps the repair (:func:`~mpm_monitor.core.repair.repair_model`) takes every segment
+    as a record of its own: simulated from rest at its first sample, with its own offset and free
+    responses, its first samples (the longest lag) left out of the fits; nothing is interpolated.
+    The segments too short for a regression row of the tests (:func:`~mpm_monitor.core.gaps.plan_gaps`)
+    are left out, as the detection leaves them out.
 
     Returns
     -------
     (LoggedData, str)
-        The data and, for a segment, the warning that says so ('' for all of ``data``).
+        The data and, with gaps, the warning that says what the repair used ('' for all of ``data``).
     """
     if not gappy:
         return data, ""
-    a, b = max(data.segments, key=lambda s: s[1] - s[0])
-    note = (f"the repair was fitted and validated on the longest span without a gap (t = {float(data.t[a]):g} .. "
-            f"{float(data.t[b - 1]):g} s, {b - a} of {data.n_samples} samples); its prediction errors are that span's")
-    return data.slice(a, b), note
+    from .gaps import plan_gaps
+    from .regressions import regression_layout
+
+    plan = plan_gaps(data, regression_layout(model, options).start, options.max_gap) if model is not None else None
+    used = data.segments if plan is None else plan.used
+    rows = np.concatenate([np.arange(a, b) for a, b in used])
+    note = (f"the repair was fitted and validated on the {len(used)} spans between the gaps, each from its own "
+            f"start ({rows.size} of {data.n_samples} samples); no fit reaches across a gap")
+    return (data if rows.size == data.n_samples else data.take(rows)), note
 
 
 def _with_candidates(model: PlantModel, data: LoggedData, names: list):

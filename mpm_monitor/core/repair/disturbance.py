@@ -99,7 +99,7 @@ def _drift_wald(X: np.ndarray, yv: np.ndarray):
 
 
 def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: float = 0.01, trim: float = 0.15,
-                            noise_order: int = 4) -> dict:
+                            noise_order: int = 4, segments=None) -> dict:
     """Test one residual for a step or a linear drift on top of AR(p)-coloured noise.
 
     Parameters
@@ -114,12 +114,17 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
         Fraction of the record at each end where no step is searched.
     noise_order : int
         Order ``p`` of the AR terms.
+    segments : sequence of (int, int), optional
+        Data with gaps: the contiguous runs ``(first, end)`` of the samples of ``d``.  The AR terms
+        then never reach across a gap and every segment has its own offset (a step is searched
+        inside the segments; ``time`` counts the samples of ``d``, not the missing ones).
 
     Returns
     -------
     dict
         ``detected`` (bool), ``kind`` ("step", "drift" or None), ``size`` (output units: the step
         height, or the drift over the whole record), ``time`` (s, the step instant or None),
+        ``index`` (the sample of ``d`` where the step starts, or None),
         ``rate`` (output units per second, drift only), ``p_value`` (the smaller of the two tests,
         Bonferroni-adjusted), ``p_step``, ``p_drift``, ``statistic`` (of the reported kind).
 
@@ -134,12 +139,27 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
     d = np.asarray(d, float).ravel()
     p = int(noise_order)
     n_all = d.shape[0]
-    out = {"detected": False, "kind": None, "size": 0.0, "time": None, "rate": None, "p_value": 1.0,
+    out = {"detected": False, "kind": None, "size": 0.0, "time": None, "index": None, "rate": None, "p_value": 1.0,
            "p_step": 1.0, "p_drift": 1.0, "statistic": 0.0}
     if n_all < max(50, 10 * (p + 3)) or not np.all(np.isfinite(d)):
         return out
-    yv, lags = d[p:], lag_matrix(d, range(1, p + 1), p)
-    X = np.column_stack([np.ones(yv.shape[0]), lags])
+    if segments is None:
+        yv, lags = d[p:], lag_matrix(d, range(1, p + 1), p)
+        X = np.column_stack([np.ones(yv.shape[0]), lags])
+        index = None
+    else:
+        parts = [(int(a), int(b)) for a, b in segments if b - a > p + 1]
+        if not parts:
+            return out
+        index = np.concatenate([np.arange(a + p, b) for a, b in parts])      # the sample of d of every row
+        yv = d[index]
+        lags = np.vstack([lag_matrix(d[a:b], range(1, p + 1), p) for a, b in parts])
+        offsets = np.zeros((yv.shape[0], len(parts)))
+        at = 0
+        for q, (a, b) in enumerate(parts):
+            offsets[at:at + b - a - p, q] = 1.0
+            at += b - a - p
+        X = np.column_stack([offsets, lags])
     step = _step_wald(X, yv, trim)
     if step is None:
         return out
@@ -151,10 +171,14 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
     step_hit, drift_hit = p_step < alpha, p_drift < alpha
     if not (step_hit or drift_hit):
         return out
-    kb = k_step + p  # index into d
+    kb = k_step + p if index is None else int(index[k_step])  # index into d
     if step_hit and (not drift_hit or ssr_step <= ssr_drift):
-        size = float(np.mean(d[kb:]) - np.mean(d[:kb]))
-        out.update(detected=True, kind="step", size=size, time=kb * sample_time, p_value=p_step,
+        if index is None:
+            size = float(np.mean(d[kb:]) - np.mean(d[:kb]))
+        else:                     # within the step's segment (every segment has a level of its own)
+            a, b = next((a, b) for a, b in parts if a + p <= kb < b)
+            size = float(np.mean(d[kb:b]) - np.mean(d[a:kb]))
+        out.update(detected=True, kind="step", size=size, time=kb * sample_time, index=kb, p_value=p_step,
                    statistic=w_step)
     else:
         # Size from an ordinary straight line through d: what an engineer would draw.

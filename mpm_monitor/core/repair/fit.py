@@ -16,10 +16,14 @@ import math
 
 import numpy as np
 
-from ..arx import least_squares_ar
+from ..arx import lag_matrix, least_squares_ar
 from ..discretize import REPEATED_POLE_TOLERANCE
 from ..filters import lfilter
 from .forms import _POLE_MAX, _POLE_MIN, FIRST_ORDER, _basis, _Form
+
+#: Fewest cost samples of a segment of data with gaps that takes part in a fit (a shorter one would
+#: mostly feed its own offset and free responses).
+MIN_SEGMENT_ROWS = 20
 
 
 class _TooShort(Exception):
@@ -102,6 +106,13 @@ class _RowProblem:
     shared : dict, optional
         Arrays that depend only on the cost window and the poles (the free responses ``a^k``), kept
         across the problems of one row (:class:`~mpm_monitor.core.repair.row._RowData`).
+    segments : sequence of (int, int), optional
+        Data with gaps: the contiguous runs of samples ``(first, end)`` of the record (the samples of
+        its segments stacked, in order).  Every segment is a record of its own: the filters restart
+        from rest at its first sample, its first ``skip + p`` samples are left out of the cost, and it
+        has its own offset and free responses (the state at its start is unknown, as at the start of
+        a record).  Segments are cut at ``n_fit``; one with fewer than :data:`MIN_SEGMENT_ROWS` cost
+        samples is left out.  Default: one record, ``(0, n_fit)``.
 
     Notes
     -----
@@ -119,7 +130,7 @@ class _RowProblem:
     UNIT_CACHE_SIZE = 64
 
     def __init__(self, z, u, specs, n_fit, skip, fixed_poles, free_response, noise_order, extra=None,
-                 sample_time=1.0, shared=None):
+                 sample_time=1.0, shared=None, segments=None):
         self.z = np.asarray(z, float)[:n_fit]
         self.extra = None if extra is None else np.asarray(extra, float).reshape(len(z), -1)[:n_fit]
         self.u = np.asarray(u, float)[:n_fit]
@@ -130,17 +141,33 @@ class _RowProblem:
         self.free = bool(free_response)
         self.start = int(skip) + self.p
         needed = max(150, 20 * (3 * len(self.specs) + self.p + 3))
-        if self.n_fit - self.start < needed:
-            raise _TooShort(f"{self.n_fit} samples are too few for input lags up to {skip} samples "
-                            f"(at least {needed} beyond them needed)")
-        self.kw = np.arange(self.start, self.n_fit, dtype=float)
-        self._powers = {} if shared is None else shared.setdefault(("powers", self.start, self.n_fit), {})
+        self.segments = None
+        if segments is None:
+            if self.n_fit - self.start < needed:
+                raise _TooShort(f"{self.n_fit} samples are too few for input lags up to {skip} samples "
+                                f"(at least {needed} beyond them needed)")
+            self.kw = np.arange(self.start, self.n_fit, dtype=float)
+            cache_key = ("powers", self.start, self.n_fit)
+        else:
+            self.segments = [(int(a), min(int(b), self.n_fit)) for a, b in segments
+                             if min(int(b), self.n_fit) - int(a) - self.start >= MIN_SEGMENT_ROWS]
+            n_cost = sum(b - a - self.start for a, b in self.segments)
+            if n_cost < needed:
+                raise _TooShort(f"{n_cost} samples of the spans between gaps are too few for input lags up to "
+                                f"{skip} samples (at least {needed} beyond them needed)")
+            # Local time of every cost sample in its segment, and where each segment's rows sit.
+            self.kw = np.concatenate([np.arange(self.start, b - a, dtype=float) for a, b in self.segments])
+            ends = np.cumsum([b - a - self.start for a, b in self.segments])
+            self._blocks = list(zip(np.concatenate([[0], ends[:-1]]).tolist(), ends.tolist()))
+            cache_key = ("powers", self.start, self.n_fit, tuple(self.segments))
+        self._powers = {} if shared is None else shared.setdefault(cache_key, {})
         self._unit_cache = {}
-        cols = [np.ones_like(self.kw)]
+        cols = [self._spread(np.ones_like(self.kw))]
         if self.free:
             for a, mult in sorted(dict(fixed_poles).items()):
                 if 0 < a < 1 and a ** self.start > 1e-12:
-                    cols.extend(self.kw ** q * self._power(a) if q else self._power(a) for q in range(mult))
+                    cols.extend(self._spread(self.kw ** q * self._power(a) if q else self._power(a))
+                                for q in range(mult))
         self.fixed_cols = np.column_stack(cols)
         # Where each element's poles and linear coefficients sit in the flat vectors of the fit.
         self.slices, self.linear_index = [], []
@@ -158,6 +185,33 @@ class _RowProblem:
     @property
     def n_located(self) -> int:
         return len(self.specs)
+
+    def _spread(self, col: np.ndarray) -> np.ndarray:
+        """A column over the cost samples as nuisance columns: itself for one record; with segments one
+        column per segment, ``col`` on that segment's samples and 0 elsewhere (an offset or a free
+        response of each segment's own)."""
+        if self.segments is None:
+            return col
+        out = np.zeros((col.shape[0], len(self._blocks)))
+        for q, (lo, hi) in enumerate(self._blocks):
+            out[lo:hi, q] = col[lo:hi]
+        return out
+
+    def _cost(self, x: np.ndarray) -> np.ndarray:
+        """The cost samples of ``x`` (shape (n_fit, ...), the record's samples)."""
+        if self.segments is None:
+            return x[self.start:]
+        return np.concatenate([x[a + self.start:b] for a, b in self.segments])
+
+    def _lfilter(self, num, den, x: np.ndarray) -> np.ndarray:
+        """``lfilter`` along the samples of ``x`` (shape (n_fit, ...)), restarted from rest at every
+        segment (samples outside the segments are 0)."""
+        if self.segments is None:
+            return lfilter(num, den, x, axis=0)
+        out = np.zeros_like(x)
+        for a, b in self.segments:
+            out[a:b] = lfilter(num, den, x[a:b], axis=0)
+        return out
 
     def _power(self, a: float) -> np.ndarray:
         """``a^k`` over the cost window (a free response), computed once per pole."""
@@ -180,7 +234,9 @@ class _RowProblem:
         if not self.p:
             return self.z, self.u
         num = np.concatenate([[1.0], ar])
-        return lfilter(num, [1.0], self.z), lfilter(num, [1.0], self.u, axis=0)
+        if self.segments is None:
+            return lfilter(num, [1.0], self.z), lfilter(num, [1.0], self.u, axis=0)
+        return self._lfilter(num, [1.0], self.z), self._lfilter(num, [1.0], self.u)
 
     def set_ar(self, ar) -> None:
         """Use the noise model ``A(q) = 1 + ar_1 q^-1 + ... + ar_p q^-p``."""
@@ -191,8 +247,10 @@ class _RowProblem:
 
     def _filtered_extra(self, ar):
         if self.p == 0:
-            return self.extra[self.start:]
-        return lfilter(np.concatenate([[1.0], ar]), [1.0], self.extra, axis=0)[self.start:]
+            return self._cost(self.extra)
+        if self.segments is None:
+            return lfilter(np.concatenate([[1.0], ar]), [1.0], self.extra, axis=0)[self.start:]
+        return self._cost(self._lfilter(np.concatenate([[1.0], ar]), [1.0], self.extra))
 
     def start_poles(self) -> np.ndarray:
         """The specs' poles, element after element, shape (n_poles,)."""
@@ -206,6 +264,12 @@ class _RowProblem:
     def _units(self, src, m, poles, lag):
         """Windows of the unit responses ``G_a`` (and ``G_b``) of element ``m`` to ``src[:, m]``."""
         num_a, num_b, den = _basis(self.specs[m].form, poles[self.slices[m]], self.ts)
+        if self.segments is not None:     # each segment from rest, its cost samples at the lag
+            parts = [(src[a:b - lag, m], self.start - lag) for a, b in self.segments]
+            cols = [np.concatenate([lfilter(num_a, den, x)[k:] for x, k in parts])]
+            if num_b is not None:
+                cols.append(np.concatenate([lfilter(num_b, den, x)[k:] for x, k in parts]))
+            return cols
         x = src[:self.n_fit - lag, m]
         cols = [lfilter(num_a, den, x)[self.start - lag:]]
         if num_b is not None:
@@ -247,7 +311,7 @@ class _RowProblem:
             own = poles[self.slices[m]]
             for q, a in enumerate(own):
                 repeated = q > 0 and abs(a - own[q - 1]) < REPEATED_POLE_TOLERANCE
-                cols.append(self._power_ramp(a) if repeated else self._power(a))
+                cols.append(self._spread(self._power_ramp(a) if repeated else self._power(a)))
         return np.column_stack(cols) if cols else np.zeros((self.kw.shape[0], 0))
 
     def _design(self, poles, lags, filtered=True):
@@ -262,7 +326,7 @@ class _RowProblem:
         if self.free:
             cols.append(self._free_responses(poles))
         if self.extra is not None:
-            cols.append(self.xf if filtered else self.extra[self.start:])
+            cols.append(self.xf if filtered else self._cost(self.extra))
         return known, np.column_stack(cols)
 
     @staticmethod
@@ -277,7 +341,7 @@ class _RowProblem:
     def projected(self, poles, lags):
         """Prefiltered residual with the linear parameters eliminated, and those parameters."""
         known, phi = self._design(poles, lags)
-        target = self.zf[self.start:] - known
+        target = self._cost(self.zf) - known
         beta = self._solve(phi, target)
         return target - phi @ beta, beta
 
@@ -327,10 +391,17 @@ class _RowProblem:
             return
         known, phi = self._design(fit.poles, fit.lags, filtered=False)
         nl = self.n_linear
-        r = self.z[self.start:] - known - phi[:, :nl] @ fit.coefs
+        r = self._cost(self.z) - known - phi[:, :nl] @ fit.coefs
         nuis = phi[:, nl:]
         r = r - nuis @ self._solve(nuis, r)
-        self.set_ar(-least_squares_ar(r, self.p))
+        if self.segments is None:
+            self.set_ar(-least_squares_ar(r, self.p))
+            return
+        # The AR of each segment's residual on its own lags (no lag reaches across a gap), stacked.
+        lags = np.vstack([lag_matrix(r[lo:hi], range(1, self.p + 1), self.p) for lo, hi in self._blocks])
+        target = np.concatenate([r[lo + self.p:hi] for lo, hi in self._blocks])
+        coef, *_ = np.linalg.lstsq(lags, target, rcond=None)
+        self.set_ar(-coef)
 
     def full_residual(self, theta, lags, memo=None):
         """Prefiltered residual as a function of ``[free linear coefficients, free poles, ar, nuisance]``.
@@ -348,7 +419,7 @@ class _RowProblem:
         ar_key = ar.tobytes()
         if ("filtered", ar_key) not in memo:
             zf, uf = self._filtered(ar)
-            memo[("filtered", ar_key)] = zf[self.start:], uf
+            memo[("filtered", ar_key)] = self._cost(zf), uf
         zf, uf = memo[("filtered", ar_key)]
         out = zf.copy()
         for m in range(self.n_located):

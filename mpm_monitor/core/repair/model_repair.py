@@ -15,11 +15,11 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..discretize import model_columns
+from ..discretize import discretize, model_columns
 from ..errors import ConfigurationError, InputError
 from ..logged_data import LoggedData, check_loop_data
 from ..model import PlantModel
-from ..signals import LoopSignals, compute_signals, error_rms
+from ..signals import LoopSignals, compute_signals, error_rms, segment_signals
 from .classify import _classify_row
 from .disturbance import unexplained_disturbance
 from .fit import _TooShort
@@ -115,6 +115,11 @@ class _Record:
     holdout_before : dict
         ``{output name: RMS of d0 over the held-out part about its level}`` (empty without a
         held-out part; see :func:`_holdout_rms`).
+    segments : tuple of (int, int) or None
+        Data with gaps (``data.t`` skips samples): its contiguous runs of samples, each simulated and
+        fitted as a record of its own (from rest, with its own offset and free responses); the
+        split into the fit and the held-out part is at sample ``n_fit`` of the samples as they are.
+        None: one record.
     """
 
     model: PlantModel
@@ -126,6 +131,7 @@ class _Record:
     settings: _TestSettings
     n_fit: int
     holdout_before: dict
+    segments: Optional[tuple] = None
 
     @property
     def options(self) -> RepairOptions:
@@ -139,9 +145,37 @@ class _Record:
     def n_hold(self) -> int:
         return self.n - self.n_fit
 
+    def scored(self, *models: PlantModel) -> Optional[np.ndarray]:
+        """The samples the errors are taken over: with gaps, all but the first samples of every segment
+        after a gap whose model output (of any of ``models``) still depends on columns inside the gap
+        (the longest shift register, :attr:`~mpm_monitor.core.discretize.DiscreteElements.memory`);
+        None without gaps (every sample)."""
+        if self.segments is None:
+            return None
+        keep = np.zeros(self.n, dtype=bool)
+        for a, b in self.scored_segments(*models):
+            keep[a:b] = True
+        return keep
+
+    def scored_segments(self, *models: PlantModel) -> Optional[list]:
+        """The segments without the samples :meth:`scored` leaves out (None without gaps)."""
+        if self.segments is None:
+            return None
+        memory = max(discretize(m).memory for m in models)
+        return [self.segments[0]] + [(min(a + memory, b), b) for a, b in self.segments[1:]]
+
+    def holdout(self, d: np.ndarray, keep: Optional[np.ndarray], extra: Optional[np.ndarray] = None) -> float:
+        """:func:`_holdout_rms` of ``d`` (shape (n_samples,)) over the samples ``keep`` (:meth:`scored`)."""
+        if keep is None:
+            return _holdout_rms(d, self.n_fit, extra)
+        return _holdout_rms(d[keep], int(np.count_nonzero(keep[:self.n_fit])), None if extra is None else extra[keep])
+
     def signals_of(self, model: PlantModel) -> LoopSignals:
         """:func:`compute_signals` of ``model`` on the record (the rows where it equals the model as
-        given taken from :attr:`signals`)."""
+        given taken from :attr:`signals`); with gaps each segment from its own start."""
+        if self.segments is not None:
+            return segment_signals(model, self.data.r, self.data.u, self.y, self.segments,
+                                   initial_state=self.options.initial_state, dv=self.data.dv)
         return compute_signals(model, self.data.r, self.data.u, self.y, initial_state=self.options.initial_state,
                                dv=self.data.dv, like=(self.model, self.signals))
 
@@ -198,15 +232,21 @@ def _set_up(model: PlantModel, data: LoggedData, options: RepairOptions,
     """The record of checked inputs: float arrays, the signals of the model, the split, the levels."""
     u, y = model_columns(np.asarray(data.u, float), np.asarray(data.dv, float)), np.asarray(data.y, float)
     n = data.n_samples
-    if signals is None:
+    segments = data.segments
+    segments = tuple(segments) if len(segments) > 1 else None
+    if signals is None and segments is not None:
+        signals = segment_signals(model, data.r, data.u, y, segments, initial_state=options.initial_state, dv=data.dv)
+    elif signals is None:
         signals = compute_signals(model, data.r, data.u, y, initial_state=options.initial_state, dv=data.dv)
     d0 = np.asarray(signals.d, float)
     n_hold = int(round(options.holdout_fraction * n))
     n_fit = n - n_hold
-    holdout_before = ({model.outputs[i]: _holdout_rms(d0[:, i], n_fit) for i in range(model.n_outputs)}
-                      if n_hold > 0 else {})
-    return _Record(model=model, data=data, u=u, y=y, signals=signals, d0=d0, settings=_TestSettings.of(options),
-                   n_fit=n_fit, holdout_before=holdout_before)
+    rec = _Record(model=model, data=data, u=u, y=y, signals=signals, d0=d0, settings=_TestSettings.of(options),
+                  n_fit=n_fit, holdout_before={}, segments=segments)
+    if n_hold > 0:
+        keep = rec.scored(model)
+        rec.holdout_before.update({model.outputs[i]: rec.holdout(d0[:, i], keep) for i in range(model.n_outputs)})
+    return rec
 
 
 def _rows_to_repair(rec: _Record, located: list, found: _Findings) -> list:
@@ -266,8 +306,10 @@ def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnin
     sig_c = rec.signals_of(candidate)
     # The unexplained disturbance is no model's job either: compare without it (the step or ramp
     # fitted over the held-out part), since a wrong element can partly cancel it.
-    h_after = _holdout_rms(sig_c.d[:, i], rec.n_fit, row.extra)
-    h_before = rec.holdout_before[name] if row.extra is None else _holdout_rms(rec.d0[:, i], rec.n_fit, row.extra)
+    keep = rec.scored(model, candidate)
+    h_after = rec.holdout(sig_c.d[:, i], keep, row.extra)
+    h_before = rec.holdout_before[name] if (row.extra is None and keep is None) else \
+        rec.holdout(rec.d0[:, i], keep, row.extra)
     if h_after < h_before * (1.0 - options.min_holdout_improvement):
         return True, h_after, h_before
     warnings.append(
@@ -288,7 +330,7 @@ def _process_row(rec: _Record, i: int, js, extra: Optional[np.ndarray]) -> _RowO
     drift on the row, or None.
     """
     model = rec.model
-    row = _RowData(model=model, u=rec.u, y=rec.y, i=i, extra=extra)
+    row = _RowData(model=model, u=rec.u, y=rec.y, i=i, extra=extra, segments=rec.segments)
     try:
         elements, row_warnings = _repair_row(row, js, rec.n_fit, rec.settings)
     except _TooShort as exc:
@@ -318,9 +360,15 @@ def _evaluate(rec: _Record, results: dict) -> _Evaluation:
     sig = rec.signals if repaired == rec.model else rec.signals_of(repaired)
     d = np.asarray(sig.d, float)
     options = rec.options
+    segments = rec.scored_segments(rec.model, repaired)
     tests = {i: unexplained_disturbance(d[:, i], rec.model.sample_time, options.disturbance_alpha,
-                                        options.disturbance_trim, options.noise_order)
+                                        options.disturbance_trim, options.noise_order, segments=segments)
              for i in range(rec.model.n_outputs)}
+    if rec.segments is not None:      # the step's time since the first sample, the missing samples counted
+        t = np.asarray(rec.data.t, float)
+        for test in tests.values():
+            if test["index"] is not None:
+                test["time"] = float(t[test["index"]] - t[0])
     return _Evaluation(model=repaired, signals=sig, tests=tests)
 
 
@@ -328,12 +376,12 @@ def _redo_disturbed_rows(rec: _Record, located: list, rows: list, results: dict,
     """Process again, with the step or ramp as a nuisance regressor, every repaired row whose
     residual shows an unexplained disturbance (it stays in the residual: the model has no place
     for it, but it would bias the elements).  Returns whether a row was redone."""
-    n, ts = rec.n, rec.model.sample_time
+    n = rec.n
     redo = [i for i in rows if tests[i]["detected"]]
     for i in redo:
         t = tests[i]
         k = np.arange(n, dtype=float)
-        col = (k >= round(t["time"] / ts)).astype(float) if t["kind"] == "step" else k / n
+        col = (k >= t["index"]).astype(float) if t["kind"] == "step" else k / n
         results[i] = _process_row(rec, i, _located_in_row(located, i), col[:, None])
         results[i].warnings.append(
             f"{rec.model.outputs[i]}: the re-estimation of its elements allowed for the unexplained "
@@ -385,14 +433,20 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
             kinds[(i, j)] = el.kind
             changes.append(el.change_entry(model, i, j))
     yhat0 = np.asarray(rec.signals.yhat, float)
-    d1 = np.asarray(ev.signals.d, float)
+    yhat1 = np.asarray(ev.signals.yhat, float)
+    d0, d1 = rec.d0, np.asarray(ev.signals.d, float)
+    keep = rec.scored(model, ev.model)
+    if keep is not None:          # with gaps: the samples not depending on columns inside a gap
+        y, yhat0, yhat1, d0, d1 = (x[keep] for x in (y, yhat0, yhat1, d0, d1))
     level = model.integrating_outputs
-    error_before, error_after = error_rms(model, rec.d0), error_rms(model, d1)
+    error_before, error_after = error_rms(model, d0), error_rms(model, d1)
     fit_before = {names_y[i]: _fit_percent(y[:, i], yhat0[:, i], level[i]) for i in range(ny)}
-    fit_after = {names_y[i]: _fit_percent(y[:, i], ev.signals.yhat[:, i], level[i]) for i in range(ny)}
+    fit_after = {names_y[i]: _fit_percent(y[:, i], yhat1[:, i], level[i]) for i in range(ny)}
     for i in range(ny):
         if rec.n_hold > 0 and names_y[i] not in holdout_after:
-            holdout_after[names_y[i]] = _holdout_rms(d1[:, i], rec.n_fit)
+            holdout_after[names_y[i]] = rec.holdout(np.asarray(ev.signals.d, float)[:, i], keep)
+            if keep is not None:
+                holdout_before[names_y[i]] = rec.holdout(rec.d0[:, i], keep)
     disturbances, disturbance_warnings = _disturbance_findings(rec, ev.tests)
     warnings.extend(disturbance_warnings)
     return RepairResult(model=ev.model, changes=changes, kinds=kinds, error_before=error_before,

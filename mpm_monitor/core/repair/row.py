@@ -40,6 +40,9 @@ class _RowData:
     shared : dict
         What every fit of the row computes alike, computed once: the row with its located elements
         removed (:func:`_held_row`) and the free responses of the poles (see :class:`_RowProblem`).
+    segments : tuple of (int, int), optional
+        Data with gaps: the contiguous runs ``(first, end)`` of the samples, each a record of its own
+        (simulated from rest at its first sample; see :class:`_RowProblem`).  None: one record.
     """
 
     model: PlantModel
@@ -48,6 +51,7 @@ class _RowData:
     i: int
     extra: Optional[np.ndarray] = None
     shared: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
+    segments: Optional[tuple] = None
 
     @property
     def n_samples(self) -> int:
@@ -59,9 +63,15 @@ class _RowData:
         return out if j is None else f"{out}/{self.model.columns[j]}"
 
 
-def _row_response(model: PlantModel, u: np.ndarray, i: int) -> np.ndarray:
-    """Response of row ``i`` of ``model`` to ``u`` from rest (:func:`mpm_monitor.core.discretize.simulate_elements`)."""
-    return simulate_elements(model, u, rows=[i])[:, 0]
+def _row_response(model: PlantModel, u: np.ndarray, i: int, segments=None) -> np.ndarray:
+    """Response of row ``i`` of ``model`` to ``u`` from rest (:func:`mpm_monitor.core.discretize.simulate_elements`);
+    with ``segments``, from rest at the start of each."""
+    if segments is None:
+        return simulate_elements(model, u, rows=[i])[:, 0]
+    out = np.zeros(u.shape[0])
+    for a, b in segments:
+        out[a:b] = simulate_elements(model, u[a:b], rows=[i])[:, 0]
+    return out
 
 
 def _without(model: PlantModel, i: int, js) -> PlantModel:
@@ -117,7 +127,7 @@ def _held_row(row: _RowData, js: tuple) -> _HeldRow:
         model, i = row.model, row.i
         held = _without(model, i, js)
         row.shared[key] = _HeldRow(
-            z=row.y[:, i] - _row_response(held, row.u, i), lag_poles=discretize(held).lag_poles(i),
+            z=row.y[:, i] - _row_response(held, row.u, i, row.segments), lag_poles=discretize(held).lag_poles(i),
             memories=[_held_memory(held, i, j) for j in range(model.n_columns) if held.present[i, j]])
     return row.shared[key]
 
@@ -151,7 +161,7 @@ def _estimate_row(row: _RowData, specs: dict, lags0: dict, n_use: int, options: 
         skip = _default_skip(row, specs)
     problem = _RowProblem(held.z, row.u[:, js], [specs[j] for j in js], n_use, skip, held.lag_poles,
                           options.initial_state == "estimate", options.noise_order, row.extra,
-                          sample_time=row.model.sample_time, shared=row.shared)
+                          sample_time=row.model.sample_time, shared=row.shared, segments=row.segments)
     if ar0 is not None:
         problem.set_ar(ar0)
     est = _search_row(problem, [lags0[j] for j in js], max_sweeps, ar_iterations=3 if ar0 is None else 1,
