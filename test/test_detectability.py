@@ -118,6 +118,35 @@ def test_the_moments_equal_the_direct_products(L, start, testable):
             np.testing.assert_allclose(got, want / n, rtol=1e-10, atol=1e-12 * np.abs(want / n).max())
 
 
+def test_with_gaps_the_moments_are_the_sums_of_the_segments_own():
+    """Data with gaps: every moment is the sum over the segments of the products of each segment's
+    lag matrices (its responses from rest, its x and d centred on their own), the diagonal sums
+    corrected at both ends of every segment."""
+    model, u, d, noise = _window(seed=5)
+    L = start = 6
+    segs = [(0, 400), (400, 410), (410, 1100), (1100, u.shape[0])]      # the second too short: left out
+    info = det.WindowInformation(model, u, d, [0, 1, 2], L, start, noise, {}, segments=segs)
+    used = [(a, b) for a, b in segs if b - a > start]
+    assert info.segments == used
+    u_c = u - u.mean(axis=0)
+    Z = np.vstack([lag_matrix(u_c[a:b], range(1, L + 1), start) for a, b in used])
+    O = np.vstack([lag_matrix(d[a:b, 0] - d[a:b, 0].mean(), range(1, 3), start) for a, b in used])
+    n = Z.shape[0]
+    assert info.n_rows == n == sum(b - a - start for a, b in used)
+    np.testing.assert_allclose(info.G, Z.T @ Z / n, rtol=1e-12)
+    for (i, j), t in info.targets.items():
+        element, _ = det.target_element(model, i, j)
+        xs = []
+        for a, b in used:
+            x = element.respond(u_c[a:b, j])
+            xs.append(x - x.mean())
+        xf = np.concatenate([lfilter(np.r_[1.0, noise[0].a], [1.0], x)[start:] for x in xs])
+        X = np.vstack([lag_matrix(x, range(1, 3), start) for x in xs])
+        for got, want in ((t.c, Z.T @ xf), (t.zx, Z.T @ X), (t.c_own, O.T @ xf), (t.ox, O.T @ X),
+                          (t.xx, X.T @ X), (t.xxf, X.T @ xf)):
+            np.testing.assert_allclose(got, want / n, rtol=1e-10, atol=1e-12 * np.abs(want / n).max())
+
+
 def test_without_detectability_the_tests_are_the_same_and_nothing_is_estimated():
     model, _, _, _ = _window()
     plant = model.with_element(0, 0, gain=2.0)

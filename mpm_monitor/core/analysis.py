@@ -476,12 +476,8 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     elements = element_test.elements
     info = None
     if options.method == "arx" and detectability:
-        span = slice(None)
-        if plan is not None:      # the moments need one contiguous span: the longest (a conservative value)
-            a, b = max(plan.local_segments, key=lambda s: s[1] - s[0])
-            span = slice(a, b)
-        info, detectable, why = element_detectability(model, columns[span], sig.d[span], design,
-                                                      element_test.noise, layout, options)
+        info, detectable, why = element_detectability(model, columns, sig.d, design, element_test.noise, layout,
+                                                      options, None if plan is None else plan.local_segments)
         warnings += why
         for e in elements:
             e.detectable_gain_change = detectable.get((model.outputs.index(e.output), model.columns.index(e.input)))

@@ -280,6 +280,12 @@ class WindowInformation:
         Output index -> :class:`~mpm_monitor.core.element_test.RowNoise` of the rows tested.
     windows : dict
         ``(i, j)`` -> lags the element test examines (None: all).
+    segments : sequence of (int, int), optional
+        Data with gaps: the contiguous runs ``(first, end)`` of the samples, stacked in ``u`` and ``d``
+        (as the tests take them).  The moments are sums over the regression rows of every segment (its
+        rows from sample ``start`` of the segment on), the element responses start from rest at each
+        segment, and each segment's ``d`` and ``x`` are centred on their own, as the tests centre
+        ``d``.  Default: one record.
 
     Attributes
     ----------
@@ -297,12 +303,23 @@ class WindowInformation:
     """
 
     def __init__(self, model: PlantModel, u: np.ndarray, d: np.ndarray, testable: list, n_lag: int, start: int,
-                 noise: dict, windows: dict):
+                 noise: dict, windows: dict, segments=None):
         self.model, self.testable, self.n_lag, self.noise = model, list(testable), int(n_lag), noise
         nu = model.n_columns
         u_c = u - u.mean(axis=0)
         u_c[:, [j for j in range(nu) if j not in self.testable]] = 0.0
-        Z = lag_matrix(u_c, range(1, n_lag + 1), start)
+        self.segments = None if segments is None else [(int(a), int(b)) for a, b in segments if b - a > start]
+        segs = [(0, u.shape[0])] if self.segments is None else self.segments
+        L = int(n_lag)
+        if self.segments is None:
+            Z = lag_matrix(u_c, range(1, n_lag + 1), start)
+        else:
+            Z = np.vstack([lag_matrix(u_c[a:b], range(1, n_lag + 1), start) for a, b in segs])
+        # u(t) on the rows, and u at the lags just before each segment's first row and before its end
+        # (the corrections of the sums along lag diagonals, see _row_moments).
+        self._u_rows = u_c[start:] if self.segments is None else np.vstack([u_c[a + start:b] for a, b in segs])
+        self._u_head = np.stack([u_c[a + start - np.arange(1, L + 1)].T for a, _ in segs])    # (S, nu, L)
+        self._u_tail = np.stack([u_c[b - np.arange(1, L + 1)].T for _, b in segs])            # (S, nu, L)
         self.n_rows = n = max(Z.shape[0], 1)
         self.G = Z.T @ Z / n
         self.std = u.std(axis=0)
@@ -313,17 +330,17 @@ class WindowInformation:
         # the input lags (Z' O, Z' x, u' [x, X]) are a few wide products instead of one narrow one per row.
         group, width = [], 0
         for i, nz in noise.items():
-            row = self._row_responses(model, i, nz, u_c, d, start)
+            row = self._row_responses(model, i, nz, u_c, d, start, segs)
             group.append(row)
             width += row["W"].shape[1] + row["O"].shape[1]
             if width >= GROUP_COLUMNS:
-                self._row_moments(group, Z, u_c, start, n_imp, windows)
+                self._row_moments(group, Z, n_imp, windows)
                 group, width = [], 0
         if group:
-            self._row_moments(group, Z, u_c, start, n_imp, windows)
+            self._row_moments(group, Z, n_imp, windows)
 
     @staticmethod
-    def _row_responses(model: PlantModel, i: int, nz, u_c: np.ndarray, d: np.ndarray, start: int) -> dict:
+    def _row_responses(model: PlantModel, i: int, nz, u_c: np.ndarray, d: np.ndarray, start: int, segs: list) -> dict:
         """Row ``i``'s own lags ``O`` and the responses ``[x, X]`` (lags 0 .. na) of its elements side by side.
 
         Returns
@@ -331,34 +348,37 @@ class WindowInformation:
         dict
             ``i``, ``a_poly`` (``A_i``), ``O`` (n_rows, na), ``found`` (``(j, element, reference_gain)``
             of every column with a target element), ``W`` (n_rows, m (na + 1)), ``x_head`` and
-            ``x_tail`` (m, na): ``x[start - k]`` and ``x[N - k]``, ``k = 1 .. na``.
+            ``x_tail`` (S, m, na): ``x[start - k]`` and ``x[N - k]``, ``k = 1 .. na``, of each of the
+            ``S`` segments (``N`` its length).
         """
         na = nz.a.size
-        d_c = d[:, i] - d[:, i].mean()
-        O = lag_matrix(d_c, range(1, na + 1), start)
+        O = np.vstack([lag_matrix(d[a:b, i] - d[a:b, i].mean(), range(1, na + 1), start) for a, b in segs])
         found = [(j,) + target_element(model, i, j) for j in range(model.n_columns)]
         found = [f for f in found if f[1] is not None]
-        m, N = len(found), u_c.shape[0]
+        m, S = len(found), len(segs)
         W = np.empty((O.shape[0], m * (na + 1)))
-        x_head, x_tail = np.empty((m, na)), np.empty((m, na))
+        x_head, x_tail = np.empty((S, m, na)), np.empty((S, m, na))
         for b, (j, element, _) in enumerate(found):
-            x = element.respond(u_c[:, j])
-            x -= x.mean()
-            for lag in range(na + 1):
-                W[:, b * (na + 1) + lag] = x[start - lag:N - lag]
-            x_head[b], x_tail[b] = x[start - 1::-1][:na], x[::-1][:na]     # x[start - k], x[N - k], k = 1..na
+            at = 0
+            for s, (a0, b0) in enumerate(segs):
+                x = element.respond(u_c[a0:b0, j])
+                x -= x.mean()
+                N = b0 - a0
+                for lag in range(na + 1):
+                    W[at:at + N - start, b * (na + 1) + lag] = x[start - lag:N - lag]
+                x_head[s, b], x_tail[s, b] = x[start - 1::-1][:na], x[::-1][:na]   # x[start - k], x[N - k], k = 1..na
+                at += N - start
         return dict(i=i, a_poly=np.concatenate([[1.0], nz.a]), O=O, found=found, W=W, x_head=x_head, x_tail=x_tail)
 
-    def _row_moments(self, group: list, Z: np.ndarray, u_c: np.ndarray, start: int, n_imp: int,
-                     windows: dict) -> None:
+    def _row_moments(self, group: list, Z: np.ndarray, n_imp: int, windows: dict) -> None:
         """:attr:`own` and :attr:`targets` of the rows of ``group`` (:meth:`_row_responses`)."""
-        n, L, N, nu = self.n_rows, self.n_lag, u_c.shape[0], u_c.shape[1]
+        n, L = self.n_rows, self.n_lag
+        nu = self._u_rows.shape[1]
         # Z' O and Z' x (lag 0 of every element) of the whole group in one product; u(t)' [x, X] in another.
         lag0 = [np.ascontiguousarray(row["W"][:, ::row["O"].shape[1] + 1]) for row in group]
         ZB = Z.T @ np.column_stack([row["O"] for row in group] + lag0)
-        UW = u_c[start:].T @ np.column_stack([row["W"] for row in group])
-        u_head = u_c[start - np.arange(1, L + 1)].T                           # (nu, L): u(start - l)
-        u_tail = u_c[N - np.arange(1, L + 1)].T                               # (nu, L): u(N - l)
+        UW = self._u_rows.T @ np.column_stack([row["W"] for row in group])
+        u_head, u_tail = self._u_head, self._u_tail                           # (S, nu, L): u(start - l), u(N - l)
         at_o = 0
         at_x = sum(row["O"].shape[1] for row in group)
         at_w = 0
@@ -372,16 +392,21 @@ class WindowInformation:
             x_head, x_tail = row["x_head"], row["x_tail"]
             # M[c, l, k, e] = sum over the rows of u_c(t - l) x_e(t - k) (l = 0 .. L, k = 0 .. na).  Z' X is
             # a sum along diagonals of lag pairs: M(l, k) = M(l - 1, k - 1) + u(start - l) x(start - k)
-            # - u(N - l) x(N - k), so only the lags k = 0 (with every input lag) and l = 0 (with every
-            # element lag) take a product over the rows.
+            # - u(N - l) x(N - k) (summed over the segments), so only the lags k = 0 (with every input
+            # lag) and l = 0 (with every element lag) take a product over the rows.
             M = np.empty((nu, L + 1, na + 1, m))
             M[:, 0] = np.moveaxis(UW[:, at_w:at_w + W.shape[1]].reshape(nu, m, na + 1), 1, 2)
             M[:, 1:, 0] = ZB[:, at_x:at_x + m].reshape(nu, L, m)
             at_w += W.shape[1]
             at_x += m
             for k in range(1, na + 1):
-                M[:, 1:, k] = (M[:, :-1, k - 1] + u_head[:, :, None] * x_head[None, None, :, k - 1]
-                               - u_tail[:, :, None] * x_tail[None, None, :, k - 1])
+                if u_head.shape[0] == 1:
+                    head = u_head[0][:, :, None] * x_head[0][None, None, :, k - 1]
+                    tail = u_tail[0][:, :, None] * x_tail[0][None, None, :, k - 1]
+                else:
+                    head = np.einsum("snl,sm->nlm", u_head, x_head[:, :, k - 1])
+                    tail = np.einsum("snl,sm->nlm", u_tail, x_tail[:, :, k - 1])
+                M[:, 1:, k] = M[:, :-1, k - 1] + head - tail
             M = M[:, 1:] / n                                                  # Z' [x, X] / n: (nu, L, na + 1, m)
             OW = O.T @ W / n
             W3 = W.reshape(W.shape[0], m, na + 1)
@@ -570,7 +595,8 @@ class WindowInformation:
         return value
 
 
-def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, design, noise: dict, layout, options):
+def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, design, noise: dict, layout, options,
+                          segments=None):
     """The detectable gain change of every element of the rows the ARX element test examined.
 
     Parameters
@@ -589,6 +615,9 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
     layout : RegressionLayout
     options : AnalysisOptions
         Its ``alpha``, ``nb`` and ``element_window``.
+    segments : sequence of (int, int), optional
+        Data with gaps: the segments of ``u`` and ``d`` (the samples of the segments the tests used,
+        stacked), whose moments are summed (:class:`WindowInformation`).
 
     Returns
     -------
@@ -601,7 +630,7 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
     """
     windows = {(i, j): element_window(model, i, j, options.nb, options.element_window)
                for i in noise for j in range(model.n_columns)}
-    info = WindowInformation(model, u, d, design.testable, layout.n_lag_u, layout.start, noise, windows)
+    info = WindowInformation(model, u, d, design.testable, layout.n_lag_u, layout.start, noise, windows, segments)
     family = sum(1 for i in noise for j in design.testable if model.columns[j] not in design.group_of)
     values = {(i, j): None for i in noise for j in range(model.n_columns)}
     values.update(info.detectable([k for k in info.targets if k[1] in design.testable], options.alpha, family))
