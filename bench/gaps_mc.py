@@ -21,6 +21,19 @@ Figures: the fraction of runs whose located elements (and flagged rows) are the 
 without (acceptance: at least 99 %), and the false-alarm rate (runs with any located element among
 the runs without a mismatch) of the three analyses.  The drops of run ``k`` are a pure function of
 the run, so ``--jobs`` only changes the speed.
+
+``--repair`` adds the repair on the same drops.  In every run with a mismatch, the true mismatched
+elements that the analysis of the full log locates are repaired
+(:func:`mpm_monitor.core.repair.repair_model`) three ways:
+
+* ``full``: on the log as simulated;
+* ``spans``: on the log with the drops, every span between the gaps a record of its own (what
+  :func:`mpm_monitor.core.pipeline.analyze` does, :func:`mpm_monitor.core.pipeline.repair_data`);
+* ``longest``: on the longest span without a gap only (what ``analyze`` did before).
+
+Each repaired element's unit-step response is compared with the plant's over 300 samples
+(:func:`bench.structures_mc.step_response_error`): the figures are the fraction within 10 % of the
+plant's and the median error, per way.
 """
 
 from __future__ import annotations
@@ -34,13 +47,15 @@ import numpy as np
 from mpm_monitor.apps.reproduce import simulate_case
 from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.logged_data import LoggedData
-from mpm_monitor.core.pipeline import analyze
+from mpm_monitor.core.pipeline import analyze, repair_data
+from mpm_monitor.core.repair import repair_model
 from mpm_monitor.monitor.window import SampleWindow, WindowOptions
 from mpm_monitor.sim.cases import CASE_NAMES
 
 from . import imap_tasks, write_json
 from .monte_carlo import simulate
 from .scenarios import make_scenario
+from .structures_mc import REPAIR_TOLERANCE, step_response_error
 
 DEFAULT_OUT = "bench/results/gaps_mc.json"
 DROP = 1.0 / 500
@@ -78,16 +93,35 @@ def _located(model, data: LoggedData) -> dict:
             "samples": rep.samples, "rows_lost": (rep.gaps or {}).get("rows_lost", 0)}
 
 
-def run_one(kind: str, name: str, seed: int, samples: int, drop: float) -> dict:
+def _repairs(model, plant, data: LoggedData, offline: LoggedData, pairs: list) -> dict:
+    """Step-response errors of the elements ``pairs`` (names) repaired on ``data`` and on ``offline``
+    (every span, and the longest span only); see the module docstring."""
+    located = [(model.outputs.index(o), model.columns.index(c)) for o, c in pairs]
+    spans, _ = repair_data(offline, True, OPTIONS, model)
+    a, b = max(offline.segments, key=lambda s: s[1] - s[0])
+    out = {}
+    for key, d in (("full", data), ("spans", spans), ("longest", offline.slice(a, b))):
+        try:
+            res = repair_model(model, d, located)
+        except Exception as exc:  # noqa: BLE001 - a benchmark records the failure and goes on
+            out[key] = {"error": f"{type(exc).__name__}: {exc}"}
+            continue
+        out[key] = {"step_error": [step_response_error(plant, res.model, i, j) for i, j in located],
+                    "samples": int(d.n_samples)}
+    return out
+
+
+def run_one(kind: str, name: str, seed: int, samples: int, drop: float, repair: bool = False) -> dict:
     """Simulate one run, drop samples and analyse it full, offline and live; a JSON-ready record."""
     if kind == "paper":
         case, data, _ = simulate_case(name, samples, seed)
         model, truth = case.model, sorted(list(x) for x in case.mismatched_elements)
+        plant = case.plant
         rng_seed = (seed, CASE_NAMES.index(name))
     else:
         sc = make_scenario(seed, int(name))
         data = simulate(sc, samples)
-        model = sc.model
+        model, plant = sc.model, sc.plant
         truth = sorted([model.outputs[m.output], model.inputs[m.input]] for m in sc.mismatches)
         rng_seed = (seed, int(name), 7)
     kept = drop_rows(data.n_samples, drop, np.random.default_rng(list(rng_seed)))
@@ -101,6 +135,9 @@ def run_one(kind: str, name: str, seed: int, samples: int, drop: float) -> dict:
         a, b = rec["full"], rec[key]
         rec[f"same_{key}"] = "error" not in a and "error" not in b and a["located"] == b["located"] \
             and a["rows"] == b["rows"]
+    pairs = [x for x in rec["full"].get("located", []) if x in truth]
+    if repair and pairs:
+        rec["repair"] = _repairs(model, plant, data, offline, pairs)
     return rec
 
 
@@ -108,9 +145,9 @@ def _run_star(args):
     return run_one(*args)
 
 
-def tasks(paper_seeds: int, runs: int, seed: int, samples: int, drop: float) -> list:
-    out = [("paper", name, s, samples, drop) for name in CASE_NAMES for s in range(1000, 1000 + paper_seeds)]
-    return out + [("mc", str(k), seed, samples, drop) for k in range(runs)]
+def tasks(paper_seeds: int, runs: int, seed: int, samples: int, drop: float, repair: bool = False) -> list:
+    out = [("paper", name, s, samples, drop, repair) for name in CASE_NAMES for s in range(1000, 1000 + paper_seeds)]
+    return out + [("mc", str(k), seed, samples, drop, repair) for k in range(runs)]
 
 
 def summarize(records: Sequence[dict]) -> dict:
@@ -132,6 +169,16 @@ def summarize(records: Sequence[dict]) -> dict:
                                | {"full": r["full"].get("located"), "offline": r["offline"].get("located"),
                                   "live": r["live"].get("located")}
                                for r in recs if not (r["same_offline"] and r["same_live"])]}
+        repaired = [r["repair"] for r in recs if "repair" in r]
+        if repaired:
+            out[fam]["repair"] = {}
+            for key in ("full", "spans", "longest"):
+                errs = [e for rp in repaired for e in rp[key].get("step_error", [])]
+                out[fam]["repair"][key] = {
+                    "elements": len(errs), "errors": sum(1 for rp in repaired if "error" in rp[key]),
+                    "within": sum(e <= REPAIR_TOLERANCE for e in errs) / len(errs) if errs else None,
+                    "median_step_error": float(np.median(errs)) if errs else None,
+                    "p90_step_error": float(np.percentile(errs, 90)) if errs else None}
     return out
 
 
@@ -144,12 +191,22 @@ def format_table(summary: dict, drop: float) -> str:
         fa_text = " / ".join("-" if fa[k] is None else f"{100 * fa[k]:.1f}%" for k in ("full", "offline", "live"))
         lines.append(f"{fam:<7}{s['runs']:>5}{s['dropped_per_run']:>13.1f}{100 * s['same_offline']:>13.1f}%"
                      f"{100 * s['same_live']:>10.1f}%{s['clean_runs']:>7}{fa_text:>37}")
+    if any("repair" in s for s in summary.values()):
+        lines += ["", "repair of the true mismatched elements the full log's analysis locates (step response vs the "
+                  "plant's over 300 samples)",
+                  f"{'runs':<7}{'way':<9}{'elements':>9}{'within 10%':>12}{'median error':>14}{'90th pct':>10}"]
+        for fam, s in summary.items():
+            for key, c in s.get("repair", {}).items():
+                if c["within"] is None:
+                    continue
+                lines.append(f"{fam:<7}{key:<9}{c['elements']:>9}{100 * c['within']:>11.1f}%"
+                             f"{100 * c['median_step_error']:>13.2f}%{100 * c['p90_step_error']:>9.2f}%")
     return "\n".join(lines)
 
 
 def run(paper_seeds: int, runs: int, seed: int = 0, samples: int = 3000, drop: float = DROP, jobs: int = 1,
-        progress: bool = False) -> dict:
-    todo = tasks(paper_seeds, runs, seed, samples, drop)
+        progress: bool = False, repair: bool = False) -> dict:
+    todo = tasks(paper_seeds, runs, seed, samples, drop, repair)
     t0 = time.perf_counter()
     records = []
     for rec in imap_tasks(_run_star, todo, jobs):
@@ -157,7 +214,7 @@ def run(paper_seeds: int, runs: int, seed: int = 0, samples: int = 3000, drop: f
         if progress:
             print(f"{len(records)}/{len(todo)}", flush=True)
     return {"config": {"paper_seeds": paper_seeds, "runs": runs, "seed": seed, "samples": samples, "drop": drop,
-                       "jobs": jobs, "wall_time_s": time.perf_counter() - t0},
+                       "jobs": jobs, "repair": repair, "wall_time_s": time.perf_counter() - t0},
             "summary": summarize(records), "records": records}
 
 
@@ -170,9 +227,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--drop", type=float, default=DROP, help="probability that a sample is dropped (default 1/500)")
     p.add_argument("--jobs", type=int, default=1)
     p.add_argument("--progress", action="store_true")
+    p.add_argument("--repair", action="store_true", help="also repair the located mismatches: full log, every span, "
+                   "longest span (module docstring)")
     p.add_argument("--out", default=DEFAULT_OUT)
     args = p.parse_args(argv)
-    res = run(args.paper_seeds, args.runs, args.seed, args.samples, args.drop, args.jobs, args.progress)
+    res = run(args.paper_seeds, args.runs, args.seed, args.samples, args.drop, args.jobs, args.progress, args.repair)
     print(format_table(res["summary"], args.drop))
     for fam, s in res["summary"].items():
         for d in s["differ"] if fam != "all" else []:
