@@ -62,10 +62,7 @@ def _vector(data: Mapping, key: str, source: str):
     val = data[key]
     if not isinstance(val, Sequence) or isinstance(val, (str, bytes)):
         raise ModelFileError(f"{source}: key '{key}': expected a list of numbers, got {type(val).__name__}")
-    for j, x in enumerate(val):
-        if isinstance(x, bool) or not isinstance(x, (int, float)):
-            raise ModelFileError(f"{source}: key '{key}': entry {j + 1}: expected a number, got {x!r}")
-    return np.array([_float(x, f"{source}: key '{key}': entry {j + 1}") for x in val], dtype=float)
+    return np.array([_number(x, f"{source}: key '{key}': entry {j + 1}") for j, x in enumerate(val)], dtype=float)
 
 
 def _float(x, where: str) -> float:
