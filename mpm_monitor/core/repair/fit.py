@@ -113,6 +113,10 @@ class _RowProblem:
         has its own offset and free responses (the state at its start is unknown, as at the start of
         a record).  Segments are cut at ``n_fit``; one with fewer than :data:`MIN_SEGMENT_ROWS` cost
         samples is left out.  Default: one record, ``(0, n_fit)``.
+    segment_levels : bool
+        With segments: an offset of each segment's own (a row with an integrator, whose level moves by
+        the unknown inputs inside a gap), instead of one offset for all (a self-regulating row, whose
+        level is the same on both sides of a gap: the state a gap leaves is in the free responses).
 
     Notes
     -----
@@ -130,7 +134,7 @@ class _RowProblem:
     UNIT_CACHE_SIZE = 64
 
     def __init__(self, z, u, specs, n_fit, skip, fixed_poles, free_response, noise_order, extra=None,
-                 sample_time=1.0, shared=None, segments=None):
+                 sample_time=1.0, shared=None, segments=None, segment_levels=True):
         self.z = np.asarray(z, float)[:n_fit]
         self.extra = None if extra is None else np.asarray(extra, float).reshape(len(z), -1)[:n_fit]
         self.u = np.asarray(u, float)[:n_fit]
@@ -162,7 +166,8 @@ class _RowProblem:
             cache_key = ("powers", self.start, self.n_fit, tuple(self.segments))
         self._powers = {} if shared is None else shared.setdefault(cache_key, {})
         self._unit_cache = {}
-        cols = [self._spread(np.ones_like(self.kw))]
+        ones = np.ones_like(self.kw)
+        cols = [self._spread(ones) if segment_levels else ones]
         if self.free:
             for a, mult in sorted(dict(fixed_poles).items()):
                 if 0 < a < 1 and a ** self.start > 1e-12:

@@ -15,7 +15,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..discretize import discretize, model_columns
+from ..discretize import discretize, model_columns, settling_samples
 from ..errors import ConfigurationError, InputError
 from ..logged_data import LoggedData, check_loop_data
 from ..model import PlantModel
@@ -27,6 +27,10 @@ from .options import RepairOptions, _TestSettings
 from .refit import _fit_repair, _refit_on_all
 from .result import ElementVerdict, RepairResult, _unchanged_entry
 from .row import _RowData
+
+#: Data with gaps: the unexplained-disturbance test starts a segment after a gap once the free responses
+#: of the state the gap leaves have decayed to this fraction (:meth:`_Record.scored_segments`).
+SETTLED_FRACTION = 0.05
 
 
 def _project_out(x: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -157,11 +161,16 @@ class _Record:
             keep[a:b] = True
         return keep
 
-    def scored_segments(self, *models: PlantModel) -> Optional[list]:
-        """The segments without the samples :meth:`scored` leaves out (None without gaps)."""
+    def scored_segments(self, *models: PlantModel, settled: bool = False) -> Optional[list]:
+        """The segments without the samples :meth:`scored` leaves out (None without gaps); with
+        ``settled`` also without those before the free responses of the state a gap leaves have decayed
+        to :data:`SETTLED_FRACTION` (the per-segment estimate of that state is not exact, and what it
+        leaves would look like a level shift to the disturbance test)."""
         if self.segments is None:
             return None
         memory = max(discretize(m).memory for m in models)
+        if settled:
+            memory += max(settling_samples(m, SETTLED_FRACTION) for m in models)
         return [self.segments[0]] + [(min(a + memory, b), b) for a, b in self.segments[1:]]
 
     def holdout(self, d: np.ndarray, keep: Optional[np.ndarray], extra: Optional[np.ndarray] = None) -> float:
@@ -360,7 +369,7 @@ def _evaluate(rec: _Record, results: dict) -> _Evaluation:
     sig = rec.signals if repaired == rec.model else rec.signals_of(repaired)
     d = np.asarray(sig.d, float)
     options = rec.options
-    segments = rec.scored_segments(rec.model, repaired)
+    segments = rec.scored_segments(rec.model, repaired, settled=True)
     tests = {i: unexplained_disturbance(d[:, i], rec.model.sample_time, options.disturbance_alpha,
                                         options.disturbance_trim, options.noise_order, segments=segments)
              for i in range(rec.model.n_outputs)}
