@@ -72,8 +72,8 @@ MAX_OWN_LAG_DELTA = 1.0
 IMPULSE_SAMPLES = 4000
 #: Elements whose moments are stacked at once (bounds the memory of :meth:`WindowInformation.drops`).
 CHUNK = 256
-#: Columns of the rows' responses ``[x, X]`` and own lags whose products with the input lags are taken at once.
-GROUP_COLUMNS = 1024
+#: Columns (own lags and lag-0 responses of the rows) whose products with the input lags are taken at once.
+GROUP_COLUMNS = 128
 
 
 def typical_element(model: PlantModel, i: int):
@@ -326,13 +326,15 @@ class WindowInformation:
         self.own = {}
         self.targets = {}
         n_imp = max(n_lag + 2, min(u.shape[0], IMPULSE_SAMPLES))
-        # The rows are taken in groups of about GROUP_COLUMNS columns of [x, X], so that the products with
-        # the input lags (Z' O, Z' x, u' [x, X]) are a few wide products instead of one narrow one per row.
+        # The rows are taken in groups of about GROUP_COLUMNS own-lag and lag-0 response columns, so that
+        # the products with the input lags (Z' O, Z' x) are a few wide products instead of narrow ones
+        # per row; the other moments of a row's responses are taken at once, and its [x, X] dropped.
         group, width = [], 0
         for i, nz in noise.items():
             row = self._row_responses(model, i, nz, u_c, d, start, segs)
+            row.update(self._response_moments(row))
             group.append(row)
-            width += row["W"].shape[1] + row["O"].shape[1]
+            width += row["lag0"].shape[1] + row["O"].shape[1]
             if width >= GROUP_COLUMNS:
                 self._row_moments(group, Z, n_imp, windows)
                 group, width = [], 0
@@ -370,20 +372,35 @@ class WindowInformation:
                 at += N - start
         return dict(i=i, a_poly=np.concatenate([[1.0], nz.a]), O=O, found=found, W=W, x_head=x_head, x_tail=x_tail)
 
+    def _response_moments(self, row: dict) -> dict:
+        """The moments of a row's responses that need no input lag, and its lag-0 responses; ``W`` dropped.
+
+        Returns
+        -------
+        dict
+            ``W`` None, ``lag0`` (n_rows, m): ``x`` of every element; ``UW`` (nu, m (na + 1)):
+            ``u(t)' [x, X]``; ``OW`` (na, m (na + 1)): ``O' [x, X] / n``; ``WW`` (m, na + 1, na + 1):
+            ``[x, X]' [x, X] / n`` per element.
+        """
+        W, O, m = row["W"], row["O"], len(row["found"])
+        na, n = O.shape[1], self.n_rows
+        WW = np.empty((m, na + 1, na + 1))
+        for b in range(m):                # element by element: no copy of W
+            XW = W[:, b * (na + 1):(b + 1) * (na + 1)]
+            WW[b] = XW.T @ XW / n
+        return dict(W=None, lag0=np.ascontiguousarray(W[:, ::na + 1]), UW=self._u_rows.T @ W, OW=O.T @ W / n, WW=WW)
+
     def _row_moments(self, group: list, Z: np.ndarray, n_imp: int, windows: dict) -> None:
         """:attr:`own` and :attr:`targets` of the rows of ``group`` (:meth:`_row_responses`)."""
         n, L = self.n_rows, self.n_lag
         nu = self._u_rows.shape[1]
-        # Z' O and Z' x (lag 0 of every element) of the whole group in one product; u(t)' [x, X] in another.
-        lag0 = [np.ascontiguousarray(row["W"][:, ::row["O"].shape[1] + 1]) for row in group]
-        ZB = Z.T @ np.column_stack([row["O"] for row in group] + lag0)
-        UW = self._u_rows.T @ np.column_stack([row["W"] for row in group])
+        # Z' O and Z' x (lag 0 of every element) of the whole group in one product.
+        ZB = Z.T @ np.column_stack([row["O"] for row in group] + [row["lag0"] for row in group])
         u_head, u_tail = self._u_head, self._u_tail                           # (S, nu, L): u(start - l), u(N - l)
         at_o = 0
         at_x = sum(row["O"].shape[1] for row in group)
-        at_w = 0
         for row in group:
-            i, O, W, found, a_poly = row["i"], row["O"], row["W"], row["found"], row["a_poly"]
+            i, O, found, a_poly = row["i"], row["O"], row["found"], row["a_poly"]
             na, m = O.shape[1], len(found)
             self.own[i] = (ZB[:, at_o:at_o + na] / n, O.T @ O / n)
             at_o += na
@@ -395,9 +412,8 @@ class WindowInformation:
             # - u(N - l) x(N - k) (summed over the segments), so only the lags k = 0 (with every input
             # lag) and l = 0 (with every element lag) take a product over the rows.
             M = np.empty((nu, L + 1, na + 1, m))
-            M[:, 0] = np.moveaxis(UW[:, at_w:at_w + W.shape[1]].reshape(nu, m, na + 1), 1, 2)
+            M[:, 0] = np.moveaxis(row["UW"].reshape(nu, m, na + 1), 1, 2)
             M[:, 1:, 0] = ZB[:, at_x:at_x + m].reshape(nu, L, m)
-            at_w += W.shape[1]
             at_x += m
             for k in range(1, na + 1):
                 if u_head.shape[0] == 1:
@@ -408,9 +424,7 @@ class WindowInformation:
                     tail = np.einsum("snl,sm->nlm", u_tail, x_tail[:, :, k - 1])
                 M[:, 1:, k] = M[:, :-1, k - 1] + head - tail
             M = M[:, 1:] / n                                                  # Z' [x, X] / n: (nu, L, na + 1, m)
-            OW = O.T @ W / n
-            W3 = W.reshape(W.shape[0], m, na + 1)
-            WW = np.matmul(W3.transpose(1, 2, 0), W3.transpose(1, 0, 2)) / n    # [x, X]' [x, X] / n per element
+            OW, WW = row["OW"], row["WW"]
             for b, (j, element, ref) in enumerate(found):
                 cols = slice(b * (na + 1), (b + 1) * (na + 1))
                 zw, ow, ww = M[..., b].reshape(nu * L, na + 1), OW[:, cols], WW[b, 1:]
