@@ -239,8 +239,6 @@ class _RowProblem:
         if not self.p:
             return self.z, self.u
         num = np.concatenate([[1.0], ar])
-        if self.segments is None:
-            return lfilter(num, [1.0], self.z), lfilter(num, [1.0], self.u, axis=0)
         return self._lfilter(num, [1.0], self.z), self._lfilter(num, [1.0], self.u)
 
     def set_ar(self, ar) -> None:
@@ -253,8 +251,6 @@ class _RowProblem:
     def _filtered_extra(self, ar):
         if self.p == 0:
             return self._cost(self.extra)
-        if self.segments is None:
-            return lfilter(np.concatenate([[1.0], ar]), [1.0], self.extra, axis=0)[self.start:]
         return self._cost(self._lfilter(np.concatenate([[1.0], ar]), [1.0], self.extra))
 
     def start_poles(self) -> np.ndarray:
