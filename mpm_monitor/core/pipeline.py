@@ -99,8 +99,7 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
     return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result, regressions=None)
 
 
-def repair_data(data: LoggedData, gappy: bool, options: AnalysisOptions = AnalysisOptions(),
-                model: Optional[PlantModel] = None) -> tuple:
+def repair_data(data: LoggedData, gappy: bool, options: AnalysisOptions, model: PlantModel) -> tuple:
     """The data the repair fits: all of ``data``, or with gaps the segments the detection used.
 
     On data with gaps the repair (:func:`~mpm_monitor.core.repair.repair_model`) takes every segment
@@ -108,6 +107,16 @@ def repair_data(data: LoggedData, gappy: bool, options: AnalysisOptions = Analys
     responses, its first samples (the longest lag) left out of the fits; nothing is interpolated.
     The segments too short for a regression row of the tests (:func:`~mpm_monitor.core.gaps.plan_gaps`)
     are left out, as the detection leaves them out.
+
+    Parameters
+    ----------
+    data : LoggedData
+    gappy : bool
+        Whether ``data`` has gaps (the detection's report has a ``gaps`` object).
+    options : AnalysisOptions
+        Its ``na``, ``nb``, ``max_delay`` and ``max_gap`` (the tests' longest lag and the gaps' plan).
+    model : PlantModel
+        The model repaired.
 
     Returns
     -------
@@ -119,8 +128,7 @@ def repair_data(data: LoggedData, gappy: bool, options: AnalysisOptions = Analys
     from .gaps import plan_gaps
     from .regressions import regression_layout
 
-    plan = plan_gaps(data, regression_layout(model, options).start, options.max_gap) if model is not None else None
-    used = data.segments if plan is None else plan.used
+    used = plan_gaps(data, regression_layout(model, options).start, options.max_gap).used
     rows = np.concatenate([np.arange(a, b) for a, b in used])
     note = (f"the repair was fitted and validated on the {len(used)} spans between the gaps, each from its own "
             f"start ({rows.size} of {data.n_samples} samples); no fit reaches across a gap")
