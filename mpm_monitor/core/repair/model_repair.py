@@ -441,21 +441,20 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
         for j, el in res.elements.items():
             kinds[(i, j)] = el.kind
             changes.append(el.change_entry(model, i, j))
-    yhat0 = np.asarray(rec.signals.yhat, float)
-    yhat1 = np.asarray(ev.signals.yhat, float)
-    d0, d1 = rec.d0, np.asarray(ev.signals.d, float)
+    d1 = np.asarray(ev.signals.d, float)
     keep = rec.scored(model, ev.model)
+    for i in range(ny):
+        if rec.n_hold > 0 and names_y[i] not in holdout_after:
+            holdout_after[names_y[i]] = rec.holdout(d1[:, i], keep)
+            if keep is not None:
+                holdout_before[names_y[i]] = rec.holdout(rec.d0[:, i], keep)
+    yhat0, yhat1, d0 = np.asarray(rec.signals.yhat, float), np.asarray(ev.signals.yhat, float), rec.d0
     if keep is not None:          # with gaps: the samples not depending on columns inside a gap
         y, yhat0, yhat1, d0, d1 = (x[keep] for x in (y, yhat0, yhat1, d0, d1))
     level = model.integrating_outputs
     error_before, error_after = error_rms(model, d0), error_rms(model, d1)
     fit_before = {names_y[i]: _fit_percent(y[:, i], yhat0[:, i], level[i]) for i in range(ny)}
     fit_after = {names_y[i]: _fit_percent(y[:, i], yhat1[:, i], level[i]) for i in range(ny)}
-    for i in range(ny):
-        if rec.n_hold > 0 and names_y[i] not in holdout_after:
-            holdout_after[names_y[i]] = rec.holdout(np.asarray(ev.signals.d, float)[:, i], keep)
-            if keep is not None:
-                holdout_before[names_y[i]] = rec.holdout(rec.d0[:, i], keep)
     disturbances, disturbance_warnings = _disturbance_findings(rec, ev.tests)
     warnings.extend(disturbance_warnings)
     return RepairResult(model=ev.model, changes=changes, kinds=kinds, error_before=error_before,
