@@ -416,7 +416,7 @@ class WindowInformation:
             M[:, 1:, 0] = ZB[:, at_x:at_x + m].reshape(nu, L, m)
             at_x += m
             for k in range(1, na + 1):
-                if u_head.shape[0] == 1:
+                if u_head.shape[0] == 1:  # one record: the plain products (einsum rounds differently)
                     head = u_head[0][:, :, None] * x_head[0][None, None, :, k - 1]
                     tail = u_tail[0][:, :, None] * x_tail[0][None, None, :, k - 1]
                 else:
