@@ -109,21 +109,25 @@ def test_the_repair_runs_on_every_span_between_the_gaps(case_32):
     assert rep.repair["changes"] and all(c["applied"] for c in rep.repair["changes"])
 
 
-def _noise_free_run(case, samples, seed):
+@pytest.fixture(scope="module")
+def noise_free_gappy():
+    """Case 3.2 without noise, 3,000 samples, with 7 samples missing in 4 gaps: the case, the whole
+    log, the gappy log and the mismatched elements as (output, column) indices."""
+    case = simulation_case("3.2")
     quiet = DisturbanceOptions(disturbance_std=0.0, noise_std=0.0)
-    return run_closed_loop(case.plant, case.model, samples, seed=seed, mpc=case.mpc, excitation=case.excitation,
+    data = run_closed_loop(case.plant, case.model, 3000, seed=11, mpc=case.mpc, excitation=case.excitation,
                            disturbance=quiet).as_logged_data()
+    gappy = _drop(data, [400, 401, 1100, 1900, 1901, 1902, 2600])
+    located = [(case.model.outputs.index(o), case.model.columns.index(c)) for o, c in case.mismatched_elements]
+    return case, data, gappy, located
 
 
-def test_without_noise_the_repair_across_gaps_returns_the_plant_exactly():
+def test_without_noise_the_repair_across_gaps_returns_the_plant_exactly(noise_free_gappy):
     """Every span between the gaps is a record of its own (from rest, its own offset and free
     responses, no lag reaching across a gap): without noise the fit over the spans returns the
     plant's elements to numerical precision, as it does on the whole record."""
-    case = simulation_case("3.2")
-    data = _noise_free_run(case, 3000, 11)
-    gappy = _drop(data, [400, 401, 1100, 1900, 1901, 1902, 2600])
+    case, _, gappy, located = noise_free_gappy
     assert len(gappy.segments) == 5
-    located = [(case.model.outputs.index(o), case.model.columns.index(c)) for o, c in case.mismatched_elements]
     res = repair_model(case.model, gappy, located)
     for i, j in located:
         got, want = res.model.element(i, j), case.plant.element(i, j)
@@ -133,15 +137,12 @@ def test_without_noise_the_repair_across_gaps_returns_the_plant_exactly():
     assert all(res.holdout_error_after[o] < 1e-3 * res.holdout_error_before[o] for o in ("y1", "y2"))
 
 
-def test_a_fit_that_ignored_the_gaps_would_not_return_the_plant():
+def test_a_fit_that_ignored_the_gaps_would_not_return_the_plant(noise_free_gappy):
     """The control of the test above: the same stacked samples taken as one record (the gaps
     ignored, as if the samples were contiguous) do not give the plant's elements back."""
-    case = simulation_case("3.2")
-    data = _noise_free_run(case, 3000, 11)
-    gappy = _drop(data, [400, 401, 1100, 1900, 1901, 1902, 2600])
+    case, data, gappy, located = noise_free_gappy
     as_one = dataclasses.replace(gappy, t=data.t[:gappy.n_samples])
     assert len(as_one.segments) == 1
-    located = [(case.model.outputs.index(o), case.model.columns.index(c)) for o, c in case.mismatched_elements]
     res = repair_model(case.model, as_one, located)
     errors = [abs(res.model.element(i, j)["gain"] / case.plant.element(i, j)["gain"] - 1) for i, j in located]
     assert max(errors) > 1e-3
