@@ -192,8 +192,12 @@ class ElementTarget:
         ``X' X / n``.
     xxf : ndarray, shape (na,)
         ``X' x_f / n``.
-    impulse, filtered : ndarray, shape (m,)
-        Impulse responses of the element and of ``A_i(q)`` times it (for a dither's contribution).
+    element : DiscreteElement
+        The element whose response ``x`` is (the model's, or the row's typical one).
+    a_poly : ndarray, shape (na + 1,)
+        ``[1, a_1 .. a_na]``: the row's ``A_i``.
+    impulse_samples : int
+        Length ``m`` of :attr:`impulse` and :attr:`filtered`.
     """
 
     output: int
@@ -206,8 +210,26 @@ class ElementTarget:
     ox: np.ndarray
     xx: np.ndarray
     xxf: np.ndarray
-    impulse: np.ndarray
-    filtered: np.ndarray
+    element: object
+    a_poly: np.ndarray
+    impulse_samples: int
+
+    @property
+    def impulse(self) -> np.ndarray:
+        """Impulse response ``g(0) .. g(m - 1)`` of the element, shape (m,) (computed on first use: only
+        a dither's contribution needs it, for the few inputs an experiment dithers)."""
+        cached = self.__dict__.get("_impulse")
+        if cached is None:
+            cached = self.__dict__["_impulse"] = self.element.impulse_response(self.impulse_samples)
+        return cached
+
+    @property
+    def filtered(self) -> np.ndarray:
+        """Impulse response ``h`` of ``A_i(q)`` times the element, shape (m,) (computed on first use)."""
+        cached = self.__dict__.get("_filtered")
+        if cached is None:
+            cached = self.__dict__["_filtered"] = lfilter(self.a_poly, [1.0], self.impulse)
+        return cached
 
     def dither_moments(self, n_lag: int) -> tuple:
         """What a white dither of unit amplitude on the element's input adds to its moments.
@@ -431,11 +453,10 @@ class WindowInformation:
                 # x_f = A_i(q) x = x + X a on the rows
                 k = windows.get((i, j))
                 k = L if k is None else min(int(k), L)
-                g = element.impulse_response(n_imp)
                 self.targets[(i, j)] = ElementTarget(
                     output=i, column=j, tested=np.arange(j * L, j * L + k), reference_gain=ref,
                     c=zw @ a_poly, c_own=ow @ a_poly, zx=zw[:, 1:], ox=ow[:, 1:], xx=ww[:, 1:], xxf=ww @ a_poly,
-                    impulse=g, filtered=lfilter(a_poly, [1.0], g))
+                    element=element, a_poly=a_poly, impulse_samples=n_imp)
 
     def block(self, j: int) -> slice:
         """Columns of input ``j``'s lags."""

@@ -65,6 +65,9 @@ from .model import PlantModel
 #: Largest condition number of the scaled regressors for which a regression is solved from its Gram
 #: matrix: the normal equations then lose at most about 1e6 * 1e-16 = 1e-10 (relative).
 DEFAULT_MAX_CONDITION = 1e3
+#: Rows of a Gram matrix gathered at once from the lag tables of :func:`lagged_cross_products` (bounds
+#: the index temporaries to a few MB at any size).
+GATHER_ROWS = 256
 
 
 class IllConditioned(ArithmeticError):
@@ -316,10 +319,16 @@ def lagged_cross_products(values: np.ndarray, col_channel: np.ndarray, col_lag: 
                 - tail[k][:, :, None] * tail[k + delta][:, None, b_need], axis=0)
             corr[m_max + 1:] = corr[m_max]
         table[delta][:, :, b_need] = base[None] + corr
-    li, lj = col_lag[:, None], col_lag[None, :]
-    ci, cj = col_channel[:, None], col_channel[None, :]
-    upper = lj >= li
-    gram = table[np.abs(lj - li), np.minimum(li, lj), np.where(upper, ci, cj), np.where(upper, cj, ci)]
+    # Gathered in slabs of rows: the four index arrays of a whole p x p gather would be four times the
+    # Gram's own size (at 100 outputs, 2,300 columns: 170 MB of temporaries beside a 42 MB result).
+    p = col_lag.size
+    gram = np.empty((p, p))
+    lj, cj = col_lag[None, :], col_channel[None, :]
+    for a in range(0, p, GATHER_ROWS):
+        li, ci = col_lag[a:a + GATHER_ROWS, None], col_channel[a:a + GATHER_ROWS, None]
+        upper = lj >= li
+        gram[a:a + GATHER_ROWS] = table[np.abs(lj - li), np.minimum(li, lj), np.where(upper, ci, cj),
+                                        np.where(upper, cj, ci)]
     # Sums: sum_{t=s}^{e-1} x_c(t - l) = sum over [s, e) + the l rows before s - the last l rows.
     cum_head = np.vstack([np.zeros((1, n_ch)), np.cumsum(head, axis=0)])
     cum_tail = np.vstack([np.zeros((1, n_ch)), np.cumsum(tail, axis=0)])
