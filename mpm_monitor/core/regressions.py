@@ -491,17 +491,51 @@ def _frobenius(a: np.ndarray) -> float:
     return float(np.sqrt(np.sum(a * a)))
 
 
-def _norm2_estimate(a: np.ndarray, iterations: int = 12) -> float:
-    """Largest singular value of ``a`` by power iteration (a lower estimate, usually within a few %)."""
-    x = np.linspace(1.0, 2.0, a.shape[1])
+def _trmv(t: np.ndarray, x: np.ndarray, trans: bool) -> np.ndarray:
+    """``t x`` (``t' x`` with ``trans``) of an upper triangular ``t`` (BLAS ``dtrmv``: half the reads of a product)."""
+    if t.flags.f_contiguous:
+        return blas.dtrmv(t, x, lower=0, trans=int(trans))
+    if t.flags.c_contiguous:                      # t' is a Fortran-ordered lower triangle
+        return blas.dtrmv(t.T, x, lower=1, trans=int(not trans))
+    return blas.dtrmv(np.asfortranarray(t), x, lower=0, trans=int(trans))
+
+
+def _norm2_estimate(a, iterations: int = 12) -> float:
+    """Largest singular value of an upper triangular matrix by power iteration (a lower estimate,
+    usually within a few %).
+
+    Parameters
+    ----------
+    a : ndarray, shape (p, p), or tuple (A, B, C)
+        The upper triangular matrix, or its blocks ``[[A, B], [0, C]]`` with ``A`` (k, k) and ``C``
+        (p - k, p - k) upper triangular and ``B`` (k, p - k) dense (so that a factor partitioned as
+        :class:`GramFit` keeps it need not be assembled).
+    iterations : int
+    """
+    A, B, C = (a, None, None) if isinstance(a, np.ndarray) else a
+    k = A.shape[0]
+    split = B is not None and B.shape[1] > 0
+
+    def apply(x):
+        if not split:
+            return _trmv(A, x, False)
+        return np.concatenate([_trmv(A, x[:k], False) + B @ x[k:], _trmv(C, x[k:], False)])
+
+    def apply_t(y):
+        if not split:
+            return _trmv(A, y, True)
+        return np.concatenate([_trmv(A, y[:k], True), B.T @ y[:k] + _trmv(C, y[k:], True)])
+
+    p = k + (B.shape[1] if split else 0)
+    x = np.linspace(1.0, 2.0, p)
     x /= np.linalg.norm(x)
     for _ in range(iterations):
-        x = a.T @ (a @ x)
+        x = apply_t(apply(x))
         nx = np.linalg.norm(x)
         if not nx > 0:
             return 0.0
         x /= nx
-    return float(np.linalg.norm(a @ x))
+    return float(np.linalg.norm(apply(x)))
 
 
 def checked_condition(R, rinv, max_condition: float, frobenius_R: Optional[float] = None,
@@ -511,7 +545,7 @@ def checked_condition(R, rinv, max_condition: float, frobenius_R: Optional[float
     Returns the Frobenius bound ``||R||_F ||R^-1||_F`` when it is within the limit (it is never below
     the 2-norm condition number), else a power-iteration estimate of the 2-norm condition number.
     ``R`` and ``rinv`` may be callables that build them (only needed for the estimate) when their
-    Frobenius norms are given.
+    Frobenius norms are given; either may be given as the blocks of :func:`_norm2_estimate`.
     """
     if frobenius_rinv is None:
         rinv = rinv() if callable(rinv) else rinv
@@ -684,8 +718,8 @@ class GramFit(SharedFit):
         frobenius_R = math.sqrt(reg.frobenius_R ** 2 + float(np.sum(qo * qo)) + float(np.sum(R2 * R2)))
         frobenius_rinv = math.sqrt(reg.frobenius_rinv ** 2 + float(np.sum(self._w * self._w))
                                    + float(np.sum(r2i * r2i)))
-        self.condition_bound = checked_condition(self._full_factor, lambda: self.rinv, max_condition, frobenius_R,
-                                                 frobenius_rinv) if p else 1.0
+        self.condition_bound = checked_condition((reg.R, qo, R2), lambda: (r1i, self._w, r2i), max_condition,
+                                                 frobenius_R, frobenius_rinv) if p else 1.0
         scale = np.concatenate([reg.scale, own_scale])
         self.theta = theta_s / scale
         self.scale = scale
@@ -707,12 +741,6 @@ class GramFit(SharedFit):
             self.rank_own = 0
         ynorm2 = float(g_yy - sum_y * sum_y / n) if n else 0.0
         self.fit_percent = 100.0 * (1.0 - math.sqrt(self.rss / ynorm2)) if ynorm2 > 0 else 0.0
-
-    def _full_factor(self) -> np.ndarray:
-        pc, po = self._qo.shape
-        R = np.zeros((pc + po, pc + po))
-        R[:pc, :pc], R[:pc, pc:], R[pc:, pc:] = self.reg.R, self._qo, self._R2
-        return R
 
     @property
     def rinv(self) -> np.ndarray:
