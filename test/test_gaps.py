@@ -18,6 +18,7 @@ from mpm_monitor.core.gaps import plan_gaps
 from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.core.regressions import regression_layout
 from mpm_monitor.core.repair import repair_model, unexplained_disturbance
+from mpm_monitor.core.signals import error_rms
 from mpm_monitor.io.csv_log import read_csv, write_csv
 from mpm_monitor.sim.cases import simulation_case
 from mpm_monitor.sim.closed_loop import run_closed_loop
@@ -107,6 +108,24 @@ def test_the_repair_runs_on_every_span_between_the_gaps(case_32):
     assert any("the repair was fitted and validated on the 2 spans between the gaps, each from its own start "
                "(2999 of 2999 samples)" in w for w in rep.warnings)
     assert rep.repair["changes"] and all(c["applied"] for c in rep.repair["changes"])
+
+
+def test_reported_errors_leave_out_what_the_state_a_gap_leaves_still_drives(case_32):
+    # Each span's model output starts from an estimated state; until that state's free response has
+    # settled, the prediction error carries what the estimate missed.  The reported errors (detection
+    # alone and the repair's before / after) are taken over the settled samples, so they stay those of
+    # the whole log; over every sample the clean row y3 reads far above its noise.
+    case, data = case_32
+    gappy = _drop(data, [1200, 1201, 1202, 2500])
+    full, rep = detect(case.model, data, DETECT), detect(case.model, gappy, DETECT)
+    for name, value in full.repair["error_before"].items():
+        assert rep.repair["error_before"][name] == pytest.approx(value, rel=0.05)
+    every_sample = error_rms(case.model, rep.signals.d)
+    assert every_sample["y3"] > 1.2 * full.repair["error_before"]["y3"]
+    full, rep = analyze(case.model, data, AnalysisOptions()), analyze(case.model, gappy, AnalysisOptions())
+    for key in ("error_before", "error_after"):
+        for name, value in full.repair[key].items():
+            assert rep.repair[key][name] == pytest.approx(value, rel=0.05)
 
 
 @pytest.fixture(scope="module")

@@ -418,7 +418,7 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     from .gaps import plan_gaps
     from .regressions import regression_layout, window_regressions
     from .row_test import sdelta_row_test
-    from .signals import compute_signals, error_rms, segment_signals
+    from .signals import compute_signals, error_rms, scored_mask, segment_signals
 
     ny = model.n_outputs
     src = data.source or "data"
@@ -514,7 +514,8 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     for e in elements:
         if e.mismatch:
             e.kind = "missing" if e.role == "candidate" else "unknown"
-    rms = error_rms(model, sig.d)
+    # With gaps: over the samples settled from the state each gap leaves, as the repair takes its errors.
+    rms = error_rms(model, sig.d if plan is None else sig.d[scored_mask(plan.local_segments, n, model, settled=True)])
     unrepaired = {"model": model.to_dict(), "changes": [], "error_before": rms, "error_after": dict(rms)}
     if plan is not None:
         warnings.insert(0, plan.warning())

@@ -317,6 +317,49 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
                           for f in dataclasses.fields(LoopSignals)})
 
 
+#: Data with gaps: the samples of a segment after a gap count as settled once the free responses of the
+#: state the gap leaves have decayed to this fraction (:func:`scored_segments`).
+SETTLED_FRACTION = 0.05
+
+
+def scored_segments(segments, *models: PlantModel, settled: bool = False) -> list:
+    """The segments of data with gaps without the first samples of every segment after a gap that still
+    depend on the state the gap leaves.
+
+    The first segment is kept whole (its initial state is that of any record, estimated as without
+    gaps).  A later segment loses its first samples: the longest shift register of ``models``
+    (:attr:`~mpm_monitor.core.discretize.DiscreteElements.memory`: while the model output still
+    depends on the columns inside the gap) and, with ``settled``, also those before the free
+    responses have decayed to :data:`SETTLED_FRACTION` (:func:`~mpm_monitor.core.discretize.settling_samples`;
+    the per-segment estimate of that state is not exact).
+
+    Parameters
+    ----------
+    segments : sequence of (int, int)
+        Contiguous runs of rows ``(first, end)`` of the stacked samples, in order.
+    *models : PlantModel
+        The models whose outputs are compared (the longest memory of them counts).
+    settled : bool
+
+    Returns
+    -------
+    list of (int, int)
+    """
+    segments = [(int(a), int(b)) for a, b in segments]
+    skip = max(discretize(m).memory for m in models)
+    if settled:
+        skip += max(settling_samples(m, SETTLED_FRACTION) for m in models)
+    return segments[:1] + [(min(a + skip, b), b) for a, b in segments[1:]]
+
+
+def scored_mask(segments, n: int, *models: PlantModel, settled: bool = False) -> np.ndarray:
+    """:func:`scored_segments` as a mask over the ``n`` stacked samples, shape (n,), bool."""
+    keep = np.zeros(int(n), dtype=bool)
+    for a, b in scored_segments(segments, *models, settled=settled):
+        keep[a:b] = True
+    return keep
+
+
 def error_rms(model: PlantModel, d: np.ndarray) -> dict:
     """``{output name: RMS of its prediction error}``, about its mean on an integrating output.
 

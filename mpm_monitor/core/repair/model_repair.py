@@ -15,11 +15,11 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..discretize import discretize, model_columns, settling_samples
+from ..discretize import model_columns
 from ..errors import ConfigurationError, InputError
 from ..logged_data import LoggedData, check_loop_data
 from ..model import PlantModel
-from ..signals import LoopSignals, compute_signals, error_rms, segment_signals
+from ..signals import LoopSignals, compute_signals, error_rms, scored_mask, scored_segments, segment_signals
 from .classify import _classify_row
 from .disturbance import unexplained_disturbance
 from .fit import _TooShort
@@ -27,10 +27,6 @@ from .options import RepairOptions, _TestSettings
 from .refit import _fit_repair, _refit_on_all
 from .result import ElementVerdict, RepairResult, _unchanged_entry
 from .row import _RowData
-
-#: Data with gaps: the unexplained-disturbance test starts a segment after a gap once the free responses
-#: of the state the gap leaves have decayed to this fraction (:meth:`_Record.scored_segments`).
-SETTLED_FRACTION = 0.05
 
 
 def _project_out(x: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -149,29 +145,19 @@ class _Record:
     def n_hold(self) -> int:
         return self.n - self.n_fit
 
-    def scored(self, *models: PlantModel) -> Optional[np.ndarray]:
-        """The samples the errors are taken over: with gaps, all but the first samples of every segment
-        after a gap whose model output (of any of ``models``) still depends on columns inside the gap
-        (the longest shift register, :attr:`~mpm_monitor.core.discretize.DiscreteElements.memory`);
-        None without gaps (every sample)."""
+    def scored(self, *models: PlantModel, settled: bool = False) -> Optional[np.ndarray]:
+        """The samples the held-out check (and, ``settled``, the errors) are taken over: with gaps, all
+        but the first samples of every segment after a gap that still depend on the state the gap
+        leaves (:func:`~mpm_monitor.core.signals.scored_mask`); None without gaps (every sample)."""
         if self.segments is None:
             return None
-        keep = np.zeros(self.n, dtype=bool)
-        for a, b in self.scored_segments(*models):
-            keep[a:b] = True
-        return keep
+        return scored_mask(self.segments, self.n, *models, settled=settled)
 
     def scored_segments(self, *models: PlantModel, settled: bool = False) -> Optional[list]:
-        """The segments without the samples :meth:`scored` leaves out (None without gaps); with
-        ``settled`` also without those before the free responses of the state a gap leaves have decayed
-        to :data:`SETTLED_FRACTION` (the per-segment estimate of that state is not exact, and what it
-        leaves would look like a level shift to the disturbance test)."""
+        """:func:`~mpm_monitor.core.signals.scored_segments` of the record's segments (None without gaps)."""
         if self.segments is None:
             return None
-        memory = max(discretize(m).memory for m in models)
-        if settled:
-            memory += max(settling_samples(m, SETTLED_FRACTION) for m in models)
-        return [self.segments[0]] + [(min(a + memory, b), b) for a, b in self.segments[1:]]
+        return scored_segments(self.segments, *models, settled=settled)
 
     def holdout(self, d: np.ndarray, keep: Optional[np.ndarray], extra: Optional[np.ndarray] = None) -> float:
         """:func:`_holdout_rms` of ``d`` (shape (n_samples,)) over the samples ``keep`` (:meth:`scored`)."""
@@ -449,7 +435,8 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
             if keep is not None:
                 holdout_before[names_y[i]] = rec.holdout(rec.d0[:, i], keep)
     yhat0, yhat1, d0 = np.asarray(rec.signals.yhat, float), np.asarray(ev.signals.yhat, float), rec.d0
-    if keep is not None:          # with gaps: the samples not depending on columns inside a gap
+    if keep is not None:          # with gaps: the samples settled from the state each gap leaves
+        keep = rec.scored(model, ev.model, settled=True)
         y, yhat0, yhat1, d0, d1 = (x[keep] for x in (y, yhat0, yhat1, d0, d1))
     level = model.integrating_outputs
     error_before, error_after = error_rms(model, d0), error_rms(model, d1)
