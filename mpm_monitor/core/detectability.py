@@ -501,7 +501,10 @@ class WindowInformation:
                     xxf[g] += a2 * dxxf
         rows = sorted({t.output for t in ts})
         h_own = {i: H @ self.own[i][0] for i in rows}                       # H Z'O_i / n, once per row
-        return dict(ts=ts, c=c, zx=zx, xx=xx, xxf=xxf, hzx=np.matmul(H, zx), hc=c @ H,
+        # H zx of every element as one product (p, m na): a stack of narrow products is about 4 times slower.
+        m, p, na = zx.shape
+        hzx = (H @ zx.transpose(1, 0, 2).reshape(p, m * na)).reshape(p, m, na).transpose(1, 0, 2)
+        return dict(ts=ts, c=c, zx=zx, xx=xx, xxf=xxf, hzx=hzx, hc=c @ H,
                     g_zo=np.stack([self.own[t.output][0] for t in ts]), hzo=np.stack([h_own[t.output] for t in ts]),
                     g_oo=np.stack([self.own[t.output][1] for t in ts]), ox=np.stack([t.ox for t in ts]),
                     c_own=np.stack([t.c_own for t in ts]))
