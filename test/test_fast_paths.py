@@ -32,6 +32,7 @@ from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.core.regressions import (
     GramBlockRegression,
     GramFit,
+    IllConditioned,
     QrRegressions,
     lagged_cross_products,
     regression_layout,
@@ -340,3 +341,37 @@ def test_noise_free_rows_fall_back_to_qr():
     assert any(f.startswith("input fit of output") for f in regs.fallbacks)
     assert_reports_match(new, qr_analyze(case.model, data, opts, signals=sig))
     assert set(new.located_elements) == set(case.mismatched_elements)
+
+
+def test_a_fit_checks_its_condition_from_its_shared_blocks_norms(monkeypatch):
+    # 1,100 common columns: the Frobenius bound (about 1,300) exceeds 1e3 although the condition number
+    # is about 3, so each fit needs the finer check.  The shared block's 2-norms are estimated once for
+    # all its fits; each fit adds its own columns' exact Frobenius norms, which bounds its condition
+    # number from above (||[A B]||_2^2 <= ||A||_2^2 + ||B||_F^2).
+    import mpm_monitor.core.regressions as regressions
+
+    calls = []
+    estimate = regressions._norm2_estimate
+    monkeypatch.setattr(regressions, "_norm2_estimate", lambda a, *k: calls.append(1) or estimate(a, *k))
+    rng = np.random.default_rng(3)
+    n, p = 4000, 1100
+    X = rng.standard_normal((n, p))
+    reg = GramBlockRegression(X.T @ X, [p])
+    assert reg.frobenius_R * reg.frobenius_rinv > 1e3
+    fits = []
+    for k in range(3):
+        own = rng.standard_normal((n, 2))
+        y = X[:, k] + own @ [0.5, -0.2] + rng.standard_normal(n)
+        fits.append(GramFit(reg, X.T @ own, own.T @ own, X.T @ y, own.T @ y, float(y @ y), float(y.sum()), n))
+    assert len(calls) == 2                       # ||R1||_2 and ||R1^-1||_2, once for the three fits
+    for fit in fits:
+        R = np.block([[reg.R, fit._qo], [np.zeros((2, p)), fit._R2]])
+        kappa = np.linalg.cond(R)
+        assert 0.98 * kappa <= fit.condition_bound <= 2.0 * kappa
+    # An own column nearly collinear with the common ones: the bound exceeds the limit and the whole
+    # factor's estimate decides (and rejects).
+    own = np.column_stack([X[:, 0] + 1e-6 * rng.standard_normal(n), rng.standard_normal(n)])
+    y = rng.standard_normal(n)
+    with pytest.raises(IllConditioned):
+        GramFit(reg, X.T @ own, own.T @ own, X.T @ y, own.T @ y, float(y @ y), float(y.sum()), n)
+    assert len(calls) == 4

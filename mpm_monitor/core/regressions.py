@@ -41,7 +41,9 @@ is the triangular factor of the QR factorisation of the scaled regressors (up to
 rows, which no result depends on).  Normal equations square the condition number: relative errors
 are of the order ``kappa^2 * 1e-16``.  Each regression's 2-norm condition number ``kappa`` is checked
 -- first against the cheap bound ``||R||_F ||R^-1||_F >= kappa``, then, if that bound is too large,
-by a power-iteration estimate (:func:`checked_condition`) -- and above ``max_condition`` (default
+for a fit that extends a shared block by its own lags, against the bound from the shared block's
+2-norms (estimated once per regression) and the own columns' Frobenius norms, and last by a
+power-iteration estimate of the whole factor (:func:`checked_condition`) -- and above ``max_condition`` (default
 1e3, errors below about 1e-10) the regression is refitted by QR from the window's signals.  A fit
 that explains nearly all of its target (noise-free data) is refitted too: its residual sum of
 squares ``y'y - |Q'y|^2`` would lose digits (:data:`MIN_RESIDUAL_PER_CONDITION`).  Closed-loop data
@@ -539,13 +541,23 @@ def _norm2_estimate(a, iterations: int = 12) -> float:
 
 
 def checked_condition(R, rinv, max_condition: float, frobenius_R: Optional[float] = None,
-                      frobenius_rinv: Optional[float] = None) -> float:
+                      frobenius_rinv: Optional[float] = None, block_bound=None, norms=None) -> float:
     """Condition number of the triangular factor ``R``, or :class:`IllConditioned` above ``max_condition``.
 
     Returns the Frobenius bound ``||R||_F ||R^-1||_F`` when it is within the limit (it is never below
-    the 2-norm condition number), else a power-iteration estimate of the 2-norm condition number.
+    the 2-norm condition number); else ``block_bound()`` when given and within the limit; else a
+    power-iteration estimate of the 2-norm condition number.
     ``R`` and ``rinv`` may be callables that build them (only needed for the estimate) when their
     Frobenius norms are given; either may be given as the blocks of :func:`_norm2_estimate`.
+
+    Parameters
+    ----------
+    block_bound : callable, optional
+        ``() -> float``: a bound of the 2-norm condition number cheaper than the estimate (a
+        :class:`GramFit`'s from its shared block, :meth:`GramBlockRegression.norm2_estimates`).
+    norms : callable, optional
+        ``() -> (||R||_2, ||R^-1||_2)`` estimates already at hand (cached), used instead of estimating
+        them here.
     """
     if frobenius_rinv is None:
         rinv = rinv() if callable(rinv) else rinv
@@ -555,9 +567,17 @@ def checked_condition(R, rinv, max_condition: float, frobenius_R: Optional[float
     bound = (_frobenius(R) if frobenius_R is None else frobenius_R) * frobenius_rinv
     if bound <= max_condition:
         return bound
-    R = R() if callable(R) else R
-    rinv = rinv() if callable(rinv) else rinv
-    estimate = _norm2_estimate(R) * _norm2_estimate(rinv)
+    if block_bound is not None:
+        bound = block_bound()
+        if bound <= max_condition:
+            return bound
+    if norms is not None:
+        norm_R, norm_rinv = norms()
+        estimate = norm_R * norm_rinv
+    else:
+        R = R() if callable(R) else R
+        rinv = rinv() if callable(rinv) else rinv
+        estimate = _norm2_estimate(R) * _norm2_estimate(rinv)
     if estimate <= max_condition:
         return estimate
     raise IllConditioned(f"condition number {estimate:.3g} > {max_condition:.3g}")
@@ -617,10 +637,19 @@ class GramBlockRegression(SharedBlockRegression):
         self.frobenius_R = _frobenius(self.R)
         self.variances = np.einsum("ij,ij->i", self._rinv, self._rinv)       # diagonal of R1^-1 R1^-T
         self.frobenius_rinv = math.sqrt(float(self.variances.sum()))
+        self._norms = None
         self.condition_bound = checked_condition(self.R, self._rinv, max_condition, self.frobenius_R,
-                                                 self.frobenius_rinv) if p else 1.0
+                                                 self.frobenius_rinv, norms=lambda: self.norm2_estimates) if p else 1.0
         self._cond = None
         self._blocks = {}
+
+    @property
+    def norm2_estimates(self) -> tuple:
+        """``(||R1||_2, ||R1^-1||_2)`` by power iteration (:func:`_norm2_estimate`), computed once and
+        shared by the fits (their block bound, :class:`GramFit`)."""
+        if self._norms is None:
+            self._norms = (_norm2_estimate(self.R), _norm2_estimate(self._rinv))
+        return self._norms
 
     @property
     def condition_number(self) -> float:
@@ -715,11 +744,20 @@ class GramFit(SharedFit):
         self._rinv = None
         theta_own = r2i @ q2y
         theta_s = np.concatenate([r1i @ q1y + self._w @ q2y, theta_own])
-        frobenius_R = math.sqrt(reg.frobenius_R ** 2 + float(np.sum(qo * qo)) + float(np.sum(R2 * R2)))
-        frobenius_rinv = math.sqrt(reg.frobenius_rinv ** 2 + float(np.sum(self._w * self._w))
-                                   + float(np.sum(r2i * r2i)))
+        own_R = float(np.sum(qo * qo)) + float(np.sum(R2 * R2))            # ||[Q1'X_own; R2]||_F^2
+        own_rinv = float(np.sum(self._w * self._w)) + float(np.sum(r2i * r2i))    # ||[W; R2^-1]||_F^2
+        frobenius_R = math.sqrt(reg.frobenius_R ** 2 + own_R)
+        frobenius_rinv = math.sqrt(reg.frobenius_rinv ** 2 + own_rinv)
+
+        def block_bound():
+            # ||[A B]||_2^2 <= ||A||_2^2 + ||B||_F^2 for R = [[R1, Q1'X_own], [0, R2]] split into its common
+            # and own columns, and the same for R^-1: the shared block's estimates (once per regression)
+            # with the own columns' exact Frobenius norms.
+            norm_R1, norm_r1i = reg.norm2_estimates if pc else (0.0, 0.0)
+            return math.sqrt(norm_R1 ** 2 + own_R) * math.sqrt(norm_r1i ** 2 + own_rinv)
+
         self.condition_bound = checked_condition((reg.R, qo, R2), lambda: (r1i, self._w, r2i), max_condition,
-                                                 frobenius_R, frobenius_rinv) if p else 1.0
+                                                 frobenius_R, frobenius_rinv, block_bound) if p else 1.0
         scale = np.concatenate([reg.scale, own_scale])
         self.theta = theta_s / scale
         self.scale = scale
