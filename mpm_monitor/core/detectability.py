@@ -46,7 +46,7 @@ from typing import Optional
 import numpy as np
 import scipy.linalg as sla
 
-from .arx import lag_matrix
+from .arx import lag_matrix, segment_lag_matrix, segment_rows
 from .element_test import element_window
 from .filters import lfilter
 from .model import PlantModel
@@ -333,13 +333,10 @@ class WindowInformation:
         self.segments = None if segments is None else [(int(a), int(b)) for a, b in segments if b - a > start]
         segs = [(0, u.shape[0])] if self.segments is None else self.segments
         L = int(n_lag)
-        if self.segments is None:
-            Z = lag_matrix(u_c, range(1, n_lag + 1), start)
-        else:
-            Z = np.vstack([lag_matrix(u_c[a:b], range(1, n_lag + 1), start) for a, b in segs])
+        Z = segment_lag_matrix(u_c, range(1, n_lag + 1), start, self.segments)
         # u(t) on the rows, and u at the lags just before each segment's first row and before its end
         # (the corrections of the sums along lag diagonals, see _row_moments).
-        self._u_rows = u_c[start:] if self.segments is None else np.vstack([u_c[a + start:b] for a, b in segs])
+        self._u_rows = segment_rows(u_c, start, self.segments)
         self._u_head = np.stack([u_c[a + start - np.arange(1, L + 1)].T for a, _ in segs])    # (S, nu, L)
         self._u_tail = np.stack([u_c[b - np.arange(1, L + 1)].T for _, b in segs])            # (S, nu, L)
         self.n_rows = n = max(Z.shape[0], 1)

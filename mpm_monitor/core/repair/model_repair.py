@@ -435,9 +435,9 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
             if keep is not None:
                 holdout_before[names_y[i]] = rec.holdout(rec.d0[:, i], keep)
     yhat0, yhat1, d0 = np.asarray(rec.signals.yhat, float), np.asarray(ev.signals.yhat, float), rec.d0
-    if keep is not None:          # with gaps: the samples settled from the state each gap leaves
-        keep = rec.scored(model, ev.model, settled=True)
-        y, yhat0, yhat1, d0, d1 = (x[keep] for x in (y, yhat0, yhat1, d0, d1))
+    settled = rec.scored(model, ev.model, settled=True)
+    if settled is not None:       # with gaps: the samples settled from the state each gap leaves
+        y, yhat0, yhat1, d0, d1 = (x[settled] for x in (y, yhat0, yhat1, d0, d1))
     level = model.integrating_outputs
     error_before, error_after = error_rms(model, d0), error_rms(model, d1)
     fit_before = {names_y[i]: _fit_percent(y[:, i], yhat0[:, i], level[i]) for i in range(ny)}
