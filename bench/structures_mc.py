@@ -82,12 +82,14 @@ import numpy as np
 from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.model import PlantModel
 from mpm_monitor.core.pipeline import analyze
+from mpm_monitor.core.statistics import N_FAMILIES
 from mpm_monitor.sim.closed_loop import ExcitationOptions, run_closed_loop
 from mpm_monitor.sim.excitation import MeasuredDisturbanceOptions, PrbsOptions
 from mpm_monitor.sim.mpc import MpcOptions
 from mpm_monitor.sim.plant import DisturbanceOptions
 
 from . import map_runs, write_json
+from .oracle import oracle_power
 from .scenarios import check_count_ranges, input_separability
 
 STRUCTURES = ("first", "second", "lead", "inverse")
@@ -100,6 +102,10 @@ REPAIR_TOLERANCE = 0.10
 SEPARABILITY_COLLINEAR = 1e-2
 #: Indices of the ``--clean-integrating`` runs start here (distinct from the main runs').
 CLEAN_INDEX_OFFSET = 1_000_000
+#: The unmeasured disturbance and measurement noise of every run (the paper's).
+NOISE = DisturbanceOptions()
+#: Bands of the oracle's power (bench.oracle) the recall is split by: at least 0.9, 0.5 to 0.9, below 0.5.
+ORACLE_BANDS = (0.9, 0.5)
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "structures_mc.json"
 
 
@@ -330,7 +336,7 @@ def simulate(sc: StructuresScenario, samples: int, options: StructuresOptions = 
     mpc = MpcOptions(prediction_horizon=100, control_horizon=30, output_weight=1.0, input_weight=1.0,
                      input_rate_weight=0.1)
     return run_closed_loop(sc.plant, sc.model, samples, seed=sc.loop_seed, mpc=mpc, excitation=excitation,
-                           disturbance=DisturbanceOptions(), measured_disturbance=options.measured_disturbance)
+                           disturbance=NOISE, measured_disturbance=options.measured_disturbance)
 
 
 def step_response_error(plant: PlantModel, repaired: PlantModel, i: int, j: int, n: int = REPAIR_HORIZON) -> float:
@@ -375,6 +381,9 @@ def run_one(seed: int, index: int, samples: int, options: StructuresOptions = St
     # (for a gain error exactly its relative size), and the report's detectable_gain_change.
     columns = np.column_stack([data.u, data.dv]) if data.dv.size else np.asarray(data.u)
     detectable = {(oi[e.output], ci[e.input]): e.detectable_gain_change for e in report.elements}
+    # ... and what an oracle that knows that effect's exact shape and the noise model would detect
+    # (bench.oracle), at the Bonferroni level of one element of the analysis's element family.
+    level = AnalysisOptions().alpha / (N_FAMILIES * sc.model.n_outputs * sc.model.n_columns)
     rec["effects"] = {}
     for m in sc.mismatches:
         i, j = m["output"], m["column"]
@@ -384,7 +393,8 @@ def run_one(seed: int, index: int, samples: int, options: StructuresOptions = St
         x_model_c, dx = x_model - x_model.mean(), (x_plant - x_model) - (x_plant - x_model).mean()
         ref = float(np.sqrt(np.mean(x_model_c ** 2)))
         rec["effects"][f"{i},{j}"] = {"effect": float(np.sqrt(np.mean(dx ** 2))) / ref if ref > 0 else None,
-                                      "detectable": detectable.get((i, j))}
+                                      "detectable": detectable.get((i, j)),
+                                      "oracle_power": oracle_power(dx, NOISE, level)}
     repaired = report.repaired_model if report.repaired_model is not None else sc.model
     rec["repair"] = [{"element": [i, j], "step_error": step_response_error(sc.plant, repaired, i, j),
                       "before": step_response_error(sc.plant, sc.model, i, j),
@@ -406,6 +416,7 @@ def score(records: Sequence[dict]) -> dict:
     """Pooled figures of the run records (module docstring)."""
     el = dict(tp=0, fp=0, fn=0, amb_true=0, amb_clean=0, amb_true_collinear=0)
     seen = dict(hit=0, miss=0, unknown=0, below_hit=0, below_miss=0)   # effect vs detectable (not ambiguous)
+    oracle = {band: dict(hit=0, miss=0) for band in ("high", "middle", "low", "unknown")}   # not ambiguous
     clean = dict(runs=0, located=0, rows=0)
     clean_int = dict(runs=0, located=0, rows=0)
     repair = dict(scored=0, within=0, fp_scored=0, fp_within=0)
@@ -440,6 +451,10 @@ def score(records: Sequence[dict]) -> dict:
                     seen[outcome] += 1
                 else:
                     seen["below_" + outcome] += 1
+                power = eff.get("oracle_power")
+                band = "unknown" if power is None else "high" if power >= ORACLE_BANDS[0] else \
+                    "middle" if power >= ORACLE_BANDS[1] else "low"
+                oracle[band][outcome] += 1
             if outcome == "ambiguous" and key[1] in collinear:
                 el["amb_true_collinear"] += 1
             for table, val in ((by_kind, m["kind"]), (by_role, m["role"])):
@@ -448,7 +463,8 @@ def score(records: Sequence[dict]) -> dict:
                 misses.append({"index": rec["index"], "element": list(key), "kind": m["kind"], "size": m["size"],
                                "outcome": outcome, "plant": m["plant"], "model": m["model"],
                                "row_flagged": key[0] in rec["rows"], "column_collinear": key[1] in collinear,
-                               "effect": eff.get("effect"), "detectable": eff.get("detectable")})
+                               "effect": eff.get("effect"), "detectable": eff.get("detectable"),
+                               "oracle_power": eff.get("oracle_power")})
         for r in rec["repair"]:
             key = tuple(r["element"])
             ok = r["step_error"] <= REPAIR_TOLERANCE
@@ -471,6 +487,8 @@ def score(records: Sequence[dict]) -> dict:
     for cell in (clean, clean_int):
         cell["rate_element"] = _ratio(cell["located"], cell["runs"])
         cell["rate_row"] = _ratio(cell["rows"], cell["runs"])
+    for cell in oracle.values():
+        cell["recall"] = _ratio(cell["hit"], cell["hit"] + cell["miss"])
     repair["fraction_within"] = _ratio(repair["within"], repair["scored"])
     repair["fp_fraction_within"] = _ratio(repair["fp_within"], repair["fp_scored"])
     times = [r["analyze_time_s"] for r in records if "analyze_time_s" in r]
@@ -480,7 +498,7 @@ def score(records: Sequence[dict]) -> dict:
                         "recall_all": _ratio(el["tp"], el["tp"] + el["fn"] + el["amb_true"])},
             "effect_vs_detectable": {**seen, "recall_at_or_above": _ratio(seen["hit"], seen["hit"] + seen["miss"]),
                                      "recall_below": _ratio(seen["below_hit"], seen["below_hit"] + seen["below_miss"])},
-            "false_alarms": clean, "false_alarms_integrating": clean_int, "repair": repair,
+            "oracle_power": oracle, "false_alarms": clean, "false_alarms_integrating": clean_int, "repair": repair,
             "recall_by_kind": by_kind, "recall_by_role": by_role,
             "median_analyze_time_s": statistics.median(times) if times else None,
             "misses": misses, "false_positives": false_pos, "repair_failures": repair_fails}
@@ -581,6 +599,16 @@ def format_table(result: dict) -> str:
                              f"it {_f3(ev['recall_at_or_above'])} ({ev['hit']}/{ev['hit'] + ev['miss']}), below it "
                              f"{_f3(ev['recall_below'])} ({ev['below_hit']}/{ev['below_hit'] + ev['below_miss']}), "
                              f"no value {ev['unknown']}")
+        orc = s.get("oracle_power")
+        if orc:
+            hi, lo = ORACLE_BANDS
+            lines.insert(-1, "not ambiguous, by an oracle's power to detect the mismatch (it knows the effect's exact "
+                             "response and the noise model; bench.oracle): " + ", ".join(
+                                 f"{label} {_f3(orc[k]['recall'])} ({orc[k]['hit']}/{orc[k]['hit'] + orc[k]['miss']})"
+                                 for k, label in (("high", f"at least {hi}"), ("middle", f"{lo} to {hi}"),
+                                                  ("low", f"below {lo}")))
+                             + (f", no value {orc['unknown']['hit'] + orc['unknown']['miss']}"
+                                if orc["unknown"]["hit"] + orc["unknown"]["miss"] else ""))
         for table in (s["recall_by_kind"], s["recall_by_role"]):
             for key in sorted(table, key=lambda k: (KINDS.index(k) if k in KINDS else len(KINDS), k)):
                 c = table[key]

@@ -125,3 +125,17 @@ def test_a_few_closed_loops_run_and_score():
         assert all(np.isfinite(x["step_error"]) for x in rec["repair"])
     text = format_table(res)
     assert "false alarms, clean runs" in text and "clean runs with an integrating output" in text
+
+
+def test_score_splits_the_recall_by_the_oracles_power():
+    records = [_record(0, [(0, 0, "gain"), (1, 1, "lead"), (0, 1, "delay")], [(0, 0)], ambiguous=[(0, 1)]),
+               _record(1, [(1, 0, "time_constant"), (0, 0, "gain")], [(1, 0)])]
+    records[0]["effects"] = {"0,0": {"oracle_power": 0.95}, "1,1": {"oracle_power": 0.95},
+                             "0,1": {"oracle_power": 1.0}}                        # (0, 1) ambiguous: apart
+    records[1]["effects"] = {"1,0": {"oracle_power": 0.6}, "0,0": {"oracle_power": 0.1}}
+    orc = score(records)["oracle_power"]
+    assert (orc["high"]["hit"], orc["high"]["miss"], orc["middle"]["hit"], orc["low"]["miss"]) == (1, 1, 1, 1)
+    assert orc["high"]["recall"] == 0.5 and orc["unknown"] == {"hit": 0, "miss": 0, "recall": None}
+    assert "oracle's power" in format_table({"config": {"runs": 2, "clean_integrating": 0, "seed": 0, "samples": 1,
+                                                        "alpha": 0.01, "element_window": "model", "wall_time_s": 1},
+                                             "summary": {**score(records)}, "clean_integrating": None})
