@@ -57,6 +57,9 @@ Scoring (pooled over runs):
   plant's minus the model's element response to the logged column, over the RMS of the model's; a
   gain error's relative size exactly) against the report's ``detectable_gain_change`` of that
   element (calibrated for gain errors; another kind's power differs), and the recall on each side;
+* indicative too, and independent of the analysis: each true mismatch's power for an oracle that
+  knows its exact response and the noise model (:mod:`bench.oracle`, at the Bonferroni level of one
+  element, ``alpha / (N_FAMILIES m)``), and the recall in the bands of :data:`ORACLE_BANDS`;
 * repair: for every located mismatched element, the repaired model's unit-step response of that
   element against the plant's over ``REPAIR_HORIZON`` samples; "within 10 %" when the largest
   difference is at most 10 % of the largest value of the plant's response (an integrating element's
