@@ -366,9 +366,10 @@ def run_one(seed: int, index: int, samples: int, options: StructuresOptions = St
     sep = input_separability(np.column_stack([data.u, data.dv]))
     rec["separability"] = [float(x) for x in sep]
     rec["collinear_columns"] = [int(j) for j in np.flatnonzero(sep < SEPARABILITY_COLLINEAR)]
+    analysis_options = AnalysisOptions(element_window=element_window)
     try:
         t0 = time.perf_counter()
-        report = analyze(sc.model, data, AnalysisOptions(element_window=element_window))
+        report = analyze(sc.model, data, analysis_options)
         rec["analyze_time_s"] = time.perf_counter() - t0
     except Exception as exc:  # noqa: BLE001 - a benchmark records a failure and goes on
         rec["error"] = f"{type(exc).__name__}: {exc}"
@@ -386,7 +387,7 @@ def run_one(seed: int, index: int, samples: int, options: StructuresOptions = St
     detectable = {(oi[e.output], ci[e.input]): e.detectable_gain_change for e in report.elements}
     # ... and what an oracle that knows that effect's exact shape and the noise model would detect
     # (bench.oracle), at the Bonferroni level of one element of the analysis's element family.
-    level = AnalysisOptions().alpha / (N_FAMILIES * sc.model.n_outputs * sc.model.n_columns)
+    level = analysis_options.alpha / (N_FAMILIES * sc.model.n_outputs * sc.model.n_columns)
     rec["effects"] = {}
     for m in sc.mismatches:
         i, j = m["output"], m["column"]
