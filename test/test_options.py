@@ -41,7 +41,7 @@ def test_every_analysis_option_has_its_spec_with_the_dataclass_default():
     assert {n: s.kind for n, s in ANALYSIS_PARAMS.items()} == {
         "na": "int", "nb": "int", "alpha": "double", "band": "double_array", "n_freq": "int", "max_delay": "int",
         "initial_state": "string", "method": "string", "repair": "bool", "collinearity_threshold": "double",
-        "test_all_rows": "bool", "element_window": "string", "max_gap": "int"}
+        "test_all_rows": "bool", "element_window": "string", "element_response": "bool", "max_gap": "int"}
 
 
 def test_options_are_converted_to_their_types_and_checked_by_the_specs():
@@ -65,7 +65,7 @@ def test_cli_analysis_flags_keep_their_names_and_defaults(command):
     parser = build_parser()
     flags = _option_flags(parser, command)
     expected = {"--method": "arx", "--alpha": 0.01, "--na": 4, "--nb": 4, "--band": (0.0, math.pi),
-                "--initial-state": "estimate", "--no-repair": True}
+                "--initial-state": "estimate", "--no-repair": True, "--no-element-response": True}
     for flag, default in expected.items():
         assert flag in flags, flag
         assert flags[flag].default == default, flag
@@ -79,9 +79,9 @@ def test_cli_analysis_flags_keep_their_names_and_defaults(command):
     assert _analysis_options(parser.parse_args(head)) == AnalysisOptions()
     given = _analysis_options(parser.parse_args(head + ["--band", "0.1", "2", "--no-repair", "--alpha", "0.05",
                                                         "--na", "2", "--nb", "3", "--initial-state", "zero",
-                                                        "--method", "pcorr"]))
+                                                        "--method", "pcorr", "--no-element-response"]))
     assert given == AnalysisOptions(band=(0.1, 2.0), repair=False, alpha=0.05, na=2, nb=3, initial_state="zero",
-                                    method="pcorr")
+                                    method="pcorr", element_response=False)
 
 
 def test_monitor_node_analysis_parameters_keep_their_names_and_defaults():

@@ -87,6 +87,11 @@ class AnalysisOptions:
         element's onset for slow structures (:func:`mpm_monitor.core.element_test.element_window`),
         all lags for an element the model lacks and for a measured disturbance's; "full" all lags
         ``1 .. max_delay + nb`` for every element.
+    element_response : bool
+        Also test every element the model has against its whole modelled response, one regressor
+        ``A(q) Phat_ij u_j`` in place of the column's lag block
+        (:mod:`mpm_monitor.core.response_test`), combined with the lag-window test by Bonferroni
+        (default True).  It sees a mismatch of a slow element that the window's lags miss.
     test_all_rows : bool
         Run the element test on every row (default), not only on the rows the S_Delta test flags
         (the paper's order).  The family-wise false-alarm rate stays ``alpha`` (Holm's procedure
@@ -116,6 +121,8 @@ class AnalysisOptions:
                                            open_high=True)
     test_all_rows: bool = option(True, "Run the element test on every row, not only on the rows the S_Delta test "
                                        "flags.")
+    element_response: bool = option(True, "Also test each element the model has against its whole modelled "
+                                          "response (one regressor), combined with the lag-window test.")
     element_window: str = option("model", "Lags the element test examines: model (an element the model has: "
                                           "delay + nb, wider for a slow onset; a measured disturbance's and an "
                                           "absent element's: all) or full (all).", choices=ELEMENT_WINDOWS)
@@ -477,7 +484,8 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     info = None
     if options.method == "arx" and detectability:
         info, detectable, why = element_detectability(model, columns, sig.d, design, element_test.noise, layout,
-                                                      options, None if plan is None else plan.local_segments)
+                                                      options, None if plan is None else plan.local_segments,
+                                                      responses=element_test.responses)
         warnings += why
         for e in elements:
             e.detectable_gain_change = detectable.get((model.outputs.index(e.output), model.columns.index(e.input)))

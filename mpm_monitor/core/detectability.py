@@ -33,6 +33,13 @@ the row's typical element (the present element of row ``i`` whose ``|gain|`` is 
 row's) to ``u_j``, so the value is ``|dK| / |typical gain|``.  Everything comes from the window
 itself: its noise (``sigma_i^2``, ``A_i``) and its excitation (``Z``, ``x_ij``).
 
+With the whole-response test (``AnalysisOptions.element_response``,
+:mod:`mpm_monitor.core.response_test`) each element's p-value is ``2 min(p_window, p_response)``:
+the window test above runs at half the level (``split``), and an element the model has also gets the
+response test's value, ``sqrt(c lambda_90(1, dof) / information)`` at the same level (its regressor
+is the gain error's exact shape, so ``delta^2 information`` is its noncentrality).  The reported
+value is the smaller of the two: the element is located when either test rejects.
+
 :class:`WindowInformation` keeps the per-sample moments (``Z'Z / n``, ``Z' x_f / n``), so the
 experiment design (:mod:`mpm_monitor.core.experiment`) can add a dither's contribution to them and
 predict the detectability of a window that has not been recorded yet.
@@ -50,6 +57,7 @@ from .arx import lag_matrix, segment_lag_matrix, segment_rows
 from .element_test import element_window
 from .filters import lfilter
 from .model import PlantModel
+from .response_test import N_ELEMENT_TESTS
 from .statistics import N_FAMILIES, detection_noncentrality
 
 #: Probability of detection the detectable gain change is defined by.
@@ -325,8 +333,9 @@ class WindowInformation:
     """
 
     def __init__(self, model: PlantModel, u: np.ndarray, d: np.ndarray, testable: list, n_lag: int, start: int,
-                 noise: dict, windows: dict, segments=None):
+                 noise: dict, windows: dict, segments=None, split: int = 1):
         self.model, self.testable, self.n_lag, self.noise = model, list(testable), int(n_lag), noise
+        self.split = int(split)
         nu = model.n_columns
         u_c = u - u.mean(axis=0)
         u_c[:, [j for j in range(nu) if j not in self.testable]] = 0.0
@@ -460,8 +469,12 @@ class WindowInformation:
         return slice(j * self.n_lag, (j + 1) * self.n_lag)
 
     def level(self, family_size: int, alpha: float) -> float:
-        """Raw level of Holm's first step: ``alpha / (N_FAMILIES m)``."""
-        return alpha / (N_FAMILIES * max(int(family_size), 1))
+        """Raw level of the window test at Holm's first step: ``alpha / (N_FAMILIES m split)``.
+
+        ``split`` is 2 when every element's window test shares its level with the whole-response
+        test (Bonferroni, :func:`~mpm_monitor.core.response_test.combined_p_value`), else 1.
+        """
+        return alpha / (N_FAMILIES * max(int(family_size), 1) * self.split)
 
     def stacked(self, keys, H: np.ndarray, dither: Optional[dict] = None) -> dict:
         """The moments of ``keys`` stacked, with their products with ``H`` (shared by every gain error).
@@ -631,7 +644,7 @@ class WindowInformation:
 
 
 def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, design, noise: dict, layout, options,
-                          segments=None):
+                          segments=None, responses: Optional[dict] = None):
     """The detectable gain change of every element of the rows the ARX element test examined.
 
     Parameters
@@ -653,6 +666,13 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
     segments : sequence of (int, int), optional
         Data with gaps: the segments of ``u`` and ``d`` (the samples of the segments the tests used,
         stacked), whose moments are summed (:class:`WindowInformation`).
+    responses : dict, optional
+        ``(i, j)`` -> :class:`~mpm_monitor.core.response_test.ResponseTest` of the elements whose
+        whole response was tested (``ElementTest.responses``).  With ``options.element_response`` the
+        window test runs at half the level, and an element's value is the smaller of the window
+        test's and the response test's, ``sqrt(c lambda_90(1, dof) / information)`` at the same
+        level: the element is located when either test rejects, so the pair detects at least what
+        the better one does.
 
     Returns
     -------
@@ -665,10 +685,17 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
     """
     windows = {(i, j): element_window(model, i, j, options.nb, options.element_window)
                for i in noise for j in range(model.n_columns)}
-    info = WindowInformation(model, u, d, design.testable, layout.n_lag_u, layout.start, noise, windows, segments)
+    split = N_ELEMENT_TESTS if getattr(options, "element_response", False) else 1
+    info = WindowInformation(model, u, d, design.testable, layout.n_lag_u, layout.start, noise, windows, segments,
+                             split=split)
     family = sum(1 for i in noise for j in design.testable if model.columns[j] not in design.group_of)
     values = {(i, j): None for i in noise for j in range(model.n_columns)}
     values.update(info.detectable([k for k in info.targets if k[1] in design.testable], options.alpha, family))
+    level = info.level(family, options.alpha)
+    for key, t in (responses or {}).items():
+        if key in values and values[key] is not None and t.information > 0:
+            lam = required_noncentrality(1, t.df_den, level)
+            values[key] = min(values[key], float(np.sqrt(lam / t.information)))
     warnings = []
     if noise and design.constant:
         warnings.append(f"inputs {', '.join(design.constant)} never move: the smallest gain change of their elements "

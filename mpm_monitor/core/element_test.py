@@ -12,7 +12,9 @@ role ``"disturbance"``.  For every row (the paper: every row the S_Delta test fl
 B polynomials covering every lag from 1 to ``max_delay + nb`` (so no delay needs to be known in
 advance); element ``(i, j)`` is located when its first B coefficients (where a mismatch of an element
 the model has must start and its response sets in, :func:`element_window`; all of them for an
-element the model lacks and for a measured disturbance's) are rejected as zero by their F (Wald) test, with Holm's procedure across
+element the model lacks and for a measured disturbance's) are rejected as zero by their F (Wald) test, or, for an
+element the model has, its whole modelled response explains part of ``d_i``
+(:mod:`mpm_monitor.core.response_test`; the two p-values combined by Bonferroni), with Holm's procedure across
 every element tested at level ``alpha / N_FAMILIES`` (:mod:`mpm_monitor.core.statistics`); in a
 row with two or more located elements each is confirmed with the others' whole tails
 (:func:`_confirm_with_tails`).
@@ -38,9 +40,10 @@ from typing import Optional
 
 import numpy as np
 
-from .arx import BlockTest, SharedBlockRegression, estimate_delay_from_lags, lag_matrix
+from .arx import BlockTest, SharedBlockRegression, estimate_delay_from_lags, lag_matrix, segment_lag_matrix, segment_rows
 from .baselines import ELEMENT_TESTS
 from .model import PlantModel
+from .response_test import combined_p_value, row_response_tests
 from .statistics import N_FAMILIES, holm_adjust
 
 
@@ -58,7 +61,10 @@ class ElementResult:
     p_value : float or None
         Holm-adjusted p-value of ``B_ij = 0`` (None when not testable).
     p_value_raw : float or None
+        Unadjusted p-value of the element: ``2 min(p_value_window, p_value_response)`` when both
+        tests ran (:func:`~mpm_monitor.core.response_test.combined_p_value`), else the window's.
     statistic : float or None
+        F statistic of the lag-window test.
     kind : str or None
         ``gain``, ``time_constant``, ``delay``, ``missing``, ``mixed``, ``unknown`` (located
         elements) or None.
@@ -74,6 +80,11 @@ class ElementResult:
     detectable_gain_change : float or None
         Smallest relative gain error of the element this window detects with probability 0.9
         (:mod:`mpm_monitor.core.detectability`); None where it cannot be computed.
+    p_value_window : float or None
+        Unadjusted p-value of the lag-window test (the F test of the block's first lags).
+    p_value_response : float or None
+        Unadjusted p-value of the whole-response test (:mod:`mpm_monitor.core.response_test`); None
+        for an element the model does not have, or with ``element_response`` off.
     """
 
     output: str
@@ -89,6 +100,8 @@ class ElementResult:
     b: list = dataclasses.field(default_factory=list)
     role: str = "input"
     detectable_gain_change: Optional[float] = None
+    p_value_window: Optional[float] = None
+    p_value_response: Optional[float] = None
 
 
 @dataclasses.dataclass
@@ -161,6 +174,10 @@ class ElementTest:
     noise : dict
         The ARX test only: output index -> :class:`RowNoise` of its fit (for the detectability,
         :mod:`mpm_monitor.core.detectability`).
+    responses : dict
+        The ARX test with ``element_response`` only: ``(i, j)`` ->
+        :class:`~mpm_monitor.core.response_test.ResponseTest` of every element whose whole response
+        was tested (for the detectability).
     """
 
     elements: list
@@ -168,6 +185,7 @@ class ElementTest:
     group_hits: list = dataclasses.field(default_factory=list)
     warnings: list = dataclasses.field(default_factory=list)
     noise: dict = dataclasses.field(default_factory=dict)
+    responses: dict = dataclasses.field(default_factory=dict)
 
 
 class InputDesign:
@@ -354,11 +372,17 @@ def element_window(model: PlantModel, i: int, j: int, nb: int, window: str = "mo
 
 @dataclasses.dataclass(frozen=True)
 class _Estimate:
-    """One element's test and its ``B_ij`` at the estimated delay."""
+    """One element's tests and its ``B_ij`` at the estimated delay."""
 
     test: BlockTest
     delay: int
     b: list
+    response: Optional[BlockTest] = None
+
+    @property
+    def p_value(self) -> float:
+        """The element's unadjusted p-value (:func:`~mpm_monitor.core.response_test.combined_p_value`)."""
+        return combined_p_value(self.test.p_value, None if self.response is None else self.response.p_value)
 
 
 def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regressions, options) -> ElementTest:
@@ -386,15 +410,17 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
     names = model.columns
     testable, group_of = design.testable, design.group_of
     estimates, tables, group_hits, noise = {}, [], [], {}
+    whole = _WholeResponses(model, design, regressions, options) if options.element_response else None
     for i in rows:
         fit = regressions.element_fit(design.regression, i)
         noise[i] = row_noise(fit)
         tests = fit.test_each_block_zero([element_window(model, i, j, nb, options.element_window) for j in testable])
+        responses = whole.tests(i, fit) if whole is not None else {}
         stds = fit.block_stds()
         for bj, j in enumerate(testable):
             coef = fit.block_theta(bj)
             lag0 = estimate_delay_from_lags(coef, stds[bj], nb, first_lag=1)
-            estimates[(i, j)] = _Estimate(tests[bj], lag0, coef[lag0 - 1:lag0 - 1 + nb].tolist())
+            estimates[(i, j)] = _Estimate(tests[bj], lag0, coef[lag0 - 1:lag0 - 1 + nb].tolist(), responses.get(j))
         for g in design.groups:
             blocks = [testable.index(names.index(x)) for x in g]
             jt = fit.test_blocks_zero(blocks)
@@ -409,7 +435,7 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
                                   delay={names[j]: int(nk[j]) for j in range(nu)},
                                   fit_percent=short.fit_percent))
     keys = [k for k in estimates if names[k[1]] not in group_of]
-    adj = dict(zip(keys, holm_adjust(np.array([estimates[k].test.p_value for k in keys])))) if keys else {}
+    adj = dict(zip(keys, holm_adjust(np.array([estimates[k].p_value for k in keys])))) if keys else {}
     elements = []
     for i in rows:
         for j in range(nu):
@@ -420,22 +446,60 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
                 continue
             est = estimates[(i, j)]
             t = est.test
+            p_resp = None if est.response is None else est.response.p_value
             if name in group_of:
                 elements.append(ElementResult(
-                    output=out, input=name, mismatch=False, p_value=None, p_value_raw=t.p_value,
+                    output=out, input=name, mismatch=False, p_value=None, p_value_raw=est.p_value,
                     statistic=t.statistic, ambiguous=True,
                     ambiguous_with=tuple(x for x in group_of[name] if x != name), delay=int(est.delay), b=est.b,
-                    role=role))
+                    role=role, p_value_window=t.p_value, p_value_response=p_resp))
                 continue
             p = min(1.0, N_FAMILIES * adj[(i, j)])
             elements.append(ElementResult(
                 output=out, input=name, mismatch=bool(np.isfinite(p) and p < alpha),
-                p_value=float(p) if np.isfinite(p) else 1.0, p_value_raw=t.p_value, statistic=t.statistic,
-                delay=int(est.delay), b=est.b, role=role))
+                p_value=float(p) if np.isfinite(p) else 1.0, p_value_raw=est.p_value, statistic=t.statistic,
+                delay=int(est.delay), b=est.b, role=role, p_value_window=t.p_value, p_value_response=p_resp))
     _confirm_with_tails(model, rows, design, regressions, options, estimates, keys, elements)
     warnings = [f"row {h.output}: inputs {', '.join(h.inputs)} jointly explain part of its prediction error "
                 f"(p={h.p_value:.2g}) but cannot be told apart from these data" for h in group_hits]
-    return ElementTest(elements=elements, arx_tables=tables, group_hits=group_hits, warnings=warnings, noise=noise)
+    responses = {k: e.response for k, e in estimates.items() if e.response is not None}
+    return ElementTest(elements=elements, arx_tables=tables, group_hits=group_hits, warnings=warnings, noise=noise,
+                       responses=responses)
+
+
+class _WholeResponses:
+    """The whole-response tests of the rows of one element test (:mod:`mpm_monitor.core.response_test`).
+
+    Holds the window's centred columns and prediction errors and the input lag blocks, built once.
+    """
+
+    def __init__(self, model: PlantModel, design: InputDesign, regressions, options):
+        self.model, self.design = model, design
+        self.na = options.na
+        self.start = regressions.layout.start
+        self.segments = getattr(regressions, "segments", None)
+        u = np.asarray(regressions.u, dtype=float)
+        d = np.asarray(regressions.d, dtype=float)
+        self.u_c = u - u.mean(axis=0)
+        self.d_c = d - d.mean(axis=0)
+        self._common = getattr(design.regression, "common", None)
+
+    @property
+    def common(self) -> np.ndarray:
+        """The lag blocks of the testable columns, shape (n_rows, n_lag * n_testable)."""
+        if self._common is None:
+            testable, n_lag = self.design.testable, self.design.n_lag
+            self._common = segment_lag_matrix(self.u_c[:, testable], range(1, n_lag + 1), self.start, self.segments) \
+                if testable else np.zeros((segment_rows(self.d_c, self.start, self.segments).shape[0], 0))
+        return self._common
+
+    def tests(self, i: int, fit) -> dict:
+        """Column -> whole-response :class:`~mpm_monitor.core.arx.BlockTest` of row ``i`` (element fit ``fit``)."""
+        testable = self.design.testable
+        if not any(self.model.present[i, j] for j in testable):
+            return {}
+        return row_response_tests(self.model, i, fit, testable, self.common, [self.design.n_lag] * len(testable),
+                                  self.u_c, self.d_c, self.start, self.na, self.segments)
 
 
 #: The tail regressors of a located column cover this many time constants of the row's slowest pole.
@@ -483,7 +547,7 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
     nb, alpha, na = options.nb, options.alpha, options.na
     names = model.columns
     by_key = {(model.outputs.index(e.output), names.index(e.input)): e for e in elements}
-    raw = np.array([estimates[k].test.p_value for k in keys])
+    raw = np.array([estimates[k].p_value for k in keys])
     order = np.argsort(raw, kind="stable")
     factor = {keys[o]: len(keys) - rank for rank, o in enumerate(order)}      # Holm's m - l + 1
     u = np.asarray(regressions.u, dtype=float)
@@ -506,7 +570,12 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
             X = np.hstack([lag_matrix(u_c[:, k], range(1, size + 1), start) for k, size in zip(testable, sizes)])
             fit = SharedBlockRegression(X, sizes).fit(di[start:], own)
             test = fit.test_blocks_zero([testable.index(j)], element_window(model, i, j, nb, options.element_window))
-            p = min(1.0, N_FAMILIES * factor[(i, j)] * test.p_value) if np.isfinite(test.p_value) else 1.0
+            response = None
+            if estimates[(i, j)].response is not None:
+                response = row_response_tests(model, i, fit, testable, X, sizes, u_c, d - d.mean(axis=0), start, na,
+                                              columns=[j]).get(j)
+            p_raw = combined_p_value(test.p_value, None if response is None else response.p_value)
+            p = min(1.0, N_FAMILIES * factor[(i, j)] * p_raw) if np.isfinite(p_raw) else 1.0
             e = by_key[(i, j)]
             e.p_value = max(e.p_value, p)
             if not p < alpha:
