@@ -68,3 +68,28 @@ def test_confirmation_removes_the_false_positive_of_a_slow_mismatch(slow_mismatc
     assert _located(sc, detect(sc.model, data, AnalysisOptions())) == truth
     monkeypatch.setattr(element_test, "TAIL_TIME_CONSTANTS", 0.0)      # no tails: the old test
     assert (0, 0) in _located(sc, detect(sc.model, data, AnalysisOptions())) - truth
+
+
+@pytest.fixture(scope="module")
+def fed_forward_run():
+    """Run 230 of bench.structures_mc seed 2: a wrong gain of the measured disturbance (y2, dv2), and
+    (y2, u2), well modelled, located with it; given each other's free tails both lose significance."""
+    sc = make_structures_scenario(2, 230)
+    return sc, simulate(sc, 3000).as_logged_data("run 230")
+
+
+def test_a_row_whose_located_elements_all_drop_is_confirmed_step_by_step(fed_forward_run):
+    sc, data = fed_forward_run
+    truth = {(m["output"], m["column"]) for m in sc.mismatches}
+    report = detect(sc.model, data, AnalysisOptions())
+    assert _located(sc, report) == truth
+    row = sc.model.outputs[1]
+    assert [w for w in report.warnings if "step by step" in w] == [
+        f"row {row}: its located elements dv2, u2 cannot each be confirmed given the others' slow tails; "
+        f"confirmed step by step from the strongest: dv2"]
+    el = {e.input: e for e in report.elements if e.output == row}
+    # Both were located by their own tests (u2's raw p-value far below the level), dv2 the stronger.
+    assert el["dv2"].p_value_raw < el["u2"].p_value_raw < 1e-4
+    assert el["dv2"].mismatch and el["dv2"].p_value < 0.01
+    # u2, tested given dv2's tail only, is dropped, and its p-value says why.
+    assert not el["u2"].mismatch and el["u2"].p_value >= 0.01

@@ -459,9 +459,9 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
                 output=out, input=name, mismatch=bool(np.isfinite(p) and p < alpha),
                 p_value=float(p) if np.isfinite(p) else 1.0, p_value_raw=est.p_value, statistic=t.statistic,
                 delay=int(est.delay), b=est.b, role=role, p_value_window=t.p_value, p_value_response=p_resp))
-    _confirm_with_tails(model, rows, design, regressions, options, estimates, keys, elements)
+    kept = _confirm_with_tails(model, rows, design, regressions, options, estimates, keys, elements)
     warnings = [f"row {h.output}: inputs {', '.join(h.inputs)} jointly explain part of its prediction error "
-                f"(p={h.p_value:.2g}) but cannot be told apart from these data" for h in group_hits]
+                f"(p={h.p_value:.2g}) but cannot be told apart from these data" for h in group_hits] + kept
     responses = {k: e.response for k, e in estimates.items() if e.response is not None}
     return ElementTest(elements=elements, arx_tables=tables, group_hits=group_hits, warnings=warnings, noise=noise,
                        responses=responses)
@@ -525,7 +525,7 @@ def tail_lags(model: PlantModel, i: int, n_lag: int, n_rows: int) -> int:
     return int(max(n_lag, min(want, int(TAIL_MAX_FRACTION * n_rows))))
 
 
-def _confirm_with_tails(model, rows, design, regressions, options, estimates, keys, elements) -> None:
+def _confirm_with_tails(model, rows, design, regressions, options, estimates, keys, elements) -> list:
     """Re-test the located elements of every row with two or more, each given the others' whole tails.
 
     The ARX of a row holds ``n_lag`` lags of every column.  A located element's ``Delta_ij`` of a slow
@@ -535,15 +535,26 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
     element of such a row is tested again with the blocks of the row's other located columns extended
     to :func:`tail_lags` lags (nuisance: under "no mismatch" of the element tested they are free, so
     the test keeps its level), at its Holm step's level; an element that no longer rejects is not
-    located (its ``p_value`` is the larger of the two).  Only removes locations: the family-wise
-    false-alarm rate stays ``alpha``.  ``elements`` is updated in place.
+    located (its ``p_value`` is the larger of the two).  ``elements`` is updated in place.
+
+    When that drops every located element of the row, the free tails (hundreds of lags each) stand in
+    for one another: the row holds a mismatch among these columns, which each column's own test
+    showed, but the tails cannot attribute it.  Then the row is confirmed step by step instead: the
+    element with the smallest unadjusted p-value is kept, and each next one (in the order of their
+    p-values) is tested with the tails of the elements kept so far only, and kept when it rejects.
+    Such rows are named in a warning.  Only removes locations of the Holm-adjusted test.
+
+    Returns
+    -------
+    list of str
+        The warnings of the rows confirmed step by step.
     """
     from .arx import SharedBlockRegression
 
     if getattr(regressions, "segments", None) is not None:
         # Data with gaps: the tail regression below needs one contiguous record; its lags would reach
         # across the gaps.  Not confirming only keeps the locations (never adds one).
-        return
+        return []
     nb, alpha, na = options.nb, options.alpha, options.na
     names = model.columns
     by_key = {(model.outputs.index(e.output), names.index(e.input)): e for e in elements}
@@ -555,6 +566,7 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
     n_lag, testable = design.n_lag, design.testable
     start0 = regressions.layout.start
     u_c = u - u.mean(axis=0)
+    stepwise = []
     for i in rows:
         located = [j for j in testable if by_key[(i, j)].mismatch]
         if len(located) < 2:
@@ -565,8 +577,9 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
         start = max(start0, tail)
         di = d[:, i] - d[:, i].mean()
         own = -lag_matrix(di, range(1, na + 1), start) if na else None
-        for j in located:
-            sizes = [tail if (k in located and k != j) else n_lag for k in testable]
+        def confirmed(j, given):
+            """Holm-adjusted p-value of element (i, j) with the tails of the columns ``given``."""
+            sizes = [tail if (k in given and k != j) else n_lag for k in testable]
             X = np.hstack([lag_matrix(u_c[:, k], range(1, size + 1), start) for k, size in zip(testable, sizes)])
             fit = SharedBlockRegression(X, sizes).fit(di[start:], own)
             test = fit.test_blocks_zero([testable.index(j)], element_window(model, i, j, nb, options.element_window))
@@ -575,11 +588,26 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
                 response = row_response_tests(model, i, fit, testable, X, sizes, u_c, d - d.mean(axis=0), start, na,
                                               columns=[j]).get(j)
             p_raw = combined_p_value(test.p_value, None if response is None else response.p_value)
-            p = min(1.0, N_FAMILIES * factor[(i, j)] * p_raw) if np.isfinite(p_raw) else 1.0
+            return min(1.0, N_FAMILIES * factor[(i, j)] * p_raw) if np.isfinite(p_raw) else 1.0
+
+        decided = {j: confirmed(j, located) for j in located}
+        if not any(p < alpha for p in decided.values()):
+            order = sorted(located, key=lambda j: estimates[(i, j)].p_value)
+            kept = [order[0]]
+            decided = {order[0]: by_key[(i, order[0])].p_value}
+            for j in order[1:]:
+                decided[j] = confirmed(j, kept)
+                if decided[j] < alpha:
+                    kept.append(j)
+            stepwise.append(f"row {model.outputs[i]}: its located elements "
+                            f"{', '.join(names[j] for j in order)} cannot each be confirmed given the others' slow "
+                            f"tails; confirmed step by step from the strongest: {', '.join(names[j] for j in kept)}")
+        for j, p in decided.items():
             e = by_key[(i, j)]
             e.p_value = max(e.p_value, p)
             if not p < alpha:
                 e.mismatch = False
+    return stepwise
 
 
 def baseline_element_test(model: PlantModel, u: np.ndarray, d: np.ndarray, options) -> ElementTest:
