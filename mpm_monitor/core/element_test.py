@@ -566,6 +566,7 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
     n_lag, testable = design.n_lag, design.testable
     start0 = regressions.layout.start
     u_c = u - u.mean(axis=0)
+    d_c = d - d.mean(axis=0)
     stepwise = []
     for i in rows:
         located = [j for j in testable if by_key[(i, j)].mismatch]
@@ -585,22 +586,22 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
             test = fit.test_blocks_zero([testable.index(j)], element_window(model, i, j, nb, options.element_window))
             response = None
             if estimates[(i, j)].response is not None:
-                response = row_response_tests(model, i, fit, testable, X, sizes, u_c, d - d.mean(axis=0), start, na,
+                response = row_response_tests(model, i, fit, testable, X, sizes, u_c, d_c, start, na,
                                               columns=[j]).get(j)
             p_raw = combined_p_value(test.p_value, None if response is None else response.p_value)
             return min(1.0, N_FAMILIES * factor[(i, j)] * p_raw) if np.isfinite(p_raw) else 1.0
 
         decided = {j: confirmed(j, located) for j in located}
         if not any(p < alpha for p in decided.values()):
-            order = sorted(located, key=lambda j: estimates[(i, j)].p_value)
-            kept = [order[0]]
-            decided = {order[0]: by_key[(i, order[0])].p_value}
-            for j in order[1:]:
+            by_strength = sorted(located, key=lambda j: estimates[(i, j)].p_value)
+            kept = [by_strength[0]]
+            decided = {by_strength[0]: by_key[(i, by_strength[0])].p_value}
+            for j in by_strength[1:]:
                 decided[j] = confirmed(j, kept)
                 if decided[j] < alpha:
                     kept.append(j)
             stepwise.append(f"row {model.outputs[i]}: its located elements "
-                            f"{', '.join(names[j] for j in order)} cannot each be confirmed given the others' slow "
+                            f"{', '.join(names[j] for j in by_strength)} cannot each be confirmed given the others' slow "
                             f"tails; confirmed step by step from the strongest: {', '.join(names[j] for j in kept)}")
         for j, p in decided.items():
             e = by_key[(i, j)]
