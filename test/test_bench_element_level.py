@@ -1,0 +1,38 @@
+"""bench.element_level: its Poisson tail against scipy, its counts, and one run end to end."""
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from bench.element_level import THRESHOLDS, count, poisson_upper_tail, run_one, score
+
+
+@pytest.mark.parametrize("k, mean", [(0, 3.0), (1, 0.5), (4, 2.5), (12, 4.7), (70, 68.4), (107, 68.6)])
+def test_poisson_upper_tail_equals_scipy(k, mean):
+    assert poisson_upper_tail(k, mean) == pytest.approx(stats.poisson.sf(k - 1, mean), rel=1e-9, abs=1e-15)
+
+
+def test_count_against_a_uniform_sample():
+    ps = np.random.default_rng(0).uniform(size=20000)
+    c = count(list(ps) + [None, float("nan")])
+    assert c["n"] == 20000
+    for t in THRESHOLDS:
+        assert c["expected"][str(t)] == pytest.approx(20000 * t)
+        assert c["below"][str(t)] == int(np.sum(ps < t))
+        assert c["tail"][str(t)] > 1e-3
+
+
+def test_count_sees_a_test_that_rejects_too_often():
+    ps = np.random.default_rng(1).uniform(size=5000) ** 2      # P(p < t) = sqrt(t)
+    assert count(ps)["tail"]["0.01"] < 1e-6
+
+
+def test_one_run_gives_the_p_values_of_the_rows_without_a_mismatch():
+    rec = run_one(0, 21, 1500)
+    assert "error" not in rec and rec["elements"]
+    assert {e["output"] for e in rec["elements"]} == {0, 2}         # run 21's mismatch is in row 1
+    for e in rec["elements"]:
+        assert 0.0 <= e["window"] <= 1.0
+        assert (e["response"] is None) == (not e["present"])
+    summary = score([rec])
+    assert summary["all"]["window"]["n"] == len(rec["elements"])
