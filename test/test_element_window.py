@@ -1,6 +1,8 @@
 """The element test's window per structure, and the confirmation of a row's located elements with
 the other located columns' tails (the false positives a slow mismatch made in its row)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -93,3 +95,20 @@ def test_a_row_whose_located_elements_all_drop_is_confirmed_step_by_step(fed_for
     assert el["dv2"].mismatch and el["dv2"].p_value < 0.01
     # u2, tested given dv2's tail only, is dropped, and its p-value says why.
     assert not el["u2"].mismatch and el["u2"].p_value >= 0.01
+
+
+@pytest.mark.parametrize("which", ["slow_mismatch_run", "fed_forward_run"])
+def test_candidates_do_not_undo_the_confirmation(which, request):
+    """With candidate channels the element family is adjusted again, jointly with the candidates' tests;
+    an element the tails' confirmation dropped stays dropped (a pure-noise candidate changes nothing)."""
+    sc, data = request.getfixturevalue(which)
+    noise = np.random.default_rng(5).standard_normal(data.n_samples)
+    with_noise = dataclasses.replace(data, extra={"noise1": noise})
+    alone = detect(sc.model, data, AnalysisOptions(), detectability=False)
+    joint = detect(sc.model, with_noise, AnalysisOptions(), detectability=False, candidates="all")
+    truth = {(m["output"], m["column"]) for m in sc.mismatches}
+    assert _located(sc, joint) == _located(sc, alone) == truth
+    p_alone = {(e.output, e.input): e.p_value for e in alone.elements}
+    for e in joint.elements:
+        if e.role != "candidate" and e.p_value is not None:
+            assert e.p_value >= p_alone[(e.output, e.input)]

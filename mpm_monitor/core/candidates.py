@@ -517,7 +517,11 @@ def run_candidate_tests(model: PlantModel, data: LoggedData, chosen: CandidateCh
     new_elements, by_id = [], {id(e): p for e, p in zip(family, p_of)}
     for e in elements:
         if id(e) in by_id:
-            p = by_id[id(e)]
+            # Holm's adjusted p-values only grow when hypotheses join the family, so the element's
+            # own adjusted p-value is at most this one; what it holds above that is the confirmation
+            # with the other located columns' tails (element_test._confirm_with_tails), which a
+            # larger family must not undo.
+            p = max(by_id[id(e)], e.p_value)
             e = dataclasses.replace(e, p_value=float(p), mismatch=bool(p < alpha))
         new_elements.append(e)
     cand_p = dict(zip(tests, p_of[len(family):]))
