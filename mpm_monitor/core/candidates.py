@@ -38,7 +38,9 @@ steps:
    absorbing its poles).  The p-values of ``g = 0`` join the element tests' family: Holm's
    procedure over every element and every (output, candidate) pair at ``alpha / N_FAMILIES``
    (:mod:`mpm_monitor.core.statistics`), so the analysis's false-alarm rate stays ``alpha`` whatever
-   the number of candidates tried.
+   the number of candidates tried.  A model element keeps at least its p-value without the
+   candidates (the family only grows, and the confirmation of a row's located elements with the
+   others' tails, :mod:`mpm_monitor.core.element_test`, is not undone).
 
 A located candidate is an element the model lacks (kind ``missing``, role ``candidate``).  The
 repair (:func:`mpm_monitor.core.pipeline.analyze`) adds it to the model as a new measured
