@@ -110,6 +110,8 @@ NOISE = DisturbanceOptions()
 #: Bands of the oracle's power (bench.oracle) the recall is split by: at least 0.9, 0.5 to 0.9, below 0.5.
 ORACLE_BANDS = (0.9, 0.5)
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "structures_mc.json"
+#: The name of the channel of white noise that ``--noise-candidate`` adds to every log.
+NOISE_CANDIDATE = "noise_candidate"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -353,14 +355,24 @@ def step_response_error(plant: PlantModel, repaired: PlantModel, i: int, j: int,
 
 
 def run_one(seed: int, index: int, samples: int, options: StructuresOptions = StructuresOptions(),
-            clean_integrating: bool = False, element_window: str = "model") -> dict:
-    """Draw, simulate, analyse and repair one scenario; return its JSON-ready record."""
+            clean_integrating: bool = False, element_window: str = "model", noise_candidate: bool = False) -> dict:
+    """Draw, simulate, analyse and repair one scenario; return its JSON-ready record.
+
+    With ``noise_candidate`` the log gains one channel ``noise_candidate`` of white noise (unit
+    variance, seeded by ``(seed, index)``) that acts on nothing, and the analysis tries it as a
+    candidate (``candidates="all"``): the model's elements are then tested in the family that the
+    candidate's tests join.  ``candidates_located`` lists the outputs on which it was located (each a
+    false positive).
+    """
     sc = make_structures_scenario(seed, index, options, n_mismatches=0 if clean_integrating else None,
                                   integrating_output=clean_integrating)
     t0 = time.perf_counter()
     log = simulate(sc, samples, options)
     sim_time = time.perf_counter() - t0
     data = log.as_logged_data(f"structures scenario {seed}/{index}")
+    if noise_candidate:
+        noise = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 13])).standard_normal(data.n_samples)
+        data = dataclasses.replace(data, extra={NOISE_CANDIDATE: noise})
     rec = sc.describe()
     rec["simulation_time_s"] = sim_time
     sep = input_separability(np.column_stack([data.u, data.dv]))
@@ -369,13 +381,17 @@ def run_one(seed: int, index: int, samples: int, options: StructuresOptions = St
     analysis_options = AnalysisOptions(element_window=element_window)
     try:
         t0 = time.perf_counter()
-        report = analyze(sc.model, data, analysis_options)
+        report = analyze(sc.model, data, analysis_options, candidates="all" if noise_candidate else None)
         rec["analyze_time_s"] = time.perf_counter() - t0
     except Exception as exc:  # noqa: BLE001 - a benchmark records a failure and goes on
         rec["error"] = f"{type(exc).__name__}: {exc}"
         return rec
     oi = {name: k for k, name in enumerate(sc.model.outputs)}
     ci = {name: k for k, name in enumerate(sc.model.columns)}
+    if noise_candidate:
+        rec["candidates_located"] = sorted(oi[e.output] for e in report.elements
+                                           if e.mismatch and e.role == "candidate")
+    report = dataclasses.replace(report, elements=[e for e in report.elements if e.role != "candidate"])
     rec["located"] = sorted([oi[e.output], ci[e.input]] for e in report.elements if e.mismatch)
     rec["ambiguous"] = sorted([oi[e.output], ci[e.input]] for e in report.elements if e.ambiguous and not e.mismatch)
     rec["rows"] = sorted(oi[r.output] for r in report.rows if r.mismatch)
@@ -511,6 +527,7 @@ def score(records: Sequence[dict]) -> dict:
 # --------------------------------------------------------------------------- driver
 def run_structures_mc(n_runs: int, seed: int = 0, samples: int = 3000, *, clean_integrating: int = 0, jobs: int = 1,
                       options: StructuresOptions = StructuresOptions(), element_window: str = "model",
+                      noise_candidate: bool = False,
                       progress: Optional[Callable[[int, int, dict], None]] = None) -> dict:
     """Run the benchmark and score it.
 
@@ -529,6 +546,8 @@ def run_structures_mc(n_runs: int, seed: int = 0, samples: int = 3000, *, clean_
     options : StructuresOptions
     element_window : str
         The analysis's ``element_window`` (``"model"``, its default, or ``"full"``).
+    noise_candidate : bool
+        Add a channel of white noise to every log and try it as a candidate (:func:`run_one`).
     progress : callable, optional
         ``progress(done, total, record)`` after each run.
 
@@ -541,8 +560,8 @@ def run_structures_mc(n_runs: int, seed: int = 0, samples: int = 3000, *, clean_
     if int(n_runs) != n_runs or n_runs < 0 or clean_integrating < 0 or n_runs + clean_integrating < 1:
         raise ValueError(f"n_runs, clean_integrating: expected integers >= 0, at least one run, got "
                          f"{n_runs!r}, {clean_integrating!r}")
-    tasks = [(seed, k, samples, options, False, element_window) for k in range(int(n_runs))]
-    tasks += [(seed, CLEAN_INDEX_OFFSET + k, samples, options, True, element_window)
+    tasks = [(seed, k, samples, options, False, element_window, noise_candidate) for k in range(int(n_runs))]
+    tasks += [(seed, CLEAN_INDEX_OFFSET + k, samples, options, True, element_window, noise_candidate)
               for k in range(int(clean_integrating))]
     t0 = time.perf_counter()
     records = sorted(map_runs(_run_one_star, tasks, jobs, progress), key=lambda r: r["index"])
@@ -550,7 +569,7 @@ def run_structures_mc(n_runs: int, seed: int = 0, samples: int = 3000, *, clean_
     extra = [r for r in records if r["index"] >= CLEAN_INDEX_OFFSET]
     return {"config": {"runs": int(n_runs), "clean_integrating": int(clean_integrating), "seed": int(seed),
                        "samples": int(samples), "alpha": AnalysisOptions().alpha, "jobs": int(jobs),
-                       "element_window": element_window,
+                       "element_window": element_window, "noise_candidate": bool(noise_candidate),
                        "options": _plain(options), "repair_horizon": REPAIR_HORIZON,
                        "repair_tolerance": REPAIR_TOLERANCE, "wall_time_s": time.perf_counter() - t0,
                        "machine": {"python": platform.python_version(), "platform": platform.platform(),
@@ -625,6 +644,11 @@ def format_table(result: dict) -> str:
         lines.append(f"clean runs with an integrating output: {ci['located']}/{ci['runs']} with a located element "
                      f"({_pct(ci['rate_element'])}), {ci['rows']}/{ci['runs']} with a flagged row "
                      f"({_pct(ci['rate_row'])}); alpha {alpha}")
+    if cfg.get("noise_candidate"):
+        runs = [r for r in result["runs"] if "error" not in r]
+        hit = [r for r in runs if r.get("candidates_located")]
+        lines.append(f"a channel of white noise tried as a candidate in every run: located in {len(hit)} of "
+                     f"{len(runs)} runs")
     return "\n".join(lines)
 
 
@@ -640,6 +664,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                         "than outputs (some of their elements then cannot be told apart)")
     parser.add_argument("--element-window", choices=("model", "full"), default="model",
                         help="the analysis's element_window (default model, the analysis's default)")
+    parser.add_argument("--noise-candidate", action="store_true",
+                        help="add a channel of white noise to every log and try it as a candidate")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON output")
     parser.add_argument("--quiet", action="store_true", help="no per-run progress lines")
     args = parser.parse_args(argv)
@@ -660,7 +686,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         result = run_structures_mc(args.runs, args.seed, args.samples, clean_integrating=args.clean_integrating,
                                    jobs=args.jobs, options=StructuresOptions(dither_fat=not args.no_dither_fat),
-                                   element_window=args.element_window,
+                                   element_window=args.element_window, noise_candidate=args.noise_candidate,
                                    progress=progress)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
