@@ -388,10 +388,10 @@ def run_one(seed: int, index: int, samples: int, options: StructuresOptions = St
         return rec
     oi = {name: k for k, name in enumerate(sc.model.outputs)}
     ci = {name: k for k, name in enumerate(sc.model.columns)}
-    if noise_candidate:
+    if noise_candidate:         # the candidate is scored apart; the rest of the record is the model's elements
         rec["candidates_located"] = sorted(oi[e.output] for e in report.elements
                                            if e.mismatch and e.role == "candidate")
-    report = dataclasses.replace(report, elements=[e for e in report.elements if e.role != "candidate"])
+        report = dataclasses.replace(report, elements=[e for e in report.elements if e.role != "candidate"])
     rec["located"] = sorted([oi[e.output], ci[e.input]] for e in report.elements if e.mismatch)
     rec["ambiguous"] = sorted([oi[e.output], ci[e.input]] for e in report.elements if e.ambiguous and not e.mismatch)
     rec["rows"] = sorted(oi[r.output] for r in report.rows if r.mismatch)
