@@ -199,8 +199,12 @@ def _cmd_analyze(args) -> int:
         report = analyze(model, data, options) if candidates is None else \
             analyze(model, data, options, candidates=candidates)
     except (np.linalg.LinAlgError, FloatingPointError, OverflowError) as exc:  # backstop of check_scale
+        from ..core.logged_data import divergence_warnings
+
+        diverging = divergence_warnings(model.outputs, data.y)
+        why = diverging[0] if diverging else "values or model parameters too large or degenerate?"
         raise InputError(f"{data.source}: the analysis broke down numerically with model {args.model} "
-                         f"({_one_line(exc)}): values or model parameters too large or degenerate?") from None
+                         f"({_one_line(exc)}): {why}") from None
     if args.json_out == "-":
         json.dump(report.to_dict(), sys.stdout, indent=2)
         sys.stdout.write("\n")

@@ -32,7 +32,7 @@ from typing import Optional
 import numpy as np
 
 from .errors import ConfigurationError, DataFileError
-from .logged_data import LoggedData, check_loop_data
+from .logged_data import LoggedData, check_loop_data, divergence_warnings
 from .model import PlantModel
 from .options import check_options, option, option_specs
 from .signals import INITIAL_STATE_CHOICES, LoopSignals
@@ -430,6 +430,7 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     ny = model.n_outputs
     src = data.source or "data"
     r, u, y = check_loop_data(model, data)
+    diverging = divergence_warnings(model.outputs, y)
     dv = np.asarray(data.dv, dtype=float)
     layout = regression_layout(model, options)
     plan = plan_gaps(data, layout.start, options.max_gap)
@@ -464,7 +465,7 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
 
     row_test = sdelta_row_test(model, r, sig.eps, regressions, layout, options)
     rows = row_test.rows
-    warnings = list(row_test.warnings)
+    warnings = diverging + list(row_test.warnings)
 
     test_rows = list(range(ny)) if (options.test_all_rows or options.method != "arx") else \
         [i for i in range(ny) if rows[i].mismatch]

@@ -209,6 +209,55 @@ def check_loop_data(model: PlantModel, data: LoggedData):
     return out
 
 
+#: An output is named as growing without bound when its spread in the last tenth of the log is more
+#: than this many times its spread in the first tenth and in the middle one (:func:`divergence_warnings`).
+DIVERGENCE_RATIO = 1e3
+
+
+def divergence_warnings(names, y: np.ndarray) -> list:
+    """Name the outputs that grow without bound over the log: a loop that diverged.
+
+    A closed loop whose controller's model is badly wrong can go unstable; its outputs then grow
+    geometrically.  The tests assume a bounded loop, so their p-values mean nothing there (or the
+    linear algebra breaks down).  The spread of every output about its mean over the first tenth
+    of the log is compared in three tenths: the first, the middle one and the last.  An output is
+    named when the last tenth's spread exceeds :data:`DIVERGENCE_RATIO` times both others (the
+    middle one guards against a first tenth that is merely quiet, such as a loop at rest before its
+    first setpoint change).
+
+    Parameters
+    ----------
+    names : sequence of str
+        The outputs' names, shape (n_outputs,).
+    y : ndarray, shape (n_samples, n_outputs)
+        Measured outputs (output units); non-finite samples are ignored.
+
+    Returns
+    -------
+    list of str
+        One warning per diverging output (none for a log shorter than 30 samples).
+    """
+    y = np.asarray(y, dtype=float)
+    n = y.shape[0]
+    if n < 30:
+        return []
+    k = n // 10
+    first, middle, last = y[:k], y[(n - k) // 2:(n - k) // 2 + k], y[n - k:]
+    out = []
+    with np.errstate(over="ignore", invalid="ignore"):
+        for c, name in enumerate(names):
+            ref = np.nanmean(first[:, c]) if np.any(np.isfinite(first[:, c])) else 0.0
+            spread = [float(np.sqrt(np.nanmean((part[:, c] - ref) ** 2))) if np.any(np.isfinite(part[:, c]))
+                      else 0.0 for part in (first, middle, last)]
+            a, b, z = spread
+            if not np.isfinite(z) or z > DIVERGENCE_RATIO * max(a, b, 1e-300):
+                out.append(f"output '{name}' grows without bound: its spread about its early mean is {a:.3g} in the "
+                           f"first tenth of the log, {b:.3g} in the middle one and {z:.3g} in the last; the loop "
+                           f"looks unstable (diverging), and the tests assume a bounded loop, so their results on "
+                           f"this log are not reliable")
+    return out
+
+
 def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the model") -> None:
     """Refuse data (or model gains) so large that the squares in the analysis overflow float64.
 
