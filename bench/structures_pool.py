@@ -31,7 +31,7 @@ from typing import Optional, Sequence
 from scipy.special import betaincinv
 
 from . import write_json
-from .structures_mc import CLEAN_INDEX_OFFSET, REPAIR_HORIZON, REPAIR_TOLERANCE, score
+from .structures_mc import CLEAN_INDEX_OFFSET, REPAIR_HORIZON, REPAIR_TOLERANCE, _f3, score
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "structures_pool.json"
 #: Configuration keys that may differ between pooled files.
@@ -126,10 +126,6 @@ def pool(results: list) -> dict:
 def _brief(s: dict) -> dict:
     """A score without its long lists."""
     return {k: v for k, v in s.items() if k not in ("misses", "false_positives", "repair_failures")}
-
-
-def _f3(x) -> str:
-    return "-" if x is None else f"{x:.3f}"
 
 
 def _iv(iv) -> str:
