@@ -215,6 +215,28 @@ def test_analyze_command_on_a_gappy_csv(tmp_path, capsys, case_32):
     assert {(e["output"], e["input"]) for e in doc["elements"] if e["mismatch"]} == set(case.mismatched_elements)
 
 
+def test_analyze_command_takes_max_gap_and_max_delay(tmp_path, capsys, case_32):
+    case, data = case_32
+    from mpm_monitor.io.model_file import save_model
+
+    gappy = _drop(data, [500, 501, 2000])
+    csv = tmp_path / "gappy.csv"
+    write_csv(csv, gappy.t, gappy.r, gappy.u, gappy.y, gappy.inputs, gappy.outputs)
+    save_model(case.model, tmp_path / "model.yaml")
+    base = ["analyze", "--model", str(tmp_path / "model.yaml"), "--data", str(csv), "--no-repair", "--json", "-"]
+    found = []
+    for extra, max_gap in (([], None), (["--max-gap", "1"], 1), (["--max-delay", "12"], 12 + 4)):
+        assert main(base + extra) == 0
+        doc = json.loads(capsys.readouterr().out)
+        if max_gap is not None:
+            assert doc["gaps"]["max_gap"] == max_gap
+        found.append({(e["output"], e["input"]) for e in doc["elements"] if e["mismatch"]})
+    assert found[0] == found[1] == found[2] == set(case.mismatched_elements)
+    assert main(base + ["--max-gap", "-1"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "max_gap" in err
+
+
 def test_live_window_keeps_its_samples_across_short_gaps_and_the_summary_counts_them(case_32):
     from mpm_monitor.monitor.monitor_core import MonitorCore, MonitorOptions
     from mpm_monitor.monitor.statuses import SUMMARY_NAME

@@ -31,10 +31,14 @@ class _Parser(argparse.ArgumentParser):
 
 
 #: The analysis options given on the command line of ``analyze`` and ``reproduce``, in their flags' order.
-CLI_ANALYSIS_OPTIONS = ("method", "alpha", "na", "nb", "band", "initial_state", "repair", "element_response")
+CLI_ANALYSIS_OPTIONS = ("method", "alpha", "na", "nb", "band", "initial_state", "repair", "element_response",
+                        "max_delay", "max_gap")
 
 #: Names of the values of an option that takes several (default: the option's name in capitals).
 _METAVARS = {"band": ("LOW", "HIGH")}
+#: What a default of None means, for the options that have one.
+_NONE_DEFAULTS = {"max_delay": "the model's largest delay + 5, at least 10",
+                  "max_gap": "the longest lag of the tests, max_delay + nb"}
 
 
 def _text(value) -> str:
@@ -63,7 +67,8 @@ def _add_analysis_options(p: argparse.ArgumentParser) -> None:
             else:
                 p.add_argument(flag, dest=name, action="store_true", help=f"{what} (off by default)")
             continue
-        help_text = f"{what} (default {_text(spec.default)})"
+        default = _NONE_DEFAULTS.get(name) if spec.default is None else None
+        help_text = f"{what} (default {default or _text(spec.default)})"
         if spec.choices:
             p.add_argument(flag, dest=name, choices=spec.choices, default=spec.default, help=help_text)
         elif spec.kind == "double_array":
