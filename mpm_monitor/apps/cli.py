@@ -67,8 +67,8 @@ def _add_analysis_options(p: argparse.ArgumentParser) -> None:
             else:
                 p.add_argument(flag, dest=name, action="store_true", help=f"{what} (off by default)")
             continue
-        default = _NONE_DEFAULTS.get(name) if spec.default is None else None
-        help_text = f"{what} (default {default or _text(spec.default)})"
+        shown = _NONE_DEFAULTS.get(name, "None") if spec.default is None else _text(spec.default)
+        help_text = f"{what} (default {shown})"
         if spec.choices:
             p.add_argument(flag, dest=name, choices=spec.choices, default=spec.default, help=help_text)
         elif spec.kind == "double_array":

@@ -230,7 +230,8 @@ def divergence_warnings(names, y: np.ndarray) -> list:
     names : sequence of str
         The outputs' names, shape (n_outputs,).
     y : ndarray, shape (n_samples, n_outputs)
-        Measured outputs (output units); non-finite samples are ignored.
+        Measured outputs (output units).  NaN samples are ignored; an infinite value in the last
+        tenth (a loop that overflowed) names its output.
 
     Returns
     -------
