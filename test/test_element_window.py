@@ -9,7 +9,7 @@ import pytest
 import mpm_monitor.core.element_test as element_test
 from bench.structures_mc import make_structures_scenario, simulate
 from mpm_monitor.core.analysis import AnalysisOptions, detect
-from mpm_monitor.core.element_test import element_window, tail_lags
+from mpm_monitor.core.element_test import element_onset, element_window, tail_lags
 from mpm_monitor.core.model import PlantModel
 
 NB = 4
@@ -50,6 +50,18 @@ def test_tail_lags_cover_the_slowest_pole_within_the_cap():
     assert tail_lags(m, 0, 17, 3000) == 5 + int(np.ceil(6 * 40.0))
     assert tail_lags(m, 0, 17, 1000) == 100                  # a tenth of the rows
     assert tail_lags(_model(time_constant=[[0.5]]), 0, 17, 3000) == 17
+
+
+def test_the_onset_is_kept_with_the_model_and_recomputed_for_a_changed_element():
+    m = _model(time_constant2=[[15.0]])
+    h = np.abs(m.discrete_element(0, 0).impulse_response(element_test.ONSET_HORIZON))
+    expected = int(np.flatnonzero(h >= element_test.ONSET_FRACTION * h.max())[0])
+    assert element_onset(m, 0, 0) == expected and ("onset", 0, 0) in m._elements
+    assert element_window(m, 0, 0, NB) == max(3 + NB, expected + NB - 1)
+    slower = m.with_element(0, 0, time_constant2=40.0)
+    h2 = np.abs(slower.discrete_element(0, 0).impulse_response(element_test.ONSET_HORIZON))
+    assert element_onset(slower, 0, 0) == int(np.flatnonzero(h2 >= element_test.ONSET_FRACTION * h2.max())[0]) > expected
+    assert m.delay_samples is m.delay_samples and not m.delay_samples.flags.writeable
 
 
 @pytest.fixture(scope="module")

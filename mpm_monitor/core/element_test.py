@@ -364,10 +364,24 @@ def element_window(model: PlantModel, i: int, j: int, nb: int, window: str = "mo
     """
     if window == "full" or not model.present[i, j] or model.role(j) == "disturbance":
         return None
-    el = model.discrete_element(i, j)
-    h = np.abs(el.impulse_response(ONSET_HORIZON))
-    onset = int(np.flatnonzero(h >= ONSET_FRACTION * h.max())[0]) if h.max() > 0 else 0
-    return max(int(model.delay_samples[i, j]) + nb, onset + nb - 1)
+    return max(int(model.delay_samples[i, j]) + nb, element_onset(model, i, j) + nb - 1)
+
+
+def element_onset(model: PlantModel, i: int, j: int) -> int:
+    """The first lag at which element (i, j)'s impulse response reaches :data:`ONSET_FRACTION` of its peak.
+
+    Kept with the model's sampled elements (:meth:`~mpm_monitor.core.model.PlantModel.discrete_element`),
+    so that it is computed once per model and element: every row's element test, its confirmation and
+    the detectability ask for it (at 100 outputs x 40 inputs, 8,000 impulse responses of 1,000 samples
+    per analysis otherwise).  A copy of the model with the element changed
+    (:meth:`~mpm_monitor.core.model.PlantModel.with_element`) computes it again.
+    """
+    key = ("onset", i, j)
+    cache = model._elements
+    if key not in cache:
+        h = np.abs(model.discrete_element(i, j).impulse_response(ONSET_HORIZON))
+        cache[key] = int(np.flatnonzero(h >= ONSET_FRACTION * h.max())[0]) if h.max() > 0 else 0
+    return cache[key]
 
 
 @dataclasses.dataclass(frozen=True)

@@ -70,11 +70,12 @@ class DiscreteElement:
         object.__setattr__(self, "num", num)
         object.__setattr__(self, "den", den)
         object.__setattr__(self, "delay", int(self.delay))
+        object.__setattr__(self, "_is_zero", not np.any(num != 0))
 
     @property
     def is_zero(self) -> bool:
-        """True when the element has no effect (every numerator coefficient 0)."""
-        return not np.any(self.num != 0)
+        """True when the element has no effect (every numerator coefficient 0; computed once)."""
+        return self._is_zero
 
     @property
     def order(self) -> int:

@@ -192,8 +192,13 @@ class PlantModel:
 
     @property
     def delay_samples(self) -> np.ndarray:
-        """Dead times in samples, integer array of shape (n_outputs, n_columns)."""
-        return np.rint(self.delay / self.sample_time).astype(int)
+        """Dead times in samples, integer array of shape (n_outputs, n_columns) (read-only; computed once)."""
+        out = self._derived.get("delay_samples")
+        if out is None:
+            out = np.rint(self.delay / self.sample_time).astype(int)
+            out.setflags(write=False)
+            self._derived["delay_samples"] = out
+        return out
 
     @property
     def present(self) -> np.ndarray:
