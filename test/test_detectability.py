@@ -322,6 +322,36 @@ def test_every_element_of_a_well_excited_square_loop_gets_a_value():
     assert all(np.isfinite(e.detectable_gain_change) for e in rep.elements)
 
 
+def test_an_element_the_model_lacks_is_valued_at_the_full_level(monkeypatch):
+    """Only an element with the whole-response test shares its window test's level with it: the
+    element the model lacks (window test alone) is valued at alpha / (2 m), the others at alpha / (4 m)."""
+    case = paper_case("3.1")
+    model = case.model.with_element(0, 1, gain=0.0)
+    log = run_closed_loop(model, model, 2000, seed=5, mpc=case.mpc, excitation=case.excitation,
+                          disturbance=case.disturbance)
+    made = []
+
+    class Keep(det.WindowInformation):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            made.append(self)
+
+    monkeypatch.setattr(det, "WindowInformation", Keep)
+    rep = detect(model, log.as_logged_data(), dataclasses.replace(FAST, test_all_rows=True))
+    info, = made
+    assert info.split == 2
+    got = {(model.outputs.index(e.output), model.columns.index(e.input)): e for e in rep.elements}
+    assert got[(0, 1)].p_value_response is None and got[(0, 0)].p_value_response is not None
+    family = 9
+    full = info.detectable([(0, 1)], 0.01, family, split=1)[(0, 1)]
+    half = info.detectable([(0, 1)], 0.01, family)[(0, 1)]
+    assert got[(0, 1)].detectable_gain_change == full < half
+    # An element with both tests: the smaller of its window test's value at half the level and its
+    # response test's.
+    window = info.detectable([(0, 0)], 0.01, family)[(0, 0)]
+    assert got[(0, 0)].detectable_gain_change <= window
+
+
 def test_no_values_for_the_baselines():
     case = paper_case("3.2")
     log = run_closed_loop(case.plant, case.model, 1500, seed=11, mpc=case.mpc, excitation=case.excitation,

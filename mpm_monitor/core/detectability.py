@@ -35,8 +35,8 @@ itself: its noise (``sigma_i^2``, ``A_i``) and its excitation (``Z``, ``x_ij``).
 
 With the whole-response test (``AnalysisOptions.element_response``,
 :mod:`mpm_monitor.core.response_test`) each element's p-value is ``2 min(p_window, p_response)``:
-the window test above runs at half the level (``split``), and an element the model has also gets the
-response test's value, ``sqrt(c lambda_90(1, dof) / information)`` at the same level (its regressor
+the window test above runs at half the level (``split``) for the elements that have both tests, and
+an element the model has also gets the response test's value, ``sqrt(c lambda_90(1, dof) / information)`` at the same level (its regressor
 is the gain error's exact shape, so ``delta^2 information`` is its noncentrality).  The reported
 value is the smaller of the two: the element is located when either test rejects.
 
@@ -468,13 +468,14 @@ class WindowInformation:
         """Columns of input ``j``'s lags."""
         return slice(j * self.n_lag, (j + 1) * self.n_lag)
 
-    def level(self, family_size: int, alpha: float) -> float:
+    def level(self, family_size: int, alpha: float, split: Optional[int] = None) -> float:
         """Raw level of the window test at Holm's first step: ``alpha / (N_FAMILIES m split)``.
 
-        ``split`` is 2 when every element's window test shares its level with the whole-response
-        test (Bonferroni, :func:`~mpm_monitor.core.response_test.combined_p_value`), else 1.
+        ``split`` (default :attr:`split`) is 2 when the element's window test shares its level with
+        the whole-response test (Bonferroni, :func:`~mpm_monitor.core.response_test.combined_p_value`),
+        else 1 (no whole-response test, or none for this element: one the model lacks).
         """
-        return alpha / (N_FAMILIES * max(int(family_size), 1) * self.split)
+        return alpha / (N_FAMILIES * max(int(family_size), 1) * (self.split if split is None else int(split)))
 
     def stacked(self, keys, H: np.ndarray, dither: Optional[dict] = None) -> dict:
         """The moments of ``keys`` stacked, with their products with ``H`` (shared by every gain error).
@@ -590,7 +591,8 @@ class WindowInformation:
             out[sel] = quadratic_forms(Hss, theta)
         return out
 
-    def detectable(self, keys, alpha: float, family_size: int, power: float = POWER) -> dict:
+    def detectable(self, keys, alpha: float, family_size: int, power: float = POWER,
+                   split: Optional[int] = None) -> dict:
         """Smallest relative gain change of each element detected with probability ``power``.
 
         Parameters
@@ -602,6 +604,8 @@ class WindowInformation:
         family_size : int
             Elements in Holm's family.
         power : float
+        split : int, optional
+            The window test's share of the level (:meth:`level`; default :attr:`split`).
 
         Returns
         -------
@@ -610,7 +614,7 @@ class WindowInformation:
         """
         keys = list(keys)
         H = moment_inverse(self.G)
-        level = self.level(family_size, alpha)
+        level = self.level(family_size, alpha, split)
         lam = {}
 
         def solve(drops):
@@ -668,11 +672,12 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
         stacked), whose moments are summed (:class:`WindowInformation`).
     responses : dict, optional
         ``(i, j)`` -> :class:`~mpm_monitor.core.response_test.ResponseTest` of the elements whose
-        whole response was tested (``ElementTest.responses``).  With ``options.element_response`` the
-        window test runs at half the level, and an element's value is the smaller of the window
+        whole response was tested (``ElementTest.responses``).  With ``options.element_response``
+        their window test runs at half the level, and an element's value is the smaller of the window
         test's and the response test's, ``sqrt(c lambda_90(1, dof) / information)`` at the same
         level: the element is located when either test rejects, so the pair detects at least what
-        the better one does.
+        the better one does.  The other elements (the model lacks them, or their response is zero
+        on the window) have the window test alone, at the full level.
 
     Returns
     -------
@@ -690,7 +695,12 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
                              split=split)
     family = sum(1 for i in noise for j in design.testable if model.columns[j] not in design.group_of)
     values = {(i, j): None for i in noise for j in range(model.n_columns)}
-    values.update(info.detectable([k for k in info.targets if k[1] in design.testable], options.alpha, family))
+    tested = [k for k in info.targets if k[1] in design.testable]
+    # The window test runs at half the level only where the element has the whole-response test too:
+    # an element the model lacks has the window test alone, at the full level.
+    paired = set(responses or {}) if split > 1 else set()
+    values.update(info.detectable([k for k in tested if k in paired], options.alpha, family))
+    values.update(info.detectable([k for k in tested if k not in paired], options.alpha, family, split=1))
     level = info.level(family, options.alpha)
     for key, t in (responses or {}).items():
         if key in values and values[key] is not None and t.information > 0:
