@@ -350,6 +350,16 @@ def test_an_element_the_model_lacks_is_valued_at_the_full_level(monkeypatch):
     # response test's.
     window = info.detectable([(0, 0)], 0.01, family)[(0, 0)]
     assert got[(0, 0)].detectable_gain_change <= window
+    # The experiment's prediction takes the same levels: the full one for the element the model lacks.
+    assert (info.split_of((0, 1)), info.split_of((0, 0))) == (1, 2)
+    layout = regression_layout(model, FAST)
+    pred = exm._Predictor(info, [(0, 1), (0, 0)], 0.01, FAST.collinearity_threshold, layout, [0, 1, 2])
+    separated, drops, fam = pred.evaluate({})
+    assert separated and pred._level((0, 1), fam) == 2 * pred._level((0, 0), fam) == info.level(fam, 0.01, 1)
+    lone = {(0, 1): drops[(0, 1)]}
+    at_full = pred.worst_at(lone, fam, 2000, info.G.shape[0])
+    monkeypatch.setattr(det.WindowInformation, "split_of", lambda self, key: 2)
+    assert at_full < pred.worst_at(lone, fam, 2000, info.G.shape[0])
 
 
 def test_no_values_for_the_baselines():

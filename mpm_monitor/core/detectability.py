@@ -477,6 +477,10 @@ class WindowInformation:
         """
         return alpha / (N_FAMILIES * max(int(family_size), 1) * (self.split if split is None else int(split)))
 
+    def split_of(self, key) -> int:
+        """:attr:`split` for an element the model has (it gets the whole-response test too), else 1."""
+        return self.split if self.split > 1 and bool(self.model.present[key]) else 1
+
     def stacked(self, keys, H: np.ndarray, dither: Optional[dict] = None) -> dict:
         """The moments of ``keys`` stacked, with their products with ``H`` (shared by every gain error).
 

@@ -149,34 +149,37 @@ class _Predictor:
             self._lam[key] = required_noncentrality(key[0], key[1], level)
         return self._lam[key]
 
+    def _level(self, key, family: int) -> float:
+        """The window test's level for target ``key``: half of it where the element will have the
+        whole-response test too (:meth:`WindowInformation.split_of`)."""
+        return self.info.level(family, self.alpha, self.info.split_of(key))
+
     def samples_needed(self, drops: dict, family: int, p: int) -> float:
         """Samples for :data:`GOAL` on every target (infinite when some target gets no information)."""
         info = self.info
-        level = info.level(family, self.alpha)
-        worst = {}                     # per (tested lags, na): the largest sigma^2 / q
+        worst = {}                     # per (tested lags, na, level): the largest sigma^2 / q
         for key, q in drops.items():
             t = info.targets[key]
             nz = info.noise[t.output]
             if not q > 0:
                 return math.inf
-            g = (t.tested.size, nz.a.size)
+            g = (t.tested.size, nz.a.size, self._level(key, family))
             worst[g] = max(worst.get(g, 0.0), nz.sigma2 / q)
         rows = 3000.0
         for _ in range(3):
-            rows = max(max(self._lambda(k, rows, p, na, level) * w / GOAL ** 2 for (k, na), w in worst.items()),
+            rows = max(max(self._lambda(k, rows, p, na, level) * w / GOAL ** 2 for (k, na, level), w in worst.items()),
                        p + 60.0)
         return rows + self.start
 
     def worst_at(self, drops: dict, family: int, samples: int, p: int) -> float:
         """Largest detectable change of the targets on ``samples`` samples."""
         info = self.info
-        level = info.level(family, self.alpha)
         rows = max(samples - self.start, 1)
         worst = 0.0
         for key, q in drops.items():
             t = info.targets[key]
             nz = info.noise[t.output]
-            lam = self._lambda(t.tested.size, rows, p, nz.a.size, level)
+            lam = self._lambda(t.tested.size, rows, p, nz.a.size, self._level(key, family))
             worst = max(worst, math.sqrt(lam * nz.sigma2 / (q * rows)) if q > 0 else math.inf)
         return worst
 
