@@ -36,9 +36,10 @@ itself: its noise (``sigma_i^2``, ``A_i``) and its excitation (``Z``, ``x_ij``).
 With the whole-response test (``AnalysisOptions.element_response``,
 :mod:`mpm_monitor.core.response_test`) each element's p-value is ``2 min(p_window, p_response)``:
 the window test above runs at half the level (``split``) for the elements that have both tests, and
-an element the model has also gets the response test's value, ``sqrt(c lambda_90(1, dof) / information)`` at the same level (its regressor
-is the gain error's exact shape, so ``delta^2 information`` is its noncentrality).  The reported
-value is the smaller of the two: the element is located when either test rejects.
+an element the model has also gets the response test's value,
+``sqrt(c lambda_90(1, dof) / information)`` at the same level (its regressor is the gain error's
+exact shape, so ``delta^2 information`` is its noncentrality).  The reported value is the smaller
+of the two: the element is located when either test rejects.
 
 :class:`WindowInformation` keeps the per-sample moments (``Z'Z / n``, ``Z' x_f / n``), so the
 experiment design (:mod:`mpm_monitor.core.experiment`) can add a dither's contribution to them and
@@ -702,7 +703,7 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
     tested = [k for k in info.targets if k[1] in design.testable]
     # The window test runs at half the level only where the element has the whole-response test too:
     # an element the model lacks has the window test alone, at the full level.
-    paired = set(responses or {}) if split > 1 else set()
+    paired = set(responses or {})
     values.update(info.detectable([k for k in tested if k in paired], options.alpha, family))
     values.update(info.detectable([k for k in tested if k not in paired], options.alpha, family, split=1))
     level = info.level(family, options.alpha)

@@ -137,7 +137,9 @@ class PlantModel:
             arr.setflags(write=False)
             object.__setattr__(self, key, arr)
         validate_model(self)
-        object.__setattr__(self, "_elements", {})        # sampled forms of the elements, by (i, j)
+        # The sampled forms of the elements, by (i, j), and what is computed from one element alone (keys
+        # ending in (i, j), e.g. element_test.element_onset's): with_element keeps those of the others.
+        object.__setattr__(self, "_elements", {})
         object.__setattr__(self, "_derived", {})        # forms computed from the elements (discretize)
 
     @classmethod
