@@ -37,8 +37,9 @@ With the whole-response test (``AnalysisOptions.element_response``,
 :mod:`mpm_monitor.core.response_test`) each element's p-value is ``2 min(p_window, p_response)``:
 the window test above runs at half the level (``split``) for the elements that have both tests, and
 an element the model has also gets the response test's value,
-``sqrt(c lambda_90(1, dof) / information)`` at the same level (its regressor is the gain error's
-exact shape, so ``delta^2 information`` is its noncentrality).  The reported value is the smaller
+``sqrt(c lambda_90(k, dof) / information)`` at the same level, ``k`` its numerator degrees of freedom
+(1; 2 for an integrating element, whose test adds the time-constant sensitivity; its regressor ``x_ij``
+is the gain error's exact shape, so ``delta^2 information`` is its noncentrality).  The reported value is the smaller
 of the two: the element is located when either test rejects.
 
 :class:`WindowInformation` keeps the per-sample moments (``Z'Z / n``, ``Z' x_f / n``), so the
@@ -679,7 +680,7 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
         ``(i, j)`` -> :class:`~mpm_monitor.core.response_test.ResponseTest` of the elements whose
         whole response was tested (``ElementTest.responses``).  With ``options.element_response``
         their window test runs at half the level, and an element's value is the smaller of the window
-        test's and the response test's, ``sqrt(c lambda_90(1, dof) / information)`` at the same
+        test's and the response test's, ``sqrt(c lambda_90(k, dof) / information)`` at the same
         level: the element is located when either test rejects, so the pair detects at least what
         the better one does.  The other elements (the model lacks them, or their response is zero
         on the window) have the window test alone, at the full level.
@@ -709,7 +710,7 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
     level = info.level(family, options.alpha)
     for key, t in (responses or {}).items():
         if key in values and values[key] is not None and t.information > 0:
-            lam = required_noncentrality(1, t.df_den, level)
+            lam = required_noncentrality(t.df_num, t.df_den, level)
             values[key] = min(values[key], float(np.sqrt(lam / t.information)))
     warnings = []
     if noise and design.constant:

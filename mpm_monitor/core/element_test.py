@@ -13,7 +13,7 @@ B polynomials covering every lag from 1 to ``max_delay + nb`` (so no delay needs
 advance); element ``(i, j)`` is located when its first B coefficients (where a mismatch of an element
 the model has must start and its response sets in, :func:`element_window`; all of them for an
 element the model lacks and for a measured disturbance's) are rejected as zero by their F (Wald) test, or, for an
-element the model has, its whole modelled response explains part of ``d_i``
+element the model has, its whole modelled response (with, for an integrating element, its time-constant sensitivity) explains part of ``d_i``
 (:mod:`mpm_monitor.core.response_test`; the two p-values combined by Bonferroni), with Holm's procedure across
 every element tested at level ``alpha / N_FAMILIES`` (:mod:`mpm_monitor.core.statistics`); in a
 row with two or more located elements each is confirmed with the others' whole tails
@@ -43,7 +43,7 @@ import numpy as np
 from .arx import BlockTest, SharedBlockRegression, estimate_delay_from_lags, lag_matrix, segment_lag_matrix, segment_rows
 from .baselines import ELEMENT_TESTS
 from .model import PlantModel
-from .response_test import combined_p_value, row_response_tests
+from .response_test import combined_p_value, element_responses, row_response_tests
 from .statistics import N_FAMILIES, holm_adjust
 
 
@@ -549,7 +549,9 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
     element of such a row is tested again with the blocks of the row's other located columns extended
     to :func:`tail_lags` lags (nuisance: under "no mismatch" of the element tested they are free, so
     the test keeps its level), at its Holm step's level; an element that no longer rejects is not
-    located (its ``p_value`` is the larger of the two).  ``elements`` is updated in place.
+    located (its ``p_value`` is the larger of the two).  ``elements`` is updated in place.  No tail
+    carries an integrating element's gain error (its response never dies out), so the responses of
+    the other located integrating elements (lags 0 .. na, for any ``A(q)``) are free beside the test too.
 
     When that drops every located element of the row, the free tails (hundreds of lags each) stand in
     for one another: the row holds a mismatch among these columns, which each column's own test
@@ -596,12 +598,16 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
             """Holm-adjusted p-value of element (i, j) with the tails of the columns ``given``."""
             sizes = [tail if (k in given and k != j) else n_lag for k in testable]
             X = np.hstack([lag_matrix(u_c[:, k], range(1, size + 1), start) for k, size in zip(testable, sizes)])
-            fit = SharedBlockRegression(X, sizes).fit(di[start:], own)
+            # An integrating element's gain error never dies out: no tail carries it, its response does.
+            free = element_responses(model, i, [k for k in given if k != j and model.integrating[i, k]], u_c)
+            extra = (np.hstack([lag_matrix(x, range(na + 1), start) for x in free.values()]) if free else None)
+            fit = SharedBlockRegression(X, sizes).fit(di[start:], own if extra is None else
+                                                      (extra if own is None else np.hstack([own, extra])))
             test = fit.test_blocks_zero([testable.index(j)], element_window(model, i, j, nb, options.element_window))
             response = None
             if estimates[(i, j)].response is not None:
                 response = row_response_tests(model, i, fit, testable, X, sizes, u_c, d_c, start, na,
-                                              columns=[j]).get(j)
+                                              columns=[j], a=fit.own_theta()[:na], extra=extra).get(j)
             p_raw = combined_p_value(test.p_value, None if response is None else response.p_value)
             return min(1.0, N_FAMILIES * factor[(i, j)] * p_raw) if np.isfinite(p_raw) else 1.0
 

@@ -1,4 +1,5 @@
-"""The element's whole response as a regressor: a one-degree-of-freedom test beside the lag window.
+"""The element's whole response as a regressor: a one-degree-of-freedom test beside the lag window
+(two for an integrating element).
 
 The Delta element test (:mod:`mpm_monitor.core.element_test`) leaves every lag ``1 .. n_lag`` of
 every column free and tests the first lags of element ``(i, j)``'s block.  It knows nothing of the
@@ -18,6 +19,15 @@ and tests ``c = 0`` with the F test of nested least squares (one numerator degre
 Under "no mismatch of (i, j)" the element fit holds with ``B_ij = 0``, so dropping column ``j``'s
 lags keeps it valid and ``c`` is zero: the test keeps its level as the lag-window test does.
 Leaving column ``j``'s own lags out matters: they would absorb the regressor.
+
+An integrating element ``Phat_ij = K G(q) / (1 - q^-1)`` is different: every error of it but its
+gain's cancels the integrator, so it adds a stable response that ``x_ij`` (a random walk) hardly
+resembles.  Its sensitivity to the time constant, ``s / (tau s + 1) x_ij`` (the response differenced
+and lagged once more by the element's first lag, :func:`time_constant_sensitivity`), is that shape
+for a time-constant error, and close to it for a second lag's, a lead's or a delay's.  So an
+integrating element is tested with the two regressors ``[A(q) x_ij, A(q) s / (tau s + 1) x_ij]``
+together, an F test of two numerator degrees of freedom; its information stays that of ``x_ij``
+(the gain error's direction, which lies in the tested span).
 
 The two tests of an element are combined by Bonferroni: its p-value is ``2 min(p_window,
 p_response)`` (:func:`combined_p_value`), so the element test's level holds whichever rejects.  An
@@ -117,6 +127,53 @@ def element_responses(model: PlantModel, i: int, columns: Sequence[int], u_c: np
     return out
 
 
+def differenced(x: np.ndarray, segments=None) -> np.ndarray:
+    """``x(t) - x(t - 1)`` within each run (a run's first sample keeps ``x``: the response starts from rest).
+
+    Parameters
+    ----------
+    x : ndarray, shape (n_samples,)
+    segments : sequence of (int, int), optional
+
+    Returns
+    -------
+    ndarray, shape (n_samples,)
+    """
+    out = np.array(x, dtype=float)
+    for lo, hi in ([(0, x.shape[0])] if segments is None else segments):
+        out[lo + 1:hi] = x[lo + 1:hi] - x[lo:hi - 1]
+    return out
+
+
+def time_constant_sensitivity(x: np.ndarray, tau: float, segments=None) -> np.ndarray:
+    """The shape ``s / (tau s + 1) x`` of an integrating element's time-constant error, from its response ``x``.
+
+    ``x`` differenced (the response without the integrator) and lagged once more by the element's first
+    lag (a unit-gain first-order filter with pole ``exp(-1 / tau)``; none when ``tau`` is 0), each run on
+    its own from rest.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n_samples,)
+        The element's response (output units).
+    tau : float
+        The element's first time constant, samples (>= 0).
+    segments : sequence of (int, int), optional
+
+    Returns
+    -------
+    ndarray, shape (n_samples,)
+    """
+    dx = differenced(x, segments)
+    if not tau > 0:
+        return dx
+    p = float(np.exp(-1.0 / tau))
+    out = np.zeros_like(dx)
+    for lo, hi in ([(0, x.shape[0])] if segments is None else segments):
+        out[lo:hi] = lfilter([1.0 - p], [1.0, -p], dx[lo:hi])
+    return out
+
+
 def filtered_rows(x: np.ndarray, a: np.ndarray, start: int, segments=None) -> np.ndarray:
     """``A(q) x`` on the regression rows (``A(q) = 1 + a_1 q^-1 + ...``), each run filtered on its own.
 
@@ -140,8 +197,9 @@ def filtered_rows(x: np.ndarray, a: np.ndarray, start: int, segments=None) -> np
     return segment_rows(xf, start, segments)
 
 
-def response_tests(fit, g: np.ndarray, xx: np.ndarray, xy: np.ndarray, blocks: Sequence[np.ndarray]) -> list:
-    """The F tests of ``c = 0`` for several response regressors, each in place of one lag block.
+def response_tests(fit, g: np.ndarray, xx: np.ndarray, xy: np.ndarray, blocks: Sequence[np.ndarray],
+                   groups: Optional[Sequence[Sequence[int]]] = None) -> list:
+    """The F tests of ``c = 0`` for groups of response regressors, each group in place of one lag block.
 
     Parameters
     ----------
@@ -150,51 +208,67 @@ def response_tests(fit, g: np.ndarray, xx: np.ndarray, xy: np.ndarray, blocks: S
         ``rss``, ``dof``).
     g : ndarray, shape (p, k)
         ``W' x`` of every regressor ``x`` (raw, unscaled columns of ``W``).
-    xx : ndarray, shape (k,)
-        ``x' x`` of every regressor.
+    xx : ndarray, shape (k, k)
+        ``X' X`` of the regressors (only the blocks of each group are read).
     xy : ndarray, shape (k,)
-        ``x' y``.
+        ``X' y``.
     blocks : sequence of ndarray of int
-        For every regressor, the indices in ``W`` of the block it replaces.
+        For every test, the indices in ``W`` of the block its regressors replace.
+    groups : sequence of sequence of int, optional
+        For every test, the indices of its regressors among the ``k`` (default: regressor ``t`` alone
+        for test ``t``, one numerator degree of freedom each).  The first of a group is the element's
+        response, whose information :attr:`ResponseTest.information` reports.
 
     Returns
     -------
     list of ResponseTest
-        One numerator degree of freedom each (``df_num`` 0 and ``p_value`` 1 where the regressor has
-        nothing left after the other columns).
+        One per test, with as many numerator degrees of freedom as its regressors have independent
+        directions left after the other columns (``df_num`` 0 and ``p_value`` 1 where they have none).
     """
+    xx = np.atleast_2d(np.asarray(xx, dtype=float))
+    if groups is None:
+        groups = [[k] for k in range(len(blocks))]
     scale = fit.scale
     rinv = fit.rinv
     g_s = g / scale[:, None]
     c_s = rinv @ (rinv.T @ g_s)                          # coefficients of each x on W, scaled
     theta_s = fit.theta * scale
-    x_m_x = xx - np.einsum("pk,pk->k", g_s, c_s)
     x_m_y = xy - g_s.T @ theta_s
     out = []
-    for k, idx in enumerate(blocks):
+    for idx, grp in zip(blocks, groups):
+        grp = list(grp)
         cov = fit.covariance_block(idx)
         w, v = np.linalg.eigh(0.5 * (cov + cov.T))
         keep = w > 1e-10 * max(w.max(initial=0.0), 1e-300)
-        tx = v[:, keep].T @ c_s[idx, k] / np.sqrt(w[keep])
+        tx = v[:, keep].T @ c_s[np.ix_(idx, grp)] / np.sqrt(w[keep])[:, None]
         ty = v[:, keep].T @ theta_s[idx] / np.sqrt(w[keep])
-        sxx = x_m_x[k] + tx @ tx
-        sxy = x_m_y[k] + tx @ ty
+        sxx = xx[np.ix_(grp, grp)] - g_s[:, grp].T @ c_s[:, grp] + tx.T @ tx
+        sxy = x_m_y[grp] + tx.T @ ty
         syy = fit.rss + ty @ ty
-        dof = int(fit.dof) + int(keep.sum()) - 1
-        if not sxx > 1e-12 * max(xx[k], 1e-300) or dof < 1:
+        sxx = 0.5 * (sxx + sxx.T)
+        ws, vs = np.linalg.eigh(sxx)
+        diag = np.diag(xx)[grp]
+        kept = ws > 1e-12 * max(float(diag.max()), 1e-300)
+        rank = int(kept.sum())
+        dof = int(fit.dof) + int(keep.sum()) - rank
+        if rank == 0 or dof < 1 or not sxx[0, 0] > 1e-12 * max(diag[0], 1e-300):
             out.append(ResponseTest(float("nan"), 1.0, 0, max(dof, 1)))
             continue
-        explained = sxy * sxy / sxx
+        z = vs[:, kept].T @ sxy
+        explained = float(z @ (z / ws[kept]))
         rss = max(syy - explained, 1e-300 * syy)
-        f = explained / (rss / dof)
-        out.append(ResponseTest(float(f), float(f_tail(f, 1, dof)), 1, dof, information=float(sxx / (rss / dof))))
+        f = (explained / rank) / (rss / dof)
+        out.append(ResponseTest(float(f), float(f_tail(f, rank, dof)), rank, dof,
+                                information=float(sxx[0, 0] / (rss / dof))))
     return out
 
 
 def row_response_tests(model: PlantModel, i: int, fit, testable: list, common: Optional[np.ndarray],
                        block_sizes: Sequence[int], u_c: np.ndarray, d_c: np.ndarray, start: int, na: int,
-                       segments=None, a: Optional[np.ndarray] = None, columns: Optional[Sequence[int]] = None) -> dict:
-    """The whole-response test of every element of row ``i`` the model has, in the row's element fit.
+                       segments=None, a: Optional[np.ndarray] = None, columns: Optional[Sequence[int]] = None,
+                       extra: Optional[np.ndarray] = None) -> dict:
+    """The whole-response test of every element of row ``i`` the model has, in the row's element fit
+    (module docstring).
 
     Parameters
     ----------
@@ -220,19 +294,30 @@ def row_response_tests(model: PlantModel, i: int, fit, testable: list, common: O
         ``A(q)``'s coefficients filtering the regressors (default: the fit's own coefficients).
     columns : sequence of int, optional
         Test only these of ``testable`` (default: all).
+    extra : ndarray, shape (n_rows, q), optional
+        Further free regressors of ``fit``, after its own lags (then ``a`` must be given).
 
     Returns
     -------
     dict
-        Column ``j`` -> :class:`ResponseTest` (one degree of freedom), for the
-        columns whose model element has a response.
+        Column ``j`` -> :class:`ResponseTest` (one degree of freedom; two for an integrating element,
+        tested with its time-constant sensitivity too), for the columns whose model element has a
+        response.
     """
-    resp = element_responses(model, i, testable if columns is None else columns, u_c, segments)
+    tested = testable if columns is None else columns
+    resp = element_responses(model, i, tested, u_c, segments)
     if not resp:
         return {}
     cols = list(resp)
     a = np.asarray(fit.own_theta() if a is None else a, dtype=float)
-    X_t = filtered_rows(np.column_stack([resp[j] for j in cols]), a, start, segments)
+    regressors = [resp[j] for j in cols]
+    groups = [[k] for k in range(len(cols))]
+    for k, j in enumerate(cols):
+        if model.integrating[i, j]:
+            groups[k].append(len(regressors))
+            regressors.append(time_constant_sensitivity(resp[j], model.time_constant[i, j] / model.sample_time,
+                                                        segments))
+    X_t = filtered_rows(np.column_stack(regressors), a, start, segments)
     X_t = X_t - X_t.mean(axis=0)
     y = segment_rows(d_c[:, i], start, segments)
     if common is None:
@@ -242,8 +327,10 @@ def row_response_tests(model: PlantModel, i: int, fit, testable: list, common: O
     if na:
         own = -segment_lag_matrix(d_c[:, i], range(1, na + 1), start, segments)
         parts.append(own.T @ X_t)
+    if extra is not None:
+        parts.append(extra.T @ X_t)
     g = np.vstack(parts)
     starts = np.cumsum([0] + list(block_sizes))
     blocks = [np.arange(starts[testable.index(j)], starts[testable.index(j) + 1]) for j in cols]
-    tests = response_tests(fit, g, np.einsum("nk,nk->k", X_t, X_t), X_t.T @ y, blocks)
+    tests = response_tests(fit, g, X_t.T @ X_t, X_t.T @ y, blocks, groups)
     return dict(zip(cols, tests))
