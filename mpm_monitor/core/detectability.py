@@ -50,6 +50,7 @@ predict the detectability of a window that has not been recorded yet.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Optional
 
 import numpy as np
@@ -479,6 +480,11 @@ class WindowInformation:
         """
         return alpha / (N_FAMILIES * max(int(family_size), 1) * (self.split if split is None else int(split)))
 
+    @functools.cached_property
+    def G_inverse(self) -> np.ndarray:
+        """:func:`moment_inverse` of :attr:`G`, shape (p, p) (computed on first use, once per window)."""
+        return moment_inverse(self.G)
+
     def split_of(self, key) -> int:
         """:attr:`split` for an element the model has (it gets the whole-response test too), else 1."""
         return self.split if self.split > 1 and bool(self.model.present[key]) else 1
@@ -619,7 +625,7 @@ class WindowInformation:
             ``(i, j)`` -> float (``inf`` when the window holds no information on the element).
         """
         keys = list(keys)
-        H = moment_inverse(self.G)
+        H = self.G_inverse
         level = self.level(family_size, alpha, split)
         lam = {}
 

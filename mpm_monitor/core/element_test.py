@@ -594,15 +594,18 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
         start = max(start0, tail)
         di = d[:, i] - d[:, i].mean()
         own = -lag_matrix(di, range(1, na + 1), start) if na else None
+        # An integrating element's gain error never dies out: no tail carries it, its response does.
+        responses = element_responses(model, i, [k for k in located if model.integrating[i, k]], u_c)
+        response_lags = {k: lag_matrix(x, range(na + 1), start) for k, x in responses.items()}
+
         def confirmed(j, given):
             """Holm-adjusted p-value of element (i, j) with the tails of the columns ``given``."""
             sizes = [tail if (k in given and k != j) else n_lag for k in testable]
             X = np.hstack([lag_matrix(u_c[:, k], range(1, size + 1), start) for k, size in zip(testable, sizes)])
-            # An integrating element's gain error never dies out: no tail carries it, its response does.
-            free = element_responses(model, i, [k for k in given if k != j and model.integrating[i, k]], u_c)
-            extra = (np.hstack([lag_matrix(x, range(na + 1), start) for x in free.values()]) if free else None)
-            fit = SharedBlockRegression(X, sizes).fit(di[start:], own if extra is None else
-                                                      (extra if own is None else np.hstack([own, extra])))
+            free = [response_lags[k] for k in given if k != j and k in response_lags]
+            extra = np.hstack(free) if free else None
+            nuisance = [m for m in (own, extra) if m is not None]
+            fit = SharedBlockRegression(X, sizes).fit(di[start:], np.hstack(nuisance) if nuisance else None)
             test = fit.test_blocks_zero([testable.index(j)], element_window(model, i, j, nb, options.element_window))
             response = None
             if estimates[(i, j)].response is not None:

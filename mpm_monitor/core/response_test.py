@@ -127,24 +127,6 @@ def element_responses(model: PlantModel, i: int, columns: Sequence[int], u_c: np
     return out
 
 
-def differenced(x: np.ndarray, segments=None) -> np.ndarray:
-    """``x(t) - x(t - 1)`` within each run (a run's first sample keeps ``x``: the response starts from rest).
-
-    Parameters
-    ----------
-    x : ndarray, shape (n_samples,)
-    segments : sequence of (int, int), optional
-
-    Returns
-    -------
-    ndarray, shape (n_samples,)
-    """
-    out = np.array(x, dtype=float)
-    for lo, hi in ([(0, x.shape[0])] if segments is None else segments):
-        out[lo + 1:hi] = x[lo + 1:hi] - x[lo:hi - 1]
-    return out
-
-
 def time_constant_sensitivity(x: np.ndarray, tau: float, segments=None) -> np.ndarray:
     """The shape ``s / (tau s + 1) x`` of an integrating element's time-constant error, from its response ``x``.
 
@@ -164,13 +146,11 @@ def time_constant_sensitivity(x: np.ndarray, tau: float, segments=None) -> np.nd
     -------
     ndarray, shape (n_samples,)
     """
-    dx = differenced(x, segments)
-    if not tau > 0:
-        return dx
-    p = float(np.exp(-1.0 / tau))
-    out = np.zeros_like(dx)
+    p = float(np.exp(-1.0 / tau)) if tau > 0 else 0.0
+    out = np.zeros(x.shape[0])
     for lo, hi in ([(0, x.shape[0])] if segments is None else segments):
-        out[lo:hi] = lfilter([1.0 - p], [1.0, -p], dx[lo:hi])
+        dx = np.diff(x[lo:hi], prepend=0.0)             # from rest: the run's first sample keeps x
+        out[lo:hi] = lfilter([1.0 - p], [1.0, -p], dx) if p > 0 else dx
     return out
 
 
@@ -304,8 +284,7 @@ def row_response_tests(model: PlantModel, i: int, fit, testable: list, common: O
         tested with its time-constant sensitivity too), for the columns whose model element has a
         response.
     """
-    tested = testable if columns is None else columns
-    resp = element_responses(model, i, tested, u_c, segments)
+    resp = element_responses(model, i, testable if columns is None else columns, u_c, segments)
     if not resp:
         return {}
     cols = list(resp)
