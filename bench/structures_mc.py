@@ -396,6 +396,7 @@ def run_one(seed: int, index: int, samples: int, options: StructuresOptions = St
     rec["ambiguous"] = sorted([oi[e.output], ci[e.input]] for e in report.elements if e.ambiguous and not e.mismatch)
     rec["rows"] = sorted(oi[r.output] for r in report.rows if r.mismatch)
     rec["kinds"] = {f"{oi[e.output]},{ci[e.input]}": e.kind for e in report.elements if e.mismatch}
+    rec["released"] = sorted([oi[e.output], ci[e.input]] for e in report.elements if e.explained_by)
     # The size of each true mismatch's effect on the window, against what the window could detect: the
     # RMS of (plant - model) element response to the logged column over the RMS of the model element's
     # (for a gain error exactly its relative size), and the report's detectable_gain_change.
@@ -434,7 +435,7 @@ def _ratio(num, den) -> Optional[float]:
 
 def score(records: Sequence[dict]) -> dict:
     """Pooled figures of the run records (module docstring)."""
-    el = dict(tp=0, fp=0, fn=0, amb_true=0, amb_clean=0, amb_true_collinear=0)
+    el = dict(tp=0, fp=0, fn=0, amb_true=0, amb_clean=0, amb_true_collinear=0, released_true=0, released_clean=0)
     seen = dict(hit=0, miss=0, unknown=0, below_hit=0, below_miss=0)   # effect vs detectable (not ambiguous)
     oracle = {band: dict(hit=0, miss=0) for band in ("high", "middle", "low", "unknown")}   # not ambiguous
     clean = dict(runs=0, located=0, rows=0)
@@ -460,6 +461,9 @@ def score(records: Sequence[dict]) -> dict:
             false_pos.append({"index": rec["index"], "element": list(key), "shape": rec["shape"],
                               "row_mismatched": any(o == key[0] for o, _ in truth)})
         el["amb_clean"] += len(ambiguous - set(truth))
+        released = {tuple(x) for x in rec.get("released", [])}      # flagged, explained by the row's others
+        el["released_true"] += len(released & set(truth))
+        el["released_clean"] += len(released - set(truth))
         for key, m in truth.items():
             outcome = "hit" if key in located else ("ambiguous" if key in ambiguous else "miss")
             el[{"hit": "tp", "miss": "fn", "ambiguous": "amb_true"}[outcome]] += 1
@@ -611,6 +615,8 @@ def format_table(result: dict) -> str:
             f"ambiguous counted as a miss {_f3(e['recall_all'])} ({e['tp']}/{e['tp'] + e['fn'] + e['amb_true']})",
             f"ambiguous: mismatched {e['amb_true']} (column measured collinear: {e['amb_true_collinear']}), "
             f"clean {e['amb_clean']}",
+            f"released (flagged, explained by the row's other located elements): mismatched "
+            f"{e.get('released_true', 0)}, clean {e.get('released_clean', 0)}",
             f"repair: step response within {100 * REPAIR_TOLERANCE:.0f}% of the plant's over {REPAIR_HORIZON} samples "
             f"on {rp['within']}/{rp['scored']} located mismatched elements ({_pct(rp['fraction_within'])}); "
             f"false positives kept within: {rp['fp_within']}/{rp['fp_scored']}",

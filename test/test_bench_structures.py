@@ -106,6 +106,19 @@ def test_score_counts_false_alarms_precision_recall_and_repair():
     assert [f["element"] for f in s["repair_failures"]] == [[0, 1]]
 
 
+def test_score_counts_the_released_elements_by_whether_they_were_mismatched():
+    a = _record(0, [(0, 0, "gain"), (1, 1, "lead")], [(0, 0)])
+    a["released"] = [[0, 2], [1, 1]]                 # one clean, one mismatched (now a miss)
+    b = _record(1, [(0, 0, "gain")], [(0, 0)])        # an older record without the field
+    b.pop("released", None)
+    e = score([a, b])["element"]
+    assert (e["released_true"], e["released_clean"], e["tp"], e["fn"], e["fp"]) == (1, 1, 2, 1, 0)
+    assert "released (flagged, explained by the row's other located elements): mismatched 1, clean 1" in \
+        format_table({"config": {"runs": 2, "clean_integrating": 0, "seed": 0, "samples": 10, "alpha": 0.01,
+                                 "element_window": "model", "wall_time_s": 1.0},
+                      "summary": score([a, b]), "clean_integrating": None})
+
+
 def test_score_splits_the_recall_by_the_effect_against_the_detectable_change():
     records = [_record(0, [(0, 0, "gain"), (1, 1, "lead"), (0, 1, "delay")], [(0, 0)], ambiguous=[(0, 1)]),
                _record(1, [(1, 0, "time_constant"), (0, 0, "gain")], [(1, 0)])]

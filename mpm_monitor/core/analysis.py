@@ -97,6 +97,14 @@ class AnalysisOptions:
         (the paper's order).  The family-wise false-alarm rate stays ``alpha`` (Holm's procedure
         over every element tested); a row in which an element is located counts as mismatched even
         when its S_Delta test, which has less power for a small mismatch, did not reject.
+    release_explained : bool
+        When two or more elements of a row are located, re-estimate them jointly, each in its
+        structure, and release (no longer report as located) an element none of whose parameters
+        differs significantly from the model while another located element's do: its finding was
+        that element's mismatch leaking into its test (default True;
+        :func:`mpm_monitor.core.repair.explained_elements`).  This runs the repair's
+        classification of those rows also when ``repair`` is off, so the located elements do not
+        depend on ``repair``.
     max_gap : int or None
         Data with gaps (docs/interfaces.md, "Gaps") are analysed segment by segment, stacked, however
         long the gaps; a gap longer than ``max_gap`` samples (default None: the longest lag of the
@@ -126,6 +134,9 @@ class AnalysisOptions:
     element_window: str = option("model", "Lags the element test examines: model (an element the model has: "
                                           "delay + nb, wider for a slow onset; a measured disturbance's and an "
                                           "absent element's: all) or full (all).", choices=ELEMENT_WINDOWS)
+    release_explained: bool = option(True, "Where a row has several located elements, re-estimate them jointly and "
+                                           "release one that does not differ from the model while another does "
+                                           "(its finding was the other's mismatch).")
     max_gap: Optional[int] = option(None, "Longest gap in the data (missing samples) called short, samples; longer "
                                           "gaps are named louder in the warning (None: the longest lag of the "
                                           "tests).", low=0, high=10**9)
@@ -311,6 +322,11 @@ class AnalysisReport:
                 lines.append(f"  ({e.output}, {_column_label(e)})  p={e.p_value:.2e}  kind={e.kind}  delay={e.delay}")
         else:
             lines.append("located elements: none")
+        released = [e for e in self.elements if e.explained_by]
+        if released:
+            lines.append("flagged, but explained by the row's located elements (not located): "
+                         + ", ".join(f"({e.output}, {_column_label(e)}) by {', '.join(e.explained_by)}"
+                                     for e in released))
         amb = [e for e in self.elements if e.ambiguous]
         if amb:
             moving = "inputs and measured disturbances" if any(e.role == "disturbance" for e in amb) else "inputs"

@@ -85,6 +85,11 @@ class ElementResult:
     p_value_response : float or None
         Unadjusted p-value of the whole-response test (:mod:`mpm_monitor.core.response_test`); None
         for an element the model does not have, or with ``element_response`` off.
+    explained_by : tuple of str
+        The element test flagged this element, but re-estimated jointly with the located elements
+        of its row named here it does not differ from the model: they explain the row's mismatch
+        and it is not located (``mismatch`` false; option ``release_explained``,
+        :func:`mpm_monitor.core.repair.explained_elements`).  Empty otherwise.
     """
 
     output: str
@@ -102,6 +107,7 @@ class ElementResult:
     detectable_gain_change: Optional[float] = None
     p_value_window: Optional[float] = None
     p_value_response: Optional[float] = None
+    explained_by: tuple = ()
 
 
 @dataclasses.dataclass

@@ -22,7 +22,7 @@ import numpy as np
 from .analysis import AnalysisOptions, AnalysisReport, detect
 from .logged_data import LoggedData
 from .model import PlantModel
-from .repair import RepairOptions, repair_model
+from .repair import RepairOptions, explained_elements, repair_model
 from .signals import LoopSignals
 
 
@@ -69,7 +69,8 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
         report = detect(model, data, options, signals=signals, regressions=regressions)
     else:
         report = detect(model, data, options, signals=signals, regressions=regressions, candidates=candidates)
-    if not options.repair:
+    joint = options.release_explained and _shares_a_row(report)
+    if not options.repair and not joint:
         return dataclasses.replace(report, regressions=None)
     tried = report.candidates
     names = list(dict.fromkeys(name for _, name in tried.located)) if tried is not None else []
@@ -77,8 +78,16 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
     columns = wide.columns
     located = [(wide.outputs.index(e.output), columns.index(e.input)) for e in report.elements if e.mismatch]
     span, note = repair_data(wide_data, report.gaps is not None, options, wide)
-    result = repair_model(wide, span, located, RepairOptions(initial_state=options.initial_state),
-                          signals=report.signals if (span is wide_data or not names) else None)
+    repair_options = RepairOptions(initial_state=options.initial_state)
+    span_signals = report.signals if (span is wide_data or not names) else None
+    classified = None
+    if joint:
+        classified = explained_elements(wide, span, located, repair_options, signals=span_signals)
+        _release(report, classified.released, wide)
+        located = [key for key in located if key not in classified.released]
+    if not options.repair:
+        return dataclasses.replace(report, regressions=None)
+    result = repair_model(wide, span, located, repair_options, signals=span_signals, classified=classified)
     after_data = data
     if names:
         result, after_data = _keep_applied_candidates(model, data, result, tried, names)
@@ -97,6 +106,35 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
         if e.mismatch:
             e.kind = kinds.get((wide.outputs.index(e.output), columns.index(e.input)), "unknown")
     return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result, regressions=None)
+
+
+def _shares_a_row(report: AnalysisReport) -> bool:
+    """Whether two located elements of ``report`` share an output row."""
+    rows = [e.output for e in report.elements if e.mismatch]
+    return len(set(rows)) < len(rows)
+
+
+def _release(report: AnalysisReport, released: dict, model: PlantModel) -> None:
+    """Mark the located elements ``released`` (:func:`~mpm_monitor.core.repair.explained_elements`:
+    ``{(i, j): [k, ...]}`` in ``model``'s indices) as not located, each with the columns that
+    explain it (``explained_by``), and say so in a warning per row."""
+    if not released:
+        return
+    columns, outputs = model.columns, model.outputs
+    by_row = {}
+    for e in report.elements:
+        key = (outputs.index(e.output), columns.index(e.input)) if e.input in columns else None
+        if e.mismatch and key in released:
+            e.mismatch = False
+            e.explained_by = tuple(columns[k] for k in released[key])
+            by_row.setdefault(e.output, []).append(e)
+    for output, elements in by_row.items():
+        by = list(dict.fromkeys(k for e in elements for k in e.explained_by))
+        report.warnings.append(
+            f"{output}: the element test also flagged {', '.join(e.input for e in elements)}, but re-estimated "
+            f"together with {', '.join(by)} {'it does' if len(elements) == 1 else 'they do'} not differ "
+            f"significantly from the model: {', '.join(by)} explain{'s' if len(by) == 1 else ''} the row's "
+            f"mismatch, and {'it is' if len(elements) == 1 else 'they are'} not reported as located.")
 
 
 def repair_data(data: LoggedData, gappy: bool, options: AnalysisOptions, model: PlantModel) -> tuple:

@@ -77,9 +77,10 @@ Where each step lives:
 """
 
 from .disturbance import sup_wald_p_value, unexplained_disturbance
-from .model_repair import repair_model
+from .model_repair import JointClassification, explained_elements, repair_model
 from .options import KINDS, RepairOptions, check_repair_options
 from .result import RepairResult
 
-__all__ = ["KINDS", "RepairOptions", "RepairResult", "check_repair_options", "repair_model",
+__all__ = ["KINDS", "JointClassification", "RepairOptions", "RepairResult", "check_repair_options",
+           "explained_elements", "repair_model",
            "sup_wald_p_value", "unexplained_disturbance"]

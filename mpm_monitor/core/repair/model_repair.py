@@ -244,13 +244,18 @@ def _set_up(model: PlantModel, data: LoggedData, options: RepairOptions,
     return rec
 
 
+def _min_fit(model: PlantModel, options: RepairOptions) -> int:
+    """The fewest samples of the fit part with which located elements are re-estimated."""
+    return max(200, 20 * (2 * model.n_columns + options.noise_order + 5))
+
+
 def _rows_to_repair(rec: _Record, located: list, found: _Findings) -> list:
     """The rows with located elements, or none when the fit part is too short (then every located
     element gets an unchanged entry in ``found``); warnings about the set-up."""
     options, model, n_fit = rec.options, rec.model, rec.n_fit
     warnings = found.warnings
     rows = sorted({i for i, _ in located})
-    min_fit = max(200, 20 * (2 * model.n_columns + options.noise_order + 5))
+    min_fit = _min_fit(model, options)
     if located and n_fit < min_fit:
         warnings.append(f"Only {n_fit} samples are available for re-estimating the located elements "
                         f"(at least {min_fit} needed); no element was changed.")
@@ -264,9 +269,9 @@ def _rows_to_repair(rec: _Record, located: list, found: _Findings) -> list:
     return rows
 
 
-def _repair_row(row: _RowData, js, n_fit: int, settings: _TestSettings):
-    """Classify the located elements ``js`` of the row on the whole record, then fit their repair
-    on samples ``0 .. n_fit - 1``.
+def _repair_row(row: _RowData, js, n_fit: int, settings: _TestSettings, classified: Optional[tuple] = None):
+    """Classify the located elements ``js`` of the row on the whole record (or take ``classified``,
+    what :func:`_classify_row` gave for them), then fit their repair on samples ``0 .. n_fit - 1``.
 
     Returns
     -------
@@ -274,7 +279,7 @@ def _repair_row(row: _RowData, js, n_fit: int, settings: _TestSettings):
         ``{j: ElementVerdict}``.
     warnings : list of str
     """
-    free, verdicts, warnings = _classify_row(row, js, settings)
+    free, verdicts, warnings = classified if classified is not None else _classify_row(row, js, settings)
     _fit_repair(free, verdicts, n_fit, settings)
     return verdicts, warnings
 
@@ -318,16 +323,18 @@ def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnin
     return False, h_after, h_before
 
 
-def _process_row(rec: _Record, i: int, js, extra: Optional[np.ndarray]) -> _RowOutcome:
+def _process_row(rec: _Record, i: int, js, extra: Optional[np.ndarray],
+                 classified: Optional[tuple] = None) -> _RowOutcome:
     """Classify, fit, validate and (optionally) refit the located elements ``js`` of row ``i``.
 
     ``extra`` (shape (n_samples, n_extra)) holds nuisance regressors for an unexplained step or
-    drift on the row, or None.
+    drift on the row, or None.  ``classified``: the classification of ``js`` without ``extra``
+    already made (:func:`explained_elements`), or None.
     """
     model = rec.model
     row = _RowData(model=model, u=rec.u, y=rec.y, i=i, extra=extra, segments=rec.segments)
     try:
-        elements, row_warnings = _repair_row(row, js, rec.n_fit, rec.settings)
+        elements, row_warnings = _repair_row(row, js, rec.n_fit, rec.settings, classified)
     except _TooShort as exc:
         elements = {j: ElementVerdict(kind="unknown", changed=[], after=model.element(i, j), interval=None,
                                       evidence={}, confidence=0.0, apply=False, reason=str(exc)) for j in js}
@@ -452,7 +459,8 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
 
 
 def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
-                 options: RepairOptions = RepairOptions(), signals: Optional[LoopSignals] = None) -> RepairResult:
+                 options: RepairOptions = RepairOptions(), signals: Optional[LoopSignals] = None,
+                 classified: Optional["JointClassification"] = None) -> RepairResult:
     """Re-estimate the located elements, classify their mismatch, and validate the repair.
 
     Parameters
@@ -469,6 +477,9 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
     options : RepairOptions
     signals : LoopSignals, optional
         :func:`~mpm_monitor.core.signals.compute_signals` of ``model`` on ``data`` (computed when absent).
+    classified : JointClassification, optional
+        What :func:`explained_elements` found on the same model, data and options: a row whose
+        located elements are those it classified is not classified again.
 
     Returns
     -------
@@ -480,8 +491,89 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
     rec = _set_up(model, data, options, signals)
     found = _Findings()
     rows = _rows_to_repair(rec, located, found)
-    results = {i: _process_row(rec, i, _located_in_row(located, i), None) for i in rows}
+    done = classified.rows if classified is not None else {}
+    results = {}
+    for i in rows:
+        js = _located_in_row(located, i)
+        results[i] = _process_row(rec, i, js, None, done[i][1] if i in done and done[i][0] == tuple(js) else None)
     ev = _evaluate(rec, results)
     if _redo_disturbed_rows(rec, located, rows, results, ev.tests):
         ev = _evaluate(rec, results)
     return _assemble(rec, results, found, ev)
+
+
+@dataclasses.dataclass
+class JointClassification:
+    """What :func:`explained_elements` found.
+
+    Attributes
+    ----------
+    released : dict
+        ``{(i, j): [k, ...]}``: the located element ``(i, j)`` (output index, column index) whose
+        mismatch the located elements ``k`` of its row explain.
+    rows : dict
+        ``{i: (js, (free, verdicts, warnings)))}``: the classification of row ``i``'s located
+        elements ``js`` (a tuple), which :func:`repair_model` takes instead of classifying again.
+    """
+
+    released: dict
+    rows: dict
+
+
+def explained_elements(model: PlantModel, data: LoggedData, located: Sequence[tuple],
+                       options: RepairOptions = RepairOptions(),
+                       signals: Optional[LoopSignals] = None) -> JointClassification:
+    """The located elements whose mismatch another located element of their row explains.
+
+    The element test locates each element on its own statistic, with the row's other columns free
+    as lag windows.  In closed loop a mismatch that a lag window does not hold whole (a slow or
+    shifted response) leaves a remainder that the other columns, correlated with the mismatched
+    one through the controller, can pick up: a second element of the row is then located for the
+    first one's mismatch.  The classification of the repair settles it.  It fits the row's located
+    elements jointly, each in its structure, and tests every parameter of each against the model
+    (likelihood-ratio tests at ``1 - options.confidence_level``, and the joint hold of every
+    parameter found unchanged; :mod:`.classify`).  An element none of whose parameters differs
+    from the model there, in a row where another located element's do, adds nothing to the row
+    once those are re-estimated: it is released, with the elements that explain it.  An element
+    alone in its row is never released, nor are the elements of a row where none changed.
+
+    Parameters
+    ----------
+    model : PlantModel
+        The controller's model as given.
+    data : LoggedData
+        The record the repair fits (:func:`repair_model`).
+    located : sequence of (int, int)
+        (output index, column index) of the located elements.
+    options : RepairOptions
+    signals : LoopSignals, optional
+        :func:`~mpm_monitor.core.signals.compute_signals` of ``model`` on ``data``.
+
+    Returns
+    -------
+    JointClassification
+        Empty when no row has two located elements (nothing is fitted then) or the record is too
+        short for the repair.
+    """
+    if not isinstance(options, RepairOptions):
+        raise ConfigurationError(f"options: expected RepairOptions, got {type(options).__name__}")
+    located = _check_inputs(model, data, located, signals)
+    result = JointClassification(released={}, rows={})
+    rows = {i: tuple(_located_in_row(located, i)) for i in sorted({i for i, _ in located})}
+    rows = {i: js for i, js in rows.items() if len(js) > 1}
+    if not rows:
+        return result
+    rec = _set_up(model, data, options, signals)
+    if rec.n_fit < _min_fit(model, options):
+        return result
+    for i, js in rows.items():
+        row = _RowData(model=model, u=rec.u, y=rec.y, i=i, extra=None, segments=rec.segments)
+        try:
+            free, verdicts, warnings = _classify_row(row, js, rec.settings)
+        except _TooShort:
+            continue
+        result.rows[i] = (js, (free, verdicts, list(warnings)))
+        known = [j for j in js if verdicts[j].kind != "unknown"]
+        if known:
+            result.released.update({(i, j): known for j in js if verdicts[j].kind == "unknown"})
+    return result
