@@ -104,6 +104,20 @@ def test_a_report_becomes_row_and_summary_statuses():
     np.testing.assert_array_equal(c.rsi_vector(), [1.5, 1.2, 1.0])
 
 
+def test_a_released_element_is_named_in_its_rows_status_and_not_located():
+    c = core()
+    feed(c, 0, 20)
+    rep = fake_report({"y1": ["u2"]}, samples=20)
+    for e in rep.elements:
+        e.explained_by = ("u2",) if e.input == "u3" else ()
+    c.accept(run_analysis(lambda m, d, o: rep, MODEL, None, c.take_job()))
+    st = by_name(c.statuses(now=0.0))
+    y1, y2 = st["mpm_monitor: row y1"], st["mpm_monitor: row y2"]
+    assert y1.value("explained_inputs") == "u3" and y1.value("flagged_inputs") == "u2"
+    assert y1.value("kind u3") is None and y2.value("explained_inputs") is None
+    assert st[SUMMARY_NAME].value("located_elements") == "y1:u2"
+
+
 def test_no_mismatch_is_ok_everywhere():
     c = core()
     feed(c, 0, 20)

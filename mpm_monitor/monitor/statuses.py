@@ -213,6 +213,9 @@ def row_statuses(outputs: Sequence[str], outcome, analysis_error: Optional[str],
         ambiguous = [e.input for e in els if getattr(e, "ambiguous", False)]
         values = [("rsi", _num(r.rsi)), ("mismatch", _bool(r.mismatch)), ("flagged_inputs", ",".join(flagged)),
                   ("p_value", _num(r.p_value)), ("ambiguous_inputs", ",".join(ambiguous))]
+        explained = [e.input for e in els if getattr(e, "explained_by", ())]
+        if explained:
+            values.append(("explained_inputs", ",".join(explained)))
         detectable = [(e.input, getattr(e, "detectable_gain_change", None)) for e in els]
         if any(x is not None for _, x in detectable):
             values.append(("detectable_gain_change", ",".join(f"{i}={_num(x)}" for i, x in detectable)))
