@@ -531,9 +531,10 @@ def explained_elements(model: PlantModel, data: LoggedData, located: Sequence[tu
     one through the controller, can pick up: a second element of the row is then located for the
     first one's mismatch.  The classification of the repair settles it.  It fits the row's located
     elements jointly, each in its structure, and tests every parameter of each against the model
-    (likelihood-ratio tests at ``1 - options.confidence_level``, and the joint hold of every
-    parameter found unchanged; :mod:`.classify`).  An element none of whose parameters differs
-    from the model there, in a row where another located element's do, adds nothing to the row
+    (likelihood-ratio tests at ``1 - options.confidence_level``, a change counted only above
+    ``options.min_relative_change``, and the joint hold of every parameter found unchanged;
+    :mod:`.classify`).  An element none of whose parameters differs from the model there (its kind
+    "unknown"), in a row where another located element's do, adds nothing to the row
     once those are re-estimated: it is released, with the elements that explain it.  An element
     alone in its row is never released, nor are the elements of a row where none changed.
 
