@@ -62,6 +62,28 @@ def test_two_mismatched_elements_of_a_row_are_both_kept():
     assert verdicts[1].kind == "gain" and verdicts[0].kind in ("time_constant", "mixed")
 
 
+def test_the_release_is_repeated_on_the_elements_kept_until_it_releases_nothing(wrong_gain, monkeypatch):
+    # The row's classification is replaced by a script: with u1, u2, u3 located u2 does not change;
+    # with u1 and u3 left, u3 does not either; so both go, u2 explained by u1 and u3, u3 by u1.
+    from types import SimpleNamespace
+
+    from mpm_monitor.core.repair import model_repair
+
+    script = {(0, 1, 2): {0: "gain", 1: "unknown", 2: "delay"}, (0, 2): {0: "gain", 2: "unknown"}}
+    calls = []
+
+    def classify(row, js, settings):
+        calls.append(tuple(js))
+        return "free", {j: SimpleNamespace(kind=k) for j, k in script[tuple(js)].items()}, ["w"]
+
+    monkeypatch.setattr(model_repair, "_classify_row", classify)
+    _, model, data = wrong_gain
+    found = explained_elements(model, data, [(1, 0), (1, 1), (1, 2)])
+    assert calls == [(0, 1, 2), (0, 2)]
+    assert found.released == {(1, 1): [0, 2], (1, 2): [0]}
+    assert found.rows[1][0] == (0, 2)      # the last classification: not the row's located elements
+
+
 def test_the_repair_reuses_the_classification_with_the_same_result(wrong_gain):
     _, model, data = wrong_gain
     located = [(1, 1), (1, 2)]

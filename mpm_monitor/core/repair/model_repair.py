@@ -512,8 +512,10 @@ class JointClassification:
         ``{(i, j): [k, ...]}``: the located element ``(i, j)`` (output index, column index) whose
         mismatch the located elements ``k`` of its row explain.
     rows : dict
-        ``{i: (js, (free, verdicts, warnings)))}``: the classification of row ``i``'s located
-        elements ``js`` (a tuple), which :func:`repair_model` takes instead of classifying again.
+        ``{i: (js, (free, verdicts, warnings)))}``: the last classification of row ``i``'s located
+        elements ``js`` (a tuple: those kept after the releases when the last one released nothing),
+        which :func:`repair_model` takes instead of classifying again when they are the row's
+        located elements.
     """
 
     released: dict
@@ -535,8 +537,11 @@ def explained_elements(model: PlantModel, data: LoggedData, located: Sequence[tu
     ``options.min_relative_change``, and the joint hold of every parameter found unchanged;
     :mod:`.classify`).  An element none of whose parameters differs from the model there (its kind
     "unknown"), in a row where another located element's do, adds nothing to the row
-    once those are re-estimated: it is released, with the elements that explain it.  An element
-    alone in its row is never released, nor are the elements of a row where none changed.
+    once those are re-estimated: it is released, with the elements that explain it.  The row's
+    remaining elements are then classified again, and released in turn, until none is: the
+    result is the rule applied to its own outcome, and the classification of the elements kept is
+    the one the repair takes over.  An element alone in its row is never released, nor are the
+    elements of a row where none changed.
 
     Parameters
     ----------
@@ -569,12 +574,15 @@ def explained_elements(model: PlantModel, data: LoggedData, located: Sequence[tu
         return result
     for i, js in rows.items():
         row = _RowData(model=model, u=rec.u, y=rec.y, i=i, extra=None, segments=rec.segments)
-        try:
-            free, verdicts, warnings = _classify_row(row, js, rec.settings)
-        except _TooShort:
-            continue
-        result.rows[i] = (js, (free, verdicts, list(warnings)))
-        known = [j for j in js if verdicts[j].kind != "unknown"]
-        if known:
-            result.released.update({(i, j): known for j in js if verdicts[j].kind == "unknown"})
+        while len(js) > 1:          # until the row's classification releases nothing more
+            try:
+                free, verdicts, warnings = _classify_row(row, js, rec.settings)
+            except _TooShort:
+                break
+            result.rows[i] = (js, (free, verdicts, list(warnings)))
+            known = tuple(j for j in js if verdicts[j].kind != "unknown")
+            if not known or len(known) == len(js):
+                break
+            result.released.update({(i, j): list(known) for j in js if j not in known})
+            js = known
     return result
