@@ -64,7 +64,7 @@ def test_two_mismatched_elements_of_a_row_are_both_kept():
 
 def test_the_release_is_repeated_on_the_elements_kept_until_it_releases_nothing(wrong_gain, monkeypatch):
     # The row's classification is replaced by a script: with u1, u2, u3 located u2 does not change;
-    # with u1 and u3 left, u3 does not either; so both go, u2 explained by u1 and u3, u3 by u1.
+    # with u1 and u3 left, u3 does not either; so both go, both explained by u1, the one kept.
     from types import SimpleNamespace
 
     from mpm_monitor.core.repair import model_repair
@@ -80,7 +80,7 @@ def test_the_release_is_repeated_on_the_elements_kept_until_it_releases_nothing(
     _, model, data = wrong_gain
     found = explained_elements(model, data, [(1, 0), (1, 1), (1, 2)])
     assert calls == [(0, 1, 2), (0, 2)]
-    assert found.released == {(1, 1): [0, 2], (1, 2): [0]}
+    assert found.released == {(1, 1): [0], (1, 2): [0]}
     assert found.rows[1][0] == (0, 2)      # the last classification: not the row's located elements
 
 

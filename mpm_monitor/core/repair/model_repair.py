@@ -510,7 +510,7 @@ class JointClassification:
     ----------
     released : dict
         ``{(i, j): [k, ...]}``: the located element ``(i, j)`` (output index, column index) whose
-        mismatch the located elements ``k`` of its row explain.
+        mismatch the located elements ``k`` of its row explain (those the row keeps).
     rows : dict
         ``{i: (js, (free, verdicts, warnings)))}``: the last classification of row ``i``'s located
         elements ``js`` (a tuple: those kept after the releases when the last one released nothing),
@@ -583,6 +583,8 @@ def explained_elements(model: PlantModel, data: LoggedData, located: Sequence[tu
             known = tuple(j for j in js if verdicts[j].kind != "unknown")
             if not known or len(known) == len(js):
                 break
-            result.released.update({(i, j): list(known) for j in js if j not in known})
+            result.released.update({(i, j): None for j in js if j not in known})
             js = known
+        # The elements the row keeps in the end explain every element released from it.
+        result.released.update({key: list(js) for key in result.released if key[0] == i})
     return result
