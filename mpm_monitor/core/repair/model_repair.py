@@ -491,11 +491,10 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
     rec = _set_up(model, data, options, signals)
     found = _Findings()
     rows = _rows_to_repair(rec, located, found)
-    done = classified.rows if classified is not None else {}
     results = {}
     for i in rows:
         js = _located_in_row(located, i)
-        results[i] = _process_row(rec, i, js, None, done[i][1] if i in done and done[i][0] == tuple(js) else None)
+        results[i] = _process_row(rec, i, js, None, classified.of_row(i, js) if classified is not None else None)
     ev = _evaluate(rec, results)
     if _redo_disturbed_rows(rec, located, rows, results, ev.tests):
         ev = _evaluate(rec, results)
@@ -520,6 +519,12 @@ class JointClassification:
 
     released: dict
     rows: dict
+
+    def of_row(self, i: int, js) -> Optional[tuple]:
+        """``(free, verdicts, warnings)`` of row ``i`` when its last classification was of the
+        elements ``js``, else None."""
+        done = self.rows.get(i)
+        return done[1] if done is not None and done[0] == tuple(js) else None
 
 
 def explained_elements(model: PlantModel, data: LoggedData, located: Sequence[tuple],
@@ -574,6 +579,7 @@ def explained_elements(model: PlantModel, data: LoggedData, located: Sequence[tu
         return result
     for i, js in rows.items():
         row = _RowData(model=model, u=rec.u, y=rec.y, i=i, extra=None, segments=rec.segments)
+        gone = []
         while len(js) > 1:          # until the row's classification releases nothing more
             try:
                 free, verdicts, warnings = _classify_row(row, js, rec.settings)
@@ -583,8 +589,8 @@ def explained_elements(model: PlantModel, data: LoggedData, located: Sequence[tu
             known = tuple(j for j in js if verdicts[j].kind != "unknown")
             if not known or len(known) == len(js):
                 break
-            result.released.update({(i, j): None for j in js if j not in known})
+            gone += [j for j in js if j not in known]
             js = known
         # The elements the row keeps in the end explain every element released from it.
-        result.released.update({key: list(js) for key in result.released if key[0] == i})
+        result.released.update({(i, j): list(js) for j in gone})
     return result
