@@ -179,9 +179,7 @@ def _cmd_recover(args) -> int:
 
 
 def _cmd_analyze(args) -> int:
-    import numpy as np
-
-    from ..core.logged_data import check_scale
+    from ..core.logged_data import NUMERICAL_ERRORS, check_scale
     from ..core.pipeline import analyze
     from ..io.csv_log import read_csv
     from ..io.model_file import load_model, save_model
@@ -203,13 +201,16 @@ def _cmd_analyze(args) -> int:
     try:
         report = analyze(model, data, options) if candidates is None else \
             analyze(model, data, options, candidates=candidates)
-    except (np.linalg.LinAlgError, FloatingPointError, OverflowError) as exc:  # backstop of check_scale
+    except (*NUMERICAL_ERRORS, InputError) as exc:  # backstop of check_scale
         from ..core.logged_data import divergence_warnings
 
+        cause = exc.__cause__ if isinstance(exc, InputError) else exc  # analyze raises numerical_breakdown
+        if not isinstance(cause, NUMERICAL_ERRORS):
+            raise
         diverging = divergence_warnings(model.outputs, data.y)
         why = diverging[0] if diverging else "values or model parameters too large or degenerate?"
         raise InputError(f"{data.source}: the analysis broke down numerically with model {args.model} "
-                         f"({_one_line(exc)}): {why}") from None
+                         f"({_one_line(cause)}): {why}") from None
     if args.json_out == "-":
         json.dump(report.to_dict(), sys.stdout, indent=2)
         sys.stdout.write("\n")

@@ -32,7 +32,15 @@ from typing import Optional
 import numpy as np
 
 from .errors import ConfigurationError, DataFileError
-from .logged_data import LoggedData, check_loop_data, divergence_warnings
+from .logged_data import (
+    NUMERICAL_ERRORS,
+    LoggedData,
+    check_loop_data,
+    check_scale,
+    divergence_warnings,
+    diverging_outputs,
+    numerical_breakdown,
+)
 from .model import PlantModel
 from .options import check_options, option, option_specs
 from .signals import INITIAL_STATE_CHOICES, LoopSignals
@@ -430,8 +438,20 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     Raises
     ------
     DataFileError
-        When the data do not fit the model or are too short for the tests.
+        When the data do not fit the model, are too short for the tests or too large for them
+        (:func:`~mpm_monitor.core.logged_data.check_scale`), or when the tests break down numerically
+        on them (:func:`~mpm_monitor.core.logged_data.numerical_breakdown`: a loop that diverged),
+        the numpy error as its ``__cause__``.
     """
+    try:
+        return _detect(model, data, options, signals, regressions, previous, candidates, detectability)
+    except NUMERICAL_ERRORS as err:
+        raise numerical_breakdown(model, data, err) from err
+
+
+def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signals: Optional[LoopSignals],
+            regressions, previous: Optional["AnalysisReport"], candidates, detectability: bool) -> AnalysisReport:
+    """:func:`detect` (same arguments), its numerical errors not yet turned into a ``DataFileError``."""
     # The tests are imported here: the options and the report above are described (the command line's
     # flags, the monitor's parameters) without the scipy they need.
     from .detectability import element_detectability
@@ -447,6 +467,7 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     src = data.source or "data"
     r, u, y = check_loop_data(model, data)
     diverging = divergence_warnings(model.outputs, y)
+    check_scale(model, data, diverging=diverging_outputs(model.outputs, y) if diverging else ())
     dv = np.asarray(data.dv, dtype=float)
     layout = regression_layout(model, options)
     plan = plan_gaps(data, layout.start, options.max_gap)

@@ -259,11 +259,21 @@ def divergence_warnings(names, y: np.ndarray) -> list:
     return out
 
 
-def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the model") -> None:
+def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the model", diverging=()) -> None:
     """Refuse data (or model gains) so large that the squares in the analysis overflow float64.
 
     Beyond :data:`MAX_ANALYSIS_SCALE` the fits break down (a ``LinAlgError``) or, worse, return a
     confident all-clear; a sensor's "bad value" sentinel such as 1e308 gets there.
+
+    Parameters
+    ----------
+    model : PlantModel
+    data : LoggedData
+    model_source : str
+        Where the model came from, for the message.
+    diverging : sequence of str
+        The outputs that grow without bound (:func:`diverging_outputs`): when given, the message
+        says that the loop diverged instead of asking to rescale the units.
 
     Raises
     ------
@@ -285,4 +295,59 @@ def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the mo
             why = "" if peak > MAX_ANALYSIS_SCALE else f" with gains up to {gain:.3g} in {model_source}"
             raise DataFileError(f"{data.source or 'data'}: {name} '{names[j]}' at t = {float(data.t[k]):g} s is "
                                 f"{peak:.3g}{why}: too large for the analysis (|value| x max(1, |gain|) at most "
-                                f"{MAX_ANALYSIS_SCALE:g}); rescale the units")
+                                f"{MAX_ANALYSIS_SCALE:g}); "
+                                f"{_diverged_hint(diverging) if diverging else 'rescale the units'}")
+
+
+#: The errors of numpy and scipy with which the analysis's linear algebra breaks down on a log that
+#: diverged or on degenerate values (:func:`numerical_breakdown`).
+NUMERICAL_ERRORS = (np.linalg.LinAlgError, FloatingPointError, OverflowError)
+
+
+def diverging_outputs(names, y: np.ndarray) -> list:
+    """The names of the outputs that :func:`divergence_warnings` names (same arguments), in order."""
+    y = np.asarray(y, dtype=float)
+    return [name for c, name in enumerate(names) if divergence_warnings([name], y[:, c:c + 1])]
+
+
+def _diverged_hint(diverging) -> str:
+    """The end of a message on a log whose outputs ``diverging`` grow without bound."""
+    many = len(diverging) > 1
+    return (f"the loop diverged (output{'s' if many else ''} {', '.join(repr(n) for n in diverging)} "
+            f"grow{'' if many else 's'} without bound); the tests need a bounded loop: analyze the samples "
+            f"logged before it diverged")
+
+
+def numerical_breakdown(model: PlantModel, data: LoggedData, err: BaseException) -> DataFileError:
+    """The error to raise when the analysis of ``data`` breaks down numerically with ``err``.
+
+    The least-squares fits and the factorizations of the analysis fail (one of
+    :data:`NUMERICAL_ERRORS`) mostly on a loop that diverged, whose outputs grow geometrically
+    up to values too large for float64 squares to stay accurate.
+
+    Parameters
+    ----------
+    model : PlantModel
+    data : LoggedData
+        The data analysed (its outputs are checked for divergence, :func:`diverging_outputs`).
+    err : BaseException
+        The numerical error (raise the result ``from err``).
+
+    Returns
+    -------
+    DataFileError
+        A one-line message naming the source and ``err``, then the first diverging output, its
+        largest value and its time, or, on a bounded log, the general hint.
+    """
+    src = data.source or "data"
+    cause = " ".join(str(err).split())[:200] or type(err).__name__
+    y = np.asarray(data.y, dtype=float)
+    diverging = diverging_outputs(model.outputs, y) if y.ndim == 2 and y.shape[1] == len(model.outputs) else []
+    if not diverging:
+        return DataFileError(f"{src}: the analysis broke down numerically ({cause}): values or model parameters "
+                             f"too large or degenerate?")
+    c = list(model.outputs).index(diverging[0])
+    size = np.abs(y[:, c])
+    k = int(np.argmax(np.where(np.isnan(size), -1.0, size)))
+    return DataFileError(f"{src}: the analysis broke down numerically ({cause}): output '{diverging[0]}' reaches "
+                         f"{float(y[k, c]):.3g} at t = {float(data.t[k]):g} s; {_diverged_hint(diverging)}")

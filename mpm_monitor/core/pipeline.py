@@ -20,7 +20,7 @@ from typing import Optional
 import numpy as np
 
 from .analysis import AnalysisOptions, AnalysisReport, detect
-from .logged_data import LoggedData
+from .logged_data import NUMERICAL_ERRORS, LoggedData, numerical_breakdown
 from .model import PlantModel
 from .repair import RepairOptions, explained_elements, repair_model
 from .signals import LoopSignals
@@ -63,8 +63,19 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
     Raises
     ------
     DataFileError
-        When the data do not fit the model or are too short for the tests.
+        When the data do not fit the model, are too short for the tests or too large for them, or
+        when the detection or the repair breaks down numerically on them (a loop that diverged:
+        :func:`~mpm_monitor.core.logged_data.numerical_breakdown`, the numpy error as its ``__cause__``).
     """
+    try:
+        return _analyze(model, data, options, signals, regressions, candidates)
+    except NUMERICAL_ERRORS as err:
+        raise numerical_breakdown(model, data, err) from err
+
+
+def _analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions, signals: Optional[LoopSignals],
+             regressions, candidates) -> AnalysisReport:
+    """:func:`analyze` (same arguments), its numerical errors not yet turned into a ``DataFileError``."""
     if candidates is None:
         report = detect(model, data, options, signals=signals, regressions=regressions)
     else:

@@ -18,7 +18,8 @@ import time
 import traceback
 from typing import Any, Callable, Optional
 
-from ..core.logged_data import check_scale
+from ..core.errors import DataFileError
+from ..core.logged_data import NUMERICAL_ERRORS, check_scale
 from ..core.model import PlantModel
 
 
@@ -57,6 +58,8 @@ def run_analysis(analyze: Callable, model: PlantModel, options, job: AnalysisJob
         else:
             report = analyze(model, job.data, options, candidates=job.candidates)
     except Exception as exc:  # the monitor reports any failure as ERROR and keeps running
+        if isinstance(exc, DataFileError) and isinstance(exc.__cause__, NUMERICAL_ERRORS):  # numerical_breakdown
+            exc = exc.__cause__  # reported as before: 'LinAlgError: ...'
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         return AnalysisOutcome(job, error=f"analysis failed: {type(exc).__name__}: {msg}", seconds=clock() - t0)
     return AnalysisOutcome(job, report=report, seconds=clock() - t0)
