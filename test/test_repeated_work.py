@@ -165,6 +165,40 @@ def test_unit_responses_follow_the_noise_model():
     np.testing.assert_array_equal(a.coefs, b.coefs)
 
 
+def _whole_design(problem, poles, lags):
+    """The residual and coefficients of the design solved as one (the original formula)."""
+    known, phi = problem._design(poles, lags)
+    target = problem._cost(problem.zf) - known
+    beta = problem._solve(phi, target)
+    return target - phi @ beta, beta
+
+
+@pytest.mark.parametrize("case", ["plain", "fixed_poles", "extra", "segments", "lead_form"])
+def test_projection_with_the_constant_columns_kept_equals_the_whole_design(case):
+    """The fit's cost with the cross products of the constant columns kept once per noise model equals
+    the design solved as one: the same residual and the same coefficients (well-determined problems)."""
+    row = _row()
+    form = _Form(n_lags=2, lead=True) if case == "lead_form" else _Form()
+    spec = _spec(row, 1, form)
+    z = _held_row(row, (1,)).z
+    kwargs = {}
+    fixed = {0.8: 1, 0.6: 1} if case == "fixed_poles" else {}
+    if case == "extra":
+        kwargs["extra"] = np.column_stack([(np.arange(2000) >= 900).astype(float), np.arange(2000) / 2000.0])
+    if case == "segments":
+        kwargs["segments"] = [(0, 1100), (1100, 2000)]
+    problem = _RowProblem(z, row.u[:, [1]], [spec], 2000, 8, fixed, True, 2, **kwargs)
+    lags = [spec.window[0] + 1]
+    for ar in ([0.0, 0.0], [-0.5, 0.1]):
+        problem.set_ar(ar)
+        for scale in (1.0, 0.97):
+            poles = np.clip(problem.start_poles() * scale, 0.0, 0.999)
+            resid, beta = problem.projected(poles, lags)
+            ref_resid, ref_beta = _whole_design(problem, poles, lags)
+            np.testing.assert_allclose(resid, ref_resid, rtol=0, atol=1e-9 * np.abs(ref_resid).max())
+            np.testing.assert_allclose(beta, ref_beta, rtol=1e-7, atol=1e-9 * np.abs(ref_beta).max())
+
+
 def test_held_row_is_the_output_minus_the_other_elements():
     row = _row()
     held = _held_row(row, (1,))
