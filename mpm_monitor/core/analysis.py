@@ -39,6 +39,7 @@ from .logged_data import (
     check_scale,
     divergence_warnings,
     diverging_outputs,
+    in_deviations,
     numerical_breakdown,
 )
 from .model import PlantModel
@@ -443,6 +444,7 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         on them (:func:`~mpm_monitor.core.logged_data.numerical_breakdown`: a loop that diverged),
         the numpy error as its ``__cause__``.
     """
+    data = in_deviations(model, data)
     try:
         return _detect(model, data, options, signals, regressions, previous, candidates, detectability)
     except NUMERICAL_ERRORS as err:

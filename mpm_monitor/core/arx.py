@@ -483,7 +483,9 @@ class SharedFit:
         df_num = keep.sum(axis=1)
         proj = np.einsum("gkm,gk->gm", v, th)
         quad = np.sum(np.where(keep, proj ** 2 / np.where(keep, w, 1.0), 0.0), axis=1)
-        f = quad / np.maximum(df_num, 1) / self.sigma2
+        with np.errstate(divide="ignore", invalid="ignore"):    # a row fitted exactly (no noise): sigma2 0
+            f = quad / np.maximum(df_num, 1) / self.sigma2
+        f = np.where(np.isnan(f), 0.0, f)           # 0 / 0: nothing to explain, F 0 (p 1); q / 0: F inf (p 0)
         p = f_tail(f, np.maximum(df_num, 1), self.dof)
         dof = int(self.dof)
         return [BlockTest(float(f[g]), float(p[g]), int(df_num[g]), dof) if df_num[g] else

@@ -53,6 +53,9 @@ class LoggedData:
     unusable : dict
         Logged channels that cannot be used, ``name -> reason`` (not numeric, constant, partly
         missing); default none.
+    deviations : bool
+        ``u``, ``y`` and ``r`` are already deviations from the model's operating point
+        (:func:`in_deviations`); default False (as logged).
     """
 
     t: np.ndarray
@@ -67,6 +70,7 @@ class LoggedData:
     disturbances: tuple = ()
     extra: dict = dataclasses.field(default_factory=dict)
     unusable: dict = dataclasses.field(default_factory=dict)
+    deviations: bool = False
 
     def __post_init__(self):
         self.disturbances = tuple(self.disturbances)
@@ -111,6 +115,40 @@ class LoggedData:
         return dataclasses.replace(self, t=self.t[start:stop], r=self.r[start:stop], u=self.u[start:stop],
                                    y=self.y[start:stop], dv=self.dv[start:stop],
                                    extra={k: v[start:stop] for k, v in self.extra.items()})
+
+
+def in_deviations(model: PlantModel, data: LoggedData) -> LoggedData:
+    """``data`` in the deviation variables of ``model``: the inputs minus ``model.input_nominal``, the
+    outputs and setpoints minus ``model.output_nominal``.
+
+    The model's elements act on deviations from its operating point (the model file's
+    ``input_nominal`` and ``output_nominal``, zero by default); a log holds the values as measured.
+    Every analysis entry point (:func:`~mpm_monitor.core.analysis.detect`,
+    :func:`~mpm_monitor.core.pipeline.analyze`, the repair) takes the log through here once: data
+    already converted (:attr:`LoggedData.deviations`), a model at the origin, or data whose shapes
+    do not fit the model (refused later with their own message) are returned as they are.
+
+    Parameters
+    ----------
+    model : PlantModel
+    data : LoggedData
+        As logged: ``u`` (n_samples, n_inputs), ``y`` and ``r`` (n_samples, n_outputs).
+
+    Returns
+    -------
+    LoggedData
+        A copy with ``deviations`` set, or ``data`` itself.
+    """
+    u0 = np.asarray(model.input_nominal, dtype=float)
+    y0 = np.asarray(model.output_nominal, dtype=float)
+    if data.deviations or not (np.any(u0 != 0) or np.any(y0 != 0)):
+        return data
+    shapes = (np.shape(data.u), np.shape(data.y), np.shape(data.r))
+    n = data.n_samples
+    if shapes != ((n, u0.size), (n, y0.size), (n, y0.size)):
+        return data
+    return dataclasses.replace(data, u=np.asarray(data.u, dtype=float) - u0, y=np.asarray(data.y, dtype=float) - y0,
+                               r=np.asarray(data.r, dtype=float) - y0, deviations=True)
 
 
 SIGNAL_NAMES = ("setpoint", "input", "output")
@@ -271,9 +309,10 @@ def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the mo
     data : LoggedData
     model_source : str
         Where the model came from, for the message.
-    diverging : sequence of str
-        The outputs that grow without bound (:func:`diverging_outputs`): when given, the message
-        says that the loop diverged instead of asking to rescale the units.
+    diverging : sequence of str, optional
+        The outputs that grow without bound (:func:`diverging_outputs`; found here when not given):
+        when there are any, the message says that the loop diverged instead of asking to rescale the
+        units.
 
     Raises
     ------
@@ -293,6 +332,9 @@ def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the mo
         peak = float(arr[k, j])
         if not peak * max(1.0, gain) <= MAX_ANALYSIS_SCALE:
             why = "" if peak > MAX_ANALYSIS_SCALE else f" with gains up to {gain:.3g} in {model_source}"
+            y = np.asarray(data.y, dtype=float)
+            if not diverging and y.ndim == 2 and y.shape[1] == len(model.outputs):
+                diverging = diverging_outputs(model.outputs, y)
             raise DataFileError(f"{data.source or 'data'}: {name} '{names[j]}' at t = {float(data.t[k]):g} s is "
                                 f"{peak:.3g}{why}: too large for the analysis (|value| x max(1, |gain|) at most "
                                 f"{MAX_ANALYSIS_SCALE:g}); "

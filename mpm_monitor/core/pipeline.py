@@ -20,7 +20,7 @@ from typing import Optional
 import numpy as np
 
 from .analysis import AnalysisOptions, AnalysisReport, detect
-from .logged_data import NUMERICAL_ERRORS, LoggedData, numerical_breakdown
+from .logged_data import NUMERICAL_ERRORS, LoggedData, in_deviations, numerical_breakdown
 from .model import PlantModel
 from .repair import RepairOptions, explained_elements, repair_model
 from .signals import LoopSignals
@@ -67,6 +67,7 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
         when the detection or the repair breaks down numerically on them (a loop that diverged:
         :func:`~mpm_monitor.core.logged_data.numerical_breakdown`, the numpy error as its ``__cause__``).
     """
+    data = in_deviations(model, data)
     try:
         return _analyze(model, data, options, signals, regressions, candidates)
     except NUMERICAL_ERRORS as err:

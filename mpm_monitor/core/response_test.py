@@ -237,9 +237,14 @@ def response_tests(fit, g: np.ndarray, xx: np.ndarray, xy: np.ndarray, blocks: S
         z = vs[:, kept].T @ sxy
         explained = float(z @ (z / ws[kept]))
         rss = max(syy - explained, 1e-300 * syy)
-        f = (explained / rank) / (rss / dof)
-        out.append(ResponseTest(float(f), float(f_tail(f, rank, dof)), rank, dof,
-                                information=float(sxx[0, 0] / (rss / dof))))
+        if rss > 0 and np.isfinite(s2 := rss / dof) and s2 > 0:
+            with np.errstate(over="ignore"):             # a residual many orders below the regressor: inf
+                f = (explained / rank) / s2
+                information = float(sxx[0, 0] / s2)
+        else:                                            # fitted exactly (a log without noise)
+            f = float("inf") if explained > 0 else 0.0
+            information = float("inf")
+        out.append(ResponseTest(float(f), float(f_tail(f, rank, dof)), rank, dof, information=information))
     return out
 
 

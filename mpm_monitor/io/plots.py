@@ -372,8 +372,10 @@ def plot_step_responses(report, model: PlantModel, path) -> Optional[Path]:
 
 def prediction_errors(model: PlantModel, data, initial_state: str = "estimate") -> np.ndarray:
     """``d = y - Phat [u | dv]`` of shape (n_samples, n_outputs) (:func:`~mpm_monitor.core.signals.compute_signals`)."""
+    from ..core.logged_data import in_deviations
     from ..core.signals import compute_signals
 
+    data = in_deviations(model, data)
     dv = getattr(data, "dv", None) if model.n_disturbances else None
     return compute_signals(model, data.r, data.u, data.y, initial_state=initial_state, dv=dv).d
 

@@ -7,6 +7,7 @@ Both run in a regression with AR(p) terms that absorb the coloured noise; see
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import numpy as np
 
@@ -98,8 +99,13 @@ def _drift_wald(X: np.ndarray, yv: np.ndarray):
     return w_drift, ssr_drift
 
 
+#: A residual whose spread is below this fraction of ``scale`` (:func:`unexplained_disturbance`) is the
+#: rounding error of an exact fit (a log without noise), not a signal: it is not tested.
+EXACT_FIT = 1e-10
+
+
 def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: float = 0.01, trim: float = 0.15,
-                            noise_order: int = 4, segments=None) -> dict:
+                            noise_order: int = 4, segments=None, scale: Optional[float] = None) -> dict:
     """Test one residual for a step or a linear drift on top of AR(p)-coloured noise.
 
     Parameters
@@ -118,6 +124,9 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
         Data with gaps: the contiguous runs ``(first, end)`` of the samples of ``d``.  The AR terms
         then never reach across a gap and every segment has its own offset (a step is searched
         inside the segments; ``time`` counts the samples of ``d``, not the missing ones).
+    scale : float, optional
+        The spread of the signal ``d`` is the error of (the output's standard deviation, output
+        units): a ``d`` whose standard deviation is below :data:`EXACT_FIT` times it is not tested.
 
     Returns
     -------
@@ -135,6 +144,10 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
     and its supremum tested with :func:`sup_wald_p_value`.  Drift: the Wald statistic of ``c1`` in
     ``d(k) = c0 + c1 k + sum_l a_l d(k-l) + e(k)`` against chi-square(1).  The AR terms absorb the
     coloured disturbance, so a slowly wandering but stationary disturbance is not reported.
+
+    The regressions run on ``d`` centred and scaled to unit spread (the statistics do not change; a
+    residual far from zero, or in very large or small units, would leave ``[1, lags of d]``
+    numerically singular).  The reported sizes are in the units of ``d``.
     """
     d = np.asarray(d, float).ravel()
     p = int(noise_order)
@@ -143,8 +156,12 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
            "p_step": 1.0, "p_drift": 1.0, "statistic": 0.0}
     if n_all < max(50, 10 * (p + 3)) or not np.all(np.isfinite(d)):
         return out
+    spread = float(np.std(d))
+    if not spread > 0 or (scale is not None and spread <= EXACT_FIT * float(scale)):
+        return out
+    dz = (d - float(np.mean(d))) / spread
     if segments is None:
-        yv, lags = d[p:], lag_matrix(d, range(1, p + 1), p)
+        yv, lags = dz[p:], lag_matrix(dz, range(1, p + 1), p)
         X = np.column_stack([np.ones(yv.shape[0]), lags])
         index = None
     else:
@@ -152,8 +169,8 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
         if not parts:
             return out
         index = np.concatenate([np.arange(a + p, b) for a, b in parts])      # the sample of d of every row
-        yv = d[index]
-        lags = np.vstack([lag_matrix(d[a:b], range(1, p + 1), p) for a, b in parts])
+        yv = dz[index]
+        lags = np.vstack([lag_matrix(dz[a:b], range(1, p + 1), p) for a, b in parts])
         offsets = np.zeros((yv.shape[0], len(parts)))
         at = 0
         for q, (a, b) in enumerate(parts):

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..discretize import model_columns
 from ..errors import ConfigurationError, InputError
-from ..logged_data import LoggedData, check_loop_data
+from ..logged_data import LoggedData, check_loop_data, in_deviations
 from ..model import PlantModel
 from ..signals import LoopSignals, compute_signals, error_rms, scored_mask, scored_segments, segment_signals
 from .classify import _classify_row
@@ -363,8 +363,10 @@ def _evaluate(rec: _Record, results: dict) -> _Evaluation:
     d = np.asarray(sig.d, float)
     options = rec.options
     segments = rec.scored_segments(rec.model, repaired, settled=True)
+    spread = np.std(np.asarray(rec.y, float), axis=0)
     tests = {i: unexplained_disturbance(d[:, i], rec.model.sample_time, options.disturbance_alpha,
-                                        options.disturbance_trim, options.noise_order, segments=segments)
+                                        options.disturbance_trim, options.noise_order, segments=segments,
+                                        scale=float(spread[i]))
              for i in range(rec.model.n_outputs)}
     if rec.segments is not None:      # the step's time since the first sample, the missing samples counted
         t = np.asarray(rec.data.t, float)
@@ -487,6 +489,7 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
     """
     if not isinstance(options, RepairOptions):
         raise ConfigurationError(f"options: expected RepairOptions, got {type(options).__name__}")
+    data = in_deviations(model, data)
     located = _check_inputs(model, data, located, signals)
     rec = _set_up(model, data, options, signals)
     found = _Findings()
@@ -568,6 +571,7 @@ def explained_elements(model: PlantModel, data: LoggedData, located: Sequence[tu
     """
     if not isinstance(options, RepairOptions):
         raise ConfigurationError(f"options: expected RepairOptions, got {type(options).__name__}")
+    data = in_deviations(model, data)
     located = _check_inputs(model, data, located, signals)
     result = JointClassification(released={}, rows={})
     rows = {i: tuple(_located_in_row(located, i)) for i in sorted({i for i, _ in located})}
