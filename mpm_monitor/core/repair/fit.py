@@ -318,7 +318,9 @@ class _RowProblem:
                 cols.append(self._spread(self._power_ramp(a) if repeated else self._power(a)))
         return np.column_stack(cols) if cols else np.zeros((self.kw.shape[0], 0))
 
-    def _design(self, poles, lags, filtered=True):
+    def _located_columns(self, poles, lags, filtered=True):
+        """``(known, columns)``: the located elements' response with their held coefficients, and the
+        columns of their free linear coefficients (:meth:`_element_columns`), element after element."""
         known = np.zeros(self.kw.shape[0])
         gcols = []
         for m in range(self.n_located):
@@ -326,6 +328,10 @@ class _RowProblem:
             if held is not None:
                 known += held
             gcols.extend(cols)
+        return known, gcols
+
+    def _design(self, poles, lags, filtered=True):
+        known, gcols = self._located_columns(poles, lags, filtered)
         cols = gcols + [self.fixed_cols]
         if self.free:
             cols.append(self._free_responses(poles))
@@ -395,13 +401,7 @@ class _RowProblem:
     def _varying(self, poles, lags):
         """``(known, V, n_gain)``: the held part and the moving columns of :meth:`_design` (the located
         elements' linear columns, ``n_gain`` of them, then the free responses of their poles)."""
-        known = np.zeros(self.kw.shape[0])
-        cols = []
-        for m in range(self.n_located):
-            held, gc = self._element_columns(self._cached_units(True, m, poles, lags[m]), m)
-            if held is not None:
-                known += held
-            cols.extend(gc)
+        known, cols = self._located_columns(poles, lags)
         n_gain = len(cols)
         if self.free:
             cols.extend(self._free_responses(poles).T)
