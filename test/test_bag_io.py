@@ -317,3 +317,15 @@ def test_off_grid_stamp(tmp_path):
     with pytest.raises(BagError) as e:
         read_bag(bag, MODEL)
     _check(e, str(bag), "'/setpoint'", "stamp 102.2 s is off the sample grid")
+
+
+def test_a_stamp_from_before_the_clock_was_set_costs_one_sample_not_a_grid_over_the_jump(tmp_path):
+    """Every topic's first message stamped 0 (the clock not yet set), the rest on the wall clock: the
+    topics are intersected sample by sample (a dense grid from 0 to 1.7e9 s would need 12 GB)."""
+    r, u, y = _samples(300)
+    stamps = np.concatenate([[0], 1_700_000_000 * 10**9 + np.arange(299) * int(MODEL.sample_time * 1e9)])
+    bag = write_bag(tmp_path / "bag", r, u, y, stamps=stamps)
+    data = read_bag(bag, MODEL)
+    assert data.n_samples == 300
+    np.testing.assert_array_equal(data.y, y)
+    assert data.t[1] - data.t[0] == pytest.approx(1.7e9)

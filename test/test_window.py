@@ -266,3 +266,28 @@ def test_random_short_gaps_keep_every_sample_on_its_stamp():
 def test_max_gap_checked():
     with pytest.raises(ConfigurationError, match=r"max_gap: expected an integer in \[0, 10000000\]"):
         WindowOptions(max_gap=-1)
+
+
+def _hold_values(k):
+    return {"setpoint": np.array([float(k), -float(k)]), "input": np.array([k, 2.0 * k, 3.0 * k]) + 0.2,
+            "output": np.array([float(k), k + 1.0]) + 0.3}
+
+
+def test_hold_setpoint_places_setpoints_in_stamp_order():
+    """Hold mode: setpoints that arrive out of order (within the reorder window) or one stamped an
+    hour ahead (a bad clock) still give every sample the setpoint stamped at or before it."""
+    for bad in ("swapped", "future"):
+        w = SampleWindow(OUT, INP, 1.0, WindowOptions(window_samples=60, hold_setpoint=True, reorder_samples=10))
+        for k in range(0, 40, 2):
+            order = (k + 1, k) if bad == "swapped" else (k, k + 1)
+            for kk in order:
+                w.add("setpoint", kk * NS, _hold_values(kk)["setpoint"])
+            if bad == "future" and k == 10:
+                w.add("setpoint", (k + 3600) * NS, _hold_values(k + 3600)["setpoint"])
+            for kk in (k, k + 1):
+                w.add("input", kk * NS, _hold_values(kk)["input"])
+                w.add("output", kk * NS, _hold_values(kk)["output"])
+        d = w.data()
+        assert d.n_samples == 40, bad
+        np.testing.assert_array_equal(d.r[:, 0], d.t, err_msg=bad)
+        assert len(w._setpoints) <= 3                      # the held ones are pruned as samples complete

@@ -34,6 +34,7 @@ This module is pure Python and numpy (no rclpy); time is whatever stamps the cal
 
 from __future__ import annotations
 
+import bisect
 import collections
 import dataclasses
 from typing import Optional, Sequence
@@ -207,7 +208,11 @@ class SampleWindow:
         self._pending: dict = {}
         self._complete: set = set()
         self._next_k: Optional[int] = None
-        self._setpoints: collections.deque = collections.deque()  # hold mode: (stamp_ns, values)
+        # hold mode: (stamp_ns, arrival number, values), in stamp order (arrivals out of order are put in
+        # their place; the arrival number keeps a repeated stamp's later vector last, and the arrival
+        # order a restart needs)
+        self._setpoints: list = []
+        self._setpoint_arrivals = 0
         self._last_stamp = {c: None for c in self.channels}
         self._health = WindowHealth(received={c: 0 for c in self.channels})
         self._problems: list = []
@@ -387,9 +392,10 @@ class SampleWindow:
         slot = self._slot[channel]
         if channel == "setpoint" and self.options.hold_setpoint:
             self._accepted = True
-            self._setpoints.append((stamp_ns, v))
+            self._setpoint_arrivals += 1
+            bisect.insort(self._setpoints, (stamp_ns, self._setpoint_arrivals, v), key=lambda e: e[:2])
             if len(self._setpoints) > self.options.max_pending:
-                self._setpoints.popleft()
+                del self._setpoints[0]
             return self._advance()
         k = self._grid_index(channel, stamp_ns)
         if k is None:
@@ -445,7 +451,7 @@ class SampleWindow:
     def _held_setpoint(self, k: int) -> Optional[np.ndarray]:
         limit = self._stamp_of(k) + self._tol
         best = None
-        for st, v in self._setpoints:
+        for st, _, v in self._setpoints:
             if st <= limit:
                 best = v
             else:
@@ -490,8 +496,9 @@ class SampleWindow:
     def _prune_setpoints(self) -> None:
         limit = self._stamp_of(self._next_k) + self._tol
         sp = self._setpoints
-        while len(sp) >= 2 and sp[1][0] <= limit:
-            sp.popleft()
+        last = bisect.bisect_right(sp, limit, key=lambda e: e[0]) - 1    # the latest one at or before the limit
+        if last > 0:
+            del sp[:last]
 
     def _gap(self, first_missing: int, first_present: int) -> None:
         n_missing = first_present - first_missing
@@ -557,10 +564,10 @@ class SampleWindow:
         self._pending = {}
         self._complete = set()
         self._next_k = None
-        if self._setpoints:  # hold mode: keep the setpoints after the last jump back
-            sp = list(self._setpoints)
+        if self._setpoints:  # hold mode: keep the setpoints that arrived after the last jump back
+            sp = sorted(self._setpoints, key=lambda e: e[1])                      # in arrival order
             cut = max((i + 1 for i in range(len(sp) - 1) if sp[i + 1][0] < sp[i][0]), default=0)
-            self._setpoints = collections.deque(sp[cut:])
+            self._setpoints = sorted(sp[cut:], key=lambda e: e[:2])
         self._reset_window()
         n = 0
         for ch, st, val in replay:

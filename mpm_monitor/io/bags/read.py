@@ -204,9 +204,11 @@ def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances
         spans = "; ".join(f"'{s.topic}' {s.stamps[0] / 1e9:g}..{s.stamps[-1] / 1e9:g} s" for s in series.values())
         raise BagError(f"{path}: the topics do not overlap in time ({spans})")
     # A sample is kept when every topic has it; the others are gaps (t skips them; nothing interpolated).
-    common = np.arange(k_first, k_last + 1)
+    # (intersected topic by topic: a dense grid over the span would be as long as a clock jump is wide)
+    common = None
     for k in ks.values():
-        common = np.intersect1d(common, k, assume_unique=True)
+        k = k[(k >= k_first) & (k <= k_last)]
+        common = k if common is None else np.intersect1d(common, k, assume_unique=True)
     out = {role: s.values[np.isin(ks[role], common)] for role, s in series.items()}
     t = (origin + common * ts_ns) / 1e9
     dv = out.get("disturbance")
