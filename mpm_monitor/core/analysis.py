@@ -38,7 +38,6 @@ from .logged_data import (
     check_loop_data,
     check_scale,
     divergence_warnings,
-    diverging_outputs,
     in_deviations,
     numerical_breakdown,
 )
@@ -469,7 +468,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     src = data.source or "data"
     r, u, y = check_loop_data(model, data)
     diverging = divergence_warnings(model.outputs, y)
-    check_scale(model, data, diverging=diverging_outputs(model.outputs, y) if diverging else ())
+    check_scale(model, data)
     dv = np.asarray(data.dv, dtype=float)
     layout = regression_layout(model, options)
     plan = plan_gaps(data, layout.start, options.max_gap)

@@ -702,13 +702,13 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
     """
     # A row fitted exactly (a log without noise) has no noise to measure a detectable change against.
     exact = [i for i, nz in noise.items() if not (np.isfinite(nz.sigma2) and nz.sigma2 > 0)]
-    all_rows, noise = noise, {i: nz for i, nz in noise.items() if i not in exact}
+    noisy = {i: nz for i, nz in noise.items() if i not in exact}
     windows = {(i, j): element_window(model, i, j, options.nb, options.element_window)
-               for i in noise for j in range(model.n_columns)}
+               for i in noisy for j in range(model.n_columns)}
     split = N_ELEMENT_TESTS if getattr(options, "element_response", False) else 1
-    info = WindowInformation(model, u, d, design.testable, layout.n_lag_u, layout.start, noise, windows, segments,
+    info = WindowInformation(model, u, d, design.testable, layout.n_lag_u, layout.start, noisy, windows, segments,
                              split=split)
-    family = sum(1 for i in all_rows for j in design.testable if model.columns[j] not in design.group_of)
+    family = sum(1 for i in noise for j in design.testable if model.columns[j] not in design.group_of)
     values = {(i, j): None for i in noise for j in range(model.n_columns)}
     tested = [k for k in info.targets if k[1] in design.testable]
     # The window test runs at half the level only where the element has the whole-response test too:
@@ -722,12 +722,10 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
             lam = required_noncentrality(t.df_num, t.df_den, level)
             values[key] = min(values[key], float(np.sqrt(lam / t.information)))
     warnings = []
-    values.update({(i, j): None for i in exact for j in range(model.n_columns)})
     if exact:
         warnings.append(f"output{'s' if len(exact) > 1 else ''} {', '.join(model.outputs[i] for i in exact)}: the "
                         "prediction error is fitted exactly (a log without noise?): the smallest gain change this "
                         "window detects is not computed there (detectable_gain_change null)")
-    noise = all_rows
     if noise and design.constant:
         warnings.append(f"inputs {', '.join(design.constant)} never move: the smallest gain change of their elements "
                         "this window detects cannot be computed (detectable_gain_change null)")

@@ -297,7 +297,7 @@ def divergence_warnings(names, y: np.ndarray) -> list:
     return out
 
 
-def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the model", diverging=()) -> None:
+def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the model") -> None:
     """Refuse data (or model gains) so large that the squares in the analysis overflow float64.
 
     Beyond :data:`MAX_ANALYSIS_SCALE` the fits break down (a ``LinAlgError``) or, worse, return a
@@ -308,11 +308,9 @@ def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the mo
     model : PlantModel
     data : LoggedData
     model_source : str
-        Where the model came from, for the message.
-    diverging : sequence of str, optional
-        The outputs that grow without bound (:func:`diverging_outputs`; found here when not given):
-        when there are any, the message says that the loop diverged instead of asking to rescale the
-        units.
+        Where the model came from, for the message.  When outputs grow without bound
+        (:func:`diverging_outputs`), the message says that the loop diverged instead of asking to
+        rescale the units.
 
     Raises
     ------
@@ -332,9 +330,7 @@ def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the mo
         peak = float(arr[k, j])
         if not peak * max(1.0, gain) <= MAX_ANALYSIS_SCALE:
             why = "" if peak > MAX_ANALYSIS_SCALE else f" with gains up to {gain:.3g} in {model_source}"
-            y = np.asarray(data.y, dtype=float)
-            if not diverging and y.ndim == 2 and y.shape[1] == len(model.outputs):
-                diverging = diverging_outputs(model.outputs, y)
+            diverging = diverging_outputs(model.outputs, data.y)
             raise DataFileError(f"{data.source or 'data'}: {name} '{names[j]}' at t = {float(data.t[k]):g} s is "
                                 f"{peak:.3g}{why}: too large for the analysis (|value| x max(1, |gain|) at most "
                                 f"{MAX_ANALYSIS_SCALE:g}); "
@@ -347,8 +343,11 @@ NUMERICAL_ERRORS = (np.linalg.LinAlgError, FloatingPointError, OverflowError)
 
 
 def diverging_outputs(names, y: np.ndarray) -> list:
-    """The names of the outputs that :func:`divergence_warnings` names (same arguments), in order."""
+    """The names of the outputs that :func:`divergence_warnings` names (same arguments), in order; none
+    when ``y`` does not have one column per name (a log refused elsewhere)."""
     y = np.asarray(y, dtype=float)
+    if y.ndim != 2 or y.shape[1] != len(names):
+        return []
     return [name for c, name in enumerate(names) if divergence_warnings([name], y[:, c:c + 1])]
 
 
@@ -384,7 +383,7 @@ def numerical_breakdown(model: PlantModel, data: LoggedData, err: BaseException)
     src = data.source or "data"
     cause = " ".join(str(err).split())[:200] or type(err).__name__
     y = np.asarray(data.y, dtype=float)
-    diverging = diverging_outputs(model.outputs, y) if y.ndim == 2 and y.shape[1] == len(model.outputs) else []
+    diverging = diverging_outputs(model.outputs, y)
     if not diverging:
         return DataFileError(f"{src}: the analysis broke down numerically ({cause}): values or model parameters "
                              f"too large or degenerate?")

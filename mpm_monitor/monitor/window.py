@@ -448,15 +448,14 @@ class SampleWindow:
         self._problem("late", channel, stamp_ns,
                       f"{channel}: sample t = {stamp_ns / NS_PER_S:.9g} s arrived after it was given up (ignored)")
 
+    def _latest_setpoint(self, k: int) -> int:
+        """Index in the held setpoints of the one that holds at sample ``k`` (the latest stamped at or
+        before it, within the grid tolerance; of equal stamps the last to arrive); -1 when none."""
+        return bisect.bisect_right(self._setpoints, self._stamp_of(k) + self._tol, key=lambda e: e[0]) - 1
+
     def _held_setpoint(self, k: int) -> Optional[np.ndarray]:
-        limit = self._stamp_of(k) + self._tol
-        best = None
-        for st, _, v in self._setpoints:
-            if st <= limit:
-                best = v
-            else:
-                break
-        return best
+        i = self._latest_setpoint(k)
+        return self._setpoints[i][2] if i >= 0 else None
 
     def _is_complete(self, k: int, entry) -> bool:
         if self.options.hold_setpoint:
@@ -494,11 +493,9 @@ class SampleWindow:
         return appended
 
     def _prune_setpoints(self) -> None:
-        limit = self._stamp_of(self._next_k) + self._tol
-        sp = self._setpoints
-        last = bisect.bisect_right(sp, limit, key=lambda e: e[0]) - 1    # the latest one at or before the limit
+        last = self._latest_setpoint(self._next_k)
         if last > 0:
-            del sp[:last]
+            del self._setpoints[:last]
 
     def _gap(self, first_missing: int, first_present: int) -> None:
         n_missing = first_present - first_missing
