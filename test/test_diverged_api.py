@@ -12,31 +12,23 @@ import mpm_monitor.core.row_test as row_test
 from mpm_monitor.apps.cli import main as cli_main
 from mpm_monitor.core.analysis import AnalysisOptions, detect
 from mpm_monitor.core.errors import DataFileError
-from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import PlantModel
 from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.io.csv_log import write_csv
 from mpm_monitor.io.model_file import save_model
 from mpm_monitor.monitor.worker import AnalysisJob, run_analysis
 from mpm_monitor.sim.closed_loop import run_closed_loop
+from test_divergence import MODEL
+from test_divergence import _log as _growing_log
 
-MODEL = PlantModel(sample_time=1.0, inputs=("u1",), outputs=("y1", "y2"), gain=[[1.0], [0.5]],
-                   time_constant=[[5.0], [8.0]], delay=[[1.0], [2.0]])
 #: The plant of MODEL with y1's gain of the other sign: the MPC with MODEL drives it unstable.
 UNSTABLE_PLANT = PlantModel(sample_time=1.0, inputs=("u1",), outputs=("y1", "y2"), gain=[[-3.0], [0.5]],
                             time_constant=[[5.0], [8.0]], delay=[[1.0], [2.0]])
 
 
 def _log(n=3000, total_growth=None, seed=0):
-    """A loop of MODEL driven by a PRBS-like input; y1's noise grows ``total_growth``-fold over the log."""
-    rng = np.random.default_rng(seed)
-    u = np.repeat(rng.choice([-1.0, 1.0], size=n // 10 + 1), 10)[:n, None]
-    yhat = np.column_stack([MODEL.discrete_element(i, 0).respond(u[:, 0]) for i in range(2)])
-    noise = 0.05 * rng.standard_normal((n, 2))
-    if total_growth is not None:
-        noise[:, 0] *= np.exp(np.log(total_growth) / n * np.arange(n))
-    return LoggedData(t=np.arange(n, dtype=float), r=np.zeros((n, 2)), u=u, y=yhat + noise, inputs=MODEL.inputs,
-                      outputs=MODEL.outputs, sample_time=1.0, source="diverging.csv")
+    """:func:`test_divergence._log` with y1's noise growing ``total_growth``-fold over the log."""
+    return _growing_log(n, None if total_growth is None else np.log(total_growth) / n, seed)
 
 
 def _singular(*args, **kwargs):
