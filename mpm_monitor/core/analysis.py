@@ -461,6 +461,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     from .experiment import design_experiment
     from .gaps import plan_gaps
     from .regressions import regression_layout, window_regressions
+    from .response_moments import ResponseMoments
     from .row_test import sdelta_row_test
     from .signals import compute_signals, error_rms, scored_mask, segment_signals
 
@@ -510,8 +511,14 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     design = InputDesign(model, columns, layout.n_lag_u, layout.start, options.collinearity_threshold,
                          regressions.input_regression)
     warnings += design.warnings()
+    moments = None
+    if options.method == "arx" and detectability:
+        # The element responses and their products with the input lags, taken once for the
+        # whole-response tests and the detectability.
+        moments = ResponseMoments(model, columns, sig.d, design.testable, layout.n_lag_u, layout.start, options.na,
+                                  None if plan is None else plan.local_segments)
     if options.method == "arx":
-        element_test = arx_element_test(model, test_rows, design, regressions, options)
+        element_test = arx_element_test(model, test_rows, design, regressions, options, moments)
     elif plan is None:
         element_test = baseline_element_test(model, columns, sig.d, options)
     else:                         # the baselines' correlations need one contiguous span: the longest
@@ -524,7 +531,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     if options.method == "arx" and detectability:
         info, detectable, why = element_detectability(model, columns, sig.d, design, element_test.noise, layout,
                                                       options, None if plan is None else plan.local_segments,
-                                                      responses=element_test.responses)
+                                                      responses=element_test.responses, moments=moments)
         warnings += why
         for e in elements:
             e.detectable_gain_change = detectable.get((model.outputs.index(e.output), model.columns.index(e.input)))

@@ -56,10 +56,10 @@ from typing import Optional
 import numpy as np
 import scipy.linalg as sla
 
-from .arx import lag_matrix, segment_lag_matrix, segment_rows
 from .element_test import element_window
 from .filters import lfilter
 from .model import PlantModel
+from .response_moments import ResponseMoments, target_element, typical_element  # noqa: F401 (re-exported)
 from .response_test import N_ELEMENT_TESTS
 from .statistics import N_FAMILIES, detection_noncentrality
 
@@ -83,41 +83,6 @@ MAX_OWN_LAG_DELTA = 1.0
 IMPULSE_SAMPLES = 4000
 #: Elements whose moments are stacked at once (bounds the memory of :meth:`WindowInformation.drops`).
 CHUNK = 256
-#: Columns (own lags and lag-0 responses of the rows) whose products with the input lags are taken at once.
-GROUP_COLUMNS = 128
-
-
-def typical_element(model: PlantModel, i: int):
-    """``(a, b)``: the present element of row ``i`` whose ``|gain|`` is the median of the row's.
-
-    Taken over the whole model when row ``i`` has no element; None when the model has none.
-    """
-    present = model.present
-    cols = np.flatnonzero(present[i])
-    cands = [(i, int(c)) for c in cols] if cols.size else [(int(a), int(b)) for a, b in np.argwhere(present)]
-    if not cands:
-        return None
-    gains = np.array([abs(float(model.gain[a, b])) for a, b in cands])
-    return cands[int(np.argsort(gains, kind="stable")[(len(gains) - 1) // 2])]
-
-
-def target_element(model: PlantModel, i: int, j: int):
-    """The element whose response stands for a gain error of ``(i, j)``, and its reference gain.
-
-    Returns
-    -------
-    element : DiscreteElement or None
-        The model's element when it has one; otherwise the row's typical element
-        (:func:`typical_element`); None when the model has no element at all.
-    reference_gain : float
-        ``|K|`` the relative change refers to (the typical element's for an absent element).
-    """
-    if model.present[i, j]:
-        return model.discrete_element(i, j), abs(float(model.gain[i, j]))
-    typical = typical_element(model, i)
-    if typical is None:
-        return None, float("nan")
-    return model.discrete_element(*typical), abs(float(model.gain[typical]))
 
 
 def filtered_impulse(element, a: np.ndarray, n: int) -> np.ndarray:
@@ -319,6 +284,13 @@ class WindowInformation:
         rows from sample ``start`` of the segment on), the element responses start from rest at each
         segment, and each segment's ``d`` and ``x`` are centred on their own, as the tests centre
         ``d``.  Default: one record.
+    split : int
+        :attr:`split`.
+    moments : ResponseMoments, optional
+        The window's element responses and their moments with the input lags, shared with the
+        element test (:class:`~mpm_monitor.core.response_moments.ResponseMoments` of these ``u``,
+        ``d``, ``testable``, ``n_lag``, ``start`` and ``segments``); built here when not given.  The
+        rows of ``noise`` are taken from it.
 
     Attributes
     ----------
@@ -336,136 +308,46 @@ class WindowInformation:
     """
 
     def __init__(self, model: PlantModel, u: np.ndarray, d: np.ndarray, testable: list, n_lag: int, start: int,
-                 noise: dict, windows: dict, segments=None, split: int = 1):
+                 noise: dict, windows: dict, segments=None, split: int = 1, moments: Optional[ResponseMoments] = None):
         self.model, self.testable, self.n_lag, self.noise = model, list(testable), int(n_lag), noise
         self.split = int(split)
-        nu = model.n_columns
-        u_c = u - u.mean(axis=0)
-        u_c[:, [j for j in range(nu) if j not in self.testable]] = 0.0
-        self.segments = None if segments is None else [(int(a), int(b)) for a, b in segments if b - a > start]
-        segs = [(0, u.shape[0])] if self.segments is None else self.segments
-        L = int(n_lag)
-        Z = segment_lag_matrix(u_c, range(1, n_lag + 1), start, self.segments)
-        # u(t) on the rows, and u at the lags just before each segment's first row and before its end
-        # (the corrections of the sums along lag diagonals, see _row_moments).
-        self._u_rows = segment_rows(u_c, start, self.segments)
-        self._u_head = np.stack([u_c[a + start - np.arange(1, L + 1)].T for a, _ in segs])    # (S, nu, L)
-        self._u_tail = np.stack([u_c[b - np.arange(1, L + 1)].T for _, b in segs])            # (S, nu, L)
+        na = {nz.a.size for nz in noise.values()}
+        if moments is None:
+            moments = ResponseMoments(model, u, d, self.testable, n_lag, start, max(na, default=0), segments)
+        elif moments.n_lag != self.n_lag or moments.start != int(start) or (na and na != {moments.na}) \
+                or not moments.of(u, segments) or moments.testable != self.testable:
+            raise ValueError(f"moments of {moments.n_lag} input lags from row {moments.start} with {moments.na} own "
+                             f"lags; the tests have {self.n_lag} from row {start} with {sorted(na)}")
+        self.segments = moments.segments
+        Z = moments.Z
         self.n_rows = n = max(Z.shape[0], 1)
         self.G = Z.T @ Z / n
         self.std = u.std(axis=0)
         self.own = {}
         self.targets = {}
         n_imp = max(n_lag + 2, min(u.shape[0], IMPULSE_SAMPLES))
-        # The rows are taken in groups of about GROUP_COLUMNS own-lag and lag-0 response columns, so that
-        # the products with the input lags (Z' O, Z' x) are a few wide products instead of narrow ones
-        # per row; the other moments of a row's responses are taken at once, and its [x, X] dropped.
-        group, width = [], 0
         for i, nz in noise.items():
-            row = self._row_responses(model, i, nz, u_c, d, start, segs)
-            row.update(self._response_moments(row))
-            group.append(row)
-            width += row["lag0"].shape[1] + row["O"].shape[1]
-            if width >= GROUP_COLUMNS:
-                self._row_moments(group, Z, n_imp, windows)
-                group, width = [], 0
-        if group:
-            self._row_moments(group, Z, n_imp, windows)
+            self._row_targets(moments.take(i), np.concatenate([[1.0], nz.a]), n_imp, windows)
 
-    @staticmethod
-    def _row_responses(model: PlantModel, i: int, nz, u_c: np.ndarray, d: np.ndarray, start: int, segs: list) -> dict:
-        """Row ``i``'s own lags ``O`` and the responses ``[x, X]`` (lags 0 .. na) of its elements side by side.
-
-        Returns
-        -------
-        dict
-            ``i``, ``a_poly`` (``A_i``), ``O`` (n_rows, na), ``found`` (``(j, element, reference_gain)``
-            of every column with a target element), ``W`` (n_rows, m (na + 1)), ``x_head`` and
-            ``x_tail`` (S, m, na): ``x[start - k]`` and ``x[N - k]``, ``k = 1 .. na``, of each of the
-            ``S`` segments (``N`` its length).
-        """
-        na = nz.a.size
-        O = np.vstack([lag_matrix(d[a:b, i] - d[a:b, i].mean(), range(1, na + 1), start) for a, b in segs])
-        found = [(j,) + target_element(model, i, j) for j in range(model.n_columns)]
-        found = [f for f in found if f[1] is not None]
-        m, S = len(found), len(segs)
-        W = np.empty((O.shape[0], m * (na + 1)))
-        x_head, x_tail = np.empty((S, m, na)), np.empty((S, m, na))
-        for b, (j, element, _) in enumerate(found):
-            at = 0
-            for s, (a0, b0) in enumerate(segs):
-                x = element.respond(u_c[a0:b0, j])
-                x -= x.mean()
-                N = b0 - a0
-                for lag in range(na + 1):
-                    W[at:at + N - start, b * (na + 1) + lag] = x[start - lag:N - lag]
-                x_head[s, b], x_tail[s, b] = x[start - 1::-1][:na], x[::-1][:na]   # x[start - k], x[N - k], k = 1..na
-                at += N - start
-        return dict(i=i, a_poly=np.concatenate([[1.0], nz.a]), O=O, found=found, W=W, x_head=x_head, x_tail=x_tail)
-
-    def _response_moments(self, row: dict) -> dict:
-        """The moments of a row's responses that need no input lag, and its lag-0 responses; ``W`` dropped.
-
-        Returns
-        -------
-        dict
-            ``W`` None, ``lag0`` (n_rows, m): ``x`` of every element; ``UW`` (nu, m (na + 1)):
-            ``u(t)' [x, X]``; ``OW`` (na, m (na + 1)): ``O' [x, X] / n``; ``WW`` (m, na + 1, na + 1):
-            ``[x, X]' [x, X] / n`` per element.
-        """
-        W, O, m = row["W"], row["O"], len(row["found"])
-        na, n = O.shape[1], self.n_rows
-        WW = np.empty((m, na + 1, na + 1))
-        for b in range(m):                # element by element: no copy of W
-            XW = W[:, b * (na + 1):(b + 1) * (na + 1)]
-            WW[b] = XW.T @ XW / n
-        return dict(W=None, lag0=np.ascontiguousarray(W[:, ::na + 1]), UW=self._u_rows.T @ W, OW=O.T @ W / n, WW=WW)
-
-    def _row_moments(self, group: list, Z: np.ndarray, n_imp: int, windows: dict) -> None:
-        """:attr:`own` and :attr:`targets` of the rows of ``group`` (:meth:`_row_responses`)."""
+    def _row_targets(self, rm, a_poly: np.ndarray, n_imp: int, windows: dict) -> None:
+        """:attr:`own` and :attr:`targets` of one row, from its :class:`~mpm_monitor.core.response_moments.RowMoments`."""
         n, L = self.n_rows, self.n_lag
-        nu = self._u_rows.shape[1]
-        # Z' O and Z' x (lag 0 of every element) of the whole group in one product.
-        ZB = Z.T @ np.column_stack([row["O"] for row in group] + [row["lag0"] for row in group])
-        u_head, u_tail = self._u_head, self._u_tail                           # (S, nu, L): u(start - l), u(N - l)
-        at_o = 0
-        at_x = sum(row["O"].shape[1] for row in group)
-        for row in group:
-            i, O, found, a_poly = row["i"], row["O"], row["found"], row["a_poly"]
-            na, m = O.shape[1], len(found)
-            self.own[i] = (ZB[:, at_o:at_o + na] / n, O.T @ O / n)
-            at_o += na
-            if not found:
-                continue
-            x_head, x_tail = row["x_head"], row["x_tail"]
-            # M[c, l, k, e] = sum over the rows of u_c(t - l) x_e(t - k) (l = 0 .. L, k = 0 .. na).  Z' X is
-            # a sum along diagonals of lag pairs: M(l, k) = M(l - 1, k - 1) + u(start - l) x(start - k)
-            # - u(N - l) x(N - k) (summed over the segments), so only the lags k = 0 (with every input
-            # lag) and l = 0 (with every element lag) take a product over the rows.
-            M = np.empty((nu, L + 1, na + 1, m))
-            M[:, 0] = np.moveaxis(row["UW"].reshape(nu, m, na + 1), 1, 2)
-            M[:, 1:, 0] = ZB[:, at_x:at_x + m].reshape(nu, L, m)
-            at_x += m
-            for k in range(1, na + 1):
-                if u_head.shape[0] == 1:  # one record: the plain products (einsum rounds differently)
-                    head = u_head[0][:, :, None] * x_head[0][None, None, :, k - 1]
-                    tail = u_tail[0][:, :, None] * x_tail[0][None, None, :, k - 1]
-                else:
-                    head = np.einsum("snl,sm->nlm", u_head, x_head[:, :, k - 1])
-                    tail = np.einsum("snl,sm->nlm", u_tail, x_tail[:, :, k - 1])
-                M[:, 1:, k] = M[:, :-1, k - 1] + head - tail
-            M = M[:, 1:] / n                                                  # Z' [x, X] / n: (nu, L, na + 1, m)
-            OW, WW = row["OW"], row["WW"]
-            for b, (j, element, ref) in enumerate(found):
-                cols = slice(b * (na + 1), (b + 1) * (na + 1))
-                zw, ow, ww = M[..., b].reshape(nu * L, na + 1), OW[:, cols], WW[b, 1:]
-                # x_f = A_i(q) x = x + X a on the rows
-                k = windows.get((i, j))
-                k = L if k is None else min(int(k), L)
-                self.targets[(i, j)] = ElementTarget(
-                    output=i, column=j, tested=np.arange(j * L, j * L + k), reference_gain=ref,
-                    c=zw @ a_poly, c_own=ow @ a_poly, zx=zw[:, 1:], ox=ow[:, 1:], xx=ww[:, 1:], xxf=ww @ a_poly,
-                    element=element, a_poly=a_poly, impulse_samples=n_imp)
+        i, na, m = rm.i, rm.oo.shape[0], len(rm.found)
+        self.own[i] = (rm.zo / n, rm.oo / n)
+        if not m:
+            return
+        M = rm.zx / n                                                         # Z' [x, X] / n: (nu, L, na + 1, m)
+        OW, WW = rm.ow / n, rm.ww / n
+        for b, (j, element, ref) in enumerate(rm.found):
+            cols = slice(b * (na + 1), (b + 1) * (na + 1))
+            zw, ow, ww = M[..., b].reshape(-1, na + 1), OW[:, cols], WW[b, 1:]
+            # x_f = A_i(q) x = x + X a on the rows
+            k = windows.get((i, j))
+            k = L if k is None else min(int(k), L)
+            self.targets[(i, j)] = ElementTarget(
+                output=i, column=j, tested=np.arange(j * L, j * L + k), reference_gain=ref,
+                c=zw @ a_poly, c_own=ow @ a_poly, zx=zw[:, 1:], ox=ow[:, 1:], xx=ww[:, 1:], xxf=ww @ a_poly,
+                element=element, a_poly=a_poly, impulse_samples=n_imp)
 
     def block(self, j: int) -> slice:
         """Columns of input ``j``'s lags."""
@@ -660,7 +542,7 @@ class WindowInformation:
 
 
 def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, design, noise: dict, layout, options,
-                          segments=None, responses: Optional[dict] = None):
+                          segments=None, responses: Optional[dict] = None, moments: Optional[ResponseMoments] = None):
     """The detectable gain change of every element of the rows the ARX element test examined.
 
     Parameters
@@ -690,6 +572,8 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
         level: the element is located when either test rejects, so the pair detects at least what
         the better one does.  The other elements (the model lacks them, or their response is zero
         on the window) have the window test alone, at the full level.
+    moments : ResponseMoments, optional
+        Shared with the element test (:class:`WindowInformation`).
 
     Returns
     -------
@@ -707,7 +591,7 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
                for i in noisy for j in range(model.n_columns)}
     split = N_ELEMENT_TESTS if getattr(options, "element_response", False) else 1
     info = WindowInformation(model, u, d, design.testable, layout.n_lag_u, layout.start, noisy, windows, segments,
-                             split=split)
+                             split=split, moments=moments)
     family = sum(1 for i in noise for j in design.testable if model.columns[j] not in design.group_of)
     values = {(i, j): None for i in noise for j in range(model.n_columns)}
     tested = [k for k in info.targets if k[1] in design.testable]

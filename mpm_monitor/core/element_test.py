@@ -405,7 +405,8 @@ class _Estimate:
         return combined_p_value(self.test.p_value, None if self.response is None else self.response.p_value)
 
 
-def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regressions, options) -> ElementTest:
+def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regressions, options,
+                     moments=None) -> ElementTest:
     """The Delta element test on the rows ``rows`` (see the module docstring).
 
     Parameters
@@ -419,6 +420,11 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
         The window's least-squares problems (``element_fit``, ``short_arx``).
     options : AnalysisOptions
         Its ``nb``, ``alpha`` and ``element_window``.
+    moments : ResponseMoments, optional
+        The window's element responses and their moments with the input lags
+        (:class:`~mpm_monitor.core.response_moments.ResponseMoments`, of the same columns, prediction
+        errors and segments as ``regressions``), shared with the detectability: the whole-response
+        tests take their regressors and products from them.
 
     Returns
     -------
@@ -430,7 +436,7 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
     names = model.columns
     testable, group_of = design.testable, design.group_of
     estimates, tables, group_hits, noise = {}, [], [], {}
-    whole = _WholeResponses(model, design, regressions, options) if options.element_response else None
+    whole = _WholeResponses(model, design, regressions, options, moments) if options.element_response else None
     for i in rows:
         fit = regressions.element_fit(design.regression, i)
         noise[i] = row_noise(fit)
@@ -493,12 +499,15 @@ class _WholeResponses:
     Holds the window's centred columns and prediction errors and the input lag blocks, built once.
     """
 
-    def __init__(self, model: PlantModel, design: InputDesign, regressions, options):
+    def __init__(self, model: PlantModel, design: InputDesign, regressions, options, moments=None):
         self.model, self.design = model, design
         self.na = options.na
         self.start = regressions.layout.start
         self.segments = getattr(regressions, "segments", None)
         u = np.asarray(regressions.u, dtype=float)
+        usable = moments is not None and moments.of(u, self.segments) and moments.n_lag == design.n_lag \
+            and moments.start == self.start and moments.na == self.na
+        self.moments = moments if usable else None
         d = np.asarray(regressions.d, dtype=float)
         self.u_c = u - u.mean(axis=0)
         self.d_c = d - d.mean(axis=0)
@@ -518,8 +527,15 @@ class _WholeResponses:
         testable = self.design.testable
         if not any(self.model.present[i, j] for j in testable):
             return {}
-        return row_response_tests(self.model, i, fit, testable, self.common, [self.design.n_lag] * len(testable),
-                                  self.u_c, self.d_c, self.start, self.na, self.segments)
+        sizes = [self.design.n_lag] * len(testable)
+        if self.moments is None:
+            return row_response_tests(self.model, i, fit, testable, self.common, sizes, self.u_c, self.d_c, self.start,
+                                      self.na, self.segments)
+        try:
+            return row_response_tests(self.model, i, fit, testable, None, sizes, self.u_c, self.d_c, self.start,
+                                      self.na, self.segments, moments=self.moments)
+        finally:
+            self.moments.release(i)
 
 
 #: The tail regressors of a located column cover this many time constants of the row's slowest pole.

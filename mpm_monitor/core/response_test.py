@@ -214,44 +214,69 @@ def response_tests(fit, g: np.ndarray, xx: np.ndarray, xy: np.ndarray, blocks: S
     c_s = rinv @ (rinv.T @ g_s)                          # coefficients of each x on W, scaled
     theta_s = fit.theta * scale
     x_m_y = xy - g_s.T @ theta_s
+    out = [None] * len(blocks)
+    sizes = [(len(idx), len(grp)) for idx, grp in zip(blocks, groups)]
+    # The tests whose blocks and groups are equally large are taken together (stacked decompositions).
+    for kb, kg in sorted(set(sizes)):
+        which = [t for t, sz in enumerate(sizes) if sz == (kb, kg)]
+        idx = np.array([np.asarray(blocks[t], dtype=int) for t in which]).reshape(len(which), kb)
+        grp = np.array([list(groups[t]) for t in which], dtype=int).reshape(len(which), kg)
+        for t, test in zip(which, _stacked_tests(fit, xx, c_s, g_s, theta_s, x_m_y, idx, grp)):
+            out[t] = test
+    return out
+
+
+def _stacked_tests(fit, xx, c_s, g_s, theta_s, x_m_y, idx: np.ndarray, grp: np.ndarray) -> list:
+    """:func:`response_tests` of ``g`` tests whose blocks ``idx`` (g, kb) and groups ``grp`` (g, kg) are equally large.
+
+    Directions of a block's covariance below 1e-10 of its largest, and of a group's residual moments
+    below 1e-12 of its regressors' largest energy, are left out (they count neither in the numerator's
+    nor in the denominator's degrees of freedom).
+    """
+    n_tests = idx.shape[0]
+    cov = fit.covariance_blocks(idx)
+    w, v = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, 1, 2)))
+    keep = w > 1e-10 * np.maximum(w.max(axis=1, initial=0.0), 1e-300)[:, None]
+    inv_sqrt = np.where(keep, 1.0 / np.sqrt(np.where(keep, w, 1.0)), 0.0)              # (g, kb)
+    vt = np.swapaxes(v, 1, 2)
+    tx = (vt @ c_s[idx[:, :, None], grp[:, None, :]]) * inv_sqrt[:, :, None]           # (g, kb, kg)
+    ty = (vt @ theta_s[idx][:, :, None])[:, :, 0] * inv_sqrt                            # (g, kb)
+    gs, cs = g_s[:, grp], c_s[:, grp]                                                   # (p, g, kg)
+    sxx = xx[grp[:, :, None], grp[:, None, :]] - np.einsum("pgi,pgj->gij", gs, cs) \
+        + np.swapaxes(tx, 1, 2) @ tx
+    sxy = x_m_y[grp] + np.einsum("gki,gk->gi", tx, ty)
+    syy = fit.rss + np.sum(ty * ty, axis=1)
+    sxx = 0.5 * (sxx + np.swapaxes(sxx, 1, 2))
+    ws, vs = np.linalg.eigh(sxx)
+    diag = np.diagonal(xx)[grp]                                                         # (g, kg)
+    kept = ws > 1e-12 * np.maximum(diag.max(axis=1), 1e-300)[:, None]
+    rank = kept.sum(axis=1)
+    dof = int(fit.dof) + keep.sum(axis=1) - rank
+    valid = (rank > 0) & (dof >= 1) & (sxx[:, 0, 0] > 1e-12 * np.maximum(diag[:, 0], 1e-300))
+    z = np.einsum("gki,gk->gi", vs, sxy)
+    explained = np.sum(np.where(kept, z * z / np.where(kept, ws, 1.0), 0.0), axis=1)
+    rss = np.maximum(syy - explained, 1e-300 * syy)
     out = []
-    for idx, grp in zip(blocks, groups):
-        grp = list(grp)
-        cov = fit.covariance_block(idx)
-        w, v = np.linalg.eigh(0.5 * (cov + cov.T))
-        keep = w > 1e-10 * max(w.max(initial=0.0), 1e-300)
-        tx = v[:, keep].T @ c_s[np.ix_(idx, grp)] / np.sqrt(w[keep])[:, None]
-        ty = v[:, keep].T @ theta_s[idx] / np.sqrt(w[keep])
-        sxx = xx[np.ix_(grp, grp)] - g_s[:, grp].T @ c_s[:, grp] + tx.T @ tx
-        sxy = x_m_y[grp] + tx.T @ ty
-        syy = fit.rss + ty @ ty
-        sxx = 0.5 * (sxx + sxx.T)
-        ws, vs = np.linalg.eigh(sxx)
-        diag = np.diag(xx)[grp]
-        kept = ws > 1e-12 * max(float(diag.max()), 1e-300)
-        rank = int(kept.sum())
-        dof = int(fit.dof) + int(keep.sum()) - rank
-        if rank == 0 or dof < 1 or not sxx[0, 0] > 1e-12 * max(diag[0], 1e-300):
-            out.append(ResponseTest(float("nan"), 1.0, 0, max(dof, 1)))
+    for t in range(n_tests):
+        if not valid[t]:
+            out.append(ResponseTest(float("nan"), 1.0, 0, max(int(dof[t]), 1)))
             continue
-        z = vs[:, kept].T @ sxy
-        explained = float(z @ (z / ws[kept]))
-        rss = max(syy - explained, 1e-300 * syy)
-        if rss > 0 and np.isfinite(s2 := rss / dof) and s2 > 0:
+        r, df = int(rank[t]), int(dof[t])
+        if rss[t] > 0 and np.isfinite(s2 := rss[t] / df) and s2 > 0:
             with np.errstate(over="ignore"):             # a residual many orders below the regressor: inf
-                f = (explained / rank) / s2
-                information = float(sxx[0, 0] / s2)
+                f = (explained[t] / r) / s2
+                information = float(sxx[t, 0, 0] / s2)
         else:                                            # fitted exactly (a log without noise)
-            f = float("inf") if explained > 0 else 0.0
+            f = float("inf") if explained[t] > 0 else 0.0
             information = float("inf")
-        out.append(ResponseTest(float(f), float(f_tail(f, rank, dof)), rank, dof, information=information))
+        out.append(ResponseTest(float(f), float(f_tail(f, r, df)), r, df, information=information))
     return out
 
 
 def row_response_tests(model: PlantModel, i: int, fit, testable: list, common: Optional[np.ndarray],
                        block_sizes: Sequence[int], u_c: np.ndarray, d_c: np.ndarray, start: int, na: int,
                        segments=None, a: Optional[np.ndarray] = None, columns: Optional[Sequence[int]] = None,
-                       extra: Optional[np.ndarray] = None) -> dict:
+                       extra: Optional[np.ndarray] = None, moments=None) -> dict:
     """The whole-response test of every element of row ``i`` the model has, in the row's element fit
     (module docstring).
 
@@ -265,7 +290,7 @@ def row_response_tests(model: PlantModel, i: int, fit, testable: list, common: O
     testable : list of int
         The columns of the blocks, in order.
     common : ndarray, shape (n_rows, p_common), optional
-        The lag blocks (built here from ``u_c`` when None).
+        The lag blocks (built here from ``u_c`` when None and ``moments`` is not given).
     block_sizes : sequence of int
     u_c : ndarray, shape (n_samples, n_columns)
         Centred columns.
@@ -281,6 +306,12 @@ def row_response_tests(model: PlantModel, i: int, fit, testable: list, common: O
         Test only these of ``testable`` (default: all).
     extra : ndarray, shape (n_rows, q), optional
         Further free regressors of ``fit``, after its own lags (then ``a`` must be given).
+    moments : ResponseMoments, optional
+        The window's element responses and their moments with the input lags
+        (:class:`~mpm_monitor.core.response_moments.ResponseMoments`, built from the same ``u_c``,
+        segments and ``start``, with ``na`` own lags): the regressors and their products with the lag
+        blocks (every block ``moments.n_lag`` lags) are taken from them instead of simulated and
+        multiplied again; the same values to rounding.
 
     Returns
     -------
@@ -289,25 +320,45 @@ def row_response_tests(model: PlantModel, i: int, fit, testable: list, common: O
         tested with its time-constant sensitivity too), for the columns whose model element has a
         response.
     """
-    resp = element_responses(model, i, testable if columns is None else columns, u_c, segments)
-    if not resp:
-        return {}
-    cols = list(resp)
+    asked = testable if columns is None else columns
     a = np.asarray(fit.own_theta() if a is None else a, dtype=float)
-    regressors = [resp[j] for j in cols]
+    y = segment_rows(d_c[:, i], start, segments)
+    if moments is None:
+        resp = element_responses(model, i, asked, u_c, segments)
+        cols = list(resp)
+    else:
+        if any(int(s) != moments.n_lag for s in block_sizes):
+            raise ValueError(f"lag blocks of {sorted(set(block_sizes))} lags, the moments have {moments.n_lag}")
+        rm = moments.row(i, keep_samples=True)
+        cols = [j for j in asked if model.present[i, j] and rm.index(j) is not None and rm.moves[rm.index(j)]]
+        integrating = [j for j in cols if model.integrating[i, j]]
+        resp = element_responses(model, i, integrating, u_c, segments) if integrating else {}
+    if not cols:
+        return {}
     groups = [[k] for k in range(len(cols))]
+    sensitivity = []
     for k, j in enumerate(cols):
         if model.integrating[i, j]:
-            groups[k].append(len(regressors))
-            regressors.append(time_constant_sensitivity(resp[j], model.time_constant[i, j] / model.sample_time,
-                                                        segments))
-    X_t = filtered_rows(np.column_stack(regressors), a, start, segments)
-    X_t = X_t - X_t.mean(axis=0)
-    y = segment_rows(d_c[:, i], start, segments)
-    if common is None:
-        common = np.hstack([segment_lag_matrix(u_c[:, j], range(1, size + 1), start, segments)
-                            for j, size in zip(testable, block_sizes)]) if testable else np.zeros((y.shape[0], 0))
-    parts = [common.T @ X_t]
+            groups[k].append(len(cols) + len(sensitivity))
+            sensitivity.append(time_constant_sensitivity(resp[j], model.time_constant[i, j] / model.sample_time,
+                                                         segments))
+    if moments is None:
+        X_t = filtered_rows(np.column_stack([resp[j] for j in cols] + sensitivity), a, start, segments)
+        X_t = X_t - X_t.mean(axis=0)
+        if common is None:
+            common = np.hstack([segment_lag_matrix(u_c[:, j], range(1, size + 1), start, segments)
+                                for j, size in zip(testable, block_sizes)]) if testable else np.zeros((y.shape[0], 0))
+        parts = [common.T @ X_t]
+    else:
+        L = moments.n_lag
+        block_columns = np.concatenate([np.arange(j * L, (j + 1) * L) for j in testable]).astype(int)
+        X_t, zx = moments.filtered_products(rm, cols, a, block_columns)
+        if sensitivity:
+            X_s = filtered_rows(np.column_stack(sensitivity), a, start, segments)
+            X_s = X_s - X_s.mean(axis=0)
+            X_t = np.hstack([X_t, X_s])
+            zx = np.hstack([zx, (moments.Z.T @ X_s)[block_columns]])
+        parts = [zx]
     if na:
         own = -segment_lag_matrix(d_c[:, i], range(1, na + 1), start, segments)
         parts.append(own.T @ X_t)

@@ -1,0 +1,330 @@
+"""The model elements' responses on one window and their moments with the input lags, computed once.
+
+Two parts of the analysis need, for every row ``i`` tested, the responses ``x_ij = Phat_ij u_j`` of
+its elements to the logged columns and their cross products with the lagged inputs over the
+regression rows:
+
+* the whole-response test (:mod:`mpm_monitor.core.response_test`) regresses ``d_i`` on
+  ``A_i(q) x_ij``, and needs ``Z' A_i(q) x_ij``;
+* the detectability (:mod:`mpm_monitor.core.detectability`) needs ``Z' x_ij`` and ``Z' x_ij(t - k)``,
+  ``k = 1 .. na``, for every element (the model's, or the row's typical one for an element the model
+  lacks).
+
+``Z`` is ``n_rows x (n_columns n_lag)`` and there are ``n_outputs n_columns`` elements, so these
+products are most of the cost of an analysis at industrial size.  :class:`ResponseMoments` takes them
+once per row: ``Z' x`` by one product, the lags of ``x`` by sums along the diagonals of lag pairs
+(the shift structure of lagged columns), and it keeps the element responses' lags ``0 .. na`` on the
+rows (:attr:`RowMoments.W`) only while the row's whole-response test uses them.  The
+whole-response test's ``Z' A_i(q) x`` then follows from these moments exactly
+(:func:`filtered_products`).
+
+Notation: ``u_c`` the columns centred over the window (the columns that never move set to 0, as they
+carry no information), ``Z`` their lags ``1 .. L`` on the regression rows (column ``c L + l - 1`` is
+column ``c`` at lag ``l``), ``x`` an element's response to ``u_c``, simulated from rest at the start of
+each segment and centred over each segment's samples (``x_raw = x + mu_s`` in segment ``s``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import numpy as np
+
+from .arx import lag_matrix, segment_lag_matrix, segment_rows
+from .model import PlantModel
+
+
+def typical_element(model: PlantModel, i: int):
+    """``(a, b)``: the present element of row ``i`` whose ``|gain|`` is the median of the row's.
+
+    Taken over the whole model when row ``i`` has no element; None when the model has none.
+    """
+    present = model.present
+    cols = np.flatnonzero(present[i])
+    cands = [(i, int(c)) for c in cols] if cols.size else [(int(a), int(b)) for a, b in np.argwhere(present)]
+    if not cands:
+        return None
+    gains = np.array([abs(float(model.gain[a, b])) for a, b in cands])
+    return cands[int(np.argsort(gains, kind="stable")[(len(gains) - 1) // 2])]
+
+
+def target_element(model: PlantModel, i: int, j: int):
+    """The element whose response stands for a gain error of ``(i, j)``, and its reference gain.
+
+    Returns
+    -------
+    element : DiscreteElement or None
+        The model's element when it has one; otherwise the row's typical element
+        (:func:`typical_element`); None when the model has no element at all.
+    reference_gain : float
+        ``|K|`` the relative change refers to (the typical element's for an absent element).
+    """
+    if model.present[i, j]:
+        return model.discrete_element(i, j), abs(float(model.gain[i, j]))
+    typical = typical_element(model, i)
+    if typical is None:
+        return None, float("nan")
+    return model.discrete_element(*typical), abs(float(model.gain[typical]))
+
+
+@dataclasses.dataclass
+class RowMoments:
+    """Row ``i``'s element responses and their moments over the regression rows (sums, not means).
+
+    ``m`` elements (:attr:`found`), ``na`` own lags, ``S`` segments, ``n_columns`` columns, ``L`` input lags.
+
+    Attributes
+    ----------
+    i : int
+        The row.
+    found : list of (int, DiscreteElement, float)
+        ``(j, element, reference_gain)`` of every column ``j`` with a target element
+        (:func:`target_element`), in column order.
+    moves : ndarray of bool, shape (m,)
+        Whether the element's response ``x_raw`` is not identically 0.
+    zx : ndarray, shape (n_columns, L, na + 1, m)
+        ``sum_t u_c(t - l) x(t - k)``, ``l = 1 .. L``, ``k = 0 .. na``: ``Z' [x, X]`` (output units times
+        column units).
+    uw : ndarray, shape (n_columns, m (na + 1))
+        ``u_c(t)' [x, X]`` (lag 0 of the columns).
+    zo : ndarray, shape (n_columns L, na)
+        ``Z' O``, ``O`` the row's own lags ``d_i(t - 1) .. d_i(t - na)`` (``d_i`` centred per segment).
+    oo : ndarray, shape (na, na)
+        ``O' O``.
+    ow : ndarray, shape (na, m (na + 1))
+        ``O' [x, X]``.
+    ww : ndarray, shape (m, na + 1, na + 1)
+        ``[x, X]' [x, X]`` of every element.
+    xsum : ndarray, shape (m, na + 1)
+        ``sum_t x(t - k)`` over the rows.
+    mu : ndarray, shape (S, m)
+        Mean of ``x_raw`` over each segment's samples.
+    W : ndarray, shape (n_rows, m (na + 1)), or None
+        ``[x, X]`` on the rows, element by element (lags ``0 .. na`` side by side); dropped by
+        :meth:`ResponseMoments.release` once the whole-response test has used it.
+    """
+
+    i: int
+    found: list
+    moves: np.ndarray
+    zx: np.ndarray
+    uw: np.ndarray
+    zo: np.ndarray
+    oo: np.ndarray
+    ow: np.ndarray
+    ww: np.ndarray
+    xsum: np.ndarray
+    mu: np.ndarray
+    W: Optional[np.ndarray] = None
+
+    def index(self, j: int) -> Optional[int]:
+        """Position of column ``j`` in :attr:`found` (None when it has no target element)."""
+        for b, f in enumerate(self.found):
+            if f[0] == j:
+                return b
+        return None
+
+
+class ResponseMoments:
+    """The element responses of one window and their moments with the input lags, row by row (module docstring).
+
+    Parameters
+    ----------
+    model : PlantModel
+    u : ndarray, shape (n_samples, n_columns)
+        The window's columns (inputs, then measured disturbances), the segments stacked.
+    d : ndarray, shape (n_samples, n_outputs)
+        The window's prediction errors.
+    testable : sequence of int
+        Columns that move; the others are set to 0 (their lags carry no information).
+    n_lag : int
+        Lags ``1 .. n_lag`` of every column.
+    start : int
+        First regression row of every segment (at least ``na``).
+    na : int
+        Own lags of the element fits.
+    segments : sequence of (int, int), optional
+        Data with gaps: the contiguous runs of samples; those with no regression row are left out.
+
+    Attributes
+    ----------
+    u_c : ndarray, shape (n_samples, n_columns)
+    Z : ndarray, shape (n_rows, n_columns n_lag)
+    n_rows : int
+    segments : list of (int, int) or None
+    """
+
+    def __init__(self, model: PlantModel, u: np.ndarray, d: np.ndarray, testable, n_lag: int, start: int, na: int,
+                 segments=None):
+        self.model, self.n_lag, self.start, self.na = model, int(n_lag), int(start), int(na)
+        self.testable = list(testable)
+        self.u, self.d = u, d
+        self._given_segments = None if segments is None else [(int(a), int(b)) for a, b in segments]
+        nu = model.n_columns
+        u_c = u - u.mean(axis=0)
+        u_c[:, [j for j in range(nu) if j not in self.testable]] = 0.0
+        self.u_c = u_c
+        self.segments = None if segments is None else [(int(a), int(b)) for a, b in segments if b - a > start]
+        self.segs = [(0, u.shape[0])] if self.segments is None else self.segments
+        L = self.n_lag
+        self.Z = segment_lag_matrix(u_c, range(1, L + 1), start, self.segments)
+        self.n_rows = self.Z.shape[0]
+        # u(t) on the rows, and u at the lags just before each segment's first row and before its end
+        # (the corrections of the sums along lag diagonals, see row).
+        self.u_rows = segment_rows(u_c, start, self.segments)
+        self.u_head = np.stack([u_c[a + start - np.arange(1, L + 1)].T for a, _ in self.segs])    # (S, nu, L)
+        self.u_tail = np.stack([u_c[b - np.arange(1, L + 1)].T for _, b in self.segs])            # (S, nu, L)
+        # Column sums of Z over each segment's rows (the whole-response test's centring).
+        at, sums, rows = 0, [], []
+        for a, b in self.segs:
+            k = b - a - start
+            sums.append(self.Z[at:at + k].sum(axis=0))
+            rows.append(k)
+            at += k
+        self.z_sums = np.array(sums)                    # (S, p)
+        self.seg_rows = np.array(rows, dtype=float)     # (S,)
+        self._rows = {}
+
+    def of(self, u: np.ndarray, segments=None) -> bool:
+        """Whether these are the moments of the columns ``u`` with these ``segments``."""
+        given = None if segments is None else [(int(a), int(b)) for a, b in segments]
+        return given == self._given_segments and (u is self.u or (u.shape == self.u.shape and np.array_equal(u, self.u)))
+
+    def row(self, i: int, keep_samples: bool = False) -> RowMoments:
+        """Row ``i``'s :class:`RowMoments` (computed on first use, then kept until :meth:`take`).
+
+        ``keep_samples``: keep :attr:`RowMoments.W` (the responses on the rows) for the row's
+        whole-response test, until :meth:`release`.
+        """
+        got = self._rows.get(i)
+        if got is None or (keep_samples and got.W is None):
+            got = self._rows[i] = self._compute(i, keep_samples)
+        return got
+
+    def release(self, i: int) -> None:
+        """Drop row ``i``'s responses on the rows (its moments stay)."""
+        got = self._rows.get(i)
+        if got is not None:
+            got.W = None
+
+    def take(self, i: int) -> RowMoments:
+        """Row ``i``'s moments, no longer kept here (the detectability turns them into its targets)."""
+        got = self._rows.pop(i, None)
+        if got is None:
+            got = self._compute(i, False)
+        got.W = None
+        return got
+
+    def _compute(self, i: int, keep_samples: bool) -> RowMoments:
+        model, u_c, start, segs, na, L = self.model, self.u_c, self.start, self.segs, self.na, self.n_lag
+        d = self.d
+        O = np.vstack([lag_matrix(d[a:b, i] - d[a:b, i].mean(), range(1, na + 1), start) for a, b in segs])
+        found = [(j,) + target_element(model, i, j) for j in range(model.n_columns)]
+        found = [f for f in found if f[1] is not None]
+        m, S = len(found), len(segs)
+        W = np.empty((O.shape[0], m * (na + 1)))
+        W3 = W.reshape(W.shape[0], m, na + 1)                           # a view: [row, element, lag]
+        x_head, x_tail = np.empty((S, m, na)), np.empty((S, m, na))
+        mu, moves = np.zeros((S, m)), np.zeros(m, dtype=bool)
+        for b, (j, element, _) in enumerate(found):
+            at = 0
+            for s, (a0, b0) in enumerate(segs):
+                x = element.respond(u_c[a0:b0, j])
+                moves[b] |= bool(np.any(x != 0))
+                mu[s, b] = x.mean()
+                x -= mu[s, b]
+                N = b0 - a0
+                # Row t holds x(t), x(t - 1) .. x(t - na): the reversed windows of na + 1 samples.
+                W3[at:at + N - start, b] = np.lib.stride_tricks.sliding_window_view(x, na + 1)[start - na:N - na, ::-1]
+                x_head[s, b], x_tail[s, b] = x[start - 1::-1][:na], x[::-1][:na]   # x[start - k], x[N - k], k = 1..na
+                at += N - start
+        # [x, X]' [x, X] along the diagonals of lag pairs too: sum x(t - k) x(t - k') = the sum at
+        # (k - 1, k' - 1) + x(start - k) x(start - k') - x(N - k) x(N - k'); only lag 0 with every lag
+        # takes a pass over the rows.
+        ww = np.empty((m, na + 1, na + 1))
+        ww[:, 0] = np.einsum("tb,tbk->bk", W3[:, :, 0], W3)
+        ww[:, 1:, 0] = ww[:, 0, 1:]
+        for k in range(1, na + 1):
+            ww[:, 1:, k] = ww[:, :-1, k - 1] + np.einsum("sbl,sb->bl", x_head, x_head[:, :, k - 1]) \
+                - np.einsum("sbl,sb->bl", x_tail, x_tail[:, :, k - 1])
+        upper = np.triu_indices(na + 1, 1)
+        ww[:, upper[1], upper[0]] = ww[:, upper[0], upper[1]]          # exactly symmetric
+        uw = self.u_rows.T @ W
+        ow = O.T @ W
+        # Z' O and Z' x (lag 0 of every element) in one product.
+        lag0 = np.ascontiguousarray(W[:, ::na + 1])
+        ZB = self.Z.T @ np.column_stack([O, lag0])
+        nu = u_c.shape[1]
+        u_head, u_tail = self.u_head, self.u_tail                           # (S, nu, L): u(start - l), u(N - l)
+        # M[c, l, k, e] = sum over the rows of u_c(t - l) x_e(t - k) (l = 0 .. L, k = 0 .. na).  Z' X is a sum
+        # along diagonals of lag pairs: M(l, k) = M(l - 1, k - 1) + u(start - l) x(start - k) - u(N - l) x(N - k)
+        # (summed over the segments), so only the lags k = 0 (with every input lag) and l = 0 (with every
+        # element lag) take a product over the rows.
+        M = np.empty((nu, L + 1, na + 1, m))
+        M[:, 0] = np.moveaxis(uw.reshape(nu, m, na + 1), 1, 2)
+        M[:, 1:, 0] = ZB[:, na:].reshape(nu, L, m)
+        for k in range(1, na + 1):
+            if u_head.shape[0] == 1:  # one record: the plain products (einsum rounds differently)
+                head = u_head[0][:, :, None] * x_head[0][None, None, :, k - 1]
+                tail = u_tail[0][:, :, None] * x_tail[0][None, None, :, k - 1]
+            else:
+                head = np.einsum("snl,sm->nlm", u_head, x_head[:, :, k - 1])
+                tail = np.einsum("snl,sm->nlm", u_tail, x_tail[:, :, k - 1])
+            M[:, 1:, k] = M[:, :-1, k - 1] + head - tail
+        return RowMoments(i=i, found=found, moves=moves, zx=M[:, 1:], uw=uw, zo=ZB[:, :na], oo=O.T @ O, ow=ow, ww=ww,
+                          xsum=W.sum(axis=0).reshape(m, na + 1), mu=mu, W=W if keep_samples else None)
+
+    def filtered_products(self, rm: RowMoments, columns, a: np.ndarray, block_columns: np.ndarray) -> tuple:
+        """The whole-response test's regressors and their products with the input lags, from the moments.
+
+        For every column ``j`` of ``columns`` (each with a target element in ``rm``), the regressor is
+        ``A(q) x_raw`` on the rows, centred over the rows (as
+        :func:`~mpm_monitor.core.response_test.row_response_tests` builds it).  With ``x_raw = x + mu_s``
+        in segment ``s``, ``A(1) = sum a_k`` and ``Z_s' 1`` the column sums of ``Z`` over segment
+        ``s``'s ``n_s`` rows (``n`` in all)::
+
+            Z' (A(q) x_raw - mean) = sum_k a_k Z' x(t - k) - Z' 1 sum_k a_k 1' x(t - k) / n
+                                     + A(1) sum_s mu_s (Z_s' 1 - n_s / n Z' 1)
+
+        Parameters
+        ----------
+        rm : RowMoments
+            With :attr:`RowMoments.W` kept.
+        columns : sequence of int
+        a : ndarray, shape (na,)
+            ``A(q) = 1 + a_1 q^-1 + ...``.
+        block_columns : ndarray of int, shape (p_common,)
+            The columns of ``Z`` the test's lag blocks are (in their order).
+
+        Returns
+        -------
+        X : ndarray, shape (n_rows, k)
+            The centred regressors.
+        ZX : ndarray, shape (p_common, k)
+            Their products with the lag blocks.
+        """
+        na = self.na
+        a_poly = np.concatenate([[1.0], np.asarray(a, dtype=float)])
+        if a_poly.size != na + 1:
+            raise ValueError(f"A(q) of {a_poly.size - 1} lags, the moments have {na}")
+        b = [rm.index(j) for j in columns]
+        A1 = float(a_poly.sum())
+        n = max(self.n_rows, 1)
+        m = rm.zx.shape[-1]
+        zx = np.tensordot(rm.zx.reshape(-1, na + 1, m), a_poly, axes=(1, 0))[block_columns][:, b]   # (p, k)
+        mu = rm.mu[:, b]                                                            # (S, k)
+        z_sums = self.z_sums[:, block_columns]                                      # (S, p)
+        z_all = z_sums.sum(axis=0)
+        ZX = zx - np.outer(z_all, a_poly @ rm.xsum[b].T / n)
+        if len(self.segs) > 1:
+            ZX += A1 * (z_sums - np.outer(self.seg_rows / n, z_all)).T @ mu
+        # The regressors on the rows: A(q) x_raw = [x, X] a + A(1) mu_s, centred.
+        X = (rm.W.reshape(-1, na + 1) @ a_poly).reshape(self.n_rows, m)[:, b]
+        if len(self.segs) > 1:          # one record: A(1) mu is a constant, which the centring removes
+            at = 0
+            for s, k in enumerate(self.seg_rows.astype(int)):
+                X[at:at + k] += A1 * mu[s]
+                at += k
+        X -= X.mean(axis=0)
+        return X, ZX

@@ -1,0 +1,98 @@
+"""The element responses' moments shared by the whole-response test and the detectability: the same
+tests as the direct products, with gaps, integrating, second-order, lead and absent elements."""
+
+import numpy as np
+import pytest
+from scipy.signal import lfilter
+
+from mpm_monitor.core.arx import SharedBlockRegression, lag_matrix, segment_lag_matrix, segment_rows
+from mpm_monitor.core.model import PlantModel
+from mpm_monitor.core.response_moments import ResponseMoments
+from mpm_monitor.core.response_test import row_response_tests
+
+N_LAG, NA = 7, 2
+
+
+def _window(seed, n=1800):
+    """One output, four inputs: a second-order lag with a lead, an integrator, an element the model
+    lacks, and a first-order lag; AR(2) noise and a gain error of the first element."""
+    rng = np.random.default_rng(seed)
+    model = PlantModel(sample_time=1.0, inputs=("u1", "u2", "u3", "u4"), outputs=("y1",),
+                       gain=np.array([[1.5, 0.02, 0.0, -0.8]]), time_constant=np.array([[30.0, 5.0, 0.0, 6.0]]),
+                       time_constant2=np.array([[10.0, 0.0, 0.0, 0.0]]), lead=np.array([[4.0, 0.0, 0.0, 0.0]]),
+                       delay=np.array([[2.0, 1.0, 0.0, 3.0]]), integrating=np.array([[False, True, False, False]]))
+    u = np.column_stack([np.repeat(rng.choice([-1.0, 1.0], n // 5 + 1), 5)[:n], rng.standard_normal((n, 3))])
+    u[:, 1] = np.cumsum(rng.standard_normal(n)) * 0.05 + rng.standard_normal(n)
+    noise = lfilter([1.0], [1.0, -0.7, 0.1], 0.05 * rng.standard_normal(n))
+    d = 0.05 * model.discrete_element(0, 0).respond(u[:, 0] - u[:, 0].mean()) + noise + 3.0
+    return model, u, d[:, None]
+
+
+@pytest.mark.parametrize("segments, testable", [
+    (None, [0, 1, 2, 3]),
+    ([(0, 600), (600, 640), (640, 1300), (1300, 1800)], [0, 1, 2, 3]),   # gaps
+    (None, [0, 1, 3]),                                                   # a column that never moves
+])
+def test_the_response_tests_from_the_moments_equal_the_direct_products(segments, testable):
+    model, u, d = _window(4)
+    start = max(N_LAG, NA)
+    u_c = u - u.mean(axis=0)
+    d_c = d - d.mean(axis=0)
+    X = np.hstack([segment_lag_matrix(u_c[:, k], range(1, N_LAG + 1), start, segments) for k in testable])
+    own = -segment_lag_matrix(d_c[:, 0], range(1, NA + 1), start, segments)
+    fit = SharedBlockRegression(X, [N_LAG] * len(testable)).fit(segment_rows(d_c[:, 0], start, segments), own)
+    sizes = [N_LAG] * len(testable)
+    direct = row_response_tests(model, 0, fit, testable, X, sizes, u_c, d_c, start, NA, segments)
+    moments = ResponseMoments(model, u, d, testable, N_LAG, start, NA, segments)
+    shared = row_response_tests(model, 0, fit, testable, None, sizes, u_c, d_c, start, NA, segments, moments=moments)
+    assert set(direct) == set(shared) == {j for j in testable if model.present[0, j]}
+    assert direct[1].df_num == 2                    # the integrator: with its time-constant sensitivity
+    for j, t in direct.items():
+        s = shared[j]
+        assert (s.df_num, s.df_den) == (t.df_num, t.df_den)
+        assert s.statistic == pytest.approx(t.statistic, rel=1e-9)
+        assert s.p_value == pytest.approx(t.p_value, rel=1e-7, abs=1e-300)
+        assert s.information == pytest.approx(t.information, rel=1e-9)
+    assert direct[0].p_value < 1e-3                 # the gain error is there to be found
+
+
+def test_the_row_moments_equal_the_products_of_the_lag_matrices():
+    """Z' [x, X], u(t)' [x, X], O' [x, X], [x, X]' [x, X] (the last two along lag diagonals), the sums
+    and the segment means, against the lag matrices of each segment's centred response."""
+    model, u, d = _window(9)
+    start, segs = max(N_LAG, NA), [(0, 900), (900, 1800)]
+    moments = ResponseMoments(model, u, d, [0, 1, 2, 3], N_LAG, start, NA, segs)
+    rm = moments.row(0, keep_samples=True)
+    u_c = u - u.mean(axis=0)
+    Z = np.vstack([lag_matrix(u_c[a:b], range(1, N_LAG + 1), start) for a, b in segs])
+    U0 = np.vstack([u_c[a + start:b] for a, b in segs])
+    O = np.vstack([lag_matrix(d[a:b, 0] - d[a:b, 0].mean(), range(1, NA + 1), start) for a, b in segs])
+    np.testing.assert_allclose(moments.Z, Z)
+    np.testing.assert_allclose(rm.zo, Z.T @ O, rtol=1e-10, atol=1e-9)
+    np.testing.assert_allclose(rm.oo, O.T @ O, rtol=1e-12)
+    assert [f[0] for f in rm.found] == [0, 1, 2, 3]          # (0, 2) stands for the row's typical element
+    for b, (j, element, _) in enumerate(rm.found):
+        parts, mus = [], []
+        for a0, b0 in segs:
+            x = element.respond(u_c[a0:b0, j])
+            mus.append(x.mean())
+            parts.append(lag_matrix(x - x.mean(), range(0, NA + 1), start))
+        XW = np.vstack(parts)
+        np.testing.assert_allclose(rm.mu[:, b], mus, rtol=1e-12)
+        np.testing.assert_allclose(rm.W[:, b * (NA + 1):(b + 1) * (NA + 1)], XW)
+        np.testing.assert_allclose(rm.xsum[b], XW.sum(axis=0), atol=1e-9 * np.abs(XW).sum())
+        for got, want in ((rm.zx[..., b].reshape(-1, NA + 1), Z.T @ XW), (rm.ww[b], XW.T @ XW),
+                          (rm.uw[:, b * (NA + 1):(b + 1) * (NA + 1)], U0.T @ XW),
+                          (rm.ow[:, b * (NA + 1):(b + 1) * (NA + 1)], O.T @ XW)):
+            np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-10 * np.abs(want).max())
+    assert np.array_equal(rm.ww[:, 1, 2], rm.ww[:, 2, 1])
+    moments.release(0)
+    assert moments.row(0).W is None and moments.take(0) is rm
+
+
+def test_moments_of_other_columns_are_not_used():
+    """The element test takes the shared moments only when they are of its own columns and segments."""
+    model, u, d = _window(2)
+    moments = ResponseMoments(model, u, d, [0, 1, 2, 3], N_LAG, N_LAG, NA)
+    assert moments.of(u) and moments.of(u.copy())
+    assert not moments.of(u + 1e-9) and not moments.of(u, [(0, 900), (900, 1800)])
