@@ -79,7 +79,8 @@ def test_the_row_moments_equal_the_products_of_the_lag_matrices():
             parts.append(lag_matrix(x - x.mean(), range(0, NA + 1), start))
         XW = np.vstack(parts)
         np.testing.assert_allclose(rm.mu[:, b], mus, rtol=1e-12)
-        np.testing.assert_allclose(rm.W[:, b * (NA + 1):(b + 1) * (NA + 1)], XW)
+        np.testing.assert_allclose(rm.R[:, b], np.concatenate([element.respond(u_c[a0:b0, j]) - mu
+                                                               for (a0, b0), mu in zip(segs, mus)]))
         np.testing.assert_allclose(rm.xsum[b], XW.sum(axis=0), atol=1e-9 * np.abs(XW).sum())
         for got, want in ((rm.zx[..., b].reshape(-1, NA + 1), Z.T @ XW), (rm.ww[b], XW.T @ XW),
                           (rm.uw[:, b * (NA + 1):(b + 1) * (NA + 1)], U0.T @ XW),
@@ -87,7 +88,7 @@ def test_the_row_moments_equal_the_products_of_the_lag_matrices():
             np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-10 * np.abs(want).max())
     assert np.array_equal(rm.ww[:, 1, 2], rm.ww[:, 2, 1])
     moments.release(0)
-    assert moments.row(0).W is None and moments.take(0) is rm
+    assert moments.row(0).R is None and moments.take(0) is rm
 
 
 def test_moments_of_other_columns_are_not_used():

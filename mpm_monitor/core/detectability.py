@@ -374,6 +374,16 @@ class WindowInformation:
     def stacked(self, keys, H: np.ndarray, dither: Optional[dict] = None) -> dict:
         """The moments of ``keys`` stacked, with their products with ``H`` (shared by every gain error).
 
+        The gain error ``delta`` enters the own lags' moments linearly (``U = Z'O_alt / n = g_zo + delta
+        zx``), so every product over the input lags that :meth:`drops` needs is a polynomial in
+        ``delta`` whose coefficients are taken here once::
+
+            U' H U = Q0 + delta (Q1 + Q1') + delta^2 Q3,   U' H c = r0 + delta r1,
+            H U = hzo + delta hzx  (on the tested block only)
+
+        with ``Q0 = g_zo' H g_zo``, ``Q1 = zx' H g_zo``, ``Q3 = zx' H zx``, ``r0 = g_zo' H c`` and
+        ``r1 = zx' H c``; a gain error then costs products of ``na x na`` matrices only.
+
         Parameters
         ----------
         keys : sequence of (int, int)
@@ -384,9 +394,10 @@ class WindowInformation:
         Returns
         -------
         dict
-            ``c`` (m, p), ``zx`` (m, p, na), ``xx`` (m, na, na), ``xxf`` (m, na), ``g_zo`` (m, p, na),
-            ``g_oo``, ``ox`` (m, na, na), ``c_own`` (m, na), and ``hzx = H zx``, ``hzo = H g_zo``,
-            ``hc = H c``; ``ts``: the targets.
+            Per element (first axis): ``g_oo``, ``ox``, ``xx``, ``Q0``, ``Q1``, ``Q3`` (m, na, na);
+            ``c_own``, ``xxf``, ``r0``, ``r1`` (m, na); on the element's block of ``L`` input lags,
+            ``hc`` (m, L) of ``H c``, ``hzo`` and ``hzx`` (m, L, na) of ``H g_zo`` and ``H zx``, and
+            ``H_block`` (m, L, L); ``ts``: the targets.
         """
         L = self.n_lag
         ts = [self.targets[k] for k in keys]
@@ -404,15 +415,28 @@ class WindowInformation:
                     zx[g, sl] += a2 * dzx
                     xx[g] += a2 * dxx
                     xxf[g] += a2 * dxxf
-        rows = sorted({t.output for t in ts})
-        h_own = {i: H @ self.own[i][0] for i in rows}                       # H Z'O_i / n, once per row
-        # H zx of every element as one product (p, m na): a stack of narrow products is about 4 times slower.
         m, p, na = zx.shape
+        # H zx of every element as one product (p, m na): a stack of narrow products is about 4 times slower.
         hzx = (H @ zx.transpose(1, 0, 2).reshape(p, m * na)).reshape(p, m, na).transpose(1, 0, 2)
-        return dict(ts=ts, c=c, zx=zx, xx=xx, xxf=xxf, hzx=hzx, hc=c @ H,
-                    g_zo=np.stack([self.own[t.output][0] for t in ts]), hzo=np.stack([h_own[t.output] for t in ts]),
-                    g_oo=np.stack([self.own[t.output][1] for t in ts]), ox=np.stack([t.ox for t in ts]),
-                    c_own=np.stack([t.c_own for t in ts]))
+        hc = c @ H
+        zx_t = np.swapaxes(zx, 1, 2)                                        # (m, na, p)
+        Q0, Q1, r0 = np.empty((m, na, na)), np.empty((m, na, na)), np.empty((m, na))
+        hzo = np.empty((m, L, na))
+        block = np.array([t.column * L for t in ts], dtype=int)[:, None] + np.arange(L)     # (m, L)
+        outputs = np.array([t.output for t in ts])
+        for i in np.unique(outputs):                                        # the own lags are the row's
+            sel = np.flatnonzero(outputs == i)
+            g_zo = self.own[int(i)][0]                                      # (p, na)
+            h_own = H @ g_zo
+            Q0[sel] = g_zo.T @ h_own
+            Q1[sel] = (zx_t[sel].reshape(-1, p) @ h_own).reshape(sel.size, na, na)
+            r0[sel] = hc[sel] @ g_zo
+            hzo[sel] = h_own[block[sel]]
+        rows = np.arange(m)[:, None]
+        return dict(ts=ts, g_oo=np.stack([self.own[t.output][1] for t in ts]), ox=np.stack([t.ox for t in ts]), xx=xx,
+                    c_own=np.stack([t.c_own for t in ts]), xxf=xxf, Q0=Q0, Q1=Q1, Q3=np.matmul(zx_t, hzx), r0=r0,
+                    r1=np.matmul(zx_t, hc[:, :, None])[:, :, 0], hc=hc[rows, block], hzo=hzo, hzx=hzx[rows, block],
+                    H_block=H[block[:, :, None], block[:, None, :]])
 
     def drops(self, keys, H: np.ndarray, deltas=None, dither: Optional[dict] = None,
               stacked: Optional[dict] = None) -> dict:
@@ -454,33 +478,36 @@ class WindowInformation:
 
     @staticmethod
     def _drops(st: dict, H: np.ndarray, delta: np.ndarray) -> np.ndarray:
-        """:meth:`drops` of the stacked moments ``st`` with the gain errors ``delta`` (one per element)."""
+        """:meth:`drops` of the stacked moments ``st`` with the gain errors ``delta`` (one per element).
+
+        With ``U = Z'O_alt / n``, ``D = O_alt'O_alt / n`` and ``c_o = O_alt' x_f / n`` (class docstring):
+        ``s = D^-1 c_o``, ``M = D - U'HU`` and ``w = M^-1 U'H (c - U s)``; on the tested lags ``S``,
+        ``theta_S = (Hc)_S + (HU)_S (w - s)`` and ``[H_SS + (HU)_S M^-1 (HU)_S']^-1`` is their
+        precision (the partitioned inverse of the moments of ``[Z, O_alt]``).
+        """
         ts = st["ts"]
         dl = delta[:, None, None]
-        U = st["g_zo"] + dl * st["zx"]                                      # Z' O_alt / n
         ox = st["ox"]
         D = st["g_oo"] + dl * (ox + np.swapaxes(ox, 1, 2)) + dl * dl * st["xx"]   # O_alt' O_alt / n
         na = D.shape[1]
+        theta_b = st["hc"]                                                  # (m, L)
         if na:
-            hz = st["hzo"] + dl * st["hzx"]                                 # H U: (m, p, na)
+            Q1 = st["Q1"]
+            S = st["Q0"] + dl * (Q1 + np.swapaxes(Q1, 1, 2)) + dl * dl * st["Q3"]      # U' H U
             s = np.linalg.solve(D, (st["c_own"] + delta[:, None] * st["xxf"])[..., None])[..., 0]
-            c_tilde = st["c"] - np.einsum("mpk,mk->mp", U, s)
-            hc = st["hc"] - np.einsum("mpk,mk->mp", hz, s)                  # (H c~)' (H symmetric)
-            M = D - np.matmul(np.swapaxes(U, 1, 2), hz)
-            w = np.linalg.solve(M, np.einsum("mpk,mp->mk", hz, c_tilde)[..., None])[..., 0]      # M^-1 hz' c~
-        else:
-            hc = st["hc"]
+            M = D - S
+            rhs = st["r0"] + delta[:, None] * st["r1"] - np.matmul(S, s[..., None])[..., 0]     # U' H (c - U s)
+            w = np.linalg.solve(M, rhs[..., None])[..., 0]
+            hb = st["hzo"] + dl * st["hzx"]                                 # (H U) on the block: (m, L, na)
+            theta_b = theta_b + np.matmul(hb, (w - s)[..., None])[..., 0]
         out = np.zeros(len(ts))
         sizes = np.array([t.tested.size for t in ts])
-        first = np.array([t.tested[0] for t in ts])
         for k in np.unique(sizes):
             sel = np.flatnonzero(sizes == k)
-            idx = first[sel, None] + np.arange(k)[None, :]                  # (g, k)
-            theta = hc[sel[:, None], idx]
-            Hss = H[idx[:, :, None], idx[:, None, :]]
+            theta = theta_b[sel, :k]
+            Hss = st["H_block"][sel, :k, :k]
             if na:
-                hs = hz[sel[:, None], idx]                                  # (g, k, na)
-                theta = theta + np.einsum("gkn,gn->gk", hs, w[sel])
+                hs = hb[sel, :k]                                            # (g, k, na)
                 Hss = Hss + np.matmul(hs, np.linalg.solve(M[sel], np.swapaxes(hs, 1, 2)))
             out[sel] = quadratic_forms(Hss, theta)
         return out

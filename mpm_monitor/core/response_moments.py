@@ -13,8 +13,8 @@ regression rows:
 ``Z`` is ``n_rows x (n_columns n_lag)`` and there are ``n_outputs n_columns`` elements, so these
 products are most of the cost of an analysis at industrial size.  :class:`ResponseMoments` takes them
 once per row: ``Z' x`` by one product, the lags of ``x`` by sums along the diagonals of lag pairs
-(the shift structure of lagged columns), and it keeps the element responses' lags ``0 .. na`` on the
-rows (:attr:`RowMoments.W`) only while the row's whole-response test uses them.  The
+(the shift structure of lagged columns), and it keeps the element responses
+(:attr:`RowMoments.R`) only while the row's whole-response test uses them.  The
 whole-response test's ``Z' A_i(q) x`` then follows from these moments exactly
 (:func:`filtered_products`).
 
@@ -100,8 +100,8 @@ class RowMoments:
         ``sum_t x(t - k)`` over the rows.
     mu : ndarray, shape (S, m)
         Mean of ``x_raw`` over each segment's samples.
-    W : ndarray, shape (n_rows, m (na + 1)), or None
-        ``[x, X]`` on the rows, element by element (lags ``0 .. na`` side by side); dropped by
+    R : ndarray, shape (n_samples, m), or None
+        ``x`` on every sample (each segment's centred on its own); dropped by
         :meth:`ResponseMoments.release` once the whole-response test has used it.
     """
 
@@ -116,7 +116,7 @@ class RowMoments:
     ww: np.ndarray
     xsum: np.ndarray
     mu: np.ndarray
-    W: Optional[np.ndarray] = None
+    R: Optional[np.ndarray] = None
 
     def index(self, j: int) -> Optional[int]:
         """Position of column ``j`` in :attr:`found` (None when it has no target element)."""
@@ -194,11 +194,11 @@ class ResponseMoments:
     def row(self, i: int, keep_samples: bool = False) -> RowMoments:
         """Row ``i``'s :class:`RowMoments` (computed on first use, then kept until :meth:`take`).
 
-        ``keep_samples``: keep :attr:`RowMoments.W` (the responses on the rows) for the row's
-        whole-response test, until :meth:`release`.
+        ``keep_samples``: keep :attr:`RowMoments.R` (the responses) for the row's whole-response
+        test, until :meth:`release`.
         """
         got = self._rows.get(i)
-        if got is None or (keep_samples and got.W is None):
+        if got is None or (keep_samples and got.R is None):
             got = self._rows[i] = self._compute(i, keep_samples)
         return got
 
@@ -206,15 +206,22 @@ class ResponseMoments:
         """Drop row ``i``'s responses on the rows (its moments stay)."""
         got = self._rows.get(i)
         if got is not None:
-            got.W = None
+            got.R = None
 
     def take(self, i: int) -> RowMoments:
         """Row ``i``'s moments, no longer kept here (the detectability turns them into its targets)."""
         got = self._rows.pop(i, None)
         if got is None:
             got = self._compute(i, False)
-        got.W = None
+        got.R = None
         return got
+
+    def _lagged(self, R: np.ndarray, k: int) -> np.ndarray:
+        """``R(t - k)`` on the regression rows, shape (n_rows, m) (a view without gaps)."""
+        if len(self.segs) == 1:
+            a, b = self.segs[0]
+            return R[a + self.start - k:b - k]
+        return np.concatenate([R[a + self.start - k:b - k] for a, b in self.segs])
 
     def _compute(self, i: int, keep_samples: bool) -> RowMoments:
         model, u_c, start, segs, na, L = self.model, self.u_c, self.start, self.segs, self.na, self.n_lag
@@ -223,38 +230,37 @@ class ResponseMoments:
         found = [(j,) + target_element(model, i, j) for j in range(model.n_columns)]
         found = [f for f in found if f[1] is not None]
         m, S = len(found), len(segs)
-        W = np.empty((O.shape[0], m * (na + 1)))
-        W3 = W.reshape(W.shape[0], m, na + 1)                           # a view: [row, element, lag]
-        x_head, x_tail = np.empty((S, m, na)), np.empty((S, m, na))
+        # The responses on every sample, centred per segment, one column per element (column-major: each
+        # is written at once, and the lags on the rows are views of row ranges).
+        R = np.empty((u_c.shape[0], m), order="F")
         mu, moves = np.zeros((S, m)), np.zeros(m, dtype=bool)
         for b, (j, element, _) in enumerate(found):
-            at = 0
             for s, (a0, b0) in enumerate(segs):
                 x = element.respond(u_c[a0:b0, j])
                 moves[b] |= bool(np.any(x != 0))
                 mu[s, b] = x.mean()
-                x -= mu[s, b]
-                N = b0 - a0
-                # Row t holds x(t), x(t - 1) .. x(t - na): the reversed windows of na + 1 samples.
-                W3[at:at + N - start, b] = np.lib.stride_tricks.sliding_window_view(x, na + 1)[start - na:N - na, ::-1]
-                x_head[s, b], x_tail[s, b] = x[start - 1::-1][:na], x[::-1][:na]   # x[start - k], x[N - k], k = 1..na
-                at += N - start
+                R[a0:b0, b] = x - mu[s, b]
+        x_head = np.stack([R[a + start - np.arange(1, na + 1)].T for a, _ in segs])      # (S, m, na): x(start - k)
+        x_tail = np.stack([R[b0 - np.arange(1, na + 1)].T for _, b0 in segs])            # (S, m, na): x(N - k)
+        lags = [self._lagged(R, k) for k in range(na + 1)]                               # (n_rows, m) each
         # [x, X]' [x, X] along the diagonals of lag pairs too: sum x(t - k) x(t - k') = the sum at
         # (k - 1, k' - 1) + x(start - k) x(start - k') - x(N - k) x(N - k'); only lag 0 with every lag
         # takes a pass over the rows.
         ww = np.empty((m, na + 1, na + 1))
-        ww[:, 0] = np.einsum("tb,tbk->bk", W3[:, :, 0], W3)
+        for k in range(na + 1):
+            ww[:, 0, k] = np.einsum("tb,tb->b", lags[0], lags[k])
         ww[:, 1:, 0] = ww[:, 0, 1:]
         for k in range(1, na + 1):
             ww[:, 1:, k] = ww[:, :-1, k - 1] + np.einsum("sbl,sb->bl", x_head, x_head[:, :, k - 1]) \
                 - np.einsum("sbl,sb->bl", x_tail, x_tail[:, :, k - 1])
         upper = np.triu_indices(na + 1, 1)
         ww[:, upper[1], upper[0]] = ww[:, upper[0], upper[1]]          # exactly symmetric
-        uw = self.u_rows.T @ W
-        ow = O.T @ W
+        # u(t)' and O' with every lag of every element (element by element, lags side by side).
+        uw = np.stack([self.u_rows.T @ x for x in lags], axis=2).reshape(-1, m * (na + 1))
+        ow = np.stack([O.T @ x for x in lags], axis=2).reshape(na, m * (na + 1))
+        xsum = np.stack([x.sum(axis=0) for x in lags], axis=1)                          # (m, na + 1)
         # Z' O and Z' x (lag 0 of every element) in one product.
-        lag0 = np.ascontiguousarray(W[:, ::na + 1])
-        ZB = self.Z.T @ np.column_stack([O, lag0])
+        ZB = self.Z.T @ np.column_stack([O, lags[0]])
         nu = u_c.shape[1]
         u_head, u_tail = self.u_head, self.u_tail                           # (S, nu, L): u(start - l), u(N - l)
         # M[c, l, k, e] = sum over the rows of u_c(t - l) x_e(t - k) (l = 0 .. L, k = 0 .. na).  Z' X is a sum
@@ -273,7 +279,7 @@ class ResponseMoments:
                 tail = np.einsum("snl,sm->nlm", u_tail, x_tail[:, :, k - 1])
             M[:, 1:, k] = M[:, :-1, k - 1] + head - tail
         return RowMoments(i=i, found=found, moves=moves, zx=M[:, 1:], uw=uw, zo=ZB[:, :na], oo=O.T @ O, ow=ow, ww=ww,
-                          xsum=W.sum(axis=0).reshape(m, na + 1), mu=mu, W=W if keep_samples else None)
+                          xsum=xsum, mu=mu, R=R if keep_samples else None)
 
     def filtered_products(self, rm: RowMoments, columns, a: np.ndarray, block_columns: np.ndarray) -> tuple:
         """The whole-response test's regressors and their products with the input lags, from the moments.
@@ -290,7 +296,7 @@ class ResponseMoments:
         Parameters
         ----------
         rm : RowMoments
-            With :attr:`RowMoments.W` kept.
+            With :attr:`RowMoments.R` kept.
         columns : sequence of int
         a : ndarray, shape (na,)
             ``A(q) = 1 + a_1 q^-1 + ...``.
@@ -320,7 +326,7 @@ class ResponseMoments:
         if len(self.segs) > 1:
             ZX += A1 * (z_sums - np.outer(self.seg_rows / n, z_all)).T @ mu
         # The regressors on the rows: A(q) x_raw = [x, X] a + A(1) mu_s, centred.
-        X = (rm.W.reshape(-1, na + 1) @ a_poly).reshape(self.n_rows, m)[:, b]
+        X = sum(a_k * self._lagged(rm.R[:, b], k) for k, a_k in enumerate(a_poly))
         if len(self.segs) > 1:          # one record: A(1) mu is a constant, which the centring removes
             at = 0
             for s, k in enumerate(self.seg_rows.astype(int)):
