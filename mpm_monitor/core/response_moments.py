@@ -326,7 +326,8 @@ class ResponseMoments:
         if len(self.segs) > 1:
             ZX += A1 * (z_sums - np.outer(self.seg_rows / n, z_all)).T @ mu
         # The regressors on the rows: A(q) x_raw = [x, X] a + A(1) mu_s, centred.
-        X = sum(a_k * self._lagged(rm.R[:, b], k) for k, a_k in enumerate(a_poly))
+        Rb = rm.R[:, b]
+        X = sum(a_k * self._lagged(Rb, k) for k, a_k in enumerate(a_poly))
         if len(self.segs) > 1:          # one record: A(1) mu is a constant, which the centring removes
             at = 0
             for s, k in enumerate(self.seg_rows.astype(int)):
