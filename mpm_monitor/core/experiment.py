@@ -35,7 +35,7 @@ from typing import Optional
 
 import numpy as np
 
-from .detectability import WindowInformation, moment_inverse, required_noncentrality
+from .detectability import CHUNK, WindowInformation, moment_inverse, required_noncentrality
 
 #: Relative gain error the experiment must detect with probability 0.9.
 GOAL = 0.2
@@ -139,9 +139,12 @@ class _Predictor:
                 return False, None, family
             if not np.linalg.eigvalsh(Lj.T @ H[sl, sl] @ Lj)[-1] < self.max_vif:
                 return False, None, family
-        m = len(self.targets)
-        both = info.drops(self.targets + self.targets, H, [GOAL] * m + [-GOAL] * m, amplitudes)
-        return True, dict(zip(self.targets, np.minimum(both[:m], both[m:]).tolist())), family
+        worse = []
+        for a in range(0, len(self.targets), CHUNK):      # the moments of each target once, for both signs
+            part = self.targets[a:a + CHUNK]
+            st = info.stacked(part, H, amplitudes)
+            worse.append(np.minimum(*(info.drops(part, H, [sign * GOAL] * len(part), stacked=st) for sign in (1, -1))))
+        return True, dict(zip(self.targets, np.concatenate(worse).tolist() if worse else [])), family
 
     def _lambda(self, k: int, rows: float, p: int, na: int, level: float) -> float:
         key = (k, max(int(rows) - p - na, 1), level)
