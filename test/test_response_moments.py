@@ -5,7 +5,9 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
+from mpm_monitor.core.analysis import AnalysisOptions, detect
 from mpm_monitor.core.arx import SharedBlockRegression, lag_matrix, segment_lag_matrix, segment_rows
+from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import PlantModel
 from mpm_monitor.core.response_moments import ResponseMoments
 from mpm_monitor.core.response_test import row_response_tests
@@ -97,3 +99,20 @@ def test_moments_of_other_columns_are_not_used():
     moments = ResponseMoments(model, u, d, [0, 1, 2, 3], N_LAG, N_LAG, NA)
     assert moments.of(u) and moments.of(u.copy())
     assert not moments.of(u + 1e-9) and not moments.of(u, [(0, 900), (900, 1800)])
+
+
+def test_a_model_without_elements_has_no_moments_to_share():
+    """No element anywhere: the rows have no responses; the analysis says why no value is given."""
+    rng = np.random.default_rng(0)
+    n = 2000
+    model = PlantModel(sample_time=1.0, inputs=("u1", "u2"), outputs=("y1",), gain=np.zeros((1, 2)),
+                       time_constant=np.zeros((1, 2)), delay=np.zeros((1, 2)))
+    moments = ResponseMoments(model, rng.standard_normal((n, 2)), rng.standard_normal((n, 1)), [0, 1], N_LAG, N_LAG,
+                              NA)
+    rm = moments.row(0, keep_samples=True)
+    assert rm.found == [] and rm.zx.shape == (2, N_LAG, NA + 1, 0) and rm.uw.shape == (2, 0)
+    data = LoggedData(t=np.arange(n, dtype=float), r=np.zeros((n, 1)), u=rng.standard_normal((n, 2)),
+                      y=0.1 * rng.standard_normal((n, 1)), inputs=("u1", "u2"), outputs=("y1",), sample_time=1.0)
+    rep = detect(model, data, AnalysisOptions())
+    assert [e.detectable_gain_change for e in rep.elements] == [None, None]
+    assert any("the model has no element" in w for w in rep.warnings)

@@ -496,7 +496,9 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
 class _WholeResponses:
     """The whole-response tests of the rows of one element test (:mod:`mpm_monitor.core.response_test`).
 
-    Holds the window's centred columns and prediction errors and the input lag blocks, built once.
+    Holds the window's centred columns and prediction errors and the input lag blocks, built once; or
+    the window's shared :class:`~mpm_monitor.core.response_moments.ResponseMoments`, when they are of
+    the same columns, segments and lags, from which the tests take their regressors and products.
     """
 
     def __init__(self, model: PlantModel, design: InputDesign, regressions, options, moments=None):

@@ -171,7 +171,7 @@ class ResponseMoments:
         self.Z = segment_lag_matrix(u_c, range(1, L + 1), start, self.segments)
         self.n_rows = self.Z.shape[0]
         # u(t) on the rows, and u at the lags just before each segment's first row and before its end
-        # (the corrections of the sums along lag diagonals, see row).
+        # (the corrections of the sums along lag diagonals, see _compute).
         self.u_rows = segment_rows(u_c, start, self.segments)
         self.u_head = np.stack([u_c[a + start - np.arange(1, L + 1)].T for a, _ in self.segs])    # (S, nu, L)
         self.u_tail = np.stack([u_c[b - np.arange(1, L + 1)].T for _, b in self.segs])            # (S, nu, L)
@@ -203,7 +203,7 @@ class ResponseMoments:
         return got
 
     def release(self, i: int) -> None:
-        """Drop row ``i``'s responses on the rows (its moments stay)."""
+        """Drop row ``i``'s responses (its moments stay)."""
         got = self._rows.get(i)
         if got is not None:
             got.R = None
@@ -256,12 +256,12 @@ class ResponseMoments:
         upper = np.triu_indices(na + 1, 1)
         ww[:, upper[1], upper[0]] = ww[:, upper[0], upper[1]]          # exactly symmetric
         # u(t)' and O' with every lag of every element (element by element, lags side by side).
-        uw = np.stack([self.u_rows.T @ x for x in lags], axis=2).reshape(-1, m * (na + 1))
+        nu = u_c.shape[1]
+        uw = np.stack([self.u_rows.T @ x for x in lags], axis=2).reshape(nu, m * (na + 1))
         ow = np.stack([O.T @ x for x in lags], axis=2).reshape(na, m * (na + 1))
         xsum = np.stack([x.sum(axis=0) for x in lags], axis=1)                          # (m, na + 1)
         # Z' O and Z' x (lag 0 of every element) in one product.
         ZB = self.Z.T @ np.column_stack([O, lags[0]])
-        nu = u_c.shape[1]
         u_head, u_tail = self.u_head, self.u_tail                           # (S, nu, L): u(start - l), u(N - l)
         # M[c, l, k, e] = sum over the rows of u_c(t - l) x_e(t - k) (l = 0 .. L, k = 0 .. na).  Z' X is a sum
         # along diagonals of lag pairs: M(l, k) = M(l - 1, k - 1) + u(start - l) x(start - k) - u(N - l) x(N - k)
