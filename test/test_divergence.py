@@ -86,3 +86,16 @@ def test_the_command_line_keeps_its_old_hint_for_bounded_data(tmp_path, monkeypa
     monkeypatch.setattr(pipeline, "analyze", lambda *a, **k: (_ for _ in ()).throw(np.linalg.LinAlgError("x")))
     assert cli_main(["analyze", "--model", str(model_path), "--data", str(csv_path)]) == 2
     assert "values or model parameters too large or degenerate?" in capsys.readouterr().err
+
+
+def test_no_detectable_change_or_experiment_on_a_diverging_loop():
+    """The moments of signals that grow without bound mean nothing: every detectable_gain_change is
+    null, no experiment is designed, and one warning says why; a bounded loop still gets values."""
+    report = detect(MODEL, _log(growth=np.log(1e10) / 3000), AnalysisOptions(repair=False))
+    assert [e.detectable_gain_change for e in report.elements] == [None, None]
+    assert report.experiment is None
+    said = [w for w in report.warnings if w.startswith("the loop diverged (y1)")]
+    assert len(said) == 1 and "detectable_gain_change null" in said[0] and "\n" not in said[0]
+    clean = detect(MODEL, _log(), AnalysisOptions(repair=False))
+    assert all(e.detectable_gain_change is not None and np.isfinite(e.detectable_gain_change) for e in clean.elements)
+    assert not any(w.startswith("the loop diverged") for w in clean.warnings)

@@ -38,6 +38,7 @@ from .logged_data import (
     check_loop_data,
     check_scale,
     divergence_warnings,
+    diverging_outputs,
     in_deviations,
     numerical_breakdown,
 )
@@ -469,6 +470,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     src = data.source or "data"
     r, u, y = check_loop_data(model, data)
     diverging = divergence_warnings(model.outputs, y)
+    diverged = diverging_outputs(model.outputs, y) if diverging else []
     check_scale(model, data)
     dv = np.asarray(data.dv, dtype=float)
     layout = regression_layout(model, options)
@@ -511,8 +513,11 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     design = InputDesign(model, columns, layout.n_lag_u, layout.start, options.collinearity_threshold,
                          regressions.input_regression)
     warnings += design.warnings()
+    # On a loop that diverged every moment is of signals that grow without bound: no detectable change
+    # and no experiment means anything there (the warnings already say the tests' results do not).
+    valued = options.method == "arx" and detectability and not diverging
     moments = None
-    if options.method == "arx" and detectability:
+    if valued:
         # The element responses and their products with the input lags, taken once for the
         # whole-response tests and the detectability.
         moments = ResponseMoments(model, columns, sig.d, design.testable, layout.n_lag_u, layout.start, options.na,
@@ -528,13 +533,17 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     warnings += element_test.warnings
     elements = element_test.elements
     info = None
-    if options.method == "arx" and detectability:
+    if valued:
         info, detectable, why = element_detectability(model, columns, sig.d, design, element_test.noise, layout,
                                                       options, None if plan is None else plan.local_segments,
                                                       responses=element_test.responses, moments=moments)
         warnings += why
         for e in elements:
             e.detectable_gain_change = detectable.get((model.outputs.index(e.output), model.columns.index(e.input)))
+    elif options.method == "arx" and detectability:
+        warnings.append(f"the loop diverged ({', '.join(diverged)}): the smallest gain "
+                        "change this window detects is not computed (detectable_gain_change null) and no experiment "
+                        "is designed; the model needs repairing before the loop can be probed")
     experiment = design_experiment(model, info, elements, options, layout) if detectability else None
     candidate_report = None
     if candidates is not None:
