@@ -216,6 +216,19 @@ class ResponseMoments:
         got.R = None
         return got
 
+    def responses(self, rm: RowMoments, columns) -> dict:
+        """Column ``j`` -> ``x_raw`` on every sample (shape (n_samples,)): the response of the row's element
+        of each of ``columns`` from rest at each segment's start, as simulated for the moments (``x + mu_s``;
+        0 on the samples of a segment without a regression row).  ``rm`` with :attr:`RowMoments.R` kept."""
+        out = {}
+        for j in columns:
+            b = rm.index(j)
+            x = rm.R[:, b].copy()
+            for s, (a0, b0) in enumerate(self.segs):
+                x[a0:b0] += rm.mu[s, b]
+            out[j] = x
+        return out
+
     def _lagged(self, R: np.ndarray, k: int) -> np.ndarray:
         """``R(t - k)`` on the regression rows, shape (n_rows, m) (a view without gaps)."""
         if len(self.segs) == 1:
@@ -232,7 +245,7 @@ class ResponseMoments:
         m, S = len(found), len(segs)
         # The responses on every sample, centred per segment, one column per element (column-major: each
         # is written at once, and the lags on the rows are views of row ranges).
-        R = np.empty((u_c.shape[0], m), order="F")
+        R = np.zeros((u_c.shape[0], m), order="F")          # samples of segments without a row stay 0
         mu, moves = np.zeros((S, m)), np.zeros(m, dtype=bool)
         for b, (j, element, _) in enumerate(found):
             for s, (a0, b0) in enumerate(segs):
