@@ -116,3 +116,72 @@ def test_a_model_without_elements_has_no_moments_to_share():
     rep = detect(model, data, AnalysisOptions())
     assert [e.detectable_gain_change for e in rep.elements] == [None, None]
     assert any("the model has no element" in w for w in rep.warnings)
+
+
+def _by_product(monkeypatch, make):
+    """The moments built with every ``Z' x`` taken by a product over the rows (no recursion)."""
+    with monkeypatch.context() as mp:
+        mp.setattr(ResponseMoments, "_recursive", lambda self, element: False)
+        return make()
+
+
+@pytest.mark.parametrize("na, n_lag, segments", [
+    (2, N_LAG, None),
+    (2, N_LAG, [(0, 500), (500, 530), (530, 1800)]),     # gaps, one segment without a regression row
+    (1, N_LAG, [(0, 900), (900, 1800)]),                 # na 1: the second-order elements by a product
+    (4, 3, None),                                        # few lags: the slow delays by a product
+])
+def test_the_recursion_in_the_lags_equals_the_product_over_the_rows(monkeypatch, na, n_lag, segments):
+    """``Z' x`` of an element from its difference equation and the input Gram (``_by_recursion``)
+    against ``Z' x`` by a product over the rows, every moment of the row, whichever elements qualify."""
+    model, u, d = _window(11)
+    start = max(n_lag, na)
+
+    def make():
+        return ResponseMoments(model, u, d, [0, 1, 2, 3], n_lag, start, na, segments).row(0)
+
+    got, want = make(), _by_product(monkeypatch, make)
+    moments = ResponseMoments(model, u, d, [0, 1, 2, 3], n_lag, start, na, segments)
+    used = [moments._recursive(element) for _, element, _ in got.found]
+    assert any(used) and (not all(used) or na == 2)         # both paths where the elements differ
+    for name in ("zx", "uw", "zo", "ww", "ow", "xsum", "mu"):
+        w = getattr(want, name)
+        np.testing.assert_allclose(getattr(got, name), w, rtol=1e-10, atol=1e-12 * np.abs(w).max(), err_msg=name)
+
+
+def test_a_step_response_model_by_the_recursion_and_by_products(monkeypatch):
+    """Step-response elements (a finite impulse response; in a ramp row with an integrator): the same
+    moments by the recursion (taps within the lags) as by products (more taps than lags)."""
+    rng = np.random.default_rng(3)
+    n, N, n_lag = 1500, 30, 12
+    k = np.arange(1, N + 1)
+    row = np.stack([1.2 * (1 - np.exp(-np.maximum(k - 2, 0) / 3.0)), -0.5 * (1 - np.exp(-np.maximum(k - 1, 0) / 12.0)),
+                    0.02 * np.maximum(k - 3, 0)])
+    u = rng.standard_normal((n, 3))
+    d = rng.standard_normal((n, 2))
+    for taps, by_recursion in ((N, False), (8, True)):
+        model = PlantModel.from_step_response(1.0, ("u1", "u2", "u3"), ("y1", "y2"),
+                                              np.stack([row[:, :taps], row[:, :taps]]), ramp=(False, True))
+
+        def make(i):
+            return ResponseMoments(model, u, d, [0, 1, 2], n_lag, n_lag, 2).row(i)
+
+        moments = ResponseMoments(model, u, d, [0, 1, 2], n_lag, n_lag, 2)
+        for i in (0, 1):
+            got, want = make(i), _by_product(monkeypatch, lambda: make(i))
+            assert [moments._recursive(e) for _, e, _ in got.found] == [by_recursion] * 3
+            for name in ("zx", "uw", "ww"):
+                w = getattr(want, name)
+                np.testing.assert_allclose(getattr(got, name), w, rtol=1e-10, atol=1e-12 * np.abs(w).max(),
+                                           err_msg=f"{name}, {taps} taps, row {i}")
+
+
+@pytest.mark.parametrize("segments", [None, [(0, 700), (700, 720), (720, 1800)]])
+def test_the_input_gram_along_lag_diagonals_equals_the_product_of_the_lag_matrices(segments):
+    model, u, d = _window(5)
+    moments = ResponseMoments(model, u, d, [0, 1, 3], N_LAG, N_LAG, NA, segments)
+    u_c = u - u.mean(axis=0)
+    u_c[:, 2] = 0.0                                   # the column that never moves
+    W = segment_lag_matrix(u_c, range(0, N_LAG + 1), N_LAG, segments)     # column c (L + 1) + l
+    want = (W.T @ W).reshape(4, N_LAG + 1, 4, N_LAG + 1)
+    np.testing.assert_allclose(moments.gram, want, rtol=1e-11, atol=1e-12 * np.abs(want).max())

@@ -12,8 +12,10 @@ regression rows:
 
 ``Z`` is ``n_rows x (n_columns n_lag)`` and there are ``n_outputs n_columns`` elements, so these
 products are most of the cost of an analysis at industrial size.  :class:`ResponseMoments` takes them
-once per row: ``Z' x`` by one product, the lags of ``x`` by sums along the diagonals of lag pairs
-(the shift structure of lagged columns), and it keeps the element responses
+once per row: ``Z' x`` from the element's difference equation and the Gram of the input lags, lag
+after lag (:meth:`ResponseMoments._by_recursion`; by a product over the rows for an element of more
+poles than ``na`` or more numerator taps than the lags), the lags of ``x`` by sums along the
+diagonals of lag pairs (the shift structure of lagged columns), and it keeps the element responses
 (:attr:`RowMoments.R`) only while the row's whole-response test uses them.  The
 whole-response test's ``Z' A_i(q) x`` then follows from these moments exactly
 (:func:`filtered_products`).
@@ -273,26 +275,99 @@ class ResponseMoments:
         uw = np.stack([self.u_rows.T @ x for x in lags], axis=2).reshape(nu, m * (na + 1))
         ow = np.stack([O.T @ x for x in lags], axis=2).reshape(na, m * (na + 1))
         xsum = np.stack([x.sum(axis=0) for x in lags], axis=1)                          # (m, na + 1)
-        # Z' O and Z' x (lag 0 of every element) in one product.
-        ZB = self.Z.T @ np.column_stack([O, lags[0]])
+        # The elements whose Z' x follows from their difference equation (see _by_recursion); the others'
+        # is taken with Z' O in one product.
+        rec = [b for b, (_, element, _) in enumerate(found) if self._recursive(element)]
+        direct = [b for b in range(m) if b not in set(rec)]
+        ZB = self.Z.T @ np.column_stack([O, lags[0][:, direct]])
         u_head, u_tail = self.u_head, self.u_tail                           # (S, nu, L): u(start - l), u(N - l)
         # M[c, l, k, e] = sum over the rows of u_c(t - l) x_e(t - k) (l = 0 .. L, k = 0 .. na).  Z' X is a sum
         # along diagonals of lag pairs: M(l, k) = M(l - 1, k - 1) + u(start - l) x(start - k) - u(N - l) x(N - k)
         # (summed over the segments), so only the lags k = 0 (with every input lag) and l = 0 (with every
-        # element lag) take a product over the rows.
+        # element lag) take a product over the rows, or none for lag k = 0 of an element by the recursion.
         M = np.empty((nu, L + 1, na + 1, m))
         M[:, 0] = np.moveaxis(uw.reshape(nu, m, na + 1), 1, 2)
-        M[:, 1:, 0] = ZB[:, na:].reshape(nu, L, m)
+        M[:, 1:, 0, direct] = ZB[:, na:].reshape(nu, L, len(direct))
+        head, tail = np.empty((nu, L, na, m)), np.empty((nu, L, na, m))
         for k in range(1, na + 1):
             if u_head.shape[0] == 1:  # one record: the plain products (einsum rounds differently)
-                head = u_head[0][:, :, None] * x_head[0][None, None, :, k - 1]
-                tail = u_tail[0][:, :, None] * x_tail[0][None, None, :, k - 1]
+                head[:, :, k - 1] = u_head[0][:, :, None] * x_head[0][None, None, :, k - 1]
+                tail[:, :, k - 1] = u_tail[0][:, :, None] * x_tail[0][None, None, :, k - 1]
             else:
-                head = np.einsum("snl,sm->nlm", u_head, x_head[:, :, k - 1])
-                tail = np.einsum("snl,sm->nlm", u_tail, x_tail[:, :, k - 1])
-            M[:, 1:, k] = M[:, :-1, k - 1] + head - tail
+                head[:, :, k - 1] = np.einsum("snl,sm->nlm", u_head, x_head[:, :, k - 1])
+                tail[:, :, k - 1] = np.einsum("snl,sm->nlm", u_tail, x_tail[:, :, k - 1])
+        if not rec:
+            for k in range(1, na + 1):
+                M[:, 1:, k] = M[:, :-1, k - 1] + head[:, :, k - 1] - tail[:, :, k - 1]
+        else:
+            self._by_recursion(M, head, tail, [found[b] for b in rec], rec, mu)
         return RowMoments(i=i, found=found, moves=moves, zx=M[:, 1:], uw=uw, zo=ZB[:, :na], oo=O.T @ O, ow=ow, ww=ww,
                           xsum=xsum, mu=mu, R=R if keep_samples else None)
+
+    def _recursive(self, element) -> bool:
+        """Whether :meth:`_by_recursion` gives ``Z' x`` of ``element``: its denominator of at most ``na``
+        lags, and every input lag of its numerator among the Gram's (``<= L``) and inside each segment's
+        samples on every regression row (``<= start``)."""
+        if element.order > self.na:
+            return False
+        taps = np.flatnonzero(element.num != 0)
+        return taps.size == 0 or element.delay + int(taps[-1]) <= min(self.n_lag, self.start)
+
+    @property
+    def gram(self) -> np.ndarray:
+        """``G[c, l, j, m] = sum_t u_c(t - l) u_j(t - m)`` over the rows, ``l, m = 0 .. L``, shape
+        (n_columns, L + 1, n_columns, L + 1) (column units squared); taken once per window.
+
+        Only ``l = 0`` or ``m = 0`` takes a product over the rows (``[u, Z]' u``); the others are sums
+        along the diagonals of lag pairs, as ``M`` in :meth:`_compute`.
+        """
+        G = self.__dict__.get("_gram")
+        if G is None:
+            nu, L = self.u_c.shape[1], self.n_lag
+            G = np.empty((nu, L + 1, nu, L + 1))
+            G[:, 0, :, 0] = self.u_rows.T @ self.u_rows
+            G[:, 1:, :, 0] = (self.Z.T @ self.u_rows).reshape(nu, L, nu)
+            G[:, 0, :, 1:] = np.transpose(G[:, 1:, :, 0], (2, 0, 1))       # u_c(t)' u_j(t - m)
+            h, t = self.u_head, self.u_tail                                 # (S, nu, L)
+            for lag in range(1, L + 1):
+                G[:, lag, :, 1:] = G[:, lag - 1, :, :-1] + np.einsum("sc,sjm->cjm", h[:, :, lag - 1], h) \
+                    - np.einsum("sc,sjm->cjm", t[:, :, lag - 1], t)
+            self._gram = G
+        return G
+
+    def _by_recursion(self, M, head, tail, found, at, mu) -> None:
+        """Fill ``M`` (see :meth:`_compute`) lag ``l`` after lag ``l``, ``M(l, 0)`` of the elements ``found``
+        (at positions ``at``) from their difference equation instead of a product over the rows.
+
+        An element is ``den(q) x_raw(t) = num(q) u_j(t - delay)`` on every sample of a segment (from rest,
+        so while the numerator's lags stay in the segment, as on every regression row).  With
+        ``x_raw = x + mu_s`` in segment ``s`` and ``D = sum_k den_k``, multiplying by ``u_c(t - l)`` and
+        summing over the rows::
+
+            M(l, 0) = sum_m num_m G(l, delay + m) - D sum_s mu_s Z_s' 1 (l) - sum_{k >= 1} den_k M(l, k)
+
+        with ``G`` the Gram of the input lags (:meth:`_gram`), ``Z_s' 1`` the column sums of segment
+        ``s``'s rows, and ``M(l, k >= 1)`` from lag ``l - 1`` along the diagonals.  For a stable or
+        integrating element the recursion is stable (its errors are those of ``M(l - 1, .)`` times the
+        poles).  The other elements' ``M(l, 0)`` are already in ``M``.
+        """
+        na, L, nu = self.na, self.n_lag, self.u_c.shape[1]
+        taps = [(j, element.delay + np.flatnonzero(element.num != 0), element.num[element.num != 0])
+                for j, element, _ in found]
+        G = self.gram
+        den = np.zeros((na, len(found)))
+        dc = np.empty(len(found))
+        F = np.zeros((nu, L, len(found)))
+        for q, ((j, lagged, coef), (_, element, _)) in enumerate(zip(taps, found)):
+            den[:element.order, q] = element.den[1:]
+            dc[q] = element.den.sum()
+            for mm, c in zip(lagged, coef):
+                F[:, :, q] += c * G[:, 1:, j, int(mm)]
+        S = self.z_sums.shape[0]
+        F -= np.einsum("scl,sq->clq", self.z_sums.reshape(S, nu, L), mu[:, at]) * dc
+        for lag in range(1, L + 1):
+            M[:, lag, 1:] = M[:, lag - 1, :-1] + head[:, lag - 1] - tail[:, lag - 1]
+            M[:, lag, 0, at] = F[:, lag - 1] - np.einsum("ckq,kq->cq", M[:, lag, 1:][:, :, at], den)
 
     def filtered_products(self, rm: RowMoments, columns, a: np.ndarray, block_columns: np.ndarray) -> tuple:
         """The whole-response test's regressors and their products with the input lags, from the moments.
