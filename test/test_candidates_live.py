@@ -37,6 +37,26 @@ def test_candidate_window_puts_the_vectors_on_the_samples():
     assert w.names == ("a", "b")
 
 
+def test_the_candidate_channels_are_those_of_the_vectors_kept():
+    """A channel leaves with its last vector: 20,000 distinct names over time keep the list bounded,
+    and a channel no longer published stops being reported once its vectors are gone."""
+    from mpm_monitor.core.logged_data import LoggedData
+
+    w = CandidateWindow(sample_time=1.0, capacity=5)
+    for k in range(20_000):
+        assert w.add(k * NS, ("steady", f"name{k}"), [1.0, 2.0]) is None
+    assert w.names == ("steady",) + tuple(f"name{k}" for k in range(19_995, 20_000))
+    assert len(w._vectors) == 5
+    t = np.arange(19_995, 20_000, dtype=float)
+    data = LoggedData(t=t, r=np.zeros((5, 1)), u=np.zeros((5, 1)), y=np.zeros((5, 1)), inputs=("u",),
+                      outputs=("y",), sample_time=1.0)
+    out = w.attach(data)
+    assert set(out.extra) == {"steady"} and set(out.unusable) == {f"name{k}" for k in range(19_995, 20_000)}
+    for k in range(20_000, 20_005):
+        w.add(k * NS, ("steady",), [1.0])
+    assert w.names == ("steady",)
+
+
 @pytest.fixture(scope="module")
 def live():
     """A MonitorCore with candidates after one analysis of the undeclared-effect loop."""

@@ -43,12 +43,15 @@ class CandidateWindow:
         self._period = int(round(sample_time * NS_PER_S))
         self._tol = int(stamp_tolerance * self._period)
         self._vectors: collections.deque = collections.deque(maxlen=int(capacity))
-        self._names: dict = {}          # every channel seen, in order of first appearance
+        # The channels of the vectors kept, in order of first appearance, with how many vectors name
+        # each: a channel leaves with its last vector, so that channels come and go for months
+        # without the list growing.
+        self._names: dict = {}
         self.received = 0
 
     @property
     def names(self) -> tuple:
-        """Every candidate channel seen so far."""
+        """The candidate channels named by the vectors kept (at most the last ``capacity``)."""
         return tuple(self._names)
 
     def add(self, stamp_ns: int, names: Sequence[str], values) -> Optional[str]:
@@ -71,8 +74,13 @@ class CandidateWindow:
             return f"candidate: {v.shape[0]} value(s) for {len(names)} name(s) at {t} (one value per name expected)"
         if any(not n for n in names) or len(set(names)) != len(names):
             return f"candidate: empty or repeated channel names at {t}: {', '.join(names)}"
+        if len(self._vectors) == self._vectors.maxlen:             # the oldest vector leaves
+            for n in self._vectors[0][1]:
+                self._names[n] -= 1
+                if not self._names[n]:
+                    del self._names[n]
         for n in names:
-            self._names.setdefault(n, None)
+            self._names[n] = self._names.get(n, 0) + 1
         self._vectors.append((int(stamp_ns), dict(zip(names, v))))
         self.received += 1
         return None
