@@ -21,6 +21,7 @@ BENCHMARKS = [
     ("bench.candidates_mc", [], ["--runs", "20", "--detection-runs", "5"]),
     ("bench.structures_mc", ["--jobs", "2"], ["--runs", "30", "--clean-integrating", "30"]),
     ("bench.perf", [], ["--quick"]),
+    ("bench.stages", ["--out", "bench/results/stages.json"], ["--sizes", "20x20", "--repeats", "1"]),
     ("bench.memory", [], ["--quick"]),
     ("bench.ros_throughput", ["--json", "bench/results/ros_throughput.json"], ["--samples", "2000", "--repeats", "1"]),
     ("bench.monitor_load", ["--json", "bench/results/monitor_load.json"], ["--quick"]),

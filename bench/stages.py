@@ -1,0 +1,183 @@
+"""Where the time of ``analyze`` goes: its stages, timed in a fresh interpreter, one BLAS thread.
+
+Usage::
+
+    .venv/bin/python -m bench.stages [--sizes 20x20,100x40] [--repeats 3] [--out bench/results/stages.json]
+
+For each size, the industrial case of :mod:`bench.perf` (one element off, 10,000 samples) is written
+as a model file and a CSV, and a fresh interpreter per repeat (one BLAS thread, as the command
+line) times:
+
+* ``import``: the imports of the analysis, the repair and the CSV reader;
+* ``csv``: reading the CSV;
+* then one ``analyze`` with the repair, the named stages wrapped with a timer (their module
+  attributes replaced for the run; the tests look them up at call time, so the numbers are those of
+  the ordinary code): the model run, the regressions, the row test, the element test (and within
+  it the shared moments of the element responses), the detectability, the experiment, the repair
+  (and within it the joint classification), and each detection (the first and the one of the
+  repaired model).
+
+A stage called more than once reports its calls and their sum.  The stages nest (the element test
+holds the moments, the detection holds most others), so the figures do not add up to the total;
+``rest of the first detection`` is the first detection minus the stages inside it.  Medians over
+the repeats.  The figures are the breakdown the README's "Where the time goes" quotes; they hold
+no target (``bench.perf`` measures the command against its floor).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+#: (label, module, attribute): the stages timed.  ``class.method`` attributes are methods.
+STAGES = (
+    ("model run", "mpm_monitor.core.signals", "compute_signals"),
+    ("regressions", "mpm_monitor.core.regressions", "window_regressions"),
+    ("row test", "mpm_monitor.core.row_test", "sdelta_row_test"),
+    ("element test", "mpm_monitor.core.element_test", "arx_element_test"),
+    ("  moments of the responses", "mpm_monitor.core.response_moments", "ResponseMoments._compute"),
+    ("detectability", "mpm_monitor.core.detectability", "element_detectability"),
+    ("experiment", "mpm_monitor.core.experiment", "design_experiment"),
+    ("detection", "mpm_monitor.core.pipeline", "detect"),
+    ("joint classification", "mpm_monitor.core.pipeline", "explained_elements"),
+    ("repair", "mpm_monitor.core.pipeline", "repair_model"),
+)
+#: The stages inside the first detection (its "rest" is what they leave).
+INSIDE_DETECTION = ("model run", "regressions", "row test", "element test", "detectability", "experiment")
+
+
+def child(model_path: str, csv_path: str) -> dict:
+    """One timed run in this (fresh) interpreter; the figures as a dict."""
+    import mpm_monitor
+
+    mpm_monitor.limit_blas_threads()
+    t0 = time.perf_counter()
+    import importlib
+
+    from mpm_monitor.core import analysis, pipeline  # noqa: F401 - the imports timed
+    from mpm_monitor.core.repair import model_repair  # noqa: F401
+    from mpm_monitor.io.csv_log import read_csv
+    from mpm_monitor.io.model_file import load_model
+
+    t1 = time.perf_counter()
+    model = load_model(Path(model_path))
+    data = read_csv(Path(csv_path), model)
+    t2 = time.perf_counter()
+    calls: dict = {label: [] for label, _, _ in STAGES}
+
+    def timed(label, fn):
+        def wrapper(*args, **kwargs):
+            s = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                calls[label].append(time.perf_counter() - s)
+        wrapper.__wrapped__ = fn
+        return wrapper
+
+    for label, module, attr in STAGES:
+        owner = importlib.import_module(module)
+        name = attr
+        if "." in attr:
+            cls, name = attr.split(".")
+            owner = getattr(owner, cls)
+        setattr(owner, name, timed(label, getattr(owner, name)))
+    s = time.perf_counter()
+    report = pipeline.analyze(model, data, analysis.AnalysisOptions())
+    total = time.perf_counter() - s
+    return {"import_s": t1 - t0, "csv_s": t2 - t1, "analyze_s": total, "calls": calls,
+            "located": [f"{o}:{i}" for o, i in report.located_elements]}
+
+
+def _summary(runs: list) -> dict:
+    """Medians over the runs: each stage's total and its calls."""
+    out = {key: statistics.median(r[key] for r in runs) for key in ("import_s", "csv_s", "analyze_s")}
+    stages = {}
+    for label, _, _ in STAGES:
+        sums = [sum(r["calls"][label]) for r in runs]
+        stages[label] = {"total_s": statistics.median(sums), "calls": len(runs[0]["calls"][label]),
+                         "each_s": [statistics.median(r["calls"][label][k] for r in runs)
+                                    for k in range(len(runs[0]["calls"][label]))]}
+    # The first call of each stage inside the detection is the first detection's.
+    first = stages["detection"]["each_s"][0] if stages["detection"]["each_s"] else 0.0
+    inside = sum(stages[label]["each_s"][0] for label in INSIDE_DETECTION if stages[label]["each_s"])
+    out["stages"] = stages
+    out["rest_of_first_detection_s"] = first - inside
+    out["located"] = runs[0]["located"]
+    return out
+
+
+def format_size(size: str, s: dict) -> str:
+    lines = [f"{size}: analyze {s['analyze_s']:.2f} s (imports {s['import_s']:.2f} s and the CSV {s['csv_s']:.2f} s "
+             f"before it); located {', '.join(s['located']) or 'none'}"]
+    for label, _, _ in STAGES:
+        st = s["stages"][label]
+        each = " + ".join(f"{x:.3f}" for x in st["each_s"]) if st["calls"] <= 4 else f"{st['calls']} calls"
+        lines.append(f"  {label:<28} {st['total_s']:7.3f} s   ({each})")
+    lines.append(f"  {'rest of the first detection':<28} {s['rest_of_first_detection_s']:7.3f} s")
+    return "\n".join(lines)
+
+
+def run(sizes, repeats: int = 3, seed: int = 0, log=print) -> dict:
+    """The breakdown at every size; a JSON-ready dict."""
+    from bench.perf import INDUSTRIAL_SAMPLES, industrial_case, machine_info
+    from mpm_monitor.io.csv_log import write_log_csv
+    from mpm_monitor.io.model_file import save_model
+
+    tmp = Path(tempfile.mkdtemp(prefix="mpm_stages_"))
+    out = {"machine": machine_info(), "repeats": repeats, "samples": INDUSTRIAL_SAMPLES, "sizes": {}}
+    env = dict(os.environ)
+    for ny, nu in sizes:
+        _, model, cl = industrial_case(ny, nu, INDUSTRIAL_SAMPLES, seed, mismatches=1)
+        csv, yml = tmp / f"log_{ny}x{nu}.csv", tmp / f"model_{ny}x{nu}.yaml"
+        write_log_csv(csv, cl)
+        save_model(model, yml)
+        runs = []
+        for _ in range(repeats):
+            done = subprocess.run([sys.executable, "-m", "bench.stages", "--child", str(yml), str(csv)],
+                                  capture_output=True, text=True, env=env, check=True)
+            runs.append(json.loads(done.stdout.strip().splitlines()[-1]))
+        size = f"{ny}x{nu}"
+        out["sizes"][size] = {"summary": _summary(runs), "runs": runs}
+        log(format_size(size, out["sizes"][size]["summary"]))
+    out["machine"]["load_average_end"] = list(os.getloadavg())
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench.stages", description=__doc__.split("\n")[0])
+    parser.add_argument("--sizes", default="20x20,100x40", help="sizes, e.g. 20x20,100x40 (default)")
+    parser.add_argument("--repeats", type=int, default=3, help="fresh interpreters per size (default 3)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default=None, help="JSON output path")
+    parser.add_argument("--child", nargs=2, metavar=("MODEL", "CSV"), help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child:
+        print(json.dumps(child(*args.child)))
+        return 0
+    sizes = []
+    for part in args.sizes.split(","):
+        try:
+            ny, nu = (int(x) for x in part.lower().split("x"))
+        except ValueError:
+            parser.error(f"--sizes: expected sizes like 20x20,100x40, got {part!r}")
+        sizes.append((ny, nu))
+    if args.repeats < 1:
+        parser.error(f"--repeats: expected an integer >= 1, got {args.repeats}")
+    result = run(sizes, args.repeats, args.seed)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(result, indent=1))
+        print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
