@@ -187,6 +187,7 @@ class ResponseMoments:
         self.z_sums = np.array(sums)                    # (S, p)
         self.seg_rows = np.array(rows, dtype=float)     # (S,)
         self._rows = {}
+        self._gram = None
 
     def of(self, u: np.ndarray, segments=None) -> bool:
         """Whether these are the moments of the columns ``u`` with these ``segments``."""
@@ -321,7 +322,7 @@ class ResponseMoments:
         Only ``l = 0`` or ``m = 0`` takes a product over the rows (``[u, Z]' u``); the others are sums
         along the diagonals of lag pairs, as ``M`` in :meth:`_compute`.
         """
-        G = self.__dict__.get("_gram")
+        G = self._gram
         if G is None:
             nu, L = self.u_c.shape[1], self.n_lag
             G = np.empty((nu, L + 1, nu, L + 1))
@@ -346,10 +347,25 @@ class ResponseMoments:
 
             M(l, 0) = sum_m num_m G(l, delay + m) - D sum_s mu_s Z_s' 1 (l) - sum_{k >= 1} den_k M(l, k)
 
-        with ``G`` the Gram of the input lags (:meth:`_gram`), ``Z_s' 1`` the column sums of segment
+        with ``G`` the Gram of the input lags (:attr:`gram`), ``Z_s' 1`` the column sums of segment
         ``s``'s rows, and ``M(l, k >= 1)`` from lag ``l - 1`` along the diagonals.  For a stable or
         integrating element the recursion is stable (its errors are those of ``M(l - 1, .)`` times the
         poles).  The other elements' ``M(l, 0)`` are already in ``M``.
+
+        Parameters
+        ----------
+        M : ndarray, shape (n_columns, L + 1, na + 1, m)
+            ``sum_t u_c(t - l) x_e(t - k)`` (column units times output units): lag ``l = 0`` given,
+            ``M(l, 0)`` given for the elements not in ``at``; filled in place.
+        head, tail : ndarray, shape (n_columns, L, na, m)
+            The diagonal corrections ``sum_s u(start_s - l) x(start_s - k)`` and ``sum_s u(N_s - l) x(N_s - k)``
+            (``l = 1 .. L``, ``k = 1 .. na``).
+        found : list of (int, DiscreteElement, float)
+            The elements by the recursion (:attr:`RowMoments.found`'s entries).
+        at : list of int
+            Their positions among the row's ``m`` elements.
+        mu : ndarray, shape (S, m)
+            Every element's mean response over each segment (output units).
         """
         na, L, nu = self.na, self.n_lag, self.u_c.shape[1]
         taps = [(j, element.delay + np.flatnonzero(element.num != 0), element.num[element.num != 0])
