@@ -277,6 +277,27 @@ def test_wrong_type(tmp_path):
     _check(e, "'/setpoint'", "std_msgs/msg/Float64MultiArray", "expected sensor_msgs/msg/JointState")
 
 
+@pytest.mark.parametrize("role, what", [("input", "inputs"), ("output", "outputs")])
+def test_a_topic_without_channel_names_is_refused_without_a_model(tmp_path, capsys, role, what):
+    """Without a model the first message names the channels: an empty name list is refused (it used to
+    export a CSV without those columns), as it is against the model's names."""
+    r, u, y = _samples(6)
+    names = {"input": ()} if role == "input" else {"output": (), "setpoint": ()}
+    bag = write_bag(tmp_path / "bag", r, u, y, names=names)
+    for read in (lambda: read_bag_channels(bag), lambda: export_csv(bag, tmp_path / "x.csv")):
+        with pytest.raises(BagError) as e:
+            read()
+        _check(e, str(bag), f"'/{role}'", "names no channel", f"the {what} are named by the first message",
+               "--model")
+    assert not (tmp_path / "x.csv").exists()
+    assert cli_main(["export", "--bag", str(bag), "--csv", str(tmp_path / "y.csv")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "names no channel" in err and not (tmp_path / "y.csv").exists()
+    with pytest.raises(BagError) as e:
+        read_bag(bag, MODEL)
+    _check(e, f"'/{role}'", "has channel names []")
+
+
 def test_wrong_channel_names(tmp_path):
     r, u, y = _samples(5)
     bag = write_bag(tmp_path / "bag", r, u, y, names={"input": ("u1", "uX")})

@@ -173,6 +173,10 @@ def _first_names(reader, path, topics) -> dict:
             except Exception as exc:
                 raise BagError(f"{path}: topic '{topic}': message 1 cannot be decoded as {JOINT_STATE}: "
                                f"{one_line(exc)}") from None
+            if not names[role]:
+                raise BagError(f"{path}: topic '{topic}': message 1 names no channel (an empty JointState name "
+                               f"list); without a model the {_WHAT[role]} are named by the first message: give "
+                               f"the model (--model) or record the channel names")
             break
     names["setpoint"] = names["output"]
     return names
