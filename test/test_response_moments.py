@@ -132,7 +132,7 @@ def _by_product(monkeypatch, make):
     (4, 3, None),                                        # few lags: the slow delays by a product
 ])
 def test_the_recursion_in_the_lags_equals_the_product_over_the_rows(monkeypatch, na, n_lag, segments):
-    """``Z' x`` of an element from its difference equation and the input Gram (``_by_recursion``)
+    """``Z' x`` of an element from its difference equation and the input Gram (``_fill_lags``)
     against ``Z' x`` by a product over the rows, every moment of the row, whichever elements qualify."""
     model, u, d = _window(11)
     start = max(n_lag, na)

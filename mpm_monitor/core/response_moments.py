@@ -13,7 +13,7 @@ regression rows:
 ``Z`` is ``n_rows x (n_columns n_lag)`` and there are ``n_outputs n_columns`` elements, so these
 products are most of the cost of an analysis at industrial size.  :class:`ResponseMoments` takes them
 once per row: ``Z' x`` from the element's difference equation and the Gram of the input lags, lag
-after lag (:meth:`ResponseMoments._by_recursion`; by a product over the rows for an element of more
+after lag (:meth:`ResponseMoments._fill_lags`; by a product over the rows for an element of more
 poles than ``na`` or more numerator taps than the lags), the lags of ``x`` by sums along the
 diagonals of lag pairs (the shift structure of lagged columns), and it keeps the element responses
 (:attr:`RowMoments.R`) only while the row's whole-response test uses them.  The
@@ -276,10 +276,10 @@ class ResponseMoments:
         uw = np.stack([self.u_rows.T @ x for x in lags], axis=2).reshape(nu, m * (na + 1))
         ow = np.stack([O.T @ x for x in lags], axis=2).reshape(na, m * (na + 1))
         xsum = np.stack([x.sum(axis=0) for x in lags], axis=1)                          # (m, na + 1)
-        # The elements whose Z' x follows from their difference equation (see _by_recursion); the others'
+        # The elements whose Z' x follows from their difference equation (see _fill_lags); the others'
         # is taken with Z' O in one product.
         rec = [b for b, (_, element, _) in enumerate(found) if self._recursive(element)]
-        direct = [b for b in range(m) if b not in set(rec)]
+        direct = sorted(set(range(m)) - set(rec))
         ZB = self.Z.T @ np.column_stack([O, lags[0][:, direct]])
         u_head, u_tail = self.u_head, self.u_tail                           # (S, nu, L): u(start - l), u(N - l)
         # M[c, l, k, e] = sum over the rows of u_c(t - l) x_e(t - k) (l = 0 .. L, k = 0 .. na).  Z' X is a sum
@@ -297,16 +297,12 @@ class ResponseMoments:
             else:
                 head[:, :, k - 1] = np.einsum("snl,sm->nlm", u_head, x_head[:, :, k - 1])
                 tail[:, :, k - 1] = np.einsum("snl,sm->nlm", u_tail, x_tail[:, :, k - 1])
-        if not rec:
-            for k in range(1, na + 1):
-                M[:, 1:, k] = M[:, :-1, k - 1] + head[:, :, k - 1] - tail[:, :, k - 1]
-        else:
-            self._by_recursion(M, head, tail, [found[b] for b in rec], rec, mu)
+        self._fill_lags(M, head, tail, [found[b] for b in rec], rec, mu)
         return RowMoments(i=i, found=found, moves=moves, zx=M[:, 1:], uw=uw, zo=ZB[:, :na], oo=O.T @ O, ow=ow, ww=ww,
                           xsum=xsum, mu=mu, R=R if keep_samples else None)
 
     def _recursive(self, element) -> bool:
-        """Whether :meth:`_by_recursion` gives ``Z' x`` of ``element``: its denominator of at most ``na``
+        """Whether :meth:`_fill_lags` gives ``Z' x`` of ``element``: its denominator of at most ``na``
         lags, and every input lag of its numerator among the Gram's (``<= L``) and inside each segment's
         samples on every regression row (``<= start``)."""
         if element.order > self.na:
@@ -336,9 +332,10 @@ class ResponseMoments:
             self._gram = G
         return G
 
-    def _by_recursion(self, M, head, tail, found, at, mu) -> None:
-        """Fill ``M`` (see :meth:`_compute`) lag ``l`` after lag ``l``, ``M(l, 0)`` of the elements ``found``
-        (at positions ``at``) from their difference equation instead of a product over the rows.
+    def _fill_lags(self, M, head, tail, found, at, mu) -> None:
+        """Fill ``M`` (see :meth:`_compute`) lag ``l`` after lag ``l``: ``M(l, k >= 1)`` along the diagonals,
+        then ``M(l, 0)`` of the elements ``found`` (at positions ``at``; none is fine) from their difference
+        equation instead of a product over the rows.
 
         An element is ``den(q) x_raw(t) = num(q) u_j(t - delay)`` on every sample of a segment (from rest,
         so while the numerator's lags stay in the segment, as on every regression row).  With
@@ -368,22 +365,23 @@ class ResponseMoments:
             Every element's mean response over each segment (output units).
         """
         na, L, nu = self.na, self.n_lag, self.u_c.shape[1]
-        taps = [(j, element.delay + np.flatnonzero(element.num != 0), element.num[element.num != 0])
-                for j, element, _ in found]
-        G = self.gram
         den = np.zeros((na, len(found)))
         dc = np.empty(len(found))
         F = np.zeros((nu, L, len(found)))
-        for q, ((j, lagged, coef), (_, element, _)) in enumerate(zip(taps, found)):
-            den[:element.order, q] = element.den[1:]
-            dc[q] = element.den.sum()
-            for mm, c in zip(lagged, coef):
-                F[:, :, q] += c * G[:, 1:, j, int(mm)]
-        S = self.z_sums.shape[0]
-        F -= np.einsum("scl,sq->clq", self.z_sums.reshape(S, nu, L), mu[:, at]) * dc
+        if found:
+            G = self.gram
+            for q, (j, element, _) in enumerate(found):
+                den[:element.order, q] = element.den[1:]
+                dc[q] = element.den.sum()
+                taps = np.flatnonzero(element.num != 0)
+                for mm, c in zip(element.delay + taps, element.num[taps]):
+                    F[:, :, q] += c * G[:, 1:, j, int(mm)]
+            S = self.z_sums.shape[0]
+            F -= np.einsum("scl,sq->clq", self.z_sums.reshape(S, nu, L), mu[:, at]) * dc
         for lag in range(1, L + 1):
             M[:, lag, 1:] = M[:, lag - 1, :-1] + head[:, lag - 1] - tail[:, lag - 1]
-            M[:, lag, 0, at] = F[:, lag - 1] - np.einsum("ckq,kq->cq", M[:, lag, 1:][:, :, at], den)
+            if found:
+                M[:, lag, 0, at] = F[:, lag - 1] - np.einsum("ckq,kq->cq", M[:, lag, 1:][:, :, at], den)
 
     def filtered_products(self, rm: RowMoments, columns, a: np.ndarray, block_columns: np.ndarray) -> tuple:
         """The whole-response test's regressors and their products with the input lags, from the moments.
