@@ -630,13 +630,22 @@ def _paired(cmd_a, cmd_b, repeats: int) -> dict:
     return out
 
 
+def write_industrial_case(folder: Path, ny: int, nu: int, samples: int = INDUSTRIAL_SAMPLES, seed: int = 0) -> tuple:
+    """``(model file, CSV)`` of :func:`industrial_case` with one element off, written in ``folder``."""
+    from mpm_monitor.io.csv_log import write_log_csv
+    from mpm_monitor.io.model_file import save_model
+
+    _, model, cl = industrial_case(ny, nu, samples, seed, mismatches=1)
+    csv, yml = folder / f"log_{ny}x{nu}.csv", folder / f"model_{ny}x{nu}.yaml"
+    write_log_csv(csv, cl)
+    save_model(model, yml)
+    return yml, csv
+
+
 def bench_command_line(sizes=((20, 20), (100, 40)), samples: int = INDUSTRIAL_SAMPLES, seed: int = 0,
                        log=print) -> dict:
     """``python -m mpm_monitor analyze`` end to end against the floor, and ``--help`` against ``import numpy``."""
     import tempfile
-
-    from mpm_monitor.io.csv_log import write_log_csv
-    from mpm_monitor.io.model_file import save_model
 
     py = sys.executable
     out = {"help": _paired([py, "-m", "mpm_monitor", "analyze", "--help"], [py, "-c", "import numpy"], 5)}
@@ -644,10 +653,7 @@ def bench_command_line(sizes=((20, 20), (100, 40)), samples: int = INDUSTRIAL_SA
         f"x{out['help']['ratio_median']:.2f}")
     tmp = Path(tempfile.mkdtemp(prefix="mpm_perf_"))
     for ny, nu in sizes:
-        _, model, cl = industrial_case(ny, nu, samples, seed, mismatches=1)
-        csv, yml = tmp / f"log_{ny}x{nu}.csv", tmp / f"model_{ny}x{nu}.yaml"
-        write_log_csv(csv, cl)
-        save_model(model, yml)
+        yml, csv = write_industrial_case(tmp, ny, nu, samples, seed)
         floor = [py, "-c", "import sys, numpy, scipy.linalg; numpy.loadtxt(sys.argv[1], delimiter=',', skiprows=1)",
                  str(csv)]
         res = _paired([py, "-m", "mpm_monitor", "analyze", "--model", str(yml), "--data", str(csv)], floor, 3)

@@ -127,22 +127,16 @@ def format_size(size: str, s: dict) -> str:
 
 def run(sizes, repeats: int = 3, seed: int = 0, log=print) -> dict:
     """The breakdown at every size; a JSON-ready dict."""
-    from bench.perf import INDUSTRIAL_SAMPLES, industrial_case, machine_info
-    from mpm_monitor.io.csv_log import write_log_csv
-    from mpm_monitor.io.model_file import save_model
+    from bench.perf import INDUSTRIAL_SAMPLES, machine_info, write_industrial_case
 
     tmp = Path(tempfile.mkdtemp(prefix="mpm_stages_"))
     out = {"machine": machine_info(), "repeats": repeats, "samples": INDUSTRIAL_SAMPLES, "sizes": {}}
-    env = dict(os.environ)
     for ny, nu in sizes:
-        _, model, cl = industrial_case(ny, nu, INDUSTRIAL_SAMPLES, seed, mismatches=1)
-        csv, yml = tmp / f"log_{ny}x{nu}.csv", tmp / f"model_{ny}x{nu}.yaml"
-        write_log_csv(csv, cl)
-        save_model(model, yml)
+        yml, csv = write_industrial_case(tmp, ny, nu, INDUSTRIAL_SAMPLES, seed)
         runs = []
         for _ in range(repeats):
             done = subprocess.run([sys.executable, "-m", "bench.stages", "--child", str(yml), str(csv)],
-                                  capture_output=True, text=True, env=env, check=True)
+                                  capture_output=True, text=True, check=True)
             runs.append(json.loads(done.stdout.strip().splitlines()[-1]))
         size = f"{ny}x{nu}"
         out["sizes"][size] = {"summary": _summary(runs), "runs": runs}
