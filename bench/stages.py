@@ -27,6 +27,7 @@ no target (``bench.perf`` measures the command against its floor).
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import os
 import statistics
@@ -59,8 +60,6 @@ def child(model_path: str, csv_path: str) -> dict:
 
     mpm_monitor.limit_blas_threads()
     t0 = time.perf_counter()
-    import importlib
-
     from mpm_monitor.core import analysis, pipeline  # noqa: F401 - the imports timed
     from mpm_monitor.core.repair import model_repair  # noqa: F401
     from mpm_monitor.io.csv_log import read_csv
