@@ -185,3 +185,29 @@ def test_the_input_gram_along_lag_diagonals_equals_the_product_of_the_lag_matric
     W = segment_lag_matrix(u_c, range(0, N_LAG + 1), N_LAG, segments)     # column c (L + 1) + l
     want = (W.T @ W).reshape(4, N_LAG + 1, 4, N_LAG + 1)
     np.testing.assert_allclose(moments.gram, want, rtol=1e-11, atol=1e-12 * np.abs(want).max())
+
+
+@pytest.mark.parametrize("na", [1, 2, 4])
+@pytest.mark.parametrize("segments", [None, [(0, 500), (500, 530), (530, 1100), (1100, 1800)]])
+def test_the_own_lags_moments_of_every_row_equal_the_product_of_the_lag_matrices(na, segments):
+    """``Z' O`` of each row, along lag diagonals from one ``Z' D`` of all outputs, against ``Z'`` times
+    each row's own lags (centred over each segment), with gaps (one segment too short for a row)."""
+    model, u, d = _window(11)
+    rng = np.random.default_rng(3)
+    d3 = np.column_stack([d[:, 0], 2.0 + np.cumsum(rng.standard_normal(d.shape[0])) * 0.1,
+                          lfilter([1.0], [1.0, -0.9], rng.standard_normal(d.shape[0]))])
+    model3 = PlantModel(sample_time=1.0, inputs=model.inputs, outputs=("y1", "y2", "y3"),
+                        gain=np.vstack([model.gain] * 3), time_constant=np.vstack([model.time_constant] * 3),
+                        time_constant2=np.vstack([model.time_constant2] * 3), lead=np.vstack([model.lead] * 3),
+                        delay=np.vstack([model.delay] * 3), integrating=np.vstack([model.integrating] * 3))
+    start = max(N_LAG, na)
+    moments = ResponseMoments(model3, u, d3, [0, 1, 3], N_LAG, start, na, segments)
+    segs = [(0, d3.shape[0])] if segments is None else [(a, b) for a, b in segments if b - a > start]
+    u_c = u - u.mean(axis=0)
+    u_c[:, 2] = 0.0
+    Z = np.vstack([lag_matrix(u_c[a:b], range(1, N_LAG + 1), start) for a, b in segs])
+    for i in range(3):
+        O = np.vstack([lag_matrix(d3[a:b, i] - d3[a:b, i].mean(), range(1, na + 1), start) for a, b in segs])
+        rm = moments.row(i)
+        assert rm.zo.shape == (4 * N_LAG, na)
+        np.testing.assert_allclose(rm.zo, Z.T @ O, rtol=1e-10, atol=1e-9 * np.abs(Z.T @ O).max())

@@ -188,6 +188,7 @@ class ResponseMoments:
         self.seg_rows = np.array(rows, dtype=float)     # (S,)
         self._rows = {}
         self._gram = None
+        self._own = None
 
     def of(self, u: np.ndarray, segments=None) -> bool:
         """Whether these are the moments of the columns ``u`` with these ``segments``."""
@@ -277,10 +278,9 @@ class ResponseMoments:
         ow = np.stack([O.T @ x for x in lags], axis=2).reshape(na, m * (na + 1))
         xsum = np.stack([x.sum(axis=0) for x in lags], axis=1)                          # (m, na + 1)
         # The elements whose Z' x follows from their difference equation (see _fill_lags); the others'
-        # is taken with Z' O in one product.
+        # is taken by a product over the rows.
         rec = [b for b, (_, element, _) in enumerate(found) if self._recursive(element)]
         direct = sorted(set(range(m)) - set(rec))
-        ZB = self.Z.T @ np.column_stack([O, lags[0][:, direct]])
         u_head, u_tail = self.u_head, self.u_tail                           # (S, nu, L): u(start - l), u(N - l)
         # M[c, l, k, e] = sum over the rows of u_c(t - l) x_e(t - k) (l = 0 .. L, k = 0 .. na).  Z' X is a sum
         # along diagonals of lag pairs: M(l, k) = M(l - 1, k - 1) + u(start - l) x(start - k) - u(N - l) x(N - k)
@@ -288,7 +288,8 @@ class ResponseMoments:
         # element lag) take a product over the rows, or none for lag k = 0 of an element by the recursion.
         M = np.empty((nu, L + 1, na + 1, m))
         M[:, 0] = np.moveaxis(uw.reshape(nu, m, na + 1), 1, 2)
-        M[:, 1:, 0, direct] = ZB[:, na:].reshape(nu, L, len(direct))
+        if direct:
+            M[:, 1:, 0, direct] = (self.Z.T @ lags[0][:, direct]).reshape(nu, L, len(direct))
         head, tail = np.empty((nu, L, na, m)), np.empty((nu, L, na, m))
         for k in range(1, na + 1):
             if u_head.shape[0] == 1:  # one record: the plain products (einsum rounds differently)
@@ -298,8 +299,45 @@ class ResponseMoments:
                 head[:, :, k - 1] = np.einsum("snl,sm->nlm", u_head, x_head[:, :, k - 1])
                 tail[:, :, k - 1] = np.einsum("snl,sm->nlm", u_tail, x_tail[:, :, k - 1])
         self._fill_lags(M, head, tail, [found[b] for b in rec], rec, mu)
-        return RowMoments(i=i, found=found, moves=moves, zx=M[:, 1:], uw=uw, zo=ZB[:, :na], oo=O.T @ O, ow=ow, ww=ww,
+        return RowMoments(i=i, found=found, moves=moves, zx=M[:, 1:], uw=uw, zo=self._z_own(i, O), oo=O.T @ O, ow=ow, ww=ww,
                           xsum=xsum, mu=mu, R=R if keep_samples else None)
+
+    def _z_own(self, i: int, O: np.ndarray) -> np.ndarray:
+        """``Z' O`` of row ``i`` (shape (n_columns L, na)), ``O`` its own lags ``d_i(t - 1) .. d_i(t - na)`` on the
+        rows (``d_i`` centred over each segment's samples).
+
+        Along the diagonals of lag pairs, as ``M`` in :meth:`_compute`: with ``P(l, k) = sum_t u_c(t - l)
+        d_i(t - k)``, ``P(l, k) = P(l - 1, k - 1) + u(start - l) d(start - k) - u(N - l) d(N - k)`` (summed
+        over the segments).  Lag ``k = 0`` is ``Z' d_i``, taken for every output in one product per window
+        (:meth:`_own_moments`); lag ``l = 0`` is ``u_c(t)' [d_i, O]`` on the rows.  So no row reads ``Z``.
+        """
+        na, L, nu = self.na, self.n_lag, self.u_c.shape[1]
+        if na == 0:
+            return np.zeros((nu * L, 0))
+        zd, rows, d_head, d_tail = self._own_moments()
+        P = np.empty((nu, L + 1, na + 1))
+        P[:, 1:, 0] = zd[:, i].reshape(nu, L)
+        P[:, 0, :na] = self.u_rows.T @ np.column_stack([rows[:, i], O[:, :na - 1]])
+        u_head, u_tail = self.u_head, self.u_tail                           # (S, nu, L)
+        for k in range(1, na + 1):
+            P[:, 1:, k] = P[:, :-1, k - 1] + np.einsum("snl,s->nl", u_head, d_head[:, k - 1, i]) \
+                - np.einsum("snl,s->nl", u_tail, d_tail[:, k - 1, i])
+        return P[:, 1:, 1:].reshape(nu * L, na)
+
+    def _own_moments(self) -> tuple:
+        """``(Z' D, D, d_head, d_tail)`` of the prediction errors of every output, taken once per window:
+        ``D`` (n_rows, n_outputs) the errors on the rows, each centred over its segment's samples,
+        ``d_head[s, k - 1]`` and ``d_tail[s, k - 1]`` (S, na, n_outputs) the centred errors at ``start_s - k``
+        and ``N_s - k``."""
+        if self._own is None:
+            na, start = self.na, self.start
+            lags = np.arange(1, na + 1)
+            centred = [self.d[a:b] - self.d[a:b].mean(axis=0) for a, b in self.segs]
+            rows = np.vstack([c[start:] for c in centred])
+            d_head = np.stack([c[start - lags] for c in centred])
+            d_tail = np.stack([c[c.shape[0] - lags] for c in centred])
+            self._own = (self.Z.T @ rows, rows, d_head, d_tail)
+        return self._own
 
     def _recursive(self, element) -> bool:
         """Whether :meth:`_fill_lags` gives ``Z' x`` of ``element``: its denominator of at most ``na``
