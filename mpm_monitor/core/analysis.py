@@ -37,8 +37,7 @@ from .logged_data import (
     LoggedData,
     check_loop_data,
     check_scale,
-    divergence_warnings,
-    diverging_outputs,
+    divergence,
     in_deviations,
     numerical_breakdown,
 )
@@ -469,8 +468,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     ny = model.n_outputs
     src = data.source or "data"
     r, u, y = check_loop_data(model, data)
-    diverging = divergence_warnings(model.outputs, y)
-    diverged = diverging_outputs(model.outputs, y) if diverging else []
+    found = divergence(model.outputs, y)
+    diverging, diverged = [warning for _, warning in found], [name for name, _ in found]
     check_scale(model, data)
     dv = np.asarray(data.dv, dtype=float)
     layout = regression_layout(model, options)

@@ -276,6 +276,11 @@ def divergence_warnings(names, y: np.ndarray) -> list:
     list of str
         One warning per diverging output (none for a log shorter than 30 samples).
     """
+    return [warning for _, warning in divergence(names, y)]
+
+
+def divergence(names, y: np.ndarray) -> list:
+    """``(name, warning)`` of every output :func:`divergence_warnings` names (same arguments), in order."""
     y = np.asarray(y, dtype=float)
     n = y.shape[0]
     if n < 30:
@@ -290,10 +295,10 @@ def divergence_warnings(names, y: np.ndarray) -> list:
                       else 0.0 for part in (first, middle, last)]
             a, b, z = spread
             if not np.isfinite(z) or z > DIVERGENCE_RATIO * max(a, b, 1e-300):
-                out.append(f"output '{name}' grows without bound: its spread about its early mean is {a:.3g} in the "
+                out.append((name, f"output '{name}' grows without bound: its spread about its early mean is {a:.3g} in the "
                            f"first tenth of the log, {b:.3g} in the middle one and {z:.3g} in the last; the loop "
                            f"looks unstable (diverging), and the tests assume a bounded loop, so their results on "
-                           f"this log are not reliable")
+                           f"this log are not reliable"))
     return out
 
 
@@ -348,7 +353,7 @@ def diverging_outputs(names, y: np.ndarray) -> list:
     y = np.asarray(y, dtype=float)
     if y.ndim != 2 or y.shape[1] != len(names):
         return []
-    return [name for c, name in enumerate(names) if divergence_warnings([name], y[:, c:c + 1])]
+    return [name for name, _ in divergence(names, y)]
 
 
 def _diverged_hint(diverging) -> str:
