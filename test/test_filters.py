@@ -103,13 +103,18 @@ def test_state_along_an_axis_of_a_matrix():
     _close(zf0, zf_ref.T)
 
 
-def test_first_order_is_bit_identical_to_scipy():
-    # The forward substitution does scipy's operations in scipy's order for a first-order filter.
+def test_first_order_equals_scipy_to_rounding():
+    # The forward substitution does scipy's operations in scipy's order for a first-order filter: the
+    # same numbers bit for bit where the BLAS computes v - a y as a multiply then an add; where its
+    # kernel fuses them (OpenBLAS on AVX-512 processors) each step rounds once instead of twice, and
+    # the difference, propagated by the pole, stays at rounding level (4.6e-15 of the peak at 0.9995).
     x = np.random.default_rng(5).normal(size=5000)
     for pole in (0.3, 0.9, 0.9995):
         b, a = [1.0 - pole], [1.0, -pole]
-        assert np.array_equal(lfilter(b, a, x), signal.lfilter(b, a, x))
-        assert np.array_equal(lfilter([0.0, 1.0 - pole], a, x), signal.lfilter([0.0, 1.0 - pole], a, x))
+        for num in (b, [0.0, 1.0 - pole]):
+            ref = signal.lfilter(num, a, x)
+            tol = 64 * np.finfo(float).eps / (1.0 - pole)       # the rounding of each step, amplified by the pole
+            assert np.max(np.abs(lfilter(num, a, x) - ref)) <= tol * np.max(np.abs(ref))
 
 
 def test_fir_is_bit_identical_to_scipy():

@@ -133,3 +133,18 @@ def test_a_log_in_very_small_units_is_analysed_like_the_same_log_in_units():
     ref, got = analyze(wrong, data, AnalysisOptions(repair=False)), analyze(wrong, tiny, AnalysisOptions(repair=False))
     assert got.located_elements == ref.located_elements == [("y1", "u2")]
     assert not [w for w in got.warnings if "never move" in w]
+
+
+def test_a_row_exact_but_for_rounding_has_no_detectable_change():
+    # The exact row's error is 0 or a few ulps depending on how the BLAS rounds: 1e-13 of added
+    # "noise" (1e-13 of the output's spread) is still an exact fit, 1e-6 is noise.
+    wrong = PLANT.with_element(0, 0, gain=1.2)
+    data = _log(wrong, n=1500, disturbance=DisturbanceOptions(disturbance_std=0.0, noise_std=0.0))
+    rng = np.random.default_rng(8)
+    for size, exact in ((1e-13, True), (1e-6, False)):
+        y = np.array(data.y, dtype=float)
+        y[:, 1] += size * np.std(y[:, 1]) * rng.standard_normal(y.shape[0])
+        report = detect(wrong, dataclasses.replace(data, y=y), AnalysisOptions())
+        y2 = [e for e in report.elements if e.output == "y2"]
+        assert y2 and all((e.detectable_gain_change is None) == exact for e in y2)
+        assert any("fitted exactly" in w and "y2" in w for w in report.warnings) == exact

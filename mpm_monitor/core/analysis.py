@@ -535,7 +535,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     if valued:
         info, detectable, why = element_detectability(model, columns, sig.d, design, element_test.noise, layout,
                                                       options, None if plan is None else plan.local_segments,
-                                                      responses=element_test.responses, moments=moments)
+                                                      responses=element_test.responses, moments=moments,
+                                                      output_spread=np.std(y, axis=0))
         warnings += why
         for e in elements:
             e.detectable_gain_change = detectable.get((model.outputs.index(e.output), model.columns.index(e.input)))

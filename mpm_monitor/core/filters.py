@@ -10,7 +10,9 @@ It needs neither ``scipy.signal`` (whose import takes about 1.5 s) nor a Python 
   ``scipy.signal.lfilter`` computes a filter without ``a``: the same numbers);
 * the recursive part ``a(q) y = v`` is a lower-triangular banded Toeplitz system of bandwidth
   ``len(a) - 1``, solved by LAPACK's forward substitution ``?tbtrs`` for every column at once
-  (for a first-order ``a`` the same operations, in the same order, as ``scipy.signal.lfilter``);
+  (for a first-order ``a`` the same operations, in the same order, as ``scipy.signal.lfilter``: the
+  same numbers where the BLAS does not fuse a multiply and an add, to rounding where it does, as
+  OpenBLAS's kernels for AVX-512 processors);
 * an initial state ``zi`` of the direct-form II transposed realisation is the part of ``y(k)``,
   ``k < len(zi)``, that the samples before ``x`` contribute: it is added to ``v`` there, and the
   final state ``zf`` is the same sum taken at the end of the record.

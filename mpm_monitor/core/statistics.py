@@ -23,6 +23,12 @@ import numpy as np
 #: ``N_FAMILIES``, so a finding is reported exactly when its p-value is below ``alpha``.
 N_FAMILIES = 2
 
+#: A residual whose spread is at most this fraction of its signal's (an output's standard deviation) is
+#: the rounding error of an exact fit (a log without noise), not noise: the repair's disturbance test does
+#: not test it and the detectability does not measure a detectable change against it.  A fit that is
+#: exact in real numbers leaves 0 or a few ulps, depending on how the BLAS rounds (fused multiply-adds).
+EXACT_FIT = 1e-10
+
 
 def _special():
     """``scipy.special``, imported on first use: describing the analysis options needs none of it."""

@@ -12,7 +12,7 @@ from typing import Optional
 import numpy as np
 
 from ..arx import lag_matrix
-from ..statistics import chi2_tail
+from ..statistics import EXACT_FIT, chi2_tail
 
 
 def sup_wald_p_value(statistic: float, trim: float) -> float:
@@ -99,9 +99,6 @@ def _drift_wald(X: np.ndarray, yv: np.ndarray):
     return w_drift, ssr_drift
 
 
-#: A residual whose spread is below this fraction of ``scale`` (:func:`unexplained_disturbance`) is the
-#: rounding error of an exact fit (a log without noise), not a signal: it is not tested.
-EXACT_FIT = 1e-10
 
 
 def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: float = 0.01, trim: float = 0.15,
