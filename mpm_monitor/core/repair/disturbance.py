@@ -99,8 +99,6 @@ def _drift_wald(X: np.ndarray, yv: np.ndarray):
     return w_drift, ssr_drift
 
 
-
-
 def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: float = 0.01, trim: float = 0.15,
                             noise_order: int = 4, segments=None, scale: Optional[float] = None) -> dict:
     """Test one residual for a step or a linear drift on top of AR(p)-coloured noise.
