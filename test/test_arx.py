@@ -139,3 +139,47 @@ def test_f_test_p_value_matches_scipy():
     f, p = f_test(12.0, 10.0, 4, 100)
     assert f == pytest.approx((2.0 / 4) / (10.0 / 100))
     assert p == pytest.approx(stats.f.sf(f, 4, 100))
+
+
+def test_f_test_of_an_exact_fit_is_decided_outright():
+    # A full fit at or below the floor (rounding, not noise): the restriction is rejected outright when
+    # the restricted fit leaves more than the floor, and there is nothing to test when it does not.
+    assert f_test(1.0, 1e-30, 3, 100, floor=1e-20) == (float("inf"), 0.0)
+    assert f_test(1e-25, 1e-30, 3, 100, floor=1e-20) == (0.0, 1.0)
+    assert f_test(1.0, 0.0, 3, 100) == (float("inf"), 0.0)        # floor 0: only an exact 0 is exact
+    assert f_test(0.0, 0.0, 3, 100) == (0.0, 1.0)
+    f, p = f_test(12.0, 10.0, 4, 100, floor=1e-20)                 # above the floor: the ordinary F test
+    assert (f, p) == f_test(12.0, 10.0, 4, 100)
+
+
+@pytest.mark.parametrize("rounding", [0.0, 1e-14, 1e-12])
+def test_the_block_tests_of_an_exact_fit_are_decided_outright(rounding):
+    # y is an exact ARX of u1 and u2; u3 has no part in it.  With the output's spread set, a residual of
+    # at most 1e-10 of it is rounding: the blocks of u1 and u2 are rejected outright (p 0) and u3's has
+    # nothing to test (p 1), whatever the rounding is.  Without it, u3's F divides rounding by rounding.
+    rng = np.random.default_rng(11)
+    y, u = _arx_data(rng)
+    u = np.column_stack([u, rng.standard_normal(u.shape[0])])
+    y = y + rounding * np.std(y) * rng.standard_normal(y.shape[0])
+    start = 6
+    fit = SharedBlockRegression(lag_matrix(u, range(1, 7), start), [6, 6, 6]).fit(y[start:], -lag_matrix(y, [1, 2], start))
+    fit.set_output_spread(np.std(y))
+    assert fit.exact
+    tests = fit.test_each_block_zero([None, None, None])
+    assert [t.p_value for t in tests] == [0.0, 0.0, 1.0]
+    assert [t.statistic for t in tests] == [np.inf, np.inf, 0.0]
+    assert fit.test_all_common_zero().p_value == 0.0
+    assert fit.test_blocks_zero([2]).p_value == 1.0
+
+
+def test_a_fit_with_noise_is_not_exact_and_its_tests_are_the_ordinary_ones():
+    rng = np.random.default_rng(12)
+    y, u = _arx_data(rng, noise=1e-6)
+    start = 6
+    common, own = lag_matrix(u, range(1, 7), start), -lag_matrix(y, [1, 2], start)
+    plain = SharedBlockRegression(common, [6, 6]).fit(y[start:], own)
+    spread = SharedBlockRegression(common, [6, 6]).fit(y[start:], own)
+    spread.set_output_spread(np.std(y))
+    assert not spread.exact
+    for a, b in zip(plain.test_each_block_zero([None, None]), spread.test_each_block_zero([None, None])):
+        assert (a.statistic, a.p_value) == (b.statistic, b.p_value)

@@ -194,6 +194,25 @@ def test_an_effect_of_a_random_walk_is_found_through_its_whitened_form():
     assert t.p_value < 1e-10 and t.delay == 3
 
 
+def test_a_cause_test_of_a_prediction_error_at_rounding_level_is_decided_outright():
+    # A log without noise whose model is right: d is rounding (1e-13 of the output's spread).  Against
+    # the output's spread the fit is exact and there is nothing to explain: p 1, not a p-value of
+    # rounding; an effect of the candidate on an exactly fitted d is rejected outright (p 0).
+    rng = np.random.default_rng(6)
+    n, spread = 1500, 2.0
+    walk = np.cumsum(rng.normal(size=n))
+    d = 1e-13 * spread * rng.normal(size=n)
+    t, = cause_tests(d, np.zeros((n, 0)), whiten(walk)[:, None], na=2, nb=4, n_lag=10, start=20, output_spread=spread)
+    assert (t.statistic, t.p_value) == (0.0, 1.0)
+    plain, = cause_tests(d, np.zeros((n, 0)), whiten(walk)[:, None], na=2, nb=4, n_lag=10, start=20)
+    assert 0.0 < plain.p_value < 1.0                      # without the spread: an F test of rounding
+    effect = d.copy()
+    effect[3:] += 0.2 * walk[:-3]
+    t, = cause_tests(effect, np.zeros((n, 0)), whiten(walk)[:, None], na=2, nb=4, n_lag=10, start=20,
+                     output_spread=spread)
+    assert t.p_value == 0.0 and t.delay == 3
+
+
 def test_whitening_a_random_walk_gives_its_increments():
     rng = np.random.default_rng(1)
     steps = rng.normal(size=2000)

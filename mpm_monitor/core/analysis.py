@@ -503,7 +503,10 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         regressions = window_regressions(r, columns, -d, d, layout, options.na, options.nb,
                                          segments=plan.local_segments)
 
-    row_test = sdelta_row_test(model, r, sig.eps, regressions, layout, options)
+    # A fit that leaves at most EXACT_FIT of its output's spread is exact (a log without noise): its tests
+    # decide outright instead of on the rounding of its residual.
+    spread = np.std(y, axis=0)
+    row_test = sdelta_row_test(model, r, sig.eps, regressions, layout, options, output_spread=spread)
     rows = row_test.rows
     warnings = diverging + list(row_test.warnings)
 
@@ -522,7 +525,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         moments = ResponseMoments(model, columns, sig.d, design.testable, layout.n_lag_u, layout.start, options.na,
                                   None if plan is None else plan.local_segments)
     if options.method == "arx":
-        element_test = arx_element_test(model, test_rows, design, regressions, options, moments)
+        element_test = arx_element_test(model, test_rows, design, regressions, options, moments, output_spread=spread)
     elif plan is None:
         element_test = baseline_element_test(model, columns, sig.d, options)
     else:                         # the baselines' correlations need one contiguous span: the longest
@@ -536,7 +539,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         info, detectable, why = element_detectability(model, columns, sig.d, design, element_test.noise, layout,
                                                       options, None if plan is None else plan.local_segments,
                                                       responses=element_test.responses, moments=moments,
-                                                      output_spread=np.std(y, axis=0))
+                                                      output_spread=spread)
         warnings += why
         for e in elements:
             e.detectable_gain_change = detectable.get((model.outputs.index(e.output), model.columns.index(e.input)))

@@ -27,7 +27,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .statistics import f_tail, f_test
+from .statistics import exact_fit_statistic, exact_sigma2, f_tail, f_test
 
 #: Relative threshold on the diagonal of R below which a column is treated as linearly dependent.
 RANK_TOLERANCE = 1e-9
@@ -374,7 +374,31 @@ def block_triangular_solution(reg: SharedBlockRegression, qo: np.ndarray, R2: np
 
 
 class SharedFit:
-    """The fit of one target in a :class:`SharedBlockRegression` (see there)."""
+    """The fit of one target in a :class:`SharedBlockRegression` (see there).
+
+    Its tests decide outright when the fit is exact (a log without noise): set the spread of the
+    target's output with :meth:`set_output_spread` (:func:`~mpm_monitor.core.statistics.exact_fit_statistic`).
+    """
+
+    #: Residual variance at or below which the fit is exact, target units squared (:meth:`set_output_spread`;
+    #: 0: only a residual of exactly 0).
+    exact_sigma2 = 0.0
+
+    def set_output_spread(self, spread: float) -> None:
+        """Count the fit as exact when its residual's standard deviation is at most
+        :data:`~mpm_monitor.core.statistics.EXACT_FIT` times ``spread`` (the output's standard deviation,
+        output units): the rounding of an exact fit, not noise."""
+        self.exact_sigma2 = exact_sigma2(spread)
+
+    @property
+    def exact_floor(self) -> float:
+        """Residual sum of squares at or below which the fit is exact: ``dof * exact_sigma2``."""
+        return self.dof * self.exact_sigma2
+
+    @property
+    def exact(self) -> bool:
+        """Whether the fit is exact (its residual is rounding, not noise)."""
+        return self.rss <= self.exact_floor
 
     def __init__(self, reg: SharedBlockRegression, y: np.ndarray, own: np.ndarray | None):
         self.reg = reg
@@ -442,7 +466,7 @@ class SharedFit:
     def test_all_common_zero(self) -> BlockTest:
         """F test that every common coefficient is zero (e.g. the S_Delta row equals the identity)."""
         df_num = self.rank - self.rank_own
-        f, p = f_test(self.rss_own_only, self.rss, df_num, self.dof)
+        f, p = f_test(self.rss_own_only, self.rss, df_num, self.dof, self.exact_floor)
         return BlockTest(f, p, int(df_num), int(self.dof))
 
     def test_blocks_zero(self, blocks: Sequence[int], n_first: Optional[int] = None) -> BlockTest:
@@ -486,6 +510,7 @@ class SharedFit:
         with np.errstate(divide="ignore", invalid="ignore"):    # a row fitted exactly (no noise): sigma2 0
             f = quad / np.maximum(df_num, 1) / self.sigma2
         f = np.where(np.isnan(f), 0.0, f)           # 0 / 0: nothing to explain, F 0 (p 1); q / 0: F inf (p 0)
+        f = exact_fit_statistic(f, self.rss + quad, self.rss, self.exact_floor)     # the same for rounding
         p = f_tail(f, np.maximum(df_num, 1), self.dof)
         dof = int(self.dof)
         return [BlockTest(float(f[g]), float(p[g]), int(df_num[g]), dof) if df_num[g] else

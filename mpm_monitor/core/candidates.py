@@ -340,7 +340,7 @@ class CauseTest:
 
 
 def cause_tests(d: np.ndarray, columns: np.ndarray, w: np.ndarray, na: int, nb: int, n_lag: int,
-                start: int) -> list:
+                start: int, output_spread: Optional[float] = None) -> list:
     """The test of every candidate (whitened) as a cause of one output's prediction error.
 
     Parameters
@@ -357,6 +357,11 @@ def cause_tests(d: np.ndarray, columns: np.ndarray, w: np.ndarray, na: int, nb: 
         Lags ``1 .. n_lag`` of the columns and of each candidate.
     start : int
         First regression row (every lag inside the record and past the whitening's start).
+    output_spread : float, optional
+        Standard deviation of the row's output, output units: a fit that leaves at most
+        :data:`~mpm_monitor.core.statistics.EXACT_FIT` of it is exact (a log without noise) and its
+        test is decided outright (:func:`~mpm_monitor.core.statistics.exact_fit_statistic`).  Default:
+        only a residual of exactly 0.
 
     Returns
     -------
@@ -364,6 +369,7 @@ def cause_tests(d: np.ndarray, columns: np.ndarray, w: np.ndarray, na: int, nb: 
         One per candidate.
     """
     from .arx import estimate_delay_from_lags
+    from .statistics import exact_sigma2
 
     dc = d - d.mean()
     y = dc[start:]
@@ -380,7 +386,8 @@ def cause_tests(d: np.ndarray, columns: np.ndarray, w: np.ndarray, na: int, nb: 
         full = np.hstack([base, W])
         rss_f, rank_f, coef, var = _rss(full, y)
         df_den = y.shape[0] - rank_f
-        stat, p = f_test(rss_r, rss_f, n_lag, df_den)
+        floor = 0.0 if output_spread is None else max(df_den, 0) * exact_sigma2(output_spread)
+        stat, p = f_test(rss_r, rss_f, n_lag, df_den, floor)
         g = coef[-n_lag:]
         s2 = rss_f / max(df_den, 1)
         std = np.sqrt(np.maximum(var[-n_lag:] * s2, 0.0))
@@ -507,8 +514,10 @@ def run_candidate_tests(model: PlantModel, data: LoggedData, chosen: CandidateCh
               if std[j] > 1e-12 * max(float(np.abs(columns[:, j]).max(initial=0.0)), 1.0)]
     start = max(layout.start, CANDIDATE_AR_ORDER + n_lag)
     tests = {}
+    spread = np.std(np.asarray(data.y, dtype=float), axis=0)
     for i in range(model.n_outputs):
-        for name, t in zip(causes, cause_tests(d[:, i], columns[:, moving], w, options.na, options.nb, n_lag, start)):
+        for name, t in zip(causes, cause_tests(d[:, i], columns[:, moving], w, options.na, options.nb, n_lag, start,
+                                               output_spread=float(spread[i]))):
             tests[(i, name)] = t
     # One family: every element with a p-value and every (output, candidate) pair.
     family = [e for e in elements if e.p_value is not None and not e.ambiguous]

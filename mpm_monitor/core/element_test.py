@@ -406,7 +406,7 @@ class _Estimate:
 
 
 def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regressions, options,
-                     moments=None) -> ElementTest:
+                     moments=None, output_spread: Optional[np.ndarray] = None) -> ElementTest:
     """The Delta element test on the rows ``rows`` (see the module docstring).
 
     Parameters
@@ -425,6 +425,11 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
         (:class:`~mpm_monitor.core.response_moments.ResponseMoments`, of the same columns, prediction
         errors and segments as ``regressions``), shared with the detectability: the whole-response
         tests take their regressors and products from them.
+    output_spread : ndarray, shape (n_outputs,), optional
+        Standard deviation of every output over the window, output units: a row's fit that leaves at
+        most :data:`~mpm_monitor.core.statistics.EXACT_FIT` of it is exact (a log without noise), and
+        its tests are decided outright (:meth:`~mpm_monitor.core.arx.SharedFit.set_output_spread`).
+        Default: only a residual of exactly 0.
 
     Returns
     -------
@@ -439,6 +444,8 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
     whole = _WholeResponses(model, design, regressions, options, moments) if options.element_response else None
     for i in rows:
         fit = regressions.element_fit(design.regression, i)
+        if output_spread is not None:
+            fit.set_output_spread(output_spread[i])
         noise[i] = row_noise(fit)
         tests = fit.test_each_block_zero([element_window(model, i, j, nb, options.element_window) for j in testable])
         responses = whole.tests(i, fit) if whole is not None else {}
@@ -485,7 +492,7 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
                 output=out, input=name, mismatch=bool(np.isfinite(p) and p < alpha),
                 p_value=float(p) if np.isfinite(p) else 1.0, p_value_raw=est.p_value, statistic=t.statistic,
                 delay=int(est.delay), b=est.b, role=role, p_value_window=t.p_value, p_value_response=p_resp))
-    kept = _confirm_with_tails(model, rows, design, regressions, options, estimates, keys, elements)
+    kept = _confirm_with_tails(model, rows, design, regressions, options, estimates, keys, elements, output_spread)
     warnings = [f"row {h.output}: inputs {', '.join(h.inputs)} jointly explain part of its prediction error "
                 f"(p={h.p_value:.2g}) but cannot be told apart from these data" for h in group_hits] + kept
     responses = {k: e.response for k, e in estimates.items() if e.response is not None}
@@ -563,7 +570,8 @@ def tail_lags(model: PlantModel, i: int, n_lag: int, n_rows: int) -> int:
     return int(max(n_lag, min(want, int(TAIL_MAX_FRACTION * n_rows))))
 
 
-def _confirm_with_tails(model, rows, design, regressions, options, estimates, keys, elements) -> list:
+def _confirm_with_tails(model, rows, design, regressions, options, estimates, keys, elements,
+                        output_spread=None) -> list:
     """Re-test the located elements of every row with two or more, each given the others' whole tails.
 
     The ARX of a row holds ``n_lag`` lags of every column.  A located element's ``Delta_ij`` of a slow
@@ -630,6 +638,8 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
             extra = np.hstack(free) if free else None
             nuisance = [m for m in (own, extra) if m is not None]
             fit = SharedBlockRegression(X, sizes).fit(di[start:], np.hstack(nuisance) if nuisance else None)
+            if output_spread is not None:
+                fit.set_output_spread(output_spread[i])
             test = fit.test_blocks_zero([testable.index(j)], element_window(model, i, j, nb, options.element_window))
             response = None
             if estimates[(i, j)].response is not None:

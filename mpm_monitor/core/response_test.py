@@ -54,7 +54,7 @@ import numpy as np
 from .arx import BlockTest, segment_lag_matrix, segment_rows
 from .filters import lfilter
 from .model import PlantModel
-from .statistics import f_tail
+from .statistics import exact_fit_statistic, f_tail
 
 #: The tests combined for an element the model has: the lag window's and the whole response's.
 N_ELEMENT_TESTS = 2
@@ -262,7 +262,11 @@ def _stacked_tests(fit, xx, c_s, g_s, theta_s, x_m_y, idx: np.ndarray, grp: np.n
             out.append(ResponseTest(float("nan"), 1.0, 0, max(int(dof[t]), 1)))
             continue
         r, df = int(rank[t]), int(dof[t])
-        if rss[t] > 0 and np.isfinite(s2 := rss[t] / df) and s2 > 0:
+        floor = df * fit.exact_sigma2
+        if floor > 0 and syy[t] - explained[t] <= floor:    # fitted exactly but for rounding (SharedFit.exact)
+            f = float(exact_fit_statistic(0.0, syy[t], syy[t] - explained[t], floor))
+            information = float("inf")
+        elif rss[t] > 0 and np.isfinite(s2 := rss[t] / df) and s2 > 0:
             with np.errstate(over="ignore"):             # a residual many orders below the regressor: inf
                 f = (explained[t] / r) / s2
                 information = float(sxx[t, 0, 0] / s2)

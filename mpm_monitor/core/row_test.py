@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Optional
 
 import numpy as np
 
@@ -105,7 +106,8 @@ def frequency_grid(band: tuple, n: int) -> np.ndarray:
     return grid
 
 
-def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressions, layout, options) -> RowTest:
+def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressions, layout, options,
+                    output_spread: Optional[np.ndarray] = None) -> RowTest:
     """The S_Delta row test of every output (see the module docstring).
 
     Parameters
@@ -120,6 +122,11 @@ def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressio
         Setpoint lags ``0 .. n_lag_r - 1`` and first regression row ``start``.
     options : AnalysisOptions
         Its ``na``, ``alpha``, ``band`` and ``n_freq``.
+    output_spread : ndarray, shape (n_outputs,), optional
+        Standard deviation of every output over the window, output units.  A row whose fit leaves at
+        most :data:`~mpm_monitor.core.statistics.EXACT_FIT` of it is fitted exactly (a log without
+        noise): its test is decided outright, not on the rounding of its residual
+        (:meth:`~mpm_monitor.core.arx.SharedFit.set_output_spread`).  Default: only a residual of exactly 0.
 
     Returns
     -------
@@ -142,6 +149,8 @@ def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressio
     row_stat, row_df, row_fit = np.full(ny, np.nan), [(0, 0)] * ny, np.zeros(ny)
     for i in range(ny):
         fit = regressions.row_fit(reg_r, i)
+        if output_spread is not None:
+            fit.set_output_spread(output_spread[i])
         test = fit.test_all_common_zero()
         row_raw_p[i], row_stat[i], row_df[i] = test.p_value, test.statistic, (test.df_num, test.df_den)
         a = fit.own_theta()

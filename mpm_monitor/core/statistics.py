@@ -68,15 +68,40 @@ def chi2_isf(q, df):
     return _special().chdtri(df, q)
 
 
-def f_test(rss_restricted: float, rss_full: float, df_num: int, df_den: int):
+def exact_sigma2(spread) -> float:
+    """Residual variance at or below which a fit of a signal of standard deviation ``spread`` is exact.
+
+    ``(EXACT_FIT * spread)^2`` (:data:`EXACT_FIT`), output units squared; a fit of ``dof`` residual
+    degrees of freedom is exact when its residual sum of squares is at most ``dof`` times it.
+    """
+    return (EXACT_FIT * float(spread)) ** 2
+
+
+def exact_fit_statistic(f, rss_restricted, rss_full, floor):
+    """The F statistic ``f`` of a nested test, decided outright where the full fit is exact.
+
+    Where ``rss_full <= floor`` (the full model fits exactly: its residual is rounding, not noise,
+    :func:`exact_sigma2`), the F ratio divides rounding by rounding and means nothing.  The restriction
+    is then rejected outright (F ``inf``, p 0) when the restricted fit leaves more than the floor, and
+    there is nothing to test (F 0, p 1) when it does not.  Elsewhere ``f`` is returned.  With ``floor``
+    0 this is the exact arithmetic's ``q / 0 = inf`` and ``0 / 0 = 0``.  Elementwise.
+    """
+    return np.where(rss_full <= floor, np.where(rss_restricted > floor, np.inf, 0.0), f)
+
+
+def f_test(rss_restricted: float, rss_full: float, df_num: int, df_den: int, floor: float = 0.0):
     """F statistic and p-value of a nested least-squares restriction.
 
     ``F = ((RSS_r - RSS_f) / df_num) / (RSS_f / df_den)``, ``p = P(F(df_num, df_den) > F)``
-    (Ljung 1999, section 16.4).  Returns (nan, 1.0) when ``df_num < 1``, ``df_den < 1`` or the
-    full model fits exactly.
+    (Ljung 1999, section 16.4).  Returns (nan, 1.0) when ``df_num < 1`` or ``df_den < 1``.  When the
+    full model fits exactly (``RSS_f <= floor``, residual sums of squares in the target's units squared),
+    the restriction is decided outright (:func:`exact_fit_statistic`): (inf, 0.0) when ``RSS_r > floor``,
+    (0.0, 1.0) otherwise.
     """
-    if df_num < 1 or df_den < 1 or rss_full <= 0:
+    if df_num < 1 or df_den < 1:
         return float("nan"), 1.0
+    if rss_full <= floor:
+        return (float("inf"), 0.0) if rss_restricted > floor else (0.0, 1.0)
     f = max(rss_restricted - rss_full, 0.0) / df_num / (rss_full / df_den)
     return float(f), float(f_tail(f, df_num, df_den))
 
