@@ -333,15 +333,16 @@ def make_structures_scenario(seed: int, index: int, options: StructuresOptions =
                               mismatches=tuple(mismatches), structures=structures, dither=dither, loop_seed=loop_seed)
 
 
-def simulate(sc: StructuresScenario, samples: int, options: StructuresOptions = StructuresOptions()):
-    """The closed-loop log of a scenario (the paper's MPC tuning and noise)."""
+def simulate(sc: StructuresScenario, samples: int, options: StructuresOptions = StructuresOptions(),
+             disturbance: DisturbanceOptions = NOISE):
+    """The closed-loop log of a scenario (the paper's MPC tuning and, by default, noise)."""
     excitation = ExcitationOptions(
         setpoint=PrbsOptions(amplitude=options.setpoint_amplitude, switch_probability=0.5),
         dither=PrbsOptions(amplitude=options.dither_amplitude, switch_probability=0.5) if sc.dither else None)
     mpc = MpcOptions(prediction_horizon=100, control_horizon=30, output_weight=1.0, input_weight=1.0,
                      input_rate_weight=0.1)
     return run_closed_loop(sc.plant, sc.model, samples, seed=sc.loop_seed, mpc=mpc, excitation=excitation,
-                           disturbance=NOISE, measured_disturbance=options.measured_disturbance)
+                           disturbance=disturbance, measured_disturbance=options.measured_disturbance)
 
 
 def step_response_error(plant: PlantModel, repaired: PlantModel, i: int, j: int, n: int = REPAIR_HORIZON) -> float:
