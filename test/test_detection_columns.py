@@ -211,3 +211,46 @@ def test_integrating_outputs_keep_the_false_alarm_rate_and_locate_an_integrator_
     plant = model.with_element(0, 0, gain=0.026)
     report = detect(model, open_loop(plant, model, 2000, seed=99, burn_in=400, level=50.0), FAST)
     assert report.located_elements == [("y1", "u1")]
+
+
+def _step_form(model: PlantModel, n: int) -> PlantModel:
+    coefs = [[model.discrete_element(i, j).step_response(n + 1)[1:] for j in range(model.n_columns)]
+             for i in range(model.n_outputs)]
+    return PlantModel.from_step_response(model.sample_time, model.inputs, model.outputs, coefs,
+                                         ramp=list(model.integrating_outputs), disturbances=model.disturbances)
+
+
+@pytest.mark.parametrize("integrating", [False, True])
+def test_a_step_response_element_s_tail_is_its_parametric_element_s(integrating):
+    # A first-order lag of 12 s after a dead time of 4 samples (T = 1 s), on its own or behind an
+    # integrator: its response to a pulse (less the final slope on a ramp row) keeps exp(-6) of its
+    # mass after 4 + 6 * 12 samples, the parametric tail of tail_lags: to within 5 % (behind the
+    # integrator the sampled pulse response's first samples are not geometric; 73 samples here).
+    from mpm_monitor.core.element_test import step_response_tail, tail_lags
+
+    model = PlantModel(sample_time=1.0, inputs=("u1", "u2"), outputs=("y1",), gain=[[2.0, 0.0]],
+                       time_constant=[[12.0, 0.0]], delay=[[4.0, 0.0]], integrating=[[integrating, False]])
+    step = _step_form(model, 400)
+    assert step.ramp == (integrating,)
+    assert abs(step_response_tail(step, 0, 0) - (4 + 6 * 12)) <= 0.05 * (4 + 6 * 12)
+    assert step_response_tail(step, 0, 1) == 0
+    assert abs(tail_lags(step, 0, 20, 3000) - tail_lags(model, 0, 20, 3000)) <= 0.05 * (4 + 6 * 12)
+    assert tail_lags(step, 0, 20, 400) == 40            # at most a tenth of the rows
+
+
+def test_a_step_response_model_confirms_its_located_elements_like_the_parametric_model():
+    # A time-constant error of a slow element of an integrating row (bench.structures_mc seed 5, run
+    # 2): the element test flags two right elements of the row as well, which the confirmation with
+    # the others' tails releases.  It must do so for the model's step-response form too (its tails
+    # from the step responses, its ramp row's elements integrating): without, the step-response model
+    # located three elements where the parametric one locates one.
+    from bench.structures_mc import make_structures_scenario, simulate
+
+    sc = make_structures_scenario(5, 2)
+    model = sc.model
+    n = int(np.max(model.delay_samples + 12 * (model.time_constant + model.time_constant2))) + 5
+    step = _step_form(model, n)
+    assert step.ramp == model.integrating_outputs and any(step.ramp)
+    log = simulate(sc, 3000).as_logged_data()
+    a, b = detect(model, log, FAST), detect(step, log, FAST)
+    assert a.located_elements == b.located_elements == [("y4", "u2")]

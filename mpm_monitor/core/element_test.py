@@ -558,16 +558,49 @@ def tail_lags(model: PlantModel, i: int, n_lag: int, n_rows: int) -> int:
 
     The row's largest dead time plus :data:`TAIL_TIME_CONSTANTS` time constants of its slowest decaying
     pole (the model's elements), at least ``n_lag`` and at most :data:`TAIL_MAX_FRACTION` of the
-    ``n_rows`` regression rows.
+    ``n_rows`` regression rows.  A step-response model has no poles: there the row's longest
+    :func:`step_response_tail` stands for them.
     """
     from .discretize import discretize
 
+    if model.is_step_response:
+        want = max((step_response_tail(model, i, j) for j in np.flatnonzero(model.present[i])), default=0)
+        return int(max(n_lag, min(want, int(TAIL_MAX_FRACTION * n_rows))))
     poles = discretize(model).lag_poles(i)
     if not poles:
         return n_lag
     tau = -1.0 / np.log(max(poles))
     want = int(model.delay_samples[i].max(initial=0)) + int(np.ceil(TAIL_TIME_CONSTANTS * tau))
     return int(max(n_lag, min(want, int(TAIL_MAX_FRACTION * n_rows))))
+
+
+def step_response_tail(model: PlantModel, i: int, j: int) -> int:
+    """Samples after which a step-response element's response to a pulse has all but died out.
+
+    The impulse response ``h_l = s_l - s_(l-1)`` of element (``i``, ``j``) (on a ramp row, less its
+    final slope ``h_N``: the part that dies out); the first ``l`` after which the remaining
+    ``sum |h_k|`` is at most ``exp(-TAIL_TIME_CONSTANTS)`` of the whole, the step-response analogue
+    of :data:`TAIL_TIME_CONSTANTS` time constants after the dead time (a first-order element's
+    remaining mass after ``delay + m tau`` is ``exp(-m)``).  In samples; 0 for an absent element.
+    """
+    s = np.asarray(model.step_response[i, j], dtype=float)
+    h = np.diff(np.concatenate([[0.0], s]))
+    if model.ramp[i] and h.size:
+        h = h - h[-1]
+    mass = np.abs(h)[::-1].cumsum()[::-1]                  # mass[l]: sum of |h_k| for k >= l (0-based)
+    total = float(mass[0]) if mass.size else 0.0
+    if not total > 0:
+        return 0
+    above = np.flatnonzero(mass > np.exp(-TAIL_TIME_CONSTANTS) * total)
+    return int(above[-1]) + 1 if above.size else 0
+
+
+def integrating_element(model: PlantModel, i: int, j: int) -> bool:
+    """Whether element (``i``, ``j``) integrates: a parametric integrating element, or a present
+    element of a ramp row of a step-response model (its response keeps the last slope)."""
+    if model.is_step_response:
+        return bool(model.ramp[i] and model.present[i, j])
+    return bool(model.integrating[i, j])
 
 
 def _confirm_with_tails(model, rows, design, regressions, options, estimates, keys, elements,
@@ -627,7 +660,7 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
         di = d[:, i] - d[:, i].mean()
         own = -lag_matrix(di, range(1, na + 1), start) if na else None
         # An integrating element's gain error never dies out: no tail carries it, its response does.
-        responses = element_responses(model, i, [k for k in located if model.integrating[i, k]], u_c)
+        responses = element_responses(model, i, [k for k in located if integrating_element(model, i, k)], u_c)
         response_lags = {k: lag_matrix(x, range(na + 1), start) for k, x in responses.items()}
 
         def confirmed(j, given):
