@@ -21,6 +21,7 @@ BENCHMARKS = [
     ("bench.candidates_mc", [], ["--runs", "20", "--detection-runs", "5"]),
     ("bench.structures_mc", ["--jobs", "2"], ["--runs", "30", "--clean-integrating", "30"]),
     ("bench.noise_free", ["--runs", "300", "--jobs", "2"], ["--runs", "20"]),
+    ("bench.step_models", ["--runs", "100", "--jobs", "2"], ["--runs", "10"]),
     ("bench.perf", [], ["--quick"]),
     ("bench.stages", ["--out", "bench/results/stages.json"], ["--sizes", "20x20", "--repeats", "1"]),
     ("bench.memory", [], ["--quick"]),

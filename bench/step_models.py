@@ -1,0 +1,142 @@
+"""Step-response (DMC-style) models: the same decisions as the parametric model they sample?
+
+A DMC controller holds its model as step responses.  For every run ``k`` of family ``seed`` this
+draws the random closed loop of :mod:`bench.structures_mc` (every element structure, integrating
+outputs, measured disturbances, 0 to 2 mismatched elements), simulates it with the paper's noise,
+and runs ``analyze`` (with the repair) twice on the same log:
+
+* with the controller's model as drawn (parametric), and
+* with its step-response form: ``s_1 .. s_N`` of every element, ``N`` the largest dead time plus 12
+  time constants (the responses settled to ``exp(-12)``), a ramp on every integrating output.
+
+Recorded: the located elements of both against the truth (hits, false locations, clean runs with an
+alarm), the runs in which the two differ, and both analysis times.
+
+Run: ``python -m bench.step_models [--runs 100] [--seed 0] [--jobs 2] [--out bench/results/step_models.json]``
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+import warnings
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+from mpm_monitor.core.analysis import AnalysisOptions
+from mpm_monitor.core.model import PlantModel
+from mpm_monitor.core.pipeline import analyze
+
+from . import map_runs, mc_parser, structures_mc, write_json
+
+DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "step_models.json"
+#: The step responses run this many time constants (both lags) past the largest dead time.
+SETTLED_TIME_CONSTANTS = 12
+
+
+def step_form(model: PlantModel) -> PlantModel:
+    """The step-response form of a parametric model (module docstring)."""
+    tau = (model.time_constant + model.time_constant2) / model.sample_time
+    n = int(np.max(model.delay_samples + SETTLED_TIME_CONSTANTS * tau)) + 5
+    coefs = [[model.discrete_element(i, j).step_response(n + 1)[1:] for j in range(model.n_columns)]
+             for i in range(model.n_outputs)]
+    return PlantModel.from_step_response(model.sample_time, model.inputs, model.outputs, coefs,
+                                         ramp=list(model.integrating_outputs), disturbances=model.disturbances,
+                                         name=f"{model.name} (step responses, N = {n})")
+
+
+def _located(model, data, alpha: float):
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rep = analyze(model, data, AnalysisOptions(alpha=alpha))
+    ci = {name: k for k, name in enumerate(model.columns)}
+    oi = {name: k for k, name in enumerate(model.outputs)}
+    return sorted([oi[o], ci[c]] for o, c in rep.located_elements), time.perf_counter() - t0
+
+
+def one(seed: int, index: int, samples: int, alpha: float) -> dict:
+    """One random loop analysed with its model and with the model's step-response form."""
+    sc = structures_mc.make_structures_scenario(seed, index)
+    data = structures_mc.simulate(sc, samples).as_logged_data(source=f"run {index}")
+    step = step_form(sc.model)
+    rec = {"index": index, "shape": [sc.plant.n_outputs, sc.plant.n_inputs, sc.plant.n_disturbances],
+           "step_length": int(step.step_length), "ramp_rows": int(sum(step.ramp)),
+           "mismatched": sorted([int(m["output"]), int(m["column"])] for m in sc.mismatches)}
+    try:
+        rec["parametric"], rec["parametric_s"] = _located(sc.model, data, alpha)
+        rec["step"], rec["step_s"] = _located(step, data, alpha)
+    except Exception as exc:                    # a diverged loop refused by both: recorded, not scored
+        rec["error"] = f"{type(exc).__name__}: {exc}"
+    return rec
+
+
+def _one_star(args):
+    return one(*args)
+
+
+def summarise(records: Sequence[dict]) -> dict:
+    scored = [r for r in records if "error" not in r]
+    out = {"runs": len(records), "scored": len(scored), "errors": len(records) - len(scored),
+           "runs_where_the_two_differ": [r["index"] for r in scored if r["parametric"] != r["step"]]}
+    for key in ("parametric", "step"):
+        hits = false = total = clean = clean_alarm = 0
+        for r in scored:
+            truth = {tuple(t) for t in r["mismatched"]}
+            got = {tuple(t) for t in r[key]}
+            hits += len(got & truth)
+            false += len(got - truth)
+            total += len(truth)
+            if not truth:
+                clean += 1
+                clean_alarm += bool(got)
+        times = [r[f"{key}_s"] for r in scored]
+        out[key] = {"mismatched_elements": total, "located": hits, "false_locations": false,
+                    "clean_runs": clean, "clean_runs_with_a_location": clean_alarm,
+                    "median_analyze_s": float(np.median(times)) if times else None,
+                    "total_analyze_s": float(np.sum(times)), "max_analyze_s": float(np.max(times, initial=0.0))}
+    return out
+
+
+def run(runs: int, seed: int = 0, samples: int = 3000, jobs: int = 1, alpha: float = 0.01, progress=None) -> dict:
+    tasks = [(seed, k, samples, alpha) for k in range(runs)]
+    t0 = time.perf_counter()
+    records = map_runs(_one_star, tasks, jobs, progress)
+    return {"config": {"runs": runs, "seed": seed, "samples": samples, "alpha": alpha,
+                       "settled_time_constants": SETTLED_TIME_CONSTANTS},
+            "summary": summarise(records), "seconds": time.perf_counter() - t0, "records": records}
+
+
+def format_table(result: dict) -> str:
+    s, cfg = result["summary"], result["config"]
+    lines = [f"step-response models: {s['scored']} of {s['runs']} random loops (bench.structures_mc draws, seed "
+             f"{cfg['seed']}), {cfg['samples']} samples, alpha {cfg['alpha']}, analyze with the repair"]
+    for key in ("parametric", "step"):
+        x = s[key]
+        lines.append(f"{key}: {x['located']} of {x['mismatched_elements']} mismatched elements located, "
+                     f"{x['false_locations']} false locations, {x['clean_runs_with_a_location']} of {x['clean_runs']} "
+                     f"clean runs with one; analyze median {x['median_analyze_s']:.2f} s, total "
+                     f"{x['total_analyze_s']:.0f} s, longest {x['max_analyze_s']:.1f} s")
+    lines.append(f"runs where the two differ: {len(s['runs_where_the_two_differ'])} {s['runs_where_the_two_differ']}")
+    lines.append(f"({result['seconds']:.0f} s)")
+    return "\n".join(lines)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    parser = mc_parser("python -m bench.step_models", __doc__, 100, DEFAULT_OUT)
+    args = parser.parse_args(argv)
+
+    def progress(done, total, rec):
+        if done % 10 == 0 or done == total:
+            print(f"  {done}/{total}", file=sys.stderr, flush=True)
+
+    result = run(args.runs, args.seed, args.samples, args.jobs, args.alpha, progress)
+    print(format_table(result))
+    write_json(args.out, result)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
