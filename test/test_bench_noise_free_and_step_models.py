@@ -1,0 +1,26 @@
+"""bench.noise_free and bench.step_models: a few runs end to end, their summaries against their records."""
+
+from bench import noise_free, step_models
+
+
+def test_noise_free_scores_its_records():
+    result = noise_free.run(3, seed=0, samples=1500)
+    s = result["summary"]
+    assert s["runs"] == 3 and len(result["records"]) == 3
+    # With the plant as its model no row is flagged in a log without noise (the exact fits).
+    assert s["plant_as_model"]["rows_flagged"] == 0 and s["plant_as_model"]["runs_with_any_alarm"] == 0
+    assert s["model_as_drawn"]["of_them_flagged"] == 0
+    assert "plant as its model: 0 of 3 runs" in noise_free.format_table(result)
+
+
+def test_step_models_compares_the_two_forms_of_the_model():
+    result = step_models.run(3, seed=5, samples=2000)
+    s = result["summary"]
+    assert s["scored"] == 3
+    for r in result["records"]:
+        assert r["step_length"] > 0 and "parametric" in r and "step" in r
+    differ = [r["index"] for r in result["records"] if r["parametric"] != r["step"]]
+    assert s["runs_where_the_two_differ"] == differ
+    total = sum(len(r["mismatched"]) for r in result["records"])
+    assert s["parametric"]["mismatched_elements"] == s["step"]["mismatched_elements"] == total
+    assert "step: " in step_models.format_table(result)
