@@ -53,3 +53,21 @@ def map_runs(star, tasks, jobs: int = 1, progress=None) -> list:
         if progress:
             progress(len(results), len(tasks), result)
     return results
+
+
+def run_mc_main(argv, prog: str, doc: str, runs: int, out: Path, run, format_table) -> int:
+    """The main of a Monte-Carlo bench: :func:`mc_parser`'s arguments, ``run(runs, seed, samples, jobs,
+    alpha, progress)`` with progress every 10 runs on stderr, its :func:`format_table` printed and its
+    result written to ``--out``."""
+    import sys
+
+    args = mc_parser(prog, doc, runs, out).parse_args(argv)
+
+    def progress(done, total, rec):
+        if done % 10 == 0 or done == total:
+            print(f"  {done}/{total}", file=sys.stderr, flush=True)
+
+    result = run(args.runs, args.seed, args.samples, args.jobs, args.alpha, progress)
+    print(format_table(result))
+    write_json(args.out, result)
+    return 0

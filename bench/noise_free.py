@@ -38,7 +38,7 @@ from typing import Optional, Sequence
 from mpm_monitor.core.analysis import AnalysisOptions, detect
 from mpm_monitor.sim.plant import DisturbanceOptions
 
-from . import map_runs, mc_parser, write_json
+from . import map_runs, run_mc_main
 from . import structures_mc
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "noise_free.json"
@@ -133,17 +133,7 @@ def format_table(result: dict) -> str:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    parser = mc_parser("python -m bench.noise_free", __doc__, 100, DEFAULT_OUT)
-    args = parser.parse_args(argv)
-
-    def progress(done, total, rec):
-        if done % 10 == 0 or done == total:
-            print(f"  {done}/{total}", file=sys.stderr, flush=True)
-
-    result = run(args.runs, args.seed, args.samples, args.jobs, args.alpha, progress)
-    print(format_table(result))
-    write_json(args.out, result)
-    return 0
+    return run_mc_main(argv, "python -m bench.noise_free", __doc__, 100, DEFAULT_OUT, run, format_table)
 
 
 if __name__ == "__main__":

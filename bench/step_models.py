@@ -29,7 +29,7 @@ from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.model import PlantModel
 from mpm_monitor.core.pipeline import analyze
 
-from . import map_runs, mc_parser, structures_mc, write_json
+from . import map_runs, run_mc_main, structures_mc
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "step_models.json"
 #: The step responses run this many time constants (both lags) past the largest dead time.
@@ -125,17 +125,7 @@ def format_table(result: dict) -> str:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    parser = mc_parser("python -m bench.step_models", __doc__, 100, DEFAULT_OUT)
-    args = parser.parse_args(argv)
-
-    def progress(done, total, rec):
-        if done % 10 == 0 or done == total:
-            print(f"  {done}/{total}", file=sys.stderr, flush=True)
-
-    result = run(args.runs, args.seed, args.samples, args.jobs, args.alpha, progress)
-    print(format_table(result))
-    write_json(args.out, result)
-    return 0
+    return run_mc_main(argv, "python -m bench.step_models", __doc__, 100, DEFAULT_OUT, run, format_table)
 
 
 if __name__ == "__main__":
