@@ -254,3 +254,32 @@ def test_a_step_response_model_confirms_its_located_elements_like_the_parametric
     log = simulate(sc, 3000).as_logged_data()
     a, b = detect(model, log, FAST), detect(step, log, FAST)
     assert a.located_elements == b.located_elements == [("y4", "u2")]
+
+
+@pytest.mark.parametrize("tau, delay", [(12.0, 4), (3.0, 0), (0.0, 2)])
+def test_a_ramp_row_s_step_response_gives_its_element_s_first_lag(tau, delay):
+    # An integrator behind a first-order lag, sampled: the area between its slope and the final slope
+    # is its dead time plus its lag (the time-constant sensitivity's tau of the whole-response test).
+    from mpm_monitor.core.response_test import integrating_element, integrating_lag
+
+    model = PlantModel(sample_time=1.0, inputs=("u1",), outputs=("y1",), gain=[[0.05]], time_constant=[[tau]],
+                       delay=[[float(delay)]], integrating=[[True]])
+    step = _step_form(model, 600)
+    assert integrating_element(step, 0, 0) and integrating_element(model, 0, 0)
+    assert integrating_lag(model, 0, 0) == tau
+    assert integrating_lag(step, 0, 0) == pytest.approx(tau, abs=0.05 * tau + 1e-9)
+
+
+def test_a_step_response_model_tests_an_integrating_element_s_time_constant():
+    # A time-constant error of an integrating element (bench.structures_mc seed 0, run 60): the parametric
+    # model's whole-response test adds the time-constant sensitivity and locates it; the step-response
+    # form must do the same (its ramp row's elements integrating, the lag from the step response).
+    from bench.structures_mc import make_structures_scenario, simulate
+
+    sc = make_structures_scenario(0, 60)
+    model = sc.model
+    n = int(np.max(model.delay_samples + 12 * (model.time_constant + model.time_constant2))) + 5
+    step = _step_form(model, n)
+    log = simulate(sc, 3000).as_logged_data()
+    a, b = detect(model, log, FAST), detect(step, log, FAST)
+    assert a.located_elements == b.located_elements == [("y1", "u3"), ("y2", "u4")]

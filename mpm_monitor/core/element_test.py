@@ -43,7 +43,7 @@ import numpy as np
 from .arx import BlockTest, SharedBlockRegression, estimate_delay_from_lags, lag_matrix, segment_lag_matrix, segment_rows
 from .baselines import ELEMENT_TESTS
 from .model import PlantModel
-from .response_test import combined_p_value, element_responses, row_response_tests
+from .response_test import combined_p_value, element_responses, integrating_element, row_response_tests
 from .statistics import N_FAMILIES, holm_adjust
 
 
@@ -593,14 +593,6 @@ def step_response_tail(model: PlantModel, i: int, j: int) -> int:
         return 0
     above = np.flatnonzero(mass > np.exp(-TAIL_TIME_CONSTANTS) * total)
     return int(above[-1]) + 1 if above.size else 0
-
-
-def integrating_element(model: PlantModel, i: int, j: int) -> bool:
-    """Whether element (``i``, ``j``) integrates: a parametric integrating element, or a present
-    element of a ramp row of a step-response model (its response keeps the last slope)."""
-    if model.is_step_response:
-        return bool(model.ramp[i] and model.present[i, j])
-    return bool(model.integrating[i, j])
 
 
 def _confirm_with_tails(model, rows, design, regressions, options, estimates, keys, elements,

@@ -127,6 +127,34 @@ def element_responses(model: PlantModel, i: int, columns: Sequence[int], u_c: np
     return out
 
 
+def integrating_element(model: PlantModel, i: int, j: int) -> bool:
+    """Whether element (``i``, ``j``) integrates: a parametric integrating element, or a present
+    element of a ramp row of a step-response model (its response keeps the last slope)."""
+    if model.is_step_response:
+        return bool(model.ramp[i] and model.present[i, j])
+    return bool(model.integrating[i, j])
+
+
+def integrating_lag(model: PlantModel, i: int, j: int) -> float:
+    """The first lag of integrating element (``i``, ``j``), samples: its :func:`time_constant_sensitivity`'s ``tau``.
+
+    A parametric element's first time constant.  A step-response element on a ramp row has none: its
+    slope ``h_l = s_l - s_(l-1)`` rises to the final ``h_N``, and the area ``sum_l (1 - h_l / h_N)``
+    is its dead time plus the lag of an integrator behind a first-order lag (exactly so for that
+    element, sampled; the equivalent lag, the mean residence time, of a higher order); that area less
+    the dead time, at least 0.
+    """
+    if not model.is_step_response:
+        return float(model.time_constant[i, j] / model.sample_time)
+    s = np.asarray(model.step_response[i, j], dtype=float)
+    h = np.diff(np.concatenate([[0.0], s]))
+    if h.size == 0 or h[-1] == 0:
+        return 0.0
+    nz = np.flatnonzero(h != 0)
+    dead = int(nz[0]) if nz.size else 0
+    return max(float(np.sum(1.0 - h / h[-1])) - dead, 0.0)
+
+
 def time_constant_sensitivity(x: np.ndarray, tau: float, segments=None) -> np.ndarray:
     """The shape ``s / (tau s + 1) x`` of an integrating element's time-constant error, from its response ``x``.
 
@@ -335,17 +363,16 @@ def row_response_tests(model: PlantModel, i: int, fit, testable: list, common: O
             raise ValueError(f"lag blocks of {sorted(set(block_sizes))} lags, the moments have {moments.n_lag}")
         rm = moments.row(i, keep_samples=True)
         cols = [j for j in asked if model.present[i, j] and rm.index(j) is not None and rm.moves[rm.index(j)]]
-        integrating = [j for j in cols if model.integrating[i, j]]
+        integrating = [j for j in cols if integrating_element(model, i, j)]
         resp = moments.responses(rm, integrating)       # already simulated: no second run
     if not cols:
         return {}
     groups = [[k] for k in range(len(cols))]
     sensitivity = []
     for k, j in enumerate(cols):
-        if model.integrating[i, j]:
+        if integrating_element(model, i, j):
             groups[k].append(len(cols) + len(sensitivity))
-            sensitivity.append(time_constant_sensitivity(resp[j], model.time_constant[i, j] / model.sample_time,
-                                                         segments))
+            sensitivity.append(time_constant_sensitivity(resp[j], integrating_lag(model, i, j), segments))
     if moments is None:
         X_t = filtered_rows(np.column_stack([resp[j] for j in cols] + sensitivity), a, start, segments)
         X_t = X_t - X_t.mean(axis=0)
