@@ -540,8 +540,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     if valued:
         info, detectable, why = element_detectability(model, columns, sig.d, design, element_test.noise, layout,
                                                       options, None if plan is None else plan.local_segments,
-                                                      responses=element_test.responses, moments=moments,
-                                                      output_spread=spread)
+                                                      responses=element_test.responses, moments=moments)
         warnings += why
         for e in elements:
             e.detectable_gain_change = detectable.get((model.outputs.index(e.output), model.columns.index(e.input)))
@@ -563,7 +562,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
             chosen = candidates if plan is None else dataclasses.replace(candidates, values=plan.take(candidates.values))
         else:
             chosen = select_candidates(cdata, candidates, model)
-        tested = run_candidate_tests(model, cdata, chosen, columns, sig.d, elements, layout, options)
+        tested = run_candidate_tests(model, cdata, chosen, columns, sig.d, elements, layout, options,
+                                     output_spread=spread)
         elements = tested.elements + tested.candidate_elements
         candidate_report = tested.report
         warnings += candidate_report.warnings()

@@ -471,7 +471,8 @@ class CandidateTest:
 
 
 def run_candidate_tests(model: PlantModel, data: LoggedData, chosen: CandidateChannels, columns: np.ndarray,
-                    d: np.ndarray, elements: list, layout, options) -> CandidateTest:
+                    d: np.ndarray, elements: list, layout, options,
+                    output_spread: Optional[np.ndarray] = None) -> CandidateTest:
     """Run the exogeneity and cause tests of the chosen candidates and adjust the element family.
 
     Parameters
@@ -490,6 +491,10 @@ def run_candidate_tests(model: PlantModel, data: LoggedData, chosen: CandidateCh
         Its ``n_lag_u`` and ``start``.
     options : AnalysisOptions
         Its ``alpha``, ``na`` and ``nb``.
+    output_spread : ndarray, shape (n_outputs,), optional
+        The outputs' standard deviations (output units) against which a cause test's fit is exact
+        (:func:`cause_tests`); 0 for an output only a residual of exactly 0 fits exactly.  Default: that
+        for every output.
 
     Returns
     -------
@@ -514,10 +519,10 @@ def run_candidate_tests(model: PlantModel, data: LoggedData, chosen: CandidateCh
               if std[j] > 1e-12 * max(float(np.abs(columns[:, j]).max(initial=0.0)), 1.0)]
     start = max(layout.start, CANDIDATE_AR_ORDER + n_lag)
     tests = {}
-    spread = np.std(np.asarray(data.y, dtype=float), axis=0)
     for i in range(model.n_outputs):
+        spread = None if output_spread is None else float(output_spread[i])
         for name, t in zip(causes, cause_tests(d[:, i], columns[:, moving], w, options.na, options.nb, n_lag, start,
-                                               output_spread=float(spread[i]))):
+                                               output_spread=spread)):
             tests[(i, name)] = t
     # One family: every element with a p-value and every (output, candidate) pair.
     family = [e for e in elements if e.p_value is not None and not e.ambiguous]

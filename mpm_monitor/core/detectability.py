@@ -51,7 +51,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 from typing import Optional
 
 import numpy as np
@@ -62,7 +61,7 @@ from .filters import lfilter
 from .model import PlantModel
 from .response_moments import ResponseMoments, target_element, typical_element  # noqa: F401 (re-exported)
 from .response_test import N_ELEMENT_TESTS
-from .statistics import EXACT_FIT, N_FAMILIES, detection_noncentrality
+from .statistics import N_FAMILIES, detection_noncentrality
 
 #: Probability of detection the detectable gain change is defined by.
 POWER = 0.9
@@ -570,8 +569,7 @@ class WindowInformation:
 
 
 def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, design, noise: dict, layout, options,
-                          segments=None, responses: Optional[dict] = None, moments: Optional[ResponseMoments] = None,
-                          output_spread: Optional[np.ndarray] = None):
+                          segments=None, responses: Optional[dict] = None, moments: Optional[ResponseMoments] = None):
     """The detectable gain change of every element of the rows the ARX element test examined.
 
     Parameters
@@ -603,10 +601,6 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
         on the window) have the window test alone, at the full level.
     moments : ResponseMoments, optional
         Shared with the element test (:class:`WindowInformation`).
-    output_spread : ndarray, shape (n_outputs,), optional
-        The outputs' standard deviations over the window (output units).  A row whose noise standard
-        deviation is at most :data:`EXACT_FIT` times its output's is fitted exactly (rounding error,
-        a log without noise), as is a row whose noise variance is 0.
 
     Returns
     -------
@@ -618,8 +612,8 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
         Why a value is None.
     """
     # A row fitted exactly (a log without noise) has no noise to measure a detectable change against.
-    exact = [i for i, nz in noise.items() if not (np.isfinite(nz.sigma2) and nz.sigma2 > 0)
-             or (output_spread is not None and math.sqrt(nz.sigma2) <= EXACT_FIT * float(output_spread[i]))]
+    # (RowNoise.exact: the element fit's residual is at most EXACT_FIT of its output's spread.)
+    exact = [i for i, nz in noise.items() if nz.exact or not (np.isfinite(nz.sigma2) and nz.sigma2 > 0)]
     noisy = {i: nz for i, nz in noise.items() if i not in exact}
     windows = {(i, j): element_window(model, i, j, options.nb, options.element_window)
                for i in noisy for j in range(model.n_columns)}

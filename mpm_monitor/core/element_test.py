@@ -151,16 +151,21 @@ class RowNoise:
         Its residual degrees of freedom.
     a : ndarray, shape (na,)
         ``a_1 .. a_na`` of its ``A(q) = 1 + a_1 q^-1 + ... + a_na q^-na``.
+    exact : bool
+        The fit is exact (:attr:`~mpm_monitor.core.arx.SharedFit.exact`): its residual is rounding, not
+        noise (a log without noise).
     """
 
     sigma2: float
     dof: int
     a: np.ndarray
+    exact: bool = False
 
 
 def row_noise(fit) -> RowNoise:
-    """The :class:`RowNoise` of an element-test fit (``sigma2``, ``dof``, ``own_theta()``)."""
-    return RowNoise(sigma2=float(fit.sigma2), dof=int(fit.dof), a=np.array(fit.own_theta(), dtype=float))
+    """The :class:`RowNoise` of an element-test fit (``sigma2``, ``dof``, ``own_theta()``, ``exact``)."""
+    return RowNoise(sigma2=float(fit.sigma2), dof=int(fit.dof), a=np.array(fit.own_theta(), dtype=float),
+                    exact=bool(fit.exact))
 
 
 @dataclasses.dataclass

@@ -54,7 +54,7 @@ import numpy as np
 from .arx import BlockTest, segment_lag_matrix, segment_rows
 from .filters import lfilter
 from .model import PlantModel
-from .statistics import exact_fit_statistic, f_tail
+from .statistics import f_tail
 
 #: The tests combined for an element the model has: the lag window's and the whole response's.
 N_ELEMENT_TESTS = 2
@@ -292,7 +292,7 @@ def _stacked_tests(fit, xx, c_s, g_s, theta_s, x_m_y, idx: np.ndarray, grp: np.n
         r, df = int(rank[t]), int(dof[t])
         floor = df * fit.exact_sigma2
         if floor > 0 and syy[t] - explained[t] <= floor:    # fitted exactly but for rounding (SharedFit.exact)
-            f = float(exact_fit_statistic(0.0, syy[t], syy[t] - explained[t], floor))
+            f = float("inf") if syy[t] > floor else 0.0            # statistics.exact_fit_statistic's rule
             information = float("inf")
         elif rss[t] > 0 and np.isfinite(s2 := rss[t] / df) and s2 > 0:
             with np.errstate(over="ignore"):             # a residual many orders below the regressor: inf
