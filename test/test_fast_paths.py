@@ -148,6 +148,29 @@ def test_lagged_cross_products_equal_the_direct_product(groups, n):
     assert not empty.any() and not empty_sums.any()
 
 
+@pytest.mark.parametrize("channel,lag,n", [
+    ([0] * 7, range(0, 7), 40),                                   # a single channel
+    ([0, 1, 2], [0, 0, 0], 30),                                   # max_lag 0
+    ([2, 2, 0, 0, 0, 1, 2], [3, 1, 0, 4, 2, 1, 0], 50),          # lags out of order, a channel in two runs
+    ([0, 0, 3, 3, 1, 0], [1, 1, 5, 2, 0, 3], 2),                  # a column twice, channels out of order
+    ([4, 4, 1, 1, 2, 2], [6, 7, 0, 1, 0, 1], 60),                 # unused channels
+    ([0, 0, 1, 1, 2, 2, 3, 3, 3], [2, 3, 2, 3, 0, 1, 0, 1, 2], 25),  # runs of channels sharing lags
+])
+def test_lagged_cross_products_of_any_column_layout(channel, lag, n):
+    # The Gram matrix is filled block by block over runs of channels sharing a lag sequence, then
+    # mirrored below the lag diagonal: any order of the columns gives the direct product.
+    rng = np.random.default_rng(n)
+    channel, lag = np.array(channel), np.array(list(lag))
+    max_lag = int(lag.max())
+    x = rng.standard_normal((n + max_lag, channel.max() + 2)) + 3.0
+    phi = x[max_lag + np.arange(n)[:, None] - lag[None, :], channel[None, :]]
+    gram, sums = lagged_cross_products(x, channel, lag, max_lag)
+    ref = phi.T @ phi
+    np.testing.assert_allclose(gram, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
+    np.testing.assert_array_equal(gram, gram.T)
+    np.testing.assert_allclose(sums, phi.sum(axis=0), rtol=0, atol=1e-13 * np.abs(phi).sum(axis=0).max())
+
+
 # ------------------------------------------------------------------------------------ batched fits
 def _fits():
     rng = np.random.default_rng(1)

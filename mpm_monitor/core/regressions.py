@@ -67,9 +67,9 @@ from .model import PlantModel
 #: Largest condition number of the scaled regressors for which a regression is solved from its Gram
 #: matrix: the normal equations then lose at most about 1e6 * 1e-16 = 1e-10 (relative).
 DEFAULT_MAX_CONDITION = 1e3
-#: Rows of a Gram matrix gathered at once from the lag tables of :func:`lagged_cross_products` (bounds
-#: the index temporaries to a few MB at any size).
-GATHER_ROWS = 256
+#: Rows of a Gram matrix mirrored at once by :func:`lagged_cross_products` (its entries below the lag
+#: diagonal from those above; bounds the temporaries to a few MB at any size).
+MIRROR_ROWS = 64
 
 
 class IllConditioned(ArithmeticError):
@@ -256,6 +256,33 @@ class SampleBuffer:
 
 
 # ----------------------------------------------------------------------------------------- Gram
+def _column_runs(col_channel: np.ndarray, col_lag: np.ndarray) -> list:
+    """The columns of :func:`lagged_cross_products` as runs of consecutive channels sharing one lag sequence.
+
+    Parameters
+    ----------
+    col_channel, col_lag : ndarray of int, shape (p,)
+
+    Returns
+    -------
+    list of (int, int, int, ndarray of int)
+        ``(offset, first, n, lags)``: column ``offset + c * len(lags) + k`` holds channel ``first + c``
+        at lag ``lags[k]``, for ``c < n``.  Every column is in exactly one run (at worst a run of one
+        channel, of its consecutive columns).
+    """
+    starts = np.flatnonzero(np.diff(col_channel, prepend=-1))           # where the channel changes
+    runs = []
+    for a, b in zip(starts, np.append(starts[1:], col_channel.size)):
+        channel, lags = int(col_channel[a]), col_lag[a:b]
+        if runs:
+            offset, first, n, run_lags = runs[-1]
+            if channel == first + n and np.array_equal(lags, run_lags):
+                runs[-1] = (offset, first, n + 1, run_lags)
+                continue
+        runs.append((int(a), channel, 1, lags))
+    return runs
+
+
 def lagged_cross_products(values: np.ndarray, col_channel: np.ndarray, col_lag: np.ndarray, max_lag: int):
     """Cross products and sums of lagged columns, from ``max_lag + 1`` products of the unlagged signals.
 
@@ -271,6 +298,12 @@ def lagged_cross_products(values: np.ndarray, col_channel: np.ndarray, col_lag: 
     so the ``p x p`` Gram matrix costs ``O(n n_channels^2 max_lag)`` instead of ``O(n p^2)`` with
     ``p = n_channels n_lags``; every entry is still a plain sum over the rows plus at most ``2 max_lag``
     corrections, so its rounding error is that of the direct product.
+
+    The corrections are accumulated lag by lag (``m = 0, 1, ...``) for every ``delta`` at once, and each
+    ``n_channels x n_channels`` matrix of one ``(m, delta)`` is written straight into the Gram matrix,
+    one strided block per pair of column runs sharing a lag sequence (:func:`_column_runs`) with the
+    lags ``m`` and ``m + delta``; the entries whose row has the larger lag are then mirrored from
+    those above them.
 
     Parameters
     ----------
@@ -292,45 +325,59 @@ def lagged_cross_products(values: np.ndarray, col_channel: np.ndarray, col_lag: 
     n = x.shape[0] - L
     n_ch = x.shape[1]
     col_channel, col_lag = np.asarray(col_channel, dtype=int), np.asarray(col_lag, dtype=int)
+    p = col_lag.size
     if n <= 0:
-        return np.zeros((col_lag.size, col_lag.size)), np.zeros(col_lag.size)
+        return np.zeros((p, p)), np.zeros(p)
     lag_lo = np.full(n_ch, L + 1)
     lag_hi = np.full(n_ch, -1)
     np.minimum.at(lag_lo, col_channel, col_lag)
     np.maximum.at(lag_hi, col_channel, col_lag)
     used = lag_hi >= 0
-    n_delta = int(lag_hi.max() - lag_lo[used].min()) + 1 if used.any() else 1
-    n_m = int(lag_hi.max()) + 1 if used.any() else 1
+    lowest = int(lag_lo[used].min()) if used.any() else 0
+    n_delta = int(lag_hi.max()) - lowest + 1 if used.any() else 1
     cur = x[L:L + n]
-    # table[delta, m, a, b] = sum_{t=s}^{e-1} x_a(t - m) x_b(t - m - delta)
-    table = np.zeros((n_delta, n_m, n_ch, n_ch))
     head = x[L - 1::-1] if L else x[:0]                    # x(s - 1), x(s - 2), ..., x(s - L)
     tail = x[L + n - 1:n - 1:-1] if L else x[:0]            # x(e - 1), ..., x(e - L)
+    # base[delta][a, k] = sum_{t=s}^{e-1} x_a(t) x_b(t - delta) for b = b_need[delta][k], the channels
+    # that appear lagged by delta more than some a (others are never needed).
+    b_need, base = [], []
     for delta in range(n_delta):
-        # Channels b that appear lagged by delta more than some a (others are never needed).
-        b_need = np.flatnonzero(used & (lag_hi - lag_lo[used].min() >= delta))
-        contiguous = b_need.size and b_need[-1] - b_need[0] + 1 == b_need.size
-        b_cols = slice(b_need[0], b_need[-1] + 1) if contiguous else b_need      # a view, not a copy
-        base = cur.T @ x[L - delta:L - delta + n, b_cols]
-        m_max = min(n_m - 1, L - delta)
-        corr = np.zeros((n_m, n_ch, b_need.size))
-        if m_max > 0:
-            k = np.arange(m_max)
-            corr[1:m_max + 1] = np.cumsum(
-                head[k][:, :, None] * head[k + delta][:, None, b_need]
-                - tail[k][:, :, None] * tail[k + delta][:, None, b_need], axis=0)
-            corr[m_max + 1:] = corr[m_max]
-        table[delta][:, :, b_need] = base[None] + corr
-    # Gathered in slabs of rows: the four index arrays of a whole p x p gather would be four times the
-    # Gram's own size (at 100 outputs, 2,300 columns: 170 MB of temporaries beside a 42 MB result).
-    p = col_lag.size
+        need = np.flatnonzero(used & (lag_hi - lowest >= delta))
+        contiguous = need.size and need[-1] - need[0] + 1 == need.size
+        b_cols = slice(need[0], need[-1] + 1) if contiguous else need        # a view, not a copy
+        b_need.append(need)
+        base.append(cur.T @ x[L - delta:L - delta + n, b_cols])
+    # corr[delta]: the head and tail corrections of the smaller lag m, summed over k < min(m, L - delta)
+    # (n_corr[delta] terms so far).
+    corr = [np.zeros_like(g) for g in base]
+    n_corr = [0] * n_delta
+    runs = _column_runs(col_channel, col_lag)
+    at_lag = {}                                             # lag -> (run, position in its lags)
+    for r, (_, _, _, lags) in enumerate(runs):
+        for k, lag in enumerate(lags):
+            at_lag.setdefault(int(lag), []).append((r, k))
     gram = np.empty((p, p))
-    lj, cj = col_lag[None, :], col_channel[None, :]
-    for a in range(0, p, GATHER_ROWS):
-        li, ci = col_lag[a:a + GATHER_ROWS, None], col_channel[a:a + GATHER_ROWS, None]
-        upper = lj >= li
-        gram[a:a + GATHER_ROWS] = table[np.abs(lj - li), np.minimum(li, lj), np.where(upper, ci, cj),
-                                        np.where(upper, cj, ci)]
+    for m in sorted(at_lag):
+        for delta in range(n_delta):
+            if m + delta not in at_lag:
+                continue
+            need = b_need[delta]
+            while n_corr[delta] < min(m, L - delta):
+                k = n_corr[delta]
+                corr[delta] += (head[k][:, None] * head[k + delta][None, need]
+                                - tail[k][:, None] * tail[k + delta][None, need])
+                n_corr[delta] += 1
+            for r1, k1 in at_lag[m]:
+                off1, a1, n1, lags1 = runs[r1]
+                rows = slice(off1 + k1, off1 + n1 * lags1.size, lags1.size)
+                for r2, k2 in at_lag[m + delta]:
+                    off2, a2, n2, lags2 = runs[r2]
+                    q = int(np.searchsorted(need, a2))
+                    np.add(base[delta][a1:a1 + n1, q:q + n2], corr[delta][a1:a1 + n1, q:q + n2],
+                           out=gram[rows, off2 + k2:off2 + n2 * lags2.size:lags2.size])
+    for a in range(0, p, MIRROR_ROWS):
+        rows = slice(a, a + MIRROR_ROWS)
+        np.copyto(gram[rows], gram[:, rows].T, where=col_lag[rows, None] > col_lag[None, :])
     # Sums: sum_{t=s}^{e-1} x_c(t - l) = sum over [s, e) + the l rows before s - the last l rows.
     cum_head = np.vstack([np.zeros((1, n_ch)), np.cumsum(head, axis=0)])
     cum_tail = np.vstack([np.zeros((1, n_ch)), np.cumsum(tail, axis=0)])
