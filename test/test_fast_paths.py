@@ -33,7 +33,9 @@ from mpm_monitor.core.regressions import (
     GramBlockRegression,
     GramFit,
     IllConditioned,
+    LaggedGram,
     QrRegressions,
+    SampleBuffer,
     lagged_cross_products,
     regression_layout,
     window_regressions,
@@ -169,6 +171,26 @@ def test_lagged_cross_products_of_any_column_layout(channel, lag, n):
     np.testing.assert_allclose(gram, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
     np.testing.assert_array_equal(gram, gram.T)
     np.testing.assert_allclose(sums, phi.sum(axis=0), rtol=0, atol=1e-13 * np.abs(phi).sum(axis=0).max())
+
+
+def test_lagged_gram_symmetric_after_rebuild_and_update():
+    # A rebuilt matrix is its own full matrix; an update (of its lower triangle) drops that.
+    rng = np.random.default_rng(5)
+    buf = SampleBuffer(3, 400, 0)
+    buf.append(rng.standard_normal((400, 3)))
+    gram = LaggedGram([("x", 2, range(0, 4)), ("y", 1, range(1, 3))],
+                      lambda block: {"x": block[:, :2], "y": block[:, 2:]})
+
+    def direct(a, b):
+        phi = gram.rows(buf, a, b)
+        return phi.T @ phi
+
+    gram.rebuild(buf, 10, 300, np.zeros(3))
+    np.testing.assert_allclose(gram.symmetric(), direct(10, 300), rtol=0, atol=1e-12 * np.abs(direct(10, 300)).max())
+    for add, remove in (((300, 350), (10, 60)), ((350, 380), (60, 65))):       # as many rows as leave, or not
+        gram.update(buf, add, remove)
+        ref = direct(remove[1], add[1])
+        np.testing.assert_allclose(gram.symmetric(), ref, rtol=0, atol=1e-12 * np.abs(ref).max())
 
 
 # ------------------------------------------------------------------------------------ batched fits

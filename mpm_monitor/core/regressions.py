@@ -398,9 +398,9 @@ class LaggedGram:
 
     Notes
     -----
-    Row ``t`` holds ``x_c(t - l) - ref_c`` for every column; ``ref`` is set at each rebuild.  The
-    updates are symmetric rank-k updates (BLAS ``dsyrk``, or ``dsyr2k`` when as many rows leave as
-    enter) of the lower triangle, in place;
+    Row ``t`` holds ``x_c(t - l) - ref_c`` for every column; ``ref`` is set at each rebuild.  A rebuild
+    fills both triangles (:func:`lagged_cross_products`); the updates are symmetric rank-k updates (BLAS
+    ``dsyrk``, or ``dsyr2k`` when as many rows leave as enter) of the lower triangle, in place;
     :meth:`symmetric` returns the full matrix.
     """
 
@@ -458,7 +458,8 @@ class LaggedGram:
     def rebuild(self, buf: SampleBuffer, a: int, b: int, ref: np.ndarray) -> None:
         """Recompute from scratch over rows ``a .. b - 1`` with a new reference ``ref`` (n_channels,).
 
-        Uses the shift structure of the lagged columns (:func:`lagged_cross_products`).
+        Uses the shift structure of the lagged columns (:func:`lagged_cross_products`), which fills both
+        triangles: the matrix is its own :meth:`symmetric` until an update.
         """
         self.ref = np.asarray(ref, dtype=float).copy()
         if b > a:
@@ -468,7 +469,7 @@ class LaggedGram:
             self.gram = np.zeros((self.n_columns, self.n_columns))
             self.sums = np.zeros(self.n_columns)
         self.lo, self.hi = a, b
-        self._full = None
+        self._full = self.gram
 
     def update(self, buf: SampleBuffer, add: tuple, remove: tuple) -> None:
         """Add the rows ``add = (a, b)`` and remove the rows ``remove = (a, b)``."""
@@ -502,7 +503,8 @@ class LaggedGram:
             self.hi = add[1]
 
     def symmetric(self) -> np.ndarray:
-        """The full cross-product matrix (the kept lower triangle mirrored)."""
+        """The full cross-product matrix (the kept lower triangle mirrored; after a rebuild, the matrix
+        itself: do not write to it)."""
         if self._full is None:
             low = np.tril(self.gram)
             self._full = low + np.tril(low, -1).T
@@ -1144,5 +1146,5 @@ def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
         for a, b in regs.segments:
             gram.rebuild(buf, a + layout.start, b, means)
             total, sums, rows = total + gram.gram, sums + gram.sums, rows + gram.n_rows
-        gram.gram, gram.sums, gram.lo, gram.hi = total, sums, 0, rows
+        gram.gram, gram.sums, gram.lo, gram.hi, gram._full = total, sums, 0, rows, None
     return regs
