@@ -35,6 +35,7 @@ from mpm_monitor.core.regressions import (
     IllConditioned,
     LaggedGram,
     QrRegressions,
+    RegressionLayout,
     SampleBuffer,
     lagged_cross_products,
     regression_layout,
@@ -191,6 +192,41 @@ def test_lagged_gram_symmetric_after_rebuild_and_update():
         gram.update(buf, add, remove)
         ref = direct(remove[1], add[1])
         np.testing.assert_allclose(gram.symmetric(), ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+
+
+def test_row_fits_solved_together_equal_each_alone_and_qr():
+    # row_fits solves every row's products with the setpoint block at once (two triangular solves);
+    # a row fitted alone has the same numbers, GramFit's own products by R1^-1 the same to rounding,
+    # and the QR path the same fit.
+    rng = np.random.default_rng(7)
+    n, ny, na = 1500, 4, 2
+    r = np.repeat(rng.standard_normal((n // 10, ny)), 10, axis=0)
+    z = sps.lfilter([0.0, 0.3], [1.0, -0.6], r, axis=0) @ rng.standard_normal((ny, ny)) \
+        + 0.1 * rng.standard_normal((n, ny))
+    u, d = rng.standard_normal((n, 2)), rng.standard_normal((n, ny))
+    layout = RegressionLayout(max_delay=3, n_lag_r=6, n_lag_u=5, start=6, min_samples=0)
+    together = window_regressions(r, u, z, d, layout, na, 2)
+    reg = together.row_regression(list(range(ny)))
+    fits = together.row_fits(reg, range(ny))
+    alone = window_regressions(r, u, z, d, layout, na, 2)
+    reg_alone = alone.row_regression(list(range(ny)))
+    qr = QrRegressions(r, u, z, d, layout, na, 2)
+    reg_qr = qr.row_regression(list(range(ny)))
+    assert not together.fallbacks and not alone.fallbacks
+    for i, fit in enumerate(fits):
+        single = alone.row_fit(reg_alone, i)
+        own = GramFit(reg_alone, *alone._fit_arguments("row", reg_alone, i), alone.max_condition)
+        ref = qr.row_fit(reg_qr, i)
+        assert isinstance(fit, GramFit) and isinstance(single, GramFit)
+        for other in (single, own):
+            np.testing.assert_allclose(fit.theta, other.theta, rtol=1e-12, atol=1e-13 * np.abs(other.theta).max())
+            np.testing.assert_allclose(fit.common_variances(), other.common_variances(), rtol=1e-12)
+            assert fit.rss == pytest.approx(other.rss, rel=1e-12)
+            assert fit.test_all_common_zero().statistic == pytest.approx(other.test_all_common_zero().statistic,
+                                                                          rel=1e-12)
+        np.testing.assert_allclose(fit.theta, ref.theta, rtol=1e-7, atol=1e-9)
+        assert fit.rss == pytest.approx(ref.rss, rel=1e-8)
+        assert together.row_fit(reg, i) is fit
 
 
 # ------------------------------------------------------------------------------------ batched fits

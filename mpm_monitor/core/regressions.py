@@ -13,7 +13,7 @@ Both tests are single-output ARX regressions over the same window (:class:`Regre
 Every row's regression shares its large block (lagged setpoints or lagged inputs) with the other
 rows, so that block is factored once per window and each row adds its own columns by the
 Frisch-Waugh-Lovell partition of :class:`~mpm_monitor.core.arx.SharedBlockRegression`.  Two
-providers of these fits have the same methods (``row_regression``, ``row_fit``,
+providers of these fits have the same methods (``row_regression``, ``row_fit``, ``row_fits``,
 ``input_regression``, ``element_fit``, ``short_arx``):
 
 * :class:`QrRegressions` builds the lagged regressor matrices and factors them by QR: the
@@ -183,6 +183,10 @@ class QrRegressions:
         zi = self.z[:, i] - self.z[:, i].mean()
         own = -self._lags(zi, range(1, self.na + 1)) if self.na else None
         return reg.fit(segment_rows(zi, start, self.segments), own)
+
+    def row_fits(self, reg: SharedBlockRegression, outputs) -> list:
+        """:meth:`row_fit` of every output of ``outputs``."""
+        return [self.row_fit(reg, i) for i in outputs]
 
     def input_regression(self, testable: list) -> SharedBlockRegression:
         """Input lags ``1 .. n_lag_u`` of the inputs ``testable`` (Delta element test)."""
@@ -715,6 +719,31 @@ class GramBlockRegression(SharedBlockRegression):
             self._blocks[key] = _stacked_gram(self._rinv[idx])
         return self._blocks[key]
 
+    def projections(self, rhs: np.ndarray) -> tuple:
+        """``R1^-T rhs`` and ``R1^-1 R1^-T rhs``: the products of fits with the shared block (:class:`GramFit`),
+        for the right-hand sides of any number of fits at once.
+
+        Two triangular solves, each one pass over ``R1`` for all the columns (instead of three passes
+        over ``R1`` and ``R1^-1`` for each fit); every column's result is the one it has when solved
+        alone, whichever columns are solved with it (a product with ``R1^-1`` would round the last
+        columns of a block differently).
+
+        Parameters
+        ----------
+        rhs : ndarray, shape (p_common, k)
+            Cross products of the scaled common columns with ``k`` scaled columns
+            (:meth:`GramFit.common_rhs`, side by side).
+
+        Returns
+        -------
+        q, w : ndarray, shape (p_common, k)
+            ``R1^-T rhs`` and ``R1^-1 q``.
+        """
+        if not rhs.size:
+            return np.zeros(rhs.shape), np.zeros(rhs.shape)
+        q = sla.solve_triangular(self.R, rhs, trans="T", check_finite=False)
+        return q, sla.solve_triangular(self.R, q, check_finite=False)
+
     def fit(self, target, own):
         raise TypeError("a GramBlockRegression has no regressor matrix: fit targets with GramFit")
 
@@ -744,6 +773,10 @@ class GramFit(SharedFit):
     n : int
         Number of regression rows.
     max_condition : float
+    common : tuple of ndarray, optional
+        ``reg.projections(GramFit.common_rhs(reg, g_co, g_oo, g_cy))``, both of shape (p_common, p_own + 1),
+        when solved together with other fits' (:meth:`GramRegressions.row_fits`); default: solved here,
+        with products by ``R1^-1``.
 
     Raises
     ------
@@ -762,21 +795,33 @@ class GramFit(SharedFit):
     covariance of common coefficients is the regression's shared ``R1^-1 R1^-T`` plus ``W W'``.
     """
 
+    @staticmethod
+    def own_scale(g_oo: np.ndarray) -> np.ndarray:
+        """Norms of the own columns (1 for a zero column), shape (p_own,)."""
+        scale = np.sqrt(np.maximum(np.diag(g_oo), 0.0))
+        return np.where(scale > 0, scale, 1.0)
+
+    @staticmethod
+    def common_rhs(reg: GramBlockRegression, g_co: np.ndarray, g_oo: np.ndarray, g_cy: np.ndarray) -> np.ndarray:
+        """``[X_c' X_own | X_c' y]`` of the scaled columns, shape (p_common, p_own + 1): the right-hand sides
+        of the fit's solves with the shared block (:meth:`GramBlockRegression.projections`)."""
+        return np.column_stack([g_co / np.outer(reg.scale, GramFit.own_scale(g_oo)), g_cy / reg.scale])
+
     def __init__(self, reg: GramBlockRegression, g_co, g_oo, g_cy, g_oy, g_yy: float, sum_y: float, n: int,
-                 max_condition: float = DEFAULT_MAX_CONDITION):
+                 max_condition: float = DEFAULT_MAX_CONDITION, common: Optional[tuple] = None):
         self.reg = reg
         pc, po = g_co.shape
         p = pc + po
-        own_scale = np.sqrt(np.maximum(np.diag(g_oo), 0.0))
-        own_scale = np.where(own_scale > 0, own_scale, 1.0)
+        own_scale = self.own_scale(g_oo)
         g_oo_s = g_oo / np.outer(own_scale, own_scale)
         g_oy_s = g_oy / own_scale
-        if pc:
-            rhs = np.column_stack([g_co / np.outer(reg.scale, own_scale), g_cy / reg.scale])
-            sol = sla.solve_triangular(reg.R, rhs, trans="T", check_finite=False)
-            qo, q1y = sol[:, :po], sol[:, po]
+        if common is None:
+            q = sla.solve_triangular(reg.R, self.common_rhs(reg, g_co, g_oo, g_cy), trans="T",
+                                     check_finite=False) if pc else np.zeros((0, po + 1))
+            w = None
         else:
-            qo, q1y = np.zeros((0, po)), np.zeros(0)
+            q, w = common
+        qo, q1y = q[:, :po], q[:, po]                                 # Q1' X_own, Q1' y
         if po:
             R2 = _cholesky_upper(g_oo_s - qo.T @ qo)
             q2y = sla.solve_triangular(R2, g_oy_s - qo.T @ q1y, trans="T", check_finite=False)
@@ -788,11 +833,12 @@ class GramFit(SharedFit):
         if self.rank < p:
             raise IllConditioned("rank-deficient regression")
         r1i = reg.rinv()
+        w_o, w_y = (r1i @ qo, r1i @ q1y) if w is None else (w[:, :po], w[:, po])    # R1^-1 Q1'X_own, R1^-1 Q1'y
         self._qo, self._R2, self._r2i = qo, R2, r2i
-        self._w = -(r1i @ qo) @ r2i                                   # block (common, own) of R^-1
+        self._w = -w_o @ r2i                                          # block (common, own) of R^-1
         self._rinv = None
         theta_own = r2i @ q2y
-        theta_s = np.concatenate([r1i @ q1y + self._w @ q2y, theta_own])
+        theta_s = np.concatenate([w_y + self._w @ q2y, theta_own])
         own_R = float(np.sum(qo * qo)) + float(np.sum(R2 * R2))            # ||[Q1'X_own; R2]||_F^2
         own_rinv = float(np.sum(self._w * self._w)) + float(np.sum(r2i * r2i))    # ||[W; R2^-1]||_F^2
         frobenius_R = math.sqrt(reg.frobenius_R ** 2 + own_R)
@@ -1005,9 +1051,9 @@ class GramRegressions:
         reg.kind, reg.channels, reg.columns = kind, tuple(channels), cols
         return reg
 
-    def _fit(self, kind: str, reg, i: int):
-        if not isinstance(reg, GramBlockRegression):
-            return (self.qr.row_fit if kind == "row" else self.qr.element_fit)(reg, i)
+    def _fit_arguments(self, kind: str, reg: GramBlockRegression, i: int) -> tuple:
+        """The cross products of output ``i``'s fit in ``reg``: :class:`GramFit`'s arguments
+        ``(g_co, g_oo, g_cy, g_oy, g_yy, sum_y, n)``."""
         gram = self.row_gram if kind == "row" else self.input_gram
         means = self.row_means if kind == "row" else self.input_means
         own, own_signs, target = self._own_columns(gram, i)
@@ -1016,13 +1062,35 @@ class GramRegressions:
         g_cb, _ = gram.centred(reg.columns, np.ones(len(reg.columns)), cols_b, signs_b, means)
         g_bb, sums_b = gram.centred(cols_b, signs_b, cols_b, signs_b, means)
         po = len(own)
-        try:
-            return GramFit(reg, g_cb[:, :po], g_bb[:po, :po], g_cb[:, po], g_bb[:po, po], float(g_bb[po, po]),
-                           float(sums_b[po]), gram.n_rows, self.max_condition)
-        except IllConditioned:
-            self.fallbacks.append(f"{kind} fit of output {i}")
-            qr_reg = self._qr_regression(kind, reg.channels)
+        return (g_cb[:, :po], g_bb[:po, :po], g_cb[:, po], g_bb[:po, po], float(g_bb[po, po]), float(sums_b[po]),
+                gram.n_rows)
+
+    def _fits(self, kind: str, reg, outputs: list, together: bool = False) -> list:
+        """The fits of the outputs in ``reg``; an ill-conditioned one refitted by QR.
+
+        ``together``: their products with the shared block are solved at once
+        (:meth:`GramBlockRegression.projections`: a fit's numbers do not depend on the others solved
+        with it); else by each :class:`GramFit` (the element test's fits).
+        """
+        def qr_fit(qr_reg, i):
             return (self.qr.row_fit if kind == "row" else self.qr.element_fit)(qr_reg, i)
+        if not isinstance(reg, GramBlockRegression):
+            return [qr_fit(reg, i) for i in outputs]
+        args = [self._fit_arguments(kind, reg, i) for i in outputs]
+        common = [None] * len(outputs)
+        if together and outputs:
+            rhs = [GramFit.common_rhs(reg, g_co, g_oo, g_cy) for g_co, g_oo, g_cy, *_ in args]
+            q, w = reg.projections(np.hstack(rhs))
+            ends = np.cumsum([b.shape[1] for b in rhs])
+            common = [(q[:, e - b.shape[1]:e], w[:, e - b.shape[1]:e]) for e, b in zip(ends, rhs)]
+        fits = []
+        for i, arg, solved in zip(outputs, args, common):
+            try:
+                fits.append(GramFit(reg, *arg, self.max_condition, common=solved))
+            except IllConditioned:
+                self.fallbacks.append(f"{kind} fit of output {i}")
+                fits.append(qr_fit(self._qr_regression(kind, reg.channels), i))
+        return fits
 
     # -------------------------------------------------------------- the QrRegressions interface
     def row_regression(self, r_moving: list) -> SharedBlockRegression:
@@ -1039,19 +1107,28 @@ class GramRegressions:
 
     def row_fit(self, reg, i: int):
         """ARX of ``z_i`` on the setpoints and its own lags."""
-        key = (id(reg), int(i))
-        if key in self._row_fits:
-            return self._row_fits[key][1]
+        return self.row_fits(reg, [i])[0]
+
+    def row_fits(self, reg, outputs) -> list:
+        """:meth:`row_fit` of every output of ``outputs``; those not fitted yet are solved together
+        (two triangular solves with the setpoint block for all, :meth:`_fits`)."""
         prev = self._previous
-        if prev is not None and i in self._same_rows and key in prev._row_fits:
-            return prev._row_fits[key][1]
-        fit = self._fit("row", reg, i)
-        if isinstance(fit, GramFit):
-            # Kept for a detection of another model on this window (reuse_rows_of), without its
-            # assembled inverse factor (p x p; the row test does not read it, rinv assembles it again).
-            fit._rinv = None
-            self._row_fits[key] = (reg, fit)
-        return fit
+        fits = {}
+        for i in outputs:
+            key = (id(reg), int(i))
+            if key in self._row_fits:
+                fits[i] = self._row_fits[key][1]
+            elif prev is not None and i in self._same_rows and key in prev._row_fits:
+                fits[i] = prev._row_fits[key][1]
+        new = [i for i in dict.fromkeys(outputs) if i not in fits]
+        for i, fit in zip(new, self._fits("row", reg, new, together=True)):
+            if isinstance(fit, GramFit):
+                # Kept for a detection of another model on this window (reuse_rows_of), without its
+                # assembled inverse factor (p x p; the row test does not read it, rinv assembles it again).
+                fit._rinv = None
+                self._row_fits[(id(reg), int(i))] = (reg, fit)
+            fits[i] = fit
+        return [fits[i] for i in outputs]
 
     def input_regression(self, testable: list) -> SharedBlockRegression:
         """Input lags of the inputs ``testable`` (Delta element test)."""
@@ -1059,7 +1136,7 @@ class GramRegressions:
 
     def element_fit(self, reg, i: int):
         """ARX of ``d_i`` on the input lags and its own lags."""
-        return self._fit("input", reg, i)
+        return self._fits("input", reg, [i])[0]
 
     def short_arx(self, i: int, nk: np.ndarray) -> ArxFit:
         """The short ARX of ``d_i`` at the delays ``nk`` (the paper's tables)."""

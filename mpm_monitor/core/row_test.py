@@ -18,7 +18,7 @@ eq. 8).  Rows are decided with Holm's step-down procedure at family-wise level
 ``alpha / N_FAMILIES`` (:mod:`mpm_monitor.core.statistics`).
 
 The regressions come from a provider with the methods of
-:class:`~mpm_monitor.core.regressions.QrRegressions` (``row_regression``, ``row_fit``); on data with
+:class:`~mpm_monitor.core.regressions.QrRegressions` (``row_regression``, ``row_fits``); on data with
 gaps its ``segments`` say which rows are regression rows (docs/interfaces.md, "Gaps").
 """
 
@@ -147,8 +147,7 @@ def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressio
     S = np.zeros((omega.size, ny, ny), dtype=complex)
     row_raw_p = np.full(ny, np.nan)
     row_stat, row_df, row_fit = np.full(ny, np.nan), [(0, 0)] * ny, np.zeros(ny)
-    for i in range(ny):
-        fit = regressions.row_fit(reg_r, i)
+    for i, fit in enumerate(regressions.row_fits(reg_r, range(ny))):
         if output_spread is not None:
             fit.set_output_spread(output_spread[i])
         test = fit.test_all_common_zero()
