@@ -317,11 +317,13 @@ class ResponseMoments:
         ``k = rec_lags[e] .. 0`` follow, downward, from its difference equation at ``t - k`` (as
         :meth:`_fill_lags` at ``t``; ``x_raw = x + mu_s`` in segment ``s``, ``D = sum_q den_q``)::
 
-            V' x(t - k) = sum_m num_m V' u_j(t - k - delay - m) - D sum_s mu_s V_s' 1 - sum_{q >= 1} den_q V' x(t - k - q)
+            V' x(t - k) = sum_m num_m V' u_j(t - k - delay - m) - D sum_s mu_s V_s' 1
+                          - sum_{q >= 1} den_q V' x(t - k - q)
 
         with ``V' u_j(t - s)`` from the Gram (:attr:`gram`, ``G(0, s)``) and from ``P`` (the own lags), and
         ``V_s' 1`` the column sums over segment ``s``'s rows.  An element of order ``r`` so takes ``r``
-        products instead of ``na + 1``.  The recursion runs towards later ``t - k``, as :meth:`_fill_lags`'s:
+        products instead of ``na + 1`` (more where its numerator's lags would leave the Gram,
+        :meth:`_recursive_lags`).  The recursion runs towards later ``t - k``, as :meth:`_fill_lags`'s:
         stable for a stable or integrating element.
 
         Parameters
@@ -349,7 +351,8 @@ class ResponseMoments:
                 V[nu:, k, by_product] = O.T @ x
         rec = np.flatnonzero(rec_lags >= 0)
         if rec.size:
-            cross = np.concatenate([self.gram[:, 0], np.moveaxis(P, 2, 0)])           # V' u_j(t - s): (nu + na, nu, L + 1)
+            # V' u_j(t - s), shape (nu + na, nu, L + 1)
+            cross = np.concatenate([self.gram[:, 0], np.moveaxis(P, 2, 0)])
             sums = np.hstack([self.u_sums, self._segment_sums(O)])                   # (S, nu + na)
             F = self._forcing(cross, sums, [found[b] for b in rec], mu[:, rec], rec_lags[rec])
             den = self._denominators([found[b] for b in rec])
@@ -419,7 +422,7 @@ class ResponseMoments:
         return min(self.na - element.order, min(self.n_lag, self.start) - last)
 
     def _denominators(self, found: list) -> np.ndarray:
-        """``den_1 .. den_na`` of every element of ``found`` (order at most ``na``), 0 beyond its order: shape (na, q)."""
+        """``den_1 .. den_na`` of every element of ``found`` (order at most ``na``; 0 beyond it), shape (na, q)."""
         den = np.zeros((self.na, len(found)))
         for q, (_, element, _) in enumerate(found):
             den[:element.order, q] = element.den[1:]
@@ -524,7 +527,8 @@ class ResponseMoments:
         den = self._denominators(found)
         if found:
             S = self.z_sums.shape[0]
-            F = self._forcing(self.gram[:, 1:], self.z_sums.reshape(S, nu, L), found, mu[:, at], [0] * len(found))[:, :, 0]
+            F = self._forcing(self.gram[:, 1:], self.z_sums.reshape(S, nu, L), found, mu[:, at],
+                              [0] * len(found))[:, :, 0]                                   # (nu, L, q)
         for lag in range(1, L + 1):
             M[:, lag, 1:] = M[:, lag - 1, :-1] + head[:, lag - 1] - tail[:, lag - 1]
             if found:
