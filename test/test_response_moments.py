@@ -211,3 +211,44 @@ def test_the_own_lags_moments_of_every_row_equal_the_product_of_the_lag_matrices
         rm = moments.row(i)
         assert rm.zo.shape == (4 * N_LAG, na)
         np.testing.assert_allclose(rm.zo, Z.T @ O, rtol=1e-10, atol=1e-9 * np.abs(Z.T @ O).max())
+
+
+def _lag_zero_products(moments, i, rm):
+    """``u_c(t)' [x, X]`` and ``O' [x, X]`` of row ``i``'s elements by products of each segment's lag matrices."""
+    u_c, start, na = moments.u_c, moments.start, moments.na
+    segs = moments.segs
+    U0 = np.vstack([u_c[a + start:b] for a, b in segs])
+    O = np.vstack([lag_matrix(moments.d[a:b, i] - moments.d[a:b, i].mean(), range(1, na + 1), start) for a, b in segs])
+    uw, ow = [], []
+    for b, (j, element, _) in enumerate(rm.found):
+        XW = np.vstack([lag_matrix(element.respond(u_c[a0:b0, j]) - rm.mu[s, b], range(0, na + 1), start)
+                        for s, (a0, b0) in enumerate(segs)])
+        uw.append(U0.T @ XW)
+        ow.append(O.T @ XW)
+    return np.hstack(uw), np.hstack(ow)
+
+
+@pytest.mark.parametrize("na, segments", [(3, None), (3, [(0, 600), (600, 620), (620, 1800)]), (1, None)])
+def test_the_lag_zero_moments_by_the_difference_equation_equal_the_products(na, segments):
+    """``u_c(t)' x(t - k)`` and ``O' x(t - k)`` from the elements' difference equations (``_lag_zero``):
+    every lag of a finite impulse response, all but the last ``order`` lags of the others, none of an
+    element whose numerator reaches beyond the lags; against the products of the lag matrices."""
+    model, u, d = _window(7)
+    rng = np.random.default_rng(8)
+    k = np.arange(1, 5)
+    fir = PlantModel.from_step_response(1.0, model.inputs, ("y1",), np.stack([np.stack([
+        1.2 * (1 - np.exp(-np.maximum(k - 2, 0) / 2.0)), 0.3 * (1 - np.exp(-k / 3.0)), np.zeros(4),
+        -0.5 * (1 - np.exp(-np.maximum(k - 1, 0) / 1.5))])]))
+    slow = PlantModel(sample_time=1.0, inputs=model.inputs, outputs=("y1",), gain=np.array([[1.0, 0.5, 0.0, 2.0]]),
+                      time_constant=np.array([[8.0, 3.0, 0.0, 4.0]]), delay=np.array([[2.0, 6.0, 0.0, 14.0]]))
+    d2 = d + 0.1 * rng.standard_normal(d.shape)
+    seen = set()
+    for m in (model, fir, slow):
+        moments = ResponseMoments(m, u, d2, [0, 1, 2, 3], N_LAG, N_LAG, na, segments)
+        rm = moments.row(0)
+        rec = [moments._recursive_lags(e) for _, e, _ in rm.found]
+        seen.update("all" if r == na else "none" if r < 0 else "some" for r in rec)
+        uw, ow = _lag_zero_products(moments, 0, rm)
+        for name, got, want in (("uw", rm.uw, uw), ("ow", rm.ow, ow)):
+            np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12 * np.abs(want).max(), err_msg=name)
+    assert seen == {"all", "some", "none"}

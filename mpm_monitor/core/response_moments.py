@@ -15,7 +15,9 @@ products are most of the cost of an analysis at industrial size.  :class:`Respon
 once per row: ``Z' x`` from the element's difference equation and the Gram of the input lags, lag
 after lag (:meth:`ResponseMoments._fill_lags`; by a product over the rows for an element of more
 poles than ``na`` or more numerator taps than the lags), the lags of ``x`` by sums along the
-diagonals of lag pairs (the shift structure of lagged columns), and it keeps the element responses
+diagonals of lag pairs (the shift structure of lagged columns) from their products with the columns at
+lag 0, which follow from the same difference equation but for the element's last ``order`` lags
+(:meth:`ResponseMoments._lag_zero`), and it keeps the element responses
 (:attr:`RowMoments.R`) only while the row's whole-response test uses them.  The
 whole-response test's ``Z' A_i(q) x`` then follows from these moments exactly
 (:func:`filtered_products`).
@@ -177,15 +179,10 @@ class ResponseMoments:
         self.u_rows = segment_rows(u_c, start, self.segments)
         self.u_head = np.stack([u_c[a + start - np.arange(1, L + 1)].T for a, _ in self.segs])    # (S, nu, L)
         self.u_tail = np.stack([u_c[b - np.arange(1, L + 1)].T for _, b in self.segs])            # (S, nu, L)
-        # Column sums of Z over each segment's rows (the whole-response test's centring).
-        at, sums, rows = 0, [], []
-        for a, b in self.segs:
-            k = b - a - start
-            sums.append(self.Z[at:at + k].sum(axis=0))
-            rows.append(k)
-            at += k
-        self.z_sums = np.array(sums)                    # (S, p)
-        self.seg_rows = np.array(rows, dtype=float)     # (S,)
+        self.seg_rows = np.array([b - a - start for a, b in self.segs], dtype=float)     # (S,)
+        # Column sums of Z (the whole-response test's centring) and of u(t) over each segment's rows.
+        self.z_sums = self._segment_sums(self.Z)                 # (S, p)
+        self.u_sums = self._segment_sums(self.u_rows)            # (S, nu)
         self._rows = {}
         self._gram = None
         self._own = None
@@ -233,6 +230,11 @@ class ResponseMoments:
             out[j] = x
         return out
 
+    def _segment_sums(self, A: np.ndarray) -> np.ndarray:
+        """Column sums of ``A`` (shape (n_rows, q), on the regression rows) over each segment's rows, shape (S, q)."""
+        rows = self.seg_rows.astype(int)
+        return np.array([A[e - k:e].sum(axis=0) for e, k in zip(np.cumsum(rows), rows)])
+
     def _lagged(self, R: np.ndarray, k: int) -> np.ndarray:
         """``R(t - k)`` on the regression rows, shape (n_rows, m) (a view without gaps)."""
         if len(self.segs) == 1:
@@ -272,22 +274,25 @@ class ResponseMoments:
                 - np.einsum("sbl,sb->bl", x_tail, x_tail[:, :, k - 1])
         upper = np.triu_indices(na + 1, 1)
         ww[:, upper[1], upper[0]] = ww[:, upper[0], upper[1]]          # exactly symmetric
-        # u(t)' and O' with every lag of every element (element by element, lags side by side).
+        # u(t)' and O' with every lag of every element (lag 0 of the columns and the own lags, _lag_zero).
         nu = u_c.shape[1]
-        uw = np.stack([self.u_rows.T @ x for x in lags], axis=2).reshape(nu, m * (na + 1))
-        ow = np.stack([O.T @ x for x in lags], axis=2).reshape(na, m * (na + 1))
+        rec_lags = np.array([self._recursive_lags(element) for _, element, _ in found], dtype=int)
+        P = self._own_lags(i, O)
+        V = self._lag_zero(O, P, lags, found, rec_lags, mu)                            # (nu + na, na + 1, m)
+        uw = np.moveaxis(V[:nu], 1, 2).reshape(nu, m * (na + 1))
+        ow = np.moveaxis(V[nu:], 1, 2).reshape(na, m * (na + 1))
         xsum = np.stack([x.sum(axis=0) for x in lags], axis=1)                          # (m, na + 1)
         # The elements whose Z' x follows from their difference equation (see _fill_lags); the others'
         # is taken by a product over the rows.
-        rec = [b for b, (_, element, _) in enumerate(found) if self._recursive(element)]
-        direct = sorted(set(range(m)) - set(rec))
+        rec = [b for b in range(m) if rec_lags[b] >= 0]
+        direct = [b for b in range(m) if rec_lags[b] < 0]
         u_head, u_tail = self.u_head, self.u_tail                           # (S, nu, L): u(start - l), u(N - l)
         # M[c, l, k, e] = sum over the rows of u_c(t - l) x_e(t - k) (l = 0 .. L, k = 0 .. na).  Z' X is a sum
         # along diagonals of lag pairs: M(l, k) = M(l - 1, k - 1) + u(start - l) x(start - k) - u(N - l) x(N - k)
         # (summed over the segments), so only the lags k = 0 (with every input lag) and l = 0 (with every
-        # element lag) take a product over the rows, or none for lag k = 0 of an element by the recursion.
+        # element lag, _lag_zero) are needed, each by a product over the rows or by the recursions.
         M = np.empty((nu, L + 1, na + 1, m))
-        M[:, 0] = np.moveaxis(uw.reshape(nu, m, na + 1), 1, 2)
+        M[:, 0] = V[:nu]
         if direct:
             M[:, 1:, 0, direct] = (self.Z.T @ lags[0][:, direct]).reshape(nu, L, len(direct))
         head, tail = np.empty((nu, L, na, m)), np.empty((nu, L, na, m))
@@ -299,12 +304,67 @@ class ResponseMoments:
                 head[:, :, k - 1] = np.einsum("snl,sm->nlm", u_head, x_head[:, :, k - 1])
                 tail[:, :, k - 1] = np.einsum("snl,sm->nlm", u_tail, x_tail[:, :, k - 1])
         self._fill_lags(M, head, tail, [found[b] for b in rec], rec, mu)
-        return RowMoments(i=i, found=found, moves=moves, zx=M[:, 1:], uw=uw, zo=self._z_own(i, O), oo=O.T @ O, ow=ow, ww=ww,
-                          xsum=xsum, mu=mu, R=R if keep_samples else None)
+        return RowMoments(i=i, found=found, moves=moves, zx=M[:, 1:], uw=uw, zo=P[:, 1:].reshape(nu * L, na),
+                          oo=O.T @ O, ow=ow, ww=ww, xsum=xsum, mu=mu, R=R if keep_samples else None)
 
-    def _z_own(self, i: int, O: np.ndarray) -> np.ndarray:
-        """``Z' O`` of row ``i`` (shape (n_columns L, na)), ``O`` its own lags ``d_i(t - 1) .. d_i(t - na)`` on the
-        rows (``d_i`` centred over each segment's samples).
+    def _lag_zero(self, O: np.ndarray, P: np.ndarray, lags: list, found: list, rec_lags: np.ndarray,
+                  mu: np.ndarray) -> np.ndarray:
+        """``V' x(t - k)`` of every element, ``V = [u_c(t), O]`` on the rows (the columns at lag 0, then the
+        row's own lags ``d_i(t - 1) .. d_i(t - na)``), ``k = 0 .. na``: shape (n_columns + na, na + 1, m)
+        (column units, then output units, times output units).
+
+        Lag ``k`` of element ``e`` takes a product over the rows where ``k > rec_lags[e]``; the lags
+        ``k = rec_lags[e] .. 0`` follow, downward, from its difference equation at ``t - k`` (as
+        :meth:`_fill_lags` at ``t``; ``x_raw = x + mu_s`` in segment ``s``, ``D = sum_q den_q``)::
+
+            V' x(t - k) = sum_m num_m V' u_j(t - k - delay - m) - D sum_s mu_s V_s' 1
+                          - sum_{q >= 1} den_q V' x(t - k - q)
+
+        with ``V' u_j(t - s)`` from the Gram (:attr:`gram`, ``G(0, s)``) and from ``P`` (the own lags), and
+        ``V_s' 1`` the column sums over segment ``s``'s rows.  An element of order ``r`` so takes ``r``
+        products instead of ``na + 1`` (more where its numerator's lags would leave the Gram,
+        :meth:`_recursive_lags`).  The recursion runs towards later ``t - k``, as :meth:`_fill_lags`'s:
+        stable for a stable or integrating element.
+
+        Parameters
+        ----------
+        O : ndarray, shape (n_rows, na)
+            The row's own lags on the rows (output units).
+        P : ndarray, shape (n_columns, L + 1, na)
+            :meth:`_own_lags` of the row.
+        lags : list of ndarray, shape (n_rows, m)
+            ``x(t - k)`` on the rows, ``k = 0 .. na``.
+        found : list of (int, DiscreteElement, float)
+            :attr:`RowMoments.found`.
+        rec_lags : ndarray of int, shape (m,)
+            :meth:`_recursive_lags` of every element.
+        mu : ndarray, shape (S, m)
+            Every element's mean response over each segment (output units).
+        """
+        nu, na, m = self.u_c.shape[1], self.na, len(found)
+        V = np.empty((nu + na, na + 1, m))
+        for k in range(na + 1):
+            by_product = np.flatnonzero(rec_lags < k)
+            if by_product.size:
+                x = lags[k] if by_product.size == m else lags[k][:, by_product]
+                V[:nu, k, by_product] = self.u_rows.T @ x
+                V[nu:, k, by_product] = O.T @ x
+        rec = np.flatnonzero(rec_lags >= 0)
+        if rec.size:
+            # V' u_j(t - s), shape (nu + na, nu, L + 1)
+            cross = np.concatenate([self.gram[:, 0], np.moveaxis(P, 2, 0)])
+            sums = np.hstack([self.u_sums, self._segment_sums(O)])                   # (S, nu + na)
+            F = self._forcing(cross, sums, [found[b] for b in rec], mu[:, rec], rec_lags[rec])
+            den = self._denominators([found[b] for b in rec])
+            for k in range(int(rec_lags[rec].max()), -1, -1):
+                at = np.flatnonzero(rec_lags[rec] >= k)
+                V[:, k, rec[at]] = F[:, k, at] - np.einsum("vke,ke->ve", V[:, k + 1:, rec[at]], den[:na - k, at])
+        return V
+
+    def _own_lags(self, i: int, O: np.ndarray) -> np.ndarray:
+        """``P[c, l, k - 1] = sum_t u_c(t - l) d_i(t - k)`` of row ``i`` over the rows, ``l = 0 .. L``, ``k = 1 .. na``
+        (shape (n_columns, L + 1, na); ``P[:, 1:]`` is ``Z' O``), ``O`` its own lags ``d_i(t - 1) .. d_i(t - na)``
+        on the rows (``d_i`` centred over each segment's samples).
 
         Along the diagonals of lag pairs, as ``M`` in :meth:`_compute`: with ``P(l, k) = sum_t u_c(t - l)
         d_i(t - k)``, ``P(l, k) = P(l - 1, k - 1) + u(start - l) d(start - k) - u(N - l) d(N - k)`` (summed
@@ -313,16 +373,16 @@ class ResponseMoments:
         """
         na, L, nu = self.na, self.n_lag, self.u_c.shape[1]
         if na == 0:
-            return np.zeros((nu * L, 0))
+            return np.zeros((nu, L + 1, 0))
         zd, rows, d_head, d_tail = self._own_moments()
         P = np.empty((nu, L + 1, na + 1))
         P[:, 1:, 0] = zd[:, i].reshape(nu, L)
-        P[:, 0, :na] = self.u_rows.T @ np.column_stack([rows[:, i], O[:, :na - 1]])
+        P[:, 0] = self.u_rows.T @ np.column_stack([rows[:, i], O])
         u_head, u_tail = self.u_head, self.u_tail                           # (S, nu, L)
         for k in range(1, na + 1):
             P[:, 1:, k] = P[:, :-1, k - 1] + np.einsum("snl,s->nl", u_head, d_head[:, k - 1, i]) \
                 - np.einsum("snl,s->nl", u_tail, d_tail[:, k - 1, i])
-        return P[:, 1:, 1:].reshape(nu * L, na)
+        return P[:, :, 1:]
 
     def _own_moments(self) -> tuple:
         """``(Z' D, D, d_head, d_tail)`` of the prediction errors of every output, taken once per window:
@@ -347,6 +407,67 @@ class ResponseMoments:
             return False
         taps = np.flatnonzero(element.num != 0)
         return taps.size == 0 or element.delay + int(taps[-1]) <= min(self.n_lag, self.start)
+
+    def _recursive_lags(self, element) -> int:
+        """The last lag ``k`` of ``element``'s response from which :meth:`_lag_zero` takes ``V' x(t - k)`` by its
+        difference equation instead of a product over the rows (-1: none, not :meth:`_recursive`).
+
+        The equation at ``t - k`` needs the numerator's input lags ``k + delay + m`` among the Gram's and
+        inside each segment (``<= min(L, start)``), and ``r`` (the order) lags above ``k`` (``<= na``).
+        """
+        if not self._recursive(element):
+            return -1
+        taps = np.flatnonzero(element.num != 0)
+        last = element.delay + int(taps[-1]) if taps.size else 0
+        return min(self.na - element.order, min(self.n_lag, self.start) - last)
+
+    def _denominators(self, found: list) -> np.ndarray:
+        """``den_1 .. den_na`` of every element of ``found`` (order at most ``na``; 0 beyond it), shape (na, q)."""
+        den = np.zeros((self.na, len(found)))
+        for q, (_, element, _) in enumerate(found):
+            den[:element.order, q] = element.den[1:]
+        return den
+
+    @staticmethod
+    def _forcing(cross: np.ndarray, sums: np.ndarray, found: list, mu: np.ndarray, last) -> np.ndarray:
+        """The right side of the elements' difference equations ``num(q) u_j(t - delay) - D mu_s`` at ``t - k``,
+        times the columns of a ``V`` and summed over the rows (:meth:`_fill_lags`, :meth:`_lag_zero`).
+
+        Parameters
+        ----------
+        cross : ndarray, shape (rows..., n_columns, L + 1)
+            ``sum_t V(t) u_j(t - s)``, ``s = 0 .. L``.
+        sums : ndarray, shape (S, rows...)
+            ``V``'s column sums over each segment's rows.
+        found : list of (int, DiscreteElement, float)
+            The elements (``(j, element, reference_gain)``).
+        mu : ndarray, shape (S, q)
+            Their mean responses over each segment (output units).
+        last : sequence of int
+            Per element, its last lag ``k`` (every input lag ``k + delay + m`` at most ``L``).
+
+        Returns
+        -------
+        ndarray, shape (rows..., max(last) + 1, q)
+            ``sum_m num_m cross[..., j, k + delay + m] - D sum_s mu_s sums_s`` of element ``e`` at
+            ``k = 0 .. last[e]`` (``D = sum den``); 0 above.
+        """
+        last = np.asarray(last, dtype=int)
+        taps = [np.flatnonzero(element.num != 0) for _, element, _ in found]
+        # Every element's taps side by side (padded by taps of coefficient 0), at lags k = 0 .. max(last).
+        shift = np.zeros((len(found), max((t.size for t in taps), default=0)), dtype=int)
+        coef = np.zeros(shift.shape)
+        for q, ((_, element, _), t) in enumerate(zip(found, taps)):
+            shift[q, :t.size] = element.delay + t
+            coef[q, :t.size] = element.num[t]
+        k = np.arange(last.max(initial=0) + 1)[:, None, None]
+        at = np.minimum(k + shift, cross.shape[-1] - 1)                 # (K + 1, q, taps); above last[e]: any
+        columns = np.array([j for j, _, _ in found], dtype=int)[:, None]
+        dc = np.array([element.den.sum() for _, element, _ in found])
+        F = np.einsum("...kqt,qt->...kq", cross[..., columns, at], coef) \
+            - (np.tensordot(sums, mu, axes=(0, 0)) * dc)[..., None, :]
+        F[..., k[:, :, 0] > last] = 0.0
+        return F
 
     @property
     def gram(self) -> np.ndarray:
@@ -403,19 +524,11 @@ class ResponseMoments:
             Every element's mean response over each segment (output units).
         """
         na, L, nu = self.na, self.n_lag, self.u_c.shape[1]
-        den = np.zeros((na, len(found)))
-        dc = np.empty(len(found))
-        F = np.zeros((nu, L, len(found)))
+        den = self._denominators(found)
         if found:
-            G = self.gram
-            for q, (j, element, _) in enumerate(found):
-                den[:element.order, q] = element.den[1:]
-                dc[q] = element.den.sum()
-                taps = np.flatnonzero(element.num != 0)
-                for mm, c in zip(element.delay + taps, element.num[taps]):
-                    F[:, :, q] += c * G[:, 1:, j, int(mm)]
             S = self.z_sums.shape[0]
-            F -= np.einsum("scl,sq->clq", self.z_sums.reshape(S, nu, L), mu[:, at]) * dc
+            F = self._forcing(self.gram[:, 1:], self.z_sums.reshape(S, nu, L), found, mu[:, at],
+                              [0] * len(found))[:, :, 0]                                   # (nu, L, q)
         for lag in range(1, L + 1):
             M[:, lag, 1:] = M[:, lag - 1, :-1] + head[:, lag - 1] - tail[:, lag - 1]
             if found:
