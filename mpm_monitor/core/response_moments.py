@@ -523,7 +523,7 @@ class ResponseMoments:
         mu : ndarray, shape (S, m)
             Every element's mean response over each segment (output units).
         """
-        na, L, nu = self.na, self.n_lag, self.u_c.shape[1]
+        L, nu = self.n_lag, self.u_c.shape[1]
         den = self._denominators(found)
         if found:
             S = self.z_sums.shape[0]
