@@ -146,6 +146,7 @@ def test_state_space_shares_one_register_per_column_and_splits_its_columns():
     n_el = sum(max(disc.denominators[i][j].size - 1, 1) for i in range(2) for j in range(3) if disc.active[i, j])
     assert n_el == 9
     assert ss.n_states == n_el + int(disc.register_length.sum())
+    assert disc.register_length is disc.register_length and not disc.register_length.flags.writeable
     assert ss.B.shape == (ss.n_states, 3) and ss.B_inputs.shape == (ss.n_states, 2)
     assert ss.B_disturbances.shape == (ss.n_states, 1) and ss.D_disturbances.shape == (2, 1)
     np.testing.assert_array_equal(np.hstack([ss.B_inputs, ss.B_disturbances]), ss.B)

@@ -42,6 +42,7 @@ is a single state with ``A = a``, ``B = K (1 - a)`` (and a static element with d
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Optional, Sequence
 
 import numpy as np
@@ -172,14 +173,15 @@ class DiscreteElements:
             out[i, j] = max(self.numerators[i][j].size, self.denominators[i][j].size) - 1
         return out
 
-    @property
+    @functools.cached_property
     def register_length(self) -> np.ndarray:
-        """``L_j``: past values of each column the state space keeps, int (n_columns,)."""
+        """``L_j``: past values of each column the state space keeps, int (n_columns,) (read-only; computed once)."""
         out = np.zeros(self.n_columns, dtype=int)
         for i, j in zip(*np.nonzero(self.active)):
             n_s = max(self.denominators[i][j].size - 1, 1)
             p = self.numerators[i][j].size - 1
             out[j] = max(out[j], int(self.input_lag[i, j]) + max(p - n_s, 0))
+        out.setflags(write=False)
         return out
 
     @property
