@@ -64,6 +64,35 @@ def test_the_onset_is_kept_with_the_model_and_recomputed_for_a_changed_element()
     assert m.delay_samples is m.delay_samples and not m.delay_samples.flags.writeable
 
 
+def _simulated_onset(model, i, j):
+    h = np.abs(model.discrete_element(i, j).impulse_response(element_test.ONSET_HORIZON))
+    return int(np.flatnonzero(h >= element_test.ONSET_FRACTION * h.max())[0]) if h.max() > 0 else 0
+
+
+@pytest.mark.parametrize("integrating", [False, True])
+def test_the_first_order_onset_without_simulation_is_the_simulated_one(integrating):
+    """First-order elements take the closed form ``delay + 1``: the value of the simulation, up to the
+    horizon (an element delayed beyond it has onset 0) and for a tiny gain, a fast or slow pole."""
+    rng = np.random.default_rng(3)
+    n = 6
+    gain = rng.choice([-1.0, 1.0], (n, n)) * 10.0 ** rng.uniform(-300, 3, (n, n))
+    tau = 10.0 ** rng.uniform(-2, 4, (n, n))
+    delay = rng.integers(0, 40, (n, n)).astype(float)
+    delay[0, :3] = [element_test.ONSET_HORIZON - 2, element_test.ONSET_HORIZON - 1, element_test.ONSET_HORIZON]
+    if integrating:
+        tau[:, ::2] = 0.0                                   # pure integrators, first order too
+    gain[2, 0] = 0.0
+    m = PlantModel(sample_time=1.0, inputs=tuple(f"u{j}" for j in range(n)), outputs=tuple(f"y{i}" for i in range(n)),
+                   gain=gain, time_constant=tau, delay=delay, integrating=np.full((n, n), integrating))
+    first_order = 0
+    for i in range(n):
+        for j in range(n):
+            el = m.discrete_element(i, j)
+            first_order += el.num.size == 2 and el.den.size == 2
+            assert element_onset(m, i, j) == _simulated_onset(m, i, j), (i, j)
+    assert first_order >= n * n // 2 - 1
+
+
 @pytest.fixture(scope="module")
 def slow_mismatch_run():
     """Run 102 of bench.structures_mc seed 0: a time-constant error of a slow element (y1, u2) made

@@ -386,12 +386,23 @@ def element_onset(model: PlantModel, i: int, j: int) -> int:
     the detectability ask for it (at 100 outputs x 40 inputs, 8,000 impulse responses of 1,000 samples
     per analysis otherwise).  A copy of the model with the element changed
     (:meth:`~mpm_monitor.core.model.PlantModel.with_element`) computes it again.
+
+    A first-order element ``b z^-(delay+1) / (1 - a z^-1)`` with ``|a| <= 1`` needs no simulation: its
+    impulse response is 0 up to lag ``delay``, ``b`` at ``delay + 1`` and then ``a`` times the previous
+    value, rounded, which is never larger in magnitude; so its onset is ``delay + 1`` (the value the
+    simulation gives, when ``delay + 1`` is inside :data:`ONSET_HORIZON` and the threshold is not 0).
     """
     key = ("onset", i, j)
     cache = model._elements
     if key not in cache:
-        h = np.abs(model.discrete_element(i, j).impulse_response(ONSET_HORIZON))
-        cache[key] = int(np.flatnonzero(h >= ONSET_FRACTION * h.max())[0]) if h.max() > 0 else 0
+        el = model.discrete_element(i, j)
+        num, den = el.num, el.den
+        if num.size == 2 and num[0] == 0 and den.size == 2 and abs(den[1]) <= 1 \
+                and el.delay + 1 < ONSET_HORIZON and ONSET_FRACTION * abs(num[1]) > 0:
+            cache[key] = el.delay + 1
+        else:
+            h = np.abs(el.impulse_response(ONSET_HORIZON))
+            cache[key] = int(np.flatnonzero(h >= ONSET_FRACTION * h.max())[0]) if h.max() > 0 else 0
     return cache[key]
 
 
