@@ -137,3 +137,46 @@ def test_element_step_matches_fopdt_formula():
     expected = np.where(k >= 3, 2.0 * (1.0 - np.exp(-(k - 3.0) / 10.0)), 0.0)  # step invariance of ZOH
     np.testing.assert_allclose(plots.element_step(model, 0, 0, n), expected, atol=1e-12)
     np.testing.assert_allclose(plots.element_step(model, 1, 1, n), np.where(k >= 2, 3.0, 0.0), atol=1e-12)
+
+
+def _asdict_then_clean(report):
+    """The report's dict as built before :func:`json_ready`: ``dataclasses.asdict`` of its records,
+    then NaN and infinity to None, numpy values to Python ones, tuples to lists."""
+    import dataclasses
+    import math
+
+    def clean(x):
+        if isinstance(x, float) and not math.isfinite(x):
+            return None
+        if isinstance(x, np.floating):
+            return clean(float(x))
+        if isinstance(x, np.integer):
+            return int(x)
+        if isinstance(x, dict):
+            return {k: clean(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [clean(v) for v in x]
+        if isinstance(x, np.ndarray):
+            return clean(x.tolist())
+        return x
+
+    doc = report.to_dict()
+    for key, records in (("rows", report.rows), ("elements", report.elements), ("arx_tables", report.arx_tables)):
+        doc[key] = clean([dataclasses.asdict(r) for r in records])
+    return doc
+
+
+def test_the_json_dict_is_asdict_then_cleaned(case32):
+    from mpm_monitor.core.analysis import json_ready
+
+    _, _, report = case32
+    doc = report.to_dict()
+    assert json.dumps(doc, indent=2) == json.dumps(_asdict_then_clean(report), indent=2)
+    odd = {"a": (np.float32(np.nan), np.float64(-np.inf), np.float64(2.5), np.int64(-3), True, None),
+           "b": np.array([[1.0, np.nan], [np.inf, 4.0]]), "c": [float("nan"), 1, "x", np.float32(0.5)],
+           "d": report.rows[0]}
+    expected = {"a": [None, None, 2.5, -3, True, None], "b": [[1.0, None], [None, 4.0]], "c": [None, 1, "x", 0.5],
+                "d": _asdict_then_clean(report)["rows"][0]}
+    out = json_ready(odd)
+    assert out == expected and json.dumps(out) == json.dumps(expected)
+    assert [type(v) for v in out["a"]] == [type(None), type(None), float, int, bool, type(None)]

@@ -179,6 +179,32 @@ def check_analysis_options(o: AnalysisOptions) -> dict:
 ANALYSIS_PARAMS = {spec.name: spec for spec in option_specs(AnalysisOptions)}
 
 
+def json_ready(x):
+    """``x`` as plain JSON-ready values, in one pass (what :meth:`AnalysisReport.to_dict` writes).
+
+    A dataclass instance becomes the dict of its fields (as :func:`dataclasses.asdict`), a dict a dict
+    (same keys), a list, tuple or ndarray a list, a numpy number a Python one; a float that is NaN or
+    infinite becomes None; anything else is kept.
+    """
+    if isinstance(x, float):
+        return float(x) if math.isfinite(x) else None
+    if x is None or isinstance(x, (str, int)):
+        return x
+    if isinstance(x, (list, tuple)):
+        return [json_ready(v) for v in x]
+    if isinstance(x, dict):
+        return {k: json_ready(v) for k, v in x.items()}
+    if isinstance(x, np.floating):
+        return json_ready(float(x))
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.ndarray):
+        return json_ready(x.tolist())
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        return {f.name: json_ready(getattr(x, f.name)) for f in dataclasses.fields(x)}
+    return x
+
+
 @dataclasses.dataclass
 class AnalysisReport:
     """Everything the analysis found; :meth:`to_dict` gives the JSON report.
@@ -278,34 +304,19 @@ class AnalysisReport:
         return [(e.output, e.input) for e in self.elements if e.ambiguous]
 
     def to_dict(self) -> dict:
-        """The report as JSON-ready data (NaN and infinity become null)."""
-        def clean(x):
-            if isinstance(x, float) and not math.isfinite(x):
-                return None
-            if isinstance(x, (np.floating,)):
-                return clean(float(x))
-            if isinstance(x, (np.integer,)):
-                return int(x)
-            if isinstance(x, dict):
-                return {k: clean(v) for k, v in x.items()}
-            if isinstance(x, (list, tuple)):
-                return [clean(v) for v in x]
-            if isinstance(x, np.ndarray):
-                return clean(x.tolist())
-            return x
-
+        """The report as JSON-ready data (NaN and infinity become null; see :func:`json_ready`)."""
         doc = {
             "sample_time": self.sample_time,
             "samples": self.samples,
             "method": self.method,
             "alpha": self.alpha,
             "overall_rsi": self.overall_rsi,
-            "rows": [dataclasses.asdict(r) for r in self.rows],
-            "elements": [dataclasses.asdict(e) for e in self.elements],
+            "rows": self.rows,
+            "elements": self.elements,
             "located": [{"output": o, "input": i} for o, i in self.located_elements],
             "collinearity": {"max_variance_inflation": self.max_variance_inflation,
                              "groups": [list(g) for g in self.collinear_groups]},
-            "arx_tables": [dataclasses.asdict(t) for t in self.arx_tables],
+            "arx_tables": self.arx_tables,
             "repair": self.repair,
             "experiment": self.experiment.to_dict() if self.experiment is not None else None,
             "warnings": list(self.warnings),
@@ -314,7 +325,7 @@ class AnalysisReport:
             doc["gaps"] = self.gaps
         if self.candidates is not None:
             doc["candidates"] = self.candidates.to_dict()
-        return clean(doc)
+        return json_ready(doc)
 
     def summary_text(self) -> str:
         """A short human-readable summary (rows, located elements, errors, warnings)."""
