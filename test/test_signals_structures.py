@@ -85,6 +85,35 @@ def test_a_repeated_lag_needs_its_k_p_to_the_k_response():
     assert err["zero"][0] > 0.05 and err["estimate"][0] < 0.02 * err["zero"][0]
 
 
+def test_the_lag_poles_of_a_first_order_row_are_those_of_the_element_by_element_clustering():
+    """A row of first-order elements is rounded at once: the poles (rounded, deduplicated, sorted) that
+    the clustering of each element's poles gives, integrators, zero poles and static elements left out."""
+    from mpm_monitor.core.discretize import INTEGRATOR_TOLERANCE
+
+    rng = np.random.default_rng(11)
+    tau = 10.0 ** rng.uniform(-1.5, 3.5, (3, 30))
+    tau[0, :4] = tau[0, 4]                                # one pole four times
+    tau[1, :3] = 0.0                                      # static elements: no pole
+    gain = rng.normal(size=(3, 30))
+    gain[2, :5] = 0.0
+    integrating = np.zeros((3, 30), dtype=bool)
+    integrating[1, :2] = True                             # pure integrators (pole 1)
+    tau[2, 5] = 1e-3                                      # a pole of exp(-1000): 0 to rounding
+    model = PlantModel(1.0, tuple(f"u{j}" for j in range(30)), ("y1", "y2", "y3"), gain=gain, time_constant=tau,
+                       delay=rng.integers(0, 9, (3, 30)).astype(float), integrating=integrating)
+    disc = discretize(model)
+    for i in range(3):
+        expected = {}
+        for j in np.flatnonzero(disc.active[i]):
+            for p in disc.poles(i, j):
+                v = float(np.round(p, 12))
+                if 0.0 < v < 1.0 - INTEGRATOR_TOLERANCE:
+                    expected[v] = 1
+        assert len(expected) > 10
+        got = disc.lag_poles(i)
+        assert got == dict(sorted(expected.items())) and list(got) == sorted(expected)
+
+
 def test_a_step_response_model_has_no_free_response_beyond_its_coefficients():
     # Noise-free record cut from a longer run: once the inputs before the record have left the
     # N coefficients (the model's memory: its longest register, then one sample in the elements'
