@@ -120,6 +120,10 @@ class _Record:
         fitted as a record of its own (from rest, with its own offset and free responses); the
         split into the fit and the held-out part is at sample ``n_fit`` of the samples as they are.
         None: one record.
+    tests : dict
+        ``{output index: (d, segments, test)}``: the last :func:`unexplained_disturbance` of each
+        output, on its prediction error ``d`` and the scored ``segments`` (see :func:`_evaluate`),
+        reused while they stay the same.
     """
 
     model: PlantModel
@@ -132,6 +136,7 @@ class _Record:
     n_fit: int
     holdout_before: dict
     segments: Optional[tuple] = None
+    tests: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
 
     @property
     def options(self) -> RepairOptions:
@@ -353,7 +358,9 @@ def _process_row(rec: _Record, i: int, js, extra: Optional[np.ndarray],
 
 
 def _evaluate(rec: _Record, results: dict) -> _Evaluation:
-    """The model with every accepted repair of ``results``, its signals, and the disturbance tests."""
+    """The model with every accepted repair of ``results``, its signals, and the disturbance tests
+    (of the outputs whose prediction error an earlier evaluation tested as it is, taken from
+    :attr:`_Record.tests`)."""
     repaired = rec.model
     for i, res in results.items():
         for j, el in res.elements.items():
@@ -363,11 +370,18 @@ def _evaluate(rec: _Record, results: dict) -> _Evaluation:
     d = np.asarray(sig.d, float)
     options = rec.options
     segments = rec.scored_segments(rec.model, repaired, settled=True)
-    spread = np.std(np.asarray(rec.y, float), axis=0)
-    tests = {i: unexplained_disturbance(d[:, i], rec.model.sample_time, options.disturbance_alpha,
-                                        options.disturbance_trim, options.noise_order, segments=segments,
-                                        scale=float(spread[i]))
-             for i in range(rec.model.n_outputs)}
+    spread = None
+    tests = {}
+    for i in range(rec.model.n_outputs):
+        # An output whose prediction error did not change (its row not repaired) keeps its test.
+        done = rec.tests.get(i)
+        if done is None or done[1] != segments or not np.array_equal(done[0], d[:, i]):
+            if spread is None:
+                spread = np.std(np.asarray(rec.y, float), axis=0)
+            done = rec.tests[i] = (d[:, i].copy(), segments, unexplained_disturbance(
+                d[:, i], rec.model.sample_time, options.disturbance_alpha, options.disturbance_trim,
+                options.noise_order, segments=segments, scale=float(spread[i])))
+        tests[i] = dict(done[2])
     if rec.segments is not None:      # the step's time since the first sample, the missing samples counted
         t = np.asarray(rec.data.t, float)
         for test in tests.values():
