@@ -3,6 +3,7 @@
 - The disturbance test of an output whose prediction error an earlier evaluation of the repair
   tested as it is (a row not repaired, or not repaired again) is taken over: the tests equal those
   of every output tested afresh, and only the changed outputs are tested again.
+- The step test's quadratic forms of the cumulative regressors equal ``np.einsum`` term by term.
 
 No timings here: bench/stages.py and bench/repair_mc.py measure them.
 """
@@ -11,6 +12,7 @@ import numpy as np
 import pytest
 
 from mpm_monitor.core.repair import model_repair, repair_model, unexplained_disturbance
+from mpm_monitor.core.repair.disturbance import _row_quadratic_forms
 from mpm_monitor.sim.cases import shell_plant
 from mpm_monitor.sim.closed_loop import run_closed_loop
 
@@ -51,3 +53,13 @@ def test_disturbance_tests_of_unchanged_outputs_are_taken_over(stepped_gain_log,
                 for i, t in enumerate(fresh) if t["detected"]]
     assert res.disturbances == expected
     assert [d["output"] for d in res.disturbances] == ["y2"]
+
+
+@pytest.mark.parametrize("n, k", [(1, 1), (60, 5), (9000, 5), (20000, 7), (3000, 23)])
+def test_row_quadratic_forms_equal_einsum(n, k):
+    rng = np.random.default_rng(n + k)
+    x = rng.standard_normal((n, k)) * 10.0 ** rng.uniform(-3, 3, k)
+    x[:, 0] = 1.0
+    q = np.cumsum(x[::-1], axis=0)[::-1]                 # as the step test builds it: a reversed view
+    a = np.linalg.pinv(x.T @ x)
+    np.testing.assert_array_equal(_row_quadratic_forms(q, a), np.einsum("ij,jk,ik->i", q, a, q))
