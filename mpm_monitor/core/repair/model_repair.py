@@ -281,12 +281,15 @@ def _repair_row(row: _RowData, js, n_fit: int, settings: _TestSettings, classifi
     Returns
     -------
     verdicts : dict
-        ``{j: ElementVerdict}``.
+        ``{j: ElementVerdict}``; the intervals of the parameters the repair fit frees are still those
+        of the classification.
     warnings : list of str
+    repair_fit : _RepairFit or None
+        The repair fit (:func:`_fit_repair`), whose intervals replace those of its free parameters
+        unless the refit on the whole record does.
     """
     free, verdicts, warnings = classified if classified is not None else _classify_row(row, js, settings)
-    _fit_repair(free, verdicts, n_fit, settings)
-    return verdicts, warnings
+    return verdicts, warnings, _fit_repair(free, verdicts, n_fit, settings)
 
 
 def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnings: list):
@@ -339,7 +342,7 @@ def _process_row(rec: _Record, i: int, js, extra: Optional[np.ndarray],
     model = rec.model
     row = _RowData(model=model, u=rec.u, y=rec.y, i=i, extra=extra, segments=rec.segments)
     try:
-        elements, row_warnings = _repair_row(row, js, rec.n_fit, rec.settings, classified)
+        elements, row_warnings, repair_fit = _repair_row(row, js, rec.n_fit, rec.settings, classified)
     except _TooShort as exc:
         elements = {j: ElementVerdict(kind="unknown", changed=[], after=model.element(i, j), interval=None,
                                       evidence={}, confidence=0.0, apply=False, reason=str(exc)) for j in js}
@@ -351,6 +354,8 @@ def _process_row(rec: _Record, i: int, js, extra: Optional[np.ndarray],
         accepted, h_after, h_before = _validate_on_holdout(rec, row, js, elements, row_warnings)
     if accepted and rec.options.refit_on_all and rec.n_hold > 0:
         _refit_on_all(row, {j: el for j, el in elements.items() if el.apply}, rec.settings)
+    elif repair_fit is not None:
+        repair_fit.put_intervals(elements, rec.settings)
     if not accepted:
         for el in elements.values():
             el.apply = False
