@@ -6,6 +6,8 @@
 - The step test's quadratic forms of the cumulative regressors equal ``np.einsum`` term by term.
 - A row estimate's covariance is computed when first read, its condition number alone from the
   Jacobian columns of the free parameters: the same numbers as the whole covariance's.
+- A pole fit takes its solution's cost and linear parameters from the solver's evaluation there:
+  the same as evaluating the solution again.
 - The intervals of the repair fit on the first part of the record are taken only when the refit on
   the whole record does not replace them: every reported number equals taking them at once.
 
@@ -133,3 +135,22 @@ def test_repair_intervals_taken_when_reported_equal_taken_at_once(gain_log, monk
     assert late.changes == eager.changes
     assert late.model == eager.model
     assert dataclasses.asdict(late.options) == dataclasses.asdict(eager.options)
+
+
+@pytest.mark.parametrize("form", [_Form(), _Form(n_lags=2, lead=True)])
+def test_pole_fit_takes_the_solution_from_the_solver_evaluations(gain_log, monkeypatch, form):
+    model, data = gain_log
+    row = _RowData(model=model, u=np.asarray(data.u, float), y=np.asarray(data.y, float), i=1)
+    lag = int(model.delay_samples[1, 1]) + 1
+    pole = float(np.exp(-model.sample_time / model.time_constant[1, 1]))
+    spec = _ElementSpec(True, True, 5.0, (pole, 0.5 * pole)[:form.n_lags], (lag, lag), form=form)
+    problem, _ = _estimate_row(row, {1: spec}, {1: lag}, 2000, RepairOptions())
+    evaluated = []
+    original = _RowProblem.evaluate
+    monkeypatch.setattr(_RowProblem, "evaluate", lambda self, *a: evaluated.append(a) or original(self, *a))
+    got = problem.fit([lag], problem.start_poles())
+    assert not evaluated                             # the solution was among the last evaluations
+    again = original(problem, got.poles, [lag])
+    assert (got.ssr, got.n_resid, got.lags) == (again.ssr, again.n_resid, again.lags)
+    for key in ("poles", "coefs", "gains", "leads", "nuisance"):
+        np.testing.assert_array_equal(getattr(got, key), getattr(again, key), err_msg=key)

@@ -127,11 +127,14 @@ class _RowProblem:
 
     The search evaluates the cost many times with most of its parts unchanged: the free responses
     ``a^k`` (``k a^k``) of a pole and the unit responses of an element (for its poles, its lag and the
-    noise model) are computed once and reused -- the same numbers: nothing is approximated.
+    noise model) are computed once and reused, and a pole fit takes its solution's cost and linear
+    parameters from the solver's own evaluation there -- the same numbers: nothing is approximated.
     """
 
     #: Unit responses kept (the most recent), each ``n_fit - start`` floats.
     UNIT_CACHE_SIZE = 64
+    #: Evaluations of a pole fit kept (:meth:`fit`), the solution's looked up there.
+    RECENT_EVALUATIONS = 4
 
     def __init__(self, z, u, specs, n_fit, skip, fixed_poles, free_response, noise_order, extra=None,
                  sample_time=1.0, shared=None, segments=None, segment_levels=True):
@@ -420,17 +423,16 @@ class _RowProblem:
                 leads[m] = coefs[idx["KL"]] / gains[m] if gains[m] != 0 else 0.0
         return gains, leads
 
-    def _make_fit(self, poles, lags, resid, beta):
+    def _make_fit(self, poles, lags, ssr: float, n_resid: int, beta):
         coefs = beta[:self.n_linear]
         gains, leads = self.gains_and_leads(coefs)
         return _Fit(lags=tuple(int(v) for v in lags), poles=np.asarray(poles, float).copy(), coefs=coefs.copy(),
-                    gains=gains, leads=leads, nuisance=beta[self.n_linear:], ssr=float(resid @ resid),
-                    n_resid=resid.shape[0])
+                    gains=gains, leads=leads, nuisance=beta[self.n_linear:], ssr=ssr, n_resid=n_resid)
 
     def evaluate(self, poles, lags) -> _Fit:
         """Fit with the poles held (linear parameters re-estimated)."""
         resid, beta = self.projected(poles, lags)
-        return self._make_fit(poles, lags, resid, beta)
+        return self._make_fit(poles, lags, float(resid @ resid), resid.shape[0], beta)
 
     def fit(self, lags, poles0) -> _Fit:
         """Least-squares fit of the free poles for the given lags and the current noise model."""
@@ -441,12 +443,23 @@ class _RowProblem:
             return self.evaluate(poles0, lags)
         x0 = poles0[self.pole_free_idx]
 
+        # The solver's last evaluations (``(ssr, n_resid, beta)`` by ``x``): its solution is one of
+        # them, usually two evaluations back (then the finite difference of the Jacobian).
+        recent = {}
+
         def fun(x):
-            return self.projected(self.poles_from(x), lags)[0]
+            resid, beta = self.projected(self.poles_from(x), lags)
+            recent[x.tobytes()] = (float(resid @ resid), resid.shape[0], beta)
+            if len(recent) > self.RECENT_EVALUATIONS:
+                del recent[next(iter(recent))]
+            return resid
 
         sol = optimize.least_squares(fun, x0, bounds=(_POLE_MIN, _POLE_MAX), method="trf",
                                      xtol=1e-9, ftol=1e-9, gtol=1e-9, max_nfev=60, diff_step=1e-6)
-        return self.evaluate(self.poles_from(sol.x), lags)
+        done = recent.get(sol.x.tobytes())
+        if done is None:
+            return self.evaluate(self.poles_from(sol.x), lags)
+        return self._make_fit(self.poles_from(sol.x), lags, *done)
 
     def update_ar(self, fit: _Fit) -> None:
         """Re-estimate ``A(q)`` by least squares on the unfiltered output error of ``fit``."""
