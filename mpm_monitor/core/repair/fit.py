@@ -127,11 +127,14 @@ class _RowProblem:
 
     The search evaluates the cost many times with most of its parts unchanged: the free responses
     ``a^k`` (``k a^k``) of a pole and the unit responses of an element (for its poles, its lag and the
-    noise model) are computed once and reused -- the same numbers: nothing is approximated.
+    noise model) are computed once and reused, and a pole fit takes its solution's cost and linear
+    parameters from the solver's own evaluation there -- the same numbers: nothing is approximated.
     """
 
     #: Unit responses kept (the most recent), each ``n_fit - start`` floats.
     UNIT_CACHE_SIZE = 64
+    #: Evaluations of a pole fit kept (:meth:`fit`), the solution's looked up there.
+    RECENT_EVALUATIONS = 4
 
     def __init__(self, z, u, specs, n_fit, skip, fixed_poles, free_response, noise_order, extra=None,
                  sample_time=1.0, shared=None, segments=None, segment_levels=True):
@@ -420,17 +423,16 @@ class _RowProblem:
                 leads[m] = coefs[idx["KL"]] / gains[m] if gains[m] != 0 else 0.0
         return gains, leads
 
-    def _make_fit(self, poles, lags, resid, beta):
+    def _make_fit(self, poles, lags, ssr: float, n_resid: int, beta):
         coefs = beta[:self.n_linear]
         gains, leads = self.gains_and_leads(coefs)
         return _Fit(lags=tuple(int(v) for v in lags), poles=np.asarray(poles, float).copy(), coefs=coefs.copy(),
-                    gains=gains, leads=leads, nuisance=beta[self.n_linear:], ssr=float(resid @ resid),
-                    n_resid=resid.shape[0])
+                    gains=gains, leads=leads, nuisance=beta[self.n_linear:], ssr=ssr, n_resid=n_resid)
 
     def evaluate(self, poles, lags) -> _Fit:
         """Fit with the poles held (linear parameters re-estimated)."""
         resid, beta = self.projected(poles, lags)
-        return self._make_fit(poles, lags, resid, beta)
+        return self._make_fit(poles, lags, float(resid @ resid), resid.shape[0], beta)
 
     def fit(self, lags, poles0) -> _Fit:
         """Least-squares fit of the free poles for the given lags and the current noise model."""
@@ -441,12 +443,23 @@ class _RowProblem:
             return self.evaluate(poles0, lags)
         x0 = poles0[self.pole_free_idx]
 
+        # The solver's last evaluations (``(ssr, n_resid, beta)`` by ``x``): its solution is one of
+        # them, usually two evaluations back (then the finite difference of the Jacobian).
+        recent = {}
+
         def fun(x):
-            return self.projected(self.poles_from(x), lags)[0]
+            resid, beta = self.projected(self.poles_from(x), lags)
+            recent[x.tobytes()] = (float(resid @ resid), resid.shape[0], beta)
+            if len(recent) > self.RECENT_EVALUATIONS:
+                del recent[next(iter(recent))]
+            return resid
 
         sol = optimize.least_squares(fun, x0, bounds=(_POLE_MIN, _POLE_MAX), method="trf",
                                      xtol=1e-9, ftol=1e-9, gtol=1e-9, max_nfev=60, diff_step=1e-6)
-        return self.evaluate(self.poles_from(sol.x), lags)
+        done = recent.get(sol.x.tobytes())
+        if done is None:
+            return self.evaluate(self.poles_from(sol.x), lags)
+        return self._make_fit(self.poles_from(sol.x), lags, *done)
 
     def update_ar(self, fit: _Fit) -> None:
         """Re-estimate ``A(q)`` by least squares on the unfiltered output error of ``fit``."""
@@ -504,6 +517,38 @@ class _RowProblem:
             memo[key] = np.column_stack(cols)
         return out - memo[key] @ nuis
 
+    def _jacobian(self, fit: _Fit, n_columns: int):
+        """The residual of ``fit`` and its central-difference Jacobian in the first ``n_columns``
+        entries of ``[free linear coefficients, free poles, ar, nuisance]`` (:meth:`full_residual`).
+
+        Returns
+        -------
+        r0 : ndarray, shape (n_resid,)
+        jac : ndarray, shape (n_resid, n_columns)
+        """
+        theta = np.concatenate([fit.coefs, fit.poles[self.pole_free_idx], self.ar, fit.nuisance])
+        nl, npf = self.n_linear, len(self.pole_free_idx)
+        memo = {}
+        r0 = self.full_residual(theta, fit.lags, memo)
+        jac = np.empty((r0.shape[0], n_columns))
+        for m in range(n_columns):
+            h = 1e-6 * max(1e-2, abs(theta[m]))
+            if nl <= m < nl + npf:
+                h = min(1e-6, 0.5 * (1.0 - theta[m]))
+            tp, tm = theta.copy(), theta.copy()
+            tp[m] += h
+            tm[m] -= h
+            jac[:, m] = (self.full_residual(tp, fit.lags, memo) - self.full_residual(tm, fit.lags, memo)) / (2 * h)
+        return r0, jac
+
+    @staticmethod
+    def _condition(js: np.ndarray) -> float:
+        """Condition number of the column-scaled Jacobian block ``js`` of the free coefficients and poles."""
+        if not js.shape[1]:
+            return 1.0
+        sv = np.linalg.svd(js, compute_uv=False)
+        return float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+
     def covariance(self, fit: _Fit):
         """Covariance of the free linear coefficients and poles from the Jacobian of the full residual.
 
@@ -513,22 +558,13 @@ class _RowProblem:
             Of ``[free linear coefficients, free poles]`` (:attr:`_ElementSpec.linear`,
             :attr:`pole_free_idx`), variances clipped at 0.
         cond : float
-            Condition number of the column-scaled Jacobian block of the free coefficients and poles.
+            Condition number of the column-scaled Jacobian block of the free coefficients and poles
+            (:meth:`condition`).
         """
         nl, npf = self.n_linear, len(self.pole_free_idx)
-        theta = np.concatenate([fit.coefs, fit.poles[self.pole_free_idx], self.ar, fit.nuisance])
-        memo = {}
-        r0 = self.full_residual(theta, fit.lags, memo)
-        jac = np.empty((r0.shape[0], theta.shape[0]))
-        for m in range(theta.shape[0]):
-            h = 1e-6 * max(1e-2, abs(theta[m]))
-            if nl <= m < nl + npf:
-                h = min(1e-6, 0.5 * (1.0 - theta[m]))
-            tp, tm = theta.copy(), theta.copy()
-            tp[m] += h
-            tm[m] -= h
-            jac[:, m] = (self.full_residual(tp, fit.lags, memo) - self.full_residual(tm, fit.lags, memo)) / (2 * h)
-        dof = max(r0.shape[0] - theta.shape[0], 1)
+        n_theta = nl + npf + self.p + fit.nuisance.shape[0]
+        r0, jac = self._jacobian(fit, n_theta)
+        dof = max(r0.shape[0] - n_theta, 1)
         s2 = float(r0 @ r0) / dof
         scale = np.sqrt(np.sum(jac ** 2, axis=0))
         scale[scale == 0] = 1.0
@@ -536,12 +572,18 @@ class _RowProblem:
         cov = s2 * np.linalg.pinv(js.T @ js, rcond=1e-13, hermitian=True) / np.outer(scale, scale)
         block = cov[:nl + npf, :nl + npf].copy()
         np.fill_diagonal(block, np.maximum(np.diag(block), 0.0))
-        if nl + npf:
-            sv = np.linalg.svd(js[:, :nl + npf], compute_uv=False)
-            cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
-        else:
-            cond = 1.0
-        return block, cond
+        return block, self._condition(js[:, :nl + npf])
+
+    def condition(self, fit: _Fit) -> float:
+        """The ``cond`` of :meth:`covariance` alone, from the Jacobian columns of the free coefficients
+        and poles only (the same numbers: each column is scaled by its own norm)."""
+        k = self.n_linear + len(self.pole_free_idx)
+        if not k:
+            return 1.0
+        _, jac = self._jacobian(fit, k)
+        scale = np.sqrt(np.sum(jac ** 2, axis=0))
+        scale[scale == 0] = 1.0
+        return self._condition(jac / scale)
 
     def variances(self, cov, fit: _Fit, m: int):
         """Variances of the gain, the lead and each pole of element ``m`` (0 for held parameters).
@@ -595,22 +637,42 @@ class _FitCache:
 
 @dataclasses.dataclass
 class _RowEstimate:
-    """Result of the search of one row: the fit, the lag profiles and the parameter covariance."""
+    """Result of the search of one row: the fit, the lag profiles and, on demand, the parameter covariance.
+
+    The covariance (:attr:`cov`) and the condition number (:attr:`cond`) are computed from
+    ``problem`` the first time they are read (the problem's noise model stays that of the fit),
+    so that a fit whose intervals are never reported does not pay for them.
+    """
 
     fit: _Fit
     profiles: list      # per located element: {lag: ssr} with the other lags at their optimum
-    cov: np.ndarray     # of [free linear coefficients, free poles] (see _RowProblem.covariance)
-    cond: float
     edge: list          # per element: True when the best lag is at the edge of its window
     ar: np.ndarray
+    problem: _RowProblem = dataclasses.field(repr=False, default=None)
     fits: _FitCache = dataclasses.field(repr=False, default=None)  # more profile points on demand
+    _cov: np.ndarray = dataclasses.field(init=False, repr=False, default=None)
+    _cond: float = dataclasses.field(init=False, repr=False, default=None)
+
+    @property
+    def cov(self) -> np.ndarray:
+        """Of [free linear coefficients, free poles] (see :meth:`_RowProblem.covariance`)."""
+        if self._cov is None:
+            self._cov, self._cond = self.problem.covariance(self.fit)
+        return self._cov
+
+    @property
+    def cond(self) -> float:
+        """Condition number of the scaled Jacobian of the free coefficients and poles
+        (:meth:`_RowProblem.condition`; without the rest of the covariance when that is not read)."""
+        if self._cond is None:
+            self._cond = self.problem.condition(self.fit)
+        return self._cond
 
 
 _TAU_GRID = (0.5, 0.7, 1.0, 1.4, 2.0)
 
 
-def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int = 3,
-                need_cov: bool = True) -> _RowEstimate:
+def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int = 3) -> _RowEstimate:
     """Lags on the integer grid by coordinate search; poles by least squares; then the noise model.
 
     Phase 1 (output error, ``A = 1``): for each element with a free lag, a quick scan of (lag, pole)
@@ -630,14 +692,9 @@ def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int
         fits.fits.clear()
         best = fits(lags, best.poles)
     best, lags = _local_lag_moves(problem, fits, best, lags)
-    if need_cov:
-        cov, cond = problem.covariance(best)
-    else:
-        size = problem.n_linear + len(problem.pole_free_idx)
-        cov, cond = np.zeros((size, size)), float("nan")
     edge = [specs[m].lag_free and lags[m] in specs[m].window for m in range(n)]
-    return _RowEstimate(fit=best, profiles=_lag_profiles(fits, lags), cov=cov, cond=cond, edge=edge,
-                        ar=problem.ar.copy(), fits=fits)
+    return _RowEstimate(fit=best, profiles=_lag_profiles(fits, lags), edge=edge, ar=problem.ar.copy(),
+                        problem=problem, fits=fits)
 
 
 def _sweep_lags(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, max_sweeps: int):

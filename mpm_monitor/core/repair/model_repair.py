@@ -120,6 +120,10 @@ class _Record:
         fitted as a record of its own (from rest, with its own offset and free responses); the
         split into the fit and the held-out part is at sample ``n_fit`` of the samples as they are.
         None: one record.
+    tests : dict
+        ``{output index: (d, segments, test)}``: the last :func:`unexplained_disturbance` of each
+        output, on its prediction error ``d`` and the scored ``segments`` (see :func:`_evaluate`),
+        reused while they stay the same.
     """
 
     model: PlantModel
@@ -132,6 +136,7 @@ class _Record:
     n_fit: int
     holdout_before: dict
     segments: Optional[tuple] = None
+    tests: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
 
     @property
     def options(self) -> RepairOptions:
@@ -276,12 +281,15 @@ def _repair_row(row: _RowData, js, n_fit: int, settings: _TestSettings, classifi
     Returns
     -------
     verdicts : dict
-        ``{j: ElementVerdict}``.
+        ``{j: ElementVerdict}``; the intervals of the parameters the repair fit frees are still those
+        of the classification.
     warnings : list of str
+    repair_fit : _RepairFit or None
+        The repair fit (:func:`_fit_repair`), whose intervals replace those of its free parameters
+        unless the refit on the whole record does.
     """
     free, verdicts, warnings = classified if classified is not None else _classify_row(row, js, settings)
-    _fit_repair(free, verdicts, n_fit, settings)
-    return verdicts, warnings
+    return verdicts, warnings, _fit_repair(free, verdicts, n_fit, settings)
 
 
 def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnings: list):
@@ -334,7 +342,7 @@ def _process_row(rec: _Record, i: int, js, extra: Optional[np.ndarray],
     model = rec.model
     row = _RowData(model=model, u=rec.u, y=rec.y, i=i, extra=extra, segments=rec.segments)
     try:
-        elements, row_warnings = _repair_row(row, js, rec.n_fit, rec.settings, classified)
+        elements, row_warnings, repair_fit = _repair_row(row, js, rec.n_fit, rec.settings, classified)
     except _TooShort as exc:
         elements = {j: ElementVerdict(kind="unknown", changed=[], after=model.element(i, j), interval=None,
                                       evidence={}, confidence=0.0, apply=False, reason=str(exc)) for j in js}
@@ -346,6 +354,8 @@ def _process_row(rec: _Record, i: int, js, extra: Optional[np.ndarray],
         accepted, h_after, h_before = _validate_on_holdout(rec, row, js, elements, row_warnings)
     if accepted and rec.options.refit_on_all and rec.n_hold > 0:
         _refit_on_all(row, {j: el for j, el in elements.items() if el.apply}, rec.settings)
+    elif repair_fit is not None:
+        repair_fit.put_intervals(elements, rec.settings)
     if not accepted:
         for el in elements.values():
             el.apply = False
@@ -353,7 +363,9 @@ def _process_row(rec: _Record, i: int, js, extra: Optional[np.ndarray],
 
 
 def _evaluate(rec: _Record, results: dict) -> _Evaluation:
-    """The model with every accepted repair of ``results``, its signals, and the disturbance tests."""
+    """The model with every accepted repair of ``results``, its signals, and the disturbance tests
+    (of the outputs whose prediction error an earlier evaluation tested as it is, taken from
+    :attr:`_Record.tests`)."""
     repaired = rec.model
     for i, res in results.items():
         for j, el in res.elements.items():
@@ -363,11 +375,18 @@ def _evaluate(rec: _Record, results: dict) -> _Evaluation:
     d = np.asarray(sig.d, float)
     options = rec.options
     segments = rec.scored_segments(rec.model, repaired, settled=True)
-    spread = np.std(np.asarray(rec.y, float), axis=0)
-    tests = {i: unexplained_disturbance(d[:, i], rec.model.sample_time, options.disturbance_alpha,
-                                        options.disturbance_trim, options.noise_order, segments=segments,
-                                        scale=float(spread[i]))
-             for i in range(rec.model.n_outputs)}
+    spread = None
+    tests = {}
+    for i in range(rec.model.n_outputs):
+        # An output whose prediction error did not change (its row not repaired) keeps its test.
+        done = rec.tests.get(i)
+        if done is None or done[1] != segments or not np.array_equal(done[0], d[:, i]):
+            if spread is None:
+                spread = np.std(np.asarray(rec.y, float), axis=0)
+            done = rec.tests[i] = (d[:, i].copy(), segments, unexplained_disturbance(
+                d[:, i], rec.model.sample_time, options.disturbance_alpha, options.disturbance_trim,
+                options.noise_order, segments=segments, scale=float(spread[i])))
+        tests[i] = dict(done[2])
     if rec.segments is not None:      # the step's time since the first sample, the missing samples counted
         t = np.asarray(rec.data.t, float)
         for test in tests.values():

@@ -5,17 +5,21 @@ it, only the parameters the classification found changed (everything for a missi
 with the rest held at the model's values; elements without a change are held entirely.  Fewer
 free parameters give tighter, less biased estimates when inputs move together.
 :func:`_refit_on_all` refits the accepted elements on the whole record with the validated
-structure.
+structure; the intervals of the first fit are taken only for elements not refitted
+(:meth:`_RepairFit.put_intervals`).
 """
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Optional
+
 from .classify import _FreeFit
-from .fit import _ElementSpec
+from .fit import _ElementSpec, _RowEstimate, _RowProblem
 from .forms import _input_lag, _poles_of
 from .options import _TestSettings
 from .result import ElementVerdict
-from .row import _element_summary, _estimate_row, _RowData
+from .row import _element_after, _element_summary, _estimate_row, _RowData
 
 #: The parameters of an element the repair may free, with the keys of ``after`` each one sets.
 _SHAPE_KEYS = ("time_constant", "time_constant2", "lead")
@@ -75,21 +79,56 @@ def _repair_specs(free: _FreeFit, verdicts: dict):
     return specs, lags0
 
 
-def _fit_repair(free: _FreeFit, verdicts: dict, n_fit: int, settings: _TestSettings) -> None:
-    """Stage 2: fit what changed on samples ``0 .. n_fit - 1``; the verdicts' ``after``, free
-    intervals and ``evidence["condition_number_repair"]`` are updated in place."""
+@dataclasses.dataclass
+class _RepairFit:
+    """The stage-2 fit of a row (:func:`_fit_repair`), whose intervals are taken only when reported.
+
+    Attributes
+    ----------
+    problem : _RowProblem
+    est : _RowEstimate
+    specs : dict
+        ``{j: _ElementSpec}`` of the fit (element ``m`` is ``sorted(specs)[m]``).
+    references : dict
+        ``{j: reference}`` (the lags of a second-order element are named after its reference's).
+    """
+
+    problem: _RowProblem
+    est: _RowEstimate
+    specs: dict
+    references: dict
+
+    def put_intervals(self, verdicts: dict, settings: _TestSettings) -> None:
+        """Replace the intervals of the fit's free parameters in the verdicts' ``interval`` (in place).
+
+        Not needed when :func:`_refit_on_all` refits the elements: it replaces the same intervals
+        (the same parameters are free in both fits).
+        """
+        ts = self.problem.ts
+        for m, j in enumerate(sorted(self.specs)):
+            _, interval = _element_summary(self.problem, self.est, m, ts, settings, self.references[j])
+            _update_free_intervals(verdicts[j].interval, interval, self.specs[j])
+
+
+def _fit_repair(free: _FreeFit, verdicts: dict, n_fit: int, settings: _TestSettings) -> Optional[_RepairFit]:
+    """Stage 2: fit what changed on samples ``0 .. n_fit - 1``; the verdicts' ``after`` and
+    ``evidence["condition_number_repair"]`` are updated in place.
+
+    Returns the fit, whose :meth:`_RepairFit.put_intervals` puts its free intervals into the
+    verdicts, or None when no element changed (nothing fitted).
+    """
     row = free.row
     ts = row.model.sample_time
     specs, lags0 = _repair_specs(free, verdicts)
     if not specs:
-        return
+        return None
     problem, est = _estimate_row(row, specs, lags0, n_fit, settings.options)
+    references = {j: free.located[j].reference for j in specs}
     for m, j in enumerate(sorted(specs)):
-        fitted, interval = _element_summary(problem, est, m, ts, settings, free.located[j].reference)
         v = verdicts[j]
-        _update_free_intervals(v.interval, interval, specs[j])
-        v.after = _compose(fitted, free.located[j].reference, specs[j])
+        v.after = _compose(_element_after(problem, est, m, ts, references[j]), references[j], specs[j])
         v.evidence["condition_number_repair"] = est.cond
+    return _RepairFit(problem=problem, est=est, specs=specs, references=references)
 
 
 def _refit_on_all(row: _RowData, verdicts: dict, settings: _TestSettings) -> None:

@@ -3,7 +3,7 @@
 :func:`_estimate_row` turns the located elements of one output row into a :class:`_RowProblem`
 (output minus the response of the row's other elements, held at the model's values) and searches
 it; :func:`_element_summary` turns a fitted element back into its parameters in seconds (gain,
-time constants, lead, delay) with their intervals.
+time constants, lead, delay) with their intervals (:func:`_element_after`: the parameters alone).
 """
 
 from __future__ import annotations
@@ -140,7 +140,7 @@ def _default_skip(row: _RowData, specs: dict) -> int:
 
 
 def _estimate_row(row: _RowData, specs: dict, lags0: dict, n_use: int, options: RepairOptions, max_sweeps: int = 1,
-                  skip: Optional[int] = None, ar0=None, need_cov: bool = True):
+                  skip: Optional[int] = None, ar0=None):
     """Fit the located elements ``specs`` (``{column index: _ElementSpec}``) of a row.
 
     The row's other elements are held at the model's values (their free responses from all their
@@ -165,8 +165,7 @@ def _estimate_row(row: _RowData, specs: dict, lags0: dict, n_use: int, options: 
                           segment_levels=bool(np.any(row.model.integrating[row.i])))
     if ar0 is not None:
         problem.set_ar(ar0)
-    est = _search_row(problem, [lags0[j] for j in js], max_sweeps, ar_iterations=3 if ar0 is None else 1,
-                      need_cov=need_cov)
+    est = _search_row(problem, [lags0[j] for j in js], max_sweeps, ar_iterations=3 if ar0 is None else 1)
     return problem, est
 
 
@@ -175,6 +174,18 @@ def _pole_interval(a: float, se: float, zcrit: float, ts: float) -> list:
     a_lo = min(max(a - zcrit * se, 1e-12), a)
     a_hi = max(min(a + zcrit * se, 1.0 - 1e-12), a)
     return [-ts / math.log(a_lo), -ts / math.log(a_hi)]
+
+
+def _element_after(problem: _RowProblem, est: _RowEstimate, m: int, ts: float,
+                   reference: Optional[dict] = None) -> dict:
+    """The ``after`` of :func:`_element_summary` alone: the fitted parameters of element ``m``, without
+    their intervals (no covariance, no lag profile)."""
+    fit, form = est.fit, problem.specs[m].form
+    after = _fitted_params(form, float(fit.gains[m]), [float(a) for a in fit.poles[problem.slices[m]]],
+                           float(fit.leads[m]), int(fit.lags[m]), ts)
+    if form.n_lags == 2:
+        _match_lags(after, {}, reference)
+    return after
 
 
 def _element_summary(problem: _RowProblem, est: _RowEstimate, m: int, ts: float, settings: _TestSettings,
