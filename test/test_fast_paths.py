@@ -124,6 +124,20 @@ def test_compute_signals_equals_the_dense_reference_with_and_without_a_transient
 
 
 # ------------------------------------------------------------------------------------ cross products
+def _check_lagged_cross_products(rng, channel, lag, n, spare_channels):
+    """Random signals (``spare_channels`` unused ones beside), their lagged Gram and sums against the
+    direct product of the lag matrix; returns the signals and the largest lag."""
+    max_lag = int(lag.max())
+    x = rng.standard_normal((n + max_lag, channel.max() + 1 + spare_channels)) + 3.0
+    phi = x[max_lag + np.arange(n)[:, None] - lag[None, :], channel[None, :]]
+    gram, sums = lagged_cross_products(x, channel, lag, max_lag)
+    ref = phi.T @ phi
+    np.testing.assert_allclose(gram, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
+    np.testing.assert_array_equal(gram, gram.T)
+    np.testing.assert_allclose(sums, phi.sum(axis=0), rtol=0, atol=1e-13 * np.abs(phi).sum(axis=0).max())
+    return x, max_lag
+
+
 @pytest.mark.parametrize("groups,n", [
     ([(3, range(0, 5)), (2, range(0, 3))], 200),
     ([(2, range(1, 6)), (3, range(0, 3))], 7),                    # fewer rows than the largest lag
@@ -138,15 +152,7 @@ def test_lagged_cross_products_equal_the_direct_product(groups, n):
         for c in range(n_ch):
             channel += [len(set(channel))] * len(lags)
             lag += list(lags)
-    channel, lag = np.array(channel), np.array(lag)
-    max_lag = int(lag.max())
-    x = rng.standard_normal((n + max_lag, channel.max() + 1)) + 3.0
-    phi = x[max_lag + np.arange(n)[:, None] - lag[None, :], channel[None, :]]
-    gram, sums = lagged_cross_products(x, channel, lag, max_lag)
-    ref = phi.T @ phi
-    np.testing.assert_allclose(gram, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
-    np.testing.assert_array_equal(gram, gram.T)
-    np.testing.assert_allclose(sums, phi.sum(axis=0), rtol=0, atol=1e-13 * np.abs(phi).sum(axis=0).max())
+    x, max_lag = _check_lagged_cross_products(rng, np.array(channel), np.array(lag), n, spare_channels=0)
     empty, empty_sums = lagged_cross_products(x[:max_lag], channel, lag, max_lag)
     assert not empty.any() and not empty_sums.any()
 
@@ -162,16 +168,8 @@ def test_lagged_cross_products_equal_the_direct_product(groups, n):
 def test_lagged_cross_products_of_any_column_layout(channel, lag, n):
     # The Gram matrix is filled block by block over runs of channels sharing a lag sequence, then
     # mirrored below the lag diagonal: any order of the columns gives the direct product.
-    rng = np.random.default_rng(n)
-    channel, lag = np.array(channel), np.array(list(lag))
-    max_lag = int(lag.max())
-    x = rng.standard_normal((n + max_lag, channel.max() + 2)) + 3.0
-    phi = x[max_lag + np.arange(n)[:, None] - lag[None, :], channel[None, :]]
-    gram, sums = lagged_cross_products(x, channel, lag, max_lag)
-    ref = phi.T @ phi
-    np.testing.assert_allclose(gram, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
-    np.testing.assert_array_equal(gram, gram.T)
-    np.testing.assert_allclose(sums, phi.sum(axis=0), rtol=0, atol=1e-13 * np.abs(phi).sum(axis=0).max())
+    _check_lagged_cross_products(np.random.default_rng(n), np.array(channel), np.array(list(lag)), n,
+                                 spare_channels=1)
 
 
 def test_lagged_gram_symmetric_after_rebuild_and_update():
