@@ -190,6 +190,14 @@ def test_lagged_gram_symmetric_after_rebuild_and_update():
         gram.update(buf, add, remove)
         ref = direct(remove[1], add[1])
         np.testing.assert_allclose(gram.symmetric(), ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+    # What symmetric() handed out after a rebuild (the matrix itself) stays as it was through an update
+    # or a clear of the Gram (both write in place).
+    for change in (lambda: gram.update(buf, (380, 390), (65, 70)), gram.clear):
+        gram.rebuild(buf, 100, 300, np.zeros(3))
+        held = gram.symmetric()
+        kept = held.copy()
+        change()
+        np.testing.assert_array_equal(held, kept)
 
 
 def test_row_fits_solved_together_equal_each_alone_and_qr():

@@ -480,6 +480,7 @@ class LaggedGram:
         n_add, n_remove = max(add[1] - add[0], 0), max(remove[1] - remove[0], 0)
         if not (n_add or n_remove):
             return
+        self._writable()
         lag = self.max_lag
         slabs, index, base = [], [], 0
         for (a, b), k in ((remove, n_remove), (add, n_add)):
@@ -506,6 +507,13 @@ class LaggedGram:
         if n_add:
             self.hi = add[1]
 
+    def _writable(self) -> None:
+        """Before the matrix is changed in place: a matrix that :meth:`symmetric` handed out as itself
+        (after a rebuild) is copied first, so what a caller holds does not change under it."""
+        if self._full is self.gram:
+            self.gram = self.gram.copy()
+        self._full = None
+
     def symmetric(self) -> np.ndarray:
         """The full cross-product matrix (the kept lower triangle mirrored; after a rebuild, the matrix
         itself: do not write to it)."""
@@ -516,6 +524,7 @@ class LaggedGram:
 
     def clear(self) -> None:
         """No rows."""
+        self._writable()
         self.gram[:] = 0.0
         self.sums[:] = 0.0
         self.lo = self.hi = 0
