@@ -2,7 +2,7 @@
 
 Run::
 
-    python -m bench.element_level [--runs 800] [--seed 3] [--samples 3000] [--jobs 1]
+    python -m bench.element_level [--runs 800] [--seed 3] [--samples 3000] [--jobs 1] [--step-form]
                                   [--out bench/results/element_level.json]
 
 The scenarios are those of :mod:`bench.structures_mc` (the same family, a pure function of
@@ -14,6 +14,12 @@ Under "no mismatch" a valid test's p-value is uniform: the fraction below ``t`` 
 counts the p-values below 0.05, 0.01 and 0.001 against that expectation, for all elements and split
 by the element's structure (integrating or not) and role (input or measured disturbance), with the
 one-sided Poisson tail of each count (a small tail says the test rejects too often there).
+
+With ``--step-form`` every run's model is analysed in its step-response (DMC) form instead
+(:func:`bench.step_models.step_form`: the same plant and log, the model's elements as step responses
+of ``N`` coefficients, ramps on the integrating rows), so the level of the tests on a model that
+states no poles is measured apart (default output ``element_level_step.json``).  An element is
+grouped by the structure of the parametric model it was drawn from.
 
 These rows are not clean in every sense: their columns are moved by a controller that also reacts to
 the other rows' mismatches.  That is where the tests must hold their level.
@@ -33,14 +39,17 @@ from scipy.special import pdtrc
 from mpm_monitor.core.analysis import AnalysisOptions, detect
 
 from . import map_runs, write_json
+from .step_models import step_form
 from .structures_mc import StructuresOptions, make_structures_scenario, simulate
 
 THRESHOLDS = (0.05, 0.01, 0.001)
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "element_level.json"
+DEFAULT_OUT_STEP = Path(__file__).resolve().parent / "results" / "element_level_step.json"
 
 
-def run_one(seed: int, index: int, samples: int) -> dict:
-    """The p-values of the elements of the rows without a mismatch of one scenario."""
+def run_one(seed: int, index: int, samples: int, step_response: bool = False) -> dict:
+    """The p-values of the elements of the rows without a mismatch of one scenario (its model analysed in
+    its step-response form with ``step_response``)."""
     sc = make_structures_scenario(seed, index, StructuresOptions())
     data = simulate(sc, samples, StructuresOptions()).as_logged_data(f"structures scenario {seed}/{index}")
     rec = {"index": int(index), "elements": []}
@@ -48,7 +57,8 @@ def run_one(seed: int, index: int, samples: int) -> dict:
         rec["error"] = "the closed loop diverged"
         return rec
     try:
-        report = detect(sc.model, data, AnalysisOptions(repair=False), detectability=False)
+        model = step_form(sc.model) if step_response else sc.model
+        report = detect(model, data, AnalysisOptions(repair=False), detectability=False)
     except Exception as exc:  # noqa: BLE001 - a benchmark records a failure and goes on
         rec["error"] = f"{type(exc).__name__}: {exc}"
         return rec
@@ -105,7 +115,8 @@ def score(records: Sequence[dict]) -> dict:
 
 
 def format_table(result: dict) -> str:
-    lines = [f"element tests' level: seed {result['config']['seed']}, {result['config']['runs']} runs, "
+    form = " (models in step-response form)" if result["config"].get("step_form") else ""
+    lines = [f"element tests' level{form}: seed {result['config']['seed']}, {result['config']['runs']} runs, "
              f"{result['config']['errors']} not analysed; p-values of the elements of rows without a mismatch",
              f"{'group':<32} {'test':<9} {'n':>6}   " + "   ".join(f"below {t:<5} (exp, tail)" for t in THRESHOLDS)]
     for name, tests in result["summary"].items():
@@ -124,18 +135,22 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--seed", type=int, default=3, help="family seed (default 3; 0 and 1 are bench.structures_mc's)")
     parser.add_argument("--samples", type=int, default=3000, help="samples per run (default 3000)")
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON output")
+    parser.add_argument("--step-form", action="store_true",
+                        help="analyse each run's model in its step-response form (bench.step_models.step_form)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="JSON output (default bench/results/element_level.json, element_level_step.json "
+                             "with --step-form)")
     args = parser.parse_args(argv)
     if args.runs < 1 or args.samples < 100 or args.jobs < 1:
         parser.error("--runs and --jobs must be >= 1 and --samples >= 100")
     t0 = time.perf_counter()
-    records = sorted(map_runs(_run_one_star, [(args.seed, k, args.samples) for k in range(args.runs)], args.jobs),
-                     key=lambda r: r["index"])
-    result = {"config": {"runs": args.runs, "seed": args.seed, "samples": args.samples,
+    records = sorted(map_runs(_run_one_star, [(args.seed, k, args.samples, args.step_form) for k in range(args.runs)],
+                              args.jobs), key=lambda r: r["index"])
+    result = {"config": {"runs": args.runs, "seed": args.seed, "samples": args.samples, "step_form": args.step_form,
                          "errors": sum("error" in r for r in records), "wall_time_s": time.perf_counter() - t0},
               "summary": score(records), "runs": records}
     print(format_table(result))
-    write_json(args.out, result)
+    write_json(args.out or (DEFAULT_OUT_STEP if args.step_form else DEFAULT_OUT), result)
     return 0
 
 

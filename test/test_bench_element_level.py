@@ -36,3 +36,14 @@ def test_one_run_gives_the_p_values_of_the_rows_without_a_mismatch():
         assert (e["response"] is None) == (not e["present"])
     summary = score([rec])
     assert summary["all"]["window"]["n"] == len(rec["elements"])
+
+
+def test_one_run_in_step_response_form_tests_the_same_elements():
+    # The step-response form of the same model on the same log: the same rows' elements, each with a
+    # window and a whole-response p-value (every element of a step-response model is present).
+    param, step = run_one(0, 21, 1500), run_one(0, 21, 1500, step_response=True)
+    assert "error" not in step
+    key = lambda e: (e["output"], e["column"])                                   # noqa: E731
+    assert sorted(map(key, step["elements"])) == sorted(map(key, param["elements"]))
+    for e in step["elements"]:
+        assert 0.0 <= e["window"] <= 1.0 and 0.0 <= e["response"] <= 1.0

@@ -244,9 +244,9 @@ def test_a_step_response_model_confirms_its_located_elements_like_the_parametric
     # the others' tails releases.  It must do so for the model's step-response form too (its tails
     # from the step responses, its ramp row's elements integrating): without, the step-response model
     # located u3 and dv1 beside u2, both right.  The step-response form also locates dv2, a true
-    # mismatch the parametric model misses: its prediction error in that row differs at the start of
-    # the log (the parametric model's initial transient is fitted from its poles; a step-response
-    # model has none).
+    # mismatch the parametric model misses: in that row the parametric model fits an initial transient
+    # from its poles (up to 2.3; the loop starts at rest, so its free responses take up part of the
+    # mismatch's effect), and a step-response model has no poles to fit one from.
     from bench.structures_mc import make_structures_scenario, simulate
 
     sc = make_structures_scenario(5, 2)
