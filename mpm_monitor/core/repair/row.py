@@ -162,7 +162,7 @@ def _estimate_row(row: _RowData, specs: dict, lags0: dict, n_use: int, options: 
     problem = _RowProblem(held.z, row.u[:, js], [specs[j] for j in js], n_use, skip, held.lag_poles,
                           options.initial_state == "estimate", options.noise_order, row.extra,
                           sample_time=row.model.sample_time, shared=row.shared, segments=row.segments,
-                          segment_levels=bool(np.any(row.model.integrating[row.i])))
+                          segment_levels=bool(row.model.integrating_outputs[row.i]))
     if ar0 is not None:
         problem.set_ar(ar0)
     est = _search_row(problem, [lags0[j] for j in js], max_sweeps, ar_iterations=3 if ar0 is None else 1)
