@@ -10,7 +10,10 @@ and runs ``analyze`` (with the repair) twice on the same log:
   time constants (the responses settled to ``exp(-12)``), a ramp on every integrating output.
 
 Recorded: the located elements of both against the truth (hits, false locations, clean runs with an
-alarm), the runs in which the two differ, and both analysis times.
+alarm), the runs in which the two differ, both analysis times, and for every located mismatched
+element the repaired model's unit-step response against the plant's
+(:func:`bench.structures_mc.step_response_error`: the largest difference over
+``REPAIR_HORIZON`` samples, a fraction of the plant's largest value; "within 10 %" as there).
 
 Run: ``python -m bench.step_models [--runs 100] [--seed 0] [--jobs 2] [--out bench/results/step_models.json]``
 """
@@ -47,14 +50,20 @@ def step_form(model: PlantModel) -> PlantModel:
                                          name=f"{model.name} (step responses, N = {n})")
 
 
-def _located(model, data, alpha: float):
+def _located(model, plant, mismatched, data, alpha: float):
+    """The located elements ``[[i, j], ...]``, the seconds of ``analyze``, and ``{"i,j": error}`` of the
+    repaired model's step response of every located mismatched element."""
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         rep = analyze(model, data, AnalysisOptions(alpha=alpha))
+    seconds = time.perf_counter() - t0
     ci = {name: k for k, name in enumerate(model.columns)}
     oi = {name: k for k, name in enumerate(model.outputs)}
-    return sorted([oi[o], ci[c]] for o, c in rep.located_elements), time.perf_counter() - t0
+    located = sorted([oi[o], ci[c]] for o, c in rep.located_elements)
+    errors = {f"{i},{j}": structures_mc.step_response_error(plant, rep.repaired_model, i, j)
+              for i, j in located if [i, j] in mismatched and rep.repaired_model is not None}
+    return located, seconds, errors
 
 
 def one(seed: int, index: int, samples: int, alpha: float) -> dict:
@@ -66,8 +75,9 @@ def one(seed: int, index: int, samples: int, alpha: float) -> dict:
            "step_length": int(step.step_length), "ramp_rows": int(sum(step.ramp)),
            "mismatched": sorted([int(m["output"]), int(m["column"])] for m in sc.mismatches)}
     try:
-        rec["parametric"], rec["parametric_s"] = _located(sc.model, data, alpha)
-        rec["step"], rec["step_s"] = _located(step, data, alpha)
+        for key, model in (("parametric", sc.model), ("step", step)):
+            rec[key], rec[f"{key}_s"], rec[f"{key}_repair_error"] = _located(model, sc.plant, rec["mismatched"],
+                                                                            data, alpha)
     except Exception as exc:                    # a diverged loop refused by both: recorded, not scored
         rec["error"] = f"{type(exc).__name__}: {exc}"
     return rec
@@ -93,8 +103,11 @@ def summarise(records: Sequence[dict]) -> dict:
                 clean += 1
                 clean_alarm += bool(got)
         times = [r[f"{key}_s"] for r in scored]
+        errors = [e for r in scored for e in r[f"{key}_repair_error"].values()]
         out[key] = {"mismatched_elements": total, "located": hits, "false_locations": false,
                     "clean_runs": clean, "clean_runs_with_a_location": clean_alarm,
+                    "repaired_within_10_percent": int(sum(e <= 0.1 for e in errors)),
+                    "median_repair_error": float(np.median(errors)) if errors else None,
                     "median_analyze_s": float(np.median(times)) if times else None,
                     "total_analyze_s": float(np.sum(times)), "max_analyze_s": float(np.max(times, initial=0.0))}
     return out
@@ -109,6 +122,10 @@ def run(runs: int, seed: int = 0, samples: int = 3000, jobs: int = 1, alpha: flo
             "summary": summarise(records), "seconds": time.perf_counter() - t0, "records": records}
 
 
+def _pct(x) -> str:
+    return "-" if x is None else f"{100 * x:.2g} %"
+
+
 def format_table(result: dict) -> str:
     s, cfg = result["summary"], result["config"]
     lines = [f"step-response models: {s['scored']} of {s['runs']} random loops (bench.structures_mc draws, seed "
@@ -117,7 +134,8 @@ def format_table(result: dict) -> str:
         x = s[key]
         lines.append(f"{key}: {x['located']} of {x['mismatched_elements']} mismatched elements located, "
                      f"{x['false_locations']} false locations, {x['clean_runs_with_a_location']} of {x['clean_runs']} "
-                     f"clean runs with one; analyze median {x['median_analyze_s']:.2f} s, total "
+                     f"clean runs with one; repaired within 10 %: {x['repaired_within_10_percent']} (median "
+                     f"error {_pct(x['median_repair_error'])}); analyze median {x['median_analyze_s']:.2f} s, total "
                      f"{x['total_analyze_s']:.0f} s, longest {x['max_analyze_s']:.1f} s")
     lines.append(f"runs where the two differ: {len(s['runs_where_the_two_differ'])} {s['runs_where_the_two_differ']}")
     lines.append(f"({result['seconds']:.0f} s)")

@@ -23,4 +23,11 @@ def test_step_models_compares_the_two_forms_of_the_model():
     assert s["runs_where_the_two_differ"] == differ
     total = sum(len(r["mismatched"]) for r in result["records"])
     assert s["parametric"]["mismatched_elements"] == s["step"]["mismatched_elements"] == total
+    for key in ("parametric", "step"):
+        # A repair error for every located mismatched element, none for another.
+        errors = [e for r in result["records"] for e in r[f"{key}_repair_error"].values()]
+        located = sum(len({tuple(t) for t in r[key]} & {tuple(t) for t in r["mismatched"]})
+                      for r in result["records"])
+        assert len(errors) == located and all(e >= 0 for e in errors)
+        assert s[key]["repaired_within_10_percent"] == sum(e <= 0.1 for e in errors)
     assert "step: " in step_models.format_table(result)
