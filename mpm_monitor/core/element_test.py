@@ -42,6 +42,7 @@ import numpy as np
 
 from .arx import BlockTest, SharedBlockRegression, estimate_delay_from_lags, lag_matrix, segment_lag_matrix, segment_rows
 from .baselines import ELEMENT_TESTS
+from .elements import pulse_response
 from .model import PlantModel
 from .response_test import combined_p_value, element_responses, integrating_element, row_response_tests
 from .statistics import N_FAMILIES, holm_adjust
@@ -599,8 +600,7 @@ def step_response_tail(model: PlantModel, i: int, j: int) -> int:
     of :data:`TAIL_TIME_CONSTANTS` time constants after the dead time (a first-order element's
     remaining mass after ``delay + m tau`` is ``exp(-m)``).  In samples; 0 for an absent element.
     """
-    s = np.asarray(model.step_response[i, j], dtype=float)
-    h = np.diff(np.concatenate([[0.0], s]))
+    h = pulse_response(model.step_response[i, j])
     if model.ramp[i] and h.size:
         h = h - h[-1]
     mass = np.abs(h)[::-1].cumsum()[::-1]                  # mass[l]: sum of |h_k| for k >= l (0-based)

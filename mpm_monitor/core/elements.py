@@ -240,6 +240,23 @@ def _zoh(A: np.ndarray, B: np.ndarray, ts: float):
     return E[:n, :n], E[:n, n]
 
 
+def pulse_response(coefficients) -> np.ndarray:
+    """``h_l = s_l - s_(l-1)`` of step-response samples ``s`` (the sample before the first taken as 0).
+
+    Parameters
+    ----------
+    coefficients : array_like, shape (N,)
+        Consecutive samples of a unit-step response (output units per input unit).
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        The response to a unit pulse at the same samples.
+    """
+    s = np.asarray(coefficients, dtype=float).ravel()
+    return np.diff(np.concatenate([[0.0], s]))
+
+
 def from_step_response(coefficients, ramp: bool = False) -> DiscreteElement:
     """The element of a step-response model (see the module docstring).
 
@@ -257,7 +274,7 @@ def from_step_response(coefficients, ramp: bool = False) -> DiscreteElement:
         ``num (1 - z^-1) + h_N z^-(N+1)`` over ``1 - z^-1``.  Leading zeros become ``delay``.
     """
     s = np.asarray(coefficients, dtype=float).ravel()
-    h = np.diff(np.concatenate([[0.0], s]))
+    h = pulse_response(s)
     num = np.concatenate([[0.0], h])
     den = np.ones(1)
     if ramp and s.size:

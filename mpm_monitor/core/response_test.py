@@ -52,6 +52,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from .arx import BlockTest, segment_lag_matrix, segment_rows
+from .elements import pulse_response
 from .filters import lfilter
 from .model import PlantModel
 from .statistics import f_tail
@@ -146,8 +147,7 @@ def integrating_lag(model: PlantModel, i: int, j: int) -> float:
     """
     if not model.is_step_response:
         return float(model.time_constant[i, j] / model.sample_time)
-    s = np.asarray(model.step_response[i, j], dtype=float)
-    h = np.diff(np.concatenate([[0.0], s]))
+    h = pulse_response(model.step_response[i, j])
     if h.size == 0 or h[-1] == 0:
         return 0.0
     nz = np.flatnonzero(h != 0)

@@ -31,7 +31,7 @@ from typing import Optional
 import numpy as np
 
 from ..discretize import REPEATED_POLE_TOLERANCE
-from ..elements import dead_time_samples, sample_parametric
+from ..elements import dead_time_samples, pulse_response, sample_parametric
 from ..filters import lfilter
 from ..model import PlantModel
 
@@ -184,10 +184,10 @@ def _basis(form: _Form, poles, ts: float):
     s_a, s_b = _step_samples(form, poles, np.arange(order + 1))
     # Time in samples: an integrator's K is per second (times T), a lead's s is per second (over T).
     scale_a = ts if form.integrating else 1.0
-    num_a = np.convolve(den, np.diff(np.concatenate([[0.0], s_a])))[:order + 1] * scale_a
+    num_a = np.convolve(den, pulse_response(s_a))[:order + 1] * scale_a
     if not form.lead:
         return num_a[form.offset:], None, den
-    num_b = np.convolve(den, np.diff(np.concatenate([[0.0], s_b])))[:order + 1] * (scale_a / ts)
+    num_b = np.convolve(den, pulse_response(s_b))[:order + 1] * (scale_a / ts)
     return num_a[form.offset:], num_b[form.offset:], den
 
 
