@@ -86,8 +86,8 @@ def test_a_repeated_lag_needs_its_k_p_to_the_k_response():
 
 
 def test_the_lag_poles_of_a_first_order_row_are_those_of_the_element_by_element_clustering():
-    """A row of first-order elements is rounded at once: the poles (rounded, deduplicated, sorted) that
-    the clustering of each element's poles gives, integrators, zero poles and static elements left out."""
+    """A row of first-order elements: each element's pole rounded, deduplicated and sorted, integrators,
+    zero poles and static elements left out."""
     from mpm_monitor.core.discretize import INTEGRATOR_TOLERANCE
 
     rng = np.random.default_rng(11)

@@ -207,17 +207,9 @@ class DiscreteElements:
         Each element's poles are rounded to 12 digits; poles of one element closer than
         :data:`REPEATED_POLE_TOLERANCE` are one repeated pole; across elements a pole keeps its
         largest multiplicity.  Integrators (pole 1), poles at 0 and complex poles are left out.
-        A row of first-order elements (at most one pole each) is rounded in one call.
         """
         out = {}
-        columns = np.flatnonzero(self.active[i])
-        dens = [self.denominators[i][j] for j in columns]
-        if all(a.size <= 2 for a in dens):
-            for v in np.round(np.array([-a[1] for a in dens if a.size == 2]), 12).tolist():
-                if 0.0 < v < 1.0 - INTEGRATOR_TOLERANCE:
-                    out[v] = 1
-            return dict(sorted(out.items()))
-        for j in columns:
+        for j in np.flatnonzero(self.active[i]):
             p = self.poles(i, j)
             p = np.real(p[np.abs(np.imag(p)) < REPEATED_POLE_TOLERANCE])
             clusters = []
