@@ -340,13 +340,56 @@ def test_off_grid_stamp(tmp_path):
     _check(e, str(bag), "'/setpoint'", "stamp 102.2 s is off the sample grid")
 
 
-def test_a_stamp_from_before_the_clock_was_set_costs_one_sample_not_a_grid_over_the_jump(tmp_path):
-    """Every topic's first message stamped 0 (the clock not yet set), the rest on the wall clock: the
-    topics are intersected sample by sample (a dense grid from 0 to 1.7e9 s would need 12 GB)."""
+def test_a_stamp_from_before_the_clock_was_set_is_left_out_with_a_note(tmp_path, capsys):
+    """Every topic's first message stamped 0 (the clock not yet set, or a publisher that never fills
+    the stamp), the rest on the wall clock: those messages cannot be placed on the grid, so they are
+    left out and said, not read as a sample 1.7e9 s before the others (a 3.4e9-sample gap)."""
     r, u, y = _samples(300)
-    stamps = np.concatenate([[0], 1_700_000_000 * 10**9 + np.arange(299) * int(MODEL.sample_time * 1e9)])
+    wall = 1_700_000_000 * 10**9
+    stamps = np.concatenate([[0], wall + np.arange(299) * int(MODEL.sample_time * 1e9)])
     bag = write_bag(tmp_path / "bag", r, u, y, stamps=stamps)
     data = read_bag(bag, MODEL)
-    assert data.n_samples == 300
+    assert data.n_samples == 299 and data.segments == [(0, 299)]
+    np.testing.assert_array_equal(data.y, y[1:])
+    assert data.t[0] == pytest.approx(wall / 1e9)
+    assert len(data.notes) == 3
+    assert all(n.startswith(f"{bag}: topic '/") and "1 message of 300 with an unset header.stamp (0" in n
+               for n in data.notes)
+    # The note leads the report's warnings, and the export says it too.
+    model_file = tmp_path / "model.yaml"
+    save_model(MODEL, model_file)
+    from mpm_monitor.core.analysis import AnalysisOptions, detect
+
+    report = detect(MODEL, data, AnalysisOptions(na=1, nb=2, repair=False, element_response=False))
+    assert report.warnings[:3] == list(data.notes) and report.gaps is None
+    assert cli_main(["export", "--bag", str(bag), "--csv", str(tmp_path / "x.csv"), "--model", str(model_file)]) == 0
+    out = capsys.readouterr()
+    assert "wrote 299 samples" in out.out and out.err.count("unset header.stamp") == 3
+
+
+def test_an_unset_stamp_in_the_middle_is_a_gap(tmp_path):
+    r, u, y = _samples(40)
+    stamps = 1_700_000_000 * 10**9 + np.arange(40) * int(MODEL.sample_time * 1e9)
+    stamps[17] = 0
+    bag = write_bag(tmp_path / "bag", r, u, y, stamps=stamps)
+    data = read_bag(bag, MODEL)
+    assert data.segments == [(0, 17), (17, 39)]
+    np.testing.assert_array_equal(data.u, np.delete(u, 17, axis=0))
+    assert len(data.notes) == 3
+
+
+def test_a_bag_on_simulated_time_keeps_its_sample_at_zero(tmp_path):
+    r, u, y = _samples(12)
+    stamps = np.arange(12) * int(MODEL.sample_time * 1e9)   # sim time from 0: stamp 0 is a real sample
+    bag = write_bag(tmp_path / "bag", r, u, y, stamps=stamps)
+    data = read_bag(bag, MODEL)
+    assert data.n_samples == 12 and data.notes == ()
     np.testing.assert_array_equal(data.y, y)
-    assert data.t[1] - data.t[0] == pytest.approx(1.7e9)
+
+
+def test_a_topic_whose_stamps_are_all_unset_is_refused(tmp_path):
+    r, u, y = _samples(6)
+    bag = write_bag(tmp_path / "bag", r, u, y, stamps=np.zeros(6, dtype=np.int64))
+    with pytest.raises(BagError) as e:
+        read_bag(bag, MODEL)
+    _check(e, str(bag), "every message has an unset header.stamp (0)", "fill in header.stamp")

@@ -308,7 +308,8 @@ def _cmd_demo(args) -> int:
 def _cmd_export(args) -> int:
     from ..io.bags import export_csv
 
-    n = export_csv(args.bag, args.csv, model_path=args.model, topics=_topics(args))
+    n = export_csv(args.bag, args.csv, model_path=args.model, topics=_topics(args),
+                   warn=lambda note: print(f"warning: {note}", file=sys.stderr))
     print(f"wrote {n} samples to {args.csv}")
     return 0
 

@@ -56,6 +56,10 @@ class LoggedData:
     deviations : bool
         ``u``, ``y`` and ``r`` are already deviations from the model's operating point
         (:func:`in_deviations`); default False (as logged).
+    notes : tuple of str
+        What the reader did to the data that the user should know, one sentence each (for example
+        messages of a bag left out because their stamp was unset); the analysis puts them first in
+        its report's warnings.  Default none.
     """
 
     t: np.ndarray
@@ -71,9 +75,11 @@ class LoggedData:
     extra: dict = dataclasses.field(default_factory=dict)
     unusable: dict = dataclasses.field(default_factory=dict)
     deviations: bool = False
+    notes: tuple = ()
 
     def __post_init__(self):
         self.disturbances = tuple(self.disturbances)
+        self.notes = tuple(self.notes)
         if self.dv is None:
             self.dv = np.zeros((np.shape(self.t)[0], len(self.disturbances)))
 

@@ -39,6 +39,11 @@ from .common import (
 
 #: A stamp may lie this fraction of the sample time off the sample grid and still be aligned.
 GRID_TOLERANCE = 0.1
+#: A header stamp of exactly 0 is unset (a publisher that never filled it in, or a clock not yet set)
+#: when the bag's other stamps are wall-clock times, later than this many seconds since the epoch
+#: (2001-09-09); such messages are left out, with a note.  A bag on simulated time that starts at 0
+#: keeps its first sample.
+WALL_CLOCK_S = 1e9
 #: Bags with at least this many messages on the read topics get a progress bar (``progress=True``).
 LONG_BAG_MESSAGES = 20_000
 
@@ -182,8 +187,31 @@ def _first_names(reader, path, topics) -> dict:
     return names
 
 
+def _without_unset_stamps(path, series: dict) -> tuple:
+    """The series without their messages of unset stamp (0 among wall-clock stamps: :data:`WALL_CLOCK_S`),
+    and the notes that say how many each topic lost."""
+    for s in series.values():
+        if s.stamps.size > 1 and not s.stamps.any():
+            raise BagError(f"{path}: topic '{s.topic}': every message has an unset header.stamp (0); the samples "
+                           f"are aligned by stamp: the publisher must fill in header.stamp")
+    stamped = [s.stamps[s.stamps != 0] for s in series.values()]
+    if not all(st.size and st[0] > WALL_CLOCK_S * 1e9 for st in stamped):
+        return series, ()
+    kept, notes = {}, []
+    for role, s in series.items():
+        unset = s.stamps == 0
+        n = int(unset.sum())
+        kept[role] = dataclasses.replace(s, stamps=s.stamps[~unset], values=s.values[~unset]) if n else s
+        if n:
+            notes.append(f"{path}: topic '{s.topic}': {n} message{'s' if n != 1 else ''} of {s.stamps.size} with an "
+                         f"unset header.stamp (0, among wall-clock stamps) left out; the samples are aligned by "
+                         f"stamp, so {'these' if n != 1 else 'this'} cannot be placed")
+    return kept, tuple(notes)
+
+
 def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances=()) -> LoggedData:
     """Put the topics on one sample grid (every sample at most once per topic; the samples a topic lacks are gaps)."""
+    series, notes = _without_unset_stamps(path, series)
     ts_ns = sample_time * 1e9
     origin = min(int(s.stamps[0]) for s in series.values())
     ks = {}
@@ -218,7 +246,7 @@ def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances
     dv = out.get("disturbance")
     return LoggedData(t=t, r=out["setpoint"], u=out["input"], y=out["output"], inputs=tuple(inputs),
                       outputs=tuple(outputs), sample_time=float(sample_time), source=str(path), dv=dv,
-                      disturbances=tuple(disturbances) if dv is not None else ())
+                      disturbances=tuple(disturbances) if dv is not None else (), notes=notes)
 
 
 def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, progress=False) -> LoggedData:
@@ -311,7 +339,8 @@ def read_bag_channels(path, topics: Sequence[str] = DEFAULT_TOPICS, sample_time:
                   dv.names if dv is not None else ())
 
 
-def export_csv(bag, csv, model_path=None, topics: Sequence[str] = DEFAULT_TOPICS, progress=False) -> int:
+def export_csv(bag, csv, model_path=None, topics: Sequence[str] = DEFAULT_TOPICS, progress=False,
+               warn=None) -> int:
     """Write a bag's setpoint, input, output (and disturbance) topics as a CSV log.
 
     The format is that of docs/interfaces.md, "Logged data (CSV)".
@@ -328,6 +357,9 @@ def export_csv(bag, csv, model_path=None, topics: Sequence[str] = DEFAULT_TOPICS
     topics : sequence of 3 or 4 str
         As :func:`read_bag` (with a model) or :func:`read_bag_channels` (without).
     progress : bool or file-like
+    warn : callable, optional
+        Called with each of the reader's notes (:attr:`~mpm_monitor.core.logged_data.LoggedData.notes`,
+        for example messages left out for an unset stamp), one line each.
 
     Returns
     -------
@@ -344,6 +376,8 @@ def export_csv(bag, csv, model_path=None, topics: Sequence[str] = DEFAULT_TOPICS
         write_log_csv(csv, data)
     except OSError as exc:
         raise InputError(f"{csv}: cannot write CSV file: {exc.strerror or exc}") from None
+    for note in data.notes if warn is not None else ():
+        warn(note)
     return data.n_samples
 
 
