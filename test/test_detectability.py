@@ -322,13 +322,8 @@ def test_every_element_of_a_well_excited_square_loop_gets_a_value():
     assert all(np.isfinite(e.detectable_gain_change) for e in rep.elements)
 
 
-def test_an_element_the_model_lacks_is_valued_at_the_full_level(monkeypatch):
-    """Only an element with the whole-response test shares its window test's level with it: the
-    element the model lacks (window test alone) is valued at alpha / (2 m), the others at alpha / (4 m)."""
-    case = paper_case("3.1")
-    model = case.model.with_element(0, 1, gain=0.0)
-    log = run_closed_loop(model, model, 2000, seed=5, mpc=case.mpc, excitation=case.excitation,
-                          disturbance=case.disturbance)
+def _kept_information(monkeypatch):
+    """detect()'s WindowInformation objects, kept as they are made."""
     made = []
 
     class Keep(det.WindowInformation):
@@ -337,6 +332,62 @@ def test_an_element_the_model_lacks_is_valued_at_the_full_level(monkeypatch):
             made.append(self)
 
     monkeypatch.setattr(det, "WindowInformation", Keep)
+    return made
+
+
+def test_the_experiment_counts_the_whole_response_test_and_a_dithers_share_of_it(fat, monkeypatch):
+    """The prediction takes, per target, the better of the window test and the whole-response test,
+    whose information a dither on the element's input raises by a^2 sum h^2 / sigma^2 per sample
+    (checked against python-control's ZOH of the element driven by a PRBS, filtered by A_i)."""
+    import control
+
+    data, _ = fat
+    made = _kept_information(monkeypatch)
+    rep = detect(FAT_MODEL, data, FAST)
+    info = made[-1]
+    targets = sorted((FAT_MODEL.outputs.index(o), FAT_MODEL.inputs.index(i)) for o, i in rep.ambiguous_elements)
+    assert set(info.responses) == set(targets)                 # every element of the fat model had the test
+    pred = exm._Predictor(info, targets, FAST.alpha, FAST.collinearity_threshold, regression_layout(FAT_MODEL, FAST),
+                          info.testable)
+    key = (1, 2)                                                # (y2, u3)
+    a = 0.3
+    own = pred.response_rate(key, {})
+    assert own == info.responses[key][0]
+    added = pred.response_rate(key, {2: a}) - own
+    assert pred.response_rate(key, {3: a}) == own               # a dither on another input adds nothing here
+    # Reference: the element as python-control samples it (ZOH, then the dead time), a +-a PRBS through it,
+    # A_i(q) applied, its mean square over the row's noise variance.
+    gain, tau, delay = FAT_MODEL.gain[1, 2], FAT_MODEL.time_constant[1, 2], int(FAT_MODEL.delay[1, 2])
+    sysd = control.sample_system(control.tf([gain], [tau, 1.0]), FAT_MODEL.sample_time, method="zoh")
+    rng = np.random.default_rng(5)
+    n = 400_000
+    dither = a * np.where(rng.random(n) < 0.5, -1.0, 1.0)
+    x = np.asarray(control.forced_response(sysd, T=np.arange(n) * FAT_MODEL.sample_time, U=dither).outputs)
+    x = np.concatenate([np.zeros(delay), x[:n - delay]])
+    nz = info.noise[key[0]]
+    xf = lfilter(np.concatenate([[1.0], nz.a]), [1.0], x)[1000:]
+    assert added == pytest.approx(np.mean(xf ** 2) / nz.sigma2, rel=0.02)
+    # Each target needs the smaller of its two tests' rows, so the experiment is never longer than
+    # the window test alone would ask; here (u3 and u4 dithered) it is shorter.
+    p = info.G.shape[0]
+    sep, drops, fam = pred.evaluate({2: 0.186, 3: 0.198})
+    alone = {k: (q, 0.0) for k, (q, _) in drops.items()}
+    for k, (q, rate) in drops.items():
+        both = pred._need(k, q, rate, fam, 3000, p)
+        assert both == min(pred._need(k, q, 0.0, fam, 3000, p), pred._need(k, 0.0, rate, fam, 3000, p))
+    assert sep and pred.samples_needed(drops, fam, p) < 0.9 * pred.samples_needed(alone, fam, p)
+    assert pred.worst_at(drops, fam, 2400, p) < pred.worst_at(alone, fam, 2400, p)
+    assert rep.experiment.samples <= pred.samples_needed(drops, fam, p) + exm.SAMPLES_STEP
+
+
+def test_an_element_the_model_lacks_is_valued_at_the_full_level(monkeypatch):
+    """Only an element with the whole-response test shares its window test's level with it: the
+    element the model lacks (window test alone) is valued at alpha / (2 m), the others at alpha / (4 m)."""
+    case = paper_case("3.1")
+    model = case.model.with_element(0, 1, gain=0.0)
+    log = run_closed_loop(model, model, 2000, seed=5, mpc=case.mpc, excitation=case.excitation,
+                          disturbance=case.disturbance)
+    made = _kept_information(monkeypatch)
     rep = detect(model, log.as_logged_data(), dataclasses.replace(FAST, test_all_rows=True))
     info, = made
     assert info.split == 2

@@ -305,6 +305,10 @@ class WindowInformation:
         Standard deviation of every input over the window.
     targets : dict
         ``(i, j)`` -> :class:`ElementTarget` (absent when the model has no element at all).
+    responses : dict
+        ``(i, j)`` -> ``(information per regression row, numerator degrees of freedom)`` of the
+        whole-response test of the targets that had one (:func:`element_detectability` sets it; empty
+        otherwise): the experiment design adds a dither's share to it.
     """
 
     def __init__(self, model: PlantModel, u: np.ndarray, d: np.ndarray, testable: list, n_lag: int, start: int,
@@ -325,6 +329,7 @@ class WindowInformation:
         self.std = u.std(axis=0)
         self.own = {}
         self.targets = {}
+        self.responses = {}
         n_imp = max(n_lag + 2, min(u.shape[0], IMPULSE_SAMPLES))
         for i, nz in noise.items():
             self._row_targets(moments.take(i), np.concatenate([[1.0], nz.a]), n_imp, windows)
@@ -633,6 +638,8 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
         if key in values and values[key] is not None and t.information > 0:
             lam = required_noncentrality(t.df_num, t.df_den, level)
             values[key] = min(values[key], float(np.sqrt(lam / t.information)))
+            if key in info.targets and np.isfinite(t.information):
+                info.responses[key] = (float(t.information) / info.n_rows, int(t.df_num))
     warnings = []
     if exact:
         warnings.append(f"output{'s' if len(exact) > 1 else ''} {', '.join(model.outputs[i] for i in exact)}: the "

@@ -14,7 +14,10 @@ per sample, a white dither of amplitude ``a_j`` on input ``j`` adds ``a_j^2 I`` 
 ``j``'s lags (``Z'Z / n``) and ``a_j^2 h_ij(l)`` to the cross moments of lag ``l`` with the target of
 element ``(i, j)`` (``h_ij`` the impulse response of ``A_i(q) Phat_ij(q)``); the closed loop's own
 excitation stays as it was.  With these moments the detectable gain change of a window of ``N``
-samples is the one of :mod:`mpm_monitor.core.detectability` (``q`` grows as ``N``), and the
+samples is the one of :mod:`mpm_monitor.core.detectability` (``q`` grows as ``N``); an element the
+model has also gets its whole-response test's, from the window's information of that test per
+sample plus the dither's share on the element's input (:meth:`_Predictor.response_rate`), and
+takes the smaller of the two (it is located when either test rejects).  The
 separation of the inputs is the variance inflation of every lag block (as
 :class:`~mpm_monitor.core.element_test.InputDesign` decides it, with a margin of
 :data:`SEPARATION_MARGIN`).
@@ -117,11 +120,14 @@ class _Predictor:
         self.inputs = sorted({j for _, j in targets})
         self.n_rows_tested = len(info.noise)
         self._lam = {}
+        self._energy = {}
 
     def evaluate(self, amplitudes: dict) -> tuple:
-        """(separated, per-sample drop of every target, family size) with these dither amplitudes.
+        """(separated, per-sample information of every target, family size) with these dither amplitudes.
 
-        The drops are None when the inputs are not separated.
+        The information is ``{key: (q, rate)}``: the per-sample drop ``q`` of the window test
+        (:class:`WindowInformation`) and the per-sample information ``rate`` of the whole-response
+        test (0 for a target without one); None when the inputs are not separated.
         """
         info = self.info
         L = info.n_lag
@@ -144,7 +150,29 @@ class _Predictor:
             part = self.targets[a:a + CHUNK]
             st = info.stacked(part, H, amplitudes)
             worse.append(np.minimum(*(info.drops(part, H, [sign * GOAL] * len(part), stacked=st) for sign in (1, -1))))
-        return True, dict(zip(self.targets, np.concatenate(worse).tolist() if worse else [])), family
+        drops = np.concatenate(worse).tolist() if worse else []
+        return True, {key: (q, self.response_rate(key, amplitudes)) for key, q in zip(self.targets, drops)}, family
+
+    def response_rate(self, key, amplitudes: dict) -> float:
+        """Per-sample information of target ``key``'s whole-response test with these dither amplitudes.
+
+        The window's own (``WindowInformation.responses``, 0 when the target had no such test) plus
+        the dither's on the target's input: a white dither of amplitude ``a`` adds ``a^2 sum_l h(l)^2``
+        to the per-sample energy of the test's regressor ``A_i(q) Phat_ij u_j`` (``h`` the
+        target's :attr:`~mpm_monitor.core.detectability.ElementTarget.filtered` impulse response),
+        independent of the other regressors, so ``a^2 sum h^2 / sigma_i^2`` to its information.  The
+        dither's effect on the other inputs' collinearity with it is left out (it only adds).
+        """
+        own = self.info.responses.get(key)
+        if own is None:
+            return 0.0
+        a = amplitudes.get(key[1], 0.0)
+        if not a:
+            return own[0]
+        if key not in self._energy:
+            h = self.info.targets[key].filtered
+            self._energy[key] = float(h @ h)
+        return own[0] + a * a * self._energy[key] / self.info.noise[key[0]].sigma2
 
     def _lambda(self, k: int, rows: float, p: int, na: int, level: float) -> float:
         key = (k, max(int(rows) - p - na, 1), level)
@@ -157,34 +185,34 @@ class _Predictor:
         whole-response test too (:meth:`WindowInformation.split_of`)."""
         return self.info.level(family, self.alpha, self.info.split_of(key))
 
+    def _need(self, key, q: float, rate: float, family: int, rows: float, p: int) -> float:
+        """``delta^2 x`` rows target ``key`` needs for a gain change ``delta`` detected with probability
+        0.9: the smaller of its window test's ``lambda sigma^2 / q`` and its whole-response test's
+        ``lambda / rate`` (the element is located when either rejects); infinite without information."""
+        info = self.info
+        nz = info.noise[key[0]]
+        level = self._level(key, family)
+        need = self._lambda(info.targets[key].tested.size, rows, p, nz.a.size, level) * nz.sigma2 / q \
+            if q > 0 else math.inf
+        if rate > 0:
+            need = min(need, self._lambda(info.responses[key][1], rows, p, nz.a.size, level) / rate)
+        return need
+
     def samples_needed(self, drops: dict, family: int, p: int) -> float:
         """Samples for :data:`GOAL` on every target (infinite when some target gets no information)."""
-        info = self.info
-        worst = {}                     # per (tested lags, na, level): the largest sigma^2 / q
-        for key, q in drops.items():
-            t = info.targets[key]
-            nz = info.noise[t.output]
-            if not q > 0:
-                return math.inf
-            g = (t.tested.size, nz.a.size, self._level(key, family))
-            worst[g] = max(worst.get(g, 0.0), nz.sigma2 / q)
         rows = 3000.0
         for _ in range(3):
-            rows = max(max(self._lambda(k, rows, p, na, level) * w / GOAL ** 2 for (k, na, level), w in worst.items()),
-                       p + 60.0)
+            worst = max((self._need(key, q, rate, family, rows, p) for key, (q, rate) in drops.items()), default=0.0)
+            if not math.isfinite(worst):
+                return math.inf
+            rows = max(worst / GOAL ** 2, p + 60.0)
         return rows + self.start
 
     def worst_at(self, drops: dict, family: int, samples: int, p: int) -> float:
         """Largest detectable change of the targets on ``samples`` samples."""
-        info = self.info
         rows = max(samples - self.start, 1)
-        worst = 0.0
-        for key, q in drops.items():
-            t = info.targets[key]
-            nz = info.noise[t.output]
-            lam = self._lambda(t.tested.size, rows, p, nz.a.size, self._level(key, family))
-            worst = max(worst, math.sqrt(lam * nz.sigma2 / (q * rows)) if q > 0 else math.inf)
-        return worst
+        worst = max((self._need(key, q, rate, family, rows, p) for key, (q, rate) in drops.items()), default=0.0)
+        return math.sqrt(worst / rows) if math.isfinite(worst) else math.inf
 
 
 def _caps(info: WindowInformation, model, candidates: list) -> tuple:
