@@ -10,6 +10,9 @@
   gain change of the row fitted exactly is not computed, with no numpy warning.
 - A loop that diverged past the scale the analysis takes: the message says the loop diverged.
 - A log in very small units (1e-12): its inputs move; the same elements are located.
+- A flat log without noise (nothing moves, the outputs constant, while the model's output moves
+  from rest): no traceback from an empty setpoint block, its fits count as exact on the scale of the
+  prediction error (the output's spread is 0), and no experiment of a 1e-16 dither is recommended.
 """
 
 import dataclasses
@@ -130,6 +133,30 @@ def test_a_log_without_noise_and_without_mismatch_raises_no_alarm():
         assert all(r.p_value == 1.0 for r in report.rows)
         assert report.located_elements == []
         assert all(e.p_value == 1.0 for e in report.elements)
+
+
+def test_a_flat_log_without_noise_is_analysed_and_recommends_no_vanishing_dither(tmp_path, capsys):
+    from mpm_monitor.apps.cli import main as cli_main
+    from mpm_monitor.core.logged_data import LoggedData
+    from mpm_monitor.io.csv_log import write_log_csv
+    from mpm_monitor.io.model_file import save_model
+
+    n = 1500
+    data = LoggedData(t=np.arange(n, dtype=float), r=np.zeros((n, 2)), u=np.full((n, 2), 0.5), y=np.zeros((n, 2)),
+                      inputs=PLANT.inputs, outputs=PLANT.outputs, sample_time=1.0, source="flat.csv")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        report = analyze(PLANT, data, AnalysisOptions())
+    assert report.located_elements == [] and not any(r.mismatch for r in report.rows)
+    assert report.experiment is None
+    assert all(e.detectable_gain_change is None for e in report.elements)
+    assert any("fitted exactly" in w for w in report.warnings) and any("never move" in w for w in report.warnings)
+    # The command line: the same, exit 0, no traceback.
+    save_model(PLANT, tmp_path / "m.yaml")
+    write_log_csv(tmp_path / "flat.csv", data)
+    assert cli_main(["analyze", "--model", str(tmp_path / "m.yaml"), "--data", str(tmp_path / "flat.csv")]) == 0
+    out = capsys.readouterr()
+    assert "Traceback" not in out.err and "experiment recommended" not in out.out
 
 
 def test_a_diverged_loop_past_the_scale_is_named_as_diverged():

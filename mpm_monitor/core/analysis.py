@@ -515,9 +515,12 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
                                          segments=plan.local_segments)
 
     # A fit that leaves at most EXACT_FIT of its output's spread is exact (a log without noise): its tests
-    # decide outright instead of on the rounding of its residual.  A diverging output's spread (its last
-    # samples') is no scale for that rounding: there only a residual of exactly 0 is exact.
-    spread = np.std(y, axis=0)
+    # decide outright instead of on the rounding of its residual.  The spread is the larger of the
+    # output's and of its prediction error's (the signal the tests fit): an output that never moves
+    # (a flat, noise-free log) still leaves the rounding of a moving model output.  A diverging
+    # output's spread (its last samples') is no scale for that rounding: there only a residual of
+    # exactly 0 is exact.
+    spread = np.maximum(np.std(y, axis=0), np.std(sig.d, axis=0))
     spread[[model.outputs.index(name) for name in diverged]] = 0.0
     row_test = sdelta_row_test(model, r, sig.eps, regressions, layout, options, output_spread=spread)
     rows = row_test.rows

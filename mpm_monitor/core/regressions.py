@@ -557,6 +557,8 @@ def _frobenius(a: np.ndarray) -> float:
 
 def _trmv(t: np.ndarray, x: np.ndarray, trans: bool) -> np.ndarray:
     """``t x`` (``t' x`` with ``trans``) of an upper triangular ``t`` (BLAS ``dtrmv``: half the reads of a product)."""
+    if t.shape[0] == 0:                           # BLAS refuses an empty vector
+        return np.zeros(0)
     if t.flags.f_contiguous:
         return blas.dtrmv(t, x, lower=0, trans=int(trans))
     if t.flags.c_contiguous:                      # t' is a Fortran-ordered lower triangle
