@@ -1,0 +1,37 @@
+"""bench.experiment_mc's goal check: the hardest target of an experiment given a 20 % gain error."""
+
+import pytest
+
+from bench.experiment_mc import ALPHA, _decisions, _goal_summary, dithered_log, one
+from bench.scenarios import make_scenario
+
+
+def test_goal_summary_counts_by_the_reruns_own_value():
+    checks = [{"detectable_rerun": 0.15, "located": [True, True, False]},
+              {"detectable_rerun": 0.25, "located": [False, True]},
+              {"detectable_rerun": 0.2, "located": [True]}]
+    s = _goal_summary(checks)["goal_check"]
+    assert s["all"] == {"experiments": 3, "runs": 6, "located": 4, "rate": pytest.approx(4 / 6)}
+    assert s["rerun_at_most_goal"]["runs"] == 4 and s["rerun_at_most_goal"]["located"] == 3
+    assert s["rerun_above_goal"] == {"experiments": 1, "runs": 2, "located": 1, "rate": 0.5}
+    assert _goal_summary([]) == {}
+
+
+def test_the_goal_check_errs_the_hardest_unmismatched_target_of_the_experiment():
+    rec = one(0, 4, 3000, goal_repeats=1)           # a 5x8 loop whose experiment is predicted to reach the goal
+    assert rec["experiment"]["expected_detectable_gain_change"] <= 0.2 + 1e-9
+    g = rec["goal_check"]
+    sc = make_scenario(0, 4)
+    i, j = sc.model.outputs.index(g["target"][0]), sc.model.inputs.index(g["target"][1])
+    assert (i, j) not in {(m.output, m.input) for m in sc.mismatches} and sc.model.present[i, j]
+    assert g["sign"] in (-1.0, 1.0) and len(g["located"]) == 1 and isinstance(g["located"][0], bool)
+    # Independently: the re-run's largest value among the experiment's targets that qualify.
+    model = sc.model
+    rep2, _ = _decisions(model, dithered_log(sc, rec["experiment"]["dither"], rec["experiment"]["samples"]), ALPHA)
+    targets = {tuple(k) for k in rec["results"]["arx"]["ambiguous"]}
+    values = [e.detectable_gain_change for e in rep2.elements
+              if (model.outputs.index(e.output), model.inputs.index(e.input)) in targets and not e.mismatch
+              and model.present[model.outputs.index(e.output), model.inputs.index(e.input)]
+              and (model.outputs.index(e.output), model.inputs.index(e.input)) not in
+              {(m.output, m.input) for m in sc.mismatches}]
+    assert g["detectable_rerun"] == max(values)
