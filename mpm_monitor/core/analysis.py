@@ -113,6 +113,12 @@ class AnalysisOptions:
         :func:`mpm_monitor.core.repair.explained_elements`).  This runs the repair's
         classification of those rows also when ``repair`` is off, so the located elements do not
         depend on ``repair``.
+    drop_spikes : bool
+        :func:`~mpm_monitor.core.pipeline.analyze` leaves out the samples of the log's spikes (one to
+        three samples that leave a channel by more than 10 robust standard deviations of its
+        sample-to-sample changes and come back; :mod:`mpm_monitor.core.spikes`) as missing samples,
+        and its report's warnings name them (default True).  One such sample dominates every
+        least-squares fit of the tests.  :func:`detect` alone does not screen.
     max_gap : int or None
         Data with gaps (docs/interfaces.md, "Gaps") are analysed segment by segment, stacked, however
         long the gaps; a gap longer than ``max_gap`` samples (default None: the longest lag of the
@@ -145,6 +151,9 @@ class AnalysisOptions:
     release_explained: bool = option(True, "Where a row has several located elements, re-estimate them jointly and "
                                            "release one that does not differ from the model while another does "
                                            "(its finding was the other's mismatch).")
+    drop_spikes: bool = option(True, "Leave out as missing samples the spikes of the log (one to three samples that "
+                                     "leave a channel by more than 10 robust standard deviations of its changes and "
+                                     "come back), with a warning naming them.")
     max_gap: Optional[int] = option(None, "Longest gap in the data (missing samples) called short, samples; longer "
                                           "gaps are named louder in the warning (None: the longest lag of the "
                                           "tests).", low=0, high=10**9)

@@ -51,6 +51,10 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
         any missing element; one whose repair the validation rejects is left out of the repaired
         model.  The report's ``candidates.added`` names those added.
 
+    With ``options.drop_spikes`` (and neither ``signals`` nor ``regressions`` given, which belong to
+    the data as given) the samples of the log's spikes are left out first, as missing samples
+    (:func:`mpm_monitor.core.spikes.without_spikes`); a warning names them.
+
     Returns
     -------
     AnalysisReport
@@ -68,6 +72,10 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
         :func:`~mpm_monitor.core.logged_data.numerical_breakdown`, the numpy error as its ``__cause__``).
     """
     data = in_deviations(model, data)
+    if options.drop_spikes and signals is None and regressions is None:
+        from .spikes import without_spikes
+
+        data, _ = without_spikes(data)
     try:
         return _analyze(model, data, options, signals, regressions, candidates)
     except NUMERICAL_ERRORS as err:

@@ -1,0 +1,197 @@
+"""Isolated spikes in a log: one to three samples that leave a channel's course and come back.
+
+A historian export or a bag often holds a few bad samples: a transmitter glitch, a communication
+error, a placeholder written for a value of bad quality.  One such sample, tens of standard
+deviations off, dominates every least-squares fit of the tests: on a 3x3 loop whose mismatch is
+located at ``p < 1e-10``, one spike of 1,000 units on the outputs leaves every row at ``p = 1``
+and nothing located.  :func:`find_spikes` finds them and :func:`without_spikes` leaves their
+samples out, as missing samples (docs/interfaces.md, "Gaps"): a spike costs only the regression
+rows whose lags reach it, and nothing is interpolated.
+
+A burst of ``m`` samples (``1 <= m <=`` :data:`MAX_SPIKE`) of channel ``x`` between the samples
+``lo`` and ``hi`` (both logged, adjacent on the grid) is a spike when
+
+* every sample of the burst lies beyond both ``lo`` and ``hi`` on the same side, by more than
+  :data:`SPIKE_THRESHOLD` times the channel's robust scale of sample-to-sample changes
+  (:data:`NORMAL_MAD` times the median absolute deviation of its first differences within the segments;
+  the median nonzero ``|change|`` where that is 0, as for a quantized channel), and
+* the channel comes back: ``|hi - lo|`` is at most :data:`RETURN_FRACTION` of the excursion.
+
+A step (the channel stays at its new level), a ramp, or a controller's kick that decays (it does
+not come back within the burst) is not a spike.  The first and last samples of a segment have one
+neighbour only and are never called spikes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .logged_data import LoggedData
+
+#: A spike leaves the channel's course by more than this many robust standard deviations of its
+#: sample-to-sample changes (on Gaussian noise such an excursion never happens).
+SPIKE_THRESHOLD = 10.0
+#: Longest burst of samples called a spike.
+MAX_SPIKE = 3
+#: The channel must come back: ``|hi - lo|`` at most this fraction of the excursion.
+RETURN_FRACTION = 0.25
+#: Spikes named in the note, at most.
+NAMED_SPIKES = 3
+#: The median absolute deviation of a normal sample times this is its standard deviation (1 / Phi^-1(3/4)).
+NORMAL_MAD = 1.482602218505602
+
+
+def change_scale(x: np.ndarray, segments: list) -> float:
+    """Robust standard deviation of a channel's sample-to-sample changes within ``segments``.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n_samples,)
+    segments : list of (int, int)
+        Contiguous runs of samples (no change is taken across a gap).
+
+    Returns
+    -------
+    float
+        :data:`NORMAL_MAD` times the median absolute deviation of the first differences; the median
+        of the nonzero ``|differences|`` when that is 0 (a quantized or mostly constant channel); 0
+        when the channel never changes.  Channel units.
+    """
+    return float(change_scales(np.asarray(x, dtype=float)[:, None], segments)[0])
+
+
+def change_scales(X: np.ndarray, segments: list) -> np.ndarray:
+    """:func:`change_scale` of every column of ``X`` (shape (n_samples, n_channels)), shape (n_channels,)."""
+    Xt = np.ascontiguousarray(np.asarray(X, dtype=float).T)          # channels as rows: contiguous medians
+    d = np.concatenate([np.diff(Xt[:, a:b], axis=1) for a, b in segments], axis=1) if segments else \
+        np.zeros((Xt.shape[0], 0))
+    if d.shape[1] == 0:
+        return np.zeros(Xt.shape[0])
+    s = NORMAL_MAD * np.median(np.abs(d - np.median(d, axis=1)[:, None]), axis=1)
+    for c in np.flatnonzero(~(s > 0)):
+        nz = np.abs(d[c][d[c] != 0])
+        s[c] = float(np.median(nz)) if nz.size else 0.0
+    return s
+
+
+def spike_mask(x: np.ndarray, segments: list, threshold: float = SPIKE_THRESHOLD) -> np.ndarray:
+    """Samples of one channel that belong to a spike (module docstring).
+
+    Parameters
+    ----------
+    x : ndarray, shape (n_samples,)
+        The channel, any units.
+    segments : list of (int, int)
+        Its contiguous runs of samples (:attr:`LoggedData.segments`).
+    threshold : float
+        :data:`SPIKE_THRESHOLD`.
+
+    Returns
+    -------
+    ndarray of bool, shape (n_samples,)
+    """
+    return spike_masks(np.asarray(x, dtype=float)[:, None], segments, threshold)[:, 0]
+
+
+def spike_masks(X: np.ndarray, segments: list, threshold: float = SPIKE_THRESHOLD) -> np.ndarray:
+    """:func:`spike_mask` of every column of ``X`` at once.
+
+    Parameters
+    ----------
+    X : ndarray, shape (n_samples, n_channels)
+    segments : list of (int, int)
+    threshold : float
+
+    Returns
+    -------
+    ndarray of bool, shape (n_samples, n_channels)
+        A channel that never changes, or holds a non-finite value, has none.
+    """
+    X = np.asarray(X, dtype=float)
+    mask = np.zeros(X.shape, dtype=bool)
+    limit = threshold * change_scales(X, segments)
+    usable = (limit > 0) & np.all(np.isfinite(X), axis=0)
+    if not usable.any():
+        return mask
+    cols = np.flatnonzero(usable)
+    limit = limit[cols][:, None]
+    Xt = np.ascontiguousarray(X[:, cols].T)                          # channels as rows
+    for a, b in segments:
+        xs = Xt[:, a:b]
+        n = xs.shape[1]
+        # A burst starts with a jump beyond the limit from its left neighbour: only those are examined.
+        rows, starts = np.nonzero(np.abs(np.diff(xs, axis=1)) > limit)
+        starts = starts + 1                                           # first sample of a candidate burst
+        for m in range(1, MAX_SPIKE + 1):
+            ok = starts + m < n                                       # its right neighbour is in the segment
+            r, k = rows[ok], starts[ok]
+            if r.size == 0:
+                continue
+            lo, hi = xs[r, k - 1], xs[r, k + m]
+            burst = np.stack([xs[r, k + t] for t in range(m)])
+            top, bottom = burst.max(axis=0), burst.min(axis=0)
+            excursion = np.maximum(bottom - np.maximum(lo, hi), np.minimum(lo, hi) - top)
+            hit = (excursion > limit[r, 0]) & (np.abs(hi - lo) <= RETURN_FRACTION * excursion)
+            for c, kk in zip(r[hit], k[hit]):
+                mask[a + kk:a + kk + m, cols[c]] = True
+    return mask
+
+
+def find_spikes(data: LoggedData, threshold: float = SPIKE_THRESHOLD) -> dict:
+    """The spikes of every channel the tests use: setpoints, inputs, measured disturbances, outputs.
+
+    Parameters
+    ----------
+    data : LoggedData
+    threshold : float
+
+    Returns
+    -------
+    dict
+        Channel label (``r_<output>``, the input, disturbance or output name) -> bool array of shape
+        (n_samples,), for the channels with at least one spike.
+    """
+    segments = data.segments
+    channels = [(f"r_{name}", data.r[:, i]) for i, name in enumerate(data.outputs)]
+    channels += [(name, data.u[:, j]) for j, name in enumerate(data.inputs)]
+    channels += [(name, data.dv[:, j]) for j, name in enumerate(data.disturbances)]
+    channels += [(name, data.y[:, i]) for i, name in enumerate(data.outputs)]
+    out = {}
+    if not channels:
+        return out
+    masks = spike_masks(np.column_stack([x for _, x in channels]), segments, threshold)
+    for c, (label, _) in enumerate(channels):
+        if masks[:, c].any():
+            out[label] = masks[:, c]
+    return out
+
+
+def without_spikes(data: LoggedData, threshold: float = SPIKE_THRESHOLD) -> tuple:
+    """``data`` with the samples of its spikes left out (missing samples), and a note saying which.
+
+    Returns
+    -------
+    (LoggedData, Optional[str])
+        The data (the same object when there is no spike) and the note (None without spikes); the
+        note is also appended to the data's :attr:`~LoggedData.notes`.
+    """
+    spikes = find_spikes(data, threshold)
+    if not spikes:
+        return data, None
+    bad = np.zeros(data.n_samples, dtype=bool)
+    for mask in spikes.values():
+        bad |= mask
+    parts = []
+    for label, mask in spikes.items():
+        starts = np.flatnonzero(mask & ~np.concatenate([[False], mask[:-1]]))
+        at = ", ".join(f"{data.t[k]:g}" for k in starts[:NAMED_SPIKES]) + (
+            f" and {starts.size - NAMED_SPIKES} more" if starts.size > NAMED_SPIKES else "")
+        parts.append(f"{label} at t = {at} s" if starts.size == 1 else f"{label} {starts.size} times (t = {at} s)")
+    n_bad = int(bad.sum())
+    note = (f"{data.source or 'data'}: spikes (one to {MAX_SPIKE} samples that leave a channel by more than "
+            f"{threshold:g} robust standard deviations of its sample-to-sample changes and come back): "
+            f"{'; '.join(parts)}; their {n_bad} sample{'s' if n_bad != 1 else ''} left out as missing samples, "
+            f"nothing interpolated (option drop_spikes false keeps them)")
+    kept = data.take(np.flatnonzero(~bad))
+    kept.notes = tuple(data.notes) + (note,)
+    return kept, note
