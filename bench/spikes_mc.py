@@ -35,7 +35,7 @@ from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.core.spikes import find_spikes
 from mpm_monitor.sim.cases import CASE_NAMES
 
-from . import imap_tasks, write_json
+from . import map_runs, write_json
 from .monte_carlo import simulate
 from .scenarios import make_scenario
 
@@ -167,11 +167,8 @@ def run(paper_seeds: int, runs: int, seed: int = 0, samples: int = 3000, spikes:
         progress: bool = False, kept: int = 10) -> dict:
     todo = tasks(paper_seeds, runs, seed, samples, spikes, kept)
     t0 = time.perf_counter()
-    records = []
-    for rec in imap_tasks(_run_star, todo, jobs):
-        records.append(rec)
-        if progress:
-            print(f"{len(records)}/{len(todo)}", flush=True)
+    records = map_runs(_run_star, todo, jobs,
+                       progress=(lambda done, total, _: print(f"{done}/{total}", flush=True)) if progress else None)
     records.sort(key=lambda r: (r["kind"], r["name"], r["seed"]))
     return {"config": {"paper_seeds": paper_seeds, "runs": runs, "seed": seed, "samples": samples, "spikes": spikes,
                        "kept": kept, "jobs": jobs, "wall_time_s": time.perf_counter() - t0},
