@@ -568,6 +568,9 @@ class _WholeResponses:
 TAIL_TIME_CONSTANTS = 6.0
 #: ... and at most this fraction of the regression rows.
 TAIL_MAX_FRACTION = 0.1
+#: The tails of all the other located columns of a row together: at most this fraction of the rows
+#: (binds from four located elements in a row on; :func:`_confirm_with_tails`).
+TAIL_TOTAL_FRACTION = 0.25
 
 
 def tail_lags(model: PlantModel, i: int, n_lag: int, n_rows: int) -> int:
@@ -662,6 +665,11 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
         if len(located) < 2:
             continue
         tail = tail_lags(model, i, n_lag, u.shape[0] - start0)
+        # Many located columns (a row whose model is wrong throughout): their tails together at most
+        # TAIL_TOTAL_FRACTION of the rows, or the fits become as wide as the record (and take minutes).
+        budget = int(TAIL_TOTAL_FRACTION * (u.shape[0] - start0))
+        if (len(located) - 1) * tail > budget:
+            tail = max(n_lag, budget // (len(located) - 1))
         if tail <= n_lag:
             continue
         start = max(start0, tail)
