@@ -57,16 +57,16 @@ def change_scale(x: np.ndarray, segments: list) -> float:
         of the nonzero ``|differences|`` when that is 0 (a quantized or mostly constant channel); 0
         when the channel never changes.  Channel units.
     """
-    return float(change_scales(np.asarray(x, dtype=float)[:, None], segments)[0])
+    return float(_change_scales(np.asarray(x, dtype=float)[None, :], segments)[0])
 
 
-def change_scales(X: np.ndarray, segments: list) -> np.ndarray:
-    """:func:`change_scale` of every column of ``X`` (shape (n_samples, n_channels)), shape (n_channels,)."""
-    Xt = np.ascontiguousarray(np.asarray(X, dtype=float).T)          # channels as rows: contiguous medians
-    d = np.concatenate([np.diff(Xt[:, a:b], axis=1) for a, b in segments], axis=1) if segments else \
-        np.zeros((Xt.shape[0], 0))
+def _change_scales(rows: np.ndarray, segments: list) -> np.ndarray:
+    """:func:`change_scale` of every row of ``rows`` (shape (n_channels, n_samples), one channel per
+    row, so that the medians run along contiguous memory), shape (n_channels,)."""
+    d = np.concatenate([np.diff(rows[:, a:b], axis=1) for a, b in segments], axis=1) if segments else \
+        np.zeros((rows.shape[0], 0))
     if d.shape[1] == 0:
-        return np.zeros(Xt.shape[0])
+        return np.zeros(rows.shape[0])
     s = NORMAL_MAD * np.median(np.abs(d - np.median(d, axis=1)[:, None]), axis=1)
     for c in np.flatnonzero(~(s > 0)):
         nz = np.abs(d[c][d[c] != 0])
@@ -90,50 +90,36 @@ def spike_mask(x: np.ndarray, segments: list, threshold: float = SPIKE_THRESHOLD
     -------
     ndarray of bool, shape (n_samples,)
     """
-    return spike_masks(np.asarray(x, dtype=float)[:, None], segments, threshold)[:, 0]
+    return _spike_masks(np.asarray(x, dtype=float)[None, :], segments, threshold)[0]
 
 
-def spike_masks(X: np.ndarray, segments: list, threshold: float = SPIKE_THRESHOLD) -> np.ndarray:
-    """:func:`spike_mask` of every column of ``X`` at once.
-
-    Parameters
-    ----------
-    X : ndarray, shape (n_samples, n_channels)
-    segments : list of (int, int)
-    threshold : float
-
-    Returns
-    -------
-    ndarray of bool, shape (n_samples, n_channels)
-        A channel that never changes, or holds a non-finite value, has none.
-    """
-    X = np.asarray(X, dtype=float)
-    mask = np.zeros(X.shape, dtype=bool)
-    limit = threshold * change_scales(X, segments)
-    usable = (limit > 0) & np.all(np.isfinite(X), axis=0)
-    if not usable.any():
+def _spike_masks(rows: np.ndarray, segments: list, threshold: float) -> np.ndarray:
+    """:func:`spike_mask` of every row of ``rows`` (shape (n_channels, n_samples)) at once, shape
+    (n_channels, n_samples).  A channel that never changes, or holds a non-finite value, has none."""
+    mask = np.zeros(rows.shape, dtype=bool)
+    limit = threshold * _change_scales(rows, segments)
+    usable = np.flatnonzero((limit > 0) & np.all(np.isfinite(rows), axis=1))
+    if not usable.size:
         return mask
-    cols = np.flatnonzero(usable)
-    limit = limit[cols][:, None]
-    Xt = np.ascontiguousarray(X[:, cols].T)                          # channels as rows
     for a, b in segments:
-        xs = Xt[:, a:b]
+        xs = rows[:, a:b]
         n = xs.shape[1]
         # A burst starts with a jump beyond the limit from its left neighbour: only those are examined.
-        rows, starts = np.nonzero(np.abs(np.diff(xs, axis=1)) > limit)
-        starts = starts + 1                                           # first sample of a candidate burst
+        jumps = np.abs(np.diff(xs[usable], axis=1)) > limit[usable, None]
+        chans, starts = np.nonzero(jumps)
+        chans, starts = usable[chans], starts + 1                     # channel, first sample of a candidate
         for m in range(1, MAX_SPIKE + 1):
             ok = starts + m < n                                       # its right neighbour is in the segment
-            r, k = rows[ok], starts[ok]
-            if r.size == 0:
+            c, k = chans[ok], starts[ok]
+            if c.size == 0:
                 continue
-            lo, hi = xs[r, k - 1], xs[r, k + m]
-            burst = np.stack([xs[r, k + t] for t in range(m)])
+            lo, hi = xs[c, k - 1], xs[c, k + m]
+            burst = np.stack([xs[c, k + t] for t in range(m)])
             top, bottom = burst.max(axis=0), burst.min(axis=0)
             excursion = np.maximum(bottom - np.maximum(lo, hi), np.minimum(lo, hi) - top)
-            hit = (excursion > limit[r, 0]) & (np.abs(hi - lo) <= RETURN_FRACTION * excursion)
-            for c, kk in zip(r[hit], k[hit]):
-                mask[a + kk:a + kk + m, cols[c]] = True
+            hit = (excursion > limit[c]) & (np.abs(hi - lo) <= RETURN_FRACTION * excursion)
+            for ch, kk in zip(c[hit], k[hit]):
+                mask[ch, a + kk:a + kk + m] = True
     return mask
 
 
@@ -151,19 +137,13 @@ def find_spikes(data: LoggedData, threshold: float = SPIKE_THRESHOLD) -> dict:
         Channel label (``r_<output>``, the input, disturbance or output name) -> bool array of shape
         (n_samples,), for the channels with at least one spike.
     """
-    segments = data.segments
-    channels = [(f"r_{name}", data.r[:, i]) for i, name in enumerate(data.outputs)]
-    channels += [(name, data.u[:, j]) for j, name in enumerate(data.inputs)]
-    channels += [(name, data.dv[:, j]) for j, name in enumerate(data.disturbances)]
-    channels += [(name, data.y[:, i]) for i, name in enumerate(data.outputs)]
-    out = {}
-    if not channels:
-        return out
-    masks = spike_masks(np.column_stack([x for _, x in channels]), segments, threshold)
-    for c, (label, _) in enumerate(channels):
-        if masks[:, c].any():
-            out[label] = masks[:, c]
-    return out
+    labels = [f"r_{name}" for name in data.outputs] + list(data.inputs) + list(data.disturbances) + \
+        list(data.outputs)
+    if not labels:
+        return {}
+    rows = np.vstack([np.asarray(a, dtype=float).T for a in (data.r, data.u, data.dv, data.y)])
+    masks = _spike_masks(rows, data.segments, threshold)
+    return {label: masks[c] for c, label in enumerate(labels) if masks[c].any()}
 
 
 def without_spikes(data: LoggedData, threshold: float = SPIKE_THRESHOLD) -> tuple:
