@@ -44,7 +44,6 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from mpm_monitor.apps.reproduce import simulate_case
 from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.pipeline import analyze, repair_data
@@ -53,8 +52,7 @@ from mpm_monitor.monitor.window import SampleWindow, WindowOptions
 from mpm_monitor.sim.cases import CASE_NAMES
 
 from . import imap_tasks, write_json
-from .monte_carlo import simulate
-from .scenarios import make_scenario
+from .monte_carlo import family_log
 from .structures_mc import REPAIR_TOLERANCE, step_response_error
 
 DEFAULT_OUT = "bench/results/gaps_mc.json"
@@ -113,17 +111,8 @@ def _repairs(model, plant, data: LoggedData, offline: LoggedData, pairs: list) -
 
 def run_one(kind: str, name: str, seed: int, samples: int, drop: float, repair: bool = False) -> dict:
     """Simulate one run, drop samples and analyse it full, offline and live; a JSON-ready record."""
-    if kind == "paper":
-        case, data, _ = simulate_case(name, samples, seed)
-        model, truth = case.model, sorted(list(x) for x in case.mismatched_elements)
-        plant = case.plant
-        rng_seed = (seed, CASE_NAMES.index(name))
-    else:
-        sc = make_scenario(seed, int(name))
-        data = simulate(sc, samples)
-        model, plant = sc.model, sc.plant
-        truth = sorted([model.outputs[m.output], model.inputs[m.input]] for m in sc.mismatches)
-        rng_seed = (seed, int(name), 7)
+    model, plant, data, truth = family_log(kind, name, seed, samples)
+    rng_seed = (seed, CASE_NAMES.index(name)) if kind == "paper" else (seed, int(name), 7)
     kept = drop_rows(data.n_samples, drop, np.random.default_rng(list(rng_seed)))
     offline = data.take(kept)
     live = live_window_data(data, kept)

@@ -81,6 +81,34 @@ def simulate(scenario: Scenario, samples: int) -> LoggedData:
     return log.as_logged_data(f"scenario {scenario.seed}/{scenario.index}")
 
 
+def family_log(kind: str, name: str, seed: int, samples: int) -> tuple:
+    """One log of a bench run over the paper's cases and the Monte-Carlo scenarios.
+
+    Parameters
+    ----------
+    kind : str
+        ``"paper"`` (``name`` one of the cases, ``seed`` its noise seed) or ``"mc"`` (``name`` the
+        scenario index of family ``seed``).
+    seed : int
+    samples : int
+
+    Returns
+    -------
+    (PlantModel, PlantModel, LoggedData, list)
+        The controller's model, the plant, the closed-loop log and the mismatched elements as sorted
+        ``[output, input]`` name pairs.
+    """
+    if kind == "paper":
+        from mpm_monitor.apps.reproduce import simulate_case
+
+        case, data, _ = simulate_case(name, samples, seed)
+        return case.model, case.plant, data, sorted(list(x) for x in case.mismatched_elements)
+    sc = make_scenario(seed, int(name))
+    model = sc.model
+    return model, sc.plant, simulate(sc, samples), \
+        sorted([model.outputs[m.output], model.inputs[m.input]] for m in sc.mismatches)
+
+
 def _analysis():
     """The analysis (:mod:`mpm_monitor.core.pipeline`), or None while it does not exist."""
     try:

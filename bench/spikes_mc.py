@@ -28,7 +28,6 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from mpm_monitor.apps.reproduce import simulate_case
 from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.pipeline import analyze
@@ -36,8 +35,7 @@ from mpm_monitor.core.spikes import find_spikes
 from mpm_monitor.sim.cases import CASE_NAMES
 
 from . import map_runs, write_json
-from .monte_carlo import simulate
-from .scenarios import make_scenario
+from .monte_carlo import family_log
 
 DEFAULT_OUT = "bench/results/spikes_mc.json"
 OPTIONS = AnalysisOptions(repair=False)
@@ -73,16 +71,8 @@ def _decisions(model, data: LoggedData, options: AnalysisOptions) -> dict:
 
 def run_one(kind: str, name: str, seed: int, samples: int, spikes: int, kept: bool = True) -> dict:
     """One log, clean and spiked, analysed as the module docstring says; a JSON-ready record."""
-    if kind == "paper":
-        case, data, _ = simulate_case(name, samples, seed)
-        model, truth = case.model, sorted(list(x) for x in case.mismatched_elements)
-        rng_seed = [seed, CASE_NAMES.index(name), 31]
-    else:
-        sc = make_scenario(seed, int(name))
-        data = simulate(sc, samples)
-        model = sc.model
-        truth = sorted([model.outputs[m.output], model.inputs[m.input]] for m in sc.mismatches)
-        rng_seed = [seed, int(name), 31]
+    model, _, data, truth = family_log(kind, name, seed, samples)
+    rng_seed = [seed, CASE_NAMES.index(name) if kind == "paper" else int(name), 31]
     found_clean = find_spikes(data)
     spiked, written = add_spikes(data, spikes, np.random.default_rng(rng_seed))
     found = np.zeros(data.n_samples, dtype=bool)
