@@ -610,7 +610,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     unrepaired = {"model": model.to_dict(), "changes": [], "error_before": rms, "error_after": dict(rms)}
     if plan is not None:
         warnings.insert(0, plan.warning())
-    warnings[:0] = [note for note in data.notes if note not in warnings]
+    warnings[:0] = data.notes
     return AnalysisReport(
         sample_time=model.sample_time, samples=n, method=options.method, alpha=options.alpha, rows=rows,
         elements=elements, overall_rsi=float(row_test.sigma_max.max()), warnings=warnings,
