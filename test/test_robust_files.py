@@ -571,6 +571,38 @@ def test_analyze_good_input_runs(files, capsys):
         assert '"rows"' in out
 
 
+@pytest.mark.parametrize("flag,target,match", [
+    ("--json", "missing_dir/r.json", r"--json .*missing_dir/r\.json: directory .*missing_dir does not exist"),
+    ("--repair-out", "missing_dir/m.yaml", r"--repair-out .*: directory .*missing_dir does not exist"),
+    ("--json", ".", r"--json .*: is a directory"),
+])
+def test_analyze_unwritable_output_is_refused_before_the_analysis(files, capsys, monkeypatch, flag, target, match):
+    """An output path that cannot be written is one line and exit 2, before the log is even read (an
+    analysis is not run only to be lost at the end)."""
+    import mpm_monitor.io.csv_log as csv_mod
+
+    def never(*a, **k):
+        raise AssertionError("the log was read")
+
+    monkeypatch.setattr(csv_mod, "read_csv", never)
+    path = files["csv"].parent / target
+    code, out, err = _run_cli(capsys, ["analyze", "--model", str(files["model"]), "--data", str(files["csv"]),
+                                       flag, str(path)])
+    assert code == 2 and len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert re.search(match, err), err
+
+
+def test_a_write_that_fails_after_the_analysis_is_one_line(files, capsys, monkeypatch):
+    """A disk that fills (or a directory removed) between the check and the write: one line, exit 2."""
+    def full(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", full)
+    code, out, err = _run_cli(capsys, ["analyze", "--model", str(files["model"]), "--data", str(files["csv"]),
+                                       "--json", str(files["csv"].parent / "r.json"), "--no-repair"])
+    assert code == 2 and err.strip() == f"error: --json {files['csv'].parent / 'r.json'}: cannot write: No space left on device"
+
+
 @pytest.mark.parametrize("case", ["python tag model", "truncated mcap", "latin-1 metadata", "huge values csv",
                                   "huge t csv"])
 def test_analyze_subprocess_exits_2_without_traceback(files, case):

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -184,6 +185,9 @@ def _cmd_analyze(args) -> int:
     from ..io.csv_log import read_csv
     from ..io.model_file import load_model, save_model
 
+    for path, what in ((args.json_out, "--json"), (args.repair_out, "--repair-out")):
+        if path and path != "-":
+            _check_output_file(path, what)
     model = load_model(args.model)
     options = _analysis_options(args)
     if args.data:
@@ -216,15 +220,42 @@ def _cmd_analyze(args) -> int:
         sys.stdout.write("\n")
     else:
         if args.json_out:
-            Path(args.json_out).write_text(json.dumps(report.to_dict(), indent=2) + "\n", encoding="utf-8")
+            text = json.dumps(report.to_dict(), indent=2) + "\n"
+            _write_output(args.json_out, "--json", lambda: Path(args.json_out).write_text(text, encoding="utf-8"))
         print(report.summary_text())
     if args.repair_out:
-        save_model(report.repaired_model, args.repair_out)
+        _write_output(args.repair_out, "--repair-out", lambda: save_model(report.repaired_model, args.repair_out))
     if args.report:
         from ..io.report import write_report
 
         write_report(args.report, model, data, report)
     return 0
+
+
+def _check_output_file(path: str, flag: str) -> None:
+    """Refuse, before any work, an output file that cannot be written (a directory, a missing or
+    read-only directory, a read-only file): one line naming the flag and the path.
+
+    Raises
+    ------
+    InputError
+    """
+    p = Path(path)
+    if p.is_dir():
+        raise InputError(f"{flag} {path}: is a directory: expected the path of a file to write")
+    parent = p.parent
+    if not parent.is_dir():
+        raise InputError(f"{flag} {path}: directory {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK) or (p.exists() and not os.access(p, os.W_OK)):
+        raise InputError(f"{flag} {path}: not writable")
+
+
+def _write_output(path: str, flag: str, write) -> None:
+    """Call ``write()``, turning an OS error (disk full, permissions changed since the check) into one line."""
+    try:
+        write()
+    except OSError as exc:
+        raise InputError(f"{flag} {path}: cannot write: {exc.strerror or _one_line(exc)}") from None
 
 
 def _one_line(exc: BaseException) -> str:
@@ -249,6 +280,9 @@ def _cmd_simulate(args) -> int:
     from ..sim.excitation import PrbsOptions
     from ..sim.mpc import MpcOptions
 
+    for path, what in ((args.csv, "--csv"), (args.write_model, "--write-model")):
+        if path:
+            _check_output_file(path, what)
     if args.case:
         case = simulation_case(args.case)
         plant, model, mpc, exc, dist = case.plant, case.model, case.mpc, case.excitation, case.disturbance
@@ -266,9 +300,9 @@ def _cmd_simulate(args) -> int:
             exc = ExcitationOptions(dither=PrbsOptions(amplitude=1.0, switch_probability=0.5),
                                     dither_amplitudes=_experiment_dither(args.experiment, model))
         log = run_closed_loop(plant, model, args.samples, seed=args.seed, mpc=MpcOptions(), excitation=exc)
-    write_log_csv(args.csv, log)
+    _write_output(args.csv, "--csv", lambda: write_log_csv(args.csv, log))
     if args.write_model:
-        save_model(model, args.write_model)
+        _write_output(args.write_model, "--write-model", lambda: save_model(model, args.write_model))
     rms = np.sqrt(np.mean(log.d ** 2, axis=0))
     print(f"wrote {log.n_samples} samples to {args.csv}; prediction error RMS: "
           + ", ".join(f"{o}={v:.4f}" for o, v in zip(log.outputs, rms)))
