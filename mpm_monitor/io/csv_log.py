@@ -19,6 +19,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import re
 import warnings
 
 import numpy as np
@@ -30,6 +31,19 @@ from .files import read_text
 
 #: Relative tolerance on the sample spacing, as a fraction of the sample time.
 SPACING_TOLERANCE = 1e-3
+
+#: A number as a CSV cell writes it: ASCII digits, an optional sign, point and exponent (and nan / inf,
+#: refused later as not finite).  Python's ``float`` also takes ``1_0`` (as 10) and non-ASCII digits,
+#: which no export means as a number.
+_NUMBER = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|[+-]?(?:nan|inf|infinity)",
+                     re.IGNORECASE)
+
+
+def _cell_float(cell: str) -> float:
+    """The number in a stripped cell; ValueError when it is not written as a plain number."""
+    if not _NUMBER.fullmatch(cell):
+        raise ValueError(cell)
+    return float(cell)
 
 
 def csv_header(inputs, outputs, disturbances=()) -> list:
@@ -253,7 +267,7 @@ def _careful_table(text: str, header: list, needed: list, idx: list, other_idx: 
             for col, k in zip(needed, idx):
                 cell = fields[k].strip()
                 try:
-                    x = float(cell)
+                    x = _cell_float(cell)
                 except ValueError:
                     raise DataFileError(f"{source}: line {line_no}, column '{col}': expected a number, "
                                         f"got {cell[:40]!r}") from None
@@ -280,7 +294,7 @@ def _numeric_column(cells: list, lines: list):
         if not cell:
             return None, f"partly missing: line {lines[k]} is empty"
         try:
-            x = float(cell)
+            x = _cell_float(cell)
         except ValueError:
             return None, f"not numeric: line {lines[k]} holds {cell[:40]!r}"
         if not math.isfinite(x):
