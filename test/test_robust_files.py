@@ -407,6 +407,9 @@ def test_damaged_csv_bytes_give_data_or_a_one_line_error(work, raw):
     ("t,r_y1,u1,ü2,y1\n1e308,1,1,1,1\n-1e308,1,1,1,1\n".encode(), r"line 3: t = -1e\+308 s goes back"),
     ("t,r_y1,u1,ü2,y1\n0,1,1,1,1\n" "0.5,\"1\n2\",1,1,1\n".encode(), r"line 3, column 'r_y1': expected a number"),
     ("t,r_y1,u1,ü2,y1\n0,1,1,1,1\n0.5,1,1,1," + "9" * 200_000 + "\n", r"line 3: not valid CSV"),
+    # A stray far-off t: a gap no int64 counts (was a negative "rows lost" and overflow warnings).
+    ("t,r_y1,u1,ü2,y1\n0,1,1,1,1\n0.5,1,1,1,1\n1e19,1,1,1,1\n".encode(), r"line 4: t = 1e\+19 s lies 2e\+19 sample "
+                                                                         r"times after the first sample"),
     # Python's float() reads these as 10 and 12; no export means them as numbers.
     ("t,r_y1,u1,ü2,y1\n0,1,1,1,1\n0.5,1,1_0,1,1\n".encode(), r"line 3, column 'u1': expected a number, got '1_0'"),
     ("t,r_y1,u1,ü2,y1\n0,1,1,1,1\n0.5,1,1,1,\u0661\u0662\n".encode(), r"line 3, column 'y1': expected a number"),

@@ -32,6 +32,9 @@ from .files import read_text
 #: Relative tolerance on the sample spacing, as a fraction of the sample time.
 SPACING_TOLERANCE = 1e-3
 
+#: Longest span of ``t``, in sample times, whose grid numbers float64 holds exactly (and int64 counts).
+MAX_GRID_SAMPLES = 2.0 ** 53
+
 #: A number as a CSV cell writes it: ASCII digits, an optional sign, point and exponent (and nan / inf,
 #: refused later as not finite).  Python's ``float`` also takes ``1_0`` (as 10) and non-ASCII digits,
 #: which no export means as a number.
@@ -154,6 +157,7 @@ def parse_csv_text(text: str, model: PlantModel, source: str = "data") -> Logged
         if lines is None:   # the careful parser names the lines
             values, lines, _ = _careful_table(text, header, needed, idx, [], source)
         _refuse_spacing(values[:, 0], lines, model.sample_time, source)
+    _refuse_span(values[:, 0], lines, model.sample_time, source, text, header, needed, idx)
     ny, nu, nd = model.n_outputs, model.n_inputs, model.n_disturbances
     parts = np.split(values, np.cumsum([1, ny, nu, nd]), axis=1)
     t, r, u, dv, y = (np.ascontiguousarray(p) for p in parts)
@@ -316,6 +320,21 @@ def _steps_off_grid(t: np.ndarray, ts: float) -> np.ndarray:
 
 def _spacing_ok(t: np.ndarray, ts: float) -> bool:
     return not bool(np.any(_steps_off_grid(t, ts)))
+
+
+def _refuse_span(t: np.ndarray, lines, ts: float, source: str, text, header, needed, idx) -> None:
+    """Raise when ``t`` spans more than :data:`MAX_GRID_SAMPLES` sample times (a stray far-off ``t``, such as
+    1e19 s, would make a gap whose length no integer counts), naming the first line beyond."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        far = np.flatnonzero(~((t - t[0]) / ts <= MAX_GRID_SAMPLES))
+    if far.size == 0:
+        return
+    if lines is None:
+        _, lines, _ = _careful_table(text, header, needed, idx, [], source)
+    k = int(far[0])
+    raise DataFileError(f"{source}: line {lines[k]}: t = {t[k]:g} s lies {(t[k] - t[0]) / ts:.3g} sample times after "
+                        f"the first sample (t = {t[0]:g} s): expected at most 2^53 (a stray t, or is the sample time "
+                        f"right?)")
 
 
 def _refuse_spacing(t: np.ndarray, lines: list, ts: float, source: str) -> None:
