@@ -201,6 +201,51 @@ def test_start_dither_refusals_the_dither_and_its_topic(harness):
     assert res.successful and mpc.experiments == 2
 
 
+def test_max_dither_is_live_and_every_other_parameter_read_only(harness):
+    """Lowering max_dither while the node runs takes effect (a request above it is refused, a running dither
+    above it ends at once); a change of a parameter read only at start-up is refused, not silently ignored."""
+    from rclpy.parameter import Parameter
+
+    from mpm_monitor.nodes.mpc_node import MpcNode
+
+    h = harness("/live")
+    model = paper_case("3.2").model
+    mpc = h.add(MpcNode(context=h.ctx, namespace=h.ns, parameter_overrides=_overrides(
+        {"case": "3.2", "max_dither": 0.5, "max_dither_samples": 50})))
+    drv = Driver(h, model)
+    client = drv.node.create_client(SetParameters, "mpc/start_dither")
+    assert h.spin_until(lambda: client.service_is_ready() and all(p.get_subscription_count() >= 1
+                                                                  for p in drv.pubs.values())
+                        and mpc._dither_pub.get_subscription_count() >= 1)
+
+    def call(request):
+        return h.call(client, request).results[0]
+
+    res = mpc.set_parameters([Parameter("max_dither", value=0.1)])
+    assert res[0].successful and mpc.params["max_dither"] == 0.1
+    res = call(dither_request({"u1": 0.4}, 10))
+    assert not res.successful and res.reason == "refused: u1: amplitude 0.4 above max_dither 0.1 (input units)"
+    res = mpc.set_parameters([Parameter("max_dither", value=-1.0)])
+    assert not res[0].successful and mpc.params["max_dither"] == 0.1
+    # a running dither above a lowered bound ends at once, with the zero dither vector
+    for k in range(3):
+        drv.step(k, np.zeros(3), np.zeros(3))
+    assert call(dither_request({"u2": 0.08}, 40)).successful
+    for k in range(3, 6):
+        drv.step(k, np.zeros(3), np.zeros(3))
+    assert mpc.experiment is not None
+    assert mpc.set_parameters([Parameter("max_dither", value=0.05)])[0].successful
+    assert mpc.experiment is None
+    assert h.spin_until(lambda: len(drv.dither) >= 4, 5.0)
+    stamp, last = drv.dither[-1]
+    assert stamp == 6 * NS and not np.any(last)       # the zero vector, stamped with the next sample
+    # read once at start-up: refused with the reason instead of accepted and ignored
+    for name, value in (("prediction_horizon", 5), ("input_topic", "elsewhere"), ("case", "3.3")):
+        res = mpc.set_parameters([Parameter(name, value=value)])
+        assert not res[0].successful and "read-only" in res[0].reason, (name, res[0].reason)
+    assert mpc.get_parameter("prediction_horizon").value == mpc.params["prediction_horizon"]
+
+
 def test_a_bag_records_the_dither_topic(harness, tmp_path):
     from mpm_monitor.io.bags import read_raw_messages
     from mpm_monitor.nodes.mpc_node import MpcNode

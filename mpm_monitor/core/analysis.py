@@ -483,7 +483,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     from .regressions import regression_layout, window_regressions
     from .response_moments import ResponseMoments
     from .row_test import sdelta_row_test
-    from .signals import compute_signals, error_rms, scored_mask, segment_signals
+    from .signals import compute_signals, error_rms, gap_runs, scored_mask, segment_signals
 
     ny = model.n_outputs
     src = data.source or "data"
@@ -494,9 +494,12 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     dv = np.asarray(data.dv, dtype=float)
     layout = regression_layout(model, options)
     plan = plan_gaps(data, layout.start, options.max_gap)
+    restarts = None
     if plan is not None:          # data with gaps: the segments long enough for a regression row, stacked
         check_gap_rows(plan, layout, options, src)
         r, u, y, dv = (plan.take(x) for x in (r, u, y, dv))
+        grid = plan.take(data.grid_index)     # the model runs through a short gap (segment_signals)
+        restarts = [run[0] for run in gap_runs(plan.local_segments, grid, plan.max_gap)[1:]]
     columns = model_columns(u, dv)            # the inputs, then the measured disturbances
     n = r.shape[0]
     if n < layout.min_samples and plan is None:
@@ -504,7 +507,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
                             f"max_delay={layout.max_delay} need at least {layout.min_samples} samples")
     if signals is None:
         sig = compute_signals(model, r, u, y, options.initial_state, dv=dv) if plan is None else \
-            segment_signals(model, r, u, y, plan.local_segments, options.initial_state, dv=dv)
+            segment_signals(model, r, u, y, plan.local_segments, options.initial_state, dv=dv, grid=grid,
+                            max_gap=plan.max_gap)
     else:
         sig = signals
         n_given = data.n_samples
@@ -606,7 +610,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         if e.mismatch:
             e.kind = "missing" if e.role == "candidate" else "unknown"
     # With gaps: over the samples settled from the state each gap leaves, as the repair takes its errors.
-    rms = error_rms(model, sig.d if plan is None else sig.d[scored_mask(plan.local_segments, n, model, settled=True)])
+    rms = error_rms(model, sig.d if plan is None else sig.d[scored_mask(plan.local_segments, n, model, settled=True,
+                                                                        restarts=restarts)])
     unrepaired = {"model": model.to_dict(), "changes": [], "error_before": rms, "error_after": dict(rms)}
     if plan is not None:
         warnings.insert(0, plan.warning())

@@ -47,6 +47,11 @@ class ParamSpec:
         typing and the number turned into its text (``"3.2"``).
     read_only : bool
         Settable only at start-up (params file or ``-p``); the parameter services refuse changes.
+        Every parameter that is not ``live`` is declared so (a node reads it once, at start-up);
+        this flag marks the ones whose description says why they must stay fixed.
+    live : bool
+        Applied while the node runs: a change through the parameter services is checked like a
+        start-up value (refused with the reason when out of range) and takes effect at once.
     open_low, open_high : bool
         ``low`` (``high``) itself is outside the range.  A ROS 2 range is inclusive: a node
         declares ``[low, high]`` and :meth:`check` refuses the open end.
@@ -63,6 +68,7 @@ class ParamSpec:
     choices: Optional[tuple] = None
     numbers_as_text: bool = False
     read_only: bool = False
+    live: bool = False
     open_low: bool = False
     open_high: bool = False
     length: Optional[int] = None

@@ -98,7 +98,8 @@ def _analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions, sign
     columns = wide.columns
     located = [(wide.outputs.index(e.output), columns.index(e.input)) for e in report.elements if e.mismatch]
     span, note = repair_data(wide_data, report.gaps is not None, options, wide)
-    repair_options = RepairOptions(initial_state=options.initial_state)
+    max_gap = None if report.gaps is None else report.gaps["max_gap"]    # the model runs through the short gaps
+    repair_options = RepairOptions(initial_state=options.initial_state, max_gap=max_gap)
     span_signals = report.signals if (span is wide_data or not names) else None
     classified = None
     if joint:

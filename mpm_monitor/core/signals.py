@@ -289,12 +289,19 @@ def _row_signals(model, r, u, y, initial_state, dv, rows) -> LoopSignals:
 
 
 def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarray, segments,
-                    initial_state: str = "estimate", dv: np.ndarray = None) -> LoopSignals:
-    """:func:`compute_signals` of every contiguous segment of data with gaps, from the segment's own start.
+                    initial_state: str = "estimate", dv: np.ndarray = None, grid: Optional[np.ndarray] = None,
+                    max_gap: Optional[int] = None) -> LoopSignals:
+    """:func:`compute_signals` of data with gaps: the model runs through a short gap and restarts after a long one.
 
-    The columns in a gap are unknown, so the model output of each segment starts unknown: each is
-    simulated from rest at its first sample with its own initial-transient estimate
-    (``initial_state="estimate"``, row by row, see the module docstring).  Nothing is interpolated.
+    The samples of a gap are unknown.  Without ``grid`` every contiguous segment is simulated from
+    rest at its first sample with its own initial-transient estimate.  With ``grid`` and
+    ``max_gap``, segments separated by gaps of at most ``max_gap`` samples form one run
+    (:func:`gap_runs`): the model is simulated over the run's whole sample grid, its columns held at
+    their last logged values through each gap (what the controller's hold does between moves), so
+    its state carries across the gap instead of starting from rest.  Only the initial transient of
+    a run is estimated, from its first samples (a held output stands in for a missing one in that
+    one fit).  The signals are returned at the logged samples only: no regression row or statistic
+    reads a held value.  A run starts at the first segment and after every longer gap.
 
     Parameters
     ----------
@@ -305,16 +312,60 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
         Contiguous runs of rows ``(first, end)``, in order, covering the rows.
     initial_state : {"estimate", "zero"}
     dv : ndarray, shape (n_samples, n_disturbances), optional
+    grid : ndarray of int, shape (n_samples,), optional
+        Sample number of every row on the sample grid (:attr:`LoggedData.grid_index`).
+    max_gap : int, optional
+        Longest gap (missing samples) the model runs through; needed with ``grid``.
 
     Returns
     -------
     LoopSignals
         The segments' signals stacked, shape (n_samples, n_outputs) each.
     """
-    parts = [compute_signals(model, r[a:b], u[a:b], y[a:b], initial_state, dv=None if dv is None else dv[a:b])
-             for a, b in segments]
+    segments = [(int(a), int(b)) for a, b in segments]
+    runs = [[k] for k in range(len(segments))] if grid is None or max_gap is None else \
+        gap_runs(segments, grid, max_gap)
+    parts = []
+    for run in runs:
+        a, b = segments[run[0]][0], segments[run[-1]][1]
+        if len(run) == 1:
+            parts.append(compute_signals(model, r[a:b], u[a:b], y[a:b], initial_state,
+                                         dv=None if dv is None else dv[a:b]))
+            continue
+        at = np.asarray(grid[a:b], dtype=np.int64) - int(grid[a])         # the rows' places on the run's grid
+        held = a + np.searchsorted(at, np.arange(int(at[-1]) + 1), side="right") - 1
+        sig = compute_signals(model, r[held], u[held], y[held], initial_state, dv=None if dv is None else dv[held])
+        parts.append(LoopSignals(**{f.name: getattr(sig, f.name)[at] for f in dataclasses.fields(LoopSignals)
+                                    if f.name != "initial_state"}, initial_state=sig.initial_state))
     return LoopSignals(**{f.name: np.vstack([getattr(p, f.name) for p in parts])
-                          for f in dataclasses.fields(LoopSignals)})
+                          for f in dataclasses.fields(LoopSignals) if f.name != "initial_state"},
+                       initial_state=parts[0].initial_state if parts else initial_state)
+
+
+def gap_runs(segments, grid: np.ndarray, max_gap: int) -> list:
+    """The segments grouped into runs the model is simulated through: a new run after every gap longer
+    than ``max_gap`` samples.
+
+    Parameters
+    ----------
+    segments : sequence of (int, int)
+        Contiguous runs of rows, in order.
+    grid : ndarray of int, shape (n_samples,)
+        Sample number of every row on the sample grid.
+    max_gap : int
+
+    Returns
+    -------
+    list of list of int
+        The indices of the segments of every run, in order.
+    """
+    runs = []
+    for k, (a, _) in enumerate(segments):
+        if k and int(grid[a]) - int(grid[segments[k - 1][1] - 1]) - 1 <= max_gap:
+            runs[-1].append(k)
+        else:
+            runs.append([k])
+    return runs
 
 
 #: Data with gaps: the samples of a segment after a gap count as settled once the free responses of the
@@ -322,7 +373,7 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
 SETTLED_FRACTION = 0.05
 
 
-def scored_segments(segments, *models: PlantModel, settled: bool = False) -> list:
+def scored_segments(segments, *models: PlantModel, settled: bool = False, restarts=None) -> list:
     """The segments of data with gaps without the first samples of every segment after a gap that still
     depend on the state the gap leaves.
 
@@ -340,6 +391,10 @@ def scored_segments(segments, *models: PlantModel, settled: bool = False) -> lis
     *models : PlantModel
         The models whose outputs are compared (the longest memory of them counts).
     settled : bool
+    restarts : collection of int, optional
+        The segments after which the model restarted (the first of each run of
+        :func:`segment_signals` with ``grid``); default every segment after the first.  A segment the
+        model ran into through a short gap is kept whole.
 
     Returns
     -------
@@ -349,13 +404,14 @@ def scored_segments(segments, *models: PlantModel, settled: bool = False) -> lis
     skip = max(discretize(m).memory for m in models)
     if settled:
         skip += max(settling_samples(m, SETTLED_FRACTION) for m in models)
-    return segments[:1] + [(min(a + skip, b), b) for a, b in segments[1:]]
+    restarts = range(1, len(segments)) if restarts is None else set(restarts)
+    return segments[:1] + [(min(a + skip, b) if k in restarts else a, b) for k, (a, b) in enumerate(segments) if k]
 
 
-def scored_mask(segments, n: int, *models: PlantModel, settled: bool = False) -> np.ndarray:
+def scored_mask(segments, n: int, *models: PlantModel, settled: bool = False, restarts=None) -> np.ndarray:
     """:func:`scored_segments` as a mask over the ``n`` stacked samples, shape (n,), bool."""
     keep = np.zeros(int(n), dtype=bool)
-    for a, b in scored_segments(segments, *models, settled=settled):
+    for a, b in scored_segments(segments, *models, settled=settled, restarts=restarts):
         keep[a:b] = True
     return keep
 

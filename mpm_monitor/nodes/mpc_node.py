@@ -80,9 +80,10 @@ PARAMS = MODEL_PARAMS + (
               "waiting for the setpoint of the same stamp."),
     ParamSpec("max_buffered", "int", 1000, "Vectors buffered per topic while waiting for their partners.", 1, 10**7),
     ParamSpec("max_dither", "double", 0.0, "Largest PRBS amplitude the ~/start_dither service accepts, input units "
-              "(0 = the service refuses every request).", 0.0, 1e6),
-    ParamSpec("max_dither_samples", "int", 10000, "Longest dither the ~/start_dither service accepts, samples.",
-              1, 10**7),
+              "(0 = the service refuses every request). Lowered while a dither runs above it, the dither ends at "
+              "once.", 0.0, 1e6, live=True),
+    ParamSpec("max_dither_samples", "int", 10000, "Longest dither the ~/start_dither service accepts, samples. "
+              "Lowered below the samples a running dither has left, the dither ends at once.", 1, 10**7, live=True),
     ParamSpec("seed", "int", 1, "Seed of the PRBS of the ~/start_dither experiments.", 0, 2**31 - 1),
 ) + topic_params("setpoint", "output", "input", "dither", "disturbance")
 
@@ -214,6 +215,7 @@ class MpcNode(Node):
         self._dither_pub = (None if p["use_dither"]
                             else self.create_publisher(JointState, p["dither_topic"], vector_qos()))
         self._dither_srv = self.create_service(SetParameters, "~/start_dither", self._on_start_dither)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         self.get_logger().info(f"MPC {model.n_outputs}x{model.n_inputs}, Hp = {p['prediction_horizon']}, "
                                f"Hc = {p['control_horizon']}, {'hold' if p['hold_setpoint'] else 'stamp-matched'} "
                                f"setpoints{', dither' if p['use_dither'] else ''}"
@@ -334,6 +336,30 @@ class MpcNode(Node):
         self.experiment.stop()
         self.experiment = None
         self._dither_pub.publish(self._codecs["d"].encode(np.zeros(self.model.n_inputs), stamp))
+
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        """Apply a change of the live parameters (``max_dither``, ``max_dither_samples``), checked as at
+        start-up; a running dither beyond a lowered bound ends at once.  (The parameter services refuse
+        every other parameter before this: they are read-only.)"""
+        specs = {spec.name: spec for spec in PARAMS}
+        staged = {}
+        for prm in params:
+            spec = specs.get(prm.name)
+            if spec is None or not spec.live:
+                continue
+            try:
+                staged[prm.name] = spec.check(prm.value)
+            except ConfigurationError as exc:
+                return SetParametersResult(successful=False, reason=str(exc).splitlines()[0])
+        self.params.update(staged)
+        e = self.experiment
+        if e is not None and (float(np.max(e.amplitudes)) > self.params["max_dither"]
+                              or e.samples_left > self.params["max_dither_samples"]):
+            self.get_logger().warning(f"dither on {dither_text(self.model.inputs, e.amplitudes)} ended: beyond the "
+                                      f"new max_dither {self.params['max_dither']:g} / max_dither_samples "
+                                      f"{self.params['max_dither_samples']}")
+            self._end_experiment(0 if self._last_done is None else self._last_done + self._period_ns)
+        return SetParametersResult(successful=True)
 
     def _dither_refusal(self) -> Optional[str]:
         """Why no experiment can start now (None: it can)."""

@@ -54,8 +54,8 @@ def _comment(spec) -> str:
         text += f" Range {spec.range_text()}."
     if spec.choices:
         text += " One of: " + ", ".join(f"'{c}'" for c in spec.choices) + "."
-    if getattr(spec, "read_only", False):
-        text += " Read-only after start-up."
+    if getattr(spec, "live", False):
+        text += " Changeable while the node runs."
     return text + f" ({spec.kind})"
 
 
@@ -67,6 +67,8 @@ def render(node: str) -> str:
              f"# Use: ros2 run mpm_monitor {module} --ros-args --params-file config/{node}.yaml",
              f"#  or: python -m mpm_monitor.nodes.{module} --ros-args --params-file config/{node}.yaml",
              "# Ranges are enforced when the node starts (a value out of range is refused with its name).",
+             "# Every parameter is read at start-up and read-only afterwards (the parameter services refuse a",
+             "# change), except those marked 'Changeable while the node runs'.",
              "# Generated from the node's declared parameters: python -m mpm_monitor.nodes.params_files",
              f"/**/{node}:", "  ros__parameters:"]
     for spec in params:
@@ -90,8 +92,8 @@ def markdown(node: str) -> str:
             kind += f", Range {spec.range_text()}"
         if spec.choices:
             kind += ", One of: " + ", ".join(f"'{c}'" for c in spec.choices)
-        if getattr(spec, "read_only", False):
-            kind += ", read-only"
+        if getattr(spec, "live", False):
+            kind += ", live"
         default = "unset" if spec.default is None else f"`{_value(spec)}`"
         lines.append(f"| `{spec.name}` | {default} | {kind} | {spec.description.replace('|', chr(92) + '|')} |")
     return "\n".join(lines)

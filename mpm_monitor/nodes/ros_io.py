@@ -249,7 +249,7 @@ def descriptor(spec: ParamSpec):
                             description=spec.description)
     if spec.numbers_as_text:
         d.dynamic_typing = True
-    d.read_only = bool(spec.read_only)
+    d.read_only = bool(spec.read_only or not spec.live)    # read once at start-up: a later change would be ignored
     if spec.choices:
         d.additional_constraints = "one of: " + ", ".join(spec.choices)
     if spec.kind == "int" and spec.low is not None:

@@ -19,7 +19,8 @@ from ..discretize import model_columns
 from ..errors import ConfigurationError, InputError
 from ..logged_data import LoggedData, check_loop_data, in_deviations
 from ..model import PlantModel
-from ..signals import LoopSignals, compute_signals, error_rms, scored_mask, scored_segments, segment_signals
+from ..signals import (LoopSignals, compute_signals, error_rms, gap_runs, scored_mask, scored_segments,
+                       segment_signals)
 from .classify import _classify_row
 from .disturbance import unexplained_disturbance
 from .fit import _TooShort
@@ -156,13 +157,21 @@ class _Record:
         leaves (:func:`~mpm_monitor.core.signals.scored_mask`); None without gaps (every sample)."""
         if self.segments is None:
             return None
-        return scored_mask(self.segments, self.n, *models, settled=settled)
+        return scored_mask(self.segments, self.n, *models, settled=settled, restarts=self.restarts)
 
     def scored_segments(self, *models: PlantModel, settled: bool = False) -> Optional[list]:
         """:func:`~mpm_monitor.core.signals.scored_segments` of the record's segments (None without gaps)."""
         if self.segments is None:
             return None
-        return scored_segments(self.segments, *models, settled=settled)
+        return scored_segments(self.segments, *models, settled=settled, restarts=self.restarts)
+
+    @property
+    def restarts(self) -> Optional[list]:
+        """With gaps, the segments at which the model restarts (after a gap longer than the option
+        ``max_gap``; every segment after the first when it is None)."""
+        if self.segments is None or self.options.max_gap is None:
+            return None
+        return [run[0] for run in gap_runs(self.segments, self.data.grid_index, self.options.max_gap)[1:]]
 
     def holdout(self, d: np.ndarray, keep: Optional[np.ndarray], extra: Optional[np.ndarray] = None) -> float:
         """:func:`_holdout_rms` of ``d`` (shape (n_samples,)) over the samples ``keep`` (:meth:`scored`)."""
@@ -175,7 +184,8 @@ class _Record:
         given taken from :attr:`signals`); with gaps each segment from its own start."""
         if self.segments is not None:
             return segment_signals(model, self.data.r, self.data.u, self.y, self.segments,
-                                   initial_state=self.options.initial_state, dv=self.data.dv)
+                                   initial_state=self.options.initial_state, dv=self.data.dv,
+                                   grid=self.data.grid_index, max_gap=self.options.max_gap)
         return compute_signals(model, self.data.r, self.data.u, self.y, initial_state=self.options.initial_state,
                                dv=self.data.dv, like=(self.model, self.signals))
 
@@ -235,7 +245,8 @@ def _set_up(model: PlantModel, data: LoggedData, options: RepairOptions,
     segments = data.segments
     segments = tuple(segments) if len(segments) > 1 else None
     if signals is None and segments is not None:
-        signals = segment_signals(model, data.r, data.u, y, segments, initial_state=options.initial_state, dv=data.dv)
+        signals = segment_signals(model, data.r, data.u, y, segments, initial_state=options.initial_state, dv=data.dv,
+                                  grid=data.grid_index, max_gap=options.max_gap)
     elif signals is None:
         signals = compute_signals(model, data.r, data.u, y, initial_state=options.initial_state, dv=data.dv)
     d0 = np.asarray(signals.d, float)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Optional
 
 import numpy as np
 
@@ -55,6 +56,11 @@ class RepairOptions:
         free response of the row.
     max_sweeps : int
         Coordinate sweeps of the delay search over the elements of a row (>= 1).
+    max_gap : int or None
+        Data with gaps: the longest gap (missing samples) the model is simulated through, its
+        columns held (:func:`mpm_monitor.core.signals.segment_signals`), for the prediction errors,
+        the held-out check and the errors before and after; None: every segment from its own start.
+        The fits take every segment from its own start either way.
     """
 
     holdout_fraction: float = 0.25
@@ -68,6 +74,7 @@ class RepairOptions:
     min_holdout_improvement: float = 0.0
     initial_state: str = "estimate"
     max_sweeps: int = 3
+    max_gap: Optional[int] = None
 
     def __post_init__(self):
         check_repair_options(self)
@@ -107,6 +114,8 @@ def check_repair_options(opts: RepairOptions) -> None:
                                  f"got {opts.initial_state!r}")
     if not (is_int(opts.max_sweeps) and 1 <= opts.max_sweeps <= 20):
         raise ConfigurationError(f"max_sweeps: expected an integer in [1, 20], got {opts.max_sweeps!r}")
+    if opts.max_gap is not None and not (is_int(opts.max_gap) and opts.max_gap >= 0):
+        raise ConfigurationError(f"max_gap: expected None or an integer number of samples >= 0, got {opts.max_gap!r}")
 
 
 @dataclasses.dataclass(frozen=True)
