@@ -28,6 +28,9 @@ def test_candidate_window_puts_the_vectors_on_the_samples():
         assert w.add(k * NS // 2 + jitter, names, np.arange(len(names)) + k) is None
     assert w.add(0, ("a", "b"), [1.0]).startswith("candidate: 1 value(s) for 2 name(s)")
     assert w.add(0, ("a", "a"), [1.0, 2.0]).startswith("candidate: empty or repeated channel names")
+    clash = CandidateWindow(sample_time=0.5, capacity=10, reserved=("u", "y"))
+    assert clash.add(0, ("u", "temp"), [1.0, 2.0]) == "candidate: 'u' at t = 0 s is a channel of the model, not a candidate"
+    assert clash.names == ()
     t = np.arange(10) * 0.5
     data = LoggedData(t=t, r=np.zeros((10, 1)), u=np.zeros((10, 1)), y=np.zeros((10, 1)), inputs=("u",),
                       outputs=("y",), sample_time=0.5)
@@ -69,6 +72,8 @@ def live():
         values = [d.extra[EFFECT_CHANNEL][k], d.extra[RANDOM_WALK_CHANNEL][k], d.extra[LOOP_CHANNEL][k],
                   np.nan if k == 100 else 1.0 + k]
         c.add_candidates(k * NS, names, values, 0.0)
+        if k == 7:    # a publisher naming a model channel: refused at reception, the analyses go on
+            c.add_candidates(k * NS, (run.model.inputs[0], "temp"), [1.0, 2.0], 0.0)
         c.add("setpoint", k * NS, d.r[k], 0.0)
         c.add("input", k * NS, d.u[k], 0.0)
         c.add("output", k * NS, d.y[k], 0.0)

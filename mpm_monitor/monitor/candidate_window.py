@@ -33,9 +33,12 @@ class CandidateWindow:
         Vectors kept (the window's length plus some slack: older ones are forgotten).
     stamp_tolerance : float
         Largest distance between a candidate stamp and a sample's, fraction of the sample time.
+    reserved : sequence of str
+        The model's own channels (inputs, measured disturbances, outputs): a vector naming one is
+        refused, since the analysis would refuse it as a candidate on every window it falls in.
     """
 
-    def __init__(self, sample_time: float, capacity: int, stamp_tolerance: float = 0.25):
+    def __init__(self, sample_time: float, capacity: int, stamp_tolerance: float = 0.25, reserved: Sequence[str] = ()):
         if not (np.isfinite(sample_time) and sample_time > 0):
             raise ConfigurationError(f"sample_time: expected a finite number > 0 (seconds), got {sample_time!r}")
         if int(capacity) != capacity or capacity < 1:
@@ -47,6 +50,7 @@ class CandidateWindow:
         # each: a channel leaves with its last vector, so that channels come and go for months
         # without the list growing.
         self._names: dict = {}
+        self._reserved = frozenset(reserved)
         self.received = 0
 
     @property
@@ -56,7 +60,7 @@ class CandidateWindow:
 
     def add(self, stamp_ns: int, names: Sequence[str], values) -> Optional[str]:
         """Keep one vector; returns None, or why it was refused (names and values differ in length, a
-        name is empty or repeated).
+        name is empty, repeated or one of the model's channels).
 
         Parameters
         ----------
@@ -74,6 +78,10 @@ class CandidateWindow:
             return f"candidate: {v.shape[0]} value(s) for {len(names)} name(s) at {t} (one value per name expected)"
         if any(not n for n in names) or len(set(names)) != len(names):
             return f"candidate: empty or repeated channel names at {t}: {', '.join(names)}"
+        clash = [n for n in names if n in self._reserved]
+        if clash:
+            return (f"candidate: {', '.join(repr(n) for n in clash)} at {t} "
+                    f"{'is a channel' if len(clash) == 1 else 'are channels'} of the model, not a candidate")
         if len(self._vectors) == self._vectors.maxlen:             # the oldest vector leaves
             for n in self._vectors[0][1]:
                 self._names[n] -= 1

@@ -161,7 +161,8 @@ class MonitorCore:
         self.experiment = ExperimentTracker(model.inputs, options.window.window_samples, options.experiment)
         #: The candidate channels (None unless ``options.candidates``).
         self.candidates = (CandidateWindow(model.sample_time, options.window.window_samples + 64,
-                                           options.window.stamp_tolerance) if options.candidates else None)
+                                           options.window.stamp_tolerance, reserved=model.columns + model.outputs)
+                           if options.candidates else None)
 
     # --------------------------------------------------------------------------------- input
     def add(self, channel: str, stamp_ns: int, values, now: float) -> int:
