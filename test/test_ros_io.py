@@ -146,6 +146,51 @@ def test_declared_parameters_carry_type_description_and_range():
         ctx.try_shutdown()
 
 
+@pytest.mark.parametrize("name, value, match", [
+    ("setpoint_topic", "bad topic!", r"parameter setpoint_topic: invalid topic name 'bad topic!': topic name must not "
+                                     r"contain characters"),
+    ("diagnostics_topic", "/diag/", r"invalid topic name '/diag/': topic name must not end with a forward slash$"),
+    ("candidate_topic", "a//b", r"invalid topic name 'a//b': topic name must not contain repeated '/'$"),
+    ("experiment_service", "9bad", r"parameter experiment_service: invalid service name '9bad': .*must not start with "
+                                   r"a number$"),
+    ("topics", ["output", "bad topic=std_msgs/msg/String"], r"parameter topics: invalid topic name 'bad topic'"),
+])
+def test_a_topic_or_service_name_ros_refuses_is_one_line_naming_the_parameter(name, value, match):
+    """Not rclpy's multi-line exception when the publisher is created (a traceback and exit 1 from a node)."""
+    import rclpy
+    from rclpy.node import Node
+
+    from mpm_monitor.apps.demo import private_context
+    from mpm_monitor.nodes.ros_io import declare_parameters
+
+    kind = "string_array" if isinstance(value, list) else "string"
+    specs = [ParamSpec(name, kind, ["output"] if kind == "string_array" else "", "A name.")]
+    ctx = private_context()
+    try:
+        node = Node("names_test", context=ctx, parameter_overrides=[rclpy.parameter.Parameter(name, value=value)])
+        with pytest.raises(ConfigurationError, match=match) as info:
+            declare_parameters(node, specs)
+        assert "\n" not in str(info.value)
+        node.destroy_node()
+        good = Node("names_ok", context=ctx, parameter_overrides=[rclpy.parameter.Parameter(
+            name, value=["output", "~/x=std_msgs/msg/String"] if kind == "string_array" else "~/fine_name")])
+        declare_parameters(good, specs)
+        good.destroy_node()
+    finally:
+        ctx.try_shutdown()
+
+
+def test_a_params_file_that_is_missing_or_not_yaml_is_one_line(tmp_path):
+    from mpm_monitor.nodes.ros_io import params_file_problem
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("/**/monitor:\n  ros__parameters: [unclosed\n", encoding="utf-8")
+    assert params_file_problem(["--ros-args", "--params-file", str(tmp_path / "none.yaml")]) == \
+        f"--params-file {tmp_path / 'none.yaml'}: cannot read it: No such file or directory"
+    assert params_file_problem(["--ros-args", "--params-file", str(bad)]).startswith(f"--params-file {bad}: not valid YAML")
+    assert params_file_problem(["--ros-args", "-p", "case:=3.2"]) == ""
+
+
 def test_resolve_model_from_case_or_file(tmp_path):
     from mpm_monitor.io.model_file import save_model
 

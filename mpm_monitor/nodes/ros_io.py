@@ -283,7 +283,40 @@ def declare_parameters(node, specs: Sequence[ParamSpec]) -> dict:
         except InvalidParameterTypeException as exc:
             raise ConfigurationError(f"parameter {spec.name}: wrong type: {exc}".splitlines()[0]) from None
         out[spec.name] = spec.check(param.value)
+        for name in _ros_names(spec, out[spec.name]):
+            check_ros_name(node, spec.name, name, service=spec.name.endswith("_service"))
     return out
+
+
+def _ros_names(spec: ParamSpec, value) -> list:
+    """The topic or service names a parameter's value holds: a ``*_topic`` or ``*_service`` string (''
+    = none), or the entries of a ``topics`` list (``name`` or ``name=pkg/msg/Type``)."""
+    if spec.kind == "string" and (spec.name.endswith("_topic") or spec.name.endswith("_service")):
+        return [value] if value else []
+    if spec.kind == "string_array" and spec.name == "topics":
+        return [str(v).split("=", 1)[0] for v in value or () if str(v).split("=", 1)[0]]
+    return []
+
+
+def check_ros_name(node, param: str, name: str, service: bool = False) -> None:
+    """Refuse a topic or service name that ROS 2 cannot use, as expanded on ``node``.
+
+    Raises
+    ------
+    ConfigurationError
+        One line naming the parameter, the name and why (instead of rclpy's exception, with its
+        multi-line message, when the publisher, subscription or service is created).
+    """
+    from rclpy.expand_topic_name import expand_topic_name
+    from rclpy.validate_full_topic_name import validate_full_topic_name
+
+    try:
+        validate_full_topic_name(expand_topic_name(name, node.get_name(), node.get_namespace()), is_service=service)
+    except Exception as exc:       # noqa: BLE001 - ValueError or rclpy's Invalid*NameException
+        text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        text = text.split(" is invalid: ", 1)[-1].split(", at /", 1)[0].split(" name: ", 1)[-1].rstrip(":")
+        what = "service" if service else "topic"
+        raise ConfigurationError(f"parameter {param}: invalid {what} name {name!r}: {text}") from None
 
 
 def parameter_overrides(specs: Sequence[ParamSpec], overrides=None, **values) -> list:
@@ -401,7 +434,16 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
     from rclpy.signals import SignalHandlerOptions
 
     context = Context()
-    rclpy.init(args=args, context=context, signal_handler_options=SignalHandlerOptions.NO)
+    problem = params_file_problem(sys.argv if args is None else args)
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
+    try:
+        rclpy.init(args=args, context=context, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as exc:       # noqa: BLE001 - a params file that is missing or not YAML, bad --ros-args
+        text = " ".join(str(exc).split())
+        print(f"error: ROS arguments: {text[:300] or type(exc).__name__}", file=sys.stderr)
+        return 2
     stop = {"requested": False}
 
     def on_signal(signum, frame):
@@ -433,6 +475,28 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
             node.destroy_node()
         if context.ok():
             context.try_shutdown()
+
+
+def params_file_problem(args) -> str:
+    """Why a ``--params-file`` of the ROS arguments ``args`` cannot be read as YAML ('' when all can), so
+    that the node says it in one line before rcl does in a log line and an exception."""
+    import yaml
+
+    args = list(args or ())
+    for k, arg in enumerate(args[:-1]):
+        if arg != "--params-file":
+            continue
+        path = args[k + 1]
+        try:
+            with open(path, encoding="utf-8") as fh:
+                doc = yaml.safe_load(fh)
+        except OSError as exc:
+            return f"--params-file {path}: cannot read it: {exc.strerror or exc}"
+        except (yaml.YAMLError, UnicodeDecodeError) as exc:
+            return f"--params-file {path}: not valid YAML: {' '.join(str(exc).split())[:200]}"
+        if not isinstance(doc, dict):
+            return f"--params-file {path}: expected a mapping of node names to ros__parameters, got {type(doc).__name__}"
+    return ""
 
 
 def resolve_model(model_file: str, case: str, which: str = "model"):
