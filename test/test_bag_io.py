@@ -340,6 +340,20 @@ def test_off_grid_stamp(tmp_path):
     _check(e, str(bag), "'/setpoint'", "stamp 102.2 s is off the sample grid")
 
 
+def test_stamps_the_live_monitor_takes_are_read(tmp_path):
+    """Stamps jittered by up to 0.2 of a sample (within the monitor's default stamp_tolerance 0.25, so a
+    recording of a stream it analysed) are placed on their samples."""
+    from mpm_monitor.monitor.window import WindowOptions
+
+    assert bag_read.GRID_TOLERANCE == WindowOptions().stamp_tolerance
+    r, u, y = _samples(8)
+    jitter = np.array([0, 0.2, -0.2, 0.15, -0.1, 0.2, 0, -0.2]) * 500_000_000
+    stamps = np.arange(8) * 500_000_000 + 10**11 + jitter.astype(np.int64)
+    data = read_bag(write_bag(tmp_path / "bag", r, u, y, stamps=stamps), MODEL)
+    np.testing.assert_array_equal(data.t, 100.0 + np.arange(8) * 0.5)
+    np.testing.assert_array_equal(data.y, y)
+
+
 def test_a_stamp_from_before_the_clock_was_set_is_left_out_with_a_note(tmp_path, capsys):
     """Every topic's first message stamped 0 (the clock not yet set, or a publisher that never fills
     the stamp), the rest on the wall clock: those messages cannot be placed on the grid, so they are

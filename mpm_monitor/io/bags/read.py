@@ -37,8 +37,9 @@ from .common import (
     topic_name,
 )
 
-#: A stamp may lie this fraction of the sample time off the sample grid and still be aligned.
-GRID_TOLERANCE = 0.1
+#: A stamp may lie this fraction of the sample time off the sample grid and still be aligned: the live
+#: monitor's default ``stamp_tolerance``, so that a recording of a stream the monitor analysed reads.
+GRID_TOLERANCE = 0.25
 #: A header stamp of exactly 0 is unset (a publisher that never filled it in, or a clock not yet set)
 #: when the bag's other stamps are wall-clock times, later than this many seconds since the epoch
 #: (2001-09-09); such messages are left out, with a note.  A bag on simulated time that starts at 0
