@@ -194,6 +194,70 @@ def test_disturbance_test_with_gaps_keeps_each_spans_level_and_finds_a_step_insi
     assert got["size"] == pytest.approx(0.05, abs=0.02)
 
 
+def test_the_model_runs_through_a_short_gap_and_restarts_after_a_long_one(case_32):
+    """Through a short gap the model's state carries on (its columns held at their last logged values):
+    where the inputs did not move in the gap, the prediction error after it is the whole log's.  A gap
+    longer than max_gap restarts the model: the segment after it is a record of its own."""
+    from mpm_monitor.core.signals import compute_signals, segment_signals
+
+    case, data = case_32
+    u = data.u.copy()
+    u[1200] = u[1199]                              # the hold is exact at the short gap
+    full = dataclasses.replace(data, u=u)
+    gappy = _drop(full, [1200] + list(range(2000, 2030)))
+    sig = segment_signals(case.model, gappy.r, gappy.u, gappy.y, gappy.segments, grid=gappy.grid_index, max_gap=10)
+    ref = compute_signals(case.model, full.r, full.u, full.y)
+    kept = np.setdiff1d(np.arange(data.n_samples), [1200] + list(range(2000, 2030)))
+    before_long = kept < 2000
+    np.testing.assert_allclose(sig.d[before_long], ref.d[kept[before_long]], rtol=0, atol=1e-12)
+    a = int(np.flatnonzero(~before_long)[0])
+    alone = compute_signals(case.model, gappy.r[a:], gappy.u[a:], gappy.y[a:])
+    np.testing.assert_array_equal(sig.d[a:], alone.d)
+    # Each segment from its own start (no grid, the behaviour for every gap before): far off after the gap.
+    old = segment_signals(case.model, gappy.r, gappy.u, gappy.y, gappy.segments)
+    assert np.max(np.abs(old.d[1200:1260] - ref.d[1201:1261])) > 2 * np.std(ref.d[:, 0])
+
+
+def test_a_missing_sample_with_logged_columns_takes_them_not_the_hold(case_32):
+    """A sample left out for a spike in an output keeps its logged inputs for the model's simulation
+    (``LoggedData.column_fill``): the prediction error at the samples kept is the whole log's."""
+    from mpm_monitor.core.signals import compute_signals, segment_signals
+    from mpm_monitor.core.spikes import without_spikes
+
+    case, data = case_32
+    y = data.y.copy()
+    y[1500, 0] += 1000.0
+    spiked = dataclasses.replace(data, y=y)
+    kept, note = without_spikes(spiked)
+    assert note is not None and kept.n_samples == data.n_samples - 1
+    assert kept.column_fill[0].tolist() == [data.t[1500]]
+    sig = segment_signals(case.model, kept.r, kept.u, kept.y, kept.segments, grid=kept.grid_index, max_gap=10,
+                          fill=kept.fill_on_grid())
+    ref = compute_signals(case.model, data.r, data.u, data.y)
+    np.testing.assert_allclose(sig.d, np.delete(ref.d, 1500, axis=0), rtol=0, atol=1e-12)
+    rep = analyze(case.model, spiked, DETECT)
+    full = analyze(case.model, data, DETECT)
+    assert set(rep.located_elements) == set(full.located_elements)
+    for name, value in full.repair["error_before"].items():
+        assert rep.repair["error_before"][name] == pytest.approx(value, rel=0.01)
+
+
+def test_an_integrating_outputs_error_is_taken_about_each_spans_level():
+    """The inputs in a gap are unknown and move an integrator's level for good: with gaps the RMS of an
+    integrating output is about each span's own mean."""
+    from mpm_monitor.core.model import PlantModel
+
+    model = PlantModel(sample_time=1.0, inputs=("u",), outputs=("y",), gain=np.array([[0.1]]),
+                       time_constant=np.array([[0.0]]), delay=np.array([[0.0]]),
+                       integrating=np.array([[True]]))
+    rng = np.random.default_rng(3)
+    noise = 0.01 * rng.standard_normal(600)
+    d = (noise + np.repeat([0.0, 0.5, -0.3], 200))[:, None]
+    assert error_rms(model, d)["y"] > 0.3
+    assert error_rms(model, d, [(0, 200), (200, 400), (400, 600)])["y"] == pytest.approx(
+        np.sqrt(np.mean(np.concatenate([noise[k:k + 200] - noise[k:k + 200].mean() for k in (0, 200, 400)]) ** 2)))
+
+
 def test_plan_of_data_without_gaps_is_none(case_32):
     case, data = case_32
     assert plan_gaps(data, 20) is None

@@ -483,7 +483,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     from .regressions import regression_layout, window_regressions
     from .response_moments import ResponseMoments
     from .row_test import sdelta_row_test
-    from .signals import compute_signals, error_rms, gap_runs, scored_mask, segment_signals
+    from .signals import (compute_signals, error_rms, packed, scored_mask, scored_segments, segment_signals,
+                          unknown_starts)
 
     ny = model.n_outputs
     src = data.source or "data"
@@ -499,7 +500,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         check_gap_rows(plan, layout, options, src)
         r, u, y, dv = (plan.take(x) for x in (r, u, y, dv))
         grid = plan.take(data.grid_index)     # the model runs through a short gap (segment_signals)
-        restarts = [run[0] for run in gap_runs(plan.local_segments, grid, plan.max_gap)[1:]]
+        restarts = unknown_starts(plan.local_segments, grid, plan.max_gap, data.fill_on_grid())
     columns = model_columns(u, dv)            # the inputs, then the measured disturbances
     n = r.shape[0]
     if n < layout.min_samples and plan is None:
@@ -508,7 +509,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     if signals is None:
         sig = compute_signals(model, r, u, y, options.initial_state, dv=dv) if plan is None else \
             segment_signals(model, r, u, y, plan.local_segments, options.initial_state, dv=dv, grid=grid,
-                            max_gap=plan.max_gap)
+                            max_gap=plan.max_gap, fill=data.fill_on_grid())
     else:
         sig = signals
         n_given = data.n_samples
@@ -610,8 +611,12 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         if e.mismatch:
             e.kind = "missing" if e.role == "candidate" else "unknown"
     # With gaps: over the samples settled from the state each gap leaves, as the repair takes its errors.
-    rms = error_rms(model, sig.d if plan is None else sig.d[scored_mask(plan.local_segments, n, model, settled=True,
-                                                                        restarts=restarts)])
+    if plan is None:
+        rms = error_rms(model, sig.d)
+    else:
+        scored = scored_segments(plan.local_segments, model, settled=True, restarts=restarts)
+        rms = error_rms(model, sig.d[scored_mask(plan.local_segments, n, model, settled=True, restarts=restarts)],
+                        segments=packed(scored))
     unrepaired = {"model": model.to_dict(), "changes": [], "error_before": rms, "error_after": dict(rms)}
     if plan is not None:
         warnings.insert(0, plan.warning())

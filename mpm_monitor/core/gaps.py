@@ -3,15 +3,17 @@
 Logged data may miss samples: ``t`` skips grid points (:attr:`LoggedData.grid_index`), splitting
 the rows into contiguous segments (:attr:`LoggedData.segments`).  Nothing is ever interpolated
 (docs/interfaces.md, "Gaps").  The analysis (:func:`mpm_monitor.core.analysis.detect`) stacks the
-segments: each segment's model output is computed from its own start
-(:func:`mpm_monitor.core.signals.segment_signals`) and gives its own regression rows, from its
-``start``-th sample on (:class:`~mpm_monitor.core.regressions.RegressionLayout`), so that no
-row's lags reach across a gap.  A segment of at most ``start`` samples gives no row and is left out.
+segments: the model runs through a gap of at most ``max_gap`` samples (its columns held; after a
+longer gap it restarts, :func:`mpm_monitor.core.signals.segment_signals`) and each segment gives
+its own regression rows, from its ``start``-th sample on
+(:class:`~mpm_monitor.core.regressions.RegressionLayout`), so that no row's lags reach across a gap.
+A segment of at most ``start`` samples gives no row and is left out.
 
 The cost of the gaps is counted against the same span without them: ``samples_lost`` (the missing
 samples plus those of the segments left out) and ``rows_lost`` (the regression rows the span would
-give without a gap, less the rows kept).  A gap up to ``max_gap`` samples is short; a longer one
-splits the data in the same way and is only named louder in the warning.
+give without a gap, less the rows kept).  A gap up to ``max_gap`` samples is short (the model runs
+through it); a longer one restarts the model, splits the rows in the same way and is named louder in
+the warning.
 """
 
 from __future__ import annotations

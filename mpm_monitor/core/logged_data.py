@@ -60,6 +60,12 @@ class LoggedData:
         What the reader did to the data that the user should know, one sentence each (for example
         messages of a bag left out because their stamp was unset); the analysis puts them first in
         its report's warnings.  Default none.
+    column_fill : tuple (ndarray, ndarray) or None
+        Samples left out of the rows (the sample of a spike in a setpoint or an output) whose model
+        columns were logged and sound: their times ``t`` (shape (m,)) and ``[u | dv]`` (shape
+        (m, n_inputs + n_disturbances)).  No test reads them; the model's simulation through a short
+        gap takes them instead of holding the columns (:func:`~mpm_monitor.core.signals.segment_signals`).
+        Default none.
     """
 
     t: np.ndarray
@@ -76,6 +82,7 @@ class LoggedData:
     unusable: dict = dataclasses.field(default_factory=dict)
     deviations: bool = False
     notes: tuple = ()
+    column_fill: Optional[tuple] = None
 
     def __post_init__(self):
         self.disturbances = tuple(self.disturbances)
@@ -100,6 +107,13 @@ class LoggedData:
         if self.n_samples == 0:
             return np.zeros(0, dtype=int)
         return np.rint((self.t - self.t[0]) / self.sample_time).astype(int)
+
+    def fill_on_grid(self) -> Optional[tuple]:
+        """:attr:`column_fill` as ``(grid index from t[0], [u | dv])``, or None."""
+        if self.column_fill is None or self.n_samples == 0:
+            return None
+        t, cols = self.column_fill
+        return np.rint((np.asarray(t, dtype=float) - self.t[0]) / self.sample_time).astype(np.int64), cols
 
     @property
     def segments(self) -> list:
@@ -153,8 +167,13 @@ def in_deviations(model: PlantModel, data: LoggedData) -> LoggedData:
     n = data.n_samples
     if shapes != ((n, u0.size), (n, y0.size), (n, y0.size)):
         return data
+    fill = data.column_fill
+    if fill is not None:
+        cols = np.array(fill[1], dtype=float)
+        cols[:, :u0.size] -= u0
+        fill = (fill[0], cols)
     return dataclasses.replace(data, u=np.asarray(data.u, dtype=float) - u0, y=np.asarray(data.y, dtype=float) - y0,
-                               r=np.asarray(data.r, dtype=float) - y0, deviations=True)
+                               r=np.asarray(data.r, dtype=float) - y0, deviations=True, column_fill=fill)
 
 
 SIGNAL_NAMES = ("setpoint", "input", "output")

@@ -161,9 +161,11 @@ def _release(report: AnalysisReport, released: dict, model: PlantModel) -> None:
 def repair_data(data: LoggedData, gappy: bool, options: AnalysisOptions, model: PlantModel) -> tuple:
     """The data the repair fits: all of ``data``, or with gaps the segments the detection used.
 
-    On data with gaps the repair (:func:`~mpm_monitor.core.repair.repair_model`) takes every segment
+    On data with gaps the repair (:func:`~mpm_monitor.core.repair.repair_model`) fits every segment
     as a record of its own: simulated from rest at its first sample, with its own offset and free
     responses, its first samples (the longest lag) left out of the fits; nothing is interpolated.
+    Its prediction errors (before, after, held out) are those of the model run through the short
+    gaps, as the detection's (``RepairOptions.max_gap``).
     The segments too short for a regression row of the tests (:func:`~mpm_monitor.core.gaps.plan_gaps`)
     are left out, as the detection leaves them out.
 

@@ -290,7 +290,7 @@ def _row_signals(model, r, u, y, initial_state, dv, rows) -> LoopSignals:
 
 def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarray, segments,
                     initial_state: str = "estimate", dv: np.ndarray = None, grid: Optional[np.ndarray] = None,
-                    max_gap: Optional[int] = None) -> LoopSignals:
+                    max_gap: Optional[int] = None, fill: Optional[tuple] = None) -> LoopSignals:
     """:func:`compute_signals` of data with gaps: the model runs through a short gap and restarts after a long one.
 
     The samples of a gap are unknown.  Without ``grid`` every contiguous segment is simulated from
@@ -298,7 +298,8 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
     ``max_gap``, segments separated by gaps of at most ``max_gap`` samples form one run
     (:func:`gap_runs`): the model is simulated over the run's whole sample grid, its columns held at
     their last logged values through each gap (what the controller's hold does between moves), so
-    its state carries across the gap instead of starting from rest.  Only the initial transient of
+    its state carries across the gap instead of starting from rest; a missing sample whose columns
+    were logged and are sound (``fill``: the sample of a spike in an output) takes them instead.  Only the initial transient of
     a run is estimated, from its first samples (a held output stands in for a missing one in that
     one fit).  The signals are returned at the logged samples only: no regression row or statistic
     reads a held value.  A run starts at the first segment and after every longer gap.
@@ -316,6 +317,9 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
         Sample number of every row on the sample grid (:attr:`LoggedData.grid_index`).
     max_gap : int, optional
         Longest gap (missing samples) the model runs through; needed with ``grid``.
+    fill : tuple (ndarray of int, ndarray), optional
+        Grid numbers (as ``grid``) of missing samples with known columns, and those columns ``[u |
+        dv]``, shape (m, n_inputs + n_disturbances) (:meth:`LoggedData.fill_on_grid`).
 
     Returns
     -------
@@ -334,7 +338,18 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
             continue
         at = np.asarray(grid[a:b], dtype=np.int64) - int(grid[a])         # the rows' places on the run's grid
         held = a + np.searchsorted(at, np.arange(int(at[-1]) + 1), side="right") - 1
-        sig = compute_signals(model, r[held], u[held], y[held], initial_state, dv=None if dv is None else dv[held])
+        u_run, dv_run = u[held], None if dv is None else dv[held]
+        if fill is not None:
+            where = np.asarray(fill[0], dtype=np.int64) - int(grid[a])
+            inside = (where > 0) & (where < at[-1])
+            if np.any(inside):
+                cols = np.asarray(fill[1], dtype=float)[inside]
+                u_run = np.array(u_run, dtype=float)
+                u_run[where[inside]] = cols[:, :u_run.shape[1]]
+                if dv_run is not None:
+                    dv_run = np.array(dv_run, dtype=float)
+                    dv_run[where[inside]] = cols[:, u_run.shape[1]:]
+        sig = compute_signals(model, r[held], u_run, y[held], initial_state, dv=dv_run)
         parts.append(LoopSignals(**{f.name: getattr(sig, f.name)[at] for f in dataclasses.fields(LoopSignals)
                                     if f.name != "initial_state"}, initial_state=sig.initial_state))
     return LoopSignals(**{f.name: np.vstack([getattr(p, f.name) for p in parts])
@@ -408,6 +423,39 @@ def scored_segments(segments, *models: PlantModel, settled: bool = False, restar
     return segments[:1] + [(min(a + skip, b) if k in restarts else a, b) for k, (a, b) in enumerate(segments) if k]
 
 
+def unknown_starts(segments, grid: np.ndarray, max_gap: int, fill: Optional[tuple] = None) -> list:
+    """The segments (after the first) whose start still carries an unknown: after a gap longer than
+    ``max_gap`` (the model restarts there, :func:`segment_signals`) or after a short gap with a
+    sample whose columns are unknown (held through it).  The ``restarts`` of :func:`scored_segments`.
+
+    Parameters
+    ----------
+    segments : sequence of (int, int)
+    grid : ndarray of int, shape (n_samples,)
+    max_gap : int
+    fill : tuple (ndarray of int, ndarray), optional
+        Grid numbers of missing samples whose columns are known (:meth:`LoggedData.fill_on_grid`).
+
+    Returns
+    -------
+    list of int
+    """
+    known = set() if fill is None else {int(k) for k in np.asarray(fill[0])}
+    out = []
+    for k in range(1, len(segments)):
+        lo, hi = int(grid[segments[k - 1][1] - 1]), int(grid[segments[k][0]])
+        if hi - lo - 1 > max_gap or any(m not in known for m in range(lo + 1, hi)):
+            out.append(k)
+    return out
+
+
+def packed(segments) -> list:
+    """The runs ``segments`` (``(first, end)``, in order) as runs of their rows taken out and stacked
+    (``x[scored_mask(...)]``): ``[(0, b0 - a0), (b0 - a0, ...), ...]``."""
+    edges = np.cumsum([0] + [int(b) - int(a) for a, b in segments])
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+
+
 def scored_mask(segments, n: int, *models: PlantModel, settled: bool = False, restarts=None) -> np.ndarray:
     """:func:`scored_segments` as a mask over the ``n`` stacked samples, shape (n,), bool."""
     keep = np.zeros(int(n), dtype=bool)
@@ -416,17 +464,21 @@ def scored_mask(segments, n: int, *models: PlantModel, settled: bool = False, re
     return keep
 
 
-def error_rms(model: PlantModel, d: np.ndarray) -> dict:
+def error_rms(model: PlantModel, d: np.ndarray, segments=None) -> dict:
     """``{output name: RMS of its prediction error}``, about its mean on an integrating output.
 
     An integrating output has no fixed level (see the module docstring): its prediction error holds
-    the output's arbitrary level, which no model explains, so its RMS is taken about the mean.  A
-    self-regulating output keeps its offset (a wrong gain times the inputs' mean shows there).
+    the output's arbitrary level, which no model explains, so its RMS is taken about the mean (of
+    every segment of data with gaps: the inputs inside a gap are unknown, and a pulse of them into an
+    integrator moves the level for good).  A self-regulating output keeps its offset (a wrong gain
+    times the inputs' mean shows there).
 
     Parameters
     ----------
     model : PlantModel
     d : ndarray, shape (n_samples, n_outputs)
+    segments : sequence of (int, int), optional
+        Contiguous runs of the rows of ``d`` between gaps (default: one).
 
     Returns
     -------
@@ -435,6 +487,9 @@ def error_rms(model: PlantModel, d: np.ndarray) -> dict:
     d = np.asarray(d, dtype=float)
     out = {}
     for i, (name, integrating) in enumerate(zip(model.outputs, model.integrating_outputs)):
-        x = d[:, i] - np.mean(d[:, i]) if integrating and d.shape[0] else d[:, i]
+        if integrating and d.shape[0] and segments:
+            x = np.concatenate([d[a:b, i] - np.mean(d[a:b, i]) for a, b in segments if b > a] or [d[:0, i]])
+        else:
+            x = d[:, i] - np.mean(d[:, i]) if integrating and d.shape[0] else d[:, i]
         out[name] = float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
     return out

@@ -15,10 +15,15 @@ A burst of ``m`` samples (``1 <= m <=`` :data:`MAX_SPIKE`) of channel ``x`` betw
   :data:`SPIKE_THRESHOLD` times the channel's robust scale of sample-to-sample changes
   (:data:`NORMAL_MAD` times the median absolute deviation of its first differences within the segments;
   the median nonzero ``|change|`` where that is 0, as for a quantized channel), and
-* the channel comes back: ``|hi - lo|`` is at most :data:`RETURN_FRACTION` of the excursion.
+* the channel comes back: ``|hi - lo|`` is at most :data:`RETURN_FRACTION` of the excursion, and
+* the excursion stands out of the channel's own movement around it: it exceeds
+  :data:`LOCAL_FACTOR` times the largest change among the :data:`LOCAL_SAMPLES` samples before
+  ``lo`` and after ``hi``.
 
 A step (the channel stays at its new level), a ramp, or a controller's kick that decays (it does
-not come back within the burst) is not a spike.  The first and last samples of a segment have one
+not come back within the burst) is not a spike; nor is a controller's move after a setpoint step on
+an input that is otherwise almost still (its robust scale is tiny, but its moves around the burst are
+as large as the burst).  The first and last samples of a segment have one
 neighbour only and are never called spikes.
 """
 
@@ -35,6 +40,10 @@ SPIKE_THRESHOLD = 10.0
 MAX_SPIKE = 3
 #: The channel must come back: ``|hi - lo|`` at most this fraction of the excursion.
 RETURN_FRACTION = 0.25
+#: The excursion must exceed this many times the largest change of the channel around the burst ...
+LOCAL_FACTOR = 3.0
+#: ... among this many samples on either side.
+LOCAL_SAMPLES = 5
 #: Spikes named in the note, at most.
 NAMED_SPIKES = 3
 #: The median absolute deviation of a normal sample times this is its standard deviation (1 / Phi^-1(3/4)).
@@ -118,8 +127,12 @@ def _spike_masks(rows: np.ndarray, segments: list, threshold: float) -> np.ndarr
             top, bottom = burst.max(axis=0), burst.min(axis=0)
             excursion = np.maximum(bottom - np.maximum(lo, hi), np.minimum(lo, hi) - top)
             hit = (excursion > limit[c]) & (np.abs(hi - lo) <= RETURN_FRACTION * excursion)
-            for ch, kk in zip(c[hit], k[hit]):
-                mask[ch, a + kk:a + kk + m] = True
+            for ch, kk, ex in zip(c[hit], k[hit], excursion[hit]):
+                before = xs[ch, max(kk - 1 - LOCAL_SAMPLES, 0):kk]              # up to lo
+                after = xs[ch, kk + m:kk + m + 1 + LOCAL_SAMPLES]              # from hi on
+                moves = np.abs(np.concatenate([np.diff(before), np.diff(after)]))
+                if ex > LOCAL_FACTOR * moves.max(initial=0.0):
+                    mask[ch, a + kk:a + kk + m] = True
     return mask
 
 
@@ -174,4 +187,14 @@ def without_spikes(data: LoggedData, threshold: float = SPIKE_THRESHOLD) -> tupl
             f"nothing interpolated (option drop_spikes false keeps them)")
     kept = data.take(np.flatnonzero(~bad))
     kept.notes = tuple(data.notes) + (note,)
+    # The samples of a spike in a setpoint or an output keep their logged inputs and measured
+    # disturbances for the model's simulation (LoggedData.column_fill); a spike in a column is not kept.
+    column_spike = np.zeros(data.n_samples, dtype=bool)
+    for label in list(data.inputs) + list(data.disturbances):
+        if label in spikes:
+            column_spike |= spikes[label]
+    sound = np.flatnonzero(bad & ~column_spike)
+    if sound.size:
+        t_old, c_old = data.column_fill if data.column_fill is not None else (np.zeros(0), np.zeros((0, data.columns.shape[1])))
+        kept.column_fill = (np.concatenate([t_old, data.t[sound]]), np.vstack([c_old, data.columns[sound]]))
     return kept, note

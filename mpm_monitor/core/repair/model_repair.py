@@ -19,8 +19,8 @@ from ..discretize import model_columns
 from ..errors import ConfigurationError, InputError
 from ..logged_data import LoggedData, check_loop_data, in_deviations
 from ..model import PlantModel
-from ..signals import (LoopSignals, compute_signals, error_rms, gap_runs, scored_mask, scored_segments,
-                       segment_signals)
+from ..signals import (LoopSignals, compute_signals, error_rms, packed, scored_mask, scored_segments,
+                       segment_signals, unknown_starts)
 from .classify import _classify_row
 from .disturbance import unexplained_disturbance
 from .fit import _TooShort
@@ -167,11 +167,12 @@ class _Record:
 
     @property
     def restarts(self) -> Optional[list]:
-        """With gaps, the segments at which the model restarts (after a gap longer than the option
-        ``max_gap``; every segment after the first when it is None)."""
+        """With gaps, the segments whose start still carries an unknown (after a gap longer than the
+        option ``max_gap``, or with a sample of unknown columns; every segment after the first when
+        ``max_gap`` is None): :func:`~mpm_monitor.core.signals.unknown_starts`."""
         if self.segments is None or self.options.max_gap is None:
             return None
-        return [run[0] for run in gap_runs(self.segments, self.data.grid_index, self.options.max_gap)[1:]]
+        return unknown_starts(self.segments, self.data.grid_index, self.options.max_gap, self.data.fill_on_grid())
 
     def holdout(self, d: np.ndarray, keep: Optional[np.ndarray], extra: Optional[np.ndarray] = None) -> float:
         """:func:`_holdout_rms` of ``d`` (shape (n_samples,)) over the samples ``keep`` (:meth:`scored`)."""
@@ -185,7 +186,8 @@ class _Record:
         if self.segments is not None:
             return segment_signals(model, self.data.r, self.data.u, self.y, self.segments,
                                    initial_state=self.options.initial_state, dv=self.data.dv,
-                                   grid=self.data.grid_index, max_gap=self.options.max_gap)
+                                   grid=self.data.grid_index, max_gap=self.options.max_gap,
+                                   fill=self.data.fill_on_grid())
         return compute_signals(model, self.data.r, self.data.u, self.y, initial_state=self.options.initial_state,
                                dv=self.data.dv, like=(self.model, self.signals))
 
@@ -246,7 +248,7 @@ def _set_up(model: PlantModel, data: LoggedData, options: RepairOptions,
     segments = tuple(segments) if len(segments) > 1 else None
     if signals is None and segments is not None:
         signals = segment_signals(model, data.r, data.u, y, segments, initial_state=options.initial_state, dv=data.dv,
-                                  grid=data.grid_index, max_gap=options.max_gap)
+                                  grid=data.grid_index, max_gap=options.max_gap, fill=data.fill_on_grid())
     elif signals is None:
         signals = compute_signals(model, data.r, data.u, y, initial_state=options.initial_state, dv=data.dv)
     d0 = np.asarray(signals.d, float)
@@ -475,10 +477,12 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
                 holdout_before[names_y[i]] = rec.holdout(rec.d0[:, i], keep)
     yhat0, yhat1, d0 = np.asarray(rec.signals.yhat, float), np.asarray(ev.signals.yhat, float), rec.d0
     settled = rec.scored(model, ev.model, settled=True)
+    runs = None
     if settled is not None:       # with gaps: the samples settled from the state each gap leaves
         y, yhat0, yhat1, d0, d1 = (x[settled] for x in (y, yhat0, yhat1, d0, d1))
+        runs = packed(rec.scored_segments(model, ev.model, settled=True))
     level = model.integrating_outputs
-    error_before, error_after = error_rms(model, d0), error_rms(model, d1)
+    error_before, error_after = error_rms(model, d0, runs), error_rms(model, d1, runs)
     fit_before = {names_y[i]: _fit_percent(y[:, i], yhat0[:, i], level[i]) for i in range(ny)}
     fit_after = {names_y[i]: _fit_percent(y[:, i], yhat1[:, i], level[i]) for i in range(ny)}
     disturbances, disturbance_warnings = _disturbance_findings(rec, ev.tests)
