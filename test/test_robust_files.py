@@ -249,6 +249,11 @@ MODEL_HEAD = "sample_time: 1\ninputs: [u1]\noutputs: [y1]\n"
      r"name 't' would be two columns of the CSV log"),
     ('sample_time: 1\ninputs: [r_y1]\noutputs: [y1]\ngain: [[1]]\ntime_constant: [[1]]\ndelay: [[0]]\n',
      r"name 'r_y1' would be two columns of the CSV log"),
+    # YAML 1.1 would read these as another model: base 60 (90), the last of two keys, 10 (underscore)
+    (MODEL_HEAD + "gain: [[1]]\ntime_constant: [[1:30]]\ndelay: [[0]]\n", r"key 'time_constant'.*got '1:30'"),
+    (MODEL_HEAD + "gain: [[1]]\ntime_constant: [[1]]\ndelay: [[0]]\ngain: [[2]]\n",
+     r"not valid YAML at line 7, column 1: found duplicate key 'gain'"),
+    (MODEL_HEAD + "gain: [[1_0]]\ntime_constant: [[1]]\ndelay: [[0]]\n", r"key 'gain'.*got '1_0'"),
 ])
 def test_edge_case_model_files_refused_with_one_line(work, text, match):
     path = work / "edge.yaml"
@@ -256,6 +261,20 @@ def test_edge_case_model_files_refused_with_one_line(work, text, match):
     with pytest.raises(ModelFileError, match=match) as info:
         load_model(path)
     assert_one_line_error(info.value, path)
+
+
+def test_numbers_are_read_as_yaml_1_2_and_json_write_them(work):
+    """``5e-05`` is a number (YAML 1.1: a string; json.dump writes it so, as in the report's repair.model),
+    ``010`` is ten (1.1: octal eight); the JSON form of a model loads as the model."""
+    import json
+
+    path = work / "numbers.yaml"
+    path.write_text(MODEL_HEAD + "gain: [[5e-05]]\ntime_constant: [[1E3]]\ndelay: [[010]]\n", encoding="utf-8")
+    m = load_model(path)
+    assert (m.gain[0, 0], m.time_constant[0, 0], m.delay[0, 0]) == (5e-05, 1000.0, 10.0)
+    as_json = work / "model.json"
+    as_json.write_text(json.dumps(m.to_dict()), encoding="utf-8")
+    assert load_model(as_json) == m
 
 
 def test_python_tags_are_refused_and_never_run(work):

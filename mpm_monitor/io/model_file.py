@@ -1,11 +1,16 @@
 """The model file (YAML): read, validate and write a :class:`~mpm_monitor.core.model.PlantModel`.
 
 The schema is described in ``docs/interfaces.md``.  Files are loaded with PyYAML's safe loader
-(libyaml's parser when present): a Python tag is refused, never run.
+(libyaml's parser when present): a Python tag is refused, never run.  Numbers are read as YAML 1.2
+(and JSON) write them, not by YAML 1.1's wider rules, which would silently turn a file into another
+model: ``5e-05`` is a number (1.1: a string), ``010`` is ten (1.1: octal eight), ``1:30`` is not
+a number (1.1: ninety, base 60), ``1_0`` is not a number.  A key given twice is refused (1.1: the
+last one wins).
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -235,20 +240,65 @@ def model_from_dict(data: Any, source: str = "model") -> PlantModel:
         raise ModelFileError(msg) from None
 
 
+_INT_TAG, _FLOAT_TAG = "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"
+_INT = re.compile(r"^[-+]?[0-9]+$")
+_FLOAT = re.compile(r"^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?"
+                    r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$")
+
+
+def _construct_float(loader, node) -> float:
+    text = loader.construct_scalar(node).lower()
+    if text.endswith(".inf"):
+        return float("-inf") if text.startswith("-") else float("inf")
+    if text == ".nan":
+        return float("nan")
+    return float(text)
+
+
+def _strict_loader(base):
+    """``base`` (PyYAML's SafeLoader or CSafeLoader) with YAML 1.2's numbers and unique keys (module docstring)."""
+
+    class Loader(base):
+        def construct_mapping(self, node, deep=False):
+            seen = set()
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    duplicate = key in seen
+                except TypeError:          # an unhashable key: the base constructor refuses it
+                    continue
+                if duplicate:
+                    raise yaml.constructor.ConstructorError("while constructing a mapping", node.start_mark,
+                                                            f"found duplicate key {key!r}", key_node.start_mark)
+                seen.add(key)
+            return super().construct_mapping(node, deep=deep)
+
+    Loader.yaml_implicit_resolvers = {first: [(tag, rx) for tag, rx in resolvers if tag not in (_INT_TAG, _FLOAT_TAG)]
+                                      for first, resolvers in base.yaml_implicit_resolvers.items()}
+    Loader.add_implicit_resolver(_INT_TAG, _INT, list("-+0123456789"))
+    Loader.add_implicit_resolver(_FLOAT_TAG, _FLOAT, list("-+0123456789."))
+    Loader.add_constructor(_INT_TAG, lambda loader, node: int(loader.construct_scalar(node)))
+    Loader.add_constructor(_FLOAT_TAG, _construct_float)
+    return Loader
+
+
+_LOADER = _strict_loader(yaml.SafeLoader)
+_C_LOADER = _strict_loader(yaml.CSafeLoader) if hasattr(yaml, "CSafeLoader") else None
+
+
 def _parse_yaml(text: str):
     """``yaml.safe_load(text)``, by libyaml's parser when PyYAML has it (the same safe constructor and
     resolver: the same values, many times faster on a large model); a text it refuses is parsed again
     by the pure-Python parser, whose error names the problem and its place as before."""
-    loader = getattr(yaml, "CSafeLoader", None)
-    if loader is not None:
+    if _C_LOADER is not None:
         try:
-            data = yaml.load(text, Loader=loader)
+            data = yaml.load(text, Loader=_C_LOADER)
         except (yaml.YAMLError, RecursionError, ValueError, TypeError):
             data = None
         else:
             if _depth_within(data, _MAX_DEPTH):
                 return data
-    return yaml.safe_load(text)
+    return yaml.load(text, Loader=_LOADER)
 
 
 #: Nesting of lists and mappings beyond which a text is left to the pure-Python parser (a model file
