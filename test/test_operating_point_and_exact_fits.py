@@ -178,6 +178,29 @@ def test_a_log_in_very_small_units_is_analysed_like_the_same_log_in_units():
     assert not [w for w in got.warnings if "never move" in w]
 
 
+@pytest.mark.parametrize("factor, match", [
+    (1e-90, None),
+    (1e-160, r"loop\.csv: the setpoints are at most [0-9.e+-]+ \(largest: 'y[12]' at t = \d+ s\): too small for the "
+             r"analysis \(at least 1e-100\); rescale the units"),
+    (1e60, r"loop\.csv: setpoint 'y[12]' at t = \d+ s is [0-9.e+]+: too large for the analysis"),
+])
+def test_a_log_in_units_the_arithmetic_cannot_carry_is_refused_in_one_line(factor, match):
+    """Scaled by 1e-160 the arithmetic divided by zero (a traceback); by 1e60 numpy warned of overflows and
+    by 1e80 other elements were located.  Within the range the analysis is that of the log in units."""
+    wrong = PLANT.with_element(0, 1, gain=0.3 * 1.6)
+    data = _log(wrong)
+    scaled = dataclasses.replace(data, u=data.u * factor, y=data.y * factor, r=data.r * factor)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        if match is None:
+            got = analyze(wrong, scaled, AnalysisOptions(repair=False))
+            assert got.located_elements == [("y1", "u2")]
+            return
+        with pytest.raises(DataFileError, match=match) as info:
+            analyze(wrong, scaled, AnalysisOptions(repair=False))
+    assert "\n" not in str(info.value)
+
+
 def test_a_row_exact_but_for_rounding_has_no_detectable_change():
     # The exact row's error is 0 or a few ulps depending on how the BLAS rounds: 1e-13 of added
     # "noise" (1e-13 of the output's spread) is still an exact fit, 1e-6 is noise.

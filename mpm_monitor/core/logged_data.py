@@ -16,9 +16,13 @@ import numpy as np
 from .errors import DataFileError
 from .model import PlantModel
 
-#: Largest |value| x max(1, |gain|) the analysis takes: its least-squares fits square the signals and
-#: float64 overflows near 1e308 (the results are scale-invariant up to about 1e150).
-MAX_ANALYSIS_SCALE = 1e150
+#: Largest |value| x max(1, |gain|) the analysis takes: its fits square the signals, and products of
+#: those (variances, determinants, statistics) overflow float64 sooner.  Case 3.2 with every value
+#: scaled: the same result up to 1e40; overflow warnings from 1e50; other elements located at 1e80.
+MAX_ANALYSIS_SCALE = 1e40
+#: Smallest largest |value| of a moving channel kind the analysis takes: the same results down to
+#: 1e-150 on case 3.2, a division by zero at 1e-160.
+MIN_ANALYSIS_SCALE = 1e-100
 
 
 @dataclasses.dataclass
@@ -328,10 +332,13 @@ def divergence(names, y: np.ndarray) -> list:
 
 
 def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the model") -> None:
-    """Refuse data (or model gains) so large that the squares in the analysis overflow float64.
+    """Refuse data (or model gains) so large that the squares in the analysis overflow float64, or so
+    small that they underflow.
 
     Beyond :data:`MAX_ANALYSIS_SCALE` the fits break down (a ``LinAlgError``) or, worse, return a
-    confident all-clear; a sensor's "bad value" sentinel such as 1e308 gets there.
+    confident all-clear; a sensor's "bad value" sentinel such as 1e308 gets there.  A kind of channel
+    (setpoints, inputs, measured disturbances, outputs) whose largest |value| is not 0 but below
+    :data:`MIN_ANALYSIS_SCALE` is refused too.
 
     Parameters
     ----------
@@ -358,6 +365,10 @@ def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the mo
             continue
         k, j = np.unravel_index(int(np.argmax(arr)), arr.shape)
         peak = float(arr[k, j])
+        if 0.0 < peak < MIN_ANALYSIS_SCALE:
+            raise DataFileError(f"{data.source or 'data'}: the {name}s are at most {peak:.3g} (largest: '{names[j]}' "
+                                f"at t = {float(data.t[k]):g} s): too small for the analysis (at least "
+                                f"{MIN_ANALYSIS_SCALE:g}); rescale the units")
         if not peak * max(1.0, gain) <= MAX_ANALYSIS_SCALE:
             why = "" if peak > MAX_ANALYSIS_SCALE else f" with gains up to {gain:.3g} in {model_source}"
             diverging = diverging_outputs(model.outputs, data.y)
