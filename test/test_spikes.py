@@ -69,6 +69,20 @@ def test_what_is_not_a_spike():
     assert _flagged(x) == [200]
 
 
+def test_a_controller_move_on_an_almost_still_input_is_not_a_spike():
+    """An MPC input that barely moves but for its moves after a setpoint step (the values of an outside
+    loop: 0.730, 0.822, 0.849, 0.820, 0.749, 0.666 ...): its robust scale is tiny, the hump is far
+    beyond it, but the moves around the hump are as large; a glitch of the same channel is still one."""
+    rng = np.random.default_rng(4)
+    x = 0.73 + 1e-4 * rng.standard_normal(400)
+    move = [0.822, 0.849, 0.820, 0.749, 0.666, 0.60, 0.56, 0.54, 0.53]
+    x[200:200 + len(move)] = move
+    x[200 + len(move):] = 0.53 + 1e-4 * rng.standard_normal(400 - 200 - len(move))
+    assert _flagged(x) == []
+    x[300] += 5.0
+    assert _flagged(x) == [300]
+
+
 def test_edges_and_gaps():
     x = NOISE.copy()
     x[0] += 50.0                                         # the first sample has one neighbour only
