@@ -83,6 +83,24 @@ def test_a_controller_move_on_an_almost_still_input_is_not_a_spike():
     assert _flagged(x) == [300]
 
 
+def test_an_mpc_kick_at_a_setpoint_step_is_not_a_spike():
+    """A quiet loop's MPC answers a setpoint step with one or two large moves that come back (case 3.1
+    under setpoint steps: u2 -0.148, 0.847, 0.949, 0.965, -0.24): the loop's most informative samples.
+    The same burst with no setpoint step near it is a spike."""
+    n = 400
+    rng = np.random.default_rng(6)
+    r = np.zeros((n, 1))
+    r[250:] = 1.0
+    u = -0.15 + 0.005 * rng.standard_normal((n, 1))
+    u[250:253, 0] = [0.847, 0.949, 0.965]
+    u[253:, 0] = -0.24 + 0.005 * rng.standard_normal(n - 253)
+    y = 0.01 * rng.standard_normal((n, 1))
+    data = LoggedData(t=np.arange(n, dtype=float), r=r, u=u, y=y, inputs=("u",), outputs=("y",), sample_time=1.0)
+    assert find_spikes(data) == {}
+    moved = dataclasses.replace(data, r=(np.arange(n) >= 300).astype(float)[:, None])   # the step 50 samples later
+    assert list(np.flatnonzero(find_spikes(moved)["u"])) == [250, 251, 252]
+
+
 def test_edges_and_gaps():
     x = NOISE.copy()
     x[0] += 50.0                                         # the first sample has one neighbour only

@@ -23,7 +23,9 @@ A burst of ``m`` samples (``1 <= m <=`` :data:`MAX_SPIKE`) of channel ``x`` betw
 A step (the channel stays at its new level), a ramp, or a controller's kick that decays (it does
 not come back within the burst) is not a spike; nor is a controller's move after a setpoint step on
 an input that is otherwise almost still (its robust scale is tiny, but its moves around the burst are
-as large as the burst).  The first and last samples of a segment have one
+as large as the burst); nor is a burst of an input that starts with a setpoint step or up to
+:data:`KICK_SAMPLES` - 1 samples after one (an MPC's first moves after a step often overshoot and
+come back within a sample or two: the loop's most informative samples, not a glitch).  The first and last samples of a segment have one
 neighbour only and are never called spikes.
 """
 
@@ -44,6 +46,9 @@ RETURN_FRACTION = 0.25
 LOCAL_FACTOR = 3.0
 #: ... among this many samples on either side.
 LOCAL_SAMPLES = 5
+#: An input's burst that starts at a setpoint step or within this many samples of it (counting the
+#: step's own) is the controller's answer to the step, not a spike.
+KICK_SAMPLES = 3
 #: Spikes named in the note, at most.
 NAMED_SPIKES = 3
 #: The median absolute deviation of a normal sample times this is its standard deviation (1 / Phi^-1(3/4)).
@@ -156,7 +161,28 @@ def find_spikes(data: LoggedData, threshold: float = SPIKE_THRESHOLD) -> dict:
         return {}
     rows = np.vstack([np.asarray(a, dtype=float).T for a in (data.r, data.u, data.dv, data.y)])
     masks = _spike_masks(rows, data.segments, threshold)
+    ny, nu = len(data.outputs), len(data.inputs)
+    if masks[ny:ny + nu].any():
+        _spare_kicks(masks[ny:ny + nu], np.asarray(data.r, dtype=float), data.segments)
     return {label: masks[c] for c, label in enumerate(labels) if masks[c].any()}
+
+
+def _spare_kicks(input_masks: np.ndarray, r: np.ndarray, segments: list) -> None:
+    """Clear, in place, the bursts of ``input_masks`` (shape (n_inputs, n_samples)) that start at a
+    setpoint step of ``r`` (shape (n_samples, n_outputs)) or within :data:`KICK_SAMPLES` samples of it."""
+    step = np.zeros(r.shape[0], dtype=bool)
+    for a, b in segments:
+        step[a + 1:b] = np.any(r[a + 1:b] != r[a:b - 1], axis=1)
+    near = step.copy()
+    for lag in range(1, KICK_SAMPLES):
+        near[lag:] |= step[:-lag]
+    for mask in input_masks:
+        starts = np.flatnonzero(mask & ~np.concatenate([[False], mask[:-1]]))
+        for k in starts[near[starts]]:
+            end = k
+            while end < mask.size and mask[end]:
+                end += 1
+            mask[k:end] = False
 
 
 def without_spikes(data: LoggedData, threshold: float = SPIKE_THRESHOLD) -> tuple:
