@@ -329,3 +329,27 @@ def test_delays_longer_than_the_record_give_a_warning_not_an_error():
     assert res.model == model
     assert res.kinds == {(1, 1): "unknown"}
     assert any("too few" in w for w in res.warnings)
+
+
+def test_an_element_of_the_wrong_structure_is_repaired_by_its_output_error_fit():
+    """A plant whose (y2, u2) has a second lag (tau2 12 s) the FOPDT model lacks.  The prediction-error
+    fit's AR noise model took what one lag cannot fit and drove the repaired gain from 1 to 0.009 (a
+    steady state 110 times too small, accepted because it still lowered the held-out error).  The
+    output-error fit gives the best FOPDT: its gain near the plant's and the error near the noise."""
+    from mpm_monitor.core.analysis import AnalysisOptions
+    from mpm_monitor.core.model import PlantModel
+    from mpm_monitor.core.pipeline import analyze
+    from mpm_monitor.sim.closed_loop import ExcitationOptions
+    from mpm_monitor.sim.mpc import MpcOptions
+
+    model = PlantModel(sample_time=1.0, inputs=("u1", "u2"), outputs=("y1", "y2"),
+                       gain=np.array([[2.0, 0.8], [0.5, 1.0]]), time_constant=np.array([[20.0, 15.0], [10.0, 8.0]]),
+                       delay=np.array([[2.0, 3.0], [1.0, 2.0]]))
+    plant = model.with_element(1, 1, time_constant2=12.0)
+    data = run_closed_loop(plant, model, 2000, seed=7, mpc=MpcOptions(), excitation=ExcitationOptions()).as_logged_data()
+    rep = analyze(model, data, AnalysisOptions())
+    assert ("y2", "u2") in rep.located_elements
+    after = rep.repaired_model.element(1, 1)
+    assert 0.8 < after["gain"] < 1.4, after
+    assert rep.repair["error_after"]["y2"] < 0.4 * rep.repair["error_before"]["y2"]
+    assert any("fitted without a noise model (output error)" in w for w in rep.warnings)

@@ -305,6 +305,33 @@ def _repair_row(row: _RowData, js, n_fit: int, settings: _TestSettings, classifi
     return verdicts, warnings, _fit_repair(free, verdicts, n_fit, settings)
 
 
+#: The output-error alternative of a row's repair is tried when the repaired row's simulation error over
+#: the fit part is above this fraction of the model's (the prediction-error fit's AR noise model may have
+#: taken what an element of the wrong structure cannot: a second lag repaired as one lag) ...
+OUTPUT_ERROR_TRY = 0.5
+#: ... and taken when its simulation error over the fit part is below the other's by this factor.
+OUTPUT_ERROR_MARGIN = 1.25
+
+
+def _fit_part_rms(rec: _Record, i: int, elements: dict) -> tuple:
+    """RMS of the simulation error of row ``i`` over the fit part (about its level), with the applied
+    elements of ``elements`` and with the model as given: ``(after, before)``."""
+    candidate = rec.model
+    for j, el in elements.items():
+        if el.apply:
+            candidate = el.applied_to(candidate, i, j)
+    keep = rec.scored(rec.model, candidate)
+    fit = np.arange(rec.n) < rec.n_fit
+    if keep is not None:
+        fit &= keep
+
+    def rms(d):
+        x = np.asarray(d, float)[fit]
+        return _rms(x - np.mean(x)) if x.size else float("nan")
+
+    return rms(rec.signals_of(candidate).d[:, i]), rms(rec.d0[:, i])
+
+
 def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnings: list):
     """Compare the candidate's RMS prediction error on the held-out part with the model's.
 
@@ -351,28 +378,63 @@ def _process_row(rec: _Record, i: int, js, extra: Optional[np.ndarray],
     ``extra`` (shape (n_samples, n_extra)) holds nuisance regressors for an unexplained step or
     drift on the row, or None.  ``classified``: the classification of ``js`` without ``extra``
     already made (:func:`explained_elements`), or None.
+
+    The fits are prediction-error fits with the AR noise model of ``noise_order``.  When the row's
+    repair leaves more than :data:`OUTPUT_ERROR_TRY` of the model's simulation error over the fit
+    part, the row is processed again with an output-error fit (no noise model), and that repair is
+    taken when its simulation error over the fit part is :data:`OUTPUT_ERROR_MARGIN` times lower, with
+    a warning: in a closed loop the noise model can take what an element of the wrong structure
+    cannot fit (a second lag repaired as one lag, its gain driven towards 0).
     """
+    outcome, tried = _process_row_with(rec, rec.settings, i, js, extra, classified)
+    if not tried or rec.options.noise_order == 0 or rec.n_hold == 0:
+        return outcome
+    after, before = _fit_part_rms(rec, i, tried)
+    if not after > OUTPUT_ERROR_TRY * before:
+        return outcome
+    oe_settings = _TestSettings.of(dataclasses.replace(rec.options, noise_order=0))
+    oe_outcome, oe_tried = _process_row_with(rec, oe_settings, i, js, extra, None)
+    if not oe_tried:
+        return outcome
+    oe_after, _ = _fit_part_rms(rec, i, oe_tried)
+    if not oe_after * OUTPUT_ERROR_MARGIN < after:
+        return outcome
+    oe_outcome.warnings.append(
+        f"{rec.model.outputs[i]}: the repair fitted with the AR noise model left {after:.4g} of simulation error "
+        f"over the fit part (the model as given {before:.4g}); fitted without a noise model (output error) it "
+        f"leaves {oe_after:.4g}, and that repair is the one taken: the element's structure may not be the "
+        f"plant's (for example a second lag)")
+    return oe_outcome
+
+
+def _process_row_with(rec: _Record, settings: _TestSettings, i: int, js, extra: Optional[np.ndarray],
+                      classified: Optional[tuple]) -> tuple:
+    """:func:`_process_row` with the fits of ``settings``; also the verdicts as validated on the held-out
+    part (before the refit on the whole record), or None when none was accepted."""
     model = rec.model
     row = _RowData(model=model, u=rec.u, y=rec.y, i=i, extra=extra, segments=rec.segments)
     try:
-        elements, row_warnings, repair_fit = _repair_row(row, js, rec.n_fit, rec.settings, classified)
+        elements, row_warnings, repair_fit = _repair_row(row, js, rec.n_fit, settings, classified)
     except _TooShort as exc:
         elements = {j: ElementVerdict(kind="unknown", changed=[], after=model.element(i, j), interval=None,
                                       evidence={}, confidence=0.0, apply=False, reason=str(exc)) for j in js}
-        return _RowOutcome(elements, [f"{model.outputs[i]}: {exc}; its elements were not re-estimated."])
+        return _RowOutcome(elements, [f"{model.outputs[i]}: {exc}; its elements were not re-estimated."]), None
     row_warnings = list(row_warnings)
     h_after = h_before = None
+    validated = None
     accepted = any(el.apply for el in elements.values())
     if accepted and rec.n_hold > 0:
         accepted, h_after, h_before = _validate_on_holdout(rec, row, js, elements, row_warnings)
+        if accepted:
+            validated = {j: dataclasses.replace(el) for j, el in elements.items()}
     if accepted and rec.options.refit_on_all and rec.n_hold > 0:
-        _refit_on_all(row, {j: el for j, el in elements.items() if el.apply}, rec.settings)
+        _refit_on_all(row, {j: el for j, el in elements.items() if el.apply}, settings)
     elif repair_fit is not None:
-        repair_fit.put_intervals(elements, rec.settings)
+        repair_fit.put_intervals(elements, settings)
     if not accepted:
         for el in elements.values():
             el.apply = False
-    return _RowOutcome(elements, row_warnings, h_after, h_before)
+    return _RowOutcome(elements, row_warnings, h_after, h_before), validated
 
 
 def _evaluate(rec: _Record, results: dict) -> _Evaluation:
