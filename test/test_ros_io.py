@@ -56,6 +56,8 @@ def test_channels_in_another_order_are_put_in_model_order():
     (["y1", "y2", "y3"], [1.0, 2.0], r"2 position value\(s\) for 3 name\(s\)"),
     (["y1", "y2", "y3"], [1.0, math.nan, 3.0], r"non-finite value\(s\) y2=nan"),
     (["y1", "y2", "y3"], [1.0, 2.0, math.inf], r"y3=inf"),
+    # a bad-value sentinel: refused at reception (it made every analysis of the window fail while it stayed)
+    (["y1", "y2", "y3"], [1.0, -1e300, 3.0], r"value\(s\) y2=-1e\+300 at t = .* beyond 1e\+40"),
 ])
 def test_bad_messages_are_refused_naming_topic_channel_and_expectation(names, values, match):
     with pytest.raises(MessageError, match=match) as info:

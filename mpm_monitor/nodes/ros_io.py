@@ -28,6 +28,7 @@ import numpy as np
 
 from .. import limit_blas_threads
 from ..core.errors import ConfigurationError, InputError
+from ..core.logged_data import MAX_ANALYSIS_SCALE
 from ..core.options import ParamSpec
 from ..io.qos import DIAGNOSTICS_QOS, VECTOR_QOS, QosSpec
 
@@ -169,7 +170,8 @@ class VectorCodec:
         ------
         MessageError
             When the names do not match, ``position`` and ``name`` differ in length, or a value is
-            not finite; the message names the topic, the channel and what was expected.
+            not finite or beyond :data:`~mpm_monitor.core.logged_data.MAX_ANALYSIS_SCALE`; the
+            message names the topic, the channel and what was expected.
         """
         stamp_ns = stamp_to_ns(msg.header.stamp)
         names = tuple(msg.name)
@@ -187,6 +189,11 @@ class VectorCodec:
             bad = [f"{self.names[i]}={float(values[i])!r}" for i in np.flatnonzero(~np.isfinite(values))]
             raise MessageError(f"{self.topic}: non-finite value(s) {', '.join(bad)} at t = {stamp_ns / NS_PER_S:.9g} s "
                                f"(expected finite numbers)")
+        huge = np.abs(values) > MAX_ANALYSIS_SCALE
+        if np.any(huge):      # a bad-value sentinel such as 1e300: refused like a NaN (one sample), not analysed
+            bad = [f"{self.names[i]}={float(values[i])!r}" for i in np.flatnonzero(huge)]
+            raise MessageError(f"{self.topic}: value(s) {', '.join(bad)} at t = {stamp_ns / NS_PER_S:.9g} s beyond "
+                               f"{MAX_ANALYSIS_SCALE:g} (expected numbers the analysis can take; a bad-value sentinel?)")
         return stamp_ns, values
 
     def encode(self, values, stamp_ns: int, frame_id: str = ""):
