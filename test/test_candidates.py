@@ -153,6 +153,11 @@ def test_unknown_or_model_channels_are_refused_in_one_line(effect_run):
         select_candidates(effect_run.data, "nope", effect_run.model)
     with pytest.raises(ConfigurationError, match="'u2' is a channel of the model"):
         select_candidates(effect_run.data, ["u2"], effect_run.model)
+    with pytest.raises(ConfigurationError, match="^candidates: 't' is the log's time, not a candidate$"):
+        select_candidates(effect_run.data, ["t"], effect_run.model)
+    setpoint = f"r_{effect_run.model.outputs[0]}"
+    with pytest.raises(ConfigurationError, match=f"^candidates: '{setpoint}' is a setpoint of the log, not a candidate$"):
+        select_candidates(effect_run.data, [setpoint], effect_run.model)
     with pytest.raises(ConfigurationError, match="expected 'all' or NAME"):
         select_candidates(effect_run.data, "ambient,,x")
     with pytest.raises(ConfigurationError, match="arx element test only"):

@@ -177,9 +177,13 @@ def select_candidates(data: LoggedData, spec, model: Optional[PlantModel] = None
     if wanted == ALL_CANDIDATES:
         wanted = tuple(available)
     used = set(model.columns + model.outputs) if model is not None else set()
+    setpoints = {f"r_{o}" for o in data.outputs}
     for name in wanted:
         if name in used:
             raise ConfigurationError(f"candidates: '{name}' is a channel of the model, not a candidate")
+        if name == "t" or name in setpoints:
+            what = "the log's time" if name == "t" else "a setpoint of the log"
+            raise ConfigurationError(f"candidates: '{name}' is {what}, not a candidate")
         if name not in available:
             raise ConfigurationError(f"candidates: no column '{name}' in {data.source or 'the data'}; the channels "
                                      f"the model does not use are: {', '.join(available) or 'none'}")
