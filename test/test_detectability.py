@@ -435,3 +435,15 @@ def test_simulate_takes_the_dither_of_a_reports_experiment(tmp_path):
     path.write_text(json.dumps({"experiment": {"dither": {"u9": 0.2}}}))
     with pytest.raises(InputError, match="unknown input"):
         _experiment_dither(str(path), FAT_MODEL)
+
+
+def test_a_still_measured_disturbance_is_named_as_one():
+    """The warning that the detectable change of a still column's elements cannot be computed calls a
+    measured disturbance a measured disturbance (it said "inputs inflow never move")."""
+    from mpm_monitor.apps.reproduce import simulate_case
+
+    case, data, _ = simulate_case("level", 1500, 3)
+    still = dataclasses.replace(data, dv=np.full_like(data.dv, 0.4))
+    rep = detect(case.model, still, AnalysisOptions(repair=False))
+    said = [w for w in rep.warnings if "never move: the smallest gain change" in w]
+    assert said and said[0].startswith(f"measured disturbances {case.model.disturbances[0]} never move"), said

@@ -646,8 +646,12 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
                         "prediction error is fitted exactly (a log without noise?): the smallest gain change this "
                         "window detects is not computed there (detectable_gain_change null)")
     if noise and design.constant:
-        warnings.append(f"inputs {', '.join(design.constant)} never move: the smallest gain change of their elements "
-                        "this window detects cannot be computed (detectable_gain_change null)")
+        dvs = set(model.disturbances)
+        parts = [f"{what} {', '.join(names)}" for what, names in (
+            ("inputs", [c for c in design.constant if c not in dvs]),
+            ("measured disturbances", [c for c in design.constant if c in dvs])) if names]
+        warnings.append(f"{' and '.join(parts)} never move: the smallest gain change of their elements this window "
+                        "detects cannot be computed (detectable_gain_change null)")
     blind = [k for k, v in values.items() if v is not None and not np.isfinite(v)]
     if blind:
         warnings.append("elements " + ", ".join(f"({model.outputs[i]}, {model.columns[j]})" for i, j in blind)
