@@ -138,3 +138,13 @@ def test_the_bag_reads_back_with_every_message_intact_and_in_order(demo):
     assert len(stamps["/diagnostics"]) >= 2 and np.all(np.diff(stamps["/diagnostics"]) >= 0)
     for topic, times in log_times.items():
         assert np.all(np.diff(times) >= 0), f"{topic}: recorded out of order"
+
+
+def test_the_demo_refuses_fewer_samples_than_its_monitor_can_analyse():
+    """Below what the analysis needs the monitor could only publish ERROR and the demo print "no analysis
+    result" with exit 0; it now says so up front."""
+    from mpm_monitor.core.errors import InputError
+
+    with pytest.raises(InputError, match=r"^--samples: case 3\.1 needs at least 215 samples for the monitor's "
+                                         r"analysis, got 150$"):
+        run_demo(case="3.1", samples=150, quiet=True)

@@ -300,8 +300,13 @@ def run_demo(case: str = "3.2", samples: Optional[int] = None, bag: Optional[str
         0 when the demo ran.
     """
     n = 3000 if samples is None else int(samples)
-    if n < 100:
-        raise InputError(f"--samples: expected at least 100 samples, got {n}")
+    c = simulation_case(case)
+    from ..core.analysis import AnalysisOptions
+    from ..core.regressions import regression_layout
+
+    need = max(100, regression_layout(c.model, AnalysisOptions()).min_samples)
+    if n < need:
+        raise InputError(f"--samples: case {case} needs at least {need} samples for the monitor's analysis, got {n}")
     recorder_cls = None
     if bag:
         if Path(bag).exists():
@@ -311,7 +316,6 @@ def run_demo(case: str = "3.2", samples: Optional[int] = None, bag: Optional[str
         except ImportError as exc:
             raise InputError(f"--bag needs the recorder node (mpm_monitor.nodes.recorder_node), which cannot be "
                              f"imported: {exc}") from None
-    c = simulation_case(case)
     ctx = private_context()
     suite = recorder = None
     try:
