@@ -73,7 +73,7 @@ class CandidateWindow:
         """
         names = tuple(str(n) for n in names)
         v = np.asarray(values, dtype=float).reshape(-1)
-        t = f"t = {int(stamp_ns) / NS_PER_S:.9g} s"
+        t = f"t = {int(stamp_ns) / NS_PER_S:.15g} s"
         if v.shape[0] != len(names):
             return f"candidate: {v.shape[0]} value(s) for {len(names)} name(s) at {t} (one value per name expected)"
         if any(not n for n in names) or len(set(names)) != len(names):

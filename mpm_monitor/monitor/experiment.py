@@ -296,7 +296,7 @@ class ExperimentTracker:
     def _span(self) -> str:
         if self._first_stamp is None:
             return ""
-        return f" (t = {self._first_stamp * 1e-9:g}-{self._last_stamp * 1e-9:g} s)"
+        return f" (t = {self._first_stamp * 1e-9:.15g}-{self._last_stamp * 1e-9:.15g} s)"
 
     def _not_started(self, completed: int) -> str:
         """Why the recommendation is only reported."""

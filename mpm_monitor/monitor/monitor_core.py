@@ -292,7 +292,7 @@ class MonitorCore:
         if not repair_ran(rep) or getattr(rep, "repaired_model", None) is None:
             return False, "the latest analysis ran without the repair (parameter repair is false): nothing to write"
         job = self._latest.job
-        window = f"the analysis of {job.data.n_samples} samples up to t = {job.last_stamp:g} s"
+        window = f"the analysis of {job.data.n_samples} samples up to t = {job.last_stamp:.15g} s"
         applied = applied_changes(rep.repair.get("changes") or [])
         if not applied or rep.repaired_model == self.model:
             verdict = repair_verdict(rep)

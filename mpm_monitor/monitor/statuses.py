@@ -316,7 +316,7 @@ def summary_status(outcome, analyses: int, analysis_error: Optional[str], waitin
         else:
             level = OK
             msg = "no model-plant mismatch detected"
-        msg += f" ({job.data.n_samples} samples up to t = {job.last_stamp:g} s{lost_text(job.data)})"
+        msg += f" ({job.data.n_samples} samples up to t = {job.last_stamp:.15g} s{lost_text(job.data)})"
         if analysis_error:
             level, msg = ERROR, f"{analysis_error}; previous result: {msg}"
     values += list(window)

@@ -306,18 +306,18 @@ class SampleWindow:
         v = np.asarray(values, dtype=float).reshape(-1)
         if v.shape[0] != self._sizes[slot]:
             names = self._names[channel]
-            self.report_bad(channel, stamp_ns, f"{channel}: {v.shape[0]} value(s) at t = {stamp_ns / NS_PER_S:.9g} s, "
+            self.report_bad(channel, stamp_ns, f"{channel}: {v.shape[0]} value(s) at t = {stamp_ns / NS_PER_S:.15g} s, "
                                                f"expected {len(names)} ({', '.join(names)})")
             return 0
         if not np.all(np.isfinite(v)):
-            self.report_bad(channel, stamp_ns, f"{channel}: non-finite value at t = {stamp_ns / NS_PER_S:.9g} s")
+            self.report_bad(channel, stamp_ns, f"{channel}: non-finite value at t = {stamp_ns / NS_PER_S:.15g} s")
             return 0
         self._health.received[channel] += 1
         last = self._last_stamp[channel]
         if last is not None and stamp_ns < last:
             self._health.out_of_order += 1
             self._problem("out_of_order", channel, stamp_ns,
-                          f"{channel}: t = {stamp_ns / NS_PER_S:.9g} s arrived after t = {last / NS_PER_S:.9g} s")
+                          f"{channel}: t = {stamp_ns / NS_PER_S:.15g} s arrived after t = {last / NS_PER_S:.15g} s")
         # the previous stamp, not the largest: one stamp far in the future must not make every
         # later vector out of order
         self._last_stamp[channel] = stamp_ns
@@ -383,7 +383,7 @@ class SampleWindow:
         if abs(off) > self._tol:
             self._health.off_grid += 1
             self._problem("off_grid", channel, stamp_ns,
-                          f"{channel}: t = {stamp_ns / NS_PER_S:.9g} s is {off / NS_PER_S:+.3g} s off the sample grid "
+                          f"{channel}: t = {stamp_ns / NS_PER_S:.15g} s is {off / NS_PER_S:+.3g} s off the sample grid "
                           f"(sample_time {self.sample_time:g} s; a wrong sample time or unsynchronised stamps)")
             return None
         return int(k)
@@ -408,7 +408,7 @@ class SampleWindow:
             entry = [None] * len(self.channels)
             self._pending[k] = entry
         if entry[slot] is not None:
-            t = f"t = {stamp_ns / NS_PER_S:.9g} s"
+            t = f"t = {stamp_ns / NS_PER_S:.15g} s"
             self._repeated(channel, stamp_ns, entry[slot], v,
                            f"{channel}: sample {t} received twice (same values; kept once)",
                            f"{channel}: two different vectors for sample {t} (the first is kept; two publishers "
@@ -438,7 +438,7 @@ class SampleWindow:
             pos = (self._head - (self._next_k - k)) % cap
             if self._k_buf[pos] == k:
                 stored = self._bufs[slot][pos]
-                t = f"t = {stamp_ns / NS_PER_S:.9g} s"
+                t = f"t = {stamp_ns / NS_PER_S:.15g} s"
                 self._repeated(channel, stamp_ns, stored, v,
                                f"{channel}: sample {t} received again (same values; ignored)",
                                f"{channel}: a different vector for sample {t}, already in the window (ignored; "
@@ -446,7 +446,7 @@ class SampleWindow:
                 return
         self._health.late += 1
         self._problem("late", channel, stamp_ns,
-                      f"{channel}: sample t = {stamp_ns / NS_PER_S:.9g} s arrived after it was given up (ignored)")
+                      f"{channel}: sample t = {stamp_ns / NS_PER_S:.15g} s arrived after it was given up (ignored)")
 
     def _latest_setpoint(self, k: int) -> int:
         """Index in the held setpoints of the one that holds at sample ``k`` (the latest stamped at or
@@ -516,7 +516,7 @@ class SampleWindow:
         then = (f"the window keeps its samples across the gap (at most max_gap = {self.options.max_gap})" if keep
                 else "the window restarts after the gap")
         self._problem("gap", "", self._stamp_of(first_missing),
-                      f"{n_missing} sample(s) missing from t = {t0:.9g} s ({absent}); {then}")
+                      f"{n_missing} sample(s) missing from t = {t0:.15g} s ({absent}); {then}")
         self._discard_pending_below(first_present, count=False)
         if not keep:
             self._reset_window()
@@ -538,7 +538,7 @@ class SampleWindow:
             self._health.missing_samples += 1
             absent = [c for c, e in zip(self.channels, entry) if e is None]
             self._problem("gap", "", self._stamp_of(oldest),
-                          f"sample t = {self._stamp_of(oldest) / NS_PER_S:.9g} s given up: no {' and no '.join(absent)} "
+                          f"sample t = {self._stamp_of(oldest) / NS_PER_S:.15g} s given up: no {' and no '.join(absent)} "
                           f"after {self.options.max_pending} newer incomplete samples")
 
     def _restart(self, stamp_ns: int) -> int:
@@ -546,9 +546,9 @@ class SampleWindow:
         the refused vectors again, as the start of a new stream."""
         if self._next_k is not None:
             expected = self._stamp_of(self._next_k) / NS_PER_S
-            where = f"the latest at t = {stamp_ns / NS_PER_S:.9g} s while t = {expected:.9g} s was expected"
+            where = f"the latest at t = {stamp_ns / NS_PER_S:.15g} s while t = {expected:.15g} s was expected"
         else:
-            where = f"the latest at t = {stamp_ns / NS_PER_S:.9g} s"
+            where = f"the latest at t = {stamp_ns / NS_PER_S:.15g} s"
         self._health.restarts += 1
         self._problem("restart", "output", stamp_ns,
                       f"stream restarted: {self._refused_outputs} output vectors in a row did not fit the sample "
