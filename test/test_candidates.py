@@ -290,3 +290,24 @@ def test_no_effect_run_gives_no_candidate():
     run = undeclared_effect_run(2000, seed=4, effect=UndeclaredEffect(gain=0.0), loop_channel=False)
     rep = detect(run.model, run.data, candidates="all")
     assert rep.candidates.located == [] and not any(e.mismatch for e in rep.elements)
+
+
+def test_a_candidate_on_an_integrating_output_is_repaired_as_integrating():
+    """The level case without its measured inflow in the model, the inflow given as a candidate: on the
+    level (an integrating output) the inflow's element is fitted integrating, as the level's own
+    elements are; fitted self-regulating it left the level's error 40 times the noise."""
+    from mpm_monitor.apps.reproduce import simulate_case
+    from mpm_monitor.core.candidates import without_columns
+    from mpm_monitor.core.pipeline import analyze
+
+    case, data, _ = simulate_case("level", 1500, 1)
+    name = case.model.disturbances[0]
+    model = without_columns(case.model, [name])
+    logged = dataclasses.replace(data, dv=np.zeros((data.n_samples, 0)), disturbances=(), extra={name: data.dv[:, 0]})
+    rep = analyze(model, logged, AnalysisOptions(), candidates=name)
+    level = [i for i, flag in enumerate(model.integrating_outputs) if flag][0]
+    repaired = rep.repaired_model
+    j = repaired.columns.index(name)
+    assert bool(repaired.integrating[level, j])
+    out = model.outputs[level]
+    assert rep.repair["error_after"][out] < 2.0 * min(rep.repair["error_after"].values())

@@ -23,14 +23,13 @@ import numpy as np
 from ..statistics import chi2_tail
 from .fit import _ElementSpec, _lag_lr, _RowEstimate, _RowProblem
 from .forms import (
-    _LADDER_MISSING,
     _LAG_SHIFT,
     _POLE_MIN,
-    FIRST_ORDER,
     _fitted_params,
     _Form,
     _form_of,
     _input_lag,
+    _missing_ladder,
     _params_of,
     _pole_of,
     _poles_of,
@@ -188,7 +187,7 @@ def _locate(row: _RowData, j: int, form: Optional[_Form] = None) -> _Located:
         ref, lag, poles = _step_reference(model.step_response[i, j], form, ts)
         return _Located(form=form, reference=ref, lag=lag, missing=False, poles=poles)
     if not present:
-        form = form or FIRST_ORDER
+        form = form or _missing_ladder(model, i)[0]
         ref = _fitted_params(form, 0.0, (_POLE_MIN,) * form.n_lags, 0.0, 0, ts)
         ref["delay"] = float(model.delay[i, j])
         return _Located(form=form, reference=ref, lag=int(model.delay_samples[i, j]), missing=True,
@@ -264,7 +263,7 @@ def _ladder(row: _RowData, j: int) -> tuple:
     if model.is_step_response and model.present[i, j]:
         return _step_ladder(model, i, j)
     if not model.present[i, j]:
-        return _LADDER_MISSING
+        return _missing_ladder(model, i)
     return ()
 
 
