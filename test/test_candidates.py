@@ -311,3 +311,30 @@ def test_a_candidate_on_an_integrating_output_is_repaired_as_integrating():
     assert bool(repaired.integrating[level, j])
     out = model.outputs[level]
     assert rep.repair["error_after"][out] < 2.0 * min(rep.repair["error_after"].values())
+
+
+def test_no_candidate_regression_row_reaches_across_a_gap(effect_run):
+    """With gaps, the whitening, the exogeneity test and the cause tests regress only the rows whose
+    lags stay inside their segment: a jump of the candidate across a gap (a sensor reset while the
+    log was down) enters no regression, and the effect is located as on the whole log."""
+    from mpm_monitor.core.candidates import whiten
+
+    data = effect_run.data
+    name = next(iter(data.extra))
+    rows = np.setdiff1d(np.arange(data.n_samples), np.arange(1200, 1230))
+    gappy = data.take(rows)
+    jumped = dict(gappy.extra)
+    jumped[name] = jumped[name] + 50.0 * (np.arange(gappy.n_samples) >= 1200)     # a level shift in the gap
+    gappy = dataclasses.replace(gappy, extra=jumped)
+    segments = gappy.segments
+    assert len(segments) == 2
+    w = whiten(jumped[name], segments=segments)
+    a = segments[1][0]
+    np.testing.assert_array_equal(w[a:a + 4], 0.0)
+    # the whitened series does not see the shift (a level per segment, no lag across the gap)
+    np.testing.assert_allclose(w, whiten(data.take(rows).extra[name], segments=segments), rtol=0, atol=1e-9)
+    assert np.max(np.abs(whiten(jumped[name]) - whiten(data.take(rows).extra[name]))) > 1.0   # read as one record
+    full = detect(effect_run.model, data, AnalysisOptions(repair=False), candidates=[name])
+    rep = detect(effect_run.model, gappy, AnalysisOptions(repair=False), candidates=[name])
+    assert rep.candidates.located == full.candidates.located and full.candidates.located
+    assert not any("contiguous" in w for w in rep.warnings)

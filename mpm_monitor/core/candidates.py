@@ -215,6 +215,17 @@ def _lags(x: np.ndarray, n_lag: int, start: int) -> np.ndarray:
     return out
 
 
+def _rows_inside(n: int, start: int, segments) -> Optional[np.ndarray]:
+    """Of the rows ``start .. n - 1``, those at least ``start`` samples into their segment (every lag up
+    to ``start`` inside it), as a bool mask of shape (n - start,); None without gaps (all of them)."""
+    if segments is None or len(segments) <= 1:
+        return None
+    ok = np.zeros(n, dtype=bool)
+    for a, b in segments:
+        ok[a + start:b] = True
+    return ok[start:]
+
+
 def _rss(X: np.ndarray, y: np.ndarray):
     """Residual sum of squares of the least-squares fit of ``y`` on ``X``, the rank of ``X``, the
     coefficients and their unscaled variances ``diag((X'X)^-1)`` (one QR; ``lstsq`` and the
@@ -234,13 +245,16 @@ def _rss(X: np.ndarray, y: np.ndarray):
     return float(res @ res), int(rank), coef, np.sum(np.linalg.pinv(r) ** 2, axis=1)
 
 
-def whiten(c: np.ndarray, order: int = CANDIDATE_AR_ORDER) -> np.ndarray:
+def whiten(c: np.ndarray, order: int = CANDIDATE_AR_ORDER, segments=None) -> np.ndarray:
     """The innovations of a candidate under its own least-squares AR(``order``) filter (with a mean).
 
     Parameters
     ----------
     c : ndarray, shape (n_samples,)
     order : int
+    segments : sequence of (int, int), optional
+        Data with gaps: the contiguous runs of samples; no lag reaches across a gap (the first
+        ``order`` samples of every run are 0).
 
     Returns
     -------
@@ -253,9 +267,19 @@ def whiten(c: np.ndarray, order: int = CANDIDATE_AR_ORDER) -> np.ndarray:
     w = np.zeros_like(x)
     if order == 0:
         return x
-    X = np.column_stack([np.ones(x.shape[0] - order), _lags(x[:, None], order, order)])
-    coef, *_ = np.linalg.lstsq(X, x[order:], rcond=None)
-    w[order:] = x[order:] - X @ coef
+    keep = _rows_inside(x.shape[0], order, segments)
+    if keep is None:
+        X = np.column_stack([np.ones(x.shape[0] - order), _lags(x[:, None], order, order)])
+        coef, *_ = np.linalg.lstsq(X, x[order:], rcond=None)
+        w[order:] = x[order:] - X @ coef
+        return w
+    # With gaps: a mean per segment (a channel's level may move while the log is down).
+    means = np.zeros((x.shape[0], len(segments)))
+    for k, (a, b) in enumerate(segments):
+        means[a:b, k] = 1.0
+    X = np.column_stack([means[order:], _lags(x[:, None], order, order)])[keep]
+    coef, *_ = np.linalg.lstsq(X, x[order:][keep], rcond=None)
+    w[order:][keep] = x[order:][keep] - X @ coef
     return w
 
 
@@ -278,7 +302,7 @@ class ExogeneityTest:
 
 
 def exogeneity_test(c: np.ndarray, u: np.ndarray, input_names: Sequence[str], n_lag: int, alpha: float,
-                    order: int = CANDIDATE_AR_ORDER) -> ExogeneityTest:
+                    order: int = CANDIDATE_AR_ORDER, segments=None) -> ExogeneityTest:
     """Regress the candidate on its own lags and the inputs' lags; F test of the input lags (module docstring).
 
     Parameters
@@ -294,6 +318,8 @@ def exogeneity_test(c: np.ndarray, u: np.ndarray, input_names: Sequence[str], n_
         Level at which an input's own block is named.
     order : int
         Own lags of the candidate.
+    segments : sequence of (int, int), optional
+        Data with gaps: only the rows whose lags stay inside their segment are regressed.
     """
     c = np.asarray(c, float)
     c = c - c.mean()
@@ -305,6 +331,9 @@ def exogeneity_test(c: np.ndarray, u: np.ndarray, input_names: Sequence[str], n_
     y = c[start:]
     own = _lags(c[:, None], order, start)
     U = _lags(u[:, moving] - u[:, moving].mean(axis=0), n_lag, start)
+    keep = _rows_inside(c.shape[0], start, segments)
+    if keep is not None:
+        y, own, U = y[keep], own[keep], U[keep]
     base = np.column_stack([np.ones(y.shape[0]), own])
     rss_r, *_ = _rss(base, y)
     full = np.hstack([base, U])
@@ -344,7 +373,7 @@ class CauseTest:
 
 
 def cause_tests(d: np.ndarray, columns: np.ndarray, w: np.ndarray, na: int, nb: int, n_lag: int,
-                start: int, output_spread: Optional[float] = None) -> list:
+                start: int, output_spread: Optional[float] = None, segments=None) -> list:
     """The test of every candidate (whitened) as a cause of one output's prediction error.
 
     Parameters
@@ -366,6 +395,8 @@ def cause_tests(d: np.ndarray, columns: np.ndarray, w: np.ndarray, na: int, nb: 
         :data:`~mpm_monitor.core.statistics.EXACT_FIT` of it is exact (a log without noise) and its
         test is decided outright (:func:`~mpm_monitor.core.statistics.exact_fit_statistic`).  Default:
         only a residual of exactly 0.
+    segments : sequence of (int, int), optional
+        Data with gaps: only the rows at least ``start`` samples into their segment are regressed.
 
     Returns
     -------
@@ -376,17 +407,19 @@ def cause_tests(d: np.ndarray, columns: np.ndarray, w: np.ndarray, na: int, nb: 
     from .statistics import exact_sigma2
 
     dc = d - d.mean()
-    y = dc[start:]
+    keep = _rows_inside(d.shape[0], start, segments)
+    pick = (lambda x: x) if keep is None else (lambda x: x[keep])    # noqa: E731
+    y = pick(dc[start:])
     parts = [np.ones((y.shape[0], 1))]
     if na:
-        parts.append(_lags(dc[:, None], na, start))
+        parts.append(pick(_lags(dc[:, None], na, start)))
     if columns.shape[1]:
-        parts.append(_lags(columns - columns.mean(axis=0), n_lag, start))
+        parts.append(pick(_lags(columns - columns.mean(axis=0), n_lag, start)))
     base = np.hstack(parts)
     rss_r, *_ = _rss(base, y)
     out = []
     for k in range(w.shape[1]):
-        W = _lags(w[:, k:k + 1], n_lag, start)
+        W = pick(_lags(w[:, k:k + 1], n_lag, start))
         full = np.hstack([base, W])
         rss_f, rank_f, coef, var = _rss(full, y)
         df_den = y.shape[0] - rank_f
@@ -423,7 +456,8 @@ class CandidateReport:
     added : list of str
         The candidates the repair added to the model (filled in by the repair).
     gaps : int
-        Gaps in the record (missing samples); the candidate regressions run across them.
+        Gaps in the record (missing samples); no regression row of the candidate tests reaches
+        across one (each row's lags stay inside its segment).
     """
 
     tried: list
@@ -445,9 +479,6 @@ class CandidateReport:
         """The unusable and the not-exogenous channels, in words."""
         out = [f"candidate {name} is unusable ({why}); it was not tested" for name, why in self.unusable.items()]
         out += [f"candidate {name} {why}; it was not tested as a cause" for name, why in self.not_exogenous.items()]
-        if self.gaps and self.tried:
-            out.append(f"the candidate tests read the record as contiguous across its {self.gaps} gap(s): a lag that "
-                       f"reaches across a gap pairs samples that are further apart than it says")
         return out
 
     def summary_lines(self) -> list:
@@ -509,7 +540,8 @@ def run_candidate_tests(model: PlantModel, data: LoggedData, chosen: CandidateCh
 
     alpha, n_lag = options.alpha, layout.n_lag_u
     u = np.asarray(data.u, dtype=float)
-    exo = {name: exogeneity_test(chosen.values[:, k], u, model.inputs, n_lag, alpha)
+    segments = data.segments if len(data.segments) > 1 else None   # no regression row reaches across a gap
+    exo = {name: exogeneity_test(chosen.values[:, k], u, model.inputs, n_lag, alpha, segments=segments)
            for k, name in enumerate(chosen.names)}
     names = list(chosen.names)
     exo_adj = dict(zip(names, holm_adjust([exo[n].p_value for n in names]))) if names else {}
@@ -517,7 +549,8 @@ def run_candidate_tests(model: PlantModel, data: LoggedData, chosen: CandidateCh
                      for n in names if np.isfinite(exo_adj[n]) and exo_adj[n] < alpha}
     causes = [n for n in names if n not in not_exogenous]
     idx = [names.index(n) for n in causes]
-    w = np.column_stack([whiten(chosen.values[:, k]) for k in idx]) if idx else np.zeros((d.shape[0], 0))
+    w = np.column_stack([whiten(chosen.values[:, k], segments=segments) for k in idx]) if idx else \
+        np.zeros((d.shape[0], 0))
     std = columns.std(axis=0)
     moving = [j for j in range(columns.shape[1])
               if std[j] > 1e-12 * max(float(np.abs(columns[:, j]).max(initial=0.0)), 1.0)]
@@ -526,7 +559,7 @@ def run_candidate_tests(model: PlantModel, data: LoggedData, chosen: CandidateCh
     for i in range(model.n_outputs):
         spread = None if output_spread is None else float(output_spread[i])
         for name, t in zip(causes, cause_tests(d[:, i], columns[:, moving], w, options.na, options.nb, n_lag, start,
-                                               output_spread=spread)):
+                                               output_spread=spread, segments=segments)):
             tests[(i, name)] = t
     # One family: every element with a p-value and every (output, candidate) pair.
     family = [e for e in elements if e.p_value is not None and not e.ambiguous]
