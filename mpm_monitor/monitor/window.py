@@ -14,12 +14,13 @@ Nothing is silently mis-aligned:
 * a second vector for a sample already held is a ``duplicate`` (same values) or a ``conflict``
   (different values) and the first is kept;
 * a vector for a sample that is already in the window, or already given up, is ``late``;
-* when a later sample is complete ``reorder_samples`` samples ahead of an incomplete one, the
-  incomplete samples are given up as a ``gap``.  A gap of at most ``max_gap`` samples keeps the
+* when more than ``reorder_samples`` later samples are complete while one is not (counted, not their
+  distance: one sample stamped far ahead waits), the incomplete samples are given up as a ``gap``.  A gap of at most ``max_gap`` samples keeps the
   window: its samples stay, nothing is interpolated, and the analysis gets the window with its ``t``
   skipping the missing samples (it analyses around them; docs/interfaces.md, "Gaps").  A longer gap
   restarts the window after it;
-* a vector of the wrong length or with a non-finite value is a ``bad_value``;
+* a vector of the wrong length or with a non-finite value, or stamped 0 (an unset ``header.stamp``)
+  among wall-clock stamps, is a ``bad_value``;
 * when more than ``reorder_samples + 1`` (at least 3) output vectors in a row are refused (late,
   off the grid, duplicate or conflicting) while no sample completes, the stream has restarted
   (stamps jumped back, or a new grid phase after a publisher restart): the alignment starts again
@@ -53,6 +54,9 @@ DISTURBANCE = "disturbance"
 ERROR_KINDS = frozenset({"bad_value", "conflict", "off_grid"})
 #: Problem kinds that cost samples but not correctness (reported in the summary's values).
 WARNING_KINDS = frozenset({"gap", "duplicate", "late", "out_of_order", "restart"})
+#: A stamp later than this (nanoseconds: 1e9 s, 2001-09-09) is a wall-clock time; a stamp of exactly 0
+#: among such stamps is an unset ``header.stamp``.
+WALL_CLOCK_NS = 10**18
 #: Fewest refused output vectors in a row (with no sample completed) taken as a stream restart.
 MIN_RESTART_OUTPUTS = 3
 
@@ -312,6 +316,13 @@ class SampleWindow:
         if not np.all(np.isfinite(v)):
             self.report_bad(channel, stamp_ns, f"{channel}: non-finite value at t = {stamp_ns / NS_PER_S:.15g} s")
             return 0
+        if stamp_ns == 0 and self._phase is not None and self.last_sample_stamp_ns is not None \
+                and self.last_sample_stamp_ns > WALL_CLOCK_NS:
+            # An unset header.stamp among wall-clock stamps (as the bag reader leaves out): it cannot
+            # be placed on the grid, and taken as a time it would look like a stream restart.
+            self.report_bad(channel, stamp_ns, f"{channel}: header.stamp unset (0) among wall-clock stamps; the vector "
+                                               f"cannot be placed on the sample grid")
+            return 0
         self._health.received[channel] += 1
         last = self._last_stamp[channel]
         if last is not None and stamp_ns < last:
@@ -484,8 +495,10 @@ class SampleWindow:
                 if hold:
                     self._prune_setpoints()
                 continue
-            newest = max(self._complete)
-            if newest - k > self.options.reorder_samples:
+            # Sample k is given up once more than reorder_samples later samples are complete: counted,
+            # not measured by their distance, so that one complete sample stamped far ahead (a stray
+            # stamp) waits instead of opening a gap of a million samples.
+            if len(self._complete) > self.options.reorder_samples:
                 first = min(self._complete)
                 self._gap(k, first)
                 continue
