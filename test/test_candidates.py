@@ -338,3 +338,11 @@ def test_no_candidate_regression_row_reaches_across_a_gap(effect_run):
     rep = detect(effect_run.model, gappy, AnalysisOptions(repair=False), candidates=[name])
     assert rep.candidates.located == full.candidates.located and full.candidates.located
     assert not any("contiguous" in w for w in rep.warnings)
+
+
+def test_a_candidates_null_detectable_change_is_said(effect_report):
+    """Contract: detectable_gain_change is null only where it cannot be computed, with a warning saying why."""
+    cands = [e for e in effect_report.elements if e.role == "candidate"]
+    assert cands and all(e.detectable_gain_change is None for e in cands)
+    assert any(w.startswith("candidate channels: the smallest gain change this window detects is computed for the "
+                            "model's own columns only") for w in effect_report.warnings)

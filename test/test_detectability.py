@@ -419,6 +419,8 @@ def test_no_values_for_the_baselines():
                           disturbance=case.disturbance)
     rep = detect(case.model, log.as_logged_data(), dataclasses.replace(FAST, method="xcorr"))
     assert all(e.detectable_gain_change is None for e in rep.elements) and rep.experiment is None
+    assert "method xcorr: the smallest gain change this window detects is computed for the arx element test only " \
+           "(detectable_gain_change null)" in rep.warnings
 
 
 

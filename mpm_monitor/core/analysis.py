@@ -576,6 +576,9 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         warnings.append(f"the loop diverged ({', '.join(diverged)}): the smallest gain "
                         "change this window detects is not computed (detectable_gain_change null) and no experiment "
                         "is designed; the model needs repairing before the loop can be probed")
+    elif detectability:
+        warnings.append(f"method {options.method}: the smallest gain change this window detects is computed for the "
+                        f"arx element test only (detectable_gain_change null)")
     experiment = design_experiment(model, info, elements, options, layout) if detectability else None
     candidate_report = None
     if candidates is not None:
@@ -595,6 +598,9 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         elements = tested.elements + tested.candidate_elements
         candidate_report = tested.report
         warnings += candidate_report.warnings()
+        if tested.candidate_elements and detectability:
+            warnings.append("candidate channels: the smallest gain change this window detects is computed for the "
+                            "model's own columns only (detectable_gain_change null for the candidates' elements)")
 
     # A row in which an element is located is mismatched, even when its S_Delta test did not reject.
     for i in range(ny):
