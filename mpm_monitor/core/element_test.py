@@ -294,9 +294,17 @@ class InputDesign:
         if self.groups:
             grouped = {c for g in self.groups for c in g}
             what = "inputs and measured disturbances " if grouped & self._disturbances else "inputs "
+            if all(len(g) == 1 for g in self.groups):     # each moves with a combination of the others
+                if len(self.groups) == 1:
+                    name = self.groups[0][0]
+                    kind = "measured disturbance" if name in self._disturbances else "input"
+                    head = f"{kind} {name} moves with the other columns "
+                else:
+                    head = what + ", ".join(g[0] for g in self.groups) + " each move with the other columns "
+            else:
+                head = what + "; ".join("{" + ", ".join(g) + "}" for g in self.groups) + " move together "
             out.append(
-                what + "; ".join("{" + ", ".join(g) + "}" for g in self.groups)
-                + f" move together (largest variance inflation {self.max_vif:.3g}, condition number of the "
+                head + f"(largest variance inflation {self.max_vif:.3g}, condition number of the "
                   f"input regressors {self.regression.condition_number:.3g}): the closed loop drives them "
                   "collinearly, so their elements cannot be told apart from these data; add a small dither on the "
                   "inputs to separate them")

@@ -345,7 +345,8 @@ def _why(model, info, best: _Trial, caps, still, ambiguous, decidable, values, t
     amb_inputs = sorted({j for _, j in ambiguous})
     moving_amb = [j for j in amb_inputs if j not in still]
     if moving_amb:
-        parts.append(f"the closed loop moves {_names(model, moving_amb)} together, so the elements of "
+        together = "with the other inputs" if len(moving_amb) == 1 else "together"
+        parts.append(f"the closed loop moves {_names(model, moving_amb)} {together}, so the elements of "
                      f"{'that input' if len(moving_amb) == 1 else 'these inputs'} cannot be told apart from these data")
     if still:
         parts.append(f"{_names(model, still)} did not move at all in this window, so "
