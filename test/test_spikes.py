@@ -101,6 +101,21 @@ def test_an_mpc_kick_at_a_setpoint_step_is_not_a_spike():
     assert list(np.flatnonzero(find_spikes(moved)["u"])) == [250, 251, 252]
 
 
+def test_a_glitch_at_a_setpoint_step_of_a_busy_loop_is_still_a_spike():
+    """Setpoints switching every few samples put a step near every sample: an input glitch there is
+    far larger than the input's usual moves at the steps, so it is a spike (the paper cases' spiked
+    logs located every element when such glitches were spared)."""
+    n = 400
+    rng = np.random.default_rng(8)
+    r = np.sign(rng.standard_normal((n, 1)))
+    u = 0.1 * rng.standard_normal((n, 1))
+    k = 200 + int(np.flatnonzero(r[201:, 0] != r[200:-1, 0])[0]) + 1      # a sample where the setpoint steps
+    u[k, 0] += 5.0
+    y = 0.01 * rng.standard_normal((n, 1))
+    data = LoggedData(t=np.arange(n, dtype=float), r=r, u=u, y=y, inputs=("u",), outputs=("y",), sample_time=1.0)
+    assert list(np.flatnonzero(find_spikes(data)["u"])) == [k]
+
+
 def test_edges_and_gaps():
     x = NOISE.copy()
     x[0] += 50.0                                         # the first sample has one neighbour only

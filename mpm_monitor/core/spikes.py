@@ -24,8 +24,9 @@ A step (the channel stays at its new level), a ramp, or a controller's kick that
 not come back within the burst) is not a spike; nor is a controller's move after a setpoint step on
 an input that is otherwise almost still (its robust scale is tiny, but its moves around the burst are
 as large as the burst); nor is a burst of an input that starts with a setpoint step or up to
-:data:`KICK_SAMPLES` - 1 samples after one (an MPC's first moves after a step often overshoot and
-come back within a sample or two: the loop's most informative samples, not a glitch).  The first and last samples of a segment have one
+:data:`KICK_SAMPLES` - 1 samples after one and is no larger than :data:`KICK_FACTOR` times the
+input's usual move at a setpoint step (an MPC's first moves after a step often overshoot and come
+back within a sample or two: the loop's most informative samples, not a glitch).  The first and last samples of a segment have one
 neighbour only and are never called spikes.
 """
 
@@ -49,6 +50,8 @@ LOCAL_SAMPLES = 5
 #: An input's burst that starts at a setpoint step or within this many samples of it (counting the
 #: step's own) is the controller's answer to the step, not a spike.
 KICK_SAMPLES = 3
+#: ... when its excursion is at most this many times the input's usual move at a setpoint step.
+KICK_FACTOR = 3.0
 #: Spikes named in the note, at most.
 NAMED_SPIKES = 3
 #: The median absolute deviation of a normal sample times this is its standard deviation (1 / Phi^-1(3/4)).
@@ -163,26 +166,47 @@ def find_spikes(data: LoggedData, threshold: float = SPIKE_THRESHOLD) -> dict:
     masks = _spike_masks(rows, data.segments, threshold)
     ny, nu = len(data.outputs), len(data.inputs)
     if masks[ny:ny + nu].any():
-        _spare_kicks(masks[ny:ny + nu], np.asarray(data.r, dtype=float), data.segments)
+        _spare_kicks(masks[ny:ny + nu], np.asarray(data.u, dtype=float), np.asarray(data.r, dtype=float),
+                     data.segments)
     return {label: masks[c] for c, label in enumerate(labels) if masks[c].any()}
 
 
-def _spare_kicks(input_masks: np.ndarray, r: np.ndarray, segments: list) -> None:
+def _spare_kicks(input_masks: np.ndarray, u: np.ndarray, r: np.ndarray, segments: list) -> None:
     """Clear, in place, the bursts of ``input_masks`` (shape (n_inputs, n_samples)) that start at a
-    setpoint step of ``r`` (shape (n_samples, n_outputs)) or within :data:`KICK_SAMPLES` samples of it."""
+    setpoint step of ``r`` (shape (n_samples, n_outputs)) or within :data:`KICK_SAMPLES` samples of it,
+    and whose excursion is at most :data:`KICK_FACTOR` times the input's usual move at a setpoint step
+    (the 90th percentile of its ``|change|`` there, from ``u``, shape (n_samples, n_inputs)).  A loop
+    whose setpoints switch every few samples has a step near every sample: there a glitch is far
+    larger than the moves at the steps, and stays a spike."""
     step = np.zeros(r.shape[0], dtype=bool)
+    moved = np.zeros(r.shape[0], dtype=bool)        # samples whose change from the one before is logged
     for a, b in segments:
         step[a + 1:b] = np.any(r[a + 1:b] != r[a:b - 1], axis=1)
+        moved[a + 1:b] = True
     near = step.copy()
     for lag in range(1, KICK_SAMPLES):
         near[lag:] |= step[:-lag]
-    for mask in input_masks:
+    at_steps = near & moved
+    if not at_steps.any():
+        return
+    for c, mask in enumerate(input_masks):
         starts = np.flatnonzero(mask & ~np.concatenate([[False], mask[:-1]]))
-        for k in starts[near[starts]]:
+        starts = starts[near[starts] & (starts > 0)]
+        if not starts.size:
+            continue
+        x = u[:, c]
+        change = np.abs(np.diff(x, prepend=x[0]))
+        usual = float(np.percentile(change[at_steps], 90))
+        for k in starts:
             end = k
             while end < mask.size and mask[end]:
                 end += 1
-            mask[k:end] = False
+            lo = x[k - 1]
+            hi = x[end] if end < x.size else lo
+            burst = x[k:end]
+            excursion = max(float(burst.min() - max(lo, hi)), float(min(lo, hi) - burst.max()))
+            if excursion <= KICK_FACTOR * usual:
+                mask[k:end] = False
 
 
 def without_spikes(data: LoggedData, threshold: float = SPIKE_THRESHOLD) -> tuple:
