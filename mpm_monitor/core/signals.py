@@ -299,9 +299,9 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
     (:func:`gap_runs`): the model is simulated over the run's whole sample grid, its columns held at
     their last logged values through each gap (what the controller's hold does between moves), so
     its state carries across the gap instead of starting from rest; a missing sample whose columns
-    were logged and are sound (``fill``: the sample of a spike in an output) takes them instead.  Only the initial transient of
-    a run is estimated, from its first samples (a held output stands in for a missing one in that
-    one fit).  The signals are returned at the logged samples only: no regression row or statistic
+    were logged and are sound (``fill``: the sample of a spike in an output) takes them instead.
+    Only the initial transient of a run is estimated, from its first samples (a held output stands
+    in for a missing one in that one fit).  The signals are returned at the logged samples only: no regression row or statistic
     reads a held value.  A run starts at the first segment and after every longer gap.
 
     Parameters
@@ -407,9 +407,9 @@ def scored_segments(segments, *models: PlantModel, settled: bool = False, restar
         The models whose outputs are compared (the longest memory of them counts).
     settled : bool
     restarts : collection of int, optional
-        The segments after which the model restarted (the first of each run of
-        :func:`segment_signals` with ``grid``); default every segment after the first.  A segment the
-        model ran into through a short gap is kept whole.
+        The segments whose start still carries an unknown (:func:`unknown_starts`: after a long gap,
+        or a short one with a held input); default every segment after the first.  The others are
+        kept whole.
 
     Returns
     -------
