@@ -305,12 +305,28 @@ def _repair_row(row: _RowData, js, n_fit: int, settings: _TestSettings, classifi
     return verdicts, warnings, _fit_repair(free, verdicts, n_fit, settings)
 
 
-#: The output-error alternative of a row's repair is tried when the repaired row's simulation error over
-#: the fit part is above this fraction of the model's (the prediction-error fit's AR noise model may have
-#: taken what an element of the wrong structure cannot: a second lag repaired as one lag) ...
+#: The output-error alternative of a row's repair is tried when a repaired element's gain or time
+#: constant moved by more than this factor (or the gain changed sign) ...
+OUTPUT_ERROR_FACTOR = 3.0
+#: ... and the repaired row's simulation error over the fit part is above this fraction of the model's
+#: (the prediction-error fit's AR noise model may have taken what an element of the wrong structure
+#: cannot: a second lag repaired as one lag, its gain driven towards 0) ...
 OUTPUT_ERROR_TRY = 0.5
 #: ... and taken when its simulation error over the fit part is below the other's by this factor.
 OUTPUT_ERROR_MARGIN = 1.25
+
+
+def _far_moved(model: PlantModel, i: int, j: int, after: dict) -> bool:
+    """Whether the repaired element's gain or time constant is more than :data:`OUTPUT_ERROR_FACTOR`
+    times off the model's (or its gain changed sign); an element the model lacks is not."""
+    before = model.element(i, j)
+    g0, g1 = float(before.get("gain", 0.0)), float(after.get("gain", 0.0))
+    if g0 == 0.0:
+        return False
+    if g1 == 0.0 or (g0 > 0) != (g1 > 0) or not 1 / OUTPUT_ERROR_FACTOR <= g1 / g0 <= OUTPUT_ERROR_FACTOR:
+        return True
+    t0, t1 = float(before.get("time_constant", 0.0)), float(after.get("time_constant", 0.0))
+    return t0 > 0 and t1 > 0 and not 1 / OUTPUT_ERROR_FACTOR <= t1 / t0 <= OUTPUT_ERROR_FACTOR
 
 
 def _fit_part_rms(rec: _Record, i: int, elements: dict) -> tuple:
@@ -379,15 +395,18 @@ def _process_row(rec: _Record, i: int, js, extra: Optional[np.ndarray],
     drift on the row, or None.  ``classified``: the classification of ``js`` without ``extra``
     already made (:func:`explained_elements`), or None.
 
-    The fits are prediction-error fits with the AR noise model of ``noise_order``.  When the row's
-    repair leaves more than :data:`OUTPUT_ERROR_TRY` of the model's simulation error over the fit
-    part, the row is processed again with an output-error fit (no noise model), and that repair is
-    taken when its simulation error over the fit part is :data:`OUTPUT_ERROR_MARGIN` times lower, with
-    a warning: in a closed loop the noise model can take what an element of the wrong structure
-    cannot fit (a second lag repaired as one lag, its gain driven towards 0).
+    The fits are prediction-error fits with the AR noise model of ``noise_order``.  When a repaired
+    element moved far (:func:`_far_moved`) and the row's repair leaves more than
+    :data:`OUTPUT_ERROR_TRY` of the model's simulation error over the fit part, the row is processed
+    again with an output-error fit (no noise model), and that repair is taken when its simulation
+    error over the fit part is :data:`OUTPUT_ERROR_MARGIN` times lower, with a warning: in a closed
+    loop the noise model can take what an element of the wrong structure cannot fit (a second lag
+    repaired as one lag, its gain driven towards 0).
     """
     outcome, tried = _process_row_with(rec, rec.settings, i, js, extra, classified)
     if not tried or rec.options.noise_order == 0 or rec.n_hold == 0:
+        return outcome
+    if not any(el.apply and _far_moved(rec.model, i, j, el.after) for j, el in tried.items()):
         return outcome
     after, before = _fit_part_rms(rec, i, tried)
     if not after > OUTPUT_ERROR_TRY * before:
