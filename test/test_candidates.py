@@ -346,3 +346,24 @@ def test_a_candidates_null_detectable_change_is_said(effect_report):
     assert cands and all(e.detectable_gain_change is None for e in cands)
     assert any(w.startswith("candidate channels: the smallest gain change this window detects is computed for the "
                             "model's own columns only") for w in effect_report.warnings)
+
+
+def test_a_spike_in_an_output_with_a_candidate_added_to_the_model():
+    """The sample of a spike in an output keeps its logged inputs for the model's simulation
+    (LoggedData.column_fill); a candidate channel added to the model as a measured disturbance has no
+    such value there and is held.  (A shape error ended the analysis before.)"""
+    from mpm_monitor.apps.reproduce import simulate_case
+    from mpm_monitor.core.candidates import without_columns
+    from mpm_monitor.core.pipeline import analyze
+
+    case, data, _ = simulate_case("level", 1500, 1)
+    name = case.model.disturbances[0]
+    model = without_columns(case.model, [name])
+    y = data.y.copy()
+    y[700, 0] += 1000.0
+    logged = dataclasses.replace(data, y=y, dv=np.zeros((data.n_samples, 0)), disturbances=(),
+                                 extra={name: data.dv[:, 0]})
+    rep = analyze(model, logged, AnalysisOptions(), candidates=name)
+    assert "spikes" in rep.warnings[0]
+    assert sorted(rep.candidates.located) == sorted((o, name) for o in model.outputs)
+    assert max(rep.repair["error_after"].values()) < 0.05

@@ -319,7 +319,8 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
         Longest gap (missing samples) the model runs through; needed with ``grid``.
     fill : tuple (ndarray of int, ndarray), optional
         Grid numbers (as ``grid``) of missing samples with known columns, and those columns ``[u |
-        dv]``, shape (m, n_inputs + n_disturbances) (:meth:`LoggedData.fill_on_grid`).
+        dv]``, shape (m, n_inputs + k) (:meth:`LoggedData.fill_on_grid`); the measured disturbances
+        beyond the first ``k`` (candidate channels added to the model since) are held.
 
     Returns
     -------
@@ -344,11 +345,13 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
             inside = (where > 0) & (where < at[-1])
             if np.any(inside):
                 cols = np.asarray(fill[1], dtype=float)[inside]
+                nu = u_run.shape[1]
                 u_run = np.array(u_run, dtype=float)
-                u_run[where[inside]] = cols[:, :u_run.shape[1]]
-                if dv_run is not None:
+                u_run[where[inside]] = cols[:, :nu]
+                known = cols.shape[1] - nu        # columns added since (candidates) stay held
+                if dv_run is not None and known > 0:
                     dv_run = np.array(dv_run, dtype=float)
-                    dv_run[where[inside]] = cols[:, u_run.shape[1]:]
+                    dv_run[where[inside], :known] = cols[:, nu:nu + dv_run.shape[1]]
         sig = compute_signals(model, r[held], u_run, y[held], initial_state, dv=dv_run)
         parts.append(LoopSignals(**{f.name: getattr(sig, f.name)[at] for f in dataclasses.fields(LoopSignals)
                                     if f.name != "initial_state"}, initial_state=sig.initial_state))
