@@ -266,3 +266,12 @@ def test_a_missing_element_gets_a_second_lag_only_where_the_data_call_for_it():
         new = res.model.discrete_element(0, 2).step_response(300)
         true = plant.discrete_element(0, 2).step_response(300)
         assert np.max(np.abs(new - true)) <= 0.05 * np.max(np.abs(true))
+
+
+def test_the_summary_line_of_a_null_error_says_n_a():
+    """An error that is not finite is null in the JSON; the text summary says n/a (it raised a TypeError)."""
+    from mpm_monitor.core.wording import repair_summary_lines
+
+    lines = repair_summary_lines({"changes": [], "error_before": {"y1": None, "y2": 0.02},
+                                  "error_after": {"y1": None, "y2": 0.019}})
+    assert lines[-1] == "prediction error RMS before -> after repair: y1 n/a -> n/a, y2 0.0200 -> 0.0190"

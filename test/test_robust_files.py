@@ -643,3 +643,14 @@ def test_analyze_subprocess_exits_2_without_traceback(files, case):
     assert len(lines) == 1, proc.stderr
     assert "Traceback" not in proc.stderr and re.search(match, lines[0])
     assert not files["marker"].exists()
+
+
+def test_a_lead_of_absurd_size_is_refused_in_one_line(files, capsys):
+    """``lead: 1.0e300`` (a number since model files are read as YAML 1.2) raised the element's gain at
+    high frequency beyond float range and the summary line crashed on a null error; now the scale
+    check counts the lead's gain, |K| |lead| / (tau + tau2), and refuses in one line."""
+    path = files["csv"].parent / "lead_huge.yaml"
+    path.write_text(dump_model(GOOD_MODEL) + "lead: [[1.0e300, 0], [0, 0]]\n", encoding="utf-8")
+    code, out, err = _run_cli(capsys, ["analyze", "--model", str(path), "--data", str(files["csv"]), "--no-repair"])
+    assert code == 2 and len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert re.search(r"with gains up to 2e\+299 in .*lead_huge\.yaml: too large for the analysis", err), err

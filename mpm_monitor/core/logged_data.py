@@ -355,6 +355,12 @@ def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the mo
         Naming the source, the channel and the time of the largest value.
     """
     gain = float(np.max(np.abs(model.gain))) if model.gain.size else 0.0
+    if model.gain.size and not model.is_step_response and np.any(model.lead != 0):
+        # A lead over its lags raises the element's gain at high frequency to |K| |lead| / (tau + tau2).
+        lags = np.maximum(model.time_constant + model.time_constant2, model.sample_time)
+        with np.errstate(over="ignore", invalid="ignore"):
+            high = np.abs(model.gain) * np.maximum(1.0, np.abs(model.lead) / lags)
+        gain = max(gain, float(np.max(high)))
     if model.is_step_response and model.step_response.size:
         gain = max(gain, float(np.max(np.abs(model.step_response))))
     for name, arr, names in (("setpoint", data.r, model.outputs), ("input", data.u, model.inputs),

@@ -203,9 +203,13 @@ def repair_summary_lines(repair: dict) -> list:
                 extra.append("integrating: gain per second")
             lines.append(line + (f"  ({'; '.join(extra)})" if extra else ""))
     eb, ea = repair.get("error_before", {}), repair.get("error_after", {})
+
+    def rms(v) -> str:          # null in the JSON (not finite) is "n/a"
+        return "n/a" if v is None else f"{v:.4f}"
+
     if eb:
         lines.append("prediction error RMS before -> after repair: "
-                     + ", ".join(f"{k} {eb[k]:.4f} -> {ea.get(k, float('nan')):.4f}" for k in eb))
+                     + ", ".join(f"{k} {rms(eb[k])} -> {rms(ea.get(k))}" for k in eb))
     if "rsi_after" in repair:
         lines.append("row RSI of the repaired model on the same data: "
                      + ", ".join(f"{k} {v:.3f}" for k, v in repair["rsi_after"].items()))
