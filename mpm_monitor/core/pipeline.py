@@ -191,8 +191,9 @@ def repair_data(data: LoggedData, gappy: bool, options: AnalysisOptions, model: 
 
     used = plan_gaps(data, regression_layout(model, options).start, options.max_gap).used
     rows = np.concatenate([np.arange(a, b) for a, b in used])
-    note = (f"the repair was fitted and validated on the {len(used)} spans between the gaps, each from its own "
-            f"start ({rows.size} of {data.n_samples} samples); no fit reaches across a gap")
+    note = (f"the repair was fitted on the {len(used)} spans between the gaps, each from its own start "
+            f"({rows.size} of {data.n_samples} samples), and validated with the model run through the short gaps; "
+            f"no fit reaches across a gap")
     return (data if rows.size == data.n_samples else data.take(rows)), note
 
 
