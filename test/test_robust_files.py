@@ -442,6 +442,23 @@ def test_edge_case_csv_refused_with_one_line(work, body, match):
     assert_one_line_error(info.value, path)
 
 
+def test_an_extra_column_named_in_latin_1_is_ignored_not_the_file(work):
+    """Extra columns are ignored: one whose name is not UTF-8 (``temp\xb0C`` written in Latin-1) no longer
+    refuses the whole file; it is unusable, named so.  A needed column named so is still refused."""
+    good = "t,r_y1,u1,\u00fc2,y1\n" + "".join(f"{k * 0.5},1,{k % 3},1,{k % 5}\n" for k in range(6))
+    lines = good.encode().split(b"\n")
+    lines[0] += b",temp\xb0C"
+    lines[1:] = [line + b",20.5" if line else line for line in lines[1:]]
+    path = work / "latin1_extra.csv"
+    path.write_bytes(b"\n".join(lines))
+    data = read_csv(path, CSV_MODEL)
+    assert data.n_samples == 6 and data.extra == {}
+    assert data.unusable == {"temp\ufffdC": "its name in the header is not UTF-8 text"}
+    path.write_bytes(good.encode().replace(b"u1", b"\xfc1", 1))
+    with pytest.raises(DataFileError, match=r"not UTF-8 text \(byte \d+\)"):
+        read_csv(path, CSV_MODEL)
+
+
 # ------------------------------------------------------------------------------------------------
 # The CLI: exit 2 and one line on stderr for every bad model, CSV or bag
 

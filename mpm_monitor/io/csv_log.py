@@ -21,6 +21,7 @@ import io
 import math
 import re
 import warnings
+from pathlib import Path
 
 import numpy as np
 
@@ -125,8 +126,48 @@ def read_csv(path, model: PlantModel) -> LoggedData:
     DataFileError
         One line naming the file, the line and the column.
     """
-    text = read_text(path, DataFileError, "data file", "a CSV file", encoding="utf-8-sig")
+    try:
+        text = read_text(path, DataFileError, "data file", "a CSV file", encoding="utf-8-sig")
+    except DataFileError:
+        text = _text_with_a_foreign_header(path)     # None: the bytes are not UTF-8 below the header too
+        needed = csv_header(model.inputs, model.outputs, model.disturbances)
+        try:
+            names = [] if text is None else \
+                [h.strip() for h in next(csv.reader(io.StringIO(text.split("\n", 1)[0])), [])]
+        except csv.Error:
+            names = []
+        if text is None or any(h not in names for h in needed):
+            raise                                      # a column the model needs is the one not UTF-8
+        data = parse_csv_text(text, model, source=str(path))
+        for name in [n for n in list(data.extra) if BAD_NAME_CHAR in n]:
+            del data.extra[name]
+            data.unusable[name] = "its name in the header is not UTF-8 text"
+        return data
     return parse_csv_text(text, model, source=str(path))
+
+
+#: Stands for a byte of the header that is not UTF-8 (a column name written in Latin-1, say).
+BAD_NAME_CHAR = "\ufffd"
+
+
+def _text_with_a_foreign_header(path):
+    """The file's text when only its header line has bytes that are not UTF-8 (replaced by
+    :data:`BAD_NAME_CHAR`); None otherwise.  Extra columns are ignored, so a Latin-1 name of one of them
+    does not refuse the file; a needed column so named is then missing, and refused as such."""
+    try:
+        raw = Path(path).read_bytes()
+    except OSError:
+        return None
+    nl = raw.find(b"\n")
+    head, body = (raw, b"") if nl < 0 else (raw[:nl + 1], raw[nl + 1:])
+    try:
+        body_text = body.decode("utf-8")
+    except UnicodeDecodeError:
+        return None
+    head_text = head.decode("utf-8-sig", errors="replace")
+    if '"' in head_text:       # a quoted name may span lines: leave such files to the strict reading
+        return None
+    return head_text + body_text
 
 
 def parse_csv_text(text: str, model: PlantModel, source: str = "data") -> LoggedData:
