@@ -77,6 +77,20 @@ def test_the_json_gaps_object_and_the_warning(case_32):
     assert doc["warnings"][0].startswith("2 gaps in the data (longest 2 samples, at t = 1000 and 2400 s): "
                                          f"3 samples missing, {g['rows_lost']} regression rows lost")
     assert "gaps" not in detect(case.model, data, DETECT).to_dict()       # no gap: no object
+    assert "stray t" not in doc["warnings"][0]
+
+
+def test_a_stray_far_t_is_named_in_the_gap_warning(case_32):
+    """The last row's t 1e12 s away: a gap of 1e12 samples, counted as such, and the warning says it
+    is a stray t or a wrong sample time."""
+    import dataclasses as dc
+
+    case, data = case_32
+    t = data.t.copy()
+    t[-1] = 1e12
+    rep = detect(case.model, dc.replace(data, t=t), DETECT)
+    assert rep.gaps["longest"] == int(1e12 - t[-2] - 1)
+    assert "times the samples analysed: a stray t, or a wrong sample time?" in rep.warnings[0]
 
 
 def test_a_gap_longer_than_max_gap_is_named_louder_and_short_spans_are_left_out(case_32):

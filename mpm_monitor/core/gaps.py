@@ -27,6 +27,8 @@ from .logged_data import LoggedData
 
 #: Gaps named one by one in the warning; the JSON's ``where`` lists them all.
 NAMED_GAPS = 3
+#: A gap longer than this many times the samples analysed is named as a likely stray ``t``.
+STRAY_GAP_FACTOR = 100
 
 
 @dataclasses.dataclass(frozen=True)
@@ -121,6 +123,9 @@ class GapPlan:
         if long_gaps:
             text += (f"; {long_gaps} gap{'s' if long_gaps != 1 else ''} longer than max_gap = {self.max_gap} samples "
                      f"split{'' if long_gaps != 1 else 's'} the data into spans analysed as separate segments")
+        if longest > STRAY_GAP_FACTOR * max(self.samples_used, 1):
+            text += (f"; the longest gap is {longest / max(self.samples_used, 1):.3g} times the samples analysed: "
+                     f"a stray t, or a wrong sample time?")
         left_out = len(self.segments) - len(self.used)
         if left_out:
             lost = sum(b - a for a, b in self.segments) - self.samples_used
