@@ -65,6 +65,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from .arx import segment_lag_matrix, segment_rows
 from .errors import ConfigurationError
 from .logged_data import MAX_ANALYSIS_SCALE, LoggedData
 from .model import PARAMETRIC_KEYS, PlantModel
@@ -204,26 +205,23 @@ def select_candidates(data: LoggedData, spec, model: Optional[PlantModel] = None
 
 
 # ------------------------------------------------------------------------------------ least squares
-def _lags(x: np.ndarray, n_lag: int, start: int) -> np.ndarray:
-    """Lags ``1 .. n_lag`` of every column of ``x`` (shape (n, m)) for the rows ``start ..``,
-    shape (n - start, m * n_lag), channel by channel."""
-    n, m = x.shape
-    out = np.empty((n - start, m * n_lag))
-    for c in range(m):
-        for lag in range(1, n_lag + 1):
-            out[:, c * n_lag + lag - 1] = x[start - lag:n - lag, c]
-    return out
+def _lags(x: np.ndarray, n_lag: int, start: int, segments=None) -> np.ndarray:
+    """Lags ``1 .. n_lag`` of every column of ``x`` (shape (n, m)) for the regression rows, channel by
+    channel (:func:`~mpm_monitor.core.arx.segment_lag_matrix`): the rows ``start ..``, or with gaps the
+    rows at least ``start`` samples into their segment (:func:`_long_segments`)."""
+    return segment_lag_matrix(x, range(1, n_lag + 1), start, _long_segments(segments, start))
 
 
-def _rows_inside(n: int, start: int, segments) -> Optional[np.ndarray]:
-    """Of the rows ``start .. n - 1``, those at least ``start`` samples into their segment (every lag up
-    to ``start`` inside it), as a bool mask of shape (n - start,); None without gaps (all of them)."""
+def _rows(x: np.ndarray, start: int, segments=None) -> np.ndarray:
+    """``x`` at the regression rows of :func:`_lags` (:func:`~mpm_monitor.core.arx.segment_rows`)."""
+    return segment_rows(x, start, _long_segments(segments, start))
+
+
+def _long_segments(segments, start: int):
+    """The segments that give a regression row from their ``start``-th sample; None without gaps."""
     if segments is None or len(segments) <= 1:
         return None
-    ok = np.zeros(n, dtype=bool)
-    for a, b in segments:
-        ok[a + start:b] = True
-    return ok[start:]
+    return [(a, b) for a, b in segments if b - a > start]
 
 
 def _rss(X: np.ndarray, y: np.ndarray):
@@ -267,8 +265,7 @@ def whiten(c: np.ndarray, order: int = CANDIDATE_AR_ORDER, segments=None) -> np.
     w = np.zeros_like(x)
     if order == 0:
         return x
-    keep = _rows_inside(x.shape[0], order, segments)
-    if keep is None:
+    if _long_segments(segments, order) is None:
         X = np.column_stack([np.ones(x.shape[0] - order), _lags(x[:, None], order, order)])
         coef, *_ = np.linalg.lstsq(X, x[order:], rcond=None)
         w[order:] = x[order:] - X @ coef
@@ -277,9 +274,10 @@ def whiten(c: np.ndarray, order: int = CANDIDATE_AR_ORDER, segments=None) -> np.
     means = np.zeros((x.shape[0], len(segments)))
     for k, (a, b) in enumerate(segments):
         means[a:b, k] = 1.0
-    X = np.column_stack([means[order:], _lags(x[:, None], order, order)])[keep]
-    coef, *_ = np.linalg.lstsq(X, x[order:][keep], rcond=None)
-    w[order:][keep] = x[order:][keep] - X @ coef
+    X = np.column_stack([_rows(means, order, segments), _lags(x[:, None], order, order, segments)])
+    target = _rows(x, order, segments)
+    coef, *_ = np.linalg.lstsq(X, target, rcond=None)
+    w[_rows(np.arange(x.shape[0]), order, segments)] = target - X @ coef
     return w
 
 
@@ -328,12 +326,9 @@ def exogeneity_test(c: np.ndarray, u: np.ndarray, input_names: Sequence[str], n_
     start = max(order, n_lag)
     if not moving or c.shape[0] - start < 3 * (order + n_lag * len(moving)) + 10:
         return ExogeneityTest(1.0, float("nan"), ())
-    y = c[start:]
-    own = _lags(c[:, None], order, start)
-    U = _lags(u[:, moving] - u[:, moving].mean(axis=0), n_lag, start)
-    keep = _rows_inside(c.shape[0], start, segments)
-    if keep is not None:
-        y, own, U = y[keep], own[keep], U[keep]
+    y = _rows(c, start, segments)
+    own = _lags(c[:, None], order, start, segments)
+    U = _lags(u[:, moving] - u[:, moving].mean(axis=0), n_lag, start, segments)
     base = np.column_stack([np.ones(y.shape[0]), own])
     rss_r, *_ = _rss(base, y)
     full = np.hstack([base, U])
@@ -407,19 +402,17 @@ def cause_tests(d: np.ndarray, columns: np.ndarray, w: np.ndarray, na: int, nb: 
     from .statistics import exact_sigma2
 
     dc = d - d.mean()
-    keep = _rows_inside(d.shape[0], start, segments)
-    pick = (lambda x: x) if keep is None else (lambda x: x[keep])    # noqa: E731
-    y = pick(dc[start:])
+    y = _rows(dc, start, segments)
     parts = [np.ones((y.shape[0], 1))]
     if na:
-        parts.append(pick(_lags(dc[:, None], na, start)))
+        parts.append(_lags(dc[:, None], na, start, segments))
     if columns.shape[1]:
-        parts.append(pick(_lags(columns - columns.mean(axis=0), n_lag, start)))
+        parts.append(_lags(columns - columns.mean(axis=0), n_lag, start, segments))
     base = np.hstack(parts)
     rss_r, *_ = _rss(base, y)
     out = []
     for k in range(w.shape[1]):
-        W = pick(_lags(w[:, k:k + 1], n_lag, start))
+        W = _lags(w[:, k:k + 1], n_lag, start, segments)
         full = np.hstack([base, W])
         rss_f, rank_f, coef, var = _rss(full, y)
         df_den = y.shape[0] - rank_f
