@@ -483,7 +483,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     from .regressions import regression_layout, window_regressions
     from .response_moments import ResponseMoments
     from .row_test import sdelta_row_test
-    from .signals import (compute_signals, error_rms, packed, scored_mask, scored_segments, segment_signals,
+    from .signals import (compute_signals, error_rms, packed, scored_segments, segment_signals, segments_mask,
                           unknown_starts)
 
     ny = model.n_outputs
@@ -621,8 +621,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         rms = error_rms(model, sig.d)
     else:
         scored = scored_segments(plan.local_segments, model, settled=True, restarts=restarts)
-        rms = error_rms(model, sig.d[scored_mask(plan.local_segments, n, model, settled=True, restarts=restarts)],
-                        segments=packed(scored))
+        rms = error_rms(model, sig.d[segments_mask(scored, n)], segments=packed(scored))
     unrepaired = {"model": model.to_dict(), "changes": [], "error_before": rms, "error_after": dict(rms)}
     if plan is not None:
         warnings.insert(0, plan.warning())

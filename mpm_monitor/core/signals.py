@@ -461,8 +461,13 @@ def packed(segments) -> list:
 
 def scored_mask(segments, n: int, *models: PlantModel, settled: bool = False, restarts=None) -> np.ndarray:
     """:func:`scored_segments` as a mask over the ``n`` stacked samples, shape (n,), bool."""
+    return segments_mask(scored_segments(segments, *models, settled=settled, restarts=restarts), n)
+
+
+def segments_mask(segments, n: int) -> np.ndarray:
+    """The rows of ``segments`` (``(first, end)`` runs) as a mask over ``n`` samples, shape (n,), bool."""
     keep = np.zeros(int(n), dtype=bool)
-    for a, b in scored_segments(segments, *models, settled=settled, restarts=restarts):
+    for a, b in segments:
         keep[a:b] = True
     return keep
 

@@ -19,8 +19,8 @@ from ..discretize import model_columns
 from ..errors import ConfigurationError, InputError
 from ..logged_data import LoggedData, check_loop_data, in_deviations
 from ..model import PlantModel
-from ..signals import (LoopSignals, compute_signals, error_rms, packed, scored_mask, scored_segments,
-                       segment_signals, unknown_starts)
+from ..signals import (LoopSignals, compute_signals, error_rms, packed, scored_segments, segment_signals,
+                       segments_mask, unknown_starts)
 from .classify import _classify_row
 from .disturbance import unexplained_disturbance
 from .fit import _TooShort
@@ -151,13 +151,13 @@ class _Record:
     def n_hold(self) -> int:
         return self.n - self.n_fit
 
-    def scored(self, *models: PlantModel, settled: bool = False) -> Optional[np.ndarray]:
-        """The samples the held-out check (and, ``settled``, the errors) are taken over: with gaps, all
-        but the first samples of every segment after a gap that still depend on the state the gap
-        leaves (:func:`~mpm_monitor.core.signals.scored_mask`); None without gaps (every sample)."""
+    def scored(self, *models: PlantModel) -> Optional[np.ndarray]:
+        """The samples the held-out check is taken over: with gaps, all but the first samples of every
+        segment after a gap that still depend on the state the gap leaves (:meth:`scored_segments` as a
+        mask); None without gaps (every sample)."""
         if self.segments is None:
             return None
-        return scored_mask(self.segments, self.n, *models, settled=settled, restarts=self.restarts)
+        return segments_mask(self.scored_segments(*models), self.n)
 
     def scored_segments(self, *models: PlantModel, settled: bool = False) -> Optional[list]:
         """:func:`~mpm_monitor.core.signals.scored_segments` of the record's segments (None without gaps)."""
@@ -557,11 +557,12 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
             if keep is not None:
                 holdout_before[names_y[i]] = rec.holdout(rec.d0[:, i], keep)
     yhat0, yhat1, d0 = np.asarray(rec.signals.yhat, float), np.asarray(ev.signals.yhat, float), rec.d0
-    settled = rec.scored(model, ev.model, settled=True)
+    scored = rec.scored_segments(model, ev.model, settled=True)
     runs = None
-    if settled is not None:       # with gaps: the samples settled from the state each gap leaves
+    if scored is not None:        # with gaps: the samples settled from the state each gap leaves
+        settled = segments_mask(scored, rec.n)
         y, yhat0, yhat1, d0, d1 = (x[settled] for x in (y, yhat0, yhat1, d0, d1))
-        runs = packed(rec.scored_segments(model, ev.model, settled=True))
+        runs = packed(scored)
     level = model.integrating_outputs
     error_before, error_after = error_rms(model, d0, runs), error_rms(model, d1, runs)
     fit_before = {names_y[i]: _fit_percent(y[:, i], yhat0[:, i], level[i]) for i in range(ny)}
