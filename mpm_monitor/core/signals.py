@@ -301,8 +301,9 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
     its state carries across the gap instead of starting from rest; a missing sample whose columns
     were logged and are sound (``fill``: the sample of a spike in an output) takes them instead.
     Only the initial transient of a run is estimated, from its first samples (a held output stands
-    in for a missing one in that one fit).  The signals are returned at the logged samples only: no regression row or statistic
-    reads a held value.  A run starts at the first segment and after every longer gap.
+    in for a missing one in that one fit).  The signals are returned at the logged samples only: no
+    regression row or statistic reads a held value.  A run starts at the first segment and after every
+    longer gap.
 
     Parameters
     ----------

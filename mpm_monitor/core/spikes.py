@@ -26,8 +26,8 @@ an input that is otherwise almost still (its robust scale is tiny, but its moves
 as large as the burst); nor is a burst of an input that starts with a setpoint step or up to
 :data:`KICK_SAMPLES` - 1 samples after one and is no larger than :data:`KICK_FACTOR` times the
 input's usual move at a setpoint step (an MPC's first moves after a step often overshoot and come
-back within a sample or two: the loop's most informative samples, not a glitch).  The first and last samples of a segment have one
-neighbour only and are never called spikes.
+back within a sample or two: the loop's most informative samples, not a glitch).  The first and
+last samples of a segment have one neighbour only and are never called spikes.
 """
 
 from __future__ import annotations
@@ -245,6 +245,8 @@ def without_spikes(data: LoggedData, threshold: float = SPIKE_THRESHOLD) -> tupl
             column_spike |= spikes[label]
     sound = np.flatnonzero(bad & ~column_spike)
     if sound.size:
-        t_old, c_old = data.column_fill if data.column_fill is not None else (np.zeros(0), np.zeros((0, data.columns.shape[1])))
-        kept.column_fill = (np.concatenate([t_old, data.t[sound]]), np.vstack([c_old, data.columns[sound]]))
+        columns = data.columns[sound]
+        t_old, c_old = data.column_fill if data.column_fill is not None else \
+            (np.zeros(0), np.zeros((0, columns.shape[1])))
+        kept.column_fill = (np.concatenate([t_old, data.t[sound]]), np.vstack([c_old, columns]))
     return kept, note

@@ -15,8 +15,8 @@ Nothing is silently mis-aligned:
   (different values) and the first is kept;
 * a vector for a sample that is already in the window, or already given up, is ``late``;
 * when more than ``reorder_samples`` later samples are complete while one is not (counted, not their
-  distance: one sample stamped far ahead waits), the incomplete samples are given up as a ``gap``.  A gap of at most ``max_gap`` samples keeps the
-  window: its samples stay, nothing is interpolated, and the analysis gets the window with its ``t``
+  distance: one sample stamped far ahead waits), the incomplete samples are given up as a ``gap``.
+  A gap of at most ``max_gap`` samples keeps the window: its samples stay, nothing is interpolated, and the analysis gets the window with its ``t``
   skipping the missing samples (it analyses around them; docs/interfaces.md, "Gaps").  A longer gap
   restarts the window after it;
 * a vector of the wrong length or with a non-finite value, or stamped 0 (an unset ``header.stamp``)

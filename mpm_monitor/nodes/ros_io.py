@@ -301,7 +301,7 @@ def _ros_names(spec: ParamSpec, value) -> list:
     if spec.kind == "string" and (spec.name.endswith("_topic") or spec.name.endswith("_service")):
         return [value] if value else []
     if spec.kind == "string_array" and spec.name == "topics":
-        return [str(v).split("=", 1)[0] for v in value or () if str(v).split("=", 1)[0]]
+        return [name for name in (str(v).split("=", 1)[0] for v in value or ()) if name]
     return []
 
 
