@@ -40,6 +40,7 @@ from mpm_monitor.sim.excitation import PrbsOptions
 from mpm_monitor.sim.mpc import MpcOptions
 
 from . import map_runs, write_json
+from .gaps_mc import drop_rows
 
 DEFAULT_OUT = "bench/results/quiet_loops.json"
 SAMPLES = 4000
@@ -84,9 +85,7 @@ def run_one(plant_name: str, mismatched: bool, seed: int) -> dict:
            "spike_samples": int(sum(int(m.sum()) for m in find_spikes(data).values())), "full": _located(model, data)}
     for key, p in DROPS.items():
         rng = np.random.default_rng([seed, PLANTS.index(plant_name), int(mismatched), int(round(1 / p))])
-        keep = rng.random(data.n_samples) >= p
-        keep[0] = keep[-1] = True
-        rec[key] = _located(model, data.take(np.flatnonzero(keep)))
+        rec[key] = _located(model, data.take(drop_rows(data.n_samples, p, rng)))
     return rec
 
 
