@@ -51,7 +51,7 @@ from mpm_monitor.core.repair import repair_model
 from mpm_monitor.monitor.window import SampleWindow, WindowOptions
 from mpm_monitor.sim.cases import CASE_NAMES
 
-from . import imap_tasks, write_json
+from . import map_runs, write_json
 from .monte_carlo import family_log
 from .structures_mc import REPAIR_TOLERANCE, step_response_error
 
@@ -197,11 +197,8 @@ def run(paper_seeds: int, runs: int, seed: int = 0, samples: int = 3000, drop: f
         progress: bool = False, repair: bool = False) -> dict:
     todo = tasks(paper_seeds, runs, seed, samples, drop, repair)
     t0 = time.perf_counter()
-    records = []
-    for rec in imap_tasks(_run_star, todo, jobs):
-        records.append(rec)
-        if progress:
-            print(f"{len(records)}/{len(todo)}", flush=True)
+    records = map_runs(_run_star, todo, jobs,
+                       progress=(lambda done, total, _: print(f"{done}/{total}", flush=True)) if progress else None)
     return {"config": {"paper_seeds": paper_seeds, "runs": runs, "seed": seed, "samples": samples, "drop": drop,
                        "jobs": jobs, "repair": repair, "wall_time_s": time.perf_counter() - t0},
             "summary": summarize(records), "records": records}
