@@ -39,7 +39,7 @@ def test_every_analysis_option_has_its_spec_with_the_dataclass_default():
         assert spec.default == fields[name] and spec.description.endswith(".")
         assert (spec.check(spec.default) is None) == (spec.default is None)
     assert {n: s.kind for n, s in ANALYSIS_PARAMS.items()} == {
-        "na": "int", "nb": "int", "alpha": "double", "band": "double_array", "n_freq": "int", "max_delay": "int",
+        "na": "int", "max_na": "int", "nb": "int", "alpha": "double", "band": "double_array", "n_freq": "int", "max_delay": "int",
         "initial_state": "string", "method": "string", "repair": "bool", "collinearity_threshold": "double",
         "test_all_rows": "bool", "element_window": "string", "element_response": "bool",
         "release_explained": "bool", "drop_spikes": "bool", "max_gap": "int"}

@@ -32,7 +32,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 #: The analysis options given on the command line of ``analyze`` and ``reproduce``, in their flags' order.
-CLI_ANALYSIS_OPTIONS = ("method", "alpha", "na", "nb", "band", "initial_state", "repair", "element_response",
+CLI_ANALYSIS_OPTIONS = ("method", "alpha", "na", "max_na", "nb", "band", "initial_state", "repair", "element_response",
                         "release_explained", "drop_spikes", "max_delay", "max_gap")
 
 #: Names of the values of an option that takes several (default: the option's name in capitals).

@@ -62,7 +62,13 @@ class AnalysisOptions:
     Attributes
     ----------
     na : int
-        Order of the ARX ``A`` polynomials (paper: 4).
+        Order of the ARX ``A`` polynomials (paper: 4): the first order tried, see ``max_na``.
+    max_na : int
+        Largest ARX order :func:`~mpm_monitor.core.pipeline.analyze` raises ``na`` to when the element
+        test's residuals are not white (:mod:`mpm_monitor.core.noise_order`: a slow drift under the
+        measurement noise needs more own lags than the paper's 4, and a coloured residual in closed loop
+        gives false alarms): ``na`` doubles (4, 8, 16) while some row's residual is coloured, at most to
+        ``max_na`` (default 16; at most ``na`` keeps ``na`` whatever the residuals).
     nb : int
         Length of the ARX ``B`` polynomials once the delay is known (paper: 4); the tests use
         ``max_delay + nb`` lags so that the delay need not be known.
@@ -126,7 +132,10 @@ class AnalysisOptions:
         warning (:mod:`mpm_monitor.core.gaps`).
     """
 
-    na: int = option(4, "ARX order of A.", low=0, high=50)
+    na: int = option(4, "ARX order of A (the first tried; see max_na).", low=0, high=50)
+    max_na: int = option(16, "Largest ARX order of A: while a row's element-test residual is not white "
+                             "(Ljung-Box), na doubles up to this and the detection runs again (at most na: "
+                             "never raised).", low=0, high=50)
     nb: int = option(4, "ARX order of each B.", low=1, high=50)
     alpha: float = option(0.01, "False-alarm rate of a whole analysis (split between the row tests and the element "
                                 "tests, each with Holm's procedure).", low=0.0, high=0.5, open_low=True, open_high=True)
@@ -271,6 +280,12 @@ class AnalysisReport:
         or no element decidable at 20 %), :mod:`mpm_monitor.core.experiment`; None when not needed.
     candidates : CandidateReport or None
         The candidate channels tried (:mod:`mpm_monitor.core.candidates`); None when none were asked for.
+    noise_order : dict or None
+        The ARX element test only: ``na`` (the order of the tests reported), ``requested`` (the option's
+        ``na``), ``max_na``, ``coloured`` (the outputs whose element-test residual is coloured at this
+        ``na``, :func:`~mpm_monitor.core.noise_order.coloured_rows`) and ``p_values`` (output -> the
+        Ljung-Box p-value of its residual).  :func:`~mpm_monitor.core.pipeline.analyze` raises ``na``
+        while ``coloured`` is not empty.
     """
 
     sample_time: float
@@ -296,6 +311,7 @@ class AnalysisReport:
     experiment: object = None
     regressions: object = dataclasses.field(default=None, compare=False, repr=False)
     candidates: object = None
+    noise_order: Optional[dict] = None
 
     @property
     def flagged_rows(self) -> list:
@@ -334,6 +350,8 @@ class AnalysisReport:
             doc["gaps"] = self.gaps
         if self.candidates is not None:
             doc["candidates"] = self.candidates.to_dict()
+        if self.noise_order is not None:
+            doc["noise_order"] = self.noise_order
         return json_ready(doc)
 
     def summary_text(self) -> str:
@@ -626,6 +644,14 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     if plan is not None:
         warnings.insert(0, plan.warning())
     warnings[:0] = data.notes
+    noise_order = None
+    if options.method == "arx":
+        from .noise_order import coloured_rows
+
+        white = element_test.whiteness
+        noise_order = {"na": options.na, "requested": options.na, "max_na": options.max_na,
+                       "coloured": [model.outputs[i] for i in coloured_rows(white)],
+                       "p_values": {model.outputs[i]: float(p) for i, p in white.items()}}
     return AnalysisReport(
         sample_time=model.sample_time, samples=n, method=options.method, alpha=options.alpha, rows=rows,
         elements=elements, overall_rsi=float(row_test.sigma_max.max()), warnings=warnings,
@@ -633,7 +659,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         sdelta_response=row_test.response, arx_tables=element_test.arx_tables, repair=unrepaired,
         repaired_model=model, collinear_groups=design.groups, max_variance_inflation=design.max_vif, signals=sig,
         gaps=None if plan is None else plan.to_dict(), experiment=experiment, candidates=candidate_report,
-        regressions=regressions.row_test_part() if getattr(regressions, "batch", False) else None)
+        regressions=regressions.row_test_part() if getattr(regressions, "batch", False) else None,
+        noise_order=noise_order)
 
 
 def check_gap_rows(plan, layout, options, src: str) -> None:

@@ -44,6 +44,7 @@ from .arx import BlockTest, SharedBlockRegression, estimate_delay_from_lags, lag
 from .baselines import ELEMENT_TESTS
 from .elements import pulse_response
 from .model import PlantModel
+from .noise_order import residual_whiteness
 from .response_test import combined_p_value, element_responses, integrating_element, row_response_tests
 from .statistics import N_FAMILIES, holm_adjust
 
@@ -190,6 +191,9 @@ class ElementTest:
         The ARX test with ``element_response`` only: ``(i, j)`` ->
         :class:`~mpm_monitor.core.response_test.ResponseTest` of every element whose whole response
         was tested (for the detectability).
+    whiteness : dict
+        The ARX test only: output index -> Ljung-Box p-value of the residual of its unrestricted fit
+        (:func:`~mpm_monitor.core.noise_order.residual_whiteness`; a row whose fit is exact has none).
     """
 
     elements: list
@@ -198,6 +202,7 @@ class ElementTest:
     warnings: list = dataclasses.field(default_factory=list)
     noise: dict = dataclasses.field(default_factory=dict)
     responses: dict = dataclasses.field(default_factory=dict)
+    whiteness: dict = dataclasses.field(default_factory=dict)
 
 
 class InputDesign:
@@ -466,12 +471,16 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
     names = model.columns
     testable, group_of = design.testable, design.group_of
     estimates, tables, group_hits, noise = {}, [], [], {}
+    row_blocks, own = {}, {}
     whole = _WholeResponses(model, design, regressions, options, moments) if options.element_response else None
     for i in rows:
         fit = regressions.element_fit(design.regression, i)
         if output_spread is not None:
             fit.set_output_spread(output_spread[i])
         noise[i] = row_noise(fit)
+        if not fit.exact:
+            row_blocks[i] = np.array([fit.block_theta(bj) for bj in range(len(testable))]).reshape(len(testable), -1)
+            own[i] = np.asarray(fit.theta[fit.n_common:], dtype=float)
         tests = fit.test_each_block_zero([element_window(model, i, j, nb, options.element_window) for j in testable])
         responses = whole.tests(i, fit) if whole is not None else {}
         stds = fit.block_stds()
@@ -521,8 +530,9 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
     warnings = [f"row {h.output}: inputs {', '.join(h.inputs)} jointly explain part of its prediction error "
                 f"(p={h.p_value:.2g}) but cannot be told apart from these data" for h in group_hits] + kept
     responses = {k: e.response for k, e in estimates.items() if e.response is not None}
+    whiteness = residual_whiteness(regressions, testable, design.n_lag, row_blocks, own)
     return ElementTest(elements=elements, arx_tables=tables, group_hits=group_hits, warnings=warnings, noise=noise,
-                       responses=responses)
+                       responses=responses, whiteness=whiteness)
 
 
 class _WholeResponses:

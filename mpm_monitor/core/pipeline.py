@@ -85,10 +85,9 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
 def _analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions, signals: Optional[LoopSignals],
              regressions, candidates) -> AnalysisReport:
     """:func:`analyze` (same arguments), its numerical errors not yet turned into a ``DataFileError``."""
-    if candidates is None:
-        report = detect(model, data, options, signals=signals, regressions=regressions)
-    else:
-        report = detect(model, data, options, signals=signals, regressions=regressions, candidates=candidates)
+    kw = {} if candidates is None else {"candidates": candidates}
+    report = detect(model, data, options, signals=signals, regressions=regressions, **kw)
+    report, options = _raise_noise_order(model, data, options, report, signals, kw)
     joint = options.release_explained and _shares_a_row(report)
     if not options.repair and not joint:
         return dataclasses.replace(report, regressions=None)
@@ -127,6 +126,56 @@ def _analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions, sign
         if e.mismatch:
             e.kind = kinds.get((wide.outputs.index(e.output), columns.index(e.input)), "unknown")
     return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result, regressions=None)
+
+
+def _raise_noise_order(model: PlantModel, data: LoggedData, options: AnalysisOptions, report: AnalysisReport,
+                       signals: Optional[LoopSignals], kw: dict) -> tuple:
+    """The detection again with ``na`` doubled while a row's element-test residual is coloured.
+
+    :mod:`mpm_monitor.core.noise_order`: each row's residual of the element test's unrestricted fit is
+    checked for whiteness (Ljung-Box, Bonferroni over the rows); while some row's is coloured and ``na`` is
+    below ``options.max_na``, ``na`` doubles and :func:`~mpm_monitor.core.analysis.detect` runs again on the
+    same data (its regressions built for the new ``na``, whatever regressions the first detection was
+    given).  The report kept is the last one, with a warning saying why and with what ``na``; its
+    ``noise_order`` has the order ``requested``.
+
+    Returns
+    -------
+    (AnalysisReport, AnalysisOptions)
+        The report and the options it was made with (``na`` raised or not).
+    """
+    from .noise_order import next_order
+
+    order = report.noise_order
+    if order is None or not order["coloured"]:
+        return report, options
+    first = order
+    while order["coloured"]:
+        na = next_order(options.na, options.max_na)
+        if na is None:
+            break
+        options = dataclasses.replace(options, na=na)
+        report = detect(model, data, options, signals=signals, **kw)
+        order = report.noise_order
+    order["requested"] = first["requested"]
+    rows = ", ".join(first["coloured"])
+    p_min = min(first["p_values"][x] for x in first["coloured"])
+    what = (f"{'row' if len(first['coloured']) == 1 else 'rows'} {rows}: the element test's residual was not white "
+            f"with na = {first['na']} (Ljung-Box p = {p_min:.2g}; a slow drift or coloured disturbance, under "
+            f"which the tests give false alarms, or the row's own mismatch)")
+    located = {e.output for e in report.elements if e.mismatch}
+    still = [x for x in order["coloured"] if x not in located]      # where no mismatch is located to colour it
+    risk = (f"{', '.join(still)} {'has' if len(still) == 1 else 'have'} no located element that would colour "
+            f"{'it' if len(still) == 1 else 'them'}: the tests' false-alarm rate may exceed alpha there")
+    if order["na"] == first["na"]:
+        report.warnings.append(f"{what}; na was not raised (max_na {options.max_na})" + (f"; {risk}" if still else ""))
+    elif order["coloured"]:
+        report.warnings.append(f"{what}; the tests ran with na = {order['na']} (max_na), where "
+                               f"{', '.join(order['coloured'])} {'is' if len(order['coloured']) == 1 else 'are'} still "
+                               f"not white" + (f"; {risk}" if still else " (a located mismatch colours it)"))
+    else:
+        report.warnings.append(f"{what}; the tests ran with na = {order['na']}, which whitens it")
+    return report, options
 
 
 def _shares_a_row(report: AnalysisReport) -> bool:
