@@ -1,0 +1,232 @@
+"""Monte-Carlo of quiet closed loops whose outputs drift under white measurement noise: false alarms and recall.
+
+The unmeasured disturbance of a real output is often a slow drift (feed quality, ambient temperature,
+fouling) under the measurement's white noise: ``d = v + w`` with ``v(k) = 0.98 v(k-1) + a e(k)``.  That
+is an ARMA(1, 1) whose inverse noise model needs far more own lags than the paper's ``na = 4`` when
+the drift is small against the noise; the element test's residual stays coloured, and in closed loop
+it correlates with the input lags: false alarms.  ``analyze`` checks every row's residual for
+whiteness and raises ``na`` (4, 8, 16, up to ``max_na``) while one is coloured
+(:mod:`mpm_monitor.core.noise_order`).  This bench measures both, on the same logs: every log is
+analysed with the order fixed (``max_na`` = ``na``: the analysis before the check) and raised (the
+defaults).
+
+The loops are those of :mod:`bench.quiet_loops` (setpoint steps of +-1 held at least 150 samples, no
+dither, 4,000 samples, the same plants and MPC): ``wood-berry`` (the gain of (xb, steam) 30 % high in
+the mismatched plant) and the paper's cases 3.1, 3.2 and 3.3 (the case's own mismatch).  Their
+disturbance is replaced by white measurement noise of standard deviation :data:`NOISE` on every
+output, plus an independent drift per output of innovation ``a`` (``e`` standard normal from
+``numpy.random.default_rng([seed, plant index, int(mismatched), 7])``, through
+``run_closed_loop(..., output_disturbance=v)``): the variants ``none`` (``a = 0``), ``a0.005`` and
+``a0.01``.  Case 3.1's plant differs from its model in no element (its mismatch is in the noise,
+replaced here), so its runs count as clean both ways.
+
+Scored per variant and per analysis: false alarms (clean runs with a located element), clean runs
+with a flagged row, mismatched runs with every true element located and with an element located
+that is not mismatched, the ARX order used (histogram) and the analysis time.  ``--set key=value``
+(repeatable) sets an option of both analyses, e.g. ``--set na=10``.
+
+Run: ``python -m bench.drift_mc [--seeds 6] [--jobs 2] [--set key=value ...] [--out bench/results/drift_mc.json]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections import Counter
+from typing import Optional, Sequence
+
+import numpy as np
+
+from mpm_monitor.core.analysis import AnalysisOptions
+from mpm_monitor.core.pipeline import analyze
+from mpm_monitor.sim.cases import simulation_case
+from mpm_monitor.sim.closed_loop import run_closed_loop
+from mpm_monitor.sim.mpc import MpcOptions
+from mpm_monitor.sim.plant import DisturbanceOptions
+
+from . import map_runs, write_json
+from .quiet_loops import PLANTS, SAMPLES, STEPS, WOOD_BERRY
+
+DEFAULT_OUT = "bench/results/drift_mc.json"
+#: Drift variants: name -> ``a``, the standard deviation of the drift's innovation (output units).
+DRIFTS = {"none": 0.0, "a0.005": 0.005, "a0.01": 0.01}
+DRIFT_POLE = 0.98
+#: Standard deviation of the white measurement noise of every output (output units); no other disturbance.
+NOISE = 0.02
+#: The two analyses of every log: the ARX order fixed at ``na`` (``max_na = na``), and raised (default).
+ANALYSES = ("fixed", "raised")
+WOOD_BERRY_MPC = MpcOptions(prediction_horizon=90, control_horizon=10, input_rate_weight=20.0)
+
+
+def parse_set(items: Sequence[str]) -> dict:
+    """``["na=10", "drop_spikes=false"]`` -> ``{"na": 10, "drop_spikes": False}``: each value an int,
+    a float, true / false (any case), else the string."""
+    out = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise argparse.ArgumentTypeError(f"--set: expected key=value, got {item!r}")
+        text = text.strip()
+        if text.lower() in ("true", "false"):
+            value = text.lower() == "true"
+        else:
+            for kind in (int, float):
+                try:
+                    value = kind(text)
+                    break
+                except ValueError:
+                    continue
+            else:
+                value = text
+        out[key.strip()] = value
+    return out
+
+
+def drift(plant_name: str, mismatched: bool, seed: int, a: float, n_outputs: int) -> np.ndarray:
+    """The output drift, shape (SAMPLES, n_outputs): per output ``v(k) = 0.98 v(k-1) + a e(k)`` from ``v(-1) = 0``."""
+    rng = np.random.default_rng([seed, PLANTS.index(plant_name), int(mismatched), 7])
+    e = rng.standard_normal((SAMPLES, n_outputs)) * a
+    v = np.zeros_like(e)
+    prev = np.zeros(n_outputs)
+    for k in range(SAMPLES):
+        prev = DRIFT_POLE * prev + e[k]
+        v[k] = prev
+    return v
+
+
+def loop(plant_name: str, mismatched: bool, seed: int, a: float):
+    """``(model, log, data, truth, v)`` of one quiet loop (:func:`bench.quiet_loops.loop`'s plant and MPC) under
+    white noise :data:`NOISE` and a drift of level ``a`` on every output (``v`` None when ``a`` is 0);
+    ``truth`` the mismatched elements (names)."""
+    if plant_name == "wood-berry":
+        model, mpc = WOOD_BERRY, WOOD_BERRY_MPC
+        plant = model.with_element(1, 1, gain=1.3 * model.gain[1, 1]) if mismatched else model
+        truth = [["xb", "steam"]] if mismatched else []
+    else:
+        case = simulation_case(plant_name)
+        model, mpc = case.model, case.mpc
+        plant = case.plant if mismatched else case.model
+        truth = sorted([list(x) for x in case.mismatched_elements]) if mismatched else []
+    v = drift(plant_name, mismatched, seed, a, model.n_outputs) if a > 0 else None
+    log = run_closed_loop(plant, model, SAMPLES, seed=seed, mpc=mpc, excitation=STEPS, output_disturbance=v,
+                          disturbance=DisturbanceOptions(disturbance_std=0.0, noise_std=NOISE))
+    return model, log, log.as_logged_data(f"{plant_name} seed {seed}"), truth, v
+
+
+def _analysed(model, data, overrides: dict) -> dict:
+    t0 = time.perf_counter()
+    try:
+        rep = analyze(model, data, AnalysisOptions(repair=False, **overrides))
+    except Exception as exc:  # noqa: BLE001 - a benchmark records the failure and goes on
+        return {"error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t0}
+    order = rep.noise_order or {}
+    return {"located": sorted([list(x) for x in rep.located_elements]), "rows": sorted(rep.flagged_rows),
+            "na_used": order.get("na"), "seconds": time.perf_counter() - t0}
+
+
+def run_one(plant_name: str, mismatched: bool, seed: int, variant: str, overrides: dict) -> dict:
+    """One loop of one drift variant, simulated and analysed both ways; a JSON-ready record."""
+    model, log, data, truth, v = loop(plant_name, mismatched, seed, DRIFTS[variant])
+    na = AnalysisOptions(**overrides).na
+    return {"plant": plant_name, "mismatched": mismatched, "seed": seed, "variant": variant, "truth": truth,
+            "y_max_abs": float(np.max(np.abs(log.y))),
+            "drift_std": None if v is None else float(np.std(v)),
+            "fixed": _analysed(model, data, {**overrides, "max_na": na}),
+            "raised": _analysed(model, data, overrides)}
+
+
+def _star(args):
+    return run_one(*args)
+
+
+def summarize(records: list) -> dict:
+    """Per drift variant and analysis: false alarms among the clean runs, recall and extra elements among
+    the mismatched ones, the histogram of the ARX order used, the mean analysis time."""
+    out = {}
+    for variant in DRIFTS:
+        recs = [r for r in records if r["variant"] == variant]
+        clean = [r for r in recs if not r["truth"]]      # case 3.1's plant differs from its model in no element
+        bad = [r for r in recs if r["truth"]]
+        drifts = [r["drift_std"] for r in recs if r["drift_std"] is not None]
+        v = {"a": DRIFTS[variant], "runs": len(recs), "clean": len(clean), "mismatched": len(bad),
+             "y_max_abs": max((r["y_max_abs"] for r in recs), default=None),
+             "drift_std_mean": float(np.mean(drifts)) if drifts else None}
+        for key in ANALYSES:
+            ok = [r for r in recs if "error" not in r[key]]
+            na = Counter(int(r[key]["na_used"]) for r in ok if r[key]["na_used"] is not None)
+            v[key] = {
+                "errors": len(recs) - len(ok),
+                "false_alarms": sum(bool(r[key]["located"]) for r in ok if not r["truth"]),
+                "clean_rows_flagged": sum(bool(r[key]["rows"]) for r in ok if not r["truth"]),
+                "true_located": sum(all(t in r[key]["located"] for t in r["truth"]) for r in ok if r["truth"]),
+                "extra_located": sum(any(x not in r["truth"] for x in r[key]["located"]) for r in ok if r["truth"]),
+                "na_used": {str(k): n for k, n in sorted(na.items())},
+                "seconds_median": float(np.median([r[key]["seconds"] for r in recs])) if recs else None,
+                "false_alarms_by_plant": {p: sum(bool(r[key]["located"]) for r in ok
+                                                 if not r["truth"] and r["plant"] == p) for p in PLANTS},
+            }
+        out[variant] = v
+    return out
+
+
+def format_table(result: dict) -> str:
+    s, cfg = result["summary"], result["config"]
+    sets = " ".join(f"{k}={v}" for k, v in cfg["overrides"].items()) or "defaults"
+    lines = [f"drifting quiet loops: {cfg['seeds']} seeds x {len(cfg['plants'])} plants, clean and mismatched, "
+             f"{cfg['samples']} samples, white noise {NOISE} + AR(1) drift pole {DRIFT_POLE}; options: {sets}",
+             "drift   na      false alarms  clean rows flagged  true located  with extra elements  median s  na used",
+             ]
+    for key in DRIFTS:
+        if not s[key]["runs"]:
+            continue
+        for how in ANALYSES:
+            v, n = s[key][how], s[key]
+            na = " ".join(f"{k}:{c}" for k, c in v["na_used"].items()) or "-"
+            lines.append(f"{key:7s} {how:7s} {v['false_alarms']:>5d}/{n['clean']:<6d} "
+                         f"{v['clean_rows_flagged']:>8d}/{n['clean']:<9d} "
+                         f"{v['true_located']:>6d}/{n['mismatched']:<6d} {v['extra_located']:>10d}/{n['mismatched']:<8d} "
+                         f"{v['seconds_median']:>8.2f}  {na}" + (f"  ({v['errors']} errors)" if v["errors"] else ""))
+    for how in ANALYSES:
+        lines.append(f"false alarms by plant, {how}: " + "; ".join(
+            f"{key}: " + ", ".join(f"{p} {c}" for p, c in s[key][how]["false_alarms_by_plant"].items()) for key in DRIFTS))
+    return "\n".join(lines)
+
+
+def run(seeds: int, jobs: int = 1, overrides: Optional[dict] = None) -> dict:
+    overrides = dict(overrides or {})
+    AnalysisOptions(repair=False, **overrides)  # a wrong key or value fails here, not in every run
+    tasks = [(p, m, s, d, overrides) for p in PLANTS for m in (False, True) for s in range(seeds) for d in DRIFTS]
+
+    def progress(done, total, rec):
+        if done % 12 == 0 or done == total:
+            print(f"  {done}/{total}", file=sys.stderr, flush=True)
+
+    t0 = time.perf_counter()
+    records = map_runs(_star, tasks, jobs, progress)
+    return {"config": {"seeds": seeds, "samples": SAMPLES, "drifts": DRIFTS, "drift_pole": DRIFT_POLE,
+                       "noise": NOISE, "plants": list(PLANTS), "overrides": overrides},
+            "seconds": time.perf_counter() - t0, "summary": summarize(records), "records": records}
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m bench.drift_mc", description=__doc__.split("\n\n")[0])
+    p.add_argument("--seeds", type=int, default=6, help="seeds per plant, clean and mismatched (default 6)")
+    p.add_argument("--jobs", type=int, default=1)
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                   help="an AnalysisOptions field for every analysis, e.g. na=10 (repeatable)")
+    p.add_argument("--out", default=DEFAULT_OUT)
+    args = p.parse_args(argv)
+    try:
+        overrides = parse_set(args.sets)
+    except argparse.ArgumentTypeError as exc:
+        p.error(str(exc))
+    res = run(args.seeds, args.jobs, overrides)
+    print(format_table(res))
+    print(f"{res['seconds']:.0f} s")
+    write_json(args.out, res)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
