@@ -172,5 +172,57 @@ def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressio
                               mismatch=bool(np.isfinite(p) and p < options.alpha),
                               p_value=float(p) if np.isfinite(p) else 1.0, p_value_raw=float(row_raw_p[i]),
                               statistic=float(row_stat[i]), df=tuple(row_df[i]), fit_percent=float(row_fit[i])))
+    warnings += near_instability_warnings(rows, omega, row_gains, model.sample_time, model.integrating_outputs)
     return RowTest(rows=rows, frequencies=omega, response=S, row_gains=row_gains, sigma_max=sigma_max,
                    warnings=warnings)
+
+
+#: A flagged row whose RSI exceeds this is named as a loop near instability
+#: (:func:`near_instability_warnings`).  ``S_Delta`` is the ratio of the loop's real sensitivity to the
+#: one its model predicts; the usual bound on a sensitivity's peak is 2, so a mismatch that triples it
+#: at some frequency has taken the loop well past its design margins.
+RSI_NEAR_INSTABILITY = 3.0
+
+
+def near_instability_warnings(rows: list, frequencies: np.ndarray, row_gains: np.ndarray, sample_time: float,
+                              integrating: Optional[tuple] = None, limit: float = RSI_NEAR_INSTABILITY) -> list:
+    """One warning per flagged row whose RSI exceeds ``limit``: where the mismatch amplifies the loop.
+
+    An integrating output's row is named only for a peak above frequency 0: there its identified
+    ``S_Delta`` carries the ARX's root near 1 (the level's drift under an integrator error), whose gain
+    at frequency 0 is not the loop's.
+
+    Parameters
+    ----------
+    rows : list of RowResult
+    frequencies : ndarray, shape (n_freq,)
+        rad/sample.
+    row_gains : ndarray, shape (n_outputs, n_freq)
+        2-norm of every row of the identified ``S_Delta``.
+    sample_time : float
+        Seconds per sample.
+    integrating : tuple of bool, optional
+        Per output, whether it integrates (:attr:`~mpm_monitor.core.model.PlantModel.integrating_outputs`).
+    limit : float
+
+    Returns
+    -------
+    list of str
+        ``row y2: RSI 50.1, the mismatch amplifies the loop's response 50.1 times the model's at
+        0.063 rad/sample (period 100 s): ...``; a peak at frequency 0 is named as the steady state.
+    """
+    out = []
+    for i, row in enumerate(rows):
+        if not (row.mismatch and row.rsi > limit):
+            continue
+        w = float(frequencies[int(np.argmax(row_gains[i]))])
+        if w == 0 and integrating is not None and integrating[i]:
+            continue
+        where = (f"at {w:.3g} rad/sample (period {2 * math.pi / w * sample_time:.3g} s): the loop runs close to "
+                 f"instability and oscillates near that period" if w > 0 else
+                 "in steady state (frequency 0): the controller's corrections are far off there, and its "
+                 "inputs move far more than the model expects")
+        out.append(f"row {row.output}: RSI {row.rsi:.3g}, the mismatch amplifies the loop's response {row.rsi:.3g} "
+                   f"times what the model predicts {where}; the model needs repairing before the loop is tuned "
+                   f"tighter")
+    return out
