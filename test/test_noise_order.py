@@ -156,3 +156,26 @@ def test_white_noise_keeps_na_and_the_report():
     assert rep.noise_order["na"] == 4 and rep.noise_order["coloured"] == []
     same = analyze(WOOD_BERRY, data, AnalysisOptions(repair=False, max_na=4))
     assert rep.to_dict() == same.to_dict() | {"noise_order": rep.to_dict()["noise_order"]}
+
+
+def test_a_row_without_a_testable_column_is_still_checked():
+    """Inputs that never move leave no lag block: the residual is the row's own ARX's."""
+    from mpm_monitor.core.logged_data import LoggedData
+
+    model = PlantModel(sample_time=1.0, inputs=("u1",), outputs=("y1",), gain=np.array([[2.0]]),
+                       time_constant=np.array([[10.0]]), delay=np.array([[1.0]]))
+    n = 2000
+    rng = np.random.default_rng(0)
+    r = np.zeros((n, 1))
+    r[500:] = 1.0
+    y = np.zeros((n, 1))
+    e = rng.standard_normal(n) * 0.1
+    for k in range(1, n):                    # an AR(1) noise, which na = 4 whitens
+        y[k, 0] = 0.5 * y[k - 1, 0] + e[k]
+    data = LoggedData(t=np.arange(n) * 1.0, r=r, u=np.ones((n, 1)), y=y, inputs=("u1",), outputs=("y1",),
+                      sample_time=1.0)
+    rep = analyze(model, data, AnalysisOptions(repair=False))
+    assert any("never move" in w for w in rep.warnings)
+    assert rep.noise_order["na"] == 4 and 0.0 < rep.noise_order["p_values"]["y1"] <= 1.0
+    res = row_residuals(np.ones((n, 1)), y, [0], [], 5, 5, {0: np.zeros((0, 5))}, {0: np.array([-0.5])})[0]
+    np.testing.assert_allclose(res, (y[5:, 0] - 0.5 * y[4:-1, 0]) - np.mean(y[5:, 0] - 0.5 * y[4:-1, 0]))

@@ -479,7 +479,8 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
             fit.set_output_spread(output_spread[i])
         noise[i] = row_noise(fit)
         if not fit.exact:
-            row_blocks[i] = np.array([fit.block_theta(bj) for bj in range(len(testable))]).reshape(len(testable), -1)
+            row_blocks[i] = np.array([fit.block_theta(bj) for bj in range(len(testable))]).reshape(
+                len(testable), design.n_lag)
             own[i] = np.asarray(fit.theta[fit.n_common:], dtype=float)
         tests = fit.test_each_block_zero([element_window(model, i, j, nb, options.element_window) for j in testable])
         responses = whole.tests(i, fit) if whole is not None else {}
