@@ -47,3 +47,28 @@ def test_one_run_in_step_response_form_tests_the_same_elements():
     assert sorted(map(key, step["elements"])) == sorted(map(key, param["elements"]))
     for e in step["elements"]:
         assert 0.0 <= e["window"] <= 1.0 and 0.0 <= e["response"] <= 1.0
+
+
+def test_with_the_noise_order_the_p_values_are_analyze_s():
+    # analyze without the repair, the release and the screening is detect at the na it settles on: the
+    # same p-values, element by element (the whole-response test's to rounding: analyze takes its
+    # products from the moments it shares with the detectability).
+    from mpm_monitor.core.analysis import AnalysisOptions, detect
+    from mpm_monitor.core.pipeline import analyze
+
+    from bench.structures_mc import StructuresOptions, make_structures_scenario, simulate
+
+    sc = make_structures_scenario(0, 21, StructuresOptions())
+    data = simulate(sc, 1500, StructuresOptions()).as_logged_data("run 21")
+    na = analyze(sc.model, data, AnalysisOptions(repair=False, release_explained=False,
+                                                 drop_spikes=False)).noise_order["na"]
+    ref = detect(sc.model, data, AnalysisOptions(repair=False, na=na), detectability=False)
+    ref = {(sc.model.outputs.index(e.output), sc.model.columns.index(e.input)): e for e in ref.elements}
+    rec = run_one(0, 21, 1500, noise_order=True)
+    assert "error" not in rec and rec["elements"]
+    for e in rec["elements"]:
+        r = ref[(e["output"], e["column"])]
+        assert e["window"] == pytest.approx(r.p_value_window, rel=1e-9)
+        assert (e["response"] is None) == (r.p_value_response is None)
+        if e["response"] is not None:
+            assert e["response"] == pytest.approx(r.p_value_response, rel=1e-9)
