@@ -179,3 +179,18 @@ def test_a_row_without_a_testable_column_is_still_checked():
     assert rep.noise_order["na"] == 4 and 0.0 < rep.noise_order["p_values"]["y1"] <= 1.0
     res = row_residuals(np.ones((n, 1)), y, [0], [], 5, 5, {0: np.zeros((0, 5))}, {0: np.array([-0.5])})[0]
     np.testing.assert_allclose(res, (y[5:, 0] - 0.5 * y[4:-1, 0]) - np.mean(y[5:, 0] - 0.5 * y[4:-1, 0]))
+
+
+def test_a_log_too_short_for_the_raised_order_keeps_the_last_one_and_says_why():
+    # 400 samples with max_delay 51: the tests need 398 at na = 4 and 410 at na = 8.  An MA(1) noise
+    # (zero at -0.95) that four own lags cannot whiten: the raise is refused by the data, not the run.
+    n = 400
+    rng = np.random.default_rng(1)
+    e = rng.standard_normal((n + 1, 2)) * 0.05
+    log = run_closed_loop(WOOD_BERRY, WOOD_BERRY, n, seed=1, mpc=MPC,
+                          disturbance=DisturbanceOptions(disturbance_std=0.0, noise_std=0.0),
+                          output_disturbance=e[1:] + 0.95 * e[:-1])
+    rep = analyze(WOOD_BERRY, log.as_logged_data("ma"), AnalysisOptions(repair=False, max_delay=51))
+    assert rep.noise_order["na"] == 4 and rep.noise_order["coloured"]
+    assert any("the tests ran with na = 4: na = 8 needs more data" in w and "need at least 410 samples" in w
+               for w in rep.warnings)

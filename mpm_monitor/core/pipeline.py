@@ -20,6 +20,7 @@ from typing import Optional
 import numpy as np
 
 from .analysis import AnalysisOptions, AnalysisReport, detect
+from .errors import DataFileError
 from .logged_data import NUMERICAL_ERRORS, LoggedData, in_deviations, numerical_breakdown
 from .model import PlantModel
 from .repair import RepairOptions, explained_elements, repair_model
@@ -149,14 +150,18 @@ def _raise_noise_order(model: PlantModel, data: LoggedData, options: AnalysisOpt
     order = report.noise_order
     if order is None or not order["coloured"]:
         return report, options
-    first = order
+    first, refused = order, None
     while order["coloured"]:
         na = next_order(options.na, options.max_na)
         if na is None:
             break
-        options = dataclasses.replace(options, na=na)
-        report = detect(model, data, options, signals=signals, **kw)
-        order = report.noise_order
+        raised = dataclasses.replace(options, na=na)
+        try:
+            report = detect(model, data, raised, signals=signals, **kw)
+        except DataFileError as err:         # too few samples or rows for the longer lags: keep the last order
+            refused = (na, str(err))
+            break
+        options, order = raised, report.noise_order
     order["requested"] = first["requested"]
     rows = ", ".join(first["coloured"])
     p_min = min(first["p_values"][x] for x in first["coloured"])
@@ -167,7 +172,10 @@ def _raise_noise_order(model: PlantModel, data: LoggedData, options: AnalysisOpt
     still = [x for x in order["coloured"] if x not in located]      # where no mismatch is located to colour it
     risk = (f"{', '.join(still)} {'has' if len(still) == 1 else 'have'} no located element that would colour "
             f"{'it' if len(still) == 1 else 'them'}: the tests' false-alarm rate may exceed alpha there")
-    if order["na"] == first["na"]:
+    if refused is not None:
+        report.warnings.append(f"{what}; the tests ran with na = {order['na']}: na = {refused[0]} needs more data "
+                               f"({refused[1]})" + (f"; {risk}" if still else ""))
+    elif order["na"] == first["na"]:
         report.warnings.append(f"{what}; na was not raised (max_na {options.max_na})" + (f"; {risk}" if still else ""))
     elif order["coloured"]:
         report.warnings.append(f"{what}; the tests ran with na = {order['na']} (max_na), where "
