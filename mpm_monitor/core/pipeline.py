@@ -56,6 +56,10 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
     the data as given) the samples of the log's spikes are left out first, as missing samples
     (:func:`mpm_monitor.core.spikes.without_spikes`); a warning names them.
 
+    While a row's element-test residual is coloured, the detection runs again with ``na`` doubled, up
+    to ``options.max_na`` (:func:`_raise_noise_order`, :mod:`mpm_monitor.core.noise_order`); the repair
+    and the detection of the repaired model use the order the report was made with.
+
     Returns
     -------
     AnalysisReport
