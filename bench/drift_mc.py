@@ -10,17 +10,24 @@ whiteness and raises ``na`` (4, 8, 16, up to ``max_na``) while one is coloured
 analysed with the order fixed (``max_na`` = ``na``: the analysis before the check) and raised (the
 defaults).
 
-The loops are those of :mod:`bench.quiet_loops` (setpoint steps of +-1 held at least 150 samples, no
-dither, 4,000 samples, the same plants and MPC): ``wood-berry`` (the gain of (xb, steam) 30 % high in
-the mismatched plant) and the paper's cases 3.1, 3.2 and 3.3 (the case's own mismatch).  Their
-disturbance is replaced by white measurement noise of standard deviation :data:`NOISE` on every
+Two regimes of loops, each on Wood-Berry (the gain of (xb, steam) 30 % high in the mismatched plant) and
+the paper's cases 3.1, 3.2 and 3.3 (the case's own mismatch), 4,000 samples, no dither:
+
+* ``steps``: the loops of :mod:`bench.quiet_loops` (each plant's MPC, setpoint steps of +-1 held at
+  least 150 samples);
+* ``levels``: an offset-free MPC (the weight on the inputs themselves set to 0, only their moves
+  weighted: integral action; Wood-Berry horizons 60 / 8 and move weight 50; the fat case 3.3 keeps
+  its own MPC, which needs the input weight) with setpoint levels drawn uniform in [-1, 1], each held
+  150 to 399 samples (:func:`setpoint_levels`).  An outside check's loops were of this kind.
+
+Their disturbance is replaced by white measurement noise of standard deviation :data:`NOISE` on every
 output, plus an independent drift per output of innovation ``a`` (``e`` standard normal from
 ``numpy.random.default_rng([seed, plant index, int(mismatched), 7])``, through
 ``run_closed_loop(..., output_disturbance=v)``): the variants ``none`` (``a = 0``), ``a0.005`` and
 ``a0.01``.  Case 3.1's plant differs from its model in no element (its mismatch is in the noise,
 replaced here), so its runs count as clean both ways.
 
-Scored per variant and per analysis: false alarms (clean runs with a located element), clean runs
+Scored per regime, variant and analysis: false alarms (clean runs with a located element), clean runs
 with a flagged row, mismatched runs with every true element located and with an element located
 that is not mismatched, the ARX order used (histogram) and the analysis time.  ``--set key=value``
 (repeatable) sets an option of both analyses, e.g. ``--set na=10``.
@@ -31,6 +38,7 @@ Run: ``python -m bench.drift_mc [--seeds 6] [--jobs 2] [--set key=value ...] [--
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from collections import Counter
@@ -56,6 +64,12 @@ DRIFT_POLE = 0.98
 NOISE = 0.02
 #: The two analyses of every log: the ARX order fixed at ``na`` (``max_na = na``), and raised (default).
 ANALYSES = ("fixed", "raised")
+#: The loops: ``steps``, the quiet loops' (each plant's MPC, setpoint steps of +-1); ``levels``, an
+#: offset-free MPC (no weight on the inputs themselves, only on their moves; Wood-Berry's horizons 60 / 8,
+#: move weight 50) and setpoint levels drawn uniform in [-1, 1], each held 150 to 400 samples.
+REGIMES = ("steps", "levels")
+WOOD_BERRY_OFFSET_FREE = MpcOptions(prediction_horizon=60, control_horizon=8, input_rate_weight=50.0,
+                                    input_weight=0.0)
 WOOD_BERRY_MPC = MpcOptions(prediction_horizon=90, control_horizon=10, input_rate_weight=20.0)
 
 
@@ -95,22 +109,43 @@ def drift(plant_name: str, mismatched: bool, seed: int, a: float, n_outputs: int
     return v
 
 
-def loop(plant_name: str, mismatched: bool, seed: int, a: float):
-    """``(model, log, data, truth, v)`` of one quiet loop (:func:`bench.quiet_loops.loop`'s plant and MPC) under
-    white noise :data:`NOISE` and a drift of level ``a`` on every output (``v`` None when ``a`` is 0);
-    ``truth`` the mismatched elements (names)."""
+def setpoint_levels(rng: np.random.Generator, n: int, ny: int) -> np.ndarray:
+    """Setpoints of the ``levels`` regime, shape (n, ny): 0 until a first step in samples 20 to 99, then
+    levels uniform in [-1, 1] each held 150 to 399 samples, every output on its own."""
+    r = np.zeros((n, ny))
+    for i in range(ny):
+        k = int(rng.integers(20, 100))
+        while k < n:
+            end = k + int(rng.integers(150, 400))
+            r[k:end, i] = rng.uniform(-1.0, 1.0)
+            k = end
+    return r
+
+
+def loop(plant_name: str, mismatched: bool, seed: int, a: float, regime: str = "steps"):
+    """``(model, log, data, truth, v)`` of one quiet loop under white noise :data:`NOISE` and a drift of
+    level ``a`` on every output (``v`` None when ``a`` is 0); ``truth`` the mismatched elements (names).
+
+    ``regime`` (:data:`REGIMES`): ``steps``, :func:`bench.quiet_loops.loop`'s plant, MPC and setpoint steps;
+    ``levels``, the offset-free MPC (the case's with no input weight; a fat plant, case 3.3, keeps its
+    own, which needs the input weight) and :func:`setpoint_levels`."""
     if plant_name == "wood-berry":
-        model, mpc = WOOD_BERRY, WOOD_BERRY_MPC
+        model = WOOD_BERRY
+        mpc = WOOD_BERRY_MPC if regime == "steps" else WOOD_BERRY_OFFSET_FREE
         plant = model.with_element(1, 1, gain=1.3 * model.gain[1, 1]) if mismatched else model
         truth = [["xb", "steam"]] if mismatched else []
     else:
         case = simulation_case(plant_name)
         model, mpc = case.model, case.mpc
+        if regime == "levels" and model.n_inputs <= model.n_outputs:
+            mpc = dataclasses.replace(mpc, input_weight=0.0)
         plant = case.plant if mismatched else case.model
         truth = sorted([list(x) for x in case.mismatched_elements]) if mismatched else []
     v = drift(plant_name, mismatched, seed, a, model.n_outputs) if a > 0 else None
-    log = run_closed_loop(plant, model, SAMPLES, seed=seed, mpc=mpc, excitation=STEPS, output_disturbance=v,
-                          disturbance=DisturbanceOptions(disturbance_std=0.0, noise_std=NOISE))
+    kw = {"excitation": STEPS} if regime == "steps" else {"setpoints": setpoint_levels(
+        np.random.default_rng([seed, PLANTS.index(plant_name), int(mismatched), 11]), SAMPLES, model.n_outputs)}
+    log = run_closed_loop(plant, model, SAMPLES, seed=seed, mpc=mpc, output_disturbance=v,
+                          disturbance=DisturbanceOptions(disturbance_std=0.0, noise_std=NOISE), **kw)
     return model, log, log.as_logged_data(f"{plant_name} seed {seed}"), truth, v
 
 
@@ -125,12 +160,13 @@ def _analysed(model, data, overrides: dict) -> dict:
             "na_used": order.get("na"), "seconds": time.perf_counter() - t0}
 
 
-def run_one(plant_name: str, mismatched: bool, seed: int, variant: str, overrides: dict) -> dict:
-    """One loop of one drift variant, simulated and analysed both ways; a JSON-ready record."""
-    model, log, data, truth, v = loop(plant_name, mismatched, seed, DRIFTS[variant])
+def run_one(plant_name: str, mismatched: bool, seed: int, variant: str, overrides: dict,
+            regime: str = "steps") -> dict:
+    """One loop of one drift variant and regime, simulated and analysed both ways; a JSON-ready record."""
+    model, log, data, truth, v = loop(plant_name, mismatched, seed, DRIFTS[variant], regime)
     na = AnalysisOptions(**overrides).na
-    return {"plant": plant_name, "mismatched": mismatched, "seed": seed, "variant": variant, "truth": truth,
-            "y_max_abs": float(np.max(np.abs(log.y))),
+    return {"plant": plant_name, "mismatched": mismatched, "seed": seed, "variant": variant, "regime": regime,
+            "truth": truth, "y_max_abs": float(np.max(np.abs(log.y))),
             "drift_std": None if v is None else float(np.std(v)),
             "fixed": _analysed(model, data, {**overrides, "max_na": na}),
             "raised": _analysed(model, data, overrides)}
@@ -141,32 +177,37 @@ def _star(args):
 
 
 def summarize(records: list) -> dict:
-    """Per drift variant and analysis: false alarms among the clean runs, recall and extra elements among
-    the mismatched ones, the histogram of the ARX order used, the mean analysis time."""
+    """Per regime and drift variant (key ``"steps a0.005"``), per analysis: false alarms among the clean
+    runs, recall and extra elements among the mismatched ones, the histogram of the ARX order used, the
+    median analysis time."""
     out = {}
-    for variant in DRIFTS:
-        recs = [r for r in records if r["variant"] == variant]
-        clean = [r for r in recs if not r["truth"]]      # case 3.1's plant differs from its model in no element
-        bad = [r for r in recs if r["truth"]]
-        drifts = [r["drift_std"] for r in recs if r["drift_std"] is not None]
-        v = {"a": DRIFTS[variant], "runs": len(recs), "clean": len(clean), "mismatched": len(bad),
-             "y_max_abs": max((r["y_max_abs"] for r in recs), default=None),
-             "drift_std_mean": float(np.mean(drifts)) if drifts else None}
-        for key in ANALYSES:
-            ok = [r for r in recs if "error" not in r[key]]
-            na = Counter(int(r[key]["na_used"]) for r in ok if r[key]["na_used"] is not None)
-            v[key] = {
-                "errors": len(recs) - len(ok),
-                "false_alarms": sum(bool(r[key]["located"]) for r in ok if not r["truth"]),
-                "clean_rows_flagged": sum(bool(r[key]["rows"]) for r in ok if not r["truth"]),
-                "true_located": sum(all(t in r[key]["located"] for t in r["truth"]) for r in ok if r["truth"]),
-                "extra_located": sum(any(x not in r["truth"] for x in r[key]["located"]) for r in ok if r["truth"]),
-                "na_used": {str(k): n for k, n in sorted(na.items())},
-                "seconds_median": float(np.median([r[key]["seconds"] for r in recs])) if recs else None,
-                "false_alarms_by_plant": {p: sum(bool(r[key]["located"]) for r in ok
-                                                 if not r["truth"] and r["plant"] == p) for p in PLANTS},
-            }
-        out[variant] = v
+    for regime in REGIMES:
+        for variant in DRIFTS:
+            recs = [r for r in records if r.get("regime", "steps") == regime and r["variant"] == variant]
+            if not recs:
+                continue
+            clean = [r for r in recs if not r["truth"]]      # case 3.1's plant differs from its model in no element
+            bad = [r for r in recs if r["truth"]]
+            drifts = [r["drift_std"] for r in recs if r["drift_std"] is not None]
+            v = {"regime": regime, "variant": variant, "a": DRIFTS[variant], "runs": len(recs), "clean": len(clean),
+                 "mismatched": len(bad), "y_max_abs": max(r["y_max_abs"] for r in recs),
+                 "drift_std_mean": float(np.mean(drifts)) if drifts else None}
+            for key in ANALYSES:
+                ok = [r for r in recs if "error" not in r[key]]
+                na = Counter(int(r[key]["na_used"]) for r in ok if r[key]["na_used"] is not None)
+                v[key] = {
+                    "errors": len(recs) - len(ok),
+                    "false_alarms": sum(bool(r[key]["located"]) for r in ok if not r["truth"]),
+                    "clean_rows_flagged": sum(bool(r[key]["rows"]) for r in ok if not r["truth"]),
+                    "true_located": sum(all(t in r[key]["located"] for t in r["truth"]) for r in ok if r["truth"]),
+                    "extra_located": sum(any(x not in r["truth"] for x in r[key]["located"])
+                                         for r in ok if r["truth"]),
+                    "na_used": {str(k): c for k, c in sorted(na.items())},
+                    "seconds_median": float(np.median([r[key]["seconds"] for r in recs])),
+                    "false_alarms_by_plant": {p: sum(bool(r[key]["located"]) for r in ok
+                                                     if not r["truth"] and r["plant"] == p) for p in PLANTS},
+                }
+            out[f"{regime} {variant}"] = v
     return out
 
 
@@ -175,28 +216,29 @@ def format_table(result: dict) -> str:
     sets = " ".join(f"{k}={v}" for k, v in cfg["overrides"].items()) or "defaults"
     lines = [f"drifting quiet loops: {cfg['seeds']} seeds x {len(cfg['plants'])} plants, clean and mismatched, "
              f"{cfg['samples']} samples, white noise {NOISE} + AR(1) drift pole {DRIFT_POLE}; options: {sets}",
-             "drift   na      false alarms  clean rows flagged  true located  with extra elements  median s  na used",
+             "regime drift   na      false alarms  clean rows flagged  true located  with extra elements  median s  "
+             "na used",
              ]
-    for key in DRIFTS:
-        if not s[key]["runs"]:
-            continue
+    for key, n in s.items():
         for how in ANALYSES:
-            v, n = s[key][how], s[key]
+            v = n[how]
             na = " ".join(f"{k}:{c}" for k, c in v["na_used"].items()) or "-"
-            lines.append(f"{key:7s} {how:7s} {v['false_alarms']:>5d}/{n['clean']:<6d} "
+            lines.append(f"{n['regime']:6s} {n['variant']:7s} {how:7s} {v['false_alarms']:>5d}/{n['clean']:<6d} "
                          f"{v['clean_rows_flagged']:>8d}/{n['clean']:<9d} "
                          f"{v['true_located']:>6d}/{n['mismatched']:<6d} {v['extra_located']:>10d}/{n['mismatched']:<8d} "
                          f"{v['seconds_median']:>8.2f}  {na}" + (f"  ({v['errors']} errors)" if v["errors"] else ""))
     for how in ANALYSES:
         lines.append(f"false alarms by plant, {how}: " + "; ".join(
-            f"{key}: " + ", ".join(f"{p} {c}" for p, c in s[key][how]["false_alarms_by_plant"].items()) for key in DRIFTS))
+            f"{key}: " + ", ".join(f"{p} {c}" for p, c in n[how]["false_alarms_by_plant"].items() if c)
+            for key, n in s.items() if n[how]["false_alarms"]))
     return "\n".join(lines)
 
 
 def run(seeds: int, jobs: int = 1, overrides: Optional[dict] = None) -> dict:
     overrides = dict(overrides or {})
     AnalysisOptions(repair=False, **overrides)  # a wrong key or value fails here, not in every run
-    tasks = [(p, m, s, d, overrides) for p in PLANTS for m in (False, True) for s in range(seeds) for d in DRIFTS]
+    tasks = [(p, m, s, d, overrides, g) for g in REGIMES for p in PLANTS for m in (False, True) for s in range(seeds)
+             for d in DRIFTS]
 
     def progress(done, total, rec):
         if done % 12 == 0 or done == total:
@@ -205,7 +247,7 @@ def run(seeds: int, jobs: int = 1, overrides: Optional[dict] = None) -> dict:
     t0 = time.perf_counter()
     records = map_runs(_star, tasks, jobs, progress)
     return {"config": {"seeds": seeds, "samples": SAMPLES, "drifts": DRIFTS, "drift_pole": DRIFT_POLE,
-                       "noise": NOISE, "plants": list(PLANTS), "overrides": overrides},
+                       "noise": NOISE, "regimes": list(REGIMES), "plants": list(PLANTS), "overrides": overrides},
             "seconds": time.perf_counter() - t0, "summary": summarize(records), "records": records}
 
 

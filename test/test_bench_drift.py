@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from bench.drift_mc import ANALYSES, DRIFT_POLE, DRIFTS, drift, format_table, run_one, summarize
+from bench.drift_mc import ANALYSES, DRIFT_POLE, drift, format_table, run_one, setpoint_levels, summarize
 
 
 def test_the_drift_is_the_ar1_it_says():
@@ -15,16 +15,31 @@ def test_the_drift_is_the_ar1_it_says():
 
 def test_one_record_analysed_fixed_and_raised_and_summarized():
     rec = run_one("wood-berry", False, 6, "a0.005", {})
+    assert rec["regime"] == "steps"
     assert rec["fixed"]["na_used"] == 4 and rec["raised"]["na_used"] > 4     # the drift colours na = 4's residual
     assert rec["raised"]["located"] == []
     recs = [rec, dict(rec, variant="none", mismatched=True, truth=[["xb", "steam"]],
                       fixed=dict(rec["fixed"], located=[["xb", "steam"], ["xd", "reflux"]]),
                       raised=dict(rec["raised"], located=[["xb", "steam"]]))]
     s = summarize(recs)
-    assert s["a0.005"]["clean"] == 1 and s["none"]["mismatched"] == 1
-    assert s["none"]["fixed"]["extra_located"] == 1 and s["none"]["raised"]["extra_located"] == 0
-    assert s["none"]["raised"]["true_located"] == 1
-    assert set(s["a0.005"]) >= set(ANALYSES) and set(s) == set(DRIFTS)
+    assert set(s) == {"steps a0.005", "steps none"}
+    assert s["steps a0.005"]["clean"] == 1 and s["steps none"]["mismatched"] == 1
+    assert s["steps none"]["fixed"]["extra_located"] == 1 and s["steps none"]["raised"]["extra_located"] == 0
+    assert s["steps none"]["raised"]["true_located"] == 1
+    assert set(s["steps a0.005"]) >= set(ANALYSES)
     table = format_table({"summary": s, "config": {"seeds": 1, "plants": ["wood-berry"], "samples": 4000,
                                                    "overrides": {}}})
-    assert "a0.005  raised" in table
+    assert "steps  a0.005  raised" in table
+
+
+def test_the_levels_regime_holds_levels_in_range_for_their_time():
+    r = setpoint_levels(np.random.default_rng(0), 4000, 3)
+    assert r.shape == (4000, 3) and np.all(np.abs(r) <= 1.0)
+    for i in range(3):
+        first = int(np.flatnonzero(r[:, i])[0])
+        assert 20 <= first < 100
+        changes = np.flatnonzero(np.diff(r[first:, i])) + 1
+        holds = np.diff(np.concatenate([[0], changes]))
+        assert np.all(holds >= 150) and np.all(holds[:-1] < 400)
+    rec = run_one("wood-berry", False, 3, "a0.005", {}, "levels")
+    assert rec["regime"] == "levels" and "error" not in rec["raised"]
