@@ -24,8 +24,10 @@ Their disturbance is replaced by white measurement noise of standard deviation :
 output, plus an independent drift per output of innovation ``a`` (``e`` standard normal from
 ``numpy.random.default_rng([seed, plant index, int(mismatched), 7])``, through
 ``run_closed_loop(..., output_disturbance=v)``): the variants ``none`` (``a = 0``), ``a0.005`` and
-``a0.01``.  Case 3.1's plant differs from its model in no element (its mismatch is in the noise,
-replaced here), so its runs count as clean both ways.
+``a0.01``; and in the ``levels`` regime also other disturbances no benchmark covered before
+(:data:`OTHER_DISTURBANCES`): an oscillating AR(2), a random walk, a sinusoid, occasional steps, and a
+slower drift (pole 0.995).  Case 3.1's plant differs from its model in no element (its mismatch is in
+the noise, replaced here), so its runs count as clean both ways.
 
 Scored per regime, variant and analysis: false alarms (clean runs with a located element), clean runs
 with a flagged row, mismatched runs with every true element located and with an element located
@@ -59,6 +61,12 @@ from .quiet_loops import PLANTS, SAMPLES, STEPS, WOOD_BERRY
 DEFAULT_OUT = "bench/results/drift_mc.json"
 #: Drift variants: name -> ``a``, the standard deviation of the drift's innovation (output units).
 DRIFTS = {"none": 0.0, "a0.005": 0.005, "a0.01": 0.01}
+#: Other unmeasured disturbances, run in the ``levels`` regime only (:func:`disturbance`): ``ar2``, an
+#: oscillating AR(2) ``v(k) = 1.6 v(k-1) - 0.8 v(k-2) + 0.005 e(k)``; ``walk``, a random walk of step
+#: 0.001; ``sine``, a sinusoid of period 200 samples and amplitude 0.05 (a random phase per output);
+#: ``steps``, a step of +-0.1 on a random output every 300 to 799 samples; ``drift995``, the drift with
+#: pole 0.995 and innovation 0.003.
+OTHER_DISTURBANCES = ("ar2", "walk", "sine", "steps", "drift995")
 DRIFT_POLE = 0.98
 #: Standard deviation of the white measurement noise of every output (output units); no other disturbance.
 NOISE = 0.02
@@ -109,6 +117,46 @@ def drift(plant_name: str, mismatched: bool, seed: int, a: float, n_outputs: int
     return v
 
 
+def disturbance(variant: str, plant_name: str, mismatched: bool, seed: int, n_outputs: int):
+    """The unmeasured output disturbance of a variant, shape (SAMPLES, n_outputs), or None for ``none``:
+    the drifts of :data:`DRIFTS` (:func:`drift`) and the :data:`OTHER_DISTURBANCES`, these from
+    ``numpy.random.default_rng([seed, plant index, int(mismatched), 13])``."""
+    if variant in DRIFTS:
+        a = DRIFTS[variant]
+        return drift(plant_name, mismatched, seed, a, n_outputs) if a > 0 else None
+    rng = np.random.default_rng([seed, PLANTS.index(plant_name), int(mismatched), 13])
+    n = SAMPLES
+    if variant == "sine":
+        phase = rng.uniform(0.0, 2 * np.pi, n_outputs)
+        return 0.05 * np.sin(2 * np.pi * np.arange(n)[:, None] / 200.0 + phase)
+    if variant == "steps":
+        v = np.zeros((n, n_outputs))
+        k = int(rng.integers(300, 800))
+        while k < n:
+            v[k:, int(rng.integers(n_outputs))] += rng.choice((-0.1, 0.1))
+            k += int(rng.integers(300, 800))
+        return v
+    e = rng.standard_normal((n, n_outputs))
+    v = np.zeros((n, n_outputs))
+    for k in range(n):
+        prev1 = v[k - 1] if k >= 1 else 0.0
+        prev2 = v[k - 2] if k >= 2 else 0.0
+        if variant == "ar2":
+            v[k] = 1.6 * prev1 - 0.8 * prev2 + 0.005 * e[k]
+        elif variant == "walk":
+            v[k] = prev1 + 0.001 * e[k]
+        elif variant == "drift995":
+            v[k] = 0.995 * prev1 + 0.003 * e[k]
+        else:
+            raise ValueError(f"unknown disturbance variant {variant!r}")
+    return v
+
+
+def variants(regime: str) -> tuple:
+    """The disturbance variants run in ``regime``: the drifts in both, the others in ``levels`` only."""
+    return tuple(DRIFTS) + (OTHER_DISTURBANCES if regime == "levels" else ())
+
+
 def setpoint_levels(rng: np.random.Generator, n: int, ny: int) -> np.ndarray:
     """Setpoints of the ``levels`` regime, shape (n, ny): 0 until a first step in samples 20 to 99, then
     levels uniform in [-1, 1] each held 150 to 399 samples, every output on its own."""
@@ -122,9 +170,10 @@ def setpoint_levels(rng: np.random.Generator, n: int, ny: int) -> np.ndarray:
     return r
 
 
-def loop(plant_name: str, mismatched: bool, seed: int, a: float, regime: str = "steps"):
-    """``(model, log, data, truth, v)`` of one quiet loop under white noise :data:`NOISE` and a drift of
-    level ``a`` on every output (``v`` None when ``a`` is 0); ``truth`` the mismatched elements (names).
+def loop(plant_name: str, mismatched: bool, seed: int, variant: str, regime: str = "steps"):
+    """``(model, log, data, truth, v)`` of one quiet loop under white noise :data:`NOISE` and the unmeasured
+    disturbance of ``variant`` on every output (:func:`disturbance`; ``v`` None for ``none``); ``truth`` the
+    mismatched elements (names).
 
     ``regime`` (:data:`REGIMES`): ``steps``, :func:`bench.quiet_loops.loop`'s plant, MPC and setpoint steps;
     ``levels``, the offset-free MPC (the case's with no input weight; a fat plant, case 3.3, keeps its
@@ -141,7 +190,7 @@ def loop(plant_name: str, mismatched: bool, seed: int, a: float, regime: str = "
             mpc = dataclasses.replace(mpc, input_weight=0.0)
         plant = case.plant if mismatched else case.model
         truth = sorted([list(x) for x in case.mismatched_elements]) if mismatched else []
-    v = drift(plant_name, mismatched, seed, a, model.n_outputs) if a > 0 else None
+    v = disturbance(variant, plant_name, mismatched, seed, model.n_outputs)
     kw = {"excitation": STEPS} if regime == "steps" else {"setpoints": setpoint_levels(
         np.random.default_rng([seed, PLANTS.index(plant_name), int(mismatched), 11]), SAMPLES, model.n_outputs)}
     log = run_closed_loop(plant, model, SAMPLES, seed=seed, mpc=mpc, output_disturbance=v,
@@ -163,7 +212,7 @@ def _analysed(model, data, overrides: dict) -> dict:
 def run_one(plant_name: str, mismatched: bool, seed: int, variant: str, overrides: dict,
             regime: str = "steps") -> dict:
     """One loop of one drift variant and regime, simulated and analysed both ways; a JSON-ready record."""
-    model, log, data, truth, v = loop(plant_name, mismatched, seed, DRIFTS[variant], regime)
+    model, log, data, truth, v = loop(plant_name, mismatched, seed, variant, regime)
     na = AnalysisOptions(**overrides).na
     return {"plant": plant_name, "mismatched": mismatched, "seed": seed, "variant": variant, "regime": regime,
             "truth": truth, "y_max_abs": float(np.max(np.abs(log.y))),
@@ -182,14 +231,14 @@ def summarize(records: list) -> dict:
     median analysis time."""
     out = {}
     for regime in REGIMES:
-        for variant in DRIFTS:
+        for variant in variants(regime):
             recs = [r for r in records if r.get("regime", "steps") == regime and r["variant"] == variant]
             if not recs:
                 continue
             clean = [r for r in recs if not r["truth"]]      # case 3.1's plant differs from its model in no element
             bad = [r for r in recs if r["truth"]]
             drifts = [r["drift_std"] for r in recs if r["drift_std"] is not None]
-            v = {"regime": regime, "variant": variant, "a": DRIFTS[variant], "runs": len(recs), "clean": len(clean),
+            v = {"regime": regime, "variant": variant, "a": DRIFTS.get(variant), "runs": len(recs), "clean": len(clean),
                  "mismatched": len(bad), "y_max_abs": max(r["y_max_abs"] for r in recs),
                  "drift_std_mean": float(np.mean(drifts)) if drifts else None}
             for key in ANALYSES:
@@ -215,15 +264,16 @@ def format_table(result: dict) -> str:
     s, cfg = result["summary"], result["config"]
     sets = " ".join(f"{k}={v}" for k, v in cfg["overrides"].items()) or "defaults"
     lines = [f"drifting quiet loops: {cfg['seeds']} seeds x {len(cfg['plants'])} plants, clean and mismatched, "
-             f"{cfg['samples']} samples, white noise {NOISE} + AR(1) drift pole {DRIFT_POLE}; options: {sets}",
-             "regime drift   na      false alarms  clean rows flagged  true located  with extra elements  median s  "
+             f"{cfg['samples']} samples, white noise {NOISE} + a drift (pole {DRIFT_POLE}) or another disturbance; "
+             f"options: {sets}",
+             "regime disturb. na      false alarms  clean rows flagged  true located  with extra elements  median s  "
              "na used",
              ]
     for key, n in s.items():
         for how in ANALYSES:
             v = n[how]
             na = " ".join(f"{k}:{c}" for k, c in v["na_used"].items()) or "-"
-            lines.append(f"{n['regime']:6s} {n['variant']:7s} {how:7s} {v['false_alarms']:>5d}/{n['clean']:<6d} "
+            lines.append(f"{n['regime']:6s} {n['variant']:8s} {how:6s} {v['false_alarms']:>5d}/{n['clean']:<6d} "
                          f"{v['clean_rows_flagged']:>8d}/{n['clean']:<9d} "
                          f"{v['true_located']:>6d}/{n['mismatched']:<6d} {v['extra_located']:>10d}/{n['mismatched']:<8d} "
                          f"{v['seconds_median']:>8.2f}  {na}" + (f"  ({v['errors']} errors)" if v["errors"] else ""))
@@ -238,7 +288,7 @@ def run(seeds: int, jobs: int = 1, overrides: Optional[dict] = None) -> dict:
     overrides = dict(overrides or {})
     AnalysisOptions(repair=False, **overrides)  # a wrong key or value fails here, not in every run
     tasks = [(p, m, s, d, overrides, g) for g in REGIMES for p in PLANTS for m in (False, True) for s in range(seeds)
-             for d in DRIFTS]
+             for d in variants(g)]
 
     def progress(done, total, rec):
         if done % 12 == 0 or done == total:
@@ -246,7 +296,7 @@ def run(seeds: int, jobs: int = 1, overrides: Optional[dict] = None) -> dict:
 
     t0 = time.perf_counter()
     records = map_runs(_star, tasks, jobs, progress)
-    return {"config": {"seeds": seeds, "samples": SAMPLES, "drifts": DRIFTS, "drift_pole": DRIFT_POLE,
+    return {"config": {"seeds": seeds, "samples": SAMPLES, "drifts": DRIFTS, "other_disturbances": list(OTHER_DISTURBANCES), "drift_pole": DRIFT_POLE,
                        "noise": NOISE, "regimes": list(REGIMES), "plants": list(PLANTS), "overrides": overrides},
             "seconds": time.perf_counter() - t0, "summary": summarize(records), "records": records}
 

@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from bench.drift_mc import ANALYSES, DRIFT_POLE, drift, format_table, run_one, setpoint_levels, summarize
+from bench.drift_mc import (ANALYSES, DRIFT_POLE, OTHER_DISTURBANCES, disturbance, drift, format_table, run_one,
+                            setpoint_levels, summarize, variants)
 
 
 def test_the_drift_is_the_ar1_it_says():
@@ -29,7 +30,7 @@ def test_one_record_analysed_fixed_and_raised_and_summarized():
     assert set(s["steps a0.005"]) >= set(ANALYSES)
     table = format_table({"summary": s, "config": {"seeds": 1, "plants": ["wood-berry"], "samples": 4000,
                                                    "overrides": {}}})
-    assert "steps  a0.005  raised" in table
+    assert "steps  a0.005   raised" in table
 
 
 def test_the_levels_regime_holds_levels_in_range_for_their_time():
@@ -43,3 +44,23 @@ def test_the_levels_regime_holds_levels_in_range_for_their_time():
         assert np.all(holds >= 150) and np.all(holds[:-1] < 400)
     rec = run_one("wood-berry", False, 3, "a0.005", {}, "levels")
     assert rec["regime"] == "levels" and "error" not in rec["raised"]
+
+
+def test_the_other_disturbances_are_what_they_say_and_run_in_the_levels_regime_only():
+    assert variants("steps") == ("none", "a0.005", "a0.01")
+    assert variants("levels")[3:] == OTHER_DISTURBANCES
+    assert disturbance("none", "3.1", False, 0, 3) is None
+    np.testing.assert_array_equal(disturbance("a0.01", "3.1", False, 0, 3), drift("3.1", False, 0, 0.01, 3))
+    sine = disturbance("sine", "3.1", False, 0, 3)
+    assert sine.shape == (4000, 3) and abs(np.abs(sine).max() - 0.05) < 1e-4
+    np.testing.assert_allclose(sine[200:], sine[:-200], atol=1e-12)               # period 200 samples
+    steps = disturbance("steps", "3.1", False, 0, 3)
+    jumps = np.abs(np.diff(steps, axis=0))
+    assert set(np.round(jumps[jumps > 0], 12)) == {0.1} and 4 <= int((jumps > 0).sum()) <= 14
+    walk = disturbance("walk", "3.1", False, 0, 3)
+    assert abs(np.diff(walk, axis=0).std() / 0.001 - 1) < 0.05
+    ar2 = disturbance("ar2", "3.1", False, 0, 3)
+    innovation = ar2[2:] - 1.6 * ar2[1:-1] + 0.8 * ar2[:-2]
+    assert abs(innovation.std() / 0.005 - 1) < 0.05
+    slow = disturbance("drift995", "3.1", False, 0, 3)
+    assert abs((slow[1:] - 0.995 * slow[:-1]).std() / 0.003 - 1) < 0.05

@@ -172,21 +172,26 @@ def _raise_noise_order(model: PlantModel, data: LoggedData, options: AnalysisOpt
     what = (f"{'row' if len(first['coloured']) == 1 else 'rows'} {rows}: the element test's residual was not white "
             f"with na = {first['na']} (Ljung-Box p = {p_min:.2g}; a slow drift or coloured disturbance, under "
             f"which the tests give false alarms, or the row's own mismatch)")
-    located = {e.output for e in report.elements if e.mismatch}
-    still = [x for x in order["coloured"] if x not in located]      # where no mismatch is located to colour it
-    risk = (f"{', '.join(still)} {'has' if len(still) == 1 else 'have'} no located element that would colour "
-            f"{'it' if len(still) == 1 else 'them'}: the tests' false-alarm rate may exceed alpha there")
+    several = len(first["coloured"]) > 1
+    coloured = order["coloured"]
+    located = [x for x in coloured if any(e.mismatch for e in report.elements if e.output == x)]
+    risk = ""
+    if coloured:
+        where = "there" if located == coloured else f"in {', '.join(located)}"
+        risk = (f"; the tests' false-alarm rate may exceed alpha in {', '.join(coloured)}"
+                + (f" (a located mismatch {where} may be what colours the residual, or a false alarm the colour "
+                   f"caused)" if located else ""))
     if refused is not None:
         report.warnings.append(f"{what}; the tests ran with na = {order['na']}: na = {refused[0]} needs more data "
-                               f"({refused[1]})" + (f"; {risk}" if still else ""))
+                               f"({refused[1]}){risk}")
     elif order["na"] == first["na"]:
-        report.warnings.append(f"{what}; na was not raised (max_na {options.max_na})" + (f"; {risk}" if still else ""))
-    elif order["coloured"]:
+        report.warnings.append(f"{what}; na was not raised (max_na {options.max_na}){risk}")
+    elif coloured:
         report.warnings.append(f"{what}; the tests ran with na = {order['na']} (max_na), where "
-                               f"{', '.join(order['coloured'])} {'is' if len(order['coloured']) == 1 else 'are'} still "
-                               f"not white" + (f"; {risk}" if still else " (a located mismatch colours it)"))
+                               f"{', '.join(coloured)} {'is' if len(coloured) == 1 else 'are'} still not white{risk}")
     else:
-        report.warnings.append(f"{what}; the tests ran with na = {order['na']}, which whitens it")
+        report.warnings.append(f"{what}; the tests ran with na = {order['na']}, which whitens "
+                               f"{'them' if several else 'it'}")
     return report, options
 
 
