@@ -101,7 +101,17 @@ def test_a_report_becomes_row_and_summary_statuses():
     assert summary.level == WARN and summary.value("flagged_rows") == "y1,y2"
     assert summary.value("located_elements") == "y1:u2,y1:u3,y2:u1"
     assert summary.value("samples") == "20" and summary.value("window_end") == "19.0"
+    assert summary.value("na") is None                         # a report without noise_order (a baseline method)
     np.testing.assert_array_equal(c.rsi_vector(), [1.5, 1.2, 1.0])
+
+
+def test_the_summary_names_the_arx_order_the_tests_ran_with():
+    c = core()
+    feed(c, 0, 20)
+    rep = fake_report({"y1": ["u2"]}, samples=20)
+    rep.noise_order = {"na": 8, "requested": 4, "max_na": 16, "coloured": [], "p_values": {"y1": 0.3}}
+    c.accept(run_analysis(lambda m, d, o: rep, MODEL, None, c.take_job()))
+    assert by_name(c.statuses(now=0.0))[SUMMARY_NAME].value("na") == "8"
 
 
 def test_a_released_element_is_named_in_its_rows_status_and_not_located():

@@ -298,6 +298,9 @@ def summary_status(outcome, analyses: int, analysis_error: Optional[str], waitin
         verdict = repair_verdict(rep)
         values += [("repair_changes", str(verdict.changes)), ("repair_validation", verdict.verdict),
                    ("repair_validation_detail", verdict.detail)]
+        order = getattr(rep, "noise_order", None)
+        if order is not None:          # the ARX order of the tests (raised from the option's while a residual is coloured)
+            values += [("na", str(order["na"]))]
         cands = getattr(rep, "candidates", None)
         if cands is not None:
             values += [("candidates_tried", ",".join(cands.tried)), ("candidates_added", ",".join(cands.added)),
