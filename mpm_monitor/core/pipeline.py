@@ -141,7 +141,7 @@ def _raise_noise_order(model: PlantModel, data: LoggedData, options: AnalysisOpt
     checked for whiteness (Ljung-Box, Bonferroni over the rows); while some row's is coloured and ``na`` is
     below ``options.max_na``, ``na`` doubles and :func:`~mpm_monitor.core.analysis.detect` runs again on the
     same data (its regressions built for the new ``na``, whatever regressions the first detection was
-    given).  The report kept is the last one, with a warning saying why and with what ``na``; its
+    given; the first detection's model signals reused on data without gaps, where they are the same).  The report kept is the last one, with a warning saying why and with what ``na``; its
     ``noise_order`` has the order ``requested``.
 
     Returns
@@ -155,6 +155,8 @@ def _raise_noise_order(model: PlantModel, data: LoggedData, options: AnalysisOpt
     if order is None or not order["coloured"]:
         return report, options
     first, refused = order, None
+    if signals is None and report.gaps is None:
+        signals = report.signals        # the model's run does not depend on na: computed once
     while order["coloured"]:
         na = next_order(options.na, options.max_na)
         if na is None:
