@@ -111,14 +111,12 @@ def row_residuals(u: np.ndarray, d: np.ndarray, rows: list, testable: list, n_la
     out = {}
     if not rows:
         return out
+    fitted = np.zeros((t.size, len(rows)))
     if testable:
         theta = np.stack([blocks[i] for i in rows], axis=-1)          # (n_testable, n_lag, n_rows)
-        fitted = np.zeros((t.size, len(rows)))
         ut = u[:, testable]
         for lag in range(1, n_lag + 1):
             fitted += ut[t - lag] @ theta[:, lag - 1, :]
-    else:
-        fitted = np.zeros((t.size, len(rows)))
     for c, i in enumerate(rows):
         e = d[t, i] - fitted[:, c]
         for k, a in enumerate(own[i], start=1):
