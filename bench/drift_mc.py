@@ -50,13 +50,12 @@ import numpy as np
 
 from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.pipeline import analyze
-from mpm_monitor.sim.cases import simulation_case
 from mpm_monitor.sim.closed_loop import run_closed_loop
 from mpm_monitor.sim.mpc import MpcOptions
 from mpm_monitor.sim.plant import DisturbanceOptions
 
 from . import map_runs, write_json
-from .quiet_loops import PLANTS, SAMPLES, STEPS, WOOD_BERRY
+from .quiet_loops import PLANTS, SAMPLES, STEPS, plant_of
 
 DEFAULT_OUT = "bench/results/drift_mc.json"
 #: Drift variants: name -> ``a``, the standard deviation of the drift's innovation (output units).
@@ -78,7 +77,6 @@ ANALYSES = ("fixed", "raised")
 REGIMES = ("steps", "levels")
 WOOD_BERRY_OFFSET_FREE = MpcOptions(prediction_horizon=60, control_horizon=8, input_rate_weight=50.0,
                                     input_weight=0.0)
-WOOD_BERRY_MPC = MpcOptions(prediction_horizon=90, control_horizon=10, input_rate_weight=20.0)
 
 
 def parse_set(items: Sequence[str]) -> dict:
@@ -178,18 +176,12 @@ def loop(plant_name: str, mismatched: bool, seed: int, variant: str, regime: str
     ``regime`` (:data:`REGIMES`): ``steps``, :func:`bench.quiet_loops.loop`'s plant, MPC and setpoint steps;
     ``levels``, the offset-free MPC (the case's with no input weight; a fat plant, case 3.3, keeps its
     own, which needs the input weight) and :func:`setpoint_levels`."""
-    if plant_name == "wood-berry":
-        model = WOOD_BERRY
-        mpc = WOOD_BERRY_MPC if regime == "steps" else WOOD_BERRY_OFFSET_FREE
-        plant = model.with_element(1, 1, gain=1.3 * model.gain[1, 1]) if mismatched else model
-        truth = [["xb", "steam"]] if mismatched else []
-    else:
-        case = simulation_case(plant_name)
-        model, mpc = case.model, case.mpc
-        if regime == "levels" and model.n_inputs <= model.n_outputs:
+    model, plant, mpc, _, truth = plant_of(plant_name, mismatched)      # its disturbance replaced below
+    if regime == "levels":
+        if plant_name == "wood-berry":
+            mpc = WOOD_BERRY_OFFSET_FREE
+        elif model.n_inputs <= model.n_outputs:
             mpc = dataclasses.replace(mpc, input_weight=0.0)
-        plant = case.plant if mismatched else case.model
-        truth = sorted([list(x) for x in case.mismatched_elements]) if mismatched else []
     v = disturbance(variant, plant_name, mismatched, seed, model.n_outputs)
     kw = {"excitation": STEPS} if regime == "steps" else {"setpoints": setpoint_levels(
         np.random.default_rng([seed, PLANTS.index(plant_name), int(mismatched), 11]), SAMPLES, model.n_outputs)}

@@ -53,17 +53,25 @@ WOOD_BERRY = PlantModel(sample_time=1.0, inputs=("reflux", "steam"), outputs=("x
                         delay=np.array([[1.0, 3.0], [7.0, 3.0]]))
 
 
+#: Wood-Berry's MPC: horizons 90 / 10, input rate weight 20.
+WOOD_BERRY_MPC = MpcOptions(prediction_horizon=90, control_horizon=10, input_rate_weight=20.0)
+
+
+def plant_of(plant_name: str, mismatched: bool):
+    """``(model, plant, mpc, disturbance, truth)`` of one of :data:`PLANTS`: the controller's model, the
+    plant (the model when not ``mismatched``), the MPC options, the disturbance options (None: the
+    default) and the mismatched elements as ``[output, column]`` names (empty when not mismatched)."""
+    if plant_name == "wood-berry":
+        plant = WOOD_BERRY.with_element(1, 1, gain=1.3 * WOOD_BERRY.gain[1, 1]) if mismatched else WOOD_BERRY
+        return WOOD_BERRY, plant, WOOD_BERRY_MPC, None, [["xb", "steam"]] if mismatched else []
+    case = simulation_case(plant_name)
+    truth = sorted([list(x) for x in case.mismatched_elements]) if mismatched else []
+    return case.model, case.plant if mismatched else case.model, case.mpc, case.disturbance, truth
+
+
 def loop(plant_name: str, mismatched: bool, seed: int):
     """``(model, plant, data, truth)`` of one quiet loop; ``truth`` the mismatched elements (names)."""
-    if plant_name == "wood-berry":
-        model, mpc, dist = WOOD_BERRY, MpcOptions(prediction_horizon=90, control_horizon=10, input_rate_weight=20.0), None
-        plant = model.with_element(1, 1, gain=1.3 * model.gain[1, 1]) if mismatched else model
-        truth = [["xb", "steam"]] if mismatched else []
-    else:
-        case = simulation_case(plant_name)
-        model, mpc, dist = case.model, case.mpc, case.disturbance
-        plant = case.plant if mismatched else case.model
-        truth = sorted([list(x) for x in case.mismatched_elements]) if mismatched else []
+    model, plant, mpc, dist, truth = plant_of(plant_name, mismatched)
     kw = {} if dist is None else {"disturbance": dist}
     data = run_closed_loop(plant, model, SAMPLES, seed=seed, mpc=mpc, excitation=STEPS, **kw).as_logged_data(
         f"{plant_name} seed {seed}")
