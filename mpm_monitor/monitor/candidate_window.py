@@ -18,8 +18,7 @@ import numpy as np
 
 from ..core.errors import ConfigurationError
 from ..core.logged_data import LoggedData
-
-NS_PER_S = 1_000_000_000
+from .window import NS_PER_S, seconds_text
 
 
 class CandidateWindow:
@@ -73,7 +72,7 @@ class CandidateWindow:
         """
         names = tuple(str(n) for n in names)
         v = np.asarray(values, dtype=float).reshape(-1)
-        t = f"t = {int(stamp_ns) / NS_PER_S:.15g} s"
+        t = f"t = {seconds_text(int(stamp_ns))} s"
         if v.shape[0] != len(names):
             return f"candidate: {v.shape[0]} value(s) for {len(names)} name(s) at {t} (one value per name expected)"
         if any(not n for n in names) or len(set(names)) != len(names):

@@ -63,6 +63,12 @@ MIN_RESTART_OUTPUTS = 3
 NS_PER_S = 1_000_000_000
 
 
+def seconds_text(stamp_ns) -> str:
+    """A stamp (nanoseconds) as seconds in a message, to 15 significant digits: a wall-clock stamp keeps
+    its fraction of a second to 10 microseconds (``1795395118.00184``)."""
+    return f"{stamp_ns / NS_PER_S:.15g}"
+
+
 @dataclasses.dataclass(frozen=True)
 class WindowOptions:
     """Options of :class:`SampleWindow`.
@@ -310,11 +316,11 @@ class SampleWindow:
         v = np.asarray(values, dtype=float).reshape(-1)
         if v.shape[0] != self._sizes[slot]:
             names = self._names[channel]
-            self.report_bad(channel, stamp_ns, f"{channel}: {v.shape[0]} value(s) at t = {stamp_ns / NS_PER_S:.15g} s, "
+            self.report_bad(channel, stamp_ns, f"{channel}: {v.shape[0]} value(s) at t = {seconds_text(stamp_ns)} s, "
                                                f"expected {len(names)} ({', '.join(names)})")
             return 0
         if not np.all(np.isfinite(v)):
-            self.report_bad(channel, stamp_ns, f"{channel}: non-finite value at t = {stamp_ns / NS_PER_S:.15g} s")
+            self.report_bad(channel, stamp_ns, f"{channel}: non-finite value at t = {seconds_text(stamp_ns)} s")
             return 0
         if stamp_ns == 0 and self._phase is not None and self.last_sample_stamp_ns is not None \
                 and self.last_sample_stamp_ns > WALL_CLOCK_NS:
@@ -328,7 +334,7 @@ class SampleWindow:
         if last is not None and stamp_ns < last:
             self._health.out_of_order += 1
             self._problem("out_of_order", channel, stamp_ns,
-                          f"{channel}: t = {stamp_ns / NS_PER_S:.15g} s arrived after t = {last / NS_PER_S:.15g} s")
+                          f"{channel}: t = {seconds_text(stamp_ns)} s arrived after t = {seconds_text(last)} s")
         # the previous stamp, not the largest: one stamp far in the future must not make every
         # later vector out of order
         self._last_stamp[channel] = stamp_ns
@@ -394,7 +400,7 @@ class SampleWindow:
         if abs(off) > self._tol:
             self._health.off_grid += 1
             self._problem("off_grid", channel, stamp_ns,
-                          f"{channel}: t = {stamp_ns / NS_PER_S:.15g} s is {off / NS_PER_S:+.3g} s off the sample grid "
+                          f"{channel}: t = {seconds_text(stamp_ns)} s is {off / NS_PER_S:+.3g} s off the sample grid "
                           f"(sample_time {self.sample_time:g} s; a wrong sample time or unsynchronised stamps)")
             return None
         return int(k)
@@ -419,7 +425,7 @@ class SampleWindow:
             entry = [None] * len(self.channels)
             self._pending[k] = entry
         if entry[slot] is not None:
-            t = f"t = {stamp_ns / NS_PER_S:.15g} s"
+            t = f"t = {seconds_text(stamp_ns)} s"
             self._repeated(channel, stamp_ns, entry[slot], v,
                            f"{channel}: sample {t} received twice (same values; kept once)",
                            f"{channel}: two different vectors for sample {t} (the first is kept; two publishers "
@@ -449,7 +455,7 @@ class SampleWindow:
             pos = (self._head - (self._next_k - k)) % cap
             if self._k_buf[pos] == k:
                 stored = self._bufs[slot][pos]
-                t = f"t = {stamp_ns / NS_PER_S:.15g} s"
+                t = f"t = {seconds_text(stamp_ns)} s"
                 self._repeated(channel, stamp_ns, stored, v,
                                f"{channel}: sample {t} received again (same values; ignored)",
                                f"{channel}: a different vector for sample {t}, already in the window (ignored; "
@@ -457,7 +463,7 @@ class SampleWindow:
                 return
         self._health.late += 1
         self._problem("late", channel, stamp_ns,
-                      f"{channel}: sample t = {stamp_ns / NS_PER_S:.15g} s arrived after it was given up (ignored)")
+                      f"{channel}: sample t = {seconds_text(stamp_ns)} s arrived after it was given up (ignored)")
 
     def _latest_setpoint(self, k: int) -> int:
         """Index in the held setpoints of the one that holds at sample ``k`` (the latest stamped at or
@@ -551,17 +557,17 @@ class SampleWindow:
             self._health.missing_samples += 1
             absent = [c for c, e in zip(self.channels, entry) if e is None]
             self._problem("gap", "", self._stamp_of(oldest),
-                          f"sample t = {self._stamp_of(oldest) / NS_PER_S:.15g} s given up: no {' and no '.join(absent)} "
+                          f"sample t = {seconds_text(self._stamp_of(oldest))} s given up: no {' and no '.join(absent)} "
                           f"after {self.options.max_pending} newer incomplete samples")
 
     def _restart(self, stamp_ns: int) -> int:
         """Forget the alignment (grid phase, pending samples, window; not the counters) and place
         the refused vectors again, as the start of a new stream."""
         if self._next_k is not None:
-            expected = self._stamp_of(self._next_k) / NS_PER_S
-            where = f"the latest at t = {stamp_ns / NS_PER_S:.15g} s while t = {expected:.15g} s was expected"
+            where = (f"the latest at t = {seconds_text(stamp_ns)} s while t = {seconds_text(self._stamp_of(self._next_k))} s "
+                     f"was expected")
         else:
-            where = f"the latest at t = {stamp_ns / NS_PER_S:.15g} s"
+            where = f"the latest at t = {seconds_text(stamp_ns)} s"
         self._health.restarts += 1
         self._problem("restart", "output", stamp_ns,
                       f"stream restarted: {self._refused_outputs} output vectors in a row did not fit the sample "
