@@ -66,6 +66,14 @@ def test_bad_messages_are_refused_naming_topic_channel_and_expectation(names, va
     assert isinstance(info.value, InputError)
 
 
+@pytest.mark.parametrize("values", [[1.0, math.nan, 3.0], [1.0, 2.0], [1.0, 1e300, 3.0]])
+def test_a_refused_wall_clock_stamp_keeps_its_fraction_of_a_second(values):
+    # 15 significant digits, as the window's messages: 9 would print 1.7953951e+09 and lose the second itself
+    with pytest.raises(MessageError, match=r"at t = 1795395118\.00184 s") as info:
+        CODEC.decode(js(["y1", "y2", "y3"], values, sec=1_795_395_118, nanosec=1_840_000))
+    assert "e+09" not in str(info.value)
+
+
 def test_encode_refuses_a_wrong_length():
     with pytest.raises(ValueError, match="expected 3 values"):
         CODEC.encode([1.0, 2.0], 0)

@@ -30,6 +30,7 @@ from typing import Mapping, Optional, Sequence
 import numpy as np
 
 from ..core.errors import ConfigurationError
+from .window import NS_PER_S, seconds_text
 
 #: Samples after the expected end of an experiment at which it counts as ended even though no zero
 #: dither vector came (a lost message, or a stack whose dither topic the monitor does not see).
@@ -296,7 +297,7 @@ class ExperimentTracker:
     def _span(self) -> str:
         if self._first_stamp is None:
             return ""
-        return f" (t = {self._first_stamp * 1e-9:.15g}-{self._last_stamp * 1e-9:.15g} s)"
+        return f" (t = {seconds_text(self._first_stamp)}-{seconds_text(self._last_stamp)} s)"
 
     def _not_started(self, completed: int) -> str:
         """Why the recommendation is only reported."""
@@ -337,7 +338,7 @@ class ExperimentTracker:
             parts.append(f"experiment ended: dither on {', '.join(cur.inputs)} for {cur.samples} samples"
                          f"{self._span()}; analysing the window that includes it")
         elif self.phase == DONE and outcome is not None and self._first_stamp is not None \
-                and outcome.job.first_stamp <= self._first_stamp * 1e-9:
+                and outcome.job.first_stamp <= float(self._first_stamp) / NS_PER_S:
             parts.append(f"this analysis includes the experiment: dither on {', '.join(cur.inputs)} for "
                          f"{cur.samples} samples{self._span()}")
         rec = self.recommendation

@@ -31,6 +31,7 @@ from ..core.errors import ConfigurationError, InputError
 from ..core.logged_data import MAX_ANALYSIS_SCALE
 from ..core.options import ParamSpec
 from ..io.qos import DIAGNOSTICS_QOS, VECTOR_QOS, QosSpec
+from ..monitor.window import seconds_text
 
 NS_PER_S = 1_000_000_000
 
@@ -178,7 +179,7 @@ class VectorCodec:
         values = np.asarray(msg.position, dtype=float)
         if values.ndim != 1 or values.shape[0] != len(names):
             raise MessageError(f"{self.topic}: {values.size} position value(s) for {len(names)} name(s) at "
-                               f"t = {stamp_ns / NS_PER_S:.9g} s (expected one value per name, "
+                               f"t = {seconds_text(stamp_ns)} s (expected one value per name, "
                                f"{self.size} channels: {', '.join(self.names)})")
         perm = self._permutation(names)
         if perm is not None:
@@ -187,12 +188,12 @@ class VectorCodec:
             values = values.copy()
         if not np.all(np.isfinite(values)):
             bad = [f"{self.names[i]}={float(values[i])!r}" for i in np.flatnonzero(~np.isfinite(values))]
-            raise MessageError(f"{self.topic}: non-finite value(s) {', '.join(bad)} at t = {stamp_ns / NS_PER_S:.9g} s "
+            raise MessageError(f"{self.topic}: non-finite value(s) {', '.join(bad)} at t = {seconds_text(stamp_ns)} s "
                                f"(expected finite numbers)")
         huge = np.abs(values) > MAX_ANALYSIS_SCALE
         if np.any(huge):      # a bad-value sentinel such as 1e300: refused like a NaN (one sample), not analysed
             bad = [f"{self.names[i]}={float(values[i])!r}" for i in np.flatnonzero(huge)]
-            raise MessageError(f"{self.topic}: value(s) {', '.join(bad)} at t = {stamp_ns / NS_PER_S:.9g} s beyond "
+            raise MessageError(f"{self.topic}: value(s) {', '.join(bad)} at t = {seconds_text(stamp_ns)} s beyond "
                                f"{MAX_ANALYSIS_SCALE:g} (expected numbers the analysis can take; a bad-value sentinel?)")
         return stamp_ns, values
 
