@@ -1,6 +1,8 @@
 """The noise-order check (mpm_monitor.core.noise_order): the Ljung-Box statistic, the element test's
 residuals from its coefficients, and ``analyze`` raising ``na`` under a slow drift."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy import stats
@@ -195,3 +197,39 @@ def test_a_log_too_short_for_the_raised_order_keeps_the_last_one_and_says_why():
     assert rep.noise_order["na"] == 4 and rep.noise_order["coloured"]
     assert any("the tests ran with na = 4: na = 8 needs more data" in w and "need at least 410 samples" in w
                for w in rep.warnings)
+
+
+@pytest.mark.parametrize("all_rows", [True, False])
+@pytest.mark.parametrize("na", [4, 8])
+def test_the_probe_gives_the_detections_noise_order(all_rows, na):
+    """noise_colour: the same residuals and p-values as the detection's report, without its tests."""
+    from mpm_monitor.core.analysis import detect, noise_colour
+
+    data = _drift_loop(6, 0.005, n=2500)
+    options = AnalysisOptions(repair=False, na=na, test_all_rows=all_rows)
+    full = detect(WOOD_BERRY, data, options).noise_order
+    assert noise_colour(WOOD_BERRY, data, options) == full
+    if na == 4:
+        assert full["coloured"]                      # the case the probe is there for
+    # With gaps: the same segments and rows.
+    keep = np.ones(data.n_samples, bool)
+    keep[[700, 701, 1500, 1900]] = False
+    gappy = data.take(np.flatnonzero(keep))
+    assert noise_colour(WOOD_BERRY, gappy, options) == detect(WOOD_BERRY, gappy, options).noise_order
+
+
+def test_an_order_only_probed_is_detected_when_the_next_needs_more_data():
+    # As the test above with 420 samples: na = 8 fits (410 needed) and stays coloured, na = 16 does not fit.
+    n = 420
+    rng = np.random.default_rng(1)
+    e = rng.standard_normal((n + 1, 2)) * 0.05
+    log = run_closed_loop(WOOD_BERRY, WOOD_BERRY, n, seed=1, mpc=MPC,
+                          disturbance=DisturbanceOptions(disturbance_std=0.0, noise_std=0.0),
+                          output_disturbance=e[1:] + 0.95 * e[:-1]).as_logged_data("ma")
+    rep = analyze(WOOD_BERRY, log, AnalysisOptions(repair=False, max_delay=51))
+    assert rep.noise_order["na"] == 8 and rep.noise_order["coloured"] and rep.noise_order["requested"] == 4
+    assert any("the tests ran with na = 8: na = 16 needs more data" in w for w in rep.warnings)
+    # The detection at na = 8, as a run that starts there.
+    at8 = analyze(WOOD_BERRY, log, AnalysisOptions(repair=False, max_delay=51, na=8, max_na=8))
+    assert [dataclasses.asdict(e) for e in rep.elements] == [dataclasses.asdict(e) for e in at8.elements]
+    assert [r.p_value for r in rep.rows] == [r.p_value for r in at8.rows]

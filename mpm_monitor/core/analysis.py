@@ -490,8 +490,10 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
 
 
 def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signals: Optional[LoopSignals],
-            regressions, previous: Optional["AnalysisReport"], candidates, detectability: bool) -> AnalysisReport:
-    """:func:`detect` (same arguments), its numerical errors not yet turned into a ``DataFileError``."""
+            regressions, previous: Optional["AnalysisReport"], candidates, detectability: bool,
+            colour_only: bool = False):
+    """:func:`detect` (same arguments), its numerical errors not yet turned into a ``DataFileError``; with
+    ``colour_only``, :func:`noise_colour`'s dict instead of the report."""
     # The tests are imported here: the options and the report above are described (the command line's
     # flags, the monitor's parameters) without the scipy they need.
     from .detectability import element_detectability
@@ -555,12 +557,16 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     # exactly 0 is exact.
     spread = np.maximum(np.std(y, axis=0), np.std(sig.d, axis=0))
     spread[[model.outputs.index(name) for name in diverged]] = 0.0
+    if colour_only and options.test_all_rows:       # the rows tested do not depend on the row test
+        return _element_colour(model, list(range(ny)), columns, layout, regressions, options, spread)
     row_test = sdelta_row_test(model, r, sig.eps, regressions, layout, options, output_spread=spread)
     rows = row_test.rows
     warnings = diverging + list(row_test.warnings)
 
     test_rows = list(range(ny)) if (options.test_all_rows or options.method != "arx") else \
         [i for i in range(ny) if rows[i].mismatch]
+    if colour_only:
+        return _element_colour(model, test_rows, columns, layout, regressions, options, spread)
     design = InputDesign(model, columns, layout.n_lag_u, layout.start, options.collinearity_threshold,
                          regressions.input_regression)
     warnings += design.warnings()
@@ -645,14 +651,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     if plan is not None:
         warnings.insert(0, plan.warning())
     warnings[:0] = data.notes
-    noise_order = None
-    if options.method == "arx":
-        from .noise_order import coloured_rows
-
-        white = element_test.whiteness
-        noise_order = {"na": options.na, "requested": options.na, "max_na": options.max_na,
-                       "coloured": [model.outputs[i] for i in coloured_rows(white)],
-                       "p_values": {model.outputs[i]: float(p) for i, p in white.items()}}
+    noise_order = _noise_order(model, options, element_test.whiteness) if options.method == "arx" else None
     return AnalysisReport(
         sample_time=model.sample_time, samples=n, method=options.method, alpha=options.alpha, rows=rows,
         elements=elements, overall_rsi=float(row_test.sigma_max.max()), warnings=warnings,
@@ -662,6 +661,60 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         gaps=None if plan is None else plan.to_dict(), experiment=experiment, candidates=candidate_report,
         regressions=regressions.row_test_part() if getattr(regressions, "batch", False) else None,
         noise_order=noise_order)
+
+
+def _noise_order(model: PlantModel, options: AnalysisOptions, white: dict) -> dict:
+    """The report's ``noise_order`` from the element test's whiteness (row -> Ljung-Box p-value)."""
+    from .noise_order import coloured_rows
+
+    return {"na": options.na, "requested": options.na, "max_na": options.max_na,
+            "coloured": [model.outputs[i] for i in coloured_rows(white)],
+            "p_values": {model.outputs[i]: float(p) for i, p in white.items()}}
+
+
+def _element_colour(model: PlantModel, rows: list, columns: np.ndarray, layout, regressions, options: AnalysisOptions,
+                    spread: np.ndarray) -> dict:
+    """:func:`noise_colour`'s answer: the ``noise_order`` of the element test on ``rows``, without its tests."""
+    from .element_test import InputDesign, element_residual_whiteness
+
+    design = InputDesign(model, columns, layout.n_lag_u, layout.start, options.collinearity_threshold,
+                         regressions.input_regression)
+    return _noise_order(model, options, element_residual_whiteness(rows, design, regressions, spread))
+
+
+def noise_colour(model: PlantModel, data: LoggedData, options: AnalysisOptions, *,
+                 signals: Optional[LoopSignals] = None) -> dict:
+    """Whether :func:`detect`'s element-test residuals would be white, without running its tests.
+
+    The same data checks, model run, regressions and unrestricted element fits as :func:`detect` (arx
+    method), and the same ``noise_order`` as its report, at a fraction of its cost: no row test (unless
+    ``test_all_rows`` is off, where it picks the rows), no element tests, detectability or experiment.
+    :func:`~mpm_monitor.core.pipeline.analyze` asks this before a detection whose result it would
+    discard if a row stayed coloured (:mod:`mpm_monitor.core.noise_order`).
+
+    Parameters
+    ----------
+    model, data, options, signals
+        As :func:`detect` (``options.method`` must be ``arx``).
+
+    Returns
+    -------
+    dict
+        ``{"na", "requested", "max_na", "coloured", "p_values"}``, as :attr:`AnalysisReport.noise_order`.
+
+    Raises
+    ------
+    DataFileError
+        As :func:`detect`.
+    """
+    if options.method != "arx":
+        raise ConfigurationError(f"noise_colour: the element test's residuals are checked for method arx only, "
+                                 f"not {options.method}")
+    data = in_deviations(model, data)
+    try:
+        return _detect(model, data, options, signals, None, None, None, False, colour_only=True)
+    except NUMERICAL_ERRORS as err:
+        raise numerical_breakdown(model, data, err) from err
 
 
 def check_gap_rows(plan, layout, options, src: str) -> None:

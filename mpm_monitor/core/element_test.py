@@ -474,14 +474,8 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
     row_blocks, own = {}, {}
     whole = _WholeResponses(model, design, regressions, options, moments) if options.element_response else None
     for i in rows:
-        fit = regressions.element_fit(design.regression, i)
-        if output_spread is not None:
-            fit.set_output_spread(output_spread[i])
+        fit = _unrestricted_fit(design, regressions, i, output_spread, row_blocks, own)
         noise[i] = row_noise(fit)
-        if not fit.exact:
-            row_blocks[i] = np.array([fit.block_theta(bj) for bj in range(len(testable))]).reshape(
-                len(testable), design.n_lag)
-            own[i] = np.asarray(fit.theta[fit.n_common:], dtype=float)
         tests = fit.test_each_block_zero([element_window(model, i, j, nb, options.element_window) for j in testable])
         responses = whole.tests(i, fit) if whole is not None else {}
         stds = fit.block_stds()
@@ -534,6 +528,39 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
     whiteness = residual_whiteness(regressions, testable, design.n_lag, row_blocks, own)
     return ElementTest(elements=elements, arx_tables=tables, group_hits=group_hits, warnings=warnings, noise=noise,
                        responses=responses, whiteness=whiteness)
+
+
+def _unrestricted_fit(design: InputDesign, regressions, i: int, output_spread, row_blocks: dict, own: dict):
+    """Row ``i``'s fit on every testable column's lags and its own lags; a fit that is not exact puts
+    its column blocks (shape (n_testable, n_lag)) in ``row_blocks[i]`` and its own coefficients in
+    ``own[i]``, for :func:`~mpm_monitor.core.noise_order.residual_whiteness`."""
+    fit = regressions.element_fit(design.regression, i)
+    if output_spread is not None:
+        fit.set_output_spread(output_spread[i])
+    if not fit.exact:
+        row_blocks[i] = np.array([fit.block_theta(bj) for bj in range(len(design.testable))]).reshape(
+            len(design.testable), design.n_lag)
+        own[i] = np.asarray(fit.theta[fit.n_common:], dtype=float)
+    return fit
+
+
+def element_residual_whiteness(rows: list, design: InputDesign, regressions,
+                               output_spread: Optional[np.ndarray] = None) -> dict:
+    """The whiteness of the residuals of :func:`arx_element_test` on ``rows`` without the tests.
+
+    The same fits and the same numbers as the ``whiteness`` of its :class:`ElementTest` (arguments as
+    there); what :func:`~mpm_monitor.core.pipeline.analyze` needs to know whether a detection would be
+    run again with a larger ``na`` (:mod:`mpm_monitor.core.noise_order`).
+
+    Returns
+    -------
+    dict
+        Row -> Ljung-Box p-value of its residual (rows whose fit is exact have none).
+    """
+    row_blocks, own = {}, {}
+    for i in rows:
+        _unrestricted_fit(design, regressions, i, output_spread, row_blocks, own)
+    return residual_whiteness(regressions, design.testable, design.n_lag, row_blocks, own)
 
 
 class _WholeResponses:

@@ -141,14 +141,19 @@ def _raise_noise_order(model: PlantModel, data: LoggedData, options: AnalysisOpt
     checked for whiteness (Ljung-Box, Bonferroni over the rows); while some row's is coloured and ``na`` is
     below ``options.max_na``, ``na`` doubles and :func:`~mpm_monitor.core.analysis.detect` runs again on the
     same data (its regressions built for the new ``na``, whatever regressions the first detection was
-    given; the first detection's model signals reused on data without gaps, where they are the same).  The report kept is the last one, with a warning saying why and with what ``na``; its
-    ``noise_order`` has the order ``requested``.
+    given; the first detection's model signals reused on data without gaps, where they are the same).
+    Below ``max_na`` an order is first probed (:func:`~mpm_monitor.core.analysis.noise_colour`: the same
+    residuals without the tests) and detected only when its residuals are white, since a detection whose
+    rows stay coloured would be discarded; an order whose successor needs more data than the log holds
+    is detected after all.  The report kept is the detection of the last order, with a warning saying
+    why and with what ``na``; its ``noise_order`` has the order ``requested``.
 
     Returns
     -------
     (AnalysisReport, AnalysisOptions)
         The report and the options it was made with (``na`` raised or not).
     """
+    from .analysis import noise_colour
     from .noise_order import next_order
 
     order = report.noise_order
@@ -157,17 +162,34 @@ def _raise_noise_order(model: PlantModel, data: LoggedData, options: AnalysisOpt
     first, refused = order, None
     if signals is None and report.gaps is None:
         signals = report.signals        # the model's run does not depend on na: computed once
+    detected = (report, options)         # the last detection run, and its options
     while order["coloured"]:
         na = next_order(options.na, options.max_na)
         if na is None:
             break
         raised = dataclasses.replace(options, na=na)
         try:
+            if next_order(na, options.max_na) is not None:
+                # Below max_na a detection is discarded when a row stays coloured: its residuals first.
+                probed = noise_colour(model, data, raised, signals=signals)
+                if probed["coloured"]:
+                    options, order = raised, probed
+                    continue
             report = detect(model, data, raised, signals=signals, **kw)
         except DataFileError as err:         # too few samples or rows for the longer lags: keep the last order
             refused = (na, str(err))
             break
         options, order = raised, report.noise_order
+        detected = (report, options)
+    if detected[1] is not options:
+        # The last order only probed (the next needs more data than the log holds): its detection.
+        try:
+            report = detect(model, data, options, signals=signals, **kw)
+            order = report.noise_order
+        except DataFileError as err:
+            refused = (options.na, str(err))
+            report, options = detected
+            order = report.noise_order
     order["requested"] = first["requested"]
     rows = ", ".join(first["coloured"])
     p_min = min(first["p_values"][x] for x in first["coloured"])
