@@ -184,16 +184,19 @@ def test_a_row_without_a_testable_column_is_still_checked():
     np.testing.assert_allclose(res, (y[5:, 0] - 0.5 * y[4:-1, 0]) - np.mean(y[5:, 0] - 0.5 * y[4:-1, 0]))
 
 
-def test_a_log_too_short_for_the_raised_order_keeps_the_last_one_and_says_why():
-    # 400 samples with max_delay 51: the tests need 398 at na = 4 and 410 at na = 8.  An MA(1) noise
-    # (zero at -0.95) that four own lags cannot whiten: the raise is refused by the data, not the run.
-    n = 400
+def _ma_log(n: int):
+    """A clean loop under an MA(1) noise (zero at -0.95) that four or eight own lags cannot whiten."""
     rng = np.random.default_rng(1)
     e = rng.standard_normal((n + 1, 2)) * 0.05
-    log = run_closed_loop(WOOD_BERRY, WOOD_BERRY, n, seed=1, mpc=MPC,
-                          disturbance=DisturbanceOptions(disturbance_std=0.0, noise_std=0.0),
-                          output_disturbance=e[1:] + 0.95 * e[:-1])
-    rep = analyze(WOOD_BERRY, log.as_logged_data("ma"), AnalysisOptions(repair=False, max_delay=51))
+    return run_closed_loop(WOOD_BERRY, WOOD_BERRY, n, seed=1, mpc=MPC,
+                           disturbance=DisturbanceOptions(disturbance_std=0.0, noise_std=0.0),
+                           output_disturbance=e[1:] + 0.95 * e[:-1]).as_logged_data("ma")
+
+
+def test_a_log_too_short_for_the_raised_order_keeps_the_last_one_and_says_why():
+    # 400 samples with max_delay 51: the tests need 398 at na = 4 and 410 at na = 8: the raise is
+    # refused by the data, not the run.
+    rep = analyze(WOOD_BERRY, _ma_log(400), AnalysisOptions(repair=False, max_delay=51))
     assert rep.noise_order["na"] == 4 and rep.noise_order["coloured"]
     assert any("the tests ran with na = 4: na = 8 needs more data" in w and "need at least 410 samples" in w
                for w in rep.warnings)
@@ -220,12 +223,7 @@ def test_the_probe_gives_the_detections_noise_order(all_rows, na):
 
 def test_an_order_only_probed_is_detected_when_the_next_needs_more_data():
     # As the test above with 420 samples: na = 8 fits (410 needed) and stays coloured, na = 16 does not fit.
-    n = 420
-    rng = np.random.default_rng(1)
-    e = rng.standard_normal((n + 1, 2)) * 0.05
-    log = run_closed_loop(WOOD_BERRY, WOOD_BERRY, n, seed=1, mpc=MPC,
-                          disturbance=DisturbanceOptions(disturbance_std=0.0, noise_std=0.0),
-                          output_disturbance=e[1:] + 0.95 * e[:-1]).as_logged_data("ma")
+    log = _ma_log(420)
     rep = analyze(WOOD_BERRY, log, AnalysisOptions(repair=False, max_delay=51))
     assert rep.noise_order["na"] == 8 and rep.noise_order["coloured"] and rep.noise_order["requested"] == 4
     assert any("the tests ran with na = 8: na = 16 needs more data" in w for w in rep.warnings)
