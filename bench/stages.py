@@ -47,6 +47,7 @@ STAGES = (
     ("detectability", "mpm_monitor.core.detectability", "element_detectability"),
     ("experiment", "mpm_monitor.core.experiment", "design_experiment"),
     ("detection", "mpm_monitor.core.pipeline", "detect"),
+    ("detection", "mpm_monitor.core.pipeline", "detect_unless_coloured"),
     ("joint classification", "mpm_monitor.core.pipeline", "explained_elements"),
     ("repair", "mpm_monitor.core.pipeline", "repair_model"),
 )

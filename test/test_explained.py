@@ -104,18 +104,14 @@ def test_a_row_where_no_element_changed_keeps_its_elements(wrong_gain):
 def test_analyze_releases_before_the_repair_and_says_so(wrong_gain, monkeypatch, repair):
     _, model, data = wrong_gain
     real_detect = pipeline.detect
-    calls = []
 
-    def detect(m, d, o, **kw):
-        if calls:           # the detection of the repaired model
-            return real_detect(m, d, o, **kw)
-        calls.append(1)
+    def first_detection(m, d, o, **kw):      # the detection of the repaired model is pipeline.detect's
         report = real_detect(m, d, o, **kw)
         for e in report.elements:
             e.mismatch = (e.output, e.input) in {("y2", "u2"), ("y2", "u3")}
         return report
 
-    monkeypatch.setattr(pipeline, "detect", detect)
+    monkeypatch.setattr(pipeline, "detect_unless_coloured", first_detection)
     report = pipeline.analyze(model, data, AnalysisOptions(repair=repair))
     assert report.located_elements == [("y2", "u2")]
     released = [e for e in report.elements if e.explained_by]
@@ -140,7 +136,7 @@ def test_analyze_without_release_keeps_both(wrong_gain, monkeypatch):
             e.mismatch = (e.output, e.input) in {("y2", "u2"), ("y2", "u3")}
         return report
 
-    monkeypatch.setattr(pipeline, "detect", detect)
+    monkeypatch.setattr(pipeline, "detect_unless_coloured", detect)
     report = pipeline.analyze(model, data, AnalysisOptions(repair=False, release_explained=False))
     assert report.located_elements == [("y2", "u2"), ("y2", "u3")]
     assert not any(e.explained_by for e in report.elements)

@@ -185,7 +185,7 @@ def test_bad_new_key_refused_with_one_line_naming_key_and_element(tmp_path, case
 def test_every_known_key_is_written_by_some_model(tmp_path):
     written = set(yaml.safe_load(dump_model(load_model(_write(tmp_path, RICH))))) | set(
         yaml.safe_load(dump_model(load_model(_write(tmp_path, STEP, "s.yaml")))))
-    written |= {"input_nominal", "output_nominal", "name"}
+    written |= {"input_nominal", "output_nominal", "disturbance_nominal", "name"}
     assert written == set(KNOWN_KEYS)
 
 

@@ -203,22 +203,28 @@ def test_a_log_too_short_for_the_raised_order_keeps_the_last_one_and_says_why():
 
 
 @pytest.mark.parametrize("all_rows", [True, False])
-@pytest.mark.parametrize("na", [4, 8])
-def test_the_probe_gives_the_detections_noise_order(all_rows, na):
-    """noise_colour: the same residuals and p-values as the detection's report, without its tests."""
-    from mpm_monitor.core.analysis import detect, noise_colour
+@pytest.mark.parametrize("na", [4, 8, 16])
+def test_detect_unless_coloured_stops_at_the_fits_or_gives_the_detection(all_rows, na):
+    """Coloured: the detection's noise order, signals and gaps without its tests; white: its very report."""
+    from mpm_monitor.core.analysis import Coloured, detect, detect_unless_coloured
 
     data = _drift_loop(6, 0.005, n=2500)
-    options = AnalysisOptions(repair=False, na=na, test_all_rows=all_rows)
-    full = detect(WOOD_BERRY, data, options).noise_order
-    assert noise_colour(WOOD_BERRY, data, options) == full
-    if na == 4:
-        assert full["coloured"]                      # the case the probe is there for
-    # With gaps: the same segments and rows.
     keep = np.ones(data.n_samples, bool)
     keep[[700, 701, 1500, 1900]] = False
-    gappy = data.take(np.flatnonzero(keep))
-    assert noise_colour(WOOD_BERRY, gappy, options) == detect(WOOD_BERRY, gappy, options).noise_order
+    seen = set()
+    for log in (data, data.take(np.flatnonzero(keep))):           # with gaps: the same segments and rows
+        options = AnalysisOptions(repair=False, na=na, test_all_rows=all_rows)
+        full = detect(WOOD_BERRY, log, options)
+        got = detect_unless_coloured(WOOD_BERRY, log, options)
+        assert got.noise_order == full.noise_order
+        seen.add(bool(full.noise_order["coloured"]))
+        if full.noise_order["coloured"]:
+            assert isinstance(got, Coloured) and got.gaps == full.gaps
+            np.testing.assert_array_equal(got.signals.d, full.signals.d)
+        else:
+            assert got.to_dict() == full.to_dict()
+    if na != 8:                                                   # both kinds are exercised
+        assert seen == {na == 4}
 
 
 def test_an_order_only_probed_is_detected_when_the_next_needs_more_data():

@@ -146,8 +146,8 @@ class AnalysisOptions:
                                 choices=INITIAL_STATE_CHOICES)
     method: str = option("arx", "Element test: arx (paper), xcorr or pcorr (baselines).", choices=METHODS)
     repair: bool = option(True, "Also trace each located element to its kind and re-estimate it, for a suggested "
-                                "repaired model (about 0.15 s more per analysis of a 3x3 or 5x5 window of 3,000 samples with "
-                                "two to five located elements).")
+                                "repaired model (about 0.15 s more per analysis of a 3x3 or 5x5 window of 3,000 "
+                                "samples with two to five located elements).")
     collinearity_threshold: float = option(1e-2, "Inputs are not separable when the variance inflation of a lag "
                                                  "block exceeds 1 / this.", low=0.0, high=1.0, open_low=True,
                                            open_high=True)
@@ -491,9 +491,9 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
 
 def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signals: Optional[LoopSignals],
             regressions, previous: Optional["AnalysisReport"], candidates, detectability: bool,
-            colour_only: bool = False):
+            unless_coloured: bool = False):
     """:func:`detect` (same arguments), its numerical errors not yet turned into a ``DataFileError``; with
-    ``colour_only``, :func:`noise_colour`'s dict instead of the report."""
+    ``unless_coloured``, :func:`detect_unless_coloured`."""
     # The tests are imported here: the options and the report above are described (the command line's
     # flags, the monitor's parameters) without the scipy they need.
     from .detectability import element_detectability
@@ -557,18 +557,25 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     # exactly 0 is exact.
     spread = np.maximum(np.std(y, axis=0), np.std(sig.d, axis=0))
     spread[[model.outputs.index(name) for name in diverged]] = 0.0
-    if colour_only and options.test_all_rows:       # the rows tested do not depend on the row test
-        return _element_colour(model, list(range(ny)), columns, layout, regressions, options, spread)
+    probe = unless_coloured and options.method == "arx"
+    colour = None
+    if probe and options.test_all_rows:       # the rows tested do not depend on the row test: before it
+        colour = _ElementColour(model, list(range(ny)), columns, layout, regressions, options, spread)
+        if colour.noise_order["coloured"]:
+            return Coloured(colour.noise_order, sig, None if plan is None else plan.to_dict())
     row_test = sdelta_row_test(model, r, sig.eps, regressions, layout, options, output_spread=spread)
     rows = row_test.rows
-    warnings = diverging + list(row_test.warnings)
+    warnings = diverging + list(row_test.warnings) + offset_warnings(model, sig.d, y, diverged)
 
     test_rows = list(range(ny)) if (options.test_all_rows or options.method != "arx") else \
         [i for i in range(ny) if rows[i].mismatch]
-    if colour_only:
-        return _element_colour(model, test_rows, columns, layout, regressions, options, spread)
-    design = InputDesign(model, columns, layout.n_lag_u, layout.start, options.collinearity_threshold,
-                         regressions.input_regression)
+    if probe and colour is None:
+        colour = _ElementColour(model, test_rows, columns, layout, regressions, options, spread)
+        if colour.noise_order["coloured"]:
+            return Coloured(colour.noise_order, sig, None if plan is None else plan.to_dict())
+    design = colour.design if colour is not None else \
+        InputDesign(model, columns, layout.n_lag_u, layout.start, options.collinearity_threshold,
+                    regressions.input_regression)
     warnings += design.warnings()
     # On a loop that diverged every moment is of signals that grow without bound: no detectable change
     # and no experiment means anything there (the warnings already say the tests' results do not).
@@ -580,7 +587,9 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         moments = ResponseMoments(model, columns, sig.d, design.testable, layout.n_lag_u, layout.start, options.na,
                                   None if plan is None else plan.local_segments)
     if options.method == "arx":
-        element_test = arx_element_test(model, test_rows, design, regressions, options, moments, output_spread=spread)
+        element_test = arx_element_test(model, test_rows, design, regressions, options, moments, output_spread=spread,
+                                        fits=None if colour is None else colour.fits,
+                                        whiteness=None if colour is None else colour.whiteness)
     elif plan is None:
         element_test = baseline_element_test(model, columns, sig.d, options)
     else:                         # the baselines' correlations need one contiguous span: the longest
@@ -663,6 +672,52 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         noise_order=noise_order)
 
 
+#: A row whose prediction error's mean exceeds this many times its standard deviation is named as
+#: offset (:func:`offset_warnings`).
+OFFSET_RATIO = 10.0
+
+
+def offset_warnings(model: PlantModel, d: np.ndarray, y: np.ndarray, skip=()) -> list:
+    """One warning naming the rows whose prediction error sits far from zero: an undeclared operating point?
+
+    The model's elements act on deviations from the model file's ``input_nominal``, ``output_nominal``
+    and ``disturbance_nominal``.  A log whose columns sit at an operating point the file does not
+    declare (a feed temperature logged at 350) leaves the model's output offset from the outputs by a
+    constant: the tests remove each signal's mean and do not see it, but the prediction-error figures
+    (``error_before``, ``error_after``) do, and a step-response model, simulated from rest, starts
+    with its response to the offset.  A row is named when the mean of its prediction error exceeds
+    :data:`OFFSET_RATIO` times its standard deviation (and is not the rounding of a log without noise).
+
+    Parameters
+    ----------
+    model : PlantModel
+    d : ndarray, shape (n_samples, n_outputs)
+        Prediction errors ``y - yhat``, output units.
+    y : ndarray, shape (n_samples, n_outputs)
+        Outputs (deviations), output units: the scale below which an offset is rounding.
+    skip : sequence of str
+        Outputs not named (a diverged loop's).
+
+    Returns
+    -------
+    list of str
+        At most one warning.
+    """
+    mean, std = d.mean(axis=0), d.std(axis=0)
+    floor = 1e-6 * np.maximum(y.std(axis=0), np.abs(y).mean(axis=0))
+    named = [i for i in range(model.n_outputs) if model.outputs[i] not in skip and abs(mean[i]) > floor[i]
+             and abs(mean[i]) > OFFSET_RATIO * std[i]]
+    if not named:
+        return []
+    what = ", ".join(f"{model.outputs[i]} by {mean[i]:.4g} (" + ("no spread)" if std[i] <= 1e-12 * abs(mean[i]) else
+                                                                   f"{abs(mean[i]) / std[i]:.3g} times its spread)")
+                     for i in named)
+    return [f"the model's output is offset from the logged output: {what}; an operating point of the inputs, "
+            f"outputs or measured disturbances that the model file does not declare (input_nominal, output_nominal, "
+            f"disturbance_nominal)? The tests remove the mean, the prediction-error figures do not, and a "
+            f"step-response model starts from rest, with its response to the offset"]
+
+
 def _noise_order(model: PlantModel, options: AnalysisOptions, white: dict) -> dict:
     """The report's ``noise_order`` from the element test's whiteness (row -> Ljung-Box p-value)."""
     from .noise_order import coloured_rows
@@ -672,47 +727,59 @@ def _noise_order(model: PlantModel, options: AnalysisOptions, white: dict) -> di
             "p_values": {model.outputs[i]: float(p) for i, p in white.items()}}
 
 
-def _element_colour(model: PlantModel, rows: list, columns: np.ndarray, layout, regressions, options: AnalysisOptions,
-                    spread: np.ndarray) -> dict:
-    """:func:`noise_colour`'s answer: the ``noise_order`` of the element test on ``rows``, without its tests."""
-    from .element_test import InputDesign, element_residual_whiteness
+class _ElementColour:
+    """The unrestricted element fits of ``rows``, their residuals' whiteness and the report's ``noise_order``
+    (:func:`detect_unless_coloured`); the fits and the design go on to the element test when white."""
 
-    design = InputDesign(model, columns, layout.n_lag_u, layout.start, options.collinearity_threshold,
-                         regressions.input_regression)
-    return _noise_order(model, options, element_residual_whiteness(rows, design, regressions, spread))
+    def __init__(self, model: PlantModel, rows: list, columns: np.ndarray, layout, regressions,
+                 options: AnalysisOptions, spread: np.ndarray):
+        from .element_test import InputDesign, unrestricted_fits
+
+        self.design = InputDesign(model, columns, layout.n_lag_u, layout.start, options.collinearity_threshold,
+                                  regressions.input_regression)
+        self.fits, self.whiteness = unrestricted_fits(rows, self.design, regressions, spread)
+        self.noise_order = _noise_order(model, options, self.whiteness)
 
 
-def noise_colour(model: PlantModel, data: LoggedData, options: AnalysisOptions, *,
-                 signals: Optional[LoopSignals] = None) -> dict:
-    """Whether :func:`detect`'s element-test residuals would be white, without running its tests.
+@dataclasses.dataclass
+class Coloured:
+    """What :func:`detect_unless_coloured` returns instead of a report: a row's residual is coloured.
 
-    The same data checks, model run, regressions and unrestricted element fits as :func:`detect` (arx
-    method), and the same ``noise_order`` as its report, at a fraction of its cost: no row test (unless
-    ``test_all_rows`` is off, where it picks the rows), no element tests, detectability or experiment.
-    :func:`~mpm_monitor.core.pipeline.analyze` asks this before a detection whose result it would
-    discard if a row stayed coloured (:mod:`mpm_monitor.core.noise_order`).
-
-    Parameters
+    Attributes
     ----------
-    model, data, options, signals
-        As :func:`detect` (``options.method`` must be ``arx``).
+    noise_order : dict
+        As :attr:`AnalysisReport.noise_order` (``coloured`` not empty).
+    signals : LoopSignals
+        The model run of the data (on the samples used, as :attr:`AnalysisReport.signals`).
+    gaps : dict or None
+        As :attr:`AnalysisReport.gaps`.
+    """
+
+    noise_order: dict
+    signals: LoopSignals
+    gaps: Optional[dict]
+
+
+def detect_unless_coloured(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
+                           signals: Optional[LoopSignals] = None, regressions=None,
+                           previous: Optional["AnalysisReport"] = None, candidates=None, detectability: bool = True):
+    """:func:`detect`, or only the noise order when a row's element-test residual is coloured.
+
+    The element test's unrestricted fits of every row it tests come first (for ``test_all_rows``, before
+    the row test); when a row's residual is coloured (:mod:`mpm_monitor.core.noise_order`) the tests
+    are not run and a :class:`Coloured` is returned: :func:`~mpm_monitor.core.pipeline.analyze` would
+    discard that detection for one with a larger ``na``.  Otherwise the detection goes on with those
+    fits: the report is :func:`detect`'s, the same numbers.  Arguments as :func:`detect`; a method
+    other than ``arx`` (no noise order) always detects.
 
     Returns
     -------
-    dict
-        ``{"na", "requested", "max_na", "coloured", "p_values"}``, as :attr:`AnalysisReport.noise_order`.
-
-    Raises
-    ------
-    DataFileError
-        As :func:`detect`.
+    AnalysisReport or Coloured
     """
-    if options.method != "arx":
-        raise ConfigurationError(f"noise_colour: the element test's residuals are checked for method arx only, "
-                                 f"not {options.method}")
     data = in_deviations(model, data)
     try:
-        return _detect(model, data, options, signals, None, None, None, False, colour_only=True)
+        return _detect(model, data, options, signals, regressions, previous, candidates, detectability,
+                       unless_coloured=True)
     except NUMERICAL_ERRORS as err:
         raise numerical_breakdown(model, data, err) from err
 

@@ -591,12 +591,44 @@ def run_candidate_tests(model: PlantModel, data: LoggedData, chosen: CandidateCh
 
 
 # ------------------------------------------------------------------------------------ the repair's model
-def with_candidate_columns(model: PlantModel, data: LoggedData, names: Sequence[str]):
+#: A channel whose mean is within this many standard deviations of 0 is taken as logged in deviations.
+DEVIATION_SPREADS = 3.0
+
+
+def default_operating_point(x: np.ndarray) -> float:
+    """The operating point a candidate channel is added at before its repair (:func:`with_candidate_columns`).
+
+    A channel that swings around 0 (its mean within :data:`DEVIATION_SPREADS` standard deviations of 0)
+    is taken as logged in deviations: 0.  One that sits away from 0 is logged in its units (a feed
+    temperature at 350 +- 2): its mean over the data, which
+    :func:`~mpm_monitor.core.pipeline.analyze` then moves to centre the prediction error of the rows
+    its repaired elements act on.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n_samples,)
+        The channel, its logged units.
+
+    Returns
+    -------
+    float
+    """
+    x = np.asarray(x, float)
+    mean, std = float(np.mean(x)), float(np.std(x))
+    return 0.0 if abs(mean) <= DEVIATION_SPREADS * std else mean
+
+
+def with_candidate_columns(model: PlantModel, data: LoggedData, names: Sequence[str], nominal: Optional[dict] = None):
     """The model and the data with the candidates ``names`` as new measured disturbance columns.
 
     The new columns' elements are absent (gain 0; a zero step response), so the model's output and
     prediction error are those of ``model``; the data's ``dv`` gains the channels' samples (taken
-    out of ``extra``).
+    out of ``extra``).  A channel's operating point (``disturbance_nominal``) is ``nominal[name]``,
+    by default :func:`default_operating_point`: 0 for a channel logged in deviations, its mean for one
+    logged in its units (a feed temperature at 350 acts through its element as its deviation from
+    there), so the repaired model predicts the logged outputs from the logged channel (in the
+    deviations of data already converted, :attr:`~mpm_monitor.core.logged_data.LoggedData.deviations`,
+    the column is that deviation).
 
     Returns
     -------
@@ -606,16 +638,22 @@ def with_candidate_columns(model: PlantModel, data: LoggedData, names: Sequence[
     if not names:
         return model, data
     ny, k = model.n_outputs, len(names)
+    values = [np.asarray(data.extra[n], float) for n in names]
+    given = nominal or {}
+    nominal = np.concatenate([np.asarray(model.disturbance_nominal, float),
+                              [float(given[n]) if n in given else default_operating_point(x) for n, x in zip(names, values)]])
     if model.is_step_response:
         sr = np.concatenate([model.step_response, np.zeros((ny, k, model.step_length))], axis=1)
         new = model.replace(disturbances=model.disturbances + tuple(names), step_response=sr, lead=None,
-                            time_constant2=None, integrating=None)
+                            time_constant2=None, integrating=None, disturbance_nominal=nominal)
     else:
         arrays = {key: np.hstack([np.asarray(getattr(model, key)),
                                   np.zeros((ny, k), dtype=np.asarray(getattr(model, key)).dtype)])
                   for key in PARAMETRIC_KEYS}
-        new = model.replace(disturbances=model.disturbances + tuple(names), **arrays)
-    dv = np.column_stack([np.asarray(data.dv, float)] + [np.asarray(data.extra[n], float) for n in names])
+        new = model.replace(disturbances=model.disturbances + tuple(names), disturbance_nominal=nominal, **arrays)
+    if data.deviations:
+        values = [x - x0 for x, x0 in zip(values, nominal[model.n_disturbances:])]
+    dv = np.column_stack([np.asarray(data.dv, float)] + values)
     extra = {key: v for key, v in data.extra.items() if key not in names}
     return new, dataclasses.replace(data, dv=dv, disturbances=tuple(data.disturbances) + tuple(names), extra=extra)
 
@@ -627,8 +665,9 @@ def without_columns(model: PlantModel, names: Sequence[str]) -> PlantModel:
         return model
     keep = [j for j in range(model.n_columns) if j not in drop]
     dist = tuple(n for n in model.disturbances if n not in names)
+    nominal = np.asarray(model.disturbance_nominal)[[j - model.n_inputs for j in keep if j >= model.n_inputs]]
     if model.is_step_response:
         return model.replace(disturbances=dist, step_response=np.asarray(model.step_response)[:, keep], lead=None,
-                             time_constant2=None, integrating=None)
+                             time_constant2=None, integrating=None, disturbance_nominal=nominal)
     arrays = {key: np.asarray(getattr(model, key))[:, keep] for key in PARAMETRIC_KEYS}
-    return model.replace(disturbances=dist, **arrays)
+    return model.replace(disturbances=dist, disturbance_nominal=nominal, **arrays)

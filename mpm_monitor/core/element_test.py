@@ -436,7 +436,8 @@ class _Estimate:
 
 
 def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regressions, options,
-                     moments=None, output_spread: Optional[np.ndarray] = None) -> ElementTest:
+                     moments=None, output_spread: Optional[np.ndarray] = None, fits: Optional[dict] = None,
+                     whiteness: Optional[dict] = None) -> ElementTest:
     """The Delta element test on the rows ``rows`` (see the module docstring).
 
     Parameters
@@ -460,6 +461,9 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
         most :data:`~mpm_monitor.core.statistics.EXACT_FIT` of it is exact (a log without noise), and
         its tests are decided outright (:meth:`~mpm_monitor.core.arx.SharedFit.set_output_spread`).
         Default: only a residual of exactly 0.
+    fits, whiteness : dict, optional
+        The unrestricted fits of ``rows`` and their residuals' whiteness, already taken by
+        :func:`unrestricted_fits` with the same arguments (default: taken here).
 
     Returns
     -------
@@ -474,7 +478,7 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
     row_blocks, own = {}, {}
     whole = _WholeResponses(model, design, regressions, options, moments) if options.element_response else None
     for i in rows:
-        fit = _unrestricted_fit(design, regressions, i, output_spread, row_blocks, own)
+        fit = fits[i] if fits is not None else _unrestricted_fit(design, regressions, i, output_spread, row_blocks, own)
         noise[i] = row_noise(fit)
         tests = fit.test_each_block_zero([element_window(model, i, j, nb, options.element_window) for j in testable])
         responses = whole.tests(i, fit) if whole is not None else {}
@@ -525,7 +529,8 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
     warnings = [f"row {h.output}: inputs {', '.join(h.inputs)} jointly explain part of its prediction error "
                 f"(p={h.p_value:.2g}) but cannot be told apart from these data" for h in group_hits] + kept
     responses = {k: e.response for k, e in estimates.items() if e.response is not None}
-    whiteness = residual_whiteness(regressions, testable, design.n_lag, row_blocks, own)
+    if whiteness is None:
+        whiteness = residual_whiteness(regressions, testable, design.n_lag, row_blocks, own)
     return ElementTest(elements=elements, arx_tables=tables, group_hits=group_hits, warnings=warnings, noise=noise,
                        responses=responses, whiteness=whiteness)
 
@@ -544,23 +549,21 @@ def _unrestricted_fit(design: InputDesign, regressions, i: int, output_spread, r
     return fit
 
 
-def element_residual_whiteness(rows: list, design: InputDesign, regressions,
-                               output_spread: Optional[np.ndarray] = None) -> dict:
-    """The whiteness of the residuals of :func:`arx_element_test` on ``rows`` without the tests.
-
-    The same fits and the same numbers as the ``whiteness`` of its :class:`ElementTest` (arguments as
-    there); what :func:`~mpm_monitor.core.pipeline.analyze` needs to know whether a detection would be
-    run again with a larger ``na`` (:mod:`mpm_monitor.core.noise_order`).
+def unrestricted_fits(rows: list, design: InputDesign, regressions, output_spread: Optional[np.ndarray] = None) -> tuple:
+    """The unrestricted fits of :func:`arx_element_test` on ``rows`` and their residuals' whiteness, without
+    the tests (arguments as there).
 
     Returns
     -------
-    dict
-        Row -> Ljung-Box p-value of its residual (rows whose fit is exact have none).
+    (dict, dict)
+        Row -> its fit, and row -> the Ljung-Box p-value of its residual
+        (:func:`~mpm_monitor.core.noise_order.residual_whiteness`; none for a row whose fit is exact):
+        the ``fits`` and ``whiteness`` :func:`arx_element_test` takes to run its tests on them.
     """
-    row_blocks, own = {}, {}
+    fits, row_blocks, own = {}, {}, {}
     for i in rows:
-        _unrestricted_fit(design, regressions, i, output_spread, row_blocks, own)
-    return residual_whiteness(regressions, design.testable, design.n_lag, row_blocks, own)
+        fits[i] = _unrestricted_fit(design, regressions, i, output_spread, row_blocks, own)
+    return fits, residual_whiteness(regressions, design.testable, design.n_lag, row_blocks, own)
 
 
 class _WholeResponses:

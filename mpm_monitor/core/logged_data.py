@@ -143,10 +143,12 @@ class LoggedData:
 
 def in_deviations(model: PlantModel, data: LoggedData) -> LoggedData:
     """``data`` in the deviation variables of ``model``: the inputs minus ``model.input_nominal``, the
-    outputs and setpoints minus ``model.output_nominal``.
+    outputs and setpoints minus ``model.output_nominal``, the measured disturbances minus
+    ``model.disturbance_nominal``.
 
     The model's elements act on deviations from its operating point (the model file's
-    ``input_nominal`` and ``output_nominal``, zero by default); a log holds the values as measured.
+    ``input_nominal``, ``output_nominal`` and ``disturbance_nominal``, zero by default); a log holds
+    the values as measured.
     Every analysis entry point (:func:`~mpm_monitor.core.analysis.detect`,
     :func:`~mpm_monitor.core.pipeline.analyze`, the repair) takes the log through here once: data
     already converted (:attr:`LoggedData.deviations`), a model at the origin, or data whose shapes
@@ -165,19 +167,25 @@ def in_deviations(model: PlantModel, data: LoggedData) -> LoggedData:
     """
     u0 = np.asarray(model.input_nominal, dtype=float)
     y0 = np.asarray(model.output_nominal, dtype=float)
-    if data.deviations or not (np.any(u0 != 0) or np.any(y0 != 0)):
+    d0 = np.asarray(model.disturbance_nominal, dtype=float)
+    if data.deviations or not (np.any(u0 != 0) or np.any(y0 != 0) or np.any(d0 != 0)):
         return data
     shapes = (np.shape(data.u), np.shape(data.y), np.shape(data.r))
     n = data.n_samples
     if shapes != ((n, u0.size), (n, y0.size), (n, y0.size)):
         return data
+    dv = np.asarray(data.dv, dtype=float)
+    if dv.shape != (n, d0.size):          # refused later, with its own message
+        d0 = np.zeros(dv.shape[1:])
     fill = data.column_fill
     if fill is not None:
         cols = np.array(fill[1], dtype=float)
         cols[:, :u0.size] -= u0
+        cols[:, u0.size:u0.size + d0.size] -= d0
         fill = (fill[0], cols)
     return dataclasses.replace(data, u=np.asarray(data.u, dtype=float) - u0, y=np.asarray(data.y, dtype=float) - y0,
-                               r=np.asarray(data.r, dtype=float) - y0, deviations=True, column_fill=fill)
+                               r=np.asarray(data.r, dtype=float) - y0, dv=dv - d0, deviations=True,
+                               column_fill=fill)
 
 
 SIGNAL_NAMES = ("setpoint", "input", "output")

@@ -84,6 +84,9 @@ class PlantModel:
     ramp : tuple of bool, optional
         Per output, for a step-response model: the response keeps the last slope beyond ``N``
         samples (an integrating output).  Default: no ramp.
+    disturbance_nominal : ndarray, shape (n_disturbances,)
+        Operating point of the measured disturbances, in their logged units (default zeros): a feed
+        temperature logged at 350 acts through its elements as its deviation from this.
     """
 
     sample_time: float
@@ -101,6 +104,7 @@ class PlantModel:
     integrating: np.ndarray = None
     step_response: np.ndarray = None
     ramp: tuple = None
+    disturbance_nominal: np.ndarray = None
 
     def __post_init__(self):
         for key in ("inputs", "outputs", "disturbances"):
@@ -131,7 +135,7 @@ class PlantModel:
             arr = np.zeros(shape, dtype=dtype) if val is None else np.array(val, dtype=dtype, copy=True)
             arr.setflags(write=False)
             object.__setattr__(self, key, arr)
-        for key, n in (("input_nominal", nu), ("output_nominal", ny)):
+        for key, n in (("input_nominal", nu), ("output_nominal", ny), ("disturbance_nominal", len(self.disturbances))):
             val = getattr(self, key)
             arr = np.zeros(n) if val is None else np.array(val, dtype=float, copy=True)
             arr.setflags(write=False)
@@ -256,7 +260,14 @@ class PlantModel:
         return out
 
     def replace(self, **changes) -> "PlantModel":
-        """Return a copy with some fields replaced (validated again)."""
+        """Return a copy with some fields replaced (validated again).
+
+        New ``disturbances`` without a new ``disturbance_nominal`` start at the origin when the
+        model's disturbances are at it (a model with other operating points must say the new ones).
+        """
+        if "disturbances" in changes and "disturbance_nominal" not in changes \
+                and len(changes["disturbances"]) != self.n_disturbances and not np.any(self.disturbance_nominal):
+            changes["disturbance_nominal"] = None
         return dataclasses.replace(self, **changes)
 
     def with_element(self, i: int, j: int, gain=None, time_constant=None, delay=None, lead=None,
@@ -321,6 +332,8 @@ class PlantModel:
             out["input_nominal"] = [num(v) for v in self.input_nominal]
         if np.any(self.output_nominal != 0):
             out["output_nominal"] = [num(v) for v in self.output_nominal]
+        if np.any(self.disturbance_nominal != 0):
+            out["disturbance_nominal"] = [num(v) for v in self.disturbance_nominal]
         if self.name:
             out["name"] = self.name
         return out
@@ -445,7 +458,8 @@ def validate_model(model: PlantModel, source: str = "model") -> None:
         raise ModelFileError(
             f"{source}: key 'delay': {_where(model, i, j)}: expected a multiple of sample_time {ts:g} s, "
             f"got {model.delay[i, j]:g} s")
-    for key, arr, n in (("input_nominal", model.input_nominal, nu), ("output_nominal", model.output_nominal, ny)):
+    for key, arr, n in (("input_nominal", model.input_nominal, nu), ("output_nominal", model.output_nominal, ny),
+                        ("disturbance_nominal", model.disturbance_nominal, model.n_disturbances)):
         if arr.shape != (n,):
             raise ModelFileError(f"{source}: key '{key}': expected a list of {n} numbers, got shape {arr.shape}")
         if not np.all(np.isfinite(arr)):

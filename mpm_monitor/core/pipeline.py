@@ -19,7 +19,7 @@ from typing import Optional
 
 import numpy as np
 
-from .analysis import AnalysisOptions, AnalysisReport, detect
+from .analysis import AnalysisOptions, AnalysisReport, Coloured, detect, detect_unless_coloured
 from .errors import DataFileError
 from .logged_data import NUMERICAL_ERRORS, LoggedData, in_deviations, numerical_breakdown
 from .model import PlantModel
@@ -91,8 +91,7 @@ def _analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions, sign
              regressions, candidates) -> AnalysisReport:
     """:func:`analyze` (same arguments), its numerical errors not yet turned into a ``DataFileError``."""
     kw = {} if candidates is None else {"candidates": candidates}
-    report = detect(model, data, options, signals=signals, regressions=regressions, **kw)
-    report, options = _raise_noise_order(model, data, options, report, signals, kw)
+    report, options = _detect_raising_na(model, data, options, signals, regressions, kw)
     joint = options.release_explained and _shares_a_row(report)
     if not options.repair and not joint:
         return dataclasses.replace(report, regressions=None)
@@ -113,9 +112,14 @@ def _analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions, sign
     if not options.repair:
         return dataclasses.replace(report, regressions=None)
     result = repair_model(wide, span, located, repair_options, signals=span_signals, classified=classified)
-    after_data = data
+    after_data, nominal = data, None
     if names:
-        result, after_data = _keep_applied_candidates(model, data, result, tried, names)
+        nominal = _candidate_operating_points(result, names)
+        if nominal is not None:     # the repair again with the channels' operating points
+            wide, wide_data = _with_candidates(model, data, names, nominal)
+            span, note = repair_data(wide_data, report.gaps is not None, options, wide)
+            result = repair_model(wide, span, located, repair_options, classified=classified)
+        result, after_data = _keep_applied_candidates(model, data, result, tried, names, nominal)
     warnings = report.warnings
     if note and located:
         warnings.append(note)
@@ -133,63 +137,66 @@ def _analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions, sign
     return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result, regressions=None)
 
 
-def _raise_noise_order(model: PlantModel, data: LoggedData, options: AnalysisOptions, report: AnalysisReport,
-                       signals: Optional[LoopSignals], kw: dict) -> tuple:
-    """The detection again with ``na`` doubled while a row's element-test residual is coloured.
+def _detect_raising_na(model: PlantModel, data: LoggedData, options: AnalysisOptions,
+                       signals: Optional[LoopSignals], regressions, kw: dict) -> tuple:
+    """The detection, with ``na`` doubled while a row's element-test residual is coloured.
 
     :mod:`mpm_monitor.core.noise_order`: each row's residual of the element test's unrestricted fit is
     checked for whiteness (Ljung-Box, Bonferroni over the rows); while some row's is coloured and ``na`` is
-    below ``options.max_na``, ``na`` doubles and :func:`~mpm_monitor.core.analysis.detect` runs again on the
-    same data (its regressions built for the new ``na``, whatever regressions the first detection was
-    given; the first detection's model signals reused on data without gaps, where they are the same).
-    Below ``max_na`` an order is first probed (:func:`~mpm_monitor.core.analysis.noise_colour`: the same
-    residuals without the tests) and detected only when its residuals are white, since a detection whose
-    rows stay coloured would be discarded; an order whose successor needs more data than the log holds
-    is detected after all.  The report kept is the detection of the last order, with a warning saying
-    why and with what ``na``; its ``noise_order`` has the order ``requested``.
+    below ``options.max_na``, ``na`` doubles and the detection runs again on the same data (its
+    regressions built for the new ``na``, whatever regressions the first detection was given; the first
+    detection's model signals reused on data without gaps, where they are the same).  Below ``max_na``
+    each order runs :func:`~mpm_monitor.core.analysis.detect_unless_coloured`: the unrestricted fits
+    first, and the tests only when their residuals are white, since a detection whose rows stay
+    coloured would be discarded; an order whose successor needs more data than the log holds is
+    detected after all.  The report kept is the detection of the last order, with a warning saying why
+    and with what ``na``; its ``noise_order`` has the order ``requested``.
 
     Returns
     -------
     (AnalysisReport, AnalysisOptions)
         The report and the options it was made with (``na`` raised or not).
     """
-    from .analysis import noise_colour
     from .noise_order import next_order
 
+    def run(opts, **given):
+        """The detection at ``opts.na``, or a :class:`Coloured` where a larger ``na`` may follow."""
+        if next_order(opts.na, opts.max_na) is not None:
+            return detect_unless_coloured(model, data, opts, **given, **kw)
+        return detect(model, data, opts, **given, **kw)
+
+    report = run(options, signals=signals, regressions=regressions)
     order = report.noise_order
     if order is None or not order["coloured"]:
         return report, options
-    first, refused = order, None
+    first, first_options, refused = order, options, None
     if signals is None and report.gaps is None:
         signals = report.signals        # the model's run does not depend on na: computed once
-    detected = (report, options)         # the last detection run, and its options
+    detected = (None, None) if isinstance(report, Coloured) else (report, options)    # the last detection
     while order["coloured"]:
         na = next_order(options.na, options.max_na)
         if na is None:
             break
         raised = dataclasses.replace(options, na=na)
         try:
-            if next_order(na, options.max_na) is not None:
-                # Below max_na a detection is discarded when a row stays coloured: its residuals first.
-                probed = noise_colour(model, data, raised, signals=signals)
-                if probed["coloured"]:
-                    options, order = raised, probed
-                    continue
-            report = detect(model, data, raised, signals=signals, **kw)
+            report = run(raised, signals=signals)
         except DataFileError as err:         # too few samples or rows for the longer lags: keep the last order
             refused = (na, str(err))
             break
         options, order = raised, report.noise_order
-        detected = (report, options)
+        if not isinstance(report, Coloured):
+            detected = (report, options)
     if detected[1] is not options:
-        # The last order only probed (the next needs more data than the log holds): its detection.
+        # The last order ran only its fits (the next needs more data than the log holds): its detection.
         try:
-            report = detect(model, data, options, signals=signals, **kw)
-            order = report.noise_order
+            report = detect(model, data, options, signals=signals,
+                            regressions=regressions if options is first_options else None, **kw)
         except DataFileError as err:
+            if detected[0] is None:
+                raise
             refused = (options.na, str(err))
             report, options = detected
-            order = report.noise_order
+        order = report.noise_order
     order["requested"] = first["requested"]
     rows = ", ".join(first["coloured"])
     p_min = min(first["p_values"][x] for x in first["coloured"])
@@ -287,21 +294,52 @@ def repair_data(data: LoggedData, gappy: bool, options: AnalysisOptions, model: 
     return (data if rows.size == data.n_samples else data.take(rows)), note
 
 
-def _with_candidates(model: PlantModel, data: LoggedData, names: list):
+def _with_candidates(model: PlantModel, data: LoggedData, names: list, nominal: Optional[dict] = None):
     """The model and data with the located candidates ``names`` as new measured disturbance columns
-    (:func:`~mpm_monitor.core.candidates.with_candidate_columns`), which the repair fits like any
-    element the model lacks."""
+    (:func:`~mpm_monitor.core.candidates.with_candidate_columns`, at the operating points ``nominal``,
+    by default their means), which the repair fits like any element the model lacks."""
     from .candidates import with_candidate_columns
 
-    return with_candidate_columns(model, data, names)
+    return with_candidate_columns(model, data, names, nominal)
 
 
-def _keep_applied_candidates(model: PlantModel, data: LoggedData, result, tried, names: list):
+def _candidate_operating_points(result, names: list) -> Optional[dict]:
+    """The operating points of the candidate columns logged in their units that centre the prediction
+    error of the rows their repaired elements act on, or None when none moves.
+
+    The repair added each candidate at :func:`~mpm_monitor.core.candidates.default_operating_point`:
+    0 for a channel logged in deviations, kept; its mean for one logged in its units, which this moves.
+    A channel's operating point moves the level of its self-regulating elements' response, which the
+    data cannot tell from an offset of the output: the point chosen is the one that leaves no such
+    offset, by least squares over the self-regulating rows where a candidate's element was applied,
+    ``mean(d_i) + sum_c K_ic delta_c = 0`` with ``K`` the elements' gains.  (An integrating element's
+    operating point sets the slope of its response, which the repair cannot tell from a ramp of the
+    output either; it stays at the mean.)
+    """
+    m = result.model
+    cols = [m.columns.index(n) for n in names if n in m.disturbances]
+    cols = [j for j in cols if m.disturbance_nominal[j - m.n_inputs] != 0]         # logged in their units
+    level = m.integrating_outputs
+    rows = [i for i in range(m.n_outputs) if not level[i] and any(m.present[i, j] for j in cols)]
+    if not rows or result.signals is None:
+        return None
+    K = np.where(m.present[np.ix_(rows, cols)], m.gain[np.ix_(rows, cols)], 0.0)
+    mean = np.asarray(result.signals.d, float)[:, rows].mean(axis=0)
+    delta = np.linalg.lstsq(K, -mean, rcond=None)[0]
+    if not np.all(np.isfinite(delta)) or np.max(np.abs(K @ delta)) <= 1e-9 * (1.0 + np.max(np.abs(mean))):
+        return None
+    x0 = np.asarray(m.disturbance_nominal, float)[[j - m.n_inputs for j in cols]]
+    return {m.columns[j]: float(a + e) for j, a, e in zip(cols, x0, delta)}
+
+
+def _keep_applied_candidates(model: PlantModel, data: LoggedData, result, tried, names: list,
+                             nominal: Optional[dict] = None):
     """The repair's result without the candidate columns none of whose elements it applied (their
-    ``changes`` entries stay), the data with the candidates kept, and ``tried.added`` set."""
+    ``changes`` entries stay), the data with the candidates kept (at the operating points ``nominal``),
+    and ``tried.added`` set."""
     from .candidates import with_candidate_columns, without_columns
 
     added = [n for n in names if any(c["input"] == n and c["applied"] for c in result.changes)]
     result = dataclasses.replace(result, model=without_columns(result.model, [n for n in names if n not in added]))
     tried.added = added
-    return result, with_candidate_columns(model, data, added)[1]
+    return result, with_candidate_columns(model, data, added, nominal)[1]

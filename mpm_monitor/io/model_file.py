@@ -94,7 +94,8 @@ def _names(data: Mapping, key: str, source: str) -> tuple:
 #: Every key a model file may hold.  Any other key is refused: a misspelt key (``time_constant_2``)
 #: read as absent would silently turn the model into another one.
 KNOWN_KEYS = ("sample_time", "inputs", "outputs", "disturbances", "gain", "time_constant", "delay", "lead",
-              "time_constant2", "integrating", "step_response", "ramp", "input_nominal", "output_nominal", "name")
+              "time_constant2", "integrating", "step_response", "ramp", "input_nominal", "output_nominal",
+              "disturbance_nominal", "name")
 #: Keys of the parametric form, which a step-response model (key ``step_response``) replaces.
 PARAMETRIC_ONLY = ("gain", "time_constant", "delay", "lead", "time_constant2", "integrating")
 
@@ -213,7 +214,8 @@ def model_from_dict(data: Any, source: str = "model") -> PlantModel:
         raise ModelFileError(f"{source}: key 'name': expected a string, got {name!r}")
     common = dict(sample_time=_float(ts, f"{source}: key 'sample_time'"), inputs=inputs, outputs=outputs,
                   disturbances=disturbances, input_nominal=_vector(data, "input_nominal", source),
-                  output_nominal=_vector(data, "output_nominal", source), name=name)
+                  output_nominal=_vector(data, "output_nominal", source),
+                  disturbance_nominal=_vector(data, "disturbance_nominal", source), name=name)
     try:
         if "step_response" in data:
             for key in PARAMETRIC_ONLY:
@@ -404,7 +406,7 @@ def dump_model(model: PlantModel) -> str:
             lines.append(f"  - [{', '.join(row(el) for el in r)}]   # {name}")
         if "ramp" in d:
             lines.append(f"ramp: {row(d['ramp'])}")
-    for key in ("input_nominal", "output_nominal"):
+    for key in ("input_nominal", "output_nominal", "disturbance_nominal"):
         if key in d:
             lines.append(f"{key}: {row(d[key])}")
     return "\n".join(lines) + "\n"
