@@ -588,6 +588,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
                                   None if plan is None else plan.local_segments)
     if options.method == "arx":
         element_test = arx_element_test(model, test_rows, design, regressions, options, moments, output_spread=spread,
+                                        fits=None if colour is None else colour.fits,
                                         whiteness=None if colour is None else colour.whiteness)
     elif plan is None:
         element_test = baseline_element_test(model, columns, sig.d, options)
@@ -727,16 +728,16 @@ def _noise_order(model: PlantModel, options: AnalysisOptions, white: dict) -> di
 
 
 class _ElementColour:
-    """The whiteness of the unrestricted element fits of ``rows`` and the report's ``noise_order``
-    (:func:`detect_unless_coloured`); the design and the whiteness go on to the element test when white."""
+    """The unrestricted element fits of ``rows``, their residuals' whiteness and the report's ``noise_order``
+    (:func:`detect_unless_coloured`); the fits and the design go on to the element test when white."""
 
     def __init__(self, model: PlantModel, rows: list, columns: np.ndarray, layout, regressions,
                  options: AnalysisOptions, spread: np.ndarray):
-        from .element_test import InputDesign, unrestricted_whiteness
+        from .element_test import InputDesign, unrestricted_fits
 
         self.design = InputDesign(model, columns, layout.n_lag_u, layout.start, options.collinearity_threshold,
                                   regressions.input_regression)
-        self.whiteness = unrestricted_whiteness(rows, self.design, regressions, spread)
+        self.fits, self.whiteness = unrestricted_fits(rows, self.design, regressions, spread)
         self.noise_order = _noise_order(model, options, self.whiteness)
 
 
@@ -767,10 +768,9 @@ def detect_unless_coloured(model: PlantModel, data: LoggedData, options: Analysi
     The element test's unrestricted fits of every row it tests come first (for ``test_all_rows``, before
     the row test); when a row's residual is coloured (:mod:`mpm_monitor.core.noise_order`) the tests
     are not run and a :class:`Coloured` is returned: :func:`~mpm_monitor.core.pipeline.analyze` would
-    discard that detection for one with a larger ``na``.  Otherwise the detection goes on with that
-    design and whiteness: the report is :func:`detect`'s, the same numbers (the element test fits the
-    rows again, one at a time: all their fits at once would hold about 8 MB per row at 100x40).
-    Arguments as :func:`detect`; a method other than ``arx`` (no noise order) always detects.
+    discard that detection for one with a larger ``na``.  Otherwise the detection goes on with those
+    fits: the report is :func:`detect`'s, the same numbers.  Arguments as :func:`detect`; a method
+    other than ``arx`` (no noise order) always detects.
 
     Returns
     -------

@@ -436,7 +436,7 @@ class _Estimate:
 
 
 def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regressions, options,
-                     moments=None, output_spread: Optional[np.ndarray] = None,
+                     moments=None, output_spread: Optional[np.ndarray] = None, fits: Optional[dict] = None,
                      whiteness: Optional[dict] = None) -> ElementTest:
     """The Delta element test on the rows ``rows`` (see the module docstring).
 
@@ -461,9 +461,10 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
         most :data:`~mpm_monitor.core.statistics.EXACT_FIT` of it is exact (a log without noise), and
         its tests are decided outright (:meth:`~mpm_monitor.core.arx.SharedFit.set_output_spread`).
         Default: only a residual of exactly 0.
-    whiteness : dict, optional
-        The whiteness of the residuals of the unrestricted fits of ``rows``, already taken by
-        :func:`unrestricted_whiteness` with the same arguments (default: taken here).
+    fits, whiteness : dict, optional
+        The unrestricted fits of ``rows`` and their residuals' whiteness, already taken by
+        :func:`unrestricted_fits` with the same arguments (default: taken here); each fit is taken out
+        of ``fits`` as its row is tested.
 
     Returns
     -------
@@ -478,7 +479,8 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
     row_blocks, own = {}, {}
     whole = _WholeResponses(model, design, regressions, options, moments) if options.element_response else None
     for i in rows:
-        fit = _unrestricted_fit(design, regressions, i, output_spread, row_blocks, own)
+        fit = fits.pop(i) if fits is not None else _unrestricted_fit(design, regressions, i, output_spread,
+                                                                     row_blocks, own)
         noise[i] = row_noise(fit)
         tests = fit.test_each_block_zero([element_window(model, i, j, nb, options.element_window) for j in testable])
         responses = whole.tests(i, fit) if whole is not None else {}
@@ -549,24 +551,24 @@ def _unrestricted_fit(design: InputDesign, regressions, i: int, output_spread, r
     return fit
 
 
-def unrestricted_whiteness(rows: list, design: InputDesign, regressions,
-                           output_spread: Optional[np.ndarray] = None) -> dict:
-    """The whiteness of the residuals of the unrestricted fits of :func:`arx_element_test` on ``rows``,
-    without the tests (arguments as there).
-
-    The fits are not kept: a row's fit holds its inverse factor (about 8 MB for 40 inputs of 23 lags),
-    and the element test fits one row at a time.
+def unrestricted_fits(rows: list, design: InputDesign, regressions, output_spread: Optional[np.ndarray] = None) -> tuple:
+    """The unrestricted fits of :func:`arx_element_test` on ``rows`` and their residuals' whiteness, without
+    the tests (arguments as there).
 
     Returns
     -------
-    dict
-        Row -> the Ljung-Box p-value of its residual (:func:`~mpm_monitor.core.noise_order.residual_whiteness`;
-        none for a row whose fit is exact): the ``whiteness`` :func:`arx_element_test` takes.
+    (dict, dict)
+        Row -> its fit, and row -> the Ljung-Box p-value of its residual
+        (:func:`~mpm_monitor.core.noise_order.residual_whiteness`; none for a row whose fit is exact):
+        the ``fits`` and ``whiteness`` :func:`arx_element_test` takes to run its tests on them.  A fit
+        is small until its tests assemble its inverse factor (about 8 MB for 40 inputs of 23 lags):
+        :func:`arx_element_test` takes each out of ``fits`` as it tests its row, so only one is whole
+        at a time.
     """
-    row_blocks, own = {}, {}
+    fits, row_blocks, own = {}, {}, {}
     for i in rows:
-        _unrestricted_fit(design, regressions, i, output_spread, row_blocks, own)
-    return residual_whiteness(regressions, design.testable, design.n_lag, row_blocks, own)
+        fits[i] = _unrestricted_fit(design, regressions, i, output_spread, row_blocks, own)
+    return fits, residual_whiteness(regressions, design.testable, design.n_lag, row_blocks, own)
 
 
 class _WholeResponses:
