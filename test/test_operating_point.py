@@ -119,3 +119,4 @@ def test_a_candidate_logged_in_its_units_is_added_at_its_operating_point(effect_
     back = analyze(back_model, back_data, AnalysisOptions(repair=False))
     assert back.repair["error_before"] == pytest.approx(rep.repair["error_after"], rel=1e-6)
     assert not any("offset from the logged output" in w for w in back.warnings)
+

@@ -15,6 +15,7 @@ from structure_models import rich_model, step_model
 from test_detection_columns import open_loop
 
 from mpm_monitor.core.elements import sample_parametric
+from mpm_monitor.core.model import PlantModel
 from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.core.repair import RepairOptions, repair_model
 from mpm_monitor.core.repair.forms import _basis, _Form, _step_reference, _tau_of
@@ -275,3 +276,22 @@ def test_the_summary_line_of_a_null_error_says_n_a():
     lines = repair_summary_lines({"changes": [], "error_before": {"y1": None, "y2": 0.02},
                                   "error_after": {"y1": None, "y2": 0.019}})
     assert lines[-1] == "prediction error RMS before -> after repair: y1 n/a -> n/a, y2 0.0200 -> 0.0190"
+
+
+def test_a_repaired_element_that_does_not_settle_within_a_step_response_model_is_named():
+    from mpm_monitor.core.repair.forms import _sampled, unsettled_warning
+
+    model = PlantModel.from_step_response(1.0, ("u1",), ("y1",), np.ones((1, 1, 30)))
+    slow = {"gain": 2.0, "time_constant": 30.0, "delay": 0.0}
+    written = _sampled(slow, 1.0).step_response(31)[1:]
+    share = written[-1] / 2.0                               # 1 - exp(-1), about 63 %
+    w = unsettled_warning(model, 0, 0, slow, written)
+    assert f"reaches only {100 * share:.0f}% of its final value within the model's 30 samples" in w
+    # 97 % of the final value: 3.5 time constants, 105 samples
+    assert "a model of 106 samples would hold it" in w or "a model of 105 samples would hold it" in w
+    fast = {"gain": 2.0, "time_constant": 3.0, "delay": 0.0}
+    assert unsettled_warning(model, 0, 0, fast, _sampled(fast, 1.0).step_response(31)[1:]) is None
+    # the old coefficients scaled (a gain change): not the fitted shape, not named
+    assert unsettled_warning(model, 0, 0, slow, 2.0 * np.ones(30)) is None
+    ramp = PlantModel.from_step_response(1.0, ("u1",), ("y1",), np.arange(1.0, 31.0)[None, None, :], ramp=[True])
+    assert unsettled_warning(ramp, 0, 0, slow, written) is None

@@ -410,6 +410,45 @@ def _step_coefficients(old, ramp: bool, reference: dict, after: dict, changed, t
     return _sampled(after, ts).step_response(n + 1)[1:]
 
 
+#: A re-estimated element written into a step-response model that reaches less than this share of its
+#: final value within the model's N samples is named (:func:`unsettled_warning`).
+SETTLED_SHARE = 0.97
+
+
+def unsettled_warning(model: PlantModel, i: int, j: int, after: dict, written: np.ndarray) -> Optional[str]:
+    """A warning when the fitted element ``after`` does not settle within a step-response model's N samples.
+
+    A step-response model holds each element's last coefficient beyond ``N`` (its last slope on a ramp
+    row): a re-estimated element whose shape was fitted (``written``, the coefficients put into the
+    model, are its sampled step response) and that is still moving at ``N`` is written with the value
+    it reaches there, not its final value (the gain the parametric fit found).  None for a parametric
+    model, a ramp row, an element given as a step response, one whose old coefficients were only
+    scaled or shifted, or one that reaches :data:`SETTLED_SHARE` of its final value within ``N``.
+    """
+    if not model.is_step_response or model.ramp[i] or "step_response" in after or after.get("integrating"):
+        return None
+    gain = float(after.get("gain", 0.0))
+    if gain == 0 or not np.isfinite(gain):
+        return None
+    n, ts = model.step_length, model.sample_time
+    element = _sampled(after, ts)
+    sampled = element.step_response(n + 1)[1:]
+    if not np.array_equal(np.asarray(written, float), sampled):
+        return None
+    reached = float(sampled[-1]) / gain
+    if abs(reached) >= SETTLED_SHARE:
+        return None
+    long = element.step_response(50 * n + 1)
+    inside = np.flatnonzero(np.abs(long / gain - 1.0) > 1.0 - SETTLED_SHARE)
+    needed = int(inside[-1]) + 1 if inside.size else n
+    needed_text = f"{needed}" if inside.size < 50 * n else f"more than {50 * n}"
+    return (f"{model.outputs[i]}: the re-estimated element of {model.columns[j]} (gain {gain:.4g}, its parametric fit "
+            f"in the change's evidence) reaches only {100 * reached:.0f}% of its final value within the model's "
+            f"{n} samples; a step-response model holds its last coefficient beyond them, so the written "
+            f"element's final value is {100 * reached:.0f}% of the fitted gain: a model of {needed_text} samples "
+            f"would hold it")
+
+
 def _element_keys(model: PlantModel, i: int, j: int, after: dict, reference: Optional[dict] = None,
                   changed=()) -> dict:
     """The keyword arguments of :meth:`PlantModel.with_element` that put a fitted element into the model.

@@ -24,6 +24,7 @@ from ..signals import (LoopSignals, compute_signals, error_rms, packed, scored_s
 from .classify import _classify_row
 from .disturbance import unexplained_disturbance
 from .fit import _TooShort
+from .forms import unsettled_warning
 from .options import RepairOptions, _TestSettings
 from .refit import _fit_repair, _refit_on_all
 from .result import ElementVerdict, RepairResult, _unchanged_entry
@@ -549,6 +550,10 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
         for j, el in res.elements.items():
             kinds[(i, j)] = el.kind
             changes.append(el.change_entry(model, i, j))
+            unsettled = unsettled_warning(model, i, j, el.after, el.model_keys(model, i, j).get("step_response")) \
+                if el.apply and model.is_step_response else None
+            if unsettled:
+                warnings.append(unsettled)
     d1 = np.asarray(ev.signals.d, float)
     keep = rec.scored(model, ev.model)
     for i in range(ny):
