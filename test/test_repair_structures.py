@@ -216,6 +216,19 @@ def test_a_ramp_element_of_a_step_response_model_keeps_its_ramp(tmp_path):
     assert report.repaired_model.ramp == model.ramp
 
 
+def test_an_element_a_step_response_model_lacks_on_a_ramp_row_is_fitted_integrating(tmp_path):
+    # Outside hunt 3: fitted first order (a 2000 s lag), its error after the repair 20 times the noise.
+    model = step_model(60)
+    k = np.arange(1, 61)
+    assert not model.present[1, 1] and model.ramp[1]
+    plant = _step_plant(model, 1, 1, np.where(k > 2, 0.03 * (k - 2), 0.0))       # slope 0.03 per second
+    report = analyze(model, open_loop(plant, model, 3000, seed=17, burn_in=300))
+    entry = assert_repaired_in_structure(report, model, plant, ("y2", "u2"), "missing", tmp_path)
+    assert entry["after"]["gain"] == pytest.approx(0.03, rel=REL)                # the last slope, per second
+    assert entry["evidence"]["parametric_after"]["integrating"]
+    assert report.repair["error_after"]["y2"] <= 1.1 * report.repair["error_after"]["y1"]
+
+
 # ----------------------------------------------------------------------------------------------------
 # The pieces
 

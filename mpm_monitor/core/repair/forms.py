@@ -88,14 +88,14 @@ FIRST_ORDER = _Form()
 #: Forms tried, in order, for an element the model lacks: a first-order fit, a second lag where the
 #: data call for it.
 _LADDER_MISSING = (FIRST_ORDER, _Form(n_lags=2))
-#: The same on an integrating output of a parametric model (a level): every effect on it integrates,
-#: as its own elements do (a flow the model lacks, a candidate channel).
+#: The same on an integrating output (a level; a step-response model's ``ramp`` row): every effect on
+#: it integrates, as its own elements do (a flow the model lacks, a candidate channel).
 _LADDER_MISSING_INTEGRATING = (_Form(integrating=True), _Form(n_lags=2, integrating=True))
 
 
 def _missing_ladder(model: PlantModel, i: int) -> tuple:
     """The forms tried for an element the model lacks in row ``i``."""
-    if not model.is_step_response and model.integrating_outputs[i]:
+    if model.integrating_outputs[i]:
         return _LADDER_MISSING_INTEGRATING
     return _LADDER_MISSING
 #: Forms tried, in order, for an element of a step-response model (self-regulating).
