@@ -147,8 +147,6 @@ def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressio
     S = np.zeros((omega.size, ny, ny), dtype=complex)
     row_raw_p = np.full(ny, np.nan)
     row_stat, row_df, row_fit = np.full(ny, np.nan), [(0, 0)] * ny, np.zeros(ny)
-    starts = getattr(reg_r, "block_starts", None)
-    equal_blocks = starts is not None and np.array_equal(starts, n_lag_r * np.arange(len(r_moving) + 1))
     for i, fit in enumerate(regressions.row_fits(reg_r, range(ny))):
         if output_spread is not None:
             fit.set_output_spread(output_spread[i])
@@ -157,12 +155,9 @@ def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressio
         a = fit.own_theta()
         a_poly = 1.0 + z_pow[:, 1:na + 1] @ a
         S[:, i, i] = 1.0
-        if equal_blocks:      # every setpoint's lags 0 .. n_lag_r - 1, one block after the other
-            c = fit.theta[:n_lag_r * len(r_moving)].reshape(len(r_moving), n_lag_r)
-            S[:, i, r_moving] += (z_pow[:, :n_lag_r] @ c.T) / a_poly[:, None]
-        else:
-            for bj, j in enumerate(r_moving):
-                S[:, i, j] += (z_pow[:, :n_lag_r] @ fit.block_theta(bj)) / a_poly
+        # The common coefficients: every moving setpoint's lags 0 .. n_lag_r - 1, one block after the other.
+        c = fit.theta[:fit.n_common].reshape(len(r_moving), n_lag_r)
+        S[:, i, r_moving] += (z_pow[:, :n_lag_r] @ c.T) / a_poly[:, None]
         # Fit of the paper's ARX of eps_i on r (same model, target eps_i).
         e_i = segment_rows(eps[:, i], start, getattr(regressions, "segments", None))
         e_i = e_i - e_i.mean()
