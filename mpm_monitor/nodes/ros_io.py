@@ -31,9 +31,7 @@ from ..core.errors import ConfigurationError, InputError
 from ..core.logged_data import MAX_ANALYSIS_SCALE
 from ..core.options import ParamSpec
 from ..io.qos import DIAGNOSTICS_QOS, VECTOR_QOS, QosSpec
-from ..monitor.window import seconds_text
-
-NS_PER_S = 1_000_000_000
+from ..monitor.window import NS_PER_S, seconds_text
 
 #: The stamped-vector channels and whose names they carry: the model's ``outputs``, ``inputs`` or ``disturbances``.
 CHANNELS = {"setpoint": "outputs", "input": "inputs", "output": "outputs", "dither": "inputs",
