@@ -550,10 +550,10 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
         for j, el in res.elements.items():
             kinds[(i, j)] = el.kind
             changes.append(el.change_entry(model, i, j))
-            unsettled = unsettled_warning(model, i, j, el.after, el.model_keys(model, i, j).get("step_response")) \
-                if el.apply and model.is_step_response else None
-            if unsettled:
-                warnings.append(unsettled)
+            if el.apply and model.is_step_response:     # the coefficients written: the entry's estimate
+                unsettled = unsettled_warning(model, i, j, el.after, changes[-1]["estimate"]["step_response"])
+                if unsettled:
+                    warnings.append(unsettled)
     d1 = np.asarray(ev.signals.d, float)
     keep = rec.scored(model, ev.model)
     for i in range(ny):
