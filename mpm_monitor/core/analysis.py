@@ -130,6 +130,12 @@ class AnalysisOptions:
         long the gaps; a gap longer than ``max_gap`` samples (default None: the longest lag of the
         tests, ``max_delay + nb``) splits the data the same way and is only named louder in the
         warning (:mod:`mpm_monitor.core.gaps`).
+    jobs : int
+        Processes the analysis uses (default 1).  With 2 or more, the work done row by row (the model
+        run, the row test's fits, the element test, the detectability) is split with a forked second
+        process (:mod:`mpm_monitor.core.parallel`); the results are the same bit for bit, since each
+        row is computed by the same code on the same numbers.  A process that runs other threads
+        (a ROS node) never forks: it computes everything itself.  At most 2 are used.
     """
 
     na: int = option(4, "ARX order of A (the first tried; see max_na).", low=0, high=50)
@@ -167,6 +173,8 @@ class AnalysisOptions:
     max_gap: Optional[int] = option(None, "Longest gap in the data (missing samples) called short, samples; longer "
                                           "gaps are named louder in the warning (None: the longest lag of the "
                                           "tests).", low=0, high=10**9)
+    jobs: int = option(1, "Processes the analysis uses: with 2, a forked second process takes half of the rows' "
+                          "work (the same results, bit for bit).", low=1, high=64)
 
     def __post_init__(self):
         for name, value in check_analysis_options(self).items():
@@ -429,7 +437,8 @@ def _column_label(e) -> str:
 
 def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
            signals: Optional[LoopSignals] = None, regressions=None,
-           previous: Optional["AnalysisReport"] = None, candidates=None, detectability: bool = True) -> AnalysisReport:
+           previous: Optional["AnalysisReport"] = None, candidates=None, detectability: bool = True,
+           sigma_max: bool = True) -> AnalysisReport:
     """Run the S_Delta row test and the Delta element test on logged closed-loop data (no repair).
 
     Parameters
@@ -466,6 +475,10 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     detectability : bool
         False: no ``detectable_gain_change`` (None) and no ``experiment`` (e.g. for the detection of a
         repaired model, of which only the rows are reported); the tests are the same.
+    sigma_max : bool
+        False: the identified ``S_Delta``'s largest singular values are not computed (``sigma_max`` and
+        ``overall_rsi`` NaN; for a detection of which only the rows are read, as the repaired model's);
+        the tests and every row's RSI are the same.
 
     Returns
     -------
@@ -484,14 +497,15 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     """
     data = in_deviations(model, data)
     try:
-        return _detect(model, data, options, signals, regressions, previous, candidates, detectability)
+        return _detect(model, data, options, signals, regressions, previous, candidates, detectability,
+                       sigma_max=sigma_max)
     except NUMERICAL_ERRORS as err:
         raise numerical_breakdown(model, data, err) from err
 
 
 def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signals: Optional[LoopSignals],
             regressions, previous: Optional["AnalysisReport"], candidates, detectability: bool,
-            unless_coloured: bool = False):
+            unless_coloured: bool = False, sigma_max: bool = True):
     """:func:`detect` (same arguments), its numerical errors not yet turned into a ``DataFileError``; with
     ``unless_coloured``, :func:`detect_unless_coloured`."""
     # The tests are imported here: the options and the report above are described (the command line's
@@ -528,7 +542,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         raise DataFileError(f"{src}: {n} samples; the tests with na={options.na}, nb={options.nb}, "
                             f"max_delay={layout.max_delay} need at least {layout.min_samples} samples")
     if signals is None:
-        sig = compute_signals(model, r, u, y, options.initial_state, dv=dv) if plan is None else \
+        sig = compute_signals(model, r, u, y, options.initial_state, dv=dv, jobs=options.jobs) if plan is None else \
             segment_signals(model, r, u, y, plan.local_segments, options.initial_state, dv=dv, grid=grid,
                             max_gap=plan.max_gap, fill=data.fill_on_grid())
     else:
@@ -563,7 +577,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         colour = _ElementColour(model, list(range(ny)), columns, layout, regressions, options, spread)
         if colour.noise_order["coloured"]:
             return Coloured(colour.noise_order, sig, None if plan is None else plan.to_dict())
-    row_test = sdelta_row_test(model, r, sig.eps, regressions, layout, options, output_spread=spread)
+    row_test = sdelta_row_test(model, r, sig.eps, regressions, layout, options, output_spread=spread,
+                               singular_values=sigma_max)
     rows = row_test.rows
     warnings = diverging + list(row_test.warnings) + offset_warnings(model, sig.d, y, diverged)
 
@@ -663,7 +678,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     noise_order = _noise_order(model, options, element_test.whiteness) if options.method == "arx" else None
     return AnalysisReport(
         sample_time=model.sample_time, samples=n, method=options.method, alpha=options.alpha, rows=rows,
-        elements=elements, overall_rsi=float(row_test.sigma_max.max()), warnings=warnings,
+        elements=elements, overall_rsi=float(row_test.sigma_max.max()) if sigma_max else float("nan"),
+        warnings=warnings,
         frequencies=row_test.frequencies, row_gains=row_test.row_gains, sigma_max=row_test.sigma_max,
         sdelta_response=row_test.response, arx_tables=element_test.arx_tables, repair=unrepaired,
         repaired_model=model, collinear_groups=design.groups, max_variance_inflation=design.max_vif, signals=sig,

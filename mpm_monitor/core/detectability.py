@@ -59,6 +59,7 @@ import scipy.linalg as sla
 from .element_test import element_window
 from .filters import lfilter
 from .model import PlantModel
+from .parallel import split_map
 from .response_moments import ResponseMoments, target_element, typical_element  # noqa: F401 (re-exported)
 from .response_test import N_ELEMENT_TESTS
 from .statistics import N_FAMILIES, detection_noncentrality
@@ -518,7 +519,7 @@ class WindowInformation:
         return out
 
     def detectable(self, keys, alpha: float, family_size: int, power: float = POWER,
-                   split: Optional[int] = None) -> dict:
+                   split: Optional[int] = None, jobs: int = 1) -> dict:
         """Smallest relative gain change of each element detected with probability ``power``.
 
         Parameters
@@ -532,6 +533,9 @@ class WindowInformation:
         power : float
         split : int, optional
             The window test's share of the level (:meth:`level`; default :attr:`split`).
+        jobs : int
+            With 2, a forked child process computes the second half of the chunks of :data:`CHUNK`
+            elements (:func:`~mpm_monitor.core.parallel.split_map`; the same chunks, the same numbers).
 
         Returns
         -------
@@ -554,9 +558,9 @@ class WindowInformation:
                 out[key] = float(np.sqrt(lam[(k, dof)] * nz.sigma2 / (q * self.n_rows))) if q > 0 else float("inf")
             return out
 
-        value = {}
-        for a in range(0, len(keys), CHUNK):      # every element on its own: chunks bound the memory
-            part = keys[a:a + CHUNK]
+        def chunk(part: list) -> dict:
+            """The values of the elements ``part`` (one chunk, stacked together)."""
+            value = {}
             st = self.stacked(part, H)
             value.update(solve(self.drops(part, H, stacked=st)))
             for _ in range(FIXED_POINT_STEPS):
@@ -570,6 +574,12 @@ class WindowInformation:
                 worse = [solve(dict(zip(live_keys, self.drops(live_keys, H, sign * step, stacked=st_live).tolist())))
                          for sign in (1.0, -1.0)]
                 value.update({k: max(w[k] for w in worse) for k in live_keys})
+            return value
+
+        value = {}
+        # Every element on its own: chunks bound the memory (and are the same whichever process takes them).
+        for part in split_map(chunk, [keys[a:a + CHUNK] for a in range(0, len(keys), CHUNK)], jobs):
+            value.update(part)
         return value
 
 
@@ -631,8 +641,9 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
     # The window test runs at half the level only where the element has the whole-response test too:
     # an element the model lacks has the window test alone, at the full level.
     paired = set(responses or {})
-    values.update(info.detectable([k for k in tested if k in paired], options.alpha, family))
-    values.update(info.detectable([k for k in tested if k not in paired], options.alpha, family, split=1))
+    jobs = getattr(options, "jobs", 1)
+    values.update(info.detectable([k for k in tested if k in paired], options.alpha, family, jobs=jobs))
+    values.update(info.detectable([k for k in tested if k not in paired], options.alpha, family, split=1, jobs=jobs))
     level = info.level(family, options.alpha)
     for key, t in (responses or {}).items():
         if key in values and values[key] is not None and t.information > 0:

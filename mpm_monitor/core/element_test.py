@@ -45,6 +45,7 @@ from .baselines import ELEMENT_TESTS
 from .elements import pulse_response
 from .model import PlantModel
 from .noise_order import residual_whiteness
+from .parallel import split_map
 from .response_test import combined_p_value, element_responses, integrating_element, row_response_tests
 from .statistics import N_FAMILIES, holm_adjust
 
@@ -435,6 +436,22 @@ class _Estimate:
         return combined_p_value(self.test.p_value, None if self.response is None else self.response.p_value)
 
 
+@dataclasses.dataclass
+class _RowPart:
+    """What :func:`arx_element_test` keeps of one row: its noise, element estimates, group hits and
+    table; the fit's blocks and own coefficients for the residual's whiteness (None when exact); the
+    row's moments the whole-response test computed (None when it computed none)."""
+
+    i: int
+    noise: RowNoise
+    estimates: dict
+    group_hits: list
+    table: RowArxTable
+    blocks: Optional[np.ndarray]
+    own: Optional[np.ndarray]
+    moments: object
+
+
 def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regressions, options,
                      moments=None, output_spread: Optional[np.ndarray] = None, fits: Optional[dict] = None,
                      whiteness: Optional[dict] = None) -> ElementTest:
@@ -450,7 +467,8 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
     regressions : QrRegressions or GramRegressions
         The window's least-squares problems (``element_fit``, ``short_arx``).
     options : AnalysisOptions
-        Its ``nb``, ``alpha`` and ``element_window``.
+        Its ``nb``, ``alpha``, ``element_window`` and ``jobs`` (with 2, a forked child process tests
+        half of the rows: :func:`~mpm_monitor.core.parallel.split_map`, the same numbers).
     moments : ResponseMoments, optional
         The window's element responses and their moments with the input lags
         (:class:`~mpm_monitor.core.response_moments.ResponseMoments`, of the same columns, prediction
@@ -478,30 +496,47 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
     estimates, tables, group_hits, noise = {}, [], [], {}
     row_blocks, own = {}, {}
     whole = _WholeResponses(model, design, regressions, options, moments) if options.element_response else None
-    for i in rows:
+
+    def one_row(i: int) -> _RowPart:
+        """Row ``i``'s fit, tests and table: everything the rows' loop keeps of it (a child process
+        computes half of the rows with ``options.jobs`` > 1, :func:`~mpm_monitor.core.parallel.split_map`)."""
         fit = fits.pop(i) if fits is not None else _unrestricted_fit(design, regressions, i, output_spread,
                                                                      row_blocks, own)
-        noise[i] = row_noise(fit)
         tests = fit.test_each_block_zero([element_window(model, i, j, nb, options.element_window) for j in testable])
         responses = whole.tests(i, fit) if whole is not None else {}
         stds = fit.block_stds()
+        row_estimates, hits = {}, []
         for bj, j in enumerate(testable):
             coef = fit.block_theta(bj)
             lag0 = estimate_delay_from_lags(coef, stds[bj], nb, first_lag=1)
-            estimates[(i, j)] = _Estimate(tests[bj], lag0, coef[lag0 - 1:lag0 - 1 + nb].tolist(), responses.get(j))
+            row_estimates[(i, j)] = _Estimate(tests[bj], lag0, coef[lag0 - 1:lag0 - 1 + nb].tolist(), responses.get(j))
         for g in design.groups:
             blocks = [testable.index(names.index(x)) for x in g]
             jt = fit.test_blocks_zero(blocks)
             if np.isfinite(jt.p_value) and \
                     N_FAMILIES * jt.p_value * max(len(rows) * len(design.groups), 1) < alpha:
-                group_hits.append(GroupHit(model.outputs[i], g, jt.p_value))
+                hits.append(GroupHit(model.outputs[i], g, jt.p_value))
         # The paper's table (Tables 1 to 5): a short ARX at the estimated delays, for reporting.
-        nk = np.array([estimates[(i, j)].delay if (i, j) in estimates else 1 for j in range(nu)])
+        nk = np.array([row_estimates[(i, j)].delay if (i, j) in row_estimates else 1 for j in range(nu)])
         short = regressions.short_arx(i, nk)
-        tables.append(RowArxTable(output=model.outputs[i], a=short.a.tolist(),
-                                  b={names[j]: short.b[j].tolist() for j in range(nu)},
-                                  delay={names[j]: int(nk[j]) for j in range(nu)},
-                                  fit_percent=short.fit_percent))
+        table = RowArxTable(output=model.outputs[i], a=short.a.tolist(),
+                            b={names[j]: short.b[j].tolist() for j in range(nu)},
+                            delay={names[j]: int(nk[j]) for j in range(nu)}, fit_percent=short.fit_percent)
+        return _RowPart(i, row_noise(fit), row_estimates, hits, table, row_blocks.get(i), own.get(i),
+                        None if whole is None or whole.moments is None else whole.moments.kept(i))
+
+    for part in split_map(one_row, rows, getattr(options, "jobs", 1)):
+        i = part.i
+        noise[i] = part.noise
+        estimates.update(part.estimates)
+        group_hits.extend(part.group_hits)
+        tables.append(part.table)
+        if part.blocks is not None:         # a child's row: what its fit left there
+            row_blocks[i], own[i] = part.blocks, part.own
+        if part.moments is not None:
+            whole.moments.keep(part.moments)
+        if fits is not None:
+            fits.pop(i, None)
     keys = [k for k in estimates if names[k[1]] not in group_of]
     adj = dict(zip(keys, holm_adjust(np.array([estimates[k].p_value for k in keys])))) if keys else {}
     elements = []

@@ -122,6 +122,11 @@ class RowMoments:
     mu: np.ndarray
     R: Optional[np.ndarray] = None
 
+    def __getstate__(self) -> dict:
+        """The fields, every array contiguous: pickled (to another process) as raw data, out of band,
+        instead of a copy of a strided view (:attr:`zx` is one) into the pickle."""
+        return {k: np.ascontiguousarray(v) if isinstance(v, np.ndarray) else v for k, v in self.__dict__.items()}
+
     def index(self, j: int) -> Optional[int]:
         """Position of column ``j`` in :attr:`found` (None when it has no target element)."""
         for b, f in enumerate(self.found):
@@ -202,6 +207,15 @@ class ResponseMoments:
         if got is None or (keep_samples and got.R is None):
             got = self._rows[i] = self._compute(i, keep_samples)
         return got
+
+    def kept(self, i: int) -> Optional[RowMoments]:
+        """Row ``i``'s moments if computed and kept (None otherwise)."""
+        return self._rows.get(i)
+
+    def keep(self, rm: RowMoments) -> None:
+        """Keep ``rm`` as its row's moments (computed elsewhere: by a child process of the element test,
+        :func:`~mpm_monitor.core.parallel.split_map`), unless the row's are kept already."""
+        self._rows.setdefault(rm.i, rm)
 
     def release(self, i: int) -> None:
         """Drop row ``i``'s responses (its moments stay)."""

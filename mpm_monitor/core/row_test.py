@@ -32,6 +32,7 @@ import numpy as np
 
 from .arx import segment_rows
 from .model import PlantModel
+from .parallel import split_map
 from .statistics import N_FAMILIES, holm_adjust
 
 
@@ -107,7 +108,7 @@ def frequency_grid(band: tuple, n: int) -> np.ndarray:
 
 
 def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressions, layout, options,
-                    output_spread: Optional[np.ndarray] = None) -> RowTest:
+                    output_spread: Optional[np.ndarray] = None, singular_values: bool = True) -> RowTest:
     """The S_Delta row test of every output (see the module docstring).
 
     Parameters
@@ -127,6 +128,10 @@ def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressio
         most :data:`~mpm_monitor.core.statistics.EXACT_FIT` of it is fitted exactly (a log without
         noise): its test is decided outright, not on the rounding of its residual
         (:meth:`~mpm_monitor.core.arx.SharedFit.set_output_spread`).  Default: only a residual of exactly 0.
+    singular_values : bool
+        False: ``sigma_max`` is not computed (NaN; the rows' tests and RSI do not need it).  With
+        ``options.jobs`` 2 a forked child computes the singular values of half of the frequencies
+        (:func:`~mpm_monitor.core.parallel.split_map`; the same numbers).
 
     Returns
     -------
@@ -163,7 +168,12 @@ def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressio
         e_i = e_i - e_i.mean()
         row_fit[i] = 100.0 * (1.0 - math.sqrt(fit.rss) / max(np.linalg.norm(e_i), 1e-300))
     row_gains = np.linalg.norm(S, axis=2).T                       # (ny, n_freq)
-    sigma_max = np.linalg.svd(S, compute_uv=False)[:, 0]
+    if singular_values:
+        half = (omega.size + 1) // 2
+        sigma_max = np.concatenate(split_map(lambda part: np.linalg.svd(S[part], compute_uv=False)[:, 0],
+                                             [slice(0, half), slice(half, omega.size)], getattr(options, "jobs", 1)))
+    else:
+        sigma_max = np.full(omega.size, np.nan)
     row_p = np.minimum(1.0, N_FAMILIES * holm_adjust(row_raw_p))
     rows = []
     for i in range(ny):

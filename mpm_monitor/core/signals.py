@@ -229,7 +229,7 @@ def _rows_reusable(model: PlantModel, other: PlantModel, n: int) -> bool:
 
 
 def compute_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarray,
-                    initial_state: str = "estimate", dv: np.ndarray = None, *, like=None) -> LoopSignals:
+                    initial_state: str = "estimate", dv: np.ndarray = None, *, like=None, jobs: int = 1) -> LoopSignals:
     """Recompute ``yhat``, ``d`` and ``eps`` from logged data.
 
     Parameters
@@ -249,6 +249,11 @@ def compute_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
         computed with the same ``initial_state`` and the whole-model spans of the initial transient
         agree, the rows where the other model's elements equal ``model``'s are taken from them (the
         same numbers) and only the others are computed; otherwise every row is computed.
+    jobs : int
+        With 2 (and no ``like``), a forked child process computes the second half of the rows
+        (:func:`~mpm_monitor.core.parallel.split_map`): each row is its own simulation and fit, so the
+        numbers are the same.  A model with a direct feedthrough is computed in one process (its
+        feedthrough is one product of every row).
 
     Returns
     -------
@@ -274,6 +279,15 @@ def compute_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
         for key in ("yhat", "d", "eps", "transient"):
             getattr(out, key)[:, rows] = getattr(part, key)
         return out
+    ny = model.n_outputs
+    if jobs > 1 and ny > 1 and not np.any(discretize(model).feedthrough != 0):
+        from .parallel import split_map
+
+        half = (ny + 1) // 2
+        parts = split_map(lambda rows: _row_signals(model, r[:, rows], u, y[:, rows], initial_state, dv, rows),
+                          [list(range(half)), list(range(half, ny))], jobs)
+        return LoopSignals(*(np.concatenate([getattr(p, key) for p in parts], axis=1)
+                             for key in ("yhat", "d", "eps", "transient")), initial_state=initial_state)
     return _row_signals(model, r, u, y, initial_state, dv, None)
 
 

@@ -1,0 +1,201 @@
+"""Work shared with a second process: a fork, its result back through a pipe.
+
+The analysis holds Python's global interpreter lock almost throughout (many numpy calls on arrays of
+a few thousand numbers, row after row), so threads cannot put a second core to use; a forked process
+can.  A fork copies nothing up front (the child reads the parent's arrays through copy-on-write
+pages), and the child sends back only its result, pickled.  What it computes is the same code on the
+same numbers as in the parent, so a split computation gives the same result bit for bit as the
+computation in one process.
+
+:class:`Forked` runs one function in a child; :func:`split_map` runs a function over items, part of
+them in a child.  Both run everything in the calling process when ``jobs`` is 1, when the platform
+has no ``fork``, or when the calling process runs other threads (a fork copies only the calling
+thread, and a lock another thread held at that moment stays locked in the child: the ROS nodes'
+executors and DDS threads; the live monitor's analysis runs in a process of its own, started with
+``spawn``).
+
+Errors: an exception raised in the child is raised again in the parent (the original type when it
+pickles, otherwise a :class:`ChildProcessError` naming it).  A child that dies without a result
+raises :class:`ChildProcessError`.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import struct
+import threading
+from typing import Callable, Sequence
+
+#: Items below which :func:`split_map` does not fork (the fork and the pickling cost more).
+MIN_SPLIT = 2
+
+
+def usable_cpus() -> int:
+    """The cores this process may run on (its CPU affinity), at least 1."""
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except (AttributeError, OSError):
+        return max(os.cpu_count() or 1, 1)
+
+
+def default_jobs() -> int:
+    """Processes an analysis started from the command line uses: 2 where two cores are usable, else 1."""
+    return min(usable_cpus(), 2)
+
+
+def can_fork() -> bool:
+    """Whether :class:`Forked` may fork here: the platform has ``fork`` and this process runs no other thread."""
+    return hasattr(os, "fork") and threading.active_count() == 1
+
+
+class Forked:
+    """``fn()`` computed in a forked child process; :meth:`result` waits for it.
+
+    Parameters
+    ----------
+    fn : callable
+        Called without arguments in the child; its return value must pickle.
+    inline : bool
+        Compute ``fn()`` here, at construction (no child), as when the process cannot fork.
+    """
+
+    def __init__(self, fn: Callable[[], object], inline: bool = False):
+        self._pid = None
+        self._value = None
+        if inline or not can_fork():
+            self._value = _outcome(fn)
+            return
+        read_end, write_end = os.pipe()
+        pid = os.fork()
+        if pid == 0:                       # the child: compute, send, leave without running any cleanup
+            try:
+                os.close(read_end)
+                _send(write_end, _outcome(fn))
+            finally:
+                os._exit(0)
+        os.close(write_end)
+        self._pid, self._read = pid, read_end
+
+    def result(self):
+        """The value of ``fn()``, or its exception raised again."""
+        if self._pid is not None:
+            try:
+                self._value = _receive(self._read)
+            except (EOFError, OSError, pickle.UnpicklingError, ValueError) as exc:
+                self._value = (False, ChildProcessError(f"the analysis's second process died without a result ({exc})"))
+            finally:
+                os.close(self._read)
+                os.waitpid(self._pid, 0)
+                self._pid = None
+        ok, value = self._value
+        if ok:
+            return value
+        raise value
+
+
+def _outcome(fn):
+    """``(True, fn())`` or ``(False, the exception)``."""
+    try:
+        return True, fn()
+    except BaseException as exc:  # noqa: BLE001 - raised again in the parent
+        return False, exc
+
+
+#: Bytes of the header of a message: the pickle's length and the number of its buffers.
+_HEADER = struct.Struct("<QQ")
+
+
+def _pickled(outcome) -> tuple:
+    """``(pickle, buffers)`` of ``outcome``: protocol 5, the arrays' data left out of band (sent as they are,
+    without a copy into the pickle); an exception that does not pickle becomes a ChildProcessError naming it."""
+    buffers = []
+    try:
+        return pickle.dumps(outcome, protocol=5, buffer_callback=buffers.append), buffers
+    except Exception as exc:  # noqa: BLE001
+        ok, value = outcome
+        what = f"{type(value).__name__}: {value}" if not ok else f"a result that does not pickle ({exc})"
+        return pickle.dumps((False, ChildProcessError(f"the analysis's second process: {what}"))), []
+
+
+def _send(fd: int, outcome) -> None:
+    """Write ``outcome`` to the pipe ``fd``: a header, the pickle, the sizes of its buffers, the buffers."""
+    data, buffers = _pickled(outcome)
+    views = [b.raw() for b in buffers]
+    _widen(fd)
+    _write_all(fd, _HEADER.pack(len(data), len(views)) + data
+               + struct.pack(f"<{len(views)}Q", *(v.nbytes for v in views)))
+    for v in views:
+        _write_all(fd, v)
+
+
+def _receive(fd: int):
+    """Read what :func:`_send` wrote to the pipe ``fd``; the arrays are built on the bytes read, without a copy."""
+    _widen(fd)
+    size, count = _HEADER.unpack(_read_exactly(fd, _HEADER.size))
+    data = _read_exactly(fd, size)
+    sizes = struct.unpack(f"<{count}Q", _read_exactly(fd, 8 * count))
+    return pickle.loads(data, buffers=[_read_exactly(fd, n) for n in sizes])
+
+
+def _widen(fd: int) -> None:
+    """Ask for a pipe buffer of 1 MiB (Linux; fewer switches between the processes), if allowed."""
+    try:
+        import fcntl
+
+        fcntl.fcntl(fd, getattr(fcntl, "F_SETPIPE_SZ", 1031), 1 << 20)
+    except (ImportError, OSError):
+        pass
+
+
+def _write_all(fd: int, data) -> None:
+    view = memoryview(data).cast("B")
+    while view.nbytes:
+        view = view[os.write(fd, view):]
+
+
+def _read_exactly(fd: int, n: int) -> bytearray:
+    """``n`` bytes from ``fd``; EOFError when the pipe closes before."""
+    out = bytearray(n)
+    view, got = memoryview(out), 0
+    while got < n:
+        k = os.readv(fd, [view[got:]])
+        if k == 0:
+            raise EOFError(f"the pipe closed after {got} of {n} bytes")
+        got += k
+    return out
+
+
+def split_map(fn: Callable[[object], object], items: Sequence, jobs: int = 1) -> list:
+    """``[fn(x) for x in items]``, the second half of ``items`` computed in a forked child when ``jobs`` > 1.
+
+    The results come back in the order of ``items``; each is computed by the same code on the same
+    numbers as in one process.  Side effects of ``fn`` in the child (caches, dicts it fills) stay in the
+    child: ``fn`` must return all that the caller needs.
+
+    Parameters
+    ----------
+    fn : callable
+        One item -> its result (which must pickle).
+    items : sequence
+    jobs : int
+        Processes to use (at most 2 are used).
+
+    Returns
+    -------
+    list
+    """
+    items = list(items)
+    if jobs <= 1 or len(items) < MIN_SPLIT or not can_fork():
+        return [fn(x) for x in items]
+    half = (len(items) + 1) // 2
+    child = Forked(lambda: [fn(x) for x in items[half:]])
+    try:
+        mine = [fn(x) for x in items[:half]]
+    except BaseException:
+        try:
+            child.result()            # reap the child; the parent's own error is the one raised
+        except BaseException:  # noqa: BLE001
+            pass
+        raise
+    return mine + child.result()

@@ -1,0 +1,129 @@
+"""The second process of the analysis (:mod:`mpm_monitor.core.parallel`): results, errors, and an
+analysis split over two processes equal to one in a single process, bit for bit."""
+
+import json
+import os
+import threading
+
+import numpy as np
+import pytest
+
+from mpm_monitor.apps.reproduce import simulate_case
+from mpm_monitor.core import parallel
+from mpm_monitor.core.analysis import AnalysisOptions, detect
+from mpm_monitor.core.parallel import Forked, split_map
+from mpm_monitor.core.pipeline import analyze
+
+pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
+
+
+def test_forked_runs_in_another_process_and_returns_arrays_bit_for_bit():
+    rng = np.random.default_rng(0)
+    big = rng.standard_normal((700, 900))             # out of band, 5 MB: more than a pipe holds
+    strided = big[:, ::3]                            # not contiguous: pickled in band
+    result = Forked(lambda: (os.getpid(), big * 2.0, strided.copy(), {"k": [1, 2.5, "x"]})).result()
+    assert result[0] != os.getpid()
+    assert np.array_equal(result[1], big * 2.0)
+    assert np.array_equal(result[2], strided)
+    assert result[3] == {"k": [1, 2.5, "x"]}
+
+
+def test_an_error_in_the_child_is_raised_in_the_parent():
+    def fails():
+        raise KeyError("no such row")
+    with pytest.raises(KeyError, match="no such row"):
+        Forked(fails).result()
+
+
+def test_an_error_that_does_not_pickle_is_named():
+    class Local(Exception):      # a local class does not pickle
+        pass
+
+    def fails():
+        raise Local("a local error")
+    with pytest.raises(ChildProcessError, match="Local: a local error"):
+        Forked(fails).result()
+
+
+def test_a_child_that_dies_is_a_child_process_error():
+    with pytest.raises(ChildProcessError, match="died without a result"):
+        Forked(lambda: os._exit(3)).result()
+
+
+def test_split_map_keeps_the_order_and_computes_the_second_half_elsewhere():
+    parent = os.getpid()
+    out = split_map(lambda x: (x * x, os.getpid()), range(7), jobs=2)
+    assert [v for v, _ in out] == [x * x for x in range(7)]
+    assert {p for _, p in out[:4]} == {parent}
+    assert all(p != parent for _, p in out[4:])
+    assert split_map(lambda x: os.getpid(), range(7), jobs=1) == [parent] * 7
+
+
+def test_side_effects_of_the_child_stay_there():
+    seen = []
+    split_map(seen.append, range(6), jobs=2)
+    assert seen == [0, 1, 2]
+
+
+def test_a_process_with_other_threads_does_not_fork():
+    stop = threading.Event()
+    worker = threading.Thread(target=stop.wait)
+    worker.start()
+    try:
+        assert not parallel.can_fork()
+        assert split_map(lambda x: os.getpid(), range(4), jobs=2) == [os.getpid()] * 4
+        assert Forked(os.getpid).result() == os.getpid()
+    finally:
+        stop.set()
+        worker.join()
+
+
+def test_the_parents_own_error_wins_and_the_child_is_reaped():
+    def f(x):
+        if x == 0 and os.getpid() == parent:
+            raise ValueError("parent's row")
+        return x
+    parent = os.getpid()
+    with pytest.raises(ValueError, match="parent's row"):
+        split_map(f, range(4), jobs=2)
+    with pytest.raises(ChildProcessError):
+        os.waitpid(-1, os.WNOHANG)                   # no child left behind
+
+
+@pytest.fixture(scope="module")
+def case_32():
+    case, data, _ = simulate_case("3.2", 3000, 1000)
+    return case, data
+
+
+def _json(report) -> str:
+    return json.dumps(report.to_dict(), sort_keys=True)
+
+
+@pytest.mark.parametrize("gaps", [False, True])
+def test_an_analysis_in_two_processes_equals_one_in_one_process(case_32, gaps):
+    case, data = case_32
+    if gaps:
+        keep = np.ones(data.n_samples, bool)
+        keep[[300, 301, 1700]] = False
+        data = data.take(np.flatnonzero(keep))
+    one = analyze(case.model, data, AnalysisOptions(jobs=1))
+    two = analyze(case.model, data, AnalysisOptions(jobs=2))
+    assert one.located_elements                       # the case's mismatch is found, with its repair
+    assert _json(one) == _json(two)
+
+
+def test_a_detection_in_two_processes_equals_one_in_one_process_without_the_response_test(case_32):
+    case, data = case_32
+    options = dict(repair=False, element_response=False)
+    assert _json(detect(case.model, data, AnalysisOptions(jobs=1, **options))) == \
+        _json(detect(case.model, data, AnalysisOptions(jobs=2, **options)))
+
+
+def test_the_repaired_models_detection_skips_only_the_singular_values(case_32):
+    case, data = case_32
+    full = detect(case.model, data, AnalysisOptions(repair=False))
+    rows_only = detect(case.model, data, AnalysisOptions(repair=False), sigma_max=False)
+    assert np.isnan(rows_only.overall_rsi) and np.all(np.isnan(rows_only.sigma_max))
+    assert [r.rsi for r in rows_only.rows] == [r.rsi for r in full.rows]
+    assert rows_only.located_elements == full.located_elements
