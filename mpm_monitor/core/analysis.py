@@ -554,14 +554,14 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
             sig = LoopSignals(*(plan.take(x) for x in (sig.yhat, sig.d, sig.eps, sig.transient)))
     if regressions is None and plan is None:
         z = sig.eps - r   # = -d: zero-mean noise under "no mismatch"
-        regressions = window_regressions(r, columns, z, sig.d, layout, options.na, options.nb)
+        regressions = window_regressions(r, columns, z, sig.d, layout, options.na, options.nb, jobs=options.jobs)
         if previous is not None and previous.regressions is not None:
             regressions.reuse_rows_of(previous.regressions)
     elif regressions is None:
         # Each segment's d centred on its own (its level restarts with its model output).
         d = np.vstack([sig.d[a:b] - sig.d[a:b].mean(axis=0) for a, b in plan.local_segments])
         regressions = window_regressions(r, columns, -d, d, layout, options.na, options.nb,
-                                         segments=plan.local_segments)
+                                         segments=plan.local_segments, jobs=options.jobs)
 
     # A fit that leaves at most EXACT_FIT of its output's spread is exact (a log without noise): its tests
     # decide outright instead of on the rounding of its residual.  The spread is the larger of the

@@ -63,6 +63,7 @@ from scipy.linalg import blas
 
 from .arx import RANK_TOLERANCE, ArxFit, SharedBlockRegression, SharedFit, fit_arx, segment_lag_matrix, segment_rows
 from .model import PlantModel
+from .parallel import split_map
 
 #: Largest condition number of the scaled regressors for which a regression is solved from its Gram
 #: matrix: the normal equations then lose at most about 1e6 * 1e-16 = 1e-10 (relative).
@@ -287,7 +288,8 @@ def _column_runs(col_channel: np.ndarray, col_lag: np.ndarray) -> list:
     return runs
 
 
-def lagged_cross_products(values: np.ndarray, col_channel: np.ndarray, col_lag: np.ndarray, max_lag: int):
+def lagged_cross_products(values: np.ndarray, col_channel: np.ndarray, col_lag: np.ndarray, max_lag: int,
+                          jobs: int = 1):
     """Cross products and sums of lagged columns, from ``max_lag + 1`` products of the unlagged signals.
 
     Column ``c`` holds ``x_{ch(c)}(t - lag(c))`` over the rows ``t = max_lag .. n - 1`` of ``values``.
@@ -316,6 +318,9 @@ def lagged_cross_products(values: np.ndarray, col_channel: np.ndarray, col_lag: 
     col_channel, col_lag : ndarray of int, shape (p,)
         Channel and lag (``0 .. max_lag``) of every column.
     max_lag : int
+    jobs : int
+        With 2, a forked child process takes the products of half of the lag differences
+        (:func:`~mpm_monitor.core.parallel.split_map`; each is the same product, the same numbers).
 
     Returns
     -------
@@ -344,13 +349,13 @@ def lagged_cross_products(values: np.ndarray, col_channel: np.ndarray, col_lag: 
     tail = x[L + n - 1:n - 1:-1] if L else x[:0]            # x(e - 1), ..., x(e - L)
     # base[delta][a, k] = sum_{t=s}^{e-1} x_a(t) x_b(t - delta) for b = b_need[delta][k], the channels
     # that appear lagged by delta more than some a (others are never needed).
-    b_need, base = [], []
+    b_need, b_cols = [], []
     for delta in range(n_delta):
         need = np.flatnonzero(used & (lag_hi - lowest >= delta))
         contiguous = need.size and need[-1] - need[0] + 1 == need.size
-        b_cols = slice(need[0], need[-1] + 1) if contiguous else need        # a view, not a copy
+        b_cols.append(slice(need[0], need[-1] + 1) if contiguous else need)     # a view, not a copy
         b_need.append(need)
-        base.append(cur.T @ x[L - delta:L - delta + n, b_cols])
+    base = split_map(lambda delta: cur.T @ x[L - delta:L - delta + n, b_cols[delta]], range(n_delta), jobs)
     # corr[delta]: the head and tail corrections of the smaller lag m, summed over k < min(m, L - delta)
     # (n_corr[delta] terms so far).
     corr = [np.zeros_like(g) for g in base]
@@ -459,16 +464,16 @@ class LaggedGram:
         self.sums += sign * phi.sum(axis=0)
         self._full = None
 
-    def rebuild(self, buf: SampleBuffer, a: int, b: int, ref: np.ndarray) -> None:
+    def rebuild(self, buf: SampleBuffer, a: int, b: int, ref: np.ndarray, jobs: int = 1) -> None:
         """Recompute from scratch over rows ``a .. b - 1`` with a new reference ``ref`` (n_channels,).
 
-        Uses the shift structure of the lagged columns (:func:`lagged_cross_products`), which fills both
-        triangles: the matrix is its own :meth:`symmetric` until an update.
+        Uses the shift structure of the lagged columns (:func:`lagged_cross_products`, with ``jobs``),
+        which fills both triangles: the matrix is its own :meth:`symmetric` until an update.
         """
         self.ref = np.asarray(ref, dtype=float).copy()
         if b > a:
             values = self.channel_values(buf.rows(a - self.max_lag, b)) - self.ref
-            self.gram, self.sums = lagged_cross_products(values, self.col_channel, self.col_lag, self.max_lag)
+            self.gram, self.sums = lagged_cross_products(values, self.col_channel, self.col_lag, self.max_lag, jobs)
         else:
             self.gram = np.zeros((self.n_columns, self.n_columns))
             self.sums = np.zeros(self.n_columns)
@@ -1186,7 +1191,7 @@ class GramRegressions:
 
 
 def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
-                       max_condition: float = DEFAULT_MAX_CONDITION, segments=None) -> GramRegressions:
+                       max_condition: float = DEFAULT_MAX_CONDITION, segments=None, jobs: int = 1) -> GramRegressions:
     """The tests' regressions on one window, from Gram matrices built at once (the batch analysis).
 
     Both Gram matrices are computed from the window's signals by :func:`lagged_cross_products`,
@@ -1207,6 +1212,9 @@ def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
         Data with gaps: the contiguous runs of rows ``(first, end)`` of the signals; each gives the
         regression rows ``first + start .. end - 1`` and the Gram matrices are their sums, so that no
         row's lags reach across a gap.  Default: one run.
+    jobs : int
+        Processes the Gram matrices' products are split over (:func:`lagged_cross_products`; one run
+        only: with segments each is computed here).
 
     Returns
     -------
@@ -1226,8 +1234,8 @@ def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
     if segments is None:
         regs.batch = True
         start = min(layout.start, n)
-        row_gram.rebuild(buf, start, n, regs.row_means)
-        input_gram.rebuild(buf, start, n, regs.input_means)
+        row_gram.rebuild(buf, start, n, regs.row_means, jobs)
+        input_gram.rebuild(buf, start, n, regs.input_means, jobs)
         return regs
     for gram, means in ((row_gram, regs.row_means), (input_gram, regs.input_means)):
         total, sums, rows = 0.0, 0.0, 0
