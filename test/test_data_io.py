@@ -388,3 +388,187 @@ def test_a_file_of_plain_numbers_takes_the_fast_path(tmp_path, monkeypatch):
     for key, ref in (("t", t), ("r", r), ("u", u), ("y", y)):
         np.testing.assert_array_equal(getattr(data, key), ref)
     assert list(data.extra) == ["feed"]
+
+
+# --------------------------------------------------------------------------- the read started in a child process
+
+
+def _children() -> set:
+    """Process ids of this process's children (Linux /proc), or None where /proc does not list them."""
+    import os
+    from pathlib import Path
+
+    tasks = Path(f"/proc/{os.getpid()}/task")
+    try:
+        return {int(p) for f in tasks.glob("*/children") for p in f.read_text().split()}
+    except OSError:
+        return None
+
+
+def _outcome(read):
+    """``("data", LoggedData)`` or ``("error", message)``."""
+    try:
+        return "data", read()
+    except DataFileError as exc:
+        return "error", str(exc)
+
+
+def _assert_same_bits(a, b):
+    """The same arrays bit for bit (dtype, shape, bytes), the same extra columns and unusable ones."""
+    for key in ("t", "r", "u", "y", "dv"):
+        x, y = getattr(a, key), getattr(b, key)
+        assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes(), key
+    assert list(a.extra) == list(b.extra) and a.unusable == b.unusable
+    for name in a.extra:
+        assert a.extra[name].dtype == b.extra[name].dtype and a.extra[name].tobytes() == b.extra[name].tobytes(), name
+    assert (a.source, a.sample_time, a.inputs, a.outputs) == (b.source, b.sample_time, b.inputs, b.outputs)
+
+
+def _big_log(tmp_path, n=2000):
+    """A log of random full-precision floats of all magnitudes, with a numeric and a non-numeric extra column."""
+    rng = np.random.default_rng(5)
+    model = _model(0.1)
+    t = np.arange(n) * 0.1
+    scale = 10.0 ** rng.integers(-300, 300, size=(n, 1))
+    r, u, y = rng.normal(size=(n, 2)) * scale, rng.normal(size=(n, 3)), rng.normal(size=(n, 2)) * 1e-7
+    path = tmp_path / "big.csv"
+    write_csv(path, t, r, u, y, model.inputs, model.outputs, extra={"feed": rng.normal(size=n)})
+    lines = path.read_text(encoding="utf-8").splitlines()
+    lines = [lines[0] + ",note"] + [f"{line},{'x' if k % 7 == 3 else k}" for k, line in enumerate(lines[1:])]
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path, model
+
+
+def _started_variants(tmp_path):
+    """``{name: (path, model)}``: every good variant, the big log, the big log with a BOM and CRLF."""
+    out = {name: (_write(tmp_path, text, f"{k}.csv"), _model()) for k, (name, text) in enumerate(GOOD_VARIANTS.items())}
+    path, model = _big_log(tmp_path)
+    out["big"] = (path, model)
+    text = path.read_text(encoding="utf-8").replace("\n", "\r\n")
+    out["big, BOM and CRLF"] = (_write(tmp_path, b"\xef\xbb\xbf" + text.encode("utf-8"), "bom.csv"), model)
+    return out
+
+
+def test_a_started_read_gives_the_same_data_bit_for_bit(tmp_path, monkeypatch):
+    """The fast parse in a child, the same in one process and the careful parser: the same arrays."""
+    from mpm_monitor.io import csv_log
+    from mpm_monitor.io.csv_log import start_csv_read
+
+    for name, (path, model) in _started_variants(tmp_path).items():
+        here = read_csv(path, model)
+        started = read_csv(path, model, started=start_csv_read(path))
+        _assert_same_bits(here, started)
+        with monkeypatch.context() as mp:
+            mp.setattr(csv_log, "_fast_table", lambda *args: None)
+            careful = read_csv(path, model)
+        _assert_same_bits(here, careful)
+    assert list(started.extra) == ["feed"] and started.unusable == {"note": "not numeric: line 5 holds 'x'"}
+
+
+def test_the_childs_table_is_the_one_read(tmp_path, monkeypatch):
+    """Once started, the parent does not parse the file again: numpy's parse here would fail the test."""
+    from mpm_monitor.core.parallel import can_fork
+    from mpm_monitor.io import csv_log
+    from mpm_monitor.io.csv_log import start_csv_read
+
+    if not can_fork():
+        pytest.skip("this process runs threads: the parse runs in it")
+    path, model = _big_log(tmp_path)
+    reference = read_csv(path, model)
+    started = start_csv_read(path)
+
+    def no_parse_here(text):
+        raise AssertionError("parsed in the parent")
+
+    monkeypatch.setattr(csv_log, "_fast_cells", no_parse_here)
+    _assert_same_bits(read_csv(path, model, started=started), reference)
+
+
+@pytest.mark.parametrize("failure", ["raises", "dies", "no fork"])
+def test_a_failing_child_leaves_the_parse_to_the_parent(tmp_path, monkeypatch, failure):
+    """A child that raises or dies without a result, or no child at all: the parent reads as today."""
+    import os
+
+    from mpm_monitor.core import parallel
+    from mpm_monitor.io import csv_log
+    from mpm_monitor.io.csv_log import start_csv_read
+
+    path, model = _big_log(tmp_path)
+    reference = read_csv(path, model)
+    if failure == "no fork":
+        monkeypatch.setattr(parallel, "can_fork", lambda: False)
+    elif not parallel.can_fork():
+        pytest.skip("this process runs threads: no child")
+    elif failure == "raises":
+        monkeypatch.setattr(csv_log, "_cells_of_bytes", lambda raw: 1 / 0)
+    else:
+        monkeypatch.setattr(csv_log, "_cells_of_bytes", lambda raw: os._exit(3))
+    started = start_csv_read(path)
+    monkeypatch.undo()
+    _assert_same_bits(read_csv(path, model, started=started), reference)
+
+
+@pytest.mark.parametrize("case", sorted(BAD_FILES))
+def test_a_started_read_refuses_a_bad_file_with_the_same_message(tmp_path, case):
+    from mpm_monitor.io.csv_log import start_csv_read
+
+    path = _write(tmp_path, BAD_FILES[case][0])
+    before = _children()
+    here = _outcome(lambda: read_csv(path, _model()))
+    started = _outcome(lambda: read_csv(path, _model(), started=start_csv_read(path)))
+    assert here[0] == "error" and started == here
+    assert before is None or _children() == before          # the child was waited for
+
+
+def test_a_started_read_of_other_files_reads_them_as_today(tmp_path):
+    """A missing file, a directory, a header in Latin-1 (an extra column's: read; a needed one's: refused)."""
+    from mpm_monitor.io.csv_log import start_csv_read
+
+    lines = _text([HEADER + ",temp"] + [r + ",20.5" for r in _rows()]).encode("utf-8")
+    latin1_extra = _write(tmp_path, lines.replace(b"temp", b"temp\xb0C", 1), "latin1_extra.csv")
+    latin1_needed = _write(tmp_path, lines.replace(b"u1", b"\xfc1", 1), "latin1_needed.csv")
+    for path in (tmp_path / "missing.csv", tmp_path, latin1_extra, latin1_needed):
+        here = _outcome(lambda: read_csv(path, _model()))
+        started = _outcome(lambda: read_csv(path, _model(), started=start_csv_read(path)))
+        assert started[0] == here[0], path
+        if here[0] == "error":
+            assert started == here
+        else:
+            _assert_same_bits(started[1], here[1])
+            assert started[1].unusable == {"temp\ufffdC": "its name in the header is not UTF-8 text"}
+
+
+def test_a_started_read_of_another_file_is_a_programming_error(tmp_path):
+    from mpm_monitor.io.csv_log import start_csv_read
+
+    path = _write(tmp_path, _text([HEADER] + _rows()))
+    with pytest.raises(ValueError, match="started is the read of"):
+        read_csv(path, _model(), started=start_csv_read(tmp_path / "other.csv"))
+
+
+def test_analyze_waits_for_the_child_when_the_model_is_refused(tmp_path, capsys):
+    """A refused model file: its one-line error, and no child process left behind."""
+    from mpm_monitor.apps.cli import main
+
+    path, _ = _big_log(tmp_path)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("sample_time: [\n", encoding="utf-8")
+    before = _children()
+    assert main(["analyze", "--model", str(bad), "--data", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {bad}") and len(err.splitlines()) == 1, err
+    assert before is None or _children() == before
+
+
+def test_help_starts_no_read():
+    """``--help`` imports no reader and starts no child process (it is as fast as the argument parser)."""
+    import subprocess
+    import sys
+
+    code = ("import sys\nfrom mpm_monitor.apps.cli import main\n"
+            "for argv in (['--help'], ['analyze', '--help'], ['simulate', '--help']):\n"
+            "    try:\n        main(argv)\n    except SystemExit:\n        pass\n"
+            "print(sorted(m for m in ('mpm_monitor.io.csv_log', 'mpm_monitor.core.parallel', 'scipy') "
+            "if m in sys.modules), file=sys.stderr)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and proc.stderr.strip() == "[]", proc.stderr

@@ -180,18 +180,32 @@ def _cmd_recover(args) -> int:
 
 
 def _cmd_analyze(args) -> int:
+    for path, what in ((args.json_out, "--json"), (args.repair_out, "--repair-out")):
+        if path and path != "-":
+            _check_output_file(path, what)
+    if not args.data:
+        return _analyze(args, None)
+    # The CSV's C parse runs in a child process while this one imports the analysis and loads the model.
+    from ..io.csv_log import start_csv_read
+
+    started = start_csv_read(args.data)
+    try:
+        return _analyze(args, started)
+    finally:
+        started.close()
+
+
+def _analyze(args, started) -> int:
+    """``analyze`` once its output files are checked; ``started``: the CSV's read (:func:`start_csv_read`)."""
     from ..core.logged_data import NUMERICAL_ERRORS, check_scale
     from ..core.pipeline import analyze
     from ..io.csv_log import read_csv
     from ..io.model_file import load_model, save_model
 
-    for path, what in ((args.json_out, "--json"), (args.repair_out, "--repair-out")):
-        if path and path != "-":
-            _check_output_file(path, what)
     model = load_model(args.model)
     options = _analysis_options(args)
     if args.data:
-        data = read_csv(args.data, model)
+        data = read_csv(args.data, model, started=started)
     else:
         from ..io.bags import read_bag
 

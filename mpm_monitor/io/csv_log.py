@@ -12,6 +12,13 @@ Reading has two paths that give the same result.  numpy's C parser (``numpy.load
 of plain numbers (a 10,000-line file of 61 columns in about a quarter of a second); anything it
 does not take, or that the checks below refuse, is read again by the careful parser (the ``csv``
 module and one ``float`` per cell), which names the line and column of the first problem.
+
+The command line starts the C parse early (:func:`start_csv_read`): the file's bytes are read and
+numpy's parse of them runs in a forked child (:class:`~mpm_monitor.core.parallel.Forked`) while the
+command imports the analysis and loads the model; :func:`read_csv` then takes the child's table.
+The child runs only what needs no model (the same :func:`_fast_cells` on the same bytes); every check
+against the model, and every message, stays in :func:`parse_csv_text`, so the result and the errors
+are those of a read in one process.
 """
 
 from __future__ import annotations
@@ -19,7 +26,9 @@ from __future__ import annotations
 import csv
 import io
 import math
+import os
 import re
+import stat
 import warnings
 from pathlib import Path
 
@@ -28,6 +37,7 @@ import numpy as np
 from ..core.errors import DataFileError
 from ..core.logged_data import LoggedData
 from ..core.model import PlantModel
+from ..core.parallel import Forked
 from .files import read_text
 
 #: Relative tolerance on the sample spacing, as a fraction of the sample time.
@@ -105,7 +115,7 @@ def write_log_csv(path, log) -> None:
               disturbances=getattr(log, "disturbances", ()), extra=getattr(log, "extra", None))
 
 
-def read_csv(path, model: PlantModel) -> LoggedData:
+def read_csv(path, model: PlantModel, started: "StartedCsvRead | None" = None) -> LoggedData:
     """Read and validate a CSV log against a model.
 
     Parameters
@@ -113,6 +123,9 @@ def read_csv(path, model: PlantModel) -> LoggedData:
     path : str or Path
     model : PlantModel
         Gives the channel names (outputs, inputs, measured disturbances) and the sample time.
+    started : StartedCsvRead, optional
+        :func:`start_csv_read` of the same ``path``: its bytes and its child's parse are used (and the
+        child is waited for, whatever the outcome).  The result and the errors are the same as without.
 
     Returns
     -------
@@ -126,6 +139,17 @@ def read_csv(path, model: PlantModel) -> LoggedData:
     DataFileError
         One line naming the file, the line and the column.
     """
+    if started is not None:
+        if str(started.path) != str(path):
+            started.close()
+            raise ValueError(f"read_csv({str(path)!r}): started is the read of {str(started.path)!r}")
+        try:
+            text = started.text()
+            if text is not None:
+                return parse_csv_text(text, model, source=str(path), cells=started.cells)
+        finally:
+            started.close()
+        # not read or not UTF-8: the reading below says so, or reads the foreign header, as without `started`
     try:
         text = read_text(path, DataFileError, "data file", "a CSV file", encoding="utf-8-sig")
     except DataFileError:
@@ -170,8 +194,96 @@ def _text_with_a_foreign_header(path):
     return head_text + body_text
 
 
-def parse_csv_text(text: str, model: PlantModel, source: str = "data") -> LoggedData:
-    """Parse the text of a CSV log (see :func:`read_csv`)."""
+def start_csv_read(path) -> "StartedCsvRead":
+    """Read a CSV log's bytes now and start numpy's C parse of them in a forked child.
+
+    For :func:`read_csv` (its ``started``), which checks the table against the model: meanwhile the
+    caller does other work (the command line imports the analysis and loads the model).  Nothing is
+    refused here: a file that cannot be read, that is not UTF-8 or that the C parser does not take
+    is read by :func:`read_csv` as without a start, with the same messages.  In a process that runs
+    other threads, or without ``fork``, the parse runs here at once (:class:`~mpm_monitor.core.parallel.Forked`).
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    StartedCsvRead
+        To pass to :func:`read_csv`; :meth:`StartedCsvRead.close` it when it is not read.
+    """
+    return StartedCsvRead(path)
+
+
+class StartedCsvRead:
+    """A CSV log's bytes and the child process parsing them (:func:`start_csv_read`).
+
+    Parameters
+    ----------
+    path : str or Path
+    """
+
+    def __init__(self, path):
+        self.path = path
+        try:   # a regular file: read again on the way of a refusal, it gives the same bytes (a pipe would not)
+            raw = Path(path).read_bytes() if stat.S_ISREG(os.stat(path).st_mode) else None
+        except (OSError, ValueError):
+            raw = None                  # read_csv reads the file as without a start, and says why
+        self._raw, self._text = raw, None
+        self._job = None if raw is None else Forked(lambda: _cells_of_bytes(raw))
+
+    def text(self):
+        """The bytes decoded as :func:`read_csv` decodes a file; None when they were not read or are not UTF-8."""
+        if self._raw is not None:
+            try:
+                self._text = self._raw.decode("utf-8-sig")
+            except UnicodeDecodeError:
+                pass
+            self._raw = None
+        return self._text
+
+    def cells(self):
+        """:func:`_fast_cells` of :meth:`text`: the child's, or computed here when the child failed."""
+        job, self._job = self._job, None
+        if job is not None:
+            try:
+                return job.result()
+            except Exception:       # noqa: BLE001 - the same parse, here
+                pass
+        return _fast_cells(self.text())
+
+    def close(self) -> None:
+        """Wait for the child if its table was not taken (nothing is left running); idempotent."""
+        job, self._job = self._job, None
+        if job is not None:
+            try:
+                job.result()
+            except Exception:       # noqa: BLE001 - its table is not wanted
+                pass
+
+
+def _cells_of_bytes(raw: bytes):
+    """:func:`_fast_cells` of the bytes decoded as :func:`read_csv` decodes them; None when not UTF-8."""
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return None
+    return _fast_cells(text)
+
+
+def parse_csv_text(text: str, model: PlantModel, source: str = "data", cells=None) -> LoggedData:
+    """Parse the text of a CSV log (see :func:`read_csv`).
+
+    Parameters
+    ----------
+    text : str
+    model : PlantModel
+    source : str
+        Names the file in messages.
+    cells : callable, optional
+        ``cells()`` gives :func:`_fast_cells` of ``text`` computed elsewhere (:meth:`StartedCsvRead.cells`);
+        called only once the header has been checked.  By default it is computed here.
+    """
     if "\x00" in text:
         raise DataFileError(f"{source}: contains NUL bytes: expected a CSV text file")
     needed = csv_header(model.inputs, model.outputs, model.disturbances)
@@ -179,7 +291,7 @@ def parse_csv_text(text: str, model: PlantModel, source: str = "data") -> Logged
     header = _read_header(text, needed, layout, source)
     idx = [header.index(h) for h in needed]
     others, unusable = _other_columns(header, needed)
-    table = _fast_table(text, len(header))
+    table = _fast_table(text, len(header), cells)
     fast = table is not None and bool(np.isfinite(table).all())
     if fast:
         values = table[:, idx]
@@ -249,14 +361,24 @@ def _other_columns(header: list, needed: list):
     return others, unusable
 
 
-def _fast_table(text: str, n_fields: int):
+def _fast_table(text: str, n_fields: int, cells=None):
     """Every cell below the header as float64 by numpy's C parser, shape (n_rows, n_fields), or None.
 
     None whenever the careful parser might read the file differently: a header or cells with
     quotes, a carriage return that does not end a line, a line longer than the csv module's field
     limit, a cell numpy does not take as a number, a row of another length, no rows.  (Both
     parsers round a number the same way: Python's correctly rounded decimal conversion.)
+    ``cells()``, when given, stands for ``_fast_cells(text)``.
     """
+    table = _fast_cells(text) if cells is None else cells()
+    if table is None or table.shape[0] == 0 or table.shape[1] != n_fields:
+        return None
+    return table
+
+
+def _fast_cells(text: str):
+    """The part of :func:`_fast_table` that needs no header: the table numpy's C parser reads below the
+    first line (any number of columns), or None where the careful parser might read the file differently."""
     nl = text.find("\n")
     if nl < 0:
         return None
@@ -273,8 +395,6 @@ def _fast_table(text: str, n_fields: int):
             warnings.simplefilter("error")      # "input contained no data" is a warning
             table = np.loadtxt(lines, delimiter=",", comments=None, dtype=float, ndmin=2)
     except Exception:                           # noqa: BLE001 - the careful parser says what is wrong
-        return None
-    if table.shape[0] == 0 or table.shape[1] != n_fields:
         return None
     return table
 
