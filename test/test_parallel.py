@@ -10,7 +10,7 @@ import pytest
 
 from mpm_monitor.apps.reproduce import simulate_case
 from mpm_monitor.core import parallel
-from mpm_monitor.core.analysis import AnalysisOptions, detect
+from mpm_monitor.core.analysis import AnalysisOptions, detect, settle_report
 from mpm_monitor.core.parallel import Forked, split_map
 from mpm_monitor.core.pipeline import analyze
 
@@ -127,3 +127,29 @@ def test_the_repaired_models_detection_skips_only_the_singular_values(case_32):
     assert np.isnan(rows_only.overall_rsi) and np.all(np.isnan(rows_only.sigma_max))
     assert [r.rsi for r in rows_only.rows] == [r.rsi for r in full.rows]
     assert rows_only.located_elements == full.located_elements
+
+
+def test_a_report_not_settled_gets_its_detectable_changes_and_experiment_from_the_second_process(case_32):
+    case, data = case_32
+    options = AnalysisOptions(repair=False, jobs=2)
+    settled = detect(case.model, data, options)
+    later = detect(case.model, data, options, settle=False)
+    assert later.pending is not None and later.experiment is None
+    assert all(e.detectable_gain_change is None for e in later.elements)
+    assert not all(isinstance(w, str) for w in later.warnings)      # the placeholder of their warnings
+    assert settle_report(later) is later and later.pending is None
+    assert _json(later) == _json(settled)
+    assert any(e.detectable_gain_change is not None for e in later.elements)
+
+
+def test_an_error_of_the_second_process_is_raised_by_the_analysis_and_no_child_is_left(case_32, monkeypatch):
+    from mpm_monitor.core import detectability
+
+    def broken(*args, **kwargs):
+        raise FloatingPointError("broken detectability")
+    monkeypatch.setattr(detectability, "element_detectability", broken)
+    case, data = case_32
+    with pytest.raises(Exception, match="broken detectability"):
+        analyze(case.model, data, AnalysisOptions(jobs=2))
+    with pytest.raises(ChildProcessError):
+        os.waitpid(-1, os.WNOHANG)

@@ -43,6 +43,7 @@ from .logged_data import (
 )
 from .model import PlantModel
 from .options import check_options, option, option_specs
+from .parallel import Forked
 from .signals import INITIAL_STATE_CHOICES, LoopSignals
 from .wording import repair_summary_lines
 
@@ -295,6 +296,9 @@ class AnalysisReport:
         ``na``, :func:`~mpm_monitor.core.noise_order.coloured_rows`) and ``p_values`` (output -> the
         Ljung-Box p-value of its residual).  :func:`~mpm_monitor.core.pipeline.analyze` raises ``na``
         while ``coloured`` is not empty.
+    pending : object or None
+        The detectable gain changes and the experiment while a second process still computes them
+        (:func:`detect` with ``settle`` False); None once :func:`settle_report` has put them in.
     """
 
     sample_time: float
@@ -321,6 +325,7 @@ class AnalysisReport:
     regressions: object = dataclasses.field(default=None, compare=False, repr=False)
     candidates: object = None
     noise_order: Optional[dict] = None
+    pending: object = dataclasses.field(default=None, compare=False, repr=False)
 
     @property
     def flagged_rows(self) -> list:
@@ -438,7 +443,7 @@ def _column_label(e) -> str:
 def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
            signals: Optional[LoopSignals] = None, regressions=None,
            previous: Optional["AnalysisReport"] = None, candidates=None, detectability: bool = True,
-           sigma_max: bool = True) -> AnalysisReport:
+           sigma_max: bool = True, settle: bool = True) -> AnalysisReport:
     """Run the S_Delta row test and the Delta element test on logged closed-loop data (no repair).
 
     Parameters
@@ -479,6 +484,11 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         False: the identified ``S_Delta``'s largest singular values are not computed (``sigma_max`` and
         ``overall_rsi`` NaN; for a detection of which only the rows are read, as the repaired model's);
         the tests and every row's RSI are the same.
+    settle : bool
+        False, with ``options.jobs`` 2 and no ``candidates``: the detectable gain changes and the
+        experiment are computed in a forked second process, and the report is returned while they are
+        (its ``pending``); :func:`settle_report` waits for them and puts them in (the analysis repairs the
+        model meanwhile, :func:`~mpm_monitor.core.pipeline.analyze`).  The same numbers either way.
 
     Returns
     -------
@@ -498,14 +508,14 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     data = in_deviations(model, data)
     try:
         return _detect(model, data, options, signals, regressions, previous, candidates, detectability,
-                       sigma_max=sigma_max)
+                       sigma_max=sigma_max, settle=settle)
     except NUMERICAL_ERRORS as err:
         raise numerical_breakdown(model, data, err) from err
 
 
 def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signals: Optional[LoopSignals],
             regressions, previous: Optional["AnalysisReport"], candidates, detectability: bool,
-            unless_coloured: bool = False, sigma_max: bool = True):
+            unless_coloured: bool = False, sigma_max: bool = True, settle: bool = True):
     """:func:`detect` (same arguments), its numerical errors not yet turned into a ``DataFileError``; with
     ``unless_coloured``, :func:`detect_unless_coloured`."""
     # The tests are imported here: the options and the report above are described (the command line's
@@ -613,14 +623,22 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         warnings.append(f"the {options.method} element test ran on the longest span without a gap ({b - a} samples)")
     warnings += element_test.warnings
     elements = element_test.elements
-    info = None
+    valuation = None
     if valued:
-        info, detectable, why = element_detectability(model, columns, sig.d, design, element_test.noise, layout,
-                                                      options, None if plan is None else plan.local_segments,
-                                                      responses=element_test.responses, moments=moments)
-        warnings += why
-        for e in elements:
-            e.detectable_gain_change = detectable.get((model.outputs.index(e.output), model.columns.index(e.input)))
+        # The detectable gain changes and the experiment: with settle False and two processes, computed in a
+        # forked child while the caller goes on (the repair), and put into the report by settle_report.
+        later = not settle and candidates is None and options.jobs > 1
+        value_options = dataclasses.replace(options, jobs=1) if later else options
+
+        def values_and_experiment():
+            info, detectable, why = element_detectability(model, columns, sig.d, design, element_test.noise, layout,
+                                                          value_options, None if plan is None else plan.local_segments,
+                                                          responses=element_test.responses, moments=moments)
+            values = [detectable.get((model.outputs.index(e.output), model.columns.index(e.input))) for e in elements]
+            for e, v in zip(elements, values):
+                e.detectable_gain_change = v
+            return values, why, design_experiment(model, info, elements, options, layout)
+        valuation = _Valuation(Forked(values_and_experiment, inline=not later), elements, warnings)
     elif options.method == "arx" and detectability:
         warnings.append(f"the loop diverged ({', '.join(diverged)}): the smallest gain "
                         "change this window detects is not computed (detectable_gain_change null) and no experiment "
@@ -628,7 +646,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     elif detectability:
         warnings.append(f"method {options.method}: the smallest gain change this window detects is computed for the "
                         f"arx element test only (detectable_gain_change null)")
-    experiment = design_experiment(model, info, elements, options, layout) if detectability else None
+    experiment = design_experiment(model, None, elements, options, layout) if detectability and not valued else None
     candidate_report = None
     if candidates is not None:
         from .candidates import CandidateChannels, run_candidate_tests, select_candidates
@@ -676,7 +694,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         warnings.insert(0, plan.warning())
     warnings[:0] = data.notes
     noise_order = _noise_order(model, options, element_test.whiteness) if options.method == "arx" else None
-    return AnalysisReport(
+    report = AnalysisReport(
         sample_time=model.sample_time, samples=n, method=options.method, alpha=options.alpha, rows=rows,
         elements=elements, overall_rsi=float(row_test.sigma_max.max()) if sigma_max else float("nan"),
         warnings=warnings,
@@ -685,7 +703,47 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         repaired_model=model, collinear_groups=design.groups, max_variance_inflation=design.max_vif, signals=sig,
         gaps=None if plan is None else plan.to_dict(), experiment=experiment, candidates=candidate_report,
         regressions=regressions.row_test_part() if getattr(regressions, "batch", False) else None,
-        noise_order=noise_order)
+        noise_order=noise_order, pending=valuation)
+    if settle:
+        settle_report(report)
+    return report
+
+
+class _Valuation:
+    """The detectable gain changes and the experiment of a report, being computed (:class:`Forked`), and
+    where they go: the report's elements, and its warnings at a placeholder left where they belong."""
+
+    def __init__(self, handle, elements: list, warnings: list):
+        self.handle, self.elements, self.warnings = handle, elements, warnings
+        self.marker = object()
+        warnings.append(self.marker)
+
+
+def settle_report(report: AnalysisReport) -> AnalysisReport:
+    """Wait for the detectable gain changes and the experiment of ``report`` (:func:`detect` with ``settle``
+    False) and put them into it: each element's ``detectable_gain_change``, the ``experiment`` and the
+    warnings they give, at their place among the others.  A report without any pending is returned as
+    it is.  An error of their computation is raised here.
+
+    Returns
+    -------
+    AnalysisReport
+        ``report`` itself.
+    """
+    pending = report.pending
+    if pending is None:
+        return report
+    report.pending = None
+    try:
+        values, why, experiment = pending.handle.result()
+    finally:
+        at = next(k for k, w in enumerate(report.warnings) if w is pending.marker)
+        del report.warnings[at]
+    report.warnings[at:at] = why
+    for e, v in zip(pending.elements, values):
+        e.detectable_gain_change = v
+    report.experiment = experiment
+    return report
 
 
 #: A row whose prediction error's mean exceeds this many times its standard deviation is named as
@@ -778,7 +836,8 @@ class Coloured:
 
 def detect_unless_coloured(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
                            signals: Optional[LoopSignals] = None, regressions=None,
-                           previous: Optional["AnalysisReport"] = None, candidates=None, detectability: bool = True):
+                           previous: Optional["AnalysisReport"] = None, candidates=None, detectability: bool = True,
+                           settle: bool = True):
     """:func:`detect`, or only the noise order when a row's element-test residual is coloured.
 
     The element test's unrestricted fits of every row it tests come first (for ``test_all_rows``, before
@@ -795,7 +854,7 @@ def detect_unless_coloured(model: PlantModel, data: LoggedData, options: Analysi
     data = in_deviations(model, data)
     try:
         return _detect(model, data, options, signals, regressions, previous, candidates, detectability,
-                       unless_coloured=True)
+                       unless_coloured=True, settle=settle)
     except NUMERICAL_ERRORS as err:
         raise numerical_breakdown(model, data, err) from err
 

@@ -19,7 +19,7 @@ from typing import Optional
 
 import numpy as np
 
-from .analysis import AnalysisOptions, AnalysisReport, Coloured, detect, detect_unless_coloured
+from .analysis import AnalysisOptions, AnalysisReport, Coloured, detect, detect_unless_coloured, settle_report
 from .errors import DataFileError
 from .logged_data import NUMERICAL_ERRORS, LoggedData, in_deviations, numerical_breakdown
 from .model import PlantModel
@@ -91,10 +91,27 @@ def _analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions, sign
              regressions, candidates) -> AnalysisReport:
     """:func:`analyze` (same arguments), its numerical errors not yet turned into a ``DataFileError``."""
     kw = {} if candidates is None else {"candidates": candidates}
+    # With two processes the detectable gain changes and the experiment are computed beside the repair
+    # (detect's settle): the report is settled before it is returned or detected again.
     report, options = _detect_raising_na(model, data, options, signals, regressions, kw)
+    try:
+        return _repair_and_report(model, data, options, report, kw)
+    except BaseException:
+        try:                      # the second process's result is not wanted: only waited for
+            settle_report(report)
+        except BaseException:  # noqa: BLE001 - the error of the analysis is the one raised
+            pass
+        raise
+
+
+def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOptions, report: AnalysisReport,
+                       kw: dict) -> AnalysisReport:
+    """:func:`_analyze` after the detection: the joint classification, the repair and the detection of the
+    repaired model; ``report`` settled (:func:`~mpm_monitor.core.analysis.settle_report`) before the repaired
+    model is detected and before it is returned."""
     joint = options.release_explained and _shares_a_row(report)
     if not options.repair and not joint:
-        return dataclasses.replace(report, regressions=None)
+        return dataclasses.replace(settle_report(report), regressions=None)
     tried = report.candidates
     names = list(dict.fromkeys(name for _, name in tried.located)) if tried is not None else []
     wide, wide_data = (model, data) if not names else _with_candidates(model, data, names)
@@ -110,8 +127,9 @@ def _analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions, sign
         _release(report, classified.released, wide)
         located = [key for key in located if key not in classified.released]
     if not options.repair:
-        return dataclasses.replace(report, regressions=None)
+        return dataclasses.replace(settle_report(report), regressions=None)
     result = repair_model(wide, span, located, repair_options, signals=span_signals, classified=classified)
+    settle_report(report)
     after_data, nominal = data, None
     if names:
         nominal = _candidate_operating_points(result, names)
@@ -161,10 +179,11 @@ def _detect_raising_na(model: PlantModel, data: LoggedData, options: AnalysisOpt
     from .noise_order import next_order
 
     def run(opts, **given):
-        """The detection at ``opts.na``, or a :class:`Coloured` where a larger ``na`` may follow."""
+        """The detection at ``opts.na``, or a :class:`Coloured` where a larger ``na`` may follow (a report
+        not settled: the only one made is the one returned)."""
         if next_order(opts.na, opts.max_na) is not None:
-            return detect_unless_coloured(model, data, opts, **given, **kw)
-        return detect(model, data, opts, **given, **kw)
+            return detect_unless_coloured(model, data, opts, **given, **kw, settle=False)
+        return detect(model, data, opts, **given, **kw, settle=False)
 
     report = run(options, signals=signals, regressions=regressions)
     order = report.noise_order
@@ -191,7 +210,7 @@ def _detect_raising_na(model: PlantModel, data: LoggedData, options: AnalysisOpt
         # The last order ran only its fits (the next needs more data than the log holds): its detection.
         try:
             report = detect(model, data, options, signals=signals,
-                            regressions=regressions if options is first_options else None, **kw)
+                            regressions=regressions if options is first_options else None, **kw, settle=False)
         except DataFileError as err:
             if detected[0] is None:
                 raise
