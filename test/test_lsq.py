@@ -20,6 +20,10 @@ minimum is zero): the cost is flat at the minimum, so a ``2e-6`` error in ``x`` 
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import textwrap
+
 import numpy as np
 import pytest
 from scipy import optimize
@@ -212,6 +216,43 @@ def test_box_lstsq_against_scipy_lsq_linear():
         r_ours, r_ref = a @ d - b, a @ ref.x - b
         assert r_ours @ r_ours <= r_ref @ r_ref * (1 + 1e-10) + 1e-14
         np.testing.assert_allclose(d, ref.x, atol=1e-7)
+
+
+def test_the_repair_runs_without_scipy_optimize():
+    """A child that cannot import scipy.optimize analyses and repairs paper case 3.2, and fits the
+    parametric form of a step response."""
+    child = textwrap.dedent('''
+        import importlib.abc, sys
+
+        class Blocker(importlib.abc.MetaPathFinder):
+            def find_spec(self, fullname, path=None, target=None):
+                if fullname == "scipy.optimize" or fullname.startswith("scipy.optimize."):
+                    raise ImportError(f"{fullname} is blocked")
+                return None
+
+        sys.meta_path.insert(0, Blocker())
+        import numpy as np
+        import mpm_monitor
+        mpm_monitor.limit_blas_threads()
+        from mpm_monitor.core.analysis import AnalysisOptions
+        from mpm_monitor.core.pipeline import analyze
+        from mpm_monitor.core.repair.forms import FIRST_ORDER, _step_reference
+        from mpm_monitor.sim.cases import paper_case
+        from mpm_monitor.sim.closed_loop import run_closed_loop
+
+        case = paper_case("3.2")
+        log = run_closed_loop(case.plant, case.model, 3000, seed=1, mpc=case.mpc, excitation=case.excitation,
+                              disturbance=case.disturbance)
+        report = analyze(case.model, log.as_logged_data("paper case 3.2"), AnalysisOptions())
+        assert report.repair is not None and report.repaired_model is not None
+        params, lag, poles = _step_reference(2.0 * (1 - 0.9 ** np.arange(1, 61)), FIRST_ORDER, 1.0)
+        assert abs(params["gain"] - 2.0) < 1e-6 and abs(poles[0] - 0.9) < 1e-8, (params, poles)
+        assert "scipy.optimize" not in sys.modules
+        print("ok")
+    ''')
+    proc = subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.strip().endswith("ok")
 
 
 def test_fewer_residuals_than_parameters():

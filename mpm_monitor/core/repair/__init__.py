@@ -27,10 +27,12 @@ control engineer's next questions (paper section 4, "type and severity" of each 
    ``phi`` holds the free responses of the row's states (the data may start mid-operation; every
    pole of the held elements, ``k a^k`` for a repeated one) and an offset.  The gains, the lead
    coefficients ``K lead`` and ``c`` enter linearly and are eliminated by variable projection
-   (Golub and Pereyra, 1973); the poles are found by ``scipy.optimize.least_squares`` with ``A(q)``
-   held, alternating with a least-squares fit of ``A(q)`` to the output error (generalized least
-   squares, Ljung section 10.2); the input lag ``L_j`` (the delay plus one sample for a strictly
-   proper element) by a coordinate search on the integer grid around the model's value.
+   (Golub and Pereyra, 1973); the poles are found by a bounded nonlinear least squares
+   (:func:`~mpm_monitor.core.repair.lsq.least_squares_bounded`, a trust-region Levenberg-Marquardt
+   method, numpy only) with ``A(q)`` held, alternating with a least-squares fit of ``A(q)`` to the
+   output error (generalized least squares, Ljung section 10.2); the input lag ``L_j`` (the delay
+   plus one sample for a strictly proper element) by a coordinate search on the integer grid
+   around the model's value.
 3. **Kind.**  On the whole record, every parameter of a located element is tested against its
    reference (the model's value; for a step-response element, the parametric form of its old
    response) by a likelihood-ratio test: the row is refitted with that parameter held and
@@ -68,6 +70,8 @@ Where each step lives:
   the parametric form of a step response and the write-back into the model's structure.
 - :mod:`.fit`: the prediction-error fit of one row (step 2), model-free: the row problem, the
   search over lags, poles and noise model, the lag profiles.
+- :mod:`.lsq`: the bounded nonlinear least-squares solver of the pole fits (of :mod:`.fit` and of
+  the parametric form of a step response in :mod:`.forms`).
 - :mod:`.row`: from a row of the model to its fit and back (parameters in seconds, intervals).
 - :mod:`.classify`: the likelihood-ratio tests and the kinds (step 3).
 - :mod:`.refit`: the fit of what changed, and the refit on the whole record (step 4).

@@ -20,6 +20,7 @@ from ..arx import lag_matrix, least_squares_ar
 from ..discretize import REPEATED_POLE_TOLERANCE
 from ..filters import lfilter
 from .forms import _POLE_MAX, _POLE_MIN, FIRST_ORDER, _basis, _Form
+from .lsq import least_squares_bounded
 
 #: Fewest cost samples of a segment of data with gaps that takes part in a fit (a shorter one would
 #: mostly feed its own offset and free responses).
@@ -435,16 +436,16 @@ class _RowProblem:
         return self._make_fit(poles, lags, float(resid @ resid), resid.shape[0], beta)
 
     def fit(self, lags, poles0) -> _Fit:
-        """Least-squares fit of the free poles for the given lags and the current noise model."""
-        from scipy import optimize
-
+        """Least-squares fit of the free poles for the given lags and the current noise model
+        (:func:`~mpm_monitor.core.repair.lsq.least_squares_bounded`, the poles within the bounds)."""
         poles0 = np.clip(np.asarray(poles0, float), _POLE_MIN, _POLE_MAX)
         if not self.pole_free_idx:
             return self.evaluate(poles0, lags)
         x0 = poles0[self.pole_free_idx]
 
         # The solver's last evaluations (``(ssr, n_resid, beta)`` by ``x``): its solution is one of
-        # them, usually two evaluations back (then the finite difference of the Jacobian).
+        # them, usually the last (a step that met ftol or xtol), else ``len(x) + 1`` back (the finite
+        # differences of the Jacobian at which gtol was met).
         recent = {}
 
         def fun(x):
@@ -454,8 +455,8 @@ class _RowProblem:
                 del recent[next(iter(recent))]
             return resid
 
-        sol = optimize.least_squares(fun, x0, bounds=(_POLE_MIN, _POLE_MAX), method="trf",
-                                     xtol=1e-9, ftol=1e-9, gtol=1e-9, max_nfev=60, diff_step=1e-6)
+        sol = least_squares_bounded(fun, x0, (_POLE_MIN, _POLE_MAX), xtol=1e-9, ftol=1e-9, gtol=1e-9, max_nfev=60,
+                                    diff_step=1e-6)
         done = recent.get(sol.x.tobytes())
         if done is None:
             return self.evaluate(self.poles_from(sol.x), lags)

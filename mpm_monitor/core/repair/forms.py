@@ -34,6 +34,7 @@ from ..discretize import REPEATED_POLE_TOLERANCE
 from ..elements import dead_time_samples, pulse_response, sample_parametric
 from ..filters import lfilter
 from ..model import PlantModel
+from .lsq import least_squares_bounded
 
 #: Bounds of a lag element's discrete pole ``a = exp(-T / tau)`` during the fit.
 _POLE_MIN, _POLE_MAX = 1e-4, 0.9995
@@ -329,8 +330,6 @@ def _step_reference(coefficients, form: _Form, ts: float, lag_shift: int = _LAG_
         Its input lag.
     poles : tuple
     """
-    from scipy import optimize
-
     s = np.asarray(coefficients, float)
     n = s.size
     dead = dead_time_samples(s)
@@ -352,12 +351,12 @@ def _step_reference(coefficients, form: _Form, ts: float, lag_shift: int = _LAG_
         for taus in starts:
             x0 = np.array([_pole_of(t, ts) for t in taus])
             if x0.size:
-                sol = optimize.least_squares(resid, x0, bounds=(_POLE_MIN, _POLE_MAX), method="trf",
-                                             xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
-                x = sol.x
+                sol = least_squares_bounded(resid, x0, (_POLE_MIN, _POLE_MAX), xtol=1e-12, ftol=1e-12, gtol=1e-12,
+                                            max_nfev=200)
+                x, r = sol.x, sol.fun
             else:
                 x = x0
-            r = resid(x)
+                r = resid(x)
             ssr = float(r @ r)
             if best is None or ssr < best[0]:
                 best = (ssr, lag, tuple(float(v) for v in x))
