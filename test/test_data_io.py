@@ -449,11 +449,14 @@ def _started_variants(tmp_path):
     return out
 
 
-def test_a_started_read_gives_the_same_data_bit_for_bit(tmp_path, monkeypatch):
-    """The fast parse in a child, the same in one process and the careful parser: the same arrays."""
+@pytest.mark.parametrize("piece_bytes", [1 << 20, 300, 1])
+def test_a_started_read_gives_the_same_data_bit_for_bit(tmp_path, monkeypatch, piece_bytes):
+    """The fast parse in a child (in pieces of a line up to the whole file), the same in one process and
+    the careful parser: the same arrays."""
     from mpm_monitor.io import csv_log
     from mpm_monitor.io.csv_log import start_csv_read
 
+    monkeypatch.setattr(csv_log, "PIECE_BYTES", piece_bytes)
     for name, (path, model) in _started_variants(tmp_path).items():
         here = read_csv(path, model)
         started = read_csv(path, model, started=start_csv_read(path))
@@ -500,18 +503,21 @@ def test_a_failing_child_leaves_the_parse_to_the_parent(tmp_path, monkeypatch, f
     elif not parallel.can_fork():
         pytest.skip("this process runs threads: no child")
     elif failure == "raises":
-        monkeypatch.setattr(csv_log, "_cells_of_bytes", lambda raw: 1 / 0)
+        monkeypatch.setattr(csv_log, "_child_pieces", lambda *args: 1 / 0)
     else:
-        monkeypatch.setattr(csv_log, "_cells_of_bytes", lambda raw: os._exit(3))
+        monkeypatch.setattr(csv_log, "_child_pieces", lambda *args: os._exit(3))
     started = start_csv_read(path)
     monkeypatch.undo()
     _assert_same_bits(read_csv(path, model, started=started), reference)
 
 
 @pytest.mark.parametrize("case", sorted(BAD_FILES))
-def test_a_started_read_refuses_a_bad_file_with_the_same_message(tmp_path, case):
+@pytest.mark.parametrize("piece_bytes", [1 << 20, 1])
+def test_a_started_read_refuses_a_bad_file_with_the_same_message(tmp_path, monkeypatch, case, piece_bytes):
+    from mpm_monitor.io import csv_log
     from mpm_monitor.io.csv_log import start_csv_read
 
+    monkeypatch.setattr(csv_log, "PIECE_BYTES", piece_bytes)
     path = _write(tmp_path, BAD_FILES[case][0])
     before = _children()
     here = _outcome(lambda: read_csv(path, _model()))
@@ -568,7 +574,80 @@ def test_help_starts_no_read():
     code = ("import sys\nfrom mpm_monitor.apps.cli import main\n"
             "for argv in (['--help'], ['analyze', '--help'], ['simulate', '--help']):\n"
             "    try:\n        main(argv)\n    except SystemExit:\n        pass\n"
-            "print(sorted(m for m in ('mpm_monitor.io.csv_log', 'mpm_monitor.core.parallel', 'scipy') "
+            "print(sorted(m for m in ('mpm_monitor.io.csv_log', 'scipy') "
             "if m in sys.modules), file=sys.stderr)\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0 and proc.stderr.strip() == "[]", proc.stderr
+
+
+def _piece_texts() -> dict:
+    """Bodies that the pieces of a started read must take or refuse as numpy does the whole text."""
+    rows = [",".join(repr(float(v)) for v in np.random.default_rng(k).normal(size=4) * 10.0 ** (k % 40 - 20))
+            for k in range(60)]
+    head = "t,a,b,c"
+    out = {
+        "plain": _text([head] + rows),
+        "crlf": "\r\n".join([head] + rows) + "\r\n",
+        "crlf without a final line end": "\r\n".join([head] + rows),
+        "no final line end": "\n".join([head] + rows),
+        "blank lines everywhere": _text([head, "", ""] + rows[:20] + [""] * 30 + rows[20:] + ["", ""]),
+        "blank lines only": _text([head, "", "", ""]),
+        "header only": head + "\n",
+        "header without a line end": head,
+        "a line of spaces": _text([head] + rows[:30] + ["   "] + rows[30:]),
+        "nan and inf": _text([head] + rows[:10] + ["nan,inf,-inf,1e999"] + rows[10:]),
+        "a quote in the last row": _text([head] + rows[:-1] + ['"1",2,3,4']),
+        "a quote in the header": _text(['"t",a,b,c'] + rows),
+        "a stray carriage return in the last row": _text([head] + rows[:-1] + ["1,2\r,3,4"]),
+        "a carriage return in the header": _text(["t,a\r,b,c"] + rows),
+        "text in the last row": _text([head] + rows[:-1] + ["1,2,x,4"]),
+        "an empty cell in the last row": _text([head] + rows[:-1] + ["1,2,,4"]),
+        "a longer last row": _text([head] + rows + ["1,2,3,4,5"]),
+        "more columns from the middle on": _text([head] + rows[:30] + [r + ",9" for r in rows[30:]]),
+        "a line longer than the csv limit": _text([head] + rows[:-1] + ["1," * 70_000 + "1"]),
+        "one column": _text(["t"] + [str(k) for k in range(50)]),
+        "one row": _text([head] + rows[:1]),
+        "a BOM": "\ufeff" + _text([head] + rows),
+        "non-ASCII in the header": _text(["t,\u00e4,b,\u00b0C"] + rows),
+    }
+    return out
+
+
+def _same_table(a, b) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+@pytest.mark.parametrize("timing", ["child ahead", "child slow", "child slow per piece", "no fork"])
+@pytest.mark.parametrize("piece_bytes", [1, 37, 1 << 20])
+def test_the_pieces_stacked_are_numpys_table_of_the_whole_text(tmp_path, monkeypatch, piece_bytes, timing):
+    """Whoever parses which piece (the child ahead of the parent, the parent taking most or all of the
+    pieces, no child), the table is ``_fast_cells`` of the whole text, bit for bit, or None as it is."""
+    import os
+    import time
+
+    from mpm_monitor.core import parallel
+    from mpm_monitor.io import csv_log
+
+    if timing != "no fork" and not parallel.can_fork():
+        pytest.skip("this process runs threads: no child")
+    monkeypatch.setattr(csv_log, "PIECE_BYTES", piece_bytes)
+    parent = os.getpid()
+    if timing == "no fork":
+        monkeypatch.setattr(parallel, "can_fork", lambda: False)
+    elif timing == "child slow":
+        child_pieces = csv_log._child_pieces
+        monkeypatch.setattr(csv_log, "_child_pieces", lambda *args: (time.sleep(0.2), child_pieces(*args))[1])
+    elif timing == "child slow per piece":
+        piece_cells = csv_log._piece_cells
+        monkeypatch.setattr(csv_log, "_piece_cells",
+                            lambda *args: (time.sleep(0.002 if os.getpid() != parent else 0), piece_cells(*args))[1])
+    for name, text in _piece_texts().items():
+        path = _write(tmp_path, text, "pieces.csv")
+        expected = csv_log._fast_cells(text.removeprefix("\ufeff"))
+        started = csv_log.start_csv_read(path)
+        assert started.text() == text.removeprefix("\ufeff"), name
+        assert _same_table(started.cells(), expected), name
+        started.close()
+    assert not os.path.exists(tmp_path / "never") and os.getpid() == parent

@@ -15,10 +15,11 @@ module and one ``float`` per cell), which names the line and column of the first
 
 The command line starts the C parse early (:func:`start_csv_read`): the file's bytes are read and
 numpy's parse of them runs in a forked child (:class:`~mpm_monitor.core.parallel.Forked`) while the
-command imports the analysis and loads the model; :func:`read_csv` then takes the child's table.
-The child runs only what needs no model (the same :func:`_fast_cells` on the same bytes); every check
-against the model, and every message, stays in :func:`parse_csv_text`, so the result and the errors
-are those of a read in one process.
+command imports the analysis and loads the model; :func:`read_csv` then takes the child's rows, and
+parses from the end of the file back whatever the child has not reached yet (:class:`StartedCsvRead`).
+Only what needs no model runs so (the checks and the call of :func:`_fast_cells`, line by line on the
+same bytes); every check against the model, and every message, stays in :func:`parse_csv_text`, so
+the result and the errors are those of a read in one process.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import mmap
 import os
 import re
 import stat
@@ -215,8 +217,22 @@ def start_csv_read(path) -> "StartedCsvRead":
     return StartedCsvRead(path)
 
 
+#: Bytes of the body in one piece of a started read's parse (the child and the parent take pieces).
+PIECE_BYTES = 1 << 20
+
+_FREE, _CHILD, _PARENT = 0, 1, 2
+
+
 class StartedCsvRead:
     """A CSV log's bytes and the child process parsing them (:func:`start_csv_read`).
+
+    The body (below the header) is cut after line ends into pieces of about :data:`PIECE_BYTES`.  The
+    child parses the pieces from the first on and writes their rows into shared memory; the parent,
+    once it asks for the table (:meth:`cells`), parses the pieces from the last back, until the two
+    meet.  Each claims a piece in a shared byte map before parsing it; a piece both claim at once is
+    parsed twice and the parent's copy kept.  Each line is parsed by itself, so the pieces' rows
+    stacked are the table :func:`_fast_cells` reads from the whole text, and a piece it would refuse
+    means the whole is refused (:func:`_piece_cells`).
 
     Parameters
     ----------
@@ -229,46 +245,168 @@ class StartedCsvRead:
             raw = Path(path).read_bytes() if stat.S_ISREG(os.stat(path).st_mode) else None
         except (OSError, ValueError):
             raw = None                  # read_csv reads the file as without a start, and says why
-        self._raw, self._text = raw, None
-        self._job = None if raw is None else Forked(lambda: _cells_of_bytes(raw))
+        self._raw, self._text, self._job = raw, None, None
+        self._pieces = [] if raw is None else _pieces(raw, PIECE_BYTES)
+        if not self._pieces:
+            return                      # nothing to parse, or a header the fast path refuses: cells() says so
+        try:
+            # A row of c numbers takes at least 2 c bytes with its commas and line end, so 4 bytes of
+            # float64 per byte of the body hold the table (a page is used only once written).
+            self._claims = mmap.mmap(-1, len(self._pieces))
+            self._shared = mmap.mmap(-1, 4 * (len(raw) - self._pieces[0][0] + 1))
+        except (OSError, ValueError, OverflowError):
+            self._pieces = []
+            return
+        pieces, claims, shared = self._pieces, self._claims, self._shared
+        self._job = Forked(lambda: _child_pieces(raw, pieces, claims, shared))
 
     def text(self):
         """The bytes decoded as :func:`read_csv` decodes a file; None when they were not read or are not UTF-8."""
-        if self._raw is not None:
+        if self._text is None and self._raw is not None:
             try:
                 self._text = self._raw.decode("utf-8-sig")
             except UnicodeDecodeError:
-                pass
-            self._raw = None
+                self._raw = None
         return self._text
 
     def cells(self):
-        """:func:`_fast_cells` of :meth:`text`: the child's, or computed here when the child failed."""
+        """:func:`_fast_cells` of :meth:`text` (None when there is no text): the child's pieces and this
+        process's, or the whole parsed here when the child failed; called once."""
+        if self.text() is None:
+            self.close()
+            return None
         job, self._job = self._job, None
-        if job is not None:
-            try:
-                return job.result()
-            except Exception:       # noqa: BLE001 - the same parse, here
-                pass
-        return _fast_cells(self.text())
+        if job is None:
+            return _fast_cells(self.text())
+        mine, first = [], len(self._pieces)
+        for k in range(len(self._pieces) - 1, -1, -1):
+            if self._claims[k] != _FREE:
+                break
+            self._claims[k] = _PARENT
+            part = _piece_cells(self._raw, *self._pieces[k])
+            if part is None:
+                self._claims[:] = bytes([_PARENT]) * len(self._pieces)   # the child stops at its next piece
+                mine = None
+                break
+            mine.insert(0, part)
+            first = k
+        try:
+            done = job.result()
+        except Exception:           # noqa: BLE001 - the child failed: the same parse, here
+            done = False
+        if done is False or (done is not None and mine is not None and done[0] < first):
+            table = _fast_cells(self.text())
+        elif done is None or mine is None:
+            table = None            # a piece is refused, so is the whole
+        else:
+            rows, n_cols = sum(done[1][:first]), done[2]
+            child = np.frombuffer(self._shared, dtype=np.float64, count=rows * n_cols).reshape(rows, n_cols) \
+                if rows else None
+            table = _stacked([child] + mine)
+        self._raw = self._shared = None
+        return table
 
     def close(self) -> None:
-        """Wait for the child if its table was not taken (nothing is left running); idempotent."""
+        """Stop the child at its next piece and wait for it, if its table was not taken, and let go of the
+        file's bytes and text; idempotent."""
         job, self._job = self._job, None
         if job is not None:
+            self._claims[:] = bytes([_PARENT]) * len(self._pieces)
             try:
                 job.result()
             except Exception:       # noqa: BLE001 - its table is not wanted
                 pass
+        self._raw = self._text = self._shared = None
 
 
-def _cells_of_bytes(raw: bytes):
-    """:func:`_fast_cells` of the bytes decoded as :func:`read_csv` decodes them; None when not UTF-8."""
+def _pieces(raw: bytes, size: int) -> list:
+    """``[(start, end)]`` of the body of ``raw`` (below the first line end) cut after line ends every
+    ``size`` bytes or so; [] when there is no body, or a header :func:`_fast_cells` refuses (a quote, a
+    carriage return that does not end it) or that is not UTF-8."""
+    nl = raw.find(b"\n")
+    if nl < 0 or nl + 1 == len(raw):
+        return []
+    head = raw[:nl]
+    if b'"' in head or b"\r" in head.rstrip(b"\r"):
+        return []
     try:
-        text = raw.decode("utf-8-sig")
+        head.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return []
+    cuts = [nl + 1]
+    while True:
+        k = raw.find(b"\n", cuts[-1] + max(size, 1) - 1)
+        if k < 0 or k + 1 >= len(raw):
+            break
+        cuts.append(k + 1)
+    cuts.append(len(raw))
+    return list(zip(cuts[:-1], cuts[1:]))
+
+
+def _piece_cells(raw: bytes, start: int, end: int):
+    """numpy's table of the lines of ``raw[start:end]`` (a piece of the body that ends at a line end or at
+    the end of the file) under the checks of :func:`_fast_cells`, shape (n_rows, n_columns); (0, 0) when
+    the piece has no line but empty ones (numpy skips them); None where :func:`_fast_cells` would refuse
+    the whole text for this piece (a quote, a stray carriage return, a long line, a cell numpy does not
+    take as a number, rows of different lengths)."""
+    try:
+        text = raw[start:end].decode("utf-8")
     except UnicodeDecodeError:
         return None
-    return _fast_cells(text)
+    if '"' in text or ("\r" in text and text.count("\r") != text.count("\r\n")):
+        return None
+    lines = (text[:-1] if end < len(raw) else text).split("\n")     # the lines body.split("\n") holds here
+    if max(map(len, lines)) > csv.field_size_limit():
+        return None
+    if not any(lines):
+        return np.empty((0, 0))
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            return np.loadtxt(lines, delimiter=",", comments=None, dtype=float, ndmin=2)
+    except Exception:                           # noqa: BLE001 - the careful parser says what is wrong
+        return None
+
+
+def _child_pieces(raw: bytes, pieces: list, claims, shared):
+    """The child's part of a started read: the pieces from the first on, until one the parent claimed,
+    their rows written one after the other into ``shared``.
+
+    Returns
+    -------
+    tuple or None
+        ``(pieces done, rows of each, columns)``; None when a piece is refused (the parent then stops too).
+    """
+    rows, n_cols, offset = [], None, 0
+    for k, (start, end) in enumerate(pieces):
+        if claims[k] != _FREE:
+            break
+        claims[k] = _CHILD
+        part = _piece_cells(raw, start, end)
+        if part is not None and part.shape[0]:
+            if offset + part.nbytes > len(shared):      # not by the bound above: the parent parses it all
+                raise RuntimeError("the table does not fit the shared memory")
+            if n_cols is not None and part.shape[1] != n_cols:
+                part = None
+            else:
+                n_cols = part.shape[1]
+                view = np.frombuffer(shared, dtype=np.float64, count=part.size, offset=offset)
+                view.reshape(part.shape)[...] = part
+                offset += part.nbytes
+        if part is None:
+            claims[:] = bytes([_CHILD]) * len(pieces)
+            return None
+        rows.append(part.shape[0])
+    return len(rows), rows, n_cols
+
+
+def _stacked(parts: list):
+    """The tables of consecutive pieces (None or without rows: none there) as one, or None when no piece
+    has a row or their numbers of columns differ (numpy refuses the whole)."""
+    parts = [p for p in parts if p is not None and p.shape[0]]
+    if not parts or len({p.shape[1] for p in parts}) > 1:
+        return None
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
 def parse_csv_text(text: str, model: PlantModel, source: str = "data", cells=None) -> LoggedData:
