@@ -7,6 +7,7 @@ The flag names, parameter names and defaults asserted here are the interface doc
 
 import dataclasses
 import math
+import os
 
 import numpy as np
 import pytest
@@ -56,6 +57,11 @@ def test_options_are_converted_to_their_types_and_checked_by_the_specs():
             AnalysisOptions(**kw)
 
 
+def parallel_cpus() -> int:
+    """The cores this process may run on, read here independently of the package."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 def _option_flags(parser, command):
     sub = next(a for a in parser._actions if a.dest == "command").choices[command]
     return {flag: a for a in sub._actions for flag in a.option_strings}
@@ -77,12 +83,17 @@ def test_cli_analysis_flags_keep_their_names_and_defaults(command):
 
     head = ["analyze", "--model", "m.yaml", "--data", "d.csv"] if command == "analyze" else \
         ["reproduce", "--case", "3.1"]
-    assert _analysis_options(parser.parse_args(head)) == AnalysisOptions()
+    from mpm_monitor.core.parallel import default_jobs
+
+    # The command's one default of its own: the processes, 2 where the machine gives it two cores.
+    assert flags["--jobs"].default is None and default_jobs() == min(2, parallel_cpus())
+    assert _analysis_options(parser.parse_args(head)) == AnalysisOptions(jobs=default_jobs())
+    assert _analysis_options(parser.parse_args(head + ["--jobs", "1"])) == AnalysisOptions()
     given = _analysis_options(parser.parse_args(head + ["--band", "0.1", "2", "--no-repair", "--alpha", "0.05",
                                                         "--na", "2", "--nb", "3", "--initial-state", "zero",
-                                                        "--method", "pcorr", "--no-element-response"]))
+                                                        "--method", "pcorr", "--no-element-response", "--jobs", "2"]))
     assert given == AnalysisOptions(band=(0.1, 2.0), repair=False, alpha=0.05, na=2, nb=3, initial_state="zero",
-                                    method="pcorr", element_response=False)
+                                    method="pcorr", element_response=False, jobs=2)
 
 
 def test_monitor_node_analysis_parameters_keep_their_names_and_defaults():

@@ -33,13 +33,18 @@ class _Parser(argparse.ArgumentParser):
 
 #: The analysis options given on the command line of ``analyze`` and ``reproduce``, in their flags' order.
 CLI_ANALYSIS_OPTIONS = ("method", "alpha", "na", "max_na", "nb", "band", "initial_state", "repair", "element_response",
-                        "release_explained", "drop_spikes", "max_delay", "max_gap")
+                        "release_explained", "drop_spikes", "max_delay", "max_gap", "jobs")
 
 #: Names of the values of an option that takes several (default: the option's name in capitals).
 _METAVARS = {"band": ("LOW", "HIGH")}
 #: What a default of None means, for the options that have one.
 _NONE_DEFAULTS = {"max_delay": "the model's largest delay + 5, at least 10",
-                  "max_gap": "the longest lag of the tests, max_delay + nb"}
+                  "max_gap": "the longest lag of the tests, max_delay + nb",
+                  "jobs": "2 where this process may run on two cores or more, else 1"}
+#: Options whose command-line default differs from the analysis's (None: chosen when the command runs,
+#: :func:`_analysis_options`).  The command uses the machine's second core; the library and the live
+#: monitor default to one process.
+_CLI_DEFAULTS = {"jobs": None}
 
 
 def _text(value) -> str:
@@ -68,7 +73,8 @@ def _add_analysis_options(p: argparse.ArgumentParser) -> None:
             else:
                 p.add_argument(flag, dest=name, action="store_true", help=f"{what} (off by default)")
             continue
-        shown = _NONE_DEFAULTS.get(name, "None") if spec.default is None else _text(spec.default)
+        default = _CLI_DEFAULTS.get(name, spec.default)
+        shown = _NONE_DEFAULTS.get(name, "None") if default is None else _text(default)
         help_text = f"{what} (default {shown})"
         if spec.choices:
             p.add_argument(flag, dest=name, choices=spec.choices, default=spec.default, help=help_text)
@@ -76,14 +82,19 @@ def _add_analysis_options(p: argparse.ArgumentParser) -> None:
             p.add_argument(flag, dest=name, type=float, nargs=spec.length, default=spec.default,
                            metavar=_METAVARS.get(name, name.upper()), help=help_text)
         else:
-            p.add_argument(flag, dest=name, type=int if spec.kind == "int" else float, default=spec.default,
+            p.add_argument(flag, dest=name, type=int if spec.kind == "int" else float, default=default,
                            help=help_text)
 
 
 def _analysis_options(args):
     from ..core.analysis import AnalysisOptions
 
-    return AnalysisOptions(**{name: getattr(args, name) for name in CLI_ANALYSIS_OPTIONS})
+    from ..core.parallel import default_jobs
+
+    values = {name: getattr(args, name) for name in CLI_ANALYSIS_OPTIONS}
+    if values["jobs"] is None:
+        values["jobs"] = default_jobs()
+    return AnalysisOptions(**values)
 
 
 def _add_topics(p: argparse.ArgumentParser) -> None:
