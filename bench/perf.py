@@ -460,7 +460,9 @@ def format_table(result: dict) -> str:
             lines.append(f"  analyze {key} x 10,000, one element off and repaired ({c['csv_bytes'] / 1e6:.1f} MB CSV): "
                          f"{c['a_wall_s']:.2f} s, "
                          f"{c['a_max_rss_mib']:.0f} MiB; floor {c['b_wall_s']:.2f} s ({c['b_max_rss_mib']:.0f} MiB): "
-                         f"x{c['ratio_median']:.2f}")
+                         f"x{c['ratio_median']:.2f}"
+                         + (f"; --jobs 1 {c['c_wall_s']:.2f} s, {c['c_max_rss_mib']:.0f} MiB: x{c['c_ratio_median']:.2f}"
+                            if "c_wall_s" in c else ""))
     if result.get("industrial"):
         lines += ["", "industrial size (10,000 samples; times in seconds, memory: tracemalloc peak in MiB)", ""]
         head = (f"{'plant':>7} {'states':>6} {'MPC set-up':>10} {'MiB':>5} {'step ms':>8} {'loop':>6} {'detect':>7} "
@@ -613,20 +615,27 @@ def _run_process(cmd) -> tuple:
     return wall, rss, rc
 
 
-def _paired(cmd_a, cmd_b, repeats: int) -> dict:
-    """``cmd_a`` and ``cmd_b`` in turn, ``repeats`` times each, after one warm-up of each; medians."""
-    _run_process(cmd_a)
-    _run_process(cmd_b)
-    a, b = [], []
+def _paired(cmd_a, cmd_b, repeats: int, cmd_c=None) -> dict:
+    """``cmd_a`` and ``cmd_b`` (and ``cmd_c``) in turn, ``repeats`` times each, after one warm-up of each;
+    medians, and the ratios to ``cmd_b`` pair by pair (``c_``: the third command's)."""
+    cmds = [cmd_a, cmd_b] + ([cmd_c] if cmd_c is not None else [])
+    for cmd in cmds:
+        _run_process(cmd)
+    runs = [[] for _ in cmds]
     for _ in range(repeats):
-        a.append(_run_process(cmd_a))
-        b.append(_run_process(cmd_b))
+        for cmd, got in zip(cmds, runs):
+            got.append(_run_process(cmd))
     med = statistics.median
+    a, b = runs[0], runs[1]
     out = {"a_wall_s": med(x[0] for x in a), "b_wall_s": med(x[0] for x in b),
            "a_max_rss_mib": max(x[1] for x in a), "b_max_rss_mib": max(x[1] for x in b),
            "ratio_median": med(x[0] / y[0] for x, y in zip(a, b)), "a_exit": [x[2] for x in a],
            "a_walls": [x[0] for x in a], "b_walls": [x[0] for x in b]}
     out["ratio_of_medians"] = out["a_wall_s"] / out["b_wall_s"]
+    if cmd_c is not None:
+        c = runs[2]
+        out.update(c_wall_s=med(x[0] for x in c), c_max_rss_mib=max(x[1] for x in c), c_exit=[x[2] for x in c],
+                   c_walls=[x[0] for x in c], c_ratio_median=med(x[0] / y[0] for x, y in zip(c, b)))
     return out
 
 
@@ -656,11 +665,14 @@ def bench_command_line(sizes=((20, 20), (100, 40)), samples: int = INDUSTRIAL_SA
         yml, csv = write_industrial_case(tmp, ny, nu, samples, seed)
         floor = [py, "-c", "import sys, numpy, scipy.linalg; numpy.loadtxt(sys.argv[1], delimiter=',', skiprows=1)",
                  str(csv)]
-        res = _paired([py, "-m", "mpm_monitor", "analyze", "--model", str(yml), "--data", str(csv)], floor, 3)
+        command = [py, "-m", "mpm_monitor", "analyze", "--model", str(yml), "--data", str(csv)]
+        # The command as it runs (--jobs: 2 on two cores), the floor, and the command in one process.
+        res = _paired(command, floor, 3, cmd_c=command + ["--jobs", "1"])
         res["csv_bytes"] = csv.stat().st_size
         out[f"{ny}x{nu}"] = res
         log(f"  analyze {ny}x{nu} x {samples}, repairing one element: {res['a_wall_s']:.2f} s, {res['a_max_rss_mib']:.0f} MiB; "
-            f"floor {res['b_wall_s']:.2f} s: x{res['ratio_median']:.2f} (exit {res['a_exit']})")
+            f"floor {res['b_wall_s']:.2f} s: x{res['ratio_median']:.2f} (exit {res['a_exit']}); --jobs 1: "
+            f"{res['c_wall_s']:.2f} s, x{res['c_ratio_median']:.2f}")
     return out
 
 

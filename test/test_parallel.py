@@ -1,6 +1,7 @@
 """The second process of the analysis (:mod:`mpm_monitor.core.parallel`): results, errors, and an
 analysis split over two processes equal to one in a single process, bit for bit."""
 
+import dataclasses
 import json
 import os
 import threading
@@ -78,7 +79,31 @@ def test_a_process_with_other_threads_does_not_fork():
         worker.join()
 
 
-def test_the_parents_own_error_wins_and_the_child_is_reaped():
+@pytest.fixture
+def forks(monkeypatch):
+    """The pids of the children forked during a test (to check that each was waited for)."""
+    pids, fork = [], os.fork
+
+    def recorded():
+        pid = fork()
+        if pid:
+            pids.append(pid)
+        return pid
+    monkeypatch.setattr(os, "fork", recorded)
+    return pids
+
+
+def _all_reaped(pids) -> bool:
+    for pid in pids:
+        try:
+            os.waitpid(pid, os.WNOHANG)
+        except ChildProcessError:
+            continue                                 # already waited for
+        return False
+    return True
+
+
+def test_the_parents_own_error_wins_and_the_child_is_reaped(forks):
     def f(x):
         if x == 0 and os.getpid() == parent:
             raise ValueError("parent's row")
@@ -86,8 +111,7 @@ def test_the_parents_own_error_wins_and_the_child_is_reaped():
     parent = os.getpid()
     with pytest.raises(ValueError, match="parent's row"):
         split_map(f, range(4), jobs=2)
-    with pytest.raises(ChildProcessError):
-        os.waitpid(-1, os.WNOHANG)                   # no child left behind
+    assert len(forks) == 1 and _all_reaped(forks)    # no child left behind
 
 
 @pytest.fixture(scope="module")
@@ -120,13 +144,32 @@ def test_a_detection_in_two_processes_equals_one_in_one_process_without_the_resp
         _json(detect(case.model, data, AnalysisOptions(jobs=2, **options)))
 
 
-def test_the_repaired_models_detection_skips_only_the_singular_values(case_32):
+@pytest.mark.parametrize("test_all_rows", [True, False])
+def test_a_detection_of_which_only_the_rows_are_read_has_the_same_rows(case_32, test_all_rows):
     case, data = case_32
-    full = detect(case.model, data, AnalysisOptions(repair=False))
-    rows_only = detect(case.model, data, AnalysisOptions(repair=False), sigma_max=False)
+    options = AnalysisOptions(repair=False, test_all_rows=test_all_rows)
+    full = detect(case.model, data, options)
+    rows_only = detect(case.model, data, options, rows_only=True)
     assert np.isnan(rows_only.overall_rsi) and np.all(np.isnan(rows_only.sigma_max))
-    assert [r.rsi for r in rows_only.rows] == [r.rsi for r in full.rows]
-    assert rows_only.located_elements == full.located_elements
+    assert [dataclasses.asdict(r) for r in rows_only.rows] == [dataclasses.asdict(r) for r in full.rows]
+    assert rows_only.located_elements == full.located_elements and rows_only.flagged_rows == full.flagged_rows
+
+
+def test_a_rows_only_detection_with_no_row_to_test_takes_no_input_lags(case_32, monkeypatch):
+    from mpm_monitor.core import regressions
+
+    built = []
+    rebuild = regressions.LaggedGram.rebuild
+    monkeypatch.setattr(regressions.LaggedGram, "rebuild",
+                        lambda self, *a, **k: built.append(self.n_columns) or rebuild(self, *a, **k))
+    case, data = case_32
+    plant = detect(case.plant, data, AnalysisOptions(repair=False, test_all_rows=False), rows_only=True)
+    assert plant.flagged_rows == [] and plant.elements == [] and plant.arx_tables == []
+    assert np.isnan(plant.max_variance_inflation)
+    assert len(built) == 1                       # the setpoint lags' Gram only
+    full = detect(case.plant, data, AnalysisOptions(repair=False, test_all_rows=False))
+    assert len(built) == 3
+    assert [dataclasses.asdict(r) for r in plant.rows] == [dataclasses.asdict(r) for r in full.rows]
 
 
 def test_a_report_not_settled_gets_its_detectable_changes_and_experiment_from_the_second_process(case_32):
@@ -142,7 +185,7 @@ def test_a_report_not_settled_gets_its_detectable_changes_and_experiment_from_th
     assert any(e.detectable_gain_change is not None for e in later.elements)
 
 
-def test_an_error_of_the_second_process_is_raised_by_the_analysis_and_no_child_is_left(case_32, monkeypatch):
+def test_an_error_of_the_second_process_is_raised_by_the_analysis_and_no_child_is_left(case_32, monkeypatch, forks):
     from mpm_monitor.core import detectability
 
     def broken(*args, **kwargs):
@@ -151,5 +194,4 @@ def test_an_error_of_the_second_process_is_raised_by_the_analysis_and_no_child_i
     case, data = case_32
     with pytest.raises(Exception, match="broken detectability"):
         analyze(case.model, data, AnalysisOptions(jobs=2))
-    with pytest.raises(ChildProcessError):
-        os.waitpid(-1, os.WNOHANG)
+    assert forks and _all_reaped(forks)

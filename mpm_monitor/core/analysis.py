@@ -452,7 +452,7 @@ SPLIT_MIN_WORK = 1_000_000
 def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
            signals: Optional[LoopSignals] = None, regressions=None,
            previous: Optional["AnalysisReport"] = None, candidates=None, detectability: bool = True,
-           sigma_max: bool = True, settle: bool = True) -> AnalysisReport:
+           rows_only: bool = False, settle: bool = True) -> AnalysisReport:
     """Run the S_Delta row test and the Delta element test on logged closed-loop data (no repair).
 
     Parameters
@@ -489,10 +489,12 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     detectability : bool
         False: no ``detectable_gain_change`` (None) and no ``experiment`` (e.g. for the detection of a
         repaired model, of which only the rows are reported); the tests are the same.
-    sigma_max : bool
-        False: the identified ``S_Delta``'s largest singular values are not computed (``sigma_max`` and
-        ``overall_rsi`` NaN; for a detection of which only the rows are read, as the repaired model's);
-        the tests and every row's RSI are the same.
+    rows_only : bool
+        True: a detection of which only the rows are read (the repaired model's): the identified
+        ``S_Delta``'s largest singular values are not computed (``sigma_max`` and ``overall_rsi`` NaN),
+        and when no row is to be element-tested (``test_all_rows`` false and no row flagged) the
+        element test does not run (no elements, ARX tables or collinearity: ``max_variance_inflation``
+        NaN), nor are the input lags' cross products taken.  Every row's test and RSI are the same.
     settle : bool
         False, with ``options.jobs`` 2 and no ``candidates``: the detectable gain changes and the
         experiment are computed in a forked second process, and the report is returned while they are
@@ -517,21 +519,21 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
     data = in_deviations(model, data)
     try:
         return _detect(model, data, options, signals, regressions, previous, candidates, detectability,
-                       sigma_max=sigma_max, settle=settle)
+                       rows_only=rows_only, settle=settle)
     except NUMERICAL_ERRORS as err:
         raise numerical_breakdown(model, data, err) from err
 
 
 def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signals: Optional[LoopSignals],
             regressions, previous: Optional["AnalysisReport"], candidates, detectability: bool,
-            unless_coloured: bool = False, sigma_max: bool = True, settle: bool = True):
+            unless_coloured: bool = False, rows_only: bool = False, settle: bool = True):
     """:func:`detect` (same arguments), its numerical errors not yet turned into a ``DataFileError``; with
     ``unless_coloured``, :func:`detect_unless_coloured`."""
     # The tests are imported here: the options and the report above are described (the command line's
     # flags, the monitor's parameters) without the scipy they need.
     from .detectability import element_detectability
     from .discretize import model_columns
-    from .element_test import InputDesign, arx_element_test, baseline_element_test
+    from .element_test import ElementTest, InputDesign, arx_element_test, baseline_element_test
     from .experiment import design_experiment
     from .gaps import plan_gaps
     from .regressions import regression_layout, window_regressions
@@ -602,7 +604,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         if colour.noise_order["coloured"]:
             return Coloured(colour.noise_order, sig, None if plan is None else plan.to_dict())
     row_test = sdelta_row_test(model, r, sig.eps, regressions, layout, options, output_spread=spread,
-                               singular_values=sigma_max)
+                               singular_values=not rows_only)
     rows = row_test.rows
     warnings = diverging + list(row_test.warnings) + offset_warnings(model, sig.d, y, diverged)
 
@@ -612,20 +614,26 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         colour = _ElementColour(model, test_rows, columns, layout, regressions, options, spread)
         if colour.noise_order["coloured"]:
             return Coloured(colour.noise_order, sig, None if plan is None else plan.to_dict())
-    design = colour.design if colour is not None else \
-        InputDesign(model, columns, layout.n_lag_u, layout.start, options.collinearity_threshold,
-                    regressions.input_regression)
-    warnings += design.warnings()
+    untested = rows_only and not test_rows and options.method == "arx"
+    if untested:                  # nothing to element-test, and only the rows are read: no design either
+        design = None
+    else:
+        design = colour.design if colour is not None else \
+            InputDesign(model, columns, layout.n_lag_u, layout.start, options.collinearity_threshold,
+                        regressions.input_regression)
+        warnings += design.warnings()
     # On a loop that diverged every moment is of signals that grow without bound: no detectable change
     # and no experiment means anything there (the warnings already say the tests' results do not).
-    valued = options.method == "arx" and detectability and not diverging
+    valued = options.method == "arx" and detectability and not diverging and not untested
     moments = None
     if valued:
         # The element responses and their products with the input lags, taken once for the
         # whole-response tests and the detectability.
         moments = ResponseMoments(model, columns, sig.d, design.testable, layout.n_lag_u, layout.start, options.na,
                                   None if plan is None else plan.local_segments)
-    if options.method == "arx":
+    if untested:
+        element_test = ElementTest(elements=[])
+    elif options.method == "arx":
         element_test = arx_element_test(model, test_rows, design, regressions, options, moments, output_spread=spread,
                                         fits=None if colour is None else colour.fits,
                                         whiteness=None if colour is None else colour.whiteness)
@@ -710,11 +718,12 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     noise_order = _noise_order(model, options, element_test.whiteness) if options.method == "arx" else None
     report = AnalysisReport(
         sample_time=model.sample_time, samples=n, method=options.method, alpha=options.alpha, rows=rows,
-        elements=elements, overall_rsi=float(row_test.sigma_max.max()) if sigma_max else float("nan"),
+        elements=elements, overall_rsi=float("nan") if rows_only else float(row_test.sigma_max.max()),
         warnings=warnings,
         frequencies=row_test.frequencies, row_gains=row_test.row_gains, sigma_max=row_test.sigma_max,
         sdelta_response=row_test.response, arx_tables=element_test.arx_tables, repair=unrepaired,
-        repaired_model=model, collinear_groups=design.groups, max_variance_inflation=design.max_vif, signals=sig,
+        repaired_model=model, collinear_groups=[] if untested else design.groups,
+        max_variance_inflation=float("nan") if untested else design.max_vif, signals=sig,
         gaps=None if plan is None else plan.to_dict(), experiment=experiment, candidates=candidate_report,
         regressions=regressions.row_test_part() if getattr(regressions, "batch", False) else None,
         noise_order=noise_order, pending=valuation)

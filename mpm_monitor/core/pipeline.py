@@ -146,7 +146,7 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
     if result.model != model:
         after = detect(result.model, after_data, dataclasses.replace(options, repair=False, test_all_rows=False),
                        signals=result.signals if span is wide_data else None, previous=report, detectability=False,
-                       sigma_max=False)
+                       rows_only=True)
         doc["rsi_after"] = {r.output: r.rsi for r in after.rows}
         doc["rows_flagged_after"] = after.flagged_rows
     kinds = getattr(result, "kinds", {})

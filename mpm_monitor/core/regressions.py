@@ -987,7 +987,8 @@ class GramRegressions:
     def __init__(self, row_gram: LaggedGram, input_gram: LaggedGram, r, u, z, d, layout: RegressionLayout,
                  na: int, nb: int, max_condition: float = DEFAULT_MAX_CONDITION, segments=None):
         self.segments = None if segments is None else [(int(a), int(b)) for a, b in segments]
-        self.row_gram, self.input_gram = row_gram, input_gram
+        self.row_gram, self._input_gram = row_gram, input_gram
+        self._take_input_gram = None      # window_regressions: how to take the input Gram when first read
         self.r, self.u, self.z, self.d = r, u, z, d
         self.layout, self.na, self.nb = layout, na, nb
         self.max_condition = max_condition
@@ -1002,6 +1003,15 @@ class GramRegressions:
         self._row_regs = {}          # channels -> the row test's regression
         self._row_fits = {}          # (id of the regression, output) -> its row fit
         self._previous, self._same_rows = None, frozenset()
+
+    @property
+    def input_gram(self) -> LaggedGram:
+        """The Gram of the input lags and the own lags (:func:`window_regressions` takes it when first read:
+        a detection that tests no element needs none)."""
+        if self._take_input_gram is not None:
+            take, self._take_input_gram = self._take_input_gram, None
+            take()
+        return self._input_gram
 
     def row_test_part(self) -> "GramRegressions":
         """A copy with only what :meth:`reuse_rows_of` reads from it (the setpoints, ``z``, the row
@@ -1235,7 +1245,7 @@ def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
         regs.batch = True
         start = min(layout.start, n)
         row_gram.rebuild(buf, start, n, regs.row_means, jobs)
-        input_gram.rebuild(buf, start, n, regs.input_means, jobs)
+        regs._take_input_gram = lambda: input_gram.rebuild(buf, start, n, regs.input_means, jobs)
         return regs
     for gram, means in ((row_gram, regs.row_means), (input_gram, regs.input_means)):
         total, sums, rows = 0.0, 0.0, 0
