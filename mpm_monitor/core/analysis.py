@@ -447,6 +447,11 @@ def _column_label(e) -> str:
 #: 27,000) 0.638 against 0.576 s; case 3.3 (5x5, 10,000 samples, 250,000) 3.43 against 3.18 s; the
 #: command on a 20x20 window of 10,000 samples (4e6) 1.18 against 1.28 s (one process: 1.36 s).
 SPLIT_MIN_WORK = 1_000_000
+#: ... and below which the lighter stages (the model run, the Gram matrices' products, the singular
+#: values of S_Delta) are not split either: at 20x20 each takes a few hundredths of a second, about what
+#: the page faults after a fork cost (the command at 20x20 split everywhere and with these three in one
+#: process: the same time, median ratio 1.00 over 15 pairs; three forks fewer).
+LIGHT_SPLIT_MIN_WORK = 10_000_000
 
 
 def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
@@ -562,13 +567,15 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     # Two processes: the detectable gain changes beside the repair (settle) whenever asked for; the stages split
     # row by row only for a window large enough that half of their work outweighs what a fork costs.
     two = options.jobs > 1
-    if two and n * ny * model.n_columns < SPLIT_MIN_WORK:
+    work = n * ny * model.n_columns
+    if two and work < SPLIT_MIN_WORK:
         options = dataclasses.replace(options, jobs=1)
+    light_jobs = options.jobs if work >= LIGHT_SPLIT_MIN_WORK else 1     # the model run, Gram products, SVD
     if n < layout.min_samples and plan is None:
         raise DataFileError(f"{src}: {n} samples; the tests with na={options.na}, nb={options.nb}, "
                             f"max_delay={layout.max_delay} need at least {layout.min_samples} samples")
     if signals is None:
-        sig = compute_signals(model, r, u, y, options.initial_state, dv=dv, jobs=options.jobs) if plan is None else \
+        sig = compute_signals(model, r, u, y, options.initial_state, dv=dv, jobs=light_jobs) if plan is None else \
             segment_signals(model, r, u, y, plan.local_segments, options.initial_state, dv=dv, grid=grid,
                             max_gap=plan.max_gap, fill=data.fill_on_grid())
     else:
@@ -580,14 +587,14 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
             sig = LoopSignals(*(plan.take(x) for x in (sig.yhat, sig.d, sig.eps, sig.transient)))
     if regressions is None and plan is None:
         z = sig.eps - r   # = -d: zero-mean noise under "no mismatch"
-        regressions = window_regressions(r, columns, z, sig.d, layout, options.na, options.nb, jobs=options.jobs)
+        regressions = window_regressions(r, columns, z, sig.d, layout, options.na, options.nb, jobs=light_jobs)
         if previous is not None and previous.regressions is not None:
             regressions.reuse_rows_of(previous.regressions)
     elif regressions is None:
         # Each segment's d centred on its own (its level restarts with its model output).
         d = np.vstack([sig.d[a:b] - sig.d[a:b].mean(axis=0) for a, b in plan.local_segments])
         regressions = window_regressions(r, columns, -d, d, layout, options.na, options.nb,
-                                         segments=plan.local_segments, jobs=options.jobs)
+                                         segments=plan.local_segments, jobs=light_jobs)
 
     # A fit that leaves at most EXACT_FIT of its output's spread is exact (a log without noise): its tests
     # decide outright instead of on the rounding of its residual.  The spread is the larger of the
@@ -604,7 +611,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         if colour.noise_order["coloured"]:
             return Coloured(colour.noise_order, sig, None if plan is None else plan.to_dict())
     row_test = sdelta_row_test(model, r, sig.eps, regressions, layout, options, output_spread=spread,
-                               singular_values=not rows_only)
+                               singular_values=not rows_only, jobs=light_jobs)
     rows = row_test.rows
     warnings = diverging + list(row_test.warnings) + offset_warnings(model, sig.d, y, diverged)
 

@@ -108,7 +108,8 @@ def frequency_grid(band: tuple, n: int) -> np.ndarray:
 
 
 def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressions, layout, options,
-                    output_spread: Optional[np.ndarray] = None, singular_values: bool = True) -> RowTest:
+                    output_spread: Optional[np.ndarray] = None, singular_values: bool = True,
+                    jobs: Optional[int] = None) -> RowTest:
     """The S_Delta row test of every output (see the module docstring).
 
     Parameters
@@ -129,9 +130,10 @@ def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressio
         noise): its test is decided outright, not on the rounding of its residual
         (:meth:`~mpm_monitor.core.arx.SharedFit.set_output_spread`).  Default: only a residual of exactly 0.
     singular_values : bool
-        False: ``sigma_max`` is not computed (NaN; the rows' tests and RSI do not need it).  With
-        ``options.jobs`` 2 a forked child computes the singular values of half of the frequencies
-        (:func:`~mpm_monitor.core.parallel.split_map`; the same numbers).
+        False: ``sigma_max`` is not computed (NaN; the rows' tests and RSI do not need it).
+    jobs : int, optional
+        With 2 a forked child computes the singular values of half of the frequencies
+        (:func:`~mpm_monitor.core.parallel.split_map`; the same numbers); default ``options.jobs``.
 
     Returns
     -------
@@ -171,7 +173,8 @@ def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressio
     if singular_values:
         half = (omega.size + 1) // 2
         sigma_max = np.concatenate(split_map(lambda part: np.linalg.svd(S[part], compute_uv=False)[:, 0],
-                                             [slice(0, half), slice(half, omega.size)], getattr(options, "jobs", 1)))
+                                             [slice(0, half), slice(half, omega.size)],
+                                             getattr(options, "jobs", 1) if jobs is None else jobs))
     else:
         sigma_max = np.full(omega.size, np.nan)
     row_p = np.minimum(1.0, N_FAMILIES * holm_adjust(row_raw_p))
