@@ -50,12 +50,13 @@ STAGES = (
     ("detection", "mpm_monitor.core.pipeline", "detect_unless_coloured"),
     ("joint classification", "mpm_monitor.core.pipeline", "explained_elements"),
     ("repair", "mpm_monitor.core.pipeline", "repair_model"),
+    ("waiting for the second process", "mpm_monitor.core.pipeline", "settle_report"),
 )
 #: The stages inside the first detection (its "rest" is what they leave).
 INSIDE_DETECTION = ("model run", "regressions", "row test", "element test", "detectability", "experiment")
 
 
-def child(model_path: str, csv_path: str) -> dict:
+def child(model_path: str, csv_path: str, jobs: int = 1) -> dict:
     """One timed run in this (fresh) interpreter; the figures as a dict."""
     import mpm_monitor
 
@@ -90,7 +91,7 @@ def child(model_path: str, csv_path: str) -> dict:
             owner = getattr(owner, cls)
         setattr(owner, name, timed(label, getattr(owner, name)))
     s = time.perf_counter()
-    report = pipeline.analyze(model, data, analysis.AnalysisOptions())
+    report = pipeline.analyze(model, data, analysis.AnalysisOptions(jobs=jobs))
     total = time.perf_counter() - s
     return {"import_s": t1 - t0, "csv_s": t2 - t1, "analyze_s": total, "calls": calls,
             "located": [f"{o}:{i}" for o, i in report.located_elements]}
@@ -125,17 +126,17 @@ def format_size(size: str, s: dict) -> str:
     return "\n".join(lines)
 
 
-def run(sizes, repeats: int = 3, seed: int = 0, log=print) -> dict:
+def run(sizes, repeats: int = 3, seed: int = 0, log=print, jobs: int = 1) -> dict:
     """The breakdown at every size; a JSON-ready dict."""
     from bench.perf import INDUSTRIAL_SAMPLES, machine_info, write_industrial_case
 
     tmp = Path(tempfile.mkdtemp(prefix="mpm_stages_"))
-    out = {"machine": machine_info(), "repeats": repeats, "samples": INDUSTRIAL_SAMPLES, "sizes": {}}
+    out = {"machine": machine_info(), "repeats": repeats, "samples": INDUSTRIAL_SAMPLES, "jobs": jobs, "sizes": {}}
     for ny, nu in sizes:
         yml, csv = write_industrial_case(tmp, ny, nu, INDUSTRIAL_SAMPLES, seed)
         runs = []
         for _ in range(repeats):
-            done = subprocess.run([sys.executable, "-m", "bench.stages", "--child", str(yml), str(csv)],
+            done = subprocess.run([sys.executable, "-m", "bench.stages", "--jobs", str(jobs), "--child", str(yml), str(csv)],
                                   capture_output=True, text=True, check=True)
             runs.append(json.loads(done.stdout.strip().splitlines()[-1]))
         size = f"{ny}x{nu}"
@@ -151,10 +152,13 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=3, help="fresh interpreters per size (default 3)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, help="JSON output path")
+    parser.add_argument("--jobs", type=int, default=1,
+                        help="processes of the analysis (AnalysisOptions.jobs; default 1: every stage in the process, "
+                             "so that each is timed whole; with 2 the stages a child shares show the parent's wall time)")
     parser.add_argument("--child", nargs=2, metavar=("MODEL", "CSV"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
-        print(json.dumps(child(*args.child)))
+        print(json.dumps(child(*args.child, jobs=args.jobs)))
         return 0
     sizes = []
     for part in args.sizes.split(","):
@@ -165,7 +169,9 @@ def main(argv=None) -> int:
         sizes.append((ny, nu))
     if args.repeats < 1:
         parser.error(f"--repeats: expected an integer >= 1, got {args.repeats}")
-    result = run(sizes, args.repeats, args.seed)
+    if args.jobs < 1:
+        parser.error(f"--jobs: expected an integer >= 1, got {args.jobs}")
+    result = run(sizes, args.repeats, args.seed, jobs=args.jobs)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps(result, indent=1))

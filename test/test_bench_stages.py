@@ -22,8 +22,18 @@ def test_the_stages_of_a_small_analysis_are_timed_and_nest():
     assert "3x3: analyze" in stages.format_size("3x3", s)
 
 
+def test_with_two_processes_the_parent_waits_for_the_detectability_it_left_to_the_child():
+    out = stages.run([(3, 3)], repeats=1, log=lambda *_: None, jobs=2)
+    st = out["sizes"]["3x3"]["summary"]["stages"]
+    assert out["jobs"] == 2 and st["repair"]["calls"] == 1
+    assert st["detectability"]["calls"] == 0                    # computed in the child, beside the repair
+    assert st["waiting for the second process"]["calls"] >= 1
+
+
 def test_bad_sizes_are_refused():
     with pytest.raises(SystemExit):
         stages.main(["--sizes", "20by20"])
     with pytest.raises(SystemExit):
         stages.main(["--repeats", "0"])
+    with pytest.raises(SystemExit):
+        stages.main(["--jobs", "0"])

@@ -521,10 +521,16 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         on them (:func:`~mpm_monitor.core.logged_data.numerical_breakdown`: a loop that diverged),
         the numpy error as its ``__cause__``.
     """
+    return _guarded(model, data, options, signals, regressions, previous, candidates, detectability,
+                    rows_only=rows_only, settle=settle)
+
+
+def _guarded(model: PlantModel, data: LoggedData, *args, **how):
+    """:func:`_detect` on ``data`` in deviations, its numerical errors turned into a ``DataFileError``
+    (:func:`~mpm_monitor.core.logged_data.numerical_breakdown`)."""
     data = in_deviations(model, data)
     try:
-        return _detect(model, data, options, signals, regressions, previous, candidates, detectability,
-                       rows_only=rows_only, settle=settle)
+        return _detect(model, data, *args, **how)
     except NUMERICAL_ERRORS as err:
         raise numerical_breakdown(model, data, err) from err
 
@@ -881,12 +887,8 @@ def detect_unless_coloured(model: PlantModel, data: LoggedData, options: Analysi
     -------
     AnalysisReport or Coloured
     """
-    data = in_deviations(model, data)
-    try:
-        return _detect(model, data, options, signals, regressions, previous, candidates, detectability,
-                       unless_coloured=True, settle=settle)
-    except NUMERICAL_ERRORS as err:
-        raise numerical_breakdown(model, data, err) from err
+    return _guarded(model, data, options, signals, regressions, previous, candidates, detectability,
+                    unless_coloured=True, settle=settle)
 
 
 def check_gap_rows(plan, layout, options, src: str) -> None:
