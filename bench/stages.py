@@ -50,7 +50,7 @@ STAGES = (
     ("detection", "mpm_monitor.core.pipeline", "detect_unless_coloured"),
     ("joint classification", "mpm_monitor.core.pipeline", "explained_elements"),
     ("repair", "mpm_monitor.core.pipeline", "repair_model"),
-    ("waiting for the second process", "mpm_monitor.core.pipeline", "settle_report"),
+    ("waiting for the child", "mpm_monitor.core.pipeline", "settle_report"),
 )
 #: The stages inside the first detection (its "rest" is what they leave).
 INSIDE_DETECTION = ("model run", "regressions", "row test", "element test", "detectability", "experiment")

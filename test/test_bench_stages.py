@@ -27,7 +27,7 @@ def test_with_two_processes_the_parent_waits_for_the_detectability_it_left_to_th
     st = out["sizes"]["3x3"]["summary"]["stages"]
     assert out["jobs"] == 2 and st["repair"]["calls"] == 1
     assert st["detectability"]["calls"] == 0                    # computed in the child, beside the repair
-    assert st["waiting for the second process"]["calls"] >= 1
+    assert st["waiting for the child"]["calls"] >= 1
 
 
 def test_bad_sizes_are_refused():
