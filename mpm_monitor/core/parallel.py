@@ -15,8 +15,8 @@ executors and DDS threads; the live monitor's analysis runs in a process of its 
 ``spawn``).
 
 Errors: an exception raised in the child is raised again in the parent (the original type when it
-pickles, otherwise a :class:`ChildProcessError` naming it).  A child that dies without a result
-raises :class:`ChildProcessError`.
+pickles, otherwise a :class:`ChildProcessError` naming it).  A child that dies without a result (killed,
+out of memory) costs time only: the parent computes what it was to compute itself.
 """
 
 from __future__ import annotations
@@ -63,6 +63,7 @@ class Forked:
     def __init__(self, fn: Callable[[], object], inline: bool = False):
         self._pid = None
         self._value = None
+        self._fn = fn
         if inline or not can_fork():
             self._value = _outcome(fn)
             return
@@ -78,16 +79,19 @@ class Forked:
         self._pid, self._read = pid, read_end
 
     def result(self):
-        """The value of ``fn()``, or its exception raised again."""
+        """The value of ``fn()``, or its exception raised again; computed here if the child died without a result."""
         if self._pid is not None:
             try:
                 self._value = _receive(self._read)
-            except (EOFError, OSError, pickle.UnpicklingError, ValueError) as exc:
-                self._value = (False, ChildProcessError(f"the analysis's second process died without a result ({exc})"))
+            except (EOFError, OSError, pickle.UnpicklingError, ValueError):
+                self._value = None          # the child died: below, fn() in this process
             finally:
                 os.close(self._read)
                 os.waitpid(self._pid, 0)
                 self._pid = None
+            if self._value is None:
+                self._value = _outcome(self._fn)
+        self._fn = None
         ok, value = self._value
         if ok:
             return value
