@@ -202,3 +202,33 @@ def test_an_error_of_the_second_process_is_raised_by_the_analysis_and_no_child_i
     with pytest.raises(Exception, match="broken detectability"):
         analyze(case.model, data, AnalysisOptions(jobs=2))
     assert forks and _all_reaped(forks)
+
+
+def _analysis_where(model, data, options):
+    """In the monitor's analysis process: whether it may fork, and the report of ``analyze`` there."""
+    return parallel.can_fork(), _json(analyze(model, data, options))
+
+
+def test_the_monitors_analysis_process_may_use_its_second_process(case_32):
+    from mpm_monitor.monitor.worker import ProcessAnalyzer
+
+    case, data = case_32
+    pa = ProcessAnalyzer(_analysis_where)
+    try:
+        forks, report = pa(case.model, data, AnalysisOptions(jobs=2))
+    finally:
+        pa.close()
+    assert forks                                     # its watchdog thread is marked fork_safe
+    assert report == _json(analyze(case.model, data, AnalysisOptions(jobs=1)))
+
+
+def test_a_thread_marked_fork_safe_does_not_stop_a_fork():
+    stop = threading.Event()
+    watchdog = parallel.fork_safe(threading.Thread(target=stop.wait))
+    watchdog.start()
+    try:
+        assert parallel.can_fork()
+        assert Forked(os.getpid).result() != os.getpid()
+    finally:
+        stop.set()
+        watchdog.join()

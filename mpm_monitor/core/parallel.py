@@ -11,8 +11,8 @@ computation in one process.
 them in a child.  Both run everything in the calling process when ``jobs`` is 1, when the platform
 has no ``fork``, or when the calling process runs other threads (a fork copies only the calling
 thread, and a lock another thread held at that moment stays locked in the child: the ROS nodes'
-executors and DDS threads; the live monitor's analysis runs in a process of its own, started with
-``spawn``).
+executors and DDS threads), but for threads marked :func:`fork_safe` (the live monitor's analysis
+process, started with ``spawn``, runs only such a watchdog beside the analysis).
 
 Errors: an exception raised in the child is raised again in the parent (the original type when it
 pickles, otherwise a :class:`ChildProcessError` naming it).  A child that dies without a result (killed,
@@ -25,6 +25,7 @@ import os
 import pickle
 import struct
 import threading
+import weakref
 from typing import Callable, Sequence
 
 #: Items below which :func:`split_map` does not fork (the fork and the pickling cost more).
@@ -44,9 +45,24 @@ def default_jobs() -> int:
     return min(usable_cpus(), 2)
 
 
+#: Threads that hold no lock a child could need (they only sleep and poll): :func:`can_fork` allows them.
+_FORK_SAFE = weakref.WeakSet()
+
+
+def fork_safe(thread: threading.Thread) -> threading.Thread:
+    """Mark ``thread`` as one that never holds a lock (a watchdog that sleeps and polls), so that a process
+    running it may still fork (:func:`can_fork`); the child does not run it.  Returns ``thread``."""
+    _FORK_SAFE.add(thread)
+    return thread
+
+
 def can_fork() -> bool:
-    """Whether :class:`Forked` may fork here: the platform has ``fork`` and this process runs no other thread."""
-    return hasattr(os, "fork") and threading.active_count() == 1
+    """Whether :class:`Forked` may fork here: the platform has ``fork`` and this process runs no other
+    thread than the calling one and those marked :func:`fork_safe`."""
+    if not hasattr(os, "fork"):
+        return False
+    me = threading.current_thread()
+    return all(t is me or t in _FORK_SAFE for t in threading.enumerate())
 
 
 class Forked:

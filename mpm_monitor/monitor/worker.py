@@ -21,6 +21,7 @@ from typing import Any, Callable, Optional
 from ..core.errors import DataFileError
 from ..core.logged_data import NUMERICAL_ERRORS, check_scale
 from ..core.model import PlantModel
+from ..core.parallel import fork_safe
 
 
 @dataclasses.dataclass(frozen=True)
@@ -169,7 +170,8 @@ def _exit_with_parent(parent_pid: int, period: float = 0.5) -> None:
             time.sleep(period)
         os._exit(0)
 
-    threading.Thread(target=watch, name="exit with parent", daemon=True).start()
+    # It only sleeps and polls: the analysis may still fork its second process (AnalysisOptions.jobs).
+    fork_safe(threading.Thread(target=watch, name="exit with parent", daemon=True)).start()
 
 
 class ProcessAnalyzer:
