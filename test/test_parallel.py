@@ -232,3 +232,14 @@ def test_a_thread_marked_fork_safe_does_not_stop_a_fork():
     finally:
         stop.set()
         watchdog.join()
+
+
+def test_a_handle_dropped_without_its_result_leaves_no_process(forks):
+    import gc
+    import time
+
+    handle = Forked(lambda: time.sleep(30))
+    pid = handle._pid
+    del handle
+    gc.collect()
+    assert forks == [pid] and _all_reaped(forks)

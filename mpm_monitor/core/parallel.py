@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import signal
 import struct
 import threading
 import weakref
@@ -93,6 +94,17 @@ class Forked:
                 os._exit(0)
         os.close(write_end)
         self._pid, self._read = pid, read_end
+
+    def __del__(self):
+        # Dropped without result(): stop the child and reap it, so that no process is left behind.
+        if getattr(self, "_pid", None) is not None:
+            try:
+                os.close(self._read)
+                os.kill(self._pid, signal.SIGKILL)
+                os.waitpid(self._pid, 0)
+            except OSError:
+                pass
+            self._pid = None
 
     def result(self):
         """The value of ``fn()``, or its exception raised again; computed here if the child died without a result."""
