@@ -18,6 +18,13 @@ from mpm_monitor.core.pipeline import analyze
 pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
 
 
+@pytest.fixture(autouse=True)
+def alone():
+    """These tests fork: a thread another test left running (which stops every fork) is named here."""
+    others = [t.name for t in threading.enumerate() if t is not threading.current_thread()]
+    assert not others, f"threads left running by earlier tests stop the forks tested here: {others}"
+
+
 def test_forked_runs_in_another_process_and_returns_arrays_bit_for_bit():
     rng = np.random.default_rng(0)
     big = rng.standard_normal((700, 900))             # out of band, 5 MB: more than a pipe holds
