@@ -235,6 +235,24 @@ def test_row_fits_solved_together_equal_each_alone_and_qr():
         assert together.row_fit(reg, i) is fit
 
 
+def test_the_short_arx_from_the_gram_equals_the_qr_one_without_its_condition_number():
+    # The paper's table reads a short ARX's a, b and fit; from the Gram its condition number (an SVD of the
+    # factor per row) is not computed; the QR path (fit_arx) still gives it.
+    rng = np.random.default_rng(3)
+    n, ny, nu, na, nb = 2000, 2, 3, 2, 3
+    r = np.repeat(rng.standard_normal((n // 20, ny)), 20, axis=0)
+    u = sps.lfilter([1.0], [1.0, -0.7], rng.standard_normal((n, nu)), axis=0)
+    d = u[:, :ny] * 0.4 + 0.1 * rng.standard_normal((n, ny))
+    layout = RegressionLayout(max_delay=4, n_lag_r=6, n_lag_u=7, start=8, min_samples=0)
+    gram, qr = window_regressions(r, u, -d, d, layout, na, nb), QrRegressions(r, u, -d, d, layout, na, nb)
+    nk = np.array([1, 2, 3])
+    fast, ref = gram.short_arx(1, nk), qr.short_arx(1, nk)
+    assert not gram.fallbacks
+    np.testing.assert_allclose(fast.theta, ref.theta, rtol=1e-7, atol=1e-9)
+    assert fast.fit_percent == pytest.approx(ref.fit_percent, rel=1e-8)
+    assert np.isnan(fast.condition_number) and np.isfinite(ref.condition_number) and ref.condition_number >= 1
+
+
 # ------------------------------------------------------------------------------------ batched fits
 def _fits():
     rng = np.random.default_rng(1)

@@ -911,7 +911,7 @@ class GramFit(SharedFit):
 
 
 def gram_arx(gram: np.ndarray, sum_y: float, n: int, na: int, nb: int, nk: np.ndarray,
-             max_condition: float = DEFAULT_MAX_CONDITION) -> ArxFit:
+             max_condition: float = DEFAULT_MAX_CONDITION, condition: bool = True) -> ArxFit:
     """:func:`mpm_monitor.core.arx.fit_arx` from the cross products of its columns.
 
     Parameters
@@ -926,6 +926,8 @@ def gram_arx(gram: np.ndarray, sum_y: float, n: int, na: int, nb: int, nk: np.nd
     na, nb : int
     nk : ndarray of int, shape (n_columns,)
     max_condition : float
+    condition : bool
+        False: ``condition_number`` is not computed (NaN; it takes an SVD of the factor).
 
     Returns
     -------
@@ -955,11 +957,14 @@ def gram_arx(gram: np.ndarray, sum_y: float, n: int, na: int, nb: int, nk: np.nd
     cov = sigma2 * (rinv @ rinv.T) / np.outer(scale, scale)
     ynorm2 = g_yy - sum_y * sum_y / n
     fit = 100.0 * (1.0 - math.sqrt(rss / ynorm2)) if ynorm2 > 0 else 0.0
-    sv = np.linalg.svd(R, compute_uv=False)
+    cond = float("nan")
+    if condition:
+        sv = np.linalg.svd(R, compute_uv=False)
+        cond = float(sv[0] / sv[-1])
     nu = nk.shape[0]
     return ArxFit(a=theta[:na], b=[theta[na + j * nb: na + (j + 1) * nb] for j in range(nu)], nk=nk, theta=theta,
                   covariance=cov, residuals=None, sigma2=float(sigma2), fit_percent=float(fit),
-                  condition_number=float(sv[0] / sv[-1]), dof=int(dof), rank=rank)
+                  condition_number=cond, dof=int(dof), rank=rank)
 
 
 class GramRegressions:
@@ -1165,7 +1170,8 @@ class GramRegressions:
         return self._fits("input", reg, [i])[0]
 
     def short_arx(self, i: int, nk: np.ndarray) -> ArxFit:
-        """The short ARX of ``d_i`` at the delays ``nk`` (the paper's tables)."""
+        """The short ARX of ``d_i`` at the delays ``nk`` (the paper's tables, which read its ``a``, ``b`` and
+        fit: its ``condition_number`` is NaN, not computed, unless refitted by QR)."""
         na, nb = self.na, self.nb
         nk = np.asarray(nk, dtype=int)
         nu = self.u.shape[1]
@@ -1194,7 +1200,7 @@ class GramRegressions:
             sums = sums + x.sum(axis=0)
             n += t.shape[0]
         try:
-            return gram_arx(g, float(sums[-1]), n, na, nb, nk, self.max_condition)
+            return gram_arx(g, float(sums[-1]), n, na, nb, nk, self.max_condition, condition=False)
         except IllConditioned:
             self.fallbacks.append(f"short ARX of output {i}")
             return self.qr.short_arx(i, nk)
