@@ -250,3 +250,20 @@ def test_a_handle_dropped_without_its_result_leaves_no_process(forks):
     del handle
     gc.collect()
     assert forks == [pid] and _all_reaped(forks)
+
+
+def test_the_command_writes_the_same_report_with_one_and_two_processes(case_32, tmp_path):
+    from mpm_monitor.apps.cli import main
+    from mpm_monitor.io.csv_log import write_csv
+    from mpm_monitor.io.model_file import save_model
+
+    case, data = case_32
+    csv, model = tmp_path / "log.csv", tmp_path / "model.yaml"
+    write_csv(csv, data.t, data.r, data.u, data.y, data.inputs, data.outputs)
+    save_model(case.model, model)
+    reports = []
+    for jobs in ("1", "2"):
+        out = tmp_path / f"report_{jobs}.json"
+        assert main(["analyze", "--model", str(model), "--data", str(csv), "--json", str(out), "--jobs", jobs]) == 0
+        reports.append(json.loads(out.read_text()))
+    assert reports[0]["located"] and reports[0] == reports[1]
