@@ -353,19 +353,10 @@ def _piece_cells(raw: bytes, start: int, end: int):
         text = raw[start:end].decode("utf-8")
     except UnicodeDecodeError:
         return None
-    if '"' in text or ("\r" in text and text.count("\r") != text.count("\r\n")):
-        return None
     lines = (text[:-1] if end < len(raw) else text).split("\n")     # the lines body.split("\n") holds here
-    if max(map(len, lines)) > csv.field_size_limit():
-        return None
-    if not any(lines):
+    if not any(lines):            # only line ends: no quote or carriage return to refuse either
         return np.empty((0, 0))
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("error")
-            return np.loadtxt(lines, delimiter=",", comments=None, dtype=float, ndmin=2)
-    except Exception:                           # noqa: BLE001 - the careful parser says what is wrong
-        return None
+    return _numpy_cells(text, lines)
 
 
 def _child_pieces(raw: bytes, pieces: list, claims, shared):
@@ -521,20 +512,26 @@ def _fast_cells(text: str):
     if nl < 0:
         return None
     body = text[nl + 1:]
-    if '"' in text[:nl] or "\r" in text[:nl].rstrip("\r") or '"' in body:
+    if '"' in text[:nl] or "\r" in text[:nl].rstrip("\r"):
         return None
-    if "\r" in body and body.count("\r") != body.count("\r\n"):
+    return _numpy_cells(body, body.split("\n"))
+
+
+def _numpy_cells(body: str, lines: list):
+    """numpy's C parse of ``lines`` (``body`` split at its line ends: the whole body, or a piece of it),
+    or None where the careful parser might read them differently: a quote, a carriage return that does
+    not end a line, a line longer than the csv module's field limit, a cell numpy does not take as a
+    number, rows of different lengths, no data."""
+    if '"' in body or ("\r" in body and body.count("\r") != body.count("\r\n")):
         return None
-    lines = body.split("\n")
     if max(map(len, lines)) > csv.field_size_limit():
         return None
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error")      # "input contained no data" is a warning
-            table = np.loadtxt(lines, delimiter=",", comments=None, dtype=float, ndmin=2)
+            return np.loadtxt(lines, delimiter=",", comments=None, dtype=float, ndmin=2)
     except Exception:                           # noqa: BLE001 - the careful parser says what is wrong
         return None
-    return table
 
 
 def _careful_table(text: str, header: list, needed: list, idx: list, other_idx: list, source: str):
