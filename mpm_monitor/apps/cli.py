@@ -88,7 +88,6 @@ def _add_analysis_options(p: argparse.ArgumentParser) -> None:
 
 def _analysis_options(args):
     from ..core.analysis import AnalysisOptions
-
     from ..core.parallel import default_jobs
 
     values = {name: getattr(args, name) for name in CLI_ANALYSIS_OPTIONS}

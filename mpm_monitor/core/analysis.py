@@ -132,11 +132,14 @@ class AnalysisOptions:
         tests, ``max_delay + nb``) splits the data the same way and is only named louder in the
         warning (:mod:`mpm_monitor.core.gaps`).
     jobs : int
-        Processes the analysis uses (default 1).  With 2 or more, the work done row by row (the model
-        run, the row test's fits, the element test, the detectability) is split with a forked second
-        process (:mod:`mpm_monitor.core.parallel`); the results are the same bit for bit, since each
-        row is computed by the same code on the same numbers.  A process that runs other threads
-        (a ROS node) never forks: it computes everything itself.  At most 2 are used.
+        Processes the analysis uses (default 1).  With 2 or more, a forked second process
+        (:mod:`mpm_monitor.core.parallel`) takes half of the element test's rows and of the detectable
+        gain changes' chunks (on large windows also half of the model run's rows, of the Gram matrices'
+        products and of S_Delta's singular values: :data:`SPLIT_MIN_WORK`, :data:`LIGHT_SPLIT_MIN_WORK`),
+        and in :func:`~mpm_monitor.core.pipeline.analyze` computes the detectable gain changes and the
+        experiment while the model is repaired; the results are the same bit for bit, since each part is
+        computed by the same code on the same numbers.  A process that runs other threads (a ROS node)
+        never forks: it computes everything itself.  At most 2 are used.
     """
 
     na: int = option(4, "ARX order of A (the first tried; see max_na).", low=0, high=50)
@@ -750,7 +753,7 @@ class _Valuation:
     where they go: the report's elements, and its warnings at a placeholder left where they belong."""
 
     def __init__(self, handle, elements: list, warnings: list):
-        self.handle, self.elements, self.warnings = handle, elements, warnings
+        self.handle, self.elements = handle, elements
         self.marker = object()
         warnings.append(self.marker)
 
