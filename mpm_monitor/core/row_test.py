@@ -154,6 +154,7 @@ def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressio
     S = np.zeros((omega.size, ny, ny), dtype=complex)
     row_raw_p = np.full(ny, np.nan)
     row_stat, row_df, row_fit = np.full(ny, np.nan), [(0, 0)] * ny, np.zeros(ny)
+    row_gains = np.zeros((ny, omega.size))                        # (ny, n_freq)
     for i, fit in enumerate(regressions.row_fits(reg_r, range(ny))):
         if output_spread is not None:
             fit.set_output_spread(output_spread[i])
@@ -165,11 +166,13 @@ def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressio
         # The common coefficients: every moving setpoint's lags 0 .. n_lag_r - 1, one block after the other.
         c = fit.theta[:fit.n_common].reshape(len(r_moving), n_lag_r)
         S[:, i, r_moving] += (z_pow[:, :n_lag_r] @ c.T) / a_poly[:, None]
+        # The row's 2-norm at every frequency (numpy's norm along the row, without its temporaries of all of S).
+        row = S[:, i, :]
+        row_gains[i] = np.sqrt(np.add.reduce((row.conj() * row).real, axis=1))
         # Fit of the paper's ARX of eps_i on r (same model, target eps_i).
         e_i = segment_rows(eps[:, i], start, getattr(regressions, "segments", None))
         e_i = e_i - e_i.mean()
         row_fit[i] = 100.0 * (1.0 - math.sqrt(fit.rss) / max(np.linalg.norm(e_i), 1e-300))
-    row_gains = np.linalg.norm(S, axis=2).T                       # (ny, n_freq)
     if singular_values:
         half = (omega.size + 1) // 2
         sigma_max = np.concatenate(split_map(lambda part: np.linalg.svd(S[part], compute_uv=False)[:, 0],
