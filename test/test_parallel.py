@@ -65,19 +65,50 @@ def test_what_a_child_that_dies_was_to_compute_is_computed_in_the_parent():
         [f"computed by the parent {x}" for x in range(4)]
 
 
-def test_split_map_keeps_the_order_and_computes_the_second_half_elsewhere():
+def test_split_map_keeps_the_order_and_takes_each_item_once_in_one_process_or_the_other():
+    import time
+
     parent = os.getpid()
-    out = split_map(lambda x: (x * x, os.getpid()), range(7), jobs=2)
+
+    def f(x):
+        time.sleep(0.02)                             # long enough for the child to take some items
+        return x * x, os.getpid()
+    out = split_map(f, range(7), jobs=2)
     assert [v for v, _ in out] == [x * x for x in range(7)]
-    assert {p for _, p in out[:4]} == {parent}
-    assert all(p != parent for _, p in out[4:])
+    pids = [p for _, p in out]
+    assert parent in pids and len(set(pids)) == 2    # both processes took items, each item once
     assert split_map(lambda x: os.getpid(), range(7), jobs=1) == [parent] * 7
 
 
+def test_split_map_queues_runs_of_items_when_they_are_many():
+    n = 3 * parallel._QUEUE_LENGTH + 5               # more items than the queue has places: runs of them
+    assert split_map(lambda x: 2 * x, range(n), jobs=2) == [2 * x for x in range(n)]
+
+
+def test_split_map_gives_the_items_to_the_process_that_is_free():
+    import time
+
+    parent = os.getpid()
+
+    def f(x):
+        if os.getpid() == parent:
+            time.sleep(0.3)                          # the parent is slow: the child takes the rest
+        return os.getpid()
+    pids = split_map(f, range(12), jobs=2)
+    assert 1 <= pids.count(parent) <= 3
+
+
 def test_side_effects_of_the_child_stay_there():
-    seen = []
-    split_map(seen.append, range(6), jobs=2)
-    assert seen == [0, 1, 2]
+    import time
+
+    seen, parent = [], os.getpid()
+
+    def f(x):
+        time.sleep(0.01)
+        seen.append(x)
+        return os.getpid()
+    pids = split_map(f, range(6), jobs=2)
+    assert seen == [x for x in range(6) if pids[x] == parent] and len(seen) < 6
 
 
 def test_a_process_with_other_threads_does_not_fork():
@@ -118,9 +149,12 @@ def _all_reaped(pids) -> bool:
 
 
 def test_the_parents_own_error_wins_and_the_child_is_reaped(forks):
+    import time
+
     def f(x):
-        if x == 0 and os.getpid() == parent:
+        if os.getpid() == parent:
             raise ValueError("parent's row")
+        time.sleep(0.05)                             # the child does not take every item first
         return x
     parent = os.getpid()
     with pytest.raises(ValueError, match="parent's row"):

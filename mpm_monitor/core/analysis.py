@@ -177,8 +177,8 @@ class AnalysisOptions:
     max_gap: Optional[int] = option(None, "Longest gap in the data (missing samples) called short, samples; longer "
                                           "gaps are named louder in the warning (None: the longest lag of the "
                                           "tests).", low=0, high=10**9)
-    jobs: int = option(1, "Processes the analysis uses: with 2, a forked second process takes half of the rows' "
-                          "work (the same results, bit for bit).", low=1, high=64)
+    jobs: int = option(1, "Processes the analysis uses: with 2, a forked second process takes part of the rows' "
+                          "work, row by row as each is free (the same results, bit for bit).", low=1, high=64)
 
     def __post_init__(self):
         for name, value in check_analysis_options(self).items():

@@ -534,7 +534,7 @@ class WindowInformation:
         split : int, optional
             The window test's share of the level (:meth:`level`; default :attr:`split`).
         jobs : int
-            With 2, a forked child process computes the second half of the chunks of :data:`CHUNK`
+            With 2, a forked child process computes part of the chunks of :data:`CHUNK`
             elements (:func:`~mpm_monitor.core.parallel.split_map`; the same chunks, the same numbers).
 
         Returns

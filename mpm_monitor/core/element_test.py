@@ -468,7 +468,7 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
         The window's least-squares problems (``element_fit``, ``short_arx``).
     options : AnalysisOptions
         Its ``nb``, ``alpha``, ``element_window`` and ``jobs`` (with 2, a forked child process tests
-        half of the rows: :func:`~mpm_monitor.core.parallel.split_map`, the same numbers).
+        part of the rows: :func:`~mpm_monitor.core.parallel.split_map`, the same numbers).
     moments : ResponseMoments, optional
         The window's element responses and their moments with the input lags
         (:class:`~mpm_monitor.core.response_moments.ResponseMoments`, of the same columns, prediction
@@ -499,9 +499,10 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
 
     def one_row(i: int) -> _RowPart:
         """Row ``i``'s fit, tests and table: everything the rows' loop keeps of it (a child process
-        computes half of the rows with ``options.jobs`` > 1, :func:`~mpm_monitor.core.parallel.split_map`)."""
+        computes part of the rows with ``options.jobs`` > 1, :func:`~mpm_monitor.core.parallel.split_map`)."""
+        blocks_i, own_i = {}, {}      # the caller's dicts are filled in the order of the rows, below
         fit = fits.pop(i) if fits is not None else _unrestricted_fit(design, regressions, i, output_spread,
-                                                                     row_blocks, own)
+                                                                     blocks_i, own_i)
         tests = fit.test_each_block_zero([element_window(model, i, j, nb, options.element_window) for j in testable])
         responses = whole.tests(i, fit) if whole is not None else {}
         stds = fit.block_stds()
@@ -522,7 +523,7 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
         table = RowArxTable(output=model.outputs[i], a=short.a.tolist(),
                             b={names[j]: short.b[j].tolist() for j in range(nu)},
                             delay={names[j]: int(nk[j]) for j in range(nu)}, fit_percent=short.fit_percent)
-        return _RowPart(i, row_noise(fit), row_estimates, hits, table, row_blocks.get(i), own.get(i),
+        return _RowPart(i, row_noise(fit), row_estimates, hits, table, blocks_i.get(i), own_i.get(i),
                         None if whole is None or whole.moments is None else whole.moments.kept(i))
 
     for part in split_map(one_row, rows, getattr(options, "jobs", 1)):
@@ -531,7 +532,7 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
         estimates.update(part.estimates)
         group_hits.extend(part.group_hits)
         tables.append(part.table)
-        if part.blocks is not None:         # a child's row: what its fit left there
+        if part.blocks is not None:         # what the row's fit left for the residual's whiteness
             row_blocks[i], own[i] = part.blocks, part.own
         if part.moments is not None:
             whole.moments.keep(part.moments)

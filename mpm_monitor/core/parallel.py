@@ -199,11 +199,16 @@ def _read_exactly(fd: int, n: int) -> bytearray:
 
 
 def split_map(fn: Callable[[object], object], items: Sequence, jobs: int = 1) -> list:
-    """``[fn(x) for x in items]``, the second half of ``items`` computed in a forked child when ``jobs`` > 1.
+    """``[fn(x) for x in items]``, part of ``items`` computed in a forked child when ``jobs`` > 1.
 
-    The results come back in the order of ``items``; each is computed by the same code on the same
-    numbers as in one process.  Side effects of ``fn`` in the child (caches, dicts it fills) stay in the
-    child: ``fn`` must return all that the caller needs.
+    The parent and the child take the items one at a time, each the next one not taken yet (their
+    indices wait in a pipe, and a read of a few bytes from a pipe is atomic), so that neither waits
+    long for the other however the items' costs and the two processes' speeds differ (the child pays
+    for the pages it writes, :mod:`mpm_monitor.core.parallel`).  The results come back in the order of
+    ``items``; each is computed by the same code on the same numbers as in one process, whichever
+    process takes it.  Side effects of ``fn`` in the child (caches, dicts it fills) stay in the child:
+    ``fn`` must return all that the caller needs, and the caller must not rely on the order in which
+    the parent's calls happen.
 
     Parameters
     ----------
@@ -218,16 +223,52 @@ def split_map(fn: Callable[[object], object], items: Sequence, jobs: int = 1) ->
     list
     """
     items = list(items)
-    if jobs <= 1 or len(items) < MIN_SPLIT or not can_fork():
+    n = len(items)
+    if jobs <= 1 or n < MIN_SPLIT or not can_fork():
         return [fn(x) for x in items]
-    half = (len(items) + 1) // 2
-    child = Forked(lambda: [fn(x) for x in items[half:]])
+    # The queue: runs of consecutive items (one item each, up to _QUEUE_LENGTH items).
+    bounds = [k * n // min(n, _QUEUE_LENGTH) for k in range(min(n, _QUEUE_LENGTH) + 1)]
+    read_end, write_end = os.pipe()
     try:
-        mine = [fn(x) for x in items[:half]]
-    except BaseException:
+        _write_all(write_end, b"".join(_INDEX.pack(k) for k in range(len(bounds) - 1)))
+    finally:
+        os.close(write_end)          # the queue is complete: an empty pipe now reads as its end
+
+    def take_all() -> list:
+        """``(index, fn(item))`` of every item this process takes, until none is left."""
+        out = []
+        while True:
+            got = os.read(read_end, _INDEX.size)
+            if not got:
+                return out
+            run = _INDEX.unpack(got)[0]
+            out.extend((k, fn(items[k])) for k in range(bounds[run], bounds[run + 1]))
+
+    try:
+        child = Forked(take_all)
         try:
-            child.result()            # reap the child; the parent's own error is the one raised
-        except BaseException:  # noqa: BLE001
-            pass
-        raise
-    return mine + child.result()
+            mine = take_all()
+        except BaseException:
+            try:
+                child.result()            # reap the child; the parent's own error is the one raised
+            except BaseException:  # noqa: BLE001
+                pass
+            raise
+        theirs = child.result()
+    finally:
+        os.close(read_end)
+    results = [None] * n
+    done = [False] * n
+    for k, value in mine + theirs:
+        results[k], done[k] = value, True
+    for k in range(n):               # taken by a child that died without a result: computed here
+        if not done[k]:
+            results[k] = fn(items[k])
+    return results
+
+
+#: The index of a run of items in :func:`split_map`'s queue.
+_INDEX = struct.Struct("<I")
+#: Runs in :func:`split_map`'s queue, at most: their indices (4 KiB) fit in the smallest pipe buffer
+#: Linux gives, so that the queue is written whole before the fork.
+_QUEUE_LENGTH = 1024

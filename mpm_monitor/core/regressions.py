@@ -319,7 +319,7 @@ def lagged_cross_products(values: np.ndarray, col_channel: np.ndarray, col_lag: 
         Channel and lag (``0 .. max_lag``) of every column.
     max_lag : int
     jobs : int
-        With 2, a forked child process takes the products of half of the lag differences
+        With 2, a forked child process takes the products of part of the lag differences
         (:func:`~mpm_monitor.core.parallel.split_map`; each is the same product, the same numbers).
 
     Returns

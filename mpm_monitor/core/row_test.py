@@ -132,7 +132,7 @@ def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressio
     singular_values : bool
         False: ``sigma_max`` is not computed (NaN; the rows' tests and RSI do not need it).
     jobs : int, optional
-        With 2 a forked child computes the singular values of half of the frequencies
+        With 2 a forked child computes the singular values of one of two halves of the frequencies
         (:func:`~mpm_monitor.core.parallel.split_map`; the same numbers); default ``options.jobs``.
 
     Returns

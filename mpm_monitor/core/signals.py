@@ -250,7 +250,7 @@ def compute_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
         agree, the rows where the other model's elements equal ``model``'s are taken from them (the
         same numbers) and only the others are computed; otherwise every row is computed.
     jobs : int
-        With 2 (and no ``like``), a forked child process computes the second half of the rows
+        With 2 (and no ``like``), a forked child process computes one of two halves of the rows
         (:func:`~mpm_monitor.core.parallel.split_map`): each row is its own simulation and fit, so the
         numbers are the same.  A model with a direct feedthrough is computed in one process (its
         feedthrough is one product of every row).
