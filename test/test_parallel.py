@@ -60,7 +60,10 @@ def test_what_a_child_that_dies_was_to_compute_is_computed_in_the_parent():
         if os.getpid() != parent:
             os._exit(3)                              # killed, say, by the system running out of memory
         return "computed by the parent"
-    assert Forked(dies_in_the_child).result() == "computed by the parent"
+    handle = Forked(dies_in_the_child)
+    assert handle.forked
+    assert handle.result() == "computed by the parent"
+    assert not handle.forked                         # its side effects, if any, are the parent's
     assert split_map(lambda x: dies_in_the_child() + f" {x}", range(4), jobs=2) == \
         [f"computed by the parent {x}" for x in range(4)]
 
@@ -182,6 +185,25 @@ def test_an_analysis_in_two_processes_equals_one_in_one_process(case_32, gaps):
     one = analyze(case.model, data, AnalysisOptions(jobs=1))
     two = analyze(case.model, data, AnalysisOptions(jobs=2))
     assert one.located_elements                       # the case's mismatch is found, with its repair
+    assert _json(one) == _json(two)
+
+
+def test_with_every_stage_split_two_processes_equal_one(case_32, monkeypatch, forks):
+    """The stages split only on large windows (the model run, the Gram products, the singular values, the
+    element fits beside the row test): here on a small one, thresholds at 0."""
+    from mpm_monitor.core import analysis
+
+    case, data = case_32
+    one = analyze(case.model, data, AnalysisOptions(jobs=1))
+    assert not forks
+    monkeypatch.setattr(analysis, "SPLIT_MIN_WORK", 0)
+    monkeypatch.setattr(analysis, "LIGHT_SPLIT_MIN_WORK", 0)
+    beside = []
+    colour = analysis._ColourBeside.result
+    monkeypatch.setattr(analysis._ColourBeside, "result", lambda self: beside.append(self.handle.forked) or colour(self))
+    two = analyze(case.model, data, AnalysisOptions(jobs=2))
+    assert beside and all(beside)                    # the element fits were taken in a child
+    assert len(forks) > len(beside) and _all_reaped(forks)
     assert _json(one) == _json(two)
 
 

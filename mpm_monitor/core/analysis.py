@@ -615,12 +615,22 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     spread[[model.outputs.index(name) for name in diverged]] = 0.0
     probe = unless_coloured and options.method == "arx"
     colour = None
+    beside = None
     if probe and options.test_all_rows:       # the rows tested do not depend on the row test: before it
-        colour = _ElementColour(model, list(range(ny)), columns, layout, regressions, options, spread)
-        if colour.noise_order["coloured"]:
-            return Coloured(colour.noise_order, sig, None if plan is None else plan.to_dict())
+        if light_jobs > 1 and getattr(regressions, "batch", False):
+            # On a large window, in a forked child while this process runs the row test (their regressions
+            # share nothing): the same numbers, the fits' check waits for the row test.
+            beside = _ColourBeside(model, list(range(ny)), columns, layout, regressions, options, spread)
+        else:
+            colour = _ElementColour(model, list(range(ny)), columns, layout, regressions, options, spread)
+            if colour.noise_order["coloured"]:
+                return Coloured(colour.noise_order, sig, None if plan is None else plan.to_dict())
     row_test = sdelta_row_test(model, r, sig.eps, regressions, layout, options, output_spread=spread,
                                singular_values=not rows_only, jobs=light_jobs)
+    if beside is not None:
+        colour = beside.result()
+        if colour.noise_order["coloured"]:
+            return Coloured(colour.noise_order, sig, None if plan is None else plan.to_dict())
     rows = row_test.rows
     warnings = diverging + list(row_test.warnings) + offset_warnings(model, sig.d, y, diverged)
 
@@ -852,6 +862,34 @@ class _ElementColour:
                                   regressions.input_regression)
         self.fits, self.whiteness = unrestricted_fits(rows, self.design, regressions, spread)
         self.noise_order = _noise_order(model, options, self.whiteness)
+
+
+class _ColourBeside:
+    """:class:`_ElementColour` computed in a forked child (:class:`~mpm_monitor.core.parallel.Forked`) while
+    the caller runs the row test; :meth:`result` takes it, with what it left in ``regressions``: the Gram
+    matrix of the input lags (taken by the child) and the names of the regressions refitted by QR, put
+    where the order of the computation in one process puts them (before the row test's)."""
+
+    def __init__(self, model: PlantModel, rows: list, columns: np.ndarray, layout, regressions,
+                 options: AnalysisOptions, spread: np.ndarray):
+        self.regressions = regressions
+        self.fallbacks_before = len(regressions.fallbacks)
+
+        def colour():
+            made = _ElementColour(model, rows, columns, layout, regressions, options, spread)
+            gram = {k: v for k, v in regressions.input_gram.__dict__.items() if k != "signals"}
+            return made, gram, regressions.fallbacks[self.fallbacks_before:]
+        self.handle = Forked(colour)
+
+    def result(self) -> "_ElementColour":
+        made, gram, fallbacks = self.handle.result()
+        if self.handle.forked:                      # what the child left in its copy of the regressions, here
+            regs = self.regressions
+            if regs._take_input_gram is not None:
+                regs._take_input_gram = None
+                regs._input_gram.__dict__.update(gram)
+            regs.fallbacks[self.fallbacks_before:self.fallbacks_before] = fallbacks
+        return made
 
 
 @dataclasses.dataclass

@@ -81,7 +81,10 @@ class Forked:
         self._pid = None
         self._value = None
         self._fn = fn
-        if inline or not can_fork():
+        #: Whether ``fn`` ran in a child (else here: at construction, or in :meth:`result` after the child died
+        #: without a result; its side effects are then here).
+        self.forked = not inline and can_fork()
+        if not self.forked:
             self._value = _outcome(fn)
             return
         read_end, write_end = os.pipe()
@@ -118,6 +121,7 @@ class Forked:
                 os.waitpid(self._pid, 0)
                 self._pid = None
             if self._value is None:
+                self.forked = False
                 self._value = _outcome(self._fn)
         self._fn = None
         ok, value = self._value
