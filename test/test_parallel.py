@@ -198,6 +198,7 @@ def test_with_every_stage_split_two_processes_equal_one(case_32, monkeypatch, fo
     assert not forks
     monkeypatch.setattr(analysis, "SPLIT_MIN_WORK", 0)
     monkeypatch.setattr(analysis, "LIGHT_SPLIT_MIN_WORK", 0)
+    monkeypatch.setattr(analysis, "BESIDE_MIN_WORK", 0)
     beside = []
     colour = analysis._ColourBeside.result
     monkeypatch.setattr(analysis._ColourBeside, "result", lambda self: beside.append(self.handle.forked) or colour(self))

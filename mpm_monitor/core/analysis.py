@@ -455,6 +455,10 @@ SPLIT_MIN_WORK = 1_000_000
 #: the page faults after a fork cost (the command at 20x20 split everywhere and with these three in one
 #: process: the same time, median ratio 1.00 over 15 pairs; three forks fewer).
 LIGHT_SPLIT_MIN_WORK = 10_000_000
+#: ... and the element test's unrestricted fits are taken in a child beside the row test (:class:`_ColourBeside`)
+#: only from this much work: at 20x20 (4e6) the same time either way (in-process, 15 pairs, median ratio
+#: 1.01), at 100x40 the fits (about 0.35 s) leave the first process.
+BESIDE_MIN_WORK = LIGHT_SPLIT_MIN_WORK
 
 
 def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
@@ -617,7 +621,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     colour = None
     beside = None
     if probe and options.test_all_rows:       # the rows tested do not depend on the row test: before it
-        if light_jobs > 1 and getattr(regressions, "batch", False):
+        if options.jobs > 1 and work >= BESIDE_MIN_WORK and getattr(regressions, "batch", False):
             # On a large window, in a forked child while this process runs the row test (their regressions
             # share nothing): the same numbers, the fits' check waits for the row test.
             beside = _ColourBeside(model, list(range(ny)), columns, layout, regressions, options, spread)
