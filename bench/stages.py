@@ -103,9 +103,12 @@ def _summary(runs: list) -> dict:
     stages = {}
     for label, _, _ in STAGES:
         sums = [sum(r["calls"][label]) for r in runs]
-        stages[label] = {"total_s": statistics.median(sums), "calls": len(runs[0]["calls"][label]),
-                         "each_s": [statistics.median(r["calls"][label][k] for r in runs)
-                                    for k in range(len(runs[0]["calls"][label]))]}
+        counts = [len(r["calls"][label]) for r in runs]
+        # With two processes the parent's share of a stage called row by row varies from run to run (each
+        # process takes the next row when it is free): then only the sums and the median count.
+        each = [statistics.median(r["calls"][label][k] for r in runs) for k in range(counts[0])] \
+            if len(set(counts)) == 1 else []
+        stages[label] = {"total_s": statistics.median(sums), "calls": int(statistics.median(counts)), "each_s": each}
     # The first call of each stage inside the detection is the first detection's.
     first = stages["detection"]["each_s"][0] if stages["detection"]["each_s"] else 0.0
     inside = sum(stages[label]["each_s"][0] for label in INSIDE_DETECTION if stages[label]["each_s"])
@@ -120,7 +123,8 @@ def format_size(size: str, s: dict) -> str:
              f"before it); located {', '.join(s['located']) or 'none'}"]
     for label, _, _ in STAGES:
         st = s["stages"][label]
-        each = " + ".join(f"{x:.3f}" for x in st["each_s"]) if st["calls"] <= 4 else f"{st['calls']} calls"
+        each = " + ".join(f"{x:.3f}" for x in st["each_s"]) if st["calls"] <= 4 and st["each_s"] else \
+            f"{st['calls']} calls"
         lines.append(f"  {label:<28} {st['total_s']:7.3f} s   ({each})")
     lines.append(f"  {'rest of the first detection':<28} {s['rest_of_first_detection_s']:7.3f} s")
     return "\n".join(lines)
