@@ -91,8 +91,8 @@ def _analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions, sign
              regressions, candidates) -> AnalysisReport:
     """:func:`analyze` (same arguments), its numerical errors not yet turned into a ``DataFileError``."""
     kw = {} if candidates is None else {"candidates": candidates}
-    # With two processes the detectable gain changes and the experiment are computed beside the repair
-    # (detect's settle): the report is settled before it is returned or detected again.
+    # With two processes the detectable gain changes and the experiment are computed beside the repair and
+    # the repaired model's detection (detect's settle): the report is settled before it is returned.
     report, options = _detect_raising_na(model, data, options, signals, regressions, kw)
     try:
         return _repair_and_report(model, data, options, report, kw)
@@ -107,8 +107,9 @@ def _analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions, sign
 def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOptions, report: AnalysisReport,
                        kw: dict) -> AnalysisReport:
     """:func:`_analyze` after the detection: the joint classification, the repair and the detection of the
-    repaired model; ``report`` settled (:func:`~mpm_monitor.core.analysis.settle_report`) before the repaired
-    model is detected and before it is returned."""
+    repaired model; ``report`` settled (:func:`~mpm_monitor.core.analysis.settle_report`) after that detection
+    (which reads only its regressions; at 100x40 it runs while the child still computes the detectability,
+    about 0.3 s) and before its warnings are completed with the repair's and it is returned."""
     joint = options.release_explained and _shares_a_row(report)
     if not options.repair and not joint:
         return dataclasses.replace(settle_report(report), regressions=None)
@@ -129,7 +130,6 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
     if not options.repair:
         return dataclasses.replace(settle_report(report), regressions=None)
     result = repair_model(wide, span, located, repair_options, signals=span_signals, classified=classified)
-    settle_report(report)
     after_data, nominal = data, None
     if names:
         nominal = _candidate_operating_points(result, names)
@@ -138,15 +138,18 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
             span, note = repair_data(wide_data, report.gaps is not None, options, wide)
             result = repair_model(wide, span, located, repair_options, classified=classified)
         result, after_data = _keep_applied_candidates(model, data, result, tried, names, nominal)
+    after = None
+    if result.model != model:
+        after = detect(result.model, after_data, dataclasses.replace(options, repair=False, test_all_rows=False),
+                       signals=result.signals if span is wide_data else None, previous=report, detectability=False,
+                       rows_only=True)
+    settle_report(report)
     warnings = report.warnings
     if note and located:
         warnings.append(note)
     warnings.extend(w for w in result.warnings if w not in warnings)
     doc = result.to_dict()
-    if result.model != model:
-        after = detect(result.model, after_data, dataclasses.replace(options, repair=False, test_all_rows=False),
-                       signals=result.signals if span is wide_data else None, previous=report, detectability=False,
-                       rows_only=True)
+    if after is not None:
         doc["rsi_after"] = {r.output: r.rsi for r in after.rows}
         doc["rows_flagged_after"] = after.flagged_rows
     kinds = getattr(result, "kinds", {})
