@@ -268,6 +268,30 @@ def test_an_error_of_the_second_process_is_raised_by_the_analysis_and_no_child_i
     assert forks and _all_reaped(forks)
 
 
+def test_a_detectability_whose_child_dies_is_computed_here_with_the_same_numbers(case_32, monkeypatch):
+    """The parent forgets the window's moments once the child has them (ResponseMoments.forget); when the child
+    dies, they are computed again here, and the report is the one of a single process."""
+    from mpm_monitor.core import detectability, response_moments
+
+    parent, real = os.getpid(), detectability.element_detectability
+    forgot = []
+    forget = response_moments.ResponseMoments.forget
+    monkeypatch.setattr(response_moments.ResponseMoments, "forget", lambda self: forgot.append(1) or forget(self))
+
+    def dies_in_the_child(*args, **kwargs):
+        if os.getpid() != parent:
+            os._exit(3)
+        return real(*args, **kwargs)
+    case, data = case_32
+    one = analyze(case.model, data, AnalysisOptions(jobs=1))
+    assert not forgot
+    monkeypatch.setattr(detectability, "element_detectability", dies_in_the_child)
+    two = analyze(case.model, data, AnalysisOptions(jobs=2))
+    assert forgot
+    assert any(e.detectable_gain_change is not None for e in two.elements)
+    assert _json(one) == _json(two)
+
+
 def _analysis_where(model, data, options):
     """In the monitor's analysis process: whether it may fork, and the report of ``analyze`` there."""
     return parallel.can_fork(), _json(analyze(model, data, options))

@@ -690,7 +690,10 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
             for e, v in zip(elements, values):
                 e.detectable_gain_change = v
             return values, why, design_experiment(model, info, elements, options, layout)
-        valuation = _Valuation(Forked(values_and_experiment, inline=not later), elements, warnings)
+        handle = Forked(values_and_experiment, inline=not later)
+        if handle.forked:
+            moments.forget()      # only the child reads them now (this process again only if the child dies)
+        valuation = _Valuation(handle, elements, warnings)
     elif options.method == "arx" and detectability:
         warnings.append(f"the loop diverged ({', '.join(diverged)}): the smallest gain "
                         "change this window detects is not computed (detectable_gain_change null) and no experiment "
