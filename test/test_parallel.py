@@ -94,11 +94,24 @@ def test_split_map_gives_the_items_to_the_process_that_is_free():
     parent = os.getpid()
 
     def f(x):
-        if os.getpid() == parent:
-            time.sleep(0.3)                          # the parent is slow: the child takes the rest
+        time.sleep(0.3 if os.getpid() == parent else 0.01)     # the parent is slow: the child takes the rest
         return os.getpid()
     pids = split_map(f, range(12), jobs=2)
-    assert 1 <= pids.count(parent) <= 3
+    assert 1 <= pids.count(parent) <= 2
+
+
+def test_split_map_raises_the_error_of_an_item_the_child_took():
+    import time
+
+    parent = os.getpid()
+
+    def f(x):
+        if os.getpid() != parent:
+            raise KeyError(f"no such row {x}")
+        time.sleep(0.05)
+        return x
+    with pytest.raises(KeyError, match="no such row"):
+        split_map(f, range(6), jobs=2)
 
 
 def test_side_effects_of_the_child_stay_there():
@@ -189,22 +202,29 @@ def test_an_analysis_in_two_processes_equals_one_in_one_process(case_32, gaps):
 
 
 def test_with_every_stage_split_two_processes_equal_one(case_32, monkeypatch, forks):
-    """The stages split only on large windows (the model run, the Gram products, the singular values, the
-    element fits beside the row test): here on a small one, thresholds at 0."""
-    from mpm_monitor.core import analysis
+    """The stages split only on large windows (the model run, the Gram products, the singular values): here
+    on a small one, thresholds at 0; the row test runs while the element test's child takes rows."""
+    from mpm_monitor.core import analysis, element_test, row_test
 
     case, data = case_32
     one = analyze(case.model, data, AnalysisOptions(jobs=1))
     assert not forks
     monkeypatch.setattr(analysis, "SPLIT_MIN_WORK", 0)
     monkeypatch.setattr(analysis, "LIGHT_SPLIT_MIN_WORK", 0)
-    monkeypatch.setattr(analysis, "BESIDE_MIN_WORK", 0)
-    beside = []
-    colour = analysis._ColourBeside.result
-    monkeypatch.setattr(analysis._ColourBeside, "result", lambda self: beside.append(self.handle.forked) or colour(self))
+    inside, during = [], []
+    split, test = element_test.split_map, row_test.sdelta_row_test
+
+    def split_map(*args, **kwargs):
+        inside.append(True)
+        try:
+            return split(*args, **kwargs)
+        finally:
+            inside.pop()
+    monkeypatch.setattr(element_test, "split_map", split_map)
+    monkeypatch.setattr(row_test, "sdelta_row_test", lambda *a, **k: during.append(bool(inside)) or test(*a, **k))
     two = analyze(case.model, data, AnalysisOptions(jobs=2))
-    assert beside and all(beside)                    # the element fits were taken in a child
-    assert len(forks) > len(beside) and _all_reaped(forks)
+    assert during[0]                                 # the first detection's row test: beside the element test's child
+    assert len(forks) > 3 and _all_reaped(forks)
     assert _json(one) == _json(two)
 
 

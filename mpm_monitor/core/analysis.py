@@ -455,10 +455,6 @@ SPLIT_MIN_WORK = 1_000_000
 #: the page faults after a fork cost (the command at 20x20 split everywhere and with these three in one
 #: process: the same time, median ratio 1.00 over 15 pairs; three forks fewer).
 LIGHT_SPLIT_MIN_WORK = 10_000_000
-#: ... and the element test's unrestricted fits are taken in a child beside the row test (:class:`_ColourBeside`)
-#: only from this much work: at 20x20 (4e6) the same time either way (in-process, 15 pairs, median ratio
-#: 1.01), at 100x40 the fits (about 0.35 s) leave the first process.
-BESIDE_MIN_WORK = LIGHT_SPLIT_MIN_WORK
 
 
 def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
@@ -619,27 +615,23 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     spread[[model.outputs.index(name) for name in diverged]] = 0.0
     probe = unless_coloured and options.method == "arx"
     colour = None
-    beside = None
     if probe and options.test_all_rows:       # the rows tested do not depend on the row test: before it
-        if options.jobs > 1 and work >= BESIDE_MIN_WORK and getattr(regressions, "batch", False):
-            # On a large window, in a forked child while this process runs the row test (their regressions
-            # share nothing): the same numbers, the fits' check waits for the row test.
-            beside = _ColourBeside(model, list(range(ny)), columns, layout, regressions, options, spread)
-        else:
-            colour = _ElementColour(model, list(range(ny)), columns, layout, regressions, options, spread)
-            if colour.noise_order["coloured"]:
-                return Coloured(colour.noise_order, sig, None if plan is None else plan.to_dict())
-    row_test = sdelta_row_test(model, r, sig.eps, regressions, layout, options, output_spread=spread,
-                               singular_values=not rows_only, jobs=light_jobs)
-    if beside is not None:
-        colour = beside.result()
+        colour = _ElementColour(model, list(range(ny)), columns, layout, regressions, options, spread)
         if colour.noise_order["coloured"]:
             return Coloured(colour.noise_order, sig, None if plan is None else plan.to_dict())
-    rows = row_test.rows
-    warnings = diverging + list(row_test.warnings) + offset_warnings(model, sig.d, y, diverged)
+    # With two processes, when the rows to element-test do not depend on the row test (every row, arx), the
+    # row test runs in this process after the element test's child has started on the rows (its
+    # ``meanwhile``), and this process then takes its share of the rows: the same numbers.
+    overlap = options.jobs > 1 and options.method == "arx" and options.test_all_rows and not rows_only
+    row_tests = []
 
+    def run_row_test(jobs: int) -> None:
+        row_tests.append(sdelta_row_test(model, r, sig.eps, regressions, layout, options, output_spread=spread,
+                                         singular_values=not rows_only, jobs=jobs))
+    if not overlap:
+        run_row_test(light_jobs)
     test_rows = list(range(ny)) if (options.test_all_rows or options.method != "arx") else \
-        [i for i in range(ny) if rows[i].mismatch]
+        [i for i in range(ny) if row_tests[0].rows[i].mismatch]
     if probe and colour is None:
         colour = _ElementColour(model, test_rows, columns, layout, regressions, options, spread)
         if colour.noise_order["coloured"]:
@@ -651,7 +643,6 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         design = colour.design if colour is not None else \
             InputDesign(model, columns, layout.n_lag_u, layout.start, options.collinearity_threshold,
                         regressions.input_regression)
-        warnings += design.warnings()
     # On a loop that diverged every moment is of signals that grow without bound: no detectable change
     # and no experiment means anything there (the warnings already say the tests' results do not).
     valued = options.method == "arx" and detectability and not diverging and not untested
@@ -661,18 +652,25 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         # whole-response tests and the detectability.
         moments = ResponseMoments(model, columns, sig.d, design.testable, layout.n_lag_u, layout.start, options.na,
                                   None if plan is None else plan.local_segments)
+    later_warnings = []
     if untested:
         element_test = ElementTest(elements=[])
     elif options.method == "arx":
         element_test = arx_element_test(model, test_rows, design, regressions, options, moments, output_spread=spread,
                                         fits=None if colour is None else colour.fits,
-                                        whiteness=None if colour is None else colour.whiteness)
+                                        whiteness=None if colour is None else colour.whiteness,
+                                        meanwhile=(lambda: run_row_test(1)) if overlap else None)
     elif plan is None:
         element_test = baseline_element_test(model, columns, sig.d, options)
     else:                         # the baselines' correlations need one contiguous span: the longest
         a, b = max(plan.local_segments, key=lambda s: s[1] - s[0])
         element_test = baseline_element_test(model, columns[a:b], sig.d[a:b], options)
-        warnings.append(f"the {options.method} element test ran on the longest span without a gap ({b - a} samples)")
+        later_warnings.append(f"the {options.method} element test ran on the longest span without a gap "
+                              f"({b - a} samples)")
+    row_test = row_tests[0]
+    rows = row_test.rows
+    warnings = diverging + list(row_test.warnings) + offset_warnings(model, sig.d, y, diverged) \
+        + ([] if design is None else design.warnings()) + later_warnings
     warnings += element_test.warnings
     elements = element_test.elements
     valuation = None
@@ -869,34 +867,6 @@ class _ElementColour:
                                   regressions.input_regression)
         self.fits, self.whiteness = unrestricted_fits(rows, self.design, regressions, spread)
         self.noise_order = _noise_order(model, options, self.whiteness)
-
-
-class _ColourBeside:
-    """:class:`_ElementColour` computed in a forked child (:class:`~mpm_monitor.core.parallel.Forked`) while
-    the caller runs the row test; :meth:`result` takes it, with what it left in ``regressions``: the Gram
-    matrix of the input lags (taken by the child) and the names of the regressions refitted by QR, put
-    where the order of the computation in one process puts them (before the row test's)."""
-
-    def __init__(self, model: PlantModel, rows: list, columns: np.ndarray, layout, regressions,
-                 options: AnalysisOptions, spread: np.ndarray):
-        self.regressions = regressions
-        self.fallbacks_before = len(regressions.fallbacks)
-
-        def colour():
-            made = _ElementColour(model, rows, columns, layout, regressions, options, spread)
-            gram = {k: v for k, v in regressions.input_gram.__dict__.items() if k != "signals"}
-            return made, gram, regressions.fallbacks[self.fallbacks_before:]
-        self.handle = Forked(colour)
-
-    def result(self) -> "_ElementColour":
-        made, gram, fallbacks = self.handle.result()
-        if self.handle.forked:                      # what the child left in its copy of the regressions, here
-            regs = self.regressions
-            if regs._take_input_gram is not None:
-                regs._take_input_gram = None
-                regs._input_gram.__dict__.update(gram)
-            regs.fallbacks[self.fallbacks_before:self.fallbacks_before] = fallbacks
-        return made
 
 
 @dataclasses.dataclass

@@ -454,7 +454,7 @@ class _RowPart:
 
 def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regressions, options,
                      moments=None, output_spread: Optional[np.ndarray] = None, fits: Optional[dict] = None,
-                     whiteness: Optional[dict] = None) -> ElementTest:
+                     whiteness: Optional[dict] = None, meanwhile=None) -> ElementTest:
     """The Delta element test on the rows ``rows`` (see the module docstring).
 
     Parameters
@@ -483,6 +483,10 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
         The unrestricted fits of ``rows`` and their residuals' whiteness, already taken by
         :func:`unrestricted_fits` with the same arguments (default: taken here); each fit is taken out
         of ``fits`` as its row is tested.
+    meanwhile : callable, optional
+        Other work of the caller (the row test) done in this process while a child process with
+        ``options.jobs`` > 1 starts on the rows (:func:`~mpm_monitor.core.parallel.split_map`); with one
+        process, done first.
 
     Returns
     -------
@@ -526,7 +530,7 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
         return _RowPart(i, row_noise(fit), row_estimates, hits, table, blocks_i.get(i), own_i.get(i),
                         None if whole is None or whole.moments is None else whole.moments.kept(i))
 
-    for part in split_map(one_row, rows, getattr(options, "jobs", 1)):
+    for part in split_map(one_row, rows, getattr(options, "jobs", 1), meanwhile=meanwhile):
         i = part.i
         noise[i] = part.noise
         estimates.update(part.estimates)

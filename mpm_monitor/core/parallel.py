@@ -27,7 +27,7 @@ import signal
 import struct
 import threading
 import weakref
-from typing import Callable, Sequence
+from typing import Callable, Optional, Sequence
 
 #: Items below which :func:`split_map` does not fork (the fork and the pickling cost more).
 MIN_SPLIT = 2
@@ -202,7 +202,8 @@ def _read_exactly(fd: int, n: int) -> bytearray:
     return out
 
 
-def split_map(fn: Callable[[object], object], items: Sequence, jobs: int = 1) -> list:
+def split_map(fn: Callable[[object], object], items: Sequence, jobs: int = 1,
+              meanwhile: Optional[Callable[[], None]] = None) -> list:
     """``[fn(x) for x in items]``, part of ``items`` computed in a forked child when ``jobs`` > 1.
 
     The parent and the child take the items one at a time, each the next one not taken yet (their
@@ -221,6 +222,10 @@ def split_map(fn: Callable[[object], object], items: Sequence, jobs: int = 1) ->
     items : sequence
     jobs : int
         Processes to use (at most 2 are used).
+    meanwhile : callable, optional
+        Other work of the caller, called without arguments in this process before it takes any item: after
+        the fork, so that the child takes items meanwhile (with one process, first).  It must not depend on
+        the items' results, nor they on its side effects.
 
     Returns
     -------
@@ -229,6 +234,8 @@ def split_map(fn: Callable[[object], object], items: Sequence, jobs: int = 1) ->
     items = list(items)
     n = len(items)
     if jobs <= 1 or n < MIN_SPLIT or not can_fork():
+        if meanwhile is not None:
+            meanwhile()
         return [fn(x) for x in items]
     # The queue: runs of consecutive items (one item each, up to _QUEUE_LENGTH items).
     bounds = [k * n // min(n, _QUEUE_LENGTH) for k in range(min(n, _QUEUE_LENGTH) + 1)]
@@ -251,6 +258,8 @@ def split_map(fn: Callable[[object], object], items: Sequence, jobs: int = 1) ->
     try:
         child = Forked(take_all)
         try:
+            if meanwhile is not None:
+                meanwhile()
             mine = take_all()
         except BaseException:
             try:
