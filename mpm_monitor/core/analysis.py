@@ -133,12 +133,14 @@ class AnalysisOptions:
         warning (:mod:`mpm_monitor.core.gaps`).
     jobs : int
         Processes the analysis uses (default 1).  With 2 or more, a forked second process
-        (:mod:`mpm_monitor.core.parallel`) takes half of the element test's rows and of the detectable
-        gain changes' chunks (on large windows also half of the model run's rows, of the Gram matrices'
-        products and of S_Delta's singular values: :data:`SPLIT_MIN_WORK`, :data:`LIGHT_SPLIT_MIN_WORK`),
-        and in :func:`~mpm_monitor.core.pipeline.analyze` computes the detectable gain changes and the
-        experiment while the model is repaired; the results are the same bit for bit, since each part is
-        computed by the same code on the same numbers.  A process that runs other threads (a ROS node)
+        (:mod:`mpm_monitor.core.parallel`) shares the element test's rows and the detectable gain
+        changes' chunks with this one, each taking the next as it is free (this process runs the row
+        test first when every row is element-tested), and on large windows takes one of two halves of
+        the model run's rows, of the Gram matrices' products and of S_Delta's singular values
+        (:data:`SPLIT_MIN_WORK`, :data:`LIGHT_SPLIT_MIN_WORK`); in
+        :func:`~mpm_monitor.core.pipeline.analyze` it computes the detectable gain changes and the
+        experiment while the model is repaired and the repaired model detected.  The results are the
+        same bit for bit, since each part is computed by the same code on the same numbers.  A process that runs other threads (a ROS node)
         never forks: it computes everything itself.  At most 2 are used.
     """
 
@@ -676,7 +678,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     valuation = None
     if valued:
         # The detectable gain changes and the experiment: with settle False and two processes, computed in a
-        # forked child while the caller goes on (the repair), and put into the report by settle_report.
+        # forked child while the caller goes on (the repair and the repaired model's detection), and put into
+        # the report by settle_report.
         later = not settle and candidates is None and two
         value_options = dataclasses.replace(options, jobs=1) if later else options
 
