@@ -240,11 +240,14 @@ def _analyze(args, started) -> int:
         raise InputError(f"{data.source}: the analysis broke down numerically with model {args.model} "
                          f"({_one_line(cause)}): {why}") from None
     if args.json_out == "-":
-        json.dump(report.to_dict(), sys.stdout, indent=2)
-        sys.stdout.write("\n")
+        from ..io.json_text import dumps_indented
+
+        sys.stdout.write(dumps_indented(report.to_dict()) + "\n")
     else:
         if args.json_out:
-            text = json.dumps(report.to_dict(), indent=2) + "\n"
+            from ..io.json_text import dumps_indented
+
+            text = dumps_indented(report.to_dict()) + "\n"     # json.dumps(..., indent=2), the same text
             _write_output(args.json_out, "--json", lambda: Path(args.json_out).write_text(text, encoding="utf-8"))
         print(report.summary_text())
     if args.repair_out:
