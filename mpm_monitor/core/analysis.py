@@ -457,6 +457,13 @@ SPLIT_MIN_WORK = 1_000_000
 #: the page faults after a fork cost (the command at 20x20 split everywhere and with these three in one
 #: process: the same time, median ratio 1.00 over 15 pairs; three forks fewer).
 LIGHT_SPLIT_MIN_WORK = 10_000_000
+#: Columns of the row test's setpoint block (moving setpoints x setpoint lags) from which, with two
+#: processes, a forked child factors it while this process computes the colour of the element fits and
+#: the input design (:func:`_detect`).  Its Gram factorisation takes about 0.27 s at 1,800 columns (100
+#: outputs x 18 lags), 0.11 s at 1,260 and 0.04 s at 900, one BLAS thread; the child sends back two
+#: matrices of that size (52 MB at 1,800), and below about 1,000 columns the fork and the transfer are
+#: not repaid.
+ROW_FORK_MIN_COLUMNS = 1000
 
 
 def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
@@ -530,6 +537,17 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
                     rows_only=rows_only, settle=settle)
 
 
+def load_tests() -> None:
+    """Import now what a detection imports when it first runs (the tests and ``scipy.special``; the options
+    and the report are described without them): the command line does it while a child process parses
+    the CSV, instead of after."""
+    from . import detectability, element_test, experiment, gaps, regressions, response_moments, row_test  # noqa: F401
+    from . import signals, spikes  # noqa: F401
+    from .statistics import _special
+
+    _special()
+
+
 def _guarded(model: PlantModel, data: LoggedData, *args, **how):
     """:func:`_detect` on ``data`` in deviations, its numerical errors turned into a ``DataFileError``
     (:func:`~mpm_monitor.core.logged_data.numerical_breakdown`)."""
@@ -554,7 +572,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     from .gaps import plan_gaps
     from .regressions import regression_layout, window_regressions
     from .response_moments import ResponseMoments
-    from .row_test import sdelta_row_test
+    from .row_test import moving_setpoints, sdelta_row_test
     from .signals import (compute_signals, error_rms, packed, scored_segments, segment_signals, segments_mask,
                           unknown_starts)
 
@@ -616,18 +634,31 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     spread = np.maximum(np.std(y, axis=0), np.std(sig.d, axis=0))
     spread[[model.outputs.index(name) for name in diverged]] = 0.0
     probe = unless_coloured and options.method == "arx"
+    # With two processes, when the rows to element-test do not depend on the row test (every row, arx), the
+    # row test runs in this process after the element test's child has started on the rows (its
+    # ``meanwhile``), and this process then takes its share of the rows: the same numbers.
+    overlap = options.jobs > 1 and options.method == "arx" and options.test_all_rows and not rows_only
+    # Then a large setpoint block (ROW_FORK_MIN_COLUMNS) is factored in a forked child while this process
+    # computes the colour, the input design and the element responses' set-up below, and the element test's
+    # child starts on its rows; the row test reads the factor (the same numbers).
+    factoring = None
+    if overlap and hasattr(regressions, "factored_row_regression"):
+        r_moving = moving_setpoints(r)
+        if len(r_moving) * layout.n_lag_r >= ROW_FORK_MIN_COLUMNS and regressions.row_regression_pending(r_moving):
+            factoring = Forked(lambda: regressions.factored_row_regression(r_moving))
     colour = None
     if probe and options.test_all_rows:       # the rows tested do not depend on the row test: before it
         colour = _ElementColour(model, list(range(ny)), columns, layout, regressions, options, spread)
         if colour.noise_order["coloured"]:
             return Coloured(colour.noise_order, sig, None if plan is None else plan.to_dict())
-    # With two processes, when the rows to element-test do not depend on the row test (every row, arx), the
-    # row test runs in this process after the element test's child has started on the rows (its
-    # ``meanwhile``), and this process then takes its share of the rows: the same numbers.
-    overlap = options.jobs > 1 and options.method == "arx" and options.test_all_rows and not rows_only
     row_tests = []
 
     def run_row_test(jobs: int) -> None:
+        nonlocal factoring
+        if factoring is not None:        # the child's factor of the setpoint block, read once the row test needs it
+            factored, factoring = factoring.result(), None
+            if factored is not None:
+                regressions.keep_row_regression(r_moving, factored)
         row_tests.append(sdelta_row_test(model, r, sig.eps, regressions, layout, options, output_spread=spread,
                                          singular_values=not rows_only, jobs=jobs))
     if not overlap:

@@ -88,6 +88,7 @@ class Forked:
             self._value = _outcome(fn)
             return
         read_end, write_end = os.pipe()
+        self._owner = os.getpid()
         pid = os.fork()
         if pid == 0:                       # the child: compute, send, leave without running any cleanup
             try:
@@ -99,8 +100,9 @@ class Forked:
         self._pid, self._read = pid, read_end
 
     def __del__(self):
-        # Dropped without result(): stop the child and reap it, so that no process is left behind.
-        if getattr(self, "_pid", None) is not None:
+        # Dropped without result(): stop the child and reap it, so that no process is left behind (only in the
+        # process that forked it: a later fork's child that drops its copy of this object leaves it alone).
+        if getattr(self, "_pid", None) is not None and getattr(self, "_owner", None) == os.getpid():
             try:
                 os.close(self._read)
                 os.kill(self._pid, signal.SIGKILL)

@@ -1136,6 +1136,25 @@ class GramRegressions:
                 self._row_regs[key] = self._regression("row", list(key))
         return self._row_regs[key]
 
+    def row_regression_pending(self, r_moving: list) -> bool:
+        """Whether :meth:`row_regression` of these setpoints would factor its block now (not kept here, nor
+        in the regressions it reuses)."""
+        key = tuple(int(c) for c in r_moving)
+        prev = self._previous
+        return key not in self._row_regs and not (prev is not None and key in prev._row_regs)
+
+    def factored_row_regression(self, r_moving: list) -> Optional["GramBlockRegression"]:
+        """:meth:`row_regression` of these setpoints when its block is well conditioned (its Gram
+        factorisation), else None; for :meth:`keep_row_regression` in another process (a forked child
+        computes it while this one goes on, :func:`~mpm_monitor.core.analysis.detect`)."""
+        reg = self.row_regression(r_moving)
+        return reg if isinstance(reg, GramBlockRegression) else None
+
+    def keep_row_regression(self, r_moving: list, reg: "GramBlockRegression") -> None:
+        """Keep ``reg``, :meth:`factored_row_regression` of these setpoints computed in another process (the
+        same numbers), as their :meth:`row_regression`."""
+        self._row_regs.setdefault(tuple(int(c) for c in r_moving), reg)
+
     def row_fit(self, reg, i: int):
         """ARX of ``z_i`` on the setpoints and its own lags."""
         return self.row_fits(reg, [i])[0]

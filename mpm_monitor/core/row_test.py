@@ -107,6 +107,21 @@ def frequency_grid(band: tuple, n: int) -> np.ndarray:
     return grid
 
 
+def moving_setpoints(r: np.ndarray) -> list:
+    """The setpoints that move over the window (standard deviation above 0): the row test's columns.
+
+    Parameters
+    ----------
+    r : ndarray, shape (n_samples, n_outputs)
+
+    Returns
+    -------
+    list of int
+    """
+    r_std = r.std(axis=0)
+    return [j for j in range(r.shape[1]) if r_std[j] > 0]
+
+
 def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressions, layout, options,
                     output_spread: Optional[np.ndarray] = None, singular_values: bool = True,
                     jobs: Optional[int] = None) -> RowTest:
@@ -141,8 +156,7 @@ def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressio
     """
     ny, na, n_lag_r, start = model.n_outputs, options.na, layout.n_lag_r, layout.start
     warnings = []
-    r_std = r.std(axis=0)
-    r_moving = [j for j in range(ny) if r_std[j] > 0]
+    r_moving = moving_setpoints(r)
     if len(r_moving) < ny:
         still = [model.outputs[j] for j in range(ny) if j not in r_moving]
         warnings.append(f"setpoints of {', '.join(still)} never move: their columns of S_Delta cannot be identified "
