@@ -215,6 +215,10 @@ def _analyze(args, started) -> int:
     model = load_model(args.model)
     options = _analysis_options(args)
     if args.data:
+        if started is not None:                   # while the child parses the CSV
+            from ..core.analysis import load_tests
+
+            load_tests()
         data = read_csv(args.data, model, started=started)
     else:
         from ..io.bags import read_bag
