@@ -19,7 +19,8 @@ from typing import Optional
 
 import numpy as np
 
-from .analysis import AnalysisOptions, AnalysisReport, Coloured, detect, detect_unless_coloured, settle_report
+from .analysis import (LIGHT_SPLIT_MIN_WORK, AnalysisOptions, AnalysisReport, Coloured, detect, detect_unless_coloured,
+                       settle_report)
 from .errors import DataFileError
 from .logged_data import NUMERICAL_ERRORS, LoggedData, in_deviations, numerical_breakdown
 from .model import PlantModel
@@ -80,7 +81,9 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
     if options.drop_spikes and signals is None and regressions is None:
         from .spikes import without_spikes
 
-        data, _ = without_spikes(data)
+        # Split over two processes on a window as large as the detection's lighter stages are split on.
+        work = data.n_samples * model.n_outputs * model.n_columns
+        data, _ = without_spikes(data, jobs=options.jobs if work >= LIGHT_SPLIT_MIN_WORK else 1)
     try:
         return _analyze(model, data, options, signals, regressions, candidates)
     except NUMERICAL_ERRORS as err:

@@ -144,13 +144,16 @@ def _spike_masks(rows: np.ndarray, segments: list, threshold: float) -> np.ndarr
     return mask
 
 
-def find_spikes(data: LoggedData, threshold: float = SPIKE_THRESHOLD) -> dict:
+def find_spikes(data: LoggedData, threshold: float = SPIKE_THRESHOLD, jobs: int = 1) -> dict:
     """The spikes of every channel the tests use: setpoints, inputs, measured disturbances, outputs.
 
     Parameters
     ----------
     data : LoggedData
     threshold : float
+    jobs : int
+        With 2, a forked child examines one of two halves of the channels
+        (:func:`~mpm_monitor.core.parallel.split_map`; each channel's by itself, so the same masks).
 
     Returns
     -------
@@ -163,7 +166,14 @@ def find_spikes(data: LoggedData, threshold: float = SPIKE_THRESHOLD) -> dict:
     if not labels:
         return {}
     rows = np.vstack([np.asarray(a, dtype=float).T for a in (data.r, data.u, data.dv, data.y)])
-    masks = _spike_masks(rows, data.segments, threshold)
+    if jobs > 1 and rows.shape[0] > 1:
+        from .parallel import split_map
+
+        half = (rows.shape[0] + 1) // 2
+        masks = np.vstack(split_map(lambda part: _spike_masks(rows[part], data.segments, threshold),
+                                    [slice(0, half), slice(half, rows.shape[0])], jobs))
+    else:
+        masks = _spike_masks(rows, data.segments, threshold)
     ny, nu = len(data.outputs), len(data.inputs)
     if masks[ny:ny + nu].any():
         _spare_kicks(masks[ny:ny + nu], np.asarray(data.u, dtype=float), np.asarray(data.r, dtype=float),
@@ -209,8 +219,10 @@ def _spare_kicks(input_masks: np.ndarray, u: np.ndarray, r: np.ndarray, segments
                 mask[k:end] = False
 
 
-def without_spikes(data: LoggedData, threshold: float = SPIKE_THRESHOLD) -> tuple:
+def without_spikes(data: LoggedData, threshold: float = SPIKE_THRESHOLD, jobs: int = 1) -> tuple:
     """``data`` with the samples of its spikes left out (missing samples), and a note saying which.
+
+    ``jobs``: as :func:`find_spikes`'s.
 
     Returns
     -------
@@ -218,7 +230,7 @@ def without_spikes(data: LoggedData, threshold: float = SPIKE_THRESHOLD) -> tupl
         The data (the same object when there is no spike) and the note (None without spikes); the
         note is also appended to the data's :attr:`~LoggedData.notes`.
     """
-    spikes = find_spikes(data, threshold)
+    spikes = find_spikes(data, threshold, jobs)
     if not spikes:
         return data, None
     bad = np.zeros(data.n_samples, dtype=bool)
