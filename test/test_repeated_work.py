@@ -257,3 +257,29 @@ def test_row_fits_are_not_reused_across_other_setpoints():
     again = detect(model, shifted, options, previous=first)
     assert again.to_dict() == detect(model, shifted, options).to_dict()
     assert not again.regressions._same_rows and again.regressions._previous is None
+
+
+def test_after_a_repair_the_row_gram_holds_the_rows_to_fit_only_and_gives_their_fits_bit_for_bit():
+    from mpm_monitor.core.analysis import AnalysisOptions, detect
+    from mpm_monitor.core.regressions import regression_layout, window_regressions
+
+    plant, model, data = _loop()
+    options = AnalysisOptions(repair=False, test_all_rows=False)
+    first = detect(model, data, options)
+    repaired = model.with_element(0, 1, gain=plant.gain[0, 1])
+    sig = compute_signals(repaired, data.r, data.u, data.y, like=(model, first.signals))
+    layout = regression_layout(repaired, options)
+    z = sig.eps - data.r
+    full = window_regressions(data.r, data.u, z, sig.d, layout, options.na, options.nb)
+    reduced = window_regressions(data.r, data.u, z, sig.d, layout, options.na, options.nb, previous=first.regressions)
+    assert full.row_z is None and reduced.row_z == (0,)
+    assert reduced.row_gram.n_columns == full.row_gram.n_columns - 3 * (options.na + 1)
+    (reg,) = first.regressions._row_regs.values()
+    a, b = reduced.row_fit(reg, 0), full.row_fit(reg, 0)
+    np.testing.assert_array_equal(a.theta, b.theta)
+    assert a.rss == b.rss
+    # A row the reduced Gram lacks, asked for: the Gram of every z is built, and the fit is the full one's.
+    reduced._same_rows = frozenset()
+    c = reduced.row_fit(reg, 2)
+    assert reduced.row_z is None and reduced.row_gram.n_columns == full.row_gram.n_columns
+    np.testing.assert_array_equal(c.theta, full.row_fit(reg, 2).theta)

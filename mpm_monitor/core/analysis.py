@@ -616,9 +616,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
             sig = LoopSignals(*(plan.take(x) for x in (sig.yhat, sig.d, sig.eps, sig.transient)))
     if regressions is None and plan is None:
         z = sig.eps - r   # = -d: zero-mean noise under "no mismatch"
-        regressions = window_regressions(r, columns, z, sig.d, layout, options.na, options.nb, jobs=light_jobs)
-        if previous is not None and previous.regressions is not None:
-            regressions.reuse_rows_of(previous.regressions)
+        regressions = window_regressions(r, columns, z, sig.d, layout, options.na, options.nb, jobs=light_jobs,
+                                         previous=None if previous is None else previous.regressions)
     elif regressions is None:
         # Each segment's d centred on its own (its level restarts with its model output).
         d = np.vstack([sig.d[a:b] - sig.d[a:b].mean(axis=0) for a, b in plan.local_segments])

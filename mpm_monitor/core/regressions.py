@@ -998,6 +998,8 @@ class GramRegressions:
         self.layout, self.na, self.nb = layout, na, nb
         self.max_condition = max_condition
         self.row_means = np.concatenate([r.mean(axis=0), z.mean(axis=0)])
+        self.row_z = None             # the outputs whose z the row Gram holds (None: all; window_regressions)
+        self._widen_row_gram = None   # window_regressions: the row Gram of every z, when a reduced one lacks a row
         self.input_means = np.concatenate([u.mean(axis=0), d.mean(axis=0)])
         scale = np.maximum(np.abs(u).max(axis=0, initial=0.0), 1.0)
         self._inputs_move = bool(np.all(u.std(axis=0) > 1e-12 * scale))     # as InputDesign.testable
@@ -1025,7 +1027,7 @@ class GramRegressions:
         out.__dict__.update(batch=self.batch, layout=self.layout, na=self.na, nb=self.nb,
                             max_condition=self.max_condition, r=self.r, z=self.z, fallbacks=list(self.fallbacks),
                             _row_regs=dict(self._row_regs), _row_fits=dict(self._row_fits),
-                            _previous=self._previous, _same_rows=self._same_rows)
+                            _previous=self._previous, _same_rows=self._same_rows, row_z=None, _widen_row_gram=None)
         return out
 
     def reuse_rows_of(self, other: "GramRegressions") -> None:
@@ -1036,14 +1038,36 @@ class GramRegressions:
         from the same setpoints; then the setpoint block is the same, and so is the row fit of every
         output whose ``z`` column is the same.  Otherwise nothing is taken.
         """
+        same = self._same_rows_as(other)
+        if same is not None:
+            self._previous, self._same_rows = other, same
+
+    def _same_rows_as(self, other) -> Optional[frozenset]:
+        """The outputs whose row fit :meth:`reuse_rows_of` would take from ``other`` (None: it takes nothing)."""
         if not (isinstance(other, GramRegressions) and self.batch and other.batch
                 and (self.layout, self.na, self.nb, self.max_condition)
                 == (other.layout, other.na, other.nb, other.max_condition)
                 and self.r.shape == other.r.shape and self.z.shape == other.z.shape
                 and np.array_equal(self.r, other.r)):
-            return
-        self._previous = other
-        self._same_rows = frozenset(i for i in range(self.z.shape[1]) if np.array_equal(self.z[:, i], other.z[:, i]))
+            return None
+        return frozenset(i for i in range(self.z.shape[1]) if np.array_equal(self.z[:, i], other.z[:, i]))
+
+    def rows_to_fit_after(self, other) -> Optional[list]:
+        """The outputs whose row fit this window needs although it reuses ``other``'s (:meth:`reuse_rows_of`):
+        those whose ``z`` differs, or that ``other`` did not fit; None when nothing would be reused."""
+        same = self._same_rows_as(other)
+        if same is None:
+            return None
+        fitted = {i for _, i in other._row_fits}
+        return [i for i in range(self.z.shape[1]) if i not in same or i not in fitted]
+
+    @property
+    def row_gram_means(self) -> np.ndarray:
+        """The window means of the row Gram's channels: the setpoints, then the ``z`` of :attr:`row_z`."""
+        if self.row_z is None:
+            return self.row_means
+        ny = self.r.shape[1]
+        return self.row_means[np.concatenate([np.arange(ny), ny + np.asarray(self.row_z, dtype=int)])]
 
     # -------------------------------------------------------------- helpers
     @property
@@ -1061,8 +1085,9 @@ class GramRegressions:
 
     def _own_columns(self, gram: LaggedGram, i: int):
         """Own columns ``-x_i(t-1) .. -x_i(t-na)`` and the target ``x_i(t)`` of output ``i``."""
-        own = [gram.column(1, i, lag) for lag in range(1, self.na + 1)]
-        return own, [-1.0] * len(own), gram.column(1, i, 0)
+        c = i if (gram is not self.row_gram or self.row_z is None) else self.row_z.index(i)
+        own = [gram.column(1, c, lag) for lag in range(1, self.na + 1)]
+        return own, [-1.0] * len(own), gram.column(1, c, 0)
 
     def _common(self, kind, channels):
         gram = self.row_gram if kind == "row" else self.input_gram
@@ -1071,7 +1096,7 @@ class GramRegressions:
 
     def _regression(self, kind: str, channels: list):
         gram, cols = self._common(kind, channels)
-        means = self.row_means if kind == "row" else self.input_means
+        means = self.row_gram_means if kind == "row" else self.input_means
         g, _ = gram.centred(cols, np.ones(len(cols)), cols, np.ones(len(cols)), means)
         n_lag = self.layout.n_lag_r if kind == "row" else self.layout.n_lag_u
         try:
@@ -1086,7 +1111,7 @@ class GramRegressions:
         """The cross products of output ``i``'s fit in ``reg``: :class:`GramFit`'s arguments
         ``(g_co, g_oo, g_cy, g_oy, g_yy, sum_y, n)``."""
         gram = self.row_gram if kind == "row" else self.input_gram
-        means = self.row_means if kind == "row" else self.input_means
+        means = self.row_gram_means if kind == "row" else self.input_means
         own, own_signs, target = self._own_columns(gram, i)
         cols_b = own + [target]
         signs_b = np.array(own_signs + [1.0])
@@ -1171,6 +1196,8 @@ class GramRegressions:
             elif prev is not None and i in self._same_rows and key in prev._row_fits:
                 fits[i] = prev._row_fits[key][1]
         new = [i for i in dict.fromkeys(outputs) if i not in fits]
+        if self.row_z is not None and any(i not in self.row_z for i in new):
+            self._widen_row_gram()        # a row whose z the reduced row Gram lacks: the Gram of every z
         for i, fit in zip(new, self._fits("row", reg, new, together=True)):
             if isinstance(fit, GramFit):
                 # Kept for a detection of another model on this window (reuse_rows_of), without its
@@ -1226,7 +1253,8 @@ class GramRegressions:
 
 
 def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
-                       max_condition: float = DEFAULT_MAX_CONDITION, segments=None, jobs: int = 1) -> GramRegressions:
+                       max_condition: float = DEFAULT_MAX_CONDITION, segments=None, jobs: int = 1,
+                       previous: Optional[GramRegressions] = None) -> GramRegressions:
     """The tests' regressions on one window, from Gram matrices built at once (the batch analysis).
 
     Both Gram matrices are computed from the window's signals by :func:`lagged_cross_products`,
@@ -1250,6 +1278,13 @@ def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
     jobs : int
         Processes the Gram matrices' products are split over (:func:`lagged_cross_products`; one run
         only: with segments each is computed here).
+    previous : GramRegressions, optional
+        The regressions of the same window with another model (the detection before a repair): their
+        row test's regression and fits are reused where they are the same numbers
+        (:meth:`GramRegressions.reuse_rows_of`), and the row Gram then holds, besides the setpoints, only
+        the ``z`` of the outputs still to fit (:meth:`GramRegressions.rows_to_fit_after`; after a repair
+        of one row, 1 of 100 at 100x40: about a quarter of the products).  Each entry is the one the
+        Gram of every ``z`` has.  Without segments only.
 
     Returns
     -------
@@ -1269,8 +1304,24 @@ def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
     if segments is None:
         regs.batch = True
         start = min(layout.start, n)
-        row_gram.rebuild(buf, start, n, regs.row_means, jobs)
+        to_fit = regs.rows_to_fit_after(previous) if previous is not None else None
+        if to_fit is not None and len(to_fit) < ny:
+            z_at = ny + nu + np.asarray(to_fit, dtype=int)
+
+            def some_z(block):
+                return {"r": block[:, :ny], "z": block[:, z_at]}
+            regs.row_z = tuple(to_fit)
+            regs.row_gram = LaggedGram([("r", ny, range(0, layout.n_lag_r)), ("z", len(to_fit), range(0, na + 1))],
+                                       some_z)
+
+            def widen():
+                regs.row_z, regs.row_gram = None, row_gram
+                row_gram.rebuild(buf, start, n, regs.row_means, jobs)
+            regs._widen_row_gram = widen
+        regs.row_gram.rebuild(buf, start, n, regs.row_gram_means, jobs)
         regs._take_input_gram = lambda: input_gram.rebuild(buf, start, n, regs.input_means, jobs)
+        if previous is not None:
+            regs.reuse_rows_of(previous)
         return regs
     for gram, means in ((row_gram, regs.row_means), (input_gram, regs.input_means)):
         total, sums, rows = 0.0, 0.0, 0
