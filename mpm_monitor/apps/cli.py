@@ -218,7 +218,7 @@ def _analyze(args, started) -> int:
         if started is not None:                   # while the child parses the CSV
             from ..core.analysis import load_tests
 
-            load_tests()
+            load_tests(model)
         data = read_csv(args.data, model, started=started)
     else:
         from ..io.bags import read_bag
