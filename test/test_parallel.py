@@ -36,6 +36,44 @@ def test_forked_runs_in_another_process_and_returns_arrays_bit_for_bit():
     assert result[3] == {"k": [1, 2.5, "x"]}
 
 
+def test_a_large_result_comes_through_the_spool_bit_for_bit_and_writable():
+    # Arrays of at least SPOOL_MIN_BYTES are written by the child into a file in memory that the parent maps
+    # privately: the same numbers, writable (a write copies its page, the child's file is not changed).
+    rng = np.random.default_rng(1)
+    big = rng.standard_normal((600, 500))
+    small = np.arange(7.0)
+    assert big.nbytes >= parallel.SPOOL_MIN_BYTES
+    got_big, got_small = Forked(lambda: (big * 3.0, small + 1.0)).result()
+    assert np.array_equal(got_big, big * 3.0) and np.array_equal(got_small, small + 1.0)
+    if parallel._spool_file() is not None:           # Linux: the arrays lie on the mapped file
+        with open("/proc/self/maps") as fh:
+            assert "mpm_monitor-result" in fh.read()
+    got_big[0, 0] = -1.0
+    assert got_big[0, 0] == -1.0 and got_big[0, 1] == big[0, 1] * 3.0
+    # Without a spool (elsewhere than Linux) they come through the pipe, the same numbers.
+    spool_file = parallel._spool_file
+    try:
+        parallel._spool_file = lambda: None
+        again = Forked(lambda: big * 3.0).result()
+    finally:
+        parallel._spool_file = spool_file
+    assert np.array_equal(again, big * 3.0)
+
+
+def test_row_moments_cross_to_the_parent_with_their_strided_view_and_without_a_copy():
+    from mpm_monitor.core.response_moments import RowMoments, _StridedView
+
+    M = np.random.default_rng(2).standard_normal((4, 6, 3, 5))
+    rm = RowMoments(i=1, found=[], moves=np.ones(5, bool), zx=M[:, 1:], uw=np.zeros((4, 15)), zo=np.zeros((20, 2)),
+                    oo=np.eye(2), ow=np.zeros((2, 15)), ww=np.zeros((5, 3, 3)), xsum=np.zeros((5, 3)),
+                    mu=np.zeros((1, 5)))
+    state = rm.__getstate__()
+    assert isinstance(state["zx"], _StridedView) and state["zx"].base is M
+    back = Forked(lambda: rm).result()
+    assert np.array_equal(back.zx, M[:, 1:]) and back.zx.strides == M[:, 1:].strides
+    assert np.array_equal(back.oo, rm.oo)
+
+
 def test_an_error_in_the_child_is_raised_in_the_parent():
     def fails():
         raise KeyError("no such row")

@@ -31,7 +31,7 @@ each segment and centred over each segment's samples (``x_raw = x + mu_s`` in se
 from __future__ import annotations
 
 import dataclasses
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 
@@ -123,9 +123,14 @@ class RowMoments:
     R: Optional[np.ndarray] = None
 
     def __getstate__(self) -> dict:
-        """The fields, every array contiguous: pickled (to another process) as raw data, out of band,
-        instead of a copy of a strided view (:attr:`zx` is one) into the pickle."""
-        return {k: np.ascontiguousarray(v) if isinstance(v, np.ndarray) else v for k, v in self.__dict__.items()}
+        """The fields for a pickle (to another process), every array as raw contiguous data out of band: a
+        strided view (:attr:`zx` is one, of the moments at every input lag) as its contiguous base and where
+        it lies in it (:class:`_StridedView`), so that neither process copies it; another array not
+        contiguous as a copy."""
+        return {k: _portable(v) for k, v in self.__dict__.items()}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update({k: v.view() if isinstance(v, _StridedView) else v for k, v in state.items()})
 
     def index(self, j: int) -> Optional[int]:
         """Position of column ``j`` in :attr:`found` (None when it has no target element)."""
@@ -133,6 +138,32 @@ class RowMoments:
             if f[0] == j:
                 return b
         return None
+
+
+class _StridedView(NamedTuple):
+    """A view into a C-contiguous array, pickled as that array and the view's place in it (:meth:`RowMoments.__getstate__`)."""
+
+    base: np.ndarray
+    offset: int
+    shape: tuple
+    strides: tuple
+
+    def view(self) -> np.ndarray:
+        return np.ndarray(self.shape, dtype=self.base.dtype, buffer=self.base, offset=self.offset, strides=self.strides)
+
+
+def _portable(v):
+    """``v`` as :meth:`RowMoments.__getstate__` pickles it."""
+    if not isinstance(v, np.ndarray) or v.flags.c_contiguous:
+        return v
+    base = v.base
+    if isinstance(base, np.ndarray) and base.base is None and base.flags.c_contiguous and base.dtype == v.dtype \
+            and np.all(np.asarray(v.strides) >= 0):
+        offset = v.__array_interface__["data"][0] - base.__array_interface__["data"][0]
+        end = offset + sum((n - 1) * st for n, st in zip(v.shape, v.strides)) + v.itemsize if v.size else offset
+        if 0 <= offset and end <= base.nbytes:
+            return _StridedView(base, int(offset), tuple(v.shape), tuple(v.strides))
+    return np.ascontiguousarray(v)
 
 
 class ResponseMoments:
