@@ -224,11 +224,13 @@ class SampleBuffer:
         Samples kept by :meth:`compact`.
     slack : int
         Extra rows, so that samples are appended without moving the others every time.
+    fill : bool
+        False: the rows are not set to 0 first (the caller writes every one before reading it).
     """
 
-    def __init__(self, n_channels: int, window: int, slack: int):
+    def __init__(self, n_channels: int, window: int, slack: int, fill: bool = True):
         self.window = window
-        self.data = np.zeros((window + slack, n_channels))
+        self.data = (np.zeros if fill else np.empty)((window + slack, n_channels))
         self.first = 0          # absolute index of data[0]
         self.count = 0          # rows in use
 
@@ -472,7 +474,13 @@ class LaggedGram:
         """
         self.ref = np.asarray(ref, dtype=float).copy()
         if b > a:
-            values = self.channel_values(buf.rows(a - self.max_lag, b)) - self.ref
+            # channel_values(...) - ref, written at once in the column order the products read.
+            sig = self.signals(buf.rows(a - self.max_lag, b))
+            values = np.empty((b - a + self.max_lag, self.n_channels), order="F")
+            at = 0
+            for name, nch, _ in self.groups:
+                np.subtract(sig[name], self.ref[at:at + nch], out=values[:, at:at + nch])
+                at += nch
             self.gram, self.sums = lagged_cross_products(values, self.col_channel, self.col_lag, self.max_lag, jobs)
         else:
             self.gram = np.zeros((self.n_columns, self.n_columns))
@@ -1292,8 +1300,12 @@ def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
     """
     n, ny = r.shape
     nu = u.shape[1]
-    buf = SampleBuffer(3 * ny + nu, n, 0)
-    buf.append(np.hstack([r, u, z, d]))
+    buf = SampleBuffer(3 * ny + nu, n, 0, fill=False)
+    at = 0
+    for part in (r, u, z, d):            # [r | u | z | d], each copied in once
+        buf.data[:, at:at + part.shape[1]] = part
+        at += part.shape[1]
+    buf.count = n
 
     def signals(block):
         return {"r": block[:, :ny], "u": block[:, ny:ny + nu], "z": block[:, ny + nu:2 * ny + nu],
