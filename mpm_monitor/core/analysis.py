@@ -135,9 +135,10 @@ class AnalysisOptions:
         Processes the analysis uses (default 1).  With 2 or more, a forked second process
         (:mod:`mpm_monitor.core.parallel`) shares the element test's rows and the detectable gain
         changes' chunks with this one, each taking the next as it is free (this process runs the row
-        test first when every row is element-tested), and on large windows takes one of two halves of
-        the model run's rows, of the Gram matrices' products and of S_Delta's singular values
-        (:data:`SPLIT_MIN_WORK`, :data:`LIGHT_SPLIT_MIN_WORK`); in
+        test first when every row is element-tested, after a child has factored a large setpoint block,
+        :data:`ROW_FORK_MIN_COLUMNS`), and on large windows takes one of two halves of the model run's
+        rows, of the Gram matrices' products, of S_Delta's singular values and of the channels searched
+        for spikes (:data:`SPLIT_MIN_WORK`, :data:`LIGHT_SPLIT_MIN_WORK`); in
         :func:`~mpm_monitor.core.pipeline.analyze` it computes the detectable gain changes and the
         experiment while the model is repaired and the repaired model detected.  The results are the
         same bit for bit, since each part is computed by the same code on the same numbers.  A process that runs other threads (a ROS node)
