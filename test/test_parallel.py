@@ -74,6 +74,24 @@ def test_row_moments_cross_to_the_parent_with_their_strided_view_and_without_a_c
     assert np.array_equal(back.oo, rm.oo)
 
 
+def test_row_moments_from_a_child_get_their_elements_back_from_the_model():
+    # The elements are left out of the pickle; ResponseMoments.keep puts back the model's own objects.
+    from mpm_monitor.core.response_moments import ResponseMoments
+
+    case, data, _ = simulate_case("3.2", 1500, 3)
+    model = case.model
+    moments = ResponseMoments(model, data.columns, data.y - data.y.mean(axis=0), list(range(model.n_columns)), 12,
+                              14, 2)
+    here = moments.row(1)
+    there = Forked(lambda: moments.row(1)).result()
+    assert [j for j, _, _ in there.found] == [j for j, _, _ in here.found] and all(el is None for _, el, _ in there.found)
+    again = ResponseMoments(model, data.columns, data.y - data.y.mean(axis=0), list(range(model.n_columns)), 12, 14, 2)
+    again.keep(there)
+    assert [(j, el, ref) for j, el, ref in again.kept(1).found] == here.found
+    assert all(a is b for (_, a, _), (_, b, _) in zip(again.kept(1).found, here.found))
+    assert np.array_equal(again.kept(1).zx, here.zx) and np.array_equal(again.kept(1).ww, here.ww)
+
+
 def test_an_error_in_the_child_is_raised_in_the_parent():
     def fails():
         raise KeyError("no such row")

@@ -126,8 +126,12 @@ class RowMoments:
         """The fields for a pickle (to another process), every array as raw contiguous data out of band: a
         strided view (:attr:`zx` is one, of the moments at every input lag) as its contiguous base and where
         it lies in it (:class:`_StridedView`), so that neither process copies it; another array not
-        contiguous as a copy."""
-        return {k: _portable(v) for k, v in self.__dict__.items()}
+        contiguous as a copy.  The elements of :attr:`found` are left out (None): they are the model's,
+        which the receiving process holds, and :meth:`ResponseMoments.keep` puts them back (at 100x40 they
+        were 80 of the 90 arrays of a row)."""
+        state = {k: _portable(v) for k, v in self.__dict__.items()}
+        state["found"] = [(j, None, ref) for j, _, ref in self.found]
+        return state
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update({k: v.view() if isinstance(v, _StridedView) else v for k, v in state.items()})
@@ -260,7 +264,11 @@ class ResponseMoments:
 
     def keep(self, rm: RowMoments) -> None:
         """Keep ``rm`` as its row's moments (computed elsewhere: by a child process of the element test,
-        :func:`~mpm_monitor.core.parallel.split_map`), unless the row's are kept already."""
+        :func:`~mpm_monitor.core.parallel.split_map`), unless the row's are kept already; the elements its
+        pickle left out are this model's (:func:`target_element`, as :meth:`_compute` found them)."""
+        if any(element is None for _, element, _ in rm.found):
+            rm.found = [(j, target_element(self.model, rm.i, j)[0] if element is None else element, ref)
+                        for j, element, ref in rm.found]
         self._rows.setdefault(rm.i, rm)
 
     def release(self, i: int) -> None:
