@@ -454,9 +454,20 @@ class LaggedGram:
         sig = self.signals(block)
         return np.hstack([sig[name] for name, _, _ in self.groups])
 
+    def centred_values(self, block: np.ndarray, order: str = "C") -> np.ndarray:
+        """:meth:`channel_values` minus the reference :attr:`ref`, written at once into one array of memory
+        ``order`` (shape (n_rows, n_channels))."""
+        sig = self.signals(block)
+        values = np.empty((block.shape[0], self.n_channels), order=order)
+        at = 0
+        for name, nch, _ in self.groups:
+            np.subtract(sig[name], self.ref[at:at + nch], out=values[:, at:at + nch])
+            at += nch
+        return values
+
     def rows(self, buf: SampleBuffer, a: int, b: int) -> np.ndarray:
         """``Phi`` for the rows ``a .. b - 1`` (absolute sample indices), shape (b - a, n_columns)."""
-        values = self.channel_values(buf.rows(a - self.max_lag, b)) - self.ref
+        values = self.centred_values(buf.rows(a - self.max_lag, b))
         t = np.arange(self.max_lag, self.max_lag + b - a)[:, None]
         return values[t - self.col_lag, self.col_channel]
 
@@ -474,13 +485,8 @@ class LaggedGram:
         """
         self.ref = np.asarray(ref, dtype=float).copy()
         if b > a:
-            # channel_values(...) - ref, written at once in the column order the products read.
-            sig = self.signals(buf.rows(a - self.max_lag, b))
-            values = np.empty((b - a + self.max_lag, self.n_channels), order="F")
-            at = 0
-            for name, nch, _ in self.groups:
-                np.subtract(sig[name], self.ref[at:at + nch], out=values[:, at:at + nch])
-                at += nch
+            # In the column order the products read.
+            values = self.centred_values(buf.rows(a - self.max_lag, b), order="F")
             self.gram, self.sums = lagged_cross_products(values, self.col_channel, self.col_lag, self.max_lag, jobs)
         else:
             self.gram = np.zeros((self.n_columns, self.n_columns))
@@ -501,7 +507,7 @@ class LaggedGram:
                 slabs.append(buf.rows(a - lag, b))
                 index.append(np.arange(base + lag, base + lag + k))
                 base += k + lag
-        values = self.channel_values(slabs[0] if len(slabs) == 1 else np.vstack(slabs)) - self.ref
+        values = self.centred_values(slabs[0] if len(slabs) == 1 else np.vstack(slabs))
         t = np.concatenate(index)[:, None] if len(index) > 1 else index[0][:, None]
         phi = values[t - self.col_lag, self.col_channel]
         if n_add == n_remove:
@@ -1157,9 +1163,14 @@ class GramRegressions:
         return fits
 
     # -------------------------------------------------------------- the QrRegressions interface
+    @staticmethod
+    def _row_key(r_moving) -> tuple:
+        """The key of the row test's regression on the setpoints ``r_moving``."""
+        return tuple(int(c) for c in r_moving)
+
     def row_regression(self, r_moving: list) -> SharedBlockRegression:
         """Setpoint lags of the moving setpoints (S_Delta row test)."""
-        key = tuple(int(c) for c in r_moving)
+        key = self._row_key(r_moving)
         if key not in self._row_regs:
             prev = self._previous
             if prev is not None and key in prev._row_regs:
@@ -1172,7 +1183,7 @@ class GramRegressions:
     def row_regression_pending(self, r_moving: list) -> bool:
         """Whether :meth:`row_regression` of these setpoints would factor its block now (not kept here, nor
         in the regressions it reuses)."""
-        key = tuple(int(c) for c in r_moving)
+        key = self._row_key(r_moving)
         prev = self._previous
         return key not in self._row_regs and not (prev is not None and key in prev._row_regs)
 
@@ -1186,7 +1197,7 @@ class GramRegressions:
     def keep_row_regression(self, r_moving: list, reg: "GramBlockRegression") -> None:
         """Keep ``reg``, :meth:`factored_row_regression` of these setpoints computed in another process (the
         same numbers), as their :meth:`row_regression`."""
-        self._row_regs.setdefault(tuple(int(c) for c in r_moving), reg)
+        self._row_regs.setdefault(self._row_key(r_moving), reg)
 
     def row_fit(self, reg, i: int):
         """ARX of ``z_i`` on the setpoints and its own lags."""
