@@ -243,15 +243,13 @@ def _analyze(args, started) -> int:
         why = diverging[0] if diverging else "values or model parameters too large or degenerate?"
         raise InputError(f"{data.source}: the analysis broke down numerically with model {args.model} "
                          f"({_one_line(cause)}): {why}") from None
-    if args.json_out == "-":
-        from ..io.json_text import dumps_indented
+    from ..io.json_text import dumps_indented     # json.dumps(..., indent=2)'s text, quicker
 
+    if args.json_out == "-":
         sys.stdout.write(dumps_indented(report.to_dict()) + "\n")
     else:
         if args.json_out:
-            from ..io.json_text import dumps_indented
-
-            text = dumps_indented(report.to_dict()) + "\n"     # json.dumps(..., indent=2), the same text
+            text = dumps_indented(report.to_dict()) + "\n"
             _write_output(args.json_out, "--json", lambda: Path(args.json_out).write_text(text, encoding="utf-8"))
         print(report.summary_text())
     if args.repair_out:
