@@ -225,7 +225,9 @@ def _loop(seed=2):
     return plant, model, run_closed_loop(plant, model, 3000, seed=seed).as_logged_data()
 
 
-def test_detection_after_a_repair_reuses_the_unchanged_rows_and_gives_the_same_report():
+def _repaired_loop():
+    """``(data, options, first, repaired, sig)``: :func:`_loop`'s detection, its model with (y1, u2) repaired
+    and the repaired model's signals (its row y1 changed only)."""
     from mpm_monitor.core.analysis import AnalysisOptions, detect
 
     plant, model, data = _loop()
@@ -233,6 +235,13 @@ def test_detection_after_a_repair_reuses_the_unchanged_rows_and_gives_the_same_r
     first = detect(model, data, options)
     repaired = model.with_element(0, 1, gain=plant.gain[0, 1])
     sig = compute_signals(repaired, data.r, data.u, data.y, like=(model, first.signals))
+    return data, options, first, repaired, sig
+
+
+def test_detection_after_a_repair_reuses_the_unchanged_rows_and_gives_the_same_report():
+    from mpm_monitor.core.analysis import detect
+
+    data, options, first, repaired, sig = _repaired_loop()
     fresh = detect(repaired, data, options, signals=sig)
     reused = detect(repaired, data, options, signals=sig, previous=first)
     assert reused.to_dict() == fresh.to_dict()
@@ -260,14 +269,9 @@ def test_row_fits_are_not_reused_across_other_setpoints():
 
 
 def test_after_a_repair_the_row_gram_holds_the_rows_to_fit_only_and_gives_their_fits_bit_for_bit():
-    from mpm_monitor.core.analysis import AnalysisOptions, detect
     from mpm_monitor.core.regressions import regression_layout, window_regressions
 
-    plant, model, data = _loop()
-    options = AnalysisOptions(repair=False, test_all_rows=False)
-    first = detect(model, data, options)
-    repaired = model.with_element(0, 1, gain=plant.gain[0, 1])
-    sig = compute_signals(repaired, data.r, data.u, data.y, like=(model, first.signals))
+    data, options, first, repaired, sig = _repaired_loop()
     layout = regression_layout(repaired, options)
     z = sig.eps - data.r
     full = window_regressions(data.r, data.u, z, sig.d, layout, options.na, options.nb)
