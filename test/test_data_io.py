@@ -651,3 +651,36 @@ def test_the_pieces_stacked_are_numpys_table_of_the_whole_text(tmp_path, monkeyp
         assert _same_table(started.cells(), expected), name
         started.close()
     assert not os.path.exists(tmp_path / "never") and os.getpid() == parent
+
+
+def test_analyze_runs_without_the_cycle_collector_and_gives_it_back(tmp_path, monkeypatch):
+    """The one-shot ``analyze`` turns the cyclic garbage collector off while it runs (time only: the same
+    report) and on again when it returns, also after an error; a caller that had it off keeps it off."""
+    import gc
+
+    from mpm_monitor.apps import cli
+    from mpm_monitor.core import pipeline
+
+    from mpm_monitor.io.model_file import save_model
+
+    rng = np.random.default_rng(3)
+    model, n = _model(), 400
+    path, model_file = tmp_path / "log.csv", tmp_path / "m.yaml"
+    write_csv(path, np.arange(n, dtype=float), rng.normal(size=(n, 2)), rng.normal(size=(n, 3)),
+              rng.normal(size=(n, 2)), model.inputs, model.outputs)
+    save_model(model, model_file)
+    seen = []
+
+    def fake(*args, **kwargs):
+        seen.append(gc.isenabled())
+        raise InputError("stop here")
+    monkeypatch.setattr(pipeline, "analyze", fake)
+    assert gc.isenabled()
+    assert cli.main(["analyze", "--model", str(model_file), "--data", str(path)]) == 2
+    assert seen == [False] and gc.isenabled()
+    gc.disable()
+    try:
+        assert cli.main(["analyze", "--model", str(model_file), "--data", str(path)]) == 2
+        assert seen == [False, False] and not gc.isenabled()
+    finally:
+        gc.enable()
