@@ -17,6 +17,8 @@ line) times:
   (and within it the joint classification), and each detection (the first and the one of the
   repaired model).
 
+The cyclic garbage collector is off in the timed interpreter, as in ``python -m mpm_monitor analyze``.
+
 A stage called more than once reports its calls and their sum.  The stages nest (the element test
 holds the moments, the detection holds most others), so the figures do not add up to the total;
 ``rest of the first detection`` is the first detection minus the stages inside it (a stage run within
@@ -59,9 +61,12 @@ INSIDE_DETECTION = ("model run", "regressions", "row test", "element test", "det
 
 def child(model_path: str, csv_path: str, jobs: int = 1) -> dict:
     """One timed run in this (fresh) interpreter; the figures as a dict."""
+    import gc
+
     import mpm_monitor
 
     mpm_monitor.limit_blas_threads()
+    gc.disable()            # as the command does for its one analysis (mpm_monitor.apps.cli)
     t0 = time.perf_counter()
     from mpm_monitor.core import analysis, pipeline  # noqa: F401 - the imports timed
     from mpm_monitor.core.repair import model_repair  # noqa: F401
