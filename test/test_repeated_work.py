@@ -199,6 +199,39 @@ def test_projection_with_the_constant_columns_kept_equals_the_whole_design(case)
             np.testing.assert_allclose(beta, ref_beta, rtol=1e-7, atol=1e-9 * np.abs(ref_beta).max())
 
 
+@pytest.mark.parametrize("case", ["plain", "extra", "segments"])
+def test_reused_buffers_and_nuisance_columns_give_the_numbers_of_fresh_ones(case):
+    """The fit's moving columns are written into a buffer kept for the next evaluation, and the covariance's
+    finite differences share one nuisance matrix across their noise models when none of its columns depends
+    on it: the same numbers, bit for bit, as fresh arrays."""
+    row = _row()
+    spec = _spec(row, 1)
+    z = _held_row(row, (1,)).z
+    kwargs = {}
+    if case == "extra":
+        kwargs["extra"] = np.column_stack([(np.arange(2000) >= 900).astype(float), np.arange(2000) / 2000.0])
+    if case == "segments":
+        kwargs["segments"] = [(0, 1100), (1100, 2000)]
+    problem = _RowProblem(z, row.u[:, [1]], [spec], 2000, 8, {0.8: 1}, True, 2, **kwargs)
+    lags = [spec.window[0] + 1]
+    poles = problem.start_poles()
+    problem.projected(np.clip(poles * 0.9, 0.0, 0.999), [spec.window[0]])    # the buffer holds other columns
+    resid, beta = problem.projected(poles, lags)
+    fresh = _RowProblem(z, row.u[:, [1]], [spec], 2000, 8, {0.8: 1}, True, 2, **kwargs)
+    fresh_resid, fresh_beta = fresh.projected(poles, lags)
+    assert resid.tobytes() == fresh_resid.tobytes() and beta.tobytes() == fresh_beta.tobytes()
+    problem.set_ar([-0.5, 0.1])
+    fit = problem.evaluate(poles, lags)
+    theta = np.concatenate([fit.coefs, fit.poles[problem.pole_free_idx], problem.ar, fit.nuisance])
+    memo = {}
+    for k in range(theta.size):
+        for step in (1e-6, -1e-6):
+            moved = theta.copy()
+            moved[k] += step
+            shared = problem.full_residual(moved, fit.lags, memo)
+            assert shared.tobytes() == problem.full_residual(moved, fit.lags).tobytes(), k
+
+
 def test_held_row_is_the_output_minus_the_other_elements():
     row = _row()
     held = _held_row(row, (1,))

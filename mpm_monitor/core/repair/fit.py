@@ -172,6 +172,7 @@ class _RowProblem:
         self._unit_cache = {}
         self._constant = None       # (noise model, _constant_part()) of the constant columns
         self._orders = {}           # _column_order
+        self._moving = {}           # _varying's buffers, by their number of columns
         ones = np.ones_like(self.kw)
         cols = [self._spread(ones) if segment_levels else ones]
         if self.free:
@@ -312,14 +313,19 @@ class _RowProblem:
             return spec.gain * ua, [ub]
         return spec.gain * (ua + spec.lead * ub), []
 
-    def _free_responses(self, poles):
-        """Free responses of the located elements' lags: ``a^k`` per pole, ``k a^k`` for a repeated one."""
+    def _free_response_pieces(self, poles) -> list:
+        """The pieces of :meth:`_free_responses`, each a column or (with segments) a block of columns."""
         cols = []
         for m in range(self.n_located):
             own = poles[self.slices[m]]
             for q, a in enumerate(own):
                 repeated = q > 0 and abs(a - own[q - 1]) < REPEATED_POLE_TOLERANCE
                 cols.append(self._spread(self._power_ramp(a) if repeated else self._power(a)))
+        return cols
+
+    def _free_responses(self, poles):
+        """Free responses of the located elements' lags: ``a^k`` per pole, ``k a^k`` for a repeated one."""
+        cols = self._free_response_pieces(poles)
         return np.column_stack(cols) if cols else np.zeros((self.kw.shape[0], 0))
 
     def _located_columns(self, poles, lags, filtered=True):
@@ -408,8 +414,16 @@ class _RowProblem:
         known, cols = self._located_columns(poles, lags)
         n_gain = len(cols)
         if self.free:
-            cols.extend(self._free_responses(poles).T)
-        v = np.column_stack(cols) if cols else np.zeros((self.kw.shape[0], 0))
+            for piece in self._free_response_pieces(poles):
+                cols.extend(piece.T if piece.ndim == 2 else [piece])
+        # The columns written into a buffer kept for the next evaluation (the values and the layout of
+        # np.column_stack(cols)): a fresh array of this size each time cost a few dozen page faults.
+        n = self.kw.shape[0]
+        v = self._moving.get(len(cols))
+        if v is None:
+            v = self._moving[len(cols)] = np.empty((n, len(cols)))
+        for q, col in enumerate(cols):
+            v[:, q] = col
         return known, v, n_gain
 
     def gains_and_leads(self, coefs):
@@ -508,7 +522,9 @@ class _RowProblem:
                 out -= held
             for k, col in zip(self.linear_index[m], cols):
                 out -= coefs[k] * col
-        key = ("nuisance", ar_key, poles.tobytes())
+        # Without extra regressors the nuisance columns do not depend on the noise model: one matrix serves
+        # every ``ar`` of the finite differences (the same columns, the same products).
+        key = ("nuisance", ar_key if self.extra is not None else None, poles.tobytes())
         if key not in memo:
             cols = [self.fixed_cols]
             if self.free:
