@@ -55,6 +55,8 @@ STAGES = (
     ("repair", "mpm_monitor.core.pipeline", "repair_model"),
     ("waiting for the child", "mpm_monitor.core.pipeline", "settle_report"),
 )
+#: The stages' labels, each once (two functions are timed as "detection").
+LABELS = tuple(dict.fromkeys(label for label, _, _ in STAGES))
 #: The stages inside the first detection (its "rest" is what they leave).
 INSIDE_DETECTION = ("model run", "regressions", "row test", "element test", "detectability", "experiment")
 
@@ -77,8 +79,8 @@ def child(model_path: str, csv_path: str, jobs: int = 1) -> dict:
     model = load_model(Path(model_path))
     data = read_csv(Path(csv_path), model)
     t2 = time.perf_counter()
-    calls: dict = {label: [] for label, _, _ in STAGES}
-    nested: dict = {label: [] for label, _, _ in STAGES}     # per call: started inside another stage of the detection
+    calls: dict = {label: [] for label in LABELS}
+    nested: dict = {label: [] for label in LABELS}     # per call: started inside another stage of the detection
     active: list = []
 
     def timed(label, fn):
@@ -112,7 +114,7 @@ def _summary(runs: list) -> dict:
     """Medians over the runs: each stage's total and its calls."""
     out = {key: statistics.median(r[key] for r in runs) for key in ("import_s", "csv_s", "analyze_s")}
     stages = {}
-    for label, _, _ in STAGES:
+    for label in LABELS:
         sums = [sum(r["calls"][label]) for r in runs]
         counts = [len(r["calls"][label]) for r in runs]
         # With two processes the parent's share of a stage called row by row varies from run to run (each
@@ -135,7 +137,7 @@ def _summary(runs: list) -> dict:
 def format_size(size: str, s: dict) -> str:
     lines = [f"{size}: analyze {s['analyze_s']:.2f} s (imports {s['import_s']:.2f} s and the CSV {s['csv_s']:.2f} s "
              f"before it); located {', '.join(s['located']) or 'none'}"]
-    for label, _, _ in STAGES:
+    for label in LABELS:
         st = s["stages"][label]
         each = " + ".join(f"{x:.3f}" for x in st["each_s"]) if st["calls"] <= 4 and st["each_s"] else \
             f"{st['calls']} calls"
