@@ -593,8 +593,9 @@ def bench_industrial(sizes=INDUSTRIAL_SIZES, samples: int = INDUSTRIAL_SAMPLES, 
 TIME = "/usr/bin/time"
 
 
-def _run_process(cmd) -> tuple:
-    """``(wall seconds, max resident MiB, exit code)`` of one process.
+def _run_process(cmd, cwd=None, env=None) -> tuple:
+    """``(wall seconds, max resident MiB, exit code)`` of one process (run in ``cwd`` with ``env``: by default
+    this process's).
 
     The largest resident set comes from ``/usr/bin/time`` (``%M``): a child forked from this
     process would report this process's memory as its own (Linux counts the image replaced at
@@ -606,7 +607,7 @@ def _run_process(cmd) -> tuple:
     with tempfile.NamedTemporaryFile("r", suffix=".time") as fh:
         full = [TIME, "-f", "%M", "-o", fh.name] + list(cmd) if have_time else list(cmd)
         t0 = time.perf_counter()
-        rc = subprocess.call(full, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        rc = subprocess.call(full, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=cwd, env=env)
         wall = time.perf_counter() - t0
         rss = float("nan")
         if have_time:
