@@ -73,18 +73,6 @@ def imported_from(tree: Path) -> Path:
     return Path(done.stdout).resolve().parent
 
 
-def stale_modules(tree: Path) -> int:
-    """Modules of ``tree``'s package whose bytecode is missing or older than the source."""
-    import importlib.util
-
-    stale = 0
-    for src in (tree / "mpm_monitor").rglob("*.py"):
-        pyc = Path(importlib.util.cache_from_source(str(src)))
-        if not pyc.exists() or pyc.stat().st_mtime < src.stat().st_mtime:
-            stale += 1
-    return stale
-
-
 def pair_runs(run_a: Callable[[], tuple], run_b: Callable[[], tuple], pairs: int) -> dict:
     """``run_a`` and ``run_b`` in turn, ``pairs`` times each after one warm-up of each.
 
@@ -117,7 +105,7 @@ def _command_runner(tree: Path, model: Path, csv: Path, report: Path, jobs: int)
 
 def run(base: str, new: Optional[str], sizes, pairs: int = 15, jobs: int = 2, seed: int = 0, log=print) -> dict:
     """The paired runs at every size; a JSON-ready dict (``a``: NEW, ``b``: BASE)."""
-    from bench.perf import INDUSTRIAL_SAMPLES, machine_info, write_industrial_case
+    from bench.perf import INDUSTRIAL_SAMPLES, machine_info, stale_bytecode, write_industrial_case
 
     tmp = Path(tempfile.mkdtemp(prefix="mpm_paired_"))
     trees = []
@@ -130,7 +118,8 @@ def run(base: str, new: Optional[str], sizes, pairs: int = 15, jobs: int = 2, se
             if where != (tree / "mpm_monitor").resolve():
                 raise RuntimeError(f"python -m mpm_monitor run in {tree} imports {where}, not the tree's package")
         out = {"machine": machine_info(), "base": base, "new": new or "working tree", "pairs": pairs, "jobs": jobs,
-               "samples": INDUSTRIAL_SAMPLES, "stale_bytecode_modules": [stale_modules(t) for t in trees], "sizes": {}}
+               "samples": INDUSTRIAL_SAMPLES, "sizes": {},
+               "stale_bytecode_modules": [stale_bytecode(t / "mpm_monitor") for t in trees]}
         for ny, nu in sizes:
             model, csv = write_industrial_case(tmp, ny, nu, INDUSTRIAL_SAMPLES, seed)
             reports = (tmp / f"new_{ny}x{nu}.json", tmp / f"base_{ny}x{nu}.json")
