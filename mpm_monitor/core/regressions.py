@@ -1052,28 +1052,22 @@ class GramRegressions:
         from the same setpoints; then the setpoint block is the same, and so is the row fit of every
         output whose ``z`` column is the same.  Otherwise nothing is taken.
         """
-        same = self._same_rows_as(other)
-        if same is not None:
-            self._previous, self._same_rows = other, same
-
-    def _same_rows_as(self, other) -> Optional[frozenset]:
-        """The outputs whose row fit :meth:`reuse_rows_of` would take from ``other`` (None: it takes nothing)."""
         if not (isinstance(other, GramRegressions) and self.batch and other.batch
                 and (self.layout, self.na, self.nb, self.max_condition)
                 == (other.layout, other.na, other.nb, other.max_condition)
                 and self.r.shape == other.r.shape and self.z.shape == other.z.shape
                 and np.array_equal(self.r, other.r)):
-            return None
-        return frozenset(i for i in range(self.z.shape[1]) if np.array_equal(self.z[:, i], other.z[:, i]))
+            return
+        self._previous = other
+        self._same_rows = frozenset(i for i in range(self.z.shape[1]) if np.array_equal(self.z[:, i], other.z[:, i]))
 
-    def rows_to_fit_after(self, other) -> Optional[list]:
-        """The outputs whose row fit this window needs although it reuses ``other``'s (:meth:`reuse_rows_of`):
-        those whose ``z`` differs, or that ``other`` did not fit; None when nothing would be reused."""
-        same = self._same_rows_as(other)
-        if same is None:
+    def rows_to_fit(self) -> Optional[list]:
+        """The outputs whose row fit this window needs although it reuses another's (:meth:`reuse_rows_of`):
+        those whose ``z`` differs, or that the other did not fit; None when nothing is reused."""
+        if self._previous is None:
             return None
-        fitted = {i for _, i in other._row_fits}
-        return [i for i in range(self.z.shape[1]) if i not in same or i not in fitted]
+        fitted = {i for _, i in self._previous._row_fits}
+        return [i for i in range(self.z.shape[1]) if i not in self._same_rows or i not in fitted]
 
     @property
     def row_gram_means(self) -> np.ndarray:
@@ -1301,7 +1295,7 @@ def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
         The regressions of the same window with another model (the detection before a repair): their
         row test's regression and fits are reused where they are the same numbers
         (:meth:`GramRegressions.reuse_rows_of`), and the row Gram then holds, besides the setpoints, only
-        the ``z`` of the outputs still to fit (:meth:`GramRegressions.rows_to_fit_after`; after a repair
+        the ``z`` of the outputs still to fit (:meth:`GramRegressions.rows_to_fit`; after a repair
         of one row, 1 of 100 at 100x40: about a quarter of the products).  Each entry is the one the
         Gram of every ``z`` has.  Without segments only.
 
@@ -1327,7 +1321,9 @@ def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
     if segments is None:
         regs.batch = True
         start = min(layout.start, n)
-        to_fit = regs.rows_to_fit_after(previous) if previous is not None else None
+        if previous is not None:
+            regs.reuse_rows_of(previous)
+        to_fit = regs.rows_to_fit()
         if to_fit is not None and len(to_fit) < ny:
             z_at = ny + nu + np.asarray(to_fit, dtype=int)
 
@@ -1343,8 +1339,6 @@ def window_regressions(r, u, z, d, layout: RegressionLayout, na: int, nb: int,
             regs._widen_row_gram = widen
         regs.row_gram.rebuild(buf, start, n, regs.row_gram_means, jobs)
         regs._take_input_gram = lambda: input_gram.rebuild(buf, start, n, regs.input_means, jobs)
-        if previous is not None:
-            regs.reuse_rows_of(previous)
         return regs
     for gram, means in ((row_gram, regs.row_means), (input_gram, regs.input_means)):
         total, sums, rows = 0.0, 0.0, 0
