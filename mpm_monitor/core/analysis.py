@@ -458,6 +458,12 @@ SPLIT_MIN_WORK = 1_000_000
 #: the page faults after a fork cost (the command at 20x20 split everywhere and with these three in one
 #: process: the same time, median ratio 1.00 over 15 pairs; three forks fewer).
 LIGHT_SPLIT_MIN_WORK = 10_000_000
+def light_jobs(jobs: int, n_samples: int, model: PlantModel) -> int:
+    """The processes the lighter stages use on a window of ``n_samples``: ``jobs`` from
+    :data:`LIGHT_SPLIT_MIN_WORK` samples x outputs x columns, else 1."""
+    return jobs if n_samples * model.n_outputs * model.n_columns >= LIGHT_SPLIT_MIN_WORK else 1
+
+
 #: Columns of the row test's setpoint block (moving setpoints x setpoint lags) from which, with two
 #: processes, a forked child factors it while this process computes the colour of the element fits and
 #: the input design (:func:`_detect`).  Its Gram factorisation takes about 0.27 s at 1,800 columns (100
@@ -604,12 +610,12 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     work = n * ny * model.n_columns
     if two and work < SPLIT_MIN_WORK:
         options = dataclasses.replace(options, jobs=1)
-    light_jobs = options.jobs if work >= LIGHT_SPLIT_MIN_WORK else 1     # the model run, Gram products, SVD
+    split_light = light_jobs(options.jobs, n, model)     # the model run, Gram products, SVD
     if n < layout.min_samples and plan is None:
         raise DataFileError(f"{src}: {n} samples; the tests with na={options.na}, nb={options.nb}, "
                             f"max_delay={layout.max_delay} need at least {layout.min_samples} samples")
     if signals is None:
-        sig = compute_signals(model, r, u, y, options.initial_state, dv=dv, jobs=light_jobs) if plan is None else \
+        sig = compute_signals(model, r, u, y, options.initial_state, dv=dv, jobs=split_light) if plan is None else \
             segment_signals(model, r, u, y, plan.local_segments, options.initial_state, dv=dv, grid=grid,
                             max_gap=plan.max_gap, fill=data.fill_on_grid())
     else:
@@ -621,13 +627,13 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
             sig = LoopSignals(*(plan.take(x) for x in (sig.yhat, sig.d, sig.eps, sig.transient)))
     if regressions is None and plan is None:
         z = sig.eps - r   # = -d: zero-mean noise under "no mismatch"
-        regressions = window_regressions(r, columns, z, sig.d, layout, options.na, options.nb, jobs=light_jobs,
+        regressions = window_regressions(r, columns, z, sig.d, layout, options.na, options.nb, jobs=split_light,
                                          previous=None if previous is None else previous.regressions)
     elif regressions is None:
         # Each segment's d centred on its own (its level restarts with its model output).
         d = np.vstack([sig.d[a:b] - sig.d[a:b].mean(axis=0) for a, b in plan.local_segments])
         regressions = window_regressions(r, columns, -d, d, layout, options.na, options.nb,
-                                         segments=plan.local_segments, jobs=light_jobs)
+                                         segments=plan.local_segments, jobs=split_light)
 
     # A fit that leaves at most EXACT_FIT of its output's spread is exact (a log without noise): its tests
     # decide outright instead of on the rounding of its residual.  The spread is the larger of the
@@ -666,7 +672,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         row_tests.append(sdelta_row_test(model, r, sig.eps, regressions, layout, options, output_spread=spread,
                                          singular_values=not rows_only, jobs=jobs))
     if not overlap:
-        run_row_test(light_jobs)
+        run_row_test(split_light)
     test_rows = list(range(ny)) if (options.test_all_rows or options.method != "arx") else \
         [i for i in range(ny) if row_tests[0].rows[i].mismatch]
     if probe and colour is None:

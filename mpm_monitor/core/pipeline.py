@@ -19,7 +19,7 @@ from typing import Optional
 
 import numpy as np
 
-from .analysis import (LIGHT_SPLIT_MIN_WORK, AnalysisOptions, AnalysisReport, Coloured, detect, detect_unless_coloured,
+from .analysis import (AnalysisOptions, AnalysisReport, Coloured, detect, detect_unless_coloured, light_jobs,
                        settle_report)
 from .errors import DataFileError
 from .logged_data import NUMERICAL_ERRORS, LoggedData, in_deviations, numerical_breakdown
@@ -82,8 +82,7 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
         from .spikes import without_spikes
 
         # Split over two processes on a window as large as the detection's lighter stages are split on.
-        work = data.n_samples * model.n_outputs * model.n_columns
-        data, _ = without_spikes(data, jobs=options.jobs if work >= LIGHT_SPLIT_MIN_WORK else 1)
+        data, _ = without_spikes(data, jobs=light_jobs(options.jobs, data.n_samples, model))
     try:
         return _analyze(model, data, options, signals, regressions, candidates)
     except NUMERICAL_ERRORS as err:
