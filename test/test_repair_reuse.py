@@ -3,6 +3,9 @@
 - The disturbance test of an output whose prediction error an earlier evaluation of the repair
   tested as it is (a row not repaired, or not repaired again) is taken over: the tests equal those
   of every output tested afresh, and only the changed outputs are tested again.
+- The disturbance tests of the model as given, computed ahead (``disturbance_tests``, which ``analyze``
+  computes in its second process while that one is idle), are taken by the repair for the outputs it
+  does not repair: the same result; ignored when taken with other settings.
 - The step test's quadratic forms of the cumulative regressors equal ``np.einsum`` term by term.
 - A row estimate's covariance is computed when first read, its condition number alone from the
   Jacobian columns of the free parameters: the same numbers as the whole covariance's.
@@ -15,11 +18,14 @@ No timings here: bench/stages.py and bench/repair_mc.py measure them.
 """
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
 
-from mpm_monitor.core.repair import RepairOptions, model_repair, repair_model, unexplained_disturbance
+from mpm_monitor.core.repair import (RepairOptions, disturbance_tests, model_repair, repair_model,
+                                     unexplained_disturbance)
+from mpm_monitor.core.signals import compute_signals
 from mpm_monitor.core.repair import refit as repair_refit
 from mpm_monitor.core.repair.disturbance import _row_quadratic_forms
 from mpm_monitor.core.repair.fit import _ElementSpec, _RowProblem
@@ -65,6 +71,40 @@ def test_disturbance_tests_of_unchanged_outputs_are_taken_over(stepped_gain_log,
                 for i, t in enumerate(fresh) if t["detected"]]
     assert res.disturbances == expected
     assert [d["output"] for d in res.disturbances] == ["y2"]
+
+
+def _counted(monkeypatch) -> list:
+    calls = []
+
+    def counted(d, *args, **kwargs):
+        calls.append(np.array(d, copy=True))
+        return unexplained_disturbance(d, *args, **kwargs)
+
+    monkeypatch.setattr(model_repair, "unexplained_disturbance", counted)
+    return calls
+
+
+@pytest.mark.parametrize("settings", ["same", "other level", "other scale"])
+def test_disturbance_tests_computed_ahead_are_taken_for_the_outputs_not_repaired(stepped_gain_log, monkeypatch,
+                                                                               settings):
+    model, data = stepped_gain_log
+    options = RepairOptions()
+    plain = repair_model(model, data, [(1, 1)], options)
+    sig = compute_signals(model, data.r, data.u, data.y, initial_state=options.initial_state)
+    ahead = disturbance_tests(model, data, sig.d, options if settings != "other level" else
+                              dataclasses.replace(options, disturbance_alpha=0.05))
+    assert len(ahead.tests) == model.n_outputs
+    if settings == "other scale":
+        ahead.spread = ahead.spread * 2.0
+    calls = _counted(monkeypatch)
+    res = repair_model(model, data, [(1, 1)], options, disturbance_tests=ahead)
+    assert json.dumps(res.to_dict(), sort_keys=True) == json.dumps(plain.to_dict(), sort_keys=True)
+    assert res.disturbances == plain.disturbances and [d["output"] for d in res.disturbances] == ["y2"]
+    # Row y2 is repaired, then redone with the step: with the tests given only its two tests run here.
+    if settings == "same":
+        assert len(calls) == 2 and not any(np.array_equal(c, sig.d[:, 1]) for c in calls)
+    else:
+        assert len(calls) == model.n_outputs + 1
 
 
 @pytest.mark.parametrize("n, k", [(1, 1), (60, 5), (9000, 5), (20000, 7), (3000, 23)])

@@ -81,10 +81,10 @@ Where each step lives:
 """
 
 from .disturbance import sup_wald_p_value, unexplained_disturbance
-from .model_repair import JointClassification, explained_elements, repair_model
+from .model_repair import DisturbanceTests, JointClassification, disturbance_tests, explained_elements, repair_model
 from .options import KINDS, RepairOptions, check_repair_options
 from .result import RepairResult
 
-__all__ = ["KINDS", "JointClassification", "RepairOptions", "RepairResult", "check_repair_options",
-           "explained_elements", "repair_model",
+__all__ = ["KINDS", "DisturbanceTests", "JointClassification", "RepairOptions", "RepairResult", "check_repair_options",
+           "disturbance_tests", "explained_elements", "repair_model",
            "sup_wald_p_value", "unexplained_disturbance"]

@@ -468,7 +468,6 @@ def _evaluate(rec: _Record, results: dict) -> _Evaluation:
                 repaired = el.applied_to(repaired, i, j)
     sig = rec.signals if repaired == rec.model else rec.signals_of(repaired)
     d = np.asarray(sig.d, float)
-    options = rec.options
     segments = rec.scored_segments(rec.model, repaired, settled=True)
     spread = None
     tests = {}
@@ -478,9 +477,8 @@ def _evaluate(rec: _Record, results: dict) -> _Evaluation:
         if done is None or done[1] != segments or not np.array_equal(done[0], d[:, i]):
             if spread is None:
                 spread = np.std(np.asarray(rec.y, float), axis=0)
-            done = rec.tests[i] = (d[:, i].copy(), segments, unexplained_disturbance(
-                d[:, i], rec.model.sample_time, options.disturbance_alpha, options.disturbance_trim,
-                options.noise_order, segments=segments, scale=float(spread[i])))
+            done = rec.tests[i] = (d[:, i].copy(), segments,
+                                   _disturbance_test(d[:, i], segments, float(spread[i]), rec.model, rec.options))
         tests[i] = dict(done[2])
     if rec.segments is not None:      # the step's time since the first sample, the missing samples counted
         t = np.asarray(rec.data.t, float)
@@ -488,6 +486,88 @@ def _evaluate(rec: _Record, results: dict) -> _Evaluation:
             if test["index"] is not None:
                 test["time"] = float(t[test["index"]] - t[0])
     return _Evaluation(model=repaired, signals=sig, tests=tests)
+
+
+def _disturbance_test(d: np.ndarray, segments, scale: float, model: PlantModel, options: RepairOptions) -> dict:
+    """:func:`unexplained_disturbance` of one output's prediction error ``d`` (shape (n_samples,)), as the
+    repair tests every output: at ``options``' level, trim and noise order, over the scored ``segments``
+    (None: every sample), ``scale`` the output's standard deviation."""
+    return unexplained_disturbance(d, model.sample_time, options.disturbance_alpha, options.disturbance_trim,
+                                   options.noise_order, segments=segments, scale=scale)
+
+
+def _test_settings_key(model: PlantModel, options: RepairOptions) -> tuple:
+    """What a disturbance test depends on besides its prediction error, segments and scale."""
+    return (float(model.sample_time), float(options.disturbance_alpha), float(options.disturbance_trim),
+            int(options.noise_order))
+
+
+@dataclasses.dataclass
+class DisturbanceTests:
+    """The unexplained-disturbance tests of every output of a model as given, on a record without gaps,
+    computed ahead of :func:`repair_model` (:func:`disturbance_tests`), which takes each output's test
+    whose prediction error it finds unchanged instead of testing it again.
+
+    Attributes
+    ----------
+    key : tuple
+        The sample time, the level, trim and noise order of the tests (:class:`RepairOptions`).
+    spread : ndarray, shape (n_outputs,)
+        The outputs' standard deviations, the tests' scales (output units).
+    d : ndarray, shape (n_samples, n_outputs)
+        The prediction errors tested (output units).
+    tests : list of dict
+        Per output, :func:`~mpm_monitor.core.repair.disturbance.unexplained_disturbance`'s result.
+    """
+
+    key: tuple
+    spread: np.ndarray
+    d: np.ndarray
+    tests: list
+
+
+def disturbance_tests(model: PlantModel, data: LoggedData, d: np.ndarray,
+                      options: RepairOptions = RepairOptions()) -> DisturbanceTests:
+    """The tests :func:`repair_model` runs on every output of ``model`` as given, computed ahead.
+
+    The repair tests the prediction error of every output of the repaired model for an unexplained
+    step or drift; an output whose row it does not repair keeps the prediction error of the model as
+    given.  :func:`~mpm_monitor.core.pipeline.analyze` computes these tests in its second process
+    while the detection's first stages run in one (the second core is idle then), and gives them to
+    :func:`repair_model` (its ``disturbance_tests``): the same numbers.
+
+    Parameters
+    ----------
+    model : PlantModel
+        The model as given.
+    data : LoggedData
+        The record the repair fits, without gaps (the scales are the standard deviations of its ``y``).
+    d : ndarray, shape (n_samples, n_outputs)
+        ``model``'s prediction error on ``data`` (output units).
+    options : RepairOptions
+        The repair's options.
+
+    Returns
+    -------
+    DisturbanceTests
+    """
+    d = np.asarray(d, float)
+    spread = np.std(np.asarray(in_deviations(model, data).y, float), axis=0)
+    return DisturbanceTests(key=_test_settings_key(model, options), spread=spread, d=d,
+                            tests=[_disturbance_test(d[:, i], None, float(spread[i]), model, options)
+                                   for i in range(model.n_outputs)])
+
+
+def _seed_tests(rec: _Record, given: Optional[DisturbanceTests]) -> None:
+    """Put the tests ``given`` (:func:`disturbance_tests`) into :attr:`_Record.tests` when they were taken with
+    the record's settings and scales (without gaps); :func:`_evaluate` uses each one whose prediction error it
+    finds unchanged."""
+    if given is None or rec.segments is not None or given.key != _test_settings_key(rec.model, rec.options):
+        return
+    if given.d.shape != rec.d0.shape or not np.array_equal(given.spread, np.std(rec.y, axis=0)):
+        return
+    for i, test in enumerate(given.tests):
+        rec.tests[i] = (given.d[:, i], None, test)
 
 
 def _redo_disturbed_rows(rec: _Record, located: list, rows: list, results: dict, tests: dict) -> bool:
@@ -583,7 +663,8 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
 
 def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
                  options: RepairOptions = RepairOptions(), signals: Optional[LoopSignals] = None,
-                 classified: Optional["JointClassification"] = None) -> RepairResult:
+                 classified: Optional["JointClassification"] = None,
+                 disturbance_tests: Optional[DisturbanceTests] = None) -> RepairResult:
     """Re-estimate the located elements, classify their mismatch, and validate the repair.
 
     Parameters
@@ -603,6 +684,12 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
     classified : JointClassification, optional
         What :func:`explained_elements` found on the same model, data and options: a row whose
         located elements are those it classified is not classified again.
+    disturbance_tests : DisturbanceTests, optional
+        The unexplained-disturbance tests of ``model``'s outputs on ``data``, computed ahead
+        (:func:`disturbance_tests`): an output whose prediction error the repair leaves as it is keeps
+        its test instead of being tested again.  Ignored unless taken with these options and scales on a
+        record without gaps; each test is used only where its prediction error is the one the repair
+        would test.
 
     Returns
     -------
@@ -613,6 +700,7 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
     data = in_deviations(model, data)
     located = _check_inputs(model, data, located, signals)
     rec = _set_up(model, data, options, signals)
+    _seed_tests(rec, disturbance_tests)
     found = _Findings()
     rows = _rows_to_repair(rec, located, found)
     results = {}
