@@ -284,6 +284,43 @@ def test_with_every_stage_split_two_processes_equal_one(case_32, monkeypatch, fo
     assert _json(one) == _json(two)
 
 
+@pytest.mark.parametrize("gaps", [False, True])
+def test_the_repairs_disturbance_tests_run_in_the_idle_second_process(case_32, monkeypatch, forks, gaps):
+    """On a window split row by row but not in its lighter stages, the second process computes the repair's
+    disturbance tests of the model as given beside the first stages; the repair tests only the outputs it
+    repairs (here thresholds that put case 3.2 in that regime).  With gaps it tests every output itself."""
+    from mpm_monitor.core import analysis
+    from mpm_monitor.core.repair import model_repair
+
+    case, data = case_32
+    if gaps:
+        keep = np.ones(data.n_samples, bool)
+        keep[[300, 301, 1700]] = False
+        data = data.take(np.flatnonzero(keep))
+    parent, tested = os.getpid(), []
+    test = model_repair.unexplained_disturbance
+    monkeypatch.setattr(model_repair, "unexplained_disturbance",
+                        lambda d, *a, **k: (tested.append(np.array(d)) if os.getpid() == parent else None) or
+                        test(d, *a, **k))
+    one = analyze(case.model, data, AnalysisOptions(jobs=1))
+    monkeypatch.setattr(analysis, "SPLIT_MIN_WORK", 0)
+    assert analysis.light_jobs(2, data.n_samples, case.model) == 1
+    tested.clear()
+    two = analyze(case.model, data, AnalysisOptions(jobs=2))
+    names = case.model.outputs
+    kept = [i for i in range(len(names)) if names[i] not in {change["output"] for change in two.repair["changes"]}]
+    assert kept and len(kept) < len(names)
+    # The prediction errors of the rows not repaired, tested here or not (with gaps the repair's are those of
+    # the segments, which the report's signals do not hold: every output is tested here then).
+    here = [i for i in kept if any(x.shape == two.signals.d[:, i].shape and np.array_equal(x, two.signals.d[:, i])
+                                   for x in tested)]
+    if gaps:
+        assert len(tested) >= len(names)
+    else:
+        assert tested and not here
+    assert _json(one) == _json(two) and _all_reaped(forks)
+
+
 def test_a_detection_in_two_processes_equals_one_in_one_process_without_the_response_test(case_32):
     case, data = case_32
     options = dict(repair=False, element_response=False)

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -476,7 +476,8 @@ ROW_FORK_MIN_COLUMNS = 1000
 def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
            signals: Optional[LoopSignals] = None, regressions=None,
            previous: Optional["AnalysisReport"] = None, candidates=None, detectability: bool = True,
-           rows_only: bool = False, settle: bool = True) -> AnalysisReport:
+           rows_only: bool = False, settle: bool = True,
+           beside: Optional[Callable[[LoopSignals], None]] = None) -> AnalysisReport:
     """Run the S_Delta row test and the Delta element test on logged closed-loop data (no repair).
 
     Parameters
@@ -524,6 +525,12 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         experiment are computed in a forked second process, and the report is returned while they are
         (its ``pending``); :func:`settle_report` waits for them and puts them in (the analysis repairs the
         model meanwhile, :func:`~mpm_monitor.core.pipeline.analyze`).  The same numbers either way.
+    beside : callable, optional
+        Called once with the model's signals on data without gaps, when they were computed here and the
+        stages that follow run in this process while the analysis has a second one (``options.jobs`` 2, a
+        window that splits row by row but not its lighter stages, :func:`light_jobs`): work for the idle
+        second process (:func:`~mpm_monitor.core.pipeline.analyze` forks the repair's disturbance tests
+        there).  It must not change what it is given.
 
     Returns
     -------
@@ -541,7 +548,7 @@ def detect(model: PlantModel, data: LoggedData, options: AnalysisOptions = Analy
         the numpy error as its ``__cause__``.
     """
     return _guarded(model, data, options, signals, regressions, previous, candidates, detectability,
-                    rows_only=rows_only, settle=settle)
+                    rows_only=rows_only, settle=settle, beside=beside)
 
 
 def load_tests(model: Optional[PlantModel] = None) -> None:
@@ -571,7 +578,7 @@ def _guarded(model: PlantModel, data: LoggedData, *args, **how):
 
 def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signals: Optional[LoopSignals],
             regressions, previous: Optional["AnalysisReport"], candidates, detectability: bool,
-            unless_coloured: bool = False, rows_only: bool = False, settle: bool = True):
+            unless_coloured: bool = False, rows_only: bool = False, settle: bool = True, beside=None):
     """:func:`detect` (same arguments), its numerical errors not yet turned into a ``DataFileError``; with
     ``unless_coloured``, :func:`detect_unless_coloured`."""
     # The tests are imported here: the options and the report above are described (the command line's
@@ -618,6 +625,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         sig = compute_signals(model, r, u, y, options.initial_state, dv=dv, jobs=split_light) if plan is None else \
             segment_signals(model, r, u, y, plan.local_segments, options.initial_state, dv=dv, grid=grid,
                             max_gap=plan.max_gap, fill=data.fill_on_grid())
+        if beside is not None and plan is None and options.jobs > 1 and split_light == 1:
+            beside(sig)
     else:
         sig = signals
         n_given = data.n_samples
@@ -935,7 +944,7 @@ class Coloured:
 def detect_unless_coloured(model: PlantModel, data: LoggedData, options: AnalysisOptions = AnalysisOptions(), *,
                            signals: Optional[LoopSignals] = None, regressions=None,
                            previous: Optional["AnalysisReport"] = None, candidates=None, detectability: bool = True,
-                           settle: bool = True):
+                           settle: bool = True, beside: Optional[Callable[[LoopSignals], None]] = None):
     """:func:`detect`, or only the noise order when a row's element-test residual is coloured.
 
     The element test's unrestricted fits of every row it tests come first (for ``test_all_rows``, before
@@ -950,7 +959,7 @@ def detect_unless_coloured(model: PlantModel, data: LoggedData, options: Analysi
     AnalysisReport or Coloured
     """
     return _guarded(model, data, options, signals, regressions, previous, candidates, detectability,
-                    unless_coloured=True, settle=settle)
+                    unless_coloured=True, settle=settle, beside=beside)
 
 
 def check_gap_rows(plan, layout, options, src: str) -> None:

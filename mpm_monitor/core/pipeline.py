@@ -95,9 +95,11 @@ def _analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions, sign
     kw = {} if candidates is None else {"candidates": candidates}
     # With two processes the detectable gain changes and the experiment are computed beside the repair and
     # the repaired model's detection (detect's settle): the report is settled before it is returned.
-    report, options = _detect_raising_na(model, data, options, signals, regressions, kw)
+    ahead = _TestsAhead(model, data, options) if options.repair and candidates is None else None
+    report, options = _detect_raising_na(model, data, options, signals, regressions,
+                                         kw if ahead is None else {**kw, "beside": ahead.start})
     try:
-        return _repair_and_report(model, data, options, report, kw)
+        return _repair_and_report(model, data, options, report, kw, ahead)
     except BaseException:
         try:                      # the second process's result is not wanted: only waited for
             settle_report(report)
@@ -106,8 +108,44 @@ def _analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions, sign
         raise
 
 
+class _TestsAhead:
+    """The repair's disturbance tests of the model as given (:func:`~mpm_monitor.core.repair.disturbance_tests`),
+    computed in a forked child while the detection's first stages run in this process.
+
+    On a window that splits the element test row by row but not its lighter stages (20x20 x 10,000 samples),
+    the second core is idle from the model's run to the element test; the repair tests every output's
+    prediction error for an unexplained step or drift (about 30 ms at 20x20), and every output whose row it
+    does not repair keeps the error of the model as given.  :meth:`start` is the detection's ``beside``;
+    :meth:`result` is what :func:`~mpm_monitor.core.repair.repair_model` takes (its ``disturbance_tests``).
+    """
+
+    def __init__(self, model: PlantModel, data: LoggedData, options: AnalysisOptions):
+        self.model, self.data, self.options = model, data, options
+        self._job = None
+
+    def start(self, signals: LoopSignals) -> None:
+        """Fork the tests of ``signals.d`` (once)."""
+        if self._job is None:
+            from .parallel import Forked
+            from .repair import disturbance_tests
+
+            repair_options = RepairOptions(initial_state=self.options.initial_state)
+            d = signals.d
+            self._job = Forked(lambda: disturbance_tests(self.model, self.data, d, repair_options))
+
+    def result(self):
+        """The tests, or None when they were not started or failed (the repair then runs them itself)."""
+        job, self._job = self._job, None
+        if job is None:
+            return None
+        try:
+            return job.result()
+        except Exception:  # noqa: BLE001 - the repair computes them again, and meets the error there if it is real
+            return None
+
+
 def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOptions, report: AnalysisReport,
-                       kw: dict) -> AnalysisReport:
+                       kw: dict, ahead: Optional[_TestsAhead] = None) -> AnalysisReport:
     """:func:`_analyze` after the detection: the joint classification, the repair and the detection of the
     repaired model; ``report`` settled (:func:`~mpm_monitor.core.analysis.settle_report`) after that detection
     (which reads only its regressions; at 100x40 it runs while the child still computes the detectability,
@@ -131,7 +169,10 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
         located = [key for key in located if key not in classified.released]
     if not options.repair:
         return dataclasses.replace(settle_report(report), regressions=None)
-    result = repair_model(wide, span, located, repair_options, signals=span_signals, classified=classified)
+    # The tests computed ahead are of the model as given on all of the data (repair_model checks the rest).
+    tests = ahead.result() if ahead is not None and wide is model and span is wide_data else None
+    result = repair_model(wide, span, located, repair_options, signals=span_signals, classified=classified,
+                          disturbance_tests=tests)
     after_data, nominal = data, None
     if names:
         nominal = _candidate_operating_points(result, names)
