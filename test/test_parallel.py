@@ -321,6 +321,21 @@ def test_the_repairs_disturbance_tests_run_in_the_idle_second_process(case_32, m
     assert _json(one) == _json(two) and _all_reaped(forks)
 
 
+def test_an_error_after_the_disturbance_tests_started_leaves_no_child(case_32, monkeypatch, forks):
+    from mpm_monitor.core import analysis, pipeline
+
+    monkeypatch.setattr(analysis, "SPLIT_MIN_WORK", 0)
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("broken repair data")
+    monkeypatch.setattr(pipeline, "repair_data", broken)
+    case, data = case_32
+    with pytest.raises(RuntimeError, match="broken repair data") as caught:
+        analyze(case.model, data, AnalysisOptions(jobs=2))
+    # Every child reaped while the traceback, which holds the analysis's frames, is still alive.
+    assert caught.traceback and len(forks) >= 2 and _all_reaped(forks)
+
+
 def test_a_detection_in_two_processes_equals_one_in_one_process_without_the_response_test(case_32):
     case, data = case_32
     options = dict(repair=False, element_response=False)

@@ -101,6 +101,8 @@ def _analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions, sign
     try:
         return _repair_and_report(model, data, options, report, kw, ahead)
     except BaseException:
+        if ahead is not None:     # not wanted either: its child stopped and reaped now
+            ahead.close()
         try:                      # the second process's result is not wanted: only waited for
             settle_report(report)
         except BaseException:  # noqa: BLE001 - the error of the analysis is the one raised
@@ -129,9 +131,14 @@ class _TestsAhead:
             from .parallel import Forked
             from .repair import disturbance_tests
 
+            # The child's function holds no reference to this object (no cycle: dropped, the child is reaped at once).
+            model, data, d = self.model, self.data, signals.d
             repair_options = RepairOptions(initial_state=self.options.initial_state)
-            d = signals.d
-            self._job = Forked(lambda: disturbance_tests(self.model, self.data, d, repair_options))
+            self._job = Forked(lambda: disturbance_tests(model, data, d, repair_options))
+
+    def close(self) -> None:
+        """Drop the tests unread: the child, if still running, is stopped, and reaped."""
+        self._job = None
 
     def result(self):
         """The tests, or None when they were not started or failed (the repair then runs them itself)."""
