@@ -458,6 +458,8 @@ SPLIT_MIN_WORK = 1_000_000
 #: the page faults after a fork cost (the command at 20x20 split everywhere and with these three in one
 #: process: the same time, median ratio 1.00 over 15 pairs; three forks fewer).
 LIGHT_SPLIT_MIN_WORK = 10_000_000
+
+
 def light_jobs(jobs: int, n_samples: int, model: PlantModel) -> int:
     """The processes the lighter stages use on a window of ``n_samples``: ``jobs`` from
     :data:`LIGHT_SPLIT_MIN_WORK` samples x outputs x columns, else 1."""

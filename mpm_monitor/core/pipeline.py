@@ -176,10 +176,10 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
         located = [key for key in located if key not in classified.released]
     if not options.repair:
         return dataclasses.replace(settle_report(report), regressions=None)
-    # The tests computed ahead are of the model as given on all of the data (repair_model checks the rest).
-    tests = ahead.result() if ahead is not None and wide is model and span is wide_data else None
+    # The tests computed ahead (of the model as given, on data without gaps): repair_model takes only those that
+    # fit its record, settings and prediction errors.
     result = repair_model(wide, span, located, repair_options, signals=span_signals, classified=classified,
-                          disturbance_tests=tests)
+                          disturbance_tests=None if ahead is None else ahead.result())
     after_data, nominal = data, None
     if names:
         nominal = _candidate_operating_points(result, names)

@@ -11,6 +11,7 @@ with the step (ramp) as a nuisance regressor, so that it does not bias the eleme
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Optional, Sequence
 
 import numpy as np
@@ -143,6 +144,12 @@ class _Record:
     @property
     def options(self) -> RepairOptions:
         return self.settings.options
+
+    @functools.cached_property
+    def spread(self) -> np.ndarray:
+        """The outputs' standard deviations over the record, shape (n_outputs,): the scales of the disturbance
+        tests (:func:`_evaluate`), computed once."""
+        return np.std(np.asarray(self.y, float), axis=0)
 
     @property
     def n(self) -> int:
@@ -469,16 +476,13 @@ def _evaluate(rec: _Record, results: dict) -> _Evaluation:
     sig = rec.signals if repaired == rec.model else rec.signals_of(repaired)
     d = np.asarray(sig.d, float)
     segments = rec.scored_segments(rec.model, repaired, settled=True)
-    spread = None
     tests = {}
     for i in range(rec.model.n_outputs):
         # An output whose prediction error did not change (its row not repaired) keeps its test.
         done = rec.tests.get(i)
         if done is None or done[1] != segments or not np.array_equal(done[0], d[:, i]):
-            if spread is None:
-                spread = np.std(np.asarray(rec.y, float), axis=0)
             done = rec.tests[i] = (d[:, i].copy(), segments,
-                                   _disturbance_test(d[:, i], segments, float(spread[i]), rec.model, rec.options))
+                                   _disturbance_test(d[:, i], segments, float(rec.spread[i]), rec.model, rec.options))
         tests[i] = dict(done[2])
     if rec.segments is not None:      # the step's time since the first sample, the missing samples counted
         t = np.asarray(rec.data.t, float)
@@ -564,7 +568,7 @@ def _seed_tests(rec: _Record, given: Optional[DisturbanceTests]) -> None:
     finds unchanged."""
     if given is None or rec.segments is not None or given.key != _test_settings_key(rec.model, rec.options):
         return
-    if given.d.shape != rec.d0.shape or not np.array_equal(given.spread, np.std(rec.y, axis=0)):
+    if given.d.shape != rec.d0.shape or not np.array_equal(given.spread, rec.spread):
         return
     for i, test in enumerate(given.tests):
         rec.tests[i] = (given.d[:, i], None, test)
