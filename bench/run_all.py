@@ -30,6 +30,7 @@ BENCHMARKS = [
     ("bench.step_models", ["--runs", "100", "--jobs", "2"], ["--runs", "10"]),
     ("bench.perf", [], ["--quick"]),
     ("bench.stages", ["--out", "bench/results/stages.json"], ["--sizes", "20x20", "--repeats", "1"]),
+    ("bench.timeline", ["--out", "bench/results/timeline.json"], ["--sizes", "20x20", "--repeats", "1"]),
     ("bench.memory", [], ["--quick"]),
     ("bench.ros_throughput", ["--json", "bench/results/ros_throughput.json"], ["--samples", "2000", "--repeats", "1"]),
     ("bench.monitor_load", ["--json", "bench/results/monitor_load.json"], ["--quick"]),
