@@ -106,7 +106,8 @@ def _patch_parallel(parallel, mark) -> None:
 
 class _ImportMarks:
     """A finder that marks the start of :data:`MARKED_IMPORTS` and wraps the analysis's phases once
-    ``mpm_monitor.core.pipeline`` has run; it finds nothing itself."""
+    ``mpm_monitor.core.pipeline`` has run: for that module it returns the spec the finders after it
+    give, its loader wrapped; for every other it returns None (the next finder finds it)."""
 
     def __init__(self, mark):
         self.mark = mark
