@@ -40,6 +40,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench import parse_sizes
+
 #: (label, module, attribute): the stages timed.  ``class.method`` attributes are methods.
 STAGES = (
     ("model run", "mpm_monitor.core.signals", "compute_signals"),
@@ -180,13 +182,7 @@ def main(argv=None) -> int:
     if args.child:
         print(json.dumps(child(*args.child, jobs=args.jobs)))
         return 0
-    sizes = []
-    for part in args.sizes.split(","):
-        try:
-            ny, nu = (int(x) for x in part.lower().split("x"))
-        except ValueError:
-            parser.error(f"--sizes: expected sizes like 20x20,100x40, got {part!r}")
-        sizes.append((ny, nu))
+    sizes = parse_sizes(parser, args.sizes)
     if args.repeats < 1:
         parser.error(f"--repeats: expected an integer >= 1, got {args.repeats}")
     if args.jobs < 1:

@@ -34,11 +34,12 @@ timeline of the run whose time is the median.  No target: this shows where the s
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 import time
 from pathlib import Path
+
+from bench import parse_sizes, write_json
 
 #: Environment variable naming the marks' file in the traced interpreter.
 LOG_VARIABLE = "MPM_TIMELINE_LOG"
@@ -166,6 +167,13 @@ def read_marks(path) -> list:
     return sorted(marks, key=lambda m: m[0])
 
 
+def _bounds(marks: list) -> tuple:
+    """``(t0, parent, end)``: the time of the ``start`` mark, the process that wrote it, and its ``end``
+    in seconds from ``t0`` (the last mark's when it wrote none)."""
+    t0, parent = next((m[0], m[1]) for m in marks if m[2] == "start")
+    return t0, parent, next((m[0] for m in marks if m[2] == "end" and m[1] == parent), marks[-1][0]) - t0
+
+
 def busy_intervals(marks: list) -> dict:
     """Each process's busy intervals, ``{name: [(t0, t1), ...]}`` in seconds from the start.
 
@@ -174,9 +182,7 @@ def busy_intervals(marks: list) -> dict:
     nothing).  A child's name is its function's, numbered from 1 in the order the children started
     (``2 split_map``).  A function run inline, without a child, is the parent's.
     """
-    start = next(m for m in marks if m[2] == "start")
-    t0, parent = start[0], start[1]
-    end = next((m[0] for m in marks if m[2] == "end" and m[1] == parent), marks[-1][0])
+    t0, parent, end = _bounds(marks)
     busy, since = [], 0.0
     for t, pid, event, _ in marks:
         if pid != parent:
@@ -185,7 +191,7 @@ def busy_intervals(marks: list) -> dict:
             busy.append((since, t - t0))
         elif event == "got":
             since = t - t0
-    busy.append((since, end - t0))
+    busy.append((since, end))
     out = {"parent": [(a, b) for a, b in busy if b > a]}
     children: dict = {}
     for t, pid, event, label in marks:
@@ -228,9 +234,7 @@ def occupancy(intervals: dict, cores: int = 2) -> dict:
 def phases(marks: list) -> list:
     """The parent's phases, ``[(t0, t1, phase)]`` in seconds from the start: ``before the analysis``,
     ``detection`` and ``repair`` (the outermost of each), ``analysis`` between them, ``after the analysis``."""
-    start = next(m for m in marks if m[2] == "start")
-    t0, parent = start[0], start[1]
-    end = next((m[0] for m in marks if m[2] == "end" and m[1] == parent), marks[-1][0]) - t0
+    t0, parent, end = _bounds(marks)
     own = [(t - t0, event, label) for t, pid, event, label in marks if pid == parent and event in ("begin", "finish")]
     begin = next((t for t, e, label in own if e == "begin" and label == "analyze"), None)
     if begin is None:
@@ -283,8 +287,7 @@ def summarize(marks: list, launch: float = None, exit_time: float = None) -> dic
     """The figures of one run's marks (JSON-ready)."""
     iv = busy_intervals(marks)
     occ = occupancy(iv)
-    start = next(m for m in marks if m[2] == "start")
-    t0 = start[0]
+    t0, parent, _ = _bounds(marks)
     return {
         "from_launch_s": None if launch is None or exit_time is None else exit_time - launch,
         "start_after_launch_s": None if launch is None else t0 - launch,
@@ -293,7 +296,7 @@ def summarize(marks: list, launch: float = None, exit_time: float = None) -> dic
         "busy_s": {name: sum(b - a for a, b in v) for name, v in iv.items()},
         "lone": [list(s) for s in lone_stretches(iv, marks)],
         "phases": [list(p) for p in phases(marks)],
-        "marks": [(round(t - t0, 6), "parent" if pid == start[1] else pid, event, label) for t, pid, event, label in marks],
+        "marks": [(round(t - t0, 6), "parent" if pid == parent else pid, event, label) for t, pid, event, label in marks],
     }
 
 
@@ -375,22 +378,14 @@ def main(argv=None) -> int:
     parser.add_argument("--jobs", type=int, default=None, help="the command's --jobs (default: its own default)")
     parser.add_argument("--out", default=None, help="JSON output path")
     args = parser.parse_args(argv)
-    sizes = []
-    for part in args.sizes.split(","):
-        try:
-            ny, nu = (int(x) for x in part.lower().split("x"))
-        except ValueError:
-            parser.error(f"--sizes: expected sizes like 20x20,100x40, got {part!r}")
-        sizes.append((ny, nu))
+    sizes = parse_sizes(parser, args.sizes)
     if args.repeats < 1:
         parser.error(f"--repeats: expected an integer >= 1, got {args.repeats}")
     if args.jobs is not None and args.jobs < 1:
         parser.error(f"--jobs: expected an integer >= 1, got {args.jobs}")
     result = run(sizes, args.repeats, args.seed, args.jobs)
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(result, indent=1))
-        print(f"wrote {args.out}")
+        write_json(args.out, result)
     return 0
 
 
