@@ -195,7 +195,6 @@ def least_squares_bounded(fun: Callable[[np.ndarray], np.ndarray], x0, bounds=(-
     optimality = np.inf
     svd = None
     escapes = 0
-    secant = None                       # one parameter: (x, g) at the last Jacobian (the secant curvature)
     while True:
         while status is None:
             jac, used = _forward_jacobian(fun, x, f, lb, ub, diff_step)
@@ -213,8 +212,6 @@ def least_squares_bounded(fun: Callable[[np.ndarray], np.ndarray], x0, bounds=(-
                 status = 1
                 break
             scale = np.maximum(scale, np.sqrt(np.sum(r * r, axis=0)))   # the columns' norms of J
-            if n == 1:
-                r, c, secant = _secant_model(r, c, g, x, secant)
             dscale = np.where(scale > 0, scale, 1.0)
             lo, hi = lb - x, ub - x
             svd = np.linalg.svd(r / dscale)                     # of the scaled R, n x n
@@ -292,42 +289,6 @@ def least_squares_bounded(fun: Callable[[np.ndarray], np.ndarray], x0, bounds=(-
         status = None
     return LsqResult(x=x, fun=f, cost=0.5 * s, optimality=optimality, nfev=nfev, njev=njev, n_calls=n_calls,
                      status=status)
-
-
-def _secant_model(r: np.ndarray, c: np.ndarray, g: np.ndarray, x: np.ndarray, secant: Optional[tuple]) -> tuple:
-    """The model of a one-parameter fit: its curvature ``r^2 = J'J`` replaced by the secant of the gradient.
-
-    The Gauss-Newton curvature leaves out ``sum f_i f_i''``: where the residual at the optimum is large
-    (a pole fitted at a delay next to the best one), its steps overshoot or fall short by about that
-    term and the iteration converges only linearly, oscillating around the optimum.  The slope of the
-    gradient between the last two Jacobians' points includes it (the secant method: superlinear).
-    It replaces ``J'J`` when positive; the model keeps the gradient ``g = r c``, so it predicts the
-    reduction ``-2 g d - r^2 d^2`` of ``||f||^2`` with the secant's ``r^2``.
-
-    Parameters
-    ----------
-    r, c : ndarray, shape (1, 1) and (1,)
-        The triangle of ``[J, f]`` at ``x``.
-    g : ndarray, shape (1,)
-        ``J'f`` at ``x``.
-    x : ndarray, shape (1,)
-    secant : tuple of float or None
-        ``(x, g)`` at the previous Jacobian, None at the first.
-
-    Returns
-    -------
-    r, c : ndarray
-        The model's triangle (the given ones when there is no positive secant curvature).
-    secant : tuple of float
-        ``(x, g)`` here, for the next Jacobian.
-    """
-    here = (float(x[0]), float(g[0]))
-    if secant is not None and here[0] != secant[0]:
-        h = (here[1] - secant[1]) / (here[0] - secant[0])
-        if h > 0.0 and np.isfinite(h):
-            root = np.sqrt(h)
-            return np.array([[root]]), g / root, here
-    return r, c, here
 
 
 def _evaluate(fun, x: np.ndarray) -> np.ndarray:
