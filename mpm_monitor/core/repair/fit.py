@@ -586,8 +586,10 @@ class _RowProblem:
         scale = np.sqrt(np.sum(jac ** 2, axis=0))
         scale[scale == 0] = 1.0
         js = jac / scale
-        cov = s2 * np.linalg.pinv(js.T @ js, rcond=1e-13, hermitian=True) / np.outer(scale, scale)
-        block = cov[:nl + npf, :nl + npf].copy()
+        # Only the free coefficients' and poles' block is unscaled: a nuisance column of negligible norm
+        # (1e-156 next to 1e2, a step too small to move it) would overflow its own variance, unused.
+        k = nl + npf
+        block = s2 * np.linalg.pinv(js.T @ js, rcond=1e-13, hermitian=True)[:k, :k] / np.outer(scale[:k], scale[:k])
         np.fill_diagonal(block, np.maximum(np.diag(block), 0.0))
         return block, self._condition(js[:, :nl + npf])
 
