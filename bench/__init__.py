@@ -30,6 +30,33 @@ def parse_sizes(parser, text: str) -> list:
     return sizes
 
 
+def sizes_parser(prog: str, doc: str, repeats_help: str):
+    """The command line of a bench over plant sizes: ``--sizes --repeats --seed --out`` (add more, then
+    :func:`parse_sized`)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog=prog, description=doc.split("\n")[0])
+    parser.add_argument("--sizes", default="20x20,100x40", help="sizes, e.g. 20x20,100x40 (default)")
+    parser.add_argument("--repeats", type=int, default=3, help=repeats_help)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default=None, help="JSON output path")
+    return parser
+
+
+def positive(parser, flag: str, value) -> None:
+    """``parser.error`` unless ``value`` (of ``flag``) is None or an integer >= 1."""
+    if value is not None and value < 1:
+        parser.error(f"{flag}: expected an integer >= 1, got {value}")
+
+
+def parse_sized(parser, argv):
+    """``(args, sizes)`` of a :func:`sizes_parser` command line, ``--sizes`` parsed and ``--repeats`` checked."""
+    args = parser.parse_args(argv)
+    sizes = parse_sizes(parser, args.sizes)
+    positive(parser, "--repeats", args.repeats)
+    return args, sizes
+
+
 def mc_parser(prog: str, doc: str, runs: int, out: Path):
     """The command line of a Monte-Carlo bench: ``--runs --seed --samples --jobs --alpha --out``."""
     import argparse

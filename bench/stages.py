@@ -40,7 +40,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench import parse_sizes
+from bench import parse_sized, positive, sizes_parser
 
 #: (label, module, attribute): the stages timed.  ``class.method`` attributes are methods.
 STAGES = (
@@ -169,24 +169,16 @@ def run(sizes, repeats: int = 3, seed: int = 0, log=print, jobs: int = 1) -> dic
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.stages", description=__doc__.split("\n")[0])
-    parser.add_argument("--sizes", default="20x20,100x40", help="sizes, e.g. 20x20,100x40 (default)")
-    parser.add_argument("--repeats", type=int, default=3, help="fresh interpreters per size (default 3)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default=None, help="JSON output path")
+    parser = sizes_parser("python -m bench.stages", __doc__, "fresh interpreters per size (default 3)")
     parser.add_argument("--jobs", type=int, default=1,
                         help="processes of the analysis (AnalysisOptions.jobs; default 1: every stage in the process, "
                              "so that each is timed whole; with 2 the stages a child shares show the parent's wall time)")
     parser.add_argument("--child", nargs=2, metavar=("MODEL", "CSV"), help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
+    args, sizes = parse_sized(parser, argv)
     if args.child:
         print(json.dumps(child(*args.child, jobs=args.jobs)))
         return 0
-    sizes = parse_sizes(parser, args.sizes)
-    if args.repeats < 1:
-        parser.error(f"--repeats: expected an integer >= 1, got {args.repeats}")
-    if args.jobs < 1:
-        parser.error(f"--jobs: expected an integer >= 1, got {args.jobs}")
+    positive(parser, "--jobs", args.jobs)
     result = run(sizes, args.repeats, args.seed, jobs=args.jobs)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -39,7 +39,7 @@ import sys
 import time
 from pathlib import Path
 
-from bench import parse_sizes, write_json
+from bench import parse_sized, positive, sizes_parser, write_json
 
 #: Environment variable naming the marks' file in the traced interpreter.
 LOG_VARIABLE = "MPM_TIMELINE_LOG"
@@ -369,20 +369,10 @@ def run(sizes, repeats: int = 3, seed: int = 0, jobs=None, log=print) -> dict:
 
 
 def main(argv=None) -> int:
-    import argparse
-
-    parser = argparse.ArgumentParser(prog="python -m bench.timeline", description=__doc__.split("\n")[0])
-    parser.add_argument("--sizes", default="20x20,100x40", help="sizes, e.g. 20x20,100x40 (default)")
-    parser.add_argument("--repeats", type=int, default=3, help="runs per size (default 3)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser = sizes_parser("python -m bench.timeline", __doc__, "runs per size (default 3)")
     parser.add_argument("--jobs", type=int, default=None, help="the command's --jobs (default: its own default)")
-    parser.add_argument("--out", default=None, help="JSON output path")
-    args = parser.parse_args(argv)
-    sizes = parse_sizes(parser, args.sizes)
-    if args.repeats < 1:
-        parser.error(f"--repeats: expected an integer >= 1, got {args.repeats}")
-    if args.jobs is not None and args.jobs < 1:
-        parser.error(f"--jobs: expected an integer >= 1, got {args.jobs}")
+    args, sizes = parse_sized(parser, argv)
+    positive(parser, "--jobs", args.jobs)
     result = run(sizes, args.repeats, args.seed, args.jobs)
     if args.out:
         write_json(args.out, result)
