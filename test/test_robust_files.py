@@ -425,7 +425,12 @@ def test_damaged_csv_bytes_give_data_or_a_one_line_error(work, raw):
     ("t,r_y1,u1,ü2,y1\n0,1,1,1,1\n0.5,1,1,1,".encode(), r"line 3, column 'y1': expected a number, got ''"),
     ("t,r_y1,u1,ü2,y1\n1e308,1,1,1,1\n-1e308,1,1,1,1\n".encode(), r"line 3: t = -1e\+308 s goes back"),
     ("t,r_y1,u1,ü2,y1\n0,1,1,1,1\n" "0.5,\"1\n2\",1,1,1\n".encode(), r"line 3, column 'r_y1': expected a number"),
-    ("t,r_y1,u1,ü2,y1\n0,1,1,1,1\n0.5,1,1,1," + "9" * 200_000 + "\n", r"line 3: not valid CSV"),
+    ("t,r_y1,u1,ü2,y1\n0,1,1,1,1\n0.5,1,1,1," + "9" * 200_000 + "\n", r"line 3: not valid CSV: a field longer than "
+                                                                     r"131,072 characters: expected numbers$"),
+    # A stray carriage return inside a line (the csv module's own words ask about "universal-newline mode").
+    ("t,r_y1,u1,ü2,y1\n0,1,1,1,1\n0.5,1,1\r,1,1\n1,1,1,1,1\n", r"line 3: not valid CSV: a carriage return \(\\r\) "
+                                                           r"inside the line, outside quotes: expected lines ending in "
+                                                           r"\\n or \\r\\n$"),
     # A stray far-off t: a gap no int64 counts (was a negative "rows lost" and overflow warnings).
     ("t,r_y1,u1,ü2,y1\n0,1,1,1,1\n0.5,1,1,1,1\n1e19,1,1,1,1\n".encode(), r"line 4: t = 1e\+19 s lies 2e\+19 sample "
                                                                          r"times after the first sample"),

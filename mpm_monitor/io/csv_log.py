@@ -448,6 +448,18 @@ def parse_csv_text(text: str, model: PlantModel, source: str = "data", cells=Non
                       extra=extra, unusable=unusable)
 
 
+def _csv_error_text(exc: csv.Error) -> str:
+    """The csv module's error in the terms of a log file: its two that a damaged export gives, said as what
+    was found and what was expected; any other as the module words it."""
+    text = str(exc)
+    if text.startswith("new-line character seen in unquoted field"):
+        return "a carriage return (\\r) inside the line, outside quotes: expected lines ending in \\n or \\r\\n"
+    found = re.match(r"field larger than field limit \((\d+)\)", text)
+    if found:
+        return f"a field longer than {int(found.group(1)):,} characters: expected numbers"
+    return text
+
+
 def _read_header(text: str, needed: list, layout: str, source: str) -> list:
     """The header's names (stripped), once every needed column appears exactly once in it.
 
@@ -461,7 +473,7 @@ def _read_header(text: str, needed: list, layout: str, source: str) -> list:
     except StopIteration:
         raise DataFileError(f"{source}: empty file: expected a header line {','.join(needed)}") from None
     except csv.Error as exc:
-        raise DataFileError(f"{source}: line 1: not valid CSV: {exc}") from None
+        raise DataFileError(f"{source}: line 1: not valid CSV: {_csv_error_text(exc)}") from None
     header = [h.strip() for h in header]
     dup = sorted({h for h in header if header.count(h) > 1 and h})
     for h in dup:
@@ -580,7 +592,7 @@ def _careful_table(text: str, header: list, needed: list, idx: list, other_idx: 
             for column, k in zip(cells, other_idx):
                 column.append(fields[k])
     except csv.Error as exc:
-        raise DataFileError(f"{source}: line {reader.line_num}: not valid CSV: {exc}") from None
+        raise DataFileError(f"{source}: line {reader.line_num}: not valid CSV: {_csv_error_text(exc)}") from None
     if not rows:
         raise DataFileError(f"{source}: no data lines after the header")
     return np.array(rows, dtype=float), lines, cells
