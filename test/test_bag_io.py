@@ -6,6 +6,7 @@ samples, independently of :class:`mpm_monitor.io.bags.BagWriter`.  Every malform
 """
 
 import io
+import struct
 
 import numpy as np
 import pytest
@@ -256,6 +257,34 @@ def test_truncated_mcap(tmp_path):
     with pytest.raises(BagError) as e:
         read_bag(bag, MODEL)
     _check(e, str(bag), "cannot read bag")
+
+
+def test_garbage_record_length(tmp_path):
+    # A record length of 2^50 bytes (a damaged storage file): reading it would ask for a petabyte.
+    r, u, y = _samples(50)
+    bag = write_bag(tmp_path / "bag", r, u, y)
+    mcap = bag / "bag.mcap"
+    data = bytearray(mcap.read_bytes())
+    footer = len(data) - 8 - 29                     # MCAP: footer record (opcode 2, 20 bytes), then the magic
+    assert data[footer] == 0x02
+    (summary_start,) = struct.unpack_from("<Q", data, footer + 9)
+    struct.pack_into("<Q", data, summary_start + 1, 2**50)   # the summary's first record's length
+    mcap.write_bytes(bytes(data))
+    with pytest.raises(BagError) as e:
+        read_bag(bag, MODEL)
+    _check(e, str(bag), "cannot read bag: a record's length runs far past the end of the storage file")
+    assert "MemoryError" not in str(e.value)
+
+
+def test_damaged_metadata_is_named(tmp_path):
+    r, u, y = _samples(5)
+    bag = write_bag(tmp_path / "bag", r, u, y)
+    meta = bag / "metadata.yaml"
+    meta.write_text(meta.read_text().replace("serialization_format", "serialisation_format"))
+    with pytest.raises(BagError) as e:
+        read_bag(bag, MODEL)
+    _check(e, str(bag), "cannot read bag", "serialization_format", "(expected metadata.yaml as rosbag2 writes it)")
+    assert "truncated" not in str(e.value)
 
 
 def test_missing_topic(tmp_path):

@@ -78,8 +78,23 @@ def open_reader(path):
     try:
         reader.open()
     except Exception as exc:  # rosbags raises several unrelated classes for damaged bags
-        raise BagError(f"{path}: cannot read bag: {one_line(exc)} (truncated or not closed properly?)") from None
+        raise BagError(f"{path}: cannot read bag: {_open_failure(exc)}") from None
     return reader
+
+
+def _open_failure(exc: BaseException) -> str:
+    """Why rosbags could not open a bag, with what was expected: its metadata file's fault, a storage
+    file whose record lengths are garbage (reading one asks for more memory than there is), or one
+    truncated or not closed."""
+    text = one_line(exc)
+    if isinstance(exc, MemoryError):
+        return ("a record's length runs far past the end of the storage file: the file is damaged "
+                "(expected a storage file as rosbag2 writes it)")
+    if "database files are missing" in text:
+        return f"{text} (expected the storage file metadata.yaml names, beside it)"
+    if any(w in text for w in ("metadata", "YAML")):
+        return f"{text} (expected metadata.yaml as rosbag2 writes it)"
+    return f"{text} (truncated or not closed properly?)"
 
 
 def topic_connections(reader, path, topic: str, msgtype: str) -> list:
