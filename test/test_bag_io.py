@@ -189,6 +189,34 @@ def test_bag_writer_flush_and_close(tmp_path):
         BagWriter(tmp_path / "copy")
 
 
+def test_bag_writer_gives_every_chunk_its_crc(tmp_path):
+    """rosbags' writer leaves the chunk CRC at 0 (unchecked): a flipped bit in a value reads as a wrong
+    value.  BagWriter's bags carry the CRC, so rosbags' reader (which checks it) refuses the chunk."""
+    r, u, y = _samples(40)
+    raw = read_raw_messages(write_bag(tmp_path / "src", r, u, y), ["setpoint", "input", "output"])
+    w = BagWriter(tmp_path / "copy", fsync=False)
+    for k, m in enumerate(raw):
+        if not w.has_topic(m.topic):
+            w.add_topic(m.topic, m.msgtype)
+        w.write(m.topic, m.log_time, m.data)
+        if k == 60:
+            w.flush()                                  # two chunks: one flushed, one written at close
+    w.close()
+    np.testing.assert_array_equal(read_bag(tmp_path / "copy", MODEL).y, y)   # rosbags checked the CRCs
+    value = struct.pack("<d", y[20, 1])
+    for bag, refused in ((tmp_path / "src", False), (tmp_path / "copy", True)):
+        mcap = bag / f"{bag.name}.mcap"
+        data = mcap.read_bytes()
+        assert data.count(value) == 1
+        mcap.write_bytes(data.replace(value, struct.pack("<d", y[20, 1] + 1.0)))
+        if refused:
+            with pytest.raises(BagError) as e:
+                read_bag(bag, MODEL)
+            _check(e, str(bag), "cannot read bag: Chunk checksum mismatch", "the storage file is damaged")
+        else:
+            assert read_bag(bag, MODEL).y[20, 1] == y[20, 1] + 1.0   # read as it is, without the CRC
+
+
 def test_recover_unclosed_bag(tmp_path):
     """A writer that dies after a flush: the flushed messages come back, a torn tail is dropped."""
     import shutil

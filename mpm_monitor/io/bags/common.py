@@ -82,6 +82,15 @@ def open_reader(path):
     return reader
 
 
+def read_failure(exc: BaseException) -> str:
+    """Why reading the messages of an open bag failed: a chunk whose bytes no longer match its CRC is
+    said so; anything else as rosbags words it."""
+    text = one_line(exc)
+    if "checksum mismatch" in text:
+        return f"{text} (its bytes changed after they were written: the storage file is damaged)"
+    return text
+
+
 def _open_failure(exc: BaseException) -> str:
     """Why rosbags could not open a bag, with what was expected: its metadata file's fault, a storage
     file whose record lengths are garbage (reading one asks for more memory than there is), or one

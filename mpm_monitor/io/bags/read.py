@@ -32,6 +32,7 @@ from .common import (
     JOINT_STATE,
     one_line,
     open_reader,
+    read_failure,
     stamp_ns,
     topic_connections,
     topic_name,
@@ -156,7 +157,7 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
         except BagError:
             raise
         except Exception as exc:  # damaged chunk inside an otherwise valid file
-            raise BagError(f"{path}: cannot read bag: {one_line(exc)}") from None
+            raise BagError(f"{path}: cannot read bag: {read_failure(exc)}") from None
         if bar is not None:
             bar.finish()
     series = {}
@@ -442,6 +443,6 @@ def read_raw_messages(bag, topics: Sequence[str] = DEFAULT_TOPICS, optional: Seq
                 stamp = stamp_ns(header.stamp) if header is not None and hasattr(header, "stamp") else None
                 out.append(RawMessage(conn.topic, conn.msgtype, int(log_time), stamp, raw))
         except Exception as exc:
-            raise BagError(f"{bag}: cannot read bag: {one_line(exc)}") from None
+            raise BagError(f"{bag}: cannot read bag: {read_failure(exc)}") from None
     return out
 

@@ -9,6 +9,8 @@ recorder node wraps it.  :func:`write_logged_data` is the inverse of
 from __future__ import annotations
 
 import os
+import struct
+import zlib
 from pathlib import Path
 from typing import Sequence
 
@@ -27,7 +29,7 @@ class BagWriter:
     CDR bytes received.  :meth:`flush` closes the pending MCAP chunk and writes it to disk, so a
     process that dies later leaves every message up to the last flush in complete chunk records
     on disk; :meth:`close` writes the MCAP summary and ``metadata.yaml`` (without it, readers
-    refuse the bag).
+    refuse the bag) and every chunk's CRC (:func:`write_chunk_crcs`).
 
     Parameters
     ----------
@@ -57,6 +59,7 @@ class BagWriter:
             self._writer.open()
         except Exception as exc:
             raise BagError(f"{self.path}: cannot create bag: {one_line(exc)}") from None
+        self._storage_path = Path(self._writer.storage.path)
         self._connections: dict = {}
         self.message_count = 0
         self.flushed_count = 0
@@ -137,6 +140,59 @@ class BagWriter:
         self.closed = True
         self._writer.close()
         self.flushed_count = self.message_count
+        write_chunk_crcs(self._storage_path, fsync=self._fsync)
+
+
+#: MCAP record opcodes (the MCAP format specification): a chunk, and the end of the data section.
+_CHUNK, _DATA_END = 0x06, 0x0F
+
+
+def write_chunk_crcs(mcap_path, fsync: bool = False) -> int:
+    """Write the CRC-32 of every uncompressed chunk of a closed MCAP file into its chunk record.
+
+    rosbags' writer leaves every chunk's ``uncompressed_crc`` at 0 ("not computed"), so a reader
+    cannot tell a flipped bit inside a message's numbers from the value.  With the CRC in place,
+    rosbags (and every MCAP reader) refuses such a chunk.  Chunks that are compressed are left as
+    they are.
+
+    Parameters
+    ----------
+    mcap_path : str or Path
+        The MCAP storage file, closed (its data section ends with a DataEnd record).
+    fsync : bool
+        Also ask the OS to write the CRCs to the device.
+
+    Returns
+    -------
+    int
+        Chunks given their CRC.
+    """
+    done = 0
+    with open(mcap_path, "r+b") as f:
+        f.seek(8)                                             # the magic
+        while True:
+            head = f.read(9)
+            if len(head) < 9 or head[0] == _DATA_END:
+                break
+            (length,) = struct.unpack_from("<Q", head, 1)
+            start = f.tell()
+            if head[0] == _CHUNK:
+                body = f.read(length)
+                # start time, end time, uncompressed size (u64 each), CRC (u32), compression (string), records
+                (size,) = struct.unpack_from("<Q", body, 16)
+                (n,) = struct.unpack_from("<I", body, 28)
+                compression = body[32:32 + n]
+                (records_len,) = struct.unpack_from("<Q", body, 32 + n)
+                records = body[40 + n:40 + n + records_len]
+                if not compression and len(records) == size:
+                    f.seek(start + 24)
+                    f.write(struct.pack("<I", zlib.crc32(records)))
+                    done += 1
+            f.seek(start + length)
+        if fsync:
+            f.flush()
+            os.fsync(f.fileno())
+    return done
 
 
 def joint_state_cdr(typestore, stamp_ns: int, names: Sequence[str], values) -> bytes:
