@@ -464,3 +464,22 @@ def test_a_topic_whose_stamps_are_all_unset_is_refused(tmp_path):
     with pytest.raises(BagError) as e:
         read_bag(bag, MODEL)
     _check(e, str(bag), "every message has an unset header.stamp (0)", "fill in header.stamp")
+
+
+def test_a_bag_whose_crcs_cannot_be_written_is_still_closed(tmp_path, monkeypatch):
+    from mpm_monitor.io.bags import write as bag_write
+
+    def fail(path, fsync=False):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(bag_write, "write_chunk_crcs", fail)
+    r, u, y = _samples(5)
+    raw = read_raw_messages(write_bag(tmp_path / "src", r, u, y), ["setpoint", "input", "output"])
+    w = BagWriter(tmp_path / "copy", fsync=False)
+    for m in raw:
+        if not w.has_topic(m.topic):
+            w.add_topic(m.topic, m.msgtype)
+        w.write(m.topic, m.log_time, m.data)
+    w.close()
+    assert w.crc_error.endswith("copy.mcap: chunk CRCs not written: [Errno 28] No space left on device")
+    np.testing.assert_array_equal(read_bag(tmp_path / "copy", MODEL).y, y)

@@ -360,6 +360,8 @@ class RecorderNode(Node):
         if self._timer is not None:
             self._timer.cancel()
         self.get_logger().info(f"closed bag {self.options.bag_dir}: {n} messages")
+        if self._writer.crc_error:
+            self.get_logger().warning(self._writer.crc_error)
         return n
 
     def destroy_node(self):

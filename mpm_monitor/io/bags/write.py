@@ -64,6 +64,7 @@ class BagWriter:
         self.message_count = 0
         self.flushed_count = 0
         self.closed = False
+        self.crc_error = None       # why close() could not write the chunks' CRCs (the bag reads without them)
 
     def has_topic(self, topic: str) -> bool:
         """Whether :meth:`add_topic` was called for ``topic``."""
@@ -140,7 +141,10 @@ class BagWriter:
         self.closed = True
         self._writer.close()
         self.flushed_count = self.message_count
-        write_chunk_crcs(self._storage_path, fsync=self._fsync)
+        try:
+            write_chunk_crcs(self._storage_path, fsync=self._fsync)
+        except (OSError, struct.error) as exc:     # the bag is complete without them; say why they are missing
+            self.crc_error = f"{self._storage_path}: chunk CRCs not written: {one_line(exc)}"
 
 
 #: MCAP record opcodes (the MCAP format specification): a chunk, and the end of the data section.
@@ -152,7 +156,7 @@ def write_chunk_crcs(mcap_path, fsync: bool = False) -> int:
 
     rosbags' writer leaves every chunk's ``uncompressed_crc`` at 0 ("not computed"), so a reader
     cannot tell a flipped bit inside a message's numbers from the value.  With the CRC in place,
-    rosbags (and every MCAP reader) refuses such a chunk.  Chunks that are compressed are left as
+    rosbags (and any MCAP reader that checks CRCs) refuses such a chunk.  Chunks that are compressed are left as
     they are.
 
     Parameters
