@@ -4,29 +4,21 @@ from __future__ import annotations
 
 import struct
 from pathlib import Path
-from typing import Iterator
 
 from ...core.errors import BagError
+from .mcap_records import (
+    CHANNEL,
+    CHUNK,
+    DATA_END,
+    FOOTER,
+    MAGIC,
+    MESSAGE,
+    SCHEMA,
+    chunk_parts,
+    mcap_records,
+    mcap_string,
+)
 from .write import BagWriter
-
-_MCAP_MAGIC = b"\x89MCAP0\r\n"
-
-
-def _mcap_string(buf: bytes, pos: int) -> tuple:
-    (n,) = struct.unpack_from("<I", buf, pos)
-    return buf[pos + 4:pos + 4 + n], pos + 4 + n
-
-
-def _mcap_records(buf: bytes, pos: int, end: int) -> Iterator[tuple]:
-    """``(opcode, body)`` of the complete records in ``buf[pos:end]``; stops at a torn record."""
-    while pos + 9 <= end:
-        op = buf[pos]
-        (size,) = struct.unpack_from("<Q", buf, pos + 1)
-        body_end = pos + 9 + size
-        if body_end > end:
-            return
-        yield op, buf[pos + 9:body_end]
-        pos = body_end
 
 
 def recover_bag(src, dst) -> int:
@@ -61,36 +53,33 @@ def recover_bag(src, dst) -> int:
     if not files:
         raise BagError(f"{src}: no .mcap file to recover")
     buf = files[0].read_bytes()
-    if buf[:8] != _MCAP_MAGIC:
+    if buf[:len(MAGIC)] != MAGIC:
         raise BagError(f"{files[0]}: not an MCAP file (bad magic)")
     schemas, channels, messages = {}, {}, []
 
     def take(op, body):
-        if op == 0x03:
+        if op == SCHEMA:
             (sid,) = struct.unpack_from("<H", body, 0)
-            name, _ = _mcap_string(body, 2)
+            name, _ = mcap_string(body, 2)
             schemas[sid] = name.decode()
-        elif op == 0x04:
+        elif op == CHANNEL:
             cid, sid = struct.unpack_from("<HH", body, 0)
-            topic, pos = _mcap_string(body, 4)
-            _, pos = _mcap_string(body, pos)  # message encoding
-            metadata, _ = _mcap_string(body, pos)
+            topic, pos = mcap_string(body, 4)
+            _, pos = mcap_string(body, pos)  # message encoding
+            metadata, _ = mcap_string(body, pos)
             channels[cid] = (topic.decode(), schemas.get(sid, ""), get_qos(metadata))
-        elif op == 0x05:
+        elif op == MESSAGE:
             cid, _, log_time, _ = struct.unpack_from("<HIQQ", body, 0)
             messages.append((cid, log_time, body[22:]))
 
-    for op, body in _mcap_records(buf, 8, len(buf)):
-        if op == 0x06:
-            pos = 28
-            compression, pos = _mcap_string(body, pos)
+    for op, _, body in mcap_records(buf, len(MAGIC), len(buf)):
+        if op == CHUNK:
+            compression, _, inner = chunk_parts(body)
             if compression:
                 raise BagError(f"{files[0]}: compressed chunks ({compression.decode()}) cannot be recovered")
-            (size,) = struct.unpack_from("<Q", body, pos)
-            inner = body[pos + 8:pos + 8 + size]
-            for op2, body2 in _mcap_records(inner, 0, len(inner)):
+            for op2, _, body2 in mcap_records(inner, 0, len(inner)):
                 take(op2, body2)
-        elif op in (0x0F, 0x02):  # data end, footer: the file was closed after all
+        elif op in (DATA_END, FOOTER):  # the file was closed after all
             break
         else:
             take(op, body)

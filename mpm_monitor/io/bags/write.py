@@ -8,6 +8,7 @@ recorder node wraps it.  :func:`write_logged_data` is the inverse of
 
 from __future__ import annotations
 
+import mmap
 import os
 import struct
 import zlib
@@ -20,6 +21,7 @@ from ...core.errors import BagError
 from ...core.logged_data import LoggedData
 from ..qos import VECTOR_QOS, rosbags_qos
 from .common import DEFAULT_DISTURBANCE_TOPIC, DEFAULT_TOPICS, JOINT_STATE, default_typestore, one_line, topic_name
+from .mcap_records import CHUNK, CHUNK_CRC_OFFSET, DATA_END, MAGIC, chunk_parts, mcap_records
 
 
 class BagWriter:
@@ -147,17 +149,13 @@ class BagWriter:
             self.crc_error = f"{self._storage_path}: chunk CRCs not written: {one_line(exc)}"
 
 
-#: MCAP record opcodes (the MCAP format specification): a chunk, and the end of the data section.
-_CHUNK, _DATA_END = 0x06, 0x0F
-
-
 def write_chunk_crcs(mcap_path, fsync: bool = False) -> int:
     """Write the CRC-32 of every uncompressed chunk of a closed MCAP file into its chunk record.
 
     rosbags' writer leaves every chunk's ``uncompressed_crc`` at 0 ("not computed"), so a reader
     cannot tell a flipped bit inside a message's numbers from the value.  With the CRC in place,
-    rosbags (and any MCAP reader that checks CRCs) refuses such a chunk.  Chunks that are compressed are left as
-    they are.
+    rosbags (and any MCAP reader that checks CRCs) refuses such a chunk.  Chunks that are compressed
+    are left as they are.  The file is mapped, not read into memory.
 
     Parameters
     ----------
@@ -173,28 +171,19 @@ def write_chunk_crcs(mcap_path, fsync: bool = False) -> int:
     """
     done = 0
     with open(mcap_path, "r+b") as f:
-        f.seek(8)                                             # the magic
-        while True:
-            head = f.read(9)
-            if len(head) < 9 or head[0] == _DATA_END:
-                break
-            (length,) = struct.unpack_from("<Q", head, 1)
-            start = f.tell()
-            if head[0] == _CHUNK:
-                body = f.read(length)
-                # start time, end time, uncompressed size (u64 each), CRC (u32), compression (string), records
-                (size,) = struct.unpack_from("<Q", body, 16)
-                (n,) = struct.unpack_from("<I", body, 28)
-                compression = body[32:32 + n]
-                (records_len,) = struct.unpack_from("<Q", body, 32 + n)
-                records = body[40 + n:40 + n + records_len]
-                if not compression and len(records) == size:
-                    f.seek(start + 24)
-                    f.write(struct.pack("<I", zlib.crc32(records)))
-                    done += 1
-            f.seek(start + length)
+        if os.fstat(f.fileno()).st_size == 0:             # mmap refuses an empty file: no chunk in it
+            return 0
+        with mmap.mmap(f.fileno(), 0) as buf:
+            for op, start, body in mcap_records(buf, len(MAGIC), len(buf)):
+                if op == DATA_END:
+                    break
+                if op == CHUNK:
+                    compression, size, records = chunk_parts(body)
+                    if not compression and len(records) == size:
+                        struct.pack_into("<I", buf, start + CHUNK_CRC_OFFSET, zlib.crc32(records))
+                        done += 1
+            buf.flush()
         if fsync:
-            f.flush()
             os.fsync(f.fileno())
     return done
 
