@@ -591,7 +591,7 @@ class _RowProblem:
         k = nl + npf
         block = s2 * np.linalg.pinv(js.T @ js, rcond=1e-13, hermitian=True)[:k, :k] / np.outer(scale[:k], scale[:k])
         np.fill_diagonal(block, np.maximum(np.diag(block), 0.0))
-        return block, self._condition(js[:, :nl + npf])
+        return block, self._condition(js[:, :k])
 
     def condition(self, fit: _Fit) -> float:
         """The ``cond`` of :meth:`covariance` alone, from the Jacobian columns of the free coefficients
