@@ -315,6 +315,16 @@ def test_damaged_metadata_is_named(tmp_path):
     assert "truncated" not in str(e.value)
 
 
+def test_missing_storage_file_is_named(tmp_path):
+    r, u, y = _samples(5)
+    bag = write_bag(tmp_path / "bag", r, u, y)
+    (bag / "bag.mcap").unlink()
+    with pytest.raises(BagError) as e:
+        read_bag(bag, MODEL)
+    _check(e, str(bag), "cannot read bag", "bag.mcap", "(expected the storage file metadata.yaml names, beside it)")
+    assert "truncated" not in str(e.value)
+
+
 def test_missing_topic(tmp_path):
     r, u, y = _samples(5)
     bag = write_bag(tmp_path / "bag", r, u, y, drop_topics=("input",))
