@@ -304,24 +304,22 @@ def test_garbage_record_length(tmp_path):
     assert "MemoryError" not in str(e.value)
 
 
-def test_damaged_metadata_is_named(tmp_path):
-    r, u, y = _samples(5)
-    bag = write_bag(tmp_path / "bag", r, u, y)
+def _rename_metadata_key(bag):
     meta = bag / "metadata.yaml"
     meta.write_text(meta.read_text().replace("serialization_format", "serialisation_format"))
-    with pytest.raises(BagError) as e:
-        read_bag(bag, MODEL)
-    _check(e, str(bag), "cannot read bag", "serialization_format", "(expected metadata.yaml as rosbag2 writes it)")
-    assert "truncated" not in str(e.value)
 
 
-def test_missing_storage_file_is_named(tmp_path):
+@pytest.mark.parametrize("damage, words", [
+    (_rename_metadata_key, ("serialization_format", "(expected metadata.yaml as rosbag2 writes it)")),
+    (lambda bag: (bag / "bag.mcap").unlink(), ("bag.mcap", "(expected the storage file metadata.yaml names, beside it)")),
+], ids=["metadata key", "storage file"])
+def test_what_is_missing_is_named_without_the_truncation_hint(tmp_path, damage, words):
     r, u, y = _samples(5)
     bag = write_bag(tmp_path / "bag", r, u, y)
-    (bag / "bag.mcap").unlink()
+    damage(bag)
     with pytest.raises(BagError) as e:
         read_bag(bag, MODEL)
-    _check(e, str(bag), "cannot read bag", "bag.mcap", "(expected the storage file metadata.yaml names, beside it)")
+    _check(e, str(bag), "cannot read bag", *words)
     assert "truncated" not in str(e.value)
 
 
