@@ -140,17 +140,22 @@ def test_progress_bar_on_long_bags(tmp_path, monkeypatch):
     assert "100%" in stream.getvalue() and "900/900 messages" in stream.getvalue()
 
 
-def test_read_diagnostics_in_order(tmp_path):
+def _diagnostic_arrays(n: int) -> list:
+    """``n`` (log time, DiagnosticArray) of two row statuses each."""
     status_t = TS.types["diagnostic_msgs/msg/DiagnosticStatus"]
     kv_t = TS.types["diagnostic_msgs/msg/KeyValue"]
     arr_t = TS.types["diagnostic_msgs/msg/DiagnosticArray"]
     arrays = []
-    for k in range(3):
+    for k in range(n):
         st = [status_t(level=k % 2, name=f"mpm_monitor: row y{i}", message="m", hardware_id="h",
                        values=[kv_t(key="rsi", value=f"{k + i}")]) for i in (1, 2)]
         arrays.append((int(T0 * 1e9) + k, arr_t(header=HEADER(stamp=TIME(sec=k, nanosec=0), frame_id=""), status=st)))
+    return arrays
+
+
+def test_read_diagnostics_in_order(tmp_path):
     r, u, y = _samples(3)
-    bag = write_bag(tmp_path / "bag", r, u, y, diagnostics=arrays)
+    bag = write_bag(tmp_path / "bag", r, u, y, diagnostics=_diagnostic_arrays(3))
     got = read_diagnostics(bag)
     assert [(s.stamp, s.name, s.level, s.values["rsi"]) for s in got] == [
         (float(k), f"mpm_monitor: row y{i}", k % 2, f"{k + i}") for k in range(3) for i in (1, 2)]
@@ -302,6 +307,71 @@ def test_garbage_record_length(tmp_path):
         read_bag(bag, MODEL)
     _check(e, str(bag), "cannot read bag: a record's length runs far past the end of the storage file")
     assert "MemoryError" not in str(e.value)
+
+
+def _first_message_length_offset(mcap) -> int:
+    """Offset of the length field of the first message record inside the first chunk of ``mcap``."""
+    from mpm_monitor.io.bags.mcap_records import CHUNK, MAGIC, MESSAGE, mcap_records, mcap_string
+
+    data = mcap.read_bytes()
+    for op, start, body in mcap_records(data, len(MAGIC), len(data)):
+        if op == CHUNK:
+            compression, pos = mcap_string(body, 28)
+            assert compression == b""
+            (size,) = struct.unpack_from("<Q", body, pos)
+            first = start + pos + 8
+            for op2, start2, _ in mcap_records(data, first, first + size):
+                if op2 == MESSAGE:
+                    return start2 - 8
+    raise AssertionError("no message record in a chunk")
+
+
+@pytest.mark.parametrize("length, words", [
+    (10**6, ("Truncated record", "(a length field does not match the bytes after it: the storage file is damaged)")),
+    (2**64 - 1, ("a record's length runs far past the end of its chunk: the storage file is damaged",)),
+], ids=["past the chunk", "past an index"])
+@pytest.mark.parametrize("with_model", [True, False], ids=["model", "no model"])
+def test_garbage_length_inside_a_chunk(tmp_path, length, words, with_model):
+    """A message's length field damaged inside a chunk without CRC (rosbags' writer): the bag opens, and
+    reading its messages fails with one line, with or without a model (``export`` reads the channel
+    names from the first messages first)."""
+    r, u, y = _samples(20)
+    bag = write_bag(tmp_path / "bag", r, u, y)
+    mcap = bag / "bag.mcap"
+    data = bytearray(mcap.read_bytes())
+    struct.pack_into("<Q", data, _first_message_length_offset(mcap), length)
+    mcap.write_bytes(bytes(data))
+    with pytest.raises(BagError) as e:
+        read_bag(bag, MODEL) if with_model else read_bag_channels(bag)
+    _check(e, str(bag), "cannot read bag: ", *words)
+    assert "Error" not in str(e.value) and "cannot fit" not in str(e.value)
+
+
+@pytest.mark.parametrize("topic, read, counted", [
+    ("/input", lambda bag: read_bag(bag, MODEL), 5),
+    ("/input", read_bag_channels, 5),
+    ("/diagnostics", read_diagnostics, 3),
+], ids=["model", "no model", "diagnostics"])
+def test_metadata_that_no_longer_matches_the_storage_file(tmp_path, topic, read, counted):
+    """rosbags matches each topic of metadata.yaml to the storage file's channel (QoS profiles
+    included): an edited profile leaves the topic counted in the metadata but with no message read."""
+    import yaml
+
+    r, u, y = _samples(5)
+    bag = write_bag(tmp_path / "bag", r, u, y, diagnostics=_diagnostic_arrays(3))
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())
+    topics = meta["rosbag2_bagfile_information"]["topics_with_message_count"]
+    (entry,) = [t for t in topics if t["topic_metadata"]["name"] == topic]
+    forever = {"sec": 9223372036, "nsec": 854775807}
+    entry["topic_metadata"]["offered_qos_profiles"] = [{
+        "history": "keep_last", "depth": 10, "reliability": "reliable", "durability": "volatile",
+        "deadline": forever, "lifespan": forever, "liveliness": "automatic",
+        "liveliness_lease_duration": forever, "avoid_ros_namespace_conventions": False}]
+    (bag / "metadata.yaml").write_text(yaml.safe_dump(meta))
+    with pytest.raises(BagError) as e:
+        read(bag)
+    _check(e, str(bag), f"topic '{topic}': metadata.yaml counts {counted} messages but none could be read from the "
+                        f"storage file: expected metadata.yaml as rosbag2 wrote it for this storage file")
 
 
 def _rename_metadata_key(bag):

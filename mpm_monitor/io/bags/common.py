@@ -82,12 +82,24 @@ def open_reader(path):
     return reader
 
 
+#: What rosbags says of a record or chunk whose length field does not match the bytes that follow it.
+_RECORD_OVERRUN = ("Truncated record", "size mismatch")
+
+
 def read_failure(exc: BaseException) -> str:
-    """Why reading the messages of an open bag failed: a chunk whose bytes no longer match its CRC is
-    said so; anything else as rosbags words it."""
+    """Why reading the messages of an open bag failed, with what was expected: a chunk whose bytes no
+    longer match its CRC, or a length field that does not match the bytes after it (a length so large
+    that reading it asks for more memory than there is, or for more bytes than an index holds, is said
+    in those terms, not as Python's ``MemoryError`` or ``OverflowError``); anything else as rosbags
+    words it."""
     text = one_line(exc)
     if "checksum mismatch" in text:
         return f"{text} (its bytes changed after they were written: the storage file is damaged)"
+    if isinstance(exc, (MemoryError, OverflowError)):
+        return ("a record's length runs far past the end of its chunk: the storage file is damaged "
+                "(expected a storage file as rosbag2 writes it)")
+    if any(w in text for w in _RECORD_OVERRUN):
+        return f"{text} (a length field does not match the bytes after it: the storage file is damaged)"
     return text
 
 
@@ -104,6 +116,16 @@ def _open_failure(exc: BaseException) -> str:
     if any(w in text for w in ("metadata", "YAML")):
         return f"{text} (expected metadata.yaml as rosbag2 writes it)"
     return f"{text} (truncated or not closed properly?)"
+
+
+def none_read(path, topic: str, conns: list) -> BagError:
+    """The error of a topic that ``metadata.yaml`` counts messages on but whose reading gave none: the
+    metadata no longer describes the storage file (rosbags matches each topic's connection in the
+    metadata to the storage file's channel, QoS profiles included)."""
+    counted = sum(c.msgcount for c in conns)
+    return BagError(f"{path}: topic '{topic}': metadata.yaml counts {counted} message{'s' if counted != 1 else ''} "
+                    f"but none could be read from the storage file: expected metadata.yaml as rosbag2 wrote it "
+                    f"for this storage file (was it edited, or taken from another bag?)")
 
 
 def topic_connections(reader, path, topic: str, msgtype: str) -> list:

@@ -30,6 +30,7 @@ from .common import (
     DEFAULT_DISTURBANCE_TOPIC,
     DEFAULT_TOPICS,
     JOINT_STATE,
+    none_read,
     one_line,
     open_reader,
     read_failure,
@@ -162,6 +163,8 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
             bar.finish()
     series = {}
     for t, role in role_of.items():
+        if not stamps[t]:
+            raise none_read(path, t, [c for c in conns if c.topic == t])
         st = np.array(stamps[t], dtype=np.int64)
         vals = np.array(rows[t], dtype=float).reshape(len(st), len(expected[role]))
         order = np.argsort(st, kind="stable")
@@ -174,17 +177,22 @@ def _first_names(reader, path, topics) -> dict:
     names = {}
     for role, topic in list(zip(_ROLES, topics))[1:]:
         conns = [c for c in reader.connections if c.topic == topic]
-        for conn, _, raw in reader.messages(connections=conns):
-            try:
-                names[role] = tuple(reader.deserialize(raw, conn.msgtype).name)
-            except Exception as exc:
-                raise BagError(f"{path}: topic '{topic}': message 1 cannot be decoded as {JOINT_STATE}: "
-                               f"{one_line(exc)}") from None
-            if not names[role]:
-                raise BagError(f"{path}: topic '{topic}': message 1 names no channel (an empty JointState name "
-                               f"list); without a model the {_WHAT[role]} are named by the first message: give "
-                               f"the model (--model) or record the channel names")
-            break
+        try:
+            first = next(iter(reader.messages(connections=conns)), None)
+        except Exception as exc:  # damaged chunk inside an otherwise valid file
+            raise BagError(f"{path}: cannot read bag: {read_failure(exc)}") from None
+        if first is None:
+            raise none_read(path, topic, conns)
+        conn, _, raw = first
+        try:
+            names[role] = tuple(reader.deserialize(raw, conn.msgtype).name)
+        except Exception as exc:
+            raise BagError(f"{path}: topic '{topic}': message 1 cannot be decoded as {JOINT_STATE}: "
+                           f"{one_line(exc)}") from None
+        if not names[role]:
+            raise BagError(f"{path}: topic '{topic}': message 1 names no channel (an empty JointState name "
+                           f"list); without a model the {_WHAT[role]} are named by the first message: give "
+                           f"the model (--model) or record the channel names")
     names["setpoint"] = names["output"]
     return names
 

@@ -11,7 +11,7 @@ from contextlib import closing
 from typing import Sequence
 
 from ...core.errors import BagError
-from .common import DIAGNOSTIC_ARRAY, one_line, open_reader, stamp_ns, topic_connections, topic_name
+from .common import DIAGNOSTIC_ARRAY, none_read, open_reader, read_failure, stamp_ns, topic_connections, topic_name
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,11 +53,12 @@ def read_diagnostics(bag, topic: str = "/diagnostics") -> list:
     list of RecordedStatus
     """
     topic = topic_name(topic)
-    out = []
+    out, read = [], 0
     with closing(open_reader(bag)) as reader:
         conns = topic_connections(reader, bag, topic, DIAGNOSTIC_ARRAY)
         try:
             for conn, log_time, raw in reader.messages(connections=conns):
+                read += 1
                 msg = reader.deserialize(raw, conn.msgtype)
                 stamp = stamp_ns(msg.header.stamp) / 1e9
                 for st in msg.status:
@@ -67,7 +68,9 @@ def read_diagnostics(bag, topic: str = "/diagnostics") -> list:
                                               message=st.message, hardware_id=st.hardware_id,
                                               values={kv.key: kv.value for kv in st.values}))
         except Exception as exc:
-            raise BagError(f"{bag}: topic '{topic}': cannot read: {one_line(exc)}") from None
+            raise BagError(f"{bag}: topic '{topic}': cannot read: {read_failure(exc)}") from None
+    if not read:
+        raise none_read(bag, topic, conns)
     return out
 
 
