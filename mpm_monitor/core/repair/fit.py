@@ -559,6 +559,14 @@ class _RowProblem:
         return r0, jac
 
     @staticmethod
+    def _unit_columns(jac: np.ndarray) -> tuple:
+        """``(jac / scale, scale)``: the Jacobian ``jac`` (shape (n, k)) with each column divided by its
+        norm (``scale``, shape (k,); a zero column's taken as 1)."""
+        scale = np.sqrt(np.sum(jac ** 2, axis=0))
+        scale[scale == 0] = 1.0
+        return jac / scale, scale
+
+    @staticmethod
     def _condition(js: np.ndarray) -> float:
         """Condition number of the column-scaled Jacobian block ``js`` of the free coefficients and poles."""
         if not js.shape[1]:
@@ -583,9 +591,7 @@ class _RowProblem:
         r0, jac = self._jacobian(fit, n_theta)
         dof = max(r0.shape[0] - n_theta, 1)
         s2 = float(r0 @ r0) / dof
-        scale = np.sqrt(np.sum(jac ** 2, axis=0))
-        scale[scale == 0] = 1.0
-        js = jac / scale
+        js, scale = self._unit_columns(jac)
         # Only the free coefficients' and poles' block is unscaled: a nuisance column of negligible norm
         # (1e-156 next to 1e2, a step too small to move it) would overflow its own variance, unused.
         k = nl + npf
@@ -600,9 +606,7 @@ class _RowProblem:
         if not k:
             return 1.0
         _, jac = self._jacobian(fit, k)
-        scale = np.sqrt(np.sum(jac ** 2, axis=0))
-        scale[scale == 0] = 1.0
-        return self._condition(jac / scale)
+        return self._condition(self._unit_columns(jac)[0])
 
     def variances(self, cov, fit: _Fit, m: int):
         """Variances of the gain, the lead and each pole of element ``m`` (0 for held parameters).
