@@ -393,6 +393,31 @@ def test_what_is_missing_is_named_without_the_truncation_hint(tmp_path, damage, 
     assert "truncated" not in str(e.value)
 
 
+def test_a_type_hash_edited_in_the_metadata_is_named_without_the_truncation_hint(tmp_path):
+    """A bag that stores its message definitions (BagWriter's): rosbags checks the type hash the metadata
+    records (the last topic's of each type) against the definition's, and a hash edited in metadata.yaml
+    is said to disagree with it."""
+    r, u, y = _samples(5)
+    raw = read_raw_messages(write_bag(tmp_path / "src", r, u, y), ["setpoint", "input", "output"])
+    w = BagWriter(tmp_path / "bag", fsync=False)
+    for m in raw:
+        if not w.has_topic(m.topic):
+            w.add_topic(m.topic, m.msgtype)
+        w.write(m.topic, m.log_time, m.data)
+    w.close()
+    meta = tmp_path / "bag" / "metadata.yaml"
+    text = meta.read_text()
+    assert text.count("RIHS01_a13ee3a330e346c9") == 3
+    head, tail = text.rsplit("RIHS01_a13ee3a330e346c9", 1)      # the last topic's: rosbags checks that one
+    meta.write_text(head + "RIHS01_a13ee3a330e346c8" + tail)
+    with pytest.raises(BagError) as e:
+        read_bag(tmp_path / "bag", MODEL)
+    _check(e, str(tmp_path / "bag"), "cannot read bag: Message type 'sensor_msgs/msg/JointState' hash mismatch",
+           "(the message definition stored in the bag and the type hash recorded for it disagree: expected "
+           "metadata.yaml and the storage file as rosbag2 wrote them)")
+    assert "truncated" not in str(e.value)
+
+
 def test_missing_topic(tmp_path):
     r, u, y = _samples(5)
     bag = write_bag(tmp_path / "bag", r, u, y, drop_topics=("input",))

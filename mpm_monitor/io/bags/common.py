@@ -104,13 +104,16 @@ def read_failure(exc: BaseException) -> str:
 
 
 def _open_failure(exc: BaseException) -> str:
-    """Why rosbags could not open a bag, with what was expected: its metadata file's fault, a storage
-    file whose record lengths are garbage (reading one asks for more memory than there is), or one
-    truncated or not closed."""
+    """Why rosbags could not open a bag, with what was expected: its metadata file's fault, a type hash
+    that the stored message definition does not give, a storage file whose record lengths are garbage
+    (reading one asks for more memory than there is), or one truncated or not closed."""
     text = one_line(exc)
     if isinstance(exc, MemoryError):
         return ("a record's length runs far past the end of the storage file: the file is damaged "
                 "(expected a storage file as rosbag2 writes it)")
+    if "hash mismatch" in text:
+        return (f"{text} (the message definition stored in the bag and the type hash recorded for it "
+                f"disagree: expected metadata.yaml and the storage file as rosbag2 wrote them)")
     if "database files are missing" in text:
         return f"{text} (expected the storage file metadata.yaml names, beside it)"
     if any(w in text for w in ("metadata", "YAML")):
