@@ -430,6 +430,12 @@ def read_raw_messages(bag, topics: Sequence[str] = DEFAULT_TOPICS, optional: Seq
     Returns
     -------
     list of RawMessage
+
+    Raises
+    ------
+    BagError
+        A topic missing, a damaged storage file, or a topic that ``metadata.yaml`` counts messages on
+        but none of whose messages can be read (:func:`~mpm_monitor.io.bags.common.none_read`).
     """
     out = []
     with closing(open_reader(bag)) as reader:
@@ -452,5 +458,10 @@ def read_raw_messages(bag, topics: Sequence[str] = DEFAULT_TOPICS, optional: Seq
                 out.append(RawMessage(conn.topic, conn.msgtype, int(log_time), stamp, raw))
         except Exception as exc:
             raise BagError(f"{bag}: cannot read bag: {read_failure(exc)}") from None
+    read = {m.topic for m in out}
+    for t in dict.fromkeys(c.topic for c in conns):
+        counted = [c for c in conns if c.topic == t]
+        if t not in read and sum(c.msgcount for c in counted):
+            raise none_read(bag, t, counted)
     return out
 
