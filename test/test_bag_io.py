@@ -252,6 +252,87 @@ def test_recover_unclosed_bag(tmp_path):
     assert meta["topics_with_message_count"][0]["topic_metadata"]["offered_qos_profiles"][0]["depth"] == 1000
 
 
+def _records_of(data: bytes):
+    """``(opcode, body start, body)`` of every record of an MCAP file, those inside uncompressed chunks
+    too (their body start counted in the file)."""
+    from mpm_monitor.io.bags.mcap_records import CHUNK, MAGIC, mcap_records, mcap_string
+
+    for op, start, body in mcap_records(data, len(MAGIC), len(data)):
+        yield op, start, body
+        if op == CHUNK:
+            _, pos = mcap_string(body, 28)
+            (size,) = struct.unpack_from("<Q", body, pos)
+            first = start + pos + 8
+            yield from mcap_records(data, first, first + size)
+
+
+def test_recover_leaves_out_a_chunk_whose_crc_does_not_match(tmp_path):
+    """A killed recording whose storage file was also damaged: the chunk whose bytes no longer match its
+    CRC is left out, said in one warning, and the other chunk's messages come back."""
+    import shutil
+
+    r, u, y = _samples(40)
+    raw = read_raw_messages(write_bag(tmp_path / "src", r, u, y), ["setpoint", "input", "output"])
+    w = BagWriter(tmp_path / "live", fsync=False)
+    for k, m in enumerate(raw):
+        if not w.has_topic(m.topic):
+            w.add_topic(m.topic, m.msgtype)
+        w.write(m.topic, m.log_time, m.data)
+        if k == 59:
+            w.flush()                                 # chunk 1: samples 0 to 19; chunk 2: 20 to 39
+    w.close()                                         # the chunks get their CRCs
+    (tmp_path / "dead").mkdir()
+    mcap = tmp_path / "dead" / "dead.mcap"
+    shutil.copy(tmp_path / "live" / "live.mcap", mcap)   # no metadata.yaml, as after a kill
+    value = struct.pack("<d", y[30, 1])
+    data = mcap.read_bytes()
+    assert data.count(value) == 1
+    mcap.write_bytes(data.replace(value, struct.pack("<d", y[30, 1] + 1.0)))
+    notes = []
+    assert bag_io.recover_bag(tmp_path / "dead", tmp_path / "back", warn=notes.append) == 60
+    assert notes == [f"{mcap}: the storage file is damaged: left out 1 chunk whose bytes do not match its CRC or "
+                     f"length"]
+    back = read_raw_messages(tmp_path / "back", ["setpoint", "input", "output"])
+    assert [(m.topic, m.log_time, m.data) for m in back] == [(m.topic, m.log_time, m.data) for m in raw[:60]]
+
+
+def test_recover_leaves_out_the_messages_of_a_damaged_channel_record(tmp_path):
+    """A channel record whose bytes were changed (no CRC: rosbags' writer) cannot be parsed: its messages
+    have no topic or type and are left out, said in one warning; the other topics' come back."""
+    from mpm_monitor.io.bags.mcap_records import CHANNEL, mcap_string
+
+    r, u, y = _samples(10)
+    bag = write_bag(tmp_path / "src", r, u, y)
+    raw = read_raw_messages(bag, ["setpoint", "input", "output"])
+    data = bytearray((bag / "src.mcap").read_bytes())
+    start = next(st for op, st, body in _records_of(bytes(data))     # the data section's, not the summary's
+                 if op == CHANNEL and mcap_string(body, 4)[0] == b"/input")
+    struct.pack_into("<I", data, start + 4, 2**32 - 1)       # the topic name's length
+    (tmp_path / "dead").mkdir()
+    (tmp_path / "dead" / "dead.mcap").write_bytes(bytes(data))
+    notes = []
+    assert bag_io.recover_bag(tmp_path / "dead", tmp_path / "back", warn=notes.append) == 20
+    assert notes == [f"{tmp_path / 'dead' / 'dead.mcap'}: the storage file is damaged: left out 1 record that cannot "
+                     f"be parsed, 10 messages of a channel with no readable channel or schema record"]
+    back = read_raw_messages(tmp_path / "back", ["setpoint", "output"])
+    assert [(m.topic, m.data) for m in back] == [(m.topic, m.data) for m in raw if m.topic != "/input"]
+
+
+def test_recover_with_no_complete_message_creates_nothing(tmp_path, capsys):
+    """A recording killed before its first chunk reached the disk: one line, and no empty bag."""
+    from mpm_monitor.io.bags.mcap_records import MAGIC
+
+    (tmp_path / "dead").mkdir()
+    (tmp_path / "dead" / "dead.mcap").write_bytes(MAGIC + b"\x06" + (10**6).to_bytes(8, "little") + b"torn")
+    with pytest.raises(BagError) as e:
+        bag_io.recover_bag(tmp_path / "dead", tmp_path / "back")
+    _check(e, "dead.mcap: no complete message to recover (expected at least one complete chunk of messages")
+    assert not (tmp_path / "back").exists()
+    assert cli_main(["recover", "--bag", str(tmp_path / "dead"), "--out", str(tmp_path / "back")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "no complete message to recover" in err and "\n" not in err
+
+
 # --- malformed bags: one line, naming the bag and the topic ------------------------------------------
 
 

@@ -185,7 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _cmd_recover(args) -> int:
     from ..io.bags import recover_bag
 
-    n = recover_bag(args.bag, args.out)
+    n = recover_bag(args.bag, args.out, warn=lambda note: print(f"warning: {note}", file=sys.stderr))
     print(f"recovered {n} messages into {args.out}")
     return 0
 

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import struct
+import zlib
 from pathlib import Path
 
 from ...core.errors import BagError
 from .mcap_records import (
     CHANNEL,
     CHUNK,
+    CHUNK_CRC_OFFSET,
     DATA_END,
     FOOTER,
     MAGIC,
@@ -21,7 +23,11 @@ from .mcap_records import (
 from .write import BagWriter
 
 
-def recover_bag(src, dst) -> int:
+#: A chunk's ``uncompressed_crc`` of 0 means "not computed" (rosbags' writer; BagWriter before it closes).
+NO_CRC = 0
+
+
+def recover_bag(src, dst, warn=None) -> int:
     """Rewrite what a hard-killed recorder left on disk as a new, properly closed bag.
 
     A recorder killed by SIGKILL or a power loss leaves an MCAP file without summary or footer and
@@ -29,12 +35,21 @@ def recover_bag(src, dst) -> int:
     chunk records (a torn last record is dropped) and writes their messages, in order and with the
     recorded QoS profiles, to ``dst``.
 
+    A storage file damaged besides (bytes changed on disk) keeps what can still be trusted: a chunk
+    whose CRC (when the writer computed one) does not match its bytes is left out, and so is a schema
+    or channel record that cannot be parsed, a message record too short to hold its header, and the
+    messages of a channel with no readable channel record or no schema (their type is unknown).  What
+    was left out is said through ``warn``, one line; a message whose own bytes were changed is
+    recovered as it is, and the reader that decodes it names it.
+
     Parameters
     ----------
     src : str or Path
         The unclosed bag directory.
     dst : str or Path
         New bag directory (must not exist).
+    warn : callable, optional
+        Called with one line when records were left out as damaged.
 
     Returns
     -------
@@ -44,10 +59,9 @@ def recover_bag(src, dst) -> int:
     Raises
     ------
     BagError
-        No MCAP file, not an MCAP file, or compressed chunks.
+        No MCAP file, not an MCAP file, compressed chunks, or no message left to recover (``dst`` is
+        then not created).
     """
-    from rosbags.rosbag2.storage_mcap import get_qos
-
     src = Path(src)
     files = sorted(src.glob("*.mcap")) if src.is_dir() else []
     if not files:
@@ -55,41 +69,99 @@ def recover_bag(src, dst) -> int:
     buf = files[0].read_bytes()
     if buf[:len(MAGIC)] != MAGIC:
         raise BagError(f"{files[0]}: not an MCAP file (bad magic)")
-    schemas, channels, messages = {}, {}, []
-
-    def take(op, body):
-        if op == SCHEMA:
-            (sid,) = struct.unpack_from("<H", body, 0)
-            name, _ = mcap_string(body, 2)
-            schemas[sid] = name.decode()
-        elif op == CHANNEL:
-            cid, sid = struct.unpack_from("<HH", body, 0)
-            topic, pos = mcap_string(body, 4)
-            _, pos = mcap_string(body, pos)  # message encoding
-            metadata, _ = mcap_string(body, pos)
-            channels[cid] = (topic.decode(), schemas.get(sid, ""), get_qos(metadata))
-        elif op == MESSAGE:
-            cid, _, log_time, _ = struct.unpack_from("<HIQQ", body, 0)
-            messages.append((cid, log_time, body[22:]))
-
+    found = _Records()
     for op, _, body in mcap_records(buf, len(MAGIC), len(buf)):
         if op == CHUNK:
-            compression, _, inner = chunk_parts(body)
-            if compression:
-                raise BagError(f"{files[0]}: compressed chunks ({compression.decode()}) cannot be recovered")
-            for op2, _, body2 in mcap_records(inner, 0, len(inner)):
-                take(op2, body2)
+            found.chunk(files[0], body)
         elif op in (DATA_END, FOOTER):  # the file was closed after all
             break
         else:
-            take(op, body)
+            found.take(op, body)
+    typed = found.typed_messages()
+    left_out = found.left_out()
+    if not typed:
+        raise BagError(f"{files[0]}: no complete message to recover{': ' + left_out if left_out else ''} "
+                       f"(expected at least one complete chunk of messages after the MCAP header)")
     writer = BagWriter(dst, fsync=False)
     try:
-        for cid, log_time, data in messages:
-            topic, msgtype, qos = channels[cid]
+        for (topic, msgtype, qos), log_time, data in typed:
             if not writer.has_topic(topic):
                 writer.add_topic(topic, msgtype, qos)
             writer.write(topic, log_time, data)
     finally:
         writer.close()
+    if left_out and warn is not None:
+        warn(f"{files[0]}: the storage file is damaged: {left_out}")
     return writer.message_count
+
+
+class _Records:
+    """The schemas, channels and messages of an MCAP file's records, and what was left out as damaged."""
+
+    def __init__(self):
+        self.schemas, self.channels, self.messages = {}, {}, []
+        self.bad_chunks = self.bad_records = self.untyped = 0
+
+    def chunk(self, path, body) -> None:
+        """Take the records of a chunk, or count it damaged (too short, or its CRC does not match)."""
+        try:
+            compression, _, inner = chunk_parts(body)
+            (crc,) = struct.unpack_from("<I", body, CHUNK_CRC_OFFSET)
+        except struct.error:
+            self.bad_chunks += 1
+            return
+        if compression:
+            raise BagError(f"{path}: compressed chunks ({compression.decode(errors='replace')}) cannot be "
+                           f"recovered")
+        if crc != NO_CRC and zlib.crc32(inner) != crc:
+            self.bad_chunks += 1
+            return
+        for op, _, body2 in mcap_records(inner, 0, len(inner)):
+            self.take(op, body2)
+
+    def take(self, op, body) -> None:
+        """Take one schema, channel or message record (others are skipped); count it damaged when it
+        cannot be parsed."""
+        from rosbags.rosbag2.storage_mcap import get_qos
+
+        try:
+            if op == SCHEMA:
+                (sid,) = struct.unpack_from("<H", body, 0)
+                name, _ = mcap_string(body, 2)
+                self.schemas[sid] = name.decode()
+            elif op == CHANNEL:
+                cid, sid = struct.unpack_from("<HH", body, 0)
+                topic, pos = mcap_string(body, 4)
+                _, pos = mcap_string(body, pos)  # message encoding
+                metadata, _ = mcap_string(body, pos)
+                self.channels[cid] = (topic.decode(), self.schemas.get(sid, ""), get_qos(metadata))
+            elif op == MESSAGE:
+                cid, _, log_time, _ = struct.unpack_from("<HIQQ", body, 0)
+                self.messages.append((cid, log_time, body[22:]))
+        except Exception:  # untrusted bytes: any parse failure of a schema or channel record is damage
+            self.bad_records += 1
+
+    def typed_messages(self) -> list:
+        """``[(channel, log_time, data)]`` of the messages whose channel and schema were read, ``channel``
+        = ``(topic, message type, QoS profiles)``; the others are counted in :attr:`untyped`."""
+        out = []
+        for cid, log_time, data in self.messages:
+            channel = self.channels.get(cid)
+            if channel is None or not channel[1]:
+                self.untyped += 1
+            else:
+                out.append((channel, log_time, data))
+        return out
+
+    def left_out(self) -> str:
+        """What was left out, in words ('' when nothing was)."""
+        parts = []
+        if self.bad_chunks:
+            parts.append(f"{self.bad_chunks} chunk{'s' if self.bad_chunks != 1 else ''} whose bytes do not match "
+                         f"{'their' if self.bad_chunks != 1 else 'its'} CRC or length")
+        if self.bad_records:
+            parts.append(f"{self.bad_records} record{'s' if self.bad_records != 1 else ''} that cannot be parsed")
+        if self.untyped:
+            parts.append(f"{self.untyped} message{'s' if self.untyped != 1 else ''} of a channel with no readable "
+                         f"channel or schema record")
+        return ("left out " + ", ".join(parts)) if parts else ""
