@@ -296,26 +296,35 @@ def test_recover_leaves_out_a_chunk_whose_crc_does_not_match(tmp_path):
     assert [(m.topic, m.log_time, m.data) for m in back] == [(m.topic, m.log_time, m.data) for m in raw[:60]]
 
 
-def test_recover_leaves_out_the_messages_of_a_damaged_channel_record(tmp_path):
-    """A channel record whose bytes were changed (no CRC: rosbags' writer) cannot be parsed: its messages
-    have no topic or type and are left out, said in one warning; the other topics' come back."""
-    from mpm_monitor.io.bags.mcap_records import CHANNEL, mcap_string
+@pytest.mark.parametrize("closed", [False, True], ids=["killed", "closed"])
+def test_recover_with_a_damaged_channel_record(tmp_path, closed):
+    """A channel record whose bytes were changed (no CRC: rosbags' writer) cannot be parsed.  In a killed
+    recording its messages have no topic or type and are left out, said in one warning, and the other
+    topics' come back; a closed file's summary repeats the record, and every message comes back."""
+    from mpm_monitor.io.bags.mcap_records import CHANNEL, DATA_END, mcap_string
 
     r, u, y = _samples(10)
     bag = write_bag(tmp_path / "src", r, u, y)
     raw = read_raw_messages(bag, ["setpoint", "input", "output"])
     data = bytearray((bag / "src.mcap").read_bytes())
-    start = next(st for op, st, body in _records_of(bytes(data))     # the data section's, not the summary's
+    records = list(_records_of(bytes(data)))
+    start = next(st for op, st, body in records                      # the data section's, not the summary's
                  if op == CHANNEL and mcap_string(body, 4)[0] == b"/input")
-    struct.pack_into("<I", data, start + 4, 2**32 - 1)       # the topic name's length
+    struct.pack_into("<I", data, start + 4, 2**32 - 1)               # the topic name's length
+    if not closed:                                                   # killed: no data end, no summary
+        data = data[:next(st for op, st, _ in records if op == DATA_END) - 9]
     (tmp_path / "dead").mkdir()
     (tmp_path / "dead" / "dead.mcap").write_bytes(bytes(data))
     notes = []
-    assert bag_io.recover_bag(tmp_path / "dead", tmp_path / "back", warn=notes.append) == 20
+    n = bag_io.recover_bag(tmp_path / "dead", tmp_path / "back", warn=notes.append)
+    lost = 10 if not closed else 0
+    assert n == 30 - lost
     assert notes == [f"{tmp_path / 'dead' / 'dead.mcap'}: the storage file is damaged: left out 1 record that cannot "
-                     f"be parsed, 10 messages of a channel with no readable channel or schema record"]
-    back = read_raw_messages(tmp_path / "back", ["setpoint", "output"])
-    assert [(m.topic, m.data) for m in back] == [(m.topic, m.data) for m in raw if m.topic != "/input"]
+                     f"be parsed" + (f", {lost} messages of a channel with no readable channel or schema record"
+                                     if lost else "")]
+    topics = ["setpoint", "output"] + (["input"] if closed else [])
+    back = read_raw_messages(tmp_path / "back", topics)
+    assert [(m.topic, m.data) for m in back] == [(m.topic, m.data) for m in raw if closed or m.topic != "/input"]
 
 
 def test_recover_with_no_complete_message_creates_nothing(tmp_path, capsys):

@@ -38,7 +38,8 @@ def recover_bag(src, dst, warn=None) -> int:
     A storage file damaged besides (bytes changed on disk) keeps what can still be trusted: a chunk
     whose CRC (when the writer computed one) does not match its bytes is left out, and so is a schema
     or channel record that cannot be parsed, a message record too short to hold its header, and the
-    messages of a channel with no readable channel record or no schema (their type is unknown).  What
+    messages of a channel with no readable channel record or no schema (their type is unknown; in a
+    file that was closed, the summary's copies of the schema and channel records are read too).  What
     was left out is said through ``warn``, one line; a message whose own bytes were changed is
     recovered as it is, and the reader that decodes it names it.
 
@@ -70,11 +71,17 @@ def recover_bag(src, dst, warn=None) -> int:
     if buf[:len(MAGIC)] != MAGIC:
         raise BagError(f"{files[0]}: not an MCAP file (bad magic)")
     found = _Records()
+    summary = False
     for op, _, body in mcap_records(buf, len(MAGIC), len(buf)):
-        if op == CHUNK:
-            found.chunk(files[0], body)
-        elif op in (DATA_END, FOOTER):  # the file was closed after all
+        if op == FOOTER:
             break
+        if op == DATA_END:              # the file was closed after all: its summary repeats the
+            summary = True              # schemas and channels, of use where a chunk holding them is damaged
+        elif summary:
+            if op in (SCHEMA, CHANNEL):
+                found.take(op, body, again=True)
+        elif op == CHUNK:
+            found.chunk(files[0], body)
         else:
             found.take(op, body)
     typed = found.typed_messages()
@@ -119,27 +126,30 @@ class _Records:
         for op, _, body2 in mcap_records(inner, 0, len(inner)):
             self.take(op, body2)
 
-    def take(self, op, body) -> None:
+    def take(self, op, body, again: bool = False) -> None:
         """Take one schema, channel or message record (others are skipped); count it damaged when it
-        cannot be parsed."""
+        cannot be parsed.  With ``again`` (the summary's copy of a schema or channel record), one already
+        read is kept and a damaged copy is not counted."""
         from rosbags.rosbag2.storage_mcap import get_qos
 
         try:
             if op == SCHEMA:
                 (sid,) = struct.unpack_from("<H", body, 0)
                 name, _ = mcap_string(body, 2)
-                self.schemas[sid] = name.decode()
+                if not (again and sid in self.schemas):
+                    self.schemas[sid] = name.decode()
             elif op == CHANNEL:
                 cid, sid = struct.unpack_from("<HH", body, 0)
                 topic, pos = mcap_string(body, 4)
                 _, pos = mcap_string(body, pos)  # message encoding
                 metadata, _ = mcap_string(body, pos)
-                self.channels[cid] = (topic.decode(), self.schemas.get(sid, ""), get_qos(metadata))
+                if not (again and cid in self.channels):
+                    self.channels[cid] = (topic.decode(), self.schemas.get(sid, ""), get_qos(metadata))
             elif op == MESSAGE:
                 cid, _, log_time, _ = struct.unpack_from("<HIQQ", body, 0)
                 self.messages.append((cid, log_time, body[22:]))
         except Exception:  # untrusted bytes: any parse failure of a schema or channel record is damage
-            self.bad_records += 1
+            self.bad_records += not again
 
     def typed_messages(self) -> list:
         """``[(channel, log_time, data)]`` of the messages whose channel and schema were read, ``channel``
