@@ -290,8 +290,8 @@ def test_recover_leaves_out_a_chunk_whose_crc_does_not_match(tmp_path):
     mcap.write_bytes(data.replace(value, struct.pack("<d", y[30, 1] + 1.0)))
     notes = []
     assert bag_io.recover_bag(tmp_path / "dead", tmp_path / "back", warn=notes.append) == 60
-    assert notes == [f"{mcap}: the storage file is damaged: left out 1 chunk whose bytes do not match its CRC or "
-                     f"length"]
+    assert notes == [f"{mcap}: the storage file is damaged: left out 1 damaged chunk (a CRC, length or "
+                     f"compression field that does not match the bytes)"]
     back = read_raw_messages(tmp_path / "back", ["setpoint", "input", "output"])
     assert [(m.topic, m.log_time, m.data) for m in back] == [(m.topic, m.log_time, m.data) for m in raw[:60]]
 
@@ -325,6 +325,33 @@ def test_recover_with_a_damaged_channel_record(tmp_path, closed):
     topics = ["setpoint", "output"] + (["input"] if closed else [])
     back = read_raw_messages(tmp_path / "back", topics)
     assert [(m.topic, m.data) for m in back] == [(m.topic, m.data) for m in raw if closed or m.topic != "/input"]
+
+
+@pytest.mark.parametrize("name", [b"zstd", b"\x00q\x7f!"], ids=["zstd", "garbage"])
+def test_recover_names_compressed_chunks_and_leaves_out_a_garbage_compression(tmp_path, name):
+    """A chunk that says it is zstd-compressed cannot be recovered (refused in one line); a compression
+    name no writer uses is a damaged chunk, left out."""
+    from mpm_monitor.io.bags.mcap_records import CHUNK, mcap_string
+
+    r, u, y = _samples(10)
+    data = (write_bag(tmp_path / "src", r, u, y) / "src.mcap").read_bytes()
+    start, body = next((st, body) for op, st, body in _records_of(data) if op == CHUNK)
+    compression, pos = mcap_string(body, 28)
+    assert compression == b""
+    body = body[:28] + struct.pack("<I", len(name)) + name + body[pos:]          # the same records, renamed
+    (tmp_path / "dead").mkdir()
+    mcap = tmp_path / "dead" / "dead.mcap"
+    mcap.write_bytes(data[:start - 8] + struct.pack("<Q", len(body)) + body + data[start + len(body) - len(name):])
+    notes = []
+    if name == b"zstd":
+        with pytest.raises(BagError) as e:
+            bag_io.recover_bag(tmp_path / "dead", tmp_path / "back", warn=notes.append)
+        _check(e, f"{mcap}: compressed chunks (zstd) cannot be recovered")
+    else:
+        with pytest.raises(BagError) as e:          # the bag's one chunk: nothing is left
+            bag_io.recover_bag(tmp_path / "dead", tmp_path / "back", warn=notes.append)
+        _check(e, f"{mcap}: no complete message to recover: left out 1 damaged chunk (a CRC, length or "
+                  f"compression field that does not match the bytes)")
 
 
 def test_recover_with_no_complete_message_creates_nothing(tmp_path, capsys):

@@ -25,6 +25,8 @@ from .write import BagWriter
 
 #: A chunk's ``uncompressed_crc`` of 0 means "not computed" (rosbags' writer; BagWriter before it closes).
 NO_CRC = 0
+#: The chunk compressions MCAP writers use (any other name in a chunk is a damaged byte).
+COMPRESSIONS = (b"zstd", b"lz4")
 
 
 def recover_bag(src, dst, warn=None) -> int:
@@ -110,17 +112,17 @@ class _Records:
         self.bad_chunks = self.bad_records = self.untyped = 0
 
     def chunk(self, path, body) -> None:
-        """Take the records of a chunk, or count it damaged (too short, or its CRC does not match)."""
+        """Take the records of a chunk, or count it damaged (too short, a compression no writer names, or
+        its CRC does not match)."""
         try:
             compression, _, inner = chunk_parts(body)
             (crc,) = struct.unpack_from("<I", body, CHUNK_CRC_OFFSET)
         except struct.error:
             self.bad_chunks += 1
             return
-        if compression:
-            raise BagError(f"{path}: compressed chunks ({compression.decode(errors='replace')}) cannot be "
-                           f"recovered")
-        if crc != NO_CRC and zlib.crc32(inner) != crc:
+        if compression in COMPRESSIONS:
+            raise BagError(f"{path}: compressed chunks ({compression.decode()}) cannot be recovered")
+        if compression or (crc != NO_CRC and zlib.crc32(inner) != crc):   # a compression no writer names: damage
             self.bad_chunks += 1
             return
         for op, _, body2 in mcap_records(inner, 0, len(inner)):
@@ -167,8 +169,8 @@ class _Records:
         """What was left out, in words ('' when nothing was)."""
         parts = []
         if self.bad_chunks:
-            parts.append(f"{self.bad_chunks} chunk{'s' if self.bad_chunks != 1 else ''} whose bytes do not match "
-                         f"{'their' if self.bad_chunks != 1 else 'its'} CRC or length")
+            parts.append(f"{self.bad_chunks} damaged chunk{'s' if self.bad_chunks != 1 else ''} (a CRC, length or "
+                         f"compression field that does not match the bytes)")
         if self.bad_records:
             parts.append(f"{self.bad_records} record{'s' if self.bad_records != 1 else ''} that cannot be parsed")
         if self.untyped:
