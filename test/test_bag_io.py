@@ -469,7 +469,7 @@ def test_garbage_length_inside_a_chunk(tmp_path, length, words, with_model):
     ("/input", read_bag_channels, 5),
     ("/diagnostics", read_diagnostics, 3),
     ("/input", lambda bag: read_raw_messages(bag, ["setpoint", "input", "output"]), 5),
-], ids=["model", "no model", "diagnostics", "raw (replay, recover)"])
+], ids=["model", "no model", "diagnostics", "raw (replay)"])
 def test_metadata_that_no_longer_matches_the_storage_file(tmp_path, topic, read, counted):
     """rosbags matches each topic of metadata.yaml to the storage file's channel (QoS profiles
     included): an edited profile leaves the topic counted in the metadata but with no message read."""
