@@ -3,7 +3,10 @@
 Property-based (hypothesis) over model files and CSV contents: whatever the bytes, the reader
 returns a valid object or raises its own :class:`~mpm_monitor.core.errors.InputError` subclass
 (``ModelFileError``/``DataFileError``, both ``ValueError``) with exactly one line that starts with
-the file name and says where (key, line, byte); never any other exception.  The command line
+the file name and says where (key, line, byte); never any other exception.  The same over a bag's
+storage file (with and without its chunks' CRCs) and its ``metadata.yaml``, read with a model and
+without, and over a killed recording's storage file given to ``recover_bag``: the data, the
+recovered bag, or one ``BagError`` line that names the bag.  The command line
 (``python -m mpm_monitor analyze``) turns every bad model, CSV or bag into exit code 2 and one line
 on stderr, without a traceback; the YAML loader refuses Python tags without running them.
 
@@ -11,9 +14,11 @@ The examples are derandomized (same examples on every run) so that CI is reprodu
 are chosen to keep this file to a few seconds.
 """
 
+import functools
 import os
 import re
 import shutil
+import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -25,11 +30,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mpm_monitor.apps.cli import main as cli_main
-from mpm_monitor.core.errors import DataFileError, InputError, ModelFileError
+from mpm_monitor.core.errors import BagError, DataFileError, InputError, ModelFileError
 from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import PlantModel
 from mpm_monitor.io import csv_log
-from mpm_monitor.io.bags import BagWriter, write_logged_data
+from mpm_monitor.io.bags import (BagWriter, read_bag, read_bag_channels, read_raw_messages, recover_bag,
+                                 write_logged_data)
 from mpm_monitor.io.csv_log import csv_header, read_csv, write_csv
 from mpm_monitor.io.model_file import dump_model, load_model, save_model
 
@@ -465,7 +471,9 @@ def test_an_extra_column_named_in_latin_1_is_ignored_not_the_file(work):
 
 
 # ------------------------------------------------------------------------------------------------
-# The CLI: exit 2 and one line on stderr for every bad model, CSV or bag
+# Bags: whatever the bytes of the storage file or of metadata.yaml, every reader returns its data or
+# raises a one-line BagError naming the bag; recover returns what it recovered or one line
+
 
 def _logged(n=200, scale=1.0, seed=2) -> LoggedData:
     rng = np.random.default_rng(seed)
@@ -474,6 +482,112 @@ def _logged(n=200, scale=1.0, seed=2) -> LoggedData:
                       u=rng.normal(size=(n, 2)) * scale, y=rng.normal(size=(n, 2)) * scale,
                       inputs=m.inputs, outputs=m.outputs, sample_time=m.sample_time)
 
+
+@functools.lru_cache(maxsize=None)
+def _good_bag(crc: bool) -> tuple:
+    """``(storage file bytes, metadata.yaml bytes)`` of a small bag of :data:`GOOD_MODEL` (BagWriter's, in
+    three chunks); without ``crc`` its chunks' CRCs set to 0 ("not computed", as rosbags' writer leaves
+    them), so that damage inside a chunk reaches the records instead of the CRC check."""
+    import tempfile
+
+    from mpm_monitor.io.bags.mcap_records import CHUNK, CHUNK_CRC_OFFSET, MAGIC, mcap_records
+
+    data = _logged(n=30)
+    with tempfile.TemporaryDirectory() as d:
+        msgs = []
+        write_logged_data(Path(d) / "src", data)
+        for m in read_raw_messages(Path(d) / "src", ["setpoint", "input", "output"]):
+            msgs.append(m)
+        w = BagWriter(Path(d) / "bag", fsync=False)
+        for k, m in enumerate(msgs):
+            if not w.has_topic(m.topic):
+                w.add_topic(m.topic, m.msgtype)
+            w.write(m.topic, m.log_time, m.data)
+            if k % 30 == 29:
+                w.flush()
+        w.close()
+        raw = bytearray((Path(d) / "bag" / "bag.mcap").read_bytes())
+        meta = (Path(d) / "bag" / "metadata.yaml").read_bytes()
+    if not crc:
+        for op, start, _ in list(mcap_records(bytes(raw), len(MAGIC), len(raw))):
+            if op == CHUNK:
+                struct.pack_into("<I", raw, start + CHUNK_CRC_OFFSET, 0)
+    return bytes(raw), meta
+
+
+def _bag_with(work, name: str, mcap: bytes, meta) -> Path:
+    bag = work / name
+    shutil.rmtree(bag, ignore_errors=True)
+    bag.mkdir()
+    (bag / "bag.mcap").write_bytes(mcap)
+    if meta is not None:
+        (bag / "metadata.yaml").write_bytes(meta)
+    return bag
+
+
+def assert_one_line_bag_error(exc: BaseException, bag) -> None:
+    msg = str(exc)
+    assert isinstance(exc, BagError), repr(exc)
+    assert len(msg.splitlines()) == 1, f"not one line: {msg!r}"
+    assert msg.startswith(f"{bag}"), msg
+
+
+def bag_outcome(bag) -> None:
+    """``read_bag`` with the model and ``read_bag_channels`` without: data, or one line naming the bag."""
+    for read in (lambda: read_bag(bag, GOOD_MODEL), lambda: read_bag_channels(bag)):
+        try:
+            data = read()
+        except BagError as exc:
+            assert_one_line_bag_error(exc, bag)
+        else:
+            assert isinstance(data, LoggedData) and data.n_samples >= 1
+
+
+def recover_outcome(work, bag) -> None:
+    """``recover_bag`` of a bag without metadata.yaml: messages recovered into a bag that reads, or one
+    line naming the storage file."""
+    out = work / "recovered"
+    shutil.rmtree(out, ignore_errors=True)
+    notes = []
+    try:
+        n = recover_bag(bag, out, warn=notes.append)
+    except BagError as exc:
+        assert_one_line_bag_error(exc, bag)
+        assert not out.exists()
+        return
+    assert n >= 1 and all(len(note.splitlines()) == 1 for note in notes)
+    try:
+        got = read_raw_messages(out, ["setpoint", "input", "output"])
+    except BagError as exc:     # a topic none of whose messages survived
+        assert_one_line_bag_error(exc, out)
+    else:
+        assert 1 <= len(got) <= n
+
+
+#: A damaged storage file: of the bag with its chunks' CRCs, or of the bag without.
+DAMAGED_MCAP = st.deferred(lambda: st.booleans().flatmap(lambda crc: damaged_bytes(_good_bag(crc)[0])))
+
+
+@SETTINGS
+@given(raw=DAMAGED_MCAP)
+def test_damaged_storage_file_gives_data_or_a_one_line_error(work, raw):
+    bag_outcome(_bag_with(work, "damaged_mcap", raw, _good_bag(True)[1]))
+
+
+@SETTINGS
+@given(meta=st.deferred(lambda: damaged_bytes(_good_bag(True)[1])))
+def test_damaged_metadata_gives_data_or_a_one_line_error(work, meta):
+    bag_outcome(_bag_with(work, "damaged_metadata", _good_bag(True)[0], meta))
+
+
+@SETTINGS
+@given(raw=DAMAGED_MCAP)
+def test_recover_of_a_damaged_storage_file_gives_a_bag_or_a_one_line_error(work, raw):
+    recover_outcome(work, _bag_with(work, "damaged_killed", raw, None))
+
+
+# ------------------------------------------------------------------------------------------------
+# The CLI: exit 2 and one line on stderr for every bad model, CSV or bag
 
 @pytest.fixture(scope="module")
 def files(work):
