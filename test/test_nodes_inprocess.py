@@ -254,6 +254,29 @@ def test_a_bad_parameter_is_refused_with_its_name():
         ctx.try_shutdown()
 
 
+def test_a_parameter_the_node_does_not_have_is_named_in_a_warning(capfd):
+    """rclpy ignores a parameter the node does not declare (a misspelt name in a params file): the node
+    warns of each, one line, with the closest of its own names; those it has are not named."""
+    from mpm_monitor.nodes.ros_io import unknown_overrides
+
+    ctx = private_context()
+    try:
+        node = _monitor(ctx, "/unknown", window=5000, analysis_perod=100, totally_unrelated=1, min_samples=500)
+        try:
+            assert unknown_overrides(node) == ["analysis_perod", "totally_unrelated", "window"]
+        finally:
+            node.destroy_node()
+    finally:
+        ctx.try_shutdown()
+    err = capfd.readouterr().err
+    warned = [line.split("]: ", 1)[1] for line in err.splitlines() if "is not a parameter of this node" in line]
+    assert warned == [
+        "parameter 'analysis_perod' is not a parameter of this node and is ignored: did you mean 'analysis_period'?",
+        "parameter 'totally_unrelated' is not a parameter of this node and is ignored",
+        "parameter 'window' is not a parameter of this node and is ignored: did you mean 'window_samples'?"]
+    assert "min_samples" not in err
+
+
 def test_wall_clock_mode_runs_and_the_monitor_holds_the_setpoints(tmp_path):
     """Timer-driven plant and setpoints on the wall clock (50 Hz model), MPC and monitor holding setpoints."""
     from mpm_monitor.apps.demo import _overrides

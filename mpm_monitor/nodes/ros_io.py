@@ -19,6 +19,7 @@ Stamps are handled as integer nanoseconds so that the sample grid ``k * sample_t
 
 from __future__ import annotations
 
+import difflib
 import importlib
 import math
 import sys
@@ -266,7 +267,9 @@ def descriptor(spec: ParamSpec):
 
 
 def declare_parameters(node, specs: Sequence[ParamSpec]) -> dict:
-    """Declare ``specs`` on ``node`` and return their checked values by name.
+    """Declare ``specs`` on ``node`` and return their checked values by name; a parameter given to the
+    node that none of ``specs`` names is logged as a warning, one line each, with the closest name
+    (:func:`unknown_overrides`: a misspelt name would otherwise be ignored without a word).
 
     Raises
     ------
@@ -291,7 +294,20 @@ def declare_parameters(node, specs: Sequence[ParamSpec]) -> dict:
         out[spec.name] = spec.check(param.value)
         for name in _ros_names(spec, out[spec.name]):
             check_ros_name(node, spec.name, name, service=spec.name.endswith("_service"))
+    for name in unknown_overrides(node):
+        close = difflib.get_close_matches(name, [spec.name for spec in specs], n=1)
+        node.get_logger().warning(f"parameter '{name}' is not a parameter of this node and is ignored"
+                                  + (f": did you mean '{close[0]}'?" if close else ""))
     return out
+
+
+def unknown_overrides(node) -> list:
+    """The parameters given to ``node`` (a params file, ``--ros-args -p``, ``parameter_overrides``) that it
+    has not declared, sorted: a misspelt name, or a parameter meant for other nodes (a params file's
+    ``/**`` section).  rclpy ignores them without a word; :func:`declare_parameters` warns of each.
+    ``qos_overrides.*`` are left out (rclpy declares them as publishers are made)."""
+    given = getattr(node, "_parameter_overrides", None) or {}      # rclpy keeps no public list of them
+    return sorted(n for n in given if not node.has_parameter(n) and not n.startswith("qos_overrides."))
 
 
 def _ros_names(spec: ParamSpec, value) -> list:
