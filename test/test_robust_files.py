@@ -733,6 +733,28 @@ def test_analyze_good_input_runs(files, capsys):
         assert '"rows"' in out
 
 
+@pytest.mark.parametrize("argv, flag, value", [
+    (["simulate", "--case", "3.2", "--samples", "100"], "--seed", "-1"),
+    (["simulate", "--case", "3.2", "--samples", "100"], "--seed", "1.5"),
+    (["simulate", "--case", "3.2", "--samples", "100"], "--dither", "nan"),
+    (["simulate", "--case", "3.2", "--samples", "100"], "--dither", "-0.1"),
+    (["simulate", "--case", "3.2", "--samples", "100"], "--dither", "inf"),
+    (["reproduce", "--case", "3.2", "--samples", "100"], "--seed", "-1"),
+    (["demo", "--case", "3.2"], "--seed", "-7"),
+])
+def test_a_seed_or_dither_out_of_range_is_one_line(files, capsys, argv, flag, value):
+    """A negative seed (numpy's generators refuse it: a traceback) or a dither amplitude that is not a finite
+    number >= 0 (NaN and negative ones ran without a dither, silently): exit 2, one line naming the flag."""
+    csv = files["csv"].parent / "simulated.csv"
+    extra = ["--csv", str(csv)] if argv[0] == "simulate" else []
+    with pytest.raises(SystemExit) as e:
+        cli_main(argv + extra + [flag, value])
+    err = capsys.readouterr().err.strip()
+    assert e.value.code == 2 and len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert f"error: argument {flag}: expected " in err and repr(value) in err, err
+    assert not csv.exists()
+
+
 @pytest.mark.parametrize("flag,target,match", [
     ("--json", "missing_dir/r.json", r"--json .*missing_dir/r\.json: directory .*missing_dir does not exist"),
     ("--repair-out", "missing_dir/m.yaml", r"--repair-out .*: directory .*missing_dir does not exist"),

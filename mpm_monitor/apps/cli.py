@@ -54,6 +54,28 @@ def _text(value) -> str:
     return f"{value:g}" if isinstance(value, float) else str(value)
 
 
+def _seed(text: str) -> int:
+    """argparse type of ``--seed``: an integer >= 0 (numpy's generators take no negative seed)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = None
+    if value is None or value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+    return value
+
+
+def _amplitude(text: str) -> float:
+    """argparse type of ``--dither``: a finite number >= 0 (0: no dither)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value >= 0.0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0 (input units; 0: none), got {text!r}")
+    return value
+
+
 def _add_analysis_options(p: argparse.ArgumentParser) -> None:
     """One flag per option of :data:`CLI_ANALYSIS_OPTIONS`, from its ParamSpec (:data:`ANALYSIS_PARAMS`).
 
@@ -144,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("reproduce", help="simulate a case and print the paper-style result")
     p.add_argument("--case", choices=DEMO_CASES, required=True)
     p.add_argument("--samples", type=int, default=3000)
-    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--seed", type=_seed, default=1)
     p.add_argument("--plots", default="reproduce_plots", help="directory for the singular-value PNGs")
     _add_analysis_options(p)
 
@@ -154,8 +176,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plant", help="plant model file (YAML); with --model instead of --case")
     p.add_argument("--model", help="controller model file (YAML)")
     p.add_argument("--samples", type=int, default=3000)
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--dither", type=float, default=0.0, help="amplitude of a PRBS dither on every input")
+    p.add_argument("--seed", type=_seed, default=1)
+    p.add_argument("--dither", type=_amplitude, default=0.0, help="amplitude of a PRBS dither on every input")
     p.add_argument("--experiment", default=None, metavar="REPORT_JSON",
                    help="add the dither of the experiment an analyze --json report recommends (its amplitude per "
                         "input, switching with probability 1/2); instead of --dither")
@@ -167,7 +189,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the paper's 3.1, 3.2, 3.3, or level (an integrating level and a measured inflow)")
     p.add_argument("--samples", type=int, default=None, help="samples to simulate (default: the case's)")
     p.add_argument("--bag", default=None, help="record every topic to this rosbag2 (MCAP) directory")
-    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--seed", type=_seed, default=1)
     p.add_argument("--quiet", action="store_true", help="print only the final result")
 
     p = sub.add_parser("export", help="write a bag's setpoint, input, output (and disturbance) topics as a CSV log")
