@@ -776,6 +776,22 @@ def test_analyze_unwritable_output_is_refused_before_the_analysis(files, capsys,
     assert re.search(match, err), err
 
 
+@pytest.mark.parametrize("target, match", [
+    ("missing_dir/out.csv", r"^error: --csv .*missing_dir/out\.csv: directory .*missing_dir does not exist$"),
+    (".", r"^error: --csv .*: is a directory: expected the path of a file to write$"),
+])
+def test_export_unwritable_csv_is_refused_before_the_bag_is_read(files, capsys, monkeypatch, target, match):
+    import mpm_monitor.io.bags.read as bag_read
+
+    def never(*a, **k):
+        raise AssertionError("the bag was read")
+
+    monkeypatch.setattr(bag_read, "open_reader", never)
+    code, out, err = _run_cli(capsys, ["export", "--bag", str(files["bag"]), "--csv", str(files["csv"].parent / target)])
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert re.search(match, err.strip()), err
+
+
 def test_a_write_that_fails_after_the_analysis_is_one_line(files, capsys, monkeypatch):
     """A disk that fills (or a directory removed) between the check and the write: one line, exit 2."""
     def full(*a, **k):

@@ -404,6 +404,7 @@ def _cmd_demo(args) -> int:
 def _cmd_export(args) -> int:
     from ..io.bags import export_csv
 
+    _check_output_file(args.csv, "--csv")          # before the bag is read, as analyze does
     n = export_csv(args.bag, args.csv, model_path=args.model, topics=_topics(args),
                    warn=lambda note: print(f"warning: {note}", file=sys.stderr))
     print(f"wrote {n} samples to {args.csv}")
