@@ -277,6 +277,32 @@ def test_a_parameter_the_node_does_not_have_is_named_in_a_warning(capfd):
     assert "min_samples" not in err
 
 
+def test_an_integer_for_a_double_parameter_is_taken_as_that_double():
+    """``stale_timeout: 10`` or ``output_weight: [2]`` in a params file: rclpy refuses an INTEGER for a
+    DOUBLE parameter ("wrong type"); the nodes take it as the double it means."""
+    from rclpy.parameter import Parameter
+
+    from mpm_monitor.apps.demo import _overrides
+    from mpm_monitor.nodes.mpc_node import MpcNode
+
+    ctx = private_context()
+    try:
+        node = _monitor(ctx, "/ints", stale_timeout=10)
+        mpc = MpcNode(context=ctx, namespace="/ints", parameter_overrides=_overrides(
+            {"case": "3.2", "output_weight": [2, 2, 2], "max_dither": 1}))
+        try:
+            p = node.get_parameter("stale_timeout")
+            assert p.type_ == Parameter.Type.DOUBLE and p.value == 10.0
+            w = mpc.get_parameter("output_weight")
+            assert w.type_ == Parameter.Type.DOUBLE_ARRAY and list(w.value) == [2.0, 2.0, 2.0]
+            assert mpc.get_parameter("max_dither").value == 1.0
+        finally:
+            node.destroy_node()
+            mpc.destroy_node()
+    finally:
+        ctx.try_shutdown()
+
+
 def test_wall_clock_mode_runs_and_the_monitor_holds_the_setpoints(tmp_path):
     """Timer-driven plant and setpoints on the wall clock (50 Hz model), MPC and monitor holding setpoints."""
     from mpm_monitor.apps.demo import _overrides

@@ -269,7 +269,8 @@ def descriptor(spec: ParamSpec):
 def declare_parameters(node, specs: Sequence[ParamSpec]) -> dict:
     """Declare ``specs`` on ``node`` and return their checked values by name; a parameter given to the
     node that none of ``specs`` names is logged as a warning, one line each, with the closest name
-    (:func:`unknown_overrides`: a misspelt name would otherwise be ignored without a word).
+    (:func:`unknown_overrides`: a misspelt name would otherwise be ignored without a word), and an
+    integer given for a double parameter is taken as that double (:func:`_widen_integer_overrides`).
 
     Raises
     ------
@@ -279,6 +280,7 @@ def declare_parameters(node, specs: Sequence[ParamSpec]) -> dict:
     from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
     from rclpy.parameter import Parameter
 
+    _widen_integer_overrides(node, specs)
     out = {}
     for spec in specs:
         if spec.default is None:
@@ -301,13 +303,36 @@ def declare_parameters(node, specs: Sequence[ParamSpec]) -> dict:
     return out
 
 
+def _given(node) -> dict:
+    """The parameters given to ``node`` (params files, ``--ros-args -p``, ``parameter_overrides``) by name:
+    rclpy keeps them, with no public accessor, in ``Node._parameter_overrides`` ({} if absent)."""
+    given = getattr(node, "_parameter_overrides", None)
+    return given if isinstance(given, dict) else {}
+
+
+def _widen_integer_overrides(node, specs: Sequence[ParamSpec]) -> None:
+    """Give a double (or double array) parameter set to an integer (``stale_timeout: 10`` in a params file,
+    ``-p stale_timeout:=10``) its value as a double, before it is declared: rclpy refuses an INTEGER value
+    for a DOUBLE parameter ("wrong type"), which no user means."""
+    from rclpy.parameter import Parameter
+
+    given = _given(node)
+    for spec in specs:
+        p = given.get(spec.name)
+        if p is None:
+            continue
+        if spec.kind == "double" and p.type_ == Parameter.Type.INTEGER:
+            given[spec.name] = Parameter(spec.name, Parameter.Type.DOUBLE, float(p.value))
+        elif spec.kind == "double_array" and p.type_ == Parameter.Type.INTEGER_ARRAY:
+            given[spec.name] = Parameter(spec.name, Parameter.Type.DOUBLE_ARRAY, [float(v) for v in p.value])
+
+
 def unknown_overrides(node) -> list:
     """The parameters given to ``node`` (a params file, ``--ros-args -p``, ``parameter_overrides``) that it
     has not declared, sorted: a misspelt name, or a parameter meant for other nodes (a params file's
     ``/**`` section).  rclpy ignores them without a word; :func:`declare_parameters` warns of each.
     ``qos_overrides.*`` are left out (rclpy declares them as publishers are made)."""
-    given = getattr(node, "_parameter_overrides", None) or {}      # rclpy keeps no public list of them
-    return sorted(n for n in given if not node.has_parameter(n) and not n.startswith("qos_overrides."))
+    return sorted(n for n in _given(node) if not node.has_parameter(n) and not n.startswith("qos_overrides."))
 
 
 def _ros_names(spec: ParamSpec, value) -> list:
