@@ -265,6 +265,7 @@ def test_a_parameter_the_node_does_not_have_is_named_in_a_warning(capfd):
         try:
             assert unknown_overrides(node) == ["analysis_perod", "totally_unrelated", "window"]
         finally:
+            node.close()                    # its analysis thread, which would stop later tests' forks
             node.destroy_node()
     finally:
         ctx.try_shutdown()
@@ -297,6 +298,7 @@ def test_an_integer_for_a_double_parameter_is_taken_as_that_double():
             assert w.type_ == Parameter.Type.DOUBLE_ARRAY and list(w.value) == [2.0, 2.0, 2.0]
             assert mpc.get_parameter("max_dither").value == 1.0
         finally:
+            node.close()
             node.destroy_node()
             mpc.destroy_node()
     finally:
