@@ -279,8 +279,9 @@ def test_a_parameter_the_node_does_not_have_is_named_in_a_warning(capfd):
 
 
 def test_an_integer_for_a_double_parameter_is_taken_as_that_double():
-    """``stale_timeout: 10`` or ``output_weight: [2]`` in a params file: rclpy refuses an INTEGER for a
-    DOUBLE parameter ("wrong type"); the nodes take it as the double it means."""
+    """``stale_timeout: 10`` or ``output_weight: [2]`` in a params file, or ``ros2 param set`` of a live
+    parameter to an integer: rclpy refuses an INTEGER for a DOUBLE parameter ("wrong type"); the nodes
+    take it as the double it means."""
     from rclpy.parameter import Parameter
 
     from mpm_monitor.apps.demo import _overrides
@@ -297,6 +298,14 @@ def test_an_integer_for_a_double_parameter_is_taken_as_that_double():
             w = mpc.get_parameter("output_weight")
             assert w.type_ == Parameter.Type.DOUBLE_ARRAY and list(w.value) == [2.0, 2.0, 2.0]
             assert mpc.get_parameter("max_dither").value == 1.0
+            # Set at run time (ros2 param set /mpc max_dither 2): a live parameter, taken as 2.0.
+            (result,) = mpc.set_parameters([Parameter("max_dither", Parameter.Type.INTEGER, 2)])
+            assert result.successful, result.reason
+            p = mpc.get_parameter("max_dither")
+            assert p.type_ == Parameter.Type.DOUBLE and p.value == 2.0
+            # An integer for a read-only double is still refused, as read-only, not as the wrong type.
+            (result,) = node.set_parameters([Parameter("stale_timeout", Parameter.Type.INTEGER, 3)])
+            assert not result.successful and "read-only" in result.reason, result.reason
         finally:
             node.close()
             node.destroy_node()

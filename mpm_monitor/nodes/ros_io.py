@@ -310,21 +310,33 @@ def _given(node) -> dict:
     return given if isinstance(given, dict) else {}
 
 
-def _widen_integer_overrides(node, specs: Sequence[ParamSpec]) -> None:
-    """Give a double (or double array) parameter set to an integer (``stale_timeout: 10`` in a params file,
-    ``-p stale_timeout:=10``) its value as a double, before it is declared: rclpy refuses an INTEGER value
-    for a DOUBLE parameter ("wrong type"), which no user means."""
+def _widened(p, kinds: dict):
+    """``p`` (an ``rclpy.parameter.Parameter``) with an integer (array) value as a double (array) when
+    ``kinds[p.name]`` is ``"double"`` (``"double_array"``); else ``p`` itself."""
     from rclpy.parameter import Parameter
 
+    kind = kinds.get(p.name)
+    if kind == "double" and p.type_ == Parameter.Type.INTEGER:
+        return Parameter(p.name, Parameter.Type.DOUBLE, float(p.value))
+    if kind == "double_array" and p.type_ == Parameter.Type.INTEGER_ARRAY:
+        return Parameter(p.name, Parameter.Type.DOUBLE_ARRAY, [float(v) for v in p.value])
+    return p
+
+
+def _widen_integer_overrides(node, specs: Sequence[ParamSpec]) -> None:
+    """Give a double (or double array) parameter set to an integer (``stale_timeout: 10`` in a params file,
+    ``-p stale_timeout:=10``, and later ``ros2 param set`` of a live one) its value as a double: rclpy
+    refuses an INTEGER value for a DOUBLE parameter ("wrong type"), which no user means.  The values
+    given at start-up are widened before they are declared (declaring calls no callback); a set
+    afterwards, by a pre-set callback."""
+    kinds = {spec.name: spec.kind for spec in specs if spec.kind in ("double", "double_array")}
+    if not kinds:
+        return
     given = _given(node)
-    for spec in specs:
-        p = given.get(spec.name)
-        if p is None:
-            continue
-        if spec.kind == "double" and p.type_ == Parameter.Type.INTEGER:
-            given[spec.name] = Parameter(spec.name, Parameter.Type.DOUBLE, float(p.value))
-        elif spec.kind == "double_array" and p.type_ == Parameter.Type.INTEGER_ARRAY:
-            given[spec.name] = Parameter(spec.name, Parameter.Type.DOUBLE_ARRAY, [float(v) for v in p.value])
+    for name in kinds:
+        if name in given:
+            given[name] = _widened(given[name], kinds)
+    node.add_pre_set_parameters_callback(lambda params: [_widened(p, kinds) for p in params])
 
 
 def unknown_overrides(node) -> list:
