@@ -108,6 +108,9 @@ class _Records:
     """The schemas, channels and messages of an MCAP file's records, and what was left out as damaged."""
 
     def __init__(self):
+        from rosbags.rosbag2.storage_mcap import get_qos
+
+        self._get_qos = get_qos         # imported once, not per record
         self.schemas, self.channels, self.messages = {}, {}, []
         self.bad_chunks = self.bad_records = self.untyped = 0
 
@@ -132,8 +135,6 @@ class _Records:
         """Take one schema, channel or message record (others are skipped); count it damaged when it
         cannot be parsed.  With ``again`` (the summary's copy of a schema or channel record), one already
         read is kept and a damaged copy is not counted."""
-        from rosbags.rosbag2.storage_mcap import get_qos
-
         try:
             if op == SCHEMA:
                 (sid,) = struct.unpack_from("<H", body, 0)
@@ -146,7 +147,7 @@ class _Records:
                 _, pos = mcap_string(body, pos)  # message encoding
                 metadata, _ = mcap_string(body, pos)
                 if not (again and cid in self.channels):
-                    self.channels[cid] = (topic.decode(), self.schemas.get(sid, ""), get_qos(metadata))
+                    self.channels[cid] = (topic.decode(), self.schemas.get(sid, ""), self._get_qos(metadata))
             elif op == MESSAGE:
                 cid, _, log_time, _ = struct.unpack_from("<HIQQ", body, 0)
                 self.messages.append((cid, log_time, body[22:]))
