@@ -124,8 +124,9 @@ def _open_failure(exc: BaseException) -> str:
 def none_read(path, topic: str, conns: list) -> BagError:
     """The error of a topic that ``metadata.yaml`` counts messages on but whose reading gave none: the
     metadata no longer describes the storage file (rosbags matches each topic's connection in the
-    metadata to the storage file's channel, QoS profiles included)."""
-    counted = sum(c.msgcount for c in conns)
+    metadata to the storage file's channel, QoS profiles included).  ``conns``: connections of the bag;
+    those of ``topic`` give the count."""
+    counted = sum(c.msgcount for c in conns if c.topic == topic)
     return BagError(f"{path}: topic '{topic}': metadata.yaml counts {counted} message{'s' if counted != 1 else ''} "
                     f"but none could be read from the storage file: expected metadata.yaml as rosbag2 wrote it "
                     f"for this storage file (was it edited, or taken from another bag?)")

@@ -164,7 +164,7 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
     series = {}
     for t, role in role_of.items():
         if not stamps[t]:
-            raise none_read(path, t, [c for c in conns if c.topic == t])
+            raise none_read(path, t, conns)
         st = np.array(stamps[t], dtype=np.int64)
         vals = np.array(rows[t], dtype=float).reshape(len(st), len(expected[role]))
         order = np.argsort(st, kind="stable")
@@ -459,9 +459,8 @@ def read_raw_messages(bag, topics: Sequence[str] = DEFAULT_TOPICS, optional: Seq
         except Exception as exc:
             raise BagError(f"{bag}: cannot read bag: {read_failure(exc)}") from None
     read = {m.topic for m in out}
-    for t in dict.fromkeys(c.topic for c in conns):
-        counted = [c for c in conns if c.topic == t]
-        if t not in read and sum(c.msgcount for c in counted):
-            raise none_read(bag, t, counted)
+    for t in dict.fromkeys(c.topic for c in conns if c.msgcount):     # the topics the metadata counts
+        if t not in read:
+            raise none_read(bag, t, conns)
     return out
 
