@@ -194,19 +194,26 @@ def test_bag_writer_flush_and_close(tmp_path):
         BagWriter(tmp_path / "copy")
 
 
+def _rewritten(raw, path, flush_after=None):
+    """The messages ``raw`` written again by BagWriter into the bag ``path``, closed (every chunk with its
+    CRC); flushed after message ``flush_after`` too (two chunks).  Returns the closed writer."""
+    w = BagWriter(path, fsync=False)
+    for k, m in enumerate(raw):
+        if not w.has_topic(m.topic):
+            w.add_topic(m.topic, m.msgtype)
+        w.write(m.topic, m.log_time, m.data)
+        if k == flush_after:
+            w.flush()
+    w.close()
+    return w
+
+
 def test_bag_writer_gives_every_chunk_its_crc(tmp_path):
     """rosbags' writer leaves the chunk CRC at 0 (unchecked): a flipped bit in a value reads as a wrong
     value.  BagWriter's bags carry the CRC, so rosbags' reader (which checks it) refuses the chunk."""
     r, u, y = _samples(40)
     raw = read_raw_messages(write_bag(tmp_path / "src", r, u, y), ["setpoint", "input", "output"])
-    w = BagWriter(tmp_path / "copy", fsync=False)
-    for k, m in enumerate(raw):
-        if not w.has_topic(m.topic):
-            w.add_topic(m.topic, m.msgtype)
-        w.write(m.topic, m.log_time, m.data)
-        if k == 60:
-            w.flush()                                  # two chunks: one flushed, one written at close
-    w.close()
+    _rewritten(raw, tmp_path / "copy", flush_after=60)   # two chunks: one flushed, one written at close
     np.testing.assert_array_equal(read_bag(tmp_path / "copy", MODEL).y, y)   # rosbags checked the CRCs
     value = struct.pack("<d", y[20, 1])
     for bag, refused in ((tmp_path / "src", False), (tmp_path / "copy", True)):
@@ -273,14 +280,7 @@ def test_recover_leaves_out_a_chunk_whose_crc_does_not_match(tmp_path):
 
     r, u, y = _samples(40)
     raw = read_raw_messages(write_bag(tmp_path / "src", r, u, y), ["setpoint", "input", "output"])
-    w = BagWriter(tmp_path / "live", fsync=False)
-    for k, m in enumerate(raw):
-        if not w.has_topic(m.topic):
-            w.add_topic(m.topic, m.msgtype)
-        w.write(m.topic, m.log_time, m.data)
-        if k == 59:
-            w.flush()                                 # chunk 1: samples 0 to 19; chunk 2: 20 to 39
-    w.close()                                         # the chunks get their CRCs
+    _rewritten(raw, tmp_path / "live", flush_after=59)   # chunk 1: samples 0 to 19; chunk 2: 20 to 39
     (tmp_path / "dead").mkdir()
     mcap = tmp_path / "dead" / "dead.mcap"
     shutil.copy(tmp_path / "live" / "live.mcap", mcap)   # no metadata.yaml, as after a kill
@@ -517,12 +517,7 @@ def test_a_type_hash_edited_in_the_metadata_is_named_without_the_truncation_hint
     is said to disagree with it."""
     r, u, y = _samples(5)
     raw = read_raw_messages(write_bag(tmp_path / "src", r, u, y), ["setpoint", "input", "output"])
-    w = BagWriter(tmp_path / "bag", fsync=False)
-    for m in raw:
-        if not w.has_topic(m.topic):
-            w.add_topic(m.topic, m.msgtype)
-        w.write(m.topic, m.log_time, m.data)
-    w.close()
+    _rewritten(raw, tmp_path / "bag")
     meta = tmp_path / "bag" / "metadata.yaml"
     text = meta.read_text()
     assert text.count("RIHS01_a13ee3a330e346c9") == 3
@@ -696,11 +691,6 @@ def test_a_bag_whose_crcs_cannot_be_written_is_still_closed(tmp_path, monkeypatc
     monkeypatch.setattr(bag_write, "write_chunk_crcs", fail)
     r, u, y = _samples(5)
     raw = read_raw_messages(write_bag(tmp_path / "src", r, u, y), ["setpoint", "input", "output"])
-    w = BagWriter(tmp_path / "copy", fsync=False)
-    for m in raw:
-        if not w.has_topic(m.topic):
-            w.add_topic(m.topic, m.msgtype)
-        w.write(m.topic, m.log_time, m.data)
-    w.close()
+    w = _rewritten(raw, tmp_path / "copy")
     assert w.crc_error.endswith("copy.mcap: chunk CRCs not written: [Errno 28] No space left on device")
     np.testing.assert_array_equal(read_bag(tmp_path / "copy", MODEL).y, y)
