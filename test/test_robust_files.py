@@ -494,10 +494,8 @@ def _good_bag(crc: bool) -> tuple:
 
     data = _logged(n=30)
     with tempfile.TemporaryDirectory() as d:
-        msgs = []
         write_logged_data(Path(d) / "src", data)
-        for m in read_raw_messages(Path(d) / "src", ["setpoint", "input", "output"]):
-            msgs.append(m)
+        msgs = read_raw_messages(Path(d) / "src", ["setpoint", "input", "output"])
         w = BagWriter(Path(d) / "bag", fsync=False)
         for k, m in enumerate(msgs):
             if not w.has_topic(m.topic):
