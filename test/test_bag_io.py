@@ -260,14 +260,15 @@ def test_recover_unclosed_bag(tmp_path):
 
 
 def _records_of(data: bytes):
-    """``(opcode, body start, body)`` of every record of an MCAP file, those inside uncompressed chunks
-    too (their body start counted in the file)."""
+    """``(opcode, body start, body)`` of every record of an MCAP file, those inside its chunks too (their
+    body start counted in the file; the chunks are checked to be uncompressed)."""
     from mpm_monitor.io.bags.mcap_records import CHUNK, MAGIC, mcap_records, mcap_string
 
     for op, start, body in mcap_records(data, len(MAGIC), len(data)):
         yield op, start, body
         if op == CHUNK:
-            _, pos = mcap_string(body, 28)
+            compression, pos = mcap_string(body, 28)
+            assert compression == b""
             (size,) = struct.unpack_from("<Q", body, pos)
             first = start + pos + 8
             yield from mcap_records(data, first, first + size)
@@ -427,20 +428,10 @@ def test_garbage_record_length(tmp_path):
 
 
 def _first_message_length_offset(mcap) -> int:
-    """Offset of the length field of the first message record inside the first chunk of ``mcap``."""
-    from mpm_monitor.io.bags.mcap_records import CHUNK, MAGIC, MESSAGE, mcap_records, mcap_string
+    """Offset of the length field of the first message record of ``mcap`` (inside its first chunk)."""
+    from mpm_monitor.io.bags.mcap_records import MESSAGE
 
-    data = mcap.read_bytes()
-    for op, start, body in mcap_records(data, len(MAGIC), len(data)):
-        if op == CHUNK:
-            compression, pos = mcap_string(body, 28)
-            assert compression == b""
-            (size,) = struct.unpack_from("<Q", body, pos)
-            first = start + pos + 8
-            for op2, start2, _ in mcap_records(data, first, first + size):
-                if op2 == MESSAGE:
-                    return start2 - 8
-    raise AssertionError("no message record in a chunk")
+    return next(start - 8 for op, start, _ in _records_of(mcap.read_bytes()) if op == MESSAGE)
 
 
 @pytest.mark.parametrize("length, words", [
