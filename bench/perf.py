@@ -656,6 +656,13 @@ def write_industrial_case(folder: Path, ny: int, nu: int, samples: int = INDUSTR
     return yml, csv
 
 
+def floor_command(csv: Path) -> list:
+    """The floor of the command on ``csv``: a fresh interpreter that imports numpy and scipy.linalg and
+    reads the CSV with ``numpy.loadtxt`` (argv of a process)."""
+    return [sys.executable, "-c",
+            "import sys, numpy, scipy.linalg; numpy.loadtxt(sys.argv[1], delimiter=',', skiprows=1)", str(csv)]
+
+
 def bench_command_line(sizes=((20, 20), (100, 40)), samples: int = INDUSTRIAL_SAMPLES, seed: int = 0,
                        log=print) -> dict:
     """``python -m mpm_monitor analyze`` end to end against the floor, and ``--help`` against ``import numpy``."""
@@ -668,8 +675,7 @@ def bench_command_line(sizes=((20, 20), (100, 40)), samples: int = INDUSTRIAL_SA
     tmp = Path(tempfile.mkdtemp(prefix="mpm_perf_"))
     for ny, nu in sizes:
         yml, csv = write_industrial_case(tmp, ny, nu, samples, seed)
-        floor = [py, "-c", "import sys, numpy, scipy.linalg; numpy.loadtxt(sys.argv[1], delimiter=',', skiprows=1)",
-                 str(csv)]
+        floor = floor_command(csv)
         command = [py, "-m", "mpm_monitor", "analyze", "--model", str(yml), "--data", str(csv)]
         # The command as it runs (--jobs: 2 on two cores), the floor, and the command in one process.
         res = _paired(command, floor, 3, cmd_c=command + ["--jobs", "1"])

@@ -28,8 +28,16 @@ From the marks, each process's busy time: a child from the start of its function
 sending, the parent from its start to its end less its waits.  Then the time in which two processes or
 more were busy (both cores of a two-core machine), one, and none; the stretches of at least
 :data:`MIN_STRETCH` s in which one was busy, each named by the parent's phase then; and the whole
-timeline of the run whose time is the median.  No target: this shows where the second core idles
-(``bench.perf`` measures the command against its floor, ``bench.stages`` the stages in one process).
+timeline of the run whose time is the median.
+
+Last, what an even split of the analysis's work would give.  The work is the busy seconds of every
+process between the analysis's begin and its finish; spread evenly over the two cores, with the rest
+of the run (before and after the analysis) as it was, the command would take ``rest + work / 2`` from
+the launch.  No schedule of the same work does better on two cores.  Against the command's targets
+(twice the floor, which runs in turn with the traced command, as in ``bench.perf``, and 3 s at 100x40)
+it prints how much work the analysis would still have to shed.  The traced command writes its marks
+and imports :mod:`bench` first, so its times are a little above ``bench.perf``'s; the targets are
+measured there (``bench.stages`` times the stages in one process).
 """
 
 from __future__ import annotations
@@ -283,13 +291,32 @@ def lone_stretches(intervals: dict, marks: list, min_length: float = MIN_STRETCH
     return out
 
 
+def analysis_work(intervals: dict, marks: list) -> tuple:
+    """``(analysis_s, work_s)``: the parent's analysis (``pipeline.analyze``) from its begin to its finish,
+    and the busy seconds of every process inside it (the work a perfect split over two cores would halve).
+    ``(0, 0)`` when the run has no analysis."""
+    t0, parent, _ = _bounds(marks)
+    own = {(event, label): t - t0 for t, pid, event, label in marks if pid == parent and event in ("begin", "finish")}
+    begin, finish = own.get(("begin", "analyze")), own.get(("finish", "analyze"))
+    if begin is None or finish is None:
+        return 0.0, 0.0
+    work = sum(max(0.0, min(b, finish) - max(a, begin)) for iv in intervals.values() for a, b in iv)
+    return finish - begin, work
+
+
 def summarize(marks: list, launch: float = None, exit_time: float = None) -> dict:
     """The figures of one run's marks (JSON-ready)."""
     iv = busy_intervals(marks)
     occ = occupancy(iv)
     t0, parent, _ = _bounds(marks)
+    analysis_s, work_s = analysis_work(iv, marks)
+    from_launch = None if launch is None or exit_time is None else exit_time - launch
     return {
-        "from_launch_s": None if launch is None or exit_time is None else exit_time - launch,
+        "from_launch_s": from_launch,
+        "analysis_s": analysis_s, "analysis_work_s": work_s,
+        # The run with its analysis's work spread evenly over the two cores: the best any split of the same
+        # work could give (the rest of the run as it was).
+        "balanced_from_launch_s": None if from_launch is None else from_launch - analysis_s + work_s / 2,
         "start_after_launch_s": None if launch is None else t0 - launch,
         "span_s": occ["span"], "both_cores_s": occ["busy"][2], "one_core_s": occ["busy"][1], "no_core_s": occ["busy"][0],
         "use": occ["use"],
@@ -343,27 +370,76 @@ def format_run(size: str, s: dict, timeline: bool = True) -> str:
     return "\n".join(lines)
 
 
+def work_to_shed(median: dict, target_s: float) -> dict:
+    """Against a target for the time from the launch: the time with the analysis's work spread evenly over two
+    cores (the rest of the run as it was), and the work the analysis would have to shed even then.
+
+    Returns
+    -------
+    dict
+        ``target_s``; ``balanced_s`` (:func:`summarize`'s ``balanced_from_launch_s``); ``shed_s``, the busy
+        seconds of work to remove so that the balanced run meets the target (0 when it does), and
+        ``shed_fraction`` of the analysis's work; None for both when the rest of the run alone (before and
+        after the analysis) exceeds the target.
+    """
+    rest = median["from_launch_s"] - median["analysis_s"]
+    work = median["analysis_work_s"]
+    room = 2.0 * (target_s - rest)               # the work two cores can do in the time the target leaves
+    shed = None if room <= 0 else max(0.0, work - room)
+    return {"target_s": target_s, "balanced_s": median["balanced_from_launch_s"], "shed_s": shed,
+            "shed_fraction": None if shed is None or work <= 0 else shed / work}
+
+
+def format_bound(size: str, median: dict, bound: dict) -> str:
+    """The lines of :func:`work_to_shed` at every target."""
+    lines = [f"{size}: the analysis {median['analysis_s']:.3f} s holds {median['analysis_work_s']:.3f} s of work of "
+             f"all processes; spread evenly over two cores the command would take "
+             f"{median['balanced_from_launch_s']:.3f} s from the launch (it took {median['from_launch_s']:.3f} s); "
+             f"floor {median['floor_s']:.3f} s (medians of the runs)"]
+    for name, b in bound.items():
+        if b["shed_s"] is None:
+            verdict = "the rest of the run alone exceeds it"
+        elif b["shed_s"] == 0:
+            verdict = "met by an even split"
+        else:
+            verdict = f"even so the analysis would have to shed {b['shed_s']:.3f} s of work ({100 * b['shed_fraction']:.0f} %)"
+        lines.append(f"  target {name} = {b['target_s']:.3f} s: {verdict}")
+    return "\n".join(lines)
+
+
 def run(sizes, repeats: int = 3, seed: int = 0, jobs=None, log=print) -> dict:
     """The timeline at every size; a JSON-ready dict (every run, and medians)."""
     import statistics
     import tempfile
 
-    from bench.perf import INDUSTRIAL_SAMPLES, machine_info, write_industrial_case
+    from bench.perf import (INDUSTRIAL_SAMPLES, TARGET_100X40_S, TARGET_COMMAND_OVER_FLOOR, _run_process, floor_command,
+                            machine_info, write_industrial_case)
 
     tmp = Path(tempfile.mkdtemp(prefix="mpm_timeline_case_"))
     out = {"machine": machine_info(), "repeats": repeats, "samples": INDUSTRIAL_SAMPLES, "jobs": jobs, "sizes": {}}
     for ny, nu in sizes:
         yml, csv = write_industrial_case(tmp, ny, nu, INDUSTRIAL_SAMPLES, seed)
-        runs = [one_run(yml, csv, jobs) for _ in range(repeats)]
-        keys = ("from_launch_s", "span_s", "both_cores_s", "one_core_s", "no_core_s", "use")
+        _run_process(floor_command(csv))                  # a warm-up: the CSV in the page cache for both
+        runs, floors = [], []
+        for _ in range(repeats):                          # the command and its floor in turn
+            runs.append(one_run(yml, csv, jobs))
+            floors.append(_run_process(floor_command(csv))[0])
+        keys = ("from_launch_s", "span_s", "both_cores_s", "one_core_s", "no_core_s", "use", "analysis_s",
+                "analysis_work_s", "balanced_from_launch_s")
         median = {k: statistics.median(r[k] for r in runs) for k in keys}
+        median["floor_s"] = statistics.median(floors)
         typical = sorted(runs, key=lambda r: r["span_s"])[(len(runs) - 1) // 2]
         size = f"{ny}x{nu}"
-        out["sizes"][size] = {"median": median, "typical_run": typical, "runs": runs}
+        targets = {f"{TARGET_COMMAND_OVER_FLOOR:g} x the floor": TARGET_COMMAND_OVER_FLOOR * median["floor_s"]}
+        if (ny, nu) == (100, 40):
+            targets[f"{TARGET_100X40_S:g} s"] = TARGET_100X40_S
+        out["sizes"][size] = {"median": median, "floors_s": floors, "typical_run": typical, "runs": runs,
+                              "bound": {name: work_to_shed(median, t) for name, t in targets.items()}}
         log(f"{size}: medians of {repeats}: {median['span_s']:.3f} s from the first mark, two processes busy "
             f"{median['both_cores_s']:.3f} s, one {median['one_core_s']:.3f} s, none {median['no_core_s']:.3f} s, "
             f"processor use {100 * median['use']:.0f} %; the run of the median time:")
         log(format_run(size, typical))
+        log(format_bound(size, median, out["sizes"][size]["bound"]))
     out["machine"]["load_average_end"] = list(os.getloadavg())
     return out
 

@@ -49,6 +49,26 @@ def test_busy_intervals_occupancy_and_phases_of_synthetic_marks():
         (4.0, 4.5, "parent", "repair"), (4.5, 4.6, "parent", "analysis"), (4.6, 5.0, "parent", "after the analysis")]
 
 
+def test_the_analysis_work_and_what_an_even_split_would_leave_to_shed():
+    marks = _marks()
+    iv = timeline.busy_intervals(marks)
+    # The analysis runs 0.5-4.6 s: the parent busy 0.5-2.0 and 3.1-4.6 (3.0 s), child 1 1.0-3.1 (2.1 s),
+    # child 2 3.5-4.0 (0.5 s).
+    analysis, work = timeline.analysis_work(iv, marks)
+    assert analysis == pytest.approx(4.1) and work == pytest.approx(5.6)
+    s = timeline.summarize(marks, launch=9.8, exit_time=15.1)          # 5.3 s from the launch
+    assert s["balanced_from_launch_s"] == pytest.approx(5.3 - 4.1 + 2.8)
+    median = {k: s[k] for k in ("from_launch_s", "analysis_s", "analysis_work_s", "balanced_from_launch_s")}
+    # The rest of the run takes 1.2 s: a target of 3.2 s leaves two cores 2 x 2.0 s for the 5.6 s of work.
+    b = timeline.work_to_shed(median, 3.2)
+    assert b["shed_s"] == pytest.approx(1.6) and b["shed_fraction"] == pytest.approx(1.6 / 5.6)
+    assert timeline.work_to_shed(median, 4.0)["shed_s"] == 0.0
+    assert timeline.work_to_shed(median, 1.0)["shed_s"] is None
+    text = timeline.format_bound("3x3", dict(median, floor_s=1.6), {"2 x the floor": b})
+    assert "shed 1.600 s of work (29 %)" in text
+    assert timeline.analysis_work(iv, [m for m in marks if m[3] != "analyze"]) == (0.0, 0.0)
+
+
 def test_a_child_that_sent_nothing_is_busy_to_the_end_of_its_function():
     marks = [m for m in _marks() if not (m[1] == C1 and m[2] == "child sent")]
     assert timeline.busy_intervals(marks)["1 split_map/take_all"] == [(pytest.approx(1.0), pytest.approx(3.0))]
@@ -70,6 +90,7 @@ def test_a_small_analysis_is_traced_across_its_processes(tmp_path):
     assert s["both_cores_s"] + s["one_core_s"] + s["no_core_s"] == pytest.approx(s["span_s"])
     assert 0.5 <= s["use"] <= 1.0
     assert s["from_launch_s"] >= s["span_s"] > 0
+    assert 0 < s["analysis_s"] < s["span_s"] and s["analysis_work_s"] >= s["analysis_s"] * 0.5
     assert "processor use" in timeline.format_run("3x3", s)
 
 
