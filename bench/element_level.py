@@ -3,7 +3,7 @@
 Run::
 
     python -m bench.element_level [--runs 800] [--seed 3] [--samples 3000] [--jobs 1] [--step-form]
-                                  [--noise-order] [--out bench/results/element_level.json]
+                                  [--noise-order] [--drop 0.002] [--out bench/results/element_level.json]
 
 The scenarios are those of :mod:`bench.structures_mc` (the same family, a pure function of
 ``(seed, index)``; seeds 0 and 1 are its scored runs, so this check defaults to seed 3).  Each run is
@@ -24,7 +24,14 @@ grouped by the structure of the parametric model it was drawn from.
 With ``--noise-order`` the p-values are those of ``analyze`` (no repair, no release of explained
 elements, no spike screening: the detection alone), which raises the ARX order ``na`` while a row's
 element-test residual is coloured (:mod:`mpm_monitor.core.noise_order`); without it, the first
-detection's at ``na`` = 4.
+detection's at ``na`` = 4.  Either way the S_Delta row test's unadjusted p-value of every row without a
+mismatch is counted too (the group ``rows (S_Delta test)``).
+
+With ``--drop P`` every sample of each run is dropped with probability ``P`` before the analysis (the
+rows removed, as :mod:`bench.gaps_mc` does; the drops a pure function of the seed and the run), and the
+p-values are ``analyze``'s as with ``--noise-order``: the gaps' regression rows are left out and the
+statistics use the rows kept, so the level must not move.  Compare with a ``--noise-order`` run of the
+same seed (default output ``element_level_drop.json``).
 
 These rows are not clean in every sense: their columns are moved by a controller that also reacts to
 the other rows' mismatches.  That is where the tests must hold their level.
@@ -51,24 +58,34 @@ from .structures_mc import StructuresOptions, make_structures_scenario, simulate
 THRESHOLDS = (0.05, 0.01, 0.001)
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "element_level.json"
 DEFAULT_OUT_STEP = Path(__file__).resolve().parent / "results" / "element_level_step.json"
+DEFAULT_OUT_DROP = Path(__file__).resolve().parent / "results" / "element_level_drop.json"
 
 
-def run_one(seed: int, index: int, samples: int, step_response: bool = False, noise_order: bool = False) -> dict:
-    """The p-values of the elements of the rows without a mismatch of one scenario (its model analysed in
+def run_one(seed: int, index: int, samples: int, step_response: bool = False, noise_order: bool = False,
+            drop: float = 0.0) -> dict:
+    """The p-values of the elements and rows without a mismatch of one scenario (its model analysed in
     its step-response form with ``step_response``).
 
     The p-values are the first detection's (``detect``, ``na`` = 4); with ``noise_order`` those of
     ``analyze`` (without the repair, the release of explained elements and the spike screening), which
-    raises ``na`` while a row's residual is coloured (:mod:`mpm_monitor.core.noise_order`)."""
+    raises ``na`` while a row's residual is coloured (:mod:`mpm_monitor.core.noise_order`).  With
+    ``drop`` > 0 each sample is dropped with that probability first (:func:`bench.gaps_mc.drop_rows`),
+    and the p-values are ``analyze``'s."""
+    from .gaps_mc import drop_rows
+
     sc = make_structures_scenario(seed, index, StructuresOptions())
     data = simulate(sc, samples, StructuresOptions()).as_logged_data(f"structures scenario {seed}/{index}")
-    rec = {"index": int(index), "elements": []}
+    rec = {"index": int(index), "elements": [], "rows": []}
     if not (np.all(np.isfinite(data.y)) and np.max(np.abs(data.y)) < 1e6):
         rec["error"] = "the closed loop diverged"
         return rec
+    if drop > 0:
+        kept = drop_rows(data.n_samples, drop, np.random.default_rng([seed, index, 11]))
+        rec["dropped"] = int(data.n_samples - kept.size)
+        data = data.take(kept)
     try:
         model = step_form(sc.model) if step_response else sc.model
-        if noise_order:
+        if noise_order or drop > 0:
             report = analyze(model, data, AnalysisOptions(repair=False, release_explained=False, drop_spikes=False))
         else:
             report = detect(model, data, AnalysisOptions(repair=False), detectability=False)
@@ -76,6 +93,10 @@ def run_one(seed: int, index: int, samples: int, step_response: bool = False, no
         rec["error"] = f"{type(exc).__name__}: {exc}"
         return rec
     rows = {m["output"] for m in sc.mismatches}
+    rec["rows"] = [{"output": i, "mismatch_run": bool(sc.mismatches), "row": float(r.p_value_raw)}
+                   for i, r in enumerate(report.rows) if i not in rows]
+    if report.gaps:
+        rec["rows_lost"] = int(report.gaps.get("rows_lost", 0))
     for e in report.elements:
         i, j = sc.model.outputs.index(e.output), sc.model.columns.index(e.input)
         if i in rows or e.p_value_window is None:
@@ -121,14 +142,18 @@ GROUPS = (("all", lambda e: True),
 
 
 def score(records: Sequence[dict]) -> dict:
-    """Per group and test, the counts of :func:`count`."""
+    """Per group and test, the counts of :func:`count` (the rows' S_Delta test as one more group)."""
     elements = [e for r in records for e in r["elements"]]
-    return {name: {test: count([e[test] for e in elements if keep(e)]) for test in ("window", "response")}
-            for name, keep in GROUPS}
+    out = {name: {test: count([e[test] for e in elements if keep(e)]) for test in ("window", "response")}
+           for name, keep in GROUPS}
+    out["rows (S_Delta test)"] = {"row": count([w["row"] for r in records for w in r.get("rows", [])])}
+    return out
 
 
 def format_table(result: dict) -> str:
     form = " (models in step-response form)" if result["config"].get("step_form") else ""
+    if result["config"].get("drop"):
+        form += f" (each sample dropped with probability {result['config']['drop']:g})"
     lines = [f"element tests' level{form}: seed {result['config']['seed']}, {result['config']['runs']} runs, "
              f"{result['config']['errors']} not analysed; p-values of the elements of rows without a mismatch",
              f"{'group':<32} {'test':<9} {'n':>6}   " + "   ".join(f"below {t:<5} (exp, tail)" for t in THRESHOLDS)]
@@ -153,22 +178,27 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--noise-order", action="store_true",
                         help="the p-values of analyze, which raises na while a row's residual is coloured, instead "
                              "of the first detection's")
+    parser.add_argument("--drop", type=float, default=0.0,
+                        help="drop each sample with this probability before analyze (default 0: none)")
     parser.add_argument("--out", type=Path, default=None,
                         help="JSON output (default bench/results/element_level.json, element_level_step.json "
-                             "with --step-form)")
+                             "with --step-form, element_level_drop.json with --drop)")
     args = parser.parse_args(argv)
     if args.runs < 1 or args.samples < 100 or args.jobs < 1:
         parser.error("--runs and --jobs must be >= 1 and --samples >= 100")
+    if not 0.0 <= args.drop < 0.5:
+        parser.error(f"--drop must be a probability in [0, 0.5), got {args.drop}")
     t0 = time.perf_counter()
-    records = sorted(map_runs(_run_one_star, [(args.seed, k, args.samples, args.step_form, args.noise_order)
-                                                for k in range(args.runs)],
+    records = sorted(map_runs(_run_one_star, [(args.seed, k, args.samples, args.step_form, args.noise_order,
+                                                 args.drop) for k in range(args.runs)],
                               args.jobs), key=lambda r: r["index"])
     result = {"config": {"runs": args.runs, "seed": args.seed, "samples": args.samples, "step_form": args.step_form,
-                         "noise_order": args.noise_order,
+                         "noise_order": args.noise_order, "drop": args.drop,
                          "errors": sum("error" in r for r in records), "wall_time_s": time.perf_counter() - t0},
               "summary": score(records), "runs": records}
     print(format_table(result))
-    write_json(args.out or (DEFAULT_OUT_STEP if args.step_form else DEFAULT_OUT), result)
+    default = DEFAULT_OUT_DROP if args.drop > 0 else DEFAULT_OUT_STEP if args.step_form else DEFAULT_OUT
+    write_json(args.out or default, result)
     return 0
 
 

@@ -72,3 +72,15 @@ def test_with_the_noise_order_the_p_values_are_analyze_s():
         assert (e["response"] is None) == (r.p_value_response is None)
         if e["response"] is not None:
             assert e["response"] == pytest.approx(r.p_value_response, rel=1e-9)
+
+
+def test_with_drops_the_rows_kept_give_the_p_values_and_the_rows_test_is_counted():
+    full, dropped = run_one(0, 21, 1500), run_one(0, 21, 1500, drop=0.01)
+    assert "dropped" not in full and "rows_lost" not in full
+    assert dropped["dropped"] > 0 and dropped["rows_lost"] > dropped["dropped"]   # a gap costs the rows whose lags reach it
+    assert run_one(0, 21, 1500, drop=0.01)["dropped"] == dropped["dropped"]        # the drops a function of the run
+    for rec in (full, dropped):
+        assert [w["output"] for w in rec["rows"]] == [0, 2]                         # the rows without the mismatch
+        assert all(0.0 <= w["row"] <= 1.0 for w in rec["rows"])
+    assert [w["row"] for w in dropped["rows"]] != [w["row"] for w in full["rows"]]
+    assert score([full, dropped])["rows (S_Delta test)"]["row"]["n"] == 4
