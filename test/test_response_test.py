@@ -27,8 +27,8 @@ def _reference(model, i, j, u_c, d_c, a, start, n_lag, na, testable, segments=No
     for lo, hi in runs:
         el = model.discrete_element(i, j)
         x[lo:hi] = lfilter(np.r_[1.0, a], [1.0], el.respond(u_c[lo:hi, j]))
-    xt = segment_rows(x, start, segments)
-    xt = xt - xt.mean()
+    # Centred over each segment's rows, as the prediction error is (one record: over all rows).
+    xt = np.concatenate([(r := x[lo + start:hi]) - r.mean() for lo, hi in runs])
     r0 = y - W @ np.linalg.lstsq(W, y, rcond=None)[0]
     W1 = np.column_stack([W, xt])
     r1 = y - W1 @ np.linalg.lstsq(W1, y, rcond=None)[0]
@@ -265,3 +265,18 @@ def test_gram_and_qr_paths_give_the_same_response_tests(structures_run):
         assert (a.p_value_response is None) == (b.p_value_response is None)
         if a.p_value_response is not None:
             assert a.p_value_response == pytest.approx(b.p_value_response, rel=1e-6, abs=1e-12)
+
+
+def test_regressors_are_centred_over_each_segments_rows():
+    from mpm_monitor.core.response_test import centred_rows
+
+    rng = np.random.default_rng(5)
+    start, segments = 3, [(0, 10), (10, 12), (12, 30)]      # the second segment has no row (2 <= start)
+    X = rng.standard_normal((7 + 15, 2)) + np.repeat([[5.0, -1.0], [-2.0, 4.0]], [7, 15], axis=0)
+    out = centred_rows(X, start, segments)
+    np.testing.assert_allclose(out[:7].mean(axis=0), 0.0, atol=1e-12)
+    np.testing.assert_allclose(out[7:].mean(axis=0), 0.0, atol=1e-12)
+    np.testing.assert_allclose(out[7:] - X[7:], -X[7:].mean(axis=0) * np.ones((15, 1)))
+    assert np.array_equal(centred_rows(X, start, None), X - X.mean(axis=0))
+    assert np.array_equal(centred_rows(X, start, [(0, 22 + start)]), X - X.mean(axis=0))
+    assert out is not X and X[0, 0] != out[0, 0]

@@ -606,13 +606,18 @@ class ResponseMoments:
         """The whole-response test's regressors and their products with the input lags, from the moments.
 
         For every column ``j`` of ``columns`` (each with a target element in ``rm``), the regressor is
-        ``A(q) x_raw`` on the rows, centred over the rows (as
-        :func:`~mpm_monitor.core.response_test.row_response_tests` builds it).  With ``x_raw = x + mu_s``
-        in segment ``s``, ``A(1) = sum a_k`` and ``Z_s' 1`` the column sums of ``Z`` over segment
-        ``s``'s ``n_s`` rows (``n`` in all)::
+        ``A(q) x_raw`` on the rows, centred over the rows, and with gaps over each segment's rows (as
+        :func:`~mpm_monitor.core.response_test.row_response_tests` builds it,
+        :func:`~mpm_monitor.core.response_test.centred_rows`).  With ``x_raw = x + mu_s`` in segment
+        ``s``, ``A(q) x_raw = sum_k a_k x(t - k) + A(1) mu_s``, whose second part is constant in each
+        segment.  One record (``n`` rows, ``Z' 1`` the column sums of ``Z``)::
 
             Z' (A(q) x_raw - mean) = sum_k a_k Z' x(t - k) - Z' 1 sum_k a_k 1' x(t - k) / n
-                                     + A(1) sum_s mu_s (Z_s' 1 - n_s / n Z' 1)
+
+        With segments, ``m_s`` the mean of ``sum_k a_k x(t - k)`` over segment ``s``'s rows and ``Z_s' 1`` the
+        column sums of ``Z`` over them::
+
+            Z' (A(q) x_raw - m_s - A(1) mu_s) = sum_k a_k Z' x(t - k) - sum_s Z_s' 1 m_s
 
         Parameters
         ----------
@@ -636,23 +641,22 @@ class ResponseMoments:
         if a_poly.size != na + 1:
             raise ValueError(f"A(q) of {a_poly.size - 1} lags, the moments have {na}")
         b = [rm.index(j) for j in columns]
-        A1 = float(a_poly.sum())
         n = max(self.n_rows, 1)
         m = rm.zx.shape[-1]
         zx = np.tensordot(rm.zx.reshape(-1, na + 1, m), a_poly, axes=(1, 0))[block_columns][:, b]   # (p, k)
-        mu = rm.mu[:, b]                                                            # (S, k)
         z_sums = self.z_sums[:, block_columns]                                      # (S, p)
-        z_all = z_sums.sum(axis=0)
-        ZX = zx - np.outer(z_all, a_poly @ rm.xsum[b].T / n)
-        if len(self.segs) > 1:
-            ZX += A1 * (z_sums - np.outer(self.seg_rows / n, z_all)).T @ mu
-        # The regressors on the rows: A(q) x_raw = [x, X] a + A(1) mu_s, centred.
+        # The regressors on the rows: A(q) x_raw = [x, X] a + A(1) mu_s; A(1) mu_s is constant in each segment.
         Rb = rm.R[:, b]
         X = sum(a_k * self._lagged(Rb, k) for k, a_k in enumerate(a_poly))
-        if len(self.segs) > 1:          # one record: A(1) mu is a constant, which the centring removes
-            at = 0
-            for s, k in enumerate(self.seg_rows.astype(int)):
-                X[at:at + k] += A1 * mu[s]
-                at += k
-        X -= X.mean(axis=0)
+        if len(self.segs) == 1:         # one record: centred over the rows
+            ZX = zx - np.outer(z_sums.sum(axis=0), a_poly @ rm.xsum[b].T / n)
+            X -= X.mean(axis=0)
+            return X, ZX
+        # With gaps, centred over each segment's rows, as the prediction error is (centred_rows).
+        at, ZX = 0, zx.copy()
+        for s, k in enumerate(self.seg_rows.astype(int)):
+            mean = X[at:at + k].mean(axis=0)
+            X[at:at + k] -= mean
+            ZX -= np.outer(z_sums[s], mean)
+            at += k
         return X, ZX
