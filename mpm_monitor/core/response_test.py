@@ -188,8 +188,8 @@ def centred_rows(X: np.ndarray, start: int, segments=None) -> np.ndarray:
     The prediction error is centred over each segment (every span between gaps keeps a level of its own),
     so a regressor's level in a segment explains nothing of it; centred over all rows instead, the
     regressor's segment levels stay in its cross products and its variance (with one sample in 100
-    missing, they made the whole-response test reject about four times too often below 0.001:
-    ``bench.element_level --drop``).
+    missing, 28 of 6,837 clean p-values fell below 0.001, 16 when centred per segment and 11 without
+    gaps, 6.8 expected: ``bench.element_level --drop``).
 
     Parameters
     ----------
