@@ -653,10 +653,6 @@ class ResponseMoments:
             X -= X.mean(axis=0)
             return X, ZX
         # With gaps, centred over each segment's rows, as the prediction error is (centred_rows).
-        at, ZX = 0, zx.copy()
-        for s, k in enumerate(self.seg_rows.astype(int)):
-            mean = X[at:at + k].mean(axis=0)
-            X[at:at + k] -= mean
-            ZX -= np.outer(z_sums[s], mean)
-            at += k
-        return X, ZX
+        means = self._segment_sums(X) / self.seg_rows[:, None]                      # (S, k)
+        X -= np.repeat(means, self.seg_rows.astype(int), axis=0)
+        return X, zx - z_sums.T @ means
