@@ -275,7 +275,30 @@ def test_a_parameter_the_node_does_not_have_is_named_in_a_warning(capfd):
         "parameter 'analysis_perod' is not a parameter of this node and is ignored: did you mean 'analysis_period'?",
         "parameter 'totally_unrelated' is not a parameter of this node and is ignored",
         "parameter 'window' is not a parameter of this node and is ignored: did you mean 'window_samples'?"]
+    assert not [line for line in err.splitlines() if "parameters of other nodes of the suite" in line]
     assert "min_samples" not in err
+
+
+def test_the_other_nodes_parameters_of_a_shared_params_file_are_named_in_one_info_line(capfd):
+    """One params file for the whole launch (its ``/**`` section) gives every node the others' parameters:
+    the monitor names those in one info line, not a warning each; a name no node declares still warns."""
+    ctx = private_context()
+    try:
+        node = _monitor(ctx, "/shared", seed=3, prediction_horizon=20, topics=["a"], window_sampels=5000,
+                        min_samples=500)
+        try:
+            assert node.has_parameter("window_samples") and not node.has_parameter("seed")
+        finally:
+            node.close()
+            node.destroy_node()
+    finally:
+        ctx.try_shutdown()
+    lines = [line.split("]: ", 1)[1] for line in capfd.readouterr().err.splitlines() if "]: " in line]
+    assert [line for line in lines if "is not a parameter of this node" in line] == [
+        "parameter 'window_sampels' is not a parameter of this node and is ignored: did you mean 'window_samples'?"]
+    assert [line for line in lines if "other nodes of the suite" in line] == [
+        "parameters of other nodes of the suite, ignored here (a params file's shared section): prediction_horizon "
+        "(mpc), seed (plant, mpc, setpoint), topics (mpm_recorder, mpm_replay)"]
 
 
 def test_an_integer_for_a_double_parameter_is_taken_as_that_double():

@@ -269,8 +269,9 @@ def descriptor(spec: ParamSpec):
 def declare_parameters(node, specs: Sequence[ParamSpec]) -> dict:
     """Declare ``specs`` on ``node`` and return their checked values by name; a parameter given to the
     node that none of ``specs`` names is logged as a warning, one line each, with the closest name
-    (:func:`unknown_overrides`: a misspelt name would otherwise be ignored without a word), and an
-    integer given for a double parameter is taken as that double (:func:`_widen_integer_overrides`).
+    (:func:`unknown_overrides`: a misspelt name would otherwise be ignored without a word), unless another
+    node of the suite declares it (:func:`suite_parameters`: those are named in one line at info level),
+    and an integer given for a double parameter is taken as that double (:func:`_widen_integer_overrides`).
 
     Raises
     ------
@@ -296,10 +297,39 @@ def declare_parameters(node, specs: Sequence[ParamSpec]) -> dict:
         out[spec.name] = spec.check(param.value)
         for name in _ros_names(spec, out[spec.name]):
             check_ros_name(node, spec.name, name, service=spec.name.endswith("_service"))
-    for name in unknown_overrides(node):
+    unknown = unknown_overrides(node)
+    others = suite_parameters(exclude=specs) if unknown else {}
+    for name in unknown:
+        if name in others:
+            continue
         close = difflib.get_close_matches(name, [spec.name for spec in specs], n=1)
         node.get_logger().warning(f"parameter '{name}' is not a parameter of this node and is ignored"
                                   + (f": did you mean '{close[0]}'?" if close else ""))
+    theirs = [name for name in unknown if name in others]
+    if theirs:
+        node.get_logger().info("parameters of other nodes of the suite, ignored here (a params file's shared "
+                               "section): " + ", ".join(f"{name} ({', '.join(others[name])})" for name in theirs))
+    return out
+
+
+def suite_parameters(exclude: Sequence[ParamSpec] = ()) -> dict:
+    """Parameter name -> the default names of the suite's nodes that declare it (``plant``, ``mpc``,
+    ``setpoint``, ``monitor``, ``mpm_recorder``, ``mpm_replay``), leaving out the names of ``exclude``.
+
+    One params file often serves every node of a launch, its common settings in a ``/**`` section:
+    each node is then given the others' parameters too.  :func:`declare_parameters` names those in one
+    line at info level instead of a warning each (a warning stays for a name no node declares: a
+    misspelling).  The nodes' modules are imported here (only when a node was given a parameter it does
+    not declare).
+    """
+    from .params_files import NODES
+
+    skip = {spec.name for spec in exclude}
+    out: dict = {}
+    for node_name, (module, _) in NODES.items():
+        for spec in importlib.import_module(f"mpm_monitor.nodes.{module}").PARAMS:
+            if spec.name not in skip:
+                out.setdefault(spec.name, []).append(node_name)
     return out
 
 
