@@ -391,3 +391,32 @@ def test_a_step_response_model_s_ramp_row_gets_a_level_per_span():
     want = case.plant.discrete_element(1, 1).step_response(301)
     got = report.repaired_model.discrete_element(1, 1).step_response(301)
     assert np.abs(got - want).max() < 0.01 * np.abs(want).max()
+
+
+def test_a_logger_clock_that_drifts_keeps_every_row_on_its_own_sample(tmp_path, case_32):
+    """Each step of ``t`` is checked on its own (to 0.1 % of the sample time), so the sample numbers are
+    taken step by step: a clock 0.08 % slow or fast over 3,000 samples (2.4 samples in all) leaves the
+    log one run without gaps, and one dropped row one gap of one sample, not two rows on one sample or a
+    gap where none is (rounding ``(t - t[0]) / sample_time`` did both once the drift reached half a sample)."""
+    case, data = case_32
+    k = np.arange(data.n_samples)
+    for rate in (0.9992, 1.0008):
+        drifting = dataclasses.replace(data, t=data.t[0] + k * data.sample_time * rate)
+        assert drifting.grid_index.tolist() == k.tolist() and drifting.segments == [(0, data.n_samples)]
+        csv = tmp_path / f"drift_{rate}.csv"
+        write_csv(csv, drifting.t, drifting.r, drifting.u, drifting.y, drifting.inputs, drifting.outputs)
+        read = read_csv(csv, case.model)
+        assert read.segments == [(0, data.n_samples)]
+        gappy = _drop(read, [2500])
+        assert gappy.segments == [(0, 2500), (2500, data.n_samples - 1)]
+        assert gappy.grid_index[-1] == data.n_samples - 1
+        rep = detect(case.model, gappy, DETECT)
+        assert rep.gaps["count"] == 1 and rep.gaps["samples_lost"] == 1 and rep.gaps["longest"] == 1
+        same = detect(case.model, read, DETECT)
+        ref = detect(case.model, data, DETECT)
+        assert same.gaps is None and [r.p_value for r in same.rows] == [r.p_value for r in ref.rows]
+    # A sample left out for a spike keeps its place on a drifting clock too (LoggedData.fill_on_grid).
+    drifting = dataclasses.replace(data, t=data.t[0] + k * data.sample_time * 1.0008)
+    kept = _drop(drifting, [2900])
+    kept.column_fill = (drifting.t[[2900]], drifting.columns[[2900]])
+    assert kept.fill_on_grid()[0].tolist() == [2900]

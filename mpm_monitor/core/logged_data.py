@@ -25,6 +25,13 @@ MAX_ANALYSIS_SCALE = 1e40
 MIN_ANALYSIS_SCALE = 1e-100
 
 
+def _step_index(t: np.ndarray, sample_time: float) -> np.ndarray:
+    """Sample numbers of the increasing times ``t`` (shape (n,)), step by step: each step of about ``m``
+    sample times (rounded, at least 1) advances the number by ``m``; int64 array of shape (n,)."""
+    steps = np.maximum(np.rint(np.diff(t) / sample_time), 1.0).astype(np.int64)
+    return np.concatenate([[0], np.cumsum(steps)])
+
+
 @dataclasses.dataclass
 class LoggedData:
     """Setpoints, inputs, measured disturbances and outputs of a closed-loop run.
@@ -32,8 +39,9 @@ class LoggedData:
     Attributes
     ----------
     t : ndarray, shape (n_samples,)
-        Time in seconds, on the grid ``t[0] + k sample_time`` (increasing; samples may be missing,
-        see :attr:`grid_index` and :attr:`segments`).
+        Time in seconds, increasing by a whole number of sample times at each step (to a small
+        tolerance: a logger's clock may drift; a step of several sample times is a gap, see
+        :attr:`grid_index` and :attr:`segments`).
     r : ndarray, shape (n_samples, n_outputs)
         Setpoints, columns in the model's output order.
     u : ndarray, shape (n_samples, n_inputs)
@@ -107,17 +115,28 @@ class LoggedData:
 
     @property
     def grid_index(self) -> np.ndarray:
-        """Sample number of every row on the grid ``t[0] + k sample_time``, int array of shape (n_samples,)."""
+        """Sample number of every row from the first, int array of shape (n_samples,).
+
+        Step by step: a step of ``t`` of about ``m`` sample times (``m >= 1``, rounded) advances it by
+        ``m`` (``m - 1`` samples missing), as the CSV reader checks each step (to 0.1 % of the sample
+        time).  A logger's clock that runs slightly fast or slow so keeps every row on its own sample,
+        where rounding ``(t - t[0]) / sample_time`` would put two rows on one sample, or open a gap
+        where none is, once the drift adds up to half a sample (100 ppm over 5,000 samples).
+        """
         if self.n_samples == 0:
             return np.zeros(0, dtype=int)
-        return np.rint((self.t - self.t[0]) / self.sample_time).astype(int)
+        return _step_index(np.asarray(self.t, dtype=float), self.sample_time)
 
     def fill_on_grid(self) -> Optional[tuple]:
-        """:attr:`column_fill` as ``(grid index from t[0], [u | dv])``, or None."""
+        """:attr:`column_fill` as ``(grid index, [u | dv])`` (:attr:`grid_index`'s numbering: each sample's
+        index from the last row at or before it, the samples before the first row from the first), or None."""
         if self.column_fill is None or self.n_samples == 0:
             return None
         t, cols = self.column_fill
-        return np.rint((np.asarray(t, dtype=float) - self.t[0]) / self.sample_time).astype(np.int64), cols
+        t = np.asarray(t, dtype=float)
+        k = self.grid_index
+        row = np.clip(np.searchsorted(self.t, t, side="right") - 1, 0, None)
+        return k[row] + np.rint((t - self.t[row]) / self.sample_time).astype(np.int64), cols
 
     @property
     def segments(self) -> list:
