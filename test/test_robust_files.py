@@ -757,6 +757,9 @@ def test_a_seed_or_dither_out_of_range_is_one_line(files, capsys, argv, flag, va
     ("--json", "missing_dir/r.json", r"--json .*missing_dir/r\.json: directory .*missing_dir does not exist"),
     ("--repair-out", "missing_dir/m.yaml", r"--repair-out .*: directory .*missing_dir does not exist"),
     ("--json", ".", r"--json .*: is a directory"),
+    ("--json", "{csv}/r.json", r"--json .*/r\.json: .*\.csv is a file, not a directory$"),
+    ("--report", "{csv}/d", r"--report .*/d: .*\.csv is a file, not a directory$"),
+    ("--report", "{csv}", r"--report .*\.csv: is a file: expected a directory to write into$"),
 ])
 def test_analyze_unwritable_output_is_refused_before_the_analysis(files, capsys, monkeypatch, flag, target, match):
     """An output path that cannot be written is one line and exit 2, before the log is even read (an
@@ -767,11 +770,45 @@ def test_analyze_unwritable_output_is_refused_before_the_analysis(files, capsys,
         raise AssertionError("the log was read")
 
     monkeypatch.setattr(csv_mod, "read_csv", never)
-    path = files["csv"].parent / target
+    path = files["csv"].parent / target.format(csv=files["csv"].name)
     code, out, err = _run_cli(capsys, ["analyze", "--model", str(files["model"]), "--data", str(files["csv"]),
                                        flag, str(path)])
     assert code == 2 and len(err.splitlines()) == 1 and "Traceback" not in err, err
     assert re.search(match, err), err
+
+
+@pytest.mark.parametrize("argv", [
+    ["analyze", "--model", "MODEL", "--data", ""],
+    ["analyze", "--model", "", "--data", "CSV"],
+    ["analyze", "--model", "MODEL", "--bag", " "],
+    ["analyze", "--model", "MODEL", "--data", "CSV", "--json", ""],
+    ["analyze", "--model", "MODEL", "--data", "CSV", "--repair-out", ""],
+    ["analyze", "--model", "MODEL", "--data", "CSV", "--report", ""],
+    ["export", "--bag", "", "--csv", "out.csv"],
+])
+def test_an_empty_path_is_refused_in_one_line(files, capsys, argv):
+    """``--data "$UNSET"``: an empty path read as no data at all (a traceback down the bag's path), as the
+    current directory (``--model``) or as no output (``--json``, written nowhere with exit 0)."""
+    argv = [str(files["model"]) if a == "MODEL" else str(files["csv"]) if a == "CSV" else a for a in argv]
+    with pytest.raises(SystemExit) as e:
+        cli_main(argv)
+    err = capsys.readouterr().err.strip()
+    assert e.value.code == 2 and len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert re.search(r"error: argument --[a-z-]+: expected a file or directory path, got '\s*'$", err), err
+
+
+def test_a_closed_output_pipe_ends_the_command_quietly(files):
+    """``analyze ... | true``: the reader is gone before the summary is written; the command ends with the
+    status of a command SIGPIPE ends (141) and nothing on stderr, not a BrokenPipeError traceback."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "mpm_monitor", "analyze", "--model", str(files["model"]),
+                             "--data", str(files["csv"]), "--no-repair"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141 and err == "", err
 
 
 @pytest.mark.parametrize("target, match", [

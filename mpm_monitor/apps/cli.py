@@ -65,6 +65,14 @@ def _seed(text: str) -> int:
     return value
 
 
+def _path(text: str) -> str:
+    """argparse type of a file or directory argument: a path that is not empty (an empty one, as
+    ``--data "$UNSET"`` gives, would otherwise read as no argument at all or as the current directory)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"expected a file or directory path, got {text!r}")
+    return text
+
+
 def _amplitude(text: str) -> float:
     """argparse type of ``--dither``: a finite number >= 0 (0: no dither)."""
     try:
@@ -148,14 +156,14 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", parser_class=_Parser)
 
     p = sub.add_parser("analyze", help="analyse a CSV log or a bag against a model")
-    p.add_argument("--model", required=True, help="model file (YAML)")
+    p.add_argument("--model", type=_path, required=True, help="model file (YAML)")
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--data", help="logged data (CSV)")
-    src.add_argument("--bag", help="rosbag2 directory with the setpoint, input and output topics (and the "
+    src.add_argument("--data", type=_path, help="logged data (CSV)")
+    src.add_argument("--bag", type=_path, help="rosbag2 directory with the setpoint, input and output topics (and the "
                      "disturbance topic for a model with measured disturbances)")
-    p.add_argument("--json", dest="json_out", help="write the JSON report to this file ('-' = stdout)")
-    p.add_argument("--repair-out", help="write the repaired model file (YAML) here")
-    p.add_argument("--report", help="write an HTML report with figures into this directory")
+    p.add_argument("--json", type=_path, dest="json_out", help="write the JSON report to this file ('-' = stdout)")
+    p.add_argument("--repair-out", type=_path, help="write the repaired model file (YAML) here")
+    p.add_argument("--report", type=_path, help="write an HTML report with figures into this directory")
     p.add_argument("--candidates", metavar="all|NAME[,NAME...]", default=None,
                    help="logged channels the model does not use (CSV columns), tested as causes of each output's "
                         "prediction error; a located one is added to the repaired model as a measured disturbance "
@@ -167,40 +175,40 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--case", choices=DEMO_CASES, required=True)
     p.add_argument("--samples", type=int, default=3000)
     p.add_argument("--seed", type=_seed, default=1)
-    p.add_argument("--plots", default="reproduce_plots", help="directory for the singular-value PNGs")
+    p.add_argument("--plots", type=_path, default="reproduce_plots", help="directory for the singular-value PNGs")
     _add_analysis_options(p)
 
     p = sub.add_parser("simulate", help="run a closed-loop simulation and write the CSV log")
     p.add_argument("--case", choices=DEMO_CASES, default=None,
                    help="a case (plant and model): the paper's 3.1, 3.2, 3.3, or level")
-    p.add_argument("--plant", help="plant model file (YAML); with --model instead of --case")
-    p.add_argument("--model", help="controller model file (YAML)")
+    p.add_argument("--plant", type=_path, help="plant model file (YAML); with --model instead of --case")
+    p.add_argument("--model", type=_path, help="controller model file (YAML)")
     p.add_argument("--samples", type=int, default=3000)
     p.add_argument("--seed", type=_seed, default=1)
     p.add_argument("--dither", type=_amplitude, default=0.0, help="amplitude of a PRBS dither on every input")
-    p.add_argument("--experiment", default=None, metavar="REPORT_JSON",
+    p.add_argument("--experiment", type=_path, default=None, metavar="REPORT_JSON",
                    help="add the dither of the experiment an analyze --json report recommends (its amplitude per "
                         "input, switching with probability 1/2); instead of --dither")
-    p.add_argument("--csv", required=True, help="output CSV file")
-    p.add_argument("--write-model", help="also write the controller model file here")
+    p.add_argument("--csv", type=_path, required=True, help="output CSV file")
+    p.add_argument("--write-model", type=_path, help="also write the controller model file here")
 
     p = sub.add_parser("demo", help="run the ROS 2 nodes in-process on a case")
     p.add_argument("--case", choices=DEMO_CASES, default="3.2",
                    help="the paper's 3.1, 3.2, 3.3, or level (an integrating level and a measured inflow)")
     p.add_argument("--samples", type=int, default=None, help="samples to simulate (default: the case's)")
-    p.add_argument("--bag", default=None, help="record every topic to this rosbag2 (MCAP) directory")
+    p.add_argument("--bag", type=_path, default=None, help="record every topic to this rosbag2 (MCAP) directory")
     p.add_argument("--seed", type=_seed, default=1)
     p.add_argument("--quiet", action="store_true", help="print only the final result")
 
     p = sub.add_parser("export", help="write a bag's setpoint, input, output (and disturbance) topics as a CSV log")
-    p.add_argument("--bag", required=True)
-    p.add_argument("--csv", required=True)
-    p.add_argument("--model", default=None, help="model file giving channel order and sample time (optional)")
+    p.add_argument("--bag", type=_path, required=True)
+    p.add_argument("--csv", type=_path, required=True)
+    p.add_argument("--model", type=_path, default=None, help="model file giving channel order and sample time (optional)")
     _add_topics(p)
 
     p = sub.add_parser("recover", help="rewrite a hard-killed recording (no metadata.yaml) as a closed bag")
-    p.add_argument("--bag", required=True, help="the unclosed bag directory")
-    p.add_argument("--out", required=True, help="new bag directory (must not exist)")
+    p.add_argument("--bag", type=_path, required=True, help="the unclosed bag directory")
+    p.add_argument("--out", type=_path, required=True, help="new bag directory (must not exist)")
     return parser
 
 
@@ -216,6 +224,8 @@ def _cmd_analyze(args) -> int:
     for path, what in ((args.json_out, "--json"), (args.repair_out, "--repair-out")):
         if path and path != "-":
             _check_output_file(path, what)
+    if args.report:
+        _check_output_directory(args.report, "--report")
     # One analysis, then the process ends: the cyclic garbage collector only costs time here (its passes
     # over the objects of the imports and the analysis: 27 ms at 20x20 and 56 ms at 100x40 by its own
     # callbacks), while what the analysis frees is freed by reference counting (the peak memory stays the
@@ -307,9 +317,32 @@ def _check_output_file(path: str, flag: str) -> None:
         raise InputError(f"{flag} {path}: is a directory: expected the path of a file to write")
     parent = p.parent
     if not parent.is_dir():
+        if parent.exists():
+            raise InputError(f"{flag} {path}: {parent} is a file, not a directory")
         raise InputError(f"{flag} {path}: directory {parent} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK) or (p.exists() and not os.access(p, os.W_OK)):
         raise InputError(f"{flag} {path}: not writable")
+
+
+def _check_output_directory(path: str, flag: str) -> None:
+    """Refuse, before any work, a directory to write into that cannot be made or written (a file of that
+    name, a file on its way, a read-only ancestor): one line naming the flag and the path.  A directory
+    that does not exist yet is made later, with its missing parents.
+
+    Raises
+    ------
+    InputError
+    """
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise InputError(f"{flag} {path}: is a file: expected a directory to write into")
+    ancestor = p
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise InputError(f"{flag} {path}: {ancestor} is a file, not a directory")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise InputError(f"{flag} {path}: {ancestor} is not writable")
 
 
 def _write_output(path: str, flag: str, write) -> None:
@@ -415,8 +448,13 @@ COMMANDS = {"analyze": _cmd_analyze, "reproduce": _cmd_reproduce, "simulate": _c
             "export": _cmd_export, "recover": _cmd_recover}
 
 
+#: Exit code when the standard output's reader closed it before the output was written (128 + SIGPIPE).
+BROKEN_PIPE = 141
+
+
 def main(argv=None) -> int:
-    """Entry point; returns the exit code (0 ran, 2 bad input)."""
+    """Entry point; returns the exit code (0 ran, 2 bad input, 130 interrupted, :data:`BROKEN_PIPE` the
+    output's reader went away)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if not args.command:
@@ -430,6 +468,13 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # The reader of the output went away (``| head``): what is left of the output goes nowhere, quietly,
+        # with the exit status of a command that SIGPIPE ended (the files written are complete).
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+        return BROKEN_PIPE
 
 
 def main_analyze() -> int:
