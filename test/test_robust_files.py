@@ -444,6 +444,27 @@ def test_damaged_csv_bytes_give_data_or_a_one_line_error(work, raw):
     ("t,r_y1,u1,ü2,y1\n0,1,1,1,1\n0.5,1,1_0,1,1\n".encode(), r"line 3, column 'u1': expected a number, got '1_0'"),
     ("t,r_y1,u1,ü2,y1\n0,1,1,1,1\n0.5,1,1,1,\u0661\u0662\n".encode(), r"line 3, column 'y1': expected a number"),
     ("t,r_y1,u1,ü2,y1\n0,1,1,1,1\n0.5,1,1,1,\uff11\n".encode(), r"line 3, column 'y1': expected a number"),
+    # The line and character of a byte that is not UTF-8 (a Latin-1 degree sign in a cell).
+    (b"t,r_y1,u1,\xc3\xbc2,y1\n0,1,1,1,1\n0.5,1,1,1,2\xb0\n", r"not UTF-8 text \(byte 38\) on line 3, character 12: "
+                                                           r"expected a CSV file$"),
+    # A quote left open in a column the model does not read: every line after it was one cell, the rest of the
+    # log lost with exit 0 (3 of 5 rows read).
+    ("t,r_y1,u1,ü2,y1,note\n0,1,1,1,1,\n0.5,1,1,1,1,\"stuck\n1,1,1,1,1,\n1.5,1,1,1,1,\n2,1,1,1,1,\n".encode(),
+     r"line 3: not valid CSV: a quote \(\"\) opened on this line is never closed: the file ends inside it$"),
+    # ... and in a long log, where the open cell passes the csv module's field limit first.
+    ("t,r_y1,u1,ü2,y1,note\n0,1,1,1,1,\"stuck\n" + "".join(f"{k},1,1,1,1,\n" for k in range(1, 12_000)),
+     r"line 2: not valid CSV: a quote \(\"\) opened on this line is not closed [\d,]+ lines further on, where the "
+     r"quoted cell passes 131,072 characters: expected numbers$"),
+    # A quoted cell over two lines: the lines after it keep their own numbers (line 5 was reported as 4).
+    ("t,r_y1,u1,ü2,y1,note\n0,1,1,1,1,\"two\nlines\"\n0.5,1,1,1,1,\n1,1,x,1,1,\n".encode(),
+     r"line 5, column 'u1': expected a number, got 'x'$"),
+    # A header with another separator: what was read, and the separator.
+    ("t;r_y1;u1;ü2;y1\n0;1;1;1;1\n".encode(), r"line 1 \(header\): missing columns 't', 'r_y1', 'u1', 'ü2', 'y1' "
+                                             r"\(expected .*\); the header reads 't;r_y1;u1;ü2;y1', its columns "
+                                             r"separated by semicolons: expected commas$"),
+    # A character that does not print, escaped (a zero-width space before u1).
+    ("t,r_y1,\u200bu1,ü2,y1\n0,1,1,1,1\n".encode(), r"missing column 'u1' \(expected .*\); the header reads "
+                                                  r"'t,r_y1,\\u200bu1,ü2,y1'$"),
 ])
 def test_edge_case_csv_refused_with_one_line(work, body, match):
     path = work / "edge.csv"

@@ -448,15 +448,23 @@ def parse_csv_text(text: str, model: PlantModel, source: str = "data", cells=Non
                       extra=extra, unusable=unusable)
 
 
-def _csv_error_text(exc: csv.Error) -> str:
-    """The csv module's error in the terms of a log file: its two that a damaged export gives, said as what
-    was found and what was expected; any other as the module words it."""
+def _csv_error_text(exc: csv.Error, lines: int = 1) -> str:
+    """The csv module's error in the terms of a log file: those a damaged export gives, said as what was
+    found and what was expected; any other as the module words it.  ``lines``: the lines the record it
+    failed in had taken (more than one: a quoted cell ran over line ends)."""
     text = str(exc)
     if text.startswith("new-line character seen in unquoted field"):
         return "a carriage return (\\r) inside the line, outside quotes: expected lines ending in \\n or \\r\\n"
+    if text.startswith("unexpected end of data"):
+        return "a quote (\") opened on this line is never closed: the file ends inside it"
     found = re.match(r"field larger than field limit \((\d+)\)", text)
     if found:
+        if lines > 1:
+            return (f"a quote (\") opened on this line is not closed {lines - 1:,} lines further on, where the "
+                    f"quoted cell passes {int(found.group(1)):,} characters: expected numbers")
         return f"a field longer than {int(found.group(1)):,} characters: expected numbers"
+    if "expected" in text and "after" in text and '"' in text:    # '","' expected after '"': a quote inside a cell
+        return f"a quote (\") inside a quoted cell: {text}"
     return text
 
 
@@ -483,8 +491,22 @@ def _read_header(text: str, needed: list, layout: str, source: str) -> list:
     if missing:
         raise DataFileError(
             f"{source}: line 1 (header): missing column{'s' if len(missing) > 1 else ''} "
-            f"{', '.join(repr(m) for m in missing)} (expected {layout} with the model's names)")
+            f"{', '.join(repr(m) for m in missing)} (expected {layout} with the model's names); "
+            f"{_header_seen(first)}")
     return header
+
+
+def _header_seen(first: str, limit: int = 120) -> str:
+    """What the header line holds, for the message of a missing column: the line as read (characters that
+    do not print, such as a second byte-order mark or a zero-width space, escaped), and the separator
+    when it is not a comma."""
+    line = first.split("\n", 1)[0].rstrip("\r")
+    shown = repr(line[:limit])[1:-1] + ("..." if len(line) > limit else "")
+    if "," not in line:
+        for sep, name in ((";", "semicolons"), ("\t", "tabs"), ("|", "bars")):
+            if sep in line:
+                return f"the header reads '{shown}', its columns separated by {name}: expected commas"
+    return f"the header reads '{shown}'"
 
 
 def _other_columns(header: list, needed: list):
@@ -563,13 +585,17 @@ def _careful_table(text: str, header: list, needed: list, idx: list, other_idx: 
         The line (and column) of the first row of another length, the first needed cell that is not
         a finite number, or the first line the csv module cannot read; no data lines.
     """
-    reader = csv.reader(io.StringIO(text))
+    # strict: a quote left open refuses the file where it opens, instead of taking every line after it as
+    # one cell (the rest of the log lost without a word when that cell is one the model does not read).
+    reader = csv.reader(io.StringIO(text), strict=True)
     next(reader)
     n_fields = len(header)
     rows, lines = [], []
     cells = [[] for _ in other_idx]
+    read = reader.line_num        # lines read: a record starts on the next one (a quoted cell may span lines)
     try:
-        for line_no, fields in enumerate(reader, start=2):
+        for fields in reader:
+            line_no, read = read + 1, reader.line_num
             if not fields or all(not f.strip() for f in fields):
                 continue  # blank line
             if len(fields) != n_fields:
@@ -592,7 +618,8 @@ def _careful_table(text: str, header: list, needed: list, idx: list, other_idx: 
             for column, k in zip(cells, other_idx):
                 column.append(fields[k])
     except csv.Error as exc:
-        raise DataFileError(f"{source}: line {reader.line_num}: not valid CSV: {_csv_error_text(exc)}") from None
+        raise DataFileError(f"{source}: line {read + 1}: not valid CSV: "
+                            f"{_csv_error_text(exc, reader.line_num - read)}") from None
     if not rows:
         raise DataFileError(f"{source}: no data lines after the header")
     return np.array(rows, dtype=float), lines, cells
@@ -657,4 +684,5 @@ def _refuse_spacing(t: np.ndarray, lines: list, ts: float, source: str) -> None:
         raise DataFileError(f"{source}: line {lines[k + 1]}: t = {t[k + 1]:g} s {what} t = {t[k]:g} s on line "
                             f"{lines[k]}: expected t to increase by sample_time {ts:g} s")
     raise DataFileError(f"{source}: line {lines[k + 1]}: t = {t[k + 1]:g} s follows t = {t[k]:g} s: a step of "
-                        f"{step:g} s (expected sample_time {ts:g} s; a gap or an irregular sample)")
+                        f"{step:g} s (expected sample_time {ts:g} s; a gap or an irregular sample: every step a "
+                        f"whole number of sample times, within {SPACING_TOLERANCE * 100:g} % of one)")

@@ -28,4 +28,14 @@ def read_text(path, error_cls, kind: str, expected: str, encoding: str = "utf-8"
     try:
         return raw.decode(encoding)
     except UnicodeDecodeError as exc:
-        raise error_cls(f"{path}: not UTF-8 text (byte {exc.start}): expected {expected}") from None
+        raise error_cls(f"{path}: not UTF-8 text (byte {exc.start}) {_where_in_text(raw, exc.start)}: expected "
+                        f"{expected}") from None
+
+
+def _where_in_text(raw: bytes, pos: int) -> str:
+    """``on line L, character C`` of the byte at offset ``pos`` of ``raw`` (both from 1; the characters of
+    the line before it counted as UTF-8, each byte that is not counted as one)."""
+    start = raw.rfind(b"\n", 0, pos) + 1
+    before = raw[start:pos].decode("utf-8", errors="replace")
+    line = raw.count(b"\n", 0, pos) + 1
+    return f"on line {line}, character {len(before) + 1}"
