@@ -198,6 +198,33 @@ BAD_FILES = {
     "sample_time a list": (_replace_line("sample_time", "sample_time: [1.0]"), r"key 'sample_time': expected a positive number of seconds, got \[1.0\]"),
     "sample_time a boolean": (_replace_line("sample_time", "sample_time: true"), r"key 'sample_time': expected a positive number of seconds, got True"),
     "name not a string": (GOOD + "name: [1, 2]\n", r"key 'name': expected a string"),
+    # An explicit tag whose constructor refuses the value (a traceback before): its line and column.
+    "!!int on a fraction": (_replace_line("sample_time", "sample_time: !!int 1.5"),
+                            r"not valid YAML at line 1, column 14: '1.5' cannot be read as !!int \(ValueError"),
+    "!!float on a decimal comma": (
+        _replace_line("gain", 'gain: [[!!float "4,05", 1.77, 5.88], [5.39, 5.72, 6.90], [4.38, 4.42, 7.20]]'),
+        r"not valid YAML at line \d+, column \d+: '4,05' cannot be read as !!float"),
+    "!!bool on a word": (GOOD + "integrating: [[!!bool maybe, false, false], [false, false, false], [false, false, false]]\n",
+                         r"not valid YAML at line \d+, column \d+: 'maybe' cannot be read as !!bool"),
+    "!!timestamp on a word": (GOOD + "name: !!timestamp tuesday\n", r"not valid YAML at line \d+, column \d+: 'tuesday' "
+                                                                   r"cannot be read as !!timestamp"),
+    "!!map on a list": (_replace_line("outputs", "outputs: !!map [y1, y2, y3]"),
+                        r"not valid YAML at line \d+, column 10: expected a mapping for !!map, got a sequence"),
+    "a merge key": ("base: &b {sample_time: 1.0}\n<<: *b\n" + GOOD, r"not valid YAML at line 2, column 1: a merge key "
+                                                                     r"\(<<\) is not read in a model file"),
+    # YAML 1.1's yes/no/on/off are not booleans here (YAML 1.2, as the numbers): silently true before.
+    "yes and no as integrating": (
+        GOOD + "integrating: [[no, off, false], [yes, no, false], [false, false, false]]\n",
+        r"key 'integrating': row 1, column 1: expected true or false, got 'no'"),
+    "yes as a key": (GOOD + "yes: 1\n", r"unknown key 'yes'"),
+    # A key with another name an engineer uses: the hint names the model file's key.
+    "dead_time for delay": (_replace_line("delay", "dead_time: [[6, 7, 6], [4, 3, 3], [5, 5, 0]]"),
+                            r"unknown key 'dead_time' \(did you mean 'delay'\?\)"),
+    # A few lines of nested aliases expand to billions of values (a "billion laughs"): refused at once, not after
+    # minutes and gigabytes (or a MemoryError traceback).
+    "billion laughs": (GOOD + "x: &a0 [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n"
+                       + "".join(f"x{k}: &a{k} [{', '.join([f'*a{k - 1}'] * 9)}]\n" for k in range(1, 11)),
+                       r"not a model file: its aliases expand to more than 20,000,000 values"),
 }
 
 
@@ -256,3 +283,28 @@ def test_analyze_exits_2_on_bad_model(tmp_path):
                           capture_output=True, text=True)
     assert proc.returncode == 2
     assert "missing key 'gain'" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_names_that_read_as_numbers_or_booleans_round_trip(tmp_path):
+    """A name the loader reads as a number or a boolean unquoted (YAML 1.2: ``2e3``, ``1E3``, ``NO`` is a plain
+    string here, ``true`` is not) is written quoted, so a written model file loads back (``--repair-out`` wrote
+    ``name: 2e3``, which the loader then refused as a number)."""
+    text = (GOOD.replace("inputs:", "name: '2e3'\ninputs:", 1).replace("[u1, u2, u3]", "['1e3', 'true', NO]")
+            .replace("[y1, y2, y3]", "['2E1', 'off', '010']"))
+    model = load_model(_write(tmp_path, text))
+    assert model.name == "2e3" and model.inputs == ("1e3", "true", "NO") and model.outputs == ("2E1", "off", "010")
+    out = tmp_path / "written.yaml"
+    save_model(model, out)
+    assert load_model(out) == model
+
+
+def test_a_model_file_longer_than_the_limit_or_endless_is_refused(tmp_path, monkeypatch):
+    """``--model /dev/zero`` read until the memory ran out (a MemoryError traceback)."""
+    import mpm_monitor.io.model_file as mf
+
+    monkeypatch.setattr(mf, "MAX_MODEL_BYTES", 1000)
+    with pytest.raises(ModelFileError, match=r"^/dev/zero: longer than 1,000 bytes: expected a YAML model file$"):
+        load_model("/dev/zero")
+    path = _write(tmp_path, GOOD + "#" * 1000 + "\n")
+    with pytest.raises(ModelFileError, match=r"longer than 1,000 bytes"):
+        load_model(path)

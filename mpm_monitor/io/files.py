@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 
-def read_text(path, error_cls, kind: str, expected: str, encoding: str = "utf-8") -> str:
+def read_text(path, error_cls, kind: str, expected: str, encoding: str = "utf-8", max_bytes=None) -> str:
     """The text of a file, or ``error_cls`` with one line naming the file.
 
     Parameters
@@ -19,12 +19,21 @@ def read_text(path, error_cls, kind: str, expected: str, encoding: str = "utf-8"
         What the file should be ("a CSV file"), for the message.
     encoding : str
         "utf-8", or "utf-8-sig" to accept a byte-order mark.
+    max_bytes : int, optional
+        Refuse a file longer than this (bytes), without reading more of it (a device such as
+        ``/dev/zero`` never ends).
     """
     path = Path(path)
     try:
-        raw = path.read_bytes()
+        if max_bytes is None:
+            raw = path.read_bytes()
+        else:
+            with open(path, "rb") as f:
+                raw = f.read(max_bytes + 1)
     except OSError as exc:
         raise error_cls(f"{path}: cannot read {kind}: {exc.strerror or exc}") from None
+    if max_bytes is not None and len(raw) > max_bytes:
+        raise error_cls(f"{path}: longer than {max_bytes:,} bytes: expected {expected}")
     try:
         return raw.decode(encoding)
     except UnicodeDecodeError as exc:

@@ -4,8 +4,9 @@ The schema is described in ``docs/interfaces.md``.  Files are loaded with PyYAML
 (libyaml's parser when present): a Python tag is refused, never run.  Numbers are read as YAML 1.2
 (and JSON) write them, not by YAML 1.1's wider rules, which would silently turn a file into another
 model: ``5e-05`` is a number (1.1: a string), ``010`` is ten (1.1: octal eight), ``1:30`` is not
-a number (1.1: ninety, base 60), ``1_0`` is not a number.  A key given twice is refused (1.1: the
-last one wins).
+a number (1.1: ninety, base 60), ``1_0`` is not a number.  Booleans too: ``true`` and ``false`` only
+(1.1 also ``yes``, ``no``, ``on``, ``off``: an output named ``NO`` was ``False``).  A key given twice is
+refused (1.1: the last one wins).  The writer quotes a name the loader would read otherwise.
 """
 
 from __future__ import annotations
@@ -96,6 +97,14 @@ def _names(data: Mapping, key: str, source: str) -> tuple:
 KNOWN_KEYS = ("sample_time", "inputs", "outputs", "disturbances", "gain", "time_constant", "delay", "lead",
               "time_constant2", "integrating", "step_response", "ramp", "input_nominal", "output_nominal",
               "disturbance_nominal", "name")
+#: Other names a control engineer gives a key (lower case, ``_`` for spaces and dashes) -> the model file's key,
+#: for the hint of an unknown key (``dead_time`` is closer in spelling to ``sample_time`` than to ``delay``).
+KEY_SYNONYMS = {"dead_time": "delay", "deadtime": "delay", "time_delay": "delay", "theta": "delay",
+                "lag": "time_constant", "tau": "time_constant", "time_constants": "time_constant", "k": "gain",
+                "gains": "gain", "kp": "gain", "tau2": "time_constant2", "second_time_constant": "time_constant2",
+                "integrator": "integrating", "integrators": "integrating", "ts": "sample_time", "dt": "sample_time",
+                "sampling_time": "sample_time", "mvs": "inputs", "cvs": "outputs", "dvs": "disturbances",
+                "step_responses": "step_response", "delays": "delay", "leads": "lead"}
 #: Keys of the parametric form, which a step-response model (key ``step_response``) replaces.
 PARAMETRIC_ONLY = ("gain", "time_constant", "delay", "lead", "time_constant2", "integrating")
 
@@ -108,7 +117,8 @@ def _check_keys(data: Mapping, source: str) -> None:
         if key in KNOWN_KEYS:
             continue
         text = str(key)
-        near = difflib.get_close_matches(text, KNOWN_KEYS, n=1, cutoff=0.6)
+        meant = KEY_SYNONYMS.get(text.lower().replace("-", "_").replace(" ", "_"))
+        near = [meant] if meant else difflib.get_close_matches(text, KNOWN_KEYS, n=1, cutoff=0.6)
         hint = f" (did you mean '{near[0]}'?)" if near else ""
         raise ModelFileError(f"{source}: unknown key {text!r}{hint}: a model file holds only the keys "
                              f"{', '.join(KNOWN_KEYS)}")
@@ -257,13 +267,59 @@ def _construct_float(loader, node) -> float:
     return float(text)
 
 
+_BOOL_TAG, _MERGE_TAG = "tag:yaml.org,2002:bool", "tag:yaml.org,2002:merge"
+_BOOL = re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$")
+
+
+def _strict_resolvers(cls) -> None:
+    """Give ``cls`` (a PyYAML loader or dumper class) YAML 1.2's numbers and booleans in place of YAML 1.1's."""
+    cls.yaml_implicit_resolvers = {first: [(tag, rx) for tag, rx in resolvers
+                                           if tag not in (_INT_TAG, _FLOAT_TAG, _BOOL_TAG)]
+                                   for first, resolvers in cls.yaml_implicit_resolvers.items()}
+    cls.add_implicit_resolver(_INT_TAG, _INT, list("-+0123456789"))
+    cls.add_implicit_resolver(_FLOAT_TAG, _FLOAT, list("-+0123456789."))
+    cls.add_implicit_resolver(_BOOL_TAG, _BOOL, list("tTfF"))
+
+
 def _strict_loader(base):
-    """``base`` (PyYAML's SafeLoader or CSafeLoader) with YAML 1.2's numbers and unique keys (module docstring)."""
+    """``base`` (PyYAML's SafeLoader or CSafeLoader) with YAML 1.2's numbers and booleans and unique keys
+    (module docstring); a value an explicit tag's constructor refuses (``!!int 1.5``) and a merge key are
+    errors with their line and column."""
 
     class Loader(base):
+        def construct_object(self, node, deep=False):
+            try:
+                return super().construct_object(node, deep=deep)
+            except yaml.YAMLError:
+                raise
+            except (ValueError, TypeError, KeyError, AttributeError, OverflowError, IndexError) as exc:
+                tag = str(node.tag).replace("tag:yaml.org,2002:", "!!")
+                what = repr(node.value)[:40] if isinstance(node, yaml.ScalarNode) else f"this {node.id}"
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"{what} cannot be read as {tag} ({type(exc).__name__}: {exc})"[:200],
+                    node.start_mark) from None
+
+        def construct_document(self, node):
+            try:
+                return super().construct_document(node)
+            except yaml.YAMLError:
+                raise
+            except (ValueError, TypeError, KeyError, AttributeError, OverflowError, IndexError) as exc:
+                # A constructor that runs late (the lists and mappings are filled after their nodes).
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"a value its tag does not fit ({type(exc).__name__}: {exc})"[:200], None) from None
+
         def construct_mapping(self, node, deep=False):
+            if not isinstance(node, yaml.MappingNode):      # an explicit !!map on a list or a scalar
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"expected a mapping for {str(node.tag).replace('tag:yaml.org,2002:', '!!')}, "
+                    f"got a {node.id}", node.start_mark)
             seen = set()
             for key_node, _ in node.value:
+                if key_node.tag == _MERGE_TAG:
+                    raise yaml.constructor.ConstructorError(
+                        None, None, "a merge key (<<) is not read in a model file: write its keys out",
+                        key_node.start_mark)
                 key = self.construct_object(key_node, deep=True)
                 try:
                     duplicate = key in seen
@@ -275,10 +331,7 @@ def _strict_loader(base):
                 seen.add(key)
             return super().construct_mapping(node, deep=deep)
 
-    Loader.yaml_implicit_resolvers = {first: [(tag, rx) for tag, rx in resolvers if tag not in (_INT_TAG, _FLOAT_TAG)]
-                                      for first, resolvers in base.yaml_implicit_resolvers.items()}
-    Loader.add_implicit_resolver(_INT_TAG, _INT, list("-+0123456789"))
-    Loader.add_implicit_resolver(_FLOAT_TAG, _FLOAT, list("-+0123456789."))
+    _strict_resolvers(Loader)
     Loader.add_constructor(_INT_TAG, lambda loader, node: int(loader.construct_scalar(node)))
     Loader.add_constructor(_FLOAT_TAG, _construct_float)
     return Loader
@@ -286,6 +339,14 @@ def _strict_loader(base):
 
 _LOADER = _strict_loader(yaml.SafeLoader)
 _C_LOADER = _strict_loader(yaml.CSafeLoader) if hasattr(yaml, "CSafeLoader") else None
+
+
+class _Dumper(yaml.SafeDumper):
+    """PyYAML's safe dumper with the loader's YAML 1.2 numbers and booleans: a string that the loader would read
+    as a number or a boolean (a name ``2e3`` or ``NO``... ``2e3`` is a plain string to YAML 1.1) is quoted."""
+
+
+_strict_resolvers(_Dumper)
 
 
 def _parse_yaml(text: str):
@@ -303,14 +364,41 @@ def _parse_yaml(text: str):
     return yaml.load(text, Loader=_LOADER)
 
 
+#: Values (numbers, strings, ...) a model file may hold once its aliases are expanded: a 100 x 40 step-response
+#: model of 300 coefficients holds 1.2 million.  A few lines of nested aliases can expand to billions (a
+#: "billion laughs"), which every reader of the lists would then walk.
+MAX_VALUES = 20_000_000
+
+
+def _expanded_size(data) -> int:
+    """The values ``data`` holds with its aliases expanded (a list or mapping reached twice counts twice),
+    counted once per distinct list or mapping; stops counting past :data:`MAX_VALUES`."""
+    sizes: dict = {}
+    stack = [(data, False)]
+    while stack:
+        x, done = stack.pop()
+        if not isinstance(x, (list, dict)) or (id(x) in sizes and not done):
+            continue
+        items = list(x.values()) + list(x.keys()) if isinstance(x, dict) else x
+        if done:
+            total = sum(sizes.get(id(v), 1) if isinstance(v, (list, dict)) else 1 for v in items)
+            sizes[id(x)] = min(total, MAX_VALUES + 1)
+            continue
+        sizes[id(x)] = 0                       # on the stack (a cycle counts as nothing more)
+        stack.append((x, True))
+        stack.extend((v, False) for v in items if isinstance(v, (list, dict)) and id(v) not in sizes)
+    return sizes.get(id(data), 1) if isinstance(data, (list, dict)) else 1
+
+
 #: Nesting of lists and mappings beyond which a text is left to the pure-Python parser (a model file
 #: nests 4 deep; that parser refuses a nesting its recursion cannot follow, see :func:`load_model`).
 _MAX_DEPTH = 32
 
 
 def _depth_within(data, limit: int) -> bool:
-    """Whether the lists and mappings of ``data`` nest at most ``limit`` deep."""
-    level, depth = [data], 0
+    """Whether the lists and mappings of ``data`` nest at most ``limit`` deep (each distinct one looked at
+    once: the aliases of a file can repeat a list at every level)."""
+    level, depth, seen = [data], 0, set()
     while level:
         depth += 1
         if depth > limit:
@@ -321,7 +409,7 @@ def _depth_within(data, limit: int) -> bool:
                 nxt.extend(v for v in x.values() if isinstance(v, (list, dict)))
             elif isinstance(x, list):
                 nxt.extend(v for v in x if isinstance(v, (list, dict)))
-        level = nxt
+        level = [x for x in nxt if id(x) not in seen and not seen.add(id(x))]
     return True
 
 
@@ -340,7 +428,7 @@ def load_model(path) -> PlantModel:
         the file and the key.
     """
     path = Path(path)
-    text = read_text(path, ModelFileError, "model file", "a YAML model file")
+    text = read_text(path, ModelFileError, "model file", "a YAML model file", max_bytes=MAX_MODEL_BYTES)
     try:
         data = _parse_yaml(text)
     except yaml.YAMLError as exc:
@@ -355,7 +443,15 @@ def load_model(path) -> PlantModel:
     if data is None:
         raise ModelFileError(f"{path}: empty file: expected a YAML model with sample_time, inputs, outputs, gain, "
                              f"time_constant, delay")
+    if _expanded_size(data) > MAX_VALUES:
+        raise ModelFileError(f"{path}: not a model file: its aliases expand to more than {MAX_VALUES:,} values "
+                             f"(expected lists of the model's numbers)")
     return model_from_dict(data, source=str(path))
+
+
+#: Largest model file read (bytes): a 100 x 40 step-response model of 300 coefficients is about 10 MB.  A larger
+#: file, or a device that never ends (``/dev/zero``), is refused before it fills the memory.
+MAX_MODEL_BYTES = 256 * 2 ** 20
 
 
 def save_model(model: PlantModel, path) -> None:
@@ -382,7 +478,7 @@ def dump_model(model: PlantModel) -> str:
     d = model.to_dict()
 
     def flow(v):
-        return yaml.safe_dump(v, default_flow_style=True).strip()
+        return yaml.dump(v, Dumper=_Dumper, default_flow_style=True).strip()
 
     def row(values):
         return "[" + ", ".join("true" if v is True else "false" if v is False else yaml_number(v) for v in values) + "]"
