@@ -4,6 +4,7 @@ The located rows and elements are compared with the ground truth of the simulati
 model differ exactly in the listed elements).  The full seed count is in bench/monte_carlo.py.
 """
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -126,8 +127,22 @@ def test_report_has_the_contract_keys():
 
 def test_too_few_samples_is_a_clear_error():
     case, data = _run_case("3.2", 4, samples=60)
-    with pytest.raises(DataFileError, match=r"60 samples; .* need at least \d+ samples"):
+    with pytest.raises(DataFileError, match=r"60 samples; .* need at least \d+ samples$"):
         analyze(case.model, data, FAST)
+
+
+def test_a_delay_that_makes_the_log_too_short_is_named():
+    """A delay typed in the wrong unit (500 s for 5 s) made a 400-sample log "too short" without a word of
+    the delay that set the tests' lags."""
+    case, data = _run_case("3.2", 4, samples=400)
+    delay = case.model.delay.copy()
+    delay[1, 2] = 500.0
+    model = case.model.replace(delay=delay)
+    with pytest.raises(DataFileError, match=r"400 samples; .* max_delay=505 need at least \d+ samples; max_delay is "
+                                            r"the model's longest delay \+ 5 samples: \(y2, u3\) 500 s, 500 samples$"):
+        analyze(model, data, FAST)
+    with pytest.raises(DataFileError, match=r"need at least \d+ samples$"):     # max_delay given: not the model's
+        analyze(model, data, dataclasses.replace(FAST, max_delay=600))
 
 
 def test_channels_must_match_the_model():

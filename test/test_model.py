@@ -308,3 +308,4 @@ def test_a_model_file_longer_than_the_limit_or_endless_is_refused(tmp_path, monk
     path = _write(tmp_path, GOOD + "#" * 1000 + "\n")
     with pytest.raises(ModelFileError, match=r"longer than 1,000 bytes"):
         load_model(path)
+

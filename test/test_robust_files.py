@@ -884,3 +884,17 @@ def test_a_lead_of_absurd_size_is_refused_in_one_line(files, capsys):
     code, out, err = _run_cli(capsys, ["analyze", "--model", str(path), "--data", str(files["csv"]), "--no-repair"])
     assert code == 2 and len(err.splitlines()) == 1 and "Traceback" not in err, err
     assert re.search(r"with gains up to 2e\+299 in .*lead_huge\.yaml: too large for the analysis", err), err
+
+
+def test_a_lag_or_lead_of_1e308_gives_no_numpy_warning_on_stderr(files, capsys, tmp_path):
+    """A time constant of 1e308 s overflowed the settling time (numpy's warning on stderr, then "the analysis
+    broke down numerically"): it is now a lag that never settles, analysed; a lead of 1e308 s is refused by
+    the scale check in one line, without numpy's overflow warnings before it."""
+    slow = tmp_path / "slow.yaml"
+    save_model(GOOD_MODEL.replace(time_constant=np.array([[1e308, 1.0], [1.0, 1.0]])), slow)
+    code, out, err = _run_cli(capsys, ["analyze", "--model", str(slow), "--data", str(files["csv"]), "--no-repair"])
+    assert code == 0 and err == "", err
+    lead = tmp_path / "lead.yaml"
+    save_model(GOOD_MODEL.replace(lead=np.array([[1e308, 0.0], [0.0, 0.0]])), lead)
+    code, out, err = _run_cli(capsys, ["analyze", "--model", str(lead), "--data", str(files["csv"])])
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "too large for the analysis" in err, err

@@ -461,7 +461,12 @@ def main(argv=None) -> int:
         parser.print_help()
         return 2
     try:
-        return COMMANDS[args.command](args)
+        # numpy's floating-point warnings (an overflow on values or parameters too large for the analysis) are
+        # not printed: the analysis checks the scale itself and says what is wrong in one line.
+        import numpy as np
+
+        with np.errstate(all="ignore"):
+            return COMMANDS[args.command](args)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

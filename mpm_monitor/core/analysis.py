@@ -568,6 +568,23 @@ def load_tests(model: Optional[PlantModel] = None) -> None:
         discretize(model)
 
 
+def longest_delay_note(model: PlantModel, options, layout, enough: Callable) -> str:
+    """``; max_delay is the model's longest delay + 5 samples: (y1, u1) 500 s, 500 samples`` when that delay is
+    why the data are too short: ``options.max_delay`` not given, and ``enough(least)`` for the layout of the
+    tests at their least lags (``max_delay`` 10, a :class:`~mpm_monitor.core.regressions.RegressionLayout`).
+    A delay in the wrong unit (500 s for 5 s) otherwise reads as a short log.  '' otherwise."""
+    if options.max_delay is not None or model.n_outputs == 0 or layout.max_delay <= 10:
+        return ""
+    from .regressions import regression_layout
+
+    if not enough(regression_layout(model, dataclasses.replace(options, max_delay=10))):
+        return ""
+    d = model.delay_samples
+    i, j = np.unravel_index(int(np.argmax(d)), d.shape)
+    return (f"; max_delay is the model's longest delay + 5 samples: ({model.outputs[i]}, {model.columns[j]}) "
+            f"{int(d[i, j]) * model.sample_time:g} s, {int(d[i, j])} samples")
+
+
 def _guarded(model: PlantModel, data: LoggedData, *args, **how):
     """:func:`_detect` on ``data`` in deviations, its numerical errors turned into a ``DataFileError``
     (:func:`~mpm_monitor.core.logged_data.numerical_breakdown`)."""
@@ -607,7 +624,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     plan = plan_gaps(data, layout.start, options.max_gap)
     restarts = None
     if plan is not None:          # data with gaps: the segments long enough for a regression row, stacked
-        check_gap_rows(plan, layout, options, src)
+        check_gap_rows(plan, layout, options, src, model)
         r, u, y, dv = (plan.take(x) for x in (r, u, y, dv))
         grid = plan.take(data.grid_index)     # the model runs through a short gap (segment_signals)
         restarts = unknown_starts(plan.local_segments, grid, plan.max_gap, data.fill_on_grid())
@@ -622,7 +639,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     split_light = light_jobs(options.jobs, n, model)     # the model run, Gram products, SVD
     if n < layout.min_samples and plan is None:
         raise DataFileError(f"{src}: {n} samples; the tests with na={options.na}, nb={options.nb}, "
-                            f"max_delay={layout.max_delay} need at least {layout.min_samples} samples")
+                            f"max_delay={layout.max_delay} need at least {layout.min_samples} samples"
+                            f"{longest_delay_note(model, options, layout, lambda least: n >= least.min_samples)}")
     if signals is None:
         sig = compute_signals(model, r, u, y, options.initial_state, dv=dv, jobs=split_light) if plan is None else \
             segment_signals(model, r, u, y, plan.local_segments, options.initial_state, dv=dv, grid=grid,
@@ -964,11 +982,12 @@ def detect_unless_coloured(model: PlantModel, data: LoggedData, options: Analysi
                     unless_coloured=True, settle=settle, beside=beside)
 
 
-def check_gap_rows(plan, layout, options, src: str) -> None:
+def check_gap_rows(plan, layout, options, src: str, model: Optional[PlantModel] = None) -> None:
     """Refuse data with gaps whose segments give fewer regression rows than the tests need.
 
     The tests need ``layout.min_samples`` samples of one contiguous span, that is
     ``min_samples - start`` regression rows; data with gaps must give as many rows from its segments.
+    ``model``, when given, names the delay that sets ``max_delay`` (:func:`longest_delay_note`).
 
     Raises
     ------
@@ -979,8 +998,12 @@ def check_gap_rows(plan, layout, options, src: str) -> None:
     if plan.rows_kept >= need:
         return
     n_seg, n_gaps = len(plan.segments), plan.gap_lengths.size
+
+    def enough(least) -> bool:     # whether the rows would do for the tests at their least lags
+        return plan.rows_kept >= least.min_samples - least.start
     raise DataFileError(f"{src}: {plan.rows_kept} regression rows from {len(plan.used)} of {n_seg} spans between "
                         f"{n_gaps} gap{'s' if n_gaps != 1 else ''} ({plan.samples_missing} samples missing; a span "
                         f"gives rows after its first {layout.start} samples); the tests with na={options.na}, "
                         f"nb={options.nb}, max_delay={layout.max_delay} need at least {need} rows (is the sample "
-                        f"time right?)")
+                        f"time right?)"
+                        f"{'' if model is None else longest_delay_note(model, options, layout, enough)}")

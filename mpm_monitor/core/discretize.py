@@ -661,6 +661,10 @@ def frequency_response(model: PlantModel, omega: np.ndarray, discrete: bool = Tr
     return out
 
 
+#: Cap of :func:`settling_samples` (far beyond any log): a lag so slow that its settling time overflows.
+MAX_SETTLING_SAMPLES = 2 ** 53
+
+
 def settling_samples(model: PlantModel, fraction: float = 1e-3) -> int:
     """Samples after which every element's free response has decayed below ``fraction``.
 
@@ -687,7 +691,8 @@ def settling_samples(model: PlantModel, fraction: float = 1e-3) -> int:
             el = model.discrete_element(i, j)
             n.append(el.delay + int(np.flatnonzero(el.num)[-1]) + 1)
         return int(max(n, default=0)) + 1
-    tau = (model.time_constant + model.time_constant2) / model.sample_time
-    n = model.delay_samples + np.ceil(tau * np.log(1.0 / fraction))
-    n = np.where(present, n, 0)
+    with np.errstate(over="ignore"):        # a lag of 1e308 s: never settles (capped below)
+        tau = (model.time_constant + model.time_constant2) / model.sample_time
+        n = model.delay_samples + np.ceil(tau * np.log(1.0 / fraction))
+    n = np.where(present, np.minimum(n, MAX_SETTLING_SAMPLES), 0)
     return int(np.max(n)) + 1
