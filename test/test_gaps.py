@@ -420,3 +420,24 @@ def test_a_logger_clock_that_drifts_keeps_every_row_on_its_own_sample(tmp_path, 
     kept = _drop(drifting, [2900])
     kept.column_fill = (drifting.t[[2900]], drifting.columns[[2900]])
     assert kept.fill_on_grid()[0].tolist() == [2900]
+
+
+def test_the_report_s_residual_plot_runs_the_model_as_the_analysis_does_and_breaks_at_gaps(case_32):
+    """The HTML report's residuals ran the model over a gappy log as if its rows were consecutive samples and
+    drew a line across every gap: the model now restarts after a gap (or runs through a short one, as the
+    analysis), and the plotted line has a break (NaN) at each gap."""
+    from mpm_monitor.core.signals import segment_signals
+    from mpm_monitor.io.plots import _broken_at_gaps, prediction_errors
+
+    case, data = case_32
+    gappy = _drop(data, list(range(1200, 1300)))         # a long gap: the model restarts after it
+    d = prediction_errors(case.model, gappy)
+    alone = prediction_errors(case.model, data.take(np.arange(1300, data.n_samples)))
+    np.testing.assert_allclose(d[1200:], alone, rtol=0, atol=1e-12)
+    short = _drop(data, [1500])
+    ref = segment_signals(case.model, short.r, short.u, short.y, short.segments, grid=short.grid_index, max_gap=20)
+    np.testing.assert_array_equal(prediction_errors(case.model, short, max_gap=20), ref.d)
+    t, y = _broken_at_gaps(gappy.t, d[:, 0], gappy.segments, 7)
+    assert np.isnan(y).sum() == 1 and np.isnan(t).sum() == 1
+    k = int(np.flatnonzero(np.isnan(t))[0])
+    assert t[k - 1] <= gappy.t[1199] and t[k + 1] == gappy.t[1200]

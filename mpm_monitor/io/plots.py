@@ -370,18 +370,40 @@ def plot_step_responses(report, model: PlantModel, path) -> Optional[Path]:
 # Residuals
 
 
-def prediction_errors(model: PlantModel, data, initial_state: str = "estimate") -> np.ndarray:
-    """``d = y - Phat [u | dv]`` of shape (n_samples, n_outputs) (:func:`~mpm_monitor.core.signals.compute_signals`)."""
+def prediction_errors(model: PlantModel, data, initial_state: str = "estimate", max_gap: Optional[int] = None) -> np.ndarray:
+    """``d = y - Phat [u | dv]`` of shape (n_samples, n_outputs) (:func:`~mpm_monitor.core.signals.compute_signals`).
+
+    On data with gaps, as the analysis runs the model (:func:`~mpm_monitor.core.signals.segment_signals`): through
+    a gap of at most ``max_gap`` samples, restarted after a longer one (``max_gap`` None: after every gap), never
+    as if the rows on either side of a gap were consecutive samples.
+    """
     from ..core.logged_data import in_deviations
-    from ..core.signals import compute_signals
+    from ..core.signals import compute_signals, segment_signals
 
     data = in_deviations(model, data)
     dv = getattr(data, "dv", None) if model.n_disturbances else None
+    segments = data.segments
+    if len(segments) > 1:
+        grid = {} if max_gap is None else {"grid": data.grid_index, "max_gap": int(max_gap),
+                                           "fill": data.fill_on_grid()}
+        return segment_signals(model, data.r, data.u, data.y, segments, initial_state, dv=dv, **grid).d
     return compute_signals(model, data.r, data.u, data.y, initial_state=initial_state, dv=dv).d
 
 
+def _broken_at_gaps(t: np.ndarray, d: np.ndarray, segments: list, stride: int) -> tuple:
+    """``(t, d)`` every ``stride``-th sample of each segment, a NaN between segments: a line plot is not drawn
+    across a gap (it would look like values where none were logged)."""
+    if len(segments) <= 1:
+        return t[::stride], d[::stride]
+    ts, ds = [], []
+    for a, b in segments:
+        ts += [t[a:b:stride], [np.nan]]
+        ds += [d[a:b:stride], np.full((1,) + d.shape[1:], np.nan)]
+    return np.concatenate(ts[:-1]), np.concatenate(ds[:-1])
+
+
 def plot_residuals(model: PlantModel, repaired: Optional[PlantModel], data, path,
-                   initial_state: str = "estimate") -> Path:
+                   initial_state: str = "estimate", max_gap: Optional[int] = None) -> Path:
     """Prediction error per output with the model as given and (if any) as repaired.
 
     Parameters
@@ -392,25 +414,30 @@ def plot_residuals(model: PlantModel, repaired: Optional[PlantModel], data, path
     data : LoggedData
     path : str or Path
     initial_state : {"estimate", "zero"}
+    max_gap : int, optional
+        Data with gaps: the longest gap the model runs through (the analysis's, ``report.gaps["max_gap"]``);
+        the lines break at every gap.
 
     Returns
     -------
     Path
     """
     plt = _pyplot()
-    before = prediction_errors(model, data, initial_state)
-    after = prediction_errors(repaired, data, initial_state) if repaired is not None and repaired != model else None
+    before = prediction_errors(model, data, initial_state, max_gap)
+    after = prediction_errors(repaired, data, initial_state, max_gap) \
+        if repaired is not None and repaired != model else None
     t = np.asarray(data.t, dtype=float)
     stride = max(1, int(np.ceil(t.size / MAX_POINTS)))
+    segments = data.segments
     ny = model.n_outputs
     fig, axes = plt.subplots(ny, 1, figsize=(9.0, 1.9 * ny + 0.6), sharex=True, squeeze=False)
     for k, ax in enumerate(axes[:, 0]):
         rms_b = float(np.sqrt(np.mean(before[:, k] ** 2)))
-        ax.plot(t[::stride], before[::stride, k], color=_COLORS["located"], lw=0.7,
+        ax.plot(*_broken_at_gaps(t, before[:, k], segments, stride), color=_COLORS["located"], lw=0.7,
                 label=f"model as given (RMS {rms_b:.4g})")
         if after is not None:
             rms_a = float(np.sqrt(np.mean(after[:, k] ** 2)))
-            ax.plot(t[::stride], after[::stride, k], color=_COLORS["clean"], lw=0.7, alpha=0.9,
+            ax.plot(*_broken_at_gaps(t, after[:, k], segments, stride), color=_COLORS["clean"], lw=0.7, alpha=0.9,
                     label=f"repaired model (RMS {rms_a:.4g})")
         ax.axhline(0.0, color="k", lw=0.5)
         ax.set_ylabel(f"d of {model.outputs[k]}", fontsize=8)

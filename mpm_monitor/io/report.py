@@ -282,7 +282,8 @@ def write_report(directory, model: PlantModel, data, report) -> Path:
             figs.append((steps, "Unit-step responses of each located element, each from the element's own "
                                 "sampled form: model as given, repaired model (and the repair's estimate where it "
                                 "was not applied)."))
-        figs.append((plots.plot_residuals(model, repaired, data, directory / "residuals.png"),
+        max_gap = report.gaps.get("max_gap") if getattr(report, "gaps", None) else None
+        figs.append((plots.plot_residuals(model, repaired, data, directory / "residuals.png", max_gap=max_gap),
                      "Prediction error d = y - model output per output, with the model as given and as repaired."))
     except OSError as exc:
         raise InputError(f"{directory}: cannot write figures: {exc.strerror or exc}") from None
