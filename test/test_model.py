@@ -192,7 +192,9 @@ BAD_FILES = {
     "duplicate output names": (_replace_line("outputs", "outputs: [y1, y3, y3]"), r"key 'outputs': names must be unique, repeated: y3"),
     "name both input and output": (_replace_line("outputs", "outputs: [y1, y2, u3]"), r"'inputs' and 'outputs': a name cannot be both"),
     "empty inputs": (_replace_line("inputs", "inputs: []"), r"key 'inputs': expected a non-empty list"),
-    "non-string name": (_replace_line("inputs", "inputs: [u1, 2, u3]"), r"key 'inputs': expected names as strings, got 2"),
+    "non-string name": (_replace_line("inputs", "inputs: [u1, 2, u3]"), r"key 'inputs': expected names as strings, got 2 "
+                                                                        r"\(a name that reads as a number or a boolean is "
+                                                                        r"written in quotes: '1e3'\)$"),
     "inputs not a list": (_replace_line("inputs", "inputs: u1"), r"key 'inputs': expected a list of names, got str"),
     "sample_time a string": (_replace_line("sample_time", "sample_time: one"), r"key 'sample_time': expected a positive number of seconds, got 'one'"),
     "sample_time a list": (_replace_line("sample_time", "sample_time: [1.0]"), r"key 'sample_time': expected a positive number of seconds, got \[1.0\]"),

@@ -898,3 +898,13 @@ def test_a_lag_or_lead_of_1e308_gives_no_numpy_warning_on_stderr(files, capsys, 
     save_model(GOOD_MODEL.replace(lead=np.array([[1e308, 0.0], [0.0, 0.0]])), lead)
     code, out, err = _run_cli(capsys, ["analyze", "--model", str(lead), "--data", str(files["csv"])])
     assert code == 2 and len(err.strip().splitlines()) == 1 and "too large for the analysis" in err, err
+
+
+def test_a_huge_operating_point_is_named_as_the_model_s(files, capsys, tmp_path):
+    """``output_nominal: [1e41]``: the log's setpoints (about 1) in deviations are 1e41, which was reported as
+    the log's value alone; the message names the operating point it was taken from."""
+    model = tmp_path / "nominal.yaml"
+    save_model(GOOD_MODEL.replace(output_nominal=np.array([1e41, 0.0])), model)
+    code, out, err = _run_cli(capsys, ["analyze", "--model", str(model), "--data", str(files["csv"])])
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert re.search(r"is 1e\+41 \(the logged value minus output_nominal 1e\+41 of .*\): too large", err), err

@@ -390,6 +390,9 @@ def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the mo
         gain = max(gain, float(np.max(high)))
     if model.is_step_response and model.step_response.size:
         gain = max(gain, float(np.max(np.abs(model.step_response))))
+    nominal = {"setpoint": ("output_nominal", model.output_nominal), "input": ("input_nominal", model.input_nominal),
+               "measured disturbance": ("disturbance_nominal", model.disturbance_nominal),
+               "output": ("output_nominal", model.output_nominal)}
     for name, arr, names in (("setpoint", data.r, model.outputs), ("input", data.u, model.inputs),
                              ("measured disturbance", data.dv, model.disturbances),
                              ("output", data.y, model.outputs)):
@@ -404,6 +407,10 @@ def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the mo
                                 f"{MIN_ANALYSIS_SCALE:g}); rescale the units")
         if not peak * max(1.0, gain) <= MAX_ANALYSIS_SCALE:
             why = "" if peak > MAX_ANALYSIS_SCALE else f" with gains up to {gain:.3g} in {model_source}"
+            key, values = nominal[name]
+            if data.deviations and j < np.size(values) and values[j] != 0:
+                # In deviations from the model's operating point: a huge nominal value is the model file's.
+                why += f" (the logged value minus {key} {float(values[j]):g} of {model_source})"
             diverging = diverging_outputs(model.outputs, data.y)
             raise DataFileError(f"{data.source or 'data'}: {name} '{names[j]}' at t = {float(data.t[k]):g} s is "
                                 f"{peak:.3g}{why}: too large for the analysis (|value| x max(1, |gain|) at most "

@@ -88,7 +88,9 @@ def _names(data: Mapping, key: str, source: str) -> tuple:
         raise ModelFileError(f"{source}: key '{key}': expected a list of names, got {type(val).__name__}")
     for n in val:
         if not isinstance(n, str):
-            raise ModelFileError(f"{source}: key '{key}': expected names as strings, got {n!r}")
+            hint = " (a name that reads as a number or a boolean is written in quotes: '1e3')" \
+                if isinstance(n, (int, float)) else ""
+            raise ModelFileError(f"{source}: key '{key}': expected names as strings, got {n!r}{hint}")
     return tuple(val)
 
 
