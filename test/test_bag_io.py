@@ -43,14 +43,18 @@ def _samples(n, seed=3):
 
 
 def write_bag(path, r, u, y, *, stamps=None, names=None, skip=(), drop_topics=(), msgtype=None,
-              diagnostics=None):
+              diagnostics=None, again=None, received=None):
     """Write r/u/y as /setpoint, /input, /output JointState messages, one sample after the other.
 
     stamps : (n,) int ns per sample (default T0 + k * TS); names : role -> channel names as sent;
-    skip : (role, k) messages left out; drop_topics : roles with no connection at all.
+    skip : (role, k) messages left out; drop_topics : roles with no connection at all; again : (role, k) ->
+    a number added to the values of a second message for that sample (0: the same message sent again);
+    received : (n,) int ns, the recorder's times of the samples (default their stamps).
     """
+    again = again or {}
     n = len(r)
     stamps = (np.arange(n) * int(MODEL.sample_time * 1e9) + int(T0 * 1e9)) if stamps is None else stamps
+    received = stamps if received is None else received
     names = {"setpoint": MODEL.outputs, "input": MODEL.inputs, "output": MODEL.outputs, **(names or {})}
     data = {"setpoint": r, "input": u, "output": y}
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
@@ -67,7 +71,10 @@ def write_bag(path, r, u, y, *, stamps=None, names=None, skip=(), drop_topics=()
                     base = list(MODEL.outputs if role != "input" else MODEL.inputs)
                     vals = [data[role][k][base.index(c)] if c in base else 7.0 for c in want]
                     msg = _joint_state(int(stamps[k]), want, vals)
-                    w.write(conns[role], int(stamps[k]) + 1000, TS.serialize_cdr(msg, JS.__msgtype__))
+                    w.write(conns[role], int(received[k]) + 1000, TS.serialize_cdr(msg, JS.__msgtype__))
+                    if (role, k) in again:
+                        msg = _joint_state(int(stamps[k]), want, np.asarray(vals) + again[(role, k)])
+                        w.write(conns[role], int(received[k]) + 2000, TS.serialize_cdr(msg, JS.__msgtype__))
         for t_ns, arr in diagnostics or ():
             w.write(conns["diag"], t_ns, TS.serialize_cdr(arr, "diagnostic_msgs/msg/DiagnosticArray"))
     return path
@@ -685,3 +692,59 @@ def test_a_bag_whose_crcs_cannot_be_written_is_still_closed(tmp_path, monkeypatc
     w = _rewritten(raw, tmp_path / "copy")
     assert w.crc_error.endswith("copy.mcap: chunk CRCs not written: [Errno 28] No space left on device")
     np.testing.assert_array_equal(read_bag(tmp_path / "copy", MODEL).y, y)
+
+
+def test_a_message_sent_again_for_a_sample_is_kept_once_and_two_different_ones_refused(tmp_path):
+    """The plant node re-sends y(k) after a lock-step stall and the recorder records both: the bag was refused
+    ("duplicate stamp") while the live monitor keeps one copy.  The same values are now kept once, with a note;
+    two different vectors for one sample are still refused."""
+    r, u, y = _samples(30)
+    data = read_bag(write_bag(tmp_path / "same", r, u, y, again={("output", 12): 0.0}), MODEL)
+    np.testing.assert_array_equal(data.y, y)
+    assert data.n_samples == 30 and any("1 message sent again for a sample (the same values) kept once" in n
+                                        for n in data.notes)
+    with pytest.raises(BagError, match=r"topic '/output': duplicate stamp: two different messages for the sample"):
+        read_bag(write_bag(tmp_path / "other", r, u, y, again={("output", 12): 0.5}), MODEL)
+
+
+def test_a_clock_that_steps_back_is_refused_and_a_few_samples_out_of_order_are_sorted(tmp_path):
+    """Stamps that jumped back by hours were sorted silently (the data recorded later came first in the log)."""
+    r, u, y = _samples(40)
+    ts = int(MODEL.sample_time * 1e9)
+    stamps = np.arange(40) * ts + int(T0 * 1e9)
+    back = stamps.copy()
+    back[20:] -= 50 * 10**9
+    with pytest.raises(BagError, match=r"topic '/setpoint': message 21's stamp 60.000000 s goes back 49.5 s from the "
+                                       r"message before it \(109.500000 s\): expected stamps that increase"):
+        read_bag(write_bag(tmp_path / "back", r, u, y, stamps=back, received=stamps), MODEL)
+    swapped = stamps.copy()
+    swapped[[20, 21]] = swapped[[21, 20]]               # two samples delivered out of order: put in order
+    data = read_bag(write_bag(tmp_path / "swap", r, u, y, stamps=swapped, received=stamps), MODEL)
+    order = np.arange(40)
+    order[[20, 21]] = order[[21, 20]]
+    np.testing.assert_array_equal(data.y, y[order])
+
+
+def test_samples_outside_the_span_every_topic_covers_are_named(tmp_path):
+    """One topic recorded 30 samples longer than the others: they were left out without a word."""
+    r, u, y = _samples(60)
+    skip = {(role, k) for role in ("input", "setpoint") for k in range(30, 60)}
+    data = read_bag(write_bag(tmp_path / "bag", r, u, y, skip=skip), MODEL)
+    assert data.n_samples == 30
+    assert any("topic '/output': 30 of its 60 samples lie outside the span every topic covers" in n for n in data.notes)
+    short = read_bag(write_bag(tmp_path / "short", r, u, y, skip={("output", 0)}), MODEL)   # one: no note
+    assert not short.notes
+
+
+def test_fewer_messages_read_than_the_metadata_counts_is_refused(tmp_path):
+    """A bit flipped in the storage file's index (its chunk times, which no CRC covers) made the reader skip
+    chunks: 168 of 1,500 samples exported with exit 0.  The counts of metadata.yaml are now checked."""
+    r, u, y = _samples(30)
+    bag = write_bag(tmp_path / "bag", r, u, y)
+    meta = bag / "metadata.yaml"
+    text = meta.read_text()
+    assert "message_count: 30" in text
+    meta.write_text(text.replace("message_count: 30", "message_count: 45", 1))
+    with pytest.raises(BagError, match=r"metadata.yaml counts 45 messages, 30 could be read from the storage file: the "
+                                       r"storage file is damaged \(python -m mpm_monitor recover"):
+        read_bag(bag, MODEL)

@@ -86,6 +86,15 @@ class _Series:
     names: tuple                # channel names of the first message
     stamps: np.ndarray          # (n,) int64 nanoseconds
     values: np.ndarray          # (n, len(channels)) values reordered to ``channels``
+    back: tuple = ()            # in recorded order, the largest step back of the stamps: (message, stamp, previous)
+
+
+#: A topic's stamps may go back by at most this many sample times in recorded order (messages delivered a few
+#: samples out of order are put in order); a larger step back is a clock stepped back, refused.
+MAX_REORDER_SAMPLES = 10
+#: Samples of one topic outside the span every topic covers that are left out without a note (a recording
+#: started or stopped in the middle of a sample).
+MAX_SILENT_TRIM = 10
 
 
 def _check_topics(path, topics: Sequence[str]) -> list:
@@ -165,10 +174,21 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
     for t, role in role_of.items():
         if not stamps[t]:
             raise none_read(path, t, conns)
+        counted = sum(c.msgcount for c in conns if c.topic == t)
+        if len(stamps[t]) < counted:
+            # A damaged index (the summary's chunk times, which no CRC covers) makes the reader skip chunks.
+            raise BagError(f"{path}: topic '{t}': metadata.yaml counts {counted} messages, {len(stamps[t])} could be "
+                           f"read from the storage file: the storage file is damaged (python -m mpm_monitor "
+                           f"recover rewrites every message its chunks hold as a new bag)")
         st = np.array(stamps[t], dtype=np.int64)
         vals = np.array(rows[t], dtype=float).reshape(len(st), len(expected[role]))
+        steps = np.diff(st)
+        back = ()
+        if steps.size and steps.min() < 0:
+            i = int(np.argmin(steps))
+            back = (i + 2, int(st[i + 1]), int(st[i]))
         order = np.argsort(st, kind="stable")
-        series[role] = _Series(t, tuple(expected[role]), st[order], vals[order])
+        series[role] = _Series(t, tuple(expected[role]), st[order], vals[order], back)
     return series
 
 
@@ -222,7 +242,15 @@ def _without_unset_stamps(path, series: dict) -> tuple:
 def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances=()) -> LoggedData:
     """Put the topics on one sample grid (every sample at most once per topic; the samples a topic lacks are gaps)."""
     series, notes = _without_unset_stamps(path, series)
+    notes = list(notes)
     ts_ns = sample_time * 1e9
+    for s in series.values():
+        if s.back and s.back[2] - s.back[1] > MAX_REORDER_SAMPLES * ts_ns:
+            n, stamp, before = s.back
+            raise BagError(f"{path}: topic '{s.topic}': message {n}'s stamp {stamp / 1e9:.6f} s goes back "
+                           f"{(before - stamp) / 1e9:.6g} s from the message before it ({before / 1e9:.6f} s): expected "
+                           f"stamps that increase (a clock stepped back?); messages a few samples out of order "
+                           f"are put in order")
     origin = min(int(s.stamps[0]) for s in series.values())
     ks = {}
     for role, s in series.items():
@@ -236,15 +264,31 @@ def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances
                            f"{GRID_TOLERANCE:g} sample)")
         dup = np.flatnonzero(np.diff(k) == 0)
         if dup.size:
-            i = int(dup[0])
-            raise BagError(f"{path}: topic '{s.topic}': duplicate stamp: two messages for the sample at "
-                           f"{s.stamps[i] / 1e9:.9g} s and {s.stamps[i + 1] / 1e9:.9g} s")
+            same = np.all(s.values[dup] == s.values[dup + 1], axis=1)
+            if not np.all(same):
+                i = int(dup[~same][0])
+                raise BagError(f"{path}: topic '{s.topic}': duplicate stamp: two different messages for the sample "
+                               f"at {s.stamps[i] / 1e9:.9g} s and {s.stamps[i + 1] / 1e9:.9g} s")
+            # The same vector sent again for one sample (the plant node re-sends y(k) after a lock-step stall):
+            # kept once, as the live monitor keeps it.
+            keep = np.ones(k.size, dtype=bool)
+            keep[dup + 1] = False
+            s = series[role] = dataclasses.replace(s, stamps=s.stamps[keep], values=s.values[keep])
+            k = k[keep]
+            notes.append(f"{path}: topic '{s.topic}': {dup.size} message{'s' if dup.size != 1 else ''} sent again for "
+                         f"a sample (the same values) kept once")
         ks[role] = k
     k_first = max(int(k[0]) for k in ks.values())
     k_last = min(int(k[-1]) for k in ks.values())
     if k_last < k_first:
         spans = "; ".join(f"'{s.topic}' {s.stamps[0] / 1e9:g}..{s.stamps[-1] / 1e9:g} s" for s in series.values())
         raise BagError(f"{path}: the topics do not overlap in time ({spans})")
+    for role, k in ks.items():
+        outside = int(np.count_nonzero((k < k_first) | (k > k_last)))
+        if outside > MAX_SILENT_TRIM:
+            notes.append(f"{path}: topic '{series[role].topic}': {outside} of its {k.size} samples lie outside the "
+                         f"span every topic covers ({(origin + k_first * ts_ns) / 1e9:.6f} to "
+                         f"{(origin + k_last * ts_ns) / 1e9:.6f} s) and are left out")
     # A sample is kept when every topic has it; the others are gaps (t skips them; nothing interpolated).
     # (intersected topic by topic: a dense grid over the span would be as long as a clock jump is wide)
     common = None
@@ -256,7 +300,7 @@ def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances
     dv = out.get("disturbance")
     return LoggedData(t=t, r=out["setpoint"], u=out["input"], y=out["output"], inputs=tuple(inputs),
                       outputs=tuple(outputs), sample_time=float(sample_time), source=str(path), dv=dv,
-                      disturbances=tuple(disturbances) if dv is not None else (), notes=notes)
+                      disturbances=tuple(disturbances) if dv is not None else (), notes=tuple(notes))
 
 
 def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, progress=False) -> LoggedData:
