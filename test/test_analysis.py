@@ -250,3 +250,35 @@ def test_slow_small_setpoint_moves_still_locate_case_3_2():
                           disturbance=case.disturbance)
     rep = analyze(case.model, log.as_logged_data(), FAST)
     assert set(rep.located_elements) == set(case.mismatched_elements)
+
+
+def test_a_setpoint_held_at_a_value_like_0_1_never_moves():
+    """A setpoint held at 0.1 has a standard deviation of about 1e-17 (the rounding of its mean): it was taken
+    as moving, and its column of S_Delta came out as rounding (row RSI 1e11, a warning of a loop near
+    instability).  A setpoint moves when its values are not all the same."""
+    from mpm_monitor.core.row_test import moving_setpoints
+
+    case, data = _run_case("3.1", 5, samples=2000)
+    r = data.r.copy()
+    r[:, 0] = 0.1
+    assert r[:, 0].std() > 0 and moving_setpoints(r) == [1, 2]
+    rep = analyze(case.model, dataclasses.replace(data, r=r), FAST)
+    assert any("setpoints of y1 never move" in w for w in rep.warnings), rep.warnings
+    assert max(row.rsi for row in rep.rows) < 10 and not any("RSI" in w for w in rep.warnings)
+
+
+def test_a_repaired_element_of_dead_time_0_is_not_said_to_lie_at_the_edge_of_its_delays():
+    """(y3, u3) of case 3.1 has no dead time, in the model and the plant; its gain off, the repair's best delay
+    is 0, the least there is, and was reported as "at the edge of the searched range; the true delay may lie
+    outside it (raise max_delay_shift)", an option the command does not have and a delay that cannot be
+    negative."""
+    case = paper_case("3.1")
+    assert case.model.delay[2, 2] == 0 and case.plant.delay[2, 2] == 0
+    gain = case.plant.gain.copy()
+    gain[2, 2] *= 1.8
+    plant = case.plant.replace(gain=gain)
+    log = run_closed_loop(plant, case.model, 3000, seed=4, mpc=case.mpc, excitation=case.excitation,
+                          disturbance=case.disturbance)
+    report = analyze(case.model, log.as_logged_data(), AnalysisOptions())
+    assert ("y3", "u3") in {(e.output, e.input) for e in report.elements if e.mismatch}
+    assert not [w for w in report.warnings if "edge of the searched range" in w and "y3/u3" in w], report.warnings

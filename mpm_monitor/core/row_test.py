@@ -108,7 +108,7 @@ def frequency_grid(band: tuple, n: int) -> np.ndarray:
 
 
 def moving_setpoints(r: np.ndarray) -> list:
-    """The setpoints that move over the window (standard deviation above 0): the row test's columns.
+    """The setpoints that move over the window (not every value the same): the row test's columns.
 
     Parameters
     ----------
@@ -118,8 +118,10 @@ def moving_setpoints(r: np.ndarray) -> list:
     -------
     list of int
     """
-    r_std = r.std(axis=0)
-    return [j for j in range(r.shape[1]) if r_std[j] > 0]
+    # Every value equal, not a standard deviation of 0: a setpoint held at 0.1 has one of about 1e-17 (the
+    # rounding of its mean), and its column of S_Delta then came out as rounding (an RSI of 1e11).
+    moves = np.ptp(r, axis=0) > 0 if r.shape[0] else np.zeros(r.shape[1], dtype=bool)
+    return [j for j in range(r.shape[1]) if moves[j]]
 
 
 def sdelta_row_test(model: PlantModel, r: np.ndarray, eps: np.ndarray, regressions, layout, options,

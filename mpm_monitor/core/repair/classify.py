@@ -422,8 +422,9 @@ def _verdict_warnings(free: _FreeFit, m: int, verdict: ElementVerdict, alpha: fl
     name = free.row.name(free.js[m])
     out = []
     if free.est.edge[m]:
-        out.append(f"{name}: the best delay lies at the edge of the searched range; "
-                   f"the true delay may lie outside it (raise max_delay_shift).")
+        out.append(f"{name}: the best delay lies at the edge of the searched range; the true delay may lie "
+                   f"outside it (the repair searches RepairOptions.max_delay_shift samples either side of the "
+                   f"model's delay).")
     if verdict.kind == "unknown":
         form = free.located[free.js[m]].form
         shape = "first-order-plus-dead-time form" if form.first_order else f"the element's form ({form.describe()})"
