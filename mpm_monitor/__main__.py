@@ -21,8 +21,9 @@ def _leave(code: int) -> None:
     if threading.active_count() == 1:
         atexit._run_exitfuncs()
         try:
-            sys.stdout.flush()
-            sys.stderr.flush()
+            for stream in (sys.stdout, sys.stderr):     # None: started with the stream closed (>&-)
+                if stream is not None:
+                    stream.flush()
         except (OSError, ValueError):
             pass
         else:

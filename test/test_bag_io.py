@@ -257,9 +257,13 @@ def test_recover_unclosed_bag(tmp_path):
     w.close()
     with pytest.raises(BagError, match="no metadata.yaml"):
         read_bag(tmp_path / "dead", MODEL)
-    assert bag_io.recover_bag(tmp_path / "dead", tmp_path / "back") == 60
+    notes = []
+    assert bag_io.recover_bag(tmp_path / "dead", tmp_path / "back", warn=notes.append) == 60
     back = read_raw_messages(tmp_path / "back", ["setpoint", "input", "output"])
     assert [(m.topic, m.log_time, m.data) for m in back] == [(m.topic, m.log_time, m.data) for m in raw[:60]]
+    # The torn tail is said (it was dropped without a word).
+    assert notes == [f"{tmp_path / 'dead' / 'dead.mcap'}: the storage file is damaged: left out the last 13 bytes of "
+                     f"dead.mcap, a record cut short (the messages it held are lost)"]
     import yaml
 
     meta = yaml.safe_load((tmp_path / "back" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
@@ -748,3 +752,24 @@ def test_fewer_messages_read_than_the_metadata_counts_is_refused(tmp_path):
     with pytest.raises(BagError, match=r"metadata.yaml counts 45 messages, 30 could be read from the storage file: the "
                                        r"storage file is damaged \(python -m mpm_monitor recover"):
         read_bag(bag, MODEL)
+
+
+def test_recover_reads_every_storage_file_of_a_split_recording(tmp_path):
+    """A recorder that split its recording (bag_0.mcap, bag_1.mcap, ...) and was then killed: only the first
+    file was read (half the samples, exit 0, no warning).  A directory named like a storage file is not one
+    (it was an IsADirectoryError traceback)."""
+    r, u, y = _samples(40)
+    raw = read_raw_messages(write_bag(tmp_path / "src", r, u, y), ["setpoint", "input", "output"])
+    (tmp_path / "dead").mkdir()
+    for part, msgs in enumerate((raw[:50], raw[50:100], raw[100:])):
+        w = BagWriter(tmp_path / f"part{part}")
+        for m in msgs:
+            if not w.has_topic(m.topic):
+                w.add_topic(m.topic, m.msgtype, [bag_io.contract_vector_qos()])
+            w.write(m.topic, m.log_time, m.data)
+        w.close()
+        (tmp_path / f"part{part}" / f"part{part}.mcap").rename(tmp_path / "dead" / f"dead_{[0, 1, 10][part]}.mcap")
+    (tmp_path / "dead" / "stray.mcap").mkdir()
+    assert bag_io.recover_bag(tmp_path / "dead", tmp_path / "back") == 120
+    back = read_raw_messages(tmp_path / "back", ["setpoint", "input", "output"])
+    assert [(m.topic, m.log_time, m.data) for m in back] == [(m.topic, m.log_time, m.data) for m in raw]

@@ -908,3 +908,67 @@ def test_a_huge_operating_point_is_named_as_the_model_s(files, capsys, tmp_path)
     code, out, err = _run_cli(capsys, ["analyze", "--model", str(model), "--data", str(files["csv"])])
     assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert re.search(r"is 1e\+41 \(the logged value minus output_nominal 1e\+41 of .*\): too large", err), err
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["export", "--bag", "BAG", "--csv", "BAG/out.csv", "--model", "MODEL"], r"--csv .*out\.csv: lies in the --bag input"),
+    (["export", "--bag", "BAG", "--csv", "MODEL", "--model", "MODEL"], r"--csv .*model\.yaml: is the --model input"),
+    (["analyze", "--model", "MODEL", "--data", "CSV", "--json", "CSV"], r"--json .*data\.csv: is the --data input"),
+    (["analyze", "--model", "MODEL", "--data", "CSV", "--json", "MODEL"], r"--json .*model\.yaml: is the --model input"),
+])
+def test_an_output_onto_an_input_is_refused_before_any_work(files, capsys, tmp_path, argv, match):
+    """``export --csv BAG/bag_0.mcap`` destroyed the recording, ``--csv M.yaml --model M.yaml`` the model."""
+    import shutil
+
+    bag = tmp_path / "bag"
+    shutil.copytree(files["bag"], bag)
+    model, csv = tmp_path / "model.yaml", tmp_path / "data.csv"
+    shutil.copy(files["model"], model)
+    shutil.copy(files["csv"], csv)
+    before = {p: p.read_bytes() for p in (model, csv)}
+    argv = [a.replace("BAG", str(bag)).replace("MODEL", str(model)).replace("CSV", str(csv)) for a in argv]
+    code, out, err = _run_cli(capsys, argv)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and re.search(match, err), err
+    assert {p: p.read_bytes() for p in (model, csv)} == before and not (bag / "out.csv").exists()
+
+
+def test_a_csv_write_cut_short_leaves_no_shorter_log(tmp_path, monkeypatch):
+    """An export interrupted while writing left a CSV of its complete lines, which reads as a valid, shorter
+    log; the log is now written beside the file and renamed over it once complete."""
+    import mpm_monitor.io.csv_log as csv_mod
+
+    data = _logged()
+    path = tmp_path / "log.csv"
+    write_csv(path, data.t, data.r, data.u, data.y, data.inputs, data.outputs)
+    whole = path.read_bytes()
+    calls = {"n": 0}
+    real = csv_mod._fmt
+
+    def cut(v):
+        calls["n"] += 1
+        if calls["n"] > 50:
+            raise KeyboardInterrupt
+        return real(v)
+
+    monkeypatch.setattr(csv_mod, "_fmt", cut)
+    with pytest.raises(KeyboardInterrupt):
+        write_csv(path, data.t, data.r, data.u, data.y, data.inputs, data.outputs)
+    assert path.read_bytes() == whole and sorted(p.name for p in tmp_path.iterdir()) == ["log.csv"]
+    with pytest.raises(KeyboardInterrupt):
+        write_csv(tmp_path / "new.csv", data.t, data.r, data.u, data.y, data.inputs, data.outputs)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["log.csv"]
+
+
+def test_a_command_started_with_its_output_closed_exits_with_its_code(files, tmp_path):
+    """``export ... >&-``: sys.stdout is None, and the exit's flush of it was an AttributeError traceback (exit 1,
+    also for bad input, which must exit 2)."""
+    import subprocess
+    import sys
+
+    py = f"{sys.executable} -m mpm_monitor"
+    ok = subprocess.run(["bash", "-c", f"{py} export --bag {files['bag']} --csv {tmp_path / 'o.csv'} >&-"],
+                        capture_output=True, timeout=120)
+    assert ok.returncode == 0 and b"Traceback" not in ok.stderr, ok.stderr
+    bad = subprocess.run(["bash", "-c", f"{py} export --bag {tmp_path / 'nothing'} --csv {tmp_path / 'p.csv'} >&-"],
+                         capture_output=True, timeout=120)
+    assert bad.returncode == 2 and b"Traceback" not in bad.stderr and len(bad.stderr.strip().splitlines()) == 1, bad.stderr

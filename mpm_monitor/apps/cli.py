@@ -223,6 +223,9 @@ def _cmd_recover(args) -> int:
 def _cmd_analyze(args) -> int:
     for path, what in ((args.json_out, "--json"), (args.repair_out, "--repair-out")):
         if path and path != "-":
+            # The repaired model may replace the model file (an update in place); nothing may replace the log.
+            _not_an_input(path, what, {"--data": args.data, "--bag": args.bag,
+                                       **({"--model": args.model} if what == "--json" else {})})
             _check_output_file(path, what)
     if args.report:
         _check_output_directory(args.report, "--report")
@@ -434,9 +437,29 @@ def _cmd_demo(args) -> int:
     return run_demo(case=args.case, samples=args.samples, bag=args.bag, seed=args.seed, quiet=args.quiet)
 
 
+def _not_an_input(path: str, flag: str, inputs: dict) -> None:
+    """Refuse an output ``path`` that is one of the command's input files or lies in its input directory (``inputs``:
+    flag -> path), which writing it would destroy (``export --csv BAG/bag_0.mcap``, ``--json`` onto the log).
+
+    Raises
+    ------
+    InputError
+    """
+    out = Path(path).resolve()
+    for other, given in inputs.items():
+        if not given:
+            continue
+        src = Path(given).resolve()
+        if out == src or (src.is_dir() and src in out.parents):
+            where = "is" if out == src else "lies in"
+            raise InputError(f"{flag} {path}: {where} the {other} input {given}: expected an output path apart "
+                             f"from the inputs")
+
+
 def _cmd_export(args) -> int:
     from ..io.bags import export_csv
 
+    _not_an_input(args.csv, "--csv", {"--bag": args.bag, "--model": args.model})
     _check_output_file(args.csv, "--csv")          # before the bag is read, as analyze does
     n = export_csv(args.bag, args.csv, model_path=args.model, topics=_topics(args),
                    warn=lambda note: print(f"warning: {note}", file=sys.stderr))

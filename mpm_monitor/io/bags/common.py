@@ -73,7 +73,7 @@ def open_reader(path):
         raise BagError(f"{path}: empty directory: expected a rosbag2 directory (metadata.yaml + storage file)")
     if not (path / "metadata.yaml").is_file():
         raise BagError(f"{path}: no metadata.yaml: not a rosbag2 directory, or its recorder was killed before "
-                       f"closing it (mpm_monitor.io.bags.recover_bag rewrites what it flushed)")
+                       f"closing it (python -m mpm_monitor recover --bag DIR --out NEW_DIR rewrites what it flushed)")
     reader = AnyReader([path], default_typestore=default_typestore())
     try:
         reader.open()

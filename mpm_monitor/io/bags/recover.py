@@ -34,8 +34,9 @@ def recover_bag(src, dst, warn=None) -> int:
 
     A recorder killed by SIGKILL or a power loss leaves an MCAP file without summary or footer and
     no ``metadata.yaml``; every chunk it flushed is complete on disk.  This reads those complete
-    chunk records (a torn last record is dropped) and writes their messages, in order and with the
-    recorded QoS profiles, to ``dst``.
+    chunk records of every storage file (a split recording's ``bag_0.mcap``, ``bag_1.mcap``, ... in
+    order; a torn last record is dropped, and said through ``warn``) and writes their messages, in
+    order and with the recorded QoS profiles, to ``dst``.
 
     A storage file damaged besides (bytes changed on disk) keeps what can still be trusted: a chunk
     whose CRC (when the writer computed one) does not match its bytes is left out, and so is a schema
@@ -66,30 +67,18 @@ def recover_bag(src, dst, warn=None) -> int:
         then not created).
     """
     src = Path(src)
-    files = sorted(src.glob("*.mcap")) if src.is_dir() else []
+    files = sorted((f for f in src.glob("*.mcap") if f.is_file()), key=_split_order) if src.is_dir() else []
     if not files:
         raise BagError(f"{src}: no .mcap file to recover")
-    buf = files[0].read_bytes()
-    if buf[:len(MAGIC)] != MAGIC:
-        raise BagError(f"{files[0]}: not an MCAP file (bad magic)")
     found = _Records()
-    summary = False
-    for op, _, body in mcap_records(buf, len(MAGIC), len(buf)):
-        if op == FOOTER:
-            break
-        if op == DATA_END:              # the file was closed after all: its summary repeats the
-            summary = True              # schemas and channels, of use where a chunk holding them is damaged
-        elif summary:
-            if op in (SCHEMA, CHANNEL):
-                found.take(op, body, again=True)
-        elif op == CHUNK:
-            found.chunk(files[0], body)
-        else:
-            found.take(op, body)
+    for path in files:                  # a split recording: its storage files in order (bag_0, bag_1, ...)
+        found.file(path)
     typed = found.typed_messages()
     left_out = found.left_out()
+    where = files[0] if len(files) == 1 else src
     if not typed:
-        raise BagError(f"{files[0]}: no complete message to recover{': ' + left_out if left_out else ''} "
+        damaged = found.left_out(torn=False)
+        raise BagError(f"{where}: no complete message to recover{': ' + damaged if damaged else ''} "
                        f"(expected at least one complete chunk of messages after the MCAP header)")
     writer = BagWriter(dst, fsync=False)
     try:
@@ -100,8 +89,14 @@ def recover_bag(src, dst, warn=None) -> int:
     finally:
         writer.close()
     if left_out and warn is not None:
-        warn(f"{files[0]}: the storage file is damaged: {left_out}")
+        warn(f"{where}: the storage file{'s are' if len(files) > 1 else ' is'} damaged: {left_out}")
     return writer.message_count
+
+
+def _split_order(path: Path) -> tuple:
+    """Sort key of a split recording's storage files: ``bag_2.mcap`` before ``bag_10.mcap`` (rosbag2 numbers them)."""
+    stem, _, number = path.stem.rpartition("_")
+    return (stem, int(number), "") if number.isdigit() else (path.stem, -1, path.name)
 
 
 class _Records:
@@ -113,6 +108,40 @@ class _Records:
         self._get_qos = get_qos         # imported once, not per record
         self.schemas, self.channels, self.messages = {}, {}, []
         self.bad_chunks = self.bad_records = self.untyped = 0
+        self.torn = []                  # (file, bytes) of a record cut at the end of a file (the kill)
+        self.typed = []                 # the messages of the files read so far, with their channels
+
+    def file(self, path) -> None:
+        """Take the records of one storage file (its chunks, and its summary's schemas and channels): its
+        messages are typed by its own schema and channel records (each file of a split recording numbers
+        its channels anew)."""
+        self.schemas, self.channels, self.messages = {}, {}, []
+        buf = path.read_bytes()
+        if buf[:len(MAGIC)] != MAGIC:
+            raise BagError(f"{path}: not an MCAP file (bad magic)")
+        summary, end = False, len(MAGIC)
+        for op, start, body in mcap_records(buf, len(MAGIC), len(buf)):
+            end = start + len(body)
+            if op == FOOTER:
+                end = len(buf)
+                break
+            if op == DATA_END:              # the file was closed after all: its summary repeats the
+                summary = True              # schemas and channels, of use where a chunk holding them is damaged
+            elif summary:
+                if op in (SCHEMA, CHANNEL):
+                    self.take(op, body, again=True)
+            elif op == CHUNK:
+                self.chunk(path, body)
+            else:
+                self.take(op, body)
+        if end < len(buf) and buf[end:].strip(b"\x00"):      # a record cut by the kill (zeros: space never written)
+            self.torn.append((path, len(buf) - end))
+        for cid, log_time, data in self.messages:
+            channel = self.channels.get(cid)
+            if channel is None or not channel[1]:
+                self.untyped += 1
+            else:
+                self.typed.append((channel, log_time, data))
 
     def chunk(self, path, body) -> None:
         """Take the records of a chunk, or count it damaged (too short, a compression no writer names, or
@@ -155,19 +184,13 @@ class _Records:
             self.bad_records += not again
 
     def typed_messages(self) -> list:
-        """``[(channel, log_time, data)]`` of the messages whose channel and schema were read, ``channel``
-        = ``(topic, message type, QoS profiles)``; the others are counted in :attr:`untyped`."""
-        out = []
-        for cid, log_time, data in self.messages:
-            channel = self.channels.get(cid)
-            if channel is None or not channel[1]:
-                self.untyped += 1
-            else:
-                out.append((channel, log_time, data))
-        return out
+        """``[(channel, log_time, data)]`` of the messages whose channel and schema were read (file after file),
+        ``channel`` = ``(topic, message type, QoS profiles)``; the others are counted in :attr:`untyped`."""
+        return self.typed
 
-    def left_out(self) -> str:
-        """What was left out, in words ('' when nothing was)."""
+    def left_out(self, torn: bool = True) -> str:
+        """What was left out, in words ('' when nothing was); ``torn``: with the records cut short at the end
+        of a file."""
         parts = []
         if self.bad_chunks:
             parts.append(f"{self.bad_chunks} damaged chunk{'s' if self.bad_chunks != 1 else ''} (a CRC, length or "
@@ -177,4 +200,7 @@ class _Records:
         if self.untyped:
             parts.append(f"{self.untyped} message{'s' if self.untyped != 1 else ''} of a channel with no readable "
                          f"channel or schema record")
+        for path, n in (self.torn if torn else ()):
+            parts.append(f"the last {n:,} bytes of {Path(path).name}, a record cut short (the messages it held are "
+                         f"lost)")
         return ("left out " + ", ".join(parts)) if parts else ""
