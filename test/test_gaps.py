@@ -441,3 +441,16 @@ def test_the_report_s_residual_plot_runs_the_model_as_the_analysis_does_and_brea
     assert np.isnan(y).sum() == 1 and np.isnan(t).sum() == 1
     k = int(np.flatnonzero(np.isnan(t))[0])
     assert t[k - 1] <= gappy.t[1199] and t[k + 1] == gappy.t[1200]
+
+
+def test_the_repair_s_gap_note_says_what_the_model_did_at_the_gaps(case_32):
+    """One long gap: the note spoke of "the model run through the short gaps", where there was none."""
+    from mpm_monitor.core.pipeline import repair_data
+
+    case, data = case_32
+    options = AnalysisOptions()
+    _, note = repair_data(_drop(data, list(range(1200, 1300))), True, options, case.model)
+    assert "the model restarted after each gap" in note and "short gaps" not in note
+    assert "the 2 spans between the gaps, each from its own start (2900 of 2900 samples)" in note
+    _, note = repair_data(_drop(data, [700, 1500]), True, options, case.model)
+    assert "validated with the model run through the short gaps" in note

@@ -353,3 +353,16 @@ def test_an_element_of_the_wrong_structure_is_repaired_by_its_output_error_fit()
     assert 0.8 < after["gain"] < 1.4, after
     assert rep.repair["error_after"]["y2"] < 0.4 * rep.repair["error_before"]["y2"]
     assert any("fitted without a noise model (output error)" in w for w in rep.warnings)
+
+
+def test_the_fit_of_an_output_that_never_moves_is_null_whatever_its_value():
+    """A stuck sensor held at 0.1: the rounding of its mean left a deviation of about 1e-17, and its fit came
+    out as -9.8e17 % (null only when held at 0)."""
+    from mpm_monitor.core.repair.model_repair import _fit_percent
+
+    rng = np.random.default_rng(0)
+    for level in (0.0, 0.1, 75.3):
+        y = np.full(3000, level)
+        assert np.isnan(_fit_percent(y, y + rng.normal(size=3000)))
+    y = rng.normal(size=100)
+    assert _fit_percent(y, y) == 100.0

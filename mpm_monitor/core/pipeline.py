@@ -359,11 +359,15 @@ def repair_data(data: LoggedData, gappy: bool, options: AnalysisOptions, model: 
     from .gaps import plan_gaps
     from .regressions import regression_layout
 
-    used = plan_gaps(data, regression_layout(model, options).start, options.max_gap).used
+    plan = plan_gaps(data, regression_layout(model, options).start, options.max_gap)
+    used = plan.used
     rows = np.concatenate([np.arange(a, b) for a, b in used])
-    note = (f"the repair was fitted on the {len(used)} spans between the gaps, each from its own start "
-            f"({rows.size} of {data.n_samples} samples), and validated with the model run through the short gaps; "
-            f"no fit reaches across a gap")
+    short = bool(np.any(plan.gap_lengths <= plan.max_gap))
+    through = "the model run through the short gaps" if short else "the model restarted after each gap"
+    spans = f"the {len(used)} spans between the gaps, each from its own start" if len(used) > 1 else \
+        "the one span between the gaps long enough for it"
+    note = (f"the repair was fitted on {spans} ({rows.size} of {data.n_samples} samples), and validated with "
+            f"{through}; no fit reaches across a gap")
     return (data if rows.size == data.n_samples else data.take(rows)), note
 
 

@@ -64,9 +64,9 @@ def _holdout_rms(d, n_fit: int, extra: Optional[np.ndarray] = None) -> float:
 def _fit_percent(y, yhat, about_level: bool = False) -> float:
     """``100 (1 - ||y - yhat|| / ||y - mean y||)``; with ``about_level`` (an integrating output, whose
     level is arbitrary) the error taken about its mean."""
+    if y.size == 0 or np.ptp(y) == 0:      # an output that never moves: no variance to explain (its mean's
+        return float("nan")                # rounding gave a "fit" of -1e18 % for one held at 0.1)
     den = np.linalg.norm(y - np.mean(y))
-    if den == 0:
-        return float("nan")
     err = y - yhat
     if about_level:
         err = err - np.mean(err)
