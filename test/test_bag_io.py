@@ -773,3 +773,12 @@ def test_recover_reads_every_storage_file_of_a_split_recording(tmp_path):
     assert bag_io.recover_bag(tmp_path / "dead", tmp_path / "back") == 120
     back = read_raw_messages(tmp_path / "back", ["setpoint", "input", "output"])
     assert [(m.topic, m.log_time, m.data) for m in back] == [(m.topic, m.log_time, m.data) for m in raw]
+
+
+def test_a_wall_clock_stamp_is_printed_with_every_digit(tmp_path):
+    """``%g`` printed a wall-clock stamp as 1.7e+09 s, which no longer located the message."""
+    r, u, y = _samples(10)
+    y[2, 0] = np.nan
+    stamps = np.arange(10) * 500_000_000 + 1_700_000_000 * 10**9 + 250_000_000
+    with pytest.raises(BagError, match=r"topic '/output': message 3 \(stamp 1700000001.25 s\) holds a non-finite value"):
+        read_bag(write_bag(tmp_path / "bag", r, u, y, stamps=stamps), MODEL)

@@ -89,6 +89,12 @@ class _Series:
     back: tuple = ()            # in recorded order, the largest step back of the stamps: (message, stamp, previous)
 
 
+def _seconds(ns) -> str:
+    """A stamp in nanoseconds as seconds with every digit it has (``1700000070.5``, ``12``): ``%g`` printed a
+    wall-clock stamp as ``1.7e+09``, which no longer says which message it is."""
+    return f"{int(ns) / 1e9:.9f}".rstrip("0").rstrip(".")
+
+
 #: A topic's stamps may go back by at most this many sample times in recorded order (messages delivered a few
 #: samples out of order are put in order); a larger step back is a clock stepped back, refused.
 MAX_REORDER_SAMPLES = 10
@@ -142,7 +148,7 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
                 stamp = stamp_ns(msg.header.stamp)
                 values = np.asarray(msg.position, dtype=float)
                 if values.shape != (len(names),):
-                    raise BagError(f"{path}: topic '{topic}': message {count} (stamp {stamp / 1e9:g} s) has "
+                    raise BagError(f"{path}: topic '{topic}': message {count} (stamp {_seconds(stamp)} s) has "
                                    f"{values.size} positions for {len(names)} names")
                 key = (role, names)
                 idx = index_cache.get(key)
@@ -152,12 +158,12 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
                     if missing or len(set(names)) != len(names):
                         what = _WHAT[role]
                         raise BagError(
-                            f"{path}: topic '{topic}': message {count} (stamp {stamp / 1e9:g} s) has channel names "
+                            f"{path}: topic '{topic}': message {count} (stamp {_seconds(stamp)} s) has channel names "
                             f"[{', '.join(names)}], expected the {what} [{', '.join(want)}]")
                     idx = np.array([names.index(n) for n in want], dtype=int)
                     index_cache[key] = idx
                 if not np.all(np.isfinite(values[idx])):
-                    raise BagError(f"{path}: topic '{topic}': message {count} (stamp {stamp / 1e9:g} s) holds a "
+                    raise BagError(f"{path}: topic '{topic}': message {count} (stamp {_seconds(stamp)} s) holds a "
                                    f"non-finite value")
                 stamps[topic].append(stamp)
                 rows[topic].append(values[idx])
@@ -259,8 +265,8 @@ def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances
         off = np.abs(rel - k * ts_ns) > GRID_TOLERANCE * ts_ns
         if np.any(off):
             i = int(np.flatnonzero(off)[0])
-            raise BagError(f"{path}: topic '{s.topic}': stamp {s.stamps[i] / 1e9:.9g} s is off the sample grid "
-                           f"(sample_time {sample_time:g} s from {origin / 1e9:.9g} s, tolerance "
+            raise BagError(f"{path}: topic '{s.topic}': stamp {_seconds(s.stamps[i])} s is off the sample grid "
+                           f"(sample_time {sample_time:g} s from {_seconds(origin)} s, tolerance "
                            f"{GRID_TOLERANCE:g} sample)")
         dup = np.flatnonzero(np.diff(k) == 0)
         if dup.size:
@@ -268,7 +274,7 @@ def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances
             if not np.all(same):
                 i = int(dup[~same][0])
                 raise BagError(f"{path}: topic '{s.topic}': duplicate stamp: two different messages for the sample "
-                               f"at {s.stamps[i] / 1e9:.9g} s and {s.stamps[i + 1] / 1e9:.9g} s")
+                               f"at {_seconds(s.stamps[i])} s and {_seconds(s.stamps[i + 1])} s")
             # The same vector sent again for one sample (the plant node re-sends y(k) after a lock-step stall):
             # kept once, as the live monitor keeps it.
             keep = np.ones(k.size, dtype=bool)
@@ -281,7 +287,7 @@ def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances
     k_first = max(int(k[0]) for k in ks.values())
     k_last = min(int(k[-1]) for k in ks.values())
     if k_last < k_first:
-        spans = "; ".join(f"'{s.topic}' {s.stamps[0] / 1e9:g}..{s.stamps[-1] / 1e9:g} s" for s in series.values())
+        spans = "; ".join(f"'{s.topic}' {_seconds(s.stamps[0])}..{_seconds(s.stamps[-1])} s" for s in series.values())
         raise BagError(f"{path}: the topics do not overlap in time ({spans})")
     for role, k in ks.items():
         outside = int(np.count_nonzero((k < k_first) | (k > k_last)))
