@@ -92,7 +92,9 @@ class _Series:
 def _seconds(ns) -> str:
     """A stamp in nanoseconds as seconds with every digit it has (``1700000070.5``, ``12``): ``%g`` printed a
     wall-clock stamp as ``1.7e+09``, which no longer says which message it is."""
-    return f"{int(ns) / 1e9:.9f}".rstrip("0").rstrip(".")
+    ns = int(ns)
+    sec, frac = divmod(abs(ns), 10**9)          # integers: a float of 1.7e18 ns keeps no nanoseconds
+    return ("-" if ns < 0 else "") + f"{sec}.{frac:09d}".rstrip("0").rstrip(".")
 
 
 #: A topic's stamps may go back by at most this many sample times in recorded order (messages delivered a few
