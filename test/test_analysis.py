@@ -282,3 +282,14 @@ def test_a_repaired_element_of_dead_time_0_is_not_said_to_lie_at_the_edge_of_its
     report = analyze(case.model, log.as_logged_data(), AnalysisOptions())
     assert ("y3", "u3") in {(e.output, e.input) for e in report.elements if e.mismatch}
     assert not [w for w in report.warnings if "edge of the searched range" in w and "y3/u3" in w], report.warnings
+
+
+def test_an_output_that_never_moves_is_named_first():
+    """A stuck sensor (y2 held at 0.1): the report spoke of an exact fit, a coloured residual, inputs moving
+    together and an unmeasured disturbance of -2.8e-17, and never said the output does not move."""
+    case, data = _run_case("3.1", 5, samples=2000)
+    assert not any("never move" in w for w in analyze(case.model, data, FAST).warnings)
+    y = data.y.copy()
+    y[:, 1] = 0.1
+    rep = analyze(case.model, dataclasses.replace(data, y=y), FAST)
+    assert rep.warnings[0].startswith("output y2 never moves in this window (every value the same: a stuck sensor")

@@ -393,11 +393,15 @@ class AnalysisReport:
             lines.append("flagged, but explained by the row's located elements (not located): "
                          + ", ".join(f"({e.output}, {_column_label(e)}) by {', '.join(e.explained_by)}"
                                      for e in released))
-        amb = [e for e in self.elements if e.ambiguous]
+        amb = [e for e in self.elements if e.ambiguous and not _never_moves(e)]
         if amb:
             moving = "inputs and measured disturbances" if any(e.role == "disturbance" for e in amb) else "inputs"
             lines.append(f"ambiguous ({moving} move together): "
                          + ", ".join(f"({e.output}, {_column_label(e)})" for e in amb))
+        still = [e for e in self.elements if e.ambiguous and _never_moves(e)]
+        if still:
+            lines.append("not testable (their column never moves): "
+                         + ", ".join(f"({e.output}, {_column_label(e)})" for e in still))
         lines += detectability_summary_lines(self.elements, self.experiment)
         if self.candidates is not None:
             lines += self.candidates.summary_lines()
@@ -405,6 +409,12 @@ class AnalysisReport:
         for w in self.warnings:
             lines.append(f"warning: {w}")
         return "\n".join(lines)
+
+
+def _never_moves(e) -> bool:
+    """Whether an element was not tested because its column never moves in the window (reported ``ambiguous``,
+    with no partner and no test at all)."""
+    return e.ambiguous and e.p_value_raw is None and e.statistic is None
 
 
 def _detectable_text(x) -> str:
@@ -428,7 +438,8 @@ def detectability_summary_lines(elements: list, experiment) -> list:
         for out in dict.fromkeys(e.output for e in tested):
             lines.append(f"  {out}: " + ", ".join(
                 f"{_column_label(e)} {_detectable_text(e.detectable_gain_change)}"
-                + (" (ambiguous)" if e.ambiguous and not e.mismatch else "") for e in tested if e.output == out))
+                + ((" (never moves)" if _never_moves(e) else " (ambiguous)") if e.ambiguous and not e.mismatch
+                   else "") for e in tested if e.output == out))
     if experiment is not None:
         dither = ", ".join(f"{k} {v:g}" for k, v in experiment.dither.items())
         lines.append(f"experiment recommended: PRBS dither on {dither} (input units) for {experiment.samples} samples; "
@@ -741,7 +752,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
                               f"({b - a} samples)")
     row_test = row_tests[0]
     rows = row_test.rows
-    warnings = diverging + list(row_test.warnings) + offset_warnings(model, sig.d, y, diverged) \
+    warnings = still_output_warnings(model, y) + diverging + list(row_test.warnings) \
+        + offset_warnings(model, sig.d, y, diverged) \
         + ([] if design is None else design.warnings()) + later_warnings
     warnings += element_test.warnings
     elements = element_test.elements
@@ -876,6 +888,17 @@ def settle_report(report: AnalysisReport) -> AnalysisReport:
 #: A row whose prediction error's mean exceeds this many times its standard deviation is named as
 #: offset (:func:`offset_warnings`).
 OFFSET_RATIO = 10.0
+
+
+def still_output_warnings(model: PlantModel, y: np.ndarray) -> list:
+    """One warning naming the outputs that never move in the window (every value the same): a stuck sensor or
+    a held value, whose row's tests and repair read a constant (shape of ``y``: (n_samples, n_outputs))."""
+    still = [name for name, moves in zip(model.outputs, np.ptp(y, axis=0) > 0 if y.shape[0] else []) if not moves]
+    if not still:
+        return []
+    return [f"output{'s' if len(still) > 1 else ''} {', '.join(still)} never move{'' if len(still) > 1 else 's'} in "
+            f"this window (every value the same: a stuck sensor or a held value?): what the tests and the repair "
+            f"say of {'their rows' if len(still) > 1 else 'its row'} is about a constant, not the process"]
 
 
 def offset_warnings(model: PlantModel, d: np.ndarray, y: np.ndarray, skip=()) -> list:
