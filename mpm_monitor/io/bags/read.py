@@ -190,11 +190,13 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
                            f"recover rewrites every message its chunks hold as a new bag)")
         st = np.array(stamps[t], dtype=np.int64)
         vals = np.array(rows[t], dtype=float).reshape(len(st), len(expected[role]))
-        steps = np.diff(st)
+        # Unset stamps (0) left aside: among wall-clock stamps they are left out later, with a note.
+        stamped = np.flatnonzero(st != 0)
+        steps = np.diff(st[stamped])
         back = ()
         if steps.size and steps.min() < 0:
             i = int(np.argmin(steps))
-            back = (i + 2, int(st[i + 1]), int(st[i]))
+            back = (int(stamped[i + 1]) + 1, int(st[stamped[i + 1]]), int(st[stamped[i]]))
         order = np.argsort(st, kind="stable")
         series[role] = _Series(t, tuple(expected[role]), st[order], vals[order], back)
     return series
@@ -255,8 +257,8 @@ def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances
     for s in series.values():
         if s.back and s.back[2] - s.back[1] > MAX_REORDER_SAMPLES * ts_ns:
             n, stamp, before = s.back
-            raise BagError(f"{path}: topic '{s.topic}': message {n}'s stamp {stamp / 1e9:.6f} s goes back "
-                           f"{(before - stamp) / 1e9:.6g} s from the message before it ({before / 1e9:.6f} s): expected "
+            raise BagError(f"{path}: topic '{s.topic}': message {n}'s stamp {_seconds(stamp)} s goes back "
+                           f"{_seconds(before - stamp)} s from the stamp before it ({_seconds(before)} s): expected "
                            f"stamps that increase (a clock stepped back?); messages a few samples out of order "
                            f"are put in order")
     origin = min(int(s.stamps[0]) for s in series.values())
@@ -295,8 +297,8 @@ def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances
         outside = int(np.count_nonzero((k < k_first) | (k > k_last)))
         if outside > MAX_SILENT_TRIM:
             notes.append(f"{path}: topic '{series[role].topic}': {outside} of its {k.size} samples lie outside the "
-                         f"span every topic covers ({(origin + k_first * ts_ns) / 1e9:.6f} to "
-                         f"{(origin + k_last * ts_ns) / 1e9:.6f} s) and are left out")
+                         f"span every topic covers ({_seconds(round(origin + k_first * ts_ns))} to "
+                         f"{_seconds(round(origin + k_last * ts_ns))} s) and are left out")
     # A sample is kept when every topic has it; the others are gaps (t skips them; nothing interpolated).
     # (intersected topic by topic: a dense grid over the span would be as long as a clock jump is wide)
     common = None
