@@ -293,3 +293,23 @@ def test_an_output_that_never_moves_is_named_first():
     y[:, 1] = 0.1
     rep = analyze(case.model, dataclasses.replace(data, y=y), FAST)
     assert rep.warnings[0].startswith("output y2 never moves in this window (every value the same: a stuck sensor")
+
+
+def test_step_responses_cut_short_of_settling_are_named():
+    """A step-response model of N = 20 samples for lags of 50 s: every element was located and the repair kept
+    them all "unknown" ("may be too small"), and no word said the responses end long before they settle."""
+    from mpm_monitor.core.analysis import unsettled_warnings
+
+    from mpm_monitor.core.model import PlantModel
+
+    case = paper_case("3.1")
+
+    def step_model(n):
+        sr = [[case.model.discrete_element(i, j).step_response(n + 1)[1:] for j in range(3)] for i in range(3)]
+        return PlantModel.from_step_response(case.model.sample_time, case.model.inputs, case.model.outputs, sr)
+
+    warning = unsettled_warnings(step_model(20))
+    assert len(warning) == 1 and "(y1, u1), (y1, u2), (y1, u3), (y2, u1), (y2, u2), (y2, u3) and 3 more have not " \
+                                  "settled within the model's 20 samples" in warning[0]
+    assert unsettled_warnings(case.model) == []                      # parametric: nothing to say
+    assert unsettled_warnings(step_model(400)) == []                 # settled (lags of 50 s at most)

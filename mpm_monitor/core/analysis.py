@@ -752,7 +752,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
                               f"({b - a} samples)")
     row_test = row_tests[0]
     rows = row_test.rows
-    warnings = still_output_warnings(model, y) + diverging + list(row_test.warnings) \
+    warnings = still_output_warnings(model, y) + unsettled_warnings(model) + diverging + list(row_test.warnings) \
         + offset_warnings(model, sig.d, y, diverged) \
         + ([] if design is None else design.warnings()) + later_warnings
     warnings += element_test.warnings
@@ -888,6 +888,36 @@ def settle_report(report: AnalysisReport) -> AnalysisReport:
 #: A row whose prediction error's mean exceeds this many times its standard deviation is named as
 #: offset (:func:`offset_warnings`).
 OFFSET_RATIO = 10.0
+
+
+#: A step-response element that still changes by more than this fraction of its largest |value| over the last
+#: tenth of its ``N`` samples (on a row without ``ramp``) has not settled within ``N`` (:func:`unsettled_warnings`).
+UNSETTLED_FRACTION = 0.03
+
+
+def unsettled_warnings(model: PlantModel) -> list:
+    """One warning naming the step-response elements that have not settled within the model's ``N`` samples.
+
+    The model holds each response at its last coefficient beyond ``N``: a plant whose response goes on
+    rising differs from the model there, every such element can be located, and a repair that keeps the
+    element's ``N`` cannot follow it.  A ``ramp`` row's elements end on a slope by design and are left out.
+    """
+    if not model.is_step_response or model.step_response.shape[-1] < 10:
+        return []
+    sr = model.step_response                                    # (n_outputs, n_columns, N)
+    n = sr.shape[-1]
+    tail = np.abs(sr[..., -1] - sr[..., n - 1 - max(1, n // 10)])
+    scale = np.max(np.abs(sr), axis=-1)
+    ramp = np.array(model.ramp if model.ramp is not None else (False,) * model.n_outputs, dtype=bool)
+    cut = (tail > UNSETTLED_FRACTION * scale) & (scale > 0) & ~ramp[:, None]
+    if not np.any(cut):
+        return []
+    pairs = [f"({model.outputs[i]}, {model.columns[j]})" for i, j in zip(*np.nonzero(cut))]
+    shown = ", ".join(pairs[:6]) + (f" and {len(pairs) - 6} more" if len(pairs) > 6 else "")
+    return [f"the step responses of {shown} have not settled within the model's {n} samples (they still change by "
+            f"more than {UNSETTLED_FRACTION:.0%} of their size over its last tenth): the model holds each at its last "
+            f"value beyond that, so a plant whose response goes on differs from it there, and a repair in "
+            f"{n} samples cannot follow it; a longer step_response (more samples) is needed"]
 
 
 def still_output_warnings(model: PlantModel, y: np.ndarray) -> list:
