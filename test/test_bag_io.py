@@ -793,3 +793,28 @@ def test_an_unset_stamp_among_wall_clock_stamps_is_left_out_not_taken_for_a_cloc
     sent[12] = 0
     data = read_bag(write_bag(tmp_path / "bag", r, u, y, stamps=sent, received=stamps), MODEL)
     assert data.n_samples == 29 and any("unset header.stamp" in n for n in data.notes)
+
+
+def test_stamps_within_a_quarter_sample_of_their_samples_are_placed_whatever_the_first_one(tmp_path):
+    """The grid was anchored on the earliest stamp: a first output stamp 0.2 sample early and an input stamp 0.2
+    late, both within the quarter sample the docs allow, lay 0.4 sample apart and the bag was refused."""
+    r, u, y = _samples(40)
+    ts = int(MODEL.sample_time * 1e9)
+    stamps = np.arange(40) * ts + int(T0 * 1e9)
+    early = stamps.copy()
+    early[0] -= ts // 5
+    late = stamps.copy()
+    late[7] += ts // 5
+    path = tmp_path / "bag"
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conns = {role: w.add_connection(f"/{role}", JS.__msgtype__, typestore=TS) for role in ("output", "input", "setpoint")}
+        for k in range(40):
+            for role, values, st in (("output", y, early), ("input", u, late), ("setpoint", r, stamps)):
+                names = MODEL.inputs if role == "input" else MODEL.outputs
+                w.write(conns[role], int(stamps[k]) + 1000,
+                        TS.serialize_cdr(_joint_state(int(st[k]), names, values[k]), JS.__msgtype__))
+    data = read_bag(path, MODEL)
+    assert data.n_samples == 40
+    np.testing.assert_array_equal(data.y, y)
+    np.testing.assert_array_equal(data.u, u)
+    np.testing.assert_allclose(data.t, T0 + 0.5 * np.arange(40), rtol=0, atol=1e-9)

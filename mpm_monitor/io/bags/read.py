@@ -249,6 +249,20 @@ def _without_unset_stamps(path, series: dict) -> tuple:
     return kept, tuple(notes)
 
 
+def _grid_origin(stamps: list, ts_ns: float) -> int:
+    """The sample grid's origin (ns) for the stamps of every topic (int64 arrays, each sorted): the earliest
+    stamp, moved to the mean phase of all stamps on the grid of ``ts_ns`` when that is more than 1 % of a
+    sample away.  Anchored on the earliest stamp alone, a first stamp 0.2 sample early and another 0.2 late,
+    both within :data:`GRID_TOLERANCE` of their samples, lay 0.4 sample apart, and the bag was refused."""
+    first = min(int(st[0]) for st in stamps)
+    every = np.concatenate([np.asarray(st, dtype=np.int64) - first for st in stamps])
+    angle = 2 * np.pi * np.mod(every.astype(float), ts_ns) / ts_ns
+    phase = float(np.arctan2(np.sin(angle).mean(), np.cos(angle).mean())) / (2 * np.pi)     # in (-0.5, 0.5]
+    if abs(phase) <= 0.01:
+        return first
+    return first + int(round(phase * ts_ns))
+
+
 def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances=()) -> LoggedData:
     """Put the topics on one sample grid (every sample at most once per topic; the samples a topic lacks are gaps)."""
     series, notes = _without_unset_stamps(path, series)
@@ -261,7 +275,7 @@ def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances
                            f"{_seconds(before - stamp)} s from the stamp before it ({_seconds(before)} s): expected "
                            f"stamps that increase (a clock stepped back?); messages a few samples out of order "
                            f"are put in order")
-    origin = min(int(s.stamps[0]) for s in series.values())
+    origin = _grid_origin([s.stamps for s in series.values()], ts_ns)
     ks = {}
     for role, s in series.items():
         rel = (s.stamps - origin).astype(float)
@@ -318,7 +332,8 @@ def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, pr
 
     Samples are aligned by ``header.stamp``: a message belongs to sample ``k`` when its stamp is
     ``t0 + k * sample_time`` within :data:`GRID_TOLERANCE` of a sample, ``t0`` the earliest stamp of
-    the topics.  Samples before the last topic starts or after the first one ends (a recording
+    the topics, moved to the stamps' mean phase on the grid when that is more than 1 % of a sample off
+    (:func:`_grid_origin`).  Samples before the last topic starts or after the first one ends (a recording
     started or stopped mid-sample) are dropped; inside that span a topic holds a sample at most once,
     and a sample some topic lacks is left out (a gap: ``t`` skips it).  Channels are matched by
     name, so their order in the messages is free; extra channels are ignored.  A model with
