@@ -818,3 +818,18 @@ def test_stamps_within_a_quarter_sample_of_their_samples_are_placed_whatever_the
     np.testing.assert_array_equal(data.y, y)
     np.testing.assert_array_equal(data.u, u)
     np.testing.assert_allclose(data.t, T0 + 0.5 * np.arange(40), rtol=0, atol=1e-9)
+
+
+def test_the_inferred_sample_time_takes_the_whole_span_not_the_median_jittered_step():
+    """Without a model the sample time was the median of the jittered steps (0.999979 s for 1 s), and ``t`` drifted
+    by a whole sample over a long bag; a gap does not move it either."""
+    rng = np.random.default_rng(5)
+    k = np.delete(np.arange(5000), np.arange(2000, 2040))
+    stamps = (k * 10**9 + rng.integers(-200_000_000, 200_000_000, size=k.size)).astype(np.int64)
+    stamps[0], stamps[-1] = 0, 4999 * 10**9
+    # Over the 5,000 samples the estimate drifts by less than a twentieth of a sample; the median alone by more
+    # than one.
+    assert 5000 * abs(bag_read.infer_sample_time("bag", stamps, "/output") - 1.0) < 0.05
+    assert 5000 * abs(float(np.median(np.diff(stamps))) / 1e9 - 1.0) > 1.0
+    exact = np.delete(np.arange(300), [7, 8]) * 250_000_000                    # on the grid: the step, exactly
+    assert bag_read.infer_sample_time("bag", exact, "/output") == 0.25

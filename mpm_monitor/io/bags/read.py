@@ -379,12 +379,31 @@ def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, pr
 
 
 def infer_sample_time(path, stamps: np.ndarray, topic: str) -> float:
-    """Sample time in seconds as the median spacing of a topic's distinct stamps (nanoseconds)."""
-    diffs = np.diff(np.unique(stamps))
+    """Sample time in seconds from a topic's distinct stamps (nanoseconds): the median spacing when every stamp
+    lies on its grid, else the slope of the stamps over their sample numbers (gaps skip numbers).  The median
+    alone takes the jitter of the steps (0.999979 s for 1 s), and ``t`` then drifted by a whole sample over a
+    long bag."""
+    unique = np.unique(stamps)
+    diffs = np.diff(unique)
     if diffs.size == 0:
         raise BagError(f"{path}: topic '{topic}': needs at least two samples to infer the sample time "
                        f"(or give --model)")
-    return float(np.median(diffs)) / 1e9
+    step = int(np.median(diffs))
+    rel = unique - unique[0]
+    if step <= 0 or not np.any(rel % step):         # every stamp on the median step's grid: that step, exactly
+        return step / 1e9
+    # Jittered stamps: the slope of the stamps over their sample numbers, taken over a span that doubles
+    # (each fit's error keeps the next span's numbering right), then rounded to the nanosecond.
+    ts, n = float(step), 16
+    while True:
+        sel = rel[rel <= n * ts]
+        k = np.rint(sel / ts)
+        if np.ptp(k) > 0:
+            kc = k - k.mean()
+            ts = float(kc @ (sel - sel.mean()) / (kc @ kc))
+        if sel.size == rel.size:
+            return round(ts) / 1e9
+        n *= 2
 
 
 def read_bag_channels(path, topics: Sequence[str] = DEFAULT_TOPICS, sample_time: Optional[float] = None,
