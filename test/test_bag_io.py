@@ -833,3 +833,20 @@ def test_the_inferred_sample_time_takes_the_whole_span_not_the_median_jittered_s
     assert 5000 * abs(float(np.median(np.diff(stamps))) / 1e9 - 1.0) > 1.0
     exact = np.delete(np.arange(300), [7, 8]) * 250_000_000                    # on the grid: the step, exactly
     assert bag_read.infer_sample_time("bag", exact, "/output") == 0.25
+
+
+def test_recover_of_a_file_killed_before_its_magic_reached_the_disk_has_no_message(tmp_path):
+    """A recorder killed before its first write leaves an empty (or partial-magic) storage file: "no complete
+    message to recover", as the docs say, not "not an MCAP file (bad magic)"."""
+    from mpm_monitor.io.bags.mcap_records import MAGIC
+
+    for name, content in (("empty", b""), ("part", MAGIC[:3])):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / f"{name}.mcap").write_bytes(content)
+        with pytest.raises(BagError) as e:
+            bag_io.recover_bag(tmp_path / name, tmp_path / f"{name}_back")
+        _check(e, f"{name}.mcap: no complete message to recover (expected at least one complete chunk")
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "junk.mcap").write_bytes(b"garbage!!")
+    with pytest.raises(BagError, match="not an MCAP file"):
+        bag_io.recover_bag(tmp_path / "junk", tmp_path / "junk_back")

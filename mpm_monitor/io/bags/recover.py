@@ -117,6 +117,8 @@ class _Records:
         its channels anew)."""
         self.schemas, self.channels, self.messages = {}, {}, []
         buf = path.read_bytes()
+        if len(buf) < len(MAGIC) and MAGIC.startswith(buf):
+            return                      # killed before even the magic reached the disk: nothing in it
         if buf[:len(MAGIC)] != MAGIC:
             raise BagError(f"{path}: not an MCAP file (bad magic)")
         summary, end = False, len(MAGIC)
