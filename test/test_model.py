@@ -311,3 +311,24 @@ def test_a_model_file_longer_than_the_limit_or_endless_is_refused(tmp_path, monk
     with pytest.raises(ModelFileError, match=r"longer than 1,000 bytes"):
         load_model(path)
 
+
+
+def test_a_model_file_is_replaced_whole_or_not_at_all(tmp_path, monkeypatch):
+    """``--repair-out`` and the monitor's repaired model were written in place: a write cut short left half a file
+    where a controller may read its model.  Now written beside it and renamed over it."""
+    import os
+
+    path = tmp_path / "model.yaml"
+    save_model(shell_plant(), path)
+    before = path.read_bytes()
+
+    def fails(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "replace", fails)
+    with pytest.raises(OSError):
+        save_model(shell_plant().replace(gain=2 * shell_plant().gain), path)
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["model.yaml"]
+    monkeypatch.undo()
+    save_model(shell_plant().replace(gain=2 * shell_plant().gain), path)
+    assert load_model(path) == shell_plant().replace(gain=2 * shell_plant().gain)

@@ -296,7 +296,9 @@ def _analyze(args, started) -> int:
     else:
         if args.json_out:
             text = dumps_indented(report.to_dict()) + "\n"
-            _write_output(args.json_out, "--json", lambda: Path(args.json_out).write_text(text, encoding="utf-8"))
+            from ..io.files import write_text_replacing
+
+            _write_output(args.json_out, "--json", lambda: write_text_replacing(args.json_out, text))
         print(report.summary_text())
     if args.repair_out:
         _write_output(args.repair_out, "--repair-out", lambda: save_model(report.repaired_model, args.repair_out))

@@ -48,3 +48,23 @@ def _where_in_text(raw: bytes, pos: int) -> str:
     before = raw[start:pos].decode("utf-8", errors="replace")
     line = raw.count(b"\n", 0, pos) + 1
     return f"on line {line}, character {len(before) + 1}"
+
+
+def write_text_replacing(path, text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path`` beside it and rename it over ``path`` once complete, so that a reader
+    of the file (a controller loading a repaired model) never sees half of it, and a write cut short leaves the
+    old file.  A path that exists and is not a regular file (``/dev/stdout``, a pipe) is written as it is."""
+    import os
+
+    target = Path(path)
+    if target.exists() and not target.is_file():
+        target.write_text(text, encoding="utf-8")
+        return
+    tmp = target.with_name(f".{target.name}.{os.getpid()}.partial")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, target)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+

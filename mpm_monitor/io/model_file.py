@@ -20,7 +20,7 @@ import yaml
 
 from ..core.errors import ModelFileError
 from ..core.model import PlantModel
-from .files import read_text
+from .files import read_text, write_text_replacing
 
 
 def _matrix(data: Mapping, key: str, source: str) -> np.ndarray:
@@ -459,7 +459,7 @@ MAX_MODEL_BYTES = 256 * 2 ** 20
 def save_model(model: PlantModel, path) -> None:
     """Write a model to a YAML file that :func:`load_model` reads back identically."""
     text = dump_model(model)
-    Path(path).write_text(text, encoding="utf-8")
+    write_text_replacing(path, text)           # a reader of the file never sees half of it
 
 
 def yaml_number(v) -> str:
