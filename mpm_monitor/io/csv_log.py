@@ -94,24 +94,18 @@ def write_csv(path, t, r, u, y, inputs, outputs, dv=None, disturbances=(), extra
     others = np.column_stack([np.asarray(v, float) for v in extra.values()]) if extra else np.zeros((n, 0))
     table = np.hstack([t, np.asarray(r, float), np.asarray(u, float), dv, np.asarray(y, float), others])
     header = csv_header(inputs, outputs, disturbances) + list(extra)
-    # Written beside the file and renamed over it once complete: a write cut short (Ctrl-C, a full disk)
-    # leaves no shorter log that would read as a valid one.  A path that is not a regular file (a pipe,
-    # /dev/stdout) is written as it is.
-    target = Path(path)
-    atomic = not target.exists() or target.is_file()
-    tmp = target.with_name(f".{target.name}.{os.getpid()}.partial") if atomic else target
-    try:
+    from .files import replace_file
+
+    def write(tmp):
         with open(tmp, "w", encoding="utf-8", newline="") as fh:
             # csv.writer quotes a name that starts with a quote (or holds one), so the header reads back
             csv.writer(fh, lineterminator="\n").writerow(header)
             for row in table:
                 fh.write(",".join(_fmt(v) for v in row) + "\n")
-        if atomic:
-            os.replace(tmp, target)
-    except BaseException:
-        if atomic:
-            tmp.unlink(missing_ok=True)
-        raise
+
+    # Written beside the file and renamed over it once complete: a write cut short (Ctrl-C, a full disk)
+    # leaves no shorter log that would read as a valid one.
+    replace_file(path, write)
 
 
 def _fmt(v: float) -> str:

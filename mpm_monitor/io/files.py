@@ -50,21 +50,52 @@ def _where_in_text(raw: bytes, pos: int) -> str:
     return f"on line {line}, character {len(before) + 1}"
 
 
-def write_text_replacing(path, text: str) -> None:
-    """Write ``text`` (UTF-8) to ``path`` beside it and rename it over ``path`` once complete, so that a reader
-    of the file (a controller loading a repaired model) never sees half of it, and a write cut short leaves the
-    old file.  A path that exists and is not a regular file (``/dev/stdout``, a pipe) is written as it is."""
-    import os
 
-    target = Path(path)
+def replace_file(path, write, fsync: bool = False) -> Path:
+    """Write ``path`` through a temporary file beside it: ``write(tmp)`` fills the temporary file (its path, a
+    ``str``), which is then renamed over ``path``, so a reader of the file sees either the old one or the whole
+    new one, and a write cut short (Ctrl-C, a full disk) leaves the old file.  The mode of an existing file is
+    kept (0644 for a new one); ``fsync`` flushes the new file to the disk before the rename.  A path that exists
+    and is not a regular file (``/dev/stdout``, a pipe) is written as it is.
+
+    Returns
+    -------
+    Path
+        The absolute path written.
+
+    Raises
+    ------
+    OSError
+        The directory does not exist or is not writable, ``path`` is a directory, ...
+    """
+    import os
+    import tempfile
+
+    target = Path(path).expanduser().absolute()
+    if target.is_dir():
+        raise IsADirectoryError(21, "is a directory", str(target))
     if target.exists() and not target.is_file():
-        target.write_text(text, encoding="utf-8")
-        return
-    tmp = target.with_name(f".{target.name}.{os.getpid()}.partial")
+        write(str(target))
+        return target
+    mode = (target.stat().st_mode & 0o7777) if target.exists() else 0o644
+    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
     try:
-        tmp.write_text(text, encoding="utf-8")
+        os.close(fd)
+        write(tmp)
+        if fsync:
+            with open(tmp, "rb+") as f:
+                os.fsync(f.fileno())
+        os.chmod(tmp, mode)
         os.replace(tmp, target)
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
         raise
+    return target
 
+
+def write_text_replacing(path, text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path`` through :func:`replace_file`."""
+    replace_file(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))

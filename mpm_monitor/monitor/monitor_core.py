@@ -18,8 +18,6 @@ from __future__ import annotations
 import collections
 import dataclasses
 import math
-import os
-import tempfile
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -28,7 +26,8 @@ import numpy as np
 from ..core.errors import ConfigurationError
 from ..core.model import PlantModel
 from ..core.wording import applied_changes, describe_change, repair_ran, repair_verdict
-from ..io.model_file import save_model
+from ..io.files import replace_file
+from ..io.model_file import dump_model
 from .candidate_window import CandidateWindow
 from .experiment import ExperimentOptions, ExperimentTracker
 from .statuses import (
@@ -108,25 +107,7 @@ def write_model_atomically(model: PlantModel, path) -> Path:
     OSError
         The directory does not exist, is not writable, ``path`` is a directory, ...
     """
-    target = Path(path).expanduser().absolute()
-    if target.is_dir():
-        raise IsADirectoryError(21, "is a directory", str(target))
-    mode = (target.stat().st_mode & 0o7777) if target.exists() else 0o644
-    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
-    try:
-        os.close(fd)
-        save_model(model, tmp)
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
-        os.chmod(tmp, mode)
-        os.replace(tmp, target)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-    return target
+    return replace_file(path, lambda tmp: Path(tmp).write_text(dump_model(model), encoding="utf-8"), fsync=True)
 
 
 class MonitorCore:
