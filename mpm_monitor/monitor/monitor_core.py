@@ -91,22 +91,10 @@ def check_monitor_options(o: MonitorOptions) -> None:
 
 
 def write_model_atomically(model: PlantModel, path) -> Path:
-    """Write ``model`` (YAML, :func:`mpm_monitor.io.model_file.save_model`) to ``path`` through a temporary file.
-
-    The file is written next to ``path``, flushed to disk and renamed over it, so a reader sees
-    either the old file or the whole new one, never a partial one.  The mode of an existing file is
-    kept (0644 for a new one).
-
-    Returns
-    -------
-    Path
-        The absolute path written.
-
-    Raises
-    ------
-    OSError
-        The directory does not exist, is not writable, ``path`` is a directory, ...
-    """
+    """Write ``model`` (YAML, :func:`mpm_monitor.io.model_file.dump_model`) to ``path`` through a temporary file,
+    flushed to disk and renamed over it (:func:`mpm_monitor.io.files.replace_file`: a reader sees the old file or
+    the whole new one; the mode of an existing file is kept).  Returns the absolute path written; raises
+    ``OSError`` (no such directory, not writable, ``path`` a directory, ...)."""
     return replace_file(path, lambda tmp: Path(tmp).write_text(dump_model(model), encoding="utf-8"), fsync=True)
 
 
