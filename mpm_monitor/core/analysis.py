@@ -39,6 +39,7 @@ from .logged_data import (
     check_scale,
     divergence,
     in_deviations,
+    moving_columns,
     numerical_breakdown,
 )
 from .model import PlantModel
@@ -921,9 +922,9 @@ def unsettled_warnings(model: PlantModel) -> list:
 
 
 def still_output_warnings(model: PlantModel, y: np.ndarray) -> list:
-    """One warning naming the outputs that never move in the window (every value the same): a stuck sensor or
-    a held value, whose row's tests and repair read a constant (shape of ``y``: (n_samples, n_outputs))."""
-    still = [name for name, moves in zip(model.outputs, np.ptp(y, axis=0) > 0 if y.shape[0] else []) if not moves]
+    """One warning naming the outputs that never move in the window (:func:`~mpm_monitor.core.logged_data.moving_columns`):
+    a stuck sensor or a held value, whose row's tests and repair read a constant (shape of ``y``: (n_samples, n_outputs))."""
+    still = [name for name, moves in zip(model.outputs, moving_columns(y)) if not moves]
     if not still:
         return []
     return [f"output{'s' if len(still) > 1 else ''} {', '.join(still)} never move{'' if len(still) > 1 else 's'} in "

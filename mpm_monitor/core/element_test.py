@@ -43,6 +43,7 @@ import numpy as np
 from .arx import BlockTest, SharedBlockRegression, estimate_delay_from_lags, lag_matrix, segment_lag_matrix, segment_rows
 from .baselines import ELEMENT_TESTS
 from .elements import pulse_response
+from .logged_data import moving_columns
 from .model import PlantModel
 from .noise_order import residual_whiteness
 from .parallel import split_map
@@ -249,11 +250,10 @@ class InputDesign:
 
     def __init__(self, model, u, n_lag, start, threshold, regression=None):
         self.n_lag = n_lag
-        std = u.std(axis=0)
-        scale = np.abs(u).max(axis=0, initial=0.0)      # a column that moves relative to its own size, in any units
+        moves = moving_columns(u)        # a column that moves relative to its own size, in any units
         names = model.columns
         self._disturbances = set(model.disturbances)
-        self.testable = [j for j in range(model.n_columns) if std[j] > 0 and std[j] > 1e-12 * scale[j]]
+        self.testable = [j for j in range(model.n_columns) if moves[j]]
         self.constant = [names[j] for j in range(model.n_columns) if j not in self.testable]
         if regression is None:
             u_c = u - u.mean(axis=0)

@@ -25,6 +25,22 @@ MAX_ANALYSIS_SCALE = 1e40
 MIN_ANALYSIS_SCALE = 1e-100
 
 
+def moving_columns(x: np.ndarray) -> np.ndarray:
+    """Whether each column of ``x`` (shape (n_samples, k), or (n_samples,) for one) moves over its samples: its
+    standard deviation above 1e-12 of its largest |value| (and above 0).  A column held at a value such as 0.1
+    keeps a deviation of about 1e-17 from the rounding of its mean, which a plain ``std > 0`` took for a move.
+
+    Returns
+    -------
+    ndarray of bool, shape (k,) (a 0-d array for one column)
+    """
+    x = np.asarray(x, dtype=float)
+    if x.shape[0] == 0:
+        return np.zeros(x.shape[1:], dtype=bool)
+    std = x.std(axis=0)
+    return (std > 0) & (std > 1e-12 * np.abs(x).max(axis=0))
+
+
 def _step_index(t: np.ndarray, sample_time: float) -> np.ndarray:
     """Sample numbers of the increasing times ``t`` (shape (n,)), step by step: each step of about ``m``
     sample times (rounded, at least 1) advances the number by ``m``; int64 array of shape (n,)."""

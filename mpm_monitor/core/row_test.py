@@ -31,6 +31,7 @@ from typing import Optional
 import numpy as np
 
 from .arx import segment_rows
+from .logged_data import moving_columns
 from .model import PlantModel
 from .parallel import split_map
 from .statistics import N_FAMILIES, holm_adjust
@@ -108,7 +109,8 @@ def frequency_grid(band: tuple, n: int) -> np.ndarray:
 
 
 def moving_setpoints(r: np.ndarray) -> list:
-    """The setpoints that move over the window (not every value the same): the row test's columns.
+    """The setpoints that move over the window (:func:`~mpm_monitor.core.logged_data.moving_columns`): the row
+    test's columns.
 
     Parameters
     ----------
@@ -118,9 +120,9 @@ def moving_setpoints(r: np.ndarray) -> list:
     -------
     list of int
     """
-    # Every value equal, not a standard deviation of 0: a setpoint held at 0.1 has one of about 1e-17 (the
-    # rounding of its mean), and its column of S_Delta then came out as rounding (an RSI of 1e11).
-    moves = np.ptp(r, axis=0) > 0 if r.shape[0] else np.zeros(r.shape[1], dtype=bool)
+    # Not a standard deviation above 0: a setpoint held at 0.1 has one of about 1e-17 (the rounding of its mean),
+    # and its column of S_Delta then came out as rounding (an RSI of 1e11).
+    moves = moving_columns(r)
     return [j for j in range(r.shape[1]) if moves[j]]
 
 

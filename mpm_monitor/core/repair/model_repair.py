@@ -18,7 +18,7 @@ import numpy as np
 
 from ..discretize import model_columns
 from ..errors import ConfigurationError, InputError
-from ..logged_data import LoggedData, check_loop_data, in_deviations
+from ..logged_data import LoggedData, check_loop_data, in_deviations, moving_columns
 from ..model import PlantModel
 from ..signals import (LoopSignals, compute_signals, error_rms, packed, scored_segments, segment_signals,
                        segments_mask, unknown_starts)
@@ -64,7 +64,7 @@ def _holdout_rms(d, n_fit: int, extra: Optional[np.ndarray] = None) -> float:
 def _fit_percent(y, yhat, about_level: bool = False) -> float:
     """``100 (1 - ||y - yhat|| / ||y - mean y||)``; with ``about_level`` (an integrating output, whose
     level is arbitrary) the error taken about its mean."""
-    if y.size == 0 or np.ptp(y) == 0:      # an output that never moves: no variance to explain (its mean's
+    if not moving_columns(y):              # an output that never moves: no variance to explain (its mean's
         return float("nan")                # rounding gave a "fit" of -1e18 % for one held at 0.1)
     den = np.linalg.norm(y - np.mean(y))
     err = y - yhat
