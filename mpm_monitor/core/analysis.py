@@ -903,14 +903,12 @@ def unsettled_warnings(model: PlantModel) -> list:
     rising differs from the model there, every such element can be located, and a repair that keeps the
     element's ``N`` cannot follow it.  A ``ramp`` row's elements end on a slope by design and are left out.
     """
-    if not model.is_step_response or model.step_response.shape[-1] < 10:
+    if not model.is_step_response or model.step_length < 10:
         return []
-    sr = model.step_response                                    # (n_outputs, n_columns, N)
-    n = sr.shape[-1]
+    sr, n = model.step_response, model.step_length              # (n_outputs, n_columns, N)
     tail = np.abs(sr[..., -1] - sr[..., n - 1 - max(1, n // 10)])
     scale = np.max(np.abs(sr), axis=-1)
-    ramp = np.array(model.ramp if model.ramp is not None else (False,) * model.n_outputs, dtype=bool)
-    cut = (tail > UNSETTLED_FRACTION * scale) & (scale > 0) & ~ramp[:, None]
+    cut = (tail > UNSETTLED_FRACTION * scale) & (scale > 0) & ~np.array(model.ramp, dtype=bool)[:, None]
     if not np.any(cut):
         return []
     pairs = [f"({model.outputs[i]}, {model.columns[j]})" for i, j in zip(*np.nonzero(cut))]
@@ -1036,12 +1034,12 @@ def detect_unless_coloured(model: PlantModel, data: LoggedData, options: Analysi
                     unless_coloured=True, settle=settle, beside=beside)
 
 
-def check_gap_rows(plan, layout, options, src: str, model: Optional[PlantModel] = None) -> None:
+def check_gap_rows(plan, layout, options, src: str, model: PlantModel) -> None:
     """Refuse data with gaps whose segments give fewer regression rows than the tests need.
 
     The tests need ``layout.min_samples`` samples of one contiguous span, that is
     ``min_samples - start`` regression rows; data with gaps must give as many rows from its segments.
-    ``model``, when given, names the delay that sets ``max_delay`` (:func:`longest_delay_note`).
+    ``model`` names the delay that sets ``max_delay`` (:func:`longest_delay_note`).
 
     Raises
     ------
@@ -1060,4 +1058,4 @@ def check_gap_rows(plan, layout, options, src: str, model: Optional[PlantModel] 
                         f"gives rows after its first {layout.start} samples); the tests with na={options.na}, "
                         f"nb={options.nb}, max_delay={layout.max_delay} need at least {need} rows (is the sample "
                         f"time right?)"
-                        f"{'' if model is None else longest_delay_note(model, options, layout, enough)}")
+                        f"{longest_delay_note(model, options, layout, enough)}")

@@ -40,7 +40,7 @@ from ..core.errors import DataFileError
 from ..core.logged_data import LoggedData
 from ..core.model import PlantModel
 from ..core.parallel import Forked
-from .files import read_text
+from .files import read_text, replace_file
 
 #: Relative tolerance on the sample spacing, as a fraction of the sample time.
 SPACING_TOLERANCE = 1e-3
@@ -94,8 +94,6 @@ def write_csv(path, t, r, u, y, inputs, outputs, dv=None, disturbances=(), extra
     others = np.column_stack([np.asarray(v, float) for v in extra.values()]) if extra else np.zeros((n, 0))
     table = np.hstack([t, np.asarray(r, float), np.asarray(u, float), dv, np.asarray(y, float), others])
     header = csv_header(inputs, outputs, disturbances) + list(extra)
-    from .files import replace_file
-
     def write(tmp):
         with open(tmp, "w", encoding="utf-8", newline="") as fh:
             # csv.writer quotes a name that starts with a quote (or holds one), so the header reads back

@@ -50,7 +50,6 @@ def _where_in_text(raw: bytes, pos: int) -> str:
     return f"on line {line}, character {len(before) + 1}"
 
 
-
 def replace_file(path, write, fsync: bool = False) -> Path:
     """Write ``path`` through a temporary file beside it: ``write(tmp)`` fills the temporary file (its path, a
     ``str``), which is then renamed over ``path``, so a reader of the file sees either the old one or the whole

@@ -283,6 +283,15 @@ def _strict_resolvers(cls) -> None:
     cls.add_implicit_resolver(_BOOL_TAG, _BOOL, list("tTfF"))
 
 
+#: What a constructor raises on a value its tag does not fit (``!!int 1.5``, ``!!bool maybe``, ``!!map`` on a list).
+_CONSTRUCTOR_ERRORS = (ValueError, TypeError, KeyError, AttributeError, OverflowError, IndexError)
+
+
+def _short_tag(tag) -> str:
+    """``!!int`` for ``tag:yaml.org,2002:int`` (as written in a file)."""
+    return str(tag).replace("tag:yaml.org,2002:", "!!")
+
+
 def _strict_loader(base):
     """``base`` (PyYAML's SafeLoader or CSafeLoader) with YAML 1.2's numbers and booleans and unique keys
     (module docstring); a value an explicit tag's constructor refuses (``!!int 1.5``) and a merge key are
@@ -294,11 +303,10 @@ def _strict_loader(base):
                 return super().construct_object(node, deep=deep)
             except yaml.YAMLError:
                 raise
-            except (ValueError, TypeError, KeyError, AttributeError, OverflowError, IndexError) as exc:
-                tag = str(node.tag).replace("tag:yaml.org,2002:", "!!")
+            except _CONSTRUCTOR_ERRORS as exc:
                 what = repr(node.value)[:40] if isinstance(node, yaml.ScalarNode) else f"this {node.id}"
                 raise yaml.constructor.ConstructorError(
-                    None, None, f"{what} cannot be read as {tag} ({type(exc).__name__}: {exc})"[:200],
+                    None, None, f"{what} cannot be read as {_short_tag(node.tag)} ({type(exc).__name__}: {exc})"[:200],
                     node.start_mark) from None
 
         def construct_document(self, node):
@@ -306,7 +314,7 @@ def _strict_loader(base):
                 return super().construct_document(node)
             except yaml.YAMLError:
                 raise
-            except (ValueError, TypeError, KeyError, AttributeError, OverflowError, IndexError) as exc:
+            except _CONSTRUCTOR_ERRORS as exc:
                 # A constructor that runs late (the lists and mappings are filled after their nodes).
                 raise yaml.constructor.ConstructorError(
                     None, None, f"a value its tag does not fit ({type(exc).__name__}: {exc})"[:200], None) from None
@@ -314,7 +322,7 @@ def _strict_loader(base):
         def construct_mapping(self, node, deep=False):
             if not isinstance(node, yaml.MappingNode):      # an explicit !!map on a list or a scalar
                 raise yaml.constructor.ConstructorError(
-                    None, None, f"expected a mapping for {str(node.tag).replace('tag:yaml.org,2002:', '!!')}, "
+                    None, None, f"expected a mapping for {_short_tag(node.tag)}, "
                     f"got a {node.id}", node.start_mark)
             seen = set()
             for key_node, _ in node.value:
