@@ -441,9 +441,11 @@ class SharedFit:
             r0 = y - own_s @ th_own
             self.rss_own_only = float(r0 @ r0)
             self.rank_own = int(np.linalg.matrix_rank(own_s))
+            self._own_only = th_own / own_scale
         else:
             self.rss_own_only = float(y @ y)
             self.rank_own = 0
+            self._own_only = np.zeros(0)
         ynorm = np.linalg.norm(y - y.mean())
         self.fit_percent = 100.0 * (1.0 - np.sqrt(self.rss) / ynorm) if ynorm > 0 else 0.0
 
@@ -543,6 +545,21 @@ class SharedFit:
     def own_theta(self) -> np.ndarray:
         """Coefficients of the target's own columns."""
         return self.theta[self.n_common:]
+
+    def own_only_theta(self) -> np.ndarray:
+        """Coefficients of the target on its own columns alone (every common coefficient zero), shape (p_own,)."""
+        return self._own_only
+
+    def own_covariance_scaled(self) -> np.ndarray:
+        """The own columns' block of :meth:`covariance_scaled`, shape (p_own, p_own)."""
+        ri = self.rinv[self.n_common:]
+        return ri @ ri.T
+
+    def own_standard_errors(self) -> np.ndarray:
+        """Standard errors of :meth:`own_theta`, shape (p_own,) (NaN where the fit left no residual to
+        measure them against)."""
+        var = np.diag(self.own_covariance_scaled()) * self.sigma2
+        return np.sqrt(np.maximum(var, 0.0)) / self.scale[self.n_common:]
 
 
 def estimate_delay_from_lags(coef: np.ndarray, std: np.ndarray, nb: int, first_lag: int) -> int:

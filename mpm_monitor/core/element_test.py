@@ -154,22 +154,75 @@ class RowNoise:
     dof : int
         Its residual degrees of freedom.
     a : ndarray, shape (na,)
-        ``a_1 .. a_na`` of its ``A(q) = 1 + a_1 q^-1 + ... + a_na q^-na``.
+        ``a_1 .. a_na`` of the row's noise polynomial ``A(q) = 1 + a_1 q^-1 + ... + a_na q^-na``
+        (:func:`noise_filter`): the ARX's own coefficients, or, where the window leaves them
+        undetermined, those of the prediction error's own lags alone.
     exact : bool
         The fit is exact (:attr:`~mpm_monitor.core.arx.SharedFit.exact`): its residual is rounding, not
         noise (a log without noise).
+    undetermined : float or None
+        The largest standard error of the ARX's own coefficients where it exceeds
+        :data:`MAX_NOISE_FILTER_SE` (``a`` then comes from the own lags alone); None otherwise.
     """
 
     sigma2: float
     dof: int
     a: np.ndarray
     exact: bool = False
+    undetermined: Optional[float] = None
+
+
+#: Largest standard error of the element fit's own coefficients ``a_k`` (dimensionless filter taps) for
+#: which they are the row's noise polynomial.  In a loop whose inputs move only with the controller's
+#: feedback (no setpoint move, no dither) the input lags and the own lags can be nearly collinear (the
+#: controller's law ties them; in a square loop always): the fit then splits the prediction error between
+#: them arbitrarily, and its ``a_k`` come out as 1e4 to 1e11 with standard errors as large, where 0.02 to
+#: 0.1 is usual.  Such an ``A(q)`` is no noise model: filtering an element's response by it made the
+#: whole-response test's regressor meaningless and the detectable gain changes
+#: (:mod:`mpm_monitor.core.detectability`) 1e-5 where 30 % went unseen.  Over the 194 rows of 40 such
+#: loops of the Monte-Carlo's plants (``bench.scenarios``, setpoints held, no dither) the largest standard
+#: error was either below 3.4 or above 2.8e4; over 118 rows of excited loops, below 0.03.
+MAX_NOISE_FILTER_SE = 1.0
+
+
+def noise_filter(fit, na: Optional[int] = None) -> tuple:
+    """The row's noise polynomial from an element-test fit: ``(a, undetermined)``.
+
+    ``a`` (shape (na,)): the fit's first ``na`` own coefficients (default: all of them), unless their
+    largest standard error exceeds :data:`MAX_NOISE_FILTER_SE`; then the first ``na`` coefficients of
+    the fit of the prediction error on its own columns alone (under "no mismatch" the prediction error
+    is the disturbance, so these whiten it), and ``undetermined`` is that standard error (None otherwise).
+    """
+    own = np.array(fit.own_theta(), dtype=float)
+    na = own.size if na is None else int(na)
+    if not na:
+        return own[:0], None
+    with np.errstate(invalid="ignore"):
+        se = float(np.max(fit.own_standard_errors()[:na]))
+    if np.isfinite(se) and se > MAX_NOISE_FILTER_SE:
+        return np.array(fit.own_only_theta(), dtype=float)[:na], se
+    return own[:na], None
+
+
+def undetermined_noise_warnings(model: PlantModel, noise: dict) -> list:
+    """One warning naming the rows whose noise polynomial came from the own lags alone (:func:`noise_filter`)."""
+    rows = [i for i in sorted(noise) if noise[i].undetermined is not None]
+    if not rows:
+        return []
+    worst = max(noise[i].undetermined for i in rows)
+    return [f"row{'s' if len(rows) > 1 else ''} {', '.join(model.outputs[i] for i in rows)}: the inputs move only "
+            f"with the controller's feedback here (their lags and the prediction error's own lags are nearly "
+            f"collinear: the element fit's noise polynomial has standard errors up to {worst:.2g}), so these data "
+            "cannot tell a gain error from the controller's answer to the noise: no detectable gain change is computed "
+            "for their elements (detectable_gain_change null), and the whole-response test filters by the noise "
+            "polynomial of the prediction error alone"]
 
 
 def row_noise(fit) -> RowNoise:
-    """The :class:`RowNoise` of an element-test fit (``sigma2``, ``dof``, ``own_theta()``, ``exact``)."""
-    return RowNoise(sigma2=float(fit.sigma2), dof=int(fit.dof), a=np.array(fit.own_theta(), dtype=float),
-                    exact=bool(fit.exact))
+    """The :class:`RowNoise` of an element-test fit (``sigma2``, ``dof``, its noise polynomial
+    :func:`noise_filter`, ``exact``)."""
+    a, undetermined = noise_filter(fit)
+    return RowNoise(sigma2=float(fit.sigma2), dof=int(fit.dof), a=a, exact=bool(fit.exact), undetermined=undetermined)
 
 
 @dataclasses.dataclass
@@ -508,7 +561,8 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
         fit = fits.pop(i) if fits is not None else _unrestricted_fit(design, regressions, i, output_spread,
                                                                      blocks_i, own_i)
         tests = fit.test_each_block_zero([element_window(model, i, j, nb, options.element_window) for j in testable])
-        responses = whole.tests(i, fit) if whole is not None else {}
+        noise_i = row_noise(fit)
+        responses = whole.tests(i, fit, noise_i.a) if whole is not None else {}
         stds = fit.block_stds()
         row_estimates, hits = {}, []
         for bj, j in enumerate(testable):
@@ -527,7 +581,7 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
         table = RowArxTable(output=model.outputs[i], a=short.a.tolist(),
                             b={names[j]: short.b[j].tolist() for j in range(nu)},
                             delay={names[j]: int(nk[j]) for j in range(nu)}, fit_percent=short.fit_percent)
-        return _RowPart(i, row_noise(fit), row_estimates, hits, table, blocks_i.get(i), own_i.get(i),
+        return _RowPart(i, noise_i, row_estimates, hits, table, blocks_i.get(i), own_i.get(i),
                         None if whole is None or whole.moments is None else whole.moments.kept(i))
 
     for part in split_map(one_row, rows, getattr(options, "jobs", 1), meanwhile=meanwhile):
@@ -569,7 +623,8 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
                 delay=int(est.delay), b=est.b, role=role, p_value_window=t.p_value, p_value_response=p_resp))
     kept = _confirm_with_tails(model, rows, design, regressions, options, estimates, keys, elements, output_spread)
     warnings = [f"row {h.output}: inputs {', '.join(h.inputs)} jointly explain part of its prediction error "
-                f"(p={h.p_value:.2g}) but cannot be told apart from these data" for h in group_hits] + kept
+                f"(p={h.p_value:.2g}) but cannot be told apart from these data" for h in group_hits] + kept \
+        + undetermined_noise_warnings(model, noise)
     responses = {k: e.response for k, e in estimates.items() if e.response is not None}
     if whiteness is None:
         whiteness = residual_whiteness(regressions, testable, design.n_lag, row_blocks, own)
@@ -642,18 +697,19 @@ class _WholeResponses:
                 if testable else np.zeros((segment_rows(self.d_c, self.start, self.segments).shape[0], 0))
         return self._common
 
-    def tests(self, i: int, fit) -> dict:
-        """Column -> whole-response :class:`~mpm_monitor.core.arx.BlockTest` of row ``i`` (element fit ``fit``)."""
+    def tests(self, i: int, fit, a: np.ndarray) -> dict:
+        """Column -> whole-response :class:`~mpm_monitor.core.arx.BlockTest` of row ``i`` (element fit ``fit``,
+        noise polynomial ``a``: :func:`noise_filter`)."""
         testable = self.design.testable
         if not any(self.model.present[i, j] for j in testable):
             return {}
         sizes = [self.design.n_lag] * len(testable)
         if self.moments is None:
             return row_response_tests(self.model, i, fit, testable, self.common, sizes, self.u_c, self.d_c, self.start,
-                                      self.na, self.segments)
+                                      self.na, self.segments, a=a)
         try:
             return row_response_tests(self.model, i, fit, testable, None, sizes, self.u_c, self.d_c, self.start,
-                                      self.na, self.segments, moments=self.moments)
+                                      self.na, self.segments, a=a, moments=self.moments)
         finally:
             self.moments.release(i)
 
@@ -787,7 +843,7 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
             response = None
             if estimates[(i, j)].response is not None:
                 response = row_response_tests(model, i, fit, testable, X, sizes, u_c, d_c, start, na,
-                                              columns=[j], a=fit.own_theta()[:na], extra=extra).get(j)
+                                              columns=[j], a=noise_filter(fit, na)[0], extra=extra).get(j)
             p_raw = combined_p_value(test.p_value, None if response is None else response.p_value)
             return min(1.0, N_FAMILIES * factor[(i, j)] * p_raw) if np.isfinite(p_raw) else 1.0
 

@@ -899,9 +899,11 @@ class GramFit(SharedFit):
             qoy = sla.solve_triangular(Ro, g_oy_s, trans="T", check_finite=False)
             self.rss_own_only = max(float(g_yy - qoy @ qoy), 0.0)
             self.rank_own = po
+            self._own_only_factor = (Ro, qoy, own_scale)
         else:
             self.rss_own_only = float(g_yy)
             self.rank_own = 0
+            self._own_only_factor = None
         ynorm2 = float(g_yy - sum_y * sum_y / n) if n else 0.0
         self.fit_percent = 100.0 * (1.0 - math.sqrt(self.rss / ynorm2)) if ynorm2 > 0 else 0.0
 
@@ -914,6 +916,15 @@ class GramFit(SharedFit):
             rinv[:pc, :pc], rinv[:pc, pc:], rinv[pc:, pc:] = self.reg.rinv(), self._w, self._r2i
             self._rinv = rinv
         return self._rinv
+
+    def own_only_theta(self) -> np.ndarray:
+        if self._own_only_factor is None:
+            return np.zeros(0)
+        Ro, qoy, own_scale = self._own_only_factor
+        return sla.solve_triangular(Ro, qoy, check_finite=False) / own_scale
+
+    def own_covariance_scaled(self) -> np.ndarray:
+        return self._r2i @ self._r2i.T
 
     def covariance_blocks(self, idx: np.ndarray) -> np.ndarray:
         if idx.size and idx.max() < self.n_common:
