@@ -453,3 +453,12 @@ def test_a_still_measured_disturbance_is_named_as_one():
     rep = detect(case.model, still, AnalysisOptions(repair=False))
     said = [w for w in rep.warnings if "never move: the smallest gain change" in w]
     assert said and said[0].startswith(f"measured disturbances {case.model.disturbances[0]} never move"), said
+
+
+def test_the_summary_prints_a_value_above_one_as_more_than_100_percent():
+    """Above 1 the first-order value says only that this window does not reliably detect an error as large
+    as the element (bench.detectability --still --first-order); the JSON keeps the number."""
+    from mpm_monitor.core.analysis import detectable_text
+
+    assert [detectable_text(x) for x in (0.35, 0.999, 1.0, 1.0001, 353.5, None, float("inf"))] == \
+        ["35%", "100%", "100%", ">100%", ">100%", "n/a", "n/a"]

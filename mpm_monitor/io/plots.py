@@ -24,6 +24,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..core.analysis import detectable_text
 from ..core.model import PlantModel
 
 #: Largest number of points drawn per time-series curve (longer records are decimated for drawing).
@@ -242,7 +243,7 @@ def plot_detectability_map(report, model: PlantModel, path) -> Optional[Path]:
                                                                         else DETECTABILITY_CLASSES[k][1]))
             if e is None:
                 continue
-            lines = ["n/a" if k is None else (">1000%" if x > 10 else f"{100 * x:.0f}%")]
+            lines = [detectable_text(x)]
             if e.mismatch:
                 lines.append("located")
             elif getattr(e, "ambiguous", False):
