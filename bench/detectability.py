@@ -15,13 +15,26 @@ For every run ``k`` of family ``seed``:
    simulate the same loop again (same seeds) and analyse it;
 4. record whether ``(i, j)`` is located, and whether any other element is.
 
+A run whose changed loop diverges (possible only for a large reported change: ``--still``) is counted
+apart (``diverged``), not in the rates.
+
 A scenario in which no element can be calibrated (every element ambiguous: a fat plant without
 dither) is skipped and counted; scenarios are drawn until ``--runs`` runs are calibrated.
 
 The detection rate over the runs should be 0.9 (between 0.85 and 0.95 with 200 or more runs: the
 binomial standard error at 0.9 is 0.021 for 200 runs).
 
-Run: ``python -m bench.detectability [--runs 300] [--seed 0] [--samples 3000] [--jobs 2]
+With ``--still`` the loops are still: every setpoint held at 0 and no dither, so the inputs move only
+with the controller's feedback of the noise (``bench/results/detectability_still.json``).  There the
+element fit's noise polynomial is often undetermined (:data:`mpm_monitor.core.element_test.MAX_NOISE_FILTER_SE`),
+the reported changes are large (often above 100 %, beyond the first-order picture the calibration rests
+on), and the rates are also given by the sign of the error and for the runs whose reported change is
+at most 1 (a gain of ``K (1 - delta)`` with ``delta`` above 1 reverses the element's sign).  The rows
+whose inputs move only with the controller's feedback get no value (null); ``--first-order`` values them
+too, to the first order the product would use, and gives their rate apart
+(``detectability_still_first_order.json``).
+
+Run: ``python -m bench.detectability [--runs 300] [--seed 0] [--samples 3000] [--jobs 2] [--still]
 [--out bench/results/detectability.json]``
 """
 
@@ -38,12 +51,16 @@ import numpy as np
 
 from mpm_monitor.core.analysis import AnalysisOptions, detect
 from mpm_monitor.core.detectability import POWER, typical_element
+from mpm_monitor.core.errors import DataFileError
 
 from . import mc_parser, write_json
 from .monte_carlo import simulate
 from .scenarios import ScenarioOptions, make_scenario
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "detectability.json"
+#: ``--still``: every setpoint held, no dither.
+STILL = ScenarioOptions(setpoint_amplitude=0.0, dither_fraction=0.0)
+STILL_OUT = DEFAULT_OUT.with_name("detectability_still.json")
 #: Fraction of the runs whose calibrated element is one the model lacks.
 ABSENT_FRACTION = 0.25
 
@@ -53,8 +70,25 @@ def _index(model, e) -> tuple:
 
 
 def one(seed: int, index: int, samples: int, options: ScenarioOptions = ScenarioOptions(),
-        alpha: float = 0.01) -> dict:
-    """One calibration run (see the module docstring); a JSON-ready record."""
+        alpha: float = 0.01, first_order: bool = False) -> dict:
+    """One calibration run (see the module docstring); a JSON-ready record.
+
+    ``first_order``: value the rows whose inputs move only with the controller's feedback too (the product
+    reports null there), and record whether the calibrated element's row is one (``feedback_row``).
+    """
+    if not first_order:
+        return _one(seed, index, samples, options, alpha, None)
+    import mpm_monitor.core.detectability as det
+
+    real, seen = det._feedback_rows, []
+    det._feedback_rows = lambda noise: seen.append(real(noise)) or set()
+    try:
+        return _one(seed, index, samples, options, alpha, seen)
+    finally:
+        det._feedback_rows = real
+
+
+def _one(seed: int, index: int, samples: int, options: ScenarioOptions, alpha: float, seen) -> dict:
     sc = make_scenario(seed, index, options, n_mismatches=0)
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 7]))
     plant = sc.plant
@@ -91,9 +125,16 @@ def one(seed: int, index: int, samples: int, options: ScenarioOptions = Scenario
                                      time_constant=float(model.time_constant[a, b]),
                                      delay=float(model.delay[a, b]))
         kind = "absent"
-    rep = detect(model, simulate(_with(sc, changed, model), samples), opts)
+    rec.update({"element": [i, j], "kind": kind, "delta": delta, "sign": sign})
+    if seen is not None:                    # the clean analysis's rows (the first call)
+        rec["feedback_row"] = bool(seen and i in seen[0])
+    try:
+        rep = detect(model, simulate(_with(sc, changed, model), samples), opts)
+    except DataFileError as err:          # the changed loop diverged (a still loop's large reported change)
+        rec["diverged"] = str(err)
+        return rec
     located = {_index(model, x) for x in rep.elements if x.mismatch}
-    rec.update({"element": [i, j], "kind": kind, "delta": delta, "sign": sign,
+    rec.update({
                 "detected": (i, j) in located, "others_located": len(located - {(i, j)})})
     return rec
 
@@ -142,16 +183,22 @@ def summarise(records: Sequence[dict]) -> dict:
         "by_shape": {s: rate([r for r in done if shape_class(r) == s]) for s in ("square", "tall", "fat")},
         "by_dither": {d: rate([r for r in done if r["dither"] == (d == "dither")]) for d in ("dither", "none")},
         "by_reported_size": {k: rate([r for r in done if f(r["delta"])]) for k, f in bins.items()},
+        "by_sign": {k: rate([r for r in done if (r["sign"] > 0) == (k == "plus")]) for k in ("plus", "minus")},
+        "reported_at_most_1": rate([r for r in done if r["delta"] <= 1.0]),
+        "by_feedback_row": {k: rate([r for r in done if r.get("feedback_row") == (k == "feedback")])
+                            for k in ("feedback", "other")},
         "size_tertiles": [float(x) for x in q],
         "median_delta": statistics.median(deltas) if deltas else None,
         "skipped": sum(1 for r in records if "skipped" in r),
+        "diverged": sum(1 for r in records if "diverged" in r),
         "runs_with_other_located": sum(1 for r in done if r["others_located"]),
         "clean_runs_with_located": sum(1 for r in records if r["clean_located"]),
     }
 
 
 def run(runs: int, seed: int = 0, samples: int = 3000, jobs: int = 1, alpha: float = 0.01,
-        progress: Optional[callable] = None) -> dict:
+        progress: Optional[callable] = None, options: ScenarioOptions = ScenarioOptions(),
+        first_order: bool = False) -> dict:
     """Run the calibration until ``runs`` runs are calibrated; ``{"config", "summary", "runs"}``.
 
     A scenario without an element to calibrate (every element ambiguous: a fat plant without dither)
@@ -170,7 +217,7 @@ def run(runs: int, seed: int = 0, samples: int = 3000, jobs: int = 1, alpha: flo
             done = sum("detected" in r for r in records)
             rate = done / len(records) if records else 1.0
             batch = max(int(math.ceil((runs - done) / max(rate, 0.2))), 1)
-            tasks = [(seed, k, samples, ScenarioOptions(), alpha) for k in range(start, start + batch)]
+            tasks = [(seed, k, samples, options, alpha, first_order) for k in range(start, start + batch)]
             start += batch
             results = pool.imap(_one_star, tasks) if pool is not None else map(_one_star, tasks)
             for rec in results:
@@ -187,6 +234,7 @@ def run(runs: int, seed: int = 0, samples: int = 3000, jobs: int = 1, alpha: flo
     last = max(keep) if keep else -1
     records = [r for r in records if r["index"] <= last]
     return {"config": {"runs": runs, "seed": seed, "samples": samples, "alpha": alpha,
+                       "still": options == STILL, "first_order": first_order,
                        "absent_fraction": ABSENT_FRACTION, "scenarios_drawn": len(records),
                        "wall_time_s": time.perf_counter() - t0},
             "summary": summarise(records), "runs": records}
@@ -195,22 +243,36 @@ def run(runs: int, seed: int = 0, samples: int = 3000, jobs: int = 1, alpha: flo
 def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = mc_parser("python -m bench.detectability", __doc__, 300, DEFAULT_OUT)
     parser.add_argument("--quiet", action="store_true")
+    parser.add_argument("--still", action="store_true", help="every setpoint held at 0 and no dither (module docstring)")
+    parser.add_argument("--first-order", action="store_true",
+                        help="also value the rows whose inputs move only with the controller's feedback (null in "
+                             "the product) and give the rates of those rows apart")
     args = parser.parse_args(argv)
+    if args.still and args.out == DEFAULT_OUT:
+        args.out = STILL_OUT.with_name("detectability_still_first_order.json") if args.first_order else STILL_OUT
 
     def progress(done, total, rec):
         if not args.quiet:
-            tail = rec.get("skipped") or (f"{rec['kind']} delta {rec['delta']:.3f} "
-                                          f"{'detected' if rec['detected'] else 'MISSED'}")
+            tail = rec.get("skipped") or (f"{rec['kind']} delta {rec['delta']:.3f} " + (
+                "diverged" if "diverged" in rec else "detected" if rec["detected"] else "MISSED"))
             print(f"[{done}/{total}] run {rec['index']} {rec['shape'][0]}x{rec['shape'][1]}: {tail}", flush=True)
 
-    result = run(args.runs, args.seed, args.samples, args.jobs, args.alpha, progress)
+    result = run(args.runs, args.seed, args.samples, args.jobs, args.alpha, progress,
+                 STILL if args.still else ScenarioOptions(), args.first_order)
     s = result["summary"]
     o = s["overall"]
     print(f"detection rate at the reported detectable_gain_change: {o['rate']:.3f} ({o['detected']}/{o['runs']}, "
           f"95% interval {o['wilson95'][0]:.3f}-{o['wilson95'][1]:.3f}); target {POWER}")
-    for cat in ("by_kind", "by_shape", "by_dither", "by_reported_size"):
+    for cat in ("by_kind", "by_shape", "by_dither", "by_reported_size", "by_sign") + (
+            ("by_feedback_row",) if args.first_order else ()):
         print(f"  {cat}: " + ", ".join(f"{k} {v['rate']:.3f} ({v['detected']}/{v['runs']})"
                                       for k, v in s[cat].items() if v["runs"]))
+    small = s["reported_at_most_1"]
+    if small["runs"]:
+        print(f"  reported change at most 1: {small['rate']:.3f} ({small['detected']}/{small['runs']})")
+    if s["diverged"]:
+        print(f"  runs whose changed loop diverged (not in the rates): {s['diverged']}")
+    print(f"  clean runs with a located element: {s['clean_runs_with_located']} of {result['config']['scenarios_drawn']}")
     write_json(args.out, result)
     return 0
 

@@ -3,7 +3,12 @@
 Run::
 
     python -m bench.monte_carlo [--runs 200] [--seed 0] [--samples 3000] [--jobs 1]
-                                [--methods arx,xcorr,pcorr] [--out bench/results/monte_carlo.json]
+                                [--methods arx,xcorr,pcorr] [--dither-fat | --still]
+                                [--out bench/results/monte_carlo.json]
+
+``--still``: every setpoint held at 0 and no dither, so the inputs move only with the controller's
+feedback of the noise (``bench/results/monte_carlo_still.json``; the false-alarm rate there, and what a
+square loop's element test can still locate).
 
 Every run draws a random scenario (:mod:`bench.scenarios`: plant 2x2 to 8x8, 0 to 3 mismatched
 elements of random kind and size, the paper's noise and MPC tuning, PRBS setpoints, input dither
@@ -443,6 +448,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--alpha", type=float, default=ALPHA, help="family-wise false-alarm level (default 0.01)")
     parser.add_argument("--dither-fat", action="store_true",
                         help="always dither plants with more inputs than outputs (identifiable design)")
+    parser.add_argument("--still", action="store_true",
+                        help="still loops: every setpoint held at 0, no dither (the inputs move only with the "
+                             "controller's feedback of the noise)")
     parser.add_argument("--no-timing", action="store_true", help="skip the analyze timing on 5x5")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON output (default bench/results/monte_carlo.json)")
     parser.add_argument("--quiet", action="store_true", help="no per-run progress lines")
@@ -469,7 +477,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         result = run_monte_carlo(args.runs, args.seed, args.samples, methods, jobs=args.jobs, alpha=args.alpha,
                                  timing=not args.no_timing, progress=progress,
-                                 scenario_options=ScenarioOptions(dither_fat=args.dither_fat))
+                                 scenario_options=ScenarioOptions(dither_fat=args.dither_fat, **(
+                                     {"setpoint_amplitude": 0.0, "dither_fraction": 0.0} if args.still else {})))
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
