@@ -366,3 +366,62 @@ def test_the_fit_of_an_output_that_never_moves_is_null_whatever_its_value():
         assert np.isnan(_fit_percent(y, y + rng.normal(size=3000)))
     y = rng.normal(size=100)
     assert _fit_percent(y, y) == 100.0
+
+
+# ------------------------------------------------------------------------------ units of the data
+def test_solver_scale_is_one_for_ordinary_data_and_an_exact_power_of_two_for_small_units():
+    from mpm_monitor.core.repair.lsq import SOLVER_SCALE_BELOW, solver_scale
+
+    rng = np.random.default_rng(2)
+    x = rng.standard_normal(500)
+    for c in (1.0, 1e3, 1e8, 2.0 * SOLVER_SCALE_BELOW):
+        assert solver_scale(c * x) == 1.0
+    assert solver_scale(np.zeros(10)) == 1.0 and solver_scale(np.zeros(0)) == 1.0
+    for c in (1e-3, 1e-8, 1e-30):
+        s = solver_scale(c * x)
+        assert s == 2.0 ** round(np.log2(s)) and 0.5 < np.std(c * x) * s < 2.0
+        np.testing.assert_array_equal((c * x) * s / s, c * x)          # exact both ways
+
+
+def test_the_repair_does_not_depend_on_the_outputs_units():
+    """Case 3.2 with every output (and setpoint, and the model's gains) in units of 1e-8: the same kinds,
+    time constants and delays as in units of 1, the gains in the new units.  The search's absolute gradient
+    tolerance was met at its start there: (y2, u1)'s time-constant error came out as a gain error (7.53,
+    tau 70 s, against 5.39 and 50 s)."""
+    import dataclasses
+
+    from mpm_monitor.apps.reproduce import simulate_case
+    from mpm_monitor.core.analysis import AnalysisOptions
+    from mpm_monitor.core.pipeline import analyze
+
+    case, data, _ = simulate_case("3.2", 3000, 1)
+
+    def repaired(c):
+        model = case.model.replace(gain=np.asarray(case.model.gain) * c)
+        rep = analyze(model, dataclasses.replace(data, y=np.asarray(data.y) * c, r=np.asarray(data.r) * c),
+                      AnalysisOptions())
+        return {(ch["output"], ch["input"]): (ch["kind"], ch["applied"], ch["after"]) for ch in rep.repair["changes"]}
+
+    unit, small = repaired(1.0), repaired(1e-8)
+    assert set(unit) == set(small) == {("y1", "u2"), ("y1", "u3"), ("y2", "u1")}
+    assert unit[("y2", "u1")][0] == "time_constant"
+    for key, (kind, applied, after) in unit.items():
+        kind_s, applied_s, after_s = small[key]
+        assert (kind_s, applied_s) == (kind, applied)
+        assert after_s["gain"] == pytest.approx(after["gain"] * 1e-8, rel=1e-6)
+        assert after_s["time_constant"] == pytest.approx(after["time_constant"], rel=1e-6)
+        assert after_s["delay"] == after["delay"]
+
+
+def test_a_step_response_in_small_units_gets_the_same_reference_form():
+    """The first-order form fitted to a step-response element's coefficients (the old response, in the form
+    the new one is fitted in) is the same in units of 1e-9 (it kept the start's time constant, 28 s)."""
+    from mpm_monitor.core.repair import forms
+
+    k = np.arange(1, 121)
+    s = 2.5 * (1 - np.exp(-(k - 6) / 23.0)) * (k > 6) + 0.01 * np.random.default_rng(0).standard_normal(k.size)
+    p1, lag1, _ = forms._step_reference(s, forms.FIRST_ORDER, 1.0)
+    p9, lag9, _ = forms._step_reference(s * 1e-9, forms.FIRST_ORDER, 1.0)
+    assert lag9 == lag1
+    assert p9["time_constant"] == pytest.approx(p1["time_constant"], rel=1e-6)
+    assert p9["gain"] == pytest.approx(p1["gain"] * 1e-9, rel=1e-6)

@@ -20,7 +20,7 @@ from ..arx import lag_matrix, least_squares_ar
 from ..discretize import REPEATED_POLE_TOLERANCE
 from ..filters import lfilter
 from .forms import _POLE_MAX, _POLE_MIN, FIRST_ORDER, _basis, _Form
-from .lsq import least_squares_bounded
+from .lsq import least_squares_bounded, solver_scale
 
 #: Fewest cost samples of a segment of data with gaps that takes part in a fit (a shorter one would
 #: mostly feed its own offset and free responses).
@@ -193,6 +193,7 @@ class _RowProblem:
         self.pole_free_idx = [k for m, s in enumerate(self.specs) if s.pole_free
                               for k in range(self.slices[m].start, self.slices[m].stop)]
         self.set_ar(np.zeros(self.p))
+        self.solver_scale = solver_scale(self.z)
 
     @property
     def n_located(self) -> int:
@@ -462,12 +463,14 @@ class _RowProblem:
         # differences of the Jacobian at which gtol was met).
         recent = {}
 
+        scale = self.solver_scale             # exact: a power of two (solver_scale)
+
         def fun(x):
             resid, beta = self.projected(self.poles_from(x), lags)
             recent[x.tobytes()] = (float(resid @ resid), resid.shape[0], beta)
             if len(recent) > self.RECENT_EVALUATIONS:
                 del recent[next(iter(recent))]
-            return resid
+            return resid if scale == 1.0 else resid * scale
 
         sol = least_squares_bounded(fun, x0, (_POLE_MIN, _POLE_MAX), xtol=1e-9, ftol=1e-9, gtol=1e-9, max_nfev=60,
                                     diff_step=1e-6)

@@ -34,7 +34,7 @@ from ..discretize import REPEATED_POLE_TOLERANCE
 from ..elements import dead_time_samples, pulse_response, sample_parametric
 from ..filters import lfilter
 from ..model import PlantModel
-from .lsq import least_squares_bounded
+from .lsq import least_squares_bounded, solver_scale
 
 #: Bounds of a lag element's discrete pole ``a = exp(-T / tau)`` during the fit.
 _POLE_MIN, _POLE_MAX = 1e-4, 0.9995
@@ -339,6 +339,7 @@ def _step_reference(coefficients, form: _Form, ts: float, lag_shift: int = _LAG_
     tau0 = max(float(reach[0] - dead) if reach.size else 1.0, 1.0) * ts
     starts = {1: [(tau0,)], 2: [(0.7 * tau0, 0.3 * tau0), (tau0, tau0)], 0: [()]}[form.n_lags]
     best = None
+    scale = solver_scale(s)                 # a power of two: coefficients in small units (solver_scale)
     for lag in range(max(first - lag_shift, 1), first + lag_shift + 1):
         if lag > n:
             break
@@ -346,7 +347,8 @@ def _step_reference(coefficients, form: _Form, ts: float, lag_shift: int = _LAG_
         def resid(x, lag=lag):
             cols = _unit_steps(form, x, lag, n, ts)
             beta, *_ = np.linalg.lstsq(cols, s, rcond=None)
-            return cols @ beta - s
+            r = cols @ beta - s
+            return r if scale == 1.0 else r * scale
 
         for taus in starts:
             x0 = np.array([_pole_of(t, ts) for t in taus])
