@@ -462,3 +462,23 @@ def test_the_summary_prints_a_value_above_one_as_more_than_100_percent():
 
     assert [detectable_text(x) for x in (0.35, 0.999, 1.0, 1.0001, 353.5, None, float("inf"))] == \
         ["35%", "100%", "100%", ">100%", ">100%", "n/a", "n/a"]
+
+
+def test_beyond_the_cap_the_smallest_multiple_that_reaches_the_goal_is_found_by_bisection(monkeypatch):
+    """A stub predictor needing 4e6 / f^2 samples at f times the largest amplitudes: the smallest multiple of
+    BEYOND_CAP within MAX_SAMPLES is the one reported (15: 17,778 samples; 10 would need 40,000), found in at
+    most five evaluations; none when even the last multiple is not enough."""
+    calls = []
+
+    def trial(pred, inputs, caps, fraction, p):
+        calls.append(fraction)
+        need = pred / fraction ** 2
+        return exm._Trial(inputs, fraction, need, exm.GOAL, True)
+
+    monkeypatch.setattr(exm, "_trial", trial)
+    found = exm._beyond_cap(4e6, (0, 1), {0: 0.1, 1: 0.2}, 10)
+    assert found.fraction == 15.0 and found.samples == pytest.approx(4e6 / 225)
+    expected = min(f for f in exm.BEYOND_CAP if 4e6 / f ** 2 <= exm.MAX_SAMPLES)
+    assert found.fraction == expected and len(calls) <= 5
+    calls.clear()
+    assert exm._beyond_cap(1e9, (0,), {0: 0.1}, 10) is None and len(calls) == 1

@@ -54,6 +54,9 @@ AMPLITUDE_FRACTIONS = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0)
 REFINED_SUBSETS = 3
 #: Samples are rounded up to a multiple of this.
 SAMPLES_STEP = 50
+#: Multiples of the largest amplitude tried, in the ``why`` only, when the goal is out of reach within it
+#: (the experiment itself stays within :data:`MAX_AMPLITUDE`).
+BEYOND_CAP = (1.5, 2.0, 3.0, 5.0, 7.0, 10.0, 15.0, 20.0, 30.0, 50.0, 70.0, 100.0)
 
 
 @dataclasses.dataclass
@@ -321,15 +324,41 @@ def design_experiment(model, info: Optional[WindowInformation], elements: list, 
             best = min(trials, key=lambda t: (t.cost, t.samples))
             break
     reached = best is not None
+    beyond = None
     if best is None:   # the goal is out of reach: every candidate at its largest amplitude, as long as allowed
         best = _Trial(tuple(candidates), 1.0, MAX_SAMPLES, math.inf, False)
+        beyond = _beyond_cap(pred, tuple(candidates), caps, p)
     samples = min(int(math.ceil(best.samples / SAMPLES_STEP) * SAMPLES_STEP), MAX_SAMPLES)
     separated, drops, family = pred.evaluate({j: best.fraction * caps[j] for j in best.inputs})
     worst = pred.worst_at(drops, family, samples, p) if separated else math.inf
     dither = {model.inputs[j]: float(f"{best.fraction * caps[j]:.3g}") for j in best.inputs}
     return Experiment(dither=dither, samples=samples, expected_detectable_gain_change=worst,
                       why=_why(model, info, best, caps, still, ambiguous, decidable, values, targets, samples, worst,
-                               reached))
+                               reached, beyond))
+
+
+def _beyond_cap(pred: _Predictor, inputs: tuple, caps: dict, p: int) -> Optional[_Trial]:
+    """The smallest multiple of the largest amplitudes (:data:`BEYOND_CAP`) on ``inputs`` predicted to reach the
+    goal within :data:`MAX_SAMPLES`, or None up to the last: for the ``why`` of an experiment out of reach.
+
+    The multiples are searched by bisection (more dither never needs more samples): at most five evaluations.
+    """
+    def reaches(k: int) -> Optional[_Trial]:
+        t = _trial(pred, inputs, caps, BEYOND_CAP[k], p)
+        return t if t.separated and t.samples <= MAX_SAMPLES else None
+
+    found = reaches(len(BEYOND_CAP) - 1)
+    if found is None:
+        return None
+    lo, hi = -1, len(BEYOND_CAP) - 1          # BEYOND_CAP[hi] reaches; BEYOND_CAP[lo] (or the cap itself) does not
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        t = reaches(mid)
+        if t is None:
+            lo = mid
+        else:
+            hi, found = mid, t
+    return found
 
 
 def _trial(pred: _Predictor, inputs: tuple, caps: dict, fraction: float, p: int) -> _Trial:
@@ -340,7 +369,7 @@ def _trial(pred: _Predictor, inputs: tuple, caps: dict, fraction: float, p: int)
 
 
 def _why(model, info, best: _Trial, caps, still, ambiguous, decidable, values, targets, samples, worst,
-         reached) -> str:
+         reached, beyond: Optional[_Trial] = None) -> str:
     parts = []
     amb_inputs = sorted({j for _, j in ambiguous})
     moving_amb = [j for j in amb_inputs if j not in still]
@@ -375,6 +404,15 @@ def _why(model, info, best: _Trial, caps, still, ambiguous, decidable, values, t
     else:
         text += (f"is the largest allowed (half of each input's standard deviation, {MAX_SAMPLES} samples) and still "
                  f"does not reach the goal: predicted detectable gain change {_g(worst)}.")
+        if beyond is not None:
+            more = ", ".join(f"{model.inputs[j]} {_g(beyond.fraction * caps[j])}" for j in beyond.inputs)
+            steps = int(math.ceil(beyond.samples / SAMPLES_STEP) * SAMPLES_STEP)
+            text += (f" A dither {beyond.fraction:g} times as large ({more}) is predicted to reach it in {steps} "
+                     "samples; the recommended one stays within what the data show the inputs move, so check whether "
+                     "the process allows more.")
+        else:
+            text += (f" No dither up to {BEYOND_CAP[-1]:g} times as large is predicted to reach it within "
+                     f"{MAX_SAMPLES} samples.")
     if still:
         text += (f" {_names(model, still)} did not move, so {'its' if len(still) == 1 else 'their'} amplitude is not "
                  "bounded by an observed spread: it is chosen so that its effect on the outputs matches the other "
