@@ -29,7 +29,15 @@ has and that are not mismatched) is given a gain error of exactly 20 % (the plan
 with it, each with other noise seeds; a run counts when that element is located.  The prediction
 promises at least 0.9 where the re-run's own value is at most 0.2.
 
-Run: ``python -m bench.experiment_mc [--runs 200] [--seed 0] [--jobs 2] [--goal-check 0] [--out bench/results/experiment_mc.json]``
+``--still``: the loops with every setpoint held at 0 and no dither (the inputs move only with the
+controller's feedback of the noise; ``bench/results/experiment_mc_still.json``).  There the inputs move
+little, so half their spread, the largest amplitude allowed, rarely reaches the goal; the experiment's
+``why`` then names the smallest multiple of it predicted to (``Experiment.beyond``).  With ``--beyond``
+the re-run (and the goal check) of such an experiment uses that larger dither for its samples, so that
+its prediction is checked too; the others are re-run as recommended.
+
+Run: ``python -m bench.experiment_mc [--runs 200] [--seed 0] [--jobs 2] [--goal-check 0] [--still] [--beyond]
+[--out bench/results/experiment_mc.json]``
 """
 
 from __future__ import annotations
@@ -39,6 +47,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Optional, Sequence
 
 import numpy as np
@@ -51,6 +60,7 @@ from mpm_monitor.sim.excitation import PrbsOptions
 
 from . import mc_parser, write_json
 from .monte_carlo import ALPHA, SEPARABILITY_COLLINEAR, score, simulate
+from .detectability import STILL
 from .scenarios import ScenarioOptions, input_separability, make_scenario
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "experiment_mc.json"
@@ -110,9 +120,10 @@ def goal_check(sc, exp, rep2, targets: set, repeats: int, alpha: float) -> Optio
 
 
 def one(seed: int, index: int, samples: int, alpha: float = ALPHA,
-        options: ScenarioOptions = ScenarioOptions(), goal_repeats: int = 0) -> dict:
+        options: ScenarioOptions = ScenarioOptions(), goal_repeats: int = 0, beyond: bool = False) -> dict:
     """Run ``index`` of family ``seed``: the first analysis and, with an experiment, the re-run (and the
-    goal check, ``goal_repeats`` > 0)."""
+    goal check, ``goal_repeats`` > 0); with ``beyond``, an experiment out of reach is re-run with the larger
+    dither its ``why`` names (``Experiment.beyond``), when it names one."""
     sc = make_scenario(seed, index, options)
     data = simulate(sc, samples)
     sep = input_separability(data.u)
@@ -123,13 +134,18 @@ def one(seed: int, index: int, samples: int, alpha: float = ALPHA,
     rec["results"] = {"arx": res}
     exp = rep.experiment
     rec["experiment"] = exp.to_dict() if exp is not None else None
+    if exp is not None:
+        rec["experiment"]["beyond"] = exp.beyond          # the larger dither the why names (not in the report's JSON)
     if exp is None:
         return rec
     std = data.u.std(axis=0)
     rec["experiment_relative_amplitude"] = {k: float(v / std[sc.model.inputs.index(k)]) if std[
         sc.model.inputs.index(k)] > 0 else None for k, v in exp.dither.items()}
+    larger = beyond and exp.beyond is not None
+    plan = SimpleNamespace(dither=exp.beyond["dither"], samples=exp.beyond["samples"]) if larger else exp
+    rec["rerun_dither"] = "beyond" if larger else "recommended"
     t0 = time.perf_counter()
-    data2 = dithered_log(sc, exp.dither, exp.samples)
+    data2 = dithered_log(sc, plan.dither, plan.samples)
     sim_time = time.perf_counter() - t0
     rep2, res2 = _decisions(sc.model, data2, alpha)
     sep2 = input_separability(data2.u)
@@ -146,9 +162,9 @@ def one(seed: int, index: int, samples: int, alpha: float = ALPHA,
                     "ambiguous_after": len(res2["ambiguous"]),
                     "largest_detectable_after": max((a for a in achieved if a is not None), default=None),
                     "experiment_after": rep2.experiment.to_dict() if rep2.experiment is not None else None}
-    if goal_repeats > 0 and exp.expected_detectable_gain_change is not None \
-            and exp.expected_detectable_gain_change <= GOAL + 1e-9:
-        rec["goal_check"] = goal_check(sc, exp, rep2, targets, goal_repeats, alpha)
+    if goal_repeats > 0 and (larger or (exp.expected_detectable_gain_change is not None
+                                        and exp.expected_detectable_gain_change <= GOAL + 1e-9)):
+        rec["goal_check"] = goal_check(sc, plan, rep2, targets, goal_repeats, alpha)
     return rec
 
 
@@ -167,7 +183,7 @@ def summarise(records: Sequence[dict]) -> dict:
     for r in records:
         if r.get("rerun"):
             a = dict(r)
-            a["results"] = r["rerun"]["results"]
+            a["results"] = {"arx": r["rerun"]["results"]}     # as the first analysis's (score reads results["arx"])
             a["collinear_inputs"] = r["rerun"]["collinear_inputs"]
             after.append(a)
         else:
@@ -201,6 +217,8 @@ def summarise(records: Sequence[dict]) -> dict:
         "samples_quartiles": _quartiles(samples),
         "median_samples": statistics.median(samples) if samples else None,
         "experiments_reaching_goal": sum(1 for p in predicted if p is not None and p <= 0.2 + 1e-9),
+        "experiments_with_a_larger_dither": sum(1 for r in exps if r["experiment"].get("beyond") is not None),
+        "reruns_with_the_larger_dither": sum(1 for r in exps if r.get("rerun_dither") == "beyond"),
         "predicted_detectable_quartiles": _quartiles(predicted),
         "achieved_detectable_quartiles": _quartiles(achieved),
         "reruns_still_ambiguous": sum(1 for r in exps if r["rerun"]["ambiguous_after"]),
@@ -224,8 +242,9 @@ def _goal_summary(checks: list) -> dict:
 
 
 def run(runs: int, seed: int = 0, samples: int = 3000, jobs: int = 1, alpha: float = ALPHA,
-        progress=None, goal_repeats: int = 0) -> dict:
-    tasks = [(seed, k, samples, alpha, ScenarioOptions(), goal_repeats) for k in range(runs)]
+        progress=None, goal_repeats: int = 0, still: bool = False, beyond: bool = False) -> dict:
+    options = STILL if still else ScenarioOptions()
+    tasks = [(seed, k, samples, alpha, options, goal_repeats, beyond) for k in range(runs)]
     t0 = time.perf_counter()
     records = []
     if jobs > 1:
@@ -243,7 +262,8 @@ def run(runs: int, seed: int = 0, samples: int = 3000, jobs: int = 1, alpha: flo
                 progress(len(records), runs, records[-1])
     records.sort(key=lambda r: r["index"])
     return {"config": {"runs": runs, "seed": seed, "samples": samples, "alpha": alpha, "goal_repeats": goal_repeats,
-                       "scenario_options": "bench.scenarios.ScenarioOptions() (default design)",
+                       "scenario_options": "still: every setpoint held at 0, no dither" if still else
+                       "bench.scenarios.ScenarioOptions() (default design)", "beyond": beyond,
                        "wall_time_s": time.perf_counter() - t0},
             "summary": summarise(records), "runs": records}
 
@@ -255,28 +275,41 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--goal-check", type=int, default=0, metavar="K",
                         help="re-run every experiment predicted to reach its goal K times with a 20%% gain error on its "
                              "hardest target (module docstring; default 0: not run)")
+    parser.add_argument("--still", action="store_true", help="every setpoint held at 0, no dither (module docstring)")
+    parser.add_argument("--beyond", action="store_true",
+                        help="re-run an experiment out of reach with the larger dither its why names")
     args = parser.parse_args(argv)
+    if args.still and args.out == DEFAULT_OUT:
+        args.out = DEFAULT_OUT.with_name("experiment_mc_still.json")
 
     def progress(done, total, rec):
         if args.quiet:
             return
         e = rec["experiment"]
         tail = "no experiment" if e is None else (
-            f"dither {', '.join(f'{k} {v:g}' for k, v in e['dither'].items())}, {e['samples']} samples; after: "
+            f"dither {', '.join(f'{k} {v:g}' for k, v in e['dither'].items())}, {e['samples']} samples"
+            f"{' (re-run with the larger dither)' if rec.get('rerun_dither') == 'beyond' else ''}; after: "
             f"located {len(rec['rerun']['results']['located'])}, ambiguous {rec['rerun']['ambiguous_after']}")
         print(f"[{done}/{total}] run {rec['index']} {rec['shape'][0]}x{rec['shape'][1]} "
               f"{len(rec['mismatches'])} mism: {tail}", flush=True)
 
-    result = run(args.runs, args.seed, args.samples, args.jobs, args.alpha, progress, args.goal_check)
+    result = run(args.runs, args.seed, args.samples, args.jobs, args.alpha, progress, args.goal_check, args.still,
+                 args.beyond)
     s = result["summary"]
     b, a = s["before"], s["after"]
-    print(f"element recall (ambiguous = miss): {b['recall_all']:.3f} -> {a['recall_all']:.3f}; precision "
-          f"{b['precision']:.3f} -> {a['precision']:.3f}")
+    def f3(x):
+        return "-" if x is None else f"{x:.3f}"
+
+    print(f"element recall (ambiguous = miss): {f3(b['recall_all'])} -> {f3(a['recall_all'])}; precision "
+          f"{f3(b['precision'])} -> {f3(a['precision'])}")
     print(f"runs with ambiguity {s['runs_with_ambiguity']}, with an experiment "
           f"{s['runs_with_ambiguity_and_experiment']}; experiments {s['runs_with_experiment']} "
           f"(reaching the goal {s['experiments_reaching_goal']})")
     print(f"median amplitude / input std {s['median_relative_amplitude']}, median samples {s['median_samples']}; "
           f"re-runs still ambiguous {s['reruns_still_ambiguous']}")
+    if s["experiments_with_a_larger_dither"]:
+        print(f"experiments out of reach naming a larger dither {s['experiments_with_a_larger_dither']}, re-run with it "
+              f"{s['reruns_with_the_larger_dither']}")
     for name, g in s.get("goal_check", {}).items():
         rate = "-" if g["rate"] is None else f"{g['rate']:.3f}"
         print(f"goal check ({name.replace('_', ' ')}): {g['located']} of {g['runs']} runs located the 20% gain error "

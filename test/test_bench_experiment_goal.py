@@ -35,3 +35,33 @@ def test_the_goal_check_errs_the_hardest_unmismatched_target_of_the_experiment()
               and (model.outputs.index(e.output), model.inputs.index(e.input)) not in
               {(m.output, m.input) for m in sc.mismatches}]
     assert g["detectable_rerun"] == max(values)
+
+
+def test_the_scores_after_count_the_reruns():
+    """A run with an experiment is scored by its re-run (it was left out: the re-run's results were not under
+    "arx", and the figures "after" were those of the runs without an experiment alone)."""
+    from bench.experiment_mc import summarise
+
+    def rec(index, located, ambiguous, mismatches, rerun=None):
+        r = {"index": index, "shape": [2, 2], "shape_class": "square", "dither": False, "collinear_inputs": [],
+             "mismatches": [{"output": i, "input": j, "kind": "gain", "size": 0.5, "plant": {}, "model": {}}
+                            for i, j in mismatches],
+             "results": {"arx": {"located": located, "ambiguous": ambiguous, "rows": sorted({i for i, _ in located}),
+                                 "time_s": 0.1}},
+             "experiment": None}
+        if rerun is not None:
+            r["experiment"] = {"dither": {"u1": 0.1}, "samples": 2000, "expected_detectable_gain_change": 0.2,
+                               "why": "", "beyond": None}
+            r["experiment_relative_amplitude"] = {"u1": 0.5}
+            r["rerun"] = {"results": {"located": rerun, "ambiguous": [], "rows": sorted({i for i, _ in rerun}),
+                                      "time_s": 0.1},
+                          "collinear_inputs": [], "ambiguous_after": 0, "largest_detectable_after": 0.1,
+                          "experiment_after": None}
+        return r
+
+    records = [rec(0, [[0, 0]], [], [(0, 0)]),                                   # found at once
+               rec(1, [], [[1, 0], [1, 1]], [(1, 1)], rerun=[[1, 1]])]           # ambiguous, then found
+    s = summarise(records)
+    assert (s["before"]["tp"], s["before"]["ambiguous_true"]) == (1, 1)
+    assert (s["after"]["tp"], s["after"]["fp"], s["after"]["fn"], s["after"]["ambiguous_true"]) == (2, 0, 0, 0)
+    assert s["after"]["recall_all"] == 1.0

@@ -75,12 +75,17 @@ class Experiment:
         of ``samples`` dithered samples (at most :data:`GOAL` when the goal is reachable).
     why : str
         What the experiment resolves and why this one, in words.
+    beyond : dict or None
+        When the goal is out of reach within the allowed amplitudes: the larger dither the ``why`` names,
+        ``{"multiple": k, "dither": {input: amplitude}, "samples": N}`` (None when the goal is reached, or
+        no multiple up to the last of :data:`BEYOND_CAP` reaches it).  Not in the JSON (:meth:`to_dict`).
     """
 
     dither: dict
     samples: int
     expected_detectable_gain_change: float
     why: str
+    beyond: Optional[dict] = None
 
     def to_dict(self) -> dict:
         """The JSON object ``{"dither": {...}, "samples": N, "expected_detectable_gain_change": x, "why": "..."}``."""
@@ -332,9 +337,13 @@ def design_experiment(model, info: Optional[WindowInformation], elements: list, 
     separated, drops, family = pred.evaluate({j: best.fraction * caps[j] for j in best.inputs})
     worst = pred.worst_at(drops, family, samples, p) if separated else math.inf
     dither = {model.inputs[j]: float(f"{best.fraction * caps[j]:.3g}") for j in best.inputs}
+    larger = None if beyond is None else {
+        "multiple": beyond.fraction, "dither": {model.inputs[j]: float(f"{beyond.fraction * caps[j]:.3g}")
+                                                for j in beyond.inputs},
+        "samples": int(math.ceil(beyond.samples / SAMPLES_STEP) * SAMPLES_STEP)}
     return Experiment(dither=dither, samples=samples, expected_detectable_gain_change=worst,
                       why=_why(model, info, best, caps, still, ambiguous, decidable, values, targets, samples, worst,
-                               reached, beyond))
+                               reached, larger), beyond=larger)
 
 
 def _beyond_cap(pred: _Predictor, inputs: tuple, caps: dict, p: int) -> Optional[_Trial]:
@@ -369,7 +378,7 @@ def _trial(pred: _Predictor, inputs: tuple, caps: dict, fraction: float, p: int)
 
 
 def _why(model, info, best: _Trial, caps, still, ambiguous, decidable, values, targets, samples, worst,
-         reached, beyond: Optional[_Trial] = None) -> str:
+         reached, beyond: Optional[dict] = None) -> str:
     parts = []
     amb_inputs = sorted({j for _, j in ambiguous})
     moving_amb = [j for j in amb_inputs if j not in still]
@@ -405,11 +414,10 @@ def _why(model, info, best: _Trial, caps, still, ambiguous, decidable, values, t
         text += (f"is the largest allowed (half of each input's standard deviation, {MAX_SAMPLES} samples) and still "
                  f"does not reach the goal: predicted detectable gain change {_g(worst)}.")
         if beyond is not None:
-            more = ", ".join(f"{model.inputs[j]} {_g(beyond.fraction * caps[j])}" for j in beyond.inputs)
-            steps = int(math.ceil(beyond.samples / SAMPLES_STEP) * SAMPLES_STEP)
-            text += (f" A dither {beyond.fraction:g} times as large ({more}) is predicted to reach it in {steps} "
-                     "samples; the recommended one stays within what the data show the inputs move, so check whether "
-                     "the process allows more.")
+            more = ", ".join(f"{name} {_g(a)}" for name, a in beyond["dither"].items())
+            text += (f" A dither {beyond['multiple']:g} times as large ({more}) is predicted to reach it in "
+                     f"{beyond['samples']} samples; the recommended one stays within what the data show the inputs "
+                     "move, so check whether the process allows more.")
         else:
             text += (f" No dither up to {BEYOND_CAP[-1]:g} times as large is predicted to reach it within "
                      f"{MAX_SAMPLES} samples.")
