@@ -186,12 +186,25 @@ MAX_NOISE_FILTER_SE = 1.0
 
 
 def noise_filter(fit, na: Optional[int] = None) -> tuple:
-    """The row's noise polynomial from an element-test fit: ``(a, undetermined)``.
+    """The row's noise polynomial from an element-test fit.
 
-    ``a`` (shape (na,)): the fit's first ``na`` own coefficients (default: all of them), unless their
-    largest standard error exceeds :data:`MAX_NOISE_FILTER_SE`; then the first ``na`` coefficients of
-    the fit of the prediction error on its own columns alone (under "no mismatch" the prediction error
-    is the disturbance, so these whiten it), and ``undetermined`` is that standard error (None otherwise).
+    Parameters
+    ----------
+    fit : SharedFit or GramFit
+        The row's element fit: ``d_i`` on the lag blocks and ``-d_i`` at lags ``1 .. na`` (then any
+        further free columns).
+    na : int, optional
+        Own lags of the polynomial (default: every own column of ``fit``).
+
+    Returns
+    -------
+    a : ndarray, shape (na,)
+        ``a_1 .. a_na`` (dimensionless): the fit's first ``na`` own coefficients, unless their largest
+        standard error exceeds :data:`MAX_NOISE_FILTER_SE`; then the first ``na`` coefficients of the fit
+        of the prediction error on its own columns alone (under "no mismatch" the prediction error is
+        the disturbance, so these whiten it).
+    undetermined : float or None
+        That largest standard error where it exceeds the bound; None otherwise.
     """
     own = np.array(fit.own_theta(), dtype=float)
     na = own.size if na is None else int(na)
