@@ -90,9 +90,9 @@ def test_a_still_loop_reports_no_detectable_change_below_an_error_it_misses():
     # named, and the experiment is recommended, its why saying so.
     assert values[("y1", "u1")] is None
     assert all(v is None for v in values.values())
-    warning = [w for w in rep.warnings if "move only with the controller's feedback" in w]
+    warning = [w for w in rep.warnings if "own lags are nearly collinear here" in w]
     assert len(warning) == 1 and warning[0].startswith("rows y1, y2, y3:")
-    assert rep.experiment is not None and "only with the controller's feedback in rows y1, y2, y3" in rep.experiment.why
+    assert rep.experiment is not None and "own lags are nearly collinear in rows y1, y2, y3" in rep.experiment.why
     # Its inputs barely move, so half their spread is too small a dither: the why gives the multiple that is
     # predicted to do (10 times, for 10,150 samples: in a check of 4 seeds that dither gave a largest
     # detectable change of 0.21 to 0.22, and a 20 % error of the hardest element was located in 20 of 20).

@@ -584,8 +584,9 @@ class WindowInformation:
 
 
 def _feedback_rows(noise: dict) -> set:
-    """The rows of ``noise`` (output index -> RowNoise) whose inputs move only with the controller's feedback:
-    their element fit's noise polynomial is undetermined (``RowNoise.undetermined``)."""
+    """The rows of ``noise`` (output index -> RowNoise) whose element fit's noise polynomial is undetermined
+    (``RowNoise.undetermined``): inputs that move only with the controller's feedback, or a prediction error
+    without noise."""
     return {i for i, nz in noise.items() if getattr(nz, "undetermined", None) is not None}
 
 
@@ -657,12 +658,14 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
             values[key] = min(values[key], float(np.sqrt(lam / t.information)))
             if key in info.targets and np.isfinite(t.information):
                 info.responses[key] = (float(t.information) / info.n_rows, int(t.df_num))
-    # A row whose inputs move only with the controller's feedback (its element fit's noise polynomial is
-    # undetermined, RowNoise.undetermined): the first-order values above assume the inputs given, but there
-    # a gain error changes them too, and a square loop's controller ties each input to the outputs it
-    # controls.  ``python -m bench.detectability --still --first-order`` detected an error of the computed
-    # size in 11 of 65 such rows (the rows of every square loop: 6 of 59), against 210 of 235 elsewhere:
-    # nothing is reported there (the element test's warning says why).
+    # A row whose element fit's noise polynomial is undetermined (RowNoise.undetermined): inputs that move only
+    # with the controller's feedback, or a prediction error without noise (in a mismatched row of a log without
+    # noise, an exact function of the inputs).  In the first the first-order values above assume the inputs
+    # given, but there a gain error changes them too, and a square loop's controller ties each input to the
+    # outputs it controls: ``python -m bench.detectability --still --first-order`` detected an error of the
+    # computed size in 11 of 65 such rows (the rows of every square loop: 6 of 59), against 210 of 235
+    # elsewhere.  In the second there is no noise to value a change against.  Nothing is reported there (the
+    # element test's warning says why).
     feedback = _feedback_rows(noisy)
     values.update({k: None for k in values if k[0] in feedback})
     warnings = []

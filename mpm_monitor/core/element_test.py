@@ -181,7 +181,8 @@ class RowNoise:
 #: whole-response test's regressor meaningless and the detectable gain changes
 #: (:mod:`mpm_monitor.core.detectability`) 1e-5 where 30 % went unseen.  Over the 194 rows of 40 such
 #: loops of the Monte-Carlo's plants (``bench.scenarios``, setpoints held, no dither) the largest standard
-#: error was either below 3.4 or above 2.8e4; over 118 rows of excited loops, below 0.03.
+#: error was either below 3.4 or above 2.8e4; over 118 rows of excited loops with noise, below 0.03.  A mismatched
+#: row of a log without noise exceeds it too: its prediction error is then an exact function of the inputs.
 MAX_NOISE_FILTER_SE = 1.0
 
 
@@ -223,12 +224,13 @@ def undetermined_noise_warnings(model: PlantModel, noise: dict) -> list:
     if not rows:
         return []
     worst = max(noise[i].undetermined for i in rows)
-    return [f"row{'s' if len(rows) > 1 else ''} {', '.join(model.outputs[i] for i in rows)}: the inputs move only "
-            f"with the controller's feedback here (their lags and the prediction error's own lags are nearly "
-            f"collinear: the element fit's noise polynomial has standard errors up to {worst:.2g}), so these data "
-            "cannot tell a gain error from the controller's answer to the noise: no detectable gain change is computed "
-            "for their elements (detectable_gain_change null), and the whole-response test filters by the noise "
-            "polynomial of the prediction error alone"]
+    return [f"row{'s' if len(rows) > 1 else ''} {', '.join(model.outputs[i] for i in rows)}: the input lags and the "
+            f"prediction error's own lags are nearly collinear here (the element fit's noise polynomial has standard "
+            f"errors up to {worst:.2g}: inputs that move only with the controller's feedback, or a prediction error "
+            f"without noise), so these data give no noise model of {'these rows' if len(rows) > 1 else 'the row'}: no "
+            f"detectable gain change is computed for {'their' if len(rows) > 1 else 'its'} elements "
+            "(detectable_gain_change null), and the whole-response test filters by the noise polynomial of the "
+            "prediction error alone"]
 
 
 def row_noise(fit) -> RowNoise:

@@ -391,9 +391,10 @@ def _why(model, info, best: _Trial, caps, still, ambiguous, decidable, values, t
                      f"{'its' if len(still) == 1 else 'their'} elements cannot be tested")
     feedback = [i for i, nz in sorted(info.noise.items()) if getattr(nz, "undetermined", None) is not None]
     if feedback:
-        parts.append(f"the inputs move only with the controller's feedback in row{'s' if len(feedback) > 1 else ''} "
-                     f"{', '.join(model.outputs[i] for i in feedback)}, so these data cannot tell a gain error "
-                     "there from the controller's answer to the noise")
+        parts.append(f"the input lags and the prediction error's own lags are nearly collinear in "
+                     f"row{'s' if len(feedback) > 1 else ''} {', '.join(model.outputs[i] for i in feedback)} (inputs "
+                     "that move only with the controller's feedback, or a prediction error without noise), so these "
+                     "data cannot value a gain error there")
     if not decidable:
         low = min(values) if values else math.inf
         parts.append("no element is decidable at the 20% level in this window"
