@@ -80,12 +80,12 @@ def one(seed: int, index: int, samples: int, options: ScenarioOptions = Scenario
         return _one(seed, index, samples, options, alpha, None)
     import mpm_monitor.core.detectability as det
 
-    real, seen = det._feedback_rows, []
-    det._feedback_rows = lambda noise: seen.append(real(noise)) or set()
+    real, seen = det.undetermined_rows, []
+    det.undetermined_rows = lambda noise: seen.append(set(real(noise))) or []
     try:
         return _one(seed, index, samples, options, alpha, seen)
     finally:
-        det._feedback_rows = real
+        det.undetermined_rows = real
 
 
 def _one(seed: int, index: int, samples: int, options: ScenarioOptions, alpha: float, seen) -> dict:

@@ -108,7 +108,7 @@ def test_first_order_values_of_a_still_loop_are_not_tiny(monkeypatch):
     noise polynomial, no element's first-order value is below the 30 % error that went unseen."""
     import mpm_monitor.core.detectability as det
 
-    monkeypatch.setattr(det, "_feedback_rows", lambda noise: set())
+    monkeypatch.setattr(det, "undetermined_rows", lambda noise: [])
     case = paper_case("3.1")
     model = case.model
     gain = np.array(model.gain, dtype=float)

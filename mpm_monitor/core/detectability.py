@@ -56,7 +56,7 @@ from typing import Optional
 import numpy as np
 import scipy.linalg as sla
 
-from .element_test import element_window
+from .element_test import element_window, undetermined_rows
 from .filters import lfilter
 from .model import PlantModel
 from .parallel import split_map
@@ -583,13 +583,6 @@ class WindowInformation:
         return value
 
 
-def _feedback_rows(noise: dict) -> set:
-    """The rows of ``noise`` (output index -> RowNoise) whose element fit's noise polynomial is undetermined
-    (``RowNoise.undetermined``): inputs that move only with the controller's feedback, or a prediction error
-    without noise."""
-    return {i for i, nz in noise.items() if getattr(nz, "undetermined", None) is not None}
-
-
 def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, design, noise: dict, layout, options,
                           segments=None, responses: Optional[dict] = None, moments: Optional[ResponseMoments] = None):
     """The detectable gain change of every element of the rows the ARX element test examined.
@@ -666,7 +659,7 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
     # computed size in 11 of 65 such rows (the rows of every square loop: 6 of 59), against 210 of 235
     # elsewhere.  In the second there is no noise to value a change against.  Nothing is reported there (the
     # element test's warning says why).
-    feedback = _feedback_rows(noisy)
+    feedback = set(undetermined_rows(noisy))
     values.update({k: None for k in values if k[0] in feedback})
     warnings = []
     if exact:

@@ -218,9 +218,16 @@ def noise_filter(fit, na: Optional[int] = None) -> tuple:
     return own[:na], None
 
 
+def undetermined_rows(noise: dict) -> list:
+    """The rows of ``noise`` (output index -> :class:`RowNoise`), in order, whose noise polynomial came from the
+    own lags alone (:func:`noise_filter`): inputs that move only with the controller's feedback, or a
+    prediction error without noise."""
+    return [i for i in sorted(noise) if getattr(noise[i], "undetermined", None) is not None]
+
+
 def undetermined_noise_warnings(model: PlantModel, noise: dict) -> list:
-    """One warning naming the rows whose noise polynomial came from the own lags alone (:func:`noise_filter`)."""
-    rows = [i for i in sorted(noise) if noise[i].undetermined is not None]
+    """One warning naming the rows whose noise polynomial came from the own lags alone (:func:`undetermined_rows`)."""
+    rows = undetermined_rows(noise)
     if not rows:
         return []
     worst = max(noise[i].undetermined for i in rows)

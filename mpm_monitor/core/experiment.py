@@ -39,6 +39,7 @@ from typing import Optional
 import numpy as np
 
 from .detectability import CHUNK, WindowInformation, moment_inverse, required_noncentrality
+from .element_test import undetermined_rows
 
 #: Relative gain error the experiment must detect with probability 0.9.
 GOAL = 0.2
@@ -389,7 +390,7 @@ def _why(model, info, best: _Trial, caps, still, ambiguous, decidable, values, t
     if still:
         parts.append(f"{_names(model, still)} did not move at all in this window, so "
                      f"{'its' if len(still) == 1 else 'their'} elements cannot be tested")
-    feedback = [i for i, nz in sorted(info.noise.items()) if getattr(nz, "undetermined", None) is not None]
+    feedback = undetermined_rows(info.noise)
     if feedback:
         parts.append(f"the input lags and the prediction error's own lags are nearly collinear in "
                      f"row{'s' if len(feedback) > 1 else ''} {', '.join(model.outputs[i] for i in feedback)} (inputs "
