@@ -55,11 +55,9 @@ from mpm_monitor.core.errors import DataFileError
 
 from . import mc_parser, write_json
 from .monte_carlo import simulate
-from .scenarios import ScenarioOptions, make_scenario
+from .scenarios import STILL, ScenarioOptions, make_scenario
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "detectability.json"
-#: ``--still``: every setpoint held, no dither.
-STILL = ScenarioOptions(setpoint_amplitude=0.0, dither_fraction=0.0)
 STILL_OUT = DEFAULT_OUT.with_name("detectability_still.json")
 #: Fraction of the runs whose calibrated element is one the model lacks.
 ABSENT_FRACTION = 0.25

@@ -60,8 +60,7 @@ from mpm_monitor.sim.excitation import PrbsOptions
 
 from . import mc_parser, write_json
 from .monte_carlo import ALPHA, SEPARABILITY_COLLINEAR, score, simulate
-from .detectability import STILL
-from .scenarios import ScenarioOptions, input_separability, make_scenario
+from .scenarios import STILL, ScenarioOptions, input_separability, make_scenario
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "experiment_mc.json"
 

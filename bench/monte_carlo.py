@@ -52,6 +52,7 @@ from __future__ import annotations
 import argparse  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
+import dataclasses  # noqa: E402
 import platform  # noqa: E402
 import statistics  # noqa: E402
 import sys  # noqa: E402
@@ -68,7 +69,7 @@ from mpm_monitor.core.signals import compute_signals  # noqa: E402
 from mpm_monitor.sim.closed_loop import run_closed_loop  # noqa: E402
 
 from . import map_runs  # noqa: E402
-from .scenarios import KINDS, Scenario, ScenarioOptions, input_separability, make_scenario  # noqa: E402
+from .scenarios import KINDS, STILL, Scenario, ScenarioOptions, input_separability, make_scenario  # noqa: E402
 
 METHODS = ("arx", "xcorr", "pcorr")
 ALPHA = 0.01
@@ -477,8 +478,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         result = run_monte_carlo(args.runs, args.seed, args.samples, methods, jobs=args.jobs, alpha=args.alpha,
                                  timing=not args.no_timing, progress=progress,
-                                 scenario_options=ScenarioOptions(dither_fat=args.dither_fat, **(
-                                     {"setpoint_amplitude": 0.0, "dither_fraction": 0.0} if args.still else {})))
+                                 scenario_options=dataclasses.replace(STILL if args.still else ScenarioOptions(),
+                                                                      dither_fat=args.dither_fat))
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

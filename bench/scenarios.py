@@ -135,6 +135,11 @@ class ScenarioOptions:
             raise ValueError(f"size_range: expected 0 < low <= high <= 1, got {self.size_range!r}")
 
 
+#: Still loops: every setpoint held at 0 and no dither, so the inputs move only with the controller's feedback
+#: of the noise (``--still`` of bench.monte_carlo, bench.detectability and bench.experiment_mc).
+STILL = ScenarioOptions(setpoint_amplitude=0.0, dither_fraction=0.0)
+
+
 @dataclasses.dataclass(frozen=True)
 class Mismatch:
     """One mismatched element.
