@@ -334,17 +334,25 @@ def design_experiment(model, info: Optional[WindowInformation], elements: list, 
     if best is None:   # the goal is out of reach: every candidate at its largest amplitude, as long as allowed
         best = _Trial(tuple(candidates), 1.0, MAX_SAMPLES, math.inf, False)
         beyond = _beyond_cap(pred, tuple(candidates), caps, p)
-    samples = min(int(math.ceil(best.samples / SAMPLES_STEP) * SAMPLES_STEP), MAX_SAMPLES)
+    samples = min(_rounded_samples(best), MAX_SAMPLES)
     separated, drops, family = pred.evaluate({j: best.fraction * caps[j] for j in best.inputs})
     worst = pred.worst_at(drops, family, samples, p) if separated else math.inf
-    dither = {model.inputs[j]: float(f"{best.fraction * caps[j]:.3g}") for j in best.inputs}
-    larger = None if beyond is None else {
-        "multiple": beyond.fraction, "dither": {model.inputs[j]: float(f"{beyond.fraction * caps[j]:.3g}")
-                                                for j in beyond.inputs},
-        "samples": int(math.ceil(beyond.samples / SAMPLES_STEP) * SAMPLES_STEP)}
+    dither = _dither(model, best, caps)
+    larger = None if beyond is None else {"multiple": beyond.fraction, "dither": _dither(model, beyond, caps),
+                                          "samples": _rounded_samples(beyond)}
     return Experiment(dither=dither, samples=samples, expected_detectable_gain_change=worst,
                       why=_why(model, info, best, caps, still, ambiguous, decidable, values, targets, samples, worst,
                                reached, larger), beyond=larger)
+
+
+def _dither(model, trial: _Trial, caps: dict) -> dict:
+    """Input name -> amplitude (three significant digits) of ``trial``'s dither."""
+    return {model.inputs[j]: float(f"{trial.fraction * caps[j]:.3g}") for j in trial.inputs}
+
+
+def _rounded_samples(trial: _Trial) -> int:
+    """``trial``'s samples rounded up to a multiple of :data:`SAMPLES_STEP`."""
+    return int(math.ceil(trial.samples / SAMPLES_STEP) * SAMPLES_STEP)
 
 
 def _beyond_cap(pred: _Predictor, inputs: tuple, caps: dict, p: int) -> Optional[_Trial]:
