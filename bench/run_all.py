@@ -29,6 +29,7 @@ BENCHMARKS = [
     ("bench.drift_mc", ["--seeds", "6", "--jobs", "2"], ["--seeds", "1", "--jobs", "2"]),
     ("bench.noise_free", ["--runs", "300", "--jobs", "2"], ["--runs", "20"]),
     ("bench.step_models", ["--runs", "100", "--jobs", "2"], ["--runs", "10"]),
+    ("bench.model_load", ["--out", "bench/results/model_load.json"], ["--sizes", "40x40", "--lengths", "120", "--repeats", "1"]),
     ("bench.perf", [], ["--quick"]),
     ("bench.stages", ["--out", "bench/results/stages.json"], ["--sizes", "20x20", "--repeats", "1"]),
     ("bench.timeline", ["--out", "bench/results/timeline.json"], ["--sizes", "20x20", "--repeats", "1"]),

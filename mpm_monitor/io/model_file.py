@@ -150,6 +150,18 @@ def _bool_vector(data: Mapping, key: str, source: str):
     return tuple(val)
 
 
+def _plain_numbers(values: Sequence):
+    """``values`` as a float array when every entry is an ``int`` or a ``float`` (not a boolean) within the
+    float range: the same numbers as ``float(x)`` each, in one pass; otherwise None (the caller then looks
+    at each entry, to name the one that is not a number)."""
+    if not set(map(type, values)) <= {int, float}:
+        return None
+    try:
+        return np.array(values, dtype=float)
+    except OverflowError:               # an integer beyond the float range
+        return None
+
+
 def _step_response(data: Mapping, source: str) -> np.ndarray:
     """``step_response: {length: N, coefficients: [[[N values] per column] per output]}`` as an array."""
     val = data["step_response"]
@@ -183,6 +195,10 @@ def _step_response(data: Mapping, source: str) -> np.ndarray:
                 raise ModelFileError(f"{where}: expected a list of {n} coefficients, got {el!r}")
             if len(el) != n:
                 raise ModelFileError(f"{where}: expected {n} coefficients (length), got {len(el)}")
+            vals = _plain_numbers(el)
+            if vals is not None:
+                out_row.append(vals)
+                continue
             vals = []
             for k, x in enumerate(el):
                 if isinstance(x, bool) or not isinstance(x, (int, float)):
@@ -359,10 +375,98 @@ class _Dumper(yaml.SafeDumper):
 _strict_resolvers(_Dumper)
 
 
+#: A one-line flow list of plain numbers, ``[0, -0.18, 1e-3, .inf]`` (spaces only around the commas, a
+#: trailing comma allowed): the bulk of a step-response model.  The numbers are YAML 1.2's (:data:`_INT`,
+#: :data:`_FLOAT`), so the list holds exactly what the loader would construct.
+_NUMBER = r"[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN)"
+_NUMBER_LIST = re.compile(rf" *(?:{_NUMBER}) *(?:, *(?:{_NUMBER}) *)*(?:, *)?")
+_FLOW_LIST = re.compile(r"\[([^\[\]{}#\"'\n\r\t]*)\]")
+#: The local tag that stands for one such list while the rest of the text is parsed.
+_LIST_TAG = "!mpm_monitor_numbers"
+_NOT_PARSED = object()
+
+
+def _number_value(token: str):
+    """What the strict loader constructs for the plain scalar ``token`` (one of :data:`_NUMBER_LIST`'s)."""
+    if _INT.match(token):
+        return int(token)
+    low = token.lower()
+    if low.endswith(".inf"):
+        return float("-inf") if low.startswith("-") else float("inf")
+    return float("nan") if low == ".nan" else float(token)
+
+
+def _parse_number_lists(text: str):
+    """The text parsed with every one-line flow list of plain numbers read in one pass (its tokens split
+    and converted here) instead of as a YAML node per number, which takes about 5 us a number: a
+    100 x 40 step-response model of 120 coefficients holds 480,000 of them.
+
+    Each such list before any ``#`` on its line is replaced by the scalar ``!mpm_monitor_numbers k``
+    before the text is parsed.  The result is used only when every replacement was constructed exactly
+    once as that tagged scalar: a list written inside a quoted or block string or a longer plain scalar
+    is not, and neither is one a YAML error surrounds.  Otherwise (and when the text already holds the
+    tag) the result is :data:`_NOT_PARSED`, and the caller parses the text as written: its values, and
+    its errors with their lines, are then the YAML parser's.
+    """
+    if _LIST_TAG in text:
+        return _NOT_PARSED
+    lists: list = []
+
+    def replace(match):
+        content = match.group(1)
+        if not _NUMBER_LIST.fullmatch(content):
+            return match.group(0)
+        tokens = [t.strip() for t in content.split(",")]
+        if not tokens[-1]:
+            tokens.pop()                       # a trailing comma
+        if "n" in content or "N" in content:      # .inf or .nan
+            lists.append([_number_value(t) for t in tokens])
+        else:                                     # without a point or an exponent a token is _INT's
+            lists.append([float(t) if "." in t or "e" in t or "E" in t else int(t) for t in tokens])
+        return f"{_LIST_TAG} {len(lists) - 1}"
+
+    # A list after a '#' is left as written (a comment's, or a quoted string's: not replacing is always safe).
+    lines = []
+    for line in text.split("\n"):
+        head, sign, tail = line.partition("#")
+        lines.append(_FLOW_LIST.sub(replace, head) + sign + tail)
+    replaced = "\n".join(lines)
+    if not lists:
+        return _NOT_PARSED
+    base = _C_LOADER if _C_LOADER is not None else _LOADER
+    seen: set = set()
+
+    def construct(loader, node):
+        plain = isinstance(node, yaml.ScalarNode) and not node.style      # libyaml's plain style is '', PyYAML's None
+        value = node.value if plain else ""
+        k = int(value) if value.isascii() and value.isdigit() and str(int(value)) == value else -1
+        if not 0 <= k < len(lists) or k in seen:
+            raise ValueError("not a list this parse replaced")
+        seen.add(k)
+        return lists[k]
+
+    loader = base(replaced)
+    loader.yaml_constructors = {**base.yaml_constructors, _LIST_TAG: construct}   # this loader's only
+    try:
+        data = loader.get_single_data()
+    except (yaml.YAMLError, RecursionError, ValueError, TypeError):
+        return _NOT_PARSED
+    finally:
+        loader.dispose()
+    if len(seen) != len(lists) or not _depth_within(data, _MAX_DEPTH):
+        return _NOT_PARSED
+    return data
+
+
 def _parse_yaml(text: str):
     """``yaml.safe_load(text)``, by libyaml's parser when PyYAML has it (the same safe constructor and
     resolver: the same values, many times faster on a large model); a text it refuses is parsed again
-    by the pure-Python parser, whose error names the problem and its place as before."""
+    by the pure-Python parser, whose error names the problem and its place as before.  The one-line
+    lists of numbers are read first in one pass (:func:`_parse_number_lists`), when that gives the
+    same values."""
+    data = _parse_number_lists(text)
+    if data is not _NOT_PARSED:
+        return data
     if _C_LOADER is not None:
         try:
             data = yaml.load(text, Loader=_C_LOADER)
@@ -380,6 +484,11 @@ def _parse_yaml(text: str):
 MAX_VALUES = 20_000_000
 
 
+def _nests(values: list) -> bool:
+    """Whether ``values`` holds a list or a mapping (its entries' types looked at once each)."""
+    return any(issubclass(kind, (list, dict)) for kind in set(map(type, values)))
+
+
 def _expanded_size(data) -> int:
     """The values ``data`` holds with its aliases expanded (a list or mapping reached twice counts twice),
     counted once per distinct list or mapping; stops counting past :data:`MAX_VALUES`."""
@@ -390,6 +499,9 @@ def _expanded_size(data) -> int:
         if not isinstance(x, (list, dict)) or (id(x) in sizes and not done):
             continue
         items = list(x.values()) + list(x.keys()) if isinstance(x, dict) else x
+        if not done and isinstance(x, list) and not _nests(x):
+            sizes[id(x)] = min(len(x), MAX_VALUES + 1)       # a list of plain values (numbers): its length
+            continue
         if done:
             total = sum(sizes.get(id(v), 1) if isinstance(v, (list, dict)) else 1 for v in items)
             sizes[id(x)] = min(total, MAX_VALUES + 1)
@@ -417,7 +529,7 @@ def _depth_within(data, limit: int) -> bool:
         for x in level:
             if isinstance(x, dict):
                 nxt.extend(v for v in x.values() if isinstance(v, (list, dict)))
-            elif isinstance(x, list):
+            elif isinstance(x, list) and _nests(x):
                 nxt.extend(v for v in x if isinstance(v, (list, dict)))
         level = [x for x in nxt if id(x) not in seen and not seen.add(id(x))]
     return True

@@ -1,0 +1,104 @@
+"""How long ``load_model`` takes on a large step-response (DMC) model file.
+
+Usage::
+
+    .venv/bin/python -m bench.model_load [--sizes 40x40,100x40] [--lengths 120,400] [--repeats 3]
+                                         [--out bench/results/model_load.json]
+
+For each size (outputs x inputs) and step-response length, a model of first-order step responses
+(gains 0.5 to 2, time constants 5 to 60 samples, six significant digits, one line per output as
+``save_model`` writes it) is written to a temporary file, and a fresh interpreter per repeat times
+``load_model`` on it (the file read, the YAML parse, the validation and the model's construction).
+Medians over the repeats; the file's size in MB and its numbers are printed beside them.  The figures
+hold no target: they say what a large DMC model costs the command before its analysis starts.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from bench import parse_sized, sizes_parser
+
+
+def write_model(path: Path, ny: int, nu: int, length: int, seed: int = 0) -> int:
+    """A step-response model file of ``ny`` outputs, ``nu`` inputs and ``length`` coefficients; its bytes."""
+    from mpm_monitor.core.model import PlantModel
+    from mpm_monitor.io.model_file import save_model
+
+    rng = np.random.default_rng(seed)
+    k = np.arange(length)
+    gain = rng.uniform(0.5, 2.0, (ny, nu, 1))
+    tau = rng.uniform(5.0, 60.0, (ny, nu, 1))
+    coef = np.round(gain * (1.0 - np.exp(-k / tau)), 6)
+    model = PlantModel.from_step_response(1.0, tuple(f"u{j + 1}" for j in range(nu)),
+                                          tuple(f"y{i + 1}" for i in range(ny)), coef)
+    save_model(model, path)
+    return path.stat().st_size
+
+
+def child(path: str) -> dict:
+    """One timed load in this (fresh) interpreter."""
+    import time
+
+    from mpm_monitor.io.model_file import load_model
+
+    t0 = time.perf_counter()
+    model = load_model(Path(path))
+    return {"load_s": time.perf_counter() - t0, "shape": list(model.step_response.shape)}
+
+
+def run(sizes, lengths, repeats: int = 3, seed: int = 0, log=print) -> dict:
+    tmp = Path(tempfile.mkdtemp(prefix="mpm_model_load_"))
+    out = {"repeats": repeats, "seed": seed, "cells": []}
+    for ny, nu in sizes:
+        for length in lengths:
+            path = tmp / f"m{ny}x{nu}x{length}.yaml"
+            size = write_model(path, ny, nu, length, seed)
+            times = []
+            for _ in range(repeats):
+                done = subprocess.run([sys.executable, "-m", "bench.model_load", "--child", str(path)],
+                                      capture_output=True, text=True, check=True)
+                times.append(json.loads(done.stdout.strip().splitlines()[-1])["load_s"])
+            cell = {"outputs": ny, "inputs": nu, "length": length, "numbers": ny * nu * length,
+                    "megabytes": size / 2 ** 20, "load_s": statistics.median(times), "runs_s": times}
+            out["cells"].append(cell)
+            log(f"{ny}x{nu}, {length} coefficients: {cell['numbers']:,} numbers, {cell['megabytes']:.1f} MB, "
+                f"load_model {cell['load_s']:.3f} s (median of {repeats})")
+            path.unlink()
+    out["load_average_end"] = list(os.getloadavg())
+    return out
+
+
+def main(argv=None) -> int:
+    parser = sizes_parser("python -m bench.model_load", __doc__, "fresh interpreters per cell (default 3)")
+    parser.set_defaults(sizes="40x40,100x40")
+    parser.add_argument("--lengths", default="120,400", help="step-response lengths (default 120,400)")
+    parser.add_argument("--child", metavar="MODEL", help=__import__("argparse").SUPPRESS)
+    args, sizes = parse_sized(parser, argv)
+    if args.child:
+        print(json.dumps(child(args.child)))
+        return 0
+    try:
+        lengths = [int(x) for x in args.lengths.split(",")]
+    except ValueError:
+        parser.error(f"--lengths: expected whole numbers separated by commas, got {args.lengths!r}")
+    if any(n < 1 for n in lengths):
+        parser.error(f"--lengths: expected whole numbers >= 1, got {args.lengths!r}")
+    result = run(sizes, lengths, args.repeats, args.seed)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(result, indent=1))
+        print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
