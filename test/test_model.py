@@ -332,3 +332,73 @@ def test_a_model_file_is_replaced_whole_or_not_at_all(tmp_path, monkeypatch):
     monkeypatch.undo()
     save_model(shell_plant().replace(gain=2 * shell_plant().gain), path)
     assert load_model(path) == shell_plant().replace(gain=2 * shell_plant().gain)
+
+
+def test_to_dict_writes_each_number_as_float_then_int_where_whole():
+    """The model's dict holds, for every entry, ``int(float(x))`` where ``float(x)`` is whole and below
+    2**53 in magnitude and ``float(x)`` otherwise (a reference loop over the entries here)."""
+
+    def num(x):
+        x = float(x)
+        return int(x) if x.is_integer() and abs(x) < 2 ** 53 else x
+
+    rng = np.random.default_rng(11)
+    coef = np.round(np.cumsum(rng.normal(size=(3, 2, 40)), axis=2), rng.integers(0, 3))
+    coef[..., :3] = 0.0
+    coef[0, 0, 5:8] = [-0.0, 2.0 ** 53, 2.0 ** 53 - 1]
+    coef[1, 1, 9] = 1e300
+    model = PlantModel.from_step_response(0.5, ("u1", "u2"), ("y1", "y2", "y3"), coef,
+                                          input_nominal=[1.0, 2.5], output_nominal=[-3.0, 0.0, 7.25])
+    d = model.to_dict()
+    want = [[[num(v) for v in el] for el in row] for row in coef]
+    got = d["step_response"]["coefficients"]
+    assert got == want
+    assert [[[type(v) for v in el] for el in row] for row in got] == [[[type(v) for v in el] for el in row]
+                                                                       for row in want]
+    assert d["input_nominal"] == [1, 2.5] and type(d["input_nominal"][0]) is int
+    assert d["output_nominal"] == [-3, 0, 7.25] and [type(v) for v in d["output_nominal"]] == [int, int, float]
+    par = PlantModel(1.0, ("u",), ("y1", "y2"), gain=[[2.5], [-1.0]], time_constant=[[10.0], [0.0]],
+                     delay=[[3.0], [0.0]])
+    pd = par.to_dict()
+    assert pd["gain"] == [[2.5], [-1]] and type(pd["gain"][1][0]) is int
+    assert pd["delay"] == [[3], [0]] and all(type(r[0]) is int for r in pd["delay"])
+
+
+def test_models_equal_exactly_when_their_dicts_do():
+    rng = np.random.default_rng(12)
+    coef = np.cumsum(rng.normal(size=(2, 2, 30)), axis=2)
+    a = PlantModel.from_step_response(1.0, ("u1", "u2"), ("y1", "y2"), coef)
+    b = PlantModel.from_step_response(1.0, ("u1", "u2"), ("y1", "y2"), coef.copy())
+    assert a == b
+    changed = coef.copy()
+    changed[1, 0, 17] = np.nextafter(changed[1, 0, 17], np.inf)
+    assert a != PlantModel.from_step_response(1.0, ("u1", "u2"), ("y1", "y2"), changed)
+    assert a != PlantModel.from_step_response(1.0, ("u1", "u2"), ("y1", "y2"), coef[:, :, :29])
+
+
+def test_the_repair_reports_json_values_keep_numbers_and_turn_non_finite_ones_to_null():
+    import math
+
+    from mpm_monitor.core.repair.result import _jsonable
+
+    def reference(x):
+        if isinstance(x, dict):
+            return {str(k): reference(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [reference(v) for v in x]
+        if isinstance(x, (np.bool_, bool)):
+            return bool(x)
+        if isinstance(x, np.integer):
+            return int(x)
+        if isinstance(x, (float, np.floating)):
+            return float(x) if math.isfinite(float(x)) else None
+        return x
+
+    cases = [[1, 2.5, -0.0], [1.0, float("nan"), 3], [float("inf")], [10 ** 400, 1.5], [10 ** 400], (1, 2),
+             [True, 1], [np.float64(1.5), 2.0], [np.int64(3)], [], [[1.5, 2], ["a", None]], {1: [2.0, float("-inf")]}]
+    for case in cases:
+        got, want = _jsonable(case), reference(case)
+        assert got == want and [type(v) for v in (got if isinstance(got, list) else got.values())] == \
+            [type(v) for v in (want if isinstance(want, list) else want.values())], case
+    row = [0.5, 1.0]
+    assert _jsonable(row) is not row        # a copy, as before

@@ -208,10 +208,13 @@ class PlantModel:
 
     @property
     def present(self) -> np.ndarray:
-        """Elements with an effect, bool array of shape (n_outputs, n_columns)."""
-        if self.step_response is not None:
-            return np.any(self.step_response != 0, axis=2)
-        return self.gain != 0
+        """Elements with an effect, bool array of shape (n_outputs, n_columns) (read-only; computed once)."""
+        out = self._derived.get("present")
+        if out is None:
+            out = np.any(self.step_response != 0, axis=2) if self.step_response is not None else self.gain != 0
+            out.setflags(write=False)
+            self._derived["present"] = out
+        return out
 
     @property
     def integrating_outputs(self) -> tuple:
@@ -306,16 +309,14 @@ class PlantModel:
             x = float(x)
             return int(x) if x.is_integer() and abs(x) < 2**53 else x
 
-        def matrix(a):
-            return [[num(v) for v in row] for row in a]
+        matrix = _plain
 
         out = {"sample_time": num(self.sample_time), "inputs": list(self.inputs), "outputs": list(self.outputs)}
         if self.disturbances:
             out["disturbances"] = list(self.disturbances)
         if self.step_response is not None:
             out["step_response"] = {"length": self.step_length,
-                                    "coefficients": [[[num(v) for v in el] for el in row]
-                                                     for row in self.step_response]}
+                                    "coefficients": _plain(self.step_response)}
             if any(self.ramp):
                 out["ramp"] = [bool(b) for b in self.ramp]
         else:
@@ -329,11 +330,11 @@ class PlantModel:
             if np.any(self.integrating):
                 out["integrating"] = [[bool(v) for v in row] for row in self.integrating]
         if np.any(self.input_nominal != 0):
-            out["input_nominal"] = [num(v) for v in self.input_nominal]
+            out["input_nominal"] = _plain(self.input_nominal)
         if np.any(self.output_nominal != 0):
-            out["output_nominal"] = [num(v) for v in self.output_nominal]
+            out["output_nominal"] = _plain(self.output_nominal)
         if np.any(self.disturbance_nominal != 0):
-            out["disturbance_nominal"] = [num(v) for v in self.disturbance_nominal]
+            out["disturbance_nominal"] = _plain(self.disturbance_nominal)
         if self.name:
             out["name"] = self.name
         return out
@@ -344,6 +345,28 @@ class PlantModel:
         return self.to_dict() == other.to_dict()
 
     __hash__ = None
+
+
+def _plain(a) -> list:
+    """``a`` (any shape) as nested lists of Python numbers, as the model file writes them: a whole
+    number below 2**53 in magnitude as an ``int``, any other value as a ``float``.  The same values as
+    converting each entry with ``float`` and then ``int`` where whole, in one pass over the array."""
+    a = np.asarray(a, dtype=float)
+    flat = a.ravel().tolist()
+    with np.errstate(invalid="ignore"):
+        whole = np.flatnonzero(np.isfinite(a.ravel()) & (np.trunc(a.ravel()) == a.ravel())
+                               & (np.abs(a.ravel()) < 2.0 ** 53))
+    for k in whole.tolist():
+        flat[k] = int(flat[k])
+    return _nested(flat, a.shape)
+
+
+def _nested(flat: list, shape: tuple) -> list:
+    """The row-major list ``flat`` as lists nested to ``shape``."""
+    if len(shape) <= 1:
+        return flat
+    step = int(np.prod(shape[1:], dtype=int))
+    return [_nested(flat[k * step:(k + 1) * step], shape[1:]) for k in range(shape[0])]
 
 
 def _step_response_summary(sr: np.ndarray, ramp: tuple, ts: float):

@@ -194,6 +194,13 @@ def _jsonable(x):
     if isinstance(x, dict):
         return {str(k): _jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
+        kinds = set(map(type, x))
+        if kinds <= {int, float}:           # plain numbers (a model's rows): kept as they are unless not finite
+            try:
+                if float not in kinds or all(map(math.isfinite, x)):
+                    return list(x)
+            except OverflowError:           # an int beyond the float range: each entry as below
+                pass
         return [_jsonable(v) for v in x]
     if isinstance(x, (np.bool_, bool)):
         return bool(x)
