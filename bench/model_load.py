@@ -11,6 +11,13 @@ For each size (outputs x inputs) and step-response length, a model of first-orde
 ``load_model`` on it (the file read, the YAML parse, the validation and the model's construction).
 Medians over the repeats; the file's size in MB and its numbers are printed beside them.  The figures
 hold no target: they say what a large DMC model costs the command before its analysis starts.
+
+``--analyze OxI`` also times the whole command, ``python -m mpm_monitor analyze`` with the repair, on
+a DMC model of that size against its parametric form, on the same log: :func:`bench.plants.random_plant`
+sampled every 8 s (time constants 10 to 80 s, dead times 0 to 8 samples), one gain 30 % off in the
+controller's model, 10,000 samples of the closed loop; the step-response form is
+:func:`bench.step_models.step_form` (settled to 12 time constants: about 130 coefficients).  The two
+forms are run in turn, ``--repeats`` times each; medians, and the located elements of each.
 """
 
 from __future__ import annotations
@@ -77,10 +84,69 @@ def run(sizes, lengths, repeats: int = 3, seed: int = 0, log=print) -> dict:
     return out
 
 
+def write_analyze_case(folder: Path, ny: int, nu: int, samples: int = 10_000, seed: int = 0) -> tuple:
+    """``(parametric model file, step-response model file, CSV)`` of ``--analyze``'s case in ``folder``."""
+    from mpm_monitor.io.csv_log import write_log_csv
+    from mpm_monitor.io.model_file import save_model
+    from mpm_monitor.sim.closed_loop import run_closed_loop
+
+    from .plants import random_plant
+    from .step_models import step_form
+
+    plant = random_plant(ny, nu, np.random.default_rng(seed + 5000 + 100 * ny + nu))
+    plant = plant.replace(sample_time=8.0, delay=plant.delay * 8.0)
+    model = plant.with_element(0, 1, gain=plant.gain[0, 1] * 1.3)
+    log = run_closed_loop(plant, model, samples, seed=seed + 7)
+    paths = folder / f"model_{ny}x{nu}.yaml", folder / f"dmc_{ny}x{nu}.yaml", folder / f"log_{ny}x{nu}.csv"
+    save_model(model, paths[0])
+    save_model(step_form(model), paths[1])
+    write_log_csv(paths[2], log)
+    return paths
+
+
+def time_analyze(model: Path, csv: Path) -> tuple:
+    """``(seconds, located elements)`` of one ``python -m mpm_monitor analyze`` with the repair."""
+    import time
+
+    report = model.with_suffix(".json")
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "mpm_monitor", "analyze", "--model", str(model), "--data", str(csv),
+                    "--json", str(report)], capture_output=True, text=True, check=True)
+    seconds = time.perf_counter() - t0
+    doc = json.loads(report.read_text())
+    located = sorted(f"{e['output']}:{e['input']}" for e in doc["elements"] if e.get("mismatch"))
+    return seconds, located
+
+
+def run_analyze(ny: int, nu: int, repeats: int = 3, seed: int = 0, log=print) -> dict:
+    """``--analyze``: the command on the DMC model and on its parametric form, in turn (module docstring)."""
+    tmp = Path(tempfile.mkdtemp(prefix="mpm_model_analyze_"))
+    par, dmc, csv = write_analyze_case(tmp, ny, nu, seed=seed)
+    from mpm_monitor.io.model_file import load_model
+
+    length = load_model(dmc).step_length
+    times: dict = {"parametric": [], "step_response": []}
+    located: dict = {}
+    for _ in range(repeats):
+        for form, path in (("parametric", par), ("step_response", dmc)):
+            seconds, located[form] = time_analyze(path, csv)
+            times[form].append(seconds)
+    out = {"outputs": ny, "inputs": nu, "length": length, "megabytes": dmc.stat().st_size / 2 ** 20,
+           "samples": 10_000, "runs_s": times, "located": located,
+           **{f"{form}_s": statistics.median(t) for form, t in times.items()}}
+    log(f"analyze {ny}x{nu}, 10,000 samples, with the repair: parametric model {out['parametric_s']:.2f} s, "
+        f"step-response model ({length} coefficients, {out['megabytes']:.1f} MB) {out['step_response_s']:.2f} s "
+        f"(x{out['step_response_s'] / out['parametric_s']:.2f}; medians of {repeats}); located "
+        f"{', '.join(located['parametric']) or 'none'} and {', '.join(located['step_response']) or 'none'}")
+    return out
+
+
 def main(argv=None) -> int:
     parser = sizes_parser("python -m bench.model_load", __doc__, "fresh interpreters per cell (default 3)")
     parser.set_defaults(sizes="40x40,100x40")
     parser.add_argument("--lengths", default="120,400", help="step-response lengths (default 120,400)")
+    parser.add_argument("--analyze", metavar="OxI", default=None,
+                        help="also time analyze on a DMC model of this size against its parametric form")
     parser.add_argument("--child", metavar="MODEL", help=__import__("argparse").SUPPRESS)
     args, sizes = parse_sized(parser, argv)
     if args.child:
@@ -92,7 +158,17 @@ def main(argv=None) -> int:
         parser.error(f"--lengths: expected whole numbers separated by commas, got {args.lengths!r}")
     if any(n < 1 for n in lengths):
         parser.error(f"--lengths: expected whole numbers >= 1, got {args.lengths!r}")
+    analyze_size = None
+    if args.analyze is not None:
+        try:
+            analyze_size = tuple(int(x) for x in args.analyze.lower().split("x"))
+        except ValueError:
+            analyze_size = ()
+        if len(analyze_size) != 2 or min(analyze_size) < 1:
+            parser.error(f"--analyze: expected one size such as 100x40, got {args.analyze!r}")
     result = run(sizes, lengths, args.repeats, args.seed)
+    if analyze_size is not None:
+        result["analyze"] = run_analyze(*analyze_size, repeats=args.repeats, seed=args.seed)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps(result, indent=1))

@@ -183,3 +183,12 @@ def test_the_load_bench_runs_and_reads_back_the_model_it_wrote():
     (cell,) = out["cells"]
     assert (cell["outputs"], cell["inputs"], cell["length"], cell["numbers"]) == (2, 3, 5, 30)
     assert cell["load_s"] > 0 and len(cell["runs_s"]) == 1
+
+
+def test_the_load_bench_times_analyze_on_both_forms_of_a_model():
+    from bench import model_load
+
+    out = model_load.run_analyze(2, 2, repeats=1, log=lambda *_: None)
+    assert out["length"] > 100 and set(out["runs_s"]) == {"parametric", "step_response"}
+    # The controller's (y1, u2) gain is 30 % off: both forms locate it.
+    assert out["located"]["parametric"] == out["located"]["step_response"] == ["y1:u2"]
