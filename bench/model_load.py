@@ -63,8 +63,16 @@ def child(path: str) -> dict:
 
 
 def run(sizes, lengths, repeats: int = 3, seed: int = 0, log=print) -> dict:
-    tmp = Path(tempfile.mkdtemp(prefix="mpm_model_load_"))
+    """The load times of every size and length (module docstring); a JSON-ready dict."""
     out = {"repeats": repeats, "seed": seed, "cells": []}
+    with tempfile.TemporaryDirectory(prefix="mpm_model_load_") as folder:
+        _load_cells(Path(folder), sizes, lengths, repeats, seed, log, out["cells"])
+    out["load_average_end"] = list(os.getloadavg())
+    return out
+
+
+def _load_cells(tmp: Path, sizes, lengths, repeats: int, seed: int, log, cells: list) -> None:
+    """Each cell of :func:`run`, its model written in ``tmp``, appended to ``cells``."""
     for ny, nu in sizes:
         for length in lengths:
             path = tmp / f"m{ny}x{nu}x{length}.yaml"
@@ -76,12 +84,10 @@ def run(sizes, lengths, repeats: int = 3, seed: int = 0, log=print) -> dict:
                 times.append(json.loads(done.stdout.strip().splitlines()[-1])["load_s"])
             cell = {"outputs": ny, "inputs": nu, "length": length, "numbers": ny * nu * length,
                     "megabytes": size / 2 ** 20, "load_s": statistics.median(times), "runs_s": times}
-            out["cells"].append(cell)
+            cells.append(cell)
             log(f"{ny}x{nu}, {length} coefficients: {cell['numbers']:,} numbers, {cell['megabytes']:.1f} MB, "
                 f"load_model {cell['load_s']:.3f} s (median of {repeats})")
             path.unlink()
-    out["load_average_end"] = list(os.getloadavg())
-    return out
 
 
 def write_analyze_case(folder: Path, ny: int, nu: int, samples: int = 10_000, seed: int = 0) -> tuple:
@@ -120,18 +126,18 @@ def time_analyze(model: Path, csv: Path) -> tuple:
 
 def run_analyze(ny: int, nu: int, repeats: int = 3, seed: int = 0, log=print) -> dict:
     """``--analyze``: the command on the DMC model and on its parametric form, in turn (module docstring)."""
-    tmp = Path(tempfile.mkdtemp(prefix="mpm_model_analyze_"))
-    par, dmc, csv = write_analyze_case(tmp, ny, nu, seed=seed)
     from mpm_monitor.io.model_file import load_model
 
-    length = load_model(dmc).step_length
     times: dict = {"parametric": [], "step_response": []}
     located: dict = {}
-    for _ in range(repeats):
-        for form, path in (("parametric", par), ("step_response", dmc)):
-            seconds, located[form] = time_analyze(path, csv)
-            times[form].append(seconds)
-    out = {"outputs": ny, "inputs": nu, "length": length, "megabytes": dmc.stat().st_size / 2 ** 20,
+    with tempfile.TemporaryDirectory(prefix="mpm_model_analyze_") as folder:
+        par, dmc, csv = write_analyze_case(Path(folder), ny, nu, seed=seed)
+        length, megabytes = load_model(dmc).step_length, dmc.stat().st_size / 2 ** 20
+        for _ in range(repeats):
+            for form, path in (("parametric", par), ("step_response", dmc)):
+                seconds, located[form] = time_analyze(path, csv)
+                times[form].append(seconds)
+    out = {"outputs": ny, "inputs": nu, "length": length, "megabytes": megabytes,
            "samples": 10_000, "runs_s": times, "located": located,
            **{f"{form}_s": statistics.median(t) for form, t in times.items()}}
     log(f"analyze {ny}x{nu}, 10,000 samples, with the repair: parametric model {out['parametric_s']:.2f} s, "
