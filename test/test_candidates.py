@@ -367,3 +367,27 @@ def test_a_spike_in_an_output_with_a_candidate_added_to_the_model():
     assert "spikes" in rep.warnings[0]
     assert sorted(rep.candidates.located) == sorted((o, name) for o in model.outputs)
     assert max(rep.repair["error_after"].values()) < 0.05
+
+
+@pytest.mark.parametrize("scale", [1e-14, 1e9])
+def test_a_candidate_in_other_units_gives_the_same_decisions_and_element(effect_run, effect_report, scale):
+    """The candidate's units do not matter: a channel logged in units of 1e-14 moves (it was called
+    constant), its exogeneity test keeps its columns' rank (it was called an effect of the loop), and the
+    element added has the same gain per unit of the original channel."""
+    data = effect_run.data
+    extra = dict(data.extra)
+    extra[EFFECT_CHANNEL] = np.asarray(extra[EFFECT_CHANNEL]) * scale
+    rep = analyze(effect_run.model, dataclasses.replace(data, extra=extra), AnalysisOptions(), candidates="all")
+    assert rep.candidates.located == effect_report.candidates.located
+    assert rep.candidates.added == effect_report.candidates.added == [EFFECT_CHANNEL]
+    assert not any(EFFECT_CHANNEL in w and ("never moves" in w or "moves with" in w) for w in rep.warnings)
+
+    def element(report):
+        m = report.repaired_model
+        i, j = m.outputs.index(effect_run.effect.output), m.columns.index(EFFECT_CHANNEL)
+        return m.gain[i, j], m.time_constant[i, j], m.delay[i, j]
+
+    gain, tau, delay = element(rep)
+    gain0, tau0, delay0 = element(effect_report)
+    assert gain * scale == pytest.approx(gain0, rel=1e-8)
+    assert tau == pytest.approx(tau0, rel=1e-8) and delay == delay0

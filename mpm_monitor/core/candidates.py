@@ -67,7 +67,7 @@ import numpy as np
 
 from .arx import segment_lag_matrix, segment_rows
 from .errors import ConfigurationError
-from .logged_data import MAX_ANALYSIS_SCALE, LoggedData
+from .logged_data import MAX_ANALYSIS_SCALE, LoggedData, moving_columns
 from .model import PARAMETRIC_KEYS, PlantModel
 from .statistics import f_test
 
@@ -145,7 +145,7 @@ def channel_problem(values, n_samples: int) -> Optional[str]:
     peak = float(np.abs(x).max(initial=0.0))
     if peak > MAX_ANALYSIS_SCALE:
         return f"values up to {peak:.3g}: too large for the analysis (at most {MAX_ANALYSIS_SCALE:g}); rescale"
-    if not float(x.std()) > 1e-12 * max(peak, 1.0):
+    if not moving_columns(x):            # relative to its own size: a channel in small units moves too
         return "constant: it never moves"
     return None
 
@@ -227,20 +227,26 @@ def _long_segments(segments, start: int):
 def _rss(X: np.ndarray, y: np.ndarray):
     """Residual sum of squares of the least-squares fit of ``y`` on ``X``, the rank of ``X``, the
     coefficients and their unscaled variances ``diag((X'X)^-1)`` (one QR; ``lstsq`` and the
-    pseudo-inverse when ``X`` is rank-deficient)."""
+    pseudo-inverse when ``X`` is rank-deficient).
+
+    The columns are scaled to unit norm first, so that the rank does not depend on their units: a
+    candidate logged in units of 1e-14 has lags 1e-14 the size of the mean's column of ones, which an
+    unscaled rank test took for zero (and then found the inputs' lags explaining it)."""
     if X.shape[1] == 0:
         return float(y @ y), 0, np.zeros(0), np.zeros(0)
-    q, r = np.linalg.qr(X)
+    norms = np.sqrt(np.einsum("ij,ij->j", X, X))
+    norms[norms == 0] = 1.0
+    q, r = np.linalg.qr(X / norms)
     diag = np.abs(np.diag(r))
     if diag.min() > 1e-10 * max(float(diag.max()), 1e-300):
         rinv = np.linalg.inv(r)
         qty = q.T @ y
-        coef = rinv @ qty
+        coef = (rinv @ qty) / norms
         res = y - q @ qty
-        return float(res @ res), X.shape[1], coef, np.sum(rinv ** 2, axis=1)
-    coef, _, rank, _ = np.linalg.lstsq(X, y, rcond=None)
-    res = y - X @ coef
-    return float(res @ res), int(rank), coef, np.sum(np.linalg.pinv(r) ** 2, axis=1)
+        return float(res @ res), X.shape[1], coef, np.sum(rinv ** 2, axis=1) / norms ** 2
+    coef, _, rank, _ = np.linalg.lstsq(X / norms, y, rcond=None)
+    res = y - (X / norms) @ coef
+    return float(res @ res), int(rank), coef / norms, np.sum(np.linalg.pinv(r) ** 2, axis=1) / norms ** 2
 
 
 def whiten(c: np.ndarray, order: int = CANDIDATE_AR_ORDER, segments=None) -> np.ndarray:
@@ -262,9 +268,18 @@ def whiten(c: np.ndarray, order: int = CANDIDATE_AR_ORDER, segments=None) -> np.
     """
     x = np.asarray(c, dtype=float)
     x = x - x.mean()
-    w = np.zeros_like(x)
     if order == 0:
         return x
+    # In units of its own spread (the filter does not depend on them; a least-squares rank test does).
+    scale = float(np.abs(x).max(initial=0.0))
+    if scale > 0:
+        return scale * _whiten(x / scale, order, segments)
+    return _whiten(x, order, segments)
+
+
+def _whiten(x: np.ndarray, order: int, segments) -> np.ndarray:
+    """:func:`whiten` of the centred ``x``, ``order`` >= 1."""
+    w = np.zeros_like(x)
     if _long_segments(segments, order) is None:
         X = np.column_stack([np.ones(x.shape[0] - order), _lags(x[:, None], order, order)])
         coef, *_ = np.linalg.lstsq(X, x[order:], rcond=None)
@@ -321,8 +336,7 @@ def exogeneity_test(c: np.ndarray, u: np.ndarray, input_names: Sequence[str], n_
     """
     c = np.asarray(c, float)
     c = c - c.mean()
-    std = u.std(axis=0)
-    moving = [j for j in range(u.shape[1]) if std[j] > 1e-12 * max(float(np.abs(u[:, j]).max(initial=0.0)), 1.0)]
+    moving = np.flatnonzero(moving_columns(u)).tolist()
     start = max(order, n_lag)
     if not moving or c.shape[0] - start < 3 * (order + n_lag * len(moving)) + 10:
         return ExogeneityTest(1.0, float("nan"), ())
@@ -544,9 +558,7 @@ def run_candidate_tests(model: PlantModel, data: LoggedData, chosen: CandidateCh
     idx = [names.index(n) for n in causes]
     w = np.column_stack([whiten(chosen.values[:, k], segments=segments) for k in idx]) if idx else \
         np.zeros((d.shape[0], 0))
-    std = columns.std(axis=0)
-    moving = [j for j in range(columns.shape[1])
-              if std[j] > 1e-12 * max(float(np.abs(columns[:, j]).max(initial=0.0)), 1.0)]
+    moving = np.flatnonzero(moving_columns(columns)).tolist()
     start = max(layout.start, CANDIDATE_AR_ORDER + n_lag)
     tests = {}
     for i in range(model.n_outputs):

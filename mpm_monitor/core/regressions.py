@@ -62,6 +62,7 @@ import scipy.linalg as sla
 from scipy.linalg import blas
 
 from .arx import RANK_TOLERANCE, ArxFit, SharedBlockRegression, SharedFit, fit_arx, segment_lag_matrix, segment_rows
+from .logged_data import moving_columns
 from .model import PlantModel
 from .parallel import split_map
 
@@ -1026,8 +1027,7 @@ class GramRegressions:
         self.row_z = None             # the outputs whose z the row Gram holds (None: all; window_regressions)
         self._widen_row_gram = None   # window_regressions: the row Gram of every z, when a reduced one lacks a row
         self.input_means = np.concatenate([u.mean(axis=0), d.mean(axis=0)])
-        scale = np.maximum(np.abs(u).max(axis=0, initial=0.0), 1.0)
-        self._inputs_move = bool(np.all(u.std(axis=0) > 1e-12 * scale))     # as InputDesign.testable
+        self._inputs_move = bool(np.all(moving_columns(u)))     # as InputDesign.testable
         self._qr = None
         self._qr_regs = {}
         self.fallbacks = []          # names of the regressions refitted by QR
