@@ -454,3 +454,35 @@ def test_the_repair_s_gap_note_says_what_the_model_did_at_the_gaps(case_32):
     assert "the 2 spans between the gaps, each from its own start (2900 of 2900 samples)" in note
     _, note = repair_data(_drop(data, [700, 1500]), True, options, case.model)
     assert "validated with the model run through the short gaps" in note
+
+
+@pytest.mark.parametrize("factor, unit", [(1e3, "milliseconds"), (1e9, "nanoseconds"), (10.0, None)])
+def test_a_time_column_in_other_units_is_named_in_the_refusal(case_32, factor, unit):
+    """Every row a gap after the last: the message says how far t moves from row to row against the
+    sample time, and names the unit when it is 1e3, 1e6 or 1e9 sample times (a stamp in nanoseconds)."""
+    case, data = case_32
+    ts = case.model.sample_time
+    if unit is None:
+        scaled = data.take(np.arange(0, 3000, 10))
+    else:
+        scaled = dataclasses.replace(data, t=data.t[0] + (data.t - data.t[0]) * factor)
+    with pytest.raises(DataFileError) as err:
+        detect(case.model, scaled, DETECT)
+    msg = str(err.value)
+    assert "\n" not in msg and "need at least" in msg
+    assert f"t advances by a median of {factor * ts:.6g} from one row to the next, {factor:.6g} times the model's " \
+           f"sample_time of {ts:g} s" in msg
+    assert (f": t in {unit}?" in msg) if unit else "t in " not in msg
+
+
+def test_the_time_unit_note_needs_most_rows_followed_by_a_gap(case_32):
+    from mpm_monitor.core.analysis import time_unit_note
+
+    case, data = case_32
+    start = regression_layout(case.model, DETECT).start
+    ts = case.model.sample_time
+    assert time_unit_note(plan_gaps(_drop(data, [700, 1500]), start), ts) == ""
+    half = np.setdiff1d(np.arange(3000), np.arange(1, 3000, 4))          # every fourth row missing
+    assert time_unit_note(plan_gaps(data.take(half), start), ts) == ""
+    sparse = data.take(np.arange(0, 3000, 2))                             # every other row missing
+    assert time_unit_note(plan_gaps(sparse, start), ts).startswith(f"; t advances by a median of {2 * ts:g}")

@@ -1066,4 +1066,22 @@ def check_gap_rows(plan, layout, options, src: str, model: PlantModel) -> None:
                         f"gives rows after its first {layout.start} samples); the tests with na={options.na}, "
                         f"nb={options.nb}, max_delay={layout.max_delay} need at least {need} rows (is the sample "
                         f"time right?)"
-                        f"{longest_delay_note(model, options, layout, enough)}")
+                        f"{time_unit_note(plan, model.sample_time)}{longest_delay_note(model, options, layout, enough)}")
+
+
+#: Units a log's time column is often written in, and their seconds (:func:`time_unit_note`).
+TIME_UNITS = (("milliseconds", 1e-3), ("microseconds", 1e-6), ("nanoseconds", 1e-9))
+
+
+def time_unit_note(plan, sample_time: float) -> str:
+    """``"; t advances by ..."`` when most rows of the data are followed by a gap: the time column is then
+    likely in other units than seconds (a ROS stamp in nanoseconds: every row 1e9 sample times after the
+    last), or the model's sample time is wrong; the unit is named when the step is 1e3, 1e6 or 1e9 sample
+    times to 1 %.  ``""`` otherwise."""
+    n_rows = sum(b - a for a, b in plan.segments)
+    if plan.gap_lengths.size < max(10, n_rows // 2):
+        return ""
+    step = float(np.median(plan.gap_lengths)) + 1.0          # sample times from one row to the next
+    unit = next((name for name, seconds in TIME_UNITS if abs(step * seconds - 1.0) < 0.01), None)
+    return (f"; t advances by a median of {step * sample_time:.6g} from one row to the next, {step:.6g} times the "
+            f"model's sample_time of {sample_time:g} s" + (f": t in {unit}?" if unit else ""))
