@@ -59,7 +59,8 @@ TOKENS = NUMBERS * 6 + ["1_000", "0x1F", "1:30", "yes", "true", "~", "1 2", "'3'
 @st.composite
 def number_list(draw):
     tokens = draw(st.lists(st.sampled_from(TOKENS), min_size=0, max_size=6))
-    seps = [draw(st.sampled_from([",", ", ", " ,", " , ", ",  "])) for _ in tokens]
+    seps = [draw(st.sampled_from([",", ", ", " ,", " , ", ",  ", ",\n  ", " ,\n", ",\r\n    ", "\n,", ",\n"]))
+            for _ in tokens]
     body = "".join(t + s for t, s in zip(tokens, seps))
     if tokens and draw(st.booleans()):
         body = body.rstrip(", ")            # no trailing comma
@@ -90,10 +91,13 @@ CONTEXTS = [
     "%TAG ! tag:example.com,2000:\n---\na: {L}\n",
     "a: {L}\na: {L}\n",
     "a:\n- {L}\n  - {L}\n",
+    "a:\n  - {L}\n  - {L}\nb: [{L},\n{L}]\n",
+    "a:\n  b: {L}\nc: {L} # {L}\n",
+    "- {L}\n---\n- {L}\n",
 ]
 
 
-@settings(max_examples=400, derandomize=True, deadline=None, suppress_health_check=list(HealthCheck))
+@settings(max_examples=600, derandomize=True, deadline=None, suppress_health_check=list(HealthCheck))
 @given(st.sampled_from(CONTEXTS), st.lists(number_list(), min_size=4, max_size=4))
 def test_the_values_are_the_careful_loaders_whatever_the_text(context, lists):
     text = context.format(L="{L}").replace("{L}", "\0")
@@ -114,6 +118,7 @@ def test_the_values_are_the_careful_loaders_whatever_the_text(context, lists):
     "a: &x [1, 2]\nb: [*x, *x]\n",
     "# [1, 2]\na: [3]  # [4]\n",                 # a comment's list is left as written
     "a: 'x # [1]'\nb: [2]\n",
+    "a: [0, 1,\n  2.5, 3]\nb:\n  - [[1,\n2], [3,\r\n 4]]\n",   # lists over several lines, as PyYAML wraps them
 ])
 def test_the_one_pass_reading_is_taken_and_gives_the_careful_values(text):
     fast = _parse_number_lists(text)
@@ -133,6 +138,8 @@ def test_an_alias_of_a_list_is_the_same_object_as_in_yaml():
     "a: [1, 2]3\n",                           # a YAML error around it
     "a: [1, 2]\nb: !mpm_monitor_numbers 0\n",  # the tag already in the text
     "[1, 2]: 1\n",                            # a list as a key
+    "a: x [1,\n  2]\n",                      # inside a plain scalar folded over two lines
+    "a: \"[1,\n  2]\"\n",                  # inside a quoted string over two lines
 ])
 def test_a_list_the_parse_does_not_construct_as_written_leaves_the_text_to_yaml(text):
     assert _parse_number_lists(text) is _NOT_PARSED

@@ -375,12 +375,13 @@ class _Dumper(yaml.SafeDumper):
 _strict_resolvers(_Dumper)
 
 
-#: A one-line flow list of plain numbers, ``[0, -0.18, 1e-3, .inf]`` (spaces only around the commas, a
-#: trailing comma allowed): the bulk of a step-response model.  The numbers are YAML 1.2's (:data:`_INT`,
-#: :data:`_FLOAT`), so the list holds exactly what the loader would construct.
+#: A flow list of plain numbers, ``[0, -0.18, 1e-3, .inf]`` (spaces and line breaks only around the
+#: commas, a trailing comma allowed): the bulk of a step-response model.  The numbers are YAML 1.2's
+#: (:data:`_INT`, :data:`_FLOAT`), so the list holds exactly what the loader would construct.
 _NUMBER = r"[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN)"
-_NUMBER_LIST = re.compile(rf" *(?:{_NUMBER}) *(?:, *(?:{_NUMBER}) *)*(?:, *)?")
-_FLOW_LIST = re.compile(r"\[([^\[\]{}#\"'\n\r\t]*)\]")
+_SPACE = r"[ \r\n]*"
+_NUMBER_LIST = re.compile(rf"{_SPACE}(?:{_NUMBER}){_SPACE}(?:,{_SPACE}(?:{_NUMBER}){_SPACE})*(?:,{_SPACE})?")
+_FLOW_LIST = re.compile(r"\[([^\[\]{}#\"'\t]*)\]")
 #: The local tag that stands for one such list while the rest of the text is parsed.
 _LIST_TAG = "!mpm_monitor_numbers"
 _NOT_PARSED = object()
@@ -397,12 +398,13 @@ def _number_value(token: str):
 
 
 def _parse_number_lists(text: str):
-    """The text parsed with every one-line flow list of plain numbers read in one pass (its tokens split
-    and converted here) instead of as a YAML node per number, which takes about 5 us a number: a
-    100 x 40 step-response model of 120 coefficients holds 480,000 of them.
+    """The text parsed with every flow list of plain numbers read in one pass (its tokens split and
+    converted here) instead of as a YAML node per number, which takes about 5 us a number: a 100 x 40
+    step-response model of 120 coefficients holds 480,000 of them.  A list may run over several lines,
+    as PyYAML's ``dump`` wraps it (a flow list's lines need no indentation, to PyYAML and libyaml alike).
 
-    Each such list before any ``#`` on its line is replaced by the scalar ``!mpm_monitor_numbers k``
-    before the text is parsed.  The result is used only when every replacement was constructed exactly
+    Each such list that starts before any ``#`` on its line is replaced by the scalar
+    ``!mpm_monitor_numbers k`` before the text is parsed.  The result is used only when every replacement was constructed exactly
     once as that tagged scalar: a list written inside a quoted or block string or a longer plain scalar
     is not, and neither is one a YAML error surrounds.  Otherwise (and when the text already holds the
     tag) the result is :data:`_NOT_PARSED`, and the caller parses the text as written: its values, and
@@ -412,10 +414,17 @@ def _parse_number_lists(text: str):
         return _NOT_PARSED
     lists: list = []
 
+    first_hash: dict = {}                      # line start -> its first '#' (-1: none)
+
     def replace(match):
-        content = match.group(1)
-        if not _NUMBER_LIST.fullmatch(content):
-            return match.group(0)
+        content, at = match.group(1), match.start()
+        line = text.rfind("\n", 0, at) + 1
+        sign = first_hash.get(line)
+        if sign is None:
+            end = text.find("\n", line)
+            sign = first_hash[line] = text.find("#", line, len(text) if end < 0 else end)
+        if 0 <= sign < at or not _NUMBER_LIST.fullmatch(content):
+            return match.group(0)             # in a comment (or after a quoted '#'), or not only numbers
         tokens = [t.strip() for t in content.split(",")]
         if not tokens[-1]:
             tokens.pop()                       # a trailing comma
@@ -425,12 +434,9 @@ def _parse_number_lists(text: str):
             lists.append([float(t) if "." in t or "e" in t or "E" in t else int(t) for t in tokens])
         return f"{_LIST_TAG} {len(lists) - 1}"
 
-    # A list after a '#' is left as written (a comment's, or a quoted string's: not replacing is always safe).
-    lines = []
-    for line in text.split("\n"):
-        head, sign, tail = line.partition("#")
-        lines.append(_FLOW_LIST.sub(replace, head) + sign + tail)
-    replaced = "\n".join(lines)
+    # A list after a '#' on its line is left as written (a comment's, or a quoted string's: not replacing is
+    # always safe).
+    replaced = _FLOW_LIST.sub(replace, text)
     if not lists:
         return _NOT_PARSED
     base = _C_LOADER if _C_LOADER is not None else _LOADER
