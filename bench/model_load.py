@@ -12,6 +12,8 @@ For each size (outputs x inputs) and step-response length, a model of first-orde
 Medians over the repeats; the file's size in MB and its numbers are printed beside them.  The figures
 hold no target: they say what a large DMC model costs the command before its analysis starts.
 
+``--block`` writes the models with ``yaml.safe_dump`` in YAML's block style (one number per line) instead.
+
 ``--analyze OxI`` also times the whole command, ``python -m mpm_monitor analyze`` with the repair, on
 a DMC model of that size against its parametric form, on the same log: :func:`bench.plants.random_plant`
 sampled every 8 s (time constants 10 to 80 s, dead times 0 to 8 samples), one gain 30 % off in the
@@ -35,8 +37,9 @@ import numpy as np
 from bench import parse_sized, sizes_parser
 
 
-def write_model(path: Path, ny: int, nu: int, length: int, seed: int = 0) -> int:
-    """A step-response model file of ``ny`` outputs, ``nu`` inputs and ``length`` coefficients; its bytes."""
+def write_model(path: Path, ny: int, nu: int, length: int, seed: int = 0, block: bool = False) -> int:
+    """A step-response model file of ``ny`` outputs, ``nu`` inputs and ``length`` coefficients; its bytes.
+    ``block``: written by ``yaml.safe_dump`` in block style (one number per line) instead of ``save_model``."""
     from mpm_monitor.core.model import PlantModel
     from mpm_monitor.io.model_file import save_model
 
@@ -47,7 +50,12 @@ def write_model(path: Path, ny: int, nu: int, length: int, seed: int = 0) -> int
     coef = np.round(gain * (1.0 - np.exp(-k / tau)), 6)
     model = PlantModel.from_step_response(1.0, tuple(f"u{j + 1}" for j in range(nu)),
                                           tuple(f"y{i + 1}" for i in range(ny)), coef)
-    save_model(model, path)
+    if block:
+        import yaml
+
+        path.write_text(yaml.safe_dump(model.to_dict(), sort_keys=False))
+    else:
+        save_model(model, path)
     return path.stat().st_size
 
 
@@ -62,21 +70,21 @@ def child(path: str) -> dict:
     return {"load_s": time.perf_counter() - t0, "shape": list(model.step_response.shape)}
 
 
-def run(sizes, lengths, repeats: int = 3, seed: int = 0, log=print) -> dict:
+def run(sizes, lengths, repeats: int = 3, seed: int = 0, log=print, block: bool = False) -> dict:
     """The load times of every size and length (module docstring); a JSON-ready dict."""
-    out = {"repeats": repeats, "seed": seed, "cells": []}
+    out = {"repeats": repeats, "seed": seed, "style": "block" if block else "flow", "cells": []}
     with tempfile.TemporaryDirectory(prefix="mpm_model_load_") as folder:
-        _load_cells(Path(folder), sizes, lengths, repeats, seed, log, out["cells"])
+        _load_cells(Path(folder), sizes, lengths, repeats, seed, log, out["cells"], block)
     out["load_average_end"] = list(os.getloadavg())
     return out
 
 
-def _load_cells(tmp: Path, sizes, lengths, repeats: int, seed: int, log, cells: list) -> None:
+def _load_cells(tmp: Path, sizes, lengths, repeats: int, seed: int, log, cells: list, block: bool = False) -> None:
     """Each cell of :func:`run`, its model written in ``tmp``, appended to ``cells``."""
     for ny, nu in sizes:
         for length in lengths:
             path = tmp / f"m{ny}x{nu}x{length}.yaml"
-            size = write_model(path, ny, nu, length, seed)
+            size = write_model(path, ny, nu, length, seed, block)
             times = []
             for _ in range(repeats):
                 done = subprocess.run([sys.executable, "-m", "bench.model_load", "--child", str(path)],
@@ -85,7 +93,8 @@ def _load_cells(tmp: Path, sizes, lengths, repeats: int, seed: int, log, cells: 
             cell = {"outputs": ny, "inputs": nu, "length": length, "numbers": ny * nu * length,
                     "megabytes": size / 2 ** 20, "load_s": statistics.median(times), "runs_s": times}
             cells.append(cell)
-            log(f"{ny}x{nu}, {length} coefficients: {cell['numbers']:,} numbers, {cell['megabytes']:.1f} MB, "
+            log(f"{ny}x{nu}, {length} coefficients{' (block style)' if block else ''}: {cell['numbers']:,} numbers, "
+                f"{cell['megabytes']:.1f} MB, "
                 f"load_model {cell['load_s']:.3f} s (median of {repeats})")
             path.unlink()
 
@@ -151,6 +160,8 @@ def main(argv=None) -> int:
     parser = sizes_parser("python -m bench.model_load", __doc__, "fresh interpreters per cell (default 3)")
     parser.set_defaults(sizes="40x40,100x40")
     parser.add_argument("--lengths", default="120,400", help="step-response lengths (default 120,400)")
+    parser.add_argument("--block", action="store_true",
+                        help="write the models in YAML's block style, one number per line (yaml.safe_dump's default)")
     parser.add_argument("--analyze", metavar="OxI", default=None,
                         help="also time analyze on a DMC model of this size against its parametric form")
     parser.add_argument("--child", metavar="MODEL", help=__import__("argparse").SUPPRESS)
@@ -172,7 +183,7 @@ def main(argv=None) -> int:
             analyze_size = ()
         if len(analyze_size) != 2 or min(analyze_size) < 1:
             parser.error(f"--analyze: expected one size such as 100x40, got {args.analyze!r}")
-    result = run(sizes, lengths, args.repeats, args.seed)
+    result = run(sizes, lengths, args.repeats, args.seed, block=args.block)
     if analyze_size is not None:
         result["analyze"] = run_analyze(*analyze_size, repeats=args.repeats, seed=args.seed)
     if args.out:

@@ -190,6 +190,8 @@ def test_the_load_bench_runs_and_reads_back_the_model_it_wrote():
     (cell,) = out["cells"]
     assert (cell["outputs"], cell["inputs"], cell["length"], cell["numbers"]) == (2, 3, 5, 30)
     assert cell["load_s"] > 0 and len(cell["runs_s"]) == 1
+    block = model_load.run([(2, 3)], [5], repeats=1, log=lambda *_: None, block=True)
+    assert block["style"] == "block" and block["cells"][0]["numbers"] == 30
 
 
 def test_the_load_bench_times_analyze_on_both_forms_of_a_model():
@@ -199,3 +201,92 @@ def test_the_load_bench_times_analyze_on_both_forms_of_a_model():
     assert out["length"] > 100 and set(out["runs_s"]) == {"parametric", "step_response"}
     # The controller's (y1, u2) gain is 30 % off: both forms locate it.
     assert out["located"]["parametric"] == out["located"]["step_response"] == ["y1:u2"]
+
+
+# ------------------------------------------------------------------------ block style (yaml.safe_dump's)
+_plain_numbers = st.one_of(st.integers(-10 ** 6, 10 ** 6), st.floats(allow_nan=False, width=64).filter(
+    lambda x: abs(x) < 1e300), st.sampled_from([float("inf"), -float("inf")]))
+_values = st.recursive(
+    st.one_of(_plain_numbers, _plain_numbers, _plain_numbers, _plain_numbers,
+              st.sampled_from(["a", "b c", "1_0", "- 1", "x:"]), st.booleans()),
+    lambda inner: st.one_of(st.lists(inner, min_size=1, max_size=4),
+                            st.dictionaries(st.sampled_from(["k", "key", "coefficients", "x y"]), inner,
+                                            min_size=1, max_size=3)),
+    max_leaves=30)
+
+
+@st.composite
+def block_text(draw):
+    """A YAML text in block style (yaml.safe_dump's default), sometimes edited by hand: a comment or a
+    blank line inserted, a line's indentation changed, a line dropped, Windows line ends."""
+    text = yaml.safe_dump(draw(_values), default_flow_style=False, sort_keys=False)
+    lines = text.split("\n")
+    for _ in range(draw(st.integers(0, 2))):
+        k = draw(st.integers(0, len(lines) - 1))
+        edit = draw(st.sampled_from(["comment", "blank", "indent", "dedent", "drop", "trailing comment"]))
+        if edit == "comment":
+            lines.insert(k, " " * draw(st.integers(0, 6)) + "# note")
+        elif edit == "blank":
+            lines.insert(k, "")
+        elif edit == "indent":
+            lines[k] = "  " + lines[k]
+        elif edit == "dedent" and lines[k].startswith("  "):
+            lines[k] = lines[k][2:]
+        elif edit == "drop":
+            del lines[k]
+        elif edit == "trailing comment" and lines[k]:
+            lines[k] += "  # c"
+    text = "\n".join(lines)
+    return text.replace("\n", "\r\n") if draw(st.booleans()) else text
+
+
+@settings(max_examples=500, derandomize=True, deadline=None, suppress_health_check=list(HealthCheck))
+@given(block_text())
+def test_block_style_values_are_the_careful_loaders_whatever_the_text(text):
+    ref = _reference(text)
+    got = _parsed(text)
+    if isinstance(ref, type):
+        assert isinstance(got, type) and issubclass(got, yaml.YAMLError), (text, got)
+    else:
+        assert _same(got, ref), (text, got, ref)
+
+
+def test_a_step_response_model_in_block_style_is_read_in_one_pass(tmp_path: Path):
+    rng = np.random.default_rng(5)
+    coef = np.cumsum(rng.normal(size=(3, 2, 25)), axis=2)
+    coef[..., 0] = 0.0
+    model = PlantModel.from_step_response(2.0, ("u1", "u2"), ("y1", "y2", "y3"), coef)
+    text = yaml.safe_dump(model.to_dict(), sort_keys=False)
+    assert "[" not in text                                  # block style throughout
+    lists: list = []
+    assert model_file._replace_block_lists(text, lists).count("!mpm_monitor_numbers") == 6 == len(lists)
+    assert _same(_parse_number_lists(text), _reference(text))
+    path = tmp_path / "m.yaml"
+    path.write_text(text)
+    np.testing.assert_array_equal(load_model(path).step_response, coef)
+
+
+@pytest.mark.parametrize("text", [
+    "a:\n- 1\n- 2\n- x\n",                          # the sequence goes on with a string
+    "a:\n- 1\n# c\n- 2\n",                          # a comment inside it
+    "a:\n- 1\n- 2  # c\n",                          # a comment on an item
+    "a:\n- - 1\n  - 2\n  - b\n",                   # a nested one that goes on
+    "a:\n- 1\n- 2\n  - 3\n",                        # a line after it indented more
+    "a: x\n- 1\n- 2\n",                             # not a key's value (a YAML error)
+    "a: # c\n- 1\n- 2\n",                           # a key with a comment: not looked into
+    "a: x #:\n- 1\n- 2\n",                          # a ':' that ends a comment
+    "a:\n  k:\n- 1\n- 2\n",                         # a key indented more than the run
+    "ab- 1\n  - 2\n",                               # the line before holds more than '- ' markers
+    "n: '[x]'\na:\n- 1\n- 2\n",                     # a bracket anywhere: left to YAML
+])
+def test_a_block_run_that_may_not_be_a_whole_sequence_of_numbers_is_left_to_yaml(text):
+    lists: list = []
+    assert model_file._replace_block_lists(text, lists) == text and not lists
+    assert _same(_parsed(text), _reference(text))
+
+
+def test_a_block_run_replaced_inside_a_block_string_is_never_read_as_numbers():
+    text = "a: |\n  k:\n  - 1\n  - 2\nb: 1\n"
+    assert model_file._replace_block_lists(text, []) != text        # it looks like a key's sequence
+    assert _parse_number_lists(text) is _NOT_PARSED                  # but is not read as one
+    assert _parsed(text) == {"a": "k:\n- 1\n- 2\n", "b": 1}

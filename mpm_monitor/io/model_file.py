@@ -397,16 +397,96 @@ def _number_value(token: str):
     return float("nan") if low == ".nan" else float(token)
 
 
+def _token_values(tokens: list, text: str) -> list:
+    """The numbers of ``tokens`` (each one of :data:`_NUMBER`'s forms; ``text`` holds them all)."""
+    if "n" in text or "N" in text:          # .inf or .nan
+        return [_number_value(t) for t in tokens]
+    return [float(t) if "." in t or "e" in t or "E" in t else int(t) for t in tokens]   # else _INT's
+
+
+#: A run of block sequence items at one indentation, each a plain number alone on its line.
+_BLOCK_RUN = re.compile(rf"^( *)- (?:{_NUMBER}) *\r?\n(?:\1- (?:{_NUMBER}) *\r?\n)*", re.MULTILINE)
+#: The start of the line before such a run when the run's first item is on it: the parents' ``- `` markers.
+_MARKERS = re.compile(r"(?: |- )*")
+_ITEM = re.compile(rf"- ({_NUMBER}) *\r?")
+
+
+def _replace_block_lists(text: str, lists: list) -> str:
+    """``text`` with every block sequence of plain numbers replaced by ``!mpm_monitor_numbers k`` (its
+    numbers appended to ``lists``), as ``yaml.safe_dump`` writes a step response::
+
+        coefficients:            coefficients:
+        - - - 0                  - - !mpm_monitor_numbers 0
+            - 0.18               ...
+            - 0.33
+
+    A run of lines ``- number`` at one indentation ``c`` is the whole sequence when the sequence
+    starts there and ends there: it starts either on the line before, whose text before column ``c``
+    is only its parents' ``- `` markers and whose rest is its first item (as above), or after a line
+    ``key:`` indented at most ``c``; and the next line that is not blank or a comment is indented less
+    than ``c``, or at ``c`` without a ``-``.  Any other run is left as written (to YAML, always safe);
+    :func:`_parse_number_lists` then checks that every replacement was read as a value.  A text with a
+    flow collection anywhere (a ``[``, ``]``, ``{`` or ``}``) is left as written: a run inside one is not
+    a block sequence.
+    """
+    if any(c in text for c in "[]{}"):
+        return text
+    edits = []
+    for run in _BLOCK_RUN.finditer(text):
+        a, b, c = run.start(), run.end(), len(run.group(1))
+        if not _ends_at(text, b, c):
+            continue
+        line = text.rfind("\n", 0, a - 1) + 1 if a > 0 else a
+        prev = text[line:max(a - 1, line)].rstrip("\r")
+        tokens = [m.group(1) for m in _ITEM.finditer(run.group(0))]
+        first = _ITEM.fullmatch(prev, c) if a > 0 and len(prev) > c else None
+        if first is not None and _MARKERS.fullmatch(prev, 0, c) and prev[c - 2:c] == "- ":
+            tokens.insert(0, first.group(1))
+            start, lead = line + c, ""
+        elif a > 0 and prev.rstrip().endswith(":") and "#" not in prev and len(prev) - len(prev.lstrip(" ")) <= c:
+            start, lead = a, " " * (c + 1)
+        else:
+            continue
+        lists.append(_token_values(tokens, run.group(0)))
+        edits.append((start, b, f"{lead}{_LIST_TAG} {len(lists) - 1}\n"))
+    if not edits:
+        return text
+    parts, at = [], 0
+    for start, end, new in edits:
+        parts += [text[at:start], new]
+        at = end
+    parts.append(text[at:])
+    return "".join(parts)
+
+
+def _ends_at(text: str, at: int, indent: int) -> bool:
+    """Whether a block sequence at ``indent`` ends before offset ``at`` (a line start): the next line that
+    is not blank or a comment is indented less, or as much without a ``-`` (or there is none)."""
+    while at < len(text):
+        end = text.find("\n", at)
+        end = len(text) if end < 0 else end
+        body = text[at:end].rstrip("\r")
+        stripped = body.lstrip(" ")
+        if stripped and not stripped.startswith("#"):
+            level = len(body) - len(stripped)
+            return level < indent or (level == indent and not stripped.startswith("-"))
+        at = end + 1
+    return True
+
+
 def _parse_number_lists(text: str):
     """The text parsed with every flow list of plain numbers read in one pass (its tokens split and
     converted here) instead of as a YAML node per number, which takes about 5 us a number: a 100 x 40
     step-response model of 120 coefficients holds 480,000 of them.  A list may run over several lines,
     as PyYAML's ``dump`` wraps it (a flow list's lines need no indentation, to PyYAML and libyaml alike).
 
+    A block sequence of numbers, one ``- number`` per line (``yaml.safe_dump``'s style), is read so too
+    (:func:`_replace_block_lists`).
+
     Each such list that starts before any ``#`` on its line is replaced by the scalar
-    ``!mpm_monitor_numbers k`` before the text is parsed.  The result is used only when every replacement was constructed exactly
-    once as that tagged scalar: a list written inside a quoted or block string or a longer plain scalar
-    is not, and neither is one a YAML error surrounds.  Otherwise (and when the text already holds the
+    ``!mpm_monitor_numbers k`` before the text is parsed.  The result is used only when every
+    replacement was constructed exactly once as that tagged scalar: a list written inside a quoted or
+    block string or a longer plain scalar is not, and neither is one a YAML error surrounds.  Otherwise (and when the text already holds the
     tag) the result is :data:`_NOT_PARSED`, and the caller parses the text as written: its values, and
     its errors with their lines, are then the YAML parser's.
     """
@@ -428,12 +508,10 @@ def _parse_number_lists(text: str):
         tokens = [t.strip() for t in content.split(",")]
         if not tokens[-1]:
             tokens.pop()                       # a trailing comma
-        if "n" in content or "N" in content:      # .inf or .nan
-            lists.append([_number_value(t) for t in tokens])
-        else:                                     # without a point or an exponent a token is _INT's
-            lists.append([float(t) if "." in t or "e" in t or "E" in t else int(t) for t in tokens])
+        lists.append(_token_values(tokens, content))
         return f"{_LIST_TAG} {len(lists) - 1}"
 
+    text = _replace_block_lists(text, lists)
     # A list after a '#' on its line is left as written (a comment's, or a quoted string's: not replacing is
     # always safe).
     replaced = _FLOW_LIST.sub(replace, text)
