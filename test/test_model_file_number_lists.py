@@ -126,6 +126,16 @@ def test_the_one_pass_reading_is_taken_and_gives_the_careful_values(text):
     assert _same(fast, _reference(text))
 
 
+@pytest.mark.parametrize("text", [
+    "- - .inf\n  - 0\n",                             # the first item, on its parents' line, infinite
+    "a:\n- - -.Inf\n  - .nan\n",
+    "a: [1, " + "1" * 5000 + "]\n",                  # an int Python will not convert from text
+    "a:\n- 1\n- " + "2" * 5000 + "\n",
+])
+def test_numbers_the_conversion_must_treat_apart_give_the_careful_result(text):
+    assert _same(_parsed(text), _reference(text))
+
+
 def test_an_alias_of_a_list_is_the_same_object_as_in_yaml():
     data = _parse_number_lists("a: &x [1, 2]\nb: *x\n")
     assert data["a"] is data["b"] and data["a"] == [1, 2]

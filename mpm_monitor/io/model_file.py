@@ -447,7 +447,7 @@ def _replace_block_lists(text: str, lists: list) -> str:
             start, lead = a, " " * (c + 1)
         else:
             continue
-        lists.append(_token_values(tokens, run.group(0)))
+        lists.append(_token_values(tokens, " ".join(tokens)))
         edits.append((start, b, f"{lead}{_LIST_TAG} {len(lists) - 1}\n"))
     if not edits:
         return text
@@ -511,10 +511,13 @@ def _parse_number_lists(text: str):
         lists.append(_token_values(tokens, content))
         return f"{_LIST_TAG} {len(lists) - 1}"
 
-    text = _replace_block_lists(text, lists)
-    # A list after a '#' on its line is left as written (a comment's, or a quoted string's: not replacing is
-    # always safe).
-    replaced = _FLOW_LIST.sub(replace, text)
+    try:
+        text = _replace_block_lists(text, lists)
+        # A list after a '#' on its line is left as written (a comment's, or a quoted string's: not replacing
+        # is always safe).
+        replaced = _FLOW_LIST.sub(replace, text)
+    except (ValueError, OverflowError):     # a number Python will not convert (an int of 5,000 digits)
+        return _NOT_PARSED
     if not lists:
         return _NOT_PARSED
     base = _C_LOADER if _C_LOADER is not None else _LOADER
