@@ -1065,8 +1065,8 @@ def check_gap_rows(plan, layout, options, src: str, model: PlantModel) -> None:
                         f"{n_gaps} gap{'s' if n_gaps != 1 else ''} ({plan.samples_missing} samples missing; a span "
                         f"gives rows after its first {layout.start} samples); the tests with na={options.na}, "
                         f"nb={options.nb}, max_delay={layout.max_delay} need at least {need} rows (is the sample "
-                        f"time right?)"
-                        f"{time_unit_note(plan, model.sample_time)}{longest_delay_note(model, options, layout, enough)}")
+                        f"time right?)" + time_unit_note(plan, model.sample_time)
+                        + longest_delay_note(model, options, layout, enough))
 
 
 #: Units a log's time column is often written in, and their seconds (:func:`time_unit_note`).

@@ -486,9 +486,10 @@ def _parse_number_lists(text: str):
     Each such list that starts before any ``#`` on its line is replaced by the scalar
     ``!mpm_monitor_numbers k`` before the text is parsed.  The result is used only when every
     replacement was constructed exactly once as that tagged scalar: a list written inside a quoted or
-    block string or a longer plain scalar is not, and neither is one a YAML error surrounds.  Otherwise (and when the text already holds the
-    tag) the result is :data:`_NOT_PARSED`, and the caller parses the text as written: its values, and
-    its errors with their lines, are then the YAML parser's.
+    block string or a longer plain scalar is not, and neither is one a YAML error surrounds.  Otherwise
+    (and when the text already holds the tag, or a number will not convert) the result is
+    :data:`_NOT_PARSED`, and the caller parses the text as written: its values, and its errors with
+    their lines, are then the YAML parser's.
     """
     if _LIST_TAG in text:
         return _NOT_PARSED
@@ -548,9 +549,8 @@ def _parse_number_lists(text: str):
 def _parse_yaml(text: str):
     """``yaml.safe_load(text)``, by libyaml's parser when PyYAML has it (the same safe constructor and
     resolver: the same values, many times faster on a large model); a text it refuses is parsed again
-    by the pure-Python parser, whose error names the problem and its place as before.  The one-line
-    lists of numbers are read first in one pass (:func:`_parse_number_lists`), when that gives the
-    same values."""
+    by the pure-Python parser, whose error names the problem and its place as before.  The lists of
+    numbers are read first in one pass (:func:`_parse_number_lists`), when that gives the same values."""
     data = _parse_number_lists(text)
     if data is not _NOT_PARSED:
         return data
