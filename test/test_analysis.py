@@ -293,6 +293,11 @@ def test_an_output_that_never_moves_is_named_first():
     y[:, 1] = 0.1
     rep = analyze(case.model, dataclasses.replace(data, y=y), FAST)
     assert rep.warnings[0].startswith("output y2 never moves in this window (every value the same: a stuck sensor")
+    # Its row's prediction error is fitted exactly (by the model's own response): the null detectable change is
+    # put down to the still output, not to "a log without noise?".
+    assert not any("fitted exactly" in w and "y2" in w for w in rep.warnings)
+    assert all(e.detectable_gain_change is None for e in rep.elements if e.output == "y2")
+    assert any(w.startswith("output y2 never moves: the smallest gain change") for w in rep.warnings)
 
 
 def test_step_responses_cut_short_of_settling_are_named():

@@ -773,11 +773,13 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         # the report by settle_report.
         later = not settle and candidates is None and two
         value_options = dataclasses.replace(options, jobs=1) if later else options
+        still = np.flatnonzero(~moving_columns(y)).tolist()
 
         def values_and_experiment():
             info, detectable, why = element_detectability(model, columns, sig.d, design, element_test.noise, layout,
                                                           value_options, None if plan is None else plan.local_segments,
-                                                          responses=element_test.responses, moments=moments)
+                                                          responses=element_test.responses, moments=moments,
+                                                          still_outputs=still)
             values = [detectable.get((model.outputs.index(e.output), model.columns.index(e.input))) for e in elements]
             for e, v in zip(elements, values):
                 e.detectable_gain_change = v

@@ -584,7 +584,8 @@ class WindowInformation:
 
 
 def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, design, noise: dict, layout, options,
-                          segments=None, responses: Optional[dict] = None, moments: Optional[ResponseMoments] = None):
+                          segments=None, responses: Optional[dict] = None, moments: Optional[ResponseMoments] = None,
+                          still_outputs=()):
     """The detectable gain change of every element of the rows the ARX element test examined.
 
     Parameters
@@ -616,6 +617,9 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
         on the window) have the window test alone, at the full level.
     moments : ResponseMoments, optional
         Shared with the element test (:class:`WindowInformation`).
+    still_outputs : sequence of int
+        Outputs that never move in the window (a stuck sensor): a row of them fitted exactly is said to
+        be still, not to come from a log without noise.
 
     Returns
     -------
@@ -662,10 +666,18 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
     feedback = set(undetermined_rows(noisy))
     values.update({k: None for k in values if k[0] in feedback})
     warnings = []
-    if exact:
-        warnings.append(f"output{'s' if len(exact) > 1 else ''} {', '.join(model.outputs[i] for i in exact)}: the "
+    # An output that never moves (a stuck sensor) has its prediction error fitted exactly too, by the model's own
+    # response: named as such, not as a log without noise.
+    still = [i for i in exact if i in set(still_outputs)]
+    fitted = [i for i in exact if i not in still]
+    if fitted:
+        warnings.append(f"output{'s' if len(fitted) > 1 else ''} {', '.join(model.outputs[i] for i in fitted)}: the "
                         "prediction error is fitted exactly (a log without noise?): the smallest gain change this "
                         "window detects is not computed there (detectable_gain_change null)")
+    if still:
+        warnings.append(f"output{'s' if len(still) > 1 else ''} {', '.join(model.outputs[i] for i in still)} never "
+                        f"move{'' if len(still) > 1 else 's'}: the smallest gain change this window detects is not "
+                        "computed there (detectable_gain_change null)")
     if noise and design.constant:
         dvs = set(model.disturbances)
         parts = [f"{what} {', '.join(names)}" for what, names in (
