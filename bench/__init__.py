@@ -18,14 +18,15 @@ def write_json(path, result, default=float) -> None:
     print(f"wrote {path}")
 
 
-def parse_sizes(parser, text: str) -> list:
-    """``[(outputs, inputs), ...]`` of ``--sizes`` text like ``20x20,100x40``; ``parser.error`` on anything else."""
+def parse_sizes(parser, text: str, flag: str = "--sizes") -> list:
+    """``[(outputs, inputs), ...]`` of ``--sizes`` text like ``20x20,100x40``; ``parser.error`` (naming ``flag``) on
+    anything else."""
     sizes = []
     for part in text.split(","):
         try:
             ny, nu = (int(x) for x in part.lower().split("x"))
         except ValueError:
-            parser.error(f"--sizes: expected sizes like 20x20,100x40, got {part!r}")
+            parser.error(f"{flag}: expected sizes like 20x20,100x40, got {part!r}")
         sizes.append((ny, nu))
     return sizes
 

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench import parse_sized, sizes_parser
+from bench import parse_sized, parse_sizes, sizes_parser, write_json
 
 
 def write_model(path: Path, ny: int, nu: int, length: int, seed: int = 0, block: bool = False) -> int:
@@ -177,19 +177,15 @@ def main(argv=None) -> int:
         parser.error(f"--lengths: expected whole numbers >= 1, got {args.lengths!r}")
     analyze_size = None
     if args.analyze is not None:
-        try:
-            analyze_size = tuple(int(x) for x in args.analyze.lower().split("x"))
-        except ValueError:
-            analyze_size = ()
-        if len(analyze_size) != 2 or min(analyze_size) < 1:
+        analyze_sizes = parse_sizes(parser, args.analyze, "--analyze")
+        if len(analyze_sizes) != 1 or min(analyze_sizes[0]) < 1:
             parser.error(f"--analyze: expected one size such as 100x40, got {args.analyze!r}")
+        analyze_size = analyze_sizes[0]
     result = run(sizes, lengths, args.repeats, args.seed, block=args.block)
     if analyze_size is not None:
         result["analyze"] = run_analyze(*analyze_size, repeats=args.repeats, seed=args.seed)
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(result, indent=1))
-        print(f"wrote {args.out}")
+        write_json(args.out, result)
     return 0
 
 

@@ -40,7 +40,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench import parse_sized, positive, sizes_parser
+from bench import parse_sized, positive, sizes_parser, write_json
 
 #: (label, module, attribute): the stages timed.  ``class.method`` attributes are methods.
 STAGES = (
@@ -181,9 +181,7 @@ def main(argv=None) -> int:
     positive(parser, "--jobs", args.jobs)
     result = run(sizes, args.repeats, args.seed, jobs=args.jobs)
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(result, indent=1))
-        print(f"wrote {args.out}")
+        write_json(args.out, result)
     return 0
 
 
