@@ -761,7 +761,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
                               f"({b - a} samples)")
     row_test = row_tests[0]
     rows = row_test.rows
-    warnings = still_output_warnings(model, y) + unsettled_warnings(model) + diverging + list(row_test.warnings) \
+    still = np.flatnonzero(~moving_columns(y)).tolist()        # outputs that never move (stuck sensors)
+    warnings = still_output_warnings(model, still) + unsettled_warnings(model) + diverging + list(row_test.warnings) \
         + offset_warnings(model, sig.d, y, diverged) \
         + ([] if design is None else design.warnings()) + later_warnings
     warnings += element_test.warnings
@@ -773,7 +774,6 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         # the report by settle_report.
         later = not settle and candidates is None and two
         value_options = dataclasses.replace(options, jobs=1) if later else options
-        still = np.flatnonzero(~moving_columns(y)).tolist()
 
         def values_and_experiment():
             info, detectable, why = element_detectability(model, columns, sig.d, design, element_test.noise, layout,
@@ -929,10 +929,11 @@ def unsettled_warnings(model: PlantModel) -> list:
             f"{n} samples cannot follow it; a longer step_response (more samples) is needed"]
 
 
-def still_output_warnings(model: PlantModel, y: np.ndarray) -> list:
-    """One warning naming the outputs that never move in the window (:func:`~mpm_monitor.core.logged_data.moving_columns`):
-    a stuck sensor or a held value, whose row's tests and repair read a constant (shape of ``y``: (n_samples, n_outputs))."""
-    still = [name for name, moves in zip(model.outputs, moving_columns(y)) if not moves]
+def still_output_warnings(model: PlantModel, still) -> list:
+    """One warning naming the outputs ``still`` (indices) that never move in the window
+    (:func:`~mpm_monitor.core.logged_data.moving_columns` of the outputs): a stuck sensor or a held value, whose
+    row's tests and repair read a constant."""
+    still = [model.outputs[i] for i in still]
     if not still:
         return []
     return [f"output{'s' if len(still) > 1 else ''} {', '.join(still)} never move{'' if len(still) > 1 else 's'} in "

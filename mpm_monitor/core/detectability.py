@@ -668,7 +668,8 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
     warnings = []
     # An output that never moves (a stuck sensor) has its prediction error fitted exactly too, by the model's own
     # response: named as such, not as a log without noise.
-    still = [i for i in exact if i in set(still_outputs)]
+    still_set = set(still_outputs)
+    still = [i for i in exact if i in still_set]
     fitted = [i for i in exact if i not in still]
     if fitted:
         warnings.append(f"output{'s' if len(fitted) > 1 else ''} {', '.join(model.outputs[i] for i in fitted)}: the "

@@ -352,10 +352,10 @@ def _plain(a) -> list:
     number below 2**53 in magnitude as an ``int``, any other value as a ``float``.  The same values as
     converting each entry with ``float`` and then ``int`` where whole, in one pass over the array."""
     a = np.asarray(a, dtype=float)
-    flat = a.ravel().tolist()
+    values = a.ravel()
+    flat = values.tolist()
     with np.errstate(invalid="ignore"):
-        whole = np.flatnonzero(np.isfinite(a.ravel()) & (np.trunc(a.ravel()) == a.ravel())
-                               & (np.abs(a.ravel()) < 2.0 ** 53))
+        whole = np.flatnonzero(np.isfinite(values) & (np.trunc(values) == values) & (np.abs(values) < 2.0 ** 53))
     for k in whole.tolist():
         flat[k] = int(flat[k])
     return _nested(flat, a.shape)
