@@ -835,6 +835,42 @@ def test_the_inferred_sample_time_takes_the_whole_span_not_the_median_jittered_s
     assert bag_read.infer_sample_time("bag", exact, "/output") == 0.25
 
 
+def test_recover_holds_about_one_chunk_in_memory_not_the_recording(tmp_path):
+    """``recover`` read each storage file whole and kept every message before writing the first: a 30 MB
+    recording took 61 MB of Python memory, so a day's recording beside a stack could not be recovered on the
+    machine that made it.  Its files are now mapped and each message written as it is read: the peak is that
+    of a chunk or two (2 MB chunks here), and every message comes back in order."""
+    import shutil
+    import tracemalloc
+
+    from mpm_monitor.io.bags.write import joint_state_cdr
+
+    names = [f"j{k}" for k in range(2000)]              # about 40 kB a message
+    w = BagWriter(tmp_path / "live", fsync=False)
+    w.add_topic("/output", JS.__msgtype__)
+    sent = []
+    for k in range(750):
+        sent.append((k * 10**8, joint_state_cdr(TS, k * 10**8, names, np.full(2000, float(k)))))
+        w.write("/output", *sent[-1])
+        if k % 50 == 49:
+            w.flush()
+    (tmp_path / "dead").mkdir()
+    shutil.copy(tmp_path / "live" / "live.mcap", tmp_path / "dead" / "dead.mcap")   # killed: no summary, no metadata
+    w.close()
+    size = (tmp_path / "dead" / "dead.mcap").stat().st_size
+    assert size > 29e6
+    tracemalloc.start()
+    try:
+        n = bag_io.recover_bag(tmp_path / "dead", tmp_path / "back")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert n == 750
+    assert peak < size / 4, f"recover's peak {peak / 1e6:.1f} MB for a {size / 1e6:.1f} MB recording"
+    back = read_raw_messages(tmp_path / "back", ["output"])
+    assert [(m.log_time, m.data) for m in back] == sent
+
+
 def test_recover_of_a_file_killed_before_its_magic_reached_the_disk_has_no_message(tmp_path):
     """A recorder killed before its first write leaves an empty (or partial-magic) storage file: "no complete
     message to recover", as the docs say, not "not an MCAP file (bad magic)"."""

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
+import mmap
+import os
 import struct
 import zlib
 from pathlib import Path
+from typing import Iterator
 
 from ...core.errors import BagError
 from .mcap_records import (
@@ -46,6 +50,9 @@ def recover_bag(src, dst, warn=None) -> int:
     was left out is said through ``warn``, one line; a message whose own bytes were changed is
     recovered as it is, and the reader that decodes it names it.
 
+    The storage files are mapped, not read into memory, and the messages are written as they are
+    read: a recording of any length is recovered in about the memory of one chunk.
+
     Parameters
     ----------
     src : str or Path
@@ -73,16 +80,15 @@ def recover_bag(src, dst, warn=None) -> int:
     found = _Records()
     for path in files:                  # a split recording: its storage files in order (bag_0, bag_1, ...)
         found.file(path)
-    typed = found.typed_messages()
     left_out = found.left_out()
     where = files[0] if len(files) == 1 else src
-    if not typed:
+    if not found.typed:
         damaged = found.left_out(torn=False)
         raise BagError(f"{where}: no complete message to recover{': ' + damaged if damaged else ''} "
                        f"(expected at least one complete chunk of messages after the MCAP header)")
     writer = BagWriter(dst, fsync=False)
     try:
-        for (topic, msgtype, qos), log_time, data in typed:
+        for (topic, msgtype, qos), log_time, data in found.typed_messages():
             if not writer.has_topic(topic):
                 writer.add_topic(topic, msgtype, qos)
             writer.write(topic, log_time, data)
@@ -100,95 +106,120 @@ def _split_order(path: Path) -> tuple:
 
 
 class _Records:
-    """The schemas, channels and messages of an MCAP file's records, and what was left out as damaged."""
+    """The schemas, channels and messages of a recording's storage files, and what was left out as damaged.
+
+    Each file is read twice, mapped into memory rather than read: :meth:`file` takes its schema and channel
+    records and counts its messages and damage; :meth:`typed_messages` then walks the same records again and
+    yields the typed messages one at a time.  What stays in memory between the two is each file's channels and
+    the offsets of its damaged chunks, so a recording of any length is recovered in the memory of one chunk.
+    """
 
     def __init__(self):
         from rosbags.rosbag2.storage_mcap import get_qos
 
         self._get_qos = get_qos         # imported once, not per record
-        self.schemas, self.channels, self.messages = {}, {}, []
-        self.bad_chunks = self.bad_records = self.untyped = 0
+        self.bad_chunks = self.bad_records = self.untyped = self.typed = 0
         self.torn = []                  # (file, bytes) of a record cut at the end of a file (the kill)
-        self.typed = []                 # the messages of the files read so far, with their channels
+        self.files = []                 # (path, channels, starts of the damaged chunks) of each file read
+        self.schemas, self.channels, self.counts, self.skip = {}, {}, {}, set()
 
     def file(self, path) -> None:
         """Take the records of one storage file (its chunks, and its summary's schemas and channels): its
         messages are typed by its own schema and channel records (each file of a split recording numbers
-        its channels anew)."""
-        self.schemas, self.channels, self.messages = {}, {}, []
-        buf = path.read_bytes()
-        if len(buf) < len(MAGIC) and MAGIC.startswith(buf):
-            return                      # killed before even the magic reached the disk: nothing in it
-        if buf[:len(MAGIC)] != MAGIC:
-            raise BagError(f"{path}: not an MCAP file (bad magic)")
-        summary, end = False, len(MAGIC)
-        for op, start, body in mcap_records(buf, len(MAGIC), len(buf)):
-            end = start + len(body)
-            if op == FOOTER:
-                end = len(buf)
-                break
-            if op == DATA_END:              # the file was closed after all: its summary repeats the
-                summary = True              # schemas and channels, of use where a chunk holding them is damaged
-            elif summary:
-                if op in (SCHEMA, CHANNEL):
-                    self.take(op, body, again=True)
-            elif op == CHUNK:
-                self.chunk(path, body)
-            else:
-                self.take(op, body)
-        if end < len(buf) and buf[end:].strip(b"\x00"):      # a record cut by the kill (zeros: space never written)
-            self.torn.append((path, len(buf) - end))
-        for cid, log_time, data in self.messages:
+        its channels anew).  Messages are only counted here."""
+        self.schemas, self.channels, self.counts, self.skip = {}, {}, {}, set()
+        with _mapped(path) as buf:
+            if len(buf) < len(MAGIC) and MAGIC.startswith(bytes(buf)):
+                return                  # killed before even the magic reached the disk: nothing in it
+            if buf[:len(MAGIC)] != MAGIC:
+                raise BagError(f"{path}: not an MCAP file (bad magic)")
+            end = len(MAGIC)
+            for op, start, body, summary in _top_records(buf):
+                end = start + len(body)
+                if op == FOOTER:
+                    end = len(buf)
+                elif summary:               # the file was closed after all: its summary repeats the schemas and
+                    if op in (SCHEMA, CHANNEL):   # channels, of use where a chunk holding them is damaged
+                        self.take(op, body, again=True)
+                elif op == CHUNK:
+                    self.chunk(path, start, body)
+                else:
+                    self.take(op, body)
+                del body
+            if _written(buf, end):              # a record cut by the kill (zeros: space never written)
+                self.torn.append((path, len(buf) - end))
+        for cid, n in self.counts.items():
             channel = self.channels.get(cid)
             if channel is None or not channel[1]:
-                self.untyped += 1
+                self.untyped += n
             else:
-                self.typed.append((channel, log_time, data))
+                self.typed += n
+        self.files.append((path, self.channels, self.skip))
 
-    def chunk(self, path, body) -> None:
+    def chunk(self, path, start, body) -> None:
         """Take the records of a chunk, or count it damaged (too short, a compression no writer names, or
-        its CRC does not match)."""
+        its CRC does not match) and note its offset, so that :meth:`typed_messages` skips it."""
         try:
             compression, _, inner = chunk_parts(body)
             (crc,) = struct.unpack_from("<I", body, CHUNK_CRC_OFFSET)
         except struct.error:
             self.bad_chunks += 1
+            self.skip.add(start)
             return
         if compression in COMPRESSIONS:
-            raise BagError(f"{path}: compressed chunks ({compression.decode()}) cannot be recovered")
+            raise BagError(f"{path}: compressed chunks ({bytes(compression).decode()}) cannot be recovered")
         if compression or (crc != NO_CRC and zlib.crc32(inner) != crc):   # a compression no writer names: damage
             self.bad_chunks += 1
+            self.skip.add(start)
             return
         for op, _, body2 in mcap_records(inner, 0, len(inner)):
             self.take(op, body2)
 
     def take(self, op, body, again: bool = False) -> None:
-        """Take one schema, channel or message record (others are skipped); count it damaged when it
-        cannot be parsed.  With ``again`` (the summary's copy of a schema or channel record), one already
-        read is kept and a damaged copy is not counted."""
+        """Take one schema or channel record, or count one message record (others are skipped); count it
+        damaged when it cannot be parsed.  With ``again`` (the summary's copy of a schema or channel record),
+        one already read is kept and a damaged copy is not counted."""
         try:
             if op == SCHEMA:
                 (sid,) = struct.unpack_from("<H", body, 0)
                 name, _ = mcap_string(body, 2)
                 if not (again and sid in self.schemas):
-                    self.schemas[sid] = name.decode()
+                    self.schemas[sid] = bytes(name).decode()
             elif op == CHANNEL:
                 cid, sid = struct.unpack_from("<HH", body, 0)
                 topic, pos = mcap_string(body, 4)
                 _, pos = mcap_string(body, pos)  # message encoding
                 metadata, _ = mcap_string(body, pos)
                 if not (again and cid in self.channels):
-                    self.channels[cid] = (topic.decode(), self.schemas.get(sid, ""), self._get_qos(metadata))
+                    self.channels[cid] = (bytes(topic).decode(), self.schemas.get(sid, ""),
+                                          self._get_qos(bytes(metadata)))
             elif op == MESSAGE:
-                cid, _, log_time, _ = struct.unpack_from("<HIQQ", body, 0)
-                self.messages.append((cid, log_time, body[22:]))
+                cid, _, _, _ = struct.unpack_from("<HIQQ", body, 0)
+                self.counts[cid] = self.counts.get(cid, 0) + 1
         except Exception:  # untrusted bytes: any parse failure of a schema or channel record is damage
             self.bad_records += not again
 
-    def typed_messages(self) -> list:
-        """``[(channel, log_time, data)]`` of the messages whose channel and schema were read (file after file),
-        ``channel`` = ``(topic, message type, QoS profiles)``; the others are counted in :attr:`untyped`."""
-        return self.typed
+    def typed_messages(self) -> Iterator[tuple]:
+        """``(channel, log_time, data)`` of the messages whose channel and schema were read, file after file and
+        in the order of their records, ``channel`` = ``(topic, message type, QoS profiles)``, ``data`` the
+        message's bytes; the others were counted in :attr:`untyped`.  Reads the files again."""
+        for path, channels, skip in self.files:
+            with _mapped(path) as buf:
+                for op, start, body, summary in _top_records(buf):
+                    if summary or op == FOOTER:
+                        continue
+                    if op == CHUNK:
+                        if start in skip:
+                            continue
+                        inner = chunk_parts(body)[2]
+                        records = ((op2, body2) for op2, _, body2 in mcap_records(inner, 0, len(inner)))
+                    else:
+                        records = ((op, body),)
+                    for op2, body2 in records:
+                        message = _message(op2, body2, channels)
+                        if message is not None:
+                            yield message
+                    del body, records
 
     def left_out(self, torn: bool = True) -> str:
         """What was left out, in words ('' when nothing was); ``torn``: with the records cut short at the end
@@ -206,3 +237,58 @@ class _Records:
             parts.append(f"the last {n:,} bytes of {Path(path).name}, a record cut short (the messages it held are "
                          f"lost)")
         return ("left out " + ", ".join(parts)) if parts else ""
+
+
+def _message(op, body, channels):
+    """``(channel, log_time, data)`` of a message record whose channel was read, else None (a record of another
+    kind, one too short to hold its header, or a message of a channel with no readable channel or schema)."""
+    if op != MESSAGE:
+        return None
+    try:
+        cid, _, log_time, _ = struct.unpack_from("<HIQQ", body, 0)
+    except struct.error:
+        return None
+    channel = channels.get(cid)
+    if channel is None or not channel[1]:
+        return None
+    return channel, log_time, bytes(body[22:])
+
+
+def _top_records(buf) -> Iterator[tuple]:
+    """``(opcode, body start, body, in summary)`` of a storage file's top-level records after the magic, up to and
+    with its footer; ``in summary``: after the data end record (a closed file's summary section)."""
+    summary = False
+    for op, start, body in mcap_records(buf, len(MAGIC), len(buf)):
+        yield op, start, body, summary
+        if op == FOOTER:
+            return
+        if op == DATA_END:
+            summary = True
+
+
+def _written(buf, end: int, block: int = 1 << 20) -> bool:
+    """Whether ``buf[end:]`` holds a byte other than 0 (looked at a block at a time)."""
+    for pos in range(end, len(buf), block):
+        if bytes(buf[pos:pos + block]).strip(b"\x00"):
+            return True
+    return False
+
+
+@contextlib.contextmanager
+def _mapped(path):
+    """A ``memoryview`` of a storage file, mapped read-only (an empty file: an empty view); the map is closed at
+    the end, or left to the garbage collector when a view of it is still held (an exception's traceback)."""
+    with open(path, "rb") as f:
+        if os.fstat(f.fileno()).st_size == 0:       # mmap refuses an empty file
+            yield memoryview(b"")
+            return
+        mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+    view = memoryview(mm)
+    try:
+        yield view
+    finally:
+        view.release()
+        try:
+            mm.close()
+        except BufferError:     # a slice of it is still referenced: closed when that goes
+            pass
