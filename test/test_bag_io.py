@@ -871,6 +871,134 @@ def test_recover_holds_about_one_chunk_in_memory_not_the_recording(tmp_path):
     assert [(m.log_time, m.data) for m in back] == sent
 
 
+def _split_copy(raw, path, flush_every=10, **limits):
+    """The messages ``raw`` written again by a BagWriter with split storage, flushed every ``flush_every``
+    messages; returns the open writer (close it)."""
+    w = BagWriter(path, fsync=False, **limits)
+    for k, m in enumerate(raw):
+        if not w.has_topic(m.topic):
+            w.add_topic(m.topic, m.msgtype, [bag_io.contract_vector_qos()])
+        w.write(m.topic, m.log_time, m.data)
+        if k % flush_every == flush_every - 1:
+            w.flush()
+    return w
+
+
+@pytest.mark.parametrize("limits", [{"split_bytes": 8000}, {"split_seconds": 4.0}], ids=["bytes", "seconds"])
+def test_a_split_bag_reads_as_the_same_bag_in_one_file(tmp_path, limits):
+    """Split storage (``ros2 bag record --max-bag-size`` / ``--max-bag-duration``): storage files
+    NAME_0.mcap, NAME_1.mcap, ... each closed at the first flush past the limit, a metadata.yaml that lists
+    them with their counts and times, and the same samples, messages and order as the bag in one file."""
+    r, u, y = _samples(40)
+    src = write_bag(tmp_path / "src", r, u, y)
+    raw = read_raw_messages(src, ["setpoint", "input", "output"])
+    w = _split_copy(raw, tmp_path / "split", **limits)
+    w.close()
+    bag = tmp_path / "split"
+    files = sorted(f.name for f in bag.iterdir())
+    n_files = len(files) - 1
+    assert n_files >= 3 and files == sorted(["metadata.yaml"] + [f"split_{k}.mcap" for k in range(n_files)])
+    assert w.storage_files == w.closed_files == [f"split_{k}.mcap" for k in range(n_files)]
+    import yaml
+
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["relative_file_paths"] == [f"split_{k}.mcap" for k in range(n_files)]
+    assert [f["path"] for f in meta["files"]] == meta["relative_file_paths"]
+    assert meta["message_count"] == sum(f["message_count"] for f in meta["files"]) == len(raw) == 120
+    assert {t["topic_metadata"]["name"]: t["message_count"] for t in meta["topics_with_message_count"]} == \
+        {"/setpoint": 40, "/input": 40, "/output": 40}
+    # Each file but the last closed at the first flush past the limit (a flush every 10 messages: 3 1/3 samples
+    # of 0.5 s, under 1,500 bytes of records); the size is that of the file at that flush, before what closing it
+    # adds (the metadata record, opcode 0x0C, and the summary).
+    for entry in meta["files"][:-1]:
+        if "split_seconds" in limits:
+            assert 4e9 <= entry["duration"]["nanoseconds"] < 4e9 + 2e9
+        else:
+            data = (bag / entry["path"]).read_bytes()
+            size = next(start for op, start, _ in _records_of(data) if op == 0x0C) - 9
+            assert 8000 <= size < 8000 + 1500
+    first, last = min(m.log_time for m in raw), max(m.log_time for m in raw)
+    assert meta["starting_time"]["nanoseconds_since_epoch"] == first
+    assert meta["duration"]["nanoseconds"] == last - first
+    back = read_raw_messages(bag, ["setpoint", "input", "output"])
+    assert [(m.topic, m.log_time, m.data) for m in back] == [(m.topic, m.log_time, m.data) for m in raw]
+    one = read_bag(src, MODEL)
+    split = read_bag(bag, MODEL)
+    for name in ("t", "r", "u", "y"):
+        np.testing.assert_array_equal(getattr(split, name), getattr(one, name))
+    from mpm_monitor.io.bags.mcap_records import CHUNK, CHUNK_CRC_OFFSET, MAGIC
+
+    for mcap in files[1:]:              # each storage file is closed on its own, with its chunks' CRCs
+        data = (bag / mcap).read_bytes()
+        crcs = [struct.unpack_from("<I", body, CHUNK_CRC_OFFSET)[0]
+                for op, _, body in _records_of(data) if op == CHUNK]
+        assert data.endswith(MAGIC) and crcs and all(crcs)
+
+
+def test_a_split_recording_killed_is_recovered_from_every_storage_file(tmp_path):
+    """A recorder with split storage killed: closed storage files, the one being written (no summary), and the
+    empty directory it was created in.  ``recover`` gets back every flushed message, in order."""
+    import shutil
+
+    r, u, y = _samples(40)
+    raw = read_raw_messages(write_bag(tmp_path / "src", r, u, y), ["setpoint", "input", "output"])
+    w = _split_copy(raw[:100], tmp_path / "live", split_bytes=3000)
+    for m in raw[100:]:
+        w.write(m.topic, m.log_time, m.data)        # not flushed: lost with the process
+    shutil.copytree(tmp_path / "live", tmp_path / "dead")   # what a kill leaves on disk
+    w.close()
+    left = sorted(f.name for f in (tmp_path / "dead").iterdir())
+    k = len(w.closed_files) - 1                     # the file being written at the kill
+    assert f".split_{k}" in left and f"live_{k}.mcap" in left and "metadata.yaml" not in left and k >= 2
+    notes = []
+    assert bag_io.recover_bag(tmp_path / "dead", tmp_path / "back", warn=notes.append) == 100
+    back = read_raw_messages(tmp_path / "back", ["setpoint", "input", "output"])
+    assert [(m.topic, m.log_time, m.data) for m in back] == [(m.topic, m.log_time, m.data) for m in raw[:100]]
+    assert notes == []
+
+
+def test_split_storage_frees_each_files_chunk_index(tmp_path):
+    """An MCAP writer keeps an index entry per chunk (per flush) until its file closes: about 220 bytes a
+    flush, 19 MB a day at one flush a second, for as long as a recorder runs.  With split storage each file
+    closes and frees its index, so the memory stops growing."""
+    import gc
+    import tracemalloc
+
+    from mpm_monitor.io.bags.write import joint_state_cdr
+
+    msg = joint_state_cdr(TS, 0, ["x1", "x2"], np.zeros(2))
+    growth = {}
+    for label, limits in (("one file", {}), ("split", {"split_bytes": 20_000})):
+        w = BagWriter(tmp_path / label.replace(" ", "_"), fsync=False, **limits)
+        w.add_topic("/output", JS.__msgtype__)
+        tracemalloc.start()
+        try:
+            points, files = [], 0
+            for k in range(3000):
+                w.write("/output", k * 10**9, msg)
+                w.flush()
+                # Measured where a file has just closed (split: the index of the file being written grows
+                # between two splits), from the 500th flush on.
+                if k >= 499 and (len(w.closed_files) != files if limits else k in (499, 2999)):
+                    gc.collect()        # closing a file leaves cycles (YAML loaders) to the collector
+                    points.append((k, tracemalloc.get_traced_memory()[0]))
+                files = len(w.closed_files)
+            (k0, m0), (k1, m1) = points[0], points[-1]
+            assert k1 - k0 > 2000, points
+            growth[label] = (m1 - m0) / (k1 - k0)
+        finally:
+            tracemalloc.stop()
+        w.close()
+    assert growth["one file"] > 150, growth          # bytes a flush
+    assert growth["split"] < 20, growth
+
+
+def test_a_negative_split_limit_is_refused(tmp_path):
+    with pytest.raises(BagError, match=r"split limits must be 0 \(none\) or positive"):
+        BagWriter(tmp_path / "bag", split_bytes=-1)
+    assert not (tmp_path / "bag").exists()
+
+
 def test_recover_of_a_file_killed_before_its_magic_reached_the_disk_has_no_message(tmp_path):
     """A recorder killed before its first write leaves an empty (or partial-magic) storage file: "no complete
     message to recover", as the docs say, not "not an MCAP file (bad magic)"."""

@@ -195,24 +195,26 @@ class _Lines(threading.Thread):
                 self.flushed = max(self.flushed, int(m.group(1)))
 
 
-def _run_and_signal(tmp_path, monkeypatch, signum):
+def _run_and_signal(tmp_path, monkeypatch, signum, extra=()):
     """Record /output from a publisher in this process; signal the recorder once it reported a
     flush of at least 200 messages, keep publishing 100 more, and wait for it to end.
 
-    Runs on a ROS_DOMAIN_ID no other test process holds.  Returns (bag dir, exit code, flushed
-    count reported before the signal, messages published, recorder log).
+    Runs on a ROS_DOMAIN_ID no other test process holds.  ``extra``: more ``-p name:=value`` arguments of the
+    recorder.  Returns (bag dir, exit code, flushed count reported before the signal, messages published,
+    recorder log).
     """
     with unique_domain(salt=int(signum)) as domain:
-        return _record_and_signal(tmp_path, monkeypatch, signum, domain)
+        return _record_and_signal(tmp_path, monkeypatch, signum, domain, extra)
 
 
-def _record_and_signal(tmp_path, monkeypatch, signum, domain):
+def _record_and_signal(tmp_path, monkeypatch, signum, domain, extra=()):
     bag = tmp_path / "bag"
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                RCUTILS_LOGGING_BUFFERED_STREAM="0", PYTHONUNBUFFERED="1")
     proc = subprocess.Popen(
         [sys.executable, "-m", "mpm_monitor.nodes.recorder_node", "--ros-args", "-p", f"bag_dir:={bag}",
-         "-p", "flush_period:=0.1", "--log-level", "mpm_recorder:=debug"],
+         "-p", "flush_period:=0.1", *[a for value in extra for a in ("-p", value)],
+         "--log-level", "mpm_recorder:=debug"],
         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     log = _Lines(proc.stderr)
     log.start()
@@ -271,3 +273,38 @@ def test_sigkill_loses_at_most_what_was_not_flushed(tmp_path, monkeypatch):
     stamps = _stamps(tmp_path / "recovered")
     assert len(stamps) == n and stamps == list(range(n))
     assert flushed <= n <= published
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGKILL])
+def test_a_split_recording_stopped_or_killed_keeps_its_messages_in_order(tmp_path, monkeypatch, signum):
+    """``max_bag_size``: the recorder goes on in a new storage file at the first flush past the size, and says so.
+    Stopped, the bag reads whole (every file, in order); killed, ``recover`` reads every file."""
+    bag, rc, flushed, published, log = _run_and_signal(tmp_path, monkeypatch, signum, extra=("max_bag_size:=4000",))
+    files = sorted(f.name for f in bag.glob("*.mcap"))
+    assert len(files) >= 3, (files, log)
+    assert "a new storage file after 4,000 bytes" in log and "closed storage file bag_0.mcap" in log, log
+    if signum == signal.SIGKILL:
+        assert rc == -signal.SIGKILL
+        n = recover_bag(bag, tmp_path / "recovered")
+        stamps = _stamps(tmp_path / "recovered")
+        assert len(stamps) == n and stamps == list(range(n)) and flushed <= n <= published
+    else:
+        assert rc == 0, log
+        meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        assert meta["relative_file_paths"] == [f"bag_{k}.mcap" for k in range(len(files))]
+        stamps = _stamps(bag)
+        assert stamps == list(range(len(stamps))) and flushed <= len(stamps) <= published
+        assert meta["message_count"] == len(stamps)
+        assert not [f for f in bag.iterdir() if f.is_dir()]     # the files' directories while written, removed
+
+
+def test_a_bad_split_limit_is_refused(ctx, tmp_path):
+    from rclpy.parameter import Parameter
+
+    with pytest.raises(InputError, match=r"max_bag_size: .*out of range"):
+        RecorderNode(bag_dir=tmp_path / "a", context=ctx, node_name="r3",
+                     parameter_overrides=[Parameter("max_bag_size", value=-1)])
+    with pytest.raises(InputError, match=r"max_bag_duration: .*out of range"):
+        RecorderNode(bag_dir=tmp_path / "b", context=ctx, node_name="r4",
+                     parameter_overrides=[Parameter("max_bag_duration", value=-1.0)])
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

@@ -36,6 +36,14 @@ qos_wait : float
     with the subscription's QoS instead, 0 to 10.
 fsync : bool
     ``fsync`` on every flush.
+max_bag_size : int
+    Bytes after which the recording goes on in a new storage file (``<bag>_0.mcap``, ``<bag>_1.mcap``,
+    ...), at the next flush; 0: no size limit.
+max_bag_duration : float
+    Seconds of messages after which the recording goes on in a new storage file, at the next flush;
+    0: no duration limit.  With neither limit the bag holds one storage file, which grows for as long
+    as the recorder runs, and so does the writer's index of its chunks in memory (about 220 bytes a
+    flush: 19 MB a day at the default ``flush_period``); each split closes its file and frees its index.
 """
 
 from __future__ import annotations
@@ -85,6 +93,10 @@ class RecorderOptions:
     flush_period, drain_timeout, qos_wait : float
         Seconds.
     fsync : bool
+    max_bag_size : int
+        Bytes; 0: none.
+    max_bag_duration : float
+        Seconds; 0: none.
     """
 
     bag_dir: str
@@ -93,8 +105,13 @@ class RecorderOptions:
     drain_timeout: float = 0.5
     qos_wait: float = 1.0
     fsync: bool = True
+    max_bag_size: int = 0
+    max_bag_duration: float = 0.0
 
-    RANGES = {"flush_period": (0.01, 60.0), "drain_timeout": (0.0, 10.0), "qos_wait": (0.0, 10.0)}
+    RANGES = {"flush_period": (0.01, 60.0), "drain_timeout": (0.0, 10.0), "qos_wait": (0.0, 10.0),
+              "max_bag_duration": (0.0, 1e9)}
+    #: The largest ``max_bag_size``, bytes (a petabyte).
+    MAX_BAG_SIZE = 10**15
 
     def __post_init__(self):
         if not isinstance(self.bag_dir, str) or not self.bag_dir.strip():
@@ -103,6 +120,10 @@ class RecorderOptions:
             val = getattr(self, key)
             if not isinstance(val, (int, float)) or not lo <= val <= hi:
                 raise ConfigurationError(f"{key}: expected a number of seconds in [{lo:g}, {hi:g}], got {val!r}")
+        if isinstance(self.max_bag_size, bool) or not isinstance(self.max_bag_size, int) \
+                or not 0 <= self.max_bag_size <= self.MAX_BAG_SIZE:
+            raise ConfigurationError(f"max_bag_size: expected a number of bytes in [0, {self.MAX_BAG_SIZE:g}] "
+                                     f"(0: no limit), got {self.max_bag_size!r}")
         if not self.topics:
             raise ConfigurationError("topics: expected at least one topic to record")
         names = [n for n, _ in self.topics]
@@ -121,6 +142,11 @@ PARAMS = (
     ParamSpec("qos_wait", "double", 1.0, "Seconds to wait for a topic's publishers to show in the graph before "
               "storing it with the subscription QoS.", *_RANGES["qos_wait"]),
     ParamSpec("fsync", "bool", True, "fsync the bag file on every flush."),
+    ParamSpec("max_bag_size", "int", 0, "Bytes after which the recording goes on in a new storage file "
+              "(named after the bag directory: NAME_0.mcap, NAME_1.mcap, ...), at the next flush; 0 = no limit.",
+              0, RecorderOptions.MAX_BAG_SIZE),
+    ParamSpec("max_bag_duration", "double", 0.0, "Seconds of messages after which the recording goes on in a new "
+              "storage file, at the next flush; 0 = no limit.", *_RANGES["max_bag_duration"]),
 )
 
 
@@ -230,16 +256,21 @@ class RecorderNode(Node):
         p = declare_parameters(self, PARAMS)
         self.options = RecorderOptions(bag_dir=p["bag_dir"] or default_bag_dir(), topics=parse_topic_specs(p["topics"]),
                                        flush_period=p["flush_period"], drain_timeout=p["drain_timeout"],
-                                       qos_wait=p["qos_wait"], fsync=p["fsync"])
-        self._writer = BagWriter(self.options.bag_dir, fsync=self.options.fsync)
+                                       qos_wait=p["qos_wait"], fsync=p["fsync"], max_bag_size=p["max_bag_size"],
+                                       max_bag_duration=p["max_bag_duration"])
+        self._writer = BagWriter(self.options.bag_dir, fsync=self.options.fsync, split_bytes=self.options.max_bag_size,
+                                 split_seconds=self.options.max_bag_duration)
         self._topics = [_Topic(n, t) for n, t in self.options.topics]
         for tp in self._topics:
             self._subscribe(tp, best_effort=self._publishers_best_effort(tp.name))
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._timer = self.create_timer(self.options.flush_period, self._on_flush_timer, clock=steady)
+        limits = [f"{self.options.max_bag_size:,} bytes"] * bool(self.options.max_bag_size) + \
+            [f"{self.options.max_bag_duration:g} s"] * bool(self.options.max_bag_duration)
         self.get_logger().info(
             f"recording {', '.join(tp.resolved for tp in self._topics)} to {self.options.bag_dir} "
-            f"(MCAP, flush every {self.options.flush_period:g} s)")
+            f"(MCAP, flush every {self.options.flush_period:g} s"
+            + (f", a new storage file after {' or '.join(limits)}" if limits else "") + ")")
 
     # -- set-up -----------------------------------------------------------------------------------
 
@@ -312,8 +343,13 @@ class RecorderNode(Node):
             for tp in self._topics:
                 if tp.pending:
                     self._add_to_bag(tp, force=False)
+            before = len(self._writer.closed_files)
             n = self._writer.flush()
+            closed = self._writer.closed_files[-1] if len(self._writer.closed_files) > before else None
         self.get_logger().debug(f"flushed {n} messages to disk")
+        if closed:
+            self.get_logger().info(f"closed storage file {closed} ({n} messages in the bag so far); the next message "
+                                   f"begins the next one")
         for tp in self._topics:
             if not tp.best_effort and self._publishers_best_effort(tp.resolved):
                 self.get_logger().warning(f"{tp.resolved}: a publisher offers BEST_EFFORT; re-subscribing best effort")
