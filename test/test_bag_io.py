@@ -958,8 +958,8 @@ def test_a_split_recording_killed_is_recovered_from_every_storage_file(tmp_path)
 
 
 def test_split_storage_frees_each_files_chunk_index(tmp_path):
-    """An MCAP writer keeps an index entry per chunk (per flush) until its file closes: about 220 bytes a
-    flush, 19 MB a day at one flush a second, for as long as a recorder runs.  With split storage each file
+    """An MCAP writer keeps an index entry per chunk (per flush) until its file closes: about 210 bytes a
+    flush, 18 MB a day at one flush a second, for as long as a recorder runs.  With split storage each file
     closes and frees its index, so the memory stops growing."""
     import gc
     import tracemalloc

@@ -42,8 +42,8 @@ max_bag_size : int
 max_bag_duration : float
     Seconds of messages after which the recording goes on in a new storage file, at the next flush;
     0: no duration limit.  With neither limit the bag holds one storage file, which grows for as long
-    as the recorder runs, and so does the writer's index of its chunks in memory (about 220 bytes a
-    flush: 19 MB a day at the default ``flush_period``); each split closes its file and frees its index.
+    as the recorder runs, and so does the writer's index of its chunks in memory (about 210 bytes a
+    flush: 18 MB a day at the default ``flush_period``); each split closes its file and frees its index.
 """
 
 from __future__ import annotations
