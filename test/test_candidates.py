@@ -391,3 +391,38 @@ def test_a_candidate_in_other_units_gives_the_same_decisions_and_element(effect_
     gain0, tau0, delay0 = element(effect_report)
     assert gain * scale == pytest.approx(gain0, rel=1e-8)
     assert tau == pytest.approx(tau0, rel=1e-8) and delay == delay0
+
+
+def test_copies_of_the_logs_channels_are_named_not_tested(effect_run, effect_report):
+    """A historian export holds the same tag twice: a copy of an input was "moves with u2: may be an effect of the
+    loop" (the other input's name), and a copy of the effect channel in other units was located beside it.  A
+    candidate that another channel fits as ``a x + b`` to within COPY_TOLERANCE of its spread is now named as that
+    channel's copy and not tested; a second sensor (its own noise) and a copy stored as 32-bit floats are told
+    apart."""
+    data = effect_run.data
+    rng = np.random.default_rng(11)
+    effect = np.asarray(data.extra[EFFECT_CHANNEL], dtype=float)
+    extra = dict(data.extra)
+    extra["effect_in_other_units"] = 2.0 * effect + 5.0
+    extra["u1_tag"] = data.u[:, 0].copy()
+    extra["y2_tag"] = data.y[:, 1] * 0.5
+    extra["sp_tag"] = data.r[:, 0] - 1.0
+    extra["u3_float32"] = (data.u[:, 2] + 300.0).astype(np.float32).astype(float)
+    extra["second_sensor"] = effect + 1e-3 * effect.std() * rng.standard_normal(effect.shape)
+    rep = analyze(effect_run.model, dataclasses.replace(data, extra=extra), AnalysisOptions(), candidates="all")
+    unusable = rep.candidates.unusable
+    assert unusable["effect_in_other_units"] == (f"a copy of candidate {EFFECT_CHANNEL} times 2 plus 5: it is "
+                                                 f"examined as {EFFECT_CHANNEL}")
+    assert unusable["u1_tag"] == "an exact copy of input u1: the model has it already"
+    assert unusable["y2_tag"] == "a copy of output y2 times 0.5: the output itself, not a cause"
+    assert unusable["sp_tag"] == "a copy of setpoint r_y1 minus 1: a setpoint acts through the inputs, not beside them"
+    assert unusable["u3_float32"].startswith("a copy of input u3 plus 300") and "the model has it already" in \
+        unusable["u3_float32"]
+    assert "second_sensor" not in unusable and "second_sensor" in rep.candidates.p_values
+    # The second sensor is a candidate of its own, as good a cause as the first: one of the two is added.
+    assert effect_report.candidates.added == [EFFECT_CHANNEL]
+    assert rep.candidates.added in ([EFFECT_CHANNEL], ["second_sensor"])
+    assert not any(name == "effect_in_other_units" for _, name in rep.candidates.located)
+    assert "candidate u1_tag is unusable (an exact copy of input u1: the model has it already); it was not tested" \
+        in rep.warnings
+    assert not any("u1_tag moves with" in w for w in rep.warnings)

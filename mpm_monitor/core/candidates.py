@@ -75,6 +75,11 @@ from .statistics import f_test
 CANDIDATE_AR_ORDER = 8
 #: The word of ``--candidates`` that selects every numeric channel the model does not use.
 ALL_CANDIDATES = "all"
+#: A candidate that ``a x + b`` fits, ``x`` one of the log's other channels, to within this fraction of its
+#: own spread (root mean square about its mean) is a copy of ``x``: the same tag logged twice, in other units,
+#: with an offset, or stored with fewer digits (a 32-bit float of a value far from 0 keeps about 1e-5 of its
+#: spread).  A second sensor of the same quantity differs by its own noise, far more than this.
+COPY_TOLERANCE = 1e-4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -190,18 +195,71 @@ def select_candidates(data: LoggedData, spec, model: Optional[PlantModel] = None
                                      f"the model does not use are: {', '.join(available) or 'none'}")
     n = data.n_samples
     names, cols, unusable = [], [], {}
+    copies = _Copies(data, model)
     for name in wanted:
         if name in data.unusable:
             unusable[name] = data.unusable[name]
             continue
         why = channel_problem(data.extra[name], n)
+        x = np.asarray(data.extra[name], dtype=float) if why is None else None
+        why = why or copies.of(x)
         if why:
             unusable[name] = why
             continue
         names.append(name)
-        cols.append(np.asarray(data.extra[name], dtype=float))
+        cols.append(x)
+        copies.add(x, f"candidate {name}", f"it is examined as {name}")
     values = np.column_stack(cols) if cols else np.zeros((n, 0))
     return CandidateChannels(names=tuple(names), values=values, unusable=unusable)
+
+
+class _Copies:
+    """The log's channels a candidate may be a copy of (:data:`COPY_TOLERANCE`): the model's inputs and measured
+    disturbances, the outputs, the setpoints, then the candidates taken so far, each with what a copy of it is."""
+
+    def __init__(self, data: LoggedData, model: Optional[PlantModel]):
+        self.labels, self.whys, cols = [], [], []
+        dv = data.dv if data.dv is not None else np.zeros((data.n_samples, 0))
+        known = ([(f"input {n}", "the model has it already") for n in data.inputs]
+                 + [(f"measured disturbance {n}", "the model has it already") for n in data.disturbances]
+                 + [(f"output {n}", "the output itself, not a cause") for n in data.outputs]
+                 + [(f"setpoint r_{n}", "a setpoint acts through the inputs, not beside them") for n in data.outputs])
+        values = [data.u[:, j] for j in range(data.u.shape[1])] + [dv[:, j] for j in range(dv.shape[1])] \
+            + [data.y[:, j] for j in range(data.y.shape[1])] + [data.r[:, j] for j in range(data.r.shape[1])]
+        for (label, why), x in zip(known, values):
+            self.add(np.asarray(x, dtype=float), label, why)
+
+    def add(self, x: np.ndarray, label: str, why: str) -> None:
+        """Take ``x`` (shape (n_samples,)) as a channel later candidates are compared with (not when it never
+        moves or is not finite: no candidate copies it)."""
+        if x.ndim != 1 or not np.isfinite(x).all() or not moving_columns(x):
+            return
+        self.labels.append((label, why))
+        self.whys.append(x)
+
+    def of(self, c: np.ndarray) -> Optional[str]:
+        """What ``c`` (shape (n_samples,), finite, moving) is a copy of, in words, or None."""
+        if not self.whys:
+            return None
+        cc = c - c.mean()
+        spread = float(np.sqrt(np.mean(cc * cc)))
+        X = np.column_stack(self.whys)
+        Xc = X - X.mean(axis=0)
+        norms = np.sqrt(np.einsum("ij,ij->j", Xc, Xc))
+        corr = np.abs(Xc.T @ cc) / (norms * np.sqrt(float(cc @ cc)))
+        for k in np.flatnonzero(corr > 1.0 - 1e-6):     # a screen; the residual itself decides
+            scale = float(Xc[:, k] @ cc) / float(norms[k] ** 2)
+            rest = cc - scale * Xc[:, k]
+            if float(np.sqrt(np.mean(rest * rest))) <= COPY_TOLERANCE * spread:
+                (label, why), offset = self.labels[k], float(c.mean() - scale * X[:, k].mean())
+                if np.array_equal(c, X[:, k]):
+                    return f"an exact copy of {label}: {why}"
+                # A scale or offset within what tells a copy (the tolerance of the spread) is not said.
+                how = (f" times {scale:.6g}" if abs(scale - 1.0) > COPY_TOLERANCE else "") + \
+                    (f" {'plus' if offset > 0 else 'minus'} {abs(offset):.6g}"
+                     if abs(offset) > COPY_TOLERANCE * spread else "")
+                return f"a copy of {label}{how}: {why}"
+        return None
 
 
 # ------------------------------------------------------------------------------------ least squares
