@@ -426,3 +426,20 @@ def test_copies_of_the_logs_channels_are_named_not_tested(effect_run, effect_rep
     assert "candidate u1_tag is unusable (an exact copy of input u1: the model has it already); it was not tested" \
         in rep.warnings
     assert not any("u1_tag moves with" in w for w in rep.warnings)
+
+
+def test_a_candidate_the_joint_fit_releases_is_not_left_among_the_located(effect_run):
+    """Two sensors of the same cause are both flagged; re-estimated together, one explains the row and the other
+    is released ("... it is not reported as located").  The candidates' ``located`` list still held it, so the
+    JSON report and its elements disagreed."""
+    data = effect_run.data
+    effect = np.asarray(data.extra[EFFECT_CHANNEL], dtype=float)
+    extra = dict(data.extra)
+    extra["second_sensor"] = effect + 1e-2 * effect.std() * np.random.default_rng(11).standard_normal(effect.shape)
+    rep = analyze(effect_run.model, dataclasses.replace(data, extra=extra), AnalysisOptions(), candidates="all")
+    flagged = [(e.output, e.input) for e in rep.elements if e.role == "candidate" and e.mismatch]
+    released = [(e.output, e.input) for e in rep.elements if e.role == "candidate" and e.explained_by]
+    assert len(flagged) == 1 and len(released) == 1
+    assert rep.candidates.located == flagged
+    assert rep.candidates.added == [flagged[0][1]]
+    assert any(f"also flagged {released[0][1]}" in w and "not reported as located" in w for w in rep.warnings)

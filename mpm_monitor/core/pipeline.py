@@ -308,7 +308,8 @@ def _shares_a_row(report: AnalysisReport) -> bool:
 def _release(report: AnalysisReport, released: dict, model: PlantModel) -> None:
     """Mark the located elements ``released`` (:func:`~mpm_monitor.core.repair.explained_elements`:
     ``{(i, j): [k, ...]}`` in ``model``'s indices) as not located, each with the columns that
-    explain it (``explained_by``), and say so in a warning per row."""
+    explain it (``explained_by``), and say so in a warning per row; a candidate's comes off the
+    candidates' located list too."""
     if not released:
         return
     columns, outputs = model.columns, model.outputs
@@ -319,6 +320,9 @@ def _release(report: AnalysisReport, released: dict, model: PlantModel) -> None:
             e.mismatch = False
             e.explained_by = tuple(columns[k] for k in released[key])
             by_row.setdefault(e.output, []).append(e)
+    if report.candidates is not None:   # a candidate released is no longer among the candidates located
+        gone = {(e.output, e.input) for elements in by_row.values() for e in elements}
+        report.candidates.located = [k for k in report.candidates.located if k not in gone]
     for output, elements in by_row.items():
         by = list(dict.fromkeys(k for e in elements for k in e.explained_by))
         report.warnings.append(
