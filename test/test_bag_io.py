@@ -1014,3 +1014,29 @@ def test_recover_of_a_file_killed_before_its_magic_reached_the_disk_has_no_messa
     (tmp_path / "junk" / "junk.mcap").write_bytes(b"garbage!!")
     with pytest.raises(BagError, match="not an MCAP file"):
         bag_io.recover_bag(tmp_path / "junk", tmp_path / "junk_back")
+
+
+def test_bad_values_as_gaps_in_a_bag(tmp_path):
+    """A message holding NaN is refused by default; with bad_values='gap' it is left out, its sample a gap, and
+    the data are those of the bag without it, with a note per topic.  A topic of NaN only is named."""
+    r, u, y = _samples(30)
+    y[7, 1] = np.nan
+    u[12, 0] = np.inf
+    bag = write_bag(tmp_path / "bag", r, u, y)
+    with pytest.raises(BagError, match=r"topic '/output': message 8 \(stamp .* s\) holds a non-finite value"):
+        read_bag(bag, MODEL)
+    data = read_bag(bag, MODEL, bad_values="gap")
+    keep = np.setdiff1d(np.arange(30), [7, 12])
+    ref = read_bag(write_bag(tmp_path / "ref", r[keep], u[keep], y[keep],
+                             stamps=np.rint((T0 + 0.5 * keep) * 1e9).astype(np.int64)), MODEL)
+    for key in ("t", "r", "u", "y"):
+        np.testing.assert_array_equal(getattr(data, key), getattr(ref, key))
+    assert data.n_samples == 28 and len(data.segments) == 3
+    assert [n.split(": ", 1)[1] for n in data.notes] == [
+        f"topic '/output': 1 message holding a non-finite value left out (the first stamped {T0 + 3.5:g} s); the "
+        f"analysis goes around its sample as gaps",
+        f"topic '/input': 1 message holding a non-finite value left out (the first stamped {T0 + 6:g} s); the "
+        f"analysis goes around its sample as gaps"]
+    y[:] = np.nan
+    with pytest.raises(BagError, match=r"topic '/output': every one of its 30 messages holds a non-finite value"):
+        read_bag(write_bag(tmp_path / "nan", r, u, y), MODEL, bad_values="gap")

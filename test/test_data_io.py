@@ -684,3 +684,52 @@ def test_analyze_runs_without_the_cycle_collector_and_gives_it_back(tmp_path, mo
         assert seen == [False, False] and not gc.isenabled()
     finally:
         gc.enable()
+
+
+# --------------------------------------------------------------------------- --bad-values gap
+def test_bad_values_as_gaps_read_as_the_rows_deleted(tmp_path):
+    """A historian's missing values (an empty cell, 'Bad', NaN, inf in a model channel): with bad_values='gap'
+    each such row is left out as a missing sample, the data the same as the file with those rows deleted, and
+    one note counts them and names the first."""
+    rows = _rows(12)
+    bad = {3: ("y1", ""), 4: ("u2", "Bad"), 8: ("r_y2", "NaN"), 9: ("u3", "-inf")}
+    edited = []
+    for k, line in enumerate(rows):
+        if k in bad:
+            cells = line.split(",")
+            cells[HEADER.split(",").index(bad[k][0])] = bad[k][1]
+            line = ",".join(cells)
+        edited.append(line)
+    path = _write(tmp_path, _text([HEADER] + edited))
+    with pytest.raises(DataFileError, match=r"line 5, column 'y1': expected a number, got ''"):
+        read_csv(path, _model())                            # the default refuses, as before
+    data = read_csv(path, _model(), bad_values="gap")
+    ref = read_csv(_write(tmp_path, _text([HEADER] + [r for k, r in enumerate(rows) if k not in bad]), "ref.csv"),
+                   _model())
+    for key in ("t", "r", "u", "y"):
+        np.testing.assert_array_equal(getattr(data, key), getattr(ref, key))
+    assert data.n_samples == 8 and len(data.segments) == 3
+    assert data.notes == (f"{path}: 4 rows left out as missing samples (a value of the model's channels empty, not a "
+                          f"number or not finite; the first on line 5, column 'y1': ''); the analysis goes around them "
+                          f"as around rows missing from the file",)
+
+
+def test_bad_values_as_gaps_keep_the_other_refusals(tmp_path):
+    """A bad t cannot be placed: still refused; so is a row of another length.  Every row bad leaves no data."""
+    for content, pattern in ((_with_cell(2, "t", ""), r"line 4, column 't': expected a number, got ''"),
+                             (_with_line(2, "2,21,22,23"), r"line 4: expected 8 fields as in the header, got 4")):
+        with pytest.raises(DataFileError, match=pattern):
+            read_csv(_write(tmp_path, content), _model(), bad_values="gap")
+    every = [",".join(r.split(",")[:-1] + [""]) for r in _rows(3)]
+    with pytest.raises(DataFileError, match=r"no data lines after the header but 3 left out for a bad value"):
+        read_csv(_write(tmp_path, _text([HEADER] + every), "every.csv"), _model(), bad_values="gap")
+    with pytest.raises(ValueError, match="bad_values"):
+        parse_csv_text(_text([HEADER] + _rows()), _model(), bad_values="skip")
+
+
+def test_bad_values_as_gaps_leave_an_extra_column_as_it_was(tmp_path):
+    """A bad cell of a channel the model does not use is that channel's problem (unusable), not the row's."""
+    lines = [HEADER + ",feed"] + [r + f",{k}" for k, r in enumerate(_rows(6))]
+    lines[3] = lines[3].rsplit(",", 1)[0] + ",n/a"
+    data = read_csv(_write(tmp_path, _text(lines)), _model(), bad_values="gap")
+    assert data.n_samples == 6 and data.notes == () and data.unusable["feed"] == "not numeric: line 4 holds 'n/a'"

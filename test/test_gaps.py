@@ -486,3 +486,34 @@ def test_the_time_unit_note_needs_most_rows_followed_by_a_gap(case_32):
     assert time_unit_note(plan_gaps(data.take(half), start), ts) == ""
     sparse = data.take(np.arange(0, 3000, 2))                             # every other row missing
     assert time_unit_note(plan_gaps(sparse, start), ts).startswith(f"; t advances by a median of {2 * ts:g}")
+
+
+def test_analyze_bad_values_gap_on_the_command_line(tmp_path, case_32, capsys):
+    """``analyze --bad-values gap``: a log with a historian's missing values (empty cells, 'Bad') is analysed
+    around them, the report the same as for the log with those rows deleted but for the note; without the flag,
+    refused as before (exit 2, one line)."""
+    case, data = case_32
+    rows = [150, 1200, 2400]
+    write_csv(tmp_path / "full.csv", data.t, data.r, data.u, data.y, data.inputs, data.outputs)
+    lines = (tmp_path / "full.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    for k, (col, cell) in zip(rows, (("y1", ""), ("u2", "Bad"), ("r_y3", "nan"))):
+        cells = lines[k + 1].split(",")
+        cells[header.index(col)] = cell
+        lines[k + 1] = ",".join(cells)
+    (tmp_path / "bad.csv").write_text("\n".join(lines) + "\n")
+    (tmp_path / "deleted.csv").write_text("\n".join(l for i, l in enumerate(lines) if i - 1 not in rows) + "\n")
+    from mpm_monitor.io.model_file import save_model
+
+    save_model(case.model, tmp_path / "model.yaml")
+    args = ["analyze", "--model", str(tmp_path / "model.yaml"), "--no-repair", "--json"]
+    assert main(args[:-1] + ["--data", str(tmp_path / "bad.csv")]) == 2
+    assert "line 152, column 'y1': expected a number, got ''" in capsys.readouterr().err
+    assert main(args + [str(tmp_path / "a.json"), "--data", str(tmp_path / "bad.csv"), "--bad-values", "gap"]) == 0
+    assert main(args + [str(tmp_path / "b.json"), "--data", str(tmp_path / "deleted.csv")]) == 0
+    a, b = (json.loads((tmp_path / f"{x}.json").read_text()) for x in "ab")
+    note = a["warnings"].pop(0)
+    assert note.startswith(f"{tmp_path / 'bad.csv'}: 3 rows left out as missing samples") and "line 152" in note
+    assert a["gaps"]["samples_lost"] == 3 and a["samples"] == 2997
+    assert json.dumps(a, sort_keys=True).replace("bad.csv", "X") == \
+        json.dumps(b, sort_keys=True).replace("deleted.csv", "X")

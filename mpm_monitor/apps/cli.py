@@ -168,6 +168,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="logged channels the model does not use (CSV columns), tested as causes of each output's "
                         "prediction error; a located one is added to the repaired model as a measured disturbance "
                         "('all': every numeric column the model does not use)")
+    p.add_argument("--bad-values", choices=("refuse", "gap"), default="refuse",
+                   help="a sample with an empty, non-numeric or non-finite value of the model's channels (a "
+                        "historian's missing value): refuse the log, naming its line and column, or leave the sample "
+                        "out as a gap the analysis goes around, with a warning that counts them (default: refuse)")
     _add_topics(p)
     _add_analysis_options(p)
 
@@ -265,11 +269,12 @@ def _analyze(args, started) -> int:
             from ..core.analysis import load_tests
 
             load_tests(model)
-        data = read_csv(args.data, model, started=started)
+        data = read_csv(args.data, model, started=started, bad_values=args.bad_values)
     else:
         from ..io.bags import read_bag
 
-        data = read_bag(args.bag, model, topics=_topics(args), progress=sys.stderr.isatty())
+        data = read_bag(args.bag, model, topics=_topics(args), progress=sys.stderr.isatty(),
+                        bad_values=args.bad_values)
     check_scale(model, data, model_source=args.model)
     candidates = None
     if args.candidates is not None:

@@ -122,7 +122,8 @@ def write_log_csv(path, log) -> None:
               disturbances=getattr(log, "disturbances", ()), extra=getattr(log, "extra", None))
 
 
-def read_csv(path, model: PlantModel, started: "StartedCsvRead | None" = None) -> LoggedData:
+def read_csv(path, model: PlantModel, started: "StartedCsvRead | None" = None,
+             bad_values: str = "refuse") -> LoggedData:
     """Read and validate a CSV log against a model.
 
     Parameters
@@ -133,6 +134,11 @@ def read_csv(path, model: PlantModel, started: "StartedCsvRead | None" = None) -
     started : StartedCsvRead, optional
         :func:`start_csv_read` of the same ``path``: its bytes and its child's parse are used (and the
         child is waited for, whatever the outcome).  The result and the errors are the same as without.
+    bad_values : {"refuse", "gap"}
+        A row whose cell of one of the model's channels (not ``t``) is empty, not a number or not
+        finite: ``refuse`` the file, naming its line and column (the default), or leave the row out
+        as a missing sample (``gap``: the analysis goes around it, as around a row missing from the
+        file), said in one of :attr:`~mpm_monitor.core.logged_data.LoggedData.notes`.
 
     Returns
     -------
@@ -153,7 +159,7 @@ def read_csv(path, model: PlantModel, started: "StartedCsvRead | None" = None) -
         try:
             text = started.text()
             if text is not None:
-                return parse_csv_text(text, model, source=str(path), cells=started.cells)
+                return parse_csv_text(text, model, source=str(path), cells=started.cells, bad_values=bad_values)
         finally:
             started.close()
         # not read or not UTF-8: the reading below says so, or reads the foreign header, as without `started`
@@ -169,13 +175,17 @@ def read_csv(path, model: PlantModel, started: "StartedCsvRead | None" = None) -
             names = []
         if text is None or any(h not in names for h in needed):
             raise                                      # a column the model needs is the one not UTF-8
-        data = parse_csv_text(text, model, source=str(path))
+        data = parse_csv_text(text, model, source=str(path), bad_values=bad_values)
         for name in [n for n in list(data.extra) if BAD_NAME_CHAR in n]:
             del data.extra[name]
             data.unusable[name] = "its name in the header is not UTF-8 text"
         return data
-    return parse_csv_text(text, model, source=str(path))
+    return parse_csv_text(text, model, source=str(path), bad_values=bad_values)
 
+
+#: What a row with a bad value of the model's channels does (:func:`read_csv`): refuse the file, or leave the row
+#: out as a missing sample.
+BAD_VALUES = ("refuse", "gap")
 
 #: Stands for a byte of the header that is not UTF-8 (a column name written in Latin-1, say).
 BAD_NAME_CHAR = "\ufffd"
@@ -405,7 +415,8 @@ def _stacked(parts: list):
     return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
-def parse_csv_text(text: str, model: PlantModel, source: str = "data", cells=None) -> LoggedData:
+def parse_csv_text(text: str, model: PlantModel, source: str = "data", cells=None,
+                   bad_values: str = "refuse") -> LoggedData:
     """Parse the text of a CSV log (see :func:`read_csv`).
 
     Parameters
@@ -417,7 +428,11 @@ def parse_csv_text(text: str, model: PlantModel, source: str = "data", cells=Non
     cells : callable, optional
         ``cells()`` gives :func:`_fast_cells` of ``text`` computed elsewhere (:meth:`StartedCsvRead.cells`);
         called only once the header has been checked.  By default it is computed here.
+    bad_values : {"refuse", "gap"}
+        See :func:`read_csv`.
     """
+    if bad_values not in BAD_VALUES:
+        raise ValueError(f"bad_values: expected one of {', '.join(BAD_VALUES)}, got {bad_values!r}")
     if "\x00" in text:
         raise DataFileError(f"{source}: contains NUL bytes: expected a CSV text file")
     needed = csv_header(model.inputs, model.outputs, model.disturbances)
@@ -432,7 +447,9 @@ def parse_csv_text(text: str, model: PlantModel, source: str = "data", cells=Non
         extra = {name: np.ascontiguousarray(table[:, k]) for name, k in others}
         lines = None
     else:
-        values, lines, cells = _careful_table(text, header, needed, idx, [k for _, k in others], source)
+        values, lines, cells, left_out = _careful_table(text, header, needed, idx, [k for _, k in others], source,
+                                                        gap=bad_values == "gap")
+        notes = [_left_out_note(source, left_out)] if left_out else []
         extra = {}
         for (name, _), column in zip(others, cells):
             data, reason = _numeric_column(column, lines)
@@ -442,7 +459,7 @@ def parse_csv_text(text: str, model: PlantModel, source: str = "data", cells=Non
                 extra[name] = data
     if not _spacing_ok(values[:, 0], model.sample_time):
         if lines is None:   # the careful parser names the lines
-            values, lines, _ = _careful_table(text, header, needed, idx, [], source)
+            values, lines, _, _ = _careful_table(text, header, needed, idx, [], source)
         _refuse_spacing(values[:, 0], lines, model.sample_time, source)
     _refuse_span(values[:, 0], lines, model.sample_time, source, text, header, needed, idx)
     ny, nu, nd = model.n_outputs, model.n_inputs, model.n_disturbances
@@ -450,7 +467,16 @@ def parse_csv_text(text: str, model: PlantModel, source: str = "data", cells=Non
     t, r, u, dv, y = (np.ascontiguousarray(p) for p in parts)
     return LoggedData(t=t[:, 0], r=r, u=u, y=y, inputs=model.inputs, outputs=model.outputs,
                       sample_time=model.sample_time, source=source, dv=dv, disturbances=model.disturbances,
-                      extra=extra, unusable=unusable)
+                      extra=extra, unusable=unusable, notes=() if fast else tuple(notes))
+
+
+def _left_out_note(source: str, left_out: list) -> str:
+    """The note of the rows ``bad_values="gap"`` left out (``[(line, column, cell)]``, in file order)."""
+    line, col, cell = left_out[0]
+    n = len(left_out)
+    return (f"{source}: {n} row{'s' if n != 1 else ''} left out as missing samples (a value of the model's channels "
+            f"empty, not a number or not finite; the first on line {line}, column '{col}': {cell[:40]!r}); the "
+            f"analysis goes around {'them' if n != 1 else 'it'} as around rows missing from the file")
 
 
 def _csv_error_text(exc: csv.Error, lines: int = 1) -> str:
@@ -573,8 +599,10 @@ def _numpy_cells(body: str, lines: list):
         return None
 
 
-def _careful_table(text: str, header: list, needed: list, idx: list, other_idx: list, source: str):
-    """The needed columns as floats, line by line, refusing the first bad line or cell.
+def _careful_table(text: str, header: list, needed: list, idx: list, other_idx: list, source: str,
+                   gap: bool = False):
+    """The needed columns as floats, line by line, refusing the first bad line or cell (with ``gap``, a row whose
+    needed cell other than ``t`` is not a finite number is left out instead).
 
     Returns
     -------
@@ -583,6 +611,8 @@ def _careful_table(text: str, header: list, needed: list, idx: list, other_idx: 
         File line of every row (blank lines are skipped but counted).
     cells : list of list of str
         The raw cells of the columns ``other_idx``, one list per column.
+    left_out : list of (int, str, str)
+        With ``gap``: the line, column and cell of every row left out (its first bad cell).
 
     Raises
     ------
@@ -597,6 +627,7 @@ def _careful_table(text: str, header: list, needed: list, idx: list, other_idx: 
     n_fields = len(header)
     rows, lines = [], []
     cells = [[] for _ in other_idx]
+    left_out = []
     read = reader.line_num        # lines read: a record starts on the next one (a quoted cell may span lines)
     try:
         for fields in reader:
@@ -612,12 +643,17 @@ def _careful_table(text: str, header: list, needed: list, idx: list, other_idx: 
                 try:
                     x = _cell_float(cell)
                 except ValueError:
-                    raise DataFileError(f"{source}: line {line_no}, column '{col}': expected a number, "
-                                        f"got {cell[:40]!r}") from None
-                if not math.isfinite(x):
-                    raise DataFileError(f"{source}: line {line_no}, column '{col}': expected a finite number, "
+                    x = None
+                if x is None or not math.isfinite(x):
+                    if gap and col != "t":
+                        left_out.append((line_no, col, cell))
+                        break
+                    what = "a number" if x is None else "a finite number"
+                    raise DataFileError(f"{source}: line {line_no}, column '{col}': expected {what}, "
                                         f"got {cell[:40]!r}")
                 vals.append(x)
+            if len(vals) < len(needed):
+                continue
             rows.append(vals)
             lines.append(line_no)
             for column, k in zip(cells, other_idx):
@@ -626,8 +662,9 @@ def _careful_table(text: str, header: list, needed: list, idx: list, other_idx: 
         raise DataFileError(f"{source}: line {read + 1}: not valid CSV: "
                             f"{_csv_error_text(exc, reader.line_num - read)}") from None
     if not rows:
-        raise DataFileError(f"{source}: no data lines after the header")
-    return np.array(rows, dtype=float), lines, cells
+        raise DataFileError(f"{source}: no data lines after the header"
+                            + (f" but {len(left_out)} left out for a bad value" if left_out else ""))
+    return np.array(rows, dtype=float), lines, cells, left_out
 
 
 def _numeric_column(cells: list, lines: list):
@@ -670,7 +707,7 @@ def _refuse_span(t: np.ndarray, lines, ts: float, source: str, text, header, nee
     if far.size == 0:
         return
     if lines is None:
-        _, lines, _ = _careful_table(text, header, needed, idx, [], source)
+        _, lines, _, _ = _careful_table(text, header, needed, idx, [], source)
     k = int(far[0])
     raise DataFileError(f"{source}: line {lines[k]}: t = {t[k]:g} s lies {(t[k] - t[0]) / ts:.3g} sample times after "
                         f"the first sample (t = {t[0]:g} s): expected at most 2^53 (a stray t, or is the sample time "

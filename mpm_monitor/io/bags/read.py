@@ -116,10 +116,13 @@ def _check_topics(path, topics: Sequence[str]) -> list:
     return topics
 
 
-def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progress, optional: bool = False) -> dict:
+def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progress, optional: bool = False,
+                  left_out: Optional[dict] = None) -> dict:
     """Read the stamped-vector topics (setpoint, input, output, and disturbance when four are given);
     ``channels[role]`` = expected names or None (= first message's).  With ``optional``, the fourth
-    (disturbance) topic is read only if the bag holds messages on it."""
+    (disturbance) topic is read only if the bag holds messages on it.  A message holding a non-finite value
+    is refused, or with ``left_out`` (a dict) left out and counted there, ``topic -> [count, first stamp]``
+    (its sample is then a gap)."""
     topics = _check_topics(path, topics)
     with closing(open_reader(path)) as reader:
         if optional and len(topics) == 4 and not any(c.topic == topics[3] and c.msgcount for c in reader.connections):
@@ -165,6 +168,9 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
                     idx = np.array([names.index(n) for n in want], dtype=int)
                     index_cache[key] = idx
                 if not np.all(np.isfinite(values[idx])):
+                    if left_out is not None:
+                        left_out.setdefault(topic, [0, stamp])[0] += 1
+                        continue
                     raise BagError(f"{path}: topic '{topic}': message {count} (stamp {_seconds(stamp)} s) holds a "
                                    f"non-finite value")
                 stamps[topic].append(stamp)
@@ -180,10 +186,13 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
             bar.finish()
     series = {}
     for t, role in role_of.items():
+        bad = left_out[t][0] if left_out and t in left_out else 0
+        if not stamps[t] and bad:
+            raise BagError(f"{path}: topic '{t}': every one of its {bad} messages holds a non-finite value")
         if not stamps[t]:
             raise none_read(path, t, conns)
         counted = sum(c.msgcount for c in conns if c.topic == t)
-        if len(stamps[t]) < counted:
+        if len(stamps[t]) + bad < counted:
             # A damaged index (the summary's chunk times, which no CRC covers) makes the reader skip chunks.
             raise BagError(f"{path}: topic '{t}': metadata.yaml counts {counted} messages, {len(stamps[t])} could be "
                            f"read from the storage file: the storage file is damaged (python -m mpm_monitor "
@@ -327,7 +336,8 @@ def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances
                       disturbances=tuple(disturbances) if dv is not None else (), notes=tuple(notes))
 
 
-def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, progress=False) -> LoggedData:
+def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, progress=False,
+             bad_values: str = "refuse") -> LoggedData:
     """Read a bag's setpoint, input and output topics (and disturbance topic) as logged data on the model's sample grid.
 
     Samples are aligned by ``header.stamp``: a message belongs to sample ``k`` when its stamp is
@@ -353,6 +363,10 @@ def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, pr
     progress : bool or file-like
         Draw a progress bar on stderr (or on the given stream) for bags of at least
         :data:`LONG_BAG_MESSAGES` messages.
+    bad_values : {"refuse", "gap"}
+        A message whose values of the model's channels are not all finite: ``refuse`` the bag, naming
+        the topic, the message and its stamp (the default), or leave it out (``gap``: its sample is
+        missing, and the analysis goes around it), said in one note per topic.
 
     Returns
     -------
@@ -374,8 +388,15 @@ def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, pr
     elif len(topics) == 4:
         raise BagError(f"{path}: a fourth topic ({topics[3]}, measured disturbances) is given but the model has no "
                        f"measured disturbances")
-    series = _read_vectors(path, topics, channels, progress)
-    return _align(path, series, model.sample_time, model.inputs, model.outputs, model.disturbances)
+    if bad_values not in ("refuse", "gap"):
+        raise ValueError(f"bad_values: expected refuse or gap, got {bad_values!r}")
+    left_out = {} if bad_values == "gap" else None
+    series = _read_vectors(path, topics, channels, progress, left_out=left_out)
+    data = _align(path, series, model.sample_time, model.inputs, model.outputs, model.disturbances)
+    notes = [f"{path}: topic '{topic}': {n} message{'s' if n != 1 else ''} holding a non-finite value left out (the "
+             f"first stamped {_seconds(first)} s); the analysis goes around "
+             f"{'their samples' if n != 1 else 'its sample'} as gaps" for topic, (n, first) in (left_out or {}).items()]
+    return dataclasses.replace(data, notes=tuple(notes) + data.notes) if notes else data
 
 
 def infer_sample_time(path, stamps: np.ndarray, topic: str) -> float:
