@@ -733,3 +733,62 @@ def test_bad_values_as_gaps_leave_an_extra_column_as_it_was(tmp_path):
     lines[3] = lines[3].rsplit(",", 1)[0] + ",n/a"
     data = read_csv(_write(tmp_path, _text(lines)), _model(), bad_values="gap")
     assert data.n_samples == 6 and data.notes == () and data.unusable["feed"] == "not numeric: line 4 holds 'n/a'"
+
+
+# --------------------------------------------------------------------------- compressed and piped logs
+def test_a_gzip_compressed_log_reads_as_the_log(tmp_path):
+    """A historian export kept as log.csv.gz was 'not UTF-8 text (byte 1)'; it reads as its content now, with the
+    same refusals (naming the .gz file) and a one-line error for a file cut short."""
+    import gzip
+
+    text = _text([HEADER] + _rows(40))
+    plain = read_csv(_write(tmp_path, text), _model())
+    packed = _write(tmp_path, gzip.compress(text.encode()), "log.csv.gz")
+    data = read_csv(packed, _model())
+    for key in ("t", "r", "u", "y"):
+        np.testing.assert_array_equal(getattr(data, key), getattr(plain, key))
+    from mpm_monitor.io.csv_log import start_csv_read
+
+    started = start_csv_read(packed)                     # the command's path: its child parses the content
+    data = read_csv(packed, _model(), started=started)
+    np.testing.assert_array_equal(data.y, plain.y)
+    bad = _write(tmp_path, gzip.compress(_with_cell(2, "u2", "abc").encode()), "bad.csv.gz")
+    with pytest.raises(DataFileError, match=r"bad.csv.gz: line 4, column 'u2': expected a number, got 'abc'"):
+        read_csv(bad, _model())
+    cut = _write(tmp_path, gzip.compress(text.encode())[:-12], "cut.csv.gz")
+    with pytest.raises(DataFileError) as info:
+        read_csv(cut, _model())
+    msg = str(info.value)
+    assert msg.startswith(f"{cut}: a gzip file that cannot be decompressed (") and "\n" not in msg
+    latin = _write(tmp_path, gzip.compress((HEADER + ",temp\xe9rature\n").encode("latin-1")
+                                           + "".join(r + ",1\n" for r in _rows(5)).encode()), "latin.csv.gz")
+    data = read_csv(latin, _model())                     # a foreign name of an extra column, inside gzip too
+    assert data.n_samples == 5 and list(data.unusable.values()) == ["its name in the header is not UTF-8 text"]
+
+
+def test_analyze_reads_the_log_from_standard_input(tmp_path):
+    """``--data -``: the log piped in (``zcat log.csv.gz | ... --data -``), its messages naming /dev/stdin."""
+    import subprocess
+    import sys
+
+    from mpm_monitor.io.model_file import save_model
+
+    model = PlantModel(sample_time=1.0, inputs=("u1",), outputs=("y1",), gain=[[1.0]], time_constant=[[5.0]],
+                       delay=[[0.0]])
+    save_model(model, tmp_path / "m.yaml")
+    rng = np.random.default_rng(1)
+    n = 600
+    u = rng.standard_normal((n, 1))
+    y = np.convolve(u[:, 0], 0.2 * 0.8 ** np.arange(40))[:n, None] + 0.01 * rng.standard_normal((n, 1))
+    write_csv(tmp_path / "log.csv", np.arange(n, dtype=float), np.zeros((n, 1)), u, y, ("u1",), ("y1",))
+    text = (tmp_path / "log.csv").read_text()
+    cmd = [sys.executable, "-m", "mpm_monitor", "analyze", "--model", str(tmp_path / "m.yaml"), "--data", "-",
+           "--no-repair", "--json", "-"]
+    done = subprocess.run(cmd, input=text, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    import json
+
+    assert json.loads(done.stdout)["samples"] == n
+    bad = text.replace("\n5,", "\n5,x", 1)
+    done = subprocess.run(cmd, input=bad, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and done.stderr.startswith("error: /dev/stdin: line 7, column ")

@@ -158,7 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("analyze", help="analyse a CSV log or a bag against a model")
     p.add_argument("--model", type=_path, required=True, help="model file (YAML)")
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--data", type=_path, help="logged data (CSV)")
+    src.add_argument("--data", type=_path, help="logged data (CSV; gzip-compressed too; '-' = standard input)")
     src.add_argument("--bag", type=_path, help="rosbag2 directory with the setpoint, input and output topics (and the "
                      "disturbance topic for a model with measured disturbances)")
     p.add_argument("--json", type=_path, dest="json_out", help="write the JSON report to this file ('-' = stdout)")
@@ -225,6 +225,8 @@ def _cmd_recover(args) -> int:
 
 
 def _cmd_analyze(args) -> int:
+    if args.data == "-":
+        args.data = "/dev/stdin"        # named so in messages and in the report's source
     for path, what in ((args.json_out, "--json"), (args.repair_out, "--repair-out")):
         if path and path != "-":
             # The repaired model may replace the model file (an update in place); nothing may replace the log.

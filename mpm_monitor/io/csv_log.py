@@ -40,7 +40,7 @@ from ..core.errors import DataFileError
 from ..core.logged_data import LoggedData
 from ..core.model import PlantModel
 from ..core.parallel import Forked
-from .files import read_text, replace_file
+from .files import gunzipped, read_text, replace_file
 
 #: Relative tolerance on the sample spacing, as a fraction of the sample time.
 SPACING_TOLERANCE = 1e-3
@@ -164,7 +164,7 @@ def read_csv(path, model: PlantModel, started: "StartedCsvRead | None" = None,
             started.close()
         # not read or not UTF-8: the reading below says so, or reads the foreign header, as without `started`
     try:
-        text = read_text(path, DataFileError, "data file", "a CSV file", encoding="utf-8-sig")
+        text = read_text(path, DataFileError, "data file", "a CSV file", encoding="utf-8-sig", gzip_ok=True)
     except DataFileError:
         text = _text_with_a_foreign_header(path)     # None: the bytes are not UTF-8 below the header too
         needed = csv_header(model.inputs, model.outputs, model.disturbances)
@@ -196,8 +196,8 @@ def _text_with_a_foreign_header(path):
     :data:`BAD_NAME_CHAR`); None otherwise.  Extra columns are ignored, so a Latin-1 name of one of them
     does not refuse the file; a needed column so named is then missing, and refused as such."""
     try:
-        raw = Path(path).read_bytes()
-    except OSError:
+        raw = gunzipped(Path(path).read_bytes(), path, DataFileError, "a CSV file")
+    except (OSError, DataFileError):
         return None
     nl = raw.find(b"\n")
     head, body = (raw, b"") if nl < 0 else (raw[:nl + 1], raw[nl + 1:])
@@ -258,7 +258,9 @@ class StartedCsvRead:
         self.path = path
         try:   # a regular file: read again on the way of a refusal, it gives the same bytes (a pipe would not)
             raw = Path(path).read_bytes() if stat.S_ISREG(os.stat(path).st_mode) else None
-        except (OSError, ValueError):
+            if raw is not None:
+                raw = gunzipped(raw, path, DataFileError, "a CSV file")
+        except (OSError, ValueError):   # DataFileError too: a damaged gzip file
             raw = None                  # read_csv reads the file as without a start, and says why
         self._raw, self._text, self._job = raw, None, None
         self._pieces = [] if raw is None else _pieces(raw, PIECE_BYTES)

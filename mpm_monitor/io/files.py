@@ -5,7 +5,28 @@ from __future__ import annotations
 from pathlib import Path
 
 
-def read_text(path, error_cls, kind: str, expected: str, encoding: str = "utf-8", max_bytes=None) -> str:
+#: The first bytes of a gzip file (RFC 1952).
+GZIP_MAGIC = b"\x1f\x8b"
+
+
+def gunzipped(raw: bytes, path, error_cls, expected: str) -> bytes:
+    """``raw`` itself, or its content when it is a gzip file (:data:`GZIP_MAGIC`); ``error_cls`` with one line naming
+    the file when such a file is cut short or damaged."""
+    if not raw.startswith(GZIP_MAGIC):
+        return raw
+    import gzip
+    import zlib
+
+    try:
+        return gzip.decompress(raw)
+    except (OSError, EOFError, zlib.error) as exc:
+        why = " ".join(str(exc).split()) or "cut short"
+        raise error_cls(f"{path}: a gzip file that cannot be decompressed ({why}): expected {expected} or one "
+                        f"compressed whole with gzip") from None
+
+
+def read_text(path, error_cls, kind: str, expected: str, encoding: str = "utf-8", max_bytes=None,
+              gzip_ok: bool = False) -> str:
     """The text of a file, or ``error_cls`` with one line naming the file.
 
     Parameters
@@ -22,6 +43,8 @@ def read_text(path, error_cls, kind: str, expected: str, encoding: str = "utf-8"
     max_bytes : int, optional
         Refuse a file longer than this (bytes), without reading more of it (a device such as
         ``/dev/zero`` never ends).
+    gzip_ok : bool
+        A gzip file (``log.csv.gz``) is read as its content (:func:`gunzipped`).
     """
     path = Path(path)
     try:
@@ -34,6 +57,8 @@ def read_text(path, error_cls, kind: str, expected: str, encoding: str = "utf-8"
         raise error_cls(f"{path}: cannot read {kind}: {exc.strerror or exc}") from None
     if max_bytes is not None and len(raw) > max_bytes:
         raise error_cls(f"{path}: longer than {max_bytes:,} bytes: expected {expected}")
+    if gzip_ok:
+        raw = gunzipped(raw, path, error_cls, expected)
     try:
         return raw.decode(encoding)
     except UnicodeDecodeError as exc:
