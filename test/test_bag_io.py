@@ -1040,3 +1040,22 @@ def test_bad_values_as_gaps_in_a_bag(tmp_path):
     y[:] = np.nan
     with pytest.raises(BagError, match=r"topic '/output': every one of its 30 messages holds a non-finite value"):
         read_bag(write_bag(tmp_path / "nan", r, u, y), MODEL, bad_values="gap")
+
+
+def test_export_bad_values_gap_leaves_the_sample_out_of_the_csv(tmp_path, capsys):
+    """``export --bad-values gap``: a message holding NaN leaves its sample out of the CSV (t skips it), with the
+    note as a warning, with a model or without; by default the export is refused as before."""
+    r, u, y = _samples(20)
+    y[5, 0] = np.nan
+    bag = write_bag(tmp_path / "bag", r, u, y)
+    assert cli_main(["export", "--bag", str(bag), "--csv", str(tmp_path / "a.csv")]) == 2
+    assert "holds a non-finite value" in capsys.readouterr().err
+    save_model(MODEL, tmp_path / "m.yaml")
+    for args in ([], ["--model", str(tmp_path / "m.yaml")]):
+        out = tmp_path / f"b{len(args)}.csv"
+        assert cli_main(["export", "--bag", str(bag), "--csv", str(out), "--bad-values", "gap"] + args) == 0
+        err = capsys.readouterr().err
+        assert "topic '/output': 1 message holding a non-finite value left out" in err
+        data = read_csv(out, MODEL)
+        np.testing.assert_allclose(data.t, T0 + 0.5 * np.delete(np.arange(20), 5))
+        np.testing.assert_array_equal(data.y, np.delete(y, 5, axis=0))

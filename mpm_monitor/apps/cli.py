@@ -168,10 +168,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="logged channels the model does not use (CSV columns), tested as causes of each output's "
                         "prediction error; a located one is added to the repaired model as a measured disturbance "
                         "('all': every numeric column the model does not use)")
-    p.add_argument("--bad-values", choices=("refuse", "gap"), default="refuse",
-                   help="a sample with an empty, non-numeric or non-finite value of the model's channels (a "
-                        "historian's missing value): refuse the log, naming its line and column, or leave the sample "
-                        "out as a gap the analysis goes around, with a warning that counts them (default: refuse)")
+    _add_bad_values(p, "a sample with an empty, non-numeric or non-finite value of the model's channels (a "
+                       "historian's missing value): refuse the log, naming its line and column, or leave the sample "
+                       "out as a gap the analysis goes around, with a warning that counts them (default: refuse)")
     _add_topics(p)
     _add_analysis_options(p)
 
@@ -208,12 +207,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bag", type=_path, required=True)
     p.add_argument("--csv", type=_path, required=True)
     p.add_argument("--model", type=_path, default=None, help="model file giving channel order and sample time (optional)")
+    _add_bad_values(p, "a message holding a non-finite value: refuse the bag, naming the topic, message and stamp, "
+                       "or leave its sample out of the CSV (t skips it), with a warning that counts them "
+                       "(default: refuse)")
     _add_topics(p)
 
     p = sub.add_parser("recover", help="rewrite a hard-killed recording (no metadata.yaml) as a closed bag")
     p.add_argument("--bag", type=_path, required=True, help="the unclosed bag directory")
     p.add_argument("--out", type=_path, required=True, help="new bag directory (must not exist)")
     return parser
+
+
+def _add_bad_values(p, help_text: str) -> None:
+    p.add_argument("--bad-values", choices=("refuse", "gap"), default="refuse", help=help_text)
 
 
 def _cmd_recover(args) -> int:
@@ -471,7 +477,7 @@ def _cmd_export(args) -> int:
     _not_an_input(args.csv, "--csv", {"--bag": args.bag, "--model": args.model})
     _check_output_file(args.csv, "--csv")          # before the bag is read, as analyze does
     n = export_csv(args.bag, args.csv, model_path=args.model, topics=_topics(args),
-                   warn=lambda note: print(f"warning: {note}", file=sys.stderr))
+                   warn=lambda note: print(f"warning: {note}", file=sys.stderr), bad_values=args.bad_values)
     print(f"wrote {n} samples to {args.csv}")
     return 0
 

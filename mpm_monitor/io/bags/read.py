@@ -388,11 +388,22 @@ def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, pr
     elif len(topics) == 4:
         raise BagError(f"{path}: a fourth topic ({topics[3]}, measured disturbances) is given but the model has no "
                        f"measured disturbances")
-    if bad_values not in ("refuse", "gap"):
-        raise ValueError(f"bad_values: expected refuse or gap, got {bad_values!r}")
-    left_out = {} if bad_values == "gap" else None
+    left_out = _left_out(bad_values)
     series = _read_vectors(path, topics, channels, progress, left_out=left_out)
     data = _align(path, series, model.sample_time, model.inputs, model.outputs, model.disturbances)
+    return _with_left_out_notes(path, data, left_out)
+
+
+def _left_out(bad_values: str):
+    """The dict :func:`_read_vectors` counts the messages it leaves out in (``bad_values="gap"``), or None
+    (``"refuse"``)."""
+    if bad_values not in ("refuse", "gap"):
+        raise ValueError(f"bad_values: expected refuse or gap, got {bad_values!r}")
+    return {} if bad_values == "gap" else None
+
+
+def _with_left_out_notes(path, data: LoggedData, left_out) -> LoggedData:
+    """``data`` with a note per topic that lost messages holding a non-finite value (:func:`_left_out`)."""
     notes = [f"{path}: topic '{topic}': {n} message{'s' if n != 1 else ''} holding a non-finite value left out (the "
              f"first stamped {_seconds(first)} s); the analysis goes around "
              f"{'their samples' if n != 1 else 'its sample'} as gaps" for topic, (n, first) in (left_out or {}).items()]
@@ -428,7 +439,7 @@ def infer_sample_time(path, stamps: np.ndarray, topic: str) -> float:
 
 
 def read_bag_channels(path, topics: Sequence[str] = DEFAULT_TOPICS, sample_time: Optional[float] = None,
-                      progress=False) -> LoggedData:
+                      progress=False, bad_values: str = "refuse") -> LoggedData:
     """Read a bag without a model: channel names from the first messages, sample time from the stamps.
 
     Parameters
@@ -441,6 +452,8 @@ def read_bag_channels(path, topics: Sequence[str] = DEFAULT_TOPICS, sample_time:
     sample_time : float, optional
         Seconds per sample; default the median stamp spacing of the output topic.
     progress : bool or file-like
+    bad_values : {"refuse", "gap"}
+        As :func:`read_bag`.
 
     Returns
     -------
@@ -450,16 +463,18 @@ def read_bag_channels(path, topics: Sequence[str] = DEFAULT_TOPICS, sample_time:
     optional = len(topics) == 3
     if optional:
         topics.append(topic_name(DEFAULT_DISTURBANCE_TOPIC))
-    series = _read_vectors(path, topics, None, progress, optional=optional)
+    left_out = _left_out(bad_values)
+    series = _read_vectors(path, topics, None, progress, optional=optional, left_out=left_out)
     if sample_time is None:
         sample_time = infer_sample_time(path, series["output"].stamps, series["output"].topic)
     dv = series.get("disturbance")
-    return _align(path, series, sample_time, series["input"].names, series["output"].names,
+    data = _align(path, series, sample_time, series["input"].names, series["output"].names,
                   dv.names if dv is not None else ())
+    return _with_left_out_notes(path, data, left_out)
 
 
 def export_csv(bag, csv, model_path=None, topics: Sequence[str] = DEFAULT_TOPICS, progress=False,
-               warn=None) -> int:
+               warn=None, bad_values: str = "refuse") -> int:
     """Write a bag's setpoint, input, output (and disturbance) topics as a CSV log.
 
     The format is that of docs/interfaces.md, "Logged data (CSV)".
@@ -479,6 +494,9 @@ def export_csv(bag, csv, model_path=None, topics: Sequence[str] = DEFAULT_TOPICS
     warn : callable, optional
         Called with each of the reader's notes (:attr:`~mpm_monitor.core.logged_data.LoggedData.notes`,
         for example messages left out for an unset stamp), one line each.
+    bad_values : {"refuse", "gap"}
+        As :func:`read_bag`: with ``gap`` a message holding a non-finite value is left out, and its
+        sample is missing from the CSV (``t`` skips it).
 
     Returns
     -------
@@ -488,9 +506,9 @@ def export_csv(bag, csv, model_path=None, topics: Sequence[str] = DEFAULT_TOPICS
     if model_path is not None:
         from ..model_file import load_model
 
-        data = read_bag(bag, load_model(model_path), topics=topics, progress=progress)
+        data = read_bag(bag, load_model(model_path), topics=topics, progress=progress, bad_values=bad_values)
     else:
-        data = read_bag_channels(bag, topics=topics, progress=progress)
+        data = read_bag_channels(bag, topics=topics, progress=progress, bad_values=bad_values)
     try:
         write_log_csv(csv, data)
     except OSError as exc:
