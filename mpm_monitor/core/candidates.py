@@ -195,7 +195,7 @@ def select_candidates(data: LoggedData, spec, model: Optional[PlantModel] = None
                                      f"the model does not use are: {', '.join(available) or 'none'}")
     n = data.n_samples
     names, cols, unusable = [], [], {}
-    copies = _Copies(data, model)
+    copies = _Copies(data)
     for name in wanted:
         if name in data.unusable:
             unusable[name] = data.unusable[name]
@@ -217,8 +217,8 @@ class _Copies:
     """The log's channels a candidate may be a copy of (:data:`COPY_TOLERANCE`): the model's inputs and measured
     disturbances, the outputs, the setpoints, then the candidates taken so far, each with what a copy of it is."""
 
-    def __init__(self, data: LoggedData, model: Optional[PlantModel]):
-        self.labels, self.whys, cols = [], [], []
+    def __init__(self, data: LoggedData):
+        self.labels, self.values, self._stacked = [], [], None
         dv = data.dv if data.dv is not None else np.zeros((data.n_samples, 0))
         known = ([(f"input {n}", "the model has it already") for n in data.inputs]
                  + [(f"measured disturbance {n}", "the model has it already") for n in data.disturbances]
@@ -235,17 +235,20 @@ class _Copies:
         if x.ndim != 1 or not np.isfinite(x).all() or not moving_columns(x):
             return
         self.labels.append((label, why))
-        self.whys.append(x)
+        self.values.append(x)
+        self._stacked = None
 
     def of(self, c: np.ndarray) -> Optional[str]:
         """What ``c`` (shape (n_samples,), finite, moving) is a copy of, in words, or None."""
-        if not self.whys:
+        if not self.values:
             return None
         cc = c - c.mean()
         spread = float(np.sqrt(np.mean(cc * cc)))
-        X = np.column_stack(self.whys)
-        Xc = X - X.mean(axis=0)
-        norms = np.sqrt(np.einsum("ij,ij->j", Xc, Xc))
+        if self._stacked is None:       # the channels, centred, and their norms: once per channel added
+            X = np.column_stack(self.values)
+            Xc = X - X.mean(axis=0)
+            self._stacked = X, Xc, np.sqrt(np.einsum("ij,ij->j", Xc, Xc))
+        X, Xc, norms = self._stacked
         corr = np.abs(Xc.T @ cc) / (norms * np.sqrt(float(cc @ cc)))
         for k in np.flatnonzero(corr > 1.0 - 1e-6):     # a screen; the residual itself decides
             scale = float(Xc[:, k] @ cc) / float(norms[k] ** 2)
