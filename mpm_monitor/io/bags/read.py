@@ -194,8 +194,8 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
         counted = sum(c.msgcount for c in conns if c.topic == t)
         if len(stamps[t]) + bad < counted:
             # A damaged index (the summary's chunk times, which no CRC covers) makes the reader skip chunks.
-            raise BagError(f"{path}: topic '{t}': metadata.yaml counts {counted} messages, {len(stamps[t])} could be "
-                           f"read from the storage file: the storage file is damaged (python -m mpm_monitor "
+            raise BagError(f"{path}: topic '{t}': metadata.yaml counts {counted} messages, {len(stamps[t]) + bad} could "
+                           f"be read from the storage file: the storage file is damaged (python -m mpm_monitor "
                            f"recover rewrites every message its chunks hold as a new bag)")
         st = np.array(stamps[t], dtype=np.int64)
         vals = np.array(rows[t], dtype=float).reshape(len(st), len(expected[role]))
