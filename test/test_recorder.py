@@ -308,3 +308,86 @@ def test_a_bad_split_limit_is_refused(ctx, tmp_path):
         RecorderNode(bag_dir=tmp_path / "b", context=ctx, node_name="r4",
                      parameter_overrides=[Parameter("max_bag_duration", value=-1.0)])
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_a_bag_that_cannot_be_written_stops_the_recorder_with_one_error(ctx, tmp_path, monkeypatch):
+    """A full disk (here, a flush that raises ENOSPC): the flush timer raised from its callback, and the node ended in
+    a traceback.  It now says so once, stops taking messages and asks to end with exit code 1; close() does not
+    raise."""
+    import errno
+
+    from mpm_monitor.io.bags import BagWriter
+
+    rec = RecorderNode(bag_dir=tmp_path / "bag", context=ctx, topics=["output"], flush_period=0.05)
+    pub_node = rclpy.create_node("plant_full", context=ctx)
+    pub = pub_node.create_publisher(JointState, "output", VECTOR_QOS)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(rec)
+    ex.add_node(pub_node)
+    assert spin_until(ex, lambda: pub.get_subscription_count() >= 1, 10)
+    for k in range(20):
+        pub.publish(_vector(k, ("y1", "y2"), 0.0))
+    assert spin_until(ex, lambda: rec.flushed_count >= 20, 10), rec.flushed_count
+
+    def full(self):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(BagWriter, "flush", full)
+    for k in range(20, 40):
+        pub.publish(_vector(k, ("y1", "y2"), 0.0))
+    assert spin_until(ex, lambda: rec.exit_requested, 10)
+    assert rec.exit_code == 1 and rec.failure == f"cannot write the bag {tmp_path / 'bag'}: No space left on device"
+    received = rec.message_count
+    pub.publish(_vector(40, ("y1", "y2"), 0.0))
+    ex.spin_once(timeout_sec=0.2)
+    assert rec.message_count == received                    # no message is taken once the bag cannot be written
+    monkeypatch.undo()
+    rec.close()                                             # the bag closes if the disk allows it now
+    rec.destroy_node()
+    pub_node.destroy_node()
+    assert _stamps(tmp_path / "bag")[:20] == list(range(20))
+
+
+def test_the_recorder_process_ends_with_one_error_when_its_file_cannot_grow(tmp_path, monkeypatch):
+    """The recorder as a process whose files may not grow past 64 kB (RLIMIT_FSIZE: writes fail with EFBIG, as on a
+    full disk): one error line, exit code 1, no traceback; what was flushed before is recovered."""
+    import resource
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (64_000, 64_000))
+
+    bag = tmp_path / "bag"
+    with unique_domain(salt=77) as domain:
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+                   RCUTILS_LOGGING_BUFFERED_STREAM="0", PYTHONUNBUFFERED="1")
+        proc = subprocess.Popen([sys.executable, "-m", "mpm_monitor.nodes.recorder_node", "--ros-args", "-p",
+                                 f"bag_dir:={bag}", "-p", "flush_period:=0.05", "-p", "topics:=[output]"],
+                                env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                                preexec_fn=limit)
+        monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        context = Context()
+        try:
+            rclpy.init(context=context, domain_id=domain)
+            node = rclpy.create_node("plant", context=context)
+            pub = node.create_publisher(JointState, "output", VECTOR_QOS)
+            deadline = time.monotonic() + 20
+            while pub.get_subscription_count() < 1:
+                assert time.monotonic() < deadline and proc.poll() is None
+                time.sleep(0.02)
+            k, names = 0, [f"y{j}" for j in range(200)]      # about 5 kB a message
+            while proc.poll() is None and k < 5000:
+                pub.publish(_vector(k, names, 0.0))
+                k += 1
+                time.sleep(0.002)
+            rc = proc.wait(timeout=20)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            rclpy.try_shutdown(context=context)
+    err = proc.stderr.read()
+    assert rc == 1, err
+    assert "Traceback" not in err and err.count("cannot write the bag") == 1, err
+    assert "File too large: recording stopped;" in err and "python -m mpm_monitor recover" in err, err
+    n = recover_bag(bag, tmp_path / "back")
+    stamps = _stamps(tmp_path / "back")
+    assert 0 < n == len(stamps) and stamps == list(range(n))

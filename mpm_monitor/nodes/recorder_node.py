@@ -58,7 +58,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-from ..core.errors import ConfigurationError
+from ..core.errors import BagError, ConfigurationError
 from ..core.options import ParamSpec
 from ..io.bags import BagWriter
 from ..io.qos import RECORDER_QOS
@@ -253,6 +253,9 @@ class RecorderNode(Node):
         self._closed = False
         self._writer = None
         self._timer = None
+        self.failure = ""             # why the bag could not be written (the recording then stops)
+        self.exit_requested = False   # run_node ends the spin: set when the bag cannot be written
+        self.exit_code = 0
         p = declare_parameters(self, PARAMS)
         self.options = RecorderOptions(bag_dir=p["bag_dir"] or default_bag_dir(), topics=parse_topic_specs(p["topics"]),
                                        flush_period=p["flush_period"], drain_timeout=p["drain_timeout"],
@@ -308,16 +311,33 @@ class RecorderNode(Node):
     def _on_message(self, tp: _Topic, data: bytes) -> None:
         t = self.get_clock().now().nanoseconds
         with self._lock:
-            if self._closed:
+            if self._closed or self.failure:
                 return
             tp.received += 1
-            if self._writer.has_topic(tp.resolved):
-                self._writer.write(tp.resolved, t, data)
-                return
-            if not tp.pending:
-                tp.pending_since = time.monotonic()
-            tp.pending.append((t, data))
-            self._add_to_bag(tp, force=False)
+            try:
+                if self._writer.has_topic(tp.resolved):
+                    self._writer.write(tp.resolved, t, data)
+                    return
+                if not tp.pending:
+                    tp.pending_since = time.monotonic()
+                tp.pending.append((t, data))
+                self._add_to_bag(tp, force=False)
+            except (OSError, BagError) as exc:
+                self._fail(exc)
+
+    def _fail(self, exc: BaseException) -> None:
+        """The bag cannot be written (a full disk, a file system gone read-only): say so once, stop recording and
+        ask :func:`~mpm_monitor.nodes.ros_io.run_node` to end the node (exit code 1) instead of raising from a
+        callback.  Called with the lock held."""
+        if self.failure:
+            return
+        why = getattr(exc, "strerror", None) or " ".join(str(exc).split()) or type(exc).__name__
+        self.failure = f"cannot write the bag {self.options.bag_dir}: {why}"
+        self.exit_requested, self.exit_code = True, 1
+        self.get_logger().error(
+            f"{self.failure}: recording stopped; {self._writer.flushed_count} messages are on disk up to the last "
+            f"flush (if the bag cannot be closed, python -m mpm_monitor recover --bag {self.options.bag_dir} --out "
+            f"NEW makes them readable)")
 
     def _add_to_bag(self, tp: _Topic, force: bool) -> None:
         """Register the topic with its publishers' QoS (once the graph shows them) and write its backlog."""
@@ -338,13 +358,17 @@ class RecorderNode(Node):
 
     def _on_flush_timer(self) -> None:
         with self._lock:
-            if self._closed:
+            if self._closed or self.failure:
                 return
-            for tp in self._topics:
-                if tp.pending:
-                    self._add_to_bag(tp, force=False)
             before = len(self._writer.closed_files)
-            n = self._writer.flush()
+            try:
+                for tp in self._topics:
+                    if tp.pending:
+                        self._add_to_bag(tp, force=False)
+                n = self._writer.flush()
+            except (OSError, BagError) as exc:
+                self._fail(exc)
+                return
             closed = self._writer.closed_files[-1] if len(self._writer.closed_files) > before else None
         self.get_logger().debug(f"flushed {n} messages to disk")
         if closed:
@@ -388,10 +412,17 @@ class RecorderNode(Node):
             if self._closed or self._writer is None:
                 return self._writer.message_count if self._writer is not None else 0
             self._closed = True
-            for tp in self._topics:
-                if tp.pending:
-                    self._add_to_bag(tp, force=True)
-            self._writer.close()
+            try:
+                if not self.failure:
+                    for tp in self._topics:
+                        if tp.pending:
+                            self._add_to_bag(tp, force=True)
+                self._writer.close()
+            except (OSError, BagError) as exc:
+                self._fail(exc)
+                self.get_logger().error(f"the bag {self.options.bag_dir} could not be closed: its messages up to the "
+                                        f"last flush are on disk for python -m mpm_monitor recover")
+                return self._writer.flushed_count
             n = self._writer.message_count
         if self._timer is not None:
             self._timer.cancel()

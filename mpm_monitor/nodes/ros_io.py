@@ -503,7 +503,8 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
     -------
     int
         0 after a stop, 2 (with one line ``error: ...`` on stderr) when the node refuses its
-        parameters or inputs (:class:`~mpm_monitor.core.errors.InputError`).
+        parameters or inputs (:class:`~mpm_monitor.core.errors.InputError`), or the node's
+        ``exit_code`` when it asked to end (the recorder's 1: its bag could not be written).
 
     Notes
     -----
@@ -553,7 +554,7 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
         drain = getattr(node, "drain", None)
         if drain is not None and context.ok():
             drain(executor)
-        return 0
+        return int(getattr(node, "exit_code", 0) or 0)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
