@@ -349,12 +349,12 @@ def test_a_bag_that_cannot_be_written_stops_the_recorder_with_one_error(ctx, tmp
 
 
 def test_the_recorder_process_ends_with_one_error_when_its_file_cannot_grow(tmp_path, monkeypatch):
-    """The recorder as a process whose files may not grow past 64 kB (RLIMIT_FSIZE: writes fail with EFBIG, as on a
+    """The recorder as a process whose files may not grow past 1 MB (RLIMIT_FSIZE: writes fail with EFBIG, as on a
     full disk): one error line, exit code 1, no traceback; what was flushed before is recovered."""
     import resource
 
     def limit():
-        resource.setrlimit(resource.RLIMIT_FSIZE, (64_000, 64_000))
+        resource.setrlimit(resource.RLIMIT_FSIZE, (1_000_000, 1_000_000))
 
     bag = tmp_path / "bag"
     with unique_domain(salt=77) as domain:
@@ -374,7 +374,7 @@ def test_the_recorder_process_ends_with_one_error_when_its_file_cannot_grow(tmp_
             while pub.get_subscription_count() < 1:
                 assert time.monotonic() < deadline and proc.poll() is None
                 time.sleep(0.02)
-            k, names = 0, [f"y{j}" for j in range(200)]      # about 5 kB a message
+            k, names = 0, [f"y{j}" for j in range(40)]       # about 1 kB a message: 0.5 MB/s
             while proc.poll() is None and k < 5000:
                 pub.publish(_vector(k, names, 0.0))
                 k += 1

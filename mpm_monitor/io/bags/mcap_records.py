@@ -28,7 +28,7 @@ def mcap_string(buf, pos: int) -> tuple:
 def mcap_records(buf, pos: int, end: int) -> Iterator[tuple]:
     """``(opcode, body start, body)`` of the complete records in ``buf[pos:end]``; stops at a torn record.
 
-    ``buf`` is bytes, a writable ``mmap`` or a ``memoryview`` (whose bodies are views, not copies); the body
+    ``buf`` is bytes or a ``memoryview`` (of a mapped file: the bodies are then views, not copies); the body
     start is its offset in ``buf``.
     """
     while pos + 9 <= end:

@@ -50,8 +50,9 @@ def recover_bag(src, dst, warn=None) -> int:
     was left out is said through ``warn``, one line; a message whose own bytes were changed is
     recovered as it is, and the reader that decodes it names it.
 
-    The storage files are mapped, not read into memory, and the messages are written as they are
-    read: a recording of any length is recovered in about the memory of one chunk.
+    The storage files are mapped, not read into memory (the pages walked handed back to the kernel as
+    the walk goes), and the messages are written as they are read: a recording of any length is
+    recovered in the same memory.
 
     Parameters
     ----------
@@ -111,7 +112,7 @@ class _Records:
     Each file is read twice, mapped into memory rather than read: :meth:`file` takes its schema and channel
     records and counts its messages and damage; :meth:`typed_messages` then walks the same records again and
     yields the typed messages one at a time.  What stays in memory between the two is each file's channels and
-    the offsets of its damaged chunks, so a recording of any length is recovered in the memory of one chunk.
+    the offsets of its damaged chunks, so a recording of any length is recovered in the same memory.
     """
 
     def __init__(self):
@@ -128,13 +129,14 @@ class _Records:
         messages are typed by its own schema and channel records (each file of a split recording numbers
         its channels anew).  Messages are only counted here."""
         self.schemas, self.channels, self.counts, self.skip = {}, {}, {}, set()
-        with _mapped(path) as buf:
+        with _mapped(path) as mapped:
+            buf = mapped.view
             if len(buf) < len(MAGIC) and MAGIC.startswith(bytes(buf)):
                 return                  # killed before even the magic reached the disk: nothing in it
             if buf[:len(MAGIC)] != MAGIC:
                 raise BagError(f"{path}: not an MCAP file (bad magic)")
             end = len(MAGIC)
-            for op, start, body, summary in _top_records(buf):
+            for op, start, body, summary in _top_records(mapped):
                 end = start + len(body)
                 if op == FOOTER:
                     end = len(buf)
@@ -204,8 +206,8 @@ class _Records:
         in the order of their records, ``channel`` = ``(topic, message type, QoS profiles)``, ``data`` the
         message's bytes; the others were counted in :attr:`untyped`.  Reads the files again."""
         for path, channels, skip in self.files:
-            with _mapped(path) as buf:
-                for op, start, body, summary in _top_records(buf):
+            with _mapped(path) as mapped:
+                for op, start, body, summary in _top_records(mapped):
                     if summary or op == FOOTER:
                         continue
                     if op == CHUNK:
@@ -254,11 +256,14 @@ def _message(op, body, channels):
     return channel, log_time, bytes(body[22:])
 
 
-def _top_records(buf) -> Iterator[tuple]:
+def _top_records(mapped) -> Iterator[tuple]:
     """``(opcode, body start, body, in summary)`` of a storage file's top-level records after the magic, up to and
-    with its footer; ``in summary``: after the data end record (a closed file's summary section)."""
+    with its footer; ``in summary``: after the data end record (a closed file's summary section).  The pages of
+    the records already walked are handed back as the walk goes (:meth:`_Mapped.done`)."""
     summary = False
+    buf = mapped.view
     for op, start, body in mcap_records(buf, len(MAGIC), len(buf)):
+        mapped.done(start - 9)
         yield op, start, body, summary
         if op == FOOTER:
             return
@@ -274,20 +279,45 @@ def _written(buf, end: int, block: int = 1 << 20) -> bool:
     return False
 
 
+class _Mapped:
+    """A storage file mapped read-only: :attr:`view`, a ``memoryview`` of it (an empty file: an empty view).
+
+    The pages of a mapped file count in the process's resident memory once read, though they are the page
+    cache's; :meth:`done` hands those of the part walked back to the kernel (``MADV_DONTNEED``: read again from
+    the file if touched again), so that the resident memory stays about one step of :data:`RELEASE_BYTES`
+    whatever the file's length."""
+
+    #: Bytes walked between two hand-backs of the pages.
+    RELEASE_BYTES = 1 << 26
+
+    def __init__(self, mm):
+        self._mm = mm
+        self.view = memoryview(mm) if mm is not None else memoryview(b"")
+        self._released = 0
+
+    def done(self, upto: int) -> None:
+        """The bytes before ``upto`` are walked: their pages may go (every :data:`RELEASE_BYTES`)."""
+        if self._mm is None or upto - self._released < self.RELEASE_BYTES or not hasattr(mmap, "MADV_DONTNEED"):
+            return
+        end = upto - upto % mmap.PAGESIZE
+        self._mm.madvise(mmap.MADV_DONTNEED, self._released, end - self._released)
+        self._released = end
+
+
 @contextlib.contextmanager
 def _mapped(path):
-    """A ``memoryview`` of a storage file, mapped read-only (an empty file: an empty view); the map is closed at
-    the end, or left to the garbage collector when a view of it is still held (an exception's traceback)."""
+    """:class:`_Mapped` of a storage file; the map is closed at the end, or left to the garbage collector when a
+    view of it is still held (an exception's traceback)."""
     with open(path, "rb") as f:
         if os.fstat(f.fileno()).st_size == 0:       # mmap refuses an empty file
-            yield memoryview(b"")
+            yield _Mapped(None)
             return
         mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
-    view = memoryview(mm)
+    mapped = _Mapped(mm)
     try:
-        yield view
+        yield mapped
     finally:
-        view.release()
+        mapped.view.release()
         try:
             mm.close()
         except BufferError:     # a slice of it is still referenced: closed when that goes

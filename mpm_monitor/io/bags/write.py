@@ -8,7 +8,6 @@ recorder node wraps it.  :func:`write_logged_data` is the inverse of
 
 from __future__ import annotations
 
-import mmap
 import os
 import struct
 import zlib
@@ -21,7 +20,7 @@ from ...core.errors import BagError
 from ...core.logged_data import LoggedData
 from ..qos import VECTOR_QOS, rosbags_qos
 from .common import DEFAULT_DISTURBANCE_TOPIC, DEFAULT_TOPICS, JOINT_STATE, default_typestore, one_line, topic_name
-from .mcap_records import CHUNK, CHUNK_CRC_OFFSET, DATA_END, MAGIC, chunk_parts, mcap_records
+from .mcap_records import CHUNK, CHUNK_CRC_OFFSET, DATA_END, MAGIC, chunk_parts
 
 
 class BagWriter:
@@ -306,7 +305,9 @@ def write_chunk_crcs(mcap_path, fsync: bool = False) -> int:
     rosbags' writer leaves every chunk's ``uncompressed_crc`` at 0 ("not computed"), so a reader
     cannot tell a flipped bit inside a message's numbers from the value.  With the CRC in place,
     rosbags (and any MCAP reader that checks CRCs) refuses such a chunk.  Chunks that are compressed
-    are left as they are.  The file is mapped, not read into memory.
+    are left as they are.  The file is read a record at a time and each CRC written in place, so
+    the memory used is that of one chunk, whatever the file's length (a map of the whole file
+    counted every page of a months-long recording in the recorder's resident memory).
 
     Parameters
     ----------
@@ -322,18 +323,25 @@ def write_chunk_crcs(mcap_path, fsync: bool = False) -> int:
     """
     done = 0
     with open(mcap_path, "r+b") as f:
-        if os.fstat(f.fileno()).st_size == 0:             # mmap refuses an empty file: no chunk in it
-            return 0
-        with mmap.mmap(f.fileno(), 0) as buf:
-            for op, start, body in mcap_records(buf, len(MAGIC), len(buf)):
-                if op == DATA_END:
-                    break
-                if op == CHUNK:
-                    compression, size, records = chunk_parts(body)
-                    if not compression and len(records) == size:
-                        struct.pack_into("<I", buf, start + CHUNK_CRC_OFFSET, zlib.crc32(records))
-                        done += 1
-            buf.flush()
+        size = os.fstat(f.fileno()).st_size
+        pos = len(MAGIC)
+        while pos + 9 <= size:
+            f.seek(pos)
+            head = f.read(9)
+            if len(head) < 9:
+                break
+            op, (length,) = head[0], struct.unpack_from("<Q", head, 1)
+            if op == DATA_END or pos + 9 + length > size:
+                break
+            if op == CHUNK:
+                body = f.read(length)
+                compression, n, records = chunk_parts(body)
+                if not compression and len(records) == n:
+                    f.seek(pos + 9 + CHUNK_CRC_OFFSET)
+                    f.write(struct.pack("<I", zlib.crc32(records)))
+                    done += 1
+            pos += 9 + length
+        f.flush()
         if fsync:
             os.fsync(f.fileno())
     return done
