@@ -25,7 +25,7 @@ import numpy as np
 from ...core.errors import BagError, InputError
 from ...core.logged_data import LoggedData
 from ...core.model import PlantModel
-from ..csv_log import write_log_csv
+from ..csv_log import BAD_VALUES, write_log_csv
 from .common import (
     DEFAULT_DISTURBANCE_TOPIC,
     DEFAULT_TOPICS,
@@ -397,8 +397,8 @@ def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, pr
 def _left_out(bad_values: str):
     """The dict :func:`_read_vectors` counts the messages it leaves out in (``bad_values="gap"``), or None
     (``"refuse"``)."""
-    if bad_values not in ("refuse", "gap"):
-        raise ValueError(f"bad_values: expected refuse or gap, got {bad_values!r}")
+    if bad_values not in BAD_VALUES:
+        raise ValueError(f"bad_values: expected one of {', '.join(BAD_VALUES)}, got {bad_values!r}")
     return {} if bad_values == "gap" else None
 
 
