@@ -8,6 +8,7 @@ the bag holds a gap-free prefix of what was published.  After SIGKILL the bag is
 lost).
 """
 
+import contextlib
 import os
 import re
 import signal
@@ -207,15 +208,16 @@ def _run_and_signal(tmp_path, monkeypatch, signum, extra=()):
         return _record_and_signal(tmp_path, monkeypatch, signum, domain, extra)
 
 
-def _record_and_signal(tmp_path, monkeypatch, signum, domain, extra=()):
-    bag = tmp_path / "bag"
+@contextlib.contextmanager
+def _recorder_and_publisher(monkeypatch, domain, ros_args, preexec_fn=None):
+    """The recorder as a process (``--ros-args`` ``ros_args``) on ``domain``, and a publisher of ``output`` in this
+    process that it has matched: yields ``(process, publisher, log)``, ``log`` the process's stderr lines
+    (:class:`_Lines`).  The process is killed if it still runs at the end."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                RCUTILS_LOGGING_BUFFERED_STREAM="0", PYTHONUNBUFFERED="1")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mpm_monitor.nodes.recorder_node", "--ros-args", "-p", f"bag_dir:={bag}",
-         "-p", "flush_period:=0.1", *[a for value in extra for a in ("-p", value)],
-         "--log-level", "mpm_recorder:=debug"],
-        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([sys.executable, "-m", "mpm_monitor.nodes.recorder_node", "--ros-args", *ros_args],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=preexec_fn)
     log = _Lines(proc.stderr)
     log.start()
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -228,6 +230,19 @@ def _record_and_signal(tmp_path, monkeypatch, signum, domain, extra=()):
         while pub.get_subscription_count() < 1:
             assert time.monotonic() < deadline and proc.poll() is None, "".join(log.lines)
             time.sleep(0.02)
+        yield proc, pub, log
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        rclpy.try_shutdown(context=context)
+    log.join(timeout=5)
+
+
+def _record_and_signal(tmp_path, monkeypatch, signum, domain, extra=()):
+    bag = tmp_path / "bag"
+    args = ["-p", f"bag_dir:={bag}", "-p", "flush_period:=0.1", *[a for value in extra for a in ("-p", value)],
+            "--log-level", "mpm_recorder:=debug"]
+    with _recorder_and_publisher(monkeypatch, domain, args) as (proc, pub, log):
         k, flushed_at_signal, signalled_at = 0, None, None
         deadline = time.monotonic() + 20
         while signalled_at is None or k < signalled_at + 100:
@@ -240,11 +255,6 @@ def _record_and_signal(tmp_path, monkeypatch, signum, domain, extra=()):
                 signalled_at = k
             time.sleep(0.002)
         rc = proc.wait(timeout=15)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        rclpy.try_shutdown(context=context)
-    log.join(timeout=5)
     return bag, rc, flushed_at_signal, k, "".join(log.lines)
 
 
@@ -357,34 +367,16 @@ def test_the_recorder_process_ends_with_one_error_when_its_file_cannot_grow(tmp_
         resource.setrlimit(resource.RLIMIT_FSIZE, (1_000_000, 1_000_000))
 
     bag = tmp_path / "bag"
+    args = ["-p", f"bag_dir:={bag}", "-p", "flush_period:=0.05", "-p", "topics:=[output]"]
     with unique_domain(salt=77) as domain:
-        env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-                   RCUTILS_LOGGING_BUFFERED_STREAM="0", PYTHONUNBUFFERED="1")
-        proc = subprocess.Popen([sys.executable, "-m", "mpm_monitor.nodes.recorder_node", "--ros-args", "-p",
-                                 f"bag_dir:={bag}", "-p", "flush_period:=0.05", "-p", "topics:=[output]"],
-                                env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                                preexec_fn=limit)
-        monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-        context = Context()
-        try:
-            rclpy.init(context=context, domain_id=domain)
-            node = rclpy.create_node("plant", context=context)
-            pub = node.create_publisher(JointState, "output", VECTOR_QOS)
-            deadline = time.monotonic() + 20
-            while pub.get_subscription_count() < 1:
-                assert time.monotonic() < deadline and proc.poll() is None
-                time.sleep(0.02)
+        with _recorder_and_publisher(monkeypatch, domain, args, preexec_fn=limit) as (proc, pub, log):
             k, names = 0, [f"y{j}" for j in range(40)]       # about 1 kB a message: 0.5 MB/s
             while proc.poll() is None and k < 5000:
                 pub.publish(_vector(k, names, 0.0))
                 k += 1
                 time.sleep(0.002)
             rc = proc.wait(timeout=20)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-            rclpy.try_shutdown(context=context)
-    err = proc.stderr.read()
+    err = "".join(log.lines)
     assert rc == 1, err
     assert "Traceback" not in err and err.count("cannot write the bag") == 1, err
     assert "File too large: recording stopped;" in err and "python -m mpm_monitor recover" in err, err
