@@ -293,11 +293,37 @@ def test_an_output_that_never_moves_is_named_first():
     y[:, 1] = 0.1
     rep = analyze(case.model, dataclasses.replace(data, y=y), FAST)
     assert rep.warnings[0].startswith("output y2 never moves in this window (every value the same: a stuck sensor")
-    # Its row's prediction error is fitted exactly (by the model's own response): the null detectable change is
-    # put down to the still output, not to "a log without noise?".
+    assert "(no p-value, detectable_gain_change null)" in rep.warnings[0]
+    # Its row's prediction error is the model's own response: not called "fitted exactly" (a log without noise?),
+    # and named once, not again by the detectability.
     assert not any("fitted exactly" in w and "y2" in w for w in rep.warnings)
     assert all(e.detectable_gain_change is None for e in rep.elements if e.output == "y2")
-    assert any(w.startswith("output y2 never moves: the smallest gain change") for w in rep.warnings)
+    assert sum("y2 never moves" in w for w in rep.warnings) == 1, rep.warnings
+    assert rep.still_outputs == ["y2"] and rep.to_dict()["still_outputs"] == ["y2"]
+
+
+def test_a_stuck_output_is_not_repaired_to_zero_gains():
+    """A stuck sensor (y2 held at its value at one instant) while the other rows keep a mismatch: every element
+    of y2 was located and the repaired model set their gains to about 1e-17, as if the plant had lost its row,
+    and an unmeasured "step of -5.6e-17" was reported in it.  Now its elements are listed untested, the repair
+    leaves them as they are and finds the other rows' mismatch as on the log with y2 moving."""
+    case, data = _run_case("3.2", 5, samples=3000)
+    full = analyze(case.model, data, AnalysisOptions())
+    y = data.y.copy()
+    y[:, 1] = y[1000, 1]
+    rep = analyze(case.model, dataclasses.replace(data, y=y), AnalysisOptions())
+    y2 = [e for e in rep.elements if e.output == "y2"]
+    assert [e.input for e in y2] == list(case.model.columns)
+    assert all(not e.mismatch and e.p_value is None and e.statistic is None and not e.ambiguous for e in y2)
+    assert [k for k in rep.located_elements if k[0] != "y2"] == \
+        [k for k in full.located_elements if k[0] != "y2"] and rep.located_elements
+    i = case.model.outputs.index("y2")
+    assert np.array_equal(rep.repaired_model.gain[i], case.model.gain[i])
+    assert not any(c["output"] == "y2" for c in rep.repair["changes"])
+    assert not any(w.startswith("y2:") for w in rep.warnings), rep.warnings
+    assert not any(x["output"] == "y2" for x in rep.repair.get("disturbances", []))
+    assert "not tested (the output never moves: a stuck sensor or a held value?): every element of y2" \
+        in rep.summary_text()
 
 
 def test_step_responses_cut_short_of_settling_are_named():

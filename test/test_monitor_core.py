@@ -128,6 +128,25 @@ def test_a_released_element_is_named_in_its_rows_status_and_not_located():
     assert st[SUMMARY_NAME].value("located_elements") == "y1:u2"
 
 
+def test_a_stuck_output_is_an_error_of_its_row_and_of_the_summary():
+    """An output that never moves in the window (the report's ``still_outputs``): its row's status was WARN
+    ("mismatch in row y2: no single element located"), the summary's too; a stuck sensor is bad input data."""
+    c = core()
+    feed(c, 0, 20)
+    rep = fake_report({"y1": ["u2"]}, samples=20)
+    rep.rows[1].mismatch = True
+    rep.still_outputs = ["y2"]
+    c.accept(run_analysis(lambda m, d, o: rep, MODEL, None, c.take_job()))
+    st = by_name(c.statuses(now=0.0))
+    y1, y2, y3, summary = (st["mpm_monitor: row y1"], st["mpm_monitor: row y2"], st["mpm_monitor: row y3"],
+                           st[SUMMARY_NAME])
+    assert y2.level == ERROR and y2.message.startswith("output y2 never moves in this window (every value the same")
+    assert y2.value("mismatch") == "true" and y2.value("flagged_inputs") == ""
+    assert y1.level == WARN and y3.level == OK
+    assert summary.level == ERROR and summary.value("still_outputs") == "y2"
+    assert summary.message.startswith("output y2 never moves (a stuck sensor or a held value?); mismatch in row(s)")
+
+
 def test_no_mismatch_is_ok_everywhere():
     c = core()
     feed(c, 0, 20)

@@ -150,10 +150,11 @@ def test_a_flat_log_without_noise_is_analysed_and_recommends_no_vanishing_dither
     assert report.located_elements == [] and not any(r.mismatch for r in report.rows)
     assert report.experiment is None
     assert all(e.detectable_gain_change is None for e in report.elements)
-    # Every output is still: its exact fit is named as such (stop 50), not as "a log without noise?".
+    # Every output is still: named as such, not as "a log without noise?", and no element is tested.
     assert not any("fitted exactly" in w for w in report.warnings)
-    assert "outputs y1, y2 never move: the smallest gain change this window detects is not computed there " \
-           "(detectable_gain_change null)" in report.warnings
+    assert report.warnings[0].startswith("outputs y1, y2 never move in this window (every value the same")
+    assert "(no p-value, detectable_gain_change null)" in report.warnings[0]
+    assert all(e.p_value is None and not e.mismatch for e in report.elements)
     # The command line: the same, exit 0, no traceback.
     save_model(PLANT, tmp_path / "m.yaml")
     write_log_csv(tmp_path / "flat.csv", data)

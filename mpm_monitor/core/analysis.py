@@ -306,6 +306,11 @@ class AnalysisReport:
     pending : object or None
         The detectable gain changes and the experiment while a second process still computes them
         (:func:`detect` with ``settle`` False); None once :func:`settle_report` has put them in.
+    still_outputs : list of str
+        Outputs that never move in the window (every value the same: a stuck sensor or a held value).
+        The ARX element test leaves their rows' elements untested (listed with no p-value), no
+        candidate is tested on them and the repair leaves them as they are; the JSON key
+        ``still_outputs`` is written only when there is one.
     """
 
     sample_time: float
@@ -333,6 +338,7 @@ class AnalysisReport:
     candidates: object = None
     noise_order: Optional[dict] = None
     pending: object = dataclasses.field(default=None, compare=False, repr=False)
+    still_outputs: list = dataclasses.field(default_factory=list)
 
     @property
     def flagged_rows(self) -> list:
@@ -373,6 +379,8 @@ class AnalysisReport:
             doc["candidates"] = self.candidates.to_dict()
         if self.noise_order is not None:
             doc["noise_order"] = self.noise_order
+        if self.still_outputs:
+            doc["still_outputs"] = list(self.still_outputs)
         return json_ready(doc)
 
     def summary_text(self) -> str:
@@ -403,6 +411,9 @@ class AnalysisReport:
         if still:
             lines.append("not testable (their column never moves): "
                          + ", ".join(f"({e.output}, {_column_label(e)})" for e in still))
+        if self.still_outputs:
+            lines.append("not tested (the output never moves: a stuck sensor or a held value?): every element of "
+                         + ", ".join(self.still_outputs))
         lines += detectability_summary_lines(self.elements, self.experiment)
         if self.candidates is not None:
             lines += self.candidates.summary_lines()
@@ -705,9 +716,13 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         r_moving = moving_setpoints(r)
         if len(r_moving) * layout.n_lag_r >= ROW_FORK_MIN_COLUMNS and regressions.row_regression_pending(r_moving):
             factoring = Forked(lambda: regressions.factored_row_regression(r_moving))
+    # An output that never moves (a stuck sensor or a held value) has a prediction error that is the model's own
+    # response: its row's elements are not tested (the element test would locate every one of them, and the
+    # repair would take the row's gains to zero for a fault of the measurement).
+    still = np.flatnonzero(~moving_columns(y)).tolist()
     colour = None
     if probe and options.test_all_rows:       # the rows tested do not depend on the row test: before it
-        colour = _ElementColour(model, list(range(ny)), columns, layout, regressions, options, spread)
+        colour = _ElementColour(model, _moving_rows(range(ny), still), columns, layout, regressions, options, spread)
         if colour.noise_order["coloured"]:
             return Coloured(colour.noise_order, sig, None if plan is None else plan.to_dict())
     row_tests = []
@@ -724,8 +739,9 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         run_row_test(split_light)
     test_rows = list(range(ny)) if (options.test_all_rows or options.method != "arx") else \
         [i for i in range(ny) if row_tests[0].rows[i].mismatch]
+    element_rows = _moving_rows(test_rows, still) if options.method == "arx" else test_rows
     if probe and colour is None:
-        colour = _ElementColour(model, test_rows, columns, layout, regressions, options, spread)
+        colour = _ElementColour(model, element_rows, columns, layout, regressions, options, spread)
         if colour.noise_order["coloured"]:
             return Coloured(colour.noise_order, sig, None if plan is None else plan.to_dict())
     untested = rows_only and not test_rows and options.method == "arx"
@@ -748,7 +764,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     if untested:
         element_test = ElementTest(elements=[])
     elif options.method == "arx":
-        element_test = arx_element_test(model, test_rows, design, regressions, options, moments, output_spread=spread,
+        element_test = arx_element_test(model, element_rows, design, regressions, options, moments, output_spread=spread,
                                         fits=None if colour is None else colour.fits,
                                         whiteness=None if colour is None else colour.whiteness,
                                         meanwhile=(lambda: run_row_test(1)) if overlap else None)
@@ -761,12 +777,11 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
                               f"({b - a} samples)")
     row_test = row_tests[0]
     rows = row_test.rows
-    still = np.flatnonzero(~moving_columns(y)).tolist()        # outputs that never move (stuck sensors)
     warnings = still_output_warnings(model, still) + unsettled_warnings(model) + diverging + list(row_test.warnings) \
         + offset_warnings(model, sig.d, y, diverged) \
         + ([] if design is None else design.warnings()) + later_warnings
     warnings += element_test.warnings
-    elements = element_test.elements
+    elements = with_untested_rows(model, element_test.elements, [i for i in test_rows if i not in element_rows])
     valuation = None
     if valued:
         # The detectable gain changes and the experiment: with settle False and two processes, computed in a
@@ -778,8 +793,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         def values_and_experiment():
             info, detectable, why = element_detectability(model, columns, sig.d, design, element_test.noise, layout,
                                                           value_options, None if plan is None else plan.local_segments,
-                                                          responses=element_test.responses, moments=moments,
-                                                          still_outputs=still)
+                                                          responses=element_test.responses, moments=moments)
             values = [detectable.get((model.outputs.index(e.output), model.columns.index(e.input))) for e in elements]
             for e, v in zip(elements, values):
                 e.detectable_gain_change = v
@@ -810,7 +824,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         else:
             chosen = select_candidates(cdata, candidates, model)
         tested = run_candidate_tests(model, cdata, chosen, columns, sig.d, elements, layout, options,
-                                     output_spread=spread)
+                                     output_spread=spread, still_outputs=still)
         elements = tested.elements + tested.candidate_elements
         candidate_report = tested.report
         warnings += candidate_report.warnings()
@@ -822,7 +836,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     for i in range(ny):
         if not rows[i].mismatch and any(e.mismatch for e in elements if e.output == model.outputs[i]):
             rows[i] = dataclasses.replace(rows[i], mismatch=True)
-    for i in test_rows:
+    for i in element_rows:
         out = model.outputs[i]
         row_el = [e for e in elements if e.output == out]
         if rows[i].mismatch and not any(e.mismatch or e.ambiguous for e in row_el):
@@ -853,7 +867,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         max_variance_inflation=float("nan") if untested else design.max_vif, signals=sig,
         gaps=None if plan is None else plan.to_dict(), experiment=experiment, candidates=candidate_report,
         regressions=regressions.row_test_part() if getattr(regressions, "batch", False) else None,
-        noise_order=noise_order, pending=valuation)
+        noise_order=noise_order, pending=valuation,
+        still_outputs=[model.outputs[i] for i in still] if options.method == "arx" else [])
     if settle:
         settle_report(report)
     return report
@@ -931,14 +946,37 @@ def unsettled_warnings(model: PlantModel) -> list:
 
 def still_output_warnings(model: PlantModel, still) -> list:
     """One warning naming the outputs ``still`` (indices) that never move in the window
-    (:func:`~mpm_monitor.core.logged_data.moving_columns` of the outputs): a stuck sensor or a held value, whose
-    row's tests and repair read a constant."""
+    (:func:`~mpm_monitor.core.logged_data.moving_columns` of the outputs): a stuck sensor or a held value,
+    whose rows' elements the ARX element test leaves untested and the repair leaves as they are."""
     still = [model.outputs[i] for i in still]
     if not still:
         return []
+    rows = "their rows" if len(still) > 1 else "its row"
     return [f"output{'s' if len(still) > 1 else ''} {', '.join(still)} never move{'' if len(still) > 1 else 's'} in "
-            f"this window (every value the same: a stuck sensor or a held value?): what the tests and the repair "
-            f"say of {'their rows' if len(still) > 1 else 'its row'} is about a constant, not the process"]
+            f"this window (every value the same: a stuck sensor or a held value?): a fault of the measurement, not "
+            f"of the model; the elements of {rows} are not tested (no p-value, detectable_gain_change null) and the "
+            f"repair leaves them as they are (the row test reads a constant: check the measurement first)"]
+
+
+def _moving_rows(rows, still) -> list:
+    """The rows of ``rows`` (output indices) whose output moves (not in ``still``)."""
+    return [i for i in rows if i not in still]
+
+
+def with_untested_rows(model: PlantModel, elements: list, rows: list) -> list:
+    """``elements`` with an untested entry for every column of each row of ``rows`` (output indices, of
+    outputs that never move), in the order of the rows (then of the columns) as the element test lists them.
+
+    An untested entry has ``mismatch`` false, no p-value and no statistic, and is not ambiguous."""
+    if not rows:
+        return elements
+    from .element_test import ElementResult
+
+    added = [ElementResult(output=model.outputs[i], input=name, mismatch=False, p_value=None, p_value_raw=None,
+                           statistic=None, role=model.role(j))
+             for i in rows for j, name in enumerate(model.columns)]
+    order = {name: i for i, name in enumerate(model.outputs)}
+    return sorted(elements + added, key=lambda e: order.get(e.output, len(order)))
 
 
 def offset_warnings(model: PlantModel, d: np.ndarray, y: np.ndarray, skip=()) -> list:

@@ -575,7 +575,7 @@ class CandidateTest:
 
 def run_candidate_tests(model: PlantModel, data: LoggedData, chosen: CandidateChannels, columns: np.ndarray,
                     d: np.ndarray, elements: list, layout, options,
-                    output_spread: Optional[np.ndarray] = None) -> CandidateTest:
+                    output_spread: Optional[np.ndarray] = None, still_outputs=()) -> CandidateTest:
     """Run the exogeneity and cause tests of the chosen candidates and adjust the element family.
 
     Parameters
@@ -598,6 +598,8 @@ def run_candidate_tests(model: PlantModel, data: LoggedData, chosen: CandidateCh
         The outputs' standard deviations (output units) against which a cause test's fit is exact
         (:func:`cause_tests`); 0 for an output only a residual of exactly 0 fits exactly.  Default: that
         for every output.
+    still_outputs : sequence of int
+        Outputs that never move in the window (a stuck sensor): no candidate is tested on their rows.
 
     Returns
     -------
@@ -623,6 +625,8 @@ def run_candidate_tests(model: PlantModel, data: LoggedData, chosen: CandidateCh
     start = max(layout.start, CANDIDATE_AR_ORDER + n_lag)
     tests = {}
     for i in range(model.n_outputs):
+        if i in still_outputs:
+            continue
         spread = None if output_spread is None else float(output_spread[i])
         for name, t in zip(causes, cause_tests(d[:, i], columns[:, moving], w, options.na, options.nb, n_lag, start,
                                                output_spread=spread, segments=segments)):

@@ -584,8 +584,7 @@ class WindowInformation:
 
 
 def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, design, noise: dict, layout, options,
-                          segments=None, responses: Optional[dict] = None, moments: Optional[ResponseMoments] = None,
-                          still_outputs=()):
+                          segments=None, responses: Optional[dict] = None, moments: Optional[ResponseMoments] = None):
     """The detectable gain change of every element of the rows the ARX element test examined.
 
     Parameters
@@ -617,9 +616,6 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
         on the window) have the window test alone, at the full level.
     moments : ResponseMoments, optional
         Shared with the element test (:class:`WindowInformation`).
-    still_outputs : sequence of int
-        Outputs that never move in the window (a stuck sensor): a row of them fitted exactly is said to
-        be still, not to come from a log without noise.
 
     Returns
     -------
@@ -666,19 +662,12 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
     feedback = set(undetermined_rows(noisy))
     values.update({k: None for k in values if k[0] in feedback})
     warnings = []
-    # An output that never moves (a stuck sensor) has its prediction error fitted exactly too, by the model's own
-    # response: named as such, not as a log without noise.
-    still_set = set(still_outputs)
-    still = [i for i in exact if i in still_set]
-    fitted = [i for i in exact if i not in still]
-    if fitted:
-        warnings.append(f"output{'s' if len(fitted) > 1 else ''} {', '.join(model.outputs[i] for i in fitted)}: the "
+    # (An output that never moves, a stuck sensor, whose prediction error the model's own response fits exactly,
+    # is not among the rows tested: analysis.still_output_warnings names it.)
+    if exact:
+        warnings.append(f"output{'s' if len(exact) > 1 else ''} {', '.join(model.outputs[i] for i in exact)}: the "
                         "prediction error is fitted exactly (a log without noise?): the smallest gain change this "
                         "window detects is not computed there (detectable_gain_change null)")
-    if still:
-        warnings.append(f"output{'s' if len(still) > 1 else ''} {', '.join(model.outputs[i] for i in still)} never "
-                        f"move{'' if len(still) > 1 else 's'}: the smallest gain change this window detects is not "
-                        "computed there (detectable_gain_change null)")
     if noise and design.constant:
         dvs = set(model.disturbances)
         parts = [f"{what} {', '.join(names)}" for what, names in (

@@ -10,7 +10,9 @@ Statuses (docs/interfaces.md, "ROS 2 topics and statuses"): one per output, name
 row <output>``, with values ``rsi``, ``mismatch`` (``true``/``false``), ``flagged_inputs``
 (comma-separated), ``p_value`` and more, and one ``mpm_monitor: summary``.  Levels: OK (no
 mismatch), WARN (mismatch located), ERROR (bad input data or analysis failure), STALE (no fresh
-data).
+data).  An output that never moves in the window (a stuck sensor or a held value: the report's
+``still_outputs``) is bad input data: its row's status is ERROR, and so is the summary, whose value
+``still_outputs`` names them.
 
 When the analysis includes the repair (:mod:`mpm_monitor.core.repair`), the statuses carry the
 suggested repair: per row ``repair`` (e.g. ``u2: time_constant 45->60 s, delay 4->7 s; u3: gain
@@ -201,6 +203,7 @@ def row_statuses(outputs: Sequence[str], outcome, analysis_error: Optional[str],
     doc = rep.repair if repaired else {}
     changes = list(doc.get("changes") or [])
     confidence = {(c.get("output"), c.get("input")): c.get("confidence") for c in changes}
+    still = set(getattr(rep, "still_outputs", ()) or ())
     out = []
     for o in outputs:
         r = rows.get(o)
@@ -234,7 +237,11 @@ def row_statuses(outputs: Sequence[str], outcome, analysis_error: Optional[str],
                        if o in (doc.get(key) or {})]
         values += [("samples", str(job.data.n_samples)), ("window_start", _num(job.first_stamp)),
                    ("window_end", _num(job.last_stamp)), ("analyzed", "true")]
-        if r.mismatch:
+        if o in still:
+            level = ERROR
+            msg = (f"output {o} never moves in this window (every value the same: a stuck sensor or a held value?): "
+                   f"a fault of the measurement; the elements of row {o} are not tested (RSI {r.rsi:.3f})")
+        elif r.mismatch:
             level = WARN
             if flagged:
                 msg = f"mismatch in row {o}: elements " + ", ".join(f"({o}, {i})" for i in flagged)
@@ -319,6 +326,12 @@ def summary_status(outcome, analyses: int, analysis_error: Optional[str], waitin
         else:
             level = OK
             msg = "no model-plant mismatch detected"
+        still = list(getattr(rep, "still_outputs", ()) or ())
+        if still:
+            level = ERROR
+            values += [("still_outputs", ",".join(still))]
+            msg = (f"output{'s' if len(still) > 1 else ''} {', '.join(still)} never move{'' if len(still) > 1 else 's'} "
+                   f"(a stuck sensor or a held value?); {msg}")
         msg += f" ({job.data.n_samples} samples up to t = {job.last_stamp:.15g} s{lost_text(job.data)})"
         if analysis_error:
             level, msg = ERROR, f"{analysis_error}; previous result: {msg}"

@@ -114,6 +114,13 @@ def _drift_wald(X: np.ndarray, yv: np.ndarray):
     return w_drift, ssr_drift
 
 
+def not_tested() -> dict:
+    """What :func:`unexplained_disturbance` returns for a signal it does not test (too short, not finite, fitted
+    exactly) or in which it finds nothing: no disturbance detected."""
+    return {"detected": False, "kind": None, "size": 0.0, "time": None, "index": None, "rate": None, "p_value": 1.0,
+            "p_step": 1.0, "p_drift": 1.0, "statistic": 0.0}
+
+
 def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: float = 0.01, trim: float = 0.15,
                             noise_order: int = 4, segments=None, scale: Optional[float] = None) -> dict:
     """Test one residual for a step or a linear drift on top of AR(p)-coloured noise.
@@ -162,8 +169,7 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
     d = np.asarray(d, float).ravel()
     p = int(noise_order)
     n_all = d.shape[0]
-    out = {"detected": False, "kind": None, "size": 0.0, "time": None, "index": None, "rate": None, "p_value": 1.0,
-           "p_step": 1.0, "p_drift": 1.0, "statistic": 0.0}
+    out = not_tested()
     if n_all < max(50, 10 * (p + 3)) or not np.all(np.isfinite(d)):
         return out
     spread = float(np.std(d))

@@ -23,7 +23,7 @@ from ..model import PlantModel
 from ..signals import (LoopSignals, compute_signals, error_rms, packed, scored_segments, segment_signals,
                        segments_mask, unknown_starts)
 from .classify import _classify_row
-from .disturbance import unexplained_disturbance
+from .disturbance import not_tested, unexplained_disturbance
 from .fit import _TooShort
 from .forms import unsettled_warning
 from .options import RepairOptions, _TestSettings
@@ -150,6 +150,12 @@ class _Record:
         """The outputs' standard deviations over the record, shape (n_outputs,): the scales of the disturbance
         tests (:func:`_evaluate`), computed once."""
         return np.std(np.asarray(self.y, float), axis=0)
+
+    @functools.cached_property
+    def moving(self) -> np.ndarray:
+        """Whether each output moves over the record (:func:`~mpm_monitor.core.logged_data.moving_columns`),
+        shape (n_outputs,): one that never moves (a stuck sensor) is not tested for a disturbance."""
+        return moving_columns(np.asarray(self.y, float))
 
     @property
     def n(self) -> int:
@@ -482,7 +488,8 @@ def _evaluate(rec: _Record, results: dict) -> _Evaluation:
         done = rec.tests.get(i)
         if done is None or done[1] != segments or not np.array_equal(done[0], d[:, i]):
             done = rec.tests[i] = (d[:, i].copy(), segments,
-                                   _disturbance_test(d[:, i], segments, float(rec.spread[i]), rec.model, rec.options))
+                                   _disturbance_test(d[:, i], segments, float(rec.spread[i]), rec.model, rec.options,
+                                                     bool(rec.moving[i])))
         tests[i] = dict(done[2])
     if rec.segments is not None:      # the step's time since the first sample, the missing samples counted
         t = np.asarray(rec.data.t, float)
@@ -492,10 +499,14 @@ def _evaluate(rec: _Record, results: dict) -> _Evaluation:
     return _Evaluation(model=repaired, signals=sig, tests=tests)
 
 
-def _disturbance_test(d: np.ndarray, segments, scale: float, model: PlantModel, options: RepairOptions) -> dict:
+def _disturbance_test(d: np.ndarray, segments, scale: float, model: PlantModel, options: RepairOptions,
+                      moves: bool) -> dict:
     """:func:`unexplained_disturbance` of one output's prediction error ``d`` (shape (n_samples,)), as the
     repair tests every output: at ``options``' level, trim and noise order, over the scored ``segments``
-    (None: every sample), ``scale`` the output's standard deviation."""
+    (None: every sample), ``scale`` the output's standard deviation.  An output that never moves
+    (``moves`` false: a stuck sensor) is not tested: its prediction error is the model's own response."""
+    if not moves:
+        return not_tested()
     return unexplained_disturbance(d, model.sample_time, options.disturbance_alpha, options.disturbance_trim,
                                    options.noise_order, segments=segments, scale=scale)
 
@@ -556,9 +567,10 @@ def disturbance_tests(model: PlantModel, data: LoggedData, d: np.ndarray,
     DisturbanceTests
     """
     d = np.asarray(d, float)
-    spread = np.std(np.asarray(in_deviations(model, data).y, float), axis=0)
+    y = np.asarray(in_deviations(model, data).y, float)
+    spread, moving = np.std(y, axis=0), moving_columns(y)
     return DisturbanceTests(key=_test_settings_key(model, options), spread=spread, d=d,
-                            tests=[_disturbance_test(d[:, i], None, float(spread[i]), model, options)
+                            tests=[_disturbance_test(d[:, i], None, float(spread[i]), model, options, bool(moving[i]))
                                    for i in range(model.n_outputs)])
 
 
