@@ -66,6 +66,31 @@ def test_bad_messages_are_refused_naming_topic_channel_and_expectation(names, va
     assert isinstance(info.value, InputError)
 
 
+@pytest.mark.parametrize("names", [["y1", "y2"], ["y1", "y2", "y3", "y4"], ["y1", "y1", "y3"]])
+def test_names_that_do_not_match_are_refused_at_their_stamp(names):
+    """The refusals of names named the topic but not the stamp, as every other refusal of a vector does."""
+    with pytest.raises(MessageError, match=r"at t = 1795395118\.00184 s") as info:
+        CODEC.decode(js(names, [1.0] * len(names), sec=1_795_395_118, nanosec=1_840_000))
+    assert str(info.value).startswith("output: ")
+
+
+def test_a_vector_of_very_many_names_is_refused_naming_a_few():
+    """One message of 100,000 names (about 1 MB): the codec compared every name with every other
+    (``names.count``), 12 s for 20,000 names and about 20 minutes for 200,000, in which the node published
+    nothing, not even its periodic statuses.  It is refused now, naming the first five and how many more."""
+    names = [f"c{k}" for k in range(100_000)] + ["y1", "y2", "y3"]
+    with pytest.raises(MessageError) as info:
+        CODEC.decode(js(names, [1.0] * len(names)))
+    text = str(info.value)
+    assert "unexpected 'c0', 'c1', 'c2', 'c3', 'c4' and 99995 more" in text and len(text) < 300
+    long = ["x" * 5000, "y1", "y2", "y3"]
+    with pytest.raises(MessageError, match=r"unexpected 'x{40}\.\.\.' ") as info:
+        CODEC.decode(js(long, [1.0] * 4))
+    assert len(str(info.value)) < 300
+    with pytest.raises(MessageError, match=r"'y1' repeat at t = "):
+        CODEC.decode(js(["y1"] * 100_000 + ["y2", "y3"], [1.0] * 100_002))
+
+
 @pytest.mark.parametrize("values", [[1.0, math.nan, 3.0], [1.0, 2.0], [1.0, 1e300, 3.0]])
 def test_a_refused_wall_clock_stamp_keeps_its_fraction_of_a_second(values):
     # 15 significant digits, as the window's messages: 9 would print 1.7953951e+09 and lose the second itself

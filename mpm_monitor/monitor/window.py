@@ -69,6 +69,15 @@ def seconds_text(stamp_ns) -> str:
     return f"{stamp_ns / NS_PER_S:.15g}"
 
 
+def names_text(names, most: int = 5, longest: int = 40) -> str:
+    """The first ``most`` of ``names`` (channel names of a message) for a message, each quoted and cut to
+    ``longest`` characters, with how many more there are: a message of a vector that names thousands of
+    channels stays one short line."""
+    names = list(names)
+    shown = ", ".join(repr(n if len(n) <= longest else n[:longest] + "...") for n in names[:most])
+    return shown + (f" and {len(names) - most} more" if len(names) > most else "")
+
+
 @dataclasses.dataclass(frozen=True)
 class WindowOptions:
     """Options of :class:`SampleWindow`.
