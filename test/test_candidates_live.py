@@ -18,6 +18,25 @@ NS = 1_000_000_000
 SAMPLES = 2500
 
 
+def test_candidate_vectors_of_very_many_channels_are_refused_in_a_short_line():
+    """A vector naming 200,000 channels was kept whole (and its refusal for a repeated name printed every name):
+    the window holds at most MAX_CANDIDATE_CHANNELS channels, and a message names five of them."""
+    from mpm_monitor.monitor.candidate_window import MAX_CANDIDATE_CHANNELS
+
+    w = CandidateWindow(sample_time=1.0, capacity=100)
+    many = tuple(f"tag{k}" for k in range(200_000))
+    why = w.add(0, many, np.zeros(len(many)))
+    assert why.startswith("candidate: 200000 channel(s) at t = 0 s ('tag0', 'tag1', 'tag2', 'tag3', 'tag4' and "
+                          "199995 more) would make 200000 candidate channels in the window: expected at most")
+    assert w.names == () and len(why) < 300
+    assert len(w.add(0, many + ("tag0",), np.zeros(len(many) + 1))) < 300
+    first = tuple(f"a{k}" for k in range(MAX_CANDIDATE_CHANNELS))
+    assert w.add(0, first, np.zeros(len(first))) is None
+    assert w.add(1, first, np.ones(len(first))) is None              # the same channels again: kept
+    assert w.add(2, ("b",), [1.0]).endswith(f"would make {MAX_CANDIDATE_CHANNELS + 1} candidate channels in the "
+                                            f"window: expected at most {MAX_CANDIDATE_CHANNELS}")
+
+
 def test_candidate_window_puts_the_vectors_on_the_samples():
     from mpm_monitor.core.logged_data import LoggedData
 

@@ -18,7 +18,12 @@ import numpy as np
 
 from ..core.errors import ConfigurationError
 from ..core.logged_data import LoggedData
-from .window import NS_PER_S, seconds_text
+from .window import NS_PER_S, names_text, seconds_text
+
+#: Most candidate channels the vectors kept may name together: each is tested against every output at
+#: every analysis, and the vectors kept hold a value of each (a vector of a few hundred thousand names once
+#: took the window's memory with it).
+MAX_CANDIDATE_CHANNELS = 64
 
 
 class CandidateWindow:
@@ -76,11 +81,16 @@ class CandidateWindow:
         if v.shape[0] != len(names):
             return f"candidate: {v.shape[0]} value(s) for {len(names)} name(s) at {t} (one value per name expected)"
         if any(not n for n in names) or len(set(names)) != len(names):
-            return f"candidate: empty or repeated channel names at {t}: {', '.join(names)}"
+            return f"candidate: empty or repeated channel names at {t}: {names_text(names)}"
         clash = [n for n in names if n in self._reserved]
         if clash:
-            return (f"candidate: {', '.join(repr(n) for n in clash)} at {t} "
+            return (f"candidate: {names_text(clash)} at {t} "
                     f"{'is a channel' if len(clash) == 1 else 'are channels'} of the model, not a candidate")
+        new = [n for n in names if n not in self._names]
+        if len(self._names) + len(new) > MAX_CANDIDATE_CHANNELS:
+            return (f"candidate: {len(names)} channel(s) at {t} ({names_text(names)}) would make "
+                    f"{len(self._names) + len(new)} candidate channels in the window: expected at most "
+                    f"{MAX_CANDIDATE_CHANNELS}")
         if len(self._vectors) == self._vectors.maxlen:             # the oldest vector leaves
             for n in self._vectors[0][1]:
                 self._names[n] -= 1
