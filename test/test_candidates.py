@@ -279,6 +279,33 @@ def test_analyze_candidates_on_the_command_line(tmp_path, effect_run, capsys):
     assert err.count("\n") == 1 and "no column 'feed_temp'" in err and "feed_temperature" in err
 
 
+def test_columns_whose_names_no_model_can_hold_are_unusable_not_fatal(tmp_path, effect_run, capsys):
+    """The effect channel under a header name with a comma (quoted in the CSV) or a tab: it was tested, located,
+    and the repair then failed on its name as a model's measured disturbance ("error: model: key 'disturbances'
+    ...", exit 2, no report); a column with an empty header name was left out of ``all`` without a word.  Each is
+    now unusable, with the reason, and the analysis runs."""
+    import csv
+
+    d = effect_run.data
+    write_csv(tmp_path / "log.csv", d.t, d.r, d.u, d.y, d.inputs, d.outputs, extra=d.extra)
+    rows = list(csv.reader((tmp_path / "log.csv").read_text().splitlines()))
+    k = rows[0].index(EFFECT_CHANNEL)
+    for row in rows[1:]:
+        row += [row[k], row[k]]
+    rows[0][k] = "feed,temp"
+    rows[0] += ["feed\ttemp", ""]
+    with open(tmp_path / "odd.csv", "w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    save_model(effect_run.model, tmp_path / "m.yaml")
+    code = cli_main(["analyze", "--model", str(tmp_path / "m.yaml"), "--data", str(tmp_path / "odd.csv"),
+                     "--candidates", "all", "--json", str(tmp_path / "r.json"), "--jobs", "1"])
+    assert code == 0, capsys.readouterr().err
+    unusable = json.loads((tmp_path / "r.json").read_text())["candidates"]["unusable"]
+    assert unusable["feed,temp"].startswith("its name holds a comma, which a model's channel name cannot")
+    assert unusable["feed\ttemp"].startswith("its name holds a control character")
+    assert unusable[f"(column {len(rows[0])})"] == "the header gives it no name: name it there to test it"
+
+
 def test_html_report_without_a_located_candidate(tmp_path, effect_run):
     data = dataclasses.replace(effect_run.data, extra={RANDOM_WALK_CHANNEL: effect_run.data.extra[RANDOM_WALK_CHANNEL]})
     rep = analyze(effect_run.model, data, AnalysisOptions(), candidates="all")

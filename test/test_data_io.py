@@ -305,9 +305,13 @@ def test_other_numeric_columns_kept_as_extra_and_bad_ones_reported_unusable(tmp_
     assert sorted(data.extra) == ["ambient", "feed"]
     np.testing.assert_array_equal(data.extra["feed"], np.arange(6) * 0.5)
     np.testing.assert_array_equal(data.extra["ambient"], [-7, 1e-3, -7, 1e-3, -7, 1e-3])
+    # The column without a name (a blank header cell) was left out without a word, so that a channel logged under
+    # it was missing from --candidates all: it is named by its place instead.
+    blank = f"(column {HEADER.count(',') + 6})"
     assert data.unusable == {"status": "not numeric: line 2 holds 'start'",
                              "partly": "partly missing: line 6 is empty",
-                             "dup": "the header names this column more than once"}
+                             "dup": "the header names this column more than once",
+                             blank: "the header gives it no name: name it there to test it"}
     # The model's own columns are unaffected.
     np.testing.assert_array_equal(data.t, np.arange(6.0))
     assert data.u.shape == (6, 3)

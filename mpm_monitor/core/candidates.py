@@ -68,7 +68,7 @@ import numpy as np
 from .arx import segment_lag_matrix, segment_rows
 from .errors import ConfigurationError
 from .logged_data import MAX_ANALYSIS_SCALE, LoggedData, moving_columns
-from .model import PARAMETRIC_KEYS, PlantModel
+from .model import PARAMETRIC_KEYS, PlantModel, name_problem
 from .statistics import f_test
 
 #: Own lags of a candidate in its exogeneity test and the order of its whitening filter.
@@ -199,6 +199,10 @@ def select_candidates(data: LoggedData, spec, model: Optional[PlantModel] = None
     for name in wanted:
         if name in data.unusable:
             unusable[name] = data.unusable[name]
+            continue
+        bad_name = name_problem(name)
+        if bad_name:        # the repair would add it to the model as a measured disturbance by this name
+            unusable[name] = f"its name {bad_name}, which a model's channel name cannot: rename the column to test it"
             continue
         why = channel_problem(data.extra[name], n)
         x = np.asarray(data.extra[name], dtype=float) if why is None else None

@@ -30,6 +30,20 @@ def _unprintable(name: str) -> bool:
     return any(unicodedata.category(c) in ("Cc", "Cs", "Zl", "Zp") for c in name)
 
 
+def name_problem(name) -> "str | None":
+    """Why ``name`` cannot be a channel name of a model (``"holds a comma"``, ...), or None when it can: a
+    non-empty string without commas, control characters or surrounding spaces."""
+    if not isinstance(name, str) or not name:
+        return "is empty" if isinstance(name, str) else "is not text"
+    if "," in name:
+        return "holds a comma"
+    if name != name.strip():
+        return "has surrounding spaces"
+    if _unprintable(name):
+        return "holds a control character"
+    return None
+
+
 #: The element structures a model can hold, in the words of the model file.
 PARAMETRIC_KEYS = ("gain", "time_constant", "delay", "lead", "time_constant2", "integrating")
 
@@ -397,7 +411,7 @@ def _check_names(source: str, key: str, names, allow_empty: bool = False) -> Non
     if len(names) == 0 and not allow_empty:
         raise ModelFileError(f"{source}: key '{key}': expected a non-empty list of names")
     for n in names:
-        if not isinstance(n, str) or not n or "," in n or n != n.strip() or _unprintable(n):
+        if name_problem(n) is not None:
             raise ModelFileError(
                 f"{source}: key '{key}': expected names as non-empty strings without commas, "
                 f"control characters or surrounding spaces, got {n!r}")

@@ -24,6 +24,7 @@ the result and the errors are those of a read in one process.
 
 from __future__ import annotations
 
+import collections
 import csv
 import io
 import math
@@ -516,7 +517,7 @@ def _read_header(text: str, needed: list, layout: str, source: str) -> list:
     except csv.Error as exc:
         raise DataFileError(f"{source}: line 1: not valid CSV: {_csv_error_text(exc)}") from None
     header = [h.strip() for h in header]
-    dup = sorted({h for h in header if header.count(h) > 1 and h})
+    dup = sorted(h for h, c in collections.Counter(header).items() if c > 1 and h)
     for h in dup:
         if h in needed:
             raise DataFileError(f"{source}: line 1 (header): column '{h}' appears more than once")
@@ -546,11 +547,15 @@ def _other_columns(header: list, needed: list):
     """``[(name, index)]`` of the named columns the model does not use, and ``{name: reason}`` of the
     names that appear more than once (which of them would be meant is unknown)."""
     needed = set(needed)
+    counts = collections.Counter(header)
     others, unusable = [], {}
     for k, h in enumerate(header):
-        if not h or h in needed:
+        if not h:
+            unusable[f"(column {k + 1})"] = "the header gives it no name: name it there to test it"
             continue
-        if header.count(h) > 1:
+        if h in needed:
+            continue
+        if counts[h] > 1:
             unusable[h] = "the header names this column more than once"
         else:
             others.append((h, k))
