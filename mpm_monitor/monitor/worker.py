@@ -195,6 +195,7 @@ class ProcessAnalyzer:
         self._analyze = analyze
         self._pool = None
         self._lock = threading.Lock()
+        self._running = 0            # calls waiting for the child's result
 
     def __call__(self, model, data, options, **kwargs):
         import multiprocessing
@@ -206,6 +207,7 @@ class ProcessAnalyzer:
                 self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
                                                  initializer=_exit_with_parent, initargs=(os.getpid(),))
             pool = self._pool
+            self._running += 1
         try:
             return pool.submit(self._analyze, model, data, options, **kwargs).result()
         except BrokenProcessPool:
@@ -214,10 +216,25 @@ class ProcessAnalyzer:
                     self._pool = None
             raise RuntimeError("the analysis process died (out of memory or killed); a new one is started "
                                "for the next analysis") from None
+        finally:
+            with self._lock:
+                self._running -= 1
 
     def close(self) -> None:
-        """Stop the child process (a running analysis is abandoned)."""
+        """Stop the child process (a running analysis is abandoned: its process is ended) and wait until the
+        pool has closed its pipes.
+
+        A shutdown that did not wait left the pool's manager thread closing its wake-up pipe while the
+        interpreter's exit (``concurrent.futures``' exit hook, which Python 3.11 does not lock against it)
+        wrote to that pipe: about one stop of the monitor in five printed "Exception ignored ... OSError:
+        [Errno 9] Bad file descriptor".  Ended first, a running analysis's process makes the wait short.
+        """
         with self._lock:
             pool, self._pool = self._pool, None
-        if pool is not None:
-            pool.shutdown(wait=False, cancel_futures=True)
+            busy = self._running > 0
+        if pool is None:
+            return
+        if busy:
+            for process in list((getattr(pool, "_processes", None) or {}).values()):
+                process.terminate()
+        pool.shutdown(wait=True, cancel_futures=True)
