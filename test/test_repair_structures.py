@@ -97,6 +97,45 @@ def test_closed_loop_structures_are_repaired_in_their_keys(element, change, kind
         assert entry["before"][key] != entry["after"][key]
 
 
+def test_a_lead_the_plant_lost_is_not_repaired_into_a_direct_feed_through():
+    """An inverse response on (y1, u2) (lead -5 s, lag 15 s, dead time 1 s in the model; a pure gain with a dead
+    time of 1 s in the plant): the repair searched the lead-lag element's input lag down to 0, found its best there and
+    wrote a lead with no dead time, a direct feed-through that the package's own simulator and MPC refuse.  The
+    input lag is 1 at least now."""
+    from mpm_monitor.sim.plant import require_strictly_proper
+
+    model = PlantModel(inputs=("u1", "u2"), outputs=("y1", "y2"), sample_time=1.0,
+                       gain=np.array([[1.5, 0.5], [-0.6, 1.0]]), time_constant=np.array([[20.0, 15.0], [25.0, 12.0]]),
+                       delay=np.array([[2.0, 1.0], [3.0, 1.0]]), lead=np.array([[0.0, -5.0], [10.0, 0.0]]))
+    plant = model.with_element(0, 1, time_constant=0.0, lead=0.0)
+    log = run_closed_loop(plant, model, 3000, seed=3)
+    report = analyze(model, log.as_logged_data())
+    assert ("y1", "u2") in report.located_elements
+    require_strictly_proper(report.repaired_model, "repaired model")
+    assert report.repaired_model.element(0, 1)["delay"] >= 1.0
+    step = plant.discrete_element(0, 1).step_response(300)
+    fitted = report.repaired_model.discrete_element(0, 1).step_response(300)
+    assert np.max(np.abs(fitted - step)) < 0.1 * abs(plant.gain[0, 1])
+
+
+@pytest.mark.parametrize("delay", [0.0, 1.0, 2.0])
+def test_no_element_is_searched_at_an_input_lag_of_0(delay):
+    """The input lags a lead-lag element (one lag and a lead, biproper) was searched over reached down to 0: a
+    lead with no dead time, acting on y(k) through u(k).  A loop run by another controller (u(k) computed from
+    y(k)) made that lag the best, and the repair wrote a direct feed-through that the package's simulator and
+    MPC refuse.  Every element is searched from lag 1 up."""
+    from mpm_monitor.core.repair.classify import _free_spec, _locate
+    from mpm_monitor.core.repair.row import _RowData
+
+    model = PlantModel(inputs=("u1", "u2"), outputs=("y1",), sample_time=1.0, gain=np.array([[1.5, 0.5]]),
+                       time_constant=np.array([[20.0, 15.0]]), delay=np.array([[2.0, delay]]),
+                       lead=np.array([[0.0, -5.0]]))
+    row = _RowData(model=model, u=np.zeros((50, 2)), y=np.zeros((50, 1)), i=0)
+    spec, lag = _free_spec(row, _locate(row, 1), RepairOptions())
+    assert spec.window[0] >= 1 and spec.window[0] <= lag <= spec.window[1]
+    assert lag == max(1, int(delay))
+
+
 def test_the_new_parameters_are_worded_with_their_keys():
     from mpm_monitor.core.wording import describe_change, repair_summary_lines, row_repair_text
 

@@ -232,8 +232,11 @@ def _free_spec(row: _RowData, loc: _Located, options: RepairOptions, start=None)
         if form.first_order and ref["time_constant"] <= 0:
             poles = (_pole_of(base_tau, ts),)
         gain, lead = ref["gain"], ref["lead"]
-        lag = max(1, loc.lag) if form.first_order else loc.lag
-        window = (max(1, lag - s) if form.first_order else max(form.offset, lag - s), lag + s)
+        # The input acts one sample after it is applied at the earliest (lag 1): at lag 0 an element with a
+        # lead and no lag beyond it (its form biproper, offset 0) would act on y(k) through u(k), a direct
+        # feed-through that no sampled loop closes (the repair wrote such elements, which the MPC refused).
+        lag = max(1, loc.lag)
+        window = (max(1, lag - s), lag + s)
     if start is not None:
         gain, poles, lead, lag = start
     spec = _ElementSpec(True, form.n_shape > 0, gain, tuple(poles), window, form=form, lead=lead)

@@ -718,9 +718,10 @@ def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int
         fits.fits.clear()
         best = fits(lags, best.poles)
     best, lags = _local_lag_moves(problem, fits, best, lags)
-    # At an end of the searched lags, except the least the form has (a dead time of 0: nothing lies below it).
-    edge = [specs[m].lag_free and (lags[m] == specs[m].window[1]
-                                   or specs[m].form.offset < lags[m] == specs[m].window[0]) for m in range(n)]
+    # At an end of the searched lags, except the least an element may have (lag 1: the input acts a sample after
+    # it is applied; nothing lies below it).
+    edge = [specs[m].lag_free and (lags[m] == specs[m].window[1] or 1 < lags[m] == specs[m].window[0])
+            for m in range(n)]
     return _RowEstimate(fit=best, profiles=_lag_profiles(fits, lags), edge=edge, ar=problem.ar.copy(),
                         problem=problem, fits=fits)
 
