@@ -97,6 +97,25 @@ def test_closed_loop_structures_are_repaired_in_their_keys(element, change, kind
         assert entry["before"][key] != entry["after"][key]
 
 
+def test_a_second_lag_the_plant_lost_is_repaired_away():
+    """The plant lost the second lag of (y1, u1) (30 s and 15 s in the model, 30 s alone in the plant): the fit's
+    pole stops at its bound, and the element was repaired with a second lag of 0.109 s (at T = 1 s), which kept
+    the row mismatched (located again in the repaired model, its row in rows_flagged_after).  It is repaired
+    with one lag now, time_constant2 0."""
+    model = shell_structures()
+    plant = model.with_element(0, 0, time_constant2=0.0)
+    data = closed_loop(plant, model, seed=31)
+    report = analyze(model, data)
+    assert ("y1", "u1") in report.located_elements
+    after = report.repaired_model.element(0, 0)
+    assert after.get("time_constant2", 0.0) == 0.0
+    assert after["time_constant"] == pytest.approx(30.0, rel=REL) and after["delay"] == model.delay[0, 0]
+    assert after["gain"] == pytest.approx(plant.gain[0, 0], rel=REL)
+    assert "y1" not in report.repair["rows_flagged_after"]
+    again = analyze(report.repaired_model, data)
+    assert not [k for k in again.located_elements if k[0] == "y1"]
+
+
 def test_a_lead_the_plant_lost_is_not_repaired_into_a_direct_feed_through():
     """An inverse response on (y1, u2) (lead -5 s, lag 15 s, dead time 1 s in the model; a pure gain with a dead
     time of 1 s in the plant): the repair searched the lead-lag element's input lag down to 0, found its best there and

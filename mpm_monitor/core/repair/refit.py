@@ -16,7 +16,7 @@ from typing import Optional
 
 from .classify import _FreeFit
 from .fit import _ElementSpec, _RowEstimate, _RowProblem
-from .forms import _input_lag, _poles_of
+from .forms import _POLE_MIN, _input_lag, _poles_of
 from .options import _TestSettings
 from .result import ElementVerdict
 from .row import _element_after, _element_summary, _estimate_row, _RowData
@@ -72,11 +72,34 @@ def _repair_specs(free: _FreeFit, verdicts: dict):
         free_t = (missing or "time_constant" in v.changed) and loc.form.n_shape > 0
         free_d = missing or "delay" in v.changed
         poles = tuple(float(a) for a in est.fit.poles[free.problem.slices[m]]) if free_t else loc.poles
+        form, window, lag = loc.form, free.specs[j].window if free_d else (loc.lag, loc.lag), \
+            est.fit.lags[m] if free_d else loc.lag
+        if free_t and not missing:
+            form, poles, window, lag = _without_a_vanished_lag(form, poles, window, lag)
         specs[j] = _ElementSpec(free_k, free_t, est.fit.gains[m] if free_k else loc.reference["gain"], poles,
-                                free.specs[j].window if free_d else (loc.lag, loc.lag), form=loc.form,
-                                lead=float(est.fit.leads[m]) if free_t else loc.reference["lead"])
-        lags0[j] = est.fit.lags[m] if free_d else loc.lag
+                                window, form=form, lead=float(est.fit.leads[m]) if free_t else loc.reference["lead"])
+        lags0[j] = lag
     return specs, lags0
+
+
+def _without_a_vanished_lag(form, poles: tuple, window: tuple, lag: int) -> tuple:
+    """``(form, poles, window, lag)`` of a repair fit, with one lag fewer where the free fit took one of the
+    two lags of an element to the bound of its pole.
+
+    The free fit keeps a pole at or above ``_POLE_MIN`` (a lag of ``T / 9.2`` at least): a plant that has
+    lost one of the element's two lags leaves it there, and the element repaired with that lag (0.109 s at
+    ``T`` = 1 s, a delay of a tenth of a sample) kept its row mismatched.  The form with one lag is the
+    limit of the two-lag form beyond that bound (``time_constant2`` 0); the lags move with its offset.  It is
+    not taken where it would make the element act on the output at the sample of its input (a lead with
+    one lag and no dead time: a direct feed-through).
+    """
+    if form.n_lags != 2 or min(poles) > 2 * _POLE_MIN:
+        return form, poles, window, lag
+    fewer = dataclasses.replace(form, n_lags=1)
+    shift = fewer.offset - form.offset
+    if min(window) + shift < 1:
+        return form, poles, window, lag
+    return fewer, (max(poles),), (window[0] + shift, window[1] + shift), lag + shift
 
 
 @dataclasses.dataclass
@@ -127,6 +150,7 @@ def _fit_repair(free: _FreeFit, verdicts: dict, n_fit: int, settings: _TestSetti
     for m, j in enumerate(sorted(specs)):
         v = verdicts[j]
         v.after = _compose(_element_after(problem, est, m, ts, references[j]), references[j], specs[j])
+        v.form = specs[j].form          # one lag fewer where a lag vanished (_without_a_vanished_lag)
         v.evidence["condition_number_repair"] = est.cond
     return _RepairFit(problem=problem, est=est, specs=specs, references=references)
 
