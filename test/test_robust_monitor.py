@@ -520,6 +520,31 @@ def test_node_refuses_malformed_messages_with_the_reason_and_recovers(ros_contex
         node.destroy_node()
 
 
+def test_a_stale_topic_with_a_publisher_of_another_type_names_it(ros_context, model_file):
+    """A publisher of Float64MultiArray on the output topic: DDS never connects it to the monitor's JointState
+    subscription, and the statuses only said "output never".  Once STALE they now name the topic and the type
+    found there (the graph's answer is faked here: one process cannot hold a topic of two types)."""
+    import types
+
+    node = _monitor_node(ros_context, model_file, stale_timeout=0.5)
+    graph = {"/robust/output": ["std_msgs/msg/Float64MultiArray", "sensor_msgs/msg/JointState"]}
+    node.get_publishers_info_by_topic = lambda topic: [types.SimpleNamespace(topic_type=t)
+                                                       for t in graph.get(topic, [])]
+    try:
+        hint = "topic /robust/output has a publisher of type std_msgs/msg/Float64MultiArray (expected " \
+               "sensor_msgs/msg/JointState)"
+        fresh = node.current_statuses(time.monotonic())
+        assert not any(s.level == STALE or hint in s.message for s in fresh)
+        st = node.current_statuses(time.monotonic() + 60.0)
+        assert all(s.level == STALE and s.message.endswith(hint) for s in st), st[-1].message
+        assert len(st[-1].message.splitlines()) == 1
+        graph.clear()
+        assert not any(hint in s.message for s in node.current_statuses(time.monotonic() + 60.0))
+    finally:
+        node.close()
+        node.destroy_node()
+
+
 def test_model_file_that_fails_to_load_is_error_with_the_reason_then_loads_when_fixed(ros_context, model_file,
                                                                                          tmp_path):
     from diagnostic_msgs.msg import DiagnosticArray

@@ -62,7 +62,7 @@ from ..core.errors import ModelFileError
 from ..core.options import ParamSpec
 from ..monitor.experiment import ExperimentOptions
 from ..monitor.monitor_core import MonitorCore, MonitorOptions
-from ..monitor.statuses import ERROR, SUMMARY_NAME, StatusData
+from ..monitor.statuses import ERROR, STALE, SUMMARY_NAME, StatusData
 from ..monitor.window import WindowOptions
 from ..monitor.worker import AnalysisWorker, ProcessAnalyzer, run_analysis
 from .ros_io import (
@@ -422,7 +422,26 @@ class MonitorNode(Node):
             return [StatusData(ERROR, SUMMARY_NAME, f"model not loaded: {self.model_error} (retrying every "
                                f"{self.params['republish_period']:g} s)", self._hw,
                                (("model_file", self.params["model_file"]),))]
-        return self.core.statuses(now)
+        statuses = self.core.statuses(now)
+        if any(s.level == STALE for s in statuses):
+            wrong = self._publishers_of_other_types()
+            if wrong:
+                statuses = [dataclasses.replace(s, message=f"{s.message}; {wrong}") if s.level == STALE else s
+                            for s in statuses]
+        return statuses
+
+    def _publishers_of_other_types(self) -> str:
+        """The publishers of another message type than ``JointState`` on the topics the monitor subscribes to,
+        in words (empty: none).  DDS never connects them, so their messages never arrive and the statuses turn
+        STALE with nothing else to say why."""
+        expected = "sensor_msgs/msg/JointState"
+        found = []
+        for sub in self._subs:
+            kinds = sorted({info.topic_type for info in self.get_publishers_info_by_topic(sub.topic_name)}
+                           - {expected})
+            if kinds:
+                found.append(f"topic {sub.topic_name} has a publisher of type {', '.join(kinds)} (expected {expected})")
+        return "; ".join(found)
 
     def publish_statuses(self) -> None:
         """Publish the current statuses on the diagnostics topic."""
