@@ -147,6 +147,34 @@ def test_a_stuck_output_is_an_error_of_its_row_and_of_the_summary():
     assert summary.message.startswith("output y2 never moves (a stuck sensor or a held value?); mismatch in row(s)")
 
 
+def test_a_window_too_short_for_the_tests_is_waited_on_not_an_error():
+    """A window whose samples (a small min_samples), or whose regression rows between its gaps (a lossy link),
+    are fewer than the tests need: every such analysis was ERROR ("analysis failed: DataFileError: ros: 132
+    regression rows ... need at least 191 rows").  It is waited on now: OK with the reason before a first result,
+    the latest result kept after one (the summary value ``last_analysis_skipped`` says why)."""
+    from mpm_monitor.core.analysis import AnalysisOptions
+    from mpm_monitor.core.pipeline import analyze
+
+    c = core()
+    feed(c, 0, 20)
+    c.accept(run_analysis(analyze, MODEL, AnalysisOptions(), c.take_job()))     # 20 samples: the tests need more
+    st = by_name(c.statuses(now=0.0))
+    summary = st[SUMMARY_NAME]
+    assert all(s.level == OK for s in st.values()), summary.message
+    assert summary.message.startswith("no analysis yet: the window is still too short for the tests (the window: "
+                                      "20 samples; the tests with na=4")
+    assert c.results == 0
+    feed(c, 20, 30)
+    c.accept(run_analysis(lambda m, d, o: fake_report({"y1": ["u2"]}, samples=d.n_samples), MODEL, None,
+                          c.take_job()))
+    assert by_name(c.statuses(now=0.0))[SUMMARY_NAME].value("last_analysis_skipped") is None
+    feed(c, 30, 40)
+    c.accept(run_analysis(analyze, MODEL, AnalysisOptions(), c.take_job()))
+    summary = by_name(c.statuses(now=0.0))[SUMMARY_NAME]
+    assert summary.level == WARN and summary.value("located_elements") == "y1:u2" and c.results == 1
+    assert summary.value("last_analysis_skipped").startswith("the window: 40 samples; the tests with na=4")
+
+
 def test_no_mismatch_is_ok_everywhere():
     c = core()
     feed(c, 0, 20)
@@ -331,6 +359,7 @@ REPAIR_SAMPLES = 1000
 @pytest.fixture(scope="module")
 def repaired_core():
     """(core, report) after one real analysis with the repair of 1000 samples of case 3.2 (seed 1)."""
+    from mpm_monitor.core.analysis import AnalysisOptions
     from mpm_monitor.core.analysis import AnalysisOptions
     from mpm_monitor.core.pipeline import analyze
     from mpm_monitor.sim.closed_loop import run_closed_loop

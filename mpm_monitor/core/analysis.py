@@ -31,7 +31,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .errors import ConfigurationError, DataFileError
+from .errors import ConfigurationError, DataFileError, TooFewSamples
 from .logged_data import (
     NUMERICAL_ERRORS,
     LoggedData,
@@ -669,7 +669,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         options = dataclasses.replace(options, jobs=1)
     split_light = light_jobs(options.jobs, n, model)     # the model run, Gram products, SVD
     if n < layout.min_samples and plan is None:
-        raise DataFileError(f"{src}: {n} samples; the tests with na={options.na}, nb={options.nb}, "
+        raise TooFewSamples(f"{src}: {n} samples; the tests with na={options.na}, nb={options.nb}, "
                             f"max_delay={layout.max_delay} need at least {layout.min_samples} samples"
                             f"{longest_delay_note(model, options, layout, lambda least: n >= least.min_samples)}")
     if signals is None:
@@ -1102,7 +1102,7 @@ def check_gap_rows(plan, layout, options, src: str, model: PlantModel) -> None:
 
     def enough(least) -> bool:     # whether the rows would do for the tests at their least lags
         return plan.rows_kept >= least.min_samples - least.start
-    raise DataFileError(f"{src}: {plan.rows_kept} regression rows from {len(plan.used)} of {n_seg} spans between "
+    raise TooFewSamples(f"{src}: {plan.rows_kept} regression rows from {len(plan.used)} of {n_seg} spans between "
                         f"{n_gaps} gap{'s' if n_gaps != 1 else ''} ({plan.samples_missing} samples missing; a span "
                         f"gives rows after its first {layout.start} samples); the tests with na={options.na}, "
                         f"nb={options.nb}, max_delay={layout.max_delay} need at least {need} rows (is the sample "

@@ -18,6 +18,11 @@ class DataFileError(InputError):
     """A logged-data CSV file (docs/interfaces.md, "Logged data (CSV)") that cannot be used."""
 
 
+class TooFewSamples(DataFileError):
+    """Data that hold fewer samples, or fewer regression rows between their gaps, than the tests need: the live
+    monitor waits for more instead of reporting an error."""
+
+
 class BagError(InputError):
     """A rosbag2 directory that cannot be read or does not hold the expected topics."""
 

@@ -118,6 +118,9 @@ class MonitorCore:
         self._results = 0
         self._latest: Optional[AnalysisOutcome] = None
         self._analysis_error: Optional[str] = None
+        #: Why the latest window was too short for the tests (fewer samples, or regression rows between its
+        #: gaps, than they need): waited on, not an error; None once an analysis has run.
+        self._too_few: Optional[str] = None
         self._data_error: Optional[str] = None
         self._data_error_until = 0
         self._recent_warnings: collections.deque = collections.deque(maxlen=5)
@@ -196,7 +199,7 @@ class MonitorCore:
 
     def take_job(self) -> AnalysisJob:
         """The window's data as the next :class:`AnalysisJob` (a copy; cheap)."""
-        data = self.window.data(source="ros")
+        data = self.window.data(source="the window")
         if self.candidates is not None:
             data = self.candidates.attach(data)
         self._seq += 1
@@ -211,6 +214,11 @@ class MonitorCore:
         """Take the outcome of a job (in the thread that publishes)."""
         if self._latest is not None and outcome.job.seq < self._latest.job.seq:
             return  # an older job finishing late
+        if outcome.too_few is not None:      # no analysis: the latest result (or the waiting) stands, with why
+            self._too_few = outcome.too_few
+            self._analysis_error = None
+            return
+        self._too_few = None
         self._results += 1
         self.experiment.on_outcome(outcome)
         if outcome.error is not None:
@@ -308,11 +316,15 @@ class MonitorCore:
         completed = self.window.n_completed
         summary = with_experiment(summary, self.experiment.text(completed, self._latest),
                                   self.experiment.values(completed))
+        if self._too_few is not None and self._latest is not None:
+            summary = dataclasses.replace(summary, values=summary.values + (("last_analysis_skipped", self._too_few),))
         reason = stale_reason(now, self.options.stale_timeout, self._last_complete_wall, self._started_wall,
                               self._last_arrival)
         return mark_stale(rows + [summary], reason)
 
     def _waiting_message(self) -> str:
+        if self._too_few is not None:
+            return f"no analysis yet: the window is still too short for the tests ({self._too_few})"
         return waiting_message(self.window.n_window, self.options.min_samples)
 
     def _active_data_error(self) -> Optional[str]:

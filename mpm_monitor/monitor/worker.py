@@ -18,7 +18,7 @@ import time
 import traceback
 from typing import Any, Callable, Optional
 
-from ..core.errors import DataFileError
+from ..core.errors import DataFileError, TooFewSamples
 from ..core.logged_data import NUMERICAL_ERRORS, check_scale
 from ..core.model import PlantModel
 from ..core.parallel import fork_safe
@@ -39,12 +39,15 @@ class AnalysisJob:
 
 @dataclasses.dataclass(frozen=True)
 class AnalysisOutcome:
-    """The result of an :class:`AnalysisJob`: a report or an error message."""
+    """The result of an :class:`AnalysisJob`: a report, an error message, or why the window is still too short
+    for the tests (``too_few``: it holds fewer samples, or fewer regression rows between its gaps, than they need;
+    not an error: the monitor waits for more)."""
 
     job: AnalysisJob
     report: Any = None
     error: Optional[str] = None
     seconds: float = 0.0
+    too_few: Optional[str] = None
 
 
 def run_analysis(analyze: Callable, model: PlantModel, options, job: AnalysisJob,
@@ -58,6 +61,8 @@ def run_analysis(analyze: Callable, model: PlantModel, options, job: AnalysisJob
             report = analyze(model, job.data, options)
         else:
             report = analyze(model, job.data, options, candidates=job.candidates)
+    except TooFewSamples as exc:   # a window the tests cannot use yet (gaps cost it rows): waited on, not an error
+        return AnalysisOutcome(job, too_few=str(exc).splitlines()[0], seconds=clock() - t0)
     except Exception as exc:  # the monitor reports any failure as ERROR and keeps running
         if isinstance(exc, DataFileError) and isinstance(exc.__cause__, NUMERICAL_ERRORS):  # numerical_breakdown
             exc = exc.__cause__  # reported as before: 'LinAlgError: ...'
