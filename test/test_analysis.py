@@ -324,6 +324,10 @@ def test_a_stuck_output_is_not_repaired_to_zero_gains():
     assert not any(x["output"] == "y2" for x in rep.repair.get("disturbances", []))
     assert "not tested (the output never moves: a stuck sensor or a held value?): every element of y2" \
         in rep.summary_text()
+    # The baselines' element tests (every row) are set aside on the still row as well.
+    base = analyze(case.model, dataclasses.replace(data, y=y), AnalysisOptions(method="xcorr", repair=False))
+    assert base.still_outputs == ["y2"]
+    assert all(e.p_value is None and not e.mismatch for e in base.elements if e.output == "y2")
 
 
 def test_step_responses_cut_short_of_settling_are_named():

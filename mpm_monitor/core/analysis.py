@@ -308,9 +308,9 @@ class AnalysisReport:
         (:func:`detect` with ``settle`` False); None once :func:`settle_report` has put them in.
     still_outputs : list of str
         Outputs that never move in the window (every value the same: a stuck sensor or a held value).
-        The ARX element test leaves their rows' elements untested (listed with no p-value), no
-        candidate is tested on them and the repair leaves them as they are; the JSON key
-        ``still_outputs`` is written only when there is one.
+        Their rows' elements are not tested (listed with no p-value), no candidate is tested on them and
+        the repair leaves them as they are; the JSON key ``still_outputs`` is written only when there is
+        one.
     """
 
     sample_time: float
@@ -739,7 +739,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         run_row_test(split_light)
     test_rows = list(range(ny)) if (options.test_all_rows or options.method != "arx") else \
         [i for i in range(ny) if row_tests[0].rows[i].mismatch]
-    element_rows = _moving_rows(test_rows, still) if options.method == "arx" else test_rows
+    element_rows = _moving_rows(test_rows, still)
     if probe and colour is None:
         colour = _ElementColour(model, element_rows, columns, layout, regressions, options, spread)
         if colour.noise_order["coloured"]:
@@ -764,8 +764,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     if untested:
         element_test = ElementTest(elements=[])
     elif options.method == "arx":
-        element_test = arx_element_test(model, element_rows, design, regressions, options, moments, output_spread=spread,
-                                        fits=None if colour is None else colour.fits,
+        element_test = arx_element_test(model, element_rows, design, regressions, options, moments,
+                                        output_spread=spread, fits=None if colour is None else colour.fits,
                                         whiteness=None if colour is None else colour.whiteness,
                                         meanwhile=(lambda: run_row_test(1)) if overlap else None)
     elif plan is None:
@@ -781,7 +781,10 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         + offset_warnings(model, sig.d, y, diverged) \
         + ([] if design is None else design.warnings()) + later_warnings
     warnings += element_test.warnings
-    elements = with_untested_rows(model, element_test.elements, [i for i in test_rows if i not in element_rows])
+    # (The baselines test every row: their results on a still output's row are set aside as well.)
+    still_names = {model.outputs[i] for i in still}
+    elements = with_untested_rows(model, [e for e in element_test.elements if e.output not in still_names],
+                                  [i for i in test_rows if i not in element_rows])
     valuation = None
     if valued:
         # The detectable gain changes and the experiment: with settle False and two processes, computed in a
@@ -868,7 +871,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         gaps=None if plan is None else plan.to_dict(), experiment=experiment, candidates=candidate_report,
         regressions=regressions.row_test_part() if getattr(regressions, "batch", False) else None,
         noise_order=noise_order, pending=valuation,
-        still_outputs=[model.outputs[i] for i in still] if options.method == "arx" else [])
+        still_outputs=[model.outputs[i] for i in still])
     if settle:
         settle_report(report)
     return report
@@ -947,7 +950,7 @@ def unsettled_warnings(model: PlantModel) -> list:
 def still_output_warnings(model: PlantModel, still) -> list:
     """One warning naming the outputs ``still`` (indices) that never move in the window
     (:func:`~mpm_monitor.core.logged_data.moving_columns` of the outputs): a stuck sensor or a held value,
-    whose rows' elements the ARX element test leaves untested and the repair leaves as they are."""
+    whose rows' elements the element test leaves untested and the repair leaves as they are."""
     still = [model.outputs[i] for i in still]
     if not still:
         return []
