@@ -97,12 +97,14 @@ def test_closed_loop_structures_are_repaired_in_their_keys(element, change, kind
         assert entry["before"][key] != entry["after"][key]
 
 
-def test_a_second_lag_the_plant_lost_is_repaired_away():
+@pytest.mark.parametrize("lead", [0.0, 5.0], ids=["two-lags", "two-lags-and-a-lead"])
+def test_a_second_lag_the_plant_lost_is_repaired_away(lead):
     """The plant lost the second lag of (y1, u1) (30 s and 15 s in the model, 30 s alone in the plant): the fit's
     pole stops at its bound, and the element was repaired with a second lag of 0.109 s (at T = 1 s), which kept
     the row mismatched (located again in the repaired model, its row in rows_flagged_after).  It is repaired
-    with one lag now, time_constant2 0."""
-    model = shell_structures()
+    with one lag now, time_constant2 0; with a lead, at the same dead time (the one-lag form with a lead acts
+    at its dead time, the two-lag form a sample after it)."""
+    model = shell_structures().with_element(0, 0, lead=lead)
     plant = model.with_element(0, 0, time_constant2=0.0)
     data = closed_loop(plant, model, seed=31)
     report = analyze(model, data)
@@ -111,6 +113,7 @@ def test_a_second_lag_the_plant_lost_is_repaired_away():
     assert after.get("time_constant2", 0.0) == 0.0
     assert after["time_constant"] == pytest.approx(30.0, rel=REL) and after["delay"] == model.delay[0, 0]
     assert after["gain"] == pytest.approx(plant.gain[0, 0], rel=REL)
+    assert after.get("lead", 0.0) == pytest.approx(lead, rel=REL, abs=0.1)
     assert "y1" not in report.repair["rows_flagged_after"]
     again = analyze(report.repaired_model, data)
     assert not [k for k in again.located_elements if k[0] == "y1"]

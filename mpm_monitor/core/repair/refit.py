@@ -33,12 +33,14 @@ def _update_free_intervals(interval: dict, new: dict, spec: _ElementSpec) -> Non
             interval[key] = new[key]
 
 
-def _compose(fitted: dict, held: dict, spec: _ElementSpec, held_lag_too: bool = False) -> dict:
+def _compose(fitted: dict, held: dict, spec: _ElementSpec, held_lag_too: bool = False, fewer_lags: bool = False) -> dict:
     """The element after a fit of ``spec``: the free parameters from ``fitted``, the others from ``held``.
 
     A first-order element whose lag vanished in the fit (time constant 0) with its delay held takes
     the fitted delay: the sample of the lag moves into the delay (``held_lag_too``: also when the
-    lag was held at 0, where the fitted delay is the held one).
+    lag was held at 0, where the fitted delay is the held one).  So does an element fitted with one lag
+    fewer than ``held`` has (``fewer_lags``, :func:`_without_a_vanished_lag`): with a lead its held input lag
+    is a dead time one sample longer.
     """
     out = dict(held)
     out["integrating"] = fitted["integrating"]
@@ -48,7 +50,7 @@ def _compose(fitted: dict, held: dict, spec: _ElementSpec, held_lag_too: bool = 
         for key in _SHAPE_KEYS:
             out[key] = float(fitted[key])
     vanished = spec.form.first_order and (spec.pole_free or held_lag_too) and fitted["time_constant"] == 0.0
-    if spec.lag_free or vanished:
+    if spec.lag_free or vanished or fewer_lags:
         out["delay"] = float(fitted["delay"])
     return out
 
@@ -89,17 +91,14 @@ def _without_a_vanished_lag(form, poles: tuple, window: tuple, lag: int) -> tupl
     The free fit keeps a pole at or above ``_POLE_MIN`` (a lag of ``T / 9.2`` at least): a plant that has
     lost one of the element's two lags leaves it there, and the element repaired with that lag (0.109 s at
     ``T`` = 1 s, a delay of a tenth of a sample) kept its row mismatched.  The form with one lag is the
-    limit of the two-lag form beyond that bound (``time_constant2`` 0); the lags move with its offset.  It is
-    not taken where it would make the element act on the output at the sample of its input (a lead with
-    one lag and no dead time: a direct feed-through).
+    limit of the two-lag form beyond that bound (``time_constant2`` 0).  The input lags (the first sample
+    the input acts) stay: with a lead the two-lag form acts a sample after its dead time, the one-lag form at
+    it, so the dead time grows by that sample.  It is not taken where the element would act on the output at
+    the sample of its input (a lag below 1: a direct feed-through).
     """
-    if form.n_lags != 2 or min(poles) > 2 * _POLE_MIN:
+    if form.n_lags != 2 or min(poles) > 2 * _POLE_MIN or min(window) < 1:
         return form, poles, window, lag
-    fewer = dataclasses.replace(form, n_lags=1)
-    shift = fewer.offset - form.offset
-    if min(window) + shift < 1:
-        return form, poles, window, lag
-    return fewer, (max(poles),), (window[0] + shift, window[1] + shift), lag + shift
+    return dataclasses.replace(form, n_lags=1), (max(poles),), window, lag
 
 
 @dataclasses.dataclass
@@ -149,8 +148,10 @@ def _fit_repair(free: _FreeFit, verdicts: dict, n_fit: int, settings: _TestSetti
     references = {j: free.located[j].reference for j in specs}
     for m, j in enumerate(sorted(specs)):
         v = verdicts[j]
-        v.after = _compose(_element_after(problem, est, m, ts, references[j]), references[j], specs[j])
-        v.form = specs[j].form          # one lag fewer where a lag vanished (_without_a_vanished_lag)
+        fewer = specs[j].form != v.form           # one lag fewer where a lag vanished (_without_a_vanished_lag)
+        v.after = _compose(_element_after(problem, est, m, ts, references[j]), references[j], specs[j],
+                           fewer_lags=fewer)
+        v.form = specs[j].form
         v.evidence["condition_number_repair"] = est.cond
     return _RepairFit(problem=problem, est=est, specs=specs, references=references)
 
