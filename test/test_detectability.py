@@ -482,3 +482,14 @@ def test_beyond_the_cap_the_smallest_multiple_that_reaches_the_goal_is_found_by_
     assert found.fraction == expected and len(calls) <= 5
     calls.clear()
     assert exm._beyond_cap(1e9, (0,), {0: 0.1}, 10) is None and len(calls) == 1
+
+
+def test_a_dither_at_its_cap_is_never_rounded_above_it():
+    """Three significant digits rounded to the nearest put an amplitude at the cap (half the input's standard
+    deviation, 0.37465) at 0.375, above it; it is rounded down there, to the nearest elsewhere."""
+    model = types.SimpleNamespace(inputs=("u1", "u2", "u3"))
+    trial = exm._Trial(inputs=(0, 2), fraction=1.0, samples=1000.0, worst=0.2, separated=True)
+    assert exm._dither(model, trial, {0: 0.37465, 2: 0.12345}) == {"u1": 0.374, "u3": 0.123}
+    half = dataclasses.replace(trial, fraction=0.5)
+    assert exm._dither(model, half, {0: 0.37465, 2: 0.2469}) == {"u1": 0.187, "u3": 0.123}
+    assert exm._dither(model, trial, {0: 0.37449, 2: 1.0}) == {"u1": 0.374, "u3": 1.0}

@@ -32,6 +32,7 @@ relative to its largest allowed value; every dithered input gets the same fracti
 from __future__ import annotations
 
 import dataclasses
+import decimal
 import itertools
 import math
 from typing import Optional
@@ -346,8 +347,21 @@ def design_experiment(model, info: Optional[WindowInformation], elements: list, 
 
 
 def _dither(model, trial: _Trial, caps: dict) -> dict:
-    """Input name -> amplitude (three significant digits) of ``trial``'s dither."""
-    return {model.inputs[j]: float(f"{trial.fraction * caps[j]:.3g}") for j in trial.inputs}
+    """Input name -> amplitude (three significant digits) of ``trial``'s dither, never above its input's cap: an
+    amplitude at the cap rounded to the nearest (0.3747 to 0.375, over a cap of 0.37465) is rounded down."""
+    out = {}
+    for j in trial.inputs:
+        x = trial.fraction * caps[j]
+        a = float(f"{x:.3g}")
+        out[model.inputs[j]] = a if a <= caps[j] else _three_digits_down(x)
+    return out
+
+
+def _three_digits_down(x: float) -> float:
+    """``x`` > 0 cut to three significant digits (rounded towards 0)."""
+    d = decimal.Decimal(repr(float(x)))
+    exponent = d.adjusted() - 2
+    return float(d.scaleb(-exponent).to_integral_value(rounding=decimal.ROUND_DOWN).scaleb(exponent))
 
 
 def _rounded_samples(trial: _Trial) -> int:
