@@ -348,3 +348,42 @@ def test_step_responses_cut_short_of_settling_are_named():
                                   "settled within the model's 20 samples" in warning[0]
     assert unsettled_warnings(case.model) == []                      # parametric: nothing to say
     assert unsettled_warnings(step_model(400)) == []                 # settled (lags of 50 s at most)
+
+
+def test_a_long_window_is_confirmed_with_tails_on_its_last_rows(monkeypatch):
+    """The confirmation with tails fits hundreds of tail lags on every regression row: 17 kB a sample on a 3x3
+    log, 1.8 GB at 100,000 samples and more than the machine at 1,000,000.  Past TAIL_FIT_BYTES of regressors it
+    takes the window's last rows (here a budget of 4 MB stands for a window of millions of samples), and says so."""
+    from mpm_monitor.core import element_test
+
+    case, data = _run_case("3.2", 5, samples=3000)
+    full = analyze(case.model, data, AnalysisOptions(repair=False))
+    monkeypatch.setattr(element_test, "TAIL_FIT_BYTES", 4 * 2 ** 20)
+    short = analyze(case.model, data, AnalysisOptions(repair=False))
+    said = [w for w in short.warnings if "confirmation of its located elements with the others' slow tails used "
+                                          "the last" in w]
+    assert said and not any("used the last" in w for w in full.warnings)
+    rows = int(said[0].split("used the last ")[1].split()[0])
+    width = int(said[0].split("(its regressors ")[1].split()[0])
+    assert rows * width * 8 <= 4 * 2 ** 20 < (rows + 1) * width * 8
+    assert short.located_elements == full.located_elements
+
+
+def test_a_log_too_large_for_the_memory_is_one_line_not_a_traceback(tmp_path, monkeypatch, capsys):
+    """Out of memory (a log of millions of samples under a memory limit) ended in a 59-line MemoryError
+    traceback."""
+    from mpm_monitor.apps import cli
+    from mpm_monitor.core import pipeline
+    from mpm_monitor.io.csv_log import write_log_csv
+    from mpm_monitor.io.model_file import save_model
+
+    case, data = _run_case("3.1", 5, samples=400)
+    save_model(case.model, tmp_path / "m.yaml")
+    write_log_csv(tmp_path / "log.csv", data)
+
+    def too_much(*args, **kwargs):
+        raise MemoryError()
+    monkeypatch.setattr(pipeline, "analyze", too_much)
+    assert cli.main(["analyze", "--model", str(tmp_path / "m.yaml"), "--data", str(tmp_path / "log.csv")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: analyze: out of memory") and err.count("\n") == 1

@@ -508,6 +508,12 @@ def main(argv=None) -> int:
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except MemoryError:
+        # A log too long for this machine's memory: one line, as for bad input (no traceback of numpy's
+        # allocation), and the exit status of a failure that is not the input's fault.
+        print(f"error: {args.command}: out of memory (a log of millions of samples? analyse it in parts, or on a "
+              f"machine with more memory)", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

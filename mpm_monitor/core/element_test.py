@@ -743,6 +743,9 @@ TAIL_MAX_FRACTION = 0.1
 #: The tails of all the other located columns of a row together: at most this fraction of the rows
 #: (binds from four located elements in a row on; :func:`_confirm_with_tails`).
 TAIL_TOTAL_FRACTION = 0.25
+#: Bytes of the regressors of one confirmation fit (rows x columns x 8) at most: a longer window's fit takes
+#: its last rows only.  Its QR holds a few copies of them: about 1 GB at most.
+TAIL_FIT_BYTES = 200 * 2 ** 20
 
 
 def tail_lags(model: PlantModel, i: int, n_lag: int, n_rows: int) -> int:
@@ -808,10 +811,13 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
     p-values) is tested with the tails of the elements kept so far only, and kept when it rejects.
     Such rows are named in a warning.  Only removes locations of the Holm-adjusted test.
 
+    A window so long that a fit's regressors would exceed :data:`TAIL_FIT_BYTES` is confirmed on its last
+    rows only, and a warning says how many.
+
     Returns
     -------
     list of str
-        The warnings of the rows confirmed step by step.
+        The warnings of the rows confirmed step by step or on their last rows.
     """
     from .arx import SharedBlockRegression
 
@@ -845,6 +851,15 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
         if tail <= n_lag:
             continue
         start = max(start0, tail)
+        # A long window (days of samples) would make the fit's regressors as long as the record and hundreds of
+        # columns wide: gigabytes.  Its last rows stand for it then, as many as TAIL_FIT_BYTES holds.
+        width = (len(located) - 1) * tail + (len(testable) - len(located) + 1) * n_lag + na + (na + 1) * len(located)
+        most = max(TAIL_FIT_BYTES // (8 * width), 1)
+        if u.shape[0] - start > most:
+            stepwise.append(f"row {model.outputs[i]}: the confirmation of its located elements with the others' slow "
+                            f"tails used the last {most} of its {u.shape[0] - start} regression rows (its regressors "
+                            f"{width} columns wide held within {TAIL_FIT_BYTES // 2 ** 20} MB)")
+            start = u.shape[0] - most
         di = d[:, i] - d[:, i].mean()
         own = -lag_matrix(di, range(1, na + 1), start) if na else None
         # An integrating element's gain error never dies out: no tail carries it, its response does.
