@@ -517,3 +517,12 @@ def test_analyze_bad_values_gap_on_the_command_line(tmp_path, case_32, capsys):
     assert a["gaps"]["samples_lost"] == 3 and a["samples"] == 2997
     assert json.dumps(a, sort_keys=True).replace("bad.csv", "X") == \
         json.dumps(b, sort_keys=True).replace("deleted.csv", "X")
+
+
+def test_gaps_of_a_wall_clock_log_are_named_to_the_second(case_32):
+    """A historian's or a bag's t (1.7e9 s): the warning printed every gap at 't = 1.7e+09 s' (six digits)."""
+    case, data = case_32
+    wall = dataclasses.replace(data, t=data.t + 1_712_345_678.0)
+    rep = detect(case.model, _drop(wall, [700, 1500, 1501]), DETECT)
+    said = [w for w in rep.warnings if w.startswith("2 gaps in the data")]
+    assert said and "at t = 1712346378 and 1712347178 s" in said[0], rep.warnings

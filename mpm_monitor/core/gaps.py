@@ -23,7 +23,7 @@ from typing import Optional
 
 import numpy as np
 
-from .logged_data import LoggedData
+from .logged_data import LoggedData, t_text
 
 #: Gaps named one by one in the warning; the JSON's ``where`` lists them all.
 NAMED_GAPS = 3
@@ -110,7 +110,7 @@ class GapPlan:
     def warning(self) -> str:
         """The gaps in words, e.g. ``3 gaps (longest 2 samples, at t = 120 s, 431 s and 1022 s): ...``."""
         n = self.gap_lengths.size
-        at = [f"{a:g}" for a, _ in self.gap_where[:NAMED_GAPS]]
+        at = [t_text(a) for a, _ in self.gap_where[:NAMED_GAPS]]
         where = (", ".join(at[:-1]) + " and " + at[-1]) if len(at) > 1 else at[0]
         if n > NAMED_GAPS:
             where += f" and {n - NAMED_GAPS} more"

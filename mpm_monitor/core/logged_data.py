@@ -25,6 +25,13 @@ MAX_ANALYSIS_SCALE = 1e40
 MIN_ANALYSIS_SCALE = 1e-100
 
 
+def t_text(t) -> str:
+    """A time ``t`` (s) in a message, to 15 significant digits: a wall-clock time (1.7e9 s, a historian's or a
+    bag's) keeps its seconds and their fraction (six digits, ``:g``, printed every gap of a day at
+    ``1.71235e+09``), and a sum of sample times keeps no rounding tail (``0.30000000000000004`` is ``0.3``)."""
+    return f"{float(t):.15g}"
+
+
 def moving_columns(x: np.ndarray) -> np.ndarray:
     """Whether each column of ``x`` (shape (n_samples, k), or (n_samples,) for one) moves over its samples: its
     standard deviation above 1e-12 of its largest |value| (and above 0).  A column held at a value such as 0.1
@@ -419,7 +426,7 @@ def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the mo
         peak = float(arr[k, j])
         if 0.0 < peak < MIN_ANALYSIS_SCALE:
             raise DataFileError(f"{data.source or 'data'}: the {name}s are at most {peak:.3g} (largest: '{names[j]}' "
-                                f"at t = {float(data.t[k]):g} s): too small for the analysis (at least "
+                                f"at t = {t_text(data.t[k])} s): too small for the analysis (at least "
                                 f"{MIN_ANALYSIS_SCALE:g}); rescale the units")
         if not peak * max(1.0, gain) <= MAX_ANALYSIS_SCALE:
             why = "" if peak > MAX_ANALYSIS_SCALE else f" with gains up to {gain:.3g} in {model_source}"
@@ -428,7 +435,7 @@ def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the mo
                 # In deviations from the model's operating point: a huge nominal value is the model file's.
                 why += f" (the logged value minus {key} {float(values[j]):g} of {model_source})"
             diverging = diverging_outputs(model.outputs, data.y)
-            raise DataFileError(f"{data.source or 'data'}: {name} '{names[j]}' at t = {float(data.t[k]):g} s is "
+            raise DataFileError(f"{data.source or 'data'}: {name} '{names[j]}' at t = {t_text(data.t[k])} s is "
                                 f"{peak:.3g}{why}: too large for the analysis (|value| x max(1, |gain|) at most "
                                 f"{MAX_ANALYSIS_SCALE:g}); "
                                 f"{_diverged_hint(diverging) if diverging else 'rescale the units'}")
@@ -488,4 +495,4 @@ def numerical_breakdown(model: PlantModel, data: LoggedData, err: BaseException)
     size = np.abs(y[:, c])
     k = int(np.argmax(np.where(np.isnan(size), -1.0, size)))
     return DataFileError(f"{src}: the analysis broke down numerically ({cause}): output '{diverging[0]}' reaches "
-                         f"{float(y[k, c]):.3g} at t = {float(data.t[k]):g} s; {_diverged_hint(diverging)}")
+                         f"{float(y[k, c]):.3g} at t = {t_text(data.t[k])} s; {_diverged_hint(diverging)}")

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .logged_data import LoggedData
+from .logged_data import LoggedData, t_text
 
 #: A spike leaves the channel's course by more than this many robust standard deviations of its
 #: sample-to-sample changes (on Gaussian noise such an excursion never happens).
@@ -239,7 +239,7 @@ def without_spikes(data: LoggedData, threshold: float = SPIKE_THRESHOLD, jobs: i
     parts = []
     for label, mask in spikes.items():
         starts = np.flatnonzero(mask & ~np.concatenate([[False], mask[:-1]]))
-        at = ", ".join(f"{data.t[k]:g}" for k in starts[:NAMED_SPIKES]) + (
+        at = ", ".join(t_text(data.t[k]) for k in starts[:NAMED_SPIKES]) + (
             f" and {starts.size - NAMED_SPIKES} more" if starts.size > NAMED_SPIKES else "")
         parts.append(f"{label} at t = {at} s" if starts.size == 1 else f"{label} {starts.size} times (t = {at} s)")
     n_bad = int(bad.sum())

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import DataFileError
-from ..core.logged_data import LoggedData
+from ..core.logged_data import LoggedData, t_text
 from ..core.model import PlantModel
 from ..core.parallel import Forked
 from .files import gunzipped, read_text, replace_file
@@ -716,9 +716,9 @@ def _refuse_span(t: np.ndarray, lines, ts: float, source: str, text, header, nee
     if lines is None:
         _, lines, _, _ = _careful_table(text, header, needed, idx, [], source)
     k = int(far[0])
-    raise DataFileError(f"{source}: line {lines[k]}: t = {t[k]:g} s lies {(t[k] - t[0]) / ts:.3g} sample times after "
-                        f"the first sample (t = {t[0]:g} s): expected at most 2^53 (a stray t, or is the sample time "
-                        f"right?)")
+    raise DataFileError(f"{source}: line {lines[k]}: t = {t_text(t[k])} s lies {(t[k] - t[0]) / ts:.3g} sample times "
+                        f"after the first sample (t = {t_text(t[0])} s): expected at most 2^53 (a stray t, or is the "
+                        f"sample time right?)")
 
 
 def _refuse_spacing(t: np.ndarray, lines: list, ts: float, source: str) -> None:
@@ -730,8 +730,8 @@ def _refuse_spacing(t: np.ndarray, lines: list, ts: float, source: str) -> None:
     step = steps[k]
     if step <= 0:
         what = "repeats" if step == 0 else "goes back from"
-        raise DataFileError(f"{source}: line {lines[k + 1]}: t = {t[k + 1]:g} s {what} t = {t[k]:g} s on line "
-                            f"{lines[k]}: expected t to increase by sample_time {ts:g} s")
-    raise DataFileError(f"{source}: line {lines[k + 1]}: t = {t[k + 1]:g} s follows t = {t[k]:g} s: a step of "
-                        f"{step:g} s (expected sample_time {ts:g} s; a gap or an irregular sample: every step a "
+        raise DataFileError(f"{source}: line {lines[k + 1]}: t = {t_text(t[k + 1])} s {what} t = {t_text(t[k])} s "
+                            f"on line {lines[k]}: expected t to increase by sample_time {ts:g} s")
+    raise DataFileError(f"{source}: line {lines[k + 1]}: t = {t_text(t[k + 1])} s follows t = {t_text(t[k])} s: a step "
+                        f"of {step:g} s (expected sample_time {ts:g} s; a gap or an irregular sample: every step a "
                         f"whole number of sample times, within {SPACING_TOLERANCE * 100:g} % of one)")
