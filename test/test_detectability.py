@@ -493,3 +493,5 @@ def test_a_dither_at_its_cap_is_never_rounded_above_it():
     half = dataclasses.replace(trial, fraction=0.5)
     assert exm._dither(model, half, {0: 0.37465, 2: 0.2469}) == {"u1": 0.187, "u3": 0.123}
     assert exm._dither(model, trial, {0: 0.37449, 2: 1.0}) == {"u1": 0.374, "u3": 1.0}
+    beyond = dataclasses.replace(trial, fraction=2.0)            # a multiple beyond the caps: to the nearest
+    assert exm._dither(model, beyond, {0: 0.18733, 2: 1.0}) == {"u1": 0.375, "u3": 2.0}

@@ -347,13 +347,15 @@ def design_experiment(model, info: Optional[WindowInformation], elements: list, 
 
 
 def _dither(model, trial: _Trial, caps: dict) -> dict:
-    """Input name -> amplitude (three significant digits) of ``trial``'s dither, never above its input's cap: an
-    amplitude at the cap rounded to the nearest (0.3747 to 0.375, over a cap of 0.37465) is rounded down."""
+    """Input name -> amplitude (three significant digits) of ``trial``'s dither.  Within the caps (``fraction``
+    at most 1, the recommended dither) never above its input's cap: an amplitude at the cap rounded to the
+    nearest (0.3747 to 0.375, over a cap of 0.37465) is rounded down; a multiple beyond them (the ``beyond``
+    of an experiment out of reach) is rounded to the nearest."""
     out = {}
     for j in trial.inputs:
         x = trial.fraction * caps[j]
         a = float(f"{x:.3g}")
-        out[model.inputs[j]] = a if a <= caps[j] else _three_digits_down(x)
+        out[model.inputs[j]] = a if a <= caps[j] or trial.fraction > 1 else _three_digits_down(x)
     return out
 
 
