@@ -725,7 +725,11 @@ def test_bad_values_as_gaps_keep_the_other_refusals(tmp_path):
         with pytest.raises(DataFileError, match=pattern):
             read_csv(_write(tmp_path, content), _model(), bad_values="gap")
     every = [",".join(r.split(",")[:-1] + [""]) for r in _rows(3)]
-    with pytest.raises(DataFileError, match=r"no data lines after the header but 3 left out for a bad value"):
+    # The refusal names the column that left every row out (it said only "3 left out for a bad value").
+    last = HEADER.split(",")[-1]
+    with pytest.raises(DataFileError, match=rf"every one of its 3 data lines left out for a bad value \(empty, not a "
+                                            rf"number or not finite\) in '{last}' \(3 rows\); the first on line 2, "
+                                            rf"column '{last}': ''"):
         read_csv(_write(tmp_path, _text([HEADER] + every), "every.csv"), _model(), bad_values="gap")
     with pytest.raises(ValueError, match="bad_values"):
         parse_csv_text(_text([HEADER] + _rows()), _model(), bad_values="skip")

@@ -526,3 +526,23 @@ def test_gaps_of_a_wall_clock_log_are_named_to_the_second(case_32):
     rep = detect(case.model, _drop(wall, [700, 1500, 1501]), DETECT)
     said = [w for w in rep.warnings if w.startswith("2 gaps in the data")]
     assert said and "at t = 1712346378 and 1712347178 s" in said[0], rep.warnings
+
+
+def test_too_few_rows_after_bad_values_left_out_says_so(case_32, tmp_path):
+    """Every other row with a bad value, left out (--bad-values gap): the refusal asked "is the sample time
+    right?" and named a median step of 2 sample times, but not the rows left out for their bad values."""
+    from mpm_monitor.core.errors import TooFewSamples
+
+    case, data = case_32
+    write_csv(tmp_path / "log.csv", data.t, data.r, data.u, data.y, data.inputs, data.outputs)
+    lines = (tmp_path / "log.csv").read_text().splitlines()
+    col = lines[0].split(",").index("y2")
+    for k in range(1, len(lines), 2):
+        cells = lines[k].split(",")
+        cells[col] = "Bad"
+        lines[k] = ",".join(cells)
+    (tmp_path / "bad.csv").write_text("\n".join(lines) + "\n")
+    gappy = read_csv(tmp_path / "bad.csv", case.model, bad_values="gap")
+    with pytest.raises(TooFewSamples, match=r"need at least \d+ rows .*; .*bad.csv: 1500 rows left out as missing "
+                                            r"samples .*column 'y2': 'Bad'"):
+        detect(case.model, gappy, DETECT)

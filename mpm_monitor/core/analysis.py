@@ -655,7 +655,12 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     plan = plan_gaps(data, layout.start, options.max_gap)
     restarts = None
     if plan is not None:          # data with gaps: the segments long enough for a regression row, stacked
-        check_gap_rows(plan, layout, options, src, model)
+        try:
+            check_gap_rows(plan, layout, options, src, model)
+        except TooFewSamples as exc:   # rows the reader left out (bad values, spikes) made gaps too: said with it
+            if not data.notes:
+                raise
+            raise TooFewSamples(f"{exc}; {'; '.join(data.notes)}") from None
         r, u, y, dv = (plan.take(x) for x in (r, u, y, dv))
         grid = plan.take(data.grid_index)     # the model runs through a short gap (segment_signals)
         restarts = unknown_starts(plan.local_segments, grid, plan.max_gap, data.fill_on_grid())

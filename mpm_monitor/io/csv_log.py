@@ -669,8 +669,14 @@ def _careful_table(text: str, header: list, needed: list, idx: list, other_idx: 
         raise DataFileError(f"{source}: line {read + 1}: not valid CSV: "
                             f"{_csv_error_text(exc, reader.line_num - read)}") from None
     if not rows:
-        raise DataFileError(f"{source}: no data lines after the header"
-                            + (f" but {len(left_out)} left out for a bad value" if left_out else ""))
+        if left_out:          # every row left out: name the columns that did it, with the first bad cell
+            counts = collections.Counter(col for _, col, _ in left_out)
+            line, col, cell = left_out[0]
+            worst = ", ".join(f"'{c}' ({n} row{'s' if n != 1 else ''})" for c, n in counts.most_common(3))
+            raise DataFileError(f"{source}: every one of its {len(left_out)} data lines left out for a bad value "
+                                f"(empty, not a number or not finite) in {worst}; the first on line {line}, column "
+                                f"'{col}': {cell[:40]!r}: expected numbers in the model's columns")
+        raise DataFileError(f"{source}: no data lines after the header")
     return np.array(rows, dtype=float), lines, cells, left_out
 
 
