@@ -419,6 +419,7 @@ def test_truncated_mcap(tmp_path):
     with pytest.raises(BagError) as e:
         read_bag(bag, MODEL)
     _check(e, str(bag), "cannot read bag")
+    assert "python -m mpm_monitor recover --bag DIR --out NEW" in str(e.value)      # the command that mends it
 
 
 def test_garbage_record_length(tmp_path):

@@ -118,7 +118,8 @@ def _open_failure(exc: BaseException) -> str:
         return f"{text} (expected the storage file metadata.yaml names, beside it)"
     if any(w in text for w in ("metadata", "YAML")):
         return f"{text} (expected metadata.yaml as rosbag2 writes it)"
-    return f"{text} (truncated or not closed properly?)"
+    return (f"{text} (truncated or not closed properly? python -m mpm_monitor recover --bag DIR --out NEW "
+            f"rewrites what its chunks hold as a readable bag)")
 
 
 def none_read(path, topic: str, conns: list) -> BagError:
