@@ -243,6 +243,9 @@ def test_an_input_that_did_not_move_is_named_and_its_amplitude_is_not_bounded_by
     exp = rep.experiment
     assert exp is not None and "u4" in exp.dither and exp.dither["u4"] > 0
     assert "u4 did not move at all in this window" in exp.why and "u4 did not move, so its amplitude" in exp.why
+    # It said "matches the other inputs' dithers", also where no other input is dithered.
+    assert "its effect on the outputs matches the effect on the outputs of a dither of half the standard " \
+           "deviation of the inputs that moved" in exp.why and "the other inputs' dithers" not in exp.why
     # The summary says why its elements were not tested (it listed them as "ambiguous (inputs move together)").
     text = rep.summary_text()
     assert "not testable (their column never moves): (y1, u4), (y2, u4)" in text and "u4 n/a (never moves)" in text

@@ -437,8 +437,10 @@ def _why(model, info, best: _Trial, caps, still, ambiguous, decidable, values, t
         text += ("is predicted to separate the inputs and " if moving_amb else "is predicted to ") + goal + \
             "; it is the smallest experiment that does (fewest inputs, then smallest amplitude times samples)."
     else:
-        text += (f"is the largest allowed (half of each input's standard deviation, {MAX_SAMPLES} samples) and still "
-                 f"does not reach the goal: predicted detectable gain change {_g(worst)}.")
+        cap = "half of each input's standard deviation" if not still else \
+            "half of each moving input's standard deviation, the still ones' as below"
+        text += (f"is the largest allowed ({cap}, {MAX_SAMPLES} samples) and still does not reach the goal: predicted "
+                 f"detectable gain change {_g(worst)}.")
         if beyond is not None:
             more = ", ".join(f"{name} {_g(a)}" for name, a in beyond["dither"].items())
             text += (f" A dither {beyond['multiple']:g} times as large ({more}) is predicted to reach it in "
@@ -448,7 +450,9 @@ def _why(model, info, best: _Trial, caps, still, ambiguous, decidable, values, t
             text += (f" No dither up to {BEYOND_CAP[-1]:g} times as large is predicted to reach it within "
                      f"{MAX_SAMPLES} samples.")
     if still:
+        basis = ("the effect on the outputs of a dither of half the standard deviation of the inputs that moved"
+                 if info.testable else "five times the noise of the prediction error on the outputs (no input moved)")
         text += (f" {_names(model, still)} did not move, so {'its' if len(still) == 1 else 'their'} amplitude is not "
-                 "bounded by an observed spread: it is chosen so that its effect on the outputs matches the other "
-                 "inputs' dithers; check that the process allows it.")
+                 f"bounded by an observed spread: it is chosen so that its effect on the outputs matches {basis}; "
+                 "check that the process allows it.")
     return text
