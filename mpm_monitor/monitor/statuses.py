@@ -330,8 +330,9 @@ def summary_status(outcome, analyses: int, analysis_error: Optional[str], waitin
         if still:
             level = ERROR
             values += [("still_outputs", ",".join(still))]
-            msg = (f"output{'s' if len(still) > 1 else ''} {', '.join(still)} never move{'' if len(still) > 1 else 's'} "
-                   f"(a stuck sensor or a held value?); {msg}")
+            several = len(still) > 1
+            msg = (f"output{'s' if several else ''} {', '.join(still)} never move{'' if several else 's'} (a stuck "
+                   f"sensor or a held value?); {msg}")
         msg += f" ({job.data.n_samples} samples up to t = {job.last_stamp:.15g} s{lost_text(job.data)})"
         if analysis_error:
             level, msg = ERROR, f"{analysis_error}; previous result: {msg}"

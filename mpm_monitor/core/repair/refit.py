@@ -33,7 +33,8 @@ def _update_free_intervals(interval: dict, new: dict, spec: _ElementSpec) -> Non
             interval[key] = new[key]
 
 
-def _compose(fitted: dict, held: dict, spec: _ElementSpec, held_lag_too: bool = False, fewer_lags: bool = False) -> dict:
+def _compose(fitted: dict, held: dict, spec: _ElementSpec, held_lag_too: bool = False,
+             fewer_lags: bool = False) -> dict:
     """The element after a fit of ``spec``: the free parameters from ``fitted``, the others from ``held``.
 
     A first-order element whose lag vanished in the fit (time constant 0) with its delay held takes
