@@ -12,7 +12,7 @@ import sys
 import numpy as np
 import pytest
 
-from mpm_monitor.core.analysis import AnalysisOptions
+from mpm_monitor.core.analysis import AnalysisOptions, detect
 from mpm_monitor.core.errors import ConfigurationError, DataFileError
 from mpm_monitor.core.model import PlantModel
 from mpm_monitor.core.pipeline import analyze
@@ -387,3 +387,22 @@ def test_a_log_too_large_for_the_memory_is_one_line_not_a_traceback(tmp_path, mo
     assert cli.main(["analyze", "--model", str(tmp_path / "m.yaml"), "--data", str(tmp_path / "log.csv")]) == 1
     err = capsys.readouterr().err
     assert err.startswith("error: analyze: out of memory") and err.count("\n") == 1
+
+
+def test_an_output_held_over_the_last_part_of_the_window_is_named():
+    """A sensor that sticks during the window (its last 600 samples one value): nothing said so, and its row's
+    elements were located as if the model were wrong.  A warning names it now; a quantized output (its value
+    repeated at many samples throughout) is not named."""
+    case, data = _run_case("3.2", 5, samples=3000)
+    y = data.y.copy()
+    y[2400:, 1] = y[2400, 1]
+    rep = detect(case.model, dataclasses.replace(data, y=y), AnalysisOptions(repair=False))
+    said = [w for w in rep.warnings if w.startswith("output y2 holds one value over its last 600 samples (from t = "
+                                                    f"{data.t[2400]:.15g} s)")]
+    assert said, rep.warnings
+    assert not any("holds one value" in w for w in detect(case.model, data, AnalysisOptions(repair=False)).warnings)
+    coarse = data.y.copy()
+    coarse[:, 1] = np.round(coarse[:, 1], 1)            # a measurement in steps of 0.1: repeats everywhere
+    coarse[2400:, 1] = coarse[2400, 1]
+    rep = detect(case.model, dataclasses.replace(data, y=coarse), AnalysisOptions(repair=False))
+    assert not any("holds one value" in w for w in rep.warnings)

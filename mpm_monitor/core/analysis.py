@@ -41,6 +41,7 @@ from .logged_data import (
     in_deviations,
     moving_columns,
     numerical_breakdown,
+    t_text,
 )
 from .model import PlantModel
 from .options import check_options, option, option_specs
@@ -782,7 +783,9 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
                               f"({b - a} samples)")
     row_test = row_tests[0]
     rows = row_test.rows
-    warnings = still_output_warnings(model, still) + unsettled_warnings(model) + diverging + list(row_test.warnings) \
+    t_used = data.t if plan is None else plan.take(data.t)
+    warnings = still_output_warnings(model, still) + held_tail_warnings(model, y, t_used, still) \
+        + unsettled_warnings(model) + diverging + list(row_test.warnings) \
         + offset_warnings(model, sig.d, y, diverged) \
         + ([] if design is None else design.warnings()) + later_warnings
     warnings += element_test.warnings
@@ -964,6 +967,51 @@ def still_output_warnings(model: PlantModel, still) -> list:
             f"this window (every value the same: a stuck sensor or a held value?): a fault of the measurement, not "
             f"of the model; the elements of {rows} are not tested (no p-value, detectable_gain_change null) and the "
             f"repair leaves them as they are (the row test reads a constant: check the measurement first)"]
+
+
+#: An output whose last samples hold one value, at least this many of them and this fraction of the window, while
+#: it changed at almost every sample before (:func:`held_tail_warnings`), is named as a sensor stuck there.
+HELD_TAIL_SAMPLES, HELD_TAIL_FRACTION = 50, 0.05
+#: ... "almost every sample": at most this fraction of its changes before the held value are zero (a quantized
+#: measurement repeats its value often, and is not named).
+HELD_TAIL_REPEATS = 0.01
+
+
+def held_tail_warnings(model: PlantModel, y: np.ndarray, t: np.ndarray, still) -> list:
+    """One warning per output (not in ``still``) whose last samples hold one value while it moved before.
+
+    A sensor that sticks during the window (a transmitter gone, a historian holding its last value) leaves its
+    output constant from there on: the tests then read the process before and the model's own response
+    after, and may locate its row's elements.  Named, not left out: a held value cannot be told from a
+    process at rest when the noise is below the measurement's resolution.
+
+    Parameters
+    ----------
+    y : ndarray, shape (n_samples, n_outputs)
+        The outputs of the window.
+    t : ndarray, shape (n_samples,)
+        Their times (s).
+    still : sequence of int
+        Outputs that never move (named by :func:`still_output_warnings`).
+    """
+    n = y.shape[0]
+    least = max(HELD_TAIL_SAMPLES, int(HELD_TAIL_FRACTION * n))
+    out = []
+    for i in range(y.shape[1]):
+        if i in still or n <= least:
+            continue
+        changes = y[1:, i] != y[:-1, i]
+        moved = np.flatnonzero(changes)
+        if moved.size == 0:
+            continue
+        held = n - 1 - int(moved[-1])           # samples after the last change, the last value's included
+        before = changes[:moved[-1] + 1]
+        if held >= least and np.count_nonzero(~before) <= HELD_TAIL_REPEATS * before.size:
+            out.append(f"output {model.outputs[i]} holds one value over its last {held} samples (from t = "
+                       f"{t_text(t[n - held])} s) while it changed at almost every sample before: a sensor stuck "
+                       f"there or a held value? What the tests and the repair say of row {model.outputs[i]} mixes "
+                       f"the process before with a constant after")
+    return out
 
 
 def _moving_rows(rows, still) -> list:
