@@ -790,7 +790,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         + ([] if design is None else design.warnings()) + later_warnings
     warnings += element_test.warnings
     # (The baselines test every row: their results on a still output's row are set aside as well.)
-    still_names = {model.outputs[i] for i in still}
+    still_names = [model.outputs[i] for i in still]
     elements = with_untested_rows(model, [e for e in element_test.elements if e.output not in still_names],
                                   [i for i in test_rows if i not in element_rows])
     valuation = None
@@ -879,7 +879,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         gaps=None if plan is None else plan.to_dict(), experiment=experiment, candidates=candidate_report,
         regressions=regressions.row_test_part() if getattr(regressions, "batch", False) else None,
         noise_order=noise_order, pending=valuation,
-        still_outputs=[model.outputs[i] for i in still])
+        still_outputs=still_names)
     if settle:
         settle_report(report)
     return report
