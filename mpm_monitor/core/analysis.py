@@ -656,12 +656,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     plan = plan_gaps(data, layout.start, options.max_gap)
     restarts = None
     if plan is not None:          # data with gaps: the segments long enough for a regression row, stacked
-        try:
-            check_gap_rows(plan, layout, options, src, model)
-        except TooFewSamples as exc:   # rows the reader left out (bad values, spikes) made gaps too: said with it
-            if not data.notes:
-                raise
-            raise TooFewSamples(f"{exc}; {'; '.join(data.notes)}") from None
+        check_gap_rows(plan, layout, options, src, model, notes=data.notes)
         r, u, y, dv = (plan.take(x) for x in (r, u, y, dv))
         grid = plan.take(data.grid_index)     # the model runs through a short gap (segment_signals)
         restarts = unknown_starts(plan.local_segments, grid, plan.max_gap, data.fill_on_grid())
@@ -1139,12 +1134,13 @@ def detect_unless_coloured(model: PlantModel, data: LoggedData, options: Analysi
                     unless_coloured=True, settle=settle, beside=beside)
 
 
-def check_gap_rows(plan, layout, options, src: str, model: PlantModel) -> None:
+def check_gap_rows(plan, layout, options, src: str, model: PlantModel, notes=()) -> None:
     """Refuse data with gaps whose segments give fewer regression rows than the tests need.
 
     The tests need ``layout.min_samples`` samples of one contiguous span, that is
     ``min_samples - start`` regression rows; data with gaps must give as many rows from its segments.
-    ``model`` names the delay that sets ``max_delay`` (:func:`longest_delay_note`).
+    ``model`` names the delay that sets ``max_delay`` (:func:`longest_delay_note`); ``notes`` (the data's: rows
+    the reader left out for bad values or spikes, which made gaps too) end the refusal.
 
     Raises
     ------
@@ -1163,7 +1159,7 @@ def check_gap_rows(plan, layout, options, src: str, model: PlantModel) -> None:
                         f"gives rows after its first {layout.start} samples); the tests with na={options.na}, "
                         f"nb={options.nb}, max_delay={layout.max_delay} need at least {need} rows (is the sample "
                         f"time right?)" + time_unit_note(plan, model.sample_time)
-                        + longest_delay_note(model, options, layout, enough))
+                        + longest_delay_note(model, options, layout, enough) + "".join(f"; {x}" for x in notes))
 
 
 #: Units a log's time column is often written in, and their seconds (:func:`time_unit_note`).
