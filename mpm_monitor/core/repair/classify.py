@@ -48,6 +48,9 @@ _PARAM_OF_TEST = {"gain": "gain", "time_constant": "pole", "delay": "lag", "miss
 #: The order in which changed parameters are listed; the first names the kind of a single change.
 _TEST_ORDER = ["missing", "gain", "time_constant", "delay"]
 
+#: The pole of a lag of one sample time: a second lag fitted shorter is tried away (:func:`_reduce_vanished_lags`).
+_SUBSAMPLE_POLE = math.exp(-1.0)
+
 
 def _margin(p, alpha):
     """How clearly a p-value lies on its side of ``alpha``: 0 at the threshold, 1 far from it."""
@@ -104,6 +107,9 @@ class _Located:
         The model lacks the element.
     poles : tuple
         The reference's poles.
+    declared : _Form or None
+        The form of the reference, where the fit's ``form`` has one lag fewer (:func:`_reduce_vanished_lags`;
+        ``poles`` are then the declared form's, and ``lag`` the reference's dead time in ``form``); else None.
     """
 
     form: _Form
@@ -111,6 +117,12 @@ class _Located:
     lag: int
     missing: bool
     poles: tuple
+    declared: Optional[_Form] = None
+
+    @property
+    def shape_form(self) -> _Form:
+        """The form whose shape the ``time_constant`` test holds at the reference's: the declared one."""
+        return self.declared or self.form
 
 
 @dataclasses.dataclass
@@ -168,6 +180,10 @@ class _FreeFit:
                 sp_new.gain_free, sp_new.gain = False, loc.reference["gain"]
             if "pole" in what:
                 sp_new.pole_free, sp_new.poles, sp_new.lead = False, loc.poles, loc.reference["lead"]
+                if loc.declared is not None:      # the reference's shape, at the same dead time
+                    sp_new.form = loc.declared
+                    lag += loc.declared.offset - loc.form.offset
+                    sp_new.window = (lag, lag)
             if "absent" in what:
                 sp_new.gain_free, sp_new.gain, sp_new.pole_free = False, 0.0, False
             held[j] = sp_new
@@ -257,7 +273,49 @@ def _fit_free(row: _RowData, js, settings: _TestSettings) -> _FreeFit:
         skip = _default_skip(row, specs) + _LAG_SHIFT
     problem, est = _estimate_row(row, specs, lags0, row.n_samples, options, options.max_sweeps, skip=skip)
     free = _FreeFit(row=row, js=list(js), specs=specs, located=located, problem=problem, est=est)
-    return _choose_forms(free, settings)
+    return _reduce_vanished_lags(_choose_forms(free, settings), settings)
+
+
+def _reduce_vanished_lags(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
+    """The free fit with one lag fewer for an element whose fit took one of its two lags below a sample.
+
+    A plant that has lost one of an element's two lags leaves that lag at the fit's bound (a pole of
+    ``_POLE_MIN``, a lag of ``T / 9.2``) or near it.  There the two-lag form is not the one-lag form: its
+    lag of a tenth of a sample shifts the response, and the gain, the lead and the dead time bend to make up
+    for it (the gain and delay tests found changes the plant did not have, the kind came out ``mixed``, and
+    the repair kept the row mismatched).  The one-lag form is the limit of the two-lag form as that lag goes
+    to 0 (``time_constant2`` 0).  So an element whose smaller fitted lag is shorter than one sample time is
+    refitted in it, every parameter free on the same samples, and that form is kept unless the two-lag form
+    fits significantly better: the likelihood-ratio test ``n ln(SSR_one / SSR_two)`` against chi-square with
+    one degree of freedom at ``alpha`` (as :func:`_choose_forms` chooses a larger form).  Its tests measure
+    the changes from the reference's dead time in that form (:class:`_Located`'s ``declared``).  An element
+    the model lacks keeps the form its ladder chose.
+    """
+    row, options = free.row, settings.options
+    for m, j in enumerate(free.js):
+        loc = free.located[j]
+        poles = free.est.fit.poles[free.problem.slices[m]]
+        if loc.missing or loc.declared is not None or loc.form.n_lags != 2 or min(poles) > _SUBSAMPLE_POLE:
+            continue
+        form = dataclasses.replace(loc.form, n_lags=1)
+        reduced = dataclasses.replace(loc, form=form, lag=_input_lag(form, loc.reference, row.model.sample_time),
+                                      declared=loc.form)
+        start = (float(free.est.fit.gains[m]), (float(max(poles)),), float(free.est.fit.leads[m]),
+                 int(free.est.fit.lags[m]) - (loc.form.offset - form.offset))
+        spec, lag0 = _free_spec(row, reduced, options, start)
+        specs = dict(free.specs)
+        specs[j] = spec
+        lags0 = {jj: int(free.est.fit.lags[k]) for k, jj in enumerate(free.js)}
+        lags0[j] = min(max(lag0, spec.window[0]), spec.window[1])
+        skip = free.problem.start - free.problem.p
+        problem, est = _estimate_row(row, specs, lags0, row.n_samples, options, options.max_sweeps, skip=skip)
+        stat = free.est.fit.n_resid * math.log(max(est.fit.ssr, 1e-300) / max(free.est.fit.ssr, 1e-300))
+        if chi2_tail(max(stat, 0.0), 1) < settings.alpha:
+            continue
+        located = dict(free.located)
+        located[j] = reduced
+        free = _FreeFit(row=row, js=free.js, specs=specs, located=located, problem=problem, est=est)
+    return free
 
 
 def _ladder(row: _RowData, j: int) -> tuple:
@@ -336,7 +394,7 @@ def _single_tests(free: _FreeFit, settings: _TestSettings):
         loc = free.located[j]
         after, interval = _element_summary(free.problem, free.est, m, ts, settings, loc.reference)
         summaries[j] = (after, interval)
-        before, form = loc.reference, loc.form
+        before, form = loc.reference, loc.shape_form
         t = {}
         if loc.missing:
             t["missing"] = [float(chi2_tail(free.hold_statistic({m: {"absent"}}, options), 1)), True]
@@ -370,7 +428,8 @@ def _joint_hold(free: _FreeFit, tests: dict, settings: _TestSettings, warnings: 
     joint_p = None
     while True:
         holds = {m: {_PARAM_OF_TEST[k] for k in tests[j].unchanged()} for m, j in enumerate(js)}
-        n_held = sum(free.located[js[m]].form.n_shape if k == "pole" else 1 for m, h in holds.items() for k in h)
+        n_held = sum(free.located[js[m]].shape_form.n_shape if k == "pole" else 1
+                     for m, h in holds.items() for k in h)
         if n_held == 0:
             break
         joint_p = float(chi2_tail(free.hold_statistic(holds, settings.options), n_held))
@@ -417,7 +476,8 @@ def _verdict(est: _RowEstimate, summary: tuple, tests: _ElementTests, joint_p, a
     if step_response:
         evidence["parametric_before"] = _public_params(loc.reference)
     return ElementVerdict(kind=kind, changed=hits, after=after, interval=interval, evidence=evidence,
-                          confidence=confidence, apply=kind != "unknown", form=loc.form, reference=loc.reference)
+                          confidence=confidence, apply=kind != "unknown", form=loc.shape_form,
+                          reference=loc.reference)
 
 
 def _verdict_warnings(free: _FreeFit, m: int, verdict: ElementVerdict, alpha: float) -> list:
@@ -429,7 +489,7 @@ def _verdict_warnings(free: _FreeFit, m: int, verdict: ElementVerdict, alpha: fl
                    f"outside it (the repair searches RepairOptions.max_delay_shift samples either side of the "
                    f"model's delay).")
     if verdict.kind == "unknown":
-        form = free.located[free.js[m]].form
+        form = free.located[free.js[m]].shape_form
         shape = "first-order-plus-dead-time form" if form.first_order else f"the element's form ({form.describe()})"
         out.append(
             f"{name}: located as mismatched, but no parameter of the element differs "

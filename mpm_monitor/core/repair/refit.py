@@ -16,7 +16,7 @@ from typing import Optional
 
 from .classify import _FreeFit
 from .fit import _ElementSpec, _RowEstimate, _RowProblem
-from .forms import _POLE_MIN, _input_lag, _poles_of
+from .forms import _input_lag, _poles_of
 from .options import _TestSettings
 from .result import ElementVerdict
 from .row import _element_after, _element_summary, _estimate_row, _RowData
@@ -40,8 +40,8 @@ def _compose(fitted: dict, held: dict, spec: _ElementSpec, held_lag_too: bool = 
     A first-order element whose lag vanished in the fit (time constant 0) with its delay held takes
     the fitted delay: the sample of the lag moves into the delay (``held_lag_too``: also when the
     lag was held at 0, where the fitted delay is the held one).  So does an element fitted with one lag
-    fewer than ``held`` has (``fewer_lags``, :func:`_without_a_vanished_lag`): with a lead its held input lag
-    is a dead time one sample longer.
+    fewer than ``held`` has (``fewer_lags``, :func:`~mpm_monitor.core.repair.classify._reduce_vanished_lags`):
+    its fitted dead time is measured in its own form.
     """
     out = dict(held)
     out["integrating"] = fitted["integrating"]
@@ -77,29 +77,13 @@ def _repair_specs(free: _FreeFit, verdicts: dict):
         poles = tuple(float(a) for a in est.fit.poles[free.problem.slices[m]]) if free_t else loc.poles
         form, window, lag = loc.form, free.specs[j].window if free_d else (loc.lag, loc.lag), \
             est.fit.lags[m] if free_d else loc.lag
-        if free_t and not missing:
-            form, poles, window, lag = _without_a_vanished_lag(form, poles, window, lag)
+        if not free_t and loc.declared is not None:     # the reference's shape held: its form, the same dead time
+            shift = loc.declared.offset - loc.form.offset
+            form, window, lag = loc.declared, (window[0] + shift, window[1] + shift), lag + shift
         specs[j] = _ElementSpec(free_k, free_t, est.fit.gains[m] if free_k else loc.reference["gain"], poles,
                                 window, form=form, lead=float(est.fit.leads[m]) if free_t else loc.reference["lead"])
         lags0[j] = lag
     return specs, lags0
-
-
-def _without_a_vanished_lag(form, poles: tuple, window: tuple, lag: int) -> tuple:
-    """``(form, poles, window, lag)`` of a repair fit, with one lag fewer where the free fit took one of the
-    two lags of an element to the bound of its pole.
-
-    The free fit keeps a pole at or above ``_POLE_MIN`` (a lag of ``T / 9.2`` at least): a plant that has
-    lost one of the element's two lags leaves it there, and the element repaired with that lag (0.109 s at
-    ``T`` = 1 s, a delay of a tenth of a sample) kept its row mismatched.  The form with one lag is the
-    limit of the two-lag form beyond that bound (``time_constant2`` 0).  The input lags (the first sample
-    the input acts) stay: with a lead the two-lag form acts a sample after its dead time, the one-lag form at
-    it, so the dead time grows by that sample.  It is not taken where the element would act on the output at
-    the sample of its input (a lag below 1: a direct feed-through).
-    """
-    if form.n_lags != 2 or min(poles) > 2 * _POLE_MIN or min(window) < 1:
-        return form, poles, window, lag
-    return dataclasses.replace(form, n_lags=1), (max(poles),), window, lag
 
 
 @dataclasses.dataclass
@@ -149,7 +133,7 @@ def _fit_repair(free: _FreeFit, verdicts: dict, n_fit: int, settings: _TestSetti
     references = {j: free.located[j].reference for j in specs}
     for m, j in enumerate(sorted(specs)):
         v = verdicts[j]
-        fewer = specs[j].form != v.form           # one lag fewer where a lag vanished (_without_a_vanished_lag)
+        fewer = specs[j].form != v.form           # one lag fewer where a lag vanished (_reduce_vanished_lags)
         v.after = _compose(_element_after(problem, est, m, ts, references[j]), references[j], specs[j],
                            fewer_lags=fewer)
         v.form = specs[j].form
