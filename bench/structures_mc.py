@@ -3,7 +3,10 @@
 Run::
 
     python -m bench.structures_mc [--runs 300] [--seed 0] [--samples 3000] [--jobs 1]
-                                  [--clean-integrating 500] [--out bench/results/structures_mc.json]
+                                  [--clean-integrating 500] [--lost-lag] [--out bench/results/structures_mc.json]
+
+(``--lost-lag``: every mismatch a second lag the model has and the plant's element lacks; its default output
+is ``bench/results/structures_mc_lost_lag.json``.)
 
 Every run draws a random closed loop (:func:`make_structures_scenario`; a pure function of
 ``(seed, index)``, so ``--jobs`` only changes the speed), simulates it under the internal-model MPC
@@ -96,7 +99,12 @@ from .oracle import oracle_power
 from .scenarios import check_count_ranges, input_separability
 
 STRUCTURES = ("first", "second", "lead", "inverse")
-KINDS = ("gain", "integrator_gain", "time_constant", "delay", "second_lag", "lead", "disturbance_gain")
+KINDS = ("gain", "integrator_gain", "time_constant", "delay", "second_lag", "lead", "disturbance_gain", "lost_lag")
+#: The kind the report should give each kind of mismatch (a lag, a second lag, a lead or a lost lag is a
+#: ``time_constant`` change; an integrator's or a disturbance's gain a ``gain``).
+REPORTED_KIND = {"gain": "gain", "integrator_gain": "gain", "time_constant": "time_constant", "delay": "delay",
+                 "second_lag": "time_constant", "lead": "time_constant", "disturbance_gain": "gain",
+                 "lost_lag": "time_constant"}
 #: Samples over which a repaired element's step response is compared with the plant's.
 REPAIR_HORIZON = 300
 #: Largest difference of the step responses, as a fraction of the plant response's largest value.
@@ -148,6 +156,10 @@ class StructuresOptions:
         Amplitude of the setpoint PRBS.
     measured_disturbance : MeasuredDisturbanceOptions
         The measured disturbances' signal.
+    lost_lag : bool
+        Every mismatch is a lost lag instead (``--lost-lag``): the model has a second lag (``tau2``
+        drawn from ``tau2_fraction`` of ``tau``) on an input's element whose plant element has none, at
+        positions drawn among those elements.
     """
 
     min_size: int = 2
@@ -170,6 +182,7 @@ class StructuresOptions:
     setpoint_amplitude: float = 1.0
     measured_disturbance: MeasuredDisturbanceOptions = MeasuredDisturbanceOptions(
         step_amplitude=1.0, switch_probability=0.02, min_hold=20, noise_std=0.1, noise_pole=0.9)
+    lost_lag: bool = False
 
     def __post_init__(self):
         check_count_ranges(self)
@@ -265,6 +278,11 @@ def _draw_plant(rng, ny: int, nu: int, nd: int, opts: StructuresOptions, name: s
 def _mismatch(rng, plant: PlantModel, model: PlantModel, i: int, j: int, opts: StructuresOptions):
     """The model with element (i, j) mismatched, and the mismatch's description."""
     el = plant.element(i, j)
+    if opts.lost_lag:                   # the model has a second lag the plant lacks
+        s = float(rng.uniform(*opts.tau2_fraction))
+        new = model.with_element(i, j, time_constant2=round(el["time_constant"] * s, 1))
+        return new, {"output": i, "column": j, "role": plant.role(j), "kind": "lost_lag", "size": round(s, 4),
+                     "plant": el, "model": new.element(i, j)}
     if plant.role(j) == "disturbance":
         kinds = ["disturbance_gain"]
     else:
@@ -323,7 +341,12 @@ def make_structures_scenario(seed: int, index: int, options: StructuresOptions =
     nc = plant.n_columns
     model = plant
     mismatches = []
-    for pos in sorted(int(p) for p in rng.choice(ny * nc, size=min(k, ny * nc), replace=False)):
+    if options.lost_lag:                # among the inputs' elements without a second lag in the plant
+        cells = [i * nc + j for i in range(ny) for j in range(nu) if plant.time_constant2[i, j] == 0]
+        positions = rng.choice(cells, size=min(k, len(cells)), replace=False) if cells else []
+    else:
+        positions = rng.choice(ny * nc, size=min(k, ny * nc), replace=False)
+    for pos in sorted(int(p) for p in positions):
         model, m = _mismatch(rng, plant, model, *divmod(pos, nc), options)
         mismatches.append(m)
     model = model.replace(name=f"random model (seed {seed}, run {index}, {len(mismatches)} mismatched)")
@@ -442,7 +465,7 @@ def score(records: Sequence[dict]) -> dict:
     clean = dict(runs=0, located=0, rows=0)
     clean_int = dict(runs=0, located=0, rows=0)
     repair = dict(scored=0, within=0, fp_scored=0, fp_within=0)
-    by_kind, by_role = {}, {}
+    by_kind, by_role, reported = {}, {}, {}
     misses, false_pos, repair_fails, errors = [], [], [], []
     for rec in records:
         if "error" in rec:
@@ -484,6 +507,13 @@ def score(records: Sequence[dict]) -> dict:
                 el["amb_true_collinear"] += 1
             for table, val in ((by_kind, m["kind"]), (by_role, m["role"])):
                 table.setdefault(val, {"hit": 0, "miss": 0, "ambiguous": 0})[outcome] += 1
+            if outcome == "hit":
+                said = rec["kinds"].get(f"{key[0]},{key[1]}")
+                cell = reported.setdefault(m["kind"], {"expected": REPORTED_KIND[m["kind"]], "right": 0, "hits": 0,
+                                                       "said": {}})
+                cell["hits"] += 1
+                cell["right"] += said == cell["expected"]
+                cell["said"][said] = cell["said"].get(said, 0) + 1
             if outcome != "hit":
                 misses.append({"index": rec["index"], "element": list(key), "kind": m["kind"], "size": m["size"],
                                "outcome": outcome, "plant": m["plant"], "model": m["model"],
@@ -524,7 +554,7 @@ def score(records: Sequence[dict]) -> dict:
             "effect_vs_detectable": {**seen, "recall_at_or_above": _ratio(seen["hit"], seen["hit"] + seen["miss"]),
                                      "recall_below": _ratio(seen["below_hit"], seen["below_hit"] + seen["below_miss"])},
             "oracle_power": oracle, "false_alarms": clean, "false_alarms_integrating": clean_int, "repair": repair,
-            "recall_by_kind": by_kind, "recall_by_role": by_role,
+            "recall_by_kind": by_kind, "recall_by_role": by_role, "reported_kind": reported,
             "median_analyze_time_s": statistics.median(times) if times else None,
             "misses": misses, "false_positives": false_pos, "repair_failures": repair_fails}
 
@@ -644,6 +674,13 @@ def format_table(result: dict) -> str:
                 c = table[key]
                 lines.append(f"  {key:18} {_f3(c['recall'])} ({c['hit']}/{c['hit'] + c['miss']}), ambiguous "
                              f"{c['ambiguous']}")
+        rk = s.get("reported_kind", {})
+        if rk:
+            lines.append("kind reported on the hits (right: the kind the mismatch is; what was said):")
+            for key in sorted(rk, key=lambda k: KINDS.index(k) if k in KINDS else len(KINDS)):
+                c = rk[key]
+                said = ", ".join(f"{k} {n}" for k, n in sorted(c["said"].items(), key=lambda kv: (-kv[1], str(kv[0]))))
+                lines.append(f"  {key:18} {c['expected']:14} {c['right']}/{c['hits']} ({said})")
         lines.append(f"median analyze time with the repair {_f3(s['median_analyze_time_s'])} s; errors "
                      f"{len(s['errors'])}")
     ci = result["clean_integrating"]
@@ -673,9 +710,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                         help="the analysis's element_window (default model, the analysis's default)")
     parser.add_argument("--noise-candidate", action="store_true",
                         help="add a channel of white noise to every log and try it as a candidate")
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON output")
+    parser.add_argument("--lost-lag", action="store_true",
+                        help="every mismatch a lost lag: the model has a second lag the plant's element lacks "
+                        "(default output structures_mc_lost_lag.json)")
+    parser.add_argument("--out", type=Path, default=None, help="JSON output")
     parser.add_argument("--quiet", action="store_true", help="no per-run progress lines")
     args = parser.parse_args(argv)
+    if args.out is None:
+        args.out = DEFAULT_OUT.with_name("structures_mc_lost_lag.json") if args.lost_lag else DEFAULT_OUT
     if args.runs < 0 or args.clean_integrating < 0 or args.samples < 100 or args.jobs < 1:
         parser.error("--runs and --clean-integrating must be >= 0, --jobs >= 1 and --samples >= 100")
 
@@ -692,7 +734,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     try:
         result = run_structures_mc(args.runs, args.seed, args.samples, clean_integrating=args.clean_integrating,
-                                   jobs=args.jobs, options=StructuresOptions(dither_fat=not args.no_dither_fat),
+                                   jobs=args.jobs, options=StructuresOptions(dither_fat=not args.no_dither_fat,
+                                                                             lost_lag=args.lost_lag),
                                    element_window=args.element_window, noise_candidate=args.noise_candidate,
                                    progress=progress)
     except ValueError as exc:
