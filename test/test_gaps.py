@@ -422,6 +422,29 @@ def test_a_logger_clock_that_drifts_keeps_every_row_on_its_own_sample(tmp_path, 
     assert kept.fill_on_grid()[0].tolist() == [2900]
 
 
+def test_a_drifting_clock_s_log_with_rows_missing_is_read_on_its_samples(tmp_path, case_32):
+    """A CSV whose clock runs 0.04 % slow (every step 1.0004 sample times) was read whole and with one row
+    missing, and refused at two rows missing in a row: the step of three sample times, 0.12 % long, was held
+    to the 0.1 % of one.  The tolerance is per sample time the step spans now, at most a quarter sample."""
+    case, data = case_32
+    k = np.arange(data.n_samples)
+    drifting = dataclasses.replace(data, t=data.t[0] + k * data.sample_time * 1.0004)
+    keep = np.r_[0:1000, 1010:data.n_samples]           # ten samples missing: a step of 11.0044 sample times
+    csv = tmp_path / "drift_gap.csv"
+    write_csv(csv, drifting.t[keep], drifting.r[keep], drifting.u[keep], drifting.y[keep], drifting.inputs,
+              drifting.outputs)
+    read = read_csv(csv, case.model)
+    assert read.grid_index.tolist() == keep.tolist() and read.segments == [(0, 1000), (1000, keep.size)]
+    # A step more than a quarter sample off its whole number of samples is refused, however long.
+    for step in (1.5, 1000.3):
+        t = drifting.t.copy()
+        t[1000:] += (step - 1.0004) * data.sample_time
+        bad = tmp_path / f"off_{step}.csv"
+        write_csv(bad, t, data.r, data.u, data.y, data.inputs, data.outputs)
+        with pytest.raises(DataFileError, match="line 1002: .* a gap or an irregular sample"):
+            read_csv(bad, case.model)
+
+
 def test_the_report_s_residual_plot_runs_the_model_as_the_analysis_does_and_breaks_at_gaps(case_32):
     """The HTML report's residuals ran the model over a gappy log as if its rows were consecutive samples and
     drew a line across every gap: the model now restarts after a gap (or runs through a short one, as the
