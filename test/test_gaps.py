@@ -435,6 +435,12 @@ def test_a_drifting_clock_s_log_with_rows_missing_is_read_on_its_samples(tmp_pat
               drifting.outputs)
     read = read_csv(csv, case.model)
     assert read.grid_index.tolist() == keep.tolist() and read.segments == [(0, 1000), (1000, keep.size)]
+    ts = data.sample_time
+    assert plan_gaps(read, 20).gap_where == [(read.t[999] + ts, read.t[999] + 10 * ts)]
+    # A one-sample gap on a fast clock: its last missing sample was reported before its first.
+    fast = _drop(dataclasses.replace(data, t=data.t[0] + k * ts * 0.9995), [2500])
+    (first, last), = plan_gaps(fast, 20).gap_where
+    assert first == last == fast.t[2499] + ts
     # A step more than a quarter sample off its whole number of samples is refused, however long.
     for step in (1.5, 1000.3):
         t = drifting.t.copy()

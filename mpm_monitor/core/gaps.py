@@ -130,7 +130,7 @@ class GapPlan:
         if left_out:
             lost = sum(b - a for a, b in self.segments) - self.samples_used
             text += (f"; {left_out} span{'s' if left_out != 1 else ''} between gaps too short for a regression row "
-                     f"(at most {self.start} samples) left out ({lost} samples)")
+                     f"(at most {self.start} samples) left out ({lost} sample{'s' if lost != 1 else ''})")
         return text
 
 
@@ -152,7 +152,9 @@ def plan_gaps(data: LoggedData, start: int, max_gap: Optional[int] = None) -> Op
     first = np.array([a for a, _ in segments[1:]])
     lengths = k[first] - k[first - 1] - 1
     ts = float(data.sample_time)
-    where = [(float(data.t[f - 1]) + ts, float(data.t[f]) - ts) for f in first]
+    # Both ends from the sample before the gap: on a clock a little off the grid, the sample after it gave a last
+    # missing time before the first of a one-sample gap.
+    where = [(float(data.t[f - 1]) + ts, float(data.t[f - 1]) + int(n) * ts) for f, n in zip(first, lengths)]
     used = [(a, b) for a, b in segments if b - a > start]
     return GapPlan(segments=segments, used=used, start=int(start), gap_lengths=lengths.astype(int), gap_where=where,
                    grid_samples=int(k[-1] + 1), max_gap=int(start if max_gap is None else max_gap))
