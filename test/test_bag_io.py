@@ -43,13 +43,14 @@ def _samples(n, seed=3):
 
 
 def write_bag(path, r, u, y, *, stamps=None, names=None, skip=(), drop_topics=(), msgtype=None,
-              diagnostics=None, again=None, received=None):
+              diagnostics=None, again=None, received=None, prefix="/"):
     """Write r/u/y as /setpoint, /input, /output JointState messages, one sample after the other.
 
     stamps : (n,) int ns per sample (default T0 + k * TS); names : role -> channel names as sent;
     skip : (role, k) messages left out; drop_topics : roles with no connection at all; again : (role, k) ->
     a number added to the values of a second message for that sample (0: the same message sent again);
-    received : (n,) int ns, the recorder's times of the samples (default their stamps).
+    received : (n,) int ns, the recorder's times of the samples (default their stamps); prefix : of the topic
+    names ("" stores them relative, as some tools do).
     """
     again = again or {}
     n = len(r)
@@ -61,7 +62,7 @@ def write_bag(path, r, u, y, *, stamps=None, names=None, skip=(), drop_topics=()
         conns = {}
         for role in ("output", "input", "setpoint"):
             if role not in drop_topics:
-                conns[role] = w.add_connection(f"/{role}", msgtype or JS.__msgtype__, typestore=TS)
+                conns[role] = w.add_connection(f"{prefix}{role}", msgtype or JS.__msgtype__, typestore=TS)
         if diagnostics is not None:
             conns["diag"] = w.add_connection("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", typestore=TS)
         for k in range(n):
@@ -89,6 +90,21 @@ def test_round_trip_exact(tmp_path):
     np.testing.assert_array_equal(data.y, y)
     np.testing.assert_allclose(data.t, T0 + 0.5 * np.arange(40), rtol=0, atol=1e-9)
     assert data.inputs == MODEL.inputs and data.outputs == MODEL.outputs and data.sample_time == 0.5
+
+
+def test_a_bag_that_stores_relative_topic_names_is_read(tmp_path):
+    """A bag whose topics are stored as 'setpoint', 'input', 'output' (no leading slash) was refused, "no topic
+    '/setpoint' ... topics in the bag: input, output, setpoint", whatever --topics said."""
+    r, u, y = _samples(20)
+    bag = write_bag(tmp_path / "bag", r, u, y, prefix="")
+    for topics in (("setpoint", "input", "output"), ("/setpoint", "/input", "/output")):
+        data = read_bag(bag, MODEL, topics)
+        np.testing.assert_array_equal(data.u, u)
+        np.testing.assert_array_equal(data.y, y)
+    assert {m.topic for m in read_raw_messages(bag, ["input"])} == {"input"}
+    export_csv(bag, tmp_path / "rel.csv")
+    export_csv(write_bag(tmp_path / "abs", r, u, y), tmp_path / "abs.csv")
+    assert (tmp_path / "rel.csv").read_text() == (tmp_path / "abs.csv").read_text()
 
 
 def test_channels_matched_by_name_extra_ignored(tmp_path):

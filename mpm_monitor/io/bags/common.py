@@ -20,7 +20,8 @@ DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
 
 
 def topic_name(name: str) -> str:
-    """The fully qualified form of a topic name as stored in a bag (``setpoint`` -> ``/setpoint``)."""
+    """The fully qualified form of a topic name (``setpoint`` -> ``/setpoint``), as rosbag2 stores it; the topics of a
+    bag are matched in this form too (a bag written by another tool may store ``setpoint``)."""
     name = str(name).strip()
     return name if name.startswith("/") else "/" + name
 
@@ -127,7 +128,7 @@ def none_read(path, topic: str, conns: list) -> BagError:
     metadata no longer describes the storage file (rosbags matches each topic's connection in the
     metadata to the storage file's channel, QoS profiles included).  ``conns``: connections of the bag;
     those of ``topic`` give the count."""
-    counted = sum(c.msgcount for c in conns if c.topic == topic)
+    counted = sum(c.msgcount for c in conns if topic_name(c.topic) == topic)
     return BagError(f"{path}: topic '{topic}': metadata.yaml counts {counted} message{'s' if counted != 1 else ''} "
                     f"but none could be read from the storage file: expected metadata.yaml as rosbag2 wrote it "
                     f"for this storage file (was it edited, or taken from another bag?)")
@@ -141,7 +142,7 @@ def topic_connections(reader, path, topic: str, msgtype: str) -> list:
     BagError
         Naming the bag and the topic (and the topics the bag has, when it is missing).
     """
-    conns = [c for c in reader.connections if c.topic == topic]
+    conns = [c for c in reader.connections if topic_name(c.topic) == topic]     # a bag may store 'input' or '/input'
     if not conns:
         have = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
         raise BagError(f"{path}: no topic '{topic}' ({msgtype}) in the bag; topics in the bag: {have}")

@@ -125,7 +125,8 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
     (its sample is then a gap)."""
     topics = _check_topics(path, topics)
     with closing(open_reader(path)) as reader:
-        if optional and len(topics) == 4 and not any(c.topic == topics[3] and c.msgcount for c in reader.connections):
+        if optional and len(topics) == 4 and not any(topic_name(c.topic) == topics[3] and c.msgcount
+                                                     for c in reader.connections):
             topics = topics[:3]
         role_of = dict(zip(topics, _ROLES))
         conns = []
@@ -141,7 +142,7 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
         done = 0
         try:
             for conn, _, raw in reader.messages(connections=conns):
-                topic = conn.topic
+                topic = topic_name(conn.topic)
                 role = role_of[topic]
                 count = len(stamps[topic]) + 1
                 try:
@@ -191,7 +192,7 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
             raise BagError(f"{path}: topic '{t}': every one of its {bad} messages holds a non-finite value")
         if not stamps[t]:
             raise none_read(path, t, conns)
-        counted = sum(c.msgcount for c in conns if c.topic == t)
+        counted = sum(c.msgcount for c in conns if topic_name(c.topic) == t)
         if len(stamps[t]) + bad < counted:
             # A damaged index (the summary's chunk times, which no CRC covers) makes the reader skip chunks.
             raise BagError(f"{path}: topic '{t}': metadata.yaml counts {counted} messages, {len(stamps[t]) + bad} could "
@@ -215,7 +216,7 @@ def _first_names(reader, path, topics) -> dict:
     """Channel names of the first input, output (and disturbance) messages (a bag read without a model)."""
     names = {}
     for role, topic in list(zip(_ROLES, topics))[1:]:
-        conns = [c for c in reader.connections if c.topic == topic]
+        conns = [c for c in reader.connections if topic_name(c.topic) == topic]
         try:
             first = next(iter(reader.messages(connections=conns)), None)
         except Exception as exc:  # damaged chunk inside an otherwise valid file
@@ -569,7 +570,7 @@ def read_raw_messages(bag, topics: Sequence[str] = DEFAULT_TOPICS, optional: Seq
         conns = []
         for required, t in [(True, t) for t in topics] + [(False, t) for t in optional]:
             t = topic_name(t)
-            found = [c for c in reader.connections if c.topic == t]
+            found = [c for c in reader.connections if topic_name(c.topic) == t]
             if not found and not required:
                 continue
             if not found:
