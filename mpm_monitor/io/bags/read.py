@@ -301,8 +301,14 @@ def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances
             same = np.all(s.values[dup] == s.values[dup + 1], axis=1)
             if not np.all(same):
                 i = int(dup[~same][0])
-                raise BagError(f"{path}: topic '{s.topic}': duplicate stamp: two different messages for the sample "
-                               f"at {_seconds(s.stamps[i])} s and {_seconds(s.stamps[i + 1])} s")
+                a, b = _seconds(s.stamps[i]), _seconds(s.stamps[i + 1])
+                where = f"stamped {a} s" if a == b else f"for the sample at {a} s and {b} s"
+                stepped = ""
+                if s.back:
+                    n, stamp, before = s.back
+                    stepped = (f"; message {n}'s stamp {_seconds(stamp)} s goes back {_seconds(before - stamp)} s from "
+                               f"the stamp before it (a clock stepped back?)")
+                raise BagError(f"{path}: topic '{s.topic}': duplicate stamp: two different messages {where}{stepped}")
             # The same vector sent again for one sample (the plant node re-sends y(k) after a lock-step stall):
             # kept once, as the live monitor keeps it.
             keep = np.ones(k.size, dtype=bool)
