@@ -356,6 +356,10 @@ def test_the_summary_line_of_a_null_error_says_n_a():
     lines = repair_summary_lines({"changes": [], "error_before": {"y1": None, "y2": 0.02},
                                   "error_after": {"y1": None, "y2": 0.019}})
     assert lines[-1] == "prediction error RMS before -> after repair: y1 n/a -> n/a, y2 0.0200 -> 0.0190"
+    # Nothing repaired (--no-repair, or nothing located): one error per output, not "before -> after" twice over.
+    lines = repair_summary_lines({"changes": [], "error_before": {"y1": None, "y2": 0.02},
+                                  "error_after": {"y1": None, "y2": 0.02}})
+    assert lines == ["prediction error RMS (nothing repaired): y1 n/a, y2 0.0200"]
 
 
 def test_a_repaired_element_that_does_not_settle_within_a_step_response_model_is_named():

@@ -207,7 +207,9 @@ def repair_summary_lines(repair: dict) -> list:
     def rms(v) -> str:          # null in the JSON (not finite) is "n/a"
         return "n/a" if v is None else f"{v:.4f}"
 
-    if eb:
+    if eb and not changes and all(ea.get(k) == v for k, v in eb.items()):     # --no-repair, or nothing to repair
+        lines.append("prediction error RMS (nothing repaired): " + ", ".join(f"{k} {rms(eb[k])}" for k in eb))
+    elif eb:
         lines.append("prediction error RMS before -> after repair: "
                      + ", ".join(f"{k} {rms(eb[k])} -> {rms(ea.get(k))}" for k in eb))
     if "rsi_after" in repair:
