@@ -498,3 +498,16 @@ def test_a_dither_at_its_cap_is_never_rounded_above_it():
     assert exm._dither(model, trial, {0: 0.37449, 2: 1.0}) == {"u1": 0.374, "u3": 1.0}
     beyond = dataclasses.replace(trial, fraction=2.0)            # a multiple beyond the caps: to the nearest
     assert exm._dither(model, beyond, {0: 0.18733, 2: 1.0}) == {"u1": 0.375, "u3": 2.0}
+
+
+def test_the_why_quotes_the_dither_as_recommended():
+    """At its cap a dither is rounded down (0.185 for a cap of 0.18567); the ``why`` quoted the amplitude rounded to
+    the nearest (0.186), so the two disagreed in the third digit."""
+    model = types.SimpleNamespace(inputs=("u1", "u2"), columns=("u1", "u2"), outputs=("y1",))
+    info = types.SimpleNamespace(noise={}, std=np.array([0.37134, 0.5]))
+    trial = exm._Trial(inputs=(0,), fraction=1.0, samples=1000.0, worst=0.2, separated=True)
+    caps = {0: 0.18567, 1: 0.25}
+    dither = exm._dither(model, trial, caps)
+    assert dither == {"u1": 0.185}
+    why = exm._why(model, info, trial, dither, [], [(0, 0)], True, [0.3], [(0, 0)], 1000, 0.19, True)
+    assert "on u1 (0.185, 0.5 of its standard deviation 0.371)" in why and "0.186" not in why

@@ -342,7 +342,7 @@ def design_experiment(model, info: Optional[WindowInformation], elements: list, 
     larger = None if beyond is None else {"multiple": beyond.fraction, "dither": _dither(model, beyond, caps),
                                           "samples": _rounded_samples(beyond)}
     return Experiment(dither=dither, samples=samples, expected_detectable_gain_change=worst,
-                      why=_why(model, info, best, caps, still, ambiguous, decidable, values, targets, samples, worst,
+                      why=_why(model, info, best, dither, still, ambiguous, decidable, values, targets, samples, worst,
                                reached, larger), beyond=larger)
 
 
@@ -402,8 +402,10 @@ def _trial(pred: _Predictor, inputs: tuple, caps: dict, fraction: float, p: int)
     return _Trial(inputs, fraction, max(pred.samples_needed(drops, family, p), pred.min_samples), GOAL, True)
 
 
-def _why(model, info, best: _Trial, caps, still, ambiguous, decidable, values, targets, samples, worst,
+def _why(model, info, best: _Trial, dither: dict, still, ambiguous, decidable, values, targets, samples, worst,
          reached, beyond: Optional[dict] = None) -> str:
+    """The ``why`` of an experiment; ``dither`` is its amplitudes as recommended (:func:`_dither`), which the text
+    quotes as they are (a dither at its cap is rounded down there, and the text said the nearest)."""
     parts = []
     amb_inputs = sorted({j for _, j in ambiguous})
     moving_amb = [j for j in amb_inputs if j not in still]
@@ -424,7 +426,7 @@ def _why(model, info, best: _Trial, caps, still, ambiguous, decidable, values, t
         low = min(values) if values else math.inf
         parts.append("no element is decidable at the 20% level in this window"
                      + (f" (the smallest detectable gain change is {_g(low)})" if math.isfinite(low) else ""))
-    dith = ", ".join(f"{model.inputs[j]} ({_g(best.fraction * caps[j])}"
+    dith = ", ".join(f"{model.inputs[j]} ({_g(dither[model.inputs[j]])}"
                      + (f", {_g(best.fraction * MAX_AMPLITUDE)} of its standard deviation {_g(info.std[j])})"
                         if j not in still else ")") for j in best.inputs)
     text = "; ".join(parts) + ". " if parts else ""
