@@ -43,14 +43,14 @@ def _samples(n, seed=3):
 
 
 def write_bag(path, r, u, y, *, stamps=None, names=None, skip=(), drop_topics=(), msgtype=None,
-              diagnostics=None, again=None, received=None, prefix="/"):
+              diagnostics=None, again=None, received=None, prefix="/", role_stamps=None, role_received=None):
     """Write r/u/y as /setpoint, /input, /output JointState messages, one sample after the other.
 
     stamps : (n,) int ns per sample (default T0 + k * TS); names : role -> channel names as sent;
     skip : (role, k) messages left out; drop_topics : roles with no connection at all; again : (role, k) ->
     a number added to the values of a second message for that sample (0: the same message sent again);
     received : (n,) int ns, the recorder's times of the samples (default their stamps); prefix : of the topic
-    names ("" stores them relative, as some tools do).
+    names ("" stores them relative, as some tools do); role_stamps, role_received : role -> (n,) stamps, recorder's times of that topic alone.
     """
     again = again or {}
     n = len(r)
@@ -71,8 +71,9 @@ def write_bag(path, r, u, y, *, stamps=None, names=None, skip=(), drop_topics=()
                     want = list(names[role])
                     base = list(MODEL.outputs if role != "input" else MODEL.inputs)
                     vals = [data[role][k][base.index(c)] if c in base else 7.0 for c in want]
-                    msg = _joint_state(int(stamps[k]), want, vals)
-                    w.write(conns[role], int(received[k]) + 1000, TS.serialize_cdr(msg, JS.__msgtype__))
+                    msg = _joint_state(int((role_stamps or {}).get(role, stamps)[k]), want, vals)
+                    at = (role_received or {}).get(role, received)[k]
+                    w.write(conns[role], int(at) + 1000, TS.serialize_cdr(msg, JS.__msgtype__))
                     if (role, k) in again:
                         msg = _joint_state(int(stamps[k]), want, np.asarray(vals) + again[(role, k)])
                         w.write(conns[role], int(received[k]) + 2000, TS.serialize_cdr(msg, JS.__msgtype__))
@@ -753,6 +754,42 @@ def test_a_clock_that_steps_back_is_refused_and_a_few_samples_out_of_order_are_s
     order = np.arange(40)
     order[[20, 21]] = order[[21, 20]]
     np.testing.assert_array_equal(data.y, y[order])
+
+
+def test_a_topic_whose_clock_runs_ahead_of_the_others_is_refused(tmp_path):
+    """The output's stamps jumped 5 s (10 samples) forward halfway while the recorder's times ran on: the bag was
+    read with y(k) paired with u(k + 10) and r(k + 10) for the whole second half, said as a gap of 10 samples.
+    Its messages are recorded well before the other topics' messages of the same sample: refused.  A topic
+    delivered late for a while (a stall, then caught up) is no sign of it."""
+    r, u, y = _samples(240)
+    ts = int(MODEL.sample_time * 1e9)
+    stamps = np.arange(240) * ts + int(T0 * 1e9)
+    jumped = stamps.copy()
+    jumped[120:] += 5 * 10**9
+    with pytest.raises(BagError) as e:
+        read_bag(write_bag(tmp_path / "jump", r, u, y, role_stamps={"output": jumped}, received=stamps), MODEL)
+    _check(e, "topic '/output': from its sample at 165 s on, its messages are recorded about 10 samples (5 s) "
+              "before the other topics'", "a clock that jumped forward")
+    with pytest.raises(BagError, match="topic '/input': from its sample at"):       # a publisher's clock set apart
+        read_bag(write_bag(tmp_path / "apart", r, u, y, role_stamps={"input": stamps + 5 * 10**9}, received=stamps),
+                 MODEL)
+    late = stamps.copy()
+    late[100:160] = stamps[160]                          # the output held up for 30 s, then delivered at once
+    data = read_bag(write_bag(tmp_path / "late", r, u, y, received=stamps, role_received={"output": late}), MODEL)
+    np.testing.assert_array_equal(data.y, y)
+
+
+def test_a_late_message_stamped_0_in_simulated_time_is_a_step_back(tmp_path):
+    """In a bag in simulated time (stamps from 0 s) a message stamped 0 recorded at sample 30 was put on the first
+    sample without a word (stamp 0 was taken for an unset stamp, left out of the check for a clock stepped back,
+    while a stamp of 1 s was refused)."""
+    r, u, y = _samples(40)
+    ts = int(MODEL.sample_time * 1e9)
+    stamps = np.arange(40) * ts
+    sent = stamps.copy()
+    sent[31] = 0
+    with pytest.raises(BagError, match=r"topic '/setpoint': message 32's stamp 0 s goes back 15 s"):
+        read_bag(write_bag(tmp_path / "zero", r, u, y, role_stamps={"setpoint": sent}, received=stamps + 10**9), MODEL)
 
 
 def test_samples_outside_the_span_every_topic_covers_are_named(tmp_path):

@@ -87,6 +87,8 @@ class _Series:
     stamps: np.ndarray          # (n,) int64 nanoseconds
     values: np.ndarray          # (n, len(channels)) values reordered to ``channels``
     back: tuple = ()            # in recorded order, the largest step back of the stamps: (message, stamp, previous)
+    logs: Optional[np.ndarray] = None   # (n,) int64 ns, the recorder's time of each message (in the stamps' order)
+    back_unset: tuple = ()      # ``back`` with the unset stamps (0) counted as stamps (a bag in simulated time)
 
 
 def _seconds(ns) -> str:
@@ -103,6 +105,12 @@ MAX_REORDER_SAMPLES = 10
 #: Samples of one topic outside the span every topic covers that are left out without a note (a recording
 #: started or stopped in the middle of a sample).
 MAX_SILENT_TRIM = 10
+#: A topic whose messages are recorded before every other topic's message of the same sample, by at least this many
+#: samples of the recorder's time and :data:`EARLY_SECONDS`, in the median of a block of :data:`EARLY_BLOCK` samples,
+#: has stamps that run ahead of theirs: refused (:func:`_refuse_clocks_apart`).
+EARLY_SAMPLES = 3
+EARLY_SECONDS = 2.0
+EARLY_BLOCK = 25
 
 
 def _check_topics(path, topics: Sequence[str]) -> list:
@@ -138,10 +146,11 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
         expected = dict(channels) if channels is not None else _first_names(reader, path, topics)
         index_cache: dict = {}
         stamps = {t: [] for t in topics}
+        logs = {t: [] for t in topics}
         rows = {t: [] for t in topics}
         done = 0
         try:
-            for conn, _, raw in reader.messages(connections=conns):
+            for conn, log_time, raw in reader.messages(connections=conns):
                 topic = topic_name(conn.topic)
                 role = role_of[topic]
                 count = len(stamps[topic]) + 1
@@ -175,6 +184,7 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
                     raise BagError(f"{path}: topic '{topic}': message {count} (stamp {_seconds(stamp)} s) holds a "
                                    f"non-finite value")
                 stamps[topic].append(stamp)
+                logs[topic].append(log_time)
                 rows[topic].append(values[idx])
                 done += 1
                 if bar is not None and done % 256 == 0:
@@ -200,16 +210,24 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
                            f"recover rewrites every message its chunks hold as a new bag)")
         st = np.array(stamps[t], dtype=np.int64)
         vals = np.array(rows[t], dtype=float).reshape(len(st), len(expected[role]))
-        # Unset stamps (0) left aside: among wall-clock stamps they are left out later, with a note.
-        stamped = np.flatnonzero(st != 0)
-        steps = np.diff(st[stamped])
-        back = ()
-        if steps.size and steps.min() < 0:
-            i = int(np.argmin(steps))
-            back = (int(stamped[i + 1]) + 1, int(st[stamped[i + 1]]), int(st[stamped[i]]))
+        # Unset stamps (0) left aside: among wall-clock stamps they are left out later, with a note; in simulated
+        # time 0 is a stamp like any other (back_unset).
+        back, back_unset = _step_back(st, st != 0), _step_back(st, np.ones(st.size, dtype=bool))
         order = np.argsort(st, kind="stable")
-        series[role] = _Series(t, tuple(expected[role]), st[order], vals[order], back)
+        series[role] = _Series(t, tuple(expected[role]), st[order], vals[order], back,
+                               np.array(logs[t], dtype=np.int64)[order], back_unset)
     return series
+
+
+def _step_back(st: np.ndarray, counted: np.ndarray) -> tuple:
+    """The largest step back of the stamps ``st`` (int64 ns, recorded order) among those ``counted`` (bool):
+    ``(message number, its stamp, the stamp before it)``, or ``()``."""
+    stamped = np.flatnonzero(counted)
+    steps = np.diff(st[stamped])
+    if not steps.size or steps.min() >= 0:
+        return ()
+    i = int(np.argmin(steps))
+    return int(stamped[i + 1]) + 1, int(st[stamped[i + 1]]), int(st[stamped[i]])
 
 
 def _first_names(reader, path, topics) -> dict:
@@ -246,12 +264,15 @@ def _without_unset_stamps(path, series: dict) -> tuple:
                            f"are aligned by stamp: the publisher must fill in header.stamp")
     stamped = [s.stamps[s.stamps != 0] for s in series.values()]
     if not all(st.size and st[0] > WALL_CLOCK_S * 1e9 for st in stamped):
-        return series, ()
+        # Simulated time: a stamp of 0 is its first sample's.  A message stamped 0 recorded long after it is a
+        # step back like any other (it was put on the first sample without a word).
+        return {role: dataclasses.replace(s, back=s.back_unset) for role, s in series.items()}, ()
     kept, notes = {}, []
     for role, s in series.items():
         unset = s.stamps == 0
         n = int(unset.sum())
-        kept[role] = dataclasses.replace(s, stamps=s.stamps[~unset], values=s.values[~unset]) if n else s
+        kept[role] = dataclasses.replace(s, stamps=s.stamps[~unset], values=s.values[~unset],
+                                         logs=s.logs[~unset]) if n else s
         if n:
             notes.append(f"{path}: topic '{s.topic}': {n} message{'s' if n != 1 else ''} of {s.stamps.size} with an "
                          f"unset header.stamp (0, among wall-clock stamps) left out; the samples are aligned by "
@@ -271,6 +292,44 @@ def _grid_origin(stamps: list, ts_ns: float) -> int:
     if abs(phase) <= 0.01:
         return first
     return first + int(round(phase * ts_ns))
+
+
+def _refuse_clocks_apart(path, series: dict, ks: dict, common: np.ndarray, origin: int, ts_ns: float) -> None:
+    """Refuse a bag in which a topic's messages are recorded well before every other topic's message of the same
+    sample, over :data:`EARLY_BLOCK` samples in a row: its stamps run ahead of theirs (its publisher's clock jumped
+    forward, or is set apart from the others').  Aligned by stamp, its samples would pair with the others' of
+    another time, silently (a gap where its clock jumped, nothing else).
+
+    A message recorded late (a delivery stalled, then caught up) is no sign: only early ones count, by at least
+    :data:`EARLY_SAMPLES` of the recorder's time per sample and :data:`EARLY_SECONDS`.  A bag whose recorder
+    times do not advance with its samples (written by a converter) is not checked.
+
+    ``ks``: each topic's sample numbers (sorted, once each); ``common``: the samples every topic holds.
+    """
+    if len(series) < 2 or common.size < EARLY_BLOCK or any(s.logs is None for s in series.values()):
+        return
+    logs = {role: s.logs[np.searchsorted(ks[role], common)].astype(np.float64) for role, s in series.items()}
+    together = np.median(np.vstack(list(logs.values())), axis=0)
+    per_sample = np.diff(together)[np.diff(common) == 1]
+    tau = float(np.median(per_sample)) if per_sample.size else 0.0
+    if not tau > 0:
+        return
+    limit = max(EARLY_SAMPLES * tau, EARLY_SECONDS * 1e9)
+    blocks = common.size // EARLY_BLOCK
+    for role, log in logs.items():
+        others = np.min(np.vstack([lg for r, lg in logs.items() if r != role]), axis=0)
+        early = others - log
+        bad = np.flatnonzero(np.median(early[:blocks * EARLY_BLOCK].reshape(blocks, EARLY_BLOCK), axis=1) > limit)
+        if bad.size:
+            ahead = float(np.median(early[bad[0] * EARLY_BLOCK:(bad[0] + 1) * EARLY_BLOCK]))
+            start = max(int(bad[0]) - 1, 0) * EARLY_BLOCK          # where it began: in that block or the one before
+            i = start + int(np.argmax(early[start:] > limit))
+            t0 = _seconds(round(origin + int(common[i]) * ts_ns))
+            raise BagError(f"{path}: topic '{series[role].topic}': from its sample at {t0} s on, its messages are "
+                           f"recorded about {ahead / tau:.3g} samples ({ahead / 1e9:.3g} s) before the other topics' "
+                           f"messages of the same sample: its stamps run ahead of theirs (a clock that jumped forward, "
+                           f"or a publisher's clock set apart from the others'?); aligned by stamp, its samples would "
+                           f"pair with the others' of another time: expected the topics stamped by one clock")
 
 
 def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances=()) -> LoggedData:
@@ -313,7 +372,7 @@ def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances
             # kept once, as the live monitor keeps it.
             keep = np.ones(k.size, dtype=bool)
             keep[dup + 1] = False
-            s = series[role] = dataclasses.replace(s, stamps=s.stamps[keep], values=s.values[keep])
+            s = series[role] = dataclasses.replace(s, stamps=s.stamps[keep], values=s.values[keep], logs=s.logs[keep])
             k = k[keep]
             notes.append(f"{path}: topic '{s.topic}': {dup.size} message{'s' if dup.size != 1 else ''} sent again for "
                          f"a sample (the same values) kept once")
@@ -335,6 +394,7 @@ def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances
     for k in ks.values():
         k = k[(k >= k_first) & (k <= k_last)]
         common = k if common is None else np.intersect1d(common, k, assume_unique=True)
+    _refuse_clocks_apart(path, series, ks, common, origin, ts_ns)
     out = {role: s.values[np.isin(ks[role], common)] for role, s in series.items()}
     t = (origin + common * ts_ns) / 1e9
     dv = out.get("disturbance")
