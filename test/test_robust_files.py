@@ -254,7 +254,12 @@ MODEL_HEAD = "sample_time: 1\ninputs: [u1]\noutputs: [y1]\n"
     ('sample_time: 1\ninputs: [t]\noutputs: [y1]\ngain: [[1]]\ntime_constant: [[1]]\ndelay: [[0]]\n',
      r"name 't' would be two columns of the CSV log"),
     ('sample_time: 1\ninputs: [r_y1]\noutputs: [y1]\ngain: [[1]]\ntime_constant: [[1]]\ndelay: [[0]]\n',
-     r"name 'r_y1' would be two columns of the CSV log"),
+     r"keys 'outputs' and 'inputs': name 'r_y1' would be two columns of the CSV log"),
+    # A disturbance's clash was said of the keys 'inputs' and 'outputs'
+    ('sample_time: 1\ninputs: [u1]\noutputs: [y1]\ndisturbances: [t]\ngain: [[1, 1]]\ntime_constant: [[1, 1]]\n'
+     'delay: [[0, 0]]\n', r"key 'disturbances': name 't' would be two columns of the CSV log"),
+    ('sample_time: 1\ninputs: [u1]\noutputs: [y1]\ndisturbances: [r_y1]\ngain: [[1, 1]]\ntime_constant: [[1, 1]]\n'
+     'delay: [[0, 0]]\n', r"keys 'outputs' and 'disturbances': name 'r_y1'"),
     # YAML 1.1 would read these as another model: base 60 (90), the last of two keys, 10 (underscore)
     (MODEL_HEAD + "gain: [[1]]\ntime_constant: [[1:30]]\ndelay: [[0]]\n", r"key 'time_constant'.*got '1:30'"),
     (MODEL_HEAD + "gain: [[1]]\ntime_constant: [[1]]\ndelay: [[0]]\ngain: [[2]]\n",

@@ -9,6 +9,7 @@ the discrete-time form lives in :mod:`mpm_monitor.core.elements` and :mod:`mpm_m
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import math
 import unicodedata
@@ -445,13 +446,16 @@ def validate_model(model: PlantModel, source: str = "model") -> None:
             raise ModelFileError(
                 f"{source}: keys '{ka}' and '{kb}': a name cannot be both, found {', '.join(sorted(overlap))}")
     # Every channel must be its own column of the CSV log (docs/interfaces.md, "Logged data (CSV)").
-    columns = (["t"] + [f"r_{o}" for o in model.outputs] + list(model.inputs) + list(model.disturbances)
-               + list(model.outputs))
-    clash = sorted({c for c in columns if columns.count(c) > 1})
+    columns = ([("t", None)] + [(f"r_{o}", "outputs") for o in model.outputs] + [(c, "inputs") for c in model.inputs]
+               + [(c, "disturbances") for c in model.disturbances] + [(c, "outputs") for c in model.outputs])
+    count = collections.Counter(c for c, _ in columns)
+    clash = sorted(c for c, n in count.items() if n > 1)
     if clash:
+        keys = list(dict.fromkeys(k for c, k in columns if c == clash[0] and k is not None))
         raise ModelFileError(
-            f"{source}: keys 'inputs' and 'outputs': name {clash[0]!r} would be two columns of the CSV log "
-            f"(t, r_<output>, <input>, <disturbance>, <output>): rename the channel")
+            f"{source}: key{'s' if len(keys) > 1 else ''} {' and '.join(repr(k) for k in keys)}: name {clash[0]!r} "
+            f"would be two columns of the CSV log (t, r_<output>, <input>, <disturbance>, <output>): rename the "
+            f"channel")
     what = "outputs x inputs" if not model.disturbances else "outputs x (inputs, then disturbances)"
     for key in ("gain", "time_constant", "delay", "lead", "time_constant2", "integrating"):
         arr = getattr(model, key)
