@@ -417,7 +417,7 @@ def _check_names(source: str, key: str, names, allow_empty: bool = False) -> Non
                 f"{source}: key '{key}': expected names as non-empty strings without commas, "
                 f"control characters or surrounding spaces, got {n!r}")
     if len(set(names)) != len(names):
-        dup = sorted({n for n in names if list(names).count(n) > 1})
+        dup = sorted(n for n, k in collections.Counter(names).items() if k > 1)
         raise ModelFileError(f"{source}: key '{key}': names must be unique, repeated: {', '.join(dup)}")
 
 
