@@ -465,6 +465,8 @@ def test_the_summary_prints_a_value_above_one_as_more_than_100_percent():
 
     assert [detectable_text(x) for x in (0.35, 0.999, 1.0, 1.0001, 353.5, None, float("inf"))] == \
         ["35%", "100%", "100%", ">100%", ">100%", "n/a", "n/a"]
+    # Below half a percent it said "0%", which reads as an error of none detected for sure.
+    assert [detectable_text(x) for x in (0.0049, 0.001, 0.0, 0.0051, 0.0149)] == ["<1%", "<1%", "<1%", "1%", "1%"]
 
 
 def test_beyond_the_cap_the_smallest_multiple_that_reaches_the_goal_is_found_by_bisection(monkeypatch):

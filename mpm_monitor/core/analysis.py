@@ -442,7 +442,10 @@ def detectable_text(x) -> str:
     """
     if x is None or not math.isfinite(x):
         return "n/a"
-    return ">100%" if x > 1 else f"{100 * x:.0f}%"
+    if x > 1:
+        return ">100%"
+    pct = f"{100 * x:.0f}"
+    return "<1%" if pct == "0" else f"{pct}%"       # "0%" read as an error of none detected for sure
 
 
 def detectability_summary_lines(elements: list, experiment) -> list:
