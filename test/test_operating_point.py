@@ -85,6 +85,31 @@ def test_offset_warnings_name_only_the_offset_rows():
     assert "y1 by 0.3 (no spread)" in offset_warnings(model, np.full((500, 3), 0.3), y)[0]
 
 
+def test_an_integrating_output_is_named_for_a_ramp_not_for_its_level():
+    """A level has no fixed level: a clean log cut from a running loop (its level far from the model's start) was
+    named as offset by an undeclared operating point.  What an undeclared operating point of a column feeding the
+    level does is a ramp (the model integrates it), which was not named; the tests then located an element of
+    that row that is right.  The level is named for a ramp now, and never for its offset."""
+    model = PlantModel(sample_time=1.0, inputs=("u1",), outputs=("y1", "lvl"), gain=np.array([[1.0], [0.05]]),
+                       time_constant=np.array([[10.0], [5.0]]), delay=np.zeros((2, 1)),
+                       integrating=np.array([[False], [True]]))
+    rng = np.random.default_rng(1)
+    d = rng.standard_normal((2000, 2)) * 0.1
+    y = rng.standard_normal((2000, 2))
+    level = d.copy()
+    level[:, 1] += 50.0                            # a level far from the model's: not named
+    assert offset_warnings(model, level, y) == []
+    walk = d.copy()
+    walk[:, 1] += np.cumsum(rng.standard_normal(2000)) * 0.01      # an unmeasured disturbance that wanders
+    assert offset_warnings(model, walk, y) == []
+    ramp = d.copy()
+    t = 100.0 + np.arange(2000) * 0.5
+    ramp[:, 1] += 0.002 * (t - t[0])               # 2 over the window, against 0.1 of noise
+    (w,) = offset_warnings(model, ramp, y, t=t)
+    assert w.startswith("the prediction error of an integrating output ramps: lvl by 0.002") and \
+        "per second (2 over the window, 19.9 times the spread about it)" in w and "input_nominal" in w and "y1" not in w
+
+
 @pytest.fixture(scope="module")
 def effect_run():
     return undeclared_effect_run(3000, seed=3)

@@ -784,7 +784,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     t_used = data.t if plan is None else plan.take(data.t)
     warnings = still_output_warnings(model, still) + held_tail_warnings(model, y, t_used, still) \
         + unsettled_warnings(model) + diverging + list(row_test.warnings) \
-        + offset_warnings(model, sig.d, y, diverged) \
+        + offset_warnings(model, sig.d, y, diverged, t_used) \
         + ([] if design is None else design.warnings()) + later_warnings
     warnings += element_test.warnings
     # (The baselines test every row: their results on a still output's row are set aside as well.)
@@ -1033,8 +1033,9 @@ def with_untested_rows(model: PlantModel, elements: list, rows: list) -> list:
     return sorted(elements + added, key=lambda e: order.get(e.output, len(order)))
 
 
-def offset_warnings(model: PlantModel, d: np.ndarray, y: np.ndarray, skip=()) -> list:
-    """One warning naming the rows whose prediction error sits far from zero: an undeclared operating point?
+def offset_warnings(model: PlantModel, d: np.ndarray, y: np.ndarray, skip=(), t: Optional[np.ndarray] = None) -> list:
+    """The warnings naming the rows whose prediction error sits far from zero, or ramps on an integrating
+    output: an undeclared operating point?
 
     The model's elements act on deviations from the model file's ``input_nominal``, ``output_nominal``
     and ``disturbance_nominal``.  A log whose columns sit at an operating point the file does not
@@ -1043,6 +1044,13 @@ def offset_warnings(model: PlantModel, d: np.ndarray, y: np.ndarray, skip=()) ->
     (``error_before``, ``error_after``) do, and a step-response model, simulated from rest, starts
     with its response to the offset.  A row is named when the mean of its prediction error exceeds
     :data:`OFFSET_RATIO` times its standard deviation (and is not the rounding of a log without noise).
+
+    An integrating output (a level) has no fixed level: its prediction error's offset is the level the log
+    starts at, not a sign of anything, and is not named.  There an undeclared operating point of a column
+    that feeds the level makes the model integrate it: the prediction error ramps, which the tests'
+    centring does not remove (they may then locate an element of that row that is right).  Such a row is
+    named when the change of its prediction error's straight-line fit over the window exceeds
+    :data:`OFFSET_RATIO` times the standard deviation about that line.
 
     Parameters
     ----------
@@ -1053,25 +1061,51 @@ def offset_warnings(model: PlantModel, d: np.ndarray, y: np.ndarray, skip=()) ->
         Outputs (deviations), output units: the scale below which an offset is rounding.
     skip : sequence of str
         Outputs not named (a diverged loop's).
+    t : ndarray, shape (n_samples,), optional
+        The samples' times, seconds (the ramp's abscissa; default the sample numbers).
 
     Returns
     -------
     list of str
-        At most one warning.
+        At most two warnings.
     """
     mean, std = d.mean(axis=0), d.std(axis=0)
     floor = 1e-6 * np.maximum(y.std(axis=0), np.abs(y).mean(axis=0))
+    integrating = model.integrating_outputs
     named = [i for i in range(model.n_outputs) if model.outputs[i] not in skip and abs(mean[i]) > floor[i]
-             and abs(mean[i]) > OFFSET_RATIO * std[i]]
-    if not named:
-        return []
-    what = ", ".join(f"{model.outputs[i]} by {mean[i]:.4g} (" + ("no spread)" if std[i] <= 1e-12 * abs(mean[i]) else
-                                                                   f"{abs(mean[i]) / std[i]:.3g} times its spread)")
-                     for i in named)
-    return [f"the model's output is offset from the logged output: {what}; an operating point of the inputs, "
-            f"outputs or measured disturbances that the model file does not declare (input_nominal, output_nominal, "
-            f"disturbance_nominal)? The tests remove the mean, the prediction-error figures do not, and a "
-            f"step-response model starts from rest, with its response to the offset"]
+             and abs(mean[i]) > OFFSET_RATIO * std[i] and not integrating[i]]
+    out = []
+    if named:
+        what = ", ".join(f"{model.outputs[i]} by {mean[i]:.4g} (" + ("no spread)" if std[i] <= 1e-12 * abs(mean[i])
+                                                                       else f"{abs(mean[i]) / std[i]:.3g} times its "
+                                                                       f"spread)") for i in named)
+        out.append(f"the model's output is offset from the logged output: {what}; an operating point of the inputs, "
+                   f"outputs or measured disturbances that the model file does not declare (input_nominal, "
+                   f"output_nominal, disturbance_nominal)? The tests remove the mean, the prediction-error figures do "
+                   f"not, and a step-response model starts from rest, with its response to the offset")
+    levels = [i for i in range(model.n_outputs) if integrating[i] and model.outputs[i] not in skip]
+    if levels and d.shape[0] > 2:
+        x = np.arange(d.shape[0], dtype=float) if t is None else np.asarray(t, dtype=float)
+        x = x - x.mean()
+        sxx = float(x @ x)
+        ramps = []
+        for i in levels:
+            di = d[:, i] - mean[i]
+            slope = float(x @ di) / sxx if sxx > 0 else 0.0
+            rest = float(np.std(di - slope * x))
+            change = abs(slope) * float(x.max() - x.min())
+            if change > floor[i] and change > OFFSET_RATIO * rest:
+                ramps.append(f"{model.outputs[i]} by {slope:.4g} per {'second' if t is not None else 'sample'} "
+                             f"({change:.4g} over the window, " + ("no spread about it)" if rest <= 1e-12 * change
+                                                                   else f"{change / rest:.3g} times the spread about "
+                                                                        f"it)"))
+        if ramps:
+            out.append(f"the prediction error of an integrating output ramps: {', '.join(ramps)}; an operating point "
+                       f"of the inputs or measured disturbances that feed it that the model file does not declare "
+                       f"(input_nominal, disturbance_nominal), which the model integrates, or a gain error of its "
+                       f"integrating elements? The tests remove the mean, not a ramp: an element of that row may be "
+                       f"located because of it")
+    return out
 
 
 def _noise_order(model: PlantModel, options: AnalysisOptions, white: dict) -> dict:
