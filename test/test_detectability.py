@@ -280,6 +280,11 @@ def test_experiment_choice_rules_on_a_stub_window():
     exp = exm.design_experiment(model, info, [el(0, 0.5), el(1, 0.6), el(2, 0.9)], FAST, layout)
     assert exp is not None and 1 <= len(exp.dither) <= 3
     assert "no element is decidable at the 20% level in this window" in exp.why
+    # With ambiguous elements, whose values are not calibrated (and printed beside the why), the text says
+    # the others: "no element is decidable" read as a contradiction of an ambiguous value of 13 %.
+    exp = exm.design_experiment(model, info, [el(0, 0.13, ambiguous=True), el(1, 0.6), el(2, 0.9)], FAST, layout)
+    assert "no element that these data tell apart is decidable at the 20% level in this window (the smallest " \
+           "detectable gain change is 0.6)" in exp.why
     assert all(a <= 0.5 * u[:, model.inputs.index(k)].std() * 1.001 for k, a in exp.dither.items())
     # a located element is not a target: with the others decidable, nothing to do
     assert exm.design_experiment(model, info, [el(0, 0.5, mismatch=True), el(1, 0.1), el(2, 0.15)], FAST,

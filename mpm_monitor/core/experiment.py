@@ -424,7 +424,9 @@ def _why(model, info, best: _Trial, dither: dict, still, ambiguous, decidable, v
                      "data cannot value a gain error there")
     if not decidable:
         low = min(values) if values else math.inf
-        parts.append("no element is decidable at the 20% level in this window"
+        # The ambiguous elements' values are left out (not calibrated: they may read below 20 %).
+        which = "no element that these data tell apart" if ambiguous else "no element"
+        parts.append(f"{which} is decidable at the 20% level in this window"
                      + (f" (the smallest detectable gain change is {_g(low)})" if math.isfinite(low) else ""))
     dith = ", ".join(f"{model.inputs[j]} ({_g(dither[model.inputs[j]])}"
                      + (f", {_g(best.fraction * MAX_AMPLITUDE)} of its standard deviation {_g(info.std[j])})"
