@@ -1100,6 +1100,14 @@ def test_bad_values_as_gaps_in_a_bag(tmp_path):
         f"analysis goes around its sample as gaps",
         f"topic '/input': 1 message holding a non-finite value left out (the first stamped {T0 + 6:g} s); the "
         f"analysis goes around its sample as gaps"]
+    # A sample whose other message is finite is no gap: the note said the analysis went around it.
+    r2, u2, y2 = _samples(30)
+    again = read_bag(write_bag(tmp_path / "again", r2, u2, y2, again={("output", 9): np.nan}), MODEL,
+                     bad_values="gap")
+    np.testing.assert_array_equal(again.y, y2)
+    assert [n.split(": ", 1)[1] for n in again.notes] == [
+        f"topic '/output': 1 message holding a non-finite value left out (the first stamped {T0 + 4.5:g} s); it was "
+        f"sent again with finite values for its sample, which is kept"]
     y[:] = np.nan
     with pytest.raises(BagError, match=r"topic '/output': every one of its 30 messages holds a non-finite value"):
         read_bag(write_bag(tmp_path / "nan", r, u, y), MODEL, bad_values="gap")

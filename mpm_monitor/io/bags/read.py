@@ -129,7 +129,7 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
     """Read the stamped-vector topics (setpoint, input, output, and disturbance when four are given);
     ``channels[role]`` = expected names or None (= first message's).  With ``optional``, the fourth
     (disturbance) topic is read only if the bag holds messages on it.  A message holding a non-finite value
-    is refused, or with ``left_out`` (a dict) left out and counted there, ``topic -> [count, first stamp]``
+    is refused, or with ``left_out`` (a dict) left out and counted there, ``topic -> [count, first stamp, stamps]``
     (its sample is then a gap)."""
     topics = _check_topics(path, topics)
     with closing(open_reader(path)) as reader:
@@ -179,7 +179,9 @@ def _read_vectors(path, topics: Sequence[str], channels: Optional[dict], progres
                     index_cache[key] = idx
                 if not np.all(np.isfinite(values[idx])):
                     if left_out is not None:
-                        left_out.setdefault(topic, [0, stamp])[0] += 1
+                        entry = left_out.setdefault(topic, [0, stamp, []])
+                        entry[0] += 1
+                        entry[2].append(stamp)
                         continue
                     raise BagError(f"{path}: topic '{topic}': message {count} (stamp {_seconds(stamp)} s) holds a "
                                    f"non-finite value")
@@ -458,7 +460,7 @@ def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, pr
     left_out = _left_out(bad_values)
     series = _read_vectors(path, topics, channels, progress, left_out=left_out)
     data = _align(path, series, model.sample_time, model.inputs, model.outputs, model.disturbances)
-    return _with_left_out_notes(path, data, left_out)
+    return _with_left_out_notes(path, data, left_out, series, model.sample_time)
 
 
 def _left_out(bad_values: str):
@@ -469,11 +471,32 @@ def _left_out(bad_values: str):
     return {} if bad_values == "gap" else None
 
 
-def _with_left_out_notes(path, data: LoggedData, left_out) -> LoggedData:
-    """``data`` with a note per topic that lost messages holding a non-finite value (:func:`_left_out`)."""
-    notes = [f"{path}: topic '{topic}': {n} message{'s' if n != 1 else ''} holding a non-finite value left out (the "
-             f"first stamped {_seconds(first)} s); the analysis goes around "
-             f"{'their samples' if n != 1 else 'its sample'} as gaps" for topic, (n, first) in (left_out or {}).items()]
+def _with_left_out_notes(path, data: LoggedData, left_out, series: dict, sample_time: float) -> LoggedData:
+    """``data`` with a note per topic that lost messages holding a non-finite value (:func:`_left_out`).
+
+    A message left out whose sample another message of its topic holds (sent again with finite values) is no gap:
+    the note says so (it said the analysis went around every such sample as a gap)."""
+    notes = []
+    kept = {s.topic: s.stamps for s in series.values()}
+    for topic, (n, first, stamps) in (left_out or {}).items():
+        have = kept.get(topic, np.zeros(0, dtype=np.int64))
+        again = 0
+        if have.size:
+            st = np.asarray(stamps, dtype=np.int64)
+            near = np.clip(np.searchsorted(have, st), 1, have.size) - 1
+            gap = np.minimum(np.abs(have[near] - st), np.abs(have[np.minimum(near + 1, have.size - 1)] - st))
+            again = int(np.count_nonzero(gap <= GRID_TOLERANCE * sample_time * 1e9))
+        text = (f"{path}: topic '{topic}': {n} message{'s' if n != 1 else ''} holding a non-finite value left out (the "
+                f"first stamped {_seconds(first)} s)")
+        if again == n:
+            text += (f"; {'each was' if n != 1 else 'it was'} sent again with finite values for "
+                     f"{'its' if n == 1 else 'the same'} sample, which is kept")
+        else:
+            gaps = n - again
+            text += (f"; the analysis goes around {'their samples' if gaps != 1 else 'its sample'} as gaps"
+                     if not again else f"; the analysis goes around {gaps} of their samples as gaps ({again} sent "
+                     f"again with finite values for the same sample, kept)")
+        notes.append(text)
     return dataclasses.replace(data, notes=tuple(notes) + data.notes) if notes else data
 
 
@@ -537,7 +560,7 @@ def read_bag_channels(path, topics: Sequence[str] = DEFAULT_TOPICS, sample_time:
     dv = series.get("disturbance")
     data = _align(path, series, sample_time, series["input"].names, series["output"].names,
                   dv.names if dv is not None else ())
-    return _with_left_out_notes(path, data, left_out)
+    return _with_left_out_notes(path, data, left_out, series, sample_time)
 
 
 def export_csv(bag, csv, model_path=None, topics: Sequence[str] = DEFAULT_TOPICS, progress=False,
