@@ -289,3 +289,22 @@ def test_a_step_response_model_tests_an_integrating_element_s_time_constant():
     log = simulate(sc, 3000).as_logged_data()
     a, b = detect(model, log, FAST), detect(step, log, FAST)
     assert a.located_elements == b.located_elements == [("y1", "u3"), ("y2", "u4")]
+
+
+def test_measured_disturbances_that_move_together_are_not_told_to_dither_the_inputs():
+    """Two measured disturbances that are copies of one another (one signal logged twice) cannot be told apart,
+    and no dither of the inputs separates them: the warning said "the closed loop drives them collinearly ... add
+    a small dither on the inputs", and the group's joint test called them "inputs"."""
+    base = first_order_model()
+    model = PlantModel(sample_time=1.0, inputs=base.inputs, outputs=base.outputs, disturbances=("dv1", "dv2"),
+                       gain=[[1.2, 0.6, 0.9, 0.5], [0.4, 1.5, 0.7, 0.3]],
+                       time_constant=[[8.0, 5.0, 6.0, 6.0], [4.0, 9.0, 3.0, 3.0]],
+                       delay=[[2.0, 1.0, 0.0, 0.0], [0.0, 3.0, 2.0, 2.0]])
+    plant = model.with_element(0, 2, gain=1.8)
+    dv = lfilter([1.0], [1.0, -0.9], 0.5 * np.random.default_rng(5).standard_normal((3300, 1)), axis=0)
+    report = analyze(model, open_loop(plant, model, 3000, seed=11, burn_in=300, dv=np.hstack([dv, dv])))
+    (moves,) = [w for w in report.warnings if "move together" in w]
+    assert moves.startswith("measured disturbances {dv1, dv2} move together") and "dither" in moves
+    assert "no dither of the inputs separates them" in moves and "add a small dither" not in moves
+    assert any(w.startswith("row y1: measured disturbances dv1, dv2 jointly explain part of its prediction error")
+               for w in report.warnings)

@@ -374,7 +374,8 @@ class InputDesign:
             out.append(f"measured disturbances {', '.join(still_dv)} never move: their elements cannot be tested")
         if self.groups:
             grouped = {c for g in self.groups for c in g}
-            what = "inputs and measured disturbances " if grouped & self._disturbances else "inputs "
+            what = ("measured disturbances " if grouped <= self._disturbances else
+                    "inputs and measured disturbances " if grouped & self._disturbances else "inputs ")
             if all(len(g) == 1 for g in self.groups):     # each moves with a combination of the others
                 if len(self.groups) == 1:
                     name = self.groups[0][0]
@@ -384,12 +385,23 @@ class InputDesign:
                     head = what + ", ".join(g[0] for g in self.groups) + " each move with the other columns "
             else:
                 head = what + "; ".join("{" + ", ".join(g) + "}" for g in self.groups) + " move together "
-            out.append(
-                head + f"(largest variance inflation {self.max_vif:.3g}, condition number of the "
-                  f"input regressors {self.regression.condition_number:.3g}): the closed loop drives them "
-                  "collinearly, so their elements cannot be told apart from these data; add a small dither on the "
-                  "inputs to separate them")
+            if grouped <= self._disturbances:      # measured disturbances alone: no dither of the inputs helps
+                why = ("the controller does not move them, so their elements cannot be told apart from these data "
+                       "and no dither of the inputs separates them: data where they move apart would")
+            else:
+                why = ("the closed loop drives them collinearly, so their elements cannot be told apart from these "
+                       "data; add a small dither on the inputs to separate them")
+            out.append(head + f"(largest variance inflation {self.max_vif:.3g}, condition number of the "
+                       f"input regressors {self.regression.condition_number:.3g}): " + why)
         return out
+
+
+def _columns_word(model: PlantModel, names) -> str:
+    """``inputs``, ``measured disturbances`` or ``inputs and measured disturbances``: what the columns ``names`` are."""
+    index = {c: j for j, c in enumerate(model.columns)}
+    roles = {model.role(index[n]) if n in index else "input" for n in names}
+    return {frozenset({"input"}): "inputs", frozenset({"disturbance"}): "measured disturbances"}.get(
+        frozenset(roles), "inputs and measured disturbances")
 
 
 def group_inputs(u: np.ndarray, bad: list, names, threshold: float) -> list:
@@ -644,8 +656,9 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
                 p_value=float(p) if np.isfinite(p) else 1.0, p_value_raw=est.p_value, statistic=t.statistic,
                 delay=int(est.delay), b=est.b, role=role, p_value_window=t.p_value, p_value_response=p_resp))
     kept = _confirm_with_tails(model, rows, design, regressions, options, estimates, keys, elements, output_spread)
-    warnings = [f"row {h.output}: inputs {', '.join(h.inputs)} jointly explain part of its prediction error "
-                f"(p={h.p_value:.2g}) but cannot be told apart from these data" for h in group_hits] + kept \
+    warnings = [f"row {h.output}: {_columns_word(model, h.inputs)} {', '.join(h.inputs)} jointly explain part of its "
+                f"prediction error (p={h.p_value:.2g}) but cannot be told apart from these data"
+                for h in group_hits] + kept \
         + undetermined_noise_warnings(model, noise)
     responses = {k: e.response for k, e in estimates.items() if e.response is not None}
     if whiteness is None:
