@@ -13,6 +13,7 @@ detection is tested elsewhere).  For each scenario and seed:
 - no element outside ``located`` touched.
 """
 
+import dataclasses
 import json
 
 import numpy as np
@@ -305,6 +306,14 @@ def test_step_on_a_repaired_row_does_not_bias_the_element():
     assert res.error_after["y2"] <= 1.05 * floor[1]
     assert [(d["output"], d["kind"]) for d in res.disturbances] == [("y2", "step")]
     assert any("allowed for the unexplained step" in w for w in res.warnings)
+    # Its warning gives the log's own time (it counted from the first sample: "t = 1164 s" beside the gap
+    # warnings' stamps 1700001664 s in a live window).
+    data = log.as_logged_data()
+    late = dataclasses.replace(data, t=data.t + 1.7e9)
+    res = repair_model(model, late, [(1, 1)])
+    (shift,) = [w for w in res.warnings if "the prediction error shifts" in w]
+    when = float(shift.split("at about t = ")[1].split(" s")[0])
+    assert when == pytest.approx(1.7e9 + res.disturbances[0]["time"], abs=1.0) and when > 1.7e9
 
 
 def test_row_response_equals_the_state_space_simulation():

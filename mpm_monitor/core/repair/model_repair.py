@@ -18,7 +18,7 @@ import numpy as np
 
 from ..discretize import model_columns
 from ..errors import ConfigurationError, InputError
-from ..logged_data import LoggedData, check_loop_data, in_deviations, moving_columns
+from ..logged_data import LoggedData, check_loop_data, in_deviations, moving_columns, t_text
 from ..model import PlantModel
 from ..signals import (LoopSignals, compute_signals, error_rms, packed, scored_segments, segment_signals,
                        segments_mask, unknown_starts)
@@ -618,8 +618,12 @@ def _disturbance_findings(rec: _Record, tests: dict):
                              "time": test["time"], "rate": test["rate"], "p_value": test["p_value"],
                              "statistic": test["statistic"]})
         if test["kind"] == "step":
+            # At the log's own time (the stamp of the sample the step is at): ``time`` counts from the first sample,
+            # which read as 1164 s beside the gap warnings' 1700001664 s in a live window.
+            k, t = test.get("index"), np.asarray(rec.data.t)
+            when = t_text(float(t[k])) if k is not None and 0 <= k < t.shape[0] else f"{test['time']:.0f}"
             warnings.append(
-                f"{name}: the prediction error shifts by {test['size']:+.3g} at about t = {test['time']:.0f} s "
+                f"{name}: the prediction error shifts by {test['size']:+.3g} at about t = {when} s "
                 f"(p = {test['p_value']:.2g}) and no input explains it: an unmeasured disturbance or a change "
                 f"in the process, not an error of one model element; no element was changed for it.")
         else:
