@@ -198,6 +198,24 @@ def test_a_channel_that_never_comes_is_reported_and_memory_stays_bounded():
     assert problems and all(p.kind == "gap" and "no input" in p.message for p in problems)
 
 
+def test_a_long_outage_of_one_topic_is_one_gap_not_one_per_sample():
+    """The input silent for 1,200 samples (max_pending 1,000): each sample received beyond max_pending gave up the
+    oldest as a gap of one sample that the window "keeps its samples across", 212 gaps in all, and the window
+    restarted only on the last (989 samples).  The samples given up at once are one gap now, which restarts it."""
+    w = make(window=3000)
+    for k in range(3000):
+        r, u, y = sample_values(k)
+        w.add("setpoint", k * NS, r)
+        w.add("output", k * NS, y)
+        if not 400 <= k < 1600:
+            w.add("input", k * NS, u)
+    h = w.health()
+    assert h.missing_samples == 1200 and h.gaps == 2 and h.resets == 1 and h.completed == 1800
+    gaps = [p.message for p in w.take_problems() if p.kind == "gap"]
+    assert len(gaps) == 2 and gaps[0].startswith("990 sample(s) missing from t = 400 s (no input); the window "
+                                                 "restarts after the gap")
+
+
 def test_options_are_checked():
     with pytest.raises(ConfigurationError, match="window_samples"):
         WindowOptions(window_samples=5)
