@@ -216,6 +216,41 @@ def test_a_long_outage_of_one_topic_is_one_gap_not_one_per_sample():
                                                  "restarts after the gap")
 
 
+def test_a_first_output_stamped_early_does_not_put_the_grid_off_for_good():
+    """The grid's phase came from the first output alone: stamped 0.2 sample early, with every input 0.1 sample late
+    (both within the quarter sample a stamp may be off), every input was 0.3 sample off the grid, refused, and no
+    sample ever completed.  Before the first sample completes, the phase moves to fit every stamp so far."""
+    w = make(window=50)
+    for k in range(30):
+        r, u, y = sample_values(k)
+        w.add("output", k * NS - (NS // 5 if k == 0 else 0), y)
+        w.add("input", k * NS + NS // 10, u)
+        w.add("setpoint", k * NS, r)
+    assert w.n_completed == 30 and w.health().off_grid == 0
+    data = w.data()
+    np.testing.assert_array_equal(data.y[:, 0], np.arange(30) + 0.3)
+    np.testing.assert_array_equal(data.u[:, 0], np.arange(30) + 0.2)
+    assert abs(data.t[0]) <= 0.25
+    np.testing.assert_allclose(np.diff(data.t), 1.0)
+    problems = w.take_problems()
+    assert [p.kind for p in problems] == ["rephase"] and "phase moved by" in problems[0].message
+    # Stamps jittered by up to 0.2 sample either way around the grid: every sample completes.
+    rng = np.random.default_rng(3)
+    w = make(window=200)
+    for k in range(150):
+        r, u, y = sample_values(k)
+        for ch, v in (("output", y), ("input", u), ("setpoint", r)):
+            w.add(ch, k * NS + int(rng.uniform(-0.2, 0.2) * NS), v)
+    assert w.n_completed == 150 and w.health().restarts == 0
+    # Stamps no one phase fits (0.6 sample apart) are still refused: off the grid.
+    w = make()
+    r, u, y = sample_values(0)
+    w.add("output", 0, y)
+    w.add("input", 3 * NS // 10, u)              # 0.3 sample late: the phase moves by 0.15
+    w.add("setpoint", -3 * NS // 10, r)          # 0.3 sample early: 0.45 off the moved grid
+    assert w.health().off_grid == 1 and w.n_completed == 0
+
+
 def test_options_are_checked():
     with pytest.raises(ConfigurationError, match="window_samples"):
         WindowOptions(window_samples=5)

@@ -53,7 +53,7 @@ DISTURBANCE = "disturbance"
 #: Problem kinds that mean the data itself is wrong (the monitor reports them as ERROR).
 ERROR_KINDS = frozenset({"bad_value", "conflict", "off_grid"})
 #: Problem kinds that cost samples but not correctness (reported in the summary's values).
-WARNING_KINDS = frozenset({"gap", "duplicate", "late", "out_of_order", "restart"})
+WARNING_KINDS = frozenset({"gap", "duplicate", "late", "out_of_order", "restart", "rephase"})
 #: A stamp later than this (nanoseconds: 1e9 s, 2001-09-09) is a wall-clock time; a stamp of exactly 0
 #: among such stamps is an unset ``header.stamp``.
 WALL_CLOCK_NS = 10**18
@@ -241,6 +241,11 @@ class SampleWindow:
         self._refused: collections.deque = collections.deque(maxlen=3 * self._restart_after + 3)
         self._refused_outputs = 0
         self._accepted = False
+        # Until the first sample completes on a phase: every vector placed since it was set (to place again on a
+        # phase moved to fit them all, :meth:`_rephase`), and whether a stamp was refused off the grid.
+        self._unsettled: Optional[list] = []
+        self._off_grid_seen = False
+        self._problems_before = 0
 
     # ------------------------------------------------------------------------------ properties
     @property
@@ -348,7 +353,18 @@ class SampleWindow:
         # later vector out of order
         self._last_stamp[channel] = stamp_ns
         self._accepted = False
+        self._off_grid_seen = False
+        self._problems_before = len(self._problems)
         n = self._route(channel, stamp_ns, v)
+        if self._unsettled is not None and self._phase is not None:
+            if n:
+                self._unsettled = None               # a sample completed: the phase holds
+            else:
+                self._unsettled.append((channel, stamp_ns, v))
+                if len(self._unsettled) > self.options.max_pending:
+                    self._unsettled.pop(0)
+                if self._off_grid_seen:
+                    n = self._rephase()
         if n:
             self._refused.clear()
             self._refused_outputs = 0
@@ -372,6 +388,8 @@ class SampleWindow:
             self._accepted = True
             n = self._place(channel, stamp_ns, v)
             early, self._early = self._early, []
+            if self._unsettled is not None:          # placed again if the phase moves (_rephase)
+                self._unsettled.extend(early)
             for ch, st, val in early:
                 n += self._place(ch, st, val)
             return n
@@ -407,6 +425,7 @@ class SampleWindow:
         k = (rel + self._period // 2) // self._period
         off = rel - k * self._period
         if abs(off) > self._tol:
+            self._off_grid_seen = True
             self._health.off_grid += 1
             self._problem("off_grid", channel, stamp_ns,
                           f"{channel}: t = {seconds_text(stamp_ns)} s is {off / NS_PER_S:+.3g} s off the sample grid "
@@ -572,6 +591,42 @@ class SampleWindow:
                           f"sample t = {seconds_text(self._stamp_of(oldest))} s given up: no {' and no '.join(absent)} "
                           f"after {self.options.max_pending} newer incomplete samples")
 
+    def _rephase(self) -> int:
+        """Before the first sample completes, move the grid's phase to fit every stamp placed or refused since it
+        was set, when one phase fits them all within ``stamp_tolerance``, and place them again on it.
+
+        The phase comes from the first output's stamp (and those of the vectors before it).  A first output
+        stamped 0.2 sample early put every input stamped 0.1 sample late 0.3 sample off the grid: refused, no
+        sample ever completed, and with stamps jittered by 0.2 sample the stream restarted over and over.
+        Returns the samples appended."""
+        if self._count:                              # a sample completed (a restart's replay): the phase holds
+            self._unsettled = None
+            return 0
+        stamps = np.array([st for _, st, _ in self._unsettled], dtype=np.int64)
+        half = self._period // 2
+        off = (stamps - self._phase + half) % self._period - half         # in [-period/2, period/2)
+        lo, hi = int(off.min()), int(off.max())
+        if hi - lo > 2 * self._tol or lo >= -self._tol and hi <= self._tol:
+            return 0                                 # no phase fits them all, or this one already does
+        replay, self._unsettled = self._unsettled, []
+        # This vector's refusal was the old phase's, not the stamp's: no error.
+        mine = self._problems[self._problems_before:]
+        self._problems[self._problems_before:] = [p for p in mine if p.kind != "off_grid"]
+        self._health.off_grid -= sum(p.kind == "off_grid" for p in mine)
+        self._phase = (self._phase + (lo + hi) // 2) % self._period
+        self._pending, self._complete, self._next_k = {}, set(), None
+        self._setpoints = []                         # hold mode: the replay puts them back
+        self._refused.clear()
+        self._refused_outputs = 0
+        self._problem("rephase", "", int(replay[-1][1]),
+                      f"the sample grid's phase moved by {(lo + hi) / 2 / NS_PER_S:+.3g} s to fit the first "
+                      f"{len(replay)} stamps (within stamp_tolerance {self.options.stamp_tolerance:g} sample)")
+        n = 0
+        for ch, st, val in replay:
+            n += self._place(ch, st, val)
+        self._unsettled = None if n else replay       # until a sample completes, the stamps so far count still
+        return n
+
     def _restart(self, stamp_ns: int) -> int:
         """Forget the alignment (grid phase, pending samples, window; not the counters) and place
         the refused vectors again, as the start of a new stream."""
@@ -581,6 +636,7 @@ class SampleWindow:
         else:
             where = f"the latest at t = {seconds_text(stamp_ns)} s"
         self._health.restarts += 1
+        self._unsettled = []
         self._problem("restart", "output", stamp_ns,
                       f"stream restarted: {self._refused_outputs} output vectors in a row did not fit the sample "
                       f"grid, {where} (publisher restart or clock jump); the window restarts from the new stamps")
@@ -600,6 +656,8 @@ class SampleWindow:
         n = 0
         for ch, st, val in replay:
             n += self._route(ch, st, val)
+        if n:
+            self._unsettled = None                   # the replay completed samples: the phase holds
         return n
 
     def _reset_window(self) -> None:
