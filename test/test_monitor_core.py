@@ -396,6 +396,15 @@ def test_describe_change_names_only_the_changed_parameters_with_units():
     assert row_repair_text([ch, g, kept], "y1") == "u2: time_constant 45->60 s, delay 4->7 s; u3: gain 3.5->5.88"
     assert row_repair_text([ch, g, kept], "y2") == "u1: kept (rejected by held-out validation)"
     assert row_repair_text([ch, g, kept], "y3") == ""
+    # A change hidden by the three digits (2 -> 2) is worded with the digits that tell it apart.
+    small = {"output": "y1", "input": "u1", "applied": True, "before": {"gain": 1.9992, "time_constant": 10.0,
+                                                                       "delay": 2.0},
+             "after": {"gain": 2.0033, "time_constant": 10.0, "delay": 2.0}}
+    assert describe_change(small) == "gain 1.999->2.003"
+    step = {"output": "y1", "input": "u1", "applied": True, "before": {"gain": 1.9992, "delay": 2.0,
+                                                                      "step_response": [0.0, 1.0, 1.9992]},
+            "after": {"gain": 2.0033, "delay": 2.0, "step_response": [0.0, 1.0, 2.0033]}}
+    assert describe_change(step) == "step response re-estimated: final value 1.999->2.003"
 
 
 def test_the_suggested_repair_is_in_the_row_statuses(repaired_core):

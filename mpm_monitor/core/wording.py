@@ -24,12 +24,24 @@ def _short(x) -> str:
     return "nan" if x is None else f"{float(x):.3g}"
 
 
+def _pair(b, a) -> tuple:
+    """``b`` and ``a`` as :func:`_short` words them, with as many more digits (up to six) as it takes to tell them
+    apart when they differ: a gain 1.9992 -> 2.0033 read "2 -> 2", or was taken for no change at all."""
+    if b is None or a is None or float(a) == float(b):
+        return _short(b), _short(a)
+    for digits in range(3, 7):
+        bs, as_ = f"{float(b):.{digits}g}", f"{float(a):.{digits}g}"
+        if bs != as_:
+            return bs, as_
+    return bs, as_
+
+
 def _step_change(change: dict, element: bool) -> str:
     """A step-response element's change: ``step response re-estimated: final value 1.2->1.6, dead time 3->5 s``.
 
     The final value is the last slope (per second) on a ramp output (``change["ramp"]``); a value
-    is named when its three significant digits changed, and when neither did, the response's shape
-    alone changed.
+    is named when it changed in its first six significant digits (with as many as tell it apart, three at
+    least), and when neither did, the response's shape alone changed.
     """
     before, after = change.get("before") or {}, change.get("after") or {}
     if before.get("step_response") == after.get("step_response"):
@@ -38,7 +50,7 @@ def _step_change(change: dict, element: bool) -> str:
     unit = " per s" if change.get("ramp") else ""
     parts = []
     for key, name, u in (("gain", final, unit), ("delay", "dead time", " s")):
-        b, a = _short(before.get(key)), _short(after.get(key))
+        b, a = _pair(before.get(key), after.get(key))
         if b != a:
             parts.append(f"{name} {b}->{a}{u}")
     if not parts:
@@ -83,7 +95,7 @@ def describe_change(change: dict, element: bool = False) -> str:
             b, a = b or 0.0, a or 0.0                        # an absent lead or second lag is 0
         if a is None or b is None or float(a) == float(b):
             continue
-        parts.append(f"{key} {_short(b)}->{_short(a)}{unit}")
+        parts.append("{} {}->{}{}".format(key, *_pair(b, a), unit))
     return ", ".join(parts)
 
 
