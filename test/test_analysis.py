@@ -8,6 +8,7 @@ import dataclasses
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -188,6 +189,11 @@ def test_analyze_cli_writes_the_json_report(tmp_path):
     doc = json.loads(res.stdout)
     located = {(e["output"], e["input"]) for e in doc["elements"] if e["mismatch"]}
     assert located == set(case.mismatched_elements)
+    # --repair-out - wrote a file named "-" (where --json - and --data - mean the streams): refused up front.
+    res = _cli("analyze", "--model", str(tmp_path / "model.yaml"), "--data", str(tmp_path / "data.csv"),
+               "--json", "-", "--repair-out", "-")
+    assert res.returncode == 2 and res.stdout == "" and res.stderr.startswith("error: --repair-out -: expected a file")
+    assert len(res.stderr.splitlines()) == 1 and not (Path.cwd() / "-").exists()
 
 
 @pytest.mark.parametrize("content,match", [

@@ -233,6 +233,9 @@ def _cmd_recover(args) -> int:
 def _cmd_analyze(args) -> int:
     if args.data == "-":
         args.data = "/dev/stdin"        # named so in messages and in the report's source
+    if args.repair_out == "-":          # it wrote a file named "-", where --json - and --data - mean the streams
+        raise InputError("--repair-out -: expected a file to write the repaired model to (standard output holds "
+                         "the summary, or the JSON report with --json -)")
     for path, what in ((args.json_out, "--json"), (args.repair_out, "--repair-out")):
         if path and path != "-":
             # The repaired model may replace the model file (an update in place); nothing may replace the log.
