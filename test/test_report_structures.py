@@ -68,6 +68,10 @@ def test_a_step_response_report_and_an_estimate_not_applied(tmp_path):
     out = write_report(tmp_path / "rep", model, data, report)
     text = out.read_text(encoding="utf-8")
     assert "step response of 60 samples: final value 1.5, dead time 3 s" in text
+    # On a ramp output the cell says the final slope per second, as the text summary does (it said "final value").
+    from mpm_monitor.io.report import _params
+    cell = {"step_response": [0.0] * 60, "gain": 0.05, "delay": 3.0}
+    assert _params(cell, ramp=True) == "step response of 60 samples: final slope 0.05 per s, dead time 3 s"
     curves = plots.step_curves(report, model, 0, 0, 100)
     assert set(curves) == {"model", "repaired model"}
     assert curves["repaired model"][-1] == pytest.approx(2.1, rel=0.03)
@@ -79,3 +83,22 @@ def test_a_step_response_report_and_an_estimate_not_applied(tmp_path):
     np.testing.assert_array_equal(curves["repaired model"], curves["model"])
     assert curves["re-estimated (not applied)"][-1] == pytest.approx(2.1, rel=0.03)
     assert plots.plot_step_responses(rejected, model, tmp_path / "steps.png").stat().st_size > 5000
+
+
+def test_a_candidate_explained_by_another_is_said_so_in_the_report_not_no_effect():
+    """A candidate whose test rejected in a row but that the row's other located column explains (released, its
+    explained_by set) read "no effect found" beside its p-value below 1e-16 in the HTML report."""
+    import types
+
+    from mpm_monitor.io.report import _candidates_section, _explained_candidates
+
+    cands = types.SimpleNamespace(tried=["feed", "sensor2"], p_values={"feed": {"y1": 1e-20}, "sensor2": {"y1": 1e-18}},
+                                  located=[("y1", "feed")], added=["feed"], not_exogenous={}, unusable={})
+    elements = [types.SimpleNamespace(output="y1", input="feed", role="candidate", explained_by=(), mismatch=True),
+                types.SimpleNamespace(output="y1", input="sensor2", role="candidate", explained_by=("feed",),
+                                      mismatch=False)]
+    report = types.SimpleNamespace(candidates=cands, rows=[types.SimpleNamespace(output="y1")], elements=elements)
+    explained = _explained_candidates(report)
+    assert explained == {"sensor2": ["feed"]}
+    html = _candidates_section(report, explained)
+    assert "flagged, explained by feed (see the warnings)" in html and "no effect found" not in html

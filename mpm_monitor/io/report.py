@@ -77,15 +77,15 @@ def _table(headers, rows, classes=None) -> str:
     return "\n".join(out)
 
 
-def _params(p) -> str:
+def _params(p, ramp: bool = False) -> str:
     """An element of a ``changes`` entry in a table cell: ``K 4.05, tau 30 s, tau2 15 s, lead 12 s,
     theta 6 s`` (``K`` per second for an integrating element), or a step response's length, final
-    value and dead time."""
+    value (its final slope per second on a ramp output, ``ramp``) and dead time."""
     if not isinstance(p, dict):
         return "&ndash;"
     if "step_response" in p:
-        return (f"step response of {len(p['step_response'])} samples: final value {_num(p.get('gain'))}, "
-                f"dead time {_num(p.get('delay'))} s")
+        final = f"final slope {_num(p.get('gain'))} per s" if ramp else f"final value {_num(p.get('gain'))}"
+        return f"step response of {len(p['step_response'])} samples: {final}, dead time {_num(p.get('delay'))} s"
     text = f"K {_num(p.get('gain'))}{' per s (integrating)' if p.get('integrating') else ''}, "
     text += f"&tau; {_num(p.get('time_constant'))} s"
     if "time_constant2" in p:
@@ -163,9 +163,10 @@ def _repair_section(report) -> str:
     if changes:
         rows = []
         for c in changes:
-            applied = c.get("applied", True)
-            rows.append([_e(f"({c.get('output')}, {c.get('input')})"), _e(c.get("kind", "")), _params(c.get("before")),
-                         _params(c.get("after")), _num(c.get("confidence"), ".2f"), "yes" if applied else "no"])
+            applied, ramp = c.get("applied", True), bool(c.get("ramp"))
+            rows.append([_e(f"({c.get('output')}, {c.get('input')})"), _e(c.get("kind", "")),
+                         _params(c.get("before"), ramp), _params(c.get("after"), ramp),
+                         _num(c.get("confidence"), ".2f"), "yes" if applied else "no"])
         parts.append(_table(["element", "kind", "model as given", "repaired", "confidence", "applied"], rows))
     else:
         parts.append("<p>No element was changed.</p>")
@@ -181,9 +182,22 @@ def _repair_section(report) -> str:
     return "\n".join(parts)
 
 
-def _candidates_section(report) -> str:
+def _explained_candidates(report) -> dict:
+    """Candidate -> the elements that explain it, for a candidate whose test rejected in a row but that the row's
+    other located elements explain (released, ``explained_by``)."""
+    explained: dict = {}
+    for e in getattr(report, "elements", ()):
+        if getattr(e, "role", "") == "candidate":
+            names = explained.setdefault(e.input, [])
+            names += [x for x in (getattr(e, "explained_by", None) or ()) if x not in names]
+    return {k: v for k, v in explained.items() if v}
+
+
+def _candidates_section(report, explained: dict) -> str:
     """Which channels were tried, the p-value of each in each row, which were unusable or not
-    exogenous, and which were added to the repaired model."""
+    exogenous, which were explained by the row's located elements (``explained``:
+    :func:`_explained_candidates` of the report as analysed; such a channel read "no effect found" beside its
+    p-value below 1e-16), and which were added to the repaired model."""
     cands = report.candidates
     if not cands.tried:
         return "<p>No candidate channel was given.</p>"
@@ -194,7 +208,9 @@ def _candidates_section(report) -> str:
         if name in cands.p_values:
             ps = cands.p_values[name]
             verdict = "added to the model" if name in cands.added else (
-                "located, not added (see the warnings)" if any(c == name for _, c in located) else "no effect found")
+                "located, not added (see the warnings)" if any(c == name for _, c in located) else
+                f"flagged, explained by {', '.join(explained[name])} (see the warnings)" if name in explained else
+                "no effect found")
             rows.append([_e(name)] + [_p(ps.get(o)) for o in outputs] + [_e(verdict)])
             classes.append("flag" if any(c == name for _, c in located) else "")
         else:
@@ -265,6 +281,7 @@ def write_report(directory, model: PlantModel, data, report) -> Path:
     except OSError as exc:
         raise InputError(f"{directory}: cannot create report directory: {exc.strerror or exc}") from None
     model_as_given = model
+    explained = _explained_candidates(report)
     model, data, report = _plotted(model, data, report)
     repaired = getattr(report, "repaired_model", None)
     try:
@@ -316,7 +333,7 @@ def write_report(directory, model: PlantModel, data, report) -> Path:
         "<h2>Detectability and experiment</h2>", _detectability_section(report), fig_html.get("detectability", ""),
     ]
     if getattr(report, "candidates", None) is not None:
-        body += ["<h2>Candidate channels</h2>", _candidates_section(report)]
+        body += ["<h2>Candidate channels</h2>", _candidates_section(report, explained)]
     body += [
         "<h2>Repair</h2>", _repair_section(report), fig_html.get("residuals", ""),
     ]
