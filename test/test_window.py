@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mpm_monitor.core.errors import ConfigurationError
-from mpm_monitor.monitor.window import SampleWindow, WindowOptions
+from mpm_monitor.monitor.window import EARLY_BLOCK, SampleWindow, WindowOptions
 
 NS = 1_000_000_000
 OUT = ("y1", "y2")
@@ -249,6 +249,32 @@ def test_a_first_output_stamped_early_does_not_put_the_grid_off_for_good():
     w.add("input", 3 * NS // 10, u)              # 0.3 sample late: the phase moves by 0.15
     w.add("setpoint", -3 * NS // 10, r)          # 0.3 sample early: 0.45 off the moved grid
     assert w.health().off_grid == 1 and w.n_completed == 0
+
+
+def test_a_topic_whose_clock_jumps_ahead_is_an_error_not_a_gap():
+    """The input's stamps jumped 5 samples forward at sample 800 while the loop ran on in real time: the window
+    paired y(k) with u(k - 5) from then on, said as a gap of 5 samples, and the analysis of that window located
+    mismatches the loop did not have.  The input's vectors arrive well before the others' of the same sample: a
+    data error, and the window restarts.  Vectors delivered late for a while (a stall) are no sign of it."""
+    def run(shift_input, late_output=0):
+        w = make(window=3000)
+        for k in range(2000):
+            r, u, y = sample_values(k)
+            t = k * NS
+            jump = 5 * NS if shift_input and k >= 800 else 0
+            w.add("output", t, y, arrival_ns=t + (late_output * NS if 1000 <= k < 1100 else 0))
+            w.add("input", t + jump, u, arrival_ns=t + NS // 10)
+            w.add("setpoint", t, r, arrival_ns=t + NS // 5)
+        return w
+    w = run(shift_input=True)
+    clock = [p for p in w.take_problems() if p.kind == "clock"]
+    assert clock and clock[0].channel == "input" and clock[0].is_error
+    assert clock[0].message.startswith("input: its vectors arrive about 4.9 samples (4.9 s) before") and \
+        "run ahead" in clock[0].message
+    # The window restarts again each time (the clock stays apart): it never holds enough for an analysis.
+    assert w.health().resets >= 40 and w.n_window < 2 * EARLY_BLOCK
+    w = run(shift_input=False, late_output=3)    # the output held up 3 s for 100 samples: late, not early
+    assert not [p for p in w.take_problems() if p.kind == "clock"] and w.n_window == 2000
 
 
 def test_options_are_checked():

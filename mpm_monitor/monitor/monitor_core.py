@@ -142,7 +142,7 @@ class MonitorCore:
         if self._started_wall is None:
             self._started_wall = now
         self._last_arrival[channel] = now
-        n = self.window.add(channel, stamp_ns, values)
+        n = self.window.add(channel, stamp_ns, values, int(now * 1e9))
         if n:
             self._last_complete_wall = now
             self.experiment.on_samples(self.window.n_completed)

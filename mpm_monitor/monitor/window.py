@@ -51,7 +51,7 @@ CHANNELS = ("setpoint", "input", "output")
 DISTURBANCE = "disturbance"
 
 #: Problem kinds that mean the data itself is wrong (the monitor reports them as ERROR).
-ERROR_KINDS = frozenset({"bad_value", "conflict", "off_grid"})
+ERROR_KINDS = frozenset({"bad_value", "conflict", "off_grid", "clock"})
 #: Problem kinds that cost samples but not correctness (reported in the summary's values).
 WARNING_KINDS = frozenset({"gap", "duplicate", "late", "out_of_order", "restart", "rephase"})
 #: A stamp later than this (nanoseconds: 1e9 s, 2001-09-09) is a wall-clock time; a stamp of exactly 0
@@ -59,6 +59,12 @@ WARNING_KINDS = frozenset({"gap", "duplicate", "late", "out_of_order", "restart"
 WALL_CLOCK_NS = 10**18
 #: Fewest refused output vectors in a row (with no sample completed) taken as a stream restart.
 MIN_RESTART_OUTPUTS = 3
+#: A topic whose vectors arrive before every other topic's vector of the same sample, by at least this many samples
+#: of arrival time and :data:`EARLY_SECONDS`, in the median of :data:`EARLY_BLOCK` samples in a row, has stamps
+#: that run ahead of theirs (as the bag reader refuses: ``mpm_monitor.io.bags.read.EARLY_SAMPLES``).
+EARLY_SAMPLES = 3
+EARLY_SECONDS = 2.0
+EARLY_BLOCK = 25
 
 NS_PER_S = 1_000_000_000
 
@@ -246,6 +252,13 @@ class SampleWindow:
         self._unsettled: Optional[list] = []
         self._off_grid_seen = False
         self._problems_before = 0
+        # Arrival times (ns, the caller's clock) of each pending sample's vectors, by slot; of the samples appended,
+        # how early each channel's vector came (the last EARLY_BLOCK), and the arrival time per sample.
+        self._arrival_now: Optional[int] = None
+        self._arrivals: dict = {}
+        self._early_by: dict = {c: collections.deque(maxlen=EARLY_BLOCK) for c in self.channels}
+        self._last_arrival: Optional[float] = None
+        self._per_sample: collections.deque = collections.deque(maxlen=4 * EARLY_BLOCK + 1)
 
     # ------------------------------------------------------------------------------ properties
     @property
@@ -305,7 +318,7 @@ class SampleWindow:
         self._health.bad_value += 1
         self._problem("bad_value", channel, stamp_ns, message)
 
-    def add(self, channel: str, stamp_ns: int, values) -> int:
+    def add(self, channel: str, stamp_ns: int, values, arrival_ns: Optional[int] = None) -> int:
         """Add one vector.
 
         Parameters
@@ -317,6 +330,9 @@ class SampleWindow:
         values : array_like, shape (n_channels,)
             Values in model order (outputs for setpoint and output, inputs for input, measured
             disturbances for disturbance).
+        arrival_ns : int, optional
+            When it arrived, nanoseconds of the caller's clock: a topic whose vectors arrive well before the
+            other topics' of the same sample has stamps that run ahead of theirs (:meth:`_check_clocks`).
 
         Returns
         -------
@@ -355,6 +371,7 @@ class SampleWindow:
         self._accepted = False
         self._off_grid_seen = False
         self._problems_before = len(self._problems)
+        self._arrival_now = None if arrival_ns is None else int(arrival_ns)
         n = self._route(channel, stamp_ns, v)
         if self._unsettled is not None and self._phase is not None:
             if n:
@@ -460,6 +477,8 @@ class SampleWindow:
                            f"on one topic?)")
             return 0
         entry[slot] = v
+        if self._arrival_now is not None:
+            self._arrivals.setdefault(k, [None] * len(self.channels))[slot] = self._arrival_now
         self._accepted = True
         if self._is_complete(k, entry):
             self._complete.add(k)
@@ -526,6 +545,7 @@ class SampleWindow:
                 self._append(k, r, *entry[1:])
                 self._next_k = k + 1
                 appended += 1
+                self._check_clocks(k)
                 if hold:
                     self._prune_setpoints()
                 continue
@@ -538,6 +558,48 @@ class SampleWindow:
                 continue
             break
         return appended
+
+    def _check_clocks(self, k: int) -> None:
+        """After sample ``k`` was appended: how early each channel's vector arrived against the others' of the
+        sample; a channel early by at least :data:`EARLY_SAMPLES` samples of arrival time and
+        :data:`EARLY_SECONDS` in the median of :data:`EARLY_BLOCK` samples in a row has stamps that run ahead
+        (its publisher's clock jumped forward, or runs apart): aligned by stamp, its vectors pair with the other
+        topics' of another time.  That is a data error, and the window restarts (no analysis of it).  A vector
+        that arrived late (a delivery held up) is no sign; without arrival times, or with arrival times that do
+        not advance, nothing is checked.  The held setpoint (``hold_setpoint``) is not compared."""
+        arrivals = self._arrivals.pop(k, None)
+        if len(self._arrivals) > 2 * int(self.options.max_pending):
+            self._arrivals = {kk: a for kk, a in self._arrivals.items() if kk >= self._next_k}
+        chans = [i for i, c in enumerate(self.channels) if not (c == "setpoint" and self.options.hold_setpoint)]
+        if arrivals is None or any(arrivals[i] is None for i in chans) or len(chans) < 2:
+            return
+        at = {i: float(arrivals[i]) for i in chans}
+        middle = float(np.median(list(at.values())))
+        if self._last_arrival is not None:
+            self._per_sample.append(middle - self._last_arrival)
+        self._last_arrival = middle
+        for i in chans:
+            self._early_by[self.channels[i]].append(min(a for j, a in at.items() if j != i) - at[i])
+        if len(self._per_sample) < EARLY_BLOCK:
+            return
+        tau = float(np.median(self._per_sample))
+        if not tau > 0:
+            return
+        limit = max(EARLY_SAMPLES * tau, EARLY_SECONDS * NS_PER_S)
+        for c in (self.channels[i] for i in chans):
+            early = self._early_by[c]
+            if len(early) == EARLY_BLOCK and float(np.median(early)) > limit:
+                ahead = float(np.median(early))
+                self._problem("clock", c, self._stamp_of(k),
+                              f"{c}: its vectors arrive about {ahead / tau:.3g} samples ({ahead / NS_PER_S:.3g} s) "
+                              f"before the other topics' vectors of the same sample, up to t = "
+                              f"{seconds_text(self._stamp_of(k))} s: its stamps run ahead of theirs (a clock that "
+                              f"jumped forward, or a publisher's clock set apart from the others'?); aligned by stamp "
+                              f"its samples pair with the others' of another time: the window restarts")
+                for d in self._early_by.values():
+                    d.clear()
+                self._reset_window()
+                return
 
     def _prune_setpoints(self) -> None:
         last = self._latest_setpoint(self._next_k)
