@@ -354,6 +354,11 @@ def test_step_responses_cut_short_of_settling_are_named():
                                   "settled within the model's 20 samples" in warning[0]
     assert unsettled_warnings(case.model) == []                      # parametric: nothing to say
     assert unsettled_warnings(step_model(400)) == []                 # settled (lags of 50 s at most)
+    # Fewer than 10 samples were never checked: a model of 3, shorter than the dead times, said nothing.
+    (short,) = unsettled_warnings(step_model(3))
+    assert "have not settled within the model's 3 samples" in short
+    fast = PlantModel.from_step_response(1.0, ("u1",), ("y1",), [[[0.6, 0.95, 1.0, 1.0, 1.0]]])
+    assert unsettled_warnings(fast) == []                            # settled within its 5 samples
 
 
 def test_a_long_window_is_confirmed_with_tails_on_its_last_rows(monkeypatch):

@@ -936,8 +936,9 @@ def unsettled_warnings(model: PlantModel) -> list:
     The model holds each response at its last coefficient beyond ``N``: a plant whose response goes on
     rising differs from the model there, every such element can be located, and a repair that keeps the
     element's ``N`` cannot follow it.  A ``ramp`` row's elements end on a slope by design and are left out.
+    "Still changing" is measured over the last tenth of the samples (the last step below 20 samples).
     """
-    if not model.is_step_response or model.step_length < 10:
+    if not model.is_step_response or model.step_length < 2:     # (below 10 samples it was never checked)
         return []
     sr, n = model.step_response, model.step_length              # (n_outputs, n_columns, N)
     tail = np.abs(sr[..., -1] - sr[..., n - 1 - max(1, n // 10)])
