@@ -257,8 +257,11 @@ class SampleWindow:
         self._arrival_now: Optional[int] = None
         self._arrivals: dict = {}
         self._early_by: dict = {c: collections.deque(maxlen=EARLY_BLOCK) for c in self.channels}
-        self._last_arrival: Optional[float] = None
+        self._last_arrival: Optional[int] = None
         self._per_sample: collections.deque = collections.deque(maxlen=4 * EARLY_BLOCK + 1)
+        self._clock_count = 0
+        self._clock_slots = [i for i, c in enumerate(self.channels)
+                             if not (c == "setpoint" and options.hold_setpoint)]
 
     # ------------------------------------------------------------------------------ properties
     @property
@@ -562,7 +565,7 @@ class SampleWindow:
     def _check_clocks(self, k: int) -> None:
         """After sample ``k`` was appended: how early each channel's vector arrived against the others' of the
         sample; a channel early by at least :data:`EARLY_SAMPLES` samples of arrival time and
-        :data:`EARLY_SECONDS` in the median of :data:`EARLY_BLOCK` samples in a row has stamps that run ahead
+        :data:`EARLY_SECONDS` in the median of a block of :data:`EARLY_BLOCK` samples has stamps that run ahead
         (its publisher's clock jumped forward, or runs apart): aligned by stamp, its vectors pair with the other
         topics' of another time.  That is a data error, and the window restarts (no analysis of it).  A vector
         that arrived late (a delivery held up) is no sign; without arrival times, or with arrival times that do
@@ -570,26 +573,29 @@ class SampleWindow:
         arrivals = self._arrivals.pop(k, None)
         if len(self._arrivals) > 2 * int(self.options.max_pending):
             self._arrivals = {kk: a for kk, a in self._arrivals.items() if kk >= self._next_k}
-        chans = [i for i, c in enumerate(self.channels) if not (c == "setpoint" and self.options.hold_setpoint)]
-        if arrivals is None or any(arrivals[i] is None for i in chans) or len(chans) < 2:
+        chans = self._clock_slots
+        if arrivals is None or len(chans) < 2 or any(arrivals[i] is None for i in chans):
             return
-        at = {i: float(arrivals[i]) for i in chans}
-        middle = float(np.median(list(at.values())))
+        # Per sample only cheap Python (the monitor takes thousands of samples a second); the medians once a block.
+        at = sorted(arrivals[i] for i in chans)
+        middle = at[len(at) // 2]
         if self._last_arrival is not None:
             self._per_sample.append(middle - self._last_arrival)
         self._last_arrival = middle
         for i in chans:
-            self._early_by[self.channels[i]].append(min(a for j, a in at.items() if j != i) - at[i])
-        if len(self._per_sample) < EARLY_BLOCK:
+            own = arrivals[i]
+            first_other = at[1] if own == at[0] else at[0]
+            self._early_by[self.channels[i]].append(first_other - own)
+        self._clock_count += 1
+        if self._clock_count % EARLY_BLOCK or len(self._per_sample) < EARLY_BLOCK:
             return
         tau = float(np.median(self._per_sample))
         if not tau > 0:
             return
         limit = max(EARLY_SAMPLES * tau, EARLY_SECONDS * NS_PER_S)
         for c in (self.channels[i] for i in chans):
-            early = self._early_by[c]
-            if len(early) == EARLY_BLOCK and float(np.median(early)) > limit:
-                ahead = float(np.median(early))
+            ahead = float(np.median(self._early_by[c]))
+            if len(self._early_by[c]) == EARLY_BLOCK and ahead > limit:
                 self._problem("clock", c, self._stamp_of(k),
                               f"{c}: its vectors arrive about {ahead / tau:.3g} samples ({ahead / NS_PER_S:.3g} s) "
                               f"before the other topics' vectors of the same sample, up to t = "
