@@ -23,6 +23,13 @@ MAX_ANALYSIS_SCALE = 1e40
 #: Smallest largest |value| of a moving channel kind the analysis takes: the same results down to
 #: 1e-150 on case 3.2, a division by zero at 1e-160.
 MIN_ANALYSIS_SCALE = 1e-100
+#: A topic (a bag's, or the live monitor's) whose vectors arrive before every other topic's vector of the same sample,
+#: by at least ``EARLY_SAMPLES`` samples of arrival time and ``EARLY_SECONDS``, in the median of a block of
+#: ``EARLY_BLOCK`` samples, has stamps that run ahead of theirs: its clock jumped forward or runs apart, and aligned
+#: by stamp its samples would pair with the others' of another time.  A vector that arrives late is no sign of it.
+EARLY_SAMPLES = 3
+EARLY_SECONDS = 2.0
+EARLY_BLOCK = 25
 
 
 def t_text(t) -> str:

@@ -43,7 +43,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..core.errors import ConfigurationError
-from ..core.logged_data import LoggedData
+from ..core.logged_data import EARLY_BLOCK, EARLY_SAMPLES, EARLY_SECONDS, LoggedData
 
 #: The three channels of a sample, in the order of the slots.
 CHANNELS = ("setpoint", "input", "output")
@@ -59,12 +59,6 @@ WARNING_KINDS = frozenset({"gap", "duplicate", "late", "out_of_order", "restart"
 WALL_CLOCK_NS = 10**18
 #: Fewest refused output vectors in a row (with no sample completed) taken as a stream restart.
 MIN_RESTART_OUTPUTS = 3
-#: A topic whose vectors arrive before every other topic's vector of the same sample, by at least this many samples
-#: of arrival time and :data:`EARLY_SECONDS`, in the median of :data:`EARLY_BLOCK` samples in a row, has stamps
-#: that run ahead of theirs (as the bag reader refuses: ``mpm_monitor.io.bags.read.EARLY_SAMPLES``).
-EARLY_SAMPLES = 3
-EARLY_SECONDS = 2.0
-EARLY_BLOCK = 25
 
 NS_PER_S = 1_000_000_000
 

@@ -23,7 +23,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ...core.errors import BagError, InputError
-from ...core.logged_data import LoggedData
+from ...core.logged_data import EARLY_BLOCK, EARLY_SAMPLES, EARLY_SECONDS, LoggedData
 from ...core.model import PlantModel
 from ..csv_log import BAD_VALUES, write_log_csv
 from .common import (
@@ -105,12 +105,6 @@ MAX_REORDER_SAMPLES = 10
 #: Samples of one topic outside the span every topic covers that are left out without a note (a recording
 #: started or stopped in the middle of a sample).
 MAX_SILENT_TRIM = 10
-#: A topic whose messages are recorded before every other topic's message of the same sample, by at least this many
-#: samples of the recorder's time and :data:`EARLY_SECONDS`, in the median of a block of :data:`EARLY_BLOCK` samples,
-#: has stamps that run ahead of theirs: refused (:func:`_refuse_clocks_apart`).
-EARLY_SAMPLES = 3
-EARLY_SECONDS = 2.0
-EARLY_BLOCK = 25
 
 
 def _check_topics(path, topics: Sequence[str]) -> list:
