@@ -291,7 +291,7 @@ def _reduce_vanished_lags(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
     the changes from the reference's dead time in that form (:class:`_Located`'s ``declared``).  An element
     the model lacks keeps the form its ladder chose.
     """
-    row, options = free.row, settings.options
+    row = free.row
     for m, j in enumerate(free.js):
         loc = free.located[j]
         poles = free.est.fit.poles[free.problem.slices[m]]
@@ -302,19 +302,10 @@ def _reduce_vanished_lags(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
                                       declared=loc.form)
         start = (float(free.est.fit.gains[m]), (float(max(poles)),), float(free.est.fit.leads[m]),
                  int(free.est.fit.lags[m]) - (loc.form.offset - form.offset))
-        spec, lag0 = _free_spec(row, reduced, options, start)
-        specs = dict(free.specs)
-        specs[j] = spec
-        lags0 = {jj: int(free.est.fit.lags[k]) for k, jj in enumerate(free.js)}
-        lags0[j] = min(max(lag0, spec.window[0]), spec.window[1])
-        skip = free.problem.start - free.problem.p
-        problem, est = _estimate_row(row, specs, lags0, row.n_samples, options, options.max_sweeps, skip=skip)
-        stat = free.est.fit.n_resid * math.log(max(est.fit.ssr, 1e-300) / max(free.est.fit.ssr, 1e-300))
-        if chi2_tail(max(stat, 0.0), 1) < settings.alpha:
-            continue
-        located = dict(free.located)
-        located[j] = reduced
-        free = _FreeFit(row=row, js=free.js, specs=specs, located=located, problem=problem, est=est)
+        smaller = _refit_element(free, j, reduced, start, settings)
+        stat = free.est.fit.n_resid * math.log(max(smaller.est.fit.ssr, 1e-300) / max(free.est.fit.ssr, 1e-300))
+        if chi2_tail(max(stat, 0.0), 1) >= settings.alpha:
+            free = smaller
     return free
 
 
@@ -337,7 +328,7 @@ def _choose_forms(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
     1999, section 16.5): a second lag (and a lead, for a step-response element) only where the data
     call for it.  Every fit compared uses the same samples.
     """
-    row, options = free.row, settings.options
+    row = free.row
     ts = row.model.sample_time
     for m, j in enumerate(free.js):
         for form in _ladder(row, j)[1:]:
@@ -350,21 +341,30 @@ def _choose_forms(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
                 tau = _tau_of(float(free.est.fit.poles[free.problem.slices[m]][0]), ts)
                 start = (float(free.est.fit.gains[m]), (_pole_of(tau, ts), _pole_of(0.3 * tau, ts))[:form.n_lags],
                          0.0, int(free.est.fit.lags[m]))
-            spec, lag0 = _free_spec(row, loc, options, start)
-            specs = dict(free.specs)
-            specs[j] = spec
-            lags0 = {jj: int(free.est.fit.lags[k]) for k, jj in enumerate(free.js)}
-            lags0[j] = lag0
-            skip = free.problem.start - free.problem.p
-            spec.window = (min(spec.window[0], skip), min(spec.window[1], skip))   # the samples compared
-            lags0[j] = min(max(lags0[j], spec.window[0]), spec.window[1])
-            problem, est = _estimate_row(row, specs, lags0, row.n_samples, options, options.max_sweeps, skip=skip)
+            larger = _refit_element(free, j, loc, start, settings)
+            est = larger.est
             stat = est.fit.n_resid * math.log(max(free.est.fit.ssr, 1e-300) / max(est.fit.ssr, 1e-300))
             if chi2_tail(max(stat, 0.0), form.n_shape - cur.form.n_shape) < settings.alpha:
-                located = dict(free.located)
-                located[j] = loc
-                free = _FreeFit(row=row, js=free.js, specs=specs, located=located, problem=problem, est=est)
+                free = larger
     return free
+
+
+def _refit_element(free: _FreeFit, j: int, loc: _Located, start, settings: _TestSettings) -> _FreeFit:
+    """The free fit with element ``j`` fitted anew as ``loc`` says (its form and reference), from ``start``
+    (:func:`_free_spec`), the other elements from their fitted lags, on the same samples as ``free`` (its lag
+    search kept within them): what :func:`_choose_forms` and :func:`_reduce_vanished_lags` compare ``free`` with."""
+    row, options = free.row, settings.options
+    spec, lag0 = _free_spec(row, loc, options, start)
+    specs = dict(free.specs)
+    specs[j] = spec
+    lags0 = {jj: int(free.est.fit.lags[k]) for k, jj in enumerate(free.js)}
+    skip = free.problem.start - free.problem.p
+    spec.window = (min(spec.window[0], skip), min(spec.window[1], skip))   # the samples compared
+    lags0[j] = min(max(lag0, spec.window[0]), spec.window[1])
+    problem, est = _estimate_row(row, specs, lags0, row.n_samples, options, options.max_sweeps, skip=skip)
+    located = dict(free.located)
+    located[j] = loc
+    return _FreeFit(row=row, js=free.js, specs=specs, located=located, problem=problem, est=est)
 
 
 def _shape_changed(after: dict, reference: dict, form: _Form, ts: float, min_change: float) -> bool:
