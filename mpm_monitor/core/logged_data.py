@@ -32,6 +32,13 @@ EARLY_SECONDS = 2.0
 EARLY_BLOCK = 25
 
 
+def early_limit_ns(per_sample_ns: float) -> float:
+    """How early (ns of arrival time) a topic's vectors must arrive, in a block's median, to have stamps that run
+    ahead of the others': :data:`EARLY_SAMPLES` samples of ``per_sample_ns`` (the arrival time per sample) and
+    :data:`EARLY_SECONDS`, whichever is longer."""
+    return max(EARLY_SAMPLES * per_sample_ns, EARLY_SECONDS * 1e9)
+
+
 def t_text(t) -> str:
     """A time ``t`` (s) in a message, to 15 significant digits: a wall-clock time (1.7e9 s, a historian's or a
     bag's) keeps its seconds and their fraction (six digits, ``:g``, printed every gap of a day at

@@ -43,7 +43,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..core.errors import ConfigurationError
-from ..core.logged_data import EARLY_BLOCK, EARLY_SAMPLES, EARLY_SECONDS, LoggedData
+from ..core.logged_data import EARLY_BLOCK, LoggedData, early_limit_ns
 
 #: The three channels of a sample, in the order of the slots.
 CHANNELS = ("setpoint", "input", "output")
@@ -558,8 +558,8 @@ class SampleWindow:
 
     def _check_clocks(self, k: int) -> None:
         """After sample ``k`` was appended: how early each channel's vector arrived against the others' of the
-        sample; a channel early by at least :data:`EARLY_SAMPLES` samples of arrival time and
-        :data:`EARLY_SECONDS` in the median of a block of :data:`EARLY_BLOCK` samples has stamps that run ahead
+        sample; a channel early by :func:`~mpm_monitor.core.logged_data.early_limit_ns` (3 samples of arrival time
+        and 2 s) in the median of a block of :data:`EARLY_BLOCK` samples has stamps that run ahead
         (its publisher's clock jumped forward, or runs apart): aligned by stamp, its vectors pair with the other
         topics' of another time.  That is a data error, and the window restarts (no analysis of it).  A vector
         that arrived late (a delivery held up) is no sign; without arrival times, or with arrival times that do
@@ -586,7 +586,7 @@ class SampleWindow:
         tau = float(np.median(self._per_sample))
         if not tau > 0:
             return
-        limit = max(EARLY_SAMPLES * tau, EARLY_SECONDS * NS_PER_S)
+        limit = early_limit_ns(tau)
         for c in (self.channels[i] for i in chans):
             ahead = float(np.median(self._early_by[c]))
             if len(self._early_by[c]) == EARLY_BLOCK and ahead > limit:

@@ -23,7 +23,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ...core.errors import BagError, InputError
-from ...core.logged_data import EARLY_BLOCK, EARLY_SAMPLES, EARLY_SECONDS, LoggedData
+from ...core.logged_data import EARLY_BLOCK, LoggedData, early_limit_ns
 from ...core.model import PlantModel
 from ..csv_log import BAD_VALUES, write_log_csv
 from .common import (
@@ -297,8 +297,8 @@ def _refuse_clocks_apart(path, series: dict, ks: dict, common: np.ndarray, origi
     another time, silently (a gap where its clock jumped, nothing else).
 
     A message recorded late (a delivery stalled, then caught up) is no sign: only early ones count, by at least
-    :data:`EARLY_SAMPLES` of the recorder's time per sample and :data:`EARLY_SECONDS`.  A bag whose recorder
-    times do not advance with its samples (written by a converter) is not checked.
+    :func:`~mpm_monitor.core.logged_data.early_limit_ns` (3 samples of the recorder's time and 2 s).  A bag whose
+    recorder times do not advance with its samples (written by a converter) is not checked.
 
     ``ks``: each topic's sample numbers (sorted, once each); ``common``: the samples every topic holds.
     """
@@ -310,7 +310,7 @@ def _refuse_clocks_apart(path, series: dict, ks: dict, common: np.ndarray, origi
     tau = float(np.median(per_sample)) if per_sample.size else 0.0
     if not tau > 0:
         return
-    limit = max(EARLY_SAMPLES * tau, EARLY_SECONDS * 1e9)
+    limit = early_limit_ns(tau)
     blocks = common.size // EARLY_BLOCK
     for role, log in logs.items():
         others = np.min(np.vstack([lg for r, lg in logs.items() if r != role]), axis=0)
