@@ -467,7 +467,8 @@ class SharedFit:
         ri = self.rinv[:self.n_common]
         return np.einsum("ij,ij->i", ri, ri)
 
-    def _block_index(self, block: int, n_first: Optional[int] = None) -> np.ndarray:
+    def block_index(self, block: int, n_first: Optional[int] = None) -> np.ndarray:
+        """Indices in the fit's parameters of block ``block``'s coefficients (its first ``n_first`` only, if given)."""
         starts = self.reg.block_starts
         end = starts[block + 1] if n_first is None else min(starts[block] + n_first, starts[block + 1])
         return np.arange(starts[block], end)
@@ -485,7 +486,7 @@ class SharedFit:
         statistic of the nested fit without those columns.  With ``n_first`` only the first
         ``n_first`` coefficients of each block are tested (the others stay free in the fit).
         """
-        idx = np.concatenate([self._block_index(b, n_first) for b in blocks]) if blocks else np.array([], int)
+        idx = np.concatenate([self.block_index(b, n_first) for b in blocks]) if blocks else np.array([], int)
         if idx.size == 0:
             return BlockTest(float("nan"), 1.0, 0, int(self.dof))
         return self._wald_tests(idx[None, :])[0]
@@ -495,7 +496,7 @@ class SharedFit:
 
         Blocks whose tested coefficients are equally many share one stacked eigen-decomposition.
         """
-        idx = [self._block_index(b, k) for b, k in enumerate(n_first)]
+        idx = [self.block_index(b, k) for b, k in enumerate(n_first)]
         out = [BlockTest(float("nan"), 1.0, 0, int(self.dof))] * len(idx)
         for k in sorted({i.size for i in idx} - {0}):
             blocks = [b for b, i in enumerate(idx) if i.size == k]
@@ -532,7 +533,7 @@ class SharedFit:
 
     def block_std(self, block: int) -> np.ndarray:
         """Standard errors of the coefficients of one block."""
-        idx = self._block_index(block)
+        idx = self.block_index(block)
         cov = self.covariance_block(idx) * self.sigma2
         return np.sqrt(np.maximum(np.diag(cov), 0.0)) / self.scale[idx]
 
