@@ -180,3 +180,23 @@ def test_the_json_dict_is_asdict_then_cleaned(case32):
     out = json_ready(odd)
     assert out == expected and json.dumps(out) == json.dumps(expected)
     assert [type(v) for v in out["a"]] == [type(None), type(None), float, int, bool, type(None)]
+
+
+def test_a_reused_report_directory_keeps_no_stale_figure(case32, tmp_path):
+    """A directory that held a report with located elements, then one without: the step responses
+    (and the detectability map) of the first are gone, not left beside the second's figures."""
+    case, data, report = case32
+    write_report(tmp_path / "rep", case.model, data, report)
+    assert (tmp_path / "rep" / "steps.png").exists() and (tmp_path / "rep" / "detectability.png").exists()
+    (tmp_path / "rep" / "notes.txt").write_text("mine")
+    model = _model()
+    rng = np.random.default_rng(0)
+    n = 200
+    quiet = LoggedData(t=np.arange(n, dtype=float), r=rng.normal(size=(n, 2)), u=rng.normal(size=(n, 2)),
+                       y=rng.normal(size=(n, 2)), inputs=model.inputs, outputs=model.outputs, sample_time=1.0)
+    write_report(tmp_path / "rep", model, quiet, _fake_report(model, []))
+    assert not (tmp_path / "rep" / "steps.png").exists()
+    assert not (tmp_path / "rep" / "detectability.png").exists()
+    assert (tmp_path / "rep" / "notes.txt").read_text() == "mine"
+    for name in ("sdelta", "elements", "residuals"):
+        _assert_png_not_empty(tmp_path / "rep" / f"{name}.png")

@@ -253,6 +253,12 @@ def _warnings_section(report) -> str:
     return "\n".join(f'<div class="warn">{_e(w)}</div>' for w in report.warnings)
 
 
+def _remove_stale(path: Path) -> None:
+    """Remove a figure an earlier report wrote into the same directory and this one has none of (so a
+    reused directory never shows, say, the step responses of elements this analysis did not locate)."""
+    path.unlink(missing_ok=True)
+
+
 def write_report(directory, model: PlantModel, data, report) -> Path:
     """Write the HTML report and its figures into ``directory`` (created if needed).
 
@@ -291,11 +297,15 @@ def write_report(directory, model: PlantModel, data, report) -> Path:
         figs.append((plots.plot_element_map(report, model, directory / "elements.png"),
                      "Model elements coloured by the element test's verdict."))
         detect_map = plots.plot_detectability_map(report, model, directory / "detectability.png")
-        if detect_map is not None:
+        if detect_map is None:
+            _remove_stale(directory / "detectability.png")
+        else:
             figs.append((detect_map, "Detectable gain change of every tested element: the smallest relative gain "
                                       "error this window detects with probability 0.9 at the analysis's alpha."))
         steps = plots.plot_step_responses(report, model, directory / "steps.png")
-        if steps is not None:
+        if steps is None:
+            _remove_stale(directory / "steps.png")
+        else:
             figs.append((steps, "Unit-step responses of each located element, each from the element's own "
                                 "sampled form: model as given, repaired model (and the repair's estimate where it "
                                 "was not applied)."))
