@@ -803,6 +803,22 @@ def test_analyze_unwritable_output_is_refused_before_the_analysis(files, capsys,
     assert re.search(match, err), err
 
 
+@pytest.mark.parametrize("flag, target", [("--report", "/sys/kernel/mpm_report"), ("--json", "/sys/kernel/r.json")])
+def test_an_output_in_a_directory_nothing_can_be_created_in_is_refused_first(files, capsys, monkeypatch, flag, target):
+    """sysfs, where even root creates nothing (``os.access`` grants root everything): refused before the log
+    is read, in one line, rather than after the analysis."""
+    import mpm_monitor.io.csv_log as csv_mod
+
+    def never(*a, **k):
+        raise AssertionError("the log was read")
+
+    monkeypatch.setattr(csv_mod, "read_csv", never)
+    code, out, err = _run_cli(capsys, ["analyze", "--model", str(files["model"]), "--data", str(files["csv"]),
+                                       flag, target])
+    assert code == 2 and len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert re.search(rf"{flag} {target}: (/sys/kernel is )?not writable", err), err
+
+
 @pytest.mark.parametrize("argv", [
     ["analyze", "--model", "MODEL", "--data", ""],
     ["analyze", "--model", "", "--data", "CSV"],

@@ -34,7 +34,7 @@ class _Parser(argparse.ArgumentParser):
 
 #: The analysis options given on the command line of ``analyze`` and ``reproduce``, in their flags' order.
 CLI_ANALYSIS_OPTIONS = ("method", "alpha", "na", "max_na", "nb", "band", "initial_state", "repair", "element_response",
-                        "release_explained", "drop_spikes", "max_delay", "max_gap", "jobs")
+                        "confirm_responses", "release_explained", "drop_spikes", "max_delay", "max_gap", "jobs")
 
 #: Names of the values of an option that takes several (default: the option's name in capitals).
 _METAVARS = {"band": ("LOW", "HIGH")}
@@ -343,6 +343,8 @@ def _check_output_file(path: str, flag: str) -> None:
         raise InputError(f"{flag} {path}: directory {parent} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK) or (p.exists() and not os.access(p, os.W_OK)):
         raise InputError(f"{flag} {path}: not writable")
+    if not p.exists():
+        _probe_directory(parent, flag, path)
 
 
 def _check_output_directory(path: str, flag: str) -> None:
@@ -364,6 +366,26 @@ def _check_output_directory(path: str, flag: str) -> None:
         raise InputError(f"{flag} {path}: {ancestor} is a file, not a directory")
     if not os.access(ancestor, os.W_OK | os.X_OK):
         raise InputError(f"{flag} {path}: {ancestor} is not writable")
+    _probe_directory(ancestor, flag, path)
+
+
+def _probe_directory(directory: Path, flag: str, path: str) -> None:
+    """Create and remove a file in ``directory``, the test ``os.access`` cannot make: it grants root
+    every directory, also those of sysfs or procfs, where nothing can be created.
+
+    Raises
+    ------
+    InputError
+        Naming the flag, the path and the directory.
+    """
+    import tempfile
+
+    try:
+        fd, name = tempfile.mkstemp(prefix=".mpm_monitor_probe_", dir=directory)
+    except OSError as exc:
+        raise InputError(f"{flag} {path}: {directory} is not writable: {exc.strerror or _one_line(exc)}") from None
+    os.close(fd)
+    os.unlink(name)
 
 
 def _write_output(path: str, flag: str, write) -> None:
