@@ -1130,3 +1130,20 @@ def test_export_bad_values_gap_leaves_the_sample_out_of_the_csv(tmp_path, capsys
         data = read_csv(out, MODEL)
         np.testing.assert_allclose(data.t, T0 + 0.5 * np.delete(np.arange(20), 5))
         np.testing.assert_array_equal(data.y, np.delete(y, 5, axis=0))
+
+
+def test_an_output_logged_at_half_rate_is_refused_without_a_model_with_the_reason(tmp_path):
+    """Without a model the output topic's spacing is the sample time: a recorder that kept every other output
+    message makes the other topics' stamps fall between its samples.  They were refused as "off the sample
+    grid"; the refusal now names both spacings and --model, with which the bag is read (the output's missing
+    samples as gaps)."""
+    r, u, y = _samples(40)
+    bag = write_bag(tmp_path / "bag", r, u, y, skip={("output", k) for k in range(1, 40, 2)})
+    with pytest.raises(BagError) as exc:
+        read_bag_channels(bag)
+    _check(exc, "topic '/setpoint' sends every 0.5 s", "output topic '/output' every 1 s", "--model")
+    assert len(str(exc.value).splitlines()) == 1
+    data = read_bag(bag, MODEL, bad_values="gap")
+    assert data.sample_time == 0.5 and data.n_samples == 20
+    np.testing.assert_array_equal(data.u, u[::2])
+    assert read_bag_channels(write_bag(tmp_path / "full", r, u, y)).sample_time == 0.5

@@ -551,10 +551,32 @@ def read_bag_channels(path, topics: Sequence[str] = DEFAULT_TOPICS, sample_time:
     series = _read_vectors(path, topics, None, progress, optional=optional, left_out=left_out)
     if sample_time is None:
         sample_time = infer_sample_time(path, series["output"].stamps, series["output"].topic)
+        _refuse_faster_topics(path, series, sample_time)
     dv = series.get("disturbance")
     data = _align(path, series, sample_time, series["input"].names, series["output"].names,
                   dv.names if dv is not None else ())
     return _with_left_out_notes(path, data, left_out, series, sample_time)
+
+
+def _refuse_faster_topics(path, series: dict, sample_time: float) -> None:
+    """Refuse a bag whose setpoint, input or disturbance topic sends at least 1.5 times as often as its output
+    topic, whose spacing set the sample time ``sample_time`` (s) without a model (a recorder that kept every
+    other output message: the faster topic's stamps were then refused as off the grid, without the reason).
+
+    Raises
+    ------
+    BagError
+        Naming the topic, both spacings and ``--model``.
+    """
+    out = series["output"].topic
+    for role in ("setpoint", "input", "disturbance"):
+        s = series.get(role)
+        diffs = np.diff(np.unique(s.stamps)) if s is not None else np.zeros(0)
+        if diffs.size and 1.5 * float(np.median(diffs)) <= sample_time * 1e9:
+            raise BagError(f"{path}: topic '{s.topic}' sends every {_seconds(int(np.median(diffs)))} s, the output "
+                           f"topic '{out}' every {_seconds(int(round(sample_time * 1e9)))} s: without a model the "
+                           f"output's spacing is the sample time; give --model for the loop's own (the output's "
+                           f"missing samples are then gaps)")
 
 
 def export_csv(bag, csv, model_path=None, topics: Sequence[str] = DEFAULT_TOPICS, progress=False,
