@@ -34,6 +34,10 @@ p_response)`` (:func:`combined_p_value`), so the element test's level holds whic
 element the model does not have has no response to test; its p-value is the window test's alone
 (the choice depends on the model only, never on the data).
 
+With the stricter option ``confirm_responses`` a located element is tested once more with the other
+elements' regressors of its row free beside its own tests (:func:`given_other_responses`), from the
+same products.
+
 Everything is computed from the element fit's factor and a few cross products (no new
 factorisation): with ``W = [X | own]`` the element fit's regressors, ``G = W'W``, and ``J`` the
 indices of column ``j``'s block, the residual cross products of any ``a``, ``b`` on ``W`` without
@@ -387,6 +391,50 @@ def row_response_tests(model: PlantModel, i: int, fit, testable: list, common: O
         tested with its time-constant sensitivity too), for the columns whose model element has a
         response.
     """
+    reg = row_response_regressors(model, i, fit, testable, common, block_sizes, u_c, d_c, start, na, segments, a,
+                                  columns, extra, moments)
+    if reg is None:
+        return {}
+    return dict(zip(reg.cols, response_tests(fit, reg.g, reg.xx, reg.xy, reg.blocks, reg.groups)))
+
+
+@dataclasses.dataclass
+class RowRegressors:
+    """The whole-response regressors of one row and their products with its element fit
+    (:func:`row_response_regressors`).
+
+    Attributes
+    ----------
+    cols : list of int
+        The columns whose model element has a response, in order.
+    groups : list of list of int
+        For each of ``cols``, the indices of its regressors among the ``k``: its response, then (an
+        integrating element) its time-constant sensitivity.
+    blocks : list of ndarray of int
+        For each of ``cols``, the indices in the fit's ``W`` of its column's lag block.
+    g : ndarray, shape (p, k)
+        ``W' x`` of every regressor (raw, unscaled columns of ``W``).
+    xx : ndarray, shape (k, k)
+    xy : ndarray, shape (k,)
+    """
+
+    cols: list
+    groups: list
+    blocks: list
+    g: np.ndarray
+    xx: np.ndarray
+    xy: np.ndarray
+    #: The regressors' and the target's residual products on the whole ``W`` and their coefficients on
+    #: it (:func:`_residual_products`), once computed.
+    residual: Optional[tuple] = None
+
+
+def row_response_regressors(model: PlantModel, i: int, fit, testable: list, common: Optional[np.ndarray],
+                            block_sizes: Sequence[int], u_c: np.ndarray, d_c: np.ndarray, start: int, na: int,
+                            segments=None, a: Optional[np.ndarray] = None, columns: Optional[Sequence[int]] = None,
+                            extra: Optional[np.ndarray] = None, moments=None) -> Optional[RowRegressors]:
+    """The regressors of :func:`row_response_tests` (same arguments) and their products, or None
+    when no element of ``columns`` has a response."""
     asked = testable if columns is None else columns
     a = np.asarray(fit.own_theta() if a is None else a, dtype=float)
     y = segment_rows(d_c[:, i], start, segments)
@@ -401,7 +449,7 @@ def row_response_tests(model: PlantModel, i: int, fit, testable: list, common: O
         integrating = [j for j in cols if integrating_element(model, i, j)]
         resp = moments.responses(rm, integrating)       # already simulated: no second run
     if not cols:
-        return {}
+        return None
     groups = [[k] for k in range(len(cols))]
     sensitivity = []
     for k, j in enumerate(cols):
@@ -432,5 +480,119 @@ def row_response_tests(model: PlantModel, i: int, fit, testable: list, common: O
     g = np.vstack(parts)
     starts = np.cumsum([0] + list(block_sizes))
     blocks = [np.arange(starts[testable.index(j)], starts[testable.index(j) + 1]) for j in cols]
-    tests = response_tests(fit, g, X_t.T @ X_t, X_t.T @ y, blocks, groups)
-    return dict(zip(cols, tests))
+    return RowRegressors(cols, groups, blocks, g, X_t.T @ X_t, X_t.T @ y)
+
+
+#: A regressor direction left after the fit's others with at most this fraction of its energy counts
+#: as none in :func:`given_other_responses` (rounding, not information).
+NUISANCE_TOLERANCE = 1e-10
+
+
+def _residual_products(fit, reg: RowRegressors, V: Sequence[int], B: np.ndarray) -> tuple:
+    """The cross products of the regressors ``V`` (indices among ``reg``'s) and the target, residual on
+    the fit's ``W`` without its columns ``B``: shape (len(V) + 1, len(V) + 1), the target last; and the
+    number of independent directions of ``B`` (the partitioned regression of the module docstring).
+    The products on the whole ``W`` are computed once per ``reg`` and kept in it."""
+    if reg.residual is None:
+        g_s = reg.g / fit.scale[:, None]
+        c_s = fit.rinv @ (fit.rinv.T @ g_s)                 # coefficients of each regressor on W, scaled
+        theta_s = fit.theta * fit.scale
+        k = reg.xx.shape[0]
+        S = np.empty((k + 1, k + 1))
+        S[:k, :k] = reg.xx - g_s.T @ c_s
+        S[:k, k] = S[k, :k] = reg.xy - g_s.T @ theta_s
+        S[k, k] = fit.rss
+        reg.residual = (S, np.column_stack([c_s, theta_s]))
+    S_all, coef = reg.residual
+    at = np.r_[np.asarray(V, dtype=int), S_all.shape[0] - 1]
+    S = S_all[np.ix_(at, at)]
+    if B.size == 0:
+        return S, 0
+    cov = fit.covariance_block(B)
+    w, v = np.linalg.eigh(0.5 * (cov + cov.T))
+    keep = w > 1e-10 * max(float(w.max(initial=0.0)), 1e-300)
+    T = (v[:, keep].T @ coef[np.ix_(B, at)]) / np.sqrt(w[keep])[:, None]
+    return S + T.T @ T, int(keep.sum())
+
+
+def _rss_given(S: np.ndarray, U: Sequence[int], energy: np.ndarray) -> tuple:
+    """The target's residual sum of squares after the regressors ``U`` (indices into ``S``'s first rows)
+    and their number of independent directions (those keeping more than :data:`NUISANCE_TOLERANCE` of
+    their ``energy``, the raw ``x' x``)."""
+    U = np.asarray(U, dtype=int)
+    if U.size == 0:
+        return float(S[-1, -1]), 0
+    norm = np.sqrt(np.maximum(energy[U], 1e-300))
+    A = S[np.ix_(U, U)] / np.outer(norm, norm)
+    w, v = np.linalg.eigh(0.5 * (A + A.T))
+    keep = w > NUISANCE_TOLERANCE
+    z = v[:, keep].T @ (S[U, -1] / norm)
+    return float(S[-1, -1] - np.sum(z * z / w[keep])), int(keep.sum())
+
+
+def _nested_p(rss0: float, rss1: float, df_num: int, dof: int) -> float:
+    """p-value of the nested F test of residual sums of squares ``rss0`` (restricted) and ``rss1``."""
+    if df_num < 1 or dof < 1:
+        return 1.0
+    s2 = rss1 / dof
+    if not s2 > 0:
+        return 0.0 if rss0 > rss1 else 1.0
+    return float(f_tail(max(rss0 - rss1, 0.0) / df_num / s2, df_num, dof))
+
+
+def given_other_responses(fit, reg: RowRegressors, j: int, window: np.ndarray, block: np.ndarray) -> Optional[float]:
+    """The unadjusted p-value of element (``i``, ``j``) with the whole responses of the row's other elements
+    free: its lag-window test and, for an element the model has, its whole-response test, each in the
+    element fit with every other column's regressors of ``reg`` (response, and an integrating element's
+    time-constant sensitivity) added as nuisance, combined by :func:`combined_p_value`.
+
+    A mismatch of another element of the row, slow or integrating, outlives that column's lag block; in
+    closed loop its remainder correlates with column ``j``'s lags and response and can make a
+    well-modelled ``(i, j)`` look mismatched.  Most of that remainder is the other element's own modelled
+    response (all of it for a gain error), which these nuisance regressors hold.  Under "no mismatch of
+    (i, j)" they are free, so the test keeps its level.
+
+    Parameters
+    ----------
+    fit : SharedFit or GramFit
+        The row's element fit (``W``: every testable column's lag block, then the row's own lags).
+    reg : RowRegressors
+        The row's whole-response regressors with their products (:func:`row_response_regressors`, every
+        column).
+    j : int
+        The column tested.
+    window : ndarray of int
+        Indices in ``W`` of the lags its window test examines.
+    block : ndarray of int
+        Indices in ``W`` of its whole lag block.
+
+    Returns
+    -------
+    float or None
+        None when no other element of the row has a response, or the fit is exact (a log without
+        noise: its tests were decided outright).
+    """
+    others = [k for c, k in zip(reg.cols, reg.groups) if c != j]
+    if not others or fit.exact:
+        return None
+    N = [x for grp in others for x in grp]
+    energy = np.diagonal(reg.xx)
+    own = reg.groups[reg.cols.index(j)] if j in reg.cols else []
+    # The window test: the first lags of j's block, with every other response free.
+    S1, _ = _residual_products(fit, reg, N, np.array([], dtype=int))
+    rss1, r1 = _rss_given(S1, range(len(N)), energy[N])
+    S0, r_window = _residual_products(fit, reg, N, np.asarray(window, dtype=int))
+    rss0, r0 = _rss_given(S0, range(len(N)), energy[N])
+    dof = int(fit.dof) - r1
+    if rss1 <= dof * fit.exact_sigma2:
+        return None
+    p_window = _nested_p(rss0, rss1, r_window + r1 - r0, dof)
+    if not own:
+        return combined_p_value(p_window, None)
+    # The whole-response test: j's response (and sensitivity) in place of its block, every other response free.
+    V = N + list(own)
+    S, r_block = _residual_products(fit, reg, V, np.asarray(block, dtype=int))
+    rss0, r0 = _rss_given(S, range(len(N)), energy[V])
+    rss1, r01 = _rss_given(S, range(len(V)), energy[V])
+    p_response = _nested_p(rss0, rss1, r01 - r0, int(fit.dof) + r_block - r01)
+    return combined_p_value(p_window, p_response)
