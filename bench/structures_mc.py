@@ -379,7 +379,8 @@ def step_response_error(plant: PlantModel, repaired: PlantModel, i: int, j: int,
 
 
 def run_one(seed: int, index: int, samples: int, options: StructuresOptions = StructuresOptions(),
-            clean_integrating: bool = False, element_window: str = "model", noise_candidate: bool = False) -> dict:
+            clean_integrating: bool = False, element_window: str = "model", noise_candidate: bool = False,
+            confirm_responses: bool = False) -> dict:
     """Draw, simulate, analyse and repair one scenario; return its JSON-ready record.
 
     With ``noise_candidate`` the log gains one channel ``noise_candidate`` of white noise (unit
@@ -402,7 +403,7 @@ def run_one(seed: int, index: int, samples: int, options: StructuresOptions = St
     sep = input_separability(np.column_stack([data.u, data.dv]))
     rec["separability"] = [float(x) for x in sep]
     rec["collinear_columns"] = [int(j) for j in np.flatnonzero(sep < SEPARABILITY_COLLINEAR)]
-    analysis_options = AnalysisOptions(element_window=element_window)
+    analysis_options = AnalysisOptions(element_window=element_window, confirm_responses=confirm_responses)
     try:
         t0 = time.perf_counter()
         report = analyze(sc.model, data, analysis_options, candidates="all" if noise_candidate else None)
@@ -562,7 +563,7 @@ def score(records: Sequence[dict]) -> dict:
 # --------------------------------------------------------------------------- driver
 def run_structures_mc(n_runs: int, seed: int = 0, samples: int = 3000, *, clean_integrating: int = 0, jobs: int = 1,
                       options: StructuresOptions = StructuresOptions(), element_window: str = "model",
-                      noise_candidate: bool = False,
+                      noise_candidate: bool = False, confirm_responses: bool = False,
                       progress: Optional[Callable[[int, int, dict], None]] = None) -> dict:
     """Run the benchmark and score it.
 
@@ -583,6 +584,8 @@ def run_structures_mc(n_runs: int, seed: int = 0, samples: int = 3000, *, clean_
         The analysis's ``element_window`` (``"model"``, its default, or ``"full"``).
     noise_candidate : bool
         Add a channel of white noise to every log and try it as a candidate (:func:`run_one`).
+    confirm_responses : bool
+        The analysis's ``confirm_responses`` (default False, the analysis's default).
     progress : callable, optional
         ``progress(done, total, record)`` after each run.
 
@@ -595,8 +598,9 @@ def run_structures_mc(n_runs: int, seed: int = 0, samples: int = 3000, *, clean_
     if int(n_runs) != n_runs or n_runs < 0 or clean_integrating < 0 or n_runs + clean_integrating < 1:
         raise ValueError(f"n_runs, clean_integrating: expected integers >= 0, at least one run, got "
                          f"{n_runs!r}, {clean_integrating!r}")
-    tasks = [(seed, k, samples, options, False, element_window, noise_candidate) for k in range(int(n_runs))]
-    tasks += [(seed, CLEAN_INDEX_OFFSET + k, samples, options, True, element_window, noise_candidate)
+    tasks = [(seed, k, samples, options, False, element_window, noise_candidate, confirm_responses)
+             for k in range(int(n_runs))]
+    tasks += [(seed, CLEAN_INDEX_OFFSET + k, samples, options, True, element_window, noise_candidate, confirm_responses)
               for k in range(int(clean_integrating))]
     t0 = time.perf_counter()
     records = sorted(map_runs(_run_one_star, tasks, jobs, progress), key=lambda r: r["index"])
@@ -605,6 +609,7 @@ def run_structures_mc(n_runs: int, seed: int = 0, samples: int = 3000, *, clean_
     return {"config": {"runs": int(n_runs), "clean_integrating": int(clean_integrating), "seed": int(seed),
                        "samples": int(samples), "alpha": AnalysisOptions().alpha, "jobs": int(jobs),
                        "element_window": element_window, "noise_candidate": bool(noise_candidate),
+                       "confirm_responses": bool(confirm_responses),
                        "options": _plain(options), "repair_horizon": REPAIR_HORIZON,
                        "repair_tolerance": REPAIR_TOLERANCE, "wall_time_s": time.perf_counter() - t0,
                        "machine": {"python": platform.python_version(), "platform": platform.platform(),
@@ -632,6 +637,7 @@ def format_table(result: dict) -> str:
     alpha = cfg["alpha"]
     lines = [f"Structures Monte-Carlo: {cfg['runs']} runs (+{cfg['clean_integrating']} clean integrating), seed "
              f"{cfg['seed']}, {cfg['samples']} samples, alpha {alpha}, element window {cfg['element_window']}, "
+             f"{'confirmed given the other responses, ' if cfg.get('confirm_responses') else ''}"
              f"wall {cfg['wall_time_s']:.0f} s"]
     s = result["summary"]
     if s:
@@ -713,11 +719,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--lost-lag", action="store_true",
                         help="every mismatch a lost lag: the model has a second lag the plant's element lacks "
                         "(default output structures_mc_lost_lag.json)")
+    parser.add_argument("--confirm-responses", action="store_true",
+                        help="the analysis's confirm_responses on (default output structures_mc_confirm.json)")
     parser.add_argument("--out", type=Path, default=None, help="JSON output")
     parser.add_argument("--quiet", action="store_true", help="no per-run progress lines")
     args = parser.parse_args(argv)
     if args.out is None:
-        args.out = DEFAULT_OUT.with_name("structures_mc_lost_lag.json") if args.lost_lag else DEFAULT_OUT
+        args.out = DEFAULT_OUT.with_name("structures_mc_lost_lag.json") if args.lost_lag else \
+            DEFAULT_OUT.with_name("structures_mc_confirm.json") if args.confirm_responses else DEFAULT_OUT
     if args.runs < 0 or args.clean_integrating < 0 or args.samples < 100 or args.jobs < 1:
         parser.error("--runs and --clean-integrating must be >= 0, --jobs >= 1 and --samples >= 100")
 
@@ -737,7 +746,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                                    jobs=args.jobs, options=StructuresOptions(dither_fat=not args.no_dither_fat,
                                                                              lost_lag=args.lost_lag),
                                    element_window=args.element_window, noise_candidate=args.noise_candidate,
-                                   progress=progress)
+                                   confirm_responses=args.confirm_responses, progress=progress)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
