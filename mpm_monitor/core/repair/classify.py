@@ -273,7 +273,42 @@ def _fit_free(row: _RowData, js, settings: _TestSettings) -> _FreeFit:
         skip = _default_skip(row, specs) + _LAG_SHIFT
     problem, est = _estimate_row(row, specs, lags0, row.n_samples, options, options.max_sweeps, skip=skip)
     free = _FreeFit(row=row, js=list(js), specs=specs, located=located, problem=problem, est=est)
-    return _reduce_vanished_lags(_choose_forms(free, settings), settings)
+    return _grow_gained_lags(_reduce_vanished_lags(_choose_forms(free, settings), settings), settings)
+
+
+def _grow_gained_lags(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
+    """The free fit with a lag for a pure integrator (a declared integrating element without a lag) whose
+    plant gained one, where the data call for it.
+
+    A pure integrator ``K / s`` fitted in its own form can only move its gain and dead time: a plant that
+    gained a lag ``K / (s (tau s + 1))`` was repaired as ``tau`` more dead time (the same ramp, another
+    transient; the row stayed mismatched) and classified ``delay``.  So each such element is refitted
+    with one lag, every parameter free on the same samples, and that form is kept when it fits
+    significantly better: the likelihood-ratio test ``n ln(SSR_none / SSR_one)`` against chi-square with
+    one degree of freedom at ``alpha`` (as :func:`_choose_forms` chooses a larger form).  Its reference
+    keeps the model's lag of 0, at the lower bound of the fitted poles, so the ``time_constant`` test
+    holds the lag there: the pure integrator, to a tenth of a sample.  A pure gain is fitted first order
+    from the start (:func:`~mpm_monitor.core.repair.forms._form_of`).
+    """
+    row = free.row
+    ts = row.model.sample_time
+    for m, j in enumerate(free.js):
+        loc = free.located[j]
+        if loc.missing or loc.declared is not None or row.model.is_step_response or loc.form.n_lags != 0 \
+                or not loc.form.integrating:
+            continue
+        form = dataclasses.replace(loc.form, n_lags=1)
+        grown = dataclasses.replace(loc, form=form, lag=_input_lag(form, loc.reference, ts),
+                                    poles=_poles_of(form, loc.reference, ts))
+        # Start where the fit in the declared form put the dead time: the lag it stood in for.
+        lag_fit = int(free.est.fit.lags[m]) - (loc.form.offset - form.offset)
+        start = (float(free.est.fit.gains[m]), (_pole_of(max(lag_fit - grown.lag, 1) * ts, ts),),
+                 float(free.est.fit.leads[m]), grown.lag)
+        larger = _refit_element(free, j, grown, start, settings)
+        stat = free.est.fit.n_resid * math.log(max(free.est.fit.ssr, 1e-300) / max(larger.est.fit.ssr, 1e-300))
+        if chi2_tail(max(stat, 0.0), 1) < settings.alpha:
+            free = larger
+    return free
 
 
 def _reduce_vanished_lags(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
