@@ -409,3 +409,23 @@ def test_a_repaired_element_that_does_not_settle_within_a_step_response_model_is
     assert unsettled_warning(model, 0, 0, slow, 2.0 * np.ones(30)) is None
     ramp = PlantModel.from_step_response(1.0, ("u1",), ("y1",), np.arange(1.0, 31.0)[None, None, :], ramp=[True])
     assert unsettled_warning(ramp, 0, 0, slow, written) is None
+
+
+def test_a_pure_integrators_dead_time_change_on_a_ramp_row_is_a_delay():
+    """A step-response model whose ramp row has a pure integrator (0.05 per sample after 2 samples); the
+    plant's dead time grew by 4 samples.  The ladder started with one lag, which read the integrator's dead
+    time a sample short with a lag of a sample: the new response, a pure integrator again, then differed in
+    the lag and the dead time, ``mixed``.  It starts from the pure integrator now: ``delay``, with the
+    model's response as its reference exactly."""
+    k = np.arange(1, 61)
+    model = _step_plant(step_model(60), 1, 0, np.where(k > 2, 0.05 * (k - 2), 0.0))
+    plant = _step_plant(model, 1, 0, np.where(k > 6, 0.05 * (k - 6), 0.0))
+    report = analyze(model, open_loop(plant, model, 3000, seed=17, burn_in=300))
+    assert ("y2", "u1") in report.located_elements
+    change = next(c for c in report.repair["changes"] if (c["output"], c["input"]) == ("y2", "u1"))
+    before, after = change["evidence"]["parametric_before"], change["evidence"]["parametric_after"]
+    assert change["kind"] == "delay" and change["applied"] is True
+    assert before["time_constant"] == after["time_constant"] == 0.0
+    assert before["delay"] == 2.0 and after["delay"] == 6.0
+    assert before["gain"] == pytest.approx(0.05, rel=1e-9) and after["gain"] == pytest.approx(0.05, rel=1e-2)
+    np.testing.assert_allclose(change["after"]["step_response"], plant.step_response[1, 0], rtol=0, atol=1e-9)

@@ -101,8 +101,10 @@ def _missing_ladder(model: PlantModel, i: int) -> tuple:
     return _LADDER_MISSING
 #: Forms tried, in order, for an element of a step-response model (self-regulating).
 _LADDER_STEP = (FIRST_ORDER, _Form(n_lags=2), _Form(n_lags=2, lead=True))
-#: The same on a ``ramp`` output whose element keeps a slope (integrating).
-_LADDER_STEP_RAMP = (_Form(integrating=True), _Form(n_lags=2, integrating=True),
+#: The same on a ``ramp`` output whose element keeps a slope (integrating), from a pure integrator: read with a
+#: lag, the dead time of a pure integrator's response became one sample shorter and a lag of a sample, and a
+#: change of its dead time alone was classified ``mixed``.
+_LADDER_STEP_RAMP = (_Form(n_lags=0, integrating=True), _Form(integrating=True), _Form(n_lags=2, integrating=True),
                      _Form(n_lags=2, lead=True, integrating=True))
 
 
