@@ -429,3 +429,23 @@ def test_a_pure_integrators_dead_time_change_on_a_ramp_row_is_a_delay():
     assert before["delay"] == 2.0 and after["delay"] == 6.0
     assert before["gain"] == pytest.approx(0.05, rel=1e-9) and after["gain"] == pytest.approx(0.05, rel=1e-2)
     np.testing.assert_allclose(change["after"]["step_response"], plant.step_response[1, 0], rtol=0, atol=1e-9)
+
+
+def test_a_ramp_row_the_model_has_no_element_in_is_repaired_integrating():
+    """A step-response model's ``ramp`` row with every element zero: the plant's level integrates u1.  The
+    row did not count as integrating (no element ramps), so the element the model lacks was fitted first
+    order, its repair failed the held-out check, and nothing was repaired.  The ``ramp`` flag declares the
+    level: the element is fitted integrating and the row's error falls to the noise."""
+    zeros = np.zeros(60)
+    plant = _step_plant(step_model(60), 1, 2, zeros)
+    model = _step_plant(plant, 1, 0, zeros)
+    assert model.ramp[1] and not model.present[1].any()
+    report = analyze(model, open_loop(plant, model, 3000, seed=18, burn_in=300))
+    assert ("y2", "u1") in report.located_elements
+    change = next(c for c in report.repair["changes"] if (c["output"], c["input"]) == ("y2", "u1"))
+    assert change["kind"] == "missing" and change["applied"] is True
+    new = np.asarray(change["after"]["step_response"])
+    true = plant.step_response[1, 0]
+    assert np.max(np.abs(new - true)) <= 0.05 * np.max(np.abs(true))
+    assert report.repair["error_after"]["y2"] < 0.2 * report.repair["error_before"]["y2"]
+    assert model.integrating_outputs == (False, True)

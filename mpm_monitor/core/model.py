@@ -233,9 +233,11 @@ class PlantModel:
 
     @property
     def integrating_outputs(self) -> tuple:
-        """Per output: True when one of its elements integrates (the output does not settle)."""
+        """Per output: True when one of its elements integrates (the output does not settle); for a
+        step-response model, a ``ramp`` output, also one whose every element is zero (the model declares a
+        level it has no element of yet: a missing element is repaired integrating, its level is arbitrary)."""
         if self.step_response is not None:
-            return tuple(bool(b) and bool(p.any()) for b, p in zip(self.ramp, self.present))
+            return tuple(bool(b) for b in self.ramp)
         return tuple(bool(np.any(self.integrating[i] & (self.gain[i] != 0))) for i in range(self.n_outputs))
 
     def discrete_element(self, i: int, j: int):
