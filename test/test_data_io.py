@@ -774,6 +774,29 @@ def test_a_gzip_compressed_log_reads_as_the_log(tmp_path):
     assert data.n_samples == 5 and list(data.unusable.values()) == ["its name in the header is not UTF-8 text"]
 
 
+def test_a_gzip_file_that_expands_a_thousand_fold_is_refused_before_it_takes_the_memory(tmp_path, monkeypatch):
+    """A "decompression bomb" (a few kB of gzip that expand to gigabytes) was decompressed whole before any
+    check.  Decompression stops at GZIP_MAX_RATIO times the file's size (and at least GZIP_MIN_LIMIT bytes),
+    here made small; a log of numbers, which compresses far less, still reads."""
+    import gzip
+
+    import mpm_monitor.io.files as files_mod
+    from mpm_monitor.io.csv_log import start_csv_read
+
+    monkeypatch.setattr(files_mod, "GZIP_MIN_LIMIT", 2 ** 20)
+    text = _text([HEADER] + _rows(40))
+    assert read_csv(_write(tmp_path, gzip.compress(text.encode()), "log.csv.gz"), _model()).n_samples == 40
+    bomb = _write(tmp_path, gzip.compress(text.encode() + b"0" * (40 * 2 ** 20)), "bomb.csv.gz")
+    size = bomb.stat().st_size
+    assert size * files_mod.GZIP_MAX_RATIO < 40 * 2 ** 20
+    for read in (lambda: read_csv(bomb, _model()), lambda: read_csv(bomb, _model(), started=start_csv_read(bomb))):
+        with pytest.raises(DataFileError) as info:
+            read()
+        msg = str(info.value)
+        assert msg.startswith(f"{bomb}: a gzip file of {size:,} bytes whose content exceeds ") and "\n" not in msg
+        assert "more than 1000 times its size" in msg
+
+
 def test_analyze_reads_the_log_from_standard_input(tmp_path):
     """``--data -``: the log piped in (``zcat log.csv.gz | ... --data -``), its messages naming /dev/stdin."""
     import subprocess

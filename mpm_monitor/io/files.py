@@ -7,22 +7,36 @@ from pathlib import Path
 
 #: The first bytes of a gzip file (RFC 1952).
 GZIP_MAGIC = b"\x1f\x8b"
+#: A gzip file's content is refused beyond this many times the file's size (a log of numbers compresses
+#: 5 to 50 times; a "decompression bomb" of zeros a thousand times) ...
+GZIP_MAX_RATIO = 1000
+#: ... when it is also beyond this many bytes.
+GZIP_MIN_LIMIT = 256 * 2 ** 20
 
 
 def gunzipped(raw: bytes, path, error_cls, expected: str) -> bytes:
     """``raw`` itself, or its content when it is a gzip file (:data:`GZIP_MAGIC`); ``error_cls`` with one line naming
-    the file when such a file is cut short or damaged."""
+    the file when such a file is cut short or damaged, or when its content would exceed :data:`GZIP_MAX_RATIO`
+    times its size and :data:`GZIP_MIN_LIMIT` bytes (decompressed up to that limit only: a small file that
+    expands to gigabytes would take the memory before any message)."""
     if not raw.startswith(GZIP_MAGIC):
         return raw
     import gzip
+    import io
     import zlib
 
+    limit = max(GZIP_MIN_LIMIT, GZIP_MAX_RATIO * len(raw))
     try:
-        return gzip.decompress(raw)
+        with gzip.GzipFile(fileobj=io.BytesIO(raw)) as f:
+            out = f.read(limit + 1)
     except (OSError, EOFError, zlib.error) as exc:
         why = " ".join(str(exc).split()) or "cut short"
         raise error_cls(f"{path}: a gzip file that cannot be decompressed ({why}): expected {expected} or one "
                         f"compressed whole with gzip") from None
+    if len(out) > limit:
+        raise error_cls(f"{path}: a gzip file of {len(raw):,} bytes whose content exceeds {limit:,} bytes (more than "
+                        f"{GZIP_MAX_RATIO} times its size): expected {expected} or one compressed whole with gzip")
+    return out
 
 
 def read_text(path, error_cls, kind: str, expected: str, encoding: str = "utf-8", max_bytes=None,
