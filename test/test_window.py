@@ -277,6 +277,24 @@ def test_a_topic_whose_clock_jumps_ahead_is_an_error_not_a_gap():
     assert not [p for p in w.take_problems() if p.kind == "clock"] and w.n_window == 2000
 
 
+def test_a_topic_whose_stamps_run_behind_is_named_once_and_kept():
+    """The input's stamps run 5 samples behind the loop's time from the start: its vectors arrive 5 samples
+    after the others' of the same sample.  That is also what a delivery held up 5 s looks like, so it is a
+    warning, not an error: named once, while it lasts, and the window keeps every sample."""
+    w = make(window=3000)
+    for k in range(2000):
+        r, u, y = sample_values(k)
+        t = k * NS
+        w.add("output", t, y, arrival_ns=t)
+        w.add("input", t - 5 * NS, u, arrival_ns=t + NS // 10)
+        w.add("setpoint", t, r, arrival_ns=t + NS // 5)
+    problems = w.take_problems()
+    behind = [p for p in problems if p.kind == "behind"]
+    assert len(behind) == 1 and behind[0].channel == "input" and not behind[0].is_error
+    assert behind[0].message.startswith("input: its vectors arrive about 4.9 samples (4.9 s) after the other topics'")
+    assert not [p for p in problems if p.is_error] and w.n_window > 1990 and w.health().resets == 0
+
+
 def test_options_are_checked():
     with pytest.raises(ConfigurationError, match="window_samples"):
         WindowOptions(window_samples=5)

@@ -53,7 +53,7 @@ DISTURBANCE = "disturbance"
 #: Problem kinds that mean the data itself is wrong (the monitor reports them as ERROR).
 ERROR_KINDS = frozenset({"bad_value", "conflict", "off_grid", "clock"})
 #: Problem kinds that cost samples but not correctness (reported in the summary's values).
-WARNING_KINDS = frozenset({"gap", "duplicate", "late", "out_of_order", "restart", "rephase"})
+WARNING_KINDS = frozenset({"gap", "duplicate", "late", "out_of_order", "restart", "rephase", "behind"})
 #: A stamp later than this (nanoseconds: 1e9 s, 2001-09-09) is a wall-clock time; a stamp of exactly 0
 #: among such stamps is an unset ``header.stamp``.
 WALL_CLOCK_NS = 10**18
@@ -251,6 +251,10 @@ class SampleWindow:
         self._arrival_now: Optional[int] = None
         self._arrivals: dict = {}
         self._early_by: dict = {c: collections.deque(maxlen=EARLY_BLOCK) for c in self.channels}
+        # ... and how late: a channel late by the clock check's limit in a block's median is named once (a warning),
+        # again only after a block where it was not.
+        self._late_by: dict = {c: collections.deque(maxlen=EARLY_BLOCK) for c in self.channels}
+        self._behind: set = set()
         self._last_arrival: Optional[int] = None
         self._per_sample: collections.deque = collections.deque(maxlen=4 * EARLY_BLOCK + 1)
         self._clock_count = 0
@@ -562,8 +566,11 @@ class SampleWindow:
         and 2 s) in the median of a block of :data:`EARLY_BLOCK` samples has stamps that run ahead
         (its publisher's clock jumped forward, or runs apart): aligned by stamp, its vectors pair with the other
         topics' of another time.  That is a data error, and the window restarts (no analysis of it).  A vector
-        that arrived late (a delivery held up) is no sign; without arrival times, or with arrival times that do
-        not advance, nothing is checked.  The held setpoint (``hold_setpoint``) is not compared."""
+        that arrived late is no sign of it: a delivery held up looks the same as stamps that run behind.  A
+        channel late by that limit in a block's median is named in one warning (kind ``behind``; again only
+        after a block where it was not), and the window keeps its samples.  Without arrival times, or with
+        arrival times that do not advance, nothing is checked.  The held setpoint (``hold_setpoint``) is not
+        compared."""
         arrivals = self._arrivals.pop(k, None)
         if len(self._arrivals) > 2 * int(self.options.max_pending):
             self._arrivals = {kk: a for kk, a in self._arrivals.items() if kk >= self._next_k}
@@ -579,7 +586,9 @@ class SampleWindow:
         for i in chans:
             own = arrivals[i]
             first_other = at[1] if own == at[0] else at[0]
+            last_other = at[-2] if own == at[-1] else at[-1]
             self._early_by[self.channels[i]].append(first_other - own)
+            self._late_by[self.channels[i]].append(own - last_other)
         self._clock_count += 1
         if self._clock_count % EARLY_BLOCK or len(self._per_sample) < EARLY_BLOCK:
             return
@@ -600,6 +609,18 @@ class SampleWindow:
                     d.clear()
                 self._reset_window()
                 return
+        for c in (self.channels[i] for i in chans):
+            behind = float(np.median(self._late_by[c]))
+            if len(self._late_by[c]) < EARLY_BLOCK or not behind > limit:
+                self._behind.discard(c)
+            elif c not in self._behind:
+                self._behind.add(c)
+                self._problem("behind", c, self._stamp_of(k),
+                              f"{c}: its vectors arrive about {behind / tau:.3g} samples ({behind / NS_PER_S:.3g} s) "
+                              f"after the other topics' vectors of the same sample, up to t = "
+                              f"{seconds_text(self._stamp_of(k))} s: a delivery held up that long, or its stamps "
+                              f"running behind the others' (a publisher's clock set apart?), which would pair its "
+                              f"samples with the others' of another time; the window keeps them")
 
     def _prune_setpoints(self) -> None:
         last = self._latest_setpoint(self._next_k)
