@@ -777,6 +777,23 @@ def test_a_topic_whose_clock_runs_ahead_of_the_others_is_refused(tmp_path):
     late[100:160] = stamps[160]                          # the output held up for 30 s, then delivered at once
     data = read_bag(write_bag(tmp_path / "late", r, u, y, received=stamps, role_received={"output": late}), MODEL)
     np.testing.assert_array_equal(data.y, y)
+    assert [n for n in data.notes if "recorded about" in n and "after the other topics'" in n]    # named, kept
+
+
+def test_a_topic_recorded_well_after_the_others_is_named_and_kept(tmp_path):
+    """The input's stamps run 5 s (10 samples) behind the loop's time: its messages are recorded 10 samples after
+    the others' of the same sample.  That is also what a delivery held up 5 s looks like, so the bag is read as
+    stamped, with a note naming the topic (before: nothing)."""
+    r, u, y = _samples(240)
+    ts = int(MODEL.sample_time * 1e9)
+    stamps = np.arange(240) * ts + int(T0 * 1e9)
+    data = read_bag(write_bag(tmp_path / "behind", r, u, y, role_stamps={"input": stamps - 5 * 10**9}, received=stamps),
+                    MODEL)
+    notes = [n for n in data.notes if "recorded about" in n]
+    assert len(notes) == 1 and "topic '/input': from about its sample at" in notes[0], data.notes
+    assert "about 10 samples (5 s) after the other topics' messages of the same sample" in notes[0]
+    assert "kept as stamped" in notes[0] and "\n" not in notes[0]
+    assert not [n for n in read_bag(write_bag(tmp_path / "fine", r, u, y), MODEL).notes if "recorded about" in n]
 
 
 def test_a_late_message_stamped_0_in_simulated_time_is_a_step_back(tmp_path):

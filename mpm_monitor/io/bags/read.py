@@ -290,7 +290,7 @@ def _grid_origin(stamps: list, ts_ns: float) -> int:
     return first + int(round(phase * ts_ns))
 
 
-def _refuse_clocks_apart(path, series: dict, ks: dict, common: np.ndarray, origin: int, ts_ns: float) -> None:
+def _check_clocks_apart(path, series: dict, ks: dict, common: np.ndarray, origin: int, ts_ns: float) -> list:
     """Refuse a bag in which a topic's messages are recorded well before every other topic's message of the same
     sample, over :data:`EARLY_BLOCK` samples in a row: its stamps run ahead of theirs (its publisher's clock jumped
     forward, or is set apart from the others').  Aligned by stamp, its samples would pair with the others' of
@@ -298,18 +298,26 @@ def _refuse_clocks_apart(path, series: dict, ks: dict, common: np.ndarray, origi
 
     A message recorded late (a delivery stalled, then caught up) is no sign: only early ones count, by at least
     :func:`~mpm_monitor.core.logged_data.early_limit_ns` (3 samples of the recorder's time and 2 s).  A bag whose
-    recorder times do not advance with its samples (written by a converter) is not checked.
+    recorder times do not advance with its samples (written by a converter) is not checked.  A topic recorded as
+    late in a block's median (stamps that run behind look the same as a delivery held up) gets a note, and its
+    samples are kept as stamped.
 
     ``ks``: each topic's sample numbers (sorted, once each); ``common``: the samples every topic holds.
+
+    Returns
+    -------
+    list of str
+        The notes of the topics recorded late.
     """
+    notes = []
     if len(series) < 2 or common.size < EARLY_BLOCK or any(s.logs is None for s in series.values()):
-        return
+        return notes
     logs = {role: s.logs[np.searchsorted(ks[role], common)].astype(np.float64) for role, s in series.items()}
     together = np.median(np.vstack(list(logs.values())), axis=0)
     per_sample = np.diff(together)[np.diff(common) == 1]
     tau = float(np.median(per_sample)) if per_sample.size else 0.0
     if not tau > 0:
-        return
+        return notes
     limit = early_limit_ns(tau)
     blocks = common.size // EARLY_BLOCK
     for role, log in logs.items():
@@ -326,6 +334,18 @@ def _refuse_clocks_apart(path, series: dict, ks: dict, common: np.ndarray, origi
                            f"messages of the same sample: its stamps run ahead of theirs (a clock that jumped forward, "
                            f"or a publisher's clock set apart from the others'?); aligned by stamp, its samples would "
                            f"pair with the others' of another time: expected the topics stamped by one clock")
+        late = log - np.max(np.vstack([lg for r, lg in logs.items() if r != role]), axis=0)
+        slow = np.flatnonzero(np.median(late[:blocks * EARLY_BLOCK].reshape(blocks, EARLY_BLOCK), axis=1) > limit)
+        if slow.size:
+            behind = float(np.median(late[slow[0] * EARLY_BLOCK:(slow[0] + 1) * EARLY_BLOCK]))
+            t0 = _seconds(round(origin + int(common[slow[0] * EARLY_BLOCK]) * ts_ns))
+            notes.append(f"{path}: topic '{series[role].topic}': from about its sample at {t0} s, its messages are "
+                         f"recorded about {behind / tau:.3g} samples ({behind / 1e9:.3g} s) after the other topics' "
+                         f"messages of the same sample ({slow.size} of {blocks} blocks of {EARLY_BLOCK} samples): a "
+                         f"delivery held up that long, or its stamps running behind the others' (a publisher's clock "
+                         f"set apart?), which would pair its samples with the others' of another time; they are "
+                         f"kept as stamped")
+    return notes
 
 
 def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances=()) -> LoggedData:
@@ -390,7 +410,7 @@ def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances
     for k in ks.values():
         k = k[(k >= k_first) & (k <= k_last)]
         common = k if common is None else np.intersect1d(common, k, assume_unique=True)
-    _refuse_clocks_apart(path, series, ks, common, origin, ts_ns)
+    notes += _check_clocks_apart(path, series, ks, common, origin, ts_ns)
     out = {role: s.values[np.isin(ks[role], common)] for role, s in series.items()}
     t = (origin + common * ts_ns) / 1e9
     dv = out.get("disturbance")
