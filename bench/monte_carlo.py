@@ -47,29 +47,29 @@ Scenario ``k`` of seed ``s`` is a pure function of ``(s, k)``: ``--jobs`` only c
 
 from __future__ import annotations
 
-# One BLAS thread per process (set by the bench package): the machine is shared and --jobs gives the
-# parallelism.
-import argparse  # noqa: E402
-import json  # noqa: E402
-import os  # noqa: E402
-import dataclasses  # noqa: E402
-import platform  # noqa: E402
-import statistics  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
-from typing import Callable, Optional, Sequence  # noqa: E402
+# One BLAS thread per process is set by the bench package (bench/__init__.py), imported before this module:
+# the machine is shared and --jobs gives the parallelism.
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Optional, Sequence
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from mpm_monitor.core.analysis import AnalysisOptions  # noqa: E402
-from mpm_monitor.core.baselines import ELEMENT_TESTS  # noqa: E402
-from mpm_monitor.core.logged_data import LoggedData  # noqa: E402
-from mpm_monitor.core.signals import compute_signals  # noqa: E402
-from mpm_monitor.sim.closed_loop import run_closed_loop  # noqa: E402
+from mpm_monitor.core.analysis import AnalysisOptions
+from mpm_monitor.core.baselines import ELEMENT_TESTS
+from mpm_monitor.core.logged_data import LoggedData
+from mpm_monitor.core.signals import compute_signals
+from mpm_monitor.sim.closed_loop import run_closed_loop
 
-from . import map_runs  # noqa: E402
-from .scenarios import KINDS, STILL, Scenario, ScenarioOptions, input_separability, make_scenario  # noqa: E402
+from . import map_runs
+from .scenarios import KINDS, STILL, Scenario, ScenarioOptions, input_separability, make_scenario
 
 METHODS = ("arx", "xcorr", "pcorr")
 ALPHA = 0.01
