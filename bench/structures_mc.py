@@ -3,10 +3,13 @@
 Run::
 
     python -m bench.structures_mc [--runs 300] [--seed 0] [--samples 3000] [--jobs 1]
-                                  [--clean-integrating 500] [--lost-lag] [--out bench/results/structures_mc.json]
+                                  [--clean-integrating 500] [--lost-lag | --gained-lag] [--confirm-responses]
+                                  [--out bench/results/structures_mc.json]
 
 (``--lost-lag``: every mismatch a second lag the model has and the plant's element lacks; its default output
-is ``bench/results/structures_mc_lost_lag.json``.)
+is ``bench/results/structures_mc_lost_lag.json``.  ``--gained-lag``: every mismatch a lag the plant's element
+has and the model's lacks, a pure gain or a pure integrator in the model; ``bench/results/structures_mc_gained_lag.json``.
+``--confirm-responses``: the analysis's option ``confirm_responses`` on; ``bench/results/structures_mc_confirm.json``.)
 
 Every run draws a random closed loop (:func:`make_structures_scenario`; a pure function of
 ``(seed, index)``, so ``--jobs`` only changes the speed), simulates it under the internal-model MPC
@@ -99,12 +102,13 @@ from .oracle import oracle_power
 from .scenarios import check_count_ranges, input_separability
 
 STRUCTURES = ("first", "second", "lead", "inverse")
-KINDS = ("gain", "integrator_gain", "time_constant", "delay", "second_lag", "lead", "disturbance_gain", "lost_lag")
+KINDS = ("gain", "integrator_gain", "time_constant", "delay", "second_lag", "lead", "disturbance_gain", "lost_lag",
+         "gained_lag", "integrator_gained_lag")
 #: The kind the report should give each kind of mismatch (a lag, a second lag, a lead or a lost lag is a
 #: ``time_constant`` change; an integrator's or a disturbance's gain a ``gain``).
 REPORTED_KIND = {"gain": "gain", "integrator_gain": "gain", "time_constant": "time_constant", "delay": "delay",
                  "second_lag": "time_constant", "lead": "time_constant", "disturbance_gain": "gain",
-                 "lost_lag": "time_constant"}
+                 "lost_lag": "time_constant", "gained_lag": "time_constant", "integrator_gained_lag": "time_constant"}
 #: Samples over which a repaired element's step response is compared with the plant's.
 REPAIR_HORIZON = 300
 #: Largest difference of the step responses, as a fraction of the plant response's largest value.
@@ -160,6 +164,11 @@ class StructuresOptions:
         Every mismatch is a lost lag instead (``--lost-lag``): the model has a second lag (``tau2``
         drawn from ``tau2_fraction`` of ``tau``) on an input's element whose plant element has none, at
         positions drawn among those elements.
+    gained_lag : bool
+        Every mismatch is a gained lag instead (``--gained-lag``): the model's element has no lag where the
+        plant's has its one lag (a pure gain, or a pure integrator: ``integrator_gained_lag``), at positions
+        drawn among the inputs' elements with one lag, no second lag and no lead whose lagless form acts a
+        sample after its input at the earliest.
     """
 
     min_size: int = 2
@@ -183,9 +192,12 @@ class StructuresOptions:
     measured_disturbance: MeasuredDisturbanceOptions = MeasuredDisturbanceOptions(
         step_amplitude=1.0, switch_probability=0.02, min_hold=20, noise_std=0.1, noise_pole=0.9)
     lost_lag: bool = False
+    gained_lag: bool = False
 
     def __post_init__(self):
         check_count_ranges(self)
+        if self.lost_lag and self.gained_lag:
+            raise ValueError("lost_lag, gained_lag: expected at most one of them")
         if len(self.structure_probabilities) != len(STRUCTURES) or abs(sum(self.structure_probabilities) - 1) > 1e-9:
             raise ValueError(f"structure_probabilities: expected {len(STRUCTURES)} probabilities summing to 1, "
                              f"got {self.structure_probabilities!r}")
@@ -278,6 +290,11 @@ def _draw_plant(rng, ny: int, nu: int, nd: int, opts: StructuresOptions, name: s
 def _mismatch(rng, plant: PlantModel, model: PlantModel, i: int, j: int, opts: StructuresOptions):
     """The model with element (i, j) mismatched, and the mismatch's description."""
     el = plant.element(i, j)
+    if opts.gained_lag:                 # the model lacks the lag the plant's element has
+        new = model.with_element(i, j, time_constant=0.0)
+        kind = "integrator_gained_lag" if el.get("integrating") else "gained_lag"
+        return new, {"output": i, "column": j, "role": plant.role(j), "kind": kind, "size": 1.0,
+                     "plant": el, "model": new.element(i, j)}
     if opts.lost_lag:                   # the model has a second lag the plant lacks
         s = float(rng.uniform(*opts.tau2_fraction))
         new = model.with_element(i, j, time_constant2=round(el["time_constant"] * s, 1))
@@ -343,6 +360,11 @@ def make_structures_scenario(seed: int, index: int, options: StructuresOptions =
     mismatches = []
     if options.lost_lag:                # among the inputs' elements without a second lag in the plant
         cells = [i * nc + j for i in range(ny) for j in range(nu) if plant.time_constant2[i, j] == 0]
+        positions = rng.choice(cells, size=min(k, len(cells)), replace=False) if cells else []
+    elif options.gained_lag:            # among the inputs' first-order and one-lag integrating elements
+        cells = [i * nc + j for i in range(ny) for j in range(nu)
+                 if plant.time_constant[i, j] > 0 and plant.time_constant2[i, j] == 0 and plant.lead[i, j] == 0
+                 and _strictly_proper(plant.with_element(i, j, time_constant=0.0), i, j)]
         positions = rng.choice(cells, size=min(k, len(cells)), replace=False) if cells else []
     else:
         positions = rng.choice(ny * nc, size=min(k, ny * nc), replace=False)
@@ -719,6 +741,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--lost-lag", action="store_true",
                         help="every mismatch a lost lag: the model has a second lag the plant's element lacks "
                         "(default output structures_mc_lost_lag.json)")
+    parser.add_argument("--gained-lag", action="store_true",
+                        help="every mismatch a lag the plant's element has and the model's lacks (a pure gain or a "
+                        "pure integrator in the model; default output structures_mc_gained_lag.json)")
     parser.add_argument("--confirm-responses", action="store_true",
                         help="the analysis's confirm_responses on (default output structures_mc_confirm.json)")
     parser.add_argument("--out", type=Path, default=None, help="JSON output")
@@ -726,6 +751,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     args = parser.parse_args(argv)
     if args.out is None:
         args.out = DEFAULT_OUT.with_name("structures_mc_lost_lag.json") if args.lost_lag else \
+            DEFAULT_OUT.with_name("structures_mc_gained_lag.json") if args.gained_lag else \
             DEFAULT_OUT.with_name("structures_mc_confirm.json") if args.confirm_responses else DEFAULT_OUT
     if args.runs < 0 or args.clean_integrating < 0 or args.samples < 100 or args.jobs < 1:
         parser.error("--runs and --clean-integrating must be >= 0, --jobs >= 1 and --samples >= 100")
@@ -744,7 +770,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         result = run_structures_mc(args.runs, args.seed, args.samples, clean_integrating=args.clean_integrating,
                                    jobs=args.jobs, options=StructuresOptions(dither_fat=not args.no_dither_fat,
-                                                                             lost_lag=args.lost_lag),
+                                                                             lost_lag=args.lost_lag,
+                                                                             gained_lag=args.gained_lag),
                                    element_window=args.element_window, noise_candidate=args.noise_candidate,
                                    confirm_responses=args.confirm_responses, progress=progress)
     except ValueError as exc:
