@@ -305,8 +305,7 @@ def _grow_gained_lags(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
         start = (float(free.est.fit.gains[m]), (_pole_of(max(lag_fit - grown.lag, 1) * ts, ts),),
                  float(free.est.fit.leads[m]), grown.lag)
         larger = _refit_element(free, j, grown, start, settings)
-        stat = free.est.fit.n_resid * math.log(max(free.est.fit.ssr, 1e-300) / max(larger.est.fit.ssr, 1e-300))
-        if chi2_tail(max(stat, 0.0), 1) < settings.alpha:
+        if _larger_form_p(free.est.fit.n_resid, free.est.fit.ssr, larger.est.fit.ssr, 1) < settings.alpha:
             free = larger
     return free
 
@@ -338,8 +337,7 @@ def _reduce_vanished_lags(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
         start = (float(free.est.fit.gains[m]), (float(max(poles)),), float(free.est.fit.leads[m]),
                  int(free.est.fit.lags[m]) - (loc.form.offset - form.offset))
         smaller = _refit_element(free, j, reduced, start, settings)
-        stat = free.est.fit.n_resid * math.log(max(smaller.est.fit.ssr, 1e-300) / max(free.est.fit.ssr, 1e-300))
-        if chi2_tail(max(stat, 0.0), 1) >= settings.alpha:
+        if _larger_form_p(free.est.fit.n_resid, smaller.est.fit.ssr, free.est.fit.ssr, 1) >= settings.alpha:
             free = smaller
     return free
 
@@ -377,11 +375,17 @@ def _choose_forms(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
                 start = (float(free.est.fit.gains[m]), (_pole_of(tau, ts), _pole_of(0.3 * tau, ts))[:form.n_lags],
                          0.0, int(free.est.fit.lags[m]))
             larger = _refit_element(free, j, loc, start, settings)
-            est = larger.est
-            stat = est.fit.n_resid * math.log(max(free.est.fit.ssr, 1e-300) / max(est.fit.ssr, 1e-300))
-            if chi2_tail(max(stat, 0.0), form.n_shape - cur.form.n_shape) < settings.alpha:
+            if _larger_form_p(larger.est.fit.n_resid, free.est.fit.ssr, larger.est.fit.ssr,
+                              form.n_shape - cur.form.n_shape) < settings.alpha:
                 free = larger
     return free
+
+
+def _larger_form_p(n_resid: int, ssr_smaller: float, ssr_larger: float, df: int) -> float:
+    """p-value of the likelihood-ratio test ``n ln(SSR_smaller / SSR_larger)`` of a larger form against chi-square with
+    ``df`` degrees of freedom (Ljung 1999, section 16.5): small where the larger form fits significantly better."""
+    stat = n_resid * math.log(max(ssr_smaller, 1e-300) / max(ssr_larger, 1e-300))
+    return chi2_tail(max(stat, 0.0), df)
 
 
 def _refit_element(free: _FreeFit, j: int, loc: _Located, start, settings: _TestSettings) -> _FreeFit:
