@@ -48,7 +48,7 @@ from .model import PlantModel
 from .noise_order import residual_whiteness
 from .parallel import split_map
 from .response_test import (combined_p_value, element_responses, given_other_responses, integrating_element,
-                            response_tests, row_response_regressors, row_response_tests)
+                            row_response_regressors, row_response_tests)
 from .statistics import N_FAMILIES, holm_adjust
 
 
@@ -761,9 +761,7 @@ class _WholeResponses:
                                               self.start, self.na, self.segments, a=a, moments=self.moments)
             finally:
                 self.moments.release(i)
-        if reg is None:
-            return {}, None
-        return dict(zip(reg.cols, response_tests(fit, reg.g, reg.xx, reg.xy, reg.blocks, reg.groups))), reg
+        return ({}, None) if reg is None else (reg.tests(fit), reg)
 
 
 #: The tail regressors of a located column cover this many time constants of the row's slowest pole.

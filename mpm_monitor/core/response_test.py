@@ -393,9 +393,7 @@ def row_response_tests(model: PlantModel, i: int, fit, testable: list, common: O
     """
     reg = row_response_regressors(model, i, fit, testable, common, block_sizes, u_c, d_c, start, na, segments, a,
                                   columns, extra, moments)
-    if reg is None:
-        return {}
-    return dict(zip(reg.cols, response_tests(fit, reg.g, reg.xx, reg.xy, reg.blocks, reg.groups)))
+    return {} if reg is None else reg.tests(fit)
 
 
 @dataclasses.dataclass
@@ -427,6 +425,10 @@ class RowRegressors:
     #: The regressors' and the target's residual products on the whole ``W`` and their coefficients on
     #: it (:func:`_residual_products`), once computed.
     residual: Optional[tuple] = None
+
+    def tests(self, fit) -> dict:
+        """Column -> its whole-response :class:`ResponseTest` in ``fit`` (:func:`response_tests`)."""
+        return dict(zip(self.cols, response_tests(fit, self.g, self.xx, self.xy, self.blocks, self.groups)))
 
 
 def row_response_regressors(model: PlantModel, i: int, fit, testable: list, common: Optional[np.ndarray],
