@@ -336,7 +336,7 @@ def test_closed_form_moves_with_dv_minimise_the_stated_cost_and_the_qp_agrees(na
 
 
 def test_qp_equals_closed_form_when_no_bound_is_active():
-    # Bounds far away: OSQP (eps 1e-9, polished) must return the closed form to 1e-6.
+    # Bounds far away: the exact active-set solver returns the closed form to rounding.
     plant = shell_plant()
     ctrl = InternalModelMpc(plant, MpcOptions(**SMALL_MPC, u_min=-50.0, u_max=50.0, du_max=20.0))
     rng = np.random.default_rng(8)
@@ -346,12 +346,12 @@ def test_qp_equals_closed_form_when_no_bound_is_active():
         du_cf = ctrl.unconstrained_moves(eps, x, u_prev)
         path = _moves_to_path(du_cf, u_prev, 3)
         assert np.abs(path).max() < 50 and np.abs(du_cf).max() < 20  # really inactive
-        np.testing.assert_allclose(ctrl.solve_qp(eps, x, u_prev), du_cf, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(ctrl.solve_qp(eps, x, u_prev), du_cf, rtol=0, atol=1e-10)
 
 
 def test_qp_with_active_input_bounds_equals_bounded_least_squares():
     # u bounds only are box bounds on the path U: reference scipy.optimize.lsq_linear of the same
-    # cost (built by simulation); tolerance 1e-5 on the moves, 1e-8 relative on the cost.
+    # cost (built by simulation); tolerance 1e-8 on the moves, 1e-12 relative on the cost.
     plant = shell_plant()
     lo, hi = np.array([-0.2, -0.3, -0.1]), np.array([0.2, 0.3, 0.1])
     ctrl = InternalModelMpc(plant, MpcOptions(**SMALL_MPC, u_min=lo, u_max=hi))
@@ -366,9 +366,39 @@ def test_qp_with_active_input_bounds_equals_bounded_least_squares():
     F, g = _cost_as_least_squares(ctrl, eps, x, u_prev)
     ref = lsq_linear(F, g, bounds=(np.tile(lo, 10), np.tile(hi, 10)), tol=1e-14, lsmr_tol="auto",
                      max_iter=5000, method="bvls")
-    np.testing.assert_allclose(du_qp, _path_to_moves(ref.x, u_prev, 3), rtol=0, atol=1e-5)
+    np.testing.assert_allclose(du_qp, _path_to_moves(ref.x, u_prev, 3), rtol=0, atol=1e-8)
     cost = lambda U: np.sum((F @ U - g) ** 2)  # noqa: E731
-    np.testing.assert_allclose(cost(path_qp.reshape(-1)), cost(ref.x), rtol=1e-8)
+    np.testing.assert_allclose(cost(path_qp.reshape(-1)), cost(ref.x), rtol=1e-12)
+
+
+@pytest.mark.parametrize("u_prev", [[0.1, 0.0, -0.05], [0.5, -0.45, 0.0], [2.0, 0.0, 0.0]],
+                         ids=["inside", "outside-reachable", "outside-unreachable"])
+def test_qp_with_input_and_move_bounds_equals_osqp(u_prev):
+    # u and du bounds together (not a box on either): reference OSQP at tolerance 1e-12, polished.
+    # An input outside its bounds is brought in within du_max when it can be; when it cannot, there
+    # is no feasible move path and the unconstrained moves are returned (step() clips them).
+    plant = shell_plant()
+    ctrl = InternalModelMpc(plant, MpcOptions(**SMALL_MPC, u_min=-0.3, u_max=0.3, du_max=0.2,
+                                              qp_tolerance=1e-12))
+    x = _state_after(plant, 40, 6)
+    eps, u_prev = np.array([1.0, -1.0, 0.5]), np.array(u_prev)
+    du = ctrl.solve_qp(eps, x, u_prev)
+    du_unc = ctrl.unconstrained_moves(eps, x, u_prev)
+    if u_prev[0] > 0.3 + 0.2:
+        np.testing.assert_array_equal(du, du_unc)
+        return
+    path = _moves_to_path(du, u_prev, 3)
+    assert np.all(np.abs(path) <= 0.3 + 1e-12) and np.all(np.abs(du) <= 0.2 + 1e-12)
+    assert np.sum(np.isclose(np.abs(path), 0.3)) + np.sum(np.isclose(np.abs(du), 0.2)) >= 3
+    ref = ctrl._solve_qp_osqp(-ctrl._H @ du_unc, *_qp_bounds(ctrl, u_prev), du_unc)
+    np.testing.assert_allclose(du, ref, rtol=0, atol=1e-7)
+
+
+def _qp_bounds(ctrl, u_prev):
+    hc = ctrl.options.control_horizon
+    lo = np.concatenate([np.tile(ctrl.u_min - u_prev, hc), -np.tile(ctrl.du_max, hc)])
+    hi = np.concatenate([np.tile(ctrl.u_max - u_prev, hc), np.tile(ctrl.du_max, hc)])
+    return lo, hi
 
 
 # --------------------------------------------------------------------------- refusals

@@ -14,8 +14,9 @@ disturbances are held at their current value ``dv(k)`` over the horizon: their p
 ``Gamma_d dv(k)`` (block ``i``: the disturbances' step response ``S^d_{i-1}``) enters the predicted
 outputs like the free response, so the moves counteract a measured disturbance before it shows in
 ``y`` (feedforward); only the inputs are moved.  Without bounds the optimum is the closed form
-``dU = H^{-1} (G' Q e0 - M' R g0)``; with bounds on ``u`` and ``du`` the QP is solved by OSQP
-(Stellato et al., 2020), warm-started from the previous solution.
+``dU = H^{-1} (G' Q e0 - M' R g0)``; with bounds on ``u`` and ``du`` the QP is solved exactly by the
+dual active-set method of :mod:`mpm_monitor.sim.qp`, started from the previous sample's held bounds
+(OSQP, Stellato et al., 2020, is the fallback when that method cannot finish).
 
 Every element structure of the model is controlled through its exact state space
 (:func:`mpm_monitor.core.discretize.state_space`), integrating outputs included: their predicted
@@ -68,7 +69,8 @@ class MpcOptions:
     du_max : float, sequence of float or None
         Bound on ``|du|`` per sample; None = unbounded.
     qp_tolerance : float
-        Absolute and relative tolerance given to OSQP.
+        Absolute and relative tolerance of the fallback QP solver (OSQP), used only when the exact
+        active-set solver cannot finish: bounds no move path can meet, or its iteration limit.
     """
 
     prediction_horizon: int = 100
@@ -335,6 +337,7 @@ class InternalModelMpc:
         self._x = np.zeros(self._ss.n_states)
         self._u_prev = self.u_nom.copy() if u0 is None else np.asarray(u0, dtype=float).copy()
         self._last_du = None
+        self._last_active = None
         ny = self.model.n_outputs
         self.yhat = np.zeros(ny)
         self.prediction_error = np.zeros(ny)
@@ -356,35 +359,52 @@ class InternalModelMpc:
 
     def solve_qp(self, eps: np.ndarray, x: np.ndarray, u_prev: np.ndarray,
                  dv: Optional[np.ndarray] = None) -> np.ndarray:
-        """Optimal moves ``dU`` of shape (Hc * n_inputs,) with the bounds, solved by OSQP (``dv`` as
-        :meth:`unconstrained_moves`)."""
-        import osqp
-        import scipy.sparse as sp
+        """Optimal moves ``dU`` of shape (Hc * n_inputs,) with the bounds (``dv`` as
+        :meth:`unconstrained_moves`).
+
+        Solved exactly by the dual active-set method of :mod:`mpm_monitor.sim.qp`, its working set
+        guessed from the bounds held at the previous sample, shifted by one move.  Should it not
+        finish (bounds that no move path meets, or its iteration limit), OSQP at ``qp_tolerance``
+        solves it; when that fails too, the unconstrained moves are returned (and :meth:`step` clips
+        them).
+        """
+        from .qp import ActiveSetQp
 
         du_unc = self.unconstrained_moves(eps, x, u_prev, dv)
         q = -self._H @ du_unc  # J = 1/2 dU' H dU + q' dU up to a constant
         nu, hc = self._nu, self._hc
-        lo = np.concatenate([np.tile(self.u_min, hc) - np.tile(u_prev, hc),
-                             -np.tile(self.du_max, hc)])
+        lo = np.concatenate([np.tile(self.u_min, hc) - np.tile(u_prev, hc), -np.tile(self.du_max, hc)])
         hi = np.concatenate([np.tile(self.u_max, hc) - np.tile(u_prev, hc), np.tile(self.du_max, hc)])
+        if self._qp is None:
+            self._qp = ActiveSetQp(self._H, np.vstack([self._Mc, np.eye(nu * hc)]))
+        self.qp_solves += 1
+        guess = upper = None
+        if self._last_active is not None:
+            rows, upper = self._last_active
+            move = rows % (hc * nu) // nu        # rows: u(k+t) then du(k+t), t = 0..Hc-1, input fastest
+            keep = move >= 1
+            guess, upper = rows[keep] - nu, upper[keep]
+        sol = self._qp.solve(q, lo, hi, guess, upper)
+        if sol is not None:
+            self._last_active = (sol.active, sol.upper)
+            return sol.x
+        self._last_active = None
+        return self._solve_qp_osqp(q, lo, hi, du_unc)
+
+    def _solve_qp_osqp(self, q: np.ndarray, lo: np.ndarray, hi: np.ndarray, du_unc: np.ndarray) -> np.ndarray:
+        """The same QP by OSQP (tolerance ``qp_tolerance``, polished); ``du_unc`` when it fails."""
+        import osqp
+        import scipy.sparse as sp
+
+        nu, hc = self._nu, self._hc
         lo = np.where(np.isfinite(lo), lo, -np.inf)
         hi = np.where(np.isfinite(hi), hi, np.inf)
-        if self._qp is None:
-            A = sp.csc_matrix(np.vstack([self._Mc, np.eye(nu * hc)]))
-            P = sp.csc_matrix(np.triu(self._H))
-            self._qp = osqp.OSQP()
-            tol = self.options.qp_tolerance
-            self._qp.setup(P, q, A, lo, hi, verbose=False, eps_abs=tol, eps_rel=tol, polishing=True,
-                           warm_starting=True, max_iter=20000)
-        else:
-            self._qp.update(q=q, l=lo, u=hi)
-        if self._last_du is not None:
-            shifted = np.concatenate([self._last_du[nu:], np.zeros(nu)])
-            self._qp.warm_start(x=shifted)
-        res = self._qp.solve(raise_error=False)
-        self.qp_solves += 1
+        qp = osqp.OSQP()
+        tol = self.options.qp_tolerance
+        qp.setup(sp.csc_matrix(np.triu(self._H)), q, sp.csc_matrix(np.vstack([self._Mc, np.eye(nu * hc)])),
+                 lo, hi, verbose=False, eps_abs=tol, eps_rel=tol, polishing=True, max_iter=20000)
+        res = qp.solve(raise_error=False)
         if res.x is None or res.info.status not in ("solved", "solved inaccurate") or not np.all(np.isfinite(res.x)):
-            # Infeasible or failed: fall back to the clipped unconstrained move (never exceed bounds).
             return du_unc
         return np.asarray(res.x, dtype=float)
 
