@@ -31,8 +31,17 @@ $(BYTECODE): $(STAMP) $(SOURCES)
 demo: $(BYTECODE)
 	$(PY) -m mpm_monitor demo --case 3.2
 
+# Two passes (test/conftest.py): the computational modules spread over every core (pytest-xdist),
+# then the modules with ROS nodes, node processes or forks, one test at a time.  Both passes run; the
+# target fails when either does.  (pytest-rerunfailures, when a developer's environment has it, starts
+# a thread in the main process that stops the fork tests: it is switched off.)
+PYTEST := ROS_PYTHON_CHECK_FIELDS=1 $(PY) -m pytest -q -p no:cacheprovider -p no:rerunfailures
+
 test: $(BYTECODE)
-	ROS_PYTHON_CHECK_FIELDS=1 $(PY) -m pytest -q -p no:cacheprovider test
+	@status=0; \
+	$(PYTEST) -n auto --dist loadfile -m "not serial" test || status=1; \
+	$(PYTEST) -m serial test || status=1; \
+	exit $$status
 
 bench: $(BYTECODE)
 	$(PY) -m bench.run_all

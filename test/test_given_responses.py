@@ -12,6 +12,9 @@ from mpm_monitor.core.model import PlantModel
 from mpm_monitor.core.response_test import (combined_p_value, given_other_responses, row_response_regressors,
                                             row_response_tests)
 
+# Its jobs=2 case must fork a second process: it runs in make test's serial pass (test/conftest.py).
+pytestmark = pytest.mark.serial
+
 N_LAG, NA, NB = 8, 2, 4
 
 
