@@ -11,7 +11,7 @@ repaired model file read back in the same structure.
 
 import numpy as np
 import pytest
-from structure_models import rich_model, step_model
+from structure_models import first_order_model, rich_model, step_model
 from test_detection_columns import open_loop
 
 from mpm_monitor.core.elements import sample_parametric
@@ -212,6 +212,28 @@ def test_a_pure_integrator_whose_plant_gained_a_lag_is_repaired_with_the_lag(tmp
     report = analyze(model, open_loop(plant, model, 3000, seed=16, burn_in=300))
     entry = assert_repaired_in_structure(report, model, plant, ("y2", "u1"), "time_constant", tmp_path)
     assert entry["after"]["integrating"] is True and entry["after"]["delay"] == model.delay[1, 0]
+
+
+def test_a_pure_gain_whose_plant_gained_a_lag_is_a_time_constant(tmp_path):
+    """The model's (y2, u2) is a pure gain with 3 s of dead time; the plant's has a lag of 9 s at the same dead
+    time.  A first-order element acts one sample after a pure gain of the same dead time: the delay test held
+    the pure gain's own lag (3) with the lag free, rejected, and the kind was ``mixed`` (177 of 177 in
+    bench.structures_mc --gained-lag), though the dead time had not changed."""
+    plant = first_order_model()
+    model = plant.with_element(1, 1, time_constant=0.0)
+    report = analyze(model, open_loop(plant, model, 3000, seed=21, burn_in=300))
+    entry = assert_repaired_in_structure(report, model, plant, ("y2", "u2"), "time_constant", tmp_path)
+    assert entry["after"]["delay"] == model.delay[1, 1] and entry["evidence"]["p_delay"] > 0.01
+
+
+def test_a_pure_gains_gain_change_is_still_a_gain(tmp_path):
+    """The same pure gain, the plant's 30 % larger and still without a lag: the kind is ``gain``, the lag and the
+    dead time as they were (the delay test also holds the pure gain's own lag, where the fit puts it)."""
+    pure = first_order_model().with_element(1, 1, time_constant=0.0)
+    plant = pure.with_element(1, 1, gain=1.3 * pure.gain[1, 1])
+    report = analyze(pure, open_loop(plant, pure, 3000, seed=22, burn_in=300))
+    entry = assert_repaired_in_structure(report, pure, plant, ("y2", "u2"), "gain", tmp_path)
+    assert entry["after"]["time_constant"] == 0.0 and entry["after"]["delay"] == pure.delay[1, 1]
 
 
 def test_an_integrator_with_a_lead_whose_plant_gained_a_lag_keeps_its_lead():

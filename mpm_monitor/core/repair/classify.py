@@ -124,6 +124,18 @@ class _Located:
         """The form whose shape the ``time_constant`` test holds at the reference's: the declared one."""
         return self.declared or self.form
 
+    def held_lag(self, shape_held: bool) -> int:
+        """The input lag (samples) that holds the reference's dead time.
+
+        A pure gain (no lag, not integrating; fitted first order) acts at the lag of its dead time, a
+        first-order element with the same dead time one sample later
+        (:func:`~mpm_monitor.core.repair.forms._element_params`): with its shape held (no lag) that is
+        ``lag``, with its shape free ``lag + 1``.  Any other element: ``lag``.
+        """
+        pure_gain = (not self.missing and self.declared is None and self.form.first_order
+                     and not self.form.integrating and self.reference.get("time_constant", 0.0) <= 0)
+        return self.lag + 1 if pure_gain and not shape_held else self.lag
+
 
 @dataclasses.dataclass
 class _FreeFit:
@@ -172,7 +184,7 @@ class _FreeFit:
             lag = est.fit.lags[m]
             what = holds.get(m, set())
             if "lag" in what:
-                lag = loc.lag
+                lag = loc.held_lag("pole" in what)
             sp_new = _ElementSpec(sp.gain_free, sp.pole_free, float(est.fit.gains[m]),
                                   tuple(float(a) for a in est.fit.poles[self.problem.slices[m]]), (lag, lag),
                                   form=sp.form, lead=float(est.fit.leads[m]))
@@ -443,8 +455,11 @@ def _single_tests(free: _FreeFit, settings: _TestSettings):
             if form.n_shape:
                 t["time_constant"] = [float(chi2_tail(free.hold_statistic({m: {"pole"}}, options), form.n_shape)),
                                       _shape_changed(after, before, form, ts, options.min_relative_change)]
+            # The dead time held with the shape free; a pure gain's also at its own lag (as a gain that
+            # kept no lag, the shape then free as well): the larger p-value.
             w = free.specs[j].window
-            p_d = float(chi2_tail(_lag_lr(free.est, m, loc.lag), 1)) if w[0] <= loc.lag <= w[1] else 0.0
+            lags = [lag for lag in {loc.lag, loc.held_lag(False)} if w[0] <= lag <= w[1]]
+            p_d = max((float(chi2_tail(_lag_lr(free.est, m, lag), 1)) for lag in lags), default=0.0)
             t["delay"] = [p_d, after["delay"] != before["delay"]]
         tests[j] = _ElementTests.of(t, settings.alpha)
     return summaries, tests

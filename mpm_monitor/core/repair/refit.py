@@ -61,7 +61,8 @@ def _repair_specs(free: _FreeFit, verdicts: dict):
 
     Elements of kind "unknown" are left out (held at the model's values).  Returns the specs
     ``{j: _ElementSpec}`` and the start lags ``{j: lag}``: the free fit's lag where the delay
-    changed, the reference's elsewhere.
+    changed, the reference's dead time elsewhere (:meth:`_Located.held_lag`: a pure gain that gained
+    a lag acts one sample later at the same dead time).
     """
     est = free.est
     specs, lags0 = {}, {}
@@ -75,8 +76,9 @@ def _repair_specs(free: _FreeFit, verdicts: dict):
         free_t = (missing or "time_constant" in v.changed) and loc.form.n_shape > 0
         free_d = missing or "delay" in v.changed
         poles = tuple(float(a) for a in est.fit.poles[free.problem.slices[m]]) if free_t else loc.poles
-        form, window, lag = loc.form, free.specs[j].window if free_d else (loc.lag, loc.lag), \
-            est.fit.lags[m] if free_d else loc.lag
+        held = loc.held_lag(shape_held=not free_t)        # the reference's dead time
+        form, window, lag = loc.form, free.specs[j].window if free_d else (held, held), \
+            est.fit.lags[m] if free_d else held
         if not free_t and loc.declared is not None:     # the reference's shape held: its form, the same dead time
             shift = loc.declared.offset - loc.form.offset
             form, window, lag = loc.declared, (window[0] + shift, window[1] + shift), lag + shift
