@@ -29,6 +29,7 @@ BENCHMARKS = [
     ("bench.drift_mc", ["--seeds", "6", "--jobs", "2"], ["--seeds", "1", "--jobs", "2"]),
     ("bench.noise_free", ["--runs", "300", "--jobs", "2"], ["--runs", "20"]),
     ("bench.step_models", ["--runs", "100", "--jobs", "2"], ["--runs", "10"]),
+    ("bench.mpc_qp", [], ["--samples", "300", "--out", "bench/results/mpc_qp_quick.json"]),
     ("bench.model_load", ["--analyze", "100x40", "--out", "bench/results/model_load.json"],
      ["--sizes", "40x40", "--lengths", "120", "--repeats", "1"]),
     ("bench.model_load", ["--block", "--lengths", "120", "--out", "bench/results/model_load_block.json"],
