@@ -3,12 +3,15 @@
 Run::
 
     python -m bench.structures_mc [--runs 300] [--seed 0] [--samples 3000] [--jobs 1]
-                                  [--clean-integrating 500] [--lost-lag | --gained-lag] [--confirm-responses]
+                                  [--clean-integrating 500] [--lost-lag | --gained-lag | --pure-gains]
+                                  [--confirm-responses]
                                   [--out bench/results/structures_mc.json]
 
 (``--lost-lag``: every mismatch a second lag the model has and the plant's element lacks; its default output
 is ``bench/results/structures_mc_lost_lag.json``.  ``--gained-lag``: every mismatch a lag the plant's element
 has and the model's lacks, a pure gain or a pure integrator in the model; ``bench/results/structures_mc_gained_lag.json``.
+``--pure-gains``: the first-order input elements without a lead are pure gains in the plant and the model, every
+mismatch a gain or dead-time change of one of them; ``bench/results/structures_mc_pure_gains.json``.
 ``--confirm-responses``: the analysis's option ``confirm_responses`` on; ``bench/results/structures_mc_confirm.json``.)
 
 Every run draws a random closed loop (:func:`make_structures_scenario`; a pure function of
@@ -169,6 +172,10 @@ class StructuresOptions:
         plant's has its one lag (a pure gain, or a pure integrator: ``integrator_gained_lag``), at positions
         drawn among the inputs' elements with one lag, no second lag and no lead whose lagless form acts a
         sample after its input at the earliest.
+    pure_gains : bool
+        Those same elements (the inputs' elements with one lag, no second lag and no lead, not integrating,
+        whose lagless form acts a sample after its input at the earliest) are pure gains, in the plant and so
+        in the model (``--pure-gains``), and every mismatch is a gain or a dead-time change of one of them.
     """
 
     min_size: int = 2
@@ -193,11 +200,12 @@ class StructuresOptions:
         step_amplitude=1.0, switch_probability=0.02, min_hold=20, noise_std=0.1, noise_pole=0.9)
     lost_lag: bool = False
     gained_lag: bool = False
+    pure_gains: bool = False
 
     def __post_init__(self):
         check_count_ranges(self)
-        if self.lost_lag and self.gained_lag:
-            raise ValueError("lost_lag, gained_lag: expected at most one of them")
+        if self.lost_lag + self.gained_lag + self.pure_gains > 1:
+            raise ValueError("lost_lag, gained_lag, pure_gains: expected at most one of them")
         if len(self.structure_probabilities) != len(STRUCTURES) or abs(sum(self.structure_probabilities) - 1) > 1e-9:
             raise ValueError(f"structure_probabilities: expected {len(STRUCTURES)} probabilities summing to 1, "
                              f"got {self.structure_probabilities!r}")
@@ -302,6 +310,8 @@ def _mismatch(rng, plant: PlantModel, model: PlantModel, i: int, j: int, opts: S
                      "plant": el, "model": new.element(i, j)}
     if plant.role(j) == "disturbance":
         kinds = ["disturbance_gain"]
+    elif not el.get("time_constant") and not el.get("integrating"):     # a pure gain has no lag to change
+        kinds = ["gain", "delay"]
     else:
         kinds = ["integrator_gain" if el.get("integrating") else "gain", "time_constant", "delay"]
         if el.get("time_constant2"):
@@ -361,10 +371,15 @@ def make_structures_scenario(seed: int, index: int, options: StructuresOptions =
     if options.lost_lag:                # among the inputs' elements without a second lag in the plant
         cells = [i * nc + j for i in range(ny) for j in range(nu) if plant.time_constant2[i, j] == 0]
         positions = rng.choice(cells, size=min(k, len(cells)), replace=False) if cells else []
-    elif options.gained_lag:            # among the inputs' first-order and one-lag integrating elements
+    elif options.gained_lag or options.pure_gains:   # among the inputs' first-order and one-lag integrating elements
         cells = [i * nc + j for i in range(ny) for j in range(nu)
                  if plant.time_constant[i, j] > 0 and plant.time_constant2[i, j] == 0 and plant.lead[i, j] == 0
-                 and _strictly_proper(plant.with_element(i, j, time_constant=0.0), i, j)]
+                 and _strictly_proper(plant.with_element(i, j, time_constant=0.0), i, j)
+                 and not (options.pure_gains and plant.integrating[i, j])]
+        if options.pure_gains:          # ... which are pure gains, in the plant and the model
+            for pos in cells:
+                plant = plant.with_element(*divmod(pos, nc), time_constant=0.0)
+            model = plant
         positions = rng.choice(cells, size=min(k, len(cells)), replace=False) if cells else []
     else:
         positions = rng.choice(ny * nc, size=min(k, ny * nc), replace=False)
@@ -744,6 +759,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--gained-lag", action="store_true",
                         help="every mismatch a lag the plant's element has and the model's lacks (a pure gain or a "
                         "pure integrator in the model; default output structures_mc_gained_lag.json)")
+    parser.add_argument("--pure-gains", action="store_true",
+                        help="the first-order input elements without lead are pure gains in the plant and the model, "
+                        "every mismatch a gain or dead-time change of one (default output structures_mc_pure_gains.json)")
     parser.add_argument("--confirm-responses", action="store_true",
                         help="the analysis's confirm_responses on (default output structures_mc_confirm.json)")
     parser.add_argument("--out", type=Path, default=None, help="JSON output")
@@ -752,6 +770,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if args.out is None:
         args.out = DEFAULT_OUT.with_name("structures_mc_lost_lag.json") if args.lost_lag else \
             DEFAULT_OUT.with_name("structures_mc_gained_lag.json") if args.gained_lag else \
+            DEFAULT_OUT.with_name("structures_mc_pure_gains.json") if args.pure_gains else \
             DEFAULT_OUT.with_name("structures_mc_confirm.json") if args.confirm_responses else DEFAULT_OUT
     if args.runs < 0 or args.clean_integrating < 0 or args.samples < 100 or args.jobs < 1:
         parser.error("--runs and --clean-integrating must be >= 0, --jobs >= 1 and --samples >= 100")
@@ -771,7 +790,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         result = run_structures_mc(args.runs, args.seed, args.samples, clean_integrating=args.clean_integrating,
                                    jobs=args.jobs, options=StructuresOptions(dither_fat=not args.no_dither_fat,
                                                                              lost_lag=args.lost_lag,
-                                                                             gained_lag=args.gained_lag),
+                                                                             gained_lag=args.gained_lag,
+                                                                             pure_gains=args.pure_gains),
                                    element_window=args.element_window, noise_candidate=args.noise_candidate,
                                    confirm_responses=args.confirm_responses, progress=progress)
     except ValueError as exc:
