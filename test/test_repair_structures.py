@@ -236,6 +236,17 @@ def test_a_pure_gains_gain_change_is_still_a_gain(tmp_path):
     assert entry["after"]["time_constant"] == 0.0 and entry["after"]["delay"] == pure.delay[1, 1]
 
 
+def test_a_pure_gains_dead_time_change_of_a_sample_is_still_a_delay(tmp_path):
+    """The same pure gain, the plant's a sample later and still without a lag: a ``delay`` change.  A pure gain a
+    sample later is a first-order element with a vanishing lag at the reference's dead time: holding the later lag
+    whenever the lag was free read such changes ``mixed`` (11 of 70 in bench.structures_mc --pure-gains)."""
+    pure = first_order_model().with_element(1, 1, time_constant=0.0)
+    plant = pure.with_element(1, 1, delay=pure.delay[1, 1] + 1.0)
+    report = analyze(pure, open_loop(plant, pure, 3000, seed=23, burn_in=300))
+    entry = assert_repaired_in_structure(report, pure, plant, ("y2", "u2"), "delay", tmp_path)
+    assert entry["after"]["time_constant"] == 0.0
+
+
 def test_an_integrator_with_a_lead_whose_plant_gained_a_lag_keeps_its_lead():
     """(y2, u2) integrates with a lead of 4 s and no lag; the plant's has a lag of 6 s too.  The lag and the
     lead trade along a ridge (over seeds 16 to 18 the fit gave 5.8 to 6.7 s and 3.8 to 4.5 s), their

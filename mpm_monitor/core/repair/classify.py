@@ -130,7 +130,7 @@ class _Located:
         A pure gain (no lag, not integrating; fitted first order) acts at the lag of its dead time, a
         first-order element with the same dead time one sample later
         (:func:`~mpm_monitor.core.repair.forms._element_params`): with its shape held (no lag) that is
-        ``lag``, with its shape free ``lag + 1``.  Any other element: ``lag``.
+        ``lag``, with its shape free (the element has gained a lag) ``lag + 1``.  Any other element: ``lag``.
         """
         pure_gain = (not self.missing and self.declared is None and self.form.first_order
                      and not self.form.integrating and self.reference.get("time_constant", 0.0) <= 0)
@@ -455,11 +455,12 @@ def _single_tests(free: _FreeFit, settings: _TestSettings):
             if form.n_shape:
                 t["time_constant"] = [float(chi2_tail(free.hold_statistic({m: {"pole"}}, options), form.n_shape)),
                                       _shape_changed(after, before, form, ts, options.min_relative_change)]
-            # The dead time held with the shape free; a pure gain's also at its own lag (as a gain that
-            # kept no lag, the shape then free as well): the larger p-value.
+            # The dead time held, the shape free; a pure gain's at its own lag unless its time-constant test
+            # found a lag (then the same dead time is a sample later).
             w = free.specs[j].window
-            lags = [lag for lag in {loc.lag, loc.held_lag(False)} if w[0] <= lag <= w[1]]
-            p_d = max((float(chi2_tail(_lag_lr(free.est, m, lag), 1)) for lag in lags), default=0.0)
+            p_t, big_t = t.get("time_constant", (1.0, False))
+            lag = loc.held_lag(not (p_t < settings.alpha and big_t))
+            p_d = float(chi2_tail(_lag_lr(free.est, m, lag), 1)) if w[0] <= lag <= w[1] else 0.0
             t["delay"] = [p_d, after["delay"] != before["delay"]]
         tests[j] = _ElementTests.of(t, settings.alpha)
     return summaries, tests
