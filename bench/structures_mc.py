@@ -11,7 +11,8 @@ Run::
 is ``bench/results/structures_mc_lost_lag.json``.  ``--gained-lag``: every mismatch a lag the plant's element
 has and the model's lacks, a pure gain or a pure integrator in the model; ``bench/results/structures_mc_gained_lag.json``.
 ``--pure-gains``: the first-order input elements without a lead are pure gains in the plant and the model, every
-mismatch a gain or dead-time change of one of them; ``bench/results/structures_mc_pure_gains.json``.
+mismatch a gain or dead-time change of one of them or its lag lost (the model's has one, the plant's not);
+``bench/results/structures_mc_pure_gains.json``.
 ``--confirm-responses``: the analysis's option ``confirm_responses`` on; ``bench/results/structures_mc_confirm.json``.)
 
 Every run draws a random closed loop (:func:`make_structures_scenario`; a pure function of
@@ -106,12 +107,13 @@ from .scenarios import check_count_ranges, input_separability
 
 STRUCTURES = ("first", "second", "lead", "inverse")
 KINDS = ("gain", "integrator_gain", "time_constant", "delay", "second_lag", "lead", "disturbance_gain", "lost_lag",
-         "gained_lag", "integrator_gained_lag")
+         "gained_lag", "integrator_gained_lag", "lost_only_lag")
 #: The kind the report should give each kind of mismatch (a lag, a second lag, a lead or a lost lag is a
 #: ``time_constant`` change; an integrator's or a disturbance's gain a ``gain``).
 REPORTED_KIND = {"gain": "gain", "integrator_gain": "gain", "time_constant": "time_constant", "delay": "delay",
                  "second_lag": "time_constant", "lead": "time_constant", "disturbance_gain": "gain",
-                 "lost_lag": "time_constant", "gained_lag": "time_constant", "integrator_gained_lag": "time_constant"}
+                 "lost_lag": "time_constant", "gained_lag": "time_constant", "integrator_gained_lag": "time_constant",
+                 "lost_only_lag": "time_constant"}
 #: Samples over which a repaired element's step response is compared with the plant's.
 REPAIR_HORIZON = 300
 #: Largest difference of the step responses, as a fraction of the plant response's largest value.
@@ -175,7 +177,8 @@ class StructuresOptions:
     pure_gains : bool
         Those same elements (the inputs' elements with one lag, no second lag and no lead, not integrating,
         whose lagless form acts a sample after its input at the earliest) are pure gains, in the plant and so
-        in the model (``--pure-gains``), and every mismatch is a gain or a dead-time change of one of them.
+        in the model (``--pure-gains``), and every mismatch is a gain or a dead-time change of one of them, or a
+        lag the plant's pure gain has lost (``lost_only_lag``: the model's element has a lag).
     """
 
     min_size: int = 2
@@ -310,7 +313,13 @@ def _mismatch(rng, plant: PlantModel, model: PlantModel, i: int, j: int, opts: S
                      "plant": el, "model": new.element(i, j)}
     if plant.role(j) == "disturbance":
         kinds = ["disturbance_gain"]
-    elif not el.get("time_constant") and not el.get("integrating"):     # a pure gain has no lag to change
+    elif not el.get("time_constant") and not el.get("integrating"):     # a pure gain: the model's has a lag
+        kinds = ["gain", "delay", "lost_only_lag"]                       # or not
+        if kinds[int(rng.integers(len(kinds)))] == "lost_only_lag":
+            tau = round(float(rng.uniform(*opts.tau_range)), 1)
+            new = model.with_element(i, j, time_constant=tau)
+            return new, {"output": i, "column": j, "role": plant.role(j), "kind": "lost_only_lag", "size": 1.0,
+                         "plant": el, "model": new.element(i, j)}
         kinds = ["gain", "delay"]
     else:
         kinds = ["integrator_gain" if el.get("integrating") else "gain", "time_constant", "delay"]
@@ -437,6 +446,9 @@ def run_one(seed: int, index: int, samples: int, options: StructuresOptions = St
         data = dataclasses.replace(data, extra={NOISE_CANDIDATE: noise})
     rec = sc.describe()
     rec["simulation_time_s"] = sim_time
+    if not all(np.all(np.isfinite(a)) for a in (data.u, data.y, data.dv)):
+        rec["error"] = "the loop diverged: the log holds values that are not finite"
+        return rec
     sep = input_separability(np.column_stack([data.u, data.dv]))
     rec["separability"] = [float(x) for x in sep]
     rec["collinear_columns"] = [int(j) for j in np.flatnonzero(sep < SEPARABILITY_COLLINEAR)]
@@ -761,7 +773,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                         "pure integrator in the model; default output structures_mc_gained_lag.json)")
     parser.add_argument("--pure-gains", action="store_true",
                         help="the first-order input elements without lead are pure gains in the plant and the model, "
-                        "every mismatch a gain or dead-time change of one (default output structures_mc_pure_gains.json)")
+                        "every mismatch a gain or dead-time change of one or its lag lost (default output structures_mc_pure_gains.json)")
     parser.add_argument("--confirm-responses", action="store_true",
                         help="the analysis's confirm_responses on (default output structures_mc_confirm.json)")
     parser.add_argument("--out", type=Path, default=None, help="JSON output")

@@ -168,11 +168,12 @@ def test_a_noise_candidate_run_scores_the_model_elements_and_names_the_candidate
 
 def test_pure_gain_scenarios_mismatch_a_pure_gains_gain_or_dead_time():
     """--pure-gains: the first-order input elements without a lead are pure gains in the plant and the model;
-    every mismatch is a gain or a dead-time change of one of them, and both sides stay strictly proper."""
+    every mismatch is a gain or a dead-time change of one of them or a lag it lost (the model's element has one),
+    and both sides stay strictly proper."""
     opts = StructuresOptions(pure_gains=True)
     draws = [make_structures_scenario(0, k, opts) for k in range(40)]
     kinds = {m["kind"] for sc in draws for m in sc.mismatches}
-    assert kinds == {"gain", "delay"}
+    assert kinds == {"gain", "delay", "lost_only_lag"}
     pure = [bool(((sc.plant.time_constant == 0) & ~sc.plant.integrating).any()) for sc in draws]
     assert sum(pure) >= 30                                              # (34: some plants have no such element)
     assert sum(p and not sc.mismatches for p, sc in zip(pure, draws)) >= 5   # clean runs with pure gains
@@ -182,7 +183,8 @@ def test_pure_gain_scenarios_mismatch_a_pure_gains_gain_or_dead_time():
         assert changed == {(x["output"], x["column"]) for x in sc.mismatches}
         for x in sc.mismatches:
             i, j = x["output"], x["column"]
-            assert p.time_constant[i, j] == m.time_constant[i, j] == 0 and not p.integrating[i, j]
+            assert p.time_constant[i, j] == 0 and not p.integrating[i, j]
+            assert (m.time_constant[i, j] > 0) == (x["kind"] == "lost_only_lag")
             assert p.role(j) == "input"
         for model in (p, m):
             assert all(model.discrete_element(i, j).strictly_proper

@@ -247,6 +247,19 @@ def test_a_pure_gains_dead_time_change_of_a_sample_is_still_a_delay(tmp_path):
     assert entry["after"]["time_constant"] == 0.0
 
 
+@pytest.mark.parametrize("seed", [21, 23])
+def test_a_first_order_element_whose_plant_lost_its_lag_is_a_pure_gain_at_the_same_dead_time(tmp_path, seed):
+    """The model's (y2, u2) has a lag of 9 s and 3 s of dead time; the plant's is a pure gain at the same dead time.
+    The fit reads no lag; the delay test held the element's lag with the lag (a sample later) and the kind was
+    ``mixed`` (44 of 44 in bench.structures_mc --pure-gains).  With seed 23 the repair also wrote the vanished lag
+    as 0.12 s at the held dead time, a sample later than the lag it was fitted at."""
+    model = first_order_model()
+    plant = model.with_element(1, 1, time_constant=0.0)
+    report = analyze(model, open_loop(plant, model, 3000, seed=seed, burn_in=300))
+    entry = assert_repaired_in_structure(report, model, plant, ("y2", "u2"), "time_constant", tmp_path)
+    assert entry["after"]["time_constant"] == 0.0 and entry["after"]["delay"] == model.delay[1, 1]
+
+
 def test_an_integrator_with_a_lead_whose_plant_gained_a_lag_keeps_its_lead():
     """(y2, u2) integrates with a lead of 4 s and no lag; the plant's has a lag of 6 s too.  The lag and the
     lead trade along a ridge (over seeds 16 to 18 the fit gave 5.8 to 6.7 s and 3.8 to 4.5 s), their

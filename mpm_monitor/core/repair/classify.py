@@ -124,17 +124,33 @@ class _Located:
         """The form whose shape the ``time_constant`` test holds at the reference's: the declared one."""
         return self.declared or self.form
 
-    def held_lag(self, shape_held: bool) -> int:
+    def held_lag(self, shape_changed: bool, fitted_poles=()) -> int:
         """The input lag (samples) that holds the reference's dead time.
 
-        A pure gain (no lag, not integrating; fitted first order) acts at the lag of its dead time, a
-        first-order element with the same dead time one sample later
-        (:func:`~mpm_monitor.core.repair.forms._element_params`): with its shape held (no lag) that is
-        ``lag``, with its shape free (the element has gained a lag) ``lag + 1``.  Any other element: ``lag``.
+        In the first-order form a pure gain acts at the lag of its dead time, an element with a lag one
+        sample later (:func:`~mpm_monitor.core.repair.forms._element_params`, whose reading of a fitted
+        pole at most ``2 _POLE_MIN`` as no lag this follows).  So for an element fitted first order
+        (not integrating) the lag depends on whether it is held as a pure gain: its reference's shape
+        when that is held (``shape_changed`` False); once its shape has changed, a pure gain has gained
+        a lag, and an element with a lag is a pure gain when its fitted pole (``fitted_poles``) reads
+        as none.  Any other element: ``lag``.
         """
-        pure_gain = (not self.missing and self.declared is None and self.form.first_order
-                     and not self.form.integrating and self.reference.get("time_constant", 0.0) <= 0)
-        return self.lag + 1 if pure_gain and not shape_held else self.lag
+        if self.missing or self.declared is not None or not self.form.first_order or self.form.integrating:
+            return self.lag
+        ref_pure = self.reference.get("time_constant", 0.0) <= 0
+        dead = self.lag if ref_pure else self.lag - 1           # the dead time, in samples
+        if not shape_changed:
+            pure = ref_pure
+        else:
+            pure = self.lost_its_lag(fitted_poles)
+        return dead if pure else dead + 1
+
+    def lost_its_lag(self, fitted_poles) -> bool:
+        """Whether an element with a lag, fitted first order (not integrating), was fitted without one: its
+        fitted pole (``fitted_poles``) reads as no lag."""
+        return (not self.missing and self.declared is None and self.form.first_order and not self.form.integrating
+                and self.reference.get("time_constant", 0.0) > 0 and bool(len(fitted_poles))
+                and float(fitted_poles[0]) <= 2 * _POLE_MIN)
 
 
 @dataclasses.dataclass
@@ -184,7 +200,7 @@ class _FreeFit:
             lag = est.fit.lags[m]
             what = holds.get(m, set())
             if "lag" in what:
-                lag = loc.held_lag("pole" in what)
+                lag = loc.held_lag("pole" not in what, est.fit.poles[self.problem.slices[m]])
             sp_new = _ElementSpec(sp.gain_free, sp.pole_free, float(est.fit.gains[m]),
                                   tuple(float(a) for a in est.fit.poles[self.problem.slices[m]]), (lag, lag),
                                   form=sp.form, lead=float(est.fit.leads[m]))
@@ -455,11 +471,11 @@ def _single_tests(free: _FreeFit, settings: _TestSettings):
             if form.n_shape:
                 t["time_constant"] = [float(chi2_tail(free.hold_statistic({m: {"pole"}}, options), form.n_shape)),
                                       _shape_changed(after, before, form, ts, options.min_relative_change)]
-            # The dead time held, the shape free; a pure gain's at its own lag unless its time-constant test
-            # found a lag (then the same dead time is a sample later).
+            # The dead time held, the shape free: a sample later for a pure gain whose time-constant test
+            # found a lag, a sample earlier for a lag whose fit reads as none (:meth:`_Located.held_lag`).
             w = free.specs[j].window
             p_t, big_t = t.get("time_constant", (1.0, False))
-            lag = loc.held_lag(not (p_t < settings.alpha and big_t))
+            lag = loc.held_lag(p_t < settings.alpha and big_t, free.est.fit.poles[free.problem.slices[m]])
             p_d = float(chi2_tail(_lag_lr(free.est, m, lag), 1)) if w[0] <= lag <= w[1] else 0.0
             t["delay"] = [p_d, after["delay"] != before["delay"]]
         tests[j] = _ElementTests.of(t, settings.alpha)

@@ -16,7 +16,7 @@ from typing import Optional
 
 from .classify import _FreeFit
 from .fit import _ElementSpec, _RowEstimate, _RowProblem
-from .forms import _input_lag, _poles_of
+from .forms import _POLE_MIN, _input_lag, _poles_of
 from .options import _TestSettings
 from .result import ElementVerdict
 from .row import _element_after, _element_summary, _estimate_row, _RowData
@@ -37,9 +37,10 @@ def _compose(fitted: dict, held: dict, spec: _ElementSpec, held_lag_too: bool = 
              fewer_lags: bool = False) -> dict:
     """The element after a fit of ``spec``: the free parameters from ``fitted``, the others from ``held``.
 
-    A first-order element whose lag vanished in the fit (time constant 0) with its delay held takes
-    the fitted delay: the sample of the lag moves into the delay (``held_lag_too``: also when the
-    lag was held at 0, where the fitted delay is the held one).  So does an element fitted with one lag
+    A first-order element held without a lag (its pole at the bound) is a pure gain.  One whose pole was
+    fitted with its delay held takes the fitted delay, read from the lag and the pole together: where the
+    lag vanished (time constant 0) the sample of the lag moves into the delay (``held_lag_too``: also
+    when the pole was held, where the fitted delay is the held one).  So does an element fitted with one lag
     fewer than ``held`` has (``fewer_lags``, :func:`~mpm_monitor.core.repair.classify._reduce_vanished_lags`):
     its fitted dead time is measured in its own form.
     """
@@ -50,7 +51,11 @@ def _compose(fitted: dict, held: dict, spec: _ElementSpec, held_lag_too: bool = 
     if spec.pole_free:
         for key in _SHAPE_KEYS:
             out[key] = float(fitted[key])
-    vanished = spec.form.first_order and (spec.pole_free or held_lag_too) and fitted["time_constant"] == 0.0
+    elif spec.form.first_order and spec.poles and spec.poles[0] <= 2 * _POLE_MIN:
+        out["time_constant"] = 0.0          # held as a pure gain (an element that lost its lag)
+    # A first-order element's dead time is read from its lag and pole together (a pole at the bound reads as no
+    # lag, the dead time one sample longer): with the pole fitted, the delay is the fit's reading.
+    vanished = spec.form.first_order and (spec.pole_free or held_lag_too)
     if spec.lag_free or vanished or fewer_lags:
         out["delay"] = float(fitted["delay"])
     return out
@@ -61,8 +66,8 @@ def _repair_specs(free: _FreeFit, verdicts: dict):
 
     Elements of kind "unknown" are left out (held at the model's values).  Returns the specs
     ``{j: _ElementSpec}`` and the start lags ``{j: lag}``: the free fit's lag where the delay
-    changed, the reference's dead time elsewhere (:meth:`_Located.held_lag`: a pure gain that gained
-    a lag acts one sample later at the same dead time).
+    changed, the reference's dead time elsewhere (:meth:`_Located.held_lag`: in the first-order form
+    an element with a lag acts one sample after a pure gain of the same dead time).
     """
     est = free.est
     specs, lags0 = {}, {}
@@ -75,8 +80,11 @@ def _repair_specs(free: _FreeFit, verdicts: dict):
         free_k = missing or "gain" in v.changed
         free_t = (missing or "time_constant" in v.changed) and loc.form.n_shape > 0
         free_d = missing or "delay" in v.changed
-        poles = tuple(float(a) for a in est.fit.poles[free.problem.slices[m]]) if free_t else loc.poles
-        held = loc.held_lag(shape_held=not free_t)        # the reference's dead time
+        fitted_poles = est.fit.poles[free.problem.slices[m]]
+        poles = tuple(float(a) for a in fitted_poles) if free_t else loc.poles
+        held = loc.held_lag(free_t, fitted_poles)          # the reference's dead time
+        if free_t and loc.lost_its_lag(fitted_poles):
+            free_t, poles = False, (_POLE_MIN,)             # a pure gain now: fitted as one, at that dead time
         form, window, lag = loc.form, free.specs[j].window if free_d else (held, held), \
             est.fit.lags[m] if free_d else held
         if not free_t and loc.declared is not None:     # the reference's shape held: its form, the same dead time
