@@ -34,6 +34,7 @@ from .forms import (
     _pole_of,
     _poles_of,
     _public_params,
+    _reads_no_lag,
     _step_ladder,
     _step_reference,
     _tau_of,
@@ -124,33 +125,35 @@ class _Located:
         """The form whose shape the ``time_constant`` test holds at the reference's: the declared one."""
         return self.declared or self.form
 
+    @property
+    def plain_first_order(self) -> bool:
+        """Fitted in the first-order form (a lag or none, not integrating), as declared: the form in which a
+        pure gain and an element with a lag read their dead time from the input lag differently
+        (:func:`~mpm_monitor.core.repair.forms._reads_no_lag`)."""
+        return not self.missing and self.declared is None and self.form.first_order and not self.form.integrating
+
     def held_lag(self, shape_changed: bool, fitted_poles=()) -> int:
         """The input lag (samples) that holds the reference's dead time.
 
         In the first-order form a pure gain acts at the lag of its dead time, an element with a lag one
-        sample later (:func:`~mpm_monitor.core.repair.forms._element_params`, whose reading of a fitted
-        pole at most ``2 _POLE_MIN`` as no lag this follows).  So for an element fitted first order
-        (not integrating) the lag depends on whether it is held as a pure gain: its reference's shape
-        when that is held (``shape_changed`` False); once its shape has changed, a pure gain has gained
-        a lag, and an element with a lag is a pure gain when its fitted pole (``fitted_poles``) reads
-        as none.  Any other element: ``lag``.
+        sample later (:func:`~mpm_monitor.core.repair.forms._reads_no_lag`).  So for a
+        :attr:`plain_first_order` element the lag depends on whether it is held as a pure gain: its
+        reference's shape when that is held (``shape_changed`` False); once its shape has changed, a pure
+        gain has gained a lag, and an element with a lag is a pure gain when its fitted pole
+        (``fitted_poles``) reads as none (:meth:`lost_its_lag`).  Any other element: ``lag``.
         """
-        if self.missing or self.declared is not None or not self.form.first_order or self.form.integrating:
+        if not self.plain_first_order:
             return self.lag
         ref_pure = self.reference.get("time_constant", 0.0) <= 0
         dead = self.lag if ref_pure else self.lag - 1           # the dead time, in samples
-        if not shape_changed:
-            pure = ref_pure
-        else:
-            pure = self.lost_its_lag(fitted_poles)
+        pure = self.lost_its_lag(fitted_poles) if shape_changed else ref_pure
         return dead if pure else dead + 1
 
     def lost_its_lag(self, fitted_poles) -> bool:
-        """Whether an element with a lag, fitted first order (not integrating), was fitted without one: its
-        fitted pole (``fitted_poles``) reads as no lag."""
-        return (not self.missing and self.declared is None and self.form.first_order and not self.form.integrating
-                and self.reference.get("time_constant", 0.0) > 0 and bool(len(fitted_poles))
-                and float(fitted_poles[0]) <= 2 * _POLE_MIN)
+        """Whether a :attr:`plain_first_order` element with a lag was fitted without one: its fitted pole
+        (``fitted_poles``) reads as no lag."""
+        return (self.plain_first_order and self.reference.get("time_constant", 0.0) > 0 and bool(len(fitted_poles))
+                and _reads_no_lag(float(fitted_poles[0])))
 
 
 @dataclasses.dataclass

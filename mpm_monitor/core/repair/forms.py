@@ -204,9 +204,17 @@ def _basis(form: _Form, poles, ts: float):
     return num_a[form.offset:], num_b[form.offset:], den
 
 
+def _reads_no_lag(pole: float) -> bool:
+    """Whether a first-order element's discrete pole reads as no lag (at most ``2 _POLE_MIN``, a lag under
+    ``T / 8.5``): the element is then a pure gain, its dead time its input lag, one sample longer than
+    an element with a lag at the same input lag."""
+    return pole <= 2 * _POLE_MIN
+
+
 def _element_params(gain: float, pole: float, lag: int, ts: float):
-    """(gain, time constant in s, delay in s) of a fitted first-order element; a vanishing pole means no lag."""
-    if pole <= 2 * _POLE_MIN:
+    """(gain, time constant in s, delay in s) of a fitted first-order element; a vanishing pole means no lag
+    (:func:`_reads_no_lag`)."""
+    if _reads_no_lag(pole):
         return float(gain), 0.0, float(lag) * ts
     return float(gain), float(-ts / math.log(pole)), float(max(lag - 1, 0)) * ts
 

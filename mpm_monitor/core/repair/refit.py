@@ -16,7 +16,7 @@ from typing import Optional
 
 from .classify import _FreeFit
 from .fit import _ElementSpec, _RowEstimate, _RowProblem
-from .forms import _POLE_MIN, _input_lag, _poles_of
+from .forms import _POLE_MIN, _input_lag, _poles_of, _reads_no_lag
 from .options import _TestSettings
 from .result import ElementVerdict
 from .row import _element_after, _element_summary, _estimate_row, _RowData
@@ -51,7 +51,7 @@ def _compose(fitted: dict, held: dict, spec: _ElementSpec, held_lag_too: bool = 
     if spec.pole_free:
         for key in _SHAPE_KEYS:
             out[key] = float(fitted[key])
-    elif spec.form.first_order and spec.poles and spec.poles[0] <= 2 * _POLE_MIN:
+    elif spec.form.first_order and spec.poles and _reads_no_lag(spec.poles[0]):
         out["time_constant"] = 0.0          # held as a pure gain (an element that lost its lag)
     # A first-order element's dead time is read from its lag and pole together (a pole at the bound reads as no
     # lag, the dead time one sample longer): with the pole fitted, the delay is the fit's reading.
