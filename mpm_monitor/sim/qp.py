@@ -116,7 +116,7 @@ class ActiveSetQp:
         x_unc = -sla.cho_solve(self._chol, np.asarray(q, dtype=float), check_finite=False)
         c_unc = self.A @ x_unc
 
-        work, upper, lam = self._dual_feasible_start(guess, guess_upper, c_unc, lo, hi)
+        work, upper, lam, chol = self._dual_feasible_start(guess, guess_upper, c_unc, lo, hi)
         k = work.size
         W = np.empty(n, dtype=int)                 # the working set, rows of A
         S = np.empty(n)                            # +1 held at hi, -1 at lo
@@ -127,7 +127,7 @@ class ActiveSetQp:
         in_work[work] = True
         c = c_unc.copy()                           # A x
         if k:
-            L[:k, :k] = np.linalg.cholesky(G[np.ix_(work, work)])
+            L[:k, :k] = chol
             c -= G[:, work] @ lam
         it = 0
         while True:
@@ -195,8 +195,9 @@ class ActiveSetQp:
         return QpSolution(x=x, active=work, upper=up, multipliers=np.where(up, lam, -lam), iterations=it)
 
     def _dual_feasible_start(self, guess, guess_upper, c_unc, lo, hi):
-        """The guessed rows that start the working set (rows, at hi, multipliers ``lambda``)."""
-        none = (np.zeros(0, dtype=int), np.zeros(0, dtype=bool), np.zeros(0))
+        """The guessed rows that start the working set: (rows, at hi, multipliers ``lambda``, the Cholesky
+        factor of ``G`` on them)."""
+        none = (np.zeros(0, dtype=int), np.zeros(0, dtype=bool), np.zeros(0), None)
         if guess is None or not len(guess):
             return none
         work = np.asarray(guess, dtype=int)
@@ -217,6 +218,6 @@ class ActiveSetQp:
                                 check_finite=False)
             signed = np.where(upper, lam, -lam)
             if np.all(signed >= 0):
-                return work, upper, lam
+                return work, upper, lam, chol
             work, upper = work[signed >= 0], upper[signed >= 0]
         return none
