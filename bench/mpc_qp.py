@@ -44,9 +44,7 @@ class _Compared:
         import osqp
         import scipy.sparse as sp
 
-        nu, hc = ctrl.model.n_inputs, ctrl.options.control_horizon
-        self.nu, self.hc, self.H = nu, hc, ctrl._H
-        self.A = np.vstack([ctrl._Mc, np.eye(nu * hc)])
+        self.nu, self.H, self.A = ctrl.model.n_inputs, ctrl._H, ctrl.qp_rows
         self.solver = osqp.OSQP()
         self.setup = lambda q, lo, hi: self.solver.setup(
             sp.csc_matrix(np.triu(self.H)), q, sp.csc_matrix(self.A), lo, hi, verbose=False,
@@ -81,11 +79,7 @@ def run(samples: int = 3000, seed: int = 21, clock=time.perf_counter) -> dict:
         du = own(ctrl, eps, x, u_prev, dv)
         t_own = clock() - t0
         other = compared.setdefault(id(ctrl), _Compared(ctrl))
-        du_unc = ctrl.unconstrained_moves(eps, x, u_prev, dv)
-        q = -ctrl._H @ du_unc
-        hc = ctrl.options.control_horizon
-        lo = np.concatenate([np.tile(ctrl.u_min - u_prev, hc), -np.tile(ctrl.du_max, hc)])
-        hi = np.concatenate([np.tile(ctrl.u_max - u_prev, hc), np.tile(ctrl.du_max, hc)])
+        q, lo, hi, _ = ctrl.qp_problem(eps, x, u_prev, dv)
         t0 = clock()
         du_osqp = other.solve(q, lo, hi)
         t_osqp = clock() - t0

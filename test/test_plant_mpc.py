@@ -390,15 +390,8 @@ def test_qp_with_input_and_move_bounds_equals_osqp(u_prev):
     path = _moves_to_path(du, u_prev, 3)
     assert np.all(np.abs(path) <= 0.3 + 1e-12) and np.all(np.abs(du) <= 0.2 + 1e-12)
     assert np.sum(np.isclose(np.abs(path), 0.3)) + np.sum(np.isclose(np.abs(du), 0.2)) >= 3
-    ref = ctrl._solve_qp_osqp(-ctrl._H @ du_unc, *_qp_bounds(ctrl, u_prev), du_unc)
+    ref = ctrl._solve_qp_osqp(*ctrl.qp_problem(eps, x, u_prev))
     np.testing.assert_allclose(du, ref, rtol=0, atol=1e-7)
-
-
-def _qp_bounds(ctrl, u_prev):
-    hc = ctrl.options.control_horizon
-    lo = np.concatenate([np.tile(ctrl.u_min - u_prev, hc), -np.tile(ctrl.du_max, hc)])
-    hi = np.concatenate([np.tile(ctrl.u_max - u_prev, hc), np.tile(ctrl.du_max, hc)])
-    return lo, hi
 
 
 # --------------------------------------------------------------------------- refusals

@@ -370,13 +370,10 @@ class InternalModelMpc:
         """
         from .qp import ActiveSetQp
 
-        du_unc = self.unconstrained_moves(eps, x, u_prev, dv)
-        q = -self._H @ du_unc  # J = 1/2 dU' H dU + q' dU up to a constant
+        q, lo, hi, du_unc = self.qp_problem(eps, x, u_prev, dv)
         nu, hc = self._nu, self._hc
-        lo = np.concatenate([np.tile(self.u_min, hc) - np.tile(u_prev, hc), -np.tile(self.du_max, hc)])
-        hi = np.concatenate([np.tile(self.u_max, hc) - np.tile(u_prev, hc), np.tile(self.du_max, hc)])
         if self._qp is None:
-            self._qp = ActiveSetQp(self._H, np.vstack([self._Mc, np.eye(nu * hc)]))
+            self._qp = ActiveSetQp(self._H, self.qp_rows)
         self.qp_solves += 1
         guess = upper = None
         if self._last_active is not None:
@@ -391,17 +388,42 @@ class InternalModelMpc:
         self._last_active = None
         return self._solve_qp_osqp(q, lo, hi, du_unc)
 
+    def qp_problem(self, eps: np.ndarray, x: np.ndarray, u_prev: np.ndarray, dv: Optional[np.ndarray] = None):
+        """The bounded QP of one sample (arguments as :meth:`unconstrained_moves`): minimise
+        ``1/2 dU' H dU + q' dU`` subject to ``lo <= R dU <= hi``, ``R`` the rows :attr:`qp_rows`.
+
+        Returns
+        -------
+        q : ndarray, shape (Hc * n_inputs,)
+            The linear term, ``-H dU_unc`` (the cost up to a constant).
+        lo, hi : ndarray, shape (2 Hc * n_inputs,)
+            The bounds of the input path's change from ``u_prev`` (``u_min - u_prev``, ``u_max - u_prev``),
+            then of the moves (``-du_max``, ``du_max``); infinite where there is none.
+        du_unc : ndarray, shape (Hc * n_inputs,)
+            The unconstrained moves ``dU_unc``.
+        """
+        du_unc = self.unconstrained_moves(eps, x, u_prev, dv)
+        hc = self._hc
+        lo = np.concatenate([np.tile(self.u_min, hc) - np.tile(u_prev, hc), -np.tile(self.du_max, hc)])
+        hi = np.concatenate([np.tile(self.u_max, hc) - np.tile(u_prev, hc), np.tile(self.du_max, hc)])
+        return -self._H @ du_unc, lo, hi, du_unc
+
+    @property
+    def qp_rows(self) -> np.ndarray:
+        """The QP's constraint rows ``R``, shape (2 Hc * n_inputs, Hc * n_inputs): the input path's change
+        ``u(k+t) - u_prev`` (cumulative moves), then the moves ``du(k+t)``; t = 0..Hc-1, input fastest."""
+        return np.vstack([self._Mc, np.eye(self._nu * self._hc)])
+
     def _solve_qp_osqp(self, q: np.ndarray, lo: np.ndarray, hi: np.ndarray, du_unc: np.ndarray) -> np.ndarray:
         """The same QP by OSQP (tolerance ``qp_tolerance``, polished); ``du_unc`` when it fails."""
         import osqp
         import scipy.sparse as sp
 
-        nu, hc = self._nu, self._hc
         lo = np.where(np.isfinite(lo), lo, -np.inf)
         hi = np.where(np.isfinite(hi), hi, np.inf)
         qp = osqp.OSQP()
         tol = self.options.qp_tolerance
-        qp.setup(sp.csc_matrix(np.triu(self._H)), q, sp.csc_matrix(np.vstack([self._Mc, np.eye(nu * hc)])),
+        qp.setup(sp.csc_matrix(np.triu(self._H)), q, sp.csc_matrix(self.qp_rows),
                  lo, hi, verbose=False, eps_abs=tol, eps_rel=tol, polishing=True, max_iter=20000)
         res = qp.solve(raise_error=False)
         if res.x is None or res.info.status not in ("solved", "solved inaccurate") or not np.all(np.isfinite(res.x)):
