@@ -20,7 +20,7 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", sorted(glob("config/*.yaml"))),
     ],
-    install_requires=["setuptools", "numpy", "scipy", "PyYAML", "osqp"],
+    install_requires=["setuptools", "numpy", "scipy", "PyYAML"],
     zip_safe=True,
     maintainer="mpm_monitor developers",
     maintainer_email="mpm-monitor@example.com",

@@ -25,7 +25,7 @@ PYTHON_KEYS = {"numpy": "python3-numpy", "scipy": "python3-scipy", "yaml": "pyth
                "colcon_core": "python3-colcon-common-extensions"}
 #: Keys of packages used without an import (pytest plugins).
 OTHER_KEYS = {"python3-pytest-timeout"}
-#: Imported, but with no rosdep key: installed with pip (README, "Use in a ROS 2 workspace").
+#: Imported by the tests only, with no rosdep key: installed with pip (README, "Use in a ROS 2 workspace").
 PIP_ONLY = {"osqp"}
 #: The repository's own modules that the tests import: the benchmarks, and the test folder's modules
 #: (helpers such as report_checks, and test modules whose simulations other tests reuse).
@@ -58,9 +58,18 @@ def test_every_dependency_is_a_checked_key():
     assert dependencies("depend", "exec_depend", "test_depend", "build_depend", "buildtool_depend") <= checked
 
 
-def test_every_import_of_the_package_is_an_exec_dependency_or_the_pip_step():
-    modules = imported_modules((ROOT / "mpm_monitor").rglob("*.py")) - PIP_ONLY
+def test_every_import_of_the_package_is_an_exec_dependency():
+    modules = imported_modules((ROOT / "mpm_monitor").rglob("*.py"))
     assert {m: key_of(m) for m in modules if key_of(m) not in dependencies("depend", "exec_depend")} == {}
+
+
+def test_the_package_installs_only_what_package_xml_declares():
+    # setup.py's install_requires (pip's view of the package) holds no module without a rosdep key.
+    tree = ast.parse((ROOT / "setup.py").read_text(encoding="utf-8"))
+    requires = next(kw.value for node in ast.walk(tree) if isinstance(node, ast.Call)
+                    for kw in node.keywords if kw.arg == "install_requires")
+    names = {ast.literal_eval(e).lower() for e in requires.elts}
+    assert not names & PIP_ONLY, names
 
 
 def test_every_import_of_the_tests_is_a_dependency_or_the_pip_step():

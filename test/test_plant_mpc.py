@@ -24,11 +24,9 @@ from mpm_monitor.sim.excitation import PrbsGenerator, PrbsOptions
 from mpm_monitor.sim.mpc import InternalModelMpc, MpcOptions
 from mpm_monitor.sim.plant import DisturbanceOptions, PlantSimulator
 
-# osqp 1.x warns on every solve() that the default of raise_error will change; not what is tested here.
-pytestmark = pytest.mark.filterwarnings("ignore:The default value of raise_error:PendingDeprecationWarning")
 
 NOISE_FREE = DisturbanceOptions(0.0, 0.95, 0.0)
-SMALL_MPC = dict(prediction_horizon=40, control_horizon=10)  # keeps the bounded (OSQP) runs fast
+SMALL_MPC = dict(prediction_horizon=40, control_horizon=10)  # keeps the bounded runs fast
 
 
 def _random_plant(seed=5):
@@ -386,12 +384,59 @@ def test_qp_with_input_and_move_bounds_equals_osqp(u_prev):
     du_unc = ctrl.unconstrained_moves(eps, x, u_prev)
     if u_prev[0] > 0.3 + 0.2:
         np.testing.assert_array_equal(du, du_unc)
+        assert ctrl.qp_fallbacks == 1
         return
+    assert ctrl.qp_fallbacks == 0
     path = _moves_to_path(du, u_prev, 3)
     assert np.all(np.abs(path) <= 0.3 + 1e-12) and np.all(np.abs(du) <= 0.2 + 1e-12)
     assert np.sum(np.isclose(np.abs(path), 0.3)) + np.sum(np.isclose(np.abs(du), 0.2)) >= 3
-    ref = ctrl._solve_qp_osqp(*ctrl.qp_problem(eps, x, u_prev))
+    ref = _osqp_moves(ctrl, *ctrl.qp_problem(eps, x, u_prev)[:3])
     np.testing.assert_allclose(du, ref, rtol=0, atol=1e-7)
+
+
+def _osqp_moves(ctrl, q, lo, hi):
+    """The bounded QP of ``ctrl`` solved by OSQP (an independent solver, tests only) at 1e-12, polished."""
+    import osqp
+    import scipy.sparse as sp
+
+    solver = osqp.OSQP()
+    solver.setup(sp.csc_matrix(np.triu(ctrl._H)), q, sp.csc_matrix(ctrl.qp_rows), lo, hi, verbose=False,
+                 eps_abs=1e-12, eps_rel=1e-12, polishing=True, max_iter=200000)
+    res = solver.solve(raise_error=True)
+    assert res.info.status == "solved"
+    return res.x
+
+
+def test_a_guessed_start_that_reaches_the_iteration_limit_starts_again_from_the_free_minimum(monkeypatch):
+    # The warm start's guess changes the work, not the answer: a guessed solve made to fail at its
+    # iteration limit is solved again without the guess, to the same moves, and is not a fallback.
+    from mpm_monitor.sim.qp import ActiveSetQp
+
+    plant = shell_plant()
+    opts = MpcOptions(**SMALL_MPC, u_min=-0.3, u_max=0.3, du_max=0.05)
+    r = PrbsGenerator(3, PrbsOptions(amplitude=1.0, switch_probability=0.1),
+                      np.random.default_rng(4)).generate(120)
+    y = np.zeros(3)
+
+    def moves(ctrl):
+        return np.array([ctrl.step(r[k], y) for k in range(120)])
+
+    reference = InternalModelMpc(plant, opts)
+    u_ref = moves(reference)
+    assert reference.qp_solves > 20 and reference.qp_fallbacks == 0
+    solve = ActiveSetQp.solve
+    guessed = []
+
+    def failing_guess(self, q, lo, hi, guess=None, guess_upper=None, max_iter=None, tolerance=1e-9):
+        if guess is not None:
+            guessed.append(True)
+            return solve(self, q, lo, hi, guess, guess_upper, max_iter=0, tolerance=tolerance)
+        return solve(self, q, lo, hi, max_iter=max_iter, tolerance=tolerance)
+
+    monkeypatch.setattr(ActiveSetQp, "solve", failing_guess)
+    ctrl = InternalModelMpc(plant, opts)
+    np.testing.assert_allclose(moves(ctrl), u_ref, rtol=0, atol=1e-12)
+    assert len(guessed) > 10 and ctrl.qp_fallbacks == 0
 
 
 # --------------------------------------------------------------------------- refusals
@@ -438,16 +483,23 @@ def test_mpc_configuration_refused(kw, pattern):
         InternalModelMpc(shell_plant(), MpcOptions(**SMALL_MPC, **kw))
 
 
-def test_bounds_without_osqp_are_refused_at_construction(monkeypatch):
-    """osqp is installed by a pip step in a ROS workspace (no rosdep key): without it, an MPC with
-    bounds stops at start-up with one line naming the bounds and the missing solver, not at the
-    first active bound; without bounds it is not needed."""
+def test_bounds_need_no_qp_package(monkeypatch):
+    """The bounded MPC solves its QP with numpy and scipy alone: with osqp impossible to import it is
+    built, meets its bounds and moves exactly as it does otherwise."""
     import sys
 
-    monkeypatch.setitem(sys.modules, "osqp", None)  # import osqp fails, find_spec gives None
-    with pytest.raises(ConfigurationError, match=r"^u_min, u_max, du_max: bounds need the QP solver osqp"):
-        InternalModelMpc(shell_plant(), MpcOptions(**SMALL_MPC, du_max=0.05))
-    InternalModelMpc(shell_plant(), MpcOptions(**SMALL_MPC))
+    plant = shell_plant()
+    opts = MpcOptions(**SMALL_MPC, u_min=-0.3, u_max=0.3, du_max=0.05)
+    r = PrbsGenerator(3, PrbsOptions(amplitude=1.0, switch_probability=0.1),
+                      np.random.default_rng(2)).generate(100)
+    reference = InternalModelMpc(plant, opts)
+    u_ref = np.array([reference.step(r[k], np.zeros(3)) for k in range(100)])
+    monkeypatch.setitem(sys.modules, "osqp", None)  # import osqp fails
+    ctrl = InternalModelMpc(plant, opts)
+    u = np.array([ctrl.step(r[k], np.zeros(3)) for k in range(100)])
+    assert ctrl.qp_solves > 10 and ctrl.qp_fallbacks == 0
+    np.testing.assert_array_equal(u, u_ref)
+    assert np.all(np.abs(u) <= 0.3) and np.all(np.abs(np.diff(u, axis=0)) <= 0.05 + 1e-12)
 
 
 # --------------------------------------------------------------------------- large models

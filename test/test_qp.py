@@ -133,7 +133,33 @@ def test_bounds_that_cannot_be_met_give_none():
     A = np.array([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
     lo = np.array([-np.inf, 1.0, -1.0])
     hi = np.array([0.0, np.inf, 1.0])                   # x1 <= 0 and x1 >= 1
-    assert ActiveSetQp(H, A).solve(np.zeros(2), lo, hi) is None
+    qp = ActiveSetQp(H, A)
+    assert qp.solve(np.zeros(2), lo, hi) is None
+    assert qp.last_failure == "infeasible"
+
+
+def test_the_iteration_limit_gives_none_and_says_so():
+    rng = np.random.default_rng(7)
+    H, q, A, lo, hi = _mpc_like(rng)
+    qp = ActiveSetQp(H, A)
+    full = qp.solve(q, lo, hi)
+    assert full.iterations >= 5 and qp.last_failure is None
+    assert qp.solve(q, lo, hi, max_iter=full.iterations - 1) is None
+    assert qp.last_failure == "iteration_limit"
+    again = qp.solve(q, lo, hi, max_iter=full.iterations)     # a solve after a failure starts afresh
+    assert qp.last_failure is None
+    np.testing.assert_array_equal(again.x, full.x)
+
+
+def test_the_tolerance_is_how_far_a_bound_may_be_exceeded():
+    # The free minimum x = 1 exceeds the bound x <= 1 - 1e-7 by 1e-7 (relative to 1 + |x|: 5e-8).
+    H, A = np.eye(1), np.eye(1)
+    q, lo, hi = np.array([-1.0]), np.array([-np.inf]), np.array([1.0 - 1e-7])
+    qp = ActiveSetQp(H, A)
+    loose = qp.solve(q, lo, hi, tolerance=1e-7)
+    assert loose.active.size == 0 and loose.x[0] == 1.0
+    tight = qp.solve(q, lo, hi, tolerance=1e-9)
+    assert tight.active.tolist() == [0] and tight.x[0] == 1.0 - 1e-7
 
 
 def test_an_equality_row_may_hold_either_sign():

@@ -25,7 +25,6 @@ from mpm_monitor.sim.excitation import MeasuredDisturbanceGenerator, MeasuredDis
 from mpm_monitor.sim.mpc import MpcOptions
 from mpm_monitor.sim.plant import DisturbanceOptions, PlantSimulator
 
-pytestmark = pytest.mark.filterwarnings("ignore:The default value of raise_error:PendingDeprecationWarning")
 
 NOISE_FREE = DisturbanceOptions(0.0, 0.95, 0.0)
 SMALL_MPC = dict(prediction_horizon=40, control_horizon=10)
@@ -83,7 +82,7 @@ def test_plant_with_disturbances_wants_dv():
 
 
 @pytest.mark.parametrize("name", MODEL_IDS + ["level"])
-@pytest.mark.parametrize("bounded", [False, True], ids=["closed-form", "osqp"])
+@pytest.mark.parametrize("bounded", [False, True], ids=["closed-form", "bounded"])
 def test_prediction_error_is_disturbance_plus_noise_for_every_structure_with_dv(name, bounded):
     # Phat = P with measured disturbances: the internal model, driven by u and dv, follows the plant
     # exactly, so d = y - yhat = v + n (1e-9) whatever the loop does; bounds hold.
@@ -142,7 +141,7 @@ def _step_disturbance_run(controller_model, n=600, bounds=None):
     return run_closed_loop(plant, controller_model, n, mpc=mpc, disturbance=NOISE_FREE, setpoints=r, dv=dv)
 
 
-@pytest.mark.parametrize("bounds", [None, dict(u_min=-3.0, u_max=3.0, du_max=0.5)], ids=["closed-form", "osqp"])
+@pytest.mark.parametrize("bounds", [None, dict(u_min=-3.0, u_max=3.0, du_max=0.5)], ids=["closed-form", "bounded"])
 def test_feedforward_rejects_a_measured_step_better_than_feedback_alone(bounds):
     # The inflow steps by 1 at sample 100.  With its column in the controller's model (feedforward)
     # the outflow and the steam move as soon as the step is measured; without it (the same model

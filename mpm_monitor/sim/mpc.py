@@ -16,7 +16,7 @@ outputs like the free response, so the moves counteract a measured disturbance b
 ``y`` (feedforward); only the inputs are moved.  Without bounds the optimum is the closed form
 ``dU = H^{-1} (G' Q e0 - M' R g0)``; with bounds on ``u`` and ``du`` the QP is solved exactly by the
 dual active-set method of :mod:`mpm_monitor.sim.qp`, started from the previous sample's held bounds
-(OSQP, Stellato et al., 2020, is the fallback when that method cannot finish).
+(numpy and scipy only: no QP package is needed).
 
 Every element structure of the model is controlled through its exact state space
 (:func:`mpm_monitor.core.discretize.state_space`), integrating outputs included: their predicted
@@ -36,7 +36,6 @@ forward at each sample.  The two agree to rounding (test_plant_mpc).
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 from typing import Optional, Sequence, Union
 
 import numpy as np
@@ -69,8 +68,8 @@ class MpcOptions:
     du_max : float, sequence of float or None
         Bound on ``|du|`` per sample; None = unbounded.
     qp_tolerance : float
-        Absolute and relative tolerance of the fallback QP solver (OSQP), used only when the exact
-        active-set solver cannot finish: bounds no move path can meet, or its iteration limit.
+        How far a bound may be exceeded, relative to ``1 + |value|`` (no unit), before the QP's
+        active-set solver holds it: its feasibility tolerance (the QP is otherwise solved exactly).
     """
 
     prediction_horizon: int = 100
@@ -157,9 +156,6 @@ class InternalModelMpc:
             raise ConfigurationError("u_min, u_max: expected u_min <= u_max for every input")
         if np.any(self.du_max <= 0):
             raise ConfigurationError("du_max: expected positive numbers")
-        if options.constrained and importlib.util.find_spec("osqp") is None:
-            raise ConfigurationError("u_min, u_max, du_max: bounds need the QP solver osqp, which is not installed "
-                                     "(pip install osqp; it has no rosdep key)")
         self.structured = self._ss.n_states > DENSE_STATE_LIMIT if structured is None else bool(structured)
         if self.structured:
             self._build_structured()
@@ -343,6 +339,7 @@ class InternalModelMpc:
         self.prediction_error = np.zeros(ny)
         self.controller_input = np.zeros(ny)
         self.qp_solves = 0
+        self.qp_fallbacks = 0
 
     # ------------------------------------------------------------------ control law
     def unconstrained_moves(self, eps: np.ndarray, x: np.ndarray, u_prev: np.ndarray,
@@ -363,10 +360,12 @@ class InternalModelMpc:
         :meth:`unconstrained_moves`).
 
         Solved exactly by the dual active-set method of :mod:`mpm_monitor.sim.qp`, its working set
-        guessed from the bounds held at the previous sample, shifted by one move.  Should it not
-        finish (bounds that no move path meets, or its iteration limit), OSQP at ``qp_tolerance``
-        solves it; when that fails too, the unconstrained moves are returned (and :meth:`step` clips
-        them).
+        guessed from the bounds held at the previous sample, shifted by one move; should the guessed
+        start reach the method's iteration limit, it starts again from the unconstrained minimum.
+        When the bounds cannot all be met (an input that starts outside its range further than
+        ``du_max`` can bring it back over the horizon), or the limit is reached from that start too,
+        the unconstrained moves are returned, :meth:`step` clips them, and :attr:`qp_fallbacks`
+        counts it.
         """
         from .qp import ActiveSetQp
 
@@ -381,12 +380,16 @@ class InternalModelMpc:
             move = rows % (hc * nu) // nu        # rows: u(k+t) then du(k+t), t = 0..Hc-1, input fastest
             keep = move >= 1
             guess, upper = rows[keep] - nu, upper[keep]
-        sol = self._qp.solve(q, lo, hi, guess, upper)
+        tol = self.options.qp_tolerance
+        sol = self._qp.solve(q, lo, hi, guess, upper, tolerance=tol)
+        if sol is None and guess is not None and self._qp.last_failure == "iteration_limit":
+            sol = self._qp.solve(q, lo, hi, tolerance=tol)
         if sol is not None:
             self._last_active = (sol.active, sol.upper)
             return sol.x
         self._last_active = None
-        return self._solve_qp_osqp(q, lo, hi, du_unc)
+        self.qp_fallbacks += 1
+        return du_unc
 
     def qp_problem(self, eps: np.ndarray, x: np.ndarray, u_prev: np.ndarray, dv: Optional[np.ndarray] = None):
         """The bounded QP of one sample (arguments as :meth:`unconstrained_moves`): minimise
@@ -413,22 +416,6 @@ class InternalModelMpc:
         """The QP's constraint rows ``R``, shape (2 Hc * n_inputs, Hc * n_inputs): the input path's change
         ``u(k+t) - u_prev`` (cumulative moves), then the moves ``du(k+t)``; t = 0..Hc-1, input fastest."""
         return np.vstack([self._Mc, np.eye(self._nu * self._hc)])
-
-    def _solve_qp_osqp(self, q: np.ndarray, lo: np.ndarray, hi: np.ndarray, du_unc: np.ndarray) -> np.ndarray:
-        """The same QP by OSQP (tolerance ``qp_tolerance``, polished); ``du_unc`` when it fails."""
-        import osqp
-        import scipy.sparse as sp
-
-        lo = np.where(np.isfinite(lo), lo, -np.inf)
-        hi = np.where(np.isfinite(hi), hi, np.inf)
-        qp = osqp.OSQP()
-        tol = self.options.qp_tolerance
-        qp.setup(sp.csc_matrix(np.triu(self._H)), q, sp.csc_matrix(self.qp_rows),
-                 lo, hi, verbose=False, eps_abs=tol, eps_rel=tol, polishing=True, max_iter=20000)
-        res = qp.solve(raise_error=False)
-        if res.x is None or res.info.status not in ("solved", "solved inaccurate") or not np.all(np.isfinite(res.x)):
-            return du_unc
-        return np.asarray(res.x, dtype=float)
 
     def _check_dv(self, dv) -> np.ndarray:
         if dv is None:

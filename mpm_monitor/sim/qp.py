@@ -77,6 +77,9 @@ class ActiveSetQp:
         self._G = 0.5 * (g + g.T)                                             # A H^-1 A', (m, m)
         norm = np.sqrt(np.maximum(np.diag(self._G), 0.0))                   # ||a_i|| in H^-1
         self._row_scale = np.where(norm > 0, norm, 1.0)
+        #: Why the last :meth:`solve` returned None: ``"infeasible"`` (the bounds cannot all be met) or
+        #: ``"iteration_limit"``; None after a solve that found the minimum.
+        self.last_failure: Optional[str] = None
 
     @property
     def n(self) -> int:
@@ -87,7 +90,8 @@ class ActiveSetQp:
         return self.A.shape[0]
 
     def solve(self, q: np.ndarray, lo: np.ndarray, hi: np.ndarray, guess: Optional[np.ndarray] = None,
-              guess_upper: Optional[np.ndarray] = None, max_iter: Optional[int] = None) -> Optional[QpSolution]:
+              guess_upper: Optional[np.ndarray] = None, max_iter: Optional[int] = None,
+              tolerance: float = 1e-9) -> Optional[QpSolution]:
         """The minimum, by the dual active-set method.
 
         Parameters
@@ -103,13 +107,18 @@ class ActiveSetQp:
             answer does not depend on them, only the work.
         max_iter : int, optional
             Iteration limit (default ``5 (n + m)``).
+        tolerance : float, optional
+            A row counts as violated when ``A x`` lies beyond a bound by more than ``tolerance (1 +
+            |A x|)`` (default 1e-9; relative, no unit).
 
         Returns
         -------
         QpSolution or None
-            None when the bounds cannot all be met, or when the limit is reached.
+            None when the bounds cannot all be met, or when the limit is reached; :attr:`last_failure`
+            says which.
         """
         G, n, m = self._G, self.n, self.m
+        self.last_failure = None
         lo = np.asarray(lo, dtype=float)
         hi = np.asarray(hi, dtype=float)
         max_iter = 5 * (n + m) if max_iter is None else int(max_iter)
@@ -132,7 +141,7 @@ class ActiveSetQp:
         it = 0
         while True:
             over = np.maximum(c - hi, lo - c)
-            over -= 1e-9 * (1.0 + np.abs(c))
+            over -= tolerance * (1.0 + np.abs(c))
             over /= self._row_scale
             over[in_work] = -np.inf
             p = int(np.argmax(over))
@@ -144,6 +153,7 @@ class ActiveSetQp:
             while True:
                 it += 1
                 if it > max_iter:
+                    self.last_failure = "iteration_limit"
                     return None
                 if k:
                     Lk = L[:k, :k]
@@ -162,7 +172,8 @@ class ActiveSetQp:
                     t1, drop = ratios[j], int(pos[j])
                 t = min(t1, t2)
                 if not np.isfinite(t):
-                    return None                                     # the bounds cannot all be met
+                    self.last_failure = "infeasible"                # the bounds cannot all be met
+                    return None
                 if np.isfinite(t2):                                 # x -= t sp H^-1 (a_p - A_W' coef)
                     dz = G[:, p] - G[:, W[:k]] @ coef if k else G[:, p]
                     c -= (t * sp) * dz
