@@ -247,12 +247,15 @@ def test_a_pure_gains_dead_time_change_of_a_sample_is_still_a_delay(tmp_path):
     assert entry["after"]["time_constant"] == 0.0
 
 
-@pytest.mark.parametrize("seed", [21, 23])
+@pytest.mark.parametrize("seed", [21, 23, 35, 39])
 def test_a_first_order_element_whose_plant_lost_its_lag_is_a_pure_gain_at_the_same_dead_time(tmp_path, seed):
     """The model's (y2, u2) has a lag of 9 s and 3 s of dead time; the plant's is a pure gain at the same dead time.
     The fit reads no lag; the delay test held the element's lag with the lag (a sample later) and the kind was
     ``mixed`` (44 of 44 in bench.structures_mc --pure-gains).  With seed 23 the repair also wrote the vanished lag
-    as 0.12 s at the held dead time, a sample later than the lag it was fitted at."""
+    as 0.12 s at the held dead time, a sample later than the lag it was fitted at.  With seeds 35 and 39 the fitted
+    pole (3.2e-4 and 3.0e-4) lies above the pole's reading as no lag (2e-4, a lag of T / 8.5): read as a lag of
+    T / 8 a sample earlier, the kind was ``mixed`` again (6 of 44 in --pure-gains); holding the pole at no lag
+    does not fit worse, and that reading is now the fit's."""
     model = first_order_model()
     plant = model.with_element(1, 1, time_constant=0.0)
     report = analyze(model, open_loop(plant, model, 3000, seed=seed, burn_in=300))
@@ -495,3 +498,4 @@ def test_a_ramp_row_the_model_has_no_element_in_is_repaired_integrating():
     assert np.max(np.abs(new - true)) <= 0.05 * np.max(np.abs(true))
     assert report.repair["error_after"]["y2"] < 0.2 * report.repair["error_before"]["y2"]
     assert model.integrating_outputs == (False, True)
+

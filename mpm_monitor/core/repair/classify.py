@@ -132,28 +132,22 @@ class _Located:
         (:func:`~mpm_monitor.core.repair.forms._reads_no_lag`)."""
         return not self.missing and self.declared is None and self.form.first_order and not self.form.integrating
 
-    def held_lag(self, shape_changed: bool, fitted_poles=()) -> int:
+    def held_lag(self, shape_changed: bool, lost_lag: bool = False) -> int:
         """The input lag (samples) that holds the reference's dead time.
 
         In the first-order form a pure gain acts at the lag of its dead time, an element with a lag one
         sample later (:func:`~mpm_monitor.core.repair.forms._reads_no_lag`).  So for a
         :attr:`plain_first_order` element the lag depends on whether it is held as a pure gain: its
         reference's shape when that is held (``shape_changed`` False); once its shape has changed, a pure
-        gain has gained a lag, and an element with a lag is a pure gain when its fitted pole
-        (``fitted_poles``) reads as none (:meth:`lost_its_lag`).  Any other element: ``lag``.
+        gain has gained a lag, and an element with a lag is a pure gain when its fit shows no lag
+        (``lost_lag``, :meth:`_FreeFit.lost_lag`).  Any other element: ``lag``.
         """
         if not self.plain_first_order:
             return self.lag
         ref_pure = self.reference.get("time_constant", 0.0) <= 0
         dead = self.lag if ref_pure else self.lag - 1           # the dead time, in samples
-        pure = self.lost_its_lag(fitted_poles) if shape_changed else ref_pure
+        pure = lost_lag if shape_changed else ref_pure
         return dead if pure else dead + 1
-
-    def lost_its_lag(self, fitted_poles) -> bool:
-        """Whether a :attr:`plain_first_order` element with a lag was fitted without one: its fitted pole
-        (``fitted_poles``) reads as no lag."""
-        return (self.plain_first_order and self.reference.get("time_constant", 0.0) > 0 and bool(len(fitted_poles))
-                and _reads_no_lag(float(fitted_poles[0])))
 
 
 @dataclasses.dataclass
@@ -179,6 +173,28 @@ class _FreeFit:
     located: dict
     problem: _RowProblem
     est: _RowEstimate
+    settings: Optional[_TestSettings] = None
+    _lost: dict = dataclasses.field(default_factory=dict, repr=False)
+
+    def lost_lag(self, m: int) -> bool:
+        """Whether element ``m``, a :attr:`_Located.plain_first_order` element whose reference has a lag, was
+        fitted without one: its fitted pole reads as no lag (:func:`~mpm_monitor.core.repair.forms._reads_no_lag`),
+        or holding it at no lag (the pole at its bound, the same input lag) does not fit significantly worse
+        (likelihood ratio, one degree of freedom, at the settings' ``alpha``).  A lag well under a sample is
+        not told from none by the data: the pole's reading alone (at ``2 _POLE_MIN``, a lag of ``T / 8.5``)
+        read an element that the data show as a pure gain as a lag of ``T / 8`` one sample earlier."""
+        if m not in self._lost:
+            loc = self.located[self.js[m]]
+            poles = self.est.fit.poles[self.problem.slices[m]]
+            lost = False
+            if (loc.plain_first_order and loc.reference.get("time_constant", 0.0) > 0 and len(poles)
+                    and self.specs[self.js[m]].pole_free):
+                lost = _reads_no_lag(float(poles[0]))
+                if not lost and self.settings is not None:
+                    stat = self.hold_statistic({m: {"no_lag"}}, self.settings.options)
+                    lost = float(chi2_tail(stat, 1)) >= self.settings.alpha
+            self._lost[m] = lost
+        return self._lost[m]
 
     @property
     def lag_orig(self) -> dict:
@@ -190,7 +206,8 @@ class _FreeFit:
 
         The row is refitted with, for each element index ``m`` in ``holds``, the parameters named
         in ``holds[m]`` ("gain", "pole": the shape, every lag and the lead; "lag", or "absent": no
-        effect at all) held at the reference's values, the other lags at their optimum and
+        effect at all) held at the reference's values, or "no_lag": a first-order element's pole held at its
+        bound (no lag) at its fitted input lag, the other lags at their optimum and
         everything else free; the statistic is ``n ln(SSR_held / SSR_free)``, chi-square with as
         many degrees of freedom as parameters held when they did not change (Ljung 1999, section
         16.5).  Unlike a Wald test on the Jacobian it does not depend on the parametrization, which
@@ -203,7 +220,7 @@ class _FreeFit:
             lag = est.fit.lags[m]
             what = holds.get(m, set())
             if "lag" in what:
-                lag = loc.held_lag("pole" not in what, est.fit.poles[self.problem.slices[m]])
+                lag = loc.held_lag("pole" not in what, "pole" not in what and self.lost_lag(m))
             sp_new = _ElementSpec(sp.gain_free, sp.pole_free, float(est.fit.gains[m]),
                                   tuple(float(a) for a in est.fit.poles[self.problem.slices[m]]), (lag, lag),
                                   form=sp.form, lead=float(est.fit.leads[m]))
@@ -215,6 +232,8 @@ class _FreeFit:
                     sp_new.form = loc.declared
                     lag += loc.declared.offset - loc.form.offset
                     sp_new.window = (lag, lag)
+            if "no_lag" in what:
+                sp_new.pole_free, sp_new.poles = False, (_POLE_MIN,)
             if "absent" in what:
                 sp_new.gain_free, sp_new.gain, sp_new.pole_free = False, 0.0, False
             held[j] = sp_new
@@ -303,7 +322,7 @@ def _fit_free(row: _RowData, js, settings: _TestSettings) -> _FreeFit:
         # Room for the lags of the larger forms (the references' lags may move a few samples).
         skip = _default_skip(row, specs) + _LAG_SHIFT
     problem, est = _estimate_row(row, specs, lags0, row.n_samples, options, options.max_sweeps, skip=skip)
-    free = _FreeFit(row=row, js=list(js), specs=specs, located=located, problem=problem, est=est)
+    free = _FreeFit(row=row, js=list(js), specs=specs, located=located, problem=problem, est=est, settings=settings)
     return _grow_gained_lags(_reduce_vanished_lags(_choose_forms(free, settings), settings), settings)
 
 
@@ -434,7 +453,7 @@ def _refit_element(free: _FreeFit, j: int, loc: _Located, start, settings: _Test
     problem, est = _estimate_row(row, specs, lags0, row.n_samples, options, options.max_sweeps, skip=skip)
     located = dict(free.located)
     located[j] = loc
-    return _FreeFit(row=row, js=free.js, specs=specs, located=located, problem=problem, est=est)
+    return _FreeFit(row=row, js=free.js, specs=specs, located=located, problem=problem, est=est, settings=settings)
 
 
 def _shape_changed(after: dict, reference: dict, form: _Form, ts: float, min_change: float) -> bool:
@@ -472,13 +491,18 @@ def _single_tests(free: _FreeFit, settings: _TestSettings):
             t["gain"] = [float(chi2_tail(free.hold_statistic({m: {"gain"}}, options), 1)),
                          abs(after["gain"] - before["gain"]) > options.min_relative_change * abs(before["gain"])]
             if form.n_shape:
-                t["time_constant"] = [float(chi2_tail(free.hold_statistic({m: {"pole"}}, options), form.n_shape)),
-                                      _shape_changed(after, before, form, ts, options.min_relative_change)]
+                p_t = float(chi2_tail(free.hold_statistic({m: {"pole"}}, options), form.n_shape))
+                if p_t < settings.alpha and free.lost_lag(m):      # read as the pure gain it was fitted as
+                    after, interval = _element_summary(free.problem, free.est, m, ts, settings, loc.reference,
+                                                       no_lag=True)
+                    summaries[j] = (after, interval)
+                t["time_constant"] = [p_t, _shape_changed(after, before, form, ts, options.min_relative_change)]
             # The dead time held, the shape free: a sample later for a pure gain whose time-constant test
-            # found a lag, a sample earlier for a lag whose fit reads as none (:meth:`_Located.held_lag`).
+            # found a lag, a sample earlier for a lag whose fit shows none (:meth:`_Located.held_lag`).
             w = free.specs[j].window
             p_t, big_t = t.get("time_constant", (1.0, False))
-            lag = loc.held_lag(p_t < settings.alpha and big_t, free.est.fit.poles[free.problem.slices[m]])
+            shape_changed = p_t < settings.alpha and big_t
+            lag = loc.held_lag(shape_changed, shape_changed and free.lost_lag(m))
             p_d = float(chi2_tail(_lag_lr(free.est, m, lag), 1)) if w[0] <= lag <= w[1] else 0.0
             t["delay"] = [p_d, after["delay"] != before["delay"]]
         tests[j] = _ElementTests.of(t, settings.alpha)

@@ -211,19 +211,20 @@ def _reads_no_lag(pole: float) -> bool:
     return pole <= 2 * _POLE_MIN
 
 
-def _element_params(gain: float, pole: float, lag: int, ts: float):
+def _element_params(gain: float, pole: float, lag: int, ts: float, no_lag: bool = False):
     """(gain, time constant in s, delay in s) of a fitted first-order element; a vanishing pole means no lag
-    (:func:`_reads_no_lag`)."""
-    if _reads_no_lag(pole):
+    (:func:`_reads_no_lag`), as does ``no_lag``."""
+    if no_lag or _reads_no_lag(pole):
         return float(gain), 0.0, float(lag) * ts
     return float(gain), float(-ts / math.log(pole)), float(max(lag - 1, 0)) * ts
 
 
-def _fitted_params(form: _Form, gain: float, poles, lead: float, lag: int, ts: float) -> dict:
+def _fitted_params(form: _Form, gain: float, poles, lead: float, lag: int, ts: float, no_lag: bool = False) -> dict:
     """The element of a fit in seconds, every parametric key given (``lead``, ``time_constant2``,
-    ``integrating`` explicit, so that :meth:`PlantModel.with_element` sets all of them)."""
+    ``integrating`` explicit, so that :meth:`PlantModel.with_element` sets all of them); ``no_lag``: a
+    first-order element read as a pure gain (:func:`_element_params`)."""
     if form.first_order:
-        out = dict(zip(("gain", "time_constant", "delay"), _element_params(gain, poles[0], lag, ts)))
+        out = dict(zip(("gain", "time_constant", "delay"), _element_params(gain, poles[0], lag, ts, no_lag)))
     else:
         taus = [_tau_of(a, ts) for a in poles] + [0.0, 0.0]
         out = {"gain": float(gain), "time_constant": taus[0], "delay": float(max(lag - form.offset, 0)) * ts,

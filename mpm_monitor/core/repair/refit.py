@@ -82,8 +82,9 @@ def _repair_specs(free: _FreeFit, verdicts: dict):
         free_d = missing or "delay" in v.changed
         fitted_poles = est.fit.poles[free.problem.slices[m]]
         poles = tuple(float(a) for a in fitted_poles) if free_t else loc.poles
-        held = loc.held_lag(free_t, fitted_poles)          # the reference's dead time
-        if free_t and loc.lost_its_lag(fitted_poles):
+        lost = free_t and free.lost_lag(m)
+        held = loc.held_lag(free_t, lost)                   # the reference's dead time
+        if lost:
             free_t, poles = False, (_POLE_MIN,)             # a pure gain now: fitted as one, at that dead time
         form, window, lag = loc.form, free.specs[j].window if free_d else (held, held), \
             est.fit.lags[m] if free_d else held

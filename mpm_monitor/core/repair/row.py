@@ -189,11 +189,13 @@ def _element_after(problem: _RowProblem, est: _RowEstimate, m: int, ts: float,
 
 
 def _element_summary(problem: _RowProblem, est: _RowEstimate, m: int, ts: float, settings: _TestSettings,
-                     reference: Optional[dict] = None):
+                     reference: Optional[dict] = None, no_lag: bool = False):
     """Fitted parameters (seconds) and their intervals of element ``m`` of an estimate.
 
     The two lags of a second-order element are named after those of ``reference``
-    (:func:`~mpm_monitor.core.repair.forms._match_lags`).
+    (:func:`~mpm_monitor.core.repair.forms._match_lags`).  ``no_lag``: a first-order element is read as
+    the pure gain its fit shows (:meth:`~mpm_monitor.core.repair.classify._FreeFit.lost_lag`), whatever
+    its pole.
 
     Returns
     -------
@@ -210,7 +212,7 @@ def _element_summary(problem: _RowProblem, est: _RowEstimate, m: int, ts: float,
     k_hat, lag_hat = float(fit.gains[m]), int(fit.lags[m])
     poles = [float(a) for a in fit.poles[problem.slices[m]]]
     var_gain, var_lead, var_poles = problem.variances(est.cov, fit, m)
-    after = _fitted_params(form, k_hat, poles, float(fit.leads[m]), lag_hat, ts)
+    after = _fitted_params(form, k_hat, poles, float(fit.leads[m]), lag_hat, ts, no_lag=no_lag)
     lo_lag, hi_lag = _lag_interval(est, m, spec.window, chi_crit)
     se_k = math.sqrt(var_gain)
     if form.first_order:
