@@ -499,3 +499,20 @@ def test_a_ramp_row_the_model_has_no_element_in_is_repaired_integrating():
     assert report.repair["error_after"]["y2"] < 0.2 * report.repair["error_before"]["y2"]
     assert model.integrating_outputs == (False, True)
 
+
+def test_a_lost_lag_stays_a_pure_gain_in_the_refit_on_the_whole_record():
+    """bench.structures_mc --pure-gains run 236: (y4, u4) lost its 56.5 s lag, its plant a pure gain with 7 s of dead
+    time.  The repair fitted it as a pure gain; the refit on the whole record then freed its pole again, which came
+    back at 3.5e-4 (above its reading as no lag), and wrote a lag of 0.12 s at 6 s of dead time: the same response
+    to 2.4e-4, but not the plant's element.  The refit now holds the pure gain it was repaired as."""
+    from bench.structures_mc import StructuresOptions, make_structures_scenario, simulate
+
+    opts = StructuresOptions(pure_gains=True)
+    sc = make_structures_scenario(0, 236, opts)
+    mismatch = next(m for m in sc.mismatches if m["kind"] == "lost_only_lag")
+    i, j = mismatch["output"], mismatch["column"]
+    report = analyze(sc.model, simulate(sc, 3000, opts).as_logged_data("structures scenario 0/236"))
+    change = next(c for c in report.repair["changes"]
+                  if (c["output"], c["input"]) == (sc.model.outputs[i], sc.model.columns[j]))
+    assert change["kind"] == "time_constant" and change["applied"] is True
+    assert change["after"]["time_constant"] == 0.0 and change["after"]["delay"] == mismatch["plant"]["delay"] == 7.0

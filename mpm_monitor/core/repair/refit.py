@@ -156,7 +156,10 @@ def _refit_on_all(row: _RowData, verdicts: dict, settings: _TestSettings) -> Non
     """Refit accepted elements on the whole record with the validated structure (lags +-3 samples).
 
     ``verdicts`` (``{j: ElementVerdict}``, the accepted ones) get the new ``after`` and a new
-    ``interval`` dict with the free parameters' intervals replaced.
+    ``interval`` dict with the free parameters' intervals replaced.  A first-order element whose lag
+    was lost (its reference has one, its repair none) is refitted as the pure gain it was repaired as:
+    its pole freed again would come back a hair above its bound, a lag of ``T / 8`` read a sample
+    earlier.
     """
     ts = row.model.sample_time
     specs, lags0 = {}, {}
@@ -165,7 +168,10 @@ def _refit_on_all(row: _RowData, verdicts: dict, settings: _TestSettings) -> Non
         a, form = v.after, v.form
         lag = _input_lag(form, a, ts)
         window = (max(1, lag - 3), lag + 3) if "delay" in changed else (lag, lag)
-        specs[j] = _ElementSpec("gain" in changed, "time_constant" in changed and form.n_shape > 0, a["gain"],
+        lost_lag = (form.first_order and not form.integrating and a["time_constant"] == 0
+                    and (v.reference or {}).get("time_constant", 0.0) > 0)
+        specs[j] = _ElementSpec("gain" in changed, "time_constant" in changed and form.n_shape > 0 and not lost_lag,
+                                a["gain"],
                                 _poles_of(form, a, ts), window, form=form, lead=a["lead"])
         lags0[j] = lag
     problem, est = _estimate_row(row, specs, lags0, row.n_samples, settings.options)
