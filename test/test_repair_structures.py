@@ -500,6 +500,35 @@ def test_a_ramp_row_the_model_has_no_element_in_is_repaired_integrating():
     assert model.integrating_outputs == (False, True)
 
 
+@pytest.mark.parametrize("freed, kind", [
+    ({"time_constant", "gain"}, "time_constant"),   # the gain freed by the joint test, moved by 0.01 %
+    ({"gain"}, "gain"),                              # freed alone: it still names the kind
+    ({"time_constant", "delay"}, "mixed"),           # two changes of material size
+])
+def test_a_parameter_freed_by_the_joint_test_with_a_negligible_change_names_no_kind(freed, kind):
+    """bench.structures_mc --pure-gains run 228: an element that lost its 71 s lag; the gain's own test was
+    significant (p = 1e-4) for a change of 0.01 %, under min_relative_change, so it did not count; the joint test
+    of the unchanged parameters then freed it, and the kind was ``mixed``.  The gain is re-estimated; the kind
+    is the time constant's."""
+    from types import SimpleNamespace
+
+    from mpm_monitor.core.repair.classify import _ElementTests, _Located, _verdict
+    from mpm_monitor.core.repair.forms import FIRST_ORDER
+
+    results = {k: [0.0, True] if k in freed else [0.5, False] for k in ("time_constant", "delay")}
+    results["gain"] = [1.1e-4, False]                  # significant, but under min_relative_change
+    tests = _ElementTests.of(results, 0.001)
+    assert "gain" not in tests.changed
+    tests.changed |= freed                              # as _joint_hold frees it
+    est = SimpleNamespace(cond=1.0, fit=SimpleNamespace(n_resid=2900), ar=np.zeros(2))
+    ref = {"gain": -3.8672, "time_constant": 71.2, "delay": 2.0, "time_constant2": 0.0, "lead": 0.0,
+           "integrating": False}
+    loc = _Located(form=FIRST_ORDER, reference=ref, lag=3, missing=False, poles=(0.986,))
+    after = dict(ref, gain=-3.8676, time_constant=0.0)
+    verdict = _verdict(est, (after, {}), tests, 1e-4, 0.001, loc)
+    assert verdict.kind == kind and set(verdict.changed) == freed
+
+
 def test_a_lost_lag_stays_a_pure_gain_in_the_refit_on_the_whole_record():
     """bench.structures_mc --pure-gains run 236: (y4, u4) lost its 56.5 s lag, its plant a pure gain with 7 s of dead
     time.  The repair fitted it as a pure gain; the refit on the whole record then freed its pole again, which came

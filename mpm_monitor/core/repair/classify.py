@@ -549,7 +549,9 @@ def _verdict(est: _RowEstimate, summary: tuple, tests: _ElementTests, joint_p, a
 
     One changed parameter names the kind (gain, time_constant -- any lag or the lead -- or delay;
     an integrator's gain is a gain), several give "mixed", a significant element the model does not
-    have "missing", nothing "unknown".  The confidence is the smallest margin of the tests,
+    have "missing", nothing "unknown".  A parameter that the joint test freed although its estimate
+    moved by less than ``min_relative_change`` (a delay: not at all) is re-estimated but names no kind
+    beside a parameter whose change is that large.  The confidence is the smallest margin of the tests,
     including the joint test when the element has a parameter held in it.  For an element of a
     step-response model (``step_response``) the evidence holds the parametric forms of its old and
     new responses (``parametric_before``, ``parametric_after``), from which the kind was decided.
@@ -557,12 +559,13 @@ def _verdict(est: _RowEstimate, summary: tuple, tests: _ElementTests, joint_p, a
     after, interval = summary
     results = tests.results
     hits = sorted(tests.changed, key=_TEST_ORDER.index)
+    named = [k for k in hits if results[k][1]] or hits       # the changes of material size, where there are any
     if "missing" in hits:
         kind = "missing"
     elif not hits:
         kind = "unknown"
     else:
-        kind = hits[0] if len(hits) == 1 else "mixed"
+        kind = named[0] if len(named) == 1 else "mixed"
     confidence = min(tests.margins.values())
     if joint_p is not None and tests.unchanged():
         confidence = min(confidence, _margin(joint_p, alpha))
