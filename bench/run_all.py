@@ -1,5 +1,5 @@
 """``make bench``: every benchmark in one command; each prints its table and writes JSON to
-``bench/results/``.  Figures in the README come from a run of this.
+``bench/results/``.  Figures in the README and docs/benchmarks.md come from runs of this.
 
 Run: ``python -m bench.run_all [--quick]``
 """

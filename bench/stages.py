@@ -23,7 +23,7 @@ A stage called more than once reports its calls and their sum.  The stages nest 
 holds the moments, the detection holds most others), so the figures do not add up to the total;
 ``rest of the first detection`` is the first detection minus the stages inside it (a stage run within
 another, as the row test within the element test with two processes, subtracted once).  Medians over
-the repeats.  The figures are the breakdown the README's "Where the time goes" quotes; they hold
+the repeats.  The figures are the breakdown docs/benchmarks.md's "Where the time goes" quotes; they hold
 no target (``bench.perf`` measures the command against its floor).
 """
 
