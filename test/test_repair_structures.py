@@ -545,3 +545,24 @@ def test_a_lost_lag_stays_a_pure_gain_in_the_refit_on_the_whole_record():
                   if (c["output"], c["input"]) == (sc.model.outputs[i], sc.model.columns[j]))
     assert change["kind"] == "time_constant" and change["applied"] is True
     assert change["after"]["time_constant"] == 0.0 and change["after"]["delay"] == mismatch["plant"]["delay"] == 7.0
+
+
+def test_an_element_whose_fit_drifted_to_a_slow_pole_is_searched_again_in_its_own_shape():
+    """bench.structures_mc --pure-gains run 119: two pure gains of one row mismatched, (y2, u1)'s gain 4.6 times
+    the model's and (y2, u2)'s dead time 6 s instead of 10 s.  With u1's gain that far off, the first fit put u2's
+    pole at its upper bound (a lag of 2,000 s); the lag search then scanned only shapes near that, found u2's dead
+    time at the end of its range, and the repair wrote u2 with a lag of 2,000 s (its step response 100 % off) and
+    u1 with a lag it does not have (``mixed``).  The search now also scans an element's own shape when its fit has
+    drifted off it: u1 a ``gain``, u2 a ``delay``, both the plant's elements."""
+    from bench.structures_mc import StructuresOptions, make_structures_scenario, simulate
+
+    opts = StructuresOptions(pure_gains=True)
+    sc = make_structures_scenario(0, 119, opts)
+    report = analyze(sc.model, simulate(sc, 3000, opts).as_logged_data("structures scenario 0/119"))
+    changes = {(c["output"], c["input"]): c for c in report.repair["changes"]}
+    for m in sc.mismatches:
+        i, j = m["output"], m["column"]
+        change = changes[(sc.model.outputs[i], sc.model.columns[j])]
+        assert change["kind"] == m["kind"] and change["applied"] is True
+        assert change["after"]["time_constant"] == 0.0 and change["after"]["delay"] == m["plant"]["delay"]
+        assert change["after"]["gain"] == pytest.approx(m["plant"]["gain"], rel=0.01)

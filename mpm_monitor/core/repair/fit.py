@@ -754,13 +754,17 @@ def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: 
     moved = False
     base_taus = [-1.0 / math.log(min(max(a, _POLE_MIN), _POLE_MAX)) for a in best.poles[own]]
     grid = _TAU_GRID if spec.pole_free and base_taus else (1.0,)
+    shapes = [[min(max(math.exp(-1.0 / (tau * f)), _POLE_MIN), _POLE_MAX) for tau in base_taus] for f in grid]
+    start = [float(a) for a in spec.poles]
+    if spec.pole_free and base_taus and not _within_grid(start, shapes):
+        shapes.append(start)             # the fit's shape drifted off the spec's: scan the spec's too
     cand = []
     for lag in range(spec.window[0], spec.window[1] + 1):
         lg = list(lags)
         lg[m] = lag
-        for f in grid:
+        for shape in shapes:
             poles = best.poles.copy()
-            poles[own] = [min(max(math.exp(-1.0 / (tau * f)), _POLE_MIN), _POLE_MAX) for tau in base_taus]
+            poles[own] = shape
             cand.append((problem.evaluate(poles, lg).ssr, lag, poles))
     cand.sort(key=lambda c: c[0])
     tried = set()
@@ -777,6 +781,12 @@ def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: 
             moved = moved or lag != lags[m]
             best, lags = f, lg
     return best, lags, moved
+
+
+def _within_grid(poles, shapes) -> bool:
+    """Whether ``poles`` lie within the span of the scanned ``shapes`` (each pole between the smallest and
+    the largest of its own in them)."""
+    return all(min(s[q] for s in shapes) <= a <= max(s[q] for s in shapes) for q, a in enumerate(poles))
 
 
 def _local_lag_moves(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list):
