@@ -746,7 +746,9 @@ def _sweep_lags(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m
 def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: int):
     """Best lag of element ``m`` with the others held: the (lag, pole) scan, then fits of the 3 best lags.
 
-    The scan multiplies every time constant of the element by the factors of :data:`_TAU_GRID`.
+    The scan multiplies every time constant of the element by the factors of :data:`_TAU_GRID`; where the
+    fit's shape has drifted off the spec's (its poles outside the span of those), the spec's own poles are
+    scanned too, so that a fit sent off by another element's error can come back.
     Returns the best fit, its lags and whether the lag of ``m`` moved.
     """
     spec = problem.specs[m]
