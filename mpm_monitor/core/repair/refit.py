@@ -170,9 +170,9 @@ def _refit_on_all(row: _RowData, verdicts: dict, settings: _TestSettings) -> Non
         window = (max(1, lag - 3), lag + 3) if "delay" in changed else (lag, lag)
         lost_lag = (form.first_order and not form.integrating and a["time_constant"] == 0
                     and (v.reference or {}).get("time_constant", 0.0) > 0)
-        specs[j] = _ElementSpec("gain" in changed, "time_constant" in changed and form.n_shape > 0 and not lost_lag,
-                                a["gain"],
-                                _poles_of(form, a, ts), window, form=form, lead=a["lead"])
+        pole_free = "time_constant" in changed and form.n_shape > 0 and not lost_lag
+        specs[j] = _ElementSpec("gain" in changed, pole_free, a["gain"], _poles_of(form, a, ts), window, form=form,
+                                lead=a["lead"])
         lags0[j] = lag
     problem, est = _estimate_row(row, specs, lags0, row.n_samples, settings.options)
     for m, j in enumerate(sorted(specs)):
