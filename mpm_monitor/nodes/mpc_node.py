@@ -74,7 +74,8 @@ PARAMS = MODEL_PARAMS + (
     ParamSpec("u_min", "double_array", None, "Lower input bounds (one value or one per input; unset = none)."),
     ParamSpec("u_max", "double_array", None, "Upper input bounds (one value or one per input; unset = none)."),
     ParamSpec("du_max", "double_array", None, "Largest input move per sample (unset = none)."),
-    ParamSpec("qp_tolerance", "double", 1e-9, "Feasibility tolerance of the bounded QP (its exact active-set solver): how far a bound may be exceeded, relative to 1 + |value|.", 1e-15, 1.0),
+    ParamSpec("qp_tolerance", "double", 1e-9, "Feasibility tolerance of the bounded QP (its exact active-set "
+              "solver): how far a bound may be exceeded, relative to 1 + |value|.", 1e-15, 1.0),
     ParamSpec("use_dither", "bool", False, "Add the dither received on dither_topic to u (wait for it every sample)."),
     ParamSpec("hold_setpoint", "bool", False, "Compute u(k) on each y(k) with the latest setpoint instead of "
               "waiting for the setpoint of the same stamp."),
