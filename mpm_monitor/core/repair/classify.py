@@ -165,6 +165,8 @@ class _FreeFit:
         ``{j: _Located}``: the form and the reference of each element.
     problem : _RowProblem
     est : _RowEstimate
+    settings : _TestSettings
+        The tests' settings (:meth:`lost_lag` tests at their ``alpha``).
     """
 
     row: _RowData
@@ -173,7 +175,7 @@ class _FreeFit:
     located: dict
     problem: _RowProblem
     est: _RowEstimate
-    settings: Optional[_TestSettings] = None
+    settings: _TestSettings
     _lost: dict = dataclasses.field(default_factory=dict, repr=False)
 
     def lost_lag(self, m: int) -> bool:
@@ -190,7 +192,7 @@ class _FreeFit:
             if (loc.plain_first_order and loc.reference.get("time_constant", 0.0) > 0 and len(poles)
                     and self.specs[self.js[m]].pole_free):
                 lost = _reads_no_lag(float(poles[0]))
-                if not lost and self.settings is not None:
+                if not lost:
                     stat = self.hold_statistic({m: {"no_lag"}}, self.settings.options)
                     lost = float(chi2_tail(stat, 1)) >= self.settings.alpha
             self._lost[m] = lost
