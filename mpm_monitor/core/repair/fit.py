@@ -760,6 +760,9 @@ def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: 
     start = [float(a) for a in spec.poles]
     if spec.pole_free and base_taus and not _within_grid(start, shapes):
         shapes.append(start)             # the fit's shape drifted off the spec's: scan the spec's too
+    if spec.pole_free and len(base_taus) == 2 and min(best.poles[own]) > _POLE_MIN:
+        a = [float(v) for v in best.poles[own]]
+        shapes += [[a[0], _POLE_MIN], [_POLE_MIN, a[1]]]     # either lag gone (a plant that lost one)
     cand = []
     for lag in range(spec.window[0], spec.window[1] + 1):
         lg = list(lags)
