@@ -748,7 +748,10 @@ def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: 
 
     The scan multiplies every time constant of the element by the factors of :data:`_TAU_GRID`; where the
     fit's shape has drifted off the spec's (its poles outside the span of those), the spec's own poles are
-    scanned too, so that a fit sent off by another element's error can come back.
+    scanned too, so that a fit sent off by another element's error can come back; and a two-lag element's
+    shapes with either lag gone (its pole at the bound), which the classification then takes to one lag
+    (``classify._reduce_vanished_lags``): a plant that lost one lag of two elements of a row left
+    their joint fit, scaled from the model's two lags, far from it (``bench.structures_mc --lost-lag`` run 146).
     Returns the best fit, its lags and whether the lag of ``m`` moved.
     """
     spec = problem.specs[m]
