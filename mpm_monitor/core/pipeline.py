@@ -202,11 +202,48 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
     if after is not None:
         doc["rsi_after"] = {r.output: r.rsi for r in after.rows}
         doc["rows_flagged_after"] = after.flagged_rows
+        for w in _ambiguous_left(report, doc["changes"], after.flagged_rows):
+            doc["warnings"].append(w)
+            warnings.append(w)
     kinds = getattr(result, "kinds", {})
     for e in report.elements:
         if e.mismatch:
             e.kind = kinds.get((wide.outputs.index(e.output), columns.index(e.input)), "unknown")
     return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result, regressions=None)
+
+
+def _ambiguous_left(report: AnalysisReport, changes: list, flagged_after: list) -> list:
+    """Warnings for the rows whose repair was applied, that the repaired model's detection still flags, and that hold
+    elements the data cannot tell apart (``ambiguous``, not located): the mismatch those may hold is not repaired,
+    and the repaired elements, fitted with them held as the model has them, may have taken part of it.
+
+    Parameters
+    ----------
+    report : AnalysisReport
+        The detection of the model as given.
+    changes : list of dict
+        The repair's ``changes`` (``output``, ``input``, ``applied``).
+    flagged_after : list of str
+        The outputs whose row the detection of the repaired model flags.
+
+    Returns
+    -------
+    list of str
+    """
+    out = []
+    for o in dict.fromkeys(c["output"] for c in changes if c["applied"] and c["output"] in flagged_after):
+        ambiguous = [e.input for e in report.elements if e.output == o and e.ambiguous and not e.mismatch]
+        if not ambiguous:
+            continue
+        repaired = [c["input"] for c in changes if c["applied"] and c["output"] == o]
+        one = len(ambiguous) == 1
+        out.append(f"{o}: still flagged after the repair of {', '.join(repaired)}; "
+                   f"{'the element' if one else 'the elements'} of {', '.join(ambiguous)} cannot be told apart from "
+                   f"these data (ambiguous) and {'was' if one else 'were'} held as the model has "
+                   f"{'it' if one else 'them'}: a mismatch there is not repaired, and the re-estimated "
+                   f"{'element' if len(repaired) == 1 else 'elements'} of {', '.join(repaired)} may have taken part of it; a dither that separates the inputs (the report's "
+                   f"experiment) would decide")
+    return out
 
 
 def _detect_raising_na(model: PlantModel, data: LoggedData, options: AnalysisOptions,
