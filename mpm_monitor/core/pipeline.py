@@ -241,8 +241,8 @@ def _ambiguous_left(report: AnalysisReport, changes: list, flagged_after: list) 
                    f"{'the element' if one else 'the elements'} of {', '.join(ambiguous)} cannot be told apart from "
                    f"these data (ambiguous) and {'was' if one else 'were'} held as the model has "
                    f"{'it' if one else 'them'}: a mismatch there is not repaired, and the re-estimated "
-                   f"{'element' if len(repaired) == 1 else 'elements'} of {', '.join(repaired)} may have taken part of it; a dither that separates the inputs (the report's "
-                   f"experiment) would decide")
+                   f"{'element' if len(repaired) == 1 else 'elements'} of {', '.join(repaired)} may have taken part "
+                   f"of it; a dither that separates the inputs (the report's experiment) would decide")
     return out
 
 
