@@ -213,8 +213,33 @@ class _FreeFit:
         everything else free; the statistic is ``n ln(SSR_held / SSR_free)``, chi-square with as
         many degrees of freedom as parameters held when they did not change (Ljung 1999, section
         16.5).  Unlike a Wald test on the Jacobian it does not depend on the parametrization, which
-        matters along the ridge where gain and time constant trade off.
+        matters along the ridge where gain and time constant trade off.  The input lag of an element is held
+        at the free fit's unless "lag" is held; where a held shape ("pole" without "lag") meets a free fit
+        that took another lag than the reference's (a lead or a lag traded against the dead time, within the
+        noise: holding the reference's lag alone does not fit significantly worse, :meth:`_reference_lag_fits`),
+        the refit is also made at the reference's lag and the better of the two taken: the reference's shape is
+        the reference's at its own dead time, not at another.
         """
+        est = self.est
+        ssr = self._held_ssr(holds, options, at_reference=False)
+        # A shape held at the reference's with the input lag left at the free fit's: where the free fit took another
+        # lag (within the noise, traded against its shape), the reference's shape is tried at its own lag too.
+        if any("pole" in what and "lag" not in what and est.fit.lags[m] != self.located[self.js[m]].held_lag(False)
+               and self._reference_lag_fits(m) for m, what in holds.items()):
+            ssr = min(ssr, self._held_ssr(holds, options, at_reference=True))
+        return max(est.fit.n_resid * math.log(max(ssr, 1e-300) / max(est.fit.ssr, 1e-300)), 0.0)
+
+    def _reference_lag_fits(self, m: int) -> bool:
+        """Whether element ``m``'s input lag held at its reference's (its shape free) does not fit significantly
+        worse than the free fit (the profile likelihood ratio, one degree of freedom, at the settings' ``alpha``):
+        the data do not tell that lag from the free fit's."""
+        lag = self.located[self.js[m]].held_lag(False)
+        w = self.specs[self.js[m]].window
+        return w[0] <= lag <= w[1] and float(chi2_tail(_lag_lr(self.est, m, lag), 1)) >= self.settings.alpha
+
+    def _held_ssr(self, holds: dict, options: RepairOptions, at_reference: bool) -> float:
+        """The residual sum of squares of :meth:`hold_statistic`'s refit; with ``at_reference``, an element whose
+        shape is held (and its lag not) at its reference's input lag instead of the free fit's."""
         est = self.est
         held, lags = {}, {}
         for m, j in enumerate(self.js):
@@ -223,6 +248,8 @@ class _FreeFit:
             what = holds.get(m, set())
             if "lag" in what:
                 lag = loc.held_lag("pole" not in what, "pole" not in what and self.lost_lag(m))
+            elif at_reference and "pole" in what:
+                lag = loc.held_lag(False)
             sp_new = _ElementSpec(sp.gain_free, sp.pole_free, float(est.fit.gains[m]),
                                   tuple(float(a) for a in est.fit.poles[self.problem.slices[m]]), (lag, lag),
                                   form=sp.form, lead=float(est.fit.leads[m]))
@@ -242,7 +269,7 @@ class _FreeFit:
             lags[j] = lag
         skip = self.problem.start - self.problem.p
         _, est_h = _estimate_row(self.row, held, lags, self.row.n_samples, options, 1, skip=skip, ar0=est.ar)
-        return max(est_h.fit.n_resid * math.log(max(est_h.fit.ssr, 1e-300) / max(est.fit.ssr, 1e-300)), 0.0)
+        return est_h.fit.ssr
 
 
 def _locate(row: _RowData, j: int, form: Optional[_Form] = None) -> _Located:
