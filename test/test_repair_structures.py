@@ -529,20 +529,28 @@ def test_a_parameter_freed_by_the_joint_test_with_a_negligible_change_names_no_k
     assert verdict.kind == kind and set(verdict.changed) == freed
 
 
+def _scenario_change(opts, index: int, kind: str):
+    """``(mismatch, change)``: the first mismatch of ``kind`` of bench.structures_mc's scenario ``index`` (seed 0,
+    ``opts``), and its entry in the repair's ``changes`` after the analysis of the scenario's closed loop."""
+    from bench.structures_mc import make_structures_scenario, simulate
+
+    sc = make_structures_scenario(0, index, opts)
+    mismatch = next(m for m in sc.mismatches if m["kind"] == kind)
+    i, j = mismatch["output"], mismatch["column"]
+    report = analyze(sc.model, simulate(sc, 3000, opts).as_logged_data(f"structures scenario 0/{index}"))
+    change = next(c for c in report.repair["changes"]
+                  if (c["output"], c["input"]) == (sc.model.outputs[i], sc.model.columns[j]))
+    return mismatch, change
+
+
 def test_a_lost_lag_stays_a_pure_gain_in_the_refit_on_the_whole_record():
     """bench.structures_mc --pure-gains run 236: (y4, u4) lost its 56.5 s lag, its plant a pure gain with 7 s of dead
     time.  The repair fitted it as a pure gain; the refit on the whole record then freed its pole again, which came
     back at 3.5e-4 (above its reading as no lag), and wrote a lag of 0.12 s at 6 s of dead time: the same response
     to 2.4e-4, but not the plant's element.  The refit now holds the pure gain it was repaired as."""
-    from bench.structures_mc import StructuresOptions, make_structures_scenario, simulate
+    from bench.structures_mc import StructuresOptions
 
-    opts = StructuresOptions(pure_gains=True)
-    sc = make_structures_scenario(0, 236, opts)
-    mismatch = next(m for m in sc.mismatches if m["kind"] == "lost_only_lag")
-    i, j = mismatch["output"], mismatch["column"]
-    report = analyze(sc.model, simulate(sc, 3000, opts).as_logged_data("structures scenario 0/236"))
-    change = next(c for c in report.repair["changes"]
-                  if (c["output"], c["input"]) == (sc.model.outputs[i], sc.model.columns[j]))
+    mismatch, change = _scenario_change(StructuresOptions(pure_gains=True), 236, "lost_only_lag")
     assert change["kind"] == "time_constant" and change["applied"] is True
     assert change["after"]["time_constant"] == 0.0 and change["after"]["delay"] == mismatch["plant"]["delay"] == 7.0
 
@@ -603,15 +611,9 @@ def test_a_shape_held_at_the_reference_is_also_tried_at_the_references_input_lag
     The time-constant test held the model's shape at the free fit's lag, where it fits badly (p = 7e-61), and the
     kind came out ``mixed``, the lags and the lead written as 3.07 s, 3.07 s and -0.94 s.  The shape is now also
     tried at the reference's own lag: the kind is ``gain``, and only the gain is re-estimated."""
-    from bench.structures_mc import StructuresOptions, make_structures_scenario, simulate
+    from bench.structures_mc import StructuresOptions
 
-    opts = StructuresOptions()
-    sc = make_structures_scenario(0, 6, opts)
-    mismatch = next(m for m in sc.mismatches if m["kind"] == "disturbance_gain")
-    i, j = mismatch["output"], mismatch["column"]
-    report = analyze(sc.model, simulate(sc, 3000, opts).as_logged_data("structures scenario 0/6"))
-    change = next(c for c in report.repair["changes"]
-                  if (c["output"], c["input"]) == (sc.model.outputs[i], sc.model.columns[j]))
+    mismatch, change = _scenario_change(StructuresOptions(), 6, "disturbance_gain")
     assert change["kind"] == "gain" and change["applied"] is True
     assert change["evidence"]["p_time_constant"] > 0.01
     for key in ("time_constant", "time_constant2", "lead", "delay"):
