@@ -221,12 +221,14 @@ class _FreeFit:
         the reference's at its own dead time, not at another.
         """
         est = self.est
-        ssr = self._held_ssr(holds, options, at_reference=False)
+        ssr = self._held_ssr(holds, options)
         # A shape held at the reference's with the input lag left at the free fit's: where the free fit took another
         # lag (within the noise, traded against its shape), the reference's shape is tried at its own lag too.
-        if any("pole" in what and "lag" not in what and est.fit.lags[m] != self.located[self.js[m]].held_lag(False)
-               and self._reference_lag_fits(m) for m, what in holds.items()):
-            ssr = min(ssr, self._held_ssr(holds, options, at_reference=True))
+        moved = frozenset(m for m, what in holds.items()
+                          if "pole" in what and "lag" not in what
+                          and est.fit.lags[m] != self.located[self.js[m]].held_lag(False) and self._reference_lag_fits(m))
+        if moved:
+            ssr = min(ssr, self._held_ssr(holds, options, at_reference=moved))
         return max(est.fit.n_resid * math.log(max(ssr, 1e-300) / max(est.fit.ssr, 1e-300)), 0.0)
 
     def _reference_lag_fits(self, m: int) -> bool:
@@ -237,9 +239,9 @@ class _FreeFit:
         w = self.specs[self.js[m]].window
         return w[0] <= lag <= w[1] and float(chi2_tail(_lag_lr(self.est, m, lag), 1)) >= self.settings.alpha
 
-    def _held_ssr(self, holds: dict, options: RepairOptions, at_reference: bool) -> float:
-        """The residual sum of squares of :meth:`hold_statistic`'s refit; with ``at_reference``, an element whose
-        shape is held (and its lag not) at its reference's input lag instead of the free fit's."""
+    def _held_ssr(self, holds: dict, options: RepairOptions, at_reference: frozenset = frozenset()) -> float:
+        """The residual sum of squares of :meth:`hold_statistic`'s refit; the elements of ``at_reference`` (indices
+        ``m`` whose shape is held and lag not) at their reference's input lag instead of the free fit's."""
         est = self.est
         held, lags = {}, {}
         for m, j in enumerate(self.js):
@@ -248,7 +250,7 @@ class _FreeFit:
             what = holds.get(m, set())
             if "lag" in what:
                 lag = loc.held_lag("pole" not in what, "pole" not in what and self.lost_lag(m))
-            elif at_reference and "pole" in what:
+            elif m in at_reference:
                 lag = loc.held_lag(False)
             sp_new = _ElementSpec(sp.gain_free, sp.pole_free, float(est.fit.gains[m]),
                                   tuple(float(a) for a in est.fit.poles[self.problem.slices[m]]), (lag, lag),
