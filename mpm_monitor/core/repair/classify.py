@@ -226,7 +226,8 @@ class _FreeFit:
         # lag (within the noise, traded against its shape), the reference's shape is tried at its own lag too.
         moved = frozenset(m for m, what in holds.items()
                           if "pole" in what and "lag" not in what
-                          and est.fit.lags[m] != self.located[self.js[m]].held_lag(False) and self._reference_lag_fits(m))
+                          and est.fit.lags[m] != self.located[self.js[m]].held_lag(False)
+                          and self._reference_lag_fits(m))
         if moved:
             ssr = min(ssr, self._held_ssr(holds, options, at_reference=moved))
         return max(est.fit.n_resid * math.log(max(ssr, 1e-300) / max(est.fit.ssr, 1e-300)), 0.0)
