@@ -232,13 +232,17 @@ class _FreeFit:
             ssr = min(ssr, self._held_ssr(holds, options, at_reference=moved))
         return max(est.fit.n_resid * math.log(max(ssr, 1e-300) / max(est.fit.ssr, 1e-300)), 0.0)
 
+    def lag_p(self, m: int, lag: int) -> float:
+        """p-value of holding element ``m``'s input lag at ``lag``, its shape free (the profile likelihood ratio
+        against chi-square with one degree of freedom); 0 for a lag outside the searched window."""
+        w = self.specs[self.js[m]].window
+        return float(chi2_tail(_lag_lr(self.est, m, lag), 1)) if w[0] <= lag <= w[1] else 0.0
+
     def _reference_lag_fits(self, m: int) -> bool:
         """Whether element ``m``'s input lag held at its reference's (its shape free) does not fit significantly
-        worse than the free fit (the profile likelihood ratio, one degree of freedom, at the settings' ``alpha``):
-        the data do not tell that lag from the free fit's."""
-        lag = self.located[self.js[m]].held_lag(False)
-        w = self.specs[self.js[m]].window
-        return w[0] <= lag <= w[1] and float(chi2_tail(_lag_lr(self.est, m, lag), 1)) >= self.settings.alpha
+        worse than the free fit (:meth:`lag_p` at the settings' ``alpha``): the data do not tell that lag from the
+        free fit's."""
+        return self.lag_p(m, self.located[self.js[m]].held_lag(False)) >= self.settings.alpha
 
     def _held_ssr(self, holds: dict, options: RepairOptions, at_reference: frozenset = frozenset()) -> float:
         """The residual sum of squares of :meth:`hold_statistic`'s refit; the elements of ``at_reference`` (indices
@@ -531,12 +535,10 @@ def _single_tests(free: _FreeFit, settings: _TestSettings):
                 t["time_constant"] = [p_t, _shape_changed(after, before, form, ts, options.min_relative_change)]
             # The dead time held, the shape free: a sample later for a pure gain whose time-constant test
             # found a lag, a sample earlier for a lag whose fit shows none (:meth:`_Located.held_lag`).
-            w = free.specs[j].window
             p_t, big_t = t.get("time_constant", (1.0, False))
             shape_changed = p_t < settings.alpha and big_t
             lag = loc.held_lag(shape_changed, shape_changed and free.lost_lag(m))
-            p_d = float(chi2_tail(_lag_lr(free.est, m, lag), 1)) if w[0] <= lag <= w[1] else 0.0
-            t["delay"] = [p_d, after["delay"] != before["delay"]]
+            t["delay"] = [free.lag_p(m, lag), after["delay"] != before["delay"]]
         tests[j] = _ElementTests.of(t, settings.alpha)
     return summaries, tests
 
