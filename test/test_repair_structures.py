@@ -637,3 +637,22 @@ def test_the_joint_test_frees_the_parameter_whose_release_fits_best():
     assert {m["kind"] for m in sc.mismatches} == {"time_constant", "gain"}
     for j in (0, 1):
         assert step_response_error(sc.plant, report.repaired_model, 1, j) < 0.05
+
+
+def test_the_joint_tests_warning_names_the_other_releases_that_fit_too():
+    """bench.structures_mc run 52: y2/u3's time constant was off, and releasing either its gain (p = 0.80) or its
+    time constant (p = 0.67) let the joint test of the rest pass; the gain's, fitting better, was freed and named the
+    kind.  The warning now says that the other release fits too."""
+    from types import SimpleNamespace
+
+    from mpm_monitor.core.repair.classify import _other_releases
+
+    free = SimpleNamespace(row=SimpleNamespace(name=lambda j: f"y2/u{j + 1}"))
+    released = {(2, "gain"): 0.804, (2, "time_constant"): 0.674, (0, "delay"): 6e-10}
+    text = _other_releases(free, released, (2, "gain"), 0.01)
+    assert text == (" Freeing the time constant of y2/u3 (p = 0.67) instead would fit the data too (this one: p = 0.8): "
+                     "the data do not tell these changes apart, and the kind named may be the wrong one.")
+    assert _other_releases(free, {**released, (2, "time_constant"): 0.009}, (2, "gain"), 0.01) == ""
+    # A release that leaves nothing held (None) fits by construction.
+    both = _other_releases(free, {(2, "gain"): None, (0, "delay"): 0.5}, (0, "delay"), 0.01)
+    assert "the gain of y2/u3 (p = 1)" in both and "this one: p = 0.5" in both

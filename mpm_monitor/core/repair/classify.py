@@ -574,8 +574,23 @@ def _joint_hold(free: _FreeFit, tests: dict, settings: _TestSettings, warnings: 
         tests[j_free].margins[k_free] = _margin(joint_p, alpha)
         warnings.append(f"{free.row.name(j_free)}: its {k_free.replace('_', ' ')} alone does not show a "
                         f"significant change, but holding it together with the other unchanged parameters of the "
-                        f"row does not fit the data (p = {joint_p:.2g}); it is re-estimated too.")
+                        f"row does not fit the data (p = {joint_p:.2g}); it is re-estimated too."
+                        + _other_releases(free, released, (j_free, k_free), alpha))
     return joint_p
+
+
+def _other_releases(free: _FreeFit, released: dict, chosen: tuple, alpha: float) -> str:
+    """`` Freeing ... instead would fit too (...): the data do not tell these changes apart.`` when releasing
+    another held parameter than ``chosen`` also lets the joint test of the rest pass at ``alpha`` (``released``:
+    ``{(j, test): p-value or None}``, None when nothing would be left held); else empty."""
+    others = [(jk, 1.0 if p is None else p) for jk, p in released.items()
+              if jk != chosen and (p is None or p >= alpha)]
+    if not others:
+        return ""
+    best = released[chosen]
+    names = ", ".join(f"the {k.replace('_', ' ')} of {free.row.name(j)} (p = {p:.2g})" for (j, k), p in others)
+    return (f" Freeing {names} instead would fit the data too (this one: p = {1.0 if best is None else best:.2g}): "
+            f"the data do not tell these changes apart, and the kind named may be the wrong one.")
 
 
 def _joint_p(free: _FreeFit, holds: dict, options: RepairOptions):
