@@ -656,3 +656,20 @@ def test_the_joint_tests_warning_names_the_other_releases_that_fit_too():
     # A release that leaves nothing held (None) fits by construction.
     both = _other_releases(free, {(2, "gain"): None, (0, "delay"): 0.5}, (0, "delay"), 0.01)
     assert "the gain of y2/u3 (p = 1)" in both and "this one: p = 0.5" in both
+
+
+def test_the_lag_scan_is_run_again_under_the_noise_model():
+    """bench.structures_mc run 140: (y2, u2), an integrating element with two lags and an inverse-response lead, had
+    its dead time one sample longer than the model's.  The lag search's scan, made before the noise model
+    (output error), settled at a lag of 6 samples with a lag of 2,000 s and a lead of 1,817 s; under the noise model
+    the model's own shape at the plant's lag of 3 fits better (0.3025 against 0.3129), but only moves of one sample
+    were tried from there.  The kind was ``mixed`` (the shape's test held it at the lag of 6).  The scan is now run
+    again under the noise model, fitting what beats the fit so far: ``delay``, the shape kept."""
+    from bench.structures_mc import StructuresOptions
+
+    mismatch, change = _scenario_change(StructuresOptions(), 140, "delay")
+    assert change["kind"] == "delay" and change["applied"] is True
+    after, plant = change["after"], mismatch["plant"]
+    assert after["delay"] == plant["delay"] == 2.0
+    for key in ("time_constant", "time_constant2", "lead"):
+        assert after[key] == pytest.approx(plant[key], rel=0.02)

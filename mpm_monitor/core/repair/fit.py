@@ -717,6 +717,8 @@ def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int
         problem.update_ar(best)
         fits.fits.clear()
         best = fits(lags, best.poles)
+    if problem.p:          # the scan again under the noise model, fitting only what beats the fit as it stands
+        best, lags = _sweep_lags(problem, fits, best, lags, 1, better_only=True)
     best, lags = _local_lag_moves(problem, fits, best, lags)
     # At an end of the searched lags, except the least an element may have (lag 1: the input acts a sample after
     # it is applied; nothing lies below it).
@@ -726,8 +728,10 @@ def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int
                         problem=problem, fits=fits)
 
 
-def _sweep_lags(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, max_sweeps: int):
-    """Phase 1 of :func:`_search_row`: coordinate sweeps over the free lags until none moves.
+def _sweep_lags(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, max_sweeps: int,
+                better_only: bool = False):
+    """Phase 1 of :func:`_search_row`: coordinate sweeps over the free lags until none moves (``better_only``:
+    see :func:`_move_lag`).
 
     Returns the best fit and its lags.
     """
@@ -736,14 +740,14 @@ def _sweep_lags(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m
         for m in range(problem.n_located):
             if not problem.specs[m].lag_free:
                 continue
-            best, lags, moved_m = _move_lag(problem, fits, best, lags, m)
+            best, lags, moved_m = _move_lag(problem, fits, best, lags, m, better_only)
             moved = moved or moved_m
         if not moved:
             break
     return best, lags
 
 
-def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: int):
+def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: int, better_only: bool = False):
     """Best lag of element ``m`` with the others held: the (lag, pole) scan, then fits of the 3 best lags.
 
     The scan multiplies every time constant of the element by the factors of :data:`_TAU_GRID`; where the
@@ -752,6 +756,8 @@ def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: 
     shapes with either lag gone (its pole at the bound), which the classification then takes to one lag
     (``classify._reduce_vanished_lags``): a plant that lost one lag of two elements of a row left
     their joint fit, scaled from the model's two lags, far from it (``bench.structures_mc --lost-lag`` run 146).
+    ``better_only``: only the scanned points whose cost is already below the fit's are fitted (the scan after the
+    noise model, :func:`_search_row`).
     Returns the best fit, its lags and whether the lag of ``m`` moved.
     """
     spec = problem.specs[m]
@@ -775,6 +781,8 @@ def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: 
             poles[own] = shape
             cand.append((problem.evaluate(poles, lg).ssr, lag, poles))
     cand.sort(key=lambda c: c[0])
+    if better_only:
+        cand = [c for c in cand if c[0] < best.ssr * (1 - 1e-9)]
     tried = set()
     for _, lag, poles in cand:
         if lag in tried:
