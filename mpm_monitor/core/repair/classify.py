@@ -547,29 +547,37 @@ def _joint_hold(free: _FreeFit, tests: dict, settings: _TestSettings, warnings: 
     """Test the parameters judged unchanged held together; free the likeliest changed while it rejects.
 
     While the joint likelihood-ratio test of every held parameter rejects at ``alpha``, the held
-    parameter whose release fits best (the largest p-value of the joint test of the others, ties to the
-    smallest single p-value) is added to its element's ``changed`` (its margin becomes that of the joint
-    test) and a warning says so; ``tests`` (``{j: _ElementTests}``) and ``warnings`` are updated in
-    place.  The single p-values cannot choose it: each holds its parameter with every other one free,
-    where the joint test holds the others too (``bench.structures_mc`` run 262: u2's time constant, the
-    smallest single p-value, explained none of the misfit that u1's time constant did).
+    parameter whose release fits best is added to its element's ``changed`` (its margin becomes that of
+    the joint test) and a warning says so; ``tests`` (``{j: _ElementTests}``) and ``warnings`` are updated
+    in place.  "Fits best": the smallest Akaike criterion of the row with it released (the joint
+    statistic of the parameters still held plus twice the number of parameters released: a shape of two
+    lags counts two), ties to the smallest single p-value.  The single p-values cannot choose it: each
+    holds its parameter with every other one free, where the joint test holds the others too
+    (``bench.structures_mc`` run 262: u2's time constant, the smallest single p-value, explained none of
+    the misfit that u1's time constant did).  Where releasing another parameter instead also passes the
+    joint test and comes within :data:`_AIC_INDISTINCT` of the criterion, the warning names it.
 
     Returns
     -------
     float or None
         The p-value of the last joint test (None when nothing was held).
     """
-    alpha, js = settings.alpha, free.js
+    alpha, js, options = settings.alpha, free.js, settings.options
     joint_p = None
     while True:
         holds = {m: {_PARAM_OF_TEST[k] for k in tests[j].unchanged()} for m, j in enumerate(js)}
-        joint_p = _joint_p(free, holds, settings.options)
-        if joint_p is None or joint_p >= alpha:
+        stat, n_held = _joint_statistic(free, holds, options)
+        if n_held == 0:
             break
-        released = {(j, k): _joint_p(free, {**holds, m: holds[m] - {_PARAM_OF_TEST[k]}}, settings.options)
-                    for m, j in enumerate(js) for k in tests[j].unchanged()}
-        j_free, k_free = min(released, key=lambda jk: (-(1.0 if released[jk] is None else released[jk]),
-                                                       tests[jk[0]].results[jk[1]][0]))
+        joint_p = float(chi2_tail(stat, n_held))
+        if joint_p >= alpha:
+            break
+        released = {}
+        for m, j in enumerate(js):
+            for k in tests[j].unchanged():
+                s, n = _joint_statistic(free, {**holds, m: holds[m] - {_PARAM_OF_TEST[k]}}, options)
+                released[(j, k)] = (s + 2.0 * (n_held - n), float(chi2_tail(s, n)) if n else 1.0)
+        j_free, k_free = min(released, key=lambda jk: (released[jk][0], tests[jk[0]].results[jk[1]][0]))
         tests[j_free].changed.add(k_free)
         tests[j_free].margins[k_free] = _margin(joint_p, alpha)
         warnings.append(f"{free.row.name(j_free)}: its {k_free.replace('_', ' ')} alone does not show a "
@@ -579,26 +587,35 @@ def _joint_hold(free: _FreeFit, tests: dict, settings: _TestSettings, warnings: 
     return joint_p
 
 
+#: Akaike criteria closer than this (Burnham and Anderson, *Model Selection and Multimodel Inference*, 2nd ed., 2002,
+#: section 2.6: "substantial support" for both) leave two releases of the joint test undecided by the data.
+_AIC_INDISTINCT = 2.0
+
+
 def _other_releases(free: _FreeFit, released: dict, chosen: tuple, alpha: float) -> str:
-    """`` Freeing ... instead would fit too (...): the data do not tell these changes apart.`` when releasing
-    another held parameter than ``chosen`` also lets the joint test of the rest pass at ``alpha`` (``released``:
-    ``{(j, test): p-value or None}``, None when nothing would be left held); else empty."""
-    others = [(jk, 1.0 if p is None else p) for jk, p in released.items()
-              if jk != chosen and (p is None or p >= alpha)]
+    """`` Freeing ... instead fits almost as well (...): the data do not tell these changes apart, ...`` when
+    releasing another held parameter than ``chosen`` also lets the joint test of the rest pass at ``alpha`` and
+    its Akaike criterion lies within :data:`_AIC_INDISTINCT` of the chosen one's (``released``:
+    ``{(j, test): (criterion, p-value of the rest)}``); else empty."""
+    aic, p_chosen = released[chosen]
+    others = [(j, k, a - aic, p) for (j, k), (a, p) in released.items()
+              if (j, k) != chosen and p >= alpha and a - aic <= _AIC_INDISTINCT]
     if not others:
         return ""
-    best = released[chosen]
-    names = ", ".join(f"the {k.replace('_', ' ')} of {free.row.name(j)} (p = {p:.2g})" for (j, k), p in others)
-    return (f" Freeing {names} instead would fit the data too (this one: p = {1.0 if best is None else best:.2g}): "
-            f"the data do not tell these changes apart, and the kind named may be the wrong one.")
+    names = " or ".join(f"the {k.replace('_', ' ')} of {free.row.name(j)} (p = {p:.2g}, criterion {d:.2g} higher)"
+                        for j, k, d, p in others)
+    return (f" Freeing {names} instead fits almost as well (Akaike's criterion within {_AIC_INDISTINCT:g} of this "
+            f"one's, p = {p_chosen:.2g}): the data do not tell these changes apart, and the kind named may be the "
+            f"wrong one.")
 
 
-def _joint_p(free: _FreeFit, holds: dict, options: RepairOptions):
-    """The p-value of holding ``holds`` (``{m: set of "gain", "pole", "lag"}``) together
-    (:meth:`_FreeFit.hold_statistic`, as many degrees of freedom as parameters held); None when nothing is held."""
+def _joint_statistic(free: _FreeFit, holds: dict, options: RepairOptions) -> tuple:
+    """``(statistic, n_held)`` of holding ``holds`` (``{m: set of "gain", "pole", "lag"}``) together
+    (:meth:`_FreeFit.hold_statistic`; ``n_held`` its degrees of freedom, as many as parameters held, a
+    shape as many as its lags and lead); ``(0.0, 0)`` when nothing is held."""
     n_held = sum(free.located[free.js[m]].shape_form.n_shape if k == "pole" else 1
                  for m, h in holds.items() for k in h)
-    return float(chi2_tail(free.hold_statistic(holds, options), n_held)) if n_held else None
+    return (free.hold_statistic(holds, options), n_held) if n_held else (0.0, 0)
 
 
 def _verdict(est: _RowEstimate, summary: tuple, tests: _ElementTests, joint_p, alpha: float,
