@@ -42,7 +42,9 @@ control engineer's next questions (paper section 4, "type and severity" of each 
    the change exceeds ``min_relative_change``.  The kind follows: one changed parameter -> gain
    (an integrator's gain too), time_constant (any lag or the lead) or delay; several -> mixed; an
    element the model lacks with a significant fitted gain -> missing; nothing -> unknown (the
-   element is kept).  The likelihood ratio, unlike a Wald test on the Jacobian, does not depend on
+   element is kept).  The parameters judged unchanged are then held together; while that joint
+   test rejects, the held parameter whose release fits best (Akaike's criterion) is freed too, and a
+   warning says so, naming any other release within 2 of that criterion.  The likelihood ratio, unlike a Wald test on the Jacobian, does not depend on
    the parametrization, which matters along the ridge where gain and time constant trade off
    (inputs that move together).  The verdict's ``confidence`` is ``min over the tests of
    1 - min(p/alpha, alpha/p)``: 0 when a p-value sits on the threshold, near 1 when every test is

@@ -703,8 +703,12 @@ def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int
 
     Phase 1 (output error, ``A = 1``): for each element with a free lag, a quick scan of (lag, pole)
     with the other parameters held picks candidates, which are fitted; sweeps repeat until no lag
-    moves.  Phase 2: the noise model and the fit are alternately re-estimated.  Phase 3: each lag
-    is moved by one sample while that lowers the cost, and its profile is recorded.
+    moves.  Phase 2: the noise model and the fit are alternately re-estimated, then the scan is made
+    once more under that noise model, and only the points whose cost already lies below the fit's are
+    fitted (the ranking under output error can differ: ``bench.structures_mc`` run 140 settled at a lag of
+    6 samples with a lag of 2,000 s, where the model's own shape at the plant's lag of 3 fits better under
+    the noise model).  Phase 3: each lag is moved by one sample while that lowers the cost, and its
+    profile is recorded.
     """
     n = problem.n_located
     specs = problem.specs
