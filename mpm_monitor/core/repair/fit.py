@@ -703,12 +703,12 @@ def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int
 
     Phase 1 (output error, ``A = 1``): for each element with a free lag, a quick scan of (lag, pole)
     with the other parameters held picks candidates, which are fitted; sweeps repeat until no lag
-    moves.  Phase 2: the noise model and the fit are alternately re-estimated, then the scan is made
-    once more under that noise model, and only the points whose cost already lies below the fit's are
-    fitted (the ranking under output error can differ: ``bench.structures_mc`` run 140 settled at a lag of
-    6 samples with a lag of 2,000 s, where the model's own shape at the plant's lag of 3 fits better under
-    the noise model).  Phase 3: each lag is moved by one sample while that lowers the cost, and its
-    profile is recorded.
+    moves.  Phase 2: the noise model and the fit are alternately re-estimated; then, for an element whose
+    fitted shape has drifted off its spec's, the fit's and the spec's shapes are scanned once more under that
+    noise model, and only the points whose cost already lies below the fit's are fitted (the ranking under
+    output error can differ: ``bench.structures_mc`` run 140 settled at a lag of 6 samples with a lag of
+    2,000 s, where the model's own shape at the plant's lag of 3 fits better under the noise model).
+    Phase 3: each lag is moved by one sample while that lowers the cost, and its profile is recorded.
     """
     n = problem.n_located
     specs = problem.specs
@@ -721,7 +721,7 @@ def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int
         problem.update_ar(best)
         fits.fits.clear()
         best = fits(lags, best.poles)
-    if problem.p:          # the scan again under the noise model, fitting only what beats the fit as it stands
+    if problem.p:          # a drifted shape's scan again under the noise model, fitting only what beats the fit
         best, lags = _sweep_lags(problem, fits, best, lags, 1, better_only=True)
     best, lags = _local_lag_moves(problem, fits, best, lags)
     # At an end of the searched lags, except the least an element may have (lag 1: the input acts a sample after
@@ -760,8 +760,9 @@ def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: 
     shapes with either lag gone (its pole at the bound), which the classification then takes to one lag
     (``classify._reduce_vanished_lags``): a plant that lost one lag of two elements of a row left
     their joint fit, scaled from the model's two lags, far from it (``bench.structures_mc --lost-lag`` run 146).
-    ``better_only``: only the scanned points whose cost is already below the fit's are fitted (the scan after the
-    noise model, :func:`_search_row`).
+    ``better_only`` (the scan after the noise model, :func:`_search_row`): only where the fit's shape has drifted
+    off the spec's as above, only those two shapes are scanned, and only the points whose cost is already below
+    the fit's are fitted.
     Returns the best fit, its lags and whether the lag of ``m`` moved.
     """
     spec = problem.specs[m]
@@ -771,9 +772,14 @@ def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: 
     grid = _TAU_GRID if spec.pole_free and base_taus else (1.0,)
     shapes = [[min(max(math.exp(-1.0 / (tau * f)), _POLE_MIN), _POLE_MAX) for tau in base_taus] for f in grid]
     start = [float(a) for a in spec.poles]
-    if spec.pole_free and base_taus and not _within_grid(start, shapes):
+    drifted = bool(spec.pole_free and base_taus) and not _within_grid(start, shapes)
+    if better_only:
+        if not drifted:
+            return best, lags, False
+        shapes = shapes[grid.index(1.0):grid.index(1.0) + 1]
+    if drifted:
         shapes.append(start)             # the fit's shape drifted off the spec's: scan the spec's too
-    if spec.pole_free and len(base_taus) == 2 and min(best.poles[own]) > _POLE_MIN:
+    if spec.pole_free and len(base_taus) == 2 and min(best.poles[own]) > _POLE_MIN and not better_only:
         a = [float(v) for v in best.poles[own]]
         shapes += [[a[0], _POLE_MIN], [_POLE_MIN, a[1]]]     # either lag gone (a plant that lost one)
     cand = []
