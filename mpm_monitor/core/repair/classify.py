@@ -564,20 +564,23 @@ def _joint_hold(free: _FreeFit, tests: dict, settings: _TestSettings, warnings: 
     """
     alpha, js, options = settings.alpha, free.js, settings.options
     joint_p = None
+    known = None            # the statistic of the holds left by the last release (computed among the releases)
     while True:
         holds = {m: {_PARAM_OF_TEST[k] for k in tests[j].unchanged()} for m, j in enumerate(js)}
-        stat, n_held = _joint_statistic(free, holds, options)
+        stat, n_held = known if known is not None else _joint_statistic(free, holds, options)
         if n_held == 0:
             break
         joint_p = float(chi2_tail(stat, n_held))
         if joint_p >= alpha:
             break
-        released = {}
+        released, statistics = {}, {}
         for m, j in enumerate(js):
             for k in tests[j].unchanged():
-                s, n = _joint_statistic(free, {**holds, m: holds[m] - {_PARAM_OF_TEST[k]}}, options)
+                rest = {**holds, m: holds[m] - {_PARAM_OF_TEST[k]}}
+                s, n = statistics[(j, k)] = _joint_statistic(free, rest, options)
                 released[(j, k)] = (s + 2.0 * (n_held - n), float(chi2_tail(s, n)) if n else 1.0)
         j_free, k_free = min(released, key=lambda jk: (released[jk][0], tests[jk[0]].results[jk[1]][0]))
+        known = statistics[(j_free, k_free)]
         tests[j_free].changed.add(k_free)
         tests[j_free].margins[k_free] = _margin(joint_p, alpha)
         warnings.append(f"{free.row.name(j_free)}: its {k_free.replace('_', ' ')} alone does not show a "
