@@ -44,11 +44,11 @@ control engineer's next questions (paper section 4, "type and severity" of each 
    element the model lacks with a significant fitted gain -> missing; nothing -> unknown (the
    element is kept).  The parameters judged unchanged are then held together; while that joint
    test rejects, the held parameter whose release fits best (Akaike's criterion) is freed too, and a
-   warning says so, naming any other release within 2 of that criterion.  The likelihood ratio, unlike a Wald test on the Jacobian, does not depend on
-   the parametrization, which matters along the ridge where gain and time constant trade off
-   (inputs that move together).  The verdict's ``confidence`` is ``min over the tests of
-   1 - min(p/alpha, alpha/p)``: 0 when a p-value sits on the threshold, near 1 when every test is
-   clear.
+   warning says so, naming any other release within 2 of that criterion.  The likelihood ratio,
+   unlike a Wald test on the Jacobian, does not depend on the parametrization, which matters along
+   the ridge where gain and time constant trade off (inputs that move together).  The verdict's
+   ``confidence`` is ``min over the tests of 1 - min(p/alpha, alpha/p)``: 0 when a p-value sits on
+   the threshold, near 1 when every test is clear.
 4. **Repair and validation.**  Only the changed parameters are refitted (all of them for a missing
    element), on the first ``1 - holdout_fraction`` of the record; intervals at
    ``confidence_level`` come from the Jacobian of the full residual (``cov = s^2 (J'J)^-1``) for
