@@ -734,8 +734,8 @@ def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int
 
 def _sweep_lags(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, max_sweeps: int,
                 better_only: bool = False):
-    """Phase 1 of :func:`_search_row`: coordinate sweeps over the free lags until none moves (``better_only``:
-    see :func:`_move_lag`).
+    """Phase 1 of :func:`_search_row`: coordinate sweeps over the free lags until none moves (with ``better_only``,
+    the scan after the noise model: see :func:`_move_lag`).
 
     Returns the best fit and its lags.
     """
@@ -760,9 +760,9 @@ def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: 
     shapes with either lag gone (its pole at the bound), which the classification then takes to one lag
     (``classify._reduce_vanished_lags``): a plant that lost one lag of two elements of a row left
     their joint fit, scaled from the model's two lags, far from it (``bench.structures_mc --lost-lag`` run 146).
-    ``better_only`` (the scan after the noise model, :func:`_search_row`): only where the fit's shape has drifted
-    off the spec's as above, only those two shapes are scanned, and only the points whose cost is already below
-    the fit's are fitted.
+    ``better_only`` (the scan after the noise model, :func:`_search_row`): nothing unless the fit's shape has
+    drifted off the spec's as above; then the fit's shape and the spec's alone are scanned, and only the points
+    whose cost is already below the fit's are fitted.
     Returns the best fit, its lags and whether the lag of ``m`` moved.
     """
     spec = problem.specs[m]
