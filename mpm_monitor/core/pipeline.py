@@ -231,11 +231,12 @@ def _ambiguous_left(report: AnalysisReport, changes: list, flagged_after: list) 
     list of str
     """
     out = []
-    for o in dict.fromkeys(c["output"] for c in changes if c["applied"] and c["output"] in flagged_after):
+    applied = [c for c in changes if c["applied"]]
+    for o in dict.fromkeys(c["output"] for c in applied if c["output"] in flagged_after):
         ambiguous = [e.input for e in report.elements if e.output == o and e.ambiguous and not e.mismatch]
         if not ambiguous:
             continue
-        repaired = [c["input"] for c in changes if c["applied"] and c["output"] == o]
+        repaired = [c["input"] for c in applied if c["output"] == o]
         one = len(ambiguous) == 1
         out.append(f"{o}: still flagged after the repair of {', '.join(repaired)}; "
                    f"{'the element' if one else 'the elements'} of {', '.join(ambiguous)} cannot be told apart from "

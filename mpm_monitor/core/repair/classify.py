@@ -573,12 +573,11 @@ def _joint_hold(free: _FreeFit, tests: dict, settings: _TestSettings, warnings: 
         joint_p = float(chi2_tail(stat, n_held))
         if joint_p >= alpha:
             break
-        released, statistics = {}, {}
-        for m, j in enumerate(js):
-            for k in tests[j].unchanged():
-                rest = {**holds, m: holds[m] - {_PARAM_OF_TEST[k]}}
-                s, n = statistics[(j, k)] = _joint_statistic(free, rest, options)
-                released[(j, k)] = (s + 2.0 * (n_held - n), float(chi2_tail(s, n)) if n else 1.0)
+        statistics = {(j, k): _joint_statistic(free, {**holds, m: holds[m] - {_PARAM_OF_TEST[k]}}, options)
+                      for m, j in enumerate(js) for k in tests[j].unchanged()}
+        # Each release's Akaike criterion (the parameters it frees counted twice) and the p-value of the rest held.
+        released = {jk: (s + 2.0 * (n_held - n), float(chi2_tail(s, n)) if n else 1.0)
+                    for jk, (s, n) in statistics.items()}
         j_free, k_free = min(released, key=lambda jk: (released[jk][0], tests[jk[0]].results[jk[1]][0]))
         known = statistics[(j_free, k_free)]
         tests[j_free].changed.add(k_free)

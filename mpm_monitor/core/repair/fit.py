@@ -776,7 +776,7 @@ def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: 
     if better_only:
         if not drifted:
             return best, lags, False
-        shapes = shapes[grid.index(1.0):grid.index(1.0) + 1]
+        shapes = [shapes[grid.index(1.0)]]         # the fit's own shape (the spec's is added below)
     if drifted:
         shapes.append(start)             # the fit's shape drifted off the spec's: scan the spec's too
     if spec.pole_free and len(base_taus) == 2 and min(best.poles[own]) > _POLE_MIN and not better_only:
