@@ -90,11 +90,10 @@ def test_a_repair_beside_an_ambiguous_mismatch_is_applied_with_a_warning():
     fitted with (y1, u3) held as the model has it, takes part of that element's error (its step response 14 % off,
     3 % before), while the row's prediction improves (held-out error 0.24 -> 0.11, the noise about 0.03) and the
     row stays flagged.  The report said nothing of that; it now warns."""
-    from bench.structures_mc import StructuresOptions, make_structures_scenario, simulate
+    from bench.structures_mc import StructuresOptions
+    from test_repair_structures import structures_scenario_report
 
-    opts = StructuresOptions(lost_lag=True)
-    sc = make_structures_scenario(0, 267, opts)
-    report = analyze(sc.model, simulate(sc, 3000, opts).as_logged_data("structures scenario 0/267"))
+    _, report = structures_scenario_report(StructuresOptions(lost_lag=True), 267)
     assert report.located_elements == [("y1", "u1")] and ("y1", "u3") in report.ambiguous_elements
     assert report.repair["rows_flagged_after"] == ["y1"]
     warned = [w for w in report.warnings if w.startswith("y1: still flagged after the repair of u1; the element of u3 "

@@ -529,15 +529,21 @@ def test_a_parameter_freed_by_the_joint_test_with_a_negligible_change_names_no_k
     assert verdict.kind == kind and set(verdict.changed) == freed
 
 
-def _scenario_change(opts, index: int, kind: str):
-    """``(mismatch, change)``: the first mismatch of ``kind`` of bench.structures_mc's scenario ``index`` (seed 0,
-    ``opts``), and its entry in the repair's ``changes`` after the analysis of the scenario's closed loop."""
+def structures_scenario_report(opts, index: int):
+    """``(scenario, report)``: bench.structures_mc's scenario ``index`` (seed 0, ``opts``) and the analysis, with the
+    repair, of its closed loop (3,000 samples)."""
     from bench.structures_mc import make_structures_scenario, simulate
 
     sc = make_structures_scenario(0, index, opts)
+    return sc, analyze(sc.model, simulate(sc, 3000, opts).as_logged_data(f"structures scenario 0/{index}"))
+
+
+def _scenario_change(opts, index: int, kind: str):
+    """``(mismatch, change)``: the first mismatch of ``kind`` of bench.structures_mc's scenario ``index`` (seed 0,
+    ``opts``), and its entry in the repair's ``changes`` after the analysis of the scenario's closed loop."""
+    sc, report = structures_scenario_report(opts, index)
     mismatch = next(m for m in sc.mismatches if m["kind"] == kind)
     i, j = mismatch["output"], mismatch["column"]
-    report = analyze(sc.model, simulate(sc, 3000, opts).as_logged_data(f"structures scenario 0/{index}"))
     change = next(c for c in report.repair["changes"]
                   if (c["output"], c["input"]) == (sc.model.outputs[i], sc.model.columns[j]))
     return mismatch, change
@@ -585,11 +591,9 @@ def test_two_lost_second_lags_of_one_row_are_found_by_the_lag_search():
     The held-out part still improved (the row's error 0.74 before, 0.53 after, against a noise of about 0.03), so
     the repair was applied.  The lag search now also scans each two-lag element with either lag gone: both are
     the plant's elements, ``time_constant``, and the row's held-out error falls to the noise."""
-    from bench.structures_mc import StructuresOptions, make_structures_scenario, simulate, step_response_error
+    from bench.structures_mc import StructuresOptions, step_response_error
 
-    opts = StructuresOptions(lost_lag=True)
-    sc = make_structures_scenario(0, 146, opts)
-    report = analyze(sc.model, simulate(sc, 3000, opts).as_logged_data("structures scenario 0/146"))
+    sc, report = structures_scenario_report(StructuresOptions(lost_lag=True), 146)
     changes = {(c["output"], c["input"]): c for c in report.repair["changes"]}
     assert len(sc.mismatches) == 2 and {m["output"] for m in sc.mismatches} == {2}
     for m in sc.mismatches:
@@ -627,11 +631,9 @@ def test_the_joint_test_frees_the_parameter_whose_release_fits_best():
     and the joint test freed u2's time constant, the smallest single p-value, which explained nothing of the misfit
     (p = 3e-46 after it), then u1's gain: u1 read as ``gain`` (its step response 33 % off, from 12 %) and u2 as
     ``mixed``.  Freeing u1's time constant, the release that fits best (p = 0.5 after it), names both kinds right."""
-    from bench.structures_mc import StructuresOptions, make_structures_scenario, simulate, step_response_error
+    from bench.structures_mc import StructuresOptions, step_response_error
 
-    opts = StructuresOptions()
-    sc = make_structures_scenario(0, 262, opts)
-    report = analyze(sc.model, simulate(sc, 3000, opts).as_logged_data("structures scenario 0/262"))
+    sc, report = structures_scenario_report(StructuresOptions(), 262)
     kinds = {(c["output"], c["input"]): c["kind"] for c in report.repair["changes"] if c["applied"]}
     assert kinds == {("y2", "u1"): "time_constant", ("y2", "u2"): "gain"}
     assert {m["kind"] for m in sc.mismatches} == {"time_constant", "gain"}
