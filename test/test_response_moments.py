@@ -119,9 +119,10 @@ def test_a_model_without_elements_has_no_moments_to_share():
 
 
 def _by_product(monkeypatch, make):
-    """The moments built with every ``Z' x`` taken by a product over the rows (no recursion)."""
+    """The moments built with every ``Z' x`` taken by a product over the rows (no recursion, no long Gram)."""
     with monkeypatch.context() as mp:
         mp.setattr(ResponseMoments, "_recursive", lambda self, element: False)
+        mp.setattr(ResponseMoments, "_long_fir", lambda self, element: False)
         return make()
 
 
@@ -252,3 +253,65 @@ def test_the_lag_zero_moments_by_the_difference_equation_equal_the_products(na, 
         for name, got, want in (("uw", rm.uw, uw), ("ow", rm.ow, ow)):
             np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12 * np.abs(want).max(), err_msg=name)
     assert seen == {"all", "some", "none"}
+
+
+def _long_step_response_window(seed, n=1500, N=40):
+    """Two outputs, three inputs of a step-response model of ``N`` coefficients (more than the lags): two
+    first-order responses after dead times and one that grows; row y2 a ramp row (integrating: its elements
+    have a pole)."""
+    rng = np.random.default_rng(seed)
+    k = np.arange(1, N + 1)
+    row = np.stack([1.2 * (1 - np.exp(-np.maximum(k - 2, 0) / 6.0)), -0.5 * (1 - np.exp(-np.maximum(k - 4, 0) / 9.0)),
+                    0.02 * np.maximum(k - 3, 0)])
+    model = PlantModel.from_step_response(1.0, ("u1", "u2", "u3"), ("y1", "y2"), np.stack([row, row]),
+                                          ramp=(False, True))
+    u = rng.standard_normal((n, 3))
+    u[:, 0] = np.repeat(rng.choice([-1.0, 1.0], n // 4 + 1), 4)[:n]
+    d = lfilter([1.0], [1.0, -0.6], rng.standard_normal((n, 2)), axis=0) + 1.5
+    return model, u, d
+
+
+@pytest.mark.parametrize("segments", [None, [(0, 500), (500, 540), (540, 560), (560, 1500)]])
+def test_the_long_gram_equals_the_products_of_lag_matrices_from_rest_in_each_segment(segments):
+    """``E[j, s, c, l] = sum_t u_j(t - s) u_c(t - l)`` out to the longest response, with ``u_j`` 0 before each
+    segment's start, along lag diagonals, against the product of each segment's zero-padded lag matrices
+    (a segment shorter than the response, one without a regression row)."""
+    model, u, d = _long_step_response_window(2)
+    n_lag, na = 9, 3
+    moments = ResponseMoments(model, u, d, [0, 1, 2], n_lag, n_lag, na, segments)
+    S = moments.fir_span
+    elements = [model.discrete_element(0, j) for j in range(3)]
+    assert [e.order for e in elements] == [0, 0, 0] and all(model.discrete_element(1, j).order == 1 for j in range(3))
+    assert S == max(e.delay + e.num.size - 1 for e in elements) + na
+    u_c = u - u.mean(axis=0)
+    segs = [(0, u.shape[0])] if segments is None else [(a, b) for a, b in segments if b - a > n_lag]
+    want = np.zeros((3, S + 1, 3, n_lag + 1))
+    for a, b in segs:
+        padded = np.vstack([np.zeros((S, 3)), u_c[a:b]])
+        long = lag_matrix(padded, range(0, S + 1), S + n_lag)             # column j (S + 1) + s
+        short = lag_matrix(u_c[a:b], range(0, n_lag + 1), n_lag)          # column c (L + 1) + l
+        want += (long.T @ short).reshape(3, S + 1, 3, n_lag + 1)
+    np.testing.assert_allclose(moments.fir_gram, want, rtol=1e-11, atol=1e-12 * np.abs(want).max())
+
+
+@pytest.mark.parametrize("na, segments", [(2, None), (3, [(0, 500), (500, 540), (540, 1500)]), (1, [(0, 750), (750, 1500)])])
+def test_a_long_step_response_by_the_long_gram_and_by_products(monkeypatch, na, segments):
+    """A step-response model's elements longer than the lags (finite impulse responses): every moment of the
+    row from their taps and the long Gram, against the products over the rows; the ramp row's elements (a
+    pole) by products in either."""
+    model, u, d = _long_step_response_window(5)
+    n_lag = 8
+    start = max(n_lag, na)
+
+    def make(i):
+        return ResponseMoments(model, u, d, [0, 1, 2], n_lag, start, na, segments).row(i)
+
+    moments = ResponseMoments(model, u, d, [0, 1, 2], n_lag, start, na, segments)
+    for i in (0, 1):
+        got, want = make(i), _by_product(monkeypatch, lambda: make(i))
+        fir = [moments._long_fir(e) for _, e, _ in got.found]
+        assert fir == [i == 0] * 3                         # row y2 is a ramp row
+        for name in ("zx", "uw", "zo", "ww", "ow", "xsum", "mu"):
+            w = getattr(want, name)
+            np.testing.assert_allclose(getattr(got, name), w, rtol=1e-10, atol=1e-12 * np.abs(w).max(),
+                                       err_msg=f"{name}, row {i}")

@@ -225,6 +225,8 @@ class ResponseMoments:
         self.u_sums = self._segment_sums(self.u_rows)            # (S, nu)
         self._rows = {}
         self._gram = None
+        self._fir_gram = None
+        self._fir_span = None
         self._own = None
 
     @property
@@ -240,7 +242,7 @@ class ResponseMoments:
         by the rows.  Each is computed again, to the same numbers, when next read: a process that has left
         the moments' readers to another one (the detectability in a forked child, :func:`~mpm_monitor.core.analysis.detect`)
         keeps only what rebuilds them (at 100x40 about 160 MB fewer while it repairs)."""
-        self._Z, self._rows, self._own, self._gram = None, {}, None, None
+        self._Z, self._rows, self._own, self._gram, self._fir_gram = None, {}, None, None, None
 
     def of(self, u: np.ndarray, segments=None) -> bool:
         """Whether these are the moments of the columns ``u`` with these ``segments``."""
@@ -345,15 +347,19 @@ class ResponseMoments:
         # u(t)' and O' with every lag of every element (lag 0 of the columns and the own lags, _lag_zero).
         nu = u_c.shape[1]
         rec_lags = np.array([self._recursive_lags(element) for _, element, _ in found], dtype=int)
+        # The long finite impulse responses (a step-response model's elements beyond the lags): Z' x and
+        # u_c(t)' x(t - k) from their taps and the long Gram (_fir_moments); O' x(t - k) by products.
+        fir = {b: self._fir_moments(found[b], mu[:, b]) for b in range(m)
+               if rec_lags[b] < 0 and self._long_fir(found[b][1])}
         P = self._own_lags(i, O)
-        V = self._lag_zero(O, P, lags, found, rec_lags, mu)                            # (nu + na, na + 1, m)
+        V = self._lag_zero(O, P, lags, found, rec_lags, mu, {b: uw for b, (uw, _) in fir.items()})
         uw = np.moveaxis(V[:nu], 1, 2).reshape(nu, m * (na + 1))
         ow = np.moveaxis(V[nu:], 1, 2).reshape(na, m * (na + 1))
         xsum = np.stack([x.sum(axis=0) for x in lags], axis=1)                          # (m, na + 1)
         # The elements whose Z' x follows from their difference equation (see _fill_lags); the others'
         # is taken by a product over the rows.
         rec = [b for b in range(m) if rec_lags[b] >= 0]
-        direct = [b for b in range(m) if rec_lags[b] < 0]
+        direct = [b for b in range(m) if rec_lags[b] < 0 and b not in fir]
         u_head, u_tail = self.u_head, self.u_tail                           # (S, nu, L): u(start - l), u(N - l)
         # M[c, l, k, e] = sum over the rows of u_c(t - l) x_e(t - k) (l = 0 .. L, k = 0 .. na).  Z' X is a sum
         # along diagonals of lag pairs: M(l, k) = M(l - 1, k - 1) + u(start - l) x(start - k) - u(N - l) x(N - k)
@@ -363,6 +369,8 @@ class ResponseMoments:
         M[:, 0] = V[:nu]
         if direct:
             M[:, 1:, 0, direct] = (self.Z.T @ lags[0][:, direct]).reshape(nu, L, len(direct))
+        for b, (_, zx) in fir.items():
+            M[:, 1:, 0, b] = zx
         head, tail = np.empty((nu, L, na, m)), np.empty((nu, L, na, m))
         for k in range(1, na + 1):
             if u_head.shape[0] == 1:  # one record: the plain products (einsum rounds differently)
@@ -376,7 +384,7 @@ class ResponseMoments:
                           oo=O.T @ O, ow=ow, ww=ww, xsum=xsum, mu=mu, R=R if keep_samples else None)
 
     def _lag_zero(self, O: np.ndarray, P: np.ndarray, lags: list, found: list, rec_lags: np.ndarray,
-                  mu: np.ndarray) -> np.ndarray:
+                  mu: np.ndarray, fir: Optional[dict] = None) -> np.ndarray:
         """``V' x(t - k)`` of every element, ``V = [u_c(t), O]`` on the rows (the columns at lag 0, then the
         row's own lags ``d_i(t - 1) .. d_i(t - na)``), ``k = 0 .. na``: shape (n_columns + na, na + 1, m)
         (column units, then output units, times output units).
@@ -408,15 +416,26 @@ class ResponseMoments:
             :meth:`_recursive_lags` of every element.
         mu : ndarray, shape (S, m)
             Every element's mean response over each segment (output units).
+        fir : dict, optional
+            Position ``e`` -> ``u_c(t)' x_e(t - k)``, shape (n_columns, na + 1), of the long finite impulse
+            responses (:meth:`_fir_moments`): placed as given; their ``O' x(t - k)`` by products.
         """
         nu, na, m = self.u_c.shape[1], self.na, len(found)
+        fir = fir or {}
+        on_u = np.array([b not in fir for b in range(m)], dtype=bool)
         V = np.empty((nu + na, na + 1, m))
         for k in range(na + 1):
             by_product = np.flatnonzero(rec_lags < k)
             if by_product.size:
                 x = lags[k] if by_product.size == m else lags[k][:, by_product]
-                V[:nu, k, by_product] = self.u_rows.T @ x
+                own = on_u[by_product]
+                if np.all(own):
+                    V[:nu, k, by_product] = self.u_rows.T @ x
+                elif np.any(own):
+                    V[:nu, k, by_product[own]] = self.u_rows.T @ x[:, own]
                 V[nu:, k, by_product] = O.T @ x
+        for b, uw in fir.items():
+            V[:nu, :, b] = uw
         rec = np.flatnonzero(rec_lags >= 0)
         if rec.size:
             # V' u_j(t - s), shape (nu + na, nu, L + 1)
@@ -475,6 +494,86 @@ class ResponseMoments:
             return False
         taps = np.flatnonzero(element.num != 0)
         return taps.size == 0 or element.delay + int(taps[-1]) <= min(self.n_lag, self.start)
+
+    def _long_fir(self, element) -> bool:
+        """Whether ``element`` is a finite impulse response (no pole: a step-response model's element) that
+        :meth:`_fir_moments` takes: one with an effect, not :meth:`_recursive`, whose taps and ``na`` more
+        lie within the long Gram (:attr:`fir_gram`)."""
+        return element.order == 0 and not element.is_zero and not self._recursive(element) \
+            and element.delay + element.num.size + self.na <= self.fir_span + 1
+
+    @property
+    def fir_span(self) -> int:
+        """The last lag ``s`` of :attr:`fir_gram`: over the model's elements without poles, the largest
+        ``delay + len(num) - 1``, plus ``na`` (0 when the model has none)."""
+        span = self._fir_span
+        if span is None:
+            model = self.model
+            span = 0
+            for a, b in zip(*np.nonzero(model.present)):
+                element = model.discrete_element(int(a), int(b))
+                if element.order == 0 and not element.is_zero:
+                    span = max(span, element.delay + element.num.size - 1 + self.na)
+            self._fir_span = span
+        return span
+
+    @property
+    def fir_gram(self) -> np.ndarray:
+        """``E[j, s, c, l] = sum_t u_j(t - s) u_c(t - l)`` over the rows, ``s = 0 ..`` :attr:`fir_span`,
+        ``l = 0 .. L``, with ``u_j(t - s) = 0`` before the start of ``t``'s segment (a response from rest
+        there), shape (n_columns, fir_span + 1, n_columns, L + 1) (column units squared); taken once per
+        window.
+
+        Lag ``l = 0`` takes a product over the rows per column ``j``; lag ``s = 0`` is the Gram's
+        (:attr:`gram`); the others are sums along the diagonals of lag pairs, as ``M`` in
+        :meth:`_compute`: ``E(s, l) = E(s - 1, l - 1) + u_j(start - s) u_c(start - l) - u_j(N - s) u_c(N - l)``
+        (summed over the segments; ``start`` a segment's first row, ``N`` its end).
+        """
+        E = self._fir_gram
+        if E is None:
+            nu, L, S, start = self.u_c.shape[1], self.n_lag, self.fir_span, self.start
+            # u_j(t - s) on each segment's rows, s = 0 .. S: a window over the segment padded with S zeros
+            # before it, read backwards; the head and tail corrections at s = 1 .. S likewise.
+            padded = [np.vstack([np.zeros((S, nu)), self.u_c[a:b]]) for a, b in self.segs]
+            E = np.empty((nu, S + 1, nu, L + 1))
+            for j in range(nu):
+                lagged = [np.lib.stride_tricks.sliding_window_view(p[:, j], S + 1)[start:, ::-1] for p in padded]
+                E[j, :, :, 0] = sum(w.T @ self.u_c[a + start:b] for w, (a, b) in zip(lagged, self.segs))
+            E[:, 0, :, 1:] = np.transpose(self.gram[:, 1:, :, 0], (2, 0, 1))         # u_j(t)' u_c(t - l)
+            back = np.arange(1, S + 1)
+            head = np.stack([p[S + start - back].T for p in padded])                 # (S_seg, nu, S): u_j(start - s)
+            tail = np.stack([p[p.shape[0] - back].T for p in padded])                # u_j(N - s)
+            for lag in range(1, L + 1):
+                E[:, 1:, :, lag] = E[:, :-1, :, lag - 1] + np.einsum("sjm,sc->jmc", head, self.u_head[:, :, lag - 1]) \
+                    - np.einsum("sjm,sc->jmc", tail, self.u_tail[:, :, lag - 1])
+            self._fir_gram = E
+        return E
+
+    def _fir_moments(self, entry, mu: np.ndarray) -> tuple:
+        """``(u_c(t)' x(t - k), u_c(t - l)' x)``, ``k = 0 .. na``, ``l = 1 .. L``, of a long finite impulse
+        response (:meth:`_long_fir`) from its taps and :attr:`fir_gram`, shapes (n_columns, na + 1) and
+        (n_columns, L) (column units times output units): ``_compute``'s ``V[:nu, :, e]`` and ``M[:, 1:, 0, e]``.
+
+        ``x_raw(t) = sum_m num_m u_j(t - delay - m)`` from rest at each segment's start and ``x = x_raw - mu_s``
+        in segment ``s``, so ``u_c(t - l)' x(t - k) = sum_m num_m E(delay + k + m, l) - sum_s mu_s u_s(l)``,
+        ``u_s(l)`` the column sums of ``u_c(t - l)`` over segment ``s``'s rows.
+
+        Parameters
+        ----------
+        entry : (int, DiscreteElement, float)
+            The element (an entry of :attr:`RowMoments.found`).
+        mu : ndarray, shape (S,)
+            Its mean response over each segment (output units).
+        """
+        j, element, _ = entry
+        nu, L, na = self.u_c.shape[1], self.n_lag, self.na
+        num, delay = element.num, element.delay
+        block = self.fir_gram[j, delay:delay + num.size + na]                          # (T + na, nu, L + 1)
+        S = self.z_sums.shape[0]
+        zx = (num @ block[:num.size].reshape(num.size, -1)).reshape(nu, L + 1)[:, 1:] \
+            - np.tensordot(mu, self.z_sums.reshape(S, nu, L), axes=(0, 0))
+        uw = np.stack([num @ block[k:k + num.size, :, 0] for k in range(na + 1)], axis=1) - (mu @ self.u_sums)[:, None]
+        return uw, zx
 
     def _recursive_lags(self, element) -> int:
         """The last lag ``k`` of ``element``'s response from which :meth:`_lag_zero` takes ``V' x(t - k)`` by its
