@@ -388,19 +388,21 @@ def _nested(flat: list, shape: tuple) -> list:
 
 def _step_response_summary(sr: np.ndarray, ramp: tuple, ts: float):
     """(gain, delay in s) of every element of a step-response model: the final value (the last slope
-    per second of a ramp row) and the samples before the response first moves."""
-    from .elements import dead_time_samples
-
+    per second of a ramp row) and the samples before the response first moves
+    (:func:`~mpm_monitor.core.elements.dead_time_samples` of each element, taken for all at once); both 0
+    for an element without a response."""
     ny, nc, n = sr.shape
-    gain = np.zeros((ny, nc))
-    delay = np.zeros((ny, nc))
-    for i in range(ny):
-        for j in range(nc):
-            s = sr[i, j]
-            if not np.any(s != 0):
-                continue
-            gain[i, j] = (s[-1] - s[-2]) / ts if ramp[i] and n >= 2 else s[-1]
-            delay[i, j] = dead_time_samples(s) * ts
+    if n == 0:
+        return np.zeros((ny, nc)), np.zeros((ny, nc))
+    moves = np.any(sr != 0, axis=2)
+    last = sr[:, :, -1]
+    if n >= 2:
+        last = np.where(np.asarray(ramp, dtype=bool)[:, None], (sr[:, :, -1] - sr[:, :, -2]) / ts, last)
+    size = np.abs(sr)
+    moved = size > 1e-9 * size.max(axis=2, keepdims=True)
+    dead = np.argmax(moved, axis=2)                 # the first moved sample (0 where none: no response)
+    gain = np.where(moves, last, 0.0)
+    delay = np.where(moves, dead * ts, 0.0)
     return gain, delay
 
 
