@@ -682,15 +682,19 @@ def settling_samples(model: PlantModel, fraction: float = 1e-3) -> int:
     int
         ``max_ij (delay_ij + (tau_ij + tau2_ij) ln(1/fraction) / T)`` rounded up, + 1, in samples
         (parametric elements); ``max_ij`` of the samples to the element's last impulse-response
-        coefficient, + 1 (step-response elements).
+        coefficient, + 1 (step-response elements; computed once per model).
     """
     present = model.present
     if model.is_step_response:
-        n = []
-        for i, j in zip(*np.nonzero(present)):
-            el = model.discrete_element(i, j)
-            n.append(el.delay + int(np.flatnonzero(el.num)[-1]) + 1)
-        return int(max(n, default=0)) + 1
+        key = ("settling_samples", "step_response")        # every fraction: no free response to decay
+        out = model._derived.get(key)
+        if out is None:
+            n = []
+            for i, j in zip(*np.nonzero(present)):
+                el = model.discrete_element(i, j)
+                n.append(el.delay + int(np.flatnonzero(el.num)[-1]) + 1)
+            out = model._derived[key] = int(max(n, default=0)) + 1
+        return out
     with np.errstate(over="ignore"):        # a lag of 1e308 s: never settles (capped below)
         tau = (model.time_constant + model.time_constant2) / model.sample_time
         n = model.delay_samples + np.ceil(tau * np.log(1.0 / fraction))
