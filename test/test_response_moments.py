@@ -315,3 +315,18 @@ def test_a_long_step_response_by_the_long_gram_and_by_products(monkeypatch, na, 
             w = getattr(want, name)
             np.testing.assert_allclose(getattr(got, name), w, rtol=1e-10, atol=1e-12 * np.abs(w).max(),
                                        err_msg=f"{name}, row {i}")
+
+
+def test_a_long_gram_above_its_memory_cap_is_not_built(monkeypatch):
+    """Beyond FIR_GRAM_MAX_BYTES the long responses' moments are products over the rows (no long Gram)."""
+    from mpm_monitor.core import response_moments
+
+    model, u, d = _long_step_response_window(5)
+    moments = ResponseMoments(model, u, d, [0, 1, 2], 8, 8, 2)
+    nbytes = 3 * 3 * (moments.fir_span + 1) * 9 * 8
+    monkeypatch.setattr(response_moments, "FIR_GRAM_MAX_BYTES", nbytes)
+    assert all(moments._long_fir(e) for _, e, _ in moments.row(0).found)
+    monkeypatch.setattr(response_moments, "FIR_GRAM_MAX_BYTES", nbytes - 1)
+    moments = ResponseMoments(model, u, d, [0, 1, 2], 8, 8, 2)
+    assert not any(moments._long_fir(e) for _, e, _ in moments.row(0).found)
+    assert moments._fir_gram is None

@@ -13,12 +13,14 @@ regression rows:
 ``Z`` is ``n_rows x (n_columns n_lag)`` and there are ``n_outputs n_columns`` elements, so these
 products are most of the cost of an analysis at industrial size.  :class:`ResponseMoments` takes them
 once per row: ``Z' x`` from the element's difference equation and the Gram of the input lags, lag
-after lag (:meth:`ResponseMoments._fill_lags`; by a product over the rows for an element of more
-poles than ``na`` or more numerator taps than the lags), the lags of ``x`` by sums along the
-diagonals of lag pairs (the shift structure of lagged columns) from their products with the columns at
-lag 0, which follow from the same difference equation but for the element's last ``order`` lags
-(:meth:`ResponseMoments._lag_zero`), and it keeps the element responses
-(:attr:`RowMoments.R`) only while the row's whole-response test uses them.  The
+after lag (:meth:`ResponseMoments._fill_lags`); for a finite impulse response with more taps than the
+lags (a step-response model's element), from its taps and a longer Gram out to the longest response
+(:attr:`ResponseMoments.fir_gram`, once per window; :meth:`ResponseMoments._fir_moments`); by a
+product over the rows for any other element of more poles than ``na`` or more numerator taps than
+the lags.  The lags of ``x`` follow by sums along the diagonals of lag pairs (the shift structure of
+lagged columns) from their products with the columns at lag 0, which follow from the same difference
+equation but for the element's last ``order`` lags (:meth:`ResponseMoments._lag_zero`).  The element
+responses (:attr:`RowMoments.R`) are kept only while the row's whole-response test uses them.  The
 whole-response test's ``Z' A_i(q) x`` then follows from these moments exactly
 (:func:`filtered_products`).
 
@@ -37,6 +39,12 @@ import numpy as np
 
 from .arx import lag_matrix, segment_lag_matrix, segment_rows
 from .model import PlantModel
+
+
+#: The largest :attr:`ResponseMoments.fir_gram` built (bytes); beyond it, the long finite impulse responses'
+#: moments are products over the rows, as any other element's (128 MiB: 40 columns, 18 lags and 400
+#: step-response coefficients take 98 MiB).
+FIR_GRAM_MAX_BYTES = 2 ** 27
 
 
 def typical_element(model: PlantModel, i: int):
@@ -498,9 +506,12 @@ class ResponseMoments:
     def _long_fir(self, element) -> bool:
         """Whether ``element`` is a finite impulse response (no pole: a step-response model's element) that
         :meth:`_fir_moments` takes: one with an effect, not :meth:`_recursive`, whose taps and ``na`` more
-        lie within the long Gram (:attr:`fir_gram`)."""
-        return element.order == 0 and not element.is_zero and not self._recursive(element) \
-            and element.delay + element.num.size + self.na <= self.fir_span + 1
+        lie within the long Gram (:attr:`fir_gram`), which takes at most :data:`FIR_GRAM_MAX_BYTES`."""
+        if element.order != 0 or element.is_zero or self._recursive(element):
+            return False
+        nu = self.u_c.shape[1]
+        fits = nu * nu * (self.fir_span + 1) * (self.n_lag + 1) * 8 <= FIR_GRAM_MAX_BYTES
+        return fits and element.delay + element.num.size + self.na <= self.fir_span + 1
 
     @property
     def fir_span(self) -> int:
