@@ -17,6 +17,8 @@ AWKWARD = [
     [1.5, -0.0, 1e300, 5e-324, 1e16, 123456789.0, 0.1],
     [float("nan")], [1, 2, 3], ["x", "y"], [None], 7, 2.5, "text", None, True, [], {},
     {"nested": {"deeper": {"list": [{"k": [0.5]}]}}},
+    [0, 0, 1, 0.25, -3, 1e300, 2 ** 70, float("nan"), -0.0, float("inf"), -math.inf, 5e-324],   # ints and floats
+    {"step_response": [[[0, 0, 0.5, 1], [0, 1.25, 2, 2]], [[0, 0, 0, 0]]]},
 ]
 
 
@@ -28,7 +30,8 @@ def test_the_same_text_as_json_dumps(doc, indent):
 
 def test_what_the_fast_path_does_not_write_is_left_to_json():
     # Keys that are not strings, and numpy scalars (a subclass of float and one that is not): json's own rules.
-    for doc in ({1: 2, "a": [1.0]}, {"x": np.float64(0.25)}, [np.float64(1.5), 2.0], {"y": [np.int64(3)]}):
+    for doc in ({1: 2, "a": [1.0]}, {"x": np.float64(0.25)}, [np.float64(1.5), 2.0], {"y": [np.int64(3)]},
+                [1, np.float64(0.5)], [0, True, 1.5]):
         try:
             expected = json.dumps(doc, indent=2)
         except TypeError as exc:
