@@ -294,7 +294,8 @@ def test_the_long_gram_equals_the_products_of_lag_matrices_from_rest_in_each_seg
     np.testing.assert_allclose(moments.fir_gram, want, rtol=1e-11, atol=1e-12 * np.abs(want).max())
 
 
-@pytest.mark.parametrize("na, segments", [(2, None), (3, [(0, 500), (500, 540), (540, 1500)]), (1, [(0, 750), (750, 1500)])])
+@pytest.mark.parametrize("na, segments", [(2, None), (3, [(0, 500), (500, 540), (540, 1500)]),
+                                          (1, [(0, 750), (750, 1500)])])
 def test_a_long_step_response_by_the_long_gram_and_by_products(monkeypatch, na, segments):
     """A step-response model's elements longer than the lags (finite impulse responses): every moment of the
     row from their taps and the long Gram, against the products over the rows; the ramp row's elements (a

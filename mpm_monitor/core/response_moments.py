@@ -364,8 +364,8 @@ class ResponseMoments:
         uw = np.moveaxis(V[:nu], 1, 2).reshape(nu, m * (na + 1))
         ow = np.moveaxis(V[nu:], 1, 2).reshape(na, m * (na + 1))
         xsum = np.stack([x.sum(axis=0) for x in lags], axis=1)                          # (m, na + 1)
-        # The elements whose Z' x follows from their difference equation (see _fill_lags); the others'
-        # is taken by a product over the rows.
+        # The elements whose Z' x follows from their difference equation (see _fill_lags); the long finite
+        # impulse responses' from their taps (fir, above); the others' is taken by a product over the rows.
         rec = [b for b in range(m) if rec_lags[b] >= 0]
         direct = [b for b in range(m) if rec_lags[b] < 0 and b not in fir]
         u_head, u_tail = self.u_head, self.u_tail                           # (S, nu, L): u(start - l), u(N - l)

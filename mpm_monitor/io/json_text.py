@@ -4,9 +4,9 @@ Python's :mod:`json` writes indented text with its pure-Python encoder (its C en
 ``indent=None``): at 100 outputs x 40 inputs a report's 3.5 MB took about 0.16 s.  :func:`dumps_indented`
 gives the same text for the values a report holds (dicts with string keys, lists, tuples, strings,
 integers, floats, booleans and None), writing a list of plain floats, or of plain integers and floats,
-at once; anything else (another
-key type, a subclass, a value :mod:`json` would refuse or convert by ``default``) is handed to
-:func:`json.dumps` whole, so the result is always the text :func:`json.dumps` gives.
+at once; anything else (another key type, a subclass, a value :mod:`json` would refuse or convert by
+``default``) is handed to :func:`json.dumps` whole, so the result is always the text :func:`json.dumps`
+gives.
 """
 
 from __future__ import annotations
