@@ -331,3 +331,40 @@ def test_a_long_gram_above_its_memory_cap_is_not_built(monkeypatch):
     moments = ResponseMoments(model, u, d, [0, 1, 2], 8, 8, 2)
     assert not any(moments._long_fir(e) for _, e, _ in moments.row(0).found)
     assert moments._fir_gram is None
+
+
+def test_a_step_response_models_detection_by_the_long_gram_and_by_products(monkeypatch):
+    """End to end: case 3.2's loop analysed with its model as step responses (300 coefficients, more than the
+    lags): the report through the long Gram is the report through products over the rows, to rounding (the
+    element tests, the detectable gain changes, the located elements)."""
+    import warnings
+
+    from mpm_monitor.apps.reproduce import simulate_case
+
+    case, data, _ = simulate_case("3.2", 3000, 3)
+    m = case.model
+    coefs = [[m.discrete_element(i, j).step_response(301)[1:] for j in range(m.n_columns)] for i in range(m.n_outputs)]
+    model = PlantModel.from_step_response(m.sample_time, m.inputs, m.outputs, coefs)
+    calls = []
+    taps = ResponseMoments._fir_moments
+
+    def counted(self, *args):
+        calls.append(args[0][0])
+        return taps(self, *args)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        monkeypatch.setattr(ResponseMoments, "_fir_moments", counted)
+        got = detect(model, data, AnalysisOptions()).to_dict()
+        assert len(calls) >= model.n_outputs * model.n_columns             # every row's elements took it
+        monkeypatch.setattr(ResponseMoments, "_long_fir", lambda self, element: False)
+        want = detect(model, data, AnalysisOptions()).to_dict()
+    assert got["located"] == want["located"] and got["located"]
+    assert len(got["elements"]) == len(want["elements"]) == 9
+    for g, w in zip(got["elements"], want["elements"]):
+        assert g.keys() == w.keys()
+        for key, value in w.items():
+            if isinstance(value, float):
+                assert g[key] == pytest.approx(value, rel=1e-8, abs=1e-300), (g["output"], g["input"], key)
+            else:
+                assert g[key] == value, (key, g[key], value)
