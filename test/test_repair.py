@@ -275,6 +275,35 @@ def test_disturbance_false_alarm_rate_on_paper_noise():
     assert alarms <= 8
 
 
+def test_the_outputs_disturbance_tests_are_one_family():
+    """Holm over the outputs tested: an output's test reports a disturbance only when its adjusted p-value is
+    below alpha (its own kept as p_value_raw); an output not tested is not counted; and over 100 sets of 20
+    outputs of the paper's noise alone, sets with any report stay at about alpha, where the outputs each at
+    alpha would give about 1 - 0.99**20 = 18 %."""
+    from mpm_monitor.core.repair.disturbance import not_tested
+    from mpm_monitor.core.repair.model_repair import _one_family
+
+    def test_with(p):
+        return dict(not_tested(), p_value=p, p_step=2 * p, p_drift=min(1.0, 4 * p), tested=True,
+                    **({"detected": True, "kind": "step", "index": 7} if p < 0.01 else {}))
+
+    tests = {0: test_with(0.006), 1: test_with(1e-6), 2: test_with(0.3), 3: not_tested()}
+    _one_family(tests, 0.01)
+    assert [tests[i]["detected"] for i in range(4)] == [False, True, False, False]
+    assert tests[1]["kind"] == "step" and tests[0]["kind"] is None and tests[0]["index"] is None
+    assert tests[0]["p_value"] == pytest.approx(0.012) and tests[0]["p_value_raw"] == 0.006
+    assert tests[1]["p_value"] == pytest.approx(3e-6) and tests[2]["p_value"] == pytest.approx(0.3)
+    assert "p_value_raw" not in tests[3] and tests[3]["p_value"] == 1.0
+    rng = np.random.default_rng(11)
+    alone = family = 0
+    for _ in range(100):
+        sets = {i: unexplained_disturbance(_paper_noise(rng, 1500), alpha=0.01) for i in range(20)}
+        alone += any(t["detected"] for t in sets.values())
+        _one_family(sets, 0.01)
+        family += any(t["detected"] for t in sets.values())
+    assert alone >= 8 and family <= 4        # Binomial(100, 0.18) >= 8 and Binomial(100, <= 0.01) <= 4: > 99 %
+
+
 def test_disturbance_step_and_drift_are_told_apart():
     rng = np.random.default_rng(7)
     n = 3000

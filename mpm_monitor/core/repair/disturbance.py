@@ -116,9 +116,10 @@ def _drift_wald(X: np.ndarray, yv: np.ndarray):
 
 def not_tested() -> dict:
     """What :func:`unexplained_disturbance` returns for a signal it does not test (too short, not finite, fitted
-    exactly) or in which it finds nothing: no disturbance detected."""
+    exactly; ``tested`` false) or, with ``tested`` true and its p-values, one in which it finds nothing: no
+    disturbance detected."""
     return {"detected": False, "kind": None, "size": 0.0, "time": None, "index": None, "rate": None, "p_value": 1.0,
-            "p_step": 1.0, "p_drift": 1.0, "statistic": 0.0}
+            "p_step": 1.0, "p_drift": 1.0, "statistic": 0.0, "tested": False}
 
 
 def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: float = 0.01, trim: float = 0.15,
@@ -152,7 +153,8 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
         height, or the drift over the whole record), ``time`` (s, the step instant or None),
         ``index`` (the sample of ``d`` where the step starts, or None),
         ``rate`` (output units per second, drift only), ``p_value`` (the smaller of the two tests,
-        Bonferroni-adjusted), ``p_step``, ``p_drift``, ``statistic`` (of the reported kind).
+        Bonferroni-adjusted), ``p_step``, ``p_drift``, ``statistic`` (of the reported kind), ``tested``
+        (False: the signal was not tested, see :func:`not_tested`).
 
     Notes
     -----
@@ -200,7 +202,7 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
     p_step = min(1.0, 2.0 * sup_wald_p_value(w_step, trim))
     w_drift, ssr_drift = _drift_wald(X, yv)
     p_drift = min(1.0, 2.0 * float(chi2_tail(w_drift, 1)))
-    out.update(p_step=p_step, p_drift=p_drift, p_value=min(p_step, p_drift))
+    out.update(p_step=p_step, p_drift=p_drift, p_value=min(p_step, p_drift), tested=True)
     step_hit, drift_hit = p_step < alpha, p_drift < alpha
     if not (step_hit or drift_hit):
         return out

@@ -22,6 +22,7 @@ from ..logged_data import LoggedData, check_loop_data, in_deviations, moving_col
 from ..model import PlantModel
 from ..signals import (LoopSignals, compute_signals, error_rms, packed, scored_segments, segment_signals,
                        segments_mask, unknown_starts)
+from ..statistics import holm_adjust
 from .classify import _classify_row
 from .disturbance import not_tested, unexplained_disturbance
 from .fit import _TooShort
@@ -491,12 +492,39 @@ def _evaluate(rec: _Record, results: dict) -> _Evaluation:
                                    _disturbance_test(d[:, i], segments, float(rec.spread[i]), rec.model, rec.options,
                                                      bool(rec.moving[i])))
         tests[i] = dict(done[2])
+    _one_family(tests, rec.options.disturbance_alpha)
     if rec.segments is not None:      # the step's time since the first sample, the missing samples counted
         t = np.asarray(rec.data.t, float)
         for test in tests.values():
             if test["index"] is not None:
                 test["time"] = float(t[test["index"]] - t[0])
     return _Evaluation(model=repaired, signals=sig, tests=tests)
+
+
+def _one_family(tests: dict, alpha: float) -> None:
+    """The unexplained-disturbance tests of every output as one family, in place: Holm's adjusted p-value
+    (:func:`~mpm_monitor.core.statistics.holm_adjust`) over the outputs tested becomes each test's
+    ``p_value`` (its own in ``p_value_raw``), and a test whose adjusted value is not below ``alpha`` no longer
+    reports a disturbance.  So a loop without one reports one with probability at most ``alpha`` however
+    many outputs it has (each output alone at ``alpha`` reported one on 63 % of 100-output loops).
+
+    Parameters
+    ----------
+    tests : dict
+        ``{output index: test}``, each :func:`unexplained_disturbance`'s result (``detected`` exactly when
+        its ``p_value`` is below ``alpha``); an output not tested keeps its test and is not counted.
+    alpha : float
+        The family-wise level (:attr:`RepairOptions.disturbance_alpha`).
+    """
+    tested = [i for i, test in tests.items() if test.get("tested")]
+    if not tested:
+        return
+    for i, adjusted in zip(tested, holm_adjust([tests[i]["p_value"] for i in tested])):
+        test, adjusted = tests[i], float(adjusted)
+        if test["detected"] and not adjusted < alpha:
+            tests[i] = test = dict(not_tested(), p_step=test["p_step"], p_drift=test["p_drift"],
+                                   p_value=test["p_value"], tested=True)
+        test["p_value_raw"], test["p_value"] = test["p_value"], adjusted
 
 
 def _disturbance_test(d: np.ndarray, segments, scale: float, model: PlantModel, options: RepairOptions,
@@ -616,7 +644,7 @@ def _disturbance_findings(rec: _Record, tests: dict):
             continue
         disturbances.append({"output": name, "kind": test["kind"], "size": test["size"],
                              "time": test["time"], "rate": test["rate"], "p_value": test["p_value"],
-                             "statistic": test["statistic"]})
+                             "p_value_raw": test["p_value_raw"], "statistic": test["statistic"]})
         if test["kind"] == "step":
             # At the log's own time (the stamp of the sample the step is at): ``time`` counts from the first sample,
             # which read as 1164 s beside the gap warnings' 1700001664 s in a live window.
