@@ -43,8 +43,9 @@ class RepairOptions:
         After a successful validation, refit the accepted elements on the whole record (delays
         searched again within a few samples of the validated ones).
     disturbance_alpha : float
-        False-alarm probability per output of the unexplained-disturbance check (split equally
-        between the step and the drift test), in (0, 0.5).
+        False-alarm probability of the unexplained-disturbance checks, all outputs together (Holm's
+        procedure over the outputs; each output's check split equally between the step and the drift
+        test), in (0, 0.5).
     disturbance_trim : float
         Fraction of the record at each end where a step is not searched (sup-Wald trimming), in
         [0.05, 0.3].
