@@ -321,6 +321,36 @@ def test_the_repairs_disturbance_tests_run_in_the_idle_second_process(case_32, m
     assert _json(one) == _json(two) and _all_reaped(forks)
 
 
+@pytest.mark.parametrize("gaps", [False, True])
+def test_the_repairs_rows_are_taken_by_two_processes_with_the_same_result(case_32, monkeypatch, forks, tmp_path, gaps):
+    """Case 3.2 repairs rows y1 and y2: with two processes (the threshold at 0 for this small window) each row is
+    processed whole by one of them, and the report is the one of one process."""
+    from mpm_monitor.core import analysis
+    from mpm_monitor.core.repair import model_repair
+
+    case, data = case_32
+    if gaps:
+        keep = np.ones(data.n_samples, bool)
+        keep[[300, 301, 1700]] = False
+        data = data.take(np.flatnonzero(keep))
+    one = analyze(case.model, data, AnalysisOptions(jobs=1))
+    assert {c["output"] for c in one.repair["changes"] if c["applied"]} == {"y1", "y2"}
+    log = tmp_path / "rows"
+    process = model_repair._process_row
+
+    def logged(rec, i, *args, **kwargs):
+        with open(log, "a") as f:          # a child's side effects stay in the child: its pid goes to a file
+            f.write(f"{os.getpid()} {i}\n")
+        return process(rec, i, *args, **kwargs)
+    monkeypatch.setattr(model_repair, "_process_row", logged)
+    monkeypatch.setattr(analysis, "SPLIT_MIN_WORK", 0)
+    two = analyze(case.model, data, AnalysisOptions(jobs=2))
+    rows = [line.split() for line in log.read_text().splitlines()]
+    assert sorted(int(i) for _, i in rows) == [0, 1]
+    assert len({pid for pid, _ in rows}) == 2 and _all_reaped(forks)
+    assert _json(one) == _json(two)
+
+
 def test_an_error_after_the_disturbance_tests_started_leaves_no_child(case_32, monkeypatch, forks):
     from mpm_monitor.core import analysis, pipeline
 

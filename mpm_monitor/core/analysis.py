@@ -507,6 +507,12 @@ SPLIT_MIN_WORK = 1_000_000
 LIGHT_SPLIT_MIN_WORK = 10_000_000
 
 
+def row_jobs(jobs: int, n_samples: int, model: PlantModel) -> int:
+    """The processes the stages split row by row use on a window of ``n_samples`` (the element test, the
+    repair): ``jobs`` from :data:`SPLIT_MIN_WORK` samples x outputs x columns, else 1."""
+    return jobs if n_samples * model.n_outputs * model.n_columns >= SPLIT_MIN_WORK else 1
+
+
 def light_jobs(jobs: int, n_samples: int, model: PlantModel) -> int:
     """The processes the lighter stages use on a window of ``n_samples``: ``jobs`` from
     :data:`LIGHT_SPLIT_MIN_WORK` samples x outputs x columns, else 1."""

@@ -20,7 +20,7 @@ from typing import Optional
 import numpy as np
 
 from .analysis import (AnalysisOptions, AnalysisReport, Coloured, detect, detect_unless_coloured, light_jobs,
-                       settle_report)
+                       row_jobs, settle_report)
 from .errors import DataFileError
 from .logged_data import NUMERICAL_ERRORS, LoggedData, in_deviations, numerical_breakdown
 from .model import PlantModel
@@ -178,15 +178,16 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
         return dataclasses.replace(settle_report(report), regressions=None)
     # The tests computed ahead (of the model as given, on data without gaps): repair_model takes only those that
     # fit its record, settings and prediction errors.
+    jobs = row_jobs(options.jobs, span.n_samples, wide)      # the rows to repair, as the element test's
     result = repair_model(wide, span, located, repair_options, signals=span_signals, classified=classified,
-                          disturbance_tests=None if ahead is None else ahead.result())
+                          disturbance_tests=None if ahead is None else ahead.result(), jobs=jobs)
     after_data, nominal = data, None
     if names:
         nominal = _candidate_operating_points(result, names)
         if nominal is not None:     # the repair again with the channels' operating points
             wide, wide_data = _with_candidates(model, data, names, nominal)
             span, note = repair_data(wide_data, report.gaps is not None, options, wide)
-            result = repair_model(wide, span, located, repair_options, classified=classified)
+            result = repair_model(wide, span, located, repair_options, classified=classified, jobs=jobs)
         result, after_data = _keep_applied_candidates(model, data, result, tried, names, nominal)
     after = None
     if result.model != model:

@@ -20,6 +20,7 @@ from ..discretize import model_columns
 from ..errors import ConfigurationError, InputError
 from ..logged_data import LoggedData, check_loop_data, in_deviations, moving_columns, t_text
 from ..model import PlantModel
+from ..parallel import split_map
 from ..signals import (LoopSignals, compute_signals, error_rms, packed, scored_segments, segment_signals,
                        segments_mask, unknown_starts)
 from ..statistics import holm_adjust
@@ -614,17 +615,23 @@ def _seed_tests(rec: _Record, given: Optional[DisturbanceTests]) -> None:
         rec.tests[i] = (given.d[:, i], None, test)
 
 
-def _redo_disturbed_rows(rec: _Record, located: list, rows: list, results: dict, tests: dict) -> bool:
+def _redo_disturbed_rows(rec: _Record, located: list, rows: list, results: dict, tests: dict,
+                         jobs: int = 1) -> bool:
     """Process again, with the step or ramp as a nuisance regressor, every repaired row whose
     residual shows an unexplained disturbance (it stays in the residual: the model has no place
-    for it, but it would bias the elements).  Returns whether a row was redone."""
+    for it, but it would bias the elements), ``jobs`` processes taking the rows (:func:`repair_model`).
+    Returns whether a row was redone."""
     n = rec.n
     redo = [i for i in rows if tests[i]["detected"]]
-    for i in redo:
+
+    def one_row(i: int) -> _RowOutcome:
         t = tests[i]
         k = np.arange(n, dtype=float)
         col = (k >= t["index"]).astype(float) if t["kind"] == "step" else k / n
-        results[i] = _process_row(rec, i, _located_in_row(located, i), col[:, None])
+        return _process_row(rec, i, _located_in_row(located, i), col[:, None])
+    for i, outcome in zip(redo, split_map(one_row, redo, jobs)):
+        t = tests[i]
+        results[i] = outcome
         results[i].warnings.append(
             f"{rec.model.outputs[i]}: the re-estimation of its elements allowed for the unexplained "
             f"{'step' if t['kind'] == 'step' else 'drift'} in the prediction error.")
@@ -712,7 +719,7 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
 def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
                  options: RepairOptions = RepairOptions(), signals: Optional[LoopSignals] = None,
                  classified: Optional["JointClassification"] = None,
-                 disturbance_tests: Optional[DisturbanceTests] = None) -> RepairResult:
+                 disturbance_tests: Optional[DisturbanceTests] = None, jobs: int = 1) -> RepairResult:
     """Re-estimate the located elements, classify their mismatch, and validate the repair.
 
     Parameters
@@ -738,6 +745,10 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
         its test instead of being tested again.  Ignored unless taken with these options and scales on a
         record without gaps; each test is used only where its prediction error is the one the repair
         would test.
+    jobs : int
+        Processes: with 2, a forked second process takes part of the rows to repair, each row's
+        classification, fits and held-out check whole (:func:`~mpm_monitor.core.parallel.split_map`: the same
+        code on the same numbers, so the same result as in one process).
 
     Returns
     -------
@@ -751,12 +762,13 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
     _seed_tests(rec, disturbance_tests)
     found = _Findings()
     rows = _rows_to_repair(rec, located, found)
-    results = {}
-    for i in rows:
+
+    def one_row(i: int) -> _RowOutcome:
         js = _located_in_row(located, i)
-        results[i] = _process_row(rec, i, js, None, classified.of_row(i, js) if classified is not None else None)
+        return _process_row(rec, i, js, None, classified.of_row(i, js) if classified is not None else None)
+    results = dict(zip(rows, split_map(one_row, rows, jobs)))
     ev = _evaluate(rec, results)
-    if _redo_disturbed_rows(rec, located, rows, results, ev.tests):
+    if _redo_disturbed_rows(rec, located, rows, results, ev.tests, jobs):
         ev = _evaluate(rec, results)
     return _assemble(rec, results, found, ev)
 
