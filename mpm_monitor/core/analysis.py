@@ -151,7 +151,8 @@ class AnalysisOptions:
         rows, of the Gram matrices' products, of S_Delta's singular values and of the channels searched
         for spikes (:data:`SPLIT_MIN_WORK`, :data:`LIGHT_SPLIT_MIN_WORK`); in
         :func:`~mpm_monitor.core.pipeline.analyze` it computes the detectable gain changes and the
-        experiment while the model is repaired and the repaired model detected.  The results are the
+        experiment while the model is repaired and the repaired model detected, and on a window of at least
+        :data:`SPLIT_MIN_WORK` takes rows to repair, each whole (:func:`row_jobs`).  The results are the
         same bit for bit, since each part is computed by the same code on the same numbers.  A process that runs other threads (a ROS node)
         never forks: it computes everything itself.  At most 2 are used.
     """
