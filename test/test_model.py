@@ -121,6 +121,35 @@ def test_with_element_changes_one_element_only():
     assert new != model
 
 
+def _model_variants():
+    """Pairs of models that differ in one thing each, or in nothing (a copy, an integer for a float)."""
+    base = shell_plant()
+    step = PlantModel.from_step_response(1.0, base.inputs, base.outputs,
+                                         np.cumsum(np.full((3, 3, 5), 0.25), axis=2), name="dmc")
+    variants = [base, base.replace(), base.replace(gain=np.array(base.gain)), base.replace(sample_time=0.5),
+                base.replace(name="other"), base.replace(outputs=("a", "b", "c")), base.with_element(1, 1, lead=3.0),
+                base.with_element(0, 0, time_constant2=4.0), base.with_element(2, 0, integrating=True, time_constant=0.0),
+                base.with_element(2, 2, delay=1), base.replace(input_nominal=[1.0, 0, 0]),
+                base.replace(output_nominal=[0, 0, -0.0]), base.with_element(0, 1, gain=-0.0 + base.gain[0, 1]),
+                step, step.replace(), step.replace(ramp=(True, False, False)), step.replace(name=""),
+                step.replace(step_response=np.array(step.step_response)[:, :, :4]),
+                step.replace(step_response=np.array(step.step_response) * (1 + 1e-15))]
+    return variants
+
+
+def test_models_are_equal_when_they_write_the_same_file():
+    """``==`` compares the arrays; the file's dicts (:meth:`PlantModel.to_dict`) are the reference."""
+    variants = _model_variants()
+    pairs = 0
+    for a in variants:
+        for b in variants:
+            assert (a == b) == (a.to_dict() == b.to_dict()), (a.to_dict(), b.to_dict())
+            assert (a != b) == (a.to_dict() != b.to_dict())
+            pairs += a == b
+    assert len(variants) < pairs < len(variants) ** 2 // 2     # equal pairs beyond the diagonal, and unequal ones
+    assert shell_plant().__eq__("a model") is NotImplemented
+
+
 # --------------------------------------------------------------------------- bad files
 
 BAD_FILES = {
