@@ -13,6 +13,7 @@ import pytest
 from mpm_monitor.apps.cli import main
 from mpm_monitor.apps.reproduce import simulate_case
 from mpm_monitor.core.analysis import AnalysisOptions, detect
+from mpm_monitor.core.discretize import discretize
 from mpm_monitor.core.errors import DataFileError
 from mpm_monitor.core.gaps import plan_gaps
 from mpm_monitor.core.pipeline import analyze
@@ -575,3 +576,63 @@ def test_too_few_rows_after_bad_values_left_out_says_so(case_32, tmp_path):
     with pytest.raises(TooFewSamples, match=r"need at least \d+ rows .*; .*bad.csv: 1500 rows left out as missing "
                                             r"samples .*column 'y2': 'Bad'"):
         detect(case.model, gappy, DETECT)
+
+
+def test_a_step_response_model_is_validated_after_gaps_in_the_held_out_part(case_32):
+    """Case 3.2 with its model in step-response form (about 730 coefficients) and one-sample gaps at 2,200
+    and 2,800, so that every held-out sample (from 2,250) lies within a response's length after a gap.  The
+    held-out check leaves out after a gap only the samples within the dead time, as for the parametric
+    model (:attr:`~mpm_monitor.core.discretize.DiscreteElements.transient_onset`); leaving out the whole
+    response, it had no sample left, compared two NaN errors and rejected every repair (kind ``unknown``)."""
+    from bench.step_models import step_form
+
+    case, data = case_32
+    gappy = _drop(data, [2200, 2800])
+    step = step_form(case.model)
+    assert step.step_length > 600
+    disc = discretize(step)
+    assert disc.transient_onset == int(disc.input_lag[disc.active].max()) < disc.memory
+    report = analyze(step, gappy, AnalysisOptions())
+    assert sorted(report.located_elements) == sorted(case.mismatched_elements)
+    changes = report.repair["changes"]
+    assert all(c["applied"] for c in changes) and all(e.kind != "unknown" for e in report.elements if e.mismatch)
+    assert not [w for w in report.warnings if "nan" in w]
+    assert all(v is not None for v in report.repair["holdout_error_after"].values())
+
+
+def test_transient_onset_is_the_memory_of_every_parametric_model():
+    """The samples the scoring leaves out after a gap change only for step-response models: every element
+    structure (the random plants of ``bench.structures_mc``: lags, leads, integrators, pure gains, measured
+    disturbances)."""
+    from bench.structures_mc import StructuresOptions, make_structures_scenario
+    from structure_models import first_order_model, rich_model
+
+    models = [rich_model(), first_order_model(), simulation_case("3.3").model, simulation_case("level").model]
+    for k in range(40):
+        sc = make_structures_scenario(0, k, StructuresOptions(pure_gains=k % 2 == 1))
+        models += [sc.plant, sc.model]
+    assert any(discretize(m).memory for m in models)
+    for model in models:
+        disc = discretize(model)
+        assert disc.transient_onset == disc.memory
+
+
+def test_a_held_out_part_without_a_scored_sample_leaves_the_repair_unvalidated(case_32, monkeypatch):
+    """Where gaps leave no held-out sample scored, the repair stands as without a held-out part, with a
+    warning, instead of comparing two NaN errors."""
+    from mpm_monitor.core.repair import model_repair
+
+    case, data = case_32
+    gappy = _drop(data, [2400])
+    scored = model_repair._Record.scored
+
+    def none_held_out(rec, *models):
+        keep = scored(rec, *models)
+        keep[rec.n_fit:] = False
+        return keep
+    monkeypatch.setattr(model_repair._Record, "scored", none_held_out)
+    located = [(case.model.outputs.index(o), case.model.columns.index(c)) for o, c in case.mismatched_elements]
+    result = repair_model(case.model, gappy, located)
+    assert all(c["applied"] for c in result.changes)
+    said = [w for w in result.warnings if "were not validated on data outside the fit" in w]
+    assert said and all("nan" not in w for w in result.warnings)

@@ -190,6 +190,23 @@ class DiscreteElements:
         denominator states (free responses ``a^k``): the longest shift register."""
         return int(self.register_length.max(initial=0))
 
+    @functools.cached_property
+    def transient_onset(self) -> int:
+        """Samples after which the inputs before a record act on the outputs only through responses that
+        decay as a free response does: :attr:`memory` for the elements with a denominator, the input lag
+        (the dead time) for a finite impulse response (a step-response element, whose coefficients after
+        its dead time act as the free response of a parametric element; its settling is
+        :func:`settling_samples`'s).  Equal to :attr:`memory` unless a finite impulse response has more
+        than two coefficients."""
+        out = 0
+        for i, j in zip(*np.nonzero(self.active)):
+            lag = int(self.input_lag[i, j])
+            den = self.denominators[i][j]
+            if den.size > 1:
+                lag += max(self.numerators[i][j].size - den.size, 0)
+            out = max(out, lag)
+        return out
+
     def poles(self, i: int, j: int) -> np.ndarray:
         """Poles of the strictly proper part of element (i, j) in the z-plane, shape (n,) (exact for first order)."""
         if not self.active[i, j]:

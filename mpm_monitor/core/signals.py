@@ -412,10 +412,11 @@ def scored_segments(segments, *models: PlantModel, settled: bool = False, restar
 
     The first segment is kept whole (its initial state is that of any record, estimated as without
     gaps).  A later segment loses its first samples: the longest shift register of ``models``
-    (:attr:`~mpm_monitor.core.discretize.DiscreteElements.memory`: while the model output still
-    depends on the columns inside the gap) and, with ``settled``, also those before the free
-    responses have decayed to :data:`SETTLED_FRACTION` (:func:`~mpm_monitor.core.discretize.settling_samples`;
-    the per-segment estimate of that state is not exact).
+    (:attr:`~mpm_monitor.core.discretize.DiscreteElements.transient_onset`: while the model output still
+    depends on the columns inside the gap other than through a decaying response; for a step-response
+    element its dead time) and, with ``settled``, also those before the free responses have decayed to
+    :data:`SETTLED_FRACTION` (:func:`~mpm_monitor.core.discretize.settling_samples`; the per-segment
+    estimate of that state is not exact; a step-response element's whole response).
 
     Parameters
     ----------
@@ -434,7 +435,7 @@ def scored_segments(segments, *models: PlantModel, settled: bool = False, restar
     list of (int, int)
     """
     segments = [(int(a), int(b)) for a, b in segments]
-    skip = max(discretize(m).memory for m in models)
+    skip = max(discretize(m).transient_onset for m in models)
     if settled:
         skip += max(settling_samples(m, SETTLED_FRACTION) for m in models)
     restarts = range(1, len(segments)) if restarts is None else set(restarts)

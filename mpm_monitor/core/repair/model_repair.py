@@ -372,10 +372,14 @@ def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnin
     held-out part).  When the candidate is not better by ``min_holdout_improvement``, the applied
     verdicts are rejected and a warning is added.
 
+    A record with gaps whose held-out part holds no scored sample (:meth:`_Record.scored`) cannot be
+    validated: the repair is accepted, with a warning, as without a held-out part.
+
     Returns
     -------
     accepted : bool
-    h_after, h_before : float
+    h_after, h_before : float or None
+        None when the held-out part holds no scored sample.
     """
     model, i, options = rec.model, row.i, rec.options
     name = model.outputs[i]
@@ -383,10 +387,18 @@ def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnin
     for j, el in elements.items():
         if el.apply:
             candidate = el.applied_to(candidate, i, j)
+    keep = rec.scored(model, candidate)
+    if keep is not None and not keep[rec.n_fit:].any():
+        # Gaps in the held-out part, each followed by more samples than are left to its end that still depend on
+        # the columns the gap held: as with no held-out part, the repair stands unvalidated.
+        warnings.append(f"{name}: the held-out last {100 * options.holdout_fraction:.0f}% of the record holds no "
+                        f"sample that does not depend on the columns held through a gap; the re-estimated "
+                        f"element(s) {', '.join(model.columns[j] for j in js)} were not validated on data outside "
+                        f"the fit.")
+        return True, None, None
     sig_c = rec.signals_of(candidate)
     # The unexplained disturbance is no model's job either: compare without it (the step or ramp
     # fitted over the held-out part), since a wrong element can partly cancel it.
-    keep = rec.scored(model, candidate)
     h_after = rec.holdout(sig_c.d[:, i], keep, row.extra)
     h_before = rec.holdout_before[name] if (row.extra is None and keep is None) else \
         rec.holdout(rec.d0[:, i], keep, row.extra)
