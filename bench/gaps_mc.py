@@ -3,7 +3,7 @@
 Run::
 
     python -m bench.gaps_mc [--paper-seeds 20] [--runs 150] [--seed 0] [--samples 3000] [--drop 0.002]
-                            [--jobs 1] [--out bench/results/gaps_mc.json]
+                            [--jobs 1] [--repair] [--step-form] [--out bench/results/gaps_mc.json]
 
 Every run simulates one closed loop -- the paper's three cases (:mod:`bench.paper_cases`, seeds
 ``1000 ..``) and the random scenarios of :mod:`bench.monte_carlo` (family ``--seed``, indices ``0 ..``)
@@ -19,7 +19,9 @@ Every run simulates one closed loop -- the paper's three cases (:mod:`bench.pape
 
 Figures: the fraction of runs whose located elements (and flagged rows) are the same with drops as
 without (acceptance: at least 99 %), and the false-alarm rate (runs with any located element among
-the runs without a mismatch) of the three analyses.  The drops of run ``k`` are a pure function of
+the runs without a mismatch) of the three analyses.  ``--step-form`` analyses the same loops with the
+controller's model in step-response form (:func:`bench.step_models.step_form`, about twelve time
+constants of every element), written to ``bench/results/gaps_mc_step.json``.  The drops of run ``k`` are a pure function of
 the run, so ``--jobs`` only changes the speed.
 
 ``--repair`` adds the repair on the same drops.  In every run with a mismatch, the true mismatched
@@ -56,6 +58,7 @@ from .monte_carlo import family_log
 from .structures_mc import REPAIR_TOLERANCE, step_response_error
 
 DEFAULT_OUT = "bench/results/gaps_mc.json"
+STEP_OUT = "bench/results/gaps_mc_step.json"
 DROP = 1.0 / 500
 NS = 1_000_000_000
 OPTIONS = AnalysisOptions(repair=False)
@@ -109,9 +112,15 @@ def _repairs(model, plant, data: LoggedData, offline: LoggedData, pairs: list) -
     return out
 
 
-def run_one(kind: str, name: str, seed: int, samples: int, drop: float, repair: bool = False) -> dict:
-    """Simulate one run, drop samples and analyse it full, offline and live; a JSON-ready record."""
+def run_one(kind: str, name: str, seed: int, samples: int, drop: float, repair: bool = False,
+            step: bool = False) -> dict:
+    """Simulate one run, drop samples and analyse it full, offline and live (with ``step``, the controller's
+    model in step-response form); a JSON-ready record."""
     model, plant, data, truth = family_log(kind, name, seed, samples)
+    if step:
+        from .step_models import step_form
+
+        model = step_form(model)
     rng_seed = (seed, CASE_NAMES.index(name)) if kind == "paper" else (seed, int(name), 7)
     kept = drop_rows(data.n_samples, drop, np.random.default_rng(list(rng_seed)))
     offline = data.take(kept)
@@ -134,9 +143,11 @@ def _run_star(args):
     return run_one(*args)
 
 
-def tasks(paper_seeds: int, runs: int, seed: int, samples: int, drop: float, repair: bool = False) -> list:
-    out = [("paper", name, s, samples, drop, repair) for name in CASE_NAMES for s in range(1000, 1000 + paper_seeds)]
-    return out + [("mc", str(k), seed, samples, drop, repair) for k in range(runs)]
+def tasks(paper_seeds: int, runs: int, seed: int, samples: int, drop: float, repair: bool = False,
+          step: bool = False) -> list:
+    out = [("paper", name, s, samples, drop, repair, step) for name in CASE_NAMES
+           for s in range(1000, 1000 + paper_seeds)]
+    return out + [("mc", str(k), seed, samples, drop, repair, step) for k in range(runs)]
 
 
 def summarize(records: Sequence[dict]) -> dict:
@@ -194,13 +205,13 @@ def format_table(summary: dict, drop: float) -> str:
 
 
 def run(paper_seeds: int, runs: int, seed: int = 0, samples: int = 3000, drop: float = DROP, jobs: int = 1,
-        progress: bool = False, repair: bool = False) -> dict:
-    todo = tasks(paper_seeds, runs, seed, samples, drop, repair)
+        progress: bool = False, repair: bool = False, step: bool = False) -> dict:
+    todo = tasks(paper_seeds, runs, seed, samples, drop, repair, step)
     t0 = time.perf_counter()
     records = map_runs(_run_star, todo, jobs,
                        progress=(lambda done, total, _: print(f"{done}/{total}", flush=True)) if progress else None)
     return {"config": {"paper_seeds": paper_seeds, "runs": runs, "seed": seed, "samples": samples, "drop": drop,
-                       "jobs": jobs, "repair": repair, "wall_time_s": time.perf_counter() - t0},
+                       "jobs": jobs, "repair": repair, "step_form": step, "wall_time_s": time.perf_counter() - t0},
             "summary": summarize(records), "records": records}
 
 
@@ -215,14 +226,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--progress", action="store_true")
     p.add_argument("--repair", action="store_true", help="also repair the located mismatches: full log, every span, "
                    "longest span (module docstring)")
-    p.add_argument("--out", default=DEFAULT_OUT)
+    p.add_argument("--step-form", action="store_true", help="the controllers' models in step-response form "
+                   "(bench.step_models.step_form), the same loops")
+    p.add_argument("--out", default=None, help=f"JSON output (default {DEFAULT_OUT}, with --step-form {STEP_OUT})")
     args = p.parse_args(argv)
-    res = run(args.paper_seeds, args.runs, args.seed, args.samples, args.drop, args.jobs, args.progress, args.repair)
+    res = run(args.paper_seeds, args.runs, args.seed, args.samples, args.drop, args.jobs, args.progress, args.repair,
+              args.step_form)
+    if args.step_form:
+        print("the controllers' models in step-response form")
     print(format_table(res["summary"], args.drop))
     for fam, s in res["summary"].items():
         for d in s["differ"] if fam != "all" else []:
             print(f"  differs: {d}")
-    write_json(args.out, res)
+    write_json(args.out or (STEP_OUT if args.step_form else DEFAULT_OUT), res)
     return 0
 
 
