@@ -3,11 +3,13 @@
 Run::
 
     python -m bench.gaps_mc [--paper-seeds 20] [--runs 150] [--seed 0] [--samples 3000] [--drop 0.002]
-                            [--jobs 1] [--repair] [--step-form] [--out bench/results/gaps_mc.json]
+                            [--jobs 1] [--repair] [--structures 0] [--step-form]
+                            [--out bench/results/gaps_mc.json]
 
 Every run simulates one closed loop -- the paper's three cases (:mod:`bench.paper_cases`, seeds
-``1000 ..``) and the random scenarios of :mod:`bench.monte_carlo` (family ``--seed``, indices ``0 ..``)
--- and analyses it three times with :func:`mpm_monitor.core.pipeline.analyze` (``repair=False``):
+``1000 ..``), the random scenarios of :mod:`bench.monte_carlo` (family ``--seed``, indices ``0 ..``) and,
+with ``--structures N``, the random loops of :mod:`bench.structures_mc` (every element structure,
+integrating outputs, measured disturbances; family ``--seed``) -- and analyses it three times with :func:`mpm_monitor.core.pipeline.analyze` (``repair=False``):
 
 * ``full``: the log as simulated;
 * ``offline``: the same log with each sample dropped with probability ``--drop`` (rows removed; the
@@ -75,13 +77,16 @@ def live_window_data(data: LoggedData, kept: np.ndarray, max_gap: int = 10) -> L
     """The samples ``kept`` of ``data`` fed one by one into a SampleWindow; the window's data at the end."""
     ts = data.sample_time
     window = SampleWindow(data.outputs, data.inputs, ts,
-                          WindowOptions(window_samples=data.n_samples, reorder_samples=2, max_gap=max_gap))
+                          WindowOptions(window_samples=data.n_samples, reorder_samples=2, max_gap=max_gap),
+                          disturbances=data.disturbances)
     period = int(round(ts * NS))
     for k in kept:
         stamp = int(round(data.t[k] / ts)) * period
         window.add("setpoint", stamp, data.r[k])
         window.add("input", stamp, data.u[k])
         window.add("output", stamp, data.y[k])
+        if data.disturbances:
+            window.add("disturbance", stamp, data.dv[k])
     return window.data(source=f"{data.source} (live)")
 
 
@@ -116,12 +121,12 @@ def run_one(kind: str, name: str, seed: int, samples: int, drop: float, repair: 
             step: bool = False) -> dict:
     """Simulate one run, drop samples and analyse it full, offline and live (with ``step``, the controller's
     model in step-response form); a JSON-ready record."""
-    model, plant, data, truth = family_log(kind, name, seed, samples)
+    model, plant, data, truth = _family_log(kind, name, seed, samples)
     if step:
         from .step_models import step_form
 
         model = step_form(model)
-    rng_seed = (seed, CASE_NAMES.index(name)) if kind == "paper" else (seed, int(name), 7)
+    rng_seed = (seed, CASE_NAMES.index(name)) if kind == "paper" else (seed, int(name), 7 if kind == "mc" else 8)
     kept = drop_rows(data.n_samples, drop, np.random.default_rng(list(rng_seed)))
     offline = data.take(kept)
     live = live_window_data(data, kept)
@@ -139,21 +144,37 @@ def run_one(kind: str, name: str, seed: int, samples: int, drop: float, repair: 
     return rec
 
 
+def _family_log(kind: str, name: str, seed: int, samples: int) -> tuple:
+    """:func:`bench.monte_carlo.family_log`, and the family ``"structures"``: run ``name`` of
+    :func:`bench.structures_mc.make_structures_scenario`'s family ``seed`` (every element structure,
+    integrating outputs, measured disturbances)."""
+    if kind != "structures":
+        return family_log(kind, name, seed, samples)
+    from . import structures_mc
+
+    sc = structures_mc.make_structures_scenario(seed, int(name))
+    data = structures_mc.simulate(sc, samples).as_logged_data(source=f"structures run {name}")
+    cols = sc.model.columns
+    truth = sorted([sc.model.outputs[int(m["output"])], cols[int(m["column"])]] for m in sc.mismatches)
+    return sc.model, sc.plant, data, truth
+
+
 def _run_star(args):
     return run_one(*args)
 
 
 def tasks(paper_seeds: int, runs: int, seed: int, samples: int, drop: float, repair: bool = False,
-          step: bool = False) -> list:
+          step: bool = False, structures: int = 0) -> list:
     out = [("paper", name, s, samples, drop, repair, step) for name in CASE_NAMES
            for s in range(1000, 1000 + paper_seeds)]
-    return out + [("mc", str(k), seed, samples, drop, repair, step) for k in range(runs)]
+    return out + [("mc", str(k), seed, samples, drop, repair, step) for k in range(runs)] \
+        + [("structures", str(k), seed, samples, drop, repair, step) for k in range(structures)]
 
 
 def summarize(records: Sequence[dict]) -> dict:
     """Agreement with the full log and false-alarm rates, per family and overall."""
     out = {}
-    for fam in ("paper", "mc", "all"):
+    for fam in ("paper", "mc", "structures", "all"):
         recs = [r for r in records if fam == "all" or r["kind"] == fam]
         if not recs:
             continue
@@ -183,35 +204,37 @@ def summarize(records: Sequence[dict]) -> dict:
 
 
 def format_table(summary: dict, drop: float) -> str:
+    w = max([7] + [len(fam) + 1 for fam in summary])          # the first column's width
     lines = [f"gaps Monte-Carlo: each sample dropped with probability {drop:g}, analyze (repair off), alpha 0.01",
-             f"{'runs':<7}{'n':>5}{'dropped/run':>13}{'same offline':>14}{'same live':>11}"
+             f"{'runs':<{w}}{'n':>5}{'dropped/run':>13}{'same offline':>14}{'same live':>11}"
              f"{'clean':>7}{'false alarms full / offline / live':>37}"]
     for fam, s in summary.items():
         fa = s["false_alarm"]
         fa_text = " / ".join("-" if fa[k] is None else f"{100 * fa[k]:.1f}%" for k in ("full", "offline", "live"))
-        lines.append(f"{fam:<7}{s['runs']:>5}{s['dropped_per_run']:>13.1f}{100 * s['same_offline']:>13.1f}%"
+        lines.append(f"{fam:<{w}}{s['runs']:>5}{s['dropped_per_run']:>13.1f}{100 * s['same_offline']:>13.1f}%"
                      f"{100 * s['same_live']:>10.1f}%{s['clean_runs']:>7}{fa_text:>37}")
     if any("repair" in s for s in summary.values()):
         lines += ["", "repair of the true mismatched elements the full log's analysis locates (step response vs the "
                   "plant's over 300 samples)",
-                  f"{'runs':<7}{'way':<9}{'elements':>9}{'within 10%':>12}{'median error':>14}{'90th pct':>10}"]
+                  f"{'runs':<{w}}{'way':<9}{'elements':>9}{'within 10%':>12}{'median error':>14}{'90th pct':>10}"]
         for fam, s in summary.items():
             for key, c in s.get("repair", {}).items():
                 if c["within"] is None:
                     continue
-                lines.append(f"{fam:<7}{key:<9}{c['elements']:>9}{100 * c['within']:>11.1f}%"
+                lines.append(f"{fam:<{w}}{key:<9}{c['elements']:>9}{100 * c['within']:>11.1f}%"
                              f"{100 * c['median_step_error']:>13.2f}%{100 * c['p90_step_error']:>9.2f}%")
     return "\n".join(lines)
 
 
 def run(paper_seeds: int, runs: int, seed: int = 0, samples: int = 3000, drop: float = DROP, jobs: int = 1,
-        progress: bool = False, repair: bool = False, step: bool = False) -> dict:
-    todo = tasks(paper_seeds, runs, seed, samples, drop, repair, step)
+        progress: bool = False, repair: bool = False, step: bool = False, structures: int = 0) -> dict:
+    todo = tasks(paper_seeds, runs, seed, samples, drop, repair, step, structures)
     t0 = time.perf_counter()
     records = map_runs(_run_star, todo, jobs,
                        progress=(lambda done, total, _: print(f"{done}/{total}", flush=True)) if progress else None)
     return {"config": {"paper_seeds": paper_seeds, "runs": runs, "seed": seed, "samples": samples, "drop": drop,
-                       "jobs": jobs, "repair": repair, "step_form": step, "wall_time_s": time.perf_counter() - t0},
+                       "jobs": jobs, "repair": repair, "step_form": step,
+                       "structures": structures, "wall_time_s": time.perf_counter() - t0},
             "summary": summarize(records), "records": records}
 
 
@@ -226,12 +249,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--progress", action="store_true")
     p.add_argument("--repair", action="store_true", help="also repair the located mismatches: full log, every span, "
                    "longest span (module docstring)")
+    p.add_argument("--structures", type=int, default=0, help="random loops of bench.structures_mc (every element "
+                   "structure, measured disturbances; family --seed), default 0")
     p.add_argument("--step-form", action="store_true", help="the controllers' models in step-response form "
                    "(bench.step_models.step_form), the same loops")
     p.add_argument("--out", default=None, help=f"JSON output (default {DEFAULT_OUT}, with --step-form {STEP_OUT})")
     args = p.parse_args(argv)
     res = run(args.paper_seeds, args.runs, args.seed, args.samples, args.drop, args.jobs, args.progress, args.repair,
-              args.step_form)
+              args.step_form, args.structures)
     if args.step_form:
         print("the controllers' models in step-response form")
     print(format_table(res["summary"], args.drop))

@@ -1,0 +1,31 @@
+"""bench.gaps_mc: its structures family (measured disturbances) and the step-response form."""
+
+import numpy as np
+
+from bench import gaps_mc, structures_mc
+from bench.step_models import step_form
+
+
+def test_the_structures_family_carries_its_measured_disturbances_into_the_live_window():
+    model, plant, data, truth = gaps_mc._family_log("structures", "1", 0, 400)
+    sc = structures_mc.make_structures_scenario(0, 1)
+    assert model == sc.model and plant == sc.plant and model.n_disturbances == 1
+    # Run 1's mismatches: (y1, column 2) -- its measured disturbance -- and (y3, u2), by name.
+    assert truth == [["y1", "dv1"], ["y3", "u2"]]
+    kept = gaps_mc.drop_rows(data.n_samples, 0.01, np.random.default_rng(3))
+    live = gaps_mc.live_window_data(data, kept)
+    offline = data.take(kept)
+    assert live.n_samples == offline.n_samples < data.n_samples
+    for key in ("r", "u", "dv", "y"):
+        assert np.array_equal(getattr(live, key), getattr(offline, key))
+
+
+def test_a_run_with_the_step_response_form_analyses_that_form():
+    args = ("structures", "7", 0, 1500, 0.002)
+    rec = gaps_mc.run_one(*args, step=True)
+    assert all("error" not in rec[k] for k in ("full", "offline", "live"))
+    assert rec["truth"] == [["y3", "dv1"]]           # column 4 of 4 inputs and 2 measured disturbances
+    model, _, data, _ = gaps_mc._family_log(*args[:4])
+    assert rec["full"] == gaps_mc._located(step_form(model), data)
+    tasks = gaps_mc.tasks(1, 1, 0, 1500, 0.002, step=True, structures=2)
+    assert [t[0] for t in tasks] == ["paper"] * 3 + ["mc", "structures", "structures"] and all(t[-1] for t in tasks)
