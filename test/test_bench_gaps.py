@@ -20,9 +20,13 @@ def test_the_structures_family_carries_its_measured_disturbances_into_the_live_w
         assert np.array_equal(getattr(live, key), getattr(offline, key))
 
 
-def test_a_run_with_the_step_response_form_analyses_that_form():
+def test_a_run_with_the_step_response_form_analyses_that_form(monkeypatch):
     args = ("structures", "7", 0, 1500, 0.002)
+    seen, located = [], gaps_mc._located
+    monkeypatch.setattr(gaps_mc, "_located", lambda model, data: seen.append(model.is_step_response) or
+                        located(model, data))
     rec = gaps_mc.run_one(*args, step=True)
+    assert seen == [True] * 3                       # the full log, offline and live
     assert all("error" not in rec[k] for k in ("full", "offline", "live"))
     assert rec["truth"] == [["y3", "dv1"]]           # column 4 of 4 inputs and 2 measured disturbances
     model, _, data, _ = gaps_mc._family_log(*args[:4])
