@@ -408,8 +408,10 @@ def _reduce_vanished_lags(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
     refitted in it, every parameter free on the same samples, and that form is kept unless the two-lag form
     fits significantly better: the likelihood-ratio test ``n ln(SSR_one / SSR_two)`` against chi-square with
     one degree of freedom at ``alpha`` (as :func:`_choose_forms` chooses a larger form).  Its tests measure
-    the changes from the reference's dead time in that form (:class:`_Located`'s ``declared``).  An element
-    the model lacks keeps the form its ladder chose.
+    the changes from the reference's dead time in that form (:class:`_Located`'s ``declared``); a
+    step-response element, whose two lags were the ladder's reading of its old response and not a declared
+    structure, from its old response read in the one-lag form (:func:`~mpm_monitor.core.repair.forms._step_reference`).
+    An element the model lacks keeps the form its ladder chose.
     """
     row = free.row
     for m, j in enumerate(free.js):
@@ -418,8 +420,14 @@ def _reduce_vanished_lags(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
         if loc.missing or loc.declared is not None or loc.form.n_lags != 2 or min(poles) > _SUBSAMPLE_POLE:
             continue
         form = dataclasses.replace(loc.form, n_lags=1)
-        reduced = dataclasses.replace(loc, form=form, lag=_input_lag(form, loc.reference, row.model.sample_time),
-                                      declared=loc.form)
+        if row.model.is_step_response:
+            # The model declares no lags, only a response: its old response is read in the one-lag form too
+            # (a lag and a lead read in the two-lag form took a second lag of a tenth of a sample and one sample
+            # less dead time, which the fit in one lag then seemed to have changed).
+            reduced = _locate(row, j, form)
+        else:
+            reduced = dataclasses.replace(loc, form=form, lag=_input_lag(form, loc.reference, row.model.sample_time),
+                                          declared=loc.form)
         start = (float(free.est.fit.gains[m]), (float(max(poles)),), float(free.est.fit.leads[m]),
                  int(free.est.fit.lags[m]) - (loc.form.offset - form.offset))
         smaller = _refit_element(free, j, reduced, start, settings)
