@@ -389,8 +389,8 @@ def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnin
             candidate = el.applied_to(candidate, i, j)
     keep = rec.scored(model, candidate)
     if keep is not None and not keep[rec.n_fit:].any():
-        # Gaps in the held-out part, each followed by more samples than are left to its end that still depend on
-        # the columns the gap held: as with no held-out part, the repair stands unvalidated.
+        # Every held-out sample still depends on columns held through a gap: as with no held-out part, the repair
+        # stands unvalidated.
         warnings.append(f"{name}: the held-out last {100 * options.holdout_fraction:.0f}% of the record holds no "
                         f"sample that does not depend on the columns held through a gap; the re-estimated "
                         f"element(s) {', '.join(model.columns[j] for j in js)} were not validated on data outside "
