@@ -244,13 +244,18 @@ def _json(report) -> str:
     return json.dumps(report.to_dict(), sort_keys=True)
 
 
+def _with_gaps(data):
+    """``data`` without samples 300, 301 and 1700 (two gaps)."""
+    keep = np.ones(data.n_samples, bool)
+    keep[[300, 301, 1700]] = False
+    return data.take(np.flatnonzero(keep))
+
+
 @pytest.mark.parametrize("gaps", [False, True])
 def test_an_analysis_in_two_processes_equals_one_in_one_process(case_32, gaps):
     case, data = case_32
     if gaps:
-        keep = np.ones(data.n_samples, bool)
-        keep[[300, 301, 1700]] = False
-        data = data.take(np.flatnonzero(keep))
+        data = _with_gaps(data)
     one = analyze(case.model, data, AnalysisOptions(jobs=1))
     two = analyze(case.model, data, AnalysisOptions(jobs=2))
     assert one.located_elements                       # the case's mismatch is found, with its repair
@@ -294,9 +299,7 @@ def test_the_repairs_disturbance_tests_run_in_the_idle_second_process(case_32, m
 
     case, data = case_32
     if gaps:
-        keep = np.ones(data.n_samples, bool)
-        keep[[300, 301, 1700]] = False
-        data = data.take(np.flatnonzero(keep))
+        data = _with_gaps(data)
     parent, tested = os.getpid(), []
     test = model_repair.unexplained_disturbance
     monkeypatch.setattr(model_repair, "unexplained_disturbance",
@@ -330,9 +333,7 @@ def test_the_repairs_rows_are_taken_by_two_processes_with_the_same_result(case_3
 
     case, data = case_32
     if gaps:
-        keep = np.ones(data.n_samples, bool)
-        keep[[300, 301, 1700]] = False
-        data = data.take(np.flatnonzero(keep))
+        data = _with_gaps(data)
     one = analyze(case.model, data, AnalysisOptions(jobs=1))
     assert {c["output"] for c in one.repair["changes"] if c["applied"]} == {"y1", "y2"}
     log = tmp_path / "rows"
