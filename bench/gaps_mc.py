@@ -9,7 +9,8 @@ Run::
 Every run simulates one closed loop -- the paper's three cases (:mod:`bench.paper_cases`, seeds
 ``1000 ..``), the random scenarios of :mod:`bench.monte_carlo` (family ``--seed``, indices ``0 ..``) and,
 with ``--structures N``, the random loops of :mod:`bench.structures_mc` (every element structure,
-integrating outputs, measured disturbances; family ``--seed``) -- and analyses it three times with :func:`mpm_monitor.core.pipeline.analyze` (``repair=False``):
+integrating outputs, measured disturbances; family ``--seed``) -- and analyses it three times with
+:func:`mpm_monitor.core.pipeline.analyze` (``repair=False``):
 
 * ``full``: the log as simulated;
 * ``offline``: the same log with each sample dropped with probability ``--drop`` (rows removed; the
@@ -23,8 +24,8 @@ Figures: the fraction of runs whose located elements (and flagged rows) are the 
 without (acceptance: at least 99 %), and the false-alarm rate (runs with any located element among
 the runs without a mismatch) of the three analyses.  ``--step-form`` analyses the same loops with the
 controller's model in step-response form (:func:`bench.step_models.step_form`, about twelve time
-constants of every element), written to ``bench/results/gaps_mc_step.json``.  The drops of run ``k`` are a pure function of
-the run, so ``--jobs`` only changes the speed.
+constants of every element), written to ``bench/results/gaps_mc_step.json``.  The drops of run ``k``
+are a pure function of the run, so ``--jobs`` only changes the speed.
 
 ``--repair`` adds the repair on the same drops.  In every run with a mismatch, the true mismatched
 elements that the analysis of the full log locates are repaired
