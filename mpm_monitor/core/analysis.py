@@ -687,8 +687,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     # Two processes: the detectable gain changes beside the repair (settle) whenever asked for; the stages split
     # row by row only for a window large enough that half of their work outweighs what a fork costs.
     two = options.jobs > 1
-    work = n * ny * model.n_columns
-    if two and work < SPLIT_MIN_WORK:
+    if two and row_jobs(options.jobs, n, model) == 1:
         options = dataclasses.replace(options, jobs=1)
     split_light = light_jobs(options.jobs, n, model)     # the model run, Gram products, SVD
     if n < layout.min_samples and plan is None:
