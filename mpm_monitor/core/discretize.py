@@ -178,11 +178,15 @@ class DiscreteElements:
         """``L_j``: past values of each column the state space keeps, int (n_columns,) (read-only; computed once)."""
         out = np.zeros(self.n_columns, dtype=int)
         for i, j in zip(*np.nonzero(self.active)):
-            n_s = max(self.denominators[i][j].size - 1, 1)
-            p = self.numerators[i][j].size - 1
-            out[j] = max(out[j], int(self.input_lag[i, j]) + max(p - n_s, 0))
+            out[j] = max(out[j], int(self.input_lag[i, j]) + self._taps_beyond_states(i, j))
         out.setflags(write=False)
         return out
+
+    def _taps_beyond_states(self, i: int, j: int) -> int:
+        """Numerator taps of element (i, j) past its input lag that its denominator states do not hold (the
+        shift register it needs beyond the input lag; a finite impulse response's whole length but one)."""
+        n_s = max(self.denominators[i][j].size - 1, 1)
+        return max(self.numerators[i][j].size - 1 - n_s, 0)
 
     @property
     def memory(self) -> int:
@@ -200,11 +204,8 @@ class DiscreteElements:
         than two coefficients."""
         out = 0
         for i, j in zip(*np.nonzero(self.active)):
-            lag = int(self.input_lag[i, j])
-            den = self.denominators[i][j]
-            if den.size > 1:
-                lag += max(self.numerators[i][j].size - den.size, 0)
-            out = max(out, lag)
+            fir = self.denominators[i][j].size == 1
+            out = max(out, int(self.input_lag[i, j]) + (0 if fir else self._taps_beyond_states(i, j)))
         return out
 
     def poles(self, i: int, j: int) -> np.ndarray:
