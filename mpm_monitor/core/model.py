@@ -47,6 +47,8 @@ def name_problem(name) -> "str | None":
 
 #: The element structures a model can hold, in the words of the model file.
 PARAMETRIC_KEYS = ("gain", "time_constant", "delay", "lead", "time_constant2", "integrating")
+#: The keys of the operating points (the columns' and outputs' nominal values), in the model file's order.
+NOMINAL_KEYS = ("input_nominal", "output_nominal", "disturbance_nominal")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -150,7 +152,7 @@ class PlantModel:
             arr = np.zeros(shape, dtype=dtype) if val is None else np.array(val, dtype=dtype, copy=True)
             arr.setflags(write=False)
             object.__setattr__(self, key, arr)
-        for key, n in (("input_nominal", nu), ("output_nominal", ny), ("disturbance_nominal", len(self.disturbances))):
+        for key, n in zip(NOMINAL_KEYS, (nu, ny, len(self.disturbances))):
             val = getattr(self, key)
             arr = np.zeros(n) if val is None else np.array(val, dtype=float, copy=True)
             arr.setflags(write=False)
@@ -375,7 +377,7 @@ class PlantModel:
         else:
             keys = PARAMETRIC_KEYS
         return all(np.array_equal(getattr(self, key), getattr(other, key))
-                   for key in keys + ("input_nominal", "output_nominal", "disturbance_nominal"))
+                   for key in keys + NOMINAL_KEYS)
 
     __hash__ = None
 

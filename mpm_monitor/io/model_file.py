@@ -19,7 +19,7 @@ import numpy as np
 import yaml
 
 from ..core.errors import ModelFileError
-from ..core.model import PlantModel
+from ..core.model import NOMINAL_KEYS, PlantModel
 from .files import read_text, write_text_replacing
 
 
@@ -711,7 +711,7 @@ def dump_model(model: PlantModel) -> str:
             lines.append(f"  - [{', '.join(row(el) for el in r)}]   # {name}")
         if "ramp" in d:
             lines.append(f"ramp: {row(d['ramp'])}")
-    for key in ("input_nominal", "output_nominal", "disturbance_nominal"):
+    for key in NOMINAL_KEYS:
         if key in d:
             lines.append(f"{key}: {row(d[key])}")
     return "\n".join(lines) + "\n"
