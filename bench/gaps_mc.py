@@ -122,7 +122,7 @@ def run_one(kind: str, name: str, seed: int, samples: int, drop: float, repair: 
             step: bool = False) -> dict:
     """Simulate one run, drop samples and analyse it full, offline and live (with ``step``, the controller's
     model in step-response form); a JSON-ready record."""
-    model, plant, data, truth = _family_log(kind, name, seed, samples)
+    model, plant, data, truth = family_log(kind, name, seed, samples)
     if step:
         from .step_models import step_form
 
@@ -143,21 +143,6 @@ def run_one(kind: str, name: str, seed: int, samples: int, drop: float, repair: 
     if repair and pairs:
         rec["repair"] = _repairs(model, plant, data, offline, pairs)
     return rec
-
-
-def _family_log(kind: str, name: str, seed: int, samples: int) -> tuple:
-    """:func:`bench.monte_carlo.family_log`, and the family ``"structures"``: run ``name`` of
-    :func:`bench.structures_mc.make_structures_scenario`'s family ``seed`` (every element structure,
-    integrating outputs, measured disturbances)."""
-    if kind != "structures":
-        return family_log(kind, name, seed, samples)
-    from . import structures_mc
-
-    sc = structures_mc.make_structures_scenario(seed, int(name))
-    data = structures_mc.simulate(sc, samples).as_logged_data(source=f"structures run {name}")
-    cols = sc.model.columns
-    truth = sorted([sc.model.outputs[int(m["output"])], cols[int(m["column"])]] for m in sc.mismatches)
-    return sc.model, sc.plant, data, truth
 
 
 def _run_star(args):

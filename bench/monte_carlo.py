@@ -93,8 +93,10 @@ def family_log(kind: str, name: str, seed: int, samples: int) -> tuple:
     Parameters
     ----------
     kind : str
-        ``"paper"`` (``name`` one of the cases, ``seed`` its noise seed) or ``"mc"`` (``name`` the
-        scenario index of family ``seed``).
+        ``"paper"`` (``name`` one of the cases, ``seed`` its noise seed), ``"mc"`` (``name`` the
+        scenario index of family ``seed``) or ``"structures"`` (``name`` the run of
+        :func:`bench.structures_mc.make_structures_scenario`'s family ``seed``: every element structure,
+        integrating outputs, measured disturbances).
     seed : int
     samples : int
 
@@ -102,8 +104,16 @@ def family_log(kind: str, name: str, seed: int, samples: int) -> tuple:
     -------
     (PlantModel, PlantModel, LoggedData, list)
         The controller's model, the plant, the closed-loop log and the mismatched elements as sorted
-        ``[output, input]`` name pairs.
+        ``[output, input]`` name pairs (a measured disturbance by its name).
     """
+    if kind == "structures":
+        from . import structures_mc
+
+        sc = structures_mc.make_structures_scenario(seed, int(name))
+        data = structures_mc.simulate(sc, samples).as_logged_data(source=f"structures run {name}")
+        model = sc.model
+        return model, sc.plant, data, \
+            sorted([model.outputs[int(m["output"])], model.columns[int(m["column"])]] for m in sc.mismatches)
     if kind == "paper":
         from mpm_monitor.apps.reproduce import simulate_case
 

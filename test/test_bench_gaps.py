@@ -3,11 +3,12 @@
 import numpy as np
 
 from bench import gaps_mc, structures_mc
+from bench.monte_carlo import family_log
 from bench.step_models import step_form
 
 
 def test_the_structures_family_carries_its_measured_disturbances_into_the_live_window():
-    model, plant, data, truth = gaps_mc._family_log("structures", "1", 0, 400)
+    model, plant, data, truth = family_log("structures", "1", 0, 400)
     sc = structures_mc.make_structures_scenario(0, 1)
     assert model == sc.model and plant == sc.plant and model.n_disturbances == 1
     # Run 1's mismatches: (y1, column 2) -- its measured disturbance -- and (y3, u2), by name.
@@ -29,7 +30,7 @@ def test_a_run_with_the_step_response_form_analyses_that_form(monkeypatch):
     assert seen == [True] * 3                       # the full log, offline and live
     assert all("error" not in rec[k] for k in ("full", "offline", "live"))
     assert rec["truth"] == [["y3", "dv1"]]           # column 4 of 4 inputs and 2 measured disturbances
-    model, _, data, _ = gaps_mc._family_log(*args[:4])
+    model, _, data, _ = family_log(*args[:4])
     assert rec["full"] == gaps_mc._located(step_form(model), data)
     tasks = gaps_mc.tasks(1, 1, 0, 1500, 0.002, step=True, structures=2)
     assert [t[0] for t in tasks] == ["paper"] * 3 + ["mc", "structures", "structures"] and all(t[-1] for t in tasks)
