@@ -10,9 +10,14 @@ from mpm_monitor.core.arx import SharedBlockRegression, lag_matrix, segment_lag_
 from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import PlantModel
 from mpm_monitor.core.response_moments import ResponseMoments
-from mpm_monitor.core.response_test import row_response_tests
+from mpm_monitor.core.response_test import element_responses, row_response_tests
+from mpm_monitor.core.segments import GapSegments, through
 
 N_LAG, NA = 7, 2
+#: Segments of the 1,800 stacked samples of _window after gaps of 1, 2 and 40 samples: with max_gap 10 the
+#: responses run through the first two gaps (one run of three segments) and start from rest after the third.
+RUNS = GapSegments([(0, 600), (600, 640), (640, 1300), (1300, 1800)],
+                   np.concatenate([np.arange(600), np.arange(601, 641), np.arange(643, 1303), np.arange(1343, 1843)]), 10)
 
 
 def _window(seed, n=1800):
@@ -33,6 +38,7 @@ def _window(seed, n=1800):
 @pytest.mark.parametrize("segments, testable", [
     (None, [0, 1, 2, 3]),
     ([(0, 600), (600, 640), (640, 1300), (1300, 1800)], [0, 1, 2, 3]),   # gaps
+    (RUNS, [0, 1, 2, 3]),                                                # the responses through short gaps
     (None, [0, 1, 3]),                                                   # a column that never moves
 ])
 def test_the_response_tests_from_the_moments_equal_the_direct_products(segments, testable):
@@ -130,6 +136,7 @@ def _by_product(monkeypatch, make):
     (2, N_LAG, None),
     (2, N_LAG, [(0, 500), (500, 530), (530, 1800)]),     # gaps, one segment without a regression row
     (1, N_LAG, [(0, 900), (900, 1800)]),                 # na 1: the second-order elements by a product
+    (2, N_LAG, RUNS),                                    # the responses through short gaps
     (4, 3, None),                                        # few lags: the slow delays by a product
 ])
 def test_the_recursion_in_the_lags_equals_the_product_over_the_rows(monkeypatch, na, n_lag, segments):
@@ -215,21 +222,22 @@ def test_the_own_lags_moments_of_every_row_equal_the_product_of_the_lag_matrices
 
 
 def _lag_zero_products(moments, i, rm):
-    """``u_c(t)' [x, X]`` and ``O' [x, X]`` of row ``i``'s elements by products of each segment's lag matrices."""
+    """``u_c(t)' [x, X]`` and ``O' [x, X]`` of row ``i``'s elements by products of each segment's lag matrices (the
+    responses from rest in each segment, or through the runs of GapSegments)."""
     u_c, start, na = moments.u_c, moments.start, moments.na
     segs = moments.segs
     U0 = np.vstack([u_c[a + start:b] for a, b in segs])
     O = np.vstack([lag_matrix(moments.d[a:b, i] - moments.d[a:b, i].mean(), range(1, na + 1), start) for a, b in segs])
     uw, ow = [], []
     for b, (j, element, _) in enumerate(rm.found):
-        XW = np.vstack([lag_matrix(element.respond(u_c[a0:b0, j]) - rm.mu[s, b], range(0, na + 1), start)
-                        for s, (a0, b0) in enumerate(segs)])
+        x = through(u_c[:, j], element.respond, moments.segments)     # from rest per segment, or through runs
+        XW = np.vstack([lag_matrix(x[a0:b0] - rm.mu[s, b], range(0, na + 1), start) for s, (a0, b0) in enumerate(segs)])
         uw.append(U0.T @ XW)
         ow.append(O.T @ XW)
     return np.hstack(uw), np.hstack(ow)
 
 
-@pytest.mark.parametrize("na, segments", [(3, None), (3, [(0, 600), (600, 620), (620, 1800)]), (1, None)])
+@pytest.mark.parametrize("na, segments", [(3, None), (3, [(0, 600), (600, 620), (620, 1800)]), (1, None), (3, RUNS)])
 def test_the_lag_zero_moments_by_the_difference_equation_equal_the_products(na, segments):
     """``u_c(t)' x(t - k)`` and ``O' x(t - k)`` from the elements' difference equations (``_lag_zero``):
     every lag of a finite impulse response, all but the last ``order`` lags of the others, none of an
@@ -368,3 +376,42 @@ def test_a_step_response_models_detection_by_the_long_gram_and_by_products(monke
                 assert g[key] == pytest.approx(value, rel=1e-8, abs=1e-300), (g["output"], g["input"], key)
             else:
                 assert g[key] == value, (key, g[key], value)
+
+
+def test_the_row_moments_of_responses_through_short_gaps_equal_the_products_of_the_lag_matrices():
+    """With the responses run through the short gaps (GapSegments): the responses are those of
+    element_responses over the runs, each segment's centred on its own, and the moments their products."""
+    model, u, d = _window(9)
+    start = max(N_LAG, NA)
+    assert RUNS.joined
+    moments = ResponseMoments(model, u, d, [0, 1, 2, 3], N_LAG, start, NA, RUNS)
+    assert moments.of(u, RUNS) and not moments.of(u, list(RUNS))
+    rm = moments.row(0, keep_samples=True)
+    u_c = u - u.mean(axis=0)
+    Z = np.vstack([lag_matrix(u_c[a:b], range(1, N_LAG + 1), start) for a, b in RUNS])
+    for b, (j, element, _) in enumerate(rm.found):
+        if not model.present[0, j]:
+            continue
+        x = element_responses(model, 0, [j], u_c, RUNS)[j]
+        assert np.abs(x[600:660] - element.respond(u_c[600:660, j])).max() > 0    # not from rest after the gap
+        mus = [x[a:c].mean() for a, c in RUNS]
+        XW = np.vstack([lag_matrix(x[a:c] - mu, range(0, NA + 1), start) for (a, c), mu in zip(RUNS, mus)])
+        np.testing.assert_allclose(rm.mu[:, b], mus, rtol=1e-12)
+        np.testing.assert_allclose(moments.responses(rm, [j])[j], x, rtol=1e-12, atol=1e-12)
+        for got, want in ((rm.zx[..., b].reshape(-1, NA + 1), Z.T @ XW), (rm.ww[b], XW.T @ XW)):
+            np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-10 * np.abs(want).max())
+
+
+def test_a_long_step_response_through_short_gaps_is_taken_by_products(monkeypatch):
+    """The long Gram holds responses from rest in each segment: with the responses through the short gaps
+    the long finite impulse responses' moments are products over the rows, equal to the recursion-free ones."""
+    model, u, d = _long_step_response_window(5)
+    runs = GapSegments([(0, 500), (500, 540), (540, 1500)],
+                       np.concatenate([np.arange(500), np.arange(501, 541), np.arange(542, 1502)]), 10)
+    moments = ResponseMoments(model, u, d, [0, 1, 2], 8, 8, 3, runs)
+    got = moments.row(0)
+    assert not any(moments._long_fir(e) for _, e, _ in got.found) and moments._fir_gram is None
+    want = _by_product(monkeypatch, lambda: ResponseMoments(model, u, d, [0, 1, 2], 8, 8, 3, runs).row(0))
+    for name in ("zx", "uw", "zo", "ww", "ow", "xsum", "mu"):
+        w = getattr(want, name)
+        np.testing.assert_allclose(getattr(got, name), w, rtol=1e-10, atol=1e-12 * np.abs(w).max(), err_msg=name)

@@ -67,6 +67,39 @@ def test_response_test_equals_least_squares_and_scipy(segments):
         assert t.p_value == pytest.approx(p, rel=1e-6, abs=1e-300)
 
 
+@pytest.mark.parametrize("segments", [None, [(0, 700), (700, 1500)]])
+def test_the_response_test_on_some_rows_equals_least_squares_on_those_rows(segments):
+    """``rows``: the regressors on the rows the fit holds (the confirmation with tails on data with gaps),
+    each centred over its segment's rows among them; against brute-force least squares on those rows."""
+    model, u_c, d_c = _open_loop(4, gain_error=0.05)
+    start, testable = max(N_LAG, NA), [0, 1]
+    n_rows = segment_rows(d_c[:, 0], start, segments).size
+    rows = np.random.default_rng(1).random(n_rows) > 0.3
+    rows[:60] = False
+    X = np.hstack([segment_lag_matrix(u_c[:, k], range(1, N_LAG + 1), start, segments) for k in testable])[rows]
+    own = -segment_lag_matrix(d_c[:, 0], range(1, NA + 1), start, segments)[rows]
+    y = segment_rows(d_c[:, 0], start, segments)[rows]
+    fit = SharedBlockRegression(X, [N_LAG, N_LAG]).fit(y, own)
+    tests = row_response_tests(model, 0, fit, testable, X, [N_LAG, N_LAG], u_c, d_c, start, NA, segments, rows=rows)
+    a = fit.own_theta()
+    seg_of = np.concatenate([np.full(b - lo - start, k) for k, (lo, b) in enumerate(segments or [(0, u_c.shape[0])])])[rows]
+    for j, t in tests.items():
+        x = np.concatenate([lfilter(np.r_[1.0, a], [1.0], model.discrete_element(0, j).respond(u_c[lo:hi, j]))[start:]
+                            for lo, hi in (segments or [(0, u_c.shape[0])])])[rows]
+        for k in np.unique(seg_of):
+            x[seg_of == k] -= x[seg_of == k].mean()
+        W = np.hstack([X[:, [c for c in range(2 * N_LAG) if c // N_LAG != j]], own])
+        r0 = y - W @ np.linalg.lstsq(W, y, rcond=None)[0]
+        W1 = np.column_stack([W, x])
+        r1 = y - W1 @ np.linalg.lstsq(W1, y, rcond=None)[0]
+        dof = y.size - W1.shape[1]
+        f = (r0 @ r0 - r1 @ r1) / (r1 @ r1 / dof)
+        assert t.df_den == dof and t.statistic == pytest.approx(f, rel=1e-8)
+        assert t.p_value == pytest.approx(stats.f.sf(f, 1, dof), rel=1e-6, abs=1e-300)
+    with pytest.raises(ValueError, match="common"):
+        row_response_tests(model, 0, fit, testable, None, [N_LAG, N_LAG], u_c, d_c, start, NA, segments, rows=rows)
+
+
 def _row_fit(u_c, d_c, start):
     """The element fit of row 0 on both columns' lags 1 .. N_LAG and its own lags 1 .. NA: ``(X, fit)``."""
     X = np.hstack([lag_matrix(u_c[:, k], range(1, N_LAG + 1), start) for k in (0, 1)])

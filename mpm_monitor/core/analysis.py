@@ -664,6 +664,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     from .regressions import regression_layout, window_regressions
     from .response_moments import ResponseMoments
     from .row_test import moving_setpoints, sdelta_row_test
+    from .segments import GapSegments
     from .signals import (compute_signals, error_rms, packed, scored_segments, segment_signals, segments_mask,
                           unknown_starts)
 
@@ -682,6 +683,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         r, u, y, dv = (plan.take(x) for x in (r, u, y, dv))
         grid = plan.take(data.grid_index)     # the model runs through a short gap (segment_signals)
         restarts = unknown_starts(plan.local_segments, grid, plan.max_gap, data.fill_on_grid())
+        # The regressions' segments, and the runs the element responses are simulated through (as the model).
+        segments = GapSegments(plan.local_segments, grid, plan.max_gap)
     columns = model_columns(u, dv)            # the inputs, then the measured disturbances
     n = r.shape[0]
     # Two processes: the detectable gain changes beside the repair (settle) whenever asked for; the stages split
@@ -712,10 +715,11 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         regressions = window_regressions(r, columns, z, sig.d, layout, options.na, options.nb, jobs=split_light,
                                          previous=None if previous is None else previous.regressions)
     elif regressions is None:
-        # Each segment's d centred on its own (its level restarts with its model output).
+        # Each segment's d centred on its own (its level restarts with its model output, and moves across
+        # a short gap the model runs through with its columns held).
         d = np.vstack([sig.d[a:b] - sig.d[a:b].mean(axis=0) for a, b in plan.local_segments])
         regressions = window_regressions(r, columns, -d, d, layout, options.na, options.nb,
-                                         segments=plan.local_segments, jobs=split_light)
+                                         segments=segments, jobs=split_light)
 
     # A fit that leaves at most EXACT_FIT of its output's spread is exact (a log without noise): its tests
     # decide outright instead of on the rounding of its residual.  The spread is the larger of the
@@ -781,7 +785,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         # The element responses and their products with the input lags, taken once for the
         # whole-response tests and the detectability.
         moments = ResponseMoments(model, columns, sig.d, design.testable, layout.n_lag_u, layout.start, options.na,
-                                  None if plan is None else plan.local_segments)
+                                  None if plan is None else segments)
     later_warnings = []
     if untested:
         element_test = ElementTest(elements=[])
@@ -819,7 +823,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
 
         def values_and_experiment():
             info, detectable, why = element_detectability(model, columns, sig.d, design, element_test.noise, layout,
-                                                          value_options, None if plan is None else plan.local_segments,
+                                                          value_options, None if plan is None else segments,
                                                           responses=element_test.responses, moments=moments)
             values = [detectable.get((model.outputs.index(e.output), model.columns.index(e.input))) for e in elements]
             for e, v in zip(elements, values):

@@ -283,7 +283,8 @@ class WindowInformation:
         Data with gaps: the contiguous runs ``(first, end)`` of the samples, stacked in ``u`` and ``d``
         (as the tests take them).  The moments are sums over the regression rows of every segment (its
         rows from sample ``start`` of the segment on), the element responses start from rest at each
-        segment, and each segment's ``d`` and ``x`` are centred on their own, as the tests centre
+        segment (or, a :class:`~mpm_monitor.core.segments.GapSegments`, run through its short gaps as the
+        model does), and each segment's ``d`` and ``x`` are centred on their own, as the tests centre
         ``d``.  Default: one record.
     split : int
         :attr:`split`.

@@ -62,6 +62,7 @@ import scipy.linalg as sla
 from scipy.linalg import blas
 
 from .arx import RANK_TOLERANCE, ArxFit, SharedBlockRegression, SharedFit, fit_arx, segment_lag_matrix, segment_rows
+from .segments import as_segments
 from .logged_data import moving_columns
 from .model import PlantModel
 from .parallel import split_map
@@ -160,7 +161,7 @@ class QrRegressions:
     def __init__(self, r, u, z, d, layout: RegressionLayout, na: int, nb: int, segments=None):
         self.r, self.u, self.z, self.d = r, u, z, d
         self.layout, self.na, self.nb = layout, na, nb
-        self.segments = None if segments is None else [(int(a), int(b)) for a, b in segments]
+        self.segments = as_segments(segments)
         self._u_c = u - u.mean(axis=0)
 
     def _lags(self, x, lags) -> np.ndarray:
@@ -1017,7 +1018,7 @@ class GramRegressions:
 
     def __init__(self, row_gram: LaggedGram, input_gram: LaggedGram, r, u, z, d, layout: RegressionLayout,
                  na: int, nb: int, max_condition: float = DEFAULT_MAX_CONDITION, segments=None):
-        self.segments = None if segments is None else [(int(a), int(b)) for a, b in segments]
+        self.segments = as_segments(segments)
         self.row_gram, self._input_gram = row_gram, input_gram
         self._take_input_gram = None      # window_regressions: how to take the input Gram when first read
         self.r, self.u, self.z, self.d = r, u, z, d

@@ -27,7 +27,12 @@ whole-response test's ``Z' A_i(q) x`` then follows from these moments exactly
 Notation: ``u_c`` the columns centred over the window (the columns that never move set to 0, as they
 carry no information), ``Z`` their lags ``1 .. L`` on the regression rows (column ``c L + l - 1`` is
 column ``c`` at lag ``l``), ``x`` an element's response to ``u_c``, simulated from rest at the start of
-each segment and centred over each segment's samples (``x_raw = x + mu_s`` in segment ``s``).
+each segment and centred over each segment's samples (``x_raw = x + mu_s`` in segment ``s``).  With
+segments that say how the model runs through the short gaps
+(:class:`~mpm_monitor.core.segments.GapSegments`), ``x_raw`` is simulated as the model runs instead
+(:func:`~mpm_monitor.core.segments.through`): every relation above that holds on a segment's samples
+holds for it too (the difference equations, the sums along lag diagonals), but not the long Gram's
+responses from rest, so the long finite impulse responses take products over the rows there.
 """
 
 from __future__ import annotations
@@ -39,6 +44,7 @@ import numpy as np
 
 from .arx import lag_matrix, segment_lag_matrix, segment_rows
 from .model import PlantModel
+from .segments import through
 
 
 #: The largest :attr:`ResponseMoments.fir_gram` built (bytes); beyond it, the long finite impulse responses'
@@ -196,15 +202,19 @@ class ResponseMoments:
         First regression row of every segment (at least ``na``).
     na : int
         Own lags of the element fits.
-    segments : sequence of (int, int), optional
-        Data with gaps: the contiguous runs of samples; those with no regression row are left out.
+    segments : sequence of (int, int) or GapSegments, optional
+        Data with gaps: the contiguous runs of samples; those with no regression row are left out.  A
+        :class:`~mpm_monitor.core.segments.GapSegments` (every segment with a row) runs the responses
+        through its short gaps.
 
     Attributes
     ----------
     u_c : ndarray, shape (n_samples, n_columns)
     Z : ndarray, shape (n_rows, n_columns n_lag)
     n_rows : int
-    segments : list of (int, int) or None
+    segments : list of (int, int) or GapSegments or None
+    joined : bool
+        Whether the responses run through gaps (module docstring).
     """
 
     def __init__(self, model: PlantModel, u: np.ndarray, d: np.ndarray, testable, n_lag: int, start: int, na: int,
@@ -213,11 +223,16 @@ class ResponseMoments:
         self.testable = list(testable)
         self.u, self.d = u, d
         self._given_segments = None if segments is None else [(int(a), int(b)) for a, b in segments]
+        self._given_joined = bool(getattr(segments, "joined", False))
         nu = model.n_columns
         u_c = u - u.mean(axis=0)
         u_c[:, [j for j in range(nu) if j not in self.testable]] = 0.0
         self.u_c = u_c
         self.segments = None if segments is None else [(int(a), int(b)) for a, b in segments if b - a > start]
+        # Responses run through the short gaps (GapSegments), unless a segment without a row is left out here.
+        self.joined = bool(getattr(segments, "joined", False)) and len(self.segments) == len(segments)
+        if self.joined:
+            self.segments = segments
         self.segs = [(0, u.shape[0])] if self.segments is None else self.segments
         L = self.n_lag
         self._Z = None
@@ -255,7 +270,8 @@ class ResponseMoments:
     def of(self, u: np.ndarray, segments=None) -> bool:
         """Whether these are the moments of the columns ``u`` with these ``segments``."""
         given = None if segments is None else [(int(a), int(b)) for a, b in segments]
-        return given == self._given_segments and (u is self.u or (u.shape == self.u.shape and np.array_equal(u, self.u)))
+        return given == self._given_segments and bool(getattr(segments, "joined", False)) == self._given_joined \
+            and (u is self.u or (u.shape == self.u.shape and np.array_equal(u, self.u)))
 
     def row(self, i: int, keep_samples: bool = False) -> RowMoments:
         """Row ``i``'s :class:`RowMoments` (computed on first use, then kept until :meth:`take`).
@@ -297,7 +313,8 @@ class ResponseMoments:
 
     def responses(self, rm: RowMoments, columns) -> dict:
         """Column ``j`` -> ``x_raw`` on every sample (shape (n_samples,)): the response of the row's element
-        of each of ``columns`` from rest at each segment's start, as simulated for the moments (``x + mu_s``;
+        of each of ``columns`` from rest at each segment's start (or through the short gaps of a
+        :class:`~mpm_monitor.core.segments.GapSegments`), as simulated for the moments (``x + mu_s``;
         0 on the samples of a segment without a regression row).  ``rm`` with :attr:`RowMoments.R` kept."""
         out = {}
         for j in columns:
@@ -332,8 +349,10 @@ class ResponseMoments:
         R = np.zeros((u_c.shape[0], m), order="F")          # samples of segments without a row stay 0
         mu, moves = np.zeros((S, m)), np.zeros(m, dtype=bool)
         for b, (j, element, _) in enumerate(found):
+            # From rest at each segment's start, or through the short gaps as the model runs (GapSegments).
+            x_all = through(u_c[:, j], element.respond, self.segments) if self.joined else None
             for s, (a0, b0) in enumerate(segs):
-                x = element.respond(u_c[a0:b0, j])
+                x = element.respond(u_c[a0:b0, j]) if x_all is None else x_all[a0:b0]
                 moves[b] |= bool(np.any(x != 0))
                 mu[s, b] = x.mean()
                 R[a0:b0, b] = x - mu[s, b]
@@ -506,8 +525,9 @@ class ResponseMoments:
     def _long_fir(self, element) -> bool:
         """Whether ``element`` is a finite impulse response (no pole: a step-response model's element) that
         :meth:`_fir_moments` takes: one with an effect, not :meth:`_recursive`, whose taps and ``na`` more
-        lie within the long Gram (:attr:`fir_gram`), which takes at most :data:`FIR_GRAM_MAX_BYTES`."""
-        if element.order != 0 or element.is_zero or self._recursive(element):
+        lie within the long Gram (:attr:`fir_gram`), which takes at most :data:`FIR_GRAM_MAX_BYTES`; never
+        when the responses run through gaps (:attr:`joined`: the long Gram's are from rest in each segment)."""
+        if element.order != 0 or element.is_zero or self._recursive(element) or self.joined:
             return False
         nu = self.u_c.shape[1]
         fits = nu * nu * (self.fir_span + 1) * (self.n_lag + 1) * 8 <= FIR_GRAM_MAX_BYTES

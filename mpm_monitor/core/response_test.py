@@ -59,6 +59,7 @@ from .arx import BlockTest, segment_lag_matrix, segment_rows
 from .elements import pulse_response
 from .filters import lfilter
 from .model import PlantModel
+from .segments import centred_by, segment_labels, through
 from .statistics import f_tail
 
 #: The tests combined for an element the model has: the lag window's and the whole response's.
@@ -106,9 +107,11 @@ def element_responses(model: PlantModel, i: int, columns: Sequence[int], u_c: np
         Columns ``j`` (inputs, then measured disturbances).
     u_c : ndarray, shape (n_samples, n_columns)
         The model's columns, centred (column units).
-    segments : sequence of (int, int), optional
-        Data with gaps: each contiguous run of rows is simulated from rest at its own start (the
-        columns inside a gap are unknown).  Default: one run.
+    segments : sequence of (int, int) or GapSegments, optional
+        Data with gaps: each contiguous run of rows is simulated from rest at its own start, or, given
+        a :class:`~mpm_monitor.core.segments.GapSegments`, each of its runs through its short gaps with
+        the columns held, as the model runs (:func:`~mpm_monitor.core.segments.through`).  Default: one
+        run.
 
     Returns
     -------
@@ -116,7 +119,6 @@ def element_responses(model: PlantModel, i: int, columns: Sequence[int], u_c: np
         Column ``j`` -> response, shape (n_samples,) in output units, for every element the model
         has whose response moves; the others are left out.
     """
-    runs = [(0, u_c.shape[0])] if segments is None else segments
     out = {}
     for j in columns:
         if not model.present[i, j]:
@@ -124,9 +126,7 @@ def element_responses(model: PlantModel, i: int, columns: Sequence[int], u_c: np
         el = model.discrete_element(i, j)
         if el.is_zero:
             continue
-        x = np.zeros(u_c.shape[0])
-        for a, b in runs:
-            x[a:b] = el.respond(u_c[a:b, j])
+        x = through(np.asarray(u_c[:, j], dtype=float), el.respond, segments)
         if np.any(x != 0):
             out[j] = x
     return out
@@ -164,7 +164,9 @@ def time_constant_sensitivity(x: np.ndarray, tau: float, segments=None) -> np.nd
 
     ``x`` differenced (the response without the integrator) and lagged once more by the element's first
     lag (a unit-gain first-order filter with pole ``exp(-1 / tau)``; none when ``tau`` is 0), each run on
-    its own from rest.
+    its own from rest (:func:`~mpm_monitor.core.segments.through`: through the short gaps of a
+    :class:`~mpm_monitor.core.segments.GapSegments`, ``x`` held inside them, so the difference across a
+    gap falls on its first sample after it).
 
     Parameters
     ----------
@@ -179,11 +181,11 @@ def time_constant_sensitivity(x: np.ndarray, tau: float, segments=None) -> np.nd
     ndarray, shape (n_samples,)
     """
     p = float(np.exp(-1.0 / tau)) if tau > 0 else 0.0
-    out = np.zeros(x.shape[0])
-    for lo, hi in ([(0, x.shape[0])] if segments is None else segments):
-        dx = np.diff(x[lo:hi], prepend=0.0)             # from rest: the run's first sample keeps x
-        out[lo:hi] = lfilter([1.0 - p], [1.0, -p], dx) if p > 0 else dx
-    return out
+
+    def shape(run: np.ndarray) -> np.ndarray:
+        dx = np.diff(run, prepend=0.0)             # from rest: the run's first sample keeps x
+        return lfilter([1.0 - p], [1.0, -p], dx) if p > 0 else dx
+    return through(np.asarray(x, dtype=float), shape, segments)
 
 
 def centred_rows(X: np.ndarray, start: int, segments=None) -> np.ndarray:
@@ -347,7 +349,7 @@ def _stacked_tests(fit, xx, c_s, g_s, theta_s, x_m_y, idx: np.ndarray, grp: np.n
 def row_response_tests(model: PlantModel, i: int, fit, testable: list, common: Optional[np.ndarray],
                        block_sizes: Sequence[int], u_c: np.ndarray, d_c: np.ndarray, start: int, na: int,
                        segments=None, a: Optional[np.ndarray] = None, columns: Optional[Sequence[int]] = None,
-                       extra: Optional[np.ndarray] = None, moments=None) -> dict:
+                       extra: Optional[np.ndarray] = None, moments=None, rows: Optional[np.ndarray] = None) -> dict:
     """The whole-response test of every element of row ``i`` the model has, in the row's element fit
     (module docstring).
 
@@ -383,6 +385,10 @@ def row_response_tests(model: PlantModel, i: int, fit, testable: list, common: O
         segments and ``start``, with ``na`` own lags): the regressors and their products with the lag
         blocks (every block ``moments.n_lag`` lags) are taken from them instead of simulated and
         multiplied again; the same values to rounding.
+    rows : ndarray of bool, shape (n_rows,), optional
+        The regression rows (of every segment from ``start`` on) that ``fit``, ``common`` and ``extra`` hold:
+        the regressors are taken on these only, each centred over its level group's rows among them
+        (without ``moments``).  Default: all.
 
     Returns
     -------
@@ -392,7 +398,7 @@ def row_response_tests(model: PlantModel, i: int, fit, testable: list, common: O
         response.
     """
     reg = row_response_regressors(model, i, fit, testable, common, block_sizes, u_c, d_c, start, na, segments, a,
-                                  columns, extra, moments)
+                                  columns, extra, moments, rows)
     return {} if reg is None else reg.tests(fit)
 
 
@@ -434,12 +440,17 @@ class RowRegressors:
 def row_response_regressors(model: PlantModel, i: int, fit, testable: list, common: Optional[np.ndarray],
                             block_sizes: Sequence[int], u_c: np.ndarray, d_c: np.ndarray, start: int, na: int,
                             segments=None, a: Optional[np.ndarray] = None, columns: Optional[Sequence[int]] = None,
-                            extra: Optional[np.ndarray] = None, moments=None) -> Optional[RowRegressors]:
+                            extra: Optional[np.ndarray] = None, moments=None,
+                            rows: Optional[np.ndarray] = None) -> Optional[RowRegressors]:
     """The regressors of :func:`row_response_tests` (same arguments) and their products, or None
     when no element of ``columns`` has a response."""
     asked = testable if columns is None else columns
     a = np.asarray(fit.own_theta() if a is None else a, dtype=float)
     y = segment_rows(d_c[:, i], start, segments)
+    if rows is not None:
+        if moments is not None:
+            raise ValueError("rows: the regressors from the moments are on every row")
+        y = y[rows]
     if moments is None:
         resp = element_responses(model, i, asked, u_c, segments)
         cols = list(resp)
@@ -458,7 +469,13 @@ def row_response_regressors(model: PlantModel, i: int, fit, testable: list, comm
         if integrating_element(model, i, j):
             groups[k].append(len(cols) + len(sensitivity))
             sensitivity.append(time_constant_sensitivity(resp[j], integrating_lag(model, i, j), segments))
-    if moments is None:
+    if moments is None and rows is not None:       # on some rows: centred over each segment's rows among them
+        if common is None:
+            raise ValueError("rows: the lag blocks on those rows must be given (common)")
+        X_t = filtered_rows(np.column_stack([resp[j] for j in cols] + sensitivity), a, start, segments)[rows]
+        X_t = centred_by(X_t, segment_labels(start, segments, rows.size)[rows])
+        parts = [common.T @ X_t]
+    elif moments is None:
         X_t = centred_rows(filtered_rows(np.column_stack([resp[j] for j in cols] + sensitivity), a, start, segments),
                            start, segments)
         if common is None:
@@ -476,7 +493,7 @@ def row_response_regressors(model: PlantModel, i: int, fit, testable: list, comm
         parts = [zx]
     if na:
         own = -segment_lag_matrix(d_c[:, i], range(1, na + 1), start, segments)
-        parts.append(own.T @ X_t)
+        parts.append((own if rows is None else own[rows]).T @ X_t)
     if extra is not None:
         parts.append(extra.T @ X_t)
     g = np.vstack(parts)

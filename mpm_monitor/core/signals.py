@@ -49,6 +49,7 @@ from .discretize import discretize, model_columns, settling_samples, simulate_el
 from .errors import ConfigurationError
 from .logged_data import check_disturbance_signal
 from .model import PlantModel
+from .segments import gap_runs, held_rows
 from .statistics import f_test
 
 INITIAL_STATE_CHOICES = ("estimate", "zero")
@@ -352,8 +353,8 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
             parts.append(compute_signals(model, r[a:b], u[a:b], y[a:b], initial_state,
                                          dv=None if dv is None else dv[a:b]))
             continue
-        at = np.asarray(grid[a:b], dtype=np.int64) - int(grid[a])         # the rows' places on the run's grid
-        held = a + np.searchsorted(at, np.arange(int(at[-1]) + 1), side="right") - 1
+        held, at = held_rows(grid[a:b])              # the rows held on the run's grid, and their places on it
+        held = a + held
         u_run, dv_run = u[held], None if dv is None else dv[held]
         if fill is not None:
             where = np.asarray(fill[0], dtype=np.int64) - int(grid[a])
@@ -373,32 +374,6 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
     return LoopSignals(**{f.name: np.vstack([getattr(p, f.name) for p in parts])
                           for f in dataclasses.fields(LoopSignals) if f.name != "initial_state"},
                        initial_state=parts[0].initial_state if parts else initial_state)
-
-
-def gap_runs(segments, grid: np.ndarray, max_gap: int) -> list:
-    """The segments grouped into runs the model is simulated through: a new run after every gap longer
-    than ``max_gap`` samples.
-
-    Parameters
-    ----------
-    segments : sequence of (int, int)
-        Contiguous runs of rows, in order.
-    grid : ndarray of int, shape (n_samples,)
-        Sample number of every row on the sample grid.
-    max_gap : int
-
-    Returns
-    -------
-    list of list of int
-        The indices of the segments of every run, in order.
-    """
-    runs = []
-    for k, (a, _) in enumerate(segments):
-        if k and int(grid[a]) - int(grid[segments[k - 1][1] - 1]) - 1 <= max_gap:
-            runs[-1].append(k)
-        else:
-            runs.append([k])
-    return runs
 
 
 #: Data with gaps: the samples of a segment after a gap count as settled once the free responses of the

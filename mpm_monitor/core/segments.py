@@ -1,0 +1,241 @@
+"""Data with gaps: the contiguous segments of the stacked samples, and the runs a response is simulated through.
+
+The analysis of data with gaps stacks the segments long enough for a regression row
+(:mod:`mpm_monitor.core.gaps`); no regression row's lags reach across a gap.  The controller's model,
+though, runs through a short gap (at most ``max_gap`` missing samples) with its columns held at their
+last logged values, and restarts only after a longer one
+(:func:`mpm_monitor.core.signals.segment_signals`): the prediction error ``d`` carries the state of
+both the plant and the model across a short gap.  Any other response the tests regress ``d`` on (an
+element's response to its column, :func:`~mpm_monitor.core.response_test.element_responses`, and what
+follows from it) is simulated the same way, through :func:`through`, so that it carries the same
+state; simulated from rest at every segment's start, it would start a transient that ``d`` does not
+have after every gap.
+
+:class:`GapSegments` is the list of segments ``(first, end)`` of the stacked samples (every function
+that takes ``segments`` reads it as such) with the runs (:func:`gap_runs`) and the places of the
+samples on each run's sample grid.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Optional
+
+import numpy as np
+
+from .arx import lag_matrix
+
+
+def gap_runs(segments, grid: np.ndarray, max_gap: int) -> list:
+    """The segments grouped into runs the model is simulated through: a new run after every gap longer
+    than ``max_gap`` samples.
+
+    Parameters
+    ----------
+    segments : sequence of (int, int)
+        Contiguous runs of rows, in order.
+    grid : ndarray of int, shape (n_samples,)
+        Sample number of every row on the sample grid.
+    max_gap : int
+
+    Returns
+    -------
+    list of list of int
+        The indices of the segments of every run, in order.
+    """
+    runs = []
+    for k, (a, _) in enumerate(segments):
+        if k and int(grid[a]) - int(grid[segments[k - 1][1] - 1]) - 1 <= max_gap:
+            runs[-1].append(k)
+        else:
+            runs.append([k])
+    return runs
+
+
+def held_rows(grid: np.ndarray) -> tuple:
+    """The rows of a run on its sample grid, held through its gaps.
+
+    Parameters
+    ----------
+    grid : ndarray of int, shape (n,)
+        Sample number of every row of the run, increasing.
+
+    Returns
+    -------
+    held : ndarray of int, shape (grid[-1] - grid[0] + 1,)
+        For every point of the run's grid, the last row at or before it.
+    at : ndarray of int, shape (n,)
+        The place of every row on the run's grid.
+    """
+    at = np.asarray(grid, dtype=np.int64) - int(grid[0])
+    held = np.searchsorted(at, np.arange(int(at[-1]) + 1), side="right") - 1
+    return held, at
+
+
+class GapSegments(list):
+    """The segments ``(first, end)`` of stacked samples with gaps, and the runs the model is simulated through.
+
+    A list of the segments (every function that takes ``segments`` reads it as one), with
+    :attr:`runs`: for every run of segments separated by gaps of at most ``max_gap`` missing samples
+    (:func:`gap_runs`), its first and end row, and :func:`held_rows` of its samples (None for a run of
+    one segment).
+
+    Parameters
+    ----------
+    segments : sequence of (int, int)
+        Contiguous runs of rows of the stacked samples, in order, covering them.
+    grid : ndarray of int, shape (n_samples,)
+        Sample number of every stacked row on the sample grid.
+    max_gap : int
+        Longest gap (missing samples) the model runs through.
+    """
+
+    def __init__(self, segments, grid: np.ndarray, max_gap: int):
+        super().__init__((int(a), int(b)) for a, b in segments)
+        self.max_gap = int(max_gap)
+        self.runs = []
+        for run in gap_runs(self, grid, self.max_gap):
+            a, b = self[run[0]][0], self[run[-1]][1]
+            self.runs.append((a, b, held_rows(grid[a:b]) if len(run) > 1 else None))
+
+    @property
+    def joined(self) -> bool:
+        """Whether some run holds more than one segment (a response carries its state across a gap)."""
+        return any(h is not None for _, _, h in self.runs)
+
+
+def through(x: np.ndarray, f: Callable[[np.ndarray], np.ndarray], segments=None) -> np.ndarray:
+    """``f`` run over the samples ``x`` as the model runs: through the short gaps, from rest after a long one.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n_samples, ...)
+        Stacked samples (a column, or columns along the first axis).
+    f : callable
+        Takes a run of samples (shape (m, ...), contiguous on the sample grid) and returns an array of
+        the same length along its first axis (a response from rest at the run's first sample).
+    segments : sequence of (int, int) or GapSegments, optional
+        None: ``x`` is one run.  A plain sequence: every segment is a run of its own.  A
+        :class:`GapSegments`: its runs, each over its sample grid with the samples inside its gaps held at
+        the last sample before them (what the controller's hold does between moves); the result is read
+        at the stacked samples only.
+
+    Returns
+    -------
+    ndarray, shape (n_samples, ...)
+        ``f``'s result at every stacked sample (0 on samples outside every segment).
+    """
+    x = np.asarray(x)
+    if segments is None:
+        return np.asarray(f(x))
+    runs = getattr(segments, "runs", None)
+    if runs is None:
+        runs = [(int(a), int(b), None) for a, b in segments]
+    out: Optional[np.ndarray] = None
+    for a, b, held in runs:
+        if held is None:
+            part = np.asarray(f(x[a:b]))
+        else:
+            part = np.asarray(f(x[a:b][held[0]]))[held[1]]
+        if out is None:
+            out = np.zeros((x.shape[0],) + part.shape[1:], dtype=part.dtype)
+        out[a:b] = part
+    return np.zeros(x.shape) if out is None else out
+
+
+def as_segments(segments):
+    """``segments`` as a list of ``(int, int)`` (None stays None; a :class:`GapSegments` is kept as it is)."""
+    if segments is None or isinstance(segments, GapSegments):
+        return segments
+    return [(int(a), int(b)) for a, b in segments]
+
+
+def _runs(segments, n: int) -> list:
+    """``(first, end, held)`` of every run (:attr:`GapSegments.runs`; every segment of a plain sequence a run of
+    its own, one run of ``n`` samples without segments)."""
+    if segments is None:
+        return [(0, int(n), None)]
+    runs = getattr(segments, "runs", None)
+    return runs if runs is not None else [(int(a), int(b), None) for a, b in segments]
+
+
+def run_positions(start: int, segments=None, n: Optional[int] = None) -> np.ndarray:
+    """The place of every regression row on its run's sample grid (samples since the run's first).
+
+    Parameters
+    ----------
+    start : int
+        First regression row of every segment.
+    segments : sequence of (int, int) or GapSegments or None
+    n : int, optional
+        Samples (needed without ``segments``).
+
+    Returns
+    -------
+    ndarray of int, shape (n_rows,)
+        For the rows of every segment from its ``start``-th sample on, stacked
+        (:func:`~mpm_monitor.core.arx.segment_rows`).
+    """
+    spans = [(0, int(n))] if segments is None else [(int(a), int(b)) for a, b in segments]
+    place = np.empty(spans[-1][1] if spans else 0, dtype=np.int64)
+    for a, b, held in _runs(segments, 0 if n is None else n):
+        place[a:b] = np.arange(b - a) if held is None else held[1]
+    return np.concatenate([place[a + start:b] for a, b in spans if b - a > start] or [place[:0]])
+
+
+def run_lag_matrix(x: np.ndarray, lags, start: int, segments=None) -> np.ndarray:
+    """Lagged copies of ``x`` on the regression rows, read on each run's sample grid.
+
+    As :func:`~mpm_monitor.core.arx.segment_lag_matrix`, but a lag may reach back past its segment's first
+    sample: inside a short gap of a :class:`GapSegments` it reads the last sample before the gap (the
+    columns held, as the model runs), and before the run's first sample it reads 0 (from rest); the
+    rows whose lags reach that far are for the caller to leave out (:func:`run_positions`).
+
+    Parameters
+    ----------
+    x : ndarray, shape (n_samples,) or (n_samples, n_channels)
+    lags : sequence of int
+        Lags (samples, >= 0).
+    start : int
+        First regression row of every segment.
+    segments : sequence of (int, int) or GapSegments or None
+
+    Returns
+    -------
+    ndarray, shape (n_rows, n_channels * len(lags))
+        Column ``c * len(lags) + l`` holds channel ``c`` at lag ``lags[l]``.
+    """
+    x = np.asarray(x, dtype=float)
+    if x.ndim == 1:
+        x = x[:, None]
+    lags = [int(lag) for lag in lags]
+    back = max(lags, default=0)
+    spans = [(0, x.shape[0])] if segments is None else [(int(a), int(b)) for a, b in segments]
+    rows = []
+    for a, b, held in _runs(segments, x.shape[0]):
+        grid = x[a:b] if held is None else x[a:b][held[0]]
+        at = np.arange(b - a) if held is None else held[1]
+        lagged = lag_matrix(np.vstack([np.zeros((back, x.shape[1])), grid]), lags, back)[at]   # the run's samples
+        rows += [lagged[s - a + start:e - a] for s, e in spans if a <= s and e <= b and e - s > start]
+    return np.vstack(rows) if rows else np.zeros((0, x.shape[1] * len(lags)))
+
+
+def centred_by(X: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Rows of ``X`` (shape (n_rows, k)) less the mean of the rows with the same label (``labels``: shape
+    (n_rows,) of int); a new array."""
+    X = np.asarray(X, dtype=float)
+    labels = np.asarray(labels, dtype=np.int64)
+    if X.shape[0] == 0:
+        return X.copy()
+    count = np.bincount(labels).astype(float)
+    sums = np.zeros((count.size,) + X.shape[1:])
+    np.add.at(sums, labels, X)
+    return X - (sums / np.maximum(count, 1.0).reshape((-1,) + (1,) * (X.ndim - 1)))[labels]
+
+
+def segment_labels(start: int, segments=None, n_rows: int = 0) -> np.ndarray:
+    """The segment of every regression row (stacked as :func:`~mpm_monitor.core.arx.segment_rows`), shape
+    (n_rows,) of int: its index among ``segments`` (all 0 without them: ``n_rows`` rows)."""
+    if segments is None:
+        return np.zeros(int(n_rows), dtype=np.int64)
+    return np.concatenate([np.full(max(int(b) - int(a) - start, 0), k, dtype=np.int64)
+                           for k, (a, b) in enumerate(segments)] or [np.zeros(0, dtype=np.int64)])
