@@ -113,6 +113,18 @@ def test_confirmation_removes_the_false_positive_of_a_slow_mismatch(slow_mismatc
     assert (0, 0) in _located(sc, detect(sc.model, data, AnalysisOptions())) - truth
 
 
+def test_the_confirmation_runs_on_data_with_gaps_too(slow_mismatch_run, monkeypatch):
+    """Five samples missing (gaps of one and two samples): the tails read the columns held through the gaps,
+    as the model runs, and each segment keeps its level; the same located elements as without the gaps,
+    and without the tails the same false positives."""
+    sc, data = slow_mismatch_run
+    truth = {(m["output"], m["column"]) for m in sc.mismatches}
+    gappy = data.take(np.setdiff1d(np.arange(data.n_samples), [400, 1201, 1202, 2100, 2600]))
+    assert _located(sc, detect(sc.model, gappy, AnalysisOptions())) == truth
+    monkeypatch.setattr(element_test, "TAIL_TIME_CONSTANTS", 0.0)      # no tails: the old test
+    assert {(0, 0), (0, 2)} <= _located(sc, detect(sc.model, gappy, AnalysisOptions())) - truth
+
+
 @pytest.fixture(scope="module")
 def fed_forward_run():
     """Run 230 of bench.structures_mc seed 2: a wrong gain of the measured disturbance (y2, dv2), and

@@ -49,6 +49,7 @@ from .noise_order import residual_whiteness
 from .parallel import split_map
 from .response_test import (combined_p_value, element_responses, given_other_responses, integrating_element,
                             row_response_regressors, row_response_tests)
+from .segments import run_lag_matrix, run_positions, segment_labels
 from .statistics import N_FAMILIES, holm_adjust
 
 
@@ -889,6 +890,12 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
     A window so long that a fit's regressors would exceed :data:`TAIL_FIT_BYTES` is confirmed on its last
     rows only, and a warning says how many.
 
+    Data with gaps: the fit takes the regression rows whose tails stay inside their run of segments
+    (:class:`~mpm_monitor.core.segments.GapSegments`: the model runs through a short gap with its columns
+    held, and a tail reads them so, :func:`~mpm_monitor.core.segments.run_lag_matrix`), with a free level
+    per segment (the prediction error is centred over each segment).  No row's own lags or tested lags
+    reach across a gap.
+
     Returns
     -------
     list of str
@@ -896,10 +903,7 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
     """
     from .arx import SharedBlockRegression
 
-    if getattr(regressions, "segments", None) is not None:
-        # Data with gaps: the tail regression below needs one contiguous record; its lags would reach
-        # across the gaps.  Not confirming only keeps the locations (never adds one).
-        return []
+    segments = getattr(regressions, "segments", None)
     nb, alpha, na = options.nb, options.alpha, options.na
     names = model.columns
     by_key = {(model.outputs.index(e.output), names.index(e.input)): e for e in elements}
@@ -910,50 +914,81 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
     start0 = regressions.layout.start
     u_c = u - u.mean(axis=0)
     d_c = d - d.mean(axis=0)
+    # With gaps: the regression rows of every segment, and each one's place on its run's sample grid (a tail
+    # reads the columns held through the short gaps, as the model runs, segments.run_lag_matrix).
+    place = None if segments is None else run_positions(start0, segments)
+    n_rows = u.shape[0] - start0 if segments is None else place.size
     stepwise = []
     for i in rows:
         located = [j for j in testable if by_key[(i, j)].mismatch]
         if len(located) < 2:
             continue
-        tail = tail_lags(model, i, n_lag, u.shape[0] - start0)
+        tail = tail_lags(model, i, n_lag, n_rows)
         # Many located columns (a row whose model is wrong throughout): their tails together at most
         # TAIL_TOTAL_FRACTION of the rows, or the fits become as wide as the record (and take minutes).
-        budget = int(TAIL_TOTAL_FRACTION * (u.shape[0] - start0))
+        budget = int(TAIL_TOTAL_FRACTION * n_rows)
         if (len(located) - 1) * tail > budget:
             tail = max(n_lag, budget // (len(located) - 1))
         if tail <= n_lag:
             continue
         start = max(start0, tail)
+        # The rows of the fit: without gaps from sample ``start`` on; with gaps, the regression rows whose tails
+        # stay inside their run.
+        keep = None if segments is None else place >= tail
+        n_fit = u.shape[0] - start if segments is None else int(keep.sum())
         # A long window (days of samples) would make the fit's regressors as long as the record and hundreds of
         # columns wide: gigabytes.  Its last rows stand for it then, as many as TAIL_FIT_BYTES holds.
         width = (len(located) - 1) * tail + (len(testable) - len(located) + 1) * n_lag + na + (na + 1) * len(located)
         most = max(TAIL_FIT_BYTES // (8 * width), 1)
-        if u.shape[0] - start > most:
+        if n_fit > most:
             stepwise.append(f"row {model.outputs[i]}: the confirmation of its located elements with the others' slow "
-                            f"tails used the last {most} of its {u.shape[0] - start} regression rows (its regressors "
+                            f"tails used the last {most} of its {n_fit} regression rows (its regressors "
                             f"{width} columns wide held within {TAIL_FIT_BYTES // 2 ** 20} MB)")
-            start = u.shape[0] - most
+            if segments is None:
+                start = u.shape[0] - most
+            else:
+                keep[:np.flatnonzero(keep)[-most]] = False
+        if keep is not None and not keep.any():
+            continue
         di = d[:, i] - d[:, i].mean()
-        own = -lag_matrix(di, range(1, na + 1), start) if na else None
         # An integrating element's gain error never dies out: no tail carries it, its response does.
-        responses = element_responses(model, i, [k for k in located if integrating_element(model, i, k)], u_c)
-        response_lags = {k: lag_matrix(x, range(na + 1), start) for k, x in responses.items()}
+        responses = element_responses(model, i, [k for k in located if integrating_element(model, i, k)], u_c,
+                                      segments)
+        levels = None
+        if segments is None:
+            def lagged(x, lags):
+                return lag_matrix(x, lags, start)
+            target = di[start:]
+        else:
+            def lagged(x, lags):
+                return run_lag_matrix(x, lags, start0, segments)[keep]
+            target = segment_rows(di, start0, segments)[keep]
+            # d is centred over each segment (its level moves across a gap): a free level per segment here too,
+            # or the tails' own levels, which d no longer has, would stay in the fit's residual.
+            labels = segment_labels(start0, segments)[keep]
+            levels = (labels[:, None] == np.unique(labels)[None, :]).astype(float)
+        own = -lagged(di, range(1, na + 1)) if na else None
+        response_lags = {k: lagged(x, range(na + 1)) for k, x in responses.items()}
 
         def confirmed(j, given):
             """Holm-adjusted p-value of element (i, j) with the tails of the columns ``given``."""
             sizes = [tail if (k in given and k != j) else n_lag for k in testable]
-            X = np.hstack([lag_matrix(u_c[:, k], range(1, size + 1), start) for k, size in zip(testable, sizes)])
-            free = [response_lags[k] for k in given if k != j and k in response_lags]
+            X = np.hstack([lagged(u_c[:, k], range(1, size + 1)) for k, size in zip(testable, sizes)])
+            free = [response_lags[k] for k in given if k != j and k in response_lags] \
+                + ([] if levels is None else [levels])
             extra = np.hstack(free) if free else None
             nuisance = [m for m in (own, extra) if m is not None]
-            fit = SharedBlockRegression(X, sizes).fit(di[start:], np.hstack(nuisance) if nuisance else None)
+            fit = SharedBlockRegression(X, sizes).fit(target, np.hstack(nuisance) if nuisance else None)
             if output_spread is not None:
                 fit.set_output_spread(output_spread[i])
             test = fit.test_blocks_zero([testable.index(j)], element_window(model, i, j, nb, options.element_window))
             response = None
             if estimates[(i, j)].response is not None:
-                response = row_response_tests(model, i, fit, testable, X, sizes, u_c, d_c, start, na,
-                                              columns=[j], a=noise_filter(fit, na)[0], extra=extra).get(j)
+                a = noise_filter(fit, na)[0]
+                response = (row_response_tests(model, i, fit, testable, X, sizes, u_c, d_c, start, na, columns=[j],
+                                               a=a, extra=extra) if segments is None else
+                            row_response_tests(model, i, fit, testable, X, sizes, u_c, d_c, start0, na, segments,
+                                               columns=[j], a=a, extra=extra, rows=keep)).get(j)
             p_raw = combined_p_value(test.p_value, None if response is None else response.p_value)
             return min(1.0, N_FAMILIES * factor[(i, j)] * p_raw) if np.isfinite(p_raw) else 1.0
 
