@@ -3,7 +3,7 @@
 Run::
 
     python -m bench.gaps_mc [--paper-seeds 20] [--runs 150] [--seed 0] [--samples 3000] [--drop 0.002]
-                            [--jobs 1] [--repair] [--structures 0] [--step-form]
+                            [--jobs 1] [--repair] [--structures 0] [--step-form] [--cut]
                             [--out bench/results/gaps_mc.json]
 
 Every run simulates one closed loop -- the paper's three cases (:mod:`bench.paper_cases`, seeds
@@ -22,7 +22,10 @@ integrating outputs, measured disturbances; family ``--seed``) -- and analyses i
 
 Figures: the fraction of runs whose located elements (and flagged rows) are the same with drops as
 without (acceptance: at least 99 %), and the false-alarm rate (runs with any located element among
-the runs without a mismatch) of the three analyses.  ``--step-form`` analyses the same loops with the
+the runs without a mismatch) of the three analyses.  With ``--cut``, a fourth analysis for reference:
+the log without drops, cut short by as many samples as the drops cost regression rows (``offline``'s
+``rows_lost``) -- the same loss of rows in one piece at the end, where no gap's level or state is
+unknown; its agreement with ``full`` is what losing that many rows alone moves.  ``--step-form`` analyses the same loops with the
 controller's model in step-response form (:func:`bench.step_models.step_form`, about twelve time
 constants of every element), written to ``bench/results/gaps_mc_step.json``.  The drops of run ``k``
 are a pure function of the run, so ``--jobs`` only changes the speed.
@@ -119,9 +122,9 @@ def _repairs(model, plant, data: LoggedData, offline: LoggedData, pairs: list) -
 
 
 def run_one(kind: str, name: str, seed: int, samples: int, drop: float, repair: bool = False,
-            step: bool = False) -> dict:
+            step: bool = False, cut: bool = False) -> dict:
     """Simulate one run, drop samples and analyse it full, offline and live (with ``step``, the controller's
-    model in step-response form); a JSON-ready record."""
+    model in step-response form; with ``cut``, also cut short by the rows the drops lose); a JSON-ready record."""
     model, plant, data, truth = family_log(kind, name, seed, samples)
     if step:
         from .step_models import step_form
@@ -135,7 +138,10 @@ def run_one(kind: str, name: str, seed: int, samples: int, drop: float, repair: 
            "live_samples": int(live.n_samples)}
     for key, d in (("full", data), ("offline", offline), ("live", live)):
         rec[key] = _located(model, d)
-    for key in ("offline", "live"):
+    if cut:
+        lost = rec["offline"].get("rows_lost", 0)
+        rec["cut"] = _located(model, data.slice(0, data.n_samples - lost))
+    for key in ("offline", "live") + (("cut",) if cut else ()):
         a, b = rec["full"], rec[key]
         rec[f"same_{key}"] = "error" not in a and "error" not in b and a["located"] == b["located"] \
             and a["rows"] == b["rows"]
@@ -150,11 +156,11 @@ def _run_star(args):
 
 
 def tasks(paper_seeds: int, runs: int, seed: int, samples: int, drop: float, repair: bool = False,
-          step: bool = False, structures: int = 0) -> list:
-    out = [("paper", name, s, samples, drop, repair, step) for name in CASE_NAMES
+          step: bool = False, structures: int = 0, cut: bool = False) -> list:
+    out = [("paper", name, s, samples, drop, repair, step, cut) for name in CASE_NAMES
            for s in range(1000, 1000 + paper_seeds)]
-    return out + [("mc", str(k), seed, samples, drop, repair, step) for k in range(runs)] \
-        + [("structures", str(k), seed, samples, drop, repair, step) for k in range(structures)]
+    return out + [("mc", str(k), seed, samples, drop, repair, step, cut) for k in range(runs)] \
+        + [("structures", str(k), seed, samples, drop, repair, step, cut) for k in range(structures)]
 
 
 def summarize(records: Sequence[dict]) -> dict:
@@ -170,6 +176,8 @@ def summarize(records: Sequence[dict]) -> dict:
         out[fam] = {"runs": len(recs), "dropped_per_run": float(np.mean([r["dropped"] for r in recs])),
                     "same_offline": sum(r["same_offline"] for r in recs) / len(recs),
                     "same_live": sum(r["same_live"] for r in recs) / len(recs),
+                    "same_cut": (sum(r["same_cut"] for r in recs) / len(recs)) if all("same_cut" in r for r in recs)
+                    else None,
                     "clean_runs": len(clean), "false_alarm": fa,
                     "errors": sum(1 for r in recs for k in ("full", "offline", "live") if "error" in r[k]),
                     "differ": [{k: r[k] for k in ("kind", "name", "seed", "truth")}
@@ -199,6 +207,10 @@ def format_table(summary: dict, drop: float) -> str:
         fa_text = " / ".join("-" if fa[k] is None else f"{100 * fa[k]:.1f}%" for k in ("full", "offline", "live"))
         lines.append(f"{fam:<{w}}{s['runs']:>5}{s['dropped_per_run']:>13.1f}{100 * s['same_offline']:>13.1f}%"
                      f"{100 * s['same_live']:>10.1f}%{s['clean_runs']:>7}{fa_text:>37}")
+    if any(s.get("same_cut") is not None for s in summary.values()):
+        lines += ["", "reference: the log without drops cut short by the rows the drops lose (no gap)",
+                  f"{'runs':<{w}}{'same as full':>14}"]
+        lines += [f"{fam:<{w}}{100 * s['same_cut']:>13.1f}%" for fam, s in summary.items() if s.get("same_cut") is not None]
     if any("repair" in s for s in summary.values()):
         lines += ["", "repair of the true mismatched elements the full log's analysis locates (step response vs the "
                   "plant's over 300 samples)",
@@ -213,14 +225,15 @@ def format_table(summary: dict, drop: float) -> str:
 
 
 def run(paper_seeds: int, runs: int, seed: int = 0, samples: int = 3000, drop: float = DROP, jobs: int = 1,
-        progress: bool = False, repair: bool = False, step: bool = False, structures: int = 0) -> dict:
-    todo = tasks(paper_seeds, runs, seed, samples, drop, repair, step, structures)
+        progress: bool = False, repair: bool = False, step: bool = False, structures: int = 0,
+        cut: bool = False) -> dict:
+    todo = tasks(paper_seeds, runs, seed, samples, drop, repair, step, structures, cut)
     t0 = time.perf_counter()
     records = map_runs(_run_star, todo, jobs,
                        progress=(lambda done, total, _: print(f"{done}/{total}", flush=True)) if progress else None)
     return {"config": {"paper_seeds": paper_seeds, "runs": runs, "seed": seed, "samples": samples, "drop": drop,
                        "jobs": jobs, "repair": repair, "step_form": step,
-                       "structures": structures, "wall_time_s": time.perf_counter() - t0},
+                       "structures": structures, "cut": cut, "wall_time_s": time.perf_counter() - t0},
             "summary": summarize(records), "records": records}
 
 
@@ -239,10 +252,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                    "structure, measured disturbances; family --seed), default 0")
     p.add_argument("--step-form", action="store_true", help="the controllers' models in step-response form "
                    "(bench.step_models.step_form), the same loops")
+    p.add_argument("--cut", action="store_true", help="also analyse each log without drops cut short by the rows "
+                   "the drops lose (the agreement that losing as many rows alone gives)")
     p.add_argument("--out", default=None, help=f"JSON output (default {DEFAULT_OUT}, with --step-form {STEP_OUT})")
     args = p.parse_args(argv)
     res = run(args.paper_seeds, args.runs, args.seed, args.samples, args.drop, args.jobs, args.progress, args.repair,
-              args.step_form, args.structures)
+              args.step_form, args.structures, args.cut)
     if args.step_form:
         print("the controllers' models in step-response form")
     print(format_table(res["summary"], args.drop))

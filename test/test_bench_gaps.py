@@ -33,4 +33,19 @@ def test_a_run_with_the_step_response_form_analyses_that_form(monkeypatch):
     model, _, data, _ = family_log(*args[:4])
     assert rec["full"] == gaps_mc._located(step_form(model), data)
     tasks = gaps_mc.tasks(1, 1, 0, 1500, 0.002, step=True, structures=2)
-    assert [t[0] for t in tasks] == ["paper"] * 3 + ["mc", "structures", "structures"] and all(t[-1] for t in tasks)
+    assert [t[0] for t in tasks] == ["paper"] * 3 + ["mc", "structures", "structures"] and all(t[6] for t in tasks)
+
+
+def test_the_cut_reference_loses_as_many_rows_at_the_end(monkeypatch):
+    """``--cut``: the log without drops, cut short by the regression rows the drops lose."""
+    seen, located = [], gaps_mc._located
+    monkeypatch.setattr(gaps_mc, "_located", lambda model, data: seen.append(data) or located(model, data))
+    rec = gaps_mc.run_one("mc", "3", 0, 1500, 0.01, cut=True)
+    full, offline, _, cut = seen
+    assert offline.n_samples < full.n_samples and rec["offline"]["rows_lost"] > full.n_samples - offline.n_samples
+    assert cut.n_samples == full.n_samples - rec["offline"]["rows_lost"] and len(cut.segments) == 1
+    assert np.array_equal(cut.y, full.y[:cut.n_samples])
+    assert rec["same_cut"] == (rec["full"]["located"] == rec["cut"]["located"] and rec["full"]["rows"] == rec["cut"]["rows"])
+    summary = gaps_mc.summarize([rec])
+    assert summary["mc"]["same_cut"] == float(rec["same_cut"])
+    assert "cut short" in gaps_mc.format_table(summary, 0.01)
