@@ -62,10 +62,10 @@ import scipy.linalg as sla
 from scipy.linalg import blas
 
 from .arx import RANK_TOLERANCE, ArxFit, SharedBlockRegression, SharedFit, fit_arx, segment_lag_matrix, segment_rows
-from .segments import as_segments
 from .logged_data import moving_columns
 from .model import PlantModel
 from .parallel import split_map
+from .segments import as_segments
 
 #: Largest condition number of the scaled regressors for which a regression is solved from its Gram
 #: matrix: the normal equations then lose at most about 1e6 * 1e-16 = 1e-10 (relative).
