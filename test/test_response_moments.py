@@ -402,16 +402,27 @@ def test_the_row_moments_of_responses_through_short_gaps_equal_the_products_of_t
             np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-10 * np.abs(want).max())
 
 
-def test_a_long_step_response_through_short_gaps_is_taken_by_products(monkeypatch):
-    """The long Gram holds responses from rest in each segment: with the responses through the short gaps
-    the long finite impulse responses' moments are products over the rows, equal to the recursion-free ones."""
+def test_a_long_step_response_through_short_gaps_by_the_long_gram_and_by_products(monkeypatch):
+    """The long Gram with the responses through the short gaps: the columns read on each run's grid (held in
+    its gaps), every moment equal to the products over the rows of the responses element_responses gives."""
     model, u, d = _long_step_response_window(5)
-    runs = GapSegments([(0, 500), (500, 540), (540, 1500)],
-                       np.concatenate([np.arange(500), np.arange(501, 541), np.arange(542, 1502)]), 10)
+    runs = GapSegments([(0, 500), (500, 540), (540, 1100), (1100, 1500)],
+                       np.concatenate([np.arange(500), np.arange(501, 541), np.arange(543, 1103),
+                                       np.arange(1150, 1550)]), 10)
+    assert [(a, b) for a, b, _ in runs.runs] == [(0, 1100), (1100, 1500)]
+
+    def make(i):
+        return ResponseMoments(model, u, d, [0, 1, 2], 8, 8, 3, runs).row(i, keep_samples=True)
+
     moments = ResponseMoments(model, u, d, [0, 1, 2], 8, 8, 3, runs)
-    got = moments.row(0)
-    assert not any(moments._long_fir(e) for _, e, _ in got.found) and moments._fir_gram is None
-    want = _by_product(monkeypatch, lambda: ResponseMoments(model, u, d, [0, 1, 2], 8, 8, 3, runs).row(0))
-    for name in ("zx", "uw", "zo", "ww", "ow", "xsum", "mu"):
-        w = getattr(want, name)
-        np.testing.assert_allclose(getattr(got, name), w, rtol=1e-10, atol=1e-12 * np.abs(w).max(), err_msg=name)
+    u_c = moments.u_c
+    for i in (0, 1):
+        got, want = make(i), _by_product(monkeypatch, lambda: make(i))
+        assert [moments._long_fir(e) for _, e, _ in got.found] == [i == 0] * 3      # row y2 is a ramp row
+        for b, (j, element, _) in enumerate(got.found):
+            x = element_responses(model, i, [j], u_c, runs)[j]
+            np.testing.assert_allclose(moments.responses(got, [j])[j], x, rtol=1e-12, atol=1e-12)
+        for name in ("zx", "uw", "zo", "ww", "ow", "xsum", "mu"):
+            w = getattr(want, name)
+            np.testing.assert_allclose(getattr(got, name), w, rtol=1e-10, atol=1e-12 * np.abs(w).max(),
+                                       err_msg=f"{name}, row {i}")

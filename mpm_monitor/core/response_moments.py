@@ -31,8 +31,8 @@ each segment and centred over each segment's samples (``x_raw = x + mu_s`` in se
 segments that say how the model runs through the short gaps
 (:class:`~mpm_monitor.core.segments.GapSegments`), ``x_raw`` is simulated as the model runs instead
 (:func:`~mpm_monitor.core.segments.through`): every relation above that holds on a segment's samples
-holds for it too (the difference equations, the sums along lag diagonals), but not the long Gram's
-responses from rest, so the long finite impulse responses take products over the rows there.
+holds for it too (the difference equations, the sums along lag diagonals), and the long Gram reads the
+columns on each run's grid.
 """
 
 from __future__ import annotations
@@ -525,9 +525,8 @@ class ResponseMoments:
     def _long_fir(self, element) -> bool:
         """Whether ``element`` is a finite impulse response (no pole: a step-response model's element) that
         :meth:`_fir_moments` takes: one with an effect, not :meth:`_recursive`, whose taps and ``na`` more
-        lie within the long Gram (:attr:`fir_gram`), which takes at most :data:`FIR_GRAM_MAX_BYTES`; never
-        when the responses run through gaps (:attr:`joined`: the long Gram's are from rest in each segment)."""
-        if element.order != 0 or element.is_zero or self._recursive(element) or self.joined:
+        lie within the long Gram (:attr:`fir_gram`), which takes at most :data:`FIR_GRAM_MAX_BYTES`."""
+        if element.order != 0 or element.is_zero or self._recursive(element):
             return False
         nu = self.u_c.shape[1]
         fits = nu * nu * (self.fir_span + 1) * (self.n_lag + 1) * 8 <= FIR_GRAM_MAX_BYTES
@@ -553,7 +552,9 @@ class ResponseMoments:
         """``E[j, s, c, l] = sum_t u_j(t - s) u_c(t - l)`` over the rows, ``s = 0 ..`` :attr:`fir_span`,
         ``l = 0 .. L``, with ``u_j(t - s) = 0`` before the start of ``t``'s segment (a response from rest
         there), shape (n_columns, fir_span + 1, n_columns, L + 1) (column units squared); taken once per
-        window.
+        window.  When the responses run through gaps (:attr:`joined`), ``u_j(t - s)`` is read on the
+        sample grid of ``t``'s run, the columns held in its short gaps and 0 before its first sample, as
+        :func:`~mpm_monitor.core.segments.through` simulates the responses.
 
         Lag ``l = 0`` takes a product over the rows per column ``j``; lag ``s = 0`` is the Gram's
         (:attr:`gram`); the others are sums along the diagonals of lag pairs, as ``M`` in
@@ -564,8 +565,10 @@ class ResponseMoments:
         if E is None:
             nu, L, S, start = self.u_c.shape[1], self.n_lag, self.fir_span, self.start
             # u_j(t - s) on each segment's rows, s = 0 .. S: a window over the segment padded with S zeros
-            # before it, read backwards; the head and tail corrections at s = 1 .. S likewise.
-            padded = [np.vstack([np.zeros((S, nu)), self.u_c[a:b]]) for a, b in self.segs]
+            # before it (or the S samples of its run's grid before it), read backwards; the head and tail
+            # corrections at s = 1 .. S likewise.
+            padded = self._run_windows(S) if self.joined else \
+                [np.vstack([np.zeros((S, nu)), self.u_c[a:b]]) for a, b in self.segs]
             E = np.empty((nu, S + 1, nu, L + 1))
             for j in range(nu):
                 lagged = [np.lib.stride_tricks.sliding_window_view(p[:, j], S + 1)[start:, ::-1] for p in padded]
@@ -580,12 +583,28 @@ class ResponseMoments:
             self._fir_gram = E
         return E
 
+    def _run_windows(self, S: int) -> list:
+        """For every segment, the centred columns on its run's sample grid from ``S`` samples before the
+        segment's first to its last (held in the run's short gaps, 0 before the run's first sample), shape
+        (S + segment samples, n_columns) each (:attr:`fir_gram` with :attr:`joined`)."""
+        out = []
+        for a, b, held in self.segments.runs:
+            grid = self.u_c[a:b] if held is None else self.u_c[a:b][held[0]]
+            at = np.arange(b - a) if held is None else held[1]
+            full = np.vstack([np.zeros((S, grid.shape[1])), grid])          # full[p + S]: grid position p
+            for lo, hi in self.segs:
+                if a <= lo and hi <= b:
+                    first = int(at[lo - a])
+                    out.append(full[first:first + S + hi - lo])
+        return out
+
     def _fir_moments(self, entry, mu: np.ndarray) -> tuple:
         """``(u_c(t)' x(t - k), u_c(t - l)' x)``, ``k = 0 .. na``, ``l = 1 .. L``, of a long finite impulse
         response (:meth:`_long_fir`) from its taps and :attr:`fir_gram`, shapes (n_columns, na + 1) and
         (n_columns, L) (column units times output units): ``_compute``'s ``V[:nu, :, e]`` and ``M[:, 1:, 0, e]``.
 
-        ``x_raw(t) = sum_m num_m u_j(t - delay - m)`` from rest at each segment's start and ``x = x_raw - mu_s``
+        ``x_raw(t) = sum_m num_m u_j(t - delay - m)`` from rest at each segment's start (or its run's, on the
+        run's grid: :attr:`fir_gram`) and ``x = x_raw - mu_s``
         in segment ``s``, so ``u_c(t - l)' x(t - k) = sum_m num_m E(delay + k + m, l) - sum_s mu_s u_s(l)``,
         ``u_s(l)`` the column sums of ``u_c(t - l)`` over segment ``s``'s rows.
 
