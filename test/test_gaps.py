@@ -636,3 +636,19 @@ def test_a_held_out_part_without_a_scored_sample_leaves_the_repair_unvalidated(c
     assert all(c["applied"] for c in result.changes)
     said = [w for w in result.warnings if "were not validated on data outside the fit" in w]
     assert said and all("nan" not in w for w in result.warnings)
+
+
+def test_the_element_responses_run_through_the_short_gaps_as_the_model_does():
+    """bench.gaps_mc's structures run 17 (seed 0; three samples dropped): its whole-response regressors,
+    simulated from rest at every segment's start, located (y2, dv1) in place of the whole log's true (y2, u4);
+    run through the short gaps with the columns held, as the model runs, the same element as the whole log."""
+    from bench.gaps_mc import DROP, drop_rows
+    from bench.monte_carlo import family_log
+
+    model, _, data, truth = family_log("structures", "17", 0, 3000)
+    kept = drop_rows(data.n_samples, DROP, np.random.default_rng([0, 17, 8]))
+    assert data.n_samples - kept.size == 3 and truth == [["y2", "u4"]]
+    whole = analyze(model, data, DETECT)
+    gappy = analyze(model, data.take(kept), DETECT)
+    assert gappy.gaps["count"] == 3
+    assert sorted(gappy.located_elements) == sorted(whole.located_elements) == [("y2", "u4")]
