@@ -44,7 +44,7 @@ import numpy as np
 
 from .arx import lag_matrix, segment_lag_matrix, segment_rows
 from .model import PlantModel
-from .segments import through
+from .segments import run_places, run_samples, through
 
 
 #: The largest :attr:`ResponseMoments.fir_gram` built (bytes); beyond it, the long finite impulse responses'
@@ -588,10 +588,10 @@ class ResponseMoments:
         segment's first to its last (held in the run's short gaps, 0 before the run's first sample), shape
         (S + segment samples, n_columns) each (:attr:`fir_gram` with :attr:`joined`)."""
         out = []
-        for a, b, held in self.segments.runs:
-            grid = self.u_c[a:b] if held is None else self.u_c[a:b][held[0]]
-            at = np.arange(b - a) if held is None else held[1]
-            full = np.vstack([np.zeros((S, grid.shape[1])), grid])          # full[p + S]: grid position p
+        for run in self.segments.runs:
+            a, b, _ = run
+            at = run_places(run)
+            full = np.vstack([np.zeros((S, self.u_c.shape[1])), run_samples(self.u_c, run)])   # full[p + S]: place p
             for lo, hi in self.segs:
                 if a <= lo and hi <= b:
                     first = int(at[lo - a])

@@ -127,15 +127,12 @@ def through(x: np.ndarray, f: Callable[[np.ndarray], np.ndarray], segments=None)
     x = np.asarray(x)
     if segments is None:
         return np.asarray(f(x))
-    runs = getattr(segments, "runs", None)
-    if runs is None:
-        runs = [(int(a), int(b), None) for a, b in segments]
     out: Optional[np.ndarray] = None
-    for a, b, held in runs:
-        if held is None:
-            part = np.asarray(f(x[a:b]))
-        else:
-            part = np.asarray(f(x[a:b][held[0]]))[held[1]]
+    for run in _runs(segments, x.shape[0]):
+        a, b, held = run
+        part = np.asarray(f(run_samples(x, run)))
+        if held is not None:              # read at the logged samples only
+            part = part[run_places(run)]
         if out is None:
             out = np.zeros((x.shape[0],) + part.shape[1:], dtype=part.dtype)
         out[a:b] = part
@@ -158,6 +155,20 @@ def _runs(segments, n: int) -> list:
     return runs if runs is not None else [(int(a), int(b), None) for a, b in segments]
 
 
+def run_places(run: tuple) -> np.ndarray:
+    """The places of the rows of one run ``(first, end, held)`` (:attr:`GapSegments.runs`) on its sample grid,
+    int, shape (end - first,)."""
+    a, b, held = run
+    return np.arange(b - a) if held is None else held[1]
+
+
+def run_samples(x: np.ndarray, run: tuple) -> np.ndarray:
+    """``x`` (stacked samples) on the sample grid of one run ``(first, end, held)``, held through its gaps,
+    shape (grid samples, ...); its own rows are at :func:`run_places`."""
+    a, b, held = run
+    return x[a:b] if held is None else x[a:b][held[0]]
+
+
 def run_positions(start: int, segments=None, n: Optional[int] = None) -> np.ndarray:
     """The place of every regression row on its run's sample grid (samples since the run's first).
 
@@ -177,8 +188,8 @@ def run_positions(start: int, segments=None, n: Optional[int] = None) -> np.ndar
     """
     spans = [(0, int(n))] if segments is None else [(int(a), int(b)) for a, b in segments]
     place = np.empty(spans[-1][1] if spans else 0, dtype=np.int64)
-    for a, b, held in _runs(segments, 0 if n is None else n):
-        place[a:b] = np.arange(b - a) if held is None else held[1]
+    for run in _runs(segments, 0 if n is None else n):
+        place[run[0]:run[1]] = run_places(run)
     return np.concatenate([place[a + start:b] for a, b in spans if b - a > start] or [place[:0]])
 
 
@@ -211,10 +222,10 @@ def run_lag_matrix(x: np.ndarray, lags, start: int, segments=None) -> np.ndarray
     back = max(lags, default=0)
     spans = [(0, x.shape[0])] if segments is None else [(int(a), int(b)) for a, b in segments]
     rows = []
-    for a, b, held in _runs(segments, x.shape[0]):
-        grid = x[a:b] if held is None else x[a:b][held[0]]
-        at = np.arange(b - a) if held is None else held[1]
-        lagged = lag_matrix(np.vstack([np.zeros((back, x.shape[1])), grid]), lags, back)[at]   # the run's samples
+    for run in _runs(segments, x.shape[0]):
+        a, b, _ = run
+        padded = np.vstack([np.zeros((back, x.shape[1])), run_samples(x, run)])
+        lagged = lag_matrix(padded, lags, back)[run_places(run)]          # at the run's own samples
         rows += [lagged[s - a + start:e - a] for s, e in spans if a <= s and e <= b and e - s > start]
     return np.vstack(rows) if rows else np.zeros((0, x.shape[1] * len(lags)))
 

@@ -49,7 +49,7 @@ from .discretize import discretize, model_columns, settling_samples, simulate_el
 from .errors import ConfigurationError
 from .logged_data import check_disturbance_signal
 from .model import PlantModel
-from .segments import gap_runs, held_rows
+from .segments import GapSegments, run_places, run_samples
 from .statistics import f_test
 
 INITIAL_STATE_CHOICES = ("estimate", "zero")
@@ -311,8 +311,9 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
     The samples of a gap are unknown.  Without ``grid`` every contiguous segment is simulated from
     rest at its first sample with its own initial-transient estimate.  With ``grid`` and
     ``max_gap``, segments separated by gaps of at most ``max_gap`` samples form one run
-    (:func:`gap_runs`): the model is simulated over the run's whole sample grid, its columns held at
-    their last logged values through each gap (what the controller's hold does between moves), so
+    (:func:`~mpm_monitor.core.segments.gap_runs`): the model is simulated over the run's whole sample
+    grid, its columns held at their last logged values through each gap (what the controller's hold
+    does between moves), so
     its state carries across the gap instead of starting from rest; a missing sample whose columns
     were logged and are sound (``fill``: the sample of a spike in an output) takes them instead.
     Only the initial transient of a run is estimated, from its first samples (a held output stands
@@ -343,19 +344,17 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
     LoopSignals
         The segments' signals stacked, shape (n_samples, n_outputs) each.
     """
-    segments = [(int(a), int(b)) for a, b in segments]
-    runs = [[k] for k in range(len(segments))] if grid is None or max_gap is None else \
-        gap_runs(segments, grid, max_gap)
+    runs = [(int(a), int(b), None) for a, b in segments] if grid is None or max_gap is None else \
+        GapSegments(segments, grid, max_gap).runs
     parts = []
     for run in runs:
-        a, b = segments[run[0]][0], segments[run[-1]][1]
-        if len(run) == 1:
+        a, b, held = run
+        if held is None:
             parts.append(compute_signals(model, r[a:b], u[a:b], y[a:b], initial_state,
                                          dv=None if dv is None else dv[a:b]))
             continue
-        held, at = held_rows(grid[a:b])              # the rows held on the run's grid, and their places on it
-        held = a + held
-        u_run, dv_run = u[held], None if dv is None else dv[held]
+        at = run_places(run)                          # the rows' places on the run's grid, the columns held
+        u_run, dv_run = run_samples(u, run), None if dv is None else run_samples(dv, run)
         if fill is not None:
             where = np.asarray(fill[0], dtype=np.int64) - int(grid[a])
             inside = (where > 0) & (where < at[-1])
@@ -368,7 +367,7 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
                 if dv_run is not None and known > 0:
                     dv_run = np.array(dv_run, dtype=float)
                     dv_run[where[inside], :known] = cols[:, nu:nu + dv_run.shape[1]]
-        sig = compute_signals(model, r[held], u_run, y[held], initial_state, dv=dv_run)
+        sig = compute_signals(model, run_samples(r, run), u_run, run_samples(y, run), initial_state, dv=dv_run)
         parts.append(LoopSignals(**{f.name: getattr(sig, f.name)[at] for f in dataclasses.fields(LoopSignals)
                                     if f.name != "initial_state"}, initial_state=sig.initial_state))
     return LoopSignals(**{f.name: np.vstack([getattr(p, f.name) for p in parts])
