@@ -985,10 +985,10 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
             response = None
             if estimates[(i, j)].response is not None:
                 a = noise_filter(fit, na)[0]
-                response = (row_response_tests(model, i, fit, testable, X, sizes, u_c, d_c, start, na, columns=[j],
-                                               a=a, extra=extra) if segments is None else
-                            row_response_tests(model, i, fit, testable, X, sizes, u_c, d_c, start0, na, segments,
-                                               columns=[j], a=a, extra=extra, rows=keep)).get(j)
+                # With gaps the fit's rows are those ``keep`` picks among the segments' regression rows.
+                response = row_response_tests(model, i, fit, testable, X, sizes, u_c, d_c,
+                                              start if segments is None else start0, na, segments, columns=[j],
+                                              a=a, extra=extra, rows=keep).get(j)
             p_raw = combined_p_value(test.p_value, None if response is None else response.p_value)
             return min(1.0, N_FAMILIES * factor[(i, j)] * p_raw) if np.isfinite(p_raw) else 1.0
 
