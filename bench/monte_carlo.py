@@ -3,12 +3,18 @@
 Run::
 
     python -m bench.monte_carlo [--runs 200] [--seed 0] [--samples 3000] [--jobs 1]
-                                [--methods arx,xcorr,pcorr] [--dither-fat | --still]
+                                [--methods arx,xcorr,pcorr] [--dither-fat | --still] [--bounds Q]
                                 [--out bench/results/monte_carlo.json]
 
 ``--still``: every setpoint held at 0 and no dither, so the inputs move only with the controller's
 feedback of the noise (``bench/results/monte_carlo_still.json``; the false-alarm rate there, and what a
 square loop's element test can still locate).
+
+``--bounds Q``: every loop is run a second time with its MPC's inputs bounded at the ``Q`` quantile of
+their magnitude in the first run, and their moves at the ``(1 + Q) / 2`` quantile of theirs
+(:func:`bounded_scenario`; the MPC solves its QP with the bounds, so the loop is no longer linear), and
+the methods analyse that log (``bench/results/monte_carlo_bounded.json``); the ``arx`` result of the
+same loop without bounds is kept beside it, with how often the bounds were active.
 
 Every run draws a random scenario (:mod:`bench.scenarios`: plant 2x2 to 8x8, 0 to 3 mismatched
 elements of random kind and size, the paper's noise and MPC tuning, PRBS setpoints, input dither
@@ -82,9 +88,13 @@ DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "monte_carlo.json"
 # --------------------------------------------------------------------------- one run
 def simulate(scenario: Scenario, samples: int) -> LoggedData:
     """Closed-loop log of a scenario as :class:`LoggedData` (what a user would hand to ``analyze``)."""
-    log = run_closed_loop(scenario.plant, scenario.model, samples, seed=scenario.loop_seed, mpc=scenario.mpc,
-                          excitation=scenario.excitation, disturbance=scenario.disturbance)
-    return log.as_logged_data(f"scenario {scenario.seed}/{scenario.index}")
+    return _closed_loop(scenario, samples).as_logged_data(f"scenario {scenario.seed}/{scenario.index}")
+
+
+def _closed_loop(scenario: Scenario, samples: int):
+    """The scenario's :class:`~mpm_monitor.sim.closed_loop.ClosedLoopLog` (its dither apart)."""
+    return run_closed_loop(scenario.plant, scenario.model, samples, seed=scenario.loop_seed, mpc=scenario.mpc,
+                           excitation=scenario.excitation, disturbance=scenario.disturbance)
 
 
 def family_log(kind: str, name: str, seed: int, samples: int) -> tuple:
@@ -181,19 +191,98 @@ def run_method(method: str, model, data: LoggedData, alpha: float = ALPHA) -> di
         return {"error": f"{type(exc).__name__}: {exc}"}
 
 
+def bounded_scenario(sc: Scenario, moves: np.ndarray, quantile: float) -> tuple:
+    """The scenario with bounds on its MPC's inputs and moves, placed from its run without bounds.
+
+    Each input ``j`` is bounded to ``|u_j| <= U_j`` and ``|du_j| <= D_j``, ``U_j`` the ``quantile`` of
+    ``|u_j|`` and ``D_j`` the ``(1 + quantile) / 2`` quantile of ``|u_j(k) - u_j(k - 1)|`` over the run
+    without bounds (in deviations: the scenarios' operating point is 0), so that the bounded loop
+    spends a share of its samples against them.  The bounds hold the MPC's inputs; a dither is added
+    after them (:func:`~mpm_monitor.sim.closed_loop.run_closed_loop`).
+
+    Parameters
+    ----------
+    sc : Scenario
+    moves : ndarray, shape (n_samples, n_inputs)
+        The MPC's inputs in the run without bounds (the plant's inputs less the dither).
+    quantile : float
+        In (0, 1).
+
+    Returns
+    -------
+    (Scenario, dict)
+        The bounded scenario, and its bounds (``u_max``, ``du_max``: lists, input units).
+    """
+    u = np.asarray(moves, dtype=float)
+    hi = np.quantile(np.abs(u), quantile, axis=0)
+    dmax = np.quantile(np.abs(np.diff(u, axis=0)), (1.0 + quantile) / 2.0, axis=0)
+    hi = np.maximum(hi, 1e-9)
+    dmax = np.maximum(dmax, 1e-9)
+    mpc = dataclasses.replace(sc.mpc, u_min=[-float(x) for x in hi], u_max=[float(x) for x in hi],
+                              du_max=[float(x) for x in dmax])
+    return dataclasses.replace(sc, mpc=mpc), {"u_max": hi.tolist(), "du_max": dmax.tolist()}
+
+
+def bound_activity(u: np.ndarray, bounds: dict) -> dict:
+    """Shares of a bounded run's samples with an input at a bound (:func:`bounded_scenario`'s).
+
+    Parameters
+    ----------
+    u : ndarray, shape (n_samples, n_inputs)
+        The MPC's inputs (the plant's less the dither).
+    bounds : dict
+        ``u_max`` and ``du_max`` (each one per input).
+
+    Returns
+    -------
+    dict
+        ``u``: share of (sample, input) pairs at ``+-u_max``; ``du``: of moves at ``+-du_max``;
+        ``any``: of samples with some input at either bound.
+    """
+    u = np.asarray(u, dtype=float)
+    hi, dmax = np.asarray(bounds["u_max"]), np.asarray(bounds["du_max"])
+    at_u = np.abs(u) >= hi * (1 - 1e-9)
+    moves = np.abs(np.diff(u, axis=0, prepend=u[:1]))
+    at_du = moves >= dmax * (1 - 1e-9)
+    return {"u": float(at_u.mean()), "du": float(at_du[1:].mean()), "any": float((at_u | at_du).any(axis=1).mean())}
+
+
 def run_one(seed: int, index: int, samples: int, methods: Sequence[str],
-            scenario_options: ScenarioOptions = ScenarioOptions(), alpha: float = ALPHA) -> dict:
-    """Draw, simulate and analyse scenario ``(seed, index)``; return its JSON-ready record."""
+            scenario_options: ScenarioOptions = ScenarioOptions(), alpha: float = ALPHA,
+            bounds: Optional[float] = None) -> dict:
+    """Draw, simulate and analyse scenario ``(seed, index)``; return its JSON-ready record.
+
+    ``bounds``: a quantile in (0, 1): the loop is run with its MPC's inputs and moves bounded
+    (:func:`bounded_scenario`, from a first run without bounds) and the methods analyse the bounded
+    log; the record also holds the bounds, their activity (:func:`bound_activity`), the inputs'
+    separability without them, and the ``arx`` result on the log without bounds (``results_unbounded``)."""
     sc = make_scenario(seed, index, scenario_options)
     t0 = time.perf_counter()
-    data = simulate(sc, samples)
+    log = _closed_loop(sc, samples)
+    data = log.as_logged_data(f"scenario {sc.seed}/{sc.index}")
     sim_time = time.perf_counter() - t0
+    bounded = None
+    if bounds is not None:
+        free = data
+        sc_b, limits = bounded_scenario(sc, log.u - log.dither, bounds)
+        t0 = time.perf_counter()
+        log = _closed_loop(sc_b, samples)
+        data = log.as_logged_data(f"scenario {sc.seed}/{sc.index}, bounded")
+        sim_time += time.perf_counter() - t0
+        free_sep = input_separability(free.u)
+        bounded = {"quantile": float(bounds), **limits, "active": bound_activity(log.u - log.dither, limits),
+                   "free_separability": [float(x) for x in free_sep],
+                   "free_collinear_inputs": [int(j) for j in np.flatnonzero(free_sep < SEPARABILITY_COLLINEAR)],
+                   "unbounded": {"arx": run_method("arx", sc.model, free, alpha)} if "arx" in methods else {}}
     sep = input_separability(data.u)
     rec = sc.describe()
     rec["simulation_time_s"] = sim_time
     rec["separability"] = [float(x) for x in sep]
     rec["collinear_inputs"] = [int(j) for j in np.flatnonzero(sep < SEPARABILITY_COLLINEAR)]
     rec["results"] = {m: run_method(m, sc.model, data, alpha) for m in methods}
+    if bounded is not None:
+        rec["results_unbounded"] = bounded.pop("unbounded")
+        rec["bounds"] = bounded
     return rec
 
 
@@ -336,7 +425,8 @@ def time_analyze(methods: Sequence[str] = METHODS, samples: int = 3000, repeats:
 # --------------------------------------------------------------------------- driver
 def run_monte_carlo(n_runs: int, seed: int = 0, samples: int = 3000, methods: Sequence[str] = METHODS, *,
                     jobs: int = 1, scenario_options: ScenarioOptions = ScenarioOptions(), alpha: float = ALPHA,
-                    timing: bool = False, progress: Optional[Callable[[int, int, dict], None]] = None) -> dict:
+                    timing: bool = False, progress: Optional[Callable[[int, int, dict], None]] = None,
+                    bounds: Optional[float] = None) -> dict:
     """Run the benchmark and score it.
 
     Parameters
@@ -359,11 +449,15 @@ def run_monte_carlo(n_runs: int, seed: int = 0, samples: int = 3000, methods: Se
         Also time ``analyze`` on 3,000 samples of 5x5 (:func:`time_analyze`).
     progress : callable, optional
         Called as ``progress(done, total, record)`` after each run.
+    bounds : float, optional
+        Run every loop with its MPC's inputs and moves bounded at this quantile (:func:`run_one`).
 
     Returns
     -------
     dict
-        ``config``, ``summary`` (method -> :func:`score`), ``timing`` and ``runs`` (every record).
+        ``config``, ``summary`` (method -> :func:`score`), ``timing`` and ``runs`` (every record); with
+        ``bounds`` also ``unbounded`` (the ``arx`` score of the same loops without bounds, the runs
+        whose located elements are the same with and without bounds, and the bounds' activity).
     """
     methods = tuple(methods)
     bad = [m for m in methods if m not in METHODS]
@@ -371,7 +465,9 @@ def run_monte_carlo(n_runs: int, seed: int = 0, samples: int = 3000, methods: Se
         raise ValueError(f"methods: expected a subset of {', '.join(METHODS)}, got {', '.join(bad)}")
     if int(n_runs) != n_runs or n_runs < 1:
         raise ValueError(f"n_runs: expected an integer >= 1, got {n_runs!r}")
-    tasks = [(seed, k, samples, methods, scenario_options, alpha) for k in range(int(n_runs))]
+    if bounds is not None and not 0.0 < bounds < 1.0:
+        raise ValueError(f"bounds: expected a quantile in (0, 1), got {bounds!r}")
+    tasks = [(seed, k, samples, methods, scenario_options, alpha, bounds) for k in range(int(n_runs))]
     t0 = time.perf_counter()
     records = map_runs(_run_one_star, tasks, jobs, progress)
     records.sort(key=lambda r: r["index"])
@@ -387,7 +483,35 @@ def run_monte_carlo(n_runs: int, seed: int = 0, samples: int = 3000, methods: Se
         "timing": time_analyze(methods, samples=3000, seed=seed) if timing else None,
         "runs": records,
     }
+    if bounds is not None:
+        result["config"]["bounds_quantile"] = float(bounds)
+        if "arx" in methods:
+            result["unbounded"] = compare_unbounded(records)
     return result
+
+
+def compare_unbounded(records: Sequence[dict]) -> dict:
+    """``arx`` on the loops with bounds against the same loops without (:func:`run_one` with ``bounds``).
+
+    Returns
+    -------
+    dict
+        ``score``: :func:`score` of the logs without bounds; ``same_located``: runs whose located elements
+        are the same in both; ``runs``: runs compared; ``differ``: the indices of the others;
+        ``active``: medians and ranges over the runs of the bounds' activity (:func:`bound_activity`).
+    """
+    # Each run's ambiguity judged on its own inputs: the free run's separability for the free run's results.
+    free = [dict(rec, results=rec["results_unbounded"], separability=rec["bounds"]["free_separability"],
+                 collinear_inputs=rec["bounds"]["free_collinear_inputs"]) for rec in records]
+    pairs = [(rec["index"], rec["results"]["arx"], rec["results_unbounded"]["arx"]) for rec in records]
+    ok = [(k, a, b) for k, a, b in pairs if "error" not in a and "error" not in b]
+    differ = [k for k, a, b in ok if sorted(map(tuple, a["located"])) != sorted(map(tuple, b["located"]))]
+    active = {}
+    for key in ("u", "du", "any"):
+        vals = [rec["bounds"]["active"][key] for rec in records]
+        active[key] = {"median": float(statistics.median(vals)), "min": float(min(vals)), "max": float(max(vals))}
+    return {"score": score(free, "arx"), "runs": len(ok), "same_located": len(ok) - len(differ), "differ": differ,
+            "active": active}
 
 
 def _plain(opts) -> dict:
@@ -441,6 +565,17 @@ def format_table(result: dict) -> str:
                 return "-"
             return f"{_fmt(cell['recall'])} ({cell['hit']}/{cell['hit'] + cell['miss']})"
         line(f"  {cat} {key}", get)
+    free = result.get("unbounded")
+    if free is not None:
+        sc, act = free["score"], free["active"]
+        lines.append(f"bounds at the {result['config']['bounds_quantile']:g} quantile: an input at a bound in a median "
+                     f"{100 * act['u']['median']:.0f} % of (sample, input) pairs ({100 * act['u']['min']:.0f}-"
+                     f"{100 * act['u']['max']:.0f} %), a move at its bound in {100 * act['du']['median']:.0f} %, some "
+                     f"bound active in {100 * act['any']['median']:.0f} % of samples")
+        lines.append(f"arx without bounds on the same loops: precision {_fmt(sc['element']['precision'])}, recall "
+                     f"{_fmt(sc['element']['recall'])}, false alarms {sc['false_alarms']['runs_with_located_element']}/"
+                     f"{sc['false_alarms']['clean_runs']}; the same located elements with and without bounds in "
+                     f"{free['same_located']} of {free['runs']} runs")
     timing = result.get("timing")
     if timing and "error" not in timing:
         lines.append(f"analyze on {timing['samples']} samples of 5x5, median of {timing['repeats']} (s): "
@@ -462,6 +597,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--still", action="store_true",
                         help="still loops: every setpoint held at 0, no dither (the inputs move only with the "
                              "controller's feedback of the noise)")
+    parser.add_argument("--bounds", type=float, default=None, metavar="QUANTILE",
+                        help="bound every MPC's inputs and moves at this quantile of their run without bounds "
+                             "(e.g. 0.8) and analyse the bounded loop; the arx result without bounds is kept beside")
     parser.add_argument("--no-timing", action="store_true", help="skip the analyze timing on 5x5")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON output (default bench/results/monte_carlo.json)")
     parser.add_argument("--quiet", action="store_true", help="no per-run progress lines")
@@ -487,7 +625,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     try:
         result = run_monte_carlo(args.runs, args.seed, args.samples, methods, jobs=args.jobs, alpha=args.alpha,
-                                 timing=not args.no_timing, progress=progress,
+                                 timing=not args.no_timing, progress=progress, bounds=args.bounds,
                                  scenario_options=dataclasses.replace(STILL if args.still else ScenarioOptions(),
                                                                       dither_fat=args.dither_fat))
     except ValueError as exc:
