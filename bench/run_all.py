@@ -15,6 +15,9 @@ import time
 BENCHMARKS = [
     ("bench.paper_cases", [], ["--seeds", "5"]),
     ("bench.monte_carlo", ["--runs", "200"], ["--runs", "30"]),
+    ("bench.monte_carlo", ["--runs", "200", "--bounds", "0.8", "--jobs", "2", "--out",
+                           "bench/results/monte_carlo_bounded.json"],
+     ["--runs", "20", "--bounds", "0.8", "--jobs", "2", "--no-timing", "--out", "bench/results/monte_carlo_bounded_quick.json"]),
     ("bench.detection_power", [], ["--runs", "10", "--lengths", "300,800,2000"]),
     ("bench.repair_validation", ["--seeds", *map(str, range(1, 13)), "--json", "bench/results/repair_validation.json"],
      ["--seeds", "1"]),
