@@ -664,6 +664,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     from .regressions import regression_layout, window_regressions
     from .response_moments import ResponseMoments
     from .row_test import moving_setpoints, sdelta_row_test
+    from .resolution import resolution_warnings
     from .segments import GapSegments
     from .signals import (compute_signals, error_rms, packed, scored_segments, segment_signals, segments_mask,
                           unknown_starts)
@@ -806,7 +807,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     t_used = data.t if plan is None else plan.take(data.t)
     warnings = still_output_warnings(model, still) + held_tail_warnings(model, y, t_used, still) \
         + unsettled_warnings(model) + diverging + list(row_test.warnings) \
-        + offset_warnings(model, sig.d, y, diverged, t_used) \
+        + offset_warnings(model, sig.d, y, diverged, t_used) + resolution_warnings(model.outputs, y, sig.d, still) \
         + ([] if design is None else design.warnings()) + later_warnings
     warnings += element_test.warnings
     # (The baselines test every row: their results on a still output's row are set aside as well.)

@@ -1,0 +1,58 @@
+"""core.resolution: the grid a channel is logged on, and the warning about outputs logged coarser than their noise."""
+
+import numpy as np
+import pytest
+
+from mpm_monitor.core.resolution import RESOLUTION_RATIO, resolution, resolution_warnings
+
+
+@pytest.mark.parametrize("step", [0.01, 0.1, 0.25, 2.0, 1e-4])
+def test_a_rounded_channel_gives_its_step_also_about_an_operating_point(step):
+    rng = np.random.default_rng(1)
+    x = np.round(np.cumsum(rng.normal(size=2000)) * 0.05 / step) * step
+    assert resolution(x) == pytest.approx(step, rel=1e-6)
+    assert resolution(x - 350.0) == pytest.approx(step, rel=1e-6)       # in deviations from an operating point
+
+
+def test_no_grid_for_a_channel_logged_to_full_precision_or_with_too_few_values():
+    rng = np.random.default_rng(2)
+    assert resolution(rng.normal(size=3000)) is None
+    assert resolution(np.cumsum(rng.normal(size=3000))) is None
+    assert resolution(np.r_[np.zeros(10), np.ones(10)]) is None            # a switch: two values
+    assert resolution(np.full(50, 3.0)) is None
+    # Values on a grid but for one off it: no grid.
+    x = np.round(rng.normal(size=500) * 10) / 10
+    x[7] = 0.1234567
+    assert resolution(x) is None
+
+
+def test_the_warning_names_the_outputs_coarser_than_the_ratio_times_their_noise():
+    rng = np.random.default_rng(3)
+    n = 3000
+    d = rng.normal(size=(n, 3)) * np.array([1.0, 1.0, 0.01])
+    y = np.cumsum(rng.normal(size=(n, 3)), axis=0) + d
+    coarse = RESOLUTION_RATIO * 1.3
+    y[:, 0] = np.round(y[:, 0] / coarse) * coarse                            # coarser than 1.5 x its noise of 1
+    y[:, 1] = np.round(y[:, 1] / 0.5) * 0.5                                  # finer
+    (w,) = resolution_warnings(["y1", "y2", "y3"], y, d)
+    assert w.startswith("outputs logged with a coarse resolution: y1 in steps of 1.95 (1.9")
+    assert "y2" not in w and "y3" not in w
+    assert resolution_warnings(["y1", "y2", "y3"], y, d, skip=[0]) == []
+    assert resolution_warnings(["y1", "y2", "y3"], y, np.zeros_like(d)) == []     # no error to compare with
+
+
+def test_analyze_warns_about_a_log_rounded_coarser_than_its_noise_and_not_about_the_log_itself():
+    import dataclasses
+
+    from mpm_monitor.apps.reproduce import simulate_case
+    from mpm_monitor.core.analysis import AnalysisOptions
+    from mpm_monitor.core.pipeline import analyze
+
+    case, data, _ = simulate_case("3.2", 3000, 0)
+    options = AnalysisOptions(repair=False)
+    assert not any("coarse resolution" in w for w in analyze(case.model, data, options).warnings)
+    fine = dataclasses.replace(data, y=np.round(np.asarray(data.y), 3))       # three decimals: far below the noise
+    assert not any("coarse resolution" in w for w in analyze(case.model, fine, options).warnings)
+    coarse = dataclasses.replace(data, y=np.round(np.asarray(data.y) * 2) / 2)
+    (w,) = [w for w in analyze(case.model, coarse, options).warnings if "coarse resolution" in w]
+    assert all(f"{name} in steps of 0.5 (" in w for name in case.model.outputs)
