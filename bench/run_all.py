@@ -31,6 +31,8 @@ BENCHMARKS = [
     ("bench.quiet_loops", ["--seeds", "8", "--jobs", "2"], ["--seeds", "1", "--jobs", "2"]),
     ("bench.drift_mc", ["--seeds", "6", "--jobs", "2"], ["--seeds", "1", "--jobs", "2"]),
     ("bench.noise_free", ["--runs", "300", "--jobs", "2"], ["--runs", "20"]),
+    ("bench.quantized", ["--runs", "200", "--jobs", "2"], ["--runs", "20", "--jobs", "2", "--out",
+                                                          "bench/results/quantized_quick.json"]),
     ("bench.step_models", ["--runs", "100", "--jobs", "2"], ["--runs", "10"]),
     ("bench.mpc_qp", [], ["--samples", "300", "--out", "bench/results/mpc_qp_quick.json"]),
     ("bench.model_load", ["--analyze", "100x40", "--out", "bench/results/model_load.json"],
