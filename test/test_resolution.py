@@ -56,3 +56,17 @@ def test_analyze_warns_about_a_log_rounded_coarser_than_its_noise_and_not_about_
     coarse = dataclasses.replace(data, y=np.round(np.asarray(data.y) * 2) / 2)
     (w,) = [w for w in analyze(case.model, coarse, options).warnings if "coarse resolution" in w]
     assert all(f"{name} in steps of 0.5 (" in w for name in case.model.outputs)
+
+
+def test_the_first_samples_decide_only_what_the_whole_column_would():
+    """The warning's shortcut (the smallest gap among the first samples) rules out only outputs that the whole
+    column rules out too: a log at rest at its start, on a coarse grid later, is still named."""
+    rng = np.random.default_rng(4)
+    n = 3000
+    d = rng.normal(size=(n, 2)) * 0.1
+    y = np.zeros((n, 2))
+    y[600:, 0] = np.round(np.cumsum(rng.normal(size=n - 600)) / 0.5) * 0.5     # at rest, then on a grid of 0.5
+    y[:, 1] = np.cumsum(rng.normal(size=n))
+    y[:300, 1] = np.round(y[:300, 1] / 0.5) * 0.5                               # on the grid at its start only
+    (w,) = resolution_warnings(["y1", "y2"], y, d)
+    assert "y1 in steps of 0.5 (" in w and "y2" not in w

@@ -27,6 +27,8 @@ RESOLUTION_RATIO = 1.5
 #: The gaps between a channel's distinct values must be whole multiples of the smallest to this
 #: fraction of it for the channel to be on a grid.
 GRID_TOLERANCE = 0.01
+#: Samples whose distinct values are compared first (:func:`resolution_warnings`).
+HEAD_SAMPLES = 256
 
 
 def resolution(x: np.ndarray) -> Optional[float]:
@@ -82,12 +84,18 @@ def resolution_warnings(outputs: Sequence[str], y: np.ndarray, d: np.ndarray, sk
     """
     y, d = np.asarray(y, dtype=float), np.asarray(d, dtype=float)
     named = []
+    spreads = np.std(d, axis=0) if d.size else np.zeros(len(outputs))
     for i, name in enumerate(outputs):
-        if i in skip:
+        spread = float(spreads[i])
+        if i in skip or not spread > 0.0:
+            continue
+        # A grid's step is at most the smallest gap between any two distinct values: one of the first
+        # HEAD_SAMPLES already at or below the limit rules the output out (a log to full precision, at once).
+        head = np.diff(np.unique(y[:HEAD_SAMPLES, i]))
+        if head.size and float(head.min()) <= RESOLUTION_RATIO * spread:
             continue
         q = resolution(y[:, i])
-        spread = float(np.std(d[:, i]))
-        if q is not None and spread > 0.0 and q > RESOLUTION_RATIO * spread:
+        if q is not None and q > RESOLUTION_RATIO * spread:
             named.append(f"{name} in steps of {q:.3g} ({q / spread:.3g} times the standard deviation of its "
                          f"prediction error)")
     if not named:
