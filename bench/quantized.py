@@ -92,6 +92,7 @@ def summarise(records: Sequence[dict], ratios: Sequence[float]) -> dict:
 
 def run(runs: int, seed: int = 0, samples: int = 3000, jobs: int = 1, alpha: float = 0.01,
         ratios: Sequence[float] = RATIOS, progress=None) -> dict:
+    """The benchmark: ``runs`` loops of family ``seed`` (:func:`one`), their records and :func:`summarise`."""
     tasks = [(seed, k, samples, alpha, tuple(ratios)) for k in range(runs)]
     t0 = time.perf_counter()
     records = map_runs(_one_star, tasks, jobs, progress)
@@ -100,6 +101,7 @@ def run(runs: int, seed: int = 0, samples: int = 3000, jobs: int = 1, alpha: flo
 
 
 def format_table(result: dict) -> str:
+    """The summary as plain text, one line per resolution (what ``main`` prints)."""
     cfg = result["config"]
     lines = [f"outputs rounded to r x their noise standard deviation: {cfg['runs']} loops of bench.monte_carlo "
              f"(seed {cfg['seed']}), {cfg['samples']} samples, alpha {cfg['alpha']} ({result['seconds']:.0f} s)",
@@ -113,6 +115,7 @@ def format_table(result: dict) -> str:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
+    """``python -m bench.quantized``; returns the exit code."""
     p = argparse.ArgumentParser(prog="python -m bench.quantized", description=__doc__.split("\n\n")[0])
     p.add_argument("--runs", type=int, default=200)
     p.add_argument("--seed", type=int, default=0)
