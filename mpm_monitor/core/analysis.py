@@ -662,9 +662,9 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     from .experiment import design_experiment
     from .gaps import plan_gaps
     from .regressions import regression_layout, window_regressions
+    from .resolution import resolution_warnings
     from .response_moments import ResponseMoments
     from .row_test import moving_setpoints, sdelta_row_test
-    from .resolution import resolution_warnings
     from .segments import GapSegments
     from .signals import (compute_signals, error_rms, packed, scored_segments, segment_signals, segments_mask,
                           unknown_starts)
