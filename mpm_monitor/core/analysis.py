@@ -613,7 +613,7 @@ def load_tests(model: Optional[PlantModel] = None) -> None:
     simulation would): the command line does it while a child process parses the CSV, instead of after
     (at 100x40 the 4,000 elements take about 0.08 s)."""
     from . import detectability, element_test, experiment, gaps, regressions, response_moments, row_test  # noqa: F401
-    from . import signals, spikes  # noqa: F401
+    from . import resolution, signals, spikes  # noqa: F401
     from .discretize import discretize
     from .statistics import _special
 
