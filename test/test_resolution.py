@@ -70,3 +70,37 @@ def test_the_first_samples_decide_only_what_the_whole_column_would():
     y[:300, 1] = np.round(y[:300, 1] / 0.5) * 0.5                               # on the grid at its start only
     (w,) = resolution_warnings(["y1", "y2"], y, d)
     assert "y1 in steps of 0.5 (" in w and "y2" not in w
+
+
+def test_an_input_is_named_when_its_step_through_the_largest_gain_exceeds_the_ratio_times_the_row_noise():
+    from mpm_monitor.core.resolution import column_resolution_warnings
+
+    rng = np.random.default_rng(5)
+    n = 3000
+    d = rng.normal(size=(n, 2)) * np.array([0.1, 1.0])
+    x = np.cumsum(rng.normal(size=(n, 3)), axis=0)
+    x[:, 0] = np.round(x[:, 0] / 0.2) * 0.2        # through gain 1 to y1: 2 x its noise of 0.1
+    x[:, 1] = np.round(x[:, 1] / 0.2) * 0.2        # its gain to y1 integrates, to y2 is 1: 0.2 x y2's noise
+    x[:, 2] = np.round(x[:, 2] / 0.05) * 0.05      # 0.5 x y1's noise
+    gain = np.array([[1.0, 3.0, 1.0], [0.5, 1.0, 0.0]])
+    integrating = np.array([[False, True, False], [False, False, False]])
+    (w,) = column_resolution_warnings(["u1", "u2", "u3"], ["y1", "y2"], x, gain, integrating, d)
+    assert w.startswith("inputs logged with a coarse resolution: u1 in steps of 0.2 (through its gain to y1, 1.98 times")
+    assert "u2" not in w and "u3" not in w
+    assert column_resolution_warnings(["u1", "u2", "u3"], ["y1", "y2"], x, gain, integrating, d, skip=[0]) == []
+
+
+def test_analyze_warns_about_inputs_rounded_coarser_than_their_effect_allows():
+    import dataclasses
+
+    from mpm_monitor.apps.reproduce import simulate_case
+    from mpm_monitor.core.analysis import AnalysisOptions
+    from mpm_monitor.core.pipeline import analyze
+
+    case, data, _ = simulate_case("3.2", 3000, 0)
+    options = AnalysisOptions(repair=False)
+    plain = analyze(case.model, data, options)
+    assert not any("coarse resolution" in w for w in plain.warnings)
+    coarse = dataclasses.replace(data, u=np.round(np.asarray(data.u) * 10) / 10)   # gains about 5, noise about 0.1
+    (w,) = [w for w in analyze(case.model, coarse, options).warnings if "coarse resolution" in w]
+    assert w.startswith("inputs logged with a coarse resolution: u1 in steps of 0.1 (through its gain to y")

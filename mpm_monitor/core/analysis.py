@@ -662,7 +662,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     from .experiment import design_experiment
     from .gaps import plan_gaps
     from .regressions import regression_layout, window_regressions
-    from .resolution import resolution_warnings
+    from .resolution import column_resolution_warnings, resolution_warnings
     from .response_moments import ResponseMoments
     from .row_test import moving_setpoints, sdelta_row_test
     from .segments import GapSegments
@@ -808,6 +808,9 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     warnings = still_output_warnings(model, still) + held_tail_warnings(model, y, t_used, still) \
         + unsettled_warnings(model) + diverging + list(row_test.warnings) \
         + offset_warnings(model, sig.d, y, diverged, t_used) + resolution_warnings(model.outputs, y, sig.d, still) \
+        + column_resolution_warnings(model.columns, model.outputs, columns, model.gain,
+                                     np.asarray(model.integrating_outputs, dtype=bool)[:, None] | model.integrating,
+                                     sig.d, still) \
         + ([] if design is None else design.warnings()) + later_warnings
     warnings += element_test.warnings
     # (The baselines test every row: their results on a still output's row are set aside as well.)

@@ -12,7 +12,8 @@ the same as unrounded; from ``k = 2`` false positives, at ``k = 10`` 16 of 56 cl
 
 :func:`resolution` finds the grid of a logged channel; :func:`resolution_warnings` names the outputs
 whose grid is coarser than :data:`RESOLUTION_RATIO` times the standard deviation of their prediction
-error.
+error, and :func:`column_resolution_warnings` the inputs and measured disturbances whose grid, through an
+element's gain, is.
 """
 
 from __future__ import annotations
@@ -89,13 +90,8 @@ def resolution_warnings(outputs: Sequence[str], y: np.ndarray, d: np.ndarray, sk
         spread = float(spreads[i])
         if i in skip or not spread > 0.0:
             continue
-        # A grid's step is at most the smallest gap between any two distinct values: one of the first
-        # HEAD_SAMPLES already at or below the limit rules the output out (a log to full precision, at once).
-        head = np.diff(np.unique(y[:HEAD_SAMPLES, i]))
-        if head.size and float(head.min()) <= RESOLUTION_RATIO * spread:
-            continue
-        q = resolution(y[:, i])
-        if q is not None and q > RESOLUTION_RATIO * spread:
+        q = _coarse_step(y[:, i], RESOLUTION_RATIO * spread)
+        if q is not None:
             named.append(f"{name} in steps of {q:.3g} ({q / spread:.3g} times the standard deviation of its "
                          f"prediction error)")
     if not named:
@@ -103,3 +99,72 @@ def resolution_warnings(outputs: Sequence[str], y: np.ndarray, d: np.ndarray, sk
     return [f"outputs logged with a coarse resolution: {'; '.join(named)}. Their rounding error follows the "
             f"outputs, which the inputs move, and is no noise: the tests may locate an element of these rows that "
             f"is right. Log them with more digits (a resolution finer than their noise)"]
+
+
+def column_resolution_warnings(columns: Sequence[str], outputs: Sequence[str], x: np.ndarray, gain: np.ndarray,
+                               integrating: np.ndarray, d: np.ndarray, skip=()) -> list:
+    """The warning naming the inputs and measured disturbances logged on a grid whose step, through an
+    element's gain, exceeds :data:`RESOLUTION_RATIO` times the standard deviation of that row's prediction
+    error.
+
+    The plant moved with the exact values and the model runs on the rounded ones: its output, and so the
+    prediction error, holds the element's response to the rounding error, which follows the column.
+    Measured by ``bench.quantized --inputs`` (each input rounded to ``r`` times the step that moves an
+    output by its noise through the largest element): up to ``r = 1`` every located element the same as
+    unrounded, from ``r = 2`` false positives.  A self-regulating element passes a slow rounding error at
+    its gain; an integrating element's response to it (its gain is per second) is not counted.
+
+    Parameters
+    ----------
+    columns : sequence of str
+        The inputs' and measured disturbances' names, in the model's column order.
+    outputs : sequence of str
+        The outputs' names.
+    x : ndarray, shape (n_samples, n_columns)
+        The logged columns (deviations or not), their units.
+    gain : ndarray, shape (n_outputs, n_columns)
+        The model's gains, output units per column unit.
+    integrating : ndarray of bool, shape (n_outputs, n_columns)
+        The elements not counted: the model's integrating ones (every element of an integrating output,
+        where the analysis calls this).
+    d : ndarray, shape (n_samples, n_outputs)
+        The prediction errors, output units.
+    skip : sequence of int
+        Outputs not counted (outputs that never move).
+
+    Returns
+    -------
+    list of str
+        No warning or one.
+    """
+    x, d = np.asarray(x, dtype=float), np.asarray(d, dtype=float)
+    spreads = np.std(d, axis=0) if d.size else np.zeros(len(outputs))
+    rows = [i for i in range(len(outputs)) if i not in skip and spreads[i] > 0.0]
+    g = np.where(np.asarray(integrating, dtype=bool), 0.0, np.abs(np.asarray(gain, dtype=float)))
+    named = []
+    for j, name in enumerate(columns):
+        # The smallest step that would be named: through the element of the largest gain per unit of error spread.
+        per = [(g[i, j] / spreads[i], i) for i in rows if g[i, j] > 0.0]
+        if not per:
+            continue
+        best, i = max(per)
+        q = _coarse_step(x[:, j], RESOLUTION_RATIO / best)
+        if q is not None:
+            named.append(f"{name} in steps of {q:.3g} (through its gain to {outputs[i]}, {q * best:.3g} times the "
+                         f"standard deviation of {outputs[i]}'s prediction error)")
+    if not named:
+        return []
+    return [f"inputs logged with a coarse resolution: {'; '.join(named)}. The model's output follows their rounding "
+            f"error, which the plant never saw: the tests may locate an element of these columns that is right. "
+            f"Log them with more digits"]
+
+
+def _coarse_step(x: np.ndarray, limit: float) -> Optional[float]:
+    """:func:`resolution` of ``x`` (shape (n_samples,)) when it exceeds ``limit``, else None."""
+    # A grid's step is at most the smallest gap between any two distinct values: one of the first
+    # HEAD_SAMPLES already at or below the limit rules the channel out (a log to full precision, at once).
+    head = np.diff(np.unique(x[:HEAD_SAMPLES]))
+    if head.size and float(head.min()) <= limit:
+        return None
+    q = resolution(x)
+    return q if q is not None and q > limit else None
