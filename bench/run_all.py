@@ -33,6 +33,8 @@ BENCHMARKS = [
     ("bench.noise_free", ["--runs", "300", "--jobs", "2"], ["--runs", "20"]),
     ("bench.quantized", ["--runs", "200", "--jobs", "2"], ["--runs", "20", "--jobs", "2", "--out",
                                                           "bench/results/quantized_quick.json"]),
+    ("bench.quantized", ["--runs", "200", "--jobs", "2", "--inputs", "--out", "bench/results/quantized_inputs.json"],
+     ["--runs", "20", "--jobs", "2", "--inputs", "--out", "bench/results/quantized_inputs_quick.json"]),
     ("bench.step_models", ["--runs", "100", "--jobs", "2"], ["--runs", "10"]),
     ("bench.mpc_qp", [], ["--samples", "300", "--out", "bench/results/mpc_qp_quick.json"]),
     ("bench.model_load", ["--analyze", "100x40", "--out", "bench/results/model_load.json"],

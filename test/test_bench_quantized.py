@@ -20,3 +20,10 @@ def test_one_run_is_analysed_as_simulated_and_rounded_and_the_coarse_log_is_warn
     assert s["0"]["hits"] == len(rec["0"]["located"]) and s["10"]["runs_warned"] == 1
     assert "runs warned" in quantized.format_table({"config": {"runs": 1, "seed": 0, "samples": 1200, "alpha": 0.01,
                                                                "ratios": [0.5, 10.0]}, "summary": s, "seconds": 1.0})
+
+
+def test_an_inputs_step_moves_its_most_sensitive_output_by_that_outputs_noise():
+    gain = np.array([[2.0, 0.0], [-0.5, 0.0], [1.0, 4.0]])
+    noise = np.array([0.2, 0.1, 0.4])
+    # Input 1: min(0.2 / 2, 0.1 / 0.5, 0.4 / 1) = 0.1; input 2: only row 3, 0.4 / 4.
+    np.testing.assert_allclose(quantized.input_steps(gain, noise), [0.1, 0.1])
