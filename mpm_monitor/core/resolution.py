@@ -112,7 +112,9 @@ def column_resolution_warnings(columns: Sequence[str], outputs: Sequence[str], x
     Measured by ``bench.quantized --inputs`` (each input rounded to ``r`` times the step that moves an
     output by its noise through the largest element): up to ``r = 1`` every located element the same as
     unrounded, from ``r = 2`` false positives.  A self-regulating element passes a slow rounding error at
-    its gain; an integrating element's response to it (its gain is per second) is not counted.
+    its gain; an integrating element's response to it (its gain is per second) is not counted.  A column
+    that only takes values on a grid (a count, a switch of several positions) is named too: the warning
+    says that it is then no concern.
 
     Parameters
     ----------
@@ -154,9 +156,10 @@ def column_resolution_warnings(columns: Sequence[str], outputs: Sequence[str], x
                          f"standard deviation of {outputs[i]}'s prediction error)")
     if not named:
         return []
-    return [f"inputs logged with a coarse resolution: {'; '.join(named)}. The model's output follows their rounding "
-            f"error, which the plant never saw: the tests may locate an element of these columns that is right. "
-            f"Log them with more digits"]
+    return [f"inputs logged with a coarse resolution: {'; '.join(named)}. If that is a rounding (the plant saw "
+            f"values between), the model's output follows its error, which the plant never saw: the tests may "
+            f"locate an element of these columns that is right; log them with more digits. A channel that only "
+            f"takes these values (a count of pumps running, a switch) is no concern"]
 
 
 def _coarse_step(x: np.ndarray, limit: float) -> Optional[float]:
