@@ -1,4 +1,4 @@
-"""Outputs logged with a coarse resolution: a quantization the tests would read as the model's error.
+"""Outputs and inputs logged with a coarse resolution: a rounding the tests would read as the model's error.
 
 A transmitter's, a historian's or an export's resolution (a level in whole centimetres, a value written
 with two decimals) rounds every logged sample to a grid of step ``q``.  Much finer than the output's
@@ -8,7 +8,8 @@ error then holds a part that follows the inputs and that no element of the model
 element test may locate an element that is right.  Measured by rounding the outputs of
 ``bench.monte_carlo``'s 200 loops to ``k`` times each output's noise standard deviation
 (docs/benchmarks.md, "Outputs logged with a coarse resolution"): up to ``k = 1`` every located element
-the same as unrounded; from ``k = 2`` false positives, at ``k = 10`` 16 of 56 clean runs with an alarm.
+the same as unrounded; from ``k = 2`` false positives, at ``k = 10`` 16 of 56 clean runs with an alarm
+(inputs, ``bench.quantized --inputs``: see :func:`column_resolution_warnings`).
 
 :func:`resolution` finds the grid of a logged channel; :func:`resolution_warnings` names the outputs
 whose grid is coarser than :data:`RESOLUTION_RATIO` times the standard deviation of their prediction
@@ -28,7 +29,7 @@ RESOLUTION_RATIO = 1.5
 #: The gaps between a channel's distinct values must be whole multiples of the smallest to this
 #: fraction of it for the channel to be on a grid.
 GRID_TOLERANCE = 0.01
-#: Samples whose distinct values are compared first (:func:`resolution_warnings`).
+#: Samples whose distinct values are compared first (:func:`_coarse_step`).
 HEAD_SAMPLES = 256
 
 
