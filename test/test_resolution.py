@@ -34,11 +34,11 @@ def test_the_warning_names_the_outputs_coarser_than_the_ratio_times_their_noise(
     coarse = RESOLUTION_RATIO * 1.3
     y[:, 0] = np.round(y[:, 0] / coarse) * coarse                            # coarser than 1.5 x its noise of 1
     y[:, 1] = np.round(y[:, 1] / 0.5) * 0.5                                  # finer
-    (w,) = resolution_warnings(["y1", "y2", "y3"], y, d)
+    (w,) = resolution_warnings(["y1", "y2", "y3"], y, d.std(axis=0))
     assert w.startswith("outputs logged with a coarse resolution: y1 in steps of 1.95 (1.9")
     assert "y2" not in w and "y3" not in w
-    assert resolution_warnings(["y1", "y2", "y3"], y, d, skip=[0]) == []
-    assert resolution_warnings(["y1", "y2", "y3"], y, np.zeros_like(d)) == []     # no error to compare with
+    assert resolution_warnings(["y1", "y2", "y3"], y, d.std(axis=0), skip=[0]) == []
+    assert resolution_warnings(["y1", "y2", "y3"], y, np.zeros(3)) == []     # no error to compare with
 
 
 def test_analyze_warns_about_a_log_rounded_coarser_than_its_noise_and_not_about_the_log_itself():
@@ -68,7 +68,7 @@ def test_the_first_samples_decide_only_what_the_whole_column_would():
     y[600:, 0] = np.round(np.cumsum(rng.normal(size=n - 600)) / 0.5) * 0.5     # at rest, then on a grid of 0.5
     y[:, 1] = np.cumsum(rng.normal(size=n))
     y[:300, 1] = np.round(y[:300, 1] / 0.5) * 0.5                               # on the grid at its start only
-    (w,) = resolution_warnings(["y1", "y2"], y, d)
+    (w,) = resolution_warnings(["y1", "y2"], y, d.std(axis=0))
     assert "y1 in steps of 0.5 (" in w and "y2" not in w
 
 
@@ -84,10 +84,10 @@ def test_an_input_is_named_when_its_step_through_the_largest_gain_exceeds_the_ra
     x[:, 2] = np.round(x[:, 2] / 0.05) * 0.05      # 0.5 x y1's noise
     gain = np.array([[1.0, 3.0, 1.0], [0.5, 1.0, 0.0]])
     integrating = np.array([[False, True, False], [False, False, False]])
-    (w,) = column_resolution_warnings(["u1", "u2", "u3"], ["y1", "y2"], x, gain, integrating, d)
+    (w,) = column_resolution_warnings(["u1", "u2", "u3"], ["y1", "y2"], x, gain, integrating, d.std(axis=0))
     assert w.startswith("inputs logged with a coarse resolution: u1 in steps of 0.2 (through its gain to y1, 1.98 times")
     assert "u2" not in w and "u3" not in w
-    assert column_resolution_warnings(["u1", "u2", "u3"], ["y1", "y2"], x, gain, integrating, d, skip=[0]) == []
+    assert column_resolution_warnings(["u1", "u2", "u3"], ["y1", "y2"], x, gain, integrating, d.std(axis=0), skip=[0]) == []
 
 
 def test_analyze_warns_about_inputs_rounded_coarser_than_their_effect_allows():

@@ -728,7 +728,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     # (a flat, noise-free log) still leaves the rounding of a moving model output.  A diverging
     # output's spread (its last samples') is no scale for that rounding: there only a residual of
     # exactly 0 is exact.
-    spread = np.maximum(np.std(y, axis=0), np.std(sig.d, axis=0))
+    error_std = np.std(sig.d, axis=0)
+    spread = np.maximum(np.std(y, axis=0), error_std)
     spread[[model.outputs.index(name) for name in diverged]] = 0.0
     probe = unless_coloured and options.method == "arx"
     # With two processes, when the rows to element-test do not depend on the row test (every row, arx), the
@@ -807,10 +808,10 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     t_used = data.t if plan is None else plan.take(data.t)
     warnings = still_output_warnings(model, still) + held_tail_warnings(model, y, t_used, still) \
         + unsettled_warnings(model) + diverging + list(row_test.warnings) \
-        + offset_warnings(model, sig.d, y, diverged, t_used) + resolution_warnings(model.outputs, y, sig.d, still) \
+        + offset_warnings(model, sig.d, y, diverged, t_used) + resolution_warnings(model.outputs, y, error_std, still) \
         + column_resolution_warnings(model.columns, model.outputs, columns, model.gain,
                                      np.asarray(model.integrating_outputs, dtype=bool)[:, None] | model.integrating,
-                                     sig.d, still) \
+                                     error_std, still) \
         + ([] if design is None else design.warnings()) + later_warnings
     warnings += element_test.warnings
     # (The baselines test every row: their results on a still output's row are set aside as well.)

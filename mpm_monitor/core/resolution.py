@@ -64,7 +64,7 @@ def resolution(x: np.ndarray) -> Optional[float]:
     return q
 
 
-def resolution_warnings(outputs: Sequence[str], y: np.ndarray, d: np.ndarray, skip=()) -> list:
+def resolution_warnings(outputs: Sequence[str], y: np.ndarray, error_std: np.ndarray, skip=()) -> list:
     """The warning naming the outputs logged on a grid coarser than :data:`RESOLUTION_RATIO` times the
     standard deviation of their prediction error (module docstring).
 
@@ -74,8 +74,8 @@ def resolution_warnings(outputs: Sequence[str], y: np.ndarray, d: np.ndarray, sk
         The outputs' names.
     y : ndarray, shape (n_samples, n_outputs)
         The logged outputs (deviations or not), output units.
-    d : ndarray, shape (n_samples, n_outputs)
-        Their prediction errors ``y - yhat``, output units.
+    error_std : ndarray, shape (n_outputs,)
+        The standard deviations of their prediction errors ``y - yhat``, output units.
     skip : sequence of int
         Outputs not examined (outputs that never move).
 
@@ -84,11 +84,10 @@ def resolution_warnings(outputs: Sequence[str], y: np.ndarray, d: np.ndarray, sk
     list of str
         No warning or one.
     """
-    y, d = np.asarray(y, dtype=float), np.asarray(d, dtype=float)
+    y = np.asarray(y, dtype=float)
     named = []
-    spreads = np.std(d, axis=0) if d.size else np.zeros(len(outputs))
     for i, name in enumerate(outputs):
-        spread = float(spreads[i])
+        spread = float(error_std[i])
         if i in skip or not spread > 0.0:
             continue
         q = _coarse_step(y[:, i], RESOLUTION_RATIO * spread)
@@ -103,7 +102,7 @@ def resolution_warnings(outputs: Sequence[str], y: np.ndarray, d: np.ndarray, sk
 
 
 def column_resolution_warnings(columns: Sequence[str], outputs: Sequence[str], x: np.ndarray, gain: np.ndarray,
-                               integrating: np.ndarray, d: np.ndarray, skip=()) -> list:
+                               integrating: np.ndarray, error_std: np.ndarray, skip=()) -> list:
     """The warning naming the inputs and measured disturbances logged on a grid whose step, through an
     element's gain, exceeds :data:`RESOLUTION_RATIO` times the standard deviation of that row's prediction
     error.
@@ -130,8 +129,8 @@ def column_resolution_warnings(columns: Sequence[str], outputs: Sequence[str], x
     integrating : ndarray of bool, shape (n_outputs, n_columns)
         The elements not counted: the model's integrating ones (every element of an integrating output,
         where the analysis calls this).
-    d : ndarray, shape (n_samples, n_outputs)
-        The prediction errors, output units.
+    error_std : ndarray, shape (n_outputs,)
+        The standard deviations of the outputs' prediction errors, output units.
     skip : sequence of int
         Outputs not counted (outputs that never move).
 
@@ -140,8 +139,8 @@ def column_resolution_warnings(columns: Sequence[str], outputs: Sequence[str], x
     list of str
         No warning or one.
     """
-    x, d = np.asarray(x, dtype=float), np.asarray(d, dtype=float)
-    spreads = np.std(d, axis=0) if d.size else np.zeros(len(outputs))
+    x = np.asarray(x, dtype=float)
+    spreads = np.asarray(error_std, dtype=float)
     rows = [i for i in range(len(outputs)) if i not in skip and spreads[i] > 0.0]
     g = np.where(np.asarray(integrating, dtype=bool), 0.0, np.abs(np.asarray(gain, dtype=float)))
     named = []
