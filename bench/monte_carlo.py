@@ -261,7 +261,7 @@ def run_one(seed: int, index: int, samples: int, methods: Sequence[str],
     log = _closed_loop(sc, samples)
     data = log.as_logged_data(f"scenario {sc.seed}/{sc.index}")
     sim_time = time.perf_counter() - t0
-    bounded = None
+    bounded = free_results = None
     if bounds is not None:
         free = data
         sc_b, limits = bounded_scenario(sc, log.u - log.dither, bounds)
@@ -272,8 +272,8 @@ def run_one(seed: int, index: int, samples: int, methods: Sequence[str],
         free_sep = input_separability(free.u)
         bounded = {"quantile": float(bounds), **limits, "active": bound_activity(log.u - log.dither, limits),
                    "free_separability": [float(x) for x in free_sep],
-                   "free_collinear_inputs": [int(j) for j in np.flatnonzero(free_sep < SEPARABILITY_COLLINEAR)],
-                   "unbounded": {"arx": run_method("arx", sc.model, free, alpha)} if "arx" in methods else {}}
+                   "free_collinear_inputs": [int(j) for j in np.flatnonzero(free_sep < SEPARABILITY_COLLINEAR)]}
+        free_results = {"arx": run_method("arx", sc.model, free, alpha)} if "arx" in methods else {}
     sep = input_separability(data.u)
     rec = sc.describe()
     rec["simulation_time_s"] = sim_time
@@ -281,7 +281,7 @@ def run_one(seed: int, index: int, samples: int, methods: Sequence[str],
     rec["collinear_inputs"] = [int(j) for j in np.flatnonzero(sep < SEPARABILITY_COLLINEAR)]
     rec["results"] = {m: run_method(m, sc.model, data, alpha) for m in methods}
     if bounded is not None:
-        rec["results_unbounded"] = bounded.pop("unbounded")
+        rec["results_unbounded"] = free_results
         rec["bounds"] = bounded
     return rec
 
