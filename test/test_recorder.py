@@ -196,16 +196,17 @@ class _Lines(threading.Thread):
                 self.flushed = max(self.flushed, int(m.group(1)))
 
 
-def _run_and_signal(tmp_path, monkeypatch, signum, extra=()):
+def _run_and_signal(tmp_path, monkeypatch, signum, extra=(), ready=None):
     """Record /output from a publisher in this process; signal the recorder once it reported a
-    flush of at least 200 messages, keep publishing 100 more, and wait for it to end.
+    flush of at least 200 messages (and ``ready(lines)`` holds for its log lines, if given), keep publishing
+    100 more, and wait for it to end.
 
     Runs on a ROS_DOMAIN_ID no other test process holds.  ``extra``: more ``-p name:=value`` arguments of the
     recorder.  Returns (bag dir, exit code, flushed count reported before the signal, messages published,
     recorder log).
     """
     with unique_domain(salt=int(signum)) as domain:
-        return _record_and_signal(tmp_path, monkeypatch, signum, domain, extra)
+        return _record_and_signal(tmp_path, monkeypatch, signum, domain, extra, ready)
 
 
 @contextlib.contextmanager
@@ -238,7 +239,7 @@ def _recorder_and_publisher(monkeypatch, domain, ros_args, preexec_fn=None):
     log.join(timeout=5)
 
 
-def _record_and_signal(tmp_path, monkeypatch, signum, domain, extra=()):
+def _record_and_signal(tmp_path, monkeypatch, signum, domain, extra=(), ready=None):
     bag = tmp_path / "bag"
     args = ["-p", f"bag_dir:={bag}", "-p", "flush_period:=0.1", *[a for value in extra for a in ("-p", value)],
             "--log-level", "mpm_recorder:=debug"]
@@ -249,7 +250,7 @@ def _record_and_signal(tmp_path, monkeypatch, signum, domain, extra=()):
             assert time.monotonic() < deadline, "".join(log.lines)
             pub.publish(_vector(k, ("y1", "y2"), 0.0))
             k += 1
-            if signalled_at is None and log.flushed >= 200:
+            if signalled_at is None and log.flushed >= 200 and (ready is None or ready(list(log.lines))):
                 flushed_at_signal = log.flushed
                 proc.send_signal(signum)
                 signalled_at = k
@@ -289,7 +290,14 @@ def test_sigkill_loses_at_most_what_was_not_flushed(tmp_path, monkeypatch):
 def test_a_split_recording_stopped_or_killed_keeps_its_messages_in_order(tmp_path, monkeypatch, signum):
     """``max_bag_size``: the recorder goes on in a new storage file at the first flush past the size, and says so.
     Stopped, the bag reads whole (every file, in order); killed, ``recover`` reads every file."""
-    bag, rc, flushed, published, log = _run_and_signal(tmp_path, monkeypatch, signum, extra=("max_bag_size:=4000",))
+    def third_file_flushed(lines):
+        """bag_1 closed and a flush after it: bag_2 holds messages on disk (a slow first flush can pass 200
+        messages in one file, so the count alone does not make three files)."""
+        closed = [k for k, line in enumerate(lines) if "closed storage file bag_1.mcap" in line]
+        return bool(closed) and any("flushed" in line for line in lines[closed[0] + 1:])
+
+    bag, rc, flushed, published, log = _run_and_signal(tmp_path, monkeypatch, signum, extra=("max_bag_size:=4000",),
+                                                       ready=third_file_flushed)
     files = sorted(f.name for f in bag.glob("*.mcap"))
     assert len(files) >= 3, (files, log)
     assert "a new storage file after 4,000 bytes" in log and "closed storage file bag_0.mcap" in log, log
