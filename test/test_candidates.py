@@ -238,6 +238,61 @@ def test_exogeneity_separates_a_loop_response_from_an_exogenous_channel():
     assert exogeneity_test(exo, u, ("u1", "u2"), n_lag=8, alpha=0.01).p_value > 1e-3
 
 
+def _steps(n, times, levels):
+    x = np.zeros(n)
+    for t, level in zip(times, levels):
+        x[t:] = level
+    return x
+
+
+def test_a_step_channel_after_an_input_step_by_chance_stays_exogenous():
+    """Inputs that move in rare steps (setpoint steps) and a channel changed by hand in six steps, one
+    of them 3 samples after an input step by chance: the channel's own-lag residual is six spikes, the
+    input lags fit one, and the F test alone rejected (here in 6 of 20 draws, down to p = 2e-14, against
+    its level of 1 %).  The robust score test counts the coincidence as one observation: no draw rejects."""
+    n, f_rejects = 2000, 0
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        grid = np.arange(20, n - 20)
+        u_steps = np.sort(rng.choice(grid, 20, replace=False))
+        u = np.column_stack([_steps(n, u_steps, rng.uniform(-1, 1, 20)),
+                             _steps(n, np.sort(rng.choice(grid, 20, replace=False)), rng.uniform(-1, 1, 20))])
+        u += 0.01 * rng.normal(size=u.shape)
+        c = _steps(n, np.sort(np.r_[rng.choice(grid, 5, replace=False), u_steps[7] + 3]), rng.uniform(-1, 1, 6))
+        c += 0.001 * (seed % 2) * rng.normal(size=n)          # half the draws with a little noise
+        t = exogeneity_test(c, u, ("u1", "u2"), n_lag=8, alpha=0.01)
+        assert t.p_value == max(t.p_value_f, t.p_value_robust)
+        assert t.p_value > 0.01, (seed, t)
+        f_rejects += t.p_value_f < 0.01
+    assert f_rejects >= 5
+
+
+def test_the_robust_score_statistic_against_its_matrix_form():
+    """``n - RSS(1 on Z)`` against ``s' (Z'Z)^-1 s`` computed directly, and its level under the null."""
+    from mpm_monitor.core.candidates import robust_score_test
+    from mpm_monitor.core.statistics import chi2_tail
+
+    rng = np.random.default_rng(5)
+    n = 400
+    base = np.column_stack([np.ones(n), rng.normal(size=(n, 3))])
+    tested = rng.normal(size=(n, 4)) + 0.5 * base[:, 1:2]
+    y = base @ np.array([1.0, 0.5, -0.2, 0.1]) + 0.3 * tested[:, 2] + rng.standard_t(3, size=n)
+    stat, p = robust_score_test(base, tested, y)
+    coef = np.linalg.solve(base.T @ base, base.T @ y)
+    e = y - base @ coef
+    R = tested - base @ np.linalg.solve(base.T @ base, base.T @ tested)
+    Z = e[:, None] * R
+    s = Z.sum(axis=0)
+    ref = float(s @ np.linalg.solve(Z.T @ Z, s))
+    assert stat == pytest.approx(ref, rel=1e-9) and p == pytest.approx(float(chi2_tail(ref, 4)), rel=1e-9)
+    assert p < 1e-3                                     # the tested column acts
+    rejections = 0
+    for _ in range(400):                                # null, heavy-tailed errors: the level holds
+        y = base @ np.array([1.0, 0.5, -0.2, 0.1]) + rng.standard_t(3, size=n) * (1 + np.abs(base[:, 1]))
+        rejections += robust_score_test(base, tested, y)[1] < 0.05
+    assert 6 <= rejections <= 34                        # 5 % of 400 = 20, its two-sided 0.1 % binomial range (14 here)
+
+
 # ------------------------------------------------------------------------------------ model columns
 def test_candidate_columns_are_added_and_dropped_in_every_structure(effect_run):
     model = effect_run.model
