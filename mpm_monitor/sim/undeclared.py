@@ -103,7 +103,7 @@ def filtered_noise(n: int, std: float, pole: float, rng: np.random.Generator) ->
 
 
 def undeclared_effect_run(n_samples: int = 3000, seed: int = 1, effect: UndeclaredEffect = UndeclaredEffect(),
-                          loop_channel: bool = True) -> UndeclaredEffectRun:
+                          loop_channel: bool = True, excitation=None) -> UndeclaredEffectRun:
     """Simulate the Shell loop with the undeclared channel (see the module docstring).
 
     Parameters
@@ -117,6 +117,8 @@ def undeclared_effect_run(n_samples: int = 3000, seed: int = 1, effect: Undeclar
     loop_channel : bool
         Also log ``u2_flow``, the response of an intermediate flow to ``u2`` (gain 1.5, 10 s lag,
         2 s dead time, plus white noise of 0.02).
+    excitation : ExcitationOptions, optional
+        The setpoints' excitation instead of the paper's (e.g. rare setpoint steps).
 
     Returns
     -------
@@ -136,7 +138,7 @@ def undeclared_effect_run(n_samples: int = 3000, seed: int = 1, effect: Undeclar
                          name=f"shell 3x3 with {EFFECT_CHANNEL} on {effect.output}")
     ss_channel, ss_walk, ss_noise, ss_loop = np.random.SeedSequence([seed, 20260]).spawn(4)
     dv = MeasuredDisturbanceGenerator(1, EFFECT_SIGNAL, np.random.default_rng(ss_channel)).generate(n_samples)
-    log = run_closed_loop(plant, model, n_samples, seed=seed, mpc=case.mpc, excitation=case.excitation,
+    log = run_closed_loop(plant, model, n_samples, seed=seed, mpc=case.mpc, excitation=case.excitation if excitation is None else excitation,
                           disturbance=case.disturbance, dv=dv)
     extra = {EFFECT_CHANNEL: dv[:, 0],
              RANDOM_WALK_CHANNEL: random_walk(n_samples, 0.05, np.random.default_rng(ss_walk)),
