@@ -3,12 +3,18 @@
 Run::
 
     python -m bench.monte_carlo [--runs 200] [--seed 0] [--samples 3000] [--jobs 1]
-                                [--methods arx,xcorr,pcorr] [--dither-fat | --still] [--bounds Q]
+                                [--methods arx,xcorr,pcorr] [--dither-fat | --still | --setpoint-steps]
+                                [--bounds Q]
                                 [--out bench/results/monte_carlo.json]
 
 ``--still``: every setpoint held at 0 and no dither, so the inputs move only with the controller's
 feedback of the noise (``bench/results/monte_carlo_still.json``; the false-alarm rate there, and what a
 square loop's element test can still locate).
+
+``--setpoint-steps``: every setpoint moved in steps, as operators move them, instead of the paper's
+PRBS (each held at least 60 samples, then switched with probability 1 % a sample: about 30 steps in
+3000 samples; :data:`bench.scenarios.SETPOINT_STEPS`); the inputs move sharply at a step and little
+between (``bench/results/monte_carlo_setpoint_steps.json``).
 
 ``--bounds Q``: every loop is run a second time with its MPC's inputs bounded at the ``Q`` quantile of
 their magnitude in the first run, and their moves at the ``(1 + Q) / 2`` quantile of theirs
@@ -75,7 +81,7 @@ from mpm_monitor.core.signals import compute_signals
 from mpm_monitor.sim.closed_loop import run_closed_loop
 
 from . import map_runs
-from .scenarios import KINDS, STILL, Scenario, ScenarioOptions, input_separability, make_scenario
+from .scenarios import KINDS, SETPOINT_STEPS, STILL, Scenario, ScenarioOptions, input_separability, make_scenario
 
 METHODS = ("arx", "xcorr", "pcorr")
 ALPHA = 0.01
@@ -597,6 +603,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--still", action="store_true",
                         help="still loops: every setpoint held at 0, no dither (the inputs move only with the "
                              "controller's feedback of the noise)")
+    parser.add_argument("--setpoint-steps", action="store_true",
+                        help="setpoints moved in steps (held at least 60 samples, then 1 %% a sample) instead of "
+                             "the paper's PRBS")
     parser.add_argument("--bounds", type=float, default=None, metavar="QUANTILE",
                         help="bound every MPC's inputs and moves at this quantile of their run without bounds "
                              "(e.g. 0.8) and analyse the bounded loop; the arx result without bounds is kept beside")
@@ -607,6 +616,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
     if args.runs < 1 or args.samples < 100 or args.jobs < 1:
         parser.error("--runs and --jobs must be >= 1 and --samples >= 100")
+    if args.still and args.setpoint_steps:
+        parser.error("--still and --setpoint-steps exclude each other (still loops hold every setpoint)")
 
     def progress(done, total, rec):
         if args.quiet:
@@ -626,8 +637,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         result = run_monte_carlo(args.runs, args.seed, args.samples, methods, jobs=args.jobs, alpha=args.alpha,
                                  timing=not args.no_timing, progress=progress, bounds=args.bounds,
-                                 scenario_options=dataclasses.replace(STILL if args.still else ScenarioOptions(),
-                                                                      dither_fat=args.dither_fat))
+                                 scenario_options=dataclasses.replace(
+                                     STILL if args.still else SETPOINT_STEPS if args.setpoint_steps
+                                     else ScenarioOptions(), dither_fat=args.dither_fat))
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

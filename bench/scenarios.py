@@ -100,6 +100,11 @@ class ScenarioOptions:
         method).
     setpoint_amplitude : float
         Amplitude of the setpoint PRBS.
+    setpoint_switch_probability : float
+        Probability of a setpoint switch at each sample once ``setpoint_min_hold`` has elapsed (0.5:
+        the paper's flat spectrum).
+    setpoint_min_hold : int
+        Least samples between two setpoint switches.
     prediction_horizon, control_horizon : int
         MPC horizons, samples.
     sample_time : float
@@ -119,6 +124,8 @@ class ScenarioOptions:
     dither_amplitude: float = 0.1
     dither_fat: bool = False
     setpoint_amplitude: float = 1.0
+    setpoint_switch_probability: float = 0.5
+    setpoint_min_hold: int = 1
     prediction_horizon: int = 100
     control_horizon: int = 30
     sample_time: float = 1.0
@@ -134,6 +141,10 @@ class ScenarioOptions:
         if not 0.0 < lo <= hi <= 1.0:
             raise ValueError(f"size_range: expected 0 < low <= high <= 1, got {self.size_range!r}")
 
+
+#: Setpoints moved in steps, as operators move them: each held at least 60 samples, then switched with
+#: probability 1 % a sample (about 30 steps per setpoint in 3000 samples); ``--setpoint-steps`` of bench.monte_carlo.
+SETPOINT_STEPS = ScenarioOptions(setpoint_switch_probability=0.01, setpoint_min_hold=60)
 
 #: Still loops: every setpoint held at 0 and no dither, so the inputs move only with the controller's feedback
 #: of the noise (``--still`` of bench.monte_carlo, bench.detectability and bench.experiment_mc).
@@ -341,7 +352,8 @@ def make_scenario(seed: int, index: int, options: ScenarioOptions = ScenarioOpti
     if opts.dither_fat and nu > ny:
         dither = True   # the experiment design that makes a fat plant's elements identifiable
     excitation = ExcitationOptions(
-        setpoint=PrbsOptions(amplitude=opts.setpoint_amplitude, switch_probability=0.5),
+        setpoint=PrbsOptions(amplitude=opts.setpoint_amplitude, switch_probability=opts.setpoint_switch_probability,
+                             min_hold=opts.setpoint_min_hold),
         dither=PrbsOptions(amplitude=opts.dither_amplitude, switch_probability=0.5) if dither else None)
     mpc = MpcOptions(prediction_horizon=opts.prediction_horizon, control_horizon=opts.control_horizon,
                      output_weight=1.0, input_weight=1.0, input_rate_weight=0.1)
