@@ -17,8 +17,8 @@ paper's setpoint PRBS, disturbance and noise, the model matching the plant):
    against the noise floor, and that no decoy is ever added and ``u2_flow`` is reported as not
    exogenous.
 
-``--setpoint-steps``: both studies on the loop with its setpoints moved in rare steps (a step at
-most every 60 samples, 1 % a sample after that: about 30 in 3000 samples), as operators move them,
+``--setpoint-steps``: both studies on the loop with its setpoints moved in rare steps (at least 60
+samples apart, then 1 % a sample: about 30 steps in 3000 samples), as operators move them,
 instead of the paper's PRBS.  The inputs then move sharply at each step and little between them.
 The level study adds two channels changed by hand in six steps without noise (a feed set by an
 operator): one at random times, one with a step 1 to 5 samples after a setpoint step, by chance.
