@@ -10,13 +10,17 @@ full analysis runs with the repair.  Scored, for every mismatched element that w
   measurement noise on the same data: what a perfect model would leave);
 - on outputs without a located element, that the error is unchanged.
 
-Run: ``python -m bench.repair_mc [--runs 200] [--seed 0] [--samples 3000]``
+``--setpoint-steps``: the setpoints moved in steps instead of the paper's PRBS
+(:data:`bench.scenarios.SETPOINT_STEPS`, as ``bench.monte_carlo --setpoint-steps``).
+
+Run: ``python -m bench.repair_mc [--runs 200] [--seed 0] [--samples 3000] [--dither-fat] [--setpoint-steps]``
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
 import statistics
 import time
 
@@ -27,7 +31,7 @@ from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.sim.closed_loop import run_closed_loop
 
 from . import write_json
-from .scenarios import ScenarioOptions, make_scenario
+from .scenarios import SETPOINT_STEPS, ScenarioOptions, make_scenario
 
 
 def one(seed: int, index: int, samples: int, options: ScenarioOptions) -> dict:
@@ -52,8 +56,8 @@ def one(seed: int, index: int, samples: int, options: ScenarioOptions) -> dict:
     }
 
 
-def run(runs: int, seed: int, samples: int, dither_fat: bool) -> dict:
-    options = ScenarioOptions(dither_fat=dither_fat)
+def run(runs: int, seed: int, samples: int, dither_fat: bool, setpoint_steps: bool = False) -> dict:
+    options = dataclasses.replace(SETPOINT_STEPS if setpoint_steps else ScenarioOptions(), dither_fat=dither_fat)
     recs = [one(seed, k, samples, options) for k in range(runs)]
     confusion = collections.Counter((k["truth"], k["reported"]) for r in recs for k in r["kinds"])
     n_kinds = sum(confusion.values())
@@ -63,6 +67,7 @@ def run(runs: int, seed: int, samples: int, dither_fat: bool) -> dict:
     after_before = [x["after"] / x["before"] for x in rows]
     others = [x["ratio"] for r in recs for x in r["other_rows"]]
     return {"runs": runs, "seed": seed, "samples": samples, "dither_fat": dither_fat,
+            "setpoints": "steps" if setpoint_steps else "paper PRBS",
             "kind_accuracy": exact / n_kinds if n_kinds else None, "kinds_scored": n_kinds,
             "confusion": {f"{t} -> {p}": v for (t, p), v in sorted(confusion.items())},
             "located_rows": len(rows),
@@ -80,7 +85,8 @@ def run(runs: int, seed: int, samples: int, dither_fat: bool) -> dict:
 def format_table(res: dict) -> str:
     a, b = res["after_over_floor"], res["after_over_before"]
     lines = [f"trace and repair over {res['runs']} Monte-Carlo scenarios (seed {res['seed']}, {res['samples']} samples"
-             f"{', dither on fat plants' if res['dither_fat'] else ''})",
+             f"{', dither on fat plants' if res['dither_fat'] else ''}"
+             f"{', setpoints in steps' if res.get('setpoints') == 'steps' else ''})",
              f"kind of located mismatched elements: {res['kind_accuracy']:.3f} exact ({res['kinds_scored']} elements)",
              "confusion (drawn -> reported):"]
     width = max(len(k) for k in res["confusion"]) if res["confusion"] else 10
@@ -102,9 +108,11 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--samples", type=int, default=3000)
     p.add_argument("--dither-fat", action="store_true")
+    p.add_argument("--setpoint-steps", action="store_true",
+                   help="setpoints moved in steps (bench.scenarios.SETPOINT_STEPS) instead of the paper's PRBS")
     p.add_argument("--out", default="bench/results/repair_mc.json")
     args = p.parse_args(argv)
-    res = run(args.runs, args.seed, args.samples, args.dither_fat)
+    res = run(args.runs, args.seed, args.samples, args.dither_fat, args.setpoint_steps)
     print(format_table(res))
     write_json(args.out, res)
     return 0

@@ -26,6 +26,8 @@ BENCHMARKS = [
     ("bench.repair_validation", ["--seeds", *map(str, range(1, 13)), "--json", "bench/results/repair_validation.json"],
      ["--seeds", "1"]),
     ("bench.repair_mc", ["--dither-fat"], ["--runs", "20", "--dither-fat"]),
+    ("bench.repair_mc", ["--dither-fat", "--setpoint-steps", "--out", "bench/results/repair_mc_setpoint_steps.json"],
+     ["--runs", "20", "--dither-fat", "--setpoint-steps", "--out", "bench/results/repair_mc_setpoint_steps_quick.json"]),
     ("bench.candidates_mc", [], ["--runs", "20", "--detection-runs", "5"]),
     ("bench.candidates_mc", ["--setpoint-steps", "--jobs", "2"],
      ["--runs", "20", "--detection-runs", "5", "--setpoint-steps", "--jobs", "2", "--out",

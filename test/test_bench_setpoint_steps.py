@@ -28,3 +28,10 @@ def test_a_setpoint_steps_loop_holds_each_setpoint_for_its_minimum():
     for r in log.r.T:
         switches = np.flatnonzero(np.diff(r) != 0)
         assert 0 < switches.size < 1500 / 60 and np.all(np.diff(switches) >= 60)
+
+
+def test_repair_mc_takes_the_setpoint_steps():
+    from bench import repair_mc
+
+    res = repair_mc.run(1, 0, 1500, dither_fat=True, setpoint_steps=True)
+    assert res["setpoints"] == "steps" and "setpoints in steps" in repair_mc.format_table(res)
