@@ -374,6 +374,9 @@ def _step_reference(coefficients, form: _Form, ts: float, lag_shift: int = _LAG_
             if best is None or ssr < best[0]:
                 best = (ssr, lag, tuple(float(v) for v in x))
     _, lag, poles = best
+    # Two lags are symmetric: the solver may end on either order.  The larger first (``time_constant``), as
+    # :func:`_match_lags` names them against an element the model lacks.
+    poles = tuple(sorted(poles, reverse=True))
     cols = _unit_steps(form, poles, lag, n, ts)
     beta, *_ = np.linalg.lstsq(cols, s, rcond=None)
     gain = float(beta[0])
