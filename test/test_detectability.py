@@ -355,21 +355,35 @@ def test_the_experiment_counts_the_whole_response_test_and_a_dithers_share_of_it
 
     data, _ = fat
     made = _kept_information(monkeypatch)
+    given = []
+    element_detectability = det.element_detectability
+
+    def keep_responses(*args, **kwargs):
+        given.append(kwargs.get("responses") or {})
+        return element_detectability(*args, **kwargs)
+
+    monkeypatch.setattr(det, "element_detectability", keep_responses)
     rep = detect(FAT_MODEL, data, FAST)
     info = made[-1]
     targets = sorted((FAT_MODEL.outputs.index(o), FAT_MODEL.inputs.index(i)) for o, i in rep.ambiguous_elements)
-    assert set(info.responses) == set(targets)                 # every element of the fat model had the test
+    # Every element of the fat model whose whole-response test could be formed has its information kept.  The
+    # inputs move exactly together here (variance inflation inf), so whether an element's regressor keeps a
+    # direction above the rank cut is decided at rounding level: on some BLAS kernels one of the eight has none.
+    formed = {k for k, t in given[-1].items() if t.df_num > 0 and 0 < t.information < np.inf}
+    assert set(info.responses) == formed & set(targets)
+    assert len(info.responses) >= len(targets) - 1
     pred = exm._Predictor(info, targets, FAST.alpha, FAST.collinearity_threshold, regression_layout(FAT_MODEL, FAST),
                           info.testable)
-    key = (1, 2)                                                # (y2, u3)
+    key = (1, 2) if (1, 2) in info.responses else (1, 3)       # (y2, u3), else (y2, u4)
+    other = 3 if key[1] == 2 else 2
     a = 0.3
     own = pred.response_rate(key, {})
     assert own == info.responses[key][0]
-    added = pred.response_rate(key, {2: a}) - own
-    assert pred.response_rate(key, {3: a}) == own               # a dither on another input adds nothing here
+    added = pred.response_rate(key, {key[1]: a}) - own
+    assert pred.response_rate(key, {other: a}) == own          # a dither on another input adds nothing here
     # Reference: the element as python-control samples it (ZOH, then the dead time), a +-a PRBS through it,
     # A_i(q) applied, its mean square over the row's noise variance.
-    gain, tau, delay = FAT_MODEL.gain[1, 2], FAT_MODEL.time_constant[1, 2], int(FAT_MODEL.delay[1, 2])
+    gain, tau, delay = FAT_MODEL.gain[key], FAT_MODEL.time_constant[key], int(FAT_MODEL.delay[key])
     sysd = control.sample_system(control.tf([gain], [tau, 1.0]), FAT_MODEL.sample_time, method="zoh")
     rng = np.random.default_rng(5)
     n = 400_000
@@ -380,15 +394,19 @@ def test_the_experiment_counts_the_whole_response_test_and_a_dithers_share_of_it
     xf = lfilter(np.concatenate([[1.0], nz.a]), [1.0], x)[1000:]
     assert added == pytest.approx(np.mean(xf ** 2) / nz.sigma2, rel=0.02)
     # Each target needs the smaller of its two tests' rows, so the experiment is never longer than
-    # the window test alone would ask; here (u3 and u4 dithered) it is shorter.
+    # the window test alone would ask; with u3 and u4 dithered it is shorter where every target has both tests.
     p = info.G.shape[0]
     sep, drops, fam = pred.evaluate({2: 0.186, 3: 0.198})
     alone = {k: (q, 0.0) for k, (q, _) in drops.items()}
     for k, (q, rate) in drops.items():
         both = pred._need(k, q, rate, fam, 3000, p)
         assert both == min(pred._need(k, q, 0.0, fam, 3000, p), pred._need(k, 0.0, rate, fam, 3000, p))
-    assert sep and pred.samples_needed(drops, fam, p) < 0.9 * pred.samples_needed(alone, fam, p)
-    assert pred.worst_at(drops, fam, 2400, p) < pred.worst_at(alone, fam, 2400, p)
+    with_dither, without = pred.samples_needed(drops, fam, p), pred.samples_needed(alone, fam, p)
+    assert sep and with_dither <= without
+    assert pred.worst_at(drops, fam, 2400, p) <= pred.worst_at(alone, fam, 2400, p)
+    if set(info.responses) == set(targets):    # every target has both tests (see above): the dither shortens it
+        assert with_dither < 0.9 * without
+        assert pred.worst_at(drops, fam, 2400, p) < pred.worst_at(alone, fam, 2400, p)
     assert rep.experiment.samples <= pred.samples_needed(drops, fam, p) + exm.SAMPLES_STEP
 
 

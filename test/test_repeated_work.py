@@ -278,8 +278,10 @@ def test_detection_after_a_repair_reuses_the_unchanged_rows_and_gives_the_same_r
     fresh = detect(repaired, data, options, signals=sig)
     reused = detect(repaired, data, options, signals=sig, previous=first)
     assert reused.to_dict() == fresh.to_dict()
+    # To rounding: the reused rows' products are the first detection's, the fresh ones are taken over a
+    # Gram of other width, and some BLAS kernels (OpenBLAS's Zen) then move the last bit.
     for key in ("row_gains", "sigma_max", "sdelta_response"):
-        np.testing.assert_array_equal(getattr(reused, key), getattr(fresh, key))
+        np.testing.assert_allclose(getattr(reused, key), getattr(fresh, key), rtol=1e-12, atol=0)
     # The setpoint block and the fits of rows y2..y4 are the first detection's own objects; y1's is new.
     regs, prev = reused.regressions, first.regressions
     assert list(regs._row_regs.values()) == list(prev._row_regs.values())
@@ -301,7 +303,7 @@ def test_row_fits_are_not_reused_across_other_setpoints():
     assert not again.regressions._same_rows and again.regressions._previous is None
 
 
-def test_after_a_repair_the_row_gram_holds_the_rows_to_fit_only_and_gives_their_fits_bit_for_bit():
+def test_after_a_repair_the_row_gram_holds_the_rows_to_fit_only_and_gives_their_fits_to_rounding():
     from mpm_monitor.core.regressions import regression_layout, window_regressions
 
     data, options, first, repaired, sig = _repaired_loop()
@@ -313,8 +315,10 @@ def test_after_a_repair_the_row_gram_holds_the_rows_to_fit_only_and_gives_their_
     assert reduced.row_gram.n_columns == full.row_gram.n_columns - 3 * (options.na + 1)
     (reg,) = first.regressions._row_regs.values()
     a, b = reduced.row_fit(reg, 0), full.row_fit(reg, 0)
-    np.testing.assert_array_equal(a.theta, b.theta)
-    assert a.rss == b.rss
+    # The reduced Gram's products are taken over fewer columns: equal to rounding (bit for bit with some
+    # BLAS kernels, not with OpenBLAS's Zen kernels).
+    np.testing.assert_allclose(a.theta, b.theta, rtol=1e-10, atol=1e-12 * np.max(np.abs(b.theta)))
+    assert a.rss == pytest.approx(b.rss, rel=1e-12)
     # A row the reduced Gram lacks, asked for: the Gram of every z is built, and the fit is the full one's.
     reduced._same_rows = frozenset()
     c = reduced.row_fit(reg, 2)
