@@ -58,6 +58,11 @@ def chi2_tail(statistic, df):
     return _special().chdtrc(df, statistic)
 
 
+def normal_sf(z):
+    """``P(N(0, 1) > z)``, elementwise (``scipy.special.ndtr(-z)``)."""
+    return _special().ndtr(-np.asarray(z, float))
+
+
 def normal_isf(q):
     """Upper quantile ``z`` of the standard normal, ``P(N(0, 1) > z) = q`` (``-scipy.special.ndtri(q)``)."""
     return -_special().ndtri(q)

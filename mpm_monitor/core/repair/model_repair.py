@@ -28,6 +28,7 @@ from .classify import _classify_row
 from .disturbance import not_tested, unexplained_disturbance
 from .fit import _TooShort
 from .forms import unsettled_warning
+from .holdout import ar_one_step_errors, loss_rise_p_value
 from .options import RepairOptions, _TestSettings
 from .refit import _fit_repair, _refit_on_all
 from .result import ElementVerdict, RepairResult, _unchanged_entry
@@ -45,8 +46,9 @@ def _rms(x) -> float:
     return float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
 
 
-def _holdout_rms(d, n_fit: int, extra: Optional[np.ndarray] = None) -> float:
-    """RMS of the prediction error ``d`` (shape (n_samples,)) over the held-out part, about its level.
+def _holdout_residual(d, n_fit: int, extra: Optional[np.ndarray] = None) -> np.ndarray:
+    """The prediction error ``d`` (shape (n_samples,)) over the held-out part, about its level, shape
+    (n_samples - n_fit,).
 
     The level of a prediction error is a nuisance the fit of the repair estimates (an offset; on an
     integrating output the arbitrary level of the output): like any parameter of the fit, it is
@@ -57,10 +59,31 @@ def _holdout_rms(d, n_fit: int, extra: Optional[np.ndarray] = None) -> float:
     d = np.asarray(d, float)
     hold = d[n_fit:]
     if hold.size == 0:
-        return float("nan")
+        return hold
     if extra is not None:
-        return _rms(_project_out(hold, np.column_stack([np.ones(hold.shape[0]), extra[n_fit:]])))
-    return _rms(hold - np.mean(d[:n_fit]))
+        return _project_out(hold, np.column_stack([np.ones(hold.shape[0]), extra[n_fit:]]))
+    return hold - np.mean(d[:n_fit])
+
+
+def _holdout_rms(d, n_fit: int, extra: Optional[np.ndarray] = None) -> float:
+    """RMS of :func:`_holdout_residual` (nan without a held-out part)."""
+    return _rms(_holdout_residual(d, n_fit, extra))
+
+
+def _about_level(d, n_fit: int, keep: Optional[np.ndarray], extra: Optional[np.ndarray]) -> np.ndarray:
+    """``d`` (shape (n_samples,)) about its level as the held-out check takes it, over the whole record: the
+    mean of the fit part's samples ``keep`` (all when None) removed, or with ``extra`` an offset and those
+    regressors projected out over the fit part and over the held-out part, each on its own."""
+    d = np.asarray(d, float)
+    mask = np.ones(d.shape[0], bool) if keep is None else np.asarray(keep, bool)
+    fit = mask & (np.arange(d.shape[0]) < n_fit)
+    if extra is None:
+        return d - np.mean(d[fit])
+    out = d.copy()
+    for part in (fit, mask & ~fit):
+        if part.any():
+            out[part] = _project_out(d[part], np.column_stack([np.ones(np.count_nonzero(part)), extra[part]]))
+    return out
 
 
 def _fit_percent(y, yhat, about_level: bool = False) -> float:
@@ -192,9 +215,25 @@ class _Record:
 
     def holdout(self, d: np.ndarray, keep: Optional[np.ndarray], extra: Optional[np.ndarray] = None) -> float:
         """:func:`_holdout_rms` of ``d`` (shape (n_samples,)) over the samples ``keep`` (:meth:`scored`)."""
+        return _rms(self.holdout_residual(d, keep, extra))
+
+    def holdout_residual(self, d: np.ndarray, keep: Optional[np.ndarray],
+                         extra: Optional[np.ndarray] = None) -> np.ndarray:
+        """:func:`_holdout_residual` of ``d`` (shape (n_samples,)) over the samples ``keep`` (:meth:`scored`):
+        shape (held-out samples kept,)."""
         if keep is None:
-            return _holdout_rms(d, self.n_fit, extra)
-        return _holdout_rms(d[keep], int(np.count_nonzero(keep[:self.n_fit])), None if extra is None else extra[keep])
+            return _holdout_residual(d, self.n_fit, extra)
+        return _holdout_residual(d[keep], int(np.count_nonzero(keep[:self.n_fit])),
+                                 None if extra is None else extra[keep])
+
+    def one_step_holdout(self, d: np.ndarray, keep: Optional[np.ndarray], segments: Optional[list],
+                         extra: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
+        """The one-step errors of ``d`` (shape (n_samples,)) over the held-out part under an AR noise model of
+        the option ``noise_order`` fitted on the fit part (:func:`~.holdout.ar_one_step_errors`), ``d``
+        taken about its level as :meth:`holdout_residual` takes it; with gaps over the scored ``segments``
+        (:meth:`scored_segments`) and the samples ``keep``.  None when too few samples."""
+        return ar_one_step_errors(_about_level(d, self.n_fit, keep, extra), self.n_fit, self.options.noise_order,
+                                  segments)
 
     def signals_of(self, model: PlantModel) -> LoopSignals:
         """:func:`compute_signals` of ``model`` on the record (the rows where it equals the model as
@@ -217,15 +256,23 @@ class _RowOutcome:
     elements : dict
         ``{j: ElementVerdict}`` of the row's located elements.
     warnings : list of str
-    holdout_after, holdout_before : float or None
-        RMS of the row's held-out prediction error with the candidate and with the model as given
-        (None when no repair was validated).
+    check : _HoldoutCheck or None
+        The row's held-out check (None when no repair was validated).
     """
 
     elements: dict
     warnings: list
-    holdout_after: Optional[float] = None
-    holdout_before: Optional[float] = None
+    check: Optional["_HoldoutCheck"] = None
+
+    @property
+    def holdout_after(self) -> Optional[float]:
+        """RMS of the row's held-out prediction error with the candidate (None when not validated)."""
+        return None if self.check is None else self.check.after
+
+    @property
+    def holdout_before(self) -> Optional[float]:
+        """RMS of the row's held-out prediction error with the model as given (None when not validated)."""
+        return None if self.check is None else self.check.before
 
 
 @dataclasses.dataclass
@@ -364,25 +411,50 @@ def _fit_part_rms(rec: _Record, i: int, elements: dict) -> tuple:
     return rms(rec.signals_of(candidate).d[:, i]), rms(rec.d0[:, i])
 
 
-def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnings: list):
-    """Compare the candidate's RMS prediction error on the held-out part with the model's.
+@dataclasses.dataclass(frozen=True)
+class _HoldoutCheck:
+    """What the held-out check of one row found.
 
-    Both errors are taken about their level (:func:`_holdout_rms`: the level of the fit part, or on a
-    row with nuisance regressors ``row.extra`` those regressors and an offset projected out over the
-    held-out part).  When the candidate is not better by ``min_holdout_improvement``, the applied
-    verdicts are rejected and a warning is added.
+    Attributes
+    ----------
+    accepted : bool
+    after, before : float or None
+        RMS of the held-out simulation error (about its level) with the candidate and with the model as
+        given; None when the held-out part holds no scored sample.
+    one_step_after, one_step_before : float or None
+        RMS of the held-out one-step errors under each model's own AR noise model (:meth:`_Record.one_step_holdout`);
+        None when not computed.
+    """
+
+    accepted: bool
+    after: Optional[float] = None
+    before: Optional[float] = None
+    one_step_after: Optional[float] = None
+    one_step_before: Optional[float] = None
+
+
+def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnings: list) -> _HoldoutCheck:
+    """Compare the candidate's prediction errors on the held-out part with the model's.
+
+    Both errors are taken about their level (:func:`_holdout_residual`: the level of the fit part, or on
+    a row with nuisance regressors ``row.extra`` those regressors and an offset projected out over the
+    held-out part).  The candidate is accepted when its RMS simulation error there is smaller by
+    ``min_holdout_improvement``, or (option ``holdout_one_step``) when its RMS one-step error under its
+    own AR noise model of order ``noise_order`` (:meth:`_Record.one_step_holdout`) is smaller by as much
+    while its simulation error is not significantly larger (:func:`~.holdout.loss_rise_p_value` at
+    least ``holdout_alpha``; a note says so).  Otherwise the applied verdicts are rejected and a warning
+    is added.  In a closed loop the simulation errors carry the disturbance the controller answered
+    through the same inputs, which can make the right element's simulation error slightly larger than
+    a wrong one's; the one-step errors do not, but a slow noise model can hide a gross simulation error
+    in them, which the test on the simulation errors catches.
 
     A record with gaps whose held-out part holds no scored sample (:meth:`_Record.scored`) cannot be
     validated: the repair is accepted, with a warning, as without a held-out part.
-
-    Returns
-    -------
-    accepted : bool
-    h_after, h_before : float or None
-        None when the held-out part holds no scored sample.
     """
     model, i, options = rec.model, row.i, rec.options
     name = model.outputs[i]
+    cols = ', '.join(model.columns[j] for j in js)
+    held = f"the held-out last {100 * options.holdout_fraction:.0f}% of the record"
     candidate = model
     for j, el in elements.items():
         if el.apply:
@@ -391,28 +463,46 @@ def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnin
     if keep is not None and not keep[rec.n_fit:].any():
         # Every held-out sample still depends on columns held through a gap: as with no held-out part, the repair
         # stands unvalidated.
-        warnings.append(f"{name}: the held-out last {100 * options.holdout_fraction:.0f}% of the record holds no "
-                        f"sample that does not depend on the columns held through a gap; the re-estimated "
-                        f"element(s) {', '.join(model.columns[j] for j in js)} were not validated on data outside "
-                        f"the fit.")
-        return True, None, None
-    sig_c = rec.signals_of(candidate)
+        warnings.append(f"{name}: {held} holds no sample that does not depend on the columns held through a gap; "
+                        f"the re-estimated element(s) {cols} were not validated on data outside the fit.")
+        return _HoldoutCheck(True)
+    d_c = rec.signals_of(candidate).d[:, i]
     # The unexplained disturbance is no model's job either: compare without it (the step or ramp
     # fitted over the held-out part), since a wrong element can partly cancel it.
-    h_after = rec.holdout(sig_c.d[:, i], keep, row.extra)
-    h_before = rec.holdout_before[name] if (row.extra is None and keep is None) else \
-        rec.holdout(rec.d0[:, i], keep, row.extra)
-    if h_after < h_before * (1.0 - options.min_holdout_improvement):
-        return True, h_after, h_before
+    e_after = rec.holdout_residual(d_c, keep, row.extra)
+    e_before = rec.holdout_residual(rec.d0[:, i], keep, row.extra)
+    h_after = _rms(e_after)
+    h_before = rec.holdout_before[name] if (row.extra is None and keep is None) else _rms(e_before)
+    segments = rec.scored_segments(model, candidate)
+    o_after = rec.one_step_holdout(d_c, keep, segments, row.extra)
+    o_before = rec.one_step_holdout(rec.d0[:, i], keep, segments, row.extra)
+    os_after, os_before = (None, None) if o_after is None or o_before is None else (_rms(o_after), _rms(o_before))
+    done = functools.partial(_HoldoutCheck, after=h_after, before=h_before, one_step_after=os_after,
+                             one_step_before=os_before)
+    factor = 1.0 - options.min_holdout_improvement
+    if h_after < h_before * factor:
+        return done(True)
+    why = ""
+    if os_after is not None:
+        why = f"; one step ahead {os_after:.4g} vs {os_before:.4g}, each under its own AR({options.noise_order}) noise model"
+    if options.holdout_one_step and options.noise_order > 0 and os_after is not None and os_after < os_before * factor:
+        p = loss_rise_p_value(e_after, e_before)
+        if p >= options.holdout_alpha:
+            warnings.append(
+                f"{name}: the re-estimated element(s) {cols} predict {held} better one step ahead (RMS error "
+                f"{os_after:.4g} vs {os_before:.4g} with the model as given, each under its own "
+                f"AR({options.noise_order}) noise model) and their simulation error there is not significantly "
+                f"larger ({h_after:.4g} vs {h_before:.4g}; one-sided p = {p:.2g}, at least {options.holdout_alpha:g}): "
+                f"the repair is accepted.")
+            return done(True)
+        why += f", but the rise in simulation error is significant (one-sided p = {p:.2g} < {options.holdout_alpha:g})"
     warnings.append(
-        f"{name}: the re-estimated element(s) {', '.join(model.columns[j] for j in js)} did not "
-        f"predict the held-out last {100 * options.holdout_fraction:.0f}% of the record better (RMS "
-        f"error {h_after:.4g} vs {h_before:.4g} with the model as given); the elements are kept as "
-        f"they were.")
+        f"{name}: the re-estimated element(s) {cols} did not predict {held} better (RMS error {h_after:.4g} vs "
+        f"{h_before:.4g} with the model as given{why}); the elements are kept as they were.")
     for el in elements.values():
         if el.apply:
             el.reject("rejected by held-out validation")
-    return False, h_after, h_before
+    return done(False)
 
 
 def _process_row(rec: _Record, i: int, js, extra: Optional[np.ndarray],
@@ -467,11 +557,12 @@ def _process_row_with(rec: _Record, settings: _TestSettings, i: int, js, extra: 
                                       evidence={}, confidence=0.0, apply=False, reason=str(exc)) for j in js}
         return _RowOutcome(elements, [f"{model.outputs[i]}: {exc}; its elements were not re-estimated."]), None
     row_warnings = list(row_warnings)
-    h_after = h_before = None
+    check = None
     validated = None
     accepted = any(el.apply for el in elements.values())
     if accepted and rec.n_hold > 0:
-        accepted, h_after, h_before = _validate_on_holdout(rec, row, js, elements, row_warnings)
+        check = _validate_on_holdout(rec, row, js, elements, row_warnings)
+        accepted = check.accepted
         if accepted:
             validated = {j: dataclasses.replace(el) for j, el in elements.items()}
     if accepted and rec.options.refit_on_all and rec.n_hold > 0:
@@ -481,7 +572,7 @@ def _process_row_with(rec: _Record, settings: _TestSettings, i: int, js, extra: 
     if not accepted:
         for el in elements.values():
             el.apply = False
-    return _RowOutcome(elements, row_warnings, h_after, h_before), validated
+    return _RowOutcome(elements, row_warnings, check), validated
 
 
 def _evaluate(rec: _Record, results: dict) -> _Evaluation:
@@ -689,11 +780,15 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
     ny = model.n_outputs
     changes, kinds, warnings = found.changes, found.kinds, found.warnings
     holdout_before, holdout_after = dict(rec.holdout_before), {}
+    one_step_before, one_step_after = {}, {}
     for i, res in results.items():
         warnings.extend(res.warnings)
         if res.holdout_after is not None:
             holdout_after[names_y[i]] = res.holdout_after
             holdout_before[names_y[i]] = res.holdout_before
+        if res.check is not None and res.check.one_step_after is not None:
+            one_step_after[names_y[i]] = res.check.one_step_after
+            one_step_before[names_y[i]] = res.check.one_step_before
         for j, el in res.elements.items():
             kinds[(i, j)] = el.kind
             changes.append(el.change_entry(model, i, j))
@@ -724,6 +819,7 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
     return RepairResult(model=ev.model, changes=changes, kinds=kinds, error_before=error_before,
                         error_after=error_after, fit_before=fit_before, fit_after=fit_after,
                         holdout_error_before=holdout_before, holdout_error_after=holdout_after,
+                        holdout_one_step_error_before=one_step_before, holdout_one_step_error_after=one_step_after,
                         disturbances=disturbances, warnings=warnings, n_samples=rec.n, n_fit=rec.n_fit,
                         options=rec.options, signals=ev.signals)
 

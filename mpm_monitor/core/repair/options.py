@@ -51,6 +51,13 @@ class RepairOptions:
         [0.05, 0.3].
     min_holdout_improvement : float
         Relative reduction of the held-out RMS error that a row repair must achieve, in [0, 1).
+    holdout_one_step : bool
+        Also accept a row repair whose held-out one-step error under its own AR noise model (order
+        ``noise_order`` > 0) falls by ``min_holdout_improvement`` while its held-out simulation error
+        does not rise significantly (at ``holdout_alpha``); False: the simulation error alone decides.
+    holdout_alpha : float
+        Level of the one-sided test that the held-out simulation error rose (Diebold–Mariano, Newey–West
+        variance), in (0, 0.5).
     initial_state : {"estimate", "zero"}
         How the model's state at the first sample is treated (as in
         :func:`mpm_monitor.core.signals.compute_signals`); with "estimate" the fit also estimates the
@@ -73,6 +80,8 @@ class RepairOptions:
     disturbance_alpha: float = 0.01
     disturbance_trim: float = 0.15
     min_holdout_improvement: float = 0.0
+    holdout_one_step: bool = True
+    holdout_alpha: float = 0.05
     initial_state: str = "estimate"
     max_sweeps: int = 3
     max_gap: Optional[int] = None
@@ -110,6 +119,10 @@ def check_repair_options(opts: RepairOptions) -> None:
     if not (is_num(opts.min_holdout_improvement) and 0.0 <= opts.min_holdout_improvement < 1.0):
         raise ConfigurationError(f"min_holdout_improvement: expected a number in [0, 1), "
                                  f"got {opts.min_holdout_improvement!r}")
+    if not isinstance(opts.holdout_one_step, bool):
+        raise ConfigurationError(f"holdout_one_step: expected true or false, got {opts.holdout_one_step!r}")
+    if not (is_num(opts.holdout_alpha) and 0.0 < opts.holdout_alpha < 0.5):
+        raise ConfigurationError(f"holdout_alpha: expected a number in (0, 0.5), got {opts.holdout_alpha!r}")
     if opts.initial_state not in INITIAL_STATE_CHOICES:
         raise ConfigurationError(f"initial_state: expected one of {', '.join(INITIAL_STATE_CHOICES)}, "
                                  f"got {opts.initial_state!r}")

@@ -139,6 +139,10 @@ class RepairResult:
         with the model as given / with the candidate fitted on the first part only (empty when
         ``holdout_fraction`` is 0).  On a row re-estimated with an unexplained step or drift, both
         are taken with that disturbance projected out too.
+    holdout_one_step_error_before, holdout_one_step_error_after : dict
+        ``{output name: RMS of the one-step errors}`` over the held-out last part under each model's own
+        AR noise model of order ``noise_order``, fitted on the first part (the model as given / the
+        candidate), for the rows whose re-estimation the held-out check compared (empty otherwise).
     disturbances : list of dict
         Outputs whose residual holds a step or drift no input explains (``output``, ``kind``
         "step"/"drift", ``size`` in output units, ``time`` in seconds, ``p_value``, ``statistic``).
@@ -165,6 +169,8 @@ class RepairResult:
     n_samples: int = 0
     n_fit: int = 0
     options: RepairOptions = RepairOptions()
+    holdout_one_step_error_before: dict = dataclasses.field(default_factory=dict)
+    holdout_one_step_error_after: dict = dataclasses.field(default_factory=dict)
     signals: object = dataclasses.field(default=None, compare=False, repr=False)
 
     def to_dict(self) -> dict:
@@ -181,6 +187,8 @@ class RepairResult:
             "fit_after": self.fit_after,
             "holdout_error_before": self.holdout_error_before,
             "holdout_error_after": self.holdout_error_after,
+            "holdout_one_step_error_before": self.holdout_one_step_error_before,
+            "holdout_one_step_error_after": self.holdout_one_step_error_after,
             "disturbances": self.disturbances,
             "warnings": list(self.warnings),
             "samples": self.n_samples,
