@@ -480,6 +480,13 @@ def test_the_held_out_verdicts(repaired_core):
     unknown = [dict(ch, applied=False, after=ch["before"], kind="unknown") for ch in changes]
     v = repair_verdict(_with_repair(rep, unknown))
     assert v.verdict == "not_run" and "nothing to re-estimate for y1, y2" in v.detail
+    # A row that passed one step ahead while its held-out simulation error rose says both.
+    hb = dict(rep.repair["holdout_error_before"])
+    rose = _with_repair(rep, changes, holdout_error_after=dict(rep.repair["holdout_error_after"], y2=hb["y2"] * 1.01),
+                        holdout_one_step_error_before={"y2": 0.0106}, holdout_one_step_error_after={"y2": 0.0101})
+    v = repair_verdict(rose)
+    assert v.verdict == "passed" and "; one step ahead 0.0106->0.0101)" in v.detail
+    assert "one step ahead" not in repair_verdict(_with_repair(rep, changes)).detail
     v = repair_verdict(_with_repair(rep, changes, holdout_fraction=0.0))
     assert v.verdict == "not_validated" and v.changes == 3
     assert repair_verdict(_with_repair(rep, [])).verdict == "none"

@@ -163,6 +163,7 @@ def repair_verdict(report) -> RepairVerdict:
     if not rows:
         return RepairVerdict("none", "no element located, nothing to repair", 0)
     hb, ha = doc.get("holdout_error_before") or {}, doc.get("holdout_error_after") or {}
+    ob, oa = doc.get("holdout_one_step_error_before") or {}, doc.get("holdout_one_step_error_after") or {}
     frac = doc.get("holdout_fraction") or 0.0
     n_hold = int(doc.get("samples") or 0) - int(doc.get("fit_samples") or 0)
     passed, rejected, not_run = [], [], []
@@ -172,6 +173,9 @@ def repair_verdict(report) -> RepairVerdict:
         if any(c.get("reason") == _REJECTED for c in cs):
             rejected.append(errors)
         elif any(c.get("applied") for c in cs):
+            if o in hb and o in ob and o in oa and ha.get(o) is not None and hb[o] is not None and ha[o] >= hb[o]:
+                # passed one step ahead, its simulation error not significantly larger (repair_model)
+                errors = f"{errors[:-1]}; one step ahead {_short(ob[o])}->{_short(oa[o])})"
             passed.append(errors)
         else:
             not_run.append(o)

@@ -53,9 +53,11 @@ control engineer's next questions (paper section 4, "type and severity" of each 
    element), on the first ``1 - holdout_fraction`` of the record; intervals at
    ``confidence_level`` come from the Jacobian of the full residual (``cov = s^2 (J'J)^-1``) for
    gain, time constants and lead, from the profile statistic for the delay.  The repair is
-   accepted only when the row's RMS prediction error on the held-out last part, about its level
-   (the mean of the fit part: a level is no element's to explain, and on an integrating output it
-   is arbitrary), is lower than with the model as given; then it is refitted on the whole record.
+   accepted when the row's RMS simulation error on the held-out last part, about its level (the
+   mean of the fit part: a level is no element's to explain, and on an integrating output it is
+   arbitrary), is lower than with the model as given, or when its RMS one-step error there under
+   its own AR noise model is lower while the simulation error does not rise significantly
+   (:mod:`.holdout`); then it is refitted on the whole record.
    A step-response element whose gain or delay alone changed keeps its old response, scaled and
    shifted; one whose shape changed takes the sampled response of its fitted form.
 5. **Unexplained disturbances.**  On every output, the (repaired) residual is tested for a level
@@ -78,6 +80,7 @@ Where each step lives:
 - :mod:`.classify`: the likelihood-ratio tests and the kinds (step 3).
 - :mod:`.refit`: the fit of what changed, and the refit on the whole record (step 4).
 - :mod:`.disturbance`: the step and drift tests of a residual (step 5).
+- :mod:`.holdout`: the statistics of the held-out check (one-step errors, the test of a rise).
 - :mod:`.model_repair`: :func:`repair_model`, which runs the steps row by row, validates on the
   held-out part and assembles the :class:`RepairResult` (:mod:`.result`).
 """
