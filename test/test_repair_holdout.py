@@ -128,31 +128,35 @@ def _repair(sc, data, element, **options):
     return res, change, i, j
 
 
-def test_a_right_delay_repair_the_simulation_error_alone_refuses_is_accepted_one_step_ahead():
+def test_a_right_delay_repair_the_simulation_error_refuses_is_called_undecided_and_the_option_accepts_it():
     # Setpoints in steps, run 17: the plant's (y2, u4) has a delay of 8 s, the model 5 s.  The right
     # element's held-out simulation error is 0.5% larger than the model's (the loop's feedback), its
-    # one-step error smaller, and the rise not significant.
+    # one-step error significantly smaller, and the rise not significant.
     sc, data = _loop(17, steps=True)
     element = ("y2", "u4")
     plant = sc.plant.element(sc.plant.outputs.index("y2"), sc.plant.columns.index("u4"))
-    res, change, _, _ = _repair(sc, data, element)
-    assert change["applied"] and change["kind"] == "delay"
-    assert change["after"]["delay"] == pytest.approx(plant["delay"])
+    res, refused, _, _ = _repair(sc, data, element)
+    assert not refused["applied"] and refused["reason"] == "rejected by held-out validation"
     assert res.holdout_error_after["y2"] > res.holdout_error_before["y2"]
     assert res.holdout_one_step_error_after["y2"] < res.holdout_one_step_error_before["y2"]
-    assert any("y2: the re-estimated element(s) u4 predict the held-out last 25% of the record better one step "
-               "ahead" in w and "the repair is accepted" in w for w in res.warnings)
-    # With the simulation error alone deciding, as before, it is refused.
-    _, refused, _, _ = _repair(sc, data, element, holdout_one_step=False)
-    assert not refused["applied"] and refused["reason"] == "rejected by held-out validation"
+    (warning,) = [w for w in res.warnings if w.startswith("y2: the re-estimated element(s) u4 did not predict")]
+    assert "significantly smaller" in warning and "is not significant" in warning
+    assert "The held-out data do not tell which is better" in warning and "holdout_one_step=True" in warning
+    # With the option, it is accepted: exactly the plant's delay.
+    res, change, _, _ = _repair(sc, data, element, holdout_one_step=True)
+    assert change["applied"] and change["kind"] == "delay"
+    assert change["after"]["delay"] == pytest.approx(plant["delay"])
+    assert any("y2: the re-estimated element(s) u4 predict the held-out last 25% of the record significantly better "
+               "one step ahead" in w and "the repair is accepted" in w for w in res.warnings)
 
 
-def test_a_wrong_repair_better_one_step_ahead_but_much_worse_in_simulation_stays_refused():
+@pytest.mark.parametrize("one_step", [False, True])
+def test_a_wrong_repair_better_one_step_ahead_but_much_worse_in_simulation_stays_refused(one_step):
     # Paper PRBS, run 178: (y2, u2) missing from the model (plant gain -1.03, time constant 73 s); the
-    # candidate (gain about -9, time constant about 650 s) predicts one step ahead slightly better under
-    # its slow noise model, but its held-out simulation error is 75% larger: significant.
+    # candidate (gain about -9, time constant about 650 s) predicts one step ahead better under its slow
+    # noise model, but its held-out simulation error is 75% larger: significant.
     sc, data = _loop(178, steps=False)
-    res, change, _, _ = _repair(sc, data, ("y2", "u2"))
+    res, change, _, _ = _repair(sc, data, ("y2", "u2"), holdout_one_step=one_step)
     assert not change["applied"] and change["reason"] == "rejected by held-out validation"
     assert res.holdout_one_step_error_after["y2"] < res.holdout_one_step_error_before["y2"]
     assert res.holdout_error_after["y2"] > 1.5 * res.holdout_error_before["y2"]

@@ -413,7 +413,7 @@ def _fit_part_rms(rec: _Record, i: int, elements: dict) -> tuple:
 
 @dataclasses.dataclass(frozen=True)
 class _HoldoutCheck:
-    """What the held-out check of one row found.
+    """What the held-out check of one row found (:func:`_compare_on_holdout`).
 
     Attributes
     ----------
@@ -424,6 +424,13 @@ class _HoldoutCheck:
     one_step_after, one_step_before : float or None
         RMS of the held-out one-step errors under each model's own AR noise model (:meth:`_Record.one_step_holdout`);
         None when not computed.
+    p_rise : float or None
+        One-sided p-value of a rise of the simulation error (:func:`~.holdout.loss_rise_p_value`), when the
+        one-step errors were consulted (the simulation error did not fall, the one-step error did).
+    p_one_step : float or None
+        One-sided p-value of "the candidate's one-step error is not smaller", then.
+    one_step : bool
+        Accepted on the one-step errors (the simulation error did not fall).
     """
 
     accepted: bool
@@ -431,26 +438,66 @@ class _HoldoutCheck:
     before: Optional[float] = None
     one_step_after: Optional[float] = None
     one_step_before: Optional[float] = None
+    p_rise: Optional[float] = None
+    p_one_step: Optional[float] = None
+    one_step: bool = False
+
+
+def _compare_on_holdout(rec: _Record, i: int, candidate: PlantModel,
+                        extra: Optional[np.ndarray] = None) -> _HoldoutCheck:
+    """The held-out check of row ``i`` of ``candidate`` against the model as given (no side effect).
+
+    Both errors are taken about their level (:func:`_holdout_residual`: the level of the fit part, or on
+    a row with nuisance regressors ``extra`` those regressors and an offset projected out over the
+    held-out part).  The candidate is accepted when its RMS simulation error there is smaller by
+    ``min_holdout_improvement``, or (option ``holdout_one_step``, off by default) when its RMS one-step
+    error under its own AR noise model of order ``noise_order`` (:meth:`_Record.one_step_holdout`) is
+    smaller by as much and significantly so while its simulation error is not significantly larger
+    (each by :func:`~.holdout.loss_rise_p_value` at ``holdout_alpha``).  In a closed loop the simulation
+    errors carry the disturbance the controller answered through the same inputs, which can make the
+    right element's simulation error slightly larger than a wrong one's; the one-step errors do not,
+    but they weigh an element's slow misfit little (the noise model predicts much of it), and the
+    test on the simulation errors has little power over a few hundred autocorrelated samples.  The
+    simulation error is what an internal-model controller runs the model for, so it decides by
+    default (``bench.holdout_mc`` scores both rules against the plant).  The two p-values are computed
+    whenever the one-step error is the smaller, for the warning.
+
+    A record with gaps whose held-out part holds no scored sample (:meth:`_Record.scored`) cannot be
+    checked: accepted, with ``after`` None.
+    """
+    model, options = rec.model, rec.options
+    keep = rec.scored(model, candidate)
+    if keep is not None and not keep[rec.n_fit:].any():
+        return _HoldoutCheck(True)
+    d_c = rec.signals_of(candidate).d[:, i]
+    # The unexplained disturbance is no model's job either: compare without it (the step or ramp
+    # fitted over the held-out part), since a wrong element can partly cancel it.
+    e_after = rec.holdout_residual(d_c, keep, extra)
+    e_before = rec.holdout_residual(rec.d0[:, i], keep, extra)
+    h_after = _rms(e_after)
+    h_before = rec.holdout_before[model.outputs[i]] if (extra is None and keep is None) else _rms(e_before)
+    segments = rec.scored_segments(model, candidate)
+    o_after = rec.one_step_holdout(d_c, keep, segments, extra)
+    o_before = rec.one_step_holdout(rec.d0[:, i], keep, segments, extra)
+    os_after, os_before = (None, None) if o_after is None or o_before is None else (_rms(o_after), _rms(o_before))
+    done = functools.partial(_HoldoutCheck, after=h_after, before=h_before, one_step_after=os_after,
+                             one_step_before=os_before)
+    factor = 1.0 - options.min_holdout_improvement
+    if h_after < h_before * factor:
+        return done(True)
+    if options.noise_order > 0 and os_after is not None and os_after < os_before * factor:
+        p_fall = loss_rise_p_value(o_before, o_after)       # small: the candidate's one-step error significantly smaller
+        p_rise = loss_rise_p_value(e_after, e_before)       # small: its simulation error significantly larger
+        ok = options.holdout_one_step and p_fall < options.holdout_alpha <= p_rise
+        return done(ok, p_rise=p_rise, p_one_step=p_fall, one_step=ok)
+    return done(False)
 
 
 def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnings: list) -> _HoldoutCheck:
-    """Compare the candidate's prediction errors on the held-out part with the model's.
-
-    Both errors are taken about their level (:func:`_holdout_residual`: the level of the fit part, or on
-    a row with nuisance regressors ``row.extra`` those regressors and an offset projected out over the
-    held-out part).  The candidate is accepted when its RMS simulation error there is smaller by
-    ``min_holdout_improvement``, or (option ``holdout_one_step``) when its RMS one-step error under its
-    own AR noise model of order ``noise_order`` (:meth:`_Record.one_step_holdout`) is smaller by as much
-    while its simulation error is not significantly larger (:func:`~.holdout.loss_rise_p_value` at
-    least ``holdout_alpha``; a note says so).  Otherwise the applied verdicts are rejected and a warning
-    is added.  In a closed loop the simulation errors carry the disturbance the controller answered
-    through the same inputs, which can make the right element's simulation error slightly larger than
-    a wrong one's; the one-step errors do not, but a slow noise model can hide a gross simulation error
-    in them, which the test on the simulation errors catches.
-
-    A record with gaps whose held-out part holds no scored sample (:meth:`_Record.scored`) cannot be
-    validated: the repair is accepted, with a warning, as without a held-out part.
-    """
+    """:func:`_compare_on_holdout` of the row's candidate (its applied verdicts of ``elements``), with its
+    warning: when the candidate is refused, the applied verdicts are rejected; when it was accepted one
+    step ahead, a note says so; without a scored held-out sample (gaps), a warning says it stands
+    unvalidated."""
     model, i, options = rec.model, row.i, rec.options
     name = model.outputs[i]
     cols = ', '.join(model.columns[j] for j in js)
@@ -459,50 +506,45 @@ def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnin
     for j, el in elements.items():
         if el.apply:
             candidate = el.applied_to(candidate, i, j)
-    keep = rec.scored(model, candidate)
-    if keep is not None and not keep[rec.n_fit:].any():
+    check = _compare_on_holdout(rec, i, candidate, row.extra)
+    if check.after is None:
         # Every held-out sample still depends on columns held through a gap: as with no held-out part, the repair
         # stands unvalidated.
         warnings.append(f"{name}: {held} holds no sample that does not depend on the columns held through a gap; "
                         f"the re-estimated element(s) {cols} were not validated on data outside the fit.")
-        return _HoldoutCheck(True)
-    d_c = rec.signals_of(candidate).d[:, i]
-    # The unexplained disturbance is no model's job either: compare without it (the step or ramp
-    # fitted over the held-out part), since a wrong element can partly cancel it.
-    e_after = rec.holdout_residual(d_c, keep, row.extra)
-    e_before = rec.holdout_residual(rec.d0[:, i], keep, row.extra)
-    h_after = _rms(e_after)
-    h_before = rec.holdout_before[name] if (row.extra is None and keep is None) else _rms(e_before)
-    segments = rec.scored_segments(model, candidate)
-    o_after = rec.one_step_holdout(d_c, keep, segments, row.extra)
-    o_before = rec.one_step_holdout(rec.d0[:, i], keep, segments, row.extra)
-    os_after, os_before = (None, None) if o_after is None or o_before is None else (_rms(o_after), _rms(o_before))
-    done = functools.partial(_HoldoutCheck, after=h_after, before=h_before, one_step_after=os_after,
-                             one_step_before=os_before)
-    factor = 1.0 - options.min_holdout_improvement
-    if h_after < h_before * factor:
-        return done(True)
+        return check
+    h_after, h_before, os_after, os_before = check.after, check.before, check.one_step_after, check.one_step_before
+    ar = f"AR({options.noise_order})"
+    if check.one_step:
+        warnings.append(
+            f"{name}: the re-estimated element(s) {cols} predict {held} significantly better one step ahead (RMS "
+            f"error {os_after:.4g} vs {os_before:.4g} with the model as given, each under its own {ar} noise model; "
+            f"one-sided p = {check.p_one_step:.2g}) and their simulation error there is not significantly larger "
+            f"({h_after:.4g} vs {h_before:.4g}; p = {check.p_rise:.2g}): the repair is accepted.")
+    if check.accepted:
+        return check
     why = ""
     if os_after is not None:
-        why = f"; one step ahead {os_after:.4g} vs {os_before:.4g}, each under its own AR({options.noise_order}) noise model"
-    if options.holdout_one_step and options.noise_order > 0 and os_after is not None and os_after < os_before * factor:
-        p = loss_rise_p_value(e_after, e_before)
-        if p >= options.holdout_alpha:
-            warnings.append(
-                f"{name}: the re-estimated element(s) {cols} predict {held} better one step ahead (RMS error "
-                f"{os_after:.4g} vs {os_before:.4g} with the model as given, each under its own "
-                f"AR({options.noise_order}) noise model) and their simulation error there is not significantly "
-                f"larger ({h_after:.4g} vs {h_before:.4g}; one-sided p = {p:.2g}, at least {options.holdout_alpha:g}): "
-                f"the repair is accepted.")
-            return done(True)
-        why += f", but the rise in simulation error is significant (one-sided p = {p:.2g} < {options.holdout_alpha:g})"
+        why = f"; one step ahead {os_after:.4g} vs {os_before:.4g}, each under its own {ar} noise model"
+    alpha = options.holdout_alpha
+    undecided = ""
+    if check.p_rise is not None and check.p_one_step >= alpha:
+        why += f", not significantly smaller (one-sided p = {check.p_one_step:.2g}, at least {alpha:g})"
+    elif check.p_rise is not None and check.p_rise < alpha:
+        why += f", but the rise in simulation error is significant (one-sided p = {check.p_rise:.2g} < {alpha:g})"
+    elif check.p_rise is not None:
+        why += (f", significantly smaller (one-sided p = {check.p_one_step:.2g}), and the rise in simulation error "
+                f"is not significant (p = {check.p_rise:.2g})")
+        undecided = (" The held-out data do not tell which is better: the simulation error decides (an "
+                     "experiment, or RepairOptions(holdout_one_step=True), which accepts such a repair, may).")
     warnings.append(
-        f"{name}: the re-estimated element(s) {cols} did not predict {held} better (RMS error {h_after:.4g} vs "
-        f"{h_before:.4g} with the model as given{why}); the elements are kept as they were.")
+        f"{name}: the re-estimated element(s) {cols} did not predict {held} better in simulation (RMS error "
+        f"{h_after:.4g} vs {h_before:.4g} with the model as given{why}); the elements are kept as they were."
+        f"{undecided}")
     for el in elements.values():
         if el.apply:
             el.reject("rejected by held-out validation")
-    return done(False)
+    return check
 
 
 def _process_row(rec: _Record, i: int, js, extra: Optional[np.ndarray],
