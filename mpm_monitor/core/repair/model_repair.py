@@ -475,7 +475,7 @@ def _compare_on_holdout(rec: _Record, i: int, candidate: PlantModel,
     e_after = rec.holdout_residual(d_c, keep, extra)
     e_before = rec.holdout_residual(rec.d0[:, i], keep, extra)
     h_after = _rms(e_after)
-    h_before = rec.holdout_before[model.outputs[i]] if (extra is None and keep is None) else _rms(e_before)
+    h_before = _rms(e_before)
     segments = rec.scored_segments(model, candidate)
     o_after = rec.one_step_holdout(d_c, keep, segments, extra)
     o_before = rec.one_step_holdout(rec.d0[:, i], keep, segments, extra)
