@@ -33,7 +33,7 @@ import numpy as np
 
 from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.pipeline import analyze
-from mpm_monitor.core.repair import model_repair
+from mpm_monitor.core.repair import model_repair, validation
 from mpm_monitor.core.repair.holdout import loss_rise_p_value
 from mpm_monitor.sim.closed_loop import run_closed_loop
 
@@ -68,7 +68,7 @@ def _perturbed(rec, i, candidate, js, d_p, truth_before) -> list:
                 break
             wrong = wrong.with_element(i, j, gain=el["gain"] * gain, time_constant=el["time_constant"] * tau)
         else:
-            check = model_repair._compare_on_holdout(rec, i, wrong)
+            check = validation._compare_on_holdout(rec, i, wrong)
             truth = _truth(rec, np.asarray(rec.signals_of(wrong).d[:, i], float), d_p)
             out.append({"perturbation": name, "accepted": check.accepted,
                         "simulation_alone": check.after < check.before, "worse": truth >= truth_before,

@@ -42,12 +42,12 @@ def test_a_clean_element_located_beside_the_mismatched_one_is_released(wrong_gai
 
 def test_an_element_alone_in_its_row_is_never_released_and_nothing_is_fitted(wrong_gain, monkeypatch):
     _, model, data = wrong_gain
-    from mpm_monitor.core.repair import model_repair
+    from mpm_monitor.core.repair import explained
 
     def fail(*args, **kwargs):
         raise AssertionError("a row with one located element was classified")
 
-    monkeypatch.setattr(model_repair, "_classify_row", fail)
+    monkeypatch.setattr(explained, "_classify_row", fail)
     found = explained_elements(model, data, [(1, 1), (0, 2)])
     assert found.released == {} and found.rows == {}
 
@@ -67,7 +67,7 @@ def test_the_release_is_repeated_on_the_elements_kept_until_it_releases_nothing(
     # with u1 and u3 left, u3 does not either; so both go, both explained by u1, the one kept.
     from types import SimpleNamespace
 
-    from mpm_monitor.core.repair import model_repair
+    from mpm_monitor.core.repair import explained
 
     script = {(0, 1, 2): {0: "gain", 1: "unknown", 2: "delay"}, (0, 2): {0: "gain", 2: "unknown"}}
     calls = []
@@ -76,7 +76,7 @@ def test_the_release_is_repeated_on_the_elements_kept_until_it_releases_nothing(
         calls.append(tuple(js))
         return "free", {j: SimpleNamespace(kind=k) for j, k in script[tuple(js)].items()}, ["w"]
 
-    monkeypatch.setattr(model_repair, "_classify_row", classify)
+    monkeypatch.setattr(explained, "_classify_row", classify)
     _, model, data = wrong_gain
     found = explained_elements(model, data, [(1, 0), (1, 1), (1, 2)])
     assert calls == [(0, 1, 2), (0, 2)]

@@ -620,17 +620,17 @@ def test_transient_onset_is_the_memory_of_every_parametric_model():
 def test_a_held_out_part_without_a_scored_sample_leaves_the_repair_unvalidated(case_32, monkeypatch):
     """Where gaps leave no held-out sample scored, the repair stands as without a held-out part, with a
     warning, instead of comparing two NaN errors."""
-    from mpm_monitor.core.repair import model_repair
+    from mpm_monitor.core.repair import record
 
     case, data = case_32
     gappy = _drop(data, [2400])
-    scored = model_repair._Record.scored
+    scored = record._Record.scored
 
     def none_held_out(rec, *models):
         keep = scored(rec, *models)
         keep[rec.n_fit:] = False
         return keep
-    monkeypatch.setattr(model_repair._Record, "scored", none_held_out)
+    monkeypatch.setattr(record._Record, "scored", none_held_out)
     located = [(case.model.outputs.index(o), case.model.columns.index(c)) for o, c in case.mismatched_elements]
     result = repair_model(case.model, gappy, located)
     assert all(c["applied"] for c in result.changes)

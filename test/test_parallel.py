@@ -295,14 +295,14 @@ def test_the_repairs_disturbance_tests_run_in_the_idle_second_process(case_32, m
     disturbance tests of the model as given beside the first stages; the repair tests only the outputs it
     repairs (here thresholds that put case 3.2 in that regime).  With gaps it tests every output itself."""
     from mpm_monitor.core import analysis
-    from mpm_monitor.core.repair import model_repair
+    from mpm_monitor.core.repair import residual_tests
 
     case, data = case_32
     if gaps:
         data = _with_gaps(data)
     parent, tested = os.getpid(), []
-    test = model_repair.unexplained_disturbance
-    monkeypatch.setattr(model_repair, "unexplained_disturbance",
+    test = residual_tests.unexplained_disturbance
+    monkeypatch.setattr(residual_tests, "unexplained_disturbance",
                         lambda d, *a, **k: (tested.append(np.array(d)) if os.getpid() == parent else None) or
                         test(d, *a, **k))
     one = analyze(case.model, data, AnalysisOptions(jobs=1))

@@ -281,7 +281,7 @@ def test_the_outputs_disturbance_tests_are_one_family():
     outputs of the paper's noise alone, sets with any report stay at about alpha, where the outputs each at
     alpha would give about 1 - 0.99**20 = 18 %."""
     from mpm_monitor.core.repair.disturbance import not_tested
-    from mpm_monitor.core.repair.model_repair import _one_family
+    from mpm_monitor.core.repair.residual_tests import _one_family
 
     def test_with(p):
         return dict(not_tested(), p_value=p, p_step=2 * p, p_drift=min(1.0, 4 * p), tested=True,

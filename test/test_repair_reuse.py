@@ -23,7 +23,7 @@ import json
 import numpy as np
 import pytest
 
-from mpm_monitor.core.repair import (RepairOptions, disturbance_tests, model_repair, repair_model,
+from mpm_monitor.core.repair import (RepairOptions, disturbance_tests, model_repair, repair_model, residual_tests,
                                      unexplained_disturbance)
 from mpm_monitor.core.signals import compute_signals
 from mpm_monitor.core.repair import refit as repair_refit
@@ -55,7 +55,7 @@ def test_disturbance_tests_of_unchanged_outputs_are_taken_over(stepped_gain_log,
         calls.append(np.array(d, copy=True))
         return unexplained_disturbance(d, *args, **kwargs)
 
-    monkeypatch.setattr(model_repair, "unexplained_disturbance", counted)
+    monkeypatch.setattr(residual_tests, "unexplained_disturbance", counted)
     res = repair_model(model, data, [(1, 1)])
     assert any("allowed for the unexplained step" in w for w in res.warnings)      # two evaluations
     # Every output once, then the redone row only.
@@ -66,7 +66,7 @@ def test_disturbance_tests_of_unchanged_outputs_are_taken_over(stepped_gain_log,
     fresh = {i: unexplained_disturbance(res.signals.d[:, i], model.sample_time, opts.disturbance_alpha,
                                         opts.disturbance_trim, opts.noise_order, scale=float(spread[i]))
              for i in range(model.n_outputs)}
-    model_repair._one_family(fresh, opts.disturbance_alpha)             # the outputs' tests as one family
+    residual_tests._one_family(fresh, opts.disturbance_alpha)             # the outputs' tests as one family
     expected = [{"output": model.outputs[i], "kind": t["kind"], "size": t["size"], "time": t["time"],
                  "rate": t["rate"], "p_value": t["p_value"], "p_value_raw": t["p_value_raw"],
                  "statistic": t["statistic"]}
@@ -82,7 +82,7 @@ def _counted(monkeypatch) -> list:
         calls.append(np.array(d, copy=True))
         return unexplained_disturbance(d, *args, **kwargs)
 
-    monkeypatch.setattr(model_repair, "unexplained_disturbance", counted)
+    monkeypatch.setattr(residual_tests, "unexplained_disturbance", counted)
     return calls
 
 

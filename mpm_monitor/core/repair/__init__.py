@@ -82,13 +82,19 @@ Where each step lives:
 - :mod:`.refit`: the fit of what changed, and the refit on the whole record (step 4).
 - :mod:`.disturbance`: the step and drift tests of a residual (step 5).
 - :mod:`.holdout`: the statistics of the held-out check (one-step errors, the test of a rise).
+- :mod:`.residual_tests`: the tests of step 5 on every output as one family, and their report.
+- :mod:`.validation`: the held-out check of a row's repair (step 4).
+- :mod:`.record`: the record as every step reads it (the data, the model's signals, the split).
+- :mod:`.explained`: the located elements another located element of their row explains.
 - :mod:`.model_repair`: :func:`repair_model`, which runs the steps row by row, validates on the
   held-out part and assembles the :class:`RepairResult` (:mod:`.result`).
 """
 
 from .disturbance import sup_wald_p_value, unexplained_disturbance
-from .model_repair import DisturbanceTests, JointClassification, disturbance_tests, explained_elements, repair_model
+from .explained import JointClassification, explained_elements
+from .model_repair import repair_model
 from .options import KINDS, RepairOptions, check_repair_options
+from .residual_tests import DisturbanceTests, disturbance_tests
 from .result import RepairResult
 
 __all__ = ["KINDS", "DisturbanceTests", "JointClassification", "RepairOptions", "RepairResult", "check_repair_options",

@@ -1,7 +1,7 @@
 """Statistics of the repair's held-out check: one-step errors under an AR noise model, and a test of
 whether one model's held-out simulation error is significantly larger than another's.
 
-The held-out check (:func:`mpm_monitor.core.repair.model_repair._validate_on_holdout`) compares the
+The held-out check (:func:`mpm_monitor.core.repair.validation._validate_on_holdout`) compares the
 candidate's and the given model's prediction errors over the held-out last part of the record.  The
 simulation errors (``d = y - yhat``) are what the model is used for, but in a closed loop they carry
 the disturbance the controller answered through the same inputs: a right element can show a

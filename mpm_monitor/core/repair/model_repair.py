@@ -2,88 +2,36 @@
 and assemble the result.
 
 Each output row with located elements is classified (:mod:`.classify`), its repair fitted on the
-first part of the record (:mod:`.refit`), validated on the held-out last part, and refitted on
-the whole record.  The residual of the repaired model is then tested for an unexplained step or
-drift on every output (:mod:`.disturbance`); a repaired row where one shows is processed again
-with the step (ramp) as a nuisance regressor, so that it does not bias the elements.
+first part of the record (:mod:`.refit`), validated on the held-out last part (:mod:`.validation`),
+and refitted on the whole record.  The residual of the repaired model is then tested for an
+unexplained step or drift on every output (:mod:`.residual_tests`); a repaired row where one shows
+is processed again with the step (ramp) as a nuisance regressor, so that it does not bias the
+elements.  The record every step reads is :mod:`.record`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 from typing import Optional, Sequence
 
 import numpy as np
 
-from ..discretize import model_columns
-from ..errors import ConfigurationError, InputError
-from ..logged_data import LoggedData, check_loop_data, in_deviations, moving_columns, t_text
+from ..errors import ConfigurationError
+from ..logged_data import LoggedData, in_deviations, moving_columns
 from ..model import PlantModel
 from ..parallel import split_map
-from ..signals import (LoopSignals, compute_signals, error_rms, packed, scored_segments, segment_signals,
-                       segments_mask, unknown_starts)
-from ..statistics import holm_adjust
+from ..signals import LoopSignals, error_rms, packed, segments_mask
 from .classify import _classify_row
-from .disturbance import not_tested, unexplained_disturbance
+from .explained import JointClassification
 from .fit import _TooShort
 from .forms import unsettled_warning
-from .holdout import ar_one_step_errors, loss_rise_p_value
 from .options import RepairOptions, _TestSettings
+from .record import _check_inputs, _located_in_row, _min_fit, _Record, _rms, _set_up
 from .refit import _fit_repair, _refit_on_all
+from .residual_tests import DisturbanceTests, _disturbance_findings, _disturbance_test, _one_family, _seed_tests
 from .result import ElementVerdict, RepairResult, _unchanged_entry
 from .row import _RowData
-
-
-def _project_out(x: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """``x`` minus its least-squares fit on the columns ``cols``."""
-    coef, *_ = np.linalg.lstsq(cols, x, rcond=None)
-    return x - cols @ coef
-
-
-def _rms(x) -> float:
-    x = np.asarray(x, float)
-    return float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
-
-
-def _holdout_residual(d, n_fit: int, extra: Optional[np.ndarray] = None) -> np.ndarray:
-    """The prediction error ``d`` (shape (n_samples,)) over the held-out part, about its level, shape
-    (n_samples - n_fit,).
-
-    The level of a prediction error is a nuisance the fit of the repair estimates (an offset; on an
-    integrating output the arbitrary level of the output): like any parameter of the fit, it is
-    taken from the fit part (samples ``0 .. n_fit - 1``, its mean there) and carried over to the
-    held-out part.  With ``extra`` (shape (n_samples, n_extra): the unexplained step or ramp of the
-    row) an offset and those regressors are projected out over the held-out part instead.
-    """
-    d = np.asarray(d, float)
-    hold = d[n_fit:]
-    if hold.size == 0:
-        return hold
-    if extra is not None:
-        return _project_out(hold, np.column_stack([np.ones(hold.shape[0]), extra[n_fit:]]))
-    return hold - np.mean(d[:n_fit])
-
-
-def _holdout_rms(d, n_fit: int, extra: Optional[np.ndarray] = None) -> float:
-    """RMS of :func:`_holdout_residual` (nan without a held-out part)."""
-    return _rms(_holdout_residual(d, n_fit, extra))
-
-
-def _about_level(d, n_fit: int, keep: Optional[np.ndarray], extra: Optional[np.ndarray]) -> np.ndarray:
-    """``d`` (shape (n_samples,)) about its level as the held-out check takes it, over the whole record: the
-    mean of the fit part's samples ``keep`` (all when None) removed, or with ``extra`` an offset and those
-    regressors projected out over the fit part and over the held-out part, each on its own."""
-    d = np.asarray(d, float)
-    mask = np.ones(d.shape[0], bool) if keep is None else np.asarray(keep, bool)
-    fit = mask & (np.arange(d.shape[0]) < n_fit)
-    if extra is None:
-        return d - np.mean(d[fit])
-    out = d.copy()
-    for part in (fit, mask & ~fit):
-        if part.any():
-            out[part] = _project_out(d[part], np.column_stack([np.ones(np.count_nonzero(part)), extra[part]]))
-    return out
+from .validation import _HoldoutCheck, _validate_on_holdout
 
 
 def _fit_percent(y, yhat, about_level: bool = False) -> float:
@@ -96,155 +44,6 @@ def _fit_percent(y, yhat, about_level: bool = False) -> float:
     if about_level:
         err = err - np.mean(err)
     return float(100.0 * (1.0 - np.linalg.norm(err) / den))
-
-
-def _check_inputs(model: PlantModel, data: LoggedData, located, signals):
-    """The located pairs, sorted and unique, once the data (:func:`~mpm_monitor.core.logged_data.check_loop_data`),
-    the pairs and the signals fit the model; else :class:`InputError` naming what does not."""
-    check_loop_data(model, data)
-    n = data.n_samples
-    out = []
-    for item in located:
-        try:
-            i, j = (int(v) for v in item)
-        except (TypeError, ValueError):
-            raise InputError(f"repair: located element {item!r}: expected a pair (output index, column index)") from None
-        if not (0 <= i < model.n_outputs and 0 <= j < model.n_columns):
-            raise InputError(f"repair: located element ({i}, {j}): expected 0 <= output < {model.n_outputs} "
-                             f"and 0 <= column < {model.n_columns} (inputs, then measured disturbances)")
-        if (i, j) not in out:
-            out.append((i, j))
-    if signals is not None:
-        for key in ("yhat", "d"):
-            if np.shape(getattr(signals, key)) != (n, model.n_outputs):
-                raise InputError(f"repair: signals.{key}: expected shape ({n}, {model.n_outputs}), "
-                                 f"got {np.shape(getattr(signals, key))}")
-    return sorted(out)
-
-
-@dataclasses.dataclass(frozen=True)
-class _Record:
-    """The record and the model as every step of :func:`repair_model` reads them.
-
-    Attributes
-    ----------
-    model : PlantModel
-        The model as given.
-    data : LoggedData
-    u, y : ndarray, shape (n_samples, n_columns) and (n_samples, n_outputs)
-        The model's columns (``data.u``, then ``data.dv``) and ``data.y`` as float arrays.
-    signals : LoopSignals
-        Of the model as given on the data.
-    d0 : ndarray, shape (n_samples, n_outputs)
-        ``signals.d`` as a float array.
-    settings : _TestSettings
-    n_fit : int
-        Samples ``0 .. n_fit - 1`` are the fit part, the rest is held out.
-    holdout_before : dict
-        ``{output name: RMS of d0 over the held-out part about its level}`` (empty without a
-        held-out part; see :func:`_holdout_rms`).
-    segments : tuple of (int, int) or None
-        Data with gaps (``data.t`` skips samples): its contiguous runs of samples, each simulated and
-        fitted as a record of its own (from rest, with its own offset and free responses); the
-        split into the fit and the held-out part is at sample ``n_fit`` of the samples as they are.
-        None: one record.
-    tests : dict
-        ``{output index: (d, segments, test)}``: the last :func:`unexplained_disturbance` of each
-        output, on its prediction error ``d`` and the scored ``segments`` (see :func:`_evaluate`),
-        reused while they stay the same.
-    """
-
-    model: PlantModel
-    data: LoggedData
-    u: np.ndarray
-    y: np.ndarray
-    signals: LoopSignals
-    d0: np.ndarray
-    settings: _TestSettings
-    n_fit: int
-    holdout_before: dict
-    segments: Optional[tuple] = None
-    tests: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
-
-    @property
-    def options(self) -> RepairOptions:
-        return self.settings.options
-
-    @functools.cached_property
-    def spread(self) -> np.ndarray:
-        """The outputs' standard deviations over the record, shape (n_outputs,): the scales of the disturbance
-        tests (:func:`_evaluate`), computed once."""
-        return np.std(np.asarray(self.y, float), axis=0)
-
-    @functools.cached_property
-    def moving(self) -> np.ndarray:
-        """Whether each output moves over the record (:func:`~mpm_monitor.core.logged_data.moving_columns`),
-        shape (n_outputs,): one that never moves (a stuck sensor) is not tested for a disturbance."""
-        return moving_columns(np.asarray(self.y, float))
-
-    @property
-    def n(self) -> int:
-        return self.data.n_samples
-
-    @property
-    def n_hold(self) -> int:
-        return self.n - self.n_fit
-
-    def scored(self, *models: PlantModel) -> Optional[np.ndarray]:
-        """The samples the held-out check is taken over: with gaps, all but the first samples of every
-        segment after a gap that still depend on the state the gap leaves (:meth:`scored_segments` as a
-        mask); None without gaps (every sample)."""
-        if self.segments is None:
-            return None
-        return segments_mask(self.scored_segments(*models), self.n)
-
-    def scored_segments(self, *models: PlantModel, settled: bool = False) -> Optional[list]:
-        """:func:`~mpm_monitor.core.signals.scored_segments` of the record's segments (None without gaps)."""
-        if self.segments is None:
-            return None
-        return scored_segments(self.segments, *models, settled=settled, restarts=self.restarts)
-
-    @property
-    def restarts(self) -> Optional[list]:
-        """With gaps, the segments whose start still carries an unknown (after a gap longer than the
-        option ``max_gap``, or with a sample of unknown columns; every segment after the first when
-        ``max_gap`` is None): :func:`~mpm_monitor.core.signals.unknown_starts`."""
-        if self.segments is None or self.options.max_gap is None:
-            return None
-        return unknown_starts(self.segments, self.data.grid_index, self.options.max_gap, self.data.fill_on_grid())
-
-    def holdout(self, d: np.ndarray, keep: Optional[np.ndarray], extra: Optional[np.ndarray] = None) -> float:
-        """:func:`_holdout_rms` of ``d`` (shape (n_samples,)) over the samples ``keep`` (:meth:`scored`)."""
-        return _rms(self.holdout_residual(d, keep, extra))
-
-    def holdout_residual(self, d: np.ndarray, keep: Optional[np.ndarray],
-                         extra: Optional[np.ndarray] = None) -> np.ndarray:
-        """:func:`_holdout_residual` of ``d`` (shape (n_samples,)) over the samples ``keep`` (:meth:`scored`):
-        shape (held-out samples kept,)."""
-        if keep is None:
-            return _holdout_residual(d, self.n_fit, extra)
-        return _holdout_residual(d[keep], int(np.count_nonzero(keep[:self.n_fit])),
-                                 None if extra is None else extra[keep])
-
-    def one_step_holdout(self, d: np.ndarray, keep: Optional[np.ndarray], segments: Optional[list],
-                         extra: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
-        """The one-step errors of ``d`` (shape (n_samples,)) over the held-out part under an AR noise model of
-        the option ``noise_order`` fitted on the fit part (:func:`~.holdout.ar_one_step_errors`), ``d``
-        taken about its level as :meth:`holdout_residual` takes it; with gaps over the scored ``segments``
-        (:meth:`scored_segments`) and the samples ``keep``.  None when too few samples."""
-        return ar_one_step_errors(_about_level(d, self.n_fit, keep, extra), self.n_fit, self.options.noise_order,
-                                  segments)
-
-    def signals_of(self, model: PlantModel) -> LoopSignals:
-        """:func:`compute_signals` of ``model`` on the record (the rows where it equals the model as
-        given taken from :attr:`signals`); with gaps each segment from its own start."""
-        if self.segments is not None:
-            return segment_signals(model, self.data.r, self.data.u, self.y, self.segments,
-                                   initial_state=self.options.initial_state, dv=self.data.dv,
-                                   grid=self.data.grid_index, max_gap=self.options.max_gap,
-                                   fill=self.data.fill_on_grid())
-        return compute_signals(model, self.data.r, self.data.u, self.y, initial_state=self.options.initial_state,
-                               dv=self.data.dv, like=(self.model, self.signals))
 
 
 @dataclasses.dataclass
@@ -300,35 +99,6 @@ class _Evaluation:
     model: PlantModel
     signals: LoopSignals
     tests: dict
-
-
-def _set_up(model: PlantModel, data: LoggedData, options: RepairOptions,
-            signals: Optional[LoopSignals]) -> _Record:
-    """The record of checked inputs: float arrays, the signals of the model, the split, the levels."""
-    u, y = model_columns(np.asarray(data.u, float), np.asarray(data.dv, float)), np.asarray(data.y, float)
-    n = data.n_samples
-    segments = data.segments
-    segments = tuple(segments) if len(segments) > 1 else None
-    if signals is None and segments is not None:
-        signals = segment_signals(model, data.r, data.u, y, segments, initial_state=options.initial_state, dv=data.dv,
-                                  grid=data.grid_index, max_gap=options.max_gap, fill=data.fill_on_grid())
-    elif signals is None:
-        signals = compute_signals(model, data.r, data.u, y, initial_state=options.initial_state, dv=data.dv)
-    d0 = np.asarray(signals.d, float)
-    n_hold = int(round(options.holdout_fraction * n))
-    n_fit = n - n_hold
-    rec = _Record(model=model, data=data, u=u, y=y, signals=signals, d0=d0, settings=_TestSettings.of(options),
-                  n_fit=n_fit, holdout_before={}, segments=segments)
-    if n_hold > 0:
-        keep = rec.scored(model)
-        rec.holdout_before.update({model.outputs[i]: rec.holdout(d0[:, i], keep) for i in range(model.n_outputs)})
-    return rec
-
-
-def _min_fit(model: PlantModel, options: RepairOptions) -> int:
-    """The fewest samples of the fit part with which located elements are re-estimated."""
-    return max(200, 20 * (2 * model.n_columns + options.noise_order + 5))
-
 
 def _rows_to_repair(rec: _Record, located: list, found: _Findings) -> list:
     """The rows with located elements, or none when the fit part is too short (then every located
@@ -410,150 +180,13 @@ def _fit_part_rms(rec: _Record, i: int, elements: dict) -> tuple:
 
     return rms(rec.signals_of(candidate).d[:, i]), rms(rec.d0[:, i])
 
-
-@dataclasses.dataclass(frozen=True)
-class _HoldoutCheck:
-    """What the held-out check of one row found (:func:`_compare_on_holdout`).
-
-    Attributes
-    ----------
-    accepted : bool
-    after, before : float or None
-        RMS of the held-out simulation error (about its level) with the candidate and with the model as
-        given; None when the held-out part holds no scored sample.
-    one_step_after, one_step_before : float or None
-        RMS of the held-out one-step errors under each model's own AR noise model (:meth:`_Record.one_step_holdout`);
-        None when not computed.
-    p_rise : float or None
-        One-sided p-value of a rise of the simulation error (:func:`~.holdout.loss_rise_p_value`), when the
-        one-step errors were consulted (the simulation error did not fall, the one-step error did).
-    p_one_step : float or None
-        One-sided p-value of "the candidate's one-step error is not smaller", then.
-    one_step : bool
-        Accepted on the one-step errors (the simulation error did not fall).
-    """
-
-    accepted: bool
-    after: Optional[float] = None
-    before: Optional[float] = None
-    one_step_after: Optional[float] = None
-    one_step_before: Optional[float] = None
-    p_rise: Optional[float] = None
-    p_one_step: Optional[float] = None
-    one_step: bool = False
-
-
-def _compare_on_holdout(rec: _Record, i: int, candidate: PlantModel,
-                        extra: Optional[np.ndarray] = None) -> _HoldoutCheck:
-    """The held-out check of row ``i`` of ``candidate`` against the model as given (no side effect).
-
-    Both errors are taken about their level (:func:`_holdout_residual`: the level of the fit part, or on
-    a row with nuisance regressors ``extra`` those regressors and an offset projected out over the
-    held-out part).  The candidate is accepted when its RMS simulation error there is smaller by
-    ``min_holdout_improvement``, or (option ``holdout_one_step``, off by default) when its RMS one-step
-    error under its own AR noise model of order ``noise_order`` (:meth:`_Record.one_step_holdout`) is
-    smaller by as much and significantly so while its simulation error is not significantly larger
-    (each by :func:`~.holdout.loss_rise_p_value` at ``holdout_alpha``).  In a closed loop the simulation
-    errors carry the disturbance the controller answered through the same inputs, which can make the
-    right element's simulation error slightly larger than a wrong one's; the one-step errors do not,
-    but they weigh an element's slow misfit little (the noise model predicts much of it), and the
-    test on the simulation errors has little power over a few hundred autocorrelated samples.  The
-    simulation error is what an internal-model controller runs the model for, so it decides by
-    default (``bench.holdout_mc`` scores both rules against the plant).  The two p-values are computed
-    whenever the one-step error is the smaller, for the warning.
-
-    A record with gaps whose held-out part holds no scored sample (:meth:`_Record.scored`) cannot be
-    checked: accepted, with ``after`` None.
-    """
-    model, options = rec.model, rec.options
-    keep = rec.scored(model, candidate)
-    if keep is not None and not keep[rec.n_fit:].any():
-        return _HoldoutCheck(True)
-    d_c = rec.signals_of(candidate).d[:, i]
-    # The unexplained disturbance is no model's job either: compare without it (the step or ramp
-    # fitted over the held-out part), since a wrong element can partly cancel it.
-    e_after = rec.holdout_residual(d_c, keep, extra)
-    e_before = rec.holdout_residual(rec.d0[:, i], keep, extra)
-    h_after = _rms(e_after)
-    h_before = _rms(e_before)
-    segments = rec.scored_segments(model, candidate)
-    o_after = rec.one_step_holdout(d_c, keep, segments, extra)
-    o_before = rec.one_step_holdout(rec.d0[:, i], keep, segments, extra)
-    os_after, os_before = (None, None) if o_after is None or o_before is None else (_rms(o_after), _rms(o_before))
-    done = functools.partial(_HoldoutCheck, after=h_after, before=h_before, one_step_after=os_after,
-                             one_step_before=os_before)
-    factor = 1.0 - options.min_holdout_improvement
-    if h_after < h_before * factor:
-        return done(True)
-    if options.noise_order > 0 and os_after is not None and os_after < os_before * factor:
-        p_fall = loss_rise_p_value(o_before, o_after)       # small: the candidate's one-step error significantly smaller
-        p_rise = loss_rise_p_value(e_after, e_before)       # small: its simulation error significantly larger
-        ok = options.holdout_one_step and p_fall < options.holdout_alpha <= p_rise
-        return done(ok, p_rise=p_rise, p_one_step=p_fall, one_step=ok)
-    return done(False)
-
-
-def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnings: list) -> _HoldoutCheck:
-    """:func:`_compare_on_holdout` of the row's candidate (its applied verdicts of ``elements``), with its
-    warning: when the candidate is refused, the applied verdicts are rejected; when it was accepted one
-    step ahead, a note says so; without a scored held-out sample (gaps), a warning says it stands
-    unvalidated."""
-    model, i, options = rec.model, row.i, rec.options
-    name = model.outputs[i]
-    cols = ', '.join(model.columns[j] for j in js)
-    held = f"the held-out last {100 * options.holdout_fraction:.0f}% of the record"
-    candidate = model
-    for j, el in elements.items():
-        if el.apply:
-            candidate = el.applied_to(candidate, i, j)
-    check = _compare_on_holdout(rec, i, candidate, row.extra)
-    if check.after is None:
-        # Every held-out sample still depends on columns held through a gap: as with no held-out part, the repair
-        # stands unvalidated.
-        warnings.append(f"{name}: {held} holds no sample that does not depend on the columns held through a gap; "
-                        f"the re-estimated element(s) {cols} were not validated on data outside the fit.")
-        return check
-    h_after, h_before, os_after, os_before = check.after, check.before, check.one_step_after, check.one_step_before
-    ar = f"AR({options.noise_order})"
-    if check.one_step:
-        warnings.append(
-            f"{name}: the re-estimated element(s) {cols} predict {held} significantly better one step ahead (RMS "
-            f"error {os_after:.4g} vs {os_before:.4g} with the model as given, each under its own {ar} noise model; "
-            f"one-sided p = {check.p_one_step:.2g}) and their simulation error there is not significantly larger "
-            f"({h_after:.4g} vs {h_before:.4g}; p = {check.p_rise:.2g}): the repair is accepted.")
-    if check.accepted:
-        return check
-    why = ""
-    if os_after is not None:
-        why = f"; one step ahead {os_after:.4g} vs {os_before:.4g}, each under its own {ar} noise model"
-    alpha = options.holdout_alpha
-    undecided = ""
-    if check.p_rise is not None and check.p_one_step >= alpha:
-        why += f", not significantly smaller (one-sided p = {check.p_one_step:.2g}, at least {alpha:g})"
-    elif check.p_rise is not None and check.p_rise < alpha:
-        why += f", but the rise in simulation error is significant (one-sided p = {check.p_rise:.2g} < {alpha:g})"
-    elif check.p_rise is not None:
-        why += (f", significantly smaller (one-sided p = {check.p_one_step:.2g}), and the rise in simulation error "
-                f"is not significant (p = {check.p_rise:.2g})")
-        undecided = (" The held-out data do not tell which is better: the simulation error decides (an "
-                     "experiment, or RepairOptions(holdout_one_step=True), which accepts such a repair, may).")
-    warnings.append(
-        f"{name}: the re-estimated element(s) {cols} did not predict {held} better in simulation (RMS error "
-        f"{h_after:.4g} vs {h_before:.4g} with the model as given{why}); the elements are kept as they were."
-        f"{undecided}")
-    for el in elements.values():
-        if el.apply:
-            el.reject("rejected by held-out validation")
-    return check
-
-
 def _process_row(rec: _Record, i: int, js, extra: Optional[np.ndarray],
                  classified: Optional[tuple] = None) -> _RowOutcome:
     """Classify, fit, validate and (optionally) refit the located elements ``js`` of row ``i``.
 
     ``extra`` (shape (n_samples, n_extra)) holds nuisance regressors for an unexplained step or
     drift on the row, or None.  ``classified``: the classification of ``js`` without ``extra``
-    already made (:func:`explained_elements`), or None.
+    already made (:func:`~.explained.explained_elements`), or None.
 
     The fits are prediction-error fits with the AR noise model of ``noise_order``.  When a repaired
     element moved far (:func:`_far_moved`) and the row's repair leaves more than
@@ -646,120 +279,6 @@ def _evaluate(rec: _Record, results: dict) -> _Evaluation:
                 test["time"] = float(t[test["index"]] - t[0])
     return _Evaluation(model=repaired, signals=sig, tests=tests)
 
-
-def _one_family(tests: dict, alpha: float) -> None:
-    """The unexplained-disturbance tests of every output as one family, in place: Holm's adjusted p-value
-    (:func:`~mpm_monitor.core.statistics.holm_adjust`) over the outputs tested becomes each test's
-    ``p_value`` (its own in ``p_value_raw``), and a test whose adjusted value is not below ``alpha`` no longer
-    reports a disturbance.  So a loop without one reports one with probability at most ``alpha`` however
-    many outputs it has (each output alone at ``alpha`` reported one on 63 % of 100-output loops).
-
-    Parameters
-    ----------
-    tests : dict
-        ``{output index: test}``, each :func:`unexplained_disturbance`'s result (``detected`` exactly when
-        its ``p_value`` is below ``alpha``); an output not tested keeps its test and is not counted.
-    alpha : float
-        The family-wise level (:attr:`RepairOptions.disturbance_alpha`).
-    """
-    tested = [i for i, test in tests.items() if test.get("tested")]
-    if not tested:
-        return
-    for i, adjusted in zip(tested, holm_adjust([tests[i]["p_value"] for i in tested])):
-        test, adjusted = tests[i], float(adjusted)
-        if test["detected"] and not adjusted < alpha:
-            tests[i] = test = dict(not_tested(), p_step=test["p_step"], p_drift=test["p_drift"],
-                                   p_value=test["p_value"], tested=True)
-        test["p_value_raw"], test["p_value"] = test["p_value"], adjusted
-
-
-def _disturbance_test(d: np.ndarray, segments, scale: float, model: PlantModel, options: RepairOptions,
-                      moves: bool) -> dict:
-    """:func:`unexplained_disturbance` of one output's prediction error ``d`` (shape (n_samples,)), as the
-    repair tests every output: at ``options``' level, trim and noise order, over the scored ``segments``
-    (None: every sample), ``scale`` the output's standard deviation.  An output that never moves
-    (``moves`` false: a stuck sensor) is not tested: its prediction error is the model's own response."""
-    if not moves:
-        return not_tested()
-    return unexplained_disturbance(d, model.sample_time, options.disturbance_alpha, options.disturbance_trim,
-                                   options.noise_order, segments=segments, scale=scale)
-
-
-def _test_settings_key(model: PlantModel, options: RepairOptions) -> tuple:
-    """What a disturbance test depends on besides its prediction error, segments and scale."""
-    return (float(model.sample_time), float(options.disturbance_alpha), float(options.disturbance_trim),
-            int(options.noise_order))
-
-
-@dataclasses.dataclass
-class DisturbanceTests:
-    """The unexplained-disturbance tests of every output of a model as given, on a record without gaps,
-    computed ahead of :func:`repair_model` (:func:`disturbance_tests`), which takes each output's test
-    whose prediction error it finds unchanged instead of testing it again.
-
-    Attributes
-    ----------
-    key : tuple
-        The sample time, the level, trim and noise order of the tests (:class:`RepairOptions`).
-    spread : ndarray, shape (n_outputs,)
-        The outputs' standard deviations, the tests' scales (output units).
-    d : ndarray, shape (n_samples, n_outputs)
-        The prediction errors tested (output units).
-    tests : list of dict
-        Per output, :func:`~mpm_monitor.core.repair.disturbance.unexplained_disturbance`'s result.
-    """
-
-    key: tuple
-    spread: np.ndarray
-    d: np.ndarray
-    tests: list
-
-
-def disturbance_tests(model: PlantModel, data: LoggedData, d: np.ndarray,
-                      options: RepairOptions = RepairOptions()) -> DisturbanceTests:
-    """The tests :func:`repair_model` runs on every output of ``model`` as given, computed ahead.
-
-    The repair tests the prediction error of every output of the repaired model for an unexplained
-    step or drift; an output whose row it does not repair keeps the prediction error of the model as
-    given.  :func:`~mpm_monitor.core.pipeline.analyze` computes these tests in its second process
-    while the detection's first stages run in one (the second core is idle then), and gives them to
-    :func:`repair_model` (its ``disturbance_tests``): the same numbers.
-
-    Parameters
-    ----------
-    model : PlantModel
-        The model as given.
-    data : LoggedData
-        The record the repair fits, without gaps (the scales are the standard deviations of its ``y``).
-    d : ndarray, shape (n_samples, n_outputs)
-        ``model``'s prediction error on ``data`` (output units).
-    options : RepairOptions
-        The repair's options.
-
-    Returns
-    -------
-    DisturbanceTests
-    """
-    d = np.asarray(d, float)
-    y = np.asarray(in_deviations(model, data).y, float)
-    spread, moving = np.std(y, axis=0), moving_columns(y)
-    return DisturbanceTests(key=_test_settings_key(model, options), spread=spread, d=d,
-                            tests=[_disturbance_test(d[:, i], None, float(spread[i]), model, options, bool(moving[i]))
-                                   for i in range(model.n_outputs)])
-
-
-def _seed_tests(rec: _Record, given: Optional[DisturbanceTests]) -> None:
-    """Put the tests ``given`` (:func:`disturbance_tests`) into :attr:`_Record.tests` when they were taken with
-    the record's settings and scales (without gaps); :func:`_evaluate` uses each one whose prediction error it
-    finds unchanged."""
-    if given is None or rec.segments is not None or given.key != _test_settings_key(rec.model, rec.options):
-        return
-    if given.d.shape != rec.d0.shape or not np.array_equal(given.spread, rec.spread):
-        return
-    for i, test in enumerate(given.tests):
-        rec.tests[i] = (given.d[:, i], None, test)
-
-
 def _redo_disturbed_rows(rec: _Record, located: list, rows: list, results: dict, tests: dict,
                          jobs: int = 1) -> bool:
     """Process again, with the step or ramp as a nuisance regressor, every repaired row whose
@@ -781,38 +300,6 @@ def _redo_disturbed_rows(rec: _Record, located: list, rows: list, results: dict,
             f"{rec.model.outputs[i]}: the re-estimation of its elements allowed for the unexplained "
             f"{'step' if t['kind'] == 'step' else 'drift'} in the prediction error.")
     return bool(redo)
-
-
-def _located_in_row(located: list, i: int) -> list:
-    return [j for (ii, j) in located if ii == i]
-
-
-def _disturbance_findings(rec: _Record, tests: dict):
-    """The ``disturbances`` entries and their warnings, in output order."""
-    disturbances, warnings = [], []
-    for i, name in enumerate(rec.model.outputs):
-        test = tests[i]
-        if not test["detected"]:
-            continue
-        disturbances.append({"output": name, "kind": test["kind"], "size": test["size"],
-                             "time": test["time"], "rate": test["rate"], "p_value": test["p_value"],
-                             "p_value_raw": test["p_value_raw"], "statistic": test["statistic"]})
-        if test["kind"] == "step":
-            # At the log's own time (the stamp of the sample the step is at): ``time`` counts from the first sample,
-            # which read as 1164 s beside the gap warnings' 1700001664 s in a live window.
-            k, t = test.get("index"), np.asarray(rec.data.t)
-            when = t_text(float(t[k])) if k is not None and 0 <= k < t.shape[0] else f"{test['time']:.0f}"
-            warnings.append(
-                f"{name}: the prediction error shifts by {test['size']:+.3g} at about t = {when} s "
-                f"(p = {test['p_value']:.2g}) and no input explains it: an unmeasured disturbance or a change "
-                f"in the process, not an error of one model element; no element was changed for it.")
-        else:
-            warnings.append(
-                f"{name}: the prediction error drifts by {test['size']:+.3g} over the record "
-                f"({test['rate']:+.3g} per second, p = {test['p_value']:.2g}) and no input explains it: an "
-                f"unmeasured disturbance or a slow process change; no element was changed for it.")
-    return disturbances, warnings
-
 
 def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) -> RepairResult:
     """The :class:`RepairResult`: the row outcomes (``results``, ``{i: _RowOutcome}`` in row
@@ -887,11 +374,11 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
     signals : LoopSignals, optional
         :func:`~mpm_monitor.core.signals.compute_signals` of ``model`` on ``data`` (computed when absent).
     classified : JointClassification, optional
-        What :func:`explained_elements` found on the same model, data and options: a row whose
+        What :func:`~.explained.explained_elements` found on the same model, data and options: a row whose
         located elements are those it classified is not classified again.
     disturbance_tests : DisturbanceTests, optional
         The unexplained-disturbance tests of ``model``'s outputs on ``data``, computed ahead
-        (:func:`disturbance_tests`): an output whose prediction error the repair leaves as it is keeps
+        (:func:`~.residual_tests.disturbance_tests`): an output whose prediction error the repair leaves as it is keeps
         its test instead of being tested again.  Ignored unless taken with these options and scales on a
         record without gaps; each test is used only where its prediction error is the one the repair
         would test.
@@ -921,99 +408,3 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
     if _redo_disturbed_rows(rec, located, rows, results, ev.tests, jobs):
         ev = _evaluate(rec, results)
     return _assemble(rec, results, found, ev)
-
-
-@dataclasses.dataclass
-class JointClassification:
-    """What :func:`explained_elements` found.
-
-    Attributes
-    ----------
-    released : dict
-        ``{(i, j): [k, ...]}``: the located element ``(i, j)`` (output index, column index) whose
-        mismatch the located elements ``k`` of its row explain (those the row keeps).
-    rows : dict
-        ``{i: (js, (free, verdicts, warnings)))}``: the last classification of row ``i``'s located
-        elements ``js`` (a tuple: those kept after the releases when the last one released nothing),
-        which :func:`repair_model` takes instead of classifying again when they are the row's
-        located elements.
-    """
-
-    released: dict
-    rows: dict
-
-    def of_row(self, i: int, js) -> Optional[tuple]:
-        """``(free, verdicts, warnings)`` of row ``i`` when its last classification was of the
-        elements ``js``, else None."""
-        done = self.rows.get(i)
-        return done[1] if done is not None and done[0] == tuple(js) else None
-
-
-def explained_elements(model: PlantModel, data: LoggedData, located: Sequence[tuple],
-                       options: RepairOptions = RepairOptions(),
-                       signals: Optional[LoopSignals] = None) -> JointClassification:
-    """The located elements whose mismatch another located element of their row explains.
-
-    The element test locates each element on its own statistic, with the row's other columns free
-    as lag windows.  In closed loop a mismatch that a lag window does not hold whole (a slow or
-    shifted response) leaves a remainder that the other columns, correlated with the mismatched
-    one through the controller, can pick up: a second element of the row is then located for the
-    first one's mismatch.  The classification of the repair settles it.  It fits the row's located
-    elements jointly, each in its structure, and tests every parameter of each against the model
-    (likelihood-ratio tests at ``1 - options.confidence_level``, a change counted only above
-    ``options.min_relative_change``, and the joint hold of every parameter found unchanged;
-    :mod:`.classify`).  An element none of whose parameters differs from the model there (its kind
-    "unknown"), in a row where another located element's do, adds nothing to the row
-    once those are re-estimated: it is released, with the elements that explain it.  The row's
-    remaining elements are then classified again, and released in turn, until none is: the
-    result is the rule applied to its own outcome, and the classification of the elements kept is
-    the one the repair takes over.  An element alone in its row is never released, nor are the
-    elements of a row where none changed.
-
-    Parameters
-    ----------
-    model : PlantModel
-        The controller's model as given.
-    data : LoggedData
-        The record the repair fits (:func:`repair_model`).
-    located : sequence of (int, int)
-        (output index, column index) of the located elements.
-    options : RepairOptions
-    signals : LoopSignals, optional
-        :func:`~mpm_monitor.core.signals.compute_signals` of ``model`` on ``data``.
-
-    Returns
-    -------
-    JointClassification
-        Empty when no row has two located elements (nothing is fitted then) or the record is too
-        short for the repair.
-    """
-    if not isinstance(options, RepairOptions):
-        raise ConfigurationError(f"options: expected RepairOptions, got {type(options).__name__}")
-    data = in_deviations(model, data)
-    located = _check_inputs(model, data, located, signals)
-    result = JointClassification(released={}, rows={})
-    rows = {i: tuple(_located_in_row(located, i)) for i in sorted({i for i, _ in located})}
-    rows = {i: js for i, js in rows.items() if len(js) > 1}
-    if not rows:
-        return result
-    rec = _set_up(model, data, options, signals)
-    if rec.n_fit < _min_fit(model, options):
-        return result
-    for i, js in rows.items():
-        row = _RowData(model=model, u=rec.u, y=rec.y, i=i, extra=None, segments=rec.segments)
-        gone = []
-        while len(js) > 1:          # until the row's classification releases nothing more
-            try:
-                free, verdicts, warnings = _classify_row(row, js, rec.settings)
-            except _TooShort:
-                break
-            result.rows[i] = (js, (free, verdicts, list(warnings)))
-            known = tuple(j for j in js if verdicts[j].kind != "unknown")
-            if not known or len(known) == len(js):
-                break
-            gone += [j for j in js if j not in known]
-            js = known
-        # The elements the row keeps in the end explain every element released from it.
-        result.released.update({(i, j): list(js) for j in gone})
-    return result

@@ -1,0 +1,249 @@
+"""The record a repair reads: the data and the model as every step of :func:`~.model_repair.repair_model`
+takes them, the split into the fit and the held-out part, and the prediction error about its level over
+the held-out part."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Optional
+
+import numpy as np
+
+from ..discretize import model_columns
+from ..errors import InputError
+from ..logged_data import LoggedData, check_loop_data, moving_columns
+from ..model import PlantModel
+from ..signals import (LoopSignals, compute_signals, scored_segments, segment_signals, segments_mask,
+                       unknown_starts)
+from .holdout import ar_one_step_errors
+from .options import RepairOptions, _TestSettings
+
+
+def _project_out(x: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """``x`` minus its least-squares fit on the columns ``cols``."""
+    coef, *_ = np.linalg.lstsq(cols, x, rcond=None)
+    return x - cols @ coef
+
+
+def _rms(x) -> float:
+    x = np.asarray(x, float)
+    return float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
+
+
+def _holdout_residual(d, n_fit: int, extra: Optional[np.ndarray] = None) -> np.ndarray:
+    """The prediction error ``d`` (shape (n_samples,)) over the held-out part, about its level, shape
+    (n_samples - n_fit,).
+
+    The level of a prediction error is a nuisance the fit of the repair estimates (an offset; on an
+    integrating output the arbitrary level of the output): like any parameter of the fit, it is
+    taken from the fit part (samples ``0 .. n_fit - 1``, its mean there) and carried over to the
+    held-out part.  With ``extra`` (shape (n_samples, n_extra): the unexplained step or ramp of the
+    row) an offset and those regressors are projected out over the held-out part instead.
+    """
+    d = np.asarray(d, float)
+    hold = d[n_fit:]
+    if hold.size == 0:
+        return hold
+    if extra is not None:
+        return _project_out(hold, np.column_stack([np.ones(hold.shape[0]), extra[n_fit:]]))
+    return hold - np.mean(d[:n_fit])
+
+
+def _holdout_rms(d, n_fit: int, extra: Optional[np.ndarray] = None) -> float:
+    """RMS of :func:`_holdout_residual` (nan without a held-out part)."""
+    return _rms(_holdout_residual(d, n_fit, extra))
+
+
+def _about_level(d, n_fit: int, keep: Optional[np.ndarray], extra: Optional[np.ndarray]) -> np.ndarray:
+    """``d`` (shape (n_samples,)) about its level as the held-out check takes it, over the whole record: the
+    mean of the fit part's samples ``keep`` (all when None) removed, or with ``extra`` an offset and those
+    regressors projected out over the fit part and over the held-out part, each on its own."""
+    d = np.asarray(d, float)
+    mask = np.ones(d.shape[0], bool) if keep is None else np.asarray(keep, bool)
+    fit = mask & (np.arange(d.shape[0]) < n_fit)
+    if extra is None:
+        return d - np.mean(d[fit])
+    out = d.copy()
+    for part in (fit, mask & ~fit):
+        if part.any():
+            out[part] = _project_out(d[part], np.column_stack([np.ones(np.count_nonzero(part)), extra[part]]))
+    return out
+
+def _check_inputs(model: PlantModel, data: LoggedData, located, signals):
+    """The located pairs, sorted and unique, once the data (:func:`~mpm_monitor.core.logged_data.check_loop_data`),
+    the pairs and the signals fit the model; else :class:`InputError` naming what does not."""
+    check_loop_data(model, data)
+    n = data.n_samples
+    out = []
+    for item in located:
+        try:
+            i, j = (int(v) for v in item)
+        except (TypeError, ValueError):
+            raise InputError(f"repair: located element {item!r}: expected a pair (output index, column index)") from None
+        if not (0 <= i < model.n_outputs and 0 <= j < model.n_columns):
+            raise InputError(f"repair: located element ({i}, {j}): expected 0 <= output < {model.n_outputs} "
+                             f"and 0 <= column < {model.n_columns} (inputs, then measured disturbances)")
+        if (i, j) not in out:
+            out.append((i, j))
+    if signals is not None:
+        for key in ("yhat", "d"):
+            if np.shape(getattr(signals, key)) != (n, model.n_outputs):
+                raise InputError(f"repair: signals.{key}: expected shape ({n}, {model.n_outputs}), "
+                                 f"got {np.shape(getattr(signals, key))}")
+    return sorted(out)
+
+@dataclasses.dataclass(frozen=True)
+class _Record:
+    """The record and the model as every step of :func:`~.model_repair.repair_model` reads them.
+
+    Attributes
+    ----------
+    model : PlantModel
+        The model as given.
+    data : LoggedData
+    u, y : ndarray, shape (n_samples, n_columns) and (n_samples, n_outputs)
+        The model's columns (``data.u``, then ``data.dv``) and ``data.y`` as float arrays.
+    signals : LoopSignals
+        Of the model as given on the data.
+    d0 : ndarray, shape (n_samples, n_outputs)
+        ``signals.d`` as a float array.
+    settings : _TestSettings
+    n_fit : int
+        Samples ``0 .. n_fit - 1`` are the fit part, the rest is held out.
+    holdout_before : dict
+        ``{output name: RMS of d0 over the held-out part about its level}`` (empty without a
+        held-out part; see :func:`_holdout_rms`).
+    segments : tuple of (int, int) or None
+        Data with gaps (``data.t`` skips samples): its contiguous runs of samples, each simulated and
+        fitted as a record of its own (from rest, with its own offset and free responses); the
+        split into the fit and the held-out part is at sample ``n_fit`` of the samples as they are.
+        None: one record.
+    tests : dict
+        ``{output index: (d, segments, test)}``: the last :func:`~.disturbance.unexplained_disturbance` of each
+        output, on its prediction error ``d`` and the scored ``segments`` (see :func:`~.model_repair._evaluate`),
+        reused while they stay the same.
+    """
+
+    model: PlantModel
+    data: LoggedData
+    u: np.ndarray
+    y: np.ndarray
+    signals: LoopSignals
+    d0: np.ndarray
+    settings: _TestSettings
+    n_fit: int
+    holdout_before: dict
+    segments: Optional[tuple] = None
+    tests: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
+
+    @property
+    def options(self) -> RepairOptions:
+        return self.settings.options
+
+    @functools.cached_property
+    def spread(self) -> np.ndarray:
+        """The outputs' standard deviations over the record, shape (n_outputs,): the scales of the disturbance
+        tests (:func:`~.model_repair._evaluate`), computed once."""
+        return np.std(np.asarray(self.y, float), axis=0)
+
+    @functools.cached_property
+    def moving(self) -> np.ndarray:
+        """Whether each output moves over the record (:func:`~mpm_monitor.core.logged_data.moving_columns`),
+        shape (n_outputs,): one that never moves (a stuck sensor) is not tested for a disturbance."""
+        return moving_columns(np.asarray(self.y, float))
+
+    @property
+    def n(self) -> int:
+        return self.data.n_samples
+
+    @property
+    def n_hold(self) -> int:
+        return self.n - self.n_fit
+
+    def scored(self, *models: PlantModel) -> Optional[np.ndarray]:
+        """The samples the held-out check is taken over: with gaps, all but the first samples of every
+        segment after a gap that still depend on the state the gap leaves (:meth:`scored_segments` as a
+        mask); None without gaps (every sample)."""
+        if self.segments is None:
+            return None
+        return segments_mask(self.scored_segments(*models), self.n)
+
+    def scored_segments(self, *models: PlantModel, settled: bool = False) -> Optional[list]:
+        """:func:`~mpm_monitor.core.signals.scored_segments` of the record's segments (None without gaps)."""
+        if self.segments is None:
+            return None
+        return scored_segments(self.segments, *models, settled=settled, restarts=self.restarts)
+
+    @property
+    def restarts(self) -> Optional[list]:
+        """With gaps, the segments whose start still carries an unknown (after a gap longer than the
+        option ``max_gap``, or with a sample of unknown columns; every segment after the first when
+        ``max_gap`` is None): :func:`~mpm_monitor.core.signals.unknown_starts`."""
+        if self.segments is None or self.options.max_gap is None:
+            return None
+        return unknown_starts(self.segments, self.data.grid_index, self.options.max_gap, self.data.fill_on_grid())
+
+    def holdout(self, d: np.ndarray, keep: Optional[np.ndarray], extra: Optional[np.ndarray] = None) -> float:
+        """:func:`_holdout_rms` of ``d`` (shape (n_samples,)) over the samples ``keep`` (:meth:`scored`)."""
+        return _rms(self.holdout_residual(d, keep, extra))
+
+    def holdout_residual(self, d: np.ndarray, keep: Optional[np.ndarray],
+                         extra: Optional[np.ndarray] = None) -> np.ndarray:
+        """:func:`_holdout_residual` of ``d`` (shape (n_samples,)) over the samples ``keep`` (:meth:`scored`):
+        shape (held-out samples kept,)."""
+        if keep is None:
+            return _holdout_residual(d, self.n_fit, extra)
+        return _holdout_residual(d[keep], int(np.count_nonzero(keep[:self.n_fit])),
+                                 None if extra is None else extra[keep])
+
+    def one_step_holdout(self, d: np.ndarray, keep: Optional[np.ndarray], segments: Optional[list],
+                         extra: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
+        """The one-step errors of ``d`` (shape (n_samples,)) over the held-out part under an AR noise model of
+        the option ``noise_order`` fitted on the fit part (:func:`~.holdout.ar_one_step_errors`), ``d``
+        taken about its level as :meth:`holdout_residual` takes it; with gaps over the scored ``segments``
+        (:meth:`scored_segments`) and the samples ``keep``.  None when too few samples."""
+        return ar_one_step_errors(_about_level(d, self.n_fit, keep, extra), self.n_fit, self.options.noise_order,
+                                  segments)
+
+    def signals_of(self, model: PlantModel) -> LoopSignals:
+        """:func:`compute_signals` of ``model`` on the record (the rows where it equals the model as
+        given taken from :attr:`signals`); with gaps each segment from its own start."""
+        if self.segments is not None:
+            return segment_signals(model, self.data.r, self.data.u, self.y, self.segments,
+                                   initial_state=self.options.initial_state, dv=self.data.dv,
+                                   grid=self.data.grid_index, max_gap=self.options.max_gap,
+                                   fill=self.data.fill_on_grid())
+        return compute_signals(model, self.data.r, self.data.u, self.y, initial_state=self.options.initial_state,
+                               dv=self.data.dv, like=(self.model, self.signals))
+
+
+def _set_up(model: PlantModel, data: LoggedData, options: RepairOptions,
+            signals: Optional[LoopSignals]) -> _Record:
+    """The record of checked inputs: float arrays, the signals of the model, the split, the levels."""
+    u, y = model_columns(np.asarray(data.u, float), np.asarray(data.dv, float)), np.asarray(data.y, float)
+    n = data.n_samples
+    segments = data.segments
+    segments = tuple(segments) if len(segments) > 1 else None
+    if signals is None and segments is not None:
+        signals = segment_signals(model, data.r, data.u, y, segments, initial_state=options.initial_state, dv=data.dv,
+                                  grid=data.grid_index, max_gap=options.max_gap, fill=data.fill_on_grid())
+    elif signals is None:
+        signals = compute_signals(model, data.r, data.u, y, initial_state=options.initial_state, dv=data.dv)
+    d0 = np.asarray(signals.d, float)
+    n_hold = int(round(options.holdout_fraction * n))
+    n_fit = n - n_hold
+    rec = _Record(model=model, data=data, u=u, y=y, signals=signals, d0=d0, settings=_TestSettings.of(options),
+                  n_fit=n_fit, holdout_before={}, segments=segments)
+    if n_hold > 0:
+        keep = rec.scored(model)
+        rec.holdout_before.update({model.outputs[i]: rec.holdout(d0[:, i], keep) for i in range(model.n_outputs)})
+    return rec
+
+
+def _min_fit(model: PlantModel, options: RepairOptions) -> int:
+    """The fewest samples of the fit part with which located elements are re-estimated."""
+    return max(200, 20 * (2 * model.n_columns + options.noise_order + 5))
+
+def _located_in_row(located: list, i: int) -> list:
+    return [j for (ii, j) in located if ii == i]
