@@ -12,6 +12,7 @@ samples.  Issue 5 (monitor): the diagnostics carry the suggested repair, and the
 ``repaired_model_file`` parameter, or answers ``success`` false with the reason.
 """
 
+import os
 import time
 
 import numpy as np
@@ -170,7 +171,7 @@ def test_a_plain_publisher_gets_the_same_answer_as_analyze():
     expected = analyze(case.model, log.as_logged_data(), AnalysisOptions(repair=False))
     ctx = private_context()
     ns = "/plain"
-    monitor = _monitor(ctx, ns, window_samples=n, min_samples=n, analysis_period=n)
+    monitor = _monitor(ctx, ns, window_samples=n, min_samples=n, analysis_period=n, analysis_niceness=3)
     pub_node = Node("plain_publisher", context=ctx, namespace=ns)
     pubs = {t: pub_node.create_publisher(JointState, t, vector_qos()) for t in ("setpoint", "input", "output")}
     listener = DiagnosticsListener(ctx, ns)
@@ -203,6 +204,9 @@ def test_a_plain_publisher_gets_the_same_answer_as_analyze():
             assert float(v["rsi"]) == pytest.approx(r.rsi, rel=1e-9)
             assert float(v["p_value"]) == pytest.approx(r.p_value, rel=1e-6, abs=1e-300)
         assert st[SUMMARY_NAME][1]["missing_samples"] == "0"
+        # The analysis ran in the monitor's child process, at the niceness asked for above the monitor's.
+        (child,) = monitor._process_analyzer._pool._processes
+        assert os.getpriority(os.PRIO_PROCESS, child) == min(os.getpriority(os.PRIO_PROCESS, 0) + 3, 19)
     finally:
         monitor.close()
         close_nodes(ex, ctx, monitor, pub_node, listener.node)

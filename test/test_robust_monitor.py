@@ -685,3 +685,28 @@ def test_the_analysis_process_dying_is_an_error_and_the_next_analysis_gets_a_new
         assert pid2 not in (pid, os.getpid())
     finally:
         pa.close()
+
+
+def _niceness_in_child(model, data, options):
+    """Stands in for analyze() in the child process: its pid and niceness."""
+    import os
+
+    return os.getpid(), os.getpriority(os.PRIO_PROCESS, 0)
+
+
+@pytest.mark.parametrize("niceness", [0, 7, 19])
+def test_the_analysis_process_runs_at_the_niceness_asked_for(niceness):
+    """The analysis process's niceness is the monitor's plus ``niceness`` (at most 19), so that where the cores
+    are busy the monitor's callbacks are served before the analysis."""
+    import os
+
+    from mpm_monitor.monitor.worker import ProcessAnalyzer
+
+    pa = ProcessAnalyzer(_niceness_in_child, niceness=niceness)
+    try:
+        pid, nice = pa(None, None, None)
+    finally:
+        pa.close()
+    mine = os.getpriority(os.PRIO_PROCESS, 0)
+    assert pid != os.getpid() and os.getpriority(os.PRIO_PROCESS, 0) == mine
+    assert nice == min(mine + niceness, 19)

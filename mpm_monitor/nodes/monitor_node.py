@@ -136,6 +136,10 @@ PARAMS = MODEL_PARAMS + (
               "domain can point the node at another file.", read_only=True),
     ParamSpec("analysis_process", "bool", True, "Run the analysis in a child process, so that it never competes "
               "with the subscription callbacks for the Python interpreter (false: in the background thread itself)."),
+    ParamSpec("analysis_niceness", "int", 10, "Niceness added to the analysis process (Linux nice): where the cores "
+              "are busy, the monitor's subscription callbacks and the other processes, such as the controller, are "
+              "served first and the analysis waits, instead of samples being lost (0: the monitor's priority).",
+              0, 19),
     ParamSpec("analysis_thread", "bool", True, "Run the analysis in a background thread (false: inside the "
               "callback, for debugging only)."),
     ParamSpec("hardware_id", "string", "", "hardware_id of the statuses ('' = the node's full name)."),
@@ -211,7 +215,7 @@ class MonitorNode(Node):
         if analyze is None:
             from ..core.pipeline import analyze
             if p["analysis_process"] and p["analysis_thread"]:
-                self._process_analyzer = analyze = ProcessAnalyzer(analyze)
+                self._process_analyzer = analyze = ProcessAnalyzer(analyze, niceness=p["analysis_niceness"])
         self._analyze = analyze
         self._analysis_options = analysis_options_from_params(p)
         self._hw = p["hardware_id"] or self.get_fully_qualified_name()
