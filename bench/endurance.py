@@ -88,6 +88,8 @@ class EnduranceConfig:
     loss : float
         Probability that a sample's three messages are not published (a lossy link: 0.002 is one
         sample in 500), drawn independently per sample from ``seed``.
+    niceness : int or None
+        The monitor's ``analysis_niceness`` parameter (None: the node's default).
     """
 
     size: int = 3
@@ -101,6 +103,7 @@ class EnduranceConfig:
     rss_every: float = 5.0
     seed: int = 0
     loss: float = 0.0
+    niceness: Optional[int] = None
 
 
 # ------------------------------------------------------------------------------------- set-up
@@ -188,6 +191,8 @@ def run(cfg: EnduranceConfig, log=print) -> dict:
                   "min_samples": cfg.min_samples, "analysis_period": cfg.analysis_period,
                   "repair": "true" if cfg.repair else "false", "stale_timeout": 3600.0,
                   "republish_period": 1.0, "diagnostics_topic": "diagnostics"}
+        if cfg.niceness is not None:
+            params["analysis_niceness"] = cfg.niceness
         cmd = [sys.executable, "-m", "mpm_monitor.nodes.monitor_node", "--ros-args", "-r", f"__ns:={ns}"]
         for k, v in params.items():
             cmd += ["-p", f"{k}:={v}"]
@@ -259,7 +264,8 @@ def run(cfg: EnduranceConfig, log=print) -> dict:
                 raise RuntimeError(f"the monitor process exited (code {proc.returncode}); see {tmp / 'monitor.log'}")
             log(f"{cfg.size}x{cfg.size} at {cfg.rate_hz:g} Hz, {total} samples (about {total / cfg.rate_hz / 60:.0f} "
                 f"min), window {cfg.window_samples}, analysis every {cfg.analysis_period}, repair "
-                f"{'on' if cfg.repair else 'off'}; monitor pid {proc.pid}, domain {domain}; set-up "
+                f"{'on' if cfg.repair else 'off'}, analysis niceness "
+                f"{'default' if cfg.niceness is None else cfg.niceness}; monitor pid {proc.pid}, domain {domain}; set-up "
                 f"{time.monotonic() - t_setup:.1f} s")
             pub_thread = threading.Thread(target=publisher, name="publisher", daemon=True)
             mem_thread = threading.Thread(target=sampler, name="memory", daemon=True)
@@ -427,13 +433,14 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--loss", type=float, default=0.0, help="probability that a sample is not published (a lossy "
                    "link; 0.002: one in 500)")
+    p.add_argument("--niceness", type=int, default=None, help="the monitor's analysis_niceness (default: the node's)")
     p.add_argument("--json", default=None, help="write the figures here")
     args = p.parse_args(argv)
     window, min_samples, period = MONITOR_SETTINGS.get(args.size, (3000, 1500, 500))
     cfg = EnduranceConfig(size=args.size, rate_hz=args.rate, samples=args.samples,
                           window_samples=args.window or window, min_samples=args.min_samples or min_samples,
                           analysis_period=args.period or period, repair=not args.no_repair, segment=args.segment,
-                          rss_every=args.rss_every, seed=args.seed, loss=args.loss)
+                          rss_every=args.rss_every, seed=args.seed, loss=args.loss, niceness=args.niceness)
     results = []
     if args.ceiling:
         best = None
