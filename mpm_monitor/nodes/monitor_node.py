@@ -138,7 +138,7 @@ PARAMS = MODEL_PARAMS + (
               "with the subscription callbacks for the Python interpreter (false: in the background thread itself)."),
     ParamSpec("analysis_niceness", "int", 10, "Niceness added to the analysis process (Linux nice): where the cores "
               "are busy, the monitor's subscription callbacks and the other processes, such as the controller, are "
-              "served first and the analysis waits, instead of samples being lost (0: the monitor's priority).",
+              "served first and the analysis waits, so that fewer samples are lost (0: the monitor's priority).",
               0, 19),
     ParamSpec("analysis_thread", "bool", True, "Run the analysis in a background thread (false: inside the "
               "callback, for debugging only)."),
