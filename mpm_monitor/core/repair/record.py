@@ -50,11 +50,6 @@ def _holdout_residual(d, n_fit: int, extra: Optional[np.ndarray] = None) -> np.n
     return hold - np.mean(d[:n_fit])
 
 
-def _holdout_rms(d, n_fit: int, extra: Optional[np.ndarray] = None) -> float:
-    """RMS of :func:`_holdout_residual` (nan without a held-out part)."""
-    return _rms(_holdout_residual(d, n_fit, extra))
-
-
 def _about_level(d, n_fit: int, keep: Optional[np.ndarray], extra: Optional[np.ndarray]) -> np.ndarray:
     """``d`` (shape (n_samples,)) about its level as the held-out check takes it, over the whole record: the
     mean of the fit part's samples ``keep`` (all when None) removed, or with ``extra`` an offset and those
@@ -113,7 +108,7 @@ class _Record:
         Samples ``0 .. n_fit - 1`` are the fit part, the rest is held out.
     holdout_before : dict
         ``{output name: RMS of d0 over the held-out part about its level}`` (empty without a
-        held-out part; see :func:`_holdout_rms`).
+        held-out part; see :meth:`holdout`).
     segments : tuple of (int, int) or None
         Data with gaps (``data.t`` skips samples): its contiguous runs of samples, each simulated and
         fitted as a record of its own (from rest, with its own offset and free responses); the
@@ -185,7 +180,8 @@ class _Record:
         return unknown_starts(self.segments, self.data.grid_index, self.options.max_gap, self.data.fill_on_grid())
 
     def holdout(self, d: np.ndarray, keep: Optional[np.ndarray], extra: Optional[np.ndarray] = None) -> float:
-        """:func:`_holdout_rms` of ``d`` (shape (n_samples,)) over the samples ``keep`` (:meth:`scored`)."""
+        """RMS of :meth:`holdout_residual` of ``d`` (shape (n_samples,)) over the samples ``keep`` (:meth:`scored`;
+        nan without a held-out part)."""
         return _rms(self.holdout_residual(d, keep, extra))
 
     def holdout_residual(self, d: np.ndarray, keep: Optional[np.ndarray],
