@@ -3,7 +3,7 @@
 ``analyze(model, data, options)`` now simulates the model element by element
 (:func:`mpm_monitor.core.discretize.simulate_elements`) and solves the tests from Gram matrices built at
 once from the window (:func:`mpm_monitor.core.regressions.window_regressions`, with their shift structure:
-:func:`~mpm_monitor.core.regressions.lagged_cross_products`), refitting by QR any regression whose
+:func:`~mpm_monitor.core.lagged_gram.lagged_cross_products`), refitting by QR any regression whose
 conditioning is poor.  The references are the previous paths: the dense simulation of
 :func:`~mpm_monitor.core.discretize.state_space` (``scipy.signal.dlsim``) and
 :class:`~mpm_monitor.core.regressions.QrRegressions`.
@@ -29,18 +29,9 @@ from mpm_monitor.core.element_test import InputDesign
 from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import PlantModel
 from mpm_monitor.core.pipeline import analyze
-from mpm_monitor.core.regressions import (
-    GramBlockRegression,
-    GramFit,
-    IllConditioned,
-    LaggedGram,
-    QrRegressions,
-    RegressionLayout,
-    SampleBuffer,
-    lagged_cross_products,
-    regression_layout,
-    window_regressions,
-)
+from mpm_monitor.core.gram_fits import GramBlockRegression, GramFit, IllConditioned
+from mpm_monitor.core.lagged_gram import LaggedGram, SampleBuffer, lagged_cross_products
+from mpm_monitor.core.regressions import QrRegressions, RegressionLayout, regression_layout, window_regressions
 from mpm_monitor.core.signals import LoopSignals, compute_signals, initial_transient
 from mpm_monitor.sim.cases import paper_case
 from mpm_monitor.sim.closed_loop import ExcitationOptions, run_closed_loop
@@ -453,11 +444,11 @@ def test_a_fit_checks_its_condition_from_its_shared_blocks_norms(monkeypatch):
     # is about 3, so each fit needs the finer check.  The shared block's 2-norms are estimated once for
     # all its fits; each fit adds its own columns' exact Frobenius norms, which bounds its condition
     # number from above (||[A B]||_2^2 <= ||A||_2^2 + ||B||_F^2).
-    import mpm_monitor.core.regressions as regressions
+    import mpm_monitor.core.gram_fits as gram_fits
 
     calls = []
-    estimate = regressions._norm2_estimate
-    monkeypatch.setattr(regressions, "_norm2_estimate", lambda a, *k: calls.append(1) or estimate(a, *k))
+    estimate = gram_fits._norm2_estimate
+    monkeypatch.setattr(gram_fits, "_norm2_estimate", lambda a, *k: calls.append(1) or estimate(a, *k))
     rng = np.random.default_rng(3)
     n, p = 4000, 1100
     X = rng.standard_normal((n, p))

@@ -386,11 +386,11 @@ def test_a_detection_of_which_only_the_rows_are_read_has_the_same_rows(case_32, 
 
 
 def test_a_rows_only_detection_with_no_row_to_test_takes_no_input_lags(case_32, monkeypatch):
-    from mpm_monitor.core import regressions
+    from mpm_monitor.core.lagged_gram import LaggedGram
 
     built = []
-    rebuild = regressions.LaggedGram.rebuild
-    monkeypatch.setattr(regressions.LaggedGram, "rebuild",
+    rebuild = LaggedGram.rebuild
+    monkeypatch.setattr(LaggedGram, "rebuild",
                         lambda self, *a, **k: built.append(self.n_columns) or rebuild(self, *a, **k))
     case, data = case_32
     plant = detect(case.plant, data, AnalysisOptions(repair=False, test_all_rows=False), rows_only=True)

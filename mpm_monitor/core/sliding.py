@@ -10,7 +10,7 @@ checks and the QR fallback of the batch analysis).
 
 What is kept
 ------------
-Two Gram matrices (:class:`~mpm_monitor.core.regressions.LaggedGram`, with their column sums) over
+Two Gram matrices (:class:`~mpm_monitor.core.lagged_gram.LaggedGram`, with their column sums) over
 the regression rows of the window, i.e. the samples ``start .. W - 1`` of the window
 (:class:`~mpm_monitor.core.regressions.RegressionLayout`):
 
@@ -21,7 +21,7 @@ the regression rows of the window, i.e. the samples ``start .. W - 1`` of the wi
   the measured disturbances), and for every output ``d_i(t - l)``, ``l = 0 .. na``.
 
 Every row's regression is a sub-block of one of them.  Samples are added to and removed from them
-by symmetric rank-k updates (:meth:`~mpm_monitor.core.regressions.LaggedGram.update`).
+by symmetric rank-k updates (:meth:`~mpm_monitor.core.lagged_gram.LaggedGram.update`).
 
 Centring
 --------
@@ -56,7 +56,9 @@ from .errors import ConfigurationError, DataFileError
 from .logged_data import LoggedData, check_disturbance_signal, check_signals
 from .model import PlantModel
 from .pipeline import analyze
-from .regressions import DEFAULT_MAX_CONDITION, GramRegressions, LaggedGram, SampleBuffer, regression_layout
+from .gram_fits import DEFAULT_MAX_CONDITION
+from .lagged_gram import LaggedGram, SampleBuffer
+from .regressions import GramRegressions, regression_layout
 from .signals import LoopSignals
 
 #: A window mean further than this many standard deviations from the Gram reference forces a rebuild.
