@@ -339,7 +339,7 @@ def test_a_stuck_output_is_not_repaired_to_zero_gains():
 def test_step_responses_cut_short_of_settling_are_named():
     """A step-response model of N = 20 samples for lags of 50 s: every element was located and the repair kept
     them all "unknown" ("may be too small"), and no word said the responses end long before they settle."""
-    from mpm_monitor.core.analysis import unsettled_warnings
+    from mpm_monitor.core.data_warnings import unsettled_warnings
 
     from mpm_monitor.core.model import PlantModel
 

@@ -484,7 +484,7 @@ def test_a_still_measured_disturbance_is_named_as_one():
 def test_the_summary_prints_a_value_above_one_as_more_than_100_percent():
     """Above 1 the first-order value says only that this window does not reliably detect an error as large
     as the element (bench.detectability --still --first-order); the JSON keeps the number."""
-    from mpm_monitor.core.analysis import detectable_text
+    from mpm_monitor.core.analysis_report import detectable_text
 
     assert [detectable_text(x) for x in (0.35, 0.999, 1.0, 1.0001, 353.5, None, float("inf"))] == \
         ["35%", "100%", "100%", ">100%", ">100%", "n/a", "n/a"]

@@ -506,7 +506,7 @@ def test_a_time_column_in_other_units_is_named_in_the_refusal(case_32, factor, u
 
 
 def test_the_time_unit_note_needs_most_rows_followed_by_a_gap(case_32):
-    from mpm_monitor.core.analysis import time_unit_note
+    from mpm_monitor.core.data_warnings import time_unit_note
 
     case, data = case_32
     start = regression_layout(case.model, DETECT).start

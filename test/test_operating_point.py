@@ -6,7 +6,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from mpm_monitor.core.analysis import AnalysisOptions, OFFSET_RATIO, offset_warnings
+from mpm_monitor.core.analysis import AnalysisOptions
+from mpm_monitor.core.data_warnings import OFFSET_RATIO, offset_warnings
 from mpm_monitor.core.errors import ModelFileError
 from mpm_monitor.core.logged_data import in_deviations
 from mpm_monitor.core.model import PlantModel

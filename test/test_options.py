@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from mpm_monitor.apps.cli import build_parser
-from mpm_monitor.core.analysis import ANALYSIS_PARAMS, AnalysisOptions
+from mpm_monitor.core.analysis import AnalysisOptions
+from mpm_monitor.core.analysis_options import ANALYSIS_PARAMS
 from mpm_monitor.core.errors import ConfigurationError
 from mpm_monitor.core.options import ParamSpec
 

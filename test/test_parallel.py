@@ -11,7 +11,8 @@ import pytest
 
 from mpm_monitor.apps.reproduce import simulate_case
 from mpm_monitor.core import parallel
-from mpm_monitor.core.analysis import AnalysisOptions, detect, settle_report
+from mpm_monitor.core.analysis import AnalysisOptions, detect
+from mpm_monitor.core.analysis_report import settle_report
 from mpm_monitor.core.parallel import Forked, split_map
 from mpm_monitor.core.pipeline import analyze
 

@@ -167,7 +167,7 @@ def _asdict_then_clean(report):
 
 
 def test_the_json_dict_is_asdict_then_cleaned(case32):
-    from mpm_monitor.core.analysis import json_ready
+    from mpm_monitor.core.analysis_report import json_ready
 
     _, _, report = case32
     doc = report.to_dict()

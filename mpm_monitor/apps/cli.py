@@ -91,7 +91,7 @@ def _add_analysis_options(p: argparse.ArgumentParser) -> None:
     after the flag; a bool that is on by default is turned off by ``--no-name``.  The values are
     checked by :class:`~mpm_monitor.core.analysis.AnalysisOptions` itself.
     """
-    from ..core.analysis import ANALYSIS_PARAMS
+    from ..core.analysis_options import ANALYSIS_PARAMS
 
     for name in CLI_ANALYSIS_OPTIONS:
         spec = ANALYSIS_PARAMS[name]

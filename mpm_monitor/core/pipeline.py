@@ -19,8 +19,8 @@ from typing import Optional
 
 import numpy as np
 
-from .analysis import (AnalysisOptions, AnalysisReport, Coloured, detect, detect_unless_coloured, light_jobs,
-                       row_jobs, settle_report)
+from .analysis import AnalysisOptions, AnalysisReport, Coloured, detect, detect_unless_coloured, light_jobs, row_jobs
+from .analysis_report import settle_report
 from .errors import DataFileError
 from .logged_data import NUMERICAL_ERRORS, LoggedData, in_deviations, numerical_breakdown
 from .model import PlantModel
@@ -154,7 +154,7 @@ class _TestsAhead:
 def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOptions, report: AnalysisReport,
                        kw: dict, ahead: Optional[_TestsAhead] = None) -> AnalysisReport:
     """:func:`_analyze` after the detection: the joint classification, the repair and the detection of the
-    repaired model; ``report`` settled (:func:`~mpm_monitor.core.analysis.settle_report`) after that detection
+    repaired model; ``report`` settled (:func:`~mpm_monitor.core.analysis_report.settle_report`) after that detection
     (which reads only its regressions; at 100x40 it runs while the child still computes the detectability,
     about 0.3 s) and before its warnings are completed with the repair's and it is returned."""
     joint = options.release_explained and _shares_a_row(report)

@@ -24,7 +24,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..core.analysis import detectable_text
+from ..core.analysis_report import detectable_text
 from ..core.model import PlantModel
 
 #: Largest number of points drawn per time-series curve (longer records are decimated for drawing).

@@ -96,7 +96,7 @@ def analysis_params() -> tuple:
     parameter cannot hold as they are: ``band`` becomes the doubles ``band_low`` and ``band_high``,
     and ``max_delay`` (None = from the model) the integer ``max_delay`` with -1 for None.
     """
-    from ..core.analysis import ANALYSIS_PARAMS
+    from ..core.analysis_options import ANALYSIS_PARAMS
 
     out = []
     for name in NODE_ANALYSIS_OPTIONS:
