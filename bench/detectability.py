@@ -26,7 +26,7 @@ binomial standard error at 0.9 is 0.021 for 200 runs).
 
 With ``--still`` the loops are still: every setpoint held at 0 and no dither, so the inputs move only
 with the controller's feedback of the noise (``bench/results/detectability_still.json``).  There the
-element fit's noise polynomial is often undetermined (:data:`mpm_monitor.core.element_test.MAX_NOISE_FILTER_SE`),
+element fit's noise polynomial is often undetermined (:data:`mpm_monitor.core.noise_polynomial.MAX_NOISE_FILTER_SE`),
 the reported changes are large (often above 100 %, beyond the first-order picture the calibration rests
 on), and the rates are also given by the sign of the error and for the runs whose reported change is
 at most 1 (a gain of ``K (1 - delta)`` with ``delta`` above 1 reverses the element's sign).  The rows

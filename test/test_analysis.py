@@ -365,11 +365,11 @@ def test_a_long_window_is_confirmed_with_tails_on_its_last_rows(monkeypatch):
     """The confirmation with tails fits hundreds of tail lags on every regression row: 17 kB a sample on a 3x3
     log, 1.8 GB at 100,000 samples and more than the machine at 1,000,000.  Past TAIL_FIT_BYTES of regressors it
     takes the window's last rows (here a budget of 4 MB stands for a window of millions of samples), and says so."""
-    from mpm_monitor.core import element_test
+    from mpm_monitor.core import confirmation
 
     case, data = _run_case("3.2", 5, samples=3000)
     full = analyze(case.model, data, AnalysisOptions(repair=False))
-    monkeypatch.setattr(element_test, "TAIL_FIT_BYTES", 4 * 2 ** 20)
+    monkeypatch.setattr(confirmation, "TAIL_FIT_BYTES", 4 * 2 ** 20)
     short = analyze(case.model, data, AnalysisOptions(repair=False))
     said = [w for w in short.warnings if "confirmation of its located elements with the others' slow tails used "
                                           "the last" in w]

@@ -17,7 +17,7 @@ from mpm_monitor.core import detectability as det
 from mpm_monitor.core import experiment as exm
 from mpm_monitor.core.analysis import AnalysisOptions, detect
 from mpm_monitor.core.arx import lag_matrix
-from mpm_monitor.core.element_test import RowNoise
+from mpm_monitor.core.noise_polynomial import RowNoise
 from mpm_monitor.core.filters import lfilter
 from mpm_monitor.core.model import PlantModel
 from mpm_monitor.core.regressions import regression_layout
@@ -213,7 +213,8 @@ def test_a_fat_plant_gets_the_fewest_inputs_then_the_smallest_experiment(fat):
 
 def _predictor(data, rep):
     """The window's information and the experiment's predictor, rebuilt as detect() builds them."""
-    from mpm_monitor.core.element_test import InputDesign, row_noise
+    from mpm_monitor.core.input_design import InputDesign
+    from mpm_monitor.core.noise_polynomial import row_noise
     from mpm_monitor.core.regressions import window_regressions
     from mpm_monitor.core.signals import compute_signals
 

@@ -226,7 +226,7 @@ def test_a_step_response_element_s_tail_is_its_parametric_element_s(integrating)
     # integrator: its response to a pulse (less the final slope on a ramp row) keeps exp(-6) of its
     # mass after 4 + 6 * 12 samples, the parametric tail of tail_lags: to within 5 % (behind the
     # integrator the sampled pulse response's first samples are not geometric; 73 samples here).
-    from mpm_monitor.core.element_test import step_response_tail, tail_lags
+    from mpm_monitor.core.confirmation import step_response_tail, tail_lags
 
     model = PlantModel(sample_time=1.0, inputs=("u1", "u2"), outputs=("y1",), gain=[[2.0, 0.0]],
                        time_constant=[[12.0, 0.0]], delay=[[4.0, 0.0]], integrating=[[integrating, False]])

@@ -6,10 +6,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-import mpm_monitor.core.element_test as element_test
+import mpm_monitor.core.confirmation as confirmation
+import mpm_monitor.core.element_windows as element_windows
 from bench.structures_mc import make_structures_scenario, simulate
 from mpm_monitor.core.analysis import AnalysisOptions, detect
-from mpm_monitor.core.element_test import element_onset, element_window, tail_lags
+from mpm_monitor.core.confirmation import tail_lags
+from mpm_monitor.core.element_windows import element_onset, element_window
 from mpm_monitor.core.model import PlantModel
 
 NB = 4
@@ -54,19 +56,19 @@ def test_tail_lags_cover_the_slowest_pole_within_the_cap():
 
 def test_the_onset_is_kept_with_the_model_and_recomputed_for_a_changed_element():
     m = _model(time_constant2=[[15.0]])
-    h = np.abs(m.discrete_element(0, 0).impulse_response(element_test.ONSET_HORIZON))
-    expected = int(np.flatnonzero(h >= element_test.ONSET_FRACTION * h.max())[0])
+    h = np.abs(m.discrete_element(0, 0).impulse_response(element_windows.ONSET_HORIZON))
+    expected = int(np.flatnonzero(h >= element_windows.ONSET_FRACTION * h.max())[0])
     assert element_onset(m, 0, 0) == expected and ("onset", 0, 0) in m._elements
     assert element_window(m, 0, 0, NB) == max(3 + NB, expected + NB - 1)
     slower = m.with_element(0, 0, time_constant2=40.0)
-    h2 = np.abs(slower.discrete_element(0, 0).impulse_response(element_test.ONSET_HORIZON))
-    assert element_onset(slower, 0, 0) == int(np.flatnonzero(h2 >= element_test.ONSET_FRACTION * h2.max())[0]) > expected
+    h2 = np.abs(slower.discrete_element(0, 0).impulse_response(element_windows.ONSET_HORIZON))
+    assert element_onset(slower, 0, 0) == int(np.flatnonzero(h2 >= element_windows.ONSET_FRACTION * h2.max())[0]) > expected
     assert m.delay_samples is m.delay_samples and not m.delay_samples.flags.writeable
 
 
 def _simulated_onset(model, i, j):
-    h = np.abs(model.discrete_element(i, j).impulse_response(element_test.ONSET_HORIZON))
-    return int(np.flatnonzero(h >= element_test.ONSET_FRACTION * h.max())[0]) if h.max() > 0 else 0
+    h = np.abs(model.discrete_element(i, j).impulse_response(element_windows.ONSET_HORIZON))
+    return int(np.flatnonzero(h >= element_windows.ONSET_FRACTION * h.max())[0]) if h.max() > 0 else 0
 
 
 @pytest.mark.parametrize("integrating", [False, True])
@@ -78,7 +80,7 @@ def test_the_first_order_onset_without_simulation_is_the_simulated_one(integrati
     gain = rng.choice([-1.0, 1.0], (n, n)) * 10.0 ** rng.uniform(-300, 3, (n, n))
     tau = 10.0 ** rng.uniform(-2, 4, (n, n))
     delay = rng.integers(0, 40, (n, n)).astype(float)
-    delay[0, :3] = [element_test.ONSET_HORIZON - 2, element_test.ONSET_HORIZON - 1, element_test.ONSET_HORIZON]
+    delay[0, :3] = [element_windows.ONSET_HORIZON - 2, element_windows.ONSET_HORIZON - 1, element_windows.ONSET_HORIZON]
     if integrating:
         tau[:, ::2] = 0.0                                   # pure integrators, first order too
     gain[2, 0] = 0.0
@@ -109,7 +111,7 @@ def test_confirmation_removes_the_false_positive_of_a_slow_mismatch(slow_mismatc
     sc, data = slow_mismatch_run
     truth = {(m["output"], m["column"]) for m in sc.mismatches}
     assert _located(sc, detect(sc.model, data, AnalysisOptions())) == truth
-    monkeypatch.setattr(element_test, "TAIL_TIME_CONSTANTS", 0.0)      # no tails: the old test
+    monkeypatch.setattr(confirmation, "TAIL_TIME_CONSTANTS", 0.0)      # no tails: the old test
     assert (0, 0) in _located(sc, detect(sc.model, data, AnalysisOptions())) - truth
 
 
@@ -121,7 +123,7 @@ def test_the_confirmation_runs_on_data_with_gaps_too(slow_mismatch_run, monkeypa
     truth = {(m["output"], m["column"]) for m in sc.mismatches}
     gappy = data.take(np.setdiff1d(np.arange(data.n_samples), [400, 1201, 1202, 2100, 2600]))
     assert _located(sc, detect(sc.model, gappy, AnalysisOptions())) == truth
-    monkeypatch.setattr(element_test, "TAIL_TIME_CONSTANTS", 0.0)      # no tails: the old test
+    monkeypatch.setattr(confirmation, "TAIL_TIME_CONSTANTS", 0.0)      # no tails: the old test
     assert {(0, 0), (0, 2)} <= _located(sc, detect(sc.model, gappy, AnalysisOptions())) - truth
 
 
@@ -197,6 +199,6 @@ def test_the_tails_of_many_located_columns_are_bounded_together(monkeypatch):
     confirmations = [sizes for sizes in widths if max(sizes) > min(sizes)]
     assert confirmations
     n_lag = min(min(sizes) for sizes in confirmations)
-    assert 3 * tail_lags(model, 0, n_lag, n) > element_test.TAIL_TOTAL_FRACTION * n        # the bound binds here
+    assert 3 * tail_lags(model, 0, n_lag, n) > confirmation.TAIL_TOTAL_FRACTION * n        # the bound binds here
     for sizes in confirmations:
-        assert sum(s for s in sizes if s > n_lag) <= element_test.TAIL_TOTAL_FRACTION * n
+        assert sum(s for s in sizes if s > n_lag) <= confirmation.TAIL_TOTAL_FRACTION * n

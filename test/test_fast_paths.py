@@ -25,7 +25,7 @@ from scipy import signal as sps
 from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.arx import SharedBlockRegression, lag_matrix
 from mpm_monitor.core.discretize import simulate_elements, simulate_state_space, state_space
-from mpm_monitor.core.element_test import InputDesign
+from mpm_monitor.core.input_design import InputDesign
 from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import PlantModel
 from mpm_monitor.core.pipeline import analyze

@@ -4,7 +4,7 @@ In a loop whose setpoints never move and that has no dither, the inputs move onl
 controller's feedback of the noise; their lags and the prediction error's own lags are then nearly
 collinear, and the element fit's own coefficients come out as 1e4 to 1e11.  The detectable gain
 changes and the whole-response test must not filter by such an ``A(q)``
-(:func:`mpm_monitor.core.element_test.noise_filter`).  The Monte-Carlo figures are
+(:func:`mpm_monitor.core.noise_polynomial.noise_filter`).  The Monte-Carlo figures are
 ``python -m bench.detectability --still``.
 """
 
@@ -15,7 +15,7 @@ import pytest
 
 from mpm_monitor.core.analysis import AnalysisOptions, detect
 from mpm_monitor.core.arx import SharedBlockRegression
-from mpm_monitor.core.element_test import MAX_NOISE_FILTER_SE, noise_filter
+from mpm_monitor.core.noise_polynomial import MAX_NOISE_FILTER_SE, noise_filter
 from mpm_monitor.core.gram_fits import GramBlockRegression, GramFit
 from mpm_monitor.sim.cases import paper_case
 from mpm_monitor.sim.closed_loop import run_closed_loop

@@ -6,7 +6,7 @@ import pytest
 from scipy import stats
 from scipy.signal import lfilter
 
-import mpm_monitor.core.element_test as element_test
+import mpm_monitor.core.element_windows as element_windows
 from bench.structures_mc import make_structures_scenario, simulate
 from mpm_monitor.core.analysis import AnalysisOptions, detect
 from mpm_monitor.core.arx import SharedBlockRegression, lag_matrix, segment_lag_matrix, segment_rows
@@ -250,7 +250,7 @@ def test_a_slow_gain_error_is_seen_by_the_response_not_the_window():
     model, u_c, d_c = _open_loop(5, gain_error=0.1)
     start = max(N_LAG, NA)
     X, fit = _row_fit(u_c, d_c, start)
-    window = fit.test_blocks_zero([0], element_test.element_window(model, 0, 0, 4)).p_value
+    window = fit.test_blocks_zero([0], element_windows.element_window(model, 0, 0, 4)).p_value
     response = row_response_tests(model, 0, fit, [0, 1], X, [N_LAG, N_LAG], u_c, d_c, start, NA)[0].p_value
     assert response < 1e-6 and window > 0.1
 

@@ -219,7 +219,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     # flags, the monitor's parameters) without the scipy they need.
     from .detectability import element_detectability
     from .discretize import model_columns
-    from .element_test import ElementTest, InputDesign, arx_element_test, baseline_element_test
+    from .element_test import ElementTest, arx_element_test, baseline_element_test
+    from .input_design import InputDesign
     from .experiment import design_experiment
     from .gaps import plan_gaps
     from .regressions import regression_layout, window_regressions
@@ -507,7 +508,8 @@ class _ElementColour:
 
     def __init__(self, model: PlantModel, rows: list, columns: np.ndarray, layout, regressions,
                  options: AnalysisOptions, spread: np.ndarray):
-        from .element_test import InputDesign, unrestricted_fits
+        from .element_test import unrestricted_fits
+        from .input_design import InputDesign
 
         self.design = InputDesign(model, columns, layout.n_lag_u, layout.start, options.collinearity_threshold,
                                   regressions.input_regression)

@@ -68,7 +68,7 @@ class AnalysisOptions:
     element_window : {"model", "full"}
         Lags the element test examines: "model" (default) the first ``delay + nb`` lags of an
         element the model has (where any mismatch of that element starts), later up to the
-        element's onset for slow structures (:func:`mpm_monitor.core.element_test.element_window`),
+        element's onset for slow structures (:func:`mpm_monitor.core.element_windows.element_window`),
         all lags for an element the model lacks and for a measured disturbance's; "full" all lags
         ``1 .. max_delay + nb`` for every element.
     element_response : bool

@@ -715,7 +715,7 @@ def run_candidate_tests(model: PlantModel, data: LoggedData, chosen: CandidateCh
         if id(e) in by_id:
             # Holm's adjusted p-values only grow when hypotheses join the family, so the element's
             # own adjusted p-value is at most this one; what it holds above that is the confirmation
-            # with the other located columns' tails (element_test._confirm_with_tails), which a
+            # with the other located columns' tails (confirmation._confirm_with_tails), which a
             # larger family must not undo.
             p = max(by_id[id(e)], e.p_value)
             e = dataclasses.replace(e, p_value=float(p), mismatch=bool(p < alpha))

@@ -56,7 +56,8 @@ from typing import Optional
 import numpy as np
 import scipy.linalg as sla
 
-from .element_test import element_window, undetermined_rows
+from .element_windows import element_window
+from .noise_polynomial import undetermined_rows
 from .filters import lfilter
 from .model import PlantModel
 from .parallel import split_map
@@ -276,7 +277,7 @@ class WindowInformation:
     start : int
         First regression row.
     noise : dict
-        Output index -> :class:`~mpm_monitor.core.element_test.RowNoise` of the rows tested.
+        Output index -> :class:`~mpm_monitor.core.noise_polynomial.RowNoise` of the rows tested.
     windows : dict
         ``(i, j)`` -> lags the element test examines (None: all).
     segments : sequence of (int, int), optional
@@ -596,10 +597,10 @@ def element_detectability(model: PlantModel, u: np.ndarray, d: np.ndarray, desig
     d : ndarray, shape (n_samples, n_outputs)
         Prediction errors of the window.
     design : InputDesign
-        The window's input lag blocks (:class:`mpm_monitor.core.element_test.InputDesign`): its
+        The window's input lag blocks (:class:`mpm_monitor.core.input_design.InputDesign`): its
         ``testable`` inputs and collinear ``groups``.
     noise : dict
-        Output index -> :class:`~mpm_monitor.core.element_test.RowNoise` of every row tested
+        Output index -> :class:`~mpm_monitor.core.noise_polynomial.RowNoise` of every row tested
         (``ElementTest.noise``).
     layout : RegressionLayout
     options : AnalysisOptions

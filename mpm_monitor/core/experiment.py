@@ -19,7 +19,7 @@ model has also gets its whole-response test's, from the window's information of 
 sample plus the dither's share on the element's input (:meth:`_Predictor.response_rate`), and
 takes the smaller of the two (it is located when either test rejects).  The
 separation of the inputs is the variance inflation of every lag block (as
-:class:`~mpm_monitor.core.element_test.InputDesign` decides it, with a margin of
+:class:`~mpm_monitor.core.input_design.InputDesign` decides it, with a margin of
 :data:`SEPARATION_MARGIN`).
 
 The goal: every input whose elements are ambiguous is separated, and a gain error of
@@ -40,7 +40,7 @@ from typing import Optional
 import numpy as np
 
 from .detectability import CHUNK, WindowInformation, moment_inverse, required_noncentrality
-from .element_test import undetermined_rows
+from .noise_polynomial import undetermined_rows
 
 #: Relative gain error the experiment must detect with probability 0.9.
 GOAL = 0.2

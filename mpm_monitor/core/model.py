@@ -159,7 +159,7 @@ class PlantModel:
             object.__setattr__(self, key, arr)
         validate_model(self)
         # The sampled forms of the elements, by (i, j), and what is computed from one element alone (keys
-        # ending in (i, j), e.g. element_test.element_onset's): with_element keeps those of the others.
+        # ending in (i, j), e.g. element_windows.element_onset's): with_element keeps those of the others.
         object.__setattr__(self, "_elements", {})
         object.__setattr__(self, "_derived", {})        # forms computed from the elements (discretize)
 
