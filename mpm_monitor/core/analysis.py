@@ -1,4 +1,4 @@
-"""Model-plant mismatch detection: the options, the report and the run of the paper's two tests.
+"""Model-plant mismatch detection: the run of the paper's two tests on one window of logged data.
 
 "A Novel Algorithm for Model-Plant Mismatch Detection for Model Predictive Controllers" decides in
 two steps which elements of the controller's model ``Phat`` no longer match the plant:
