@@ -17,9 +17,9 @@ from mpm_monitor.core import detectability as det
 from mpm_monitor.core import experiment as exm
 from mpm_monitor.core.analysis import AnalysisOptions, detect
 from mpm_monitor.core.arx import lag_matrix
-from mpm_monitor.core.noise_polynomial import RowNoise
 from mpm_monitor.core.filters import lfilter
 from mpm_monitor.core.model import PlantModel
+from mpm_monitor.core.noise_polynomial import RowNoise
 from mpm_monitor.core.regressions import regression_layout
 from mpm_monitor.core.statistics import detection_noncentrality
 from mpm_monitor.sim.cases import paper_case

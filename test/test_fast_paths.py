@@ -25,12 +25,12 @@ from scipy import signal as sps
 from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.arx import SharedBlockRegression, lag_matrix
 from mpm_monitor.core.discretize import simulate_elements, simulate_state_space, state_space
+from mpm_monitor.core.gram_fits import GramBlockRegression, GramFit, IllConditioned
 from mpm_monitor.core.input_design import InputDesign
+from mpm_monitor.core.lagged_gram import LaggedGram, SampleBuffer, lagged_cross_products
 from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import PlantModel
 from mpm_monitor.core.pipeline import analyze
-from mpm_monitor.core.gram_fits import GramBlockRegression, GramFit, IllConditioned
-from mpm_monitor.core.lagged_gram import LaggedGram, SampleBuffer, lagged_cross_products
 from mpm_monitor.core.regressions import QrRegressions, RegressionLayout, regression_layout, window_regressions
 from mpm_monitor.core.signals import LoopSignals, compute_signals, initial_transient
 from mpm_monitor.sim.cases import paper_case

@@ -22,10 +22,10 @@ from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.arx import SharedBlockRegression, lag_matrix
 from mpm_monitor.core.discretize import ModelPredictor
 from mpm_monitor.core.errors import ConfigurationError, DataFileError
+from mpm_monitor.core.gram_fits import GramBlockRegression, GramFit
 from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import PlantModel
 from mpm_monitor.core.pipeline import analyze
-from mpm_monitor.core.gram_fits import GramBlockRegression, GramFit
 from mpm_monitor.core.regressions import QrRegressions, regression_layout
 from mpm_monitor.core.signals import LoopSignals, compute_signals
 from mpm_monitor.core.sliding import SlidingWindowAnalyzer

@@ -15,8 +15,8 @@ import pytest
 
 from mpm_monitor.core.analysis import AnalysisOptions, detect
 from mpm_monitor.core.arx import SharedBlockRegression
-from mpm_monitor.core.noise_polynomial import MAX_NOISE_FILTER_SE, noise_filter
 from mpm_monitor.core.gram_fits import GramBlockRegression, GramFit
+from mpm_monitor.core.noise_polynomial import MAX_NOISE_FILTER_SE, noise_filter
 from mpm_monitor.sim.cases import paper_case
 from mpm_monitor.sim.closed_loop import run_closed_loop
 

@@ -57,9 +57,9 @@ import numpy as np
 import scipy.linalg as sla
 
 from .element_windows import element_window
-from .noise_polynomial import undetermined_rows
 from .filters import lfilter
 from .model import PlantModel
+from .noise_polynomial import undetermined_rows
 from .parallel import split_map
 from .response_moments import ResponseMoments, target_element, typical_element  # noqa: F401 (re-exported)
 from .response_test import N_ELEMENT_TESTS

@@ -53,11 +53,11 @@ import numpy as np
 from .analysis import AnalysisOptions, AnalysisReport
 from .discretize import ModelPredictor, model_columns
 from .errors import ConfigurationError, DataFileError
+from .gram_fits import DEFAULT_MAX_CONDITION
+from .lagged_gram import LaggedGram, SampleBuffer
 from .logged_data import LoggedData, check_disturbance_signal, check_signals
 from .model import PlantModel
 from .pipeline import analyze
-from .gram_fits import DEFAULT_MAX_CONDITION
-from .lagged_gram import LaggedGram, SampleBuffer
 from .regressions import GramRegressions, regression_layout
 from .signals import LoopSignals
 
