@@ -360,7 +360,6 @@ REPAIR_SAMPLES = 1000
 def repaired_core():
     """(core, report) after one real analysis with the repair of 1000 samples of case 3.2 (seed 1)."""
     from mpm_monitor.core.analysis import AnalysisOptions
-    from mpm_monitor.core.analysis import AnalysisOptions
     from mpm_monitor.core.pipeline import analyze
     from mpm_monitor.sim.closed_loop import run_closed_loop
 

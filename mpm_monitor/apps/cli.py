@@ -449,8 +449,6 @@ def _cmd_simulate(args) -> int:
 
 def _experiment_dither(path: str, model) -> tuple:
     """The dither amplitude of every input (0 where none) of the ``experiment`` in an analyze --json report."""
-    import json
-
     try:
         with open(path, encoding="utf-8") as fh:
             doc = json.load(fh)
