@@ -112,8 +112,25 @@ def test_a_gap_longer_than_max_gap_is_named_louder_and_short_spans_are_left_out(
 
 def test_too_few_rows_between_gaps_refused_in_one_line(case_32):
     case, data = case_32
-    with pytest.raises(DataFileError, match=r"regression rows from 0 of 300 spans between 299 gaps .* need at least"):
+    with pytest.raises(DataFileError, match=r"regression rows from 0 of 300 spans between 299 gaps .* need at least") \
+            as info:
         detect(case.model, data.take(np.arange(0, 3000, 10)), DETECT)
+    # a row after every gap: the time step is named, with the question on the sample time
+    assert "(is the sample time right?); t advances by a median of 10" in str(info.value)
+    assert "too close together" not in str(info.value)
+
+
+def test_gaps_too_close_together_named_without_the_sample_time_question(case_32):
+    """A third of the samples dropped at random: the spans are too short for the lags, the time step is right."""
+    case, data = case_32
+    kept = np.flatnonzero(np.random.default_rng(3).random(data.n_samples) >= 1 / 3)
+    with pytest.raises(DataFileError, match=r"spans between \d+ gaps") as info:
+        detect(case.model, data.take(kept), DETECT)
+    text = str(info.value)
+    spans = np.diff(np.r_[-1, np.flatnonzero(np.diff(kept) > 1), kept.size - 1])
+    assert f"; the gaps come too close together: half the spans hold {int(np.median(spans))} samples or fewer" \
+        in text
+    assert "sample time" not in text and "\n" not in text
 
 
 def test_the_repair_runs_on_every_span_between_the_gaps(case_32):

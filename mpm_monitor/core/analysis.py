@@ -577,9 +577,15 @@ def check_gap_rows(plan, layout, options, src: str, model: PlantModel, notes=())
 
     def enough(least) -> bool:     # whether the rows would do for the tests at their least lags
         return plan.rows_kept >= least.min_samples - least.start
+    # A row after most gaps: t in other units, or the model's sample time wrong (time_unit_note).  Gaps
+    # closer together than the rows a span needs first: too many samples missing for these lags.
+    unit = time_unit_note(plan, model.sample_time)
+    span = int(np.median([b - a for a, b in plan.segments]))
+    close = "" if unit or span > layout.start else \
+        f"; the gaps come too close together: half the spans hold {span} samples or fewer"
     raise TooFewSamples(f"{src}: {plan.rows_kept} regression rows from {len(plan.used)} of {n_seg} spans between "
                         f"{n_gaps} gap{'s' if n_gaps != 1 else ''} ({plan.samples_missing} samples missing; a span "
                         f"gives rows after its first {layout.start} samples); the tests with na={options.na}, "
-                        f"nb={options.nb}, max_delay={layout.max_delay} need at least {need} rows (is the sample "
-                        f"time right?)" + time_unit_note(plan, model.sample_time)
+                        f"nb={options.nb}, max_delay={layout.max_delay} need at least {need} rows"
+                        + (" (is the sample time right?)" + unit if unit else close)
                         + longest_delay_note(model, options, layout, enough) + "".join(f"; {x}" for x in notes))
