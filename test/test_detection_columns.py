@@ -3,7 +3,8 @@
 Open-loop records (PRBS inputs, an AR(1) measured disturbance, the paper's AR(1) output disturbance
 plus white noise, setpoints independent of everything) let the element test be checked where the
 closed loop cannot yet be simulated (integrating plants, measured disturbances): what it must
-locate is known exactly.  The closed-loop check uses the paper's case 3.2.
+locate is known exactly.  The closed-loop check uses the paper's case 3.2.  The decisions do not depend on
+the units of each channel, the channels' order or the time unit.
 """
 
 import dataclasses
