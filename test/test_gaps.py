@@ -363,6 +363,44 @@ def test_live_window_keeps_its_samples_across_short_gaps_and_the_summary_counts_
     assert values["window_lost_samples"] == "3" and values["window_gaps"] == "2" and values["gaps"] == "2"
 
 
+def test_live_window_with_split_gap_keeps_its_samples_across_a_burst_and_analyses_them_as_analyze_does(case_32):
+    """A burst of 30 lost samples (longer than max_gap 10): with split_gap the window keeps the samples on both
+    sides, and its analysis is that of the same samples offline; without it the window restarts after the burst."""
+    from mpm_monitor.monitor.monitor_core import MonitorCore, MonitorOptions
+    from mpm_monitor.monitor.statuses import SUMMARY_NAME
+    from mpm_monitor.monitor.window import WindowOptions
+    from mpm_monitor.monitor.worker import run_analysis
+
+    case, data = case_32
+    ns = 1_000_000_000
+    burst = set(range(1500, 1530))
+    cores = {}
+    for split_gap in (0, 3000):
+        window = WindowOptions(window_samples=3000, reorder_samples=2, max_gap=10, split_gap=split_gap)
+        c = cores[split_gap] = MonitorCore(case.model, MonitorOptions(window=window, analysis_period=3000,
+                                                                      min_samples=1000))
+        for k in range(data.n_samples):
+            if k not in burst:
+                for channel, values in (("setpoint", data.r[k]), ("input", data.u[k]), ("output", data.y[k])):
+                    c.add(channel, k * ns, values, now=0.0)
+    assert cores[0].window.n_window == 1470 and cores[0].window.health().resets == 1
+    c = cores[3000]
+    assert c.window.n_window == 2970 and c.window.window_gaps() == (30, 1) and c.window.health().resets == 0
+    assert c.analysis_due(force=True)
+    job = c.take_job()
+    kept = np.setdiff1d(np.arange(data.n_samples), sorted(burst))
+    np.testing.assert_array_equal(job.data.t, data.t[kept])
+    outcome = run_analysis(analyze, case.model, DETECT, job)
+    assert outcome.error is None, outcome.error
+    offline = analyze(case.model, data.take(kept), DETECT)
+    assert outcome.report.located_elements == offline.located_elements
+    assert set(offline.located_elements) == set(case.mismatched_elements)
+    assert outcome.report.gaps == offline.gaps and offline.gaps["longest"] == 30
+    c.accept(outcome)
+    summary = {s.name: s for s in c.statuses(now=0.0)}[SUMMARY_NAME]
+    assert "2970 samples up to t = 2999 s, 30 lost in 1 gap" in summary.message
+
+
 def test_gram_and_qr_regressions_agree_on_segments(case_32):
     from mpm_monitor.core.regressions import QrRegressions, window_regressions
 

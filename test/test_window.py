@@ -334,6 +334,34 @@ def test_a_gap_longer_than_max_gap_restarts_the_window():
     assert w.health().resets == 1 and w.window_gaps() == (0, 0)
 
 
+def test_a_gap_longer_than_max_gap_keeps_the_window_up_to_split_gap():
+    """A lossy link drops bursts: with ``split_gap`` the window keeps its samples across a gap longer than
+    ``max_gap`` (the analysis splits the data there); a gap longer than both still restarts it."""
+    w = make(window=40, reorder_samples=2, max_gap=3, split_gap=6)
+    for k in list(range(8)) + list(range(14, 18)) + list(range(25, 29)):   # 6 missing (kept), then 7 (restart)
+        feed(w, k)
+    problems = [p.message for p in w.take_problems()]
+    assert len(problems) == 2
+    assert problems[0].startswith("6 sample(s) missing from t = 8 s") and \
+        "keeps its samples across the gap, longer than max_gap = 3 (at most split_gap = 6)" in problems[0]
+    assert "7 sample(s) missing" in problems[1] and "restarts after the gap" in problems[1]
+    np.testing.assert_array_equal(w.data().t, [25, 26, 27, 28])
+    assert w.health().resets == 1 and w.health().missing_samples == 13
+    w = make(window=40, reorder_samples=2, max_gap=3, split_gap=6)
+    for k in list(range(8)) + list(range(14, 18)):
+        feed(w, k)
+    d = w.data()
+    np.testing.assert_array_equal(d.t, [0, 1, 2, 3, 4, 5, 6, 7, 14, 15, 16, 17])
+    assert d.segments == [(0, 8), (8, 12)] and w.window_gaps() == (6, 1) and w.n_since_reset == 12
+    for i, t in enumerate(d.t):                             # nothing interpolated, nothing mis-aligned
+        np.testing.assert_array_equal(d.y[i], sample_values(int(t))[2])
+    # split_gap below max_gap changes nothing: max_gap still bounds the short gaps
+    w = make(reorder_samples=2, max_gap=3, split_gap=2)
+    for k in list(range(8)) + list(range(11, 15)):
+        feed(w, k)
+    assert w.health().resets == 0 and "(at most max_gap = 3)" in w.take_problems()[0].message
+
+
 def test_samples_lost_in_the_window_leave_it_as_it_slides():
     w = make(window=10, reorder_samples=1, max_gap=2)
     for k in [0, 1, 2, 4, 5, 6, 7, 9, 10, 11]:
@@ -363,6 +391,8 @@ def test_random_short_gaps_keep_every_sample_on_its_stamp():
 def test_max_gap_checked():
     with pytest.raises(ConfigurationError, match=r"max_gap: expected an integer in \[0, 10000000\]"):
         WindowOptions(max_gap=-1)
+    with pytest.raises(ConfigurationError, match=r"split_gap: expected an integer in \[0, 10000000\] \(samples\), got 2.5"):
+        WindowOptions(split_gap=2.5)
 
 
 def _hold_values(k):

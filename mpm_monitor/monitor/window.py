@@ -18,7 +18,8 @@ Nothing is silently mis-aligned:
   distance: one sample stamped far ahead waits), the incomplete samples are given up as a ``gap``.
   A gap of at most ``max_gap`` samples keeps the window: its samples stay, nothing is interpolated, and the analysis gets the window with its ``t``
   skipping the missing samples (it analyses around them; docs/interfaces.md, "Gaps").  A longer gap
-  restarts the window after it;
+  restarts the window after it, unless it is at most ``split_gap`` samples: then the window keeps its
+  samples too, and the analysis splits the data there as it splits a log with a long gap;
 * a vector of the wrong length or with a non-finite value, or stamped 0 (an unset ``header.stamp``)
   among wall-clock stamps, is a ``bad_value``;
 * when more than ``reorder_samples + 1`` (at least 3) output vectors in a row are refused (late,
@@ -97,7 +98,13 @@ class WindowOptions:
         Most incomplete samples kept; beyond it the oldest are given up (>= 1).
     max_gap : int
         Longest gap (missing samples) the window keeps its samples across; a longer gap restarts it
-        (>= 0; 0 restarts it at every gap).
+        (>= 0; 0 restarts it at every gap), unless ``split_gap`` keeps them.
+    split_gap : int
+        Longest gap (missing samples) after which the window still keeps its samples, when longer than
+        ``max_gap`` (a lossy link that drops bursts of messages): the analysis splits the data there,
+        each span analysed as a segment (the model restarts after a gap longer than the tests' longest
+        lag), as ``analyze`` does with a log with a long gap.  A longer gap restarts the window (>= 0;
+        0, the default: every gap longer than ``max_gap`` restarts it).
     """
 
     window_samples: int = 3000
@@ -106,6 +113,7 @@ class WindowOptions:
     hold_setpoint: bool = False
     max_pending: int = 1000
     max_gap: int = 10
+    split_gap: int = 0
 
     def __post_init__(self):
         check_window_options(self)
@@ -124,6 +132,8 @@ def check_window_options(o: WindowOptions) -> None:
         raise ConfigurationError(f"max_pending: expected an integer in [1, 10000000], got {o.max_pending!r}")
     if int(o.max_gap) != o.max_gap or not 0 <= o.max_gap <= 10_000_000:
         raise ConfigurationError(f"max_gap: expected an integer in [0, 10000000] (samples), got {o.max_gap!r}")
+    if int(o.split_gap) != o.split_gap or not 0 <= o.split_gap <= 10_000_000:
+        raise ConfigurationError(f"split_gap: expected an integer in [0, 10000000] (samples), got {o.split_gap!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -279,7 +289,8 @@ class SampleWindow:
 
     @property
     def n_since_reset(self) -> int:
-        """Samples completed since the window last restarted (a gap longer than ``max_gap``, a stream restart)."""
+        """Samples completed since the window last restarted (a gap longer than ``max_gap`` and ``split_gap``, a
+        stream restart)."""
         return self._since_reset
 
     def window_gaps(self) -> tuple:
@@ -642,9 +653,15 @@ class SampleWindow:
         t0 = self._stamp_of(first_missing) / NS_PER_S
         self._health.gaps += 1
         self._health.missing_samples += n_missing
-        keep = 0 < n_missing <= self.options.max_gap and self._count > 0
-        then = (f"the window keeps its samples across the gap (at most max_gap = {self.options.max_gap})" if keep
-                else "the window restarts after the gap")
+        max_gap, split_gap = int(self.options.max_gap), int(self.options.split_gap)
+        keep = 0 < n_missing <= max(max_gap, split_gap) and self._count > 0
+        if not keep:
+            then = "the window restarts after the gap"
+        elif n_missing <= max_gap:
+            then = f"the window keeps its samples across the gap (at most max_gap = {max_gap})"
+        else:
+            then = (f"the window keeps its samples across the gap, longer than max_gap = {max_gap} (at most "
+                    f"split_gap = {split_gap}): the data are analysed in spans split there")
         self._problem("gap", "", self._stamp_of(first_missing),
                       f"{n_missing} sample(s) missing from t = {t0:.15g} s ({absent}); {then}")
         self._discard_pending_below(first_present, count=False)

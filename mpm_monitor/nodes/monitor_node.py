@@ -129,7 +129,12 @@ PARAMS = MODEL_PARAMS + (
     ParamSpec("stamp_tolerance", "double", 0.25, "Largest distance of a stamp from the sample grid, fraction of "
               "the sample time.", 0.001, 0.49),
     ParamSpec("max_gap", "int", 10, "Longest gap (missing samples) the window keeps its samples across, analysed "
-              "around and never interpolated; a longer gap restarts the window (0: every gap does).", 0, 10_000_000),
+              "around and never interpolated; a longer gap restarts the window (0: every gap does), unless split_gap "
+              "keeps it.", 0, 10_000_000),
+    ParamSpec("split_gap", "int", 0, "Longest gap (missing samples) after which the window still keeps its samples "
+              "when longer than max_gap, as on a link that drops bursts of messages: the data are analysed in spans "
+              "split there, as analyze splits a log with a long gap; a longer gap restarts the window (0: every gap "
+              "longer than max_gap does).", 0, 10_000_000),
 ) + analysis_params() + (
     ParamSpec("repaired_model_file", "string", "", "File (YAML) the ~/write_repaired_model service writes the "
               "latest repaired model to ('' = the service refuses); fixed at start-up, so that no one on the "
@@ -179,7 +184,7 @@ def monitor_options_from_params(p: dict, hardware_id: str, service_name: Optiona
     """
     window = WindowOptions(window_samples=p["window_samples"], reorder_samples=p["reorder_samples"],
                            stamp_tolerance=p["stamp_tolerance"], hold_setpoint=p["hold_setpoint"],
-                           max_gap=p["max_gap"])
+                           max_gap=p["max_gap"], split_gap=p["split_gap"])
     experiment = ExperimentOptions(auto=p["auto_experiment"], service=service_name or p["experiment_service"],
                                    cooldown=p["experiment_cooldown"])
     return MonitorOptions(window=window, analysis_period=p["analysis_period"], min_samples=p["min_samples"],
