@@ -3,7 +3,7 @@
 Run::
 
     python -m bench.gaps_mc [--paper-seeds 20] [--runs 150] [--seed 0] [--samples 3000] [--drop 0.002]
-                            [--jobs 1] [--repair] [--structures 0] [--step-form] [--cut]
+                            [--burst 1] [--split-gap 0] [--jobs 1] [--repair] [--structures 0] [--step-form] [--cut]
                             [--out bench/results/gaps_mc.json]
 
 Every run simulates one closed loop -- the paper's three cases (:mod:`bench.paper_cases`, seeds
@@ -29,6 +29,14 @@ unknown; its agreement with ``full`` is what losing that many rows alone moves. 
 controller's model in step-response form (:func:`bench.step_models.step_form`, about twelve time
 constants of every element), written to ``bench/results/gaps_mc_step.json``.  The drops of run ``k``
 are a pure function of the run, so ``--jobs`` only changes the speed.
+
+``--burst L`` (``L > 1``) drops the samples in bursts instead, as a lossy link does (a Wi-Fi link to a
+robot loses several messages in a row): a burst starts at each sample with probability ``--drop / L``
+and its length is geometric with mean ``L`` (:func:`drop_bursts`), so that about the same fraction of
+the samples is lost.  A burst longer than the analysis's ``max_gap`` splits the log (offline: the
+regression's lag reach; live: the window's 10 samples, after which the window restarts, unless
+``--split-gap N`` sets the window's ``split_gap``: then the window keeps its samples across a gap of
+up to ``N`` samples).
 
 ``--repair`` adds the repair on the same drops.  In every run with a mismatch, the true mismatched
 elements that the analysis of the full log locates are repaired
@@ -77,11 +85,43 @@ def drop_rows(n: int, probability: float, rng: np.random.Generator) -> np.ndarra
     return np.flatnonzero(keep)
 
 
-def live_window_data(data: LoggedData, kept: np.ndarray, max_gap: int = 10) -> LoggedData:
+def drop_bursts(n: int, probability: float, mean: float, rng: np.random.Generator) -> np.ndarray:
+    """Rows kept when the ``n`` samples are dropped in bursts (the first and last kept).
+
+    A burst starts at each sample with probability ``probability / mean``; its length is geometric with
+    mean ``mean`` (at least one sample).  Bursts may overlap, so slightly fewer than ``probability * n``
+    samples are dropped on average.
+
+    Parameters
+    ----------
+    n : int
+        Samples.
+    probability : float
+        Fraction of the samples to drop, in [0, 1).
+    mean : float
+        Mean burst length in samples, > 1.
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    ndarray of int, shape (n_kept,)
+        The kept rows, increasing.
+    """
+    starts = np.flatnonzero(rng.random(n) < probability / mean)
+    lengths = rng.geometric(1.0 / mean, size=starts.size)
+    keep = np.ones(n, dtype=bool)
+    for k, m in zip(starts, lengths):
+        keep[k:k + m] = False
+    keep[0] = keep[-1] = True
+    return np.flatnonzero(keep)
+
+
+def live_window_data(data: LoggedData, kept: np.ndarray, max_gap: int = 10, split_gap: int = 0) -> LoggedData:
     """The samples ``kept`` of ``data`` fed one by one into a SampleWindow; the window's data at the end."""
     ts = data.sample_time
     window = SampleWindow(data.outputs, data.inputs, ts,
-                          WindowOptions(window_samples=data.n_samples, reorder_samples=2, max_gap=max_gap),
+                          WindowOptions(window_samples=data.n_samples, reorder_samples=2, max_gap=max_gap,
+                                        split_gap=split_gap),
                           disturbances=data.disturbances)
     period = int(round(ts * NS))
     for k in kept:
@@ -122,20 +162,25 @@ def _repairs(model, plant, data: LoggedData, offline: LoggedData, pairs: list) -
 
 
 def run_one(kind: str, name: str, seed: int, samples: int, drop: float, repair: bool = False,
-            step: bool = False, cut: bool = False) -> dict:
+            step: bool = False, cut: bool = False, burst: float = 1.0, split_gap: int = 0) -> dict:
     """Simulate one run, drop samples and analyse it full, offline and live (with ``step``, the controller's
-    model in step-response form; with ``cut``, also cut short by the rows the drops lose); a JSON-ready record."""
+    model in step-response form; with ``cut``, also cut short by the rows the drops lose; with ``burst`` > 1,
+    the samples dropped in bursts of that mean length; ``split_gap``: the live window's); a JSON-ready record."""
     model, plant, data, truth = family_log(kind, name, seed, samples)
     if step:
         from .step_models import step_form
 
         model = step_form(model)
     rng_seed = (seed, CASE_NAMES.index(name)) if kind == "paper" else (seed, int(name), 7 if kind == "mc" else 8)
-    kept = drop_rows(data.n_samples, drop, np.random.default_rng(list(rng_seed)))
+    rng = np.random.default_rng(list(rng_seed))
+    kept = drop_rows(data.n_samples, drop, rng) if burst <= 1 else drop_bursts(data.n_samples, drop, burst, rng)
     offline = data.take(kept)
-    live = live_window_data(data, kept)
+    live = live_window_data(data, kept, split_gap=split_gap)
     rec = {"kind": kind, "name": name, "seed": seed, "truth": truth, "dropped": int(data.n_samples - kept.size),
            "live_samples": int(live.n_samples)}
+    if burst > 1:
+        rec["gaps"] = int(np.sum(np.diff(kept) > 1))
+        rec["longest_gap"] = int(np.max(np.diff(kept), initial=1)) - 1
     for key, d in (("full", data), ("offline", offline), ("live", live)):
         rec[key] = _located(model, d)
     if cut:
@@ -156,11 +201,11 @@ def _run_star(args):
 
 
 def tasks(paper_seeds: int, runs: int, seed: int, samples: int, drop: float, repair: bool = False,
-          step: bool = False, structures: int = 0, cut: bool = False) -> list:
-    out = [("paper", name, s, samples, drop, repair, step, cut) for name in CASE_NAMES
-           for s in range(1000, 1000 + paper_seeds)]
-    return out + [("mc", str(k), seed, samples, drop, repair, step, cut) for k in range(runs)] \
-        + [("structures", str(k), seed, samples, drop, repair, step, cut) for k in range(structures)]
+          step: bool = False, structures: int = 0, cut: bool = False, burst: float = 1.0, split_gap: int = 0) -> list:
+    rest = (repair, step, cut, burst, split_gap)
+    out = [("paper", name, s, samples, drop) + rest for name in CASE_NAMES for s in range(1000, 1000 + paper_seeds)]
+    return out + [("mc", str(k), seed, samples, drop) + rest for k in range(runs)] \
+        + [("structures", str(k), seed, samples, drop) + rest for k in range(structures)]
 
 
 def summarize(records: Sequence[dict]) -> dict:
@@ -174,6 +219,9 @@ def summarize(records: Sequence[dict]) -> dict:
         fa = {key: (sum(1 for r in clean if r[key].get("located")) / len(clean) if clean else None)
               for key in ("full", "offline", "live")}
         out[fam] = {"runs": len(recs), "dropped_per_run": float(np.mean([r["dropped"] for r in recs])),
+                    "gaps_per_run": float(np.mean([r["gaps"] for r in recs])) if all("gaps" in r for r in recs)
+                    else None,
+                    "live_samples": float(np.median([r["live_samples"] for r in recs])),
                     "same_offline": sum(r["same_offline"] for r in recs) / len(recs),
                     "same_live": sum(r["same_live"] for r in recs) / len(recs),
                     "same_cut": (sum(r["same_cut"] for r in recs) / len(recs)) if all("same_cut" in r for r in recs)
@@ -197,9 +245,11 @@ def summarize(records: Sequence[dict]) -> dict:
     return out
 
 
-def format_table(summary: dict, drop: float) -> str:
+def format_table(summary: dict, drop: float, burst: float = 1.0) -> str:
     w = max([7] + [len(fam) + 1 for fam in summary])          # the first column's width
-    lines = [f"gaps Monte-Carlo: each sample dropped with probability {drop:g}, analyze (repair off), alpha 0.01",
+    how = f"each sample dropped with probability {drop:g}" if burst <= 1 else \
+        f"samples dropped in bursts of mean length {burst:g}, {drop:g} of them"
+    lines = [f"gaps Monte-Carlo: {how}, analyze (repair off), alpha 0.01",
              f"{'runs':<{w}}{'n':>5}{'dropped/run':>13}{'same offline':>14}{'same live':>11}"
              f"{'clean':>7}{'false alarms full / offline / live':>37}"]
     for fam, s in summary.items():
@@ -207,6 +257,9 @@ def format_table(summary: dict, drop: float) -> str:
         fa_text = " / ".join("-" if fa[k] is None else f"{100 * fa[k]:.1f}%" for k in ("full", "offline", "live"))
         lines.append(f"{fam:<{w}}{s['runs']:>5}{s['dropped_per_run']:>13.1f}{100 * s['same_offline']:>13.1f}%"
                      f"{100 * s['same_live']:>10.1f}%{s['clean_runs']:>7}{fa_text:>37}")
+    if burst > 1:
+        lines += ["", f"{'runs':<{w}}{'gaps/run':>9}{'live window (median samples)':>30}"]
+        lines += [f"{fam:<{w}}{s['gaps_per_run']:>9.1f}{s['live_samples']:>30.0f}" for fam, s in summary.items()]
     if any(s.get("same_cut") is not None for s in summary.values()):
         lines += ["", "reference: the log without drops cut short by the rows the drops lose (no gap)",
                   f"{'runs':<{w}}{'same as full':>14}"]
@@ -226,13 +279,14 @@ def format_table(summary: dict, drop: float) -> str:
 
 def run(paper_seeds: int, runs: int, seed: int = 0, samples: int = 3000, drop: float = DROP, jobs: int = 1,
         progress: bool = False, repair: bool = False, step: bool = False, structures: int = 0,
-        cut: bool = False) -> dict:
-    todo = tasks(paper_seeds, runs, seed, samples, drop, repair, step, structures, cut)
+        cut: bool = False, burst: float = 1.0, split_gap: int = 0) -> dict:
+    todo = tasks(paper_seeds, runs, seed, samples, drop, repair, step, structures, cut, burst, split_gap)
     t0 = time.perf_counter()
     records = map_runs(_run_star, todo, jobs,
                        progress=(lambda done, total, _: print(f"{done}/{total}", flush=True)) if progress else None)
     return {"config": {"paper_seeds": paper_seeds, "runs": runs, "seed": seed, "samples": samples, "drop": drop,
-                       "jobs": jobs, "repair": repair, "step_form": step,
+                       "jobs": jobs, "repair": repair, "step_form": step, "burst": burst,
+                       "split_gap": split_gap,
                        "structures": structures, "cut": cut, "wall_time_s": time.perf_counter() - t0},
             "summary": summarize(records), "records": records}
 
@@ -244,6 +298,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--seed", type=int, default=0, help="scenario family (default 0)")
     p.add_argument("--samples", type=int, default=3000)
     p.add_argument("--drop", type=float, default=DROP, help="probability that a sample is dropped (default 1/500)")
+    p.add_argument("--burst", type=float, default=1.0, help="mean length of a burst of dropped samples (default 1: "
+                   "each sample dropped on its own; module docstring)")
+    p.add_argument("--split-gap", type=int, default=0, help="the live window's split_gap: it keeps its samples across "
+                   "a gap longer than its max_gap (10) of up to this many samples (default 0: it restarts)")
     p.add_argument("--jobs", type=int, default=1)
     p.add_argument("--progress", action="store_true")
     p.add_argument("--repair", action="store_true", help="also repair the located mismatches: full log, every span, "
@@ -257,10 +315,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--out", default=None, help=f"JSON output (default {DEFAULT_OUT}, with --step-form {STEP_OUT})")
     args = p.parse_args(argv)
     res = run(args.paper_seeds, args.runs, args.seed, args.samples, args.drop, args.jobs, args.progress, args.repair,
-              args.step_form, args.structures, args.cut)
+              args.step_form, args.structures, args.cut, args.burst, args.split_gap)
     if args.step_form:
         print("the controllers' models in step-response form")
-    print(format_table(res["summary"], args.drop))
+    if args.split_gap:
+        print(f"the live window keeps its samples across gaps of up to split_gap = {args.split_gap} samples")
+    print(format_table(res["summary"], args.drop, args.burst))
     for fam, s in res["summary"].items():
         for d in s["differ"] if fam != "all" else []:
             print(f"  differs: {d}")

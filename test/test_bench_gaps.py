@@ -49,3 +49,38 @@ def test_the_cut_reference_loses_as_many_rows_at_the_end(monkeypatch):
     summary = gaps_mc.summarize([rec])
     assert summary["mc"]["same_cut"] == float(rec["same_cut"])
     assert "cut short" in gaps_mc.format_table(summary, 0.01)
+
+
+def test_bursts_drop_about_the_fraction_asked_in_runs_of_the_mean_length():
+    """``--burst``: runs of dropped samples, geometric lengths of the mean asked, about the fraction asked
+    dropped; the first and last samples kept; the default (each sample on its own) draws as before."""
+    n = 200_000
+    kept = gaps_mc.drop_bursts(n, 0.01, 5.0, np.random.default_rng(4))
+    assert kept[0] == 0 and kept[-1] == n - 1 and np.all(np.diff(kept) > 0)
+    lengths = np.diff(kept)[np.diff(kept) > 1] - 1
+    assert 4.5 < lengths.mean() < 5.5                     # bursts that overlap join: a little longer
+    assert 0.008 < 1 - kept.size / n < 0.0105             # overlapping bursts drop a little less
+    assert np.mean(lengths > 10) > 0.05                   # some longer than the live window's max_gap
+    single = gaps_mc.drop_rows(n, 0.01, np.random.default_rng(4))
+    gaps = np.diff(single)[np.diff(single) > 1] - 1
+    assert gaps.mean() < 1.05                             # each sample on its own: gaps of one sample
+
+
+def test_a_run_with_bursts_records_its_gaps(monkeypatch):
+    seen, located = [], gaps_mc._located
+    monkeypatch.setattr(gaps_mc, "_located", lambda model, data: seen.append(data) or located(model, data))
+    rec = gaps_mc.run_one("mc", "3", 0, 1500, 0.02, burst=6.0)
+    full, offline, live = seen
+    held = np.asarray(offline.grid_index)
+    assert rec["gaps"] == int(np.sum(np.diff(held) > 1)) > 0
+    assert rec["longest_gap"] == int(np.max(np.diff(held))) - 1 > 1
+    assert rec["dropped"] == full.n_samples - offline.n_samples
+    summary = gaps_mc.summarize([rec])
+    assert summary["mc"]["gaps_per_run"] == rec["gaps"]
+    assert "bursts of mean length 6" in gaps_mc.format_table(summary, 0.02, 6.0)
+    assert rec["longest_gap"] == 12                       # the live window restarted after it (max_gap 10) ...
+    assert live.n_samples < offline.n_samples
+    seen.clear()
+    again = gaps_mc.run_one("mc", "3", 0, 1500, 0.02, burst=6.0, split_gap=1500)   # ... but not with split_gap
+    assert again["dropped"] == rec["dropped"] and seen[2].n_samples == offline.n_samples
+    np.testing.assert_array_equal(seen[2].t, offline.t)
