@@ -190,11 +190,14 @@ class Sent:
     def add_msg(self, channel, msg):
         self.add(channel, msg.header.stamp.sec * NS + msg.header.stamp.nanosec, msg.position)
 
-    def check(self, data, setpoints=True):
-        """Equally spaced, finite, and each sample holds vectors sent for its own stamp."""
+    def check(self, data, setpoints=True, longest_gap=0):
+        """Equally spaced (but for gaps of at most ``longest_gap`` missing samples), finite, and each sample holds
+        vectors sent for its own stamp."""
         if data.n_samples == 0:
             return
-        np.testing.assert_allclose(np.diff(data.t), 1.0, rtol=0, atol=1e-9)
+        steps = np.diff(data.t)
+        np.testing.assert_allclose(steps, np.round(steps), rtol=0, atol=1e-9)
+        assert np.all(steps >= 1) and np.all(steps <= longest_gap + 1), steps
         for i, t in enumerate(data.t):
             k = round(t)
             for ch, arr in (("setpoint", data.r), ("input", data.u), ("output", data.y)):
@@ -284,15 +287,18 @@ _op = st.one_of(
     st.tuples(st.sampled_from(CHANNELS), st.integers(-60, 60),        # one vector at k + dk
               st.sampled_from(["ok", "nan", "short", "long", "conflict", "offgrid", "huge_t"])),
     st.tuples(st.just("jump"), st.integers(-10**6, 10**6)),
+    st.tuples(st.just("jump"), st.integers(1, 45)),                  # a gap: short, split, or a restart
 )
 
 
+@pytest.mark.parametrize("max_gap, split_gap", [(0, 0), (3, 40)])
 @settings(max_examples=300, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
 @given(ops=st.lists(_op, max_size=80), reorder=st.integers(0, 6), hold=st.booleans())
-def test_fuzz_window_with_hypothesis(ops, reorder, hold):
-    """Whatever arrives, the window only ever holds equally spaced samples sent for their stamps."""
+def test_fuzz_window_with_hypothesis(max_gap, split_gap, ops, reorder, hold):
+    """Whatever arrives, the window only ever holds samples sent for their stamps, in order on the grid: equally
+    spaced when every gap restarts it, with gaps of at most ``max(max_gap, split_gap)`` samples otherwise."""
     w = SampleWindow(OUT, INP, 1.0, WindowOptions(window_samples=30, reorder_samples=reorder, hold_setpoint=hold,
-                                                  max_pending=50, max_gap=0))
+                                                  max_pending=50, max_gap=max_gap, split_gap=split_gap))
     base = 0
     sent = Sent()
     for op in ops:
@@ -325,7 +331,7 @@ def test_fuzz_window_with_hypothesis(ops, reorder, hold):
             sent.add(ch, stamp, v)
             w.add(ch, stamp, v)
         w.take_problems()
-        sent.check(w.data(), setpoints=not hold)
+        sent.check(w.data(), setpoints=not hold, longest_gap=max(max_gap, split_gap))
     assert w.data().n_samples <= 30
     assert w.n_pending <= 51
 

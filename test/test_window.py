@@ -362,6 +362,38 @@ def test_a_gap_longer_than_max_gap_keeps_the_window_up_to_split_gap():
     assert w.health().resets == 0 and "(at most max_gap = 3)" in w.take_problems()[0].message
 
 
+def test_the_window_holds_exactly_the_samples_since_the_last_gap_longer_than_max_gap_and_split_gap():
+    """Random bursts of samples between random gaps: the window holds the last ``window_samples`` samples sent
+    since the last gap longer than both bounds, in order, each with its own values; restarts and lost samples
+    counted as such."""
+    rng = np.random.default_rng(5)
+    for _ in range(30):
+        max_gap, split_gap, window = int(rng.integers(0, 5)), int(rng.integers(0, 30)), int(rng.integers(20, 60))
+        w = make(window=window, reorder_samples=2, max_gap=max_gap, split_gap=split_gap)
+        k, since, resets = 0, [], 0
+        for _ in range(25):
+            for _ in range(int(rng.integers(3, 15))):
+                feed(w, k)
+                since.append(k)
+                k += 1
+            gap = int(rng.integers(1, 40))
+            if gap > max(max_gap, split_gap):
+                since, resets = [], resets + 1
+            k += gap
+        for _ in range(3):                                 # the last gap is given up
+            feed(w, k)
+            since.append(k)
+            k += 1
+        held = since[-window:]
+        d = w.data()
+        np.testing.assert_array_equal(d.t, held)
+        for i, t in enumerate(held):
+            np.testing.assert_array_equal(d.y[i], sample_values(t)[2])
+        assert w.health().resets == resets and w.health().gaps == 25
+        steps = np.diff(held)
+        assert w.window_gaps() == (int(np.sum(steps - 1)), int(np.sum(steps > 1)))
+
+
 def test_samples_lost_in_the_window_leave_it_as_it_slides():
     w = make(window=10, reorder_samples=1, max_gap=2)
     for k in [0, 1, 2, 4, 5, 6, 7, 9, 10, 11]:
