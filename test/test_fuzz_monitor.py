@@ -197,7 +197,7 @@ class Sent:
             return
         steps = np.diff(data.t)
         np.testing.assert_allclose(steps, np.round(steps), rtol=0, atol=1e-9)
-        assert np.all(steps >= 1) and np.all(steps <= longest_gap + 1), steps
+        assert np.all(np.round(steps) >= 1) and np.all(np.round(steps) <= longest_gap + 1), steps
         for i, t in enumerate(data.t):
             k = round(t)
             for ch, arr in (("setpoint", data.r), ("input", data.u), ("output", data.y)):
