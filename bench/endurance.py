@@ -6,6 +6,7 @@ Run from the repository root::
     .venv/bin/python -m bench.endurance --size 20 --rate 100 --samples 1000000 --json bench/results/endurance_20x20.json
     .venv/bin/python -m bench.endurance --size 3 --ceiling 1000,1500,2000,3000 --samples 30000
     .venv/bin/python -m bench.endurance --size 3 --rate 1000 --samples 200000 --loss 0.002 --json bench/results/endurance_lossy.json
+    .venv/bin/python -m bench.endurance --size 3 --rate 900 --samples 200000 --loss 0.004 --burst 5 --split-gap 3000
 
 The monitor runs as it runs in a plant: its own process (``python -m mpm_monitor.nodes.monitor_node``,
 the analysis in its child process, with the repair), on a ROS domain of its own
@@ -27,7 +28,10 @@ Figures:
 * with ``--loss P`` the publisher leaves out each sample's messages with probability ``P`` (a
   lossy link); ``injected_losses`` counts them, and ``full_windows`` says how many analyses after
   the window first filled held a full window of samples (the monitor bridges gaps of up to
-  ``max_gap`` samples instead of restarting its window);
+  ``max_gap`` samples instead of restarting its window); with ``--burst L`` the samples left out come
+  in bursts of geometric length, mean ``L`` (:func:`bench.gaps_mc.drop_bursts`: a Wi-Fi link loses
+  several messages in a row), and ``--split-gap N`` sets the monitor's ``split_gap`` (it then keeps its
+  window across a burst longer than ``max_gap`` of up to ``N`` samples);
 * resident memory (``VmRSS`` from ``/proc``) of the monitor process and of its analysis process (its
   largest child) every ``--rss-every`` seconds, and the verdict on a slow leak: the monitor's memory
   at the end against its memory after the first 10 % of the run (the issue's criterion: within
@@ -90,6 +94,10 @@ class EnduranceConfig:
         sample in 500), drawn independently per sample from ``seed``.
     niceness : int or None
         The monitor's ``analysis_niceness`` parameter (None: the node's default).
+    burst : float
+        Mean length of a burst of samples not published (1: each sample on its own).
+    split_gap : int or None
+        The monitor's ``split_gap`` parameter (None: the node's default).
     """
 
     size: int = 3
@@ -104,6 +112,8 @@ class EnduranceConfig:
     seed: int = 0
     loss: float = 0.0
     niceness: Optional[int] = None
+    burst: float = 1.0
+    split_gap: Optional[int] = None
 
 
 # ------------------------------------------------------------------------------------- set-up
@@ -183,7 +193,13 @@ def run(cfg: EnduranceConfig, log=print) -> dict:
     latest = {}
     memory = []                 # (t, samples published, monitor_mb, analysis_mb)
     state = {"published": 0, "behind": 0, "done": False, "lost": 0}
-    lose = np.random.default_rng(cfg.seed + 99).random(total) < cfg.loss
+    if cfg.burst > 1:
+        from .gaps_mc import drop_bursts
+
+        lose = np.ones(total, dtype=bool)
+        lose[drop_bursts(total, cfg.loss, cfg.burst, np.random.default_rng(cfg.seed + 99))] = False
+    else:
+        lose = np.random.default_rng(cfg.seed + 99).random(total) < cfg.loss
 
     with held_domain() as domain:
         env = dict(os.environ, **domain_env(domain), PYTHONUNBUFFERED="1")
@@ -193,6 +209,8 @@ def run(cfg: EnduranceConfig, log=print) -> dict:
                   "republish_period": 1.0, "diagnostics_topic": "diagnostics"}
         if cfg.niceness is not None:
             params["analysis_niceness"] = cfg.niceness
+        if cfg.split_gap is not None:
+            params["split_gap"] = cfg.split_gap
         cmd = [sys.executable, "-m", "mpm_monitor.nodes.monitor_node", "--ros-args", "-r", f"__ns:={ns}"]
         for k, v in params.items():
             cmd += ["-p", f"{k}:={v}"]
@@ -433,6 +451,9 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--loss", type=float, default=0.0, help="probability that a sample is not published (a lossy "
                    "link; 0.002: one in 500)")
+    p.add_argument("--burst", type=float, default=1.0, help="mean length of a burst of samples not published "
+                   "(default 1: each on its own)")
+    p.add_argument("--split-gap", type=int, default=None, help="the monitor's split_gap (default: the node's)")
     p.add_argument("--niceness", type=int, default=None, help="the monitor's analysis_niceness (default: the node's)")
     p.add_argument("--json", default=None, help="write the figures here")
     args = p.parse_args(argv)
@@ -440,7 +461,8 @@ def main(argv=None) -> int:
     cfg = EnduranceConfig(size=args.size, rate_hz=args.rate, samples=args.samples,
                           window_samples=args.window or window, min_samples=args.min_samples or min_samples,
                           analysis_period=args.period or period, repair=not args.no_repair, segment=args.segment,
-                          rss_every=args.rss_every, seed=args.seed, loss=args.loss, niceness=args.niceness)
+                          rss_every=args.rss_every, seed=args.seed, loss=args.loss, niceness=args.niceness,
+                          burst=args.burst, split_gap=args.split_gap)
     results = []
     if args.ceiling:
         best = None
