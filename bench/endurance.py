@@ -134,6 +134,20 @@ def rescaled(model, sample_time: float):
                          delay=np.rint(model.delay) * sample_time, name=f"{model.n_outputs}x{model.n_inputs} endurance")
 
 
+def left_out(total: int, loss: float, burst: float, seed: int) -> np.ndarray:
+    """Which of ``total`` samples the publisher leaves out, shape (total,), bool: each with probability ``loss``
+    on its own, or with ``burst`` > 1 in bursts of that mean length (:func:`bench.gaps_mc.drop_bursts`; the first
+    and last sample kept), drawn from ``seed``."""
+    rng = np.random.default_rng(seed + 99)
+    if burst <= 1:
+        return rng.random(total) < loss
+    from .gaps_mc import drop_bursts
+
+    lose = np.ones(total, dtype=bool)
+    lose[drop_bursts(total, loss, burst, rng)] = False
+    return lose
+
+
 def _rss_kb(pid: int) -> Optional[int]:
     try:
         with open(f"/proc/{pid}/status", encoding="ascii", errors="replace") as fh:
@@ -193,13 +207,7 @@ def run(cfg: EnduranceConfig, log=print) -> dict:
     latest = {}
     memory = []                 # (t, samples published, monitor_mb, analysis_mb)
     state = {"published": 0, "behind": 0, "done": False, "lost": 0}
-    if cfg.burst > 1:
-        from .gaps_mc import drop_bursts
-
-        lose = np.ones(total, dtype=bool)
-        lose[drop_bursts(total, cfg.loss, cfg.burst, np.random.default_rng(cfg.seed + 99))] = False
-    else:
-        lose = np.random.default_rng(cfg.seed + 99).random(total) < cfg.loss
+    lose = left_out(total, cfg.loss, cfg.burst, cfg.seed)
 
     with held_domain() as domain:
         env = dict(os.environ, **domain_env(domain), PYTHONUNBUFFERED="1")

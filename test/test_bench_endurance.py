@@ -36,3 +36,17 @@ def test_too_few_readings_give_no_verdict():
     assert "within_10_percent" not in memory_verdict([(0.0, 0, 90.0, None)], 1000, 2)
     # The analysis process (column 3) not started yet: no readings of it.
     assert "within_10_percent" not in memory_verdict([(0.0, k, 90.0, None) for k in (0, 500, 1000)], 1000, 3)
+
+
+def test_the_publisher_leaves_out_samples_on_their_own_or_in_bursts():
+    import numpy as np
+
+    from bench.endurance import left_out
+
+    alone = left_out(100_000, 0.004, 1.0, 0)
+    np.testing.assert_array_equal(alone, np.random.default_rng(99).random(100_000) < 0.004)   # as before bursts
+    bursts = left_out(100_000, 0.004, 5.0, 0)
+    assert not bursts[0] and not bursts[-1] and 0.003 < bursts.mean() < 0.0045
+    edges = np.diff(np.r_[0, bursts.astype(int), 0])
+    lengths = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
+    assert 4.0 < lengths.mean() < 6.5 and np.array_equal(left_out(100_000, 0.004, 5.0, 0), bursts)
