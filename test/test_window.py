@@ -330,7 +330,8 @@ def test_a_gap_longer_than_max_gap_restarts_the_window():
         feed(w, k)
     np.testing.assert_array_equal(w.data().t, [12, 13, 14])
     problems = w.take_problems()
-    assert "4 sample(s) missing" in problems[0].message and "restarts after the gap" in problems[0].message
+    assert "4 sample(s) missing" in problems[0].message and problems[0].message.endswith(
+        "restarts after the gap (longer than max_gap = 3; split_gap would keep its samples across such a gap)")
     assert w.health().resets == 1 and w.window_gaps() == (0, 0)
 
 
@@ -344,7 +345,8 @@ def test_a_gap_longer_than_max_gap_keeps_the_window_up_to_split_gap():
     assert len(problems) == 2
     assert problems[0].startswith("6 sample(s) missing from t = 8 s") and \
         "keeps its samples across the gap, longer than max_gap = 3 (at most split_gap = 6)" in problems[0]
-    assert "7 sample(s) missing" in problems[1] and "restarts after the gap" in problems[1]
+    assert "7 sample(s) missing" in problems[1] and problems[1].endswith("restarts after the gap (longer than "
+                                                                         "split_gap = 6)")
     np.testing.assert_array_equal(w.data().t, [25, 26, 27, 28])
     assert w.health().resets == 1 and w.health().missing_samples == 13
     w = make(window=40, reorder_samples=2, max_gap=3, split_gap=6)

@@ -657,6 +657,9 @@ class SampleWindow:
         keep = 0 < n_missing <= max(max_gap, split_gap) and self._count > 0
         if not keep:
             then = "the window restarts after the gap"
+            if self._count > 0 and n_missing > 0:
+                then += (f" (longer than split_gap = {split_gap})" if split_gap > max_gap else
+                         f" (longer than max_gap = {max_gap}; split_gap would keep its samples across such a gap)")
         elif n_missing <= max_gap:
             then = f"the window keeps its samples across the gap (at most max_gap = {max_gap})"
         else:
