@@ -212,6 +212,47 @@ def test_a_plain_publisher_gets_the_same_answer_as_analyze():
         close_nodes(ex, ctx, monitor, pub_node, listener.node)
 
 
+def test_with_split_gap_the_monitor_keeps_its_window_across_a_burst_and_answers_as_analyze():
+    """A plain publisher that loses a burst of 30 samples (longer than max_gap 10): with the parameter split_gap
+    the monitor keeps the samples on both sides and its answer is that of ``analyze`` on the same samples."""
+    case = paper_case("3.2")
+    n, burst = 2000, range(1000, 1030)
+    log = run_closed_loop(case.plant, case.model, n, seed=7, mpc=case.mpc, excitation=case.excitation,
+                          disturbance=case.disturbance)
+    kept = np.setdiff1d(np.arange(n), list(burst))
+    expected = analyze(case.model, log.as_logged_data().take(kept), AnalysisOptions(repair=False))
+    assert expected.gaps["longest"] == 30
+    ctx = private_context()
+    ns = "/burst"
+    monitor = _monitor(ctx, ns, window_samples=n, min_samples=kept.size, analysis_period=kept.size, split_gap=100)
+    pub_node = Node("burst_publisher", context=ctx, namespace=ns)
+    pubs = {t: pub_node.create_publisher(JointState, t, vector_qos()) for t in ("setpoint", "input", "output")}
+    listener = DiagnosticsListener(ctx, ns)
+    ex = make_executor(ctx)
+    for nd in (monitor, pub_node, listener.node):
+        ex.add_node(nd)
+    try:
+        assert spin_until(ex, lambda: all(p.get_subscription_count() >= 1 for p in pubs.values())
+                          and monitor._diag_pub.get_subscription_count() >= 1, 20.0)
+        y_codec, u_codec = VectorCodec(case.model.outputs, "output"), VectorCodec(case.model.inputs, "input")
+        for i, k in enumerate(kept):
+            stamp = int(k) * 1_000_000_000
+            for topic, codec, v in (("setpoint", y_codec, log.r[k]), ("input", u_codec, log.u[k]),
+                                    ("output", y_codec, log.y[k])):
+                pubs[topic].publish(codec.encode(v, stamp))
+            if i % 100 == 99 or i == kept.size - 1:
+                assert spin_until(ex, lambda: monitor.core.window.n_completed >= i + 1, 20.0)
+        assert spin_until(ex, lambda: listener.summary_value("analyses") == "1", 60.0)
+        rows, elements, _ = located(listener, case.model.outputs)
+        assert rows == expected.flagged_rows and sorted(elements) == sorted(expected.located_elements)
+        summary, values = listener.statuses()[SUMMARY_NAME]
+        assert values["missing_samples"] == "30" and values["window_gaps"] == "1" and monitor.core.window.health().resets == 0
+        assert f"{kept.size} samples up to t = {n - 1} s, 30 lost in 1 gap" in summary.message
+    finally:
+        monitor.close()
+        close_nodes(ex, ctx, monitor, pub_node, listener.node)
+
+
 def test_bad_messages_give_error_then_stale_when_data_stop():
     ctx = private_context()
     ns = "/bad"
