@@ -162,6 +162,18 @@ def _monitor(ctx, namespace, **params):
     return MonitorNode(context=ctx, namespace=namespace, parameter_overrides=_overrides(p))
 
 
+def _plain_publisher(ctx, namespace, monitor, name):
+    """A bare publisher node of the three contract topics, a diagnostics listener and an executor that holds them
+    and ``monitor``: ``(node, {topic: publisher}, listener, executor)``."""
+    pub_node = Node(name, context=ctx, namespace=namespace)
+    pubs = {t: pub_node.create_publisher(JointState, t, vector_qos()) for t in ("setpoint", "input", "output")}
+    listener = DiagnosticsListener(ctx, namespace)
+    ex = make_executor(ctx)
+    for nd in (monitor, pub_node, listener.node):
+        ex.add_node(nd)
+    return pub_node, pubs, listener, ex
+
+
 def test_a_plain_publisher_gets_the_same_answer_as_analyze():
     """No plant or MPC node: a bare rclpy publisher replays a batch log on the contract topics."""
     case = paper_case("3.2")
@@ -172,12 +184,7 @@ def test_a_plain_publisher_gets_the_same_answer_as_analyze():
     ctx = private_context()
     ns = "/plain"
     monitor = _monitor(ctx, ns, window_samples=n, min_samples=n, analysis_period=n, analysis_niceness=3)
-    pub_node = Node("plain_publisher", context=ctx, namespace=ns)
-    pubs = {t: pub_node.create_publisher(JointState, t, vector_qos()) for t in ("setpoint", "input", "output")}
-    listener = DiagnosticsListener(ctx, ns)
-    ex = make_executor(ctx)
-    for nd in (monitor, pub_node, listener.node):
-        ex.add_node(nd)
+    pub_node, pubs, listener, ex = _plain_publisher(ctx, ns, monitor, "plain_publisher")
     try:
         assert spin_until(ex, lambda: all(p.get_subscription_count() >= 1 for p in pubs.values())
                           and monitor._diag_pub.get_subscription_count() >= 1, 20.0)
@@ -225,12 +232,7 @@ def test_with_split_gap_the_monitor_keeps_its_window_across_a_burst_and_answers_
     ctx = private_context()
     ns = "/burst"
     monitor = _monitor(ctx, ns, window_samples=n, min_samples=kept.size, analysis_period=kept.size, split_gap=100)
-    pub_node = Node("burst_publisher", context=ctx, namespace=ns)
-    pubs = {t: pub_node.create_publisher(JointState, t, vector_qos()) for t in ("setpoint", "input", "output")}
-    listener = DiagnosticsListener(ctx, ns)
-    ex = make_executor(ctx)
-    for nd in (monitor, pub_node, listener.node):
-        ex.add_node(nd)
+    pub_node, pubs, listener, ex = _plain_publisher(ctx, ns, monitor, "burst_publisher")
     try:
         assert spin_until(ex, lambda: all(p.get_subscription_count() >= 1 for p in pubs.values())
                           and monitor._diag_pub.get_subscription_count() >= 1, 20.0)
