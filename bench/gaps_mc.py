@@ -147,7 +147,7 @@ def _repairs(model, plant, data: LoggedData, offline: LoggedData, pairs: list) -
     """Step-response errors of the elements ``pairs`` (names) repaired on ``data`` and on ``offline``
     (every span, and the longest span only); see the module docstring."""
     located = [(model.outputs.index(o), model.columns.index(c)) for o, c in pairs]
-    spans, _ = repair_data(offline, True, OPTIONS, model)
+    spans, _ = repair_data(offline, len(offline.segments) > 1, OPTIONS, model)
     a, b = max(offline.segments, key=lambda s: s[1] - s[0])
     out = {}
     for key, d in (("full", data), ("spans", spans), ("longest", offline.slice(a, b))):

@@ -539,6 +539,8 @@ def test_the_repair_s_gap_note_says_what_the_model_did_at_the_gaps(case_32):
     assert "the 2 spans between the gaps, each from its own start (2900 of 2900 samples)" in note
     _, note = repair_data(_drop(data, [700, 1500]), True, options, case.model)
     assert "validated with the model run through the short gaps" in note
+    same, note = repair_data(data, True, options, case.model)      # said to have gaps, but none is missing
+    assert same is data and note == ""
 
 
 @pytest.mark.parametrize("factor, unit", [(1e3, "milliseconds"), (1e9, "nanoseconds"), (10.0, None)])

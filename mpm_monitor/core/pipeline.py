@@ -403,6 +403,8 @@ def repair_data(data: LoggedData, gappy: bool, options: AnalysisOptions, model: 
     from .regressions import regression_layout
 
     plan = plan_gaps(data, regression_layout(model, options).start, options.max_gap)
+    if plan is None:                   # said to have gaps, but no sample is missing
+        return data, ""
     used = plan.used
     rows = np.concatenate([np.arange(a, b) for a, b in used])
     short = bool(np.any(plan.gap_lengths <= plan.max_gap))
