@@ -76,3 +76,40 @@ def test_well_posed_estimate_is_plain_least_squares_bit_for_bit():
     target = target - target.mean()
     plain, *_ = np.linalg.lstsq(X, target, rcond=1e-10)
     assert np.array_equal(transient_amplitudes(X, target), plain)
+
+
+def _first_order_row():
+    return PlantModel(sample_time=1.0, inputs=("u1",), outputs=("y1",), gain=np.array([[1.0]]),
+                      time_constant=np.array([[8.0]]), delay=np.ones((1, 1)))
+
+
+def test_the_decisions_noise_model_reads_only_the_samples_before_a_runs_first_gap(monkeypatch):
+    """With ``clean`` (the samples before a run's first gap) the noise model that whitens the decision is fitted
+    on them alone: whatever follows (held outputs, the model's response to held columns) leaves the estimate as it
+    is.  With too few samples there, the whole record after the span is read, as without ``clean``."""
+    import mpm_monitor.core.signals as signals
+    from mpm_monitor.core.signals import TRANSIENT_NOISE_SAMPLES
+
+    model = _first_order_row()
+    lag, span = discretize(model).memory, max(settling_samples(model), 50)
+    rng = np.random.default_rng(3)
+    e = rng.normal(0, 0.01, N)
+    d0 = np.zeros(N)
+    for t in range(2, N):                               # an AR(2) disturbance
+        d0[t] = 1.2 * d0[t - 1] - 0.4 * d0[t - 2] + e[t]
+    d0[1:] += 0.5 * 0.88 ** np.arange(N - 1)            # and a transient of the row's pole
+    clean = 1500
+    spoiled = d0.copy()
+    spoiled[clean:] += 0.3 * np.sin(np.arange(N - clean) / 3.0)     # what a gap leaves after it
+    a = initial_transient(model, d0[:, None], clean=clean)
+    assert np.abs(a).max() > 0.2                        # the transient is found
+    assert np.array_equal(a, initial_transient(model, spoiled[:, None], clean=clean))
+    assert np.array_equal(initial_transient(model, d0[:clean, None])[:clean], a[:clean])
+
+    read = []
+    fit = signals.least_squares_ar
+    monkeypatch.setattr(signals, "least_squares_ar", lambda x, order: read.append(x.size) or fit(x, order))
+    short = lag + span + TRANSIENT_NOISE_SAMPLES - 1
+    for c in (clean, None, short):
+        initial_transient(model, spoiled[:, None], clean=c)
+    assert read == [clean - lag - span, N - lag - span, N - lag - span]

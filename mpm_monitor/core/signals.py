@@ -61,6 +61,9 @@ TRANSIENT_TEST_LEVEL = 1e-3
 TRANSIENT_MAX_CANCELLATION = 1e3
 #: Relative singular-value cut-offs tried, in turn, on an ill-posed estimate.
 TRANSIENT_CUTOFFS = (1e-8, 1e-6, 1e-4, 1e-2)
+#: Samples after the transient's span that the AR(2) noise model of its decision is fitted on, at least
+#: (fewer: on every sample after the longest shift register, the span's included).
+TRANSIENT_NOISE_SAMPLES = 200
 
 
 @dataclasses.dataclass
@@ -90,7 +93,7 @@ class LoopSignals:
 
 
 def initial_transient(model: PlantModel, d0: np.ndarray, level: float = TRANSIENT_TEST_LEVEL,
-                      rows=None) -> np.ndarray:
+                      rows=None, clean: Optional[int] = None) -> np.ndarray:
     """Per-row least-squares estimate of the free response hidden in ``d0`` (see module docstring).
 
     Parameters
@@ -102,6 +105,12 @@ def initial_transient(model: PlantModel, d0: np.ndarray, level: float = TRANSIEN
         Significance level below which a row's transient is kept.
     rows : sequence of int, optional
         The outputs of the columns of ``d0`` (default: all of them, in order).
+    clean : int, optional
+        Data with gaps (a run the model is simulated through, :func:`segment_signals`): the samples
+        before the run's first gap.  The noise model that whitens the decision is fitted on them
+        when at least :data:`TRANSIENT_NOISE_SAMPLES` of them follow the transient's span: past a gap
+        ``d0`` holds held outputs and the model's response to its held columns, which are not the
+        disturbance (a single dropped sample moved the decision's p-value from 0.007 to 4e-16).
 
     Returns
     -------
@@ -117,6 +126,8 @@ def initial_transient(model: PlantModel, d0: np.ndarray, level: float = TRANSIEN
     if span < 20:
         return out
     k = np.arange(n - lag)
+    # The noise model's samples: the rest of the record after the span, or of the run before its first gap.
+    end = n if clean is None or clean - lag - span < TRANSIENT_NOISE_SAMPLES else min(int(clean), n)
     for c, i in enumerate(rows):
         lag_poles = disc.lag_poles(i)
         if not lag_poles:
@@ -129,7 +140,7 @@ def initial_transient(model: PlantModel, d0: np.ndarray, level: float = TRANSIEN
         # Decision: F test of the free responses after whitening by an AR(2) noise model fitted on
         # the rest of the record (where no transient is left), so the coloured disturbance (the
         # paper's v is AR(1) with pole 0.95) does not pass for a transient.
-        rest = d0[lag + span:, c] if n - lag - span >= 200 else d0[lag:, c]
+        rest = d0[lag + span:end, c] if end - lag - span >= TRANSIENT_NOISE_SAMPLES else d0[lag:, c]
         phi = least_squares_ar(rest - rest.mean(), 2) if rest.shape[0] >= 10 else np.zeros(2)
         white = lambda x: x[2:] - phi[0] * x[1:-1] - phi[1] * x[:-2]  # noqa: E731
         target = white(seg - seg.mean())
@@ -230,7 +241,8 @@ def _rows_reusable(model: PlantModel, other: PlantModel, n: int) -> bool:
 
 
 def compute_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarray,
-                    initial_state: str = "estimate", dv: np.ndarray = None, *, like=None, jobs: int = 1) -> LoopSignals:
+                    initial_state: str = "estimate", dv: np.ndarray = None, *, like=None, jobs: int = 1,
+                    clean: Optional[int] = None) -> LoopSignals:
     """Recompute ``yhat``, ``d`` and ``eps`` from logged data.
 
     Parameters
@@ -255,6 +267,9 @@ def compute_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
         (:func:`~mpm_monitor.core.parallel.split_map`): each row is its own simulation and fit, so the
         numbers are the same.  A model with a direct feedthrough is computed in one process (its
         feedthrough is one product of every row).
+    clean : int, optional
+        The samples before the first gap of a run with held samples (:func:`segment_signals`), for the
+        initial transient's noise model (:func:`initial_transient`).
 
     Returns
     -------
@@ -274,7 +289,7 @@ def compute_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
             and _rows_reusable(model, like[0], u.shape[0])):
         rows = changed_rows(model, like[0])
         sig = like[1]
-        part = _row_signals(model, r[:, rows], u, y[:, rows], initial_state, dv, rows)
+        part = _row_signals(model, r[:, rows], u, y[:, rows], initial_state, dv, rows, clean)
         out = LoopSignals(*(np.array(getattr(sig, key), dtype=float) for key in ("yhat", "d", "eps", "transient")),
                           initial_state=initial_state)
         for key in ("yhat", "d", "eps", "transient"):
@@ -285,19 +300,19 @@ def compute_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
         from .parallel import split_map
 
         half = (ny + 1) // 2
-        parts = split_map(lambda rows: _row_signals(model, r[:, rows], u, y[:, rows], initial_state, dv, rows),
+        parts = split_map(lambda rows: _row_signals(model, r[:, rows], u, y[:, rows], initial_state, dv, rows, clean),
                           [list(range(half)), list(range(half, ny))], jobs)
         return LoopSignals(*(np.concatenate([getattr(p, key) for p in parts], axis=1)
                              for key in ("yhat", "d", "eps", "transient")), initial_state=initial_state)
-    return _row_signals(model, r, u, y, initial_state, dv, None)
+    return _row_signals(model, r, u, y, initial_state, dv, None, clean)
 
 
-def _row_signals(model, r, u, y, initial_state, dv, rows) -> LoopSignals:
+def _row_signals(model, r, u, y, initial_state, dv, rows, clean=None) -> LoopSignals:
     """:func:`compute_signals` of the outputs ``rows`` (all when None); ``r``, ``y`` of those rows."""
     yhat = simulate_elements(model, model_columns(u, dv), rows=rows)
     transient = np.zeros_like(yhat)
     if initial_state == "estimate" and u.shape[0] > 1:
-        transient = initial_transient(model, y - yhat, rows=rows)
+        transient = initial_transient(model, y - yhat, rows=rows, clean=clean)
         yhat = yhat + transient
     d = y - yhat
     return LoopSignals(yhat=yhat, d=d, eps=r - d, transient=transient, initial_state=initial_state)
@@ -317,7 +332,8 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
     its state carries across the gap instead of starting from rest; a missing sample whose columns
     were logged and are sound (``fill``: the sample of a spike in an output) takes them instead.
     Only the initial transient of a run is estimated, from its first samples (a held output stands
-    in for a missing one in that one fit).  The signals are returned at the logged samples only: no
+    in for a missing one in that one fit), its decision whitened by a noise model fitted before the
+    run's first gap when enough samples lie there (:func:`initial_transient`).  The signals are returned at the logged samples only: no
     regression row or statistic reads a held value.  A run starts at the first segment and after every
     longer gap.
 
@@ -367,7 +383,9 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
                 if dv_run is not None and known > 0:
                     dv_run = np.array(dv_run, dtype=float)
                     dv_run[where[inside], :known] = cols[:, nu:nu + dv_run.shape[1]]
-        sig = compute_signals(model, run_samples(r, run), u_run, run_samples(y, run), initial_state, dv=dv_run)
+        jumps = np.flatnonzero(np.diff(at) > 1)        # the run's first gap: its noise model is fitted before it
+        sig = compute_signals(model, run_samples(r, run), u_run, run_samples(y, run), initial_state, dv=dv_run,
+                              clean=int(at[jumps[0]]) + 1 if jumps.size else None)
         parts.append(LoopSignals(**{f.name: getattr(sig, f.name)[at] for f in dataclasses.fields(LoopSignals)
                                     if f.name != "initial_state"}, initial_state=sig.initial_state))
     return LoopSignals(**{f.name: np.vstack([getattr(p, f.name) for p in parts])
