@@ -240,12 +240,14 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     dv = np.asarray(data.dv, dtype=float)
     layout = regression_layout(model, options)
     plan = plan_gaps(data, layout.start, options.max_gap)
-    restarts = None
+    restarts = fill = None
     if plan is not None:          # data with gaps: the segments long enough for a regression row, stacked
         check_gap_rows(plan, layout, options, src, model, notes=data.notes)
+        # The segments too short for a row are left out, but the model runs on their logged columns.
+        fill = plan.left_out_fill(data, model_columns(u, dv))
         r, u, y, dv = (plan.take(x) for x in (r, u, y, dv))
         grid = plan.take(data.grid_index)     # the model runs through a short gap (segment_signals)
-        restarts = unknown_starts(plan.local_segments, grid, plan.max_gap, data.fill_on_grid())
+        restarts = unknown_starts(plan.local_segments, grid, plan.max_gap, fill)
         # The regressions' segments, and the runs the element responses are simulated through (as the model).
         segments = GapSegments(plan.local_segments, grid, plan.max_gap)
     columns = model_columns(u, dv)            # the inputs, then the measured disturbances
@@ -263,7 +265,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     if signals is None:
         sig = compute_signals(model, r, u, y, options.initial_state, dv=dv, jobs=split_light) if plan is None else \
             segment_signals(model, r, u, y, plan.local_segments, options.initial_state, dv=dv, grid=grid,
-                            max_gap=plan.max_gap, fill=data.fill_on_grid())
+                            max_gap=plan.max_gap, fill=fill)
         if beside is not None and plan is None and options.jobs > 1 and split_light == 1:
             beside(sig)
     else:

@@ -99,6 +99,40 @@ class GapPlan:
         """The rows of the used segments of ``x`` (shape (n_samples, ...)), stacked."""
         return np.concatenate([x[a:b] for a, b in self.used]) if self.used else x[:0]
 
+    def left_out_fill(self, data: LoggedData, columns: np.ndarray) -> Optional[tuple]:
+        """The logged columns of the segments left out (too short for a regression row), on the sample grid.
+
+        The model still runs through them (:func:`~mpm_monitor.core.signals.segment_signals` takes them as it
+        takes a spike's logged columns): left out of the stacked samples, two short gaps a few samples apart
+        would otherwise be one gap of their span held through, and the model's response to the held columns
+        would reach far beyond either.
+
+        Parameters
+        ----------
+        data : LoggedData
+            The data this plan is of.
+        columns : ndarray, shape (n_samples, n_columns)
+            ``[u | dv]`` of every row of ``data``.
+
+        Returns
+        -------
+        (ndarray of int, ndarray) or None
+            Grid numbers (:attr:`LoggedData.grid_index`) and columns, shape (m, n_columns), of the samples
+            of the segments left out, joined to ``data``'s own column fill; that fill alone when none is left
+            out.
+        """
+        own = data.fill_on_grid()
+        rows = [np.arange(a, b) for a, b in self.segments if (a, b) not in set(self.used)]
+        if not rows:
+            return own
+        rows = np.concatenate(rows)
+        grid, cols = data.grid_index[rows], np.asarray(columns, dtype=float)[rows]
+        if own is not None:
+            width = min(cols.shape[1], np.asarray(own[1]).shape[1])
+            grid = np.concatenate([np.asarray(own[0], dtype=np.int64), grid])
+            cols = np.vstack([np.asarray(own[1], dtype=float)[:, :width], cols[:, :width]])
+        return grid, cols
+
     def to_dict(self) -> dict:
         """The report's JSON ``gaps`` object (docs/interfaces.md, "Gaps")."""
         return {"count": int(self.gap_lengths.size), "longest": int(self.gap_lengths.max(initial=0)),

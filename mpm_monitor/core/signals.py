@@ -383,6 +383,14 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
                 if dv_run is not None and known > 0:
                     dv_run = np.array(dv_run, dtype=float)
                     dv_run[where[inside], :known] = cols[:, nu:nu + dv_run.shape[1]]
+                # A missing sample after a filled one holds the filled columns (the last the controller sent).
+                last = np.zeros(u_run.shape[0], dtype=np.int64)
+                last[at] = at
+                last[where[inside]] = where[inside]
+                last = np.maximum.accumulate(last)
+                u_run = u_run[last]
+                if dv_run is not None:
+                    dv_run = dv_run[last]
         jumps = np.flatnonzero(np.diff(at) > 1)        # the run's first gap: its noise model is fitted before it
         sig = compute_signals(model, run_samples(r, run), u_run, run_samples(y, run), initial_state, dv=dv_run,
                               clean=int(at[jumps[0]]) + 1 if jumps.size else None)
