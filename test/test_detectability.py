@@ -537,3 +537,28 @@ def test_the_why_quotes_the_dither_as_recommended():
     assert dither == {"u1": 0.185}
     why = exm._why(model, info, trial, dither, [], [(0, 0)], True, [0.3], [(0, 0)], 1000, 0.19, True)
     assert "on u1 (0.185, 0.5 of its standard deviation 0.371)" in why and "0.186" not in why
+
+
+def test_the_experiment_search_tries_a_bounded_number_of_input_subsets(monkeypatch):
+    """A 12-input window where no subset reaches the goal (random logged values: nothing decidable) made the
+    design try all 4,095 subsets of the inputs (a minute; 40 inputs never finished).  At most
+    MAX_SUBSET_TRIALS subsets are tried now (plus the refinements of the best few), all the inputs at once
+    always among them."""
+    from mpm_monitor.core.logged_data import LoggedData
+
+    n = 12
+    model = PlantModel(sample_time=1.0, inputs=tuple(f"u{k}" for k in range(n)),
+                       outputs=tuple(f"y{k}" for k in range(n)), gain=0.1 + 0.9 * np.eye(n),
+                       time_constant=np.full((n, n), 5.0), delay=np.ones((n, n)))
+    rng = np.random.default_rng(3)
+    T = 1200
+    data = LoggedData(t=np.arange(T, dtype=float), r=rng.normal(size=(T, n)), u=rng.normal(size=(T, n)),
+                      y=rng.normal(size=(T, n)), inputs=model.inputs, outputs=model.outputs, sample_time=1.0)
+    tried = []
+    real = exm._trial
+    monkeypatch.setattr(exm, "_trial", lambda pred, chosen, *a: tried.append(chosen) or real(pred, chosen, *a))
+    report = detect(model, data, FAST)
+    assert report.experiment is not None and report.experiment.expected_detectable_gain_change > exm.GOAL
+    subsets = {c for c in tried}
+    assert tuple(range(n)) in subsets
+    assert len(tried) <= exm.MAX_SUBSET_TRIALS + exm.REFINED_SUBSETS * len(exm.AMPLITUDE_FRACTIONS)

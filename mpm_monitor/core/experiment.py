@@ -54,6 +54,11 @@ SEPARATION_MARGIN = 2.0
 AMPLITUDE_FRACTIONS = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0)
 #: Subsets of inputs evaluated per size at most (the best at full amplitude are refined).
 REFINED_SUBSETS = 3
+#: Subsets of the candidate inputs tried at most, over all sizes (each trial a prediction of the tests): a size
+#: with more subsets than are left is not searched, the next larger one is (all the inputs at once is always
+#: tried).  Up to 8 candidate inputs every subset is tried; without the bound a window of 12 inputs where no
+#: subset reaches the goal took a minute, and 40 inputs did not finish.
+MAX_SUBSET_TRIALS = 256
 #: Samples are rounded up to a multiple of this.
 SAMPLES_STEP = 50
 #: Multiples of the largest amplitude tried, in the ``why`` only, when the goal is out of reach within it
@@ -309,7 +314,12 @@ def design_experiment(model, info: Optional[WindowInformation], elements: list, 
     p = info.G.shape[0]
     lowest = max(_small_directions(info, testable_c, options.collinearity_threshold), 0 if still else 1)
     best = None
+    budget = MAX_SUBSET_TRIALS
     for size in range(lowest, len(testable_c) + 1):
+        count = math.comb(len(testable_c), size)
+        if count > budget and size < len(testable_c):
+            continue
+        budget -= count
         trials = []
         for extra in itertools.combinations(testable_c, size):
             chosen = tuple(sorted(set(still) | set(extra)))
