@@ -147,3 +147,19 @@ def test_a_lead_without_a_lag_is_refused():
 def test_discrete_element_checks_its_denominator():
     with pytest.raises(ValueError, match="den"):
         DiscreteElement(num=[1.0], den=[2.0, 1.0], delay=0)
+
+
+@pytest.mark.parametrize("params", [
+    pytest.param(dict(gain=2.0, time_constant=10.0, time_constant2=1e-40), id="second-lag"),
+    pytest.param(dict(gain=0.1, time_constant=1e-40, integrating=True), id="integrator-lag"),
+    pytest.param(dict(gain=1.5, time_constant=8.0, time_constant2=1e-40, lead=3.0), id="lead-two-lags"),
+])
+def test_a_lag_far_below_the_sample_time_is_left_out(params):
+    """A lag of 1e-40 s sampled every second (whose continuous coefficients gave NaN) changes the response by
+    about 1e-40: it is left out, and the step response is python-control's of the element without it."""
+    el = sample_parametric(delay_samples=2, sample_time=1.0, time_constant=params["time_constant"],
+                           **{k: v for k, v in params.items() if k != "time_constant"})
+    without = {k: (0.0 if v == 1e-40 else v) for k, v in params.items()}
+    _, ref = control.step_response(reference(without, 2, 1.0), T=np.arange(200.0))
+    np.testing.assert_allclose(el.step_response(200), np.ravel(ref), rtol=1e-9, atol=1e-12)
+    assert np.all(np.isfinite(el.num)) and np.all(np.isfinite(el.den))

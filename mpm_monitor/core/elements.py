@@ -149,6 +149,11 @@ def _filter(num, den, x):
 ZERO_ELEMENT = DiscreteElement(num=np.zeros(1), den=np.ones(1), delay=0)
 
 
+#: A lag whose sample time is more than this many times its time constant changes the sampled response by
+#: about ``tau / ts``, below rounding: it is left out (:func:`sample_parametric`).
+NEGLIGIBLE_LAG = 1e13
+
+
 def sample_parametric(gain: float, time_constant: float, delay_samples: int, sample_time: float,
                       lead: float = 0.0, time_constant2: float = 0.0, integrating: bool = False) -> DiscreteElement:
     """Exact zero-order-hold equivalent of a parametric element (see the module docstring).
@@ -177,6 +182,12 @@ def sample_parametric(gain: float, time_constant: float, delay_samples: int, sam
     if k == 0.0:
         return DiscreteElement(num=np.zeros(1), den=np.ones(1), delay=0)
     lags = [t for t in (tau, tau2) if t > 0]
+    # A lag under 1/NEGLIGIBLE_LAG of the sample time changes the sampled response below rounding, and the
+    # continuous form's coefficients (a tau of 1e-40 s) break the exact hold (NaN).
+    # It is left out when what remains is still proper (another lag, an integrator, or no lead).
+    quick = [t for t in lags if ts / t > NEGLIGIBLE_LAG]
+    if quick and (len(quick) < len(lags) or integrating or lead == 0.0):
+        lags = [t for t in lags if ts / t <= NEGLIGIBLE_LAG]
     if not lags and not integrating:
         if lead != 0.0:
             raise ValueError("a lead needs a lag or an integrator (the element would not be proper)")
