@@ -993,3 +993,19 @@ def test_a_command_started_with_its_output_closed_exits_with_its_code(files, tmp
     bad = subprocess.run(["bash", "-c", f"{py} export --bag {tmp_path / 'nothing'} --csv {tmp_path / 'p.csv'} >&-"],
                          capture_output=True, timeout=120)
     assert bad.returncode == 2 and b"Traceback" not in bad.stderr and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+
+
+@pytest.mark.parametrize("flags, match", [
+    (["--json", "OUT", "--repair-out", "OUT"], r"--repair-out .*out: the same path as --json"),
+    (["--json", "OUT", "--report", "OUT"], r"--report .*out: the same path as --json"),
+    (["--repair-out", "OUT", "--report", "./OUT"], r"--report .*out: the same path as --repair-out"),
+])
+def test_two_outputs_onto_one_path_are_refused_before_any_work(files, capsys, tmp_path, monkeypatch, flags, match):
+    """``--json P --repair-out P`` wrote the report and then the repaired model over it, with exit 0; ``--json P
+    --report P`` failed after the analysis on the directory it could not make."""
+    monkeypatch.chdir(tmp_path)
+    argv = ["analyze", "--model", str(files["model"]), "--data", str(files["csv"])] + \
+        [str(tmp_path / "out") if a == "OUT" else ("./out" if a == "./OUT" else a) for a in flags]
+    code, out, err = _run_cli(capsys, argv)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and re.search(match, err), err
+    assert not (tmp_path / "out").exists()
