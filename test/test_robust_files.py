@@ -1009,3 +1009,20 @@ def test_two_outputs_onto_one_path_are_refused_before_any_work(files, capsys, tm
     code, out, err = _run_cli(capsys, argv)
     assert code == 2 and len(err.strip().splitlines()) == 1 and re.search(match, err), err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("k, value", [(5, 1e308), (120, -1e41)])
+def test_a_single_sentinel_value_is_named_as_one_not_as_a_loop_that_diverged(files, capsys, tmp_path, k, value):
+    """One output value of 1e308 early in a log was reported as "the loop diverged ... analyze the samples logged
+    before it diverged" (five samples there); a few values far out of a channel's range that the log returns from
+    are named as such."""
+    data = _logged()
+    y = data.y.copy()
+    y[k, 0] = value
+    path = tmp_path / "sentinel.csv"
+    write_csv(path, data.t, data.r, data.u, y, data.inputs, data.outputs)
+    code, out, err = _run_cli(capsys, ["analyze", "--model", str(files["model"]), "--data", str(path)])
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert re.search(rf"output .y1. at t = {100 + k:g} s is {re.escape(f'{abs(value):.3g}')}: too large .* while its other values stay "
+                     r"within [0-9.]+ \(1 such value\): a bad-value sentinel\?", err), err
+    assert "diverged" not in err
