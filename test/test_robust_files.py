@@ -1026,3 +1026,9 @@ def test_a_single_sentinel_value_is_named_as_one_not_as_a_loop_that_diverged(fil
     assert re.search(rf"output .y1. at t = {100 + k:g} s is {re.escape(f'{abs(value):.3g}')}: too large .* while its other values stay "
                      r"within [0-9.]+ \(1 such value\): a bad-value sentinel\?", err), err
     assert "diverged" not in err
+
+
+def test_topics_with_a_csv_are_refused_not_ignored(files, capsys):
+    code, out, err = _run_cli(capsys, ["analyze", "--model", str(files["model"]), "--data", str(files["csv"]),
+                                       "--topics", "a", "b", "c"])
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "--topics: names the topics of a --bag" in err, err

@@ -244,6 +244,8 @@ def _cmd_analyze(args) -> int:
             _check_output_file(path, what)
     if args.report:
         _check_output_directory(args.report, "--report")
+    if args.data is not None and args.topics is not None:
+        raise InputError("--topics: names the topics of a --bag; a --data CSV names its channels in its header")
     outputs = [(flag, path) for flag, path in (("--json", args.json_out), ("--repair-out", args.repair_out),
                                                ("--report", args.report)) if path and path != "-"]
     for k, (flag, path) in enumerate(outputs):
