@@ -904,7 +904,8 @@ def test_a_lead_of_absurd_size_is_refused_in_one_line(files, capsys):
     path.write_text(dump_model(GOOD_MODEL) + "lead: [[1.0e300, 0], [0, 0]]\n", encoding="utf-8")
     code, out, err = _run_cli(capsys, ["analyze", "--model", str(path), "--data", str(files["csv"]), "--no-repair"])
     assert code == 2 and len(err.splitlines()) == 1 and "Traceback" not in err, err
-    assert re.search(r"with gains up to 2e\+299 in .*lead_huge\.yaml: too large for the analysis", err), err
+    assert re.search(r"with the high-frequency gain of element \(y1, u1\)'s lead \(gain x \|lead\| / its lags\) up "
+                     r"to 2e\+299 in .*lead_huge\.yaml: too large for the analysis", err), err
 
 
 def test_a_lag_or_lead_of_1e308_gives_no_numpy_warning_on_stderr(files, capsys, tmp_path):

@@ -419,11 +419,16 @@ def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the mo
         Naming the source, the channel and the time of the largest value.
     """
     gain = float(np.max(np.abs(model.gain))) if model.gain.size else 0.0
+    gain_words = "gains"
     if model.gain.size and not model.is_step_response and np.any(model.lead != 0):
         # A lead over its lags raises the element's gain at high frequency to |K| |lead| / (tau + tau2).
         lags = np.maximum(model.time_constant + model.time_constant2, model.sample_time)
         with np.errstate(over="ignore", invalid="ignore"):
             high = np.abs(model.gain) * np.maximum(1.0, np.abs(model.lead) / lags)
+        if float(np.max(high)) > gain:
+            i, j = np.unravel_index(int(np.argmax(high)), high.shape)
+            gain_words = (f"the high-frequency gain of element ({model.outputs[i]}, {model.columns[j]})'s lead "
+                          f"(gain x |lead| / its lags)")
         gain = max(gain, float(np.max(high)))
     if model.is_step_response and model.step_response.size:
         gain = max(gain, float(np.max(np.abs(model.step_response))))
@@ -443,7 +448,7 @@ def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the mo
                                 f"at t = {t_text(data.t[k])} s): too small for the analysis (at least "
                                 f"{MIN_ANALYSIS_SCALE:g}); rescale the units")
         if not peak * max(1.0, gain) <= MAX_ANALYSIS_SCALE:
-            why = "" if peak > MAX_ANALYSIS_SCALE else f" with gains up to {gain:.3g} in {model_source}"
+            why = "" if peak > MAX_ANALYSIS_SCALE else f" with {gain_words} up to {gain:.3g} in {model_source}"
             key, values = nominal[name]
             if data.deviations and j < np.size(values) and values[j] != 0:
                 # In deviations from the model's operating point: a huge nominal value is the model file's.
