@@ -4,7 +4,6 @@
 import numpy as np
 
 from mpm_monitor.core.analysis import AnalysisOptions
-from mpm_monitor.core.discretize import model_columns
 from mpm_monitor.core.gaps import plan_gaps
 from mpm_monitor.core.logged_data import in_deviations
 from mpm_monitor.core.pipeline import analyze
@@ -25,8 +24,7 @@ def test_the_model_runs_on_the_logged_columns_of_a_segment_too_short_for_a_row()
     data = in_deviations(model, data.take(np.setdiff1d(np.arange(data.n_samples), [700, 710])))
     plan = plan_gaps(data, 17, 17)
     assert len(plan.segments) == 3 and len(plan.used) == 2          # the 9 samples between are left out
-    cols = model_columns(np.asarray(data.u, float), np.asarray(data.dv, float))
-    fill = plan.left_out_fill(data, cols)
+    fill = plan.left_out_fill(data)
     assert fill[0].tolist() == list(range(701, 710))
     grid = plan.take(data.grid_index)
     kept = segment_signals(model, plan.take(data.r), plan.take(data.u), plan.take(data.y), plan.local_segments,

@@ -244,7 +244,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     if plan is not None:          # data with gaps: the segments long enough for a regression row, stacked
         check_gap_rows(plan, layout, options, src, model, notes=data.notes)
         # The segments too short for a row are left out, but the model runs on their logged columns.
-        fill = plan.left_out_fill(data, model_columns(u, dv))
+        fill = plan.left_out_fill(data)
         r, u, y, dv = (plan.take(x) for x in (r, u, y, dv))
         grid = plan.take(data.grid_index)     # the model runs through a short gap (segment_signals)
         restarts = unknown_starts(plan.local_segments, grid, plan.max_gap, fill)

@@ -23,6 +23,7 @@ from typing import Optional
 
 import numpy as np
 
+from .discretize import model_columns
 from .logged_data import LoggedData, t_text
 
 #: Gaps named one by one in the warning; the JSON's ``where`` lists them all.
@@ -99,7 +100,7 @@ class GapPlan:
         """The rows of the used segments of ``x`` (shape (n_samples, ...)), stacked."""
         return np.concatenate([x[a:b] for a, b in self.used]) if self.used else x[:0]
 
-    def left_out_fill(self, data: LoggedData, columns: np.ndarray) -> Optional[tuple]:
+    def left_out_fill(self, data: LoggedData) -> Optional[tuple]:
         """The logged columns of the segments left out (too short for a regression row), on the sample grid.
 
         The model still runs through them (:func:`~mpm_monitor.core.signals.segment_signals` takes them as it
@@ -110,9 +111,7 @@ class GapPlan:
         Parameters
         ----------
         data : LoggedData
-            The data this plan is of.
-        columns : ndarray, shape (n_samples, n_columns)
-            ``[u | dv]`` of every row of ``data``.
+            The data this plan is of (its ``u`` and ``dv`` as the model takes them: in deviations).
 
         Returns
         -------
@@ -122,11 +121,13 @@ class GapPlan:
             out.
         """
         own = data.fill_on_grid()
-        rows = [np.arange(a, b) for a, b in self.segments if (a, b) not in set(self.used)]
+        used = set(self.used)
+        rows = [np.arange(a, b) for a, b in self.segments if (a, b) not in used]
         if not rows:
             return own
         rows = np.concatenate(rows)
-        grid, cols = data.grid_index[rows], np.asarray(columns, dtype=float)[rows]
+        dv = None if data.dv is None else np.asarray(data.dv, dtype=float)[rows]
+        grid, cols = data.grid_index[rows], model_columns(np.asarray(data.u, dtype=float)[rows], dv)
         if own is not None:
             width = min(cols.shape[1], np.asarray(own[1]).shape[1])
             grid = np.concatenate([np.asarray(own[0], dtype=np.int64), grid])

@@ -49,7 +49,7 @@ from .discretize import discretize, model_columns, settling_samples, simulate_el
 from .errors import ConfigurationError
 from .logged_data import check_disturbance_signal
 from .model import PlantModel
-from .segments import GapSegments, run_places, run_samples
+from .segments import GapSegments, held_rows, run_places, run_samples
 from .statistics import f_test
 
 INITIAL_STATE_CHOICES = ("estimate", "zero")
@@ -384,10 +384,8 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
                     dv_run = np.array(dv_run, dtype=float)
                     dv_run[where[inside], :known] = cols[:, nu:nu + dv_run.shape[1]]
                 # A missing sample after a filled one holds the filled columns (the last the controller sent).
-                last = np.zeros(u_run.shape[0], dtype=np.int64)
-                last[at] = at
-                last[where[inside]] = where[inside]
-                last = np.maximum.accumulate(last)
+                known = np.union1d(at, where[inside])
+                last = known[held_rows(known)[0]]
                 u_run = u_run[last]
                 if dv_run is not None:
                     dv_run = dv_run[last]
