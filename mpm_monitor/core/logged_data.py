@@ -453,23 +453,19 @@ def check_scale(model: PlantModel, data: LoggedData, model_source: str = "the mo
             if data.deviations and j < np.size(values) and values[j] != 0:
                 # In deviations from the model's operating point: a huge nominal value is the model file's.
                 why += f" (the logged value minus {key} {float(values[j]):g} of {model_source})"
+            head = (f"{data.source or 'data'}: {name} '{names[j]}' at t = {t_text(data.t[k])} s is {peak:.3g}{why}: "
+                    f"too large for the analysis (|value| x max(1, |gain|) at most {MAX_ANALYSIS_SCALE:g})")
             over = np.flatnonzero(~(arr[:, j] * max(1.0, gain) <= MAX_ANALYSIS_SCALE))
             rest = np.delete(arr[:, j], over)
             if over.size <= max(1, arr.shape[0] // 100) and over[-1] < arr.shape[0] - 1 and rest.size \
                     and np.all(np.isfinite(rest)) \
                     and float(rest.max()) * max(1.0, gain) <= MAX_ANALYSIS_SCALE / 1e3:
                 # A few values far out of the rest's range: a sensor's bad-value sentinel, not a loop that diverged.
-                raise DataFileError(
-                    f"{data.source or 'data'}: {name} '{names[j]}' at t = {t_text(data.t[k])} s is {peak:.3g}{why}: "
-                    f"too large for the analysis (|value| x max(1, |gain|) at most {MAX_ANALYSIS_SCALE:g}), while "
-                    f"its other values stay within {float(rest.max()):.3g} ({over.size} such value"
-                    f"{'s' if over.size > 1 else ''}): a bad-value sentinel? Leave those rows out of the log (the "
-                    f"analysis goes around missing rows)")
+                raise DataFileError(f"{head}, while its other values stay within {float(rest.max()):.3g} "
+                                    f"({over.size} such value{'s' if over.size > 1 else ''}): a bad-value sentinel? "
+                                    f"Leave those rows out of the log (the analysis goes around missing rows)")
             diverging = diverging_outputs(model.outputs, data.y)
-            raise DataFileError(f"{data.source or 'data'}: {name} '{names[j]}' at t = {t_text(data.t[k])} s is "
-                                f"{peak:.3g}{why}: too large for the analysis (|value| x max(1, |gain|) at most "
-                                f"{MAX_ANALYSIS_SCALE:g}); "
-                                f"{_diverged_hint(diverging) if diverging else 'rescale the units'}")
+            raise DataFileError(f"{head}; {_diverged_hint(diverging) if diverging else 'rescale the units'}")
 
 
 #: The errors of numpy and scipy with which the analysis's linear algebra breaks down on a log that
