@@ -165,13 +165,16 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
     wide, wide_data = (model, data) if not names else _with_candidates(model, data, names)
     columns = wide.columns
     located = [(wide.outputs.index(e.output), columns.index(e.input)) for e in report.elements if e.mismatch]
+    # The element test's estimate of where each mismatch acts: the repair's delay search reaches it.
+    delays = {(wide.outputs.index(e.output), columns.index(e.input)): int(e.delay) for e in report.elements
+              if e.mismatch and e.delay is not None}
     span, note = repair_data(wide_data, report.gaps is not None, options, wide)
     max_gap = None if report.gaps is None else report.gaps["max_gap"]    # the model runs through the short gaps
     repair_options = RepairOptions(initial_state=options.initial_state, max_gap=max_gap)
     span_signals = report.signals if (span is wide_data or not names) else None
     classified = None
     if joint:
-        classified = explained_elements(wide, span, located, repair_options, signals=span_signals)
+        classified = explained_elements(wide, span, located, repair_options, signals=span_signals, delays=delays)
         _release(report, classified.released, wide)
         located = [key for key in located if key not in classified.released]
     if not options.repair:
@@ -180,14 +183,15 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
     # fit its record, settings and prediction errors.
     jobs = row_jobs(options.jobs, span.n_samples, wide)      # the rows to repair, as the element test's
     result = repair_model(wide, span, located, repair_options, signals=span_signals, classified=classified,
-                          disturbance_tests=None if ahead is None else ahead.result(), jobs=jobs)
+                          disturbance_tests=None if ahead is None else ahead.result(), jobs=jobs, delays=delays)
     after_data, nominal = data, None
     if names:
         nominal = _candidate_operating_points(result, names)
         if nominal is not None:     # the repair again with the channels' operating points
             wide, wide_data = _with_candidates(model, data, names, nominal)
             span, note = repair_data(wide_data, report.gaps is not None, options, wide)
-            result = repair_model(wide, span, located, repair_options, classified=classified, jobs=jobs)
+            result = repair_model(wide, span, located, repair_options, classified=classified, jobs=jobs,
+                                  delays=delays)
         result, after_data = _keep_applied_candidates(model, data, result, tried, names, nominal)
     after = None
     if result.model != model:

@@ -21,7 +21,7 @@ from typing import Optional
 import numpy as np
 
 from ..statistics import chi2_tail
-from .fit import _ElementSpec, _lag_lr, _RowEstimate, _RowProblem
+from .fit import _ElementSpec, _lag_lr, _RowEstimate, _RowProblem, _TooShort
 from .forms import (
     _LAG_SHIFT,
     _POLE_MIN,
@@ -111,6 +111,9 @@ class _Located:
     declared : _Form or None
         The form of the reference, where the fit's ``form`` has one lag fewer (:func:`_reduce_vanished_lags`;
         ``poles`` are then the declared form's, and ``lag`` the reference's dead time in ``form``); else None.
+    hint : int or None
+        The element test's estimate of the lag at which the mismatch ``Delta`` acts (samples), where the
+        repair was given one: its lag search reaches it (:func:`_free_spec`).
     """
 
     form: _Form
@@ -119,6 +122,7 @@ class _Located:
     missing: bool
     poles: tuple
     declared: Optional[_Form] = None
+    hint: Optional[int] = None
 
     @property
     def shape_form(self) -> _Form:
@@ -284,20 +288,21 @@ def _locate(row: _RowData, j: int, form: Optional[_Form] = None) -> _Located:
     model, i = row.model, row.i
     ts = model.sample_time
     present = bool(model.present[i, j])
+    hint = row.delays.get(j)
     if model.is_step_response and present:
         form = form or _step_ladder(model, i, j)[0]
         ref, lag, poles = _step_reference(model.step_response[i, j], form, ts)
-        return _Located(form=form, reference=ref, lag=lag, missing=False, poles=poles)
+        return _Located(form=form, reference=ref, lag=lag, missing=False, poles=poles, hint=hint)
     if not present:
         form = form or _missing_ladder(model, i)[0]
         ref = _fitted_params(form, 0.0, (_POLE_MIN,) * form.n_lags, 0.0, 0, ts)
         ref["delay"] = float(model.delay[i, j])
         return _Located(form=form, reference=ref, lag=int(model.delay_samples[i, j]), missing=True,
-                        poles=_poles_of(form, ref, ts))
+                        poles=_poles_of(form, ref, ts), hint=hint)
     form = _form_of(model, i, j)
     ref = _params_of(model, i, j)
     return _Located(form=form, reference=ref, lag=_input_lag(form, ref, ts), missing=False,
-                    poles=_poles_of(form, ref, ts))
+                    poles=_poles_of(form, ref, ts), hint=hint)
 
 
 def _row_start(row: _RowData):
@@ -318,8 +323,13 @@ def _free_spec(row: _RowData, loc: _Located, options: RepairOptions, start=None)
 
     An element the model has is searched within ``max_delay_shift`` of its reference's lag; an
     element the model lacks starts at the row's median time constant and largest input lag
-    (:func:`_row_start`), searched from 1 to that lag plus ``max_delay_shift``.  ``start``
-    (``(gain, poles, lead, lag)``) overrides the start values.
+    (:func:`_row_start`), searched from 1 to that lag plus ``max_delay_shift``.  Where the element
+    test's estimate of the mismatch's lag (``loc.hint``) lies outside that range, the range is
+    widened to reach within ``max_delay_shift`` of it (unless ``max_delay_shift`` is 0): a plant whose
+    dead time is far shorter than the model's has its mismatch ``Delta`` act first at the plant's lag,
+    which the element test sees, and without it the fit of a model delay of 20 samples to a plant's
+    2 settled at 20 with the gain cut to a twenty-fifth.  ``start`` (``(gain, poles, lead, lag)``)
+    overrides the start values.
     """
     ts = row.model.sample_time
     s = options.max_delay_shift
@@ -339,6 +349,8 @@ def _free_spec(row: _RowData, loc: _Located, options: RepairOptions, start=None)
         # feed-through that no sampled loop closes (the repair wrote such elements, which the MPC refused).
         lag = max(1, loc.lag)
         window = (max(1, lag - s), lag + s)
+    if loc.hint is not None and s > 0 and not window[0] <= loc.hint <= window[1]:
+        window = (max(1, min(window[0], loc.hint - s)), max(window[1], loc.hint + s))
     if start is not None:
         gain, poles, lead, lag = start
     spec = _ElementSpec(True, form.n_shape > 0, gain, tuple(poles), window, form=form, lead=lead)
@@ -353,13 +365,47 @@ def _fit_free(row: _RowData, js, settings: _TestSettings) -> _FreeFit:
     specs, lags0 = {}, {}
     for j in js:
         specs[j], lags0[j] = _free_spec(row, located[j], options)
-    skip = None
-    if row.model.is_step_response:
+    def skip_of(specs):
         # Room for the lags of the larger forms (the references' lags may move a few samples).
-        skip = _default_skip(row, specs) + _LAG_SHIFT
-    problem, est = _estimate_row(row, specs, lags0, row.n_samples, options, options.max_sweeps, skip=skip)
+        return _default_skip(row, specs) + _LAG_SHIFT if row.model.is_step_response else None
+    problem, est = _estimate_row(row, specs, lags0, row.n_samples, options, options.max_sweeps, skip=skip_of(specs))
+    specs, problem, est = _follow_edges(row, specs, problem, est, options, skip_of)
     free = _FreeFit(row=row, js=list(js), specs=specs, located=located, problem=problem, est=est, settings=settings)
     return _grow_gained_lags(_reduce_vanished_lags(_choose_forms(free, settings), settings), settings)
+
+
+#: How many times :func:`_follow_edges` widens a lag range by ``max_delay_shift``.
+MAX_WIDENINGS = 4
+
+
+def _follow_edges(row: _RowData, specs: dict, problem, est, options: RepairOptions, skip_of):
+    """The free fit with each lag range that its best lag sits at an end of widened, until none does.
+
+    A plant whose dead time lies more than ``max_delay_shift`` samples beyond the model's puts the best lag
+    at the upper end of the searched range (the element test's estimate of where the mismatch acts does not
+    reach it: the model's own response, cancelled, acts first).  The range of each such element is widened
+    by ``max_delay_shift`` on that side (at the lower end not below 1) and the row refitted, up to
+    :data:`MAX_WIDENINGS` times, while the record leaves enough samples beyond the longest lag.  Returns
+    ``(specs, problem, est)``: unchanged when no best lag sits at an end.
+    """
+    s = options.max_delay_shift
+    for _ in range(MAX_WIDENINGS if s > 0 else 0):
+        wider = dict(specs)
+        lags = {}
+        for m, j in enumerate(sorted(specs)):
+            lag, (lo, hi) = int(est.fit.lags[m]), specs[j].window
+            lags[j] = lag
+            if est.edge[m]:
+                wider[j] = dataclasses.replace(specs[j], window=(max(1, lo - s), hi) if lag == lo else (lo, hi + s))
+        if wider == specs:
+            break
+        try:
+            problem_w, est_w = _estimate_row(row, wider, lags, row.n_samples, options, options.max_sweeps,
+                                             skip=skip_of(wider))
+        except _TooShort:
+            break
+        specs, problem, est = wider, problem_w, est_w
+    return specs, problem, est
 
 
 def _grow_gained_lags(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
@@ -671,9 +717,11 @@ def _verdict_warnings(free: _FreeFit, m: int, verdict: ElementVerdict, alpha: fl
     name = free.row.name(free.js[m])
     out = []
     if free.est.edge[m]:
-        out.append(f"{name}: the best delay lies at the edge of the searched range; the true delay may lie "
-                   f"outside it (the repair searches RepairOptions.max_delay_shift samples either side of the "
-                   f"model's delay).")
+        lo, hi = free.specs[free.js[m]].window
+        out.append(f"{name}: the best delay lies at the edge of the searched range (input lags {lo} to {hi} "
+                   f"samples); the true delay may lie outside it (the repair searches RepairOptions.max_delay_shift "
+                   f"samples either side of the model's delay, widened {MAX_WIDENINGS} times at most while the "
+                   f"record is long enough).")
     if verdict.kind == "unknown":
         form = free.located[free.js[m]].shape_form
         shape = "first-order-plus-dead-time form" if form.first_order else f"the element's form ({form.describe()})"

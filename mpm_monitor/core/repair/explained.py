@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Optional, Sequence
+from typing import Mapping, Optional, Sequence
 
 from ..errors import ConfigurationError
 from ..logged_data import LoggedData, in_deviations
@@ -13,7 +13,7 @@ from ..signals import LoopSignals
 from .classify import _classify_row
 from .fit import _TooShort
 from .options import RepairOptions
-from .record import _check_inputs, _located_in_row, _min_fit, _set_up
+from .record import _check_delays, _check_inputs, _located_in_row, _min_fit, _set_up
 from .row import _RowData
 
 
@@ -45,7 +45,8 @@ class JointClassification:
 
 def explained_elements(model: PlantModel, data: LoggedData, located: Sequence[tuple],
                        options: RepairOptions = RepairOptions(),
-                       signals: Optional[LoopSignals] = None) -> JointClassification:
+                       signals: Optional[LoopSignals] = None,
+                       delays: Optional[Mapping] = None) -> JointClassification:
     """The located elements whose mismatch another located element of their row explains.
 
     The element test locates each element on its own statistic, with the row's other columns free
@@ -75,6 +76,10 @@ def explained_elements(model: PlantModel, data: LoggedData, located: Sequence[tu
     options : RepairOptions
     signals : LoopSignals, optional
         :func:`~mpm_monitor.core.signals.compute_signals` of ``model`` on ``data``.
+    delays : mapping, optional
+        ``{(output index, column index): lag}``: the element test's estimate of the lag (samples) at which
+        each located element's mismatch acts (``ElementResult.delay``), as :func:`~.model_repair.repair_model`
+        takes it.
 
     Returns
     -------
@@ -91,11 +96,12 @@ def explained_elements(model: PlantModel, data: LoggedData, located: Sequence[tu
     rows = {i: js for i, js in rows.items() if len(js) > 1}
     if not rows:
         return result
-    rec = _set_up(model, data, options, signals)
+    rec = _set_up(model, data, options, signals, _check_delays(delays, located))
     if rec.n_fit < _min_fit(model, options):
         return result
     for i, js in rows.items():
-        row = _RowData(model=model, u=rec.u, y=rec.y, i=i, extra=None, segments=rec.segments)
+        row = _RowData(model=model, u=rec.u, y=rec.y, i=i, extra=None, segments=rec.segments,
+                       delays=rec.row_delays(i))
         gone = []
         while len(js) > 1:          # until the row's classification releases nothing more
             try:

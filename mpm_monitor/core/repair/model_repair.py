@@ -12,7 +12,7 @@ elements.  The record every step reads is :mod:`.record`.
 from __future__ import annotations
 
 import dataclasses
-from typing import Optional, Sequence
+from typing import Mapping, Optional, Sequence
 
 import numpy as np
 
@@ -26,7 +26,7 @@ from .explained import JointClassification
 from .fit import _TooShort
 from .forms import unsettled_warning
 from .options import RepairOptions, _TestSettings
-from .record import _check_inputs, _located_in_row, _min_fit, _Record, _rms, _set_up
+from .record import _check_delays, _check_inputs, _located_in_row, _min_fit, _Record, _rms, _set_up
 from .refit import _fit_repair, _refit_on_all
 from .residual_tests import DisturbanceTests, _disturbance_findings, _disturbance_test, _one_family, _seed_tests
 from .result import ElementVerdict, RepairResult, _unchanged_entry
@@ -224,7 +224,7 @@ def _process_row_with(rec: _Record, settings: _TestSettings, i: int, js, extra: 
     """:func:`_process_row` with the fits of ``settings``; also the verdicts as validated on the held-out
     part (before the refit on the whole record), or None when none was accepted."""
     model = rec.model
-    row = _RowData(model=model, u=rec.u, y=rec.y, i=i, extra=extra, segments=rec.segments)
+    row = _RowData(model=model, u=rec.u, y=rec.y, i=i, extra=extra, segments=rec.segments, delays=rec.row_delays(i))
     try:
         elements, row_warnings, repair_fit = _repair_row(row, js, rec.n_fit, settings, classified)
     except _TooShort as exc:
@@ -356,7 +356,8 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
 def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
                  options: RepairOptions = RepairOptions(), signals: Optional[LoopSignals] = None,
                  classified: Optional["JointClassification"] = None,
-                 disturbance_tests: Optional[DisturbanceTests] = None, jobs: int = 1) -> RepairResult:
+                 disturbance_tests: Optional[DisturbanceTests] = None, jobs: int = 1,
+                 delays: Optional[Mapping] = None) -> RepairResult:
     """Re-estimate the located elements, classify their mismatch, and validate the repair.
 
     Parameters
@@ -386,6 +387,12 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
         Processes: with 2, a forked second process takes part of the rows to repair, each row's
         classification, fits and held-out check whole (:func:`~mpm_monitor.core.parallel.split_map`: the same
         code on the same numbers, so the same result as in one process).
+    delays : mapping, optional
+        ``{(output index, column index): lag}``: the element test's estimate of the lag (samples) at which
+        each located element's mismatch ``Delta`` acts (``ElementResult.delay``).  Where one lies more
+        than ``options.max_delay_shift`` samples from the model's delay, the element's delay is searched
+        as far as that many samples beyond it (a plant's dead time far from the model's).  Estimates of
+        elements not located are ignored.
 
     Returns
     -------
@@ -395,7 +402,7 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
         raise ConfigurationError(f"options: expected RepairOptions, got {type(options).__name__}")
     data = in_deviations(model, data)
     located = _check_inputs(model, data, located, signals)
-    rec = _set_up(model, data, options, signals)
+    rec = _set_up(model, data, options, signals, _check_delays(delays, located))
     _seed_tests(rec, disturbance_tests)
     found = _Findings()
     rows = _rows_to_repair(rec, located, found)

@@ -88,6 +88,32 @@ def _check_inputs(model: PlantModel, data: LoggedData, located, signals):
                                  f"got {np.shape(getattr(signals, key))}")
     return sorted(out)
 
+
+def _check_delays(delays, located) -> dict:
+    """``{(output, column): lag}`` of the located elements from ``delays`` (the element test's estimates of
+    the lag of each element's mismatch, samples; None: none), once every value is an integer >= 0; else
+    :class:`InputError`.  Estimates of elements not located are dropped."""
+    if delays is None:
+        return {}
+    try:
+        items = list(delays.items())
+    except AttributeError:
+        raise InputError(f"repair: delays: expected a mapping (output index, column index) -> lag in samples, "
+                         f"got {type(delays).__name__}") from None
+    out = {}
+    for key, lag in items:
+        ok = isinstance(lag, (int, np.integer)) and not isinstance(lag, bool) and lag >= 0
+        if not ok:
+            raise InputError(f"repair: delays[{key!r}]: expected an integer number of samples >= 0, got {lag!r}")
+        try:
+            pair = tuple(int(v) for v in key)
+        except (TypeError, ValueError):
+            raise InputError(f"repair: delays key {key!r}: expected a pair (output index, column index)") from None
+        if pair in located:
+            out[pair] = int(lag)
+    return out
+
+
 @dataclasses.dataclass(frozen=True)
 class _Record:
     """The record and the model as every step of :func:`~.model_repair.repair_model` reads them.
@@ -118,6 +144,9 @@ class _Record:
         ``{output index: (d, segments, test)}``: the last :func:`~.disturbance.unexplained_disturbance` of each
         output, on its prediction error ``d`` and the scored ``segments`` (see :func:`~.model_repair._evaluate`),
         reused while they stay the same.
+    delays : dict
+        ``{(output index, column index): lag}``: the element test's estimates of the lag (samples) of the
+        located elements' mismatches, where given (see :meth:`row_delays`).
     """
 
     model: PlantModel
@@ -131,10 +160,15 @@ class _Record:
     holdout_before: dict
     segments: Optional[tuple] = None
     tests: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
+    delays: dict = dataclasses.field(default_factory=dict)
 
     @property
     def options(self) -> RepairOptions:
         return self.settings.options
+
+    def row_delays(self, i: int) -> dict:
+        """``{column index: lag}`` of :attr:`delays` in row ``i`` (what :class:`~.row._RowData` takes)."""
+        return {j: lag for (ii, j), lag in self.delays.items() if ii == i}
 
     @functools.cached_property
     def spread(self) -> np.ndarray:
@@ -215,8 +249,9 @@ class _Record:
 
 
 def _set_up(model: PlantModel, data: LoggedData, options: RepairOptions,
-            signals: Optional[LoopSignals]) -> _Record:
-    """The record of checked inputs: float arrays, the signals of the model, the split, the levels."""
+            signals: Optional[LoopSignals], delays: Optional[dict] = None) -> _Record:
+    """The record of checked inputs: float arrays, the signals of the model, the split, the levels
+    (``delays``: checked by :func:`_check_delays`)."""
     u, y = model_columns(np.asarray(data.u, float), np.asarray(data.dv, float)), np.asarray(data.y, float)
     n = data.n_samples
     segments = data.segments
@@ -230,7 +265,7 @@ def _set_up(model: PlantModel, data: LoggedData, options: RepairOptions,
     n_hold = int(round(options.holdout_fraction * n))
     n_fit = n - n_hold
     rec = _Record(model=model, data=data, u=u, y=y, signals=signals, d0=d0, settings=_TestSettings.of(options),
-                  n_fit=n_fit, holdout_before={}, segments=segments)
+                  n_fit=n_fit, holdout_before={}, segments=segments, delays=dict(delays or {}))
     if n_hold > 0:
         keep = rec.scored(model)
         rec.holdout_before.update({model.outputs[i]: rec.holdout(d0[:, i], keep) for i in range(model.n_outputs)})

@@ -43,6 +43,10 @@ class _RowData:
     segments : tuple of (int, int), optional
         Data with gaps: the contiguous runs ``(first, end)`` of the samples, each a record of its own
         (simulated from rest at its first sample; see :class:`_RowProblem`).  None: one record.
+    delays : dict
+        ``{column index: lag}``: the element test's estimate of the lag (samples) at which each located
+        element's mismatch acts, where it was given (the lag search reaches it,
+        :func:`~.classify._free_spec`).
     """
 
     model: PlantModel
@@ -52,6 +56,7 @@ class _RowData:
     extra: Optional[np.ndarray] = None
     shared: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
     segments: Optional[tuple] = None
+    delays: dict = dataclasses.field(default_factory=dict)
 
     @property
     def n_samples(self) -> int:
