@@ -431,3 +431,20 @@ def test_the_repair_reports_json_values_keep_numbers_and_turn_non_finite_ones_to
             [type(v) for v in (want if isinstance(want, list) else want.values())], case
     row = [0.5, 1.0]
     assert _jsonable(row) is not row        # a copy, as before
+
+
+@pytest.mark.parametrize("key", ["lead", "time_constant2", "integrating", "disturbances", "input_nominal",
+                                 "output_nominal"])
+def test_an_optional_key_given_as_null_is_read_as_absent(tmp_path, key):
+    """As docs/interfaces.md says: ``lead: null`` (or ``lead:`` alone) is the file without the key."""
+    for text in (GOOD + f"{key}: null\n", GOOD + f"{key}:\n"):
+        assert load_model(_write(tmp_path, text)) == load_model(_write(tmp_path, GOOD, "plain.yaml"))
+
+
+@pytest.mark.parametrize("key, expected", [("gain", "expected a list of rows"), ("sample_time", "positive number"),
+                                           ("inputs", "list of names"), ("name", "expected a string")])
+def test_a_required_key_or_the_name_given_as_null_is_refused(tmp_path, key, expected):
+    text = _replace_line(key, f"{key}: null") if key != "name" else GOOD + "name: null\n"
+    with pytest.raises(ModelFileError, match=f"key '{key}'.*{expected}") as err:
+        load_model(_write(tmp_path, text))
+    assert "\n" not in str(err.value)
