@@ -359,6 +359,12 @@ def test_columns_whose_names_no_model_can_hold_are_unusable_not_fatal(tmp_path, 
     assert unusable["feed,temp"].startswith("its name holds a comma, which a model's channel name cannot")
     assert unusable["feed\ttemp"].startswith("its name holds a control character")
     assert unusable[f"(column {len(rows[0])})"] == "the header gives it no name: name it there to test it"
+    # Named on its own, the channel with a comma is that channel (it was split and refused as "no column 'feed'").
+    code = cli_main(["analyze", "--model", str(tmp_path / "m.yaml"), "--data", str(tmp_path / "odd.csv"),
+                     "--candidates", "feed,temp", "--json", str(tmp_path / "r1.json"), "--jobs", "1"])
+    assert code == 0, capsys.readouterr().err
+    tried = json.loads((tmp_path / "r1.json").read_text())["candidates"]
+    assert list(tried["unusable"]) == ["feed,temp"]
 
 
 def test_html_report_without_a_located_candidate(tmp_path, effect_run):

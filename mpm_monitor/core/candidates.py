@@ -171,7 +171,8 @@ def select_candidates(data: LoggedData, spec, model: Optional[PlantModel] = None
         use) and :attr:`~mpm_monitor.core.logged_data.LoggedData.unusable` (name -> reason).
     spec : str or sequence of str
         ``"all"`` (every channel of ``extra`` and ``unusable``) or names (a ``NAME[,NAME...]``
-        string or a sequence).
+        string or a sequence).  A string that is itself the name of a channel (one whose name holds a
+        comma) names that channel.
     model : PlantModel, optional
         A name that is one of the model's channels is refused.
 
@@ -186,6 +187,8 @@ def select_candidates(data: LoggedData, spec, model: Optional[PlantModel] = None
     """
     wanted = parse_candidate_spec(spec)
     available = list(data.extra) + [n for n in data.unusable if n not in data.extra]
+    if isinstance(spec, str) and spec.strip() in available and spec.strip() not in wanted:
+        wanted = (spec.strip(),)       # a channel whose own name holds a comma ("a,b", quoted in the CSV)
     if wanted == ALL_CANDIDATES:
         wanted = tuple(available)
     used = set(model.columns + model.outputs) if model is not None else set()
