@@ -241,6 +241,21 @@ def test_repeated_decreasing_or_off_grid_t_still_refused_next_to_gaps(tmp_path, 
         read_csv(_write(tmp_path, _text([HEADER] + rows)), _model())
 
 
+def test_t_beyond_the_precision_of_floats_is_named_so(tmp_path):
+    """t = 1e16 + k s: 64-bit floats are 2 s apart there, so the log's own steps of 1 s read as repeats; the
+    refusal says why, and what to do.  A plain repeat of a small t keeps its message without the hint."""
+    rows = [",".join([str(10 ** 16 + k)] + line.split(",")[1:]) for k, line in enumerate(_rows(6))]
+    with pytest.raises(DataFileError, match=r"line 3: t = 1e\+16 s repeats .* 64-bit numbers are 2 s apart, too "
+                                            r"coarse for the sample time: give t from a nearer origin") as err:
+        read_csv(_write(tmp_path, _text([HEADER] + rows)), _model())
+    assert "\n" not in str(err.value)
+    rows = _rows(6)
+    rows[3] = ",".join(["2.0"] + rows[3].split(",")[1:])
+    with pytest.raises(DataFileError) as err:
+        read_csv(_write(tmp_path, _text([HEADER] + rows), "small.csv"), _model())
+    assert "64-bit" not in str(err.value)
+
+
 def test_unreadable_path_refused(tmp_path):
     with pytest.raises(DataFileError, match=r"cannot read data file"):
         read_csv(tmp_path / "missing.csv", _model())

@@ -740,10 +740,16 @@ def _refuse_spacing(t: np.ndarray, lines: list, ts: float, source: str) -> None:
     bad = np.flatnonzero(_steps_off_grid(t, ts))
     k = int(bad[0])
     step = steps[k]
+    # A t so large that 64-bit floats cannot tell its samples apart (1e16 s: 2 s apart) reads as repeated or
+    # uneven whatever the file says: name that instead of blaming the log.
+    resolution = float(np.spacing(max(abs(float(t[k])), abs(float(t[k + 1])))))
+    coarse = "" if not resolution > SPACING_TOLERANCE * ts else (
+        f" (at t = {t_text(t[k])} s, 64-bit numbers are {resolution:g} s apart, too coarse for the sample time: "
+        f"give t from a nearer origin, e.g. seconds since the log's start)")
     if step <= 0:
         what = "repeats" if step == 0 else "goes back from"
         raise DataFileError(f"{source}: line {lines[k + 1]}: t = {t_text(t[k + 1])} s {what} t = {t_text(t[k])} s "
-                            f"on line {lines[k]}: expected t to increase by sample_time {ts:g} s")
+                            f"on line {lines[k]}: expected t to increase by sample_time {ts:g} s{coarse}")
     raise DataFileError(f"{source}: line {lines[k + 1]}: t = {t_text(t[k + 1])} s follows t = {t_text(t[k])} s: a step "
                         f"of {step:g} s (expected sample_time {ts:g} s; a gap or an irregular sample: every step a "
-                        f"whole number of sample times, within {SPACING_TOLERANCE * 100:g} % per sample time)")
+                        f"whole number of sample times, within {SPACING_TOLERANCE * 100:g} % per sample time){coarse}")
