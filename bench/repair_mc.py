@@ -13,7 +13,14 @@ full analysis runs with the repair.  Scored, for every mismatched element that w
 ``--setpoint-steps``: the setpoints moved in steps instead of the paper's PRBS
 (:data:`bench.scenarios.SETPOINT_STEPS`, as ``bench.monte_carlo --setpoint-steps``).
 
-Run: ``python -m bench.repair_mc [--runs 200] [--seed 0] [--samples 3000] [--dither-fat] [--setpoint-steps]``
+``--far-delays``: one or two delay mismatches a run, each 11 to 30 samples from the plant's
+(:data:`bench.scenarios.FAR_DELAYS`), more than the repair's own search range (``max_delay_shift``, 10
+samples); the repaired delay of every located element whose delay was drawn is scored against the plant's
+(within one sample, and applied).  Every run also records the elements located that were not drawn (false
+alarms) and the drawn ones missed.
+
+Run: ``python -m bench.repair_mc [--runs 200] [--seed 0] [--samples 3000] [--dither-fat] [--setpoint-steps]
+[--far-delays]``
 """
 
 from __future__ import annotations
@@ -31,7 +38,7 @@ from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.sim.closed_loop import run_closed_loop
 
 from . import write_json
-from .scenarios import SETPOINT_STEPS, ScenarioOptions, make_scenario
+from .scenarios import FAR_DELAYS, SETPOINT_STEPS, ScenarioOptions, make_scenario
 
 
 def one(seed: int, index: int, samples: int, options: ScenarioOptions) -> dict:
@@ -44,11 +51,22 @@ def one(seed: int, index: int, samples: int, options: ScenarioOptions) -> dict:
     dt = time.perf_counter() - t0
     floor = np.sqrt(np.mean((log.disturbance + log.noise) ** 2, axis=0))
     truth = {(sc.model.outputs[m.output], sc.model.inputs[m.input]): m.kind for m in sc.mismatches}
+    drawn = {(sc.model.outputs[m.output], sc.model.inputs[m.input]): m for m in sc.mismatches}
     kinds = {(e.output, e.input): e.kind for e in rep.elements if e.mismatch}
     eb, ea = rep.repair["error_before"], rep.repair["error_after"]
     rows = {o for o, _ in kinds}
+    changes = {(c["output"], c["input"]): c for c in rep.repair["changes"]}
+    delays = []
+    for k, m in drawn.items():
+        if k in kinds and m.plant["delay"] != m.model["delay"] and k in changes:
+            c = changes[k]
+            delays.append({"element": list(k), "plant": m.plant["delay"], "model": m.model["delay"],
+                           "repaired": c["after"]["delay"], "applied": bool(c["applied"])})
     return {
         "index": index, "shape": [sc.plant.n_outputs, sc.plant.n_inputs], "time_s": dt,
+        "false_elements": [list(k) for k in kinds if k not in truth],
+        "missed_elements": [list(k) for k in truth if k not in kinds],
+        "delays": delays,
         "kinds": [{"element": list(k), "truth": truth[k], "reported": kinds[k]} for k in kinds if k in truth],
         "located_rows": [{"output": o, "before": eb[o], "after": ea[o],
                           "floor": float(floor[sc.model.outputs.index(o)])} for o in sorted(rows)],
@@ -56,9 +74,16 @@ def one(seed: int, index: int, samples: int, options: ScenarioOptions) -> dict:
     }
 
 
-def run(runs: int, seed: int, samples: int, dither_fat: bool, setpoint_steps: bool = False) -> dict:
-    options = dataclasses.replace(SETPOINT_STEPS if setpoint_steps else ScenarioOptions(), dither_fat=dither_fat)
+def run(runs: int, seed: int, samples: int, dither_fat: bool, setpoint_steps: bool = False,
+        far_delays: bool = False) -> dict:
+    base = FAR_DELAYS if far_delays else ScenarioOptions()
+    if setpoint_steps:
+        base = dataclasses.replace(base, setpoint_switch_probability=SETPOINT_STEPS.setpoint_switch_probability,
+                                   setpoint_min_hold=SETPOINT_STEPS.setpoint_min_hold)
+    options = dataclasses.replace(base, dither_fat=dither_fat)
     recs = [one(seed, k, samples, options) for k in range(runs)]
+    delays = [x for r in recs for x in r["delays"]]
+    within = [x for x in delays if x["applied"] and abs(x["repaired"] - x["plant"]) <= options.sample_time]
     confusion = collections.Counter((k["truth"], k["reported"]) for r in recs for k in r["kinds"])
     n_kinds = sum(confusion.values())
     exact = sum(v for (t, p), v in confusion.items() if t == p)
@@ -67,7 +92,15 @@ def run(runs: int, seed: int, samples: int, dither_fat: bool, setpoint_steps: bo
     after_before = [x["after"] / x["before"] for x in rows]
     others = [x["ratio"] for r in recs for x in r["other_rows"]]
     return {"runs": runs, "seed": seed, "samples": samples, "dither_fat": dither_fat,
-            "setpoints": "steps" if setpoint_steps else "paper PRBS",
+            "setpoints": "steps" if setpoint_steps else "paper PRBS", "far_delays": far_delays,
+            "drawn_elements": sum(len(make_scenario(seed, k, options).mismatches) for k in range(runs)),
+            "missed_elements": sum(len(r["missed_elements"]) for r in recs),
+            "false_elements": sum(len(r["false_elements"]) for r in recs),
+            "runs_with_a_false_element": sum(bool(r["false_elements"]) for r in recs),
+            "delays_scored": len(delays), "delays_within_one_sample": len(within),
+            "delays_far_scored": sum(abs(x["plant"] - x["model"]) > 10 * options.sample_time for x in delays),
+            "delays_far_within_one_sample": sum(abs(x["plant"] - x["model"]) > 10 * options.sample_time
+                                                for x in within),
             "kind_accuracy": exact / n_kinds if n_kinds else None, "kinds_scored": n_kinds,
             "confusion": {f"{t} -> {p}": v for (t, p), v in sorted(confusion.items())},
             "located_rows": len(rows),
@@ -86,7 +119,8 @@ def format_table(res: dict) -> str:
     a, b = res["after_over_floor"], res["after_over_before"]
     lines = [f"trace and repair over {res['runs']} Monte-Carlo scenarios (seed {res['seed']}, {res['samples']} samples"
              f"{', dither on fat plants' if res['dither_fat'] else ''}"
-             f"{', setpoints in steps' if res.get('setpoints') == 'steps' else ''})",
+             f"{', setpoints in steps' if res.get('setpoints') == 'steps' else ''}"
+             f"{', delays 11 to 30 samples off' if res.get('far_delays') else ''})",
              f"kind of located mismatched elements: {res['kind_accuracy']:.3f} exact ({res['kinds_scored']} elements)",
              "confusion (drawn -> reported):"]
     width = max(len(k) for k in res["confusion"]) if res["confusion"] else 10
@@ -98,6 +132,12 @@ def format_table(res: dict) -> str:
     lines.append(f"error after / before: median {b['median']:.3f}; at most half on {b['at_most_half']:.3f} of them")
     lines.append(f"outputs without a located element changed: {res['unlocated_rows_changed']} of "
                  f"{res['unlocated_rows']}")
+    if "delays_scored" in res:
+        lines.append(f"drawn elements missed: {res['missed_elements']} of {res['drawn_elements']}; elements located "
+                     f"that were not drawn: {res['false_elements']} (in {res['runs_with_a_false_element']} runs)")
+        lines.append(f"located elements with a drawn delay change: repaired within one sample of the plant's and "
+                     f"applied {res['delays_within_one_sample']} of {res['delays_scored']}; of those more than 10 "
+                     f"samples off {res['delays_far_within_one_sample']} of {res['delays_far_scored']}")
     lines.append(f"median analyze time with the repair: {res['median_analyze_with_repair_s']:.2f} s")
     return "\n".join(lines)
 
@@ -110,9 +150,11 @@ def main(argv=None) -> int:
     p.add_argument("--dither-fat", action="store_true")
     p.add_argument("--setpoint-steps", action="store_true",
                    help="setpoints moved in steps (bench.scenarios.SETPOINT_STEPS) instead of the paper's PRBS")
+    p.add_argument("--far-delays", action="store_true",
+                   help="delay mismatches 11 to 30 samples off (bench.scenarios.FAR_DELAYS)")
     p.add_argument("--out", default="bench/results/repair_mc.json")
     args = p.parse_args(argv)
-    res = run(args.runs, args.seed, args.samples, args.dither_fat, args.setpoint_steps)
+    res = run(args.runs, args.seed, args.samples, args.dither_fat, args.setpoint_steps, args.far_delays)
     print(format_table(res))
     write_json(args.out, res)
     return 0

@@ -109,6 +109,10 @@ class ScenarioOptions:
         MPC horizons, samples.
     sample_time : float
         Seconds per sample.
+    delay_shift_range : tuple of int, optional
+        A delay mismatch shifts the delay by a whole number of samples drawn uniformly from this range
+        (inclusive; a decrease with probability 1/2 where the plant's delay allows it) instead of
+        ``max(1, round(s theta))`` (:data:`FAR_DELAYS`).  None: the default draw.
     """
 
     min_size: int = 2
@@ -129,9 +133,14 @@ class ScenarioOptions:
     prediction_horizon: int = 100
     control_horizon: int = 30
     sample_time: float = 1.0
+    delay_shift_range: Optional[tuple] = None
 
     def __post_init__(self):
         check_count_ranges(self)
+        if self.delay_shift_range is not None:
+            lo, hi = self.delay_shift_range
+            if not 1 <= lo <= hi:
+                raise ValueError(f"delay_shift_range: expected 1 <= low <= high samples, got {self.delay_shift_range!r}")
         bad = [k for k in self.kinds if k not in KINDS]
         if bad or not self.kinds:
             raise ValueError(f"kinds: expected a non-empty subset of {', '.join(KINDS)}, got {self.kinds!r}")
@@ -145,6 +154,12 @@ class ScenarioOptions:
 #: Setpoints moved in steps, as operators move them: each held at least 60 samples, then switched with
 #: probability 1 % a sample (about 30 steps per setpoint in 3000 samples); ``--setpoint-steps`` of bench.monte_carlo.
 SETPOINT_STEPS = ScenarioOptions(setpoint_switch_probability=0.01, setpoint_min_hold=60)
+
+#: Delays far from the model's: one or two mismatched elements a run, each a delay shifted by 11 to 30 samples (more
+#: than the repair's default ``max_delay_shift`` of 10) on plants with delays up to 40 samples (``--far-delays`` of
+#: bench.repair_mc).
+FAR_DELAYS = ScenarioOptions(kinds=("delay",), min_mismatches=1, max_mismatches=2, max_delay=40,
+                             delay_shift_range=(11, 30))
 
 #: Still loops: every setpoint held at 0 and no dither, so the inputs move only with the controller's feedback
 #: of the noise (``--still`` of bench.monte_carlo, bench.detectability and bench.experiment_mc).
@@ -268,6 +283,9 @@ def _mismatch_element(rng: np.random.Generator, kind: str, gain: float, tau: flo
     def new_delay():
         s = draw()
         shift = max(1, int(round(s * delay_samples)))
+        if opts.delay_shift_range is not None:
+            shift = int(rng.integers(opts.delay_shift_range[0], opts.delay_shift_range[1] + 1))
+            s = shift / max(1, delay_samples)
         down = rng.random() < 0.5 and delay_samples - shift >= 0
         return delay_samples - shift if down else delay_samples + shift, s
 
