@@ -20,7 +20,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..statistics import chi2_tail
+from ..statistics import chi2_tail, normal_isf
 from .fit import _ElementSpec, _lag_lr, _RowEstimate, _RowProblem, _TooShort
 from .forms import (
     _LAG_SHIFT,
@@ -369,7 +369,7 @@ def _fit_free(row: _RowData, js, settings: _TestSettings) -> _FreeFit:
         # Room for the lags of the larger forms (the references' lags may move a few samples).
         return _default_skip(row, specs) + _LAG_SHIFT if row.model.is_step_response else None
     problem, est = _estimate_row(row, specs, lags0, row.n_samples, options, options.max_sweeps, skip=skip_of(specs))
-    specs, problem, est = _follow_edges(row, specs, problem, est, options, skip_of)
+    specs, problem, est = _follow_edges(row, specs, problem, est, options, skip_of, settings.alpha)
     free = _FreeFit(row=row, js=list(js), specs=specs, located=located, problem=problem, est=est, settings=settings)
     return _grow_gained_lags(_reduce_vanished_lags(_choose_forms(free, settings), settings), settings)
 
@@ -378,25 +378,47 @@ def _fit_free(row: _RowData, js, settings: _TestSettings) -> _FreeFit:
 MAX_WIDENINGS = 4
 
 
-def _follow_edges(row: _RowData, specs: dict, problem, est, options: RepairOptions, skip_of):
-    """The free fit with each lag range that its best lag sits at an end of widened, until none does.
+def _follow_edges(row: _RowData, specs: dict, problem, est, options: RepairOptions, skip_of,
+                  alpha: float = 1e-3):
+    """The free fit with the lag ranges widened where the data show the input acting outside them.
 
-    A plant whose dead time lies more than ``max_delay_shift`` samples beyond the model's puts the best lag
-    at the upper end of the searched range (the element test's estimate of where the mismatch acts does not
-    reach it: the model's own response, cancelled, acts first).  The range of each such element is widened
-    by ``max_delay_shift`` on that side (at the lower end not below 1) and the row refitted, up to
-    :data:`MAX_WIDENINGS` times, while the record leaves enough samples beyond the longest lag.  Returns
-    ``(specs, problem, est)``: unchanged when no best lag sits at an end.
+    A plant whose dead time lies more than ``max_delay_shift`` samples beyond the model's is not found by
+    the element test's estimate of where the mismatch acts (the model's own response, which the plant
+    lacks there, acts first).  Two signs widen an element's range, the first taken where both show:
+
+    - its best lag sits at an end of the range: that end moves out by ``max_delay_shift`` (at the lower
+      end not below 1);
+    - the fit's residual correlates with the element's input at a lag outside the range
+      (:meth:`~.fit._RowProblem.input_correlation` above the normal quantile of ``alpha`` shared over the
+      lags probed: Bonferroni), at lags up to the largest of the range's end, the row's samples left out
+      (``skip``) and the model's longest input lag, each plus ``max_delay_shift``: the range grows to
+      reach within ``max_delay_shift`` of the most correlated such lag.  In closed loop the best lag within
+      the model's range can lie inside it (the fit bends the gain and the lag), with no end reached.
+
+    The row is refitted after each widening, up to :data:`MAX_WIDENINGS` times, while the record leaves
+    enough samples beyond the longest lag.  Returns ``(specs, problem, est)``: unchanged when neither sign shows.
     """
     s = options.max_delay_shift
+    present = row.model.present
+    longest = int(np.max(row.model.delay_samples[present])) + 1 if present.any() else 1
     for _ in range(MAX_WIDENINGS if s > 0 else 0):
         wider = dict(specs)
         lags = {}
+        skip = problem.start - problem.p
         for m, j in enumerate(sorted(specs)):
             lag, (lo, hi) = int(est.fit.lags[m]), specs[j].window
             lags[j] = lag
+            if not specs[j].lag_free:
+                continue
             if est.edge[m]:
                 wider[j] = dataclasses.replace(specs[j], window=(max(1, lo - s), hi) if lag == lo else (lo, hi + s))
+                continue
+            reach = max(hi, skip, longest) + s
+            z = problem.input_correlation(est.fit, m, reach)
+            outside = np.array([not lo <= tau <= hi for tau in range(1, reach + 1)])
+            if outside.any() and np.max(z[outside]) > normal_isf(alpha / (2.0 * reach)):
+                tau = int(np.argmax(np.where(outside, z, -1.0))) + 1
+                wider[j] = dataclasses.replace(specs[j], window=(max(1, min(lo, tau - s)), max(hi, tau + s)))
         if wider == specs:
             break
         try:

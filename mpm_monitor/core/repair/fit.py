@@ -445,6 +445,36 @@ class _RowProblem:
         return _Fit(lags=tuple(int(v) for v in lags), poles=np.asarray(poles, float).copy(), coefs=coefs.copy(),
                     gains=gains, leads=leads, nuisance=beta[self.n_linear:], ssr=ssr, n_resid=n_resid)
 
+    def input_correlation(self, fit: _Fit, m: int, max_lag: int) -> np.ndarray:
+        """``sqrt(N) |rho(tau)|`` of the fit's prefiltered residual with element ``m``'s prefiltered input at lags
+        ``tau = 1 .. max_lag``, shape (max_lag,).
+
+        ``rho(tau)`` is the correlation of the residual ``e(k)`` with ``A(q) u(k - tau)`` over the cost samples
+        whose ``k - tau`` lies in their own record (segment), ``N`` their number.  Where the fit holds the
+        plant and ``e`` is white, ``E e(k) u(k - tau) = 0`` for ``tau >= 1`` (in closed loop too: ``u(k - tau)``
+        depends only on earlier noise) and ``sqrt(N) rho(tau)`` is about ``N(0, 1)`` whatever the input's
+        colour (Ljung, *System Identification*, 1999, section 16.6): a large value at a lag the element's
+        search did not reach says that the input acts there.
+        """
+        resid, _ = self.projected(fit.poles, fit.lags)
+        if self.segments is None:
+            at = np.arange(self.start, self.n_fit)
+            first = np.zeros_like(at)
+        else:
+            at = np.concatenate([np.arange(a + self.start, b) for a, b in self.segments])
+            first = np.concatenate([np.full(b - a - self.start, a) for a, b in self.segments])
+        x = self.uf[:, m]
+        out = np.zeros(max_lag)
+        for tau in range(1, max_lag + 1):
+            ok = at - tau >= first
+            if ok.sum() < 2:
+                continue
+            e, v = resid[ok], x[at[ok] - tau]
+            den = math.sqrt(float(e @ e) * float(v @ v))
+            if den > 0:
+                out[tau - 1] = math.sqrt(ok.sum()) * abs(float(e @ v)) / den
+        return out
+
     def evaluate(self, poles, lags) -> _Fit:
         """Fit with the poles held (linear parameters re-estimated)."""
         resid, beta = self.projected(poles, lags)
