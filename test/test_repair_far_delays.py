@@ -136,3 +136,28 @@ def test_a_delay_far_beyond_the_models_is_found():
     assert res.model.delay[1, 1] == pytest.approx(25.0, abs=1.0)
     assert res.kinds[(1, 1)] == "delay" and res.changes[0]["applied"]
     assert not [w for w in res.warnings if "edge of the searched range" in w]
+
+
+def test_the_refits_in_another_form_keep_the_widened_range():
+    """An element the model lacks, whose plant acts 40 s after its input: first order at first, the two-lag
+    form is tried against it by a refit, which keeps the range the free fit had to widen."""
+    from mpm_monitor.core.discretize import model_columns
+    from mpm_monitor.core.repair.classify import _fit_free, _locate, _refit_element
+    from mpm_monitor.core.repair.forms import _missing_ladder
+    from mpm_monitor.core.repair.options import _TestSettings
+    from mpm_monitor.core.repair.row import _RowData
+
+    sh = shell_plant()
+    plant = sh.with_element(0, 1, delay=40.0)
+    model = sh.with_element(0, 1, gain=0, time_constant=0, delay=0)
+    data = run_closed_loop(plant, model, 3000, seed=2).as_logged_data()
+    row = _RowData(model=model, u=model_columns(data.u, data.dv), y=data.y, i=0)
+    settings = _TestSettings.of(RepairOptions())
+    free = _fit_free(row, [1], settings)
+    (lo, hi), = free.widened.values()
+    assert lo <= 41 <= hi and hi > 7 + 1 + 10           # beyond the row's longest input lag plus 10
+    assert abs(free.est.fit.lags[0] - 41) <= 1
+    larger = _refit_element(free, 1, _locate(row, 1, _missing_ladder(model, 0)[1]), None, settings)
+    assert larger.specs[1].window[0] <= 41 <= larger.specs[1].window[1] and larger.widened == free.widened
+    res = repair_model(model, data, [(0, 1)])
+    assert res.kinds[(0, 1)] == "missing" and res.model.delay[0, 1] == pytest.approx(40.0, abs=1.0)

@@ -171,6 +171,9 @@ class _FreeFit:
     est : _RowEstimate
     settings : _TestSettings
         The tests' settings (:meth:`lost_lag` tests at their ``alpha``).
+    widened : dict
+        ``{j: (first, last)}``: the lag ranges :func:`_widen_lag_ranges` widened (input lags, samples),
+        which the refits of an element in another form keep (:func:`_refit_element`).
     """
 
     row: _RowData
@@ -180,6 +183,7 @@ class _FreeFit:
     problem: _RowProblem
     est: _RowEstimate
     settings: _TestSettings
+    widened: dict = dataclasses.field(default_factory=dict)
     _lost: dict = dataclasses.field(default_factory=dict, repr=False)
 
     def lost_lag(self, m: int) -> bool:
@@ -369,16 +373,21 @@ def _fit_free(row: _RowData, js, settings: _TestSettings) -> _FreeFit:
         # Room for the lags of the larger forms (the references' lags may move a few samples).
         return _default_skip(row, specs) + _LAG_SHIFT if row.model.is_step_response else None
     problem, est = _estimate_row(row, specs, lags0, row.n_samples, options, options.max_sweeps, skip=skip_of(specs))
-    specs, problem, est = _follow_edges(row, specs, problem, est, options, skip_of, settings.alpha)
-    free = _FreeFit(row=row, js=list(js), specs=specs, located=located, problem=problem, est=est, settings=settings)
+    first = specs
+    specs, problem, est = _widen_lag_ranges(row, specs, problem, est, options, skip_of, settings.alpha)
+    widened = {j: specs[j].window for j in specs if specs[j].window != first[j].window}
+    free = _FreeFit(row=row, js=list(js), specs=specs, located=located, problem=problem, est=est, settings=settings,
+                    widened=widened)
     return _grow_gained_lags(_reduce_vanished_lags(_choose_forms(free, settings), settings), settings)
 
 
-#: How many times :func:`_follow_edges` widens a lag range by ``max_delay_shift``.
+#: How many times :func:`_widen_lag_ranges` widens a lag range.
 MAX_WIDENINGS = 4
+#: The fewest lags (samples) at which :func:`_widen_lag_ranges` probes the residual's correlation with an input.
+MIN_PROBED_LAGS = 100
 
 
-def _follow_edges(row: _RowData, specs: dict, problem, est, options: RepairOptions, skip_of,
+def _widen_lag_ranges(row: _RowData, specs: dict, problem, est, options: RepairOptions, skip_of,
                   alpha: float = 1e-3):
     """The free fit with the lag ranges widened where the data show the input acting outside them.
 
@@ -391,8 +400,10 @@ def _follow_edges(row: _RowData, specs: dict, problem, est, options: RepairOptio
     - the fit's residual correlates with the element's input at a lag outside the range
       (:meth:`~.fit._RowProblem.input_correlation` above the normal quantile of ``alpha`` shared over the
       lags probed: Bonferroni), at lags up to the largest of the range's end, the row's samples left out
-      (``skip``) and the model's longest input lag, each plus ``max_delay_shift``: the range grows to
-      reach within ``max_delay_shift`` of the most correlated such lag.  In closed loop the best lag within
+      (``skip``), the model's longest input lag and :data:`MIN_PROBED_LAGS`, plus ``max_delay_shift``
+      (at most a quarter of the fit's samples): the range grows to reach within ``max_delay_shift`` of the
+      most correlated such lag.  An element the model lacks whose plant acts after 40 samples, on a row
+      whose longest lag is 8, was fitted at lag 15 with two lags of 44 s.  In closed loop the best lag within
       the model's range can lie inside it (the fit bends the gain and the lag), with no end reached.
 
     The row is refitted after each widening, up to :data:`MAX_WIDENINGS` times, while the record leaves
@@ -413,7 +424,7 @@ def _follow_edges(row: _RowData, specs: dict, problem, est, options: RepairOptio
             if est.edge[m]:
                 wider[j] = dataclasses.replace(specs[j], window=(max(1, lo - s), hi) if lag == lo else (lo, hi + s))
                 continue
-            reach = max(hi, skip, longest) + s
+            reach = min(max(hi, skip, longest, MIN_PROBED_LAGS) + s, max(hi, problem.n_fit // 4))
             z = problem.input_correlation(est.fit, m, reach)
             outside = np.array([not lo <= tau <= hi for tau in range(1, reach + 1)])
             if outside.any() and np.max(z[outside]) > normal_isf(alpha / (2.0 * reach)):
@@ -556,6 +567,9 @@ def _refit_element(free: _FreeFit, j: int, loc: _Located, start, settings: _Test
     search kept within them): what :func:`_choose_forms` and :func:`_reduce_vanished_lags` compare ``free`` with."""
     row, options = free.row, settings.options
     spec, lag0 = _free_spec(row, loc, options, start)
+    if j in free.widened:          # the range the free fit had to widen (_widen_lag_ranges), kept
+        lo, hi = free.widened[j]
+        spec.window = (min(spec.window[0], lo), max(spec.window[1], hi))
     specs = dict(free.specs)
     specs[j] = spec
     lags0 = {jj: int(free.est.fit.lags[k]) for k, jj in enumerate(free.js)}
@@ -565,7 +579,8 @@ def _refit_element(free: _FreeFit, j: int, loc: _Located, start, settings: _Test
     problem, est = _estimate_row(row, specs, lags0, row.n_samples, options, options.max_sweeps, skip=skip)
     located = dict(free.located)
     located[j] = loc
-    return _FreeFit(row=row, js=free.js, specs=specs, located=located, problem=problem, est=est, settings=settings)
+    return _FreeFit(row=row, js=free.js, specs=specs, located=located, problem=problem, est=est, settings=settings,
+                    widened=free.widened)
 
 
 def _shape_changed(after: dict, reference: dict, form: _Form, ts: float, min_change: float) -> bool:

@@ -457,22 +457,19 @@ class _RowProblem:
         search did not reach says that the input acts there.
         """
         resid, _ = self.projected(fit.poles, fit.lags)
-        if self.segments is None:
-            at = np.arange(self.start, self.n_fit)
-            first = np.zeros_like(at)
-        else:
-            at = np.concatenate([np.arange(a + self.start, b) for a, b in self.segments])
-            first = np.concatenate([np.full(b - a - self.start, a) for a, b in self.segments])
         x = self.uf[:, m]
         out = np.zeros(max_lag)
+        if self.segments is None:          # the cost samples k = start .. n_fit - 1, those with k >= tau
+            for tau in range(1, max_lag + 1):
+                k0 = max(self.start, tau)
+                e, v = resid[k0 - self.start:], x[k0 - tau:self.n_fit - tau]
+                out[tau - 1] = _normalized_product(e, v)
+            return out
+        at = np.concatenate([np.arange(a + self.start, b) for a, b in self.segments])
+        first = np.concatenate([np.full(b - a - self.start, a) for a, b in self.segments])
         for tau in range(1, max_lag + 1):
             ok = at - tau >= first
-            if ok.sum() < 2:
-                continue
-            e, v = resid[ok], x[at[ok] - tau]
-            den = math.sqrt(float(e @ e) * float(v @ v))
-            if den > 0:
-                out[tau - 1] = math.sqrt(ok.sum()) * abs(float(e @ v)) / den
+            out[tau - 1] = _normalized_product(resid[ok], x[at[ok] - tau])
         return out
 
     def evaluate(self, poles, lags) -> _Fit:
@@ -723,6 +720,14 @@ class _RowEstimate:
         if self._cond is None:
             self._cond = self.problem.condition(self.fit)
         return self._cond
+
+
+def _normalized_product(e: np.ndarray, v: np.ndarray) -> float:
+    """``sqrt(N) |e'v| / (|e| |v|)`` of two vectors of ``N`` samples (0 when either is 0 or ``N < 2``)."""
+    if e.shape[0] < 2:
+        return 0.0
+    den = math.sqrt(float(e @ e) * float(v @ v))
+    return math.sqrt(e.shape[0]) * abs(float(e @ v)) / den if den > 0 else 0.0
 
 
 _TAU_GRID = (0.5, 0.7, 1.0, 1.4, 2.0)
