@@ -13,6 +13,9 @@ full analysis runs with the repair.  Scored, for every mismatched element that w
 ``--setpoint-steps``: the setpoints moved in steps instead of the paper's PRBS
 (:data:`bench.scenarios.SETPOINT_STEPS`, as ``bench.monte_carlo --setpoint-steps``).
 
+``--kinds missing --max-delay 40``: elements the model lacks, on plants with dead times up to 40 samples
+(every run at least one mismatch; the repaired delay of a located missing element is scored as above).
+
 ``--far-delays``: one or two delay mismatches a run, each 11 to 30 samples from the plant's
 (:data:`bench.scenarios.FAR_DELAYS`), more than the repair's own search range (``max_delay_shift``, 10
 samples); the repaired delay of every located element whose delay was drawn is scored against the plant's
@@ -20,7 +23,7 @@ samples); the repaired delay of every located element whose delay was drawn is s
 alarms) and the drawn ones missed.
 
 Run: ``python -m bench.repair_mc [--runs 200] [--seed 0] [--samples 3000] [--dither-fat] [--setpoint-steps]
-[--far-delays]``
+[--far-delays] [--kinds K,...] [--max-delay N]``
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ import collections
 import dataclasses
 import statistics
 import time
+from typing import Optional
 
 import numpy as np
 
@@ -58,7 +62,7 @@ def one(seed: int, index: int, samples: int, options: ScenarioOptions) -> dict:
     changes = {(c["output"], c["input"]): c for c in rep.repair["changes"]}
     delays = []
     for k, m in drawn.items():
-        if k in kinds and m.plant["delay"] != m.model["delay"] and k in changes:
+        if k in kinds and (m.plant["delay"] != m.model["delay"] or m.kind == "missing") and k in changes:
             c = changes[k]
             delays.append({"element": list(k), "plant": m.plant["delay"], "model": m.model["delay"],
                            "repaired": c["after"]["delay"], "applied": bool(c["applied"])})
@@ -75,8 +79,12 @@ def one(seed: int, index: int, samples: int, options: ScenarioOptions) -> dict:
 
 
 def run(runs: int, seed: int, samples: int, dither_fat: bool, setpoint_steps: bool = False,
-        far_delays: bool = False) -> dict:
+        far_delays: bool = False, kinds: Optional[tuple] = None, max_delay: Optional[int] = None) -> dict:
     base = FAR_DELAYS if far_delays else ScenarioOptions()
+    if kinds is not None:
+        base = dataclasses.replace(base, kinds=tuple(kinds), min_mismatches=max(base.min_mismatches, 1))
+    if max_delay is not None:
+        base = dataclasses.replace(base, max_delay=int(max_delay))
     if setpoint_steps:
         base = dataclasses.replace(base, setpoint_switch_probability=SETPOINT_STEPS.setpoint_switch_probability,
                                    setpoint_min_hold=SETPOINT_STEPS.setpoint_min_hold)
@@ -93,6 +101,7 @@ def run(runs: int, seed: int, samples: int, dither_fat: bool, setpoint_steps: bo
     others = [x["ratio"] for r in recs for x in r["other_rows"]]
     return {"runs": runs, "seed": seed, "samples": samples, "dither_fat": dither_fat,
             "setpoints": "steps" if setpoint_steps else "paper PRBS", "far_delays": far_delays,
+            "kinds": list(options.kinds), "max_delay": options.max_delay,
             "drawn_elements": sum(len(make_scenario(seed, k, options).mismatches) for k in range(runs)),
             "missed_elements": sum(len(r["missed_elements"]) for r in recs),
             "false_elements": sum(len(r["false_elements"]) for r in recs),
@@ -120,7 +129,9 @@ def format_table(res: dict) -> str:
     lines = [f"trace and repair over {res['runs']} Monte-Carlo scenarios (seed {res['seed']}, {res['samples']} samples"
              f"{', dither on fat plants' if res['dither_fat'] else ''}"
              f"{', setpoints in steps' if res.get('setpoints') == 'steps' else ''}"
-             f"{', delays 11 to 30 samples off' if res.get('far_delays') else ''})",
+             f"{', delays 11 to 30 samples off' if res.get('far_delays') else ''}"
+             f"{', kinds ' + ' '.join(res['kinds']) if res.get('kinds') and len(res['kinds']) < 5 and not res.get('far_delays') else ''}"
+             f"{', plant delays up to ' + str(res['max_delay']) if res.get('max_delay', 8) != 8 and not res.get('far_delays') else ''})",
              f"kind of located mismatched elements: {res['kind_accuracy']:.3f} exact ({res['kinds_scored']} elements)",
              "confusion (drawn -> reported):"]
     width = max(len(k) for k in res["confusion"]) if res["confusion"] else 10
@@ -135,7 +146,7 @@ def format_table(res: dict) -> str:
     if "delays_scored" in res:
         lines.append(f"drawn elements missed: {res['missed_elements']} of {res['drawn_elements']}; elements located "
                      f"that were not drawn: {res['false_elements']} (in {res['runs_with_a_false_element']} runs)")
-        lines.append(f"located elements with a drawn delay change: repaired within one sample of the plant's and "
+        lines.append(f"located elements with a drawn delay change or missing: repaired within one sample of the plant's and "
                      f"applied {res['delays_within_one_sample']} of {res['delays_scored']}; of those more than 10 "
                      f"samples off {res['delays_far_within_one_sample']} of {res['delays_far_scored']}")
     lines.append(f"median analyze time with the repair: {res['median_analyze_with_repair_s']:.2f} s")
@@ -152,9 +163,14 @@ def main(argv=None) -> int:
                    help="setpoints moved in steps (bench.scenarios.SETPOINT_STEPS) instead of the paper's PRBS")
     p.add_argument("--far-delays", action="store_true",
                    help="delay mismatches 11 to 30 samples off (bench.scenarios.FAR_DELAYS)")
+    p.add_argument("--kinds", default=None, metavar="KIND[,KIND...]",
+                   help="mismatch kinds drawn (bench.scenarios.KINDS; at least one mismatch a run)")
+    p.add_argument("--max-delay", type=int, default=None, help="largest plant delay, samples (default 8)")
     p.add_argument("--out", default="bench/results/repair_mc.json")
     args = p.parse_args(argv)
-    res = run(args.runs, args.seed, args.samples, args.dither_fat, args.setpoint_steps, args.far_delays)
+    kinds = tuple(args.kinds.split(",")) if args.kinds else None
+    res = run(args.runs, args.seed, args.samples, args.dither_fat, args.setpoint_steps, args.far_delays, kinds,
+              args.max_delay)
     print(format_table(res))
     write_json(args.out, res)
     return 0

@@ -44,3 +44,14 @@ def test_repair_mc_scores_the_repaired_delays():
     for r in res["records"]:
         for x in r["delays"]:
             assert abs(x["plant"] - x["model"]) >= 11
+
+
+def test_repair_mc_takes_kinds_and_the_largest_delay():
+    from bench import repair_mc
+
+    res = repair_mc.run(1, 0, 1500, dither_fat=True, kinds=("missing",), max_delay=40)
+    assert res["kinds"] == ["missing"] and res["max_delay"] == 40
+    assert "kinds missing, plant delays up to 40" in repair_mc.format_table(res)
+    sc = make_scenario(0, 0, dataclasses.replace(ScenarioOptions(), kinds=("missing",), min_mismatches=1,
+                                                 max_delay=40))
+    assert res["drawn_elements"] == len(sc.mismatches) >= 1
