@@ -67,7 +67,7 @@ def one(seed: int, index: int, samples: int, options: ScenarioOptions) -> dict:
             delays.append({"element": list(k), "plant": m.plant["delay"], "model": m.model["delay"],
                            "repaired": c["after"]["delay"], "applied": bool(c["applied"])})
     return {
-        "index": index, "shape": [sc.plant.n_outputs, sc.plant.n_inputs], "time_s": dt,
+        "index": index, "shape": [sc.plant.n_outputs, sc.plant.n_inputs], "time_s": dt, "drawn": len(truth),
         "false_elements": [list(k) for k in kinds if k not in truth],
         "missed_elements": [list(k) for k in truth if k not in kinds],
         "delays": delays,
@@ -102,7 +102,7 @@ def run(runs: int, seed: int, samples: int, dither_fat: bool, setpoint_steps: bo
     return {"runs": runs, "seed": seed, "samples": samples, "dither_fat": dither_fat,
             "setpoints": "steps" if setpoint_steps else "paper PRBS", "far_delays": far_delays,
             "kinds": list(options.kinds), "max_delay": options.max_delay,
-            "drawn_elements": sum(len(make_scenario(seed, k, options).mismatches) for k in range(runs)),
+            "drawn_elements": sum(r["drawn"] for r in recs),
             "missed_elements": sum(len(r["missed_elements"]) for r in recs),
             "false_elements": sum(len(r["false_elements"]) for r in recs),
             "runs_with_a_false_element": sum(bool(r["false_elements"]) for r in recs),

@@ -164,10 +164,10 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
     names = list(dict.fromkeys(name for _, name in tried.located)) if tried is not None else []
     wide, wide_data = (model, data) if not names else _with_candidates(model, data, names)
     columns = wide.columns
-    located = [(wide.outputs.index(e.output), columns.index(e.input)) for e in report.elements if e.mismatch]
+    mismatched = [e for e in report.elements if e.mismatch]
+    located = [(wide.outputs.index(e.output), columns.index(e.input)) for e in mismatched]
     # The element test's estimate of where each mismatch acts: the repair's delay search reaches it.
-    delays = {(wide.outputs.index(e.output), columns.index(e.input)): int(e.delay) for e in report.elements
-              if e.mismatch and e.delay is not None}
+    delays = {key: int(e.delay) for key, e in zip(located, mismatched) if e.delay is not None}
     span, note = repair_data(wide_data, report.gaps is not None, options, wide)
     max_gap = None if report.gaps is None else report.gaps["max_gap"]    # the model runs through the short gaps
     repair_options = RepairOptions(initial_state=options.initial_state, max_gap=max_gap)

@@ -426,9 +426,10 @@ def _widen_lag_ranges(row: _RowData, specs: dict, problem, est, options: RepairO
                 continue
             reach = min(max(hi, skip, longest, MIN_PROBED_LAGS) + s, max(hi, problem.n_fit // 4))
             z = problem.input_correlation(est.fit, m, reach)
-            outside = np.array([not lo <= tau <= hi for tau in range(1, reach + 1)])
+            taus = np.arange(1, reach + 1)
+            outside = (taus < lo) | (taus > hi)
             if outside.any() and np.max(z[outside]) > normal_isf(alpha / (2.0 * reach)):
-                tau = int(np.argmax(np.where(outside, z, -1.0))) + 1
+                tau = int(taus[np.argmax(np.where(outside, z, -1.0))])
                 wider[j] = dataclasses.replace(specs[j], window=(max(1, min(lo, tau - s)), max(hi, tau + s)))
         if wider == specs:
             break

@@ -92,11 +92,13 @@ class RepairOptions:
         check_repair_options(self)
 
 
+def is_int(x) -> bool:
+    """An integer (Python's or numpy's), not a boolean."""
+    return isinstance(x, (int, np.integer)) and not isinstance(x, bool)
+
+
 def check_repair_options(opts: RepairOptions) -> None:
     """Raise :class:`ConfigurationError` naming the first option outside its range."""
-
-    def is_int(x):
-        return isinstance(x, (int, np.integer)) and not isinstance(x, bool)
 
     def is_num(x):
         return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) and math.isfinite(x)

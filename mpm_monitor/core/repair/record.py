@@ -17,7 +17,7 @@ from ..model import PlantModel
 from ..signals import (LoopSignals, compute_signals, scored_segments, segment_signals, segments_mask,
                        unknown_starts)
 from .holdout import ar_one_step_errors
-from .options import RepairOptions, _TestSettings
+from .options import RepairOptions, _TestSettings, is_int
 
 
 def _project_out(x: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -102,8 +102,7 @@ def _check_delays(delays, located) -> dict:
                          f"got {type(delays).__name__}") from None
     out = {}
     for key, lag in items:
-        ok = isinstance(lag, (int, np.integer)) and not isinstance(lag, bool) and lag >= 0
-        if not ok:
+        if not (is_int(lag) and lag >= 0):
             raise InputError(f"repair: delays[{key!r}]: expected an integer number of samples >= 0, got {lag!r}")
         try:
             pair = tuple(int(v) for v in key)
