@@ -8,7 +8,7 @@ import pytest
 
 from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.data_warnings import OFFSET_RATIO, offset_warnings
-from mpm_monitor.core.errors import ModelFileError
+from mpm_monitor.core.errors import DataFileError, ModelFileError
 from mpm_monitor.core.logged_data import in_deviations
 from mpm_monitor.core.model import PlantModel
 from mpm_monitor.core.pipeline import analyze
@@ -146,3 +146,31 @@ def test_a_candidate_logged_in_its_units_is_added_at_its_operating_point(effect_
     assert back.repair["error_before"] == pytest.approx(rep.repair["error_after"], rel=1e-6)
     assert not any("offset from the logged output" in w for w in back.warnings)
 
+
+
+@pytest.mark.parametrize("key, field, shift", [("output_nominal", "y", 1e17), ("input_nominal", "u", -3e16),
+                                               ("disturbance_nominal", "dv", 1e18)])
+def test_an_operating_point_that_rounds_the_moves_away_is_refused(level_loop, key, field, shift):
+    """``output_nominal: [1e17]`` with outputs of order 1: every deviation rounded to -1e17 exactly, and a moving
+    output was reported as a stuck sensor.  The operating point is refused in one line naming it and the channel."""
+    model, data = level_loop
+    nominal = np.zeros(np.shape(getattr(data, field))[1])
+    nominal[0] = shift
+    with pytest.raises(DataFileError) as err:
+        in_deviations(model.replace(**{key: nominal}), data)
+    msg = str(err.value)
+    assert len(msg.splitlines()) == 1 and msg.startswith("level: ")
+    names = {"y": data.outputs, "u": data.inputs, "dv": data.disturbances}[field]
+    assert f"the model's {key} of {names[0]} ({shift:g})" in msg and "its moves are lost" in msg, msg
+
+
+def test_a_large_operating_point_near_the_logged_values_is_taken(level_loop):
+    """Values logged at 1e9 about an operating point of 1e9 keep their moves (their own spacing is the rounding),
+    and so does an operating point of 1e6 on values of order 1: neither is refused."""
+    model, data = level_loop
+    y0 = np.full(model.n_outputs, 1e9)
+    lifted = dataclasses.replace(data, y=np.asarray(data.y) + y0, r=np.asarray(data.r) + y0)
+    dev = in_deviations(model.replace(output_nominal=y0), lifted)
+    np.testing.assert_allclose(dev.y, data.y, atol=1e-6)
+    far = in_deviations(model.replace(output_nominal=np.full(model.n_outputs, 1e6)), data)
+    np.testing.assert_allclose(far.y, np.asarray(data.y) - 1e6)

@@ -233,6 +233,10 @@ def in_deviations(model: PlantModel, data: LoggedData) -> LoggedData:
     dv = np.asarray(data.dv, dtype=float)
     if dv.shape != (n, d0.size):          # refused later, with its own message
         d0 = np.zeros(dv.shape[1:])
+    where = data.source or "data"
+    for key, nominal, x, names in (("input_nominal", u0, data.u, data.inputs), ("output_nominal", y0, data.y, data.outputs),
+                                   ("disturbance_nominal", d0, dv, data.disturbances)):
+        _check_nominal_precision(where, key, nominal, np.asarray(x, dtype=float), names)
     fill = data.column_fill
     if fill is not None:
         cols = np.array(fill[1], dtype=float)
@@ -242,6 +246,61 @@ def in_deviations(model: PlantModel, data: LoggedData) -> LoggedData:
     return dataclasses.replace(data, u=np.asarray(data.u, dtype=float) - u0, y=np.asarray(data.y, dtype=float) - y0,
                                r=np.asarray(data.r, dtype=float) - y0, dv=dv - d0, deviations=True,
                                column_fill=fill)
+
+
+#: An operating point is refused when subtracting it rounds a channel's values to steps larger than this fraction of
+#: the channel's standard deviation (:func:`_check_nominal_precision`).
+NOMINAL_ROUNDING_LIMIT = 1e-3
+
+
+def _check_nominal_precision(where: str, key: str, nominal: np.ndarray, x: np.ndarray, names) -> None:
+    """Refuse an operating point so far from a channel's logged values that 64-bit floats lose the channel's moves
+    when it is subtracted.
+
+    The deviation ``x - nominal`` is rounded to the spacing of floats at its size: with ``output_nominal`` 1e17 and
+    values of order 1, every deviation is -1e17 exactly, and a moving output would read as stuck.  A channel is
+    refused when that spacing is larger than :data:`NOMINAL_ROUNDING_LIMIT` of its standard deviation and larger
+    than the spacing its logged values already have (a log that holds large values loses nothing more).  A deviation
+    beyond :data:`MAX_ANALYSIS_SCALE` is left to the scale's own refusal.
+
+    Parameters
+    ----------
+    where : str
+        The data's source, for the message.
+    key : str
+        The model file's key (``input_nominal``, ``output_nominal`` or ``disturbance_nominal``).
+    nominal : ndarray, shape (k,)
+        The operating point, in the channels' units.
+    x : ndarray, shape (n_samples, k)
+        The logged values (NaN where missing), in the same units.
+    names : sequence of str, length k
+
+    Raises
+    ------
+    DataFileError
+        Naming the source, the key, the channel, the operating point and the channel's spread.
+    """
+    if x.ndim != 2 or x.shape[1] != nominal.size or x.shape[0] < 2:
+        return
+    for i in np.flatnonzero(nominal != 0):
+        col = x[:, i]
+        col = col[np.isfinite(col)]
+        if col.size < 2:
+            continue
+        spread = float(np.std(col))
+        if not moving_columns(col):
+            continue
+        largest = float(np.max(np.abs(col - nominal[i])))
+        if largest > MAX_ANALYSIS_SCALE:        # refused later as too large, with its own message
+            continue
+        step = float(np.spacing(largest))
+        if step > NOMINAL_ROUNDING_LIMIT * spread and step > float(np.spacing(np.max(np.abs(col)))):
+            name = names[i] if i < len(names) else f"column {i}"
+            raise DataFileError(
+                f"{where}: the model's {key} of {name} ({float(nominal[i]):g}) is so far from its logged values "
+                f"(standard deviation {spread:.3g}) that subtracting it rounds them to steps of {step:.3g} in 64-bit "
+                f"floats, and its moves are lost; expected the operating point of the logged values (0 if they are "
+                f"deviations already)")
 
 
 SIGNAL_NAMES = ("setpoint", "input", "output")
