@@ -137,15 +137,19 @@ def test_unusable_channels_are_reported_with_a_warning(effect_run):
     extra = dict(effect_run.data.extra)
     extra["stuck"] = np.full(n, 3.0)
     extra["broken"] = np.where(np.arange(n) == 10, np.nan, 1.0 + np.arange(n) * 0.01)
+    # Moving, but so small that its squares underflow: it was called constant.
+    extra["tiny"] = 1e-300 * np.random.default_rng(3).standard_normal(n)
     data = dataclasses.replace(effect_run.data, extra=extra, unusable={"status": "not numeric (line 5: 'OK')"})
-    chosen = select_candidates(data, "stuck,broken,status,ambient", effect_run.model)
+    chosen = select_candidates(data, "stuck,broken,status,tiny,ambient", effect_run.model)
     assert chosen.names == ("ambient",)
+    peak = float(np.abs(extra["tiny"]).max())
     assert chosen.unusable == {"stuck": "constant: it never moves", "broken": "holds NaN or infinity",
-                               "status": "not numeric (line 5: 'OK')"}
+                               "status": "not numeric (line 5: 'OK')",
+                               "tiny": f"values up to {peak:.3g}: too small for the analysis (at least 1e-100); rescale"}
     rep = detect(effect_run.model, data, candidates=chosen)
-    assert set(rep.candidates.unusable) == {"stuck", "broken", "status"}
+    assert set(rep.candidates.unusable) == {"stuck", "broken", "status", "tiny"}
     assert any(w.startswith("candidate stuck is unusable (constant") for w in rep.warnings)
-    assert not any(e.input in ("stuck", "broken", "status") for e in rep.elements)
+    assert not any(e.input in ("stuck", "broken", "status", "tiny") for e in rep.elements)
 
 
 def test_unknown_or_model_channels_are_refused_in_one_line(effect_run):

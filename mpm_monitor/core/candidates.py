@@ -73,7 +73,7 @@ import numpy as np
 
 from .arx import segment_lag_matrix, segment_rows
 from .errors import ConfigurationError
-from .logged_data import MAX_ANALYSIS_SCALE, LoggedData, moving_columns
+from .logged_data import MAX_ANALYSIS_SCALE, MIN_ANALYSIS_SCALE, LoggedData, moving_columns
 from .model import PARAMETRIC_KEYS, PlantModel, name_problem
 from .statistics import chi2_tail, f_test
 
@@ -143,7 +143,9 @@ def channel_problem(values, n_samples: int) -> Optional[str]:
     Returns
     -------
     str or None
-        "not numeric", "N samples, the log has M", "holds NaN or infinity", too large, or "constant".
+        "not numeric", "N samples, the log has M", "holds NaN or infinity", too large, too small (its largest
+        |value| below :data:`~mpm_monitor.core.logged_data.MIN_ANALYSIS_SCALE`, whose moves would square to zero),
+        or "constant".
     """
     try:
         x = np.asarray(values, dtype=float)
@@ -156,6 +158,8 @@ def channel_problem(values, n_samples: int) -> Optional[str]:
     peak = float(np.abs(x).max(initial=0.0))
     if peak > MAX_ANALYSIS_SCALE:
         return f"values up to {peak:.3g}: too large for the analysis (at most {MAX_ANALYSIS_SCALE:g}); rescale"
+    if 0.0 < peak < MIN_ANALYSIS_SCALE:   # its moves square to zero (underflow): it would read as constant
+        return f"values up to {peak:.3g}: too small for the analysis (at least {MIN_ANALYSIS_SCALE:g}); rescale"
     if not moving_columns(x):            # relative to its own size: a channel in small units moves too
         return "constant: it never moves"
     return None
