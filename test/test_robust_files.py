@@ -779,6 +779,22 @@ def test_a_seed_or_dither_out_of_range_is_one_line(files, capsys, argv, flag, va
     assert not csv.exists()
 
 
+@pytest.mark.parametrize("command, flag, value, expected", [
+    ("analyze", "--alpha", "2", "expected a value in (0, 0.5), got 2.0"),
+    ("analyze", "--max-delay", "-1", "expected a value in [0, 1000], got -1"),
+    ("analyze", "--jobs", "0", "expected a value in [1, 64], got 0"),
+    ("analyze", "--band", "3 1", "expected 0 <= low < high <= pi rad/sample, got [3.0, 1.0]"),
+    ("reproduce", "--na", "-2", "expected a value in [0, 50], got -2"),
+])
+def test_an_analysis_option_out_of_range_is_named_by_its_flag(files, capsys, command, flag, value, expected):
+    """The options' check names them as the library does (``parameter max_delay: ...``); on the command line the
+    message names the flag that was given (``--max-delay: ...``)."""
+    src = (["--model", str(files["model"]), "--data", str(files["csv"])] if command == "analyze"
+           else ["--case", "3.2", "--samples", "100"])
+    code, out, err = _run_cli(capsys, [command, *src, flag, *value.split()])
+    assert code == 2 and err == f"error: {flag}: {expected}\n", err
+
+
 @pytest.mark.parametrize("flag,target,match", [
     ("--json", "missing_dir/r.json", r"--json .*missing_dir/r\.json: directory .*missing_dir does not exist"),
     ("--repair-out", "missing_dir/m.yaml", r"--repair-out .*: directory .*missing_dir does not exist"),

@@ -522,6 +522,21 @@ COMMANDS = {"analyze": _cmd_analyze, "reproduce": _cmd_reproduce, "simulate": _c
 BROKEN_PIPE = 141
 
 
+def _named_as_flag(parser: argparse.ArgumentParser, command: str, message: str) -> str:
+    """``message`` with an option named as the library and the nodes name it (``parameter max_delay: ...``) named
+    as the command's flag (``--max-delay: ...``), when the command has a flag that sets it."""
+    head, sep, rest = message.partition(": ")
+    name = head[len("parameter "):] if head.startswith("parameter ") else None
+    if not sep or not name or not name.isidentifier():
+        return message
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction) and command in action.choices:
+            for a in action.choices[command]._actions:
+                if a.dest == name and a.nargs != 0 and a.option_strings:
+                    return f"{a.option_strings[-1]}: {rest}"
+    return message
+
+
 def main(argv=None) -> int:
     """Entry point; returns the exit code (0 ran, 2 bad input, 130 interrupted, :data:`BROKEN_PIPE` the
     output's reader went away)."""
@@ -538,7 +553,7 @@ def main(argv=None) -> int:
         with np.errstate(all="ignore"):
             return COMMANDS[args.command](args)
     except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {_named_as_flag(parser, args.command, str(exc))}", file=sys.stderr)
         return 2
     except MemoryError:
         # A log too long for this machine's memory: one line, as for bad input (no traceback of numpy's
