@@ -785,10 +785,11 @@ def test_a_seed_or_dither_out_of_range_is_one_line(files, capsys, argv, flag, va
     ("analyze", "--jobs", "0", "expected a value in [1, 64], got 0"),
     ("analyze", "--band", "3 1", "expected 0 <= low < high <= pi rad/sample, got [3.0, 1.0]"),
     ("reproduce", "--na", "-2", "expected a value in [0, 50], got -2"),
+    ("analyze", "--candidates", "a,,b", "expected 'all' or NAME[,NAME...] of logged channels, got 'a,,b'"),
 ])
 def test_an_analysis_option_out_of_range_is_named_by_its_flag(files, capsys, command, flag, value, expected):
-    """The options' check names them as the library does (``parameter max_delay: ...``); on the command line the
-    message names the flag that was given (``--max-delay: ...``)."""
+    """The options' checks name them as the library does (``parameter max_delay: ...``, ``candidates: ...``); on the
+    command line the message names the flag that was given (``--max-delay: ...``)."""
     src = (["--model", str(files["model"]), "--data", str(files["csv"])] if command == "analyze"
            else ["--case", "3.2", "--samples", "100"])
     code, out, err = _run_cli(capsys, [command, *src, flag, *value.split()])

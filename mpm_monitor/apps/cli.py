@@ -523,10 +523,10 @@ BROKEN_PIPE = 141
 
 
 def _named_as_flag(parser: argparse.ArgumentParser, command: str, message: str) -> str:
-    """``message`` with an option named as the library and the nodes name it (``parameter max_delay: ...``) named
-    as the command's flag (``--max-delay: ...``), when the command has a flag that sets it."""
+    """``message`` with an option named as the library and the nodes name it (``parameter max_delay: ...``,
+    ``candidates: ...``) named as the command's flag (``--max-delay: ...``), when the command has a flag that sets it."""
     head, sep, rest = message.partition(": ")
-    name = head[len("parameter "):] if head.startswith("parameter ") else None
+    name = head[len("parameter "):] if head.startswith("parameter ") else head
     if not sep or not name or not name.isidentifier():
         return message
     for action in parser._actions:
