@@ -581,10 +581,12 @@ def check_gap_rows(plan, layout, options, src: str, model: PlantModel, notes=())
         return plan.rows_kept >= least.min_samples - least.start
     # A row after most gaps: t in other units, or the model's sample time wrong (time_unit_note).  Gaps
     # closer together than the rows a span needs first: too many samples missing for these lags.
-    unit = time_unit_note(plan, model.sample_time)
+    # Rows the reader left out (``notes``) made the gaps themselves: t then advances by more than a sample between
+    # the rows kept because rows were left out, not because of the time's unit.
+    unit = "" if notes else time_unit_note(plan, model.sample_time)
     span = int(np.median([b - a for a, b in plan.segments]))
     close = "" if unit or span > layout.start else \
-        f"; the gaps come too close together: half the spans hold {span} samples or fewer"
+        f"; the gaps come too close together: half the spans hold {span} sample{'s' if span != 1 else ''} or fewer"
     raise TooFewSamples(f"{src}: {plan.rows_kept} regression rows from {len(plan.used)} of {n_seg} spans between "
                         f"{n_gaps} gap{'s' if n_gaps != 1 else ''} ({plan.samples_missing} samples missing; a span "
                         f"gives rows after its first {layout.start} samples); the tests with na={options.na}, "
