@@ -179,6 +179,27 @@ def test_bad_csv_refused_with_one_line_naming_line_and_column(tmp_path, case):
     assert isinstance(info.value, InputError) and isinstance(info.value, ValueError)
 
 
+def test_an_endless_binary_input_is_refused_before_it_is_read_whole():
+    """``--data /dev/zero`` was read until the kernel killed the process (24 GB); the NUL bytes at its start now
+    refuse it at once.  Run in a child with its address space capped at 1.5 GB and a time limit, so that the old
+    behaviour fails the test instead of taking the machine's memory."""
+    import resource
+    import subprocess
+    import sys
+
+    def cap():
+        resource.setrlimit(resource.RLIMIT_AS, (1_500_000_000, 1_500_000_000))
+
+    code = ("from mpm_monitor.io.csv_log import read_csv\n"
+            "from mpm_monitor.core.model import PlantModel\n"
+            "m = PlantModel(sample_time=1.0, inputs=('u1',), outputs=('y1',), gain=[[1.0]], time_constant=[[5.0]],"
+            " delay=[[1.0]])\n"
+            "read_csv('/dev/zero', m)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, preexec_fn=cap)
+    assert res.returncode == 1 and "DataFileError: /dev/zero: contains NUL bytes: expected a CSV text file" in \
+        res.stderr, res.stderr[-500:]
+
+
 def test_line_numbers_count_blank_lines(tmp_path):
     # A blank line is skipped but still counted: the error names the line as an editor shows it.
     rows = _rows()

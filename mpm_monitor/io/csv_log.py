@@ -169,7 +169,10 @@ def read_csv(path, model: PlantModel, started: "StartedCsvRead | None" = None,
             started.close()
         # not read or not UTF-8: the reading below says so, or reads the foreign header, as without `started`
     try:
-        text = read_text(path, DataFileError, "data file", "a CSV file", encoding="utf-8-sig", gzip_ok=True)
+        text = read_text(path, DataFileError, "data file", "a CSV file", encoding="utf-8-sig", gzip_ok=True,
+                         nul_error=_NulBytes)
+    except _NulBytes as exc:       # refused before the rest is read (a device that never ends, a binary stream)
+        raise DataFileError(f"{exc}: expected a CSV text file") from None
     except DataFileError:
         text = _text_with_a_foreign_header(path)     # None: the bytes are not UTF-8 below the header too
         needed = csv_header(model.inputs, model.outputs, model.disturbances)
@@ -186,6 +189,10 @@ def read_csv(path, model: PlantModel, started: "StartedCsvRead | None" = None,
             data.unusable[name] = "its name in the header is not UTF-8 text"
         return data
     return parse_csv_text(text, model, source=str(path), bad_values=bad_values)
+
+
+class _NulBytes(DataFileError):
+    """NUL bytes at the start of a data file (:func:`~mpm_monitor.io.files.read_text`'s ``nul_error``)."""
 
 
 #: What a row with a bad value of the model's channels does (:func:`read_csv`): refuse the file, or leave the row

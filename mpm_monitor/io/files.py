@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import stat
 from pathlib import Path
 
 
@@ -39,8 +41,21 @@ def gunzipped(raw: bytes, path, error_cls, expected: str) -> bytes:
     return out
 
 
+#: Bytes at the start of a file in which :func:`read_text` looks for NUL bytes before it reads the rest.
+NUL_PEEK_BYTES = 1 << 16
+
+
+def _utf8_start(raw: bytes) -> bool:
+    """Whether ``raw`` (the start of a stream) is UTF-8 text, but for a character its end may cut."""
+    try:
+        raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        return exc.reason == "unexpected end of data"
+    return True
+
+
 def read_text(path, error_cls, kind: str, expected: str, encoding: str = "utf-8", max_bytes=None,
-              gzip_ok: bool = False) -> str:
+              gzip_ok: bool = False, nul_error=None) -> str:
     """The text of a file, or ``error_cls`` with one line naming the file.
 
     Parameters
@@ -59,14 +74,23 @@ def read_text(path, error_cls, kind: str, expected: str, encoding: str = "utf-8"
         ``/dev/zero`` never ends).
     gzip_ok : bool
         A gzip file (``log.csv.gz``) is read as its content (:func:`gunzipped`).
+    nul_error : type, optional
+        Raised (``"PATH: contains NUL bytes"``) when the first :data:`NUL_PEEK_BYTES` bytes of a stream that is not
+        a regular file (a device, a pipe) hold a NUL byte, are UTF-8 and not gzip, before the rest is read: a
+        device such as ``/dev/zero`` never ends, and would be read until the memory runs out.  A regular file,
+        or bytes that are not UTF-8, are read whole and refused as before (by the caller, or as not UTF-8).
     """
     path = Path(path)
     try:
-        if max_bytes is None:
-            raw = path.read_bytes()
-        else:
-            with open(path, "rb") as f:
-                raw = f.read(max_bytes + 1)
+        with open(path, "rb") as f:
+            raw = f.read(NUL_PEEK_BYTES if max_bytes is None else min(NUL_PEEK_BYTES, max_bytes + 1))
+            if nul_error is not None and b"\x00" in raw and not raw.startswith(GZIP_MAGIC) \
+                    and not stat.S_ISREG(os.fstat(f.fileno()).st_mode) and _utf8_start(raw):
+                raise nul_error(f"{path}: contains NUL bytes")
+            if max_bytes is None:
+                raw += f.read()
+            elif len(raw) <= max_bytes:
+                raw += f.read(max_bytes + 1 - len(raw))
     except OSError as exc:
         raise error_cls(f"{path}: cannot read {kind}: {exc.strerror or exc}") from None
     if max_bytes is not None and len(raw) > max_bytes:
