@@ -65,6 +65,17 @@ def _seed(text: str) -> int:
     return value
 
 
+def _samples(text: str) -> int:
+    """argparse type of ``--samples`` of ``simulate`` and ``reproduce``: an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = None
+    if value is None or value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
+    return value
+
+
 def _path(text: str) -> str:
     """argparse type of a file or directory argument: a path that is not empty (an empty one, as
     ``--data "$UNSET"`` gives, would otherwise read as no argument at all or as the current directory)."""
@@ -176,7 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("reproduce", help="simulate a case and print the paper-style result")
     p.add_argument("--case", choices=DEMO_CASES, required=True)
-    p.add_argument("--samples", type=int, default=3000)
+    p.add_argument("--samples", type=_samples, default=3000)
     p.add_argument("--seed", type=_seed, default=1)
     p.add_argument("--plots", type=_path, default="reproduce_plots", help="directory for the singular-value PNGs")
     _add_analysis_options(p)
@@ -186,9 +197,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a case (plant and model): the paper's 3.1, 3.2, 3.3, or level")
     p.add_argument("--plant", type=_path, help="plant model file (YAML); with --model instead of --case")
     p.add_argument("--model", type=_path, help="controller model file (YAML)")
-    p.add_argument("--samples", type=int, default=3000)
+    p.add_argument("--samples", type=_samples, default=3000)
     p.add_argument("--seed", type=_seed, default=1)
-    p.add_argument("--dither", type=_amplitude, default=0.0, help="amplitude of a PRBS dither on every input")
+    p.add_argument("--dither", type=_amplitude, default=None,
+                   help="amplitude of a PRBS dither on every input (default 0: none)")
     p.add_argument("--experiment", type=_path, default=None, metavar="REPORT_JSON",
                    help="add the dither of the experiment an analyze --json report recommends (its amplitude per "
                         "input, switching with probability 1/2); instead of --dither")
@@ -226,7 +238,7 @@ def _cmd_recover(args) -> int:
     from ..io.bags import recover_bag
 
     n = recover_bag(args.bag, args.out, warn=lambda note: print(f"warning: {note}", file=sys.stderr))
-    print(f"recovered {n} messages into {args.out}")
+    _say(f"recovered {n} messages into {args.out}")
     return 0
 
 
@@ -317,14 +329,14 @@ def _analyze(args, started) -> int:
     from ..io.json_text import dumps_indented     # json.dumps(..., indent=2)'s text, quicker
 
     if args.json_out == "-":
-        sys.stdout.write(dumps_indented(report.to_dict()) + "\n")
+        _say(dumps_indented(report.to_dict()))
     else:
         if args.json_out:
             text = dumps_indented(report.to_dict()) + "\n"
             from ..io.files import write_text_replacing
 
             _write_output(args.json_out, "--json", lambda: write_text_replacing(args.json_out, text))
-        print(report.summary_text())
+        _say(report.summary_text())
     if args.repair_out:
         _write_output(args.repair_out, "--repair-out", lambda: save_model(report.repaired_model, args.repair_out))
     if args.report:
@@ -405,6 +417,55 @@ def _write_output(path: str, flag: str, write) -> None:
         raise InputError(f"{flag} {path}: cannot write: {exc.strerror or _one_line(exc)}") from None
 
 
+class _StandardOutputError(Exception):
+    """Writing to the standard output failed for another reason than a closed reader (a full disk, an I/O error
+    of the file or device it was sent to); :func:`main` says so in one line.
+
+    Parameters
+    ----------
+    cause : OSError
+        The error of the write.
+    """
+
+    def __init__(self, cause: OSError):
+        super().__init__(cause.strerror or _one_line(cause))
+        self.cause = cause
+
+
+def _say(text: str) -> None:
+    """Write ``text`` and a newline to the standard output and flush it, so that a write that fails does so here
+    (rather than in the flush at exit, where it could only be ignored).
+
+    Raises
+    ------
+    _StandardOutputError
+        When the write fails (a full disk: ``> /dev/full``).
+    BrokenPipeError
+        When the reader went away (``| head``), as before.
+    """
+    if sys.stdout is None:          # started with the standard output closed (>&-): nothing to write to, as print()
+        return
+    try:
+        sys.stdout.write(text + "\n")
+        sys.stdout.flush()
+    except BrokenPipeError:
+        raise
+    except OSError as exc:
+        raise _StandardOutputError(exc) from None
+
+
+def _discard_standard_output() -> None:
+    """Send what is left of the standard output (and anything written later) to the null device, so that the
+    flush at exit does not fail again on text that cannot be written."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):     # not a file (a test's capture)
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, fd)
+    os.close(devnull)
+
+
 def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split())[:200] or type(exc).__name__
 
@@ -412,14 +473,51 @@ def _one_line(exc: BaseException) -> str:
 def _cmd_reproduce(args) -> int:
     from .reproduce import reproduce
 
-    print(reproduce(args.case, samples=args.samples, seed=args.seed, options=_analysis_options(args),
-                    plot_dir=args.plots))
+    if args.plots:      # before the simulation and the analysis, as analyze checks --report
+        _check_output_directory(args.plots, "--plots")
+    _say(reproduce(args.case, samples=args.samples, seed=args.seed, options=_analysis_options(args),
+                   plot_dir=args.plots))
     return 0
 
 
-def _cmd_simulate(args) -> int:
-    import numpy as np
+def _refuse_standard_output(path: str, flag: str, what: str) -> None:
+    """Refuse ``-`` as the output file of ``flag``: it would write a file named ``-``, where ``--data -`` and
+    ``--json -`` of ``analyze`` mean the standard streams.
 
+    Raises
+    ------
+    InputError
+        Naming the flag and saying that standard output is not supported for it.
+    """
+    if path == "-":
+        raise InputError(f"{flag} -: expected a file to write {what} to (standard output is not supported for "
+                         f"{flag}: it holds the summary line)")
+
+
+def _simulate_conflicts(args) -> None:
+    """Refuse flags of ``simulate`` that would be ignored or would replace another one: ``--plant``, ``--model``
+    and ``--experiment`` with ``--case`` (a case gives its plant, model and excitation), ``--experiment`` with
+    ``--dither`` (the experiment gives the dither of every input, instead of ``--dither``).
+
+    Raises
+    ------
+    InputError
+        Naming both flags.
+    """
+    if args.case:
+        for flag, value in (("--plant", args.plant), ("--model", args.model)):
+            if value:
+                raise InputError(f"{flag} {value} with --case {args.case}: expected --case, or --plant and --model, "
+                                 f"not both")
+        if args.experiment:
+            raise InputError(f"--experiment {args.experiment} with --case {args.case}: expected --experiment with "
+                             f"--plant and --model (with --case, give a dither with --dither)")
+    if args.experiment and args.dither is not None:
+        raise InputError(f"--experiment {args.experiment} with --dither {args.dither!r}: expected one of them "
+                         f"(the experiment gives the dither of every input, instead of --dither)")
+
+
+def _cmd_simulate(args) -> int:
     from ..io.csv_log import write_log_csv
     from ..io.model_file import load_model, save_model
     from ..sim.cases import simulation_case
@@ -427,14 +525,18 @@ def _cmd_simulate(args) -> int:
     from ..sim.excitation import PrbsOptions
     from ..sim.mpc import MpcOptions
 
+    _simulate_conflicts(args)
+    dither = 0.0 if args.dither is None else args.dither
+    _refuse_standard_output(args.csv, "--csv", "the CSV log")
+    _refuse_standard_output(args.write_model, "--write-model", "the controller model")
     for path, what in ((args.csv, "--csv"), (args.write_model, "--write-model")):
         if path:
             _check_output_file(path, what)
     if args.case:
         case = simulation_case(args.case)
         plant, model, mpc, exc, dist = case.plant, case.model, case.mpc, case.excitation, case.disturbance
-        if args.dither > 0:
-            exc = ExcitationOptions(setpoint=exc.setpoint, dither=PrbsOptions(amplitude=args.dither))
+        if dither > 0:
+            exc = ExcitationOptions(setpoint=exc.setpoint, dither=PrbsOptions(amplitude=dither))
         dv = {} if case.measured_disturbance is None else {"measured_disturbance": case.measured_disturbance}
         log = run_closed_loop(plant, model, args.samples, seed=args.seed, mpc=mpc, excitation=exc, disturbance=dist,
                               **dv)
@@ -442,18 +544,62 @@ def _cmd_simulate(args) -> int:
         if not (args.plant and args.model):
             raise InputError("simulate: give --case, or both --plant and --model")
         plant, model = load_model(args.plant), load_model(args.model)
-        exc = ExcitationOptions(dither=PrbsOptions(amplitude=args.dither) if args.dither > 0 else None)
+        exc = ExcitationOptions(dither=PrbsOptions(amplitude=dither) if dither > 0 else None)
         if args.experiment:
             exc = ExcitationOptions(dither=PrbsOptions(amplitude=1.0, switch_probability=0.5),
                                     dither_amplitudes=_experiment_dither(args.experiment, model))
         log = run_closed_loop(plant, model, args.samples, seed=args.seed, mpc=MpcOptions(), excitation=exc)
+    _check_finite_log(log, args)
     _write_output(args.csv, "--csv", lambda: write_log_csv(args.csv, log))
     if args.write_model:
         _write_output(args.write_model, "--write-model", lambda: save_model(model, args.write_model))
-    rms = np.sqrt(np.mean(log.d ** 2, axis=0))
-    print(f"wrote {log.n_samples} samples to {args.csv}; prediction error RMS: "
-          + ", ".join(f"{o}={v:.4f}" for o, v in zip(log.outputs, rms)))
+    _say(f"wrote {log.n_samples} samples to {args.csv}; prediction error RMS: "
+         + ", ".join(f"{o}={_rms_text(v)}" for o, v in zip(log.outputs, _rms(log.d))))
     return 0
+
+
+def _check_finite_log(log, args) -> None:
+    """Refuse a simulated log that holds a value that is not finite (a loop that overflowed, as a dither of
+    1e308 makes it), before its CSV is written: one line naming what drove it (``--dither``, ``--experiment``,
+    or the plant and model) and the time of the first such sample.
+
+    Raises
+    ------
+    InputError
+    """
+    import numpy as np
+
+    finite = np.ones(log.n_samples, dtype=bool)
+    for values in (log.r, log.u, log.y, log.dv, log.d):
+        finite &= np.isfinite(values).all(axis=1)
+    if finite.all():
+        return
+    first = int(np.argmin(finite))
+    what = (f"the simulated log holds values that are not finite from t = {_text(float(log.t[first]))} s (sample "
+            f"{first + 1} of {log.n_samples}): the closed loop overflowed")
+    if args.experiment:
+        raise InputError(f"--experiment {args.experiment}: {what}: expected smaller dither amplitudes")
+    if args.dither:
+        raise InputError(f"--dither {args.dither!r}: {what}: expected a smaller dither amplitude")
+    source = f"--case {args.case}" if args.case else f"--plant {args.plant} with --model {args.model}"
+    raise InputError(f"{source}: {what}: expected a plant that the model's controller keeps bounded")
+
+
+def _rms(d):
+    """The root mean square of every column of ``d``, without overflowing on values above 1e154."""
+    import numpy as np
+
+    rms = np.sqrt(np.mean(d ** 2, axis=0))
+    if np.all(np.isfinite(rms)):
+        return rms
+    scale = np.max(np.abs(d), axis=0)
+    scale[scale == 0] = 1.0
+    return scale * np.sqrt(np.mean((d / scale) ** 2, axis=0))
+
+
+def _rms_text(value: float) -> str:
+    """A prediction error RMS as ``simulate`` prints it: 4 decimals, or 5 significant digits when that is long."""
+    return f"{value:.4f}" if value < 1e9 else f"{value:.4e}"
 
 
 def _experiment_dither(path: str, model) -> tuple:
@@ -506,11 +652,12 @@ def _not_an_input(path: str, flag: str, inputs: dict) -> None:
 def _cmd_export(args) -> int:
     from ..io.bags import export_csv
 
+    _refuse_standard_output(args.csv, "--csv", "the CSV log")
     _not_an_input(args.csv, "--csv", {"--bag": args.bag, "--model": args.model})
     _check_output_file(args.csv, "--csv")          # before the bag is read, as analyze does
     n = export_csv(args.bag, args.csv, model_path=args.model, topics=_topics(args),
                    warn=lambda note: print(f"warning: {note}", file=sys.stderr), bad_values=args.bad_values)
-    print(f"wrote {n} samples to {args.csv}")
+    _say(f"wrote {n} samples to {args.csv}")
     return 0
 
 
@@ -538,8 +685,8 @@ def _named_as_flag(parser: argparse.ArgumentParser, command: str, message: str) 
 
 
 def main(argv=None) -> int:
-    """Entry point; returns the exit code (0 ran, 2 bad input, 130 interrupted, :data:`BROKEN_PIPE` the
-    output's reader went away)."""
+    """Entry point; returns the exit code (0 ran, 2 bad input or a standard output that cannot be written, 130
+    interrupted, :data:`BROKEN_PIPE` the output's reader went away)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if not args.command:
@@ -564,6 +711,11 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except _StandardOutputError as exc:
+        # ``> /dev/full``, an I/O error: what was not written is lost; the files written are complete.
+        _discard_standard_output()
+        print(f"error: standard output: cannot write: {exc}", file=sys.stderr)
+        return 2
     except BrokenPipeError:
         # The reader of the output went away (``| head``): what is left of the output goes nowhere, quietly,
         # with the exit status of a command that SIGPIPE ended (the files written are complete).

@@ -200,7 +200,8 @@ class AnalysisReport:
         if loc:
             lines.append("located elements:")
             for e in loc:
-                lines.append(f"  ({e.output}, {_column_label(e)})  p={e.p_value:.2e}  kind={e.kind}  delay={e.delay}")
+                delay = "" if e.delay is None else f"  delay={e.delay}"    # None: a method that estimates none
+                lines.append(f"  ({e.output}, {_column_label(e)})  p={e.p_value:.2e}  kind={e.kind}{delay}")
         else:
             lines.append("located elements: none")
         released = [e for e in self.elements if e.explained_by]
