@@ -268,3 +268,37 @@ def test_a_huge_finite_log_prints_a_finite_rms(tmp_path, capsys):
     rms = dict(item.split("=") for item in out.strip().split("RMS: ")[1].split(", "))
     assert set(rms) == {"y1", "y2", "y3"} and all(0 <= float(v) < float("inf") for v in rms.values()), out
     assert float(rms["y1"]) > 1e150, out
+
+
+@pytest.mark.parametrize("argv, flag", [
+    (["analyze", "--model", "MODEL", "--data", "CSV", "--report", "-"], "--report"),
+    (["reproduce", "--case", "3.2", "--samples", "100", "--plots", "-"], "--plots"),
+    (["recover", "--bag", "BAG", "--out", "-"], "--out"),
+])
+def test_a_dash_as_an_output_directory_is_refused(tmp_path, monkeypatch, capsys, argv, flag):
+    """``--report -``, ``--plots -`` and ``recover --out -`` made a directory named ``-``: refused in one line."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "bag").mkdir()
+    argv = [a.replace("MODEL", str(tmp_path / "m.yaml")).replace("CSV", str(tmp_path / "d.csv"))
+            .replace("BAG", str(tmp_path / "bag")) for a in argv]
+    assert cli_main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {flag} -: expected a directory") and err.count("\n") == 1, err
+    assert not (tmp_path / "-").exists()
+
+
+def test_recover_names_a_missing_bag_directory(tmp_path, capsys):
+    """``recover --bag nonexist`` said "no .mcap file to recover"; it now says the directory does not exist, as
+    ``analyze --bag`` does."""
+    assert cli_main(["recover", "--bag", str(tmp_path / "nonexist"), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err == f"error: {tmp_path / 'nonexist'}: no such bag directory\n", err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("method", ["xcorr", "pcorr"])
+def test_reproduce_prints_no_delay_for_a_method_without_one(capsys, tmp_path, method):
+    assert cli_main(["reproduce", "--case", "3.2", "--samples", "600", "--method", method, "--jobs", "1",
+                 "--plots", str(tmp_path / "plots")]) == 0
+    out = capsys.readouterr().out
+    assert "delay None" not in out and "kind " in out, out

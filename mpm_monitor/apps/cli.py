@@ -237,6 +237,9 @@ def _add_bad_values(p, help_text: str) -> None:
 def _cmd_recover(args) -> int:
     from ..io.bags import recover_bag
 
+    if args.out == "-":        # not the standard output: a bag directory named "-" was made
+        raise InputError("--out -: expected a directory to write the recovered bag into (standard output is not "
+                         "supported for --out)")
     n = recover_bag(args.bag, args.out, warn=lambda note: print(f"warning: {note}", file=sys.stderr))
     _say(f"recovered {n} messages into {args.out}")
     return 0
@@ -377,6 +380,9 @@ def _check_output_directory(path: str, flag: str) -> None:
     ------
     InputError
     """
+    if path == "-":            # not the standard output, as ``--json -``: a directory named "-" was made
+        raise InputError(f"{flag} -: expected a directory to write into (standard output is not supported for "
+                         f"{flag})")
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise InputError(f"{flag} {path}: is a file: expected a directory to write into")

@@ -77,7 +77,8 @@ def reproduce(case_name: str, samples: int = 3000, seed: int = 1, options: Analy
     lines.append("expected:         " + (", ".join(f"({o}, {i})" for o, i in case.mismatched_elements) or "none"))
     for e in report.elements:
         if e.mismatch:
-            lines.append(f"  ({e.output}, {e.input}): p = {e.p_value:.2e}, kind {e.kind}, delay {e.delay} samples")
+            delay = "" if e.delay is None else f", delay {e.delay} samples"    # None: a method that estimates none
+            lines.append(f"  ({e.output}, {e.input}): p = {e.p_value:.2e}, kind {e.kind}{delay}")
     if report.repair.get("changes"):
         lines += [""] + repair_summary_lines(report.repair)
     ok = set(located) == set(case.mismatched_elements) and set(report.flagged_rows) == set(case.mismatched_rows)

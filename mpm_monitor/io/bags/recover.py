@@ -75,6 +75,8 @@ def recover_bag(src, dst, warn=None) -> int:
         then not created).
     """
     src = Path(src)
+    if not src.exists():
+        raise BagError(f"{src}: no such bag directory")
     files = sorted((f for f in src.glob("*.mcap") if f.is_file()), key=_split_order) if src.is_dir() else []
     if not files:
         raise BagError(f"{src}: no .mcap file to recover")
