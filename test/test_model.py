@@ -448,3 +448,14 @@ def test_a_required_key_or_the_name_given_as_null_is_refused(tmp_path, key, expe
     with pytest.raises(ModelFileError, match=f"key '{key}'.*{expected}") as err:
         load_model(_write(tmp_path, text))
     assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("key", ["inputs", "outputs"])
+def test_an_empty_list_of_channels_is_named_before_the_matrices(tmp_path, key):
+    """``outputs: []`` (with empty matrices) was refused as "key 'gain': expected at least one row"."""
+    names = {"inputs": "[u1]", "outputs": "[y1]"}
+    names[key] = "[]"
+    (tmp_path / "m.yaml").write_text(f"sample_time: 1\ninputs: {names['inputs']}\noutputs: {names['outputs']}\n"
+                                     "gain: []\ntime_constant: []\ndelay: []\n")
+    with pytest.raises(ModelFileError, match=rf"m\.yaml: key '{key}': expected a non-empty list of names$"):
+        load_model(tmp_path / "m.yaml")

@@ -236,6 +236,9 @@ def model_from_dict(data: Any, source: str = "model") -> PlantModel:
         raise ModelFileError(f"{source}: key 'sample_time': expected a positive number of seconds, got {ts!r}")
     inputs = _names(data, "inputs", source)
     outputs = _names(data, "outputs", source)
+    for key, names in (("inputs", inputs), ("outputs", outputs)):
+        if not names:       # named before the matrices, which would be refused as empty rows
+            raise ModelFileError(f"{source}: key '{key}': expected a non-empty list of names")
     disturbances = _names(data, "disturbances", source) if data.get("disturbances") is not None else ()
     name = data.get("name", "")
     if not isinstance(name, str):
