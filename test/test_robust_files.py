@@ -644,6 +644,9 @@ def files(work):
     p, _ = bag_copy("garbage_metadata")
     (p / "metadata.yaml").write_text("rosbag2_bagfile_information: [1, 2\n", encoding="utf-8")
     out["garbage_metadata"] = p
+    p, _ = bag_copy("scalar_metadata")       # YAML, but not rosbag2's: rosbags said "string indices must be ..."
+    (p / "metadata.yaml").write_text("hi\n", encoding="utf-8")
+    out["scalar_metadata"] = p
     p, _ = bag_copy("python_tag_metadata")
     marker = d / "pwned"
     (p / "metadata.yaml").write_text(f"rosbag2_bagfile_information: !!python/object/apply:os.system ['touch {marker}']\n",
@@ -729,6 +732,9 @@ BAD_CLI_CASES = {
     "latin-1 metadata": (["--model", "model", "--bag", "latin1_metadata"], r"latin1_metadata: "),
     "garbage metadata": (["--model", "model", "--bag", "garbage_metadata"], r"garbage_metadata: "),
     "python tag metadata": (["--model", "model", "--bag", "python_tag_metadata"], r"python_tag_metadata: "),
+    "scalar metadata": (["--model", "model", "--bag", "scalar_metadata"],
+                        r"scalar_metadata: metadata\.yaml is not a rosbag2 bag's description: expected a mapping "
+                        r"'rosbag2_bagfile_information'"),
     "empty dir": (["--model", "model", "--bag", "empty_dir"], r"empty directory"),
     "missing dir": (["--model", "model", "--bag", "missing_dir"], r"no such bag directory"),
     "wrong schema": (["--model", "model", "--bag", "wrong_schema"], r"topic '/output' has type std_msgs/msg/String"),

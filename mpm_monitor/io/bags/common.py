@@ -75,12 +75,33 @@ def open_reader(path):
     if not (path / "metadata.yaml").is_file():
         raise BagError(f"{path}: no metadata.yaml: not a rosbag2 directory, or its recorder was killed before "
                        f"closing it (python -m mpm_monitor recover --bag DIR --out NEW_DIR rewrites what it flushed)")
+    _check_metadata_shape(path)
     reader = AnyReader([path], default_typestore=default_typestore())
     try:
         reader.open()
     except Exception as exc:  # rosbags raises several unrelated classes for damaged bags
         raise BagError(f"{path}: cannot read bag: {_open_failure(exc)}") from None
     return reader
+
+
+def _check_metadata_shape(path: Path) -> None:
+    """Refuse a ``metadata.yaml`` that is YAML but not rosbag2's (a mapping under ``rosbag2_bagfile_information``):
+    rosbags words that as Python's own error (``string indices must be integers``).  A file that is not YAML is left
+    to rosbags, whose message says so.
+
+    Raises
+    ------
+    BagError
+    """
+    import yaml
+
+    try:
+        doc = yaml.safe_load((path / "metadata.yaml").read_bytes())
+    except (OSError, yaml.YAMLError, ValueError):
+        return
+    if not isinstance(doc, dict) or not isinstance(doc.get("rosbag2_bagfile_information"), dict):
+        raise BagError(f"{path}: metadata.yaml is not a rosbag2 bag's description: expected a mapping "
+                       f"'rosbag2_bagfile_information' as rosbag2 writes it")
 
 
 #: What rosbags says of a record or chunk whose length field does not match the bytes that follow it.
