@@ -79,6 +79,9 @@ def test_the_json_gaps_object_and_the_warning(case_32):
                                          f"3 samples missing, {g['rows_lost']} regression rows lost")
     assert "gaps" not in detect(case.model, data, DETECT).to_dict()       # no gap: no object
     assert "stray t" not in doc["warnings"][0]
+    # More gaps than are named: "at t = 500, 1000, 1500 s and 2 more" (it was "... 1500 and 2 more s").
+    many = detect(case.model, _drop(data, [500, 1000, 1500, 2000, 2500]), DETECT)
+    assert many.warnings[0].startswith("5 gaps in the data (longest 1 sample, at t = 500, 1000, 1500 s and 2 more): ")
 
 
 def test_a_stray_far_t_is_named_in_the_gap_warning(case_32):

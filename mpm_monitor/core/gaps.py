@@ -146,12 +146,13 @@ class GapPlan:
         """The gaps in words, e.g. ``3 gaps (longest 2 samples, at t = 120 s, 431 s and 1022 s): ...``."""
         n = self.gap_lengths.size
         at = [t_text(a) for a, _ in self.gap_where[:NAMED_GAPS]]
-        where = (", ".join(at[:-1]) + " and " + at[-1]) if len(at) > 1 else at[0]
-        if n > NAMED_GAPS:
-            where += f" and {n - NAMED_GAPS} more"
+        if n > NAMED_GAPS:             # "at t = 100, 300, 400 s and 2 more", not "... 400 and 2 more s"
+            where = ", ".join(at) + f" s and {n - NAMED_GAPS} more"
+        else:
+            where = ((", ".join(at[:-1]) + " and " + at[-1]) if len(at) > 1 else at[0]) + " s"
         longest = int(self.gap_lengths.max())
         text = (f"{n} gap{'s' if n != 1 else ''} in the data (longest {longest} sample{'s' if longest != 1 else ''}, "
-                f"at t = {where} s): {self.samples_missing} sample{'s' if self.samples_missing != 1 else ''} "
+                f"at t = {where}): {self.samples_missing} sample{'s' if self.samples_missing != 1 else ''} "
                 f"missing, {self.rows_lost} regression rows lost; nothing is interpolated, no regression row "
                 f"reaches across a gap")
         long_gaps = int(np.sum(self.gap_lengths > self.max_gap))
