@@ -107,13 +107,14 @@ from .scenarios import check_count_ranges, input_separability
 
 STRUCTURES = ("first", "second", "lead", "inverse")
 KINDS = ("gain", "integrator_gain", "time_constant", "delay", "second_lag", "lead", "disturbance_gain", "lost_lag",
-         "gained_lag", "integrator_gained_lag", "lost_only_lag")
+         "gained_lag", "integrator_gained_lag", "lost_only_lag", "lost_pair")
 #: The kind the report should give each kind of mismatch (a lag, a second lag, a lead or a lost lag is a
-#: ``time_constant`` change; an integrator's or a disturbance's gain a ``gain``).
+#: ``time_constant`` change; an integrator's or a disturbance's gain a ``gain``, as is a lost pair: a lead and a
+#: lag that cancel leave only the gain's change).
 REPORTED_KIND = {"gain": "gain", "integrator_gain": "gain", "time_constant": "time_constant", "delay": "delay",
                  "second_lag": "time_constant", "lead": "time_constant", "disturbance_gain": "gain",
                  "lost_lag": "time_constant", "gained_lag": "time_constant", "integrator_gained_lag": "time_constant",
-                 "lost_only_lag": "time_constant"}
+                 "lost_only_lag": "time_constant", "lost_pair": "gain"}
 #: Samples over which a repaired element's step response is compared with the plant's.
 REPAIR_HORIZON = 300
 #: Largest difference of the step responses, as a fraction of the plant response's largest value.
@@ -179,6 +180,15 @@ class StructuresOptions:
         whose lagless form acts a sample after its input at the earliest) are pure gains, in the plant and so
         in the model (``--pure-gains``), and every mismatch is a gain or a dead-time change of one of them, or a
         lag the plant's pure gain has lost (``lost_only_lag``: the model's element has a lag).
+    two_lag_leads : bool
+        Every lead-lag element (the ``lead`` structure) has a second lag too (``tau2`` drawn from
+        ``tau2_fraction`` of ``tau``; ``--two-lag-leads``): a plant whose leads are declared over two lags,
+        which the repair must keep where the data call for them.
+    lost_pair : bool
+        Every mismatch is a lost pair instead (``--lost-pair``): the model's element has a lead and a second
+        lag that cancel (both ``s tau``, ``s`` drawn from ``tau2_fraction``) and a gain off by a factor drawn
+        as the other mismatches' sizes, on an input's element whose plant element is first order (one lag,
+        no lead), at positions drawn among those elements.
     """
 
     min_size: int = 2
@@ -204,11 +214,13 @@ class StructuresOptions:
     lost_lag: bool = False
     gained_lag: bool = False
     pure_gains: bool = False
+    two_lag_leads: bool = False
+    lost_pair: bool = False
 
     def __post_init__(self):
         check_count_ranges(self)
-        if self.lost_lag + self.gained_lag + self.pure_gains > 1:
-            raise ValueError("lost_lag, gained_lag, pure_gains: expected at most one of them")
+        if self.lost_lag + self.gained_lag + self.pure_gains + self.lost_pair > 1:
+            raise ValueError("lost_lag, gained_lag, pure_gains, lost_pair: expected at most one of them")
         if len(self.structure_probabilities) != len(STRUCTURES) or abs(sum(self.structure_probabilities) - 1) > 1e-9:
             raise ValueError(f"structure_probabilities: expected {len(STRUCTURES)} probabilities summing to 1, "
                              f"got {self.structure_probabilities!r}")
@@ -281,6 +293,8 @@ def _draw_plant(rng, ny: int, nu: int, nd: int, opts: StructuresOptions, name: s
             arrays["time_constant"][i, j] = round(tau, 1)
             if structure in ("second", "inverse") and (structure == "second" or rng.random() < 0.5):
                 arrays["time_constant2"][i, j] = round(tau * float(rng.uniform(*opts.tau2_fraction)), 1)
+            elif structure == "lead" and opts.two_lag_leads:
+                arrays["time_constant2"][i, j] = round(tau * float(rng.uniform(*opts.tau2_fraction)), 1)
             if structure in ("lead", "inverse"):
                 lead = round(tau * float(rng.uniform(*opts.lead_fraction)), 1)
                 arrays["lead"][i, j] = -lead if structure == "inverse" else lead
@@ -305,6 +319,14 @@ def _mismatch(rng, plant: PlantModel, model: PlantModel, i: int, j: int, opts: S
         new = model.with_element(i, j, time_constant=0.0)
         kind = "integrator_gained_lag" if el.get("integrating") else "gained_lag"
         return new, {"output": i, "column": j, "role": plant.role(j), "kind": kind, "size": 1.0,
+                     "plant": el, "model": new.element(i, j)}
+    if opts.lost_pair:                  # the model has a cancelling lead and second lag, and a gain off
+        s = float(rng.uniform(*opts.tau2_fraction))
+        pair = round(el["time_constant"] * s, 1)
+        size = float(rng.uniform(*opts.size_range))
+        factor = 1.0 + size if rng.random() < 0.5 else 1.0 - size
+        new = model.with_element(i, j, time_constant2=pair, lead=pair, gain=el["gain"] * factor)
+        return new, {"output": i, "column": j, "role": plant.role(j), "kind": "lost_pair", "size": round(size, 4),
                      "plant": el, "model": new.element(i, j)}
     if opts.lost_lag:                   # the model has a second lag the plant lacks
         s = float(rng.uniform(*opts.tau2_fraction))
@@ -379,6 +401,11 @@ def make_structures_scenario(seed: int, index: int, options: StructuresOptions =
     mismatches = []
     if options.lost_lag:                # among the inputs' elements without a second lag in the plant
         cells = [i * nc + j for i in range(ny) for j in range(nu) if plant.time_constant2[i, j] == 0]
+        positions = rng.choice(cells, size=min(k, len(cells)), replace=False) if cells else []
+    elif options.lost_pair:             # among the inputs' first-order elements (one lag, no lead, not integrating)
+        cells = [i * nc + j for i in range(ny) for j in range(nu)
+                 if plant.time_constant[i, j] > 0 and plant.time_constant2[i, j] == 0 and plant.lead[i, j] == 0
+                 and not plant.integrating[i, j]]
         positions = rng.choice(cells, size=min(k, len(cells)), replace=False) if cells else []
     elif options.gained_lag or options.pure_gains:   # among the inputs' first-order and one-lag integrating elements
         cells = [i * nc + j for i in range(ny) for j in range(nu)
@@ -774,6 +801,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--pure-gains", action="store_true",
                         help="the first-order input elements without lead are pure gains in the plant and the model, "
                         "every mismatch a gain or dead-time change of one or its lag lost (default output structures_mc_pure_gains.json)")
+    parser.add_argument("--two-lag-leads", action="store_true",
+                        help="every lead-lag element has a second lag too (default output structures_mc_two_lag_leads.json)")
+    parser.add_argument("--lost-pair", action="store_true",
+                        help="every mismatch a lost pair: the model's first-order element has a lead and a second lag "
+                        "that cancel, and a gain off (default output structures_mc_lost_pair.json)")
     parser.add_argument("--confirm-responses", action="store_true",
                         help="the analysis's confirm_responses on (default output structures_mc_confirm.json)")
     parser.add_argument("--out", type=Path, default=None, help="JSON output")
@@ -783,6 +815,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         args.out = DEFAULT_OUT.with_name("structures_mc_lost_lag.json") if args.lost_lag else \
             DEFAULT_OUT.with_name("structures_mc_gained_lag.json") if args.gained_lag else \
             DEFAULT_OUT.with_name("structures_mc_pure_gains.json") if args.pure_gains else \
+            DEFAULT_OUT.with_name("structures_mc_two_lag_leads.json") if args.two_lag_leads else \
+            DEFAULT_OUT.with_name("structures_mc_lost_pair.json") if args.lost_pair else \
             DEFAULT_OUT.with_name("structures_mc_confirm.json") if args.confirm_responses else DEFAULT_OUT
     if args.runs < 0 or args.clean_integrating < 0 or args.samples < 100 or args.jobs < 1:
         parser.error("--runs and --clean-integrating must be >= 0, --jobs >= 1 and --samples >= 100")
@@ -803,7 +837,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                                    jobs=args.jobs, options=StructuresOptions(dither_fat=not args.no_dither_fat,
                                                                              lost_lag=args.lost_lag,
                                                                              gained_lag=args.gained_lag,
-                                                                             pure_gains=args.pure_gains),
+                                                                             pure_gains=args.pure_gains,
+                                                                             two_lag_leads=args.two_lag_leads,
+                                                                             lost_pair=args.lost_pair),
                                    element_window=args.element_window, noise_candidate=args.noise_candidate,
                                    confirm_responses=args.confirm_responses, progress=progress)
     except ValueError as exc:

@@ -700,3 +700,38 @@ def test_a_lead_lag_step_response_element_read_in_one_lag_is_not_changed():
         _, (_, verdicts, _) = joint.rows[1]
         assert verdicts[0].kind == "time_constant" and verdicts[2].kind == "unknown"
         assert joint.released == {(1, 2): [0]}
+
+
+@pytest.mark.parametrize("seed", [5, 6])
+def test_a_lead_cancelling_a_lag_the_plant_lacks_is_dropped_with_it(seed):
+    """The model's (y2, u2) is ``1.5 (4.5 s + 1) / ((9 s + 1)(4.5 s + 1))``, a first-order response written with a
+    lead that cancels its second lag; the plant's is ``1.8 / (7 s + 1)``.  Fitted with the pair, the gain was held
+    at the model's and the pair made it up within the record (a second lag of 2,000 s and a lead of 2,400 s on such
+    a log, intervals unbounded), marked applied.  The pair is refitted away: the plant's gain and lag, no lead."""
+    model = first_order_model().with_element(1, 1, time_constant2=4.5, lead=4.5)
+    plant = first_order_model().with_element(1, 1, gain=1.8, time_constant=7.0)
+    report = analyze(model, open_loop(plant, model, 3000, seed=seed, burn_in=300))
+    assert ("y2", "u2") in report.located_elements
+    change = next(c for c in report.repair["changes"] if (c["output"], c["input"]) == ("y2", "u2"))
+    after = change["after"]
+    assert change["applied"] is True
+    assert after["gain"] == pytest.approx(1.8, rel=REL) and after["time_constant"] == pytest.approx(7.0, rel=0.05)
+    assert after.get("time_constant2", 0.0) == 0.0 and after.get("lead", 0.0) == 0.0
+    new = report.repaired_model.discrete_element(1, 1).step_response(300)
+    true = plant.discrete_element(1, 1).step_response(300)
+    assert np.max(np.abs(new - true)) <= 0.02 * np.max(np.abs(true))
+
+
+def test_a_lead_over_two_lags_that_the_plant_has_is_kept():
+    """(y2, dv1) of the rich model is ``-0.5 (2 s + 1) / ((12 s + 1)(3 s + 1))``, its lead within a factor 4 of its
+    second lag, and the plant's gain is -0.7: the element is refitted without the pair too, which fits
+    significantly worse, so the repair keeps the lead and the second lag and changes the gain."""
+    model = rich_model()
+    plant = model.with_element(1, 2, gain=-0.7)
+    report = analyze(model, open_loop(plant, model, 3000, seed=3, burn_in=300))
+    assert ("y2", "dv1") in report.located_elements
+    change = next(c for c in report.repair["changes"] if (c["output"], c["input"]) == ("y2", "dv1"))
+    after = change["after"]
+    assert change["applied"] is True and change["kind"] == "gain"
+    assert after["gain"] == pytest.approx(-0.7, rel=REL)
+    assert after["time_constant2"] == pytest.approx(3.0, rel=0.1) and after["lead"] == pytest.approx(2.0, rel=0.1)

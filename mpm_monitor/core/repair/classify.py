@@ -378,7 +378,8 @@ def _fit_free(row: _RowData, js, settings: _TestSettings) -> _FreeFit:
     widened = {j: specs[j].window for j in specs if specs[j].window != first[j].window}
     free = _FreeFit(row=row, js=list(js), specs=specs, located=located, problem=problem, est=est, settings=settings,
                     widened=widened)
-    return _grow_gained_lags(_reduce_vanished_lags(_choose_forms(free, settings), settings), settings)
+    free = _reduce_vanished_lags(_choose_forms(free, settings), settings)
+    return _grow_gained_lags(_reduce_cancelled_leads(free, settings), settings)
 
 
 #: How many times :func:`_widen_lag_ranges` widens a lag range.
@@ -512,6 +513,71 @@ def _reduce_vanished_lags(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
                  int(free.est.fit.lags[m]) - (loc.form.offset - form.offset))
         smaller = _refit_element(free, j, reduced, start, settings)
         if _larger_form_p(free.est.fit.n_resid, smaller.est.fit.ssr, free.est.fit.ssr, 1) >= settings.alpha:
+            free = smaller
+    return free
+
+
+#: A lead and a lag of an element whose fitted values lie within this factor of each other nearly cancel
+#: (:func:`_reduce_cancelled_leads`).
+CANCEL_RATIO = 4.0
+#: A lead fitted shorter than this fraction of a sample time is no lead (:func:`_reduce_cancelled_leads`; a fitted
+#: lag's bound is a tenth of a sample too, ``T / 9.2``).
+VANISHED_LEAD = 0.1
+#: A lead or a lag longer than this fraction of the compared samples' duration is too slow for the record to
+#: resolve (:func:`_reduce_cancelled_leads`).
+SLOW_FRACTION = 0.25
+
+
+def _reduce_cancelled_leads(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
+    """The free fit without a lead the data do not call for: with the lag it cancels, or alone when it vanished.
+
+    A lead ``(L s + 1)`` over a lag ``(T s + 1)`` is a gain of 1 at low frequencies and of ``L / T`` above
+    ``1 / T``.  Where the lead and a lag nearly cancel (within :data:`CANCEL_RATIO` of each other), or either
+    is longer than :data:`SLOW_FRACTION` of the record, the data hardly tell the pair from a change of gain:
+    a first-order plant ``1.2 / (4 s + 1)`` under a model ``(5 s + 1) / ((5 s + 1)^2)`` was repaired with the
+    gain held at 1, a second lag of 2,000 s and a lead of 2,400 s (the pair making up the gain within the
+    record, and its intervals unbounded), marked applied.  So such an element is refitted without the pair
+    (one lag fewer, no lead; two degrees of freedom), where its form keeps a lag or an integrator.  A lead
+    fitted shorter than :data:`VANISHED_LEAD` of a sample time (:func:`_reduce_vanished_lags` may have taken the
+    lag it cancelled) is refitted away alone (one degree of freedom).  Every parameter is free on the same samples, and the smaller
+    form is kept unless the larger one fits significantly better: the likelihood-ratio test
+    ``n ln(SSR_smaller / SSR_larger)`` against chi-square at ``alpha`` (as :func:`_choose_forms` chooses a
+    larger form).  Its tests measure the changes from the reference in that form (:class:`_Located`'s
+    ``declared``, as :func:`_reduce_vanished_lags`); a step-response element from its old response read in
+    the smaller form.
+    """
+    row = free.row
+    ts = row.model.sample_time
+    duration = free.est.fit.n_resid * ts
+    for m, j in enumerate(free.js):
+        loc = free.located[j]
+        form = loc.form
+        if loc.missing or not form.lead:
+            continue
+        lead = float(free.est.fit.leads[m])
+        poles = [float(a) for a in free.est.fit.poles[free.problem.slices[m]]]
+        taus = [_tau_of(a, ts) for a in poles]
+        smaller_form = None
+        if abs(lead) < VANISHED_LEAD * ts:                  # a lead at the scale of no lead: away alone
+            smaller_form, df, dropped = dataclasses.replace(form, lead=False), 1, None
+        elif lead > 0 and taus and form.n_lags + int(form.integrating) >= 2:
+            q = min(range(len(taus)), key=lambda k: abs(math.log(lead / max(taus[k], 1e-300))))
+            pair = (min(lead, taus[q]), max(lead, taus[q]))
+            if pair[1] <= CANCEL_RATIO * pair[0] or pair[1] > SLOW_FRACTION * duration:
+                smaller_form, df, dropped = dataclasses.replace(form, n_lags=form.n_lags - 1, lead=False), 2, q
+        if smaller_form is None:
+            continue
+        if row.model.is_step_response:
+            reduced = _locate(row, j, smaller_form)
+        else:
+            reduced = dataclasses.replace(loc, form=smaller_form, lag=_input_lag(smaller_form, loc.reference, ts),
+                                          declared=loc.declared or form)
+        # Start from the pair's gain within the record (K L / T) and the other lags.
+        gain = float(free.est.fit.gains[m]) * (1.0 if dropped is None else lead / taus[dropped])
+        start = (gain, tuple(a for k, a in enumerate(poles) if k != dropped), 0.0,
+                 int(free.est.fit.lags[m]) - (form.offset - smaller_form.offset))
+        smaller = _refit_element(free, j, reduced, start, settings)
+        if _larger_form_p(free.est.fit.n_resid, smaller.est.fit.ssr, free.est.fit.ssr, df) >= settings.alpha:
             free = smaller
     return free
 
