@@ -723,7 +723,7 @@ def test_a_lead_cancelling_a_lag_the_plant_lacks_is_dropped_with_it(seed):
 
 
 def test_a_lead_over_two_lags_that_the_plant_has_is_kept():
-    """(y2, dv1) of the rich model is ``-0.5 (2 s + 1) / ((12 s + 1)(3 s + 1))``, its lead within a factor 4 of its
+    """(y2, dv1) of the rich model is ``-0.5 (2 s + 1) / ((12 s + 1)(3 s + 1))``, its lead within 50 % of its
     second lag, and the plant's gain is -0.7: the element is refitted without the pair too, which fits
     significantly worse, so the repair keeps the lead and the second lag and changes the gain."""
     model = rich_model()

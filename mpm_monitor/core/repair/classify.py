@@ -519,7 +519,7 @@ def _reduce_vanished_lags(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
 
 #: A lead and a lag of an element whose fitted values lie within this factor of each other nearly cancel
 #: (:func:`_reduce_cancelled_leads`).
-CANCEL_RATIO = 4.0
+CANCEL_RATIO = 1.5
 #: A lead fitted shorter than this fraction of a sample time is no lead (:func:`_reduce_cancelled_leads`; a fitted
 #: lag's bound is a tenth of a sample too, ``T / 9.2``).
 VANISHED_LEAD = 0.1
