@@ -54,26 +54,25 @@ def _text(value) -> str:
     return f"{value:g}" if isinstance(value, float) else str(value)
 
 
-def _seed(text: str) -> int:
-    """argparse type of ``--seed``: an integer >= 0 (numpy's generators take no negative seed)."""
+def _integer_at_least(low: int, text: str) -> int:
+    """``text`` as an integer >= ``low``, or argparse's error naming what was expected."""
     try:
         value = int(text)
     except ValueError:
         value = None
-    if value is None or value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+    if value is None or value < low:
+        raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}")
     return value
+
+
+def _seed(text: str) -> int:
+    """argparse type of ``--seed``: an integer >= 0 (numpy's generators take no negative seed)."""
+    return _integer_at_least(0, text)
 
 
 def _samples(text: str) -> int:
     """argparse type of ``--samples`` of ``simulate`` and ``reproduce``: an integer >= 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = None
-    if value is None or value < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
-    return value
+    return _integer_at_least(1, text)
 
 
 def _path(text: str) -> str:
