@@ -83,14 +83,15 @@ def read_text(path, error_cls, kind: str, expected: str, encoding: str = "utf-8"
     path = Path(path)
     try:
         with open(path, "rb") as f:
-            raw = f.read(NUL_PEEK_BYTES if max_bytes is None else min(NUL_PEEK_BYTES, max_bytes + 1))
-            if nul_error is not None and b"\x00" in raw and not raw.startswith(GZIP_MAGIC) \
-                    and not stat.S_ISREG(os.fstat(f.fileno()).st_mode) and _utf8_start(raw):
-                raise nul_error(f"{path}: contains NUL bytes")
-            if max_bytes is None:
-                raw += f.read()
-            elif len(raw) <= max_bytes:
-                raw += f.read(max_bytes + 1 - len(raw))
+            limit = -1 if max_bytes is None else max_bytes + 1
+            if nul_error is None or stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                raw = f.read(limit)                      # a regular file: read whole, as it always was
+            else:                                        # a device or a pipe: its start looked at first
+                raw = f.read(NUL_PEEK_BYTES if limit < 0 else min(NUL_PEEK_BYTES, limit))
+                if b"\x00" in raw and not raw.startswith(GZIP_MAGIC) and _utf8_start(raw):
+                    raise nul_error(f"{path}: contains NUL bytes")
+                if limit < 0 or len(raw) < limit:
+                    raw += f.read(limit if limit < 0 else limit - len(raw))
     except OSError as exc:
         raise error_cls(f"{path}: cannot read {kind}: {exc.strerror or exc}") from None
     if max_bytes is not None and len(raw) > max_bytes:
