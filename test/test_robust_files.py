@@ -647,6 +647,10 @@ def files(work):
     p, _ = bag_copy("scalar_metadata")       # YAML, but not rosbag2's: rosbags said "string indices must be ..."
     (p / "metadata.yaml").write_text("hi\n", encoding="utf-8")
     out["scalar_metadata"] = p
+    p, _ = bag_copy("deep_metadata")         # nested past the parser's recursion: a traceback from our own check
+    (p / "metadata.yaml").write_text("rosbag2_bagfile_information: " + "[" * 50000 + "]" * 50000 + "\n",
+                                     encoding="utf-8")
+    out["deep_metadata"] = p
     p, _ = bag_copy("python_tag_metadata")
     marker = d / "pwned"
     (p / "metadata.yaml").write_text(f"rosbag2_bagfile_information: !!python/object/apply:os.system ['touch {marker}']\n",
@@ -732,6 +736,7 @@ BAD_CLI_CASES = {
     "latin-1 metadata": (["--model", "model", "--bag", "latin1_metadata"], r"latin1_metadata: "),
     "garbage metadata": (["--model", "model", "--bag", "garbage_metadata"], r"garbage_metadata: "),
     "python tag metadata": (["--model", "model", "--bag", "python_tag_metadata"], r"python_tag_metadata: "),
+    "deep metadata": (["--model", "model", "--bag", "deep_metadata"], r"deep_metadata: cannot read bag: "),
     "scalar metadata": (["--model", "model", "--bag", "scalar_metadata"],
                         r"scalar_metadata: metadata\.yaml is not a rosbag2 bag's description: expected a mapping "
                         r"'rosbag2_bagfile_information'"),

@@ -86,8 +86,8 @@ def open_reader(path):
 
 def _check_metadata_shape(path: Path) -> None:
     """Refuse a ``metadata.yaml`` that is YAML but not rosbag2's (a mapping under ``rosbag2_bagfile_information``):
-    rosbags words that as Python's own error (``string indices must be integers``).  A file that is not YAML is left
-    to rosbags, whose message says so.
+    rosbags words that as Python's own error (``string indices must be integers``).  A file that does not parse (not
+    YAML, nested too deep for the parser) is left to rosbags, whose failure :func:`open_reader` words as before.
 
     Raises
     ------
@@ -97,7 +97,7 @@ def _check_metadata_shape(path: Path) -> None:
 
     try:
         doc = yaml.safe_load((path / "metadata.yaml").read_bytes())
-    except (OSError, yaml.YAMLError, ValueError):
+    except Exception:  # noqa: BLE001 - YAMLError, RecursionError, ...: rosbags meets it and open_reader says so
         return
     if not isinstance(doc, dict) or not isinstance(doc.get("rosbag2_bagfile_information"), dict):
         raise BagError(f"{path}: metadata.yaml is not a rosbag2 bag's description: expected a mapping "
