@@ -236,9 +236,8 @@ def _add_bad_values(p, help_text: str) -> None:
 def _cmd_recover(args) -> int:
     from ..io.bags import recover_bag
 
-    if args.out == "-":        # not the standard output: a bag directory named "-" was made
-        raise InputError("--out -: expected a directory to write the recovered bag into (standard output is not "
-                         "supported for --out)")
+    _refuse_dash(args.out, "--out", "a directory to write the recovered bag into",      # a directory "-" was made
+                 "standard output is not supported for --out")
     n = recover_bag(args.bag, args.out, warn=lambda note: print(f"warning: {note}", file=sys.stderr))
     _say(f"recovered {n} messages into {args.out}")
     return 0
@@ -247,9 +246,8 @@ def _cmd_recover(args) -> int:
 def _cmd_analyze(args) -> int:
     if args.data == "-":
         args.data = "/dev/stdin"        # named so in messages and in the report's source
-    if args.repair_out == "-":          # it wrote a file named "-", where --json - and --data - mean the streams
-        raise InputError("--repair-out -: expected a file to write the repaired model to (standard output holds "
-                         "the summary, or the JSON report with --json -)")
+    _refuse_dash(args.repair_out, "--repair-out", "a file to write the repaired model to",   # a file "-" was written
+                 "standard output holds the summary, or the JSON report with --json -")
     for path, what in ((args.json_out, "--json"), (args.repair_out, "--repair-out")):
         if path and path != "-":
             # The repaired model may replace the model file (an update in place); nothing may replace the log.
@@ -379,9 +377,7 @@ def _check_output_directory(path: str, flag: str) -> None:
     ------
     InputError
     """
-    if path == "-":            # not the standard output, as ``--json -``: a directory named "-" was made
-        raise InputError(f"{flag} -: expected a directory to write into (standard output is not supported for "
-                         f"{flag})")
+    _refuse_dash(path, flag, "a directory to write into", f"standard output is not supported for {flag}")
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise InputError(f"{flag} {path}: is a file: expected a directory to write into")
@@ -485,18 +481,23 @@ def _cmd_reproduce(args) -> int:
     return 0
 
 
-def _refuse_standard_output(path: str, flag: str, what: str) -> None:
-    """Refuse ``-`` as the output file of ``flag``: it would write a file named ``-``, where ``--data -`` and
-    ``--json -`` of ``analyze`` mean the standard streams.
+def _refuse_dash(path, flag: str, expected: str, why: str) -> None:
+    """Refuse ``-`` as the output of ``flag`` where it is not the standard output: it would write a file or a
+    directory named ``-``, where ``--data -`` and ``--json -`` of ``analyze`` mean the standard streams.
 
     Raises
     ------
     InputError
-        Naming the flag and saying that standard output is not supported for it.
+        ``"FLAG -: expected EXPECTED (WHY)"``.
     """
     if path == "-":
-        raise InputError(f"{flag} -: expected a file to write {what} to (standard output is not supported for "
-                         f"{flag}: it holds the summary line)")
+        raise InputError(f"{flag} -: expected {expected} ({why})")
+
+
+def _refuse_standard_output(path: str, flag: str, what: str) -> None:
+    """:func:`_refuse_dash` of an output file of ``simulate`` or ``export``, whose standard output holds the summary."""
+    _refuse_dash(path, flag, f"a file to write {what} to", f"standard output is not supported for {flag}: it holds "
+                 f"the summary line")
 
 
 def _simulate_conflicts(args) -> None:
@@ -724,9 +725,7 @@ def main(argv=None) -> int:
     except BrokenPipeError:
         # The reader of the output went away (``| head``): what is left of the output goes nowhere, quietly,
         # with the exit status of a command that SIGPIPE ended (the files written are complete).
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-        os.close(devnull)
+        _discard_standard_output()
         return BROKEN_PIPE
 
 
