@@ -494,27 +494,35 @@ def _reduce_vanished_lags(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
     structure, from its old response read in the one-lag form (:func:`~mpm_monitor.core.repair.forms._step_reference`).
     An element the model lacks keeps the form its ladder chose.
     """
-    row = free.row
     for m, j in enumerate(free.js):
         loc = free.located[j]
         poles = free.est.fit.poles[free.problem.slices[m]]
         if loc.missing or loc.declared is not None or loc.form.n_lags != 2 or min(poles) > _SUBSAMPLE_POLE:
             continue
         form = dataclasses.replace(loc.form, n_lags=1)
-        if row.model.is_step_response:
-            # The model declares no lags, only a response: its old response is read in the one-lag form too
-            # (a lag and a lead read in the two-lag form took a second lag of a tenth of a sample and one sample
-            # less dead time, which the fit in one lag then seemed to have changed).
-            reduced = _locate(row, j, form)
-        else:
-            reduced = dataclasses.replace(loc, form=form, lag=_input_lag(form, loc.reference, row.model.sample_time),
-                                          declared=loc.form)
         start = (float(free.est.fit.gains[m]), (float(max(poles)),), float(free.est.fit.leads[m]),
                  int(free.est.fit.lags[m]) - (loc.form.offset - form.offset))
-        smaller = _refit_element(free, j, reduced, start, settings)
-        if _larger_form_p(free.est.fit.n_resid, smaller.est.fit.ssr, free.est.fit.ssr, 1) >= settings.alpha:
-            free = smaller
+        free = _try_smaller_form(free, j, form, start, 1, settings)
     return free
+
+
+def _try_smaller_form(free: _FreeFit, j: int, form: _Form, start, df: int, settings: _TestSettings) -> _FreeFit:
+    """The free fit with element ``j`` refitted in the smaller ``form`` from ``start`` (:func:`_refit_element`),
+    kept unless the larger form fits significantly better (:func:`_larger_form_p` with ``df`` degrees of freedom
+    at ``alpha``); else ``free``.  The smaller form's tests measure the changes from the reference read in it: a
+    parametric element's reference keeps its declared form (``declared``); a step-response element, which
+    declares no lags, only a response, has its old response read in the smaller form too (a lag and a lead read
+    in the two-lag form took a second lag of a tenth of a sample and one sample less dead time, which the fit in
+    one lag then seemed to have changed)."""
+    row, loc = free.row, free.located[j]
+    if row.model.is_step_response:
+        reduced = _locate(row, j, form)
+    else:
+        reduced = dataclasses.replace(loc, form=form, lag=_input_lag(form, loc.reference, row.model.sample_time),
+                                      declared=loc.declared or loc.form)
+    smaller = _refit_element(free, j, reduced, start, settings)
+    return smaller if _larger_form_p(free.est.fit.n_resid, smaller.est.fit.ssr, free.est.fit.ssr, df) >= settings.alpha \
+        else free
 
 
 #: A lead and a lag of an element whose fitted values lie within this factor of each other nearly cancel
@@ -546,8 +554,7 @@ def _reduce_cancelled_leads(free: _FreeFit, settings: _TestSettings) -> _FreeFit
     ``declared``, as :func:`_reduce_vanished_lags`); a step-response element from its old response read in
     the smaller form.
     """
-    row = free.row
-    ts = row.model.sample_time
+    ts = free.row.model.sample_time
     duration = free.est.fit.n_resid * ts
     for m, j in enumerate(free.js):
         loc = free.located[j]
@@ -567,18 +574,11 @@ def _reduce_cancelled_leads(free: _FreeFit, settings: _TestSettings) -> _FreeFit
                 smaller_form, df, dropped = dataclasses.replace(form, n_lags=form.n_lags - 1, lead=False), 2, q
         if smaller_form is None:
             continue
-        if row.model.is_step_response:
-            reduced = _locate(row, j, smaller_form)
-        else:
-            reduced = dataclasses.replace(loc, form=smaller_form, lag=_input_lag(smaller_form, loc.reference, ts),
-                                          declared=loc.declared or form)
         # Start from the pair's gain within the record (K L / T) and the other lags.
         gain = float(free.est.fit.gains[m]) * (1.0 if dropped is None else lead / taus[dropped])
         start = (gain, tuple(a for k, a in enumerate(poles) if k != dropped), 0.0,
                  int(free.est.fit.lags[m]) - (form.offset - smaller_form.offset))
-        smaller = _refit_element(free, j, reduced, start, settings)
-        if _larger_form_p(free.est.fit.n_resid, smaller.est.fit.ssr, free.est.fit.ssr, df) >= settings.alpha:
-            free = smaller
+        free = _try_smaller_form(free, j, smaller_form, start, df, settings)
     return free
 
 
