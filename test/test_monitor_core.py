@@ -7,6 +7,7 @@ analysis through the nodes is exercised in test_nodes_inprocess.py.
 """
 
 import dataclasses
+import os
 import subprocess
 import sys
 import threading
@@ -514,6 +515,24 @@ def test_write_repaired_model_writes_a_file_that_loads_as_the_repaired_model(rep
     assert str(path) in msg and "3 changes" in msg and "y1/u3: gain 3.5->" in msg
     assert load_model(path) == rep.repaired_model != MODEL
     assert sorted(p.name for p in tmp_path.iterdir()) == ["repaired.yaml"]  # no temporary file left
+
+
+def test_write_repaired_model_refuses_the_monitored_file_under_another_name(repaired_core, tmp_path):
+    c, _ = repaired_core
+    protected = tmp_path / "controller.yaml"
+    # the same file under another name: "..", a symbolic link to its directory, a hard link
+    protected.write_text("controller model\n")
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "linked").symlink_to(tmp_path)
+    os.link(protected, tmp_path / "hard.yaml")
+    for other in (tmp_path / "sub" / ".." / "controller.yaml", tmp_path / "linked" / "controller.yaml",
+                  tmp_path / "hard.yaml"):
+        ok, msg = c.write_repaired_model(str(other), protected=(str(protected),))
+        assert not ok and "refusing to overwrite the monitored model file" in msg, other
+        assert protected.read_text() == "controller model\n"
+    # a file of its own beside it is written
+    ok, msg = c.write_repaired_model(str(tmp_path / "linked" / "other.yaml"), protected=(str(protected),))
+    assert ok, msg
 
 
 def test_write_repaired_model_refuses_clearly_and_never_raises(repaired_core, tmp_path):

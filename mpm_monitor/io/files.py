@@ -159,6 +159,16 @@ def replace_file(path, write, fsync: bool = False) -> Path:
     return target
 
 
+def same_file(a, b) -> bool:
+    """Whether the paths ``a`` and ``b`` name one file: the same file when both exist (a symbolic link, ``..``, a
+    hard link), else the same path with ``~``, ``..`` and the links of its directories resolved."""
+    a, b = Path(a).expanduser(), Path(b).expanduser()
+    try:
+        return os.path.samefile(a, b)
+    except OSError:                 # one of them does not exist (yet)
+        return a.resolve() == b.resolve()
+
+
 def write_text_replacing(path, text: str) -> None:
     """Write ``text`` (UTF-8) to ``path`` through :func:`replace_file`."""
     replace_file(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))

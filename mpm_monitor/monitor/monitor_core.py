@@ -26,7 +26,7 @@ import numpy as np
 from ..core.errors import ConfigurationError
 from ..core.model import PlantModel
 from ..core.wording import applied_changes, describe_change, repair_ran, repair_verdict
-from ..io.files import replace_file
+from ..io.files import replace_file, same_file
 from ..io.model_file import dump_model
 from .candidate_window import CandidateWindow
 from .experiment import ExperimentOptions, ExperimentTracker
@@ -278,7 +278,7 @@ class MonitorCore:
                            + (f": {verdict.detail})" if verdict.detail else ")"))
         target = Path(path).expanduser().absolute()
         for other in protected:
-            if other and Path(other).expanduser().absolute() == target:
+            if other and same_file(other, target):
                 return False, f"refusing to overwrite the monitored model file {target}: set repaired_model_file " \
                               f"to another path"
         try:
