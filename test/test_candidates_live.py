@@ -59,6 +59,54 @@ def test_candidate_window_puts_the_vectors_on_the_samples():
     assert w.names == ("a", "b")
 
 
+def test_the_newest_samples_wait_for_their_candidate_vectors():
+    """A candidate vector stamped like a sample that came after the sample's output vector made the channel
+    "partly missing" at every analysis: the samples after the newest vector, up to late_samples of them, are
+    left out of the analysis instead; more of them (a publisher that stopped) leave the channel missing there."""
+    from mpm_monitor.core.logged_data import LoggedData
+
+    t = np.arange(30, dtype=float)
+    data = LoggedData(t=t, r=np.zeros((30, 1)), u=np.zeros((30, 1)), y=t[:, None].copy(), inputs=("u",),
+                      outputs=("y",), sample_time=1.0)
+    for late, kept in ((1, 29), (3, 27), (10, 20), (11, 30)):
+        w = CandidateWindow(sample_time=1.0, capacity=100, late_samples=10)
+        for k in range(30 - late):
+            w.add(k * NS, ("c",), [2.0 * k])
+        out = w.attach(data)
+        assert out.n_samples == kept, late
+        np.testing.assert_array_equal(out.y[:, 0], t[:kept])
+        if kept < 30:
+            assert out.unusable == {} and np.array_equal(out.extra["c"], 2.0 * t[:kept])
+        else:
+            assert out.unusable == {"c": "partly missing: no finite value at 11 of the window's 30 samples"}
+    w = CandidateWindow(sample_time=1.0, capacity=100)               # late_samples 0: nothing waited for
+    for k in range(29):
+        w.add(k * NS, ("c",), [1.0])
+    assert w.attach(data).unusable == {"c": "partly missing: no finite value at 1 of the window's 30 samples"}
+
+
+def test_the_monitor_tests_a_candidate_published_after_its_sample():
+    """The helper's case: each sample's candidate vector published right after its output vector.  The job
+    taken when the last output completes the window used to find the channel missing at that sample."""
+    run = undeclared_effect_run(600, seed=3)
+    c = MonitorCore(run.model, MonitorOptions(window=WindowOptions(window_samples=500), min_samples=500,
+                                              analysis_period=100, hardware_id="test", candidates=True))
+    d, jobs = run.data, []
+    for k in range(600):
+        c.add("setpoint", k * NS, d.r[k], 0.0)
+        c.add("input", k * NS, d.u[k], 0.0)
+        c.add("output", k * NS, d.y[k], 0.0)
+        if c.analysis_due():
+            jobs.append(c.take_job())
+        c.add_candidates(k * NS, (EFFECT_CHANNEL,), [d.extra[EFFECT_CHANNEL][k]], 0.0)
+    assert len(jobs) == 2
+    for job in jobs:
+        assert job.data.unusable == {} and set(job.data.extra) == {EFFECT_CHANNEL}
+        assert job.data.n_samples == 499 and job.last_stamp == job.data.t[-1]
+        k0 = int(job.data.t[0])
+        np.testing.assert_array_equal(job.data.extra[EFFECT_CHANNEL], d.extra[EFFECT_CHANNEL][k0:k0 + 499])
+
+
 def test_the_candidate_channels_are_those_of_the_vectors_kept():
     """A channel leaves with its last vector: 20,000 distinct names over time keep the list bounded,
     and a channel no longer published stops being reported once its vectors are gone."""

@@ -40,9 +40,15 @@ class CandidateWindow:
     reserved : sequence of str
         The model's own channels (inputs, measured disturbances, outputs): a vector naming one is
         refused, since the analysis would refuse it as a candidate on every window it falls in.
+    late_samples : int
+        Most samples at the end of a window that :meth:`attach` leaves out because no candidate vector
+        has come for them yet (the window's ``reorder_samples``): a vector stamped like a sample that
+        arrives after that sample's output vector (another publisher, or the executor serving the output
+        first) is waited for, not counted missing.
     """
 
-    def __init__(self, sample_time: float, capacity: int, stamp_tolerance: float = 0.25, reserved: Sequence[str] = ()):
+    def __init__(self, sample_time: float, capacity: int, stamp_tolerance: float = 0.25, reserved: Sequence[str] = (),
+                 late_samples: int = 0):
         if not (np.isfinite(sample_time) and sample_time > 0):
             raise ConfigurationError(f"sample_time: expected a finite number > 0 (seconds), got {sample_time!r}")
         if int(capacity) != capacity or capacity < 1:
@@ -55,6 +61,7 @@ class CandidateWindow:
         # without the list growing.
         self._names: dict = {}
         self._reserved = frozenset(reserved)
+        self._late = int(late_samples)
         self.received = 0
 
     @property
@@ -104,7 +111,11 @@ class CandidateWindow:
 
     def attach(self, data: LoggedData) -> LoggedData:
         """``data`` with the candidate channels on its samples (``extra``; ``unusable`` where a channel
-        has no finite value at some samples).  The channels the data already has are left alone."""
+        has no finite value at some samples).  The channels the data already has are left alone.
+
+        The samples at the end of ``data`` stamped after every vector kept, when there are at most
+        ``late_samples`` of them (and fewer than all), are left out: their vectors have not come yet.
+        More of them (a candidate publisher that stopped) are kept, and the channels are missing there."""
         if not self._names:
             return data
         stamps = np.rint(np.asarray(data.t, dtype=float) * NS_PER_S).astype(np.int64)
@@ -113,6 +124,11 @@ class CandidateWindow:
         got = got[order]
         vectors = [self._vectors[k][1] for k in order]
         n = stamps.shape[0]
+        if got.size:
+            late = int(np.count_nonzero(stamps > got[-1] + self._tol))
+            if 0 < late <= self._late and late < n:
+                n -= late
+                data, stamps = data.slice(0, n), stamps[:n]
         match = np.full(n, -1)
         if got.size:
             pos = np.clip(np.searchsorted(got, stamps), 0, got.size - 1)

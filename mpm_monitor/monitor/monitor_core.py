@@ -133,7 +133,8 @@ class MonitorCore:
         self.experiment = ExperimentTracker(model.inputs, options.window.window_samples, options.experiment)
         #: The candidate channels (None unless ``options.candidates``).
         self.candidates = (CandidateWindow(model.sample_time, options.window.window_samples + 64,
-                                           options.window.stamp_tolerance, reserved=model.columns + model.outputs)
+                                           options.window.stamp_tolerance, reserved=model.columns + model.outputs,
+                                           late_samples=options.window.reorder_samples)
                            if options.candidates else None)
 
     # --------------------------------------------------------------------------------- input
