@@ -189,6 +189,9 @@ def test_declared_parameters_carry_type_description_and_range():
     ("experiment_service", "9bad", r"parameter experiment_service: invalid service name '9bad': .*must not start with "
                                    r"a number$"),
     ("topics", ["output", "bad topic=std_msgs/msg/String"], r"parameter topics: invalid topic name 'bad topic'"),
+    # '' is none only where a parameter says so (candidate_topic): elsewhere rclpy's traceback, exit 1
+    ("diagnostics_topic", "", r"parameter diagnostics_topic: invalid topic name '': topic name must not be empty"),
+    ("experiment_service", "", r"parameter experiment_service: invalid service name '': .*must not be empty"),
 ])
 def test_a_topic_or_service_name_ros_refuses_is_one_line_naming_the_parameter(name, value, match):
     """Not rclpy's multi-line exception when the publisher is created (a traceback and exit 1 from a node)."""
@@ -213,6 +216,26 @@ def test_a_topic_or_service_name_ros_refuses_is_one_line_naming_the_parameter(na
         good.destroy_node()
     finally:
         ctx.try_shutdown()
+
+
+def test_an_empty_name_is_none_where_the_parameter_says_so():
+    import rclpy
+    from rclpy.node import Node
+
+    from mpm_monitor.apps.demo import private_context
+    from mpm_monitor.nodes import monitor_node, replay_node
+    from mpm_monitor.nodes.ros_io import declare_parameters
+
+    for module, name in ((monitor_node, "candidate_topic"), (replay_node, "disturbance_topic")):
+        spec = next(s for s in module.PARAMS if s.name == name)
+        assert spec.empty_is_none
+        ctx = private_context()
+        try:
+            node = Node("empty_ok", context=ctx, parameter_overrides=[rclpy.parameter.Parameter(name, value="")])
+            assert declare_parameters(node, [spec])[name] == ""
+            node.destroy_node()
+        finally:
+            ctx.try_shutdown()
 
 
 def test_a_params_file_that_is_missing_or_not_yaml_is_one_line(tmp_path):

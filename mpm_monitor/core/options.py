@@ -57,6 +57,9 @@ class ParamSpec:
         declares ``[low, high]`` and :meth:`check` refuses the open end.
     length : int or None
         Number of elements of a ``double_array``.
+    empty_is_none : bool
+        A ``*_topic`` or ``*_service`` string whose ``''`` means none (no topic); any other such name must be one
+        ROS 2 can use, ``''`` included.
     """
 
     name: str
@@ -72,6 +75,7 @@ class ParamSpec:
     open_low: bool = False
     open_high: bool = False
     length: Optional[int] = None
+    empty_is_none: bool = False
 
     def range_text(self) -> str:
         """The range as text, e.g. ``[0, 50]`` or ``(0, 0.5)``; empty without a range."""

@@ -157,7 +157,7 @@ PARAMS = MODEL_PARAMS + (
 ) + topic_params("setpoint", "input", "output", "dither", "disturbance") + (
     ParamSpec("candidate_topic", "string", "", "Topic of candidate channels (JointState, the names are the channels: "
               "logged variables the model does not use, tested as causes of the prediction error and added to the "
-              "repaired model when located; '' = none).", read_only=True),
+              "repaired model when located; '' = none).", read_only=True, empty_is_none=True),
     ParamSpec("diagnostics_topic", "string", "/diagnostics", "Topic of the diagnostics (DiagnosticArray)."),
     ParamSpec("rsi_topic", "string", "mpm_monitor/rsi", "Topic of the row RSI values (Float64MultiArray, model "
               "output order)."),

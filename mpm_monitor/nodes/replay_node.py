@@ -99,7 +99,7 @@ PARAMS = (
     ParamSpec("bag", "string", "", "rosbag2 directory to replay."),
     ParamSpec("topics", "string_array", list(DEFAULT_TOPICS), "Topics of the bag to replay."),
     ParamSpec("disturbance_topic", "string", DEFAULT_DISTURBANCE_TOPIC, "The measured-disturbance topic, replayed as "
-              "well when the bag holds it ('' = not)."),
+              "well when the bag holds it ('' = not).", empty_is_none=True),
     ParamSpec("mode", "string", "time", "time: at recorded speed x rate; clock: lock step with /clock (samples "
               "stamped <= clock)."),
     ParamSpec("rate", "double", 1.0, "Speed factor of time mode.", *ReplayOptions.RATE_RANGE),

@@ -388,10 +388,10 @@ def unknown_overrides(node) -> list:
 
 
 def _ros_names(spec: ParamSpec, value) -> list:
-    """The topic or service names a parameter's value holds: a ``*_topic`` or ``*_service`` string (''
-    = none), or the entries of a ``topics`` list (``name`` or ``name=pkg/msg/Type``)."""
+    """The topic or service names a parameter's value holds: a ``*_topic`` or ``*_service`` string (``''``
+    none where ``spec.empty_is_none``), or the entries of a ``topics`` list (``name`` or ``name=pkg/msg/Type``)."""
     if spec.kind == "string" and (spec.name.endswith("_topic") or spec.name.endswith("_service")):
-        return [value] if value else []
+        return [value] if value or not spec.empty_is_none else []
     if spec.kind == "string_array" and spec.name == "topics":
         return [name for name in (str(v).split("=", 1)[0] for v in value or ()) if name]
     return []
