@@ -21,6 +21,7 @@ import json
 import os
 import sys
 from pathlib import Path
+from typing import Optional
 
 from ..core.errors import InputError
 
@@ -54,14 +55,15 @@ def _text(value) -> str:
     return f"{value:g}" if isinstance(value, float) else str(value)
 
 
-def _integer_at_least(low: int, text: str) -> int:
-    """``text`` as an integer >= ``low``, or argparse's error naming what was expected."""
+def _integer_at_least(low: int, text: str, high: Optional[int] = None) -> int:
+    """``text`` as an integer >= ``low`` (and <= ``high``), or argparse's error naming what was expected."""
     try:
         value = int(text)
     except ValueError:
         value = None
-    if value is None or value < low:
-        raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}")
+    if value is None or value < low or (high is not None and value > high):
+        expected = f"an integer >= {low}" if high is None else f"an integer in [{low}, {high:,}]"
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
     return value
 
 
@@ -70,9 +72,14 @@ def _seed(text: str) -> int:
     return _integer_at_least(0, text)
 
 
+#: Most samples ``simulate`` and ``reproduce`` run: a million samples of a 3x3 loop take about two minutes and a
+#: few hundred MB; 1e12 ran until the machine's memory was gone.
+MAX_SIMULATED_SAMPLES = 1_000_000
+
+
 def _samples(text: str) -> int:
-    """argparse type of ``--samples`` of ``simulate`` and ``reproduce``: an integer >= 1."""
-    return _integer_at_least(1, text)
+    """argparse type of ``--samples`` of ``simulate`` and ``reproduce``: an integer in [1, MAX_SIMULATED_SAMPLES]."""
+    return _integer_at_least(1, text, MAX_SIMULATED_SAMPLES)
 
 
 def _path(text: str) -> str:
