@@ -167,6 +167,19 @@ def test_bad_parameters_are_refused(ctx, tmp_path):
         RecorderNode(bag_dir=tmp_path / "new", context=ctx, node_name="r2", flush_period=0.0)
 
 
+def test_one_topic_under_two_names_is_refused_and_no_bag_is_left(ctx, tmp_path):
+    """Stop 73's audit: [clock, /clock] recorded every message twice, and a type not installed left a bag of
+    43 bytes behind, so that the corrected command found its bag_dir existing."""
+    for k, (topics, match) in enumerate([
+            (["clock", "/clock"], "topics: clock and /clock are the same topic /clock: expected each topic once"),
+            (["output", "/output=sensor_msgs/msg/JointState"], "topics: output and /output are the same topic"),
+            (["output", "x=foo_msgs/msg/Bar"], "message type foo_msgs/msg/Bar is not installed")]):
+        bag = tmp_path / f"bag{k}"
+        with pytest.raises(InputError, match=match):
+            RecorderNode(bag_dir=bag, topics=topics, context=ctx, node_name=f"dup{k}")
+        assert not bag.exists()
+
+
 def test_recorder_process_refuses_a_bad_parameter_in_one_line(tmp_path):
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="OFF")
     res = subprocess.run([sys.executable, "-m", "mpm_monitor.nodes.recorder_node", "--ros-args", "-p",

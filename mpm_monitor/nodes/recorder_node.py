@@ -26,7 +26,8 @@ topics : str[]
     Topics to record; a known name (``setpoint``, ``input``, ``output``, ``disturbance``, ``dither``,
     ``/diagnostics``, ``mpm_monitor/rsi``, ``/clock``) or ``name=pkg/msg/Type``.  By default all of
     them but ``dither``; a topic nobody publishes (``disturbance`` of a loop without measured
-    disturbances) leaves no trace in the bag.
+    disturbances) leaves no trace in the bag.  Two entries that name one topic (``clock`` and
+    ``/clock``, or a remapping) are refused, before the bag is made.
 flush_period : float
     Seconds between flushes to disk, 0.01 to 60.
 drain_timeout : float
@@ -220,6 +221,17 @@ class _Topic:
         self.received = 0
 
 
+def _check_distinct(topics) -> None:
+    """Refuse two entries of ``topics`` that name one topic (``clock`` and ``/clock``, a remapping): each message
+    would be recorded twice."""
+    seen: dict = {}
+    for tp in topics:
+        if tp.resolved in seen:
+            raise ConfigurationError(f"topics: {seen[tp.resolved]} and {tp.name} are the same topic {tp.resolved}: "
+                                     f"expected each topic once")
+        seen[tp.resolved] = tp.name
+
+
 class RecorderNode(Node):
     """Records topics to a rosbag2 (MCAP) directory until :meth:`close`.
 
@@ -261,11 +273,14 @@ class RecorderNode(Node):
                                        flush_period=p["flush_period"], drain_timeout=p["drain_timeout"],
                                        qos_wait=p["qos_wait"], fsync=p["fsync"], max_bag_size=p["max_bag_size"],
                                        max_bag_duration=p["max_bag_duration"])
-        self._writer = BagWriter(self.options.bag_dir, fsync=self.options.fsync, split_bytes=self.options.max_bag_size,
-                                 split_seconds=self.options.max_bag_duration)
+        # The topics' types and names are checked before the bag is made: a refused parameter leaves no bag
+        # behind (an empty one would make the corrected command's bag_dir "exist already").
         self._topics = [_Topic(n, t) for n, t in self.options.topics]
         for tp in self._topics:
             self._subscribe(tp, best_effort=self._publishers_best_effort(tp.name))
+        _check_distinct(self._topics)
+        self._writer = BagWriter(self.options.bag_dir, fsync=self.options.fsync, split_bytes=self.options.max_bag_size,
+                                 split_seconds=self.options.max_bag_duration)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._timer = self.create_timer(self.options.flush_period, self._on_flush_timer, clock=steady)
         limits = [f"{self.options.max_bag_size:,} bytes"] * bool(self.options.max_bag_size) + \
