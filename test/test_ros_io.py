@@ -238,6 +238,31 @@ def test_an_empty_name_is_none_where_the_parameter_says_so():
             ctx.try_shutdown()
 
 
+@pytest.mark.parametrize("node, overrides, match", [
+    ("monitor", {"setpoint_topic": "output"},
+     "parameters setpoint_topic and output_topic name one topic /output: expected a topic of its own for each"),
+    ("monitor", {"candidate_topic": "/input"}, "parameters input_topic and candidate_topic name one topic /input"),
+    ("mpc", {"input_topic": "output"}, "parameters output_topic and input_topic name one topic /output"),
+    ("plant", {"input_topic": "/output"}, "parameters output_topic and input_topic name one topic /output"),
+    ("setpoint", {"dither_topic": "setpoint"}, "parameters setpoint_topic and dither_topic name one topic /setpoint"),
+])
+def test_two_channels_on_one_topic_are_refused_at_start_up(node, overrides, match):
+    """Stop 73's audit: setpoint_topic:=output ran, took every output vector as the setpoint too (r = y) and
+    reported a mismatch in every row."""
+    from mpm_monitor.apps.demo import _overrides, private_context
+    from mpm_monitor.nodes import monitor_node, mpc_node, plant_node, setpoint_node
+
+    cls = {"monitor": monitor_node.MonitorNode, "mpc": mpc_node.MpcNode, "plant": plant_node.PlantNode,
+           "setpoint": setpoint_node.SetpointNode}[node]
+    ctx = private_context()
+    try:
+        with pytest.raises(ConfigurationError, match=match):
+            cls(context=ctx, parameter_overrides=_overrides({"case": "3.2", **overrides}))
+        cls(context=ctx, parameter_overrides=_overrides({"case": "3.2"})).destroy_node()     # the defaults: fine
+    finally:
+        ctx.try_shutdown()
+
+
 def test_a_params_file_that_is_missing_or_not_yaml_is_one_line(tmp_path):
     from mpm_monitor.nodes.ros_io import params_file_problem
 

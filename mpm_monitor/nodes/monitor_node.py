@@ -69,6 +69,7 @@ from .ros_io import (
     MODEL_PARAMS,
     MessageError,
     VectorCodec,
+    check_distinct_topics,
     declare_parameters,
     diagnostics_qos,
     resolve_model,
@@ -224,6 +225,9 @@ class MonitorNode(Node):
         self._analyze = analyze
         self._analysis_options = analysis_options_from_params(p)
         self._hw = p["hardware_id"] or self.get_fully_qualified_name()
+        # Checked here, not when a model file that failed loads later (in a timer's callback).
+        check_distinct_topics(self, p, ["setpoint_topic", "input_topic", "output_topic", "disturbance_topic",
+                                        "candidate_topic"] + ["dither_topic"] * p["auto_experiment"])
         self._dither_client = (self.create_client(SetParameters, p["experiment_service"])
                                if p["auto_experiment"] else None)
         self._dither_call = None   # (future, wall-clock time sent) of the call under way

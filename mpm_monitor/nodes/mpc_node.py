@@ -53,6 +53,7 @@ from .ros_io import (
     MODEL_PARAMS,
     MessageError,
     VectorCodec,
+    check_distinct_topics,
     declare_parameters,
     period_ns,
     resolve_model,
@@ -191,6 +192,7 @@ class MpcNode(Node):
         channels = (("r", "setpoint"), ("y", "output"), ("d", "dither"))
         if model.n_disturbances:
             channels += (("v", "disturbance"),)   # dv(k): the feedforward, stamp-matched like y(k)
+        check_distinct_topics(self, p, [f"{ch}_topic" for _, ch in channels] + ["input_topic"])
         self._codecs = {key: VectorCodec.for_channel(model, ch, p[f"{ch}_topic"]) for key, ch in channels}
         self._u_codec = VectorCodec.for_channel(model, "input", p["input_topic"])
         self._buf = {key: collections.OrderedDict() for key, _ in channels}

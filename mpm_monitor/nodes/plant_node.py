@@ -39,6 +39,7 @@ from .ros_io import (
     MODEL_PARAMS,
     MessageError,
     VectorCodec,
+    check_distinct_topics,
     declare_parameters,
     ns_to_stamp,
     period_ns,
@@ -103,6 +104,8 @@ class PlantNode(Node):
         rngs = seeded_generators(p["seed"])
         self.sim = PlantSimulator(model, dist, rngs["plant"])
         self._period = period_ns(model.sample_time)
+        check_distinct_topics(self, p, ["output_topic", "input_topic"]
+                              + ["disturbance_topic"] * bool(model.n_disturbances))
         self._y_codec = VectorCodec.for_channel(model, "output", p["output_topic"])
         self._u_codec = VectorCodec.for_channel(model, "input", p["input_topic"])
         #: The measured disturbances' generator, codec and publisher (None: the plant has none).

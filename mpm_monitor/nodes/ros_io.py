@@ -418,6 +418,27 @@ def check_ros_name(node, param: str, name: str, service: bool = False) -> None:
         raise ConfigurationError(f"parameter {param}: invalid {what} name {name!r}: {text}") from None
 
 
+def check_distinct_topics(node, params: dict, names: Sequence[str]) -> None:
+    """Refuse two of the parameters ``names`` (``setpoint_topic``, ``output_topic``, ...) whose topics are one
+    topic on ``node`` (as given, expanded or remapped): each vector would be taken as both channels
+    (``setpoint_topic:=output`` analysed r = y and reported a mismatch in every row).  Empty names are skipped.
+
+    Raises
+    ------
+    ConfigurationError
+        One line naming both parameters and the topic.
+    """
+    seen: dict = {}
+    for param in names:
+        if not params.get(param):
+            continue
+        topic = node.resolve_topic_name(params[param])
+        if topic in seen:
+            raise ConfigurationError(f"parameters {seen[topic]} and {param} name one topic {topic}: expected a topic "
+                                     f"of its own for each")
+        seen[topic] = param
+
+
 def parameter_overrides(specs: Sequence[ParamSpec], overrides=None, **values) -> list:
     """``overrides`` plus one ``rclpy.parameter.Parameter`` per keyword value that is not None.
 
