@@ -176,6 +176,23 @@ def test_a_window_too_short_for_the_tests_is_waited_on_not_an_error():
     assert summary.value("last_analysis_skipped").startswith("the window: 40 samples; the tests with na=4")
 
 
+def test_a_full_window_too_short_for_the_tests_is_an_error_that_says_to_raise_window_samples():
+    """Stop 73's audit: window_samples 200 on a model whose tests need 206 said "no analysis yet: the window is
+    still too short" at OK for ever."""
+    from mpm_monitor.core.analysis import AnalysisOptions
+    from mpm_monitor.core.pipeline import analyze
+
+    c = core(window=WindowOptions(window_samples=30))
+    feed(c, 0, 40)
+    c.accept(run_analysis(analyze, MODEL, AnalysisOptions(), c.take_job()))
+    st = by_name(c.statuses(now=0.0))
+    summary = st[SUMMARY_NAME]
+    assert summary.level == ERROR and st["mpm_monitor: row y1"].level == ERROR
+    assert summary.message.startswith("window_samples 30 is too short for the tests even when the window is full "
+                                      "(the window: 30 samples; the tests with na=4"), summary.message
+    assert summary.message.endswith("): raise window_samples")
+
+
 def test_no_mismatch_is_ok_everywhere():
     c = core()
     feed(c, 0, 20)

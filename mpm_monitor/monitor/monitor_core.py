@@ -218,6 +218,11 @@ class MonitorCore:
         if outcome.too_few is not None:      # no analysis: the latest result (or the waiting) stands, with why
             self._too_few = outcome.too_few
             self._analysis_error = None
+            w = self.window
+            if w.n_window >= self.options.window.window_samples and w.window_gaps()[1] == 0:
+                # A full window without gaps: waiting cannot help (a window_samples below what the model's tests need).
+                self._analysis_error = (f"window_samples {self.options.window.window_samples} is too short for the "
+                                        f"tests even when the window is full ({outcome.too_few}): raise window_samples")
             return
         self._too_few = None
         self._results += 1
