@@ -735,3 +735,14 @@ def test_a_lead_over_two_lags_that_the_plant_has_is_kept():
     assert change["applied"] is True and change["kind"] == "gain"
     assert after["gain"] == pytest.approx(-0.7, rel=REL)
     assert after["time_constant2"] == pytest.approx(3.0, rel=0.1) and after["lead"] == pytest.approx(2.0, rel=0.1)
+
+
+def test_delays_in_seconds_are_whole_samples_as_a_model_file_writes_them():
+    """Stop 73's audit: with a sample time of 0.1 s an unchanged delay of 6 samples was written 0.6000000000000001
+    (6 x 0.1 in floating point) in the repaired model and the report."""
+    from mpm_monitor.core.repair.forms import FIRST_ORDER, _Form, _fitted_params, _lag_seconds
+
+    assert 6 * 0.1 != 0.6 and _lag_seconds(6, 0.1) == 0.6
+    assert _lag_seconds(7, 1.0) == 7.0 and _lag_seconds(3, 1e-3) == 0.003 and _lag_seconds(0, 0.1) == 0.0
+    assert _fitted_params(FIRST_ORDER, 1.0, (0.9,), 0.0, 7, 0.1)["delay"] == 0.6
+    assert _fitted_params(_Form(n_lags=2), 1.0, (0.9, 0.5), 0.0, 7, 0.1)["delay"] == 0.6

@@ -211,12 +211,18 @@ def _reads_no_lag(pole: float) -> bool:
     return pole <= 2 * _POLE_MIN
 
 
+def _lag_seconds(samples: int, ts: float) -> float:
+    """``samples`` sample times in seconds, to 15 significant digits: 6 x 0.1 s is 0.6 s, as a model file writes
+    it, not 0.6000000000000001 (an unchanged delay written anew, a change found where there is none)."""
+    return float(f"{float(samples) * ts:.15g}")
+
+
 def _element_params(gain: float, pole: float, lag: int, ts: float, no_lag: bool = False):
     """(gain, time constant in s, delay in s) of a fitted first-order element; a vanishing pole means no lag
     (:func:`_reads_no_lag`), as does ``no_lag``."""
     if no_lag or _reads_no_lag(pole):
-        return float(gain), 0.0, float(lag) * ts
-    return float(gain), float(-ts / math.log(pole)), float(max(lag - 1, 0)) * ts
+        return float(gain), 0.0, _lag_seconds(lag, ts)
+    return float(gain), float(-ts / math.log(pole)), _lag_seconds(max(lag - 1, 0), ts)
 
 
 def _fitted_params(form: _Form, gain: float, poles, lead: float, lag: int, ts: float, no_lag: bool = False) -> dict:
@@ -227,7 +233,7 @@ def _fitted_params(form: _Form, gain: float, poles, lead: float, lag: int, ts: f
         out = dict(zip(("gain", "time_constant", "delay"), _element_params(gain, poles[0], lag, ts, no_lag)))
     else:
         taus = [_tau_of(a, ts) for a in poles] + [0.0, 0.0]
-        out = {"gain": float(gain), "time_constant": taus[0], "delay": float(max(lag - form.offset, 0)) * ts,
+        out = {"gain": float(gain), "time_constant": taus[0], "delay": _lag_seconds(max(lag - form.offset, 0), ts),
                "time_constant2": taus[1]}
     out.setdefault("time_constant2", 0.0)
     out["lead"] = float(lead) if form.lead else 0.0

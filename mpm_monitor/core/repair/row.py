@@ -17,7 +17,7 @@ import numpy as np
 from ..discretize import discretize, simulate_elements
 from ..model import PlantModel
 from .fit import _lag_interval, _RowEstimate, _RowProblem, _search_row
-from .forms import _fitted_params, _match_lags
+from .forms import _fitted_params, _lag_seconds, _match_lags
 from .options import RepairOptions, _TestSettings
 
 
@@ -229,7 +229,7 @@ def _element_summary(problem: _RowProblem, est: _RowEstimate, m: int, ts: float,
         tau_iv = taus[0] if taus else [0.0, 0.0]
         shift = form.offset
     interval = {"gain": [k_hat - zcrit * se_k, k_hat + zcrit * se_k], "time_constant": tau_iv,
-                "delay": [max(lo_lag - shift, 0) * ts, max(hi_lag - shift, 0) * ts]}
+                "delay": [_lag_seconds(max(lo_lag - shift, 0), ts), _lag_seconds(max(hi_lag - shift, 0), ts)]}
     if form.n_lags == 2:
         interval["time_constant2"] = taus[1]
     if form.lead:
