@@ -746,3 +746,24 @@ def test_delays_in_seconds_are_whole_samples_as_a_model_file_writes_them():
     assert _lag_seconds(7, 1.0) == 7.0 and _lag_seconds(3, 1e-3) == 0.003 and _lag_seconds(0, 0.1) == 0.0
     assert _fitted_params(FIRST_ORDER, 1.0, (0.9,), 0.0, 7, 0.1)["delay"] == 0.6
     assert _fitted_params(_Form(n_lags=2), 1.0, (0.9, 0.5), 0.0, 7, 0.1)["delay"] == 0.6
+
+
+def test_a_repair_that_leaves_its_row_flagged_says_so():
+    """Stop 73's audit: a first-order model element whose plant has a lead (6 s) was repaired in its structure with
+    its gain cut from 0.8 to 0.19, confidence 1, the row still flagged by the repaired model's detection, and no
+    warning.  The warning names the row and what may be missing; its step-response form is repaired whole."""
+    from mpm_monitor.core.analysis import AnalysisOptions
+    from mpm_monitor.sim.closed_loop import run_closed_loop
+    from mpm_monitor.sim.mpc import MpcOptions
+
+    model = PlantModel(sample_time=1.0, inputs=("ua", "ub"), outputs=("ya", "yb"), gain=[[1.5, 0.6], [0.8, 2.0]],
+                       time_constant=[[20, 15], [25, 10]], delay=[[2, 3], [4, 1]])
+    plant = PlantModel(sample_time=1.0, inputs=("ua", "ub"), outputs=("ya", "yb"), gain=[[1.5, 0.6], [0.8, 2.0]],
+                       time_constant=[[20, 15], [25, 10]], delay=[[2, 3], [4, 1]], lead=[[0, 0], [6, 0]])
+    log = run_closed_loop(plant, model, 3000, seed=1, mpc=MpcOptions())
+    rep = analyze(model, log.as_logged_data(source="lead"), AnalysisOptions(jobs=1))
+    assert rep.located_elements == [("yb", "ua")]
+    assert rep.repair["rows_flagged_after"] == ["yb"]
+    (w,) = [w for w in rep.warnings if w.startswith("yb: still flagged after the repair of ua; ")]
+    assert "does not explain the row's mismatch whole" in w and "a lead, a second lag" in w
+    assert w in rep.repair["warnings"]

@@ -218,9 +218,11 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
 
 
 def _ambiguous_left(report: AnalysisReport, changes: list, flagged_after: list) -> list:
-    """Warnings for the rows whose repair was applied, that the repaired model's detection still flags, and that hold
-    elements the data cannot tell apart (``ambiguous``, not located): the mismatch those may hold is not repaired,
-    and the repaired elements, fitted with them held as the model has them, may have taken part of it.
+    """Warnings for the rows whose repair was applied and that the repaired model's detection still flags.  Where
+    the row holds elements the data cannot tell apart (``ambiguous``, not located), the mismatch those may hold is
+    not repaired, and the repaired elements, fitted with them held as the model has them, may have taken part of
+    it.  Otherwise the repaired elements, in their structure, do not explain the row's mismatch (a plant's lead
+    that a first-order element cannot take was fitted with its gain cut to a quarter, at confidence 1).
 
     Parameters
     ----------
@@ -239,9 +241,16 @@ def _ambiguous_left(report: AnalysisReport, changes: list, flagged_after: list) 
     applied = [c for c in changes if c["applied"]]
     for o in dict.fromkeys(c["output"] for c in applied if c["output"] in flagged_after):
         ambiguous = [e.input for e in report.elements if e.output == o and e.ambiguous and not e.mismatch]
-        if not ambiguous:
-            continue
         repaired = [c["input"] for c in applied if c["output"] == o]
+        if not ambiguous:
+            what = ("elements, each in the structure the model gives it, do not explain the row's mismatch whole: the "
+                    "plant's elements may have a shape their structure lacks" if len(repaired) > 1 else
+                    "element, in the structure the model gives it, does not explain the row's mismatch whole: the "
+                    "plant's element may have a shape that structure lacks")
+            out.append(f"{o}: still flagged after the repair of {', '.join(repaired)}; the re-estimated {what} (a lead, "
+                       f"a second lag; a step-response element would take it), or another element of the row is "
+                       f"mismatched and was not located; check the repair before using it")
+            continue
         one = len(ambiguous) == 1
         out.append(f"{o}: still flagged after the repair of {', '.join(repaired)}; "
                    f"{'the element' if one else 'the elements'} of {', '.join(ambiguous)} cannot be told apart from "
