@@ -207,7 +207,7 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
     if after is not None:
         doc["rsi_after"] = {r.output: r.rsi for r in after.rows}
         doc["rows_flagged_after"] = after.flagged_rows
-        for w in _ambiguous_left(report, doc["changes"], after.flagged_rows):
+        for w in _still_flagged(report, doc["changes"], after.flagged_rows):
             doc["warnings"].append(w)
             warnings.append(w)
     kinds = getattr(result, "kinds", {})
@@ -217,7 +217,7 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
     return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result, regressions=None)
 
 
-def _ambiguous_left(report: AnalysisReport, changes: list, flagged_after: list) -> list:
+def _still_flagged(report: AnalysisReport, changes: list, flagged_after: list) -> list:
     """Warnings for the rows whose repair was applied and that the repaired model's detection still flags.  Where
     the row holds elements the data cannot tell apart (``ambiguous``, not located), the mismatch those may hold is
     not repaired, and the repaired elements, fitted with them held as the model has them, may have taken part of
