@@ -89,6 +89,23 @@ def test_a_full_standard_output_is_one_line_in_process(tmp_path, capsys, monkeyp
     assert code == 2 and err == "error: standard output: cannot write: No space left on device\n", err
 
 
+def test_demo_to_a_full_standard_output_is_one_line(capsys, monkeypatch):
+    """Stop 73: ``demo > /dev/full`` wrote through the demo's own stream, not the checked one, and ended in an
+    OSError traceback and exit code 1.  (The demo itself is replaced here: it runs ROS nodes.)"""
+    import mpm_monitor.apps.demo as demo
+
+    def run_demo(**kw):
+        kw["out"].write("demo: case 3.2 ...\n")
+        kw["out"].flush()
+        return 0
+
+    monkeypatch.setattr(demo, "run_demo", run_demo)
+    monkeypatch.setattr(sys, "stdout", _FullStream())
+    code = cli_main(["demo", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and err == "error: standard output: cannot write: No space left on device\n", err
+
+
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
 @pytest.mark.parametrize("unbuffered", ["1", None], ids=["unbuffered", "buffered"])
 @pytest.mark.parametrize("command", ["simulate", "analyze", "analyze --json -"])

@@ -451,15 +451,28 @@ def _say(text: str) -> None:
     BrokenPipeError
         When the reader went away (``| head``), as before.
     """
-    if sys.stdout is None:          # started with the standard output closed (>&-): nothing to write to, as print()
-        return
-    try:
-        sys.stdout.write(text + "\n")
-        sys.stdout.flush()
-    except BrokenPipeError:
-        raise
-    except OSError as exc:
-        raise _StandardOutputError(exc) from None
+    _CheckedStandardOutput.write(text + "\n")
+
+
+class _CheckedStandardOutput:
+    """The standard output as a stream whose every write is flushed and checked (:func:`_say`): what ``demo``
+    writes to (a full disk gave a traceback and exit 1)."""
+
+    @staticmethod
+    def write(text: str) -> None:
+        if sys.stdout is None:      # started with the standard output closed (>&-): nothing to write to, as print()
+            return
+        try:
+            sys.stdout.write(text)
+            sys.stdout.flush()
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            raise _StandardOutputError(exc) from None
+
+    @staticmethod
+    def flush() -> None:
+        """Nothing: every write was flushed."""
 
 
 def _discard_standard_output() -> None:
@@ -640,7 +653,8 @@ def _experiment_dither(path: str, model) -> tuple:
 def _cmd_demo(args) -> int:
     from .demo import run_demo
 
-    return run_demo(case=args.case, samples=args.samples, bag=args.bag, seed=args.seed, quiet=args.quiet)
+    return run_demo(case=args.case, samples=args.samples, bag=args.bag, seed=args.seed, quiet=args.quiet,
+                    out=_CheckedStandardOutput)
 
 
 def _not_an_input(path: str, flag: str, inputs: dict) -> None:
