@@ -63,7 +63,7 @@ from ..core.errors import BagError, ConfigurationError
 from ..core.options import ParamSpec
 from ..io.bags import BagWriter
 from ..io.qos import RECORDER_QOS
-from .ros_io import declare_parameters, message_class, parameter_overrides, qos_profile, run_node
+from .ros_io import declare_parameters, message_class, parameter_overrides, qos_profile, repeated_topic, run_node
 
 #: Message types of the topics the project publishes (docs/interfaces.md, "ROS 2 topics and statuses").
 KNOWN_TOPIC_TYPES = {
@@ -224,12 +224,10 @@ class _Topic:
 def _check_distinct(topics) -> None:
     """Refuse two entries of ``topics`` that name one topic (``clock`` and ``/clock``, a remapping): each message
     would be recorded twice."""
-    seen: dict = {}
-    for tp in topics:
-        if tp.resolved in seen:
-            raise ConfigurationError(f"topics: {seen[tp.resolved]} and {tp.name} are the same topic {tp.resolved}: "
-                                     f"expected each topic once")
-        seen[tp.resolved] = tp.name
+    twice = repeated_topic((tp.name, tp.resolved) for tp in topics)
+    if twice is not None:
+        raise ConfigurationError(f"topics: {twice[0]} and {twice[1]} are the same topic {twice[2]}: "
+                                 f"expected each topic once")
 
 
 class RecorderNode(Node):

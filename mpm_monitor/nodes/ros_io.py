@@ -428,15 +428,21 @@ def check_distinct_topics(node, params: dict, names: Sequence[str]) -> None:
     ConfigurationError
         One line naming both parameters and the topic.
     """
+    twice = repeated_topic((param, node.resolve_topic_name(params[param])) for param in names if params.get(param))
+    if twice is not None:
+        raise ConfigurationError(f"parameters {twice[0]} and {twice[1]} name one topic {twice[2]}: expected a topic "
+                                 f"of its own for each")
+
+
+def repeated_topic(named) -> Optional[tuple]:
+    """The first two entries of ``named`` (``(label, resolved topic name)`` pairs, in order) that name one topic, as
+    ``(first label, second label, topic)``; None when every topic is named once."""
     seen: dict = {}
-    for param in names:
-        if not params.get(param):
-            continue
-        topic = node.resolve_topic_name(params[param])
+    for label, topic in named:
         if topic in seen:
-            raise ConfigurationError(f"parameters {seen[topic]} and {param} name one topic {topic}: expected a topic "
-                                     f"of its own for each")
-        seen[topic] = param
+            return seen[topic], label, topic
+        seen[topic] = label
+    return None
 
 
 def parameter_overrides(specs: Sequence[ParamSpec], overrides=None, **values) -> list:
