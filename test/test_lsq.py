@@ -28,7 +28,7 @@ import numpy as np
 import pytest
 from scipy import optimize
 
-from mpm_monitor.core.repair.lsq import _box_lstsq, least_squares_bounded
+from mpm_monitor.core.repair.lsq import _box_lstsq, least_squares_bounded, symmetric_pinv
 
 TIGHT = dict(xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
 # The settings of the repair's row fit (fit.py): looser tolerances, relative step 1e-6.
@@ -288,3 +288,29 @@ def test_step_response_form_from_a_double_pole():
     for start in (0.8, 0.9, 0.95):
         ours = least_squares_bounded(resid, [start, start], POLE_BOUNDS, **TIGHT)
         np.testing.assert_allclose(np.sort(ours.x), np.exp(-1 / np.array([2.0, 5.0])), rtol=1e-9)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 7, 12, 30])
+def test_symmetric_pinv_is_numpys_bit_for_bit(n):
+    """symmetric_pinv gives numpy.linalg.pinv(hermitian=True)'s very numbers: full-rank, rank-deficient (a
+    repeated column, a zero column), indefinite and scaled Gram matrices, at the repair's two cut-offs."""
+    rng = np.random.default_rng(n)
+    cases = []
+    for _ in range(20):
+        x = rng.standard_normal((3 * n + 5, n)) * np.exp(rng.uniform(-8, 8, n))
+        cases.append(x.T @ x)
+        if n > 1:
+            x[:, -1] = 2.0 * x[:, 0]
+            cases.append(x.T @ x)
+            x[:, 0] = 0.0
+            cases.append(x.T @ x)
+        s = rng.standard_normal((n, n))
+        cases.append(s + s.T)                               # indefinite: signs moved into V'
+    cases.append(np.zeros((n, n)))
+    for g in cases:
+        for rcond in (1e-12, 1e-13):
+            assert np.array_equal(symmetric_pinv(g, rcond), np.linalg.pinv(g, rcond=rcond, hermitian=True))
+
+
+def test_symmetric_pinv_of_an_empty_matrix():
+    assert symmetric_pinv(np.zeros((0, 0)), 1e-12).shape == (0, 0)

@@ -20,7 +20,7 @@ from ..arx import lag_matrix, least_squares_ar
 from ..discretize import REPEATED_POLE_TOLERANCE
 from ..filters import lfilter
 from .forms import _POLE_MAX, _POLE_MIN, FIRST_ORDER, _basis, _Form
-from .lsq import least_squares_bounded, solver_scale
+from .lsq import least_squares_bounded, solver_scale, symmetric_pinv
 
 #: Fewest cost samples of a segment of data with gaps that takes part in a fit (a shorter one would
 #: mostly feed its own offset and free responses).
@@ -356,7 +356,7 @@ class _RowProblem:
         scale[scale == 0] = 1.0
         ps = phi / scale
         gram = ps.T @ ps
-        beta = np.linalg.pinv(gram, rcond=1e-12, hermitian=True) @ (ps.T @ target)
+        beta = symmetric_pinv(gram, 1e-12) @ (ps.T @ target)
         return beta / scale
 
     def projected(self, poles, lags):
@@ -371,21 +371,27 @@ class _RowProblem:
         target = self._cost(self.zf) - known
         c, cc = self._constant_part()
         kv = v.shape[1]
-        order, inverse = self._column_order(kv, n_gain, c.shape[1])
-        vv, vc = v.T @ v, v.T @ c
-        gram = np.block([[vv, vc], [vc.T, cc]])[np.ix_(order, order)]
+        order, inverse, pairs, blocks = self._column_order(kv, n_gain, c.shape[1])
+        vc = v.T @ c
+        blocks[:kv, :kv] = v.T @ v                              # [[V'V, V'C], [C'V, C'C]]
+        blocks[:kv, kv:] = vc
+        blocks[kv:, :kv] = vc.T
+        blocks[kv:, kv:] = cc
+        gram = blocks.take(pairs)                               # its rows and columns in the design's order
         rhs = np.concatenate([v.T @ target, c.T @ target])[order]
         scale = np.sqrt(np.diag(gram))                          # the columns' norms
         scale[scale == 0] = 1.0
-        beta = np.linalg.pinv(gram / np.outer(scale, scale), rcond=1e-12, hermitian=True) @ (rhs / scale) / scale
+        beta = symmetric_pinv(gram / np.outer(scale, scale), 1e-12) @ (rhs / scale) / scale
         b = beta[inverse]                                       # [moving, constant]
         return target - v @ b[:kv] - c @ b[kv:], beta
 
     def _column_order(self, kv: int, n_gain: int, kc: int) -> tuple:
-        """``(order, inverse)``: the columns ``[V, C]`` of :meth:`projected` (``kv`` moving, the first
-        ``n_gain`` of them the linear columns; ``kc`` constant) in the order of :meth:`_design` (the
-        located elements' linear columns, the fixed columns, the free responses of the located poles,
-        the filtered extra regressors), and back."""
+        """``(order, inverse, pairs, blocks)``: the columns ``[V, C]`` of :meth:`projected` (``kv`` moving,
+        the first ``n_gain`` of them the linear columns; ``kc`` constant) in the order of :meth:`_design`
+        (the located elements' linear columns, the fixed columns, the free responses of the located
+        poles, the filtered extra regressors), and back; the flat indices ``pairs`` (shape (k, k),
+        ``k = kv + kc``) that take a ``(k, k)`` matrix of ``[V, C]``'s products into that order on both
+        sides; and a ``(k, k)`` buffer for those products, kept for the next evaluation."""
         key = (kv, n_gain, kc)
         out = self._orders.get(key)
         if out is None:
@@ -394,7 +400,8 @@ class _RowProblem:
                                     kv + np.arange(n_fixed, kc)])
             inverse = np.empty_like(order)
             inverse[order] = np.arange(order.size)
-            out = self._orders[key] = (order, inverse)
+            k = order.size
+            out = self._orders[key] = (order, inverse, order[:, None] * k + order[None, :], np.empty((k, k)))
         return out
 
     def _constant_part(self):
@@ -625,7 +632,7 @@ class _RowProblem:
         # Only the free coefficients' and poles' block is unscaled: a nuisance column of negligible norm
         # (1e-156 next to 1e2, a step too small to move it) would overflow its own variance, unused.
         k = nl + npf
-        block = s2 * np.linalg.pinv(js.T @ js, rcond=1e-13, hermitian=True)[:k, :k] / np.outer(scale[:k], scale[:k])
+        block = s2 * symmetric_pinv(js.T @ js, 1e-13)[:k, :k] / np.outer(scale[:k], scale[:k])
         np.fill_diagonal(block, np.maximum(np.diag(block), 0.0))
         return block, self._condition(js[:, :k])
 

@@ -151,6 +151,41 @@ def solver_scale(x: np.ndarray) -> float:
     return 2.0 ** round(-math.log2(spread))
 
 
+def symmetric_pinv(a: np.ndarray, rcond: float) -> np.ndarray:
+    """``numpy.linalg.pinv(a, rcond=rcond, hermitian=True)`` of a real symmetric matrix, the very same numbers.
+
+    The same operations in the same order as numpy 2's (the eigendecomposition, the eigenvalues'
+    magnitudes sorted in decreasing order with their signs moved into ``V'``, the small ones dropped below
+    ``rcond`` times the largest, then ``V' ' diag(1/s) U'``), without the stacked-matrix generality
+    (``take_along_axis``, the wrappers) that cost about 35 microseconds of its 85 on a 10 x 10 matrix.  The
+    repair's pole searches call it tens of thousands of times on a step-response model's row.
+    ``test_lsq.py`` checks it against ``numpy.linalg.pinv`` bit for bit.
+
+    Parameters
+    ----------
+    a : ndarray, shape (n, n)
+        Real symmetric.
+    rcond : float
+        Singular values at most ``rcond`` times the largest count as zero.
+
+    Returns
+    -------
+    ndarray, shape (n, n)
+    """
+    if a.shape[0] == 0:
+        return np.empty((0, 0))
+    s, u = np.linalg.eigh(a)
+    sgn = np.copysign(1.0, s)
+    s = np.abs(s)
+    order = np.argsort(s)[::-1]
+    sgn, s, u = sgn[order], s[order], u[:, order]
+    vt = (u * sgn).T.conjugate()
+    large = s > rcond * np.max(s)
+    s = np.divide(1, s, where=large, out=s)
+    s[~large] = 0
+    return vt.T @ (s[:, None] * u.T)
+
+
 def least_squares_bounded(fun: Callable[[np.ndarray], np.ndarray], x0, bounds=(-np.inf, np.inf), *,
                           xtol: float = 1e-8, ftol: float = 1e-8, gtol: float = 1e-8, max_nfev: Optional[int] = None,
                           diff_step: Optional[float] = None) -> LsqResult:
