@@ -55,8 +55,8 @@ def _text(value) -> str:
     return f"{value:g}" if isinstance(value, float) else str(value)
 
 
-def _integer_at_least(low: int, text: str, high: Optional[int] = None) -> int:
-    """``text`` as an integer >= ``low`` (and <= ``high``), or argparse's error naming what was expected."""
+def _integer_in_range(low: int, text: str, high: Optional[int] = None) -> int:
+    """``text`` as an integer >= ``low`` (and <= ``high`` when given), or argparse's error naming what was expected."""
     try:
         value = int(text)
     except ValueError:
@@ -69,7 +69,7 @@ def _integer_at_least(low: int, text: str, high: Optional[int] = None) -> int:
 
 def _seed(text: str) -> int:
     """argparse type of ``--seed``: an integer >= 0 (numpy's generators take no negative seed)."""
-    return _integer_at_least(0, text)
+    return _integer_in_range(0, text)
 
 
 #: Most samples ``simulate`` and ``reproduce`` run: a million samples of a 3x3 loop take about two minutes and a
@@ -79,7 +79,7 @@ MAX_SIMULATED_SAMPLES = 1_000_000
 
 def _samples(text: str) -> int:
     """argparse type of ``--samples`` of ``simulate`` and ``reproduce``: an integer in [1, MAX_SIMULATED_SAMPLES]."""
-    return _integer_at_least(1, text, MAX_SIMULATED_SAMPLES)
+    return _integer_in_range(1, text, MAX_SIMULATED_SAMPLES)
 
 
 def _path(text: str) -> str:

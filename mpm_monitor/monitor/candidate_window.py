@@ -116,7 +116,7 @@ class CandidateWindow:
         The samples at the end of ``data`` stamped after every vector kept, when there are at most
         ``late_samples`` of them (and fewer than all), are left out: their vectors have not come yet.
         More of them (a candidate publisher that stopped) are kept, and the channels are missing there."""
-        if not self._names:
+        if not self._names:              # else some vector kept names a channel: ``got`` below is not empty
             return data
         stamps = np.rint(np.asarray(data.t, dtype=float) * NS_PER_S).astype(np.int64)
         got = np.array([s for s, _ in self._vectors], dtype=np.int64)
@@ -124,17 +124,15 @@ class CandidateWindow:
         got = got[order]
         vectors = [self._vectors[k][1] for k in order]
         n = stamps.shape[0]
-        if got.size:
-            late = int(np.count_nonzero(stamps > got[-1] + self._tol))
-            if 0 < late <= self._late and late < n:
-                n -= late
-                data, stamps = data.slice(0, n), stamps[:n]
+        late = int(np.count_nonzero(stamps > got[-1] + self._tol))
+        if 0 < late <= self._late and late < n:
+            n -= late
+            data, stamps = data.slice(0, n), stamps[:n]
         match = np.full(n, -1)
-        if got.size:
-            pos = np.clip(np.searchsorted(got, stamps), 0, got.size - 1)
-            for cand in (pos, np.maximum(pos - 1, 0)):
-                close = (np.abs(got[cand] - stamps) <= self._tol) & (match < 0)
-                match[close] = cand[close]
+        pos = np.clip(np.searchsorted(got, stamps), 0, got.size - 1)
+        for cand in (pos, np.maximum(pos - 1, 0)):
+            close = (np.abs(got[cand] - stamps) <= self._tol) & (match < 0)
+            match[close] = cand[close]
         extra, unusable = dict(data.extra), dict(data.unusable)
         for name in self._names:
             if name in extra or name in unusable:
