@@ -190,7 +190,9 @@ def summarise(records: Sequence[dict]) -> dict:
     before_s, after_s = score(records, "arx"), score(after, "arx")
     amb = [r for r in records if r["results"]["arx"]["ambiguous"]]
     exps = [r for r in records if r["experiment"]]
-    rel = [v for r in exps for v in r["experiment_relative_amplitude"].values()]
+    # An input that did not move in the first log has no amplitude / std (None): counted apart.
+    rel_all = [v for r in exps for v in r["experiment_relative_amplitude"].values()]
+    rel = [v for v in rel_all if v is not None]
     samples = [r["experiment"]["samples"] for r in exps]
     predicted = [r["experiment"]["expected_detectable_gain_change"] for r in exps]
     achieved = [r["rerun"]["largest_detectable_after"] for r in exps]
@@ -213,6 +215,7 @@ def summarise(records: Sequence[dict]) -> dict:
         "inputs_per_experiment_run": _quartiles([r["shape"][1] for r in exps]),
         "relative_amplitude_quartiles": _quartiles(rel),
         "median_relative_amplitude": statistics.median(rel) if rel else None,
+        "dithered_inputs_that_did_not_move": len(rel_all) - len(rel),
         "samples_quartiles": _quartiles(samples),
         "median_samples": statistics.median(samples) if samples else None,
         "experiments_reaching_goal": sum(1 for p in predicted if p is not None and p <= 0.2 + 1e-9),
@@ -304,7 +307,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     print(f"runs with ambiguity {s['runs_with_ambiguity']}, with an experiment "
           f"{s['runs_with_ambiguity_and_experiment']}; experiments {s['runs_with_experiment']} "
           f"(reaching the goal {s['experiments_reaching_goal']})")
-    print(f"median amplitude / input std {s['median_relative_amplitude']}, median samples {s['median_samples']}; "
+    print(f"median amplitude / input std {s['median_relative_amplitude']} (dithered inputs that did not move "
+          f"{s['dithered_inputs_that_did_not_move']}), median samples {s['median_samples']}; "
           f"re-runs still ambiguous {s['reruns_still_ambiguous']}")
     if s["experiments_with_a_larger_dither"]:
         print(f"experiments out of reach naming a larger dither {s['experiments_with_a_larger_dither']}, re-run with it "

@@ -65,3 +65,11 @@ def test_the_scores_after_count_the_reruns():
     assert (s["before"]["tp"], s["before"]["ambiguous_true"]) == (1, 1)
     assert (s["after"]["tp"], s["after"]["fp"], s["after"]["fn"], s["after"]["ambiguous_true"]) == (2, 0, 0, 0)
     assert s["after"]["recall_all"] == 1.0
+
+    # A dithered input that did not move in the first log has no amplitude / std (None): the summary counts it
+    # apart and takes the median of the others (seed 7 ended in a TypeError there).
+    still = rec(2, [], [[1, 0], [1, 1]], [(1, 1)], rerun=[[1, 1]])
+    still["experiment_relative_amplitude"] = {"u1": None, "u2": 0.3}
+    s = summarise(records + [still])
+    assert s["dithered_inputs_that_did_not_move"] == 1
+    assert s["median_relative_amplitude"] == 0.4 and s["relative_amplitude_quartiles"][1] == 0.4
