@@ -51,8 +51,9 @@ def step_form(model: PlantModel) -> PlantModel:
 
 
 def _located(model, plant, mismatched, data, alpha: float):
-    """The located elements ``[[i, j], ...]``, the seconds of ``analyze``, and ``{"i,j": error}`` of the
-    repaired model's step response of every located mismatched element."""
+    """The located elements ``[[i, j], ...]``, the seconds of ``analyze``, ``{"i,j": error}`` of the
+    repaired model's step response of every located mismatched element, and ``{"i,j": kind}`` of every
+    located element (the repair's kind)."""
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -63,7 +64,8 @@ def _located(model, plant, mismatched, data, alpha: float):
     located = sorted([oi[o], ci[c]] for o, c in rep.located_elements)
     errors = {f"{i},{j}": structures_mc.step_response_error(plant, rep.repaired_model, i, j)
               for i, j in located if [i, j] in mismatched and rep.repaired_model is not None}
-    return located, seconds, errors
+    kinds = {f"{i},{j}": kind for (i, j), kind in (rep.repair_result.kinds.items() if rep.repair_result else ())}
+    return located, seconds, errors, kinds
 
 
 def one(seed: int, index: int, samples: int, alpha: float) -> dict:
@@ -76,8 +78,8 @@ def one(seed: int, index: int, samples: int, alpha: float) -> dict:
            "mismatched": sorted([int(m["output"]), int(m["column"])] for m in sc.mismatches)}
     try:
         for key, model in (("parametric", sc.model), ("step", step)):
-            rec[key], rec[f"{key}_s"], rec[f"{key}_repair_error"] = _located(model, sc.plant, rec["mismatched"],
-                                                                            data, alpha)
+            rec[key], rec[f"{key}_s"], rec[f"{key}_repair_error"], rec[f"{key}_kinds"] = _located(
+                model, sc.plant, rec["mismatched"], data, alpha)
     except Exception as exc:                    # a diverged loop refused by both: recorded, not scored
         rec["error"] = f"{type(exc).__name__}: {exc}"
     return rec
@@ -90,7 +92,11 @@ def _one_star(args):
 def summarise(records: Sequence[dict]) -> dict:
     scored = [r for r in records if "error" not in r]
     out = {"runs": len(records), "scored": len(scored), "errors": len(records) - len(scored),
-           "runs_where_the_two_differ": [r["index"] for r in scored if r["parametric"] != r["step"]]}
+           "runs_where_the_two_differ": [r["index"] for r in scored if r["parametric"] != r["step"]],
+           # Elements both forms locate whose repair's kind differs (records without kinds: none).
+           "kinds_that_differ": [[r["index"], k, r["parametric_kinds"][k], r["step_kinds"][k]] for r in scored
+                                 for k in sorted(set(r.get("parametric_kinds", {})) & set(r.get("step_kinds", {})))
+                                 if r["parametric_kinds"][k] != r["step_kinds"][k]]}
     for key in ("parametric", "step"):
         hits = false = total = clean = clean_alarm = 0
         for r in scored:
@@ -138,6 +144,9 @@ def format_table(result: dict) -> str:
                      f"error {_pct(x['median_repair_error'])}); analyze median {x['median_analyze_s']:.2f} s, total "
                      f"{x['total_analyze_s']:.0f} s, longest {x['max_analyze_s']:.1f} s")
     lines.append(f"runs where the two differ: {len(s['runs_where_the_two_differ'])} {s['runs_where_the_two_differ']}")
+    differ = s.get("kinds_that_differ", [])
+    lines.append(f"elements located by both whose kind differs: {len(differ)}"
+                 + "".join(f"; run {r} ({k}) {a} / {b}" for r, k, a, b in differ))
     lines.append(f"({result['seconds']:.0f} s)")
     return "\n".join(lines)
 

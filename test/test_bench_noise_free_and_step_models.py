@@ -1,6 +1,7 @@
 """bench.noise_free and bench.step_models: a few runs end to end, their summaries against their records."""
 
 from bench import noise_free, step_models
+from mpm_monitor.core.repair import KINDS
 
 
 def test_noise_free_scores_its_records():
@@ -30,4 +31,12 @@ def test_step_models_compares_the_two_forms_of_the_model():
                       for r in result["records"])
         assert len(errors) == located and all(e >= 0 for e in errors)
         assert s[key]["repaired_within_10_percent"] == sum(e <= 0.1 for e in errors)
+        # A kind for every located element, of the repair's kinds.
+        for r in result["records"]:
+            assert sorted(r[f"{key}_kinds"]) == sorted(f"{i},{j}" for i, j in r[key])
+            assert set(r[f"{key}_kinds"].values()) <= set(KINDS)
+    differ = [[r["index"], k, r["parametric_kinds"][k], r["step_kinds"][k]] for r in result["records"]
+              for k in sorted(set(r["parametric_kinds"]) & set(r["step_kinds"]))
+              if r["parametric_kinds"][k] != r["step_kinds"][k]]
+    assert s["kinds_that_differ"] == differ
     assert "step: " in step_models.format_table(result)
