@@ -245,7 +245,7 @@ def test_the_repair_runs_without_scipy_optimize():
                               disturbance=case.disturbance)
         report = analyze(case.model, log.as_logged_data("paper case 3.2"), AnalysisOptions())
         assert report.repair is not None and report.repaired_model is not None
-        params, lag, poles = _step_reference(2.0 * (1 - 0.9 ** np.arange(1, 61)), FIRST_ORDER, 1.0)
+        params, lag, poles, _ = _step_reference(2.0 * (1 - 0.9 ** np.arange(1, 61)), FIRST_ORDER, 1.0)
         assert abs(params["gain"] - 2.0) < 1e-6 and abs(poles[0] - 0.9) < 1e-8, (params, poles)
         assert "scipy.optimize" not in sys.modules
         print("ok")

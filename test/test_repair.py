@@ -458,8 +458,8 @@ def test_a_step_response_in_small_units_gets_the_same_reference_form():
 
     k = np.arange(1, 121)
     s = 2.5 * (1 - np.exp(-(k - 6) / 23.0)) * (k > 6) + 0.01 * np.random.default_rng(0).standard_normal(k.size)
-    p1, lag1, _ = forms._step_reference(s, forms.FIRST_ORDER, 1.0)
-    p9, lag9, _ = forms._step_reference(s * 1e-9, forms.FIRST_ORDER, 1.0)
+    p1, lag1, _, _ = forms._step_reference(s, forms.FIRST_ORDER, 1.0)
+    p9, lag9, _, _ = forms._step_reference(s * 1e-9, forms.FIRST_ORDER, 1.0)
     assert lag9 == lag1
     assert p9["time_constant"] == pytest.approx(p1["time_constant"], rel=1e-6)
     assert p9["gain"] == pytest.approx(p1["gain"] * 1e-9, rel=1e-6)

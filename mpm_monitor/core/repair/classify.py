@@ -37,6 +37,7 @@ from .forms import (
     _reads_no_lag,
     _step_ladder,
     _step_reference,
+    _step_start_form,
     _tau_of,
 )
 from .options import RepairOptions, _TestSettings
@@ -287,6 +288,22 @@ class _FreeFit:
         return est_h.fit.ssr
 
 
+def _step_reading(row: _RowData, j: int, form: _Form) -> tuple:
+    """:func:`~mpm_monitor.core.repair.forms._step_reference` of the row's step-response element ``j`` in ``form``,
+    computed once per row (``row.shared``): the start form's choice and the ladder read the same forms."""
+    readings = row.shared.setdefault("step_readings", {})
+    key = (j, form)
+    if key not in readings:
+        readings[key] = _step_reference(row.model.step_response[row.i, j], form, row.model.sample_time)
+    return readings[key]
+
+
+def _step_start(row: _RowData, j: int) -> _Form:
+    """The form the row's step-response element ``j`` starts in: the one that reads its old response
+    (:func:`~mpm_monitor.core.repair.forms._step_start_form`)."""
+    return _step_start_form(lambda form: _step_reading(row, j, form)[3], _step_ladder(row.model, row.i, j))
+
+
 def _locate(row: _RowData, j: int, form: Optional[_Form] = None) -> _Located:
     """The :class:`_Located` of element ``j`` of the row (in ``form`` for a missing or step-response element)."""
     model, i = row.model, row.i
@@ -294,8 +311,8 @@ def _locate(row: _RowData, j: int, form: Optional[_Form] = None) -> _Located:
     present = bool(model.present[i, j])
     hint = row.delays.get(j)
     if model.is_step_response and present:
-        form = form or _step_ladder(model, i, j)[0]
-        ref, lag, poles = _step_reference(model.step_response[i, j], form, ts)
+        form = form or _step_start(row, j)
+        ref, lag, poles, _ = _step_reading(row, j, form)
         return _Located(form=form, reference=ref, lag=lag, missing=False, poles=poles, hint=hint)
     if not present:
         form = form or _missing_ladder(model, i)[0]
@@ -489,10 +506,11 @@ def _reduce_vanished_lags(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
     refitted in it, every parameter free on the same samples, and that form is kept unless the two-lag form
     fits significantly better: the likelihood-ratio test ``n ln(SSR_one / SSR_two)`` against chi-square with
     one degree of freedom at ``alpha`` (as :func:`_choose_forms` chooses a larger form).  Its tests measure
-    the changes from the reference's dead time in that form (:class:`_Located`'s ``declared``); a
-    step-response element, whose two lags were the ladder's reading of its old response and not a declared
-    structure, from its old response read in the one-lag form (:func:`~mpm_monitor.core.repair.forms._step_reference`).
-    An element the model lacks keeps the form its ladder chose.
+    the changes from the reference's dead time in that form (:class:`_Located`'s ``declared``), also for a
+    step-response element whose old response reads as two lags (its start form, :func:`_step_start`); one
+    whose two lags the data called for (:func:`_choose_forms`) from its old response read in the one-lag form
+    (:func:`~mpm_monitor.core.repair.forms._step_reference`).  An element the model lacks keeps the form its
+    ladder chose.
     """
     for m, j in enumerate(free.js):
         loc = free.located[j]
@@ -510,15 +528,23 @@ def _try_smaller_form(free: _FreeFit, j: int, form: _Form, start, df: int, setti
     """The free fit with element ``j`` refitted in the smaller ``form`` from ``start`` (:func:`_refit_element`),
     kept unless the larger form fits significantly better (:func:`_larger_form_p` with ``df`` degrees of freedom
     at ``alpha``); else ``free``.  The smaller form's tests measure the changes from the reference read in it: a
-    parametric element's reference keeps its declared form (``declared``); a step-response element, which
-    declares no lags, only a response, has its old response read in the smaller form too (a lag and a lead read
-    in the two-lag form took a second lag of a tenth of a sample and one sample less dead time, which the fit in
-    one lag then seemed to have changed)."""
+    parametric element's reference keeps its declared form (``declared``).  A step-response element has its old
+    response read in the smaller form when that form has at least the shape parameters of the form the response
+    reads in (:func:`_step_start`; a lag and a lead read in the two-lag form took a second lag of a tenth of a
+    sample and one sample less dead time, which the fit in one lag then seemed to have changed); in a smaller
+    form still, the old response has a shape that form lacks (a plant that lost a second lag the old response
+    has), and its reading in the start form is held as a declared form is."""
     row, loc = free.row, free.located[j]
-    if row.model.is_step_response:
-        reduced = _locate(row, j, form)
+    ts = row.model.sample_time
+    if row.model.is_step_response and loc.declared is None:
+        read_in = _step_start(row, j)
+        if form.n_shape >= read_in.n_shape:      # a form as large as the one the old response reads in: read in it
+            reduced = _locate(row, j, form)
+        else:                                   # the old response has a shape the smaller form lacks: held in it
+            read = _locate(row, j, read_in)
+            reduced = dataclasses.replace(read, form=form, lag=_input_lag(form, read.reference, ts), declared=read_in)
     else:
-        reduced = dataclasses.replace(loc, form=form, lag=_input_lag(form, loc.reference, row.model.sample_time),
+        reduced = dataclasses.replace(loc, form=form, lag=_input_lag(form, loc.reference, ts),
                                       declared=loc.declared or loc.form)
     smaller = _refit_element(free, j, reduced, start, settings)
     return smaller if _larger_form_p(free.est.fit.n_resid, smaller.est.fit.ssr, free.est.fit.ssr, df) >= settings.alpha \
@@ -551,8 +577,9 @@ def _reduce_cancelled_leads(free: _FreeFit, settings: _TestSettings) -> _FreeFit
     form is kept unless the larger one fits significantly better: the likelihood-ratio test
     ``n ln(SSR_smaller / SSR_larger)`` against chi-square at ``alpha`` (as :func:`_choose_forms` chooses a
     larger form).  Its tests measure the changes from the reference in that form (:class:`_Located`'s
-    ``declared``, as :func:`_reduce_vanished_lags`); a step-response element from its old response read in
-    the smaller form.
+    ``declared``, as :func:`_reduce_vanished_lags`, also a step-response element in the form its old response
+    reads in); a step-response element in a larger form the data called for, from its old response read in the
+    smaller form (:func:`_try_smaller_form`).
     """
     ts = free.row.model.sample_time
     duration = free.est.fit.n_resid * ts
@@ -595,7 +622,9 @@ def _ladder(row: _RowData, j: int) -> tuple:
 def _choose_forms(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
     """The forms of the elements the model lacks and of step-response elements, chosen by the data.
 
-    Each such element starts in the first form of its ladder (first order); a larger form replaces
+    An element the model lacks starts in the first form of its ladder (first order), a step-response
+    element in the first that reads its old response (:func:`~mpm_monitor.core.repair.forms._step_start_form`:
+    first order for most, two lags for a two-lag response); a larger form replaces
     the current one when the likelihood-ratio test ``n ln(SSR_current / SSR_larger)`` against
     chi-square with the difference of shape parameters rejects at ``1 - confidence_level`` (Ljung
     1999, section 16.5): a second lag (and a lead, for a step-response element) only where the data

@@ -324,6 +324,36 @@ def _unit_steps(form: _Form, poles, lag: int, n: int, ts: float):
     return np.column_stack(cols)
 
 
+#: A step-response element's old response is read in the first form of its ladder whose step response lies within
+#: this fraction of the coefficients' largest magnitude at every sample (:func:`_step_start_form`).
+STEP_READ_TOLERANCE = 0.01
+#: A larger form of the ladder reads the old response better only when it at least halves the smaller one's error
+#: (:func:`_step_start_form`): coefficients identified with noise that no form of the ladder reads within
+#: :data:`STEP_READ_TOLERANCE` are not read in a larger form for its fit to their noise.
+STEP_READ_GAIN = 0.5
+
+
+def _step_start_form(reading_error, ladder: tuple) -> _Form:
+    """The form of ``ladder`` a step-response element's old response is read in, and its fit starts from.
+
+    The first form whose reading error (``reading_error(form)``, the fourth value of :func:`_step_reference`) is
+    at most :data:`STEP_READ_TOLERANCE`; a larger form is taken only while the smaller one's error exceeds that
+    and the larger one's is at most :data:`STEP_READ_GAIN` of it.  A first-order model element written as step
+    responses starts first order, as before; a two-lag element (one whose one-lag reading is off by more than
+    1 %, as 5.8 s and 7.9 s read as one lag of 11.2 s and three more samples of dead time) starts with two
+    lags, as its parametric form does.  Read in one lag, a pure gain change of such an element was classified
+    ``mixed``: the data fitted in one lag moved that reading's dead time by a sample.  The data may still
+    call for a larger form (:func:`~mpm_monitor.core.repair.classify._choose_forms`).
+    """
+    k, error = 0, reading_error(ladder[0])
+    while k + 1 < len(ladder) and error > STEP_READ_TOLERANCE:
+        larger = reading_error(ladder[k + 1])
+        if larger > STEP_READ_GAIN * error:
+            break
+        k, error = k + 1, larger
+    return ladder[k]
+
+
 def _step_reference(coefficients, form: _Form, ts: float, lag_shift: int = _LAG_SHIFT) -> tuple:
     """The element of ``form`` whose step response is closest to ``coefficients`` (least squares).
 
@@ -346,6 +376,9 @@ def _step_reference(coefficients, form: _Form, ts: float, lag_shift: int = _LAG_
     lag : int
         Its input lag.
     poles : tuple
+    error : float
+        The reading's largest difference from ``coefficients``, a fraction of their largest magnitude (0 when
+        they are all zero); of an integrating form, of the pulse responses (:func:`_reading_error`).
     """
     s = np.asarray(coefficients, float)
     n = s.size
@@ -387,7 +420,17 @@ def _step_reference(coefficients, form: _Form, ts: float, lag_shift: int = _LAG_
     beta, *_ = np.linalg.lstsq(cols, s, rcond=None)
     gain = float(beta[0])
     lead = float(beta[1] / beta[0]) if form.lead and beta[0] != 0 else 0.0
-    return _fitted_params(form, gain, poles, lead, lag, ts), lag, poles
+    return _fitted_params(form, gain, poles, lead, lag, ts), lag, poles, _reading_error(cols @ beta, s, form.integrating)
+
+
+def _reading_error(fitted: np.ndarray, s: np.ndarray, integrating: bool) -> float:
+    """The largest difference of a form's step response ``fitted`` from the coefficients ``s`` (both shape (N,)),
+    a fraction of the coefficients' largest magnitude; of an integrating form, of their pulse responses (the
+    first differences, which settle: a ramp's own magnitude grows with ``N`` and would hide any shape)."""
+    if integrating:
+        fitted, s = np.diff(fitted, prepend=0.0), np.diff(s, prepend=0.0)
+    top = float(np.max(np.abs(s))) if s.size else 0.0
+    return float(np.max(np.abs(fitted - s))) / top if top > 0 else 0.0
 
 
 def _sampled(params: dict, ts: float):
