@@ -2,6 +2,7 @@
 
 import json
 from pathlib import Path
+from typing import Sequence
 
 import mpm_monitor
 
@@ -95,19 +96,26 @@ def map_runs(star, tasks, jobs: int = 1, progress=None) -> list:
     return results
 
 
-def run_mc_main(argv, prog: str, doc: str, runs: int, out: Path, run, format_table) -> int:
+def run_mc_main(argv, prog: str, doc: str, runs: int, out: Path, run, format_table, flags: Sequence[tuple] = ()) -> int:
     """The main of a Monte-Carlo bench: :func:`mc_parser`'s arguments, ``run(runs, seed, samples, jobs,
     alpha, progress)`` with progress every 10 runs on stderr, its :func:`format_table` printed and its
-    result written to ``--out``."""
+    result written to ``--out``.  ``flags``: ``(name, help, default_out)`` per on/off option ``--name`` (its
+    dashes underscores as ``run``'s keyword), whose results go by default to ``default_out``."""
     import sys
 
-    args = mc_parser(prog, doc, runs, out).parse_args(argv)
+    parser = mc_parser(prog, doc, runs, out)
+    for name, text, flag_out in flags:
+        parser.add_argument(f"--{name}", action="store_true", help=f"{text} (default --out {flag_out.name})")
+    args = parser.parse_args(argv)
+    chosen = {name.replace("-", "_"): getattr(args, name.replace("-", "_")) for name, _, _ in flags}
+    target = next((flag_out for name, _, flag_out in flags if chosen[name.replace("-", "_")] and args.out == out),
+                  args.out)
 
     def progress(done, total, rec):
         if done % 10 == 0 or done == total:
             print(f"  {done}/{total}", file=sys.stderr, flush=True)
 
-    result = run(args.runs, args.seed, args.samples, args.jobs, args.alpha, progress)
+    result = run(args.runs, args.seed, args.samples, args.jobs, args.alpha, progress, **chosen)
     print(format_table(result))
-    write_json(args.out, result)
+    write_json(target, result)
     return 0

@@ -15,7 +15,9 @@ element the repaired model's unit-step response against the plant's
 (:func:`bench.structures_mc.step_response_error`: the largest difference over
 ``REPAIR_HORIZON`` samples, a fraction of the plant's largest value; "within 10 %" as there).
 
-Run: ``python -m bench.step_models [--runs 100] [--seed 0] [--jobs 2] [--out bench/results/step_models.json]``
+Run: ``python -m bench.step_models [--runs 100] [--seed 0] [--jobs 2] [--lost-lag] [--out bench/results/step_models.json]``
+(``--lost-lag``: the loops of ``bench.structures_mc --lost-lag``, every mismatch a second lag the model has and the
+plant lacks; default ``--out`` ``bench/results/step_models_lost_lag.json``).
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from mpm_monitor.core.pipeline import analyze
 from . import map_runs, run_mc_main, structures_mc
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "step_models.json"
+LOST_LAG_OUT = DEFAULT_OUT.with_name("step_models_lost_lag.json")
 #: The step responses run this many time constants (both lags) past the largest dead time.
 SETTLED_TIME_CONSTANTS = 12
 
@@ -68,9 +71,10 @@ def _located(model, plant, mismatched, data, alpha: float):
     return located, seconds, errors, kinds
 
 
-def one(seed: int, index: int, samples: int, alpha: float) -> dict:
-    """One random loop analysed with its model and with the model's step-response form."""
-    sc = structures_mc.make_structures_scenario(seed, index)
+def one(seed: int, index: int, samples: int, alpha: float, lost_lag: bool = False) -> dict:
+    """One random loop analysed with its model and with the model's step-response form (``lost_lag``: the
+    loops of ``bench.structures_mc --lost-lag``)."""
+    sc = structures_mc.make_structures_scenario(seed, index, structures_mc.StructuresOptions(lost_lag=lost_lag))
     data = structures_mc.simulate(sc, samples).as_logged_data(source=f"run {index}")
     step = step_form(sc.model)
     rec = {"index": index, "shape": [sc.plant.n_outputs, sc.plant.n_inputs, sc.plant.n_disturbances],
@@ -119,12 +123,13 @@ def summarise(records: Sequence[dict]) -> dict:
     return out
 
 
-def run(runs: int, seed: int = 0, samples: int = 3000, jobs: int = 1, alpha: float = 0.01, progress=None) -> dict:
-    tasks = [(seed, k, samples, alpha) for k in range(runs)]
+def run(runs: int, seed: int = 0, samples: int = 3000, jobs: int = 1, alpha: float = 0.01, progress=None,
+        lost_lag: bool = False) -> dict:
+    tasks = [(seed, k, samples, alpha, lost_lag) for k in range(runs)]
     t0 = time.perf_counter()
     records = map_runs(_one_star, tasks, jobs, progress)
     return {"config": {"runs": runs, "seed": seed, "samples": samples, "alpha": alpha,
-                       "settled_time_constants": SETTLED_TIME_CONSTANTS},
+                       "settled_time_constants": SETTLED_TIME_CONSTANTS, "lost_lag": lost_lag},
             "summary": summarise(records), "seconds": time.perf_counter() - t0, "records": records}
 
 
@@ -134,8 +139,9 @@ def _pct(x) -> str:
 
 def format_table(result: dict) -> str:
     s, cfg = result["summary"], result["config"]
+    family = ", every mismatch a lost second lag" if cfg.get("lost_lag") else ""
     lines = [f"step-response models: {s['scored']} of {s['runs']} random loops (bench.structures_mc draws, seed "
-             f"{cfg['seed']}), {cfg['samples']} samples, alpha {cfg['alpha']}, analyze with the repair"]
+             f"{cfg['seed']}{family}), {cfg['samples']} samples, alpha {cfg['alpha']}, analyze with the repair"]
     for key in ("parametric", "step"):
         x = s[key]
         lines.append(f"{key}: {x['located']} of {x['mismatched_elements']} mismatched elements located, "
@@ -152,7 +158,9 @@ def format_table(result: dict) -> str:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    return run_mc_main(argv, "python -m bench.step_models", __doc__, 100, DEFAULT_OUT, run, format_table)
+    lost_lag = ("lost-lag", "the loops of bench.structures_mc --lost-lag: every mismatch a second lag the model has "
+                            "and the plant lacks", LOST_LAG_OUT)
+    return run_mc_main(argv, "python -m bench.step_models", __doc__, 100, DEFAULT_OUT, run, format_table, (lost_lag,))
 
 
 if __name__ == "__main__":

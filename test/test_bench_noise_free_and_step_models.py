@@ -40,3 +40,22 @@ def test_step_models_compares_the_two_forms_of_the_model():
               if r["parametric_kinds"][k] != r["step_kinds"][k]]
     assert s["kinds_that_differ"] == differ
     assert "step: " in step_models.format_table(result)
+
+
+def test_step_models_lost_lag_runs_the_lost_lag_loops_into_its_own_file(tmp_path, monkeypatch, capsys):
+    """``--lost-lag`` draws the loops of ``bench.structures_mc --lost-lag`` (every mismatch a lost second lag) and
+    writes, unless ``--out`` is given, to its own file, not over the default one."""
+    import json
+
+    from bench import structures_mc
+
+    monkeypatch.setattr(step_models, "DEFAULT_OUT", tmp_path / "step_models.json")
+    monkeypatch.setattr(step_models, "LOST_LAG_OUT", tmp_path / "step_models_lost_lag.json")
+    assert step_models.main(["--runs", "1", "--seed", "3", "--samples", "1500", "--lost-lag"]) == 0
+    assert not (tmp_path / "step_models.json").exists()
+    result = json.loads((tmp_path / "step_models_lost_lag.json").read_text())
+    assert result["config"]["lost_lag"] is True
+    sc = structures_mc.make_structures_scenario(3, 0, structures_mc.StructuresOptions(lost_lag=True))
+    assert sc.mismatches and all(m["kind"] == "lost_lag" for m in sc.mismatches)
+    assert result["records"][0]["mismatched"] == sorted([m["output"], m["column"]] for m in sc.mismatches)
+    assert "every mismatch a lost second lag" in capsys.readouterr().out
