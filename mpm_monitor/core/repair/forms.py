@@ -340,7 +340,7 @@ def _step_start_form(reading_error, ladder: tuple) -> _Form:
     at most :data:`STEP_READ_TOLERANCE`; a larger form is taken only while the smaller one's error exceeds that
     and the larger one's is at most :data:`STEP_READ_GAIN` of it.  A first-order model element written as step
     responses starts first order, as before; a two-lag element (one whose one-lag reading is off by more than
-    1 %, as 5.8 s and 7.9 s read as one lag of 11.2 s and three more samples of dead time) starts with two
+    1 %, as 5.8 s and 7.9 s read as one lag of 11.3 s and three more samples of dead time) starts with two
     lags, as its parametric form does.  Read in one lag, a pure gain change of such an element was classified
     ``mixed``: the data fitted in one lag moved that reading's dead time by a sample.  The data may still
     call for a larger form (:func:`~mpm_monitor.core.repair.classify._choose_forms`).
