@@ -107,9 +107,9 @@ def run_mc_main(argv, prog: str, doc: str, runs: int, out: Path, run, format_tab
     for name, text, flag_out in flags:
         parser.add_argument(f"--{name}", action="store_true", help=f"{text} (default --out {flag_out.name})")
     args = parser.parse_args(argv)
-    chosen = {name.replace("-", "_"): getattr(args, name.replace("-", "_")) for name, _, _ in flags}
-    target = next((flag_out for name, _, flag_out in flags if chosen[name.replace("-", "_")] and args.out == out),
-                  args.out)
+    keys = [name.replace("-", "_") for name, _, _ in flags]
+    chosen = {key: getattr(args, key) for key in keys}
+    target = next((flag[2] for key, flag in zip(keys, flags) if chosen[key] and args.out == out), args.out)
 
     def progress(done, total, rec):
         if done % 10 == 0 or done == total:
