@@ -23,6 +23,8 @@ import numpy as np
 from ..statistics import chi2_tail, normal_isf
 from .fit import _ElementSpec, _lag_lr, _RowEstimate, _RowProblem, _TooShort
 from .forms import (
+    STEP_READ_EXACT,
+    STEP_READ_GAIN,
     _LAG_SHIFT,
     _POLE_MIN,
     _fitted_params,
@@ -304,6 +306,25 @@ def _step_start(row: _RowData, j: int) -> _Form:
     return _step_start_form(lambda form: _step_reading(row, j, form)[3], _step_ladder(row.model, row.i, j))
 
 
+def _step_reading_form(row: _RowData, j: int, smaller: _Form, fitted: _Form) -> _Form:
+    """The form whose reading of the row's step-response element ``j`` a fit in the ``smaller`` form is measured
+    from: ``smaller``, unless the start form (:func:`_step_start`) or the form the element was ``fitted`` in reads
+    the old response at most :data:`~mpm_monitor.core.repair.forms.STEP_READ_GAIN` as far off (the closer of the
+    two; :func:`~mpm_monitor.core.repair.forms._step_start_form`'s rule for a larger form) and the smaller form's
+    reading is not exact (off by more than :data:`~mpm_monitor.core.repair.forms.STEP_READ_EXACT`).
+
+    A lag and a lead of 34.4 s over lags of 59.1 s and 35.3 s read first order within 0.2 %; the plant lost the
+    35.3 s lag and the data called for a lead.  Read in one lag and a lead, the old response took a lead of 0.8 s and
+    a sample more dead time, which the fit (the plant's 8 s) then seemed to have changed (``mixed``): its reading in
+    two lags and a lead, where the data had fitted it, is exact.
+    """
+    error = _step_reading(row, j, smaller)[3]
+    if error <= STEP_READ_EXACT:
+        return smaller
+    closest = min(dict.fromkeys((_step_start(row, j), fitted)), key=lambda f: _step_reading(row, j, f)[3])
+    return closest if _step_reading(row, j, closest)[3] <= STEP_READ_GAIN * error else smaller
+
+
 def _locate(row: _RowData, j: int, form: Optional[_Form] = None) -> _Located:
     """The :class:`_Located` of element ``j`` of the row (in ``form`` for a missing or step-response element)."""
     model, i = row.model, row.i
@@ -529,16 +550,16 @@ def _try_smaller_form(free: _FreeFit, j: int, form: _Form, start, df: int, setti
     kept unless the larger form fits significantly better (:func:`_larger_form_p` with ``df`` degrees of freedom
     at ``alpha``); else ``free``.  The smaller form's tests measure the changes from the reference read in it: a
     parametric element's reference keeps its declared form (``declared``).  A step-response element has its old
-    response read in the smaller form when that form has at least the shape parameters of the form the response
-    reads in (:func:`_step_start`; a lag and a lead read in the two-lag form took a second lag of a tenth of a
-    sample and one sample less dead time, which the fit in one lag then seemed to have changed); in a smaller
-    form still, the old response has a shape that form lacks (a plant that lost a second lag the old response
-    has), and its reading in the start form is held as a declared form is."""
+    response read in the smaller form (:func:`_step_reading_form`; a lag and a lead read in the two-lag form took a
+    second lag of a tenth of a sample and one sample less dead time, which the fit in one lag then seemed to have
+    changed), unless the form it starts in or the form it was fitted in reads it at least twice as closely: then
+    the old response has a shape the smaller form lacks (a plant that lost a second lag the old response has), and
+    that reading is held as a declared form is."""
     row, loc = free.row, free.located[j]
     ts = row.model.sample_time
     if row.model.is_step_response and loc.declared is None:
-        read_in = _step_start(row, j)
-        if form.n_shape >= read_in.n_shape:      # a form as large as the one the old response reads in: read in it
+        read_in = _step_reading_form(row, j, form, loc.form)
+        if read_in == form:                     # the smaller form reads the old response as well: read in it
             reduced = _locate(row, j, form)
         else:                                   # the old response has a shape the smaller form lacks: held in it
             read = _locate(row, j, read_in)

@@ -331,26 +331,31 @@ STEP_READ_TOLERANCE = 0.01
 #: (:func:`_step_start_form`): coefficients identified with noise that no form of the ladder reads within
 #: :data:`STEP_READ_TOLERANCE` are not read in a larger form for its fit to their noise.
 STEP_READ_GAIN = 0.5
+#: A reading off by at most this fraction of the coefficients' largest magnitude is exact: the solver's own precision
+#: (:func:`_step_reference` stops at relative steps of 1e-12), where comparing two readings compares rounding.
+STEP_READ_EXACT = 1e-8
 
 
 def _step_start_form(reading_error, ladder: tuple) -> _Form:
     """The form of ``ladder`` a step-response element's old response is read in, and its fit starts from.
 
     The first form whose reading error (``reading_error(form)``, the fourth value of :func:`_step_reference`) is
-    at most :data:`STEP_READ_TOLERANCE`; a larger form is taken only while the smaller one's error exceeds that
-    and the larger one's is at most :data:`STEP_READ_GAIN` of it.  A first-order model element written as step
-    responses starts first order, as before; a two-lag element (one whose one-lag reading is off by more than
-    1 %, as 5.8 s and 7.9 s read as one lag of 11.3 s and three more samples of dead time) starts with two
-    lags, as its parametric form does.  Read in one lag, a pure gain change of such an element was classified
-    ``mixed``: the data fitted in one lag moved that reading's dead time by a sample.  The data may still
-    call for a larger form (:func:`~mpm_monitor.core.repair.classify._choose_forms`).
+    at most :data:`STEP_READ_TOLERANCE`; while the current form's error exceeds that, the next larger form whose
+    error is at most :data:`STEP_READ_GAIN` of it is taken (past a larger form that reads no better: a lag and a
+    lead read in two lags no better than in one).  A first-order model element written as step responses starts
+    first order, as before; a two-lag element (one whose one-lag reading is off by more than 1 %, as 5.8 s and
+    7.9 s read as one lag of 11.3 s and three more samples of dead time) starts with two lags, as its parametric
+    form does.  Read in one lag, a pure gain change of such an element was classified ``mixed``: the data fitted
+    in one lag moved that reading's dead time by a sample.  The data may still call for a larger form
+    (:func:`~mpm_monitor.core.repair.classify._choose_forms`).
     """
     k, error = 0, reading_error(ladder[0])
-    while k + 1 < len(ladder) and error > STEP_READ_TOLERANCE:
-        larger = reading_error(ladder[k + 1])
-        if larger > STEP_READ_GAIN * error:
+    while error > STEP_READ_TOLERANCE:
+        better = next((m for m in range(k + 1, len(ladder)) if reading_error(ladder[m]) <= STEP_READ_GAIN * error),
+                      None)
+        if better is None:
             break
-        k, error = k + 1, larger
+        k, error = better, reading_error(ladder[better])
     return ladder[k]
 
 
@@ -384,7 +389,10 @@ def _step_reference(coefficients, form: _Form, ts: float, lag_shift: int = _LAG_
     n = s.size
     dead = dead_time_samples(s)
     first = dead + 1                                            # the first sample that moves
-    moved = np.abs(s - (s[first - 1] if first > 1 else 0.0))
+    # Where the response (of an integrating form: its pulse response, which settles where the ramp does not) has
+    # covered 63 % of its largest move: the first time constant tried.
+    shape = np.diff(s, prepend=0.0) if form.integrating else s
+    moved = np.abs(shape - (shape[first - 1] if first > 1 else 0.0))
     reach = np.flatnonzero(moved >= 0.63 * moved.max()) if moved.max() > 0 else np.array([first])
     tau0 = max(float(reach[0] - dead) if reach.size else 1.0, 1.0) * ts
     starts = {1: [(tau0,)], 2: [(0.7 * tau0, 0.3 * tau0), (tau0, tau0)], 0: [()]}[form.n_lags]
