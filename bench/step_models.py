@@ -13,7 +13,9 @@ Recorded: the located elements of both against the truth (hits, false locations,
 alarm), the runs in which the two differ, both analysis times, and for every located mismatched
 element the repaired model's unit-step response against the plant's
 (:func:`bench.structures_mc.step_response_error`: the largest difference over
-``REPAIR_HORIZON`` samples, a fraction of the plant's largest value; "within 10 %" as there).
+``REPAIR_HORIZON`` samples, a fraction of the plant's largest value; "within 10 %" as there), and each
+located element's kind on both forms: where it differs between them, and for a mismatched element whether it is
+the kind its change calls for (``bench.structures_mc.REPORTED_KIND``, "kind right").
 
 Run: ``python -m bench.step_models [--runs 100] [--seed 0] [--jobs 2] [--lost-lag] [--out bench/results/step_models.json]``
 (``--lost-lag``: the loops of ``bench.structures_mc --lost-lag``, every mismatch a second lag the model has and the
@@ -79,7 +81,9 @@ def one(seed: int, index: int, samples: int, alpha: float, lost_lag: bool = Fals
     step = step_form(sc.model)
     rec = {"index": index, "shape": [sc.plant.n_outputs, sc.plant.n_inputs, sc.plant.n_disturbances],
            "step_length": int(step.step_length), "ramp_rows": int(sum(step.ramp)),
-           "mismatched": sorted([int(m["output"]), int(m["column"])] for m in sc.mismatches)}
+           "mismatched": sorted([int(m["output"]), int(m["column"])] for m in sc.mismatches),
+           "expected_kinds": {f"{m['output']},{m['column']}": structures_mc.REPORTED_KIND[m["kind"]]
+                              for m in sc.mismatches}}
     try:
         for key, model in (("parametric", sc.model), ("step", step)):
             rec[key], rec[f"{key}_s"], rec[f"{key}_repair_error"], rec[f"{key}_kinds"] = _located(
@@ -112,10 +116,14 @@ def summarise(records: Sequence[dict]) -> dict:
             if not truth:
                 clean += 1
                 clean_alarm += bool(got)
+        # Located mismatched elements whose kind is the one the change calls for (records without it: none).
+        judged = [(r[f"{key}_kinds"][k], want) for r in scored for k, want in r.get("expected_kinds", {}).items()
+                  if k in r.get(f"{key}_kinds", {})]
         times = [r[f"{key}_s"] for r in scored]
         errors = [e for r in scored for e in r[f"{key}_repair_error"].values()]
         out[key] = {"mismatched_elements": total, "located": hits, "false_locations": false,
                     "clean_runs": clean, "clean_runs_with_a_location": clean_alarm,
+                    "kinds_judged": len(judged), "kind_right": sum(said == want for said, want in judged),
                     "repaired_within_10_percent": int(sum(e <= 0.1 for e in errors)),
                     "median_repair_error": float(np.median(errors)) if errors else None,
                     "median_analyze_s": float(np.median(times)) if times else None,
@@ -146,7 +154,8 @@ def format_table(result: dict) -> str:
         x = s[key]
         lines.append(f"{key}: {x['located']} of {x['mismatched_elements']} mismatched elements located, "
                      f"{x['false_locations']} false locations, {x['clean_runs_with_a_location']} of {x['clean_runs']} "
-                     f"clean runs with one; repaired within 10 %: {x['repaired_within_10_percent']} (median "
+                     f"clean runs with one; kind right on {x.get('kind_right', '-')} of {x.get('kinds_judged', '-')}; "
+                     f"repaired within 10 %: {x['repaired_within_10_percent']} (median "
                      f"error {_pct(x['median_repair_error'])}); analyze median {x['median_analyze_s']:.2f} s, total "
                      f"{x['total_analyze_s']:.0f} s, longest {x['max_analyze_s']:.1f} s")
     lines.append(f"runs where the two differ: {len(s['runs_where_the_two_differ'])} {s['runs_where_the_two_differ']}")

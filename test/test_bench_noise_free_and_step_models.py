@@ -35,6 +35,11 @@ def test_step_models_compares_the_two_forms_of_the_model():
         for r in result["records"]:
             assert sorted(r[f"{key}_kinds"]) == sorted(f"{i},{j}" for i, j in r[key])
             assert set(r[f"{key}_kinds"].values()) <= set(KINDS)
+        # The kind right: of the located mismatched elements, those whose kind is the one their change calls for.
+        judged = [(r[f"{key}_kinds"][f"{i},{j}"], r["expected_kinds"][f"{i},{j}"]) for r in result["records"]
+                  for i, j in r[key] if [i, j] in r["mismatched"]]
+        assert s[key]["kinds_judged"] == len(judged) == located
+        assert s[key]["kind_right"] == sum(said == want for said, want in judged)
     differ = [[r["index"], k, r["parametric_kinds"][k], r["step_kinds"][k]] for r in result["records"]
               for k in sorted(set(r["parametric_kinds"]) & set(r["step_kinds"]))
               if r["parametric_kinds"][k] != r["step_kinds"][k]]
@@ -58,4 +63,5 @@ def test_step_models_lost_lag_runs_the_lost_lag_loops_into_its_own_file(tmp_path
     sc = structures_mc.make_structures_scenario(3, 0, structures_mc.StructuresOptions(lost_lag=True))
     assert sc.mismatches and all(m["kind"] == "lost_lag" for m in sc.mismatches)
     assert result["records"][0]["mismatched"] == sorted([m["output"], m["column"]] for m in sc.mismatches)
+    assert set(result["records"][0]["expected_kinds"].values()) == {"time_constant"}
     assert "every mismatch a lost second lag" in capsys.readouterr().out
