@@ -188,6 +188,7 @@ class _FreeFit:
     settings: _TestSettings
     widened: dict = dataclasses.field(default_factory=dict)
     _lost: dict = dataclasses.field(default_factory=dict, repr=False)
+    _reference_stat: dict = dataclasses.field(default_factory=dict, repr=False)
 
     def lost_lag(self, m: int) -> bool:
         """Whether element ``m``, a :attr:`_Located.plain_first_order` element whose reference has a lag, was
@@ -245,9 +246,31 @@ class _FreeFit:
 
     def lag_p(self, m: int, lag: int) -> float:
         """p-value of holding element ``m``'s input lag at ``lag``, its shape free (the profile likelihood ratio
-        against chi-square with one degree of freedom); 0 for a lag outside the searched window."""
+        against chi-square with one degree of freedom); 0 for a lag outside the searched window.
+
+        The profile's shape at ``lag`` is searched from the free fit's.  Where that rejects at the settings'
+        ``alpha`` and ``lag`` is the reference's own, the reference's shape there is a candidate too
+        (:meth:`_reference_statistic`), and the better of the two is taken: from the free fit's shape the search
+        can stop short of it.  An integrator with lags of 2.9 s and 1.0 s (a step-response element), fitted with lags
+        of 2.4 s and 0.38 s a sample later, found no shape at the model's dead time within p = 0.0005 of the fit,
+        while the model's own shape there fitted within p = 0.13 (one degree of freedom).  Only where the profile
+        rejects: a p-value it passes stays the profile's, and the repair makes no extra fit for it.
+        """
         w = self.specs[self.js[m]].window
-        return float(chi2_tail(_lag_lr(self.est, m, lag), 1)) if w[0] <= lag <= w[1] else 0.0
+        if not w[0] <= lag <= w[1]:
+            return 0.0
+        p = float(chi2_tail(_lag_lr(self.est, m, lag), 1))
+        loc = self.located[self.js[m]]
+        if p < self.settings.alpha and not loc.missing and lag == loc.held_lag(False):
+            p = max(p, float(chi2_tail(self._reference_statistic(m), 1)))
+        return p
+
+    def _reference_statistic(self, m: int) -> float:
+        """``n ln(SSR / SSR_free)`` of element ``m`` with its shape and input lag held at the reference's (its gain
+        free; :meth:`hold_statistic`), computed once."""
+        if m not in self._reference_stat:
+            self._reference_stat[m] = self.hold_statistic({m: {"pole", "lag"}}, self.settings.options)
+        return self._reference_stat[m]
 
     def _reference_lag_fits(self, m: int) -> bool:
         """Whether element ``m``'s input lag held at its reference's (its shape free) does not fit significantly
