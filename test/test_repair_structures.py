@@ -938,3 +938,30 @@ def test_the_delay_test_rejects_the_models_dead_time_only_where_the_models_shape
         report = analyze(step_form(sc.model), data, AnalysisOptions(alpha=0.01))
     assert checked
     assert report.repair_result.kinds[(0, 5)] == "gain"
+
+
+#: A model element with a direct feed-through (analyze accepts it; a closed loop refuses it): (y1, u2) of the rich
+#: model with no dead time, a lead over one lag or a pure gain; the plant's change.
+FEEDTHROUGH = {
+    "lead-lag-gain": (dict(delay=0.0), dict(gain=1.5), "gain"),
+    "lead-lag-lead": (dict(delay=0.0), dict(lead=-5.0), "time_constant"),
+    "lead-lag-delay": (dict(delay=0.0), dict(delay=2.0), "delay"),
+    "pure-gain-gain": (dict(time_constant=0.0, lead=0.0, delay=0.0), dict(gain=1.5), "gain"),
+}
+
+
+@pytest.mark.parametrize("name", list(FEEDTHROUGH))
+def test_a_model_element_with_a_feed_through_is_repaired_in_it(name):
+    """The repair searched every element from an input lag of one sample, so a model element acting at the sample
+    of its input could not be held at its own dead time: its delay test rejected outright, and a gain or lead
+    change came out ``mixed`` (gain 1.66, lead -1.0, one sample of dead time) or ``unknown``.  An element the model
+    gives a feed-through is searched from lag 0 now: the kind right and the element the plant's."""
+    element, change, kind = FEEDTHROUGH[name]
+    model = rich_model().with_element(0, 1, **element)
+    plant = model.with_element(0, 1, **change)
+    report = analyze(model, open_loop(plant, model, 3000, seed=21, burn_in=300))
+    assert report.located_elements == [("y1", "u2")]
+    (entry,) = report.repair_result.changes
+    assert entry["kind"] == kind and entry["applied"] is True
+    for key, value in plant.element(0, 1).items():
+        assert entry["after"][key] == pytest.approx(value, rel=0.02, abs=0.02), key

@@ -117,6 +117,9 @@ class _Located:
     hint : int or None
         The element test's estimate of the lag at which the mismatch ``Delta`` acts (samples), where the
         repair was given one: its lag search reaches it (:func:`_free_spec`).
+    feedthrough : bool
+        The model's own element acts on ``y(k)`` through ``u(k)`` (a lead over one lag with no dead time: a
+        parametric element whose sampled form has input lag 0); its lag search starts at 0 (:func:`_free_spec`).
     """
 
     form: _Form
@@ -126,6 +129,7 @@ class _Located:
     poles: tuple
     declared: Optional[_Form] = None
     hint: Optional[int] = None
+    feedthrough: bool = False
 
     @property
     def shape_form(self) -> _Form:
@@ -367,7 +371,8 @@ def _locate(row: _RowData, j: int, form: Optional[_Form] = None) -> _Located:
     form = _form_of(model, i, j)
     ref = _params_of(model, i, j)
     return _Located(form=form, reference=ref, lag=_input_lag(form, ref, ts), missing=False,
-                    poles=_poles_of(form, ref, ts), hint=hint)
+                    poles=_poles_of(form, ref, ts), hint=hint,
+                    feedthrough=model.discrete_element(i, j).input_lag == 0)
 
 
 def _row_start(row: _RowData):
@@ -409,13 +414,17 @@ def _free_spec(row: _RowData, loc: _Located, options: RepairOptions, start=None)
         if form.first_order and ref["time_constant"] <= 0:
             poles = (_pole_of(base_tau, ts),)
         gain, lead = ref["gain"], ref["lead"]
-        # The input acts one sample after it is applied at the earliest (lag 1): at lag 0 an element with a
-        # lead and no lag beyond it (its form biproper, offset 0) would act on y(k) through u(k), a direct
-        # feed-through that no sampled loop closes (the repair wrote such elements, which the MPC refused).
-        lag = max(1, loc.lag)
-        window = (max(1, lag - s), lag + s)
+    # The input acts one sample after it is applied at the earliest (lag 1): at lag 0 an element with a
+    # lead and no lag beyond it (its form biproper, offset 0) would act on y(k) through u(k), a direct
+    # feed-through that no sampled loop closes (the repair wrote such elements, which the MPC refused).  Only
+    # an element the model itself gives a feed-through is searched from lag 0: held at 1, its dead time
+    # could not be held at all (its delay test rejected outright), and a gain change came out ``mixed``.
+    floor = 0 if loc.feedthrough else 1
+    if not loc.missing:
+        lag = max(floor, loc.lag)
+        window = (max(floor, lag - s), lag + s)
     if loc.hint is not None and s > 0 and not window[0] <= loc.hint <= window[1]:
-        window = (max(1, min(window[0], loc.hint - s)), max(window[1], loc.hint + s))
+        window = (max(floor, min(window[0], loc.hint - s)), max(window[1], loc.hint + s))
     if start is not None:
         gain, poles, lead, lag = start
     spec = _ElementSpec(True, form.n_shape > 0, gain, tuple(poles), window, form=form, lead=lead)
@@ -484,7 +493,8 @@ def _widen_lag_ranges(row: _RowData, specs: dict, problem, est, options: RepairO
             if not specs[j].lag_free:
                 continue
             if est.edge[m]:
-                wider[j] = dataclasses.replace(specs[j], window=(max(1, lo - s), hi) if lag == lo else (lo, hi + s))
+                wider[j] = dataclasses.replace(specs[j], window=(max(min(lo, 1), lo - s), hi) if lag == lo
+                                               else (lo, hi + s))
                 continue
             reach = min(max(hi, skip, longest, MIN_PROBED_LAGS) + s, max(hi, problem.n_fit // 4))
             z = problem.input_correlation(est.fit, m, reach)
@@ -492,7 +502,7 @@ def _widen_lag_ranges(row: _RowData, specs: dict, problem, est, options: RepairO
             outside = (taus < lo) | (taus > hi)
             if outside.any() and np.max(z[outside]) > normal_isf(alpha / (2.0 * reach)):
                 tau = int(taus[np.argmax(np.where(outside, z, -1.0))])
-                wider[j] = dataclasses.replace(specs[j], window=(max(1, min(lo, tau - s)), max(hi, tau + s)))
+                wider[j] = dataclasses.replace(specs[j], window=(max(min(lo, 1), min(lo, tau - s)), max(hi, tau + s)))
         if wider == specs:
             break
         try:
