@@ -48,6 +48,8 @@ BENCHMARKS = [
     ("bench.quantized", ["--runs", "200", "--jobs", "2", "--inputs", "--out", "bench/results/quantized_inputs.json"],
      ["--runs", "20", "--jobs", "2", "--inputs", "--out", "bench/results/quantized_inputs_quick.json"]),
     ("bench.step_models", ["--runs", "100", "--jobs", "2"], ["--runs", "10"]),
+    ("bench.feedthrough_mc", ["--runs", "200", "--jobs", "2"],
+     ["--runs", "20", "--out", "bench/results/feedthrough_mc_quick.json"]),
     ("bench.mpc_qp", [], ["--samples", "300", "--out", "bench/results/mpc_qp_quick.json"]),
     ("bench.model_load", ["--analyze", "100x40", "--out", "bench/results/model_load.json"],
      ["--sizes", "40x40", "--lengths", "120", "--repeats", "1"]),
