@@ -23,21 +23,18 @@ Run: ``python -m bench.feedthrough_mc [--runs 200] [--seed 0] [--jobs 2] [--out 
 from __future__ import annotations
 
 import time
-import warnings
 from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
 
-from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.discretize import simulate_elements
 from mpm_monitor.core.filters import lfilter
 from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import PlantModel
-from mpm_monitor.core.pipeline import analyze
 
 from . import map_runs, run_mc_main
-from .structures_mc import step_response_error
+from .step_models import analyse_located
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "feedthrough_mc.json"
 #: The change of (y1, u1) and the kind it calls for.
@@ -94,20 +91,12 @@ def one(seed: int, index: int, samples: int, alpha: float) -> dict:
     """One run: drawn, simulated, analysed with the repair."""
     plant, model, structure, change = draw(seed, index)
     data = simulate(plant, samples, seed, index)
-    t0 = time.perf_counter()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        report = analyze(model, data, AnalysisOptions(alpha=alpha))
-    seconds = time.perf_counter() - t0
-    ci = {name: k for k, name in enumerate(model.columns)}
-    oi = {name: k for k, name in enumerate(model.outputs)}
-    located = sorted([oi[o], ci[c]] for o, c in report.located_elements)
-    result = report.repair_result
-    kinds = {f"{i},{j}": kind for (i, j), kind in (result.kinds.items() if result else ())}
+    mismatched = [] if change == "none" else [[0, 0]]
+    located, seconds, errors, kinds = analyse_located(model, plant, mismatched, data, alpha)
     rec = {"index": index, "structure": structure, "change": change, "located": located, "kinds": kinds,
            "analyze_s": seconds}
-    if change != "none" and [0, 0] in located and report.repaired_model is not None:
-        rec["repair_error"] = step_response_error(plant, report.repaired_model, 0, 0)
+    if "0,0" in errors:
+        rec["repair_error"] = errors["0,0"]
     return rec
 
 

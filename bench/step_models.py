@@ -55,7 +55,7 @@ def step_form(model: PlantModel) -> PlantModel:
                                          name=f"{model.name} (step responses, N = {n})")
 
 
-def _located(model, plant, mismatched, data, alpha: float):
+def analyse_located(model, plant, mismatched, data, alpha: float):
     """The located elements ``[[i, j], ...]``, the seconds of ``analyze``, ``{"i,j": error}`` of the
     repaired model's step response of every located mismatched element, and ``{"i,j": kind}`` of every
     located element (the repair's kind)."""
@@ -86,7 +86,7 @@ def one(seed: int, index: int, samples: int, alpha: float, lost_lag: bool = Fals
                               for m in sc.mismatches}}
     try:
         for key, model in (("parametric", sc.model), ("step", step)):
-            rec[key], rec[f"{key}_s"], rec[f"{key}_repair_error"], rec[f"{key}_kinds"] = _located(
+            rec[key], rec[f"{key}_s"], rec[f"{key}_repair_error"], rec[f"{key}_kinds"] = analyse_located(
                 model, sc.plant, rec["mismatched"], data, alpha)
     except Exception as exc:                    # a diverged loop refused by both: recorded, not scored
         rec["error"] = f"{type(exc).__name__}: {exc}"
