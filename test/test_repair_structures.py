@@ -152,7 +152,9 @@ def test_no_element_is_searched_at_an_input_lag_of_0(delay):
     """The input lags a lead-lag element (one lag and a lead, biproper) was searched over reached down to 0: a
     lead with no dead time, acting on y(k) through u(k).  A loop run by another controller (u(k) computed from
     y(k)) made that lag the best, and the repair wrote a direct feed-through that the package's simulator and
-    MPC refuse.  Every element is searched from lag 1 up."""
+    MPC refuse.  Every element is searched from lag 1 up, but one the model itself gives a feed-through (no dead
+    time, stop 75): that one from 0, its own lag, so that its dead time can be held
+    (``test_a_model_element_with_a_feed_through_is_repaired_in_it``)."""
     from mpm_monitor.core.repair.classify import _free_spec, _locate
     from mpm_monitor.core.repair.row import _RowData
 
@@ -161,8 +163,9 @@ def test_no_element_is_searched_at_an_input_lag_of_0(delay):
                        lead=np.array([[0.0, -5.0]]))
     row = _RowData(model=model, u=np.zeros((50, 2)), y=np.zeros((50, 1)), i=0)
     spec, lag = _free_spec(row, _locate(row, 1), RepairOptions())
-    assert spec.window[0] >= 1 and spec.window[0] <= lag <= spec.window[1]
-    assert lag == max(1, int(delay))
+    floor = 0 if delay == 0 else 1                   # the model's own feed-through, and only that, from 0
+    assert spec.window[0] == max(floor, lag - RepairOptions().max_delay_shift)
+    assert spec.window[0] <= lag <= spec.window[1] and lag == int(delay)
 
 
 def test_the_new_parameters_are_worded_with_their_keys():
