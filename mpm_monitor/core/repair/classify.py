@@ -118,8 +118,10 @@ class _Located:
         The element test's estimate of the lag at which the mismatch ``Delta`` acts (samples), where the
         repair was given one: its lag search reaches it (:func:`_free_spec`).
     feedthrough : bool
-        The model's own element acts on ``y(k)`` through ``u(k)`` (a lead over one lag with no dead time: a
-        parametric element whose sampled form has input lag 0); its lag search starts at 0 (:func:`_free_spec`).
+        The model's own element acts on ``y(k)`` through ``u(k)`` (a lead over one lag, or a pure gain, with no dead
+        time: a parametric element whose input lag in its declared form is 0); its lag search starts at 0
+        (:func:`_free_spec`).  Kept apart from ``lag``, which a smaller form's reading may bring to 0 for an element
+        the model gives none.
     """
 
     form: _Form
@@ -370,9 +372,9 @@ def _locate(row: _RowData, j: int, form: Optional[_Form] = None) -> _Located:
                         poles=_poles_of(form, ref, ts), hint=hint)
     form = _form_of(model, i, j)
     ref = _params_of(model, i, j)
-    return _Located(form=form, reference=ref, lag=_input_lag(form, ref, ts), missing=False,
-                    poles=_poles_of(form, ref, ts), hint=hint,
-                    feedthrough=model.discrete_element(i, j).input_lag == 0)
+    lag = _input_lag(form, ref, ts)
+    return _Located(form=form, reference=ref, lag=lag, missing=False, poles=_poles_of(form, ref, ts), hint=hint,
+                    feedthrough=lag == 0)
 
 
 def _row_start(row: _RowData):
@@ -579,8 +581,8 @@ def _reduce_vanished_lags(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
         poles = free.est.fit.poles[free.problem.slices[m]]
         if loc.missing or loc.declared is not None or loc.form.n_lags != 2 or min(poles) > _SUBSAMPLE_POLE:
             continue
-        held = free.hold_statistic({m: {"pole", "lag"}}, settings.options)
-        if float(chi2_tail(held, loc.form.n_shape + 1)) >= settings.alpha:     # the reference's shape fits
+        held = free._reference_statistic(m)                   # the reference's shape and dead time held
+        if float(chi2_tail(held, loc.form.n_shape + 1)) >= settings.alpha:
             continue
         form = dataclasses.replace(loc.form, n_lags=1)
         start = (float(free.est.fit.gains[m]), (float(max(poles)),), float(free.est.fit.leads[m]),
