@@ -891,13 +891,19 @@ def _lag_profiles(fits: _FitCache, lags) -> list:
 
 
 def _lag_lr(est: _RowEstimate, m: int, lag: int) -> float:
-    """Profile likelihood-ratio statistic ``n ln(SSR_lag / SSR_best)`` of element ``m`` at ``lag``."""
+    """Profile likelihood-ratio statistic ``n ln(SSR_lag / SSR_best)`` of element ``m`` at ``lag``, at least 0.
+
+    A profile point first computed here starts from the fit's shape, and can fit better than the fit (its own
+    search at that lag started elsewhere and stopped short): the data then show nothing against that lag, and
+    the statistic is 0, not negative (whose chi-square tail is not a number: a delay test of an integrator with
+    a lead read NaN at the model's own dead time, which fitted better than the free fit's, and its shape test then
+    held the model's shape at the free fit's dead time only, ``bench.structures_mc`` seed 4 run 165)."""
     fit = est.fit
     if lag not in est.profiles[m]:
         lg = list(fit.lags)
         lg[m] = lag
         est.profiles[m][lag] = est.fits(lg, fit.poles).ssr
-    return fit.n_resid * math.log(max(est.profiles[m][lag], 1e-300) / max(fit.ssr, 1e-300))
+    return max(fit.n_resid * math.log(max(est.profiles[m][lag], 1e-300) / max(fit.ssr, 1e-300)), 0.0)
 
 
 def _lag_interval(est: _RowEstimate, m: int, window: tuple, threshold: float):
