@@ -998,12 +998,13 @@ def test_a_model_element_with_a_feed_through_is_repaired_in_it(name):
 
 
 def test_a_delay_test_whose_profile_fits_better_than_the_free_fit_passes():
-    """bench.structures_mc seed 4 run 165 (never looked at before): the measured disturbance's integrator with a
-    lead on y4 had only its gain changed (-0.035 to -0.0211).  The free fit stopped at an input lag of 2, the
-    model's is 6; the profile at 6, computed from the fit's shape, fitted better than the fit, and its negative
-    likelihood ratio gave a delay p-value that was not a number (``p_delay`` null in the report).  The shape
-    test then held the model's shape at lag 2 only (p = 1.7e-50) and the kind was ``mixed``.  The statistic is 0
-    there now: the delay unchanged (p = 1), the model's shape held at its own dead time, the kind ``gain``."""
+    """bench.structures_mc seed 4 run 165 (a seed bench.structures_pool pools; its kinds never looked at before):
+    the measured disturbance's integrator with a lead on y4 had only its gain changed (-0.035 to -0.0211).  The
+    free fit stopped at an input lag of 2, the model's is 6; the profile at 6, computed from the fit's shape,
+    fitted better than the fit, and its negative likelihood ratio gave a delay p-value that was not a number
+    (``p_delay`` null in the report).  The shape test then held the model's shape at lag 2 only (p = 1.7e-50)
+    and the kind was ``mixed``.  The statistic is 0 there now: the delay unchanged (p = 1), the model's shape
+    held at its own dead time, the kind ``gain``."""
     from bench.structures_mc import StructuresOptions, make_structures_scenario, simulate
 
     opts = StructuresOptions()
