@@ -1062,3 +1062,24 @@ def test_a_step_response_lag_that_vanished_in_the_start_form_goes_before_the_lad
     after = res.changes[0]["evidence"]["parametric_after"]
     assert after.get("lead", 0.0) == 0.0 and after.get("time_constant2", 0.0) == 0.0
     assert after["time_constant"] == pytest.approx(m["plant"]["time_constant"], rel=0.03)
+
+
+@pytest.mark.parametrize("index", [22, 255])
+def test_a_pure_gains_dead_time_change_whose_fit_shows_a_hair_of_lag_is_a_delay(index):
+    """bench.structures_mc --pure-gains seed 4 runs 22 and 255 (never run before): a pure gain of the model (dead
+    time 1 s) is a sample later in the plant.  Fitted first order, its pole came out 3e-4 or 4e-4, a hair above
+    the reading of no lag (2e-4), so it read as a lag of T / 8 at the model's dead time; its time-constant test did
+    not reject (the data show no lag), its delay test did, but the dead time read unchanged named no kind, the
+    joint test freed the lag, and the kind was ``time_constant``.  A pure gain whose lag the data do not show is
+    read as the pure gain it was fitted as: a ``delay`` change, written without a lag at the plant's dead time."""
+    from bench.structures_mc import StructuresOptions, make_structures_scenario, simulate
+
+    opts = StructuresOptions(pure_gains=True)
+    sc = make_structures_scenario(4, index, opts)
+    report = analyze(sc.model, simulate(sc, 3000, opts).as_logged_data(f"structures scenario 4/{index}"))
+    m = next(m for m in sc.mismatches if m["kind"] == "delay")
+    assert m["model"]["time_constant"] == 0.0 and m["plant"]["delay"] == m["model"]["delay"] + 1
+    change = next(c for c in report.repair["changes"]
+                  if (c["output"], c["input"]) == (sc.model.outputs[m["output"]], sc.model.columns[m["column"]]))
+    assert change["kind"] == "delay" and change["applied"] is True
+    assert change["after"]["time_constant"] == 0.0 and change["after"]["delay"] == m["plant"]["delay"]
