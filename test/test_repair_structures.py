@@ -228,11 +228,9 @@ def test_two_pure_integrators_of_a_row_that_both_gained_a_lag_are_repaired_with_
     (runs 80 and 164: only the second was grown), or neither did (run 178): both stayed ``unknown``, and the held-
     out check then kept the model.  Now a growth is retried on the others after one is taken, and the elements
     still left are grown together: both a ``time_constant`` change, each gain and lag the plant's."""
-    from bench.structures_mc import StructuresOptions, make_structures_scenario, simulate
+    from bench.structures_mc import StructuresOptions
 
-    opts = StructuresOptions(gained_lag=True)
-    sc = make_structures_scenario(4, index, opts)
-    report = analyze(sc.model, simulate(sc, 3000, opts).as_logged_data(f"structures scenario 4/{index}"))
+    sc, report = structures_scenario_report(StructuresOptions(gained_lag=True), index, seed=4)
     changes = {(c["output"], c["input"]): c for c in report.repair["changes"]}
     assert len(sc.mismatches) == 2
     for m in sc.mismatches:
@@ -626,19 +624,19 @@ def test_a_parameter_freed_by_the_joint_test_with_a_negligible_change_names_no_k
     assert verdict.kind == kind and set(verdict.changed) == freed
 
 
-def structures_scenario_report(opts, index: int):
-    """``(scenario, report)``: bench.structures_mc's scenario ``index`` (seed 0, ``opts``) and the analysis, with the
+def structures_scenario_report(opts, index: int, seed: int = 0):
+    """``(scenario, report)``: bench.structures_mc's scenario ``index`` (``seed``, ``opts``) and the analysis, with the
     repair, of its closed loop (3,000 samples)."""
     from bench.structures_mc import make_structures_scenario, simulate
 
-    sc = make_structures_scenario(0, index, opts)
-    return sc, analyze(sc.model, simulate(sc, 3000, opts).as_logged_data(f"structures scenario 0/{index}"))
+    sc = make_structures_scenario(seed, index, opts)
+    return sc, analyze(sc.model, simulate(sc, 3000, opts).as_logged_data(f"structures scenario {seed}/{index}"))
 
 
-def _scenario_change(opts, index: int, kind: str):
-    """``(mismatch, change)``: the first mismatch of ``kind`` of bench.structures_mc's scenario ``index`` (seed 0,
+def _scenario_change(opts, index: int, kind: str, seed: int = 0):
+    """``(mismatch, change)``: the first mismatch of ``kind`` of bench.structures_mc's scenario ``index`` (``seed``,
     ``opts``), and its entry in the repair's ``changes`` after the analysis of the scenario's closed loop."""
-    sc, report = structures_scenario_report(opts, index)
+    sc, report = structures_scenario_report(opts, index, seed)
     mismatch = next(m for m in sc.mismatches if m["kind"] == kind)
     i, j = mismatch["output"], mismatch["column"]
     change = next(c for c in report.repair["changes"]
@@ -1005,11 +1003,9 @@ def test_a_delay_test_whose_profile_fits_better_than_the_free_fit_passes():
     (``p_delay`` null in the report).  The shape test then held the model's shape at lag 2 only (p = 1.7e-50)
     and the kind was ``mixed``.  The statistic is 0 there now: the delay unchanged (p = 1), the model's shape
     held at its own dead time, the kind ``gain``."""
-    from bench.structures_mc import StructuresOptions, make_structures_scenario, simulate
+    from bench.structures_mc import StructuresOptions
 
-    opts = StructuresOptions()
-    sc = make_structures_scenario(4, 165, opts)
-    report = analyze(sc.model, simulate(sc, 3000, opts).as_logged_data("structures scenario 4/165"))
+    sc, report = structures_scenario_report(StructuresOptions(), 165, seed=4)
     (m,) = sc.mismatches
     assert m["kind"] == "disturbance_gain" and m["model"]["integrating"] and m["model"]["lead"] > 0
     change = next(c for c in report.repair["changes"]
@@ -1047,8 +1043,8 @@ def test_a_step_response_lag_that_vanished_in_the_start_form_goes_before_the_lad
     lag (25.4 s; one lag of 55.9 s left).  In the step-response form the fit in the start form (two lags, the old
     response's) took the second lag to its bound and the first to 38 s with the gain 27 % short; the ladder then took a
     lead and two lags, significantly better than that fit, and the element was repaired 17 % off, read as lags of 67 s
-    and 2,000 s and a lead of 2,400 s (the parametric form 0.2 % off).  The vanished lag now goes first: one lag, the ladder's larger
-    forms no better than it, and the repair within 1 %."""
+    and 2,000 s and a lead of 2,400 s (the parametric form 0.2 % off).  The vanished lag now goes first: one lag,
+    the ladder's larger forms no better than it, and the repair within 1 %."""
     from bench import structures_mc
     from bench.step_models import step_form
 
@@ -1072,14 +1068,9 @@ def test_a_pure_gains_dead_time_change_whose_fit_shows_a_hair_of_lag_is_a_delay(
     not reject (the data show no lag), its delay test did, but the dead time read unchanged named no kind, the
     joint test freed the lag, and the kind was ``time_constant``.  A pure gain whose lag the data do not show is
     read as the pure gain it was fitted as: a ``delay`` change, written without a lag at the plant's dead time."""
-    from bench.structures_mc import StructuresOptions, make_structures_scenario, simulate
+    from bench.structures_mc import StructuresOptions
 
-    opts = StructuresOptions(pure_gains=True)
-    sc = make_structures_scenario(4, index, opts)
-    report = analyze(sc.model, simulate(sc, 3000, opts).as_logged_data(f"structures scenario 4/{index}"))
-    m = next(m for m in sc.mismatches if m["kind"] == "delay")
+    m, change = _scenario_change(StructuresOptions(pure_gains=True), index, "delay", seed=4)
     assert m["model"]["time_constant"] == 0.0 and m["plant"]["delay"] == m["model"]["delay"] + 1
-    change = next(c for c in report.repair["changes"]
-                  if (c["output"], c["input"]) == (sc.model.outputs[m["output"]], sc.model.columns[m["column"]]))
     assert change["kind"] == "delay" and change["applied"] is True
     assert change["after"]["time_constant"] == 0.0 and change["after"]["delay"] == m["plant"]["delay"]
