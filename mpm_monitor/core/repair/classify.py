@@ -562,10 +562,12 @@ def _grow_gained_lags(free: _FreeFit, settings: _TestSettings) -> _FreeFit:
                  float(free.est.fit.leads[m]), grown.lag)
         return grown, start
 
-    pure = [(m, j) for m, j in enumerate(free.js)
-            if not (free.located[j].missing or free.located[j].declared is not None or row.model.is_step_response
-                    or free.located[j].form.n_lags != 0 or not free.located[j].form.integrating)]
-    left = list(pure)
+    if row.model.is_step_response:
+        return free
+    located = free.located
+    left = [(m, j) for m, j in enumerate(free.js)
+            if not (located[j].missing or located[j].declared is not None or located[j].form.n_lags != 0
+                    or not located[j].form.integrating)]
     while left:
         for m, j in left:
             larger = _refit_element(free, j, *grown_of(free, m, j), settings)
