@@ -99,7 +99,9 @@ def test_the_rise_test_holds_its_level_on_equally_good_autocorrelated_errors_and
 
 
 @pytest.mark.parametrize("key, value", [("holdout_one_step", 1), ("holdout_alpha", 0.0), ("holdout_alpha", 0.5),
-                                        ("holdout_alpha", float("nan"))])
+                                        ("holdout_alpha", float("nan")), ("holdout_tolerance", -0.01),
+                                        ("holdout_tolerance", 1.5), ("holdout_tolerance", float("inf")),
+                                        ("holdout_tolerance", "5%")])
 def test_held_out_options_out_of_range_are_refused_by_name(key, value):
     with pytest.raises(ConfigurationError, match=key):
         RepairOptions(**{key: value})
@@ -128,26 +130,37 @@ def _repair(sc, data, element, **options):
     return res, change, i, j
 
 
-def test_a_right_delay_repair_the_simulation_error_refuses_is_called_undecided_and_the_option_accepts_it():
+def test_a_right_delay_repair_the_simulation_error_alone_refuses_is_accepted_one_step_ahead_within_the_tolerance():
     # Setpoints in steps, run 17: the plant's (y2, u4) has a delay of 8 s, the model 5 s.  The right
     # element's held-out simulation error is 0.5% larger than the model's (the loop's feedback), its
     # one-step error significantly smaller, and the rise not significant.
     sc, data = _loop(17, steps=True)
     element = ("y2", "u4")
     plant = sc.plant.element(sc.plant.outputs.index("y2"), sc.plant.columns.index("u4"))
-    res, refused, _, _ = _repair(sc, data, element)
-    assert not refused["applied"] and refused["reason"] == "rejected by held-out validation"
-    assert res.holdout_error_after["y2"] > res.holdout_error_before["y2"]
+    # By default it is accepted: exactly the plant's delay.
+    res, change, _, _ = _repair(sc, data, element)
+    assert change["applied"] and change["kind"] == "delay"
+    assert change["after"]["delay"] == pytest.approx(plant["delay"])
+    rise = res.holdout_error_after["y2"] / res.holdout_error_before["y2"] - 1.0
+    assert 0.0 < rise < 0.05
     assert res.holdout_one_step_error_after["y2"] < res.holdout_one_step_error_before["y2"]
+    (note,) = [w for w in res.warnings if w.startswith("y2: the re-estimated element(s) u4 predict the held-out last "
+                                                       "25% of the record significantly better one step ahead")]
+    assert "the repair is accepted" in note and "within the tolerance of 5%" in note
+    # With the simulation error alone it is refused and called undecided.
+    res, refused, _, _ = _repair(sc, data, element, holdout_one_step=False)
+    assert not refused["applied"] and refused["reason"] == "rejected by held-out validation"
     (warning,) = [w for w in res.warnings if w.startswith("y2: the re-estimated element(s) u4 did not predict")]
     assert "significantly smaller" in warning and "is not significant" in warning
     assert "The held-out data do not tell which is better" in warning and "holdout_one_step=True" in warning
-    # With the option, it is accepted: exactly the plant's delay.
-    res, change, _, _ = _repair(sc, data, element, holdout_one_step=True)
-    assert change["applied"] and change["kind"] == "delay"
-    assert change["after"]["delay"] == pytest.approx(plant["delay"])
-    assert any("y2: the re-estimated element(s) u4 predict the held-out last 25% of the record significantly better "
-               "one step ahead" in w and "the repair is accepted" in w for w in res.warnings)
+    # A tolerance below its rise refuses it too, and says so.
+    res, refused, _, _ = _repair(sc, data, element, holdout_tolerance=rise / 2)
+    assert not refused["applied"] and refused["reason"] == "rejected by held-out validation"
+    (warning,) = [w for w in res.warnings if w.startswith("y2: the re-estimated element(s) u4 did not predict")]
+    assert "beyond the tolerance of" in warning and "holdout_tolerance=None" in warning
+    # Unbounded, the route takes it.
+    res, change, _, _ = _repair(sc, data, element, holdout_tolerance=None)
+    assert change["applied"] and change["after"]["delay"] == pytest.approx(plant["delay"])
 
 
 @pytest.mark.parametrize("one_step", [False, True])

@@ -55,10 +55,11 @@ control engineer's next questions (paper section 4, "type and severity" of each 
    gain, time constants and lead, from the profile statistic for the delay.  The repair is
    accepted when the row's RMS simulation error on the held-out last part, about its level (the
    mean of the fit part: a level is no element's to explain, and on an integrating output it is
-   arbitrary), is lower than with the model as given (with the option ``holdout_one_step``, also
+   arbitrary), is lower than with the model as given, or (option ``holdout_one_step``, on by default)
    when its RMS one-step error there under its own AR noise model is significantly lower while the
-   simulation error does not rise significantly: :mod:`.holdout`); then it is refitted on the whole
-   record.
+   simulation error rises neither significantly nor by more than ``holdout_tolerance`` (5 %) of the
+   model's, on a loop that did not diverge (:mod:`.holdout`, :mod:`.validation`); then it is refitted on
+   the whole record.
    A step-response element whose gain or delay alone changed keeps its old response, scaled and
    shifted; one whose shape changed takes the sampled response of its fitted form.
 5. **Unexplained disturbances.**  On every output, the (repaired) residual is tested for a level

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..discretize import model_columns
 from ..errors import InputError
-from ..logged_data import LoggedData, check_loop_data, moving_columns
+from ..logged_data import LoggedData, check_loop_data, diverging_outputs, moving_columns
 from ..model import PlantModel
 from ..signals import (LoopSignals, compute_signals, scored_segments, segment_signals, segments_mask,
                        unknown_starts)
@@ -180,6 +180,12 @@ class _Record:
         """Whether each output moves over the record (:func:`~mpm_monitor.core.logged_data.moving_columns`),
         shape (n_outputs,): one that never moves (a stuck sensor) is not tested for a disturbance."""
         return moving_columns(np.asarray(self.y, float))
+
+    @functools.cached_property
+    def diverged(self) -> bool:
+        """Some output grows without bound over the record (:func:`~mpm_monitor.core.logged_data.diverging_outputs`):
+        a loop that diverged, where the held-out check's tests mean nothing (:func:`~.validation._compare_on_holdout`)."""
+        return bool(diverging_outputs(self.model.outputs, np.asarray(self.y, float)))
 
     @property
     def n(self) -> int:

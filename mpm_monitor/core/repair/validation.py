@@ -35,6 +35,9 @@ class _HoldoutCheck:
         One-sided p-value of "the candidate's one-step error is not smaller", then.
     one_step : bool
         Accepted on the one-step errors (the simulation error did not fall).
+    within : bool
+        The simulation error rose by no more than the option ``holdout_tolerance`` (True when it fell, or when
+        the one-step errors were not consulted).
     """
 
     accepted: bool
@@ -45,6 +48,7 @@ class _HoldoutCheck:
     p_rise: Optional[float] = None
     p_one_step: Optional[float] = None
     one_step: bool = False
+    within: bool = True
 
 
 def _compare_on_holdout(rec: _Record, i: int, candidate: PlantModel,
@@ -54,17 +58,19 @@ def _compare_on_holdout(rec: _Record, i: int, candidate: PlantModel,
     Both errors are taken about their level (:func:`~.record._holdout_residual`: the level of the fit part, or on
     a row with nuisance regressors ``extra`` those regressors and an offset projected out over the
     held-out part).  The candidate is accepted when its RMS simulation error there is smaller by
-    ``min_holdout_improvement``, or (option ``holdout_one_step``, off by default) when its RMS one-step
+    ``min_holdout_improvement``, or (option ``holdout_one_step``, on by default) when its RMS one-step
     error under its own AR noise model of order ``noise_order`` (:meth:`_Record.one_step_holdout`) is
     smaller by as much and significantly so while its simulation error is not significantly larger
-    (each by :func:`~.holdout.loss_rise_p_value` at ``holdout_alpha``).  In a closed loop the simulation
-    errors carry the disturbance the controller answered through the same inputs, which can make the
-    right element's simulation error slightly larger than a wrong one's; the one-step errors do not,
-    but they weigh an element's slow misfit little (the noise model predicts much of it), and the
-    test on the simulation errors has little power over a few hundred autocorrelated samples.  The
-    simulation error is what an internal-model controller runs the model for, so it decides by
-    default (``bench.holdout_mc`` scores both rules against the plant).  The two p-values are computed
-    whenever the one-step error is the smaller, for the warning.
+    (each by :func:`~.holdout.loss_rise_p_value` at ``holdout_alpha``) and has risen by no more than
+    ``holdout_tolerance`` of the model's.  In a closed loop the simulation errors carry the disturbance
+    the controller answered through the same inputs, which can make the right element's simulation error
+    slightly larger than a wrong one's; the one-step errors do not, but they weigh an element's slow misfit
+    little (the noise model predicts much of it), and the test on the simulation errors has little power
+    over a few hundred autocorrelated samples.  The simulation error is what an internal-model controller
+    runs the model for: the tolerance bounds what the one-step route may cost there (``bench.holdout_mc``
+    scores the rules against the plant).  On a loop that diverged (:attr:`_Record.diverged`) the tests'
+    p-values mean nothing (the errors grow without bound): the simulation error alone decides there.  The two
+    p-values are computed whenever the one-step error is the smaller, for the warning.
 
     A record with gaps whose held-out part holds no scored sample (:meth:`_Record.scored`) cannot be
     checked: accepted, with ``after`` None.
@@ -92,8 +98,10 @@ def _compare_on_holdout(rec: _Record, i: int, candidate: PlantModel,
     if options.noise_order > 0 and os_after is not None and os_after < os_before * factor:
         p_fall = loss_rise_p_value(o_before, o_after)       # small: the candidate's one-step error significantly smaller
         p_rise = loss_rise_p_value(e_after, e_before)       # small: its simulation error significantly larger
-        ok = options.holdout_one_step and p_fall < options.holdout_alpha <= p_rise
-        return done(ok, p_rise=p_rise, p_one_step=p_fall, one_step=ok)
+        tol = options.holdout_tolerance
+        within = tol is None or h_after <= h_before * (1.0 + tol)
+        ok = options.holdout_one_step and not rec.diverged and p_fall < options.holdout_alpha <= p_rise and within
+        return done(ok, p_rise=p_rise, p_one_step=p_fall, one_step=ok, within=within)
     return done(False)
 
 
@@ -119,12 +127,16 @@ def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnin
         return check
     h_after, h_before, os_after, os_before = check.after, check.before, check.one_step_after, check.one_step_before
     ar = f"AR({options.noise_order})"
+    tol = options.holdout_tolerance
+    rise = f"{100.0 * (h_after / h_before - 1.0):.2g}% above" if h_before > 0 else "above"
+    tolerance = "" if tol is None else f" the tolerance of {100.0 * tol:g}%"
     if check.one_step:
         warnings.append(
             f"{name}: the re-estimated element(s) {cols} predict {held} significantly better one step ahead (RMS "
             f"error {os_after:.4g} vs {os_before:.4g} with the model as given, each under its own {ar} noise model; "
             f"one-sided p = {check.p_one_step:.2g}) and their simulation error there is not significantly larger "
-            f"({h_after:.4g} vs {h_before:.4g}; p = {check.p_rise:.2g}): the repair is accepted.")
+            f"({h_after:.4g} vs {h_before:.4g}; p = {check.p_rise:.2g}"
+            + (f"; {rise}, within{tolerance}" if tol is not None else "") + "): the repair is accepted.")
     if check.accepted:
         return check
     why = ""
@@ -136,6 +148,15 @@ def _validate_on_holdout(rec: _Record, row: _RowData, js, elements: dict, warnin
         why += f", not significantly smaller (one-sided p = {check.p_one_step:.2g}, at least {alpha:g})"
     elif check.p_rise is not None and check.p_rise < alpha:
         why += f", but the rise in simulation error is significant (one-sided p = {check.p_rise:.2g} < {alpha:g})"
+    elif check.p_rise is not None and options.holdout_one_step and rec.diverged:
+        why += (f", significantly smaller (one-sided p = {check.p_one_step:.2g}), but the loop diverged, where the "
+                f"held-out tests mean nothing: the simulation error alone decides")
+    elif check.p_rise is not None and options.holdout_one_step and not check.within:
+        why += (f", significantly smaller (one-sided p = {check.p_one_step:.2g}), and the rise in simulation error "
+                f"is not significant (p = {check.p_rise:.2g}) but is {rise} the model's, beyond{tolerance}")
+        undecided = (" The held-out data do not tell which is better: beyond the tolerance the simulation error "
+                     "decides (an experiment, or RepairOptions(holdout_tolerance=None), which accepts such a repair, "
+                     "may).")
     elif check.p_rise is not None:
         why += (f", significantly smaller (one-sided p = {check.p_one_step:.2g}), and the rise in simulation error "
                 f"is not significant (p = {check.p_rise:.2g})")
