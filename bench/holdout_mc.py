@@ -35,7 +35,7 @@ import numpy as np
 
 from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.pipeline import analyze
-from mpm_monitor.core.repair import model_repair, validation
+from mpm_monitor.core.repair import RepairOptions, model_repair, validation
 from mpm_monitor.core.repair.holdout import loss_rise_p_value
 from mpm_monitor.sim.closed_loop import run_closed_loop
 
@@ -130,7 +130,8 @@ def one(seed: int, index: int, samples: int, options: ScenarioOptions) -> list:
     return [dict(c, run=index) for c in checks]
 
 
-RULES = (("simulation error alone", "simulation_alone"), ("one step, within 5 % (default)", "accepted"),
+RULES = (("simulation error alone", "simulation_alone"),
+         (f"one step, within {100 * RepairOptions().holdout_tolerance:g} % (default)", "accepted"),
          ("one step, unbounded", "one_step_rule"))
 
 
