@@ -9,6 +9,8 @@ plant's, the step response within 10% over 300 samples, every other element as i
 repaired model file read back in the same structure.
 """
 
+import dataclasses
+
 import numpy as np
 import pytest
 from structure_models import first_order_model, rich_model, step_model
@@ -701,6 +703,57 @@ def test_two_lost_second_lags_of_one_row_are_found_by_the_lag_search():
             assert change["after"][key] == pytest.approx(m["plant"][key], rel=0.05), key
         assert step_response_error(sc.plant, report.repaired_model, i, j) <= 0.05
     assert report.repair["holdout_error_after"]["y3"] <= 1.2 * report.repair["holdout_error_before"]["y1"]
+
+
+def test_a_pure_gain_and_a_lost_only_lag_of_one_row_are_found_by_the_lag_search():
+    """bench.structures_mc --pure-gains seed 2 run 55: in row y1 the pure gain (y1, u1) was 66 % high (8.02 against
+    the plant's 4.83) and (y1, u2) lost its only lag (10.5 s), the plant's a pure gain.  The loop swung at about 130
+    times the noise.  The lag search scanned each one-lag element only at its time constant scaled by 0.5 to 2, and a
+    pure gain's spec starts at the row's median time constant: neither element's pure gain was ever scanned.  The
+    fit came to rest with both gains of the wrong sign (-3.5 and -4.9) at equal lags, the row's error 2.48 after the
+    repair against a noise of 0.026, step responses 1.7 and 3.3 times off.  After its sweeps the search now also
+    tries each one-lag element with its lag gone (where that already beats the fit; scanned from the start among the
+    other shapes, it sent ``bench.repair_mc --dither-fat`` seed 1 run 36 to a worse fit): both elements are the
+    plant's, ``gain`` and ``time_constant``."""
+    from bench.structures_mc import StructuresOptions, step_response_error
+
+    sc, report = structures_scenario_report(StructuresOptions(pure_gains=True), 55, seed=2)
+    changes = {(c["output"], c["input"]): c for c in report.repair["changes"]}
+    kinds = {m["kind"]: m for m in sc.mismatches}
+    assert set(kinds) == {"gain", "lost_only_lag"} and {m["output"] for m in sc.mismatches} == {0}
+    for kind, said in (("gain", "gain"), ("lost_only_lag", "time_constant")):
+        m = kinds[kind]
+        i, j = m["output"], m["column"]
+        change = changes[(sc.model.outputs[i], sc.model.columns[j])]
+        assert change["kind"] == said and change["applied"] is True
+        assert change["after"]["time_constant"] == 0.0 and change["after"]["delay"] == m["plant"]["delay"]
+        assert change["after"]["gain"] == pytest.approx(m["plant"]["gain"], rel=0.01)
+        assert step_response_error(sc.plant, report.repaired_model, i, j) <= 0.01
+    assert report.repair["holdout_error_after"]["y1"] <= 1.2 * report.repair["holdout_error_before"]["y2"]
+
+
+def test_the_pure_gain_shapes_are_tried_after_the_sweeps_not_among_them():
+    """bench.repair_mc --dither-fat seed 1 run 36: row y1 has three first-order elements off (u1's and u4's time
+    constants, u3's dead time a sample long).  Scanned among the other shapes from the first sweep on, a one-lag
+    element's shape with its lag gone took the coordinate search down another path, to a fit of higher cost: all
+    three kinds wrong (``mixed``, ``mixed``, ``delay``) and the row's error 13 % above the noise.  Tried after the
+    sweeps, where it must already beat the fit, it leaves the plant's elements found: every kind right, the error at
+    the noise."""
+    from bench.scenarios import ScenarioOptions, make_scenario
+    from mpm_monitor.sim.closed_loop import run_closed_loop
+
+    sc = make_scenario(1, 36, dataclasses.replace(ScenarioOptions(), dither_fat=True))
+    log = run_closed_loop(sc.plant, sc.model, 3000, seed=sc.loop_seed, mpc=sc.mpc, excitation=sc.excitation,
+                          disturbance=sc.disturbance)
+    report = analyze(sc.model, log.as_logged_data())
+    truth = {(sc.model.outputs[m.output], sc.model.inputs[m.input]): m for m in sc.mismatches}
+    changes = {(c["output"], c["input"]): c for c in report.repair["changes"]}
+    assert set(truth) == {("y1", "u1"), ("y1", "u3"), ("y1", "u4")} and set(changes) == set(truth)
+    for key, m in truth.items():
+        assert changes[key]["kind"] == m.kind and changes[key]["applied"] is True, key
+        assert changes[key]["after"]["delay"] == m.plant["delay"]
+    floor = float(np.sqrt(np.mean((log.disturbance + log.noise)[:, 0] ** 2)))
+    assert report.repair["error_after"]["y1"] <= 1.02 * floor
 
 
 def test_a_shape_held_at_the_reference_is_also_tried_at_the_references_input_lag():

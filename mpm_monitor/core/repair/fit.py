@@ -743,12 +743,13 @@ _TAU_GRID = (0.5, 0.7, 1.0, 1.4, 2.0)
 def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int = 3) -> _RowEstimate:
     """Lags on the integer grid by coordinate search; poles by least squares; then the noise model.
 
-    Phase 1 (output error, ``A = 1``): for each element with a free lag, a quick scan of (lag, pole)
-    with the other parameters held picks candidates, which are fitted; sweeps repeat until no lag
-    moves.  Phase 2: the noise model and the fit are alternately re-estimated; then, for an element whose
-    fitted shape has drifted off its spec's, the fit's and the spec's shapes are scanned once more under that
-    noise model, and only the points whose cost already lies below the fit's are fitted (the ranking under
-    output error can differ: ``bench.structures_mc`` run 140 settled at a lag of 6 samples with a lag of
+    Phase 1 (output error, ``A = 1``): for each element with a free lag, a quick scan of (lag, pole) with the other
+    parameters held picks candidates, which are fitted; sweeps repeat until no lag moves. Phase 1b: each one-lag
+    element's shape with its lag gone (a pure gain), fitted only where its cost already lies below the fit's; where
+    one was taken, the sweeps run again. Phase 2: the noise model and the fit are alternately re-estimated; then,
+    for an element whose fitted shape has drifted off its spec's, the fit's and the spec's shapes are scanned once
+    more under that noise model, and only the points whose cost already lies below the fit's are fitted (the ranking
+    under output error can differ: ``bench.structures_mc`` run 140 settled at a lag of 6 samples with a lag of
     2,000 s, where the model's own shape at the plant's lag of 3 fits better under the noise model).
     Phase 3: each lag is moved by one sample while that lowers the cost, and its profile is recorded.
     Phase 4: where phases 2b and 3 moved the fit, its noise model is estimated again from the moved fit, the fit
@@ -763,6 +764,11 @@ def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int
     lags = [int(v) for v in lags0]
     best = fits(lags, problem.start_poles())
     best, lags = _sweep_lags(problem, fits, best, lags, max_sweeps)
+    # Phase 1b: each one-lag element's shape with its lag gone, fitted where it already beats the fit; then sweep again.
+    settled = best
+    best, lags = _sweep_lags(problem, fits, best, lags, 1, lag_gone=True)
+    if best is not settled:
+        best, lags = _sweep_lags(problem, fits, best, lags, max_sweeps)
     # Phase 2: the noise model.
     for _ in range(ar_iterations if problem.p else 0):
         problem.update_ar(best)
@@ -789,9 +795,9 @@ def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int
 
 
 def _sweep_lags(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, max_sweeps: int,
-                better_only: bool = False):
+                better_only: bool = False, lag_gone: bool = False):
     """Phase 1 of :func:`_search_row`: coordinate sweeps over the free lags until none moves (with ``better_only``,
-    the scan after the noise model: see :func:`_move_lag`).
+    the scan after the noise model, with ``lag_gone`` phase 1b: see :func:`_move_lag`).
 
     Returns the best fit and its lags.
     """
@@ -800,14 +806,15 @@ def _sweep_lags(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m
         for m in range(problem.n_located):
             if not problem.specs[m].lag_free:
                 continue
-            best, lags, moved_m = _move_lag(problem, fits, best, lags, m, better_only)
+            best, lags, moved_m = _move_lag(problem, fits, best, lags, m, better_only, lag_gone)
             moved = moved or moved_m
         if not moved:
             break
     return best, lags
 
 
-def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: int, better_only: bool = False):
+def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: int, better_only: bool = False,
+              lag_gone: bool = False):
     """Best lag of element ``m`` with the others held: the (lag, pole) scan, then fits of the 3 best lags.
 
     The scan multiplies every time constant of the element by the factors of :data:`_TAU_GRID`; where the
@@ -819,6 +826,12 @@ def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: 
     ``better_only`` (the scan after the noise model, :func:`_search_row`): nothing unless the fit's shape has
     drifted off the spec's as above; then the fit's shape and the spec's alone are scanned, and only the points
     whose cost is already below the fit's are fitted.
+    ``lag_gone`` (phase 1b of :func:`_search_row`): a one-lag element's shape with its lag gone, a pure gain, alone,
+    fitted only where its cost is already below the fit's.  A pure gain's spec starts at the row's median time
+    constant, so its own shape was otherwise never scanned (``bench.structures_mc --pure-gains`` seed 2 run 55: a
+    pure gain 66 % high beside an element whose plant lost its only lag, fitted with both gains of the wrong sign at
+    90 times the noise).  Scanned among the others from the start, the shape sent a sweep down another path to a
+    worse fit (``bench.repair_mc --dither-fat`` seed 1 run 36); after the sweeps, it can only lower the cost.
     Returns the best fit, its lags and whether the lag of ``m`` moved.
     """
     spec = problem.specs[m]
@@ -829,7 +842,11 @@ def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: 
     shapes = [[min(max(math.exp(-1.0 / (tau * f)), _POLE_MIN), _POLE_MAX) for tau in base_taus] for f in grid]
     start = [float(a) for a in spec.poles]
     drifted = bool(spec.pole_free and base_taus) and not _within_grid(start, shapes)
-    if better_only:
+    if lag_gone:
+        if not (spec.pole_free and len(base_taus) == 1 and best.poles[own][0] > _POLE_MIN):
+            return best, lags, False
+        shapes, drifted = [[_POLE_MIN]], False
+    elif better_only:
         if not drifted:
             return best, lags, False
         shapes = [shapes[grid.index(1.0)]]         # the fit's own shape (the spec's is added below)
@@ -847,7 +864,7 @@ def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: 
             poles[own] = shape
             cand.append((problem.evaluate(poles, lg).ssr, lag, poles))
     cand.sort(key=lambda c: c[0])
-    if better_only:
+    if better_only or lag_gone:
         cand = [c for c in cand if c[0] < best.ssr * (1 - 1e-9)]
     tried = set()
     for _, lag, poles in cand:
