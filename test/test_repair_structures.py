@@ -756,6 +756,29 @@ def test_the_pure_gain_shapes_are_tried_after_the_sweeps_not_among_them():
     assert report.repair["error_after"]["y1"] <= 1.02 * floor
 
 
+def test_two_lags_that_the_loop_ties_together_are_moved_together():
+    """bench.structures_mc --gained-lag seed 3 run 15: both pure gains of row y1, (y1, u1) and (y1, u2), gained a
+    lag (26.3 s and 40.1 s) at the same dead times.  A first-order element's input lag is its dead time plus one
+    sample, a pure gain's its dead time: the plant's lags lie one sample after the model's, for both.  The loop moves
+    u1 and u2 together, and the cost is a valley along the diagonal: at the model's lags it was 6.0, with either lag
+    alone a sample later 11.4 and 12.2, with both 2.4.  The coordinate search stayed at the model's lags; the
+    classification then read (y1, u1) as a gain change (to 0.012, the plant's -1.78) and (y1, u2) as ``mixed``, step
+    responses 100 % and 89 % off.  The search now also moves two lags together: both elements are the plant's."""
+    from bench.structures_mc import StructuresOptions, step_response_error
+
+    sc, report = structures_scenario_report(StructuresOptions(gained_lag=True), 15, seed=3)
+    changes = {(c["output"], c["input"]): c for c in report.repair["changes"]}
+    assert {(m["output"], m["column"]) for m in sc.mismatches} == {(0, 0), (0, 1)}
+    for m in sc.mismatches:
+        i, j = m["output"], m["column"]
+        change = changes[(sc.model.outputs[i], sc.model.columns[j])]
+        assert change["kind"] == "time_constant" and change["applied"] is True
+        assert change["after"]["delay"] == m["plant"]["delay"]
+        assert change["after"]["time_constant"] == pytest.approx(m["plant"]["time_constant"], rel=0.02)
+        assert change["after"]["gain"] == m["model"]["gain"]
+        assert step_response_error(sc.plant, report.repaired_model, i, j) <= 0.01
+
+
 def test_a_shape_held_at_the_reference_is_also_tried_at_the_references_input_lag():
     """bench.structures_mc run 6: only the gain of the integrating disturbance element (y2, dv1) changed (lags of
     4.2 s and 1.9 s, a lead of -1.1 s, 3 s of dead time).  The free fit put its input lag two samples late, its lead
