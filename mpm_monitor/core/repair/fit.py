@@ -746,11 +746,13 @@ def _search_row(problem: _RowProblem, lags0, max_sweeps: int, ar_iterations: int
     Phase 1 (output error, ``A = 1``): for each element with a free lag, a quick scan of (lag, pole) with the other
     parameters held picks candidates, which are fitted; sweeps repeat until no lag moves. Phase 1b: each one-lag
     element's shape with its lag gone (a pure gain), fitted only where its cost already lies below the fit's; where
-    one was taken, the sweeps run again. Phase 2: the noise model and the fit are alternately re-estimated; then,
-    for an element whose fitted shape has drifted off its spec's, the fit's and the spec's shapes are scanned once
-    more under that noise model, and only the points whose cost already lies below the fit's are fitted (the ranking
-    under output error can differ: ``bench.structures_mc`` run 140 settled at a lag of 6 samples with a lag of
-    2,000 s, where the model's own shape at the plant's lag of 3 fits better under the noise model).
+    one was taken, the sweeps run again. Phase 1c: every two free lags moved by one sample together
+    (:func:`_pair_lag_moves`), fitted only where that already beats the fit, then the sweeps again. Phase 2: the
+    noise model and the fit are alternately re-estimated; then, for an element whose fitted shape has drifted off
+    its spec's, the fit's and the spec's shapes are scanned once more under that noise model, and only the points
+    whose cost already lies below the fit's are fitted (the ranking under output error can differ:
+    ``bench.structures_mc`` run 140 settled at a lag of 6 samples with a lag of 2,000 s, where the model's own shape
+    at the plant's lag of 3 fits better under the noise model).
     Phase 3: each lag is moved by one sample while that lowers the cost, and its profile is recorded.
     Phase 4: where phases 2b and 3 moved the fit, its noise model is estimated again from the moved fit, the fit
     redone under it and phase 3 repeated, up to ``ar_iterations`` times: a cost under the noise model of another
