@@ -66,8 +66,12 @@ def one(seed: int, index: int, samples: int, options: ScenarioOptions) -> dict:
             c = changes[k]
             delays.append({"element": list(k), "plant": m.plant["delay"], "model": m.model["delay"],
                            "repaired": c["after"]["delay"], "applied": bool(c["applied"])})
+    # What the detection of the repaired model locates in the rows it still flags (the report's located_after).
+    after = [(x["output"], x["input"]) for x in rep.repair.get("located_after", [])]
     return {
         "index": index, "shape": [sc.plant.n_outputs, sc.plant.n_inputs], "time_s": dt, "drawn": len(truth),
+        "located_after_new": [{"element": list(k), "drawn": k in truth} for k in after if k not in kinds],
+        "located_after_again": [{"element": list(k), "drawn": k in truth} for k in after if k in kinds],
         "false_elements": [list(k) for k in kinds if k not in truth],
         "missed_elements": [list(k) for k in truth if k not in kinds],
         "delays": delays,
@@ -106,6 +110,11 @@ def run(runs: int, seed: int, samples: int, dither_fat: bool, setpoint_steps: bo
             "missed_elements": sum(len(r["missed_elements"]) for r in recs),
             "false_elements": sum(len(r["false_elements"]) for r in recs),
             "runs_with_a_false_element": sum(bool(r["false_elements"]) for r in recs),
+            "located_after_new": sum(len(r["located_after_new"]) for r in recs),
+            "located_after_new_drawn": sum(x["drawn"] for r in recs for x in r["located_after_new"]),
+            "located_after_new_runs": sum(bool(r["located_after_new"]) for r in recs),
+            "located_after_again": sum(len(r["located_after_again"]) for r in recs),
+            "located_after_again_drawn": sum(x["drawn"] for r in recs for x in r["located_after_again"]),
             "delays_scored": len(delays), "delays_within_one_sample": len(within),
             "delays_far_scored": sum(abs(x["plant"] - x["model"]) > 10 * options.sample_time for x in delays),
             "delays_far_within_one_sample": sum(abs(x["plant"] - x["model"]) > 10 * options.sample_time
@@ -146,6 +155,12 @@ def format_table(res: dict) -> str:
     if "delays_scored" in res:
         lines.append(f"drawn elements missed: {res['missed_elements']} of {res['drawn_elements']}; elements located "
                      f"that were not drawn: {res['false_elements']} (in {res['runs_with_a_false_element']} runs)")
+    if "located_after_new" in res:
+        lines.append(f"elements the repaired model's detection locates that the first did not: "
+                     f"{res['located_after_new']} (in {res['located_after_new_runs']} runs), drawn "
+                     f"{res['located_after_new_drawn']}; repaired elements it locates again: {res['located_after_again']}"
+                     f" (drawn {res['located_after_again_drawn']})")
+    if "delays_scored" in res:
         lines.append(f"located elements with a drawn delay change or missing: repaired within one sample of the plant's and "
                      f"applied {res['delays_within_one_sample']} of {res['delays_scored']}; of those more than 10 "
                      f"samples off {res['delays_far_within_one_sample']} of {res['delays_far_scored']}")

@@ -521,6 +521,9 @@ def run_one(seed: int, index: int, samples: int, options: StructuresOptions = St
     rec["repair"] = [{"element": [i, j], "step_error": step_response_error(sc.plant, repaired, i, j),
                       "before": step_response_error(sc.plant, sc.model, i, j),
                       "repaired": repaired.element(i, j)} for i, j in rec["located"]]
+    # What the detection of the repaired model locates in the rows it still flags (the report's located_after).
+    rec["located_after"] = sorted([oi[x["output"]], ci[x["input"]]] for x in (report.repair or {}).get("located_after", [])
+                                  if x["input"] in ci)
     rec["warnings"] = list(report.warnings)
     return rec
 
@@ -542,6 +545,7 @@ def score(records: Sequence[dict]) -> dict:
     clean = dict(runs=0, located=0, rows=0)
     clean_int = dict(runs=0, located=0, rows=0)
     repair = dict(scored=0, within=0, fp_scored=0, fp_within=0)
+    after = dict(new=0, new_drawn=0, new_runs=0, again=0, again_drawn=0)     # the repaired model's detection
     by_kind, by_role, reported = {}, {}, {}
     misses, false_pos, repair_fails, errors = [], [], [], []
     for rec in records:
@@ -597,6 +601,13 @@ def score(records: Sequence[dict]) -> dict:
                                "row_flagged": key[0] in rec["rows"], "column_collinear": key[1] in collinear,
                                "effect": eff.get("effect"), "detectable": eff.get("detectable"),
                                "oracle_power": eff.get("oracle_power")})
+        named = [tuple(x) for x in rec.get("located_after", [])]
+        new = [k for k in named if k not in located]
+        after["new"] += len(new)
+        after["new_drawn"] += sum(k in truth for k in new)
+        after["new_runs"] += bool(new)
+        after["again"] += len(named) - len(new)
+        after["again_drawn"] += sum(k in truth for k in named if k in located)
         for r in rec["repair"]:
             key = tuple(r["element"])
             ok = r["step_error"] <= REPAIR_TOLERANCE
@@ -631,6 +642,7 @@ def score(records: Sequence[dict]) -> dict:
             "effect_vs_detectable": {**seen, "recall_at_or_above": _ratio(seen["hit"], seen["hit"] + seen["miss"]),
                                      "recall_below": _ratio(seen["below_hit"], seen["below_hit"] + seen["below_miss"])},
             "oracle_power": oracle, "false_alarms": clean, "false_alarms_integrating": clean_int, "repair": repair,
+            "located_after": after,
             "recall_by_kind": by_kind, "recall_by_role": by_role, "reported_kind": reported,
             "median_analyze_time_s": statistics.median(times) if times else None,
             "misses": misses, "false_positives": false_pos, "repair_failures": repair_fails}
@@ -763,6 +775,11 @@ def format_table(result: dict) -> str:
                 c = rk[key]
                 said = ", ".join(f"{k} {n}" for k, n in sorted(c["said"].items(), key=lambda kv: (-kv[1], str(kv[0]))))
                 lines.append(f"  {key:18} {c['expected']:14} {c['right']}/{c['hits']} ({said})")
+        la = s.get("located_after")
+        if la:
+            lines.append(f"elements the repaired model's detection locates that the first did not: {la['new']} (in "
+                         f"{la['new_runs']} runs), drawn {la['new_drawn']}; located elements it locates again: "
+                         f"{la['again']} (drawn {la['again_drawn']})")
         lines.append(f"median analyze time with the repair {_f3(s['median_analyze_time_s'])} s; errors "
                      f"{len(s['errors'])}")
     ci = result["clean_integrating"]

@@ -460,6 +460,22 @@ def test_the_suggested_repair_is_in_the_row_statuses(repaired_core):
     assert st["mpm_monitor: row y2"].value("repair").startswith("u1: time_constant 70->")
 
 
+def test_a_row_status_names_what_the_repaired_models_detection_still_locates(repaired_core):
+    """``located_after`` in a row's status: the inputs of the repair's ``located_after`` in that row, absent where
+    there are none (the repaired model of case 3.2 leaves no row flagged)."""
+    c, rep = repaired_core
+    assert rep.repair["located_after"] == []
+    assert all(s.value("located_after") is None for s in c.statuses(now=0.0))
+    rep.repair["located_after"] = [{"output": "y2", "input": "u3", "p_value": 1e-4},
+                                   {"output": "y2", "input": "u1", "p_value": 1e-3}]
+    try:
+        st = by_name(c.statuses(now=0.0))
+    finally:
+        rep.repair["located_after"] = []
+    assert st["mpm_monitor: row y2"].value("located_after") == "u3,u1"
+    assert st["mpm_monitor: row y1"].value("located_after") is None
+
+
 def test_the_summary_counts_the_changes_and_gives_the_held_out_verdict(repaired_core):
     c, rep = repaired_core
     s = c.statuses(now=0.0)[-1]

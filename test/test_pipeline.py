@@ -5,6 +5,7 @@ adds exactly the repair and the second detection to what the detection alone rep
 """
 
 import dataclasses
+import json
 from types import SimpleNamespace
 
 import pytest
@@ -85,6 +86,65 @@ def test_a_repaired_row_still_flagged_is_warned_of():
     assert warnings[1].startswith("y3: still flagged after the repair of u1; the re-estimated element, in the "
                                   "structure the model gives it, does not explain the row's mismatch whole")
     assert _still_flagged(report, changes, []) == []
+
+
+def test_a_still_flagged_row_names_what_the_repaired_models_detection_locates_in_it():
+    """Where the repaired model's element test locates elements in a row still flagged, the warning names them: one the
+    first detection did not locate (a mismatch likely there) and a repaired one located again (its structure may lack
+    the plant's shape).  A located element whose repair was not applied, located again, is not named; nor is a row
+    whose repair was not applied."""
+    from mpm_monitor.core.pipeline import _still_flagged
+
+    report = SimpleNamespace(elements=[
+        _element("y1", "u1", mismatch=True), _element("y1", "u2"), _element("y1", "u3", mismatch=True),
+        _element("y2", "u1", mismatch=True), _element("y2", "u2", ambiguous=True), _element("y2", "u3"),
+        _element("y3", "u1", mismatch=True), _element("y3", "u2")])
+    changes = [{"output": "y1", "input": "u1", "applied": True}, {"output": "y1", "input": "u3", "applied": False},
+               {"output": "y2", "input": "u1", "applied": True}, {"output": "y3", "input": "u1", "applied": True}]
+    after = [{"output": "y1", "input": "u2"}, {"output": "y1", "input": "u3"}, {"output": "y2", "input": "u1"},
+             {"output": "y2", "input": "u3"}, {"output": "y3", "input": "u1"}]
+    y1, y2, y3 = _still_flagged(report, changes, ["y1", "y2", "y3"], after)
+    assert y1 == ("y1: still flagged after the repair of u1; the detection of the repaired model locates the element of "
+                  "u2, which the first detection did not: a mismatch there is likely, which the located element's "
+                  "larger mismatch hid (analyze the repaired model, written with --repair-out, on these data to locate "
+                  "and repair it); check the repair before using it")
+    assert "u3" not in y1                   # located, its repair not applied: located again, not named
+    assert y2.startswith("y2: still flagged after the repair of u1; the element of u2 cannot be told apart")
+    assert y2.endswith("would decide; the detection of the repaired model locates the element of u3, which the first "
+                       "detection did not: a mismatch there is likely, which the located element's larger mismatch hid "
+                       "(analyze the repaired model, written with --repair-out, on these data to locate and repair it); "
+                       "it locates the element of u1 again: the re-estimated element, in the structure the model gives "
+                       "it, does not explain its mismatch whole (the plant's element may have a shape that structure "
+                       "lacks: a lead, a second lag; a step-response element would take it); check the repair before "
+                       "using it")
+    assert y3.startswith("y3: still flagged after the repair of u1; the detection of the repaired model locates the "
+                         "element of u1 again: the re-estimated element")
+    # Nothing located after: the warnings of before.
+    assert _still_flagged(report, changes, ["y1", "y2", "y3"], []) == _still_flagged(report, changes, ["y1", "y2", "y3"])
+    assert _still_flagged(report, changes, [], after) == []
+
+
+def test_an_element_the_first_detection_missed_is_named_by_the_repaired_models_detection():
+    """bench.repair_mc --dither-fat seed 4 run 51 (3x7): the plant's (y2, u4) has a shorter lag, (y2, u5) a gain 63 %
+    larger and (y2, u6) a sample more dead time.  The detection locates u4 and u6 only; their repair leaves y2 flagged,
+    and the repaired model's detection locates u5 there.  The report names it, in located_after and in y2's warning."""
+    from bench.scenarios import ScenarioOptions, make_scenario
+    from mpm_monitor.sim.closed_loop import run_closed_loop
+
+    sc = make_scenario(4, 51, dataclasses.replace(ScenarioOptions(), dither_fat=True))
+    log = run_closed_loop(sc.plant, sc.model, 3000, seed=sc.loop_seed, mpc=sc.mpc, excitation=sc.excitation,
+                          disturbance=sc.disturbance)
+    rep = analyze(sc.model, log.as_logged_data(), AnalysisOptions())
+    drawn = {(sc.model.outputs[m.output], sc.model.inputs[m.input]) for m in sc.mismatches}
+    assert drawn == {("y2", "u4"), ("y2", "u5"), ("y2", "u6")}
+    assert rep.located_elements == [("y2", "u4"), ("y2", "u6")]
+    assert rep.repair["rows_flagged_after"] == ["y2"]
+    assert [(x["output"], x["input"]) for x in rep.repair["located_after"]] == [("y2", "u5")]
+    assert rep.repair["located_after"][0]["p_value"] < 0.01
+    (warned,) = [w for w in rep.warnings if w.startswith("y2: still flagged")]
+    assert "the detection of the repaired model locates the element of u5, which the first detection did not" in warned
+    assert warned in rep.repair["warnings"]
+    assert json.loads(json.dumps(rep.to_dict()))["repair"]["located_after"] == rep.repair["located_after"]
 
 
 def test_a_repair_beside_an_ambiguous_mismatch_is_applied_with_a_warning():

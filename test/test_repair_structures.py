@@ -536,6 +536,12 @@ def test_the_summary_line_of_a_null_error_says_n_a():
     lines = repair_summary_lines({"changes": [], "error_before": {"y1": None, "y2": 0.02},
                                   "error_after": {"y1": None, "y2": 0.02}})
     assert lines == ["prediction error RMS (nothing repaired): y1 n/a, y2 0.0200"]
+    # What the repaired model's detection still locates is listed last, where there is any.
+    lines = repair_summary_lines({"changes": [], "error_before": {"y2": 0.02}, "error_after": {"y2": 0.019},
+                                  "located_after": [{"output": "y2", "input": "u5", "p_value": 2e-4}]})
+    assert lines[-1] == "elements the repaired model's detection locates: (y2, u5)"
+    assert repair_summary_lines({"changes": [], "error_before": {"y2": 0.02}, "error_after": {"y2": 0.019},
+                                 "located_after": []})[-1].startswith("prediction error RMS")
 
 
 def test_a_repaired_element_that_does_not_settle_within_a_step_response_model_is_named():

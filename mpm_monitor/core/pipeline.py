@@ -15,7 +15,7 @@ docs/interfaces.md ("analyze and its JSON report").  With ``options.repair`` fal
 from __future__ import annotations
 
 import dataclasses
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -207,7 +207,9 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
     if after is not None:
         doc["rsi_after"] = {r.output: r.rsi for r in after.rows}
         doc["rows_flagged_after"] = after.flagged_rows
-        for w in _still_flagged(report, doc["changes"], after.flagged_rows):
+        doc["located_after"] = [{"output": e.output, "input": e.input, "p_value": e.p_value}
+                                for e in after.elements if e.mismatch]
+        for w in _still_flagged(report, doc["changes"], after.flagged_rows, doc["located_after"]):
             doc["warnings"].append(w)
             warnings.append(w)
     kinds = getattr(result, "kinds", {})
@@ -217,7 +219,7 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
     return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result, regressions=None)
 
 
-def _still_flagged(report: AnalysisReport, changes: list, flagged_after: list) -> list:
+def _still_flagged(report: AnalysisReport, changes: list, flagged_after: list, located_after: Sequence = ()) -> list:
     """Warnings for the rows whose repair was applied and that the repaired model's detection still flags.  Where
     the row holds elements the data cannot tell apart (``ambiguous``, not located), the mismatch those may hold is
     not repaired, and the repaired elements, fitted with them held as the model has them, may have taken part of
@@ -232,6 +234,12 @@ def _still_flagged(report: AnalysisReport, changes: list, flagged_after: list) -
         The repair's ``changes`` (``output``, ``input``, ``applied``).
     flagged_after : list of str
         The outputs whose row the detection of the repaired model flags.
+    located_after : sequence of dict
+        The elements (``output``, ``input``) the element test of the repaired model locates (in the rows it
+        flags).  Where it locates one that was not repaired, the warning names it: the first detection
+        missed it, often because the located elements' larger mismatch hid it (``bench.repair_mc``'s
+        figures in docs/benchmarks.md, "Elements the repaired model's detection locates"); where it
+        locates a repaired one again, the warning says so.
 
     Returns
     -------
@@ -242,6 +250,12 @@ def _still_flagged(report: AnalysisReport, changes: list, flagged_after: list) -
     for o in dict.fromkeys(c["output"] for c in applied if c["output"] in flagged_after):
         ambiguous = [e.input for e in report.elements if e.output == o and e.ambiguous and not e.mismatch]
         repaired = [c["input"] for c in applied if c["output"] == o]
+        first = [e.input for e in report.elements if e.output == o and e.mismatch]
+        again = [x["input"] for x in located_after if x["output"] == o and (x["input"] in repaired
+                                                                             or x["input"] not in first)]
+        if not ambiguous and again:
+            out.append(f"{o}: still flagged after the repair of {', '.join(repaired)}; {_located_again(again, repaired)}")
+            continue
         if not ambiguous:
             what = ("elements, each in the structure the model gives it, do not explain the row's mismatch whole: the "
                     "plant's elements may have a shape their structure lacks" if len(repaired) > 1 else
@@ -252,13 +266,40 @@ def _still_flagged(report: AnalysisReport, changes: list, flagged_after: list) -
                        f"mismatched and was not located; check the repair before using it")
             continue
         one = len(ambiguous) == 1
+        tail = f"; {_located_again(again, repaired)}" if again else ""
         out.append(f"{o}: still flagged after the repair of {', '.join(repaired)}; "
                    f"{'the element' if one else 'the elements'} of {', '.join(ambiguous)} cannot be told apart from "
                    f"these data (ambiguous) and {'was' if one else 'were'} held as the model has "
                    f"{'it' if one else 'them'}: a mismatch there is not repaired, and the re-estimated "
                    f"{'element' if len(repaired) == 1 else 'elements'} of {', '.join(repaired)} may have taken part "
-                   f"of it; a dither that separates the inputs (the report's experiment) would decide")
+                   f"of it; a dither that separates the inputs (the report's experiment) would decide{tail}")
     return out
+
+
+def _located_again(again: list, repaired: list) -> str:
+    """The part of a still-flagged row's warning that names what the repaired model's element test locates in it:
+    ``again`` (inputs, at least one), of which those in ``repaired`` were re-estimated and the others were not
+    located by the first detection."""
+    new = [i for i in again if i not in repaired]
+    old = [i for i in again if i in repaired]
+    parts = []
+    if new:
+        one = len(new) == 1
+        whose = "element's" if len(repaired) == 1 else "elements'"
+        parts.append(f"the detection of the repaired model locates {'the element' if one else 'the elements'} of "
+                     f"{', '.join(new)}, which the first detection did not: a mismatch there is likely, which the "
+                     f"located {whose} larger mismatch hid (analyze the "
+                     f"repaired model, written with --repair-out, on these data to locate and repair "
+                     f"{'it' if one else 'them'})")
+    if old:
+        one = len(old) == 1
+        parts.append(f"{'it' if new else 'the detection of the repaired model'} locates "
+                     f"{'the element' if one else 'the elements'} of {', '.join(old)} again: the re-estimated "
+                     f"{'element' if one else 'elements'}, in the structure the model gives {'it' if one else 'them'}, "
+                     f"{'does' if one else 'do'} not explain {'its' if one else 'their'} mismatch whole (the plant's "
+                     f"{'element' if one else 'elements'} may have a shape that structure lacks: a lead, a second lag; "
+                     f"a step-response element would take it)")
+    return "; ".join(parts) + "; check the repair before using it"
 
 
 def _detect_raising_na(model: PlantModel, data: LoggedData, options: AnalysisOptions,
