@@ -124,6 +124,27 @@ def test_a_still_flagged_row_names_what_the_repaired_models_detection_locates_in
     assert _still_flagged(report, changes, [], after) == []
 
 
+def test_what_the_repaired_models_detection_locates_is_kept_at_the_first_detections_level():
+    """bench.repair_mc --dither-fat seed 2 run 189: the detection of the repaired model element-tests only the row it
+    flags, a Holm family 4 times smaller than the first detection's, and located (y2, u7) there at p = 0.0032; the
+    first detection's level (Bonferroni over its 28 elements, times 2 for the two families) does not keep it, and an
+    analysis of the repaired model does not locate it.  Only the rows whose repair was applied are read."""
+    from mpm_monitor.core.pipeline import located_after
+
+    def el(output, column, p_raw, mismatch=True, tested=True):
+        return SimpleNamespace(output=output, input=column, mismatch=mismatch, p_value_raw=p_raw,
+                               p_value=(min(1.0, 4 * p_raw) if tested else None))
+
+    first = SimpleNamespace(elements=[el(f"y{i}", f"u{j}", 0.5, mismatch=False) for i in (1, 2, 3) for j in (1, 2, 3)]
+                            + [el("y3", "u4", None, mismatch=False, tested=False)])   # 9 tested elements
+    changes = [{"output": "y1", "applied": True}, {"output": "y2", "applied": False}]
+    after = SimpleNamespace(elements=[el("y1", "u1", 1e-4), el("y1", "u2", 1e-3), el("y1", "u3", 1e-5, mismatch=False),
+                                      el("y2", "u1", 1e-6)])
+    kept = located_after(first, after, changes, 0.01)
+    assert kept == [{"output": "y1", "input": "u1", "p_value": pytest.approx(2 * 9 * 1e-4)}]     # 1e-3 * 18 > 0.01
+    assert located_after(first, after, [], 0.01) == []
+
+
 def test_an_element_the_first_detection_missed_is_named_by_the_repaired_models_detection():
     """bench.repair_mc --dither-fat seed 4 run 51 (3x7): the plant's (y2, u4) has a shorter lag, (y2, u5) a gain 63 %
     larger and (y2, u6) a sample more dead time.  The detection locates u4 and u6 only; their repair leaves y2 flagged,

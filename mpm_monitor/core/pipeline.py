@@ -207,8 +207,7 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
     if after is not None:
         doc["rsi_after"] = {r.output: r.rsi for r in after.rows}
         doc["rows_flagged_after"] = after.flagged_rows
-        doc["located_after"] = [{"output": e.output, "input": e.input, "p_value": e.p_value}
-                                for e in after.elements if e.mismatch]
+        doc["located_after"] = located_after(report, after, doc["changes"], options.alpha)
         for w in _still_flagged(report, doc["changes"], after.flagged_rows, doc["located_after"]):
             doc["warnings"].append(w)
             warnings.append(w)
@@ -217,6 +216,47 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
         if e.mismatch:
             e.kind = kinds.get((wide.outputs.index(e.output), columns.index(e.input)), "unknown")
     return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result, regressions=None)
+
+
+def located_after(report: AnalysisReport, after: AnalysisReport, changes: list, alpha: float) -> list:
+    """The elements the element test of the repaired model locates in the rows whose repair was applied, kept
+    where they pass at the level of the first detection.
+
+    The detection of the repaired model element-tests only the rows it flags, so its Holm family is smaller than
+    the first detection's (every row's elements, by default): its adjusted p-values are not the first detection's.
+    Here an element's raw p-value is adjusted by Bonferroni over as many elements as the first detection tested
+    (with its factor for the two families), never less strict than the first detection's Holm procedure on
+    those: an element of a row the repair did not change that passes here was located the first time.
+
+    Parameters
+    ----------
+    report : AnalysisReport
+        The detection of the model as given (``elements``).
+    after : AnalysisReport
+        The detection of the repaired model on the same data.
+    changes : list of dict
+        The repair's ``changes`` (``output``, ``applied``).
+    alpha : float
+        The analysis's false-alarm rate (the element test's level, as the first detection's).
+
+    Returns
+    -------
+    list of dict
+        ``output``, ``input``, ``p_value`` (the Bonferroni-adjusted p-value, below ``alpha``), in the order of
+        ``after.elements``.
+    """
+    from .statistics import N_FAMILIES
+
+    rows = {c["output"] for c in changes if c["applied"]}
+    family = max(sum(e.p_value is not None for e in report.elements), 1)
+    out = []
+    for e in after.elements:
+        if e.output not in rows or not e.mismatch or e.p_value_raw is None:
+            continue
+        p = min(1.0, N_FAMILIES * family * float(e.p_value_raw))
+        if p < alpha:
+            out.append({"output": e.output, "input": e.input, "p_value": p})
+    return out
 
 
 def _still_flagged(report: AnalysisReport, changes: list, flagged_after: list, located_after: Sequence = ()) -> list:
@@ -235,8 +275,8 @@ def _still_flagged(report: AnalysisReport, changes: list, flagged_after: list, l
     flagged_after : list of str
         The outputs whose row the detection of the repaired model flags.
     located_after : sequence of dict
-        The elements (``output``, ``input``) the element test of the repaired model locates (in the rows it
-        flags).  Where it locates one that was not repaired, the warning names it: the first detection
+        The elements (``output``, ``input``) the element test of the repaired model locates in the rows whose
+        repair was applied (:func:`located_after`).  Where it locates one that was not repaired, the warning names it: the first detection
         missed it, often because the located elements' larger mismatch hid it (``bench.repair_mc``'s
         figures in docs/benchmarks.md, "Elements the repaired model's detection locates"); where it
         locates a repaired one again, the warning says so.
