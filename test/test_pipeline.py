@@ -91,7 +91,7 @@ def test_a_repaired_row_still_flagged_is_warned_of():
 def test_a_still_flagged_row_names_what_the_repaired_models_detection_locates_in_it():
     """Where the repaired model's element test locates elements in a row still flagged, the warning names them: one the
     first detection did not locate (a mismatch likely there) and a repaired one located again (its structure may lack
-    the plant's shape).  A located element whose repair was not applied, located again, is not named; nor is a row
+    the plant's shape, or, beside ambiguous elements, theirs may be the mismatch it sees).  A located element whose repair was not applied, located again, is not named; nor is a row
     whose repair was not applied."""
     from mpm_monitor.core.pipeline import _still_flagged
 
@@ -113,12 +113,12 @@ def test_a_still_flagged_row_names_what_the_repaired_models_detection_locates_in
     assert y2.endswith("would decide; the detection of the repaired model locates the element of u3, which the first "
                        "detection did not: a mismatch there is likely, which the located element's larger mismatch hid "
                        "(analyze the repaired model, written with --repair-out, on these data to locate and repair it); "
-                       "it locates the element of u1 again: the re-estimated element, in the structure the model gives "
-                       "it, does not explain its mismatch whole (the plant's element may have a shape that structure "
-                       "lacks: a lead, a second lag; a step-response element would take it); check the repair before "
-                       "using it")
-    assert y3.startswith("y3: still flagged after the repair of u1; the detection of the repaired model locates the "
-                         "element of u1 again: the re-estimated element")
+                       "it locates the element of u1 again: a mismatch of the ambiguous elements, held as the model has "
+                       "them, may be what it sees; check the repair before using it")
+    assert y3 == ("y3: still flagged after the repair of u1; the detection of the repaired model locates the element "
+                  "of u1 again: the re-estimated element, in the structure the model gives it, does not explain its "
+                  "mismatch whole (the plant's element may have a shape that structure lacks: a lead, a second lag; a "
+                  "step-response element would take it); check the repair before using it")
     # Nothing located after: the warnings of before.
     assert _still_flagged(report, changes, ["y1", "y2", "y3"], []) == _still_flagged(report, changes, ["y1", "y2", "y3"])
     assert _still_flagged(report, changes, [], after) == []
