@@ -321,7 +321,10 @@ def _located_again(again: list, repaired: list, beside_ambiguous: bool = False) 
     ``again`` (inputs, at least one), of which those in ``repaired`` were re-estimated and the others were not
     located by the first detection.  ``beside_ambiguous``: the row holds ambiguous elements held as the model has
     them, whose mismatch a repaired element located again may be showing (``bench.structures_mc --lost-lag`` seed
-    0: in all 5 elements located again, 4 of them false positives, the mismatch was an ambiguous element's)."""
+    0: in all 5 elements located again, 4 of them false positives, the mismatch was an ambiguous element's).
+    Otherwise the repaired element's structure may lack the plant's shape, or a mismatched element the test does
+    not locate took part of it (``bench.repair_mc --dither-fat`` seed 4 run 123: a missing element fitted with a
+    second lag and 3 s less dead time beside a missed element of the same row whose dead time grew 5 s)."""
     new = [i for i in again if i not in repaired]
     old = [i for i in again if i in repaired]
     parts = []
@@ -345,7 +348,8 @@ def _located_again(again: list, repaired: list, beside_ambiguous: bool = False) 
                      f"{'element' if one else 'elements'}, in the structure the model gives {'it' if one else 'them'}, "
                      f"{'does' if one else 'do'} not explain {'its' if one else 'their'} mismatch whole (the plant's "
                      f"{'element' if one else 'elements'} may have a shape that structure lacks: a lead, a second lag; "
-                     f"a step-response element would take it)")
+                     f"a step-response element would take it), or another element of the row is mismatched and was "
+                     f"not located, and the re-estimated {'element' if one else 'elements'} took part of its mismatch")
     return "; ".join(parts) + "; check the repair before using it"
 
 
