@@ -116,8 +116,8 @@ def test_a_still_flagged_row_names_what_the_repaired_models_detection_locates_in
                        "it locates the element of u1 again: a mismatch of the ambiguous elements, held as the model has "
                        "them, may be what it sees; check the repair before using it")
     assert y3 == ("y3: still flagged after the repair of u1; the detection of the repaired model locates the element "
-                  "of u1 again: the re-estimated element, in the structure the model gives it, does not explain its "
-                  "mismatch whole (the plant's element may have a shape that structure lacks: a lead, a second lag; a "
+                  "of u1 again: the re-estimated element, in the structure the model gives it, does not explain the "
+                  "row's mismatch whole (the plant's element may have a shape that structure lacks: a lead, a second lag; a "
                   "step-response element would take it), or another element of the row is mismatched and was not "
                   "located, and the re-estimated element took part of its mismatch; check the repair before using it")
     # Nothing located after: the warnings of before.

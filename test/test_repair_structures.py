@@ -944,6 +944,9 @@ def test_a_repair_that_leaves_its_row_flagged_says_so():
     (w,) = [w for w in rep.warnings if w.startswith("yb: still flagged after the repair of ua; ")]
     assert "does not explain the row's mismatch whole" in w and "a lead, a second lag" in w
     assert w in rep.repair["warnings"]
+    # Since stop 80: the repaired model's detection locates the repaired element again, and the warning says so.
+    assert [(x["output"], x["input"]) for x in rep.repair["located_after"]] == [("yb", "ua")]
+    assert "the detection of the repaired model locates the element of ua again" in w
 
 
 #: Elements of two lags and a lead the plant keeps but for one lag: (row, column, the model's element).  A lead of

@@ -346,7 +346,7 @@ def _located_again(again: list, repaired: list, beside_ambiguous: bool = False) 
         parts.append(f"{'it' if new else 'the detection of the repaired model'} locates "
                      f"{'the element' if one else 'the elements'} of {', '.join(old)} again: the re-estimated "
                      f"{'element' if one else 'elements'}, in the structure the model gives {'it' if one else 'them'}, "
-                     f"{'does' if one else 'do'} not explain {'its' if one else 'their'} mismatch whole (the plant's "
+                     f"{'does' if one else 'do'} not explain the row's mismatch whole (the plant's "
                      f"{'element' if one else 'elements'} may have a shape that structure lacks: a lead, a second lag; "
                      f"a step-response element would take it), or another element of the row is mismatched and was "
                      f"not located, and the re-estimated {'element' if one else 'elements'} took part of its mismatch")
