@@ -91,8 +91,8 @@ def test_a_repaired_row_still_flagged_is_warned_of():
 def test_a_still_flagged_row_names_what_the_repaired_models_detection_locates_in_it():
     """Where the repaired model's element test locates elements in a row still flagged, the warning names them: one the
     first detection did not locate (a mismatch likely there) and a repaired one located again (its structure may lack
-    the plant's shape, or, beside ambiguous elements, theirs may be the mismatch it sees).  A located element whose repair was not applied, located again, is not named; nor is a row
-    whose repair was not applied."""
+    the plant's shape, or, beside ambiguous elements, theirs may be the mismatch it sees).  A located element whose
+    repair was not applied, located again, is not named; nor is a row whose repair was not applied."""
     from mpm_monitor.core.pipeline import _still_flagged
 
     report = SimpleNamespace(elements=[

@@ -276,10 +276,10 @@ def _still_flagged(report: AnalysisReport, changes: list, flagged_after: list, l
         The outputs whose row the detection of the repaired model flags.
     located_after : sequence of dict
         The elements (``output``, ``input``) the element test of the repaired model locates in the rows whose
-        repair was applied (:func:`located_after`).  Where it locates one that was not repaired, the warning names it: the first detection
-        missed it, often because the located elements' larger mismatch hid it (``bench.repair_mc``'s
-        figures in docs/benchmarks.md, "Elements the repaired model's detection locates"); where it
-        locates a repaired one again, the warning says so.
+        repair was applied (:func:`located_after`).  Where it locates one that was not located, the warning
+        names it: the first detection missed it, often because the located elements' larger mismatch hid it
+        (docs/benchmarks.md, "Elements the repaired model's detection locates"); where it locates a repaired
+        one again, the warning says so.
 
     Returns
     -------
@@ -294,7 +294,8 @@ def _still_flagged(report: AnalysisReport, changes: list, flagged_after: list, l
         again = [x["input"] for x in located_after if x["output"] == o and (x["input"] in repaired
                                                                              or x["input"] not in first)]
         if not ambiguous and again:
-            out.append(f"{o}: still flagged after the repair of {', '.join(repaired)}; {_located_again(again, repaired)}")
+            out.append(f"{o}: still flagged after the repair of {', '.join(repaired)}; "
+                       f"{_located_again(again, repaired)}")
             continue
         if not ambiguous:
             what = ("elements, each in the structure the model gives it, do not explain the row's mismatch whole: the "
