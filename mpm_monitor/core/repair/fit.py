@@ -892,14 +892,18 @@ def _move_lag(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list, m: 
 
 
 def _pair_lag_moves(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: list):
-    """Phase 1c of :func:`_search_row`: every two free lags moved by one sample each, together (either way each).
+    """Phase 1c of :func:`_search_row`: every two free lags moved by one sample each, together (either way each),
+    or exchanged.
 
     Each move's cost is evaluated at the fit's poles; the (at most 3) moves whose cost already lies below the fit's
     are fitted, best first, and the best fit kept.  Inputs that the loop moves together leave the cost a valley
     along such a diagonal, where moving one lag alone only climbs its side: a row whose two pure gains both gained
     a lag (the lag of a first-order element is its dead time plus one sample, a pure gain's its dead time) was
     fitted at the pure gains' lags with twelve times the cost of the lags one sample later
-    (``bench.structures_mc --gained-lag`` seed 3 run 15: a gain of 0.012 where the plant's is -1.78).
+    (``bench.structures_mc --gained-lag`` seed 3 run 15: a gain of 0.012 where the plant's is -1.78).  Two inputs
+    that move together can also trade their dead times whole: ``bench.repair_mc --dither-fat`` seed 6 run 120 (u2
+    and u5's increments correlated 0.89) came to rest with u2's 8 s for the plant's 0 and u5's none for 8 s, eight
+    samples from the plant's lags each way, where the exchanged lags already cost 0.82 of the fit's.
 
     Returns the best fit and its lags.
     """
@@ -907,16 +911,17 @@ def _pair_lag_moves(problem: _RowProblem, fits: _FitCache, best: _Fit, lags: lis
     cand = []
     for k, a in enumerate(free):
         for b in free[k + 1:]:
-            for sa in (-1, 1):
-                for sb in (-1, 1):
-                    lg = list(lags)
-                    lg[a] += sa
-                    lg[b] += sb
-                    if all(problem.specs[m].window[0] <= lg[m] <= problem.specs[m].window[1] for m in (a, b)) \
-                            and tuple(lg) not in fits.fits:
-                        cost = problem.evaluate(best.poles, lg).ssr
-                        if cost < best.ssr * (1 - 1e-9):
-                            cand.append((cost, lg))
+            moves = [(lags[a] + sa, lags[b] + sb) for sa in (-1, 1) for sb in (-1, 1)]
+            if abs(lags[a] - lags[b]) > 1:             # the two lags exchanged (one apart, a move above)
+                moves.append((lags[b], lags[a]))
+            for la, lb in moves:
+                lg = list(lags)
+                lg[a], lg[b] = la, lb
+                if all(problem.specs[m].window[0] <= lg[m] <= problem.specs[m].window[1] for m in (a, b)) \
+                        and tuple(lg) not in fits.fits:
+                    cost = problem.evaluate(best.poles, lg).ssr
+                    if cost < best.ssr * (1 - 1e-9):
+                        cand.append((cost, lg))
     cand.sort(key=lambda c: c[0])
     for _, lg in cand[:3]:
         f = fits(lg, best.poles)
