@@ -155,12 +155,11 @@ def format_table(res: dict) -> str:
     if "delays_scored" in res:
         lines.append(f"drawn elements missed: {res['missed_elements']} of {res['drawn_elements']}; elements located "
                      f"that were not drawn: {res['false_elements']} (in {res['runs_with_a_false_element']} runs)")
-    if "located_after_new" in res:
-        lines.append(f"elements the repaired model's detection locates that the first did not: "
-                     f"{res['located_after_new']} (in {res['located_after_new_runs']} runs), drawn "
-                     f"{res['located_after_new_drawn']}; repaired elements it locates again: {res['located_after_again']}"
-                     f" (drawn {res['located_after_again_drawn']})")
-    if "delays_scored" in res:
+        if "located_after_new" in res:
+            lines.append(f"elements the repaired model's detection locates that the first did not: "
+                         f"{res['located_after_new']} (in {res['located_after_new_runs']} runs), drawn "
+                         f"{res['located_after_new_drawn']}; repaired elements it locates again: "
+                         f"{res['located_after_again']} (drawn {res['located_after_again_drawn']})")
         lines.append(f"located elements with a drawn delay change or missing: repaired within one sample of the plant's and "
                      f"applied {res['delays_within_one_sample']} of {res['delays_scored']}; of those more than 10 "
                      f"samples off {res['delays_far_within_one_sample']} of {res['delays_far_scored']}")

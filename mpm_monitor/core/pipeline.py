@@ -337,20 +337,19 @@ def _located_again(again: list, repaired: list, beside_ambiguous: bool = False) 
                      f"located {whose} larger mismatch hid (analyze the "
                      f"repaired model, written with --repair-out, on these data to locate and repair "
                      f"{'it' if one else 'them'})")
-    if old and beside_ambiguous:
+    if old:
         one = len(old) == 1
-        parts.append(f"{'it' if new else 'the detection of the repaired model'} locates "
-                     f"{'the element' if one else 'the elements'} of {', '.join(old)} again: a mismatch of the "
-                     f"ambiguous elements, held as the model has them, may be what it sees")
-    elif old:
-        one = len(old) == 1
-        parts.append(f"{'it' if new else 'the detection of the repaired model'} locates "
-                     f"{'the element' if one else 'the elements'} of {', '.join(old)} again: the re-estimated "
-                     f"{'element' if one else 'elements'}, in the structure the model gives {'it' if one else 'them'}, "
-                     f"{'does' if one else 'do'} not explain the row's mismatch whole (the plant's "
-                     f"{'element' if one else 'elements'} may have a shape that structure lacks: a lead, a second lag; "
-                     f"a step-response element would take it), or another element of the row is mismatched and was "
-                     f"not located, and the re-estimated {'element' if one else 'elements'} took part of its mismatch")
+        head = (f"{'it' if new else 'the detection of the repaired model'} locates "
+                f"{'the element' if one else 'the elements'} of {', '.join(old)} again: ")
+        if beside_ambiguous:
+            parts.append(head + "a mismatch of the ambiguous elements, held as the model has them, may be what it sees")
+        else:
+            parts.append(head + f"the re-estimated {'element' if one else 'elements'}, in the structure the model "
+                         f"gives {'it' if one else 'them'}, {'does' if one else 'do'} not explain the row's mismatch "
+                         f"whole (the plant's {'element' if one else 'elements'} may have a shape that structure "
+                         f"lacks: a lead, a second lag; a step-response element would take it), or another element "
+                         f"of the row is mismatched and was not located, and the re-estimated "
+                         f"{'element' if one else 'elements'} took part of its mismatch")
     return "; ".join(parts) + "; check the repair before using it"
 
 
