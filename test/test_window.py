@@ -452,3 +452,28 @@ def test_hold_setpoint_places_setpoints_in_stamp_order():
         assert d.n_samples == 40, bad
         np.testing.assert_array_equal(d.r[:, 0], d.t, err_msg=bad)
         assert len(w._setpoints) <= 3                      # the held ones are pruned as samples complete
+
+
+def test_the_oldest_incomplete_sample_is_named_with_what_it_lacks():
+    """Samples complete in order: a sample that lacks a vector holds every newer one (until more than reorder_samples
+    of them are complete).  The window names it, and the monitor's waiting message says it."""
+    from mpm_monitor.monitor.statuses import waiting_message
+
+    w = make(window=50, reorder_samples=10)
+    for k in range(8):
+        r, u, y = sample_values(k)
+        w.add("setpoint", k * NS, r)
+        w.add("output", k * NS, y)
+        if k != 3:
+            w.add("input", k * NS, u)
+    assert w.n_completed == 3 and w.oldest_incomplete() == (3 * NS, ["input"], 5)
+    assert waiting_message(w.n_window, 50, w.oldest_incomplete()) == (
+        "no analysis yet: 3 of 50 samples collected; 5 more held incomplete, from t = 3 s (no input)")
+    feed(w, 8)
+    w.add("output", 9 * NS, sample_values(9)[2])
+    assert w.oldest_incomplete() == (3 * NS, ["input"], 7)
+    w.add("input", 3 * NS, sample_values(3)[1])
+    assert w.n_completed == 9 and w.oldest_incomplete() == (9 * NS, ["setpoint", "input"], 1)
+    feed(w, 9)
+    assert w.oldest_incomplete() is None
+    assert waiting_message(w.n_window, 50, None) == "no analysis yet: 10 of 50 samples collected"

@@ -331,7 +331,7 @@ class MonitorCore:
     def _waiting_message(self) -> str:
         if self._too_few is not None:
             return f"no analysis yet: the window is still too short for the tests ({self._too_few})"
-        return waiting_message(self.window.n_window, self.options.min_samples)
+        return waiting_message(self.window.n_window, self.options.min_samples, self.window.oldest_incomplete())
 
     def _active_data_error(self) -> Optional[str]:
         """The latest bad-data problem while it counts (``analysis_period`` samples after it), else None."""

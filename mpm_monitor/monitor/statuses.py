@@ -41,6 +41,7 @@ import math
 from typing import Mapping, Optional, Sequence
 
 from ..core.wording import applied_changes, repair_ran, repair_verdict, row_repair_text
+from .window import seconds_text
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR", STALE: "STALE"}
@@ -104,10 +105,19 @@ _NO_ROW_RESULT = (("rsi", "nan"), ("mismatch", "false"), ("flagged_inputs", ""),
 
 
 # ------------------------------------------------------------------------------- the window
-def waiting_message(n_window: int, min_samples: int) -> str:
-    """Why there is no analysis result yet: samples still missing, or the first analysis running."""
+def waiting_message(n_window: int, min_samples: int, incomplete: Optional[tuple] = None) -> str:
+    """Why there is no analysis result yet: samples still missing, or the first analysis running.
+
+    ``incomplete`` is :meth:`~mpm_monitor.monitor.window.SampleWindow.oldest_incomplete` (the samples held
+    incomplete, and what the oldest lacks), said when samples are still missing.
+    """
     if n_window < min_samples:
-        return f"no analysis yet: {n_window} of {min_samples} samples collected"
+        held = ""
+        if incomplete is not None:
+            stamp_ns, absent, n_held = incomplete
+            lacks = f" (no {' and no '.join(absent)})" if absent else ""
+            held = (f"; {n_held} more held incomplete, from t = {seconds_text(stamp_ns)} s{lacks}")
+        return f"no analysis yet: {n_window} of {min_samples} samples collected{held}"
     return f"no analysis yet: the first analysis is running ({n_window} samples collected)"
 
 

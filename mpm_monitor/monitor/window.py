@@ -308,6 +308,20 @@ class SampleWindow:
         """Incomplete samples held."""
         return len(self._pending)
 
+    def oldest_incomplete(self) -> Optional[tuple]:
+        """The oldest incomplete sample the newer ones wait for: ``(stamp_ns, channels absent, samples held)``.
+
+        None when no sample is held incomplete.  Samples complete in order, so every newer sample held waits
+        for this one (until more than ``reorder_samples`` of them are complete, or ``max_pending`` are held).
+        """
+        if not self._pending:
+            return None
+        k = min(self._pending)
+        entry = self._pending[k]
+        absent = [c for i, c in enumerate(self.channels) if entry[i] is None
+                  and not (i == 0 and self.options.hold_setpoint and self._held_setpoint(k) is not None)]
+        return self._stamp_of(k), absent, len(self._pending)
+
     @property
     def last_sample_stamp_ns(self) -> Optional[int]:
         """Stamp of the newest completed sample, nanoseconds (None before the first)."""
