@@ -47,6 +47,7 @@ from .ros_io import (
     run_node,
     topic_params,
     vector_qos,
+    wait_acked,
 )
 
 _DV = MeasuredDisturbanceOptions()
@@ -81,6 +82,9 @@ PARAMS = MODEL_PARAMS + (
     ParamSpec("stall_timeout", "double", 2.0, "Wall-clock seconds without the expected input before a warning "
               "and a re-sent clock and output y(k) (lock-step; lets a restarted MPC pick the loop up).", 0.05, 3600.0),
     ParamSpec("exit_when_done", "bool", False, "Leave the process after max_samples."),
+    ParamSpec("exit_ack_timeout", "double", 30.0, "Wall-clock seconds the process, leaving after max_samples, "
+              "waits for its readers to acknowledge every vector sent (a reader running behind, such as the "
+              "monitor, would otherwise lose the last samples).", 0.0, 3600.0),
 ) + topic_params("output", "input", "clock", "disturbance")
 
 
@@ -228,6 +232,22 @@ class PlantNode(Node):
                 self.exit_requested = True
             return
         self._emit()
+
+    def drain(self, executor) -> None:
+        """Leaving after max_samples (``exit_when_done``): wait until the readers have every vector sent.
+
+        Lock-step runs at the MPC's pace; a reader that runs behind (the monitor) still has the last
+        hundreds of samples to receive when the plant is done, and a process that leaves at once loses
+        them: a monitor asked for the whole run then never completes it.  Stopped by a signal, the plant
+        leaves at once (its readers are being stopped too).
+        """
+        if not self.exit_requested:
+            return
+        pubs = [p for p in (self._pub, self._clock_pub, self._dv_pub) if p is not None]
+        late = wait_acked(pubs, self.params["exit_ack_timeout"])
+        if late:
+            self.get_logger().warning(f"leaving after {self.params['exit_ack_timeout']:g} s with vectors not "
+                                      f"acknowledged on {', '.join(late)}: a reader may lack the last samples")
 
     def _on_input(self, msg: JointState) -> None:
         try:

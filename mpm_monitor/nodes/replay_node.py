@@ -57,6 +57,7 @@ from .ros_io import (
     run_node,
     stamp_to_ns,
     vector_qos,
+    wait_acked,
 )
 
 MODES = ("time", "clock")
@@ -94,6 +95,9 @@ class ReplayOptions:
             raise ConfigurationError(f"wait_for_subscribers: expected an integer in [{lo}, {hi}], "
                                      f"got {self.wait_for_subscribers!r}")
 
+
+#: Wall-clock seconds the process, leaving once every message is out, waits for its readers' acknowledgements.
+EXIT_ACK_TIMEOUT = 30.0
 
 PARAMS = (
     ParamSpec("bag", "string", "", "rosbag2 directory to replay."),
@@ -236,9 +240,17 @@ class ReplayNode(Node):
     exit_requested = finished
 
     def drain(self, executor) -> None:
-        """Spin a little so that the reliable publishers hand over what is queued before the process ends."""
+        """Spin a little so that the reliable publishers hand over what is queued before the process ends; once
+        every message is out, also wait (at most :data:`EXIT_ACK_TIMEOUT` s) until the readers acknowledge them
+        all: a reader running behind would otherwise lose the last messages when the process leaves."""
         for _ in range(10):
             executor.spin_once(timeout_sec=0.02)
+        if self.finished:
+            pubs = list(self._replay_pubs.values()) + ([self._clock_pub] if self._clock_pub is not None else [])
+            late = wait_acked(pubs, EXIT_ACK_TIMEOUT)
+            if late:
+                self.get_logger().warning(f"leaving after {EXIT_ACK_TIMEOUT:g} s with messages not acknowledged "
+                                          f"on {', '.join(late)}: a reader may lack the last ones")
 
     def _publish(self, messages) -> None:
         for m in messages:

@@ -470,6 +470,37 @@ def parameter_overrides(specs: Sequence[ParamSpec], overrides=None, **values) ->
 
 
 # ----------------------------------------------------------------------------------- spinning
+def wait_acked(publishers, timeout: float) -> list:
+    """Wait until every reliable reader of ``publishers`` acknowledged all they were sent, at most ``timeout`` s.
+
+    A process that leaves right after its last message loses whatever its readers had not yet received: a
+    reader that runs behind (the monitor, while the lock-step loop runs at the MPC's pace) never gets the
+    last samples.  Before it leaves on its own, a node waits here.
+
+    Parameters
+    ----------
+    publishers : sequence of rclpy.publisher.Publisher
+    timeout : float
+        Wall-clock seconds for all of them together.
+
+    Returns
+    -------
+    list of str
+        The topics whose readers had not acknowledged everything when the time ran out (empty: all had).
+    """
+    import time
+
+    from rclpy.duration import Duration
+
+    deadline = time.monotonic() + max(0.0, float(timeout))
+    late = []
+    for pub in publishers:
+        left = max(0.0, deadline - time.monotonic())
+        if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+            late.append(pub.topic_name)
+    return late
+
+
 def make_executor(context, kind: str = "events"):
     """An executor on ``context``: ``events`` (rclpy.experimental.EventsExecutor, fastest) or ``single``.
 

@@ -11,6 +11,8 @@ instead of ``ros2 run mpm_monitor suite_processes``)::
 Each node reads the params file (default ``config/case_<case>.yaml``) plus the ``-p node.param:=value``
 overrides.  In simulated time (default) the plant owns the clock and runs lock-step; it starts once
 the MPC and the monitor listen on ``output`` (``min_subscribers: 2``) and a settling delay passed.
+A plant leaving after ``--samples`` waits until its readers acknowledged every vector
+(``exit_ack_timeout``): the monitor, which may run behind, gets the last ones too.
 With ``--wall-clock`` the plant advances every sample time of the wall clock, the setpoint node runs
 on a timer and the MPC and monitor hold the latest setpoint.
 
