@@ -34,7 +34,7 @@ from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.model import PlantModel
 
 from . import map_runs, run_mc_main
-from .step_models import analyse_located
+from .step_models import analyse_located, located_after_counts
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "feedthrough_mc.json"
 #: The change of (y1, u1) and the kind it calls for.
@@ -92,9 +92,9 @@ def one(seed: int, index: int, samples: int, alpha: float) -> dict:
     plant, model, structure, change = draw(seed, index)
     data = simulate(plant, samples, seed, index)
     mismatched = [] if change == "none" else [[0, 0]]
-    located, seconds, errors, kinds = analyse_located(model, plant, mismatched, data, alpha)
+    located, seconds, errors, kinds, after = analyse_located(model, plant, mismatched, data, alpha)
     rec = {"index": index, "structure": structure, "change": change, "located": located, "kinds": kinds,
-           "analyze_s": seconds}
+           "analyze_s": seconds, "mismatched": mismatched, "located_after": after}
     if "0,0" in errors:
         rec["repair_error"] = errors["0,0"]
     return rec
@@ -121,6 +121,7 @@ def summarise(records: Sequence[dict]) -> dict:
                 "said": {k: sum(r["kinds"].get("0,0") == k for r in hits) for k in
                          sorted({r["kinds"].get("0,0", "none") for r in hits})}}
     out = counts(records)
+    out.update(located_after_counts(records, "located", "located_after"))
     out["by_structure"] = {s: counts([r for r in records if r["structure"] == s]) for s in ("lead_lag", "pure_gain")}
     out["by_change"] = {c: counts([r for r in records if r["change"] == c]) for c in EXPECTED_KIND if c != "none"}
     times = [r["analyze_s"] for r in records]
@@ -150,6 +151,10 @@ def format_table(result: dict) -> str:
              f"alpha {cfg['alpha']}, analyze with the repair", _line("all", s)]
     lines += [_line(name, x) for name, x in s["by_structure"].items()]
     lines += [_line(name, x) for name, x in s["by_change"].items()]
+    if "located_after_new" in s:
+        lines.append(f"the repaired model's detection locates {s['located_after_new']} element(s) not located before "
+                     f"(drawn {s['located_after_new_drawn']}) and {s['located_after_again']} repaired element(s) "
+                     f"again (drawn {s['located_after_again_drawn']})")
     lines.append(f"median analyze {s['median_analyze_s']:.2f} s ({result['seconds']:.0f} s)")
     return "\n".join(lines)
 

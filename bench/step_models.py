@@ -57,8 +57,9 @@ def step_form(model: PlantModel) -> PlantModel:
 
 def analyse_located(model, plant, mismatched, data, alpha: float):
     """The located elements ``[[i, j], ...]``, the seconds of ``analyze``, ``{"i,j": error}`` of the
-    repaired model's step response of every located mismatched element, and ``{"i,j": kind}`` of every
-    located element (the repair's kind)."""
+    repaired model's step response of every located mismatched element, ``{"i,j": kind}`` of every
+    located element (the repair's kind), and ``[[i, j], ...]`` the repaired model's detection locates in the
+    rows it still flags (the report's ``repair.located_after``)."""
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -70,7 +71,8 @@ def analyse_located(model, plant, mismatched, data, alpha: float):
     errors = {f"{i},{j}": structures_mc.step_response_error(plant, rep.repaired_model, i, j)
               for i, j in located if [i, j] in mismatched and rep.repaired_model is not None}
     kinds = {f"{i},{j}": kind for (i, j), kind in (rep.repair_result.kinds.items() if rep.repair_result else ())}
-    return located, seconds, errors, kinds
+    after = sorted([oi[x["output"]], ci[x["input"]]] for x in (rep.repair or {}).get("located_after", []))
+    return located, seconds, errors, kinds, after
 
 
 def one(seed: int, index: int, samples: int, alpha: float, lost_lag: bool = False) -> dict:
@@ -86,8 +88,8 @@ def one(seed: int, index: int, samples: int, alpha: float, lost_lag: bool = Fals
                               for m in sc.mismatches}}
     try:
         for key, model in (("parametric", sc.model), ("step", step)):
-            rec[key], rec[f"{key}_s"], rec[f"{key}_repair_error"], rec[f"{key}_kinds"] = analyse_located(
-                model, sc.plant, rec["mismatched"], data, alpha)
+            (rec[key], rec[f"{key}_s"], rec[f"{key}_repair_error"], rec[f"{key}_kinds"],
+             rec[f"{key}_located_after"]) = analyse_located(model, sc.plant, rec["mismatched"], data, alpha)
     except Exception as exc:                    # a diverged loop refused by both: recorded, not scored
         rec["error"] = f"{type(exc).__name__}: {exc}"
     return rec
@@ -128,7 +130,25 @@ def summarise(records: Sequence[dict]) -> dict:
                     "median_repair_error": float(np.median(errors)) if errors else None,
                     "median_analyze_s": float(np.median(times)) if times else None,
                     "total_analyze_s": float(np.sum(times)), "max_analyze_s": float(np.max(times, initial=0.0))}
+        out[key].update(located_after_counts(scored, key, f"{key}_located_after"))
     return out
+
+
+def located_after_counts(records: Sequence[dict], located_key: str, after_key: str) -> dict:
+    """What the repaired model's detection locates in the rows it still flags, over ``records`` (those without
+    ``after_key``: none): elements the first detection did not locate ("new") and located elements it locates
+    again, each with how many are drawn mismatches."""
+    new = again = new_drawn = again_drawn = 0
+    for r in records:
+        truth = {tuple(t) for t in r["mismatched"]}
+        located = {tuple(t) for t in r[located_key]}
+        for e in map(tuple, r.get(after_key, [])):
+            if e in located:
+                again, again_drawn = again + 1, again_drawn + (e in truth)
+            else:
+                new, new_drawn = new + 1, new_drawn + (e in truth)
+    return {"located_after_new": new, "located_after_new_drawn": new_drawn,
+            "located_after_again": again, "located_after_again_drawn": again_drawn}
 
 
 def run(runs: int, seed: int = 0, samples: int = 3000, jobs: int = 1, alpha: float = 0.01, progress=None,
@@ -158,6 +178,10 @@ def format_table(result: dict) -> str:
                      f"repaired within 10 %: {x['repaired_within_10_percent']} (median "
                      f"error {_pct(x['median_repair_error'])}); analyze median {x['median_analyze_s']:.2f} s, total "
                      f"{x['total_analyze_s']:.0f} s, longest {x['max_analyze_s']:.1f} s")
+        if "located_after_new" in x:
+            lines.append(f"{key}: the repaired model's detection locates {x['located_after_new']} element(s) not "
+                         f"located before (drawn {x['located_after_new_drawn']}) and {x['located_after_again']} "
+                         f"repaired element(s) again (drawn {x['located_after_again_drawn']})")
     lines.append(f"runs where the two differ: {len(s['runs_where_the_two_differ'])} {s['runs_where_the_two_differ']}")
     differ = s.get("kinds_that_differ", [])
     lines.append(f"elements located by both whose kind differs: {len(differ)}"

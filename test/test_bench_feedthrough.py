@@ -26,4 +26,5 @@ def test_feedthrough_mc_draws_a_feedthrough_model_and_scores_its_runs(tmp_path, 
     assert s["kind_right"] == sum(r["kinds"]["0,0"] == feedthrough_mc.EXPECTED_KIND[r["change"]] for r in hits)
     assert s["clean_runs"] == sum(r["change"] == "none" for r in records)
     assert sum(x["runs"] for x in s["by_structure"].values()) == 6
+    assert s["located_after_new"] + s["located_after_again"] == sum(len(r["located_after"]) for r in records)
     assert "feed-through model elements" in capsys.readouterr().out

@@ -44,7 +44,19 @@ def test_step_models_compares_the_two_forms_of_the_model():
               for k in sorted(set(r["parametric_kinds"]) & set(r["step_kinds"]))
               if r["parametric_kinds"][k] != r["step_kinds"][k]]
     assert s["kinds_that_differ"] == differ
+    for key in ("parametric", "step"):
+        after = [e for r in result["records"] for e in r[f"{key}_located_after"]]
+        assert s[key]["located_after_new"] + s[key]["located_after_again"] == len(after)
     assert "step: " in step_models.format_table(result)
+    assert "the repaired model's detection locates" in step_models.format_table(result)
+
+
+def test_located_after_counts_splits_new_and_again_and_counts_the_drawn():
+    records = [{"mismatched": [[0, 1], [1, 0]], "located": [[0, 1]], "after": [[0, 1], [1, 0], [1, 2]]},
+               {"mismatched": [], "located": [[2, 2]], "after": [[2, 2]]},
+               {"mismatched": [[0, 0]], "located": [[0, 0]]}]                       # no after: nothing
+    assert step_models.located_after_counts(records, "located", "after") == {
+        "located_after_new": 2, "located_after_new_drawn": 1, "located_after_again": 2, "located_after_again_drawn": 1}
 
 
 def test_step_models_lost_lag_runs_the_lost_lag_loops_into_its_own_file(tmp_path, monkeypatch, capsys):
