@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip("rclpy")
-pytestmark = pytest.mark.timeout(120)
+pytestmark = pytest.mark.timeout(180)   # above the run's own 120 s, so that a slow run fails with its message
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from rclpy.node import Node  # noqa: E402

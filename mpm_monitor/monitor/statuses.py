@@ -116,7 +116,7 @@ def waiting_message(n_window: int, min_samples: int, incomplete: Optional[tuple]
         if incomplete is not None:
             stamp_ns, absent, n_held = incomplete
             lacks = f" (no {' and no '.join(absent)})" if absent else ""
-            held = (f"; {n_held} more held incomplete, from t = {seconds_text(stamp_ns)} s{lacks}")
+            held = f"; {n_held} more held incomplete, from t = {seconds_text(stamp_ns)} s{lacks}"
         return f"no analysis yet: {n_window} of {min_samples} samples collected{held}"
     return f"no analysis yet: the first analysis is running ({n_window} samples collected)"
 
