@@ -116,6 +116,28 @@ def test_replay_in_lock_step_with_clock(ctx, tmp_path):
         n.destroy_node()
 
 
+def test_replay_waits_for_its_readers_acknowledgements_once_every_message_is_out(ctx, tmp_path, monkeypatch):
+    from mpm_monitor.nodes import replay_node
+
+    write_logged_data(tmp_path / "bag", _data())
+    listener, got = _listener(ctx)
+    rep = ReplayNode(bag=tmp_path / "bag", context=ctx, rate=50.0, wait_for_subscribers=1,
+                     parameter_overrides=[rclpy.parameter.Parameter("exit_ack_timeout", value=4.5)])
+    calls = []
+    monkeypatch.setattr(replay_node, "wait_acked", lambda pubs, timeout: calls.append(
+        (sorted(p.topic_name for p in pubs), timeout)) or [])
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(listener)
+    ex.add_node(rep)
+    rep.drain(ex)                                   # not finished (stopped by a signal): no wait
+    assert calls == []
+    assert spin_until(ex, lambda: rep.finished, 10)
+    rep.drain(ex)
+    assert calls == [(["/input", "/output", "/setpoint"], 4.5)]
+    rep.destroy_node()
+    listener.destroy_node()
+
+
 def test_bad_replay_parameters(ctx, tmp_path):
     with pytest.raises(InputError, match="no such bag directory"):
         ReplayNode(bag=tmp_path / "missing", context=ctx)
@@ -124,6 +146,9 @@ def test_bad_replay_parameters(ctx, tmp_path):
         ReplayNode(bag=tmp_path / "bag", context=ctx, mode="fast", node_name="r2")
     with pytest.raises(InputError, match="rate: .*out of range"):
         ReplayNode(bag=tmp_path / "bag", context=ctx, rate=0.0, node_name="r3")
+    with pytest.raises(InputError, match="exit_ack_timeout: .*out of range"):
+        ReplayNode(bag=tmp_path / "bag", context=ctx, node_name="r4",
+                   parameter_overrides=[rclpy.parameter.Parameter("exit_ack_timeout", value=-1.0)])
 
 
 def _replay_process(args, tmp_path):

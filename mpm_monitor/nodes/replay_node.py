@@ -76,9 +76,11 @@ class ReplayOptions:
     wait_for_subscribers: int = 0
     publish_clock: bool = False
     disturbance_topic: str = DEFAULT_DISTURBANCE_TOPIC
+    exit_ack_timeout: float = 30.0
 
     RATE_RANGE = (0.01, 1000.0)
     SUBSCRIBER_RANGE = (0, 100)
+    ACK_TIMEOUT_RANGE = (0.0, 3600.0)
 
     def __post_init__(self):
         if not isinstance(self.bag, str) or not self.bag.strip():
@@ -94,10 +96,11 @@ class ReplayOptions:
         if int(self.wait_for_subscribers) != self.wait_for_subscribers or not lo <= self.wait_for_subscribers <= hi:
             raise ConfigurationError(f"wait_for_subscribers: expected an integer in [{lo}, {hi}], "
                                      f"got {self.wait_for_subscribers!r}")
+        lo, hi = self.ACK_TIMEOUT_RANGE
+        if not isinstance(self.exit_ack_timeout, (int, float)) or not lo <= self.exit_ack_timeout <= hi:
+            raise ConfigurationError(f"exit_ack_timeout: expected seconds in [{lo:g}, {hi:g}], "
+                                     f"got {self.exit_ack_timeout!r}")
 
-
-#: Wall-clock seconds the process, leaving once every message is out, waits for its readers' acknowledgements.
-EXIT_ACK_TIMEOUT = 30.0
 
 PARAMS = (
     ParamSpec("bag", "string", "", "rosbag2 directory to replay."),
@@ -110,6 +113,9 @@ PARAMS = (
     ParamSpec("wait_for_subscribers", "int", 0, "time mode starts once every publisher has this many subscribers.",
               *ReplayOptions.SUBSCRIBER_RANGE),
     ParamSpec("publish_clock", "bool", False, "time mode: also publish /clock with the replayed stamps."),
+    ParamSpec("exit_ack_timeout", "double", ReplayOptions.exit_ack_timeout, "Wall-clock seconds the process, leaving "
+              "once every message is out, waits for its readers to acknowledge them all (a reader running behind "
+              "would otherwise lose the last ones).", *ReplayOptions.ACK_TIMEOUT_RANGE),
 )
 
 
@@ -201,7 +207,8 @@ class ReplayNode(Node):
         p = declare_parameters(self, PARAMS)
         self.options = o = ReplayOptions(bag=p["bag"], topics=tuple(p["topics"]), mode=p["mode"], rate=p["rate"],
                                          wait_for_subscribers=p["wait_for_subscribers"],
-                                         publish_clock=p["publish_clock"], disturbance_topic=p["disturbance_topic"])
+                                         publish_clock=p["publish_clock"], disturbance_topic=p["disturbance_topic"],
+                                         exit_ack_timeout=p["exit_ack_timeout"])
         bag_topics = [topic_name(t) for t in o.topics]
         given = list(o.topics)
         optional = ()
@@ -241,16 +248,16 @@ class ReplayNode(Node):
 
     def drain(self, executor) -> None:
         """Spin a little so that the reliable publishers hand over what is queued before the process ends; once
-        every message is out, also wait (at most :data:`EXIT_ACK_TIMEOUT` s) until the readers acknowledge them
-        all: a reader running behind would otherwise lose the last messages when the process leaves."""
+        every message is out, also wait (at most ``exit_ack_timeout`` s) until the readers acknowledge them all:
+        a reader running behind would otherwise lose the last messages when the process leaves."""
         for _ in range(10):
             executor.spin_once(timeout_sec=0.02)
         if self.finished:
             pubs = list(self._replay_pubs.values()) + ([self._clock_pub] if self._clock_pub is not None else [])
-            late = wait_acked(pubs, EXIT_ACK_TIMEOUT)
+            late = wait_acked(pubs, self.options.exit_ack_timeout)
             if late:
-                self.get_logger().warning(f"leaving after {EXIT_ACK_TIMEOUT:g} s with messages not acknowledged "
-                                          f"on {', '.join(late)}: a reader may lack the last ones")
+                self.get_logger().warning(f"leaving after {self.options.exit_ack_timeout:g} s with messages not "
+                                          f"acknowledged on {', '.join(late)}: a reader may lack the last ones")
 
     def _publish(self, messages) -> None:
         for m in messages:
