@@ -317,10 +317,13 @@ class SampleWindow:
         if not self._pending:
             return None
         k = min(self._pending)
-        entry = self._pending[k]
-        absent = [c for i, c in enumerate(self.channels) if entry[i] is None
-                  and not (i == 0 and self.options.hold_setpoint and self._held_setpoint(k) is not None)]
-        return self._stamp_of(k), absent, len(self._pending)
+        return self._stamp_of(k), self._absent(k, self._pending[k]), len(self._pending)
+
+    def _absent(self, k: int, entry) -> list:
+        """The channels sample ``k`` (its held vectors ``entry``) lacks; with ``hold_setpoint``, the setpoint only
+        when no setpoint holds at ``k`` yet."""
+        held = self.options.hold_setpoint and entry[0] is None and self._held_setpoint(k) is not None
+        return [c for i, (c, e) in enumerate(zip(self.channels, entry)) if e is None and not (i == 0 and held)]
 
     @property
     def last_sample_stamp_ns(self) -> Optional[int]:
@@ -658,11 +661,7 @@ class SampleWindow:
         if entry is None:
             absent = "nothing received"
         else:
-            names = [c for c, e in zip(self.channels, entry) if e is None]
-            if self.options.hold_setpoint and "setpoint" in names and entry[0] is None:
-                names.remove("setpoint")
-                if self._held_setpoint(first_missing) is None:
-                    names.insert(0, "setpoint")
+            names = self._absent(first_missing, entry)
             absent = "no " + " and no ".join(names) if names else "incomplete"
         t0 = self._stamp_of(first_missing) / NS_PER_S
         self._health.gaps += 1
