@@ -939,6 +939,31 @@ def test_a_lead_over_two_lags_that_the_plant_has_is_kept():
     assert after["time_constant2"] == pytest.approx(3.0, rel=0.1) and after["lead"] == pytest.approx(2.0, rel=0.1)
 
 
+def test_an_inverse_response_that_lost_a_lag_keeps_its_lead_when_the_fit_took_a_slow_pair():
+    """``bench.structures_mc --lost-lag`` seed 7 run 126: row y4's u1 is an integrator with an inverse response,
+    ``0.0392 (1 - 2.5 s) / (s (12.2 s + 1)(5.7 s + 1))`` in the model, and the plant lost the 5.7 s lag.  Fitted in
+    the model's form the element came to rest at a lead of 1,781 s over a lag of 2,000 s (a slow pair, SSR 0.331),
+    not at the plant's shape (SSR 0.282 in one lag and a lead), and the pair was refitted away with the lead: one
+    lag of 10.2 s and a sample more dead time, kind "mixed", the element located again in the repaired model.  The
+    lead is tried kept with the other lag first, from the model's lead: the plant's shape, one lag fewer."""
+    from bench.structures_mc import StructuresOptions, make_structures_scenario, simulate
+
+    options = StructuresOptions(lost_lag=True)
+    sc = make_structures_scenario(7, 126, options)
+    assert sc.model.element(3, 0)["time_constant2"] == 5.7 and sc.plant.element(3, 0).get("time_constant2", 0.0) == 0.0
+    assert sc.plant.element(3, 0)["lead"] == -2.5 and sc.plant.element(3, 0)["time_constant"] == 12.2
+    report = analyze(sc.model, simulate(sc, 3000, options).as_logged_data())
+    change = next(c for c in report.repair["changes"] if (c["output"], c["input"]) == ("y4", "u1"))
+    after = change["after"]
+    assert change["applied"] is True and change["kind"] == "time_constant"
+    assert after.get("time_constant2", 0.0) == 0.0 and after["delay"] == 4.0
+    assert after["lead"] == pytest.approx(-2.5, rel=0.1) and after["time_constant"] == pytest.approx(12.2, rel=0.05)
+    new = report.repaired_model.discrete_element(3, 0).step_response(300)
+    true = sc.plant.discrete_element(3, 0).step_response(300)
+    assert np.max(np.abs(new - true)) <= 0.01 * np.max(np.abs(true))
+    assert ("y4", "u1") not in [(x["output"], x["input"]) for x in report.repair["located_after"]]
+
+
 def test_delays_in_seconds_are_whole_samples_as_a_model_file_writes_them():
     """Stop 73's audit: with a sample time of 0.1 s an unchanged delay of 6 samples was written 0.6000000000000001
     (6 x 0.1 in floating point) in the repaired model and the report."""

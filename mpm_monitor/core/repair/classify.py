@@ -674,7 +674,17 @@ def _reduce_cancelled_leads(free: _FreeFit, settings: _TestSettings) -> _FreeFit
     record, and its intervals unbounded), marked applied.  So such an element is refitted without the pair
     (one lag fewer, no lead; two degrees of freedom), where its form keeps a lag or an integrator.  A lead
     fitted shorter than :data:`VANISHED_LEAD` of a sample time (:func:`_reduce_vanished_lags` may have taken the
-    lag it cancelled) is refitted away alone (one degree of freedom).  Every parameter is free on the same samples, and the smaller
+    lag it cancelled) is refitted away alone (one degree of freedom).
+
+    The pair may be the fit's own rather than the plant's: an integrator with an inverse response,
+    ``(1 - 2.5 s) / (s (12.2 s + 1)(5.7 s + 1))`` in the model, whose plant lost the 5.7 s lag, was fitted in the
+    model's form at a lead of 1,781 s over a lag of 2,000 s (the search started from the model's lead of -2.5 s
+    came to rest there), and without the pair it took a sample more dead time and a lag of 10.2 s, its kind
+    ``mixed``, where one lag and the model's lead fit the record far better (``bench.structures_mc --lost-lag``
+    seed 7 run 126).  So an element whose form has two lags and whose reference has a lead is first refitted
+    with the lead kept over the other lag, from the reference's lead (one degree of freedom fewer); where that
+    form is kept, the lead is then dropped too only where it does not fit significantly better (one degree of
+    freedom).  Every parameter is free on the same samples, and the smaller
     form is kept unless the larger one fits significantly better: the likelihood-ratio test
     ``n ln(SSR_smaller / SSR_larger)`` against chi-square at ``alpha`` (as :func:`_choose_forms` chooses a
     larger form).  Its tests measure the changes from the reference in that form (:class:`_Located`'s
@@ -706,6 +716,15 @@ def _reduce_cancelled_leads(free: _FreeFit, settings: _TestSettings) -> _FreeFit
         gain = float(free.est.fit.gains[m]) * (1.0 if dropped is None else lead / taus[dropped])
         start = (gain, tuple(a for k, a in enumerate(poles) if k != dropped), 0.0,
                  int(free.est.fit.lags[m]) - (form.offset - smaller_form.offset))
+        ref_lead = float(loc.reference.get("lead", 0.0))
+        if dropped is not None and form.n_lags >= 2 and ref_lead != 0.0:
+            # The pair may be the fit's own: the lead kept with the other lags, from the reference's lead.
+            kept_form = dataclasses.replace(form, n_lags=form.n_lags - 1)
+            kept_start = (gain, start[1], ref_lead, int(free.est.fit.lags[m]) - (form.offset - kept_form.offset))
+            kept = _try_smaller_form(free, j, kept_form, kept_start, 1, settings)
+            if kept is not free:        # the lead then goes only where the data do not call for it
+                free = _try_smaller_form(kept, j, smaller_form, start, 1, settings)
+                continue
         free = _try_smaller_form(free, j, smaller_form, start, df, settings)
     return free
 
