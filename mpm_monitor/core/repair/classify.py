@@ -681,7 +681,8 @@ def _reduce_cancelled_leads(free: _FreeFit, settings: _TestSettings) -> _FreeFit
     model's form at a lead of 1,781 s over a lag of 2,000 s (the search started from the model's lead of -2.5 s
     came to rest there), and without the pair it took a sample more dead time and a lag of 10.2 s, its kind
     ``mixed``, where one lag and the model's lead fit the record far better (``bench.structures_mc --lost-lag``
-    seed 7 run 126).  So an element whose form has two lags and whose reference has a lead is first refitted
+    seed 7 run 126).  So an element whose form has two lags and whose reference has a lead (at least
+    :data:`VANISHED_LEAD` of a sample time) is first refitted
     with the lead kept over the other lag, from the reference's lead (one degree of freedom fewer); where that
     form is kept, the lead is then dropped too only where it does not fit significantly better (one degree of
     freedom).  Every parameter is free on the same samples, and the smaller
@@ -717,7 +718,7 @@ def _reduce_cancelled_leads(free: _FreeFit, settings: _TestSettings) -> _FreeFit
         start = (gain, tuple(a for k, a in enumerate(poles) if k != dropped), 0.0,
                  int(free.est.fit.lags[m]) - (form.offset - smaller_form.offset))
         ref_lead = float(loc.reference.get("lead", 0.0))
-        if dropped is not None and form.n_lags >= 2 and ref_lead != 0.0:
+        if dropped is not None and form.n_lags >= 2 and abs(ref_lead) >= VANISHED_LEAD * ts:
             # The pair may be the fit's own: the lead kept with the other lags, from the reference's lead.
             kept_form = dataclasses.replace(form, n_lags=form.n_lags - 1)
             kept_start = (gain, start[1], ref_lead, int(free.est.fit.lags[m]) - (form.offset - kept_form.offset))
