@@ -73,10 +73,11 @@ PARAMS = MODEL_PARAMS + (
               "possible); false = advance on a timer every sample_time."),
     ParamSpec("publish_clock", "bool", True, "Publish the simulated time k * sample_time on clock_topic."),
     ParamSpec("max_samples", "int", 0, "Stop after this many samples (0 = run forever).", 0, 10**9),
-    ParamSpec("autostart", "bool", True, "Start by itself once min_subscribers listen on output_topic (and, in "
-              "lock-step, an input publisher and a clock listener are matched); false: the owner calls start()."),
-    ParamSpec("min_subscribers", "int", 1, "Subscribers on output_topic to wait for before the first sample.",
-              0, 1000),
+    ParamSpec("autostart", "bool", True, "Start by itself once min_subscribers listen on output_topic (and on "
+              "disturbance_topic, a plant with measured disturbances; in lock-step, an input publisher and a clock "
+              "listener are matched too); false: the owner calls start()."),
+    ParamSpec("min_subscribers", "int", 1, "Subscribers on output_topic (and, for a plant with measured "
+              "disturbances, on disturbance_topic) to wait for before the first sample.", 0, 1000),
     ParamSpec("start_delay", "double", 0.5, "Wall-clock seconds to wait after min_subscribers are matched (lets the "
               "other nodes finish discovery).", 0.0, 600.0),
     ParamSpec("stall_timeout", "double", 2.0, "Wall-clock seconds without the expected input before a warning "
@@ -94,6 +95,11 @@ def measured_disturbance_options_from_params(p: dict) -> MeasuredDisturbanceOpti
                                       switch_probability=p["dv_switch_probability"], min_hold=p["dv_min_hold"],
                                       noise_std=p["dv_noise_std"], noise_pole=p["dv_noise_pole"],
                                       offset=p["dv_offset"])
+
+
+#: Seconds of waiting to start (autostart) before the plant logs what it waits for, and between two such lines.
+WAITING_LOG_AFTER = 5.0
+WAITING_LOG_PERIOD = 10.0
 
 
 class PlantNode(Node):
@@ -134,6 +140,7 @@ class PlantNode(Node):
         self._u_fresh = False
         self._last_progress = time.monotonic()
         self._matched_at: Optional[float] = None
+        self._created_at = time.monotonic()
         self._start_timer = None
         self._tick_timer = None
         self._stall_timer = None
@@ -153,8 +160,12 @@ class PlantNode(Node):
     def _try_start(self) -> None:
         if self.running:
             return
-        if not self._ready():
+        missing = self._missing()
+        if missing:
             self._matched_at = None
+            if time.monotonic() - self._created_at >= WAITING_LOG_AFTER:
+                self.get_logger().info(f"waiting to start: {'; '.join(missing)}",
+                                       throttle_duration_sec=WAITING_LOG_PERIOD)
             return
         now = time.monotonic()
         if self._matched_at is None:
@@ -162,16 +173,25 @@ class PlantNode(Node):
         if now - self._matched_at >= self.params["start_delay"]:
             self.start()
 
-    def _ready(self) -> bool:
-        """True when the loop can close: listeners on output and, in lock-step, on the clock and an input publisher."""
-        if self._pub.get_subscription_count() < self.params["min_subscribers"]:
-            return False
-        if self.params["lock_step"]:
+    def _missing(self) -> list:
+        """What the start still waits for, one phrase each (empty: the loop can close): listeners on output (and on
+        the measured disturbances, a plant with some) and, in lock-step, on the clock and an input publisher.
+
+        A disturbance reader matched after the first sample (the MPC's feedforward, the monitor) would miss the
+        first vectors: the MPC would wait for them (stamp-matched) until a stall re-sent them, the monitor would
+        start its window later.
+        """
+        need, p, missing = self.params["min_subscribers"], self.params, []
+        for pub, topic in ((self._pub, "output_topic"), (self._dv_pub, "disturbance_topic")):
+            if pub is not None and pub.get_subscription_count() < need:
+                missing.append(f"{pub.get_subscription_count()} of min_subscribers = {need} subscriber(s) on "
+                               f"{topic} {pub.topic_name}")
+        if p["lock_step"]:
             if self._sub.get_publisher_count() < 1:
-                return False
+                missing.append(f"no publisher on input_topic {self._sub.topic_name} (lock-step)")
             if self._clock_pub is not None and self._clock_pub.get_subscription_count() < 1:
-                return False
-        return True
+                missing.append(f"no subscriber on clock_topic {self._clock_pub.topic_name} (lock-step)")
+        return missing
 
     def start(self) -> None:
         """Publish the first sample (lock-step) or start the sample timer."""
