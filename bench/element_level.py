@@ -3,7 +3,8 @@
 Run::
 
     python -m bench.element_level [--runs 800] [--seed 3] [--samples 3000] [--jobs 1] [--step-form]
-                                  [--noise-order] [--drop 0.002] [--out bench/results/element_level.json]
+                                  [--noise-order] [--drop 0.002] [--family main]
+                                  [--out bench/results/element_level.json]
 
 The scenarios are those of :mod:`bench.structures_mc` (the same family, a pure function of
 ``(seed, index)``; seeds 0 and 1 are its scored runs, so this check defaults to seed 3).  Each run is
@@ -26,6 +27,10 @@ elements, no spike screening: the detection alone), which raises the ARX order `
 element-test residual is coloured (:mod:`mpm_monitor.core.noise_order`); without it, the first
 detection's at ``na`` = 4.  Either way the S_Delta row test's unadjusted p-value of every row without a
 mismatch is counted too (the group ``rows (S_Delta test)``).
+
+With ``--family F`` the loops are those of another ``bench.structures_mc`` family (``lost-lag``,
+``gained-lag``, ``pure-gains``, ``two-lag-leads``, ``lost-pair``: its variant flag); the default ``main`` is
+the family above.
 
 With ``--drop P`` every sample of each run is dropped with probability ``P`` before the analysis (the
 rows removed, as :mod:`bench.gaps_mc` does; the drops a pure function of the seed and the run), and the
@@ -61,8 +66,19 @@ DEFAULT_OUT_STEP = Path(__file__).resolve().parent / "results" / "element_level_
 DEFAULT_OUT_DROP = Path(__file__).resolve().parent / "results" / "element_level_drop.json"
 
 
+#: The families of :mod:`bench.structures_mc` (its variant flags; ``main`` none).
+FAMILIES = ("main", "lost-lag", "gained-lag", "pure-gains", "two-lag-leads", "lost-pair")
+
+
+def family_options(family: str) -> StructuresOptions:
+    """:class:`~bench.structures_mc.StructuresOptions` of one of :data:`FAMILIES`."""
+    if family not in FAMILIES:
+        raise ValueError(f"family: expected one of {', '.join(FAMILIES)}, got {family!r}")
+    return StructuresOptions(**({} if family == "main" else {family.replace("-", "_"): True}))
+
+
 def run_one(seed: int, index: int, samples: int, step_response: bool = False, noise_order: bool = False,
-            drop: float = 0.0) -> dict:
+            drop: float = 0.0, family: str = "main") -> dict:
     """The p-values of the elements and rows without a mismatch of one scenario (its model analysed in
     its step-response form with ``step_response``).
 
@@ -70,11 +86,13 @@ def run_one(seed: int, index: int, samples: int, step_response: bool = False, no
     ``analyze`` (without the repair, the release of explained elements and the spike screening), which
     raises ``na`` while a row's residual is coloured (:mod:`mpm_monitor.core.noise_order`).  With
     ``drop`` > 0 each sample is dropped with that probability first (:func:`bench.gaps_mc.drop_rows`),
-    and the p-values are ``analyze``'s."""
+    and the p-values are ``analyze``'s.  ``family``: one of :data:`FAMILIES` (the loops of that
+    ``bench.structures_mc`` family)."""
     from .gaps_mc import drop_rows
 
-    sc = make_structures_scenario(seed, index, StructuresOptions())
-    data = simulate(sc, samples, StructuresOptions()).as_logged_data(f"structures scenario {seed}/{index}")
+    opts = family_options(family)
+    sc = make_structures_scenario(seed, index, opts)
+    data = simulate(sc, samples, opts).as_logged_data(f"structures scenario {seed}/{index}")
     rec = {"index": int(index), "elements": [], "rows": []}
     if not (np.all(np.isfinite(data.y)) and np.max(np.abs(data.y)) < 1e6):
         rec["error"] = "the closed loop diverged"
@@ -154,6 +172,8 @@ def format_table(result: dict) -> str:
     form = " (models in step-response form)" if result["config"].get("step_form") else ""
     if result["config"].get("drop"):
         form += f" (each sample dropped with probability {result['config']['drop']:g})"
+    if result["config"].get("family", "main") != "main":
+        form += f" (bench.structures_mc family --{result['config']['family']})"
     lines = [f"element tests' level{form}: seed {result['config']['seed']}, {result['config']['runs']} runs, "
              f"{result['config']['errors']} not analysed; p-values of the elements of rows without a mismatch",
              f"{'group':<32} {'test':<9} {'n':>6}   " + "   ".join(f"below {t:<5} (exp, tail)" for t in THRESHOLDS)]
@@ -180,6 +200,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                              "of the first detection's")
     parser.add_argument("--drop", type=float, default=0.0,
                         help="drop each sample with this probability before analyze (default 0: none)")
+    parser.add_argument("--family", choices=FAMILIES, default="main",
+                        help="the loops of this bench.structures_mc family (default main: no variant flag)")
     parser.add_argument("--out", type=Path, default=None,
                         help="JSON output (default bench/results/element_level.json, element_level_step.json "
                              "with --step-form, element_level_drop.json with --drop)")
@@ -190,10 +212,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         parser.error(f"--drop must be a probability in [0, 0.5), got {args.drop}")
     t0 = time.perf_counter()
     records = sorted(map_runs(_run_one_star, [(args.seed, k, args.samples, args.step_form, args.noise_order,
-                                                 args.drop) for k in range(args.runs)],
+                                                 args.drop, args.family) for k in range(args.runs)],
                               args.jobs), key=lambda r: r["index"])
     result = {"config": {"runs": args.runs, "seed": args.seed, "samples": args.samples, "step_form": args.step_form,
-                         "noise_order": args.noise_order, "drop": args.drop,
+                         "noise_order": args.noise_order, "drop": args.drop, "family": args.family,
                          "errors": sum("error" in r for r in records), "wall_time_s": time.perf_counter() - t0},
               "summary": score(records), "runs": records}
     print(format_table(result))

@@ -84,3 +84,20 @@ def test_with_drops_the_rows_kept_give_the_p_values_and_the_rows_test_is_counted
         assert all(0.0 <= w["row"] <= 1.0 for w in rec["rows"])
     assert [w["row"] for w in dropped["rows"]] != [w["row"] for w in full["rows"]]
     assert score([full, dropped])["rows (S_Delta test)"]["row"]["n"] == 4
+
+
+def test_a_family_draws_its_own_loops_and_an_unknown_family_is_refused():
+    from bench.element_level import family_options
+    from bench.structures_mc import StructuresOptions, make_structures_scenario
+
+    assert family_options("main") == StructuresOptions()
+    assert family_options("lost-pair") == StructuresOptions(lost_pair=True)
+    with pytest.raises(ValueError, match="family: expected one of main, lost-lag"):
+        family_options("lost_pair")
+    # A family draws its own mismatches (seed 8's run 1 loses a lead-lag pair); a clean run is the same loop in
+    # every family (seed 8's run 44, a false location of the main family too).
+    assert [m["kind"] for m in make_structures_scenario(8, 1, family_options("lost-pair")).mismatches] == ["lost_pair"]
+    lost_pair, main = (make_structures_scenario(8, 44, family_options(f)) for f in ("lost-pair", "main"))
+    assert lost_pair.mismatches == main.mismatches == () and lost_pair.loop_seed == main.loop_seed
+    rec = run_one(8, 1, 1500, family="lost-pair")
+    assert "error" not in rec and rec["elements"] and {e["output"] for e in rec["elements"]} == {1}   # its mismatch is in row 0
