@@ -98,6 +98,12 @@ class AnalysisOptions:
         :func:`mpm_monitor.core.repair.explained_elements`).  This runs the repair's
         classification of those rows also when ``repair`` is off, so the located elements do not
         depend on ``repair``.
+    repair_again : bool
+        Where the detection of the repaired model locates, in a row whose repair was applied, an element
+        the first detection did not (``repair.located_after``, at the first detection's level: a mismatch the
+        located elements' larger one hid), run the repair once more from the model as given, with those
+        elements added to the located ones, and report that repair (its new elements in
+        ``repair.second_round``; default True).  The detection's own findings (``elements``) are not changed.
     drop_spikes : bool
         :func:`~mpm_monitor.core.pipeline.analyze` leaves out the samples of the log's spikes (one to
         three samples that leave a channel by more than 10 robust standard deviations of its
@@ -158,6 +164,10 @@ class AnalysisOptions:
     release_explained: bool = option(True, "Where a row has several located elements, re-estimate them jointly and "
                                            "release one that does not differ from the model while another does "
                                            "(its finding was the other's mismatch).")
+    repair_again: bool = option(True, "Where the repaired model's detection locates, in a row whose repair was "
+                                      "applied, an element the first detection did not (at the first detection's "
+                                      "level), repair again from the model as given with it and the located "
+                                      "elements (once).")
     drop_spikes: bool = option(True, "Leave out as missing samples the spikes of the log (one to three samples that "
                                      "leave a channel by more than 10 robust standard deviations of its changes and "
                                      "come back), with a warning naming them.")
