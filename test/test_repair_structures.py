@@ -542,6 +542,12 @@ def test_the_summary_line_of_a_null_error_says_n_a():
     assert lines[-1] == "elements the repaired model's detection locates: (y2, u5)"
     assert repair_summary_lines({"changes": [], "error_before": {"y2": 0.02}, "error_after": {"y2": 0.019},
                                  "located_after": []})[-1].startswith("prediction error RMS")
+    # A second round's elements before it.
+    lines = repair_summary_lines({"changes": [], "error_before": {"y2": 0.02}, "error_after": {"y2": 0.019},
+                                  "second_round": [{"output": "y2", "input": "u5", "p_value": 6e-4}],
+                                  "located_after": [{"output": "y2", "input": "u3", "p_value": 2e-4}]})
+    assert lines[-2:] == ["repaired again with the elements the first repair's detection located: (y2, u5)",
+                          "elements the repaired model's detection locates: (y2, u3)"]
 
 
 def test_a_repaired_element_that_does_not_settle_within_a_step_response_model_is_named():

@@ -231,6 +231,9 @@ def repair_summary_lines(repair: dict) -> list:
     if "rsi_after" in repair:
         lines.append("row RSI of the repaired model on the same data: "
                      + ", ".join(f"{k} {v:.3f}" for k, v in repair["rsi_after"].items()))
+    if repair.get("second_round"):
+        lines.append("repaired again with the elements the first repair's detection located: "
+                     + ", ".join(f"({x['output']}, {x['input']})" for x in repair["second_round"]))
     if repair.get("located_after"):
         lines.append("elements the repaired model's detection locates: "
                      + ", ".join(f"({x['output']}, {x['input']})" for x in repair["located_after"]))
