@@ -206,6 +206,33 @@ def test_an_element_the_first_detection_missed_is_repaired_in_a_second_round():
     assert json.loads(json.dumps(rep.to_dict()))["repair"]["second_round"] == rep.repair["second_round"]
 
 
+def test_a_second_round_that_does_not_apply_the_first_repair_again_is_not_kept(monkeypatch):
+    """Where the repair run again does not apply a change the first one applied (here its held-out check made to refuse
+    every row), the first repair stands, as without the second round, and a warning says so."""
+    from mpm_monitor.core import pipeline
+    from mpm_monitor.core.repair import RepairOptions
+
+    sc, data = _seed_4_run_51()
+    once = analyze(sc.model, data, AnalysisOptions(repair_again=False))
+    real, calls = pipeline.repair_model, []
+
+    def refusing_second(model, data, located, options=RepairOptions(), **kw):
+        calls.append(list(located))
+        if len(calls) == 2:
+            options = dataclasses.replace(options, min_holdout_improvement=0.99)
+        return real(model, data, located, options, **kw)
+    monkeypatch.setattr(pipeline, "repair_model", refusing_second)
+    rep = analyze(sc.model, data, AnalysisOptions())
+    assert len(calls) == 2 and len(calls[1]) == len(calls[0]) + 1
+    assert "second_round" not in rep.repair
+    assert rep.repair["changes"] == once.repair["changes"]
+    assert rep.repair["located_after"] == once.repair["located_after"]
+    assert rep.repaired_model == once.repaired_model
+    (w,) = [w for w in rep.warnings if w.startswith("the repair run again with (y2, u5)")]
+    assert w.endswith("did not apply (y2, u4), (y2, u6) again (the held-out check): the first repair stands")
+    assert w in rep.repair["warnings"] and [x for x in rep.warnings if x != w] == once.warnings
+
+
 def test_a_repair_beside_an_ambiguous_mismatch_is_applied_with_a_warning():
     """bench.structures_mc --lost-lag run 267: the plant lost the second lags of (y1, u1) and (y1, u3); u3 moves with
     the other inputs (variance inflation 252), so (y1, u3) is ambiguous and only (y1, u1) is located.  Its repair,

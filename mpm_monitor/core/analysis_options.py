@@ -103,7 +103,9 @@ class AnalysisOptions:
         the first detection did not (``repair.located_after``, at the first detection's level: a mismatch the
         located elements' larger one hid), run the repair once more from the model as given, with those
         elements added to the located ones, and report that repair (its new elements in
-        ``repair.second_round``; default True).  The detection's own findings (``elements``) are not changed.
+        ``repair.second_round``; default True), unless that repair no longer applies a change the first one
+        applied (the first then stands, with a warning).  The detection's own findings (``elements``) are not
+        changed.
     drop_spikes : bool
         :func:`~mpm_monitor.core.pipeline.analyze` leaves out the samples of the log's spikes (one to
         three samples that leave a channel by more than 10 robust standard deviations of its

@@ -193,7 +193,7 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
             result = repair_model(wide, span, located, repair_options, classified=classified, jobs=jobs,
                                   delays=delays)
         result, after_data = _keep_applied_candidates(model, data, result, tried, names, nominal)
-    after, again = None, []
+    after, again, refused = None, [], None
     after_options = dataclasses.replace(options, repair=False, test_all_rows=False)
     if result.model != model:
         after = detect(result.model, after_data, after_options, signals=result.signals if span is wide_data else None,
@@ -206,11 +206,14 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
             estimates = {(e.output, e.input): e.delay for e in after.elements if e.delay is not None}
             delays = {**delays, **{key: int(estimates[(x["output"], x["input"])]) for key, x in again
                                    if (x["output"], x["input"]) in estimates}}
-            located = located + keys
-            result = repair_model(wide, span, located, repair_options, signals=span_signals, classified=classified,
-                                  jobs=jobs, delays=delays)
-            after = None
-            if result.model != model:
+            second = repair_model(wide, span, located + keys, repair_options, signals=span_signals,
+                                  classified=classified, jobs=jobs, delays=delays)
+            lost = _not_applied_again(result.changes, second.changes)
+            if lost:         # the first repair stands
+                refused = _second_round_refused(again, lost)
+                again = []
+            else:
+                located, result = located + keys, second
                 after = detect(result.model, after_data, after_options,
                                signals=result.signals if span is wide_data else None, previous=report,
                                detectability=False, rows_only=True)
@@ -220,6 +223,9 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
         warnings.append(note)
     warnings.extend(w for w in result.warnings if w not in warnings)
     doc = result.to_dict()
+    if refused is not None:
+        doc["warnings"].append(refused)
+        warnings.append(refused)
     if again:
         doc["second_round"] = [x for _, x in again]
         for o in dict.fromkeys(x["output"] for _, x in again):
@@ -256,6 +262,22 @@ def _hidden(report: AnalysisReport, after: AnalysisReport, changes: list, locate
         if (x["output"], x["input"]) not in keys:
             out.append(((model.outputs.index(x["output"]), model.columns.index(x["input"])), x))
     return out
+
+
+def _not_applied_again(first: list, second: list) -> list:
+    """The changes ``(output, input)`` the first repair applied that the second round's does not (its held-out check
+    refused the row's repair with the added elements): the second round is then not kept."""
+    applied = {(c["output"], c["input"]) for c in second if c["applied"]}
+    return [(c["output"], c["input"]) for c in first if c["applied"] and (c["output"], c["input"]) not in applied]
+
+
+def _second_round_refused(named: list, lost: list) -> str:
+    """The warning of a second round not kept (:func:`_not_applied_again`): ``named`` the ``(key, located_after
+    entry)`` it added, ``lost`` the changes of the first repair it did not apply."""
+    added = ", ".join(f"({x['output']}, {x['input']})" for _, x in named)
+    dropped = ", ".join(f"({o}, {i})" for o, i in lost)
+    return (f"the repair run again with {added}, which the repaired model's detection located and the first detection "
+            f"did not, did not apply {dropped} again (the held-out check): the first repair stands")
 
 
 def _second_round_warning(output: str, named: list, located: Sequence, model: PlantModel) -> str:
