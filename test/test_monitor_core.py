@@ -476,6 +476,20 @@ def test_a_row_status_names_what_the_repaired_models_detection_still_locates(rep
     assert st["mpm_monitor: row y1"].value("located_after") is None
 
 
+def test_a_row_status_names_the_elements_the_repair_ran_again_with(repaired_core):
+    """``second_round`` in a row's status: the inputs of the repair's ``second_round`` in that row, absent elsewhere."""
+    c, rep = repaired_core
+    assert "second_round" not in rep.repair
+    assert all(s.value("second_round") is None for s in c.statuses(now=0.0))
+    rep.repair["second_round"] = [{"output": "y1", "input": "u1", "p_value": 1e-4}]
+    try:
+        st = by_name(c.statuses(now=0.0))
+    finally:
+        del rep.repair["second_round"]
+    assert st["mpm_monitor: row y1"].value("second_round") == "u1"
+    assert st["mpm_monitor: row y2"].value("second_round") is None
+
+
 def test_the_summary_counts_the_changes_and_gives_the_held_out_verdict(repaired_core):
     c, rep = repaired_core
     s = c.statuses(now=0.0)[-1]

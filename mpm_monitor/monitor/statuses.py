@@ -18,8 +18,9 @@ When the analysis includes the repair (:mod:`mpm_monitor.core.repair`), the stat
 suggested repair: per row ``repair`` (e.g. ``u2: time_constant 45->60 s, delay 4->7 s; u3: gain
 3.5->5.88``), ``error_before`` / ``error_after`` (RMS of the one-step prediction error ``d = y -
 yhat`` over the window with the model as given / as repaired), the held-out errors, ``rsi_after``,
-``located_after`` (where the repaired model's detection still locates elements in the row: their inputs,
-comma-separated) and per located element ``kind <input>`` and ``confidence <input>``; in the summary
+``second_round`` (the inputs of the elements the repair ran again with: a first repair's detection located them,
+the first detection did not), ``located_after`` (where the repaired model's detection still locates elements in
+the row: their inputs, comma-separated) and per located element ``kind <input>`` and ``confidence <input>``; in the summary
 ``repair_changes`` (number of suggested element changes), ``repair_validation`` (the held-out
 verdict: ``passed``, ``rejected``, ``mixed``, ``not_validated``, ``not_run``, ``none`` or ``off``)
 and ``repair_validation_detail`` (the same in words).
@@ -246,9 +247,10 @@ def row_statuses(outputs: Sequence[str], outcome, analysis_error: Optional[str],
             values += [(key, _num(doc[key][o])) for key in ("error_before", "error_after", "holdout_error_before",
                                                             "holdout_error_after", "rsi_after")
                        if o in (doc.get(key) or {})]
-            after = [x["input"] for x in doc.get("located_after") or [] if x["output"] == o]
-            if after:
-                values.append(("located_after", ",".join(after)))
+            for key in ("second_round", "located_after"):
+                named = [x["input"] for x in doc.get(key) or [] if x["output"] == o]
+                if named:
+                    values.append((key, ",".join(named)))
         values += [("samples", str(job.data.n_samples)), ("window_start", _num(job.first_stamp)),
                    ("window_end", _num(job.last_stamp)), ("analyzed", "true")]
         if o in still:
