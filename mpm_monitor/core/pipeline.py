@@ -252,7 +252,7 @@ def _hidden(report: AnalysisReport, after: AnalysisReport, changes: list, locate
     ``[((output index, column index), located_after entry), ...]``, empty when nothing.
 
     Such an element is a mismatch the located elements' larger one hid from the first detection: every one of the
-    seven named on ``bench.repair_mc`` and ``bench.structures_mc`` (4,300 loops, stop 80, and seed 9 at stop 83)
+    ten named on ``bench.repair_mc`` and ``bench.structures_mc`` (4,300 loops at stop 80, 1,000 more at stop 83)
     was a drawn mismatch, and an analysis of the repaired model located each (docs/benchmarks.md, "Elements the
     repaired model's detection locates", "A second round of the repair").
     """
