@@ -193,13 +193,17 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
             result = repair_model(wide, span, located, repair_options, classified=classified, jobs=jobs,
                                   delays=delays)
         result, after_data = _keep_applied_candidates(model, data, result, tried, names, nominal)
-    after, again, refused = None, [], None
     after_options = dataclasses.replace(options, repair=False, test_all_rows=False)
+
+    def detect_repaired(result):
+        return detect(result.model, after_data, after_options, signals=result.signals if span is wide_data else None,
+                      previous=report, detectability=False, rows_only=True)
+    after, named, again, refused = None, [], [], None
     if result.model != model:
-        after = detect(result.model, after_data, after_options, signals=result.signals if span is wide_data else None,
-                       previous=report, detectability=False, rows_only=True)
+        after = detect_repaired(result)
+        named = located_after(report, after, result.changes, options.alpha)
         if options.repair_again and not names:
-            again = _hidden(report, after, result.changes, located, wide, options.alpha)
+            again = _hidden(named, located, wide)
         if again:
             # A mismatch the located elements' larger one hid: the repair once more from the model as given, with it.
             keys = [key for key, _ in again]
@@ -214,9 +218,8 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
                 again = []
             else:
                 located, result = located + keys, second
-                after = detect(result.model, after_data, after_options,
-                               signals=result.signals if span is wide_data else None, previous=report,
-                               detectability=False, rows_only=True)
+                after = detect_repaired(result)
+                named = located_after(report, after, result.changes, options.alpha)
     settle_report(report)
     warnings = report.warnings
     if note and located:
@@ -235,7 +238,7 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
     if after is not None:
         doc["rsi_after"] = {r.output: r.rsi for r in after.rows}
         doc["rows_flagged_after"] = after.flagged_rows
-        doc["located_after"] = located_after(report, after, doc["changes"], options.alpha)
+        doc["located_after"] = named
         for w in _still_flagged(report, doc["changes"], after.flagged_rows, doc["located_after"]):
             doc["warnings"].append(w)
             warnings.append(w)
@@ -246,10 +249,9 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
     return dataclasses.replace(report, repair=doc, repaired_model=result.model, repair_result=result, regressions=None)
 
 
-def _hidden(report: AnalysisReport, after: AnalysisReport, changes: list, located: Sequence, model: PlantModel,
-            alpha: float) -> list:
-    """What the repaired model's detection locates (:func:`located_after`) that the repair did not re-estimate:
-    ``[((output index, column index), located_after entry), ...]``, empty when nothing.
+def _hidden(named: list, located: Sequence, model: PlantModel) -> list:
+    """The entries of ``named`` (:func:`located_after` of the repaired model's detection) that the repair did not
+    re-estimate (not in ``located``): ``[((output index, column index), entry), ...]``, empty when none.
 
     Such an element is a mismatch the located elements' larger one hid from the first detection: every one of the
     ten named on ``bench.repair_mc`` and ``bench.structures_mc`` (4,300 loops at stop 80, 1,000 more at stop 83)
@@ -257,11 +259,8 @@ def _hidden(report: AnalysisReport, after: AnalysisReport, changes: list, locate
     repaired model's detection locates", "A second round of the repair").
     """
     keys = {(model.outputs[i], model.columns[j]) for i, j in located}
-    out = []
-    for x in located_after(report, after, changes, alpha):
-        if (x["output"], x["input"]) not in keys:
-            out.append(((model.outputs.index(x["output"]), model.columns.index(x["input"])), x))
-    return out
+    return [((model.outputs.index(x["output"]), model.columns.index(x["input"])), x)
+            for x in named if (x["output"], x["input"]) not in keys]
 
 
 def _not_applied_again(first: list, second: list) -> list:
