@@ -181,12 +181,12 @@ class PlantNode(Node):
         first vectors: the MPC would wait for them (stamp-matched) until a stall re-sent them, the monitor would
         start its window later.
         """
-        need, p, missing = self.params["min_subscribers"], self.params, []
+        need, missing = self.params["min_subscribers"], []
         for pub, topic in ((self._pub, "output_topic"), (self._dv_pub, "disturbance_topic")):
-            if pub is not None and pub.get_subscription_count() < need:
-                missing.append(f"{pub.get_subscription_count()} of min_subscribers = {need} subscriber(s) on "
-                               f"{topic} {pub.topic_name}")
-        if p["lock_step"]:
+            have = None if pub is None else pub.get_subscription_count()
+            if have is not None and have < need:
+                missing.append(f"{have} of min_subscribers = {need} subscriber(s) on {topic} {pub.topic_name}")
+        if self.params["lock_step"]:
             if self._sub.get_publisher_count() < 1:
                 missing.append(f"no publisher on input_topic {self._sub.topic_name} (lock-step)")
             if self._clock_pub is not None and self._clock_pub.get_subscription_count() < 1:
