@@ -352,6 +352,60 @@ def test_worker_never_replaces_a_kept_job_and_runs_the_newest_other_one_after_it
         held.close()
 
 
+def test_a_keyboard_interrupt_in_an_analysis_is_an_error_outcome_and_the_worker_goes_on():
+    """The worker's thread survives anything an analysis raises, ``KeyboardInterrupt`` too (what a child process
+    interrupted by Ctrl-C passed back before it ignored SIGINT): that job's outcome is an error, the next runs."""
+    c = core()
+    calls = []
+
+    def interrupted_once(job):
+        calls.append(job.data.n_samples)
+        if len(calls) == 1:
+            raise KeyboardInterrupt
+        return run_analysis(lambda model, data, options: fake_report(), MODEL, None, job)
+
+    done = threading.Event()
+    worker = AnalysisWorker(interrupted_once, on_done=done.set)
+    try:
+        feed(c, 0, 20)
+        worker.submit(c.take_job())
+        assert done.wait(5.0)
+        done.clear()
+        feed(c, 20, 30)
+        worker.submit(c.take_job())
+        assert done.wait(5.0)
+        for _ in range(500):
+            if worker.idle:
+                break
+            threading.Event().wait(0.01)
+        first, second = worker.take_outcomes()
+        assert first.error == "analysis failed: KeyboardInterrupt" and first.report is None
+        assert second.error is None and second.report is not None and calls == [20, 30]
+    finally:
+        worker.close()
+
+
+def test_the_analysis_process_ignores_sigint():
+    """A terminal's Ctrl-C reaches the analysis process with the monitor's: the child ignores it (the monitor stops
+    it), so it prints no traceback and ends no analysis; SIGINT sent to the child alone changes nothing."""
+    import signal
+
+    from mpm_monitor.monitor.worker import ProcessAnalyzer
+
+    pa = ProcessAnalyzer(_handler_in_child)
+    try:
+        assert pa(signal.SIGINT, None, None) == signal.SIG_IGN
+    finally:
+        pa.close()
+
+
+def _handler_in_child(signum, data, options):
+    """Run in the analysis process (as ``analyze(model, data, options)``): its handler of ``signum``."""
+    import signal
+
+    return signal.getsignal(signum)
+
+
 def test_options_are_checked():
     with pytest.raises(ConfigurationError, match="min_samples"):
         MonitorOptions(window=WindowOptions(window_samples=100), min_samples=200)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import os
+import signal
 import threading
 import time
 import traceback
@@ -145,7 +146,8 @@ class AnalysisWorker:
                 self._busy = True
             try:
                 outcome = self._run(job)
-            except Exception:  # run() already wraps analysis errors; this is a last resort
+            except BaseException:  # run() wraps analysis errors; a last resort (a KeyboardInterrupt too): the
+                # thread never dies, or no later window would be analysed
                 outcome = AnalysisOutcome(job, error="analysis failed: " + traceback.format_exc().splitlines()[-1])
             self._outcomes.append(outcome)
             with self._lock:
@@ -167,8 +169,14 @@ class AnalysisWorker:
 
 
 def _start_analysis_process(parent_pid: int, niceness: int) -> None:
-    """The analysis process's set-up: its niceness raised by ``niceness`` (:class:`ProcessAnalyzer`), and
-    :func:`_exit_with_parent`."""
+    """The analysis process's set-up: SIGINT ignored, its niceness raised by ``niceness``
+    (:class:`ProcessAnalyzer`), and :func:`_exit_with_parent`.
+
+    A terminal's Ctrl-C goes to its whole process group, the analysis process with it: the monitor's
+    own process stops it (its pool shut down), so an interrupt of the child would only print its
+    traceback and, in the middle of an analysis, end that analysis with ``KeyboardInterrupt``.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if niceness > 0 and hasattr(os, "nice"):      # raising it needs no privilege (lowering would)
         os.nice(niceness)
     _exit_with_parent(parent_pid)
