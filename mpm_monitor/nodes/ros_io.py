@@ -301,9 +301,9 @@ def declare_parameters(node, specs: Sequence[ParamSpec]) -> dict:
         try:
             param = node.declare_parameter(spec.name, initial, descriptor(spec))
         except InvalidParameterValueException as exc:
-            raise ConfigurationError(f"parameter {spec.name}: {exc}".splitlines()[0]) from None
+            raise ConfigurationError(f"parameter {spec.name}: {_reason(exc, spec.name)}") from None
         except InvalidParameterTypeException as exc:
-            raise ConfigurationError(f"parameter {spec.name}: wrong type: {exc}".splitlines()[0]) from None
+            raise ConfigurationError(f"parameter {spec.name}: wrong type: {_reason(exc, spec.name)}") from None
         out[spec.name] = spec.check(param.value)
         for name in _ros_names(spec, out[spec.name]):
             check_ros_name(node, spec.name, name, service=spec.name.endswith("_service"))
@@ -320,6 +320,14 @@ def declare_parameters(node, specs: Sequence[ParamSpec]) -> dict:
         node.get_logger().info("parameters of other nodes of the suite, ignored here (a params file's shared "
                                "section): " + ", ".join(f"{name} ({', '.join(others[name])})" for name in theirs))
     return out
+
+
+def _reason(exc: Exception, name: str) -> str:
+    """The first line of rclpy's parameter exception, without the ``": <name>"`` it appends (the message names
+    the parameter first already)."""
+    text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    suffix = f": {name}"
+    return text[:-len(suffix)] if text.endswith(suffix) and len(text) > len(suffix) else text
 
 
 def suite_parameters(exclude: Sequence[ParamSpec] = ()) -> dict:
