@@ -274,6 +274,42 @@ def test_edge_case_model_files_refused_with_one_line(work, text, match):
     assert_one_line_error(info.value, path)
 
 
+@pytest.mark.parametrize("deep", [
+    "gain: " + "[" * 200000 + "]" * 200000 + "\n",              # flow sequences
+    "gain: " + "{a: " * 30000 + "}" * 30000 + "\n",             # flow mappings
+    "gain:\n" + "- " * 30000 + "x\n",                         # block sequences, compact on one line
+    "gain:\r" + "- " * 30000 + "x\r",                         # the same with bare CR line ends
+])
+def test_nesting_libyaml_cannot_compose_is_refused_in_one_line(work, deep):
+    """libyaml's composer recurses in C once per level: near 25,000 levels it overflowed the stack (a segmentation
+    fault, exit 139, no message; the depth of 20,000 above still passed).  In a child process, so that a crash is
+    a failure of this test, not of the run."""
+    path = work / "deep.yaml"
+    path.write_bytes((MODEL_HEAD + deep).encode("utf-8"))
+    code = ("import sys\nfrom mpm_monitor.io.model_file import load_model\nfrom mpm_monitor.core.errors import "
+            "ModelFileError\ntry:\n    load_model(sys.argv[1])\nexcept ModelFileError as exc:\n    print(exc)\n")
+    out = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-500:]
+    assert out.stdout.strip() == f"{path}: not a model file: lists or mappings nested too deeply"
+
+
+@given(st.recursive(st.integers(0, 9), lambda kids: st.lists(kids, max_size=3) |
+                    st.dictionaries(st.sampled_from("abc"), kids, max_size=3), max_leaves=40),
+       st.booleans())
+@settings(max_examples=200, deadline=None)
+def test_the_nesting_bound_is_never_below_the_nesting(value, flow):
+    """The one-pass bound that decides whether libyaml's event parser checks the nesting first is an upper
+    bound, block style or flow style."""
+    from mpm_monitor.io.model_file import _nesting_bound
+
+    def depth(x):
+        return 1 + max((depth(v) for v in (x.values() if isinstance(x, dict) else x)), default=0) \
+            if isinstance(x, (list, dict)) else 0
+
+    text = yaml.safe_dump({"gain": value}, default_flow_style=flow)
+    assert _nesting_bound(text) >= depth({"gain": value})
+
+
 def test_numbers_are_read_as_yaml_1_2_and_json_write_them(work):
     """``5e-05`` is a number (YAML 1.1: a string; json.dump writes it so, as in the report's repair.model),
     ``010`` is ten (1.1: octal eight); the JSON form of a model loads as the model."""

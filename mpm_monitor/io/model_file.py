@@ -558,6 +558,8 @@ def _parse_yaml(text: str):
     if data is not _NOT_PARSED:
         return data
     if _C_LOADER is not None:
+        if _nesting_bound(text) > _C_MAX_NESTING and _nests_deeper(text, _C_MAX_NESTING):
+            raise RecursionError(f"lists or mappings nested more than {_C_MAX_NESTING} deep")
         try:
             data = yaml.load(text, Loader=_C_LOADER)
         except (yaml.YAMLError, RecursionError, ValueError, TypeError):
@@ -566,6 +568,43 @@ def _parse_yaml(text: str):
             if _depth_within(data, _MAX_DEPTH):
                 return data
     return yaml.load(text, Loader=_LOADER)
+
+
+#: Nesting beyond which a text is refused before libyaml composes it: its composer recurses in C once per level,
+#: and near 25,000 levels (a 50 kB file) it overflows the process's stack (a segmentation fault, no message);
+#: Python's recursion limit never sees it.  The pure-Python parser refuses far less (its recursion limit).
+_C_MAX_NESTING = 1000
+#: The run of blanks and block indicators ("- ", "? ", ": ") that starts a line (any YAML line break).
+_LINE_PREFIX = re.compile(r"(?:\A|[\r\n\x85\u2028\u2029])[ \t?:-]*")
+
+
+def _nesting_bound(text: str) -> int:
+    """An upper bound of the nesting of the lists and mappings of a YAML text, in one pass.
+
+    A flow collection opens with ``[`` or ``{`` (those in strings only raise the bound).  A block
+    collection is deeper than its parent by its indentation or by an indicator on the same line, and a
+    mapping's sequence may share the mapping's indentation: twice the longest blank-and-indicator run
+    that starts a line, plus two.
+    """
+    prefix = max((len(m.group()) for m in _LINE_PREFIX.finditer(text)), default=0)
+    return text.count("[") + text.count("{") + 2 * prefix + 2
+
+
+def _nests_deeper(text: str, limit: int) -> bool:
+    """Whether the lists and mappings of ``text`` nest more than ``limit`` deep: libyaml's event parser (not
+    recursive) read until it is known; False for a text it refuses (the loaders name its error)."""
+    depth = 0
+    try:
+        for event in yaml.parse(text, Loader=_C_LOADER):
+            if isinstance(event, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
+                depth += 1
+                if depth > limit:
+                    return True
+            elif isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
+                depth -= 1
+    except (yaml.YAMLError, ValueError, TypeError):
+        return False
+    return False
 
 
 #: Values (numbers, strings, ...) a model file may hold once its aliases are expanded: a 100 x 40 step-response
