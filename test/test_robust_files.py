@@ -1001,6 +1001,13 @@ def test_a_huge_operating_point_is_named_as_the_model_s(files, capsys, tmp_path)
     (["export", "--bag", "BAG", "--csv", "MODEL", "--model", "MODEL"], r"--csv .*model\.yaml: is the --model input"),
     (["analyze", "--model", "MODEL", "--data", "CSV", "--json", "CSV"], r"--json .*data\.csv: is the --data input"),
     (["analyze", "--model", "MODEL", "--data", "CSV", "--json", "MODEL"], r"--json .*model\.yaml: is the --model input"),
+    # simulate wrote its log over its plant, or its controller model over the plant, without a word
+    (["simulate", "--plant", "MODEL", "--model", "MODEL", "--csv", "MODEL", "--samples", "300"],
+     r"--csv .*model\.yaml: is the --plant input"),
+    (["simulate", "--plant", "MODEL", "--model", "MODEL", "--csv", "OUT.csv", "--write-model", "MODEL",
+      "--samples", "300"], r"--write-model .*model\.yaml: is the --plant input"),
+    (["simulate", "--case", "3.2", "--csv", "CSV", "--write-model", "CSV", "--samples", "300"],
+     r"--write-model .*data\.csv: the same path as --csv"),
 ])
 def test_an_output_onto_an_input_is_refused_before_any_work(files, capsys, tmp_path, argv, match):
     """``export --csv BAG/bag_0.mcap`` destroyed the recording, ``--csv M.yaml --model M.yaml`` the model."""

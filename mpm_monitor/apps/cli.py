@@ -558,7 +558,11 @@ def _cmd_simulate(args) -> int:
     _refuse_standard_output(args.write_model, "--write-model", "the controller model")
     for path, what in ((args.csv, "--csv"), (args.write_model, "--write-model")):
         if path:
+            _not_an_input(path, what, {"--plant": args.plant, "--model": args.model, "--experiment": args.experiment})
             _check_output_file(path, what)
+    if args.csv and args.write_model and Path(args.csv).resolve() == Path(args.write_model).resolve():
+        raise InputError(f"--write-model {args.write_model}: the same path as --csv: expected another path (the "
+                         f"second would overwrite the first)")
     if args.case:
         case = simulation_case(args.case)
         plant, model, mpc, exc, dist = case.plant, case.model, case.mpc, case.excitation, case.disturbance
