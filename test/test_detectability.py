@@ -468,6 +468,15 @@ def test_simulate_takes_the_dither_of_a_reports_experiment(tmp_path):
     path.write_text(json.dumps({"experiment": {"dither": {"u9": 0.2}}}))
     with pytest.raises(InputError, match="unknown input"):
         _experiment_dither(str(path), FAT_MODEL)
+    # A boolean was read as 1.0; an integer of 401 digits, and nesting json cannot follow, ended in tracebacks
+    for text, match in (('{"experiment": {"dither": {"u2": true}}}', r"expected finite amplitudes >= 0, got u2=True"),
+                        ('{"experiment": {"dither": {"u2": Infinity}}}', r"got u2=inf"),
+                        ('{"experiment": {"dither": {"u2": 1' + "0" * 400 + '}}}', r"got u2=1000+\.\.\.$"),
+                        ("[" * 100000 + "]" * 100000, r"cannot read the report: arrays or objects nested too deeply")):
+        path.write_text(text)
+        with pytest.raises(InputError, match=match) as refused:
+            _experiment_dither(str(path), FAT_MODEL)
+        assert str(refused.value).startswith(f"{path}: ") and "\n" not in str(refused.value)
 
 
 def test_a_still_measured_disturbance_is_named_as_one():

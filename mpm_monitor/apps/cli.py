@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import gc
 import json
+import math
 import os
 import sys
 from pathlib import Path
@@ -639,7 +640,9 @@ def _experiment_dither(path: str, model) -> tuple:
         with open(path, encoding="utf-8") as fh:
             doc = json.load(fh)
     except (OSError, ValueError) as exc:
-        raise InputError(f"{path}: cannot read the report: {exc}") from None
+        raise InputError(f"{path}: cannot read the report: {str(exc).splitlines()[0] if str(exc) else exc!r}") from None
+    except RecursionError:
+        raise InputError(f"{path}: cannot read the report: arrays or objects nested too deeply") from None
     exp = doc.get("experiment") if isinstance(doc, dict) else None
     if not isinstance(exp, dict) or not isinstance(exp.get("dither"), dict):
         raise InputError(f"{path}: key 'experiment': expected an object with a 'dither' (this report recommends "
@@ -649,10 +652,23 @@ def _experiment_dither(path: str, model) -> tuple:
     if unknown:
         raise InputError(f"{path}: key 'experiment.dither': unknown input(s) {', '.join(unknown)}; the model's "
                          f"inputs are {', '.join(model.inputs)}")
-    bad = [k for k, v in dither.items() if not isinstance(v, (int, float)) or not v >= 0]
+    bad = [k for k, v in dither.items() if not _finite_amplitude(v)]
     if bad:
-        raise InputError(f"{path}: key 'experiment.dither': expected amplitudes >= 0, got {bad[0]}={dither[bad[0]]!r}")
+        got = repr(dither[bad[0]])
+        got = got if len(got) <= 40 else got[:37] + "..."
+        raise InputError(f"{path}: key 'experiment.dither': expected finite amplitudes >= 0, got {bad[0]}={got}")
     return tuple(float(dither.get(name, 0.0)) for name in model.inputs)
+
+
+def _finite_amplitude(v) -> bool:
+    """Whether a report's dither amplitude is a number (not a boolean), finite as a float, and at least 0."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    try:
+        x = float(v)
+    except OverflowError:              # an integer of hundreds of digits
+        return False
+    return math.isfinite(x) and x >= 0
 
 
 def _cmd_demo(args) -> int:
