@@ -324,6 +324,25 @@ def test_numbers_are_read_as_yaml_1_2_and_json_write_them(work):
     assert load_model(as_json) == m
 
 
+def test_names_like_dates_are_names_and_optional_nulls_are_absent(work):
+    """YAML 1.2 has no timestamps: ``2001-12-14`` was read as a date and refused as a name (the dumper still quotes
+    it, for YAML 1.1 readers).  ``ramp: null`` and, in a step-response model, ``lead: null`` were refused, where an
+    optional key given as null is absent."""
+    path = work / "dates.yaml"
+    path.write_text("name: 2001-12-14\nsample_time: 1\ninputs: [2024-01-01]\noutputs: [y1]\ngain: [[1]]\n"
+                    "time_constant: [[1]]\ndelay: [[0]]\nramp:\n", encoding="utf-8")
+    m = load_model(path)
+    assert (m.name, m.inputs) == ("2001-12-14", ("2024-01-01",))
+    assert "'2024-01-01'" in dump_model(m) and load_model(path) == m
+    path.write_text("sample_time: 1\ninputs: [u1]\noutputs: [y1]\nstep_response: {length: 2, coefficients: [[[0.5, 1.0]]]}\nlead: ~\n"
+                    "integrating: null\n", encoding="utf-8")
+    assert load_model(path).is_step_response
+    path.write_text("sample_time: 1\ninputs: [u1]\noutputs: [y1]\nstep_response: {length: 2, coefficients: [[[0.5, 1.0]]]}\ngain: null\n",
+                    encoding="utf-8")
+    with pytest.raises(ModelFileError, match="key 'gain': a step-response model"):
+        load_model(path)
+
+
 def test_python_tags_are_refused_and_never_run(work):
     """``yaml.safe_load``: a ``!!python/object`` tag is refused, the command in it never runs."""
     marker = work / "pwned"

@@ -109,6 +109,9 @@ KEY_SYNONYMS = {"dead_time": "delay", "deadtime": "delay", "time_delay": "delay"
                 "step_responses": "step_response", "delays": "delay", "leads": "lead"}
 #: Keys of the parametric form, which a step-response model (key ``step_response``) replaces.
 PARAMETRIC_ONLY = ("gain", "time_constant", "delay", "lead", "time_constant2", "integrating")
+#: The keys a model may leave out: given as null, each is read as absent.
+OPTIONAL_KEYS = ("disturbances", "lead", "time_constant2", "integrating", "ramp", "input_nominal", "output_nominal",
+                 "disturbance_nominal")
 
 
 def _check_keys(data: Mapping, source: str) -> None:
@@ -250,13 +253,14 @@ def model_from_dict(data: Any, source: str = "model") -> PlantModel:
     try:
         if "step_response" in data:
             for key in PARAMETRIC_ONLY:
-                if key in data:
+                # an optional key given as null is absent (it was refused here, against the file's rule)
+                if key in data and not (key in OPTIONAL_KEYS and data[key] is None):
                     raise ModelFileError(
                         f"{source}: key '{key}': a step-response model (key 'step_response') has no {key}: give "
                         f"either the step responses or the parametric elements")
             return PlantModel.from_step_response(coefficients=_step_response(data, source),
                                                  ramp=_bool_vector(data, "ramp", source), **common)
-        if "ramp" in data:
+        if data.get("ramp") is not None:
             raise ModelFileError(f"{source}: key 'ramp': only a step-response model (key 'step_response') takes a "
                                  f"ramp; an integrating parametric element is marked in 'integrating'")
         return PlantModel(
@@ -289,13 +293,17 @@ def _construct_float(loader, node) -> float:
 
 
 _BOOL_TAG, _MERGE_TAG = "tag:yaml.org,2002:bool", "tag:yaml.org,2002:merge"
+_TIMESTAMP_TAG = "tag:yaml.org,2002:timestamp"
 _BOOL = re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$")
 
 
-def _strict_resolvers(cls) -> None:
-    """Give ``cls`` (a PyYAML loader or dumper class) YAML 1.2's numbers and booleans in place of YAML 1.1's."""
-    cls.yaml_implicit_resolvers = {first: [(tag, rx) for tag, rx in resolvers
-                                           if tag not in (_INT_TAG, _FLOAT_TAG, _BOOL_TAG)]
+def _strict_resolvers(cls, timestamps: bool = True) -> None:
+    """Give ``cls`` (a PyYAML loader or dumper class) YAML 1.2's numbers and booleans in place of YAML 1.1's;
+    ``timestamps`` False: no timestamps either (YAML 1.2 has none: the loaders read a name ``2001-12-14`` as a
+    date and refused it as not a string; the dumper keeps them, so that it quotes such a name for YAML 1.1
+    readers)."""
+    dropped = (_INT_TAG, _FLOAT_TAG, _BOOL_TAG) + (() if timestamps else (_TIMESTAMP_TAG,))
+    cls.yaml_implicit_resolvers = {first: [(tag, rx) for tag, rx in resolvers if tag not in dropped]
                                    for first, resolvers in cls.yaml_implicit_resolvers.items()}
     cls.add_implicit_resolver(_INT_TAG, _INT, list("-+0123456789"))
     cls.add_implicit_resolver(_FLOAT_TAG, _FLOAT, list("-+0123456789."))
@@ -360,7 +368,7 @@ def _strict_loader(base):
                 seen.add(key)
             return super().construct_mapping(node, deep=deep)
 
-    _strict_resolvers(Loader)
+    _strict_resolvers(Loader, timestamps=False)
     Loader.add_constructor(_INT_TAG, lambda loader, node: int(loader.construct_scalar(node)))
     Loader.add_constructor(_FLOAT_TAG, _construct_float)
     return Loader
