@@ -174,6 +174,25 @@ def test_noise_free_gain_recovered_exactly():
     assert res.error_after["y1"] < 1e-6 * res.error_before["y1"]
 
 
+@pytest.mark.parametrize("tau", [1e-9, 0.001, 1.0])
+def test_a_lag_too_short_to_show_keeps_its_input_lag_when_its_gain_is_repaired(tau):
+    """A first-order element whose lag is far under the sample time (0.001 s at 10 s: a pole that reads no lag)
+    acts a sample after a pure gain of its dead time.  Its gain change was fitted right but written as a pure gain
+    at the same dead time, a sample early: the held-out check refused it and the row kept its error."""
+    from mpm_monitor.core.model import PlantModel
+
+    plant = PlantModel(sample_time=10.0, inputs=("u1", "u2"), outputs=("y1", "y2"), gain=[[1.0, 0.4], [0.3, 1.2]],
+                       time_constant=[[tau, 0.01], [1e-6, 0.5]], delay=[[10.0, 20.0], [20.0, 10.0]])
+    model = plant.with_element(0, 0, gain=1.5)
+    data = run_closed_loop(plant, model, 3000, seed=1).as_logged_data()
+    res = repair_model(model, data, [(0, 0)])
+    assert res.kinds[(0, 0)] == "gain"
+    got = res.model.element(0, 0)
+    assert got["gain"] == pytest.approx(1.0, rel=0.01)
+    assert (got["time_constant"], got["delay"]) == (0.0, 20.0)         # the same input lag as the plant's
+    assert res.error_after["y1"] < 0.15 * res.error_before["y1"]
+
+
 def test_correct_element_is_kept_and_warned(clean_shell_log):
     """A located element that is right shows no significant change: kept, kind unknown, warning."""
     sh = _shell()

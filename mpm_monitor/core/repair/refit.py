@@ -52,7 +52,12 @@ def _compose(fitted: dict, held: dict, spec: _ElementSpec, held_lag_too: bool = 
         for key in _SHAPE_KEYS:
             out[key] = float(fitted[key])
     elif spec.form.first_order and spec.poles and _reads_no_lag(spec.poles[0]):
-        out["time_constant"] = 0.0          # held as a pure gain (an element that lost its lag)
+        # Held as a pure gain (an element that lost its lag, or a reference whose lag is too short to show,
+        # a hair above 0): a pure gain acts at the lag of its dead time, so the delay is the fit's reading of
+        # its lag (the held one where the lag vanished; a sample longer than a held lag of 0.001 s at 10 s,
+        # which kept as it was acted a sample early).
+        out["time_constant"] = 0.0
+        out["delay"] = float(fitted["delay"])
     # A first-order element's dead time is read from its lag and pole together (a pole at the bound reads as no
     # lag, the dead time one sample longer): with the pole fitted, the delay is the fit's reading.
     vanished = spec.form.first_order and (spec.pole_free or held_lag_too)
