@@ -1090,6 +1090,8 @@ def test_a_command_started_with_its_output_closed_exits_with_its_code(files, tmp
     (["--json", "OUT", "--repair-out", "OUT"], r"--repair-out .*out: the same path as --json"),
     (["--json", "OUT", "--report", "OUT"], r"--report .*out: the same path as --json"),
     (["--repair-out", "OUT", "--report", "./OUT"], r"--report .*out: the same path as --repair-out"),
+    # wrote the model as given, with exit 0 and no word
+    (["--repair-out", "OUT", "--no-repair"], r"--repair-out .*out: there is no repaired model with --no-repair"),
 ])
 def test_two_outputs_onto_one_path_are_refused_before_any_work(files, capsys, tmp_path, monkeypatch, flags, match):
     """``--json P --repair-out P`` wrote the report and then the repaired model over it, with exit 0; ``--json P

@@ -267,6 +267,9 @@ def _cmd_analyze(args) -> int:
         _check_output_directory(args.report, "--report")
     if args.data is not None and args.topics is not None:
         raise InputError("--topics: names the topics of a --bag; a --data CSV names its channels in its header")
+    if args.repair_out and args.repair_out != "-" and not getattr(args, "repair", True):
+        raise InputError(f"--repair-out {args.repair_out}: there is no repaired model with --no-repair (it wrote the "
+                         f"model as given): leave out one of the two")
     outputs = [(flag, path) for flag, path in (("--json", args.json_out), ("--repair-out", args.repair_out),
                                                ("--report", args.report)) if path and path != "-"]
     for k, (flag, path) in enumerate(outputs):
