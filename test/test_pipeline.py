@@ -248,3 +248,17 @@ def test_a_repair_beside_an_ambiguous_mismatch_is_applied_with_a_warning():
     warned = [w for w in report.warnings if w.startswith("y1: still flagged after the repair of u1; the element of u3 "
                                                           "cannot be told apart")]
     assert len(warned) == 1 and warned[0] in report.repair["warnings"]
+
+
+def test_a_max_delay_below_the_models_dead_times_is_warned_of(case_data):
+    """``max_delay 0`` on case 3.2 (dead times up to 6 samples) reported every located element's delay as 1 sample
+    and doubled the detectable changes, without a word."""
+    case, data = case_data
+    rep = detect(case.model, data, AnalysisOptions(max_delay=0))
+    d = case.model.delay_samples
+    assert int(d.max()) == 6
+    said = [w for w in rep.warnings if w.startswith("max_delay 0 is below the model's longest dead time")]
+    assert len(said) == 1 and "6 samples" in said[0]
+    for max_delay in (6, None):
+        ok = detect(case.model, data, AnalysisOptions(max_delay=max_delay))
+        assert not [w for w in ok.warnings if w.startswith("max_delay")]

@@ -37,8 +37,8 @@ import numpy as np
 
 from .analysis_options import AnalysisOptions
 from .analysis_report import AnalysisReport, _Valuation, settle_report
-from .data_warnings import (held_tail_warnings, offset_warnings, still_output_warnings, time_unit_note,
-                            unsettled_warnings)
+from .data_warnings import (held_tail_warnings, offset_warnings, short_max_delay_warnings, still_output_warnings,
+                            time_unit_note, unsettled_warnings)
 from .errors import ConfigurationError, DataFileError, TooFewSamples
 from .logged_data import (
     NUMERICAL_ERRORS,
@@ -371,7 +371,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     rows = row_test.rows
     t_used = data.t if plan is None else plan.take(data.t)
     warnings = still_output_warnings(model, still) + held_tail_warnings(model, y, t_used, still) \
-        + unsettled_warnings(model) + diverging + list(row_test.warnings) \
+        + unsettled_warnings(model) + short_max_delay_warnings(model, options.max_delay) + diverging \
+        + list(row_test.warnings) \
         + offset_warnings(model, sig.d, y, diverged, t_used) + resolution_warnings(model.outputs, y, error_std, still) \
         + column_resolution_warnings(model.columns, model.outputs, columns, model.gain,
                                      np.asarray(model.integrating_outputs, dtype=bool)[:, None] | model.integrating,
