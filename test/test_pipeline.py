@@ -262,3 +262,32 @@ def test_a_max_delay_below_the_models_dead_times_is_warned_of(case_data):
     for max_delay in (6, None):
         ok = detect(case.model, data, AnalysisOptions(max_delay=max_delay))
         assert not [w for w in ok.warnings if w.startswith("max_delay")]
+
+
+def test_a_location_the_row_test_and_a_larger_na_do_not_share_is_warned_of():
+    """Plant = model, a slow drift (pole 0.95, innovation 1.0) under measurement noise of 5.0, which moves the
+    inputs more than the setpoints do: ``na`` = 4 own lags leave the noise coloured, the inputs' lags take the
+    colour up (the whiteness check sees white) and the element test locates elements of a model that matches the
+    plant, in rows the S_Delta row test does not flag.  With ``na`` 16 it locates none: each row says so."""
+    from mpm_monitor.core.model import PlantModel
+    from mpm_monitor.sim.plant import DisturbanceOptions
+
+    model = PlantModel(sample_time=1.0, inputs=("u1", "u2"), outputs=("y1", "y2"), gain=[[1.0, 0.4], [0.3, 1.2]],
+                       time_constant=[[10.0, 15.0], [12.0, 8.0]], delay=[[1.0, 2.0], [2.0, 1.0]])
+    log = run_closed_loop(model, model, 3000, seed=101, disturbance=DisturbanceOptions(disturbance_std=1.0,
+                                                                                      noise_std=5.0))
+    data = log.as_logged_data()
+    rep = analyze(model, data, AnalysisOptions(repair=False))
+    assert rep.located_elements and rep.noise_order["na"] == 4
+    assert all(r.p_value_raw >= 0.01 for r in rep.rows)
+    said = [w for w in rep.warnings if "where the S_Delta row test does not flag the row" in w]
+    assert sorted(w.split(":")[0] for w in said) == sorted(f"row {o}" for o in dict.fromkeys(o for o, _ in
+                                                                                           rep.located_elements))
+    assert all("with na = 16 own lags it does not locate" in w for w in said)
+    assert not analyze(model, data, AnalysisOptions(repair=False, na=16)).located_elements
+    # where the row test flags the rows (case 3.2's mismatches), no such warning
+    case = paper_case("3.2")
+    log = run_closed_loop(case.plant, case.model, 3000, seed=11, mpc=case.mpc, excitation=case.excitation,
+                          disturbance=case.disturbance)
+    assert not [w for w in analyze(case.model, log.as_logged_data(), AnalysisOptions(repair=False)).warnings
+                if "S_Delta row test does not flag" in w]
