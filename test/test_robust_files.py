@@ -1125,3 +1125,20 @@ def test_topics_with_a_csv_are_refused_not_ignored(files, capsys):
     code, out, err = _run_cli(capsys, ["analyze", "--model", str(files["model"]), "--data", str(files["csv"]),
                                        "--topics", "a", "b", "c"])
     assert code == 2 and len(err.strip().splitlines()) == 1 and "--topics: names the topics of a --bag" in err, err
+
+
+def test_simulate_names_both_files_when_plant_and_model_differ_in_shape_or_sample_time(files, capsys, tmp_path):
+    """The refusal named neither flag nor file ("plant and controller model must have the same ...")."""
+    model = load_model(files["model"])
+    slower = tmp_path / "slower.yaml"
+    save_model(model.replace(sample_time=model.sample_time / 2), slower)
+    smaller = tmp_path / "smaller.yaml"
+    save_model(PlantModel(sample_time=model.sample_time, inputs=("u1",), outputs=("y1",), gain=[[1.0]],
+                          time_constant=[[5.0]], delay=[[0.0]]), smaller)
+    for plant, match in ((slower, r"expected the same sample_time, got [\d.]+ s vs [\d.]+ s"),
+                         (smaller, r"expected the same inputs and outputs, got \['u1'\] / \['y1'\] vs ")):
+        code, out, err = _run_cli(capsys, ["simulate", "--plant", str(plant), "--model", str(files["model"]),
+                                           "--csv", str(tmp_path / "log.csv"), "--samples", "300"])
+        assert code == 2 and len(err.strip().splitlines()) == 1, err
+        assert err.startswith(f"error: --plant {plant} and --model {files['model']}: ") and re.search(match, err), err
+        assert not (tmp_path / "log.csv").exists()

@@ -579,6 +579,12 @@ def _cmd_simulate(args) -> int:
         if not (args.plant and args.model):
             raise InputError("simulate: give --case, or both --plant and --model")
         plant, model = load_model(args.plant), load_model(args.model)
+        if (plant.inputs, plant.outputs, plant.sample_time) != (model.inputs, model.outputs, model.sample_time):
+            what = "sample_time" if (plant.inputs, plant.outputs) == (model.inputs, model.outputs) else \
+                "inputs and outputs"
+            got = (f"{plant.sample_time:g} s vs {model.sample_time:g} s" if what == "sample_time" else
+                   f"{list(plant.inputs)} / {list(plant.outputs)} vs {list(model.inputs)} / {list(model.outputs)}")
+            raise InputError(f"--plant {args.plant} and --model {args.model}: expected the same {what}, got {got}")
         exc = ExcitationOptions(dither=PrbsOptions(amplitude=dither) if dither > 0 else None)
         if args.experiment:
             exc = ExcitationOptions(dither=PrbsOptions(amplitude=1.0, switch_probability=0.5),
