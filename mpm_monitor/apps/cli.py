@@ -270,13 +270,7 @@ def _cmd_analyze(args) -> int:
     if args.repair_out and args.repair_out != "-" and not getattr(args, "repair", True):
         raise InputError(f"--repair-out {args.repair_out}: there is no repaired model with --no-repair (it wrote the "
                          f"model as given): leave out one of the two")
-    outputs = [(flag, path) for flag, path in (("--json", args.json_out), ("--repair-out", args.repair_out),
-                                               ("--report", args.report)) if path and path != "-"]
-    for k, (flag, path) in enumerate(outputs):
-        for other, before in outputs[:k]:
-            if Path(path).resolve() == Path(before).resolve():
-                raise InputError(f"{flag} {path}: the same path as {other}: expected another path (the second "
-                                 f"would overwrite the first)")
+    _distinct_outputs((("--json", args.json_out), ("--repair-out", args.repair_out), ("--report", args.report)))
     # One analysis, then the process ends: the cyclic garbage collector only costs time here (its passes
     # over the objects of the imports and the analysis: 27 ms at 20x20 and 56 ms at 100x40 by its own
     # callbacks), while what the analysis frees is freed by reference counting (the peak memory stays the
@@ -564,9 +558,7 @@ def _cmd_simulate(args) -> int:
         if path:
             _not_an_input(path, what, {"--plant": args.plant, "--model": args.model, "--experiment": args.experiment})
             _check_output_file(path, what)
-    if args.csv and args.write_model and Path(args.csv).resolve() == Path(args.write_model).resolve():
-        raise InputError(f"--write-model {args.write_model}: the same path as --csv: expected another path (the "
-                         f"second would overwrite the first)")
+    _distinct_outputs((("--csv", args.csv), ("--write-model", args.write_model)))
     if args.case:
         case = simulation_case(args.case)
         plant, model, mpc, exc, dist = case.plant, case.model, case.mpc, case.excitation, case.disturbance
@@ -685,6 +677,22 @@ def _cmd_demo(args) -> int:
 
     return run_demo(case=args.case, samples=args.samples, bag=args.bag, seed=args.seed, quiet=args.quiet,
                     out=_CheckedStandardOutput)
+
+
+def _distinct_outputs(outputs) -> None:
+    """Refuse two of a command's outputs ``(flag, path)`` (in the order written; a path None, empty or "-" is none)
+    on one path: the second would overwrite the first.
+
+    Raises
+    ------
+    InputError
+    """
+    given = [(flag, path) for flag, path in outputs if path and path != "-"]
+    for k, (flag, path) in enumerate(given):
+        for other, before in given[:k]:
+            if Path(path).resolve() == Path(before).resolve():
+                raise InputError(f"{flag} {path}: the same path as {other}: expected another path (the second "
+                                 f"would overwrite the first)")
 
 
 def _not_an_input(path: str, flag: str, inputs: dict) -> None:
