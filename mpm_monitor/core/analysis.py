@@ -37,8 +37,8 @@ import numpy as np
 
 from .analysis_options import AnalysisOptions
 from .analysis_report import AnalysisReport, _Valuation, settle_report
-from .data_warnings import (held_tail_warnings, offset_warnings, short_max_delay_warnings, still_output_warnings,
-                            time_unit_note, unsettled_warnings)
+from .data_warnings import (held_tail_warnings, longest_dead_time, offset_warnings, short_max_delay_warnings,
+                            still_output_warnings, time_unit_note, unsettled_warnings)
 from .errors import ConfigurationError, DataFileError, TooFewSamples
 from .logged_data import (
     NUMERICAL_ERRORS,
@@ -194,10 +194,9 @@ def longest_delay_note(model: PlantModel, options, layout, enough: Callable) -> 
 
     if not enough(regression_layout(model, dataclasses.replace(options, max_delay=10))):
         return ""
-    d = model.delay_samples
-    i, j = np.unravel_index(int(np.argmax(d)), d.shape)
+    i, j, longest = longest_dead_time(model)
     return (f"; max_delay is the model's longest delay + 5 samples: ({model.outputs[i]}, {model.columns[j]}) "
-            f"{int(d[i, j]) * model.sample_time:g} s, {int(d[i, j])} samples")
+            f"{longest * model.sample_time:g} s, {longest} samples")
 
 
 def _guarded(model: PlantModel, data: LoggedData, *args, **how):

@@ -26,6 +26,14 @@ OFFSET_RATIO = 10.0
 UNSETTLED_FRACTION = 0.03
 
 
+def longest_dead_time(model: PlantModel) -> tuple:
+    """``(i, j, samples)``: the element of the model's longest dead time (the first such) and that dead time in
+    samples (a model with outputs and columns)."""
+    d = model.delay_samples
+    i, j = np.unravel_index(int(np.argmax(d)), d.shape)
+    return int(i), int(j), int(d[i, j])
+
+
 def short_max_delay_warnings(model: PlantModel, max_delay: Optional[int]) -> list:
     """The warning of a ``max_delay`` (samples) given below the parametric model's longest dead time, as a list
     (empty otherwise): the tests then search dead times up to it only, so the located elements' delays and the
@@ -33,12 +41,11 @@ def short_max_delay_warnings(model: PlantModel, max_delay: Optional[int]) -> lis
     element's delay as 1 sample, and doubled the detectable changes, without a word)."""
     if max_delay is None or model.is_step_response or model.n_outputs == 0 or model.n_columns == 0:
         return []
-    d = model.delay_samples
-    i, j = np.unravel_index(int(np.argmax(d)), d.shape)
-    if int(d[i, j]) <= max_delay:
+    i, j, longest = longest_dead_time(model)
+    if longest <= max_delay:
         return []
     return [f"max_delay {max_delay} is below the model's longest dead time, ({model.outputs[i]}, {model.columns[j]}) "
-            f"{int(d[i, j])} samples: the tests search dead times up to {max_delay} samples only, so the located "
+            f"{longest} samples: the tests search dead times up to {max_delay} samples only, so the located "
             f"elements' delays and the detectable changes are those of the shorter search (without max_delay: the "
             f"model's longest + 5)"]
 
