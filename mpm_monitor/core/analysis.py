@@ -246,7 +246,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         fill = plan.left_out_fill(data)
         r, u, y, dv = (plan.take(x) for x in (r, u, y, dv))
         grid = plan.take(data.grid_index)     # the model runs through a short gap (segment_signals)
-        restarts = unknown_starts(plan.local_segments, grid, plan.max_gap, fill)
+        restarts = unknown_starts(plan.local_segments, grid, plan.max_gap, fill, model)
         # The regressions' segments, and the runs the element responses are simulated through (as the model).
         segments = GapSegments(plan.local_segments, grid, plan.max_gap)
     columns = model_columns(u, dv)            # the inputs, then the measured disturbances

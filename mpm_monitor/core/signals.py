@@ -47,6 +47,7 @@ import numpy as np
 from .arx import least_squares_ar
 from .discretize import discretize, model_columns, settling_samples, simulate_elements
 from .errors import ConfigurationError
+from .gap_inputs import gap_response
 from .logged_data import check_disturbance_signal
 from .model import PlantModel
 from .segments import GapSegments, held_rows, run_places, run_samples
@@ -320,7 +321,7 @@ def _row_signals(model, r, u, y, initial_state, dv, rows, clean=None) -> LoopSig
 
 def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarray, segments,
                     initial_state: str = "estimate", dv: np.ndarray = None, grid: Optional[np.ndarray] = None,
-                    max_gap: Optional[int] = None, fill: Optional[tuple] = None) -> LoopSignals:
+                    max_gap: Optional[int] = None, fill: Optional[tuple] = None, gap_inputs: bool = True) -> LoopSignals:
     """:func:`compute_signals` of data with gaps: the model runs through a short gap and restarts after a long one.
 
     The samples of a gap are unknown.  Without ``grid`` every contiguous segment is simulated from
@@ -331,11 +332,14 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
     does between moves), so
     its state carries across the gap instead of starting from rest; a missing sample whose columns
     were logged and are sound (``fill``: the sample of a spike in an output) takes them instead.
-    Only the initial transient of a run is estimated, from its first samples (a held output stands
+    The initial transient of a run is estimated from its first samples (a held output stands
     in for a missing one in that one fit), its decision whitened by a noise model fitted before the
-    run's first gap when enough samples lie there (:func:`initial_transient`).  The signals are returned at the logged samples only: no
-    regression row or statistic reads a held value.  A run starts at the first segment and after every
-    longer gap.
+    run's first gap when enough samples lie there (:func:`initial_transient`).  The plant received the
+    columns the log lost inside a short gap, not the held ones: with ``gap_inputs`` the model's
+    response to their unknown difference is fitted to the prediction error after the gap, row by row,
+    and subtracted (:func:`~mpm_monitor.core.gap_inputs.gap_response`; an integrating element's is
+    not).  The signals are returned at the logged samples only: no regression row or statistic reads a
+    held value.  A run starts at the first segment and after every longer gap.
 
     Parameters
     ----------
@@ -354,6 +358,9 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
         Grid numbers (as ``grid``) of missing samples with known columns, and those columns ``[u |
         dv]``, shape (m, n_inputs + k) (:meth:`LoggedData.fill_on_grid`); the measured disturbances
         beyond the first ``k`` (candidate channels added to the model since) are held.
+    gap_inputs : bool
+        Fit and subtract the response to the unknown columns of the short gaps (default); False: the
+        model's run with the columns held, as it is.
 
     Returns
     -------
@@ -392,8 +399,16 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
         jumps = np.flatnonzero(np.diff(at) > 1)        # the run's first gap: its noise model is fitted before it
         sig = compute_signals(model, run_samples(r, run), u_run, run_samples(y, run), initial_state, dv=dv_run,
                               clean=int(at[jumps[0]]) + 1 if jumps.size else None)
-        parts.append(LoopSignals(**{f.name: getattr(sig, f.name)[at] for f in dataclasses.fields(LoopSignals)
-                                    if f.name != "initial_state"}, initial_state=sig.initial_state))
+        sig = LoopSignals(**{f.name: getattr(sig, f.name)[at] for f in dataclasses.fields(LoopSignals)
+                             if f.name != "initial_state"}, initial_state=sig.initial_state)
+        # The response to the columns the log lost in the run's gaps, fitted to the error after them.
+        known = at if fill is None or not np.any(inside) else np.union1d(at, where[inside])
+        unknown = np.setdiff1d(np.arange(int(at[-1]) + 1), known, assume_unique=True)
+        lost = gap_response(model, sig.d, at, unknown) if gap_inputs else None
+        if lost is not None and np.any(lost):
+            sig = LoopSignals(yhat=sig.yhat + lost, d=sig.d - lost, eps=sig.eps + lost, transient=sig.transient,
+                              initial_state=sig.initial_state)
+        parts.append(sig)
     return LoopSignals(**{f.name: np.vstack([getattr(p, f.name) for p in parts])
                           for f in dataclasses.fields(LoopSignals) if f.name != "initial_state"},
                        initial_state=parts[0].initial_state if parts else initial_state)
@@ -440,10 +455,17 @@ def scored_segments(segments, *models: PlantModel, settled: bool = False, restar
     return segments[:1] + [(min(a + skip, b) if k in restarts else a, b) for k, (a, b) in enumerate(segments) if k]
 
 
-def unknown_starts(segments, grid: np.ndarray, max_gap: int, fill: Optional[tuple] = None) -> list:
+def unknown_starts(segments, grid: np.ndarray, max_gap: int, fill: Optional[tuple] = None,
+                   model: Optional[PlantModel] = None) -> list:
     """The segments (after the first) whose start still carries an unknown: after a gap longer than
     ``max_gap`` (the model restarts there, :func:`segment_signals`) or after a short gap with a
-    sample whose columns are unknown (held through it).  The ``restarts`` of :func:`scored_segments`.
+    sample whose columns are unknown (held through it) when their response is not fitted.  The
+    ``restarts`` of :func:`scored_segments`.
+
+    :func:`segment_signals` fits the response to a short gap's unknown columns
+    (:func:`~mpm_monitor.core.gap_inputs.gap_response`) on every element whose response decays; an
+    integrating element's is not fitted (the output's level moves for good).  So with ``model``
+    given and none of its outputs integrating, a short gap restarts nothing.
 
     Parameters
     ----------
@@ -452,16 +474,20 @@ def unknown_starts(segments, grid: np.ndarray, max_gap: int, fill: Optional[tupl
     max_gap : int
     fill : tuple (ndarray of int, ndarray), optional
         Grid numbers of missing samples whose columns are known (:meth:`LoggedData.fill_on_grid`).
+    model : PlantModel, optional
+        The model run through the short gaps (default: none known, every short gap with an unknown
+        sample restarts).
 
     Returns
     -------
     list of int
     """
     known = set() if fill is None else {int(k) for k in np.asarray(fill[0])}
+    fitted = model is not None and not any(model.integrating_outputs)
     out = []
     for k in range(1, len(segments)):
         lo, hi = int(grid[segments[k - 1][1] - 1]), int(grid[segments[k][0]])
-        if hi - lo - 1 > max_gap or any(m not in known for m in range(lo + 1, hi)):
+        if hi - lo - 1 > max_gap or (not fitted and any(m not in known for m in range(lo + 1, hi))):
             out.append(k)
     return out
 

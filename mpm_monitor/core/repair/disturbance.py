@@ -123,7 +123,8 @@ def not_tested() -> dict:
 
 
 def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: float = 0.01, trim: float = 0.15,
-                            noise_order: int = 4, segments=None, scale: Optional[float] = None) -> dict:
+                            noise_order: int = 4, segments=None, scale: Optional[float] = None,
+                            levels=None) -> dict:
     """Test one residual for a step or a linear drift on top of AR(p)-coloured noise.
 
     Parameters
@@ -142,6 +143,11 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
         Data with gaps: the contiguous runs ``(first, end)`` of the samples of ``d``.  The AR terms
         then never reach across a gap and every segment has its own offset (a step is searched
         inside the segments; ``time`` counts the samples of ``d``, not the missing ones).
+    levels : sequence of int, optional
+        With ``segments``, the level of each segment (non-decreasing): segments of one level share
+        their offset, and a step is searched inside each level (the model runs through the short gaps
+        between them, :attr:`~mpm_monitor.core.repair.record._Record.levels`).  Default: every segment
+        a level of its own.
     scale : float, optional
         The spread of the signal ``d`` is the error of (the output's standard deviation, output
         units): a ``d`` whose standard deviation is below :data:`EXACT_FIT` times it is not tested.
@@ -183,16 +189,19 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
         X = np.column_stack([np.ones(yv.shape[0]), lags])
         index = None
     else:
-        parts = [(int(a), int(b)) for a, b in segments if b - a > p + 1]
+        level_of = list(range(len(segments))) if levels is None else [int(x) for x in levels]
+        kept = [(int(a), int(b), lev) for (a, b), lev in zip(segments, level_of) if b - a > p + 1]
+        parts = [(a, b) for a, b, _ in kept]
         if not parts:
             return out
         index = np.concatenate([np.arange(a + p, b) for a, b in parts])      # the sample of d of every row
         yv = dz[index]
         lags = np.vstack([lag_matrix(dz[a:b], range(1, p + 1), p) for a, b in parts])
-        offsets = np.zeros((yv.shape[0], len(parts)))
+        names = list(dict.fromkeys(lev for _, _, lev in kept))
+        offsets = np.zeros((yv.shape[0], len(names)))
         at = 0
-        for q, (a, b) in enumerate(parts):
-            offsets[at:at + b - a - p, q] = 1.0
+        for a, b, lev in kept:
+            offsets[at:at + b - a - p, names.index(lev)] = 1.0
             at += b - a - p
         X = np.column_stack([offsets, lags])
     step = _step_wald(X, yv, trim)
@@ -210,9 +219,12 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
     if step_hit and (not drift_hit or ssr_step <= ssr_drift):
         if index is None:
             size = float(np.mean(d[kb:]) - np.mean(d[:kb]))
-        else:                     # within the step's segment (every segment has a level of its own)
-            a, b = next((a, b) for a, b in parts if a + p <= kb < b)
-            size = float(np.mean(d[kb:b]) - np.mean(d[a:kb]))
+        else:                     # within the step's level (the segments sharing its offset)
+            lev = next(lev for a, b, lev in kept if a + p <= kb < b)
+            same = [(a, b) for a, b, other in kept if other == lev]
+            before = np.concatenate([d[a:min(b, kb)] for a, b in same if a < kb])
+            after = np.concatenate([d[max(a, kb):b] for a, b in same if b > kb])
+            size = float(np.mean(after) - np.mean(before))
         out.update(detected=True, kind="step", size=size, time=kb * sample_time, index=kb, p_value=p_step,
                    statistic=w_step)
     else:

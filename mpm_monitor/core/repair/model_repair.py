@@ -262,6 +262,7 @@ def _evaluate(rec: _Record, results: dict) -> _Evaluation:
     sig = rec.signals if repaired == rec.model else rec.signals_of(repaired)
     d = np.asarray(sig.d, float)
     segments = rec.scored_segments(rec.model, repaired, settled=True)
+    levels = rec.levels
     tests = {}
     for i in range(rec.model.n_outputs):
         # An output whose prediction error did not change (its row not repaired) keeps its test.
@@ -269,7 +270,7 @@ def _evaluate(rec: _Record, results: dict) -> _Evaluation:
         if done is None or done[1] != segments or not np.array_equal(done[0], d[:, i]):
             done = rec.tests[i] = (d[:, i].copy(), segments,
                                    _disturbance_test(d[:, i], segments, float(rec.spread[i]), rec.model, rec.options,
-                                                     bool(rec.moving[i])))
+                                                     bool(rec.moving[i]), levels))
         tests[i] = dict(done[2])
     _one_family(tests, rec.options.disturbance_alpha)
     if rec.segments is not None:      # the step's time since the first sample, the missing samples counted

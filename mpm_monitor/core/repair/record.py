@@ -212,11 +212,24 @@ class _Record:
     @property
     def restarts(self) -> Optional[list]:
         """With gaps, the segments whose start still carries an unknown (after a gap longer than the
-        option ``max_gap``, or with a sample of unknown columns; every segment after the first when
-        ``max_gap`` is None): :func:`~mpm_monitor.core.signals.unknown_starts`."""
+        option ``max_gap``, or with a sample of unknown columns whose response is not fitted; every segment
+        after the first when ``max_gap`` is None): :func:`~mpm_monitor.core.signals.unknown_starts` of the
+        model as given."""
         if self.segments is None or self.options.max_gap is None:
             return None
-        return unknown_starts(self.segments, self.data.grid_index, self.options.max_gap, self.data.fill_on_grid())
+        return unknown_starts(self.segments, self.data.grid_index, self.options.max_gap, self.data.fill_on_grid(),
+                              self.model)
+
+    @property
+    def levels(self) -> Optional[list]:
+        """With gaps, the level of every segment: segments that no restart (:attr:`restarts`) separates
+        share one (the model runs through the gaps between them, and the response to their unknown
+        columns is fitted), ``[0, 0, 1, ...]``; None without gaps."""
+        if self.segments is None:
+            return None
+        restarts = self.restarts
+        restarts = set(range(1, len(self.segments))) if restarts is None else set(restarts)
+        return [int(x) for x in np.cumsum([k in restarts for k in range(len(self.segments))])]
 
     def holdout(self, d: np.ndarray, keep: Optional[np.ndarray], extra: Optional[np.ndarray] = None) -> float:
         """RMS of :meth:`holdout_residual` of ``d`` (shape (n_samples,)) over the samples ``keep`` (:meth:`scored`;
