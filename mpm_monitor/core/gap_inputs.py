@@ -27,6 +27,7 @@ arbitrary).  Its gaps keep the held columns.
 
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
 import numpy as np
@@ -43,6 +44,10 @@ GAP_RIDGE = 1e-9
 def decaying_impulses(model: PlantModel, i: int, n_max: int,
                       fraction: float = GAP_RESPONSE_FRACTION) -> list:
     """The impulse responses of row ``i``'s non-zero, non-integrating elements, each cut where it has decayed.
+
+    Each is computed over its dead time and ``(tau + tau2) ln(1 / fraction)`` samples more (where its slowest
+    lag has decayed to ``fraction``; a step-response element: its coefficients), at most ``n_max``, then cut
+    after its last sample above ``fraction`` of its largest.
 
     Parameters
     ----------
@@ -62,11 +67,20 @@ def decaying_impulses(model: PlantModel, i: int, n_max: int,
     out = []
     if n_max <= 0:
         return out
+    step = model.step_response is not None
     for j in range(model.n_columns):
-        el = model.discrete_element(i, j)
-        if el.is_zero or el.integrating:
+        if (model.ramp[i] if step else model.integrating[i, j]) or not model.present[i, j]:
             continue
-        h = el.impulse_response(int(n_max))
+        el = model.discrete_element(i, j)
+        if el.is_zero:
+            continue
+        if step:            # a finite impulse response: its coefficients
+            n = el.delay + el.num.size
+        else:               # the slowest lag decays to the fraction within (tau + tau2) ln(1 / fraction)
+            reach = (float(model.time_constant[i, j]) + float(model.time_constant2[i, j])) / model.sample_time \
+                * math.log(1.0 / fraction)
+            n = int(model.delay_samples[i, j]) + int(math.ceil(reach)) + 2 if reach < n_max else n_max
+        h = el.impulse_response(int(min(n, n_max)))
         peak = float(np.max(np.abs(h))) if h.size else 0.0
         if not peak > 0.0:
             continue
