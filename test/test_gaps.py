@@ -234,6 +234,36 @@ def test_disturbance_test_with_gaps_keeps_each_spans_level_and_finds_a_step_insi
     assert got["size"] == pytest.approx(0.05, abs=0.02)
 
 
+def test_disturbance_test_shares_a_level_across_short_gaps():
+    """Segments of one level share an offset (the model ran through the gaps between them): a step across a
+    short gap is found there, where a level per segment takes it as the next segment's own level."""
+    rng = np.random.default_rng(8)
+    n = 3000
+    segments = [(0, 700), (700, 1500), (1500, 2200), (2200, 3000)]
+    noise = 0.005 * rng.standard_normal(n)
+    across = noise + 0.05 * (np.arange(n) >= 1500)                      # at a gap inside level 0
+    assert unexplained_disturbance(across, segments=segments, levels=[0, 0, 0, 1])["detected"]
+    assert not unexplained_disturbance(across, segments=segments)["detected"]     # a level per segment hides it
+
+
+def test_disturbance_test_with_many_levels_keeps_its_level():
+    """The paper's coloured noise cut into 1 to 12 levels of random lengths: reports stay at about alpha
+    (the levels' smallest p-value Bonferroni-adjusted over the levels searched)."""
+    from test_repair import _paper_noise
+
+    rng = np.random.default_rng(2025)
+    trials, alarms = 300, 0
+    for _ in range(trials):
+        n = 2000
+        cuts = np.sort(rng.choice(np.arange(100, n - 100), size=int(rng.integers(0, 12)), replace=False))
+        edges = [0, *cuts.tolist(), n]
+        segments = list(zip(edges[:-1], edges[1:]))
+        levels = list(range(len(segments)))
+        alarms += unexplained_disturbance(_paper_noise(rng, n), alpha=0.01, segments=segments,
+                                          levels=levels)["detected"]
+    assert alarms <= 8          # Binomial(300, 0.01): P(X >= 9) < 0.5 %
+
+
 def test_the_model_runs_through_a_short_gap_and_restarts_after_a_long_one(case_32):
     """Through a short gap the model's state carries on (its columns held at their last logged values):
     where the inputs did not move in the gap, the prediction error after it is the whole log's.  A gap

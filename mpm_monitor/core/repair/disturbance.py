@@ -60,11 +60,11 @@ def _row_quadratic_forms(q: np.ndarray, a: np.ndarray) -> np.ndarray:
     return out
 
 
-def _step_wald(X: np.ndarray, yv: np.ndarray, trim: float):
+def _step_wald(X: np.ndarray, yv: np.ndarray, trim: float, windows=None):
     """The largest Wald statistic of a level shift in ``yv = X b + c 1(row >= k) + e`` over ``k``.
 
-    Breaks are searched from ``trim`` to ``1 - trim`` of the rows; the statistic of every break is
-    computed at once by Frisch-Waugh with cumulative sums.
+    Breaks are searched from ``trim`` to ``1 - trim`` of the rows (with ``windows``, of the rows of each
+    window); the statistic of every break is computed at once by Frisch-Waugh with cumulative sums.
 
     Parameters
     ----------
@@ -72,10 +72,14 @@ def _step_wald(X: np.ndarray, yv: np.ndarray, trim: float):
         The offset and AR columns.
     yv : ndarray, shape (n_rows,)
     trim : float
+    windows : sequence of (int, int), optional
+        Row ranges ``(first, end)`` searched each on its own (the rows of one level, whose offset is a column
+        of ``X``); default all the rows as one.
 
     Returns
     -------
-    (statistic, break row, SSR with the step) or None when no break can be estimated.
+    (statistic, break row, SSR with the step) or None when no break can be estimated; with ``windows``, a
+    list of them, one per window (None for a window without a break to estimate).
     """
     n = yv.shape[0]
     xtx_inv = np.linalg.pinv(X.T @ X)
@@ -87,18 +91,25 @@ def _step_wald(X: np.ndarray, yv: np.ndarray, trim: float):
     se = np.cumsum(e[::-1])[::-1]                    # sum_{t>=k} e[t]
     cnt = n - np.arange(n, dtype=float)
     denom = cnt - _row_quadratic_forms(q, xtx_inv)
-    k_lo, k_hi = int(math.ceil(trim * n)), int(math.floor((1 - trim) * n))
-    ks = np.arange(max(k_lo, 1), max(k_hi, k_lo + 1))
-    ok = denom[ks] > 1e-9 * cnt[ks]
-    ks = ks[ok]
-    if ks.size == 0:
-        return None
-    num = se[ks] ** 2 / denom[ks]
     dof = n - X.shape[1] - 1
-    s2 = (ssr0 - num) / dof
-    wald = num / np.maximum(s2, 1e-300)
-    best = int(np.argmax(wald))
-    return float(wald[best]), int(ks[best]), ssr0 - float(num[best])
+
+    def best(lo: int, hi: int):
+        m = hi - lo
+        k_lo, k_hi = lo + int(math.ceil(trim * m)), lo + int(math.floor((1 - trim) * m))
+        ks = np.arange(max(k_lo, 1), max(k_hi, k_lo + 1))
+        ks = ks[ks < n]
+        ks = ks[denom[ks] > 1e-9 * cnt[ks]]
+        if ks.size == 0:
+            return None
+        num = se[ks] ** 2 / denom[ks]
+        s2 = (ssr0 - num) / dof
+        wald = num / np.maximum(s2, 1e-300)
+        top = int(np.argmax(wald))
+        return float(wald[top]), int(ks[top]), ssr0 - float(num[top])
+
+    if windows is None:
+        return best(0, n)
+    return [best(int(a), int(b)) for a, b in windows]
 
 
 def _drift_wald(X: np.ndarray, yv: np.ndarray):
@@ -145,9 +156,10 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
         inside the segments; ``time`` counts the samples of ``d``, not the missing ones).
     levels : sequence of int, optional
         With ``segments``, the level of each segment (non-decreasing): segments of one level share
-        their offset, and a step is searched inside each level (the model runs through the short gaps
-        between them, :attr:`~mpm_monitor.core.repair.record._Record.levels`).  Default: every segment
-        a level of its own.
+        their offset (the model runs through the short gaps between them,
+        :attr:`~mpm_monitor.core.repair.record._Record.levels`).  A step is searched inside each level,
+        trimmed at both of its ends by ``trim``, and the smallest of the levels' p-values is
+        Bonferroni-adjusted over the levels searched.  Default: every segment a level of its own.
     scale : float, optional
         The spread of the signal ``d`` is the error of (the output's standard deviation, output
         units): a ``d`` whose standard deviation is below :data:`EXACT_FIT` times it is not tested.
@@ -204,11 +216,19 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
             offsets[at:at + b - a - p, names.index(lev)] = 1.0
             at += b - a - p
         X = np.column_stack([offsets, lags])
-    step = _step_wald(X, yv, trim)
+    if index is None:
+        step, searched = _step_wald(X, yv, trim), 1
+    else:
+        # Each level is searched on its own, trimmed at both of its ends (its first samples follow a restart of
+        # the model, whose settled start still carries what the initial-state estimate missed), and the
+        # smallest p-value is Bonferroni-adjusted over the levels searched.
+        edges = np.cumsum([0] + [int(np.sum(offsets[:, k])) for k in range(len(names))])
+        found = [w for w in _step_wald(X, yv, trim, list(zip(edges[:-1], edges[1:]))) if w is not None]
+        step, searched = (max(found, key=lambda w: w[0]) if found else None), len(found)
     if step is None:
         return out
     w_step, k_step, ssr_step = step
-    p_step = min(1.0, 2.0 * sup_wald_p_value(w_step, trim))
+    p_step = min(1.0, 2.0 * searched * sup_wald_p_value(w_step, trim))
     w_drift, ssr_drift = _drift_wald(X, yv)
     p_drift = min(1.0, 2.0 * float(chi2_tail(w_drift, 1)))
     out.update(p_step=p_step, p_drift=p_drift, p_value=min(p_step, p_drift), tested=True)
