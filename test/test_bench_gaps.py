@@ -84,3 +84,19 @@ def test_a_run_with_bursts_records_its_gaps(monkeypatch):
     again = gaps_mc.run_one("mc", "3", 0, 1500, 0.02, burst=6.0, split_gap=1500)   # ... but not with split_gap
     assert again["dropped"] == rec["dropped"] and seen[2].n_samples == offline.n_samples
     np.testing.assert_array_equal(seen[2].t, offline.t)
+
+
+def test_gap_transients_records_and_counts_a_run():
+    """bench.gap_transients: one run's record (the same drops as bench.gaps_mc's for the same run) and its table."""
+    from bench import gap_transients
+
+    rec = gap_transients.run_one("paper", "3.1", 1000, 1500, 0.01)
+    model, _, data, _ = family_log("paper", "3.1", 1000, 1500)
+    kept = gaps_mc.drop_rows(data.n_samples, 0.01, np.random.default_rng([1000, 0]))
+    assert rec["dropped"] == data.n_samples - kept.size > 0
+    for key in ("full", "offline"):
+        assert set(rec[key]) == {"located", "na", "disturbances"} and rec[key]["na"] >= 4
+    assert rec["same"] == (rec["full"]["located"] == rec["offline"]["located"])
+    summary = gap_transients.summarize([rec])
+    assert summary["paper"]["runs"] == 1 and summary["all"]["clean_runs"] == 1
+    assert "same located" in gap_transients.format_table(summary, 0.01)

@@ -64,7 +64,8 @@ def _step_wald(X: np.ndarray, yv: np.ndarray, trim: float, windows=None):
     """The largest Wald statistic of a level shift in ``yv = X b + c 1(row >= k) + e`` over ``k``.
 
     Breaks are searched from ``trim`` to ``1 - trim`` of the rows (with ``windows``, of the rows of each
-    window); the statistic of every break is computed at once by Frisch-Waugh with cumulative sums.
+    window and of all the rows); the statistic of every break is computed at once by Frisch-Waugh with
+    cumulative sums.
 
     Parameters
     ----------
@@ -96,6 +97,10 @@ def _step_wald(X: np.ndarray, yv: np.ndarray, trim: float, windows=None):
     def best(lo: int, hi: int):
         m = hi - lo
         k_lo, k_hi = lo + int(math.ceil(trim * m)), lo + int(math.floor((1 - trim) * m))
+        if windows is not None:           # and never at the record's ends (its initial transient, the last rows)
+            k_lo, k_hi = max(k_lo, int(math.ceil(trim * n))), min(k_hi, int(math.floor((1 - trim) * n)))
+            if k_hi <= k_lo:
+                return None
         ks = np.arange(max(k_lo, 1), max(k_hi, k_lo + 1))
         ks = ks[ks < n]
         ks = ks[denom[ks] > 1e-9 * cnt[ks]]
@@ -158,8 +163,9 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
         With ``segments``, the level of each segment (non-decreasing): segments of one level share
         their offset (the model runs through the short gaps between them,
         :attr:`~mpm_monitor.core.repair.record._Record.levels`).  A step is searched inside each level,
-        trimmed at both of its ends by ``trim``, and the smallest of the levels' p-values is
-        Bonferroni-adjusted over the levels searched.  Default: every segment a level of its own.
+        trimmed at both of its ends by ``trim`` (and never in the record's first or last ``trim``, as
+        without gaps), and the smallest of the levels' p-values is Bonferroni-adjusted over the levels
+        searched.  Default: every segment a level of its own.
     scale : float, optional
         The spread of the signal ``d`` is the error of (the output's standard deviation, output
         units): a ``d`` whose standard deviation is below :data:`EXACT_FIT` times it is not tested.
