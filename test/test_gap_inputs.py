@@ -70,12 +70,13 @@ def test_it_removes_the_response_to_a_lost_move():
 
 
 def test_an_integrating_element_and_a_sample_after_the_last_are_not_fitted():
-    """An integrating element's response never decays (the level it moves is every test's per-segment level): a
-    row of integrators gets no fitted response; a missing sample after the last logged one reaches none."""
+    """An integrating element's response never decays (the level it moves is every test's per-segment level): an
+    output with one gets no fitted response, even from its stable elements; a missing sample after the last
+    logged one reaches none."""
     model = PlantModel(sample_time=1.0, inputs=("u1", "u2"), outputs=("level", "y2"),
-                       gain=np.array([[0.02, 0.0], [1.0, 2.0]]), time_constant=np.array([[0.0, 0.0], [10.0, 20.0]]),
+                       gain=np.array([[0.02, 1.5], [1.0, 2.0]]), time_constant=np.array([[0.0, 5.0], [10.0, 20.0]]),
                        delay=np.array([[1.0, 0.0], [2.0, 3.0]]), integrating=np.array([[True, False], [False, False]]))
-    assert [j for j, _ in decaying_impulses(model, 0, 100)] == []
+    assert [j for j, _ in decaying_impulses(model, 0, 100)] == [1]
     assert [j for j, _ in decaying_impulses(model, 1, 100)] == [0, 1]
     rng = np.random.default_rng(0)
     at = np.setdiff1d(np.arange(300), [120])

@@ -22,7 +22,8 @@ held value).
 
 An integrating element's response never decays: a pulse of its input moves the output's level for
 good, which every test already takes out segment by segment (an integrating output's level is
-arbitrary).  Its gaps keep the held columns.
+arbitrary).  An output with an integrating element is not fitted at all (decaying responses fitted
+to an error that also steps at every gap would take up part of the steps): it keeps the held columns.
 """
 
 from __future__ import annotations
@@ -111,8 +112,8 @@ def gap_response(model: PlantModel, d: np.ndarray, at: np.ndarray, unknown: Sequ
     Returns
     -------
     ndarray, shape (n, n_outputs)
-        The response to subtract from ``d`` (and to add to the model output); zero in a row without a
-        decaying element, and everywhere without an unknown sample.
+        The response to subtract from ``d`` (and to add to the model output); zero in a row with an
+        integrating element or without a decaying one, and everywhere without an unknown sample.
     """
     d = np.asarray(d, dtype=float)
     at = np.asarray(at, dtype=np.int64)
@@ -124,7 +125,10 @@ def gap_response(model: PlantModel, d: np.ndarray, at: np.ndarray, unknown: Sequ
     if gaps.size == 0:
         return out
     n_max = int(at[-1] - gaps[0])
+    level = model.integrating_outputs
     for i in range(d.shape[1]):
+        if level[i]:            # its level moves for good at every gap: the row is left as the model ran
+            continue
         impulses = decaying_impulses(model, i, n_max, fraction)
         if impulses:
             out[:, i] = _row_response(d[:, i] - np.mean(d[:, i]), at, gaps, impulses, ridge)
