@@ -337,8 +337,8 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
     run's first gap when enough samples lie there (:func:`initial_transient`).  The plant received the
     columns the log lost inside a short gap, not the held ones: with ``gap_inputs`` the model's
     response to their unknown difference is fitted to the prediction error after the gap, row by row,
-    and subtracted (:func:`~mpm_monitor.core.gap_inputs.gap_response`; an integrating element's is
-    not).  The signals are returned at the logged samples only: no regression row or statistic reads a
+    and subtracted (:func:`~mpm_monitor.core.gap_inputs.gap_response`; not on an output with an
+    integrating element).  The signals are returned at the logged samples only: no regression row or statistic reads a
     held value.  A run starts at the first segment and after every longer gap.
 
     Parameters
@@ -378,6 +378,7 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
             continue
         at = run_places(run)                          # the rows' places on the run's grid, the columns held
         u_run, dv_run = run_samples(u, run), None if dv is None else run_samples(dv, run)
+        logged = at                                   # the places whose columns are known: logged, or filled
         if fill is not None:
             where = np.asarray(fill[0], dtype=np.int64) - int(grid[a])
             inside = (where > 0) & (where < at[-1])
@@ -391,8 +392,8 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
                     dv_run = np.array(dv_run, dtype=float)
                     dv_run[where[inside], :known] = cols[:, nu:nu + dv_run.shape[1]]
                 # A missing sample after a filled one holds the filled columns (the last the controller sent).
-                known = np.union1d(at, where[inside])
-                last = known[held_rows(known)[0]]
+                logged = np.union1d(at, where[inside])
+                last = logged[held_rows(logged)[0]]
                 u_run = u_run[last]
                 if dv_run is not None:
                     dv_run = dv_run[last]
@@ -402,8 +403,7 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
         sig = LoopSignals(**{f.name: getattr(sig, f.name)[at] for f in dataclasses.fields(LoopSignals)
                              if f.name != "initial_state"}, initial_state=sig.initial_state)
         # The response to the columns the log lost in the run's gaps, fitted to the error after them.
-        known = at if fill is None or not np.any(inside) else np.union1d(at, where[inside])
-        unknown = np.setdiff1d(np.arange(int(at[-1]) + 1), known, assume_unique=True)
+        unknown = np.setdiff1d(np.arange(int(at[-1]) + 1), logged, assume_unique=True)
         lost = gap_response(model, sig.d, at, unknown) if gap_inputs else None
         if lost is not None and np.any(lost):
             sig = LoopSignals(yhat=sig.yhat + lost, d=sig.d - lost, eps=sig.eps + lost, transient=sig.transient,
@@ -463,9 +463,9 @@ def unknown_starts(segments, grid: np.ndarray, max_gap: int, fill: Optional[tupl
     ``restarts`` of :func:`scored_segments`.
 
     :func:`segment_signals` fits the response to a short gap's unknown columns
-    (:func:`~mpm_monitor.core.gap_inputs.gap_response`) on every element whose response decays; an
-    integrating element's is not fitted (the output's level moves for good).  So with ``model``
-    given and none of its outputs integrating, a short gap restarts nothing.
+    (:func:`~mpm_monitor.core.gap_inputs.gap_response`) on every output without an integrating
+    element; an output with one is not fitted (its level moves for good).  So with ``model`` given
+    and none of its outputs integrating, a short gap restarts nothing.
 
     Parameters
     ----------
