@@ -37,7 +37,7 @@ from mpm_monitor.core.pipeline import analyze
 from mpm_monitor.sim.cases import CASE_NAMES
 
 from . import map_runs, write_json
-from .gaps_mc import drop_rows
+from .gaps_mc import run_drops
 from .monte_carlo import family_log
 
 DEFAULT_OUT = "bench/results/gap_transients.json"
@@ -57,8 +57,7 @@ def _findings(model, data) -> dict:
 def run_one(kind: str, name: str, seed: int, samples: int, drop: float) -> dict:
     """One run: the whole log and the log with the drops analysed; a JSON-ready record."""
     model, _, data, truth = family_log(kind, name, seed, samples)
-    rng_seed = (seed, CASE_NAMES.index(name)) if kind == "paper" else (seed, int(name), 7)
-    kept = drop_rows(data.n_samples, drop, np.random.default_rng(list(rng_seed)))
+    kept = run_drops(kind, name, seed, data.n_samples, drop)
     rec = {"kind": kind, "name": name, "seed": seed, "truth": truth, "dropped": int(data.n_samples - kept.size),
            "full": _findings(model, data), "offline": _findings(model, data.take(kept))}
     rec["same"] = "error" not in rec["full"] and "error" not in rec["offline"] \

@@ -116,6 +116,15 @@ def drop_bursts(n: int, probability: float, mean: float, rng: np.random.Generato
     return np.flatnonzero(keep)
 
 
+def run_drops(kind: str, name: str, seed: int, n: int, drop: float, burst: float = 1.0) -> np.ndarray:
+    """The rows kept of run ``(kind, name, seed)``'s ``n`` samples: each dropped with probability ``drop``
+    (:func:`drop_rows`), or in bursts of mean length ``burst`` > 1 (:func:`drop_bursts`), a pure function of the
+    run (the benches that drop samples from these runs drop the same ones)."""
+    rng_seed = (seed, CASE_NAMES.index(name)) if kind == "paper" else (seed, int(name), 7 if kind == "mc" else 8)
+    rng = np.random.default_rng(list(rng_seed))
+    return drop_rows(n, drop, rng) if burst <= 1 else drop_bursts(n, drop, burst, rng)
+
+
 def live_window_data(data: LoggedData, kept: np.ndarray, max_gap: int = 10, split_gap: int = 0) -> LoggedData:
     """The samples ``kept`` of ``data`` fed one by one into a SampleWindow; the window's data at the end."""
     ts = data.sample_time
@@ -171,9 +180,7 @@ def run_one(kind: str, name: str, seed: int, samples: int, drop: float, repair: 
         from .step_models import step_form
 
         model = step_form(model)
-    rng_seed = (seed, CASE_NAMES.index(name)) if kind == "paper" else (seed, int(name), 7 if kind == "mc" else 8)
-    rng = np.random.default_rng(list(rng_seed))
-    kept = drop_rows(data.n_samples, drop, rng) if burst <= 1 else drop_bursts(data.n_samples, drop, burst, rng)
+    kept = run_drops(kind, name, seed, data.n_samples, drop, burst)
     offline = data.take(kept)
     live = live_window_data(data, kept, split_gap=split_gap)
     rec = {"kind": kind, "name": name, "seed": seed, "truth": truth, "dropped": int(data.n_samples - kept.size),
