@@ -2,7 +2,9 @@
 
 Under colcon, ``setup.cfg`` puts the console scripts (the nodes, the launchers, ``mpm_analyze``) in
 ``lib/mpm_monitor/``, where ``ros2 run`` finds them; ``share/mpm_monitor/`` gets ``package.xml`` and the
-params files ``config/*.yaml`` (the launchers' defaults).
+params files ``config/*.yaml`` (the launchers' defaults).  The nodes' console scripts start in
+:mod:`mpm_monitor.nodes.entry`, which imports the node (rclpy, numpy) only once it can end a Ctrl-C
+quietly.
 """
 
 from glob import glob
@@ -30,12 +32,12 @@ setup(
     entry_points={
         "console_scripts": [
             "mpm_analyze = mpm_monitor.apps.cli:main_analyze",
-            "plant_node = mpm_monitor.nodes.plant_node:main",
-            "mpc_node = mpm_monitor.nodes.mpc_node:main",
-            "setpoint_node = mpm_monitor.nodes.setpoint_node:main",
-            "monitor_node = mpm_monitor.nodes.monitor_node:main",
-            "recorder_node = mpm_monitor.nodes.recorder_node:main",
-            "replay_node = mpm_monitor.nodes.replay_node:main",
+            "plant_node = mpm_monitor.nodes.entry:plant_node",
+            "mpc_node = mpm_monitor.nodes.entry:mpc_node",
+            "setpoint_node = mpm_monitor.nodes.entry:setpoint_node",
+            "monitor_node = mpm_monitor.nodes.entry:monitor_node",
+            "recorder_node = mpm_monitor.nodes.entry:recorder_node",
+            "replay_node = mpm_monitor.nodes.entry:replay_node",
             "suite_inprocess = mpm_monitor.apps.launchers.suite_inprocess:main",
             "suite_processes = mpm_monitor.apps.launchers.suite_processes:main",
             "monitor_only = mpm_monitor.apps.launchers.monitor_only:main",

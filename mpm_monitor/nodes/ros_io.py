@@ -579,13 +579,18 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
     -------
     int
         0 after a stop, 2 (with one line ``error: ...`` on stderr) when the node refuses its
-        parameters or inputs (:class:`~mpm_monitor.core.errors.InputError`), or the node's
-        ``exit_code`` when it asked to end (the recorder's 1: its bag could not be written).
+        parameters or inputs (:class:`~mpm_monitor.core.errors.InputError`), 130 (with one line
+        ``<program>: interrupted while starting``) after a Ctrl-C that came before the signal
+        handlers below were in place, or the node's ``exit_code`` when it asked to end (the
+        recorder's 1: its bag could not be written).
 
     Notes
     -----
     BLAS is limited to one thread first (:func:`mpm_monitor.limit_blas_threads`; the monitor's
-    analysis process starts after this).  SIGINT and SIGTERM only set a flag that the spin loop
+    analysis process starts after this).  Until ``rclpy`` is imported and initialised, a Ctrl-C
+    raises ``KeyboardInterrupt`` as usual: it is caught, the context shut down if it was
+    initialised, and the process ends quietly (:func:`mpm_monitor.nodes.entry.interrupted`).
+    From then on SIGINT and SIGTERM only set a flag that the spin loop
     checks, so a callback is never interrupted half-way.  The loop also ends when the node's
     ``exit_requested`` turns true.  Then the node's ``drain(executor)``, if it has one, handles what
     is already under way (the recorder takes the messages already delivered, the replay lets its
@@ -594,28 +599,40 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
     """
     import signal
 
-    limit_blas_threads()
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.signals import SignalHandlerOptions
+    from .entry import interrupted, program_name
 
-    context = Context()
-    problem = params_file_problem(sys.argv if args is None else args)
-    if problem:
-        print(f"error: {problem}", file=sys.stderr)
-        return 2
-    try:
-        rclpy.init(args=args, context=context, signal_handler_options=SignalHandlerOptions.NO)
-    except Exception as exc:       # noqa: BLE001 - a params file that is missing or not YAML, bad --ros-args
-        text = " ".join(str(exc).split())
-        print(f"error: ROS arguments: {text[:300] or type(exc).__name__}", file=sys.stderr)
-        return 2
+    limit_blas_threads()
     stop = {"requested": False}
 
     def on_signal(signum, frame):
         stop["requested"] = True
 
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    context = None
+    previous = {}
+    try:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.signals import SignalHandlerOptions
+
+        context = Context()
+        problem = params_file_problem(sys.argv if args is None else args)
+        if problem:
+            print(f"error: {problem}", file=sys.stderr)
+            return 2
+        try:
+            rclpy.init(args=args, context=context, signal_handler_options=SignalHandlerOptions.NO)
+        except Exception as exc:       # noqa: BLE001 - a params file that is missing or not YAML, bad --ros-args
+            text = " ".join(str(exc).split())
+            print(f"error: ROS arguments: {text[:300] or type(exc).__name__}", file=sys.stderr)
+            return 2
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, on_signal)
+    except KeyboardInterrupt:          # a Ctrl-C before the handlers were in place
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        if context is not None and context.ok():
+            context.try_shutdown()
+        return interrupted(program_name())
     node = None
     try:
         try:
