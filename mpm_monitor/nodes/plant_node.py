@@ -17,6 +17,17 @@ Two ways to run:
   time with ``use_sim_time``) it applies the latest ``u`` (held if none came), advances and
   publishes ``y``; with ``publish_clock`` it also paces ``/clock`` at ``k * Ts`` in real time.
 
+**A plant that diverges.** Every reader refuses a vector holding a value that is not finite or beyond
+:data:`~mpm_monitor.core.logged_data.MAX_ANALYSIS_SCALE` (1e40; :meth:`VectorCodec.decode
+<mpm_monitor.nodes.ros_io.VectorCodec.decode>`).  When ``y(k)`` (or ``dv(k)``) holds one -- an unstable
+loop -- the node publishes nothing of sample ``k`` (no clock, no ``dv(k)``, no ``y(k)``) nor after it, logs
+one error naming the sample's time, the channels and their values, stops its timers and asks to end:
+:func:`~mpm_monitor.nodes.ros_io.run_node` returns its ``exit_code``.
+
+**Exit codes** (the process, ``main``): 0 after a stop (SIGINT, SIGTERM) or after ``max_samples`` with
+``exit_when_done``; 1 after the plant diverged (above); 2 for a bad parameter or params file; 130 for a Ctrl-C
+while it starts.
+
 Parameters (all declared with type, description and range): see :data:`PARAMS`.
 """
 
@@ -31,7 +42,9 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 
+from ..core.logged_data import MAX_ANALYSIS_SCALE
 from ..core.options import ParamSpec
+from ..monitor.window import seconds_text
 from ..sim.closed_loop import seeded_generators
 from ..sim.excitation import MeasuredDisturbanceGenerator, MeasuredDisturbanceOptions
 from ..sim.plant import DisturbanceOptions, PlantSimulator
@@ -97,6 +110,58 @@ def measured_disturbance_options_from_params(p: dict) -> MeasuredDisturbanceOpti
                                       offset=p["dv_offset"])
 
 
+def unreadable_values(names, values) -> list:
+    """The channels whose values no reader takes: not finite or beyond
+    :data:`~mpm_monitor.core.logged_data.MAX_ANALYSIS_SCALE` (what :meth:`VectorCodec.decode
+    <mpm_monitor.nodes.ros_io.VectorCodec.decode>` refuses).
+
+    Parameters
+    ----------
+    names : sequence of str
+        The channels' names.
+    values : array_like, shape (len(names),)
+
+    Returns
+    -------
+    list of (str, float)
+        ``(name, value)`` of each such channel, in channel order (empty: all can be published).
+    """
+    v = np.asarray(values, dtype=float).reshape(-1)
+    bad = ~np.isfinite(v)
+    bad[~bad] = np.abs(v[~bad]) > MAX_ANALYSIS_SCALE
+    return [(names[i], float(v[i])) for i in np.flatnonzero(bad)]
+
+
+def divergence_text(stamp_ns: int, bad, disturbances: bool = False) -> str:
+    """The error line of a plant whose outputs (or measured disturbances) left what readers take.
+
+    Parameters
+    ----------
+    stamp_ns : int
+        The sample's stamp, nanoseconds.
+    bad : list of (str, float)
+        :func:`unreadable_values` of ``y(k)``, or of ``dv(k)``.
+    disturbances : bool
+        ``bad`` are measured disturbances, not outputs.
+
+    Returns
+    -------
+    str
+        For example "the plant diverged: y2 = 3.2e+41 at t = 412 s is beyond 1e+40, which no reader takes; the
+        simulation stops (an unstable loop? check the model and the controller's tuning)".
+    """
+    finite = [bool(np.isfinite(v)) for _, v in bad]
+    what = (f"beyond {MAX_ANALYSIS_SCALE:g}" if all(finite) else "not finite" if not any(finite)
+            else f"not finite or beyond {MAX_ANALYSIS_SCALE:g}")
+    values = ", ".join(f"{'measured disturbance ' * disturbances}{n} = {v:.3g}" for n, v in bad)
+    verb = "is" if len(bad) == 1 else "are"
+    lead, hint = (("the measured disturbances left the range readers take", "check the dv_* parameters")
+                  if disturbances else
+                  ("the plant diverged", "an unstable loop? check the model and the controller's tuning"))
+    return (f"{lead}: {values} at t = {seconds_text(stamp_ns)} s {verb} {what}, which no reader takes; the "
+            f"simulation stops ({hint})")
+
+
 #: Seconds of waiting to start (autostart) before the plant logs what it waits for, and between two such lines.
 WAITING_LOG_AFTER = 5.0
 WAITING_LOG_PERIOD = 10.0
@@ -134,6 +199,10 @@ class PlantNode(Node):
         self.running = False
         self.finished = False
         self.exit_requested = False
+        #: 0, or 1 once the plant diverged (:meth:`_emit`): the process's exit code (run_node returns it).
+        self.exit_code = 0
+        #: The error line once an output or a measured disturbance left what readers take ("" while bounded).
+        self.diverged = ""
         self.rejected_inputs = 0
         self.held_inputs = 0
         self._u_latest: Optional[np.ndarray] = None
@@ -222,19 +291,42 @@ class PlantNode(Node):
         return self._t0_ns + self.k * self._period
 
     def _emit(self) -> None:
-        """Publish the clock, dv(k) (a plant with measured disturbances) and y(k)."""
+        """Publish the clock, dv(k) (a plant with measured disturbances) and y(k); or, when y(k) or dv(k)
+        holds a value no reader takes (the plant diverged), nothing: stop instead (:meth:`_stop_diverged`)."""
         stamp = self._stamp_ns()
-        if self._clock_pub is not None:
-            self._clock_pub.publish(ClockMsg(clock=ns_to_stamp(stamp)))
         dv = None
         if self.dv_generator is not None:
             dv = self.dv_generator.next()
+            bad = unreadable_values(self.model.disturbances, dv)
+            if bad:                   # checked first: the simulator refuses a dv that is not finite
+                self._stop_diverged(divergence_text(stamp, bad, disturbances=True))
+                return
+        y = self.sim.measure(dv=dv)
+        bad = unreadable_values(self.model.outputs, y)
+        if bad:
+            self._stop_diverged(divergence_text(stamp, bad))
+            return
+        if self._clock_pub is not None:
+            self._clock_pub.publish(ClockMsg(clock=ns_to_stamp(stamp)))
+        if dv is not None:
             self._dv_msg = self._dv_codec.encode(dv, stamp)
             self._dv_pub.publish(self._dv_msg)
-        y = self.sim.measure(dv=dv)
         self._expected_stamp = stamp
         self._y_msg = msg = self._y_codec.encode(y, stamp)
         self._pub.publish(msg)
+
+    def _stop_diverged(self, text: str) -> None:
+        """The plant diverged: log ``text`` once as an error, stop the timers and ask to end with exit code 1.
+
+        Publishing on would send values every reader refuses, one warning each, for ever.
+        """
+        self.diverged = text
+        self.running = False
+        for t in (self._tick_timer, self._stall_timer):
+            if t is not None:
+                t.cancel()
+        self.get_logger().error(text)
+        self.exit_requested, self.exit_code = True, 1
 
     def _advance(self, u: np.ndarray) -> None:
         self.sim.apply(u)
@@ -254,7 +346,8 @@ class PlantNode(Node):
         self._emit()
 
     def drain(self, executor) -> None:
-        """Leaving after max_samples (``exit_when_done``): wait until the readers have every vector sent.
+        """Leaving on its own (after max_samples with ``exit_when_done``, or diverged): wait until the readers
+        have every vector sent.
 
         Lock-step runs at the MPC's pace; a reader that runs behind (the monitor) still has the last
         hundreds of samples to receive when the plant is done, and a process that leaves at once loses

@@ -582,7 +582,7 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
         parameters or inputs (:class:`~mpm_monitor.core.errors.InputError`), 130 (with one line
         ``<program>: interrupted while starting``) after a Ctrl-C that came before the signal
         handlers below were in place, or the node's ``exit_code`` when it asked to end (the
-        recorder's 1: its bag could not be written).
+        recorder's 1: its bag could not be written; the plant's 1: it diverged).
 
     Notes
     -----
