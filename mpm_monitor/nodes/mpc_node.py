@@ -30,6 +30,18 @@ of that stamp gets the same ``u`` again (idempotent, in case the first one was l
 ``k = 0``), or a different ``y`` for the stamp just answered, restarts the controller: internal
 model and previous move reset, with a warning.
 
+**A controller that diverges.** Every reader refuses a vector holding a value that is not finite or beyond
+:data:`~mpm_monitor.core.logged_data.MAX_ANALYSIS_SCALE` (1e40; :meth:`VectorCodec.decode
+<mpm_monitor.nodes.ros_io.VectorCodec.decode>`): published, such a ``u(k)`` would keep the plant (lock-step)
+re-sending ``y(k)`` for it, and the plant and the monitor warning of each, for ever.  When ``u(k)`` (or an
+experiment's dither of sample ``k``) holds one -- an unstable loop, a near-singular controller -- the node
+publishes nothing of sample ``k`` (no dither, no ``u(k)``) nor after it, logs one error naming the sample's
+time, the channels and their values, takes no more vectors or experiments and asks to end:
+:func:`~mpm_monitor.nodes.ros_io.run_node` returns its ``exit_code``.
+
+**Exit codes** (the process, ``main``): 0 after a stop (SIGINT, SIGTERM); 1 after the controller diverged
+(above); 2 for a bad parameter or params file; 130 for a Ctrl-C while it starts.
+
 Parameters (all declared with type, description and range): see :data:`PARAMS`.
 """
 
@@ -59,6 +71,8 @@ from .ros_io import (
     resolve_model,
     run_node,
     topic_params,
+    unreadable_text,
+    unreadable_values,
     vector_qos,
 )
 
@@ -181,6 +195,31 @@ def parse_dither_request(parameters, inputs: Sequence[str], max_dither: float, m
     return amplitudes, samples
 
 
+def divergence_text(stamp_ns: int, bad, dither: bool = False) -> str:
+    """The error line of a controller whose input (or experiment's dither) left what readers take.
+
+    Parameters
+    ----------
+    stamp_ns : int
+        The sample's stamp, nanoseconds.
+    bad : list of (str, float)
+        :func:`~mpm_monitor.nodes.ros_io.unreadable_values` of ``u(k)``, or of the experiment's dither.
+    dither : bool
+        ``bad`` are the values of the dither, not of ``u(k)``.
+
+    Returns
+    -------
+    str
+        For example "the controller diverged: u3 = 4.1e+41 at t = 12 s is beyond 1e+40, which no reader takes;
+        the controller stops (an unstable loop? check the model and the tuning)".
+    """
+    lead, hint = (("the dither left the range readers take", "check the ~/start_dither request")
+                  if dither else
+                  ("the controller diverged", "an unstable loop? check the model and the tuning"))
+    label = "dither " if dither else ""
+    return f"{lead}: {unreadable_text(stamp_ns, bad, label)}; the controller stops ({hint})"
+
+
 class MpcNode(Node):
     """The MPC controller node (see the module docstring)."""
 
@@ -204,6 +243,11 @@ class MpcNode(Node):
         self.rejected = 0
         self.repeated = 0      # vectors re-sent for the stamp already answered (u re-sent for a y)
         self.restarts = 0      # stamps that went back: controller reset
+        self.exit_requested = False
+        #: 0, or 1 once the controller diverged (:meth:`_try`): the process's exit code (run_node returns it).
+        self.exit_code = 0
+        #: The error line once an input (or a dither) left what readers take ("" while bounded).
+        self.diverged = ""
         self._pub = self.create_publisher(JointState, p["input_topic"], vector_qos())
         q = vector_qos()
         self._subs = [self.create_subscription(JointState, self._codecs[key].topic,
@@ -274,6 +318,8 @@ class MpcNode(Node):
 
     def _on_vector(self, key: str, msg) -> None:
         """A setpoint (``r``), measurement (``y``), dither (``d``) or measured-disturbance (``v``) vector arrived."""
+        if self.diverged:
+            return  # stopped: the process is leaving (run_node), nothing more is answered
         try:
             stamp, values = self._codecs[key].decode(msg)
         except MessageError as exc:
@@ -320,8 +366,16 @@ class MpcNode(Node):
         experiment = None
         if self.experiment is not None:
             experiment = self.experiment.next()
+            bad = unreadable_values(self.model.inputs, experiment)
+            if bad:                   # checked first: the controller would take it into u(k)
+                self._stop_diverged(divergence_text(stamp, bad, dither=True))
+                return
             dither = experiment if dither is None else dither + experiment
         u = self.ctrl.step(r, y, dither, dv=dv)
+        bad = unreadable_values(self.model.inputs, u)
+        if bad:
+            self._stop_diverged(divergence_text(stamp, bad))
+            return
         self._last_done = stamp
         self._last_y = y
         self.steps += 1
@@ -332,6 +386,22 @@ class MpcNode(Node):
         if experiment is not None and not self.experiment.running:
             self.get_logger().info(f"dither experiment ended after {self.experiment.samples} samples")
             self._end_experiment(stamp + self._period_ns)
+
+    def _stop_diverged(self, text: str) -> None:
+        """The controller diverged: log ``text`` once as an error, stop (no vector answered, no experiment, the
+        running one dropped without its zero vector) and ask to end with exit code 1.
+
+        Publishing on would send inputs every reader refuses: the plant (lock-step) would re-send ``y(k)``
+        for ever, answered with the same ``u(k)``, and every reader would warn of each.
+        """
+        self.diverged = text
+        if self.experiment is not None:
+            self.experiment.stop()
+            self.experiment = None
+        for buf in self._buf.values():
+            buf.clear()
+        self.get_logger().error(text)
+        self.exit_requested, self.exit_code = True, 1
 
     # --------------------------------------------------------------------------- experiments
     def _end_experiment(self, stamp: int) -> None:
@@ -366,6 +436,8 @@ class MpcNode(Node):
 
     def _dither_refusal(self) -> Optional[str]:
         """Why no experiment can start now (None: it can)."""
+        if self.diverged:
+            return "the controller stopped: it diverged"
         if self.params["use_dither"]:
             return (f"this node adds the dither of {self.params['dither_topic']} (use_dither): no experiment "
                     f"on top of it")

@@ -42,9 +42,7 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 
-from ..core.logged_data import MAX_ANALYSIS_SCALE
 from ..core.options import ParamSpec
-from ..monitor.window import seconds_text
 from ..sim.closed_loop import seeded_generators
 from ..sim.excitation import MeasuredDisturbanceGenerator, MeasuredDisturbanceOptions
 from ..sim.plant import DisturbanceOptions, PlantSimulator
@@ -59,6 +57,8 @@ from .ros_io import (
     resolve_model,
     run_node,
     topic_params,
+    unreadable_text,
+    unreadable_values,
     vector_qos,
     wait_acked,
 )
@@ -110,28 +110,6 @@ def measured_disturbance_options_from_params(p: dict) -> MeasuredDisturbanceOpti
                                       offset=p["dv_offset"])
 
 
-def unreadable_values(names, values) -> list:
-    """The channels whose values no reader takes: not finite or beyond
-    :data:`~mpm_monitor.core.logged_data.MAX_ANALYSIS_SCALE` (what :meth:`VectorCodec.decode
-    <mpm_monitor.nodes.ros_io.VectorCodec.decode>` refuses).
-
-    Parameters
-    ----------
-    names : sequence of str
-        The channels' names.
-    values : array_like, shape (len(names),)
-
-    Returns
-    -------
-    list of (str, float)
-        ``(name, value)`` of each such channel, in channel order (empty: all can be published).
-    """
-    v = np.asarray(values, dtype=float).reshape(-1)
-    bad = ~np.isfinite(v)
-    bad[~bad] = np.abs(v[~bad]) > MAX_ANALYSIS_SCALE
-    return [(names[i], float(v[i])) for i in np.flatnonzero(bad)]
-
-
 def divergence_text(stamp_ns: int, bad, disturbances: bool = False) -> str:
     """The error line of a plant whose outputs (or measured disturbances) left what readers take.
 
@@ -140,7 +118,7 @@ def divergence_text(stamp_ns: int, bad, disturbances: bool = False) -> str:
     stamp_ns : int
         The sample's stamp, nanoseconds.
     bad : list of (str, float)
-        :func:`unreadable_values` of ``y(k)``, or of ``dv(k)``.
+        :func:`~mpm_monitor.nodes.ros_io.unreadable_values` of ``y(k)``, or of ``dv(k)``.
     disturbances : bool
         ``bad`` are measured disturbances, not outputs.
 
@@ -150,16 +128,11 @@ def divergence_text(stamp_ns: int, bad, disturbances: bool = False) -> str:
         For example "the plant diverged: y2 = 3.2e+41 at t = 412 s is beyond 1e+40, which no reader takes; the
         simulation stops (an unstable loop? check the model and the controller's tuning)".
     """
-    finite = [bool(np.isfinite(v)) for _, v in bad]
-    what = (f"beyond {MAX_ANALYSIS_SCALE:g}" if all(finite) else "not finite" if not any(finite)
-            else f"not finite or beyond {MAX_ANALYSIS_SCALE:g}")
-    values = ", ".join(f"{'measured disturbance ' * disturbances}{n} = {v:.3g}" for n, v in bad)
-    verb = "is" if len(bad) == 1 else "are"
     lead, hint = (("the measured disturbances left the range readers take", "check the dv_* parameters")
                   if disturbances else
                   ("the plant diverged", "an unstable loop? check the model and the controller's tuning"))
-    return (f"{lead}: {values} at t = {seconds_text(stamp_ns)} s {verb} {what}, which no reader takes; the "
-            f"simulation stops ({hint})")
+    label = "measured disturbance " if disturbances else ""
+    return f"{lead}: {unreadable_text(stamp_ns, bad, label)}; the simulation stops ({hint})"
 
 
 #: Seconds of waiting to start (autostart) before the plant logs what it waits for, and between two such lines.

@@ -221,6 +221,52 @@ class VectorCodec:
         return msg
 
 
+def unreadable_values(names, values) -> list:
+    """The channels whose values no reader takes: not finite or beyond
+    :data:`~mpm_monitor.core.logged_data.MAX_ANALYSIS_SCALE` (what :meth:`VectorCodec.decode` refuses).
+
+    Parameters
+    ----------
+    names : sequence of str
+        The channels' names.
+    values : array_like, shape (len(names),)
+
+    Returns
+    -------
+    list of (str, float)
+        ``(name, value)`` of each such channel, in channel order (empty: all can be published).
+    """
+    v = np.asarray(values, dtype=float).reshape(-1)
+    bad = ~np.isfinite(v)
+    bad[~bad] = np.abs(v[~bad]) > MAX_ANALYSIS_SCALE
+    return [(names[i], float(v[i])) for i in np.flatnonzero(bad)]
+
+
+def unreadable_text(stamp_ns: int, bad, label: str = "") -> str:
+    """What a publisher about to send :func:`unreadable_values` says of them, for its one error line.
+
+    Parameters
+    ----------
+    stamp_ns : int
+        The sample's stamp, nanoseconds.
+    bad : list of (str, float)
+        :func:`unreadable_values` of the vector (not empty).
+    label : str
+        Put before each channel's name ("measured disturbance ", "dither "), or "".
+
+    Returns
+    -------
+    str
+        For example "y2 = 3.2e+41 at t = 412 s is beyond 1e+40, which no reader takes".
+    """
+    finite = [bool(np.isfinite(v)) for _, v in bad]
+    what = (f"beyond {MAX_ANALYSIS_SCALE:g}" if all(finite) else "not finite" if not any(finite)
+            else f"not finite or beyond {MAX_ANALYSIS_SCALE:g}")
+    values = ", ".join(f"{label}{n} = {v:.3g}" for n, v in bad)
+    verb = "is" if len(bad) == 1 else "are"
+    return f"{values} at t = {seconds_text(stamp_ns)} s {verb} {what}, which no reader takes"
+
+
 def message_class(msgtype: str):
     """The Python class of ``pkg/msg/Type``; :class:`ConfigurationError` if it is not installed."""
     pkg, _, name = msgtype.split("/")
@@ -582,7 +628,7 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
         parameters or inputs (:class:`~mpm_monitor.core.errors.InputError`), 130 (with one line
         ``<program>: interrupted while starting``) after a Ctrl-C that came before the signal
         handlers below were in place, or the node's ``exit_code`` when it asked to end (the
-        recorder's 1: its bag could not be written; the plant's 1: it diverged).
+        recorder's 1: its bag could not be written; the plant's and the MPC's 1: it diverged).
 
     Notes
     -----
