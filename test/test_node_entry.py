@@ -162,3 +162,95 @@ def test_a_ctrl_c_that_gets_out_of_main_still_ends_with_130_and_one_line(monkeyp
         pytest.fail("entry.plant_node let the KeyboardInterrupt out")
     assert code == 130
     assert capsys.readouterr().err == "plant_node: interrupted\n"
+
+
+# ------------------------------------------------------------------ python -m mpm_monitor.nodes.entry <node>
+def test_the_launchers_start_their_node_processes_through_the_entry_module(tmp_path):
+    """``suite_processes``'s node processes start as the console scripts do (``python -m mpm_monitor.nodes.entry
+    <node>``), not as ``python -m mpm_monitor.nodes.<node>``, which imports the node before any of its code runs;
+    the ``--ros-args`` part is the same."""
+    from mpm_monitor.apps.launchers.common import NODES as LAUNCHED, node_command
+
+    f = tmp_path / "plant.yaml"
+    for node in LAUNCHED:
+        cmd = node_command(node, f, "unit1", {"seed": 3})
+        assert cmd[:4] == [sys.executable, "-m", "mpm_monitor.nodes.entry", f"{node}_node"], cmd
+        assert f"mpm_monitor.nodes.{node}_node" not in cmd
+        assert cmd[4:] == ["--ros-args", "-r", f"__node:={node}", "-r", "__ns:=/unit1", "--params-file", str(f),
+                           "-p", "seed:=3"]
+
+
+@pytest.mark.parametrize("name", NODES)
+def test_the_entry_module_runs_the_named_node_with_its_ros_args_as_before(name, monkeypatch):
+    """``python -m mpm_monitor.nodes.entry <node> --ros-args ...``: the node's ``main`` sees the ``sys.argv`` that
+    ``python -m mpm_monitor.nodes.<node> --ros-args ...`` gave it (the module's file, then the ROS arguments)."""
+    from mpm_monitor.nodes import entry
+
+    module = importlib.import_module(f"mpm_monitor.nodes.{name}")
+    seen = []
+
+    def fake_main(args=None):
+        seen.append((args, list(sys.argv), entry.program_name()))
+        return 7
+
+    monkeypatch.setattr(module, "main", fake_main)
+    monkeypatch.setattr(sys, "argv", ["/nowhere/entry.py"])
+    ros_args = ["--ros-args", "-r", "__node:=x", "--params-file", "/tmp/p.yaml", "-p", "a:=1"]
+    assert entry.main([str(ROOT / "mpm_monitor" / "nodes" / "entry.py"), name, *ros_args]) == 7
+    assert seen == [(None, [module.__file__, *ros_args], name)]
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["entry.py", "plant"], "unknown node 'plant'"),
+    (["entry.py", "--ros-args"], "unknown node '--ros-args'"),
+    (["entry.py"], "no node named"),
+])
+def test_the_entry_module_refuses_an_unknown_node_with_2_and_one_line(argv, said, monkeypatch, capsys):
+    from mpm_monitor.nodes import entry
+
+    monkeypatch.setattr(sys, "argv", list(argv))
+    assert entry.main() == 2
+    assert sys.argv == argv
+    assert capsys.readouterr().err == (
+        f"error: {said} (expected python -m mpm_monitor.nodes.entry <node> [--ros-args ...], <node> one of "
+        f"{', '.join(NODES)})\n")
+
+
+def test_a_ctrl_c_while_the_entry_module_imports_the_node_ends_with_130_and_one_line(monkeypatch, capsys):
+    from mpm_monitor.nodes import entry
+
+    module = "mpm_monitor.nodes.mpc_node"
+    finder = CtrlCOnImport(module)
+    monkeypatch.delitem(sys.modules, module, raising=False)
+    monkeypatch.setattr(sys, "meta_path", [finder] + sys.meta_path)
+    monkeypatch.setattr(sys, "argv", ["entry.py"])
+    try:
+        code = entry.main(["entry.py", "mpc_node", "--ros-args"])
+    except KeyboardInterrupt:
+        pytest.fail("entry.main let the KeyboardInterrupt out (the process would end in a traceback)")
+    assert finder.hits == 1 and code == 130
+    assert capsys.readouterr().err == "mpc_node: interrupted while starting\n"
+
+
+def test_the_entry_module_imports_neither_rclpy_nor_numpy_before_it_picks_the_node():
+    """What ``python -m mpm_monitor.nodes.entry`` imports before the node's own import (under its ``try``): the
+    standard library (``-X importtime`` lists every import; an unknown node ends before any node import)."""
+    done = subprocess.run([sys.executable, "-X", "importtime", "-m", "mpm_monitor.nodes.entry", "no_such_node"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    imported = {line.rsplit("|", 1)[1].strip().split(".")[0] for line in done.stderr.splitlines()
+                if line.startswith("import time:") and "|" in line}
+    assert "mpm_monitor" in imported                     # the listing is there
+    assert not imported & {"rclpy", "numpy", "yaml"}, sorted(imported & {"rclpy", "numpy", "yaml"})
+    assert done.stderr.splitlines()[-1].startswith("error: unknown node 'no_such_node'")
+
+
+def test_a_node_process_of_the_launchers_starts_and_refuses_a_bad_parameter_in_one_line(tmp_path):
+    """The command :func:`~mpm_monitor.apps.launchers.common.node_command` builds runs the node for real: the
+    node reads its ``--ros-args`` (here a case it does not know) and ends with 2 and its one line."""
+    from mpm_monitor.apps.launchers.common import node_command, ros_env
+
+    cmd = node_command("mpc", params={"case": "9.9"})
+    done = subprocess.run(cmd, cwd=tmp_path, env=ros_env(private=True), capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr == "error: parameter case: expected one of '', '3.1', '3.2', '3.3', 'level', got '9.9'\n"

@@ -10,8 +10,10 @@ library at its top; each function imports its node's module under a ``try`` and 
 place.  Interrupted so, the process ends with exit code 130 (the shell's code of a process SIGINT ended)
 and one line on stderr, ``plant_node: interrupted while starting``.
 
-``python -m mpm_monitor.nodes.plant_node`` (the launchers' node processes) imports the node's module as
-``__main__`` before any of its code runs: a Ctrl-C during those imports still ends in a traceback there.
+The same start without a console script (a process started from ``sys.executable``, as the
+``suite_processes`` launcher starts its nodes): ``python -m mpm_monitor.nodes.entry plant_node --ros-args ...``
+(:func:`main`).  ``python -m mpm_monitor.nodes.plant_node`` itself imports the node's module as ``__main__``
+before any of its code runs: a Ctrl-C during those imports still ends in a traceback there.
 """
 
 import importlib
@@ -20,6 +22,12 @@ import sys
 
 #: Exit code of a process a Ctrl-C (SIGINT) ended, the shell's 128 + 2.
 INTERRUPTED = 130
+
+#: The node modules of :mod:`mpm_monitor.nodes`, which are also their console scripts' names.
+NODES = ("plant_node", "mpc_node", "setpoint_node", "monitor_node", "recorder_node", "replay_node")
+
+#: How :func:`main` is called, for its error line.
+USAGE = "python -m mpm_monitor.nodes.entry <node> [--ros-args ...]"
 
 
 def program_name(default: str = "node") -> str:
@@ -94,3 +102,34 @@ def recorder_node(args=None) -> int:
 def replay_node(args=None) -> int:
     """Console script ``replay_node``: :func:`mpm_monitor.nodes.replay_node.main`."""
     return run_console_script("replay_node", args)
+
+
+def main(argv=None) -> int:
+    """``python -m mpm_monitor.nodes.entry <node> [--ros-args ...]``: run the node as its console script does.
+
+    ``sys.argv`` becomes what ``python -m mpm_monitor.nodes.<node>`` gave: the node module's file, then the
+    arguments after the node's name; ``rclpy`` and the node read their ``--ros-args`` there.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        The command line, program first (default: ``sys.argv``).
+
+    Returns
+    -------
+    int
+        The node's exit code (:func:`run_console_script`), or 2 with one line ``error: ...`` on stderr when no
+        node or an unknown one is named.
+    """
+    argv = list(sys.argv if argv is None else argv)
+    name = argv[1] if len(argv) > 1 else ""
+    if name not in NODES:
+        given = f"unknown node {name!r}" if name else "no node named"
+        print(f"error: {given} (expected {USAGE}, <node> one of {', '.join(NODES)})", file=sys.stderr)
+        return 2
+    sys.argv = [os.path.join(os.path.dirname(os.path.abspath(__file__)), f"{name}.py")] + argv[2:]
+    return run_console_script(name)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -110,8 +110,28 @@ def yaml_value(v) -> str:
 
 
 def node_command(node: str, params_file=None, namespace: str = "", params: dict = None) -> list:
-    """Command line of one node process: ``python -m mpm_monitor.nodes.<node>_node --ros-args ...``."""
-    cmd = [sys.executable, "-m", f"mpm_monitor.nodes.{node}_node", "--ros-args", "-r", f"__node:={node}"]
+    """Command line of one node process: ``python -m mpm_monitor.nodes.entry <node>_node --ros-args ...``.
+
+    The process starts as the node's console script does (:mod:`mpm_monitor.nodes.entry`): a Ctrl-C while it
+    imports the node (rclpy, numpy) ends it with exit code 130 and one line, not a traceback.
+
+    Parameters
+    ----------
+    node : str
+        One of :data:`NODES` (``plant``).
+    params_file : path, optional
+        Its ``--params-file``.
+    namespace : str
+        Its namespace (``__ns``), with or without the leading ``/``; "" = none.
+    params : dict, optional
+        ``-p name:=value`` overrides.
+
+    Returns
+    -------
+    list of str
+        The command, for :class:`subprocess.Popen`.
+    """
+    cmd = [sys.executable, "-m", "mpm_monitor.nodes.entry", f"{node}_node", "--ros-args", "-r", f"__node:={node}"]
     if namespace:
         cmd += ["-r", f"__ns:={namespace if namespace.startswith('/') else '/' + namespace}"]
     if params_file:
