@@ -16,9 +16,21 @@ A plant leaving after ``--samples`` waits until its readers acknowledged every v
 With ``--wall-clock`` the plant advances every sample time of the wall clock, the setpoint node runs
 on a timer and the MPC and monitor hold the latest setpoint.
 
-Ctrl-C (SIGINT) or SIGTERM stops every process.  With ``--samples`` the plant stops after that many
-samples; the other nodes keep running (the monitor still publishes its last result) until
-``--linger`` seconds later, or until stopped.
+Ctrl-C (SIGINT) or SIGTERM stops every process: the launcher sends each node still running a SIGINT,
+waits up to 10 s for it (then kills it, with one line ``suite: <node> did not stop within 10 s; killed``)
+and ends.  With ``--samples`` the plant stops after that many samples; the other nodes keep running (the
+monitor still publishes its last result) until ``--linger`` seconds later, or until stopped.
+
+Exit codes (:func:`exit_code`):
+
+- 0: the plant ended with 0 and ``--linger`` seconds passed;
+- 130 after a SIGINT (Ctrl-C), 143 after a SIGTERM (the shell's 128 + the signal's number), whatever
+  code each node then ends with (a Ctrl-C to the process group reaches the nodes too, and each ends
+  as it can: 0, 130 while it starts, or killed);
+- the code of the first node that ended on its own, as one line ``suite: <node> exited with <code>``
+  says: any node but the plant stops the suite when it ends (its 0 gives 1: it should not end), the plant
+  counts when its code is not 0 (it diverged: 1); a node a signal ended gives 128 + its number.  This
+  holds when a Ctrl-C comes after it too.
 """
 
 from __future__ import annotations
@@ -72,54 +84,108 @@ def suite_params(args) -> dict:
     return merge(merge(params, extra), parse_overrides(args.overrides))
 
 
+#: Seconds the launcher waits for each node after it sent the node a SIGINT, before it kills it.
+STOP_TIMEOUT = 10.0
+
+
+def exit_code(failed, signum=None) -> int:
+    """The launcher's exit code from the nodes that ended on their own and the signal that stopped it.
+
+    Parameters
+    ----------
+    failed : sequence of (str, int)
+        The nodes that ended on their own while the suite ran, before any signal reached the launcher, as
+        ``(name, returncode)`` in the order the launcher saw them (:class:`subprocess.Popen`'s code: -N when
+        signal N ended the node).  A node the launcher stopped is not among them.
+    signum : int, optional
+        The first SIGINT or SIGTERM the launcher received while the suite ran; None when none did.
+
+    Returns
+    -------
+    int
+        The first failed node's code (1 for its 0, 128 + N for its -N), else 128 + ``signum`` (130 after
+        SIGINT, 143 after SIGTERM), else 0.
+    """
+    if failed:
+        code = failed[0][1]
+        return 128 - code if code < 0 else code or 1
+    if signum is not None:
+        return 128 + int(signum)
+    return 0
+
+
 def main(argv=None) -> int:
-    """Console script ``suite_processes``."""
+    """Console script ``suite_processes``.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        The command-line options (default ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        The exit code, :func:`exit_code` (0, 130 after SIGINT, 143 after SIGTERM, or a failed node's code).
+    """
+    received = []
+
+    def stop(signum, frame=None):
+        received.append(signum)
+
+    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return run_suite(argv, received)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def run_suite(argv, received: list) -> int:
+    """Start the four node processes, wait until a signal arrives in ``received`` (the launcher's SIGINT and
+    SIGTERM handlers append to it), a node fails or the plant's ``--linger`` is over, stop them and return the
+    exit code (:func:`exit_code`)."""
     limit_blas_threads()
     args = build_parser().parse_args(argv)
     params = suite_params(args)
     env = ros_env(args.domain_id, args.localhost)
     procs = []
-    stopping = False
-
-    def stop(signum=None, frame=None):
-        nonlocal stopping
-        stopping = True
-
-    signal.signal(signal.SIGINT, stop)
-    signal.signal(signal.SIGTERM, stop)
+    failed = []
     with tempfile.TemporaryDirectory(prefix="mpm_suite_") as tmp:
         import yaml
 
         for node in NODES:
+            if received:
+                break
             f = Path(tmp) / f"{node}.yaml"
             f.write_text(yaml.safe_dump({f"/**/{node}": {"ros__parameters": params.get(node, {})}}), encoding="utf-8")
             procs.append((node, subprocess.Popen(node_command(node, f, args.namespace), env=env)))
-        plant = procs[0][1]
         plant_done_at = None
-        rc = 0
-        while not stopping:
+        while procs and not received and not any(name != "plant" for name, _ in failed):
             time.sleep(0.1)
-            if plant.poll() is not None and plant_done_at is None:
-                plant_done_at = time.monotonic()
-            for name, p in procs[1:]:
-                if p.poll() is not None:
-                    print(f"suite: {name} exited with {p.returncode}", file=sys.stderr)
-                    rc = rc or p.returncode or 1
-                    stopping = True
+            ended = [(name, p.returncode) for name, p in procs
+                     if p.poll() is not None and not (name == "plant" and plant_done_at is not None)]
+            if received:     # checked after the polls: what ended now may have ended by the same Ctrl-C
+                break
+            for name, code in ended:
+                if name == "plant":
+                    plant_done_at = time.monotonic()
+                if name != "plant" or code != 0:
+                    print(f"suite: {name} exited with {code}", file=sys.stderr)
+                    failed.append((name, code))
             if plant_done_at is not None and args.linger is not None and time.monotonic() - plant_done_at > args.linger:
                 break
+        signum = received[0] if received else None
         for _, p in procs:
             if p.poll() is None:
                 p.send_signal(signal.SIGINT)
-        for _, p in procs:
+        for name, p in procs:
             try:
-                p.wait(10.0)
+                p.wait(STOP_TIMEOUT)
             except subprocess.TimeoutExpired:
+                print(f"suite: {name} did not stop within {STOP_TIMEOUT:g} s; killed", file=sys.stderr)
                 p.kill()
                 p.wait()
-        if plant.returncode not in (0, None, -signal.SIGINT):
-            rc = rc or plant.returncode
-    return rc
+    return exit_code(failed, signum)
 
 
 if __name__ == "__main__":
