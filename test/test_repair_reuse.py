@@ -51,22 +51,33 @@ def test_disturbance_tests_of_unchanged_outputs_are_taken_over(stepped_gain_log,
     model, data = stepped_gain_log
     calls = []
 
+    confirmed = []
+
     def counted(d, *args, **kwargs):
-        calls.append(np.array(d, copy=True))
+        (confirmed if kwargs.get("calibrate") else calls).append(np.array(d, copy=True))
         return unexplained_disturbance(d, *args, **kwargs)
 
     monkeypatch.setattr(residual_tests, "unexplained_disturbance", counted)
     res = repair_model(model, data, [(1, 1)])
     assert any("allowed for the unexplained step" in w for w in res.warnings)      # two evaluations
-    # Every output once, then the redone row only.
+    # Every output once, then the redone row only; the step each evaluation reports confirmed once.
     assert len(calls) == model.n_outputs + 1
     np.testing.assert_array_equal(calls[-1], res.signals.d[:, 1])
+    assert len(confirmed) == 2
+    np.testing.assert_array_equal(confirmed[-1], res.signals.d[:, 1])
     opts = res.options
     spread = np.std(np.asarray(data.y, float), axis=0)
-    fresh = {i: unexplained_disturbance(res.signals.d[:, i], model.sample_time, opts.disturbance_alpha,
-                                        opts.disturbance_trim, opts.noise_order, scale=float(spread[i]))
-             for i in range(model.n_outputs)}
+
+    def fresh_test(i, calibrate=False):
+        return unexplained_disturbance(res.signals.d[:, i], model.sample_time, opts.disturbance_alpha,
+                                       opts.disturbance_trim, opts.noise_order, scale=float(spread[i]),
+                                       calibrate=calibrate, draws=opts.disturbance_draws,
+                                       rng=np.random.default_rng(opts.disturbance_seed))
+
+    fresh = {i: fresh_test(i) for i in range(model.n_outputs)}
     residual_tests._one_family(fresh, opts.disturbance_alpha)             # the outputs' tests as one family
+    fresh = {i: fresh_test(i, calibrate=t["detected"]) for i, t in fresh.items()}      # the reported confirmed
+    residual_tests._one_family(fresh, opts.disturbance_alpha)
     expected = [{"output": model.outputs[i], "kind": t["kind"], "size": t["size"], "time": t["time"],
                  "rate": t["rate"], "p_value": t["p_value"], "p_value_raw": t["p_value_raw"],
                  "statistic": t["statistic"]}
@@ -76,10 +87,12 @@ def test_disturbance_tests_of_unchanged_outputs_are_taken_over(stepped_gain_log,
 
 
 def _counted(monkeypatch) -> list:
+    """The prediction errors the repair tests (the confirmations of a reported disturbance not counted)."""
     calls = []
 
     def counted(d, *args, **kwargs):
-        calls.append(np.array(d, copy=True))
+        if not kwargs.get("calibrate"):
+            calls.append(np.array(d, copy=True))
         return unexplained_disturbance(d, *args, **kwargs)
 
     monkeypatch.setattr(residual_tests, "unexplained_disturbance", counted)

@@ -49,6 +49,14 @@ class RepairOptions:
     disturbance_trim : float
         Fraction of the record at each end where a step is not searched (sup-Wald trimming), in
         [0.05, 0.3].
+    disturbance_draws : int
+        Simulated records with which a disturbance the checks would report is confirmed: both statistics
+        are scaled by what they read on the output's own fitted noise against white noise before their
+        p-values are taken (:meth:`~mpm_monitor.core.repair.disturbance._Design.null_scales`; with slow
+        noise the asymptotic tails are too light), in [0, 100000]; 0: the asymptotic p-values alone (the
+        rule before stop 86).
+    disturbance_seed : int
+        Seed of those simulations (>= 0): the same record gives the same report.
     min_holdout_improvement : float
         Relative reduction of the held-out RMS error that a row repair must achieve, in [0, 1).
     holdout_one_step : bool
@@ -90,6 +98,8 @@ class RepairOptions:
     refit_on_all: bool = True
     disturbance_alpha: float = 0.01
     disturbance_trim: float = 0.15
+    disturbance_draws: int = 200
+    disturbance_seed: int = 0
     min_holdout_improvement: float = 0.0
     holdout_one_step: bool = True
     holdout_tolerance: Optional[float] = 0.05
@@ -130,6 +140,10 @@ def check_repair_options(opts: RepairOptions) -> None:
         raise ConfigurationError(f"disturbance_alpha: expected a number in (0, 0.5), got {opts.disturbance_alpha!r}")
     if not (is_num(opts.disturbance_trim) and 0.05 <= opts.disturbance_trim <= 0.3):
         raise ConfigurationError(f"disturbance_trim: expected a number in [0.05, 0.3], got {opts.disturbance_trim!r}")
+    if not (is_int(opts.disturbance_draws) and 0 <= opts.disturbance_draws <= 100000):
+        raise ConfigurationError(f"disturbance_draws: expected an integer in [0, 100000], got {opts.disturbance_draws!r}")
+    if not (is_int(opts.disturbance_seed) and opts.disturbance_seed >= 0):
+        raise ConfigurationError(f"disturbance_seed: expected an integer >= 0, got {opts.disturbance_seed!r}")
     if not (is_num(opts.min_holdout_improvement) and 0.0 <= opts.min_holdout_improvement < 1.0):
         raise ConfigurationError(f"min_holdout_improvement: expected a number in [0, 1), "
                                  f"got {opts.min_holdout_improvement!r}")

@@ -44,16 +44,20 @@ def _one_family(tests: dict, alpha: float) -> None:
 
 
 def _disturbance_test(d: np.ndarray, segments, scale: float, model: PlantModel, options: RepairOptions,
-                      moves: bool, levels=None) -> dict:
+                      moves: bool, levels=None, calibrate: bool = False) -> dict:
     """:func:`unexplained_disturbance` of one output's prediction error ``d`` (shape (n_samples,)), as the
     repair tests every output: at ``options``' level, trim and noise order, over the scored ``segments``
     (None: every sample) and their ``levels`` (:attr:`~.record._Record.levels`), ``scale`` the output's
-    standard deviation.  An output that never moves (``moves`` false: a stuck sensor) is not tested: its
-    prediction error is the model's own response."""
+    standard deviation; with ``calibrate``, confirmed on ``options.disturbance_draws`` simulated records
+    (seeded with ``options.disturbance_seed``).  An output that never moves (``moves`` false: a stuck
+    sensor) is not tested: its prediction error is the model's own response."""
     if not moves:
         return not_tested()
     return unexplained_disturbance(d, model.sample_time, options.disturbance_alpha, options.disturbance_trim,
-                                   options.noise_order, segments=segments, scale=scale, levels=levels)
+                                   options.noise_order, segments=segments, scale=scale, levels=levels,
+                                   calibrate=calibrate and options.disturbance_draws > 0,
+                                   draws=options.disturbance_draws,
+                                   rng=np.random.default_rng(options.disturbance_seed))
 
 
 def _test_settings_key(model: PlantModel, options: RepairOptions) -> tuple:
