@@ -148,7 +148,8 @@ def test_a_ctrl_c_during_rclpy_init_shuts_the_context_down_and_ends_with_130(mon
 
 
 def test_a_ctrl_c_that_gets_out_of_main_still_ends_with_130_and_one_line(monkeypatch, capsys):
-    """After the node's handlers are restored (a second Ctrl-C while the node closes): no traceback either."""
+    """After the node's handlers are given back (at its very end, once its context is shut down): no traceback
+    either."""
     pytest.importorskip("rclpy")
     from mpm_monitor.nodes import entry, plant_node
 

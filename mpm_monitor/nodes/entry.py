@@ -62,7 +62,8 @@ def run_console_script(name: str, args=None) -> int:
     -------
     int
         ``main``'s exit code, or :data:`INTERRUPTED` after one line on stderr when a ``KeyboardInterrupt``
-        (Ctrl-C before the node's signal handlers are in place, or a second one while it closes) ends it.
+        (Ctrl-C before the node's signal handlers are in place, or after it gave the previous ones back as it
+        ended) ends it.
     """
     try:
         module = importlib.import_module(f"{__package__}.{name}")

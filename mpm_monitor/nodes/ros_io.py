@@ -23,6 +23,7 @@ import collections
 import difflib
 import importlib
 import math
+import os
 import sys
 from typing import Any, Callable, Optional, Sequence
 
@@ -610,6 +611,35 @@ def spin_until(executor, done: Callable[[], bool], timeout: Optional[float] = No
     return bool(done())
 
 
+#: The SIGINT or SIGTERM (counted from the one that stops the node) that ends a node at once, however far
+#: its stop has come (:func:`run_node`): the stop takes one, a launcher's forwarded copy of the same Ctrl-C
+#: a second, and the third is a user who will not wait.
+SIGNALS_TO_END_AT_ONCE = 3
+
+
+def end_at_once(signum: int) -> None:
+    """End the process now, with one line ``<program>: interrupted while stopping`` on stderr and exit code
+    128 + ``signum`` (130 after SIGINT, 143 after SIGTERM).
+
+    ``os._exit``: no ``finally`` runs and nothing unwinds through ``rclpy``'s C++ code (an exception raised
+    there aborts the process); the node is not closed.
+
+    Parameters
+    ----------
+    signum : int
+        The signal that ended it.
+    """
+    from .entry import interrupted, program_name
+
+    interrupted(program_name(), "while stopping")
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError, AttributeError):    # closed or gone: the exit code says it
+            pass
+    os._exit(128 + int(signum))
+
+
 def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "events") -> int:
     """``main()`` of every node: init, build the node, spin until told to stop; bad parameters exit 2.
 
@@ -641,17 +671,28 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
     ``exit_requested`` turns true.  Then the node's ``drain(executor)``, if it has one, handles what
     is already under way (the recorder takes the messages already delivered, the replay lets its
     publishers hand over what is queued), its ``close()``, if any, runs (the monitor stops its
-    analysis, the recorder closes its bag) and the node is destroyed.
+    analysis, the recorder closes its bag), the node is destroyed and the context shut down.
+
+    The handlers stay in place until all of that is done, and only then are the previous ones (Python's
+    ``KeyboardInterrupt`` for SIGINT) given back: a terminal's Ctrl-C reaches a launcher's whole process
+    group and the launcher then forwards a SIGINT to its nodes, and that second SIGINT raised
+    ``KeyboardInterrupt`` inside ``rclpy``'s C++ code as the node was destroyed, which aborted the
+    process (``terminate called after throwing an instance of 'pybind11::error_already_set'``).  A
+    second signal is taken quietly; the third (:data:`SIGNALS_TO_END_AT_ONCE`) ends the process at once
+    (:func:`end_at_once`: one line, exit code 130 or 143), whether the spin, the drain or the close hangs.
     """
     import signal
 
     from .entry import interrupted, program_name
 
     limit_blas_threads()
-    stop = {"requested": False}
+    stop = {"requested": False, "signals": 0}
 
     def on_signal(signum, frame):
         stop["requested"] = True
+        stop["signals"] += 1
+        if stop["signals"] >= SIGNALS_TO_END_AT_ONCE:
+            end_at_once(signum)
 
     context = None
     previous = {}
@@ -695,15 +736,17 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
             drain(executor)
         return int(getattr(node, "exit_code", 0) or 0)
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-        if node is not None:
-            close = getattr(node, "close", None)
-            if close is not None:
-                close()
-            node.destroy_node()
-        if context.ok():
-            context.try_shutdown()
+        try:
+            if node is not None:
+                close = getattr(node, "close", None)
+                if close is not None:
+                    close()
+                node.destroy_node()
+            if context.ok():
+                context.try_shutdown()
+        finally:
+            for sig, handler in previous.items():     # only now: nothing of rclpy's runs after this
+                signal.signal(sig, handler)
 
 
 def params_file_problem(args) -> str:
