@@ -107,19 +107,25 @@ def test_options_refuse_bad_draws_and_seeds():
         RepairOptions(disturbance_seed=-3)
 
 
-@pytest.mark.parametrize("seed", [2, 19])
-def test_the_repair_confirms_what_it_reports(seed):
-    # The Shell loop, its model right, under the paper's disturbance with pole 0.998 (slow for its 1 s sample):
-    # on 30 seeds the asymptotic tests report a step or drift on 4 loops, the confirmed ones on none; two of them.
+def test_the_repair_confirms_what_it_reports():
+    # The Shell loop, its model right, under the paper's disturbance with pole 0.998 (slow for its 1 s sample),
+    # 30 seeds: the asymptotic tests report a step or drift on 4 loops, the confirmed ones on 1.
     from mpm_monitor.sim.plant import DisturbanceOptions
 
     sh = shell_plant()
-    data = run_closed_loop(sh, sh, 4000, seed=seed,
-                           disturbance=DisturbanceOptions(disturbance_pole=0.998)).as_logged_data()
-    plain = repair_model(sh, data, [], RepairOptions(disturbance_draws=0))
-    confirmed = repair_model(sh, data, [], RepairOptions())
-    assert plain.disturbances and not confirmed.disturbances
-    assert not any("no input explains it" in w for w in confirmed.warnings)
+    plain_loops = confirmed_loops = 0
+    for seed in range(30):
+        data = run_closed_loop(sh, sh, 4000, seed=seed,
+                               disturbance=DisturbanceOptions(disturbance_pole=0.998)).as_logged_data()
+        plain = repair_model(sh, data, [], RepairOptions(disturbance_draws=0))
+        confirmed = repair_model(sh, data, [], RepairOptions())
+        plain_loops += bool(plain.disturbances)
+        confirmed_loops += bool(confirmed.disturbances)
+        before = {x["output"]: x for x in plain.disturbances}
+        for x in confirmed.disturbances:         # the confirmation only removes reports and raises p-values
+            assert x["output"] in before and x["p_value"] >= before[x["output"]]["p_value"]
+    assert plain_loops >= 3
+    assert confirmed_loops <= plain_loops // 2
 
 
 def test_the_repair_still_reports_a_real_step_confirmed():
