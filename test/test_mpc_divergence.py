@@ -15,6 +15,7 @@ pytest.importorskip("rclpy")
 pytestmark = pytest.mark.timeout(60)
 
 from rclpy.node import Node  # noqa: E402
+from divergence_stubs import diverging as _diverging  # noqa: E402
 from ros_domains import close_nodes  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 
@@ -54,22 +55,6 @@ class Plant:
         k = stamp_to_ns(msg.header.stamp) // NS + 1
         if k <= DIVERGES_AT:
             self.send(k)
-
-
-def _diverging(real, at, bad):
-    """``real`` (the controller's step, or the dither's next) with the values of call ``at`` (0-based) replaced
-    by ``bad``."""
-    calls = []
-
-    def stub(*args, **kwargs):
-        values = np.array(real(*args, **kwargs), dtype=float)
-        if len(calls) == at:
-            for i, v in bad.items():
-                values[i] = v
-        calls.append(values)
-        return values
-
-    return stub, calls
 
 
 def _recorded(pub):

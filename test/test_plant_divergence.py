@@ -15,6 +15,7 @@ pytestmark = pytest.mark.timeout(60)
 
 from rclpy.node import Node  # noqa: E402
 from rosgraph_msgs.msg import Clock as ClockMsg  # noqa: E402
+from divergence_stubs import diverging as _diverging  # noqa: E402
 from ros_domains import close_nodes  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 
@@ -45,21 +46,6 @@ class Controller:
     def _on_output(self, msg):
         self.outputs.append(msg)
         self._pub.publish(self._u.encode(self._zero, stamp_to_ns(msg.header.stamp)))
-
-
-def _diverging(real, at, bad):
-    """``real`` (measure, or the generator's next) with the values of call ``at`` (0-based) replaced by ``bad``."""
-    calls = []
-
-    def stub(*args, **kwargs):
-        values = np.array(real(*args, **kwargs), dtype=float)
-        if len(calls) == at:
-            for i, v in bad.items():
-                values[i] = v
-        calls.append(values)
-        return values
-
-    return stub, calls
 
 
 def _plant(ctx, namespace, case):
