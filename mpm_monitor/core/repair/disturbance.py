@@ -217,14 +217,14 @@ class _Design:
         """How much larger the step and drift statistics read on the residual's own AR(p) noise than on white
         noise, for records of this design: ``(step scale, drift scale)``, each at least 1.
 
-        The AR(p) noise is the tests' own regression with the ``alternative`` column added (the step found, for the
-        step test's scale; the trend, for the drift test's): without it a real step or drift passes for
+        The AR(p) noise is the tests' own regression with the ``alternative`` column added (the step found, for
+        the step test's scale; the trend, for the drift test's): without it a real step or drift passes for
         persistence and the scale takes the power away (on the paper's noise at pole 0.99, 38 of 200 steps of two
         standard deviations reported against 75 with it; with both columns at once the level doubled).  Its
-        spectral radius is kept within :data:`MAX_NOISE_RADIUS`.  ``draws`` records of the residual's length are simulated from it (from its
-        stationary state: a burn-in of 5 / (1 - radius) samples) and, with the same innovations, as white
-        noise; both are tested as the residual is.  A scale is the ratio of the mean statistics (common random
-        numbers: the ratio is far less noisy than either mean).
+        spectral radius is kept within :data:`MAX_NOISE_RADIUS`.  ``draws`` records of the residual's length are
+        simulated from it (from its stationary state: a burn-in of 5 / (1 - radius) samples) and, with the same
+        innovations, as white noise; both are tested as the residual is.  A scale is the ratio of the mean
+        statistics (common random numbers: the ratio is far less noisy than either mean).
 
         Parameters
         ----------
@@ -342,7 +342,8 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
         ``rate`` (output units per second, drift only), ``p_value`` (the smaller of the two tests,
         Bonferroni-adjusted), ``p_step``, ``p_drift``, ``statistic`` (of the reported kind), ``tested``
         (False: the signal was not tested, see :func:`not_tested`), ``null_scale_step`` and
-        ``null_scale_drift`` (the calibration's scales of the two statistics, 1 without it).
+        ``null_scale_drift`` (the calibration's scales of the two statistics, 1 without it), ``calibrated``
+        (``calibrate`` was asked for: the p-values are confirmed ones wherever the asymptotic ones would report).
 
     Notes
     -----

@@ -141,7 +141,8 @@ def check_repair_options(opts: RepairOptions) -> None:
     if not (is_num(opts.disturbance_trim) and 0.05 <= opts.disturbance_trim <= 0.3):
         raise ConfigurationError(f"disturbance_trim: expected a number in [0.05, 0.3], got {opts.disturbance_trim!r}")
     if not (is_int(opts.disturbance_draws) and 0 <= opts.disturbance_draws <= 100000):
-        raise ConfigurationError(f"disturbance_draws: expected an integer in [0, 100000], got {opts.disturbance_draws!r}")
+        raise ConfigurationError(f"disturbance_draws: expected an integer in [0, 100000], "
+                                 f"got {opts.disturbance_draws!r}")
     if not (is_int(opts.disturbance_seed) and opts.disturbance_seed >= 0):
         raise ConfigurationError(f"disturbance_seed: expected an integer >= 0, got {opts.disturbance_seed!r}")
     if not (is_num(opts.min_holdout_improvement) and 0.0 <= opts.min_holdout_improvement < 1.0):
