@@ -27,3 +27,12 @@ def test_records_are_reproducible_and_the_summary_counts_them():
             assert s[rule]["steps"] + s[rule]["drifts"] == s[rule]["reported"]
     text = bench.format_table(summary)
     assert "level" in text and "drift" in text
+
+
+def test_a_loop_record_names_what_each_rule_reports():
+    rec = bench.run_loop(0, 99, 0, 0.99)
+    assert rec["kind"] == "loop" and rec["pole"] == 0.99
+    for rule in ("plain", "confirmed"):
+        assert (rec[rule]["reported"] is None) == (not rec[rule]["outputs"])
+        assert set(rec[rule]["outputs"]) <= {"y1", "y2", "y3"}
+    assert set(rec["confirmed"]["outputs"]) <= set(rec["plain"]["outputs"])
