@@ -80,7 +80,8 @@ def test_disturbance_tests_of_unchanged_outputs_are_taken_over(stepped_gain_log,
     residual_tests._one_family(fresh, opts.disturbance_alpha)
     expected = [{"output": model.outputs[i], "kind": t["kind"], "size": t["size"], "time": t["time"],
                  "rate": t["rate"], "p_value": t["p_value"], "p_value_raw": t["p_value_raw"],
-                 "statistic": t["statistic"]}
+                 "statistic": t["statistic"],
+                 "null_scale": t["null_scale_step" if t["kind"] == "step" else "null_scale_drift"]}
                 for i, t in fresh.items() if t["detected"]]
     assert res.disturbances == expected
     assert [d["output"] for d in res.disturbances] == ["y2"]

@@ -144,7 +144,8 @@ def _disturbance_findings(rec: _Record, tests: dict):
             continue
         disturbances.append({"output": name, "kind": test["kind"], "size": test["size"],
                              "time": test["time"], "rate": test["rate"], "p_value": test["p_value"],
-                             "p_value_raw": test["p_value_raw"], "statistic": test["statistic"]})
+                             "p_value_raw": test["p_value_raw"], "statistic": test["statistic"],
+                             "null_scale": test["null_scale_step" if test["kind"] == "step" else "null_scale_drift"]})
         if test["kind"] == "step":
             # At the log's own time (the stamp of the sample the step is at): ``time`` counts from the first sample,
             # which read as 1164 s beside the gap warnings' 1700001664 s in a live window.

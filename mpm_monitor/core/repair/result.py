@@ -145,7 +145,9 @@ class RepairResult:
         candidate), for the rows whose re-estimation the held-out check compared (empty otherwise).
     disturbances : list of dict
         Outputs whose residual holds a step or drift no input explains (``output``, ``kind``
-        "step"/"drift", ``size`` in output units, ``time`` in seconds, ``p_value``, ``statistic``).
+        "step"/"drift", ``size`` in output units, ``time`` in seconds, ``p_value``, ``statistic``, ``null_scale``:
+        what the statistic was divided by for the output's own noise before its p-value was taken, 1 when the
+        noise is as white as the asymptotic law assumes).
     warnings : list of str
         What limits the conclusions, in words.
     n_samples, n_fit : int
