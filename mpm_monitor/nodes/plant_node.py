@@ -288,16 +288,20 @@ class PlantNode(Node):
         self._y_msg = msg = self._y_codec.encode(y, stamp)
         self._pub.publish(msg)
 
+    def _halt(self) -> None:
+        """No more samples: not running, the tick and stall timers cancelled (after max_samples, or diverged)."""
+        self.running = False
+        for t in (self._tick_timer, self._stall_timer):
+            if t is not None:
+                t.cancel()
+
     def _stop_diverged(self, text: str) -> None:
         """The plant diverged: log ``text`` once as an error, stop the timers and ask to end with exit code 1.
 
         Publishing on would send values every reader refuses, one warning each, for ever.
         """
         self.diverged = text
-        self.running = False
-        for t in (self._tick_timer, self._stall_timer):
-            if t is not None:
-                t.cancel()
+        self._halt()
         self.get_logger().error(text)
         self.exit_requested, self.exit_code = True, 1
 
@@ -308,10 +312,7 @@ class PlantNode(Node):
         limit = self.params["max_samples"]
         if limit and self.k >= limit:
             self.finished = True
-            self.running = False
-            for t in (self._tick_timer, self._stall_timer):
-                if t is not None:
-                    t.cancel()
+            self._halt()
             self.get_logger().info(f"done: {self.k} samples")
             if self.params["exit_when_done"]:
                 self.exit_requested = True
