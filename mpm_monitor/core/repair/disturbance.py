@@ -130,7 +130,7 @@ def _drift_wald(X: np.ndarray, yv: np.ndarray):
     return w_drift, ssr_drift
 
 
-#: Simulated records of the calibration of the disturbance tests (:meth:`_Design.null_scales`).
+#: Simulated records of the calibration of the disturbance tests (:meth:`_Design.null_scale`).
 NULL_DRAWS = 200
 
 #: The calibration's AR noise model is kept inside this spectral radius (a fitted unit or explosive root
@@ -196,10 +196,10 @@ class _Design:
         edges = np.cumsum([0] + [int(np.sum(offsets[:, k])) for k in range(len(names))])
         return yv, np.column_stack([offsets, lags]), list(zip(edges[:-1], edges[1:]))
 
-    def statistics(self, dz: np.ndarray, trim: float) -> Optional[tuple]:
-        """``((step Wald, break row, SSR with the step, levels searched), (drift Wald, SSR with the drift))`` of
-        ``dz``, or None when no break can be estimated."""
-        yv, X, windows = self.regression(dz)
+    @staticmethod
+    def _step(X: np.ndarray, yv: np.ndarray, windows, trim: float) -> Optional[tuple]:
+        """``(step Wald, break row, SSR with the step, levels searched)`` of the regression ``(yv, X, windows)``
+        (:meth:`regression`), or None when no break can be estimated."""
         if windows is None:
             step, searched = _step_wald(X, yv, trim), 1
         else:
@@ -208,14 +208,19 @@ class _Design:
             # smallest p-value is Bonferroni-adjusted over the levels searched.
             found = [w for w in _step_wald(X, yv, trim, windows) if w is not None]
             step, searched = (max(found, key=lambda w: w[0]) if found else None), len(found)
-        if step is None:
-            return None
-        return step + (searched,), _drift_wald(X, yv)
+        return None if step is None else step + (searched,)
 
-    def null_scales(self, dz: np.ndarray, trim: float, draws: int, rng: np.random.Generator,
-                    alternative: Optional[np.ndarray] = None) -> tuple:
-        """How much larger the step and drift statistics read on the residual's own AR(p) noise than on white
-        noise, for records of this design: ``(step scale, drift scale)``, each at least 1.
+    def statistics(self, dz: np.ndarray, trim: float) -> Optional[tuple]:
+        """``((step Wald, break row, SSR with the step, levels searched), (drift Wald, SSR with the drift))`` of
+        ``dz``, or None when no break can be estimated."""
+        yv, X, windows = self.regression(dz)
+        step = self._step(X, yv, windows, trim)
+        return None if step is None else (step, _drift_wald(X, yv))
+
+    def null_scale(self, dz: np.ndarray, trim: float, draws: int, rng: np.random.Generator,
+                   alternative: Optional[np.ndarray] = None, kind: str = "step") -> float:
+        """How much larger the ``kind`` ("step" or "drift") statistic reads on the residual's own AR(p) noise than
+        on white noise, for records of this design: its scale, at least 1.
 
         The AR(p) noise is the tests' own regression with the ``alternative`` column added (the step found, for
         the step test's scale; the trend, for the drift test's): without it a real step or drift passes for
@@ -235,10 +240,12 @@ class _Design:
         rng : numpy.random.Generator
         alternative : ndarray, shape (n_rows,), optional
             A column of the regression's rows fitted with the AR terms (and then dropped).
+        kind : {"step", "drift"}
+            The statistic scaled (only it is computed on the simulated records).
 
         Returns
         -------
-        (float, float)
+        float
 
         Notes
         -----
@@ -267,17 +274,19 @@ class _Design:
         e = rng.standard_normal((int(draws), burn + n))
         coloured = lfilter([1.0], np.concatenate([[1.0], -a]), e, axis=1)[:, burn:] if p else e[:, burn:]
         white = e[:, burn:]
-        sums = np.zeros((2, 2))
+        sums = np.zeros(2)
         for row, Z in enumerate((coloured, white)):
             Z = (Z - Z.mean(axis=1, keepdims=True)) / Z.std(axis=1, keepdims=True)
             for z in Z:
-                found = self.statistics(z, trim)
-                if found is not None:
-                    sums[row] += (found[0][0], found[1][0])
-        if not np.all(sums[1] > 0):
-            return 1.0, 1.0
-        step, drift = sums[0] / sums[1]
-        return max(1.0, float(step)), max(1.0, float(drift))
+                yv, X, windows = self.regression(z)
+                if kind == "drift":
+                    sums[row] += _drift_wald(X, yv)[0]
+                else:
+                    found = self._step(X, yv, windows, trim)
+                    sums[row] += 0.0 if found is None else found[0]
+        if not sums[1] > 0:
+            return 1.0
+        return max(1.0, float(sums[0] / sums[1]))
 
 
 def not_tested() -> dict:
@@ -323,7 +332,7 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
         units): a ``d`` whose standard deviation is below :data:`EXACT_FIT` times it is not tested.
     calibrate : bool
         When either test would report at ``alpha`` on its asymptotic p-value, scale both statistics by
-        what they read on ``draws`` simulated records of the fitted AR(p) noise (:meth:`_Design.null_scales`)
+        what they read on ``draws`` simulated records of the fitted AR(p) noise (:meth:`_Design.null_scale`)
         before taking their p-values: with slow noise the asymptotic tails are too light (on the paper's
         noise, pole 0.95, each test at 0.5 % fires on about 0.75 % of records; at pole 0.99 the step test
         on 2.2 %).  Default False: the asymptotic p-values, as before.
@@ -355,7 +364,7 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
 
     With slow noise both statistics are larger than their asymptotic laws say, by a factor that hardly
     depends on the quantile; ``calibrate`` measures it on records of the fitted noise
-    (:meth:`_Design.null_scales`) and divides it out, which brings the tests back to their level.
+    (:meth:`_Design.null_scale`) and divides it out, which brings the tests back to their level.
 
     The regressions run on ``d`` centred and scaled to unit spread (the statistics do not change; a
     residual far from zero, or in very large or small units, would leave ``[1, lags of d]``
@@ -384,8 +393,8 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
     if calibrate and min(p_step, p_drift) < alpha and draws > 0:
         rng = np.random.default_rng(0) if rng is None else rng
         rows = np.arange(design.rows(dz.shape[0]), dtype=float)
-        scale_step = design.null_scales(dz, trim, draws, rng, (rows >= k_step).astype(float))[0]
-        scale_drift = design.null_scales(dz, trim, draws, rng, rows / rows.shape[0])[1]
+        scale_step = design.null_scale(dz, trim, draws, rng, (rows >= k_step).astype(float), "step")
+        scale_drift = design.null_scale(dz, trim, draws, rng, rows / rows.shape[0], "drift")
         p_step, p_drift = _p_values(w_step / scale_step, w_drift / scale_drift, searched, trim)
     out.update(p_step=p_step, p_drift=p_drift, p_value=min(p_step, p_drift), tested=True,
                null_scale_step=scale_step, null_scale_drift=scale_drift, calibrated=bool(calibrate))

@@ -52,7 +52,7 @@ class RepairOptions:
     disturbance_draws : int
         Simulated records with which a disturbance the checks would report is confirmed: both statistics
         are scaled by what they read on the output's own fitted noise against white noise before their
-        p-values are taken (:meth:`~mpm_monitor.core.repair.disturbance._Design.null_scales`; with slow
+        p-values are taken (:meth:`~mpm_monitor.core.repair.disturbance._Design.null_scale`; with slow
         noise the asymptotic tails are too light), in [0, 100000]; 0: the asymptotic p-values alone (the
         rule before stop 86).
     disturbance_seed : int

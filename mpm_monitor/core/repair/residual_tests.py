@@ -53,11 +53,11 @@ def _disturbance_test(d: np.ndarray, segments, scale: float, model: PlantModel, 
     sensor) is not tested: its prediction error is the model's own response."""
     if not moves:
         return not_tested()
+    calibrate = calibrate and options.disturbance_draws > 0
     return unexplained_disturbance(d, model.sample_time, options.disturbance_alpha, options.disturbance_trim,
                                    options.noise_order, segments=segments, scale=scale, levels=levels,
-                                   calibrate=calibrate and options.disturbance_draws > 0,
-                                   draws=options.disturbance_draws,
-                                   rng=np.random.default_rng(options.disturbance_seed))
+                                   calibrate=calibrate, draws=options.disturbance_draws,
+                                   rng=np.random.default_rng(options.disturbance_seed) if calibrate else None)
 
 
 def _test_settings_key(model: PlantModel, options: RepairOptions) -> tuple:
