@@ -18,6 +18,7 @@ import numpy as np
 
 from ..core.errors import ConfigurationError
 from ..core.logged_data import LoggedData
+from ..core.model import name_problem
 from .window import NS_PER_S, names_text, seconds_text
 
 #: Most candidate channels the vectors kept may name together: each is tested against every output at
@@ -71,7 +72,12 @@ class CandidateWindow:
 
     def add(self, stamp_ns: int, names: Sequence[str], values) -> Optional[str]:
         """Keep one vector; returns None, or why it was refused (names and values differ in length, a
-        name is empty, repeated or one of the model's channels).
+        name is empty, repeated, one of the model's channels or no name a model's channel may have).
+
+        A channel's name follows the rule of a model's channel names
+        (:func:`~mpm_monitor.core.model.name_problem`): no comma, control character (tab, line break)
+        or surrounding space.  The statuses join channel names with commas, and the offline analysis
+        finds a candidate so named unusable, so a vector naming one is refused whole.
 
         Parameters
         ----------
@@ -89,6 +95,11 @@ class CandidateWindow:
             return f"candidate: {v.shape[0]} value(s) for {len(names)} name(s) at {t} (one value per name expected)"
         if any(not n for n in names) or len(set(names)) != len(names):
             return f"candidate: empty or repeated channel names at {t}: {names_text(names)}"
+        for n in names:
+            why = name_problem(n)
+            if why is not None:
+                return (f"candidate: channel name {names_text([n])} at {t} {why}: expected a channel name without "
+                        f"commas, control characters (tabs, line breaks) or surrounding spaces, as a model's channel")
         clash = [n for n in names if n in self._reserved]
         if clash:
             return (f"candidate: {names_text(clash)} at {t} "
