@@ -12,8 +12,10 @@ and one line on stderr, ``plant_node: interrupted while starting``.
 
 The same start without a console script (a process started from ``sys.executable``, as the
 ``suite_processes`` launcher starts its nodes): ``python -m mpm_monitor.nodes.entry plant_node --ros-args ...``
-(:func:`main`).  ``python -m mpm_monitor.nodes.plant_node`` itself imports the node's module as ``__main__``
-before any of its code runs: a Ctrl-C during those imports still ends in a traceback there.
+(:func:`main`).  ``python -m mpm_monitor.nodes.plant_node`` starts the same way: run so, the node's module is
+``__main__``, and its first statement (after its docstring), before any of its imports, hands over to
+:func:`run_module`, which imports the module under its own name inside the ``try`` of :func:`run_console_script`
+and ends the process with its exit code; nothing else of the ``__main__`` copy runs.
 """
 
 import importlib
@@ -73,6 +75,29 @@ def run_console_script(name: str, args=None) -> int:
         return module.main(args)
     except KeyboardInterrupt:       # run_node handles the start itself; this is one left after it
         return interrupted(name, "")
+
+
+def run_module(name: str):
+    """``python -m mpm_monitor.nodes.<name>``: :func:`run_console_script`, then the end of the process.
+
+    Each node module calls this at its very top, under ``if __name__ == "__main__":`` and before any of its
+    own imports, so that ``python -m`` starts as the console script does: the node's module (rclpy, numpy) is
+    imported under its own name inside a ``try``, and a Ctrl-C while it starts ends the process with
+    :data:`INTERRUPTED` and one line, not a traceback.  ``sys.argv`` is left as ``python -m`` set it (the
+    module's file, then the arguments), where ``main`` reads its ``--ros-args``.
+
+    Parameters
+    ----------
+    name : str
+        The node module's name (``plant_node``).
+
+    Raises
+    ------
+    SystemExit
+        Always, with the node's exit code (:func:`run_console_script`): the rest of the ``__main__`` module,
+        its imports included, never runs.
+    """
+    sys.exit(run_console_script(name))
 
 
 def plant_node(args=None) -> int:

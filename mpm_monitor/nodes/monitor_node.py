@@ -44,6 +44,11 @@ Parameters (all declared with type, description and range): see :data:`PARAMS`.
 
 from __future__ import annotations
 
+if __name__ == "__main__":  # python -m: start as the console script does (entry.py), before any import
+    from .entry import run_module
+
+    run_module("monitor_node")  # imports this module under its own name and ends the process
+
 import dataclasses
 import time
 from typing import Callable, Optional
@@ -481,6 +486,3 @@ def main(args=None) -> int:
     """Console script ``monitor_node``."""
     return run_node(lambda context: MonitorNode(context=context), args)
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -47,6 +47,11 @@ Parameters (all declared with type, description and range): see :data:`PARAMS`.
 
 from __future__ import annotations
 
+if __name__ == "__main__":  # python -m: start as the console script does (entry.py), before any import
+    from .entry import run_module
+
+    run_module("mpc_node")  # imports this module under its own name and ends the process
+
 import collections
 import math
 from typing import Optional, Sequence
@@ -479,6 +484,3 @@ def main(args=None) -> int:
     """Console script ``mpc_node``."""
     return run_node(lambda context: MpcNode(context=context), args)
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())

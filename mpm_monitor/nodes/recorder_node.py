@@ -49,8 +49,12 @@ max_bag_duration : float
 
 from __future__ import annotations
 
+if __name__ == "__main__":  # python -m: start as the console script does (entry.py), before any import
+    from .entry import run_module
+
+    run_module("recorder_node")  # imports this module under its own name and ends the process
+
 import dataclasses
-import sys
 import threading
 import time
 from typing import Optional, Sequence
@@ -453,6 +457,3 @@ def main(args=None) -> int:
     """Console script ``recorder_node``: record until SIGINT or SIGTERM, then close the bag (exit 2: bad parameter)."""
     return run_node(lambda context: RecorderNode(context=context), args, executor_kind="single")
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -35,9 +35,13 @@ publish_clock : bool
 
 from __future__ import annotations
 
+if __name__ == "__main__":  # python -m: start as the console script does (entry.py), before any import
+    from .entry import run_module
+
+    run_module("replay_node")  # imports this module under its own name and ends the process
+
 import bisect
 import dataclasses
-import sys
 from typing import Optional, Sequence
 
 from rclpy.clock import Clock, ClockType
@@ -288,6 +292,3 @@ def main(args=None) -> int:
     """Console script ``replay_node``: replay until every message is out or SIGINT/SIGTERM (2: bad parameter)."""
     return run_node(lambda context: ReplayNode(context=context), args, executor_kind="single")
 
-
-if __name__ == "__main__":
-    sys.exit(main())

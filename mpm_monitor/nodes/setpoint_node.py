@@ -17,6 +17,11 @@ Parameters (all declared with type, description and range): see :data:`PARAMS`.
 
 from __future__ import annotations
 
+if __name__ == "__main__":  # python -m: start as the console script does (entry.py), before any import
+    from .entry import run_module
+
+    run_module("setpoint_node")  # imports this module under its own name and ends the process
+
 import time
 from typing import Optional
 
@@ -161,6 +166,3 @@ def main(args=None) -> int:
     """Console script ``setpoint_node``."""
     return run_node(lambda context: SetpointNode(context=context), args)
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())
