@@ -126,6 +126,19 @@ def test_a_released_element_is_named_in_its_rows_status_and_not_located():
     y1, y2 = st["mpm_monitor: row y1"], st["mpm_monitor: row y2"]
     assert y1.value("explained_inputs") == "u3" and y1.value("flagged_inputs") == "u2"
     assert y1.value("kind u3") is None and y2.value("explained_inputs") is None
+
+
+def test_an_element_released_in_a_quiet_row_is_named_in_its_rows_status_and_not_located():
+    c = core()
+    feed(c, 0, 20)
+    rep = fake_report({"y1": ["u2"], "y2": []}, samples=20)
+    for e in rep.elements:
+        e.unlocated_at_na = 16 if (e.output, e.input) == ("y2", "u1") else None
+    c.accept(run_analysis(lambda m, d, o: rep, MODEL, None, c.take_job()))
+    st = by_name(c.statuses(now=0.0))
+    y1, y2 = st["mpm_monitor: row y1"], st["mpm_monitor: row y2"]
+    assert y2.value("unlocated_inputs") == "u1" and y2.value("flagged_inputs") == ""
+    assert y1.value("unlocated_inputs") is None and y1.value("flagged_inputs") == "u2"
     assert st[SUMMARY_NAME].value("located_elements") == "y1:u2"
 
 

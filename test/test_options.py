@@ -44,7 +44,8 @@ def test_every_analysis_option_has_its_spec_with_the_dataclass_default():
         "na": "int", "max_na": "int", "nb": "int", "alpha": "double", "band": "double_array", "n_freq": "int", "max_delay": "int",
         "initial_state": "string", "method": "string", "repair": "bool", "collinearity_threshold": "double",
         "test_all_rows": "bool", "element_window": "string", "element_response": "bool",
-        "confirm_responses": "bool", "release_explained": "bool", "repair_again": "bool", "drop_spikes": "bool",
+        "confirm_responses": "bool", "release_explained": "bool", "release_quiet_rows": "bool",
+            "repair_again": "bool", "drop_spikes": "bool",
         "max_gap": "int",
         "jobs": "int"}
 

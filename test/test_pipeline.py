@@ -264,11 +264,15 @@ def test_a_max_delay_below_the_models_dead_times_is_warned_of(case_data):
         assert not [w for w in ok.warnings if w.startswith("max_delay")]
 
 
-def test_a_location_the_row_test_and_a_larger_na_do_not_share_is_warned_of():
+def test_a_location_the_row_test_and_a_larger_na_do_not_share_is_released():
     """Plant = model, a slow drift (pole 0.95, innovation 1.0) under measurement noise of 5.0, which moves the
     inputs more than the setpoints do: ``na`` = 4 own lags leave the noise coloured, the inputs' lags take the
     colour up (the whiteness check sees white) and the element test locates elements of a model that matches the
-    plant, in rows the S_Delta row test does not flag.  With ``na`` 16 it locates none: each row says so."""
+    plant, in rows the S_Delta row test does not flag.  With ``na`` 16 it locates none: each such element is
+    released (``unlocated_at_na`` 16, not located, nothing repaired) and each row says so; with
+    ``release_quiet_rows`` off they stay located, with the warning of before."""
+    import json
+
     from mpm_monitor.core.model import PlantModel
     from mpm_monitor.sim.plant import DisturbanceOptions
 
@@ -277,17 +281,36 @@ def test_a_location_the_row_test_and_a_larger_na_do_not_share_is_warned_of():
     log = run_closed_loop(model, model, 3000, seed=101, disturbance=DisturbanceOptions(disturbance_std=1.0,
                                                                                       noise_std=5.0))
     data = log.as_logged_data()
-    rep = analyze(model, data, AnalysisOptions(repair=False))
-    assert rep.located_elements and rep.noise_order["na"] == 4
-    assert all(r.p_value_raw >= 0.01 for r in rep.rows)
-    said = [w for w in rep.warnings if "where the S_Delta row test does not flag the row" in w]
-    assert sorted(w.split(":")[0] for w in said) == sorted(f"row {o}" for o in dict.fromkeys(o for o, _ in
-                                                                                           rep.located_elements))
-    assert all("with na = 16 own lags it does not locate" in w for w in said)
+    kept = analyze(model, data, AnalysisOptions(repair=False, release_quiet_rows=False))
+    assert kept.located_elements and kept.noise_order["na"] == 4
+    assert all(r.p_value_raw >= 0.01 for r in kept.rows)
+    said = [w for w in kept.warnings if "where the S_Delta row test does not flag the row" in w]
+    rows = sorted(f"row {o}" for o in dict.fromkeys(o for o, _ in kept.located_elements))
+    assert sorted(w.split(":")[0] for w in said) == rows
+    assert all("with na = 16 own lags it does not locate" in w and "analyze with na = 16 before acting" in w
+               for w in said)
+    assert all(e.unlocated_at_na is None for e in kept.elements)
     assert not analyze(model, data, AnalysisOptions(repair=False, na=16)).located_elements
-    # where the row test flags the rows (case 3.2's mismatches), no such warning
+
+    rep = analyze(model, data, AnalysisOptions())
+    assert not rep.located_elements and not rep.flagged_rows
+    released = sorted((e.output, e.input) for e in rep.elements if e.unlocated_at_na is not None)
+    assert released == sorted(kept.located_elements)
+    assert all(e.unlocated_at_na == 16 and not e.mismatch and e.p_value < 0.01 for e in rep.elements
+               if e.unlocated_at_na is not None)
+    said = [w for w in rep.warnings if "where the S_Delta row test does not flag the row" in w]
+    assert sorted(w.split(":")[0] for w in said) == rows
+    assert all(w.endswith("not reported as located") for w in said)
+    assert rep.repaired_model is None or rep.repaired_model == model
+    doc = json.loads(json.dumps(rep.to_dict()))
+    assert doc["located"] == []
+    assert sorted((e["output"], e["input"]) for e in doc["elements"] if e["unlocated_at_na"] == 16) == released
+    assert "but not with na = 16 own lags (not located): " in rep.summary_text()
+    # where the row test flags the rows (case 3.2's mismatches), no such warning and nothing released
     case = paper_case("3.2")
     log = run_closed_loop(case.plant, case.model, 3000, seed=11, mpc=case.mpc, excitation=case.excitation,
                           disturbance=case.disturbance)
-    assert not [w for w in analyze(case.model, log.as_logged_data(), AnalysisOptions(repair=False)).warnings
-                if "S_Delta row test does not flag" in w]
+    rep = analyze(case.model, log.as_logged_data(), AnalysisOptions(repair=False))
+    assert rep.located_elements
+    assert not [w for w in rep.warnings if "S_Delta row test does not flag" in w]
+    assert all(e.unlocated_at_na is None for e in rep.elements)

@@ -100,5 +100,25 @@ def test_a_candidate_explained_by_another_is_said_so_in_the_report_not_no_effect
     report = types.SimpleNamespace(candidates=cands, rows=[types.SimpleNamespace(output="y1")], elements=elements)
     explained = _explained_candidates(report)
     assert explained == {"sensor2": ["feed"]}
-    html = _candidates_section(report, explained)
+    html = _candidates_section(report, explained, {})
     assert "flagged, explained by feed (see the warnings)" in html and "no effect found" not in html
+
+
+def test_a_candidate_released_in_a_quiet_row_is_said_so_in_the_report_not_no_effect():
+    """A candidate located in a row the S_Delta row test does not flag and released because the element test with
+    max_na own lags does not locate it (unlocated_at_na) reads so in the HTML report, not "no effect found"."""
+    import types
+
+    from mpm_monitor.io.report import _candidates_section, _unlocated_candidates
+
+    cands = types.SimpleNamespace(tried=["feed"], p_values={"feed": {"y1": 1e-5}}, located=[], added=[],
+                                  not_exogenous={}, unusable={})
+    elements = [types.SimpleNamespace(output="y1", input="feed", role="candidate", explained_by=(), mismatch=False,
+                                      unlocated_at_na=16),
+                types.SimpleNamespace(output="y1", input="u1", role="input", explained_by=(), mismatch=False,
+                                      unlocated_at_na=16)]
+    report = types.SimpleNamespace(candidates=cands, rows=[types.SimpleNamespace(output="y1")], elements=elements)
+    unlocated = _unlocated_candidates(report)
+    assert unlocated == {"feed": 16}
+    html = _candidates_section(report, {}, unlocated)
+    assert "flagged, not with na = 16 own lags (see the warnings)" in html and "no effect found" not in html

@@ -36,8 +36,8 @@ class _Parser(argparse.ArgumentParser):
 
 #: The analysis options given on the command line of ``analyze`` and ``reproduce``, in their flags' order.
 CLI_ANALYSIS_OPTIONS = ("method", "alpha", "na", "max_na", "nb", "band", "initial_state", "repair", "element_response",
-                        "confirm_responses", "release_explained", "repair_again", "drop_spikes", "max_delay", "max_gap",
-                        "jobs")
+                        "confirm_responses", "release_explained", "release_quiet_rows", "repair_again", "drop_spikes",
+                        "max_delay", "max_gap", "jobs")
 
 #: Names of the values of an option that takes several (default: the option's name in capitals).
 _METAVARS = {"band": ("LOW", "HIGH")}

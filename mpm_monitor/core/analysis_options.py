@@ -98,6 +98,14 @@ class AnalysisOptions:
         :func:`mpm_monitor.core.repair.explained_elements`).  This runs the repair's
         classification of those rows also when ``repair`` is off, so the located elements do not
         depend on ``repair``.
+    release_quiet_rows : bool
+        An element located in a row the S_Delta row test does not flag (its unadjusted p-value at least
+        ``alpha``) is tested again with ``max_na`` own lags, and released (no longer reported as located;
+        ``unlocated_at_na``) when that test does not locate it (default True; False: a warning only).  A
+        disturbance's colour that ``na`` own lags leave, under measurement noise large against the loop's
+        excitation, is taken up by the inputs' lags (the controller moves them in answer to the noise) and
+        located as elements; the row test, which regresses on the setpoints, keeps its level there
+        (:func:`mpm_monitor.core.pipeline.analyze`).
     repair_again : bool
         Where the detection of the repaired model locates, in a row whose repair was applied, an element
         the first detection did not (``repair.located_after``, at the first detection's level: a mismatch the
@@ -166,6 +174,9 @@ class AnalysisOptions:
     release_explained: bool = option(True, "Where a row has several located elements, re-estimate them jointly and "
                                            "release one that does not differ from the model while another does "
                                            "(its finding was the other's mismatch).")
+    release_quiet_rows: bool = option(True, "Release an element located in a row the S_Delta row test does not flag "
+                                            "when the element test with max_na own lags does not locate it (a "
+                                            "disturbance's colour the inputs' lags took up); off: a warning only.")
     repair_again: bool = option(True, "Where the repaired model's detection locates, in a row whose repair was "
                                       "applied, an element the first detection did not (at the first detection's "
                                       "level), repair again from the model as given with it and the located "

@@ -209,6 +209,12 @@ class AnalysisReport:
             lines.append("flagged, but explained by the row's located elements (not located): "
                          + ", ".join(f"({e.output}, {_column_label(e)}) by {', '.join(e.explained_by)}"
                                      for e in released))
+        unlocated = [e for e in self.elements if e.unlocated_at_na is not None]
+        if unlocated:
+            na = sorted({e.unlocated_at_na for e in unlocated})
+            lines.append(f"flagged in rows the S_Delta row test does not flag, but not with na = "
+                         f"{', '.join(map(str, na))} own lags (not located): "
+                         + ", ".join(f"({e.output}, {_column_label(e)})" for e in unlocated))
         amb = [e for e in self.elements if e.ambiguous and not _never_moves(e)]
         if amb:
             moving = "inputs and measured disturbances" if any(e.role == "disturbance" for e in amb) else "inputs"

@@ -97,6 +97,11 @@ class ElementResult:
         of its row named here it does not differ from the model: they explain the row's mismatch
         and it is not located (``mismatch`` false; option ``release_explained``,
         :func:`mpm_monitor.core.repair.explained_elements`).  Empty otherwise.
+    unlocated_at_na : int or None
+        The element test located this element in a row the S_Delta row test does not flag, and with this
+        many own lags (the analysis's ``max_na``) it does not locate it: a disturbance's colour that the
+        inputs' lags took up, and it is not located (``mismatch`` false; option ``release_quiet_rows``,
+        :func:`mpm_monitor.core.pipeline.analyze`).  None otherwise.
     """
 
     output: str
@@ -115,6 +120,7 @@ class ElementResult:
     p_value_window: Optional[float] = None
     p_value_response: Optional[float] = None
     explained_by: tuple = ()
+    unlocated_at_na: Optional[int] = None
 
 
 @dataclasses.dataclass

@@ -113,8 +113,10 @@ def _analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions, sign
 
 def _check_quiet_rows(model: PlantModel, data: LoggedData, options: AnalysisOptions, report: AnalysisReport,
                       kw: dict) -> None:
-    """Warn of the elements located in rows the S_Delta row test does not flag that the element test with
-    ``max_na`` own lags does not locate (``report.warnings``, one line per row; nothing else changes).
+    """Release the elements located in rows the S_Delta row test does not flag that the element test with
+    ``max_na`` own lags does not locate (``mismatch`` false, ``unlocated_at_na``, and the row no longer
+    mismatched when no located element is left in it; with ``release_quiet_rows`` off they stay located), and
+    say so in a warning per row.
 
     The row test regresses on the setpoints, which no disturbance moves: its level holds whatever colours the
     prediction error.  The element test regresses on the inputs, which the controller moves in answer to the
@@ -125,7 +127,8 @@ def _check_quiet_rows(model: PlantModel, data: LoggedData, options: AnalysisOpti
     1.5, and 1.0 under 5.0; 20 seeds each): an element located in 20 of 20 runs each, in no row the row test flags,
     and in 0 of 20 with ``na`` 16.  A true mismatch the row test has too little power for (a small one, or one
     the setpoints do not excite) is located at ``max_na`` too, as a rule; the detection at ``max_na`` (no
-    detectability) runs only where such an element is located.
+    detectability) runs only where such an element is located.  A located candidate channel released comes
+    off the candidates' located list too.
     """
     if options.na >= options.max_na:
         return
@@ -138,15 +141,29 @@ def _check_quiet_rows(model: PlantModel, data: LoggedData, options: AnalysisOpti
     except DataFileError:        # too few samples or rows for the longer lags: nothing to compare
         return
     still = set(check.located_elements)
+    release = options.release_quiet_rows
     for output in dict.fromkeys(e.output for e in suspects):
-        gone = [e.input for e in suspects if e.output == output and (output, e.input) not in still]
-        if gone:
-            report.warnings.append(
-                f"row {output}: the element test locates {', '.join(gone)} where the S_Delta row test does not flag "
-                f"the row (p = {quiet[output]:.2g}), and with na = {options.max_na} own lags it does not locate "
-                f"{'it' if len(gone) == 1 else 'them'}: a disturbance whose colour the inputs' lags take up (a slow "
-                f"drift under measurement noise large against the loop's excitation) gives such false locations; "
-                f"analyze with na = {options.max_na} before acting on {'it' if len(gone) == 1 else 'them'}")
+        gone = [e for e in suspects if e.output == output and (output, e.input) not in still]
+        if not gone:
+            continue
+        names = ", ".join(e.input for e in gone)
+        them = "it" if len(gone) == 1 else "them"
+        if release:
+            for e in gone:
+                e.mismatch, e.unlocated_at_na = False, options.max_na
+            if report.candidates is not None:
+                off = {(e.output, e.input) for e in gone}
+                report.candidates.located = [k for k in report.candidates.located if k not in off]
+            # The row counted as mismatched for its located elements only (its S_Delta test did not reject).
+            if not any(e.mismatch for e in report.elements if e.output == output):
+                report.rows = [dataclasses.replace(r, mismatch=False) if r.output == output else r
+                               for r in report.rows]
+        head = (f"row {output}: the element test locates {names} where the S_Delta row test does not flag the row "
+                f"(p = {quiet[output]:.2g}), and with na = {options.max_na} own lags it does not locate {them}: a "
+                f"disturbance whose colour the inputs' lags take up (a slow drift under measurement noise large "
+                f"against the loop's excitation) gives such false locations")
+        report.warnings.append(f"{head}; {them} {'is' if len(gone) == 1 else 'are'} not reported as located"
+                               if release else f"{head}; analyze with na = {options.max_na} before acting on {them}")
 
 
 class _TestsAhead:

@@ -193,11 +193,19 @@ def _explained_candidates(report) -> dict:
     return {k: v for k, v in explained.items() if v}
 
 
-def _candidates_section(report, explained: dict) -> str:
+def _unlocated_candidates(report) -> dict:
+    """Candidate -> the ``na`` with which the element test no longer locates it, for a candidate located in a row
+    the S_Delta row test does not flag and released (``unlocated_at_na``)."""
+    return {e.input: e.unlocated_at_na for e in getattr(report, "elements", ())
+            if getattr(e, "role", "") == "candidate" and getattr(e, "unlocated_at_na", None) is not None}
+
+
+def _candidates_section(report, explained: dict, unlocated: dict) -> str:
     """Which channels were tried, the p-value of each in each row, which were unusable or not
     exogenous, which were explained by the row's located elements (``explained``:
     :func:`_explained_candidates` of the report as analysed; such a channel read "no effect found" beside its
-    p-value below 1e-16), and which were added to the repaired model."""
+    p-value below 1e-16) or released by the test with more own lags (``unlocated``: :func:`_unlocated_candidates`
+    of the report as analysed), and which were added to the repaired model."""
     cands = report.candidates
     if not cands.tried:
         return "<p>No candidate channel was given.</p>"
@@ -210,6 +218,7 @@ def _candidates_section(report, explained: dict) -> str:
             verdict = "added to the model" if name in cands.added else (
                 "located, not added (see the warnings)" if any(c == name for _, c in located) else
                 f"flagged, explained by {', '.join(explained[name])} (see the warnings)" if name in explained else
+                f"flagged, not with na = {unlocated[name]} own lags (see the warnings)" if name in unlocated else
                 "no effect found")
             rows.append([_e(name)] + [_p(ps.get(o)) for o in outputs] + [_e(verdict)])
             classes.append("flag" if any(c == name for _, c in located) else "")
@@ -287,7 +296,7 @@ def write_report(directory, model: PlantModel, data, report) -> Path:
     except OSError as exc:
         raise InputError(f"{directory}: cannot create report directory: {exc.strerror or exc}") from None
     model_as_given = model
-    explained = _explained_candidates(report)
+    explained, unlocated = _explained_candidates(report), _unlocated_candidates(report)
     model, data, report = _plotted(model, data, report)
     repaired = getattr(report, "repaired_model", None)
     try:
@@ -343,7 +352,7 @@ def write_report(directory, model: PlantModel, data, report) -> Path:
         "<h2>Detectability and experiment</h2>", _detectability_section(report), fig_html.get("detectability", ""),
     ]
     if getattr(report, "candidates", None) is not None:
-        body += ["<h2>Candidate channels</h2>", _candidates_section(report, explained)]
+        body += ["<h2>Candidate channels</h2>", _candidates_section(report, explained, unlocated)]
     body += [
         "<h2>Repair</h2>", _repair_section(report), fig_html.get("residuals", ""),
     ]

@@ -231,6 +231,9 @@ def row_statuses(outputs: Sequence[str], outcome, analysis_error: Optional[str],
         explained = [e.input for e in els if getattr(e, "explained_by", ())]
         if explained:
             values.append(("explained_inputs", ",".join(explained)))
+        unlocated = [e.input for e in els if getattr(e, "unlocated_at_na", None) is not None]
+        if unlocated:
+            values.append(("unlocated_inputs", ",".join(unlocated)))
         detectable = [(e.input, getattr(e, "detectable_gain_change", None)) for e in els]
         if any(x is not None for _, x in detectable):
             values.append(("detectable_gain_change", ",".join(f"{i}={_num(x)}" for i, x in detectable)))
