@@ -73,7 +73,7 @@ def test_models_without_disturbances_add_only_the_role_input():
     doc = analyze(case.model, log, FAST).to_dict()
     keys = {"output", "input", "mismatch", "p_value", "p_value_raw", "statistic", "kind", "ambiguous",
             "ambiguous_with", "delay", "b", "role", "detectable_gain_change", "p_value_window",
-            "p_value_response", "explained_by"}
+            "p_value_response", "explained_by", "unlocated_at_na"}
     assert all(set(e) == keys and e["role"] == "input" for e in doc["elements"])
 
 
