@@ -35,6 +35,7 @@ from ..core.logged_data import MAX_ANALYSIS_SCALE
 from ..core.options import ParamSpec
 from ..io.qos import DIAGNOSTICS_QOS, VECTOR_QOS, QosSpec
 from ..monitor.window import NS_PER_S, names_text, seconds_text
+from .params_file_check import params_file_problem
 
 #: The stamped-vector channels and whose names they carry: the model's ``outputs``, ``inputs`` or ``disturbances``.
 CHANNELS = {"setpoint": "outputs", "input": "inputs", "output": "outputs", "dither": "inputs",
@@ -655,7 +656,9 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
     -------
     int
         0 after a stop, 2 (with one line ``error: ...`` on stderr) when the node refuses its
-        parameters or inputs (:class:`~mpm_monitor.core.errors.InputError`), 130 (with one line
+        parameters or inputs (:class:`~mpm_monitor.core.errors.InputError`) or a ``--params-file`` of its
+        ROS arguments is no params file rcl reads (:mod:`~mpm_monitor.nodes.params_file_check`: said
+        before ``rclpy.init``, so that rcl prints nothing of its own), 130 (with one line
         ``<program>: interrupted while starting``) after a Ctrl-C that came before the signal
         handlers below were in place, or the node's ``exit_code`` when it asked to end (the
         recorder's 1: its bag could not be written; the plant's and the MPC's 1: it diverged).
@@ -708,7 +711,8 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
             return 2
         try:
             rclpy.init(args=args, context=context, signal_handler_options=SignalHandlerOptions.NO)
-        except Exception as exc:       # noqa: BLE001 - a params file that is missing or not YAML, bad --ros-args
+        except Exception as exc:       # noqa: BLE001 - bad --ros-args (a -p rule, a remap; a params file the
+            # check passed and rcl refuses): rcl has printed its own line before this one
             text = " ".join(str(exc).split())
             print(f"error: ROS arguments: {text[:300] or type(exc).__name__}", file=sys.stderr)
             return 2
@@ -747,28 +751,6 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
         finally:
             for sig, handler in previous.items():     # only now: nothing of rclpy's runs after this
                 signal.signal(sig, handler)
-
-
-def params_file_problem(args) -> str:
-    """Why a ``--params-file`` of the ROS arguments ``args`` cannot be read as YAML ('' when all can), so
-    that the node says it in one line before rcl does in a log line and an exception."""
-    import yaml
-
-    args = list(args or ())
-    for k, arg in enumerate(args[:-1]):
-        if arg != "--params-file":
-            continue
-        path = args[k + 1]
-        try:
-            with open(path, encoding="utf-8") as fh:
-                doc = yaml.safe_load(fh)
-        except OSError as exc:
-            return f"--params-file {path}: cannot read it: {exc.strerror or exc}"
-        except (yaml.YAMLError, UnicodeDecodeError) as exc:
-            return f"--params-file {path}: not valid YAML: {' '.join(str(exc).split())[:200]}"
-        if not isinstance(doc, dict):
-            return f"--params-file {path}: expected a mapping of node names to ros__parameters, got {type(doc).__name__}"
-    return ""
 
 
 def resolve_model(model_file: str, case: str, which: str = "model"):
