@@ -15,7 +15,7 @@ from ros_domains import close_nodes  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 
 from mpm_monitor.apps.demo import _overrides, case_parameters, private_context  # noqa: E402
-from mpm_monitor.nodes import plant_node  # noqa: E402
+from mpm_monitor.nodes import plant_node, ros_io  # noqa: E402
 from mpm_monitor.nodes.ros_io import make_executor, spin_until, vector_qos, wait_acked  # noqa: E402
 
 
@@ -45,7 +45,7 @@ def test_the_plant_waits_for_acknowledgements_only_when_it_leaves_after_max_samp
     params.update(clock_topic="clock", max_samples=5, exit_when_done=True, exit_ack_timeout=7.5)
     plant = plant_node.PlantNode(parameter_overrides=_overrides(params), context=ctx, namespace="/acks2")
     calls = []
-    monkeypatch.setattr(plant_node, "wait_acked", lambda pubs, timeout: calls.append(
+    monkeypatch.setattr(ros_io, "wait_acked", lambda pubs, timeout: calls.append(
         (sorted(p.topic_name for p in pubs), timeout)) or [])
     ex = make_executor(ctx)
     ex.add_node(plant)

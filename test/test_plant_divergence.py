@@ -134,6 +134,6 @@ def test_the_process_of_a_diverged_plant_ends_with_exit_code_1(monkeypatch):
         return node
 
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "OFF")
-    monkeypatch.setattr(plant_node, "wait_acked", lambda pubs, timeout: [])
+    monkeypatch.setattr(ros_io, "wait_acked", lambda pubs, timeout: [])
     assert ros_io.run_node(factory, ["plant_node"]) == 1
     assert len(made) == 1

@@ -37,7 +37,9 @@ re-sending ``y(k)`` for it, and the plant and the monitor warning of each, for e
 experiment's dither of sample ``k``) holds one -- an unstable loop, a near-singular controller -- the node
 publishes nothing of sample ``k`` (no dither, no ``u(k)``) nor after it, logs one error naming the sample's
 time, the channels and their values, takes no more vectors or experiments and asks to end:
-:func:`~mpm_monitor.nodes.ros_io.run_node` returns its ``exit_code``.
+:func:`~mpm_monitor.nodes.ros_io.run_node` lets its readers acknowledge the inputs (and dither) already
+published, as a plant leaving on its own does (:meth:`MpcNode.drain`, at most 30 s), and returns its
+``exit_code``.
 
 **Exit codes** (the process, ``main``): 0 after a stop (SIGINT, SIGTERM); 1 after the controller diverged
 (above); 2 for a bad parameter or params file; 130 for a Ctrl-C while it starts.
@@ -79,6 +81,7 @@ from .ros_io import (
     unreadable_text,
     unreadable_values,
     vector_qos,
+    wait_for_readers,
 )
 
 PARAMS = MODEL_PARAMS + (
@@ -407,6 +410,23 @@ class MpcNode(Node):
             buf.clear()
         self.get_logger().error(text)
         self.exit_requested, self.exit_code = True, 1
+
+    def drain(self, executor) -> None:
+        """Leaving on its own (diverged): wait until the readers have every input (and experiment dither) sent.
+
+        As the plant's drain (:func:`~mpm_monitor.nodes.ros_io.wait_for_readers`, at most
+        :data:`~mpm_monitor.nodes.ros_io.EXIT_ACK_TIMEOUT` s): a reader that runs behind the loop (the
+        monitor, a recorder) has not yet received the last inputs when the controller stops, and a process that
+        leaves at once takes them with it.  Nothing of the sample that diverged was published; stopped by a
+        signal, the node leaves at once (its readers are being stopped too).
+
+        Parameters
+        ----------
+        executor : rclpy executor
+            The executor that spun the node (unused: the wait needs no spinning).
+        """
+        if self.exit_requested:
+            wait_for_readers(self, (self._pub, self._dither_pub))
 
     # --------------------------------------------------------------------------- experiments
     def _end_experiment(self, stamp: int) -> None:

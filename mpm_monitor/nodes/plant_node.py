@@ -52,6 +52,7 @@ from ..sim.closed_loop import seeded_generators
 from ..sim.excitation import MeasuredDisturbanceGenerator, MeasuredDisturbanceOptions
 from ..sim.plant import DisturbanceOptions, PlantSimulator
 from .ros_io import (
+    EXIT_ACK_TIMEOUT,
     MODEL_PARAMS,
     MessageError,
     VectorCodec,
@@ -65,7 +66,7 @@ from .ros_io import (
     unreadable_text,
     unreadable_values,
     vector_qos,
-    wait_acked,
+    wait_for_readers,
 )
 
 _DV = MeasuredDisturbanceOptions()
@@ -101,9 +102,9 @@ PARAMS = MODEL_PARAMS + (
     ParamSpec("stall_timeout", "double", 2.0, "Wall-clock seconds without the expected input before a warning "
               "and a re-sent clock and output y(k) (lock-step; lets a restarted MPC pick the loop up).", 0.05, 3600.0),
     ParamSpec("exit_when_done", "bool", False, "Leave the process after max_samples."),
-    ParamSpec("exit_ack_timeout", "double", 30.0, "Wall-clock seconds the process, leaving after max_samples, "
-              "waits for its readers to acknowledge every vector sent (a reader running behind, such as the "
-              "monitor, would otherwise lose the last samples).", 0.0, 3600.0),
+    ParamSpec("exit_ack_timeout", "double", EXIT_ACK_TIMEOUT, "Wall-clock seconds the process, leaving after "
+              "max_samples, waits for its readers to acknowledge every vector sent (a reader running behind, such "
+              "as the monitor, would otherwise lose the last samples).", 0.0, 3600.0),
 ) + topic_params("output", "input", "clock", "disturbance")
 
 
@@ -333,13 +334,8 @@ class PlantNode(Node):
         them: a monitor asked for the whole run then never completes it.  Stopped by a signal, the plant
         leaves at once (its readers are being stopped too).
         """
-        if not self.exit_requested:
-            return
-        pubs = [p for p in (self._pub, self._clock_pub, self._dv_pub) if p is not None]
-        late = wait_acked(pubs, self.params["exit_ack_timeout"])
-        if late:
-            self.get_logger().warning(f"leaving after {self.params['exit_ack_timeout']:g} s with vectors not "
-                                      f"acknowledged on {', '.join(late)}: a reader may lack the last samples")
+        if self.exit_requested:
+            wait_for_readers(self, (self._pub, self._clock_pub, self._dv_pub), self.params["exit_ack_timeout"])
 
     def _on_input(self, msg: JointState) -> None:
         try:

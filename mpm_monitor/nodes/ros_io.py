@@ -557,6 +557,37 @@ def wait_acked(publishers, timeout: float) -> list:
     return late
 
 
+#: Wall-clock seconds a node leaving on its own waits at most for its readers (:func:`wait_for_readers`): the
+#: plant's ``exit_ack_timeout`` by default, the MPC's after a divergence.
+EXIT_ACK_TIMEOUT = 30.0
+
+
+def wait_for_readers(node, publishers, timeout: float = EXIT_ACK_TIMEOUT) -> list:
+    """The drain of a node that leaves on its own (done, or diverged): :func:`wait_acked` on its ``publishers``,
+    and one warning when some readers had not acknowledged everything in time.
+
+    Parameters
+    ----------
+    node : rclpy.node.Node
+        The node whose logger says it.
+    publishers : sequence of rclpy.publisher.Publisher or None
+        The publishers whose readers must have everything they were sent (None entries are left out: a
+        publisher the node does not have).
+    timeout : float
+        Wall-clock seconds for all of them together.
+
+    Returns
+    -------
+    list of str
+        :func:`wait_acked`'s topics whose readers had not acknowledged everything (empty: all had).
+    """
+    late = wait_acked([p for p in publishers if p is not None], timeout)
+    if late:
+        node.get_logger().warning(f"leaving after {timeout:g} s with vectors not acknowledged on {', '.join(late)}: "
+                                  f"a reader may lack the last samples")
+    return late
+
+
 def make_executor(context, kind: str = "events"):
     """An executor on ``context``: ``events`` (rclpy.experimental.EventsExecutor, fastest) or ``single``.
 
@@ -673,8 +704,9 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
     checks, so a callback is never interrupted half-way.  The loop also ends when the node's
     ``exit_requested`` turns true.  Then the node's ``drain(executor)``, if it has one, handles what
     is already under way (the recorder takes the messages already delivered, the replay lets its
-    publishers hand over what is queued), its ``close()``, if any, runs (the monitor stops its
-    analysis, the recorder closes its bag), the node is destroyed and the context shut down.
+    publishers hand over what is queued; the plant and the MPC, leaving on their own, wait for their
+    readers' acknowledgements, :func:`wait_for_readers`), its ``close()``, if any, runs (the monitor
+    stops its analysis, the recorder closes its bag), the node is destroyed and the context shut down.
 
     The handlers stay in place until all of that is done, and only then are the previous ones (Python's
     ``KeyboardInterrupt`` for SIGINT) given back: a terminal's Ctrl-C reaches a launcher's whole process
