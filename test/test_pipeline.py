@@ -314,3 +314,42 @@ def test_a_location_the_row_test_and_a_larger_na_do_not_share_is_released():
     assert rep.located_elements
     assert not [w for w in rep.warnings if "S_Delta row test does not flag" in w]
     assert all(e.unlocated_at_na is None for e in rep.elements)
+
+
+def test_an_element_explained_only_by_released_ones_is_released_with_them(monkeypatch):
+    """In a row the row test does not flag, u1 is located and u2 released as explained by u1 (the joint
+    re-estimation).  When max_na locates neither, u1 is released and u2 with it (no longer "explained" by an
+    element that is not located); u3, explained by u1 but located at max_na, keeps its explanation."""
+    import dataclasses
+    import types
+
+    from mpm_monitor.core import pipeline
+    from mpm_monitor.core.element_test import ElementResult
+
+    def element(name, mismatch, explained_by=()):
+        return ElementResult(output="y1", input=name, mismatch=mismatch, p_value=1e-6 if mismatch else 0.5,
+                             p_value_raw=1e-8, statistic=30.0, explained_by=explained_by)
+
+    @dataclasses.dataclass
+    class Row:
+        output: str
+        p_value_raw: float
+        mismatch: bool
+
+    elements = [element("u1", True), element("u2", False, ("u1",)), element("u3", False, ("u1",))]
+    report = types.SimpleNamespace(rows=[Row("y1", 0.4, True)], elements=elements, warnings=[], candidates=None)
+    asked = []
+
+    def detect(model, data, options, **kw):
+        asked.append(options.na)
+        return types.SimpleNamespace(located_elements=[("y1", "u3")])
+
+    monkeypatch.setattr(pipeline, "detect", detect)
+    pipeline._check_quiet_rows(None, None, AnalysisOptions(), report, {})
+    assert asked == [16]
+    u1, u2, u3 = elements
+    assert (u1.mismatch, u1.unlocated_at_na) == (False, 16)
+    assert (u2.explained_by, u2.unlocated_at_na) == ((), 16)
+    assert (u3.explained_by, u3.unlocated_at_na) == (("u1",), None)
+    assert report.rows[0].mismatch is False
+    assert len(report.warnings) == 1 and report.warnings[0].endswith("not reported as located, nor u2, which it explained")
