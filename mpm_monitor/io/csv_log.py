@@ -143,7 +143,9 @@ def read_csv(path, model: PlantModel, started: "StartedCsvRead | None" = None,
         A row whose cell of one of the model's channels (not ``t``) is empty, not a number or not
         finite: ``refuse`` the file, naming its line and column (the default), or leave the row out
         as a missing sample (``gap``: the analysis goes around it, as around a row missing from the
-        file), said in one of :attr:`~mpm_monitor.core.logged_data.LoggedData.notes`.
+        file), said in one of :attr:`~mpm_monitor.core.logged_data.LoggedData.notes`.  A row left out
+        still needs its ``t`` (a bad one is refused: the row cannot be placed), and that ``t`` is refused
+        as a kept row's would be when it repeats or goes back from the previous row's, kept or left out.
 
     Returns
     -------
@@ -456,6 +458,7 @@ def parse_csv_text(text: str, model: PlantModel, source: str = "data", cells=Non
     others, unusable = _other_columns(header, needed)
     table = _fast_table(text, len(header), cells)
     fast = table is not None and bool(np.isfinite(table).all())
+    left_out = []
     if fast:
         values = table[:, idx]
         extra = {name: np.ascontiguousarray(table[:, k]) for name, k in others}
@@ -476,6 +479,8 @@ def parse_csv_text(text: str, model: PlantModel, source: str = "data", cells=Non
             values, lines, _, _ = _careful_table(text, header, needed, idx, [], source)
         _refuse_spacing(values[:, 0], lines, model.sample_time, source)
     _refuse_span(values[:, 0], lines, model.sample_time, source, text, header, needed, idx)
+    if left_out:
+        _refuse_left_out_times(values[:, 0], lines, left_out, model.sample_time, source)
     ny, nu, nd = model.n_outputs, model.n_inputs, model.n_disturbances
     parts = np.split(values, np.cumsum([1, ny, nu, nd]), axis=1)
     t, r, u, dv, y = (np.ascontiguousarray(p) for p in parts)
@@ -485,8 +490,8 @@ def parse_csv_text(text: str, model: PlantModel, source: str = "data", cells=Non
 
 
 def _left_out_note(source: str, left_out: list) -> str:
-    """The note of the rows ``bad_values="gap"`` left out (``[(line, column, cell)]``, in file order)."""
-    line, col, cell = left_out[0]
+    """The note of the rows ``bad_values="gap"`` left out (``[(line, column, cell, t)]``, in file order)."""
+    line, col, cell, _ = left_out[0]
     n = len(left_out)
     return (f"{source}: {n} row{'s' if n != 1 else ''} left out as missing samples (a value of the model's channels "
             f"empty, not a number or not finite; the first on line {line}, column '{col}': {cell[:40]!r}); the "
@@ -629,8 +634,9 @@ def _careful_table(text: str, header: list, needed: list, idx: list, other_idx: 
         File line of every row (blank lines are skipped but counted).
     cells : list of list of str
         The raw cells of the columns ``other_idx``, one list per column.
-    left_out : list of (int, str, str)
-        With ``gap``: the line, column and cell of every row left out (its first bad cell).
+    left_out : list of (int, str, str, float)
+        With ``gap``: the line, column and cell of every row left out (its first bad cell), and its ``t``
+        (a finite number: a bad ``t`` is refused, the row cannot be placed).
 
     Raises
     ------
@@ -663,8 +669,8 @@ def _careful_table(text: str, header: list, needed: list, idx: list, other_idx: 
                 except ValueError:
                     x = None
                 if x is None or not math.isfinite(x):
-                    if gap and col != "t":
-                        left_out.append((line_no, col, cell))
+                    if gap and col != "t":      # t is needed[0]: read, and finite, before any other cell
+                        left_out.append((line_no, col, cell, vals[0]))
                         break
                     what = "a number" if x is None else "a finite number"
                     raise DataFileError(f"{source}: line {line_no}, column '{col}': expected {what}, "
@@ -681,8 +687,8 @@ def _careful_table(text: str, header: list, needed: list, idx: list, other_idx: 
                             f"{_csv_error_text(exc, reader.line_num - read)}") from None
     if not rows:
         if left_out:          # every row left out: name the columns that did it, with the first bad cell
-            counts = collections.Counter(col for _, col, _ in left_out)
-            line, col, cell = left_out[0]
+            counts = collections.Counter(col for _, col, _, _ in left_out)
+            line, col, cell, _ = left_out[0]
             worst = ", ".join(f"'{c}' ({n} row{'s' if n != 1 else ''})" for c, n in counts.most_common(3))
             raise DataFileError(f"{source}: every one of its {len(left_out)} data lines left out for a bad value "
                                 f"(empty, not a number or not finite) in {worst}; the first on line {line}, column "
@@ -742,11 +748,41 @@ def _refuse_span(t: np.ndarray, lines, ts: float, source: str, text, header, nee
 
 def _refuse_spacing(t: np.ndarray, lines: list, ts: float, source: str) -> None:
     """Raise for the first step of ``t`` that is not a whole number of sample times (naming its lines)."""
-    with np.errstate(over="ignore", invalid="ignore"):
-        steps = np.diff(t)
     bad = np.flatnonzero(_steps_off_grid(t, ts))
-    k = int(bad[0])
-    step = steps[k]
+    _refuse_step(t, lines, int(bad[0]), ts, source)
+
+
+def _refuse_left_out_times(t: np.ndarray, lines: list, left_out: list, ts: float, source: str) -> None:
+    """Raise, as :func:`_refuse_spacing` does for the kept rows, when the ``t`` of a row ``bad_values="gap"``
+    left out repeats or goes back from the previous row's, or the next row's ``t`` repeats or goes back from it
+    (the previous row kept or left out): such a ``t`` is as wrong when its row is left out.  (Only the order is
+    checked: a left-out row's ``t`` off the grid is not refused.)
+
+    Parameters
+    ----------
+    t : ndarray, shape (n_rows,)
+        The kept rows' ``t``.
+    lines : list of int
+        Their file lines.
+    left_out : list of (int, str, str, float)
+        The rows left out (:func:`_careful_table`): line, column, cell, ``t``.
+    ts : float
+        The sample time.
+    source : str
+        Names the file in the message.
+    """
+    rows = sorted([(line, float(x)) for line, x in zip(lines, t)] + [(line, x) for line, _, _, x in left_out])
+    every_t = np.array([x for _, x in rows])
+    back = np.flatnonzero(~(every_t[1:] > every_t[:-1]))
+    if back.size:
+        _refuse_step(every_t, [line for line, _ in rows], int(back[0]), ts, source)
+
+
+def _refuse_step(t: np.ndarray, lines: list, k: int, ts: float, source: str) -> None:
+    """Raise for the step of ``t`` from row ``k`` to row ``k + 1`` (file lines ``lines[k]``, ``lines[k + 1]``): one
+    that repeats or goes back, or one that is not a whole number of sample times."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        step = np.diff(t[k:k + 2])[0]
     # A t so large that 64-bit floats cannot tell its samples apart (1e16 s: 2 s apart) reads as repeated or
     # uneven whatever the file says: name that instead of blaming the log.
     resolution = float(np.spacing(max(abs(float(t[k])), abs(float(t[k + 1])))))
