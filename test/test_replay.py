@@ -117,14 +117,14 @@ def test_replay_in_lock_step_with_clock(ctx, tmp_path):
 
 
 def test_replay_waits_for_its_readers_acknowledgements_once_every_message_is_out(ctx, tmp_path, monkeypatch):
-    from mpm_monitor.nodes import replay_node
+    from mpm_monitor.nodes import ros_io
 
     write_logged_data(tmp_path / "bag", _data())
     listener, got = _listener(ctx)
     rep = ReplayNode(bag=tmp_path / "bag", context=ctx, rate=50.0, wait_for_subscribers=1,
                      parameter_overrides=[rclpy.parameter.Parameter("exit_ack_timeout", value=4.5)])
     calls = []
-    monkeypatch.setattr(replay_node, "wait_acked", lambda pubs, timeout: calls.append(
+    monkeypatch.setattr(ros_io, "wait_acked", lambda pubs, timeout: calls.append(
         (sorted(p.topic_name for p in pubs), timeout)) or [])
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(listener)
@@ -136,6 +136,31 @@ def test_replay_waits_for_its_readers_acknowledgements_once_every_message_is_out
     assert calls == [(["/input", "/output", "/setpoint"], 4.5)]
     rep.destroy_node()
     listener.destroy_node()
+
+
+def test_replay_says_which_readers_had_not_acknowledged_everything(ctx, tmp_path, monkeypatch, capfd):
+    """The wait is the plant's and the MPC's (:func:`~mpm_monitor.nodes.ros_io.wait_for_readers`): readers late after
+    ``exit_ack_timeout`` s (its /clock publisher waited for too) make one warning naming their topics and the time."""
+    from mpm_monitor.nodes import ros_io
+
+    write_logged_data(tmp_path / "bag", _data())
+    listener, got = _listener(ctx)
+    rep = ReplayNode(bag=tmp_path / "bag", context=ctx, rate=50.0, wait_for_subscribers=1, publish_clock=True,
+                     parameter_overrides=[rclpy.parameter.Parameter("exit_ack_timeout", value=4.5)])
+    calls = []
+    monkeypatch.setattr(ros_io, "wait_acked", lambda pubs, timeout: calls.append(
+        ([p.topic_name for p in pubs], timeout)) or ["/clock", "/output"])
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(listener)
+    ex.add_node(rep)
+    assert spin_until(ex, lambda: rep.finished, 10)
+    rep.drain(ex)
+    assert calls == [(["/setpoint", "/input", "/output", "/clock"], 4.5)]
+    rep.destroy_node()
+    listener.destroy_node()
+    warnings = [line.split("]: ", 1)[1] for line in capfd.readouterr().err.splitlines() if line.startswith("[WARN]")]
+    assert warnings == ["leaving after 4.5 s with vectors not acknowledged on /clock, /output: a reader may lack the "
+                        "last samples"]
 
 
 def test_bad_replay_parameters(ctx, tmp_path):

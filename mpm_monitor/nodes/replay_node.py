@@ -61,7 +61,7 @@ from .ros_io import (
     run_node,
     stamp_to_ns,
     vector_qos,
-    wait_acked,
+    wait_for_readers,
 )
 
 MODES = ("time", "clock")
@@ -253,15 +253,13 @@ class ReplayNode(Node):
     def drain(self, executor) -> None:
         """Spin a little so that the reliable publishers hand over what is queued before the process ends; once
         every message is out, also wait (at most ``exit_ack_timeout`` s) until the readers acknowledge them all:
-        a reader running behind would otherwise lose the last messages when the process leaves."""
+        a reader running behind would otherwise lose the last messages when the process leaves.  The wait, and
+        the one warning naming the topics whose readers had not acknowledged everything by then, are the plant's
+        and the MPC's (:func:`~mpm_monitor.nodes.ros_io.wait_for_readers`)."""
         for _ in range(10):
             executor.spin_once(timeout_sec=0.02)
         if self.finished:
-            pubs = list(self._replay_pubs.values()) + ([self._clock_pub] if self._clock_pub is not None else [])
-            late = wait_acked(pubs, self.options.exit_ack_timeout)
-            if late:
-                self.get_logger().warning(f"leaving after {self.options.exit_ack_timeout:g} s with messages not "
-                                          f"acknowledged on {', '.join(late)}: a reader may lack the last ones")
+            wait_for_readers(self, [*self._replay_pubs.values(), self._clock_pub], self.options.exit_ack_timeout)
 
     def _publish(self, messages) -> None:
         for m in messages:
