@@ -150,14 +150,22 @@ class MonitorCore:
         self._collect_problems()
         return n
 
-    def add_candidates(self, stamp_ns: int, names: Sequence[str], values, now: float) -> None:
+    def add_candidates(self, stamp_ns: int, names: Sequence[str], values, now: float) -> Optional[str]:
         """Keep a vector of candidate channels received at wall-clock time ``now`` (seconds); a refused one
-        is a bad message of the channel ``candidate``.  Ignored unless ``options.candidates``."""
+        is a bad message of the channel ``candidate``.  Ignored unless ``options.candidates``.
+
+        Returns
+        -------
+        str or None
+            Why the vector was refused (:meth:`~mpm_monitor.monitor.candidate_window.CandidateWindow.add`, one
+            line, as recorded by :meth:`bad_message`), for the caller to log; None when it was kept or ignored.
+        """
         if self.candidates is None:
-            return
+            return None
         problem = self.candidates.add(stamp_ns, names, values)
         if problem is not None:
             self.bad_message("candidate", problem, now)
+        return problem
 
     def bad_message(self, channel: str, message: str, now: float) -> None:
         """Record a message refused by the converter (wrong names, lengths, non-finite values)."""

@@ -320,7 +320,10 @@ class MonitorNode(Node):
             self.publish_statuses()
 
     def _on_candidates(self, msg: JointState) -> None:
-        self.core.add_candidates(stamp_to_ns(msg.header.stamp), msg.name, msg.position, time.monotonic())
+        # A refused vector is a bad message of the core's (its statuses), and a warning here as in _on_vector.
+        problem = self.core.add_candidates(stamp_to_ns(msg.header.stamp), msg.name, msg.position, time.monotonic())
+        if problem is not None:
+            self.get_logger().warning(problem, throttle_duration_sec=5.0)
 
     # ---------------------------------------------------------------------------- analysis
     def request_analysis(self) -> bool:
