@@ -287,7 +287,7 @@ def test_a_location_the_row_test_and_a_larger_na_do_not_share_is_released():
     said = [w for w in kept.warnings if "where the S_Delta row test does not flag the row" in w]
     rows = sorted(f"row {o}" for o in dict.fromkeys(o for o, _ in kept.located_elements))
     assert sorted(w.split(":")[0] for w in said) == rows
-    assert all("with na = 16 own lags it does not locate" in w and "analyze with na = 16 before acting" in w
+    assert all("with na = 16 own lags it does not confirm" in w and "analyze with na = 16 before acting" in w
                for w in said)
     assert all(e.unlocated_at_na is None for e in kept.elements)
     assert not analyze(model, data, AnalysisOptions(repair=False, na=16)).located_elements
@@ -305,7 +305,7 @@ def test_a_location_the_row_test_and_a_larger_na_do_not_share_is_released():
     doc = json.loads(json.dumps(rep.to_dict()))
     assert doc["located"] == []
     assert sorted((e["output"], e["input"]) for e in doc["elements"] if e["unlocated_at_na"] == 16) == released
-    assert "but not with na = 16 own lags (not located): " in rep.summary_text()
+    assert "but not confirmed with na = 16 own lags (not located): " in rep.summary_text()
     # where the row test flags the rows (case 3.2's mismatches), no such warning and nothing released
     case = paper_case("3.2")
     log = run_closed_loop(case.plant, case.model, 3000, seed=11, mpc=case.mpc, excitation=case.excitation,
@@ -317,18 +317,20 @@ def test_a_location_the_row_test_and_a_larger_na_do_not_share_is_released():
 
 
 def test_an_element_explained_only_by_released_ones_is_released_with_them(monkeypatch):
-    """In a row the row test does not flag, u1 is located and u2 released as explained by u1 (the joint
-    re-estimation).  When max_na locates neither, u1 is released and u2 with it (no longer "explained" by an
-    element that is not located); u3, explained by u1 but located at max_na, keeps its explanation."""
+    """In a row the row test does not flag, u1 and u4 are located and u2 and u3 released as explained by u1 (the
+    joint re-estimation).  With max_na own lags: u3 located, u4 not located by the whole family but confirmed by
+    Holm's procedure over the elements checked (2 x 2 x 1e-3 < 0.01), u1 and u2 neither.  u1 is released and u2
+    with it (no longer "explained" by an element that is not located); u3, located with max_na, keeps its
+    explanation; u4 stays located, and so the row stays mismatched."""
     import dataclasses
     import types
 
     from mpm_monitor.core import pipeline
     from mpm_monitor.core.element_test import ElementResult
 
-    def element(name, mismatch, explained_by=()):
+    def element(name, mismatch, explained_by=(), raw=1e-8):
         return ElementResult(output="y1", input=name, mismatch=mismatch, p_value=1e-6 if mismatch else 0.5,
-                             p_value_raw=1e-8, statistic=30.0, explained_by=explained_by)
+                             p_value_raw=raw, statistic=30.0, explained_by=explained_by)
 
     @dataclasses.dataclass
     class Row:
@@ -336,20 +338,25 @@ def test_an_element_explained_only_by_released_ones_is_released_with_them(monkey
         p_value_raw: float
         mismatch: bool
 
-    elements = [element("u1", True), element("u2", False, ("u1",)), element("u3", False, ("u1",))]
+    elements = [element("u1", True), element("u2", False, ("u1",)), element("u3", False, ("u1",)),
+                element("u4", True)]
     report = types.SimpleNamespace(rows=[Row("y1", 0.4, True)], elements=elements, warnings=[], candidates=None)
     asked = []
 
     def detect(model, data, options, **kw):
         asked.append(options.na)
-        return types.SimpleNamespace(located_elements=[("y1", "u3")])
+        raw = {"u1": 0.3, "u2": 0.2, "u3": 1e-9, "u4": 1e-3}
+        return types.SimpleNamespace(located_elements=[("y1", "u3")],
+                                     elements=[element(name, name == "u3", raw=p) for name, p in raw.items()])
 
     monkeypatch.setattr(pipeline, "detect", detect)
     pipeline._check_quiet_rows(None, None, AnalysisOptions(), report, {})
     assert asked == [16]
-    u1, u2, u3 = elements
+    u1, u2, u3, u4 = elements
     assert (u1.mismatch, u1.unlocated_at_na) == (False, 16)
     assert (u2.explained_by, u2.unlocated_at_na) == ((), 16)
     assert (u3.explained_by, u3.unlocated_at_na) == (("u1",), None)
-    assert report.rows[0].mismatch is False
-    assert len(report.warnings) == 1 and report.warnings[0].endswith("not reported as located, nor u2, which it explained")
+    assert (u4.mismatch, u4.unlocated_at_na) == (True, None)
+    assert report.rows[0].mismatch is True
+    assert len(report.warnings) == 1 and "does not confirm it (p = 0.6)" in report.warnings[0]
+    assert report.warnings[0].endswith("not reported as located, nor u2, which it explained")

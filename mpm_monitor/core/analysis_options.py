@@ -101,7 +101,9 @@ class AnalysisOptions:
     release_quiet_rows : bool
         An element located in a row the S_Delta row test does not flag (its unadjusted p-value at least
         ``alpha``) is tested again with ``max_na`` own lags, and released (no longer reported as located;
-        ``unlocated_at_na``) when that test does not locate it (default True; False: a warning only).  A
+        ``unlocated_at_na``) when that test does not confirm it: the detection with ``max_na`` does not
+        locate it, and its p-value there is not below ``alpha`` under Holm's procedure over the elements so
+        checked (times the ``N_FAMILIES`` families; default True; False: a warning only).  A
         disturbance's colour that ``na`` own lags leave, under measurement noise large against the loop's
         excitation, is taken up by the inputs' lags (the controller moves them in answer to the noise) and
         located as elements; the row test, which regresses on the setpoints, keeps its level there
@@ -175,7 +177,7 @@ class AnalysisOptions:
                                            "release one that does not differ from the model while another does "
                                            "(its finding was the other's mismatch).")
     release_quiet_rows: bool = option(True, "Release an element located in a row the S_Delta row test does not flag "
-                                            "when the element test with max_na own lags does not locate it (a "
+                                            "when the element test with max_na own lags does not confirm it (a "
                                             "disturbance's colour the inputs' lags took up); off: a warning only.")
     repair_again: bool = option(True, "Where the repaired model's detection locates, in a row whose repair was "
                                       "applied, an element the first detection did not (at the first detection's "

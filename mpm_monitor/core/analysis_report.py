@@ -212,7 +212,7 @@ class AnalysisReport:
         unlocated = [e for e in self.elements if e.unlocated_at_na is not None]
         if unlocated:
             na = sorted({e.unlocated_at_na for e in unlocated})
-            lines.append(f"flagged in rows the S_Delta row test does not flag, but not with na = "
+            lines.append(f"flagged in rows the S_Delta row test does not flag, but not confirmed with na = "
                          f"{', '.join(map(str, na))} own lags (not located): "
                          + ", ".join(f"({e.output}, {_column_label(e)})" for e in unlocated))
         amb = [e for e in self.elements if e.ambiguous and not _never_moves(e)]

@@ -99,7 +99,8 @@ class ElementResult:
         :func:`mpm_monitor.core.repair.explained_elements`).  Empty otherwise.
     unlocated_at_na : int or None
         The element test located this element in a row the S_Delta row test does not flag, and with this
-        many own lags (the analysis's ``max_na``) it does not locate it: a disturbance's colour that the
+        many own lags (the analysis's ``max_na``) it does not confirm it (neither located there nor below
+        ``alpha`` under Holm's procedure over the elements so checked): a disturbance's colour that the
         inputs' lags took up, and it is not located (``mismatch`` false; option ``release_quiet_rows``,
         :func:`mpm_monitor.core.pipeline.analyze`).  None otherwise.
     """
