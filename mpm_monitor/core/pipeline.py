@@ -137,7 +137,7 @@ def _check_quiet_rows(model: PlantModel, data: LoggedData, options: AnalysisOpti
     the setpoints do not excite) is located at ``max_na`` too, as a rule, unless the noise dominates the loop's
     excitation (``bench.quiet_rows``: under the paper's noise nothing is released; under a drift below
     measurement noise of 1.5 and 5.0 the clean loops that alarm fall from 47 and 63 of 150 to 1 and 1, and the
-    true elements located from 43 and 45 of 150 to 29 and 27).  The detection at ``max_na`` (no detectability)
+    true elements located from 43 and 45 of 150 to 30 and 28).  The detection at ``max_na`` (no detectability)
     runs only where such an element is located.  A located candidate channel released comes
     off the candidates' located list too.  An element of such a row that the joint re-estimation released as
     explained by released elements only (``explained_by``), and that ``max_na`` does not locate either, is
