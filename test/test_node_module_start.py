@@ -17,6 +17,7 @@ lists what was imported before.  The node processes never reach ROS: discovery i
 
 import ast
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -59,6 +60,11 @@ def _env(site_dir: Path = None) -> dict:
     return env
 
 
+def _default_sigint() -> None:
+    """In the child before it runs Python: SIGINT's default disposition."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _imported(line: str) -> str:
     """The module an ``-X importtime`` line names ('' for any other line)."""
     if not line.startswith("import time:") or "|" not in line:
@@ -70,8 +76,11 @@ def _interrupt_during_imports(name: str, site_dir: Path) -> tuple:
     """Run ``python -X importtime -m mpm_monitor.nodes.<name>`` with :data:`INTERRUPTER` as its ``sitecustomize``;
     its exit code, the modules imported before the signal and its stderr without the ``import time`` lines."""
     (site_dir / "sitecustomize.py").write_text(INTERRUPTER, encoding="utf-8")
+    # A Ctrl-C reaches a process whose SIGINT is not ignored: an ignored disposition is inherited through exec
+    # (pytest started in the background of a non-interactive shell has one), and Python then installs no handler.
     proc = subprocess.run([sys.executable, "-X", "importtime", "-m", f"mpm_monitor.nodes.{name}"], cwd=ROOT,
-                          env=_env(site_dir), stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=60)
+                          env=_env(site_dir), stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=60,
+                          preexec_fn=_default_sigint)
     lines = proc.stderr.splitlines(keepends=True)
     before = [_imported(line) for line in lines if _imported(line)]
     # Interrupted at the first heavy import: only its own failed chain's lines (``rclpy``, ``rclpy.clock``) show.
