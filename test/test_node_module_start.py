@@ -9,8 +9,8 @@ scripts).
 
 The SIGINT is a real one, sent by the node process to itself at the start of its first heavy import (numpy,
 rclpy or yaml): a ``sitecustomize`` on the child's ``PYTHONPATH`` puts a finder first on ``sys.meta_path`` that
-does it (no timing: sending it from this process once ``-X importtime`` showed a heavy import raced the child,
-which under CI's load had finished its imports and met its parameter error first).  ``-X importtime`` still
+does it (no timing to race: before, this process sent it once ``-X importtime`` showed a heavy import).  The
+child starts with SIGINT's default disposition, whatever this process's (an ignored one is inherited).  ``-X importtime`` still
 lists what was imported before.  The node processes never reach ROS: discovery is off
 (``ROS_AUTOMATIC_DISCOVERY_RANGE=OFF``).
 """
