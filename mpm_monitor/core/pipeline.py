@@ -134,7 +134,7 @@ def _check_quiet_rows(model: PlantModel, data: LoggedData, options: AnalysisOpti
     model that matches the plant.  Measured on a 2x2 loop, plant = model (a drift of innovation 0.3 under noise of
     1.5, and 1.0 under 5.0; 20 seeds each): an element located in 20 of 20 runs each, in no row the row test flags,
     and in 0 of 20 with ``na`` 16.  A true mismatch the row test has too little power for (a small one, or one
-    the setpoints do not excite) is located at ``max_na`` too, as a rule, unless the noise dominates the loop's
+    the setpoints do not excite) is confirmed at ``max_na`` too, as a rule, unless the noise dominates the loop's
     excitation (``bench.quiet_rows``: under the paper's noise nothing is released; under a drift below
     measurement noise of 1.5 and 5.0 the clean loops that alarm fall from 47 and 63 of 150 to 1 and 1, and the
     true elements located from 43 and 45 of 150 to 30 and 28).  The detection at ``max_na`` (no detectability)
@@ -153,16 +153,8 @@ def _check_quiet_rows(model: PlantModel, data: LoggedData, options: AnalysisOpti
         check = detect(model, data, dataclasses.replace(options, na=options.max_na), detectability=False, **kw)
     except DataFileError:        # too few samples or rows for the longer lags: nothing to compare
         return
-    # Confirmed: located by the detection with max_na, or its test there rejects under Holm's procedure over the
-    # elements checked (at alpha / N_FAMILIES, as every element p-value): the checked elements were selected by
-    # the detection with fewer own lags, and the test with max_na is the one whose level holds.
-    keys = [(e.output, e.input) for e in suspects]
-    raw = {(e.output, e.input): e.p_value_raw for e in check.elements}
-    given = [raw.get(k) for k in keys]
-    adjusted = np.minimum(1.0, N_FAMILIES * holm_adjust([1.0 if p is None or not np.isfinite(p) else p
-                                                         for p in given]))
-    confirmation = dict(zip(keys, adjusted))
-    still = set(check.located_elements) | {k for k in keys if confirmation[k] < options.alpha}
+    confirmation = _confirmation(check, [(e.output, e.input) for e in suspects])
+    still = set(check.located_elements) | {k for k, p in confirmation.items() if p < options.alpha}
     release = options.release_quiet_rows
     for output in dict.fromkeys(e.output for e in suspects):
         gone = [e for e in suspects if e.output == output and (output, e.input) not in still]
@@ -195,6 +187,18 @@ def _check_quiet_rows(model: PlantModel, data: LoggedData, options: AnalysisOpti
                 if release and freed else "")
         report.warnings.append(f"{head}; {them} {'is' if len(gone) == 1 else 'are'} not reported as located{also}"
                                if release else f"{head}; analyze with na = {options.max_na} before acting on {them}")
+
+
+def _confirmation(check: AnalysisReport, keys: list) -> dict:
+    """``(output, column) -> p``: the confirmation's p-value of each checked element, its unadjusted p-value in
+    ``check`` (the detection with ``max_na`` own lags) under Holm's procedure over ``keys`` and times
+    ``N_FAMILIES``, as every element p-value (1 where ``check`` has none: an ambiguous element).  The checked
+    elements were selected by the detection with fewer own lags; the test with ``max_na`` is the one whose level
+    holds where those leave the noise coloured."""
+    raw = {(e.output, e.input): e.p_value_raw for e in check.elements}
+    given = [raw.get(k) for k in keys]
+    adjusted = holm_adjust([1.0 if p is None or not np.isfinite(p) else p for p in given])
+    return dict(zip(keys, np.minimum(1.0, N_FAMILIES * adjusted)))
 
 
 class _TestsAhead:
