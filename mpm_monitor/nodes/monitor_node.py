@@ -92,8 +92,8 @@ DITHER_CALL_TIMEOUT = 10.0
 
 #: The analysis options the node declares as parameters, in their order (:data:`ANALYSIS_PARAMS`).
 NODE_ANALYSIS_OPTIONS = ("alpha", "na", "nb", "band", "n_freq", "max_delay", "method", "initial_state", "repair",
-                         "element_response", "confirm_responses", "release_explained", "release_quiet_rows", "repair_again",
-                         "drop_spikes", "max_na", "jobs")
+                         "element_response", "confirm_responses", "release_explained", "release_quiet_rows",
+                         "repair_again", "drop_spikes", "max_na", "jobs")
 
 
 def analysis_params() -> tuple:

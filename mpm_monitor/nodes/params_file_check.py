@@ -21,8 +21,9 @@ What is refused is what rcl's parser refuses (each case was tried on it):
 
 And, as the check always did although rcl reads them, an empty file and a file of several YAML documents;
 and, not tried on rcl, a file longer than :data:`MAX_PARAMS_FILE_BYTES` or nested deeper than PyYAML
-composes (the check read such a file whole, or ended in a traceback).  A file it passes may still be refused by rcl in a case it does not know (the order of a node's keys, for
-one); that file gets rcl's own messages, as before.
+composes (the check read such a file whole, or ended in a traceback).  A file it passes may still be
+refused by rcl in a case it does not know (the order of a node's keys, for one); that file gets rcl's own
+messages, as before.
 
 Only the standard library and PyYAML (imported when a file is checked): no ``rclpy``.
 """

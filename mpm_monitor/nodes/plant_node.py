@@ -103,8 +103,8 @@ PARAMS = MODEL_PARAMS + (
               "and a re-sent clock and output y(k) (lock-step; lets a restarted MPC pick the loop up).", 0.05, 3600.0),
     ParamSpec("exit_when_done", "bool", False, "Leave the process after max_samples."),
     ParamSpec("exit_ack_timeout", "double", EXIT_ACK_TIMEOUT, "Wall-clock seconds the process, leaving after "
-              "max_samples or a divergence, waits for its readers to acknowledge every vector sent (a reader running behind, such "
-              "as the monitor, would otherwise lose the last samples).", 0.0, 3600.0),
+              "max_samples or a divergence, waits for its readers to acknowledge every vector sent (a reader "
+              "running behind, such as the monitor, would otherwise lose the last samples).", 0.0, 3600.0),
 ) + topic_params("output", "input", "clock", "disturbance")
 
 

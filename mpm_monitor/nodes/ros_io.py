@@ -732,15 +732,15 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
     context = None
     previous = {}
     try:
+        problem = params_file_problem(sys.argv if args is None else args)   # before rclpy: no need of it
+        if problem:
+            print(f"error: {problem}", file=sys.stderr)
+            return 2
         import rclpy
         from rclpy.context import Context
         from rclpy.signals import SignalHandlerOptions
 
         context = Context()
-        problem = params_file_problem(sys.argv if args is None else args)
-        if problem:
-            print(f"error: {problem}", file=sys.stderr)
-            return 2
         try:
             rclpy.init(args=args, context=context, signal_handler_options=SignalHandlerOptions.NO)
         except Exception as exc:       # noqa: BLE001 - bad --ros-args (a -p rule, a remap; a params file the
