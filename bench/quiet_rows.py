@@ -65,29 +65,28 @@ def one_run(task) -> dict:
 
 
 def summarize(records: list) -> dict:
-    """Per condition, with the release (``released``) and without it (``kept``)."""
+    """Per condition, with the release (``released``) and without it (``kept``: the located elements and the
+    released ones)."""
+    def sets(r):
+        return tuple({tuple(k) for k in r[key]} for key in ("located", "released", "truth"))
+
     out = {}
     for name, *_ in CONDITIONS:
-        recs = [r for r in records if r["condition"] == name]
+        recs = [(r["mismatched"],) + sets(r) for r in records if r["condition"] == name]
         row = {}
         for decision in ("kept", "released"):
-            def located(r):
-                got = {tuple(k) for k in r["located"]}
-                return got | {tuple(k) for k in r["released"]} if decision == "kept" else got
-            clean = [r for r in recs if not r["mismatched"]]
-            bad = [r for r in recs if r["mismatched"]]
+            found = [(bad, located | released if decision == "kept" else located, truth)
+                     for bad, located, released, truth in recs]
             row[decision] = {
-                "false_alarms": sum(1 for r in clean if located(r)),
-                "clean": len(clean),
-                "true_located": sum(len(located(r) & {tuple(k) for k in r["truth"]}) for r in bad),
-                "true": sum(len(r["truth"]) for r in bad),
-                "runs_with_wrong": sum(1 for r in bad if located(r) - {tuple(k) for k in r["truth"]}),
-                "mismatched": len(bad)}
-        row["released_true"] = sum(len({tuple(k) for k in r["released"]} & {tuple(k) for k in r["truth"]})
-                                   for r in recs)
-        row["released_wrong"] = sum(len({tuple(k) for k in r["released"]} - {tuple(k) for k in r["truth"]})
-                                    for r in recs)
-        row["runs_released"] = sum(1 for r in recs if r["released"])
+                "false_alarms": sum(1 for bad, got, _ in found if not bad and got),
+                "clean": sum(1 for bad, _, _ in found if not bad),
+                "true_located": sum(len(got & truth) for bad, got, truth in found if bad),
+                "true": sum(len(truth) for bad, _, truth in found if bad),
+                "runs_with_wrong": sum(1 for bad, got, truth in found if bad and got - truth),
+                "mismatched": sum(1 for bad, _, _ in found if bad)}
+        row["released_true"] = sum(len(released & truth) for _, _, released, truth in recs)
+        row["released_wrong"] = sum(len(released - truth) for _, _, released, truth in recs)
+        row["runs_released"] = sum(1 for _, _, released, _ in recs if released)
         out[name] = row
     return out
 
