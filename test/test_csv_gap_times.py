@@ -4,7 +4,9 @@ value of the model's channels still has its ``t`` checked as a kept row's is.
 A repeated or decreasing ``t`` was refused on a kept row but not noticed on a row left out as a gap: a file whose
 left-out row's ``t`` went back (or whose next row's ``t`` went back from it) was read as if nothing were wrong.
 It is refused now with the very message a kept row gets (file, line, the ``t`` it repeats or goes back from).
-A left-out row's empty or non-numeric ``t`` is refused as before (the row cannot be placed).
+So is a left-out row's ``t`` off the sample grid (a step to it or from it not a whole number of sample times,
+within the kept rows' tolerance), and one more than 2^53 sample times after the first row's: both were read
+without a word.  A left-out row's empty or non-numeric ``t`` is refused as before (the row cannot be placed).
 
 ``start_csv_read`` forks a child for the parse: this module runs in ``make test``'s serial pass.
 """
@@ -97,17 +99,58 @@ def test_the_refusal_is_the_same_after_a_started_read(tmp_path):
     assert str(info.value) == plain
 
 
-def test_left_out_rows_whose_t_increases_are_read_as_before(tmp_path):
-    """Left-out rows on the grid or off it, and rows just before a skipped grid point: read as the file with those
-    rows deleted, as before (only the order of a left-out row's ``t`` is checked)."""
-    rows = _set(_set(_rows(10), 2, y1=""), 5, t="5.5", u1="Bad")
-    del rows[7]                                              # a gap of the file's own
+def test_left_out_rows_whose_t_increases_on_the_grid_are_read_as_before(tmp_path):
+    """Left-out rows on the grid (one within the kept rows' 0.1 % tolerance of it, one just after a skipped grid
+    point): read as the file with those rows deleted, as before."""
+    rows = _set(_set(_set(_rows(10), 2, y1=""), 5, t="5.0005", u1="Bad"), 8, y2="nan")
+    del rows[7]                                              # a gap of the file's own: row 8 follows row 6
     data = read_csv(_write(tmp_path, rows), _model(), bad_values="gap")
-    ref = read_csv(_write(tmp_path, [r for k, r in enumerate(rows) if k not in (2, 5)], "ref.csv"), _model())
+    ref = read_csv(_write(tmp_path, [r for k, r in enumerate(rows) if k not in (2, 5, 7)], "ref.csv"), _model())
     for key in ("t", "r", "u", "y"):
         np.testing.assert_array_equal(getattr(data, key), getattr(ref, key))
-    assert data.n_samples == 7 and len(data.notes) == 1 and data.notes[0].split(": ", 1)[1].startswith(
-        "2 rows left out as missing samples")
+    assert data.n_samples == 6 and len(data.notes) == 1 and data.notes[0].split(": ", 1)[1].startswith(
+        "3 rows left out as missing samples")
+
+
+@pytest.mark.parametrize("t, step", [("3.5", "0.5"), ("4.002", "1.002"), ("4.5", "1.5")])
+def test_a_left_out_rows_t_off_the_grid_is_refused_as_on_a_kept_row(tmp_path, t, step):
+    """Row 4 (line 6) has t = 3.5, 4.002 (0.2 % off, beyond the 0.1 % tolerance) or 4.5 after t = 3 on line 5:
+    kept, it is refused as off the grid; left out for an empty y1, it was read without a word.  Now the same
+    message, byte for byte (but the file's name)."""
+    kept = _refusal(_write(tmp_path, _set(_rows(), 4, t=t), "kept.csv"), bad_values="gap")
+    gap = _refusal(_write(tmp_path, _set(_rows(), 4, t=t, y1=""), "gap.csv"), bad_values="gap")
+    assert kept.startswith(f"{tmp_path / 'kept.csv'}: line 6: t = {float(t):g} s follows t = 3 s: a step of {step} s "
+                           f"(expected sample_time 1 s; a gap or an irregular sample: every step a whole number of "
+                           f"sample times, within 0.1 % per sample time)")
+    assert gap == kept.replace("kept.csv", "gap.csv")
+    assert "\n" not in gap
+
+
+def test_a_left_out_rows_t_off_a_grid_of_0_1_s_is_refused(tmp_path):
+    """Sample time 0.1 s, the row on line 4 left out at t = 0.35 after t = 0.1: the step to it is refused (the kept
+    rows alone, 0.1 then 0.4, skip two grid points and are read)."""
+    model = _model(0.1)
+    rows = [",".join([f"{k / 10:g}"] + [str(10 * k + c) for c in range(1, 8)]) for k in range(8)]
+    rows = _set(_set(rows, 3, t="0.35", u3=""), 4, t="0.4")
+    del rows[2]                                              # line 4 now holds row 3 (t = 0.35), after t = 0.1
+    path = _write(tmp_path, rows)
+    with pytest.raises(DataFileError) as info:
+        read_csv(path, model, bad_values="gap")
+    assert str(info.value).startswith(f"{path}: line 4: t = 0.35 s follows t = 0.1 s: a step of 0.25 s (expected "
+                                      f"sample_time 0.1 s;")
+    kept_only = [r for k, r in enumerate(rows) if k != 2]
+    assert read_csv(_write(tmp_path, kept_only, "kept.csv"), model, bad_values="gap").n_samples == 6
+
+
+def test_a_left_out_rows_t_beyond_2_53_sample_times_is_refused_as_on_a_kept_row(tmp_path):
+    """The last row (line 9) left out at t = 1e19 s: on the grid step by step (float64 cannot tell), but 1e19
+    sample times after the first row, more than 2^53; kept, it is refused so, left out it was read without a
+    word.  Now the same message."""
+    kept = _refusal(_write(tmp_path, _set(_rows(), 7, t="1e19"), "kept.csv"), bad_values="gap")
+    gap = _refusal(_write(tmp_path, _set(_rows(), 7, t="1e19", r_y2="Bad"), "gap.csv"), bad_values="gap")
+    assert kept == f"{tmp_path / 'kept.csv'}: line 9: t = 1e+19 s lies 1e+19 sample times after the first sample " \
+                   f"(t = 0 s): expected at most 2^53 (a stray t, or is the sample time right?)"
+    assert gap == kept.replace("kept.csv", "gap.csv")
 
 
 @pytest.mark.parametrize("t, message", [("", "line 6, column 't': expected a number, got ''"),
@@ -140,3 +183,13 @@ def test_analyze_refuses_it_in_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.strip().splitlines() == [f"error: {path}: line 6: t = 1 s goes back from t = 3 s on line 5: expected t "
                                         f"to increase by sample_time 1 s"]
+
+
+def test_analyze_refuses_a_left_out_rows_t_off_the_grid_in_one_line(tmp_path, capsys):
+    """``analyze --bad-values gap`` on a file whose left-out row's t is off the grid: exit 2, one line."""
+    save_model(_model(), tmp_path / "model.yaml")
+    path = _write(tmp_path, _set(_rows(), 4, t="3.5", y1="NaN"))
+    assert main(["analyze", "--model", str(tmp_path / "model.yaml"), "--data", str(path), "--bad-values", "gap",
+                 "--no-repair"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {path}: line 6: t = 3.5 s follows t = 3 s: a step of 0.5 s")

@@ -145,7 +145,8 @@ def read_csv(path, model: PlantModel, started: "StartedCsvRead | None" = None,
         as a missing sample (``gap``: the analysis goes around it, as around a row missing from the
         file), said in one of :attr:`~mpm_monitor.core.logged_data.LoggedData.notes`.  A row left out
         still needs its ``t`` (a bad one is refused: the row cannot be placed), and that ``t`` is refused
-        as a kept row's would be when it repeats or goes back from the previous row's, kept or left out.
+        as a kept row's would be when it repeats or goes back from the previous row's, kept or left out,
+        lies off the sample grid, or lies more than 2^53 sample times after the first row's.
 
     Returns
     -------
@@ -733,7 +734,8 @@ def _spacing_ok(t: np.ndarray, ts: float) -> bool:
 
 def _refuse_span(t: np.ndarray, lines, ts: float, source: str, text, header, needed, idx) -> None:
     """Raise when ``t`` spans more than :data:`MAX_GRID_SAMPLES` sample times (a stray far-off ``t``, such as
-    1e19 s, would make a gap whose length no integer counts), naming the first line beyond."""
+    1e19 s, would make a gap whose length no integer counts), naming the first line beyond.  ``text``,
+    ``header``, ``needed`` and ``idx`` serve only to find the lines when ``lines`` is None."""
     with np.errstate(over="ignore", invalid="ignore"):
         far = np.flatnonzero(~((t - t[0]) / ts <= MAX_GRID_SAMPLES))
     if far.size == 0:
@@ -753,10 +755,12 @@ def _refuse_spacing(t: np.ndarray, lines: list, ts: float, source: str) -> None:
 
 
 def _refuse_left_out_times(t: np.ndarray, lines: list, left_out: list, ts: float, source: str) -> None:
-    """Raise, as :func:`_refuse_spacing` does for the kept rows, when the ``t`` of a row ``bad_values="gap"``
-    left out repeats or goes back from the previous row's, or the next row's ``t`` repeats or goes back from it
-    (the previous row kept or left out): such a ``t`` is as wrong when its row is left out.  (Only the order is
-    checked: a left-out row's ``t`` off the grid is not refused.)
+    """Raise, as :func:`_refuse_spacing` and :func:`_refuse_span` do for the kept rows, when the ``t`` of a row
+    ``bad_values="gap"`` left out is wrong as a kept row's would be: it repeats or goes back from the previous
+    row's, or the next row's ``t`` repeats or goes back from it (the previous row kept or left out); the step to it
+    or from it is not a whole number of sample times (off the grid, within the same tolerance); or it lies more
+    than :data:`MAX_GRID_SAMPLES` sample times after the first row's.  The checks and messages are the kept
+    rows', run on every row in file order, kept or left out; the kept rows alone have been checked before.
 
     Parameters
     ----------
@@ -773,9 +777,10 @@ def _refuse_left_out_times(t: np.ndarray, lines: list, left_out: list, ts: float
     """
     rows = sorted([(line, float(x)) for line, x in zip(lines, t)] + [(line, x) for line, _, _, x in left_out])
     every_t = np.array([x for _, x in rows])
-    back = np.flatnonzero(~(every_t[1:] > every_t[:-1]))
-    if back.size:
-        _refuse_step(every_t, [line for line, _ in rows], int(back[0]), ts, source)
+    every_line = [line for line, _ in rows]
+    if not _spacing_ok(every_t, ts):
+        _refuse_spacing(every_t, every_line, ts, source)
+    _refuse_span(every_t, every_line, ts, source, text=None, header=None, needed=None, idx=None)
 
 
 def _refuse_step(t: np.ndarray, lines: list, k: int, ts: float, source: str) -> None:
