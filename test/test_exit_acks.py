@@ -57,3 +57,23 @@ def test_the_plant_waits_for_acknowledgements_only_when_it_leaves_after_max_samp
         assert calls == [(["/acks2/clock", "/acks2/output"], 7.5)]
     finally:
         close_nodes(ex, ctx, plant)
+
+
+def test_the_plants_warning_says_messages_for_its_clock_topic(monkeypatch, capfd):
+    """Readers late on the plant's /clock (rosgraph_msgs/Clock, not a vector topic) and its outputs: the one
+    warning calls what they lack messages, not vectors."""
+    ctx = private_context()
+    params = case_parameters("3.1", seed=1)["plant"]
+    params.update(clock_topic="clock", max_samples=5, exit_when_done=True, exit_ack_timeout=7.5)
+    plant = plant_node.PlantNode(parameter_overrides=_overrides(params), context=ctx, namespace="/acks3")
+    monkeypatch.setattr(ros_io, "wait_acked", lambda pubs, timeout: ["/acks3/output", "/acks3/clock"])
+    ex = make_executor(ctx)
+    ex.add_node(plant)
+    try:
+        plant.exit_requested = True
+        plant.drain(ex)
+    finally:
+        close_nodes(ex, ctx, plant)
+    warnings = [line.split("]: ", 1)[1] for line in capfd.readouterr().err.splitlines() if line.startswith("[WARN]")]
+    assert warnings == ["leaving after 7.5 s with messages not acknowledged on /acks3/output, /acks3/clock: a reader "
+                        "may lack the last ones sent"]

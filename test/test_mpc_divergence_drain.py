@@ -202,5 +202,5 @@ def test_the_controller_waits_for_acknowledgements_only_when_it_leaves_on_its_ow
     finally:
         close_nodes(ex, ctx, mpc)
     warnings = [line.split("]: ", 1)[1] for line in capfd.readouterr().err.splitlines() if line.startswith("[WARN]")]
-    assert warnings == ["leaving after 30 s with vectors not acknowledged on /acks_mpc/input: a reader may lack the "
-                        "last samples"]
+    assert warnings == ["leaving after 30 s with messages not acknowledged on /acks_mpc/input: a reader may lack "
+                        "the last ones sent"]

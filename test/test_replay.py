@@ -159,8 +159,8 @@ def test_replay_says_which_readers_had_not_acknowledged_everything(ctx, tmp_path
     rep.destroy_node()
     listener.destroy_node()
     warnings = [line.split("]: ", 1)[1] for line in capfd.readouterr().err.splitlines() if line.startswith("[WARN]")]
-    assert warnings == ["leaving after 4.5 s with vectors not acknowledged on /clock, /output: a reader may lack the "
-                        "last samples"]
+    assert warnings == ["leaving after 4.5 s with messages not acknowledged on /clock, /output: a reader may lack "
+                        "the last ones sent"]
 
 
 def test_bad_replay_parameters(ctx, tmp_path):

@@ -564,7 +564,9 @@ EXIT_ACK_TIMEOUT = 30.0
 
 def wait_for_readers(node, publishers, timeout: float = EXIT_ACK_TIMEOUT) -> list:
     """The drain of a node that leaves on its own (done, or diverged): :func:`wait_acked` on its ``publishers``,
-    and one warning when some readers had not acknowledged everything in time.
+    and one warning when some readers had not acknowledged everything in time ("leaving after 30 s with messages
+    not acknowledged on /output, /clock: a reader may lack the last ones sent": the plant's and the replay's
+    /clock is not a vector topic, so the warning says messages).
 
     Parameters
     ----------
@@ -583,8 +585,9 @@ def wait_for_readers(node, publishers, timeout: float = EXIT_ACK_TIMEOUT) -> lis
     """
     late = wait_acked([p for p in publishers if p is not None], timeout)
     if late:
-        node.get_logger().warning(f"leaving after {timeout:g} s with vectors not acknowledged on {', '.join(late)}: "
-                                  f"a reader may lack the last samples")
+        # "messages", not "vectors": the topics named may be /clock (rosgraph_msgs/Clock) as well as vector topics.
+        node.get_logger().warning(f"leaving after {timeout:g} s with messages not acknowledged on {', '.join(late)}: "
+                                  f"a reader may lack the last ones sent")
     return late
 
 
