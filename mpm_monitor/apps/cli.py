@@ -679,6 +679,16 @@ def _cmd_demo(args) -> int:
                     out=_CheckedStandardOutput)
 
 
+def _resolved(path) -> Path:
+    """``Path(path).resolve()``, or the absolute path as given where that cannot be resolved (a symbolic link that
+    points to itself: ``resolve`` raised a RuntimeError traceback before the input was looked at; the reader then
+    names the path)."""
+    try:
+        return Path(path).resolve()
+    except (RuntimeError, OSError):
+        return Path(os.path.abspath(path))
+
+
 def _distinct_outputs(outputs) -> None:
     """Refuse two of a command's outputs ``(flag, path)`` (in the order written; a path None, empty or "-" is none)
     on one path: the second would overwrite the first.
@@ -690,7 +700,7 @@ def _distinct_outputs(outputs) -> None:
     given = [(flag, path) for flag, path in outputs if path and path != "-"]
     for k, (flag, path) in enumerate(given):
         for other, before in given[:k]:
-            if Path(path).resolve() == Path(before).resolve():
+            if _resolved(path) == _resolved(before):
                 raise InputError(f"{flag} {path}: the same path as {other}: expected another path (the second "
                                  f"would overwrite the first)")
 
@@ -703,11 +713,11 @@ def _not_an_input(path: str, flag: str, inputs: dict) -> None:
     ------
     InputError
     """
-    out = Path(path).resolve()
+    out = _resolved(path)
     for other, given in inputs.items():
         if not given:
             continue
-        src = Path(given).resolve()
+        src = _resolved(given)
         if out == src or (src.is_dir() and src in out.parents):
             where = "is" if out == src else "lies in"
             raise InputError(f"{flag} {path}: {where} the {other} input {given}: expected an output path apart "

@@ -1,0 +1,98 @@
+"""Bag inputs of the command line fuzzed from outside (``analyze --bag``, ``export``, ``recover``): what got through.
+
+Every bad bag is one line ``error: ...`` on stderr naming the bag (and the key, topic or message), exit code 2,
+never a traceback, a hang or a line of hundreds of kilobytes.
+
+- A ``metadata.yaml`` whose topic entry counts ``message_count: x`` or names a topic by a number: a ``TypeError``
+  traceback (exit 1) from the topic lookup; a ``relative_file_paths`` that is a string, not a list: rosbags
+  listed each of its letters as a missing file.
+- A storage file that is a named pipe: the reader waited on it for ever (a directory or a device was said with
+  the hint of a truncated recording).
+- A ``metadata.yaml`` that is not UTF-8, or that nests 100,000 deep, got the hint of a truncated storage file
+  (``recover``), the second after seconds of parsing; a version or storage plugin rosbags does not read was
+  worded "please report issue" with the same hint; a missing key as ``KeyError('version')``.
+- ``--bag`` a symbolic link to itself: a ``RuntimeError`` traceback from resolving it.
+- A channel name holding a line break split the message over two lines (a terminal escape in one went to the
+  terminal); a message of 20,000 names was named in one line of 200 kB, after 10 s of matching names.
+"""
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from rosbags.rosbag2 import StoragePlugin, Writer
+
+from mpm_monitor.apps.cli import main as cli_main
+from mpm_monitor.io import bags as bag_io
+
+REPO = Path(__file__).resolve().parents[1]
+TS = bag_io.default_typestore()
+JS = TS.types["sensor_msgs/msg/JointState"]
+HEADER = TS.types["std_msgs/msg/Header"]
+TIME = TS.types["builtin_interfaces/msg/Time"]
+NAMES = {"setpoint": ("y1",), "input": ("u1",), "output": ("y1",)}
+
+
+def _bag(path, n=20, names=None):
+    """A bag of /setpoint, /input and /output, one JointState each per sample (0.5 s apart); ``names(role, k)``
+    gives a message's channel names (default :data:`NAMES`)."""
+    rng = np.random.default_rng(1)
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conns = {role: w.add_connection(f"/{role}", JS.__msgtype__, typestore=TS) for role in NAMES}
+        for k in range(n):
+            stamp = 100 * 10**9 + k * 500_000_000
+            for role, conn in conns.items():
+                chans = list(names(role, k) if names else NAMES[role])
+                msg = JS(header=HEADER(stamp=TIME(sec=stamp // 10**9, nanosec=stamp % 10**9), frame_id=""),
+                         name=chans, position=rng.normal(size=len(chans)), velocity=np.zeros(0), effort=np.zeros(0))
+                w.write(conn, stamp, TS.serialize_cdr(msg, JS.__msgtype__))
+    return path
+
+
+def _model(tmp_path) -> Path:
+    """A model file of the channels of :data:`NAMES` (sample time 0.5 s)."""
+    from mpm_monitor.core.model import PlantModel
+    from mpm_monitor.io.model_file import save_model
+
+    save_model(PlantModel(sample_time=0.5, inputs=("u1",), outputs=("y1",), gain=[[1.0]], time_constant=[[2.0]],
+                          delay=[[0.0]]), tmp_path / "model.yaml")
+    return tmp_path / "model.yaml"
+
+
+def _export(capsys, bag, tmp_path, *extra):
+    code = cli_main(["export", "--bag", str(bag), "--csv", str(tmp_path / "out.csv"), *extra])
+    err = capsys.readouterr().err
+    return code, err
+
+
+def _one_line(code, err, bag, *words):
+    assert code == 2, err
+    assert len(err.splitlines()) == 1 and err.startswith(f"error: {bag}"), err
+    assert "Traceback" not in err and len(err) < 1000, err
+    for w in words:
+        assert w in err, err
+
+
+def _edit_metadata(bag, edit):
+    meta = bag / "metadata.yaml"
+    doc = yaml.safe_load(meta.read_text())
+    edit(doc["rosbag2_bagfile_information"])
+    meta.write_text(yaml.safe_dump(doc))
+
+
+@pytest.mark.parametrize("argv", [
+    ["export", "--bag", "{loop}", "--csv", "{tmp}/out.csv"],
+    ["analyze", "--model", "{tmp}/model.yaml", "--bag", "{loop}", "--json", "{tmp}/r.json"],
+], ids=["export", "analyze"])
+def test_a_bag_path_that_links_to_itself_is_one_line(tmp_path, capsys, argv):
+    loop = tmp_path / "loop"
+    loop.symlink_to(loop)
+    _model(tmp_path)
+    code = cli_main([a.format(loop=loop, tmp=tmp_path) for a in argv])
+    err = capsys.readouterr().err
+    _one_line(code, err, loop)
