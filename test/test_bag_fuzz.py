@@ -96,3 +96,25 @@ def test_a_bag_path_that_links_to_itself_is_one_line(tmp_path, capsys, argv):
     code = cli_main([a.format(loop=loop, tmp=tmp_path) for a in argv])
     err = capsys.readouterr().err
     _one_line(code, err, loop)
+
+
+@pytest.mark.parametrize("name, shown", [
+    ("u1\nfoo", r"'u1\nfoo'"),
+    ("\x1b[31mu1", r"'\x1b[31mu1'"),
+], ids=["line break", "terminal escape"])
+def test_a_channel_name_with_a_control_character_is_shown_escaped_on_one_line(tmp_path, capsys, name, shown):
+    bag = _bag(tmp_path / "bag", names=lambda role, k: (name,) if role == "input" else NAMES[role])
+    code, err = _export(capsys, bag, tmp_path, "--model", str(_model(tmp_path)))
+    _one_line(code, err, bag, f"topic '/input': message 1 (stamp 100 s) has channel names [{shown}], expected "
+                              f"the inputs [u1]")
+    assert "\x1b" not in err
+
+
+def test_a_message_of_thousands_of_names_is_named_in_a_short_line_and_soon(tmp_path, capsys):
+    many = ("u1",) + tuple(f"c{i}" for i in range(20000))
+    bag = _bag(tmp_path / "bag", names=lambda role, k: many if role == "input" and k == 0 else NAMES[role])
+    started = time.monotonic()
+    code, err = _export(capsys, bag, tmp_path)
+    _one_line(code, err, bag, "topic '/input': message 2 (stamp 100.5 s) has channel names [u1], expected the "
+                              "inputs [u1, c0, c1, c2, c3, c4, c5, c6, c7, c8, c9, c10, ... (20001 in all)]")
+    assert time.monotonic() - started < 5

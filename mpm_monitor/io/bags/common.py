@@ -39,6 +39,20 @@ def one_line(exc: BaseException) -> str:
     return text[:300]
 
 
+def shown_names(names, limit: int = 12) -> str:
+    """Channel or topic names of a bag, comma-separated, for a one-line message: a name holding a line break or
+    another control character shown escaped (``'u1\\nfoo'``: it split the message over lines, or coloured the
+    terminal), a name longer than 60 characters cut, and past ``limit`` names the count instead of the rest (a
+    message of 20,000 names was one line of 200 kB)."""
+    names = [str(n) for n in names]
+    shown = []
+    for n in names[:limit]:
+        n = n if n.isprintable() else repr(n)
+        shown.append(n if len(n) <= 60 else n[:57] + "...")
+    more = f", ... ({len(names)} in all)" if len(names) > limit else ""
+    return ", ".join(shown) + more
+
+
 def stamp_ns(stamp) -> int:
     """A ``builtin_interfaces/msg/Time`` as integer nanoseconds."""
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
@@ -165,7 +179,7 @@ def topic_connections(reader, path, topic: str, msgtype: str) -> list:
     """
     conns = [c for c in reader.connections if topic_name(c.topic) == topic]     # a bag may store 'input' or '/input'
     if not conns:
-        have = ", ".join(sorted({c.topic for c in reader.connections})) or "none"
+        have = shown_names(sorted({c.topic for c in reader.connections})) or "none"
         raise BagError(f"{path}: no topic '{topic}' ({msgtype}) in the bag; topics in the bag: {have}")
     for c in conns:
         if c.msgtype != msgtype:
