@@ -85,6 +85,42 @@ def _edit_metadata(bag, edit):
     meta.write_text(yaml.safe_dump(doc))
 
 
+@pytest.mark.parametrize("edit, words", [
+    (lambda i: i["topics_with_message_count"][1].update(message_count="x"),
+     "metadata.yaml: key 'topics_with_message_count[1].message_count': expected a whole number >= 0, got 'x'"),
+    (lambda i: i["topics_with_message_count"][1]["topic_metadata"].update(name=5),
+     "metadata.yaml: key 'topics_with_message_count[1].topic_metadata.name': expected a string, got 5"),
+    (lambda i: i.update(relative_file_paths=i["relative_file_paths"][0]),
+     "metadata.yaml: key 'relative_file_paths': expected a list of file names, got 'bag.mcap'"),
+], ids=["count not a number", "topic name a number", "file list a string"])
+def test_metadata_entries_of_the_wrong_kind_are_named_by_their_key(tmp_path, capsys, edit, words):
+    bag = _bag(tmp_path / "bag")
+    _edit_metadata(bag, edit)
+    for extra in ((), ("--topics", "setpoint", "input", "output")):
+        _one_line(*_export(capsys, bag, tmp_path, *extra), bag, words)
+
+
+@pytest.mark.parametrize("kind, make", [
+    ("a named pipe", os.mkfifo),
+    ("a directory", os.mkdir),
+    ("a device", lambda p: os.symlink("/dev/zero", p)),
+], ids=["fifo", "directory", "device"])
+def test_a_storage_file_that_is_not_a_file_is_refused_without_waiting_on_it(tmp_path, kind, make):
+    bag = _bag(tmp_path / "bag")
+    (bag / "bag.mcap").unlink()
+    make(bag / "bag.mcap")
+    started = time.monotonic()
+    try:
+        run = subprocess.run([sys.executable, "-m", "mpm_monitor", "export", "--bag", str(bag), "--csv",
+                              str(tmp_path / "out.csv")], capture_output=True, text=True, timeout=60, cwd=REPO)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"export of a bag whose storage file is {kind} still ran after 60 s")
+    assert time.monotonic() - started < 60
+    _one_line(run.returncode, run.stderr, bag,
+              f"storage file 'bag.mcap' is {kind}, not a file: expected the storage file metadata.yaml names")
+    assert "truncated" not in run.stderr
+
+
 @pytest.mark.parametrize("argv", [
     ["export", "--bag", "{loop}", "--csv", "{tmp}/out.csv"],
     ["analyze", "--model", "{tmp}/model.yaml", "--bag", "{loop}", "--json", "{tmp}/r.json"],

@@ -5,7 +5,8 @@ This module uses the ``rosbags`` library only (imported when first needed); it n
 
 from __future__ import annotations
 
-from pathlib import Path
+import stat
+from pathlib import Path, PurePath
 
 from ...core.errors import BagError
 
@@ -99,9 +100,12 @@ def open_reader(path):
 
 
 def _check_metadata_shape(path: Path) -> None:
-    """Refuse a ``metadata.yaml`` that is YAML but not rosbag2's (a mapping under ``rosbag2_bagfile_information``):
-    rosbags words that as Python's own error (``string indices must be integers``).  A file that does not parse (not
-    YAML, nested too deep for the parser) is left to rosbags, whose failure :func:`open_reader` words as before.
+    """Refuse a ``metadata.yaml`` that rosbags would take wrongly or word as Python's own error: YAML that is not
+    rosbag2's (a mapping under ``rosbag2_bagfile_information``: rosbags said ``string indices must be integers``),
+    a file list or topic entries of the wrong kind (a message count that is not a whole number, a topic named by a
+    number: a ``TypeError`` traceback), and a storage file that is not a regular file (a named pipe: the reader
+    waited for ever).  A file that does not parse (not YAML, nested too deep for the parser) is left to rosbags,
+    whose failure :func:`open_reader` words as before.
 
     Raises
     ------
@@ -116,6 +120,41 @@ def _check_metadata_shape(path: Path) -> None:
     if not isinstance(doc, dict) or not isinstance(doc.get("rosbag2_bagfile_information"), dict):
         raise BagError(f"{path}: metadata.yaml is not a rosbag2 bag's description: expected a mapping "
                        f"'rosbag2_bagfile_information' as rosbag2 writes it")
+    info = doc["rosbag2_bagfile_information"]
+    files = info.get("relative_file_paths")
+    if files is not None and not (isinstance(files, list) and all(isinstance(f, str) for f in files)):
+        raise BagError(f"{path}: metadata.yaml: key 'relative_file_paths': expected a list of file names, got "
+                       f"{_shown(files)}")
+    for i, entry in enumerate(info.get("topics_with_message_count") or ()):
+        key = f"topics_with_message_count[{i}]"
+        if not isinstance(entry, dict):
+            continue                # rosbags names what it misses
+        count = entry.get("message_count")
+        if count is not None and (isinstance(count, bool) or not isinstance(count, int) or count < 0):
+            raise BagError(f"{path}: metadata.yaml: key '{key}.message_count': expected a whole number >= 0, got "
+                           f"{_shown(count)}")
+        meta = entry.get("topic_metadata")
+        for field in ("name", "type"):
+            value = meta.get(field) if isinstance(meta, dict) else None
+            if value is not None and not isinstance(value, str):
+                raise BagError(f"{path}: metadata.yaml: key '{key}.topic_metadata.{field}': expected a string, got "
+                               f"{_shown(value)}")
+    for name in dict.fromkeys(files or ()):
+        storage = path / PurePath(name).name        # where rosbags looks for it
+        try:
+            mode = storage.stat().st_mode
+        except OSError:
+            continue                # missing: rosbags names it
+        if not stat.S_ISREG(mode):
+            kind = "a directory" if stat.S_ISDIR(mode) else "a named pipe" if stat.S_ISFIFO(mode) else "a device"
+            raise BagError(f"{path}: storage file {name!r} is {kind}, not a file: expected the storage file "
+                           f"metadata.yaml names, as rosbag2 writes it")
+
+
+def _shown(value) -> str:
+    """A value of ``metadata.yaml`` as a message shows it: its repr, at most 60 characters."""
+    text = " ".join(repr(value).split())
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 #: What rosbags says of a record or chunk whose length field does not match the bytes that follow it.
