@@ -121,6 +121,31 @@ def test_a_storage_file_that_is_not_a_file_is_refused_without_waiting_on_it(tmp_
     assert "truncated" not in run.stderr
 
 
+@pytest.mark.parametrize("damage, words", [
+    (lambda meta: meta.write_bytes(meta.read_text().encode("utf-16")),
+     ("cannot read bag: metadata.yaml is not UTF-8 text (byte 0) (expected metadata.yaml as rosbag2 writes it)",)),
+    (lambda meta: meta.write_text(meta.read_text() + "x: " + "[" * 100000 + "]" * 100000 + "\n"),
+     ("cannot read bag: metadata.yaml nests lists or mappings more than 100 deep (expected metadata.yaml as "
+      "rosbag2 writes it)",)),
+    (lambda meta: meta.write_text(meta.read_text().replace("version: 9", "version: 99")),
+     ("cannot read bag: Rosbag2 version 99 not supported. (expected metadata.yaml of a bag this reader reads: "
+      "metadata version 9 or lower",)),
+    (lambda meta: meta.write_text(meta.read_text().replace("storage_identifier: mcap", "storage_identifier: hdf5")),
+     ("cannot read bag: Storage plugin 'hdf5' not supported. (expected metadata.yaml of a bag this reader reads: ",
+      "MCAP or SQLite 3 storage")),
+    (lambda meta: meta.write_text(meta.read_text().replace("version: 9", "versio: 9")),
+     ("cannot read bag: metadata.yaml lacks the key 'version' (expected metadata.yaml as rosbag2 writes it)",)),
+], ids=["utf-16", "nested 100,000 deep", "version 99", "storage plugin", "key missing"])
+def test_a_metadata_fault_is_said_as_one_without_the_truncation_hint(tmp_path, capsys, damage, words):
+    bag = _bag(tmp_path / "bag")
+    damage(bag / "metadata.yaml")
+    started = time.monotonic()
+    code, err = _export(capsys, bag, tmp_path)
+    _one_line(code, err, bag, *words)
+    assert "truncated" not in err and "please report" not in err and "KeyError" not in err
+    assert time.monotonic() - started < 5        # the nesting: 15 s of two parsers reaching their recursion limit
+
+
 @pytest.mark.parametrize("argv", [
     ["export", "--bag", "{loop}", "--csv", "{tmp}/out.csv"],
     ["analyze", "--model", "{tmp}/model.yaml", "--bag", "{loop}", "--json", "{tmp}/r.json"],

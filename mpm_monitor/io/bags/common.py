@@ -5,6 +5,7 @@ This module uses the ``rosbags`` library only (imported when first needed); it n
 
 from __future__ import annotations
 
+import re
 import stat
 from pathlib import Path, PurePath
 
@@ -100,12 +101,15 @@ def open_reader(path):
 
 
 def _check_metadata_shape(path: Path) -> None:
-    """Refuse a ``metadata.yaml`` that rosbags would take wrongly or word as Python's own error: YAML that is not
-    rosbag2's (a mapping under ``rosbag2_bagfile_information``: rosbags said ``string indices must be integers``),
-    a file list or topic entries of the wrong kind (a message count that is not a whole number, a topic named by a
-    number: a ``TypeError`` traceback), and a storage file that is not a regular file (a named pipe: the reader
-    waited for ever).  A file that does not parse (not YAML, nested too deep for the parser) is left to rosbags,
-    whose failure :func:`open_reader` words as before.
+    """Refuse a ``metadata.yaml`` that rosbags would take wrongly or word as Python's own error: text that is
+    not UTF-8 (rosbags said "'utf-8' codec can't decode byte ...", with the hint of a truncated storage file),
+    lists or mappings nested deeper than rosbag2 ever writes (:data:`METADATA_MAX_NESTING`; the parsers took
+    seconds each to reach their recursion limit), YAML that is not rosbag2's (a mapping under
+    ``rosbag2_bagfile_information``: rosbags said ``string indices must be integers``), a file list or topic
+    entries of the wrong kind (a message count that is not a whole number, a topic named by a number: a
+    ``TypeError`` traceback), and a storage file that is not a regular file (a named pipe: the reader waited
+    for ever).  A file that does not parse otherwise is left to rosbags, whose failure :func:`open_reader`
+    words as before.
 
     Raises
     ------
@@ -114,8 +118,18 @@ def _check_metadata_shape(path: Path) -> None:
     import yaml
 
     try:
-        doc = yaml.safe_load((path / "metadata.yaml").read_bytes())
-    except Exception:  # noqa: BLE001 - YAMLError, RecursionError, ...: rosbags meets it and open_reader says so
+        text = (path / "metadata.yaml").read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise BagError(f"{path}: cannot read bag: metadata.yaml is not UTF-8 text (byte {exc.start}) (expected "
+                       f"metadata.yaml as rosbag2 writes it)") from None
+    except OSError:
+        return                      # rosbags meets it and open_reader says so
+    if _nests_deeper(text, METADATA_MAX_NESTING):
+        raise BagError(f"{path}: cannot read bag: metadata.yaml nests lists or mappings more than "
+                       f"{METADATA_MAX_NESTING} deep (expected metadata.yaml as rosbag2 writes it)")
+    try:        # libyaml's loader when PyYAML has it (the nesting is bounded above): the same values, faster
+        doc = yaml.load(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
+    except Exception:  # noqa: BLE001 - YAMLError, ...: rosbags meets it and open_reader says so
         return
     if not isinstance(doc, dict) or not isinstance(doc.get("rosbag2_bagfile_information"), dict):
         raise BagError(f"{path}: metadata.yaml is not a rosbag2 bag's description: expected a mapping "
@@ -149,6 +163,35 @@ def _check_metadata_shape(path: Path) -> None:
             kind = "a directory" if stat.S_ISDIR(mode) else "a named pipe" if stat.S_ISFIFO(mode) else "a device"
             raise BagError(f"{path}: storage file {name!r} is {kind}, not a file: expected the storage file "
                            f"metadata.yaml names, as rosbag2 writes it")
+
+
+#: Nesting of lists and mappings beyond which a ``metadata.yaml`` is refused before it is parsed: rosbag2's nests
+#: 5 deep; the parsers recurse once per level (seconds to reach Python's recursion limit, and libyaml's C
+#: composer overflows the stack).
+METADATA_MAX_NESTING = 100
+
+
+def _nests_deeper(text: str, limit: int) -> bool:
+    """Whether the lists and mappings of a YAML text nest more than ``limit`` deep.  A bound in one pass first
+    (each ``[`` and ``{``, and the indentation), then, only when that bound is above ``limit``, PyYAML's event
+    parser, which does not recurse; a text it refuses is left to the loaders (False)."""
+    import yaml
+
+    indent = max((len(line) - len(line.lstrip(" \t-?:")) for line in text.splitlines()), default=0)
+    if text.count("[") + text.count("{") + 2 * indent + 2 <= limit:
+        return False
+    depth = 0
+    try:
+        for event in yaml.parse(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
+            if isinstance(event, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
+                depth += 1
+                if depth > limit:
+                    return True
+            elif isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
+                depth -= 1
+    except Exception:  # noqa: BLE001 - YAMLError, ValueError, ...: the loaders name it
+        return False
+    return False
 
 
 def _shown(value) -> str:
@@ -191,6 +234,12 @@ def _open_failure(exc: BaseException) -> str:
                 f"disagree: expected metadata.yaml and the storage file as rosbag2 wrote them)")
     if "database files are missing" in text:
         return f"{text} (expected the storage file metadata.yaml names, beside it)"
+    missing = re.fullmatch(r"A metadata key is missing KeyError\((['\"])(.*)\1\)\.", text)
+    if missing:                     # rosbags' words show Python's exception
+        return f"metadata.yaml lacks the key '{missing.group(2)}' (expected metadata.yaml as rosbag2 writes it)"
+    if "not supported" in text:     # a version, storage plugin, compression or serialization metadata.yaml names
+        return (f"{text.replace('; please report issue.', '.')} (expected metadata.yaml of a bag this reader reads: "
+                f"metadata version 9 or lower, MCAP or SQLite 3 storage, CDR messages, zstd compression or none)")
     if any(w in text for w in ("metadata", "YAML")):
         return f"{text} (expected metadata.yaml as rosbag2 writes it)"
     return (f"{text} (truncated or not closed properly? python -m mpm_monitor recover --bag DIR --out NEW "
