@@ -11,6 +11,8 @@ never a traceback, a hang or a line of hundreds of kilobytes.
 - A ``metadata.yaml`` that is not UTF-8, or that nests 100,000 deep, got the hint of a truncated storage file
   (``recover``), the second after seconds of parsing; a version or storage plugin rosbags does not read was
   worded "please report issue" with the same hint; a missing key as ``KeyError('version')``.
+- A schema record encoded other than ros2msg or ros2idl, or naming a type nothing defines: rosbags' bare
+  ``KeyError`` text (``'jsonschema'``) with the hint of a truncated storage file.
 - ``--bag`` a symbolic link to itself: a ``RuntimeError`` traceback from resolving it.
 - A channel name holding a line break split the message over two lines (a terminal escape in one went to the
   terminal); a message of 20,000 names was named in one line of 200 kB, after 10 s of matching names.
@@ -179,3 +181,30 @@ def test_a_message_of_thousands_of_names_is_named_in_a_short_line_and_soon(tmp_p
     _one_line(code, err, bag, "topic '/input': message 2 (stamp 100.5 s) has channel names [u1], expected the "
                               "inputs [u1, c0, c1, c2, c3, c4, c5, c6, c7, c8, c9, c10, ... (20001 in all)]")
     assert time.monotonic() - started < 5
+
+
+@pytest.mark.parametrize("old, new, words", [
+    (b"ros2msg", b"jsonsch", "cannot read bag: the storage file's schema records name 'jsonsch', a schema encoding "
+                             "or message type this reader does not know (expected message definitions as rosbag2 "
+                             "writes them: encoded ros2msg or ros2idl)"),
+    (b"string[] name", b"strung[] name", "cannot read bag: the storage file's schema records name "
+                                         "'sensor_msgs/msg/strung', a schema encoding or message type"),
+], ids=["encoding", "type"])
+def test_a_schema_this_reader_does_not_know_is_named_as_such(tmp_path, capsys, old, new, words):
+    from mpm_monitor.io.bags import read_raw_messages
+    from mpm_monitor.io.bags.write import BagWriter
+
+    raw = read_raw_messages(_bag(tmp_path / "src"), list(NAMES))
+    w = BagWriter(tmp_path / "bag", fsync=False)         # stores the message definitions (rosbags' writer too)
+    for m in raw:
+        if not w.has_topic(m.topic):
+            w.add_topic(m.topic, m.msgtype)
+        w.write(m.topic, m.log_time, m.data)
+    w.close()
+    mcap = tmp_path / "bag" / "bag.mcap"
+    data = mcap.read_bytes()
+    assert old in data
+    mcap.write_bytes(data.replace(old, new))
+    code, err = _export(capsys, tmp_path / "bag", tmp_path)
+    _one_line(code, err, tmp_path / "bag", words)
+    assert "truncated" not in err

@@ -242,6 +242,11 @@ def _open_failure(exc: BaseException) -> str:
                 f"metadata version 9 or lower, MCAP or SQLite 3 storage, CDR messages, zstd compression or none)")
     if any(w in text for w in ("metadata", "YAML")):
         return f"{text} (expected metadata.yaml as rosbag2 writes it)"
+    if isinstance(exc, KeyError):   # (rosbags wraps metadata.yaml's own missing keys): a schema record's name
+        return (f"the storage file's schema records name {text}, a schema encoding or message type this reader "
+                f"does not know (expected message definitions as rosbag2 writes them: encoded ros2msg or ros2idl)")
+    if isinstance(exc, UnicodeDecodeError):     # metadata.yaml's text is checked before: a record's string
+        return f"{text} (a string in the storage file's records is not UTF-8 text: the storage file is damaged)"
     return (f"{text} (truncated or not closed properly? python -m mpm_monitor recover --bag DIR --out NEW "
             f"rewrites what its chunks hold as a readable bag)")
 
