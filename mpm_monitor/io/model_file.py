@@ -544,6 +544,10 @@ def _parse_number_lists(text: str):
         seen.add(k)
         return lists[k]
 
+    if base is _C_LOADER and _nesting_bound(replaced) > _C_MAX_NESTING and _nests_deeper(replaced, _C_MAX_NESTING):
+        # libyaml's composer would overflow the stack (a segmentation fault) before any error: the caller
+        # checks the nesting of the text as written and refuses it in one line.
+        return _NOT_PARSED
     loader = base(replaced)
     loader.yaml_constructors = {**base.yaml_constructors, _LIST_TAG: construct}   # this loader's only
     try:
