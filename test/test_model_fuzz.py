@@ -28,3 +28,54 @@ def test_deep_nesting_beside_lists_of_numbers_is_refused_in_one_line(tmp_path, d
     out = subprocess.run([sys.executable, "-c", _LOAD, str(path)], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, (out.returncode, out.stderr[-500:])
     assert out.stdout.strip() == f"{path}: not a model file: lists or mappings nested too deeply"
+
+
+SIMULATED = "sample_time: 1\ninputs: [u1, u2]\noutputs: [y1, y2]\ngain: [[1, 0.5], [0.3, 2]]\n" \
+            "time_constant: [[5, 4], [3, 6]]\n"
+
+
+@pytest.mark.parametrize("delay, was", [(100000, "out of memory, exit 1"), (2 ** 31 - 1, "a traceback of numpy's")])
+def test_simulate_refuses_a_dead_time_its_state_space_cannot_hold(tmp_path, capsys, delay, was):
+    """The simulation's state space is dense: a dead time of 100,000 samples asked numpy for 75 GiB (``out of memory``,
+    blamed on a long log, exit 1), one of 2^31 - 1 samples gave a traceback, and 30,000 ran with 14 GB."""
+    from mpm_monitor.apps.cli import main
+
+    path = tmp_path / "plant.yaml"
+    path.write_text(SIMULATED + f"delay: [[1, 2], [{delay}, 1]]\n", encoding="utf-8")
+    code = main(["simulate", "--plant", str(path), "--model", str(path), "--samples", "50",
+                 "--csv", str(tmp_path / "log.csv")])
+    err = capsys.readouterr().err
+    assert code == 2, (was, code, err)
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert err.startswith(f"error: simulation: key 'delay': row 2 (y2), column 1 (u1): a dead time of {delay:,} "
+                          f"samples (the model's longest) makes its state space"), err
+    assert "a simulation holds at most 16,384" in err
+    assert not (tmp_path / "log.csv").exists()
+
+
+def test_simulate_refuses_a_step_response_its_state_space_cannot_hold(tmp_path, capsys):
+    from mpm_monitor.apps.cli import main
+
+    n = 20000
+    coefficients = ", ".join(str(k / n) for k in range(n))      # a response that moves at every sample
+    path = tmp_path / "plant.yaml"
+    path.write_text(f"sample_time: 1\ninputs: [u1]\noutputs: [y1]\nstep_response:\n  length: {n}\n  coefficients:\n"
+                    f"  - [[{coefficients}]]\n", encoding="utf-8")
+    code = main(["simulate", "--plant", str(path), "--model", str(path), "--samples", "50",
+                 "--csv", str(tmp_path / "log.csv")])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert len(err.splitlines()) == 1
+    assert err.startswith("error: simulation: key 'step_response': row 1 (y1), column 1 (u1): a response of 20,000 "
+                          "coefficients (the model's longest)"), err
+
+
+def test_simulate_keeps_a_dead_time_that_fits(tmp_path, capsys):
+    """Control: 2,000 samples of dead time still simulate."""
+    from mpm_monitor.apps.cli import main
+
+    path = tmp_path / "plant.yaml"
+    path.write_text(SIMULATED + "delay: [[1, 2], [2000, 1]]\n", encoding="utf-8")
+    code = main(["simulate", "--plant", str(path), "--model", str(path), "--samples", "50",
+                 "--csv", str(tmp_path / "log.csv")])
+    assert code == 0, capsys.readouterr().err

@@ -338,6 +338,33 @@ class StateSpace:
         return self.D[:, self._nu:]
 
 
+#: Most states :func:`state_space` builds: its matrices are dense (``A`` alone 8 bytes x n_states^2, 2 GiB here, and a
+#: simulation builds the plant's and the controller's: 4 GB at 16,000 states).  A dead time of 100,000 samples made
+#: numpy fail to allocate (``out of memory``, exit 1), 30,000 took 14 GB, 2^31 - 1 a traceback.
+MAX_STATES = 2 ** 14
+
+
+def _refuse_states(model: PlantModel, disc, nx: int, reg_len) -> None:
+    """Raise :class:`~mpm_monitor.core.errors.ModelFileError` for a state space of ``nx`` > :data:`MAX_STATES` states,
+    naming the element whose dead time (or step response) makes the longest shift register (a column's past values)."""
+    from .errors import ModelFileError
+
+    size = f"{nx:,} states ({8 * nx * nx / 2 ** 30:,.0f} GiB as the dense matrix A)"
+    j = int(np.argmax(reg_len))
+    if int(reg_len[j]) < nx // (2 * max(model.n_columns, 1)):
+        raise ModelFileError(f"simulation: the model's state space would have {size}; a simulation holds at most "
+                             f"{MAX_STATES:,}")
+    i = max((int(disc.input_lag[i, j]) + disc._taps_beyond_states(i, j), i)
+            for i in range(model.n_outputs) if disc.active[i, j])[1]
+    where = f"row {i + 1} ({model.outputs[i]}), column {j + 1} ({model.columns[j]})"
+    if model.is_step_response:
+        what, fits = f"key 'step_response': {where}: a response of {model.step_length:,} coefficients", "responses"
+    else:
+        what, fits = f"key 'delay': {where}: a dead time of {int(model.delay_samples[i, j]):,} samples", "dead times"
+    raise ModelFileError(f"simulation: {what} (the model's longest) makes its state space {size}; a simulation holds "
+                         f"at most {MAX_STATES:,} ({fits} up to about {MAX_STATES // 1000 * 1000:,} samples)")
+
+
 def state_space(model: PlantModel) -> StateSpace:
     """Dense state-space realisation of the model over all its columns (see the module docstring).
 
@@ -369,6 +396,8 @@ def state_space(model: PlantModel) -> StateSpace:
         reg_start.append(pos)
         pos += int(reg_len[j])
     nx = pos
+    if nx > MAX_STATES:
+        _refuse_states(model, disc, nx, reg_len)
     A = np.zeros((nx, nx))
     B = np.zeros((nx, nc))
     C = np.zeros((ny, nx))
