@@ -101,3 +101,42 @@ def test_a_family_draws_its_own_loops_and_an_unknown_family_is_refused():
     assert lost_pair.mismatches == main.mismatches == () and lost_pair.loop_seed == main.loop_seed
     rec = run_one(8, 1, 1500, family="lost-pair")
     assert "error" not in rec and rec["elements"] and {e["output"] for e in rec["elements"]} == {1}   # its mismatch is in row 0
+
+
+def test_z_is_the_chi_square_quantile_root():
+    from bench.element_level import _z
+
+    for p in (0.5, 0.05, 1e-3, 1e-12):
+        assert _z(p) == pytest.approx(np.sqrt(stats.chi2.isf(p, 1)), rel=1e-9)
+    assert _z(0.0) == _z(1e-300) == pytest.approx(37.0658, abs=1e-4) and _z(1.0) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_paired_compares_element_by_element():
+    from bench.element_level import paired
+
+    def rec(index, ps, key=None):
+        els = [{"output": 0, "column": j, "role": "input", "integrating": False, "present": True,
+                "mismatch_run": False, "window": p, "response": p} for j, p in enumerate(ps)]
+        return {"index": index, "elements": els, "rows": []} if key is None else \
+            {"index": index, "elements": [], "rows": [], key: {"elements": els, "rows": []}}
+
+    base = [rec(0, [0.5, 0.01]), rec(1, [0.2])]
+    same = paired(base, base)["all"]["window"]
+    assert same["n"] == 3 and same["dz_mean"] == 0.0 and same["dz_sd"] == 0.0 and same["z2"] == same["z2_base"]
+    # Run 0's second element moves from 0.01 to 0.5; run 1 is missing from the other run; an error is skipped.
+    other = [rec(0, [0.5, 0.5], "cut"), dict(rec(1, [0.2], "cut"), error="x")]
+    c = paired(base, other, "cut")["all"]["response"]
+    dz = np.sqrt(stats.chi2.isf(0.5, 1)) - np.sqrt(stats.chi2.isf(0.01, 1))
+    assert c["n"] == 2
+    assert c["dz_mean"] == pytest.approx(dz / 2) and c["dz_sd"] == pytest.approx(abs(dz) / 2)
+    assert c["z2_base"] == pytest.approx((stats.chi2.isf(0.5, 1) + stats.chi2.isf(0.01, 1)) / 2)
+
+
+def test_with_cut_the_log_without_drops_loses_as_many_rows_and_no_gap():
+    rec = run_one(0, 21, 1500, drop=0.01, cut=True)
+    assert "error" not in rec and "error" not in rec["cut"] and rec["rows_lost"] > 0
+    assert "rows_lost" not in rec["cut"]                          # cut short: no gap
+    key = lambda e: (e["output"], e["column"])                   # noqa: E731
+    assert sorted(map(key, rec["cut"]["elements"])) == sorted(map(key, rec["elements"]))
+    assert [e["window"] for e in rec["cut"]["elements"]] != [e["window"] for e in rec["elements"]]
+    assert "cut" not in run_one(0, 21, 1500, cut=True)             # nothing to cut without drops
