@@ -35,22 +35,44 @@ SIMULATED = "sample_time: 1\ninputs: [u1, u2]\noutputs: [y1, y2]\ngain: [[1, 0.5
 
 
 @pytest.mark.parametrize("delay, was", [(100000, "out of memory, exit 1"), (2 ** 31 - 1, "a traceback of numpy's")])
-def test_simulate_refuses_a_dead_time_its_state_space_cannot_hold(tmp_path, capsys, delay, was):
+@pytest.mark.parametrize("flag", ["--plant", "--model"])
+def test_simulate_refuses_a_dead_time_its_state_space_cannot_hold(tmp_path, capsys, delay, was, flag):
     """The simulation's state space is dense: a dead time of 100,000 samples asked numpy for 75 GiB (``out of memory``,
-    blamed on a long log, exit 1), one of 2^31 - 1 samples gave a traceback, and 30,000 ran with 14 GB."""
+    blamed on a long log, exit 1), one of 2^31 - 1 samples gave a traceback, and 30,000 ran with 14 GB.  The line
+    names the flag and file of the model that has it."""
     from mpm_monitor.apps.cli import main
 
-    path = tmp_path / "plant.yaml"
+    path, fine = tmp_path / "long.yaml", tmp_path / "fine.yaml"
     path.write_text(SIMULATED + f"delay: [[1, 2], [{delay}, 1]]\n", encoding="utf-8")
-    code = main(["simulate", "--plant", str(path), "--model", str(path), "--samples", "50",
+    fine.write_text(SIMULATED + "delay: [[1, 2], [3, 1]]\n", encoding="utf-8")
+    plant, model = (path, fine) if flag == "--plant" else (fine, path)
+    code = main(["simulate", "--plant", str(plant), "--model", str(model), "--samples", "50",
                  "--csv", str(tmp_path / "log.csv")])
     err = capsys.readouterr().err
     assert code == 2, (was, code, err)
     assert len(err.splitlines()) == 1 and "Traceback" not in err
-    assert err.startswith(f"error: simulation: key 'delay': row 2 (y2), column 1 (u1): a dead time of {delay:,} "
+    assert err.startswith(f"error: {flag} {path}: key 'delay': row 2 (y2), column 1 (u1): a dead time of {delay:,} "
                           f"samples (the model's longest) makes its state space"), err
     assert "a simulation holds at most 16,384" in err
     assert not (tmp_path / "log.csv").exists()
+
+
+def test_state_space_itself_refuses_what_a_simulation_cannot_hold(tmp_path):
+    """The core's own refusal, for callers other than the command line (its message says ``simulation``)."""
+    from mpm_monitor.core.discretize import check_state_count, state_space
+    from mpm_monitor.core.errors import ModelFileError
+    from mpm_monitor.io.model_file import load_model
+
+    def parse_model_text(text):
+        (tmp_path / "m.yaml").write_text(text, encoding="utf-8")
+        return load_model(tmp_path / "m.yaml")
+
+    model = parse_model_text(SIMULATED + "delay: [[1, 2], [20000, 1]]\n")
+    for f in (check_state_count, state_space):
+        with pytest.raises(ModelFileError, match=r"^simulation: key 'delay': row 2 \(y2\), column 1 \(u1\): a dead "
+                                                 r"time of 20,000 samples"):
+            f(model)
+    check_state_count(parse_model_text(SIMULATED + "delay: [[1, 2], [2000, 1]]\n"))
 
 
 def test_simulate_refuses_a_step_response_its_state_space_cannot_hold(tmp_path, capsys):
@@ -66,7 +88,7 @@ def test_simulate_refuses_a_step_response_its_state_space_cannot_hold(tmp_path, 
     err = capsys.readouterr().err
     assert code == 2, err
     assert len(err.splitlines()) == 1
-    assert err.startswith("error: simulation: key 'step_response': row 1 (y1), column 1 (u1): a response of 20,000 "
+    assert err.startswith(f"error: --plant {path}: key 'step_response': row 1 (y1), column 1 (u1): a response of 20,000 "
                           "coefficients (the model's longest)"), err
 
 

@@ -542,6 +542,19 @@ def _simulate_conflicts(args) -> None:
                          f"(the experiment gives the dither of every input, instead of --dither)")
 
 
+def _simulable(flag: str, path: str, model) -> None:
+    """Refuse, naming ``flag`` and its file, a model whose state space a simulation cannot hold (a dead time or a
+    step response of many thousands of samples; :func:`~mpm_monitor.core.discretize.check_state_count`)."""
+    from ..core.discretize import check_state_count
+    from ..core.errors import ModelFileError
+
+    try:
+        check_state_count(model)
+    except ModelFileError as exc:
+        text = str(exc)
+        raise InputError(f"{flag} {path}: {text.removeprefix('simulation: ')}") from None
+
+
 def _cmd_simulate(args) -> int:
     from ..io.csv_log import write_log_csv
     from ..io.model_file import load_model, save_model
@@ -571,6 +584,8 @@ def _cmd_simulate(args) -> int:
         if not (args.plant and args.model):
             raise InputError("simulate: give --case, or both --plant and --model")
         plant, model = load_model(args.plant), load_model(args.model)
+        for flag, path, m in (("--plant", args.plant, plant), ("--model", args.model, model)):
+            _simulable(flag, path, m)
         if (plant.inputs, plant.outputs, plant.sample_time) != (model.inputs, model.outputs, model.sample_time):
             what = "sample_time" if (plant.inputs, plant.outputs) == (model.inputs, model.outputs) else \
                 "inputs and outputs"

@@ -365,6 +365,25 @@ def _refuse_states(model: PlantModel, disc, nx: int, reg_len) -> None:
                          f"at most {MAX_STATES:,} ({fits} up to about {MAX_STATES // 1000 * 1000:,} samples)")
 
 
+def check_state_count(model: PlantModel) -> None:
+    """Refuse a model whose :func:`state_space` would hold more than :data:`MAX_STATES` states, before building it.
+
+    Parameters
+    ----------
+    model : PlantModel
+
+    Raises
+    ------
+    ModelFileError
+        The message of :func:`state_space`'s refusal (``simulation: ...``, naming the element).
+    """
+    disc = discretize(model)
+    nx = sum(max(disc.denominators[i][j].size - 1, 1) for i in range(model.n_outputs)
+             for j in range(model.n_columns) if disc.active[i, j]) + int(np.sum(disc.register_length))
+    if nx > MAX_STATES:
+        _refuse_states(model, disc, nx, disc.register_length)
+
+
 def state_space(model: PlantModel) -> StateSpace:
     """Dense state-space realisation of the model over all its columns (see the module docstring).
 
