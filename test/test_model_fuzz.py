@@ -101,3 +101,15 @@ def test_simulate_keeps_a_dead_time_that_fits(tmp_path, capsys):
     code = main(["simulate", "--plant", str(path), "--model", str(path), "--samples", "50",
                  "--csv", str(tmp_path / "log.csv")])
     assert code == 0, capsys.readouterr().err
+
+
+def test_a_null_key_is_named_as_null(tmp_path):
+    """``~: 2`` was said to be the unknown key 'None', a name the file does not hold."""
+    from mpm_monitor.core.errors import ModelFileError
+    from mpm_monitor.io.model_file import load_model
+
+    path = tmp_path / "null.yaml"
+    path.write_text(SIMULATED + "delay: [[0, 0], [0, 0]]\n~: 2\n", encoding="utf-8")
+    with pytest.raises(ModelFileError, match=r"null\.yaml: a key that is null \(~ or null\): a model file holds only "
+                                             r"the keys sample_time, inputs"):
+        load_model(path)

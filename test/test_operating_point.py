@@ -39,10 +39,11 @@ def test_the_model_file_reads_writes_and_checks_disturbance_nominal(tmp_path):
     (tmp_path / "none.yaml").write_text(text)
     assert not np.any(load_model(tmp_path / "none.yaml").disturbance_nominal)
     (tmp_path / "bad.yaml").write_text(text + "disturbance_nominal: [20, 1]\n")
-    with pytest.raises(ModelFileError, match=r"bad\.yaml: key 'disturbance_nominal': expected a list of 1 numbers"):
+    with pytest.raises(ModelFileError, match=r"bad\.yaml: key 'disturbance_nominal': expected a list of 1 numbers \(one per channel of "
+                                         r"feed\), got 2 numbers$"):
         load_model(tmp_path / "bad.yaml")
     (tmp_path / "nan.yaml").write_text(text + "disturbance_nominal: [.nan]\n")
-    with pytest.raises(ModelFileError, match="key 'disturbance_nominal': expected finite numbers"):
+    with pytest.raises(ModelFileError, match=r"key 'disturbance_nominal': entry 1 \(feed\): expected a finite number, got nan$"):
         load_model(tmp_path / "nan.yaml")
 
 

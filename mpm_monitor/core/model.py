@@ -521,12 +521,19 @@ def validate_model(model: PlantModel, source: str = "model") -> None:
         raise ModelFileError(
             f"{source}: key 'delay': {_where(model, i, j)}: expected a multiple of sample_time {ts:g} s, "
             f"got {model.delay[i, j]:g} s")
-    for key, arr, n in (("input_nominal", model.input_nominal, nu), ("output_nominal", model.output_nominal, ny),
-                        ("disturbance_nominal", model.disturbance_nominal, model.n_disturbances)):
+    for key, arr, names in (("input_nominal", model.input_nominal, model.inputs),
+                            ("output_nominal", model.output_nominal, model.outputs),
+                            ("disturbance_nominal", model.disturbance_nominal, model.disturbances)):
+        n = len(names)
         if arr.shape != (n,):
-            raise ModelFileError(f"{source}: key '{key}': expected a list of {n} numbers, got shape {arr.shape}")
+            got = f"{arr.shape[0]} number{'s' if arr.shape[0] != 1 else ''}" if arr.ndim == 1 else \
+                f"shape {arr.shape}"
+            raise ModelFileError(f"{source}: key '{key}': expected a list of {n} numbers (one per channel of "
+                                 f"{', '.join(names) or 'none'}), got {got}")
         if not np.all(np.isfinite(arr)):
-            raise ModelFileError(f"{source}: key '{key}': expected finite numbers")
+            k = int(np.flatnonzero(~np.isfinite(arr))[0])
+            raise ModelFileError(f"{source}: key '{key}': entry {k + 1} ({names[k]}): expected a finite number, "
+                                 f"got {arr[k]:g}")
 
 
 def validate_step_response(model: PlantModel, source: str = "model") -> None:

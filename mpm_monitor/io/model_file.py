@@ -121,6 +121,9 @@ def _check_keys(data: Mapping, source: str) -> None:
     for key in data:
         if key in KNOWN_KEYS:
             continue
+        if key is None:             # `~:` or `null:` in the file
+            raise ModelFileError(f"{source}: a key that is null (~ or null): a model file holds only the keys "
+                                 f"{', '.join(KNOWN_KEYS)}")
         text = str(key)
         meant = KEY_SYNONYMS.get(text.lower().replace("-", "_").replace(" ", "_"))
         near = [meant] if meant else difflib.get_close_matches(text, KNOWN_KEYS, n=1, cutoff=0.6)
