@@ -208,3 +208,13 @@ def test_a_schema_this_reader_does_not_know_is_named_as_such(tmp_path, capsys, o
     code, err = _export(capsys, tmp_path / "bag", tmp_path)
     _one_line(code, err, tmp_path / "bag", words)
     assert "truncated" not in err
+
+
+def test_a_storage_file_of_its_magic_bytes_alone_is_said_to_end_before_any_record(tmp_path, capsys):
+    """An .mcap holding only the 8 magic bytes (a recorder killed at once): rosbags' words were Python's
+    ``ord() expected a character, but string of length 0 found``."""
+    bag = _bag(tmp_path / "bag")
+    next(bag.glob("*.mcap")).write_bytes(b"\x89MCAP0\r\n")
+    code, err = _export(capsys, bag, tmp_path)
+    _one_line(code, err, bag, "the storage file ends after its first bytes, before any record", "recover")
+    assert "ord()" not in err

@@ -245,6 +245,11 @@ def _open_failure(exc: BaseException) -> str:
     if isinstance(exc, KeyError):   # (rosbags wraps metadata.yaml's own missing keys): a schema record's name
         return (f"the storage file's schema records name {text}, a schema encoding or message type this reader "
                 f"does not know (expected message definitions as rosbag2 writes them: encoded ros2msg or ros2idl)")
+    if isinstance(exc, TypeError) and text.startswith("ord() expected a character"):
+        # rosbags read the first record's opcode past the end: nothing follows the magic bytes
+        return ("the storage file ends after its first bytes, before any record (truncated or not closed "
+                "properly? python -m mpm_monitor recover --bag DIR --out NEW rewrites what its chunks hold as a "
+                "readable bag)")
     if isinstance(exc, UnicodeDecodeError):     # metadata.yaml's text is checked before: a record's string
         return f"{text} (a string in the storage file's records is not UTF-8 text: the storage file is damaged)"
     return (f"{text} (truncated or not closed properly? python -m mpm_monitor recover --bag DIR --out NEW "
