@@ -367,7 +367,93 @@ def declare_parameters(node, specs: Sequence[ParamSpec]) -> dict:
     if theirs:
         node.get_logger().info("parameters of other nodes of the suite, ignored here (a params file's shared "
                                "section): " + ", ".join(f"{name} ({', '.join(others[name])})" for name in theirs))
+    guard_parameter_services(node)
     return out
+
+
+def _parameter_refusal(node, msg) -> Optional[str]:
+    """Why a ``rcl_interfaces/msg/Parameter`` of a set request is refused before rclpy sees it (None: it is not): a
+    name the node does not declare (rclpy took ``''`` as declared and added it; it refused others naming none) or a
+    type no ParameterValue has (rclpy raised a ValueError out of the service callback, which ended the node)."""
+    from rclpy.parameter import Parameter
+
+    name = str(msg.name)
+    if not name or not node.has_parameter(name):
+        close = difflib.get_close_matches(name, node.list_parameters([], 0).names, n=1) if name else []
+        return (f"parameter {name!r}: not a parameter of this node"
+                + (f": did you mean '{close[0]}'?" if close else ""))
+    try:
+        Parameter.Type(msg.value.type)
+    except ValueError:
+        return f"parameter {name}: value of type {msg.value.type}, which no ROS 2 parameter has"
+    return None
+
+
+def _named(name: str, result):
+    """``result`` (a ``SetParametersResult``) whose refusal reason starts with ``parameter <name>: `` when it does not
+    name the parameter (rclpy's "Wrong parameter type, expected ...", "Static parameter cannot be undeclared")."""
+    if not result.successful and not result.reason.startswith(f"parameter {name}"):
+        reason = " ".join(result.reason.split()) or "refused"
+        result.reason = f"parameter {name}: {reason}"
+    return result
+
+
+def guard_parameter_services(node) -> None:
+    """Put a guard before rclpy's ``~/set_parameters`` and ``~/set_parameters_atomically`` callbacks on ``node``.
+
+    A request is refused, ``successful=False`` with one line naming the parameter, when a parameter's name is not
+    one the node declares or its value's type is none ROS 2 has (:func:`_parameter_refusal`); any other exception
+    of rclpy's callback is a refusal too, never one out of the executor (which ended the node).  rclpy's own
+    refusals are given the parameter's name (:func:`_named`).
+    """
+    from rcl_interfaces.msg import SetParametersResult
+    from rcl_interfaces.srv import SetParameters, SetParametersAtomically
+
+    def refused(reason: str):
+        return SetParametersResult(successful=False, reason=reason)
+
+    def failed(exc: Exception) -> str:
+        return f"{type(exc).__name__}: {exc}".splitlines()[0]
+
+    def set_each(inner):
+        def callback(request, response):
+            for msg in request.parameters:
+                reason = _parameter_refusal(node, msg)
+                if reason is None:
+                    try:
+                        one = inner(SetParameters.Request(parameters=[msg]), SetParameters.Response())
+                        result = _named(str(msg.name), one.results[0])
+                    except Exception as exc:    # noqa: BLE001 - a service call never takes the node down
+                        result = refused(f"parameter {msg.name}: {failed(exc)}")
+                else:
+                    result = refused(reason)
+                response.results.append(result)
+            return response
+        return callback
+
+    def set_atomically(inner):
+        def callback(request, response):
+            reasons = [r for r in (_parameter_refusal(node, msg) for msg in request.parameters) if r]
+            if reasons:
+                response.result = refused(reasons[0])
+                return response
+            try:
+                response = inner(request, response)
+            except Exception as exc:            # noqa: BLE001 - as above
+                response.result = refused(failed(exc))
+            if len(request.parameters) == 1:
+                _named(str(request.parameters[0].name), response.result)
+            return response
+        return callback
+
+    full = node.get_fully_qualified_name().rstrip("/")
+    wrap = {(SetParameters, f"{full}/set_parameters"): set_each,
+            (SetParametersAtomically, f"{full}/set_parameters_atomically"): set_atomically}
+    for service in node.services:        # rclpy's parameter services, not ~/start_dither (a SetParameters too)
+        guard = wrap.get((service.srv_type, node.resolve_service_name(service.srv_name)))
+        if guard is not None and not getattr(service, "_mpm_guarded", False):
+            service.callback = guard(service.callback)
+            service._mpm_guarded = True
 
 
 def _reason(exc: Exception, name: str) -> str:

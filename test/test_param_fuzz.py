@@ -1,0 +1,124 @@
+"""Defects found by fuzzing the nodes' ROS parameters, at start-up and through the parameter services.
+
+The rules (README, "Bad input, faults and security"): a bad value is refused in one line naming the parameter and
+what was expected; at run time the ``set_parameters`` result is ``successful=False`` with that reason and the node
+keeps running with its old value; a parameter that cannot change at run time says so; a node never crashes on input.
+
+In-process, one isolated context (``ROS_AUTOMATIC_DISCOVERY_RANGE=OFF``, :func:`mpm_monitor.apps.demo.private_context`),
+the requests sent through the nodes' real ``/set_parameters`` and ``/set_parameters_atomically`` services.
+"""
+
+import pytest
+
+pytest.importorskip("rclpy")
+pytestmark = pytest.mark.timeout(120)
+
+import rclpy  # noqa: E402
+from rcl_interfaces.msg import Parameter as ParameterMsg  # noqa: E402
+from rcl_interfaces.msg import ParameterType, ParameterValue  # noqa: E402
+from rcl_interfaces.srv import SetParameters, SetParametersAtomically  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+
+from mpm_monitor.apps.demo import private_context  # noqa: E402
+from mpm_monitor.nodes.ros_io import make_executor, spin_until  # noqa: E402
+
+
+@pytest.fixture
+def ctx():
+    context = private_context()
+    yield context
+    context.try_shutdown()
+
+
+class Services:
+    """A client of one node's ``set_parameters`` services, spun with the node on one executor."""
+
+    def __init__(self, ctx, node, kind="events"):
+        self.node = node
+        self.client_node = rclpy.create_node("param_fuzz_client", context=ctx)
+        self.executor = make_executor(ctx, kind)
+        self.executor.add_node(node)
+        self.executor.add_node(self.client_node)
+        name = node.get_fully_qualified_name()
+        self.set = self.client_node.create_client(SetParameters, f"{name}/set_parameters")
+        self.atomic = self.client_node.create_client(SetParametersAtomically, f"{name}/set_parameters_atomically")
+        assert spin_until(self.executor, lambda: self.set.service_is_ready() and self.atomic.service_is_ready(), 10)
+
+    def call(self, name, value: ParameterValue, atomic=False):
+        msg = ParameterMsg(name=name, value=value)
+        if atomic:
+            future = self.atomic.call_async(SetParametersAtomically.Request(parameters=[msg]))
+        else:
+            future = self.set.call_async(SetParameters.Request(parameters=[msg]))
+        assert spin_until(self.executor, future.done, 10), "no answer"
+        return future.result().result if atomic else future.result().results[0]
+
+    def close(self):
+        for n in (self.node, self.client_node):
+            self.executor.remove_node(n)
+            close = getattr(n, "close", None)
+            if close is not None:
+                close()
+            n.destroy_node()
+
+
+def _mpc(ctx, **values):
+    from mpm_monitor.nodes.mpc_node import MpcNode
+
+    return MpcNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in {"case": "3.2", **values}.items()])
+
+
+def _double(x):
+    return ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=x)
+
+
+@pytest.mark.parametrize("atomic", [False, True])
+def test_a_parameter_value_of_no_known_type_is_refused_and_the_node_keeps_running(ctx, atomic):
+    """rclpy's parameter service turned a ParameterValue of type 99 into a ValueError out of the service callback:
+    the executor raised it and the node process ended with a traceback, from one request of any peer."""
+    services = Services(ctx, _mpc(ctx, max_dither=1.0))
+    try:
+        result = services.call("max_dither", ParameterValue(type=99), atomic=atomic)
+        assert not result.successful
+        assert result.reason.startswith("parameter max_dither: ") and "type 99" in result.reason, result.reason
+        assert "\n" not in result.reason
+        # still running, with its old value, and a good change still goes through
+        assert services.node.get_parameter("max_dither").value == 1.0
+        result = services.call("max_dither", _double(2.0), atomic=atomic)
+        assert result.successful, result.reason
+        assert services.node.params["max_dither"] == 2.0
+    finally:
+        services.close()
+
+
+@pytest.mark.parametrize("atomic", [False, True])
+def test_an_empty_or_undeclared_parameter_name_is_refused_naming_it(ctx, atomic):
+    """rclpy took a parameter named '' as declared (its check tests the names' truth) and added it to the node; it
+    refused another undeclared name with 'Invalid access to undeclared parameter(s): []', naming none."""
+    services = Services(ctx, _mpc(ctx))
+    try:
+        result = services.call("", _double(1.0), atomic=atomic)
+        assert not result.successful and not services.node.has_parameter("")
+        assert result.reason == "parameter '': not a parameter of this node", result.reason
+        result = services.call("max_dithr", _double(1.0), atomic=atomic)
+        assert not result.successful and not services.node.has_parameter("max_dithr")
+        assert result.reason == "parameter 'max_dithr': not a parameter of this node: did you mean 'max_dither'?"
+    finally:
+        services.close()
+
+
+@pytest.mark.parametrize("value, said", [
+    (ParameterValue(type=ParameterType.PARAMETER_STRING, string_value="x"), "Wrong parameter type"),
+    (ParameterValue(type=ParameterType.PARAMETER_NOT_SET), "cannot be undeclared"),
+])
+def test_a_refusal_of_rclpy_names_the_parameter(ctx, value, said):
+    """rclpy's own refusals of a live parameter ('Wrong parameter type, expected ...', 'Static parameter cannot be
+    undeclared') did not say which parameter they were about."""
+    services = Services(ctx, _mpc(ctx))
+    try:
+        for name in ("max_dither", "use_sim_time"):
+            result = services.call(name, value)
+            assert not result.successful
+            assert result.reason.startswith(f"parameter {name}: ") and said in result.reason, result.reason
+    finally:
+        services.close()
