@@ -122,3 +122,30 @@ def test_a_refusal_of_rclpy_names_the_parameter(ctx, value, said):
             assert result.reason.startswith(f"parameter {name}: ") and said in result.reason, result.reason
     finally:
         services.close()
+
+
+def test_use_sim_time_cannot_be_toggled_at_run_time(ctx):
+    """``use_sim_time`` set at run time was taken: the node's clock switched to /clock time, so that a setpoint node
+    on its timer (trigger timer), with no /clock, stopped publishing without a word, and a recorder's log times
+    jumped from wall-clock time to simulated time within one bag.  It is fixed at start-up, as the nodes' own
+    parameters read there; the refusal says so and the clock stays as it was."""
+    from mpm_monitor.nodes.setpoint_node import SetpointNode
+
+    node = SetpointNode(context=ctx, parameter_overrides=[Parameter("case", value="3.2"),
+                                                           Parameter("trigger", value="timer")])
+    services = Services(ctx, node)
+    try:
+        for atomic in (False, True):
+            result = services.call("use_sim_time", ParameterValue(type=ParameterType.PARAMETER_BOOL, bool_value=True),
+                                   atomic=atomic)
+            assert not result.successful
+            assert result.reason.startswith("parameter use_sim_time: ") and "start-up" in result.reason, result.reason
+            assert node.get_parameter("use_sim_time").value is False
+            assert not node.get_clock().ros_time_is_active
+        # the same value again is no change: taken
+        result = services.call("use_sim_time", ParameterValue(type=ParameterType.PARAMETER_BOOL, bool_value=False))
+        assert result.successful, result.reason
+        before = node.published
+        assert spin_until(services.executor, lambda: node.published >= before + 3, 10)
+    finally:
+        services.close()

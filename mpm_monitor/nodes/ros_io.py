@@ -367,8 +367,22 @@ def declare_parameters(node, specs: Sequence[ParamSpec]) -> dict:
     if theirs:
         node.get_logger().info("parameters of other nodes of the suite, ignored here (a params file's shared "
                                "section): " + ", ".join(f"{name} ({', '.join(others[name])})" for name in theirs))
+    node.add_on_set_parameters_callback(lambda params: _fixed_sim_time(node, params))
     guard_parameter_services(node)
     return out
+
+
+def _fixed_sim_time(node, params):
+    """Refuse a run-time change of ``use_sim_time`` (rclpy's, declared by every node): the nodes read their clock's
+    kind once, at start-up (a setpoint node on its timer stopped without a word when its clock became /clock time,
+    a recorder's log times jumped within one bag).  Runs before rclpy's own callback, which switches the clock."""
+    from rcl_interfaces.msg import SetParametersResult
+
+    for p in params:
+        if p.name == "use_sim_time" and p.value != node.get_parameter("use_sim_time").value:
+            return SetParametersResult(successful=False, reason="parameter use_sim_time: fixed at start-up (give "
+                                       "-p use_sim_time:=true when the node starts)")
+    return SetParametersResult(successful=True)
 
 
 def _parameter_refusal(node, msg) -> Optional[str]:
