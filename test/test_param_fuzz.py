@@ -149,3 +149,28 @@ def test_use_sim_time_cannot_be_toggled_at_run_time(ctx):
         assert spin_until(services.executor, lambda: node.published >= before + 3, 10)
     finally:
         services.close()
+
+
+@pytest.mark.parametrize("given, said", [
+    ("use_sim_time:=1", "parameter use_sim_time: wrong type: Trying to set parameter 'use_sim_time' to '1' of type "
+                        "'INTEGER', expecting type 'BOOL'"),
+])
+def test_a_node_started_with_such_a_value_says_one_line_and_exits_2(given, said):
+    """``-p use_sim_time:=1`` (rclpy's own parameter, refused by rclpy.Node before the node declares its own) and
+    ``-p input_weight:=[1e308]`` ended the process in a traceback, exit code 1."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from ros_domains import unique_domain
+
+    from bench.ros_domain import domain_env
+
+    with unique_domain(salt=len(given)) as domain:
+        done = subprocess.run([sys.executable, "-m", "mpm_monitor.nodes.entry", "mpc_node", "--ros-args", "-p",
+                               "case:=3.2", "-p", given], cwd=Path(__file__).resolve().parent.parent,
+                              env=dict(os.environ, **domain_env(domain), RCUTILS_LOGGING_BUFFERED_STREAM="0"),
+                              capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.splitlines() == [f"error: {said}"], done.stderr

@@ -861,10 +861,18 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
         return interrupted(program_name())
     node = None
     try:
+        from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+
         try:
             node = node_factory(context=context)
         except InputError as exc:
             print(f"error: {exc}", file=sys.stderr)
+            return 2
+        except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
+            # rclpy's own parameter (use_sim_time:=1), refused by rclpy.Node before the node declares its own
+            name = str(exc).splitlines()[0].rsplit(": ", 1)[-1] if str(exc) else "?"   # rclpy ends it ": <name>"
+            wrong = "wrong type: " if isinstance(exc, InvalidParameterTypeException) else ""
+            print(f"error: parameter {name}: {wrong}{_reason(exc, name)}", file=sys.stderr)
             return 2
         executor = make_executor(context, executor_kind)
         executor.add_node(node)
