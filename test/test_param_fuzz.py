@@ -20,6 +20,7 @@ from rcl_interfaces.srv import SetParameters, SetParametersAtomically  # noqa: E
 from rclpy.parameter import Parameter  # noqa: E402
 
 from mpm_monitor.apps.demo import private_context  # noqa: E402
+from mpm_monitor.core.errors import ConfigurationError  # noqa: E402
 from mpm_monitor.nodes.ros_io import make_executor, spin_until  # noqa: E402
 
 
@@ -151,9 +152,24 @@ def test_use_sim_time_cannot_be_toggled_at_run_time(ctx):
         services.close()
 
 
+@pytest.mark.parametrize("weight", ["input_weight", "output_weight"])
+def test_an_mpc_weight_too_large_for_the_controller_is_refused_naming_it(ctx, weight):
+    """``input_weight: [1e308]`` ended the MPC node in a LinAlgError traceback ('Singular matrix'), and
+    ``output_weight: [1e308]`` was taken with gains that are not finite: the first input the node computed was NaN
+    and it stopped as a diverged controller."""
+    with pytest.raises(ConfigurationError) as refused:
+        _mpc(ctx, **{weight: [1e308]})
+    text = str(refused.value)
+    assert text.startswith("parameters output_weight, input_weight, input_rate_weight: ") and "\n" not in text
+    assert "1e+308" in text, text
+
+
 @pytest.mark.parametrize("given, said", [
     ("use_sim_time:=1", "parameter use_sim_time: wrong type: Trying to set parameter 'use_sim_time' to '1' of type "
                         "'INTEGER', expecting type 'BOOL'"),
+    ("input_weight:=[1e308]", "parameters output_weight, input_weight, input_rate_weight: output_weight [1.0], "
+                              "input_weight [1e+308], input_rate_weight [0.1] give a control problem that cannot be "
+                              "solved (expected weights of a moderate scale)"),
 ])
 def test_a_node_started_with_such_a_value_says_one_line_and_exits_2(given, said):
     """``-p use_sim_time:=1`` (rclpy's own parameter, refused by rclpy.Node before the node declares its own) and
