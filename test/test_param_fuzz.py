@@ -164,6 +164,20 @@ def test_an_mpc_weight_too_large_for_the_controller_is_refused_naming_it(ctx, we
     assert "1e+308" in text, text
 
 
+def test_a_band_edge_out_of_order_is_refused_naming_the_node_parameters(ctx):
+    """``band_high:=0`` was refused as 'parameter band: expected 0 <= low < high <= pi', a parameter the node does
+    not have (it has band_low and band_high)."""
+    from mpm_monitor.nodes.monitor_node import MonitorNode
+
+    with pytest.raises(ConfigurationError) as refused:
+        MonitorNode(context=ctx, analyze=lambda *a: None, parameter_overrides=[
+            Parameter("case", value="3.2"), Parameter("analysis_process", value=False),
+            Parameter("band_high", value=0.0)])
+    text = str(refused.value)
+    assert text.startswith("parameters band_low and band_high: "), text
+    assert "band_low 0 < band_high" in text or "band_low < band_high" in text, text
+
+
 @pytest.mark.parametrize("given, said", [
     ("use_sim_time:=1", "parameter use_sim_time: wrong type: Trying to set parameter 'use_sim_time' to '1' of type "
                         "'INTEGER', expecting type 'BOOL'"),

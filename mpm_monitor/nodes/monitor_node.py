@@ -63,7 +63,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from std_srvs.srv import Trigger
 
-from ..core.errors import ModelFileError
+from ..core.errors import ConfigurationError, ModelFileError
 from ..core.options import ParamSpec
 from ..monitor.experiment import ExperimentOptions
 from ..monitor.monitor_core import MonitorCore, MonitorOptions
@@ -181,7 +181,14 @@ def analysis_options_from_params(p: dict):
     values = {name: p[name] for name in NODE_ANALYSIS_OPTIONS if name != "band"}
     values["band"] = (p["band_low"], p["band_high"])
     values["max_delay"] = None if p["max_delay"] < 0 else p["max_delay"]
-    return AnalysisOptions(**values)
+    try:
+        return AnalysisOptions(**values)
+    except ConfigurationError as exc:
+        if not str(exc).startswith("parameter band:"):
+            raise
+        # The option's refusal names band, which the node has as the two parameters band_low and band_high.
+        raise ConfigurationError(f"parameters band_low and band_high: expected 0 <= band_low < band_high <= pi "
+                                 f"rad/sample, got band_low {p['band_low']:g}, band_high {p['band_high']:g}") from None
 
 
 def monitor_options_from_params(p: dict, hardware_id: str, service_name: Optional[str] = None) -> MonitorOptions:
