@@ -300,7 +300,7 @@ def test_nesting_libyaml_cannot_compose_is_refused_in_one_line(work, deep):
 def test_the_nesting_bound_is_never_below_the_nesting(value, flow):
     """The one-pass bound that decides whether libyaml's event parser checks the nesting first is an upper
     bound, block style or flow style."""
-    from mpm_monitor.io.model_file import _nesting_bound
+    from mpm_monitor.io.yaml_nesting import nesting_bound as _nesting_bound
 
     def depth(x):
         return 1 + max((depth(v) for v in (x.values() if isinstance(x, dict) else x)), default=0) \

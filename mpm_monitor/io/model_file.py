@@ -21,6 +21,7 @@ import yaml
 from ..core.errors import ModelFileError
 from ..core.model import NOMINAL_KEYS, PlantModel
 from .files import read_text, write_text_replacing
+from .yaml_nesting import nests_deeper
 
 
 def _matrix(data: Mapping, key: str, source: str) -> np.ndarray:
@@ -547,7 +548,7 @@ def _parse_number_lists(text: str):
         seen.add(k)
         return lists[k]
 
-    if base is _C_LOADER and _nesting_bound(replaced) > _C_MAX_NESTING and _nests_deeper(replaced, _C_MAX_NESTING):
+    if base is _C_LOADER and nests_deeper(replaced, _C_MAX_NESTING, _C_LOADER):
         # libyaml's composer would overflow the stack (a segmentation fault) before any error: the caller
         # checks the nesting of the text as written and refuses it in one line.
         return _NOT_PARSED
@@ -573,7 +574,7 @@ def _parse_yaml(text: str):
     if data is not _NOT_PARSED:
         return data
     if _C_LOADER is not None:
-        if _nesting_bound(text) > _C_MAX_NESTING and _nests_deeper(text, _C_MAX_NESTING):
+        if nests_deeper(text, _C_MAX_NESTING, _C_LOADER):
             raise RecursionError(f"lists or mappings nested more than {_C_MAX_NESTING} deep")
         try:
             data = yaml.load(text, Loader=_C_LOADER)
@@ -589,37 +590,6 @@ def _parse_yaml(text: str):
 #: and near 25,000 levels (a 50 kB file) it overflows the process's stack (a segmentation fault, no message);
 #: Python's recursion limit never sees it.  The pure-Python parser refuses far less (its recursion limit).
 _C_MAX_NESTING = 1000
-#: The run of blanks and block indicators ("- ", "? ", ": ") that starts a line (any YAML line break).
-_LINE_PREFIX = re.compile(r"(?:\A|[\r\n\x85\u2028\u2029])[ \t?:-]*")
-
-
-def _nesting_bound(text: str) -> int:
-    """An upper bound of the nesting of the lists and mappings of a YAML text, in one pass.
-
-    A flow collection opens with ``[`` or ``{`` (those in strings only raise the bound).  A block
-    collection is deeper than its parent by its indentation or by an indicator on the same line, and a
-    mapping's sequence may share the mapping's indentation: twice the longest blank-and-indicator run
-    that starts a line, plus two.
-    """
-    prefix = max((len(m.group()) for m in _LINE_PREFIX.finditer(text)), default=0)
-    return text.count("[") + text.count("{") + 2 * prefix + 2
-
-
-def _nests_deeper(text: str, limit: int) -> bool:
-    """Whether the lists and mappings of ``text`` nest more than ``limit`` deep: libyaml's event parser (not
-    recursive) read until it is known; False for a text it refuses (the loaders name its error)."""
-    depth = 0
-    try:
-        for event in yaml.parse(text, Loader=_C_LOADER):
-            if isinstance(event, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
-                depth += 1
-                if depth > limit:
-                    return True
-            elif isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
-                depth -= 1
-    except (yaml.YAMLError, ValueError, TypeError):
-        return False
-    return False
 
 
 #: Values (numbers, strings, ...) a model file may hold once its aliases are expanded: a 100 x 40 step-response

@@ -10,6 +10,7 @@ import stat
 from pathlib import Path, PurePath
 
 from ...core.errors import BagError
+from ..yaml_nesting import nests_deeper
 
 #: Default names of the setpoint, input and output topics.
 DEFAULT_TOPICS = ("setpoint", "input", "output")
@@ -124,7 +125,7 @@ def _check_metadata_shape(path: Path) -> None:
                        f"metadata.yaml as rosbag2 writes it)") from None
     except OSError:
         return                      # rosbags meets it and open_reader says so
-    if _nests_deeper(text, METADATA_MAX_NESTING):
+    if nests_deeper(text, METADATA_MAX_NESTING):
         raise BagError(f"{path}: cannot read bag: metadata.yaml nests lists or mappings more than "
                        f"{METADATA_MAX_NESTING} deep (expected metadata.yaml as rosbag2 writes it)")
     try:        # libyaml's loader when PyYAML has it (the nesting is bounded above): the same values, faster
@@ -169,29 +170,6 @@ def _check_metadata_shape(path: Path) -> None:
 #: 5 deep; the parsers recurse once per level (seconds to reach Python's recursion limit, and libyaml's C
 #: composer overflows the stack).
 METADATA_MAX_NESTING = 100
-
-
-def _nests_deeper(text: str, limit: int) -> bool:
-    """Whether the lists and mappings of a YAML text nest more than ``limit`` deep.  A bound in one pass first
-    (each ``[`` and ``{``, and the indentation), then, only when that bound is above ``limit``, PyYAML's event
-    parser, which does not recurse; a text it refuses is left to the loaders (False)."""
-    import yaml
-
-    indent = max((len(line) - len(line.lstrip(" \t-?:")) for line in text.splitlines()), default=0)
-    if text.count("[") + text.count("{") + 2 * indent + 2 <= limit:
-        return False
-    depth = 0
-    try:
-        for event in yaml.parse(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
-            if isinstance(event, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
-                depth += 1
-                if depth > limit:
-                    return True
-            elif isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
-                depth -= 1
-    except Exception:  # noqa: BLE001 - YAMLError, ValueError, ...: the loaders name it
-        return False
-    return False
 
 
 def _shown(value) -> str:
