@@ -66,7 +66,8 @@ class Services:
 def _mpc(ctx, **values):
     from mpm_monitor.nodes.mpc_node import MpcNode
 
-    return MpcNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in {"case": "3.2", **values}.items()])
+    values = {"case": "3.2", **values}
+    return MpcNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])
 
 
 def _double(x):
@@ -204,3 +205,30 @@ def test_a_node_started_with_such_a_value_says_one_line_and_exits_2(given, said)
                               capture_output=True, text=True, timeout=120)
     assert done.returncode == 2, done.stderr
     assert done.stderr.splitlines() == [f"error: {said}"], done.stderr
+
+
+@pytest.mark.parametrize("node, given, said", [
+    ("monitor", {"rsi_topic": "setpoint"}, "parameters setpoint_topic and rsi_topic name one topic /setpoint"),
+    ("monitor", {"diagnostics_topic": "output"}, "parameters output_topic and diagnostics_topic name one topic /output"),
+    ("monitor", {"rsi_topic": "/diagnostics"}, "parameters diagnostics_topic and rsi_topic name one topic /diagnostics"),
+    ("plant", {"clock_topic": "output"}, "parameters output_topic and clock_topic name one topic /output"),
+    ("setpoint", {"clock_topic": "setpoint"}, "parameters setpoint_topic and clock_topic name one topic /setpoint"),
+])
+def test_a_topic_of_one_node_given_two_message_types_is_refused_naming_both(ctx, node, given, said):
+    """A node's topic of one type named for a topic of another type of the same node (the monitor's rsi_topic for
+    setpoint_topic, the plant's clock_topic for output_topic) ended the node in rcl's RCLError 'create_publisher()
+    called for existing topic name rt/setpoint with incompatible type', over several lines with an rcutils error
+    state dump; the monitor creates its subscriptions once its model loads, so with a model file that loads late the
+    error would come out of a timer's callback while it runs.  Refused in one line, as two vector topics are."""
+    from mpm_monitor.nodes.monitor_node import MonitorNode
+    from mpm_monitor.nodes.plant_node import PlantNode
+    from mpm_monitor.nodes.setpoint_node import SetpointNode
+
+    build = {"monitor": (MonitorNode, {"analysis_process": False}), "plant": (PlantNode, {"autostart": False}),
+             "setpoint": (SetpointNode, {})}
+    cls, base = build[node]
+    values = {"case": "3.2", **base, **given}
+    kwargs = {"analyze": lambda *a: None} if node == "monitor" else {}
+    with pytest.raises(ConfigurationError) as refused:
+        cls(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in values.items()], **kwargs)
+    assert str(refused.value) == f"{said}: expected a topic of its own for each"

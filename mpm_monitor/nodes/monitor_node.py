@@ -239,8 +239,10 @@ class MonitorNode(Node):
         self._analysis_options = analysis_options_from_params(p)
         self._hw = p["hardware_id"] or self.get_fully_qualified_name()
         # Checked here, not when a model file that failed loads later (in a timer's callback).
+        # The two topics it publishes too: one topic of two types in one node is an RCLError out of create_*.
         check_distinct_topics(self, p, ["setpoint_topic", "input_topic", "output_topic", "disturbance_topic",
-                                        "candidate_topic"] + ["dither_topic"] * p["auto_experiment"])
+                                        "candidate_topic"] + ["dither_topic"] * p["auto_experiment"]
+                              + ["diagnostics_topic", "rsi_topic"])
         self._dither_client = (self.create_client(SetParameters, p["experiment_service"])
                                if p["auto_experiment"] else None)
         self._dither_call = None   # (future, wall-clock time sent) of the call under way

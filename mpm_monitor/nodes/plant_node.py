@@ -159,7 +159,8 @@ class PlantNode(Node):
         self.sim = PlantSimulator(model, dist, rngs["plant"])
         self._period = period_ns(model.sample_time)
         check_distinct_topics(self, p, ["output_topic", "input_topic"]
-                              + ["disturbance_topic"] * bool(model.n_disturbances))
+                              + ["disturbance_topic"] * bool(model.n_disturbances)
+                              + ["clock_topic"] * p["publish_clock"])
         self._y_codec = VectorCodec.for_channel(model, "output", p["output_topic"])
         self._u_codec = VectorCodec.for_channel(model, "input", p["input_topic"])
         #: The measured disturbances' generator, codec and publisher (None: the plant has none).

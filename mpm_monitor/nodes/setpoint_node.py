@@ -98,7 +98,8 @@ class SetpointNode(Node):
                                                                      switch_probability=p["dither_switch_probability"],
                                                                      min_hold=p["dither_min_hold"]), rngs["dither"])
         self._period = period_ns(model.sample_time)
-        check_distinct_topics(self, p, ["setpoint_topic", "dither_topic"])
+        check_distinct_topics(self, p, ["setpoint_topic", "dither_topic"]
+                              + ["clock_topic"] * (p["trigger"] == "clock"))
         self._r_codec = VectorCodec.for_channel(model, "setpoint", p["setpoint_topic"])
         self._d_codec = VectorCodec.for_channel(model, "dither", p["dither_topic"])
         self._pub = self.create_publisher(JointState, p["setpoint_topic"], vector_qos())
