@@ -133,29 +133,6 @@ def mpc_options_from_params(p: dict, n_outputs: int, n_inputs: int) -> MpcOption
                       du_max=_weight(p["du_max"], n_inputs, "du_max"), qp_tolerance=p["qp_tolerance"])
 
 
-def build_controller(model, p: dict) -> InternalModelMpc:
-    """The node's controller of ``model`` from its parameter values; :class:`ConfigurationError` in one line naming
-    the weights when they give a problem floating point cannot hold (``input_weight: [1e308]`` raised numpy's
-    LinAlgError 'Singular matrix'; ``output_weight: [1e308]`` gave gains that are not finite, so that the first
-    input computed was NaN and the node stopped as a diverged controller)."""
-    names = ("output_weight", "input_weight", "input_rate_weight") + (("input_nominal",) if p["input_nominal"] else ())
-    given = ", ".join(f"{name} {p[name]}" for name in names)
-    why = f"parameters output_weight, input_weight, input_rate_weight: {given} give a control problem that"
-    with np.errstate(all="ignore"):
-        try:
-            ctrl = InternalModelMpc(model, mpc_options_from_params(p, model.n_outputs, model.n_inputs))
-        except np.linalg.LinAlgError:
-            raise ConfigurationError(f"{why} cannot be solved (expected weights of a moderate scale)") from None
-        # The moves of a unit controller input, state, previous input (and dv) use every gain: one that overflowed
-        # shows here (unconstrained_moves changes nothing of the controller's).
-        n_states = ctrl._ss.n_states
-        moves = ctrl.unconstrained_moves(np.ones(model.n_outputs), np.ones(n_states), np.ones(model.n_inputs),
-                                         np.ones(model.n_disturbances) if model.n_disturbances else None)
-    if not np.all(np.isfinite(moves)):
-        raise ConfigurationError(f"{why} overflows floating point (expected weights of a moderate scale)")
-    return ctrl
-
-
 def dither_text(inputs: Sequence[str], amplitudes) -> str:
     """``u4, u5 (amplitudes 0.08, 0.08)``: the dithered inputs of ``amplitudes`` (model order) in words."""
     on = [j for j, a in enumerate(amplitudes) if a > 0]
@@ -258,7 +235,7 @@ class MpcNode(Node):
         super().__init__(name, **kwargs)
         self.params = p = declare_parameters(self, PARAMS)
         self.model = model = resolve_model(p["model_file"], p["case"])
-        self.ctrl = build_controller(model, p)
+        self.ctrl = InternalModelMpc(model, mpc_options_from_params(p, model.n_outputs, model.n_inputs))
         channels = (("r", "setpoint"), ("y", "output"), ("d", "dither"))
         if model.n_disturbances:
             channels += (("v", "disturbance"),)   # dv(k): the feedforward, stamp-matched like y(k)
