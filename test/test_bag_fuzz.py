@@ -218,3 +218,23 @@ def test_a_storage_file_of_its_magic_bytes_alone_is_said_to_end_before_any_recor
     code, err = _export(capsys, bag, tmp_path)
     _one_line(code, err, bag, "the storage file ends after its first bytes, before any record", "recover")
     assert "ord()" not in err
+
+
+
+@pytest.mark.parametrize("edit, words", [
+    (lambda i: i.update(files="x"), "metadata.yaml: key 'files': expected a list, got 'x'"),
+    (lambda i: i.update(duration="x"), "metadata.yaml: key 'duration': expected a mapping, got 'x'"),
+    (lambda i: i["topics_with_message_count"].__setitem__(0, "x"),
+     "metadata.yaml: key 'topics_with_message_count[0]': expected a mapping, got 'x'"),
+    (lambda i: i["topics_with_message_count"][0].update(topic_metadata=[1]),
+     "metadata.yaml: key 'topics_with_message_count[0].topic_metadata': expected a mapping, got [1]"),
+    (lambda i: i.update(version="x"), "metadata.yaml: key 'version': expected a whole number"),
+], ids=["files a string", "duration a string", "topic entry a string", "topic metadata a list", "version a string"])
+def test_metadata_keys_of_the_wrong_shape_are_named(tmp_path, capsys, edit, words):
+    """A ``files`` that is not a list gave an AttributeError traceback, exit 1 (from rosbags closing its reader);
+    the other shapes rosbags' "string indices must be integers" (or its comparison of a string version)."""
+    bag = _bag(tmp_path / "bag")
+    _edit_metadata(bag, edit)
+    code, err = _export(capsys, bag, tmp_path)
+    _one_line(code, err, bag, words)
+    assert "indices" not in err

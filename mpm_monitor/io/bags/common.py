@@ -140,10 +140,27 @@ def _check_metadata_shape(path: Path) -> None:
     if files is not None and not (isinstance(files, list) and all(isinstance(f, str) for f in files)):
         raise BagError(f"{path}: metadata.yaml: key 'relative_file_paths': expected a list of file names, got "
                        f"{_shown(files)}")
+    # The shapes rosbags reads without checking them (it said "string indices must be integers", or raised an
+    # AttributeError traceback while closing for a 'files' that is not a list).
+    for key, kind in (("duration", dict), ("starting_time", dict), ("topics_with_message_count", list),
+                      ("files", list)):
+        if key in info and not isinstance(info[key], kind):
+            raise BagError(f"{path}: metadata.yaml: key '{key}': expected "
+                           f"{'a mapping' if kind is dict else 'a list'}, got {_shown(info[key])}")
+    version = info.get("version")
+    if version is not None and (isinstance(version, bool) or not isinstance(version, int)):
+        raise BagError(f"{path}: metadata.yaml: key 'version': expected a whole number (rosbag2's metadata "
+                       f"version), got {_shown(version)}")
+    for i, entry in enumerate(info.get("files") or ()):
+        if not isinstance(entry, dict):
+            raise BagError(f"{path}: metadata.yaml: key 'files[{i}]': expected a mapping (path, starting_time, "
+                           f"duration, message_count), got {_shown(entry)}")
     for i, entry in enumerate(info.get("topics_with_message_count") or ()):
         key = f"topics_with_message_count[{i}]"
-        if not isinstance(entry, dict):
-            continue                # rosbags names what it misses
+        if not isinstance(entry, dict) or not isinstance(entry.get("topic_metadata", {}), dict):
+            what, got = (key, entry) if not isinstance(entry, dict) else (f"{key}.topic_metadata",
+                                                                         entry["topic_metadata"])
+            raise BagError(f"{path}: metadata.yaml: key '{what}': expected a mapping, got {_shown(got)}")
         count = entry.get("message_count")
         if count is not None and (isinstance(count, bool) or not isinstance(count, int) or count < 0):
             raise BagError(f"{path}: metadata.yaml: key '{key}.message_count': expected a whole number >= 0, got "
