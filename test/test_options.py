@@ -119,3 +119,13 @@ def test_monitor_node_analysis_parameters_keep_their_names_and_defaults():
     assert analysis_options_from_params(given) == AnalysisOptions(band=(0.2, 1.0), max_delay=7, repair=False)
     with pytest.raises(ConfigurationError, match="alpha"):
         specs["alpha"].check(0.5)
+
+
+def test_a_string_parameter_of_choices_names_them_for_a_value_of_another_type():
+    """``-p case:=true`` said 'expected a string, got True', without the choices a wrong string gets."""
+    case = ParamSpec("case", "string", "", "x", choices=("", "3.1", "level"))
+    for bad, shown in ((True, "True"), ("9.9", "'9.9'")):
+        with pytest.raises(ConfigurationError, match=rf"^parameter case: expected one of '', '3.1', 'level', got {shown}$"):
+            case.check(bad)
+    with pytest.raises(ConfigurationError, match=r"^parameter name: expected a string, got True$"):
+        ParamSpec("name", "string", "", "x").check(True)
