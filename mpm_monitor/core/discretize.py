@@ -344,12 +344,24 @@ class StateSpace:
 MAX_STATES = 2 ** 14
 
 
-def _refuse_states(model: PlantModel, disc, nx: int, reg_len) -> None:
+def _checked_state_count(model: PlantModel, disc) -> int:
+    """The states of ``model``'s :func:`state_space` (``disc``: its :func:`discretize`): ``max(n, 1)`` per active
+    element, then each column's shift register; :class:`~mpm_monitor.core.errors.ModelFileError` above
+    :data:`MAX_STATES`, naming the element whose dead time (or step response) makes the longest shift register."""
+    nx = sum(max(disc.denominators[i][j].size - 1, 1) for i in range(model.n_outputs)
+             for j in range(model.n_columns) if disc.active[i, j]) + int(np.sum(disc.register_length))
+    if nx > MAX_STATES:
+        _refuse_states(model, disc, nx)
+    return nx
+
+
+def _refuse_states(model: PlantModel, disc, nx: int) -> None:
     """Raise :class:`~mpm_monitor.core.errors.ModelFileError` for a state space of ``nx`` > :data:`MAX_STATES` states,
     naming the element whose dead time (or step response) makes the longest shift register (a column's past values)."""
     from .errors import ModelFileError
 
     size = f"{nx:,} states ({8 * nx * nx / 2 ** 30:,.0f} GiB as the dense matrix A)"
+    reg_len = disc.register_length
     j = int(np.argmax(reg_len))
     if int(reg_len[j]) < nx // (2 * max(model.n_columns, 1)):
         raise ModelFileError(f"simulation: the model's state space would have {size}; a simulation holds at most "
@@ -377,11 +389,7 @@ def check_state_count(model: PlantModel) -> None:
     ModelFileError
         The message of :func:`state_space`'s refusal (``simulation: ...``, naming the element).
     """
-    disc = discretize(model)
-    nx = sum(max(disc.denominators[i][j].size - 1, 1) for i in range(model.n_outputs)
-             for j in range(model.n_columns) if disc.active[i, j]) + int(np.sum(disc.register_length))
-    if nx > MAX_STATES:
-        _refuse_states(model, disc, nx, disc.register_length)
+    _checked_state_count(model, discretize(model))
 
 
 def state_space(model: PlantModel) -> StateSpace:
@@ -402,6 +410,7 @@ def state_space(model: PlantModel) -> StateSpace:
         Exact ZOH equivalent including the integer delays; ``n_inputs`` set to the model's.
     """
     disc = discretize(model)
+    _checked_state_count(model, disc)           # refused before anything is allocated
     ny, nc = model.n_outputs, model.n_columns
     elems = [(i, j) for i in range(ny) for j in range(nc) if disc.active[i, j]]
     n_s = {e: max(disc.denominators[e[0]][e[1]].size - 1, 1) for e in elems}
@@ -415,8 +424,6 @@ def state_space(model: PlantModel) -> StateSpace:
         reg_start.append(pos)
         pos += int(reg_len[j])
     nx = pos
-    if nx > MAX_STATES:
-        _refuse_states(model, disc, nx, reg_len)
     A = np.zeros((nx, nx))
     B = np.zeros((nx, nc))
     C = np.zeros((ny, nx))
