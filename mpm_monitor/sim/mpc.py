@@ -99,6 +99,13 @@ class MpcOptions:
         return any(b is not None for b in (self.u_min, self.u_max, self.du_max))
 
 
+def _weights_text(options: MpcOptions) -> str:
+    """``output_weight [1], input_weight [1e+308], input_rate_weight [0.1]``: the weights of ``options`` as a refusal
+    names them."""
+    return ", ".join(f"{name} [{', '.join(f'{float(v):g}' for v in np.ravel(getattr(options, name)))}]"
+                     for name in ("output_weight", "input_weight", "input_rate_weight"))
+
+
 def _diag(value, n: int, name: str, allow_none=False, fill=None) -> np.ndarray:
     if value is None:
         if allow_none:
@@ -157,8 +164,6 @@ class InternalModelMpc:
         if np.any(self.du_max <= 0):
             raise ConfigurationError("du_max: expected positive numbers")
         self.structured = self._ss.n_states > DENSE_STATE_LIMIT if structured is None else bool(structured)
-        given = ", ".join(f"{name} [{', '.join(f'{float(v):g}' for v in np.ravel(getattr(options, name)))}]"
-                          for name in ("output_weight", "input_weight", "input_rate_weight"))
         with np.errstate(all="ignore"):
             try:
                 if self.structured:
@@ -168,15 +173,15 @@ class InternalModelMpc:
                     self._Bu, self._Bd = self._ss.B_inputs, self._ss.B_disturbances
                     self._build()
             except np.linalg.LinAlgError:       # weights far apart in scale (input_weight: [1e308])
-                raise ConfigurationError(f"MPC weights {given} give a control problem that cannot be solved "
-                                         f"(expected weights of a moderate scale)") from None
+                raise ConfigurationError(f"MPC weights {_weights_text(options)} give a control problem that cannot be "
+                                         f"solved (expected weights of a moderate scale)") from None
             # The moves of a unit controller input, state, previous input (and dv) use every gain: one that
             # overflowed shows here (output_weight: [1e308] gave NaN inputs at the first sample).
             moves = self.unconstrained_moves(np.ones(ny), np.ones(self._ss.n_states), np.ones(nu),
                                              np.ones(self._nd) if self._nd else None)
         if not np.all(np.isfinite(moves)):
-            raise ConfigurationError(f"MPC weights {given} overflow floating point (expected weights of a "
-                                     f"moderate scale)")
+            raise ConfigurationError(f"MPC weights {_weights_text(options)} overflow floating point (expected "
+                                     f"weights of a moderate scale)")
         self._qp = None
         self.reset()
 
