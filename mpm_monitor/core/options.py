@@ -115,12 +115,9 @@ class ParamSpec:
         if self.kind == "string":
             if self.numbers_as_text and isinstance(value, (int, float)) and not isinstance(value, bool):
                 value = format(value, "g")
-            if not isinstance(value, str):
+            if not isinstance(value, str) or (self.choices is not None and value not in self.choices):
                 wanted = "a string" if self.choices is None else f"one of {', '.join(repr(c) for c in self.choices)}"
                 raise ConfigurationError(f"parameter {n}: expected {wanted}, got {value!r}")
-            if self.choices is not None and value not in self.choices:
-                raise ConfigurationError(f"parameter {n}: expected one of {', '.join(repr(c) for c in self.choices)}, "
-                                         f"got {value!r}")
             return value
         if self.kind == "double_array":
             try:
