@@ -48,12 +48,14 @@ def shown_names(names, limit: int = 12) -> str:
     terminal), a name longer than 60 characters cut, and past ``limit`` names the count instead of the rest (a
     message of 20,000 names was one line of 200 kB)."""
     names = [str(n) for n in names]
-    shown = []
-    for n in names[:limit]:
-        n = n if n.isprintable() else repr(n)
-        shown.append(n if len(n) <= 60 else n[:57] + "...")
+    shown = [_cut(n if n.isprintable() else repr(n)) for n in names[:limit]]
     more = f", ... ({len(names)} in all)" if len(names) > limit else ""
     return ", ".join(shown) + more
+
+
+def _cut(text: str, limit: int = 60) -> str:
+    """``text`` cut to at most ``limit`` characters, ``...`` ending a cut one."""
+    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def stamp_ns(stamp) -> int:
@@ -106,10 +108,12 @@ def _check_metadata_shape(path: Path) -> None:
     not UTF-8 (rosbags said "'utf-8' codec can't decode byte ...", with the hint of a truncated storage file),
     lists or mappings nested deeper than rosbag2 ever writes (:data:`METADATA_MAX_NESTING`; the parsers took
     seconds each to reach their recursion limit), YAML that is not rosbag2's (a mapping under
-    ``rosbag2_bagfile_information``: rosbags said ``string indices must be integers``), a file list or topic
-    entries of the wrong kind (a message count that is not a whole number, a topic named by a number: a
-    ``TypeError`` traceback), and a storage file that is not a regular file (a named pipe: the reader waited
-    for ever).  A file that does not parse otherwise is left to rosbags, whose failure :func:`open_reader`
+    ``rosbag2_bagfile_information``: rosbags said ``string indices must be integers``), keys of the wrong shape
+    (``duration``, ``starting_time``, the topic list, a topic entry or its ``topic_metadata`` not a mapping or a
+    list as rosbag2 writes them, a ``version`` that is not a number: the same words; a ``files`` that is not a list
+    of mappings: an ``AttributeError`` traceback), a file list or topic entries of the wrong kind (a message
+    count that is not a whole number, a topic named by a number: a ``TypeError`` traceback), and a storage file
+    that is not a regular file (a named pipe: the reader waited for ever).  A file that does not parse otherwise is left to rosbags, whose failure :func:`open_reader`
     words as before.
 
     Raises
@@ -165,9 +169,9 @@ def _check_metadata_shape(path: Path) -> None:
         if count is not None and (isinstance(count, bool) or not isinstance(count, int) or count < 0):
             raise BagError(f"{path}: metadata.yaml: key '{key}.message_count': expected a whole number >= 0, got "
                            f"{_shown(count)}")
-        meta = entry.get("topic_metadata")
+        meta = entry.get("topic_metadata") or {}         # a mapping, checked above
         for field in ("name", "type"):
-            value = meta.get(field) if isinstance(meta, dict) else None
+            value = meta.get(field)
             if value is not None and not isinstance(value, str):
                 raise BagError(f"{path}: metadata.yaml: key '{key}.topic_metadata.{field}': expected a string, got "
                                f"{_shown(value)}")
@@ -191,8 +195,7 @@ METADATA_MAX_NESTING = 100
 
 def _shown(value) -> str:
     """A value of ``metadata.yaml`` as a message shows it: its repr, at most 60 characters."""
-    text = " ".join(repr(value).split())
-    return text if len(text) <= 60 else text[:57] + "..."
+    return _cut(" ".join(repr(value).split()))
 
 
 #: What rosbags says of a record or chunk whose length field does not match the bytes that follow it.
