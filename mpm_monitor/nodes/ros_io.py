@@ -348,10 +348,8 @@ def declare_parameters(node, specs: Sequence[ParamSpec]) -> dict:
             initial = spec.default
         try:
             param = node.declare_parameter(spec.name, initial, descriptor(spec))
-        except InvalidParameterValueException as exc:
-            raise ConfigurationError(f"parameter {spec.name}: {_reason(exc, spec.name)}") from None
-        except InvalidParameterTypeException as exc:
-            raise ConfigurationError(f"parameter {spec.name}: wrong type: {_reason(exc, spec.name)}") from None
+        except (InvalidParameterValueException, InvalidParameterTypeException) as exc:
+            raise ConfigurationError(_rclpy_refusal(exc, spec.name)) from None
         out[spec.name] = spec.check(param.value)
         for name in _ros_names(spec, out[spec.name]):
             check_ros_name(node, spec.name, name, service=spec.name.endswith("_service"))
@@ -360,9 +358,8 @@ def declare_parameters(node, specs: Sequence[ParamSpec]) -> dict:
     for name in unknown:
         if name in others:
             continue
-        close = difflib.get_close_matches(name, [spec.name for spec in specs], n=1)
         node.get_logger().warning(f"parameter '{name}' is not a parameter of this node and is ignored"
-                                  + (f": did you mean '{close[0]}'?" if close else ""))
+                                  + _did_you_mean(name, [spec.name for spec in specs]))
     theirs = [name for name in unknown if name in others]
     if theirs:
         node.get_logger().info("parameters of other nodes of the suite, ignored here (a params file's shared "
@@ -393,9 +390,8 @@ def _parameter_refusal(node, msg) -> Optional[str]:
 
     name = str(msg.name)
     if not name or not node.has_parameter(name):
-        close = difflib.get_close_matches(name, node.list_parameters([], 0).names, n=1) if name else []
         return (f"parameter {name!r}: not a parameter of this node"
-                + (f": did you mean '{close[0]}'?" if close else ""))
+                + (_did_you_mean(name, node.list_parameters([], 0).names) if name else ""))
     try:
         Parameter.Type(msg.value.type)
     except ValueError:
@@ -468,6 +464,21 @@ def guard_parameter_services(node) -> None:
         if guard is not None and not getattr(service, "_mpm_guarded", False):
             service.callback = guard(service.callback)
             service._mpm_guarded = True
+
+
+def _did_you_mean(name: str, names) -> str:
+    """``": did you mean 'x'?"`` with the parameter of ``names`` closest to ``name``, or '' when none is close."""
+    close = difflib.get_close_matches(name, list(names), n=1)
+    return f": did you mean '{close[0]}'?" if close else ""
+
+
+def _rclpy_refusal(exc: Exception, name: str) -> str:
+    """The one line of rclpy's refusal ``exc`` of parameter ``name`` (an ``InvalidParameterValueException``, or an
+    ``InvalidParameterTypeException``: "wrong type: ...")."""
+    from rclpy.exceptions import InvalidParameterTypeException
+
+    wrong = "wrong type: " if isinstance(exc, InvalidParameterTypeException) else ""
+    return f"parameter {name}: {wrong}{_reason(exc, name)}"
 
 
 def _reason(exc: Exception, name: str) -> str:
@@ -871,8 +882,7 @@ def run_node(node_factory: Callable[..., Any], args=None, executor_kind: str = "
         except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
             # rclpy's own parameter (use_sim_time:=1), refused by rclpy.Node before the node declares its own
             name = str(exc).splitlines()[0].rsplit(": ", 1)[-1] if str(exc) else "?"   # rclpy ends it ": <name>"
-            wrong = "wrong type: " if isinstance(exc, InvalidParameterTypeException) else ""
-            print(f"error: parameter {name}: {wrong}{_reason(exc, name)}", file=sys.stderr)
+            print(f"error: {_rclpy_refusal(exc, name)}", file=sys.stderr)
             return 2
         executor = make_executor(context, executor_kind)
         executor.add_node(node)
