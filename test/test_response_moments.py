@@ -64,6 +64,33 @@ def test_the_response_tests_from_the_moments_equal_the_direct_products(segments,
     assert direct[0].p_value < 1e-3                 # the gain error is there to be found
 
 
+@pytest.mark.parametrize("segments", [RUNS, [(0, 600), (600, 640), (640, 1300), (1300, 1800)]])
+def test_a_self_regulating_rows_tests_from_the_moments_equal_the_direct_products(segments):
+    """A row without an integrating element keeps one level through the short gaps of a GapSegments (its regressors
+    centred over each run's rows, segments.level_groups); with plain segments, one per segment: the moments give
+    the direct products' tests either way."""
+    model, u, d = _window(4)
+    model = model.with_element(0, 1, integrating=False, gain=0.4, time_constant=12.0)
+    testable = [0, 1, 2, 3]
+    start = max(N_LAG, NA)
+    u_c = u - u.mean(axis=0)
+    d_c = d - d.mean(axis=0)
+    X = np.hstack([segment_lag_matrix(u_c[:, k], range(1, N_LAG + 1), start, segments) for k in testable])
+    own = -segment_lag_matrix(d_c[:, 0], range(1, NA + 1), start, segments)
+    fit = SharedBlockRegression(X, [N_LAG] * len(testable)).fit(segment_rows(d_c[:, 0], start, segments), own)
+    sizes = [N_LAG] * len(testable)
+    direct = row_response_tests(model, 0, fit, testable, X, sizes, u_c, d_c, start, NA, segments)
+    moments = ResponseMoments(model, u, d, testable, N_LAG, start, NA, segments)
+    assert list(moments.levels(0)) == (RUN_OF_RUNS if segments is RUNS else [0, 1, 2, 3])
+    shared = row_response_tests(model, 0, fit, testable, None, sizes, u_c, d_c, start, NA, segments, moments=moments)
+    assert set(direct) == set(shared) == {0, 1, 3}
+    for j, t in direct.items():
+        s = shared[j]
+        assert (s.df_num, s.df_den) == (t.df_num, t.df_den) == (1, t.df_den)
+        assert s.statistic == pytest.approx(t.statistic, rel=1e-9)
+        assert s.p_value == pytest.approx(t.p_value, rel=1e-7, abs=1e-300)
+
+
 def test_the_row_moments_equal_the_products_of_the_lag_matrices():
     """Z' [x, X], u(t)' [x, X], O' [x, X], [x, X]' [x, X] (the last two along lag diagonals), the sums
     and the segment means, against the lag matrices of each segment's centred response."""
@@ -221,13 +248,29 @@ def test_the_own_lags_moments_of_every_row_equal_the_product_of_the_lag_matrices
         np.testing.assert_allclose(rm.zo, Z.T @ O, rtol=1e-10, atol=1e-9 * np.abs(Z.T @ O).max())
 
 
+#: The runs of RUNS' segments: the gaps of 1 and 2 samples are short (the model runs through them), the gap of 40 long.
+RUN_OF_RUNS = [0, 0, 0, 1]
+
+
+def _centred_error(moments, i):
+    """Row ``i``'s prediction error as the tests centre it: over each run of :data:`RUNS` for a row without an
+    integrating element (one level through a short gap), otherwise over each segment."""
+    d = moments.d[:, i].copy()
+    segs = moments.segs
+    groups = RUN_OF_RUNS if moments.segments is RUNS and not moments.model.integrating_outputs[i] else range(len(segs))
+    for g in set(groups):
+        at = np.concatenate([np.arange(a, b) for (a, b), h in zip(segs, groups) if h == g])
+        d[at] -= d[at].mean()
+    return d
+
+
 def _lag_zero_products(moments, i, rm):
     """``u_c(t)' [x, X]`` and ``O' [x, X]`` of row ``i``'s elements by products of each segment's lag matrices (the
     responses from rest in each segment, or through the runs of GapSegments)."""
     u_c, start, na = moments.u_c, moments.start, moments.na
     segs = moments.segs
     U0 = np.vstack([u_c[a + start:b] for a, b in segs])
-    O = np.vstack([lag_matrix(moments.d[a:b, i] - moments.d[a:b, i].mean(), range(1, na + 1), start) for a, b in segs])
+    O = np.vstack([lag_matrix(d_i[a:b], range(1, na + 1), start) for d_i in [_centred_error(moments, i)] for a, b in segs])
     uw, ow = [], []
     for b, (j, element, _) in enumerate(rm.found):
         x = through(u_c[:, j], element.respond, moments.segments)     # from rest per segment, or through runs

@@ -11,6 +11,7 @@ from bench.structures_mc import make_structures_scenario, simulate
 from mpm_monitor.core.analysis import AnalysisOptions, detect
 from mpm_monitor.core.arx import SharedBlockRegression, lag_matrix, segment_lag_matrix, segment_rows
 from mpm_monitor.core.model import PlantModel
+from mpm_monitor.core.segments import GapSegments
 from mpm_monitor.core.response_test import combined_p_value, row_response_tests
 
 N_LAG, NA = 8, 2
@@ -98,6 +99,48 @@ def test_the_response_test_on_some_rows_equals_least_squares_on_those_rows(segme
         assert t.p_value == pytest.approx(stats.f.sf(f, 1, dof), rel=1e-6, abs=1e-300)
     with pytest.raises(ValueError, match="common"):
         row_response_tests(model, 0, fit, testable, None, [N_LAG, N_LAG], u_c, d_c, start, NA, segments, rows=rows)
+
+
+@pytest.mark.parametrize("integrating", [False, True])
+def test_a_self_regulating_row_keeps_one_level_through_short_gaps(integrating):
+    """Through the short gaps of a GapSegments (the model runs through them) a row without an integrating element
+    keeps one level: the response regressor is centred over the run's rows, not each segment's; a row with one
+    keeps a level per segment.  Against brute-force least squares (numpy, scipy.stats) with the response
+    simulated on the sample grid, its columns held through the gaps."""
+    model, u_c, d_c = _open_loop(6, gain_error=0.05)
+    if integrating:
+        model = model.with_element(0, 1, integrating=True, gain=0.01)
+    grid = np.concatenate([np.arange(700), np.arange(701, 1101), np.arange(1103, 1503)])    # 1 and 2 samples missing
+    segments = GapSegments([(0, 700), (700, 1100), (1100, 1500)], grid, 10)
+    start, testable = max(N_LAG, NA), [0, 1]
+    X = np.hstack([segment_lag_matrix(u_c[:, k], range(1, N_LAG + 1), start, segments) for k in testable])
+    own = -segment_lag_matrix(d_c[:, 0], range(1, NA + 1), start, segments)
+    y = segment_rows(d_c[:, 0], start, segments)
+    fit = SharedBlockRegression(X, [N_LAG, N_LAG]).fit(y, own)
+    tests = row_response_tests(model, 0, fit, testable, X, [N_LAG, N_LAG], u_c, d_c, start, NA, segments)
+    a = fit.own_theta()
+    held = np.searchsorted(grid, np.arange(grid[-1] + 1), side="right") - 1      # the last row at or before
+    labels = np.repeat([0, 1, 2], [700 - start, 400 - start, 400 - start])
+    j = 0                                        # the slow element; the reference is the one-regressor F test
+    x = model.discrete_element(0, j).respond(u_c[held, j])[grid]
+    xf = np.concatenate([lfilter(np.r_[1.0, a], [1.0], x[lo:hi])[start:] for lo, hi in segments])
+    W = np.hstack([X[:, N_LAG:], own])
+    r0 = y - W @ np.linalg.lstsq(W, y, rcond=None)[0]
+
+    def p_value(levels):
+        xt = xf.copy()
+        for g in np.unique(levels):
+            xt[levels == g] -= xt[levels == g].mean()
+        W1 = np.column_stack([W, xt])
+        r1 = y - W1 @ np.linalg.lstsq(W1, y, rcond=None)[0]
+        dof = y.size - W1.shape[1]
+        return (r0 @ r0 - r1 @ r1) / (r1 @ r1 / dof), stats.f.sf((r0 @ r0 - r1 @ r1) / (r1 @ r1 / dof), 1, dof)
+
+    per_run, per_segment = p_value(np.zeros_like(labels)), p_value(labels)
+    assert abs(per_run[1] / per_segment[1] - 1.0) > 1e-3          # the two centrings are told apart here
+    f, p = per_segment if integrating else per_run
+    assert tests[j].statistic == pytest.approx(f, rel=1e-8)
+    assert tests[j].p_value == pytest.approx(p, rel=1e-6, abs=1e-300)
 
 
 def _row_fit(u_c, d_c, start):

@@ -122,3 +122,21 @@ def test_centred_by_label_and_the_rows_segment_labels():
         np.testing.assert_allclose(got[labels == g], X[labels == g] - X[labels == g].mean(axis=0), atol=1e-15)
     assert np.array_equal(segment_labels(3, [(0, 5), (5, 7), (7, 12)]), [0, 0, 2, 2])      # (5, 7) has no row
     assert np.array_equal(segment_labels(3, None, 4), np.zeros(4))
+
+
+def test_level_groups_are_the_runs_for_a_row_that_keeps_one_level_through_short_gaps():
+    from mpm_monitor.core.segments import centred_by_level, level_groups
+
+    grid = np.concatenate([np.arange(5), np.arange(6, 10), np.arange(30, 36)])     # gaps of 1 and of 20 samples
+    segments = GapSegments([(0, 5), (5, 9), (9, 15)], grid, 3)
+    assert level_groups(segments, True).tolist() == [0, 0, 1]
+    assert level_groups(segments, False).tolist() == [0, 1, 2]
+    assert level_groups([(0, 5), (5, 9), (9, 15)], True).tolist() == [0, 1, 2]    # plain segments: each its own
+    assert level_groups(None, True) is None
+    x = np.column_stack([np.arange(15.0), np.r_[np.full(5, 1.0), np.full(4, 3.0), np.full(6, -2.0)]])
+    per_run = centred_by_level(x, segments, level_groups(segments, True))
+    np.testing.assert_allclose(per_run[:9], x[:9] - x[:9].mean(axis=0))
+    np.testing.assert_allclose(per_run[9:], x[9:] - x[9:].mean(axis=0))
+    per_segment = centred_by_level(x, segments, level_groups(segments, False))
+    np.testing.assert_allclose(per_segment[:, 1], 0.0)
+    np.testing.assert_allclose(centred_by_level(x, None, None), x - x.mean(axis=0))

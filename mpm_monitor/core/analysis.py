@@ -226,7 +226,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     from .resolution import column_resolution_warnings, resolution_warnings
     from .response_moments import ResponseMoments
     from .row_test import moving_setpoints, sdelta_row_test
-    from .segments import GapSegments
+    from .segments import GapSegments, centred_by_level, level_groups
     from .signals import (compute_signals, error_rms, packed, scored_segments, segment_signals, segments_mask,
                           unknown_starts)
 
@@ -279,9 +279,13 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         regressions = window_regressions(r, columns, z, sig.d, layout, options.na, options.nb, jobs=split_light,
                                          previous=None if previous is None else previous.regressions)
     elif regressions is None:
-        # Each segment's d centred on its own (its level restarts with its model output, and moves across
-        # a short gap the model runs through with its columns held).
-        d = np.vstack([sig.d[a:b] - sig.d[a:b].mean(axis=0) for a, b in plan.local_segments])
+        # d centred over each level group (segments.level_groups): a row without an integrating element keeps one
+        # level through the short gaps the model runs through; a row with one, and every row after a long gap
+        # (its model output restarts), a level per segment.
+        d = np.empty_like(sig.d)
+        for one_per_run in (False, True):
+            at = [i for i, integrating in enumerate(model.integrating_outputs) if integrating != one_per_run]
+            d[:, at] = centred_by_level(sig.d[:, at], segments, level_groups(segments, one_per_run))
         regressions = window_regressions(r, columns, -d, d, layout, options.na, options.nb,
                                          segments=segments, jobs=split_light)
 

@@ -18,7 +18,7 @@ from .elements import pulse_response
 from .model import PlantModel
 from .noise_polynomial import noise_filter
 from .response_test import combined_p_value, element_responses, integrating_element, row_response_tests
-from .segments import run_lag_matrix, run_positions, segment_labels
+from .segments import level_groups, run_lag_matrix, run_positions, segment_labels
 from .statistics import N_FAMILIES
 
 
@@ -150,8 +150,9 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
     Data with gaps: the fit takes the regression rows whose tails stay inside their run of segments
     (:class:`~mpm_monitor.core.segments.GapSegments`: the model runs through a short gap with its columns
     held, and a tail reads them so, :func:`~mpm_monitor.core.segments.run_lag_matrix`), with a free level
-    per segment (the prediction error is centred over each segment).  No row's own lags or tested lags
-    reach across a gap.
+    per level group (the prediction error is centred over each: a run of segments the model runs through for a
+    row without an integrating element, else a segment, :func:`~mpm_monitor.core.segments.level_groups`).  No
+    row's own lags or tested lags reach across a gap.
 
     Returns
     -------
@@ -220,9 +221,11 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
             def lagged(x, lags):
                 return run_lag_matrix(x, lags, start0, segments)[keep]
             target = segment_rows(di, start0, segments)[keep]
-            # d is centred over each segment (its level moves across a gap): a free level per segment here too,
-            # or the tails' own levels, which d no longer has, would stay in the fit's residual.
-            labels = segment_labels(start0, segments)[keep]
+            # d is centred over each level group (a run the model runs through, or a segment: level_groups): a free
+            # level per group here too, or the tails' own levels, which d no longer has, would stay in the residual.
+            labels = segment_labels(start0, segments)
+            groups = level_groups(segments, not model.integrating_outputs[i])
+            labels = (labels if groups is None else groups[labels])[keep]
             levels = (labels[:, None] == np.unique(labels)[None, :]).astype(float)
         own = -lagged(di, range(1, na + 1)) if na else None
         response_lags = {k: lagged(x, range(na + 1)) for k, x in responses.items()}

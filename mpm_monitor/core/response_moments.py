@@ -27,7 +27,8 @@ whole-response test's ``Z' A_i(q) x`` then follows from these moments exactly
 Notation: ``u_c`` the columns centred over the window (the columns that never move set to 0, as they
 carry no information), ``Z`` their lags ``1 .. L`` on the regression rows (column ``c L + l - 1`` is
 column ``c`` at lag ``l``), ``x`` an element's response to ``u_c``, simulated from rest at the start of
-each segment and centred over each segment's samples (``x_raw = x + mu_s`` in segment ``s``).  With
+each segment and centred over each segment's samples (``x_raw = x + mu_s`` in segment ``s``; the tests
+centre ``A(q) x_raw`` over each level group, :meth:`ResponseMoments.levels`).  With
 segments that say how the model runs through the short gaps
 (:class:`~mpm_monitor.core.segments.GapSegments`), ``x_raw`` is simulated as the model runs instead
 (:func:`~mpm_monitor.core.segments.through`): every relation above that holds on a segment's samples
@@ -44,7 +45,7 @@ import numpy as np
 
 from .arx import lag_matrix, segment_lag_matrix, segment_rows
 from .model import PlantModel
-from .segments import run_places, run_samples, through
+from .segments import centred_by_level, level_groups, run_places, run_samples, through
 
 
 #: The largest :attr:`ResponseMoments.fir_gram` built (bytes); beyond it, the long finite impulse responses'
@@ -107,7 +108,8 @@ class RowMoments:
     uw : ndarray, shape (n_columns, m (na + 1))
         ``u_c(t)' [x, X]`` (lag 0 of the columns).
     zo : ndarray, shape (n_columns L, na)
-        ``Z' O``, ``O`` the row's own lags ``d_i(t - 1) .. d_i(t - na)`` (``d_i`` centred per segment).
+        ``Z' O``, ``O`` the row's own lags ``d_i(t - 1) .. d_i(t - na)`` (``d_i`` centred over each level group,
+        :meth:`ResponseMoments.levels`).
     oo : ndarray, shape (na, na)
         ``O' O``.
     ow : ndarray, shape (na, m (na + 1))
@@ -251,6 +253,7 @@ class ResponseMoments:
         self._fir_gram = None
         self._fir_span = None
         self._own = None
+        self._centred = None
 
     @property
     def Z(self) -> np.ndarray:
@@ -266,6 +269,7 @@ class ResponseMoments:
         the moments' readers to another one (the detectability in a forked child, :func:`~mpm_monitor.core.analysis.detect`)
         keeps only what rebuilds them (at 100x40 about 160 MB fewer while it repairs)."""
         self._Z, self._rows, self._own, self._gram, self._fir_gram = None, {}, None, None, None
+        self._centred = None
 
     def of(self, u: np.ndarray, segments=None) -> bool:
         """Whether these are the moments of the columns ``u`` with these ``segments``."""
@@ -325,6 +329,23 @@ class ResponseMoments:
             out[j] = x
         return out
 
+    def centred_errors(self) -> np.ndarray:
+        """With segments, the prediction errors centred over each row's level groups (:meth:`levels`), shape
+        (n_samples, n_outputs): the own lags the element fits take (the samples of a segment left out as they are).
+        Computed once per window."""
+        if self._centred is None:
+            self._centred = np.array(self.d, dtype=float)
+            for i in range(self.d.shape[1]):
+                self._centred[:, i] = centred_by_level(self.d[:, i], self.segs, self.levels(i))
+        return self._centred
+
+    def levels(self, i: int) -> Optional[np.ndarray]:
+        """The level group of every segment for row ``i`` (:func:`~mpm_monitor.core.segments.level_groups`: one per
+        run the responses run through, for a row without an integrating element); None without segments."""
+        if self.segments is None:
+            return None
+        return level_groups(self.segments, self.joined and not self.model.integrating_outputs[i])
+
     def _segment_sums(self, A: np.ndarray) -> np.ndarray:
         """Column sums of ``A`` (shape (n_rows, q), on the regression rows) over each segment's rows, shape (S, q)."""
         rows = self.seg_rows.astype(int)
@@ -339,8 +360,11 @@ class ResponseMoments:
 
     def _compute(self, i: int, keep_samples: bool) -> RowMoments:
         model, u_c, start, segs, na, L = self.model, self.u_c, self.start, self.segs, self.na, self.n_lag
-        d = self.d
-        O = np.vstack([lag_matrix(d[a:b, i] - d[a:b, i].mean(), range(1, na + 1), start) for a, b in segs])
+        if self.segments is None:
+            O = lag_matrix(self.d[:, i] - self.d[:, i].mean(), range(1, na + 1), start)
+        else:
+            d = self.centred_errors()[:, i]
+            O = np.vstack([lag_matrix(d[a:b], range(1, na + 1), start) for a, b in segs])
         found = [(j,) + target_element(model, i, j) for j in range(model.n_columns)]
         found = [f for f in found if f[1] is not None]
         m, S = len(found), len(segs)
@@ -478,7 +502,7 @@ class ResponseMoments:
     def _own_lags(self, i: int, O: np.ndarray) -> np.ndarray:
         """``P[c, l, k - 1] = sum_t u_c(t - l) d_i(t - k)`` of row ``i`` over the rows, ``l = 0 .. L``, ``k = 1 .. na``
         (shape (n_columns, L + 1, na); ``P[:, 1:]`` is ``Z' O``), ``O`` its own lags ``d_i(t - 1) .. d_i(t - na)``
-        on the rows (``d_i`` centred over each segment's samples).
+        on the rows (``d_i`` centred over each level group's samples, :meth:`levels`).
 
         Along the diagonals of lag pairs, as ``M`` in :meth:`_compute`: with ``P(l, k) = sum_t u_c(t - l)
         d_i(t - k)``, ``P(l, k) = P(l - 1, k - 1) + u(start - l) d(start - k) - u(N - l) d(N - k)`` (summed
@@ -500,13 +524,17 @@ class ResponseMoments:
 
     def _own_moments(self) -> tuple:
         """``(Z' D, D, d_head, d_tail)`` of the prediction errors of every output, taken once per window:
-        ``D`` (n_rows, n_outputs) the errors on the rows, each centred over its segment's samples,
+        ``D`` (n_rows, n_outputs) the errors on the rows, each centred over its level groups' samples (:meth:`levels`),
         ``d_head[s, k - 1]`` and ``d_tail[s, k - 1]`` (S, na, n_outputs) the centred errors at ``start_s - k``
         and ``N_s - k``."""
         if self._own is None:
             na, start = self.na, self.start
             lags = np.arange(1, na + 1)
-            centred = [self.d[a:b] - self.d[a:b].mean(axis=0) for a, b in self.segs]
+            if self.segments is None:
+                centred = [self.d[a:b] - self.d[a:b].mean(axis=0) for a, b in self.segs]
+            else:
+                d = self.centred_errors()
+                centred = [d[a:b] for a, b in self.segs]
             rows = np.vstack([c[start:] for c in centred])
             d_head = np.stack([c[start - lags] for c in centred])
             d_tail = np.stack([c[c.shape[0] - lags] for c in centred])
@@ -755,18 +783,23 @@ class ResponseMoments:
         """The whole-response test's regressors and their products with the input lags, from the moments.
 
         For every column ``j`` of ``columns`` (each with a target element in ``rm``), the regressor is
-        ``A(q) x_raw`` on the rows, centred over the rows, and with gaps over each segment's rows (as
-        :func:`~mpm_monitor.core.response_test.row_response_tests` builds it,
+        ``A(q) x_raw`` on the rows, centred over the rows, and with gaps over each level group's rows
+        (:meth:`levels`; as :func:`~mpm_monitor.core.response_test.row_response_tests` builds it,
         :func:`~mpm_monitor.core.response_test.centred_rows`).  With ``x_raw = x + mu_s`` in segment
         ``s``, ``A(q) x_raw = sum_k a_k x(t - k) + A(1) mu_s``, whose second part is constant in each
         segment.  One record (``n`` rows, ``Z' 1`` the column sums of ``Z``)::
 
             Z' (A(q) x_raw - mean) = sum_k a_k Z' x(t - k) - Z' 1 sum_k a_k 1' x(t - k) / n
 
-        With segments, ``m_s`` the mean of ``sum_k a_k x(t - k)`` over segment ``s``'s rows and ``Z_s' 1`` the
-        column sums of ``Z`` over them::
+        With a level per segment, ``m_s`` the mean of ``sum_k a_k x(t - k)`` over segment ``s``'s rows and
+        ``Z_s' 1`` the column sums of ``Z`` over them::
 
             Z' (A(q) x_raw - m_s - A(1) mu_s) = sum_k a_k Z' x(t - k) - sum_s Z_s' 1 m_s
+
+        With one level over the segments of a group ``g`` (a run the model runs through), ``m_g`` the mean of
+        ``A(q) x_raw`` over its rows::
+
+            Z' (A(q) x_raw - m_g) = sum_k a_k Z' x(t - k) + sum_s Z_s' 1 A(1) mu_s - sum_g Z_g' 1 m_g
 
         Parameters
         ----------
@@ -801,7 +834,19 @@ class ResponseMoments:
             ZX = zx - np.outer(z_sums.sum(axis=0), a_poly @ rm.xsum[b].T / n)
             X -= X.mean(axis=0)
             return X, ZX
-        # With gaps, centred over each segment's rows, as the prediction error is (centred_rows).
-        means = self._segment_sums(X) / self.seg_rows[:, None]                      # (S, k)
-        X -= np.repeat(means, self.seg_rows.astype(int), axis=0)
-        return X, zx - z_sums.T @ means
+        groups = self.levels(rm.i)
+        if len(set(groups.tolist())) == len(self.segs):
+            # With gaps, centred over each segment's rows, as the prediction error is (centred_rows).
+            means = self._segment_sums(X) / self.seg_rows[:, None]                  # (S, k)
+            X -= np.repeat(means, self.seg_rows.astype(int), axis=0)
+            return X, zx - z_sums.T @ means
+        # One level over several segments: A(1) mu_s is no longer constant over a group; it is put back on each
+        # segment's rows before the group's mean (over its rows) is taken out.
+        level = a_poly.sum() * rm.mu[:, b]                                          # (S, k)
+        X += np.repeat(level, self.seg_rows.astype(int), axis=0)
+        rows = np.bincount(groups, weights=self.seg_rows)
+        to_group = np.zeros((rows.size, len(self.segs)))
+        to_group[groups, np.arange(len(self.segs))] = 1.0
+        means = (to_group @ self._segment_sums(X)) / np.maximum(rows, 1.0)[:, None]    # (G, k)
+        X -= np.repeat(means[groups], self.seg_rows.astype(int), axis=0)
+        return X, zx + z_sums.T @ level - (to_group @ z_sums).T @ means

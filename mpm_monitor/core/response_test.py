@@ -59,7 +59,7 @@ from .arx import BlockTest, segment_lag_matrix, segment_rows
 from .elements import pulse_response
 from .filters import lfilter
 from .model import PlantModel
-from .segments import centred_by, segment_labels, through
+from .segments import centred_by, level_groups, segment_labels, through
 from .statistics import f_tail
 
 #: The tests combined for an element the model has: the lag window's and the whole response's.
@@ -188,14 +188,14 @@ def time_constant_sensitivity(x: np.ndarray, tau: float, segments=None) -> np.nd
     return through(np.asarray(x, dtype=float), shape, segments)
 
 
-def centred_rows(X: np.ndarray, start: int, segments=None) -> np.ndarray:
-    """Regressors on the regression rows less their mean over each segment's rows (over all rows without gaps).
+def centred_rows(X: np.ndarray, start: int, segments=None, groups: Optional[np.ndarray] = None) -> np.ndarray:
+    """Regressors on the regression rows less their mean over each level group's rows (over all rows without gaps).
 
-    The prediction error is centred over each segment (every span between gaps keeps a level of its own),
-    so a regressor's level in a segment explains nothing of it; centred over all rows instead, the
-    regressor's segment levels stay in its cross products and its variance (with one sample in 100
-    missing, 28 of 6,837 clean p-values fell below 0.001, 16 when centred per segment and 11 without
-    gaps, 6.8 expected: ``bench.element_level --drop``).
+    The prediction error is centred over each level group (:func:`~mpm_monitor.core.segments.level_groups`: a
+    run of segments the model runs through, or a segment), so a regressor's level in a group explains nothing of
+    it; centred over all rows instead, the regressor's group levels stay in its cross products and its variance
+    (with one sample in 100 missing and a level per segment, 28 of 6,837 clean p-values fell below 0.001, 16 when
+    centred per segment and 11 without gaps, 6.8 expected: ``bench.element_level --drop``).
 
     Parameters
     ----------
@@ -205,6 +205,8 @@ def centred_rows(X: np.ndarray, start: int, segments=None) -> np.ndarray:
         First regression row of every segment.
     segments : sequence of (int, int), optional
         The segments (a segment of at most ``start`` samples has no row).
+    groups : ndarray of int, shape (n_segments,), optional
+        The level group of every segment (:func:`~mpm_monitor.core.segments.level_groups`); default its own.
 
     Returns
     -------
@@ -213,6 +215,8 @@ def centred_rows(X: np.ndarray, start: int, segments=None) -> np.ndarray:
     """
     if segments is None or len(segments) < 2:
         return X - X.mean(axis=0)
+    if groups is not None and len(set(np.asarray(groups).tolist())) < len(segments):
+        return centred_by(X, np.asarray(groups, dtype=np.int64)[segment_labels(start, segments, X.shape[0])])
     out = np.array(X, dtype=float)
     at = 0
     for a, b in segments:
@@ -463,6 +467,7 @@ def row_response_regressors(model: PlantModel, i: int, fit, testable: list, comm
         resp = moments.responses(rm, integrating)       # already simulated: no second run
     if not cols:
         return None
+    levels = level_groups(segments, not model.integrating_outputs[i])
     groups = [[k] for k in range(len(cols))]
     sensitivity = []
     for k, j in enumerate(cols):
@@ -473,11 +478,12 @@ def row_response_regressors(model: PlantModel, i: int, fit, testable: list, comm
         if common is None:
             raise ValueError("rows: the lag blocks on those rows must be given (common)")
         X_t = filtered_rows(np.column_stack([resp[j] for j in cols] + sensitivity), a, start, segments)[rows]
-        X_t = centred_by(X_t, segment_labels(start, segments, rows.size)[rows])
+        labels = segment_labels(start, segments, rows.size)
+        X_t = centred_by(X_t, (labels if levels is None else levels[labels])[rows])
         parts = [common.T @ X_t]
     elif moments is None:
         X_t = centred_rows(filtered_rows(np.column_stack([resp[j] for j in cols] + sensitivity), a, start, segments),
-                           start, segments)
+                           start, segments, levels)
         if common is None:
             common = np.hstack([segment_lag_matrix(u_c[:, j], range(1, size + 1), start, segments)
                                 for j, size in zip(testable, block_sizes)]) if testable else np.zeros((y.shape[0], 0))
@@ -487,7 +493,7 @@ def row_response_regressors(model: PlantModel, i: int, fit, testable: list, comm
         block_columns = np.concatenate([np.arange(j * L, (j + 1) * L) for j in testable]).astype(int)
         X_t, zx = moments.filtered_products(rm, cols, a, block_columns)
         if sensitivity:
-            X_s = centred_rows(filtered_rows(np.column_stack(sensitivity), a, start, segments), start, segments)
+            X_s = centred_rows(filtered_rows(np.column_stack(sensitivity), a, start, segments), start, segments, levels)
             X_t = np.hstack([X_t, X_s])
             zx = np.hstack([zx, (moments.Z.T @ X_s)[block_columns]])
         parts = [zx]

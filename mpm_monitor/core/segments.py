@@ -87,20 +87,76 @@ class GapSegments(list):
         Sample number of every stacked row on the sample grid.
     max_gap : int
         Longest gap (missing samples) the model runs through.
+
+    Attributes
+    ----------
+    runs : list of (int, int, tuple or None)
+        Every run's first and end row and :func:`held_rows` of its samples.
+    run_of : ndarray of int, shape (n_segments,)
+        The run of every segment.
     """
 
     def __init__(self, segments, grid: np.ndarray, max_gap: int):
         super().__init__((int(a), int(b)) for a, b in segments)
         self.max_gap = int(max_gap)
         self.runs = []
-        for run in gap_runs(self, grid, self.max_gap):
+        self.run_of = np.zeros(len(self), dtype=np.int64)
+        for r, run in enumerate(gap_runs(self, grid, self.max_gap)):
             a, b = self[run[0]][0], self[run[-1]][1]
             self.runs.append((a, b, held_rows(grid[a:b]) if len(run) > 1 else None))
+            self.run_of[run] = r
 
     @property
     def joined(self) -> bool:
         """Whether some run holds more than one segment (a response carries its state across a gap)."""
         return any(h is not None for _, _, h in self.runs)
+
+
+def level_groups(segments, one_per_run: bool) -> Optional[np.ndarray]:
+    """The level group of every segment: the span over which a row's prediction error, and every regressor the
+    tests centre with it, keeps one level.
+
+    A row whose model has no integrating element keeps one level through a short gap: the model runs through
+    it (:func:`through`), the plant's disturbance does not jump, and the model's response to the gap's unknown
+    columns is a transient (fitted and taken out, :mod:`~mpm_monitor.core.gap_inputs`), not a step.  So its
+    level group is its run (``one_per_run``); a level per segment would take a level out of every stretch
+    between two drops and, with it, the slow part of the whole-response regressor (its p-values moved more than
+    twice as far with one sample in 500 dropped as with the same rows cut off the end: ``bench.element_level
+    --drop 0.002 --cut``).  A row with an integrating element has a level per segment: the unknown columns inside
+    a gap move its level for good.
+
+    Parameters
+    ----------
+    segments : sequence of (int, int) or GapSegments or None
+    one_per_run : bool
+        One level per run of a :class:`GapSegments` (a row without an integrating element).
+
+    Returns
+    -------
+    ndarray of int, shape (n_segments,), or None
+        The group of every segment (its run's index, or its own); None without segments.
+    """
+    if segments is None:
+        return None
+    run_of = getattr(segments, "run_of", None)
+    if one_per_run and run_of is not None:
+        return run_of
+    return np.arange(len(segments), dtype=np.int64)
+
+
+def centred_by_level(x: np.ndarray, segments, groups: Optional[np.ndarray]) -> np.ndarray:
+    """Samples ``x`` (shape (n_samples, ...), the segments stacked) less their mean over each level group's samples
+    (:func:`level_groups`; over all samples without segments); a new array."""
+    x = np.asarray(x, dtype=float)
+    if segments is None or groups is None:
+        return x - x.mean(axis=0)
+    out = x.copy()
+    for g in dict.fromkeys(np.asarray(groups).tolist()):
+        spans = [(int(a), int(b)) for (a, b), h in zip(segments, groups) if h == g]
+        mean = np.concatenate([x[a:b] for a, b in spans]).mean(axis=0) if len(spans) > 1 else x[spans[0][0]:spans[0][1]].mean(axis=0)
+        for a, b in spans:
+            out[a:b] -= mean
+    return out
 
 
 def through(x: np.ndarray, f: Callable[[np.ndarray], np.ndarray], segments=None) -> np.ndarray:
