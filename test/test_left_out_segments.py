@@ -55,3 +55,26 @@ def test_two_drops_a_few_samples_apart_no_longer_hold_the_model_through_the_span
     gappy = analyze(model, data.take(kept), DETECT)
     assert whole.located_elements == [] and gappy.located_elements == []
     assert gappy.noise_order["na"] == 4
+
+
+def test_drops_around_a_left_out_segment_longer_than_max_gap_do_not_restart_the_model():
+    """Two samples dropped 14 apart leave 13 samples between them, too short for a regression row (17): with
+    ``max_gap`` 10 the stacked rows jump 15 samples, but only one sample at a time is unknown (the 13 between
+    are logged), so the model runs through both drops on the logged columns (it restarted from rest after the
+    span before): the prediction error of the model run over every logged sample."""
+    from mpm_monitor.apps.reproduce import simulate_case
+    from mpm_monitor.core.segments import GapSegments
+
+    case, data, _ = simulate_case("3.2", 1500, 1000)
+    model = case.model
+    data = in_deviations(model, data.take(np.setdiff1d(np.arange(data.n_samples), [700, 714])))
+    plan = plan_gaps(data, 17, 10)
+    assert len(plan.used) == 2 and plan.gap_lengths.tolist() == [1, 1]
+    fill = plan.left_out_fill(data)
+    grid = plan.take(data.grid_index)
+    assert GapSegments(plan.local_segments, grid, plan.max_gap, fill[0]).joined
+    kept = segment_signals(model, plan.take(data.r), plan.take(data.u), plan.take(data.y), plan.local_segments,
+                           "zero", grid=grid, max_gap=plan.max_gap, fill=fill, gap_inputs=False)
+    every = segment_signals(model, data.r, data.u, data.y, data.segments, "zero", grid=data.grid_index,
+                            max_gap=plan.max_gap, gap_inputs=False)
+    np.testing.assert_allclose(kept.d, plan.take(every.d), atol=1e-12)

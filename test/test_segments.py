@@ -140,3 +140,20 @@ def test_level_groups_are_the_runs_for_a_row_that_keeps_one_level_through_short_
     per_segment = centred_by_level(x, segments, level_groups(segments, False))
     np.testing.assert_allclose(per_segment[:, 1], 0.0)
     np.testing.assert_allclose(centred_by_level(x, None, None), x - x.mean(axis=0))
+
+
+def test_a_gap_whose_missing_samples_have_known_columns_but_short_stretches_keeps_the_run():
+    """Two drops 15 samples apart with the segment between them left out (too short for a row, its columns
+    logged): 17 samples off the stacked grid, but at most one unknown in a row, so one run for max_gap 10."""
+    from mpm_monitor.core.segments import unknown_span
+
+    grid = np.concatenate([np.arange(100), np.arange(117, 200)])        # 100 and 116 dropped, 101 .. 115 left out
+    known = np.arange(101, 116)
+    assert unknown_span(99, 117, None) == 17
+    assert unknown_span(99, 117, known) == 1
+    assert unknown_span(99, 117, np.array([105])) == 11
+    assert unknown_span(5, 6, known) == 0
+    assert gap_runs([(0, 100), (100, 183)], grid, 10) == [[0], [1]]
+    assert gap_runs([(0, 100), (100, 183)], grid, 10, known) == [[0, 1]]
+    assert not GapSegments([(0, 100), (100, 183)], grid, 10).joined
+    assert GapSegments([(0, 100), (100, 183)], grid, 10, known).joined

@@ -25,9 +25,34 @@ import numpy as np
 from .arx import lag_matrix
 
 
-def gap_runs(segments, grid: np.ndarray, max_gap: int) -> list:
-    """The segments grouped into runs the model is simulated through: a new run after every gap longer
-    than ``max_gap`` samples.
+def unknown_span(lo: int, hi: int, known: Optional[np.ndarray] = None) -> int:
+    """The longest stretch of consecutive missing samples whose columns are unknown, between grid numbers ``lo``
+    and ``hi`` (the samples before and after a gap): all ``hi - lo - 1`` of them, less the samples in ``known``.
+
+    Parameters
+    ----------
+    lo, hi : int
+        Grid numbers of the logged samples on either side of the gap.
+    known : ndarray of int, optional
+        Sorted grid numbers of missing samples whose columns are known (logged, the samples of a segment too short
+        for a regression row or of a spike: :meth:`~mpm_monitor.core.gaps.GapPlan.left_out_fill`).
+
+    Returns
+    -------
+    int
+    """
+    n = max(int(hi) - int(lo) - 1, 0)
+    if known is None or n == 0:
+        return n
+    inside = known[(known > lo) & (known < hi)]
+    if not inside.size:
+        return n
+    return int(np.max(np.diff(np.concatenate([[int(lo)], inside, [int(hi)]])) - 1))
+
+
+def gap_runs(segments, grid: np.ndarray, max_gap: int, known: Optional[np.ndarray] = None) -> list:
+    """The segments grouped into runs the model is simulated through: a new run after every gap with more than
+    ``max_gap`` consecutive samples whose columns are unknown (:func:`unknown_span`).
 
     Parameters
     ----------
@@ -36,15 +61,19 @@ def gap_runs(segments, grid: np.ndarray, max_gap: int) -> list:
     grid : ndarray of int, shape (n_samples,)
         Sample number of every row on the sample grid.
     max_gap : int
+    known : array_like of int, optional
+        Grid numbers of missing samples whose columns are known (the model takes them): two drops a few samples
+        apart with such a segment between them are two short gaps, not one of their span.
 
     Returns
     -------
     list of list of int
         The indices of the segments of every run, in order.
     """
+    known = None if known is None else np.unique(np.asarray(known, dtype=np.int64))
     runs = []
     for k, (a, _) in enumerate(segments):
-        if k and int(grid[a]) - int(grid[segments[k - 1][1] - 1]) - 1 <= max_gap:
+        if k and unknown_span(int(grid[segments[k - 1][1] - 1]), int(grid[a]), known) <= max_gap:
             runs[-1].append(k)
         else:
             runs.append([k])
@@ -86,7 +115,9 @@ class GapSegments(list):
     grid : ndarray of int, shape (n_samples,)
         Sample number of every stacked row on the sample grid.
     max_gap : int
-        Longest gap (missing samples) the model runs through.
+        Longest gap (missing samples whose columns are unknown) the model runs through.
+    known : array_like of int, optional
+        Grid numbers of missing samples whose columns are known (:func:`gap_runs`).
 
     Attributes
     ----------
@@ -96,12 +127,12 @@ class GapSegments(list):
         The run of every segment.
     """
 
-    def __init__(self, segments, grid: np.ndarray, max_gap: int):
+    def __init__(self, segments, grid: np.ndarray, max_gap: int, known: Optional[np.ndarray] = None):
         super().__init__((int(a), int(b)) for a, b in segments)
         self.max_gap = int(max_gap)
         self.runs = []
         self.run_of = np.zeros(len(self), dtype=np.int64)
-        for r, run in enumerate(gap_runs(self, grid, self.max_gap)):
+        for r, run in enumerate(gap_runs(self, grid, self.max_gap, known)):
             a, b = self[run[0]][0], self[run[-1]][1]
             self.runs.append((a, b, held_rows(grid[a:b]) if len(run) > 1 else None))
             self.run_of[run] = r

@@ -50,7 +50,7 @@ from .errors import ConfigurationError
 from .gap_inputs import gap_response
 from .logged_data import check_disturbance_signal
 from .model import PlantModel
-from .segments import GapSegments, held_rows, run_places, run_samples
+from .segments import GapSegments, held_rows, run_places, run_samples, unknown_span
 from .statistics import f_test
 
 INITIAL_STATE_CHOICES = ("estimate", "zero")
@@ -368,7 +368,7 @@ def segment_signals(model: PlantModel, r: np.ndarray, u: np.ndarray, y: np.ndarr
         The segments' signals stacked, shape (n_samples, n_outputs) each.
     """
     runs = [(int(a), int(b), None) for a, b in segments] if grid is None or max_gap is None else \
-        GapSegments(segments, grid, max_gap).runs
+        GapSegments(segments, grid, max_gap, None if fill is None else fill[0]).runs
     parts = []
     for run in runs:
         a, b, held = run
@@ -483,11 +483,12 @@ def unknown_starts(segments, grid: np.ndarray, max_gap: int, fill: Optional[tupl
     list of int
     """
     known = set() if fill is None else {int(k) for k in np.asarray(fill[0])}
+    known_grid = None if fill is None else np.unique(np.asarray(fill[0], dtype=np.int64))
     fitted = model is not None and not any(model.integrating_outputs)
     out = []
     for k in range(1, len(segments)):
         lo, hi = int(grid[segments[k - 1][1] - 1]), int(grid[segments[k][0]])
-        if hi - lo - 1 > max_gap or (not fitted and any(m not in known for m in range(lo + 1, hi))):
+        if unknown_span(lo, hi, known_grid) > max_gap or (not fitted and any(m not in known for m in range(lo + 1, hi))):
             out.append(k)
     return out
 
