@@ -35,14 +35,8 @@ def _window(seed, n=1800):
     return model, u, d[:, None]
 
 
-@pytest.mark.parametrize("segments, testable", [
-    (None, [0, 1, 2, 3]),
-    ([(0, 600), (600, 640), (640, 1300), (1300, 1800)], [0, 1, 2, 3]),   # gaps
-    (RUNS, [0, 1, 2, 3]),                                                # the responses through short gaps
-    (None, [0, 1, 3]),                                                   # a column that never moves
-])
-def test_the_response_tests_from_the_moments_equal_the_direct_products(segments, testable):
-    model, u, d = _window(4)
+def _direct_and_shared(model, u, d, testable, segments):
+    """Row 0's whole-response tests by the direct products and from the moments, and the moments."""
     start = max(N_LAG, NA)
     u_c = u - u.mean(axis=0)
     d_c = d - d.mean(axis=0)
@@ -53,6 +47,18 @@ def test_the_response_tests_from_the_moments_equal_the_direct_products(segments,
     direct = row_response_tests(model, 0, fit, testable, X, sizes, u_c, d_c, start, NA, segments)
     moments = ResponseMoments(model, u, d, testable, N_LAG, start, NA, segments)
     shared = row_response_tests(model, 0, fit, testable, None, sizes, u_c, d_c, start, NA, segments, moments=moments)
+    return direct, shared, moments
+
+
+@pytest.mark.parametrize("segments, testable", [
+    (None, [0, 1, 2, 3]),
+    ([(0, 600), (600, 640), (640, 1300), (1300, 1800)], [0, 1, 2, 3]),   # gaps
+    (RUNS, [0, 1, 2, 3]),                                                # the responses through short gaps
+    (None, [0, 1, 3]),                                                   # a column that never moves
+])
+def test_the_response_tests_from_the_moments_equal_the_direct_products(segments, testable):
+    model, u, d = _window(4)
+    direct, shared, _ = _direct_and_shared(model, u, d, testable, segments)
     assert set(direct) == set(shared) == {j for j in testable if model.present[0, j]}
     assert direct[1].df_num == 2                    # the integrator: with its time-constant sensitivity
     for j, t in direct.items():
@@ -71,18 +77,8 @@ def test_a_self_regulating_rows_tests_from_the_moments_equal_the_direct_products
     the direct products' tests either way."""
     model, u, d = _window(4)
     model = model.with_element(0, 1, integrating=False, gain=0.4, time_constant=12.0)
-    testable = [0, 1, 2, 3]
-    start = max(N_LAG, NA)
-    u_c = u - u.mean(axis=0)
-    d_c = d - d.mean(axis=0)
-    X = np.hstack([segment_lag_matrix(u_c[:, k], range(1, N_LAG + 1), start, segments) for k in testable])
-    own = -segment_lag_matrix(d_c[:, 0], range(1, NA + 1), start, segments)
-    fit = SharedBlockRegression(X, [N_LAG] * len(testable)).fit(segment_rows(d_c[:, 0], start, segments), own)
-    sizes = [N_LAG] * len(testable)
-    direct = row_response_tests(model, 0, fit, testable, X, sizes, u_c, d_c, start, NA, segments)
-    moments = ResponseMoments(model, u, d, testable, N_LAG, start, NA, segments)
+    direct, shared, moments = _direct_and_shared(model, u, d, [0, 1, 2, 3], segments)
     assert list(moments.levels(0)) == (RUN_OF_RUNS if segments is RUNS else [0, 1, 2, 3])
-    shared = row_response_tests(model, 0, fit, testable, None, sizes, u_c, d_c, start, NA, segments, moments=moments)
     assert set(direct) == set(shared) == {0, 1, 3}
     for j, t in direct.items():
         s = shared[j]
