@@ -226,7 +226,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     from .resolution import column_resolution_warnings, resolution_warnings
     from .response_moments import ResponseMoments
     from .row_test import moving_setpoints, sdelta_row_test
-    from .segments import GapSegments, centred_by_level, level_groups
+    from .segments import GapSegments, errors_centred_by_level
     from .signals import (compute_signals, error_rms, packed, scored_segments, segment_signals, segments_mask,
                           unknown_starts)
 
@@ -282,10 +282,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         # d centred over each level group (segments.level_groups): a row without an integrating element keeps one
         # level through the short gaps the model runs through; a row with one, and every row after a long gap
         # (its model output restarts), a level per segment.
-        d = np.empty_like(sig.d)
-        for one_per_run in (False, True):
-            at = [i for i, integrating in enumerate(model.integrating_outputs) if integrating != one_per_run]
-            d[:, at] = centred_by_level(sig.d[:, at], segments, level_groups(segments, one_per_run))
+        d = errors_centred_by_level(sig.d, segments, model.integrating_outputs)
         regressions = window_regressions(r, columns, -d, d, layout, options.na, options.nb,
                                          segments=segments, jobs=split_light)
 

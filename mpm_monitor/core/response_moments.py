@@ -45,7 +45,7 @@ import numpy as np
 
 from .arx import lag_matrix, segment_lag_matrix, segment_rows
 from .model import PlantModel
-from .segments import centred_by_level, level_groups, run_places, run_samples, through
+from .segments import errors_centred_by_level, level_groups, run_places, run_samples, through
 
 
 #: The largest :attr:`ResponseMoments.fir_gram` built (bytes); beyond it, the long finite impulse responses'
@@ -334,9 +334,7 @@ class ResponseMoments:
         (n_samples, n_outputs): the own lags the element fits take (the samples of a segment left out as they are).
         Computed once per window."""
         if self._centred is None:
-            self._centred = np.array(self.d, dtype=float)
-            for i in range(self.d.shape[1]):
-                self._centred[:, i] = centred_by_level(self.d[:, i], self.segs, self.levels(i))
+            self._centred = errors_centred_by_level(self.d, self.segments, self.model.integrating_outputs)
         return self._centred
 
     def levels(self, i: int) -> Optional[np.ndarray]:
@@ -344,7 +342,8 @@ class ResponseMoments:
         run the responses run through, for a row without an integrating element); None without segments."""
         if self.segments is None:
             return None
-        return level_groups(self.segments, self.joined and not self.model.integrating_outputs[i])
+        # Not joined, the segments are a plain list: a level per segment.
+        return level_groups(self.segments, not self.model.integrating_outputs[i])
 
     def _segment_sums(self, A: np.ndarray) -> np.ndarray:
         """Column sums of ``A`` (shape (n_rows, q), on the regression rows) over each segment's rows, shape (S, q)."""

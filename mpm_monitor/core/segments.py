@@ -184,9 +184,35 @@ def centred_by_level(x: np.ndarray, segments, groups: Optional[np.ndarray]) -> n
     out = x.copy()
     for g in dict.fromkeys(np.asarray(groups).tolist()):
         spans = [(int(a), int(b)) for (a, b), h in zip(segments, groups) if h == g]
-        mean = np.concatenate([x[a:b] for a, b in spans]).mean(axis=0) if len(spans) > 1 else x[spans[0][0]:spans[0][1]].mean(axis=0)
+        mean = np.concatenate([x[a:b] for a, b in spans]).mean(axis=0)
         for a, b in spans:
             out[a:b] -= mean
+    return out
+
+
+def errors_centred_by_level(d: np.ndarray, segments, integrating) -> np.ndarray:
+    """Prediction errors centred as the tests take them: each row over its level groups (:func:`level_groups`: one
+    per run for a row without an integrating element, one per segment for a row with one).
+
+    Parameters
+    ----------
+    d : ndarray, shape (n_samples, n_outputs)
+        The segments stacked (output units).
+    segments : sequence of (int, int) or GapSegments
+    integrating : sequence of bool, length n_outputs
+        Whether each row's model has an integrating element (:attr:`~mpm_monitor.core.model.PlantModel.integrating_outputs`).
+
+    Returns
+    -------
+    ndarray, shape (n_samples, n_outputs)
+        A new array (a sample outside every segment as it is).
+    """
+    d = np.asarray(d, dtype=float)
+    out = d.copy()
+    for one_per_run in (False, True):
+        at = [i for i, flag in enumerate(integrating) if bool(flag) != one_per_run]
+        if at:
+            out[:, at] = centred_by_level(d[:, at], segments, level_groups(segments, one_per_run))
     return out
 
 

@@ -482,13 +482,12 @@ def unknown_starts(segments, grid: np.ndarray, max_gap: int, fill: Optional[tupl
     -------
     list of int
     """
-    known = set() if fill is None else {int(k) for k in np.asarray(fill[0])}
-    known_grid = None if fill is None else np.unique(np.asarray(fill[0], dtype=np.int64))
+    known = None if fill is None else np.unique(np.asarray(fill[0], dtype=np.int64))
     fitted = model is not None and not any(model.integrating_outputs)
     out = []
     for k in range(1, len(segments)):
-        lo, hi = int(grid[segments[k - 1][1] - 1]), int(grid[segments[k][0]])
-        if unknown_span(lo, hi, known_grid) > max_gap or (not fitted and any(m not in known for m in range(lo + 1, hi))):
+        span = unknown_span(int(grid[segments[k - 1][1] - 1]), int(grid[segments[k][0]]), known)
+        if span > max_gap or (not fitted and span > 0):
             out.append(k)
     return out
 
