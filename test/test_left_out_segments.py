@@ -78,3 +78,49 @@ def test_drops_around_a_left_out_segment_longer_than_max_gap_do_not_restart_the_
     every = segment_signals(model, data.r, data.u, data.y, data.segments, "zero", grid=data.grid_index,
                             max_gap=plan.max_gap, gap_inputs=False)
     np.testing.assert_allclose(kept.d, plan.take(every.d), atol=1e-12)
+
+
+def test_an_elements_response_runs_on_the_logged_columns_of_a_segment_left_out(monkeypatch):
+    """The whole-response test's regressors (each element's response to its column) run on the logged columns of
+    a segment too short for a row, as the model's run does: with the two drops of the first test, every
+    element's response at the stacked samples is its response over every logged sample (the two unknown samples
+    held), centred alike; held through the 11 samples as before, it was not.  The analysis hands those columns
+    to the tests (its regressions' segments)."""
+    from mpm_monitor.apps.reproduce import simulate_case
+    from mpm_monitor.core.discretize import model_columns
+    from mpm_monitor.core.response_test import element_responses
+    from mpm_monitor.core.segments import GapSegments, centred_fill
+
+    case, data, _ = simulate_case("3.2", 1500, 1000)
+    model = case.model
+    data = in_deviations(model, data.take(np.setdiff1d(np.arange(data.n_samples), [700, 710])))
+    plan = plan_gaps(data, 17, 17)
+    fill = plan.left_out_fill(data)
+    grid = plan.take(data.grid_index)
+    segs = GapSegments(plan.local_segments, grid, plan.max_gap, fill[0], fill[1])
+    u = model_columns(plan.take(data.u), None)
+    mean = u.mean(axis=0)
+    every = GapSegments(data.segments, data.grid_index, plan.max_gap)
+    assert len(every.runs) == 1
+    columns = range(model.n_columns)
+    for i in range(model.n_outputs):
+        got = element_responses(model, i, columns, u - mean, centred_fill(segs, mean))
+        want = element_responses(model, i, columns, model_columns(data.u, None) - mean, every)
+        held = element_responses(model, i, columns, u - mean, segs)
+        assert set(got) == set(want) and got
+        for j in got:
+            np.testing.assert_allclose(got[j], plan.take(want[j]), rtol=1e-10, atol=1e-12)
+            assert np.abs(held[j] - got[j]).max() > 1e-3 * np.abs(got[j]).max()
+    from mpm_monitor.core.response_moments import ResponseMoments
+
+    seen = []
+    init = ResponseMoments.__init__
+
+    def spied(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        seen.append(self.segments)
+
+    monkeypatch.setattr(ResponseMoments, "__init__", spied)
+    analyze(model, data, DETECT)
+    assert seen and all(list(g) == list(segs) for g in seen)
+    np.testing.assert_array_equal(seen[0].values, fill[1] - mean)

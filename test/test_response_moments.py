@@ -465,3 +465,38 @@ def test_a_long_step_response_through_short_gaps_by_the_long_gram_and_by_product
             w = getattr(want, name)
             np.testing.assert_allclose(getattr(got, name), w, rtol=1e-10, atol=1e-12 * np.abs(w).max(),
                                        err_msg=f"{name}, row {i}")
+
+
+@pytest.mark.parametrize("testable", [[0, 1, 2], [0, 2]])
+def test_the_moments_through_gaps_with_known_columns_run_on_them(monkeypatch, testable):
+    """Known columns inside the short gaps (a segment left out, a spike: GapSegments' ``columns``): the moments
+    centre them as their own columns (a column not tested 0) and the responses, the long Gram's windows and
+    every moment run on them, equal to element_responses through the same filled segments and to the products
+    over the rows; a response moves with them."""
+    model, u, d = _long_step_response_window(7)
+    grid = np.concatenate([np.arange(500), np.arange(501, 541), np.arange(543, 1103), np.arange(1150, 1550)])
+    known = np.array([500, 541, 1120])                       # 542 stays unknown; 1120 lies in the long gap
+    columns = np.random.default_rng(3).standard_normal((3, 3)) * 4.0
+    runs = GapSegments([(0, 500), (500, 540), (540, 1100), (1100, 1500)], grid, 10, known, columns)
+
+    def make(i):
+        return ResponseMoments(model, u, d, testable, 8, 8, 3, runs).row(i, keep_samples=True)
+
+    moments = ResponseMoments(model, u, d, testable, 8, 8, 3, runs)
+    want_values = columns - u.mean(axis=0)
+    want_values[:, [j for j in range(3) if j not in testable]] = 0.0
+    np.testing.assert_array_equal(moments.segments.values, want_values)
+    assert runs.values is None and moments.of(u, runs)
+    held = ResponseMoments(model, u, d, testable, 8, 8, 3,
+                           GapSegments([(0, 500), (500, 540), (540, 1100), (1100, 1500)], grid, 10, known))
+    for i in (0, 1):
+        got, want = make(i), _by_product(monkeypatch, lambda: make(i))
+        for j in testable:                       # a column not tested has no response (its u_c is 0)
+            x = element_responses(model, i, [j], moments.u_c, moments.segments)[j]
+            np.testing.assert_allclose(moments.responses(got, [j])[j], x, rtol=1e-12, atol=1e-12)
+            before = held.responses(held.row(i, keep_samples=True), [j])[j]
+            assert np.abs(x[500:560] - before[500:560]).max() > 1e-3
+        for name in ("zx", "uw", "zo", "ww", "ow", "xsum", "mu"):
+            w = getattr(want, name)
+            np.testing.assert_allclose(getattr(got, name), w, rtol=1e-10, atol=1e-12 * np.abs(w).max(),
+                                       err_msg=f"{name}, row {i}")

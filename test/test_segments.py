@@ -157,3 +157,85 @@ def test_a_gap_whose_missing_samples_have_known_columns_but_short_stretches_keep
     assert gap_runs([(0, 100), (100, 183)], grid, 10, known) == [[0, 1]]
     assert not GapSegments([(0, 100), (100, 183)], grid, 10).joined
     assert GapSegments([(0, 100), (100, 183)], grid, 10, known).joined
+
+
+#: Known columns inside GRID's gaps: the 1-sample gap (200) and the first of the 2-sample gap (450; 451 stays
+#: unknown and holds it); 710 lies in the long gap, between two runs (its stretches of unknown samples stay long).
+KNOWN = np.array([200, 450, 710])
+
+
+def _filled(x, grid, known, values):
+    """``x`` (stacked logged samples of one run) on the run's grid, the known samples at their values and every
+    other missing sample the last logged or known one before it; the logged samples' places (sample by sample)."""
+    by_grid = dict(zip(grid.tolist(), x))
+    by_grid.update((g, v) for g, v in zip(known.tolist(), values) if grid[0] < g < grid[-1])
+    out = []
+    for g in range(int(grid[0]), int(grid[-1]) + 1):
+        out.append(by_grid[g] if g in by_grid else out[-1])
+    return np.array(out), np.array(grid - grid[0])
+
+
+def test_an_element_through_gaps_with_known_columns_is_python_control_s_response_to_them():
+    """The columns of missing samples known (a segment left out, a spike; GapPlan.left_out_fill): a column's
+    response runs on them and holds them on, as the model's run does (signals.segment_signals); python-control's
+    simulation over each run's grid is the reference.  Centred alike (centred_fill), column by column; a column
+    the known samples lack (a candidate channel added since) is held as before; without ``column`` nothing is
+    filled."""
+    from mpm_monitor.core.segments import centred_fill
+
+    model = PlantModel(sample_time=1.0, inputs=("u1", "u2", "u3"), outputs=("y1",), gain=np.array([[0.5, 1.7, -1.1]]),
+                       time_constant=np.array([[5.0, 12.0, 7.0]]), time_constant2=np.array([[0.0, 4.0, 0.0]]),
+                       delay=np.array([[1.0, 3.0, 2.0]]))
+    rng = np.random.default_rng(4)
+    u = rng.standard_normal((GRID.size, 3)) + 2.0
+    columns = rng.standard_normal((KNOWN.size, 2)) * 5.0 + 2.0         # known samples of u1 and u2 only
+    segs = GapSegments(SEGMENTS, GRID, MAX_GAP, KNOWN, columns)
+    assert [(a, b) for a, b, _ in segs.runs] == [(0, 697), (697, 967)] and segs.values is None
+    mean = u.mean(axis=0)
+    filled = centred_fill(segs, mean)
+    assert filled == segs and filled.runs is segs.runs and filled.values.shape == (3, 3)
+    assert np.isnan(filled.values[:, 2]).all() and segs.values is None
+    u_c = u - mean
+    got = element_responses(model, 0, [0, 1, 2], u_c, filled)
+    held = element_responses(model, 0, [0, 1, 2], u_c, segs)
+    for j, (tau, tau2, delay) in enumerate([(5.0, 0.0, 1), (12.0, 4.0, 3), (7.0, 0.0, 2)]):
+        den = np.polymul([tau, 1.0], [tau2, 1.0]) if tau2 else [tau, 1.0]
+        sys = control.c2d(control.tf([model.gain[0, j]], den), 1.0, "zoh")
+        for a, b, _ in segs.runs:
+            known = columns[:, j] - mean[j] if j < 2 else np.full(KNOWN.size, np.nan)
+            grid_x, places = _filled(u_c[a:b, j], GRID[a:b], KNOWN, known) if j < 2 else _held(u_c[a:b, j], GRID[a:b])
+            shifted = np.concatenate([np.zeros(delay), grid_x])[:grid_x.size]
+            ref = np.asarray(control.forced_response(sys, T=np.arange(grid_x.size, dtype=float), U=shifted).outputs)
+            np.testing.assert_allclose(got[j][a:b], ref.reshape(-1)[places], rtol=1e-9, atol=1e-12)
+        if j < 2:       # the known samples moved the response after the gaps (not after the long one: a new run)
+            assert np.abs(got[j][200:260] - held[j][200:260]).max() > 1e-3
+            np.testing.assert_array_equal(got[j][697:], held[j][697:])
+        else:
+            np.testing.assert_array_equal(got[j], held[j])
+    np.testing.assert_array_equal(through(u_c[:, 1], model.discrete_element(0, 1).respond, filled),
+                                  held[1])                                        # no column: held
+    assert centred_fill(SEGMENTS, mean) is SEGMENTS and centred_fill(None, mean) is None
+    assert centred_fill(segs, mean, [1]).values[:, 1].tolist() == [0.0, 0.0, 0.0]
+
+
+def test_run_lags_of_a_column_read_its_known_samples_in_the_gaps():
+    """run_lag_matrix with ``column``: the lags read the known samples inside a run's gaps (and hold them), as the
+    model's run; every other lag as without them."""
+    from mpm_monitor.core.segments import centred_fill
+
+    rng = np.random.default_rng(8)
+    x = rng.standard_normal((GRID.size, 2))
+    columns = rng.standard_normal((KNOWN.size, 2)) + 3.0
+    filled = centred_fill(GapSegments(SEGMENTS, GRID, MAX_GAP, KNOWN, columns), np.zeros(2))
+    lags, start = range(1, 8), 5
+    place = run_positions(start, filled)
+    rows = segment_rows(np.arange(GRID.size), start, SEGMENTS)
+    for c in range(2):
+        got = run_lag_matrix(x[:, c], lags, start, filled, c)
+        plain = run_lag_matrix(x[:, c], lags, start, filled)
+        assert np.abs(got - plain).max() > 0.1
+        for r, (t, at) in enumerate(zip(rows, place)):
+            a, b = next((a, b) for a, b, _ in filled.runs if a <= t < b)
+            grid_x, _ = _filled(x[a:b, c], GRID[a:b], KNOWN, columns[:, c])
+            want = [grid_x[at - lag] if at - lag >= 0 else 0.0 for lag in lags]
+            np.testing.assert_array_equal(got[r], want)

@@ -248,7 +248,8 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
         grid = plan.take(data.grid_index)     # the model runs through a short gap (segment_signals)
         restarts = unknown_starts(plan.local_segments, grid, plan.max_gap, fill, model)
         # The regressions' segments, and the runs the element responses are simulated through (as the model).
-        segments = GapSegments(plan.local_segments, grid, plan.max_gap, None if fill is None else fill[0])
+        segments = GapSegments(plan.local_segments, grid, plan.max_gap, None if fill is None else fill[0],
+                               None if fill is None else fill[1])
     columns = model_columns(u, dv)            # the inputs, then the measured disturbances
     n = r.shape[0]
     # Two processes: the detectable gain changes beside the repair (settle) whenever asked for; the stages split

@@ -18,7 +18,7 @@ from .elements import pulse_response
 from .model import PlantModel
 from .noise_polynomial import noise_filter
 from .response_test import combined_p_value, element_responses, integrating_element, row_response_tests
-from .segments import level_groups, run_lag_matrix, run_positions, segment_labels
+from .segments import centred_fill, level_groups, run_lag_matrix, run_positions, segment_labels
 from .statistics import N_FAMILIES
 
 
@@ -149,7 +149,8 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
 
     Data with gaps: the fit takes the regression rows whose tails stay inside their run of segments
     (:class:`~mpm_monitor.core.segments.GapSegments`: the model runs through a short gap with its columns
-    held, and a tail reads them so, :func:`~mpm_monitor.core.segments.run_lag_matrix`), with a free level
+    held, or at their logged values where a segment left out or a spike has them, and a tail reads them so,
+    :func:`~mpm_monitor.core.segments.run_lag_matrix`), with a free level
     per level group (the prediction error is centred over each: a run of segments the model runs through for a
     row without an integrating element, else a segment, :func:`~mpm_monitor.core.segments.level_groups`).  No
     row's own lags or tested lags reach across a gap.
@@ -172,6 +173,8 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
     start0 = regressions.layout.start
     u_c = u - u.mean(axis=0)
     d_c = d - d.mean(axis=0)
+    # The known columns inside the gaps (a segment left out, a spike) as u_c is: the tails and responses run on them.
+    segments = centred_fill(segments, u.mean(axis=0))
     # With gaps: the regression rows of every segment, and each one's place on its run's sample grid (a tail
     # reads the columns held through the short gaps, as the model runs, segments.run_lag_matrix).
     place = None if segments is None else run_positions(start0, segments)
@@ -214,12 +217,12 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
                                       segments)
         levels = None
         if segments is None:
-            def lagged(x, lags):
+            def lagged(x, lags, column=None):
                 return lag_matrix(x, lags, start)
             target = di[start:]
         else:
-            def lagged(x, lags):
-                return run_lag_matrix(x, lags, start0, segments)[keep]
+            def lagged(x, lags, column=None):
+                return run_lag_matrix(x, lags, start0, segments, column)[keep]
             target = segment_rows(di, start0, segments)[keep]
             # d is centred over each level group (a run the model runs through, or a segment: level_groups): a free
             # level per group here too, or the tails' own levels, which d no longer has, would stay in the residual.
@@ -233,7 +236,7 @@ def _confirm_with_tails(model, rows, design, regressions, options, estimates, ke
         def confirmed(j, given):
             """Holm-adjusted p-value of element (i, j) with the tails of the columns ``given``."""
             sizes = [tail if (k in given and k != j) else n_lag for k in testable]
-            X = np.hstack([lagged(u_c[:, k], range(1, size + 1)) for k, size in zip(testable, sizes)])
+            X = np.hstack([lagged(u_c[:, k], range(1, size + 1), k) for k, size in zip(testable, sizes)])
             free = [response_lags[k] for k in given if k != j and k in response_lags] \
                 + ([] if levels is None else [levels])
             extra = np.hstack(free) if free else None

@@ -51,6 +51,7 @@ from .noise_order import residual_whiteness
 from .noise_polynomial import RowNoise, row_noise, undetermined_noise_warnings
 from .parallel import split_map
 from .response_test import combined_p_value, given_other_responses, row_response_regressors
+from .segments import centred_fill
 from .statistics import N_FAMILIES, holm_adjust
 
 
@@ -412,6 +413,9 @@ class _WholeResponses:
         d = np.asarray(regressions.d, dtype=float)
         self.u_c = u - u.mean(axis=0)
         self.d_c = d - d.mean(axis=0)
+        # The columns of the samples inside the gaps that are known (a segment left out, a spike), centred alike:
+        # an element's response runs on them, as the model does.
+        self.segments = centred_fill(self.segments, u.mean(axis=0))
         self._common = getattr(design.regression, "common", None)
 
     @property

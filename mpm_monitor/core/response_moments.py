@@ -33,7 +33,9 @@ segments that say how the model runs through the short gaps
 (:class:`~mpm_monitor.core.segments.GapSegments`), ``x_raw`` is simulated as the model runs instead
 (:func:`~mpm_monitor.core.segments.through`): every relation above that holds on a segment's samples
 holds for it too (the difference equations, the sums along lag diagonals), and the long Gram reads the
-columns on each run's grid.
+columns on each run's grid.  Inside a gap the columns are held, but where a missing sample's columns are known (a
+segment too short for a row, a spike) they take those, centred as ``u_c``
+(:func:`~mpm_monitor.core.segments.centred_fill`), as the model's run does.
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ import numpy as np
 
 from .arx import lag_matrix, segment_lag_matrix, segment_rows
 from .model import PlantModel
-from .segments import errors_centred_by_level, level_groups, run_places, run_samples, through
+from .segments import centred_fill, errors_centred_by_level, level_groups, run_places, run_samples, through
 
 
 #: The largest :attr:`ResponseMoments.fir_gram` built (bytes); beyond it, the long finite impulse responses'
@@ -233,8 +235,9 @@ class ResponseMoments:
         self.segments = None if segments is None else [(int(a), int(b)) for a, b in segments if b - a > start]
         # Responses run through the short gaps (GapSegments), unless a segment without a row is left out here.
         self.joined = bool(getattr(segments, "joined", False)) and len(self.segments) == len(segments)
-        if self.joined:
-            self.segments = segments
+        if self.joined:         # the known columns inside the gaps as u_c is (the responses run on them)
+            self.segments = centred_fill(segments, u.mean(axis=0),
+                                         [j for j in range(nu) if j not in self.testable])
         self.segs = [(0, u.shape[0])] if self.segments is None else self.segments
         L = self.n_lag
         self._Z = None
@@ -373,7 +376,7 @@ class ResponseMoments:
         mu, moves = np.zeros((S, m)), np.zeros(m, dtype=bool)
         for b, (j, element, _) in enumerate(found):
             # From rest at each segment's start, or through the short gaps as the model runs (GapSegments).
-            x_all = through(u_c[:, j], element.respond, self.segments) if self.joined else None
+            x_all = through(u_c[:, j], element.respond, self.segments, column=j) if self.joined else None
             for s, (a0, b0) in enumerate(segs):
                 x = element.respond(u_c[a0:b0, j]) if x_all is None else x_all[a0:b0]
                 moves[b] |= bool(np.any(x != 0))
@@ -618,7 +621,8 @@ class ResponseMoments:
         for run in self.segments.runs:
             a, b, _ = run
             at = run_places(run)
-            full = np.vstack([np.zeros((S, self.u_c.shape[1])), run_samples(self.u_c, run)])   # full[p + S]: place p
+            full = np.vstack([np.zeros((S, self.u_c.shape[1])),                # full[p + S]: place p
+                              run_samples(self.u_c, run, self.segments.run_fill(run, slice(None)))])
             for lo, hi in self.segs:
                 if a <= lo and hi <= b:
                     first = int(at[lo - a])

@@ -126,7 +126,7 @@ def element_responses(model: PlantModel, i: int, columns: Sequence[int], u_c: np
         el = model.discrete_element(i, j)
         if el.is_zero:
             continue
-        x = through(np.asarray(u_c[:, j], dtype=float), el.respond, segments)
+        x = through(np.asarray(u_c[:, j], dtype=float), el.respond, segments, column=j)
         if np.any(x != 0):
             out[j] = x
     return out

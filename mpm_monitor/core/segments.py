@@ -9,7 +9,10 @@ both the plant and the model across a short gap.  Any other response the tests r
 element's response to its column, :func:`~mpm_monitor.core.response_test.element_responses`, and what
 follows from it) is simulated the same way, through :func:`through`, so that it carries the same
 state; simulated from rest at every segment's start, it would start a transient that ``d`` does not
-have after every gap.
+have after every gap.  Where a missing sample's columns are known (a segment too short for a regression row, left
+out of the stacked samples, or a spike's sample), the model runs on them, and so does a column's response: the
+:class:`GapSegments` carry them (``columns``), and :func:`centred_fill` gives them as a caller's centred columns
+(:func:`through` and :func:`run_lag_matrix` with ``column``).
 
 :class:`GapSegments` is the list of segments ``(first, end)`` of the stacked samples (every function
 that takes ``segments`` reads it as such) with the runs (:func:`gap_runs`) and the places of the
@@ -118,6 +121,10 @@ class GapSegments(list):
         Longest gap (missing samples whose columns are unknown) the model runs through.
     known : array_like of int, optional
         Grid numbers of missing samples whose columns are known (:func:`gap_runs`).
+    columns : ndarray, shape (len(known), n_columns), optional
+        Their columns (:meth:`~mpm_monitor.core.gaps.GapPlan.left_out_fill`: a segment too short for a regression
+        row, a spike): the model runs on them, and so does a column's response (:func:`through` with
+        ``column``), once :meth:`filled` has them as the caller's columns are.
 
     Attributes
     ----------
@@ -125,9 +132,14 @@ class GapSegments(list):
         Every run's first and end row and :func:`held_rows` of its samples.
     run_of : ndarray of int, shape (n_segments,)
         The run of every segment.
+    columns : ndarray or None
+        The known samples' columns as given.
+    values : ndarray or None
+        As :meth:`filled` gave them (None: every gap held).
     """
 
-    def __init__(self, segments, grid: np.ndarray, max_gap: int, known: Optional[np.ndarray] = None):
+    def __init__(self, segments, grid: np.ndarray, max_gap: int, known: Optional[np.ndarray] = None,
+                 columns: Optional[np.ndarray] = None):
         super().__init__((int(a), int(b)) for a, b in segments)
         self.max_gap = int(max_gap)
         self.runs = []
@@ -136,6 +148,61 @@ class GapSegments(list):
             a, b = self[run[0]][0], self[run[-1]][1]
             self.runs.append((a, b, held_rows(grid[a:b]) if len(run) > 1 else None))
             self.run_of[run] = r
+        self.columns = None if columns is None or known is None else np.asarray(columns, dtype=float)
+        self.values = None
+        # Every run's known samples inside its gaps: their places on the run's grid and their rows of ``columns``.
+        self._known_at = {}
+        if self.columns is not None:
+            known = np.asarray(known, dtype=np.int64)
+            for a, b, held in self.runs:
+                if held is None:
+                    continue
+                where = known - int(grid[a])
+                inside = np.flatnonzero((where > 0) & (where < held[1][-1]))
+                if inside.size:
+                    self._known_at[a] = (where[inside], inside)
+
+    def filled(self, values: np.ndarray) -> "GapSegments":
+        """These segments, with ``values`` for the known columns inside the runs' gaps.
+
+        Parameters
+        ----------
+        values : ndarray, shape (n_known, n_columns)
+            :attr:`columns` as the caller's columns are (centred, say), one row per known sample; NaN where a
+            column is not known (a candidate channel added to the model since: held, as the model takes it).
+
+        Returns
+        -------
+        GapSegments
+            A copy whose :meth:`run_fill` gives them (the segments and runs shared).
+        """
+        out = GapSegments.__new__(GapSegments)
+        list.extend(out, self)
+        out.__dict__.update(self.__dict__)
+        out.values = np.asarray(values, dtype=float)
+        return out
+
+    def run_fill(self, run: tuple, column=None) -> Optional[tuple]:
+        """The known columns inside the gaps of one run (of :attr:`runs`), as :meth:`filled` gave them.
+
+        Parameters
+        ----------
+        run : (int, int, tuple or None)
+        column : int or slice or None
+            The column(s) of :attr:`values` taken; None: none (the caller's samples are not these columns).
+
+        Returns
+        -------
+        (ndarray of int, ndarray) or None
+            Places on the run's grid, shape (m,), and values, shape (m,) or (m, k); None without any.
+        """
+        got = None if self.values is None or column is None else self._known_at.get(run[0])
+        if got is None:
+            return None
+        if isinstance(column, (int, np.integer)) and not 0 <= int(column) < self.values.shape[1]:
+            return None                       # a column added since: held
+        where, rows = got
+        return where, self.values[rows][:, column]
 
     @property
     def joined(self) -> bool:
@@ -216,7 +283,35 @@ def errors_centred_by_level(d: np.ndarray, segments, integrating) -> np.ndarray:
     return out
 
 
-def through(x: np.ndarray, f: Callable[[np.ndarray], np.ndarray], segments=None) -> np.ndarray:
+def centred_fill(segments, mean: np.ndarray, zeroed=()):
+    """``segments`` with their known columns inside the runs' gaps (:attr:`GapSegments.columns`) as a caller's
+    centred columns are: ``columns - mean``, 0 in the columns ``zeroed``, NaN (held) in a column the known samples
+    lack (a candidate channel added since); ``segments`` as they are without any.
+
+    Parameters
+    ----------
+    segments : sequence of (int, int) or GapSegments or None
+    mean : ndarray, shape (n_columns,)
+        What the caller took from each column (column units).
+    zeroed : sequence of int
+        Columns the caller set to 0.
+
+    Returns
+    -------
+    sequence of (int, int) or GapSegments or None
+    """
+    cols = getattr(segments, "columns", None)
+    if cols is None:
+        return segments
+    mean = np.asarray(mean, dtype=float).ravel()
+    values = np.full((cols.shape[0], mean.size), np.nan)
+    k = min(cols.shape[1], mean.size)
+    values[:, :k] = cols[:, :k] - mean[:k]
+    values[:, list(zeroed)] = 0.0
+    return segments.filled(values)
+
+
+def through(x: np.ndarray, f: Callable[[np.ndarray], np.ndarray], segments=None, column=None) -> np.ndarray:
     """``f`` run over the samples ``x`` as the model runs: through the short gaps, from rest after a long one.
 
     Parameters
@@ -231,6 +326,9 @@ def through(x: np.ndarray, f: Callable[[np.ndarray], np.ndarray], segments=None)
         :class:`GapSegments`: its runs, each over its sample grid with the samples inside its gaps held at
         the last sample before them (what the controller's hold does between moves); the result is read
         at the stacked samples only.
+    column : int or slice, optional
+        ``x`` is this column (or these) of the model's columns: inside a run's gaps, the samples whose columns
+        are known take them (:meth:`GapSegments.filled`), as the model's run does, and hold them on.
 
     Returns
     -------
@@ -243,7 +341,8 @@ def through(x: np.ndarray, f: Callable[[np.ndarray], np.ndarray], segments=None)
     out: Optional[np.ndarray] = None
     for run in _runs(segments, x.shape[0]):
         a, b, held = run
-        part = np.asarray(f(run_samples(x, run)))
+        fill = None if held is None or column is None else getattr(segments, "run_fill", lambda *_: None)(run, column)
+        part = np.asarray(f(run_samples(x, run, fill)))
         if held is not None:              # read at the logged samples only
             part = part[run_places(run)]
         if out is None:
@@ -275,11 +374,27 @@ def run_places(run: tuple) -> np.ndarray:
     return np.arange(b - a) if held is None else held[1]
 
 
-def run_samples(x: np.ndarray, run: tuple) -> np.ndarray:
+def run_samples(x: np.ndarray, run: tuple, fill: Optional[tuple] = None) -> np.ndarray:
     """``x`` (stacked samples) on the sample grid of one run ``(first, end, held)``, held through its gaps,
-    shape (grid samples, ...); its own rows are at :func:`run_places`."""
+    shape (grid samples, ...); its own rows are at :func:`run_places`.
+
+    ``fill``: ``(places, values)`` of samples inside the gaps whose values are known (:meth:`GapSegments.run_fill`;
+    NaN: not known): they take them, and a missing sample after one holds it, as the model's run takes a left-out
+    segment's or a spike's columns (:func:`~mpm_monitor.core.signals.segment_signals`)."""
     a, b, held = run
-    return x[a:b] if held is None else x[a:b][held[0]]
+    if held is None:
+        return x[a:b]
+    if fill is None:
+        return x[a:b][held[0]]
+    where, values = fill
+    at = held[1]
+    full = np.full((int(at[-1]) + 1,) + x.shape[1:], np.nan)
+    full[at] = x[a:b]
+    full[where] = values
+    known = ~np.isnan(full)
+    last = np.maximum.accumulate(np.where(known, np.arange(full.shape[0]).reshape((-1,) + (1,) * (x.ndim - 1)), 0),
+                                 axis=0)
+    return np.take_along_axis(full, last, axis=0)
 
 
 def run_positions(start: int, segments=None, n: Optional[int] = None) -> np.ndarray:
@@ -306,7 +421,7 @@ def run_positions(start: int, segments=None, n: Optional[int] = None) -> np.ndar
     return np.concatenate([place[a + start:b] for a, b in spans if b - a > start] or [place[:0]])
 
 
-def run_lag_matrix(x: np.ndarray, lags, start: int, segments=None) -> np.ndarray:
+def run_lag_matrix(x: np.ndarray, lags, start: int, segments=None, column=None) -> np.ndarray:
     """Lagged copies of ``x`` on the regression rows, read on each run's sample grid.
 
     As :func:`~mpm_monitor.core.arx.segment_lag_matrix`, but a lag may reach back past its segment's first
@@ -322,6 +437,9 @@ def run_lag_matrix(x: np.ndarray, lags, start: int, segments=None) -> np.ndarray
     start : int
         First regression row of every segment.
     segments : sequence of (int, int) or GapSegments or None
+    column : int, optional
+        ``x`` is this one of the model's columns (:func:`through`'s ``column``): the known samples inside the gaps
+        take their values.
 
     Returns
     -------
@@ -329,7 +447,8 @@ def run_lag_matrix(x: np.ndarray, lags, start: int, segments=None) -> np.ndarray
         Column ``c * len(lags) + l`` holds channel ``c`` at lag ``lags[l]``.
     """
     x = np.asarray(x, dtype=float)
-    if x.ndim == 1:
+    one = x.ndim == 1
+    if one:
         x = x[:, None]
     lags = [int(lag) for lag in lags]
     back = max(lags, default=0)
@@ -337,7 +456,10 @@ def run_lag_matrix(x: np.ndarray, lags, start: int, segments=None) -> np.ndarray
     rows = []
     for run in _runs(segments, x.shape[0]):
         a, b, _ = run
-        padded = np.vstack([np.zeros((back, x.shape[1])), run_samples(x, run)])
+        fill = None if column is None or run[2] is None else getattr(segments, "run_fill", lambda *_: None)(run, column)
+        if fill is not None and one:
+            fill = (fill[0], fill[1][:, None])
+        padded = np.vstack([np.zeros((back, x.shape[1])), run_samples(x, run, fill)])
         lagged = lag_matrix(padded, lags, back)[run_places(run)]          # at the run's own samples
         rows += [lagged[s - a + start:e - a] for s, e in spans if a <= s and e <= b and e - s > start]
     return np.vstack(rows) if rows else np.zeros((0, x.shape[1] * len(lags)))
