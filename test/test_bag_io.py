@@ -427,6 +427,20 @@ def test_no_metadata(tmp_path):
     _check(e, str(bag), "no metadata.yaml")
 
 
+def test_a_metadata_yaml_that_is_a_directory_or_a_pipe_is_named_so(tmp_path):
+    """Not "no metadata.yaml": the entry is there, of the wrong kind (a pipe is never opened: no wait)."""
+    import os
+
+    r, u, y = _samples(5)
+    for kind, make in (("a directory", os.mkdir), ("a named pipe", os.mkfifo)):
+        bag = write_bag(tmp_path / kind.replace(" ", "_"), r, u, y)
+        (bag / "metadata.yaml").unlink()
+        make(bag / "metadata.yaml")
+        with pytest.raises(BagError) as e:
+            read_bag(bag, MODEL)
+        _check(e, str(bag), f"metadata.yaml is {kind}: expected the YAML file rosbag2 writes")
+
+
 def test_truncated_mcap(tmp_path):
     r, u, y = _samples(50)
     bag = write_bag(tmp_path / "bag", r, u, y)

@@ -91,7 +91,11 @@ def open_reader(path):
         raise BagError(f"{path}: not a directory: expected a rosbag2 directory (metadata.yaml + storage file)")
     if not any(path.iterdir()):
         raise BagError(f"{path}: empty directory: expected a rosbag2 directory (metadata.yaml + storage file)")
-    if not (path / "metadata.yaml").is_file():
+    meta = path / "metadata.yaml"
+    if meta.exists() and not meta.is_file():
+        kind = "a directory" if meta.is_dir() else "a named pipe" if meta.is_fifo() else "not a regular file"
+        raise BagError(f"{path}: metadata.yaml is {kind}: expected the YAML file rosbag2 writes")
+    if not meta.is_file():
         raise BagError(f"{path}: no metadata.yaml: not a rosbag2 directory, or its recorder was killed before "
                        f"closing it (python -m mpm_monitor recover --bag DIR --out NEW_DIR rewrites what it flushed)")
     _check_metadata_shape(path)
