@@ -341,8 +341,7 @@ def through(x: np.ndarray, f: Callable[[np.ndarray], np.ndarray], segments=None,
     out: Optional[np.ndarray] = None
     for run in _runs(segments, x.shape[0]):
         a, b, held = run
-        fill = None if held is None or column is None else getattr(segments, "run_fill", lambda *_: None)(run, column)
-        part = np.asarray(f(run_samples(x, run, fill)))
+        part = np.asarray(f(run_samples(x, run, _run_fill(segments, run, column))))
         if held is not None:              # read at the logged samples only
             part = part[run_places(run)]
         if out is None:
@@ -365,6 +364,14 @@ def _runs(segments, n: int) -> list:
         return [(0, int(n), None)]
     runs = getattr(segments, "runs", None)
     return runs if runs is not None else [(int(a), int(b), None) for a, b in segments]
+
+
+def _run_fill(segments, run: tuple, column) -> Optional[tuple]:
+    """:meth:`GapSegments.run_fill` of ``run`` for ``column`` (None for a run without gaps, without a column, or
+    segments that are no :class:`GapSegments`)."""
+    if run[2] is None or column is None or not isinstance(segments, GapSegments):
+        return None
+    return segments.run_fill(run, column)
 
 
 def run_places(run: tuple) -> np.ndarray:
@@ -456,7 +463,7 @@ def run_lag_matrix(x: np.ndarray, lags, start: int, segments=None, column=None) 
     rows = []
     for run in _runs(segments, x.shape[0]):
         a, b, _ = run
-        fill = None if column is None or run[2] is None else getattr(segments, "run_fill", lambda *_: None)(run, column)
+        fill = _run_fill(segments, run, column)
         if fill is not None and one:
             fill = (fill[0], fill[1][:, None])
         padded = np.vstack([np.zeros((back, x.shape[1])), run_samples(x, run, fill)])
