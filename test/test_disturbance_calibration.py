@@ -139,3 +139,56 @@ def test_the_repair_still_reports_a_real_step_confirmed():
     assert confirmed.disturbances[0]["p_value"] >= plain.disturbances[0]["p_value"]
     assert confirmed.disturbances[0]["p_value"] < 1e-4
     assert repair_model(sh, data, [], dataclasses.replace(RepairOptions())).disturbances == confirmed.disturbances
+
+
+@pytest.mark.parametrize("segments, levels", [(None, None),
+                                              ([(0, 900), (900, 2100), (2100, 3000)], [0, 0, 1]),
+                                              ([(0, 40), (40, 1500), (1507, 3000)], None)])
+@pytest.mark.parametrize("kind", ["step", "drift"])
+def test_records_stacked_give_each_records_own_statistic(segments, levels, kind):
+    # The calibration tests its simulated records stacked (their normal equations solved together); each must
+    # read what the one-record regression (the test of the residual itself: lstsq, pinv, the breaks one window
+    # at a time) reads on it.  The records: white, slow, and with a step or a trend, so the statistics range wide.
+    rng = np.random.default_rng(17)
+    n = 3000
+    records = [rng.standard_normal(n), paper_noise(rng, n, 0.99), paper_noise(rng, n, 0.9)]
+    stepped = paper_noise(rng, n, 0.95)
+    stepped[1700:] += 2.0 * stepped.std()
+    trended = paper_noise(rng, n, 0.95) + np.linspace(0.0, 3.0 * 0.05, n)
+    Z = np.array([standardised(z) for z in records + [stepped, trended]])
+    design = _Design.of(Z[0], 4, segments, levels)
+    stacked = design.batch_statistics(Z, 0.15, kind)
+    one = []
+    for z in Z:
+        step, drift = design.statistics(z, 0.15)
+        one.append(step[0] if kind == "step" else drift[0])
+    np.testing.assert_allclose(stacked, one, rtol=1e-9)
+    if segments is None:                                       # the step's or the trend's record stands out
+        assert np.argmax(stacked) == (3 if kind == "step" else 4) and max(stacked) > 20.0
+
+
+def test_a_record_with_no_break_to_estimate_reads_zero_stacked():
+    # Levels of two rows each (segments of p + 2 samples): no level has a break to search, the statistic is 0
+    # (what null_scale adds for a record whose step test finds nothing); with longer levels it is not.
+    rng = np.random.default_rng(2)
+    Z = np.array([standardised(rng.standard_normal(400)) for _ in range(3)])
+    short = _Design.of(Z[0], 2, [(a, a + 4) for a in range(0, 400, 4)], None)
+    assert short.statistics(Z[0], 0.15) is None
+    np.testing.assert_array_equal(short.batch_statistics(Z, 0.15, "step"), np.zeros(3))
+    longer = _Design.of(Z[0], 2, [(0, 100), (100, 400)], [0, 1])
+    assert longer.statistics(Z[0], 0.15) is not None and min(longer.batch_statistics(Z, 0.15, "step")) > 0.0
+
+
+def test_two_processes_confirm_the_same_disturbances():
+    # Steps on two outputs of the Shell loop: the repair confirms both, each output's confirmation whole in one
+    # of the two processes; the result is the one process's, number for number.
+    sh = shell_plant()
+    step = np.zeros((4000, 3))
+    step[2500:, 1] = 0.1
+    step[1500:, 2] = -0.1
+    data = run_closed_loop(sh, sh, 4000, seed=12, output_disturbance=step).as_logged_data()
+    one = repair_model(sh, data, [], RepairOptions(), jobs=1)
+    two = repair_model(sh, data, [], RepairOptions(), jobs=2)
+    assert sorted(x["output"] for x in one.disturbances) == ["y2", "y3"]
+    assert all(x["null_scale"] >= 1.0 for x in one.disturbances)
+    assert two.disturbances == one.disturbances

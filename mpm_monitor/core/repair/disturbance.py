@@ -60,6 +60,21 @@ def _row_quadratic_forms(q: np.ndarray, a: np.ndarray) -> np.ndarray:
     return out
 
 
+def _break_rows(lo: int, hi: int, n: int, trim: float, windowed: bool) -> Optional[np.ndarray]:
+    """The rows ``k`` of the breaks searched in the rows ``lo .. hi - 1`` of a regression of ``n`` rows (shape
+    (n_breaks,), maybe empty), trimmed by ``trim`` at both ends; ``windowed`` (one of several levels), also never
+    in the record's first or last ``trim``, and None when that leaves no break.  The caller drops the breaks whose
+    step column the other regressors explain (:func:`_step_wald`)."""
+    m = hi - lo
+    k_lo, k_hi = lo + int(math.ceil(trim * m)), lo + int(math.floor((1 - trim) * m))
+    if windowed:           # and never at the record's ends (its initial transient, the last rows)
+        k_lo, k_hi = max(k_lo, int(math.ceil(trim * n))), min(k_hi, int(math.floor((1 - trim) * n)))
+        if k_hi <= k_lo:
+            return None
+    ks = np.arange(max(k_lo, 1), max(k_hi, k_lo + 1))
+    return ks[ks < n]
+
+
 def _step_wald(X: np.ndarray, yv: np.ndarray, trim: float, windows=None):
     """The largest Wald statistic of a level shift in ``yv = X b + c 1(row >= k) + e`` over ``k``.
 
@@ -95,14 +110,9 @@ def _step_wald(X: np.ndarray, yv: np.ndarray, trim: float, windows=None):
     dof = n - X.shape[1] - 1
 
     def best(lo: int, hi: int):
-        m = hi - lo
-        k_lo, k_hi = lo + int(math.ceil(trim * m)), lo + int(math.floor((1 - trim) * m))
-        if windows is not None:           # and never at the record's ends (its initial transient, the last rows)
-            k_lo, k_hi = max(k_lo, int(math.ceil(trim * n))), min(k_hi, int(math.floor((1 - trim) * n)))
-            if k_hi <= k_lo:
-                return None
-        ks = np.arange(max(k_lo, 1), max(k_hi, k_lo + 1))
-        ks = ks[ks < n]
+        ks = _break_rows(lo, hi, n, trim, windows is not None)
+        if ks is None:
+            return None
         ks = ks[denom[ks] > 1e-9 * cnt[ks]]
         if ks.size == 0:
             return None
@@ -187,14 +197,87 @@ class _Design:
             return yv, np.column_stack([np.ones(yv.shape[0]), lags]), None
         yv = dz[self.index]
         lags = np.vstack([lag_matrix(dz[a:b], range(1, p + 1), p) for a, b, _ in self.kept])
+        offsets, windows = self._levels()
+        return yv, np.column_stack([offsets, lags]), windows
+
+    def _levels(self) -> tuple:
+        """``(offsets, windows)`` of a design with segments: the offset columns of the rows (shape (n_rows,
+        levels)) and the row ranges of the levels (:meth:`regression`)."""
+        p = self.p
         names = list(dict.fromkeys(lev for _, _, lev in self.kept))
-        offsets = np.zeros((yv.shape[0], len(names)))
+        offsets = np.zeros((self.index.shape[0], len(names)))
         at = 0
         for a, b, lev in self.kept:
             offsets[at:at + b - a - p, names.index(lev)] = 1.0
             at += b - a - p
         edges = np.cumsum([0] + [int(np.sum(offsets[:, k])) for k in range(len(names))])
-        return yv, np.column_stack([offsets, lags]), list(zip(edges[:-1], edges[1:]))
+        return offsets, list(zip(edges[:-1], edges[1:]))
+
+    def batch_statistics(self, Z: np.ndarray, trim: float, kind: str) -> np.ndarray:
+        """The ``kind`` ("step" or "drift") statistic of every record of ``Z``, each tested as :meth:`statistics`
+        tests one residual: the step's largest Wald statistic over its breaks (0 where no break can be
+        estimated), or the drift's Wald statistic.
+
+        The records' regressions are stacked and solved together (their normal equations, the step's breaks by
+        the cumulative sums of :func:`_step_wald`): the statistics of :meth:`statistics` up to rounding, without
+        a Python loop over the records.
+
+        Parameters
+        ----------
+        Z : ndarray, shape (n_records, n)
+            Standardised records of the residual's length.
+        trim : float
+        kind : {"step", "drift"}
+
+        Returns
+        -------
+        ndarray, shape (n_records,)
+        """
+        p, (m, n) = self.p, Z.shape
+        rows = np.arange(p, n) if self.index is None else self.index
+        offsets, windows = (np.ones((rows.shape[0], 1)), None) if self.index is None else self._levels()
+        n_rows, n_off = offsets.shape
+        k = n_off + p + (1 if kind == "drift" else 0)
+        Xt = np.empty((m, k, n_rows))                                  # the regressors, a record's in rows
+        Xt[:, :n_off] = offsets.T
+        for lag in range(1, p + 1):
+            Xt[:, n_off + lag - 1] = Z[:, p - lag:n - lag] if self.index is None else Z[:, rows - lag]
+        if kind == "drift":
+            Xt[:, -1] = np.arange(n_rows, dtype=float) / n_rows
+        yv = Z[:, p:] if self.index is None else Z[:, rows]
+        # G+ = T T' (the pseudo-inverse of the normal matrix G, its eigenvalues below 1e-15 of the largest dropped, as
+        # numpy.linalg.pinv drops them); W = T' X' are the regressors whitened: the fit is W' (W y).
+        w, V = np.linalg.eigh(Xt @ Xt.transpose(0, 2, 1))
+        keep = w > 1e-15 * w[:, -1:]
+        T = V * np.where(keep, 1.0 / np.sqrt(np.where(keep, w, 1.0)), 0.0)[:, None, :]
+        Wt = T.transpose(0, 2, 1) @ Xt
+        c = Wt @ yv[:, :, None]
+        e = yv - (Wt.transpose(0, 2, 1) @ c)[:, :, 0]
+        ssr = np.einsum("ij,ij->i", e, e)
+        if kind == "drift":
+            var = np.einsum("ij,ij->i", T[:, -1], T[:, -1]) * ssr / (n_rows - k)     # G+[-1, -1] times sigma^2
+            slope = (T[:, -1:] @ c)[:, 0, 0]
+            out = np.zeros(m)
+            ok = var > 0
+            out[ok] = slope[ok] ** 2 / var[ok]
+            return out
+        # The step 1(row >= j): its part the regressors explain has norm^2 |sum_{t>=j} W_t|^2 (of every break j).
+        qw = np.cumsum(Wt[:, :, ::-1], axis=2)[:, :, ::-1]
+        denom = (n_rows - np.arange(n_rows, dtype=float)) - np.einsum("ikj,ikj->ij", qw, qw)
+        se = np.cumsum(e[:, ::-1], axis=1)[:, ::-1]
+        cnt = n_rows - np.arange(n_rows, dtype=float)
+        dof = n_rows - k - 1
+        out = np.full(m, -np.inf)
+        for lo, hi in ([(0, n_rows)] if windows is None else windows):
+            ks = _break_rows(int(lo), int(hi), n_rows, trim, windows is not None)
+            if ks is None or ks.size == 0:
+                continue
+            den = denom[:, ks]
+            ok = den > 1e-9 * cnt[ks]
+            num = np.where(ok, se[:, ks] ** 2 / np.where(ok, den, 1.0), 0.0)
+            wald = num / np.maximum((ssr[:, None] - num) / dof, 1e-300)
+            out = np.maximum(out, np.where(ok, wald, -np.inf).max(axis=1))
+        return np.where(np.isfinite(out), out, 0.0)
 
     @staticmethod
     def _step(X: np.ndarray, yv: np.ndarray, windows, trim: float) -> Optional[tuple]:
@@ -275,15 +358,18 @@ class _Design:
         coloured = lfilter([1.0], np.concatenate([[1.0], -a]), e, axis=1)[:, burn:] if p else e[:, burn:]
         white = e[:, burn:]
         sums = np.zeros(2)
+        # Records a batch: their stacked regressions' largest array about 8 MB.
+        batch = max(1, int(1_000_000 // (self.rows(n) * (p + 3 + (0 if self.kept is None else len(self.kept))))))
         for row, Z in enumerate((coloured, white)):
-            Z = (Z - Z.mean(axis=1, keepdims=True)) / Z.std(axis=1, keepdims=True)
-            for z in Z:
-                yv, X, windows = self.regression(z)
-                if kind == "drift":
-                    sums[row] += _drift_wald(X, yv)[0]
-                else:
-                    found = self._step(X, yv, windows, trim)
-                    sums[row] += 0.0 if found is None else found[0]
+            mean, std = Z.mean(axis=1, keepdims=True), Z.std(axis=1, keepdims=True)
+            if row == 0 and not p:            # the white records are the same memory, still to be read
+                Z = Z - mean
+            else:                             # standardised in place: read no more as they were
+                Z -= mean
+            Z /= std
+            for first in range(0, Z.shape[0], batch):
+                for value in self.batch_statistics(Z[first:first + batch], trim, kind):
+                    sums[row] += value
         if not sums[1] > 0:
             return 1.0
         return max(1.0, float(sums[0] / sums[1]))

@@ -250,10 +250,11 @@ def _process_row_with(rec: _Record, settings: _TestSettings, i: int, js, extra: 
     return _RowOutcome(elements, row_warnings, check), validated
 
 
-def _evaluate(rec: _Record, results: dict) -> _Evaluation:
+def _evaluate(rec: _Record, results: dict, jobs: int = 1) -> _Evaluation:
     """The model with every accepted repair of ``results``, its signals, and the disturbance tests
     (of the outputs whose prediction error an earlier evaluation tested as it is, taken from
-    :attr:`_Record.tests`)."""
+    :attr:`_Record.tests`); ``jobs`` processes confirm the disturbances the family reports, each output's
+    confirmation whole (:func:`~mpm_monitor.core.parallel.split_map`: the same numbers)."""
     repaired = rec.model
     for i, res in results.items():
         for j, el in res.elements.items():
@@ -277,11 +278,12 @@ def _evaluate(rec: _Record, results: dict) -> _Evaluation:
     # tails are too light with slow noise); Holm's procedure is monotone, so no other output can join.
     confirm = [i for i, test in tests.items() if test["detected"] and not rec.tests[i][2].get("calibrated")]
     if confirm and rec.options.disturbance_draws > 0:
-        for i in confirm:
+        def confirmed(i: int) -> dict:
             done = rec.tests[i]
-            rec.tests[i] = (done[0], done[1], _disturbance_test(done[0], done[1], float(rec.spread[i]), rec.model,
-                                                                rec.options, bool(rec.moving[i]), levels,
-                                                                calibrate=True))
+            return _disturbance_test(done[0], done[1], float(rec.spread[i]), rec.model, rec.options,
+                                     bool(rec.moving[i]), levels, calibrate=True)
+        for i, test in zip(confirm, split_map(confirmed, confirm, jobs)):
+            rec.tests[i] = (rec.tests[i][0], rec.tests[i][1], test)
         tests = {i: dict(rec.tests[i][2]) for i in tests}
         _one_family(tests, rec.options.disturbance_alpha)
     if rec.segments is not None:      # the step's time since the first sample, the missing samples counted
@@ -423,7 +425,7 @@ def repair_model(model: PlantModel, data: LoggedData, located: Sequence[tuple],
         js = _located_in_row(located, i)
         return _process_row(rec, i, js, None, classified.of_row(i, js) if classified is not None else None)
     results = dict(zip(rows, split_map(one_row, rows, jobs)))
-    ev = _evaluate(rec, results)
+    ev = _evaluate(rec, results, jobs)
     if _redo_disturbed_rows(rec, located, rows, results, ev.tests, jobs):
-        ev = _evaluate(rec, results)
+        ev = _evaluate(rec, results, jobs)
     return _assemble(rec, results, found, ev)
