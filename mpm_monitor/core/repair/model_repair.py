@@ -303,8 +303,13 @@ def _taken_up(rec: _Record, quiet: list, jobs: int = 1) -> dict:
     residual then shows no drift to allow for; the model as given's does, and the row is processed again with it
     as a nuisance (:func:`_redo_disturbed_rows`).  Only a row whose error as given shows one on its own test (the
     family and the confirmation only take reports away) runs the family; the evaluation's tests of the repaired
-    rows stay as they were.
+    rows stay as they were.  Integrating outputs are left out: there an element's error (an integrator's gain)
+    makes a ramp of the error as given itself.
     """
+    # On an integrating output an element's error is itself a ramp or a step in the error as given (a gain error
+    # of an integrator): there it is no evidence of a disturbance the repair took up.
+    integrating = np.asarray(rec.model.integrating_outputs, dtype=bool)
+    quiet = [i for i in quiet if not integrating[i]]
     if not quiet:
         return {}
     segments = rec.scored_segments(rec.model, settled=True)
