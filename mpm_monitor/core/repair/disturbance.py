@@ -263,9 +263,9 @@ class _Design:
             return out
         # The step 1(row >= j): its part the regressors explain has norm^2 |sum_{t>=j} W_t|^2 (of every break j).
         qw = np.cumsum(Wt[:, :, ::-1], axis=2)[:, :, ::-1]
-        denom = (n_rows - np.arange(n_rows, dtype=float)) - np.einsum("ikj,ikj->ij", qw, qw)
-        se = np.cumsum(e[:, ::-1], axis=1)[:, ::-1]
         cnt = n_rows - np.arange(n_rows, dtype=float)
+        denom = cnt - np.einsum("ikj,ikj->ij", qw, qw)
+        se = np.cumsum(e[:, ::-1], axis=1)[:, ::-1]
         dof = n_rows - k - 1
         out = np.full(m, -np.inf)
         for lo, hi in ([(0, n_rows)] if windows is None else windows):

@@ -312,11 +312,13 @@ def _taken_up(rec: _Record, quiet: list, jobs: int = 1) -> dict:
     quiet = [i for i in quiet if not integrating[i]]
     if not quiet:
         return {}
-    segments = rec.scored_segments(rec.model, settled=True)
-    if not any(_disturbance_test(rec.d0[:, i], segments, float(rec.spread[i]), rec.model, rec.options,
-                                 bool(rec.moving[i]), rec.levels)["detected"] for i in quiet):
+    segments = rec.scored_segments(rec.model, rec.model, settled=True)      # as _evaluate scores the model as given
+    own = {i: _disturbance_test(rec.d0[:, i], segments, float(rec.spread[i]), rec.model, rec.options,
+                                bool(rec.moving[i]), rec.levels) for i in quiet}
+    if not any(test["detected"] for test in own.values()):
         return {}
     kept = dict(rec.tests)           # the repaired rows' tests stay the evaluation's (the others are the same)
+    rec.tests.update({i: (rec.d0[:, i].copy(), segments, test) for i, test in own.items()})   # not tested again
     given = _evaluate(rec, {}, jobs).tests
     rec.tests.clear()
     rec.tests.update(kept)
