@@ -500,3 +500,43 @@ def test_the_moments_through_gaps_with_known_columns_run_on_them(monkeypatch, te
             w = getattr(want, name)
             np.testing.assert_allclose(getattr(got, name), w, rtol=1e-10, atol=1e-12 * np.abs(w).max(),
                                        err_msg=f"{name}, row {i}")
+
+
+@pytest.mark.parametrize("segments", [None, [(0, 150), (150, 200), (200, 400)], "runs"])
+def test_a_step_response_longer_than_the_window_takes_a_gram_cut_where_no_sample_reaches(monkeypatch, segments):
+    """A step-response model of 2,000 coefficients on a window of 400 samples: the long Gram stops at the last lag a
+    sample still reaches (the longest segment, or run's grid, less one), not at the response's end, and every
+    moment of the rows from it equals the products over the rows of the responses simulated to their full length."""
+    model, u, d = _long_step_response_window(7, n=400, N=2000)
+    if segments == "runs":          # the responses run through the short gaps of 1 and 2 samples: one run of 403
+        segments = GapSegments([(0, 150), (150, 200), (200, 400)],
+                               np.concatenate([np.arange(150), np.arange(151, 201), np.arange(203, 403)]), 10)
+        reach = 402
+    else:
+        reach = 399 if segments is None else 199
+    n_lag, na = 8, 3
+
+    def make(i):
+        return ResponseMoments(model, u, d, [0, 1, 2], n_lag, n_lag, na, segments).row(i)
+
+    moments = ResponseMoments(model, u, d, [0, 1, 2], n_lag, n_lag, na, segments)
+    assert moments.fir_reach == reach and moments.fir_span == reach
+    assert moments.fir_gram.shape == (3, reach + 1, 3, n_lag + 1)
+    got, want = make(0), _by_product(monkeypatch, lambda: make(0))
+    assert [moments._long_fir(e) for _, e, _ in got.found] == [True] * 3
+    for name in ("zx", "uw", "zo", "ww", "ow", "xsum", "mu"):
+        w = getattr(want, name)
+        np.testing.assert_allclose(getattr(got, name), w, rtol=1e-10, atol=1e-12 * np.abs(w).max(), err_msg=name)
+
+
+def test_the_long_grams_lag_zero_taken_a_few_lags_at_a_time_is_the_same(monkeypatch):
+    """FIR_COPY_BYTES bounds the copy of the lagged windows the long Gram's lag 0 is a product of: taken 7 lags at a
+    time it equals the one product (a long response over a long window copied rows x lags: gigabytes)."""
+    from mpm_monitor.core import response_moments
+
+    model, u, d = _long_step_response_window(3)
+    whole = ResponseMoments(model, u, d, [0, 1, 2], 8, 8, 2).fir_gram
+    monkeypatch.setattr(response_moments, "FIR_COPY_BYTES", 8 * (1500 - 8) * 7)
+    parts = ResponseMoments(model, u, d, [0, 1, 2], 8, 8, 2).fir_gram
+    assert whole.shape[1] > 7
+    np.testing.assert_allclose(parts, whole, rtol=1e-12, atol=1e-13 * np.abs(whole).max())

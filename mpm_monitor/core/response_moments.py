@@ -54,6 +54,8 @@ from .segments import centred_fill, errors_centred_by_level, level_groups, run_p
 #: moments are products over the rows, as any other element's (128 MiB: 40 columns, 18 lags and 400
 #: step-response coefficients after a dead time of 8 samples take about 96 MiB).
 FIR_GRAM_MAX_BYTES = 2 ** 27
+#: :attr:`ResponseMoments.fir_gram` takes the products of its lag 0 this many bytes of lagged windows at a time.
+FIR_COPY_BYTES = 2 ** 25
 
 
 def typical_element(model: PlantModel, i: int):
@@ -560,22 +562,37 @@ class ResponseMoments:
             return False
         nu = self.u_c.shape[1]
         fits = nu * nu * (self.fir_span + 1) * (self.n_lag + 1) * 8 <= FIR_GRAM_MAX_BYTES
-        return fits and element.delay + element.num.size + self.na <= self.fir_span + 1
+        return fits and element.delay + element.num.size + self.na <= self._fir_spans[0] + 1
 
     @property
     def fir_span(self) -> int:
         """The last lag ``s`` of :attr:`fir_gram`: over the model's elements without poles, the largest
-        ``delay + len(num) - 1``, plus ``na`` (0 when the model has none)."""
-        span = self._fir_span
-        if span is None:
+        ``delay + len(num) - 1``, plus ``na`` (0 when the model has none); at most the last lag at which a
+        column's sample still reaches a row (:attr:`fir_reach`): beyond it every product is 0, and the taps
+        of a response longer than the window multiply zeros there (:meth:`_fir_moments` leaves them out)."""
+        return self._fir_spans[1]
+
+    @property
+    def fir_reach(self) -> int:
+        """The last lag ``s`` at which ``u_j(t - s)`` is not 0 on some row ``t``: the longest segment's samples less
+        one (or, when the responses run through the short gaps, the largest place on a run's grid)."""
+        if self.joined:
+            return max(int(run_places(run)[-1]) for run in self.segments.runs)
+        return max(b - a for a, b in self.segs) - 1
+
+    @property
+    def _fir_spans(self) -> tuple:
+        """``(the model's span, fir_span)``: the first without the cap at :attr:`fir_reach`."""
+        spans = self._fir_span
+        if spans is None:
             model = self.model
             span = 0
             for a, b in zip(*np.nonzero(model.present)):
                 element = model.discrete_element(int(a), int(b))
                 if element.order == 0 and not element.is_zero:
                     span = max(span, element.delay + element.num.size - 1 + self.na)
-            self._fir_span = span
-        return span
+            spans = self._fir_span = (span, min(span, self.fir_reach))
+        return spans
 
     @property
     def fir_gram(self) -> np.ndarray:
@@ -600,9 +617,14 @@ class ResponseMoments:
             padded = self._run_windows(S) if self.joined else \
                 [np.vstack([np.zeros((S, nu)), self.u_c[a:b]]) for a, b in self.segs]
             E = np.empty((nu, S + 1, nu, L + 1))
+            # The product takes a contiguous copy of the lagged windows: lags a few at a time, at most
+            # FIR_COPY_BYTES of them (a long response over a long window would copy rows x lags).
+            step = max(1, FIR_COPY_BYTES // (8 * max(max(b - a - start for a, b in self.segs), 1)))
             for j in range(nu):
                 lagged = [np.lib.stride_tricks.sliding_window_view(p[:, j], S + 1)[start:, ::-1] for p in padded]
-                E[j, :, :, 0] = sum(w.T @ self.u_c[a + start:b] for w, (a, b) in zip(lagged, self.segs))
+                for s0 in range(0, S + 1, step):
+                    E[j, s0:s0 + step, :, 0] = sum(w[:, s0:s0 + step].T @ self.u_c[a + start:b]
+                                                   for w, (a, b) in zip(lagged, self.segs))
             E[:, 0, :, 1:] = np.transpose(self.gram[:, 1:, :, 0], (2, 0, 1))         # u_j(t)' u_c(t - l)
             back = np.arange(1, S + 1)
             head = np.stack([p[S + start - back].T for p in padded])                 # (S_seg, nu, S): u_j(start - s)
@@ -649,11 +671,15 @@ class ResponseMoments:
         j, element, _ = entry
         nu, L, na = self.u_c.shape[1], self.n_lag, self.na
         num, delay = element.num, element.delay
-        block = self.fir_gram[j, delay:delay + num.size + na]                          # (T + na, nu, L + 1)
+        # (T + na, nu, L + 1); fewer rows when the response is longer than the window reaches (fir_span): the taps
+        # past the Gram's last lag multiply zeros and are left out.
+        block = self.fir_gram[j, delay:delay + num.size + na]
         S = self.z_sums.shape[0]
-        zx = (num @ block[:num.size].reshape(num.size, -1)).reshape(nu, L + 1)[:, 1:] \
+        T = min(num.size, block.shape[0])
+        zx = (num[:T] @ block[:T].reshape(T, nu * (L + 1))).reshape(nu, L + 1)[:, 1:] \
             - np.tensordot(mu, self.z_sums.reshape(S, nu, L), axes=(0, 0))
-        uw = np.stack([num @ block[k:k + num.size, :, 0] for k in range(na + 1)], axis=1) - (mu @ self.u_sums)[:, None]
+        uw = np.stack([num[:block[k:k + num.size].shape[0]] @ block[k:k + num.size, :, 0] for k in range(na + 1)],
+                      axis=1) - (mu @ self.u_sums)[:, None]
         return uw, zx
 
     def _recursive_lags(self, element) -> int:
