@@ -148,6 +148,36 @@ def test_row_fits_with_kept_responses_equal_fits_from_scratch(form):
     assert kept.profiles == fresh.profiles
 
 
+@pytest.mark.parametrize("form", [_Form(), _Form(n_lags=2, lead=True)])
+def test_the_kept_free_responses_are_bounded_and_the_fits_the_same(monkeypatch, form):
+    """The free responses a row's fits keep take at most POWER_CACHE_BYTES (at least POWER_CACHE_MIN of them, the
+    least recently used dropped: every solver evaluation tries new poles, and on a record of 100,000 samples the
+    unbounded store grew past 6 GB); with room for only two, the fits are those with room for all."""
+    from mpm_monitor.core.repair import fit as fit_module
+
+    options = RepairOptions(noise_order=2)
+
+    def estimate():
+        row = _row()
+        specs = {1: _spec(row, 1, form), 2: _spec(row, 2)}
+        lags = {1: specs[1].window[0] + 2, 2: 2}
+        return row, _estimate_row(row, specs, lags, 2000, options)[1]
+
+    row, roomy = estimate()
+    kept = [len(v) for k, v in row.shared.items() if isinstance(k, tuple) and k[0] == "powers"]
+    assert kept and max(kept) > 2
+    monkeypatch.setattr(fit_module, "POWER_CACHE_BYTES", 0)
+    monkeypatch.setattr(fit_module, "POWER_CACHE_MIN", 2)
+    row, tight = estimate()
+    kept = [len(v) for k, v in row.shared.items() if isinstance(k, tuple) and k[0] == "powers"]
+    assert kept and max(kept) == 2
+    assert tight.fit.lags == roomy.fit.lags
+    for key in ("poles", "coefs", "gains", "leads", "nuisance"):
+        np.testing.assert_array_equal(getattr(tight.fit, key), getattr(roomy.fit, key), err_msg=key)
+    assert tight.fit.ssr == roomy.fit.ssr
+    np.testing.assert_array_equal(tight.cov, roomy.cov)
+
+
 def test_unit_responses_follow_the_noise_model():
     """A unit response kept under one noise model is not used under another."""
     row = _row()

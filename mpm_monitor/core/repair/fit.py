@@ -25,6 +25,10 @@ from .lsq import least_squares_bounded, solver_scale, symmetric_pinv
 #: Fewest cost samples of a segment of data with gaps that takes part in a fit (a shorter one would
 #: mostly feed its own offset and free responses).
 MIN_SEGMENT_ROWS = 20
+#: The free responses ``a^k`` a row's fits keep for reuse take at most this many bytes (64 MiB; 838 poles' of
+#: 10,000 cost samples), and at least :data:`POWER_CACHE_MIN` of them are kept.
+POWER_CACHE_BYTES = 2 ** 26
+POWER_CACHE_MIN = 32
 
 
 class _TooShort(Exception):
@@ -226,21 +230,39 @@ class _RowProblem:
             out[a:b] = lfilter(num, den, x[a:b], axis=0)
         return out
 
+    def _kept_power(self, key):
+        """The free response kept under ``key`` (the most recently used last), or None."""
+        col = self._powers.pop(key, None)
+        if col is not None:
+            self._powers[key] = col
+        return col
+
+    def _keep_power(self, key, col: np.ndarray) -> np.ndarray:
+        """Keep ``col`` under ``key``: at most :data:`POWER_CACHE_BYTES` of them (at least
+        :data:`POWER_CACHE_MIN`), the least recently used dropped (a solver tries a new pole at every
+        evaluation: on a long record an unbounded store grew by gigabytes)."""
+        most = max(POWER_CACHE_MIN, POWER_CACHE_BYTES // max(col.nbytes, 1))
+        while len(self._powers) >= most:
+            del self._powers[next(iter(self._powers))]
+        self._powers[key] = col
+        return col
+
     def _power(self, a: float) -> np.ndarray:
-        """``a^k`` over the cost window (a free response), computed once per pole."""
+        """``a^k`` over the cost window (a free response), computed once per pole while it is kept."""
         key = float(a)
-        col = self._powers.get(key)
+        col = self._kept_power(key)
         if col is None:
             # exp(k ln a) is about 3 times faster than a ** k (and equal to about 1e-13 relative)
-            col = self._powers[key] = np.exp(self.kw * math.log(a)) if a > 0 else a ** self.kw
+            col = self._keep_power(key, np.exp(self.kw * math.log(a)) if a > 0 else a ** self.kw)
         return col
 
     def _power_ramp(self, a: float) -> np.ndarray:
-        """``k a^k`` over the cost window (the free response of a repeated pole), computed once per pole."""
+        """``k a^k`` over the cost window (the free response of a repeated pole), computed once per pole while
+        it is kept."""
         key = ("ramp", float(a))
-        col = self._powers.get(key)
+        col = self._kept_power(key)
         if col is None:
-            col = self._powers[key] = self.kw * self._power(a)
+            col = self._keep_power(key, self.kw * self._power(a))
         return col
 
     def _filtered(self, ar):
