@@ -678,7 +678,7 @@ class ResponseMoments:
         T = min(num.size, block.shape[0])
         zx = (num[:T] @ block[:T].reshape(T, nu * (L + 1))).reshape(nu, L + 1)[:, 1:] \
             - np.tensordot(mu, self.z_sums.reshape(S, nu, L), axes=(0, 0))
-        uw = np.stack([num[:block[k:k + num.size].shape[0]] @ block[k:k + num.size, :, 0] for k in range(na + 1)],
+        uw = np.stack([num[:len(w)] @ w for w in (block[k:k + num.size, :, 0] for k in range(na + 1))],
                       axis=1) - (mu @ self.u_sums)[:, None]
         return uw, zx
 

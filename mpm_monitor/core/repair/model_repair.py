@@ -250,11 +250,13 @@ def _process_row_with(rec: _Record, settings: _TestSettings, i: int, js, extra: 
     return _RowOutcome(elements, row_warnings, check), validated
 
 
-def _evaluate(rec: _Record, results: dict, jobs: int = 1) -> _Evaluation:
+def _evaluate(rec: _Record, results: dict, jobs: int = 1, store: Optional[dict] = None) -> _Evaluation:
     """The model with every accepted repair of ``results``, its signals, and the disturbance tests
     (of the outputs whose prediction error an earlier evaluation tested as it is, taken from
-    :attr:`_Record.tests`); ``jobs`` processes confirm the disturbances the family reports, each output's
-    confirmation whole (:func:`~mpm_monitor.core.parallel.split_map`: the same numbers)."""
+    ``store``, default :attr:`_Record.tests`, and kept there); ``jobs`` processes confirm the disturbances the
+    family reports, each output's confirmation whole (:func:`~mpm_monitor.core.parallel.split_map`: the same
+    numbers)."""
+    store = rec.tests if store is None else store
     repaired = rec.model
     for i, res in results.items():
         for j, el in res.elements.items():
@@ -267,24 +269,24 @@ def _evaluate(rec: _Record, results: dict, jobs: int = 1) -> _Evaluation:
     tests = {}
     for i in range(rec.model.n_outputs):
         # An output whose prediction error did not change (its row not repaired) keeps its test.
-        done = rec.tests.get(i)
+        done = store.get(i)
         if done is None or done[1] != segments or not np.array_equal(done[0], d[:, i]):
-            done = rec.tests[i] = (d[:, i].copy(), segments,
-                                   _disturbance_test(d[:, i], segments, float(rec.spread[i]), rec.model, rec.options,
-                                                     bool(rec.moving[i]), levels))
+            done = store[i] = (d[:, i].copy(), segments,
+                               _disturbance_test(d[:, i], segments, float(rec.spread[i]), rec.model, rec.options,
+                                                 bool(rec.moving[i]), levels))
         tests[i] = dict(done[2])
     _one_family(tests, rec.options.disturbance_alpha)
     # A disturbance the family reports is confirmed on simulated records of its output's own noise (the asymptotic
     # tails are too light with slow noise); Holm's procedure is monotone, so no other output can join.
-    confirm = [i for i, test in tests.items() if test["detected"] and not rec.tests[i][2].get("calibrated")]
+    confirm = [i for i, test in tests.items() if test["detected"] and not store[i][2].get("calibrated")]
     if confirm and rec.options.disturbance_draws > 0:
         def confirmed(i: int) -> dict:
-            done = rec.tests[i]
+            done = store[i]
             return _disturbance_test(done[0], done[1], float(rec.spread[i]), rec.model, rec.options,
                                      bool(rec.moving[i]), levels, calibrate=True)
         for i, test in zip(confirm, split_map(confirmed, confirm, jobs)):
-            rec.tests[i] = (rec.tests[i][0], rec.tests[i][1], test)
-        tests = {i: dict(rec.tests[i][2]) for i in tests}
+            store[i] = (store[i][0], store[i][1], test)
+        tests = {i: dict(store[i][2]) for i in tests}
         _one_family(tests, rec.options.disturbance_alpha)
     if rec.segments is not None:      # the step's time since the first sample, the missing samples counted
         t = np.asarray(rec.data.t, float)
@@ -292,6 +294,7 @@ def _evaluate(rec: _Record, results: dict, jobs: int = 1) -> _Evaluation:
             if test["index"] is not None:
                 test["time"] = float(t[test["index"]] - t[0])
     return _Evaluation(model=repaired, signals=sig, tests=tests)
+
 
 def _taken_up(rec: _Record, quiet: list, jobs: int = 1) -> dict:
     """``{i: test}``: the disturbances of the model as given (:func:`_evaluate` of no repair: the outputs' family,
@@ -317,11 +320,10 @@ def _taken_up(rec: _Record, quiet: list, jobs: int = 1) -> dict:
                                 bool(rec.moving[i]), rec.levels) for i in quiet}
     if not any(test["detected"] for test in own.values()):
         return {}
-    kept = dict(rec.tests)           # the repaired rows' tests stay the evaluation's (the others are the same)
-    rec.tests.update({i: (rec.d0[:, i].copy(), segments, test) for i, test in own.items()})   # not tested again
-    given = _evaluate(rec, {}, jobs).tests
-    rec.tests.clear()
-    rec.tests.update(kept)
+    # A store of its own: the record's keeps the repaired rows' tests (the others are the same), and the rows'
+    # own tests above are not taken again.
+    store = {**rec.tests, **{i: (rec.d0[:, i].copy(), segments, test) for i, test in own.items()}}
+    given = _evaluate(rec, {}, jobs, store).tests
     return {i: given[i] for i in quiet if given[i]["detected"]}
 
 
