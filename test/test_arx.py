@@ -183,3 +183,35 @@ def test_a_fit_with_noise_is_not_exact_and_its_tests_are_the_ordinary_ones():
     assert not spread.exact
     for a, b in zip(plain.test_each_block_zero([None, None]), spread.test_each_block_zero([None, None])):
         assert (a.statistic, a.p_value) == (b.statistic, b.p_value)
+
+
+def test_a_large_regression_is_factored_in_place_with_one_copy_and_the_same_fits(monkeypatch):
+    # From QR_IN_PLACE_BYTES on, the scaled copy becomes Q (a long window's confirmation holds 200 MB of regressors;
+    # numpy.linalg.qr took five copies besides them).  The fits are numpy's to rounding.
+    import tracemalloc
+
+    from mpm_monitor.core import arx
+
+    rng = np.random.default_rng(3)
+    X = rng.standard_normal((200_000, 12)) * 10.0 ** (np.arange(12) % 4 - 1)     # 19 MB, columns of unlike sizes
+    X[:, 5] += 0.5 * X[:, 4]
+    y = X @ rng.standard_normal(12) + rng.standard_normal(200_000)
+    own = np.column_stack([np.roll(y, 1), np.roll(y, 2)])
+    small = SharedBlockRegression(X, [4, 4, 4]).fit(y, own)           # below the bound: numpy's
+    monkeypatch.setattr(arx, "QR_IN_PLACE_BYTES", X.nbytes)
+    tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        Q, R, scale, rank, _ = arx._scaled_qr(X)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 1.5 * X.nbytes                # the scaled copy (Q) and a column's worth of work: no second copy
+    assert Q.shape == X.shape and R.shape == (12, 12) and rank == 12
+    np.testing.assert_allclose(Q @ R, X / scale, atol=1e-12)
+    np.testing.assert_allclose(Q.T @ Q, np.eye(12), atol=1e-12)
+    large = SharedBlockRegression(X, [4, 4, 4]).fit(y, own)
+    np.testing.assert_allclose(large.theta, small.theta, rtol=1e-9)
+    for blocks in ([0], [1, 2]):
+        assert large.test_blocks_zero(blocks).p_value == pytest.approx(small.test_blocks_zero(blocks).p_value,
+                                                                      rel=1e-9, abs=1e-300)

@@ -181,11 +181,30 @@ class ArxFit:
         return out
 
 
+#: A scaled copy of at least this many bytes is factored in place (:func:`_scaled_qr`).
+QR_IN_PLACE_BYTES = 32 * 2 ** 20
+
+
 def _scaled_qr(X: np.ndarray):
-    """Economic QR of the column-scaled ``X``; returns (Q, R, scale, rank, condition number)."""
+    """Economic QR of the column-scaled ``X``; returns (Q, R, scale, rank, condition number).
+
+    ``numpy.linalg.qr`` takes about five copies of ``X`` besides it (1 GB for the 200 MB regressors of a
+    long window's confirmation, :data:`~mpm_monitor.core.confirmation.TAIL_FIT_BYTES`).  From
+    :data:`QR_IN_PLACE_BYTES` on, the scaled copy is factored in place and becomes ``Q`` (LAPACK's ``geqrf``
+    and ``orgqr`` through ``scipy.linalg.qr`` with ``overwrite_a``): one copy.  The two are the same
+    Householder QR from two builds of the LAPACK, equal to rounding; below the bound numpy's is kept, so
+    the numbers of every window of ordinary length stay as they were.
+    """
     scale = np.sqrt(np.sum(X * X, axis=0))
     scale = np.where(scale > 0, scale, 1.0)
-    Q, R = np.linalg.qr(X / scale, mode="reduced")
+    if X.nbytes >= QR_IN_PLACE_BYTES and X.shape[0] >= X.shape[1]:
+        import scipy.linalg as sla
+
+        Xs = np.empty(X.shape, order="F")
+        np.divide(X, scale, out=Xs)
+        Q, R = sla.qr(Xs, overwrite_a=True, mode="economic", check_finite=False)
+    else:
+        Q, R = np.linalg.qr(X / scale, mode="reduced")
     d = np.abs(np.diag(R))
     dmax = d.max(initial=0.0)
     rank = int(np.sum(d > RANK_TOLERANCE * max(dmax, 1e-300)))
