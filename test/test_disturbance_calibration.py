@@ -192,3 +192,29 @@ def test_two_processes_confirm_the_same_disturbances():
     assert sorted(x["output"] for x in one.disturbances) == ["y2", "y3"]
     assert all(x["null_scale"] >= 1.0 for x in one.disturbances)
     assert two.disturbances == one.disturbances
+
+
+
+@pytest.mark.parametrize("p, segments", [(3, None), (0, None), (2, [(0, 700), (705, 1500), (1510, 2400)])])
+@pytest.mark.parametrize("kind", ["step", "drift"])
+def test_records_drawn_a_few_at_a_time_give_the_same_scale_bit_for_bit(monkeypatch, p, segments, kind):
+    # A long log's 200 records are drawn, filtered and tested a chunk at a time (NULL_RECORD_BYTES): the generator's
+    # stream, each record's statistic and the order of the sums are those of drawing them all at once.
+    from mpm_monitor.core.repair import disturbance
+
+    rng = np.random.default_rng(4)
+    n = 2400
+    dz = standardised(paper_noise(rng, n, 0.95))
+    design = _Design.of(dz, p, segments, None)
+    rows = np.arange(design.rows(n), dtype=float)
+    alternative = (rows >= rows.size // 2).astype(float) if kind == "step" else rows / rows.size
+    monkeypatch.setattr(disturbance, "NULL_RECORD_BYTES", 2 ** 40)          # all 37 records at once
+    generator = np.random.default_rng(9)
+    whole = design.null_scale(dz, 0.15, 37, generator, alternative, kind)
+    left = generator.bit_generator.state
+    for record_bytes in (1, 8 * 3 * n, 8 * 10 * n):
+        monkeypatch.setattr(disturbance, "NULL_RECORD_BYTES", record_bytes)
+        generator = np.random.default_rng(9)
+        assert design.null_scale(dz, 0.15, 37, generator, alternative, kind) == whole
+        assert generator.bit_generator.state == left        # the generator left where the draw at once leaves it
+    assert whole >= 1.0

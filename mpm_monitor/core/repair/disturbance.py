@@ -146,6 +146,10 @@ NULL_DRAWS = 200
 #: The calibration's AR noise model is kept inside this spectral radius (a fitted unit or explosive root
 #: is moved in, radially).
 MAX_NOISE_RADIUS = 0.999
+#: The simulated records of :meth:`_Design.null_scale` are drawn, filtered and tested this many bytes of
+#: innovations at a time (whole batches of records): 200 records of 100,000 samples held at once took three arrays
+#: of 153 MiB.  The same numbers as drawing them all at once (the generator's stream is the same).
+NULL_RECORD_BYTES = 32 * 2 ** 20
 
 
 def _p_values(w_step: float, w_drift: float, searched: int, trim: float) -> tuple:
@@ -353,23 +357,27 @@ class _Design:
                 a = a * (MAX_NOISE_RADIUS / radius) ** np.arange(1, p + 1)
                 radius = MAX_NOISE_RADIUS
         burn = int(math.ceil(5.0 / (1.0 - radius))) if p else 0
-        n = dz.shape[0]
-        e = rng.standard_normal((int(draws), burn + n))
-        coloured = lfilter([1.0], np.concatenate([[1.0], -a]), e, axis=1)[:, burn:] if p else e[:, burn:]
-        white = e[:, burn:]
+        n, draws = dz.shape[0], int(draws)
         sums = np.zeros(2)
         # Records a batch: their stacked regressions' largest array about 8 MB.
         batch = max(1, int(1_000_000 // (self.rows(n) * (p + 3 + (0 if self.kept is None else len(self.kept))))))
-        for row, Z in enumerate((coloured, white)):
-            mean, std = Z.mean(axis=1, keepdims=True), Z.std(axis=1, keepdims=True)
-            if row == 0 and not p:            # the white records are the same memory, still to be read
-                Z = Z - mean
-            else:                             # standardised in place: read no more as they were
-                Z -= mean
-            Z /= std
-            for first in range(0, Z.shape[0], batch):
-                for value in self.batch_statistics(Z[first:first + batch], trim, kind):
-                    sums[row] += value
+        # Records drawn at a time: whole batches, NULL_RECORD_BYTES of innovations (all of them when they fit).
+        chunk = batch * max(1, NULL_RECORD_BYTES // (8 * batch * (burn + n)))
+        for done in range(0, draws, chunk):
+            e = rng.standard_normal((min(chunk, draws - done), burn + n))
+            coloured = lfilter([1.0], np.concatenate([[1.0], -a]), e, axis=1)[:, burn:] if p else e[:, burn:]
+            white = e[:, burn:]
+            for row, Z in enumerate((coloured, white)):
+                mean, std = Z.mean(axis=1, keepdims=True), Z.std(axis=1, keepdims=True)
+                if row == 0 and not p:            # the white records are the same memory, still to be read
+                    Z = Z - mean
+                else:                             # standardised in place: read no more as they were
+                    Z -= mean
+                Z /= std
+                for first in range(0, Z.shape[0], batch):      # each sum in the order of the records
+                    for value in self.batch_statistics(Z[first:first + batch], trim, kind):
+                        sums[row] += value
+            del e, coloured, white, Z
         if not sums[1] > 0:
             return 1.0
         return max(1.0, float(sums[0] / sums[1]))
