@@ -570,3 +570,27 @@ def test_the_experiment_search_tries_a_bounded_number_of_input_subsets(monkeypat
     assert report.experiment is not None and report.experiment.expected_detectable_gain_change > exm.GOAL
     assert tuple(range(n)) in tried
     assert len(tried) <= exm.MAX_SUBSET_TRIALS + exm.REFINED_SUBSETS * len(exm.AMPLITUDE_FRACTIONS)
+
+
+def test_the_targets_are_views_of_the_rows_moments_divided_in_place():
+    # A row's Z' X (the largest of its moments: 353 MiB over 100 rows at 100x40 with 16 own lags) becomes the
+    # targets' zx divided in place, no copy: in a forked child the pages stay the parent's.
+    from mpm_monitor.core.response_moments import ResponseMoments
+
+    model, u, d, noise = _window()
+    L, start = 8, 8
+    moments = ResponseMoments(model, u, d, [0, 1, 2], L, start, 2)
+    rm = moments.row(0)
+    assert rm.zx.flags.c_contiguous
+    expected = rm.zx / (u.shape[0] - start)
+    before = dict(rm.__dict__)
+    info = det.WindowInformation(model, u, d, [0, 1, 2], L, start, noise, {}, moments=moments)
+    assert moments.kept(0) is None                              # taken: the window's no longer
+    for b, (j, _, _) in enumerate(before["found"]):
+        t = info.targets[(0, j)]
+        assert np.shares_memory(t.zx, before["zx"])
+        np.testing.assert_array_equal(t.zx, expected[..., b].reshape(-1, 3)[:, 1:])
+    fresh = det.WindowInformation(model, u, d, [0, 1, 2], L, start, noise, {})   # its own moments, the same numbers
+    for key, t in fresh.targets.items():
+        np.testing.assert_array_equal(t.zx, info.targets[key].zx)
+        np.testing.assert_array_equal(t.c, info.targets[key].c)
