@@ -165,6 +165,16 @@ def test_an_mpc_weight_too_large_for_the_controller_is_refused_naming_it(ctx, we
     assert f"{weight} [1e+308]" in text, text
 
 
+@pytest.mark.parametrize("given, said", [({"u_min": [1e308]}, "u_min: 1e+308 for input 'u1'"),
+                                         ({"input_nominal": [0.0, -1e300, 0.0]}, "input_nominal: -1e+300 for input 'u2'")])
+def test_an_input_bound_or_nominal_beyond_the_loops_scale_is_refused_naming_it(ctx, given, said):
+    """``u_min: [1e308]`` was taken: the controller held the inputs at 1e308 and stopped as diverged."""
+    with pytest.raises(ConfigurationError) as refused:
+        _mpc(ctx, **given)
+    text = str(refused.value)
+    assert text.startswith(said) and "within 1e+40 in magnitude" in text and "\n" not in text, text
+
+
 def test_a_band_edge_out_of_order_is_refused_naming_the_node_parameters(ctx):
     """``band_high:=0`` was refused as 'parameter band: expected 0 <= low < high <= pi', a parameter the node does
     not have (it has band_low and band_high)."""

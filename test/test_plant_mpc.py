@@ -10,6 +10,8 @@ Invariants tested:
   independent least-squares solution of the stated cost (built here by simulating the model).
 """
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.optimize import lsq_linear
@@ -589,3 +591,27 @@ def test_weights_too_far_apart_in_scale_are_refused_naming_them(weights, said, s
     assert "1e+308" in str(refused.value)
     ctrl = InternalModelMpc(model, MpcOptions(output_weight=1e6), structured=structured)
     assert np.all(np.isfinite(ctrl.unconstrained_moves(np.ones(3), np.ones(ctrl._ss.n_states), np.ones(3))))
+
+
+@pytest.mark.parametrize("bad, said", [
+    (dict(u_min=1e308), "u_min: 1e+308 for input 'u1' (expected a bound, or -inf for none, within 1e+40"),
+    (dict(u_min=[-np.inf, 1e41, 0.0]), "u_min: 1e+41 for input 'u2'"),
+    (dict(u_min=np.inf), "u_min: inf for input 'u1'"),
+    (dict(u_max=-np.inf), "u_max: -inf for input 'u1' (expected a bound, or inf for none"),
+    (dict(u_max=-1e308), "u_max: -1e+308 for input 'u1'"),
+    (dict(input_nominal=[0.0, 0.0, 1e300]), "input_nominal: 1e+300 for input 'u3' (expected a nominal, within 1e+40"),
+    (dict(input_nominal=[0.0, np.inf, 0.0]), "input_nominal: inf for input 'u2'"),
+])
+def test_an_input_bound_or_nominal_beyond_what_the_loop_can_run_is_refused_naming_it(bad, said):
+    # u_min: [1e308] was taken: the controller held every input at 1e308 and the loop ran to "diverged".
+    case = paper_case("3.1")
+    with pytest.raises(ConfigurationError) as refused:
+        InternalModelMpc(case.model, dataclasses.replace(case.mpc, **bad))
+    assert str(refused.value).startswith(said) and "\n" not in str(refused.value), str(refused.value)
+
+
+def test_bounds_at_the_scale_limit_and_infinite_bounds_for_none_are_taken():
+    case = paper_case("3.1")
+    for bounds in (dict(u_min=-1e40, u_max=1e40), dict(u_min=-np.inf, u_max=np.inf), dict(u_min=[-np.inf, -1.0, -2.0])):
+        ctrl = InternalModelMpc(case.model, dataclasses.replace(case.mpc, **bounds))
+        assert np.all(np.isfinite(ctrl.step(np.ones(3), np.zeros(3))))

@@ -93,9 +93,12 @@ PARAMS = MODEL_PARAMS + (
               "value or one per input), >= 0."),
     ParamSpec("input_rate_weight", "double_array", [0.1], "Weight S on each input move (one value or one per "
               "input), >= 0."),
-    ParamSpec("input_nominal", "double_array", None, "Nominal input u_nom, deviation variables (unset = 0)."),
-    ParamSpec("u_min", "double_array", None, "Lower input bounds (one value or one per input; unset = none)."),
-    ParamSpec("u_max", "double_array", None, "Upper input bounds (one value or one per input; unset = none)."),
+    ParamSpec("input_nominal", "double_array", None, "Nominal input u_nom, deviation variables, within 1e40 in "
+              "magnitude (unset = 0)."),
+    ParamSpec("u_min", "double_array", None, "Lower input bounds (one value or one per input, within 1e40 in "
+              "magnitude; unset or -inf = none)."),
+    ParamSpec("u_max", "double_array", None, "Upper input bounds (one value or one per input, within 1e40 in "
+              "magnitude; unset or inf = none)."),
     ParamSpec("du_max", "double_array", None, "Largest input move per sample (unset = none)."),
     ParamSpec("qp_tolerance", "double", 1e-9, "Feasibility tolerance of the bounded QP (its exact active-set "
               "solver): how far a bound may be exceeded, relative to 1 + |value|.", 1e-15, 1.0),

@@ -121,6 +121,27 @@ def _diag(value, n: int, name: str, allow_none=False, fill=None) -> np.ndarray:
     return arr
 
 
+def _check_input_scale(model: PlantModel, u_nom: np.ndarray, u_min: np.ndarray, u_max: np.ndarray) -> None:
+    """Refuse an input nominal or bound the loop's log could not be analysed at: beyond
+    :data:`~mpm_monitor.core.logged_data.MAX_ANALYSIS_SCALE` in magnitude (1e40; an input held there makes
+    every output overflow, and a published ``u`` beyond it is refused by every reader), a nominal that is not
+    finite, or a bound that excludes every input (``u_min`` of ``+inf``, ``u_max`` of ``-inf``).  Unset bounds
+    are ``-inf`` and ``+inf``: none.  Before stop 93 ``u_min: [1e308]`` was taken, and the loop ran to
+    "diverged"."""
+    from ..core.logged_data import MAX_ANALYSIS_SCALE
+
+    for name, v, none in (("input_nominal", u_nom, None), ("u_min", u_min, -np.inf), ("u_max", u_max, np.inf)):
+        bad = ~(np.abs(v) <= MAX_ANALYSIS_SCALE)
+        if none is not None:
+            bad &= v != none
+        if np.any(bad):
+            k = int(np.flatnonzero(bad)[0])
+            what = "a nominal" if none is None else f"a bound, or {none:g} for none"
+            raise ConfigurationError(
+                f"{name}: {v[k]:g} for input {model.inputs[k]!r} (expected {what}, within {MAX_ANALYSIS_SCALE:g} in "
+                f"magnitude in the input's units: the loop cannot be run or analysed beyond it)")
+
+
 class InternalModelMpc:
     """Unconstrained or bounded MPC in internal-model structure.
 
@@ -159,6 +180,7 @@ class InternalModelMpc:
         self.u_min = _diag(options.u_min, nu, "u_min", allow_none=True, fill=-np.inf)
         self.u_max = _diag(options.u_max, nu, "u_max", allow_none=True, fill=np.inf)
         self.du_max = _diag(options.du_max, nu, "du_max", allow_none=True, fill=np.inf)
+        _check_input_scale(model, self.u_nom, self.u_min, self.u_max)
         if np.any(self.u_min > self.u_max):
             raise ConfigurationError("u_min, u_max: expected u_min <= u_max for every input")
         if np.any(self.du_max <= 0):
