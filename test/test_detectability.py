@@ -594,3 +594,20 @@ def test_the_targets_are_views_of_the_rows_moments_divided_in_place():
     for key, t in fresh.targets.items():
         np.testing.assert_array_equal(t.zx, info.targets[key].zx)
         np.testing.assert_array_equal(t.c, info.targets[key].c)
+
+
+def test_read_only_moments_are_copied_not_changed():
+    from mpm_monitor.core.response_moments import ResponseMoments
+
+    model, u, d, noise = _window()
+    moments = ResponseMoments(model, u, d, [0, 1, 2], 8, 8, 2)
+    rm = moments.row(0)
+    zx = rm.zx
+    zx.flags.writeable = False
+    kept = zx.copy()
+    info = det.WindowInformation(model, u, d, [0, 1, 2], 8, 8, noise, {}, moments=moments)
+    np.testing.assert_array_equal(zx, kept)                     # not divided in place
+    fresh = det.WindowInformation(model, u, d, [0, 1, 2], 8, 8, noise, {})
+    for key, t in fresh.targets.items():
+        np.testing.assert_array_equal(t.zx, info.targets[key].zx)
+        assert not np.shares_memory(info.targets[key].zx, zx)

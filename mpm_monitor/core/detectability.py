@@ -350,7 +350,7 @@ class WindowInformation:
         M = rm.zx
         if M.flags.writeable:
             M /= n
-        else:                                       # built on the bytes a child process sent
+        else:                                       # read-only (not this process's to change): a copy
             M = M / n
         OW, WW = rm.ow / n, rm.ww / n
         for b, (j, element, ref) in enumerate(rm.found):

@@ -436,8 +436,9 @@ class ResponseMoments:
                 tail[:, :, k - 1] = np.einsum("snl,sm->nlm", u_tail, x_tail[:, :, k - 1])
         self._fill_lags(M, head, tail, [found[b] for b in rec], rec, mu)
         # zx contiguous (lag 0 left behind): its targets (detectability) are views of it, divided in place.
-        return RowMoments(i=i, found=found, moves=moves, zx=np.ascontiguousarray(M[:, 1:]), uw=uw, zo=P[:, 1:].reshape(nu * L, na),
-                          oo=O.T @ O, ow=ow, ww=ww, xsum=xsum, mu=mu, R=R if keep_samples else None)
+        return RowMoments(i=i, found=found, moves=moves, zx=np.ascontiguousarray(M[:, 1:]), uw=uw,
+                          zo=P[:, 1:].reshape(nu * L, na), oo=O.T @ O, ow=ow, ww=ww, xsum=xsum, mu=mu,
+                          R=R if keep_samples else None)
 
     def _lag_zero(self, O: np.ndarray, P: np.ndarray, lags: list, found: list, rec_lags: np.ndarray,
                   mu: np.ndarray, fir: Optional[dict] = None) -> np.ndarray:
