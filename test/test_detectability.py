@@ -574,7 +574,7 @@ def test_the_experiment_search_tries_a_bounded_number_of_input_subsets(monkeypat
 
 def test_the_targets_are_views_of_the_rows_moments_divided_in_place():
     # A row's Z' X (the largest of its moments: 353 MiB over 100 rows at 100x40 with 16 own lags) becomes the
-    # targets' zx divided in place, no copy: in a forked child the pages stay the parent's.
+    # targets' zx divided in place, no copy: in the detectability's child process the pages stay the parent's.
     from mpm_monitor.core.response_moments import ResponseMoments
 
     model, u, d, noise = _window()
