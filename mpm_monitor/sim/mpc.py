@@ -42,6 +42,7 @@ import numpy as np
 
 from ..core.discretize import state_space
 from ..core.errors import ConfigurationError
+from ..core.logged_data import MAX_ANALYSIS_SCALE
 from ..core.model import PlantModel
 from .plant import DENSE_STATE_LIMIT, require_strictly_proper
 
@@ -128,8 +129,6 @@ def _check_input_scale(model: PlantModel, u_nom: np.ndarray, u_min: np.ndarray, 
     finite, or a bound that excludes every input (``u_min`` of ``+inf``, ``u_max`` of ``-inf``).  Unset bounds
     are ``-inf`` and ``+inf``: none.  Before stop 93 ``u_min: [1e308]`` was taken, and the loop ran to
     "diverged"."""
-    from ..core.logged_data import MAX_ANALYSIS_SCALE
-
     for name, v, none in (("input_nominal", u_nom, None), ("u_min", u_min, -np.inf), ("u_max", u_max, np.inf)):
         bad = ~(np.abs(v) <= MAX_ANALYSIS_SCALE)
         if none is not None:
