@@ -1142,3 +1142,55 @@ def test_simulate_names_both_files_when_plant_and_model_differ_in_shape_or_sampl
         assert code == 2 and len(err.strip().splitlines()) == 1, err
         assert err.startswith(f"error: --plant {plant} and --model {files['model']}: ") and re.search(match, err), err
         assert not (tmp_path / "log.csv").exists()
+
+
+def _with_operating_point(tmp_path, name, **nominals):
+    """A 1x1 model with a measured disturbance, at the operating point ``nominals``, saved as ``name``."""
+    model = PlantModel(sample_time=1.0, inputs=("u1",), outputs=("y1",), disturbances=("feed",),
+                       gain=[[2.0, 0.5]], time_constant=[[10.0, 15.0]], delay=[[2.0, 3.0]], **nominals)
+    save_model(model, tmp_path / name)
+    return tmp_path / name
+
+
+def test_simulate_writes_the_log_at_the_model_files_operating_point(capsys, tmp_path):
+    """``simulate --plant M --model M`` wrote the log in deviations and ``analyze`` with M subtracted M's operating
+    point from it: the output offset by 30 (58 times its spread) with the plant equal to the model, and on an
+    integrating output a ramp and a false element."""
+    point = dict(input_nominal=[10.0], output_nominal=[50.0], disturbance_nominal=[350.0])
+    model = _with_operating_point(tmp_path, "model.yaml", **point)
+    flat = _with_operating_point(tmp_path, "flat.yaml")
+    logs = {}
+    for name, path in (("point", model), ("flat", flat)):
+        logs[name] = tmp_path / f"{name}.csv"
+        code, out, err = _run_cli(capsys, ["simulate", "--plant", str(path), "--model", str(path), "--csv",
+                                           str(logs[name]), "--samples", "600", "--seed", "3"])
+        assert code == 0, err
+    data = read_csv(logs["point"], load_model(model))     # read_csv keeps the logged values
+    same = read_csv(logs["flat"], load_model(flat))
+    # The same loop (the same seed), its logged values at the operating point.
+    np.testing.assert_allclose(data.u, same.u + 10.0, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(data.y, same.y + 50.0, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(data.r, same.r + 50.0, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(data.dv, same.dv + 350.0, rtol=0, atol=1e-12)
+    # Without an operating point the log is the deviations, as it always was.
+    assert abs(float(np.mean(same.u))) < 5.0
+    code, out, err = _run_cli(capsys, ["analyze", "--model", str(model), "--data", str(logs["point"])])
+    assert code == 0, err
+    assert "offset" not in out + err and "located elements: none" in out, out + err
+
+
+@pytest.mark.parametrize("plant_point, model_point, expected", [
+    (dict(input_nominal=[10.0]), dict(input_nominal=[12.0]), "input_nominal: u1 10 vs 12"),
+    (dict(output_nominal=[50.0]), {}, "output_nominal: y1 50 vs 0"),
+    (dict(disturbance_nominal=[350.0]), dict(disturbance_nominal=[300.0]), "disturbance_nominal: feed 350 vs 300"),
+])
+def test_simulate_refuses_a_plant_and_model_at_different_operating_points(capsys, tmp_path, plant_point, model_point,
+                                                                          expected):
+    plant = _with_operating_point(tmp_path, "plant.yaml", **plant_point)
+    model = _with_operating_point(tmp_path, "model.yaml", **model_point)
+    code, out, err = _run_cli(capsys, ["simulate", "--plant", str(plant), "--model", str(model), "--csv",
+                                       str(tmp_path / "log.csv"), "--samples", "300"])
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert err.startswith(f"error: --plant {plant} and --model {model}: expected the same operating point"), err
+    assert err.strip().endswith(f"got {expected}"), err
+    assert not (tmp_path / "log.csv").exists()

@@ -559,7 +559,7 @@ def _cmd_simulate(args) -> int:
     from ..io.csv_log import write_log_csv
     from ..io.model_file import load_model, save_model
     from ..sim.cases import simulation_case
-    from ..sim.closed_loop import ExcitationOptions, run_closed_loop
+    from ..sim.closed_loop import ExcitationOptions, at_operating_point, operating_point_conflict, run_closed_loop
     from ..sim.excitation import PrbsOptions
     from ..sim.mpc import MpcOptions
 
@@ -592,12 +592,17 @@ def _cmd_simulate(args) -> int:
             got = (f"{plant.sample_time:g} s vs {model.sample_time:g} s" if what == "sample_time" else
                    f"{list(plant.inputs)} / {list(plant.outputs)} vs {list(model.inputs)} / {list(model.outputs)}")
             raise InputError(f"--plant {args.plant} and --model {args.model}: expected the same {what}, got {got}")
+        conflict = operating_point_conflict(plant, model)
+        if conflict:
+            raise InputError(f"--plant {args.plant} and --model {args.model}: expected the same operating point (the "
+                             f"loop is simulated in deviations from one, and the log written at it), got {conflict}")
         exc = ExcitationOptions(dither=PrbsOptions(amplitude=dither) if dither > 0 else None)
         if args.experiment:
             exc = ExcitationOptions(dither=PrbsOptions(amplitude=1.0, switch_probability=0.5),
                                     dither_amplitudes=_experiment_dither(args.experiment, model))
         log = run_closed_loop(plant, model, args.samples, seed=args.seed, mpc=MpcOptions(), excitation=exc)
     _check_finite_log(log, args)
+    log = at_operating_point(log, plant)      # the logged values, as the model file's operating point reads them
     _write_output(args.csv, "--csv", lambda: write_log_csv(args.csv, log))
     if args.write_model:
         _write_output(args.write_model, "--write-model", lambda: save_model(model, args.write_model))

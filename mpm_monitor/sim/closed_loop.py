@@ -103,6 +103,57 @@ class ClosedLoopLog:
                           sample_time=self.sample_time, source=source, dv=self.dv, disturbances=self.disturbances)
 
 
+def operating_point_conflict(plant: PlantModel, controller_model: PlantModel) -> str:
+    """What differs between the operating points of the plant's and the controller model's files ('' when nothing).
+
+    The loop is simulated in deviations from one operating point (:func:`at_operating_point` writes its log at
+    it): the two files' ``input_nominal``, ``output_nominal`` and the ``disturbance_nominal`` of the model's
+    measured disturbances (by name, among the plant's) must agree.  Returns e.g.
+    ``"input_nominal: u1 10 vs 12"``: the first key that differs, each channel that differs with both values.
+    """
+    pairs = [("input_nominal", plant.inputs, plant.input_nominal, controller_model.input_nominal),
+             ("output_nominal", plant.outputs, plant.output_nominal, controller_model.output_nominal)]
+    index = {name: j for j, name in enumerate(plant.disturbances)}
+    shared = [name for name in controller_model.disturbances if name in index]
+    pairs.append(("disturbance_nominal", shared,
+                  np.array([plant.disturbance_nominal[index[name]] for name in shared], dtype=float),
+                  np.array([controller_model.disturbance_nominal[controller_model.disturbances.index(name)]
+                            for name in shared], dtype=float)))
+    for key, names, of_plant, of_model in pairs:
+        differ = [f"{name} {a:g} vs {b:g}" for name, a, b in zip(names, of_plant, of_model) if a != b]
+        if differ:
+            return f"{key}: {', '.join(differ)}"
+    return ""
+
+
+def at_operating_point(log: ClosedLoopLog, plant: PlantModel) -> ClosedLoopLog:
+    """``log`` with its setpoints, outputs, inputs and measured disturbances at the plant's operating point.
+
+    The loop runs in deviation variables; a model file's ``output_nominal``, ``input_nominal`` and
+    ``disturbance_nominal`` say where those deviations are taken from, and every analysis subtracts them from
+    the logged values.  So a log written for the analysis carries them: ``r + output_nominal``, ``y +
+    output_nominal``, ``u + input_nominal``, ``dv + disturbance_nominal`` (the prediction error, the model's
+    output and the other internal signals stay as they are).  ``log`` itself when the plant has no operating
+    point (every nominal 0): the same arrays, bit for bit.
+
+    Parameters
+    ----------
+    log : ClosedLoopLog
+        A run of :func:`run_closed_loop` on ``plant``.
+    plant : PlantModel
+        Its plant (whose channels the log has).
+
+    Returns
+    -------
+    ClosedLoopLog
+    """
+    y0, u0, d0 = plant.output_nominal, plant.input_nominal, plant.disturbance_nominal
+    if not (np.any(y0) or np.any(u0) or np.any(d0)):
+        return log
+    return dataclasses.replace(log, r=log.r + y0 if np.any(y0) else log.r, y=log.y + y0 if np.any(y0) else log.y,
+                               u=log.u + u0 if np.any(u0) else log.u, dv=log.dv + d0 if np.any(d0) else log.dv)
+
+
 @dataclasses.dataclass(frozen=True)
 class ExcitationOptions:
     """Setpoint PRBS and optional input dither of a closed-loop experiment.
