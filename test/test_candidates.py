@@ -10,6 +10,7 @@ the regression alone; the full Monte-Carlo is bench.candidates_mc.
 
 import dataclasses
 import json
+import re
 
 import numpy as np
 import pytest
@@ -430,6 +431,27 @@ def test_no_candidate_regression_row_reaches_across_a_gap(effect_run):
     rep = detect(effect_run.model, gappy, AnalysisOptions(repair=False), candidates=[name])
     assert rep.candidates.located == full.candidates.located and full.candidates.located
     assert not any("contiguous" in w for w in rep.warnings)
+
+
+def test_spans_too_short_for_the_candidate_test_make_the_candidates_unusable(effect_run):
+    """An outside check: a sample missing every 20 rows left spans of 19 samples, shorter than the candidate
+    test's lags; the element tests ran (the analysis without candidates passed) and the cause tests ended in a
+    traceback ("need at least one array to concatenate"), or at 25 rows in a numerical breakdown.  The candidates
+    are now unusable, with the rows the spans give and those needed, and the rest of the analysis is that without
+    candidates."""
+    data = effect_run.data
+    name = next(iter(data.extra))
+    for every in (20, 25):
+        gappy = data.take(np.flatnonzero(np.arange(data.n_samples) % every != every - 1))
+        rep = detect(effect_run.model, gappy, AnalysisOptions(repair=False), candidates=[name])
+        plain = detect(effect_run.model, gappy, AnalysisOptions(repair=False))
+        why = rep.candidates.unusable[name]
+        assert re.fullmatch(r"the spans between gaps give \d+ regression rows for its test \(a row needs the \d+ "
+                            r"samples before it in its span\), at least \d+ needed", why), why
+        assert rep.candidates.p_values == {} and rep.candidates.located == []
+        assert f"candidate {name} is unusable ({why}); it was not tested" in rep.warnings
+        assert [(e.output, e.input, e.p_value) for e in rep.elements if e.role != "candidate"] == \
+            [(e.output, e.input, e.p_value) for e in plain.elements]
 
 
 def test_a_candidates_null_detectable_change_is_said(effect_report):

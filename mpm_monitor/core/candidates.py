@@ -302,6 +302,15 @@ def _long_segments(segments, start: int):
     return [(a, b) for a, b in segments if b - a > start]
 
 
+def _row_count(n: int, start: int, segments=None) -> int:
+    """Regression rows of :func:`_rows` over ``n`` samples: ``n - start``, or with gaps those of the segments
+    longer than ``start`` (at least 0)."""
+    long = _long_segments(segments, start)
+    if long is None:
+        return max(n - start, 0)
+    return sum(b - a - start for a, b in long)
+
+
 def _rss(X: np.ndarray, y: np.ndarray):
     """Residual sum of squares of the least-squares fit of ``y`` on ``X``, the rank of ``X``, the
     coefficients and their unscaled variances ``diag((X'X)^-1)`` (one QR; ``lstsq`` and the
@@ -433,7 +442,7 @@ def exogeneity_test(c: np.ndarray, u: np.ndarray, input_names: Sequence[str], n_
     c = c - c.mean()
     moving = np.flatnonzero(moving_columns(u)).tolist()
     start = max(order, n_lag)
-    if not moving or c.shape[0] - start < 3 * (order + n_lag * len(moving)) + 10:
+    if not moving or _row_count(c.shape[0], start, segments) < 3 * (order + n_lag * len(moving)) + 10:
         return ExogeneityTest(1.0, float("nan"), ())
     y = _rows(c, start, segments)
     own = _lags(c[:, None], order, start, segments)
@@ -691,6 +700,17 @@ def run_candidate_tests(model: PlantModel, data: LoggedData, chosen: CandidateCh
     alpha, n_lag = options.alpha, layout.n_lag_u
     u = np.asarray(data.u, dtype=float)
     segments = data.segments if len(data.segments) > 1 else None   # no regression row reaches across a gap
+    moving = np.flatnonzero(moving_columns(columns)).tolist()
+    start = max(layout.start, CANDIDATE_AR_ORDER + n_lag)
+    # The cause test regresses an output's error on its own lags, the moving columns' and the candidate's: data
+    # whose spans between gaps are shorter than its lags give it too few rows, or none (the tests broke down).
+    rows, n_params = _row_count(d.shape[0], start, segments), 1 + options.na + (len(moving) + 1) * n_lag
+    if chosen.names and rows < 3 * n_params + 10:
+        where = "the spans between gaps give" if segments is not None else "the window gives"
+        why = (f"{where} {rows} regression rows for its test (a row needs the {start} samples before it"
+               f"{' in its span' if segments is not None else ''}), at least {3 * n_params + 10} needed")
+        chosen = dataclasses.replace(chosen, names=(), values=np.zeros((d.shape[0], 0)),
+                                     unusable={**{name: why for name in chosen.names}, **chosen.unusable})
     exo = {name: exogeneity_test(chosen.values[:, k], u, model.inputs, n_lag, alpha, segments=segments)
            for k, name in enumerate(chosen.names)}
     names = list(chosen.names)
@@ -701,10 +721,8 @@ def run_candidate_tests(model: PlantModel, data: LoggedData, chosen: CandidateCh
     idx = [names.index(n) for n in causes]
     w = np.column_stack([whiten(chosen.values[:, k], segments=segments) for k in idx]) if idx else \
         np.zeros((d.shape[0], 0))
-    moving = np.flatnonzero(moving_columns(columns)).tolist()
-    start = max(layout.start, CANDIDATE_AR_ORDER + n_lag)
     tests = {}
-    for i in range(model.n_outputs):
+    for i in range(model.n_outputs if causes else 0):
         if i in still_outputs:
             continue
         spread = None if output_spread is None else float(output_spread[i])
