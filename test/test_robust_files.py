@@ -1104,6 +1104,57 @@ def test_two_outputs_onto_one_path_are_refused_before_any_work(files, capsys, tm
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("name, role", [("report.html", "--model"), ("residuals.png", "--data"),
+                                        ("report.html", "--json"), ("steps.png", "--repair-out"),
+                                        ("detectability.png", "--json")])
+def test_a_report_directory_that_would_overwrite_an_input_or_an_output_is_refused(files, capsys, tmp_path, name, role):
+    """An outside check: ``--model DIR/report.html --data DIR/residuals.png --report DIR`` replaced both inputs with
+    the HTML and a figure, and ``--json DIR/report.html --report DIR`` the JSON report, with exit 0 and no word (a
+    stale steps.png or detectability.png is removed, as bad)."""
+    report = tmp_path / "rep"
+    report.mkdir()
+    target = report / name
+    argv = ["analyze", "--model", str(files["model"]), "--data", str(files["csv"]), "--report", str(report)]
+    if role in ("--model", "--data"):
+        shutil.copy(files["model" if role == "--model" else "csv"], target)
+        argv[argv.index(role) + 1] = str(target)
+    else:
+        argv += [role, str(target)]
+    before = target.read_bytes() if target.exists() else None
+    code, out, err = _run_cli(capsys, argv)
+    kind = "input" if role in ("--model", "--data") else "output"
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert err.strip() == (f"error: --report {report}: writes {name} there, which is the {role} {kind} {target}: "
+                           f"expected a report directory apart from the inputs and the other outputs"), err
+    assert (target.read_bytes() if target.exists() else None) == before
+    assert sorted(p.name for p in report.iterdir()) == ([name] if before is not None else [])
+
+
+def test_a_report_directory_in_the_bag_is_refused(files, capsys, tmp_path):
+    """``--json BAG/x.json`` was refused ("lies in the --bag input"), ``--report BAG`` wrote six files into it."""
+    bag = tmp_path / "bag"
+    shutil.copytree(files["bag"], bag)
+    listing = sorted(p.name for p in bag.iterdir())
+    for report in (bag, bag / "report"):
+        code, out, err = _run_cli(capsys, ["analyze", "--model", str(files["model"]), "--bag", str(bag),
+                                           "--report", str(report)])
+        where = "is" if report == bag else "lies in"
+        assert code == 2 and err.strip() == (f"error: --report {report}: {where} the --bag input {bag}: expected an "
+                                             f"output path apart from the inputs"), err
+        assert sorted(p.name for p in bag.iterdir()) == listing
+
+
+def test_a_report_writes_only_the_files_the_cli_checks(files, tmp_path):
+    """The names :func:`_report_apart` checks are every file :func:`write_report` writes."""
+    from mpm_monitor.io.report import REPORT_FILES
+
+    report = tmp_path / "rep"
+    code = cli_main(["analyze", "--model", str(files["model"]), "--data", str(files["csv"]), "--report", str(report)])
+    assert code == 0
+    written = {p.name for p in report.iterdir()}
+    assert written <= set(REPORT_FILES) and "report.html" in written and "residuals.png" in written
+
+
 @pytest.mark.parametrize("k, value", [(5, 1e308), (120, -1e41)])
 def test_a_single_sentinel_value_is_named_as_one_not_as_a_loop_that_diverged(files, capsys, tmp_path, k, value):
     """One output value of 1e308 early in a log was reported as "the loop diverged ... analyze the samples logged

@@ -265,6 +265,7 @@ def _cmd_analyze(args) -> int:
             _check_output_file(path, what)
     if args.report:
         _check_output_directory(args.report, "--report")
+        _report_apart(args)
     if args.data is not None and args.topics is not None:
         raise InputError("--topics: names the topics of a --bag; a --data CSV names its channels in its header")
     if args.repair_out and args.repair_out != "-" and not getattr(args, "repair", True):
@@ -723,6 +724,29 @@ def _distinct_outputs(outputs) -> None:
             if _resolved(path) == _resolved(before):
                 raise InputError(f"{flag} {path}: the same path as {other}: expected another path (the second "
                                  f"would overwrite the first)")
+
+
+def _report_apart(args) -> None:
+    """Refuse a ``--report`` directory that would overwrite an input or another output: one of the files it writes
+    (or removes, stale: :data:`~mpm_monitor.io.report.REPORT_FILES`) is the ``--model`` or ``--data`` input or the
+    ``--json`` or ``--repair-out`` output, or the directory lies in the ``--bag`` input.  Those replaced the input
+    or the JSON report with the HTML or a figure, without a word.
+
+    Raises
+    ------
+    InputError
+    """
+    from ..io.report import REPORT_FILES
+
+    _not_an_input(args.report, "--report", {"--bag": args.bag})
+    others = {"--model": args.model, "--data": args.data, "--json": args.json_out, "--repair-out": args.repair_out}
+    for name in REPORT_FILES:
+        target = _resolved(Path(args.report) / name)
+        for flag, given in others.items():
+            if given and given != "-" and _resolved(given) == target:
+                role = "input" if flag in ("--model", "--data") else "output"
+                raise InputError(f"--report {args.report}: writes {name} there, which is the {flag} {role} {given}: "
+                                 f"expected a report directory apart from the inputs and the other outputs")
 
 
 def _not_an_input(path: str, flag: str, inputs: dict) -> None:

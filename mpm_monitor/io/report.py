@@ -26,6 +26,10 @@ from ..core.model import PlantModel
 from . import plots
 
 REPORT_FILE = "report.html"
+#: The figures :func:`write_report` writes beside it (or removes, stale, where this report has none of them).
+REPORT_FIGURES = ("sdelta.png", "elements.png", "detectability.png", "steps.png", "residuals.png")
+#: Every file a report writes into its directory.
+REPORT_FILES = (REPORT_FILE,) + REPORT_FIGURES
 
 _CSS = """
 body { font-family: sans-serif; margin: 2em auto; max-width: 70em; color: #222; }
