@@ -113,6 +113,28 @@ def test_a_gap_longer_than_max_gap_is_named_louder_and_short_spans_are_left_out(
     assert [r.df for r in quiet.rows] == [r.df for r in rep.rows]        # the same analysis
 
 
+def test_short_gaps_missing_more_samples_than_the_log_holds_are_refused(case_32):
+    """An outside check: ``--max-gap 1000000`` on a log of 1,000 rows whose t jumps once by a million samples ran
+    out of memory (the model runs through a short gap on its grid, and the response to the gap's unknown columns
+    is fitted per missing sample); at 1e8 the kernel killed it at 23 GB.  Short gaps that miss more samples than the
+    log holds are refused in one line; the same data with the default max_gap (the gap splits them) analyse."""
+    case, data = case_32
+    part = data.take(np.arange(1000))
+    far = dataclasses.replace(part, t=part.t + np.where(np.arange(1000) >= 500, 1e6 * part.sample_time, 0.0))
+    with pytest.raises(DataFileError) as info:
+        detect(case.model, far, AnalysisOptions(repair=False, max_gap=10**6))
+    assert str(info.value) == (
+        f"{far.source or 'data'}: 1000000 samples missing in 1 gap of at most 1000000 samples (max_gap), more than "
+        f"the 1000 logged: the model would run through them with its columns held; expected a max_gap below "
+        f"1000000 samples (a longer gap splits the data)")
+    rep = detect(case.model, far, DETECT)
+    assert rep.gaps["samples_missing"] == 10**6 and rep.samples == 1000
+    # Short gaps that miss fewer samples than the log holds still run through.
+    detect(case.model, far, AnalysisOptions(repair=False, max_gap=10**6 - 1))      # the gap is long: split
+    few = _drop(data, list(range(1000, 1400)))
+    assert detect(case.model, few, AnalysisOptions(repair=False, max_gap=400)).gaps["samples_missing"] == 400
+
+
 def test_too_few_rows_between_gaps_refused_in_one_line(case_32):
     case, data = case_32
     with pytest.raises(DataFileError, match=r"regression rows from 0 of 300 spans between 299 gaps .* need at least") \

@@ -242,6 +242,7 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
     restarts = fill = None
     if plan is not None:          # data with gaps: the segments long enough for a regression row, stacked
         check_gap_rows(plan, layout, options, src, model, notes=data.notes)
+        check_gap_run(plan, data.n_samples, options, src)
         # The segments too short for a row are left out, but the model runs on their logged columns.
         fill = plan.left_out_fill(data)
         r, u, y, dv = (plan.take(x) for x in (r, u, y, dv))
@@ -559,6 +560,31 @@ def detect_unless_coloured(model: PlantModel, data: LoggedData, options: Analysi
     """
     return _guarded(model, data, options, signals, regressions, previous, candidates, detectability,
                     unless_coloured=True, settle=settle, beside=beside)
+
+
+def check_gap_run(plan, n_logged: int, options, src: str) -> None:
+    """Refuse data whose short gaps (at most ``plan.max_gap`` samples, which the model runs through with its
+    columns held and the response to their unknown values fitted, :func:`~mpm_monitor.core.signals.segment_signals`)
+    miss more samples than the ``n_logged`` samples logged.
+
+    The model's run and that fit grow with the samples run through, not with the log: ``--max-gap 1000000`` on a
+    log of 1,000 rows with one gap of a million samples ran out of memory (at 1e8, 23 GB before the kernel
+    killed it), where a gap longer than ``max_gap`` splits the data at no cost.  By default (``max_gap`` the
+    tests' longest lag) no data the tests accept reaches the bound.
+
+    Raises
+    ------
+    DataFileError
+    """
+    short = plan.gap_lengths[plan.gap_lengths <= plan.max_gap]
+    through = int(short.sum())
+    if through <= n_logged:
+        return
+    bound = "max_gap" if options.max_gap is not None else "max_gap, by default the tests' longest lag"
+    raise DataFileError(f"{src}: {through} samples missing in {short.size} gap{'s' if short.size != 1 else ''} of at "
+                        f"most {plan.max_gap} samples ({bound}), more than the {n_logged} logged: the model would run "
+                        f"through them with its columns held; expected a max_gap below {int(short.max())} samples (a "
+                        f"longer gap splits the data)")
 
 
 def check_gap_rows(plan, layout, options, src: str, model: PlantModel, notes=()) -> None:
