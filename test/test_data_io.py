@@ -4,6 +4,8 @@ Every bad file must raise :class:`DataFileError` with a one-line message naming 
 where there is one, the line and the column.
 """
 
+import re
+
 import numpy as np
 import pytest
 
@@ -198,6 +200,48 @@ def test_an_endless_binary_input_is_refused_before_it_is_read_whole():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, preexec_fn=cap)
     assert res.returncode == 1 and "DataFileError: /dev/zero: contains NUL bytes: expected a CSV text file" in \
         res.stderr, res.stderr[-500:]
+
+
+def test_an_endless_stream_that_is_not_utf8_is_refused_before_it_is_read_whole():
+    """An outside check: ``--data /dev/urandom`` was read at about 250 MB/s until the memory ran out (its start is
+    not UTF-8 and holds no NUL byte that would refuse it at once; the reader's fallback for a Latin-1 header then
+    read the stream again).  Refused at once, as it would be read whole: the first byte that is not UTF-8, and its
+    line.  A child with its address space capped at 1.5 GB, so that the old behaviour fails instead."""
+    import resource
+    import subprocess
+    import sys
+
+    def cap():
+        resource.setrlimit(resource.RLIMIT_AS, (1_500_000_000, 1_500_000_000))
+
+    code = ("from mpm_monitor.io.csv_log import read_csv\n"
+            "from mpm_monitor.core.model import PlantModel\n"
+            "m = PlantModel(sample_time=1.0, inputs=('u1',), outputs=('y1',), gain=[[1.0]], time_constant=[[5.0]],"
+            " delay=[[1.0]])\n"
+            "read_csv('/dev/urandom', m)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, preexec_fn=cap)
+    assert res.returncode == 1 and re.search(r"DataFileError: /dev/urandom: not UTF-8 text \(byte \d+\) on line \d+, "
+                                             r"character \d+: expected a CSV file", res.stderr), res.stderr[-500:]
+
+
+def test_a_piped_log_not_utf8_after_its_start_gets_the_message_of_a_file(tmp_path):
+    """The same log through a pipe and as a file: the same refusal (a stream's start is looked at first)."""
+    import subprocess
+    import sys
+
+    good = _text([HEADER] + _rows())
+    path = tmp_path / "bad.csv"
+    path.write_bytes(good.encode() + b"1,2,\xff\n")
+    with pytest.raises(DataFileError) as info:
+        read_csv(path, _model())
+    code = ("import sys\nfrom mpm_monitor.io.csv_log import read_csv\n"
+            "from mpm_monitor.core.model import PlantModel\n"
+            "m = PlantModel(sample_time=1.0, inputs=('u1', 'u2', 'u3'), outputs=('y1', 'y2'), gain=[[1.0, 2.0, 0.0], "
+            "[0.5, 0.0, 3.0]], time_constant=[[10.0, 5.0, 0.0], [3.0, 0.0, 8.0]], delay=[[1.0, 2.0, 0.0], "
+            "[0.0, 0.0, 1.0]])\n"
+            "try:\n    read_csv('/dev/stdin', m)\nexcept Exception as e:\n    print(e)\n")
+    res = subprocess.run([sys.executable, "-c", code], input=path.read_bytes(), capture_output=True, timeout=120)
+    assert res.stdout.decode().strip() == str(info.value).replace(str(path), "/dev/stdin"), res
 
 
 def test_line_numbers_count_blank_lines(tmp_path):

@@ -209,8 +209,12 @@ BAD_NAME_CHAR = "\ufffd"
 def _text_with_a_foreign_header(path):
     """The file's text when only its header line has bytes that are not UTF-8 (replaced by
     :data:`BAD_NAME_CHAR`); None otherwise.  Extra columns are ignored, so a Latin-1 name of one of them
-    does not refuse the file; a needed column so named is then missing, and refused as such."""
+    does not refuse the file; a needed column so named is then missing, and refused as such.  A stream that is
+    not a regular file (a pipe, a device) is not read again: None (its bytes are gone, and ``/dev/urandom``
+    would be read until the memory ran out)."""
     try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            return None
         raw = gunzipped(Path(path).read_bytes(), path, DataFileError, "a CSV file")
     except (OSError, DataFileError):
         return None

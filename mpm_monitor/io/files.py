@@ -77,8 +77,9 @@ def read_text(path, error_cls, kind: str, expected: str, encoding: str = "utf-8"
     nul_error : type, optional
         Raised (``"PATH: contains NUL bytes"``) when the first :data:`NUL_PEEK_BYTES` bytes of a stream that is not
         a regular file (a device, a pipe) hold a NUL byte, are UTF-8 and not gzip, before the rest is read: a
-        device such as ``/dev/zero`` never ends, and would be read until the memory runs out.  A regular file,
-        or bytes that are not UTF-8, are read whole and refused as before (by the caller, or as not UTF-8).
+        device such as ``/dev/zero`` never ends, and would be read until the memory runs out.  Such a start that
+        is neither UTF-8 nor gzip (``/dev/urandom``) is refused then too, as not UTF-8 (the message it would get
+        once read whole).  A regular file is read whole and refused as before (by the caller, or as not UTF-8).
     """
     path = Path(path)
     try:
@@ -90,6 +91,10 @@ def read_text(path, error_cls, kind: str, expected: str, encoding: str = "utf-8"
                 raw = f.read(NUL_PEEK_BYTES if limit < 0 else min(NUL_PEEK_BYTES, limit))
                 if b"\x00" in raw and not raw.startswith(GZIP_MAGIC) and _utf8_start(raw):
                     raise nul_error(f"{path}: contains NUL bytes")
+                if not raw.startswith(GZIP_MAGIC) and not _utf8_start(raw):
+                    # Refused now as it would be once read whole (the same first bad byte): /dev/urandom, an
+                    # endless binary stream, was read until the memory ran out.
+                    _decoded(raw, encoding, path, error_cls, expected)
                 if limit < 0 or len(raw) < limit:
                     raw += f.read(limit if limit < 0 else limit - len(raw))
     except OSError as exc:
@@ -98,6 +103,11 @@ def read_text(path, error_cls, kind: str, expected: str, encoding: str = "utf-8"
         raise error_cls(f"{path}: longer than {max_bytes:,} bytes: expected {expected}")
     if gzip_ok:
         raw = gunzipped(raw, path, error_cls, expected)
+    return _decoded(raw, encoding, path, error_cls, expected)
+
+
+def _decoded(raw: bytes, encoding: str, path, error_cls, expected: str) -> str:
+    """``raw`` decoded, or ``error_cls`` naming the file, the first byte that is not UTF-8 and its line."""
     try:
         return raw.decode(encoding)
     except UnicodeDecodeError as exc:
