@@ -1144,6 +1144,33 @@ def test_a_report_directory_in_the_bag_is_refused(files, capsys, tmp_path):
         assert sorted(p.name for p in bag.iterdir()) == listing
 
 
+def test_an_output_through_a_symbolic_link_updates_the_file_it_points_to(files, capsys, tmp_path):
+    """An outside check: ``--model model.yaml --repair-out model.yaml`` (an update in place), ``model.yaml`` a link
+    to ``releases/v3/model.yaml``, replaced the link with a regular file and left the release's model as it was;
+    ``--json`` and ``simulate --csv`` through a link did the same."""
+    release = tmp_path / "releases" / "v3"
+    release.mkdir(parents=True)
+    shutil.copy(files["model"], release / "model.yaml")
+    link = tmp_path / "model.yaml"
+    link.symlink_to(Path("releases") / "v3" / "model.yaml")
+    (release / "report.json").write_text("old", encoding="utf-8")
+    json_link = tmp_path / "report.json"
+    json_link.symlink_to(release / "report.json")
+    before = (release / "model.yaml").stat().st_ino
+    code, out, err = _run_cli(capsys, ["analyze", "--model", str(link), "--data", str(files["csv"]),
+                                       "--repair-out", str(link), "--json", str(json_link)])
+    assert code == 0, err
+    assert link.is_symlink() and json_link.is_symlink()
+    assert (release / "report.json").read_text(encoding="utf-8").startswith("{")
+    assert (release / "model.yaml").stat().st_ino != before          # replaced (renamed over), through the link
+    csv_target = release / "log.csv"
+    csv_link = tmp_path / "log.csv"
+    csv_link.symlink_to(csv_target)                     # a link to a file not made yet
+    code, out, err = _run_cli(capsys, ["simulate", "--case", "3.2", "--samples", "300", "--csv", str(csv_link)])
+    assert code == 0, err
+    assert csv_link.is_symlink() and csv_target.read_text(encoding="utf-8").startswith("t,")
+
+
 def test_a_report_writes_only_the_files_the_cli_checks(files, tmp_path):
     """The names :func:`_report_apart` checks are every file :func:`write_report` writes."""
     from mpm_monitor.io.report import REPORT_FILES

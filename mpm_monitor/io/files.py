@@ -129,7 +129,9 @@ def replace_file(path, write, fsync: bool = False) -> Path:
     ``str``), which is then renamed over ``path``, so a reader of the file sees either the old one or the whole
     new one, and a write cut short (Ctrl-C, a full disk) leaves the old file.  The mode of an existing file is
     kept (0644 for a new one); ``fsync`` flushes the new file to the disk before the rename.  A path that exists
-    and is not a regular file (``/dev/stdout``, a pipe) is written as it is.
+    and is not a regular file (``/dev/stdout``, a pipe) is written as it is.  A symbolic link is followed: the
+    file it points to is replaced and the link kept (``--repair-out model.yaml``, a link into a release
+    directory, replaced the link with a file and left the release's model as it was).
 
     Returns
     -------
@@ -145,6 +147,8 @@ def replace_file(path, write, fsync: bool = False) -> Path:
     import tempfile
 
     target = Path(path).expanduser().absolute()
+    if target.is_symlink():
+        target = Path(os.path.realpath(target))     # the file the link points to (a loop: the path as given, refused)
     if target.is_dir():
         raise IsADirectoryError(21, "is a directory", str(target))
     if target.exists() and not target.is_file():
