@@ -6,6 +6,7 @@ and the report says what the gaps cost (``samples``, the JSON ``gaps`` object, a
 
 import dataclasses
 import json
+import re
 
 import numpy as np
 import pytest
@@ -133,6 +134,23 @@ def test_short_gaps_missing_more_samples_than_the_log_holds_are_refused(case_32)
     detect(case.model, far, AnalysisOptions(repair=False, max_gap=10**6 - 1))      # the gap is long: split
     few = _drop(data, list(range(1000, 1400)))
     assert detect(case.model, few, AnalysisOptions(repair=False, max_gap=400)).gaps["samples_missing"] == 400
+
+
+@pytest.mark.parametrize("method, what", [("pcorr", "the partial correlation test"),
+                                          ("xcorr", "the cross-correlation test")])
+def test_a_baseline_method_on_spans_too_short_names_the_data_and_the_spans(case_32, method, what):
+    """An outside check: ``--method pcorr`` on a log with a sample missing every 20 rows said "d and u: the partial
+    correlation test ... needs at least 117 samples, got 20" (no file; ``d and u`` the code's names; 20 the longest
+    span, where the log holds 2,850 samples)."""
+    case, data = case_32
+    gappy = data.take(np.flatnonzero(np.arange(data.n_samples) % 20 != 19))
+    with pytest.raises(DataFileError) as info:
+        detect(case.model, gappy, AnalysisOptions(repair=False, method=method))
+    msg = str(info.value)
+    assert msg.startswith(f"{gappy.source or 'data'}: {what} with ") and "d and u" not in msg, msg
+    assert re.search(r"needs at least \d+ samples, got 19 in the longest span between the gaps \(150 spans, 2850 "
+                     r"samples used\): its correlations need one contiguous span \(--method arx stacks the spans\)$",
+                     msg), msg
 
 
 def test_too_few_rows_between_gaps_refused_in_one_line(case_32):

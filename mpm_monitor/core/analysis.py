@@ -363,10 +363,18 @@ def _detect(model: PlantModel, data: LoggedData, options: AnalysisOptions, signa
                                         whiteness=None if colour is None else colour.whiteness,
                                         meanwhile=(lambda: run_row_test(1)) if overlap else None)
     elif plan is None:
-        element_test = baseline_element_test(model, columns, sig.d, options)
+        try:
+            element_test = baseline_element_test(model, columns, sig.d, options)
+        except TooFewSamples as exc:
+            raise TooFewSamples(f"{src}: {str(exc).removeprefix('d and u: ')}") from None
     else:                         # the baselines' correlations need one contiguous span: the longest
         a, b = max(plan.local_segments, key=lambda s: s[1] - s[0])
-        element_test = baseline_element_test(model, columns[a:b], sig.d[a:b], options)
+        try:
+            element_test = baseline_element_test(model, columns[a:b], sig.d[a:b], options)
+        except TooFewSamples as exc:
+            raise TooFewSamples(f"{src}: {str(exc).removeprefix('d and u: ')} in the longest span between the gaps "
+                                f"({len(plan.segments)} spans, {n} samples used): its correlations need one contiguous "
+                                f"span (--method arx stacks the spans)") from None
         later_warnings.append(f"the {options.method} element test ran on the longest span without a gap "
                               f"({b - a} samples)")
     row_test = row_tests[0]

@@ -58,7 +58,7 @@ import numpy as np
 from scipy import linalg
 
 from .arx import lag_matrix, least_squares_ar
-from .errors import ConfigurationError, InputError
+from .errors import ConfigurationError, InputError, TooFewSamples
 from .filters import lfilter
 from .statistics import chi2_tail, f_tail, holm_adjust
 
@@ -186,7 +186,7 @@ def _auto_lag(lag, n, largest_fitting, warnings):
 
 def _require_samples(n, needed, what):
     if n < needed:
-        raise InputError(f"d and u: {what} needs at least {needed} samples, got {n}")
+        raise TooFewSamples(f"d and u: {what} needs at least {needed} samples, got {n}")
 
 
 # --------------------------------------------------------------------------- building blocks
