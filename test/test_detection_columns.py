@@ -381,3 +381,27 @@ def test_measured_disturbances_that_move_together_are_not_told_to_dither_the_inp
     assert "no dither of the inputs separates them" in moves and "add a small dither" not in moves
     assert any(w.startswith("row y1: measured disturbances dv1, dv2 jointly explain part of its prediction error")
                for w in report.warnings)
+
+
+def test_a_measured_disturbance_that_moves_with_a_combination_of_the_inputs_is_said_so():
+    """An outside check: a fat 1x3 loop with a measured disturbance fed forward moves its inputs in the span of the
+    setpoint's and the disturbance's responses, so the disturbance is a (dynamic) combination of the inputs and its
+    element cannot be told from theirs.  The warnings read "{u1, u2, u3}; {feed} move together" (a group of one)
+    and "measured disturbances feed jointly explain ...".  Now the disturbance moves "with a combination of the
+    other columns", and explains part of the error alone."""
+    kw = dict(sample_time=1.0, inputs=("u1", "u2", "u3"), outputs=("y1",), disturbances=("feed",),
+              time_constant=[[5.0, 10.0, 3.0, 8.0]], delay=[[1.0, 3.0, 2.0, 2.0]])
+    model = PlantModel(gain=[[1.0, -0.5, 0.7, 0.5]], **kw)
+    plant = PlantModel(gain=[[1.0, -0.5, 0.7, 1.0]], **kw)
+    data = run_closed_loop(plant, model, 5000, seed=1).as_logged_data()
+    rep = detect(model, data, AnalysisOptions(repair=False))
+    feed = [e for e in rep.elements if e.input == "feed"][0]
+    assert feed.ambiguous
+    collinear = [w for w in rep.warnings if "move together" in w]
+    assert len(collinear) == 1 and collinear[0].startswith(
+        "inputs and measured disturbances {u1, u2, u3} move together, and feed moves with a combination of the "
+        "other columns (largest variance inflation "), collinear
+    assert "{feed}" not in collinear[0]
+    assert any(w.startswith("row y1: measured disturbance feed explains part of its prediction error (p=")
+               and w.endswith("but moves with a combination of the other columns: it cannot be told apart from them "
+                              "in these data") for w in rep.warnings), rep.warnings

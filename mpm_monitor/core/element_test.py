@@ -349,8 +349,7 @@ def arx_element_test(model: PlantModel, rows: list, design: InputDesign, regress
     explained = _confirm_given_responses(model, estimates, keys, elements, alpha) if confirm else []
     kept = _confirm_with_tails(model, rows, design, regressions, options, estimates, keys, elements, output_spread)
     warnings = explained \
-        + [f"row {h.output}: {_columns_word(model, h.inputs)} {', '.join(h.inputs)} jointly explain part of its "
-           f"prediction error (p={h.p_value:.2g}) but cannot be told apart from these data" for h in group_hits] \
+        + [_group_hit_warning(model, h) for h in group_hits] \
         + kept + undetermined_noise_warnings(model, noise)
     responses = {k: e.response for k, e in estimates.items() if e.response is not None}
     if whiteness is None:
@@ -482,3 +481,14 @@ def baseline_element_test(model: PlantModel, u: np.ndarray, d: np.ndarray, optio
                                           p_value_raw=p_raw if np.isfinite(p_raw) else None,
                                           statistic=float(res.statistic[i, j]), ambiguous=amb))
     return ElementTest(elements=elements, warnings=list(res.warnings or []))
+
+
+def _group_hit_warning(model: PlantModel, h: "GroupHit") -> str:
+    """The warning of a group of columns that explains part of a row's prediction error (:class:`GroupHit`); a group
+    of one column (it moves with a combination of the other columns' lags) is said as such."""
+    if len(h.inputs) == 1:
+        return (f"row {h.output}: {_columns_word(model, h.inputs)[:-1]} {h.inputs[0]} explains part of its prediction "
+                f"error (p={h.p_value:.2g}) but moves with a combination of the other columns: it cannot be told apart "
+                f"from them in these data")
+    return (f"row {h.output}: {_columns_word(model, h.inputs)} {', '.join(h.inputs)} jointly explain part of its "
+            f"prediction error (p={h.p_value:.2g}) but cannot be told apart from these data")

@@ -117,7 +117,15 @@ class InputDesign:
                 else:
                     head = what + ", ".join(g[0] for g in self.groups) + " each move with the other columns "
             else:
-                head = what + "; ".join("{" + ", ".join(g) + "}" for g in self.groups) + " move together "
+                # A column alone in its group moves with a combination of the others' lags, not with one group
+                # (its dependence is dynamic): "{feed}" read as a group of one that moves together.
+                together = [g for g in self.groups if len(g) > 1]
+                alone = [g[0] for g in self.groups if len(g) == 1]
+                head = what + "; ".join("{" + ", ".join(g) + "}" for g in together) + " move together"
+                if alone:
+                    head += f", and {', '.join(alone)} {'moves' if len(alone) == 1 else 'each move'} with a " \
+                            f"combination of the other columns"
+                head += " "
             if grouped <= self._disturbances:      # measured disturbances alone: no dither of the inputs helps
                 why = ("the controller does not move them, so their elements cannot be told apart from these data "
                        "and no dither of the inputs separates them: data where they move apart would")
