@@ -185,6 +185,28 @@ def test_the_repair_runs_on_every_span_between_the_gaps(case_32):
     assert rep.repair["changes"] and all(c["applied"] for c in rep.repair["changes"])
 
 
+def test_a_lag_more_on_data_with_gaps_counts_its_free_response_in_every_segment():
+    """An outside check: an element the model lacks (a first-order effect of a logged channel, tested as a
+    candidate), repaired from a log with 1 % of its samples dropped, came out with ``time_constant2`` 0 -> 0.1086 s,
+    the fit's bound, on 10 of 10 records (0 of 10 whole).  A lag at the bound has a free response that is an
+    impulse at each segment's first sample: about 50 nuisance parameters that took those samples out of the cost,
+    which the form's likelihood-ratio test counted as one.  It now counts a parameter per segment beyond the first."""
+    from mpm_monitor.core.model import PlantModel
+
+    kw = dict(sample_time=1.0, inputs=("u1", "u2"), outputs=("y1", "y2"))
+    model = PlantModel(gain=[[1.0, 0.4], [0.3, 0.8]], time_constant=[[10, 15], [12, 8]], delay=[[2, 3], [1, 2]], **kw)
+    plant = PlantModel(gain=[[1.0, 0.4, 0.8], [0.3, 0.8, 0.0]], time_constant=[[10, 15, 20], [12, 8, 1]],
+                       delay=[[2, 3, 4], [1, 2, 0]], disturbances=("feed",), **kw)
+    full = run_closed_loop(plant, model, 5000, seed=1).as_logged_data()
+    data = dataclasses.replace(full, dv=np.zeros((5000, 0)), disturbances=(), extra={"feed": full.dv[:, 0]})
+    drops = np.flatnonzero(np.random.default_rng(1).random(5000) < 0.01)
+    rep = analyze(model, _drop(data, drops), AnalysisOptions(), candidates=["feed"])
+    (change,) = [c for c in rep.repair["changes"] if c["input"] == "feed"]
+    assert change["kind"] == "missing" and change["applied"]
+    assert not change["after"].get("time_constant2"), change["after"]
+    assert abs(change["after"]["gain"] / 0.8 - 1) < 0.05 and abs(change["after"]["time_constant"] / 20 - 1) < 0.1
+
+
 def test_reported_errors_leave_out_what_the_state_a_gap_leaves_still_drives(case_32, monkeypatch):
     # The model runs through the gaps with its columns held; the plant received other columns there, and
     # the prediction error carries the model's response to their difference until it has settled.  The
