@@ -472,7 +472,11 @@ def test_simulate_takes_the_dither_of_a_reports_experiment(tmp_path):
     for text, match in (('{"experiment": {"dither": {"u2": true}}}', r"expected finite amplitudes >= 0, got u2=True"),
                         ('{"experiment": {"dither": {"u2": Infinity}}}', r"got u2=inf"),
                         ('{"experiment": {"dither": {"u2": 1' + "0" * 400 + '}}}', r"got u2=1000+\.\.\.$"),
-                        ("[" * 100000 + "]" * 100000, r"cannot read the report: arrays or objects nested too deeply")):
+                        ("[" * 100000 + "]" * 100000, r"cannot read the report: arrays or objects nested too deeply"),
+                        # an outside check: 1e300 was taken, and the log it wrote every reader refused
+                        ('{"experiment": {"dither": {"u2": 1e300}}}',
+                         r"key 'experiment.dither': expected amplitudes of at most 1e\+40 \(input units: a log "
+                         r"dithered beyond it cannot be analysed\), got u2=1e\+300$")):
         path.write_text(text)
         with pytest.raises(InputError, match=match) as refused:
             _experiment_dither(str(path), FAT_MODEL)

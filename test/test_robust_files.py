@@ -829,6 +829,7 @@ def test_analyze_good_input_runs(files, capsys):
     (["simulate", "--case", "3.2", "--samples", "100"], "--dither", "nan"),
     (["simulate", "--case", "3.2", "--samples", "100"], "--dither", "-0.1"),
     (["simulate", "--case", "3.2", "--samples", "100"], "--dither", "inf"),
+    (["simulate", "--case", "3.2", "--samples", "100"], "--dither", "1e300"),    # written, then refused by every reader
     (["reproduce", "--case", "3.2", "--samples", "100"], "--seed", "-1"),
     (["demo", "--case", "3.2"], "--seed", "-7"),
 ])
@@ -1255,6 +1256,19 @@ def test_simulate_writes_the_log_at_the_model_files_operating_point(capsys, tmp_
     code, out, err = _run_cli(capsys, ["analyze", "--model", str(model), "--data", str(logs["point"])])
     assert code == 0, err
     assert "offset" not in out + err and "located elements: none" in out, out + err
+
+
+def test_simulate_names_both_files_when_the_model_has_a_disturbance_the_plant_lacks(capsys, tmp_path):
+    """An outside check: "controller model: measured disturbance(s) feed not among the plant's (none)" named
+    neither file."""
+    model = _with_operating_point(tmp_path, "model.yaml")
+    plant = tmp_path / "plant.yaml"
+    save_model(PlantModel(sample_time=1.0, inputs=("u1",), outputs=("y1",), gain=[[2.0]], time_constant=[[10.0]],
+                          delay=[[2.0]]), plant)
+    code, out, err = _run_cli(capsys, ["simulate", "--plant", str(plant), "--model", str(model), "--csv",
+                                       str(tmp_path / "log.csv"), "--samples", "300"])
+    assert code == 2 and err.strip() == (f"error: --plant {plant} and --model {model}: controller model: measured "
+                                         f"disturbance(s) feed not among the plant's (none)"), err
 
 
 @pytest.mark.parametrize("plant_point, model_point, expected", [

@@ -93,13 +93,19 @@ def _path(text: str) -> str:
 
 
 def _amplitude(text: str) -> float:
-    """argparse type of ``--dither``: a finite number >= 0 (0: no dither)."""
+    """argparse type of ``--dither``: a finite number >= 0 (0: no dither), within the analysis's scale (a log
+    dithered by 1e300 was written, and every reader refuses it)."""
+    from ..core.logged_data import MAX_ANALYSIS_SCALE
+
     try:
         value = float(text)
     except ValueError:
         value = float("nan")
     if not value >= 0.0 or value == float("inf"):
         raise argparse.ArgumentTypeError(f"expected a finite number >= 0 (input units; 0: none), got {text!r}")
+    if value > MAX_ANALYSIS_SCALE:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_ANALYSIS_SCALE:g} (input units: a log dithered "
+                                         f"beyond it cannot be analysed), got {text!r}")
     return value
 
 
@@ -560,7 +566,9 @@ def _cmd_simulate(args) -> int:
     from ..io.csv_log import write_log_csv
     from ..io.model_file import load_model, save_model
     from ..sim.cases import simulation_case
-    from ..sim.closed_loop import ExcitationOptions, at_operating_point, operating_point_conflict, run_closed_loop
+    from ..core.errors import ConfigurationError
+    from ..sim.closed_loop import (ExcitationOptions, at_operating_point, controller_columns, operating_point_conflict,
+                                   run_closed_loop)
     from ..sim.excitation import PrbsOptions
     from ..sim.mpc import MpcOptions
 
@@ -593,6 +601,10 @@ def _cmd_simulate(args) -> int:
             got = (f"{plant.sample_time:g} s vs {model.sample_time:g} s" if what == "sample_time" else
                    f"{list(plant.inputs)} / {list(plant.outputs)} vs {list(model.inputs)} / {list(model.outputs)}")
             raise InputError(f"--plant {args.plant} and --model {args.model}: expected the same {what}, got {got}")
+        try:
+            controller_columns(plant, model)
+        except ConfigurationError as exc:       # named the files neither (an outside check)
+            raise InputError(f"--plant {args.plant} and --model {args.model}: {exc}") from None
         conflict = operating_point_conflict(plant, model)
         if conflict:
             raise InputError(f"--plant {args.plant} and --model {args.model}: expected the same operating point (the "
@@ -674,11 +686,18 @@ def _experiment_dither(path: str, model) -> tuple:
     if unknown:
         raise InputError(f"{path}: key 'experiment.dither': unknown input(s) {', '.join(unknown)}; the model's "
                          f"inputs are {', '.join(model.inputs)}")
+    from ..core.logged_data import MAX_ANALYSIS_SCALE
+
     bad = [k for k, v in dither.items() if not _finite_amplitude(v)]
     if bad:
         got = repr(dither[bad[0]])
         got = got if len(got) <= 40 else got[:37] + "..."
         raise InputError(f"{path}: key 'experiment.dither': expected finite amplitudes >= 0, got {bad[0]}={got}")
+    large = [k for k, v in dither.items() if float(v) > MAX_ANALYSIS_SCALE]
+    if large:       # a log dithered beyond it was written, and every reader refuses it
+        raise InputError(f"{path}: key 'experiment.dither': expected amplitudes of at most {MAX_ANALYSIS_SCALE:g} "
+                         f"(input units: a log dithered beyond it cannot be analysed), got {large[0]}="
+                         f"{float(dither[large[0]]):g}")
     return tuple(float(dither.get(name, 0.0)) for name in model.inputs)
 
 
