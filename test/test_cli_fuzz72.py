@@ -10,7 +10,8 @@ exit code 2, before any output file is written.
 - ``-`` as the output file of ``simulate --csv``, ``simulate --write-model`` and ``export --csv``: refused
   as for ``analyze --repair-out -``, not written as a file named ``-``.
 - The text summary of a method that estimates no delay (``--method xcorr``) does not print ``delay=None``.
-- ``simulate --dither 1e308``: a loop that overflowed is refused before its CSV is written.
+- ``simulate --dither 1e308``: a loop that overflowed is refused before its CSV is written (now the dither
+  itself, beyond 1e40).
 """
 
 import errno
@@ -22,6 +23,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from mpm_monitor.apps.cli import main as cli_main
@@ -265,28 +267,35 @@ def test_a_method_without_delays_prints_no_delay(logged, capsys, tmp_path, metho
 # 7. A simulated loop that overflows
 
 def test_a_dither_that_overflows_the_loop_is_refused_before_the_csv(tmp_path, capsys):
-    """--dither 1e308: exit 0, RMS nan printed and a CSV with inf cells before; now one line, the CSV not written
+    """--dither 1e308: exit 0, RMS nan printed and a CSV with inf cells before; then one line after the run (the
+    loop overflowed); now refused as a flag before the run (beyond 1e40 no reader takes the log), the CSV not written
     (an older one of that name left as it was)."""
     csv = tmp_path / "big.csv"
     csv.write_text("keep\n", encoding="utf-8")
-    code, out, err = _run_cli(capsys, ["simulate", "--case", "3.2", "--samples", "50", "--dither", "1e308",
-                                       "--csv", str(csv)])
-    assert code == 2 and out == "" and len(err.splitlines()) == 1, err
-    assert re.fullmatch(r"error: --dither 1e\+308: the simulated log holds values that are not finite from t = \d+ s "
-                        r"\(sample \d+ of 50\): the closed loop overflowed: expected a smaller dither amplitude\n",
-                        err), err
+    with pytest.raises(SystemExit) as exited:
+        cli_main(["simulate", "--case", "3.2", "--samples", "50", "--dither", "1e308", "--csv", str(csv)])
+    out, err = capsys.readouterr()
+    assert exited.value.code == 2 and out == "" and len(err.splitlines()) == 1, err
+    assert err.endswith("error: argument --dither: expected at most 1e+40 (input units: a log dithered beyond it "
+                        "cannot be analysed), got '1e308'\n"), err
     assert csv.read_text(encoding="utf-8") == "keep\n"
 
 
 def test_a_huge_finite_log_prints_a_finite_rms(tmp_path, capsys):
-    """--dither 1e200: the log is finite, but the squares of its prediction errors overflowed: RMS printed as inf."""
+    """--dither 1e200: the log is finite, but the squares of its prediction errors overflowed: RMS printed as inf.
+    Such a dither is refused now (above); the RMS of values that large is still finite, and the largest dither
+    taken prints one."""
+    from mpm_monitor.apps.cli import _rms
+
+    rms = _rms(np.array([[3e200, 1.0], [-4e200, 1.0]]))
+    assert np.all(np.isfinite(rms)) and abs(rms[0] / (12.5 ** 0.5 * 1e200) - 1) < 1e-12 and rms[1] == 1.0
     csv = tmp_path / "big2.csv"
-    code, out, err = _run_cli(capsys, ["simulate", "--case", "3.2", "--samples", "300", "--dither", "1e200",
+    code, out, err = _run_cli(capsys, ["simulate", "--case", "3.2", "--samples", "300", "--dither", "1e40",
                                        "--csv", str(csv)])
     assert code == 0 and err == "", err
     rms = dict(item.split("=") for item in out.strip().split("RMS: ")[1].split(", "))
     assert set(rms) == {"y1", "y2", "y3"} and all(0 <= float(v) < float("inf") for v in rms.values()), out
-    assert float(rms["y1"]) > 1e150, out
+    assert float(rms["y1"]) > 1e35, out
 
 
 @pytest.mark.parametrize("argv, flag", [

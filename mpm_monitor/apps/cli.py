@@ -655,7 +655,8 @@ def _rms(d):
     """The root mean square of every column of ``d``, without overflowing on values above 1e154."""
     import numpy as np
 
-    rms = np.sqrt(np.mean(d ** 2, axis=0))
+    with np.errstate(over="ignore"):        # the squares of values above 1e154 overflow: scaled below
+        rms = np.sqrt(np.mean(d ** 2, axis=0))
     if np.all(np.isfinite(rms)):
         return rms
     scale = np.max(np.abs(d), axis=0)
