@@ -192,6 +192,13 @@ def test_the_new_parameters_are_worded_with_their_keys():
         "  step response of (y1, u2) re-estimated: final value 1.2->1.6, dead time 3->5 s (mixed)")
     step["after"] = dict(step["before"], step_response=[0.0, 0.7, 1.2])
     assert describe_change(step) == "step response re-estimated: shape only (final value 1.2, dead time 3 s)"
+    # An outside check: a time-constant change read "final value 1.2->1.18 (time_constant)", the lag's change only
+    # in the evidence's parametric readings, which the words now give.
+    step["evidence"] = {"parametric_before": {"gain": 1.2, "time_constant": 12.0, "delay": 3.0},
+                        "parametric_after": {"gain": 1.2, "time_constant": 36.7, "delay": 3.0}}
+    assert describe_change(step) == ("step response re-estimated: shape only (final value 1.2, dead time 3 s), read as "
+                                     "time constant 12->36.7 s")
+    del step["evidence"]
     step["after"], step["ramp"] = dict(step["before"], gain=0.08, step_response=[0.0, 0.5, 1.3]), True
     assert describe_change(step) == "step response re-estimated: final slope 1.2->0.08 per s"
 

@@ -53,8 +53,21 @@ def _step_change(change: dict, element: bool) -> str:
         b, a = _pair(before.get(key), after.get(key))
         if b != a:
             parts.append(f"{name} {b}->{a}{u}")
+    # The shape's change as its parametric reading says it (a time-constant change read "final value 1.2->1.18
+    # (time_constant)", the lag's 12 -> 36.7 s only in the JSON's evidence).
+    evidence = change.get("evidence") or {}
+    p_before, p_after = evidence.get("parametric_before") or {}, evidence.get("parametric_after") or {}
+    shape = []
+    for key, name in (("time_constant", "time constant"), ("time_constant2", "second time constant"),
+                      ("lead", "lead")):
+        if key in p_before and key in p_after:
+            b, a = _pair(p_before.get(key), p_after.get(key))
+            if b != a:
+                shape.append(f"{name} {b}->{a} s")
     if not parts:
         parts.append(f"shape only ({final} {_short(after.get('gain'))}{unit}, dead time {_short(after.get('delay'))} s)")
+    if shape:
+        parts.append("read as " + ", ".join(shape))
     what = f"of ({change.get('output')}, {change.get('input')}) " if element else ""
     return f"step response {what}re-estimated: " + ", ".join(parts)
 
