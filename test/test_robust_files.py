@@ -1105,6 +1105,27 @@ def test_two_outputs_onto_one_path_are_refused_before_any_work(files, capsys, tm
     assert not (tmp_path / "out").exists()
 
 
+def test_recover_refuses_a_folder_of_two_recordings_and_a_file(files, tmp_path):
+    """An outside check: ``runA_0.mcap`` and ``runB_0.mcap`` (a session a day later) in one folder were recovered into
+    one bag, "recovered 6000 messages", without a word; ``--bag X/ok.mcap`` said "no .mcap file to recover"."""
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    mcap = next(Path(files["bag"]).glob("*.mcap"))
+    shutil.copy(mcap, mixed / "runA_0.mcap")
+    shutil.copy(mcap, mixed / "runB_0.mcap")
+    with pytest.raises(BagError) as info:
+        recover_bag(mixed, tmp_path / "out")
+    assert str(info.value) == (f"{mixed}: holds the storage files of 2 recordings (runA_*.mcap, runB_*.mcap): expected "
+                               f"one recording's NAME_0.mcap, NAME_1.mcap, ... (move the others to folders of their own)")
+    assert not (tmp_path / "out").exists()
+    with pytest.raises(BagError) as info:
+        recover_bag(mixed / "runA_0.mcap", tmp_path / "out")
+    assert str(info.value) == (f"{mixed / 'runA_0.mcap'}: is a file: expected the bag directory (the folder that holds "
+                               f"its .mcap files)")
+    (mixed / "runB_0.mcap").rename(mixed / "runA_1.mcap")      # one recording split in two: recovered
+    assert recover_bag(mixed, tmp_path / "out") > 0
+
+
 @pytest.mark.parametrize("name, role", [("report.html", "--model"), ("residuals.png", "--data"),
                                         ("report.html", "--json"), ("steps.png", "--repair-out"),
                                         ("detectability.png", "--json")])

@@ -77,9 +77,16 @@ def recover_bag(src, dst, warn=None) -> int:
     src = Path(src)
     if not src.exists():
         raise BagError(f"{src}: no such bag directory")
-    files = sorted((f for f in src.glob("*.mcap") if f.is_file()), key=_split_order) if src.is_dir() else []
+    if not src.is_dir():
+        raise BagError(f"{src}: is a file: expected the bag directory (the folder that holds its .mcap files)")
+    files = sorted((f for f in src.glob("*.mcap") if f.is_file()), key=_split_order)
     if not files:
         raise BagError(f"{src}: no .mcap file to recover")
+    names = sorted({_split_order(f)[0] for f in files})
+    if len(names) > 1:      # two recordings in one folder were merged into one bag, without a word
+        shown = ", ".join(f"{name}_*.mcap" for name in names[:4]) + (", ..." if len(names) > 4 else "")
+        raise BagError(f"{src}: holds the storage files of {len(names)} recordings ({shown}): expected one "
+                       f"recording's NAME_0.mcap, NAME_1.mcap, ... (move the others to folders of their own)")
     found = _Records()
     for path in files:                  # a split recording: its storage files in order (bag_0, bag_1, ...)
         found.file(path)
