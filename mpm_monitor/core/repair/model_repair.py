@@ -395,9 +395,9 @@ def _assemble(rec: _Record, results: dict, found: _Findings, ev: _Evaluation) ->
     keep = rec.scored(model, ev.model)
     for i in range(ny):
         if rec.n_hold > 0 and names_y[i] not in holdout_after:
-            holdout_after[names_y[i]] = rec.holdout(d1[:, i], keep)
+            holdout_after[names_y[i]] = rec.holdout(d1[:, i], keep, row=i)
             if keep is not None:
-                holdout_before[names_y[i]] = rec.holdout(rec.d0[:, i], keep)
+                holdout_before[names_y[i]] = rec.holdout(rec.d0[:, i], keep, row=i)
     yhat0, yhat1, d0 = np.asarray(rec.signals.yhat, float), np.asarray(ev.signals.yhat, float), rec.d0
     scored = rec.scored_segments(model, ev.model, settled=True)
     runs = None

@@ -82,8 +82,8 @@ def _compare_on_holdout(rec: _Record, i: int, candidate: PlantModel,
     d_c = rec.signals_of(candidate).d[:, i]
     # The unexplained disturbance is no model's job either: compare without it (the step or ramp
     # fitted over the held-out part), since a wrong element can partly cancel it.
-    e_after = rec.holdout_residual(d_c, keep, extra)
-    e_before = rec.holdout_residual(rec.d0[:, i], keep, extra)
+    e_after = rec.holdout_residual(d_c, keep, extra, row=i)
+    e_before = rec.holdout_residual(rec.d0[:, i], keep, extra, row=i)
     h_after = _rms(e_after)
     h_before = _rms(e_before)
     segments = rec.scored_segments(model, candidate)
