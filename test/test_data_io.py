@@ -181,10 +181,9 @@ def test_bad_csv_refused_with_one_line_naming_line_and_column(tmp_path, case):
     assert isinstance(info.value, InputError) and isinstance(info.value, ValueError)
 
 
-def test_an_endless_binary_input_is_refused_before_it_is_read_whole():
-    """``--data /dev/zero`` was read until the kernel killed the process (24 GB); the NUL bytes at its start now
-    refuse it at once.  Run in a child with its address space capped at 1.5 GB and a time limit, so that the old
-    behaviour fails the test instead of taking the machine's memory."""
+def _read_capped(device: str):
+    """``read_csv(device, ...)`` in a child whose address space is capped at 1.5 GB, with a time limit: a reader
+    that reads an endless device whole fails there instead of taking the machine's memory."""
     import resource
     import subprocess
     import sys
@@ -196,8 +195,15 @@ def test_an_endless_binary_input_is_refused_before_it_is_read_whole():
             "from mpm_monitor.core.model import PlantModel\n"
             "m = PlantModel(sample_time=1.0, inputs=('u1',), outputs=('y1',), gain=[[1.0]], time_constant=[[5.0]],"
             " delay=[[1.0]])\n"
-            "read_csv('/dev/zero', m)\n")
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, preexec_fn=cap)
+            f"read_csv({device!r}, m)\n")
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, preexec_fn=cap)
+
+
+def test_an_endless_binary_input_is_refused_before_it_is_read_whole():
+    """``--data /dev/zero`` was read until the kernel killed the process (24 GB); the NUL bytes at its start now
+    refuse it at once.  Run in a child with its address space capped at 1.5 GB and a time limit, so that the old
+    behaviour fails the test instead of taking the machine's memory."""
+    res = _read_capped("/dev/zero")
     assert res.returncode == 1 and "DataFileError: /dev/zero: contains NUL bytes: expected a CSV text file" in \
         res.stderr, res.stderr[-500:]
 
@@ -207,19 +213,7 @@ def test_an_endless_stream_that_is_not_utf8_is_refused_before_it_is_read_whole()
     not UTF-8 and holds no NUL byte that would refuse it at once; the reader's fallback for a Latin-1 header then
     read the stream again).  Refused at once, as it would be read whole: the first byte that is not UTF-8, and its
     line.  A child with its address space capped at 1.5 GB, so that the old behaviour fails instead."""
-    import resource
-    import subprocess
-    import sys
-
-    def cap():
-        resource.setrlimit(resource.RLIMIT_AS, (1_500_000_000, 1_500_000_000))
-
-    code = ("from mpm_monitor.io.csv_log import read_csv\n"
-            "from mpm_monitor.core.model import PlantModel\n"
-            "m = PlantModel(sample_time=1.0, inputs=('u1',), outputs=('y1',), gain=[[1.0]], time_constant=[[5.0]],"
-            " delay=[[1.0]])\n"
-            "read_csv('/dev/urandom', m)\n")
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, preexec_fn=cap)
+    res = _read_capped("/dev/urandom")
     assert res.returncode == 1 and re.search(r"DataFileError: /dev/urandom: not UTF-8 text \(byte \d+\) on line \d+, "
                                              r"character \d+: expected a CSV file", res.stderr), res.stderr[-500:]
 
