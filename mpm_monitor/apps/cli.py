@@ -563,10 +563,10 @@ def _simulable(flag: str, path: str, model) -> None:
 
 
 def _cmd_simulate(args) -> int:
+    from ..core.errors import ConfigurationError
     from ..io.csv_log import write_log_csv
     from ..io.model_file import load_model, save_model
     from ..sim.cases import simulation_case
-    from ..core.errors import ConfigurationError
     from ..sim.closed_loop import (ExcitationOptions, at_operating_point, controller_columns, operating_point_conflict,
                                    run_closed_loop)
     from ..sim.excitation import PrbsOptions

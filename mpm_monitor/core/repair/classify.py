@@ -785,9 +785,9 @@ def _form_df(free: _FreeFit, shape_df: int, poles: int) -> int:
     came out with ``time_constant2`` 0 -> 0.1086 s on 10 of 10 records with 1 % of their samples dropped, 0 of 10
     whole)."""
     problem = free.problem
-    if not problem.free or problem.segments is None or poles <= 0:
+    if not problem.free or poles <= 0:
         return shape_df
-    return shape_df + poles * (len(problem._blocks) - 1)
+    return shape_df + poles * (problem.n_segments - 1)
 
 
 def _larger_form_p(n_resid: int, ssr_smaller: float, ssr_larger: float, df: int) -> float:

@@ -203,6 +203,12 @@ class _RowProblem:
     def n_located(self) -> int:
         return len(self.specs)
 
+    @property
+    def n_segments(self) -> int:
+        """Segments the cost samples come from (1 for one record): each holds its own free responses
+        (:meth:`_spread`)."""
+        return 1 if self.segments is None else len(self._blocks)
+
     def _spread(self, col: np.ndarray) -> np.ndarray:
         """A column over the cost samples as nuisance columns: itself for one record; with segments one
         column per segment, ``col`` on that segment's samples and 0 elsewhere (an offset or a free
