@@ -1105,6 +1105,24 @@ def test_two_outputs_onto_one_path_are_refused_before_any_work(files, capsys, tm
     assert not (tmp_path / "out").exists()
 
 
+def test_export_with_a_model_of_another_sample_time_warns(files, capsys, tmp_path):
+    """An outside check: ``export --model`` with a sample time half the bag's wrote a CSV whose every row follows a
+    gap, exit 0 and no word; ``analyze`` then refused that CSV.  The export now says so (a warning: the CSV is what
+    the bag holds on that grid); an export on the right grid says nothing."""
+    model = load_model(files["model"])
+    half = tmp_path / "half.yaml"
+    save_model(model.replace(sample_time=model.sample_time / 2), half)
+    code, out, err = _run_cli(capsys, ["export", "--bag", str(files["bag"]), "--model", str(half),
+                                       "--csv", str(tmp_path / "half.csv")])
+    assert code == 0, err
+    assert re.search(rf"warning: \d+ gaps in the samples on the model's grid of {model.sample_time / 2:g} s \(\d+ "
+                     rf"missing\): every sample follows a gap, the bag's stamps a median {model.sample_time:g} s apart: "
+                     rf"is the model's sample_time right\? \(analyze refuses such a log\)", err), err
+    code, out, err = _run_cli(capsys, ["export", "--bag", str(files["bag"]), "--model", str(files["model"]),
+                                       "--csv", str(tmp_path / "same.csv")])
+    assert code == 0 and "gap" not in err, err
+
+
 def test_recover_refuses_a_folder_of_two_recordings_and_a_file(files, tmp_path):
     """An outside check: ``runA_0.mcap`` and ``runB_0.mcap`` (a session a day later) in one folder were recovered into
     one bag, "recovered 6000 messages", without a word; ``--bag X/ok.mcap`` said "no .mcap file to recover"."""

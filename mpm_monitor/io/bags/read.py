@@ -643,7 +643,27 @@ def export_csv(bag, csv, model_path=None, topics: Sequence[str] = DEFAULT_TOPICS
         raise InputError(f"{csv}: cannot write CSV file: {exc.strerror or exc}") from None
     for note in data.notes if warn is not None else ():
         warn(note)
+    if warn is not None and model_path is not None and len(data.segments) > 1:
+        warn(_gaps_note(data))
     return data.n_samples
+
+
+def _gaps_note(data) -> str:
+    """What an exported log's gaps on the model's sample grid are: their count and the samples missing, and where
+    every sample follows a gap (a model of the wrong sample time: ``analyze`` refuses such a log), the median step
+    of the bag's stamps."""
+    import numpy as np
+
+    grid = np.asarray(data.grid_index, dtype=np.int64)
+    ts = float(data.sample_time)
+    n_gaps, missing = len(data.segments) - 1, int(grid[-1] - grid[0] + 1 - grid.size)
+    text = f"{n_gaps} gap{'s' if n_gaps != 1 else ''} in the samples on the model's grid of {ts:g} s ({missing} " \
+           f"missing)"
+    if all(b - a == 1 for a, b in data.segments):
+        step = float(np.median(np.diff(np.asarray(data.t, dtype=float))))
+        return (f"{text}: every sample follows a gap, the bag's stamps a median {step:g} s apart: is the model's "
+                f"sample_time right? (analyze refuses such a log)")
+    return f"{text}: the analysis goes around them (nothing is interpolated)"
 
 
 @dataclasses.dataclass(frozen=True)
