@@ -1123,7 +1123,7 @@ def test_export_with_a_model_of_another_sample_time_warns(files, capsys, tmp_pat
     assert code == 0 and "gap" not in err, err
 
 
-def test_recover_refuses_a_folder_of_two_recordings_and_a_file(files, tmp_path):
+def test_recover_refuses_a_folder_of_two_recordings_and_a_file(files, capsys, tmp_path):
     """An outside check: ``runA_0.mcap`` and ``runB_0.mcap`` (a session a day later) in one folder were recovered into
     one bag, "recovered 6000 messages", without a word; ``--bag X/ok.mcap`` said "no .mcap file to recover"."""
     mixed = tmp_path / "mixed"
@@ -1142,6 +1142,11 @@ def test_recover_refuses_a_folder_of_two_recordings_and_a_file(files, tmp_path):
                                f"its .mcap files)")
     (mixed / "runB_0.mcap").rename(mixed / "runA_1.mcap")      # one recording split in two: recovered
     assert recover_bag(mixed, tmp_path / "out") > 0
+    # The recovered bag inside the damaged one's folder was taken (export --csv there is refused).
+    code, out, err = _run_cli(capsys, ["recover", "--bag", str(mixed), "--out", str(mixed / "recovered")])
+    assert code == 2 and err.strip() == (f"error: --out {mixed / 'recovered'}: lies in the --bag input {mixed}: expected "
+                                         f"an output path apart from the inputs"), err
+    assert not (mixed / "recovered").exists()
 
 
 @pytest.mark.parametrize("name, role", [("report.html", "--model"), ("residuals.png", "--data"),

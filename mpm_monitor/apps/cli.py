@@ -253,6 +253,7 @@ def _cmd_recover(args) -> int:
 
     _refuse_dash(args.out, "--out", "a directory to write the recovered bag into",      # a directory "-" was made
                  "standard output is not supported for --out")
+    _not_an_input(args.out, "--out", {"--bag": args.bag})       # as export --csv (the recovered bag in the damaged one)
     n = recover_bag(args.bag, args.out, warn=lambda note: print(f"warning: {note}", file=sys.stderr))
     _say(f"recovered {n} messages into {args.out}")
     return 0
