@@ -897,3 +897,21 @@ def test_analyze_reads_the_log_from_standard_input(tmp_path):
     bad = text.replace("\n5,", "\n5,x", 1)
     done = subprocess.run(cmd, input=bad, capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and done.stderr.startswith("error: /dev/stdin: line 7, column ")
+
+
+def test_a_header_name_in_another_unicode_normal_form_is_the_models(tmp_path):
+    """An outside check: a header name in decomposed form (NFD: "u" and a combining diaeresis, as macOS exports write
+    it) against the model's composed name gave "missing column 'ü1'" beside a header that printed 'ü1'."""
+    import unicodedata
+
+    name = "\u00fc1"                                    # ü1, composed (NFC)
+    model = PlantModel(sample_time=1.0, inputs=(name,), outputs=("y1",), gain=[[2.0]], time_constant=[[10.0]],
+                       delay=[[1.0]])
+    rows = [f"{k},1,{k % 3},{0.1 * k}" for k in range(5)]
+    for form in ("NFC", "NFD"):
+        header = f"t,r_y1,{unicodedata.normalize(form, name)},y1"
+        data = read_csv(_write(tmp_path, _text([header] + rows), name=f"{form}.csv"), model)
+        assert data.inputs == (name,) and list(data.u[:, 0]) == [0, 1, 2, 0, 1]
+    both = f"t,r_y1,{name},{unicodedata.normalize('NFD', name)},y1"        # both forms: one column twice
+    with pytest.raises(DataFileError, match=f"column '{name}' appears more than once"):
+        read_csv(_write(tmp_path, _text([both] + [r + ",0" for r in rows]), name="both.csv"), model)

@@ -32,6 +32,7 @@ import mmap
 import os
 import re
 import stat
+import unicodedata
 import warnings
 from pathlib import Path
 
@@ -538,6 +539,10 @@ def _read_header(text: str, needed: list, layout: str, source: str) -> list:
     except csv.Error as exc:
         raise DataFileError(f"{source}: line 1: not valid CSV: {_csv_error_text(exc)}") from None
     header = [h.strip() for h in header]
+    # A name written in another Unicode normal form reads as the model's ("ü" as "u" and a combining diaeresis,
+    # as macOS exports write it, was a "missing column 'ü1'" beside a header that printed 'ü1').
+    canonical = {unicodedata.normalize("NFC", n): n for n in needed}
+    header = [h if h in needed or h.isascii() else canonical.get(unicodedata.normalize("NFC", h), h) for h in header]
     dup = sorted(h for h, c in collections.Counter(header).items() if c > 1 and h)
     for h in dup:
         if h in needed:
