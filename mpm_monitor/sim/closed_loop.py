@@ -147,11 +147,13 @@ def at_operating_point(log: ClosedLoopLog, plant: PlantModel) -> ClosedLoopLog:
     -------
     ClosedLoopLog
     """
+    def at(x, x0):          # a channel without an operating point keeps its own array
+        return x + x0 if np.any(x0) else x
+
     y0, u0, d0 = plant.output_nominal, plant.input_nominal, plant.disturbance_nominal
     if not (np.any(y0) or np.any(u0) or np.any(d0)):
         return log
-    return dataclasses.replace(log, r=log.r + y0 if np.any(y0) else log.r, y=log.y + y0 if np.any(y0) else log.y,
-                               u=log.u + u0 if np.any(u0) else log.u, dv=log.dv + d0 if np.any(d0) else log.dv)
+    return dataclasses.replace(log, r=at(log.r, y0), y=at(log.y, y0), u=at(log.u, u0), dv=at(log.dv, d0))
 
 
 @dataclasses.dataclass(frozen=True)
