@@ -654,11 +654,12 @@ def _gaps_note(data) -> str:
     of the bag's stamps."""
     import numpy as np
 
-    grid = np.asarray(data.grid_index, dtype=np.int64)
-    ts = float(data.sample_time)
-    n_gaps, missing = len(data.segments) - 1, int(grid[-1] - grid[0] + 1 - grid.size)
-    text = f"{n_gaps} gap{'s' if n_gaps != 1 else ''} in the samples on the model's grid of {ts:g} s ({missing} " \
-           f"missing)"
+    from ...core.gaps import plan_gaps
+
+    plan = plan_gaps(data, 0)          # the gaps as the analysis counts them
+    n_gaps, ts = int(plan.gap_lengths.size), float(data.sample_time)
+    text = f"{n_gaps} gap{'s' if n_gaps != 1 else ''} in the samples on the model's grid of {ts:g} s " \
+           f"({plan.samples_missing} missing)"
     if all(b - a == 1 for a, b in data.segments):
         step = float(np.median(np.diff(np.asarray(data.t, dtype=float))))
         return (f"{text}: every sample follows a gap, the bag's stamps a median {step:g} s apart: is the model's "
