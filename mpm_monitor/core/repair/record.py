@@ -259,18 +259,16 @@ class _Record:
                                  None if extra is None else extra[keep])
 
     def _holdout_by_segment(self, d: np.ndarray, keep: Optional[np.ndarray]) -> np.ndarray:
-        """The held-out samples ``keep`` of ``d`` (shape (n_samples,)), each segment's about its own mean there."""
-        mask = np.ones(d.shape[0], bool) if keep is None else np.asarray(keep, bool)
-        out = d.copy()
+        """The held-out samples ``keep`` of ``d`` (shape (n_samples,)), each segment's about its own mean there
+        (the segments cover the samples in order, so the pieces stacked are the held-out samples in order)."""
+        pieces = []
         for a, b in self.segments:
-            part = np.zeros(d.shape[0], bool)
-            part[max(a, self.n_fit):b] = True
-            part &= mask
-            if part.any():
-                out[part] = d[part] - np.mean(d[part])
-        held = mask.copy()
-        held[:self.n_fit] = False
-        return out[held]
+            part = d[max(a, self.n_fit):b]
+            if keep is not None:
+                part = part[np.asarray(keep[max(a, self.n_fit):b], bool)]
+            if part.size:
+                pieces.append(part - np.mean(part))
+        return np.concatenate(pieces) if pieces else d[:0]
 
     def one_step_holdout(self, d: np.ndarray, keep: Optional[np.ndarray], segments: Optional[list],
                          extra: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
