@@ -118,6 +118,30 @@ def test_duplicate_and_conflicting_vectors_keep_the_first():
     assert h.duplicate == 2 and h.conflict == 1
 
 
+def test_a_repeated_or_conflicting_vector_before_a_kept_gap_is_found_in_the_window():
+    """A gap the window keeps lies between the re-sent sample and the newest: the vector was looked up by counting
+    back from the newest sample, missed, and counted ``late`` ("arrived after it was given up"), so a second
+    publisher on a topic showed as a warning instead of the ERROR of a conflict (an outside check)."""
+    w = make(window=100)
+    for k in range(30):
+        if k != 10:                                    # sample 10 never comes: a gap of one sample, kept
+            feed(w, k)
+    assert w.n_window == 29 and w.window_gaps()[0] == 1
+    w.take_problems()
+    r, u, y = sample_values(5)
+    w.add("output", 5 * NS, y)                         # the same vector again
+    w.add("output", 6 * NS, y + 1.0)                   # a different vector for sample 6
+    w.add("input", 12 * NS, sample_values(12)[1])      # after the gap: found too
+    kinds = [p.kind for p in w.take_problems() if p.kind != "out_of_order"]
+    assert kinds == ["duplicate", "conflict", "duplicate"]
+    h = w.health()
+    assert (h.duplicate, h.conflict, h.late) == (2, 1, 0)
+    np.testing.assert_array_equal(w.data().y[6], sample_values(6)[2])          # the first vector kept
+    # A sample the gap lost, or one older than the window, is still late.
+    w.add("output", 10 * NS, sample_values(10)[2])
+    assert w.health().late == 1
+
+
 def test_a_vector_for_a_sample_given_up_is_late():
     w = make(reorder_samples=0)
     feed(w, 0)
@@ -175,6 +199,34 @@ def test_hold_setpoint_uses_the_latest_setpoint_at_or_before_each_sample():
     d = w.data()
     np.testing.assert_array_equal(d.r[:, 0], [1, 1, 1, 2, 2])
     assert w.take_problems() == []
+
+
+def test_hold_setpoint_delivered_after_its_sample_holds_for_it():
+    """The setpoint stamped t = 10 s arrives after the input and output of t = 10 s (topics of different publishers
+    arrive in no set order): sample 10 was complete with the old setpoint, and the new one started a sample late,
+    without a word (an outside check).  The samples in the window from its stamp take it."""
+    w = make(window=50, hold_setpoint=True)
+    w.add("setpoint", 0, np.array([1.0, 1.0]))
+    for k in range(20):
+        _, u, y = sample_values(k)
+        w.add("input", k * NS, u)
+        w.add("output", k * NS, y)
+        if k == 10:
+            w.add("setpoint", 10 * NS, np.array([2.0, 2.0]))
+        if k == 15:
+            w.add("setpoint", 13 * NS, np.array([3.0, 3.0]))     # two samples later still
+    np.testing.assert_array_equal(w.data().r[:, 0], [1] * 10 + [2] * 3 + [3] * 7)
+    assert w.take_problems() == []
+    # A setpoint stamped before the window's oldest sample holds for the samples up to the next one.
+    w = make(window=10, hold_setpoint=True)
+    w.add("setpoint", 0, np.array([1.0, 1.0]))
+    for k in range(17):
+        _, u, y = sample_values(k)
+        w.add("input", k * NS, u)
+        w.add("output", k * NS, y)
+    w.add("setpoint", 9 * NS, np.array([4.0, 4.0]))
+    w.add("setpoint", 3 * NS, np.array([5.0, 5.0]))
+    np.testing.assert_array_equal(w.data().r[:, 0], [5, 5, 4, 4, 4, 4, 4, 4, 4, 4])
 
 
 def test_hold_setpoint_waits_for_the_first_setpoint():

@@ -487,6 +487,7 @@ class SampleWindow:
             bisect.insort(self._setpoints, (stamp_ns, self._setpoint_arrivals, v), key=lambda e: e[:2])
             if len(self._setpoints) > self.options.max_pending:
                 del self._setpoints[0]
+            self._hold_late_setpoint(stamp_ns)
             return self._advance()
         k = self._grid_index(channel, stamp_ns)
         if k is None:
@@ -524,12 +525,25 @@ class SampleWindow:
             self._health.conflict += 1
             self._problem("conflict", channel, stamp_ns, conflict_text)
 
+    def _window_position(self, k: int) -> Optional[int]:
+        """Where sample ``k`` sits in the window's ring buffers, or None when it is not in the window (its samples
+        are in increasing order, with the gaps the window keeps between them: searched, not counted back)."""
+        if not self._count:
+            return None
+        cap = self._k_buf.shape[0]
+        first = self._head - self._count
+        i = bisect.bisect_left(range(self._count), k, key=lambda q: int(self._k_buf[(first + q) % cap]))
+        if i < self._count and int(self._k_buf[(first + i) % cap]) == k:
+            return (first + i) % cap
+        return None
+
     def _late_or_duplicate(self, channel, k, slot, v) -> None:
         stamp_ns = self._stamp_of(k)
-        cap = self._k_buf.shape[0]
-        if self._count and k >= self._next_k - self._count:
-            pos = (self._head - (self._next_k - k)) % cap
-            if self._k_buf[pos] == k:
+        if self._count:
+            # A gap the window keeps lies between some of its samples: the position is searched (counted back
+            # from the newest, a re-sent or conflicting vector before such a gap was taken as given up, "late").
+            pos = self._window_position(k)
+            if pos is not None:
                 stored = self._bufs[slot][pos]
                 t = f"t = {seconds_text(stamp_ns)} s"
                 self._repeated(channel, stamp_ns, stored, v,
@@ -540,6 +554,22 @@ class SampleWindow:
         self._health.late += 1
         self._problem("late", channel, stamp_ns,
                       f"{channel}: sample t = {seconds_text(stamp_ns)} s arrived after it was given up (ignored)")
+
+    def _hold_late_setpoint(self, stamp_ns: int) -> None:
+        """Hold mode: a setpoint stamped at or before samples already in the window (its message delivered after
+        their input and output vectors: topics of different publishers arrive in no set order) holds for them.
+        Their setpoints are taken again from the held ones, newest first, back to its stamp; samples that have
+        left the window keep theirs.  Before, the new value started at the next sample to complete, a sample or
+        more late, without a word."""
+        cap = self._k_buf.shape[0]
+        for q in range(1, self._count + 1):
+            pos = (self._head - q) % cap
+            k = int(self._k_buf[pos])
+            if self._stamp_of(k) + self._tol < stamp_ns:
+                break
+            r = self._held_setpoint(k)
+            if r is not None:
+                self._r_buf[pos] = r
 
     def _latest_setpoint(self, k: int) -> int:
         """Index in the held setpoints of the one that holds at sample ``k`` (the latest stamped at or
