@@ -143,6 +143,42 @@ def test_export_csv_equals_read_bag(tmp_path):
     assert guessed.sample_time == pytest.approx(0.5) and guessed.inputs == ("u1", "u2")
 
 
+def test_a_bag_of_setpoints_sent_on_change_is_read_with_hold_setpoint(tmp_path, capsys):
+    """A stack that publishes its setpoints only on change (the live monitor's hold_setpoint): without a hold, every
+    sample without a setpoint message was a gap (an outside check: 433 gaps, a result unlike the live one, and no
+    way to get the live one back).  With --hold-setpoint each sample takes the latest setpoint stamped at or before
+    it, off the grid or not; the samples before the first are left out, with a note."""
+    n = 30
+    r, u, y = _samples(n)
+    r[:] = 1.0
+    r[12:] = 2.0
+    r[21:, 1] = -3.0
+    sent = [k for k in range(3, n) if k == 3 or np.any(r[k] != r[k - 1])]      # the first setpoint at sample 3
+    skip = {("setpoint", k) for k in range(n) if k not in sent}
+    stamps = np.arange(n) * int(MODEL.sample_time * 1e9) + int(T0 * 1e9)
+    sp_stamps = stamps.copy()
+    sp_stamps[21] -= int(0.3 * MODEL.sample_time * 1e9)         # stamped 0.3 sample before its sample: off the grid
+    bag = write_bag(tmp_path / "bag", r, u, y, skip=skip, role_stamps={"setpoint": sp_stamps})
+    with pytest.raises(BagError, match="off the sample grid"):      # without the hold: aligned by stamp
+        read_bag(bag, MODEL)
+    data = read_bag(bag, MODEL, hold_setpoint=True)
+    np.testing.assert_array_equal(data.r, r[3:])
+    np.testing.assert_array_equal(data.u, u[3:])
+    np.testing.assert_array_equal(data.y, y[3:])
+    assert len(data.segments) == 1 and any("3 samples before its first message" in note for note in data.notes)
+    model_file = tmp_path / "model.yaml"
+    save_model(MODEL, model_file)
+    for name, model_path in (("with.csv", model_file), ("without.csv", None)):
+        assert export_csv(bag, tmp_path / name, model_path=model_path, hold_setpoint=True) == n - 3
+        np.testing.assert_array_equal(read_csv(tmp_path / name, MODEL).r, r[3:])
+    assert cli_main(["export", "--bag", str(bag), "--csv", str(tmp_path / "x.csv"), "--hold-setpoint"]) == 0
+    assert "wrote 27 samples" in capsys.readouterr().out
+    # A CSV has a setpoint in every row: the flag is refused with --data.
+    assert cli_main(["analyze", "--model", str(model_file), "--data", str(tmp_path / "x.csv"), "--hold-setpoint"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--hold-setpoint" in err and "--bag" in err
+
+
 def test_cli_export(tmp_path, capsys):
     r, u, y = _samples(8)
     bag = write_bag(tmp_path / "bag", r, u, y)

@@ -197,6 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "historian's missing value): refuse the log, naming its line and column, or leave the sample "
                        "out as a gap the analysis goes around, with a warning that counts them (default: refuse)")
     _add_topics(p)
+    _add_hold_setpoint(p)
     _add_analysis_options(p)
 
     p = sub.add_parser("reproduce", help="simulate a case and print the paper-style result")
@@ -237,11 +238,18 @@ def build_parser() -> argparse.ArgumentParser:
                        "or leave its sample out of the CSV (t skips it), with a warning that counts them "
                        "(default: refuse)")
     _add_topics(p)
+    _add_hold_setpoint(p)
 
     p = sub.add_parser("recover", help="rewrite a hard-killed recording (no metadata.yaml) as a closed bag")
     p.add_argument("--bag", type=_path, required=True, help="the unclosed bag directory")
     p.add_argument("--out", type=_path, required=True, help="new bag directory (must not exist)")
     return parser
+
+
+def _add_hold_setpoint(p) -> None:
+    p.add_argument("--hold-setpoint", action="store_true",
+                   help="a --bag of a stack that publishes its setpoints only on change (the monitor's hold_setpoint): "
+                        "every sample takes the latest setpoint stamped at or before it")
 
 
 def _add_bad_values(p, help_text: str) -> None:
@@ -275,6 +283,8 @@ def _cmd_analyze(args) -> int:
         _report_apart(args)
     if args.data is not None and args.topics is not None:
         raise InputError("--topics: names the topics of a --bag; a --data CSV names its channels in its header")
+    if args.data is not None and args.hold_setpoint:
+        raise InputError("--hold-setpoint: reads the setpoints of a --bag; a --data CSV has a setpoint in every row")
     if args.repair_out and args.repair_out != "-" and not getattr(args, "repair", True):
         raise InputError(f"--repair-out {args.repair_out}: there is no repaired model with --no-repair (it wrote the "
                          f"model as given): leave out one of the two")
@@ -320,7 +330,7 @@ def _analyze(args, started) -> int:
         from ..io.bags import read_bag
 
         data = read_bag(args.bag, model, topics=_topics(args), progress=sys.stderr.isatty(),
-                        bad_values=args.bad_values)
+                        bad_values=args.bad_values, hold_setpoint=args.hold_setpoint)
     check_scale(model, data, model_source=args.model)
     candidates = None
     if args.candidates is not None:
@@ -796,7 +806,8 @@ def _cmd_export(args) -> int:
     _not_an_input(args.csv, "--csv", {"--bag": args.bag, "--model": args.model})
     _check_output_file(args.csv, "--csv")          # before the bag is read, as analyze does
     n = export_csv(args.bag, args.csv, model_path=args.model, topics=_topics(args),
-                   warn=lambda note: print(f"warning: {note}", file=sys.stderr), bad_values=args.bad_values)
+                   warn=lambda note: print(f"warning: {note}", file=sys.stderr), bad_values=args.bad_values,
+                   hold_setpoint=args.hold_setpoint)
     _say(f"wrote {n} samples to {args.csv}")
     return 0
 

@@ -350,10 +350,12 @@ def _check_clocks_apart(path, series: dict, ks: dict, common: np.ndarray, origin
     return notes
 
 
-def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances=()) -> LoggedData:
-    """Put the topics on one sample grid (every sample at most once per topic; the samples a topic lacks are gaps)."""
+def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances=(),
+           hold_setpoint: bool = False) -> LoggedData:
+    """Put the topics on one sample grid (every sample at most once per topic; the samples a topic lacks are gaps);
+    with ``hold_setpoint`` every sample takes the latest setpoint stamped at or before it (:func:`_held_setpoints`)."""
     series, notes = _without_unset_stamps(path, series)
-    notes = list(notes)
+    series, notes = dict(series), list(notes)
     ts_ns = sample_time * 1e9
     for s in series.values():
         if s.back and s.back[2] - s.back[1] > MAX_REORDER_SAMPLES * ts_ns:
@@ -362,6 +364,7 @@ def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances
                            f"{_seconds(before - stamp)} s from the stamp before it ({_seconds(before)} s): expected "
                            f"stamps that increase (a clock stepped back?); messages a few samples out of order "
                            f"are put in order")
+    held = series.pop("setpoint") if hold_setpoint else None
     origin = _grid_origin([s.stamps for s in series.values()], ts_ns)
     ks = {}
     for role, s in series.items():
@@ -413,7 +416,11 @@ def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances
         k = k[(k >= k_first) & (k <= k_last)]
         common = k if common is None else np.intersect1d(common, k, assume_unique=True)
     notes += _check_clocks_apart(path, series, ks, common, origin, ts_ns)
+    if held is not None:
+        common, r = _held_setpoints(path, held, origin + common * ts_ns, common, ts_ns, notes)
     out = {role: s.values[np.isin(ks[role], common)] for role, s in series.items()}
+    if held is not None:
+        out["setpoint"] = r
     t = (origin + common * ts_ns) / 1e9
     dv = out.get("disturbance")
     return LoggedData(t=t, r=out["setpoint"], u=out["input"], y=out["output"], inputs=tuple(inputs),
@@ -421,8 +428,34 @@ def _align(path, series: dict, sample_time: float, inputs, outputs, disturbances
                       disturbances=tuple(disturbances) if dv is not None else (), notes=tuple(notes))
 
 
+def _held_setpoints(path, held, t_ns: np.ndarray, common: np.ndarray, ts_ns: float, notes: list) -> tuple:
+    """The setpoint of every sample (stamps ``t_ns``, sample numbers ``common``) as the live monitor's
+    ``hold_setpoint`` takes it: the latest setpoint message stamped at or before the sample (within
+    :data:`GRID_TOLERANCE` of a sample; of equal stamps the last recorded), on the grid or not.  The samples before
+    the first setpoint message are left out (a note counts them).
+
+    Returns
+    -------
+    common : ndarray of int
+        The samples kept.
+    r : ndarray, shape (len(common), n_outputs)
+    """
+    order = np.argsort(held.stamps, kind="stable")
+    stamps, values = held.stamps[order], held.values[order]
+    at = np.searchsorted(stamps, t_ns + GRID_TOLERANCE * ts_ns, side="right") - 1
+    before = int(np.count_nonzero(at < 0))
+    if before == len(at):
+        raise BagError(f"{path}: topic '{held.topic}': no setpoint message stamped at or before the last sample "
+                       f"({_seconds(int(t_ns[-1]))} s; the first is stamped {_seconds(int(stamps[0]))} s): with "
+                       f"--hold-setpoint every sample takes the latest setpoint before it")
+    if before:
+        notes.append(f"{path}: topic '{held.topic}': the {before} sample{'s' if before != 1 else ''} before its first "
+                     f"message ({_seconds(int(stamps[0]))} s) left out (no setpoint to hold yet)")
+    return common[at >= 0], values[at[at >= 0]]
+
+
 def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, progress=False,
-             bad_values: str = "refuse") -> LoggedData:
+             bad_values: str = "refuse", hold_setpoint: bool = False) -> LoggedData:
     """Read a bag's setpoint, input and output topics (and disturbance topic) as logged data on the model's sample grid.
 
     Samples are aligned by ``header.stamp``: a message belongs to sample ``k`` when its stamp is
@@ -452,6 +485,10 @@ def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, pr
         A message whose values of the model's channels are not all finite: ``refuse`` the bag, naming
         the topic, the message and its stamp (the default), or leave it out (``gap``: its sample is
         missing, and the analysis goes around it), said in one note per topic.
+    hold_setpoint : bool
+        As the live monitor's parameter of that name, for a stack that publishes its setpoints only on change:
+        every sample takes the latest setpoint message stamped at or before it (on the grid or not), instead of
+        the one of its own stamp; the samples before the first setpoint message are left out.
 
     Returns
     -------
@@ -475,7 +512,8 @@ def read_bag(path, model: PlantModel, topics: Sequence[str] = DEFAULT_TOPICS, pr
                        f"measured disturbances")
     left_out = _left_out(bad_values)
     series = _read_vectors(path, topics, channels, progress, left_out=left_out)
-    data = _align(path, series, model.sample_time, model.inputs, model.outputs, model.disturbances)
+    data = _align(path, series, model.sample_time, model.inputs, model.outputs, model.disturbances,
+                  hold_setpoint=hold_setpoint)
     return _with_left_out_notes(path, data, left_out, series, model.sample_time)
 
 
@@ -545,7 +583,7 @@ def infer_sample_time(path, stamps: np.ndarray, topic: str) -> float:
 
 
 def read_bag_channels(path, topics: Sequence[str] = DEFAULT_TOPICS, sample_time: Optional[float] = None,
-                      progress=False, bad_values: str = "refuse") -> LoggedData:
+                      progress=False, bad_values: str = "refuse", hold_setpoint: bool = False) -> LoggedData:
     """Read a bag without a model: channel names from the first messages, sample time from the stamps.
 
     Parameters
@@ -559,6 +597,8 @@ def read_bag_channels(path, topics: Sequence[str] = DEFAULT_TOPICS, sample_time:
         Seconds per sample; default the median stamp spacing of the output topic.
     progress : bool or file-like
     bad_values : {"refuse", "gap"}
+        As :func:`read_bag`.
+    hold_setpoint : bool
         As :func:`read_bag`.
 
     Returns
@@ -576,7 +616,7 @@ def read_bag_channels(path, topics: Sequence[str] = DEFAULT_TOPICS, sample_time:
         _refuse_faster_topics(path, series, sample_time)
     dv = series.get("disturbance")
     data = _align(path, series, sample_time, series["input"].names, series["output"].names,
-                  dv.names if dv is not None else ())
+                  dv.names if dv is not None else (), hold_setpoint=hold_setpoint)
     return _with_left_out_notes(path, data, left_out, series, sample_time)
 
 
@@ -602,7 +642,7 @@ def _refuse_faster_topics(path, series: dict, sample_time: float) -> None:
 
 
 def export_csv(bag, csv, model_path=None, topics: Sequence[str] = DEFAULT_TOPICS, progress=False,
-               warn=None, bad_values: str = "refuse") -> int:
+               warn=None, bad_values: str = "refuse", hold_setpoint: bool = False) -> int:
     """Write a bag's setpoint, input, output (and disturbance) topics as a CSV log.
 
     The format is that of docs/interfaces.md, "Logged data (CSV)".
@@ -625,6 +665,8 @@ def export_csv(bag, csv, model_path=None, topics: Sequence[str] = DEFAULT_TOPICS
     bad_values : {"refuse", "gap"}
         As :func:`read_bag`: with ``gap`` a message holding a non-finite value is left out, and its
         sample is missing from the CSV (``t`` skips it).
+    hold_setpoint : bool
+        As :func:`read_bag`: every sample takes the latest setpoint message stamped at or before it.
 
     Returns
     -------
@@ -634,9 +676,11 @@ def export_csv(bag, csv, model_path=None, topics: Sequence[str] = DEFAULT_TOPICS
     if model_path is not None:
         from ..model_file import load_model
 
-        data = read_bag(bag, load_model(model_path), topics=topics, progress=progress, bad_values=bad_values)
+        data = read_bag(bag, load_model(model_path), topics=topics, progress=progress, bad_values=bad_values,
+                        hold_setpoint=hold_setpoint)
     else:
-        data = read_bag_channels(bag, topics=topics, progress=progress, bad_values=bad_values)
+        data = read_bag_channels(bag, topics=topics, progress=progress, bad_values=bad_values,
+                                 hold_setpoint=hold_setpoint)
     try:
         write_log_csv(csv, data)
     except OSError as exc:
