@@ -211,6 +211,34 @@ def test_a_fat_plant_gets_the_fewest_inputs_then_the_smallest_experiment(fat):
         assert not exm._trial(pred, (one,), caps, 1.0, info.G.shape[0]).separated
 
 
+def test_the_experiment_is_long_enough_for_the_repair_of_what_it_locates():
+    """A 1 x 2 loop (one output, two inputs the controller moves together): the design of 250 samples located the
+    element and left 188 samples to the repair's fit part, fewer than the 260 it needs: "unknown", no change, on
+    every such run of an outside check.  The experiment now lasts at least what the repair needs, and its log
+    repairs the element."""
+    from mpm_monitor.core.pipeline import analyze
+    from mpm_monitor.core.repair import RepairOptions
+    from mpm_monitor.core.repair.record import samples_for_repair
+
+    plant = PlantModel(sample_time=1.0, inputs=("u1", "u2"), outputs=("y1",), gain=[[1.0, 0.7]],
+                       time_constant=[[10, 15]], delay=[[1, 2]])
+    model = plant.replace(gain=[[1.0, 1.0]])
+    need = samples_for_repair(model, RepairOptions())
+    assert need == 346                                   # a fit part of 260 once the held-out quarter is apart
+    log = run_closed_loop(plant, model, 3000, seed=0)
+    exp = detect(model, log.as_logged_data(), FAST).experiment
+    assert exp is not None and exp.samples >= need
+    from mpm_monitor.sim.closed_loop import ExcitationOptions
+    from mpm_monitor.sim.excitation import PrbsOptions
+
+    amplitudes = tuple(exp.dither.get(name, 0.0) for name in model.inputs)
+    dither = ExcitationOptions(dither=PrbsOptions(amplitude=1.0, switch_probability=0.5), dither_amplitudes=amplitudes)
+    dithered = run_closed_loop(plant, model, exp.samples, seed=10000, mpc=MpcOptions(), excitation=dither)
+    rep = analyze(model, dithered.as_logged_data(), AnalysisOptions())
+    assert rep.located_elements == [("y1", "u2")]
+    assert rep.repaired_model.gain[0, 1] == pytest.approx(0.7, rel=0.05)
+
+
 def _predictor(data, rep):
     """The window's information and the experiment's predictor, rebuilt as detect() builds them."""
     from mpm_monitor.core.input_design import InputDesign

@@ -26,7 +26,10 @@ The goal: every input whose elements are ambiguous is separated, and a gain erro
 :data:`GOAL` (20 %) of every element of those inputs (of every element, when nothing was
 decidable at that level) is detected with probability 0.9.  The experiment is the smallest that
 reaches it: the fewest dithered inputs, then the smallest ``amplitude x samples`` (the amplitude
-relative to its largest allowed value; every dithered input gets the same fraction of it).
+relative to its largest allowed value; every dithered input gets the same fraction of it).  It lasts
+at least the samples the tests accept and the samples the repair needs to re-estimate the
+elements it locates (a fit part of at least 200 samples, ``20 (2 columns + noise
+order + 5)`` for a larger model, once the held-out quarter is set apart).
 """
 
 from __future__ import annotations
@@ -311,6 +314,14 @@ def design_experiment(model, info: Optional[WindowInformation], elements: list, 
     caps, still = _caps(info, model, candidates)
     testable_c = [j for j in candidates if j not in still]
     pred = _Predictor(info, targets, options.alpha, options.collinearity_threshold, layout, info.testable)
+    # Long enough for the repair too (whether or not this analysis repaired: the one of the experiment's log
+    # will): an experiment that locates the element and leaves too few samples to re-estimate it ("Only 188
+    # samples are available ... at least 260 needed", every 1 x 2 run of an outside check) does not say how to
+    # fix the model.
+    from .repair.options import RepairOptions
+    from .repair.record import samples_for_repair
+
+    pred.min_samples = max(pred.min_samples, samples_for_repair(model, RepairOptions()))
     p = info.G.shape[0]
     lowest = max(_small_directions(info, testable_c, options.collinearity_threshold), 0 if still else 1)
     best = None

@@ -319,5 +319,15 @@ def _min_fit(model: PlantModel, options: RepairOptions) -> int:
     """The fewest samples of the fit part with which located elements are re-estimated."""
     return max(200, 20 * (2 * model.n_columns + options.noise_order + 5))
 
+
+def samples_for_repair(model: PlantModel, options: RepairOptions) -> int:
+    """The fewest samples of a record on which the repair re-estimates located elements: a fit part of
+    :func:`_min_fit` samples once the held-out last ``holdout_fraction`` is set apart (as :func:`_set_up` splits)."""
+    min_fit = _min_fit(model, options)
+    n = min_fit
+    while n - int(round(options.holdout_fraction * n)) < min_fit:
+        n += 1
+    return n
+
 def _located_in_row(located: list, i: int) -> list:
     return [j for (ii, j) in located if ii == i]
