@@ -243,6 +243,7 @@ class SampleWindow:
         self._setpoints: list = []
         self._setpoint_arrivals = 0
         self._last_stamp = {c: None for c in self.channels}
+        self._last_zero: dict = {}          # the last vector of each channel if it was stamped 0 (an unset stamp?)
         self._health = WindowHealth(received={c: 0 for c in self.channels})
         self._problems: list = []
         self._since_reset = 0
@@ -388,6 +389,18 @@ class SampleWindow:
             self.report_bad(channel, stamp_ns, f"{channel}: header.stamp unset (0) among wall-clock stamps; the vector "
                                                f"cannot be placed on the sample grid")
             return 0
+        if stamp_ns == 0 and self._last_stamp[channel] == 0 and self._last_zero.get(channel) is not None \
+                and not np.array_equal(self._last_zero[channel], v):
+            # Every message stamped 0 (a publisher that never fills header.stamp): aligned by stamp they were
+            # "two different vectors for one sample (two publishers on one topic?)" and "stream restarted ...
+            # (publisher restart or clock jump)" by turns, the window restarting every few outputs, and never
+            # the cause (an outside check).
+            self.report_bad(channel, stamp_ns, f"{channel}: header.stamp unset (0) on successive messages with "
+                                               f"different values: its publisher does not stamp them, and the "
+                                               f"topics are aligned by stamp; the vector cannot be placed")
+            self._last_zero[channel] = v
+            return 0
+        self._last_zero[channel] = v if stamp_ns == 0 else None
         self._health.received[channel] += 1
         last = self._last_stamp[channel]
         if last is not None and stamp_ns < last:
