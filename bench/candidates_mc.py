@@ -118,9 +118,10 @@ def _f_alone(cands, alpha: float) -> list:
     return [n for n, a in zip(names, holm_adjust(p) if names else []) if a < alpha]
 
 
-def detection_run(seed: int, index: int, samples: int, alpha: float = ALPHA, setpoint_steps: bool = False) -> dict:
-    """One run of the detection study."""
-    effect = UndeclaredEffect()
+def detection_run(seed: int, index: int, samples: int, alpha: float = ALPHA, setpoint_steps: bool = False,
+                  effect_delay: float = UndeclaredEffect.delay) -> dict:
+    """One run of the detection study (the undeclared effect's dead time ``effect_delay``, seconds)."""
+    effect = UndeclaredEffect(delay=effect_delay)
     run = undeclared_effect_run(samples, seed=5000 + 1000 * seed + index, effect=effect,
                                 excitation=SETPOINT_STEPS if setpoint_steps else None)
     t0 = time.perf_counter()
@@ -144,8 +145,10 @@ def detection_run(seed: int, index: int, samples: int, alpha: float = ALPHA, set
 
 
 def _star(args):
-    kind, seed, index, samples, alpha, setpoint_steps = args
-    return (null_run if kind == "null" else detection_run)(seed, index, samples, alpha, setpoint_steps)
+    kind, seed, index, samples, alpha, setpoint_steps, effect_delay = args
+    if kind == "null":
+        return null_run(seed, index, samples, alpha, setpoint_steps)
+    return detection_run(seed, index, samples, alpha, setpoint_steps, effect_delay)
 
 
 def _map(jobs: int, tasks: list) -> list:
@@ -156,10 +159,10 @@ def _map(jobs: int, tasks: list) -> list:
 
 
 def run(runs: int, detection_runs: int, seed: int, samples: int, jobs: int = 1, alpha: float = ALPHA,
-        setpoint_steps: bool = False) -> dict:
+        setpoint_steps: bool = False, effect_delay: float = UndeclaredEffect.delay) -> dict:
     """Both studies; the result as JSON-ready data (see the module docstring)."""
-    nulls = _map(jobs, [("null", seed, k, samples, alpha, setpoint_steps) for k in range(runs)])
-    dets = _map(jobs, [("det", seed, k, samples, alpha, setpoint_steps) for k in range(detection_runs)])
+    nulls = _map(jobs, [("null", seed, k, samples, alpha, setpoint_steps, effect_delay) for k in range(runs)])
+    dets = _map(jobs, [("det", seed, k, samples, alpha, setpoint_steps, effect_delay) for k in range(detection_runs)])
     kinds = {name: kind for name, (kind, _) in NULL_CHANNELS.items()}
     kinds[EFFECT_CHANNEL] = "steps plus filtered noise"
     if setpoint_steps:
@@ -210,6 +213,7 @@ def run(runs: int, detection_runs: int, seed: int, samples: int, jobs: int = 1, 
                  "before_over_floor_median": statistics.median(d["error_before"] / d["floor"] for d in dets),
                  "median_analyze_s": statistics.median(d["time_s"] for d in dets)}
     return {"seed": seed, "samples": samples, "setpoints": "steps" if setpoint_steps else "paper PRBS",
+            "effect_delay": effect_delay,
             "level": level, "detection": detection, "null_runs": nulls, "detection_runs": dets}
 
 
@@ -230,7 +234,8 @@ def format_table(res: dict) -> str:
     lines.append(f"  runs with a candidate called not exogenous: {lv['runs_with_not_exogenous']:.3f} "
                  f"(F test alone {lv['runs_with_not_exogenous_by_f_alone']:.3f}); "
                  f"runs with a model element located: {lv['runs_with_element_located']:.3f}")
-    lines.append(f"detection: {dt['runs']} runs, {EFFECT_CHANNEL} on y1 (gain 0.8, 30 s, 4 s)")
+    lines.append(f"detection: {dt['runs']} runs, {EFFECT_CHANNEL} on y1 (gain 0.8, 30 s, "
+                 f"{res.get('effect_delay', UndeclaredEffect.delay):g} s)")
     lines.append(f"  located {dt['located_rate']:.3f}, added {dt['added_rate']:.3f}; decoys added: "
                  f"{dt['decoys_added']}; {LOOP_CHANNEL} reported not exogenous "
                  f"{dt['loop_channel_not_exogenous_rate']:.3f}; {EFFECT_CHANNEL} reported not exogenous in "
@@ -258,6 +263,9 @@ def main(argv=None) -> int:
     p.add_argument("--alpha", type=float, default=ALPHA, help=f"false-alarm rate of the analysis (default {ALPHA})")
     p.add_argument("--setpoint-steps", action="store_true",
                    help="setpoints in rare steps instead of the paper's PRBS, and two channels changed by hand")
+    p.add_argument("--effect-delay", type=float, default=UndeclaredEffect.delay,
+                   help=f"dead time of the undeclared effect in the detection study, seconds (default "
+                        f"{UndeclaredEffect.delay:g}; the model's longest is 7 samples of 1 s)")
     p.add_argument("--out", default=None, help="JSON results (default bench/results/candidates_mc.json, "
                                                "with --setpoint-steps candidates_mc_setpoint_steps.json)")
     args = p.parse_args(argv)
@@ -266,7 +274,8 @@ def main(argv=None) -> int:
     if args.out is None:
         args.out = ("bench/results/candidates_mc_setpoint_steps.json" if args.setpoint_steps
                     else "bench/results/candidates_mc.json")
-    res = run(args.runs, args.detection_runs, args.seed, args.samples, args.jobs, args.alpha, args.setpoint_steps)
+    res = run(args.runs, args.detection_runs, args.seed, args.samples, args.jobs, args.alpha, args.setpoint_steps,
+              args.effect_delay)
     print(format_table(res))
     write_json(args.out, res)
     return 0

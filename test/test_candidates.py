@@ -379,6 +379,20 @@ def test_html_report_without_a_located_candidate(tmp_path, effect_run):
     assert "<h2>Candidate channels</h2>" in page and "Added: none." in page
 
 
+def test_an_effect_with_a_dead_time_beyond_the_models_is_found_and_fitted():
+    """The undeclared channel's dead time (20 s) is longer than the columns' lags reach (the model's longest delay
+    7 samples: max_delay 12, lags 1 .. 16): with the candidate's lags as far as the columns' it came out p = 1,
+    silently (an outside check).  Its lags reach three times max_delay, and the summary says how far."""
+    run = undeclared_effect_run(3000, seed=6, effect=UndeclaredEffect(delay=20.0), loop_channel=False)
+    rep = analyze(run.model, run.data, AnalysisOptions(), candidates=EFFECT_CHANNEL)
+    assert rep.candidates.located == [("y1", EFFECT_CHANNEL)] and rep.candidates.max_delay == 36
+    m = rep.repaired_model
+    el = m.element(0, m.columns.index(EFFECT_CHANNEL))
+    assert abs(el["gain"] - 0.8) <= 0.08 and abs(el["delay"] - 20.0) <= 1.0
+    assert "effects searched for dead times up to 36 samples, 3 x --max-delay" in rep.candidates.summary_lines()[0]
+    assert rep.to_dict()["candidates"]["max_delay"] == 36
+
+
 def test_no_effect_run_gives_no_candidate():
     run = undeclared_effect_run(2000, seed=4, effect=UndeclaredEffect(gain=0.0), loop_channel=False)
     rep = detect(run.model, run.data, candidates="all")
