@@ -232,17 +232,18 @@ def test_hold_setpoint_delivered_after_its_sample_holds_for_it():
 def test_a_publisher_that_never_stamps_its_messages_is_named():
     """Every vector stamped 0 (header.stamp never filled): the window said "two different vectors for sample t = 0
     s (two publishers on one topic?)" and "stream restarted ... (publisher restart or clock jump)" by turns and
-    restarted every few outputs, never naming the cause (an outside check).  A second vector stamped 0 with other
-    values is refused as an unset stamp; the same vector again (a re-send at t = 0) is still a duplicate."""
+    restarted every few outputs, never naming the cause (an outside check).  A third vector stamped 0 in a row with
+    other values is refused as an unset stamp (the second may be a second publisher's: a conflict); the same vector
+    again (a re-send at t = 0) is still a duplicate."""
     w = make()
     for k in range(30):
         feed(w, k, stamp=0)
     h = w.health()
-    assert (h.restarts, h.conflict, h.completed) == (0, 0, 1)
-    problems = w.take_problems()
+    assert (h.restarts, h.conflict, h.completed) == (0, 3, 1)      # the second vectors: perhaps a second publisher
+    problems = [p for p in w.take_problems() if p.kind != "conflict"]
     assert problems and all(p.kind == "bad_value" for p in problems)
     assert "header.stamp unset (0) on successive messages with different values" in problems[0].message
-    assert h.bad_value == 3 * 29
+    assert h.bad_value == 3 * 28
     w = make()
     feed(w, 0)
     feed(w, 0)                                               # sample 0 sent again: duplicates, as before

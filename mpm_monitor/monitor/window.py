@@ -54,6 +54,9 @@ DISTURBANCE = "disturbance"
 #: Problem kinds that mean the data itself is wrong (the monitor reports them as ERROR).
 ERROR_KINDS = frozenset({"bad_value", "conflict", "off_grid", "clock"})
 #: Problem kinds that cost samples but not correctness (reported in the summary's values).
+#: Vectors of a channel stamped 0 in a row, each with values other than the one before, past which the next is
+#: refused as an unset ``header.stamp`` (the second may be a second publisher's: a conflict).
+UNSET_STAMP_REPEATS = 2
 WARNING_KINDS = frozenset({"gap", "duplicate", "late", "out_of_order", "restart", "rephase", "behind"})
 #: A stamp later than this (nanoseconds: 1e9 s, 2001-09-09) is a wall-clock time; a stamp of exactly 0
 #: among such stamps is an unset ``header.stamp``.
@@ -243,7 +246,9 @@ class SampleWindow:
         self._setpoints: list = []
         self._setpoint_arrivals = 0
         self._last_stamp = {c: None for c in self.channels}
-        self._last_zero: dict = {}          # the last vector of each channel if it was stamped 0 (an unset stamp?)
+        # Of each channel whose last vectors were stamped 0 (an unset stamp?): the last, and how many in a row had
+        # values other than the one before.
+        self._last_zero: dict = {}
         self._health = WindowHealth(received={c: 0 for c in self.channels})
         self._problems: list = []
         self._since_reset = 0
@@ -389,18 +394,22 @@ class SampleWindow:
             self.report_bad(channel, stamp_ns, f"{channel}: header.stamp unset (0) among wall-clock stamps; the vector "
                                                f"cannot be placed on the sample grid")
             return 0
-        if stamp_ns == 0 and self._last_stamp[channel] == 0 and self._last_zero.get(channel) is not None \
-                and not np.array_equal(self._last_zero[channel], v):
+        if stamp_ns == 0:
             # Every message stamped 0 (a publisher that never fills header.stamp): aligned by stamp they were
             # "two different vectors for one sample (two publishers on one topic?)" and "stream restarted ...
             # (publisher restart or clock jump)" by turns, the window restarting every few outputs, and never
-            # the cause (an outside check).
-            self.report_bad(channel, stamp_ns, f"{channel}: header.stamp unset (0) on successive messages with "
-                                               f"different values: its publisher does not stamp them, and the "
-                                               f"topics are aligned by stamp; the vector cannot be placed")
-            self._last_zero[channel] = v
-            return 0
-        self._last_zero[channel] = v if stamp_ns == 0 else None
+            # the cause (an outside check).  A second vector at 0 with other values may be a second publisher
+            # (a conflict, as before); a third in a row is an unset stamp.
+            last = self._last_zero.get(channel)
+            changed = 1 if last is None else last[1] + (not np.array_equal(last[0], v))
+            self._last_zero[channel] = (v, changed)
+            if changed > UNSET_STAMP_REPEATS:
+                self.report_bad(channel, stamp_ns, f"{channel}: header.stamp unset (0) on successive messages with "
+                                                   f"different values: its publisher does not stamp them, and the "
+                                                   f"topics are aligned by stamp; the vector cannot be placed")
+                return 0
+        else:
+            self._last_zero.pop(channel, None)
         self._health.received[channel] += 1
         last = self._last_stamp[channel]
         if last is not None and stamp_ns < last:
