@@ -43,8 +43,10 @@ elements that the analysis of the full log locates are repaired
 (:func:`mpm_monitor.core.repair.repair_model`) three ways:
 
 * ``full``: on the log as simulated;
-* ``spans``: on the log with the drops, every span between the gaps a record of its own (what
-  :func:`mpm_monitor.core.pipeline.analyze` does, :func:`mpm_monitor.core.pipeline.repair_data`);
+* ``spans``: on the log with the drops, every span between the gaps a record of its own, the model run
+  through the short gaps (what :func:`mpm_monitor.core.pipeline.analyze` does,
+  :func:`mpm_monitor.core.pipeline.repair_data` and ``RepairOptions.max_gap``; before stop 95 the bench
+  left ``max_gap`` unset, every gap a restart);
 * ``longest``: on the longest span without a gap only (what ``analyze`` did before).
 
 Each repaired element's unit-step response is compared with the plant's over 300 samples
@@ -63,7 +65,9 @@ import numpy as np
 from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.logged_data import LoggedData
 from mpm_monitor.core.pipeline import analyze, repair_data
-from mpm_monitor.core.repair import repair_model
+from mpm_monitor.core.gaps import plan_gaps
+from mpm_monitor.core.regressions import regression_layout
+from mpm_monitor.core.repair import RepairOptions, repair_model
 from mpm_monitor.monitor.window import SampleWindow, WindowOptions
 from mpm_monitor.sim.cases import CASE_NAMES
 
@@ -157,11 +161,14 @@ def _repairs(model, plant, data: LoggedData, offline: LoggedData, pairs: list) -
     (every span, and the longest span only); see the module docstring."""
     located = [(model.outputs.index(o), model.columns.index(c)) for o, c in pairs]
     spans, _ = repair_data(offline, len(offline.segments) > 1, OPTIONS, model)
+    # The model run through the short gaps, as analyze runs it (RepairOptions.max_gap: the gaps' plan's).
+    plan = plan_gaps(offline, regression_layout(model, OPTIONS).start, OPTIONS.max_gap)
+    through = RepairOptions(max_gap=None if plan is None else int(plan.max_gap))
     a, b = max(offline.segments, key=lambda s: s[1] - s[0])
     out = {}
     for key, d in (("full", data), ("spans", spans), ("longest", offline.slice(a, b))):
         try:
-            res = repair_model(model, d, located)
+            res = repair_model(model, d, located, through if key == "spans" else RepairOptions())
         except Exception as exc:  # noqa: BLE001 - a benchmark records the failure and goes on
             out[key] = {"error": f"{type(exc).__name__}: {exc}"}
             continue

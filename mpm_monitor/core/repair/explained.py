@@ -100,7 +100,7 @@ def explained_elements(model: PlantModel, data: LoggedData, located: Sequence[tu
     if rec.n_fit < _min_fit(model, options):
         return result
     for i, js in rows.items():
-        row = _RowData(model=model, u=rec.u, y=rec.y, i=i, extra=None, segments=rec.segments,
+        row = _RowData(model=model, u=rec.u, y=rec.y, i=i, extra=None, segments=rec.segments, bridge=rec.bridge,
                        delays=rec.row_delays(i))
         gone = []
         while len(js) > 1:          # until the row's classification releases nothing more

@@ -224,7 +224,8 @@ def _process_row_with(rec: _Record, settings: _TestSettings, i: int, js, extra: 
     """:func:`_process_row` with the fits of ``settings``; also the verdicts as validated on the held-out
     part (before the refit on the whole record), or None when none was accepted."""
     model = rec.model
-    row = _RowData(model=model, u=rec.u, y=rec.y, i=i, extra=extra, segments=rec.segments, delays=rec.row_delays(i))
+    row = _RowData(model=model, u=rec.u, y=rec.y, i=i, extra=extra, segments=rec.segments, delays=rec.row_delays(i),
+                   bridge=rec.bridge)
     try:
         elements, row_warnings, repair_fit = _repair_row(row, js, rec.n_fit, settings, classified)
     except _TooShort as exc:

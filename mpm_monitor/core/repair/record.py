@@ -14,6 +14,7 @@ from ..discretize import model_columns
 from ..errors import InputError
 from ..logged_data import LoggedData, check_loop_data, diverging_outputs, moving_columns
 from ..model import PlantModel
+from ..segments import GapSegments
 from ..signals import (LoopSignals, compute_signals, scored_segments, segment_signals, segments_mask,
                        unknown_starts)
 from .holdout import ar_one_step_errors
@@ -208,6 +209,24 @@ class _Record:
         if self.segments is None:
             return None
         return scored_segments(self.segments, *models, settled=settled, restarts=self.restarts)
+
+    @functools.cached_property
+    def bridge(self) -> Optional[GapSegments]:
+        """With gaps and the option ``max_gap``, the record's segments as :class:`~mpm_monitor.core.segments.GapSegments`
+        (the runs the model is simulated through, the known columns inside their gaps filled, ``[u | dv]``, NaN where
+        not known): what a fit of a step-response row runs its held elements through (:func:`~.row._held_row`);
+        None without gaps or ``max_gap``."""
+        if self.segments is None or self.options.max_gap is None:
+            return None
+        fill = self.data.fill_on_grid()
+        bridge = GapSegments(self.segments, self.data.grid_index, self.options.max_gap,
+                             None if fill is None else fill[0], None if fill is None else fill[1])
+        if fill is None:
+            return bridge
+        values = np.full((len(fill[0]), self.u.shape[1]), np.nan)
+        given = np.asarray(fill[1], dtype=float)
+        values[:, :min(given.shape[1], values.shape[1])] = given[:, :values.shape[1]]
+        return bridge.filled(values)
 
     @property
     def restarts(self) -> Optional[list]:

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..discretize import discretize, simulate_elements
 from ..model import PlantModel
+from ..segments import GapSegments, run_places, run_samples
 from .fit import _lag_interval, _RowEstimate, _RowProblem, _search_row
 from .forms import _fitted_params, _lag_seconds, _match_lags
 from .options import RepairOptions, _TestSettings
@@ -57,6 +58,13 @@ class _RowData:
     shared: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
     segments: Optional[tuple] = None
     delays: dict = dataclasses.field(default_factory=dict)
+    bridge: Optional[GapSegments] = dataclasses.field(default=None, compare=False, repr=False)
+
+    @property
+    def bridged(self) -> bool:
+        """Whether the row's held elements run through the short gaps (:func:`_held_row`): a row of a step-response
+        model on data with gaps whose segments some short gap joins."""
+        return self.bridge is not None and self.model.is_step_response and self.bridge.joined
 
     @property
     def n_samples(self) -> int:
@@ -68,12 +76,19 @@ class _RowData:
         return out if j is None else f"{out}/{self.model.columns[j]}"
 
 
-def _row_response(model: PlantModel, u: np.ndarray, i: int, segments=None) -> np.ndarray:
+def _row_response(model: PlantModel, u: np.ndarray, i: int, segments=None, bridge=None) -> np.ndarray:
     """Response of row ``i`` of ``model`` to ``u`` from rest (:func:`mpm_monitor.core.discretize.simulate_elements`);
-    with ``segments``, from rest at the start of each."""
+    with ``segments``, from rest at the start of each; with ``bridge`` (:class:`GapSegments`), from rest at the
+    start of each of its runs, through their short gaps with the columns held (or filled where known)."""
     if segments is None:
         return simulate_elements(model, u, rows=[i])[:, 0]
     out = np.zeros(u.shape[0])
+    if bridge is not None:
+        for run in bridge.runs:
+            a, b, _ = run
+            on_grid = run_samples(u, run, bridge.run_fill(run, slice(None)))
+            out[a:b] = simulate_elements(model, on_grid, rows=[i])[run_places(run), 0]
+        return out
     for a, b in segments:
         out[a:b] = simulate_elements(model, u[a:b], rows=[i])[:, 0]
     return out
@@ -113,7 +128,8 @@ class _HeldRow:
     Attributes
     ----------
     z : ndarray, shape (n_samples,)
-        The output minus the response of the row's other elements (held at the model's values), from rest.
+        The output minus the response of the row's other elements (held at the model's values), from rest
+        (at each segment's start; on a :attr:`~_RowData.bridged` row at each run's, through its short gaps).
     lag_poles : dict
         ``{pole: multiplicity}`` of the other elements' lags (:meth:`DiscreteElements.lag_poles`).
     memories : list of int
@@ -132,16 +148,32 @@ def _held_row(row: _RowData, js: tuple) -> _HeldRow:
         model, i = row.model, row.i
         held = _without(model, i, js)
         row.shared[key] = _HeldRow(
-            z=row.y[:, i] - _row_response(held, row.u, i, row.segments), lag_poles=discretize(held).lag_poles(i),
+            z=row.y[:, i] - _row_response(held, row.u, i, row.segments, row.bridge if row.bridged else None),
+            lag_poles=discretize(held).lag_poles(i),
             memories=[_held_memory(held, i, j) for j in range(model.n_columns) if held.present[i, j]])
     return row.shared[key]
 
 
 def _default_skip(row: _RowData, specs: dict) -> int:
     """Samples left out at the start of a fit of the located elements ``specs``: the largest input lag
-    searched, or the longest memory of the row's held elements (:func:`_held_memory`), at least 1."""
-    memories = _held_row(row, tuple(sorted(specs))).memories
+    searched, or the longest memory of the row's held elements (:func:`_held_memory`), at least 1; on a
+    :attr:`~_RowData.bridged` row the held elements' memory is left out at the start of each run only
+    (:func:`_fit_segments`)."""
+    memories = [] if row.bridged else _held_row(row, tuple(sorted(specs))).memories
     return max([specs[j].window[1] for j in specs] + memories + [1])
+
+
+def _fit_segments(row: _RowData, js, skip: int):
+    """The segments a fit of the located elements ``js`` with ``skip`` takes (:class:`_RowProblem`): the row's; on a
+    :attr:`~_RowData.bridged` row the first segment of every run starts later by what the held elements' memory
+    (:func:`_held_memory`) exceeds ``skip`` (the columns before the run are unknown), the others keep their samples:
+    the held elements run through the short gap before them."""
+    if not row.bridged:
+        return row.segments
+    memory = max(_held_row(row, tuple(sorted(js))).memories + [0])
+    late = max(0, memory - int(skip))
+    firsts = {a for a, _, _ in row.bridge.runs}
+    return tuple((a + late if a in firsts else a, b) for a, b in row.segments)
 
 
 def _estimate_row(row: _RowData, specs: dict, lags0: dict, n_use: int, options: RepairOptions, max_sweeps: int = 1,
@@ -166,7 +198,7 @@ def _estimate_row(row: _RowData, specs: dict, lags0: dict, n_use: int, options: 
         skip = _default_skip(row, specs)
     problem = _RowProblem(held.z, row.u[:, js], [specs[j] for j in js], n_use, skip, held.lag_poles,
                           options.initial_state == "estimate", options.noise_order, row.extra,
-                          sample_time=row.model.sample_time, shared=row.shared, segments=row.segments,
+                          sample_time=row.model.sample_time, shared=row.shared, segments=_fit_segments(row, js, skip),
                           segment_levels=bool(row.model.integrating_outputs[row.i]))
     if ar0 is not None:
         problem.set_ar(ar0)
