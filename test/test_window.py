@@ -201,31 +201,29 @@ def test_hold_setpoint_uses_the_latest_setpoint_at_or_before_each_sample():
     assert w.take_problems() == []
 
 
+def _hold_run(window: int, n: int, late: dict):
+    """A ``hold_setpoint`` window: setpoint 1 from t = 0, the inputs and outputs of samples 0 .. n - 1, and after
+    sample ``k`` the setpoints ``late[k]`` (``(stamp s, value)`` pairs)."""
+    w = make(window=window, hold_setpoint=True)
+    w.add("setpoint", 0, np.array([1.0, 1.0]))
+    for k in range(n):
+        _, u, y = sample_values(k)
+        w.add("input", k * NS, u)
+        w.add("output", k * NS, y)
+        for t, value in late.get(k, ()):
+            w.add("setpoint", int(t * NS), np.full(2, value))
+    return w
+
+
 def test_hold_setpoint_delivered_after_its_sample_holds_for_it():
     """The setpoint stamped t = 10 s arrives after the input and output of t = 10 s (topics of different publishers
     arrive in no set order): sample 10 was complete with the old setpoint, and the new one started a sample late,
     without a word (an outside check).  The samples in the window from its stamp take it."""
-    w = make(window=50, hold_setpoint=True)
-    w.add("setpoint", 0, np.array([1.0, 1.0]))
-    for k in range(20):
-        _, u, y = sample_values(k)
-        w.add("input", k * NS, u)
-        w.add("output", k * NS, y)
-        if k == 10:
-            w.add("setpoint", 10 * NS, np.array([2.0, 2.0]))
-        if k == 15:
-            w.add("setpoint", 13 * NS, np.array([3.0, 3.0]))     # two samples later still
+    w = _hold_run(50, 20, {10: [(10, 2.0)], 15: [(13, 3.0)]})             # the second two samples later still
     np.testing.assert_array_equal(w.data().r[:, 0], [1] * 10 + [2] * 3 + [3] * 7)
     assert w.take_problems() == []
     # A setpoint stamped before the window's oldest sample holds for the samples up to the next one.
-    w = make(window=10, hold_setpoint=True)
-    w.add("setpoint", 0, np.array([1.0, 1.0]))
-    for k in range(17):
-        _, u, y = sample_values(k)
-        w.add("input", k * NS, u)
-        w.add("output", k * NS, y)
-    w.add("setpoint", 9 * NS, np.array([4.0, 4.0]))
-    w.add("setpoint", 3 * NS, np.array([5.0, 5.0]))
+    w = _hold_run(10, 17, {16: [(9, 4.0), (3, 5.0)]})
     np.testing.assert_array_equal(w.data().r[:, 0], [5, 5, 4, 4, 4, 4, 4, 4, 4, 4])
 
 
