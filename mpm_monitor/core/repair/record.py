@@ -348,5 +348,6 @@ def samples_for_repair(model: PlantModel, options: RepairOptions) -> int:
         n += 1
     return n
 
+
 def _located_in_row(located: list, i: int) -> list:
     return [j for (ii, j) in located if ii == i]

@@ -165,15 +165,16 @@ def _default_skip(row: _RowData, specs: dict) -> int:
 
 def _fit_segments(row: _RowData, js, skip: int):
     """The segments a fit of the located elements ``js`` with ``skip`` takes (:class:`_RowProblem`): the row's; on a
-    :attr:`~_RowData.bridged` row the first segment of every run starts later by what the held elements' memory
-    (:func:`_held_memory`) exceeds ``skip`` (the columns before the run are unknown), the others keep their samples:
-    the held elements run through the short gap before them."""
+    :attr:`~_RowData.bridged` row none starts before its run's first row plus what the held elements' memory
+    (:func:`_held_memory`) exceeds ``skip`` (the columns before the run are unknown; rows, not samples: a gap only
+    adds to the distance), and the later segments of a run keep their samples: the held elements run through the
+    short gap before them."""
     if not row.bridged:
         return row.segments
     memory = max(_held_row(row, tuple(sorted(js))).memories + [0])
     late = max(0, memory - int(skip))
-    firsts = {a for a, _, _ in row.bridge.runs}
-    return tuple((a + late if a in firsts else a, b) for a, b in row.segments)
+    starts = [row.bridge.runs[r][0] for r in row.bridge.run_of]
+    return tuple((max(a, first + late), b) for (a, b), first in zip(row.segments, starts))
 
 
 def _estimate_row(row: _RowData, specs: dict, lags0: dict, n_use: int, options: RepairOptions, max_sweeps: int = 1,
