@@ -54,10 +54,10 @@ DISTURBANCE = "disturbance"
 #: Problem kinds that mean the data itself is wrong (the monitor reports them as ERROR).
 ERROR_KINDS = frozenset({"bad_value", "conflict", "off_grid", "clock"})
 #: Problem kinds that cost samples but not correctness (reported in the summary's values).
+WARNING_KINDS = frozenset({"gap", "duplicate", "late", "out_of_order", "restart", "rephase", "behind"})
 #: Vectors of a channel stamped 0 in a row, each with values other than the one before, past which the next is
 #: refused as an unset ``header.stamp`` (the second may be a second publisher's: a conflict).
 UNSET_STAMP_REPEATS = 2
-WARNING_KINDS = frozenset({"gap", "duplicate", "late", "out_of_order", "restart", "rephase", "behind"})
 #: A stamp later than this (nanoseconds: 1e9 s, 2001-09-09) is a wall-clock time; a stamp of exactly 0
 #: among such stamps is an unset ``header.stamp``.
 WALL_CLOCK_NS = 10**18
@@ -561,18 +561,17 @@ class SampleWindow:
 
     def _late_or_duplicate(self, channel, k, slot, v) -> None:
         stamp_ns = self._stamp_of(k)
-        if self._count:
-            # A gap the window keeps lies between some of its samples: the position is searched (counted back
-            # from the newest, a re-sent or conflicting vector before such a gap was taken as given up, "late").
-            pos = self._window_position(k)
-            if pos is not None:
-                stored = self._bufs[slot][pos]
-                t = f"t = {seconds_text(stamp_ns)} s"
-                self._repeated(channel, stamp_ns, stored, v,
-                               f"{channel}: sample {t} received again (same values; ignored)",
-                               f"{channel}: a different vector for sample {t}, already in the window (ignored; "
-                               f"two publishers on one topic?)")
-                return
+        # A gap the window keeps lies between some of its samples: the position is searched (counted back from
+        # the newest, a re-sent or conflicting vector before such a gap was taken as given up, "late").
+        pos = self._window_position(k)
+        if pos is not None:
+            stored = self._bufs[slot][pos]
+            t = f"t = {seconds_text(stamp_ns)} s"
+            self._repeated(channel, stamp_ns, stored, v,
+                           f"{channel}: sample {t} received again (same values; ignored)",
+                           f"{channel}: a different vector for sample {t}, already in the window (ignored; "
+                           f"two publishers on one topic?)")
+            return
         self._health.late += 1
         self._problem("late", channel, stamp_ns,
                       f"{channel}: sample t = {seconds_text(stamp_ns)} s arrived after it was given up (ignored)")
