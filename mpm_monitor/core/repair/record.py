@@ -14,7 +14,7 @@ from ..discretize import model_columns
 from ..errors import InputError
 from ..logged_data import LoggedData, check_loop_data, diverging_outputs, moving_columns
 from ..model import PlantModel
-from ..segments import GapSegments
+from ..segments import GapSegments, centred_fill
 from ..signals import (LoopSignals, compute_signals, scored_segments, segment_signals, segments_mask,
                        unknown_starts)
 from .holdout import ar_one_step_errors
@@ -221,12 +221,7 @@ class _Record:
         fill = self.data.fill_on_grid()
         bridge = GapSegments(self.segments, self.data.grid_index, self.options.max_gap,
                              None if fill is None else fill[0], None if fill is None else fill[1])
-        if fill is None:
-            return bridge
-        values = np.full((len(fill[0]), self.u.shape[1]), np.nan)
-        given = np.asarray(fill[1], dtype=float)
-        values[:, :min(given.shape[1], values.shape[1])] = given[:, :values.shape[1]]
-        return bridge.filled(values)
+        return centred_fill(bridge, np.zeros(self.u.shape[1]))
 
     @property
     def restarts(self) -> Optional[list]:

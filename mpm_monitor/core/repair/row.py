@@ -16,7 +16,7 @@ import numpy as np
 
 from ..discretize import discretize, simulate_elements
 from ..model import PlantModel
-from ..segments import GapSegments, run_places, run_samples
+from ..segments import GapSegments, through
 from .fit import _lag_interval, _RowEstimate, _RowProblem, _search_row
 from .forms import _fitted_params, _lag_seconds, _match_lags
 from .options import RepairOptions, _TestSettings
@@ -76,22 +76,12 @@ class _RowData:
         return out if j is None else f"{out}/{self.model.columns[j]}"
 
 
-def _row_response(model: PlantModel, u: np.ndarray, i: int, segments=None, bridge=None) -> np.ndarray:
-    """Response of row ``i`` of ``model`` to ``u`` from rest (:func:`mpm_monitor.core.discretize.simulate_elements`);
-    with ``segments``, from rest at the start of each; with ``bridge`` (:class:`GapSegments`), from rest at the
-    start of each of its runs, through their short gaps with the columns held (or filled where known)."""
-    if segments is None:
-        return simulate_elements(model, u, rows=[i])[:, 0]
-    out = np.zeros(u.shape[0])
-    if bridge is not None:
-        for run in bridge.runs:
-            a, b, _ = run
-            on_grid = run_samples(u, run, bridge.run_fill(run, slice(None)))
-            out[a:b] = simulate_elements(model, on_grid, rows=[i])[run_places(run), 0]
-        return out
-    for a, b in segments:
-        out[a:b] = simulate_elements(model, u[a:b], rows=[i])[:, 0]
-    return out
+def _row_response(model: PlantModel, u: np.ndarray, i: int, segments=None) -> np.ndarray:
+    """Response of row ``i`` of ``model`` to ``u`` from rest (:func:`mpm_monitor.core.discretize.simulate_elements`)
+    as :func:`~mpm_monitor.core.segments.through` runs it: with plain ``segments`` from rest at the start of each;
+    with a :class:`GapSegments` from rest at the start of each of its runs, through their short gaps with the
+    columns held (or filled where known)."""
+    return through(u, lambda x: simulate_elements(model, x, rows=[i])[:, 0], segments, column=slice(None))
 
 
 def _without(model: PlantModel, i: int, js) -> PlantModel:
@@ -148,7 +138,7 @@ def _held_row(row: _RowData, js: tuple) -> _HeldRow:
         model, i = row.model, row.i
         held = _without(model, i, js)
         row.shared[key] = _HeldRow(
-            z=row.y[:, i] - _row_response(held, row.u, i, row.segments, row.bridge if row.bridged else None),
+            z=row.y[:, i] - _row_response(held, row.u, i, row.bridge if row.bridged else row.segments),
             lag_poles=discretize(held).lag_poles(i),
             memories=[_held_memory(held, i, j) for j in range(model.n_columns) if held.present[i, j]])
     return row.shared[key]
