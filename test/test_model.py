@@ -186,13 +186,13 @@ BAD_FILES = {
         r"key 'delay': row 2 \(y2\), column 3 \(u3\): expected a multiple of sample_time 0.4 s, got 6.2 s"),
     "nan in gain": (
         _replace_line("gain", "gain: [[4.05, 1.77, 5.88], [5.39, .nan, 6.90], [4.38, 4.42, 7.20]]"),
-        r"key 'gain': row 2, column 2: expected a finite number, got nan"),
+        r"key 'gain': row 2 \(y2\), column 2 \(u2\): expected a finite number, got nan"),
     "inf in time_constant": (
         _replace_line("time_constant", "time_constant: [[50, 60, 50], [50, 60, 40], [33, 44, .inf]]"),
-        r"key 'time_constant': row 3, column 3: expected a finite number, got inf"),
+        r"key 'time_constant': row 3 \(y3\), column 3 \(u3\): expected a finite number, got inf"),
     "-inf in delay": (
         _replace_line("delay", "delay: [[-.inf, 7, 6], [4, 3, 3], [5, 5, 0]]"),
-        r"key 'delay': row 1, column 1: expected a finite number, got -inf"),
+        r"key 'delay': row 1 \(y1\), column 1 \(u1\): expected a finite number, got -inf"),
     "nan sample_time": (_replace_line("sample_time", "sample_time: .nan"), r"key 'sample_time': expected a positive finite"),
     "inf sample_time": (_replace_line("sample_time", "sample_time: .inf"), r"key 'sample_time': expected a positive finite"),
     "zero sample_time": (_replace_line("sample_time", "sample_time: 0"), r"key 'sample_time': expected a positive"),
@@ -210,13 +210,13 @@ BAD_FILES = {
     "not UTF-8": (GOOD.encode("utf-8").replace(b"u1, u2", b"u\xff, u2"), r"not UTF-8 text \(byte \d+\)"),
     "non-numeric cell": (
         _replace_line("gain", "gain: [[4.05, 1.77, 5.88], [5.39, abc, 6.90], [4.38, 4.42, 7.20]]"),
-        r"key 'gain': row 2, column 2: expected a number, got 'abc'"),
+        r"key 'gain': row 2 \(y2\), column 2 \(u2\): expected a number, got 'abc'"),
     "boolean cell": (
         _replace_line("delay", "delay: [[6, 7, 6], [4, 3, 3], [5, 5, true]]"),
-        r"key 'delay': row 3, column 3: expected a number, got True"),
+        r"key 'delay': row 3 \(y3\), column 3 \(u3\): expected a number, got True"),
     "number written as a string": (
         _replace_line("time_constant", "time_constant: [[50, '60', 50], [50, 60, 40], [33, 44, 19]]"),
-        r"key 'time_constant': row 1, column 2: expected a number, got '60'"),
+        r"key 'time_constant': row 1 \(y1\), column 2 \(u2\): expected a number, got '60'"),
     "duplicate input names": (_replace_line("inputs", "inputs: [u1, u2, u1]"), r"key 'inputs': names must be unique, repeated: u1"),
     "duplicate output names": (_replace_line("outputs", "outputs: [y1, y3, y3]"), r"key 'outputs': names must be unique, repeated: y3"),
     "name both input and output": (_replace_line("outputs", "outputs: [y1, y2, u3]"), r"'inputs' and 'outputs': a name cannot be both"),
@@ -246,7 +246,7 @@ BAD_FILES = {
     # YAML 1.1's yes/no/on/off are not booleans here (YAML 1.2, as the numbers): silently true before.
     "yes and no as integrating": (
         GOOD + "integrating: [[no, off, false], [yes, no, false], [false, false, false]]\n",
-        r"key 'integrating': row 1, column 1: expected true or false, got 'no'"),
+        r"key 'integrating': row 1 \(y1\), column 1 \(u1\): expected true or false, got 'no'"),
     "yes as a key": (GOOD + "yes: 1\n", r"unknown key 'yes'"),
     # A key with another name an engineer uses: the hint names the model file's key.
     "dead_time for delay": (_replace_line("delay", "dead_time: [[6, 7, 6], [4, 3, 3], [5, 5, 0]]"),

@@ -171,9 +171,9 @@ def test_a_step_response_model_is_read_in_one_pass_and_loads_the_same(tmp_path: 
 
 
 @pytest.mark.parametrize("entry, message", [
-    ("true", "row 1, column 2, coefficient 2: expected a number, got True"),
-    ("'0.5'", "row 1, column 2, coefficient 2: expected a number, got '0.5'"),
-    ("1" + "0" * 400, "row 1, column 2, coefficient 2: expected a finite number, got an integer of 401 digits"),
+    ("true", "row 1 (y1), column 2 (u2), coefficient 2: expected a number, got True"),
+    ("'0.5'", "row 1 (y1), column 2 (u2), coefficient 2: expected a number, got '0.5'"),
+    ("1" + "0" * 400, "row 1 (y1), column 2 (u2), coefficient 2: expected a finite number, got an integer of 401 digits"),
 ])
 def test_a_coefficient_that_is_not_a_number_is_named_as_before(tmp_path: Path, entry, message):
     path = tmp_path / "m.yaml"

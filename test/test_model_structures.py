@@ -115,13 +115,13 @@ BAD = {
     "unknown key far from any": (RICH + "colour: red\n", r"unknown key 'colour': a model file holds only the keys "
                                                          r"sample_time, inputs, "),
     "lead not finite": (_with_line(RICH, "lead", "lead: [[0, 0, 0, 0], [.nan, 0, 0, 0], [0, 0, 0, 0]]"),
-                        r"key 'lead': row 2, column 1: expected a finite number, got nan"),
+                        r"key 'lead': row 2 \(y2\), column 1 \(u1\): expected a finite number, got nan"),
     "lead without a lag": (_with_line(RICH, "lead", "lead: [[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0]]").replace(
         "time_constant:  [[50, 60, 0, 20]", "time_constant:  [[0, 60, 0, 20]").replace(
         "lead: [[0, 0, 0, 0]", "lead: [[3, 0, 0, 0]"),
         r"key 'lead': row 1 \(y1\), column 1 \(u1\): a lead of 3 s needs a lag"),
     "lead a string": (_with_line(RICH, "lead", "lead: [[0, 0, 0, 0], [fast, 0, 0, 0], [0, 0, 0, 0]]"),
-                      r"key 'lead': row 2, column 1: expected a number, got 'fast'"),
+                      r"key 'lead': row 2 \(y2\), column 1 \(u1\): expected a number, got 'fast'"),
     "lead wrong shape": (_with_line(RICH, "lead", "lead: [[0, 0, 0], [0, 0, 0], [0, 0, 0]]"),
                          r"key 'lead': expected 3 rows x 4 columns"),
     "negative time_constant2": (
@@ -132,14 +132,14 @@ BAD = {
         r"key 'time_constant2': row 1 \(y1\), column 3 \(u3\): a second lag of 5 s without a first one"),
     "time_constant2 infinite": (
         _with_line(RICH, "time_constant2", "time_constant2: [[0, 0, 0, 0], [0, .inf, 0, 0], [0, 15, 0, 0]]"),
-        r"key 'time_constant2': row 2, column 2: expected a finite number, got inf"),
+        r"key 'time_constant2': row 2 \(y2\), column 2 \(u2\): expected a finite number, got inf"),
     "integrating not boolean": (
         _with_line(RICH, "integrating", "integrating: [[0, 0, 1, 0], [0, 0, 0, 0], [0, 0, 0, 0]]"),
-        r"key 'integrating': row 1, column 1: expected true or false, got 0"),
+        r"key 'integrating': row 1 \(y1\), column 1 \(u1\): expected true or false, got 0"),
     "integrating a string": (
         _with_line(RICH, "integrating", "integrating: [[false, false, 'yes', false], [false, false, false, false], "
                                         "[false, false, false, false]]"),
-        r"key 'integrating': row 1, column 3: expected true or false, got 'yes'"),
+        r"key 'integrating': row 1 \(y1\), column 3 \(u3\): expected true or false, got 'yes'"),
     "integrating wrong shape": (
         _with_line(RICH, "integrating", "integrating: [[false, false, true, false]]"),
         r"key 'integrating': expected 3 rows x 4 columns"),
@@ -150,9 +150,9 @@ BAD = {
     "disturbances not a list": (_with_line(RICH, "disturbances", "disturbances: dv1"),
                                 r"key 'disturbances': expected a list of names, got str"),
     "step_response wrong length": (STEP.replace("length: 6", "length: 5"),
-                                   r"key 'step_response': row 1, column 1: expected 5 coefficients \(length\), got 6"),
+                                   r"key 'step_response': row 1 \(level\), column 1 \(u1\): expected 5 coefficients \(length\), got 6"),
     "step_response non-finite": (STEP.replace("0.9, 1.0], [0.3", ".nan, 1.0], [0.3"),
-                                 r"key 'step_response': row 2, column 1, coefficient 5: expected a number|"
+                                 r"key 'step_response': row 2 \(temp\), column 1 \(u1\), coefficient 5: expected a number|"
                                  r"key 'step_response': row 2 \(temp\), column 1 \(u1\), coefficient 5: expected a finite"),
     "step_response wrong rows": (STEP.replace("  - [[0, 0, 0, 0.5, 0.9, 1.0], [0.3, 0.6, 0.8, 0.9, 1.0, 1.0]]\n", ""),
                                  r"key 'step_response': expected coefficients of 2 rows x 2 columns x N >= 1 values, "
@@ -200,5 +200,5 @@ def test_constructor_refuses_bad_new_values_like_the_loader():
     base = dict(sample_time=1.0, inputs=["u"], outputs=["y"], gain=[[1.0]], time_constant=[[10.0]], delay=[[0.0]])
     with pytest.raises(ModelFileError, match=r"key 'time_constant2': row 1 \(y\), column 1 \(u\): expected >= 0"):
         PlantModel(time_constant2=[[-1.0]], **base)
-    with pytest.raises(ModelFileError, match=r"key 'lead': row 1, column 1: expected a finite"):
+    with pytest.raises(ModelFileError, match=r"key 'lead': row 1 \(y\), column 1 \(u\): expected a finite"):
         PlantModel(lead=[[np.inf]], **base)

@@ -238,7 +238,7 @@ MODEL_HEAD = "sample_time: 1\ninputs: [u1]\noutputs: [y1]\n"
 
 
 @pytest.mark.parametrize("text, match", [
-    (MODEL_HEAD + f"gain: [[{10**400}]]\ntime_constant: [[1]]\ndelay: [[0]]\n", r"key 'gain': row 1, column 1: expected a finite"),
+    (MODEL_HEAD + f"gain: [[{10**400}]]\ntime_constant: [[1]]\ndelay: [[0]]\n", r"key 'gain': row 1 \(y1\), column 1 \(u1\): expected a finite"),
     (f"sample_time: {10**400}\ninputs: [u1]\noutputs: [y1]\ngain: [[1]]\ntime_constant: [[1]]\ndelay: [[0]]\n",
      r"key 'sample_time'"),
     (MODEL_HEAD + f"gain: [[1]]\ntime_constant: [[1]]\ndelay: [[0]]\ninput_nominal: [{10**400}]\n", r"key 'input_nominal'"),

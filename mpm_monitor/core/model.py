@@ -487,7 +487,7 @@ def validate_model(model: PlantModel, source: str = "model") -> None:
                 f"{'x'.join(str(s) for s in arr.shape) or 'scalar'}")
         if arr.dtype != bool and not np.all(np.isfinite(arr)):
             i, j = np.argwhere(~np.isfinite(arr))[0]
-            raise ModelFileError(f"{source}: key '{key}': row {i + 1}, column {j + 1}: expected a finite number, "
+            raise ModelFileError(f"{source}: key '{key}': {_where(model, i, j)}: expected a finite number, "
                                  f"got {arr[i, j]}")
     for key in ("time_constant", "time_constant2", "delay"):
         arr = getattr(model, key)

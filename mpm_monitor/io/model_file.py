@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
 import yaml
@@ -24,26 +24,37 @@ from .files import read_text, write_text_replacing
 from .yaml_nesting import nests_deeper
 
 
-def _matrix(data: Mapping, key: str, source: str) -> np.ndarray:
+def _matrix(data: Mapping, key: str, source: str, names: Optional[tuple] = None) -> np.ndarray:
     if key not in data:
         raise ModelFileError(f"{source}: missing key '{key}': expected a list of rows (outputs x columns)")
     val = data[key]
     if not isinstance(val, Sequence) or isinstance(val, (str, bytes)):
         raise ModelFileError(f"{source}: key '{key}': expected a list of rows (outputs x inputs), got {type(val).__name__}")
-    rows = _rows(val, key, source, "numbers", _number)
+    rows = _rows(val, key, source, "numbers", _number, names)
     return np.array(rows, dtype=float)
 
 
-def _rows(val: Sequence, key: str, source: str, what: str, entry) -> list:
+def _cell(names: Optional[tuple], i: int, j: int) -> str:
+    """``row i (name), column j (name)`` of a matrix entry (1-based), the names from ``names`` = (outputs,
+    columns) where it has them."""
+    if names is None:
+        return f"row {i + 1}, column {j + 1}"
+    outputs, columns = names
+    return (f"row {i + 1} ({outputs[i] if i < len(outputs) else '?'}), "
+            f"column {j + 1} ({columns[j] if j < len(columns) else '?'})")
+
+
+def _rows(val: Sequence, key: str, source: str, what: str, entry, names: Optional[tuple] = None) -> list:
     """The rows of a list-of-rows value, each entry through ``entry(x, where)``: rows of equal length,
-    at least one, else a :class:`ModelFileError` naming the key, the row and the column."""
+    at least one, else a :class:`ModelFileError` naming the key, the row and the column (with their channel
+    names, from ``names`` = (outputs, columns), when given)."""
     rows = []
     for i, row in enumerate(val):
         if not isinstance(row, Sequence) or isinstance(row, (str, bytes)):
             raise ModelFileError(f"{source}: key '{key}': row {i + 1}: expected a list of {what}, got {row!r}")
         if rows and len(row) != len(rows[0]):
             raise ModelFileError(f"{source}: key '{key}': row {i + 1} has {len(row)} entries, row 1 has {len(rows[0])}")
-        rows.append([entry(x, f"{source}: key '{key}': row {i + 1}, column {j + 1}") for j, x in enumerate(row)])
+        rows.append([entry(x, f"{source}: key '{key}': {_cell(names, i, j)}") for j, x in enumerate(row)])
     if not rows:
         raise ModelFileError(f"{source}: key '{key}': expected at least one row")
     return rows
@@ -133,14 +144,14 @@ def _check_keys(data: Mapping, source: str) -> None:
                              f"{', '.join(KNOWN_KEYS)}")
 
 
-def _bool_matrix(data: Mapping, key: str, source: str):
+def _bool_matrix(data: Mapping, key: str, source: str, names: Optional[tuple] = None):
     if key not in data or data[key] is None:
         return None
     val = data[key]
     if not isinstance(val, Sequence) or isinstance(val, (str, bytes)):
         raise ModelFileError(f"{source}: key '{key}': expected a list of rows of true/false (outputs x columns), "
                              f"got {type(val).__name__}")
-    rows = _rows(val, key, source, "true/false", _flag)
+    rows = _rows(val, key, source, "true/false", _flag, names)
     return np.array(rows, dtype=bool)
 
 
@@ -169,8 +180,9 @@ def _plain_numbers(values: Sequence):
         return None
 
 
-def _step_response(data: Mapping, source: str) -> np.ndarray:
-    """``step_response: {length: N, coefficients: [[[N values] per column] per output]}`` as an array."""
+def _step_response(data: Mapping, source: str, names: Optional[tuple] = None) -> np.ndarray:
+    """``step_response: {length: N, coefficients: [[[N values] per column] per output]}`` as an array (an entry's
+    message names its channels from ``names`` = (outputs, columns) when given)."""
     val = data["step_response"]
     key = "step_response"
     if not isinstance(val, Mapping):
@@ -197,7 +209,7 @@ def _step_response(data: Mapping, source: str) -> np.ndarray:
             raise ModelFileError(f"{source}: key '{key}': row {i + 1} has {len(row)} columns, row 1 has {len(rows[0])}")
         out_row = []
         for j, el in enumerate(row):
-            where = f"{source}: key '{key}': row {i + 1}, column {j + 1}"
+            where = f"{source}: key '{key}': {_cell(names, i, j)}"
             if not isinstance(el, Sequence) or isinstance(el, (str, bytes)):
                 raise ModelFileError(f"{where}: expected a list of {n} coefficients, got {el!r}")
             if len(el) != n:
@@ -262,17 +274,20 @@ def model_from_dict(data: Any, source: str = "model") -> PlantModel:
                     raise ModelFileError(
                         f"{source}: key '{key}': a step-response model (key 'step_response') has no {key}: give "
                         f"either the step responses or the parametric elements")
-            return PlantModel.from_step_response(coefficients=_step_response(data, source),
+            return PlantModel.from_step_response(coefficients=_step_response(data, source,
+                                                                             (outputs, inputs + disturbances)),
                                                  ramp=_bool_vector(data, "ramp", source), **common)
         if data.get("ramp") is not None:
             raise ModelFileError(f"{source}: key 'ramp': only a step-response model (key 'step_response') takes a "
                                  f"ramp; an integrating parametric element is marked in 'integrating'")
+        cells = (outputs, inputs + disturbances)           # a matrix entry's message names its channels
         return PlantModel(
-            gain=_matrix(data, "gain", source), time_constant=_matrix(data, "time_constant", source),
-            delay=_matrix(data, "delay", source),
-            lead=_matrix(data, "lead", source) if data.get("lead") is not None else None,
-            time_constant2=_matrix(data, "time_constant2", source) if data.get("time_constant2") is not None else None,
-            integrating=_bool_matrix(data, "integrating", source), **common)
+            gain=_matrix(data, "gain", source, cells), time_constant=_matrix(data, "time_constant", source, cells),
+            delay=_matrix(data, "delay", source, cells),
+            lead=_matrix(data, "lead", source, cells) if data.get("lead") is not None else None,
+            time_constant2=(_matrix(data, "time_constant2", source, cells)
+                            if data.get("time_constant2") is not None else None),
+            integrating=_bool_matrix(data, "integrating", source, cells), **common)
     except ModelFileError as exc:
         # __post_init__ validates with the generic prefix; re-raise with the file name.
         msg = str(exc)
