@@ -107,6 +107,20 @@ def test_deterministic():
     assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
 
 
+def test_the_row_table_stays_aligned_with_long_output_names():
+    # An output name longer than the row column (10 characters) widened its line only: "bottom_temp    1.003".
+    case, data = _run_case("3.2", 4, samples=1500)
+    names = ("bottom_temperature", "y2", "top_pressure")
+    model = dataclasses.replace(case.model, outputs=names)
+    data = dataclasses.replace(data, outputs=names)
+    lines = analyze(model, data, FAST).summary_text().splitlines()
+    head = next(k for k, line in enumerate(lines) if line.startswith("row "))
+    table = lines[head:head + 4]
+    assert [line.split()[0] for line in table] == ["row", *names]
+    # Every RSI ends (its third decimal) where the header's "RSI" ends.
+    assert [line.index(".") + 4 for line in table[1:]] == [table[0].index("RSI") + 3] * 3
+
+
 def test_report_has_the_contract_keys():
     case, data = _run_case("3.2", 4, samples=1500)
     doc = json.loads(json.dumps(analyze(case.model, data, AnalysisOptions()).to_dict()))

@@ -193,9 +193,10 @@ class AnalysisReport:
         """A short human-readable summary (rows, located elements, errors, warnings)."""
         lines = [f"{self.samples} samples at {self.sample_time:g} s, method {self.method}, "
                  f"false-alarm rate alpha {self.alpha:g}; overall RSI {self.overall_rsi:.3f}"]
-        lines.append(f"{'row':<10} {'RSI':>8} {'p-value':>10}  mismatch")
+        width = max([10] + [len(r.output) for r in self.rows])      # a longer name widens the column
+        lines.append(f"{'row':<{width}} {'RSI':>8} {'p-value':>10}  mismatch")
         for r in self.rows:
-            lines.append(f"{r.output:<10} {r.rsi:8.3f} {r.p_value:10.2e}  {'YES' if r.mismatch else 'no'}")
+            lines.append(f"{r.output:<{width}} {r.rsi:8.3f} {r.p_value:10.2e}  {'YES' if r.mismatch else 'no'}")
         loc = [e for e in self.elements if e.mismatch]
         if loc:
             lines.append("located elements:")
