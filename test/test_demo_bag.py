@@ -14,6 +14,9 @@ time, paper case 3.2) records every topic, ``/diagnostics`` included.  Then:
 
 import io
 import json
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -148,3 +151,14 @@ def test_the_demo_refuses_fewer_samples_than_its_monitor_can_analyse():
     with pytest.raises(InputError, match=r"^--samples: case 3\.1 needs at least 215 samples for the monitor's "
                                          r"analysis, got 150$"):
         run_demo(case="3.1", samples=150, quiet=True)
+
+
+def test_quiet_demo_prints_no_node_log_lines():
+    # The nodes logged what they run ("[INFO] [...] [plant]: plant 3x3 ...") as they started, before --quiet set
+    # their level: four lines on the standard error of a run asked to print only the final result.
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="OFF", PYTHONDONTWRITEBYTECODE="1")
+    done = subprocess.run([sys.executable, "-m", "mpm_monitor", "demo", "--quiet", "--samples", "300"],
+                          capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "[INFO]" not in done.stderr, done.stderr
+    assert "located elements: (y1, u2), (y1, u3), (y2, u1)" in done.stdout, done.stdout

@@ -327,10 +327,13 @@ def run_demo(case: str = "3.2", samples: Optional[int] = None, bag: Optional[str
             # the data stop when the run ends: keep the last result from ageing to STALE while it is computed
             params["monitor"].update(window_samples=n, min_samples=min_samples,
                                      analysis_period=max(min_samples, n // 3), stale_timeout=60.0)
+            if quiet:           # before the nodes exist: each logs what it runs when it starts
+                from rclpy.logging import LoggingSeverity, set_logger_level
+
+                for name in params:
+                    set_logger_level(name, LoggingSeverity.WARN)
             suite = Suite(ctx, params)
             if quiet:
-                from rclpy.logging import LoggingSeverity
-
                 for node in suite.nodes:
                     node.get_logger().set_level(LoggingSeverity.WARN)
             printer = DiagnosticsPrinter(ctx, out=out, quiet=quiet)
