@@ -36,8 +36,12 @@ little, so half their spread, the largest amplitude allowed, rarely reaches the 
 the re-run (and the goal check) of such an experiment uses that larger dither for its samples, so that
 its prediction is checked too; the others are re-run as recommended.
 
-Run: ``python -m bench.experiment_mc [--runs 200] [--seed 0] [--jobs 2] [--goal-check 0] [--still] [--beyond]
-[--out bench/results/experiment_mc.json]``
+``--small``: loops of 1 to 3 outputs and 1 to 3 inputs (:data:`bench.scenarios.SMALL`; the fat ones are 1x2, 1x3
+and 2x3, where one or two outputs tie all the inputs together; ``bench/results/experiment_mc_small.json``).  The
+default design's plants have 2 to 8 outputs and inputs.
+
+Run: ``python -m bench.experiment_mc [--runs 200] [--seed 0] [--jobs 2] [--goal-check 0] [--still | --small]
+[--beyond] [--out bench/results/experiment_mc.json]``
 """
 
 from __future__ import annotations
@@ -60,7 +64,7 @@ from mpm_monitor.sim.excitation import PrbsOptions
 
 from . import mc_parser, write_json
 from .monte_carlo import ALPHA, SEPARABILITY_COLLINEAR, score, simulate
-from .scenarios import STILL, ScenarioOptions, input_separability, make_scenario
+from .scenarios import SMALL, STILL, ScenarioOptions, input_separability, make_scenario
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "experiment_mc.json"
 
@@ -244,8 +248,8 @@ def _goal_summary(checks: list) -> dict:
 
 
 def run(runs: int, seed: int = 0, samples: int = 3000, jobs: int = 1, alpha: float = ALPHA,
-        progress=None, goal_repeats: int = 0, still: bool = False, beyond: bool = False) -> dict:
-    options = STILL if still else ScenarioOptions()
+        progress=None, goal_repeats: int = 0, still: bool = False, beyond: bool = False, small: bool = False) -> dict:
+    options = STILL if still else SMALL if small else ScenarioOptions()
     tasks = [(seed, k, samples, alpha, options, goal_repeats, beyond) for k in range(runs)]
     t0 = time.perf_counter()
     records = []
@@ -265,6 +269,7 @@ def run(runs: int, seed: int = 0, samples: int = 3000, jobs: int = 1, alpha: flo
     records.sort(key=lambda r: r["index"])
     return {"config": {"runs": runs, "seed": seed, "samples": samples, "alpha": alpha, "goal_repeats": goal_repeats,
                        "scenario_options": "still: every setpoint held at 0, no dither" if still else
+                       "bench.scenarios.SMALL (1 to 3 outputs and inputs)" if small else
                        "bench.scenarios.ScenarioOptions() (default design)", "beyond": beyond,
                        "wall_time_s": time.perf_counter() - t0},
             "summary": summarise(records), "runs": records}
@@ -280,9 +285,15 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--still", action="store_true", help="every setpoint held at 0, no dither (module docstring)")
     parser.add_argument("--beyond", action="store_true",
                         help="re-run an experiment out of reach with the larger dither its why names")
+    parser.add_argument("--small", action="store_true",
+                        help="loops of 1 to 3 outputs and inputs (bench.scenarios.SMALL; module docstring)")
     args = parser.parse_args(argv)
+    if args.still and args.small:
+        parser.error("--still and --small: choose one")
     if args.still and args.out == DEFAULT_OUT:
         args.out = DEFAULT_OUT.with_name("experiment_mc_still.json")
+    if args.small and args.out == DEFAULT_OUT:
+        args.out = DEFAULT_OUT.with_name("experiment_mc_small.json")
 
     def progress(done, total, rec):
         if args.quiet:
@@ -296,7 +307,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
               f"{len(rec['mismatches'])} mism: {tail}", flush=True)
 
     result = run(args.runs, args.seed, args.samples, args.jobs, args.alpha, progress, args.goal_check, args.still,
-                 args.beyond)
+                 args.beyond, args.small)
     s = result["summary"]
     b, a = s["before"], s["after"]
     def f3(x):

@@ -161,6 +161,10 @@ SETPOINT_STEPS = ScenarioOptions(setpoint_switch_probability=0.01, setpoint_min_
 FAR_DELAYS = ScenarioOptions(kinds=("delay",), min_mismatches=1, max_mismatches=2, max_delay=40,
                              delay_shift_range=(11, 30))
 
+#: Small loops: 1 to 3 outputs and 1 to 3 inputs (the fat ones 1x2, 1x3 and 2x3), the default design otherwise
+#: (``--small`` of bench.experiment_mc: the experiment's prediction where one or two outputs tie the inputs).
+SMALL = ScenarioOptions(min_size=1, max_size=3)
+
 #: Still loops: every setpoint held at 0 and no dither, so the inputs move only with the controller's feedback
 #: of the noise (``--still`` of bench.monte_carlo, bench.detectability and bench.experiment_mc).
 STILL = ScenarioOptions(setpoint_amplitude=0.0, dither_fraction=0.0)
