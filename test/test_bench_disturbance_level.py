@@ -18,7 +18,9 @@ def test_records_are_reproducible_and_the_summary_counts_them():
     assert 450 <= a["at"] <= 1050
     result = bench.run(level_draws=2, power_draws=1, samples=600)
     records, summary = result["records"], result["summary"]
-    assert len(records) == 2 * len(bench.LEVEL_POLES) + len(bench.POWER)
+    assert len(records) == 2 * (len(bench.LEVEL_POLES) + len(bench.DRIFT_NOISE_LEVEL_POLES)) + len(bench.POWER) \
+        + len(bench.DRIFT_NOISE_POWER)
+    assert {r.get("noise", "paper") for r in records} == {"paper", "drift"}
     assert sum(s["draws"] for s in summary) == len(records)
     for s in summary:
         for rule in ("plain", "confirmed"):
@@ -26,7 +28,14 @@ def test_records_are_reproducible_and_the_summary_counts_them():
             assert s[rule]["reported"] == sum(x is not None for x in mine)
             assert s[rule]["steps"] + s[rule]["drifts"] == s[rule]["reported"]
     text = bench.format_table(summary)
-    assert "level" in text and "drift" in text
+    assert "level" in text and "drift" in text and "level*" in text
+
+
+def test_drift_noise_has_the_spread_of_its_two_parts():
+    rng = np.random.default_rng(0)
+    d = np.concatenate([bench.drift_noise(rng, 4000, 0.95) for _ in range(10)])
+    # AR(1) of pole 0.95 driven by 5e-3, plus 2e-2 white.
+    assert abs(np.std(d) / np.sqrt(5e-3 ** 2 / (1 - 0.95 ** 2) + 2e-2 ** 2) - 1.0) < 0.1
 
 
 def test_a_loop_record_names_what_each_rule_reports():
