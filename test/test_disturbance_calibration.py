@@ -248,3 +248,26 @@ def test_a_real_step_under_measurement_noise_is_still_reported():
     out = unexplained_disturbance(d, calibrate=True)
     assert out["detected"] and out["kind"] == "step"
     assert abs(out["index"] - 1800) <= 30
+
+
+def test_the_longer_ar_runs_on_the_same_segments_and_levels():
+    # The q-lag design keeps the segments long enough for q lags, with their levels, and reads the alternative
+    # column on its own rows at the same samples as the p-lag design's.
+    rng = np.random.default_rng(11)
+    n = 2400
+    dz = standardised(drift_under_noise(rng, n))
+    segments, levels = [(0, 700), (705, 1500), (1510, 1530), (1540, 2400)], [0, 0, 1, 1]
+    design = _Design.of(dz, 4, segments, levels)
+    longer = design.with_order(32)
+    assert [(a, b, lev) for a, b, lev in longer.kept] == [(0, 700, 0), (705, 1500, 0), (1540, 2400, 1)]
+    assert set(longer.row_samples(n)) <= set(design.row_samples(n))
+    rows = np.arange(design.rows(n), dtype=float)
+    step = (design.row_samples(n) >= 1200).astype(float)
+    for kind, alternative in (("step", step), ("drift", rows / rows.size)):
+        scale = design.null_scale(dz, 0.15, 40, np.random.default_rng(0), alternative, kind, order=32)
+        assert np.isfinite(scale) and scale >= 1.0
+    # An order no segment is long enough for falls back to the tests' own.
+    short = _Design.of(dz[:60], 4, [(0, 30), (30, 60)], None)
+    assert short.with_order(32) is None
+    assert short.null_scale(dz[:60], 0.15, 10, np.random.default_rng(0), kind="step", order=32) == \
+        short.null_scale(dz[:60], 0.15, 10, np.random.default_rng(0), kind="step")
