@@ -472,7 +472,7 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
         what they read on ``draws`` simulated records of the fitted AR(p) noise (:meth:`_Design.null_scale`)
         before taking their p-values: with slow noise the asymptotic tails are too light (on the paper's
         noise, pole 0.95, each test at 0.5 % fires on about 0.75 % of records; at pole 0.99 the step test
-        on 2.2 %).  Where those scales still leave a report, the records of a longer fitted AR
+        on 2.2 %).  For a test those scales still leave reporting, the records of a longer fitted AR
         (:func:`null_noise_order`, :data:`NULL_NOISE_ORDER`) are tested too and the larger scale taken: what the
         AR(p) terms leave coloured (a drift under white measurement noise) is scaled out as well.  Default
         False: the asymptotic p-values, as before.
@@ -537,12 +537,15 @@ def unexplained_disturbance(d: np.ndarray, sample_time: float = 1.0, alpha: floa
         scale_step = design.null_scale(dz, trim, draws, rng, step_column, "step")
         scale_drift = design.null_scale(dz, trim, draws, rng, trend, "drift")
         order = null_noise_order(p, rows.shape[0])
-        # And on the longer AR's records (NULL_NOISE_ORDER), the larger scale of the two: only where the AR(p)'s
-        # scales still leave a report, since a larger scale can only take one away (the decision is the same; an
-        # output not reported keeps the p-values of the AR(p)'s scales).
-        if order > p and min(_p_values(w_step / scale_step, w_drift / scale_drift, searched, trim)) < alpha:
-            scale_step = max(scale_step, design.null_scale(dz, trim, draws, rng, step_column, "step", order))
-            scale_drift = max(scale_drift, design.null_scale(dz, trim, draws, rng, trend, "drift", order))
+        # And on the longer AR's records (NULL_NOISE_ORDER), the larger scale of the two: only for a test that the
+        # AR(p)'s scale still leaves reporting, since a larger scale can only take a report away (the decisions
+        # are the same; a test that does not report keeps the p-value of the AR(p)'s scale).
+        if order > p:
+            still = [x < alpha for x in _p_values(w_step / scale_step, w_drift / scale_drift, searched, trim)]
+            if still[0]:
+                scale_step = max(scale_step, design.null_scale(dz, trim, draws, rng, step_column, "step", order))
+            if still[1]:
+                scale_drift = max(scale_drift, design.null_scale(dz, trim, draws, rng, trend, "drift", order))
         p_step, p_drift = _p_values(w_step / scale_step, w_drift / scale_drift, searched, trim)
     out.update(p_step=p_step, p_drift=p_drift, p_value=min(p_step, p_drift), tested=True,
                null_scale_step=scale_step, null_scale_drift=scale_drift, calibrated=bool(calibrate))
