@@ -73,3 +73,15 @@ def test_the_scores_after_count_the_reruns():
     s = summarise(records + [still])
     assert s["dithered_inputs_that_did_not_move"] == 1
     assert s["median_relative_amplitude"] == 0.4 and s["relative_amplitude_quartiles"][1] == 0.4
+
+
+def test_small_loops_have_one_to_three_outputs_and_inputs_and_exclude_still(capsys):
+    from bench import experiment_mc
+    from bench.scenarios import SMALL
+
+    shapes = {(make_scenario(0, k, SMALL).plant.n_outputs, make_scenario(0, k, SMALL).plant.n_inputs)
+              for k in range(40)}
+    assert shapes <= {(i, j) for i in (1, 2, 3) for j in (1, 2, 3)} and (1, 2) in shapes and (2, 3) in shapes
+    with pytest.raises(SystemExit) as exit_:
+        experiment_mc.main(["--still", "--small"])
+    assert exit_.value.code == 2 and "--still and --small: choose one" in capsys.readouterr().err
