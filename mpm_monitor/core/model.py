@@ -424,10 +424,16 @@ def _step_response_summary(sr: np.ndarray, ramp: tuple, ts: float):
     return gain, delay
 
 
+def element_where(outputs, columns, i: int, j: int) -> str:
+    """``row 2 (y2), column 1 (u1)`` for messages: the entry ``(i, j)`` (0-based) of an outputs x columns matrix,
+    with its channels' names (``?`` beyond the names given)."""
+    return (f"row {i + 1} ({outputs[i] if i < len(outputs) else '?'}), "
+            f"column {j + 1} ({columns[j] if j < len(columns) else '?'})")
+
+
 def _where(model, i: int, j: int) -> str:
     """``row 2 (y2), column 1 (u1)`` for messages."""
-    cols = model.columns
-    return f"row {i + 1} ({model.outputs[i]}), column {j + 1} ({cols[j] if j < len(cols) else '?'})"
+    return element_where(model.outputs, model.columns, i, j)
 
 
 def _check_names(source: str, key: str, names, allow_empty: bool = False) -> None:
@@ -546,9 +552,8 @@ def validate_step_response(model: PlantModel, source: str = "model") -> None:
             f"got shape {'x'.join(str(s) for s in sr.shape) or 'scalar'}")
     if not np.all(np.isfinite(sr)):
         i, j, k = np.argwhere(~np.isfinite(sr))[0]
-        cols = model.inputs + model.disturbances
         raise ModelFileError(
-            f"{source}: key 'step_response': row {i + 1} ({model.outputs[i]}), column {j + 1} ({cols[j]}), "
+            f"{source}: key 'step_response': {_where(model, i, j)}, "
             f"coefficient {k + 1}: expected a finite number, got {sr[i, j, k]}")
     if len(model.ramp) != ny:
         raise ModelFileError(f"{source}: key 'ramp': expected one true/false per output ({ny}), got {len(model.ramp)}")

@@ -19,7 +19,7 @@ import numpy as np
 import yaml
 
 from ..core.errors import ModelFileError
-from ..core.model import NOMINAL_KEYS, PlantModel
+from ..core.model import NOMINAL_KEYS, PlantModel, element_where
 from .files import read_text, write_text_replacing
 from .yaml_nesting import nests_deeper
 
@@ -35,13 +35,9 @@ def _matrix(data: Mapping, key: str, source: str, names: Optional[tuple] = None)
 
 
 def _cell(names: Optional[tuple], i: int, j: int) -> str:
-    """``row i (name), column j (name)`` of a matrix entry (1-based), the names from ``names`` = (outputs,
-    columns) where it has them."""
-    if names is None:
-        return f"row {i + 1}, column {j + 1}"
-    outputs, columns = names
-    return (f"row {i + 1} ({outputs[i] if i < len(outputs) else '?'}), "
-            f"column {j + 1} ({columns[j] if j < len(columns) else '?'})")
+    """``row 1 (y1), column 2 (u2)`` of a matrix entry (:func:`~mpm_monitor.core.model.element_where`), the names
+    from ``names`` = (outputs, columns); ``row 1, column 2`` without them."""
+    return f"row {i + 1}, column {j + 1}" if names is None else element_where(*names, i, j)
 
 
 def _rows(val: Sequence, key: str, source: str, what: str, entry, names: Optional[tuple] = None) -> list:

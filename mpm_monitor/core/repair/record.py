@@ -319,7 +319,7 @@ def _set_up(model: PlantModel, data: LoggedData, options: RepairOptions,
     elif signals is None:
         signals = compute_signals(model, data.r, data.u, y, initial_state=options.initial_state, dv=data.dv)
     d0 = np.asarray(signals.d, float)
-    n_hold = int(round(options.holdout_fraction * n))
+    n_hold = _holdout_samples(n, options)
     n_fit = n - n_hold
     rec = _Record(model=model, data=data, u=u, y=y, signals=signals, d0=d0, settings=_TestSettings.of(options),
                   n_fit=n_fit, holdout_before={}, segments=segments, delays=dict(delays or {}))
@@ -334,12 +334,17 @@ def _min_fit(model: PlantModel, options: RepairOptions) -> int:
     return max(200, 20 * (2 * model.n_columns + options.noise_order + 5))
 
 
+def _holdout_samples(n: int, options: RepairOptions) -> int:
+    """The samples at the end of a record of ``n`` held out of the fit to validate the repair (:func:`_set_up`)."""
+    return int(round(options.holdout_fraction * n))
+
+
 def samples_for_repair(model: PlantModel, options: RepairOptions) -> int:
     """The fewest samples of a record on which the repair re-estimates located elements: a fit part of
-    :func:`_min_fit` samples once the held-out last ``holdout_fraction`` is set apart (as :func:`_set_up` splits)."""
+    :func:`_min_fit` samples once the held-out last ``holdout_fraction`` is set apart (:func:`_holdout_samples`)."""
     min_fit = _min_fit(model, options)
     n = min_fit
-    while n - int(round(options.holdout_fraction * n)) < min_fit:
+    while n - _holdout_samples(n, options) < min_fit:
         n += 1
     return n
 
