@@ -360,3 +360,43 @@ def test_an_element_explained_only_by_released_ones_is_released_with_them(monkey
     assert report.rows[0].mismatch is True
     assert len(report.warnings) == 1 and "does not confirm it (p = 0.6)" in report.warnings[0]
     assert report.warnings[0].endswith("not reported as located, nor u2, which it explained")
+
+
+def test_the_repairs_noise_order_follows_a_raised_na_as_far_as_the_record_allows():
+    """The repair's AR noise model has the tests' ARX order where that is above 4, lowered (not below 4) until the
+    record holds the repair's fit part (samples_for_repair)."""
+    from mpm_monitor.core.pipeline import repair_noise_order
+    from mpm_monitor.core.repair.record import samples_for_repair
+
+    model = paper_case("3.2").model
+    need = {p: samples_for_repair(model, RepairOptions(noise_order=p)) for p in range(4, 17)}
+    assert need[4] < need[8] < need[16]
+    assert repair_noise_order(4, model, 3000) == 4 and repair_noise_order(2, model, 3000) == 4
+    assert repair_noise_order(8, model, 3000) == 8 and repair_noise_order(16, model, 3000) == 16
+    assert repair_noise_order(16, model, need[16]) == 16
+    assert repair_noise_order(16, model, need[16] - 1) == 15
+    assert repair_noise_order(16, model, need[9]) == 9
+    assert repair_noise_order(16, model, need[4] - 1) == 4       # too short even for 4: the repair says so itself
+
+
+def test_under_a_drift_the_repairs_interval_holds_the_plants_gain_where_four_lags_did_not():
+    """bench.drift_intervals' Wood-Berry loop (steps regime, drift 0.005 under white noise 0.02, seed 9): the drift
+    raises na to 8; the repair fitted with the tests' 8 lags has a 99.9 % interval of the mismatched gain that holds
+    the plant's, where its fit with 4 lags (the order before stop 97) excluded it.  The disturbance tests keep 4
+    lags either way: the same (no) disturbances."""
+    from bench.drift_mc import loop
+    from bench.quiet_loops import plant_of
+
+    model, _, data, truth, _ = loop("wood-berry", True, 9, "a0.005", "steps")
+    plant = plant_of("wood-berry", True)[1]
+    gain = float(plant.gain[1, 1])
+    report = analyze(model, data)
+    assert report.noise_order["na"] == 8 and report.repair["noise_order"] == 8
+    (change,) = report.repair["changes"]
+    assert [change["output"], change["input"]] == truth[0] and change["kind"] == "gain" and change["applied"]
+    lo, hi = change["interval"]["gain"]
+    assert lo <= gain <= hi
+    four = repair_model(model, data, [(1, 1)], RepairOptions(noise_order=4))
+    lo4, hi4 = four.changes[0]["interval"]["gain"]
+    assert not lo4 <= gain <= hi4
+    assert four.disturbances == report.repair["disturbances"] == []

@@ -234,6 +234,8 @@ def test_signals_argument_is_used(clean_shell_log):
     ({"min_relative_change": 1.5}, "min_relative_change"),
     ({"disturbance_alpha": 0.0}, "disturbance_alpha"),
     ({"disturbance_trim": 0.01}, "disturbance_trim"),
+    ({"disturbance_noise_order": 51}, "disturbance_noise_order: expected None or an integer in"),
+    ({"disturbance_noise_order": 4.0}, "disturbance_noise_order"),
     ({"initial_state": "guess"}, "initial_state"),
     ({"refit_on_all": "yes"}, "refit_on_all"),
     ({"max_sweeps": 0}, "max_sweeps"),
@@ -241,6 +243,12 @@ def test_signals_argument_is_used(clean_shell_log):
 def test_options_are_validated(kwargs, match):
     with pytest.raises(ConfigurationError, match=match):
         RepairOptions(**kwargs)
+
+
+def test_the_disturbance_tests_take_their_own_order_or_the_fits():
+    assert RepairOptions().test_order == 4 and RepairOptions(noise_order=8).test_order == 8
+    assert RepairOptions(noise_order=16, disturbance_noise_order=4).test_order == 4
+    assert RepairOptions(noise_order=0, disturbance_noise_order=0).test_order == 0
 
 
 def test_bad_located_element_is_refused(clean_shell_log):

@@ -60,7 +60,8 @@ def analyze(model: PlantModel, data: LoggedData, options: AnalysisOptions = Anal
 
     While a row's element-test residual is coloured, the detection runs again with ``na`` doubled, up
     to ``options.max_na`` (:func:`_raise_noise_order`, :mod:`mpm_monitor.core.noise_order`); the repair
-    and the detection of the repaired model use the order the report was made with.
+    and the detection of the repaired model use the order the report was made with (the repair's AR noise
+    model at least its default order, :func:`repair_noise_order`).
 
     Returns
     -------
@@ -261,7 +262,10 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
     delays = {key: int(e.delay) for key, e in zip(located, mismatched) if e.delay is not None}
     span, note = repair_data(wide_data, report.gaps is not None, options, wide)
     max_gap = None if report.gaps is None else report.gaps["max_gap"]    # the model runs through the short gaps
-    repair_options = RepairOptions(initial_state=options.initial_state, max_gap=max_gap)
+    # The fits' noise model follows a raised na; the disturbance tests keep their 4 AR terms (repair_noise_order).
+    repair_options = RepairOptions(initial_state=options.initial_state, max_gap=max_gap,
+                                   noise_order=repair_noise_order(options.na, wide, span.n_samples),
+                                   disturbance_noise_order=RepairOptions().noise_order)
     span_signals = report.signals if (span is wide_data or not names) else None
     classified = None
     if joint:
@@ -640,6 +644,42 @@ def _release(report: AnalysisReport, released: dict, model: PlantModel) -> None:
             f"together with {', '.join(by)} {'it does' if len(elements) == 1 else 'they do'} not differ "
             f"significantly from the model: {', '.join(by)} explain{'s' if len(by) == 1 else ''} the row's "
             f"mismatch, and {'it is' if len(elements) == 1 else 'they are'} not reported as located.")
+
+
+def repair_noise_order(na: int, model: PlantModel, n_samples: int) -> int:
+    """The order of the AR noise model of the repair's fits and held-out check: the tests' ARX order ``na`` where
+    it is above the repair's default (:attr:`RepairOptions.noise_order`, 4), as far as a record of ``n_samples``
+    allows.  (The repair's disturbance tests keep 4 AR terms, :attr:`RepairOptions.disturbance_noise_order`.)
+
+    ``na`` is raised above 4 where the element test's residuals are coloured (:mod:`mpm_monitor.core.noise_order`),
+    most often by a slow drift under white measurement noise, an ARMA(1, 1) whose inverse needs 15 or more lags.
+    The repair's fit is a prediction-error fit in closed loop: with a noise model that leaves such colour its
+    intervals are too narrow and its likelihood-ratio tests too liberal (an outside check's PI and LQ loops under a
+    drift: 99.9 % intervals missed the true gain in 30 of 240 repairs with 4 lags, none with 16; docs/benchmarks.md,
+    "The repair's noise order under a drift").  The order is lowered (not below the default) until the record holds
+    the fit part the repair needs (:func:`~mpm_monitor.core.repair.record.samples_for_repair`), so that a short
+    record is repaired as before.
+
+    Parameters
+    ----------
+    na : int
+        The ARX order the detection ran with (raised or not).
+    model : PlantModel
+        The model repaired (its columns count in the samples needed).
+    n_samples : int
+        Samples of the record the repair fits.
+
+    Returns
+    -------
+    int
+    """
+    from .repair.record import samples_for_repair
+
+    base = RepairOptions().noise_order
+    order = max(base, int(na))
+    while order > base and samples_for_repair(model, RepairOptions(noise_order=order)) > n_samples:
+        order -= 1
+    return order
 
 
 def repair_data(data: LoggedData, gappy: bool, options: AnalysisOptions, model: PlantModel) -> tuple:

@@ -30,7 +30,11 @@ class RepairOptions:
         element the model does not have (gain 0) the search runs from 0 to the row's largest
         delay plus this many samples.
     noise_order : int
-        Order ``p`` of the AR noise model ``A(q)`` of the prediction-error fit (0 = output error).
+        Order ``p`` of the AR noise model ``A(q)`` of the prediction-error fit (0 = output error) and of the
+        held-out check's one-step errors (and of the disturbance tests, unless ``disturbance_noise_order``).
+        :func:`~mpm_monitor.core.pipeline.analyze` sets it to the tests' ``na`` where that is larger
+        (:func:`~mpm_monitor.core.pipeline.repair_noise_order`): 4 lags leave a slow drift under white noise
+        coloured, and the intervals too narrow.
     confidence_level : float
         Level of the reported intervals and of the "significant change" decisions, in (0.5, 1): a
         parameter changed when the model's value lies outside its interval.  The default 0.999 is
@@ -46,6 +50,12 @@ class RepairOptions:
         False-alarm probability of the unexplained-disturbance checks, all outputs together (Holm's
         procedure over the outputs; each output's check split equally between the step and the drift
         test), in (0, 0.5).
+    disturbance_noise_order : int or None
+        AR terms of the unexplained-disturbance tests' regressions (None: ``noise_order``), in [0, 50].
+        :func:`~mpm_monitor.core.pipeline.analyze` keeps them at 4 when it raises ``noise_order``: their
+        confirmation on a longer AR holds what 4 lags leave (:mod:`.disturbance`), and each simulated record's
+        regression costs the square of its columns (16 lags: a log with a step on each of 20 outputs took 25.8 s
+        where 4 take 10.2 s).
     disturbance_trim : float
         Fraction of the record at each end where a step is not searched (sup-Wald trimming), in
         [0.05, 0.3].
@@ -97,6 +107,7 @@ class RepairOptions:
     min_relative_change: float = 0.05
     refit_on_all: bool = True
     disturbance_alpha: float = 0.01
+    disturbance_noise_order: Optional[int] = None
     disturbance_trim: float = 0.15
     disturbance_draws: int = 200
     disturbance_seed: int = 0
@@ -110,6 +121,11 @@ class RepairOptions:
 
     def __post_init__(self):
         check_repair_options(self)
+
+    @property
+    def test_order(self) -> int:
+        """The AR terms of the disturbance tests: ``disturbance_noise_order``, or ``noise_order``."""
+        return self.noise_order if self.disturbance_noise_order is None else int(self.disturbance_noise_order)
 
 
 def is_int(x) -> bool:
@@ -130,6 +146,10 @@ def check_repair_options(opts: RepairOptions) -> None:
                                  f"got {opts.max_delay_shift!r}")
     if not (is_int(opts.noise_order) and 0 <= opts.noise_order <= 50):
         raise ConfigurationError(f"noise_order: expected an integer in [0, 50], got {opts.noise_order!r}")
+    if not (opts.disturbance_noise_order is None
+            or (is_int(opts.disturbance_noise_order) and 0 <= opts.disturbance_noise_order <= 50)):
+        raise ConfigurationError(f"disturbance_noise_order: expected None or an integer in [0, 50], "
+                                 f"got {opts.disturbance_noise_order!r}")
     if not (is_num(opts.confidence_level) and 0.5 < opts.confidence_level < 1.0):
         raise ConfigurationError(f"confidence_level: expected a number in (0.5, 1), got {opts.confidence_level!r}")
     if not (is_num(opts.min_relative_change) and 0.0 <= opts.min_relative_change < 1.0):

@@ -46,16 +46,16 @@ def _one_family(tests: dict, alpha: float) -> None:
 def _disturbance_test(d: np.ndarray, segments, scale: float, model: PlantModel, options: RepairOptions,
                       moves: bool, levels=None, calibrate: bool = False) -> dict:
     """:func:`unexplained_disturbance` of one output's prediction error ``d`` (shape (n_samples,)), as the
-    repair tests every output: at ``options``' level, trim and noise order, over the scored ``segments``
-    (None: every sample) and their ``levels`` (:attr:`~.record._Record.levels`), ``scale`` the output's
-    standard deviation; with ``calibrate``, confirmed on ``options.disturbance_draws`` simulated records
-    (seeded with ``options.disturbance_seed``).  An output that never moves (``moves`` false: a stuck
+    repair tests every output: at ``options``' level, trim and AR terms (:attr:`RepairOptions.test_order`), over
+    the scored ``segments`` (None: every sample) and their ``levels`` (:attr:`~.record._Record.levels`),
+    ``scale`` the output's standard deviation; with ``calibrate``, confirmed on ``options.disturbance_draws``
+    simulated records (seeded with ``options.disturbance_seed``).  An output that never moves (``moves`` false: a stuck
     sensor) is not tested: its prediction error is the model's own response."""
     if not moves:
         return not_tested()
     calibrate = calibrate and options.disturbance_draws > 0
     return unexplained_disturbance(d, model.sample_time, options.disturbance_alpha, options.disturbance_trim,
-                                   options.noise_order, segments=segments, scale=scale, levels=levels,
+                                   options.test_order, segments=segments, scale=scale, levels=levels,
                                    calibrate=calibrate, draws=options.disturbance_draws,
                                    rng=np.random.default_rng(options.disturbance_seed) if calibrate else None)
 
@@ -63,7 +63,7 @@ def _disturbance_test(d: np.ndarray, segments, scale: float, model: PlantModel, 
 def _test_settings_key(model: PlantModel, options: RepairOptions) -> tuple:
     """What a disturbance test depends on besides its prediction error, segments and scale."""
     return (float(model.sample_time), float(options.disturbance_alpha), float(options.disturbance_trim),
-            int(options.noise_order))
+            int(options.test_order))
 
 
 @dataclasses.dataclass

@@ -197,6 +197,7 @@ class RepairResult:
             "fit_samples": self.n_fit,
             "holdout_fraction": self.options.holdout_fraction,
             "confidence_level": self.options.confidence_level,
+            "noise_order": self.options.noise_order,
         })
 
 
