@@ -42,6 +42,8 @@ BENCHMARKS = [
      ["--paper-seeds", "2", "--runs", "10", "--kept", "1", "--jobs", "2"]),
     ("bench.quiet_loops", ["--seeds", "8", "--jobs", "2"], ["--seeds", "1", "--jobs", "2"]),
     ("bench.drift_mc", ["--seeds", "6", "--jobs", "2"], ["--seeds", "1", "--jobs", "2"]),
+    ("bench.drift_intervals", ["--seeds", "10", "--jobs", "2"],
+     ["--seeds", "1", "--jobs", "2", "--out", "bench/results/drift_intervals_quick.json"]),
     ("bench.quiet_rows", ["--runs", "150", "--jobs", "2"],
      ["--runs", "10", "--jobs", "2", "--out", "bench/results/quiet_rows_quick.json"]),
     ("bench.noise_free", ["--runs", "300", "--jobs", "2"], ["--runs", "20"]),

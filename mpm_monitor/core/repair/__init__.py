@@ -7,8 +7,9 @@ control engineer's next questions (paper section 4, "type and severity" of each 
 2. **Re-estimate.**  For each output row ``i`` with located elements ``J``, the elements
    ``j in J`` are fitted jointly to ``z_i = y_i - sum_{j not in J} Phat_ij u_j`` (the rest of the
    row held fixed, columns ``u`` being the inputs and measured disturbances) by a prediction-error
-   method with an AR noise model (Ljung, *System Identification*, 2nd ed., 1999, sections 7.2 and
-   13.4)::
+   method with an AR noise model ``A(q)`` of order ``noise_order`` (4; :func:`~mpm_monitor.core.pipeline.analyze`
+   gives it the tests' ``na`` where that was raised, :func:`~mpm_monitor.core.pipeline.repair_noise_order`) (Ljung,
+   *System Identification*, 2nd ed., 1999, sections 7.2 and 13.4)::
 
        e(k) = A(q) [ z_i(k) - sum_{j in J} G_j(q) u_j(k) - c' phi(k) ]
        G_j  = q^{-L_j} (K_j G_a(q; poles_j) + K_j lead_j G_b(q; poles_j))
