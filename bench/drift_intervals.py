@@ -141,7 +141,8 @@ def summarize(records: list) -> dict:
 
 def format_table(result: dict) -> str:
     s, cfg = result["summary"], result["config"]
-    lines = [f"the repair under a drift: the loops of bench.drift_mc, {cfg['seeds']} seeds x {len(cfg['plants'])} plants, "
+    lines = [f"the repair under a drift: the loops of bench.drift_mc, {cfg['seeds']} seeds x {len(cfg['plants'])} "
+             f"plants, "
              f"clean and mismatched, {cfg['samples']} samples, white noise {NOISE} + a drift (pole {DRIFT_POLE}) or "
              f"another disturbance; intervals at 99.9 %",
              "group  runs  intervals holding the plant (mismatched elements): gain  time constant  delay  | "
@@ -160,7 +161,8 @@ def format_table(result: dict) -> str:
         by = v["disturbances_clean_by_variant"]
         lines.append(f"{group}: kinds not right {wrong or 'none'}; intervals of elements located that are not "
                      f"mismatched: " + ", ".join(f"{p} {iv[p][0]}/{iv[p][1]}" for p in PARAMS)
-                     + "; clean loops with a disturbance reported: " + ", ".join(f"{k} {c[0]}/{c[1]}" for k, c in by.items()))
+                     + "; clean loops with a disturbance reported: "
+                     + ", ".join(f"{k} {c[0]}/{c[1]}" for k, c in by.items()))
     return "\n".join(lines)
 
 
