@@ -400,3 +400,23 @@ def test_under_a_drift_the_repairs_interval_holds_the_plants_gain_where_four_lag
     lo4, hi4 = four.changes[0]["interval"]["gain"]
     assert not lo4 <= gain <= hi4
     assert four.disturbances == report.repair["disturbances"] == []
+
+
+def test_a_record_too_short_for_the_tests_na_lowers_the_repairs_order_and_says_so():
+    """500 samples of a drifting Wood-Berry loop analysed with na = 16: the repair's fit part holds 9 lags at most
+    (samples_for_repair), and a warning says the noise model is shorter than the tests'."""
+    from bench.drift_mc import NOISE, drift
+    from bench.quiet_loops import STEPS, plant_of
+    from mpm_monitor.sim.plant import DisturbanceOptions
+
+    model, plant, mpc, _, _ = plant_of("wood-berry", True)
+    data = run_closed_loop(plant, model, 500, seed=9, mpc=mpc, excitation=STEPS,
+                           output_disturbance=drift("wood-berry", True, 9, 0.005, 2)[:500],
+                           disturbance=DisturbanceOptions(disturbance_std=0.0, noise_std=NOISE)).as_logged_data("short")
+    report = analyze(model, data, AnalysisOptions(na=16))
+    assert report.noise_order["na"] == 16 and report.repair["noise_order"] == 9
+    want = ("The repair's noise model has 9 lags where the tests ran with na = 16: the record (500 samples) is too "
+            "short for more")
+    assert any(w.startswith(want) for w in report.repair["warnings"]) and any(w.startswith(want) for w in report.warnings)
+    full = analyze(model, data, AnalysisOptions(na=4, max_na=4))     # nothing lowered: no such warning
+    assert full.repair["noise_order"] == 4 and not any("noise model has" in w for w in full.warnings)

@@ -324,6 +324,10 @@ def _repair_and_report(model: PlantModel, data: LoggedData, options: AnalysisOpt
     if refused is not None:
         doc["warnings"].append(refused)
         warnings.append(refused)
+    short = _short_noise_order(options.na, repair_options.noise_order, span.n_samples) if located else None
+    if short is not None:
+        doc["warnings"].append(short)
+        warnings.append(short)
     if again:
         doc["second_round"] = [x for _, x in again]
         for o in dict.fromkeys(x["output"] for _, x in again):
@@ -680,6 +684,16 @@ def repair_noise_order(na: int, model: PlantModel, n_samples: int) -> int:
     while order > base and samples_for_repair(model, RepairOptions(noise_order=order)) > n_samples:
         order -= 1
     return order
+
+
+def _short_noise_order(na: int, order: int, n_samples: int) -> Optional[str]:
+    """The warning of a repair whose noise order :func:`repair_noise_order` lowered below the tests' ``na`` (the
+    record too short for more), or None."""
+    if order >= int(na):
+        return None
+    return (f"The repair's noise model has {order} lags where the tests ran with na = {na}: the record ({n_samples} "
+            f"samples) is too short for more; where a slow drift or coloured disturbance is what raised na, the "
+            f"repair's intervals may be too narrow and its kinds too ready to call a parameter changed")
 
 
 def repair_data(data: LoggedData, gappy: bool, options: AnalysisOptions, model: PlantModel) -> tuple:
