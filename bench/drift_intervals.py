@@ -30,7 +30,6 @@ Run: ``python -m bench.drift_intervals [--seeds 6] [--jobs 2] [--out bench/resul
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from collections import Counter
 from typing import Optional, Sequence
@@ -40,8 +39,8 @@ import numpy as np
 from mpm_monitor.core.analysis import AnalysisOptions
 from mpm_monitor.core.pipeline import analyze
 
-from . import map_runs, write_json
-from .drift_mc import DRIFT_POLE, DRIFTS, NOISE, REGIMES, loop, variants
+from . import write_json
+from .drift_mc import DRIFT_POLE, DRIFTS, NOISE, REGIMES, loop, loop_keys, run_loops
 from .quiet_loops import PLANTS, SAMPLES, plant_of
 
 DEFAULT_OUT = "bench/results/drift_intervals.json"
@@ -167,18 +166,10 @@ def format_table(result: dict) -> str:
 
 
 def run(seeds: int, jobs: int = 1) -> dict:
-    tasks = [(p, m, s, d, g) for g in REGIMES for p in PLANTS for m in (False, True) for s in range(seeds)
-             for d in variants(g)]
-
-    def progress(done, total, rec):
-        if done % 24 == 0 or done == total:
-            print(f"  {done}/{total}", file=sys.stderr, flush=True)
-
-    t0 = time.perf_counter()
-    records = map_runs(_star, tasks, jobs, progress)
+    records, seconds = run_loops(_star, loop_keys(seeds), jobs, 24)
     return {"config": {"seeds": seeds, "samples": SAMPLES, "drifts": DRIFTS, "drift_pole": DRIFT_POLE, "noise": NOISE,
                        "regimes": list(REGIMES), "plants": list(PLANTS)},
-            "seconds": time.perf_counter() - t0, "summary": summarize(records), "records": records}
+            "seconds": seconds, "summary": summarize(records), "records": records}
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

@@ -276,21 +276,32 @@ def format_table(result: dict) -> str:
     return "\n".join(lines)
 
 
-def run(seeds: int, jobs: int = 1, overrides: Optional[dict] = None) -> dict:
-    overrides = dict(overrides or {})
-    AnalysisOptions(repair=False, **overrides)  # a wrong key or value fails here, not in every run
-    tasks = [(p, m, s, d, overrides, g) for g in REGIMES for p in PLANTS for m in (False, True) for s in range(seeds)
-             for d in variants(g)]
+def loop_keys(seeds: int) -> list:
+    """``(plant, mismatched, seed, variant, regime)`` of every loop of ``seeds`` seeds, in the records' order."""
+    return [(p, m, s, d, g) for g in REGIMES for p in PLANTS for m in (False, True) for s in range(seeds)
+            for d in variants(g)]
 
+
+def run_loops(star, tasks: list, jobs: int, every: int) -> tuple:
+    """``(records, seconds)``: :func:`bench.map_runs` of ``star`` over ``tasks``, its progress every ``every`` runs
+    on stderr."""
     def progress(done, total, rec):
-        if done % 12 == 0 or done == total:
+        if done % every == 0 or done == total:
             print(f"  {done}/{total}", file=sys.stderr, flush=True)
 
     t0 = time.perf_counter()
-    records = map_runs(_star, tasks, jobs, progress)
+    records = map_runs(star, tasks, jobs, progress)
+    return records, time.perf_counter() - t0
+
+
+def run(seeds: int, jobs: int = 1, overrides: Optional[dict] = None) -> dict:
+    overrides = dict(overrides or {})
+    AnalysisOptions(repair=False, **overrides)  # a wrong key or value fails here, not in every run
+    tasks = [(p, m, s, d, overrides, g) for p, m, s, d, g in loop_keys(seeds)]
+    records, seconds = run_loops(_star, tasks, jobs, 12)
     return {"config": {"seeds": seeds, "samples": SAMPLES, "drifts": DRIFTS, "other_disturbances": list(OTHER_DISTURBANCES), "drift_pole": DRIFT_POLE,
                        "noise": NOISE, "regimes": list(REGIMES), "plants": list(PLANTS), "overrides": overrides},
-            "seconds": time.perf_counter() - t0, "summary": summarize(records), "records": records}
+            "seconds": seconds, "summary": summarize(records), "records": records}
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
