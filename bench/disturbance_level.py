@@ -53,20 +53,22 @@ DRIFT_NOISE_POWER = tuple((kind, 0.95, size) for kind, size in (("step", 0.5), (
 LOOP_SAMPLES = 4000
 
 
-def paper_noise(rng: np.random.Generator, n: int, pole: float) -> np.ndarray:
-    """The paper's output disturbance and measurement noise, shape (n,), from its stationary state (a burn-in of
-    ``5 / (1 - pole)`` samples)."""
+def _ar1_under_white(rng: np.random.Generator, n: int, pole: float, innovation: float, white: float) -> np.ndarray:
+    """Shape (n,): white noise of ``innovation`` through ``1 / (1 - pole q^-1)`` from its stationary state (a burn-in
+    of ``5 / (1 - pole)`` samples), plus white noise of ``white`` (drawn in that order)."""
     burn = int(np.ceil(5.0 / (1.0 - pole)))
-    w = rng.normal(0.0, 7.5e-3, n + burn)
-    return lfilter([1.0], [1.0, -pole], w)[burn:] + rng.normal(0.0, 5e-3, n)
+    w = rng.normal(0.0, innovation, n + burn)
+    return lfilter([1.0], [1.0, -pole], w)[burn:] + rng.normal(0.0, white, n)
+
+
+def paper_noise(rng: np.random.Generator, n: int, pole: float) -> np.ndarray:
+    """The paper's output disturbance and measurement noise, shape (n,): innovation 7.5e-3, measurement 5e-3."""
+    return _ar1_under_white(rng, n, pole, 7.5e-3, 5e-3)
 
 
 def drift_noise(rng: np.random.Generator, n: int, pole: float) -> np.ndarray:
-    """A slow drift under white measurement noise, shape (n,): white noise of 5e-3 through ``1 / (1 - pole
-    q^-1)`` from its stationary state plus white noise of 2e-2."""
-    burn = int(np.ceil(5.0 / (1.0 - pole)))
-    w = rng.normal(0.0, 5e-3, n + burn)
-    return lfilter([1.0], [1.0, -pole], w)[burn:] + rng.normal(0.0, 2e-2, n)
+    """A slow drift under white measurement noise, shape (n,): innovation 5e-3, measurement 2e-2."""
+    return _ar1_under_white(rng, n, pole, 5e-3, 2e-2)
 
 
 def run_one(seed: int, condition: int, draw: int, kind: str, pole: float, size: float, samples: int,

@@ -77,9 +77,9 @@ def scored_changes(model, plant, changes: list) -> list:
         truth = plant.element(i, j)
         held = {p: bool(lo - 1e-9 <= truth[p] <= hi + 1e-9) for p, (lo, hi) in (c.get("interval") or {}).items()
                 if p in PARAMS}
-        out.append({"element": [c["output"], c["input"]], "mismatched": true_kind(model, plant, i, j) is not None,
-                    "true_kind": true_kind(model, plant, i, j), "kind": c["kind"], "applied": bool(c.get("applied")),
-                    "held": held})
+        kind = true_kind(model, plant, i, j)
+        out.append({"element": [c["output"], c["input"]], "mismatched": kind is not None, "true_kind": kind,
+                    "kind": c["kind"], "applied": bool(c.get("applied")), "held": held})
     return out
 
 

@@ -262,6 +262,7 @@ def model_from_dict(data: Any, source: str = "model") -> PlantModel:
                   disturbances=disturbances, input_nominal=_vector(data, "input_nominal", source),
                   output_nominal=_vector(data, "output_nominal", source),
                   disturbance_nominal=_vector(data, "disturbance_nominal", source), name=name)
+    cells = (outputs, inputs + disturbances)           # a matrix entry's message names its channels
     try:
         if "step_response" in data:
             for key in PARAMETRIC_ONLY:
@@ -270,13 +271,11 @@ def model_from_dict(data: Any, source: str = "model") -> PlantModel:
                     raise ModelFileError(
                         f"{source}: key '{key}': a step-response model (key 'step_response') has no {key}: give "
                         f"either the step responses or the parametric elements")
-            return PlantModel.from_step_response(coefficients=_step_response(data, source,
-                                                                             (outputs, inputs + disturbances)),
+            return PlantModel.from_step_response(coefficients=_step_response(data, source, cells),
                                                  ramp=_bool_vector(data, "ramp", source), **common)
         if data.get("ramp") is not None:
             raise ModelFileError(f"{source}: key 'ramp': only a step-response model (key 'step_response') takes a "
                                  f"ramp; an integrating parametric element is marked in 'integrating'")
-        cells = (outputs, inputs + disturbances)           # a matrix entry's message names its channels
         return PlantModel(
             gain=_matrix(data, "gain", source, cells), time_constant=_matrix(data, "time_constant", source, cells),
             delay=_matrix(data, "delay", source, cells),
